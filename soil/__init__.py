@@ -1,0 +1,28 @@
+"""soil: the DEM regolith model in NVIDIA Warp kernels (CPU or CUDA).
+
+    from soil import SoilBuilder, Material, Simulation
+    builder = SoilBuilder(gravity="phobos")
+    builder.add_material(Material(youngs_modulus=1e7))
+    builder.add_container((0, 0, 0), (0.1, 0.1, 0.1))
+    builder.add_particles(positions, radii)
+    model, state, control = builder.finalize(device="cpu", precision="mixed")
+    sim = Simulation(model, state, control)
+    sim.run(duration=1.0, dt=1e-4)
+"""
+
+from .builder import SoilBuilder
+from .contact import ContactLaw
+from .control import SoilControl
+from .gravity import GRAVITY_PRESETS, gravity_vector
+from .integrator import VelocityVerlet
+from .materials import Material, damping_ratio_for_restitution, restitution_of_damping_ratio
+from .model import SoilModel
+from .precision import PRECISIONS, get_precision
+from .simulation import Simulation, SimulationDiverged
+from .state import SoilState
+
+__all__ = [
+    "ContactLaw", "GRAVITY_PRESETS", "Material", "PRECISIONS", "Simulation", "SimulationDiverged",
+    "SoilBuilder", "SoilControl", "SoilModel", "SoilState", "VelocityVerlet",
+    "damping_ratio_for_restitution", "get_precision", "gravity_vector", "restitution_of_damping_ratio",
+]

@@ -1,0 +1,197 @@
+"""Build a soil scene (particles, materials, boundaries), then finalize it on a device."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import warp as wp
+
+from .contact import ContactLaw
+from .control import SoilControl
+from .gravity import gravity_vector
+from .kernels import BOUNDARY_BOX, BOUNDARY_PLANE
+from .materials import Material, MaterialTable
+from .model import SoilModel
+from .precision import get_precision
+from .state import SoilState
+
+
+class SoilBuilder:
+    """Collects particles, materials and boundaries; `finalize()` makes model, state, control."""
+
+    def __init__(self, gravity="earth"):
+        self.gravity = gravity_vector(gravity)
+        self.materials = MaterialTable()
+        self._positions: list[np.ndarray] = []
+        self._radii: list[np.ndarray] = []
+        self._material: list[np.ndarray] = []
+        self._velocity: list[np.ndarray] = []
+        self._spin: list[np.ndarray] = []
+        self._fixed: list[np.ndarray] = []
+        self._lock_rotation: list[np.ndarray] = []
+        self._boundaries: list[tuple[int, list[float], int]] = []
+
+    # -- materials ---------------------------------------------------------------
+    def add_material(self, material: Material) -> int:
+        """Register a material; returns its index."""
+        return self.materials.add(material)
+
+    def _material_index(self, material) -> int:
+        if isinstance(material, Material):
+            return self.add_material(material)
+        if not self.materials.materials:
+            self.add_material(Material())
+        index = int(material)
+        if not 0 <= index < len(self.materials.materials):
+            raise ValueError(f"material index must be in [0, {len(self.materials.materials)}), got {material!r}")
+        return index
+
+    # -- particles ---------------------------------------------------------------
+    @property
+    def particle_count(self) -> int:
+        return int(sum(len(r) for r in self._radii))
+
+    def add_particles(self, positions, radii, material=0, velocities=None, angular_velocities=None,
+                      fixed=False, lock_rotation=False) -> np.ndarray:
+        """Add spheres. positions [m] shape (n, 3); radii [m] shape (n,) or scalar.
+
+        Returns the builder indices of the new particles, shape (n,).
+        """
+        positions = np.asarray(positions, dtype=np.float64).reshape(-1, 3)
+        n = len(positions)
+        radii = np.broadcast_to(np.asarray(radii, dtype=np.float64), (n,)).copy()
+        if not np.all(np.isfinite(positions)):
+            raise ValueError("particle positions must be finite [m]")
+        if not np.all(np.isfinite(radii) & (radii > 0)):
+            raise ValueError(f"particle radii must be finite and > 0 [m], got min {radii.min() if n else None}")
+
+        def vectors(values, name):
+            if values is None:
+                return np.zeros((n, 3))
+            values = np.broadcast_to(np.asarray(values, dtype=np.float64), (n, 3)).copy()
+            if not np.all(np.isfinite(values)):
+                raise ValueError(f"particle {name} must be finite")
+            return values
+
+        start = self.particle_count
+        self._positions.append(positions)
+        self._radii.append(radii)
+        self._material.append(np.full(n, self._material_index(material), dtype=np.int32))
+        self._velocity.append(vectors(velocities, "velocities [m/s]"))
+        self._spin.append(vectors(angular_velocities, "angular velocities [rad/s]"))
+        self._fixed.append(np.broadcast_to(np.asarray(fixed, dtype=bool), (n,)).copy())
+        self._lock_rotation.append(np.broadcast_to(np.asarray(lock_rotation, dtype=bool), (n,)).copy())
+        return np.arange(start, start + n)
+
+    def add_particle(self, position, radius, material=0, velocity=None, angular_velocity=None,
+                     fixed=False, lock_rotation=False) -> int:
+        """Add one sphere; returns its builder index."""
+        return int(self.add_particles([position], [radius], material, velocity, angular_velocity,
+                                      fixed, lock_rotation)[0])
+
+    # -- boundaries --------------------------------------------------------------
+    def add_plane(self, point, normal, material=0) -> int:
+        """Add a half-space wall through `point` [m]; particles stay on the side `normal` points to."""
+        point = np.asarray(point, dtype=np.float64).reshape(3)
+        normal = np.asarray(normal, dtype=np.float64).reshape(3)
+        length = np.linalg.norm(normal)
+        if not np.isfinite(length) or length == 0:
+            raise ValueError(f"plane normal must be a non-zero finite 3-vector, got {normal}")
+        self._boundaries.append((BOUNDARY_PLANE, [*point, *(normal / length)], self._material_index(material)))
+        return len(self._boundaries) - 1
+
+    def add_box(self, lower, upper, material=0) -> int:
+        """Add a solid axis-aligned box obstacle from `lower` to `upper` corner [m]."""
+        lower = np.asarray(lower, dtype=np.float64).reshape(3)
+        upper = np.asarray(upper, dtype=np.float64).reshape(3)
+        if not np.all(upper > lower):
+            raise ValueError(f"box upper corner must exceed lower corner on every axis, got {lower} .. {upper}")
+        self._boundaries.append((BOUNDARY_BOX, [*lower, *upper], self._material_index(material)))
+        return len(self._boundaries) - 1
+
+    def add_container(self, lower, upper, material=0, open_top=True) -> list[int]:
+        """Walls of a box-shaped container from `lower` to `upper` [m] (Z up)."""
+        lower = np.asarray(lower, dtype=np.float64).reshape(3)
+        upper = np.asarray(upper, dtype=np.float64).reshape(3)
+        if not np.all(upper > lower):
+            raise ValueError(f"container upper corner must exceed lower corner on every axis, got {lower} .. {upper}")
+        walls = [self.add_plane(lower, (0, 0, 1), material)]
+        for axis in range(2):
+            inward = np.zeros(3)
+            inward[axis] = 1.0
+            walls.append(self.add_plane(lower, inward, material))
+            walls.append(self.add_plane(upper, -inward, material))
+        if not open_top:
+            walls.append(self.add_plane(upper, (0, 0, -1), material))
+        return walls
+
+    # -- finalize ----------------------------------------------------------------
+    def finalize(self, device: str | None = None, precision="double", law: ContactLaw | None = None,
+                 contact_capacity: int = 16, order_seed: int | None = None):
+        """Create (model, state, control) on `device` ("cpu", "cuda:0", None = Warp's default).
+
+        law: contact-law switches; by default rolling and cohesion are on only if a
+        material uses them. contact_capacity: history slots per particle (grown
+        automatically when exceeded). order_seed: permute particle indices (changes
+        only the summation order, for scatter studies).
+        """
+        prec = get_precision(precision)
+        device = str(wp.get_device(device))
+        if self.particle_count == 0:
+            raise ValueError("the scene has no particles")
+        if not self.materials.materials:
+            self.add_material(Material())
+        if law is None:
+            mats = self.materials.materials
+            law = ContactLaw(rolling=any(m.rolling_friction > 0 for m in mats),
+                             cohesion=any(m.cohesion > 0 for m in mats))
+        if int(contact_capacity) < 1:
+            raise ValueError(f"contact_capacity must be >= 1, got {contact_capacity}")
+
+        positions = np.concatenate(self._positions)
+        radii = np.concatenate(self._radii)
+        material = np.concatenate(self._material)
+        velocity = np.concatenate(self._velocity)
+        spin = np.concatenate(self._spin)
+        fixed = np.concatenate(self._fixed)
+        locked = np.concatenate(self._lock_rotation)
+        order = np.arange(len(radii))
+        if order_seed is not None:
+            order = np.random.default_rng(order_seed).permutation(len(radii))
+        positions, radii, material, velocity, spin, fixed, locked = (
+            a[order] for a in (positions, radii, material, velocity, spin, fixed, locked))
+
+        density = np.array([self.materials.materials[m].density for m in material])
+        mass = density * (4.0 / 3.0) * math.pi * radii**3
+        inertia = 0.4 * mass * radii**2
+        inv_mass = np.where(fixed, 0.0, 1.0 / mass)
+        inv_inertia = np.where(fixed | locked, 0.0, 1.0 / inertia)
+
+        lo, hi = prec.np_lo, prec.np_hi
+        vec_hi = prec.vec_hi
+        kinds = np.array([b[0] for b in self._boundaries], dtype=np.int32)
+        geometry = np.array([b[1] for b in self._boundaries], dtype=hi).reshape(-1, 6)
+        bmat = np.array([b[2] for b in self._boundaries], dtype=np.int32)
+
+        model = SoilModel(
+            device=device, precision=prec, law=law, materials=self.materials, gravity=self.gravity.copy(),
+            particle_count=len(radii),
+            radius=wp.array(radii.astype(lo), dtype=prec.lo, device=device),
+            mass=wp.array(mass.astype(lo), dtype=prec.lo, device=device),
+            inv_mass=wp.array(inv_mass.astype(lo), dtype=prec.lo, device=device),
+            inv_inertia=wp.array(inv_inertia.astype(lo), dtype=prec.lo, device=device),
+            material=wp.array(material, dtype=wp.int32, device=device),
+            pair=wp.array(self.materials.pair_table().astype(lo), dtype=prec.lo, device=device),
+            boundary_kind=wp.array(kinds, dtype=wp.int32, device=device),
+            boundary_geometry=wp.array(geometry, dtype=prec.hi, device=device),
+            boundary_material=wp.array(bmat, dtype=wp.int32, device=device),
+            max_radius=float(radii.max()),
+            particle_order=order,
+        )
+        state = SoilState(len(radii), int(contact_capacity), vec_hi, device)
+        state.position.assign(positions.astype(hi))
+        state.velocity.assign(velocity.astype(hi))
+        state.angular_velocity.assign(spin.astype(hi))
+        control = SoilControl(len(radii), vec_hi, device)
+        return model, state, control

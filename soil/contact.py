@@ -1,0 +1,148 @@
+"""The contact law as Warp functions (DESIGN.md section 2), generic in precision.
+
+`make_contact_law(hi, lo, law)` returns a @wp.func that turns one contact (overlap,
+normal, relative motion, history) into the force and rolling torque on the particle.
+Terms that the ContactLaw switches off are removed at compile time (wp.static), so
+they cost nothing. Geometry and history use `hi`; the force law itself uses `lo`.
+"""
+
+
+import math
+from dataclasses import dataclass
+
+import warp as wp
+
+from .materials import (
+    PAIR_COHESION,
+    PAIR_DAMPING,
+    PAIR_E_STAR,
+    PAIR_G_STAR,
+    PAIR_ROLLING,
+    PAIR_STICK_SPEED,
+    PAIR_TAN_SLIP,
+    PAIR_TAN_STICK,
+)
+
+
+@dataclass(frozen=True)
+class ContactLaw:
+    """Which terms of the contact model a scene turns on."""
+
+    damping: bool = True
+    """Lehr normal damping and Kelvin tangential damping."""
+    friction: bool = True
+    """Tangential Kelvin element with stick/slip (phi_h, phi_g, v_Tmin)."""
+    rolling: bool = False
+    """Elastic-plastic rolling resistance torque, capped at mu_r R* |F_N|."""
+    cohesion: bool = False
+    """Cohesive attraction cohesion * pi R* delta inside the overlap."""
+
+
+_cache: dict = {}
+
+
+def make_contact_law(hi, lo, law: ContactLaw):
+    """The contact @wp.func for precision types (hi, lo) and the switches in `law`."""
+    key = (hi, lo, law)
+    if key in _cache:
+        return _cache[key]
+    vec_hi = wp.types.vector(3, hi)
+    DAMPING, FRICTION, ROLLING, COHESION = law.damping, law.friction, law.rolling, law.cohesion
+
+    @wp.func
+    def rotate_into_plane(h: vec_hi, n: vec_hi):
+        # History is kept in the tangent plane; when the normal turns, turn the history
+        # with it and keep its length (a frame-indifferent spring).
+        length_before = wp.length(h)
+        h = h - wp.dot(h, n) * n
+        length_after = wp.length(h)
+        if length_after > hi(0.0):
+            h = h * (length_before / length_after)
+        return h
+
+    @wp.func
+    def contact_law(
+        normal: vec_hi,
+        overlap: hi,
+        relative_velocity: vec_hi,
+        relative_spin: vec_hi,
+        radius_eff: lo,
+        mass_eff: lo,
+        pair: wp.array2d(dtype=lo),
+        row: int,
+        tangential_in: vec_hi,
+        rolling_in: vec_hi,
+        dt: hi,
+    ):
+        """Force [N] and rolling torque [N m] on particle i, and its new histories.
+
+        normal: unit vector from particle i towards its partner; overlap [m] > 0;
+        relative_velocity: velocity of i's contact point minus the partner's [m/s];
+        relative_spin: angular velocity of i minus the partner's [rad/s].
+        """
+        ov = lo(overlap)
+        sqrt_rd = wp.sqrt(radius_eff * ov)
+        e_star = pair[row, PAIR_E_STAR]
+        damping_ratio = pair[row, PAIR_DAMPING]
+        # Hertz: F = 4/3 E* sqrt(R*) delta^1.5, tangent stiffness k = 2 E* sqrt(R* delta).
+        normal_stiffness = lo(2.0) * e_star * sqrt_rd
+        fn = lo(4.0 / 3.0) * e_star * sqrt_rd * ov
+        approach_speed = wp.dot(relative_velocity, normal)
+        if wp.static(DAMPING):
+            # Lehr: c = 2 D sqrt(m* k), mass-scaled, so e does not depend on impact speed.
+            fn = fn + lo(2.0) * damping_ratio * wp.sqrt(mass_eff * normal_stiffness) * lo(approach_speed)
+        fn = wp.max(fn, lo(0.0))  # a contact pushes, it never pulls (cohesion aside)
+        force = -hi(fn) * normal
+        if wp.static(COHESION):
+            force = force + hi(pair[row, PAIR_COHESION] * lo(math.pi) * radius_eff * ov) * normal
+
+        tangential = vec_hi()
+        if wp.static(FRICTION):
+            vt = relative_velocity - approach_speed * normal
+            tangential = rotate_into_plane(tangential_in, normal) + vt * dt
+            kt = lo(8.0) * pair[row, PAIR_G_STAR] * sqrt_rd  # Mindlin tangential stiffness
+            kelvin = -(hi(kt) * tangential)
+            if wp.static(DAMPING):
+                kelvin = kelvin - hi(lo(2.0) * damping_ratio * wp.sqrt(mass_eff * kt)) * vt
+            vt_speed = wp.length(vt)
+            if wp.length(kelvin) <= hi(fn * pair[row, PAIR_TAN_STICK]) and vt_speed <= hi(pair[row, PAIR_STICK_SPEED]):
+                force = force + kelvin  # stick: the Kelvin element carries the load
+            else:
+                # slip: Coulomb force with the slip angle, opposing the sliding
+                direction = vec_hi()
+                if vt_speed > hi(0.0):
+                    direction = -vt / vt_speed
+                elif wp.length(kelvin) > hi(0.0):
+                    direction = wp.normalize(kelvin)
+                slip = hi(fn * pair[row, PAIR_TAN_SLIP]) * direction
+                force = force + slip
+                # the spring keeps the slip force, so a re-stick starts where slip ended
+                if kt > lo(0.0):
+                    tangential = -slip / hi(kt)
+                else:
+                    tangential = vec_hi()
+
+        rolling = vec_hi()
+        torque = vec_hi()
+        if wp.static(ROLLING):
+            mu_r = pair[row, PAIR_ROLLING]
+            spin = relative_spin - wp.dot(relative_spin, normal) * normal
+            rolling = rotate_into_plane(rolling_in, normal) + spin * dt
+            # elastic-plastic spring-dashpot rolling resistance (Ai et al. 2011)
+            kr = lo(2.25) * mu_r * mu_r * radius_eff * radius_eff * normal_stiffness
+            torque = -hi(kr) * rolling
+            limit = hi(mu_r * radius_eff * fn)
+            magnitude = wp.length(torque)
+            if magnitude > limit:
+                torque = torque * (limit / magnitude)
+                if kr > lo(0.0):
+                    rolling = -torque / hi(kr)
+                else:
+                    rolling = vec_hi()
+            elif wp.static(DAMPING):
+                inertia_eff = lo(1.4) * mass_eff * radius_eff * radius_eff
+                torque = torque - hi(lo(2.0) * damping_ratio * wp.sqrt(inertia_eff * kr)) * spin
+        return force, torque, tangential, rolling
+
+    _cache[key] = (contact_law, rotate_into_plane)
+    return _cache[key]

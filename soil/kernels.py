@@ -1,0 +1,265 @@
+"""Warp kernels of the soil: contact forces and time integration.
+
+One generic set of kernels serves every precision: `make_kernels(hi, lo, law)` closes
+over the types and the contact-law switches and is cached per combination. Kernel
+parameters come as inputs first, then outputs (suffix _out).
+
+Particle-particle forces are gathered: each particle sums the forces of its own
+contacts, in its own thread, with no atomics. Both particles of a pair evaluate the
+same contact with mirrored inputs and keep their own (mirrored) history. The sums are
+therefore independent of thread scheduling and runs repeat bit for bit.
+"""
+
+
+import warp as wp
+
+from .contact import ContactLaw, make_contact_law
+
+BOUNDARY_PLANE = 0
+"""Half-space: geometry row (point xyz, unit normal xyz); particles live on the normal's side."""
+BOUNDARY_BOX = 1
+"""Solid axis-aligned box: geometry row (lower corner xyz, upper corner xyz); particles stay outside."""
+
+_cache: dict = {}
+
+
+def make_kernels(hi, lo, law: ContactLaw):
+    """The soil kernels for precision types (hi, lo) and the contact-law switches."""
+    key = (hi, lo, law)
+    if key in _cache:
+        return _cache[key]
+    vec_hi = wp.types.vector(3, hi)
+    contact_law, _ = make_contact_law(hi, lo, law)
+
+    @wp.func
+    def boundary_contact(kind: int, geometry: wp.array2d(dtype=hi), b: int, x: vec_hi, radius: hi):
+        """Overlap [m] and unit normal (from the particle towards the boundary)."""
+        if kind == BOUNDARY_PLANE:
+            point = vec_hi(geometry[b, 0], geometry[b, 1], geometry[b, 2])
+            outward = vec_hi(geometry[b, 3], geometry[b, 4], geometry[b, 5])
+            return radius - wp.dot(x - point, outward), -outward
+        lower = vec_hi(geometry[b, 0], geometry[b, 1], geometry[b, 2])
+        upper = vec_hi(geometry[b, 3], geometry[b, 4], geometry[b, 5])
+        closest = wp.min(wp.max(x, lower), upper)
+        gap = x - closest
+        distance = wp.length(gap)
+        if distance > hi(0.0):
+            return radius - distance, -gap / distance
+        # centre inside the box: push out through the nearest face
+        best = upper[0] - x[0]
+        normal = vec_hi(hi(-1.0), hi(0.0), hi(0.0))
+        for axis in range(3):
+            to_upper = upper[axis] - x[axis]
+            to_lower = x[axis] - lower[axis]
+            if to_upper < best:
+                best = to_upper
+                normal = vec_hi()
+                normal[axis] = hi(-1.0)
+            if to_lower < best:
+                best = to_lower
+                normal = vec_hi()
+                normal[axis] = hi(1.0)
+        return radius + best, normal
+
+    @wp.func
+    def find_history(partner: wp.array2d(dtype=wp.int32), count: wp.array(dtype=wp.int32), i: int, key: int):
+        for k in range(count[i]):
+            if partner[i, k] == key:
+                return k
+        return -1
+
+    @wp.kernel(module="unique")
+    def contact_forces(
+        grid: wp.uint64,
+        x_in: wp.array(dtype=vec_hi),
+        v_in: wp.array(dtype=vec_hi),
+        w_in: wp.array(dtype=vec_hi),
+        radius: wp.array(dtype=lo),
+        inv_mass: wp.array(dtype=lo),
+        material: wp.array(dtype=wp.int32),
+        pair: wp.array2d(dtype=lo),
+        material_count: int,
+        boundary_kind: wp.array(dtype=wp.int32),
+        boundary_geometry: wp.array2d(dtype=hi),
+        boundary_material: wp.array(dtype=wp.int32),
+        external_force: wp.array(dtype=vec_hi),
+        search_radius: hi,
+        dt: hi,
+        partner_in: wp.array2d(dtype=wp.int32),
+        tangential_in: wp.array2d(dtype=vec_hi),
+        rolling_in: wp.array2d(dtype=vec_hi),
+        count_in: wp.array(dtype=wp.int32),
+        # outputs
+        force_out: wp.array(dtype=vec_hi),
+        torque_out: wp.array(dtype=vec_hi),
+        partner_out: wp.array2d(dtype=wp.int32),
+        tangential_out: wp.array2d(dtype=vec_hi),
+        rolling_out: wp.array2d(dtype=vec_hi),
+        count_out: wp.array(dtype=wp.int32),
+        overflow_out: wp.array(dtype=wp.int32),
+    ):
+        i = wp.tid()
+        particle_count = x_in.shape[0]
+        capacity = partner_out.shape[1]
+        xi = x_in[i]
+        ri = radius[i]
+        total_force = external_force[i]
+        total_torque = vec_hi()
+        stored = int(0)
+
+        neighbours = wp.hash_grid_query(grid, xi, search_radius)
+        for j in neighbours:
+            if j != i:
+                gap = x_in[j] - xi
+                distance = wp.length(gap)
+                rj = radius[j]
+                overlap = hi(ri + rj) - distance
+                inv_sum = inv_mass[i] + inv_mass[j]
+                if overlap > hi(0.0) and distance > hi(0.0) and inv_sum > lo(0.0):
+                    n = gap / distance
+                    lever_i = hi(ri) - hi(0.5) * overlap
+                    lever_j = hi(rj) - hi(0.5) * overlap
+                    v_rel = (v_in[i] + wp.cross(w_in[i], lever_i * n)) - (v_in[j] - wp.cross(w_in[j], lever_j * n))
+                    slot = find_history(partner_in, count_in, i, j)
+                    t_hist = vec_hi()
+                    r_hist = vec_hi()
+                    if slot >= 0:
+                        t_hist = tangential_in[i, slot]
+                        r_hist = rolling_in[i, slot]
+                    row = material[i] * material_count + material[j]
+                    f, m_roll, t_new, r_new = contact_law(
+                        n, overlap, v_rel, w_in[i] - w_in[j], ri * rj / (ri + rj), lo(1.0) / inv_sum,
+                        pair, row, t_hist, r_hist, dt)
+                    total_force = total_force + f
+                    total_torque = total_torque + wp.cross(lever_i * n, f) + m_roll
+                    if stored < capacity:
+                        partner_out[i, stored] = j
+                        tangential_out[i, stored] = t_new
+                        rolling_out[i, stored] = r_new
+                        stored += 1
+                    else:
+                        overflow_out[0] = 1
+
+        if inv_mass[i] > lo(0.0):
+            for b in range(boundary_kind.shape[0]):
+                overlap, n = boundary_contact(boundary_kind[b], boundary_geometry, b, xi, hi(ri))
+                if overlap > hi(0.0):
+                    lever_i = hi(ri) - overlap
+                    v_rel = v_in[i] + wp.cross(w_in[i], lever_i * n)
+                    key = particle_count + b
+                    slot = find_history(partner_in, count_in, i, key)
+                    t_hist = vec_hi()
+                    r_hist = vec_hi()
+                    if slot >= 0:
+                        t_hist = tangential_in[i, slot]
+                        r_hist = rolling_in[i, slot]
+                    row = material[i] * material_count + boundary_material[b]
+                    f, m_roll, t_new, r_new = contact_law(
+                        n, overlap, v_rel, w_in[i], ri, lo(1.0) / inv_mass[i], pair, row, t_hist, r_hist, dt)
+                    total_force = total_force + f
+                    total_torque = total_torque + wp.cross(lever_i * n, f) + m_roll
+                    if stored < capacity:
+                        partner_out[i, stored] = key
+                        tangential_out[i, stored] = t_new
+                        rolling_out[i, stored] = r_new
+                        stored += 1
+                    else:
+                        overflow_out[0] = 1
+
+        force_out[i] = total_force
+        torque_out[i] = total_torque
+        count_out[i] = stored
+
+    @wp.kernel(module="unique")
+    def kick_drift(
+        x_in: wp.array(dtype=vec_hi),
+        v_in: wp.array(dtype=vec_hi),
+        w_in: wp.array(dtype=vec_hi),
+        force_in: wp.array(dtype=vec_hi),
+        torque_in: wp.array(dtype=vec_hi),
+        inv_mass: wp.array(dtype=lo),
+        inv_inertia: wp.array(dtype=lo),
+        gravity: vec_hi,
+        dt: hi,
+        # outputs
+        x_out: wp.array(dtype=vec_hi),
+        v_out: wp.array(dtype=vec_hi),
+        w_out: wp.array(dtype=vec_hi),
+    ):
+        """Velocity Verlet, first half: half kick with the old forces, then a full drift."""
+        i = wp.tid()
+        inv_m = hi(inv_mass[i])
+        acceleration = force_in[i] * inv_m
+        if inv_m > hi(0.0):
+            acceleration = acceleration + gravity
+        v_half = v_in[i] + hi(0.5) * dt * acceleration
+        v_out[i] = v_half
+        w_out[i] = w_in[i] + hi(0.5) * dt * hi(inv_inertia[i]) * torque_in[i]
+        x_out[i] = x_in[i] + dt * v_half
+
+    @wp.kernel(module="unique")
+    def kick(
+        force_in: wp.array(dtype=vec_hi),
+        torque_in: wp.array(dtype=vec_hi),
+        inv_mass: wp.array(dtype=lo),
+        inv_inertia: wp.array(dtype=lo),
+        gravity: vec_hi,
+        dt: hi,
+        # in/out
+        v_io: wp.array(dtype=vec_hi),
+        w_io: wp.array(dtype=vec_hi),
+    ):
+        """Velocity Verlet, second half kick with the new forces."""
+        i = wp.tid()
+        inv_m = hi(inv_mass[i])
+        acceleration = force_in[i] * inv_m
+        if inv_m > hi(0.0):
+            acceleration = acceleration + gravity
+        v_io[i] = v_io[i] + hi(0.5) * dt * acceleration
+        w_io[i] = w_io[i] + hi(0.5) * dt * hi(inv_inertia[i]) * torque_in[i]
+
+    @wp.kernel(module="unique")
+    def elastic_energy(
+        grid: wp.uint64,
+        x_in: wp.array(dtype=vec_hi),
+        radius: wp.array(dtype=lo),
+        material: wp.array(dtype=wp.int32),
+        pair: wp.array2d(dtype=lo),
+        material_count: int,
+        boundary_kind: wp.array(dtype=wp.int32),
+        boundary_geometry: wp.array2d(dtype=hi),
+        boundary_material: wp.array(dtype=wp.int32),
+        search_radius: hi,
+        # outputs
+        energy_out: wp.array(dtype=hi),
+    ):
+        """Hertz strain energy (8/15) E* sqrt(R*) delta^2.5 per particle [J]; pairs split half-half."""
+        i = wp.tid()
+        xi = x_in[i]
+        ri = radius[i]
+        total = hi(0.0)
+        for j in wp.hash_grid_query(grid, xi, search_radius):
+            if j != i:
+                overlap = hi(ri + radius[j]) - wp.length(x_in[j] - xi)
+                if overlap > hi(0.0):
+                    r_eff = hi(ri * radius[j] / (ri + radius[j]))
+                    e_star = hi(pair[material[i] * material_count + material[j], 0])
+                    total += hi(0.5 * 8.0 / 15.0) * e_star * wp.sqrt(r_eff) * wp.pow(overlap, hi(2.5))
+        for b in range(boundary_kind.shape[0]):
+            overlap, n = boundary_contact(boundary_kind[b], boundary_geometry, b, xi, hi(ri))
+            if overlap > hi(0.0):
+                e_star = hi(pair[material[i] * material_count + boundary_material[b], 0])
+                total += hi(8.0 / 15.0) * e_star * wp.sqrt(hi(ri)) * wp.pow(overlap, hi(2.5))
+        energy_out[i] = total
+
+    kernels = dict(
+        contact_forces=contact_forces,
+        kick_drift=kick_drift,
+        kick=kick,
+        elastic_energy=elastic_energy,
+        contact_law=contact_law,
+        boundary_contact=boundary_contact,
+        find_history=find_history,
+    )
+    _cache[key] = kernels
+    return kernels

@@ -1,0 +1,70 @@
+"""The static soil model: everything that does not change while the soil moves."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+import warp as wp
+
+from .contact import ContactLaw
+from .materials import MaterialTable
+from .precision import Precision
+
+
+@dataclass
+class SoilModel:
+    """Particles' constants, materials, boundaries and the contact-law switches.
+
+    Built by `SoilBuilder.finalize()`. Arrays live on `device`; `hi`/`lo` are the
+    precision's types (see soil.precision).
+    """
+
+    device: str
+    precision: Precision
+    law: ContactLaw
+    materials: MaterialTable
+    gravity: np.ndarray
+    """Gravity vector [m/s^2], shape (3,)."""
+    particle_count: int
+    radius: wp.array
+    """Particle radii [m], shape (particle_count,), dtype lo."""
+    mass: wp.array
+    """Particle masses [kg], shape (particle_count,), dtype lo."""
+    inv_mass: wp.array
+    """Inverse masses [1/kg], shape (particle_count,), dtype lo; 0 for fixed particles."""
+    inv_inertia: wp.array
+    """Inverse moments of inertia [1/(kg m^2)], shape (particle_count,), dtype lo; 0 when rotation is locked."""
+    material: wp.array
+    """Material index per particle, shape (particle_count,), int32."""
+    pair: wp.array
+    """Pair contact parameters, shape (material_count**2, PAIR_COLUMNS), dtype lo (soil.materials)."""
+    boundary_kind: wp.array
+    """Boundary type per boundary (BOUNDARY_PLANE or BOUNDARY_BOX), shape (boundary_count,), int32."""
+    boundary_geometry: wp.array
+    """Boundary geometry rows [m], shape (boundary_count, 6), dtype hi (see soil.kernels)."""
+    boundary_material: wp.array
+    """Material index per boundary, shape (boundary_count,), int32."""
+    max_radius: float
+    """Largest particle radius [m]."""
+    particle_order: np.ndarray = field(default=None)
+    """Builder index of each model particle, shape (particle_count,), int64 (identity unless permuted)."""
+
+    @property
+    def material_count(self) -> int:
+        return len(self.materials.materials)
+
+    @property
+    def boundary_count(self) -> int:
+        return int(self.boundary_kind.shape[0])
+
+    @property
+    def search_radius(self) -> float:
+        """Neighbour search radius [m]: two of the largest radius."""
+        return 2.0 * self.max_radius
+
+    def radius_numpy(self) -> np.ndarray:
+        return self.radius.numpy().astype(np.float64)
+
+    def mass_numpy(self) -> np.ndarray:
+        return self.mass.numpy().astype(np.float64)

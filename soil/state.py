@@ -1,0 +1,88 @@
+"""The mutable soil state: what changes every step."""
+
+from __future__ import annotations
+
+import numpy as np
+import warp as wp
+
+
+class SoilState:
+    """Particle kinematics, the latest forces and the per-contact history.
+
+    Contact history is stored per particle in `capacity` slots keyed by the partner:
+    a particle index, or particle_count + boundary index for boundaries. Because the
+    key is the partner, history survives any rebuild of the neighbour grid.
+    """
+
+    def __init__(self, particle_count: int, capacity: int, vec_hi, device: str):
+        n = particle_count
+        self.position = wp.zeros(n, dtype=vec_hi, device=device)
+        """Particle centre positions [m], shape (particle_count,)."""
+        self.velocity = wp.zeros(n, dtype=vec_hi, device=device)
+        """Particle velocities [m/s], shape (particle_count,)."""
+        self.angular_velocity = wp.zeros(n, dtype=vec_hi, device=device)
+        """Particle angular velocities [rad/s], shape (particle_count,)."""
+        self.force = wp.zeros(n, dtype=vec_hi, device=device)
+        """Contact + external force on each particle at the state's time [N], shape (particle_count,)."""
+        self.torque = wp.zeros(n, dtype=vec_hi, device=device)
+        """Contact torque on each particle about its centre [N m], shape (particle_count,)."""
+        self.contact_partner = wp.full((n, capacity), -1, dtype=wp.int32, device=device)
+        """Partner key per history slot [-], shape (particle_count, capacity)."""
+        self.contact_tangential = wp.zeros((n, capacity), dtype=vec_hi, device=device)
+        """Accumulated tangential displacement per slot [m], shape (particle_count, capacity)."""
+        self.contact_rolling = wp.zeros((n, capacity), dtype=vec_hi, device=device)
+        """Accumulated rolling angle per slot [rad], shape (particle_count, capacity)."""
+        self.contact_count = wp.zeros(n, dtype=wp.int32, device=device)
+        """Number of used history slots (= contacts) per particle, shape (particle_count,)."""
+        self.time = 0.0
+        """Simulated time [s] (a Python float, i.e. double precision)."""
+
+    @property
+    def capacity(self) -> int:
+        return int(self.contact_partner.shape[1])
+
+    @property
+    def arrays(self) -> dict[str, wp.array]:
+        return {name: value for name, value in vars(self).items() if isinstance(value, wp.array)}
+
+    def assign(self, other: "SoilState") -> None:
+        """Copy every array and the time from `other` (same shapes)."""
+        for name, array in self.arrays.items():
+            source = getattr(other, name)
+            if source.shape != array.shape:
+                raise ValueError(f"state.{name}: shape {source.shape} does not match {array.shape}")
+            wp.copy(array, source)
+        self.time = other.time
+
+    def grow_capacity(self, capacity: int) -> None:
+        """Widen the history storage to `capacity` slots per particle, keeping the history."""
+        old = self.capacity
+        if capacity <= old:
+            return
+        device = self.position.device
+        for name, fill in (("contact_partner", -1), ("contact_tangential", 0), ("contact_rolling", 0)):
+            array = getattr(self, name)
+            values = array.numpy()
+            wider = np.full((values.shape[0], capacity) + values.shape[2:], fill, dtype=values.dtype)
+            wider[:, :old] = values
+            setattr(self, name, wp.array(wider, dtype=array.dtype, device=device))
+
+    def to_numpy(self) -> dict[str, np.ndarray]:
+        data = {name: array.numpy() for name, array in self.arrays.items()}
+        data["time"] = np.float64(self.time)
+        return data
+
+    def load_numpy(self, data: dict) -> None:
+        """Fill this state from `to_numpy()` output (history capacity may differ: it is grown)."""
+        capacity = data["contact_partner"].shape[1]
+        if capacity > self.capacity:
+            self.grow_capacity(capacity)
+        for name, array in self.arrays.items():
+            values = np.asarray(data[name])
+            if name.startswith("contact_") and values.ndim >= 2 and values.shape[1] < array.shape[1]:
+                fill = -1 if name == "contact_partner" else 0
+                padded = np.full(array.shape + ((3,) if values.ndim == 3 else ()), fill, dtype=values.dtype)
+                padded[:, : values.shape[1]] = values
+                values = padded
+            array.assign(values.astype(array.numpy().dtype, copy=False))
+        self.time = float(data["time"])
