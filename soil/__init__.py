@@ -11,6 +11,7 @@
 """
 
 from .builder import SoilBuilder
+from .geometry import GrouserWheel, MeshWheel
 from .contact import ContactLaw
 from .control import SoilControl
 from .gravity import GRAVITY_PRESETS, gravity_vector
@@ -22,7 +23,7 @@ from .simulation import Simulation, SimulationDiverged
 from .state import SoilState
 
 __all__ = [
-    "ContactLaw", "GRAVITY_PRESETS", "Material", "PRECISIONS", "Simulation", "SimulationDiverged",
+    "ContactLaw", "GRAVITY_PRESETS", "GrouserWheel", "MeshWheel", "Material", "PRECISIONS", "Simulation", "SimulationDiverged",
     "SoilBuilder", "SoilControl", "SoilModel", "SoilState", "VelocityVerlet",
     "damping_ratio_for_restitution", "get_precision", "gravity_vector", "restitution_of_damping_ratio",
 ]

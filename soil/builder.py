@@ -10,7 +10,8 @@ import warp as wp
 from .contact import ContactLaw
 from .control import SoilControl
 from .gravity import gravity_vector
-from .kernels import BOUNDARY_BOX, BOUNDARY_PLANE
+from .geometry import GrouserWheel, MeshWheel
+from .kernels import BODY_MESH, BODY_WHEEL, BOUNDARY_BOX, BOUNDARY_PLANE
 from .materials import Material, MaterialTable
 from .model import SoilModel
 from .precision import get_precision
@@ -31,6 +32,7 @@ class SoilBuilder:
         self._fixed: list[np.ndarray] = []
         self._lock_rotation: list[np.ndarray] = []
         self._boundaries: list[tuple[int, list[float], int]] = []
+        self._bodies: list[tuple[object, int]] = []
 
     # -- materials ---------------------------------------------------------------
     def add_material(self, material: Material) -> int:
@@ -126,6 +128,14 @@ class SoilBuilder:
             walls.append(self.add_plane(upper, (0, 0, -1), material))
         return walls
 
+    # -- wheels (rigid bodies moved by the control) --------------------------------
+    def add_wheel(self, shape, material=0) -> int:
+        """Add a wheel (GrouserWheel or MeshWheel) whose motion the control prescribes; returns its body index."""
+        if not isinstance(shape, (GrouserWheel, MeshWheel)):
+            raise TypeError(f"wheel shape must be a GrouserWheel or MeshWheel, got {type(shape).__name__}")
+        self._bodies.append((shape, self._material_index(material)))
+        return len(self._bodies) - 1
+
     # -- finalize ----------------------------------------------------------------
     def finalize(self, device: str | None = None, precision="double", law: ContactLaw | None = None,
                  contact_capacity: int = 16, order_seed: int | None = None):
@@ -174,6 +184,7 @@ class SoilBuilder:
         geometry = np.array([b[1] for b in self._boundaries], dtype=hi).reshape(-1, 6)
         bmat = np.array([b[2] for b in self._boundaries], dtype=np.int32)
 
+        body_arrays = self._body_arrays(prec, device)
         model = SoilModel(
             device=device, precision=prec, law=law, materials=self.materials, gravity=self.gravity.copy(),
             particle_count=len(radii),
@@ -188,10 +199,49 @@ class SoilBuilder:
             boundary_material=wp.array(bmat, dtype=wp.int32, device=device),
             max_radius=float(radii.max()),
             particle_order=order,
+            **body_arrays,
         )
-        state = SoilState(len(radii), int(contact_capacity), vec_hi, device)
+        state = SoilState(len(radii), int(contact_capacity), vec_hi, device, model.body_count)
         state.position.assign(positions.astype(hi))
         state.velocity.assign(velocity.astype(hi))
         state.angular_velocity.assign(spin.astype(hi))
-        control = SoilControl(len(radii), vec_hi, device)
+        control = SoilControl(len(radii), vec_hi, device, model.body_count)
         return model, state, control
+
+    def _body_arrays(self, prec, device) -> dict:
+        kinds, shapes, materials, point_offsets, index_offsets = [], [], [], [], []
+        points, indices, meshes, mesh_ids = [], [], [], []
+        n_points = n_indices = 0
+        for shape, material in self._bodies:
+            materials.append(material)
+            point_offsets.append(n_points)
+            index_offsets.append(n_indices)
+            if isinstance(shape, GrouserWheel):
+                kinds.append(BODY_WHEEL)
+                shapes.append(shape.shape_row())
+                mesh_ids.append(0)
+                continue
+            kinds.append(BODY_MESH)
+            shapes.append([0, 0, 0, 0, 0, shape.bounding_radius])
+            mesh = wp.Mesh(points=wp.array(shape.vertices.astype(np.float32), dtype=wp.vec3, device=device),
+                           indices=wp.array(shape.triangles.reshape(-1), dtype=wp.int32, device=device))
+            meshes.append(mesh)
+            mesh_ids.append(mesh.id)
+            points.append(shape.vertices)
+            indices.append(shape.triangles.reshape(-1))
+            n_points += len(shape.vertices)
+            n_indices += shape.triangles.size
+        all_points = np.concatenate(points) if points else np.zeros((1, 3))
+        all_indices = np.concatenate(indices) if indices else np.zeros(3, dtype=np.int32)
+        return dict(
+            bodies=[shape for shape, _ in self._bodies],
+            body_kind=wp.array(np.array(kinds, dtype=np.int32), dtype=wp.int32, device=device),
+            body_shape=wp.array(np.array(shapes, dtype=prec.np_hi).reshape(-1, 6), dtype=prec.hi, device=device),
+            body_mesh=wp.array(np.array(mesh_ids, dtype=np.uint64), dtype=wp.uint64, device=device),
+            body_material=wp.array(np.array(materials, dtype=np.int32), dtype=wp.int32, device=device),
+            mesh_points=wp.array(all_points.astype(prec.np_hi), dtype=prec.vec_hi, device=device),
+            mesh_indices=wp.array(all_indices.astype(np.int32), dtype=wp.int32, device=device),
+            body_point_offset=wp.array(np.array(point_offsets, dtype=np.int32), dtype=wp.int32, device=device),
+            body_index_offset=wp.array(np.array(index_offsets, dtype=np.int32), dtype=wp.int32, device=device),
+            meshes=meshes,
+        )

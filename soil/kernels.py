@@ -20,6 +20,11 @@ BOUNDARY_PLANE = 0
 BOUNDARY_BOX = 1
 """Solid axis-aligned box: geometry row (lower corner xyz, upper corner xyz); particles stay outside."""
 
+BODY_WHEEL = 0
+"""Parametric grousered wheel: shape row (radius, half width, grousers, grouser height, thickness, bounding radius)."""
+BODY_MESH = 1
+"""Closed triangle mesh: shape row (0, 0, 0, 0, 0, bounding radius)."""
+
 _cache: dict = {}
 
 
@@ -29,6 +34,7 @@ def make_kernels(hi, lo, law: ContactLaw):
     if key in _cache:
         return _cache[key]
     vec_hi = wp.types.vector(3, hi)
+    mat_hi = wp.types.matrix((3, 3), hi)
     contact_law, _ = make_contact_law(hi, lo, law)
 
     @wp.func
@@ -68,6 +74,93 @@ def make_kernels(hi, lo, law: ContactLaw):
                 return k
         return -1
 
+    @wp.func
+    def box_distance(q: vec_hi, half: vec_hi):
+        """Signed distance of q from a centred box and the outward normal at the closest point."""
+        d = vec_hi(wp.abs(q[0]) - half[0], wp.abs(q[1]) - half[1], wp.abs(q[2]) - half[2])
+        if wp.max(d) > hi(0.0):
+            gap = q - wp.min(wp.max(q, -half), half)
+            distance = wp.length(gap)
+            return distance, gap / distance
+        axis = int(0)
+        if d[1] > d[axis]:
+            axis = 1
+        if d[2] > d[axis]:
+            axis = 2
+        normal = vec_hi()
+        normal[axis] = wp.sign(q[axis])
+        return d[axis], normal
+
+    @wp.func
+    def wheel_distance(shape: wp.array2d(dtype=hi), b: int, p: vec_hi):
+        """Signed distance [m] of p (wheel frame) from a grousered wheel, and the outward normal.
+
+        The wheel is the union of a solid cylinder (axle = Y) and box-shaped grousers,
+        so its signed distance is the minimum over the parts.
+        """
+        radius = shape[b, 0]
+        half_width = shape[b, 1]
+        grousers = int(shape[b, 2])
+        rho = wp.sqrt(p[0] * p[0] + p[2] * p[2])
+        radial = vec_hi(hi(0.0), hi(0.0), hi(1.0))
+        if rho > hi(0.0):
+            radial = vec_hi(p[0] / rho, hi(0.0), p[2] / rho)
+        axial = vec_hi(hi(0.0), wp.sign(p[1]), hi(0.0))
+        d_r = rho - radius
+        d_y = wp.abs(p[1]) - half_width
+        best = wp.max(d_r, d_y)
+        normal = radial
+        if d_y > d_r:
+            normal = axial
+        if d_r > hi(0.0) and d_y > hi(0.0):
+            best = wp.sqrt(d_r * d_r + d_y * d_y)
+            normal = (d_r * radial + d_y * axial) / best
+        if grousers > 0:
+            height = shape[b, 3]
+            thickness = shape[b, 4]
+            pitch = hi(2.0 * 3.141592653589793) / hi(grousers)
+            nearest = int(wp.round(wp.atan2(p[0], p[2]) / pitch))
+            # plates run from inside the rim (one thickness deep) to the tip
+            inner = radius - thickness
+            centre = hi(0.5) * (inner + radius + height)
+            half = vec_hi(hi(0.5) * (radius + height - inner), hi(0.5) * thickness, half_width)
+            for offset in range(-1, 2):
+                theta = hi(nearest + offset) * pitch
+                e_r = vec_hi(wp.sin(theta), hi(0.0), wp.cos(theta))
+                e_t = vec_hi(wp.cos(theta), hi(0.0), -wp.sin(theta))
+                q = vec_hi(wp.dot(p, e_r) - centre, wp.dot(p, e_t), p[1])
+                distance, n_box = box_distance(q, half)
+                if distance < best:
+                    best = distance
+                    normal = n_box[0] * e_r + n_box[1] * e_t + vec_hi(hi(0.0), n_box[2], hi(0.0))
+        return best, normal
+
+    @wp.func
+    def mesh_distance(mesh: wp.uint64, points: wp.array(dtype=vec_hi), indices: wp.array(dtype=wp.int32),
+                      point_offset: int, index_offset: int, p: vec_hi, max_distance: hi):
+        """Signed distance of p from a closed mesh and the outward normal; (max_distance, 0) if far.
+
+        Warp's mesh query (float32) finds the closest triangle; the distance is then
+        recomputed from the triangle's `hi` vertices, so tiny overlaps stay resolved.
+        """
+        query = wp.mesh_query_point_sign_normal(mesh, wp.vec3(wp.float32(p[0]), wp.float32(p[1]), wp.float32(p[2])),
+                                                wp.float32(max_distance))
+        if not query.result:
+            return max_distance, vec_hi()
+        base = index_offset + 3 * query.face
+        a = points[point_offset + indices[base + 0]]
+        b = points[point_offset + indices[base + 1]]
+        c = points[point_offset + indices[base + 2]]
+        u = hi(query.u)
+        v = hi(query.v)
+        closest = u * a + v * b + (hi(1.0) - u - v) * c
+        gap = p - closest
+        distance = wp.length(gap)
+        side = hi(query.sign)
+        if distance > hi(0.0):
+            return side * distance, side * gap / distance
+        return hi(0.0), wp.normalize(wp.cross(b - a, c - a))
+
     @wp.kernel(module="unique")
     def contact_forces(
         grid: wp.uint64,
@@ -75,6 +168,7 @@ def make_kernels(hi, lo, law: ContactLaw):
         v_in: wp.array(dtype=vec_hi),
         w_in: wp.array(dtype=vec_hi),
         radius: wp.array(dtype=lo),
+        mass: wp.array(dtype=lo),
         inv_mass: wp.array(dtype=lo),
         material: wp.array(dtype=wp.int32),
         pair: wp.array2d(dtype=lo),
@@ -83,6 +177,18 @@ def make_kernels(hi, lo, law: ContactLaw):
         boundary_geometry: wp.array2d(dtype=hi),
         boundary_material: wp.array(dtype=wp.int32),
         external_force: wp.array(dtype=vec_hi),
+        body_kind: wp.array(dtype=wp.int32),
+        body_shape: wp.array2d(dtype=hi),
+        body_mesh: wp.array(dtype=wp.uint64),
+        body_material: wp.array(dtype=wp.int32),
+        mesh_points: wp.array(dtype=vec_hi),
+        mesh_indices: wp.array(dtype=wp.int32),
+        body_point_offset: wp.array(dtype=wp.int32),
+        body_index_offset: wp.array(dtype=wp.int32),
+        body_position: wp.array(dtype=vec_hi),
+        body_rotation: wp.array(dtype=mat_hi),
+        body_velocity: wp.array(dtype=vec_hi),
+        body_angular_velocity: wp.array(dtype=vec_hi),
         search_radius: hi,
         dt: hi,
         partner_in: wp.array2d(dtype=wp.int32),
@@ -97,6 +203,9 @@ def make_kernels(hi, lo, law: ContactLaw):
         rolling_out: wp.array2d(dtype=vec_hi),
         count_out: wp.array(dtype=wp.int32),
         overflow_out: wp.array(dtype=wp.int32),
+        body_force_out: wp.array2d(dtype=vec_hi),
+        body_torque_out: wp.array2d(dtype=vec_hi),
+        body_contact_out: wp.array2d(dtype=wp.int32),
     ):
         i = wp.tid()
         particle_count = x_in.shape[0]
@@ -158,6 +267,54 @@ def make_kernels(hi, lo, law: ContactLaw):
                         n, overlap, v_rel, w_in[i], ri, lo(1.0) / inv_mass[i], pair, row, t_hist, r_hist, dt)
                     total_force = total_force + f
                     total_torque = total_torque + wp.cross(lever_i * n, f) + m_roll
+                    if stored < capacity:
+                        partner_out[i, stored] = key
+                        tangential_out[i, stored] = t_new
+                        rolling_out[i, stored] = r_new
+                        stored += 1
+                    else:
+                        overflow_out[0] = 1
+
+        # wheels and other rigid bodies moved by the control
+        for b in range(body_kind.shape[0]):
+            body_force_out[i, b] = vec_hi()
+            body_torque_out[i, b] = vec_hi()
+            body_contact_out[i, b] = 0
+            hub = body_position[b]
+            rotation = body_rotation[b]
+            local = wp.transpose(rotation) * (xi - hub)
+            reach = body_shape[b, 5] + hi(ri)
+            if wp.length(local) < reach:  # fixed grains too: they push on the wheel
+                distance = reach
+                n_out = vec_hi()
+                if body_kind[b] == BODY_WHEEL:
+                    distance, n_out = wheel_distance(body_shape, b, local)
+                else:
+                    distance, n_out = mesh_distance(body_mesh[b], mesh_points, mesh_indices, body_point_offset[b],
+                                                    body_index_offset[b], local, hi(2.0) * reach)
+                overlap = hi(ri) - distance
+                if overlap > hi(0.0):
+                    n = -(rotation * n_out)  # from the particle towards the body
+                    lever_i = hi(ri) - overlap
+                    contact_point = xi + lever_i * n
+                    v_body = body_velocity[b] + wp.cross(body_angular_velocity[b], contact_point - hub)
+                    v_rel = v_in[i] + wp.cross(w_in[i], lever_i * n) - v_body
+                    key = particle_count + boundary_kind.shape[0] + b
+                    slot = find_history(partner_in, count_in, i, key)
+                    t_hist = vec_hi()
+                    r_hist = vec_hi()
+                    if slot >= 0:
+                        t_hist = tangential_in[i, slot]
+                        r_hist = rolling_in[i, slot]
+                    row = material[i] * material_count + body_material[b]
+                    f, m_roll, t_new, r_new = contact_law(
+                        n, overlap, v_rel, w_in[i] - body_angular_velocity[b], ri, mass[i],
+                        pair, row, t_hist, r_hist, dt)
+                    total_force = total_force + f
+                    total_torque = total_torque + wp.cross(lever_i * n, f) + m_roll
+                    body_force_out[i, b] = -f
+                    body_torque_out[i, b] = wp.cross(contact_point - hub, -f) - m_roll
+                    body_contact_out[i, b] = 1
                     if stored < capacity:
                         partner_out[i, stored] = key
                         tangential_out[i, stored] = t_new
@@ -252,7 +409,58 @@ def make_kernels(hi, lo, law: ContactLaw):
                 total += hi(8.0 / 15.0) * e_star * wp.sqrt(hi(ri)) * wp.pow(overlap, hi(2.5))
         energy_out[i] = total
 
+    @wp.kernel(module="unique")
+    def body_wrench_partial(
+        body_force: wp.array2d(dtype=vec_hi),
+        body_torque: wp.array2d(dtype=vec_hi),
+        body_contact: wp.array2d(dtype=wp.int32),
+        chunk: int,
+        # outputs
+        force_out: wp.array2d(dtype=vec_hi),
+        torque_out: wp.array2d(dtype=vec_hi),
+        contact_out: wp.array2d(dtype=wp.int32),
+    ):
+        """Sum each body's per-particle wrench over fixed chunks of particles, in index
+        order: the sum does not depend on thread scheduling (deterministic)."""
+        c, b = wp.tid()
+        start = c * chunk
+        stop = wp.min(start + chunk, body_force.shape[0])
+        force = vec_hi()
+        torque = vec_hi()
+        contacts = int(0)
+        for i in range(start, stop):
+            force = force + body_force[i, b]
+            torque = torque + body_torque[i, b]
+            contacts += body_contact[i, b]
+        force_out[c, b] = force
+        torque_out[c, b] = torque
+        contact_out[c, b] = contacts
+
+    @wp.kernel(module="unique")
+    def body_wrench_total(
+        force_in: wp.array2d(dtype=vec_hi),
+        torque_in: wp.array2d(dtype=vec_hi),
+        contact_in: wp.array2d(dtype=wp.int32),
+        # outputs
+        force_out: wp.array(dtype=vec_hi),
+        torque_out: wp.array(dtype=vec_hi),
+        contact_out: wp.array(dtype=wp.int32),
+    ):
+        b = wp.tid()
+        force = vec_hi()
+        torque = vec_hi()
+        contacts = int(0)
+        for c in range(force_in.shape[0]):
+            force = force + force_in[c, b]
+            torque = torque + torque_in[c, b]
+            contacts += contact_in[c, b]
+        force_out[b] = force
+        torque_out[b] = torque
+        contact_out[b] = contacts
+
     kernels = dict(
+        body_wrench_partial=body_wrench_partial,
+        body_wrench_total=body_wrench_total,
         contact_forces=contact_forces,
         kick_drift=kick_drift,
         kick=kick,

@@ -49,6 +49,30 @@ class SoilModel:
     """Largest particle radius [m]."""
     particle_order: np.ndarray = field(default=None)
     """Builder index of each model particle, shape (particle_count,), int64 (identity unless permuted)."""
+    bodies: list = field(default_factory=list)
+    """Wheel geometries (GrouserWheel or MeshWheel), one per body."""
+    body_kind: wp.array = None
+    """BODY_WHEEL or BODY_MESH per body, shape (body_count,), int32."""
+    body_shape: wp.array = None
+    """Geometry row per body [m], shape (body_count, 6), dtype hi (see soil.kernels)."""
+    body_mesh: wp.array = None
+    """Warp mesh id per body (0 for parametric wheels), shape (body_count,), uint64."""
+    body_material: wp.array = None
+    """Material index per body, shape (body_count,), int32."""
+    mesh_points: wp.array = None
+    """All mesh vertices in their wheel frames [m], shape (vertex_count,), vec3 hi."""
+    mesh_indices: wp.array = None
+    """All mesh triangles' vertex indices, flattened, shape (3 * triangle_count,), int32."""
+    body_point_offset: wp.array = None
+    """First vertex of each body's mesh in mesh_points, shape (body_count,), int32."""
+    body_index_offset: wp.array = None
+    """First index of each body's mesh in mesh_indices, shape (body_count,), int32."""
+    meshes: list = field(default_factory=list)
+    """The wp.Mesh objects (kept alive here), one per mesh body."""
+
+    @property
+    def body_count(self) -> int:
+        return len(self.bodies)
 
     @property
     def material_count(self) -> int:

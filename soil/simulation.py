@@ -28,11 +28,13 @@ class Simulation:
 
     def __init__(self, model: SoilModel, state: SoilState, control: SoilControl | None = None, integrator=None):
         self.model = model
-        self.control = control or SoilControl(model.particle_count, model.precision.vec_hi, model.device)
+        self.control = control or SoilControl(model.particle_count, model.precision.vec_hi, model.device,
+                                              model.body_count)
         self.integrator = integrator or VelocityVerlet()
         self.contacts = ContactSolver(model)
         self.state = state
-        self._next = SoilState(model.particle_count, state.capacity, model.precision.vec_hi, model.device)
+        self._next = SoilState(model.particle_count, state.capacity, model.precision.vec_hi, model.device,
+                               model.body_count)
         self.steps = 0
         self.refresh_forces()
 

@@ -14,7 +14,7 @@ class SoilState:
     key is the partner, history survives any rebuild of the neighbour grid.
     """
 
-    def __init__(self, particle_count: int, capacity: int, vec_hi, device: str):
+    def __init__(self, particle_count: int, capacity: int, vec_hi, device: str, body_count: int = 0):
         n = particle_count
         self.position = wp.zeros(n, dtype=vec_hi, device=device)
         """Particle centre positions [m], shape (particle_count,)."""
@@ -34,6 +34,12 @@ class SoilState:
         """Accumulated rolling angle per slot [rad], shape (particle_count, capacity)."""
         self.contact_count = wp.zeros(n, dtype=wp.int32, device=device)
         """Number of used history slots (= contacts) per particle, shape (particle_count,)."""
+        self.body_force = wp.zeros(body_count, dtype=vec_hi, device=device)
+        """Soil force on each body (wheel) at the state's time, world [N], shape (body_count,)."""
+        self.body_torque = wp.zeros(body_count, dtype=vec_hi, device=device)
+        """Soil torque on each body about its hub, world [N m], shape (body_count,)."""
+        self.body_contacts = wp.zeros(body_count, dtype=wp.int32, device=device)
+        """Number of particles touching each body, shape (body_count,)."""
         self.time = 0.0
         """Simulated time [s] (a Python float, i.e. double precision)."""
 

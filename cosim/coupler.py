@@ -1,0 +1,234 @@
+"""Macro-step coupling of a SoilSide with a RoverSide (DESIGN.md section 5).
+
+Schemes, macro step H, from t to t + H:
+
+- 'gauss-seidel' (default): the soil advances first, moving the wheels with the rover's
+  kinematics at t extrapolated at constant velocity, and returns the wrench averaged
+  over [t, t+H]; the rover then advances to t+H holding that wrench. Explicit, first
+  order in H, but the wrench belongs to the same interval it acts on.
+- 'jacobi': both sides advance from the same t (they could run in parallel); the rover
+  holds the wrench of the previous macro step (one-step lag; zero in the first step).
+
+Energy bookkeeping per macro step, per wheel: the work the held wrench does on the
+rover, W_rover = F . (p1 - p0) + tau . (w0 + w1) H / 2 (exact for the held force, trapezoid
+for the torque), against the work done on the soil, W_soil = the soil's reported
+work_on_soil (along the extrapolated wheel path) plus the work of the soil's end wrench
+when its wheel is moved from the extrapolated end pose to the rover's actual pose (the
+next step starts there). A lossless coupling has W_rover + W_soil = 0; a positive sum is
+energy the coupling created (Gauss-Seidel: O(H^2) overall; Jacobi's lag: O(H)). When the accumulated created energy
+exceeds `energy_atol + energy_rtol * sum |W_rover|` a CouplingEnergyWarning is issued
+(once per coupler, not during the first `energy_warmup` steps).
+"""
+
+from __future__ import annotations
+
+import warnings
+from typing import Callable, Sequence
+
+import numpy as np
+
+from .contract import RoverSide, SoilSide, WheelKinematics, WheelWrench
+from .controllers import apply_command
+from .terrain import quat_integrate, quat_multiply
+
+
+class CouplingEnergyWarning(RuntimeWarning):
+    """The coupling created more energy than the tolerance allows (H too large?)."""
+
+
+class CouplingTimeError(RuntimeError):
+    """The soil and rover sides did not reach the same time."""
+
+
+class Coupler:
+    """Couples one soil side and one rover side with a fixed macro step.
+
+    Args:
+        soil: SoilSide (DEM, analytic terrain, ...).
+        rover: RoverSide (MuJoCo, FMU, ...); same wheel count and order as the soil.
+        macro_step: H [s].
+        scheme: 'gauss-seidel' or 'jacobi'.
+        gravity: the scene's one gravity vector [m/s^2], shape (3,), pushed to both sides.
+        controller: optional drive controller (see cosim.controllers), called at the
+            start of every macro step; its command is held over the step.
+        energy_rtol, energy_atol: tolerance of the energy check [-], [J].
+        energy_warmup: macro steps before the energy check starts; the first steps of a
+            contact exchange little energy, so their ratio is noise.
+        time_tol: largest accepted difference between the sides' times [s].
+    """
+
+    def __init__(
+        self,
+        soil: SoilSide,
+        rover: RoverSide,
+        macro_step: float,
+        scheme: str = "gauss-seidel",
+        gravity: Sequence[float] = (0.0, 0.0, -9.81),
+        controller: Callable | None = None,
+        energy_rtol: float = 0.05,
+        energy_atol: float = 1e-9,
+        energy_warmup: int = 10,
+        time_tol: float = 1e-12,
+    ):
+        scheme = scheme.lower().replace("_", "-")
+        if scheme not in ("gauss-seidel", "jacobi"):
+            raise ValueError(f"scheme must be 'gauss-seidel' or 'jacobi', got {scheme!r}")
+        if not macro_step > 0.0:
+            raise ValueError(f"macro_step must be > 0, got {macro_step}")
+        n = len(rover.wheel_names)
+        if soil.wheel_count != n:
+            raise ValueError(f"the soil has {soil.wheel_count} wheels, the rover {n} ({rover.wheel_names})")
+        self.soil = soil
+        self.rover = rover
+        self.macro_step = float(macro_step)
+        """Macro step H [s]."""
+        self.scheme = scheme
+        self.gravity = np.asarray(gravity, dtype=np.float64).reshape(3).copy()
+        """Scene gravity [m/s^2], shape (3,)."""
+        self.controller = controller
+        self.energy_rtol = float(energy_rtol)
+        self.energy_atol = float(energy_atol)
+        self.energy_warmup = int(energy_warmup)
+        self.time_tol = float(time_tol)
+        self.wheel_count = n
+
+        soil.set_gravity(self.gravity)
+        rover.set_gravity(self.gravity)
+        self._check_times(soil.time, rover.time, "start")
+        self.time = float(rover.time)
+        """Coupled time [s]."""
+        self.step_count = 0
+        self._lagged = [WheelWrench() for _ in range(n)]  # Jacobi's previous wrench
+        self._last = [WheelWrench() for _ in range(n)]  # wrench of the previous step (controller input)
+        self.energy_created = 0.0
+        """Accumulated W_rover + W_soil over all steps [J] (> 0: the coupling created energy)."""
+        self.energy_exchanged = 0.0
+        """Accumulated |W_rover| over all steps [J]."""
+        self._warned = False
+        self._records: dict[str, list] = {key: [] for key in _RECORD_KEYS}
+
+    # --------------------------------------------------------------------------------
+
+    def _check_times(self, t_soil: float, t_rover: float, where: str) -> None:
+        if abs(t_soil - t_rover) > self.time_tol:
+            raise CouplingTimeError(f"{where}: soil at t={t_soil!r} s, rover at t={t_rover!r} s")
+
+    def step(self) -> None:
+        """Advance both sides by one macro step."""
+        t0 = self.time
+        t1 = t0 + self.macro_step
+        rover, soil = self.rover, self.soil
+        k0 = rover.wheel_kinematics()
+        if self.controller is not None:
+            apply_command(rover, self.controller(t0, k0, self._last))
+        if self.scheme == "gauss-seidel":
+            wrenches = soil.advance(t1, k0, None)
+            held = wrenches
+            rover.apply_wheel_wrenches(held)
+            rover.advance(t1)
+        else:
+            held = self._lagged
+            rover.apply_wheel_wrenches(held)
+            wrenches = soil.advance(t1, k0, None)
+            rover.advance(t1)
+            self._lagged = wrenches
+        self._check_times(soil.time, rover.time, f"macro step {self.step_count}")
+        if abs(rover.time - t1) > self.time_tol:
+            raise CouplingTimeError(f"macro step {self.step_count}: sides at t={rover.time!r} s, expected {t1!r} s")
+        k1 = rover.wheel_kinematics()
+        self.time = t1
+        self.step_count += 1
+        self._last = wrenches
+
+        # Energy bookkeeping (see module docstring).
+        h = self.macro_step
+        w_rover = np.array([
+            w.force @ (b.position - a.position)  # exact for a force held constant
+            + w.torque @ (a.angular_velocity + b.angular_velocity) * (h / 2)
+            for w, a, b in zip(held, k0, k1)
+        ])
+        # The soil moved each wheel along the extrapolated path (end: p_ext, q_ext); the
+        # next step starts it where the rover really is, a jump that does work on the
+        # soil too. Without it, W_rover + W_soil carries a spurious +F . a H^2 / 2 per step.
+        w_soil = np.array([w.work_on_soil - _jump_work(w, a, b, h) for w, a, b in zip(wrenches, k0, k1)])
+        self.energy_created += float(np.sum(w_rover + w_soil))
+        self.energy_exchanged += float(np.sum(np.abs(w_rover)))
+        if (not self._warned and self.step_count > self.energy_warmup
+                and self.energy_created > self.energy_atol + self.energy_rtol * self.energy_exchanged):
+            self._warned = True
+            warnings.warn(
+                f"coupling created {self.energy_created:.3e} J by t={t1:.6g} s "
+                f"(exchanged {self.energy_exchanged:.3e} J, tolerance "
+                f"{self.energy_atol:.1e} J + {self.energy_rtol:.1e} x exchanged); "
+                f"reduce the macro step H={h:g} s",
+                CouplingEnergyWarning,
+                stacklevel=2,
+            )
+        self._record(t1, k1, held, w_rover, w_soil)
+
+    def run(self, t_end: float, callback: Callable[["Coupler"], None] | None = None) -> None:
+        """Macro-step until t_end [s] (rounded to a whole number of steps).
+
+        callback(coupler) is called after every macro step.
+        """
+        steps = int(round((float(t_end) - self.time) / self.macro_step))
+        for _ in range(steps):
+            self.step()
+            if callback is not None:
+                callback(self)
+
+    # --------------------------------------------------------------------------------
+
+    def _record(self, t, kin, wrenches, w_rover, w_soil) -> None:
+        r = self._records
+        r["time"].append(t)
+        r["position"].append([k.position for k in kin])
+        r["orientation"].append([k.orientation for k in kin])
+        r["linear_velocity"].append([k.linear_velocity for k in kin])
+        r["angular_velocity"].append([k.angular_velocity for k in kin])
+        r["force"].append([w.force for w in wrenches])
+        r["torque"].append([w.torque for w in wrenches])
+        r["sinkage"].append([w.sinkage for w in wrenches])
+        r["contact_count"].append([w.contact_count for w in wrenches])
+        r["work_on_rover"].append(w_rover)
+        r["work_on_soil"].append(w_soil)
+
+    def records(self) -> dict[str, np.ndarray]:
+        """Per-macro-step records as numpy arrays (S = steps taken, W = wheels).
+
+        time [s] (S,): end time of each step; position [m] (S, W, 3), orientation
+        (w, x, y, z) (S, W, 4), linear_velocity [m/s] (S, W, 3), angular_velocity [rad/s]
+        (S, W, 3): wheel kinematics at the end of the step; force [N] (S, W, 3), torque
+        about the hub [N m] (S, W, 3): the wrench the rover held during the step;
+        sinkage [m] (S, W), contact_count (S, W); work_on_rover [J] (S, W): work of the held
+        wrench on the rover; work_on_soil [J] (S, W): work reported by the soil.
+        """
+        shapes = {"time": (0,), "sinkage": (0, self.wheel_count), "contact_count": (0, self.wheel_count),
+                  "work_on_rover": (0, self.wheel_count), "work_on_soil": (0, self.wheel_count),
+                  "orientation": (0, self.wheel_count, 4)}
+        out = {}
+        for key, values in self._records.items():
+            if values:
+                out[key] = np.asarray(values, dtype=np.int64 if key == "contact_count" else np.float64)
+            else:
+                out[key] = np.zeros(shapes.get(key, (0, self.wheel_count, 3)))
+        return out
+
+
+def _jump_work(w: WheelWrench, k0: WheelKinematics, k1: WheelKinematics, h: float) -> float:
+    """Work [J] of the soil's end wrench on the wheel when it jumps from the extrapolated
+    end pose (k0 moved at constant velocity for h) to the rover's actual pose k1."""
+    dp = k1.position - (k0.position + k0.linear_velocity * h)
+    q_ext = quat_integrate(k0.orientation, k0.angular_velocity, h)
+    dq = quat_multiply(k1.orientation, q_ext * np.array([1.0, -1.0, -1.0, -1.0]))
+    if dq[0] < 0.0:
+        dq = -dq
+    sin_half = np.linalg.norm(dq[1:])
+    rotation = (2.0 * np.arctan2(sin_half, dq[0]) / sin_half) * dq[1:] if sin_half > 1e-15 else 2.0 * dq[1:]
+    return float(w.force_end @ dp + w.torque_end @ rotation)
+
+
+_RECORD_KEYS = (
+    "time", "position", "orientation", "linear_velocity", "angular_velocity",
+    "force", "torque", "sinkage", "contact_count", "work_on_rover", "work_on_soil",
+)

@@ -1,0 +1,135 @@
+"""The DEM soil as a SoilSide: wheels moved by the rover's kinematics, wrenches back."""
+
+from __future__ import annotations
+
+import warnings
+from typing import Sequence
+
+import numpy as np
+
+from .contract import WheelKinematics, WheelWrench
+from .terrain import quat_integrate, quat_slerp
+
+
+class WallProximityWarning(UserWarning):
+    """A wheel came within a few grain radii of a container wall: results feel the wall."""
+
+
+class DemSoil:
+    """SoilSide over a soil.Simulation whose bodies 0..W-1 are the wheels.
+
+    Args:
+        sim: a soil.Simulation built with one body per wheel.
+        dt: DEM step [s]; each macro step is split into whole DEM steps that end
+            exactly at the macro step's end.
+        surface_height: undisturbed soil surface z [m], for the sinkage.
+        wall_clearance: warn (WallProximityWarning) when a wheel's outer rim comes closer
+            than this to a container wall [m]; default 5 mean grain radii.
+    """
+
+    def __init__(self, sim, dt: float, surface_height: float = 0.0, wall_clearance: float | None = None):
+        if sim.model.body_count < 1:
+            raise ValueError("the soil simulation has no wheel bodies (SoilBuilder.add_wheel)")
+        if not dt > 0:
+            raise ValueError(f"dt must be > 0 [s], got {dt!r}")
+        self.sim = sim
+        self.dt = float(dt)
+        self.surface_height = float(surface_height)
+        self.wheel_count = sim.model.body_count
+        self.wall_clearance = (5 * float(sim.model.radius_numpy().mean()) if wall_clearance is None
+                               else float(wall_clearance))
+        self._warned_wall = False
+        self._walls = self._container_walls()
+
+    @property
+    def time(self) -> float:
+        return self.sim.time
+
+    def set_gravity(self, gravity: Sequence[float]) -> None:
+        gravity = np.asarray(gravity, dtype=np.float64).reshape(3)
+        if not np.allclose(gravity, self.sim.model.gravity, rtol=1e-12, atol=0):
+            raise ValueError(f"the soil was settled under gravity {self.sim.model.gravity} m/s^2, the scene asks "
+                             f"for {gravity}: settle the bed under the scene's gravity")
+
+    def place_wheels(self, kinematics: Sequence[WheelKinematics]) -> None:
+        """Put the wheels at these poses without stepping (e.g. before the first macro step)."""
+        for b, k in enumerate(kinematics):
+            self.sim.control.set_body_motion(b, k.position, k.orientation, k.linear_velocity, k.angular_velocity)
+        self.sim.refresh_forces()
+
+    def advance(self, t_end: float, start: Sequence[WheelKinematics],
+                end: Sequence[WheelKinematics] | None = None) -> list[WheelWrench]:
+        sim, control = self.sim, self.sim.control
+        if len(start) != self.wheel_count:
+            raise ValueError(f"expected kinematics of {self.wheel_count} wheels, got {len(start)}")
+        t0 = sim.time
+        span = float(t_end) - t0
+        if span <= 0:
+            raise ValueError(f"t_end {t_end!r} s must be after the soil's time {t0!r} s")
+        steps = max(1, int(np.ceil(span / self.dt - 1e-9)))
+        h = span / steps
+        wheels = self.wheel_count
+        force_sum = np.zeros((wheels, 3))
+        torque_sum = np.zeros((wheels, 3))
+        work = np.zeros(wheels)
+        for k in range(1, steps + 1):
+            tau = k * h
+            fraction = tau / span
+            velocities, spins = [], []
+            for b, k0 in enumerate(start):
+                if end is None:
+                    position = k0.position + k0.linear_velocity * tau
+                    orientation = quat_integrate(k0.orientation, k0.angular_velocity, tau)
+                    velocity, spin = k0.linear_velocity, k0.angular_velocity
+                else:
+                    k1 = end[b]
+                    position = (1 - fraction) * k0.position + fraction * k1.position
+                    orientation = quat_slerp(k0.orientation, k1.orientation, fraction)
+                    velocity = (1 - fraction) * k0.linear_velocity + fraction * k1.linear_velocity
+                    spin = (1 - fraction) * k0.angular_velocity + fraction * k1.angular_velocity
+                control.set_body_motion(b, position, orientation, velocity, spin)
+                velocities.append(velocity)
+                spins.append(spin)
+            sim.step(h)
+            force = sim.state.body_force.numpy().astype(np.float64)
+            torque = sim.state.body_torque.numpy().astype(np.float64)
+            force_sum += force
+            torque_sum += torque
+            # the soil's force on the wheel does -F.v work on the soil side's books
+            work -= (np.einsum("ij,ij->i", force, np.asarray(velocities))
+                     + np.einsum("ij,ij->i", torque, np.asarray(spins))) * h
+        if steps % 50 == 0 or steps > 50:
+            sim.check_finite()
+        contacts = sim.state.body_contacts.numpy()
+        positions = control.body_position_host
+        self._check_walls(positions)
+        result = []
+        for b in range(wheels):
+            shape = sim.model.bodies[b]
+            lowest = positions[b, 2] - getattr(shape, "radius", getattr(shape, "outer_radius", 0.0))
+            result.append(WheelWrench(
+                force=force_sum[b] / steps, torque=torque_sum[b] / steps, force_end=force[b].copy(),
+                torque_end=torque[b].copy(), contact_count=int(contacts[b]),
+                sinkage=self.surface_height - lowest, work_on_soil=float(work[b])))
+        return result
+
+    # -- walls ---------------------------------------------------------------------
+    def _container_walls(self):
+        kinds = self.sim.model.boundary_kind.numpy()
+        geometry = self.sim.model.boundary_geometry.numpy().astype(np.float64)
+        return [(g[:3], g[3:]) for kind, g in zip(kinds, geometry) if kind == 0 and abs(g[5]) < 0.5]
+
+    def _check_walls(self, positions: np.ndarray) -> None:
+        if self._warned_wall:
+            return
+        for b, hub in enumerate(positions):
+            shape = self.sim.model.bodies[b]
+            reach = shape.bounding_radius
+            for point, normal in self._walls:
+                gap = float((hub - point) @ normal) - reach
+                if gap < self.wall_clearance:
+                    self._warned_wall = True
+                    warnings.warn(f"wheel {b} is {gap:.4g} m from a container wall (hub at {np.round(hub, 4)}), "
+                                  f"closer than {self.wall_clearance:.3g} m: the wall influences the result; "
+                                  "make the bed larger", WallProximityWarning, stacklevel=3)
+                    return

@@ -1,0 +1,276 @@
+"""Soil beds: fill a box with grains, settle them, measure, save and reload (HDF5)."""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import tempfile
+from dataclasses import asdict, dataclass
+
+import numpy as np
+
+from .builder import SoilBuilder
+from .materials import Material
+
+# Phobos-like regolith for DEM (coarse-grained): the sources are listed in README.md.
+PHOBOS_REGOLITH = Material(
+    youngs_modulus=2.0e5,  # macroscopic stiffness adapted to milli-g (paper eq. 10, see soil.advisor)
+    poisson_ratio=0.15,  # Phobos regolith estimate (paper section 1.2)
+    density=2600.0,  # silicate grain density
+    restitution=0.3,
+    stick_angle=math.radians(25.0),
+    slip_angle=math.radians(20.0),  # bulk friction angle ~20 deg (paper section 1.2)
+    stick_speed=1.0e-4,
+    rolling_friction=0.1,  # rolling resistance mimics non-spherical grains
+    cohesion=0.0,  # 0 .. 1000 Pa is possible on Phobos; off by default
+)
+
+
+@dataclass(frozen=True)
+class BedSpec:
+    """A box of grains: size, grain size distribution, materials."""
+
+    length: float = 0.25
+    """Bed length along X (travel direction) [m]."""
+    width: float = 0.08
+    """Bed width along Y [m]."""
+    depth: float = 0.04
+    """Height of the inserted grains before settling [m]."""
+    radius_mean: float = 2.5e-3
+    """Mean grain radius [m]."""
+    radius_spread: float = 0.2
+    """Relative half-width of the uniform radius distribution [-] (0.2: radii in mean * [0.8, 1.2])."""
+    material: Material = PHOBOS_REGOLITH
+    """Grain material."""
+    wall_material: Material | None = None
+    """Container material (None: the grain material)."""
+    seed: int = 1
+    """Random seed of the insertion [-]."""
+
+    def __post_init__(self):
+        for name in ("length", "width", "depth", "radius_mean"):
+            value = getattr(self, name)
+            if not (isinstance(value, (int, float)) and math.isfinite(value) and value > 0):
+                raise ValueError(f"bed.{name} must be > 0 [m], got {value!r}")
+        if not 0 <= self.radius_spread < 1:
+            raise ValueError(f"bed.radius_spread must be in [0, 1), got {self.radius_spread!r}")
+        if min(self.length, self.width, self.depth) < 4 * self.radius_mean * (1 + self.radius_spread):
+            raise ValueError("bed.length, width and depth must each hold at least two grains "
+                             f"(> {4 * self.radius_mean * (1 + self.radius_spread):.4g} m)")
+
+
+def insert_grains(spec: BedSpec) -> tuple[np.ndarray, np.ndarray]:
+    """Random non-overlapping insertion on a jittered lattice filling the bed box.
+
+    Returns positions [m] shape (n, 3) (bed floor at z = 0, corner at x = y = 0) and radii [m] shape (n,).
+    """
+    rng = np.random.default_rng(spec.seed)
+    r_max = spec.radius_mean * (1 + spec.radius_spread)
+    pitch = 2.0 * r_max * 1.02
+    counts = [int((size - 2 * r_max) // pitch) + 1 for size in (spec.length, spec.width, spec.depth)]
+    grid = np.stack(np.meshgrid(*[np.arange(c) for c in counts], indexing="ij"), -1).reshape(-1, 3)
+    radii = spec.radius_mean * (1 + spec.radius_spread * rng.uniform(-1, 1, len(grid)))
+    slack = 0.5 * pitch - radii[:, None]  # each grain may move within its cell without touching a neighbour
+    positions = r_max + grid * pitch + rng.uniform(-1, 1, (len(grid), 3)) * slack
+    positions[:, 2] += 0.01 * r_max  # off the floor plane
+    return positions, radii
+
+
+def build_bed(spec: BedSpec, gravity="phobos", wall_height: float | None = None) -> SoilBuilder:
+    """A SoilBuilder holding the bed's grains in an open-top container (floor at z = 0)."""
+    builder = SoilBuilder(gravity=gravity)
+    grain = builder.add_material(spec.material)
+    wall = builder.add_material(spec.wall_material) if spec.wall_material else grain
+    height = wall_height if wall_height is not None else 4 * spec.depth
+    builder.add_container((0.0, 0.0, 0.0), (spec.length, spec.width, height), wall)
+    positions, radii = insert_grains(spec)
+    builder.add_particles(positions, radii, grain)
+    return builder
+
+
+def rayleigh_time_step(material: Material, radius: float) -> float:
+    """Rayleigh time step pi R sqrt(rho / G) / (0.1631 nu + 0.8766) [s]."""
+    return (math.pi * radius * math.sqrt(material.density / material.shear_modulus)
+            / (0.1631 * material.poisson_ratio + 0.8766))
+
+
+def kinetic_energy_threshold(sim, ratio: float = 1e-4) -> float:
+    """Settled when the kinetic energy is below ratio * N * m_mean * |g| * r_mean [J]:
+    a threshold that scales with gravity, so the same ratio means 'still' on Earth and Phobos."""
+    g = float(np.linalg.norm(sim.model.gravity))
+    mass = sim.model.mass_numpy()
+    radius = sim.model.radius_numpy()
+    return ratio * len(mass) * float(mass.mean()) * g * float(radius.mean())
+
+
+def settle(sim, dt: float, ke_ratio: float = 1e-4, max_time: float = 20.0, check_interval: float | None = None,
+           progress=None) -> dict:
+    """Run until the kinetic energy falls below the gravity-scaled threshold.
+
+    Returns {'time': settling time [s], 'kinetic_energy': [J], 'threshold': [J], 'settled': bool}.
+    """
+    threshold = kinetic_energy_threshold(sim, ke_ratio)
+    interval = check_interval or max(50 * dt, 0.01 * max_time)
+    start = sim.time
+    energy = sim.kinetic_energy()
+    while sim.time - start < max_time:
+        sim.run(interval, dt)
+        sim.check_finite()
+        energy = sim.kinetic_energy()
+        if progress is not None:
+            progress(sim.time - start, energy, threshold)
+        if energy < threshold and sim.time - start > 10 * interval:
+            return {"time": sim.time - start, "kinetic_energy": energy, "threshold": threshold, "settled": True}
+    return {"time": sim.time - start, "kinetic_energy": energy, "threshold": threshold, "settled": False}
+
+
+def bed_metrics(sim, spec: BedSpec, margin: float | None = None) -> dict:
+    """Bed height and packing fraction of a settled bed.
+
+    height [m]: mean top (z + r) of the highest grain in each column of a 2r_mean grid
+    over the bed, away from the walls; packing fraction [-]: grain volume below
+    height - 2 r_mean in that central region over the region's volume.
+    """
+    x = sim.positions()
+    r = sim.model.radius_numpy()
+    margin = 3 * spec.radius_mean if margin is None else margin
+    inside = ((x[:, 0] > margin) & (x[:, 0] < spec.length - margin) & (x[:, 1] > margin)
+              & (x[:, 1] < spec.width - margin))
+    cell = 2 * spec.radius_mean
+    ij = np.floor(x[inside, :2] / cell).astype(int)
+    tops = x[inside, 2] + r[inside]
+    keys = ij[:, 0] * 100000 + ij[:, 1]
+    order = np.lexsort((tops, keys))
+    last = np.r_[keys[order][1:] != keys[order][:-1], True]
+    height = float(np.mean(tops[order][last]))
+    cut = height - 2 * spec.radius_mean
+    below = inside & (x[:, 2] < cut)
+    volume = (spec.length - 2 * margin) * (spec.width - 2 * margin) * cut
+    packing = float(np.sum(4 / 3 * math.pi * r[below] ** 3) / volume) if volume > 0 else float("nan")
+    return {"height": height, "packing_fraction": packing, "particle_count": int(len(r))}
+
+
+# -- save / load ----------------------------------------------------------------
+BED_FORMAT = "regolith-cosim bed 1"
+
+
+def save_bed(path, sim, spec: BedSpec | None = None, metrics: dict | None = None) -> None:
+    """Write the soil (grains, materials, walls, full state incl. contact history) to HDF5.
+
+    Written to a temporary file first and renamed, so an existing file is never left half-written.
+    """
+    import h5py
+
+    model = sim.model
+    if model.body_count:
+        raise ValueError("save_bed saves soil only: save the bed before adding wheels")
+    path = os.fspath(path)
+    folder = os.path.dirname(os.path.abspath(path))
+    os.makedirs(folder, exist_ok=True)
+    handle, temporary = tempfile.mkstemp(suffix=".h5.tmp", dir=folder)
+    os.close(handle)
+    try:
+        with h5py.File(temporary, "w") as f:
+            f.attrs["format"] = BED_FORMAT
+            f.attrs["precision"] = model.precision.name
+            f.attrs["gravity"] = model.gravity
+            f.attrs["materials"] = json.dumps([asdict(m) for m in model.materials.materials])
+            f.attrs["pair_overrides"] = json.dumps([[list(k), v] for k, v in model.materials.overrides.items()])
+            if spec is not None:
+                f.attrs["spec"] = json.dumps({k: v for k, v in asdict(spec).items()
+                                              if k not in ("material", "wall_material")})
+            for key, value in (metrics or {}).items():
+                f.attrs[f"metric_{key}"] = value
+            particles = f.create_group("particles")
+            particles["radius"] = model.radius.numpy()
+            particles["material"] = model.material.numpy()
+            particles["inv_mass"] = model.inv_mass.numpy()
+            particles["inv_inertia"] = model.inv_inertia.numpy()
+            boundaries = f.create_group("boundaries")
+            boundaries["kind"] = model.boundary_kind.numpy()
+            boundaries["geometry"] = model.boundary_geometry.numpy()
+            boundaries["material"] = model.boundary_material.numpy()
+            state = f.create_group("state")
+            for name, value in sim.state.to_numpy().items():
+                if not name.startswith("body_"):
+                    state[name] = value
+        os.replace(temporary, path)
+    except BaseException:
+        if os.path.exists(temporary):
+            os.remove(temporary)
+        raise
+
+
+def load_bed(path) -> tuple[SoilBuilder, dict]:
+    """Read a saved bed: a SoilBuilder with the grains and walls (add wheels to it, then
+    finalize) and the saved state for `restore_state`."""
+    import h5py
+
+    path = os.fspath(path)
+    if not os.path.isfile(path):
+        raise FileNotFoundError(f"bed file not found: {path!r}")
+    with h5py.File(path, "r") as f:
+        if f.attrs.get("format") != BED_FORMAT:
+            raise ValueError(f"{path!r} is not a regolith-cosim bed file (format {f.attrs.get('format')!r})")
+        builder = SoilBuilder(gravity=np.asarray(f.attrs["gravity"]))
+        for values in json.loads(f.attrs["materials"]):
+            builder.add_material(Material(**values))
+        for (i, j), values in json.loads(f.attrs["pair_overrides"]):
+            builder.materials.set_pair(i, j, **values)
+        radius = f["particles/radius"][()]
+        material = f["particles/material"][()]
+        inv_mass = f["particles/inv_mass"][()]
+        inv_inertia = f["particles/inv_inertia"][()]
+        saved = {name: f["state"][name][()] for name in f["state"]}
+        for kind, geometry, wall in zip(f["boundaries/kind"][()], f["boundaries/geometry"][()],
+                                        f["boundaries/material"][()]):
+            builder._boundaries.append((int(kind), [float(g) for g in geometry], int(wall)))
+        saved["precision"] = f.attrs["precision"]
+        saved["metrics"] = {k[len("metric_"):]: f.attrs[k] for k in f.attrs if k.startswith("metric_")}
+    builder.add_particles(saved["position"], radius, 0, velocities=saved["velocity"],
+                          angular_velocities=saved["angular_velocity"], fixed=inv_mass == 0,
+                          lock_rotation=inv_inertia == 0)
+    builder._material[-1] = material.astype(np.int32)
+    return builder, saved
+
+
+def restore_state(model, state, saved: dict) -> None:
+    """Put a saved bed state (from load_bed) into a freshly finalized state, contact history included.
+
+    Handles particle permutations (order_seed) and wheels added after the bed was saved.
+    The clock restarts at t = 0: a run on a bed starts when the bed is ready.
+    """
+    n = model.particle_count
+    order = model.particle_order  # builder index of each model particle
+    inverse = np.empty_like(order)
+    inverse[order] = np.arange(n)
+    data = {k: v for k, v in saved.items() if k not in ("precision", "metrics")}
+    for name in ("position", "velocity", "angular_velocity", "force", "torque", "contact_count"):
+        data[name] = data[name][order]
+    for name in ("contact_partner", "contact_tangential", "contact_rolling"):
+        data[name] = data[name][order]
+    partner = data["contact_partner"]
+    is_particle = (partner >= 0) & (partner < n)
+    partner[is_particle] = inverse[partner[is_particle]]
+    for name, array in state.arrays.items():
+        if name.startswith("body_"):
+            data[name] = array.numpy()
+        elif name not in data:  # fields an integrator added after the bed was written
+            data[name] = array.numpy()
+    data["time"] = 0.0
+    state.load_numpy(data)
+
+
+def make_settled_bed(spec: BedSpec, gravity, device=None, precision="double", dt=None, ke_ratio=1e-4,
+                     max_time=20.0, progress=None):
+    """Fill, settle and measure a bed; returns (simulation, settle report, metrics)."""
+    from .simulation import Simulation
+
+    builder = build_bed(spec, gravity)
+    model, state, control = builder.finalize(device=device, precision=precision)
+    sim = Simulation(model, state, control)
+    dt = dt or 0.2 * rayleigh_time_step(spec.material, spec.radius_mean * (1 - spec.radius_spread))
+    report = settle(sim, dt, ke_ratio=ke_ratio, max_time=max_time, progress=progress)
+    metrics = bed_metrics(sim, spec)
+    return sim, report, metrics

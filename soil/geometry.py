@@ -1,0 +1,188 @@
+"""Wheel geometry: a parametric grousered wheel and triangle meshes (OBJ, STL).
+
+Wheel frame: the hub is the origin, the axle is the local Y axis, the wheel rolls in
+the local X-Z plane. A wheel's pose (body -> world) comes from the control.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+from dataclasses import dataclass
+
+import numpy as np
+
+
+@dataclass(frozen=True)
+class GrouserWheel:
+    """A rigid cylinder with `grouser_count` flat plates (grousers) across its width."""
+
+    radius: float
+    """Rim radius [m] (without grousers)."""
+    width: float
+    """Wheel width along the axle [m]."""
+    grouser_count: int = 0
+    """Number of grousers, equally spaced [-]; 0 = smooth wheel."""
+    grouser_height: float = 0.0
+    """How far a grouser stands out of the rim [m]."""
+    grouser_thickness: float = 0.0
+    """Grouser plate thickness along the rim [m]."""
+
+    def __post_init__(self):
+        def check(name, ok, allowed):
+            if not ok:
+                raise ValueError(f"wheel.{name} must be {allowed}, got {getattr(self, name)!r}")
+
+        check("radius", _positive(self.radius), "> 0 [m]")
+        check("width", _positive(self.width), "> 0 [m]")
+        check("grouser_count", isinstance(self.grouser_count, (int, np.integer)) and 0 <= self.grouser_count <= 360,
+              "an integer in [0, 360]")
+        if self.grouser_count:
+            check("grouser_height", _positive(self.grouser_height), "> 0 [m] when grouser_count > 0")
+            check("grouser_thickness", _positive(self.grouser_thickness) and self.grouser_thickness < self.radius,
+                  "> 0 [m] and < radius when grouser_count > 0")
+            spacing = 2 * math.pi * self.radius / self.grouser_count
+            check("grouser_thickness", self.grouser_thickness < spacing, f"< the grouser spacing {spacing:.4g} m")
+
+    @property
+    def outer_radius(self) -> float:
+        """Radius over the grouser tips [m]."""
+        if not self.grouser_count:
+            return self.radius
+        half = 0.5 * self.grouser_thickness
+        return math.hypot(self.radius + self.grouser_height, half)
+
+    @property
+    def bounding_radius(self) -> float:
+        """Radius of a sphere around the hub that contains the wheel [m]."""
+        return math.hypot(self.outer_radius, 0.5 * self.width)
+
+    def shape_row(self) -> list[float]:
+        """The kernel's geometry row (see soil.kernels wheel_contact)."""
+        return [self.radius, 0.5 * self.width, float(self.grouser_count), self.grouser_height,
+                self.grouser_thickness, self.bounding_radius]
+
+    def profile(self, arc_segments: int = 720) -> np.ndarray:
+        """Outline of the wheel in the X-Z plane, counter-clockwise about +Y [m], shape (k, 2)."""
+        r = self.radius
+        points = []
+        if not self.grouser_count:
+            angles = np.linspace(0, 2 * math.pi, arc_segments, endpoint=False)
+            return np.stack([r * np.sin(angles), r * np.cos(angles)], axis=1)
+        half = 0.5 * self.grouser_thickness
+        # angle subtended on the rim by half a grouser
+        half_angle = math.asin(half / r)
+        pitch = 2 * math.pi / self.grouser_count
+        per_arc = max(2, int(arc_segments / self.grouser_count))
+        for k in range(self.grouser_count):
+            theta = k * pitch
+            er = np.array([math.sin(theta), math.cos(theta)])
+            et = np.array([math.cos(theta), -math.sin(theta)])
+            root = math.sqrt(r * r - half * half)
+            tip = r + self.grouser_height
+            points += [root * er - half * et, tip * er - half * et, tip * er + half * et, root * er + half * et]
+            # the rim between this grouser and the next
+            start = theta + half_angle
+            stop = theta + pitch - half_angle
+            for a in np.linspace(start, stop, per_arc + 1)[1:-1]:
+                points.append(r * np.array([math.sin(a), math.cos(a)]))
+        # sin/cos of the angle from +Z towards +X: going round with increasing theta
+        # turns from +Z to +X, i.e. about -Y; reverse so the outline turns about +Y
+        return np.array(points)[::-1]
+
+    def to_mesh(self, arc_segments: int = 720) -> tuple[np.ndarray, np.ndarray]:
+        """A closed triangle mesh of the wheel: (vertices [m] (v, 3), triangles (t, 3) int)."""
+        return extrude_profile(self.profile(arc_segments), self.width)
+
+
+def extrude_profile(profile: np.ndarray, width: float) -> tuple[np.ndarray, np.ndarray]:
+    """Extrude a star-shaped X-Z outline (about the origin) along Y into a closed mesh."""
+    k = len(profile)
+    half = 0.5 * width
+    ring = lambda y: np.column_stack([profile[:, 0], np.full(k, y), profile[:, 1]])  # noqa: E731
+    vertices = np.vstack([ring(-half), ring(half), [[0, -half, 0], [0, half, 0]]])
+    centre_lo, centre_hi = 2 * k, 2 * k + 1
+    triangles = []
+    for i in range(k):
+        j = (i + 1) % k
+        a, b, c, d = i, j, k + i, k + j
+        # outward-facing side quads (outline turns about +Y)
+        triangles += [(a, c, b), (b, c, d)]
+        triangles += [(centre_lo, a, b), (centre_hi, d, c)]
+    triangles = np.array(triangles, dtype=np.int32)
+    # orient all faces outward: flip if the signed volume is negative
+    v = vertices[triangles]
+    volume = np.einsum("ij,ij->i", v[:, 0], np.cross(v[:, 1], v[:, 2])).sum() / 6.0
+    if volume < 0:
+        triangles = triangles[:, ::-1].copy()
+    return vertices.astype(np.float64), triangles
+
+
+@dataclass(frozen=True)
+class MeshWheel:
+    """A wheel given as a closed triangle mesh in the wheel frame."""
+
+    vertices: np.ndarray
+    """Vertex positions in the wheel frame [m], shape (v, 3)."""
+    triangles: np.ndarray
+    """Vertex indices of each triangle (outward counter-clockwise), shape (t, 3), int."""
+    name: str = "mesh"
+
+    def __post_init__(self):
+        vertices = np.asarray(self.vertices, dtype=np.float64)
+        triangles = np.asarray(self.triangles)
+        if vertices.ndim != 2 or vertices.shape[1] != 3 or len(vertices) < 4 or not np.all(np.isfinite(vertices)):
+            raise ValueError(f"mesh {self.name!r}: vertices must be finite, shape (v >= 4, 3), got {vertices.shape}")
+        if triangles.ndim != 2 or triangles.shape[1] != 3 or len(triangles) < 4:
+            raise ValueError(f"mesh {self.name!r}: triangles must have shape (t >= 4, 3), got {triangles.shape}")
+        if triangles.min() < 0 or triangles.max() >= len(vertices):
+            raise ValueError(f"mesh {self.name!r}: triangle indices must be in [0, {len(vertices)})")
+        edges = np.sort(np.concatenate([triangles[:, [0, 1]], triangles[:, [1, 2]], triangles[:, [2, 0]]]), axis=1)
+        _, counts = np.unique(edges, axis=0, return_counts=True)
+        if np.any(counts != 2):
+            raise ValueError(f"mesh {self.name!r} is not closed (watertight): {int(np.sum(counts != 2))} edges are not "
+                             "shared by exactly two triangles; inside/outside needs a closed surface")
+        object.__setattr__(self, "vertices", vertices)
+        object.__setattr__(self, "triangles", triangles.astype(np.int32))
+
+    @property
+    def bounding_radius(self) -> float:
+        return float(np.linalg.norm(self.vertices, axis=1).max())
+
+    @property
+    def outer_radius(self) -> float:
+        """Largest distance of a vertex from the axle [m]."""
+        return float(np.hypot(self.vertices[:, 0], self.vertices[:, 2]).max())
+
+    @classmethod
+    def load(cls, path: str | os.PathLike, scale: float = 1.0) -> "MeshWheel":
+        """Load an OBJ or STL file (units: metres times `scale`), axle along the file's Y axis."""
+        path = os.fspath(path)
+        extension = os.path.splitext(path)[1].lower()
+        if extension not in (".obj", ".stl"):
+            raise ValueError(f"wheel mesh file must be .obj or .stl, got {path!r}")
+        if not os.path.isfile(path):
+            raise FileNotFoundError(f"wheel mesh file not found: {path!r}")
+        if not (_positive(scale)):
+            raise ValueError(f"mesh scale must be > 0, got {scale!r}")
+        try:
+            import trimesh
+        except ImportError as error:  # pragma: no cover - depends on the install
+            raise ImportError("loading OBJ/STL wheels needs trimesh: pip install 'regolith-cosim[mesh]'") from error
+        try:
+            mesh = trimesh.load(path, force="mesh", process=True)
+        except Exception as error:
+            raise ValueError(f"cannot read wheel mesh {path!r}: {error}") from error
+        if len(mesh.faces) == 0:
+            raise ValueError(f"wheel mesh {path!r} has no triangles")
+        return cls(np.asarray(mesh.vertices) * scale, np.asarray(mesh.faces), name=os.path.basename(path))
+
+    def save(self, path: str | os.PathLike) -> None:
+        """Write the mesh as OBJ or STL (by extension)."""
+        import trimesh
+
+        trimesh.Trimesh(self.vertices, self.triangles, process=False).export(os.fspath(path))
+
+
+def _positive(x) -> bool:
+    return isinstance(x, (int, float, np.floating, np.integer)) and math.isfinite(x) and x > 0
