@@ -122,14 +122,23 @@ class DemSoil:
     def _check_walls(self, positions: np.ndarray) -> None:
         if self._warned_wall:
             return
+        rotations = self.sim.control.body_rotation_host
         for b, hub in enumerate(positions):
             shape = self.sim.model.bodies[b]
-            reach = shape.bounding_radius
             for point, normal in self._walls:
-                gap = float((hub - point) @ normal) - reach
+                gap = float((hub - point) @ normal) - _extent(shape, rotations[b], normal)
                 if gap < self.wall_clearance:
                     self._warned_wall = True
                     warnings.warn(f"wheel {b} is {gap:.4g} m from a container wall (hub at {np.round(hub, 4)}), "
                                   f"closer than {self.wall_clearance:.3g} m: the wall influences the result; "
                                   "make the bed larger", WallProximityWarning, stacklevel=3)
                     return
+
+
+def _extent(shape, rotation: np.ndarray, direction: np.ndarray) -> float:
+    """How far the wheel reaches from its hub against `direction` (world) [m]."""
+    if hasattr(shape, "vertices"):
+        return float(np.max(-(shape.vertices @ rotation.T) @ direction))
+    axle = rotation[:, 1]
+    along = abs(float(axle @ direction))
+    return shape.outer_radius * float(np.sqrt(max(0.0, 1.0 - along * along))) + 0.5 * shape.width * along

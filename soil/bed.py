@@ -185,6 +185,7 @@ def save_bed(path, sim, spec: BedSpec | None = None, metrics: dict | None = None
             particles = f.create_group("particles")
             particles["radius"] = model.radius.numpy()
             particles["material"] = model.material.numpy()
+            particles["mass"] = model.mass.numpy()
             particles["inv_mass"] = model.inv_mass.numpy()
             particles["inv_inertia"] = model.inv_inertia.numpy()
             boundaries = f.create_group("boundaries")
@@ -223,6 +224,7 @@ def load_bed(path) -> tuple[SoilBuilder, dict]:
         inv_mass = f["particles/inv_mass"][()]
         inv_inertia = f["particles/inv_inertia"][()]
         saved = {name: f["state"][name][()] for name in f["state"]}
+        saved["model"] = {name: f["particles"][name][()] for name in ("mass", "inv_mass", "inv_inertia")}
         for kind, geometry, wall in zip(f["boundaries/kind"][()], f["boundaries/geometry"][()],
                                         f["boundaries/material"][()]):
             builder._boundaries.append((int(kind), [float(g) for g in geometry], int(wall)))
@@ -245,7 +247,11 @@ def restore_state(model, state, saved: dict) -> None:
     order = model.particle_order  # builder index of each model particle
     inverse = np.empty_like(order)
     inverse[order] = np.arange(n)
-    data = {k: v for k, v in saved.items() if k not in ("precision", "metrics")}
+    data = {k: v for k, v in saved.items() if k not in ("precision", "metrics", "model")}
+    # masses as saved (recomputing them from rounded radii could change the last bit)
+    for name, values in saved.get("model", {}).items():
+        array = getattr(model, name)
+        array.assign(values[order].astype(array.numpy().dtype))
     for name in ("position", "velocity", "angular_velocity", "force", "torque", "contact_count"):
         data[name] = data[name][order]
     for name in ("contact_partner", "contact_tangential", "contact_rolling"):

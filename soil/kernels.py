@@ -136,12 +136,45 @@ def make_kernels(hi, lo, law: ContactLaw):
         return best, normal
 
     @wp.func
+    def closest_on_triangle(p: vec_hi, a: vec_hi, b: vec_hi, c: vec_hi):
+        """Closest point to p on triangle abc (Ericson, Real-Time Collision Detection 5.1.5)."""
+        ab = b - a
+        ac = c - a
+        ap = p - a
+        d1 = wp.dot(ab, ap)
+        d2 = wp.dot(ac, ap)
+        if d1 <= hi(0.0) and d2 <= hi(0.0):
+            return a
+        bp = p - b
+        d3 = wp.dot(ab, bp)
+        d4 = wp.dot(ac, bp)
+        if d3 >= hi(0.0) and d4 <= d3:
+            return b
+        vc = d1 * d4 - d3 * d2
+        if vc <= hi(0.0) and d1 >= hi(0.0) and d3 <= hi(0.0):
+            return a + (d1 / (d1 - d3)) * ab
+        cp = p - c
+        d5 = wp.dot(ab, cp)
+        d6 = wp.dot(ac, cp)
+        if d6 >= hi(0.0) and d5 <= d6:
+            return c
+        vb = d5 * d2 - d1 * d6
+        if vb <= hi(0.0) and d2 >= hi(0.0) and d6 <= hi(0.0):
+            return a + (d2 / (d2 - d6)) * ac
+        va = d3 * d6 - d5 * d4
+        if va <= hi(0.0) and (d4 - d3) >= hi(0.0) and (d5 - d6) >= hi(0.0):
+            return b + ((d4 - d3) / ((d4 - d3) + (d5 - d6))) * (c - b)
+        denominator = hi(1.0) / (va + vb + vc)
+        return a + ab * (vb * denominator) + ac * (vc * denominator)
+
+    @wp.func
     def mesh_distance(mesh: wp.uint64, points: wp.array(dtype=vec_hi), indices: wp.array(dtype=wp.int32),
                       point_offset: int, index_offset: int, p: vec_hi, max_distance: hi):
         """Signed distance of p from a closed mesh and the outward normal; (max_distance, 0) if far.
 
-        Warp's mesh query (float32) finds the closest triangle; the distance is then
-        recomputed from the triangle's `hi` vertices, so tiny overlaps stay resolved.
+        Warp's mesh query (float32) finds the closest triangle and the inside/outside
+        sign; the closest point is then recomputed in `hi` from the triangle's `hi`
+        vertices, so tiny overlaps stay resolved in double and mixed precision.
         """
         query = wp.mesh_query_point_sign_normal(mesh, wp.vec3(wp.float32(p[0]), wp.float32(p[1]), wp.float32(p[2])),
                                                 wp.float32(max_distance))
@@ -151,10 +184,7 @@ def make_kernels(hi, lo, law: ContactLaw):
         a = points[point_offset + indices[base + 0]]
         b = points[point_offset + indices[base + 1]]
         c = points[point_offset + indices[base + 2]]
-        u = hi(query.u)
-        v = hi(query.v)
-        closest = u * a + v * b + (hi(1.0) - u - v) * c
-        gap = p - closest
+        gap = p - closest_on_triangle(p, a, b, c)
         distance = wp.length(gap)
         side = hi(query.sign)
         if distance > hi(0.0):

@@ -36,7 +36,8 @@ class Simulation:
         self._next = SoilState(model.particle_count, state.capacity, model.precision.vec_hi, model.device,
                                model.body_count)
         self.steps = 0
-        self.refresh_forces()
+        if not state.forces_valid:  # a restored state keeps its own forces: restarts stay bit-identical
+            self.refresh_forces()
 
     @property
     def time(self) -> float:
@@ -51,6 +52,7 @@ class Simulation:
             if not self._overflowed():
                 break
         self.state, self._next = self._next, self.state
+        self.state.forces_valid = True
 
     def _overflowed(self) -> bool:
         if not self.contacts.take_overflow():
@@ -69,6 +71,7 @@ class Simulation:
             if not self._overflowed():
                 break  # else: more contacts than history slots; slots were widened, redo the step
         self.state, self._next = self._next, self.state
+        self.state.forces_valid = True
         self.steps += 1
 
     def run(self, duration: float, dt: float, callback=None, check_every: int = 200) -> None:

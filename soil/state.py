@@ -42,6 +42,8 @@ class SoilState:
         """Number of particles touching each body, shape (body_count,)."""
         self.time = 0.0
         """Simulated time [s] (a Python float, i.e. double precision)."""
+        self.forces_valid = False
+        """True when force/torque/history belong to the positions (after a step or a restore)."""
 
     @property
     def capacity(self) -> int:
@@ -59,6 +61,7 @@ class SoilState:
                 raise ValueError(f"state.{name}: shape {source.shape} does not match {array.shape}")
             wp.copy(array, source)
         self.time = other.time
+        self.forces_valid = other.forces_valid
 
     def grow_capacity(self, capacity: int) -> None:
         """Widen the history storage to `capacity` slots per particle, keeping the history."""
@@ -92,3 +95,4 @@ class SoilState:
                 values = padded
             array.assign(values.astype(array.numpy().dtype, copy=False))
         self.time = float(data["time"])
+        self.forces_valid = True  # a saved state carries the forces of its own step
