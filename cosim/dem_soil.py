@@ -41,6 +41,29 @@ class DemSoil:
         self._warned_wall = False
         self._walls = self._container_walls()
 
+    @classmethod
+    def from_bed(cls, bed, wheels, wheel_material, dt: float, surface_height: float | None = None,
+                 device=None, precision: str = "mixed", order_seed: int | None = None,
+                 wall_clearance: float | None = None) -> "DemSoil":
+        """A DemSoil on a saved bed (path of soil.bed.save_bed, or load_bed's (builder, saved))
+        with one body per wheel shape (GrouserWheel/MeshWheel), all of `wheel_material`.
+
+        surface_height [m]: undisturbed surface; None takes the bed's saved height metric.
+        """
+        from soil import Simulation
+        from soil.bed import load_bed, restore_state
+
+        builder, saved = load_bed(bed) if not isinstance(bed, tuple) else bed
+        for shape in wheels:
+            builder.add_wheel(shape, wheel_material)
+        model, state, control = builder.finalize(device=device, precision=precision, order_seed=order_seed)
+        restore_state(model, state, saved)
+        if surface_height is None:
+            if "height" not in saved.get("metrics", {}):
+                raise ValueError("the bed file has no height metric: pass surface_height [m]")
+            surface_height = float(saved["metrics"]["height"])
+        return cls(Simulation(model, state, control), dt, surface_height, wall_clearance)
+
     @property
     def time(self) -> float:
         return self.sim.time

@@ -132,19 +132,14 @@ class SoilFmuCore:
 
 def make_dem_soil(bed_file, config: dict, dem_step: float):
     """A DemSoil from a saved bed plus the wheels described in `config` (see export_soil_fmu)."""
-    from soil import GrouserWheel, Material, MeshWheel, Simulation
-    from soil.bed import load_bed, restore_state
+    from soil import GrouserWheel, Material, MeshWheel
     from .dem_soil import DemSoil
 
-    builder, saved = load_bed(bed_file)
-    for wheel in config["wheels"]:
-        shape = (MeshWheel(np.asarray(wheel["vertices"]), np.asarray(wheel["triangles"]))
-                 if "vertices" in wheel else GrouserWheel(**wheel["shape"]))
-        builder.add_wheel(shape, Material(**wheel["material"]))
-    model, state, control = builder.finalize(device=config.get("device"), precision=config["precision"])
-    restore_state(model, state, saved)
-    return DemSoil(Simulation(model, state, control), dem_step, surface_height=config["surface_height"],
-                   wall_clearance=config.get("wall_clearance"))
+    shapes = [MeshWheel(np.asarray(w["vertices"]), np.asarray(w["triangles"])) if "vertices" in w
+              else GrouserWheel(**w["shape"]) for w in config["wheels"]]
+    return DemSoil.from_bed(bed_file, shapes, Material(**config["wheels"][0]["material"]), dem_step,
+                            surface_height=config["surface_height"], device=config.get("device"),
+                            precision=config["precision"], wall_clearance=config.get("wall_clearance"))
 
 
 def export_soil_fmu(bed_file, wheels, wheel_material, dem_step: float, destination, surface_height: float,

@@ -1,0 +1,1 @@
+"""Sources of the test/example rover FMUs and their builders (see build_fmus.py)."""

@@ -1,0 +1,242 @@
+"""MuJoCo rover adapter: a RoverSide (cosim.contract) around an MJCF model.
+
+Frames and conventions (DESIGN.md section 5):
+- a wheel is a MuJoCo body; its hub is the body frame origin (data.xpos), its
+  orientation data.xquat (w, x, y, z, body -> world);
+- velocities come from mj_objectVelocity(mjOBJ_XBODY, flg_local=0): the 6D velocity at
+  the body frame origin with world orientation (mjOBJ_BODY would give it at the CoM). cvel is NOT used directly: its linear part is the
+  velocity of the point coinciding with the subtree CoM of the root, not of the hub;
+- data.xfrc_applied holds a world-frame wrench at the body CoM (data.xipos), so the soil
+  torque about the hub is shifted: tau_com = tau_hub + (p_hub - p_com) x F. The shift is
+  redone at every MuJoCo step (between mj_step1 and mj_step2) because p_hub - p_com
+  turns with the body when the CoM is off the hub.
+"""
+
+from __future__ import annotations
+
+import os
+from typing import Sequence
+
+import mujoco
+import numpy as np
+
+from cosim.contract import WheelKinematics, WheelWrench
+
+
+def load_model(model: "str | os.PathLike | mujoco.MjModel") -> mujoco.MjModel:
+    """An MjModel from an MjModel, an MJCF file path or an MJCF string."""
+    if isinstance(model, mujoco.MjModel):
+        return model
+    text = os.fspath(model)
+    if text.lstrip().startswith("<"):
+        return mujoco.MjModel.from_xml_string(text)
+    if not os.path.exists(text):
+        raise FileNotFoundError(f"MJCF file not found: {text}")
+    return mujoco.MjModel.from_xml_path(text)
+
+
+class MujocoRover:
+    """A RoverSide backed by MuJoCo.
+
+    Args:
+        model: MjModel, MJCF path or MJCF string.
+        wheel_bodies: body names of the wheels; their order is the wheel order everywhere.
+        gravity: optional gravity [m/s^2], shape (3,), written to model.opt.gravity.
+        wheel_actuators: names of the velocity actuators driving the wheels, one per
+            wheel (None entries allowed); None finds, for each wheel, the actuator acting
+            on the wheel body's hinge joint.
+
+    Drive modes: `set_wheel_speeds` writes the velocity actuators' ctrl [rad/s];
+    `set_wheel_torques` switches to torque mode: the velocity actuators' gains are set to
+    zero and the torque [N m] is applied on the wheel hinge (data.qfrc_applied).
+    """
+
+    def __init__(
+        self,
+        model,
+        wheel_bodies: Sequence[str],
+        gravity: Sequence[float] | None = None,
+        wheel_actuators: Sequence[str | None] | None = None,
+    ):
+        self.model = load_model(model)
+        self.data = mujoco.MjData(self.model)
+        self.wheel_names = list(wheel_bodies)
+        """Wheel body names, in wheel order."""
+        if not self.wheel_names:
+            raise ValueError("wheel_bodies is empty: name at least one wheel body")
+        bodies = [self.model.body(i).name for i in range(self.model.nbody)]
+        missing = [n for n in self.wheel_names if n not in bodies]
+        if missing:
+            raise KeyError(f"wheel bodies {missing} not in the model; its bodies are: {bodies}")
+        self.wheel_body_ids = np.array([bodies.index(n) for n in self.wheel_names])
+        """MuJoCo body ids of the wheels [-], shape (wheel_count,)."""
+        self.timestep = float(self.model.opt.timestep)
+        """MuJoCo's own time step [s]."""
+
+        self._hinge_dof = [self._find_hinge_dof(b) for b in self.wheel_body_ids]
+        self._actuators = self._find_actuators(wheel_actuators)
+        self._actuator_gains = {a: (self.model.actuator_gainprm[a].copy(), self.model.actuator_biasprm[a].copy())
+                                for a in self._actuators if a is not None}
+        self.drive_mode = "speed"
+        """'speed' (velocity actuators) or 'torque' (hinge torques)."""
+        self.wheel_torques = np.zeros(len(self.wheel_names))
+        """Commanded hinge torques in torque mode [N m], shape (wheel_count,)."""
+        self.hub_wrenches = np.zeros((len(self.wheel_names), 6))
+        """Held soil wrench per wheel, world frame: force [N] then torque about the hub [N m], shape (wheel_count, 6)."""
+
+        if gravity is not None:
+            self.set_gravity(gravity)
+        mujoco.mj_forward(self.model, self.data)
+
+    # --- lookups ------------------------------------------------------------------
+
+    def _find_hinge_dof(self, body: int) -> int | None:
+        """Dof index of the (single) hinge joint of a wheel body, None if it has none."""
+        for j in range(self.model.body_jntadr[body], self.model.body_jntadr[body] + self.model.body_jntnum[body]):
+            if self.model.jnt_type[j] == mujoco.mjtJoint.mjJNT_HINGE:
+                return int(self.model.jnt_dofadr[j])
+        return None
+
+    def _find_actuators(self, names) -> list[int | None]:
+        actuators = [self.model.actuator(i).name for i in range(self.model.nu)]
+        if names is not None:
+            if len(names) != len(self.wheel_names):
+                raise ValueError(f"{len(names)} wheel_actuators for {len(self.wheel_names)} wheels")
+            out = []
+            for n in names:
+                if n is not None and n not in actuators:
+                    raise KeyError(f"actuator {n!r} not in the model; its actuators are: {actuators}")
+                out.append(None if n is None else actuators.index(n))
+            return out
+        out = []
+        for body in self.wheel_body_ids:
+            joints = range(self.model.body_jntadr[body], self.model.body_jntadr[body] + self.model.body_jntnum[body])
+            found = [a for a in range(self.model.nu)
+                     if self.model.actuator_trntype[a] == mujoco.mjtTrn.mjTRN_JOINT
+                     and self.model.actuator_trnid[a, 0] in joints]
+            out.append(found[0] if found else None)
+        return out
+
+    # --- RoverSide ---------------------------------------------------------------------
+
+    @property
+    def time(self) -> float:
+        """Rover time [s]."""
+        return float(self.data.time)
+
+    def set_gravity(self, gravity: Sequence[float]) -> None:
+        self.model.opt.gravity[:] = np.asarray(gravity, dtype=np.float64).reshape(3)
+
+    def wheel_kinematics(self) -> list[WheelKinematics]:
+        out = []
+        vel = np.zeros(6)
+        for b in self.wheel_body_ids:
+            # [angular(3), linear(3)] at the body frame origin (the hub), world orientation.
+            # mjOBJ_XBODY, not mjOBJ_BODY: the latter is centred on the CoM (xipos).
+            mujoco.mj_objectVelocity(self.model, self.data, mujoco.mjtObj.mjOBJ_XBODY, int(b), vel, 0)
+            out.append(
+                WheelKinematics(
+                    position=self.data.xpos[b].copy(),
+                    orientation=self.data.xquat[b].copy(),
+                    linear_velocity=vel[3:].copy(),
+                    angular_velocity=vel[:3].copy(),
+                )
+            )
+        return out
+
+    def apply_wheel_wrenches(self, wrenches: Sequence[WheelWrench]) -> None:
+        if len(wrenches) != len(self.wheel_names):
+            raise ValueError(f"{len(wrenches)} wrenches for {len(self.wheel_names)} wheels")
+        for i, w in enumerate(wrenches):
+            self.hub_wrenches[i, :3] = w.force
+            self.hub_wrenches[i, 3:] = w.torque
+        self._write_xfrc()
+
+    def _write_xfrc(self) -> None:
+        """Hub wrenches -> data.xfrc_applied (at the CoM) using the current xpos/xipos."""
+        for i, b in enumerate(self.wheel_body_ids):
+            force = self.hub_wrenches[i, :3]
+            arm = self.data.xpos[b] - self.data.xipos[b]  # p_hub - p_com
+            self.data.xfrc_applied[b, :3] = force
+            self.data.xfrc_applied[b, 3:] = self.hub_wrenches[i, 3:] + np.cross(arm, force)
+        if self.drive_mode == "torque":
+            for i, dof in enumerate(self._hinge_dof):
+                if dof is not None:
+                    self.data.qfrc_applied[dof] = self.wheel_torques[i]
+
+    def advance(self, t_end: float) -> None:
+        """Step MuJoCo with its own timestep until exactly t_end [s] (the last step shortened)."""
+        t_end = float(t_end)
+        if t_end < self.data.time - 1e-12:
+            raise ValueError(f"cannot advance backwards: rover time {self.data.time}, t_end {t_end}")
+        # A remainder below this is rounding, not a step worth taking.
+        eps = 1e-9 * self.timestep
+        split = self.model.opt.integrator != mujoco.mjtIntegrator.mjINT_RK4
+        try:
+            while t_end - self.data.time > eps:
+                dt = min(self.timestep, t_end - self.data.time)
+                if t_end - self.data.time - dt <= eps:
+                    dt = t_end - self.data.time  # land on t_end, not one rounding error short
+                self.model.opt.timestep = dt
+                if split:
+                    mujoco.mj_step1(self.model, self.data)  # positions/velocities -> xpos, xipos
+                    self._write_xfrc()
+                    mujoco.mj_step2(self.model, self.data)
+                else:
+                    self._write_xfrc()
+                    mujoco.mj_step(self.model, self.data)
+        finally:
+            self.model.opt.timestep = self.timestep
+        self.data.time = t_end
+        # After mj_step, xpos & co describe the state before the step: refresh them so
+        # wheel_kinematics() reads the state at t_end.
+        mujoco.mj_forward(self.model, self.data)
+
+    # --- drive commands --------------------------------------------------------------------
+
+    def set_wheel_speeds(self, speeds: Sequence[float]) -> None:
+        """Velocity-actuator targets [rad/s], shape (wheel_count,); switches to speed mode."""
+        speeds = np.asarray(speeds, dtype=np.float64).reshape(-1)
+        if speeds.shape != (len(self.wheel_names),):
+            raise ValueError(f"{speeds.size} speeds for {len(self.wheel_names)} wheels")
+        if any(a is None for a in self._actuators):
+            raise ValueError(f"no velocity actuator found for wheels "
+                             f"{[n for n, a in zip(self.wheel_names, self._actuators) if a is None]}")
+        if self.drive_mode != "speed":
+            for a, (gain, bias) in self._actuator_gains.items():
+                self.model.actuator_gainprm[a] = gain
+                self.model.actuator_biasprm[a] = bias
+            for dof in self._hinge_dof:
+                if dof is not None:
+                    self.data.qfrc_applied[dof] = 0.0
+            self.drive_mode = "speed"
+        for a, s in zip(self._actuators, speeds):
+            self.data.ctrl[a] = s
+
+    def set_wheel_torques(self, torques: Sequence[float]) -> None:
+        """Hinge torques [N m], shape (wheel_count,); switches to torque mode (motors off)."""
+        torques = np.asarray(torques, dtype=np.float64).reshape(-1)
+        if torques.shape != (len(self.wheel_names),):
+            raise ValueError(f"{torques.size} torques for {len(self.wheel_names)} wheels")
+        missing = [n for n, d in zip(self.wheel_names, self._hinge_dof) if d is None]
+        if missing:
+            raise ValueError(f"wheels {missing} have no hinge joint to apply a torque on")
+        if self.drive_mode != "torque":
+            for a in self._actuator_gains:
+                # A velocity actuator is kv (ctrl - qvel): zero gain and bias switch it off.
+                self.model.actuator_gainprm[a] = 0.0
+                self.model.actuator_biasprm[a] = 0.0
+            self.drive_mode = "torque"
+        self.wheel_torques[:] = torques
+        self._write_xfrc()
+
+    # --- conveniences ---------------------------------------------------------------
+
+    @property
+    def total_mass(self) -> float:
+        """Mass of all bodies [kg]."""
+        return float(self.model.body_mass.sum())
+
+    def wheel_spin_rates(self) -> np.ndarray:
+        """Hinge rates of the wheels [rad/s], shape (wheel_count,) (NaN without a hinge)."""
+        return np.array([np.nan if d is None else self.data.qvel[d] for d in self._hinge_dof])
