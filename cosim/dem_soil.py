@@ -74,6 +74,18 @@ class DemSoil:
             raise ValueError(f"the soil was settled under gravity {self.sim.model.gravity} m/s^2, the scene asks "
                              f"for {gravity}: settle the bed under the scene's gravity")
 
+    def highest_grain_under(self, wheel: int, hub: Sequence[float]) -> float:
+        """Top (z + r) [m] of the highest grain inside the wheel's horizontal footprint when
+        its hub is at `hub` (axle along Y); -inf if none. Place a wheel at
+        max(...) + outer radius to start it just touching, not pressed into, the soil."""
+        shape = self.sim.model.bodies[wheel]
+        x = self.sim.positions()
+        r = self.sim.model.radius_numpy()
+        reach = shape.outer_radius if hasattr(shape, "radius") else shape.outer_radius
+        half_width = 0.5 * getattr(shape, "width", 2 * reach)
+        inside = (np.abs(x[:, 0] - hub[0]) < reach + r) & (np.abs(x[:, 1] - hub[1]) < half_width + r)
+        return float(np.max(x[inside, 2] + r[inside])) if inside.any() else -np.inf
+
     def place_wheels(self, kinematics: Sequence[WheelKinematics]) -> None:
         """Put the wheels at these poses without stepping (e.g. before the first macro step)."""
         for b, k in enumerate(kinematics):
