@@ -87,7 +87,7 @@ def main(argv=None) -> None:
     duration = args.duration or (0.12 / hub_speed if args.size == "small" else 0.4 / hub_speed)
     print(f"driving {duration:.3g} s at {hub_speed * 100:.1f} cm/s on {soil.sim.model.particle_count} grains ...",
           flush=True)
-    x0 = rover.wheel_kinematics()[0].position[0]
+    x0 = np.array([k.position[0] for k in rover.wheel_kinematics()])
     coupler.run(duration)
     rec = coupler.records()
     np.savez(os.path.join(args.out, "traverse.npz"), **rec)
