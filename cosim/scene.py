@@ -62,8 +62,8 @@ class SceneSection(_Section):
     """A preset name, a magnitude along -Z [m/s^2] or a 3-vector [m/s^2]."""
     precision: Literal["single", "double", "mixed"] = "mixed"
     """Floating-point mode of the DEM (DESIGN.md section 4)."""
-    device: str = "cpu"
-    """Warp device: 'cpu', 'cuda' or 'cuda:N'."""
+    device: str = Field("default", validate_default=True)
+    """Warp device: 'default' (CUDA when a GPU is present, else the CPU), 'cpu', 'cuda' or 'cuda:N'."""
 
     @field_validator("gravity")
     @classmethod
@@ -82,8 +82,12 @@ class SceneSection(_Section):
     @field_validator("device")
     @classmethod
     def _device(cls, value):
+        if value == "default":
+            import warp as wp
+
+            return str(wp.get_device())  # Warp's default: the first GPU, else the CPU
         if value != "cpu" and value != "cuda" and not (value.startswith("cuda:") and value[5:].isdigit()):
-            raise ValueError("device must be 'cpu', 'cuda' or 'cuda:N'")
+            raise ValueError("device must be 'default', 'cpu', 'cuda' or 'cuda:N'")
         return value
 
     def gravity_vector(self):
