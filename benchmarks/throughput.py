@@ -89,7 +89,7 @@ def main() -> None:
     parser.add_argument("--precisions", nargs="+", default=["single", "mixed", "double"])
     parser.add_argument("--no-lammps", action="store_true")
     args = parser.parse_args()
-    wp.config.quiet = True
+    wp.config.log_level = max(wp.config.log_level, wp.LOG_WARNING)  # no per-module load lines
     rows = []
     machine = f"{platform.processor() or platform.machine()}, {os.cpu_count()} cores, {args.device}"
     for n in args.n:

@@ -26,7 +26,7 @@ EXIT_OK, EXIT_ERROR, EXIT_SCENE, EXIT_EXISTS, EXIT_DIVERGED, EXIT_INTERRUPTED = 
 def _quiet_warp():
     import warp as wp
 
-    wp.config.quiet = True
+    wp.config.log_level = max(wp.config.log_level, wp.LOG_WARNING)  # no per-module load lines
 
 
 def _overrides(args) -> list[str]:

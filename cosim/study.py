@@ -39,7 +39,7 @@ def run_task(task: dict) -> dict:
     """Run one scene (task: scene_toml, base_dir, overrides, out_dir, label); never raises."""
     import warp as wp
 
-    wp.config.quiet = True
+    wp.config.log_level = max(wp.config.log_level, wp.LOG_WARNING)  # no per-module load lines
     from .runner import run_scene
 
     started = time.perf_counter()
@@ -61,7 +61,7 @@ def settle_task(task: dict) -> dict:
     """Settle the bed of a scene into task['folder'] (cached there)."""
     import warp as wp
 
-    wp.config.quiet = True
+    wp.config.log_level = max(wp.config.log_level, wp.LOG_WARNING)  # no per-module load lines
     scene = scene_from_text(task["scene_toml"], base_dir=task.get("base_dir"), overrides=task.get("overrides"))
     os.makedirs(task["folder"], exist_ok=True)
     path, info = settled_bed(scene, task["folder"], progress=False, log=lambda *a, **k: None)

@@ -40,7 +40,7 @@ def main(argv=None) -> None:
     from rover_models.mjcf import MMX_WHEELS, mmx_rover_xml
     from rover_models.mujoco_rover import MujocoRover
 
-    wp.config.quiet = True
+    wp.config.log_level = max(wp.config.log_level, wp.LOG_WARNING)  # no per-module load lines
     gravity = gravity_vector(args.gravity if not _is_number(args.gravity) else float(args.gravity))
     g = float(np.linalg.norm(gravity))
     # macroscopic stiffness adapted to the load (paper eq. 10): PHOBOS_REGOLITH at Phobos, scaled with g

@@ -10,20 +10,32 @@
     sim.run(duration=1.0, dt=1e-4)
 """
 
+import warp as _wp
+
 from .builder import SoilBuilder
 from .geometry import GrouserWheel, MeshWheel
 from .contact import ContactLaw
 from .control import SoilControl
 from .gravity import GRAVITY_PRESETS, gravity_vector
-from .integrator import VelocityVerlet
+from . import advisor
+from .advisor import largest_stable_step, macroscopic_stiffness, rayleigh_time_step, recommended_time_step
+from .integrator import JoltBeeman, StepController, VelocityVerlet
 from .materials import Material, damping_ratio_for_restitution, restitution_of_damping_ratio
 from .model import SoilModel
 from .precision import PRECISIONS, get_precision
 from .simulation import Simulation, SimulationDiverged
+from .stability import DivergenceMonitor
 from .state import SoilState
 
 __all__ = [
+    "DivergenceMonitor", "JoltBeeman", "StepController", "advisor", "largest_stable_step", "macroscopic_stiffness",
+    "rayleigh_time_step", "recommended_time_step",
     "ContactLaw", "GRAVITY_PRESETS", "GrouserWheel", "MeshWheel", "Material", "PRECISIONS", "Simulation", "SimulationDiverged",
     "SoilBuilder", "SoilControl", "SoilModel", "SoilState", "VelocityVerlet",
-    "damping_ratio_for_restitution", "get_precision", "gravity_vector", "restitution_of_damping_ratio",
+    "damping_ratio_for_restitution", "get_precision", "gravity_vector", "quiet_warp", "restitution_of_damping_ratio",
 ]
+
+
+def quiet_warp() -> None:
+    """Silence Warp's per-module load messages (warnings and errors still show)."""
+    _wp.config.log_level = max(_wp.config.log_level, _wp.LOG_WARNING)

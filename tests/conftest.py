@@ -5,7 +5,7 @@ import os
 import pytest
 import warp as wp
 
-wp.config.quiet = True
+wp.config.log_level = max(wp.config.log_level, wp.LOG_WARNING)  # no per-module load lines
 os.environ.setdefault("MPLBACKEND", "Agg")
 
 

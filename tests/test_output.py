@@ -22,7 +22,7 @@ def tiny_run(tmp_path_factory):
 
     from cosim.runner import run_scene
 
-    wp.config.quiet = True
+    wp.config.log_level = max(wp.config.log_level, wp.LOG_WARNING)  # no per-module load lines
     folder = tmp_path_factory.mktemp("output")
     result = run_scene(write_tiny(folder), str(folder / "run"), progress=False, log=None)
     assert result.status == "complete"

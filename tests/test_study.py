@@ -17,7 +17,7 @@ def reference(tmp_path_factory):
     """An uninterrupted run; its bed is reused by the others (same bed file content, same result)."""
     import warp as wp
 
-    wp.config.quiet = True
+    wp.config.log_level = max(wp.config.log_level, wp.LOG_WARNING)  # no per-module load lines
     folder = tmp_path_factory.mktemp("study")
     scene_path = write_tiny(folder)
     result = run_scene(scene_path, str(folder / "reference"), progress=False, log=None)
