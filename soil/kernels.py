@@ -357,6 +357,15 @@ def make_kernels(hi, lo, law: ContactLaw):
         torque_out[i] = total_torque
         count_out[i] = stored
 
+    @wp.func
+    def acceleration_of(force: vec_hi, inv_mass: lo, gravity: vec_hi):
+        """Acceleration [m/s^2] of a grain under `force`; fixed grains (inv_mass 0) feel no gravity."""
+        inv_m = hi(inv_mass)
+        acceleration = force * inv_m
+        if inv_m > hi(0.0):
+            acceleration = acceleration + gravity
+        return acceleration
+
     @wp.kernel(module="unique")
     def kick_drift(
         x_in: wp.array(dtype=vec_hi),
@@ -375,11 +384,7 @@ def make_kernels(hi, lo, law: ContactLaw):
     ):
         """Velocity Verlet, first half: half kick with the old forces, then a full drift."""
         i = wp.tid()
-        inv_m = hi(inv_mass[i])
-        acceleration = force_in[i] * inv_m
-        if inv_m > hi(0.0):
-            acceleration = acceleration + gravity
-        v_half = v_in[i] + hi(0.5) * dt * acceleration
+        v_half = v_in[i] + hi(0.5) * dt * acceleration_of(force_in[i], inv_mass[i], gravity)
         v_out[i] = v_half
         w_out[i] = w_in[i] + hi(0.5) * dt * hi(inv_inertia[i]) * torque_in[i]
         x_out[i] = x_in[i] + dt * v_half
@@ -398,11 +403,7 @@ def make_kernels(hi, lo, law: ContactLaw):
     ):
         """Velocity Verlet, second half kick with the new forces."""
         i = wp.tid()
-        inv_m = hi(inv_mass[i])
-        acceleration = force_in[i] * inv_m
-        if inv_m > hi(0.0):
-            acceleration = acceleration + gravity
-        v_io[i] = v_io[i] + hi(0.5) * dt * acceleration
+        v_io[i] = v_io[i] + hi(0.5) * dt * acceleration_of(force_in[i], inv_mass[i], gravity)
         w_io[i] = w_io[i] + hi(0.5) * dt * hi(inv_inertia[i]) * torque_in[i]
 
     @wp.kernel(module="unique")
@@ -497,6 +498,7 @@ def make_kernels(hi, lo, law: ContactLaw):
         elastic_energy=elastic_energy,
         contact_law=contact_law,
         boundary_contact=boundary_contact,
+        acceleration_of=acceleration_of,
         find_history=find_history,
     )
     _cache[key] = kernels
