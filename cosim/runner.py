@@ -334,7 +334,7 @@ class Runner:
                 if bar is not None:
                     wall = time.perf_counter() - started
                     rate = n * self.substeps * (k - steps_at_start) / max(wall, 1e-9)
-                    bar.update(self.macro_step)
+                    bar.update(min(self.macro_step, bar.total - bar.n))  # float sums must not pass the total
                     bar.set_postfix_str(f"dt {self.dt:.3g} s, {rate:.3g} particle-steps/s", refresh=False)
                 if self.stop_requested and not last:
                     raise RunInterrupted(f"stopped at t = {coupler.time:.6g} s after a checkpoint; "
