@@ -254,6 +254,9 @@ def restore_state(model, state, saved: dict) -> None:
         array.assign(values[order].astype(array.numpy().dtype))
     for name in ("position", "velocity", "angular_velocity", "force", "torque", "contact_count"):
         data[name] = data[name][order]
+    for name in ("force_previous", "torque_previous"):  # jolt-Beeman history (absent in older files)
+        if name in data:
+            data[name] = data[name][order]
     for name in ("contact_partner", "contact_tangential", "contact_rolling"):
         data[name] = data[name][order]
     partner = data["contact_partner"]

@@ -2,21 +2,16 @@
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
 from .control import SoilControl
-from .integrator import VelocityVerlet
+from .integrator import JoltBeeman, StepController, VelocityVerlet
 from .model import SoilModel
 from .solver import ContactSolver
+from .stability import DivergenceMonitor, SimulationDiverged  # noqa: F401 (SimulationDiverged re-exported)
 from .state import SoilState
-
-
-class SimulationDiverged(RuntimeError):
-    """The simulation became unstable; `last_good` holds the last good state as numpy arrays."""
-
-    def __init__(self, message: str, last_good: dict | None = None):
-        super().__init__(message)
-        self.last_good = last_good
 
 
 class Simulation:
@@ -26,8 +21,19 @@ class Simulation:
     so a step that fails (history overflow, divergence) leaves `state` untouched.
     """
 
-    def __init__(self, model: SoilModel, state: SoilState, control: SoilControl | None = None, integrator=None):
+    def __init__(self, model: SoilModel, state: SoilState, control: SoilControl | None = None, integrator=None,
+                 monitor: DivergenceMonitor | None = None, checkpoint_path=None):
         self.model = model
+        self.monitor = monitor or DivergenceMonitor()
+        """Divergence checks of run() and run_adaptive() (soil.stability)."""
+        self.checkpoint_path = checkpoint_path
+        """Where the last good state is written (.npz, atomically) when the simulation diverges; None: not written."""
+        self.accepted_steps = 0
+        """Steps accepted by run_adaptive (all steps taken count in `steps`)."""
+        self.rejected_steps = 0
+        """Steps run_adaptive computed and threw away (their force evaluations still count)."""
+        self.forced_steps = 0
+        """Steps accepted at dt_min although their error exceeded the tolerance."""
         self.control = control or SoilControl(model.particle_count, model.precision.vec_hi, model.device,
                                               model.body_count)
         self.integrator = integrator or VelocityVerlet()
@@ -75,14 +81,91 @@ class Simulation:
         self.steps += 1
 
     def run(self, duration: float, dt: float, callback=None, check_every: int = 200) -> None:
-        """Advance by `duration` [s] with fixed steps dt [s]; callback(sim) after each step."""
+        """Advance by `duration` [s] with fixed steps dt [s]; callback(sim) after each step.
+
+        Every `check_every` steps and at the end the DivergenceMonitor checks the state
+        (NaN, speed, overlap, energy) and raises SimulationDiverged on failure.
+        """
+        if not self.monitor.armed:
+            self.monitor.arm(self)
         steps = int(round(duration / dt))
         for k in range(steps):
             self.step(dt)
             if callback is not None:
                 callback(self)
-            if (k + 1) % check_every == 0:
-                self.check_finite()
+            if (k + 1) % check_every == 0 or k + 1 == steps:
+                self.monitor.check(self)
+
+    def run_adaptive(self, duration: float, controller: StepController | None = None, callback=None,
+                     check_every: int = 100) -> dict:
+        """Advance by `duration` [s] with jolt-Beeman steps chosen by a PID StepController.
+
+        The integrator must be a JoltBeeman (one is installed if the simulation still has
+        its default VelocityVerlet and has not stepped). A rejected step is simply not
+        swapped in: `state` (positions, velocities, forces, previous forces, contact
+        history) stays bit-for-bit what it was, and the step is redone shorter.
+        The controller keeps its state between calls (pass the same one to continue).
+        callback(sim) runs after each accepted step; every `check_every` accepted steps the
+        DivergenceMonitor checks the state (the speed is checked after every step).
+
+        Returns {'accepted', 'rejected', 'forced', 'evaluations', 'dt_smallest', 'dt_largest', 'dt_next'}
+        for this call (steps, evaluations [-], steps [s]).
+        """
+        if not isinstance(self.integrator, JoltBeeman):
+            if isinstance(self.integrator, VelocityVerlet) and self.steps == 0:
+                self.integrator = JoltBeeman()
+            else:
+                raise TypeError(f"run_adaptive needs the JoltBeeman integrator, not {type(self.integrator).__name__}")
+        controller = controller if controller is not None else getattr(self, "_controller", None) or StepController()
+        self._controller = controller
+        controller.setup(self)
+        if not self.monitor.armed:
+            self.monitor.arm(self)
+        counts = dict(accepted=0, rejected=0, forced=0, evaluations=self.contacts.evaluations)
+        smallest, largest = math.inf, 0.0
+        t_end = self.time + duration
+        dt = controller.dt
+        while t_end - self.time > 1e-9 * controller.dt_min:
+            remaining = t_end - self.time
+            # land on t_end without a sliver of a last step (a tiny step spoils the next jolt)
+            h = remaining if remaining <= dt else (0.5 * remaining if remaining < 2.0 * dt else dt)
+            while True:
+                self.integrator.step(self.model, self.state, self._next, self.control, h, self.contacts)
+                if not self._overflowed():
+                    break
+            summary = self.integrator.read_summary()
+            err = controller.error(summary)
+            accepted, proposal = controller.decide(err, h)
+            if not accepted and h <= controller.dt_min * (1.0 + 1e-9):
+                if summary["nonfinite"]:
+                    self.monitor.fail(self, f"non-finite state even at dt_min = {controller.dt_min:.4g} s",
+                                      summary["worst"], state=self._next)
+                accepted = True
+                counts["forced"] += 1
+                self.forced_steps += 1
+            if not accepted:
+                counts["rejected"] += 1
+                self.rejected_steps += 1
+                dt = proposal
+                continue
+            self.state, self._next = self._next, self.state
+            self.state.forces_valid = True
+            self.steps += 1
+            self.accepted_steps += 1
+            counts["accepted"] += 1
+            smallest, largest = min(smallest, h), max(largest, h)
+            # a step shortened to land on t_end says nothing about the step the scene allows
+            dt = proposal if h >= dt else max(proposal, dt)
+            self.monitor.check_speed(self, summary["speed"])
+            if callback is not None:
+                callback(self)
+            if counts["accepted"] % check_every == 0:
+                self.monitor.check(self)
+        controller.dt = dt
+        self.monitor.check(self)
+        counts["evaluations"] = self.contacts.evaluations - counts["evaluations"]
+        counts.update(dt_smallest=smallest, dt_largest=largest, dt_next=dt)
+        return counts
 
     def check_finite(self) -> None:
         """Raise SimulationDiverged if any particle position or velocity is not finite."""
@@ -90,9 +173,7 @@ class Simulation:
         v = self.state.velocity.numpy()
         bad = ~(np.isfinite(x).all(axis=1) & np.isfinite(v).all(axis=1))
         if bad.any():
-            raise SimulationDiverged(
-                f"non-finite particle state at t = {self.time:.6g} s (step {self.steps}), "
-                f"{int(bad.sum())} particle(s), first index {int(np.argmax(bad))}")
+            self.monitor.fail(self, f"non-finite particle state in {int(bad.sum())} particle(s)", int(np.argmax(bad)))
 
     # -- diagnostics (host side) ------------------------------------------------
     def positions(self) -> np.ndarray:

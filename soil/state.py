@@ -34,6 +34,14 @@ class SoilState:
         """Accumulated rolling angle per slot [rad], shape (particle_count, capacity)."""
         self.contact_count = wp.zeros(n, dtype=wp.int32, device=device)
         """Number of used history slots (= contacts) per particle, shape (particle_count,)."""
+        self.force_previous = wp.zeros(n, dtype=vec_hi, device=device)
+        """Force of the previous step's state (time - step_previous) [N], shape (particle_count,).
+        Multi-step integrators (jolt-Beeman) take the jolt from it."""
+        self.torque_previous = wp.zeros(n, dtype=vec_hi, device=device)
+        """Torque of the previous step's state [N m], shape (particle_count,)."""
+        self.step_previous = wp.zeros(1, dtype=vec_hi._wp_scalar_type_, device=device)
+        """Length of the step that produced this state [s], shape (1,); 0 = no history
+        (start-up: jolt-Beeman then assumes zero jolt)."""
         self.body_force = wp.zeros(body_count, dtype=vec_hi, device=device)
         """Soil force on each body (wheel) at the state's time, world [N], shape (body_count,)."""
         self.body_torque = wp.zeros(body_count, dtype=vec_hi, device=device)

@@ -1,0 +1,234 @@
+"""Divergence detection (DESIGN.md section 3): stop an exploding simulation, keep the last good state.
+
+An explicit DEM step that is too large for the contact stiffness pumps energy into the
+contacts: overlaps deepen, speeds grow without bound, then values turn NaN. The
+DivergenceMonitor compares the state with bounds taken from the scene itself when it
+is armed (start of a run):
+
+- speed:   max_i max(|v_i|, r_i |w_i|) <= speed_factor * (sqrt(2 |g| H) + v0 + v_el + v_body + speed_floor)
+           H: height span of the grains along gravity (+ 2 r_max) [m]; v0: largest initial
+           speed; v_el = sqrt(2 E_el0 / m_min): speed the initial overlaps can give;
+           v_body: largest rim speed of the wheels seen so far (their motion is input);
+- energy:  kinetic energy <= energy_factor * (KE0 + E_el0 + M |g| H + M v_body^2 / 2 + M speed_floor^2 / 2)
+           (what gravity, initial motion, initial overlaps and the wheels can supply);
+- overlap: max contact overlap / radius <= max_overlap_ratio (a Hertz contact deeper than
+           that is far outside the law's validity: a stiffness/time-step problem);
+- finite:  no NaN / inf anywhere.
+
+A check is one reduction kernel over the particles (plus a host sum of the kinetic
+energy) and runs every N steps; between checks the state is copied (device to device)
+into a snapshot, the "last good state". On failure SimulationDiverged names the time,
+the step, the worst particle and its position, carries the snapshot as numpy arrays in
+`last_good`, and, if the Simulation has a checkpoint_path, writes it there atomically.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import tempfile
+from dataclasses import dataclass, field
+
+import numpy as np
+import warp as wp
+
+from .integrator_kernels import CHECK_COLUMNS, CHECK_NONFINITE, CHECK_OVERLAP, CHECK_SPEED, make_integrator_kernels
+from .state import SoilState
+
+
+class SimulationDiverged(RuntimeError):
+    """The simulation became unstable; `last_good` holds the last good state as numpy arrays.
+
+    Attributes: time [s] and step of the failure, particle (model index, or None), position [m]
+    of that particle (3,), reason (str), last_good (dict of numpy arrays, SoilState.to_numpy()
+    plus 'step'), checkpoint (path written, or None).
+    """
+
+    def __init__(self, message: str, last_good: dict | None = None, *, time: float | None = None,
+                 step: int | None = None, particle: int | None = None, position=None, reason: str = "",
+                 checkpoint: str | None = None):
+        super().__init__(message)
+        self.last_good = last_good
+        self.time = time
+        self.step = step
+        self.particle = particle
+        self.position = position
+        self.reason = reason
+        self.checkpoint = checkpoint
+
+
+def write_checkpoint(path, data: dict) -> str:
+    """Write a state dict (numpy arrays) to `path` as .npz atomically: temp file + os.replace."""
+    path = os.fspath(path)
+    folder = os.path.dirname(os.path.abspath(path))
+    os.makedirs(folder, exist_ok=True)
+    handle, temporary = tempfile.mkstemp(suffix=".npz.tmp", dir=folder)
+    try:
+        with os.fdopen(handle, "wb") as f:
+            np.savez(f, **data)
+        os.replace(temporary, path)
+    except BaseException:
+        if os.path.exists(temporary):
+            os.remove(temporary)
+        raise
+    return path
+
+
+@dataclass
+class DivergenceMonitor:
+    """Physical bounds on the state; see the module docstring. One per Simulation."""
+
+    speed_factor: float = 10.0
+    """Allowed speed as a multiple of the scene's speed scale [-]."""
+    energy_factor: float = 10.0
+    """Allowed kinetic energy as a multiple of the energy the scene can supply [-]."""
+    max_overlap_ratio: float = 0.5
+    """Largest allowed contact overlap / radius [-]."""
+    height: float | None = None
+    """Fall height H [m]; None: the grains' span along gravity + 2 r_max at arming."""
+    speed_floor: float = 0.0
+    """Extra speed the scene may reach [m/s] (e.g. external forces the monitor cannot see)."""
+    enabled: bool = True
+    """False: no checks except non-finite values."""
+    armed: bool = field(default=False, repr=False)
+    speed_bound: float = field(default=math.inf, repr=False)
+    """Current speed bound [m/s] (after arming)."""
+    energy_bound: float = field(default=math.inf, repr=False)
+    """Current kinetic-energy bound [J] (after arming)."""
+
+    def __post_init__(self):
+        self._good = None  # the last-good snapshot (a SoilState), made by arm()/check()
+        self._good_step = 0
+
+    # -- bounds ------------------------------------------------------------------
+    def arm(self, sim) -> None:
+        """Take the scene's scales from the current state and snapshot it as the last good state."""
+        model = sim.model
+        free = model.inv_mass.numpy() > 0
+        mass = model.mass_numpy()
+        radius = model.radius_numpy()
+        x = sim.positions()
+        g = float(np.linalg.norm(model.gravity))
+        if self.height is not None:
+            height = float(self.height)
+        elif g > 0 and free.any():
+            along = x[free] @ (-model.gravity / g)
+            height = float(along.max() - along.min()) + 2.0 * model.max_radius
+        else:
+            height = 2.0 * model.max_radius
+        v = np.linalg.norm(sim.velocities(), axis=1)
+        spin = radius * np.linalg.norm(sim.angular_velocities(), axis=1)
+        elastic = max(sim.elastic_energy(), 0.0) if np.isfinite(x).all() else 0.0
+        m_free = mass[free] if free.any() else mass
+        self._g, self._height = g, height
+        self._mass_total = float(m_free.sum())
+        self._v0 = float(np.max(np.maximum(v, spin)[free])) if free.any() else 0.0
+        self._v_elastic = math.sqrt(2.0 * elastic / float(m_free.min()))
+        self._energy0 = sim.kinetic_energy() + elastic
+        self._body_reach = (model.body_shape.numpy()[:, 5].astype(np.float64) if model.body_count else np.zeros(0))
+        self._v_body = 0.0
+        self._update_bounds(sim)
+        self.armed = True
+        self._good = None
+        self.snapshot(sim)
+
+    def _update_bounds(self, sim) -> None:
+        control = sim.control
+        if len(self._body_reach):
+            rim = (np.linalg.norm(control.body_velocity_host, axis=1)
+                   + np.linalg.norm(control.body_angular_velocity_host, axis=1) * self._body_reach)
+            self._v_body = max(self._v_body, float(rim.max()))
+        scale = (math.sqrt(2.0 * self._g * self._height) + self._v0 + self._v_elastic + self._v_body
+                 + self.speed_floor)
+        self.speed_bound = self.speed_factor * scale
+        supply = (self._energy0 + self._mass_total * self._g * self._height
+                  + 0.5 * self._mass_total * (self._v_body**2 + self.speed_floor**2))
+        self.energy_bound = self.energy_factor * supply
+
+    # -- the last good state -------------------------------------------------------
+    def snapshot(self, sim) -> None:
+        """Copy the current state into the last-good buffer (device to device)."""
+        state = sim.state
+        if self._good is None:
+            self._good = SoilState(sim.model.particle_count, state.capacity, sim.model.precision.vec_hi,
+                                   sim.model.device, sim.model.body_count)
+        if self._good.capacity < state.capacity:
+            self._good.grow_capacity(state.capacity)
+        self._good.assign(state)
+        self._good_step = sim.steps
+
+    def last_good(self) -> dict:
+        data = self._good.to_numpy()
+        data["step"] = np.int64(self._good_step)
+        return data
+
+    # -- checks --------------------------------------------------------------------
+    def check_speed(self, sim, speed: float) -> None:
+        """Cheap per-step check of the largest speed [m/s] an integrator already reduced."""
+        if not self.armed:
+            self.arm(sim)
+        if not math.isfinite(speed) or (self.enabled and speed > self.speed_bound):
+            self.check(sim)  # locates the particle (and raises); passes only if the bound moved
+
+    def check(self, sim) -> None:
+        """Full check of sim.state; raises SimulationDiverged, or snapshots the state as good."""
+        if not self.armed:
+            self.arm(sim)
+            return
+        model = sim.model
+        prec = model.precision
+        kernels = make_integrator_kernels(prec.hi, prec.lo, model.law)
+        n = model.particle_count
+        state = sim.state
+        speed = wp.zeros(n, dtype=prec.hi, device=model.device)
+        overlap = wp.zeros(n, dtype=prec.hi, device=model.device)
+        summary = wp.zeros(CHECK_COLUMNS, dtype=prec.hi, device=model.device)
+        grid = sim.contacts.grid
+        grid.build(state.position, model.search_radius)
+        wp.launch(kernels["divergence_metrics"], dim=n,
+                  inputs=[grid.id, state.position, state.velocity, state.angular_velocity, model.radius,
+                          model.inv_mass, model.boundary_kind, model.boundary_geometry,
+                          prec.hi(model.search_radius)],
+                  outputs=[speed, overlap, summary], device=model.device)
+        values = summary.numpy().astype(np.float64)
+        self._update_bounds(sim)
+        if values[CHECK_NONFINITE] > 0:
+            worst = int(np.argmax(~np.isfinite(speed.numpy())))
+            self.fail(sim, "non-finite particle state (NaN or inf)", worst)
+        if not self.enabled:
+            self.snapshot(sim)
+            return
+        if values[CHECK_SPEED] > self.speed_bound:
+            self.fail(sim, f"speed {values[CHECK_SPEED]:.4g} m/s exceeds the bound {self.speed_bound:.4g} m/s",
+                      int(np.argmax(speed.numpy())))
+        if values[CHECK_OVERLAP] > self.max_overlap_ratio:
+            self.fail(sim, f"overlap {values[CHECK_OVERLAP]:.4g} x radius exceeds {self.max_overlap_ratio:g} x radius",
+                      int(np.argmax(overlap.numpy())))
+        kinetic = sim.kinetic_energy()
+        if not kinetic <= self.energy_bound:
+            self.fail(sim, f"kinetic energy {kinetic:.4g} J exceeds the bound {self.energy_bound:.4g} J "
+                      "(gravity, initial motion, overlaps and wheels cannot supply it)", int(np.argmax(speed.numpy())))
+        self.snapshot(sim)
+
+    def fail(self, sim, reason: str, particle: int | None, state: SoilState | None = None) -> None:
+        """Raise SimulationDiverged for `state` (default sim.state) with the last good state attached."""
+        state = state or sim.state
+        position = None
+        where = ""
+        if particle is not None and 0 <= particle < sim.model.particle_count:
+            position = state.position.numpy()[particle].astype(np.float64)
+            builder_index = int(sim.model.particle_order[particle]) if sim.model.particle_order is not None \
+                else particle
+            where = (f" at particle {particle} (builder index {builder_index}), position "
+                     f"({position[0]:.6g}, {position[1]:.6g}, {position[2]:.6g}) m")
+        good = self.last_good() if self._good is not None else None
+        checkpoint = None
+        saved = ""
+        if good is not None:
+            saved = f"; last good state t = {float(good['time']):.9g} s, step {int(good['step'])} in .last_good"
+            if getattr(sim, "checkpoint_path", None):
+                checkpoint = write_checkpoint(sim.checkpoint_path, good)
+                saved += f" and {checkpoint}"
+        message = (f"simulation diverged at t = {state.time:.9g} s (step {sim.steps}): {reason}{where}{saved}")
+        raise SimulationDiverged(message, good, time=state.time, step=sim.steps, particle=particle,
+                                 position=position, reason=reason, checkpoint=checkpoint)
