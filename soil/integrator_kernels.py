@@ -134,6 +134,7 @@ def make_integrator_kernels(hi, lo, law: ContactLaw):
         v_out: wp.array(dtype=vec_hi),
         w_out: wp.array(dtype=vec_hi),
         summary_out: wp.array(dtype=hi),
+        gaps_out: wp.array2d(dtype=hi),
     ):
         """Beeman correction with the new forces, and the predictor/corrector gap.
 
@@ -166,6 +167,8 @@ def make_integrator_kernels(hi, lo, law: ContactLaw):
         velocity_gap = wp.length(second) * dt / hi(3.0)
         spin_gap = wp.length(alpha_plus - hi(2.0) * alpha + alpha_minus) * dt / hi(3.0) * r
         position_gap = hi(0.5) * dt * velocity_gap / r
+        gaps_out[i, 0] = position_gap  # per particle, for the RMS error norm
+        gaps_out[i, 1] = wp.max(velocity_gap, spin_gap)
         wp.atomic_max(summary_out, SUMMARY_POSITION_GAP, position_gap)
         wp.atomic_max(summary_out, SUMMARY_VELOCITY_GAP, wp.max(velocity_gap, spin_gap))
         wp.atomic_max(summary_out, SUMMARY_SPEED, wp.max(wp.length(v), r * wp.length(w)))
