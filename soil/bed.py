@@ -90,9 +90,10 @@ def build_bed(spec: BedSpec, gravity="phobos", wall_height: float | None = None)
 
 
 def rayleigh_time_step(material: Material, radius: float) -> float:
-    """Rayleigh time step pi R sqrt(rho / G) / (0.1631 nu + 0.8766) [s]."""
-    return (math.pi * radius * math.sqrt(material.density / material.shear_modulus)
-            / (0.1631 * material.poisson_ratio + 0.8766))
+    """Rayleigh time step of `material` grains of `radius` [m] (soil.advisor.rayleigh_time_step) [s]."""
+    from .advisor import rayleigh_time_step as rayleigh
+
+    return rayleigh(material.youngs_modulus, material.poisson_ratio, material.density, radius)
 
 
 def kinetic_energy_threshold(sim, ratio: float = 1e-4) -> float:
