@@ -143,3 +143,36 @@ def test_restitution_matches_target_for_every_speed(device):
     measured = sim.velocities()[:, 2] / np.array([s for _, s in cases])
     for (target, speed), e in zip(cases, measured):
         assert e == pytest.approx(target, abs=0.01), f"target {target} at {speed} m/s gave {e}"
+
+
+@pytest.mark.parametrize("precision", ["double", "mixed"])
+def test_box_boundary_with_its_own_material(device, precision):
+    """A grain resting on a solid box whose material is 10x stiffer: the overlap is the
+    Hertz overlap for the mixed pair E* (1/E* = (1-nu_g^2)/E_g + (1-nu_b^2)/E_b)."""
+    radius, gravity = 5e-3, 9.81
+    stiff = Material(youngs_modulus=1e9, poisson_ratio=0.25, restitution=0.1)
+    builder = SoilBuilder(gravity=gravity)
+    grain = builder.add_material(REGOLITH)
+    box = builder.add_material(stiff)
+    builder.add_box((-0.02, -0.02, -0.01), (0.02, 0.02, 0.1), box)
+    builder.add_particle((0.001, 0.002, 0.1 + radius), radius, grain)
+    model, state, control = builder.finalize(device, precision)
+    sim = Simulation(model, state, control)
+    e_star = effective_modulus(REGOLITH, stiff)
+    mass = float(model.mass_numpy()[0])
+    expected = hertz_rest_overlap(mass, gravity, e_star, radius)
+    stiffness = 2 * e_star * math.sqrt(radius * expected)
+    dt = 2 * math.pi * math.sqrt(mass / stiffness) / 40
+    sim.run(1500 * dt, dt)
+    overlap = radius - (sim.positions()[0, 2] - 0.1)
+    assert overlap == pytest.approx(expected, rel=0.02)
+    # the same grain beside the box (touching its +x face) feels a sideways push only
+    builder = SoilBuilder(gravity=0.0)
+    grain = builder.add_material(REGOLITH)
+    box = builder.add_material(stiff)
+    builder.add_box((-0.02, -0.02, -0.01), (0.02, 0.02, 0.1), box)
+    builder.add_particle((0.02 + radius - 1e-5, 0.0, 0.05), radius, grain)
+    sim = Simulation(*builder.finalize(device, precision))
+    force = sim.state.force.numpy()[0]
+    assert force[0] == pytest.approx(4 / 3 * e_star * math.sqrt(radius) * (1e-5) ** 1.5, rel=1e-4)
+    assert abs(force[1]) < 1e-12 and abs(force[2]) < 1e-12
