@@ -49,6 +49,43 @@ class FmuStepError(RuntimeError):
     """The FMU refused a step and it could not be retried."""
 
 
+def read_cosim_description(path: str | os.PathLike):
+    """fmpy model description of a co-simulation FMU; ValueError unless FMI 2.0 or 3.0 co-simulation."""
+    path = os.fspath(path)
+    md = read_model_description(path)
+    if md.coSimulation is None:
+        raise ValueError(f"{path} is not a co-simulation FMU")
+    if md.fmiVersion not in ("2.0", "3.0"):
+        raise ValueError(f"{path}: FMI {md.fmiVersion} is not supported (2.0 and 3.0 are)")
+    return md
+
+
+def instantiate_cosim(path: str | os.PathLike, md, instance_name: str, start_time: float):
+    """Unpack and instantiate a co-simulation FMU (model description `md`) and enter
+    initialization mode at start_time [s].
+
+    Returns (slave, unzip directory, set_real, get_real): the fmpy FMU2Slave/FMU3Slave and
+    its Real (2.0) / Float64 (3.0) setter and getter.
+    """
+    unzipdir = extract(os.fspath(path))
+    kwargs = dict(guid=md.guid, unzipDirectory=unzipdir,
+                  modelIdentifier=md.coSimulation.modelIdentifier, instanceName=instance_name)
+    if md.fmiVersion == "2.0":
+        from fmpy.fmi2 import FMU2Slave
+
+        fmu = FMU2Slave(**kwargs)
+        fmu.instantiate()
+        fmu.setupExperiment(startTime=start_time)
+        fmu.enterInitializationMode()
+        return fmu, unzipdir, fmu.setReal, fmu.getReal
+    from fmpy.fmi3 import FMU3Slave
+
+    fmu = FMU3Slave(**kwargs)
+    fmu.instantiate()
+    fmu.enterInitializationMode(startTime=start_time)
+    return fmu, unzipdir, fmu.setFloat64, fmu.getFloat64
+
+
 class FmuRover:
     """A RoverSide backed by an FMU (FMI 2.0 or 3.0 co-simulation) through fmpy.
 
@@ -75,13 +112,9 @@ class FmuRover:
         instance_name: str = "rover",
     ):
         self.path = os.fspath(fmu)
-        self.md = read_model_description(self.path)
-        if self.md.coSimulation is None:
-            raise ValueError(f"{self.path} is not a co-simulation FMU")
+        self.md = read_cosim_description(self.path)
         self.fmi_version = self.md.fmiVersion
         """'2.0' or '3.0'."""
-        if self.fmi_version not in ("2.0", "3.0"):
-            raise ValueError(f"{self.path}: FMI {self.fmi_version} is not supported (2.0 and 3.0 are)")
         self._real_type = "Real" if self.fmi_version == "2.0" else "Float64"
         self.variables = {v.name: v for v in self.md.modelVariables}
         """FMU variables by name (fmpy ScalarVariable)."""
@@ -111,24 +144,7 @@ class FmuRover:
         self._vr_speed = self._optional(".speed_command")
         self._vr_torque = self._optional(".torque_command")
 
-        self._unzipdir = extract(self.path)
-        kwargs = dict(guid=self.md.guid, unzipDirectory=self._unzipdir,
-                      modelIdentifier=self.md.coSimulation.modelIdentifier, instanceName=instance_name)
-        if self.fmi_version == "2.0":
-            from fmpy.fmi2 import FMU2Slave
-
-            self.fmu = FMU2Slave(**kwargs)
-            self.fmu.instantiate()
-            self.fmu.setupExperiment(startTime=start_time)
-            self.fmu.enterInitializationMode()
-            self._set, self._get = self.fmu.setReal, self.fmu.getReal
-        else:
-            from fmpy.fmi3 import FMU3Slave
-
-            self.fmu = FMU3Slave(**kwargs)
-            self.fmu.instantiate()
-            self.fmu.enterInitializationMode(startTime=start_time)
-            self._set, self._get = self.fmu.setFloat64, self.fmu.getFloat64
+        self.fmu, self._unzipdir, self._set, self._get = instantiate_cosim(self.path, self.md, instance_name, start_time)
         self._initializing = True
         self._time = float(start_time)
         for name, value in (start_values or {}).items():
