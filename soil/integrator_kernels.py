@@ -44,15 +44,9 @@ def make_integrator_kernels(hi, lo, law: ContactLaw):
     if key in _cache:
         return _cache[key]
     vec_hi = wp.types.vector(3, hi)
-    boundary_contact = make_kernels(hi, lo, law)["boundary_contact"]
-
-    @wp.func
-    def acceleration(force: vec_hi, inv_m: hi, gravity: vec_hi):
-        """Translational acceleration [m/s^2]; fixed particles (inv_m = 0) do not feel gravity."""
-        a = force * inv_m
-        if inv_m > hi(0.0):
-            a = a + gravity
-        return a
+    soil_kernels = make_kernels(hi, lo, law)
+    boundary_contact = soil_kernels["boundary_contact"]
+    acceleration = soil_kernels["acceleration_of"]  # (force, inv_mass as lo, gravity) -> [m/s^2]
 
     @wp.func
     def backward_step(a: vec_hi, a_previous: vec_hi, ratio: hi):
@@ -98,10 +92,9 @@ def make_integrator_kernels(hi, lo, law: ContactLaw):
         ratio = hi(0.0)
         if h_prev > hi(0.0):
             ratio = dt / h_prev
-        inv_m = hi(inv_mass[i])
         inv_i = hi(inv_inertia[i])
-        a = acceleration(force_in[i], inv_m, gravity)
-        a_minus = backward_step(a, acceleration(force_previous_in[i], inv_m, gravity), ratio)
+        a = acceleration(force_in[i], inv_mass[i], gravity)
+        a_minus = backward_step(a, acceleration(force_previous_in[i], inv_mass[i], gravity), ratio)
         alpha = torque_in[i] * inv_i
         alpha_minus = backward_step(alpha, torque_previous_in[i] * inv_i, ratio)
         v = v_in[i]
@@ -149,11 +142,10 @@ def make_integrator_kernels(hi, lo, law: ContactLaw):
         ratio = hi(0.0)
         if h_prev > hi(0.0):
             ratio = dt / h_prev
-        inv_m = hi(inv_mass[i])
         inv_i = hi(inv_inertia[i])
-        a = acceleration(force_in[i], inv_m, gravity)
-        a_minus = backward_step(a, acceleration(force_previous_in[i], inv_m, gravity), ratio)
-        a_plus = acceleration(force_new[i], inv_m, gravity)
+        a = acceleration(force_in[i], inv_mass[i], gravity)
+        a_minus = backward_step(a, acceleration(force_previous_in[i], inv_mass[i], gravity), ratio)
+        a_plus = acceleration(force_new[i], inv_mass[i], gravity)
         alpha = torque_in[i] * inv_i
         alpha_minus = backward_step(alpha, torque_previous_in[i] * inv_i, ratio)
         alpha_plus = torque_new[i] * inv_i
