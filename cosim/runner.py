@@ -24,13 +24,14 @@ import json
 import os
 import shutil
 import signal
-import tempfile
 import time
 from dataclasses import dataclass, field
 
 import numpy as np
 
-from .output import RESULTS_FILE, XDMF_FILE, ResultsWriter, _umask, atomic_write_text
+from soil.stability import write_checkpoint
+
+from .output import RESULTS_FILE, XDMF_FILE, ResultsWriter, atomic_write_text
 from .scene import Scene, load_scene, scene_from_text
 
 CHECKPOINT_FILE = "checkpoint.npz"
@@ -451,20 +452,8 @@ class Runner:
 
 
 def save_checkpoint(path: str, data: dict) -> None:
-    """np.savez to a temporary file in the same folder, fsync, then os.replace: never half a checkpoint."""
-    folder = os.path.dirname(os.path.abspath(path))
-    handle, temporary = tempfile.mkstemp(suffix=".npz.tmp", dir=folder)
-    try:
-        os.chmod(temporary, 0o666 & ~_umask())
-        with os.fdopen(handle, "wb") as out:
-            np.savez(out, **data)
-            out.flush()
-            os.fsync(out.fileno())
-        os.replace(temporary, path)
-    except BaseException:
-        if os.path.exists(temporary):
-            os.remove(temporary)
-        raise
+    """Write a checkpoint atomically (soil.stability.write_checkpoint: temp file, fsync, os.replace)."""
+    write_checkpoint(path, data)
 
 
 def load_checkpoint(path: str) -> dict:

@@ -10,7 +10,7 @@ from .control import SoilControl
 from .integrator import JoltBeeman, StepController, VelocityVerlet
 from .model import SoilModel
 from .solver import ContactSolver
-from .stability import DivergenceMonitor, SimulationDiverged  # noqa: F401 (SimulationDiverged re-exported)
+from .stability import DivergenceMonitor, SimulationDiverged  # noqa: F401 (SimulationDiverged re-exported)  # noqa: F401  (re-exported: soil.simulation.SimulationDiverged)
 from .state import SoilState
 
 

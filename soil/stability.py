@@ -58,14 +58,20 @@ class SimulationDiverged(RuntimeError):
 
 
 def write_checkpoint(path, data: dict) -> str:
-    """Write a state dict (numpy arrays) to `path` as .npz atomically: temp file + os.replace."""
+    """Write a state dict (numpy arrays) to `path` as .npz atomically: temp file in the same
+    folder, fsync, then os.replace, so a crash never leaves half a checkpoint."""
     path = os.fspath(path)
     folder = os.path.dirname(os.path.abspath(path))
     os.makedirs(folder, exist_ok=True)
     handle, temporary = tempfile.mkstemp(suffix=".npz.tmp", dir=folder)
     try:
+        mask = os.umask(0)
+        os.umask(mask)
+        os.chmod(temporary, 0o666 & ~mask)  # mkstemp's 0600 would hide the file from others
         with os.fdopen(handle, "wb") as f:
             np.savez(f, **data)
+            f.flush()
+            os.fsync(f.fileno())
         os.replace(temporary, path)
     except BaseException:
         if os.path.exists(temporary):

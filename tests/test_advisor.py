@@ -2,7 +2,6 @@
 
 import math
 
-import numpy as np
 import pytest
 
 from soil import ContactLaw, JoltBeeman, Material, advisor, macroscopic_stiffness, rayleigh_time_step

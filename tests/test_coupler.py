@@ -9,7 +9,7 @@ import pytest
 
 pytest.importorskip("mujoco")
 
-from cosim.contract import SoilSide, WheelKinematics, WheelWrench  # noqa: E402
+from cosim.contract import SoilSide, WheelKinematics  # noqa: E402
 from cosim.controllers import ConstantSpeed, DriveCommand, SlipController  # noqa: E402
 from cosim.coupler import Coupler, CouplingEnergyWarning, CouplingTimeError  # noqa: E402
 from cosim.terrain import SpringDamperTerrain  # noqa: E402

@@ -118,10 +118,8 @@ def test_contact_history_survives_neighbour_rebuilds(device, partner):
     mat = builder.add_material(STICKY)
     if partner == "wall":
         builder.add_plane((0, 0, 0), (0, 0, 1), mat)
-        partner_radius = math.inf
     else:  # a fixed sphere of the same size below
         builder.add_particle((0, 0, -radius), radius, mat, fixed=True)
-        partner_radius = radius
     block = builder.add_particle((0, 0, radius if partner == "wall" else radius), radius, mat, lock_rotation=True)
     model, state, control = builder.finalize(device, "double")
     sim = Simulation(model, state, control)

@@ -5,7 +5,7 @@ import math
 import numpy as np
 import pytest
 
-from soil import (ContactLaw, JoltBeeman, Material, Simulation, SimulationDiverged, SoilBuilder, StepController,
+from soil import (JoltBeeman, Material, Simulation, SimulationDiverged, SoilBuilder, StepController,
                   advisor)
 
 R = 5e-3

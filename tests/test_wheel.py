@@ -1,7 +1,6 @@
 """Wheels in the soil and the single-wheel testbed (issue: wheels, single-wheel test)."""
 
 import math
-import warnings
 
 import numpy as np
 import pytest
