@@ -4,8 +4,10 @@ Same bed (soil.bed.BedSpec, PHOBOS_REGOLITH, E = 2e5 Pa, radius 2.5 mm +- 20 %),
 threshold (soil.bed.kinetic_energy_threshold, ratio --ke-ratio), one run each, side by side:
 
 - fixed:    jolt-Beeman with the advisor's dt_max (soil.advisor.recommended_time_step);
-- adaptive: jolt-Beeman + PID StepController (tolerance --tol), dt_max = 2x the advised
-            step (the controller decides), defaults otherwise.
+- adaptive: jolt-Beeman + PID StepController (tolerance --tol), dt_max = --dt-max-factor
+            (default 2) x the advised step (the controller decides), defaults otherwise.
+
+A run that diverges is a result too: its row says when (soil.stability.SimulationDiverged).
 
 Prints a markdown table (simulated settling time, force evaluations, rejected steps,
 wall time) and one JSON line per row.
@@ -30,6 +32,7 @@ import warp as wp  # noqa: E402
 
 from soil import JoltBeeman, Simulation, StepController, advisor  # noqa: E402
 from soil.bed import BedSpec, build_bed, kinetic_energy_threshold  # noqa: E402
+from soil.stability import SimulationDiverged  # noqa: E402
 
 
 def bed_spec(n: int) -> BedSpec:
@@ -48,13 +51,20 @@ def settle(sim, advance, threshold, interval, max_time):
     """advance(sim, interval) until the kinetic energy < threshold (after 10 intervals)."""
     start = time.perf_counter()
     energy = sim.kinetic_energy()
+    outcome = None
     while sim.time < max_time:
-        advance(sim, interval)
+        try:
+            advance(sim, interval)
+        except SimulationDiverged as error:  # a measured outcome too: report it as a row
+            outcome = f"diverged at t = {error.time:.3g} s"
+            print(error, file=sys.stderr)
+            break
         energy = sim.kinetic_energy()
         if energy < threshold and sim.time > 10 * interval:
             break
     wp.synchronize()
-    return dict(settled=bool(energy < threshold), time=sim.time, kinetic_energy=energy,
+    settled = outcome or ("yes" if energy < threshold else "no")
+    return dict(settled=settled, time=sim.time, kinetic_energy=energy,
                 wall_s=time.perf_counter() - start, evaluations=sim.contacts.evaluations,
                 rejected=sim.rejected_steps, steps=sim.steps)
 
@@ -67,8 +77,10 @@ def main() -> None:
     parser.add_argument("--max-time", type=float, default=20.0, help="give up after this simulated time [s]")
     parser.add_argument("--device", default="cpu")
     parser.add_argument("--precision", default="double")
-    parser.add_argument("--norms", nargs="+", default=["rms", "max"], choices=["rms", "max"],
-                        help="error norms of the adaptive runs (one run each)")
+    parser.add_argument("--norms", nargs="+", default=["rms", "max"], choices=["rms", "max", "rms-unguarded"],
+                        help="error norms of the adaptive runs (one run each); rms-unguarded: grain_factor = inf")
+    parser.add_argument("--dt-max-factor", type=float, default=2.0,
+                        help="adaptive runs: dt_max = this x the advised step")
     args = parser.parse_args()
     wp.config.log_level = max(wp.config.log_level, wp.LOG_WARNING)
     wp.init()
@@ -87,7 +99,8 @@ def main() -> None:
     rows.append(dict(method=f"fixed dt = {advice.dt_max:.3g} s (advised)", **fixed))
     for norm in args.norms:
         sim = make(spec, args.device, args.precision)
-        controller = StepController(tolerance=args.tol, dt_max=2 * advice.dt_max, norm=norm)
+        guard = dict(norm="rms", grain_factor=math.inf) if norm == "rms-unguarded" else dict(norm=norm)
+        controller = StepController(tolerance=args.tol, dt_max=args.dt_max_factor * advice.dt_max, **guard)
         adaptive = settle(sim, lambda s, d: s.run_adaptive(d, controller), threshold, interval, args.max_time)
         rows.append(dict(method=f"adaptive tol = {args.tol:g}, {norm} norm", **adaptive))
 

@@ -149,3 +149,46 @@ def test_adaptive_control_survives_a_cap_above_the_stability_limit(device):
     stats = sim.run_adaptive(300 * 5 * advice.dt_max, StepController(tolerance=1e-3, dt_max=5 * advice.dt_max))
     assert total_energy(sim) <= energy + 0.02 * scale
     assert stats["dt_largest"] > advice.dt_max  # it did use steps beyond the advice where the motion allowed
+
+
+def walled_pile_with_spectators(device, spectators):
+    """The 8-grain impact of `pile` (floor plane, four box walls) plus `spectators` grains
+    in free fall far above it: they have no error at all, so they dilute an RMS norm."""
+    builder = SoilBuilder(gravity=9.81)
+    mat = builder.add_material(Material(youngs_modulus=1e7, poisson_ratio=0.3, density=2600.0, restitution=0.5,
+                                        stick_speed=1e-3))
+    builder.add_plane((0, 0, 0), (0, 0, 1), mat)
+    for lower, upper in [((-R, -R, 0), (0, 7 * R, 40 * R)), ((6 * R, -R, 0), (7 * R, 7 * R, 40 * R)),
+                         ((0, -R, 0), (6 * R, 0, 40 * R)), ((0, 6 * R, 0), (6 * R, 7 * R, 40 * R))]:
+        builder.add_box(lower, upper, mat)
+    rng = np.random.default_rng(3)
+    k = np.arange(8)
+    positions = np.stack([1.5 * R + 3 * R * (k % 2), 1.5 * R + 3 * R * ((k // 2) % 2), 1.2 * R + 2.3 * R * (k // 4)],
+                         1) + rng.uniform(-0.2 * R, 0.2 * R, (8, 3))
+    positions[:, 2] = np.maximum(positions[:, 2], R)
+    builder.add_particles(positions, R * rng.uniform(0.9, 1.0, 8), mat, velocities=(0, 0, -math.sqrt(2 * 9.81 * 2 * R)))
+    side = int(math.ceil(math.sqrt(spectators)))
+    i = np.arange(spectators)
+    builder.add_particles(np.stack([1.0 + 3 * R * (i % side), 1.0 + 3 * R * (i // side), np.ones(spectators)], 1),
+                          np.full(spectators, R), mat)
+    model, state, control = builder.finalize(device, "double")
+    return Simulation(model, state, control, integrator=JoltBeeman())
+
+
+def test_an_unstable_grain_cannot_hide_in_a_large_bed(device):
+    """8 colliding grains among 8000 error-free ones, dt_max = 20x the advised step: the pure
+    RMS norm is diluted ~30x (sqrt(8008/8)), lets the step grow past stability and the
+    damped pile GAINS energy; the default per-grain guard (no grain above 10x tolerance)
+    keeps the energy from growing, as a damped system must."""
+    advice = advisor.recommended_time_step(walled_pile_with_spectators(device, 0))
+    outcome = {}
+    for name, grain_factor in (("guarded", 10.0), ("pure rms", math.inf)):
+        sim = walled_pile_with_spectators(device, 8000)
+        energy = total_energy(sim)
+        scale = sim.model.mass_numpy()[:8].sum() * 9.81 * 3 * R  # the pile's drop energy (8 grains first)
+        assert np.allclose(sim.positions()[:8, 2] < 0.5, True)  # the pile is in front (builder order)
+        sim.run_adaptive(300 * 5 * advice.dt_max,
+                         StepController(tolerance=1e-3, dt_max=20 * advice.dt_max, grain_factor=grain_factor))
+        outcome[name] = (total_energy(sim) - energy) / scale
+    assert outcome["guarded"] <= 0.02, outcome
+    assert outcome["pure rms"] > 0.5, outcome  # the hazard the guard exists for
