@@ -188,3 +188,40 @@ def test_rejected_step_restores_whole_state_bitwise(device, capacity):
     final, replayed = sim.state.to_numpy(), replay.state.to_numpy()
     for name in final:
         np.testing.assert_array_equal(replayed[name], final[name], err_msg=name)
+
+
+@pytest.mark.parametrize("gamma_dt, expected", [(0.5, 0.855), (0.7, 1.196)])
+def test_damped_contact_grows_or_decays_as_the_linear_analysis_says(device, gamma_dt, expected):
+    """Jolt-Beeman evaluates damping at the PREDICTED velocity, so a damped mode is stable
+    only for gamma dt <= 0.60 (benchmarks/jolt_beeman_damped_stability.py). A sphere at
+    rest on a plane, Lehr damping D = 1 (gamma = 2 D omega at the rest overlap, so omega dt
+    = gamma dt / 2), nudged: the analysis gives a dominant per-step factor -0.855 at
+    gamma dt = 0.5 (the nudge decays) and -1.196 at 0.7 (it grows, alternating sign); the
+    run must show the same."""
+    from helpers import effective_modulus, hertz_rest_overlap
+
+    material = Material(youngs_modulus=1e7, poisson_ratio=0.3, density=2600.0, damping_ratio=1.0)
+    radius, gravity = 5e-3, 9.81
+    mass = material.density * 4.0 / 3.0 * math.pi * radius**3
+    e_star = effective_modulus(material, material)
+    rest = hertz_rest_overlap(mass, gravity, e_star, radius)
+    omega = math.sqrt(2 * e_star * math.sqrt(radius * rest) / mass)
+    dt = gamma_dt / (2 * 1.0 * omega)
+    nudge = 1e-2 if expected < 1 else 1e-8  # relative to the rest overlap: stays linear for 80 steps
+    builder = SoilBuilder(gravity=gravity)
+    builder.add_material(material)
+    builder.add_plane((0, 0, 0), (0, 0, 1))
+    builder.add_particle((0, 0, radius - rest), radius, velocity=(0, 0, nudge * rest * omega))
+    model, state, control = builder.finalize(device, "double", law=ContactLaw(friction=False))
+    sim = Simulation(model, state, control, integrator=JoltBeeman())
+    displacement = []
+    for _ in range(80):
+        sim.run(dt, dt)
+        displacement.append(sim.positions()[0, 2] - (radius - rest))
+    displacement = np.array(displacement)
+    if expected < 1:  # stable: the nudge dies out (to the rounding of the rest position)
+        assert np.abs(displacement[-10:]).max() < 1e-3 * np.abs(displacement[:10]).max()
+        return
+    assert np.all(np.sign(displacement[50:-1]) != np.sign(displacement[51:])), "the period-2 mode of the analysis"
+    growth_per_step = (np.abs(displacement[70:80]).max() / np.abs(displacement[40:50]).max()) ** (1 / 30)
+    assert growth_per_step == pytest.approx(expected, rel=0.02)
