@@ -150,16 +150,16 @@ class StepController:
         err = max( sqrt(mean_i e_i^2), max_i e_i / grain_factor )   (norm='rms', default)
         err = max_i e_i                                              (norm='max'),
 
+    so a scene scaled to another gravity (E ~ g, times ~ sqrt(r/g), speeds ~ sqrt(g r))
+    gets the same errors and the same steps with the same tolerance; an absolute
+    tolerance (the paper's) does not (`normalise=False` reproduces that: err in m/s).
+
     The RMS norm (Hairer's choice for large systems) keeps one chattering contact (a
     stick/slip switch makes a force jump, whose gap shrinks only like dt) from setting the
     step of a whole bed; the max norm bounds every grain's error. The RMS over N grains
     dilutes one grain's error by sqrt(N), so a grain going unstable could hide in a large
     bed (it did: 20k grains at twice the advised step, BENCHMARKS.md); the guard term
     keeps every grain within grain_factor x tolerance.
-
-    so a scene scaled to another gravity (E ~ g, times ~ sqrt(r/g), speeds ~ sqrt(g r))
-    gets the same errors and the same steps with the same tolerance; an absolute
-    tolerance (the paper's) does not (`normalise=False` reproduces that: err in m/s).
 
     With c = (tolerance / err)^(1/k) (k = error order, 3 for jolt-Beeman), the step
     factor is rho = c_n^b1 c_(n-1)^b2 c_(n-2)^b3, b1 = kI + kP + kD, b2 = -(kP + 2 kD),
@@ -259,7 +259,7 @@ class StepController:
         return max(summary["position_gap"], velocity)
 
     def _rms_norm(self, per_grain: np.ndarray) -> float:
-        """RMS over grains, with no grain above grain_factor x the result allowed to hide."""
+        """RMS over grains, raised to max / grain_factor where one grain stands out (it must not hide)."""
         return float(max(np.sqrt(np.mean(per_grain**2)), per_grain.max(initial=0.0) / self.grain_factor))
 
     def decide(self, err: float, dt: float) -> tuple[bool, float]:
