@@ -37,11 +37,10 @@ from typing import Sequence
 import numpy as np
 
 from rover_models.fmu_rover import (
-    FmuRover,
+    FmuSession,
     FmuStepError,  # noqa: F401  (re-exported: raised by calls whose step cannot be retried)
     FmuVariableError,
     instantiate_cosim,
-    read_cosim_description,
 )
 
 from .contract import WheelKinematics, WheelWrench
@@ -60,7 +59,7 @@ _INPUTS = (
 _COMMANDS = {"speed": "speed_command", "torque": "torque_command"}
 
 
-class FmuController:
+class FmuController(FmuSession):
     """A drive controller (cosim.controllers.Controller) backed by a co-simulation FMU.
 
     Args:
@@ -77,15 +76,6 @@ class FmuController:
     convention has the wrong type or causality.
     """
 
-    # Shared with FmuRover: they use only the attributes set in __init__ below
-    # (path, md, variables, _real_type, fmu, fmi_version, _initializing, _unzipdir,
-    # can_vary_step, max_halvings, retry_on_error).
-    _listing = FmuRover._listing
-    _vr = FmuRover._vr
-    _ready = FmuRover._ready
-    _step = FmuRover._step
-    close = FmuRover.close
-
     def __init__(
         self,
         fmu: str | os.PathLike,
@@ -96,21 +86,7 @@ class FmuController:
         retry_on_error: bool = False,
         instance_name: str = "controller",
     ):
-        self.path = os.fspath(fmu)
-        self.md = read_cosim_description(self.path)
-        self.fmi_version = self.md.fmiVersion
-        """'2.0' or '3.0'."""
-        self._real_type = "Real" if self.fmi_version == "2.0" else "Float64"
-        self.variables = {v.name: v for v in self.md.modelVariables}
-        """FMU variables by name (fmpy ScalarVariable)."""
-        self.can_vary_step = bool(self.md.coSimulation.canHandleVariableCommunicationStepSize)
-        self.max_halvings = int(max_halvings)
-        self.retry_on_error = bool(retry_on_error)
-        self.instance_name = instance_name
-        self.fmu = None
-        """The fmpy slave; None before the first call and after close()."""
-        self._unzipdir = None
-        self._initializing = False
+        super().__init__(fmu, max_halvings, retry_on_error, instance_name)
         self._time: float | None = None
 
         # Wheels: those with a command output; they must be wheel_0 .. wheel_<n-1>.
@@ -206,9 +182,3 @@ class FmuController:
                 self._step(self._time, t - self._time, 0)
         self._time = t
         return DriveCommand(self.mode, self._get(self._vr_cmd))
-
-    def __enter__(self):
-        return self
-
-    def __exit__(self, *exc):
-        self.close()

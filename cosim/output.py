@@ -59,11 +59,12 @@ from __future__ import annotations
 
 import json
 import os
-import tempfile
 import xml.etree.ElementTree as ET
 from datetime import datetime, timezone
 
 import numpy as np
+
+from soil.files import atomic_write_text
 
 RESULTS_FORMAT = "regolith-cosim results 1"
 RESULTS_FILE = "results.h5"
@@ -414,32 +415,6 @@ def xdmf_references(xdmf_path: str) -> list[tuple[str, str, tuple, tuple | None]
             slab = (tuple(values[:rank]), tuple(values[rank:2 * rank]), tuple(values[2 * rank:]))
         refs.append((os.path.join(folder, name), path, shape, slab))
     return refs
-
-
-# ------------------------------------------------------------------------------------
-# small file helpers
-
-
-def atomic_write_text(path: str, text: str) -> None:
-    folder = os.path.dirname(os.path.abspath(path))
-    handle, temporary = tempfile.mkstemp(suffix=".tmp", dir=folder)
-    try:
-        os.chmod(temporary, 0o666 & ~_umask())
-        with os.fdopen(handle, "w") as out:
-            out.write(text)
-            out.flush()
-            os.fsync(out.fileno())
-        os.replace(temporary, path)
-    except BaseException:
-        if os.path.exists(temporary):
-            os.remove(temporary)
-        raise
-
-
-def _umask() -> int:
-    mask = os.umask(0)
-    os.umask(mask)
-    return mask
 
 
 def read_series(path) -> dict:

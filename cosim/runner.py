@@ -29,9 +29,10 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from soil.files import atomic_write_text
 from soil.stability import write_checkpoint
 
-from .output import RESULTS_FILE, XDMF_FILE, ResultsWriter, atomic_write_text
+from .output import RESULTS_FILE, XDMF_FILE, ResultsWriter
 from .scene import Scene, load_scene, scene_from_text
 
 CHECKPOINT_FILE = "checkpoint.npz"

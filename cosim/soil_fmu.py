@@ -154,6 +154,7 @@ def export_soil_fmu(bed_file, wheels, wheel_material, dem_step: float, destinati
     from pythonfmu.builder import FmuBuilder
     from soil import GrouserWheel
     from soil.bed import load_bed
+    from soil.files import atomic_path
 
     _, saved = load_bed(bed_file)  # refuse a file that is not a bed, early
     if not wheels:
@@ -186,7 +187,6 @@ def export_soil_fmu(bed_file, wheels, wheel_material, dem_step: float, destinati
         built = FmuBuilder.build_FMU(script, dest=folder / "out",
                                      project_files=[folder / CONFIG_NAME, folder / BED_NAME],
                                      canHandleVariableCommunicationStepSize=True)
-        temporary = destination.with_suffix(".fmu.tmp")
-        shutil.copy2(built, temporary)
-        os.replace(temporary, destination)
+        with atomic_path(destination, ".fmu.tmp") as temporary:
+            shutil.copy2(built, temporary)
     return destination

@@ -86,7 +86,96 @@ def instantiate_cosim(path: str | os.PathLike, md, instance_name: str, start_tim
     return fmu, unzipdir, fmu.setFloat64, fmu.getFloat64
 
 
-class FmuRover:
+class FmuSession:
+    """What every FMU side shares: the model description, variable lookup by name with
+    clear errors, lazy exit from initialization, doStep with retries in halves, and
+    cleanup. FmuRover and cosim.fmu_controller.FmuController build on it; the subclass
+    instantiates the FMU (instantiate_cosim) into `fmu`, `_unzipdir`, `_set`, `_get`."""
+
+    def __init__(self, fmu: str | os.PathLike, max_halvings: int, retry_on_error: bool, instance_name: str):
+        self.path = os.fspath(fmu)
+        self.md = read_cosim_description(self.path)
+        self.fmi_version = self.md.fmiVersion
+        """'2.0' or '3.0'."""
+        self._real_type = "Real" if self.fmi_version == "2.0" else "Float64"
+        self.variables = {v.name: v for v in self.md.modelVariables}
+        """FMU variables by name (fmpy ScalarVariable)."""
+        self.can_vary_step = bool(self.md.coSimulation.canHandleVariableCommunicationStepSize)
+        """Whether the FMU accepts communication steps of varying size (needed for retries)."""
+        self.max_halvings = int(max_halvings)
+        self.retry_on_error = bool(retry_on_error)
+        self.instance_name = instance_name
+        self.fmu = None
+        """The fmpy slave; None before instantiation and after close()."""
+        self._unzipdir = None
+        self._initializing = False
+
+    def _listing(self) -> str:
+        return "; ".join(f"{v.name} ({v.causality}, {v.type})" for v in self.md.modelVariables)
+
+    def _vr(self, name: str, causalities: tuple[str, ...] | None) -> int:
+        v = self.variables.get(name)
+        if v is None:
+            raise FmuVariableError(f"{self.path}: no variable {name!r}; the FMU has: {self._listing()}")
+        if v.type != self._real_type:
+            raise FmuVariableError(f"{self.path}: variable {name!r} is {v.type}, expected {self._real_type}; "
+                                   f"the FMU has: {self._listing()}")
+        if causalities is not None and v.causality not in causalities:
+            raise FmuVariableError(f"{self.path}: variable {name!r} has causality {v.causality}, expected "
+                                   f"{' or '.join(causalities)}; the FMU has: {self._listing()}")
+        return v.valueReference
+
+    def _ready(self) -> None:
+        """Leave initialization mode on first use (parameters can be set until then)."""
+        if self._initializing:
+            self.fmu.exitInitializationMode()
+            self._initializing = False
+
+    def _step(self, t: float, h: float, depth: int) -> None:
+        try:
+            result = self.fmu.doStep(currentCommunicationPoint=t, communicationStepSize=h)
+        except FMICallException as err:
+            retryable = err.status == _DISCARD or (self.retry_on_error and err.status == _ERROR)
+            if not retryable:
+                raise
+            if not self.can_vary_step:
+                raise FmuStepError(
+                    f"{self.path}: doStep(t={t:g} s, H={h:g} s) refused (status {err.status}) and the FMU "
+                    f"cannot handle variable communication step sizes, so it cannot be retried with smaller steps"
+                ) from err
+            if depth >= self.max_halvings:
+                raise FmuStepError(
+                    f"{self.path}: doStep(t={t:g} s) still refused after {depth} halvings (H={h:g} s)"
+                ) from err
+            self._step(t, h / 2, depth + 1)
+            self._step(t + h / 2, h / 2, depth + 1)
+            return
+        if self.fmi_version == "3.0":
+            _, terminate, early, last = result
+            if terminate:
+                raise FmuStepError(f"{self.path}: the FMU asked to terminate at t={last:g} s")
+            if early and last < t + h:  # FMI 3.0 early return: go on from where it stopped
+                self._step(last, t + h - last, depth)
+
+    def close(self) -> None:
+        """Terminate and free the FMU instance, remove the unpacked files."""
+        if self.fmu is not None:
+            try:
+                self._ready()
+                self.fmu.terminate()
+            finally:
+                self.fmu.freeInstance()
+                self.fmu = None
+                shutil.rmtree(self._unzipdir, ignore_errors=True)
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self.close()
+
+
+class FmuRover(FmuSession):
     """A RoverSide backed by an FMU (FMI 2.0 or 3.0 co-simulation) through fmpy.
 
     Args:
@@ -111,18 +200,7 @@ class FmuRover:
         start_time: float = 0.0,
         instance_name: str = "rover",
     ):
-        self.path = os.fspath(fmu)
-        self.md = read_cosim_description(self.path)
-        self.fmi_version = self.md.fmiVersion
-        """'2.0' or '3.0'."""
-        self._real_type = "Real" if self.fmi_version == "2.0" else "Float64"
-        self.variables = {v.name: v for v in self.md.modelVariables}
-        """FMU variables by name (fmpy ScalarVariable)."""
-        self.can_vary_step = bool(self.md.coSimulation.canHandleVariableCommunicationStepSize)
-        """Whether the FMU accepts communication steps of varying size (needed for retries)."""
-        self.max_halvings = int(max_halvings)
-        self.retry_on_error = bool(retry_on_error)
-
+        super().__init__(fmu, max_halvings, retry_on_error, instance_name)
         found = sorted({int(n.split(".")[0][6:]) for n in self.variables
                         if n.startswith("wheel_") and n.split(".")[0][6:].isdigit()})
         if wheel_count is None:
@@ -152,34 +230,11 @@ class FmuRover:
         if gravity is not None:
             self.set_gravity(gravity)
 
-    # --- variable lookup ------------------------------------------------------------
-
-    def _listing(self) -> str:
-        return "; ".join(f"{v.name} ({v.causality}, {v.type})" for v in self.md.modelVariables)
-
-    def _vr(self, name: str, causalities: tuple[str, ...] | None) -> int:
-        v = self.variables.get(name)
-        if v is None:
-            raise FmuVariableError(f"{self.path}: no variable {name!r}; the FMU has: {self._listing()}")
-        if v.type != self._real_type:
-            raise FmuVariableError(f"{self.path}: variable {name!r} is {v.type}, expected {self._real_type}; "
-                                   f"the FMU has: {self._listing()}")
-        if causalities is not None and v.causality not in causalities:
-            raise FmuVariableError(f"{self.path}: variable {name!r} has causality {v.causality}, expected "
-                                   f"{' or '.join(causalities)}; the FMU has: {self._listing()}")
-        return v.valueReference
-
     def _optional(self, suffix: str) -> list[int] | None:
         names = [w + suffix for w in self.wheel_names]
         if not all(n in self.variables for n in names):
             return None
         return [self._vr(n, ("input",)) for n in names]
-
-    def _ready(self) -> None:
-        """Leave initialization mode on first use (parameters can be set until then)."""
-        if self._initializing:
-            self.fmu.exitInitializationMode()
-            self._initializing = False
 
     # --- RoverSide ---------------------------------------------------------------------
 
@@ -218,32 +273,6 @@ class FmuRover:
             self._step(self._time, t_end - self._time, 0)
         self._time = t_end
 
-    def _step(self, t: float, h: float, depth: int) -> None:
-        try:
-            result = self.fmu.doStep(currentCommunicationPoint=t, communicationStepSize=h)
-        except FMICallException as err:
-            retryable = err.status == _DISCARD or (self.retry_on_error and err.status == _ERROR)
-            if not retryable:
-                raise
-            if not self.can_vary_step:
-                raise FmuStepError(
-                    f"{self.path}: doStep(t={t:g} s, H={h:g} s) refused (status {err.status}) and the FMU "
-                    f"cannot handle variable communication step sizes, so it cannot be retried with smaller steps"
-                ) from err
-            if depth >= self.max_halvings:
-                raise FmuStepError(
-                    f"{self.path}: doStep(t={t:g} s) still refused after {depth} halvings (H={h:g} s)"
-                ) from err
-            self._step(t, h / 2, depth + 1)
-            self._step(t + h / 2, h / 2, depth + 1)
-            return
-        if self.fmi_version == "3.0":
-            _, terminate, early, last = result
-            if terminate:
-                raise FmuStepError(f"{self.path}: the FMU asked to terminate at t={last:g} s")
-            if early and last < t + h:  # FMI 3.0 early return: go on from where it stopped
-                self._step(last, t + h - last, depth)
-
     # --- drive commands ----------------------------------------------------------------------
 
     def set_wheel_speeds(self, speeds: Sequence[float]) -> None:
@@ -257,20 +286,3 @@ class FmuRover:
         if self._vr_torque is None:
             raise FmuVariableError(f"{self.path}: no wheel_<i>.torque_command inputs; the FMU has: {self._listing()}")
         self._set(self._vr_torque, [float(s) for s in np.asarray(torques).reshape(-1)])
-
-    def close(self) -> None:
-        """Terminate and free the FMU instance, remove the unpacked files."""
-        if self.fmu is not None:
-            try:
-                self._ready()
-                self.fmu.terminate()
-            finally:
-                self.fmu.freeInstance()
-                self.fmu = None
-                shutil.rmtree(self._unzipdir, ignore_errors=True)
-
-    def __enter__(self):
-        return self
-
-    def __exit__(self, *exc):
-        self.close()

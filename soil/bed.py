@@ -5,12 +5,12 @@ from __future__ import annotations
 import json
 import math
 import os
-import tempfile
 from dataclasses import asdict, dataclass
 
 import numpy as np
 
 from .builder import SoilBuilder
+from .files import atomic_path
 from .materials import Material
 
 # Phobos-like regolith for DEM (coarse-grained): the sources are listed in README.md.
@@ -166,12 +166,7 @@ def save_bed(path, sim, spec: BedSpec | None = None, metrics: dict | None = None
     model = sim.model
     if model.body_count:
         raise ValueError("save_bed saves soil only: save the bed before adding wheels")
-    path = os.fspath(path)
-    folder = os.path.dirname(os.path.abspath(path))
-    os.makedirs(folder, exist_ok=True)
-    handle, temporary = tempfile.mkstemp(suffix=".h5.tmp", dir=folder)
-    os.close(handle)
-    try:
+    with atomic_path(path, ".h5.tmp") as temporary:
         with h5py.File(temporary, "w") as f:
             f.attrs["format"] = BED_FORMAT
             f.attrs["precision"] = model.precision.name
@@ -197,11 +192,6 @@ def save_bed(path, sim, spec: BedSpec | None = None, metrics: dict | None = None
             for name, value in sim.state.to_numpy().items():
                 if not name.startswith("body_"):
                     state[name] = value
-        os.replace(temporary, path)
-    except BaseException:
-        if os.path.exists(temporary):
-            os.remove(temporary)
-        raise
 
 
 def load_bed(path) -> tuple[SoilBuilder, dict]:

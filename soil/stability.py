@@ -26,12 +26,12 @@ from __future__ import annotations
 
 import math
 import os
-import tempfile
 from dataclasses import dataclass, field
 
 import numpy as np
 import warp as wp
 
+from .files import atomic_path
 from .integrator_kernels import CHECK_COLUMNS, CHECK_NONFINITE, CHECK_OVERLAP, CHECK_SPEED, make_integrator_kernels
 from .state import SoilState
 
@@ -58,25 +58,12 @@ class SimulationDiverged(RuntimeError):
 
 
 def write_checkpoint(path, data: dict) -> str:
-    """Write a state dict (numpy arrays) to `path` as .npz atomically: temp file in the same
-    folder, fsync, then os.replace, so a crash never leaves half a checkpoint."""
+    """Write a state dict (numpy arrays) to `path` as .npz atomically (soil.files.atomic_path),
+    so a crash never leaves half a checkpoint."""
     path = os.fspath(path)
-    folder = os.path.dirname(os.path.abspath(path))
-    os.makedirs(folder, exist_ok=True)
-    handle, temporary = tempfile.mkstemp(suffix=".npz.tmp", dir=folder)
-    try:
-        mask = os.umask(0)
-        os.umask(mask)
-        os.chmod(temporary, 0o666 & ~mask)  # mkstemp's 0600 would hide the file from others
-        with os.fdopen(handle, "wb") as f:
+    with atomic_path(path, ".npz.tmp") as temporary:
+        with open(temporary, "wb") as f:
             np.savez(f, **data)
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(temporary, path)
-    except BaseException:
-        if os.path.exists(temporary):
-            os.remove(temporary)
-        raise
     return path
 
 
