@@ -1,32 +1,73 @@
 """The `cosim` command line (also `python -m cosim`).
 
     cosim run SCENE.toml [--out DIR] [--device D] [--precision P] [--set key=value ...] [--overwrite]
+                         [--replicas K [--workers N | --scheduler ADDRESS | --serial]]
     cosim resume OUT
-    cosim advise SCENE.toml [--set key=value ...] [--overlap-factor U]
+    cosim advise SCENE.toml [--set key=value ...]
     cosim plot OUT
-    cosim study precision SCENE.toml --replicas N [--precisions single,mixed,double] [--out DIR]
-                                     [--workers N | --scheduler ADDRESS | --serial]
-    cosim study timestep SCENE.toml [--out DIR] [--duration S]
+    cosim study precision SCENE.toml --replicas N [--precisions single,mixed,double] [--out DIR] ...
+    cosim study timestep SCENE.toml [--out DIR] [--duration S] [--max-tries N]
+    cosim study slip SCENE.toml --slips 0.1,0.2,0.4 [--replicas K] [--out DIR] ...
     cosim sweep SCENE.toml --param wheel.radius=0.03,0.04 --param wheel.grouser_count=0,12 [--out DIR] ...
+    cosim scale SCENE.toml --gravity G --out TWIN.toml
 
-Exit status: 0 done, 1 unexpected error, 2 bad scene or arguments, 3 output folder not
-empty (nothing overwritten), 4 the simulation diverged, 130 interrupted (resume it).
+Output: results and summaries on stdout; progress bars, notes and warnings on stderr;
+Warp's own messages only with --verbose.
+
+Exit status:
+    0    done (a run: a steady-state result)
+    1    an unexpected error (a bug: please report it with the traceback --verbose prints)
+    2    bad input: a scene, an argument, a bed file, a mesh or an FMU (the message names it)
+    3    the output folder holds a run (pass --overwrite) or is in use by another process
+    4    the simulation diverged (the message says where and what to change)
+    5    an operating-system error: a path that cannot be written or read, a full disk
+    6    the run finished without a steady-state result (the summary says why: airborne, stuck, ...)
+    130  interrupted (`cosim resume OUT` continues)
 """
 
 from __future__ import annotations
 
 import argparse
-import math
+import logging
 import os
 import sys
 
-EXIT_OK, EXIT_ERROR, EXIT_SCENE, EXIT_EXISTS, EXIT_DIVERGED, EXIT_INTERRUPTED = 0, 1, 2, 3, 4, 130
+EXIT_OK, EXIT_ERROR, EXIT_INPUT, EXIT_FOLDER, EXIT_DIVERGED, EXIT_OS, EXIT_UNSTEADY = 0, 1, 2, 3, 4, 5, 6
+EXIT_INTERRUPTED = 130
+
+log = logging.getLogger("cosim")
 
 
-def _quiet_warp():
+def _setup_output(verbose: bool) -> None:
+    """Log lines on stderr; Warp's banner and module-load lines only when verbose."""
+    import warnings
+
     import warp as wp
 
-    wp.config.log_level = max(wp.config.log_level, wp.LOG_WARNING)  # no per-module load lines
+    wp.config.log_level = wp.LOG_INFO if verbose else wp.LOG_ERROR
+    if not verbose:
+        _init_silently(wp)
+    handler = logging.StreamHandler(sys.stderr)
+    handler.setFormatter(logging.Formatter("%(levelname)s: %(message)s" if verbose else "%(message)s"))
+    root = logging.getLogger()
+    root.handlers[:] = [handler]
+    root.setLevel(logging.DEBUG if verbose else logging.INFO)
+    logging.captureWarnings(True)
+    warnings.simplefilter("default")
+
+
+def _init_silently(wp) -> None:
+    """wp.init() with the C stderr muted: the native library prints a CUDA-driver warning on
+    machines without a GPU, whatever the log level."""
+    sys.stderr.flush()
+    saved = os.dup(2)
+    try:
+        with open(os.devnull, "w") as null:
+            os.dup2(null.fileno(), 2)
+            wp.init()
+    finally:
+        os.dup2(saved, 2)
+        os.close(saved)
 
 
 def _overrides(args) -> list[str]:
@@ -38,41 +79,73 @@ def _overrides(args) -> list[str]:
     return overrides
 
 
-def _load(args):
-    from .scene import load_scene
+def _plan(args):
+    from .plan import load_plan
 
-    return load_scene(args.scene, _overrides(args))
+    return load_plan(args.scene, _overrides(args))
 
 
 def cmd_run(args) -> int:
-    from .runner import run_scene
+    from .runner import run_plan
 
-    scene = _load(args)
-    out = args.out or os.path.join("runs", scene.scene.name)
-    _quiet_warp()
-    result = run_scene(args.scene, out, overwrite=args.overwrite, progress=not args.no_progress,
-                       overrides=_overrides(args))
+    plan = _plan(args)
+    out = args.out or os.path.join("runs", plan.name)
+    if args.replicas > 1:
+        from .study import replica_run
+
+        report = replica_run(plan, out, args.replicas, overwrite=args.overwrite, **_executor(args))
+        print(report["text"])
+        return EXIT_OK if report["ok"] else EXIT_UNSTEADY
+    with open(args.scene) as f:
+        source = f.read()
+    result = run_plan(_absolute(plan), out, overwrite=args.overwrite, progress=not args.no_progress, source=source)
     _print_summary(result)
-    return EXIT_OK
+    return EXIT_OK if result.status == "complete" else EXIT_UNSTEADY
+
+
+def _absolute(plan):
+    from .runner import absolute_paths
+
+    return absolute_paths(plan)
 
 
 def cmd_resume(args) -> int:
     from .runner import resume
 
-    _quiet_warp()
     result = resume(args.out, progress=not args.no_progress)
     _print_summary(result)
-    return EXIT_OK
+    return EXIT_OK if result.status == "complete" else EXIT_UNSTEADY
+
+
+SUMMARY_KEYS = (
+    ("steady_state", "", 1), ("validity", "", 1), ("landing_time", "s", 1), ("window", "s", 1),
+    ("slip", "", 1), ("travel", "mm", 1e3), ("forward_speed", "mm/s", 1e3), ("sinkage", "mm", 1e3),
+    ("sinkage_tips", "mm", 1e3), ("drawbar_pull", "N", 1), ("dp_over_w", "", 1), ("driving_torque", "N m", 1),
+    ("normal_force", "N", 1), ("contact_fraction", "", 1), ("froude_number", "", 1), ("simulated_time", "s", 1),
+    ("wall_time", "s", 1), ("particle_count", "", 1), ("particle_steps_per_second", "1/s", 1),
+)
 
 
 def _print_summary(result) -> None:
     s = result.summary
     print(f"{result.status}: {result.out_dir}")
-    for key in ("simulated_time", "travel", "mean_slip", "mean_sinkage", "mean_drawbar_pull", "wall_time",
-                "particle_count", "particle_steps_per_second"):
-        if key in s:
-            value = s[key]
-            print(f"  {key:26s} {value:.6g}" if isinstance(value, float) else f"  {key:26s} {value}")
+    for key, unit, scale in SUMMARY_KEYS:
+        if key not in s:
+            continue
+        value = s[key]
+        if isinstance(value, float):
+            sem = s.get(f"{key}_sem")
+            text = f"{value * scale:.4g}" + (f" +- {sem * scale:.2g} (within-run s.e.)" if sem and sem == sem else "")
+        elif isinstance(value, list):
+            text = " .. ".join(f"{v:.4g}" for v in value)
+        else:
+            text = str(value)
+        print(f"  {key:26s} {text} {unit}".rstrip())
+    for finding in s.get("findings", []):
+        if not finding["ok"]:
+            print(f"  ! {finding['message']}")
+    if s.get("steady_state") == "steady":
+        print("  error bars over summation-order replicas: cosim run SCENE --replicas 5")
 
 
 def cmd_plot(args) -> int:
@@ -84,91 +157,102 @@ def cmd_plot(args) -> int:
 
 
 def cmd_advise(args) -> int:
-    scene = _load(args)
-    for line in advise(scene, overlap_factor=args.overlap_factor):
+    for line in advise_lines(_plan(args)):
         print(line)
     return EXIT_OK
 
 
-def advise(scene, overlap_factor: float = 0.01) -> list[str]:
-    """Stiffness and time-step advice for a scene (uses soil.advisor)."""
+def advise_lines(plan) -> list[str]:
+    """Stiffness, time-step and validity advice for a plan (soil.advisor, cosim.advice)."""
     from soil import advisor
 
-    soil = scene.soil_material()
-    bed = scene.bed
-    g = scene.gravity_magnitude()
-    r_min = bed.radius_mean * (1 - bed.radius_spread)
-    outer, width, _ = scene.wheel_extent()
-    weight = scene.testbed.mass * g
-    # ground pressure: the weight over the wheel's width times a contact length of
-    # 2 sqrt(2 R s) at a sinkage s of one mean grain radius
-    contact_length = 2.0 * math.sqrt(2.0 * outer * bed.radius_mean)
-    pressure = weight / (width * contact_length)
-    height = bed.depth
-    e_min = advisor.macroscopic_stiffness(height, pressure, overlap_factor, bed.radius_mean, soil.density, g)
-    rayleigh = advisor.rayleigh_time_step(soil.youngs_modulus, soil.poisson_ratio, soil.density, r_min)
-    rim_speed = abs(scene.testbed.omega) * outer
-    speed = math.sqrt(2 * g * height) + rim_speed
-    contact = advisor.hertz_contact_time(soil.youngs_modulus, soil.poisson_ratio, soil.density, r_min,
-                                         max(speed, 1e-9))
-    advice = advisor.recommended_time_step(soil, radius=r_min, gravity=g, height=height, pressure=pressure)
-    dt, h, substeps = scene.time_steps()
+    from . import advice
+
+    spec = plan.bed.spec
+    material = plan.soil_material
+    r_min = spec.radius_mean * (1 - spec.radius_spread)
+    pressure = advice.ground_pressure(plan)
+    e_min = advisor.macroscopic_stiffness(spec.depth, pressure, advice.OVERLAP_RATIO, spec.radius_mean,
+                                          material.density, plan.g)
+    rayleigh = advisor.rayleigh_time_step(material.youngs_modulus, material.poisson_ratio, material.density, r_min)
+    steps = advisor.recommended_time_step(material, radius=r_min, gravity=plan.g, height=spec.depth, pressure=pressure)
     lines = [
-        f"scene {scene.scene.name}: |g| = {g:.4g} m/s^2, grains r = {bed.radius_mean:.4g} m "
-        f"(smallest {r_min:.4g} m), E = {soil.youngs_modulus:.4g} Pa",
-        f"  wheel ground pressure p    {pressure:.4g} Pa  (weight {weight:.4g} N over {width:.3g} m x "
-        f"{contact_length:.3g} m)",
-        f"  eq. 10 stiffness E_mP >=   {e_min:.4g} Pa  (z_h = {height:.3g} m, overlap factor u = {overlap_factor:g}); "
-        f"the scene's E is {'OK' if soil.youngs_modulus >= e_min else 'TOO SOFT: overlaps exceed u r'}"
-        f" ({soil.youngs_modulus / e_min:.3g} x)",
+        f"scene {plan.name}: |g| = {plan.g:.4g} m/s^2, grains r = {spec.radius_mean:.4g} m (smallest {r_min:.4g} m), "
+        f"E = {material.youngs_modulus:.4g} Pa, wheel load {plan.wheel_load:.4g} N",
+        f"  wheel ground pressure      {pressure:.4g} Pa",
+        f"  eq. 10 stiffness E_mP >=   {e_min:.4g} Pa  (z_h = {spec.depth:.3g} m, u = {advice.OVERLAP_RATIO:g})",
         f"  Rayleigh step              {rayleigh:.4g} s  (0.1..0.3 x: {0.1 * rayleigh:.3g} .. {0.3 * rayleigh:.3g} s)",
-        f"  Hertz contact time         {contact:.4g} s  (two smallest grains at {speed:.3g} m/s)",
-        f"  recommended dt range       {advice.dt_min:.4g} .. {advice.dt_max:.4g} s  (critical step "
-        f"{advice.critical_step:.4g} s)",
-        f"  the scene uses dt = {dt:.4g} s, macro step H = {h:.4g} s ({substeps} substeps), "
-        f"{scene.macro_step_count()} macro steps; "
-        + ("dt is within the advised limit" if dt <= advice.dt_max else "dt is ABOVE the advised limit"),
-        "  largest stable step by trial: cosim study timestep SCENE",
+        f"  recommended dt range       {steps.dt_min:.4g} .. {steps.dt_max:.4g} s  (critical step "
+        f"{steps.critical_step:.4g} s)",
+        f"  the scene uses dt = {plan.dt:.4g} s, macro step H = {plan.macro_step:.4g} s ({plan.substeps} substeps); "
+        + ("dt is within the advised limit" if plan.dt <= steps.dt_max else "dt is ABOVE the advised limit"),
+        "validity checks:",
     ]
+    findings = advice.check(plan)
+    for finding in findings:
+        lines.append(f"  [{'ok' if finding.ok else 'OUT OF RANGE'}] {finding.check}: {finding.message}")
+    lines.append(f"verdict: {advice.verdict(findings)}")
+    lines.append("largest stable step by trial: cosim study timestep SCENE")
     return lines
 
 
-def _study_args(args) -> dict:
-    executor = "serial" if args.serial else "dask"
-    return dict(executor=executor, scheduler=args.scheduler, workers=args.workers, overwrite=args.overwrite)
+def _executor(args) -> dict:
+    return dict(executor="serial" if args.serial else "dask", scheduler=args.scheduler, workers=args.workers)
 
 
 def cmd_study(args) -> int:
     from . import study
 
-    scene = _load(args)
-    _quiet_warp()
+    plan = _plan(args)
     if args.kind == "precision":
-        out = args.out or os.path.join("runs", f"{scene.scene.name}_precision")
+        out = args.out or os.path.join("runs", f"{plan.name}_precision")
         precisions = [p.strip() for p in args.precisions.split(",") if p.strip()]
-        report = study.precision_study(scene, out, replicas=args.replicas, precisions=precisions, **_study_args(args))
+        report = study.precision_study(plan, out, replicas=args.replicas, precisions=precisions,
+                                       overwrite=args.overwrite, **_executor(args))
         failed = sum(1 for r in report["replicas"] if not r.get("ok"))
         print(f"study written to {out} ({failed} failed replica(s))")
         return EXIT_OK if failed == 0 else EXIT_ERROR
-    out = args.out or os.path.join("runs", f"{scene.scene.name}_timestep")
-    study.timestep_study(scene, out, duration=args.duration, overwrite=args.overwrite)
-    return EXIT_OK
+    if args.kind == "slip":
+        from .scene import parse_value
+
+        out = args.out or os.path.join("runs", f"{plan.name}_slip")
+        slips = [parse_value(s) for s in args.slips.split(",") if s.strip()]
+        report = study.slip_study(plan, out, slips, replicas=args.replicas, overwrite=args.overwrite,
+                                  **_executor(args))
+        print(report["text"])
+        return EXIT_OK if report["ok"] else EXIT_UNSTEADY
+    out = args.out or os.path.join("runs", f"{plan.name}_timestep")
+    report = study.timestep_study(plan, out, duration=args.duration, max_tries=args.max_tries,
+                                  overwrite=args.overwrite)
+    return EXIT_OK if report.get("largest_stable") else EXIT_ERROR
 
 
 def cmd_sweep(args) -> int:
     from . import study
 
-    scene = _load(args)
-    _quiet_warp()
-    out = args.out or os.path.join("runs", f"{scene.scene.name}_sweep")
-    report = study.sweep(scene, out, args.param, **_study_args(args))
+    plan = _plan(args)
+    out = args.out or os.path.join("runs", f"{plan.name}_sweep")
+    report = study.sweep(plan, out, args.param, overwrite=args.overwrite, **_executor(args))
     failed = sum(1 for r in report["rows"] if not r.get("ok"))
     print(f"sweep written to {out} ({failed} failed point(s))")
     return EXIT_OK if failed == 0 else EXIT_ERROR
 
 
+def cmd_scale(args) -> int:
+    from .similarity import write_gravity_twin
+
+    path, factor = write_gravity_twin(args.scene, args.gravity, args.out, overwrite=args.overwrite,
+                                      overrides=_overrides(args))
+    print(f"{path}: the DEM-similar scene at |g| x {factor:.6g}")
+    return EXIT_OK
+
+
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="cosim", description="regolith-cosim: DEM soil co-simulated with rovers")
+    parser = argparse.ArgumentParser(prog="cosim", description="regolith-cosim: DEM soil co-simulated with rovers",
+                                     epilog="exit status: 0 ok, 1 unexpected error, 2 bad input, 3 output folder "
+                                            "not free, 4 diverged, 5 OS error, 6 no steady-state result, "
+                                            "130 interrupted")
+    parser.add_argument("--verbose", "-v", action="store_true", help="debug log lines, Warp's messages, tracebacks")
     sub = parser.add_subparsers(dest="command", required=True)
 
     def scene_options(p, device=True):
@@ -177,13 +261,21 @@ def build_parser() -> argparse.ArgumentParser:
                        help="override a scene key, e.g. --set wheel.radius=0.05 (repeatable)")
         if device:
             p.add_argument("--device", help="Warp device: cpu, cuda, cuda:N (overrides scene.device)")
-            p.add_argument("--precision", choices=["single", "double", "mixed"],
-                           help="overrides scene.precision")
+            p.add_argument("--precision", choices=["single", "double", "mixed"], help="overrides scene.precision")
+
+    def cluster_options(p, out=True):
+        if out:
+            p.add_argument("--out", help="output folder")
+        p.add_argument("--workers", type=int, help="LocalCluster worker processes (default: CPU cores)")
+        p.add_argument("--scheduler", help="address of a running dask scheduler (instead of a LocalCluster)")
+        p.add_argument("--serial", action="store_true", help="run the tasks one after another in this process")
+        p.add_argument("--overwrite", action="store_true", help="replace what the output folder holds")
 
     p = sub.add_parser("run", help="run a scene")
     scene_options(p)
-    p.add_argument("--out", help="output folder (default runs/<scene name>)")
-    p.add_argument("--overwrite", action="store_true", help="replace the run in a non-empty output folder")
+    cluster_options(p)
+    p.add_argument("--replicas", type=int, default=1,
+                   help="K > 1: run K replicas differing only in summation order and report error bars")
     p.add_argument("--no-progress", action="store_true")
     p.set_defaults(func=cmd_run)
 
@@ -192,30 +284,24 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--no-progress", action="store_true")
     p.set_defaults(func=cmd_resume)
 
-    p = sub.add_parser("advise", help="stiffness (paper eq. 10) and time-step advice for a scene")
+    p = sub.add_parser("advise", help="stiffness (paper eq. 10), time step and validity of a scene")
     scene_options(p)
-    p.add_argument("--overlap-factor", type=float, default=0.01, help="allowed overlap / radius (eq. 10's u)")
     p.set_defaults(func=cmd_advise)
 
-    p = sub.add_parser("plot", help="PNGs of travel, sinkage, slip, drawbar pull")
+    p = sub.add_parser("plot", help="PNGs of a run or a study folder")
     p.add_argument("out", help="a run folder or a study folder")
     p.add_argument("--plot-dir", help="where to write the PNGs (default OUT/plots)")
     p.set_defaults(func=cmd_plot)
 
-    def cluster_options(p):
-        p.add_argument("--out", help="output folder")
-        p.add_argument("--workers", type=int, help="LocalCluster worker processes (default: CPU cores)")
-        p.add_argument("--scheduler", help="address of a running dask scheduler (instead of a LocalCluster)")
-        p.add_argument("--serial", action="store_true", help="run the tasks one after another in this process")
-        p.add_argument("--overwrite", action="store_true")
-
-    p = sub.add_parser("study", help="precision (replica scatter) or time-step studies")
-    p.add_argument("kind", choices=["precision", "timestep"])
+    p = sub.add_parser("study", help="precision (replica scatter), time-step or drawbar-pull/slip studies")
+    p.add_argument("kind", choices=["precision", "timestep", "slip"])
     scene_options(p)
     cluster_options(p)
-    p.add_argument("--replicas", type=int, default=3, help="replicas per precision (the paper: 20)")
+    p.add_argument("--replicas", type=int, default=3, help="replicas per precision or slip")
     p.add_argument("--precisions", default="single,mixed,double")
-    p.add_argument("--duration", type=float, default=0.2, help="timestep: simulated time of each try [s]")
+    p.add_argument("--slips", default="0.1,0.2,0.3,0.5", help="slip: imposed slips, comma-separated")
+    p.add_argument("--duration", type=float, default=0.05, help="timestep: simulated time of each try [s]")
+    p.add_argument("--max-tries", type=int, default=8, help="timestep: most runs of the search")
     p.set_defaults(func=cmd_study)
 
     p = sub.add_parser("sweep", help="runs over a grid of scene values")
@@ -223,32 +309,58 @@ def build_parser() -> argparse.ArgumentParser:
     cluster_options(p)
     p.add_argument("--param", action="append", required=True, metavar="KEY=V1,V2,...")
     p.set_defaults(func=cmd_sweep)
+
+    p = sub.add_parser("scale", help="write the DEM-similar scene at another gravity (the gravity twin)")
+    scene_options(p, device=False)
+    p.add_argument("--gravity", required=True, help="target gravity: a preset name or a magnitude [m/s^2]")
+    p.add_argument("--out", required=True, help="the twin scene file to write")
+    p.add_argument("--overwrite", action="store_true")
+    p.set_defaults(func=cmd_scale)
     return parser
 
 
 def main(argv=None) -> int:
-    from .runner import OutputExistsError, RunDiverged
-    from .scene import SceneError
-
     parser = build_parser()
     args = parser.parse_args(argv)
+    _setup_output(args.verbose)
+    try:
+        return _dispatch(args)
+    except Exception:
+        if args.verbose:
+            raise
+        log.exception("cosim: unexpected error (a bug; --verbose shows the full traceback)")
+        return EXIT_ERROR
+
+
+def _dispatch(args) -> int:
+    from soil.errors import RegolithError
+
+    from .folders import OutputFolderError
+    from .runner import RunDiverged, RunInterrupted
+    from .scene import SceneError
+
+    def fail(code: int, error) -> int:
+        print(f"cosim: error: {error}", file=sys.stderr)
+        return code
+
     try:
         return args.func(args)
     except SceneError as error:
-        print(f"cosim: error: {error}", file=sys.stderr)
-        return EXIT_SCENE
-    except (OutputExistsError, FileExistsError) as error:
-        print(f"cosim: error: {error}", file=sys.stderr)
-        return EXIT_EXISTS
+        return fail(EXIT_INPUT, error)
+    except OutputFolderError as error:
+        return fail(EXIT_FOLDER, error)
     except RunDiverged as error:
-        print(f"cosim: error: {error}", file=sys.stderr)
-        return EXIT_DIVERGED
-    except KeyboardInterrupt as error:
+        return fail(EXIT_DIVERGED, error)
+    except (KeyboardInterrupt, RunInterrupted) as error:
         print(f"\ncosim: interrupted. {error}".rstrip(), file=sys.stderr)
         return EXIT_INTERRUPTED
-    except (FileNotFoundError, ValueError) as error:
-        print(f"cosim: error: {error}", file=sys.stderr)
-        return EXIT_ERROR
+    except RegolithError as error:  # an FMU, a mesh, a bed: bad input the project recognised
+        return fail(EXIT_INPUT, error)
+    except OSError as error:
+        where = f"{error.filename}: " if getattr(error, "filename", None) else ""
+        return fail(EXIT_OS, f"{where}{error.strerror or error}")
+    except ValueError as error:
+        return fail(EXIT_INPUT, error)
 
 
 if __name__ == "__main__":

@@ -23,21 +23,60 @@ exceeds `energy_atol + energy_rtol * sum |W_rover|` a CouplingEnergyWarning is i
 from __future__ import annotations
 
 import warnings
+from dataclasses import dataclass
 from typing import Callable, Sequence
 
 import numpy as np
+
+from soil.errors import RegolithError, RegolithWarning
 
 from .contract import RoverSide, SoilSide, WheelKinematics, WheelWrench
 from .controllers import apply_command
 from .terrain import quat_integrate, quat_multiply
 
 
-class CouplingEnergyWarning(RuntimeWarning):
+class CouplingEnergyWarning(RegolithWarning, RuntimeWarning):
     """The coupling created more energy than the tolerance allows (H too large?)."""
 
 
-class CouplingTimeError(RuntimeError):
+class CouplingTimeError(RegolithError, RuntimeError):
     """The soil and rover sides did not reach the same time."""
+
+
+@dataclass
+class MacroStepRecord:
+    """What one macro step produced: the wheels at its end and the wrenches they held."""
+
+    time: float
+    """End time of the step [s]."""
+    kinematics: list[WheelKinematics]
+    """Wheel kinematics at the end of the step, one per wheel."""
+    wrenches: list[WheelWrench]
+    """The soil wrench each wheel held during the step (force, torque: held values; force_end,
+    torque_end: the soil's end values; contact_count, sinkage, work_on_soil)."""
+    work_on_rover: np.ndarray
+    """Work of the held wrench on the rover [J], shape (W,)."""
+    work_on_soil: np.ndarray
+    """Work done on the soil, including the jump to the rover's actual end pose [J], shape (W,)."""
+
+
+def stack_records(records: Sequence[MacroStepRecord]) -> dict[str, np.ndarray]:
+    """Records as arrays (S = records, W = wheels): time [s] (S,); position [m], linear_velocity
+    [m/s], angular_velocity [rad/s], force [N], torque [N m] (S, W, 3); orientation (S, W, 4);
+    sinkage [m], contact_count, work_on_rover, work_on_soil [J] (S, W)."""
+    def wheels(get):
+        return np.array([[get(k, w) for k, w in zip(r.kinematics, r.wrenches)] for r in records])
+
+    return {
+        "time": np.array([r.time for r in records], dtype=np.float64),
+        "position": wheels(lambda k, w: k.position), "orientation": wheels(lambda k, w: k.orientation),
+        "linear_velocity": wheels(lambda k, w: k.linear_velocity),
+        "angular_velocity": wheels(lambda k, w: k.angular_velocity),
+        "force": wheels(lambda k, w: w.force), "torque": wheels(lambda k, w: w.torque),
+        "sinkage": wheels(lambda k, w: w.sinkage), "contact_count": wheels(lambda k, w: w.contact_count),
+        "work_on_rover": np.array([r.work_on_rover for r in records]),
+        "work_on_soil": np.array([r.work_on_soil for r in records]),
+    }
 
 
 class Coupler:
@@ -105,7 +144,6 @@ class Coupler:
         self.energy_exchanged = 0.0
         """Accumulated |W_rover| over all steps [J]."""
         self._warned = False
-        self._records: dict[str, list] = {key: [] for key in _RECORD_KEYS}
 
     # --------------------------------------------------------------------------------
 
@@ -113,8 +151,8 @@ class Coupler:
         if abs(t_soil - t_rover) > self.time_tol:
             raise CouplingTimeError(f"{where}: soil at t={t_soil!r} s, rover at t={t_rover!r} s")
 
-    def step(self) -> None:
-        """Advance both sides by one macro step."""
+    def step(self) -> MacroStepRecord:
+        """Advance both sides by one macro step; returns what the step produced."""
         t0 = self.time
         t1 = t0 + self.macro_step
         rover, soil = self.rover, self.soil
@@ -164,55 +202,44 @@ class Coupler:
                 CouplingEnergyWarning,
                 stacklevel=2,
             )
-        self._record(t1, k1, held, w_rover, w_soil)
+        return MacroStepRecord(t1, k1, list(held), w_rover, w_soil)
 
-    def run(self, t_end: float, callback: Callable[["Coupler"], None] | None = None) -> None:
-        """Macro-step until t_end [s] (rounded to a whole number of steps).
+    def run(self, t_end: float, callback: Callable[["Coupler", MacroStepRecord], None] | None = None
+            ) -> list[MacroStepRecord]:
+        """Macro-step until t_end [s] (rounded to a whole number of steps); returns the records.
 
-        callback(coupler) is called after every macro step.
+        callback(coupler, record) is called after every macro step.
         """
         steps = int(round((float(t_end) - self.time) / self.macro_step))
+        records = []
         for _ in range(steps):
-            self.step()
+            records.append(self.step())
             if callback is not None:
-                callback(self)
+                callback(self, records[-1])
+        return records
 
-    # --------------------------------------------------------------------------------
+    # -- checkpoints -------------------------------------------------------------------
+    def state_dict(self) -> dict:
+        """The coupler's own state (the sides and the controller keep theirs)."""
+        state = {"time": self.time, "step_count": self.step_count, "energy_created": self.energy_created,
+                 "energy_exchanged": self.energy_exchanged, "warned": self._warned}
+        for name, wrenches in (("lagged", self._lagged), ("last", self._last)):
+            for field in _WRENCH_FIELDS:
+                state[f"{name}/{field}"] = np.array([getattr(w, field) for w in wrenches])
+        return state
 
-    def _record(self, t, kin, wrenches, w_rover, w_soil) -> None:
-        r = self._records
-        r["time"].append(t)
-        r["position"].append([k.position for k in kin])
-        r["orientation"].append([k.orientation for k in kin])
-        r["linear_velocity"].append([k.linear_velocity for k in kin])
-        r["angular_velocity"].append([k.angular_velocity for k in kin])
-        r["force"].append([w.force for w in wrenches])
-        r["torque"].append([w.torque for w in wrenches])
-        r["sinkage"].append([w.sinkage for w in wrenches])
-        r["contact_count"].append([w.contact_count for w in wrenches])
-        r["work_on_rover"].append(w_rover)
-        r["work_on_soil"].append(w_soil)
-
-    def records(self) -> dict[str, np.ndarray]:
-        """Per-macro-step records as numpy arrays (S = steps taken, W = wheels).
-
-        time [s] (S,): end time of each step; position [m] (S, W, 3), orientation
-        (w, x, y, z) (S, W, 4), linear_velocity [m/s] (S, W, 3), angular_velocity [rad/s]
-        (S, W, 3): wheel kinematics at the end of the step; force [N] (S, W, 3), torque
-        about the hub [N m] (S, W, 3): the wrench the rover held during the step;
-        sinkage [m] (S, W), contact_count (S, W); work_on_rover [J] (S, W): work of the held
-        wrench on the rover; work_on_soil [J] (S, W): work reported by the soil.
-        """
-        shapes = {"time": (0,), "sinkage": (0, self.wheel_count), "contact_count": (0, self.wheel_count),
-                  "work_on_rover": (0, self.wheel_count), "work_on_soil": (0, self.wheel_count),
-                  "orientation": (0, self.wheel_count, 4)}
-        out = {}
-        for key, values in self._records.items():
-            if values:
-                out[key] = np.asarray(values, dtype=np.int64 if key == "contact_count" else np.float64)
-            else:
-                out[key] = np.zeros(shapes.get(key, (0, self.wheel_count, 3)))
-        return out
+    def load_state_dict(self, state: dict) -> None:
+        self.time = float(state["time"])
+        self.step_count = int(state["step_count"])
+        self.energy_created = float(state["energy_created"])
+        self.energy_exchanged = float(state["energy_exchanged"])
+        self._warned = bool(state["warned"])
+        for name in ("lagged", "last"):
+            values = {field: state[f"{name}/{field}"] for field in _WRENCH_FIELDS}
+            setattr(self, f"_{name}", [
+                WheelWrench(**{field: (int(v[i]) if field == "contact_count" else
+                                       float(v[i]) if np.ndim(v[i]) == 0 else np.array(v[i], dtype=np.float64))
+                               for field, v in values.items()}) for i in range(self.wheel_count)])
 
 
 def _jump_work(w: WheelWrench, k0: WheelKinematics, k1: WheelKinematics, h: float) -> float:
@@ -228,7 +255,4 @@ def _jump_work(w: WheelWrench, k0: WheelKinematics, k1: WheelKinematics, h: floa
     return float(w.force_end @ dp + w.torque_end @ rotation)
 
 
-_RECORD_KEYS = (
-    "time", "position", "orientation", "linear_velocity", "angular_velocity",
-    "force", "torque", "sinkage", "contact_count", "work_on_rover", "work_on_soil",
-)
+_WRENCH_FIELDS = ("force", "torque", "force_end", "torque_end", "contact_count", "sinkage", "work_on_soil")

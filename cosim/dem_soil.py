@@ -148,6 +148,13 @@ class DemSoil:
                 sinkage=self.surface_height - lowest, work_on_soil=float(work[b])))
         return result
 
+    def state_dict(self) -> dict:
+        """The soil side's own state (the simulation keeps its own)."""
+        return {"warned_wall": self._warned_wall}
+
+    def load_state_dict(self, data: dict) -> None:
+        self._warned_wall = bool(data["warned_wall"])
+
     # -- walls ---------------------------------------------------------------------
     def _container_walls(self):
         kinds = self.sim.model.boundary_kind.numpy()

@@ -2,44 +2,41 @@
 
 HDF5 layout of ``results.h5`` (S = macro steps recorded, W = wheels, T = particle
 snapshots, N = particles, V = wheel-mesh vertices, F = wheel-mesh triangles, K = rover
-state columns). Every time-series dataset grows along its first axis.
+state columns). Every dataset carries a `units` attribute ("1": dimensionless, "count")
+and a `description`; every time series grows along its first axis.
 
     /                               attributes:
-        format          "regolith-cosim results 1"
+        format          "regolith-cosim results 2"
         status          "running" | "complete" | "interrupted" | "diverged" | "failed"
-        name            scene name
-        scene_toml      the scene as run (TOML text, --set overrides applied)
-        scene_source    the scene file's original text ("" when not from a file)
-        versions        JSON {package: version} (regolith-cosim, warp-lang, numpy, h5py, ...)
-        created         ISO 8601 time the run started
-        precision, device, scheme, order_seed (-1: none)
-        dt [s], macro_step [s], substeps, duration [s], gravity [m/s^2] (3,)
-        surface_height [m], start_position [m] (3,), omega [rad/s], rim_radius [m]
-        particle_count, wheel_names (JSON list), bed (JSON: settle report + metrics)
         message         why the run stopped ("" when complete)
+        summary         JSON: the run's summary (cosim.metrics.summarize), written at the end
+        name, scene_toml (the scene as run), scene_source (the scene file's text), versions (JSON),
+        created, precision, device, scheme, order_seed (-1: none), dt [s], macro_step [s], substeps,
+        duration [s], gravity [m/s^2] (3,), surface_height [m], start_position [m] (3,), omega [rad/s],
+        rim_radius [m], outer_radius [m], wheel_load [N], mode, particle_count, wheel_names (JSON),
+        bed (JSON: source, settle report, metrics), findings (JSON: the validity checks at the start)
     /wheels/                        one row per macro step, wheel quantities at its end
         time              (S,)       [s]
+        phase             (S,)       0 landing, 1 driving
         position          (S, W, 3)  hub position [m]
-        orientation       (S, W, 4)  quaternion (w, x, y, z) body -> world
+        orientation       (S, W, 4)  quaternion (w, x, y, z) body -> world [1]
         linear_velocity   (S, W, 3)  [m/s]
         angular_velocity  (S, W, 3)  [rad/s]
         force             (S, W, 3)  soil force on the wheel held over the step [N]
-        torque            (S, W, 3)  soil torque about the hub [N m]
-        sinkage           (S, W)     [m]  (surface height - lowest rim point)
-        contact_count     (S, W)     int64
+        torque            (S, W, 3)  soil torque about the hub held over the step [N m]
+        force_end         (S, W, 3)  soil force at the end of the step [N]
+        torque_end        (S, W, 3)  soil torque about the hub at the end of the step [N m]
+        contact_count     (S, W)     grains touching the wheel [count]
         work_on_rover     (S, W)     [J]
         work_on_soil      (S, W)     [J]
-        travel            (S, W)     hub x - start x [m]
-        slip              (S, W)     1 - v_x / (omega r) [-]
-        drawbar_pull      (S, W)     force x [N]
-        driving_torque    (S, W)     -torque y [N m]
+        travel, slip, sinkage, sinkage_tips, drawbar_pull, driving_torque, normal_force
+                          (S, W)     cosim.metrics definitions [m, 1, m, m, N, N m, N]
         mesh/vertices     (V, 3)     all wheel meshes in their wheel frames [m] (for display)
-        mesh/triangles    (F, 3)     int32, indices into vertices
-        mesh/wheel        (V,)       int32, wheel index of each vertex
+        mesh/triangles    (F, 3)     indices into vertices
+        mesh/wheel        (V,)       wheel index of each vertex
     /rover/
         time              (S,)       [s]
-        state             (S, K)     attribute `columns` (JSON) names the columns; single-wheel
-                                     rig: x, y, z [m], vx, vy, vz [m/s], angle [rad]
+        state             (S, K)     attributes `columns` and `units` (JSON lists) name them
     /particles/
         radius            (N,)       [m]  (model order: fixed for the run)
         time              (T,)       [s]
@@ -49,10 +46,11 @@ state columns). Every time-series dataset grows along its first axis.
 
 The file is written in SWMR mode (libver 'latest'): records are buffered and flushed
 every `flush_every` macro steps, so a killed run leaves a readable file with everything
-up to the last flush; `open_results` reads it (also while the run is still writing).
+up to the last flush; `open_results` reads it (also while a run is still writing). A
+resume (`ResultsWriter.resume`) copies what the checkpoint covers into a fresh file and
+replaces the old one atomically, so a file left flagged by a killed writer needs no tool.
 ``results.xdmf`` beside it references /particles (Polyvertex) and the wheel mesh
-(Triangle) as temporal collections via HDF5 hyperslabs; open it in ParaView
-("Xdmf3 Reader S" or "XDMF Reader").
+(Triangle) as temporal collections via HDF5 hyperslabs; open it in ParaView.
 """
 
 from __future__ import annotations
@@ -64,25 +62,44 @@ from datetime import datetime, timezone
 
 import numpy as np
 
-from soil.files import atomic_write_text
+from soil.files import atomic_path, atomic_write_text
 
-RESULTS_FORMAT = "regolith-cosim results 1"
-RESULTS_FILE = "results.h5"
-XDMF_FILE = "results.xdmf"
+from .folders import RESULTS_FILE, XDMF_FILE
+
+RESULTS_FORMAT = "regolith-cosim results 2"
 
 WHEEL_SERIES = {
-    # name: (trailing shape given W, dtype)
-    "position": (3, np.float64), "orientation": (4, np.float64), "linear_velocity": (3, np.float64),
-    "angular_velocity": (3, np.float64), "force": (3, np.float64), "torque": (3, np.float64),
-    "sinkage": (None, np.float64), "contact_count": (None, np.int64), "work_on_rover": (None, np.float64),
-    "work_on_soil": (None, np.float64), "travel": (None, np.float64), "slip": (None, np.float64),
-    "drawbar_pull": (None, np.float64), "driving_torque": (None, np.float64),
+    # name: (trailing shape (None: per wheel scalar), dtype, units, description)
+    "position": (3, np.float64, "m", "hub position, world frame"),
+    "orientation": (4, np.float64, "1", "quaternion (w, x, y, z), wheel body -> world"),
+    "linear_velocity": (3, np.float64, "m/s", "hub velocity, world frame"),
+    "angular_velocity": (3, np.float64, "rad/s", "wheel angular velocity, world frame"),
+    "force": (3, np.float64, "N", "soil force on the wheel held over the macro step, world frame"),
+    "torque": (3, np.float64, "N m", "soil torque about the hub held over the macro step, world frame"),
+    "force_end": (3, np.float64, "N", "soil force on the wheel at the end of the macro step"),
+    "torque_end": (3, np.float64, "N m", "soil torque about the hub at the end of the macro step"),
+    "contact_count": (None, np.int64, "count", "grains touching the wheel at the end of the step"),
+    "work_on_rover": (None, np.float64, "J", "work of the held wrench on the rover"),
+    "work_on_soil": (None, np.float64, "J", "work done on the soil"),
+    "travel": (None, np.float64, "m", "hub travel forward since the drive started"),
+    "slip": (None, np.float64, "1", "slip 1 - v / (omega r); nan while the wheel does not turn"),
+    "sinkage": (None, np.float64, "m", "surface height - lowest rim point"),
+    "sinkage_tips": (None, np.float64, "m", "surface height - lowest grouser tip"),
+    "drawbar_pull": (None, np.float64, "N", "soil force on the wheel along its forward direction"),
+    "driving_torque": (None, np.float64, "N m", "torque the drive supplies against the soil"),
+    "normal_force": (None, np.float64, "N", "soil force on the wheel along the bed normal"),
 }
 """Per-wheel datasets under /wheels, each shaped (S, W) or (S, W, k)."""
+
+STEP_SERIES = {"wheels/time": ("s", "end time of the macro step"),
+               "wheels/phase": ("1", "0: landing, 1: driving"),
+               "rover/time": ("s", "end time of the macro step")}
 
 
 def package_versions() -> dict:
     from importlib import metadata
+
+    import h5py
 
     versions = {}
     for name in ("regolith-cosim", "warp-lang", "numpy", "scipy", "h5py", "pydantic", "mujoco", "fmpy", "dask",
@@ -91,30 +108,28 @@ def package_versions() -> dict:
             versions[name] = metadata.version(name)
         except metadata.PackageNotFoundError:
             pass
-    import h5py
-
     versions["hdf5"] = h5py.version.hdf5_version
     return versions
 
 
 def documented_layout(wheels: int, particles: int, vertices: int, triangles: int, columns: int) -> dict:
     """{dataset path: (shape with None for the growing axis, numpy kind)}: the layout above."""
-    layout = {"wheels/time": ((None,), "f"), "rover/time": ((None,), "f"), "rover/state": ((None, columns), "f"),
-              "particles/radius": ((particles,), "f"), "particles/time": ((None,), "f"),
-              "particles/position": ((None, particles, 3), "f"), "particles/velocity": ((None, particles, 3), "f"),
+    layout = {"wheels/time": ((None,), "f"), "wheels/phase": ((None,), "i"), "rover/time": ((None,), "f"),
+              "rover/state": ((None, columns), "f"), "particles/radius": ((particles,), "f"),
+              "particles/time": ((None,), "f"), "particles/position": ((None, particles, 3), "f"),
+              "particles/velocity": ((None, particles, 3), "f"),
               "particles/wheel_vertices": ((None, vertices, 3), "f"),
               "wheels/mesh/vertices": ((vertices, 3), "f"), "wheels/mesh/triangles": ((triangles, 3), "i"),
               "wheels/mesh/wheel": ((vertices,), "i")}
-    for name, (tail, dtype) in WHEEL_SERIES.items():
-        shape = (None, wheels) if tail is None else (None, wheels, tail)
-        layout[f"wheels/{name}"] = (shape, np.dtype(dtype).kind)
+    for name, (tail, dtype, _, _) in WHEEL_SERIES.items():
+        layout[f"wheels/{name}"] = ((None, wheels) if tail is None else (None, wheels, tail), np.dtype(dtype).kind)
     return layout
 
 
-REQUIRED_ATTRIBUTES = ("format", "status", "name", "scene_toml", "scene_source", "versions", "created", "precision",
-                       "device", "scheme", "order_seed", "dt", "macro_step", "substeps", "duration", "gravity",
-                       "surface_height", "start_position", "omega", "rim_radius", "particle_count", "wheel_names",
-                       "bed", "message")
+REQUIRED_ATTRIBUTES = ("format", "status", "message", "name", "scene_toml", "scene_source", "versions", "created",
+                       "precision", "device", "scheme", "order_seed", "dt", "macro_step", "substeps", "duration",
+                       "gravity", "surface_height", "start_position", "omega", "rim_radius", "outer_radius",
+                       "wheel_load", "mode", "particle_count", "wheel_names", "bed", "findings")
 
 
 def open_results(path, mode="r"):
@@ -130,12 +145,16 @@ def open_results(path, mode="r"):
         return h5py.File(path, "r", libver="latest", swmr=True, locking=False)
 
 
+def _units(dataset, units: str, description: str) -> None:
+    dataset.attrs["units"] = units
+    dataset.attrs["description"] = description
+
+
 class ResultsWriter:
     """Buffered, crash-tolerant writer of results.h5 (see the module docstring for the layout).
 
-    Create with `ResultsWriter.create(...)` for a new run or `ResultsWriter.reopen(...)` to
-    continue a run (datasets are cut back to the counts of the checkpoint).
-    Use as a context manager or call `close(status, message)`.
+    `ResultsWriter.create(...)` starts a new file, `ResultsWriter.resume(...)` continues one
+    from a checkpoint's counts. Call `close(status, message, summary)` at the end.
     """
 
     def __init__(self, path, flush_every: int = 50, xdmf: bool = True):
@@ -149,10 +168,11 @@ class ResultsWriter:
         self.snapshots = 0
         """Particle snapshots written."""
 
-    # -- create / reopen -----------------------------------------------------------
+    # -- create / resume -----------------------------------------------------------
     @classmethod
     def create(cls, path, *, attrs: dict, radius: np.ndarray, wheel_count: int, mesh: tuple,
-               rover_columns: list[str], flush_every: int = 50, xdmf: bool = True) -> "ResultsWriter":
+               rover_columns: list[str], rover_units: list[str], flush_every: int = 50,
+               xdmf: bool = True) -> "ResultsWriter":
         """A new file; refuses to replace an existing one (the caller decides about that)."""
         import h5py
 
@@ -169,30 +189,46 @@ class ResultsWriter:
             f.attrs["format"] = RESULTS_FORMAT
             f.attrs["status"] = "running"
             f.attrs["message"] = ""
-            f.attrs.setdefault("created", datetime.now(timezone.utc).isoformat(timespec="seconds"))
+            f.attrs["summary"] = "{}"
+            if "created" not in f.attrs:
+                f.attrs["created"] = datetime.now(timezone.utc).isoformat(timespec="seconds")
             f.attrs["versions"] = json.dumps(package_versions())
             rows = max(1, min(1024, 4 * flush_every))
+
+            def series(group, name, shape, dtype, units, description):
+                dataset = group.create_dataset(name, shape, dtype, maxshape=(None,) + shape[1:],
+                                               chunks=(rows,) + shape[1:])
+                _units(dataset, units, description)
+
             g = f.create_group("wheels")
-            g.create_dataset("time", (0,), np.float64, maxshape=(None,), chunks=(rows,))
-            for name, (tail, dtype) in WHEEL_SERIES.items():
-                shape = (0, w) if tail is None else (0, w, tail)
-                g.create_dataset(name, shape, dtype, maxshape=(None,) + shape[1:], chunks=(rows,) + shape[1:])
+            series(g, "time", (0,), np.float64, *STEP_SERIES["wheels/time"])
+            series(g, "phase", (0,), np.int8, *STEP_SERIES["wheels/phase"])
+            for name, (tail, dtype, units, description) in WHEEL_SERIES.items():
+                series(g, name, (0, w) if tail is None else (0, w, tail), dtype, units, description)
             m = g.create_group("mesh")
             m["vertices"] = np.asarray(vertices, dtype=np.float64).reshape(-1, 3)
+            _units(m["vertices"], "m", "wheel mesh vertices in their wheel frames")
             m["triangles"] = np.asarray(triangles, dtype=np.int32).reshape(-1, 3)
+            _units(m["triangles"], "1", "vertex indices of each triangle")
             m["wheel"] = np.asarray(vertex_wheel, dtype=np.int32)
+            _units(m["wheel"], "1", "wheel index of each vertex")
             r = f.create_group("rover")
-            r.create_dataset("time", (0,), np.float64, maxshape=(None,), chunks=(rows,))
-            state = r.create_dataset("state", (0, len(rover_columns)), np.float64, maxshape=(None, len(rover_columns)),
-                                     chunks=(rows, len(rover_columns)))
-            state.attrs["columns"] = json.dumps(list(rover_columns))
+            series(r, "time", (0,), np.float64, *STEP_SERIES["rover/time"])
+            series(r, "state", (0, len(rover_columns)), np.float64, "see columns/units", "rover state per step")
+            r["state"].attrs["columns"] = json.dumps(list(rover_columns))
+            r["state"].attrs["units"] = json.dumps(list(rover_units))
             p = f.create_group("particles")
             p["radius"] = np.asarray(radius, dtype=np.float64)
+            _units(p["radius"], "m", "grain radii (model order)")
             p.create_dataset("time", (0,), np.float64, maxshape=(None,), chunks=(64,))
+            _units(p["time"], "s", "snapshot times")
             p.create_dataset("position", (0, n, 3), np.float64, maxshape=(None, n, 3), chunks=(1, n, 3))
+            _units(p["position"], "m", "grain centres")
             p.create_dataset("velocity", (0, n, 3), np.float32, maxshape=(None, n, 3), chunks=(1, n, 3))
+            _units(p["velocity"], "m/s", "grain velocities")
             nv = len(m["vertices"])
             p.create_dataset("wheel_vertices", (0, nv, 3), np.float32, maxshape=(None, nv, 3), chunks=(1, nv, 3))
+            _units(p["wheel_vertices"], "m", "wheel meshes posed at each snapshot, world frame")
             f.swmr_mode = True
         except BaseException:
             f.close()
@@ -202,42 +238,34 @@ class ResultsWriter:
         return writer
 
     @classmethod
-    def reopen(cls, path, steps: int, snapshots: int, flush_every: int = 50, xdmf: bool = True) -> "ResultsWriter":
-        """Continue a file: cut the time series back to `steps` rows and the snapshots to `snapshots`."""
+    def resume(cls, path, steps: int, snapshots: int, flush_every: int = 50, xdmf: bool = True) -> "ResultsWriter":
+        """Continue a file from a checkpoint: its first `steps` records and `snapshots` snapshots are
+        copied into a fresh file that atomically replaces it (a file a killed writer left flagged
+        as open needs no repair tool), and writing goes on there."""
         import h5py
 
         writer = cls(path, flush_every, xdmf)
         if not os.path.isfile(writer.path):
             raise FileNotFoundError(f"{writer.path} not found: nothing to resume")
-        try:
-            f = h5py.File(writer.path, "r+", libver="latest")
-        except OSError as error:
-            raise OSError(f"cannot reopen {writer.path} for writing ({error}); if the run was killed, clear the file's "
-                          f"SWMR flag with `h5clear -s {writer.path}` and resume again") from error
-        try:
-            if f.attrs.get("format") != RESULTS_FORMAT:
-                raise ValueError(f"{writer.path} is not a regolith-cosim results file")
-            for name in ["time", *WHEEL_SERIES]:
-                _cut(f["wheels"][name], steps, "wheels/" + name)
-            _cut(f["rover/time"], steps, "rover/time")
-            _cut(f["rover/state"], steps, "rover/state")
-            for name in ("time", "position", "velocity", "wheel_vertices"):
-                _cut(f["particles"][name], snapshots, "particles/" + name)
-            f.attrs["status"] = "running"
-            f.attrs["message"] = ""
-            f.swmr_mode = True
-        except BaseException:
-            f.close()
-            raise
+        with atomic_path(writer.path, ".h5.tmp") as temporary:
+            with open_results(writer.path) as old, h5py.File(temporary, "w", libver="latest") as new:
+                if old.attrs.get("format") != RESULTS_FORMAT:
+                    raise ValueError(f"{writer.path} is not a regolith-cosim results file of format "
+                                     f"{RESULTS_FORMAT!r}")
+                _copy_truncated(old, new, {"wheels": steps, "rover": steps, "particles": snapshots})
+                new.attrs["status"] = "running"
+                new.attrs["message"] = ""
+        f = h5py.File(writer.path, "r+", libver="latest")
+        f.swmr_mode = True
         writer._file = f
         writer.steps = int(steps)
         writer.snapshots = int(snapshots)
         return writer
 
     # -- writing --------------------------------------------------------------------
-    def append_step(self, record: dict) -> None:
-        """Buffer one macro step: keys 'time', every WHEEL_SERIES name, 'rover_state' (K,)."""
-        self._buffer.append(record)
+    def append_step(self, row: dict) -> None:
+        """Buffer one macro step: 'time' [s], 'phase', every WHEEL_SERIES name (W, ...), 'rover_state' (K,)."""
+        self._buffer.append(row)
         self.steps += 1
         if len(self._buffer) >= self.flush_every:
             self.flush()
@@ -269,8 +297,10 @@ class ResultsWriter:
             dataset.resize(stop, axis=0)
             dataset[start:stop] = values
 
-        put(f["wheels/time"], np.array([r["time"] for r in rows], dtype=np.float64))
-        put(f["rover/time"], np.array([r["time"] for r in rows], dtype=np.float64))
+        times = np.array([r["time"] for r in rows], dtype=np.float64)
+        put(f["wheels/time"], times)
+        put(f["rover/time"], times)
+        put(f["wheels/phase"], np.array([r["phase"] for r in rows], dtype=np.int8))
         for name in WHEEL_SERIES:
             put(f["wheels"][name], np.array([r[name] for r in rows]))
         put(f["rover/state"], np.array([r["rover_state"] for r in rows], dtype=np.float64))
@@ -283,20 +313,26 @@ class ResultsWriter:
         self.flush_records()
         self._file.flush()
 
-    def close(self, status: str = "complete", message: str = "") -> None:
-        """Flush, close, and record the final status (a short reopen: SWMR forbids attribute writes)."""
+    def close(self, status: str | None = None, message: str = "", summary: dict | None = None) -> None:
+        """Flush and close; with a status, record it (see `mark`)."""
+        if self._file is not None:
+            try:
+                self.flush()
+            finally:
+                self._file.close()
+                self._file = None
+        if status is not None:
+            self.mark(status, message, summary)
+
+    def mark(self, status: str, message: str = "", summary: dict | None = None) -> None:
+        """Record the final status, message and summary in the closed file (SWMR forbids attribute writes)."""
         import h5py
 
-        if self._file is None:
-            return
-        try:
-            self.flush()
-        finally:
-            self._file.close()
-            self._file = None
         with h5py.File(self.path, "r+", libver="latest") as f:
             f.attrs["status"] = status
             f.attrs["message"] = message
+            if summary is not None:
+                f.attrs["summary"] = json.dumps(summary, default=float)
         self._write_xdmf()
 
     def __enter__(self):
@@ -309,22 +345,51 @@ class ResultsWriter:
             self.close("interrupted" if issubclass(kind, KeyboardInterrupt) else "failed", str(value))
         return False
 
-    # -- XDMF -------------------------------------------------------------------------
     def _write_xdmf(self) -> None:
         if not self.xdmf:
             return
+        target = os.path.join(os.path.dirname(os.path.abspath(self.path)), XDMF_FILE)
         if self._file is not None:
-            write_xdmf(self._file, os.path.join(os.path.dirname(os.path.abspath(self.path)), XDMF_FILE))
+            write_xdmf(self._file, target)
         else:
             with open_results(self.path) as f:
-                write_xdmf(f, os.path.join(os.path.dirname(os.path.abspath(self.path)), XDMF_FILE))
+                write_xdmf(f, target)
 
 
-def _cut(dataset, count: int, name: str) -> None:
-    if dataset.shape[0] < count:
-        raise ValueError(f"results file holds {dataset.shape[0]} rows of {name}, the checkpoint expects {count}: "
-                         "the file is older than the checkpoint")
-    dataset.resize(count, axis=0)
+def _copy_truncated(old, new, counts: dict) -> None:
+    """Copy file `old` into `new`, cutting the growing datasets of each top group to counts[group] rows."""
+    import h5py
+
+    for key, value in old.attrs.items():
+        new.attrs[key] = value
+
+    def visit(name, obj):
+        if isinstance(obj, h5py.Group):
+            new.require_group(name)
+            return
+        count = counts[name.split("/")[0]]
+        growing = obj.maxshape[0] is None
+        if growing and obj.shape[0] < count:
+            raise ValueError(f"the results file holds {obj.shape[0]} rows of {name}, the checkpoint expects {count}: "
+                             "the file is older than the checkpoint")
+        data = obj[:count] if growing else obj[()]
+        dataset = new.create_dataset(name, data=data, maxshape=obj.maxshape, chunks=obj.chunks)
+        for key, value in obj.attrs.items():
+            dataset.attrs[key] = value
+
+    old.visititems(visit)
+
+
+def read_series(path) -> dict:
+    """The time series of one results.h5 as numpy arrays (+ 'rover_state', 'rover_columns',
+    'snapshot_time', 'attrs'), for summaries, plots and studies."""
+    with open_results(path) as f:
+        out = {name: f["wheels"][name][()] for name in ["time", "phase", *WHEEL_SERIES]}
+        out["rover_state"] = f["rover/state"][()]
+        out["rover_columns"] = json.loads(f["rover/state"].attrs["columns"])
+        out["snapshot_time"] = f["particles/time"][()]
+        out["attrs"] = {k: (v.decode() if isinstance(v, bytes) else v) for k, v in f.attrs.items()}
+    return out
 
 
 # ------------------------------------------------------------------------------------
@@ -417,12 +482,3 @@ def xdmf_references(xdmf_path: str) -> list[tuple[str, str, tuple, tuple | None]
     return refs
 
 
-def read_series(path) -> dict:
-    """The time series of one results.h5 as numpy arrays (+ 'attrs'), for plots and studies."""
-    with open_results(path) as f:
-        out = {name: f["wheels"][name][()] for name in ["time", *WHEEL_SERIES]}
-        out["rover_state"] = f["rover/state"][()]
-        out["rover_columns"] = json.loads(f["rover/state"].attrs["columns"])
-        out["snapshot_time"] = f["particles/time"][()]
-        out["attrs"] = {k: (v.decode() if isinstance(v, bytes) else v) for k, v in f.attrs.items()}
-    return out

@@ -1,19 +1,25 @@
-"""`cosim plot OUT`: PNGs of one run or many (study replicas, sweeps) found under OUT.
+"""`cosim plot OUT`: PNGs of one run or many (replicas, studies, sweeps) found under OUT.
 
-    travel_sinkage.png   travel distance and sinkage over time (the paper's figures 2-4);
-                         replicas overlaid, one colour per group (precision or sweep point)
+    travel_sinkage.png   travel and sinkage (rim and grouser tips) over time (the paper's figures 2-4);
+                         replicas overlaid, one colour per group; the steady-state window shaded
     slip_drawbar.png     slip and drawbar pull over time
-    drawbar_slip.png     mean drawbar pull against mean slip, one point per run (>= 2 runs)
+    drawbar_slip.png     steady-state drawbar pull against slip, one point per run (>= 2 runs)
+    scatter.png          (studies) mean, std and min-max of the metrics per group
+    dbp_slip.png         (slip study) DP/W, torque and sinkage against imposed slip with 95 % intervals
 """
 
 from __future__ import annotations
 
 import json
+import logging
 import os
 
 import numpy as np
 
-from .output import RESULTS_FILE, read_series
+from .folders import PLOTS_DIR, RESULTS_FILE
+from .output import read_series
+
+log = logging.getLogger(__name__)
 
 
 def find_results(out_dir: str) -> list[str]:
@@ -34,24 +40,29 @@ def _group(path: str, attrs: dict, out_dir: str) -> str:
     return "/".join(parts) if parts else str(attrs.get("name", "run"))
 
 
-def plot_output(out_dir: str, plot_dir: str | None = None, dpi: int = 120) -> list[str]:
-    """Write the PNGs for everything under out_dir; returns their paths."""
+def _pyplot():
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
+    return plt
+
+
+def plot_output(out_dir: str, plot_dir: str | None = None, dpi: int = 120) -> list[str]:
+    """Write the PNGs for everything under out_dir; returns their paths."""
+    plt = _pyplot()
     paths = find_results(out_dir)
     if not paths:
         raise FileNotFoundError(f"no {RESULTS_FILE} under {out_dir!r}: run `cosim run SCENE --out {out_dir}` first")
-    plot_dir = plot_dir or os.path.join(out_dir, "plots")
+    plot_dir = plot_dir or os.path.join(out_dir, PLOTS_DIR)
     os.makedirs(plot_dir, exist_ok=True)
     runs = []
     for path in paths:
         try:
             series = read_series(path)
         except Exception as error:  # a broken file must not stop the plots of the others
-            print(f"skipping {path}: {error}")
+            log.warning("skipping %s: %s", path, error)
             continue
         runs.append((path, _group(path, series["attrs"], out_dir), series))
     groups = sorted({g for _, g, _ in runs})
@@ -59,44 +70,45 @@ def plot_output(out_dir: str, plot_dir: str | None = None, dpi: int = 120) -> li
     counts = {g: sum(1 for _, h, _ in runs if h == g) for g in groups}
     written = []
 
-    def overlay(panels, name, title):
+    def overlay(panels, name):
         fig, axes = plt.subplots(1, len(panels), figsize=(6 * len(panels), 4.2), squeeze=False)
-        for ax, (key, label, scale) in zip(axes[0], panels):
+        for ax, (key, label, scale, style) in zip(axes[0], panels):
             seen = set()
             for _, group, s in runs:
                 if len(s["time"]) == 0:
                     continue
                 alpha = 0.9 if counts[group] == 1 else max(0.25, 1.0 / np.sqrt(counts[group]))
-                ax.plot(s["time"], s[key][:, 0] * scale, color=colours[group], lw=1.2, alpha=alpha,
+                ax.plot(s["time"], s[key][:, 0] * scale, style, color=colours[group], lw=1.2, alpha=alpha,
                         label=None if group in seen else f"{group} ({counts[group]})" if counts[group] > 1 else group)
                 seen.add(group)
+                window = json.loads(s["attrs"].get("summary", "{}")).get("window")
+                if window and len(runs) == 1 and np.all(np.isfinite(window)):
+                    ax.axvspan(window[0], window[1], color="0.85", zorder=0, label="steady-state window")
             ax.set_xlabel("time [s]")
             ax.set_ylabel(label)
             ax.grid(True, alpha=0.3)
-            if len(groups) > 1 or any(c > 1 for c in counts.values()):
-                ax.legend(fontsize=8)
-        fig.suptitle(title)
+            ax.legend(fontsize=8)
+        fig.suptitle(_title(runs))
         fig.tight_layout()
         path = os.path.join(plot_dir, name)
         fig.savefig(path, dpi=dpi)
         plt.close(fig)
         written.append(path)
 
-    title = _title(runs)
-    overlay([("travel", "travel distance [mm]", 1e3), ("sinkage", "sinkage [mm]", 1e3)], "travel_sinkage.png", title)
-    overlay([("slip", "slip [-]", 1.0), ("drawbar_pull", "drawbar pull [N]", 1.0)], "slip_drawbar.png", title)
+    overlay([("travel", "travel [mm]", 1e3, "-"), ("sinkage", "rim sinkage [mm]", 1e3, "-"),
+             ("sinkage_tips", "grouser-tip sinkage [mm]", 1e3, "-")], "travel_sinkage.png")
+    overlay([("slip", "slip [-]", 1.0, "-"), ("drawbar_pull", "drawbar pull [N]", 1.0, "-"),
+             ("driving_torque", "driving torque [N m]", 1.0, "-")], "slip_drawbar.png")
     if len(runs) >= 2:
         fig, ax = plt.subplots(figsize=(6, 4.2))
         for _, group, s in runs:
-            n = len(s["time"])
-            if n == 0:
-                continue
-            tail = slice(n // 2, n)
-            ax.scatter(np.mean(s["slip"][tail, 0]), np.mean(s["drawbar_pull"][tail, 0]), color=colours[group], s=18)
+            summary = json.loads(s["attrs"].get("summary", "{}"))
+            if summary.get("steady_state") == "steady":
+                ax.scatter(summary["slip"], summary["drawbar_pull"], color=colours[group], s=18)
         for g in groups:
             ax.scatter([], [], color=colours[g], label=g)
-        ax.set_xlabel("mean slip (second half) [-]")
-        ax.set_ylabel("mean drawbar pull [N]")
+        ax.set_xlabel("steady-state slip [-]")
+        ax.set_ylabel("steady-state drawbar pull [N]")
         ax.grid(True, alpha=0.3)
         ax.legend(fontsize=8)
         fig.tight_layout()
@@ -112,8 +124,56 @@ def _title(runs) -> str:
         return ""
     attrs = runs[0][2]["attrs"]
     gravity = np.linalg.norm(np.asarray(attrs.get("gravity", [0, 0, 0]), dtype=float))
-    name = attrs.get("name", "")
-    return f"{name}: |g| = {gravity:.3g} m/s^2, {len(runs)} run(s)"
+    return f"{attrs.get('name', '')}: |g| = {gravity:.3g} m/s^2, {len(runs)} run(s)"
+
+
+def plot_scatter(out_dir: str, rows: list[dict], key: str, dpi: int = 120) -> str:
+    """Mean, std and min-max of travel, slip and sinkage per group (a study's rows, cosim.study)."""
+    plt = _pyplot()
+    fig, axes = plt.subplots(1, 3, figsize=(14, 4))
+    x = np.arange(len(rows))
+    for ax, (name, label, scale) in zip(axes, [("travel", "travel [mm]", 1e3), ("slip", "slip [-]", 1.0),
+                                               ("sinkage", "sinkage [mm]", 1e3)]):
+        mean = np.array([r.get(f"{name}_mean", np.nan) for r in rows]) * scale
+        low = mean - np.array([r.get(f"{name}_min", np.nan) for r in rows]) * scale
+        high = np.array([r.get(f"{name}_max", np.nan) for r in rows]) * scale - mean
+        std = np.array([r.get(f"{name}_std", np.nan) for r in rows]) * scale
+        ax.errorbar(x, mean, yerr=[low, high], fmt="o", capsize=6, label="min-max")
+        ax.errorbar(x + 0.08, mean, yerr=std, fmt="s", capsize=3, label="std")
+        ax.set_xticks(x, [str(r[key]) for r in rows])
+        ax.set_ylabel(label)
+        ax.grid(True, alpha=0.3)
+    axes[0].legend(fontsize=8)
+    fig.suptitle(f"scatter over replicas ({rows[0].get('replicas')} per {key})" if rows else "")
+    fig.tight_layout()
+    path = os.path.join(out_dir, PLOTS_DIR, "scatter.png")
+    os.makedirs(os.path.dirname(path), exist_ok=True)
+    fig.savefig(path, dpi=dpi)
+    plt.close(fig)
+    return path
+
+
+def plot_slip_curve(out_dir: str, rows: list[dict], dpi: int = 120) -> str:
+    """DP/W, driving torque and sinkage against slip with 95 % intervals (a slip study's rows)."""
+    plt = _pyplot()
+    fig, axes = plt.subplots(1, 3, figsize=(14, 4))
+    for ax, (name, label, scale) in zip(axes, [("dp_over_w", "DP/W [-]", 1.0),
+                                               ("driving_torque", "driving torque [N m]", 1.0),
+                                               ("sinkage", "rim sinkage [mm]", 1e3)]):
+        slip = np.array([r.get("slip_mean", r["slip_set"]) for r in rows])
+        mean = np.array([r.get(f"{name}_mean", np.nan) for r in rows]) * scale
+        ci = np.nan_to_num(np.array([r.get(f"{name}_ci95", np.nan) for r in rows]) * scale)
+        ax.errorbar(slip, mean, yerr=ci, fmt="o-", capsize=4)
+        ax.set_xlabel("slip [-]")
+        ax.set_ylabel(label)
+        ax.grid(True, alpha=0.3)
+    fig.suptitle("drawbar pull / slip (error bars: 95 % interval over replicas)")
+    fig.tight_layout()
+    path = os.path.join(out_dir, PLOTS_DIR, "dbp_slip.png")
+    os.makedirs(os.path.dirname(path), exist_ok=True)
+    fig.savefig(path, dpi=dpi)
+    plt.close(fig)
+    return path
 
 
 def plot_table(rows: list[dict], keys: list[str]) -> str:

@@ -1,23 +1,23 @@
-"""Scene files: one TOML file describes a single-wheel co-simulation run.
+"""Scene files: the TOML schema of a run, validated field by field.
 
-    [scene]    name, gravity (preset name | magnitude [m/s^2] along -Z | 3-vector), precision, device
+    [scene]    name, gravity (preset | magnitude [m/s^2] along -Z | 3-vector), precision, device
     [soil]     grain material (youngs_modulus, poisson_ratio, density, restitution or damping_ratio,
                stick_angle_deg, slip_angle_deg, stick_speed, rolling_friction, cohesion)
-    [soil.law] contact-law switches (damping, friction, rolling, cohesion; rolling/cohesion
-               default to "on when the material uses them")
+    [soil.law] contact-law switches (damping, friction, rolling, cohesion)
     [bed]      length, width, depth, radius_mean, radius_spread, seed, settle_ke_ratio,
                settle_max_time, settle_dt_factor, bed_file (reuse a saved bed)
     [wheel]    type = "grouser" (radius, width, grouser_count, grouser_height, grouser_thickness)
                or type = "mesh" (file, scale); [wheel.material]
-    [testbed]  mass, omega, mode ("free" | "slip"), slip, drawbar_load, start_x
-    [run]      duration, dt | dt_factor (x Rayleigh step), macro_step | substeps, scheme, order_seed,
-               max_speed
+    [testbed]  mass, omega, mode ("free" | "slip"), slip, drawbar_load, drawbar_ramp, start_x
+    [landing]  enabled, max_time, speed_ratio, hold_time
+    [run]      duration, dt | dt_factor, macro_step | substeps, scheme, order_seed
     [output]   snapshot_interval, checkpoint_interval, flush_every
 
-Every section and key is optional (defaults: the Phobos single-wheel job); unknown keys
-are errors. `load_scene(path, overrides)` returns a validated `Scene`; any problem raises
-`SceneError` whose message names each bad field and what is allowed.
-All units SI; angles in degrees where the key says `_deg`.
+This module only validates: every number must be finite and in its range, unknown keys
+are errors, and `SceneError` names each bad field and what it allows. Quantities derived
+from several fields (time steps, wheel extents, start pose) and the checks between
+sections are made once, by `cosim.plan.resolve`. All units SI; angles in degrees where the
+key says `_deg`.
 """
 
 from __future__ import annotations
@@ -26,20 +26,23 @@ import json
 import math
 import os
 import re
+from typing import Any, Literal
 
 try:
     import tomllib
 except ImportError:  # Python 3.10
     import tomli as tomllib
-from typing import Any, Literal
 
+import tomli_w
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
+
+from soil.errors import RegolithError
 
 GRAVITY_PRESET_NAMES = ("earth", "mars", "moon", "phobos", "phobos_min", "phobos_max", "deimos")
 
 
-class SceneError(ValueError):
-    """A scene file is invalid; `problems` lists one message per bad field."""
+class SceneError(RegolithError, ValueError):
+    """A scene is invalid; `problems` lists one message per bad field."""
 
     def __init__(self, problems: list[str], source: str | None = None):
         self.problems = list(problems)
@@ -49,20 +52,18 @@ class SceneError(ValueError):
 
 
 class _Section(BaseModel):
-    model_config = ConfigDict(extra="forbid", validate_assignment=True)
-
-
-PositiveFloat = Field(gt=0)
+    # no inf / nan anywhere: a scene number is a physical quantity
+    model_config = ConfigDict(extra="forbid", validate_assignment=True, allow_inf_nan=False)
 
 
 class SceneSection(_Section):
-    name: str = "scene"
+    name: str = Field("scene", min_length=1)
     """A label for the run (plots, HDF5 attributes)."""
     gravity: str | float | list[float] = "phobos"
     """A preset name, a magnitude along -Z [m/s^2] or a 3-vector [m/s^2]."""
     precision: Literal["single", "double", "mixed"] = "mixed"
-    """Floating-point mode of the DEM (DESIGN.md section 4)."""
-    device: str = Field("default", validate_default=True)
+    """Floating-point mode of the DEM (docs/precision.md)."""
+    device: str = "default"
     """Warp device: 'default' (CUDA when a GPU is present, else the CPU), 'cpu', 'cuda' or 'cuda:N'."""
 
     @field_validator("gravity")
@@ -82,18 +83,9 @@ class SceneSection(_Section):
     @field_validator("device")
     @classmethod
     def _device(cls, value):
-        if value == "default":
-            import warp as wp
-
-            return str(wp.get_device())  # Warp's default: the first GPU, else the CPU
-        if value != "cpu" and value != "cuda" and not (value.startswith("cuda:") and value[5:].isdigit()):
-            raise ValueError("device must be 'default', 'cpu', 'cuda' or 'cuda:N'")
+        if value not in ("default", "cpu", "cuda") and not (value.startswith("cuda:") and value[5:].isdigit()):
+            raise ValueError("must be 'default', 'cpu', 'cuda' or 'cuda:N'")
         return value
-
-    def gravity_vector(self):
-        from soil import gravity_vector
-
-        return gravity_vector(self.gravity)
 
 
 class MaterialSection(_Section):
@@ -125,17 +117,6 @@ class MaterialSection(_Section):
             raise ValueError("damping_ratio: give restitution or damping_ratio, not both")
         return self
 
-    def to_material(self):
-        from soil import Material
-
-        restitution = self.restitution if self.damping_ratio is None else None
-        if restitution is None and self.damping_ratio is None:
-            restitution = 0.3
-        return Material(youngs_modulus=self.youngs_modulus, poisson_ratio=self.poisson_ratio, density=self.density,
-                        restitution=restitution, damping_ratio=self.damping_ratio,
-                        stick_angle=math.radians(self.stick_angle_deg), slip_angle=math.radians(self.slip_angle_deg),
-                        stick_speed=self.stick_speed, rolling_friction=self.rolling_friction, cohesion=self.cohesion)
-
 
 class LawSection(_Section):
     damping: bool = True
@@ -151,16 +132,12 @@ class SoilSection(MaterialSection):
 
 
 class WheelMaterialSection(MaterialSection):
-    youngs_modulus: float | None = Field(None, gt=0)
+    youngs_modulus: float | None = Field(None, gt=0)  # type: ignore[assignment]
     """None: the soil's Young's modulus."""
     poisson_ratio: float = Field(0.3, gt=-1, lt=0.5)
     stick_angle_deg: float = Field(30.0, ge=0, lt=90)
     slip_angle_deg: float = Field(25.0, ge=0, lt=90)
     rolling_friction: float = Field(0.0, ge=0)
-
-    def to_material(self, soil_modulus: float = 2.0e5):
-        base = self.model_copy(update={"youngs_modulus": self.youngs_modulus or soil_modulus})
-        return MaterialSection.to_material(base)
 
 
 class BedSection(_Section):
@@ -174,8 +151,8 @@ class BedSection(_Section):
     """Mean grain radius [m]."""
     radius_spread: float = Field(0.2, ge=0, lt=1)
     """Relative half-width of the uniform radius distribution [-]."""
-    seed: int = 1
-    """Random seed of the grain insertion."""
+    seed: int = Field(1, ge=0)
+    """Random seed of the grain insertion (>= 0)."""
     settle_ke_ratio: float = Field(1e-3, gt=0)
     """Settled when kinetic energy < ratio * N m g r (gravity-scaled) [-]."""
     settle_max_time: float = Field(10.0, gt=0)
@@ -203,7 +180,9 @@ class WheelSection(_Section):
     """Wheel width [m] (grouser wheel; default 0.03)."""
     grouser_count: int | None = Field(None, ge=0, le=360)
     grouser_height: float | None = Field(None, ge=0)
+    """[m]"""
     grouser_thickness: float | None = Field(None, ge=0)
+    """[m]"""
     file: str | None = None
     """OBJ or STL file (mesh wheel), relative to the scene file; axle along the file's Y axis."""
     scale: float | None = Field(None, gt=0)
@@ -226,7 +205,8 @@ class WheelSection(_Section):
                     object.__setattr__(self, key, value)
             if self.grouser_count:
                 if not self.grouser_height > 0 or not self.grouser_thickness > 0:
-                    raise ValueError("grouser_height: grouser_height and grouser_thickness must be > 0 [m] when grouser_count > 0")
+                    raise ValueError("grouser_height: grouser_height and grouser_thickness must be > 0 [m] when "
+                                     "grouser_count > 0")
                 spacing = 2 * math.pi * self.radius / self.grouser_count
                 if self.grouser_thickness >= min(spacing, self.radius):
                     raise ValueError(f"grouser_thickness: ({self.grouser_thickness} m) must be < the grouser spacing "
@@ -249,21 +229,36 @@ class TestbedSection(_Section):
     __test__ = False  # not a pytest class
 
     mass: float = Field(6.0, gt=0)
-    """Load mass, wheel included [kg]."""
-    omega: float = 0.25
-    """Wheel angular speed about +Y [rad/s] (> 0 drives towards +X)."""
+    """Load mass, wheel included [kg]: the wheel load is W = mass |g|."""
+    omega: float = Field(0.25, gt=0)
+    """Wheel angular speed about +Y while driving [rad/s] (drives towards +X)."""
     mode: Literal["free", "slip"] = "free"
+    """free: the carriage is free along X and slip emerges; slip: the carriage is driven at the set slip."""
     slip: float = Field(0.0, gt=-1, lt=1)
     """Set slip in mode 'slip' [-]."""
     drawbar_load: float = Field(0.0, ge=0)
     """Constant force resisting the carriage in mode 'free' [N]."""
+    drawbar_ramp: float = Field(0.0, ge=0)
+    """Growth rate of the resisting force in mode 'free' [N/s] (a drawbar-pull/slip curve in one run)."""
     start_x: float | None = None
     """Initial hub x [m]; default: wheel outer radius + 6 grain radii from the x = 0 wall."""
 
 
+class LandingSection(_Section):
+    """The wheel lands before it drives: it settles onto the soil under its load, not turning."""
+
+    enabled: bool = True
+    max_time: float = Field(30.0, gt=0)
+    """Longest landing phase [s] (simulated); a wheel not at rest by then ends the run 'no landing'."""
+    speed_ratio: float = Field(0.02, gt=0)
+    """At rest when the hub's vertical speed stays below speed_ratio * sqrt(|g| r) [-] ..."""
+    hold_time: float | None = Field(None, gt=0)
+    """... for this long [s], touching the soil all the while; default sqrt(r / |g|) (r: wheel outer radius)."""
+
+
 class RunSection(_Section):
     duration: float = Field(3.0, gt=0)
-    """Driving time [s] (simulated, after settling)."""
+    """Driving time after landing [s] (simulated)."""
     dt: float | None = Field(None, gt=0)
     """DEM step [s]; or give dt_factor."""
     dt_factor: float | None = Field(None, gt=0, le=2)
@@ -273,10 +268,8 @@ class RunSection(_Section):
     substeps: int | None = Field(None, ge=1)
     """DEM steps per macro step (instead of macro_step; default 10)."""
     scheme: Literal["gauss-seidel", "jacobi"] = "gauss-seidel"
-    order_seed: int | None = None
-    """Permute particle indices (summation order only), for replica studies."""
-    max_speed: float | None = Field(None, gt=0)
-    """A grain faster than this [m/s] means the run exploded; default 50 x max(rim speed, sqrt(2 g depth))."""
+    order_seed: int | None = Field(None, ge=0)
+    """Permute particle indices (summation order only), for replica studies (>= 0)."""
 
     @model_validator(mode="after")
     def _exclusive(self):
@@ -307,23 +300,15 @@ class Scene(_Section):
     bed: BedSection = BedSection()
     wheel: WheelSection = WheelSection()
     testbed: TestbedSection = TestbedSection()
+    landing: LandingSection = LandingSection()
     run: RunSection = RunSection()
     output: OutputSection = OutputSection()
 
     base_dir: str | None = Field(None, exclude=True)
     """Folder that relative paths (wheel.file, bed.bed_file) are relative to; not a scene key."""
 
-    # -- derived quantities ------------------------------------------------------
-    def wheel_shape(self):
-        from soil import GrouserWheel, MeshWheel
-
-        w = self.wheel
-        if w.type == "grouser":
-            return GrouserWheel(radius=w.radius, width=w.width, grouser_count=w.grouser_count,
-                                grouser_height=w.grouser_height, grouser_thickness=w.grouser_thickness)
-        return MeshWheel.load(self.resolve(w.file), scale=w.scale)
-
     def resolve(self, path: str | None) -> str | None:
+        """A path of the scene made absolute (relative paths are relative to the scene file)."""
         if path is None:
             return None
         path = os.path.expanduser(path)
@@ -331,90 +316,15 @@ class Scene(_Section):
             path = os.path.join(self.base_dir, path)
         return os.path.abspath(path)
 
-    def wheel_extent(self) -> tuple[float, float, float]:
-        """(outer radius, width, rim radius for slip) of the wheel [m]."""
-        if self.wheel.type == "grouser":
-            shape = self.wheel_shape()
-            return shape.outer_radius, self.wheel.width, self.wheel.radius
-        shape = self.wheel_shape()
-        width = float(shape.vertices[:, 1].max() - shape.vertices[:, 1].min())
-        return shape.outer_radius, width, shape.outer_radius
-
-    def soil_material(self):
-        return self.soil.to_material()
-
-    def wheel_material(self):
-        return self.wheel.material.to_material(self.soil.youngs_modulus)
-
-    def contact_law(self):
-        from soil import ContactLaw
-
-        law = self.soil.law
-        materials = [self.soil_material(), self.wheel_material()]
-        rolling = law.rolling if law.rolling is not None else any(m.rolling_friction > 0 for m in materials)
-        cohesion = law.cohesion if law.cohesion is not None else any(m.cohesion > 0 for m in materials)
-        return ContactLaw(damping=law.damping, friction=law.friction, rolling=rolling, cohesion=cohesion)
-
-    def bed_spec(self):
-        from soil.bed import BedSpec
-
-        b = self.bed
-        return BedSpec(length=b.length, width=b.width, depth=b.depth, radius_mean=b.radius_mean,
-                       radius_spread=b.radius_spread, material=self.soil_material(), seed=b.seed)
-
-    def rayleigh_step(self) -> float:
-        """Rayleigh time step of the smallest grain [s]."""
-        from soil.bed import rayleigh_time_step
-
-        smallest = self.bed.radius_mean * (1 - self.bed.radius_spread)
-        return rayleigh_time_step(self.soil_material(), smallest)
-
-    def time_steps(self) -> tuple[float, float, int]:
-        """(dt [s], macro step H [s], substeps): H is exactly substeps x dt."""
-        r = self.run
-        if r.dt is not None:
-            dt = r.dt
-        else:
-            dt = (r.dt_factor if r.dt_factor is not None else 0.2) * self.rayleigh_step()
-        if r.macro_step is not None:
-            substeps = max(1, int(round(r.macro_step / dt)))
-            if r.dt is None:  # dt from the factor: shrink it so H is a whole number of steps
-                substeps = max(1, math.ceil(r.macro_step / dt - 1e-9))
-            return r.macro_step / substeps, r.macro_step, substeps
-        substeps = r.substeps or 10
-        return dt, dt * substeps, substeps
-
-    def macro_step_count(self) -> int:
-        _, h, _ = self.time_steps()
-        return max(1, int(round(self.run.duration / h)))
-
-    def gravity_magnitude(self) -> float:
-        import numpy as np
-
-        return float(np.linalg.norm(self.scene.gravity_vector()))
-
-    def start_position(self, surface_height: float) -> list[float]:
-        outer, _, _ = self.wheel_extent()
-        x = self.testbed.start_x if self.testbed.start_x is not None else outer + 6 * self.bed.radius_mean
-        return [x, 0.5 * self.bed.width, surface_height + outer]
-
-    def max_speed(self) -> float:
-        if self.run.max_speed is not None:
-            return self.run.max_speed
-        outer, _, _ = self.wheel_extent()
-        g = self.gravity_magnitude()
-        return 50.0 * max(abs(self.testbed.omega) * outer, math.sqrt(2 * g * self.bed.depth), 1e-3)
-
-    # -- text ----------------------------------------------------------------------
     def to_dict(self) -> dict:
         return json.loads(self.model_dump_json(exclude_none=True))
 
     def to_toml(self) -> str:
-        return dump_toml(self.to_dict())
+        return tomli_w.dumps(self.to_dict())
 
 
 # ------------------------------------------------------------------------------------
-# loading, overrides, cross-section checks
+# loading, overrides, error messages
 
 
 _PHRASES = (
@@ -422,6 +332,7 @@ _PHRASES = (
     ("Input should be less than or equal to", "must be <="),
     ("Input should be greater than", "must be >"),
     ("Input should be less than", "must be <"),
+    ("Input should be a finite number", "must be a finite number (inf and nan are not allowed)"),
     ("Input should be a valid", "must be a valid"),
     ("Input should be", "must be"),
 )
@@ -431,7 +342,6 @@ def _format_errors(error: ValidationError) -> list[str]:
     problems = []
     for item in error.errors():
         loc = ".".join(str(p) for p in item["loc"] if not str(p).startswith("function-after"))
-        kind = item["type"]
         message = item["msg"]
         if message.startswith("Value error, "):
             message = message[len("Value error, "):]
@@ -441,13 +351,11 @@ def _format_errors(error: ValidationError) -> list[str]:
             message = message[named.end():]
         for old, new in _PHRASES:
             message = message.replace(old, new)
-        if kind == "extra_forbidden":
+        if item["type"] == "extra_forbidden":
             problems.append(f"{loc}: unknown key (not a scene setting; check the spelling)")
             continue
         got = item.get("input")
         shown = "" if isinstance(got, dict) else f" (got {got!r})"
-        if kind == "literal_error":
-            message = message.replace("Input should be", "must be")
         problems.append(f"{loc or 'scene'}: {message}{shown}")
     return problems
 
@@ -460,11 +368,15 @@ def parse_override(text: str) -> tuple[list[str], Any]:
     key = key.strip()
     if not key or any(not part for part in key.split(".")):
         raise SceneError([f"--set {text!r}: bad key {key!r}"])
+    return key.split("."), parse_value(value)
+
+
+def parse_value(text: str) -> Any:
+    """A command-line value read as TOML (numbers, booleans, strings in quotes, lists), else the bare string."""
     try:
-        parsed = tomllib.loads(f"v = {value.strip()}")["v"]
+        return tomllib.loads(f"v = {text.strip()}")["v"]
     except tomllib.TOMLDecodeError:
-        parsed = value.strip()
-    return key.split("."), parsed
+        return text.strip()
 
 
 def apply_overrides(data: dict, overrides: list[str] | dict | None) -> dict:
@@ -484,130 +396,34 @@ def apply_overrides(data: dict, overrides: list[str] | dict | None) -> dict:
     return data
 
 
-def validate_scene(data: dict, base_dir: str | None = None, source: str | None = None,
-                   check_files: bool = True) -> Scene:
+def validate_scene(data: dict, base_dir: str | None = None, source: str | None = None) -> Scene:
     """Validate a scene dictionary; raises SceneError listing every problem found."""
     try:
-        scene = Scene.model_validate({**data, "base_dir": base_dir})
+        return Scene.model_validate({**data, "base_dir": base_dir})
     except ValidationError as error:
         raise SceneError(_format_errors(error), source) from None
-    problems = cross_check(scene, check_files=check_files)
-    if problems:
-        raise SceneError(problems, source)
-    return scene
 
 
-def cross_check(scene: Scene, check_files: bool = True) -> list[str]:
-    """Checks that need several sections (geometry of wheel vs bed, files, time steps)."""
-    problems = []
-    bed, wheel, run, testbed = scene.bed, scene.wheel, scene.run, scene.testbed
-    if check_files:
-        if wheel.type == "mesh":
-            path = scene.resolve(wheel.file)
-            if not os.path.isfile(path):
-                problems.append(f"wheel.file: mesh file not found: {path!r} (paths are relative to the scene file)")
-                return problems
-        if bed.bed_file is not None and not os.path.isfile(scene.resolve(bed.bed_file)):
-            problems.append(f"bed.bed_file: bed file not found: {scene.resolve(bed.bed_file)!r}")
-    try:
-        outer, width, _ = scene.wheel_extent()
-    except Exception as error:  # a mesh that does not load, a bad grouser geometry
-        problems.append(f"wheel: {error}")
-        return problems
-    clearance = 2 * bed.radius_mean
-    if width >= bed.width:
-        problems.append(f"wheel.width: the wheel ({width:.4g} m) is wider than the bed (bed.width = {bed.width} m)")
-    elif (bed.width - width) / 2 < clearance:
-        problems.append(f"wheel.width: the wheel is too close to the side walls: gap {(bed.width - width) / 2:.4g} m "
-                        f"per side; allowed: >= 2 mean grain radii = {clearance:.4g} m (widen bed.width)")
-    x0 = scene.start_position(0.0)[0]
-    if x0 - outer < clearance:
-        problems.append(f"testbed.start_x: the wheel ({x0} m, outer radius {outer:.4g} m) starts too close to the "
-                        f"x = 0 wall; allowed: start_x >= {outer + clearance:.4g} m")
-    reach = abs(testbed.omega) * outer * run.duration
-    if testbed.mode == "slip":
-        reach = abs(testbed.omega) * outer * (1 - testbed.slip) * run.duration
-    if x0 + reach + outer > bed.length - clearance:
-        problems.append(f"run.duration: at the wheel's rim speed it may travel {reach:.4g} m from x = {x0:.4g} m and "
-                        f"hit the far wall (bed.length = {bed.length} m); allowed: duration <= "
-                        f"{max(0.0, (bed.length - clearance - outer - x0) / max(abs(testbed.omega) * outer, 1e-30)):.4g} s,"
-                        " or a longer bed")
-    if 2 * outer > 2.5 * bed.length:
-        problems.append(f"wheel: outer diameter {2 * outer:.4g} m does not fit the bed (bed.length = {bed.length} m)")
-    try:
-        dt, h, substeps = scene.time_steps()
-    except Exception as error:
-        problems.append(f"run: {error}")
-        return problems
-    if h > run.duration:
-        problems.append(f"run.macro_step: the macro step ({h:.4g} s) is longer than run.duration ({run.duration} s)")
-    if scene.output.checkpoint_interval < h:
-        problems.append(f"output.checkpoint_interval: {scene.output.checkpoint_interval} s is shorter than the "
-                        f"macro step {h:.4g} s")
-    try:
-        scene.soil_material()
-        scene.wheel_material()
-    except ValueError as error:
-        problems.append(f"soil: {error}")
-    return problems
-
-
-def load_scene(path: str | os.PathLike, overrides: list[str] | dict | None = None, check_files: bool = True) -> Scene:
+def load_scene(path: str | os.PathLike, overrides: list[str] | dict | None = None) -> Scene:
     """Read, override (--set key=value) and validate a TOML scene file."""
     path = os.fspath(path)
     if not os.path.isfile(path):
         raise SceneError([f"scene file not found: {path!r}"])
-    with open(path, "rb") as f:
-        try:
+    try:
+        with open(path, "rb") as f:
             data = tomllib.load(f)
-        except tomllib.TOMLDecodeError as error:
-            raise SceneError([f"not valid TOML: {error}"], path) from None
+    except tomllib.TOMLDecodeError as error:
+        raise SceneError([f"not valid TOML: {error}"], path) from None
+    except (OSError, UnicodeDecodeError) as error:
+        raise SceneError([f"cannot read the scene file: {error}"], path) from None
     data = apply_overrides(data, overrides)
-    return validate_scene(data, base_dir=os.path.dirname(os.path.abspath(path)), source=path,
-                          check_files=check_files)
+    return validate_scene(data, base_dir=os.path.dirname(os.path.abspath(path)), source=path)
 
 
-def scene_from_text(text: str, base_dir: str | None = None, overrides=None, check_files: bool = True) -> Scene:
+def scene_from_text(text: str, base_dir: str | None = None, overrides=None) -> Scene:
+    """Validate a scene given as TOML text."""
     try:
         data = tomllib.loads(text)
     except tomllib.TOMLDecodeError as error:
         raise SceneError([f"not valid TOML: {error}"]) from None
-    return validate_scene(apply_overrides(data, overrides), base_dir=base_dir, check_files=check_files)
-
-
-# ------------------------------------------------------------------------------------
-# a small TOML writer (tables of scalars, lists and sub-tables)
-
-
-def _toml_value(value) -> str:
-    if isinstance(value, bool):
-        return "true" if value else "false"
-    if isinstance(value, int):
-        return str(value)
-    if isinstance(value, float):
-        if math.isnan(value):
-            return "nan"
-        if math.isinf(value):
-            return "inf" if value > 0 else "-inf"
-        return repr(value)
-    if isinstance(value, str):
-        return json.dumps(value)
-    if isinstance(value, (list, tuple)):
-        return "[" + ", ".join(_toml_value(v) for v in value) + "]"
-    raise TypeError(f"cannot write {type(value).__name__} to TOML")
-
-
-def dump_toml(data: dict, prefix: str = "") -> str:
-    lines = []
-    tables = []
-    for key, value in data.items():
-        if isinstance(value, dict):
-            tables.append((key, value))
-        elif value is not None:
-            lines.append(f"{key} = {_toml_value(value)}")
-    out = ""
-    if lines:
-        out += (f"[{prefix}]\n" if prefix else "") + "\n".join(lines) + "\n\n"
-    for key, value in tables:
-        out += dump_toml(value, f"{prefix}.{key}" if prefix else key)
-    return out
+    return validate_scene(apply_overrides(data, overrides), base_dir=base_dir)

@@ -1,25 +1,28 @@
-"""The single-wheel test (the paper's experiment): a loaded wheel driven over a soil bed.
+"""The single-wheel testbed (the paper's experiment) as a RoverSide.
 
-The rig is a small RoverSide of its own: a wheel under a vertical load (a mass), turned
-at a set angular speed omega about its axle (Y), on a carriage that is either free along
-the track (mode 'free': travel and slip emerge) or driven at a set slip (mode 'slip':
-the soil's horizontal force is the drawbar pull). The soil is the DEM (cosim.dem_soil).
+A wheel under a vertical load (a mass) on a carriage. It runs in two phases:
 
-Definitions (checked in tests/test_single_wheel.py):
-    slip s = 1 - v / (omega r), r = rim radius; travel = x - x0;
-    sinkage = undisturbed surface height - lowest rim point (hub z - r);
-    drawbar pull = soil force on the wheel along +X; driving torque = -(soil torque about the hub)_Y.
+- landing: the wheel does not turn and the carriage is held in X; the wheel settles onto
+  the soil under its load (the runner ends the phase when it is at rest);
+- driving: the wheel turns at omega about its axle (+Y); the carriage is either free
+  along X against an optional drawbar load that may grow at a set rate (mode 'free':
+  travel and slip emerge), or driven at the set slip (mode 'slip': v = omega r (1 - s)).
+
+The quantities a user reads (slip, sinkage, drawbar pull, driving torque) are defined
+once, in cosim.metrics.
 """
 
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
 from typing import Sequence
 
 import numpy as np
 
 from .contract import WheelKinematics, WheelWrench
+
+PHASE_LANDING, PHASE_DRIVING = 0, 1
+PHASES = ("landing", "driving")
 
 
 class SingleWheelRig:
@@ -27,44 +30,76 @@ class SingleWheelRig:
 
     Args:
         mass: vertical load mass, wheel included [kg]; its weight m |g| presses the wheel down.
-        radius: rim radius r [m] (for slip).
-        omega: wheel angular speed about +Y [rad/s] (> 0 drives towards +X).
+        radius: rim radius r [m] (for the set slip).
+        omega: wheel angular speed about +Y while driving [rad/s].
         hub: initial hub position [m], shape (3,).
         mode: 'free' (carriage free along X) or 'slip' (carriage driven at v = omega r (1 - slip)).
         slip: the set slip in mode 'slip' [-].
-        drawbar_load: constant force resisting the carriage in mode 'free' [N] (0: none).
+        drawbar_load: force pulling the carriage backwards (-X) in mode 'free' [N] ...
+        drawbar_ramp: ... growing at this rate from the start of the drive [N/s].
+        gravity: [m/s^2], shape (3,).
+        landed: start in the driving phase (no landing).
     """
 
     wheel_names = ["wheel"]
+    state_columns = ["x", "y", "z", "vx", "vy", "vz", "angle", "omega", "drawbar_load"]
+    """Columns of `state_row()`: hub position [m], hub velocity [m/s], wheel angle [rad],
+    wheel speed [rad/s], resisting force on the carriage [N]."""
+    state_units = ["m", "m", "m", "m/s", "m/s", "m/s", "rad", "rad/s", "N"]
 
     def __init__(self, mass: float, radius: float, omega: float, hub: Sequence[float], mode: str = "free",
-                 slip: float = 0.0, drawbar_load: float = 0.0, gravity=(0.0, 0.0, -9.81)):
+                 slip: float = 0.0, drawbar_load: float = 0.0, drawbar_ramp: float = 0.0,
+                 gravity=(0.0, 0.0, -9.81), landed: bool = False):
         if mode not in ("free", "slip"):
             raise ValueError(f"testbed.mode must be 'free' or 'slip', got {mode!r}")
         if not (mass > 0 and math.isfinite(mass)):
             raise ValueError(f"testbed.mass must be > 0 [kg], got {mass!r}")
-        if not (radius > 0):
+        if not (radius > 0 and math.isfinite(radius)):
             raise ValueError(f"wheel radius must be > 0 [m], got {radius!r}")
         if mode == "slip" and not -1.0 < slip < 1.0:
             raise ValueError(f"testbed.slip must be in (-1, 1), got {slip!r}")
         self.mass = float(mass)
         self.radius = float(radius)
-        self.omega = float(omega)
+        self.drive_omega = float(omega)
+        """Wheel speed of the driving phase [rad/s]."""
         self.mode = mode
         self.slip = float(slip)
         self.drawbar_load = float(drawbar_load)
-        self.gravity = np.asarray(gravity, dtype=np.float64)
-        self.position = np.asarray(hub, dtype=np.float64).copy()
+        self.drawbar_ramp = float(drawbar_ramp)
+        self.gravity = np.asarray(gravity, dtype=np.float64).reshape(3)
+        self.position = np.asarray(hub, dtype=np.float64).reshape(3).copy()
         """Hub position [m], shape (3,)."""
         self.velocity = np.zeros(3)
         """Hub velocity [m/s], shape (3,)."""
-        if mode == "slip":
-            self.velocity[0] = self.omega * self.radius * (1 - self.slip)
         self.angle = 0.0
         """Wheel rotation about +Y [rad]."""
+        self.omega = 0.0
+        """Current wheel speed about +Y [rad/s] (0 while landing)."""
         self.time = 0.0
-        self._wrench = WheelWrench()
+        """Rig time [s]."""
+        self.phase = PHASE_LANDING
+        self.drive_start = math.nan
+        """Time the drive started [s] (nan while landing)."""
+        self.held = WheelWrench()
+        """The soil wrench held over the current macro step."""
+        if landed:
+            self.start_drive()
 
+    # -- phases ------------------------------------------------------------------------
+    def start_drive(self) -> None:
+        """End the landing: turn the wheel, and in mode 'slip' drive the carriage."""
+        self.phase = PHASE_DRIVING
+        self.drive_start = self.time
+        self.omega = self.drive_omega
+        self.velocity[0] = self.omega * self.radius * (1 - self.slip) if self.mode == "slip" else self.velocity[0]
+
+    def resisting_force(self, t: float) -> float:
+        """Drawbar load on the carriage at time t [N] (mode 'free', driving phase)."""
+        if self.phase != PHASE_DRIVING or self.mode != "free":
+            return 0.0
+        return self.drawbar_load + self.drawbar_ramp * max(0.0, t - self.drive_start)
+
+    # -- RoverSide ---------------------------------------------------------------------
     def set_gravity(self, gravity) -> None:
         self.gravity = np.asarray(gravity, dtype=np.float64).reshape(3)
 
@@ -76,94 +111,41 @@ class SingleWheelRig:
     def apply_wheel_wrenches(self, wrenches: Sequence[WheelWrench]) -> None:
         if len(wrenches) != 1:
             raise ValueError(f"the single-wheel rig has 1 wheel, got {len(wrenches)} wrenches")
-        self._wrench = wrenches[0]
+        self.held = wrenches[0]
 
     def advance(self, t_end: float) -> None:
+        """Move the carriage to t_end [s] under the held wrench (exact for a wrench held constant)."""
         h = float(t_end) - self.time
         if h < 0:
             raise ValueError(f"t_end {t_end!r} s is before the rig's time {self.time!r} s")
-        force = self._wrench.force
-        # exact for a wrench held constant over the step
+        force = self.held.force
         acceleration = np.zeros(3)
         acceleration[2] = force[2] / self.mass + self.gravity[2]
-        if self.mode == "free":
-            resist = -self.drawbar_load * np.sign(self.velocity[0]) if self.velocity[0] else 0.0
-            acceleration[0] = (force[0] + resist) / self.mass + self.gravity[0]
+        if self.phase == PHASE_DRIVING and self.mode == "free":
+            # a drawbar load pulls backwards (-X) whatever the motion, like a weight on a line
+            acceleration[0] = (force[0] - self.resisting_force(self.time + 0.5 * h)) / self.mass + self.gravity[0]
         self.position += self.velocity * h + 0.5 * acceleration * h * h
         self.velocity += acceleration * h
         self.angle += self.omega * h
         self.time = float(t_end)
 
+    # -- records and checkpoints ---------------------------------------------------------
+    def state_row(self) -> np.ndarray:
+        """The rig's state, `state_columns` [SI], shape (9,)."""
+        return np.r_[self.position, self.velocity, self.angle, self.omega, self.resisting_force(self.time)]
 
-@dataclass
-class SingleWheelResult:
-    """Time series of a single-wheel run, one row per macro step (S rows)."""
+    def state_dict(self) -> dict:
+        held = self.held
+        return {"position": self.position.copy(), "velocity": self.velocity.copy(), "angle": self.angle,
+                "omega": self.omega, "time": self.time, "phase": self.phase, "drive_start": self.drive_start,
+                "held_force": held.force.copy(), "held_torque": held.torque.copy()}
 
-    time: np.ndarray
-    """End time of each macro step [s], shape (S,)."""
-    travel: np.ndarray
-    """Hub travel along X since the drive started [m], shape (S,)."""
-    slip: np.ndarray
-    """Slip 1 - v/(omega r) [-], shape (S,)."""
-    sinkage: np.ndarray
-    """Sinkage of the lowest rim point below the undisturbed surface [m], shape (S,)."""
-    drawbar_pull: np.ndarray
-    """Soil force on the wheel along +X (macro-step average) [N], shape (S,)."""
-    vertical_force: np.ndarray
-    """Soil force on the wheel along +Z (macro-step average) [N], shape (S,)."""
-    driving_torque: np.ndarray
-    """Torque the drive supplies against the soil about +Y [N m], shape (S,)."""
-    contact_count: np.ndarray
-    """Grains touching the wheel [-], shape (S,)."""
-    hub_position: np.ndarray
-    """Hub position [m], shape (S, 3)."""
-    hub_velocity: np.ndarray
-    """Hub velocity [m/s], shape (S, 3)."""
-    info: dict = field(default_factory=dict)
-
-    def summary(self, last_fraction: float = 0.5) -> dict:
-        """Means over the last part of the run (the steady state) and final values."""
-        n = len(self.time)
-        tail = slice(int(n * (1 - last_fraction)), n)
-        return {
-            "simulated_time": float(self.time[-1]) if n else 0.0,
-            "travel": float(self.travel[-1]) if n else 0.0,
-            "mean_slip": float(np.mean(self.slip[tail])) if n else float("nan"),
-            "mean_sinkage": float(np.mean(self.sinkage[tail])) if n else float("nan"),
-            "mean_drawbar_pull": float(np.mean(self.drawbar_pull[tail])) if n else float("nan"),
-            "mean_driving_torque": float(np.mean(self.driving_torque[tail])) if n else float("nan"),
-            **self.info,
-        }
-
-    def as_arrays(self) -> dict[str, np.ndarray]:
-        return {k: v for k, v in vars(self).items() if isinstance(v, np.ndarray)}
-
-
-def slip_of(velocity_x: np.ndarray, omega: float, radius: float) -> np.ndarray:
-    """Slip s = 1 - v / (omega r) [-]."""
-    rim = omega * radius
-    if rim == 0:
-        return np.zeros_like(np.asarray(velocity_x, dtype=float))
-    return 1.0 - np.asarray(velocity_x, dtype=float) / rim
-
-
-def drive(soil, rig: SingleWheelRig, duration: float, macro_step: float, scheme: str = "gauss-seidel",
-          callback=None) -> SingleWheelResult:
-    """Couple the DEM soil and the rig for `duration` [s]; returns the time series."""
-    from .coupler import Coupler
-
-    rig.time = soil.time  # the rig joins the soil's clock
-    coupler = Coupler(soil, rig, macro_step, scheme=scheme, gravity=soil.sim.model.gravity)
-    x0 = float(rig.position[0])
-    coupler.run(coupler.time + duration, callback=callback)
-    rec = coupler.records()
-    position = rec["position"][:, 0, :]
-    velocity = rec["linear_velocity"][:, 0, :]
-    force = rec["force"][:, 0, :]
-    torque = rec["torque"][:, 0, :]
-    return SingleWheelResult(
-        time=rec["time"], travel=position[:, 0] - x0, slip=slip_of(velocity[:, 0], rig.omega, rig.radius),
-        sinkage=rec["sinkage"][:, 0], drawbar_pull=force[:, 0], vertical_force=force[:, 2],
-        driving_torque=-torque[:, 1], contact_count=rec["contact_count"][:, 0], hub_position=position,
-        hub_velocity=velocity,
-        info={"coupling_energy_created": coupler.energy_created, "macro_steps": coupler.step_count})
+    def load_state_dict(self, state: dict) -> None:
+        self.position = np.array(state["position"], dtype=np.float64)
+        self.velocity = np.array(state["velocity"], dtype=np.float64)
+        self.angle = float(state["angle"])
+        self.omega = float(state["omega"])
+        self.time = float(state["time"])
+        self.phase = int(state["phase"])
+        self.drive_start = float(state["drive_start"])
+        self.held = WheelWrench(force=np.array(state["held_force"]), torque=np.array(state["held_torque"]))

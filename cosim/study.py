@@ -1,52 +1,71 @@
-"""Studies over many runs, on dask.distributed (LocalCluster by default, or --scheduler ADDRESS).
+"""Ensembles of runs, on dask.distributed (a LocalCluster, or --scheduler ADDRESS), or serially.
 
-- precision: the paper's experiment (figures 3, 4). N replicas per precision that differ
-  only in the summation order (run.order_seed = replica index: a permutation of the
-  particle indices), all on the same settled bed. Reports wall time and the scatter
-  (std, min, max) of travel, slip and sinkage per precision, as a table
-  (study.csv, study.json) and plots (replicas overlaid; scatter per precision).
-- timestep: the largest stable DEM step (soil.advisor.largest_stable_step: the step grows
-  geometrically until the scene explodes) next to the advisor's recommended range.
+- replicas (`cosim run --replicas K`): K runs that differ only in the summation order
+  (run.order_seed = replica index: a permutation of the grain indices) on one settled
+  bed; mean, standard deviation and 95 % interval of each steady-state metric, and
+  whether the result is macroscopically deterministic (cosim.metrics.ensemble).
+- precision: the paper's experiment (its figures 3, 4): replicas per precision; the
+  scatter and wall time per precision, as a table (study.csv, study.json) and plots.
+- slip: the drawbar-pull/slip curve: replicas at each imposed slip, after landing;
+  DP, DP/W, driving torque and sinkage against slip with error bars.
+- timestep: the largest stable DEM step (the step grows from the scene's until it
+  explodes, a bounded number of tries) next to the advisor's recommended range.
 - sweep: a grid over scene keys (--param wheel.radius=0.03,0.04 ...), one run per point.
 
 Warp's CPU kernels are single-threaded, so the cluster uses processes with one thread
-each, as many as the machine has cores. A replica that fails is reported; the others
-still finish. `executor="serial"` runs the tasks one after another in this process
-(tests, debugging); results are the same on the CPU.
+each. A replica that fails is reported; the others still finish. Tasks carry the scene
+as TOML text plus overrides, and each worker resolves its own plan.
 """
 
 from __future__ import annotations
 
 import itertools
+import logging
 import math
 import os
+import shutil
 import time
 import traceback
 
-import numpy as np
 
-from .runner import BED_FILE, settled_bed, write_json
-from .scene import Scene, SceneError, scene_from_text
+from . import metrics
+from .beds import BED_FILE, BED_INFO_FILE, settled_bed, write_json
+from .folders import RunFolder
+from .plan import RunPlan, resolve
+from .scene import SceneError, scene_from_text
+
+log = logging.getLogger(__name__)
 
 PRECISION_ORDER = ("single", "mixed", "double")
+
+METRIC_UNITS = {"slip": "1", "sinkage": "m", "sinkage_tips": "m", "drawbar_pull": "N", "dp_over_w": "1",
+                "driving_torque": "N m", "travel": "m", "forward_speed": "m/s", "wall_time": "s"}
 
 
 # ------------------------------------------------------------------------------------
 # tasks (module-level functions: picklable for dask workers)
 
 
-def run_task(task: dict) -> dict:
-    """Run one scene (task: scene_toml, base_dir, overrides, out_dir, label); never raises."""
+def _quiet():
     import warp as wp
 
-    wp.config.log_level = max(wp.config.log_level, wp.LOG_WARNING)  # no per-module load lines
-    from .runner import run_scene
+    wp.config.log_level = wp.LOG_ERROR
 
+
+def task_plan(task: dict) -> RunPlan:
+    """The plan of a task: its scene text with its overrides."""
+    return resolve(scene_from_text(task["scene_toml"], overrides=task.get("overrides")))
+
+
+def run_task(task: dict) -> dict:
+    """Run one scene (task: scene_toml, overrides, out_dir, label, overwrite); never raises."""
+    from .runner import run_plan
+
+    _quiet()
     started = time.perf_counter()
     out = {"label": task.get("label"), "out_dir": task["out_dir"], "overrides": task.get("overrides", {})}
     try:
-        scene = scene_from_text(task["scene_toml"], base_dir=task.get("base_dir"), overrides=task.get("overrides"))
-        result = run_scene(scene, task["out_dir"], overwrite=task.get("overwrite", False), progress=False, log=None)
+        result = run_plan(task_plan(task), task["out_dir"], overwrite=task.get("overwrite", False))
         out.update(ok=True, status=result.status, summary=result.summary)
     except BaseException as error:  # noqa: BLE001 - a failed replica is a result, not a crash
         out.update(ok=False, status="failed", error=f"{type(error).__name__}: {error}",
@@ -59,13 +78,10 @@ def run_task(task: dict) -> dict:
 
 def settle_task(task: dict) -> dict:
     """Settle the bed of a scene into task['folder'] (cached there)."""
-    import warp as wp
-
-    wp.config.log_level = max(wp.config.log_level, wp.LOG_WARNING)  # no per-module load lines
-    scene = scene_from_text(task["scene_toml"], base_dir=task.get("base_dir"), overrides=task.get("overrides"))
+    _quiet()
     os.makedirs(task["folder"], exist_ok=True)
-    path, info = settled_bed(scene, task["folder"], progress=False, log=lambda *a, **k: None)
-    return {"path": path, "info": info}
+    bed = settled_bed(task_plan(task), task["folder"])
+    return {"path": bed.path, "info": bed.info}
 
 
 # ------------------------------------------------------------------------------------
@@ -75,11 +91,14 @@ def settle_task(task: dict) -> dict:
 class Executor:
     """Maps tasks over a dask cluster (or serially). Use as a context manager."""
 
-    def __init__(self, kind: str = "dask", scheduler: str | None = None, workers: int | None = None, log=print):
+    def __init__(self, kind: str = "dask", scheduler: str | None = None, workers: int | None = None):
+        if kind not in ("dask", "serial"):
+            raise ValueError(f"executor must be 'dask' or 'serial', got {kind!r}")
+        if workers is not None and workers < 1:
+            raise ValueError(f"--workers must be >= 1, got {workers}")
         self.kind = kind
         self.scheduler = scheduler
         self.workers = workers or os.cpu_count() or 1
-        self.log = log
         self.client = None
         self.cluster = None
 
@@ -94,7 +113,7 @@ class Executor:
             self.cluster = LocalCluster(n_workers=self.workers, threads_per_worker=1, processes=True,
                                         dashboard_address=None)
             self.client = Client(self.cluster)
-        self.log(f"dask: {self.client}")
+        log.info("dask: %s", self.client)
         return self
 
     def __exit__(self, *exc):
@@ -104,184 +123,267 @@ class Executor:
             self.cluster.close()
         return False
 
-    def map(self, function, tasks: list[dict], describe=lambda t: t.get("label")) -> list[dict]:
+    def map(self, function, tasks: list[dict]) -> list[dict]:
         """Results in task order; a task whose worker died becomes {'ok': False, 'error': ...}."""
         if self.kind == "serial":
             results = []
             for task in tasks:
                 results.append(function(task))
-                self._report(results[-1], describe(task), len(results), len(tasks))
+                _report(results[-1], task.get("label"), len(results), len(tasks))
             return results
         from dask.distributed import as_completed
 
         futures = self.client.map(function, tasks, pure=False)
         index = {f.key: i for i, f in enumerate(futures)}
         results: list = [None] * len(tasks)
-        done = 0
-        for future in as_completed(futures):
+        for done, future in enumerate(as_completed(futures), 1):
             i = index[future.key]
             try:
                 results[i] = future.result()
             except Exception as error:  # the worker itself failed
-                results[i] = {"label": describe(tasks[i]), "ok": False, "status": "failed",
+                results[i] = {"label": tasks[i].get("label"), "ok": False, "status": "failed",
                               "error": f"{type(error).__name__}: {error}", "out_dir": tasks[i].get("out_dir")}
-            done += 1
-            self._report(results[i], describe(tasks[i]), done, len(tasks))
+            _report(results[i], tasks[i].get("label"), done, len(tasks))
         return results
 
-    def _report(self, result, label, done, total):
-        if not isinstance(result, dict) or "ok" not in result:
-            return
-        state = "ok" if result.get("ok") else f"FAILED: {result.get('error')}"
-        wall = result.get("wall_time")
-        self.log(f"[{done}/{total}] {label}: {state}" + (f" ({wall:.1f} s)" if wall else ""))
+
+def _report(result, label, done, total):
+    if not isinstance(result, dict) or "ok" not in result:
+        return
+    state = (result.get("status", "ok") if result.get("ok") else f"FAILED: {result.get('error')}")
+    wall = result.get("wall_time")
+    log.info("[%d/%d] %s: %s%s", done, total, label, state, f" ({wall:.1f} s)" if wall else "")
+
+
+def prepare_study(out_dir: str, overwrite: bool) -> None:
+    """Make the study folder; refuse a non-empty one unless overwrite (a settled bed is kept)."""
+    RunFolder(out_dir).create()
+    keep = (BED_FILE, BED_INFO_FILE, "beds", ".lock")
+    present = [n for n in os.listdir(out_dir) if n not in keep]
+    if present and not overwrite:
+        from .folders import OutputExistsError
+
+        raise OutputExistsError(f"study folder {out_dir!r} is not empty ({', '.join(sorted(present)[:6])}); nothing "
+                                "is overwritten: choose another --out or pass --overwrite (the settled bed is kept)")
+    for name in present:
+        path = os.path.join(out_dir, name)
+        shutil.rmtree(path) if os.path.isdir(path) else os.remove(path)
+
+
+def _shared_bed(plan: RunPlan, out_dir: str, ex: Executor) -> str:
+    if plan.bed.bed_file:
+        return plan.bed.bed_file
+    log.info("settling the shared bed ...")
+    result = ex.map(settle_task, [{"scene_toml": plan.scene.to_toml(), "folder": out_dir, "label": "bed"}])[0]
+    if not isinstance(result, dict) or "path" not in result:
+        raise RuntimeError(f"settling the bed failed: {result}")
+    return result["path"]
+
+
+def _tolerances(plan: RunPlan) -> dict[str, float]:
+    """Absolute floors of the 'deterministic' criterion per metric (metrics.ensemble): what a
+    user sizing a wheel cannot tell apart anyway."""
+    r = plan.bed.spec.radius_mean
+    rim = plan.testbed.omega * plan.wheel.rim_radius
+    return {"slip": 0.02, "sinkage": 0.25 * r, "sinkage_tips": 0.25 * r, "drawbar_pull": 0.01 * plan.wheel_load,
+            "dp_over_w": 0.01, "driving_torque": 0.01 * plan.wheel_load * plan.wheel.rim_radius,
+            "travel": 0.05 * rim * plan.scene.run.duration, "forward_speed": 0.02 * rim}
+
+
+def ensemble_table(results: list[dict], plan: RunPlan) -> dict:
+    """metrics.ensemble of every REPLICA_METRIC over the runs with a steady state."""
+    steady = [r for r in results if r.get("ok") and r.get("summary", {}).get("steady_state") == metrics.STEADY]
+    floors = _tolerances(plan)
+    table = {name: metrics.ensemble([r["summary"].get(name) for r in steady], absolute_tolerance=floors[name])
+             for name in metrics.REPLICA_METRICS}
+    table["wall_time"] = metrics.ensemble([r["summary"].get("wall_time") for r in results if r.get("ok")])
+    return {"replicas": len(results), "steady": len(steady), "metrics": table}
+
+
+def _ensemble_text(stats: dict, title: str) -> str:
+    lines = [title, f"  {stats['steady']} of {stats['replicas']} replicas reached a steady state",
+             f"  {'metric':16s} {'mean':>11s} {'std':>10s} {'95% CI +-':>10s} {'min':>11s} {'max':>11s}  unit  "
+             "deterministic"]
+    for name, row in stats["metrics"].items():
+        if row.get("n", 0) == 0:
+            continue
+        det = "" if name == "wall_time" else ("yes" if row["deterministic"] else
+                                             f"NO (std > {row['tolerance']:.3g})")
+        lines.append(f"  {name:16s} {row['mean']:11.5g} {row['std']:10.3g} {row['ci95']:10.3g} {row['min']:11.5g} "
+                     f"{row['max']:11.5g}  {METRIC_UNITS.get(name, ''):4s}  {det}")
+    return "\n".join(lines)
+
+
+def _write_csv(path: str, rows: list[dict], keys: list[str], units: dict[str, str]) -> None:
+    """A CSV whose header names each column with its unit, e.g. 'slip_mean [1]'."""
+    def header(key):
+        base = key.rsplit("_", 1)[0] if key.rsplit("_", 1)[-1] in ("mean", "std", "ci95", "min", "max") else key
+        unit = units.get(base)
+        return f"{key} [{unit}]" if unit else key
+
+    with open(path, "w") as f:
+        f.write(",".join(header(k) for k in keys) + "\n")
+        for r in rows:
+            f.write(",".join("" if r.get(k) is None else str(r.get(k)) for k in keys) + "\n")
+
+
+def _flat(stats: dict) -> dict:
+    row = {}
+    for name, values in stats["metrics"].items():
+        for key in ("mean", "std", "ci95", "min", "max"):
+            if key in values:
+                row[f"{name}_{key}"] = values[key]
+    return row
+
+
+# ------------------------------------------------------------------------------------
+# replicas of one scene
+
+
+def replica_run(plan: RunPlan, out_dir: str, replicas: int, overwrite: bool = False, executor: str = "dask",
+                scheduler: str | None = None, workers: int | None = None) -> dict:
+    """K replicas of a scene that differ only in summation order, with error bars (module docstring).
+
+    Returns {'ok' (every replica steady and the statistics exist), 'stats', 'results', 'text'}."""
+    from .runner import absolute_paths
+
+    if replicas < 2:
+        raise SceneError([f"--replicas: must be >= 2 for error bars, got {replicas}"])
+    plan = absolute_paths(plan)
+    out_dir = os.path.abspath(out_dir)
+    prepare_study(out_dir, overwrite)
+    with Executor(executor, scheduler, workers) as ex:
+        bed = _shared_bed(plan, out_dir, ex)
+        text = plan.scene.to_toml()
+        tasks = [{"scene_toml": text, "out_dir": os.path.join(out_dir, f"replica_{k:03d}"),
+                  "overrides": {"run.order_seed": k, "bed.bed_file": bed}, "label": f"replica_{k:03d}"}
+                 for k in range(replicas)]
+        results = ex.map(run_task, tasks)
+    stats = ensemble_table(results, plan)
+    report = {"kind": "replicas", "scene_toml": text, "bed_file": bed, "stats": stats, "results": results,
+              "criterion": "a metric is macroscopically deterministic when its replica std is <= max(5 % of its "
+                           "mean, its absolute floor) (cosim.study._tolerances)"}
+    write_json(os.path.join(out_dir, "ensemble.json"), report)
+    _write_csv(os.path.join(out_dir, "ensemble.csv"), [{"metric": k, **v} for k, v in stats["metrics"].items()],
+               ["metric", "n", "mean", "std", "ci95", "min", "max", "tolerance", "deterministic"], {})
+    report["text"] = _ensemble_text(stats, f"{plan.name}: {replicas} replicas (summation order), {out_dir}")
+    report["ok"] = stats["steady"] == replicas and stats["steady"] >= 2
+    return report
 
 
 # ------------------------------------------------------------------------------------
 # precision study
 
 
-def precision_study(scene: Scene, out_dir: str, replicas: int = 3, precisions=PRECISION_ORDER,
+def precision_study(plan: RunPlan, out_dir: str, replicas: int = 3, precisions=PRECISION_ORDER,
                     executor: str = "dask", scheduler: str | None = None, workers: int | None = None,
-                    overwrite: bool = False, log=print, plot: bool = True) -> dict:
-    """The paper's replica experiment; returns {'rows': table rows, 'replicas': per-replica results}."""
+                    overwrite: bool = False, plot: bool = True) -> dict:
+    """The paper's replica experiment per precision; returns {'rows', 'replicas', ...}."""
     from .runner import absolute_paths
 
-    scene = absolute_paths(scene)
+    plan = absolute_paths(plan)
     for p in precisions:
         if p not in PRECISION_ORDER:
             raise SceneError([f"--precisions: unknown precision {p!r}; allowed: {', '.join(PRECISION_ORDER)}"])
     if replicas < 1:
-        raise ValueError("--replicas must be >= 1")
+        raise SceneError([f"--replicas: must be >= 1, got {replicas}"])
     out_dir = os.path.abspath(out_dir)
     prepare_study(out_dir, overwrite)
-    text = scene.to_toml()
-    with Executor(executor, scheduler, workers, log) as ex:
-        bed = _shared_bed(scene, out_dir, ex, log)
-        tasks = []
-        for precision in precisions:
-            for k in range(replicas):
-                tasks.append({"scene_toml": text, "out_dir": os.path.join(out_dir, precision, f"replica_{k:03d}"),
-                              "overrides": {"scene.precision": precision, "run.order_seed": k, "bed.bed_file": bed},
-                              "label": f"{precision}/replica_{k:03d}", "precision": precision, "replica": k})
+    text = plan.scene.to_toml()
+    with Executor(executor, scheduler, workers) as ex:
+        bed = _shared_bed(plan, out_dir, ex)
+        tasks = [{"scene_toml": text, "out_dir": os.path.join(out_dir, precision, f"replica_{k:03d}"),
+                  "overrides": {"scene.precision": precision, "run.order_seed": k, "bed.bed_file": bed},
+                  "label": f"{precision}/replica_{k:03d}", "precision": precision, "replica": k}
+                 for precision in precisions for k in range(replicas)]
         started = time.perf_counter()
         results = ex.map(run_task, tasks)
         wall = time.perf_counter() - started
+    rows = []
+    for precision in precisions:
+        members = [r for t, r in zip(tasks, results) if t["precision"] == precision]
+        stats = ensemble_table(members, plan)
+        rows.append({"precision": precision, "replicas": stats["replicas"], "steady": stats["steady"],
+                     "failed": sum(1 for r in members if not r.get("ok")), **_flat(stats), "stats": stats})
     for task, result in zip(tasks, results):
-        result["precision"] = task["precision"]
-        result["replica"] = task["replica"]
-    rows = scatter_table(results, "precision", [p for p in precisions])
+        result.update(precision=task["precision"], replica=task["replica"])
     report = {"kind": "precision", "replicas": results, "rows": rows, "wall_time": wall, "bed_file": bed,
               "scene_toml": text}
-    _write_report(out_dir, report, rows, log)
+    write_json(os.path.join(out_dir, "study.json"), report)
+    keys = ["precision", "replicas", "steady", "failed"] + [k for k in rows[0] if k not in (
+        "precision", "replicas", "steady", "failed", "stats")]
+    _write_csv(os.path.join(out_dir, "study.csv"), rows, keys, METRIC_UNITS)
+    for row in rows:
+        log.info("%s", _ensemble_text(row["stats"], f"precision {row['precision']}"))
     if plot:
-        _plots(out_dir, rows, log)
+        from .plots import plot_output, plot_scatter
+
+        written = plot_output(out_dir) + [plot_scatter(out_dir, rows, "precision")]
+        log.info("plots: %s", ", ".join(written))
     return report
 
 
-def scatter_table(results: list[dict], key: str, groups: list) -> list[dict]:
-    """Per group: replicas ok/failed, wall time, and mean/std/min/max of travel, slip, sinkage."""
+# ------------------------------------------------------------------------------------
+# drawbar pull / slip
+
+
+def slip_study(plan: RunPlan, out_dir: str, slips, replicas: int = 1, executor: str = "dask",
+               scheduler: str | None = None, workers: int | None = None, overwrite: bool = False,
+               plot: bool = True) -> dict:
+    """Imposed slips after landing: DP, DP/W, torque and sinkage against slip, with error bars."""
+    from .runner import absolute_paths
+
+    slips = [float(s) for s in slips]
+    problems = [f"--slips: {s} must be in (-1, 1)" for s in slips if not -1 < s < 1]
+    if not slips:
+        problems.append("--slips: give at least one slip")
+    if replicas < 1:
+        problems.append(f"--replicas: must be >= 1, got {replicas}")
+    if problems:
+        raise SceneError(problems)
+    plan = absolute_paths(plan)
+    for s in slips:  # every point must be a valid scene before anything runs
+        plan.with_changes(**{"testbed.mode": "slip", "testbed.slip": s})
+    out_dir = os.path.abspath(out_dir)
+    prepare_study(out_dir, overwrite)
+    text = plan.scene.to_toml()
+    with Executor(executor, scheduler, workers) as ex:
+        bed = _shared_bed(plan, out_dir, ex)
+        tasks = [{"scene_toml": text, "out_dir": os.path.join(out_dir, f"slip_{s:+.3f}", f"replica_{k:03d}"),
+                  "overrides": {"testbed.mode": "slip", "testbed.slip": s, "run.order_seed": k, "bed.bed_file": bed},
+                  "label": f"slip {s:+.3f} replica {k}", "slip": s}
+                 for s in slips for k in range(replicas)]
+        results = ex.map(run_task, tasks)
     rows = []
-    for group in groups:
-        members = [r for r in results if r.get(key) == group]
-        ok = [r for r in members if r.get("ok")]
-        row = {key: group, "replicas": len(members), "ok": len(ok), "failed": len(members) - len(ok)}
-        if ok:
-            row["wall_time_mean"] = float(np.mean([r["summary"]["wall_time"] for r in ok]))
-            for name in ("travel", "mean_slip", "mean_sinkage", "mean_drawbar_pull"):
-                values = np.array([r["summary"].get(name, np.nan) for r in ok], dtype=float)
-                row[f"{name}_mean"] = float(np.mean(values))
-                row[f"{name}_std"] = float(np.std(values, ddof=1)) if len(values) > 1 else 0.0
-                row[f"{name}_min"] = float(np.min(values))
-                row[f"{name}_max"] = float(np.max(values))
-        row["errors"] = [r.get("error") for r in members if not r.get("ok")]
-        rows.append(row)
-    return rows
-
-
-TABLE_KEYS = ["ok", "failed", "wall_time_mean", "travel_mean", "travel_std", "travel_min", "travel_max",
-              "mean_slip_mean", "mean_slip_std", "mean_slip_min", "mean_slip_max", "mean_sinkage_mean",
-              "mean_sinkage_std", "mean_sinkage_min", "mean_sinkage_max"]
-
-
-def _write_report(out_dir: str, report: dict, rows: list[dict], log) -> None:
-    from .plots import plot_table
-
+    for s in slips:
+        members = [r for t, r in zip(tasks, results) if t["slip"] == s]
+        stats = ensemble_table(members, plan)
+        rows.append({"slip_set": s, "replicas": stats["replicas"], "steady": stats["steady"], **_flat(stats),
+                     "stats": stats})
+    report = {"kind": "slip", "rows": rows, "runs": results, "scene_toml": text, "bed_file": bed,
+              "wheel_load": plan.wheel_load}
     write_json(os.path.join(out_dir, "study.json"), report)
-    first = [k for k in rows[0] if k not in TABLE_KEYS and k not in ("replicas", "errors")] if rows else []
-    keys = first + [k for k in TABLE_KEYS if any(k in r for r in rows)]
-    with open(os.path.join(out_dir, "study.csv"), "w") as f:
-        f.write(",".join(keys) + "\n")
-        for r in rows:
-            f.write(",".join("" if r.get(k) is None else str(r.get(k)) for k in keys) + "\n")
-    log(plot_table(rows, keys))
-    for r in rows:
-        for error in r.get("errors", []):
-            log(f"failed: {error}")
+    keys = ["slip_set", "replicas", "steady"] + [f"{m}_{k}" for m in ("slip", "drawbar_pull", "dp_over_w",
+                                                                      "driving_torque", "sinkage", "sinkage_tips")
+                                                 for k in ("mean", "std", "ci95")]
+    _write_csv(os.path.join(out_dir, "study.csv"), rows, keys, {**METRIC_UNITS, "slip_set": "1"})
+    lines = [f"{plan.name}: drawbar pull against imposed slip (W = {plan.wheel_load:.4g} N), {out_dir}",
+             f"  {'slip':>6s} {'steady':>7s} {'DP [N]':>12s} {'DP/W':>14s} {'torque [N m]':>14s} {'sinkage [mm]':>13s}"]
+    for row in rows:
+        def cell(name, scale=1.0):
+            mean, ci = row.get(f"{name}_mean"), row.get(f"{name}_ci95")
+            if mean is None:
+                return "-"
+            return f"{mean * scale:.4g}" + (f"+-{ci * scale:.2g}" if ci is not None and ci == ci else "")
+        lines.append(f"  {row['slip_set']:6.3f} {row['steady']:3d}/{row['replicas']:<3d} {cell('drawbar_pull'):>12s} "
+                     f"{cell('dp_over_w'):>14s} {cell('driving_torque'):>14s} {cell('sinkage', 1e3):>13s}")
+    report["text"] = "\n".join(lines)
+    report["ok"] = all(row["steady"] == row["replicas"] for row in rows)
+    if plot:
+        from .plots import plot_slip_curve
 
-
-def _plots(out_dir: str, rows: list[dict], log) -> None:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    from .plots import plot_output
-
-    try:
-        written = plot_output(out_dir)
-    except FileNotFoundError as error:
-        log(str(error))
-        return
-    groups = [r for r in rows if r.get("ok")]
-    if groups:
-        key = [k for k in rows[0] if k not in TABLE_KEYS and k not in ("replicas", "errors")][0]
-        fig, axes = plt.subplots(1, 3, figsize=(14, 4))
-        for ax, (name, label, scale) in zip(axes, [("travel", "travel [mm]", 1e3), ("mean_slip", "mean slip [-]", 1),
-                                                   ("mean_sinkage", "mean sinkage [mm]", 1e3)]):
-            x = np.arange(len(groups))
-            mean = np.array([g[f"{name}_mean"] for g in groups]) * scale
-            low = mean - np.array([g[f"{name}_min"] for g in groups]) * scale
-            high = np.array([g[f"{name}_max"] for g in groups]) * scale - mean
-            std = np.array([g[f"{name}_std"] for g in groups]) * scale
-            ax.errorbar(x, mean, yerr=[low, high], fmt="o", capsize=6, label="min-max")
-            ax.errorbar(x + 0.08, mean, yerr=std, fmt="s", capsize=3, label="std")
-            ax.set_xticks(x, [str(g[key]) for g in groups])
-            ax.set_ylabel(label)
-            ax.grid(True, alpha=0.3)
-        axes[0].legend(fontsize=8)
-        fig.suptitle(f"scatter over replicas ({groups[0]['ok']} per group)")
-        fig.tight_layout()
-        path = os.path.join(out_dir, "plots", "scatter.png")
-        fig.savefig(path, dpi=120)
-        plt.close(fig)
-        written.append(path)
-    log("plots: " + ", ".join(written))
-
-
-def prepare_study(out_dir: str, overwrite: bool) -> None:
-    os.makedirs(out_dir, exist_ok=True)
-    present = [n for n in os.listdir(out_dir) if n not in (BED_FILE, "bed.json", "beds")]
-    if present and not overwrite:
-        raise FileExistsError(f"study folder {out_dir!r} is not empty ({', '.join(sorted(present)[:6])}); nothing is "
-                              "overwritten: choose another --out or pass --overwrite (the settled bed is kept)")
-    if present:
-        import shutil
-
-        for name in present:
-            path = os.path.join(out_dir, name)
-            shutil.rmtree(path) if os.path.isdir(path) else os.remove(path)
-
-
-def _shared_bed(scene: Scene, out_dir: str, ex: Executor, log) -> str:
-    if scene.bed.bed_file:
-        return scene.resolve(scene.bed.bed_file)
-    log("settling the shared bed ...")
-    result = ex.map(settle_task, [{"scene_toml": scene.to_toml(), "folder": out_dir, "label": "bed"}],
-                    describe=lambda t: "bed")[0]
-    if not isinstance(result, dict) or "path" not in result:
-        raise RuntimeError(f"settling the bed failed: {result}")
-    return result["path"]
+        report["text"] += "\n  plot: " + plot_slip_curve(out_dir, rows)
+    return report
 
 
 # ------------------------------------------------------------------------------------
@@ -290,90 +392,79 @@ def _shared_bed(scene: Scene, out_dir: str, ex: Executor, log) -> str:
 
 def parse_params(params: list[str]) -> dict[str, list]:
     """['wheel.radius=0.03,0.04', ...] -> {'wheel.radius': [0.03, 0.04], ...} (values read as TOML)."""
-    from .scene import tomllib
+    from .scene import parse_value
 
     grid = {}
     for text in params:
         if "=" not in text:
             raise SceneError([f"--param {text!r}: expected key=v1,v2,..."])
         key, values = text.split("=", 1)
-        parsed = []
-        for value in values.split(","):
-            try:
-                parsed.append(tomllib.loads(f"v = {value.strip()}")["v"])
-            except tomllib.TOMLDecodeError:
-                parsed.append(value.strip())
-        grid[key.strip()] = parsed
+        grid[key.strip()] = [parse_value(v) for v in values.split(",")]
     return grid
 
 
-def sweep(scene: Scene, out_dir: str, params: list[str], executor: str = "dask", scheduler: str | None = None,
-          workers: int | None = None, overwrite: bool = False, log=print, plot: bool = True) -> dict:
+def sweep(plan: RunPlan, out_dir: str, params: list[str], executor: str = "dask", scheduler: str | None = None,
+          workers: int | None = None, overwrite: bool = False, plot: bool = True) -> dict:
     """One run per point of the grid; points that share a bed share one settled bed."""
-    from .runner import absolute_paths, bed_key
+    from .plots import plot_table
+    from .runner import absolute_paths
 
-    scene = absolute_paths(scene)
+    plan = absolute_paths(plan)
     grid = parse_params(params)
     if not grid:
         raise SceneError(["--param: give at least one key=v1,v2,..."])
-    text = scene.to_toml()
+    text = plan.scene.to_toml()
     points = [dict(zip(grid, values)) for values in itertools.product(*grid.values())]
-    scenes, problems = [], []
+    plans, problems = [], []
     for point in points:  # validate every point before running any
         try:
-            scenes.append(scene_from_text(text, overrides=point))
+            plans.append(resolve(scene_from_text(text, overrides=point)))
         except SceneError as error:
             problems += [f"point {point}: {p}" for p in error.problems]
     if problems:
         raise SceneError(problems)
     out_dir = os.path.abspath(out_dir)
     prepare_study(out_dir, overwrite)
-    with Executor(executor, scheduler, workers, log) as ex:
+    with Executor(executor, scheduler, workers) as ex:
         beds = {}
-        for s in scenes:
-            if not s.bed.bed_file:
-                beds.setdefault(bed_key(s), s)
-        settled = ex.map(settle_task, [{"scene_toml": s.to_toml(), "folder": os.path.join(out_dir, "beds", key),
-                                        "label": f"bed {key}"} for key, s in beds.items()])
+        for p in plans:
+            if not p.bed.bed_file:
+                beds.setdefault(p.bed.key, p)
+        settled = ex.map(settle_task, [{"scene_toml": p.scene.to_toml(), "folder": os.path.join(out_dir, "beds", key),
+                                        "label": f"bed {key}"} for key, p in beds.items()])
         bed_paths = {key: r.get("path") for key, r in zip(beds, settled)}
         tasks = []
-        for i, (point, s) in enumerate(zip(points, scenes)):
+        for i, (point, p) in enumerate(zip(points, plans)):
             overrides = dict(point)
-            if not s.bed.bed_file:
-                overrides["bed.bed_file"] = bed_paths[bed_key(s)]
+            if not p.bed.bed_file:
+                overrides["bed.bed_file"] = bed_paths[p.bed.key]
             name = f"{i:03d}_" + "_".join(f"{k.split('.')[-1]}={v}" for k, v in point.items())
             tasks.append({"scene_toml": text, "overrides": overrides, "out_dir": os.path.join(out_dir, name),
                           "label": name, "point": point})
         results = ex.map(run_task, tasks)
+    columns = ("steady_state", "slip", "travel", "sinkage", "drawbar_pull", "driving_torque", "wall_time")
     rows = []
     for task, result in zip(tasks, results):
         row = {**task["point"], "ok": result.get("ok"), "status": result.get("status")}
-        row.update({k: result.get("summary", {}).get(k) for k in ("travel", "mean_slip", "mean_sinkage",
-                                                                   "mean_drawbar_pull", "wall_time")})
+        row.update({k: result.get("summary", {}).get(k) for k in columns})
         if not result.get("ok"):
             row["error"] = result.get("error")
         rows.append(row)
     report = {"kind": "sweep", "grid": grid, "rows": rows, "runs": results, "scene_toml": text}
     write_json(os.path.join(out_dir, "study.json"), report)
-    from .plots import plot_table
-
-    keys = list(grid) + ["ok", "travel", "mean_slip", "mean_sinkage", "mean_drawbar_pull", "wall_time"]
-    table = plot_table(rows, keys)
-    log(table)
-    with open(os.path.join(out_dir, "study.csv"), "w") as f:
-        f.write(",".join(keys) + "\n")
-        for r in rows:
-            f.write(",".join("" if r.get(k) is None else str(r.get(k)) for k in keys) + "\n")
+    keys = list(grid) + ["ok", "status", *columns]
+    log.info("%s", plot_table(rows, keys))
+    _write_csv(os.path.join(out_dir, "study.csv"), rows, keys, METRIC_UNITS)
     for r in rows:
         if r.get("error"):
-            log(f"failed: {r['error']}")
+            log.warning("failed: %s", r["error"])
     if plot:
         from .plots import plot_output
 
         try:
-            log("plots: " + ", ".join(plot_output(out_dir)))
+            log.info("plots: %s", ", ".join(plot_output(out_dir)))
         except FileNotFoundError as error:
-            log(str(error))
+            log.warning("%s", error)
     return report
 
 
@@ -381,59 +472,88 @@ def sweep(scene: Scene, out_dir: str, params: list[str], executor: str = "dask",
 # time-step study
 
 
-def timestep_study(scene: Scene, out_dir: str, duration: float = 0.2, growth: float = 1.5,
-                   dt_start_factor: float = 0.1, overwrite: bool = False, log=print) -> dict:
-    """Largest stable DEM step for the scene's bed with the wheel resting on it, plus the advisor's range."""
-    from soil import Simulation
-    from soil.bed import load_bed, restore_state
+def timestep_study(plan: RunPlan, out_dir: str, duration: float = 0.05, growth: float = 1.5, max_tries: int = 8,
+                   overwrite: bool = False) -> dict:
+    """The largest stable DEM step for the scene's bed with the wheel resting on it and turning.
 
-    from .runner import absolute_paths
+    The search starts at the scene's own step and grows it by `growth` until a run of
+    `duration` [s] explodes (or shrinks it while even that explodes), at most `max_tries`
+    runs, each logged as it ends. The answer is the last stable step times 0.5."""
+    from soil import advisor
 
-    scene = absolute_paths(scene)
+    from .system import CoupledSystem
+
+    if not (duration > 0 and growth > 1 and max_tries >= 1):
+        raise SceneError([f"--duration, growth, --max-tries: need > 0, > 1, >= 1 (got {duration}, {growth}, "
+                          f"{max_tries})"])
     out_dir = os.path.abspath(out_dir)
     prepare_study(out_dir, overwrite)
-    bed_path, _ = settled_bed(scene, out_dir, progress=False, log=log)
+    bed = settled_bed(plan, out_dir)
+    rim = plan.testbed.omega * plan.wheel.outer_radius
 
     def make_simulation():
-        builder, saved = load_bed(bed_path)
-        builder.add_wheel(scene.wheel_shape(), scene.wheel_material())
-        model, state, control = builder.finalize(device=scene.scene.device, precision=scene.scene.precision,
-                                                 law=scene.contact_law())
-        restore_state(model, state, saved)
-        sim = Simulation(model, state, control)
-        outer, _, _ = scene.wheel_extent()
-        hub = scene.start_position(float(saved["metrics"]["height"]))
-        hub[2] -= 0.1 * scene.bed.radius_mean  # pressed in a little: wheel contacts are in the test
-        sim.control.set_body_motion(0, hub, [1, 0, 0, 0], [scene.testbed.omega * outer, 0, 0],
-                                    [0, scene.testbed.omega, 0])
+        system = CoupledSystem.build(plan, bed)
+        sim = system.sim
+        hub = system.rover.position
+        sim.control.set_body_motion(0, hub, [1, 0, 0, 0], [rim, 0, 0], [0, plan.testbed.omega, 0])
         sim.refresh_forces()
         return sim
 
-    rayleigh = scene.rayleigh_step()
-    report = {"kind": "timestep", "rayleigh_step": rayleigh, "scene_dt": scene.time_steps()[0]}
-    try:
-        from soil import advisor
-    except ImportError:  # pragma: no cover - advisor is part of soil now
-        advisor = None
-    if advisor is not None and hasattr(advisor, "largest_stable_step"):
-        search = advisor.largest_stable_step(make_simulation, duration=duration, dt_start=dt_start_factor * rayleigh,
-                                             growth=growth)
-        report.update(largest_stable=search.largest_stable, first_unstable=search.first_unstable,
-                      recommended=search.recommended,
-                      tried=[{"dt": dt, "stable": ok, "message": m} for dt, ok, m in search.tried])
-        advice = advisor.recommended_time_step(make_simulation())
-        report["advisor"] = {"dt_min": advice.dt_min, "dt_max": advice.dt_max,
-                             "critical_step": advice.critical_step, "contact_time": advice.contact_time}
-    else:  # pragma: no cover
-        raise RuntimeError("soil.advisor.largest_stable_step is not available")
+    tries = []
+
+    def stable(dt):
+        started = time.perf_counter()
+        sim = make_simulation()
+        from soil import SimulationDiverged
+
+        try:
+            sim.run(duration, dt, check_every=20)
+            ok, message = True, ""
+        except SimulationDiverged as error:
+            ok, message = False, str(error)
+        tries.append((dt, ok, message))
+        log.info("try %d/%d: dt = %.4g s (%.3g x the scene's): %s (%.1f s wall)", len(tries), max_tries, dt,
+                 dt / plan.dt, "stable" if ok else "UNSTABLE", time.perf_counter() - started)
+        return ok
+
+    dt = plan.dt
+    largest = first_bad = None
+    if stable(dt):
+        largest = dt
+        while len(tries) < max_tries:
+            dt *= growth
+            if not stable(dt):
+                first_bad = dt
+                break
+            largest = dt
+    else:
+        first_bad = dt
+        while len(tries) < max_tries:
+            dt /= growth
+            if stable(dt):
+                largest = dt
+                break
+            first_bad = dt
+    advice = advisor.recommended_time_step(make_simulation())
+    report = {"kind": "timestep", "scene_dt": plan.dt, "duration": duration, "largest_stable": largest,
+              "first_unstable": first_bad, "recommended": None if largest is None else 0.5 * largest,
+              "tried": [{"dt": d, "stable": ok, "message": m} for d, ok, m in tries],
+              "advisor": {"dt_min": advice.dt_min, "dt_max": advice.dt_max, "critical_step": advice.critical_step,
+                          "contact_time": advice.contact_time}}
     write_json(os.path.join(out_dir, "study.json"), report)
-    for t in report["tried"]:
-        log(f"dt = {t['dt']:.4g} s ({t['dt'] / rayleigh:.3g} x Rayleigh): {'stable' if t['stable'] else 'UNSTABLE'}")
-    log(f"largest stable step {_s(report['largest_stable'])} s, first unstable {_s(report['first_unstable'])} s, "
-        f"recommended {_s(report['recommended'])} s; Rayleigh {rayleigh:.4g} s; the scene uses "
-        f"{report['scene_dt']:.4g} s")
+    if largest is None:
+        log.error("no stable step found in %d tries down to %.4g s: the scene is unstable at any step tried; check "
+                  "`cosim advise` (stiffness, overlaps)", len(tries), dt)
+    else:
+        log.info("largest stable step %s s, first unstable %s s, recommended %s s; the advisor says %.4g .. %.4g s; "
+                 "the scene uses %.4g s", _s(largest), _s(first_bad), _s(report["recommended"]), advice.dt_min,
+                 advice.dt_max, plan.dt)
     return report
 
 
 def _s(value) -> str:
     return "-" if value is None or (isinstance(value, float) and math.isnan(value)) else f"{value:.4g}"
+
+
+__all__ = ["Executor", "ensemble_table", "precision_study", "replica_run", "run_task", "slip_study", "sweep",
+           "timestep_study"]

@@ -194,17 +194,38 @@ def save_bed(path, sim, spec: BedSpec | None = None, metrics: dict | None = None
                     state[name] = value
 
 
-def load_bed(path) -> tuple[SoilBuilder, dict]:
-    """Read a saved bed: a SoilBuilder with the grains and walls (add wheels to it, then
-    finalize) and the saved state for `restore_state`."""
+def _open_bed(path):
+    """The bed file opened for reading; ValueError naming the path when it is not a readable bed."""
     import h5py
 
     path = os.fspath(path)
     if not os.path.isfile(path):
         raise FileNotFoundError(f"bed file not found: {path!r}")
-    with h5py.File(path, "r") as f:
-        if f.attrs.get("format") != BED_FORMAT:
-            raise ValueError(f"{path!r} is not a regolith-cosim bed file (format {f.attrs.get('format')!r})")
+    try:
+        f = h5py.File(path, "r")
+    except OSError as error:
+        raise ValueError(f"{path!r} is not a readable HDF5 bed file (truncated or another format): {error}") from None
+    if f.attrs.get("format") != BED_FORMAT:
+        f.close()
+        raise ValueError(f"{path!r} is not a regolith-cosim bed file (format {f.attrs.get('format')!r})")
+    return f
+
+
+def read_bed_header(path) -> dict:
+    """What a saved bed was made of, without its state: {'gravity' [m/s^2] (3,), 'materials'
+    (list of Material, the grains' first), 'metrics' (dict), 'particle_count'}."""
+    with _open_bed(path) as f:
+        return {"gravity": np.asarray(f.attrs["gravity"], dtype=np.float64),
+                "materials": [Material(**values) for values in json.loads(f.attrs["materials"])],
+                "metrics": {k[len("metric_"):]: f.attrs[k] for k in f.attrs if k.startswith("metric_")},
+                "particle_count": int(f["particles/radius"].shape[0])}
+
+
+def load_bed(path) -> tuple[SoilBuilder, dict]:
+    """Read a saved bed: a SoilBuilder with the grains and walls (add wheels to it, then
+    finalize) and the saved state for `restore_state`."""
+    path = os.fspath(path)
+    with _open_bed(path) as f:
         builder = SoilBuilder(gravity=np.asarray(f.attrs["gravity"]))
         for values in json.loads(f.attrs["materials"]):
             builder.add_material(Material(**values))

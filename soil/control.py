@@ -79,3 +79,14 @@ class SoilControl:
         self.body_velocity.assign(self.body_velocity_host.astype(np_type))
         self.body_angular_velocity.assign(self.body_angular_velocity_host.astype(np_type))
         self._dirty = False
+
+    def state_dict(self) -> dict:
+        """The prescribed body motion (host copies), numpy arrays."""
+        return {name: getattr(self, name).copy() for name in ("body_position_host", "body_rotation_host",
+                                                               "body_velocity_host", "body_angular_velocity_host")}
+
+    def load_state_dict(self, data: dict) -> None:
+        for name, value in data.items():
+            getattr(self, name)[...] = value
+        self._dirty = True
+        self.push()

@@ -167,6 +167,22 @@ class Simulation:
         counts.update(dt_smallest=smallest, dt_largest=largest, dt_next=dt)
         return counts
 
+    # -- checkpoints ------------------------------------------------------------------
+    def state_dict(self) -> dict:
+        """Everything a bitwise continuation needs: the state arrays (history included), the
+        step count and the control's body motion (numpy arrays and scalars only)."""
+        out = {f"state/{k}": v for k, v in self.state.to_numpy().items()}
+        out["steps"] = self.steps
+        out.update({f"control/{k}": v for k, v in self.control.state_dict().items()})
+        return out
+
+    def load_state_dict(self, data: dict) -> None:
+        self.state.load_numpy({k[len("state/"):]: v for k, v in data.items() if k.startswith("state/")})
+        if self._next.capacity < self.state.capacity:
+            self._next.grow_capacity(self.state.capacity)
+        self.steps = int(data["steps"])
+        self.control.load_state_dict({k[len("control/"):]: v for k, v in data.items() if k.startswith("control/")})
+
     def check_finite(self) -> None:
         """Raise SimulationDiverged if any particle position or velocity is not finite."""
         x = self.state.position.numpy()

@@ -24,3 +24,14 @@ DEVICES = _devices()
 def device(request):
     """Each test that takes `device` runs on the CPU and, when present, on CUDA."""
     return request.param
+
+
+@pytest.fixture(scope="session")
+def tiny_bed(tmp_path_factory):
+    """The tiny scene's settled bed (tests/helpers.py TINY_SCENE), settled once per session."""
+    from cosim.beds import settled_bed
+    from cosim.plan import load_plan
+    from helpers import write_tiny
+
+    folder = tmp_path_factory.mktemp("tiny_bed")
+    return settled_bed(load_plan(write_tiny(folder)), str(folder)).path

@@ -1,4 +1,4 @@
-"""Small scene makers shared by the physics tests (closed-form setups only)."""
+"""Helpers shared by the tests: closed-form physics setups and a tiny single-wheel scene."""
 
 import math
 
@@ -33,3 +33,56 @@ def effective_modulus(a: Material, b: Material):
 
 def frictionless(**kw):
     return ContactLaw(friction=False, **kw)
+
+
+# -- the tiny single-wheel scene of the tool tests ------------------------------------------
+# About 300 grains and under a second simulated. It is deliberately coarse (3 grains across
+# the wheel: `cosim advise` says so): the tool tests need a run that lands, drives and writes
+# every output in seconds, not a valid traction number.
+TINY_SCENE = """
+[scene]
+name = "tiny"
+gravity = "moon"
+precision = "mixed"
+
+[soil]
+youngs_modulus = 1.0e6
+
+[bed]
+length = 0.12
+width = 0.06
+depth = 0.026
+radius_mean = 0.0035
+settle_max_time = 1.0
+settle_ke_ratio = 0.005
+
+[wheel]
+radius = 0.025
+width = 0.02
+grouser_count = 8
+grouser_height = 0.003
+grouser_thickness = 0.002
+
+[testbed]
+mass = 0.3
+omega = 1.0
+
+[landing]
+max_time = 1.5
+
+[run]
+duration = 0.12
+macro_step = 0.0017
+
+[output]
+snapshot_interval = 0.03
+checkpoint_interval = 0.03
+flush_every = 7
+"""
+
+
+def write_tiny(folder, extra: str = "", name: str = "tiny.toml") -> str:
+    """Write the tiny scene (plus `extra` TOML) to folder/name; returns the path."""
+    path = folder / name
+    path.write_text(TINY_SCENE + extra)
+    return str(path)

@@ -10,22 +10,20 @@ import textwrap
 import numpy as np
 import pytest
 
-from cosim.output import (REQUIRED_ATTRIBUTES, RESULTS_FORMAT, ResultsWriter, documented_layout, open_results,
-                          xdmf_references)
+from cosim.output import (REQUIRED_ATTRIBUTES, RESULTS_FORMAT, WHEEL_SERIES, ResultsWriter, documented_layout,
+                          open_results, xdmf_references)
+from cosim.plan import load_plan
 from cosim.scene import scene_from_text
-from cosim_tiny import write_tiny
+from helpers import write_tiny
 
 
 @pytest.fixture(scope="module")
-def tiny_run(tmp_path_factory):
-    import warp as wp
-
+def tiny_run(tmp_path_factory, tiny_bed):
     from cosim.runner import run_scene
 
-    wp.config.log_level = max(wp.config.log_level, wp.LOG_WARNING)  # no per-module load lines
     folder = tmp_path_factory.mktemp("output")
-    result = run_scene(write_tiny(folder), str(folder / "run"), progress=False, log=None)
-    assert result.status == "complete"
+    result = run_scene(write_tiny(folder), str(folder / "run"), overrides=[f'bed.bed_file="{tiny_bed}"'])
+    assert result.status in ("complete", "unsteady")
     return folder / "run"
 
 
@@ -50,18 +48,38 @@ def test_layout_matches_the_documentation(tiny_run):
             assert dataset.dtype.kind == kind, name
         for key in REQUIRED_ATTRIBUTES:
             assert key in f.attrs, key
-        assert f.attrs["format"] == RESULTS_FORMAT and f.attrs["status"] == "complete"
+        assert f.attrs["format"] == RESULTS_FORMAT and f.attrs["status"] in ("complete", "unsteady")
         assert json.loads(f["rover/state"].attrs["columns"])[0] == "x"
+        assert len(json.loads(f["rover/state"].attrs["units"])) == f["rover/state"].shape[1]
         assert "warp-lang" in json.loads(f.attrs["versions"])
-        scene = scene_from_text(f.attrs["scene_toml"], check_files=False)
+        scene = scene_from_text(f.attrs["scene_toml"])
         assert scene.scene.name == "tiny"
-        # the time series are consistent with each other
+        summary = json.loads(f.attrs["summary"])
+        assert summary["macro_steps"] == steps and "steady_state" in summary
+        # the time series are consistent with each other and with the definitions of cosim.metrics
         assert np.all(np.diff(f["wheels/time"][()]) > 0)
+        phase = f["wheels/phase"][()]
+        assert phase[0] == 0 and phase[-1] == 1 and np.all(np.diff(phase) >= 0)  # landing, then the drive
         np.testing.assert_allclose(f["wheels/drawbar_pull"][:, 0], f["wheels/force"][:, 0, 0])
-        np.testing.assert_allclose(f["wheels/travel"][:, 0], f["wheels/position"][:, 0, 0]
-                                   - f.attrs["start_position"][0])
-        assert steps == scene.macro_step_count()
-        assert snapshots == 1 + int(np.ceil(steps / round(0.03 / f.attrs["macro_step"])))
+        np.testing.assert_allclose(f["wheels/driving_torque"][:, 0], -f["wheels/torque"][:, 0, 1])
+        start = f["wheels/position"][np.argmax(phase == 1) - 1, 0, 0]
+        np.testing.assert_allclose(f["wheels/travel"][phase == 1, 0], f["wheels/position"][phase == 1, 0, 0] - start)
+        assert np.all(np.isnan(f["wheels/slip"][phase == 0, 0]))  # the wheel does not turn while landing
+        assert steps - np.sum(phase == 0) == load_plan(tiny_run / "scene.toml").drive_steps
+
+
+def test_every_dataset_carries_its_unit(tiny_run):
+    import h5py
+
+    missing = []
+    with open_results(tiny_run / "results.h5") as f:
+        def visit(name, obj):
+            if isinstance(obj, h5py.Dataset) and not obj.attrs.get("units"):
+                missing.append(name)
+        f.visititems(visit)
+        assert f["wheels/force"].attrs["units"] == "N" and f["wheels/slip"].attrs["units"] == "1"
+        assert f["particles/position"].attrs["units"] == "m"
+    assert not missing, missing
 
 
 def test_xdmf_references_existing_datasets(tiny_run):
@@ -93,14 +111,12 @@ def test_xdmf_references_existing_datasets(tiny_run):
 def _writer(path, flush_every=3):
     return ResultsWriter.create(path, attrs={"name": "t"}, radius=np.ones(4), wheel_count=1,
                                 mesh=(np.eye(3), np.array([[0, 1, 2]]), np.zeros(3, int)),
-                                rover_columns=["x"], flush_every=flush_every)
+                                rover_columns=["x"], rover_units=["m"], flush_every=flush_every)
 
 
 def _record(t):
-    from cosim.output import WHEEL_SERIES
-
-    record = {"time": t, "rover_state": [t]}
-    for name, (tail, _) in WHEEL_SERIES.items():
+    record = {"time": t, "phase": 1, "rover_state": [t]}
+    for name, (tail, *_) in WHEEL_SERIES.items():
         record[name] = np.full((1,) if tail is None else (1, tail), t)
     return record
 
@@ -145,4 +161,14 @@ def test_killed_writer_leaves_a_readable_file(tmp_path):
         assert f.attrs["status"] == "running"
         times = f["wheels/time"][()]
         assert list(times) == [float(k) for k in range(10)]
+        assert f["particles/position"].shape == (1, 4, 3)
+    # a resume needs no repair tool: the first 8 records and the snapshot go on in a fresh file
+    writer = ResultsWriter.resume(path, steps=8, snapshots=1, flush_every=4)
+    for k in range(8, 11):
+        writer.append_step(_record(100.0 + k))
+    writer.close("complete")
+    with open_results(path) as f:
+        assert f.attrs["status"] == "complete"
+        assert list(f["wheels/time"][()]) == [float(k) for k in range(8)] + [108.0, 109.0, 110.0]
+        assert f["wheels/force"].shape == (11, 1, 3) and f["wheels/force"].attrs["units"] == "N"
         assert f["particles/position"].shape == (1, 4, 3)

@@ -1,4 +1,4 @@
-"""Scene files: every kind of mistake is rejected with a message naming the field."""
+"""Scene files and plans: every kind of mistake is rejected with a message naming the field."""
 
 import glob
 import os
@@ -6,8 +6,9 @@ import os
 import pytest
 
 from cosim.cli import main
+from cosim.plan import load_plan
 from cosim.scene import SceneError, load_scene, scene_from_text
-from cosim_tiny import TINY_SCENE, write_tiny
+from helpers import TINY_SCENE, write_tiny
 
 EXAMPLES = os.path.join(os.path.dirname(__file__), "..", "examples")
 
@@ -41,14 +42,23 @@ BAD_SCENES = [
     ("unknown coupling scheme", "[run]\nscheme = \"newton\"\n", "run.scheme", "gauss-seidel"),
     ("grousers thicker than their spacing", "[wheel]\ngrouser_count = 60\ngrouser_thickness = 0.004\n",
      "wheel.grouser_thickness", "spacing"),
+    # every number must be finite: inf and nan are named, not accepted
+    ("infinite bed length", "[bed]\nlength = inf\n", "bed.length", "finite"),
+    ("nan omega", "[testbed]\nomega = nan\n", "testbed.omega", "finite"),
+    ("nan start position", "[testbed]\nstart_x = nan\n", "testbed.start_x", "finite"),
+    ("infinite drawbar load", "[testbed]\ndrawbar_load = inf\n", "testbed.drawbar_load", "finite"),
+    ("infinite snapshot interval", "[output]\nsnapshot_interval = inf\n", "output.snapshot_interval", "finite"),
+    ("negative seed", "[bed]\nseed = -1\n", "bed.seed", ">= 0"),
+    ("negative order seed", "[run]\norder_seed = -3\n", "run.order_seed", ">= 0"),
+    ("omega zero", "[testbed]\nomega = 0.0\n", "testbed.omega", "> 0"),
+    ("landing without gravity", "[scene]\ngravity = 0.0\n", "landing.enabled", "gravity"),
 ]
 
 
 def _merge(extra: str) -> str:
     """The tiny scene with the sections in `extra` replacing keys of the same section."""
+    import tomli_w
     import tomllib
-
-    from cosim.scene import dump_toml
 
     data = tomllib.loads(TINY_SCENE)
     try:
@@ -62,7 +72,7 @@ def _merge(extra: str) -> str:
             data[section].update(values)
         else:
             data[section] = values
-    return dump_toml(data)
+    return tomli_w.dumps(data)
 
 
 @pytest.mark.parametrize("what,extra,field,allowed", BAD_SCENES, ids=[b[0] for b in BAD_SCENES])
@@ -70,7 +80,7 @@ def test_bad_scene_is_rejected_naming_the_field(tmp_path, what, extra, field, al
     path = tmp_path / "bad.toml"
     path.write_text(_merge(extra))
     with pytest.raises(SceneError) as info:
-        load_scene(path)
+        load_plan(path)
     message = str(info.value)
     assert field in message, message
     assert allowed in message, message
@@ -90,7 +100,7 @@ def test_several_problems_are_all_listed(tmp_path):
     path = tmp_path / "bad.toml"
     path.write_text(_merge("[wheel]\nradius = -1.0\n[bed]\nlenght = 1.0\n"))
     with pytest.raises(SceneError) as info:
-        load_scene(path)
+        load_plan(path)
     assert len(info.value.problems) == 2
 
 
@@ -105,9 +115,14 @@ def test_set_overrides_and_toml_round_trip(tmp_path):
 
 
 def test_time_steps_make_whole_macro_steps(tmp_path):
-    scene = load_scene(write_tiny(tmp_path), ["run.macro_step=0.001"])
-    dt, h, substeps = scene.time_steps()
-    assert h == 0.001 and substeps * dt == pytest.approx(h, rel=1e-12) and dt <= 0.2 * scene.rayleigh_step()
+    from soil.advisor import rayleigh_time_step
+
+    plan = load_plan(write_tiny(tmp_path), ["run.macro_step=0.001"])
+    m = plan.soil_material
+    rayleigh = rayleigh_time_step(m.youngs_modulus, m.poisson_ratio, m.density, 0.0035 * 0.8)
+    assert plan.macro_step == 0.001 and plan.substeps * plan.dt == pytest.approx(0.001, rel=1e-12)
+    assert plan.dt <= 0.2 * rayleigh and plan.dt_setting == "run.dt_factor"
+    assert load_plan(write_tiny(tmp_path), ["run.dt=1e-4"]).dt_setting == "run.dt"
 
 
 def test_mesh_wheel_scene(tmp_path):
@@ -118,12 +133,42 @@ def test_mesh_wheel_scene(tmp_path):
                                        grouser_thickness=0.002).to_mesh(arc_segments=64)
     MeshWheel(vertices, triangles).save(tmp_path / "wheel.obj")
     (tmp_path / "mesh.toml").write_text(_merge('[wheel]\ntype = "mesh"\nfile = "wheel.obj"\n'))
-    scene = load_scene(tmp_path / "mesh.toml")
-    outer, width, _ = scene.wheel_extent()
-    assert outer == pytest.approx(0.028, rel=0.02) and width == pytest.approx(0.02)
+    plan = load_plan(tmp_path / "mesh.toml")
+    assert plan.wheel.outer_radius == pytest.approx(0.028, rel=0.02) and plan.wheel.width == pytest.approx(0.02)
+    (tmp_path / "broken.obj").write_text("v 0 0 0\nv 1 0 0\nf 1 2 3\n")
+    (tmp_path / "broken.toml").write_text(_merge('[wheel]\ntype = "mesh"\nfile = "broken.obj"\n'))
+    with pytest.raises(SceneError, match="wheel.file"):
+        load_plan(tmp_path / "broken.toml")
 
 
 @pytest.mark.parametrize("path", sorted(glob.glob(os.path.join(EXAMPLES, "*.toml"))))
 def test_examples_are_valid(path):
-    scene = load_scene(path)
-    assert scene.macro_step_count() >= 1
+    plan = load_plan(path, ['scene.device="cpu"'])
+    assert plan.drive_steps >= 1
+
+
+def test_a_bed_file_of_another_soil_or_gravity_is_refused(tmp_path, tiny_bed):
+    """A saved bed brings its own grains: a scene whose [soil] or gravity differs is refused, naming both."""
+    plan = load_plan(write_tiny(tmp_path), [f'bed.bed_file="{tiny_bed}"'])
+    assert plan.bed.bed_file == str(tiny_bed)
+    with pytest.raises(SceneError, match=r"bed.bed_file: .*youngs_modulus 1000000.0 in the file vs 2000000.0"):
+        load_plan(write_tiny(tmp_path), [f'bed.bed_file="{tiny_bed}"', "soil.youngs_modulus=2e6"])
+    with pytest.raises(SceneError, match=r"bed.bed_file: the bed was settled under gravity"):
+        load_plan(write_tiny(tmp_path), [f'bed.bed_file="{tiny_bed}"', 'scene.gravity="mars"'])
+
+
+@pytest.mark.parametrize("content", [b"not an hdf5 file", b"\x89HDF\r\n\x1a\n" + b"\0" * 40])
+def test_a_bed_file_that_is_not_a_bed_is_refused(tmp_path, content):
+    bad = tmp_path / "bad.h5"
+    bad.write_bytes(content)
+    with pytest.raises(SceneError, match=r"bed.bed_file: .*bad.h5"):
+        load_plan(write_tiny(tmp_path), [f'bed.bed_file="{bad}"'])
+
+
+def test_a_missing_cuda_device_is_a_scene_error(tmp_path):
+    import warp as wp
+
+    if wp.is_cuda_available():
+        pytest.skip("this machine has a GPU")
+    with pytest.raises(SceneError, match=r"scene.device: 'cuda' asked for.*it has: cpu"):
+        load_plan(write_tiny(tmp_path), ['scene.device="cuda"'])

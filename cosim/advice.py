@@ -1,0 +1,153 @@
+"""Is a scene a valid wheel test? Its dimensionless numbers against what the physics needs.
+
+`check(plan, surface_height=None, result=None)` returns one Finding per check; each names
+the scene setting that changes it. `cosim advise` prints them, every run logs them at its
+start and stores them in results.h5 and run.json, and after a run the measured sinkage
+is checked against the floor.
+
+    froude          Fr = omega^2 r_outer / |g| <= FROUDE_LIMIT: above it the wheel hops
+                    (measured on the testbed: docs/validity.md)
+    contact_steps   Hertz contact time of two grains at the impact speed / dt >= CONTACT_STEPS
+    grains_across   wheel width / grain diameter >= GRAINS_ACROSS
+    bed_depth       settled bed depth / wheel outer radius >= DEPTH_RADII (the stress bulb under
+                    a wheel reaches about one wheel radius into the soil)
+    floor_clearance soil between the grouser tips and the floor, at the start and at the measured
+                    sinkage, >= FLOOR_GRAINS grain diameters
+    wall_clearance  side gap wheel-wall >= WALL_GRAINS grain diameters; far wall after the drive
+    overlap         Young's modulus >= the paper's eq. 10 bound for overlaps <= OVERLAP_RATIO r
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import asdict, dataclass
+
+from soil import advisor
+
+from .plan import RunPlan
+
+FROUDE_LIMIT = 0.05
+"""Largest Froude number omega^2 r / |g| of a quasi-static wheel test [-] (docs/validity.md)."""
+CONTACT_STEPS = 10
+"""Fewest DEM steps per grain-grain contact time [-]."""
+GRAINS_ACROSS = 8
+"""Fewest grain diameters across the wheel width [-]."""
+DEPTH_RADII = 1.0
+"""Shallowest settled bed, in wheel outer radii [-]."""
+FLOOR_GRAINS = 4
+"""Fewest grain diameters between the grouser tips and the floor [-]."""
+WALL_GRAINS = 4
+"""Fewest grain diameters between the wheel and a side or end wall [-]."""
+OVERLAP_RATIO = 0.01
+"""Largest static overlap / radius the stiffness should allow (eq. 10's u) [-]."""
+
+
+@dataclass(frozen=True)
+class Finding:
+    """One validity check."""
+
+    check: str
+    value: float
+    limit: float
+    ok: bool
+    message: str
+    setting: str
+    """The scene key(s) to change."""
+
+    def as_dict(self) -> dict:
+        return asdict(self)
+
+
+def _finding(check, value, limit, ok, good, bad, setting) -> Finding:
+    return Finding(check, float(value), float(limit), bool(ok), good if ok else bad, setting)
+
+
+def ground_pressure(plan: RunPlan) -> float:
+    """Wheel ground pressure [Pa]: the load over the width times a contact length 2 sqrt(2 R s)
+    at a sinkage s of one mean grain radius."""
+    w = plan.wheel
+    length = 2.0 * math.sqrt(2.0 * w.outer_radius * plan.bed.spec.radius_mean)
+    return plan.wheel_load / (w.width * length)
+
+
+def check(plan: RunPlan, surface_height: float | None = None, sinkage_tips: float | None = None) -> list[Finding]:
+    """The validity findings of a plan; the settled surface height [m] and the measured tip
+    sinkage [m] sharpen the depth and floor checks when known."""
+    spec, wheel, t = plan.bed.spec, plan.wheel, plan.testbed
+    diameter = 2.0 * spec.radius_mean
+    g = plan.g
+    findings = []
+
+    fr = plan.froude_number
+    findings.append(_finding(
+        "froude", fr, FROUDE_LIMIT, fr <= FROUDE_LIMIT,
+        f"Froude number omega^2 r / g = {fr:.3g} <= {FROUDE_LIMIT}: quasi-static",
+        f"Froude number omega^2 r / g = {fr:.3g} > {FROUDE_LIMIT}: the wheel hops at this speed and gravity; "
+        f"lower testbed.omega to <= {math.sqrt(FROUDE_LIMIT * g / wheel.outer_radius):.3g} rad/s",
+        "testbed.omega"))
+
+    material = plan.soil_material
+    smallest = spec.radius_mean * (1 - spec.radius_spread)
+    depth_now = surface_height if surface_height is not None else spec.depth
+    speed = math.sqrt(2 * g * max(depth_now, smallest)) + t.omega * wheel.outer_radius
+    contact = advisor.hertz_contact_time(material.youngs_modulus, material.poisson_ratio, material.density,
+                                         smallest, max(speed, 1e-12))
+    steps = contact / plan.dt
+    findings.append(_finding(
+        "contact_steps", steps, CONTACT_STEPS, steps >= CONTACT_STEPS,
+        f"{steps:.3g} DEM steps per contact time ({contact:.3g} s at {speed:.3g} m/s)",
+        f"only {steps:.3g} DEM steps per contact time ({contact:.3g} s): contacts are under-resolved; lower "
+        f"{plan.dt_setting} so dt <= {contact / CONTACT_STEPS:.3g} s", plan.dt_setting))
+
+    across = wheel.width / diameter
+    findings.append(_finding(
+        "grains_across", across, GRAINS_ACROSS, across >= GRAINS_ACROSS,
+        f"{across:.3g} grain diameters across the wheel",
+        f"only {across:.3g} grain diameters across the wheel width: the grains are too coarse for the wheel "
+        f"(>= {GRAINS_ACROSS} needed); lower bed.radius_mean to <= {wheel.width / (2 * GRAINS_ACROSS):.3g} m or "
+        "widen the wheel", "bed.radius_mean, wheel.width"))
+
+    depth = surface_height if surface_height is not None else spec.depth
+    estimated = "" if surface_height is not None else " (fill height; the settled bed is lower)"
+    radii = depth / wheel.outer_radius
+    findings.append(_finding(
+        "bed_depth", radii, DEPTH_RADII, radii >= DEPTH_RADII,
+        f"bed depth {depth:.3g} m = {radii:.3g} wheel radii{estimated}",
+        f"the bed is {depth:.3g} m deep{estimated}, {radii:.3g} wheel radii: the floor carries part of the "
+        f"wheel's load; deepen bed.depth to >= {DEPTH_RADII * wheel.outer_radius / 0.85:.3g} m", "bed.depth"))
+
+    sink = max(sinkage_tips or 0.0, 0.0)
+    clearance = (depth - sink) / diameter
+    when = f"at the measured tip sinkage {sink:.3g} m" if sinkage_tips is not None else "at the start"
+    findings.append(_finding(
+        "floor_clearance", clearance, FLOOR_GRAINS, clearance >= FLOOR_GRAINS,
+        f"{clearance:.3g} grain diameters between the grouser tips and the floor {when}",
+        f"only {clearance:.3g} grain diameters between the grouser tips and the floor {when}: the wheel feels the "
+        "floor; deepen bed.depth", "bed.depth"))
+
+    side = (spec.width - wheel.width) / 2 / diameter
+    end = (spec.length - (t.start_x + wheel.outer_radius
+                          + t.omega * wheel.outer_radius * plan.scene.run.duration)) / diameter
+    walls = min(side, end)
+    findings.append(_finding(
+        "wall_clearance", walls, WALL_GRAINS, walls >= WALL_GRAINS,
+        f"wheel-wall clearance >= {walls:.3g} grain diameters (side {side:.3g}, far end {end:.3g})",
+        f"the wheel comes within {walls:.3g} grain diameters of a wall (side {side:.3g}, far end after the drive "
+        f"{end:.3g}): widen bed.width or lengthen bed.length", "bed.width, bed.length"))
+
+    pressure = ground_pressure(plan)
+    bound = advisor.macroscopic_stiffness(depth, pressure, OVERLAP_RATIO, spec.radius_mean, material.density, g)
+    ratio = material.youngs_modulus / bound if bound > 0 else math.inf
+    findings.append(_finding(
+        "overlap", ratio, 1.0, ratio >= 1.0,
+        f"E = {material.youngs_modulus:.3g} Pa is {ratio:.3g} x the eq. 10 bound {bound:.3g} Pa (overlaps <= "
+        f"{OVERLAP_RATIO} r under the wheel's {pressure:.3g} Pa)",
+        f"E = {material.youngs_modulus:.3g} Pa is below the eq. 10 bound {bound:.3g} Pa: overlaps exceed "
+        f"{OVERLAP_RATIO} r under the wheel; raise soil.youngs_modulus", "soil.youngs_modulus"))
+    return findings
+
+
+def verdict(findings: list[Finding]) -> str:
+    """'valid' or the failed checks, comma-separated."""
+    failed = [f.check for f in findings if not f.ok]
+    return "valid" if not failed else "out of range: " + ", ".join(failed)

@@ -1,0 +1,140 @@
+"""The settled bed of a run: a saved bed file, or one settled now and cached in a folder.
+
+A bed settled for a plan is written to FOLDER/bed.h5 with FOLDER/bed.json beside it
+(its cache key, settling report and metrics). A later run whose plan has the same bed
+key (bed geometry, grains, soil material, gravity, device kind) reuses it.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+import time
+from dataclasses import dataclass, field
+
+from soil.files import atomic_write_text
+
+from .plan import RunPlan
+from .scene import SceneError
+
+BED_FILE = "bed.h5"
+BED_INFO_FILE = "bed.json"
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class Bed:
+    """A settled bed on disk."""
+
+    path: str
+    """The bed file (HDF5, soil.bed.save_bed)."""
+    surface_height: float
+    """Undisturbed surface z [m] (the bed's height metric)."""
+    info: dict = field(default_factory=dict)
+    """source ('file' | 'cache' | 'settled'), metrics, settling report, wall time [s]."""
+
+
+def write_json(path: str, data: dict) -> None:
+    """Write a JSON file atomically (numpy scalars and arrays allowed)."""
+    atomic_write_text(path, json.dumps(data, indent=2, default=_json_default) + "\n")
+
+
+def _json_default(value):
+    import numpy as np
+
+    if isinstance(value, np.generic):
+        return value.item()
+    if isinstance(value, np.ndarray):
+        return value.tolist()
+    raise TypeError(type(value).__name__)
+
+
+def bed_from_file(path: str, setting: str = "bed.bed_file") -> Bed:
+    """A saved bed; SceneError naming `setting` when it is unreadable or has no height metric."""
+    from soil.bed import read_bed_header
+
+    try:
+        header = read_bed_header(path)
+    except (OSError, ValueError) as error:
+        raise SceneError([f"{setting}: {error}"]) from None
+    if "height" not in header["metrics"]:
+        raise SceneError([f"{setting}: {path!r} has no surface height metric (save beds with soil.bed.save_bed "
+                          "and bed metrics)"])
+    return Bed(path, float(header["metrics"]["height"]),
+               {"source": "file", "path": path, "metrics": {k: _plain(v) for k, v in header["metrics"].items()},
+                "particle_count": header["particle_count"]})
+
+
+def _plain(value):
+    return value.item() if hasattr(value, "item") else value
+
+
+def settled_bed(plan: RunPlan, folder: str, progress: bool = False) -> Bed:
+    """The plan's bed: its bed_file, else a cached bed in `folder` with the same key, else
+    one settled now (double precision, on the plan's device) and saved there."""
+    if plan.bed.bed_file:
+        return bed_from_file(plan.bed.bed_file)
+    path = os.path.join(folder, BED_FILE)
+    info_path = os.path.join(folder, BED_INFO_FILE)
+    if os.path.isfile(path) and os.path.isfile(info_path):
+        try:
+            with open(info_path) as f:
+                info = json.load(f)
+        except (OSError, ValueError):
+            info = {}
+        if info.get("key") == plan.bed.key:
+            log.info("reusing the settled bed %s (key %s)", path, plan.bed.key)
+            return Bed(path, float(info["metrics"]["height"]), {**info, "source": "cache"})
+    return _settle(plan, path, info_path, progress)
+
+
+def _settle(plan: RunPlan, path: str, info_path: str, progress: bool) -> Bed:
+    from soil.bed import bed_metrics, make_settled_bed, save_bed
+
+    bed = plan.bed
+    bar = _SettleBar(bed.settle_max_time, progress)
+    start = time.perf_counter()
+    try:
+        sim, report, metrics = make_settled_bed(bed.spec, plan.gravity, device=plan.device, precision="double",
+                                                dt=bed.settle_dt, ke_ratio=bed.settle_ke_ratio,
+                                                max_time=bed.settle_max_time, progress=bar.update)
+    finally:
+        bar.close()
+    wall = time.perf_counter() - start
+    if not report["settled"]:
+        log.warning("the bed did not reach the kinetic-energy threshold in bed.settle_max_time = %g s (KE %.3g J > "
+                    "%.3g J); it is used as it is (raise bed.settle_max_time or bed.settle_ke_ratio)",
+                    bed.settle_max_time, report["kinetic_energy"], report["threshold"])
+    metrics = bed_metrics(sim, bed.spec)
+    save_bed(path, sim, bed.spec, metrics)
+    info = {"key": bed.key, "report": report, "metrics": metrics, "dt": bed.settle_dt, "wall_time": wall,
+            "particle_count": sim.model.particle_count}
+    write_json(info_path, info)
+    log.info("settled %d grains in %.1f s wall (%.3g s simulated); surface at z = %.4g m, packing %.3f",
+             sim.model.particle_count, wall, report["time"], metrics["height"], metrics["packing_fraction"])
+    return Bed(path, float(metrics["height"]), {**info, "source": "settled"})
+
+
+class _SettleBar:
+    """tqdm progress of the settling (simulated seconds, KE against its threshold)."""
+
+    def __init__(self, total: float, enabled: bool):
+        self.bar = None
+        self._last = 0.0
+        if enabled:
+            from tqdm import tqdm
+
+            self.bar = tqdm(total=total, desc="settling bed", unit="s",
+                            bar_format="{desc}: {n:.2f}/{total:.2f} s sim [{elapsed}, {postfix}]", leave=True)
+
+    def update(self, t, energy, threshold):
+        if self.bar is not None:
+            self.bar.update(t - self._last)
+            self._last = t
+            self.bar.set_postfix_str(f"KE/threshold {energy / max(threshold, 1e-300):.3g}")
+
+    def close(self):
+        if self.bar is not None:
+            self.bar.close()

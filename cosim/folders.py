@@ -1,0 +1,123 @@
+"""A run's output folder: its files, its lock, and the rules for replacing a run.
+
+    scene.toml        the scene as run (overrides applied)
+    run.json          status, summary, validity findings, wall time
+    bed.h5, bed.json  the settled bed (a cache kept across --overwrite)
+    results.h5        time series and particle snapshots (cosim.output)
+    results.xdmf      ParaView view of the snapshots
+    checkpoint.npz    what `cosim resume` continues from (written atomically)
+    diverged_state.npz  the last good soil state when the DEM exploded
+    plots/            `cosim plot`
+    .lock             held while a process runs or resumes the folder
+
+A folder in use by another process is refused (FolderInUseError): the lock is an OS file
+lock, released when its process ends, even by kill -9. A folder holding a run is only
+replaced with overwrite=True, and only after the new run has been validated and built
+(the caller calls `clear_run` at that point).
+"""
+
+from __future__ import annotations
+
+import os
+import shutil
+
+from filelock import FileLock, Timeout
+
+from soil.errors import RegolithError
+
+RESULTS_FILE = "results.h5"
+XDMF_FILE = "results.xdmf"
+CHECKPOINT_FILE = "checkpoint.npz"
+RUN_FILE = "run.json"
+SCENE_FILE = "scene.toml"
+DIVERGED_FILE = "diverged_state.npz"
+PLOTS_DIR = "plots"
+LOCK_FILE = ".lock"
+RUN_OUTPUTS = (RESULTS_FILE, XDMF_FILE, CHECKPOINT_FILE, RUN_FILE, SCENE_FILE, DIVERGED_FILE, PLOTS_DIR)
+"""What a run writes (the bed cache and foreign files are not among them)."""
+
+
+class OutputFolderError(RegolithError, OSError):
+    """The output folder cannot be used as asked."""
+
+
+class OutputExistsError(OutputFolderError, FileExistsError):
+    """The output folder already holds a run and overwrite was not asked for."""
+
+
+class FolderInUseError(OutputFolderError):
+    """Another process is running or resuming a run in this folder."""
+
+
+class RunFolder:
+    """Paths and lock of one run folder. Use `with RunFolder(path).locked(): ...`."""
+
+    def __init__(self, path: str | os.PathLike):
+        self.path = os.path.abspath(os.fspath(path))
+        self._lock: FileLock | None = None
+
+    def file(self, name: str) -> str:
+        """Absolute path of a file of the folder."""
+        return os.path.join(self.path, name)
+
+    @property
+    def results(self) -> str:
+        return self.file(RESULTS_FILE)
+
+    @property
+    def checkpoint(self) -> str:
+        return self.file(CHECKPOINT_FILE)
+
+    def create(self) -> None:
+        """Make the folder (and its parents); a clear error when the path names a file or lies below one."""
+        if os.path.exists(self.path) and not os.path.isdir(self.path):
+            raise OutputFolderError(f"output folder {self.path!r} exists and is a file, not a folder: choose another "
+                                    "--out")
+        try:
+            os.makedirs(self.path, exist_ok=True)
+        except (NotADirectoryError, FileExistsError):
+            raise OutputFolderError(f"cannot create the output folder {self.path!r}: a part of the path is a file, "
+                                    "not a folder") from None
+
+    def locked(self) -> "RunFolder":
+        """Take the folder's lock (FolderInUseError when another process holds it); a context manager."""
+        self.create()
+        lock = FileLock(self.file(LOCK_FILE))
+        try:
+            lock.acquire(timeout=0)
+        except Timeout:
+            raise FolderInUseError(f"output folder {self.path!r} is in use by another run (it holds "
+                                   f"{LOCK_FILE}); wait for it to finish, stop it, or choose another --out") from None
+        self._lock = lock
+        return self
+
+    def __enter__(self) -> "RunFolder":
+        if self._lock is None:
+            self.locked()
+        return self
+
+    def __exit__(self, *exc) -> None:
+        if self._lock is not None:
+            self._lock.release()
+            self._lock = None
+
+    def run_files(self) -> list[str]:
+        """The run outputs present (sorted names)."""
+        return sorted(n for n in RUN_OUTPUTS if os.path.exists(self.file(n)))
+
+    def check_free(self, overwrite: bool) -> None:
+        """Refuse a folder holding a run unless overwrite (nothing is removed here)."""
+        present = self.run_files()
+        if present and not overwrite:
+            raise OutputExistsError(f"output folder {self.path!r} already holds a run ({', '.join(present)}); "
+                                    "nothing is overwritten: choose another --out, continue with `cosim resume`, or "
+                                    "pass --overwrite to replace the run (a cached bed.h5 is kept and reused)")
+
+    def clear_run(self) -> None:
+        """Remove the previous run's outputs (the bed cache and other files stay)."""
+        for name in RUN_OUTPUTS:
+            path = self.file(name)
+            if os.path.isdir(path):
+                shutil.rmtree(path)
+            elif os.path.exists(path):
+                os.remove(path)

@@ -1,0 +1,231 @@
+"""The terramechanics quantities, defined once, for the product and the tests alike.
+
+Per wheel and macro step (`wheel_quantities`), in the wheel's own frame (axle = the body's
++Y axis, forward = axle x up, so a wheel turning about +Y rolls towards +X):
+
+    travel          distance the hub moved forward since the drive started [m]
+    slip            s = 1 - v / (omega r): v the hub speed forward, omega the spin about the
+                    axle, r the rim radius [-] (nan while the wheel does not turn)
+    sinkage         undisturbed surface height - lowest point of the rim (hub z - r) [m]
+    sinkage_tips    the same for the grouser tips (hub z - outer radius) [m]
+    drawbar_pull    soil force on the wheel along the forward direction [N] (the net traction)
+    driving_torque  torque the drive supplies against the soil, -(soil torque . axle) [N m]
+    normal_force    soil force along -gravity [N] (carries the wheel load at rest)
+
+Over a run (`summarize`): a steady-state window is found in the driving phase by the MSER-5
+rule (White 1997: the truncation that minimises the standard error of the mean of what
+remains) applied to the forward speed (or, at imposed slip, the drawbar pull) and the
+sinkage; over that window slip = 1 - mean(v) / (mean(omega) r) from mean speeds, sinkage,
+drawbar pull, DP/W and torque are means. A run with no steady state gets a status saying
+why: 'never touched the soil', 'no landing', 'airborne', 'stuck' or 'too short'.
+
+Across replicas (`ensemble`): mean, standard deviation, a 95 % Student-t interval, and
+whether the metric is macroscopically deterministic (replica std within its tolerance).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from .contract import WheelKinematics, WheelWrench
+from .terrain import wheel_frame
+
+STEADY = "steady"
+NEVER_TOUCHED = "never touched the soil"
+NO_LANDING = "no landing"
+AIRBORNE = "airborne"
+STUCK = "stuck"
+TOO_SHORT = "too short"
+
+WHEEL_UNITS = {"travel": "m", "slip": "1", "sinkage": "m", "sinkage_tips": "m", "drawbar_pull": "N",
+               "driving_torque": "N m", "normal_force": "N"}
+"""Units of the per-wheel quantities."""
+
+
+@dataclass(frozen=True)
+class WheelGeometry:
+    """What the definitions need to know of a wheel and the ground."""
+
+    rim_radius: float
+    """r for slip and rim sinkage [m]."""
+    outer_radius: float
+    """Radius over the grouser tips [m]."""
+    surface_height: float
+    """Undisturbed soil surface z [m]."""
+    up: tuple[float, float, float] = (0.0, 0.0, 1.0)
+    """Unit vector against gravity [-]."""
+    axis_local: tuple[float, float, float] = (0.0, 1.0, 0.0)
+    """Spin axis in the wheel body frame [-]."""
+
+
+def slip_of(forward_speed, spin, rim_radius: float):
+    """Slip s = 1 - v / (omega r) [-]; nan where the wheel does not turn."""
+    rim = np.asarray(spin, dtype=float) * rim_radius
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return np.where(np.abs(rim) > 0, 1.0 - np.asarray(forward_speed, dtype=float) / rim, np.nan)
+
+
+def wheel_quantities(kinematics: WheelKinematics, wrench: WheelWrench, geometry: WheelGeometry,
+                     drive_start_position: np.ndarray | None) -> dict[str, float]:
+    """The quantities of the module docstring for one wheel at one instant (units: WHEEL_UNITS)."""
+    axis, forward = wheel_frame(kinematics.orientation, geometry.axis_local)
+    up = np.asarray(geometry.up)
+    v = float(kinematics.linear_velocity @ forward)
+    spin = float(kinematics.angular_velocity @ axis)
+    height = float(kinematics.position @ up)
+    travel = 0.0 if drive_start_position is None else float((kinematics.position - drive_start_position) @ forward)
+    return {
+        "travel": travel,
+        "slip": float(slip_of(v, spin, geometry.rim_radius)),
+        "sinkage": geometry.surface_height - (height - geometry.rim_radius),
+        "sinkage_tips": geometry.surface_height - (height - geometry.outer_radius),
+        "drawbar_pull": float(wrench.force @ forward),
+        "driving_torque": -float(wrench.torque @ axis),
+        "normal_force": float(wrench.force @ up),
+    }
+
+
+# ------------------------------------------------------------------------------------
+# steady state
+
+
+def mser_truncation(values: np.ndarray, batch: int = 5) -> int | None:
+    """MSER-5: the number of leading samples to drop so that the rest has the smallest
+    standard error of its mean, sum (Y_j - mean)^2 / (k - d)^2 over batch means Y_j.
+
+    None when the best truncation is past half the data (no steady state in the series).
+    """
+    values = np.asarray(values, dtype=float)
+    k = len(values) // batch
+    if k < 4:
+        return None
+    means = values[: k * batch].reshape(k, batch).mean(axis=1)
+    best, best_d = math.inf, 0
+    for d in range(k // 2 + 1):
+        rest = means[d:]
+        score = float(np.sum((rest - rest.mean()) ** 2)) / (k - d) ** 2
+        if score < best:
+            best, best_d = score, d
+    if best_d >= k // 2:
+        return None
+    return best_d * batch
+
+
+def steady_window(series: dict[str, np.ndarray], min_fraction: float = 0.25) -> tuple[int, bool]:
+    """(first sample of the steady window, found) over several series of equal length:
+    the latest MSER-5 truncation of any of them; found is False when a series never
+    settles or the window would be shorter than min_fraction of the data."""
+    n = len(next(iter(series.values())))
+    start = 0
+    for values in series.values():
+        cut = mser_truncation(values)
+        if cut is None:
+            return n, False
+        start = max(start, cut)
+    return start, (n - start) >= max(min_fraction * n, 4)
+
+
+def batch_standard_error(values: np.ndarray, batches: int = 8) -> float:
+    """Standard error of the mean of a correlated series from batch means [unit of values]."""
+    values = np.asarray(values, dtype=float)
+    b = len(values) // batches
+    if b < 1 or batches < 2:
+        return math.nan
+    means = values[: b * batches].reshape(batches, b).mean(axis=1)
+    return float(np.std(means, ddof=1) / math.sqrt(batches))
+
+
+def summarize(series: dict, *, rim_radius: float, wheel_load: float, mode: str = "free",
+              landed: bool = True, min_fraction: float = 0.25) -> dict:
+    """Steady-state metrics of one wheel from written series (cosim.output.read_series keys:
+    time, phase, linear_velocity, angular_velocity, slip, sinkage, sinkage_tips, drawbar_pull,
+    driving_torque, normal_force, travel, contact_count; per-wheel arrays (S, W)), wheel 0.
+
+    Returns {'steady_state': status, 'window': [t0, t1] [s], and over the window: 'slip' [-],
+    'sinkage', 'sinkage_tips' [m], 'drawbar_pull' [N], 'dp_over_w' [-], 'driving_torque' [N m],
+    'normal_force' [N], 'forward_speed' [m/s], 'contact_fraction' [-], with '<name>_sem'
+    (batch-means standard error within the window); 'travel' [m] over the drive,
+    'landing_time' [s]}.
+    """
+    time = np.asarray(series["time"], dtype=float)
+    phase = np.asarray(series["phase"])
+    contacts = np.asarray(series["contact_count"])[:, 0]
+    out: dict = {"steady_state": STEADY, "window": [math.nan, math.nan]}
+    driving = phase == 1
+    out["landing_time"] = float(time[np.argmax(driving)] - time[0]) if driving.any() else math.nan
+    if len(time) == 0 or not np.any(contacts > 0):
+        out["steady_state"] = NEVER_TOUCHED
+        return out
+    if not landed or not driving.any():
+        out["steady_state"] = NO_LANDING
+        return out
+    index = np.flatnonzero(driving)
+    forward = _forward_speed(series)[index]
+    spin = np.asarray(series["angular_velocity"])[index, 0, 1]
+    sinkage = np.asarray(series["sinkage"])[index, 0]
+    pull = np.asarray(series["drawbar_pull"])[index, 0]
+    out["travel"] = float(np.asarray(series["travel"])[index[-1], 0])
+    key = pull if mode == "slip" else forward
+    start, found = steady_window({"driving": key, "sinkage": sinkage}, min_fraction)
+    window = index[start:] if found else index[len(index) // 2:]
+    out["window"] = [float(time[window[0]]), float(time[window[-1]])]
+    quantities = {"forward_speed": forward[window - index[0]], "sinkage": sinkage[window - index[0]],
+                  "sinkage_tips": np.asarray(series["sinkage_tips"])[window, 0],
+                  "drawbar_pull": pull[window - index[0]],
+                  "driving_torque": np.asarray(series["driving_torque"])[window, 0],
+                  "normal_force": np.asarray(series["normal_force"])[window, 0]}
+    for name, values in quantities.items():
+        out[name] = float(np.mean(values))
+        out[f"{name}_sem"] = batch_standard_error(values)
+    mean_spin = float(np.mean(spin[window - index[0]]))
+    out["slip"] = float(slip_of(out["forward_speed"], mean_spin, rim_radius))
+    out["dp_over_w"] = out["drawbar_pull"] / wheel_load if wheel_load > 0 else math.nan
+    out["contact_fraction"] = float(np.mean(contacts[window] > 0))
+    if out["contact_fraction"] < 0.9:
+        out["steady_state"] = AIRBORNE
+    elif mode == "free" and abs(mean_spin) * rim_radius > 0 and out["forward_speed"] < 0.01 * mean_spin * rim_radius:
+        out["steady_state"] = STUCK
+    elif not found:
+        out["steady_state"] = TOO_SHORT
+    return out
+
+
+def _forward_speed(series: dict) -> np.ndarray:
+    """Hub speed along the wheel's forward direction [m/s], shape (S,), wheel 0."""
+    orientation = np.asarray(series["orientation"])[:, 0]
+    velocity = np.asarray(series["linear_velocity"])[:, 0]
+    speeds = np.empty(len(orientation))
+    for i, (q, v) in enumerate(zip(orientation, velocity)):
+        speeds[i] = v @ wheel_frame(q, (0.0, 1.0, 0.0))[1]
+    return speeds
+
+
+# ------------------------------------------------------------------------------------
+# replicas
+
+
+REPLICA_METRICS = ("slip", "sinkage", "sinkage_tips", "drawbar_pull", "dp_over_w", "driving_torque", "travel",
+                   "forward_speed")
+"""Metrics an ensemble reports."""
+
+
+def ensemble(values, relative_tolerance: float = 0.05, absolute_tolerance: float = 0.0) -> dict:
+    """Replica statistics of one metric: n, mean, std (ddof 1), ci95 (half-width of the 95 %
+    Student-t interval of the mean), min, max, and 'deterministic': the replica std is within
+    max(relative_tolerance |mean|, absolute_tolerance), i.e. the summation order does not
+    change the macroscopic result by more than that."""
+    from scipy import stats
+
+    values = np.asarray([v for v in values if v is not None and np.isfinite(v)], dtype=float)
+    n = len(values)
+    if n == 0:
+        return {"n": 0}
+    mean = float(np.mean(values))
+    std = float(np.std(values, ddof=1)) if n > 1 else math.nan
+    ci95 = float(stats.t.ppf(0.975, n - 1) * std / math.sqrt(n)) if n > 1 else math.nan
+    tolerance = max(relative_tolerance * abs(mean), absolute_tolerance)
+    return {"n": n, "mean": mean, "std": std, "ci95": ci95, "min": float(values.min()), "max": float(values.max()),
+            "tolerance": tolerance, "deterministic": bool(n > 1 and std <= tolerance)}

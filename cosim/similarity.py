@@ -1,0 +1,114 @@
+"""The gravity twin: the DEM-similar scene at another gravity (`cosim scale`).
+
+For Hertz contacts (with Lehr damping, a Mindlin-Kelvin tangential element, Coulomb
+friction angles and a rolling coefficient), scaling gravity by s and every stiffness by
+s leaves the overlaps of a grain under its neighbours' weight unchanged; times then scale
+by 1 / sqrt(s) and speeds by sqrt(s). Every term of the contact law follows: the Lehr
+force c v with c = 2 D sqrt(m k) scales as sqrt(s) sqrt(s) = s like the weight, and so do
+the tangential spring and the cohesion (a pressure). So
+
+    |g| x s, E x s (grains and wheel), cohesion x s, forces x s (drawbar load),
+    speeds x sqrt(s) (omega, stick speed), times / sqrt(s) (duration, dt, macro step,
+    landing, settling, output intervals), force rates x s^1.5 (drawbar ramp),
+    lengths, masses, densities, angles, restitution, Poisson's ratio, D unchanged,
+
+is an exact similarity of the DEM: the twin's trajectories are the original's, played at
+another speed, and travel / r, slip and sinkage / r are the same (within the summation-
+order scatter, since rounding differs). A Phobos wheel test can so be reproduced at
+Earth gravity with a 1720 x stiffer soil, and back.
+
+This is not the granular scaling law of Slonaker et al. (Phys. Rev. E 95, 052901, 2017),
+[P / (M g sqrt(g L)), V / sqrt(g L)] = f(M / (rho L^3), omega sqrt(L / g)), which holds for
+a stiff medium at a FIXED grain stiffness (real sand): it predicts how a wheel's power and
+speed change with gravity when the soil does not change. The twin changes the soil's
+stiffness with gravity, so it makes no claim about real sand at another gravity; it says
+that a simulation at one gravity stands for the whole family, and it checks a code's
+milli-g numerics against an Earth-g run.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+
+import numpy as np
+
+from soil import gravity_vector
+
+from .scene import Scene, SceneError, load_scene
+
+TIME_KEYS = [("run", "duration"), ("run", "dt"), ("run", "macro_step"), ("landing", "max_time"),
+             ("landing", "hold_time"), ("bed", "settle_max_time"), ("output", "snapshot_interval"),
+             ("output", "checkpoint_interval")]
+"""Scene keys that are times [s]: / sqrt(s)."""
+STIFFNESS_KEYS = [("soil", "youngs_modulus"), ("soil", "cohesion"), ("wheel.material", "youngs_modulus"),
+                  ("wheel.material", "cohesion"), ("testbed", "drawbar_load")]
+"""Scene keys that scale like a force or a pressure: x s."""
+SPEED_KEYS = [("testbed", "omega"), ("soil", "stick_speed"), ("wheel.material", "stick_speed")]
+"""Scene keys that are speeds or rates [m/s, rad/s]: x sqrt(s)."""
+RATE_KEYS = [("testbed", "drawbar_ramp")]
+"""Force rates [N/s]: x s^1.5."""
+
+
+def _section(data: dict, dotted: str) -> dict:
+    node = data
+    for part in dotted.split("."):
+        node = node.setdefault(part, {})
+    return node
+
+
+def gravity_twin(scene: Scene, gravity) -> tuple[dict, float]:
+    """(the twin scene as a dictionary, the factor s = |g_new| / |g_old|)."""
+    old = gravity_vector(scene.scene.gravity)
+    try:
+        target = gravity_vector(gravity)
+    except ValueError as error:
+        raise SceneError([f"--gravity: {error}"]) from None
+    g_old, g_new = float(np.linalg.norm(old)), float(np.linalg.norm(target))
+    if g_old <= 0 or g_new <= 0:
+        raise SceneError([f"--gravity: both gravities must be > 0 (scene {g_old:g}, target {g_new:g} m/s^2)"])
+    s = g_new / g_old
+    data = scene.to_dict()
+    data.setdefault("scene", {})["gravity"] = [float(v) for v in old * s]
+    # the wheel's modulus defaults to the soil's: make it explicit before scaling both
+    wheel_material = _section(data, "wheel.material")
+    wheel_material.setdefault("youngs_modulus", _section(data, "soil").get("youngs_modulus", 2.0e5))
+    soil = _section(data, "soil")
+    soil.setdefault("youngs_modulus", 2.0e5)
+    for keys, factor in ((TIME_KEYS, 1 / math.sqrt(s)), (STIFFNESS_KEYS, s), (SPEED_KEYS, math.sqrt(s)),
+                         (RATE_KEYS, s**1.5)):
+        for section, key in keys:
+            node = _section(data, section)
+            if key in node and node[key] is not None:
+                node[key] = float(node[key]) * factor
+    for section, key, default in (("testbed", "omega", 0.25), ("run", "duration", 3.0),
+                                  ("soil", "stick_speed", 1e-4), ("wheel.material", "stick_speed", 1e-4),
+                                  ("landing", "max_time", 30.0), ("bed", "settle_max_time", 10.0),
+                                  ("output", "snapshot_interval", 0.25), ("output", "checkpoint_interval", 0.5)):
+        node = _section(data, section)
+        if key not in node:  # a default of the schema: scale it explicitly
+            node[key] = default * (math.sqrt(s) if key in ("omega", "stick_speed") else 1 / math.sqrt(s))
+    data["bed"].pop("bed_file", None)  # a bed settled at the old gravity cannot serve the twin
+    return data, s
+
+
+def write_gravity_twin(path: str, gravity, out: str, overwrite: bool = False, overrides=None) -> tuple[str, float]:
+    """Write the twin of the scene file `path` at `gravity` (preset or magnitude) to `out`."""
+    import tomli_w
+
+    from .plan import resolve
+    from .scene import parse_value, validate_scene
+
+    scene = load_scene(path, overrides)
+    data, s = gravity_twin(scene, parse_value(str(gravity)))
+    twin = validate_scene(data, base_dir=scene.base_dir)
+    resolve(twin)  # the twin must be a valid scene too
+    if os.path.exists(out) and not overwrite:
+        from .folders import OutputExistsError
+
+        raise OutputExistsError(f"{out!r} exists; pass --overwrite to replace it")
+    header = (f"# The DEM-similar twin of {os.path.basename(path)} at |g| x {s:.9g} (cosim scale; "
+              "cosim/similarity.py): stiffnesses and forces x s, speeds x sqrt(s), times / sqrt(s).\n")
+    with open(out, "w") as f:
+        f.write(header + tomli_w.dumps(twin.to_dict()))
+    return out, s

@@ -1,0 +1,15 @@
+"""The one base class of the errors and warnings regolith-cosim raises on purpose.
+
+Every package of the project (soil, cosim, rover_models) derives its exceptions from
+`RegolithError` (and, where it helps callers, from the matching built-in: ValueError for
+bad input, RuntimeError for a failed run), so `except RegolithError` catches exactly what
+the project reports and nothing of Python's own.
+"""
+
+
+class RegolithError(Exception):
+    """Base class of every regolith-cosim error."""
+
+
+class RegolithWarning(UserWarning):
+    """Base class of every regolith-cosim warning (filter them all with this class)."""
