@@ -26,7 +26,7 @@ its formula of the inputs at t. A call at the same t again sets inputs and reads
 without stepping. Refused steps are retried in halves exactly as FmuRover does.
 
 FMU loading, variable lookup (with the FMU's variable listing in every error), step
-retry and close() are FmuRover's own code (rover_models.fmu_rover), shared, not copied.
+retry and close() are rover_models.fmu_session's, shared with the FMU rover, not copied.
 """
 
 from __future__ import annotations
@@ -36,7 +36,7 @@ from typing import Sequence
 
 import numpy as np
 
-from rover_models.fmu_rover import (
+from rover_models.fmu_session import (
     FmuSession,
     FmuStepError,  # noqa: F401  (re-exported: raised by calls whose step cannot be retried)
     FmuVariableError,

@@ -18,16 +18,15 @@ report no progress; an FMI 3.0 lastSuccessfulTime beyond the start is honoured).
 from __future__ import annotations
 
 import os
-import shutil
 from typing import Sequence
 
 import numpy as np
-from fmpy import extract, read_model_description
-from fmpy.fmi1 import FMICallException
 
 from cosim.contract import WheelKinematics, WheelWrench
 
-_DISCARD, _ERROR = 2, 3
+from .fmu_session import FmuError, FmuSession, FmuStepError, FmuVariableError, instantiate_cosim
+
+__all__ = ["FmuError", "FmuRover", "FmuStepError", "FmuVariableError"]
 
 _INPUTS = [f"{q}.{a}" for q in ("force", "torque") for a in "xyz"]
 _OUTPUTS = (
@@ -36,143 +35,6 @@ _OUTPUTS = (
     + [f"velocity.{a}" for a in "xyz"]
     + [f"angular_velocity.{a}" for a in "xyz"]
 )
-
-
-class FmuVariableError(KeyError):
-    """A variable the convention needs is missing or has the wrong type/causality."""
-
-    def __str__(self):  # KeyError would print the message with quotes
-        return str(self.args[0])
-
-
-class FmuStepError(RuntimeError):
-    """The FMU refused a step and it could not be retried."""
-
-
-def read_cosim_description(path: str | os.PathLike):
-    """fmpy model description of a co-simulation FMU; ValueError unless FMI 2.0 or 3.0 co-simulation."""
-    path = os.fspath(path)
-    md = read_model_description(path)
-    if md.coSimulation is None:
-        raise ValueError(f"{path} is not a co-simulation FMU")
-    if md.fmiVersion not in ("2.0", "3.0"):
-        raise ValueError(f"{path}: FMI {md.fmiVersion} is not supported (2.0 and 3.0 are)")
-    return md
-
-
-def instantiate_cosim(path: str | os.PathLike, md, instance_name: str, start_time: float):
-    """Unpack and instantiate a co-simulation FMU (model description `md`) and enter
-    initialization mode at start_time [s].
-
-    Returns (slave, unzip directory, set_real, get_real): the fmpy FMU2Slave/FMU3Slave and
-    its Real (2.0) / Float64 (3.0) setter and getter.
-    """
-    unzipdir = extract(os.fspath(path))
-    kwargs = dict(guid=md.guid, unzipDirectory=unzipdir,
-                  modelIdentifier=md.coSimulation.modelIdentifier, instanceName=instance_name)
-    if md.fmiVersion == "2.0":
-        from fmpy.fmi2 import FMU2Slave
-
-        fmu = FMU2Slave(**kwargs)
-        fmu.instantiate()
-        fmu.setupExperiment(startTime=start_time)
-        fmu.enterInitializationMode()
-        return fmu, unzipdir, fmu.setReal, fmu.getReal
-    from fmpy.fmi3 import FMU3Slave
-
-    fmu = FMU3Slave(**kwargs)
-    fmu.instantiate()
-    fmu.enterInitializationMode(startTime=start_time)
-    return fmu, unzipdir, fmu.setFloat64, fmu.getFloat64
-
-
-class FmuSession:
-    """What every FMU side shares: the model description, variable lookup by name with
-    clear errors, lazy exit from initialization, doStep with retries in halves, and
-    cleanup. FmuRover and cosim.fmu_controller.FmuController build on it; the subclass
-    instantiates the FMU (instantiate_cosim) into `fmu`, `_unzipdir`, `_set`, `_get`."""
-
-    def __init__(self, fmu: str | os.PathLike, max_halvings: int, retry_on_error: bool, instance_name: str):
-        self.path = os.fspath(fmu)
-        self.md = read_cosim_description(self.path)
-        self.fmi_version = self.md.fmiVersion
-        """'2.0' or '3.0'."""
-        self._real_type = "Real" if self.fmi_version == "2.0" else "Float64"
-        self.variables = {v.name: v for v in self.md.modelVariables}
-        """FMU variables by name (fmpy ScalarVariable)."""
-        self.can_vary_step = bool(self.md.coSimulation.canHandleVariableCommunicationStepSize)
-        """Whether the FMU accepts communication steps of varying size (needed for retries)."""
-        self.max_halvings = int(max_halvings)
-        self.retry_on_error = bool(retry_on_error)
-        self.instance_name = instance_name
-        self.fmu = None
-        """The fmpy slave; None before instantiation and after close()."""
-        self._unzipdir = None
-        self._initializing = False
-
-    def _listing(self) -> str:
-        return "; ".join(f"{v.name} ({v.causality}, {v.type})" for v in self.md.modelVariables)
-
-    def _vr(self, name: str, causalities: tuple[str, ...] | None) -> int:
-        v = self.variables.get(name)
-        if v is None:
-            raise FmuVariableError(f"{self.path}: no variable {name!r}; the FMU has: {self._listing()}")
-        if v.type != self._real_type:
-            raise FmuVariableError(f"{self.path}: variable {name!r} is {v.type}, expected {self._real_type}; "
-                                   f"the FMU has: {self._listing()}")
-        if causalities is not None and v.causality not in causalities:
-            raise FmuVariableError(f"{self.path}: variable {name!r} has causality {v.causality}, expected "
-                                   f"{' or '.join(causalities)}; the FMU has: {self._listing()}")
-        return v.valueReference
-
-    def _ready(self) -> None:
-        """Leave initialization mode on first use (parameters can be set until then)."""
-        if self._initializing:
-            self.fmu.exitInitializationMode()
-            self._initializing = False
-
-    def _step(self, t: float, h: float, depth: int) -> None:
-        try:
-            result = self.fmu.doStep(currentCommunicationPoint=t, communicationStepSize=h)
-        except FMICallException as err:
-            retryable = err.status == _DISCARD or (self.retry_on_error and err.status == _ERROR)
-            if not retryable:
-                raise
-            if not self.can_vary_step:
-                raise FmuStepError(
-                    f"{self.path}: doStep(t={t:g} s, H={h:g} s) refused (status {err.status}) and the FMU "
-                    f"cannot handle variable communication step sizes, so it cannot be retried with smaller steps"
-                ) from err
-            if depth >= self.max_halvings:
-                raise FmuStepError(
-                    f"{self.path}: doStep(t={t:g} s) still refused after {depth} halvings (H={h:g} s)"
-                ) from err
-            self._step(t, h / 2, depth + 1)
-            self._step(t + h / 2, h / 2, depth + 1)
-            return
-        if self.fmi_version == "3.0":
-            _, terminate, early, last = result
-            if terminate:
-                raise FmuStepError(f"{self.path}: the FMU asked to terminate at t={last:g} s")
-            if early and last < t + h:  # FMI 3.0 early return: go on from where it stopped
-                self._step(last, t + h - last, depth)
-
-    def close(self) -> None:
-        """Terminate and free the FMU instance, remove the unpacked files."""
-        if self.fmu is not None:
-            try:
-                self._ready()
-                self.fmu.terminate()
-            finally:
-                self.fmu.freeInstance()
-                self.fmu = None
-                shutil.rmtree(self._unzipdir, ignore_errors=True)
-
-    def __enter__(self):
-        return self
-
-    def __exit__(self, *exc):
-        self.close()
 
 
 class FmuRover(FmuSession):
@@ -205,11 +67,12 @@ class FmuRover(FmuSession):
                         if n.startswith("wheel_") and n.split(".")[0][6:].isdigit()})
         if wheel_count is None:
             wheel_count = len(found)
-        if found != list(range(wheel_count)):
+        if wheel_count < 1 or found != list(range(wheel_count)):
             have = ", ".join(f"wheel_{i}" for i in found) or "none"
-            raise ValueError(
+            raise FmuError(
                 f"{self.path}: the scene expects {wheel_count} wheel(s) (wheel_0 .. wheel_{wheel_count - 1}), "
-                f"the FMU has {len(found)} ({have})"
+                f"the FMU has {len(found)} ({have}); a rover FMU needs wheel_<i>.* variables for i = 0 .. n-1; "
+                f"the FMU has: {self._listing()}"
             )
         self.wheel_names = [f"wheel_{i}" for i in range(wheel_count)]
         """Wheel names in the FMU, wheel_0 .. wheel_<n-1>."""

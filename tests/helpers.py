@@ -35,6 +35,27 @@ def frictionless(**kw):
     return ContactLaw(friction=False, **kw)
 
 
+def drive(soil, rig, duration, macro_step):
+    """Couple a DEM soil side and a single-wheel rig for `duration` [s] with the product's Coupler, and
+    return the records as arrays plus the quantities of cosim.metrics (wheel 0): time, slip,
+    drawbar_pull, normal_force, sinkage, hub_velocity (S, 3)."""
+    from cosim.coupler import Coupler, stack_records
+    from cosim.metrics import WheelGeometry, wheel_quantities
+
+    rig.time = soil.time  # the rig joins the soil's clock
+    coupler = Coupler(soil, rig, macro_step, gravity=soil.sim.model.gravity)
+    start = rig.position.copy()
+    records = coupler.run(coupler.time + duration)
+    shape = soil.sim.model.bodies[0]
+    geometry = WheelGeometry(rig.radius, shape.outer_radius, soil.surface_height)
+    quantities = [wheel_quantities(r.kinematics[0], r.wrenches[0], geometry, start) for r in records]
+    out = stack_records(records)
+    for name in quantities[0]:
+        out[name] = np.array([q[name] for q in quantities])
+    out["hub_velocity"] = out["linear_velocity"][:, 0]
+    return out
+
+
 # -- the tiny single-wheel scene of the tool tests ------------------------------------------
 # About 300 grains and under a second simulated. It is deliberately coarse (3 grains across
 # the wheel: `cosim advise` says so): the tool tests need a run that lands, drives and writes

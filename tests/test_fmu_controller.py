@@ -183,7 +183,7 @@ def test_fmu_slip_controller_holds_target_slip_on_the_rig(fmus):
     pytest.importorskip("mujoco")
     import mujoco
 
-    from cosim.coupler import Coupler
+    from cosim.coupler import Coupler, stack_records
     from cosim.terrain import SpringDamperTerrain
     from rover_models.mjcf import single_wheel_rig_xml
     from rover_models.mujoco_rover import MujocoRover
@@ -196,8 +196,7 @@ def test_fmu_slip_controller_holds_target_slip_on_the_rig(fmus):
     soil = SpringDamperTerrain(r, 1, traction="slip", friction=mu, slip_scale=s0, slip_velocity=0.05, substeps=2)
     with FmuController(fmus["one"], 1, start_values={"target_slip": s_star, "wheel_radius": r, "gain": 1.0}) as ctl:
         coupler = Coupler(soil, rover, 1e-3, gravity=(0, 0, -g), controller=ctl)
-        coupler.run(1.0)
-    rec = coupler.records()
+        rec = stack_records(coupler.run(1.0))
     late = rec["time"] > 0.3
     # Slip measured from the rover's kinematics.
     v = rec["linear_velocity"][:, 0, 0]

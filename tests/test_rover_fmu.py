@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 import shutil
 import zipfile
 
@@ -13,7 +14,7 @@ pytest.importorskip("pythonfmu")
 
 from cosim.contract import RoverSide, WheelWrench  # noqa: E402
 from cosim.controllers import ConstantSpeed  # noqa: E402
-from cosim.coupler import Coupler  # noqa: E402
+from cosim.coupler import Coupler, stack_records  # noqa: E402
 from cosim.terrain import SpringDamperTerrain  # noqa: E402
 from rover_models.fmu_rover import FmuRover, FmuStepError, FmuVariableError  # noqa: E402
 from rover_models.fmu_src.build_fmus import build_rig_fmu2, build_rig_fmu3  # noqa: E402
@@ -77,8 +78,7 @@ def test_mjcf_and_fmu_rigs_give_the_same_coupled_trajectory(fmus, version):
     def run(rover):
         soil = SpringDamperTerrain(0.1, 1, slip_velocity=0.05, substeps=2)
         coupler = Coupler(soil, rover, 1e-3, controller=ConstantSpeed(5.0, 1))
-        coupler.run(0.5)
-        return coupler.records()
+        return stack_records(coupler.run(0.5))
 
     ref = run(mujoco_rover.MujocoRover(single_wheel_rig_xml(hub_height=0.105), ["wheel"]))
     fmu = FmuRover(path, 1, start_values={"hub_height": 0.105})
@@ -178,3 +178,53 @@ def test_speed_command_drives_the_wheel(fmus):
     with pytest.raises(FmuVariableError, match="torque_command"):
         rover.set_wheel_torques([1.0])
     rover.close()
+
+
+@pytest.mark.parametrize("case", ["not_a_zip", "no_model_description", "truncated_model_description", "no_wheels",
+                                  "broken_binary"])
+def test_a_file_that_is_not_a_rover_fmu_is_a_clear_error(tmp_path, fmus, case):
+    """Each names the file and what is wrong; nothing is left unpacked in the temp folder."""
+    import tempfile
+    import zipfile
+
+    from rover_models.fmu_session import FmuError
+
+    path = tmp_path / f"{case}.fmu"
+    if case == "not_a_zip":
+        path.write_text("hello")
+        words = "not an FMU"
+    elif case == "no_model_description":
+        with zipfile.ZipFile(path, "w") as z:
+            z.writestr("binaries/readme.txt", "x")
+        words = "no modelDescription.xml"
+    elif case == "truncated_model_description":
+        with zipfile.ZipFile(fmus["fmi2"]) as src, zipfile.ZipFile(path, "w") as z:
+            for item in src.namelist():
+                data = src.read(item)
+                z.writestr(item, data[: len(data) // 2] if item == "modelDescription.xml" else data)
+        words = "modelDescription.xml cannot be read"
+    elif case == "broken_binary":  # instantiation fails: the unpacked folder must go again
+        with zipfile.ZipFile(fmus["fmi2"]) as src, zipfile.ZipFile(path, "w") as z:
+            for item in src.namelist():
+                data = src.read(item)
+                z.writestr(item, b"\0" * 64 if item.startswith("binaries/") and item.endswith(".so") else data)
+        words = "could not be instantiated"
+    else:  # a valid FMU without the wheel_<i>.* convention
+        from pythonfmu.builder import FmuBuilder
+
+        script = tmp_path / "plain_fmu.py"
+        script.write_text("from pythonfmu import Fmi2Causality, Fmi2Slave, Real\n\n\n"
+                          "class PlainFmu(Fmi2Slave):\n"
+                          "    def __init__(self, **kwargs):\n"
+                          "        super().__init__(**kwargs)\n"
+                          "        self.x = 0.0\n"
+                          "        self.register_variable(Real('x', causality=Fmi2Causality.output))\n\n"
+                          "    def do_step(self, t, h):\n"
+                          "        return True\n")
+        path = FmuBuilder.build_FMU(script, dest=tmp_path)
+        words = "needs wheel_<i>"
+    before = set(os.listdir(tempfile.gettempdir()))
+    with pytest.raises(FmuError) as info:
+        FmuRover(path)
+    assert str(path) in str(info.value) and words in str(info.value), str(info.value)
+    assert set(os.listdir(tempfile.gettempdir())) - before == set()
