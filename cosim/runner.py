@@ -87,7 +87,7 @@ class Runner:
         rover = system.rover
         self.drive_start_step = int(loop.get("drive_start_step", -1 if rover.phase == PHASE_LANDING else 0))
         self.drive_start_position = np.array(loop.get("drive_start_position", rover.position.copy()), dtype=float)
-        self.rest_steps = int(loop.get("rest_steps", 0))
+        self.rest_heights = [float(z) for z in np.atleast_1d(loop.get("rest_heights", []))]
         self.landing_failed = bool(loop.get("landing_failed", False))
         self.next_snapshot = float(loop.get("next_snapshot", system.coupler.time))
         self.next_checkpoint = float(loop.get("next_checkpoint", system.coupler.time + self.plan.output.checkpoint_interval))
@@ -200,12 +200,17 @@ class Runner:
         self.writer.append_step(row)
 
     def _landing(self, record: MacroStepRecord) -> None:
-        """Count the steps the wheel rests on the soil; start the drive after `hold_steps` of them."""
+        """The wheel has landed when, over the last `hold_steps` macro steps, it touched the soil at
+        every step and its hubs sank by less than speed_limit x the hold time (grains rearranging
+        under it make the vertical speed flicker, so the drift over the window is the criterion).
+        Then the drive starts."""
         landing = self.plan.landing
-        resting = all(abs(k.linear_velocity[2]) < landing.speed_limit and w.contact_count > 0
-                      for k, w in zip(record.kinematics, record.wrenches))
-        self.rest_steps = self.rest_steps + 1 if resting else 0
-        if self.rest_steps >= landing.hold_steps:
+        touching = all(w.contact_count > 0 for w in record.wrenches)
+        self.rest_heights = (self.rest_heights + [min(k.position[2] for k in record.kinematics)]) if touching else []
+        self.rest_heights = self.rest_heights[-(landing.hold_steps + 1):]
+        hold_time = landing.hold_steps * self.plan.macro_step
+        if (len(self.rest_heights) > landing.hold_steps
+                and abs(self.rest_heights[-1] - self.rest_heights[0]) < landing.speed_limit * hold_time):
             rover = self.system.rover
             rover.start_drive()
             self.drive_start_step = self.system.coupler.step_count
@@ -213,8 +218,8 @@ class Runner:
             log.info("landed at t = %.4g s; driving for %.4g s", record.time, self.plan.scene.run.duration)
         elif self.system.coupler.step_count >= landing.max_steps:
             self.landing_failed = True
-            log.warning("the wheel was not at rest on the soil after landing.max_time = %g s",
-                        self.plan.scene.landing.max_time)
+            log.warning("the wheel was not at rest on the soil after landing.max_time = %g s (raise landing.max_time, "
+                        "or lower testbed.mass if it keeps sinking)", self.plan.scene.landing.max_time)
 
     def _snapshot(self) -> None:
         sim = self.system.sim
@@ -228,7 +233,7 @@ class Runner:
     def loop_state(self, wall: float) -> dict:
         """The loop's own state (what `Runner(..., loop=...)` takes back)."""
         return {"drive_start_step": self.drive_start_step, "drive_start_position": self.drive_start_position,
-                "rest_steps": self.rest_steps, "landing_failed": self.landing_failed,
+                "rest_heights": np.asarray(self.rest_heights, dtype=np.float64), "landing_failed": self.landing_failed,
                 "next_snapshot": self.next_snapshot, "next_checkpoint": self.next_checkpoint,
                 "wall_time": self.wall_before + wall, "steps": self.writer.steps,
                 "snapshots": self.writer.snapshots}

@@ -1,0 +1,147 @@
+"""Traction numbers a user can trust: validity advice on a known-bad scene, error bars over replicas
+of a real run, a drawbar-pull/slip curve that rises with slip, and the gravity twin."""
+
+import json
+import math
+
+import numpy as np
+import pytest
+
+from cosim import advice
+from cosim.cli import main
+from cosim.plan import load_plan
+from cosim.scene import scene_from_text
+from helpers import write_tiny
+
+# The single-wheel scene that was once the main job: 4 cm wheel at 0.25 rad/s on Phobos on a
+# bed of 3 mm grains 14.5 mm deep once settled. Every fault below was found by hand in it.
+OLD_MAIN = """
+[scene]
+gravity = "phobos"
+[soil]
+youngs_modulus = 2.0e5
+[bed]
+length = 0.24
+width = 0.08
+depth = 0.03
+radius_mean = 3.0e-3
+[wheel]
+radius = 0.04
+width = 0.03
+grouser_count = 12
+grouser_height = 0.004
+grouser_thickness = 0.002
+[testbed]
+mass = 6.0
+omega = 0.25
+[run]
+duration = 5.0
+dt_factor = 0.2
+substeps = 10
+"""
+
+
+def test_advice_names_the_faults_of_a_bad_wheel_test():
+    """Fr = 0.25^2 x 0.044 / 0.0057 = 0.48 (the wheel hops), 5 grains across the wheel, a settled bed of
+    14.5 mm = 0.33 wheel radii, 2.4 grain diameters under the grouser tips before the wheel sinks at all."""
+    from cosim.plan import resolve
+
+    plan = resolve(scene_from_text(OLD_MAIN))
+    findings = {f.check: f for f in advice.check(plan, surface_height=0.0145)}
+    assert findings["froude"].value == pytest.approx(0.25**2 * plan.wheel.outer_radius / 5.7e-3)
+    assert not findings["froude"].ok and "testbed.omega" in findings["froude"].message
+    assert not findings["grains_across"].ok and findings["grains_across"].value == pytest.approx(5.0)
+    assert not findings["bed_depth"].ok and findings["bed_depth"].value == pytest.approx(
+        0.0145 / plan.wheel.outer_radius)
+    assert not findings["floor_clearance"].ok and findings["floor_clearance"].value == pytest.approx(
+        (0.0145 - 0.0) / 0.006, rel=1e-3)
+    assert findings["overlap"].ok  # E = 2e5 Pa was adapted to milli-g (eq. 10): that part was right
+    assert advice.verdict(list(findings.values())).startswith("out of range: froude")
+    for finding in findings.values():  # every warning names the setting to change
+        assert finding.setting and (finding.ok or finding.setting.split(",")[0].split(".")[0] in finding.message)
+
+
+def test_replicas_give_error_bars_on_a_real_run(tmp_path, tiny_bed, capsys):
+    """`cosim run --replicas 3`: three summation orders of the same scene, each a steady state; the
+    statistics are those of the three summaries, and the scatter is real (the runs differ)."""
+    scene = write_tiny(tmp_path)
+    out = tmp_path / "replicas"
+    code = main(["run", scene, "--out", str(out), "--replicas", "3", "--serial", "--set",
+                 f'bed.bed_file="{tiny_bed}"', "--set", "run.duration=0.5"])
+    text = capsys.readouterr().out
+    report = json.loads((out / "ensemble.json").read_text())
+    summaries = [r["summary"] for r in report["results"]]
+    assert code == 0, text
+    assert [s["steady_state"] for s in summaries] == ["steady"] * 3
+    slips = np.array([s["slip"] for s in summaries])
+    stats = report["stats"]["metrics"]["slip"]
+    assert stats["n"] == 3 and stats["mean"] == pytest.approx(slips.mean())
+    assert stats["std"] == pytest.approx(slips.std(ddof=1)) and stats["std"] > 0  # the orders do differ
+    assert stats["ci95"] == pytest.approx(4.303 * stats["std"] / math.sqrt(3), rel=1e-3)  # t(0.975, 2) = 4.303
+    assert "slip" in text and "95% CI" in text
+    header = (out / "ensemble.csv").read_text().splitlines()[0]
+    assert header.startswith("metric,n,mean,std,ci95")
+
+
+def test_drawbar_pull_rises_with_slip(tmp_path, tiny_bed, capsys):
+    """`cosim study slip`: after landing, the wheel is driven at slip 0.05 and 0.6; the soil's forward
+    force on the wheel rises with slip (terramechanics: more shear displacement, more thrust),
+    by more than the within-run standard errors."""
+    scene = write_tiny(tmp_path)
+    out = tmp_path / "slip"
+    main(["study", "slip", scene, "--slips", "0.05,0.6", "--replicas", "1", "--serial", "--out", str(out),
+          "--set", f'bed.bed_file="{tiny_bed}"', "--set", "run.duration=0.5"])
+    report = json.loads((out / "study.json").read_text())
+    low, high = (r["summary"] for r in report["runs"])
+    assert low["slip"] == pytest.approx(0.05, abs=1e-9) and high["slip"] == pytest.approx(0.6, abs=1e-9)
+    rise = high["drawbar_pull"] - low["drawbar_pull"]
+    assert rise > 3 * math.hypot(low["drawbar_pull_sem"], high["drawbar_pull_sem"]), (low, high)
+    assert high["driving_torque"] > low["driving_torque"]
+    assert (out / "plots" / "dbp_slip.png").is_file() and "DP/W" in capsys.readouterr().out
+
+
+def test_the_gravity_twin_scales_every_derived_quantity_exactly(tmp_path):
+    """Moon -> Earth: s = 9.80665 / 1.625; E and loads x s, speeds x sqrt(s), times / sqrt(s); the
+    dimensionless numbers (Froude, steps per contact, overlap ratio, ...) are the same."""
+    from cosim.similarity import write_gravity_twin
+
+    scene = write_tiny(tmp_path)
+    twin_path, s = write_gravity_twin(scene, "earth", str(tmp_path / "twin.toml"))
+    assert s == pytest.approx(9.80665 / 1.625, rel=1e-15)
+    a, b = load_plan(scene), load_plan(twin_path)
+    assert np.linalg.norm(b.gravity) == pytest.approx(9.80665, rel=1e-14)
+    assert b.soil_material.youngs_modulus == pytest.approx(a.soil_material.youngs_modulus * s, rel=1e-14)
+    assert b.wheel.material.youngs_modulus == pytest.approx(a.wheel.material.youngs_modulus * s, rel=1e-14)
+    assert b.testbed.omega == pytest.approx(a.testbed.omega * math.sqrt(s), rel=1e-14)
+    for name in ("dt", "macro_step"):
+        assert getattr(b, name) == pytest.approx(getattr(a, name) / math.sqrt(s), rel=1e-12), name
+    assert (b.substeps, b.drive_steps, b.landing.max_steps, b.landing.hold_steps) == (
+        a.substeps, a.drive_steps, a.landing.max_steps, a.landing.hold_steps)
+    assert b.landing.speed_limit == pytest.approx(a.landing.speed_limit * math.sqrt(s), rel=1e-12)
+    assert b.froude_number == pytest.approx(a.froude_number, rel=1e-12)
+    for fa, fb in zip(advice.check(a), advice.check(b)):
+        assert fb.value == pytest.approx(fa.value, rel=1e-9), fa.check
+    assert b.bed.bed_file is None  # a bed settled at the other gravity cannot serve the twin
+    with pytest.raises(Exception, match="exists"):
+        write_gravity_twin(scene, "earth", twin_path)
+
+
+@pytest.mark.slow
+def test_the_gravity_twin_gives_the_same_dimensionless_results(tmp_path):
+    """The moon scene and its Earth twin, 3 summation orders each: slip, sinkage / r and travel / r
+    agree within the replica scatter (their 95 % intervals overlap), as the similarity says."""
+    from cosim.similarity import write_gravity_twin
+    from cosim.study import replica_run
+
+    scene = write_tiny(tmp_path)
+    twin, _ = write_gravity_twin(scene, "earth", str(tmp_path / "twin.toml"))
+    stats = []
+    for path, out in ((scene, "moon"), (twin, "earth")):
+        plan = load_plan(path, ["run.duration=0.5"] if path == scene else [
+            f"run.duration={0.5 / math.sqrt(9.80665 / 1.625)!r}"])
+        stats.append(replica_run(plan, str(tmp_path / out), 3, executor="serial")["stats"]["metrics"])
+    moon, earth = stats
+    for name in ("slip", "sinkage", "sinkage_tips", "travel"):
+        a, b = moon[name], earth[name]
+        assert a["n"] == b["n"] == 3, name
+        assert abs(a["mean"] - b["mean"]) <= a["ci95"] + b["ci95"], (name, a, b)
