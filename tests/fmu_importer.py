@@ -14,8 +14,8 @@ Job (JSON):
     pid_file    (optional) write the server pids here after initialization, then sleep
                 `linger` seconds before stepping (for killing this importer from outside)
 Result (JSON): status per step and instance ("ok", "discard", "error"), outputs per step and
-instance (every output variable), elapsed [s] per step, log messages, server pids, and
-"regolith_importable" (must be false).
+instance (every output variable), elapsed [s] per step, log messages, server pids,
+"regolith_importable" (must be false), and "refused" when libcosim cannot load an FMU.
 """
 
 import json
@@ -196,7 +196,11 @@ def run():
     result = {"regolith_importable": REGOLITH_IMPORTABLE, "status": [], "outputs": [], "elapsed": [],
               "messages": messages, "server_pids": []}
     if job["master"] == "libcosim":
-        soils = LibcosimSoils(job["instances"], job["steps"][0]["h"])
+        try:
+            soils = LibcosimSoils(job["instances"], job["steps"][0]["h"])
+        except RuntimeError as error:
+            result["refused"] = str(error)
+            return result
         for step in job["steps"]:
             started = time.perf_counter()
             status = soils.step(step["inputs"])

@@ -220,7 +220,7 @@ def test_model_description_validates_with_units_and_resting_wheels(tiny, version
     assert pressed.contact_count > 0 and pressed.force[2] > 0
 
 
-@pytest.mark.parametrize("master, version", [("fmpy", 2), ("fmpy", 3), ("libcosim", 2)])
+@pytest.mark.parametrize("master, version", [("fmpy", 2), ("fmpy", 3), ("libcosim", 2), ("libcosim", 3)])
 def test_fmu_steps_bitwise_like_the_in_process_soil(tiny, importer, master, version):
     """A master without regolith-cosim steps the FMU and gets bitwise the wrenches of the in-process
     soil for the same step sequence (CPU); nothing of Warp reaches the importer's stdout."""
@@ -229,6 +229,9 @@ def test_fmu_steps_bitwise_like_the_in_process_soil(tiny, importer, master, vers
     steps = 4
     job, motion = _job(tiny["fmus"][version], steps, master)
     result = importer(job)
+    if "Unsupported FMI version" in result.get("refused", ""):
+        pytest.skip(f"this libcosim does not load FMI {version}.0 FMUs: {result['refused']}")
+    assert "refused" not in result, result["refused"]
 
     soil = _in_process_soil(tiny)
     soil.place_wheels([motion[0]])
@@ -352,7 +355,7 @@ def test_several_instances_in_one_master(tiny, importer, frontends):
     x0, x1 = starts["wheel_0.position.x"], starts["wheel_1.position.x"]
     assert x1 - x0 > 2 * SMALL_WHEEL.outer_radius and "wheel_2.position.x" not in starts
 
-    job, motion = _job(tiny["fmus"][2], 2)
+    job, _ = _job(tiny["fmus"][2], 2)
     job["instances"].append(dict(job["instances"][0]))
     two = {"fmu": str(fmu2), "start": {}}
     job["instances"].append(two)

@@ -139,9 +139,8 @@ def _bed_gravity(bed_file) -> list[float]:
 
 def soil_from_config(data: dict, bed_file, dem_step: float | None = None, device: str | None = None):
     """The DemSoil of a soil.json configuration on `bed_file` (what the soil server steps)."""
-    from soil import ContactLaw, GrouserWheel, Material, MeshWheel
-
     from cosim.dem_soil import DemSoil
+    from soil import ContactLaw, GrouserWheel, Material, MeshWheel
 
     if data.get("format") != CONFIG_FORMAT:
         raise ValueError(f"not a soil FMU configuration (format {data.get('format')!r}, expected {CONFIG_FORMAT!r}): "
