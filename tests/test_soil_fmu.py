@@ -104,9 +104,16 @@ def _sandbox(folder: Path) -> Path:
 
 @pytest.fixture(scope="session")
 def importer(tmp_path_factory):
-    """Run tests/fmu_importer.py in a Python that can import fmpy and libcosimpy, not regolith-cosim."""
+    """Run tests/fmu_importer.py in a Python that can import fmpy and libcosimpy, not regolith-cosim.
+
+    Its working directory holds decoy cosim/ and soil/ packages: the soil server must not import them.
+    """
     sandbox = _sandbox(tmp_path_factory.mktemp("bare_site"))
     workdir = tmp_path_factory.mktemp("importer")
+    for name in ("cosim", "soil"):
+        (workdir / name).mkdir()
+        (workdir / name / "__init__.py").write_text(f"raise ImportError('the decoy {name} package in the "
+                                                    "importer\'s working directory was imported')\n")
     counter = iter(range(10**6))
 
     def run(job: dict, env_extra: dict | None = None, timeout: float = 300.0, background: bool = False):

@@ -3,7 +3,7 @@
 The FMU is a small compiled front end (soil_fmu.c with fmi2.c or fmi3.c, built with the
 local C compiler; it links no Python) plus resources: the settled bed and the soil
 configuration. When initialization ends, the front end starts the soil server
-(`python -E -m cosim.soil_fmu.server`), which runs the DEM in its own process on its own
+(the module cosim.soil_fmu.server), which runs the DEM in its own process on its own
 device, and forwards each doStep's wheel kinematics to it over a socket pair; the server
 answers with the wheel wrenches. docs/fmu.md documents the variables, the protocol and
 what the FMU needs at run time.

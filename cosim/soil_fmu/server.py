@@ -2,7 +2,8 @@
 
     python -E -m cosim.soil_fmu.server --fd 3
 
-The FMU's compiled front end (soil_fmu.c) starts it when initialization ends, with its end
+The FMU's compiled front end (soil_fmu.c) starts it like this (without the working directory
+on sys.path) when initialization ends, with its end
 of a socket pair as descriptor 3, stdout on /dev/null and stderr on a pipe it reads
 (lines starting "warning: " become FMI warnings). Messages are frames of a little-endian
 header (uint32 kind, uint32 payload length) and a payload; the front end asks, the server

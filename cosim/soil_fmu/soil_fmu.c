@@ -38,6 +38,10 @@ enum { MSG_INIT = 1, MSG_PLACE = 2, MSG_STEP = 3, MSG_BYE = 4,
        MSG_OK = 10, MSG_OUTPUTS = 11, MSG_DISCARD = 12, MSG_ERROR = 13 };
 
 #define SERVER_MODULE "cosim.soil_fmu.server"
+/* `python -m` would put the importer's working directory first on sys.path, where a folder
+   named soil/ or cosim/ would hide the package: start the module without it. */
+#define SERVER_CODE "import runpy, sys; sys.path.remove(''); runpy.run_module('" SERVER_MODULE "', " \
+                    "run_name='__main__', alter_sys=True)"
 #define STOP_WAIT 5.0 /* [s] a stopping server gets this long before it is killed */
 
 /* ---------------------------------------------------------------------------- logging */
@@ -308,7 +312,7 @@ static SoilStatus spawn_server(Soil *s) {
     int pair[2], err[2];
     posix_spawn_file_actions_t actions;
     const char *python = python_of(s);
-    char *argv[] = {(char *)python, "-E", "-m", SERVER_MODULE, "--fd", "3", NULL};
+    char *argv[] = {(char *)python, "-E", "-c", SERVER_CODE, "--fd", "3", NULL};
     pid_t pid;
     int error;
 

@@ -1,7 +1,7 @@
 /* The soil FMU's front end: what the FMI 2.0 layer (fmi2.c) and the FMI 3.0 layer (fmi3.c) share.
  *
  * The front end links no Python. When initialization ends it starts the soil server
- * (`PYTHON -E -m cosim.soil_fmu.server --fd 3`, a process of its own), talks to it over a
+ * (the module cosim.soil_fmu.server run by `PYTHON -E`, a process of its own), talks to it over a
  * socket pair and forwards each doStep's wheel kinematics; the server answers with the
  * wheel wrenches. Protocol, variables and run-time needs: docs/fmu.md.
  */
