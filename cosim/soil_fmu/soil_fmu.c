@@ -338,6 +338,13 @@ static SoilStatus spawn_server(Soil *s) {
     pair[1] = high_descriptor(pair[1]);
     err[0] = high_descriptor(err[0]);
     err[1] = high_descriptor(err[1]);
+    if (pair[0] < 0 || pair[1] < 0 || err[0] < 0 || err[1] < 0) {
+        for (int i = 0; i < 2; i++) {
+            if (pair[i] >= 0) close(pair[i]);
+            if (err[i] >= 0) close(err[i]);
+        }
+        return server_failed(s, "no file descriptor left for the soil server's channel: %s", strerror(errno));
+    }
     fcntl(pair[0], F_SETFD, FD_CLOEXEC);
     fcntl(pair[1], F_SETFD, FD_CLOEXEC);
     fcntl(err[0], F_SETFD, FD_CLOEXEC);
@@ -359,8 +366,8 @@ static SoilStatus spawn_server(Soil *s) {
     if (error != 0) {
         close(pair[0]);
         close(err[0]);
-        return server_failed(s, "cannot start the soil server '%s -E -m %s': %s (set the parameter 'python' or "
-                             "REGOLITH_SOIL_PYTHON to a Python that has regolith-cosim installed)",
+        return server_failed(s, "cannot start the soil server (%s -E, module %s): %s (set the parameter 'python' "
+                             "or REGOLITH_SOIL_PYTHON to a Python that has regolith-cosim installed)",
                              python, SERVER_MODULE, strerror(error));
     }
     s->pid = pid;
@@ -368,7 +375,7 @@ static SoilStatus spawn_server(Soil *s) {
     s->errors = err[0];
     fcntl(s->socket, F_SETFL, fcntl(s->socket, F_GETFL) | O_NONBLOCK);
     fcntl(s->errors, F_SETFL, fcntl(s->errors, F_GETFL) | O_NONBLOCK);
-    soil_log(s, SOIL_OK, "logEvents", "started the soil server: pid %d, %s -E -m %s", (int)pid, python,
+    soil_log(s, SOIL_OK, "logEvents", "started the soil server: pid %d, %s -E, module %s", (int)pid, python,
              SERVER_MODULE);
     return SOIL_OK;
 }
