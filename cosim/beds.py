@@ -86,7 +86,7 @@ def settled_bed(plan: RunPlan, folder: str, progress: bool = False) -> Bed:
             info = {}
         if info.get("key") == plan.bed.key:
             log.info("reusing the settled bed %s (key %s)", path, plan.bed.key)
-            return Bed(path, float(info["metrics"]["height"]), {**info, "source": "cache"})
+            return Bed(path, float(info["metrics"]["height"]), {**info, "source": "cache", "path": path})
     return _settle(plan, path, info_path, progress)
 
 
@@ -114,7 +114,7 @@ def _settle(plan: RunPlan, path: str, info_path: str, progress: bool) -> Bed:
     write_json(info_path, info)
     log.info("settled %d grains in %.1f s wall (%.3g s simulated); surface at z = %.4g m, packing %.3f",
              sim.model.particle_count, wall, report["time"], metrics["height"], metrics["packing_fraction"])
-    return Bed(path, float(metrics["height"]), {**info, "source": "settled"})
+    return Bed(path, float(metrics["height"]), {**info, "source": "settled", "path": path})
 
 
 class _SettleBar:

@@ -247,6 +247,22 @@ def cmd_scale(args) -> int:
     return EXIT_OK
 
 
+def cmd_export_fmu(args) -> int:
+    """cosim export-fmu SCENE_OR_RUN_DIR --out soil.fmu [--fmi 2|3] [--wheels N] (docs/fmu.md)."""
+    import tempfile
+
+    from .soil_fmu import export_soil_fmu, soil_config_from
+
+    with tempfile.TemporaryDirectory(prefix="soil_fmu_bed_") as scratch:
+        config = soil_config_from(args.source, bed_folder=args.bed_folder or scratch)
+        if args.device:
+            config.device = args.device
+        path = export_soil_fmu(config, args.out, fmi_version=args.fmi, wheel_count=args.wheels, python=args.python)
+    print(f"wrote {path}: FMI {args.fmi}.0 co-simulation, {args.wheels} wheel(s), DEM step {config.dem_step:.4g} s, "
+          f"surface z = {config.surface_height:.4g} m; the soil server runs on {config.device}")
+    return EXIT_OK
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="cosim", description="regolith-cosim: DEM soil co-simulated with rovers",
                                      epilog="exit status: 0 ok, 1 unexpected error, 2 bad input, 3 output folder "
@@ -316,6 +332,16 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", required=True, help="the twin scene file to write")
     p.add_argument("--overwrite", action="store_true")
     p.set_defaults(func=cmd_scale)
+
+    p = sub.add_parser("export-fmu", help="the soil as an FMI 2.0/3.0 co-simulation FMU (docs/fmu.md)")
+    p.add_argument("source", help="a scene file (TOML) or a run folder")
+    p.add_argument("--out", required=True, help="the .fmu file to write")
+    p.add_argument("--fmi", type=int, choices=[2, 3], default=2, help="FMI version (default 2)")
+    p.add_argument("--wheels", type=int, default=1, help="wheels in one FMU instance, on one bed (default 1)")
+    p.add_argument("--device", help="the soil server's default Warp device (default: the scene's)")
+    p.add_argument("--python", help="the soil server's default Python (default: this one)")
+    p.add_argument("--bed-folder", help="where a scene's bed is settled and cached (default: a temporary folder)")
+    p.set_defaults(func=cmd_export_fmu)
     return parser
 
 

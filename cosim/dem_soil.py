@@ -44,11 +44,12 @@ class DemSoil:
     @classmethod
     def from_bed(cls, bed, wheels, wheel_material, dt: float, surface_height: float | None = None,
                  device=None, precision: str = "mixed", order_seed: int | None = None,
-                 wall_clearance: float | None = None) -> "DemSoil":
+                 wall_clearance: float | None = None, law=None) -> "DemSoil":
         """A DemSoil on a saved bed (path of soil.bed.save_bed, or load_bed's (builder, saved))
         with one body per wheel shape (GrouserWheel/MeshWheel), all of `wheel_material`.
 
         surface_height [m]: undisturbed surface; None takes the bed's saved height metric.
+        law: soil.ContactLaw switches; None: rolling and cohesion on when a material uses them.
         """
         from soil import Simulation
         from soil.bed import load_bed, restore_state
@@ -56,7 +57,7 @@ class DemSoil:
         builder, saved = load_bed(bed) if not isinstance(bed, tuple) else bed
         for shape in wheels:
             builder.add_wheel(shape, wheel_material)
-        model, state, control = builder.finalize(device=device, precision=precision, order_seed=order_seed)
+        model, state, control = builder.finalize(device=device, precision=precision, law=law, order_seed=order_seed)
         restore_state(model, state, saved)
         if surface_height is None:
             if "height" not in saved.get("metrics", {}):
@@ -136,17 +137,28 @@ class DemSoil:
         if steps % 50 == 0 or steps > 50:
             sim.check_finite()
         contacts = sim.state.body_contacts.numpy()
-        positions = control.body_position_host
-        self._check_walls(positions)
-        result = []
-        for b in range(wheels):
-            shape = sim.model.bodies[b]
-            lowest = positions[b, 2] - getattr(shape, "radius", getattr(shape, "outer_radius", 0.0))
-            result.append(WheelWrench(
-                force=force_sum[b] / steps, torque=torque_sum[b] / steps, force_end=force[b].copy(),
-                torque_end=torque[b].copy(), contact_count=int(contacts[b]),
-                sinkage=self.surface_height - lowest, work_on_soil=float(work[b])))
-        return result
+        self._check_walls(control.body_position_host)
+        return [WheelWrench(force=force_sum[b] / steps, torque=torque_sum[b] / steps, force_end=force[b].copy(),
+                            torque_end=torque[b].copy(), contact_count=int(contacts[b]), sinkage=self._sinkage(b),
+                            work_on_soil=float(work[b]))
+                for b in range(wheels)]
+
+    def current_wrenches(self) -> list[WheelWrench]:
+        """The wrench on every wheel at this instant (e.g. after place_wheels): force and torque
+        are the instantaneous ones, the work is zero."""
+        force = self.sim.state.body_force.numpy().astype(np.float64)
+        torque = self.sim.state.body_torque.numpy().astype(np.float64)
+        contacts = self.sim.state.body_contacts.numpy()
+        return [WheelWrench(force=force[b], torque=torque[b], force_end=force[b].copy(), torque_end=torque[b].copy(),
+                            contact_count=int(contacts[b]), sinkage=self._sinkage(b))
+                for b in range(self.wheel_count)]
+
+    def _sinkage(self, wheel: int) -> float:
+        """Depth of the wheel's rim bottom below the undisturbed surface [m]."""
+        shape = self.sim.model.bodies[wheel]
+        lowest = self.sim.control.body_position_host[wheel, 2] - getattr(shape, "radius",
+                                                                          getattr(shape, "outer_radius", 0.0))
+        return self.surface_height - float(lowest)
 
     def state_dict(self) -> dict:
         """The soil side's own state (the simulation keeps its own)."""

@@ -238,8 +238,9 @@ def bed_key(scene: Scene, material: Material, gravity: np.ndarray, device: str) 
     return hashlib.sha256(json.dumps(parts, sort_keys=True).encode()).hexdigest()[:16]
 
 
-def _check_bed_file(path: str, material: Material, gravity: np.ndarray) -> list[str]:
-    """A saved bed must be readable and made of the scene's soil under the scene's gravity."""
+def _check_bed_file(path: str, material: Material, gravity: np.ndarray, bed) -> list[str]:
+    """A saved bed must be readable, of the scene's bed geometry, made of the scene's soil under the
+    scene's gravity."""
     from soil.bed import read_bed_header
 
     if not os.path.isfile(path):
@@ -252,6 +253,11 @@ def _check_bed_file(path: str, material: Material, gravity: np.ndarray) -> list[
     if not np.allclose(header["gravity"], gravity, rtol=1e-12, atol=0):
         problems.append(f"bed.bed_file: the bed was settled under gravity {list(header['gravity'])} m/s^2, the scene "
                         f"asks for {list(gravity)}: settle a bed under the scene's gravity (remove bed.bed_file)")
+    saved = header["spec"] or {}
+    for key in ("length", "width", "depth", "radius_mean", "radius_spread", "seed"):
+        if key in saved and saved[key] != getattr(bed, key):
+            problems.append(f"bed.{key}: the bed file has {key} = {saved[key]!r}, the scene says {getattr(bed, key)!r}; "
+                            "make [bed] match the file (or remove bed.bed_file to settle a new bed)")
     grains = header["materials"][0] if header["materials"] else None
     if grains is not None and grains != material:
         differ = [name for name in material.__dataclass_fields__ if getattr(grains, name) != getattr(material, name)]
@@ -281,7 +287,7 @@ def resolve(scene: Scene) -> RunPlan:
                    radius_spread=b.radius_spread, material=soil_material, seed=b.seed)
     bed_file = scene.resolve(b.bed_file)
     if bed_file is not None:
-        problems += _check_bed_file(bed_file, soil_material, gravity)
+        problems += _check_bed_file(bed_file, soil_material, gravity, b)
     settle_dt = b.settle_dt_factor * rayleigh_time_step(soil_material.youngs_modulus, soil_material.poisson_ratio,
                                                         soil_material.density, b.radius_mean * (1 - b.radius_spread))
     bed = BedPlan(spec, settle_dt, b.settle_ke_ratio, b.settle_max_time, bed_file,

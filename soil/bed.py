@@ -213,9 +213,11 @@ def _open_bed(path):
 
 def read_bed_header(path) -> dict:
     """What a saved bed was made of, without its state: {'gravity' [m/s^2] (3,), 'materials'
-    (list of Material, the grains' first), 'metrics' (dict), 'particle_count'}."""
+    (list of Material, the grains' first), 'metrics' (dict), 'particle_count', 'spec' (the BedSpec
+    fields without materials, or None)}."""
     with _open_bed(path) as f:
-        return {"gravity": np.asarray(f.attrs["gravity"], dtype=np.float64),
+        return {"spec": json.loads(f.attrs["spec"]) if "spec" in f.attrs else None,
+                "gravity": np.asarray(f.attrs["gravity"], dtype=np.float64),
                 "materials": [Material(**values) for values in json.loads(f.attrs["materials"])],
                 "metrics": {k[len("metric_"):]: f.attrs[k] for k in f.attrs if k.startswith("metric_")},
                 "particle_count": int(f["particles/radius"].shape[0])}

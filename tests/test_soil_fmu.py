@@ -1,102 +1,405 @@
-"""The DEM soil exported as an FMI 2.0 co-simulation FMU, loaded and stepped with fmpy."""
+"""The soil FMU (compiled front end + soil server) loaded by masters that know nothing of
+regolith-cosim: fmpy (FMI 2.0 and 3.0) and libcosim (FMI 2.0), each run in a Python whose
+sys.path holds only fmpy, libcosimpy and their dependencies (tests/fmu_importer.py).
 
+The peer of every comparison is the in-process DemSoil built from the scene's own objects.
+"""
+
+import dataclasses
 import json
 import math
+import os
+import re
+import shutil
+import signal
+import subprocess
+import sys
+import time
+import zipfile
+from pathlib import Path
 
 import numpy as np
 import pytest
 
-pytest.importorskip("pythonfmu")
 fmpy = pytest.importorskip("fmpy")
+from fmpy.validation import validate_fmu  # noqa: E402
+if shutil.which("gcc") is None:
+    pytest.skip("gcc is needed to build the soil FMU's front end", allow_module_level=True)
+if not sys.platform.startswith("linux"):
+    pytest.skip("the soil FMU tests inspect /proc (Linux)", allow_module_level=True)
 
-from soil import GrouserWheel, Material, Simulation  # noqa: E402
-from soil.bed import BedSpec, bed_metrics, build_bed, save_bed, settle  # noqa: E402
+from soil import GrouserWheel  # noqa: E402
 from cosim.contract import WheelKinematics  # noqa: E402
-from cosim.soil_fmu import export_soil_fmu, make_dem_soil  # noqa: E402
+from cosim.dem_soil import DemSoil  # noqa: E402
+from cosim.plan import load_plan  # noqa: E402
+from cosim.soil_fmu import build_frontend, export_soil_fmu, soil_config_from  # noqa: E402
+from helpers import TINY_SCENE  # noqa: E402
 
-WHEEL = GrouserWheel(radius=0.02, width=0.015, grouser_count=8, grouser_height=0.002, grouser_thickness=0.0015)
-WHEEL_MATERIAL = Material(youngs_modulus=1e6, restitution=0.3)
+HERE = Path(__file__).resolve().parent
+H = 2.0**-9  # macro step [s]: a whole number of nanoseconds (libcosim's clock) and exact in binary
+VELOCITY = np.array([0.02, 0.0, -0.002])  # hub velocity [m/s]: driving forward, sinking slowly
+SPIN = 0.8  # about +Y [rad/s]: rolling forward
+PRESS = 8e-3  # the hub starts this far below its resting height [m] (grousers 3 mm + a grain radius + 1.5 mm)
+AXES = "xyz"
+SMALL_WHEEL = GrouserWheel(radius=0.012, width=0.015, grouser_count=8, grouser_height=0.002, grouser_thickness=0.002)
 
 
-@pytest.fixture(scope="module")
-def soil_fmu(tmp_path_factory):
+# -- fixtures ---------------------------------------------------------------------------------------
+
+
+@pytest.fixture(scope="session")
+def frontends(tmp_path_factory):
+    """The front end compiled once per session for each FMI version (local gcc, fmpy's headers)."""
+    folder = tmp_path_factory.mktemp("frontend")
+    return {version: build_frontend(version, folder) for version in (2, 3)}
+
+
+@pytest.fixture(scope="session")
+def tiny(tmp_path_factory, frontends):
+    """The tiny scene on the CPU, its settled bed, and its soil FMUs (FMI 2.0 and 3.0, one wheel)."""
     folder = tmp_path_factory.mktemp("soil_fmu")
-    spec = BedSpec(length=0.07, width=0.04, depth=0.015, radius_mean=3e-3, radius_spread=0.1,
-                   material=Material(youngs_modulus=1e6, restitution=0.3))
-    sim = Simulation(*build_bed(spec, 9.81).finalize("cpu", "double"))
-    settle(sim, 5e-5, ke_ratio=1e-2, max_time=0.5)
-    surface = bed_metrics(sim, spec, margin=0.0)["height"]
-    save_bed(folder / "bed.h5", sim, spec)
-    path = export_soil_fmu(folder / "bed.h5", [WHEEL], WHEEL_MATERIAL, 5e-5, folder / "soil.fmu", surface,
-                           precision="double", device="cpu")
-    return path, folder / "bed.h5", surface
+    scene_file = folder / "tiny.toml"
+    scene_file.write_text(TINY_SCENE.replace('precision = "mixed"', 'precision = "mixed"\ndevice = "cpu"'))
+    config = soil_config_from(scene_file, bed_folder=folder / "bed")
+    fmus = {version: export_soil_fmu(config, folder / f"soil{version}.fmu", fmi_version=version,
+                                     library=frontends[version]) for version in (2, 3)}
+    return {"folder": folder, "plan": load_plan(scene_file), "config": config, "fmus": fmus}
 
 
-def test_soil_fmu_describes_wheel_variables(soil_fmu):
-    path, _, _ = soil_fmu
-    description = fmpy.read_model_description(str(path))
-    assert description.fmiVersion == "2.0"
+def _sandbox(folder: Path) -> Path:
+    """A folder holding only fmpy, libcosimpy and their dependencies (symlinks to the installed packages)."""
+    from importlib import metadata
+
+    from packaging.markers import default_environment
+    from packaging.requirements import Requirement
+
+    environment = default_environment()
+    environment["extra"] = ""
+    todo, seen = ["fmpy", "libcosimpy"], set()
+    while todo:
+        name = todo.pop()
+        key = re.sub(r"[-_.]+", "-", name).lower()
+        if key in seen:
+            continue
+        seen.add(key)
+        try:
+            distribution = metadata.distribution(name)
+        except metadata.PackageNotFoundError:
+            continue
+        for text in distribution.requires or []:
+            requirement = Requirement(text)
+            if requirement.marker is None or requirement.marker.evaluate(environment):
+                todo.append(requirement.name)
+        tops = {Path(str(f)).parts[0] for f in distribution.files or []}
+        for top in tops:
+            source = Path(distribution.locate_file(top))
+            if top.endswith((".dist-info", ".egg-info", ".pth")) or top in ("..", "__pycache__") or not source.exists():
+                continue
+            target = folder / top
+            if not target.exists():
+                target.symlink_to(source)
+    assert not (folder / "cosim").exists() and not (folder / "soil").exists() and not (folder / "warp").exists()
+    return folder
+
+
+@pytest.fixture(scope="session")
+def importer(tmp_path_factory):
+    """Run tests/fmu_importer.py in a Python that can import fmpy and libcosimpy, not regolith-cosim.
+
+    Its working directory holds decoy cosim/ and soil/ packages: the soil server must not import them.
+    """
+    sandbox = _sandbox(tmp_path_factory.mktemp("bare_site"))
+    workdir = tmp_path_factory.mktemp("importer")
+    for name in ("cosim", "soil"):
+        (workdir / name).mkdir()
+        (workdir / name / "__init__.py").write_text(f"raise ImportError('the decoy {name} package in the "
+                                                    "importer\'s working directory was imported')\n")
+    counter = iter(range(10**6))
+
+    def run(job: dict, env_extra: dict | None = None, timeout: float = 300.0, background: bool = False):
+        n = next(counter)
+        job = {"sandbox": str(sandbox), **job}
+        for k, spec in enumerate(job["instances"]):
+            spec.setdefault("name", f"soil{k}")
+            spec.setdefault("unzip", str(workdir / f"unzipped{n}_{k}"))
+        job_file, result_file = workdir / f"job{n}.json", workdir / f"result{n}.json"
+        job_file.write_text(json.dumps(job))
+        command = [sys.executable, "-I", "-S", str(HERE / "fmu_importer.py"), str(job_file), str(result_file)]
+        env = {**{k: v for k, v in os.environ.items() if not k.startswith("REGOLITH_")}, **(env_extra or {})}
+        if background:
+            return subprocess.Popen(command, cwd=workdir, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                                    text=True)
+        done = subprocess.run(command, cwd=workdir, env=env, capture_output=True, text=True, timeout=timeout)
+        assert done.returncode == 0, f"the importer failed ({done.returncode}):\n{done.stdout}\n{done.stderr}"
+        result = json.loads(result_file.read_text())
+        assert not any(result["regolith_importable"].values()), result["regolith_importable"]
+        result["stdout"] = done.stdout
+        return result
+
+    return run
+
+
+# -- the motion and the in-process peer -----------------------------------------------------------------
+
+
+def _start_hub(fmu) -> np.ndarray:
+    description = fmpy.read_model_description(str(fmu))
+    starts = {v.name: float(v.start) for v in description.modelVariables if v.start is not None
+              and v.name.startswith("wheel_0.position")}
+    return np.array([starts[f"wheel_0.position.{a}"] for a in AXES])
+
+
+def _kinematics(hub0: np.ndarray, t: float) -> WheelKinematics:
+    angle = SPIN * t
+    return WheelKinematics(hub0 + VELOCITY * t, (math.cos(angle / 2), 0.0, math.sin(angle / 2), 0.0), VELOCITY,
+                           (0.0, SPIN, 0.0))
+
+
+def _inputs(k: WheelKinematics, wheel: int = 0) -> dict:
+    values = {}
+    for name, vector, axes in (("position", k.position, AXES), ("orientation", k.orientation, "wxyz"),
+                               ("velocity", k.linear_velocity, AXES), ("angular_velocity", k.angular_velocity, AXES)):
+        values.update({f"wheel_{wheel}.{name}.{a}": float(v) for a, v in zip(axes, vector)})
+    return values
+
+
+def _in_process_soil(tiny) -> DemSoil:
+    """The peer: a DemSoil built from the scene's own objects and the same bed file."""
+    plan = tiny["plan"]
+    return DemSoil.from_bed(tiny["config"].bed_file, [plan.wheel.shape], plan.wheel.material, plan.dt,
+                            surface_height=tiny["config"].surface_height, device="cpu",
+                            precision=plan.precision, law=plan.law, order_seed=plan.order_seed)
+
+
+def _as_outputs(w, wheel: int = 0) -> dict:
+    out = {f"wheel_{wheel}.sinkage": w.sinkage, f"wheel_{wheel}.work_on_soil": w.work_on_soil,
+           f"wheel_{wheel}.contact_count": w.contact_count}
+    for name in ("force", "torque", "force_end", "torque_end"):
+        out.update({f"wheel_{wheel}.{name}.{a}": float(v) for a, v in zip(AXES, getattr(w, name))})
+    return out
+
+
+def _job(fmu, steps: int, master: str = "fmpy", start: dict | None = None) -> tuple[dict, list]:
+    """A job driving one wheel along the motion for `steps` macro steps; returns (job, kinematics per step)."""
+    hub0 = _start_hub(fmu) - np.array([0.0, 0.0, PRESS])
+    motion = [_kinematics(hub0, k * H) for k in range(steps)]
+    job = {"master": master, "instances": [{"fmu": str(fmu), "start": {**_inputs(motion[0]), **(start or {})}}],
+           "steps": [{"h": H, "inputs": [_inputs(k)]} for k in motion]}
+    return job, motion
+
+
+# -- tests ------------------------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("version", [2, 3])
+def test_model_description_validates_with_units_and_resting_wheels(tiny, version):
+    """fmpy's validation passes; every real variable has a defined unit; the default experiment is the
+    scene's; the start values put the wheel on the bed, inside its walls: touching no grain, but
+    touching when lowered by the grouser height (the start pose rests the grouser tips' circle on
+    the highest grain) plus half a grain radius."""
+    fmu = tiny["fmus"][version]
+    assert validate_fmu(str(fmu)) == []
+    description = fmpy.read_model_description(str(fmu))
+    assert description.fmiVersion == f"{version}.0"
     assert description.coSimulation.canHandleVariableCommunicationStepSize
+    units = {u.name for u in description.unitDefinitions}
+    reals = [v for v in description.modelVariables if v.type in ("Real", "Float64")]
+    assert reals and all(v.unit in units for v in reals), [v.name for v in reals if v.unit not in units]
     by_name = {v.name: v for v in description.modelVariables}
-    for name in ("wheel_0.position.z", "wheel_0.orientation.w", "wheel_0.angular_velocity.y"):
-        assert by_name[name].causality == "input"
-    for name in ("wheel_0.force.z", "wheel_0.torque.y", "wheel_0.sinkage", "wheel_0.contact_count"):
-        assert by_name[name].causality == "output"
-    assert by_name["gravity.z"].causality == "parameter"
+    assert by_name["wheel_0.force.z"].unit == "N" and by_name["wheel_0.torque.y"].unit == "N.m"
+    assert by_name["wheel_0.position.x"].unit == "m" and by_name["wheel_0.angular_velocity.y"].unit == "rad/s"
+    macro_step = tiny["plan"].macro_step
+    assert float(description.defaultExperiment.stepSize) == pytest.approx(macro_step, rel=1e-12)
+    assert float(description.defaultExperiment.stopTime) == pytest.approx(tiny["plan"].scene.run.duration)
+
+    hub = _start_hub(fmu)
+    soil = _in_process_soil(tiny)
+    grains = soil.sim.positions()
+    assert grains[:, 0].min() < hub[0] < grains[:, 0].max() and grains[:, 1].min() < hub[1] < grains[:, 1].max()
+    soil.place_wheels([WheelKinematics(hub, (1, 0, 0, 0), (0, 0, 0), (0, 0, 0))])
+    resting = soil.current_wrenches()[0]
+    wheel = tiny["plan"].scene.wheel
+    lowered = hub - [0, 0, wheel.grouser_height + 0.5 * tiny["plan"].scene.bed.radius_mean]
+    soil.place_wheels([WheelKinematics(lowered, (1, 0, 0, 0), (0, 0, 0), (0, 0, 0))])
+    pressed = soil.current_wrenches()[0]
+    assert resting.contact_count == 0 and not np.any(resting.force)
+    assert pressed.contact_count > 0 and pressed.force[2] > 0
 
 
-def test_soil_fmu_steps_like_the_soil_in_process(soil_fmu):
-    """The FMU, stepped by fmpy, gives the same wrenches as the same soil used directly:
-    a wheel pressed into the bed and pulled along; the bed pushes it up."""
-    from fmpy.fmi2 import FMU2Slave
-    from fmpy import extract
+@pytest.mark.parametrize("master, version", [("fmpy", 2), ("fmpy", 3), ("libcosim", 2), ("libcosim", 3)])
+def test_fmu_steps_bitwise_like_the_in_process_soil(tiny, importer, master, version):
+    """A master without regolith-cosim steps the FMU and gets bitwise the wrenches of the in-process
+    soil for the same step sequence (CPU); nothing of Warp reaches the importer's stdout."""
+    if master == "libcosim":
+        pytest.importorskip("libcosimpy", reason="libcosim is tested when libcosimpy is installed")
+    steps = 4
+    job, motion = _job(tiny["fmus"][version], steps, master)
+    result = importer(job)
+    if "Unsupported FMI version" in result.get("refused", ""):
+        pytest.skip(f"this libcosim does not load FMI {version}.0 FMUs: {result['refused']}")
+    assert "refused" not in result, result["refused"]
 
-    path, bed, surface = soil_fmu
-    description = fmpy.read_model_description(str(path))
-    refs = {v.name: v.valueReference for v in description.modelVariables}
-    unzipped = extract(str(path))
-    fmu = FMU2Slave(guid=description.guid, unzipDirectory=unzipped,
-                    modelIdentifier=description.coSimulation.modelIdentifier, instanceName="soil")
-    hub = np.array([0.035, 0.02, surface + WHEEL.radius - 1e-3])
-    velocity = np.array([0.01, 0.0, 0.0])
-    spin = np.array([0.0, 0.5, 0.0])
-    fmu.instantiate()
-    fmu.setupExperiment(startTime=0.0)
-    fmu.enterInitializationMode()
+    soil = _in_process_soil(tiny)
+    soil.place_wheels([motion[0]])
+    expected = [_as_outputs(soil.advance(soil.time + H, [k])[0]) for k in motion]
+    got = result["outputs"][1:] if master == "fmpy" else result["outputs"]
+    assert all(s == ["ok"] for s in result["status"]), result["status"]
+    assert len(got) == steps
+    for k in range(steps):
+        assert got[k][0] == expected[k], f"step {k}"
+    assert expected[-1]["wheel_0.contact_count"] > 0 and expected[-1]["wheel_0.force.z"] > 0, "the bed carries the wheel"
+    assert "Warp" not in result["stdout"] and "Module" not in result["stdout"], result["stdout"]
 
-    def set_inputs(t):
-        position = hub + velocity * t
-        half = 0.5 * spin[1] * t
-        values = {**{f"wheel_0.position.{a}": position[k] for k, a in enumerate("xyz")},
-                  **{f"wheel_0.velocity.{a}": velocity[k] for k, a in enumerate("xyz")},
-                  **{f"wheel_0.angular_velocity.{a}": spin[k] for k, a in enumerate("xyz")},
-                  "wheel_0.orientation.w": math.cos(half), "wheel_0.orientation.x": 0.0,
-                  "wheel_0.orientation.y": math.sin(half), "wheel_0.orientation.z": 0.0}
-        fmu.setReal([refs[k] for k in values], list(values.values()))
 
-    set_inputs(0.0)
-    fmu.exitInitializationMode()
-    macro = 5e-4
-    fmu_forces = []
-    for step in range(4):
-        t = step * macro
-        set_inputs(t)
-        fmu.doStep(currentCommunicationPoint=t, communicationStepSize=macro)
-        fmu_forces.append(fmu.getReal([refs[f"wheel_0.force.{a}"] for a in "xyz"]))
-    contacts = fmu.getInteger([refs["wheel_0.contact_count"]])[0]
-    fmu.terminate()
-    fmu.freeInstance()
+def test_diverging_step_is_discarded_and_the_soil_kept_at_its_start(tiny, importer):
+    """A wheel rammed 2 cm into the bed in one step makes the DEM diverge: the FMU answers Discard,
+    stays at the step's start, and the retried step gives bitwise the in-process soil's wrenches."""
+    job, motion = _job(tiny["fmus"][3], 3)
+    rammed = _inputs(WheelKinematics(motion[1].position, motion[1].orientation, (0.02, 0.0, -10.0), (0, SPIN, 0)))
+    job["steps"].insert(1, {"h": H, "inputs": [rammed]})
+    result = importer(job)
+    assert [s[0] for s in result["status"]] == ["ok", "ok", "discard", "ok", "ok"]
+    assert any(m[0] == "discard" and "diverged" in m[2] for m in result["messages"]), result["messages"]
 
-    with open(f"{unzipped}/resources/regolith_soil.json") as f:
-        config = json.load(f)
-    soil = make_dem_soil(bed, config, 5e-5)
+    soil = _in_process_soil(tiny)
+    soil.place_wheels([motion[0]])
+    expected = [_as_outputs(soil.advance(soil.time + H, [k])[0]) for k in motion]
+    got = [result["outputs"][i][0] for i in (1, 3, 4)]
+    assert got == expected
 
-    def kinematics(t):
-        half = 0.5 * spin[1] * t
-        return [WheelKinematics(hub + velocity * t, (math.cos(half), 0, math.sin(half), 0), velocity, spin)]
 
-    soil.place_wheels(kinematics(0.0))
-    direct = [soil.advance((step + 1) * macro, kinematics(step * macro))[0].force for step in range(4)]
-    assert contacts > 0
-    assert fmu_forces[-1][2] > 0, "the bed pushes the wheel up"
-    np.testing.assert_allclose(np.array(fmu_forces), np.array(direct), rtol=1e-12, atol=1e-15)
+def test_killed_server_gives_an_error_at_the_next_step_and_the_importer_survives(tiny, importer):
+    job, _ = _job(tiny["fmus"][2], 3, start={"server_step_timeout": 30.0})
+    job["steps"][1]["before"] = "kill"
+    result = importer(job)
+    assert [s[0] for s in result["status"]] == ["ok", "ok", "error"]
+    assert result["elapsed"][1] < 5.0, "a dead server is seen at once, long before the 30 s step timeout"
+    assert any(m[0] == "error" and "killed by signal 9" in m[2] for m in result["messages"]), result["messages"]
+    assert result["servers_after_free"] == []
+
+
+def test_hung_server_times_out_with_an_error(tiny, importer):
+    timeout = 2.0
+    job, _ = _job(tiny["fmus"][3], 3, start={"server_step_timeout": timeout})
+    job["steps"][1]["before"] = "stop"  # SIGSTOP: the server never answers
+    result = importer(job)
+    assert [s[0] for s in result["status"]] == ["ok", "ok", "error"]
+    assert timeout <= result["elapsed"][1] < timeout + 10.0
+    assert any(m[0] == "error" and "did not answer within 2 s (parameter server_step_timeout)" in m[2]
+               for m in result["messages"]), result["messages"]
+    assert result["servers_after_free"] == [], "the hung server was killed"
+
+
+def test_server_that_cannot_start_gives_an_error_naming_the_cause(tiny, importer):
+    """A Python that does not exist, and one without regolith-cosim."""
+    base = getattr(sys, "_base_executable", None) or shutil.which("python3")
+    check = subprocess.run([base, "-E", "-c", "import cosim"], capture_output=True, cwd="/")
+    job, _ = _job(tiny["fmus"][2], 1)
+    job["instances"][0]["start"]["python"] = "/nonexistent/python3"
+    if check.returncode != 0:
+        job["instances"].append({"fmu": str(tiny["fmus"][2]), "start": {"python": base}})
+        job["steps"][0]["inputs"].append({})
+    result = importer(job)
+    assert all(s == "error" for s in result["status"][0])
+    errors = [m[2] for m in result["messages"] if m[0] == "error"]
+    assert any("/nonexistent/python3" in e and "No such file" in e for e in errors), errors
+    if check.returncode != 0:
+        assert any("No module named 'cosim'" in e for e in errors), errors
+    assert result["servers_after_free"] == []
+
+
+def test_free_instance_leaves_no_process_and_no_temporary_file(tiny, importer, tmp_path):
+    tmp = tmp_path / "tmp"
+    tmp.mkdir()
+    job, _ = _job(tiny["fmus"][2], 2)
+    result = importer(job, env_extra={"TMPDIR": str(tmp), "TMP": str(tmp), "TEMP": str(tmp)})
+    assert result["server_pids"] and result["servers_after_free"] == []
+    assert not any(Path(f"/proc/{pid}").exists() for pid in result["server_pids"])
+    assert list(tmp.iterdir()) == []
+
+
+def test_server_ends_when_the_importer_is_killed(tiny, importer, tmp_path):
+    pid_file = tmp_path / "pids.json"
+    job, _ = _job(tiny["fmus"][3], 1)
+    job.update(pid_file=str(pid_file), linger=120)
+    process = importer(job, background=True)
+    try:
+        deadline = time.time() + 120
+        while not pid_file.exists() or not pid_file.read_text():
+            assert process.poll() is None and time.time() < deadline, process.communicate()
+            time.sleep(0.1)
+        servers = json.loads(pid_file.read_text())
+        assert servers
+        process.send_signal(signal.SIGKILL)
+        process.wait()
+        deadline = time.time() + 10
+        while any(Path(f"/proc/{p}").exists() and _state(p) != "Z" for p in servers) and time.time() < deadline:
+            time.sleep(0.1)
+        assert not any(Path(f"/proc/{p}").exists() and _state(p) != "Z" for p in servers), "an orphan soil server"
+    finally:
+        if process.poll() is None:
+            process.kill()
+            process.wait()
+
+
+def _state(pid: int) -> str:
+    try:
+        return Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0]
+    except OSError:
+        return "gone"
+
+
+def test_several_instances_in_one_master(tiny, importer, frontends):
+    """Two one-wheel instances of one FMU and a two-wheel FMU in one fmpy master: each instance has
+    its own server; identical inputs give identical wrenches; the two-wheel FMU's wheels start apart."""
+    small = dataclasses.replace(tiny["config"], wheel=SMALL_WHEEL)  # two of the scene's wheels fill the tiny bed
+    fmu2 = export_soil_fmu(small, tiny["folder"] / "two_wheels.fmu", fmi_version=2, wheel_count=2,
+                           library=frontends[2])
+    description = fmpy.read_model_description(str(fmu2))
+    starts = {v.name: float(v.start) for v in description.modelVariables if v.name.startswith("wheel_")
+              and v.start is not None}
+    x0, x1 = starts["wheel_0.position.x"], starts["wheel_1.position.x"]
+    assert x1 - x0 > 2 * SMALL_WHEEL.outer_radius and "wheel_2.position.x" not in starts
+
+    job, _ = _job(tiny["fmus"][2], 2)
+    job["instances"].append(dict(job["instances"][0]))
+    two = {"fmu": str(fmu2), "start": {}}
+    job["instances"].append(two)
+    for step in job["steps"]:
+        step["inputs"] = [step["inputs"][0], step["inputs"][0], {}]
+    result = importer(job)
+    assert all(s == ["ok", "ok", "ok"] for s in result["status"])
+    assert len(set(result["server_pids"])) == 3
+    for outputs in result["outputs"][1:]:
+        assert outputs[0] == outputs[1]
+        assert all(math.isfinite(outputs[2][f"wheel_{i}.force.{a}"]) for i in (0, 1) for a in AXES)
+
+
+def test_export_fmu_command_from_a_run_folder(tmp_path):
+    """`cosim export-fmu RUN --fmi 3 --wheels 2` takes the run's bed, wheel, step and surface."""
+    from cosim.cli import main
+    from helpers import write_tiny
+
+    scene = write_tiny(tmp_path)
+    Path(scene).write_text(Path(scene).read_text().replace('precision = "mixed"', 'precision = "mixed"\ndevice = "cpu"'))
+    run = tmp_path / "run"
+    small = [f"wheel.{key}={getattr(SMALL_WHEEL, key)}" for key in ("radius", "width", "grouser_height")]
+    assert main(["run", scene, "--out", str(run), "--no-progress", "--set", "run.duration=0.0034",
+                 *[a for value in small for a in ("--set", value)]]) in (0, 6)  # 6: too short for a steady state
+    out = tmp_path / "soil.fmu"
+    assert main(["export-fmu", str(run), "--out", str(out), "--fmi", "3", "--wheels", "2"]) == 0
+    assert validate_fmu(str(out)) == []
+    description = fmpy.read_model_description(str(out))
+    names = {v.name for v in description.modelVariables}
+    assert {"wheel_0.force.z", "wheel_1.force.z"} <= names and "wheel_2.force.z" not in names
+    with zipfile.ZipFile(out) as z:
+        config = json.loads(z.read("resources/soil.json"))
+        bed = z.read("resources/bed.h5")
+    assert bed == (run / "bed.h5").read_bytes()
+    loaded = load_plan(run / "scene.toml")
+    dt, macro_step = loaded.dt, loaded.macro_step
+    run_info = json.loads((run / "bed.json").read_text())
+    assert config["dem_step"] == dt and config["wheel_count"] == 2
+    assert config["surface_height"] == pytest.approx(run_info["metrics"]["height"], rel=1e-12)
+    assert config["wheel"]["radius"] == loaded.scene.wheel.radius == SMALL_WHEEL.radius
+    assert float(description.defaultExperiment.stepSize) == pytest.approx(macro_step, rel=1e-12)

@@ -1,0 +1,267 @@
+"""The soil server: the DEM soil of an exported soil FMU, in a process of its own.
+
+    python -E -m cosim.soil_fmu.server --fd 3
+
+The FMU's compiled front end (soil_fmu.c) starts it like this (without the working directory
+on sys.path) when initialization ends, with its end
+of a socket pair as descriptor 3, stdout on /dev/null and stderr on a pipe it reads
+(lines starting "warning: " become FMI warnings). Messages are frames of a little-endian
+header (uint32 kind, uint32 payload length) and a payload; the front end asks, the server
+answers each request with one message:
+
+    INIT  (1) text "key value" lines: protocol, instance, resources, wheels, dem_step,
+              gravity (3 numbers), device        -> OK (10) text, or ERROR
+    PLACE (2) float64[W, 13] wheel inputs          -> OUTPUTS (11) float64[W, 15], or ERROR
+    STEP  (3) float64 step [s], float64[W, 13]     -> OUTPUTS, DISCARD (12) text, or ERROR
+    BYE   (4)                                      -> OK, then the server exits
+    ERROR (13) text: what went wrong.
+
+Wheel inputs: position (3) [m], orientation quaternion w x y z (4), velocity (3) [m/s],
+angular velocity (3) [rad/s]. Outputs: force, torque (mean over the step), force_end,
+torque_end (3 each) [N, N m], sinkage [m], work on the soil [J], contact count.
+A STEP advances the soil by `step` from the kinematics (constant velocity over the step,
+DemSoil.advance). A step the soil cannot take (soil.SimulationDiverged) puts the soil back
+to the step's start and answers DISCARD, so the importer can retry a shorter step.
+The server exits when the socket closes or its parent (the importer) dies. docs/fmu.md
+describes the whole FMU.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import socket
+import struct
+import sys
+import threading
+import time
+import traceback
+import warnings
+
+import numpy as np
+
+PROTOCOL_VERSION = 1
+INIT, PLACE, STEP, BYE = 1, 2, 3, 4
+OK, OUTPUTS, DISCARD, ERROR = 10, 11, 12, 13
+HEADER = struct.Struct("<II")
+INPUTS_PER_WHEEL = 13
+OUTPUTS_PER_WHEEL = 15
+CONFIG_FILE = "soil.json"
+BED_FILE = "bed.h5"
+DEVICE_VARIABLE = "REGOLITH_SOIL_DEVICE"
+
+
+class Channel:
+    """Framed messages over a stream socket."""
+
+    def __init__(self, sock: socket.socket):
+        self.sock = sock
+
+    def send(self, kind: int, payload: bytes = b"") -> None:
+        self.sock.sendall(HEADER.pack(kind, len(payload)) + payload)
+
+    def receive(self) -> tuple[int, bytes] | None:
+        """The next message, or None when the other end closed the socket."""
+        header = self._exactly(HEADER.size)
+        if header is None:
+            return None
+        kind, length = HEADER.unpack(header)
+        payload = self._exactly(length)
+        return None if payload is None else (kind, payload)
+
+    def _exactly(self, size: int) -> bytes | None:
+        chunks, left = [], size
+        while left:
+            chunk = self.sock.recv(min(left, 1 << 20))
+            if not chunk:
+                return None
+            chunks.append(chunk)
+            left -= len(chunk)
+        return b"".join(chunks)
+
+
+class StepRefused(RuntimeError):
+    """The soil could not take the step; it is back at the step's start."""
+
+
+class StepStart:
+    """The soil at the start of a macro step, to go back to when the step is refused.
+
+    The state is copied device to device (no host read); the wheels' prescribed motion
+    and the step counter are host values.
+    """
+
+    def __init__(self, soil):
+        self.soil = soil
+        self.state = None
+
+    def take(self) -> None:
+        from soil import SoilState
+
+        sim = self.soil.sim
+        model = sim.model
+        if self.state is None or self.state.capacity != sim.state.capacity:
+            self.state = SoilState(model.particle_count, sim.state.capacity, model.precision.vec_hi, model.device,
+                                   model.body_count)
+        self.state.assign(sim.state)
+        control = sim.control
+        self.motion = [(control.body_position_host[b].copy(), control.body_rotation_host[b].copy(),
+                        control.body_velocity_host[b].copy(), control.body_angular_velocity_host[b].copy())
+                       for b in range(control.body_count)]
+        self.steps = sim.steps
+
+    def restore(self) -> None:
+        sim = self.soil.sim
+        if sim.state.capacity > self.state.capacity:  # the refused step widened the contact history
+            self.state.grow_capacity(sim.state.capacity)
+        sim.state.assign(self.state)
+        for b, (position, rotation, velocity, spin) in enumerate(self.motion):
+            sim.control.set_body_motion(b, position, velocity=velocity, angular_velocity=spin, rotation=rotation)
+        sim.steps = self.steps
+
+
+class SoilSession:
+    """The soil of one FMU instance."""
+
+    def __init__(self, settings: dict):
+        from soil import quiet_warp
+
+        from .config import soil_from_config
+
+        protocol = int(settings.get("protocol", 0))
+        if protocol != PROTOCOL_VERSION:
+            raise ValueError(f"the FMU front end speaks protocol {protocol}, this server {PROTOCOL_VERSION}: "
+                             "export the FMU again with the regolith-cosim this Python has")
+        resources = settings["resources"]
+        with open(os.path.join(resources, CONFIG_FILE)) as f:
+            config = json.load(f)
+        self.wheel_count = int(settings["wheels"])
+        if self.wheel_count != int(config["wheel_count"]):
+            raise ValueError(f"the front end has {self.wheel_count} wheels, {CONFIG_FILE} {config['wheel_count']}")
+        dem_step = float(settings["dem_step"])
+        if not dem_step > 0:
+            raise ValueError(f"dem_step must be > 0 [s], got {dem_step!r}")
+        device = settings.get("device") or os.environ.get(DEVICE_VARIABLE) or config["device"]
+        quiet_warp()
+        self.soil = soil_from_config(config, os.path.join(resources, BED_FILE), dem_step, device)
+        self.soil.set_gravity([float(g) for g in settings["gravity"].split()])
+        self.start = StepStart(self.soil)
+        sim = self.soil.sim
+        self.description = (f"{sim.model.particle_count} grains, {self.wheel_count} wheel(s) on {sim.model.device}, "
+                            f"precision {sim.model.precision.name}, DEM step {dem_step:.6g} s")
+
+    def kinematics(self, values: np.ndarray):
+        from cosim.contract import WheelKinematics
+
+        rows = values.reshape(self.wheel_count, INPUTS_PER_WHEEL)
+        return [WheelKinematics(r[0:3], r[3:7], r[7:10], r[10:13]) for r in rows]
+
+    def place(self, values: np.ndarray) -> bytes:
+        self.soil.place_wheels(self.kinematics(values))
+        sim = self.soil.sim
+        sim.monitor.arm(sim)
+        return outputs(self.soil.current_wrenches())
+
+    def step(self, step: float, values: np.ndarray) -> bytes:
+        from soil import SimulationDiverged
+
+        if not step > 0:
+            raise ValueError(f"the step must be > 0 [s], got {step!r}")
+        kinematics = self.kinematics(values)
+        soil, sim = self.soil, self.soil.sim
+        self.start.take()
+        try:
+            wrenches = soil.advance(soil.time + step, kinematics)
+            sim.monitor.check(sim)  # speed, overlap, energy and NaN bounds (soil.stability)
+            data = outputs(wrenches)
+            if not np.all(np.isfinite(np.frombuffer(data, "<f8"))):
+                raise SimulationDiverged("a wheel wrench is not finite")
+        except SimulationDiverged as error:
+            self.start.restore()
+            raise StepRefused(f"the soil refused the step from t = {soil.time:.9g} s by {step:.6g} s and is back at "
+                              f"its start; retry a shorter step or gentler wheel motion: {error}") from error
+        except BaseException:
+            self.start.restore()
+            raise
+        return data
+
+
+def outputs(wrenches) -> bytes:
+    rows = [np.r_[w.force, w.torque, w.force_end, w.torque_end, w.sinkage, w.work_on_soil, w.contact_count]
+            for w in wrenches]
+    return np.asarray(rows, dtype="<f8").tobytes()
+
+
+def parse_settings(text: str) -> dict:
+    settings = {}
+    for line in text.splitlines():
+        key, _, value = line.partition(" ")
+        if key:
+            settings[key] = value
+    return settings
+
+
+def serve(channel: Channel) -> None:
+    """Answer the front end's requests until BYE or the socket closes."""
+    try:
+        _answer(channel)
+    except (BrokenPipeError, ConnectionResetError):
+        pass  # the front end is gone (its instance was freed or its process died)
+
+
+def _answer(channel: Channel) -> None:
+    session = None
+    while True:
+        message = channel.receive()
+        if message is None:
+            return
+        kind, payload = message
+        try:
+            if kind == INIT:
+                session = SoilSession(parse_settings(payload.decode()))
+                channel.send(OK, session.description.encode())
+            elif kind == BYE:
+                channel.send(OK, b"bye")
+                return
+            elif session is None:
+                raise RuntimeError(f"message kind {kind} before INIT")
+            elif kind == PLACE:
+                channel.send(OUTPUTS, session.place(np.frombuffer(payload, "<f8")))
+            elif kind == STEP:
+                values = np.frombuffer(payload, "<f8")
+                channel.send(OUTPUTS, session.step(float(values[0]), values[1:]))
+            else:
+                raise RuntimeError(f"unknown message kind {kind}")
+        except StepRefused as refused:
+            channel.send(DISCARD, str(refused).encode())
+        except Exception as error:
+            traceback.print_exc()
+            channel.send(ERROR, f"{type(error).__name__}: {error}".encode())
+
+
+def _exit_with(parent: int) -> None:
+    """End this process when the importer that started it is gone (no orphan servers)."""
+    while os.getppid() == parent:
+        time.sleep(0.25)
+    os._exit(0)
+
+
+def _one_line_warnings(message, category, filename, lineno, file=None, line=None):
+    text = " ".join(str(message).split())
+    print(f"warning: {category.__name__}: {text}", file=sys.stderr, flush=True)
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(prog="python -m cosim.soil_fmu.server", description=__doc__.splitlines()[0])
+    parser.add_argument("--fd", type=int, required=True, help="descriptor of this server's end of the socket pair")
+    args = parser.parse_args(argv)
+    threading.Thread(target=_exit_with, args=(os.getppid(),), daemon=True).start()
+    warnings.showwarning = _one_line_warnings
+    with socket.socket(fileno=args.fd) as sock:
+        serve(Channel(sock))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
