@@ -192,7 +192,6 @@ class SoilBuilder:
         inv_inertia = np.where(fixed | locked, 0.0, 1.0 / inertia)
 
         lo, hi = prec.np_lo, prec.np_hi
-        vec_hi = prec.vec_hi
         kinds = np.array([b[0] for b in self._boundaries], dtype=np.int32)
         geometry = np.array([b[1] for b in self._boundaries], dtype=hi).reshape(-1, 6)
         bmat = np.array([b[2] for b in self._boundaries], dtype=np.int32)

@@ -147,8 +147,9 @@ class SoilControl:
         direction: 3-vector (normalised here) [-]; mass [kg] > 0; damping [N s/m] >= 0
         (default 0). direction and mass are needed the first time; later calls may change
         the load alone (a ramp, a servo set point). A plane lid pressing down on a bed:
-        direction (0, 0, -1), load = the normal force it should carry. The boundary must
-        report its force (built with report=True).
+        direction (0, 0, -1), load = the normal force it should carry. Each loaded boundary
+        is a body of its own (boundaries do not share a load). The boundary must report its
+        force (built with report=True).
         """
         (index,) = self._boundary_indices(boundary)
         if not self.boundary_reports[index]:

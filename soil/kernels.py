@@ -23,9 +23,11 @@ import warp as wp
 from .contact import ContactLaw, make_contact_law
 
 BOUNDARY_PLANE = 0
-"""Half-space: geometry row (point xyz, unit normal xyz); particles live on the normal's side."""
+"""Half-space: geometry row (point xyz, unit normal xyz); particles live on the normal's side.
+Its torque is reported about the point."""
 BOUNDARY_BOX = 1
-"""Solid axis-aligned box: geometry row (lower corner xyz, upper corner xyz); particles stay outside."""
+"""Solid axis-aligned box: geometry row (lower corner xyz, upper corner xyz); particles stay outside.
+Its torque is reported about its centre."""
 
 BODY_WHEEL = 0
 """Parametric grousered wheel: shape row (radius, half width, grousers, grouser height, thickness, bounding radius)."""

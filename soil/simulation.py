@@ -41,6 +41,7 @@ class Simulation:
         self.state = state
         self._next = SoilState.for_model(model, state.capacity)
         self.steps = 0
+        self._controller = None  # run_adaptive's StepController, kept between calls
         if not state.forces_valid:  # a restored state keeps its own forces: restarts stay bit-identical
             self.refresh_forces()
 
@@ -115,7 +116,7 @@ class Simulation:
                 self.integrator = JoltBeeman()
             else:
                 raise TypeError(f"run_adaptive needs the JoltBeeman integrator, not {type(self.integrator).__name__}")
-        controller = controller if controller is not None else getattr(self, "_controller", None) or StepController()
+        controller = controller if controller is not None else self._controller or StepController()
         self._controller = controller
         controller.setup(self)
         if not self.monitor.armed:
@@ -194,9 +195,8 @@ class Simulation:
         data["next_capacity"] = np.int64(self._next.capacity)
         data["integrator"] = np.str_(self.integrator.name)
         data["precision"] = np.str_(self.model.precision.name)
-        controller = getattr(self, "_controller", None)
-        if controller is not None:
-            data.update({f"controller/{k}": v for k, v in controller.state_dict().items()})
+        if self._controller is not None:
+            data.update({f"controller/{k}": v for k, v in self._controller.state_dict().items()})
         data.update({f"monitor/{k}": v for k, v in self.monitor.state_dict().items()})
         return data
 
@@ -224,11 +224,10 @@ class Simulation:
         if self.integrator.name != name:
             self.integrator = integrators[name]()
         controller = {k[len("controller/"):]: v for k, v in data.items() if k.startswith("controller/")}
+        self._controller = None
         if controller:
             self._controller = StepController()
             self._controller.load_state_dict(controller)
-        else:
-            self.__dict__.pop("_controller", None)
         self.monitor.load_state_dict({k[len("monitor/"):]: v for k, v in data.items() if k.startswith("monitor/")})
         if self.monitor.armed:
             self.monitor.snapshot(self)
