@@ -120,7 +120,8 @@ def column(device, wall_friction, columns=4, layers=16, order_seed=None, top=1.0
 
 def mean_wrenches(sim, duration, dt):
     """Boundary forces [N] averaged over every step of `duration` [s] (wall friction chatters
-    from step to step: single samples scatter by a few percent)."""
+    from step to step: single samples scatter by a few percent). Their sum differs from the
+    weight by the bed's rate of momentum change, which the tests let die out first."""
     forces = []
     sim.run(duration, dt, callback=lambda s: forces.append(s.boundary_wrenches()[0]))
     return np.mean(forces, axis=0)
@@ -128,8 +129,8 @@ def mean_wrenches(sim, duration, dt):
 
 def test_floor_carries_the_weight_with_frictionless_walls(device):
     sim, walls, _ = column(device, wall_friction=0.0)
-    sim.run(0.4, 1e-4)
-    force = mean_wrenches(sim, 0.1, 1e-4)
+    sim.run(0.6, 1e-4)  # the column's slow bounce dies out (0.5 % of its weight left at 0.5 s)
+    force = mean_wrenches(sim, 0.2, 1e-4)
     weight = float(sim.model.mass_numpy().sum()) * G
     floor, sides = walls[0], walls[1:]
     assert -force[floor, 2] == pytest.approx(weight, rel=0.01)
@@ -143,12 +144,12 @@ def test_floor_and_frictional_walls_share_the_weight(device):
     """Wall friction carries part of a narrow column (Janssen): the floor gets less than the
     weight, floor and walls together get all of it."""
     sim, walls, _ = column(device, wall_friction=0.5)
-    sim.run(0.4, 1e-4)
-    force = mean_wrenches(sim, 0.1, 1e-4)
+    sim.run(0.6, 1e-4)
+    force = mean_wrenches(sim, 0.2, 1e-4)
     weight = float(sim.model.mass_numpy().sum()) * G
     floor, sides = walls[0], walls[1:]
-    assert -force[floor, 2] < 0.95 * weight
-    assert -force[sides, 2].sum() > 0.05 * weight
+    assert -force[floor, 2] < 0.97 * weight  # measured 0.91-0.94 over order_seed replicas
+    assert -force[sides, 2].sum() > 0.03 * weight
     assert -force[:, 2].sum() == pytest.approx(weight, rel=0.01)
 
 
