@@ -39,7 +39,6 @@ class DemSoil:
         self.wall_clearance = (5 * float(sim.model.radius_numpy().mean()) if wall_clearance is None
                                else float(wall_clearance))
         self._warned_wall = False
-        self._walls = self._container_walls()
 
     @classmethod
     def from_bed(cls, bed, wheels, wheel_material, dt: float, surface_height: float | None = None,
@@ -160,26 +159,34 @@ class DemSoil:
                                                                           getattr(shape, "outer_radius", 0.0))
         return self.surface_height - float(lowest)
 
+    # -- checkpoints -----------------------------------------------------------------
     def state_dict(self) -> dict:
-        """The soil side's own state (the simulation keeps its own)."""
-        return {"warned_wall": self._warned_wall}
+        """Everything the soil side needs to continue bit for bit, as numpy arrays and scalars:
+        its Simulation's state_dict() under 'simulation/' and its own 'warned_wall' flag."""
+        data = {f"simulation/{k}": v for k, v in self.sim.state_dict().items()}
+        data["warned_wall"] = np.bool_(self._warned_wall)
+        return data
 
     def load_state_dict(self, data: dict) -> None:
+        """Continue from state_dict() output (into a DemSoil built from the same scene and bed)."""
+        self.sim.load_state_dict({k[len("simulation/"):]: v for k, v in data.items() if k.startswith("simulation/")})
         self._warned_wall = bool(data["warned_wall"])
 
     # -- walls ---------------------------------------------------------------------
     def _container_walls(self):
+        """(point, inward normal) of the side walls (vertical planes) where they are now."""
         kinds = self.sim.model.boundary_kind.numpy()
-        geometry = self.sim.model.boundary_geometry.numpy().astype(np.float64)
+        geometry = self.sim.boundary_geometry()
         return [(g[:3], g[3:]) for kind, g in zip(kinds, geometry) if kind == 0 and abs(g[5]) < 0.5]
 
     def _check_walls(self, positions: np.ndarray) -> None:
         if self._warned_wall:
             return
         rotations = self.sim.control.body_rotation_host
+        walls = self._container_walls()
         for b, hub in enumerate(positions):
             shape = self.sim.model.bodies[b]
-            for point, normal in self._walls:
+            for point, normal in walls:
                 gap = float((hub - point) @ normal) - _extent(shape, rotations[b], normal)
                 if gap < self.wall_clearance:
                     self._warned_wall = True

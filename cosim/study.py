@@ -310,8 +310,8 @@ def precision_study(plan: RunPlan, out_dir: str, replicas: int = 3, precisions=P
     report = {"kind": "precision", "replicas": results, "rows": rows, "wall_time": wall, "bed_file": bed,
               "scene_toml": text}
     write_json(os.path.join(out_dir, "study.json"), report)
-    keys = ["precision", "replicas", "steady", "failed"] + [k for k in rows[0] if k not in (
-        "precision", "replicas", "steady", "failed", "stats")]
+    keys = ["precision", "replicas", "steady", "failed"] + [f"{m}_{k}" for m in ("wall_time",) + metrics.REPLICA_METRICS
+                                                            for k in ("mean", "std", "ci95", "min", "max")]
     _write_csv(os.path.join(out_dir, "study.csv"), rows, keys, METRIC_UNITS)
     for row in rows:
         log.info("%s", _ensemble_text(row["stats"], f"precision {row['precision']}"))

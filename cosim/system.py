@@ -69,17 +69,16 @@ class CoupledSystem:
         return WheelGeometry(w.rim_radius, w.outer_radius, self.bed.surface_height)
 
     def state_dict(self) -> dict:
-        """Every part's checkpoint state, flattened under 'soil/', 'dem/', 'rover/', 'coupler/'."""
+        """Every part's checkpoint state, flattened under 'soil/' (the DEM soil side, its simulation
+        included), 'rover/' and 'coupler/'."""
         out = {}
-        for prefix, part in (("soil", self.sim), ("dem", self.soil), ("rover", self.rover),
-                             ("coupler", self.coupler)):
+        for prefix, part in (("soil", self.soil), ("rover", self.rover), ("coupler", self.coupler)):
             for key, value in part.state_dict().items():
                 out[f"{prefix}/{key}"] = np.asarray(value)
         return out
 
     def load_state_dict(self, state: dict) -> None:
-        for prefix, part in (("soil", self.sim), ("dem", self.soil), ("rover", self.rover),
-                             ("coupler", self.coupler)):
+        for prefix, part in (("soil", self.soil), ("rover", self.rover), ("coupler", self.coupler)):
             head = prefix + "/"
             part.load_state_dict({k[len(head):]: v for k, v in state.items() if k.startswith(head)})
 

@@ -8,6 +8,7 @@
     model, state, control = builder.finalize(device="cpu", precision="mixed")
     sim = Simulation(model, state, control)
     sim.run(duration=1.0, dt=1e-4)
+    force, torque, contacts = sim.boundary_wrenches()   # the grains' push on each wall
 """
 
 import warp as _wp

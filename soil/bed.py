@@ -159,6 +159,9 @@ BED_FORMAT = "regolith-cosim bed 1"
 def save_bed(path, sim, spec: BedSpec | None = None, metrics: dict | None = None) -> None:
     """Write the soil (grains, materials, walls, full state incl. contact history) to HDF5.
 
+    Walls are saved where they are now (moved walls become the bed's initial geometry, with
+    zero displacement); their velocities and the grains' forces on them are kept. The
+    control (prescribed wall motion, loads) is not part of a bed: set it again after loading.
     Written to a temporary file first and renamed, so an existing file is never left half-written.
     """
     import h5py
@@ -186,10 +189,13 @@ def save_bed(path, sim, spec: BedSpec | None = None, metrics: dict | None = None
             particles["inv_inertia"] = model.inv_inertia.numpy()
             boundaries = f.create_group("boundaries")
             boundaries["kind"] = model.boundary_kind.numpy()
-            boundaries["geometry"] = model.boundary_geometry.numpy()
+            boundaries["geometry"] = sim.boundary_geometry().astype(model.boundary_geometry.numpy().dtype)
             boundaries["material"] = model.boundary_material.numpy()
+            boundaries["report"] = model.boundary_reports
             state = f.create_group("state")
             for name, value in sim.state.to_numpy().items():
+                if name == "boundary_displacement":
+                    value = np.zeros_like(value)  # the displacement is in the saved geometry
                 if not name.startswith("body_"):
                     state[name] = value
 
@@ -239,9 +245,11 @@ def load_bed(path) -> tuple[SoilBuilder, dict]:
         inv_inertia = f["particles/inv_inertia"][()]
         saved = {name: f["state"][name][()] for name in f["state"]}
         saved["model"] = {name: f["particles"][name][()] for name in ("mass", "inv_mass", "inv_inertia")}
-        for kind, geometry, wall in zip(f["boundaries/kind"][()], f["boundaries/geometry"][()],
-                                        f["boundaries/material"][()]):
-            builder._boundaries.append((int(kind), [float(g) for g in geometry], int(wall)))
+        kinds = f["boundaries/kind"][()]
+        reports = f["boundaries/report"][()] if "report" in f["boundaries"] else np.ones(len(kinds), dtype=bool)
+        for kind, geometry, wall, report in zip(kinds, f["boundaries/geometry"][()], f["boundaries/material"][()],
+                                                reports):
+            builder._add_boundary(int(kind), geometry, int(wall), bool(report))
         saved["precision"] = f.attrs["precision"]
         saved["metrics"] = {k[len("metric_"):]: f.attrs[k] for k in f.attrs if k.startswith("metric_")}
     builder.add_particles(saved["position"], radius, 0, velocities=saved["velocity"],
@@ -254,7 +262,8 @@ def load_bed(path) -> tuple[SoilBuilder, dict]:
 def restore_state(model, state, saved: dict) -> None:
     """Put a saved bed state (from load_bed) into a freshly finalized state, contact history included.
 
-    Handles particle permutations (order_seed) and wheels added after the bed was saved.
+    Handles particle permutations (order_seed), and wheels and boundaries added after the bed
+    was saved (they start at rest, with no force).
     The clock restarts at t = 0: a run on a bed starts when the bed is ready.
     """
     n = model.particle_count
@@ -281,6 +290,10 @@ def restore_state(model, state, saved: dict) -> None:
             data[name] = array.numpy()
         elif name not in data:  # fields an integrator added after the bed was written
             data[name] = array.numpy()
+        elif name.startswith("boundary_") and len(data[name]) < array.shape[0]:
+            values = array.numpy()  # boundaries added after loading the bed: at rest
+            values[: len(data[name])] = data[name]
+            data[name] = values
     data["time"] = 0.0
     state.load_numpy(data)
 

@@ -10,11 +10,12 @@
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, fields
 
 import numpy as np
 import warp as wp
 
+from . import boundaries
 from .control import SoilControl
 from .integrator_kernels import (
     SUMMARY_COLUMNS,
@@ -44,15 +45,18 @@ class VelocityVerlet:
         prec = model.precision
         gravity = prec.vec_hi(*model.gravity)
         hi_dt = prec.hi(dt)
+        control.push()  # the boundaries move with this step's control
         wp.launch(contacts.kernels["kick_drift"], dim=model.particle_count,
                   inputs=[state_in.position, state_in.velocity, state_in.angular_velocity, state_in.force,
                           state_in.torque, model.inv_mass, model.inv_inertia, gravity, hi_dt],
                   outputs=[state_out.position, state_out.velocity, state_out.angular_velocity],
                   device=model.device)
+        boundaries.verlet_first_half(model, state_in, state_out, control, dt)
         contacts.compute(state_in, state_out, control, dt)
         wp.launch(contacts.kernels["kick"], dim=model.particle_count,
                   inputs=[state_out.force, state_out.torque, model.inv_mass, model.inv_inertia, gravity, hi_dt],
                   outputs=[state_out.velocity, state_out.angular_velocity], device=model.device)
+        boundaries.verlet_second_half(model, state_out, control, dt)
         # Verlet keeps no multi-step history: a jolt-Beeman step after it starts afresh (zero jolt)
         state_out.step_previous.zero_()
         state_out.time = state_in.time + dt
@@ -107,6 +111,7 @@ class JoltBeeman:
         if self.summary is None or self.summary.device != wp.get_device(model.device) or self.gaps.shape[0] != n:
             self.summary = wp.zeros(SUMMARY_COLUMNS, dtype=prec.hi, device=model.device)
             self.gaps = wp.zeros((n, 2), dtype=prec.hi, device=model.device)
+        control.push()  # the boundaries move with this step's control
         wp.launch(kernels["beeman_predict"], dim=n,
                   inputs=[state_in.position, state_in.velocity, state_in.angular_velocity, state_in.force,
                           state_in.torque, state_in.force_previous, state_in.torque_previous,
@@ -114,6 +119,7 @@ class JoltBeeman:
                   outputs=[state_out.position, state_out.velocity, state_out.angular_velocity,
                            state_out.force_previous, state_out.torque_previous, state_out.step_previous],
                   device=model.device)
+        boundaries.beeman_predict(model, state_in, state_out, control, dt)
         contacts.compute(state_in, state_out, control, dt)
         self.summary.zero_()
         wp.launch(kernels["beeman_correct"], dim=n,
@@ -123,6 +129,7 @@ class JoltBeeman:
                           model.inv_inertia, model.radius, gravity, hi_dt],
                   outputs=[state_out.velocity, state_out.angular_velocity, self.summary, self.gaps],
                   device=model.device)
+        boundaries.beeman_correct(model, state_in, state_out, control, dt)
         state_out.time = state_in.time + dt
 
     def read_summary(self) -> dict:
@@ -221,6 +228,43 @@ class StepController:
         if not 0 < self.rho_min < self.reject_below <= 1.0 < self.rho_max:
             raise ValueError("need 0 < rho_min < reject_below <= 1 < rho_max, got "
                              f"{self.rho_min}, {self.reject_below}, {self.rho_max}")
+
+    _OPTIONAL = ("dt_max", "dt_min", "dt_initial", "dt")
+
+    def state_dict(self) -> dict:
+        """Settings and control state as numpy scalars/arrays (None stored as NaN)."""
+        data = {}
+        for f in fields(self):
+            value = getattr(self, f.name)
+            if f.name == "history":
+                data[f.name] = np.asarray(value, dtype=np.float64).reshape(-1)
+            elif value is None:
+                data[f.name] = np.float64(np.nan)
+            elif isinstance(value, str):
+                data[f.name] = np.str_(value)
+            else:
+                data[f.name] = np.asarray(value)[()]
+        return data
+
+    def load_state_dict(self, data: dict) -> None:
+        """Restore from state_dict() (unknown keys are an error; missing keys keep their value)."""
+        known = {f.name for f in fields(self)}
+        unknown = set(data) - known
+        if unknown:
+            raise ValueError(f"step controller: unknown fields {sorted(unknown)}")
+        for name, value in data.items():
+            value = np.asarray(value)
+            if name == "history":
+                setattr(self, name, [float(v) for v in value.reshape(-1)])
+            elif name in self._OPTIONAL:
+                setattr(self, name, None if np.isnan(value) else float(value))
+            elif value.dtype.kind == "U":
+                setattr(self, name, str(value))
+            elif value.dtype.kind == "b":
+                setattr(self, name, bool(value))
+            else:
+                setattr(self, name, float(value))
+        self.__post_init__()
 
     @property
     def exponents(self) -> tuple[float, float, float]:

@@ -179,6 +179,7 @@ def make_integrator_kernels(hi, lo, law: ContactLaw):
         inv_mass: wp.array(dtype=lo),
         boundary_kind: wp.array(dtype=wp.int32),
         boundary_geometry: wp.array2d(dtype=hi),
+        boundary_displacement: wp.array(dtype=vec_hi),
         search_radius: hi,
         # outputs
         speed_out: wp.array(dtype=hi),
@@ -206,7 +207,7 @@ def make_integrator_kernels(hi, lo, law: ContactLaw):
                 worst = wp.max(worst, overlap / wp.min(ri, rj))
         if inv_mass[i] > lo(0.0):
             for b in range(boundary_kind.shape[0]):
-                overlap, n = boundary_contact(boundary_kind[b], boundary_geometry, b, xi, ri)
+                overlap, n = boundary_contact(boundary_kind[b], boundary_geometry, b, xi - boundary_displacement[b], ri)
                 worst = wp.max(worst, overlap / ri)
         speed = wp.max(wp.length(v_in[i]), ri * wp.length(w_in[i]))  # spin counts at the surface
         speed_out[i] = speed

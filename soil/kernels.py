@@ -8,6 +8,13 @@ Particle-particle forces are gathered: each particle sums the forces of its own
 contacts, in its own thread, with no atomics. Both particles of a pair evaluate the
 same contact with mirrored inputs and keep their own (mirrored) history. The sums are
 therefore independent of thread scheduling and runs repeat bit for bit.
+
+Boundaries (planes, boxes) translate: a boundary's geometry row is its initial
+geometry, and the state carries its displacement and velocity (soil.boundaries moves
+them on the device). A wall displaced by d meets a grain at x as the initial wall
+meets x - d. The reaction of every grain-wall and grain-body contact is written per
+particle into a scratch column and summed per wall/body in a fixed order
+(`wrench_partial`, `wrench_total`): no atomics, so the totals repeat bit for bit.
 """
 
 
@@ -16,9 +23,11 @@ import warp as wp
 from .contact import ContactLaw, make_contact_law
 
 BOUNDARY_PLANE = 0
-"""Half-space: geometry row (point xyz, unit normal xyz); particles live on the normal's side."""
+"""Half-space: geometry row (point xyz, unit normal xyz); particles live on the normal's side.
+Its torque is reported about the point."""
 BOUNDARY_BOX = 1
-"""Solid axis-aligned box: geometry row (lower corner xyz, upper corner xyz); particles stay outside."""
+"""Solid axis-aligned box: geometry row (lower corner xyz, upper corner xyz); particles stay outside.
+Its torque is reported about its centre."""
 
 BODY_WHEEL = 0
 """Parametric grousered wheel: shape row (radius, half width, grousers, grouser height, thickness, bounding radius)."""
@@ -66,6 +75,14 @@ def make_kernels(hi, lo, law: ContactLaw):
                 normal = vec_hi()
                 normal[axis] = hi(1.0)
         return radius + best, normal
+
+    @wp.func
+    def boundary_reference(kind: int, geometry: wp.array2d(dtype=hi), b: int):
+        """Reference point of a boundary's torque [m], undisplaced: a plane's point, a box's centre."""
+        if kind == BOUNDARY_PLANE:
+            return vec_hi(geometry[b, 0], geometry[b, 1], geometry[b, 2])
+        return hi(0.5) * vec_hi(geometry[b, 0] + geometry[b, 3], geometry[b, 1] + geometry[b, 4],
+                                geometry[b, 2] + geometry[b, 5])
 
     @wp.func
     def find_history(partner: wp.array2d(dtype=wp.int32), count: wp.array(dtype=wp.int32), i: int, key: int):
@@ -206,6 +223,9 @@ def make_kernels(hi, lo, law: ContactLaw):
         boundary_kind: wp.array(dtype=wp.int32),
         boundary_geometry: wp.array2d(dtype=hi),
         boundary_material: wp.array(dtype=wp.int32),
+        boundary_column: wp.array(dtype=wp.int32),
+        boundary_displacement: wp.array(dtype=vec_hi),
+        boundary_velocity: wp.array(dtype=vec_hi),
         external_force: wp.array(dtype=vec_hi),
         body_kind: wp.array(dtype=wp.int32),
         body_shape: wp.array2d(dtype=hi),
@@ -236,6 +256,9 @@ def make_kernels(hi, lo, law: ContactLaw):
         body_force_out: wp.array2d(dtype=vec_hi),
         body_torque_out: wp.array2d(dtype=vec_hi),
         body_contact_out: wp.array2d(dtype=wp.int32),
+        boundary_force_out: wp.array2d(dtype=vec_hi),
+        boundary_torque_out: wp.array2d(dtype=vec_hi),
+        boundary_contact_out: wp.array2d(dtype=wp.int32),
     ):
         i = wp.tid()
         particle_count = x_in.shape[0]
@@ -279,12 +302,21 @@ def make_kernels(hi, lo, law: ContactLaw):
                     else:
                         overflow_out[0] = 1
 
-        if inv_mass[i] > lo(0.0):
-            for b in range(boundary_kind.shape[0]):
-                overlap, n = boundary_contact(boundary_kind[b], boundary_geometry, b, xi, hi(ri))
+        # walls: fixed grains do not touch them; reporting walls get this grain's reaction
+        free = inv_mass[i] > lo(0.0)
+        for b in range(boundary_kind.shape[0]):
+            column = boundary_column[b]
+            if column >= 0:
+                boundary_force_out[i, column] = vec_hi()
+                boundary_torque_out[i, column] = vec_hi()
+                boundary_contact_out[i, column] = 0
+            if free:
+                shift = boundary_displacement[b]
+                overlap, n = boundary_contact(boundary_kind[b], boundary_geometry, b, xi - shift, hi(ri))
                 if overlap > hi(0.0):
                     lever_i = hi(ri) - overlap
-                    v_rel = v_in[i] + wp.cross(w_in[i], lever_i * n)
+                    # a translating wall: its contact point moves with the wall's velocity
+                    v_rel = v_in[i] + wp.cross(w_in[i], lever_i * n) - boundary_velocity[b]
                     key = particle_count + b
                     slot = find_history(partner_in, count_in, i, key)
                     t_hist = vec_hi()
@@ -297,6 +329,11 @@ def make_kernels(hi, lo, law: ContactLaw):
                         n, overlap, v_rel, w_in[i], ri, lo(1.0) / inv_mass[i], pair, row, t_hist, r_hist, dt)
                     total_force = total_force + f
                     total_torque = total_torque + wp.cross(lever_i * n, f) + m_roll
+                    if column >= 0:
+                        reference = boundary_reference(boundary_kind[b], boundary_geometry, b) + shift
+                        boundary_force_out[i, column] = -f
+                        boundary_torque_out[i, column] = wp.cross(xi + lever_i * n - reference, -f) - m_roll
+                        boundary_contact_out[i, column] = 1
                     if stored < capacity:
                         partner_out[i, stored] = key
                         tangential_out[i, stored] = t_new
@@ -417,6 +454,7 @@ def make_kernels(hi, lo, law: ContactLaw):
         boundary_kind: wp.array(dtype=wp.int32),
         boundary_geometry: wp.array2d(dtype=hi),
         boundary_material: wp.array(dtype=wp.int32),
+        boundary_displacement: wp.array(dtype=vec_hi),
         search_radius: hi,
         # outputs
         energy_out: wp.array(dtype=hi),
@@ -434,70 +472,75 @@ def make_kernels(hi, lo, law: ContactLaw):
                     e_star = hi(pair[material[i] * material_count + material[j], 0])
                     total += hi(0.5 * 8.0 / 15.0) * e_star * wp.sqrt(r_eff) * wp.pow(overlap, hi(2.5))
         for b in range(boundary_kind.shape[0]):
-            overlap, n = boundary_contact(boundary_kind[b], boundary_geometry, b, xi, hi(ri))
+            overlap, n = boundary_contact(boundary_kind[b], boundary_geometry, b, xi - boundary_displacement[b], hi(ri))
             if overlap > hi(0.0):
                 e_star = hi(pair[material[i] * material_count + boundary_material[b], 0])
                 total += hi(8.0 / 15.0) * e_star * wp.sqrt(hi(ri)) * wp.pow(overlap, hi(2.5))
         energy_out[i] = total
 
     @wp.kernel(module="unique")
-    def body_wrench_partial(
-        body_force: wp.array2d(dtype=vec_hi),
-        body_torque: wp.array2d(dtype=vec_hi),
-        body_contact: wp.array2d(dtype=wp.int32),
+    def wrench_partial(
+        force: wp.array2d(dtype=vec_hi),
+        torque: wp.array2d(dtype=vec_hi),
+        contact: wp.array2d(dtype=wp.int32),
         chunk: int,
         # outputs
         force_out: wp.array2d(dtype=vec_hi),
         torque_out: wp.array2d(dtype=vec_hi),
         contact_out: wp.array2d(dtype=wp.int32),
     ):
-        """Sum each body's per-particle wrench over fixed chunks of particles, in index
-        order: the sum does not depend on thread scheduling (deterministic)."""
-        c, b = wp.tid()
+        """Sum each scratch column's per-particle wrench over fixed chunks of particles, in
+        index order: the sum does not depend on thread scheduling (deterministic)."""
+        c, k = wp.tid()
         start = c * chunk
-        stop = wp.min(start + chunk, body_force.shape[0])
-        force = vec_hi()
-        torque = vec_hi()
+        stop = wp.min(start + chunk, force.shape[0])
+        total_force = vec_hi()
+        total_torque = vec_hi()
         contacts = int(0)
         for i in range(start, stop):
-            force = force + body_force[i, b]
-            torque = torque + body_torque[i, b]
-            contacts += body_contact[i, b]
-        force_out[c, b] = force
-        torque_out[c, b] = torque
-        contact_out[c, b] = contacts
+            total_force = total_force + force[i, k]
+            total_torque = total_torque + torque[i, k]
+            contacts += contact[i, k]
+        force_out[c, k] = total_force
+        torque_out[c, k] = total_torque
+        contact_out[c, k] = contacts
 
     @wp.kernel(module="unique")
-    def body_wrench_total(
+    def wrench_total(
         force_in: wp.array2d(dtype=vec_hi),
         torque_in: wp.array2d(dtype=vec_hi),
         contact_in: wp.array2d(dtype=wp.int32),
+        column: wp.array(dtype=wp.int32),
         # outputs
         force_out: wp.array(dtype=vec_hi),
         torque_out: wp.array(dtype=vec_hi),
         contact_out: wp.array(dtype=wp.int32),
     ):
+        """Total of the chunk sums for item b from its scratch column (-1: not summed, zero)."""
         b = wp.tid()
-        force = vec_hi()
-        torque = vec_hi()
+        k = column[b]
+        total_force = vec_hi()
+        total_torque = vec_hi()
         contacts = int(0)
-        for c in range(force_in.shape[0]):
-            force = force + force_in[c, b]
-            torque = torque + torque_in[c, b]
-            contacts += contact_in[c, b]
-        force_out[b] = force
-        torque_out[b] = torque
+        if k >= 0:
+            for c in range(force_in.shape[0]):
+                total_force = total_force + force_in[c, k]
+                total_torque = total_torque + torque_in[c, k]
+                contacts += contact_in[c, k]
+        force_out[b] = total_force
+        torque_out[b] = total_torque
         contact_out[b] = contacts
 
     kernels = dict(
-        body_wrench_partial=body_wrench_partial,
-        body_wrench_total=body_wrench_total,
+        wrench_partial=wrench_partial,
+        wrench_total=wrench_total,
         contact_forces=contact_forces,
         kick_drift=kick_drift,
         kick=kick,
         elastic_energy=elastic_energy,
         contact_law=contact_law,
         boundary_contact=boundary_contact,
+        boundary_reference=boundary_reference,
         acceleration_of=acceleration_of,
         find_history=find_history,
     )

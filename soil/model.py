@@ -42,11 +42,15 @@ class SoilModel:
     boundary_kind: wp.array
     """Boundary type per boundary (BOUNDARY_PLANE or BOUNDARY_BOX), shape (boundary_count,), int32."""
     boundary_geometry: wp.array
-    """Boundary geometry rows [m], shape (boundary_count, 6), dtype hi (see soil.kernels)."""
+    """Initial boundary geometry rows [m], shape (boundary_count, 6), dtype hi (see soil.kernels);
+    a boundary that moves is there displaced by state.boundary_displacement."""
     boundary_material: wp.array
     """Material index per boundary, shape (boundary_count,), int32."""
     max_radius: float
     """Largest particle radius [m]."""
+    boundary_column: wp.array = None
+    """Column of each boundary in the per-particle force scratch, shape (boundary_count,), int32;
+    -1 for boundaries built with report=False (their force and torque are not summed)."""
     particle_order: np.ndarray = field(default=None)
     """Builder index of each model particle, shape (particle_count,), int64 (identity unless permuted)."""
     bodies: list = field(default_factory=list)
@@ -81,6 +85,17 @@ class SoilModel:
     @property
     def boundary_count(self) -> int:
         return int(self.boundary_kind.shape[0])
+
+    @property
+    def boundary_reports(self) -> np.ndarray:
+        """Whether each boundary's force and torque are summed, shape (boundary_count,), bool (host)."""
+        if self.boundary_column is None:
+            return np.ones(self.boundary_count, dtype=bool)
+        return self.boundary_column.numpy() >= 0
+
+    def boundary_geometry_numpy(self) -> np.ndarray:
+        """Initial boundary geometry rows [m], shape (boundary_count, 6), float64."""
+        return self.boundary_geometry.numpy().astype(np.float64).reshape(-1, 6)
 
     @property
     def search_radius(self) -> float:

@@ -8,9 +8,10 @@ import numpy as np
 
 from .control import SoilControl
 from .integrator import JoltBeeman, StepController, VelocityVerlet
+from .kernels import BOUNDARY_BOX
 from .model import SoilModel
 from .solver import ContactSolver
-from .stability import DivergenceMonitor, SimulationDiverged  # noqa: F401 (SimulationDiverged re-exported)  # noqa: F401  (re-exported: soil.simulation.SimulationDiverged)
+from .stability import DivergenceMonitor, SimulationDiverged  # noqa: F401 (SimulationDiverged re-exported)
 from .state import SoilState
 
 
@@ -34,14 +35,13 @@ class Simulation:
         """Steps run_adaptive computed and threw away (their force evaluations still count)."""
         self.forced_steps = 0
         """Steps accepted at dt_min although their error exceeded the tolerance."""
-        self.control = control or SoilControl(model.particle_count, model.precision.vec_hi, model.device,
-                                              model.body_count)
+        self.control = control or SoilControl.for_model(model)
         self.integrator = integrator or VelocityVerlet()
         self.contacts = ContactSolver(model)
         self.state = state
-        self._next = SoilState(model.particle_count, state.capacity, model.precision.vec_hi, model.device,
-                               model.body_count)
+        self._next = SoilState.for_model(model, state.capacity)
         self.steps = 0
+        self._controller = None  # run_adaptive's StepController, kept between calls
         if not state.forces_valid:  # a restored state keeps its own forces: restarts stay bit-identical
             self.refresh_forces()
 
@@ -116,7 +116,7 @@ class Simulation:
                 self.integrator = JoltBeeman()
             else:
                 raise TypeError(f"run_adaptive needs the JoltBeeman integrator, not {type(self.integrator).__name__}")
-        controller = controller if controller is not None else getattr(self, "_controller", None) or StepController()
+        controller = controller if controller is not None else self._controller or StepController()
         self._controller = controller
         controller.setup(self)
         if not self.monitor.armed:
@@ -167,22 +167,6 @@ class Simulation:
         counts.update(dt_smallest=smallest, dt_largest=largest, dt_next=dt)
         return counts
 
-    # -- checkpoints ------------------------------------------------------------------
-    def state_dict(self) -> dict:
-        """Everything a bitwise continuation needs: the state arrays (history included), the
-        step count and the control's body motion (numpy arrays and scalars only)."""
-        out = {f"state/{k}": v for k, v in self.state.to_numpy().items()}
-        out["steps"] = self.steps
-        out.update({f"control/{k}": v for k, v in self.control.state_dict().items()})
-        return out
-
-    def load_state_dict(self, data: dict) -> None:
-        self.state.load_numpy({k[len("state/"):]: v for k, v in data.items() if k.startswith("state/")})
-        if self._next.capacity < self.state.capacity:
-            self._next.grow_capacity(self.state.capacity)
-        self.steps = int(data["steps"])
-        self.control.load_state_dict({k[len("control/"):]: v for k, v in data.items() if k.startswith("control/")})
-
     def check_finite(self) -> None:
         """Raise SimulationDiverged if any particle position or velocity is not finite."""
         x = self.state.position.numpy()
@@ -190,6 +174,63 @@ class Simulation:
         bad = ~(np.isfinite(x).all(axis=1) & np.isfinite(v).all(axis=1))
         if bad.any():
             self.monitor.fail(self, f"non-finite particle state in {int(bad.sum())} particle(s)", int(np.argmax(bad)))
+
+    # -- checkpoints -------------------------------------------------------------
+    def state_dict(self) -> dict:
+        """Everything a bit-for-bit continuation needs, as numpy arrays and scalars (no pickles).
+
+        Keys: 'state/<array>' and 'state/time' (SoilState.to_numpy: particles, contact
+        history, forces, bodies' and boundaries' wrenches and motion), 'control/<name>'
+        (SoilControl.state_dict), 'steps', 'accepted_steps', 'rejected_steps', 'forced_steps',
+        'evaluations' [-], 'next_capacity' (history slots of the second buffer), 'integrator'
+        (its name), 'precision', 'controller/<field>' (StepController, after run_adaptive),
+        'monitor/<field>' (DivergenceMonitor). The model is not included: load into a
+        Simulation built from the same scene (builder, device, precision, order_seed).
+        """
+        data = {f"state/{k}": np.asarray(v) for k, v in self.state.to_numpy().items()}
+        data.update({f"control/{k}": v for k, v in self.control.state_dict().items()})
+        for name in ("steps", "accepted_steps", "rejected_steps", "forced_steps"):
+            data[name] = np.int64(getattr(self, name))
+        data["evaluations"] = np.int64(self.contacts.evaluations)
+        data["next_capacity"] = np.int64(self._next.capacity)
+        data["integrator"] = np.str_(self.integrator.name)
+        data["precision"] = np.str_(self.model.precision.name)
+        if self._controller is not None:
+            data.update({f"controller/{k}": v for k, v in self._controller.state_dict().items()})
+        data.update({f"monitor/{k}": v for k, v in self.monitor.state_dict().items()})
+        return data
+
+    def load_state_dict(self, data: dict) -> None:
+        """Continue from state_dict() output (e.g. loaded from an .npz): the next step is
+        bit-for-bit the step the saved simulation would have taken."""
+        model = self.model
+        precision = str(data["precision"])
+        if precision != model.precision.name:
+            raise ValueError(f"the saved simulation ran in {precision!r} precision, this one in "
+                             f"{model.precision.name!r}")
+        saved = data["state/position"].shape[0]
+        if saved != model.particle_count:
+            raise ValueError(f"the saved simulation has {saved} particles, this model {model.particle_count}")
+        integrators = {VelocityVerlet.name: VelocityVerlet, JoltBeeman.name: JoltBeeman}
+        name = str(data["integrator"])
+        if name not in integrators:
+            raise ValueError(f"saved integrator {name!r} is unknown; known: {sorted(integrators)}")
+        self.state.load_numpy({k[len("state/"):]: v for k, v in data.items() if k.startswith("state/")})
+        self._next.grow_capacity(max(int(data["next_capacity"]), self.state.capacity))
+        self.control.load_state_dict({k[len("control/"):]: v for k, v in data.items() if k.startswith("control/")})
+        for key in ("steps", "accepted_steps", "rejected_steps", "forced_steps"):
+            setattr(self, key, int(data[key]))
+        self.contacts.evaluations = int(data["evaluations"])
+        if self.integrator.name != name:
+            self.integrator = integrators[name]()
+        controller = {k[len("controller/"):]: v for k, v in data.items() if k.startswith("controller/")}
+        self._controller = None
+        if controller:
+            self._controller = StepController()
+            self._controller.load_state_dict(controller)
+        self.monitor.load_state_dict({k[len("monitor/"):]: v for k, v in data.items() if k.startswith("monitor/")})
+        if self.monitor.armed:
+            self.monitor.snapshot(self)
 
     # -- diagnostics (host side) ------------------------------------------------
     def positions(self) -> np.ndarray:
@@ -203,6 +244,35 @@ class Simulation:
     def angular_velocities(self) -> np.ndarray:
         """Particle angular velocities [rad/s], shape (particle_count, 3), float64."""
         return self.state.angular_velocity.numpy().astype(np.float64)
+
+    def boundary_wrenches(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The grains' force and torque on every boundary at the current time:
+        (force [N] shape (boundary_count, 3), torque [N m] about each boundary's reference
+        point (a plane's point, a box's centre; displaced with the boundary) shape
+        (boundary_count, 3), contacts [-] shape (boundary_count,) int64), float64, world frame.
+        Boundaries built with report=False read zero."""
+        state = self.state
+        return (state.boundary_force.numpy().astype(np.float64).reshape(-1, 3),
+                state.boundary_torque.numpy().astype(np.float64).reshape(-1, 3),
+                state.boundary_contacts.numpy().astype(np.int64))
+
+    def boundary_displacements(self) -> np.ndarray:
+        """Translation of every boundary from its initial geometry [m], shape (boundary_count, 3), float64."""
+        return self.state.boundary_displacement.numpy().astype(np.float64).reshape(-1, 3)
+
+    def boundary_velocities(self) -> np.ndarray:
+        """Translation velocity of every boundary [m/s], shape (boundary_count, 3), float64."""
+        return self.state.boundary_velocity.numpy().astype(np.float64).reshape(-1, 3)
+
+    def boundary_geometry(self) -> np.ndarray:
+        """Current geometry rows of every boundary [m], shape (boundary_count, 6), float64: a plane's
+        (point, unit normal), a box's (lower corner, upper corner), displaced (soil.kernels)."""
+        rows = self.model.boundary_geometry_numpy().copy()
+        shift = self.boundary_displacements()
+        kinds = self.model.boundary_kind.numpy()
+        rows[:, :3] += shift
+        rows[kinds == BOUNDARY_BOX, 3:] += shift[kinds == BOUNDARY_BOX]
+        return rows
 
     def kinetic_energy(self) -> float:
         """Translational + rotational kinetic energy of the free particles [J]."""

@@ -31,6 +31,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import warp as wp
 
+from .boundaries import MOTION_LOADED
 from .files import atomic_path
 from .integrator_kernels import CHECK_COLUMNS, CHECK_NONFINITE, CHECK_OVERLAP, CHECK_SPEED, make_integrator_kernels
 from .state import SoilState
@@ -131,20 +132,55 @@ class DivergenceMonitor:
             rim = (np.linalg.norm(control.body_velocity_host, axis=1)
                    + np.linalg.norm(control.body_angular_velocity_host, axis=1) * self._body_reach)
             self._v_body = max(self._v_body, float(rim.max()))
+        load_work = 0.0
+        if sim.model.boundary_count:  # moving walls drive the grains like wheels; loads do work
+            walls = np.linalg.norm(sim.boundary_velocities(), axis=1)
+            self._v_body = max(self._v_body, float(walls.max()),
+                               float(np.linalg.norm(control.boundary_velocity_host, axis=1).max()))
+            loaded = control.boundary_mode_host == MOTION_LOADED
+            travel = np.linalg.norm(sim.boundary_displacements(), axis=1) + self._height
+            load_work = float(np.sum(np.abs(control.boundary_load_host[loaded]) * travel[loaded]))
         scale = (math.sqrt(2.0 * self._g * self._height) + self._v0 + self._v_elastic + self._v_body
                  + self.speed_floor)
         self.speed_bound = self.speed_factor * scale
-        supply = (self._energy0 + self._mass_total * self._g * self._height
+        supply = (self._energy0 + self._mass_total * self._g * self._height + load_work
                   + 0.5 * self._mass_total * (self._v_body**2 + self.speed_floor**2))
         self.energy_bound = self.energy_factor * supply
+
+    _SCALES = ("_g", "_height", "_mass_total", "_v0", "_v_elastic", "_energy0", "_v_body", "_body_reach")
+
+    def state_dict(self) -> dict:
+        """Settings, and once armed the scene's scales and bounds, as numpy scalars/arrays."""
+        data = {"speed_factor": np.float64(self.speed_factor), "energy_factor": np.float64(self.energy_factor),
+                "max_overlap_ratio": np.float64(self.max_overlap_ratio),
+                "height": np.float64(np.nan if self.height is None else self.height),
+                "speed_floor": np.float64(self.speed_floor), "enabled": np.bool_(self.enabled),
+                "armed": np.bool_(self.armed)}
+        if self.armed:
+            data.update(speed_bound=np.float64(self.speed_bound), energy_bound=np.float64(self.energy_bound))
+            data.update({name[1:]: np.asarray(getattr(self, name), dtype=np.float64) for name in self._SCALES})
+        return data
+
+    def load_state_dict(self, data: dict) -> None:
+        """Restore from state_dict(); the last good state is then taken by snapshot()."""
+        for name in ("speed_factor", "energy_factor", "max_overlap_ratio", "speed_floor"):
+            setattr(self, name, float(data[name]))
+        self.height = None if np.isnan(data["height"]) else float(data["height"])
+        self.enabled = bool(data["enabled"])
+        self.armed = bool(data["armed"])
+        if self.armed:
+            self.speed_bound = float(data["speed_bound"])
+            self.energy_bound = float(data["energy_bound"])
+            for name in self._SCALES:
+                value = np.asarray(data[name[1:]], dtype=np.float64)
+                setattr(self, name, value.copy() if name == "_body_reach" else float(value))
 
     # -- the last good state -------------------------------------------------------
     def snapshot(self, sim) -> None:
         """Copy the current state into the last-good buffer (device to device)."""
         state = sim.state
         if self._good is None:
-            self._good = SoilState(sim.model.particle_count, state.capacity, sim.model.precision.vec_hi,
-                                   sim.model.device, sim.model.body_count)
+            self._good = SoilState.for_model(sim.model, state.capacity)
         if self._good.capacity < state.capacity:
             self._good.grow_capacity(state.capacity)
         self._good.assign(state)
@@ -181,7 +217,7 @@ class DivergenceMonitor:
         wp.launch(kernels["divergence_metrics"], dim=n,
                   inputs=[grid.id, state.position, state.velocity, state.angular_velocity, model.radius,
                           model.inv_mass, model.boundary_kind, model.boundary_geometry,
-                          prec.hi(model.search_radius)],
+                          state.boundary_displacement, prec.hi(model.search_radius)],
                   outputs=[speed, overlap, summary], device=model.device)
         values = summary.numpy().astype(np.float64)
         self._update_bounds(sim)

@@ -35,6 +35,12 @@ def frictionless(**kw):
     return ContactLaw(friction=False, **kw)
 
 
+def hertz_impact_overlap(mass_eff, closing_speed, e_star, radius_eff):
+    """Largest overlap of an elastic Hertz impact: (5 m* v^2 / (4 k))^(2/5), k = 4/3 E* sqrt(R*) [m]."""
+    k = 4.0 / 3.0 * e_star * math.sqrt(radius_eff)
+    return (5.0 * mass_eff * closing_speed**2 / (4.0 * k)) ** 0.4
+
+
 def drive(soil, rig, duration, macro_step):
     """Couple a DEM soil side and a single-wheel rig for `duration` [s] with the product's Coupler, and
     return the records as arrays plus the quantities of cosim.metrics (wheel 0): time, slip,
