@@ -34,6 +34,13 @@ and a `description`; every time series grows along its first axis.
         mesh/vertices     (V, 3)     all wheel meshes in their wheel frames [m] (for display)
         mesh/triangles    (F, 3)     indices into vertices
         mesh/wheel        (V,)       wheel index of each vertex
+    /boundaries/                    the container walls (B = boundaries), one row per macro step
+        force             (S, B, 3)  force of the grains on each wall at the end of the step [N]
+        torque            (S, B, 3)  torque about the wall's reference point (a plane's point, a box's
+                                     centre, moved with the wall) [N m]
+        contact_count     (S, B)     grains touching each wall [count]
+        displacement      (S, B, 3)  how far each wall moved from its place at the start [m]
+        kind              (B,)       0 plane, 1 box;  geometry (B, 6) [m] as built;  report (B,) 1 when summed
     /rover/
         time              (S,)       [s]
         state             (S, K)     attributes `columns` and `units` (JSON lists) name them
@@ -91,6 +98,15 @@ WHEEL_SERIES = {
 }
 """Per-wheel datasets under /wheels, each shaped (S, W) or (S, W, k)."""
 
+BOUNDARY_SERIES = {
+    # name: (trailing shape (None: per wall scalar), dtype, units, description)
+    "force": (3, np.float64, "N", "force of the grains on the wall at the end of the macro step, world frame"),
+    "torque": (3, np.float64, "N m", "torque of the grains about the wall's reference point (plane point, box centre)"),
+    "contact_count": (None, np.int64, "count", "grains touching the wall"),
+    "displacement": (3, np.float64, "m", "displacement of the wall from its place at the start"),
+}
+"""Per-wall datasets under /boundaries, each shaped (S, B) or (S, B, 3)."""
+
 STEP_SERIES = {"wheels/time": ("s", "end time of the macro step"),
                "wheels/phase": ("1", "0: landing, 1: driving"),
                "rover/time": ("s", "end time of the macro step")}
@@ -112,7 +128,8 @@ def package_versions() -> dict:
     return versions
 
 
-def documented_layout(wheels: int, particles: int, vertices: int, triangles: int, columns: int) -> dict:
+def documented_layout(wheels: int, particles: int, vertices: int, triangles: int, columns: int,
+                      boundaries: int = 0) -> dict:
     """{dataset path: (shape with None for the growing axis, numpy kind)}: the layout above."""
     layout = {"wheels/time": ((None,), "f"), "wheels/phase": ((None,), "i"), "rover/time": ((None,), "f"),
               "rover/state": ((None, columns), "f"), "particles/radius": ((particles,), "f"),
@@ -123,6 +140,12 @@ def documented_layout(wheels: int, particles: int, vertices: int, triangles: int
               "wheels/mesh/wheel": ((vertices,), "i")}
     for name, (tail, dtype, _, _) in WHEEL_SERIES.items():
         layout[f"wheels/{name}"] = ((None, wheels) if tail is None else (None, wheels, tail), np.dtype(dtype).kind)
+    if boundaries:
+        for name, (tail, dtype, _, _) in BOUNDARY_SERIES.items():
+            shape = (None, boundaries) if tail is None else (None, boundaries, tail)
+            layout[f"boundaries/{name}"] = (shape, np.dtype(dtype).kind)
+        layout.update({"boundaries/kind": ((boundaries,), "i"), "boundaries/geometry": ((boundaries, 6), "f"),
+                       "boundaries/report": ((boundaries,), "i")})
     return layout
 
 
@@ -171,9 +194,11 @@ class ResultsWriter:
     # -- create / resume -----------------------------------------------------------
     @classmethod
     def create(cls, path, *, attrs: dict, radius: np.ndarray, wheel_count: int, mesh: tuple,
-               rover_columns: list[str], rover_units: list[str], flush_every: int = 50,
-               xdmf: bool = True) -> "ResultsWriter":
-        """A new file; refuses to replace an existing one (the caller decides about that)."""
+               rover_columns: list[str], rover_units: list[str], boundaries: dict | None = None,
+               flush_every: int = 50, xdmf: bool = True) -> "ResultsWriter":
+        """A new file; refuses to replace an existing one (the caller decides about that).
+
+        boundaries: {'kind' (B,), 'geometry' (B, 6) [m], 'report' (B,)} of the soil's walls, or None."""
         import h5py
 
         writer = cls(path, flush_every, xdmf)
@@ -212,6 +237,17 @@ class ResultsWriter:
             _units(m["triangles"], "1", "vertex indices of each triangle")
             m["wheel"] = np.asarray(vertex_wheel, dtype=np.int32)
             _units(m["wheel"], "1", "wheel index of each vertex")
+            if boundaries is not None and len(boundaries["kind"]):
+                nb = len(boundaries["kind"])
+                b = f.create_group("boundaries")
+                for name, (tail, dtype, units, description) in BOUNDARY_SERIES.items():
+                    series(b, name, (0, nb) if tail is None else (0, nb, tail), dtype, units, description)
+                b["kind"] = np.asarray(boundaries["kind"], dtype=np.int32)
+                _units(b["kind"], "1", "0 plane (point, unit normal), 1 box (lower corner, upper corner)")
+                b["geometry"] = np.asarray(boundaries["geometry"], dtype=np.float64).reshape(nb, 6)
+                _units(b["geometry"], "m", "geometry row of each wall as built (plane: point, normal; box: corners)")
+                b["report"] = np.asarray(boundaries["report"], dtype=np.int8)
+                _units(b["report"], "1", "1: the wall's force is summed; 0: it reads zero")
             r = f.create_group("rover")
             series(r, "time", (0,), np.float64, *STEP_SERIES["rover/time"])
             series(r, "state", (0, len(rover_columns)), np.float64, "see columns/units", "rover state per step")
@@ -252,7 +288,8 @@ class ResultsWriter:
                 if old.attrs.get("format") != RESULTS_FORMAT:
                     raise ValueError(f"{writer.path} is not a regolith-cosim results file of format "
                                      f"{RESULTS_FORMAT!r}")
-                _copy_truncated(old, new, {"wheels": steps, "rover": steps, "particles": snapshots})
+                _copy_truncated(old, new, {"wheels": steps, "rover": steps, "boundaries": steps,
+                                           "particles": snapshots})
                 new.attrs["status"] = "running"
                 new.attrs["message"] = ""
         f = h5py.File(writer.path, "r+", libver="latest")
@@ -264,7 +301,8 @@ class ResultsWriter:
 
     # -- writing --------------------------------------------------------------------
     def append_step(self, row: dict) -> None:
-        """Buffer one macro step: 'time' [s], 'phase', every WHEEL_SERIES name (W, ...), 'rover_state' (K,)."""
+        """Buffer one macro step: 'time' [s], 'phase', every WHEEL_SERIES name (W, ...), 'rover_state' (K,),
+        and with walls 'boundary_<name>' for every BOUNDARY_SERIES name (B, ...)."""
         self._buffer.append(row)
         self.steps += 1
         if len(self._buffer) >= self.flush_every:
@@ -303,6 +341,9 @@ class ResultsWriter:
         put(f["wheels/phase"], np.array([r["phase"] for r in rows], dtype=np.int8))
         for name in WHEEL_SERIES:
             put(f["wheels"][name], np.array([r[name] for r in rows]))
+        if "boundaries" in f:
+            for name in BOUNDARY_SERIES:
+                put(f["boundaries"][name], np.array([r[f"boundary_{name}"] for r in rows]))
         put(f["rover/state"], np.array([r["rover_state"] for r in rows], dtype=np.float64))
         self._buffer = []
 

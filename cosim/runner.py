@@ -199,6 +199,10 @@ class Runner:
         row["contact_count"] = np.array([w.contact_count for w in record.wrenches])
         row["work_on_rover"] = record.work_on_rover
         row["work_on_soil"] = record.work_on_soil
+        if system.sim.model.boundary_count:
+            force, torque, contacts = system.sim.boundary_wrenches()
+            row.update(boundary_force=force, boundary_torque=torque, boundary_contact_count=contacts,
+                       boundary_displacement=system.sim.boundary_displacements())
         self.writer.append_step(row)
 
     def _landing(self, record: MacroStepRecord) -> None:
@@ -360,7 +364,7 @@ def run_plan(plan: RunPlan, out_dir: str, overwrite: bool = False, progress: boo
             folder.results, attrs=_attributes(plan, system, source, findings),
             radius=system.sim.model.radius_numpy(), wheel_count=len(system.rover.wheel_names),
             mesh=system.wheel_mesh(), rover_columns=system.rover.state_columns, rover_units=system.rover.state_units,
-            flush_every=plan.output.flush_every)
+            boundaries=system.boundaries(), flush_every=plan.output.flush_every)
         return Runner(system, writer, folder, progress=progress, hooks=hooks).run()
 
 

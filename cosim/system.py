@@ -82,6 +82,12 @@ class CoupledSystem:
             head = prefix + "/"
             part.load_state_dict({k[len(head):]: v for k, v in state.items() if k.startswith(head)})
 
+    def boundaries(self) -> dict:
+        """The soil's walls as built: 'kind' (B,), 'geometry' (B, 6) [m], 'report' (B,) (cosim.output)."""
+        model = self.sim.model
+        return {"kind": model.boundary_kind.numpy(), "geometry": model.boundary_geometry_numpy(),
+                "report": model.boundary_reports}
+
     def wheel_mesh(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Display mesh of the wheels: vertices [m] (V, 3) in wheel frames, triangles (F, 3), owner wheel (V,)."""
         shape = self.plan.wheel.shape

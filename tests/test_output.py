@@ -34,7 +34,7 @@ def test_layout_matches_the_documentation(tiny_run):
         mesh = f["wheels/mesh"]
         layout = documented_layout(wheels=1, particles=f["particles/radius"].shape[0],
                                    vertices=mesh["vertices"].shape[0], triangles=mesh["triangles"].shape[0],
-                                   columns=f["rover/state"].shape[1])
+                                   columns=f["rover/state"].shape[1], boundaries=f["boundaries/kind"].shape[0])
         found = set()
         f.visititems(lambda name, obj: found.add(name) if isinstance(obj, h5py.Dataset) else None)
         assert found == set(layout), f"undocumented {found - set(layout)}, missing {set(layout) - found}"
@@ -42,8 +42,8 @@ def test_layout_matches_the_documentation(tiny_run):
         snapshots = f["particles/time"].shape[0]
         for name, (shape, kind) in layout.items():
             dataset = f[name]
-            expected = tuple((steps if name.startswith(("wheels", "rover")) else snapshots) if s is None else s
-                             for s in shape)
+            expected = tuple((steps if name.startswith(("wheels", "rover", "boundaries")) else snapshots)
+                             if s is None else s for s in shape)
             assert dataset.shape == expected, name
             assert dataset.dtype.kind == kind, name
         for key in REQUIRED_ATTRIBUTES:
@@ -66,6 +66,12 @@ def test_layout_matches_the_documentation(tiny_run):
         np.testing.assert_allclose(f["wheels/travel"][phase == 1, 0], f["wheels/position"][phase == 1, 0, 0] - start)
         assert np.all(np.isnan(f["wheels/slip"][phase == 0, 0]))  # the wheel does not turn while landing
         assert steps - np.sum(phase == 0) == load_plan(tiny_run / "scene.toml").drive_steps
+        # the walls: over the drive the floor (boundary 0) carries the grains' weight and the wheel's load,
+        # less what the side walls hold by friction
+        load = float(np.sum(f["particles/radius"][()] ** 3) * 4 / 3 * np.pi * 2600 * 1.625) + 0.3 * 1.625
+        walls = f["boundaries/force"][phase == 1].mean(axis=0)
+        assert -1.05 * load < walls[0, 2] < -0.6 * load, (walls[:, 2], load)
+        assert np.sum(walls[:, 2]) == pytest.approx(-load, rel=0.1)
 
 
 def test_every_dataset_carries_its_unit(tiny_run):
