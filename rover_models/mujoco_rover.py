@@ -1,6 +1,6 @@
 """MuJoCo rover adapter: a RoverSide (cosim.contract) around an MJCF model.
 
-Frames and conventions (DESIGN.md section 5):
+Frames and conventions:
 - a wheel is a MuJoCo body; its hub is the body frame origin (data.xpos), its
   orientation data.xquat (w, x, y, z, body -> world);
 - velocities come from mj_objectVelocity(mjOBJ_XBODY, flg_local=0): the 6D velocity at
