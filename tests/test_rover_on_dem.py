@@ -136,7 +136,7 @@ SMOOTH_WHEEL = GrouserWheel(radius=0.03, width=0.02)
 
 def test_coupled_result_converges_as_the_macro_step_shrinks():
     """A loaded wheel set on a rigid granular floor and driven at 2 rad/s: it bounces on
-    the grains (about 0.1 mm, two periods) and rolls. The hub path with macro step
+    the grains (0.09 mm, two periods) and rolls 0.8 mm. The hub path with macro step
     H = 8, 4, 2 h_DEM approaches the H = h_DEM path monotonically, at about first order
     (Gauss-Seidel: the wrench is held over H, the soil extrapolates the wheel's motion).
 
@@ -163,7 +163,8 @@ def test_coupled_result_converges_as_the_macro_step_shrinks():
     assert np.ptp(reference[:, 2]) > 5e-5 and np.ptp(reference[:, 0]) > 5e-4, "it bounces and rolls"
     errors = np.array([np.max(np.abs(paths[s] - reference)) for s in (8, 4, 2)])
     assert np.all(np.diff(errors) < 0), errors
-    # first order at least: halving H cuts the error by 1.7x or more
+    # first order at least: halving H cuts the error by 1.7x or more (measured on the CPU:
+    # 2.2e-6, 7.4e-7, 3.3e-7 m, ratios 3.0 and 2.2)
     assert np.all(errors[:-1] / errors[1:] > 1.7), errors
 
 
