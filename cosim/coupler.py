@@ -204,18 +204,17 @@ class Coupler:
             )
         return MacroStepRecord(t1, k1, list(held), w_rover, w_soil)
 
-    def run(self, t_end: float, callback: Callable[["Coupler", MacroStepRecord], None] | None = None
-            ) -> list[MacroStepRecord]:
+    def run(self, t_end: float, callback: Callable[["Coupler"], None] | None = None) -> list[MacroStepRecord]:
         """Macro-step until t_end [s] (rounded to a whole number of steps); returns the records.
 
-        callback(coupler, record) is called after every macro step.
+        callback(coupler) is called after every macro step.
         """
         steps = int(round((float(t_end) - self.time) / self.macro_step))
         records = []
         for _ in range(steps):
             records.append(self.step())
             if callback is not None:
-                callback(self, records[-1])
+                callback(self)
         return records
 
     # -- checkpoints -------------------------------------------------------------------

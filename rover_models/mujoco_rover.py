@@ -1,6 +1,6 @@
 """MuJoCo rover adapter: a RoverSide (cosim.contract) around an MJCF model.
 
-Frames and conventions (DESIGN.md section 5):
+Frames and conventions:
 - a wheel is a MuJoCo body; its hub is the body frame origin (data.xpos), its
   orientation data.xquat (w, x, y, z, body -> world);
 - velocities come from mj_objectVelocity(mjOBJ_XBODY, flg_local=0): the 6D velocity at
@@ -10,6 +10,15 @@ Frames and conventions (DESIGN.md section 5):
   torque about the hub is shifted: tau_com = tau_hub + (p_hub - p_com) x F. The shift is
   redone at every MuJoCo step (between mj_step1 and mj_step2) because p_hub - p_com
   turns with the body when the CoM is off the hub.
+
+MuJoCo versions: 3.1 to 4.0 give the same physics for everything used here (the
+semi-implicit step with implicit actuator damping of 'implicitfast', xfrc_applied,
+mj_objectVelocity, mj_step1/mj_step2, velocity actuators); tests/test_rover_mujoco.py
+checks it against closed-form answers. 4.0 rounds the rotation matrices (xmat, ximat)
+differently in the last bit, so a rover on a granular bed follows another, equally
+valid, trajectory: compare coupled runs statistically, never bit for bit across releases.
+Keep actuatorfrcrange off the wheel joints: from 4.0 an actuator saturated by it loses
+its implicit damping, so a stiff motor then needs a smaller timestep.
 """
 
 from __future__ import annotations

@@ -11,7 +11,7 @@ pytest.importorskip("mujoco")
 
 from cosim.contract import SoilSide, WheelKinematics  # noqa: E402
 from cosim.controllers import ConstantSpeed, DriveCommand, SlipController  # noqa: E402
-from cosim.coupler import Coupler, CouplingEnergyWarning, CouplingTimeError  # noqa: E402
+from cosim.coupler import Coupler, CouplingEnergyWarning, CouplingTimeError, stack_records  # noqa: E402
 from cosim.terrain import SpringDamperTerrain  # noqa: E402
 from rover_models.mjcf import MMX_WHEELS, mmx_rover_xml, single_wheel_rig_xml  # noqa: E402
 from rover_models.mujoco_rover import MujocoRover  # noqa: E402
@@ -81,8 +81,8 @@ def test_rover_standing_carries_its_weight(g):
     coupler = Coupler(soil, rover, 2e-3, gravity=(0, 0, -g), controller=ConstantSpeed(0.0, 4))
     with warnings.catch_warnings():
         warnings.simplefilter("error", CouplingEnergyWarning)
-        coupler.run(0.6)
-    rec = coupler.records()
+        records = coupler.run(0.6)
+    rec = stack_records(records)
     mg = rover.total_mass * g
     fz = rec["force"][:, :, 2]
     settled = rec["time"] > 0.4
@@ -99,8 +99,8 @@ def _drop_and_roll(H, scheme="gauss-seidel", t_end=0.3):
     coupler = Coupler(soil, rover, H, scheme=scheme, controller=ConstantSpeed(5.0, 1))
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", CouplingEnergyWarning)
-        coupler.run(t_end)
-    return coupler.records()
+        records = coupler.run(t_end)
+    return stack_records(records)
 
 
 @pytest.fixture(scope="module")
@@ -136,8 +136,8 @@ def test_energy_bookkeeping_matches_the_rover_energy_and_warns_for_jacobi():
     soil = SpringDamperTerrain(0.1, 1, damping=0.0, friction=0.0, substeps=4)
     coupler = Coupler(soil, rover, H, scheme="jacobi")
     with pytest.warns(CouplingEnergyWarning):
-        coupler.run(0.5)
-    rec = coupler.records()
+        records = coupler.run(0.5)
+    rec = stack_records(records)
     flight = np.nonzero(rec["sinkage"][:, 0] == 0.0)[0][-1]  # last step with no contact
     z, vz = rec["position"][flight, 0, 2], rec["linear_velocity"][flight, 0, 2]
     gained = m * g * (z - 0.11) + 0.5 * m * vz**2
@@ -165,8 +165,7 @@ def test_slip_controller_holds_target_slip():
     controller = SlipController(s_star, 0.1, 1, kp=1.0, ki=20.0, omega_min=2.0)
     coupler = Coupler(soil, rover, 1e-3, gravity=(0, 0, -g), controller=controller)
     slips = []
-    coupler.run(1.0, callback=lambda c: slips.append(controller.slip[0]))
-    rec = coupler.records()
+    rec = stack_records(coupler.run(1.0, callback=lambda c: slips.append(controller.slip[0])))
     late = rec["time"] > 0.3
     # Slip measured from the rover's kinematics (not the controller's own number).
     v = rec["linear_velocity"][:, 0, 0]
@@ -216,8 +215,7 @@ def test_records_and_schemes():
         import mujoco
 
         mujoco.mj_forward(coupler.rover.model, coupler.rover.data)
-        coupler.run(0.005)
-        rec = coupler.records()
+        rec = stack_records(coupler.run(0.005))
         assert rec["time"].shape == (5,) and np.allclose(rec["time"], np.arange(1, 6) * 1e-3)
         assert rec["position"].shape == (5, 4, 3) and rec["orientation"].shape == (5, 4, 4)
         assert rec["force"].shape == (5, 4, 3) and rec["sinkage"].shape == (5, 4)

@@ -176,3 +176,117 @@ def test_assets_load_and_match_their_generators():
     assert bigger.wheel_kinematics()[0].position[2] == pytest.approx(0.15)
     geom = bigger.model.geom("wheel_fl_geom")
     np.testing.assert_allclose(geom.size[:2], [0.15, 0.05])
+
+
+# --- held wrenches and motors over many steps: what a MuJoCo release must not change ---------
+#
+# The soil's wrench is held over a macro step while MuJoCo takes its own steps, the last
+# one shortened. These tests follow a held wrench through many (uneven) steps and compare
+# with closed-form physics, so a change of the integrator, of xfrc_applied's point of
+# application or of the velocity actuator's law in a MuJoCo release fails here, not as a
+# changed granular trajectory far downstream.
+
+
+def _semi_implicit_euler(x0, v0, a, steps):
+    """Position and velocity after steps h_1, h_2, ... of semi-implicit (symplectic) Euler,
+    v += h a; x += h v, the update of MuJoCo's Euler and implicitfast integrators."""
+    x, v = np.array(x0, dtype=float), np.array(v0, dtype=float)
+    for h in steps:
+        v = v + h * a
+        x = x + h * v
+    return x, v
+
+
+def _mujoco_steps(t_ends, timestep):
+    """The step sizes MujocoRover.advance takes to reach each of t_ends in turn [s]."""
+    out, t = [], 0.0
+    for t_end in t_ends:
+        while t_end - t > 1e-9 * timestep:
+            h = min(timestep, t_end - t)
+            if t_end - t - h <= 1e-9 * timestep:
+                h = t_end - t
+            out.append(h)
+            t += h
+        t = t_end
+    return out
+
+
+def test_held_hub_wrench_moves_the_centre_of_mass_along_the_analytic_path():
+    """Free body, CoM 0.1 m off the hub, gravity on. The held hub wrench is a force F and
+    the torque (p_com - p_hub) x F, i.e. no torque about the CoM: the body must not turn
+    and its CoM must follow a = F/m + g exactly as semi-implicit Euler integrates it,
+    through uneven macro steps with shortened last MuJoCo steps. A force applied at the
+    hub without the shift (or at the wrong point) turns the body."""
+    com_local = np.array([0.06, -0.05, 0.06])
+    mass = 1.7
+    xml = FREE_BODY.format(body_quat="1 0 0 0", com=" ".join(map(str, com_local)), inertial_quat="1 0 0 0",
+                           mass=mass, inertia="0.01 0.02 0.03").replace('gravity="0 0 0"', 'gravity="0 0 -9.81"')
+    rover = MujocoRover(xml, ["hub"])
+    assert rover.timestep == 1e-4
+    force = np.array([0.8, -0.3, 25.0])
+    p_com0 = rover.data.xipos[1].copy()
+    p_hub0 = rover.data.xpos[1].copy()
+    rover.apply_wheel_wrenches([WheelWrench(force=force, torque=np.cross(p_com0 - p_hub0, force))])
+    t_ends = np.cumsum([3.3e-4, 2.5e-4, 1.07e-3, 4.4e-4] * 25)  # 0.209 s, never a whole number of steps
+    for t_end in t_ends:
+        rover.advance(t_end)
+    a = force / mass + np.array([0, 0, -9.81])
+    x, v = _semi_implicit_euler(p_com0, np.zeros(3), a, _mujoco_steps(t_ends, 1e-4))
+    np.testing.assert_allclose(rover.data.xipos[1], x, rtol=0, atol=1e-12)
+    # the hub moves with the CoM (no rotation): the adapter reports the hub's velocity
+    (k,) = rover.wheel_kinematics()
+    np.testing.assert_allclose(k.linear_velocity, v, rtol=0, atol=1e-12)
+    np.testing.assert_allclose(k.angular_velocity, 0.0, atol=1e-12)
+    np.testing.assert_allclose(k.position - rover.data.xipos[1], p_hub0 - p_com0, atol=1e-12)
+    # and against continuous physics: semi-implicit Euler is off by a h t / 2
+    t = t_ends[-1]
+    assert np.all(np.abs(x - (p_com0 + a * t**2 / 2)) <= np.abs(a) * 1e-4 * t / 2 + 1e-12)
+
+
+def test_velocity_motor_against_a_held_soil_torque():
+    """Wheel on its hinge (gravity off), velocity motor tau = kv (ctrl - omega), soil
+    torque T about the axle held at the hub. implicitfast takes the motor's damping
+    implicitly: omega_{n+1} = (I omega_n + h (kv ctrl + T)) / (I + h kv), whose fixed
+    point is the steady state omega = ctrl + T / kv of the continuous motor, reached as
+    exp(-kv t / I) up to O(h)."""
+    kv, radius, wheel_mass = 0.5, 0.1, 1.0
+    rover = MujocoRover(single_wheel_rig_xml(wheel_mass=wheel_mass, wheel_radius=radius, motor_kv=kv,
+                                             timestep=1e-3), ["wheel"], gravity=(0, 0, 0))
+    i_yy = 0.5 * wheel_mass * radius**2
+    ctrl, soil_torque = 6.0, -0.4  # the soil resists the drive
+    rover.set_wheel_speeds([ctrl])
+    rover.apply_wheel_wrenches([WheelWrench(force=np.zeros(3), torque=np.array([0.0, soil_torque, 0.0]))])
+    omega = 0.0
+    times = [0.0]
+    for t_end in np.arange(1, 31) * 2.5e-3:  # macro steps of 2.5 MuJoCo steps
+        rover.advance(t_end)
+        times.append(t_end)
+    for h in _mujoco_steps(times[1:], 1e-3):
+        omega = (i_yy * omega + h * (kv * ctrl + soil_torque)) / (i_yy + h * kv)
+    assert rover.wheel_spin_rates()[0] == pytest.approx(omega, rel=1e-12)
+    steady = ctrl + soil_torque / kv
+    t = times[-1]
+    continuous = steady * (1 - np.exp(-kv * t / i_yy))
+    assert rover.wheel_spin_rates()[0] == pytest.approx(continuous, rel=0.05)  # O(h kv / I) = 5 %
+    rover.advance(1.0)  # 200 time constants
+    assert rover.wheel_spin_rates()[0] == pytest.approx(steady, rel=1e-12)
+
+
+def test_rover_on_four_hub_forces_summing_to_its_weight_stays_at_rest():
+    """The symmetric MMX-like rover (legs' CoMs off the hubs) held by four upward hub
+    forces of m g / 4 each, wheels held by their motors at zero speed: no net force or
+    moment, so it stays at rest, at Earth and at Phobos gravity alike; with 1 % less
+    force it falls at 0.01 g."""
+    for g in (9.81, 5.7e-3):
+        rover = MujocoRover(mmx_rover_xml(), list(MMX_WHEELS), gravity=(0, 0, -g))
+        rover.set_wheel_speeds([0.0] * 4)
+        weight = rover.total_mass * g
+        start = rover.data.qpos.copy()
+        rover.apply_wheel_wrenches([WheelWrench(force=np.array([0, 0, weight / 4]))] * 4)
+        rover.advance(0.5)
+        np.testing.assert_allclose(rover.data.qvel, 0.0, atol=1e-9 * g)
+        np.testing.assert_allclose(rover.data.qpos, start, atol=1e-9 * g)
+        rover.apply_wheel_wrenches([WheelWrench(force=np.array([0, 0, 0.99 * weight / 4]))] * 4)
+        rover.advance(1.0)
+        vz = [k.linear_velocity[2] for k in rover.wheel_kinematics()]
+        np.testing.assert_allclose(vz, -0.01 * g * 0.5, rtol=1e-9)

@@ -1,4 +1,4 @@
-"""Wheels in the soil and the single-wheel testbed (issue: wheels, single-wheel test)."""
+"""Wheels in the soil and the single-wheel testbed."""
 
 import math
 
@@ -145,6 +145,16 @@ def bed_and_wheel(device, gravity, youngs_modulus, spec=None, wheel=WHEEL, settl
 
 @pytest.mark.parametrize("gravity", [9.81, 5.7e-3])
 def test_wheel_on_a_settled_bed_carries_its_weight(device, gravity, tmp_path):
+    """A loaded wheel set on a settled bed stands still from 25 time units sqrt(r/g) on:
+    its vertical speed stays below v_stand = 0.1 sqrt(2 g d) (d = grain diameter: its
+    vertical kinetic energy is below 1 % of m g d), so, the rig's momentum changing by
+    exactly the soil's impulse minus its weight, the mean soil force is m g within
+    2 m v_stand / T over the window T; the wheel keeps touching the soil and has sunk in.
+
+    The bed is chaotic: over 8 replicas (order_seed None, 1..7; CPU, double) the largest
+    |v_z| / v_stand was 0.097 at g = 9.81 (0.008 to 0.097: rare grain rearrangements under
+    the wheel) and 0.0007 at 5.7e-3; |F / (m g) - 1| <= 9.7e-4 against the bound 0.027;
+    at least 6 grains touched the wheel; sinkage 3.3 mm (9.81) and 1.7 mm (5.7e-3)."""
     # stiffness scaled with g (paper eq. 10: E ~ load) keeps overlap/radius and the step count equal
     spec, sim, dt = bed_and_wheel(device, gravity, 1e7 * gravity / 9.81)
     surface = bed_metrics(sim, spec)["height"]
@@ -162,9 +172,11 @@ def test_wheel_on_a_settled_bed_carries_its_weight(device, gravity, tmp_path):
     t_scale = math.sqrt(0.003 / gravity)
     result = drive(soil, rig, duration=40 * t_scale, macro_step=5 * dt)
     tail = result["time"] > 25 * t_scale
-    weight = mass * gravity
-    assert np.mean(result["normal_force"][tail]) == pytest.approx(weight, rel=0.05)
-    assert np.all(np.abs(result["hub_velocity"][tail, 2]) < 0.05 * math.sqrt(gravity * 0.003)), "the wheel is at rest"
+    window = result["time"][-1] - result["time"][np.argmax(tail) - 1]
+    v_stand = 0.1 * math.sqrt(2 * gravity * 2 * spec.radius_mean)
+    assert np.max(np.abs(result["hub_velocity"][tail, 2])) < v_stand, "the wheel is not at rest"
+    assert np.mean(result["normal_force"][tail]) == pytest.approx(mass * gravity, abs=2 * mass * v_stand / window)
+    assert np.all(result["contact_count"][tail, 0] > 0), "the wheel lost the soil"
     assert result["sinkage_tips"][-1] > 0, "the wheel (its grouser tips) sank into the bed"
 
 
