@@ -1,0 +1,102 @@
+"""The paper's precision experiment at CPU scale: does single precision lose what double and mixed keep?
+
+At Phobos gravity, with a stiffness NOT adapted to milli-g (E = --stiff, default 1e8 Pa) the
+grains' resting overlaps fall below the float32 resolution of their positions: single
+precision should misjudge contacts (stick/slip, overlaps) and scatter. With the eq. 10
+stiffness (the scene's own E) single precision should hold. For each stiffness and
+precision, --replicas runs that differ only in the summation order (cosim study precision)
+on one settled bed give the scatter of slip, sinkage and travel, and the wall time per
+replica: the speed-accuracy table of BENCHMARKS.md, and plots like the paper's figures 3-4
+(travel and sinkage over time, replicas overlaid, one panel per precision).
+
+    python benchmarks/precision_experiment.py --scene benchmarks/scenes/precision_small.toml --replicas 4 \
+        --out runs/precision [--workers 2] [--stiff 1e8]
+
+The stiff soil needs a DEM step about (E_stiff / E)^(2/5) x shorter: its run.dt is taken
+from the Hertz contact time of the scene's impact speed at the stiff modulus (10 steps per
+contact), and its bed is settled at that stiffness.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+import platform
+import sys
+import time
+
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+sys.path.insert(0, ROOT)
+
+
+def stiff_overrides(plan, modulus: float) -> dict:
+    """Scene overrides for the same scene with Young's modulus `modulus` [Pa] (grains and wheel) and a DEM
+    step of a tenth of the grain-grain Hertz contact time at the scene's impact speed."""
+    from soil import advisor
+
+    spec = plan.bed.spec
+    material = plan.soil_material
+    smallest = spec.radius_mean * (1 - spec.radius_spread)
+    speed = math.sqrt(2 * plan.g * spec.depth) + plan.testbed.omega * plan.wheel.outer_radius
+    contact = advisor.hertz_contact_time(modulus, material.poisson_ratio, material.density, smallest, speed)
+    dt = contact / 10
+    substeps = max(1, round(plan.macro_step / dt))
+    rayleigh = advisor.rayleigh_time_step(modulus, material.poisson_ratio, material.density, smallest)
+    return {"soil.youngs_modulus": modulus, "wheel.material.youngs_modulus": modulus, "run.dt": dt,
+            "run.substeps": substeps, "run.dt_factor": None, "run.macro_step": None,
+            "bed.settle_dt_factor": min(1.0, dt / rayleigh)}  # the bed settles with the run's step
+
+
+def main(argv=None) -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--scene", default=os.path.join(ROOT, "benchmarks", "scenes", "precision_small.toml"))
+    parser.add_argument("--replicas", type=int, default=4)
+    parser.add_argument("--stiff", type=float, default=1e8, help="the non-adapted Young's modulus [Pa]")
+    parser.add_argument("--precisions", default="single,mixed,double")
+    parser.add_argument("--workers", type=int, default=None)
+    parser.add_argument("--serial", action="store_true")
+    parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE")
+    parser.add_argument("--out", default="runs/precision")
+    args = parser.parse_args(argv)
+
+    import warp as wp
+
+    wp.config.log_level = wp.LOG_ERROR
+    from cosim.plan import load_plan
+    from cosim.study import precision_study
+
+    base = load_plan(args.scene, args.set)
+    precisions = [p.strip() for p in args.precisions.split(",") if p.strip()]
+    cases = {"adapted": base,
+             "stiff": base.with_changes(**stiff_overrides(base, args.stiff))}
+    rows = []
+    for name, plan in cases.items():
+        started = time.perf_counter()
+        report = precision_study(plan, os.path.join(args.out, name), replicas=args.replicas, precisions=precisions,
+                                 executor="serial" if args.serial else "dask", workers=args.workers, overwrite=True)
+        wall = time.perf_counter() - started
+        for row in report["rows"]:
+            rows.append({"case": name, "youngs_modulus": plan.soil_material.youngs_modulus, "dt": plan.dt,
+                         "study_wall_time": wall, **{k: v for k, v in row.items() if k != "stats"}})
+            print(json.dumps(rows[-1]), flush=True)
+    with open(os.path.join(args.out, "precision_experiment.json"), "w") as f:
+        json.dump({"scene": args.scene, "overrides": args.set, "rows": rows, "replicas": args.replicas,
+                   "machine": f"{platform.machine()}, {os.cpu_count()} cores, Python {platform.python_version()}"},
+                  f, indent=2, default=float)
+    print("\n| E [Pa] | dt [s] | precision | steady | wall per replica [s] | slip mean +- std | sinkage [mm] mean "
+          "+- std | travel [mm] mean +- std (min..max) |")
+    print("|---|---|---|---|---|---|---|---|")
+    for r in rows:
+        def cell(key, scale=1.0):
+            mean, std = r.get(f"{key}_mean"), r.get(f"{key}_std")
+            return "-" if mean is None else f"{mean * scale:.4g} +- {std * scale:.2g}"
+        travel = "-" if r.get("travel_mean") is None else (
+            f"{cell('travel', 1e3)} ({r['travel_min'] * 1e3:.3g}..{r['travel_max'] * 1e3:.3g})")
+        print(f"| {r['youngs_modulus']:.3g} | {r['dt']:.3g} | {r['precision']} | {r['steady']}/{r['replicas']} | "
+              f"{r.get('wall_time_mean', math.nan):.4g} | {cell('slip')} | {cell('sinkage', 1e3)} | {travel} |")
+
+
+if __name__ == "__main__":
+    main()
