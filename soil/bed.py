@@ -61,19 +61,27 @@ class BedSpec:
 
 
 def insert_grains(spec: BedSpec) -> tuple[np.ndarray, np.ndarray]:
-    """Random non-overlapping insertion on a jittered lattice filling the bed box.
+    """Random non-overlapping insertion on a jittered hexagonal close-packed lattice filling the bed box.
 
+    The lattice spacing fits the largest grain (2 r_max x 1.02), so no two grains touch; each
+    grain is then moved at random within the room its own radius leaves it. HCP starts the
+    bed at about 40 % packing (a cubic lattice would give 29 %), so less fill falls less far.
     Returns positions [m] shape (n, 3) (bed floor at z = 0, corner at x = y = 0) and radii [m] shape (n,).
     """
     rng = np.random.default_rng(spec.seed)
     r_max = spec.radius_mean * (1 + spec.radius_spread)
-    pitch = 2.0 * r_max * 1.02
-    counts = [int((size - 2 * r_max) // pitch) + 1 for size in (spec.length, spec.width, spec.depth)]
-    grid = np.stack(np.meshgrid(*[np.arange(c) for c in counts], indexing="ij"), -1).reshape(-1, 3)
-    radii = spec.radius_mean * (1 + spec.radius_spread * rng.uniform(-1, 1, len(grid)))
-    slack = 0.5 * pitch - radii[:, None]  # each grain may move within its cell without touching a neighbour
-    positions = r_max + grid * pitch + rng.uniform(-1, 1, (len(grid), 3)) * slack
-    positions[:, 2] += 0.01 * r_max  # off the floor plane
+    a = 2.0 * r_max * 1.02  # centre-to-centre distance of lattice neighbours
+    row, layer = a * math.sqrt(3.0) / 2.0, a * math.sqrt(2.0 / 3.0)
+    # a lattice site lies 0.5 a from the walls or more: a grain jittered by its slack still clears them
+    counts = [int((spec.length - 2.0 * a) // a) + 1, int((spec.width - a - row / 3.0) // row) + 1,
+              int((spec.depth - a) // layer) + 1]
+    i, j, k = (g.reshape(-1) for g in np.meshgrid(*[np.arange(c) for c in counts], indexing="ij"))
+    lattice = np.column_stack([(i + 0.5 * (j % 2) + 0.5 * (k % 2)) * a, (j + (k % 2) / 3.0) * row, k * layer])
+    radii = spec.radius_mean * (1 + spec.radius_spread * rng.uniform(-1, 1, len(lattice)))
+    slack = 0.5 * a - radii  # each grain may move this far without touching a neighbour
+    direction = rng.normal(size=(len(lattice), 3))
+    direction /= np.linalg.norm(direction, axis=1, keepdims=True)
+    positions = 0.5 * a + lattice + direction * (slack * rng.uniform(0, 1, len(lattice)))[:, None]
     return positions, radii
 
 
