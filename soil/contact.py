@@ -1,6 +1,6 @@
-"""The contact law as Warp functions (DESIGN.md section 2), generic in precision.
+"""The contact law as Warp functions (docs/physics.md section 1), generic in precision.
 
-`make_contact_law(hi, lo, law)` returns a @wp.func that turns one contact (overlap,
+`contact_functions(hi, lo, law).contact_law` is a @wp.func that turns one contact (overlap,
 normal, relative motion, history) into the force and rolling torque on the particle.
 Terms that the ContactLaw switches off are removed at compile time (wp.static), so
 they cost nothing. Geometry and history use `hi`; the force law itself uses `lo`.
@@ -22,6 +22,7 @@ from .materials import (
     PAIR_TAN_SLIP,
     PAIR_TAN_STICK,
 )
+from .precision import kernel_factory
 
 
 @dataclass(frozen=True)
@@ -38,14 +39,9 @@ class ContactLaw:
     """Cohesive attraction cohesion * pi R* delta inside the overlap."""
 
 
-_cache: dict = {}
-
-
-def make_contact_law(hi, lo, law: ContactLaw):
+@kernel_factory
+def contact_functions(hi, lo, law: ContactLaw):
     """The contact @wp.func for precision types (hi, lo) and the switches in `law`."""
-    key = (hi, lo, law)
-    if key in _cache:
-        return _cache[key]
     vec_hi = wp.types.vector(3, hi)
     DAMPING, FRICTION, ROLLING, COHESION = law.damping, law.friction, law.rolling, law.cohesion
 
@@ -144,5 +140,4 @@ def make_contact_law(hi, lo, law: ContactLaw):
                 torque = torque - hi(lo(2.0) * damping_ratio * wp.sqrt(inertia_eff * kr)) * spin
         return force, torque, tangential, rolling
 
-    _cache[key] = (contact_law, rotate_into_plane)
-    return _cache[key]
+    return dict(contact_law=contact_law, rotate_into_plane=rotate_into_plane)

@@ -1,4 +1,4 @@
-"""Contact materials and their pairing rules (DESIGN.md section 2)."""
+"""Contact materials and their pairing rules (docs/physics.md section 1)."""
 
 from __future__ import annotations
 
@@ -113,7 +113,7 @@ class Material:
         """G = E / (2 (1 + nu)) [Pa]."""
         return self.youngs_modulus / (2.0 * (1.0 + self.poisson_ratio))
 
-    def with_(self, **changes) -> "Material":
+    def with_(self, **changes) -> Material:
         return replace(self, **changes)
 
 
