@@ -112,7 +112,7 @@ def neighbour_kernels(hi, lo, law: ContactLaw):
         cell = wp.vec3i()
         for axis in range(3):
             f = (x[axis] - grid[axis]) / grid[3 + axis]
-            c = 0
+            c = int(0)
             if f >= hi(dims[axis] - 1):
                 c = dims[axis] - 1
             elif f >= hi(0.0):  # False for NaN
@@ -224,7 +224,7 @@ def neighbour_kernels(hi, lo, law: ContactLaw):
         ri = hi(radius[i])
         free = inv_mass[i] > lo(0.0)
         home = cell_of(x, grid, dims)
-        count = 0
+        count = int(0)
         for dz in range(-1, 2):
             cz = home[2] + dz
             if cz < 0 or cz >= dims[2]:
@@ -284,7 +284,7 @@ def neighbour_kernels(hi, lo, law: ContactLaw):
         old_count = neighbour_count[old, i]
         new_count = neighbour_count[new, i]
         capacity = neighbours.shape[2]
-        kk = 0
+        kk = int(0)
         for word in range(touching_out.shape[1]):
             bits = wp.uint32(0)
             for k in range(word * 32, wp.min(word * 32 + 32, new_count)):

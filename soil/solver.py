@@ -139,7 +139,7 @@ def contact_kernels(hi, lo, law: ContactLaw):
         if external != 0:
             total_force = external_force[grains.order[i]]
         total_torque = vec_hi()
-        contacts = 0
+        contacts = int(0)
 
         # grains: the row of the neighbour list; history bit k marks entry k in contact
         row = list_index[0]
@@ -204,7 +204,7 @@ def contact_kernels(hi, lo, law: ContactLaw):
         # rigid partners: walls (fixed grains do not touch them), then wheels (every grain)
         wall_count = walls.kind.shape[0]
         slots = history_out.rigid_key.shape[1]
-        stored = 0
+        stored = int(0)
         for partner in range(wall_count + bodies.kind.shape[0]):
             overlap = hi(0.0)
             n = vec_hi()
@@ -212,7 +212,7 @@ def contact_kernels(hi, lo, law: ContactLaw):
             w_partner = vec_hi()
             reference = vec_hi()
             mass_eff = lo(0.0)
-            partner_material = 0
+            partner_material = int(0)
             if partner < wall_count:
                 if inv_mass_i > lo(0.0):
                     shift = walls.displacement[partner]
@@ -364,7 +364,7 @@ def contact_kernels(hi, lo, law: ContactLaw):
         wall_count = wall_reported.shape[0]
         total_force = vec_hi()
         total_torque = vec_hi()
-        contacts = 0
+        contacts = int(0)
         summed = True
         if key < wall_count:
             summed = wall_reported[key] >= 0
