@@ -38,6 +38,8 @@ class DemSoil:
         self.wall_clearance = (5 * float(sim.model.radius_numpy().mean()) if wall_clearance is None
                                else float(wall_clearance))
         self._warned_wall = False
+        # the boundaries' kinds and initial geometry, read once (their motion comes with each macro step)
+        self._walls = (sim.model.boundary_kind.numpy().copy(), sim.model.boundary_geometry_numpy())
 
     @classmethod
     def from_bed(cls, bed, wheels, wheel_material, dt: float, surface_height: float | None = None,
@@ -117,7 +119,7 @@ class DemSoil:
 
         control.set_body_path(span, *stack(start), end=None if end is None else stack(end))
         report = sim.macro_step(steps, span / steps, path=True)
-        self._check_walls(control.body_position_host)
+        self._check_walls(control.body_position_host, report.boundary_displacement)
         return [WheelWrench(force=report.body_force[b], torque=report.body_torque[b],
                             force_end=report.body_force_end[b], torque_end=report.body_torque_end[b],
                             contact_count=int(report.body_contacts[b]), sinkage=self._sinkage(b),
@@ -156,17 +158,17 @@ class DemSoil:
         self._warned_wall = bool(data["warned_wall"])
 
     # -- walls ---------------------------------------------------------------------
-    def _container_walls(self):
-        """(point, inward normal) of the side walls (vertical planes) where they are now."""
-        kinds = self.sim.model.boundary_kind.numpy()
-        geometry = self.sim.boundary_geometry()
-        return [(g[:3], g[3:]) for kind, g in zip(kinds, geometry) if kind == 0 and abs(g[5]) < 0.5]
+    def _container_walls(self, displacement: np.ndarray):
+        """(point, inward normal) of the side walls (vertical planes), displaced by
+        `displacement` [m] (boundary_count, 3) from their initial geometry."""
+        kinds, geometry = self._walls
+        return [(g[:3] + d, g[3:]) for kind, g, d in zip(kinds, geometry, displacement) if kind == 0 and abs(g[5]) < 0.5]
 
-    def _check_walls(self, positions: np.ndarray) -> None:
+    def _check_walls(self, positions: np.ndarray, displacement: np.ndarray) -> None:
         if self._warned_wall:
             return
         rotations = self.sim.control.body_rotation_host
-        walls = self._container_walls()
+        walls = self._container_walls(displacement)
         for b, hub in enumerate(positions):
             shape = self.sim.model.bodies[b]
             for point, normal in walls:

@@ -83,12 +83,12 @@ class SoilBuilder:
         if bad.any():
             i = int(np.argmax(bad))
             raise SoilInputError(f"positions must be finite [m]: {int(bad.sum())} are not, e.g. positions[{i}] = "
-                                 f"{tuple(positions[i])}")
+                                 f"{tuple(float(v) for v in positions[i])}")
         bad = ~(np.isfinite(radii) & (radii > 0))
         if bad.any():
             i = int(np.argmax(bad))
             raise SoilInputError(f"radii must be finite and > 0 [m]: {int(bad.sum())} are not, e.g. radii[{i}] = "
-                                 f"{radii[i]!r}")
+                                 f"{float(radii[i])!r}")
 
         def vectors(values, name):
             if values is None:
@@ -190,13 +190,14 @@ class SoilBuilder:
 
     # -- finalize ----------------------------------------------------------------
     def finalize(self, device: str | None = None, precision="double", law: ContactLaw | None = None,
-                 contact_capacity: int = 16, order_seed: int | None = None):
+                 contact_capacity: int = 16, order_seed: int | None = None, rigid_capacity: int = 4):
         """Create (model, state, control) on `device` ("cpu", "cuda:0", None = Warp's default).
 
         law: contact-law switches; by default rolling and cohesion are on only if a
-        material uses them. contact_capacity: history slots per particle (grown
-        automatically when exceeded). order_seed: permute particle indices (changes
-        only the summation order, for scatter studies).
+        material uses them. contact_capacity: neighbour-list slots per grain;
+        rigid_capacity: contact slots per grain for walls and wheels (both grown
+        automatically when exceeded, the macro step then redone). order_seed: permute
+        particle indices (changes only the summation order, for scatter studies).
         """
         prec = get_precision(precision)
         device = str(wp.get_device(device))
@@ -208,8 +209,9 @@ class SoilBuilder:
             mats = self.materials.materials
             law = ContactLaw(rolling=any(m.rolling_friction > 0 for m in mats),
                              cohesion=any(m.cohesion > 0 for m in mats))
-        if int(contact_capacity) < 1:
-            raise SoilInputError(f"contact_capacity must be >= 1, got {contact_capacity}")
+        for name, value in (("contact_capacity", contact_capacity), ("rigid_capacity", rigid_capacity)):
+            if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < 1:
+                raise SoilInputError(f"{name} must be an integer >= 1, got {value!r}")
         self._check_inside()
         self._check_overlaps()
 
@@ -257,7 +259,7 @@ class SoilBuilder:
             particle_order=order,
             **body_arrays,
         )
-        state = SoilState.for_model(model, int(contact_capacity))
+        state = SoilState.for_model(model, int(contact_capacity), int(rigid_capacity))
         state.position.assign(positions.astype(hi))
         state.velocity.assign(velocity.astype(hi))
         state.angular_velocity.assign(spin.astype(hi))
@@ -274,15 +276,17 @@ class SoilBuilder:
             row = np.asarray(row, dtype=np.float64)
             if kind == BOUNDARY_PLANE:
                 outside = free & ((positions - row[:3]) @ row[3:] < 0)
-                where = f"behind boundary {b}, the plane through {tuple(row[:3])} m (grains stay on the side its " \
-                        f"normal {tuple(row[3:])} points to)"
+                where = f"behind boundary {b}, the plane through {tuple(float(v) for v in row[:3])} m (grains " \
+                        f"stay on the side its normal {tuple(float(v) for v in row[3:])} points to)"
             else:
                 outside = free & np.all((positions > row[:3]) & (positions < row[3:]), axis=1)
-                where = f"inside boundary {b}, the solid box {tuple(row[:3])} .. {tuple(row[3:])} m"
+                where = (f"inside boundary {b}, the solid box {tuple(float(v) for v in row[:3])} .. "
+                         f"{tuple(float(v) for v in row[3:])} m")
             if outside.any():
                 i = int(np.argmax(outside))
                 raise SoilInputError(f"{int(outside.sum())} grain(s) have their centre {where}, e.g. particle {i} "
-                                     f"at {tuple(positions[i])} m: move them inside the container (or fix them)")
+                                     f"at {tuple(float(v) for v in positions[i])} m: move them inside the container "
+                                     "(or fix them)")
 
     def _check_overlaps(self) -> None:
         """Warn when grains were created deep inside each other or inside a wall (OverlapWarning)."""

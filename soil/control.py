@@ -252,7 +252,7 @@ class SoilControl:
         rows[:, 13:26] = np.hstack(finish)
         rows[:, 26] = span
         rows[:, 27] = 0.0 if end is None else 1.0
-        self.body_path.assign(rows.astype(self.body_path.numpy().dtype))
+        self.body_path.assign(rows.astype(np.float64 if self.body_path.dtype is wp.float64 else np.float32))
         self.path_step.zero_()
         self.path_active = True
         for b in range(count):

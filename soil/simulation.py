@@ -35,7 +35,7 @@ lower corner [m] (3) then upper corner [m] (3)."""
 REPORT_BODIES = REPORT_BOUNDS + 6
 """First report column of the bodies: per body the force sum [N] (3) and torque sum [N m] (3)
 over the macro step's steps, force and torque at its end (6), work done on the soil [J] (1),
-grains touching at its end (1)."""
+grains touching at its end (1); then per boundary its displacement at the end [m] (3)."""
 BODY_COLUMNS = 14
 
 
@@ -69,7 +69,7 @@ def macro_kernels(hi):
     def fill_report(status: wp.array(dtype=wp.int32), grid: wp.array(dtype=hi), force_sum: wp.array(dtype=wp.vec3d),
                     torque_sum: wp.array(dtype=wp.vec3d), work: wp.array(dtype=wp.float64),
                     force: wp.array(dtype=vec_hi), torque: wp.array(dtype=vec_hi), contacts: wp.array(dtype=wp.int32),
-                    report_out: wp.array(dtype=wp.float64)):
+                    boundary_displacement: wp.array(dtype=vec_hi), report_out: wp.array(dtype=wp.float64)):
         """Everything the host needs after a macro step, in one array (read once)."""
         for c in range(status_columns.COLUMNS):
             report_out[c] = wp.float64(status[c])
@@ -85,6 +85,10 @@ def macro_kernels(hi):
                 report_out[base + 9 + axis] = wp.float64(torque[b][axis])
             report_out[base + 12] = work[b]
             report_out[base + 13] = wp.float64(contacts[b])
+        walls = REPORT_BODIES + BODY_COLUMNS * force.shape[0]
+        for b in range(boundary_displacement.shape[0]):
+            for axis in range(3):
+                report_out[walls + 3 * b + axis] = wp.float64(boundary_displacement[b][axis])
 
     return dict(accumulate_wrench=accumulate_wrench, fill_report=fill_report)
 
@@ -111,6 +115,8 @@ class MacroStepReport:
     """Work done on the soil by each body over the steps [J], shape (body_count,) (sum of -F.v dt - T.w dt)."""
     body_contacts: np.ndarray
     """Grains touching each body at the end [-], shape (body_count,), int64."""
+    boundary_displacement: np.ndarray
+    """Translation of each boundary from its initial geometry at the end [m], shape (boundary_count, 3)."""
     rebuilds: int
     """Neighbour-list builds during the macro step [-]."""
     redone: int
@@ -168,7 +174,8 @@ class Simulation:
         self._force_sum = wp.zeros(bodies, dtype=wp.vec3d, device=device)
         self._torque_sum = wp.zeros(bodies, dtype=wp.vec3d, device=device)
         self._work = wp.zeros(bodies, dtype=wp.float64, device=device)
-        self._report = wp.zeros(REPORT_BODIES + BODY_COLUMNS * model.body_count, dtype=wp.float64, device=device)
+        self._report = wp.zeros(REPORT_BODIES + BODY_COLUMNS * model.body_count + 3 * model.boundary_count,
+                                dtype=wp.float64, device=device)
         if not state.forces_valid:  # a restored state keeps its own forces: restarts stay bit-identical
             self.refresh_forces()
 
@@ -351,7 +358,8 @@ class Simulation:
             kernels = macro_kernels(model.precision.hi)
             wp.launch(kernels.fill_report, dim=1,
                       inputs=[self.status, self.neighbour_list.grid, self._force_sum, self._torque_sum, self._work,
-                              current.body_force, current.body_torque, current.body_contacts],
+                              current.body_force, current.body_torque, current.body_contacts,
+                              current.boundary_displacement],
                       outputs=[self._report], device=model.device)
             values = self._report.numpy().copy()  # the one read of the macro step
             growth = self._needs_growth(values)
@@ -368,11 +376,14 @@ class Simulation:
         self._bounds = (values[REPORT_BOUNDS:REPORT_BOUNDS + 3], values[REPORT_BOUNDS + 3:REPORT_BOUNDS + 6])
         if values[status_columns.NONFINITE] > 0:
             self.monitor.fail(self, "non-finite particle state (NaN or inf)", int(values[status_columns.WORST]))
-        bodies = values[REPORT_BODIES:].reshape(model.body_count, BODY_COLUMNS)
+        walls = REPORT_BODIES + BODY_COLUMNS * model.body_count
+        bodies = values[REPORT_BODIES:walls].reshape(model.body_count, BODY_COLUMNS)
         return MacroStepReport(steps=steps, dt=dt, body_force=bodies[:, 0:3] / steps,
                                body_torque=bodies[:, 3:6] / steps, body_force_end=bodies[:, 6:9].copy(),
                                body_torque_end=bodies[:, 9:12].copy(), body_work=bodies[:, 12].copy(),
-                               body_contacts=bodies[:, 13].astype(np.int64), rebuilds=rebuilds, redone=redone)
+                               body_contacts=bodies[:, 13].astype(np.int64),
+                               boundary_displacement=values[walls:].reshape(model.boundary_count, 3),
+                               rebuilds=rebuilds, redone=redone)
 
     def step(self, dt: float) -> None:
         """Advance by dt [s]."""
