@@ -155,10 +155,15 @@ def contact_kernels(hi, lo, law: ContactLaw):
             for k in range(word * 32, wp.min(word * 32 + 32, count)):
                 j = neighbours[row, i, k]
                 gap = position[j] - xi
-                distance = wp.length(gap)
                 rj = grains.radius[j]
-                overlap = hi(ri + rj) - distance
-                inv_sum = inv_mass_i + grains.inv_mass[j]
+                reach = hi(ri + rj)
+                squared = wp.dot(gap, gap)
+                distance = reach  # most entries are not in contact: no square root for them
+                inv_sum = lo(0.0)
+                if squared < reach * reach:
+                    distance = wp.sqrt(squared)
+                    inv_sum = inv_mass_i + grains.inv_mass[j]
+                overlap = reach - distance
                 if overlap > hi(0.0) and distance > hi(0.0) and inv_sum > lo(0.0):
                     n = gap / distance
                     lever_i = hi(ri) - hi(0.5) * overlap
