@@ -36,7 +36,7 @@ steps stay graph-capturable.
 
 import warp as wp
 
-from .precision import kernel_factory
+from .precision import kernel_factory, kernel_module, soil_kernel
 
 MOTION_PRESCRIBED = 0
 """The boundary moves with the velocity the control prescribes (zero: fixed)."""
@@ -46,6 +46,7 @@ MOTION_LOADED = 1
 @kernel_factory
 def boundary_kernels(hi):
     """The boundary-motion kernels for the precision's `hi` type."""
+    kernel = soil_kernel(kernel_module("boundaries", hi))
     vec_hi = wp.types.vector(3, hi)
 
     @wp.func
@@ -53,7 +54,7 @@ def boundary_kernels(hi):
         """The part of `velocity` perpendicular to `direction` (unit)."""
         return velocity - wp.dot(velocity, direction) * direction
 
-    @wp.kernel(module="unique")
+    @kernel
     def boundary_acceleration(
         mode: wp.array(dtype=wp.int32),
         direction: wp.array(dtype=vec_hi),
@@ -73,7 +74,7 @@ def boundary_kernels(hi):
             a = (load[b] + wp.dot(force_in[b], e) - damping[b] * wp.dot(velocity_in[b], e)) / mass[b]
         acceleration_out[b] = a
 
-    @wp.kernel(module="unique")
+    @kernel
     def verlet_kick_drift(
         mode: wp.array(dtype=wp.int32),
         prescribed: wp.array(dtype=vec_hi),
@@ -96,7 +97,7 @@ def boundary_kernels(hi):
         displacement_out[b] = displacement_in[b] + dt * velocity
         velocity_out[b] = velocity
 
-    @wp.kernel(module="unique")
+    @kernel
     def verlet_kick(
         mode: wp.array(dtype=wp.int32),
         direction: wp.array(dtype=vec_hi),
@@ -110,7 +111,7 @@ def boundary_kernels(hi):
         if mode[b] == MOTION_LOADED:
             velocity_io[b] = velocity_io[b] + (hi(0.5) * dt * acceleration_new[b]) * direction[b]
 
-    @wp.kernel(module="unique")
+    @kernel
     def beeman_predict(
         mode: wp.array(dtype=wp.int32),
         prescribed: wp.array(dtype=vec_hi),
@@ -144,7 +145,7 @@ def boundary_kernels(hi):
         velocity_out[b] = velocity
         acceleration_previous_out[b] = acceleration_in[b]
 
-    @wp.kernel(module="unique")
+    @kernel
     def beeman_correct(
         mode: wp.array(dtype=wp.int32),
         direction: wp.array(dtype=vec_hi),

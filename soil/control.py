@@ -5,7 +5,7 @@ import numpy as np
 import warp as wp
 
 from .boundaries import MOTION_LOADED, MOTION_PRESCRIBED
-from .precision import kernel_factory
+from .precision import kernel_factory, kernel_module, soil_kernel
 
 PATH_COLUMNS = 28
 """Columns of a body path row: start position (3), orientation (w, x, y, z) (4), velocity (3),
@@ -58,6 +58,7 @@ def quaternion_to_matrix(q) -> np.ndarray:
 @kernel_factory
 def path_kernels(hi):
     """The body-path kernels for the precision type `hi`."""
+    kernel = soil_kernel(kernel_module("path", hi))
     vec_hi = wp.types.vector(3, hi)
     vec4_hi = wp.types.vector(4, hi)
     mat_hi = wp.types.matrix((3, 3), hi)
@@ -80,7 +81,7 @@ def path_kernels(hi):
                       two * (x * y + w * z), one - two * (x * x + z * z), two * (y * z - w * x),
                       two * (x * z - w * y), two * (y * z + w * x), one - two * (x * x + y * y))
 
-    @wp.kernel(module="unique")
+    @kernel
     def follow_path(path: wp.array2d(dtype=hi), step: wp.array(dtype=wp.int32), dt: hi,
                     position_out: wp.array(dtype=vec_hi), rotation_out: wp.array(dtype=mat_hi),
                     velocity_out: wp.array(dtype=vec_hi), angular_velocity_out: wp.array(dtype=vec_hi)):
@@ -127,7 +128,7 @@ def path_kernels(hi):
         velocity_out[b] = velocity
         angular_velocity_out[b] = spin
 
-    @wp.kernel(module="unique")
+    @kernel
     def next_step(step: wp.array(dtype=wp.int32)):
         """Count a step of the path."""
         step[0] = step[0] + 1

@@ -22,7 +22,7 @@ from . import status as status_columns
 from .contact import ContactLaw
 from .control import SoilControl
 from .model import SoilModel
-from .precision import kernel_factory
+from .precision import kernel_factory, kernel_module, soil_kernel
 from .solver import ContactSolver
 from .state import SoilState
 
@@ -52,6 +52,7 @@ SUMMARY_COLUMNS = SUMMARY_STATUS + status_columns.COLUMNS
 @kernel_factory
 def integrator_kernels(hi, lo, law: ContactLaw):
     """The velocity-Verlet and jolt-Beeman kernels for precision types (hi, lo)."""
+    kernel = soil_kernel(kernel_module("integrator", hi, lo, law))
     vec_hi = wp.types.vector(3, hi)
 
     @wp.func
@@ -81,7 +82,7 @@ def integrator_kernels(hi, lo, law: ContactLaw):
         """
         return a - ratio * (a - a_previous)
 
-    @wp.kernel(module="unique")
+    @kernel
     def kick_drift(
         x_in: wp.array(dtype=vec_hi),
         v_in: wp.array(dtype=vec_hi),
@@ -104,7 +105,7 @@ def integrator_kernels(hi, lo, law: ContactLaw):
         w_out[i] = w_in[i] + hi(0.5) * dt * hi(inv_inertia[i]) * torque_in[i]
         x_out[i] = x_in[i] + dt * v_half
 
-    @wp.kernel(module="unique")
+    @kernel
     def kick(
         force_in: wp.array(dtype=vec_hi),
         torque_in: wp.array(dtype=vec_hi),
@@ -127,7 +128,7 @@ def integrator_kernels(hi, lo, law: ContactLaw):
         w_io[i] = w
         flag_nonfinite(x_in[i], v, w, order[i], status_out)
 
-    @wp.kernel(module="unique")
+    @kernel
     def beeman_predict(
         x_in: wp.array(dtype=vec_hi),
         v_in: wp.array(dtype=vec_hi),
@@ -174,7 +175,7 @@ def integrator_kernels(hi, lo, law: ContactLaw):
         if i == 0:
             step_previous_out[0] = dt
 
-    @wp.kernel(module="unique")
+    @kernel
     def beeman_correct(
         v_in: wp.array(dtype=vec_hi),
         w_in: wp.array(dtype=vec_hi),
@@ -244,7 +245,7 @@ def integrator_kernels(hi, lo, law: ContactLaw):
             e = hi(wp.inf)
         return e
 
-    @wp.kernel(module="unique")
+    @kernel
     def norm_partial(gaps: wp.array2d(dtype=hi), v_in: wp.array(dtype=vec_hi), w_in: wp.array(dtype=vec_hi),
                      radius: wp.array(dtype=lo), slot: wp.array(dtype=wp.int32), summary: wp.array(dtype=hi),
                      position_weight: hi, pass_index: int, chunk: int,
@@ -270,7 +271,7 @@ def integrator_kernels(hi, lo, law: ContactLaw):
         partial_out[c, 1] = second
         partial_out[c, 2] = third
 
-    @wp.kernel(module="unique")
+    @kernel
     def norm_total(partial: wp.array2d(dtype=hi), status: wp.array(dtype=wp.int32), scale_floor: hi,
                    use_speed: int, pass_index: int, count: int, summary_out: wp.array(dtype=hi)):
         """Fold the chunks in order into the summary (pass 0: maxima, and the velocity scale

@@ -30,7 +30,7 @@ import warp as wp
 
 from . import status as status_columns
 from .contact import ContactLaw
-from .precision import kernel_factory
+from .precision import kernel_factory, kernel_module, soil_kernel
 from .state import GrainLayout, SoilState
 
 REORDER_FROM = 4096
@@ -86,14 +86,14 @@ def compact_bits(v: int):
     return v
 
 
-@wp.kernel
+@wp.kernel(enable_backward=False)
 def gather_1d(source: wp.array(dtype=Any), origin: wp.array(dtype=wp.int32), target_out: wp.array(dtype=Any)):
     """target[q] = source[origin[q]]."""
     q = wp.tid()
     target_out[q] = source[origin[q]]
 
 
-@wp.kernel
+@wp.kernel(enable_backward=False)
 def gather_2d(source: wp.array2d(dtype=Any), origin: wp.array(dtype=wp.int32), target_out: wp.array2d(dtype=Any)):
     """target[q, k] = source[origin[q], k]."""
     q, k = wp.tid()
@@ -103,6 +103,7 @@ def gather_2d(source: wp.array2d(dtype=Any), origin: wp.array(dtype=wp.int32), t
 @kernel_factory
 def neighbour_kernels(hi, lo, law: ContactLaw):
     """The neighbour-list kernels for precision types (hi, lo) and the contact-law switches."""
+    kernel = soil_kernel(kernel_module("neighbours", hi, lo, law))
     vec_hi = wp.types.vector(3, hi)
     FRICTION, ROLLING = law.friction, law.rolling
 
@@ -120,7 +121,7 @@ def neighbour_kernels(hi, lo, law: ContactLaw):
             cell[axis] = c
         return cell
 
-    @wp.kernel(module="unique")
+    @kernel
     def begin_check(list_index_in: wp.array(dtype=wp.int32),
                     list_index_out: wp.array(dtype=wp.int32), rebuild_out: wp.array(dtype=wp.int32),
                     rebuilt_out: wp.array(dtype=wp.int32)):
@@ -129,7 +130,7 @@ def neighbour_kernels(hi, lo, law: ContactLaw):
         rebuild_out[0] = 0
         rebuilt_out[0] = 0
 
-    @wp.kernel(module="unique")
+    @kernel
     def check_moved(position: wp.array(dtype=vec_hi), build_position: wp.array2d(dtype=vec_hi),
                     list_index: wp.array(dtype=wp.int32), half_skin: hi, rebuild_out: wp.array(dtype=wp.int32)):
         """Flag a rebuild when a grain has moved more than half the skin since the build
@@ -139,7 +140,7 @@ def neighbour_kernels(hi, lo, law: ContactLaw):
         if not (wp.dot(d, d) <= half_skin * half_skin):  # NaN moves too
             rebuild_out[0] = 1
 
-    @wp.kernel(module="unique")
+    @kernel
     def bounds_partial(position: wp.array(dtype=vec_hi), chunk: int,
                        lower_out: wp.array(dtype=vec_hi), upper_out: wp.array(dtype=vec_hi)):
         """Bounding box of the finite positions of each chunk of grains."""
@@ -155,7 +156,7 @@ def neighbour_kernels(hi, lo, law: ContactLaw):
         lower_out[c] = lower
         upper_out[c] = upper
 
-    @wp.kernel(module="unique")
+    @kernel
     def bounds_total(lower_in: wp.array(dtype=vec_hi), upper_in: wp.array(dtype=vec_hi), cell_min: hi,
                      dims: wp.vec3i, grid_out: wp.array(dtype=hi)):
         """The grid: origin [m] (3), cell size [m] per axis (3), at least cell_min, covering the box,
@@ -176,7 +177,7 @@ def neighbour_kernels(hi, lo, law: ContactLaw):
             grid_out[3 + axis] = wp.max(cell_min, extent * hi(1.000001) / hi(dims[axis]))
             grid_out[6 + axis] = origin + extent
 
-    @wp.kernel(module="unique")
+    @kernel
     def cell_keys(position: wp.array(dtype=vec_hi), slot: wp.array(dtype=wp.int32), grid: wp.array(dtype=hi),
                   dims: wp.vec3i, keys_out: wp.array(dtype=wp.int32), values_out: wp.array(dtype=wp.int32)):
         """Morton key of each grain's cell, listed by model index (so that the stable sort breaks
@@ -186,7 +187,7 @@ def neighbour_kernels(hi, lo, law: ContactLaw):
         keys_out[p] = spread_bits(cell[0]) | (spread_bits(cell[1]) << 1) | (spread_bits(cell[2]) << 2)
         values_out[p] = p
 
-    @wp.kernel(module="unique")
+    @kernel
     def cell_ranges(keys: wp.array(dtype=wp.int32), values: wp.array(dtype=wp.int32), slot: wp.array(dtype=wp.int32),
                     count: int, dims: wp.vec3i,
                     cell_start_out: wp.array(dtype=wp.int32), cell_end_out: wp.array(dtype=wp.int32),
@@ -207,7 +208,7 @@ def neighbour_kernels(hi, lo, law: ContactLaw):
             cell_end_out[cell] = q + 1
         cell_slot_out[q] = slot[values[q]]
 
-    @wp.kernel(module="unique")
+    @kernel
     def build_rows(position: wp.array(dtype=vec_hi), radius: wp.array(dtype=lo), inv_mass: wp.array(dtype=lo),
                    order: wp.array(dtype=wp.int32), grid: wp.array(dtype=hi), dims: wp.vec3i, cell_start: wp.array(dtype=wp.int32),
                    cell_end: wp.array(dtype=wp.int32), cell_slot: wp.array(dtype=wp.int32), skin: hi,
@@ -264,7 +265,7 @@ def neighbour_kernels(hi, lo, law: ContactLaw):
         if count > capacity:
             wp.atomic_max(status_out, status_columns.NEEDED_NEIGHBOURS, count)
 
-    @wp.kernel(module="unique")
+    @kernel
     def remap_history(neighbours: wp.array3d(dtype=wp.int32), neighbour_count: wp.array2d(dtype=wp.int32),
                       list_index_in: wp.array(dtype=wp.int32), target: wp.array(dtype=wp.int32),
                       order: wp.array(dtype=wp.int32),
@@ -312,7 +313,7 @@ def neighbour_kernels(hi, lo, law: ContactLaw):
                             rolling_out[i, k] = vec_hi()
             touching_out[i, word] = bits
 
-    @wp.kernel(module="unique")
+    @kernel
     def finish_build(target: wp.array(dtype=wp.int32), list_index_out: wp.array(dtype=wp.int32), rebuilt_out: wp.array(dtype=wp.int32),
                      status_out: wp.array(dtype=wp.int32)):
         """The output state's history is now aligned with the new list."""
@@ -320,25 +321,25 @@ def neighbour_kernels(hi, lo, law: ContactLaw):
         rebuilt_out[0] = 1
         status_out[status_columns.REBUILDS] = status_out[status_columns.REBUILDS] + 1
 
-    @wp.kernel(module="unique")
+    @kernel
     def other_list(list_index_in: wp.array(dtype=wp.int32), target_out: wp.array(dtype=wp.int32)):
         """The list a build writes: the one the input state does not use."""
         target_out[0] = 1 - list_index_in[0]
 
-    @wp.kernel(module="unique")
+    @kernel
     def new_slots(values: wp.array(dtype=wp.int32), new_slot_out: wp.array(dtype=wp.int32)):
         """New storage slot of each model index: its place in the sorted order."""
         q = wp.tid()
         new_slot_out[values[q]] = q
 
-    @wp.kernel(module="unique")
+    @kernel
     def storage_origin(values: wp.array(dtype=wp.int32), slot: wp.array(dtype=wp.int32),
                        origin_out: wp.array(dtype=wp.int32)):
         """Old slot of the grain that moves to new slot q."""
         q = wp.tid()
         origin_out[q] = slot[values[q]]
 
-    @wp.kernel(module="unique")
+    @kernel
     def relabel_rows(neighbours: wp.array3d(dtype=wp.int32), neighbour_count: wp.array2d(dtype=wp.int32),
                      build_position: wp.array2d(dtype=vec_hi), list_index_in: wp.array(dtype=wp.int32),
                      origin: wp.array(dtype=wp.int32), order: wp.array(dtype=wp.int32),
@@ -359,7 +360,7 @@ def neighbour_kernels(hi, lo, law: ContactLaw):
         if q == 0:
             list_index_out[0] = t
 
-    @wp.kernel(module="unique")
+    @kernel
     def relabel_layout(values: wp.array(dtype=wp.int32), radius: wp.array(dtype=lo), mass: wp.array(dtype=lo),
                        inv_mass: wp.array(dtype=lo), inv_inertia: wp.array(dtype=lo),
                        material: wp.array(dtype=wp.int32),
@@ -378,7 +379,7 @@ def neighbour_kernels(hi, lo, law: ContactLaw):
         inv_inertia_out[q] = inv_inertia[p]
         material_out[q] = material[p]
 
-    @wp.kernel(module="unique")
+    @kernel
     def copy_list(neighbours: wp.array3d(dtype=wp.int32), neighbour_count: wp.array2d(dtype=wp.int32),
                   build_position: wp.array2d(dtype=vec_hi), source: wp.array(dtype=wp.int32),
                   target: wp.array(dtype=wp.int32), neighbours_out: wp.array3d(dtype=wp.int32),

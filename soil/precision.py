@@ -15,6 +15,7 @@ per combination and returns them as attributes (`kernels.contact_forces`).
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 from dataclasses import dataclass
 from types import SimpleNamespace
@@ -67,6 +68,25 @@ def get_precision(name: str) -> Precision:
     if name == "mixed":
         return Precision("mixed", wp.float64, wp.float32)
     raise ValueError(f"precision must be one of {PRECISIONS}, got {name!r}")
+
+
+def kernel_module(name: str, *key) -> str:
+    """The Warp module of one kernel-factory call (e.g. `kernel_module("contact", hi, lo, law)`):
+    its kernels compile together, once per combination."""
+    def part(value):
+        if isinstance(value, type):
+            return value.__name__
+        if dataclasses.is_dataclass(value):
+            return "".join("1" if v else "0" for v in dataclasses.astuple(value))
+        return str(value)
+
+    return "soil_" + "_".join([name] + [part(k) for k in key])
+
+
+def soil_kernel(module: str):
+    """Decorator of the soil's kernels: compiled in `module` (kernel_module), forward only
+    (nothing differentiates through the DEM, so no adjoint code is generated)."""
+    return wp.kernel(module=module, enable_backward=False)
 
 
 def kernel_factory(build):

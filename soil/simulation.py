@@ -23,7 +23,7 @@ from .errors import RegolithWarning, SoilInputError
 from .integrator import JoltBeeman, StepController, VelocityVerlet
 from .model import SoilModel
 from .neighbours import NeighbourList, NeighbourSettings
-from .precision import kernel_factory
+from .precision import kernel_factory, kernel_module, soil_kernel
 from .sdf import BOUNDARY_BOX
 from .solver import ContactSolver
 from .stability import DivergenceMonitor, SimulationDiverged  # noqa: F401 (SimulationDiverged re-exported)
@@ -46,9 +46,10 @@ class CaptureWarning(RegolithWarning):
 @kernel_factory
 def macro_kernels(hi):
     """Kernels of a macro step's bookkeeping for the precision type `hi` (sums in float64)."""
+    kernel = soil_kernel(kernel_module("macro", hi))
     vec_hi = wp.types.vector(3, hi)
 
-    @wp.kernel(module="unique")
+    @kernel
     def accumulate_wrench(force: wp.array(dtype=vec_hi), torque: wp.array(dtype=vec_hi),
                           velocity: wp.array(dtype=vec_hi), angular_velocity: wp.array(dtype=vec_hi), dt: wp.float64,
                           force_sum_out: wp.array(dtype=wp.vec3d), torque_sum_out: wp.array(dtype=wp.vec3d),
@@ -65,7 +66,7 @@ def macro_kernels(hi):
         torque_sum_out[b] = torque_sum_out[b] + t
         work_out[b] = work_out[b] - (wp.dot(f, v) + wp.dot(t, w)) * dt
 
-    @wp.kernel(module="unique")
+    @kernel
     def fill_report(status: wp.array(dtype=wp.int32), grid: wp.array(dtype=hi), force_sum: wp.array(dtype=wp.vec3d),
                     torque_sum: wp.array(dtype=wp.vec3d), work: wp.array(dtype=wp.float64),
                     force: wp.array(dtype=vec_hi), torque: wp.array(dtype=vec_hi), contacts: wp.array(dtype=wp.int32),

@@ -23,7 +23,7 @@ from .contact import ContactLaw, contact_functions
 from .control import SoilControl
 from .model import SoilModel
 from .neighbours import NeighbourList
-from .precision import kernel_factory
+from .precision import kernel_factory, kernel_module, soil_kernel
 from .sdf import BODY_WHEEL, sdf_functions
 from .state import SoilState
 
@@ -34,6 +34,7 @@ CHUNK = 256
 @kernel_factory
 def contact_kernels(hi, lo, law: ContactLaw):
     """The contact kernels and their argument bundles for precision types (hi, lo) and the switches."""
+    kernel = soil_kernel(kernel_module("contact", hi, lo, law))
     vec_hi = wp.types.vector(3, hi)
     mat_hi = wp.types.matrix((3, 3), hi)
     contact_law = contact_functions(hi, lo, law).contact_law
@@ -101,7 +102,7 @@ def contact_kernels(hi, lo, law: ContactLaw):
                 return s
         return -1
 
-    @wp.kernel(module="unique")
+    @kernel
     def contact_forces(
         position: wp.array(dtype=vec_hi),
         velocity: wp.array(dtype=vec_hi),
@@ -290,7 +291,7 @@ def contact_kernels(hi, lo, law: ContactLaw):
         torque_out[i] = total_torque
         contact_count_out[i] = contacts
 
-    @wp.kernel(module="unique")
+    @kernel
     def elastic_energy(
         position: wp.array(dtype=vec_hi),
         grains: Grains,
@@ -321,7 +322,7 @@ def contact_kernels(hi, lo, law: ContactLaw):
                 total += hi(8.0 / 15.0) * e_star * wp.sqrt(hi(ri)) * wp.pow(overlap, hi(2.5))
         energy_out[i] = total
 
-    @wp.kernel(module="unique")
+    @kernel
     def wrench_partial(
         slot: wp.array(dtype=wp.int32),
         rigid_key: wp.array2d(dtype=wp.int32),
@@ -349,7 +350,7 @@ def contact_kernels(hi, lo, law: ContactLaw):
                 torque_out[c, key] = torque_out[c, key] + reaction_torque[i, s]
                 contact_out[c, key] = contact_out[c, key] + 1
 
-    @wp.kernel(module="unique")
+    @kernel
     def wrench_total(
         force_in: wp.array2d(dtype=vec_hi),
         torque_in: wp.array2d(dtype=vec_hi),

@@ -32,7 +32,7 @@ import warp as wp
 from .boundaries import MOTION_LOADED
 from .errors import RegolithError
 from .files import atomic_path
-from .precision import kernel_factory
+from .precision import kernel_factory, kernel_module, soil_kernel
 from .sdf import sdf_functions
 from .state import SoilState
 
@@ -49,10 +49,11 @@ CHECK_COLUMNS = 3
 @kernel_factory
 def check_kernels(hi, lo):
     """The divergence-check kernel for precision types (hi, lo)."""
+    kernel = soil_kernel(kernel_module("check", hi, lo))
     vec_hi = wp.types.vector(3, hi)
     boundary_contact = sdf_functions(hi).boundary_contact
 
-    @wp.kernel(module="unique")
+    @kernel
     def divergence_metrics(
         x_in: wp.array(dtype=vec_hi),
         v_in: wp.array(dtype=vec_hi),

@@ -18,7 +18,7 @@ REBUILDS = 4
 COLUMNS = 5
 
 
-@wp.kernel
+@wp.kernel(enable_backward=False)
 def clear_status(status_out: wp.array(dtype=wp.int32)):
     """Reset every column (WORST to -1)."""
     column = wp.tid()
