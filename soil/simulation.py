@@ -18,9 +18,10 @@ import numpy as np
 import warp as wp
 
 from . import status as status_columns
-from .control import SoilControl
+from .boundaries import boundary_kernels
+from .control import SoilControl, path_kernels
 from .errors import RegolithWarning, SoilInputError
-from .integrator import JoltBeeman, StepController, VelocityVerlet
+from .integrator import JoltBeeman, StepController, VelocityVerlet, integrator_kernels
 from .model import SoilModel
 from .neighbours import NeighbourList, NeighbourSettings
 from .precision import kernel_factory, kernel_module, soil_kernel
@@ -168,6 +169,7 @@ class Simulation:
         self._controller = None  # run_adaptive's StepController, kept between calls
         self._graphs: dict = {}
         self._graph_signature = None
+        self._modules_loaded = False
         self._rebuilds_since_reorder = 0
         self._bounds = None
         device = model.device
@@ -301,8 +303,23 @@ class Simulation:
         body()
         state_out.time = state_in.time + dt
 
+    def _load_modules(self) -> None:
+        """Load (compile) every module a step uses before a graph is captured: a GPU driver older
+        than CUDA 12.3 cannot load modules during a capture."""
+        if self._modules_loaded or not wp.get_device(self.model.device).is_cuda:
+            return
+        prec = self.model.precision
+        namespaces = [integrator_kernels(prec.hi, prec.lo, self.model.law), boundary_kernels(prec.hi),
+                      path_kernels(prec.hi), macro_kernels(prec.hi), self.contacts.kernels, self.neighbour_list.kernels]
+        modules = {value.module for space in namespaces for value in vars(space).values()
+                   if isinstance(value, wp.Kernel)}
+        for module in modules:
+            module.load(wp.get_device(self.model.device))
+        self._modules_loaded = True
+
     def _prepare(self) -> None:
         """Allocate everything a captured step touches, and drop graphs whose arrays changed."""
+        self._load_modules()
         self._spares()
         self.contacts._reactions(self.state.rigid_capacity)
         self.integrator.bind(self.model)
