@@ -44,7 +44,7 @@ import warp as wp  # noqa: E402
 from benchmarks import beds  # noqa: E402
 from cosim.contract import WheelKinematics  # noqa: E402
 from cosim.dem_soil import DemSoil  # noqa: E402
-from soil import GrouserWheel, Material, SoilBuilder, Simulation, quiet_warp  # noqa: E402
+from soil import GrouserWheel, Material, Simulation, SoilBuilder, quiet_warp  # noqa: E402
 from soil.advisor import rayleigh_time_step  # noqa: E402
 from soil.bed import PHOBOS_REGOLITH, BedSpec, insert_grains  # noqa: E402
 from soil.gravity import GRAVITY_PRESETS  # noqa: E402
@@ -308,17 +308,19 @@ class Suite:
                              f"{row['captured']} |")
         paper = r["sections"].get("paper", {})
         if "projected_60s_seconds" in paper:
+            projected = paper["projected_60s_seconds"]
             lines += ["", f"Paper case: {paper['grains']} grains, Phobos gravity, double, dt = {paper['dt']:.3g} s: "
-                      f"{paper['particle_steps_per_second']:.3g} particle-steps/s ({paper['contacts_per_grain']:.1f} contacts "
-                      f"per grain), 60 s projected in {paper['projected_60s_seconds']:.0f} s "
-                      f"({paper['projected_60s_seconds'] / 60:.1f} min)."]
+                      f"{paper['particle_steps_per_second']:.3g} particle-steps/s "
+                      f"({paper['contacts_per_grain']:.1f} contacts per grain), 60 s projected in {projected:.0f} s "
+                      f"({projected / 60:.1f} min)."]
         targets = {}
         for result in r["sections"].values():
             targets.update(result.get("targets", {}))
-        for name in ("repeat", "agreement", "tests"):
+        checks = {"repeat": "a coupled run repeats bit for bit",
+                  "agreement": "device agrees with the CPU within the replica scatter", "tests": "the CUDA tests pass"}
+        for name, label in checks.items():
             if name in r["sections"]:
-                targets[{"repeat": "a coupled run repeats bit for bit", "agreement": "device agrees with the CPU "
-                         "within the replica scatter", "tests": "the CUDA tests pass"}[name]] = r["sections"][name]["ok"]
+                targets[label] = r["sections"][name]["ok"]
         if targets:
             lines += ["", "| target | met |", "|---|---|"]
             lines += [f"| {name} | {'yes' if met else 'NO'} |" for name, met in targets.items()]

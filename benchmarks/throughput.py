@@ -30,8 +30,6 @@ import platform
 import sys
 import time
 
-import numpy as np
-
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 sys.path.insert(0, ROOT)
 
@@ -120,10 +118,9 @@ def section_capture(args, rows, log):
         for capture in (True, False):
             sim = beds.build(positions, radii, box_hi, args.device, "double", capture=capture)
             timed[capture] = time_ours(sim, args.steps, 2e-6, warmup=50)
+        captured, launched = timed[True]["us_per_particle_step_cpu"], timed[False]["us_per_particle_step_cpu"]
         rows.append(dict(section="capture", n=len(radii), steps=args.steps, device=args.device, precision="double",
-                         captured_us=timed[True]["us_per_particle_step_cpu"],
-                         launched_us=timed[False]["us_per_particle_step_cpu"],
-                         saving=1.0 - timed[True]["us_per_particle_step_cpu"] / timed[False]["us_per_particle_step_cpu"],
+                         captured_us=captured, launched_us=launched, saving=1.0 - captured / launched,
                          captured_wall=timed[True]["wall_seconds"], launched_wall=timed[False]["wall_seconds"]))
         log(json.dumps(rows[-1]))
 
@@ -149,7 +146,8 @@ def tables(rows, header: str) -> str:
         for r in lam:
             out.append(f"| {r['n']} | {r['code']} | {r['precision']} | {r['particle_steps_per_second']:.3g} | "
                        f"{r['us_per_particle_step_cpu']:.3f} | {r.get('ratio_cpu', float('nan')):.2f} | "
-                       f"{r.get('ratio_wall', float('nan')):.2f} | {r.get('contacts_per_particle', float('nan')):.2f} |")
+                       f"{r.get('ratio_wall', float('nan')):.2f} | "
+                       f"{r.get('contacts_per_particle', float('nan')):.2f} |")
         out.append("")
     scaling = [r for r in rows if r["section"] == "scaling"]
     if scaling:
@@ -206,7 +204,8 @@ def main(argv=None) -> None:
     args.memory_n = args.memory_n or (10000 if quick else 100000)
     args.steps = args.steps or (50 if quick else 200)
     wp.config.log_level = max(wp.config.log_level, wp.LOG_WARNING)  # no per-module load lines
-    header = f"machine: {machine(args.device)}\ncommand: python benchmarks/throughput.py {' '.join(argv or sys.argv[1:])}"
+    command = "python benchmarks/throughput.py " + " ".join(argv or sys.argv[1:])
+    header = f"machine: {machine(args.device)}\ncommand: {command}"
     print(header, flush=True)
     rows: list[dict] = []
 

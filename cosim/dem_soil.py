@@ -162,7 +162,8 @@ class DemSoil:
         """(point, inward normal) of the side walls (vertical planes), displaced by
         `displacement` [m] (boundary_count, 3) from their initial geometry."""
         kinds, geometry = self._walls
-        return [(g[:3] + d, g[3:]) for kind, g, d in zip(kinds, geometry, displacement) if kind == 0 and abs(g[5]) < 0.5]
+        return [(g[:3] + d, g[3:]) for kind, g, d in zip(kinds, geometry, displacement)
+                if kind == 0 and abs(g[5]) < 0.5]
 
     def _check_walls(self, positions: np.ndarray, displacement: np.ndarray) -> None:
         if self._warned_wall:

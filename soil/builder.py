@@ -169,7 +169,8 @@ class SoilBuilder:
         lower = np.asarray(lower, dtype=np.float64).reshape(3)
         upper = np.asarray(upper, dtype=np.float64).reshape(3)
         if not np.all(upper > lower):
-            raise SoilInputError(f"container upper corner must exceed lower corner on every axis, got {lower} .. {upper}")
+            raise SoilInputError(f"container upper corner must exceed lower corner on every axis, got {lower} .. "
+                                 f"{upper}")
         walls = [self.add_plane(lower, (0, 0, 1), material, report)]
         for axis in range(2):
             inward = np.zeros(3)
@@ -320,9 +321,9 @@ class SoilBuilder:
                 k = int(np.argmax(ratio))
                 worst, where = float(ratio[k]), f"particle {k} and boundary {b} by {depth[k]:.3g} m"
         if count:
-            warnings.warn(f"{count} contact(s) were created with an overlap above {DEEP_OVERLAP:g} x the smaller radius "
-                          f"(the deepest: {where}, {worst:.3g} x its radius): their first contact throws the grains "
-                          "apart; space them out", OverlapWarning, stacklevel=3)
+            warnings.warn(f"{count} contact(s) were created with an overlap above {DEEP_OVERLAP:g} x the smaller "
+                          f"radius (the deepest: {where}, {worst:.3g} x its radius): their first contact throws the "
+                          "grains apart; space them out", OverlapWarning, stacklevel=3)
 
     def _body_arrays(self, prec, device) -> dict:
         kinds, shapes, materials, point_offsets, index_offsets = [], [], [], [], []

@@ -122,7 +122,8 @@ def _finite(x) -> bool:
 
 
 # Columns of the pair-parameter table shared by the kernels.
-PAIR_E_STAR, PAIR_G_STAR, PAIR_DAMPING, PAIR_TAN_STICK, PAIR_TAN_SLIP, PAIR_STICK_SPEED, PAIR_ROLLING, PAIR_COHESION = range(8)
+(PAIR_E_STAR, PAIR_G_STAR, PAIR_DAMPING, PAIR_TAN_STICK, PAIR_TAN_SLIP, PAIR_STICK_SPEED, PAIR_ROLLING,
+ PAIR_COHESION) = range(8)
 PAIR_SHEAR_ROOT = 8
 """sqrt(k_T / k_N) = sqrt(4 G* / E*) [-]: the tangential damper is this times the normal one."""
 PAIR_COLUMNS = 9

@@ -113,7 +113,7 @@ def neighbour_kernels(hi, lo, law: ContactLaw):
         cell = wp.vec3i()
         for axis in range(3):
             f = (x[axis] - grid[axis]) / grid[3 + axis]
-            c = int(0)
+            c = int(0)  # noqa: UP018 (a Warp variable the kernel changes: not a constant)
             if f >= hi(dims[axis] - 1):
                 c = dims[axis] - 1
             elif f >= hi(0.0):  # False for NaN
@@ -210,8 +210,9 @@ def neighbour_kernels(hi, lo, law: ContactLaw):
 
     @kernel
     def build_rows(position: wp.array(dtype=vec_hi), radius: wp.array(dtype=lo), inv_mass: wp.array(dtype=lo),
-                   order: wp.array(dtype=wp.int32), grid: wp.array(dtype=hi), dims: wp.vec3i, cell_start: wp.array(dtype=wp.int32),
-                   cell_end: wp.array(dtype=wp.int32), cell_slot: wp.array(dtype=wp.int32), skin: hi,
+                   order: wp.array(dtype=wp.int32), grid: wp.array(dtype=hi), dims: wp.vec3i,
+                   cell_start: wp.array(dtype=wp.int32), cell_end: wp.array(dtype=wp.int32),
+                   cell_slot: wp.array(dtype=wp.int32), skin: hi,
                    target: wp.array(dtype=wp.int32),
                    neighbours_out: wp.array3d(dtype=wp.int32), neighbour_count_out: wp.array2d(dtype=wp.int32),
                    build_position_out: wp.array2d(dtype=vec_hi), status_out: wp.array(dtype=wp.int32)):
@@ -225,7 +226,7 @@ def neighbour_kernels(hi, lo, law: ContactLaw):
         ri = hi(radius[i])
         free = inv_mass[i] > lo(0.0)
         home = cell_of(x, grid, dims)
-        count = int(0)
+        count = int(0)  # noqa: UP018 (a Warp variable the kernel changes: not a constant)
         for dz in range(-1, 2):
             cz = home[2] + dz
             if cz < 0 or cz >= dims[2]:
@@ -285,7 +286,7 @@ def neighbour_kernels(hi, lo, law: ContactLaw):
         old_count = neighbour_count[old, i]
         new_count = neighbour_count[new, i]
         capacity = neighbours.shape[2]
-        kk = int(0)
+        kk = int(0)  # noqa: UP018 (a Warp variable the kernel changes: not a constant)
         for word in range(touching_out.shape[1]):
             bits = wp.uint32(0)
             for k in range(word * 32, wp.min(word * 32 + 32, new_count)):
@@ -314,8 +315,8 @@ def neighbour_kernels(hi, lo, law: ContactLaw):
             touching_out[i, word] = bits
 
     @kernel
-    def finish_build(target: wp.array(dtype=wp.int32), list_index_out: wp.array(dtype=wp.int32), rebuilt_out: wp.array(dtype=wp.int32),
-                     status_out: wp.array(dtype=wp.int32)):
+    def finish_build(target: wp.array(dtype=wp.int32), list_index_out: wp.array(dtype=wp.int32),
+                     rebuilt_out: wp.array(dtype=wp.int32), status_out: wp.array(dtype=wp.int32)):
         """The output state's history is now aligned with the new list."""
         list_index_out[0] = target[0]
         rebuilt_out[0] = 1

@@ -75,7 +75,7 @@ def sdf_functions(hi):
             gap = q - wp.min(wp.max(q, -half), half)
             distance = wp.length(gap)
             return distance, gap / distance
-        axis = int(0)
+        axis = int(0)  # noqa: UP018 (a Warp variable the kernel changes: not a constant)
         if d[1] > d[axis]:
             axis = 1
         if d[2] > d[axis]:

@@ -140,7 +140,7 @@ def contact_kernels(hi, lo, law: ContactLaw):
         if external != 0:
             total_force = external_force[grains.order[i]]
         total_torque = vec_hi()
-        contacts = int(0)
+        contacts = int(0)  # noqa: UP018 (a Warp variable the kernel changes: not a constant)
 
         # grains: the row of the neighbour list; history bit k marks entry k in contact
         row = list_index[0]
@@ -169,7 +169,8 @@ def contact_kernels(hi, lo, law: ContactLaw):
                     n = gap / distance
                     lever_i = hi(ri) - hi(0.5) * overlap
                     lever_j = hi(rj) - hi(0.5) * overlap
-                    v_rel = (vi + wp.cross(wi, lever_i * n)) - (velocity[j] - wp.cross(angular_velocity[j], lever_j * n))
+                    v_j = velocity[j] - wp.cross(angular_velocity[j], lever_j * n)  # partner's contact point
+                    v_rel = (vi + wp.cross(wi, lever_i * n)) - v_j
                     bit = wp.uint32(1) << wp.uint32(k & 31)
                     t_hist = vec_hi()
                     r_hist = vec_hi()
@@ -210,7 +211,7 @@ def contact_kernels(hi, lo, law: ContactLaw):
         # rigid partners: walls (fixed grains do not touch them), then wheels (every grain)
         wall_count = walls.kind.shape[0]
         slots = history_out.rigid_key.shape[1]
-        stored = int(0)
+        stored = int(0)  # noqa: UP018 (a Warp variable the kernel changes: not a constant)
         for partner in range(wall_count + bodies.kind.shape[0]):
             overlap = hi(0.0)
             n = vec_hi()
@@ -218,7 +219,7 @@ def contact_kernels(hi, lo, law: ContactLaw):
             w_partner = vec_hi()
             reference = vec_hi()
             mass_eff = lo(0.0)
-            partner_material = int(0)
+            partner_material = int(0)  # noqa: UP018 (a Warp variable the kernel changes: not a constant)
             if partner < wall_count:
                 if inv_mass_i > lo(0.0):
                     shift = walls.displacement[partner]
@@ -370,7 +371,7 @@ def contact_kernels(hi, lo, law: ContactLaw):
         wall_count = wall_reported.shape[0]
         total_force = vec_hi()
         total_torque = vec_hi()
-        contacts = int(0)
+        contacts = int(0)  # noqa: UP018 (a Warp variable the kernel changes: not a constant)
         summed = True
         if key < wall_count:
             summed = wall_reported[key] >= 0

@@ -143,7 +143,8 @@ class SoilState:
         """Contacts of each particle (grains, walls, wheels) at the state's time [-], shape (particle_count,)."""
         self._pair_capacity = int(capacity)
         self.pair_touching = wp.zeros((n, _words(capacity)), dtype=wp.uint32, device=device)
-        """Bit k of word k // 32: neighbour-list entry k is in contact [-], shape (particle_count, ceil(capacity / 32))."""
+        """Bit k of word k // 32: neighbour-list entry k is in contact [-], shape
+        (particle_count, ceil(capacity / 32)), uint32."""
         self.pair_tangential = wp.zeros((n, tangential), dtype=vec_hi, device=device)
         """Accumulated tangential displacement per neighbour-list entry [m], shape (particle_count, capacity)
         (width 0 without friction)."""
