@@ -14,6 +14,7 @@ Sections (side by side in one run, same beds, same dt):
 - scaling: cost per particle-step [us] of jittered lattice beds from 1,000 to 200,000 grains,
   deep (a cube) and shallow (4 grains deep, footprint 2.5:1).
 - capture: the same steps replayed from captured graphs and launched kernel by kernel.
+- reorder: settled fills stored in the space-filling curve's order and in their fill order.
 - memory: device bytes per grain of a Simulation in each precision.
 
 Times are taken both as wall-clock and as the process's CPU time; on a machine shared with
@@ -125,6 +126,21 @@ def section_capture(args, rows, log):
         log(json.dumps(rows[-1]))
 
 
+def section_reorder(args, rows, log):
+    from soil import NeighbourSettings
+
+    for n in args.reorder_n:
+        positions, radii, box_hi, dt = beds.settled_bed(n, args.device, log=log)
+        timed = {}
+        for reorder in (True, False):
+            sim = beds.build(positions, radii, box_hi, args.device, "double",
+                             neighbours=NeighbourSettings(reorder=reorder))
+            timed[reorder] = time_ours(sim, args.steps, dt)["us_per_particle_step_cpu"]
+        rows.append(dict(section="reorder", n=len(radii), steps=args.steps, device=args.device, precision="double",
+                         reordered_us=timed[True], unordered_us=timed[False], speedup=timed[False] / timed[True]))
+        log(json.dumps(rows[-1]))
+
+
 def section_memory(args, rows, log):
     positions, radii, box_hi = beds.lattice_bed(args.memory_n, "shallow")
     for precision in PRECISIONS:
@@ -169,6 +185,13 @@ def tables(rows, header: str) -> str:
         for r in capture:
             out.append(f"| {r['n']} | {r['captured_us']:.3f} | {r['launched_us']:.3f} | {100 * r['saving']:.0f} % |")
         out.append("")
+    reorder = [r for r in rows if r["section"] == "reorder"]
+    if reorder:
+        out += ["| grains (settled fill) | stored in curve order: us per particle-step (CPU) | in fill order | "
+                "speed-up |", "|---|---|---|---|"]
+        for r in reorder:
+            out.append(f"| {r['n']} | {r['reordered_us']:.3f} | {r['unordered_us']:.3f} | {r['speedup']:.2f} |")
+        out.append("")
     memory = [r for r in rows if r["section"] == "memory"]
     if memory:
         keys = [k for k in memory[0] if k not in ("section", "precision", "n", "capacity", "rigid_capacity")]
@@ -183,13 +206,14 @@ def tables(rows, header: str) -> str:
 
 def main(argv=None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--sections", nargs="+", default=["lammps", "scaling", "capture", "memory"],
-                        choices=["lammps", "scaling", "capture", "memory"])
+    parser.add_argument("--sections", nargs="+", default=["lammps", "scaling", "capture", "reorder", "memory"],
+                        choices=["lammps", "scaling", "capture", "reorder", "memory"])
     parser.add_argument("--quick", action="store_true", help="small sizes and few steps (minutes)")
     parser.add_argument("--n", type=int, nargs="+", default=None, help="grains of the LAMMPS comparison")
     parser.add_argument("--scaling-n", type=int, nargs="+", default=None)
     parser.add_argument("--scaling-precision", default="double", choices=PRECISIONS)
     parser.add_argument("--capture-n", type=int, nargs="+", default=None)
+    parser.add_argument("--reorder-n", type=int, nargs="+", default=None)
     parser.add_argument("--memory-n", type=int, default=None)
     parser.add_argument("--steps", type=int, default=None)
     parser.add_argument("--device", default="cpu")
@@ -201,6 +225,7 @@ def main(argv=None) -> None:
     args.n = args.n or ([10000] if quick else [10000, 50000, 200000])
     args.scaling_n = args.scaling_n or ([1000, 10000] if quick else [1000, 10000, 50000, 200000])
     args.capture_n = args.capture_n or [1000, 10000]
+    args.reorder_n = args.reorder_n or ([10000] if quick else [10000, 50000])
     args.memory_n = args.memory_n or (10000 if quick else 100000)
     args.steps = args.steps or (50 if quick else 200)
     wp.config.log_level = max(wp.config.log_level, wp.LOG_WARNING)  # no per-module load lines
