@@ -464,6 +464,10 @@ class NeighbourList:
         ideal = np.clip(np.floor((upper - lower) / self.cell_min), 1, MAX_CELLS_PER_AXIS)
         return bool(np.any(ideal > 2 * np.asarray(self.dims)) or np.any(2 * ideal < np.asarray(self.dims)))
 
+    def device_arrays(self) -> list:
+        """The scratch arrays a captured step uses (a graph stays valid while they do)."""
+        return [self._keys, self._values, self._cell_slot, self._cell_start, self._cell_end, self.grid]
+
     def bytes_per_grain(self) -> float:
         """Device memory of the build's scratch per grain [B]."""
         n = max(self.model.particle_count, 1)

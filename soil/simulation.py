@@ -227,8 +227,7 @@ class Simulation:
             "list build scratch": self.neighbour_list.bytes_per_grain(),
             "integrator": (self.integrator.gaps.capacity / n if getattr(self.integrator, "gaps", None) is not None
                            else 0.0),
-            "monitor snapshot": (self.monitor._good.bytes_per_grain() + self.monitor._good.layout.bytes_per_grain()
-                                 if self.monitor._good is not None else 0.0),
+            "monitor snapshot": self.monitor.bytes_per_grain(),
         }
         parts["total"] = sum(parts.values())
         return parts
@@ -239,7 +238,7 @@ class Simulation:
         self.control.push()
         while True:
             spare = self._spares()[0]
-            self.contacts._reactions(self.state.rigid_capacity)
+            self.contacts.reserve(self.state.rigid_capacity)
             spare.assign(self.state)
             status_columns.clear(self.status)
             self.contacts.compute(self.state, spare, self.control, 0.0)
@@ -259,7 +258,7 @@ class Simulation:
         for buffer in self._buffers:
             arrays += list(buffer.arrays.values()) + [buffer.list_index]
         arrays += list(self.state.layout.arrays.values())
-        arrays += [self.contacts._reaction_force, self.contacts._reaction_torque, self.neighbour_list._cell_start]
+        arrays += self.contacts.device_arrays()
         arrays += [getattr(self.integrator, "gaps", None)]
         return (tuple(id(b) for b in self._buffers), tuple(None if a is None else a.ptr for a in arrays),
                 self.control.external_force_used, self.neighbour_list.dims)
@@ -321,7 +320,7 @@ class Simulation:
         """Allocate everything a captured step touches, and drop graphs whose arrays changed."""
         self._load_modules()
         self._spares()
-        self.contacts._reactions(self.state.rigid_capacity)
+        self.contacts.reserve(self.state.rigid_capacity)
         self.integrator.bind(self.model)
         signature = self._signature()
         if signature != self._graph_signature:
@@ -475,7 +474,7 @@ class Simulation:
             h = remaining if remaining <= dt else (0.5 * remaining if remaining < 2.0 * dt else dt)
             while True:
                 following = self._spares()[0]
-                self.contacts._reactions(self.state.rigid_capacity)
+                self.contacts.reserve(self.state.rigid_capacity)
                 status_columns.clear(self.status)
                 self.integrator.step(self.model, self.state, following, self.control, h, self.contacts)
                 summary = self.integrator.read_summary(following, self.status, **controller.error_scales())

@@ -420,13 +420,18 @@ class ContactSolver:
         self.evaluations = 0
         """Number of force evaluations so far (the cost unit of integrators)."""
 
-    def _reactions(self, rigid_capacity: int):
-        """The per-grain reaction scratch, sized for `rigid_capacity` slots."""
+    def reserve(self, rigid_capacity: int):
+        """The per-grain reaction scratch, sized for `rigid_capacity` slots (allocated here,
+        before a step is captured)."""
         if self._reaction_force is None or self._reaction_force.shape[1] != rigid_capacity:
             shape = (self.model.particle_count, rigid_capacity)
             self._reaction_force = wp.zeros(shape, dtype=self.model.precision.vec_hi, device=self.model.device)
             self._reaction_torque = wp.zeros(shape, dtype=self.model.precision.vec_hi, device=self.model.device)
         return self._reaction_force, self._reaction_torque
+
+    def device_arrays(self) -> list:
+        """The scratch arrays a captured step uses (a graph stays valid while they do)."""
+        return [self._reaction_force, self._reaction_torque, self._partial_force, *self.neighbours.device_arrays()]
 
     def bytes_per_grain(self) -> float:
         """Device memory of the solver's scratch per grain [B]."""
@@ -483,7 +488,7 @@ class ContactSolver:
         """
         model = self.model
         self.neighbours.update(state_in, state_out, self.status)
-        reaction_force, reaction_torque = self._reactions(state_out.rigid_capacity)
+        reaction_force, reaction_torque = self.reserve(state_out.rigid_capacity)
         layout = state_out.layout
         wp.launch(
             self.kernels.contact_forces,

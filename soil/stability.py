@@ -251,6 +251,12 @@ class DivergenceMonitor:
         self._good.assign(state)  # arrays (and its own layout) follow the state's shapes
         self._good_step = sim.steps
 
+    def bytes_per_grain(self) -> float:
+        """Device memory of the last good state per grain [B] (0 before the first snapshot)."""
+        if self._good is None:
+            return 0.0
+        return self._good.bytes_per_grain() + self._good.layout.bytes_per_grain()
+
     def last_good(self) -> dict:
         data = self._good.to_numpy()
         data["step"] = np.int64(self._good_step)
