@@ -1,120 +1,249 @@
-"""Particle-steps per second on a settled bed: regolith-cosim (single/mixed/double) vs LAMMPS.
+"""DEM throughput: particle-steps per second against LAMMPS, cost per particle-step from small
+to large beds, what step capture saves, and device memory per grain.
 
-One run, side by side, same scene: N spheres (radius 2.5 mm +- 20 %) filled with
-`make_random_fill` into a box, settled once under Earth gravity with our code
-(double precision), then timed from the same settled positions:
-our Simulation in each precision, and LAMMPS (pair granular hertz/material + mindlin,
-fix wall/gran) with the same material, friction, restitution and dt. Prints a markdown
-table and one JSON line per row.
+    python benchmarks/throughput.py                # all sections, full sizes (~1 h on one CPU core)
+    python benchmarks/throughput.py --quick        # all sections, small sizes (minutes)
+    python benchmarks/throughput.py --sections lammps --n 10000 50000 200000 --steps 200
 
-    python benchmarks/throughput.py --n 10000 50000 --steps 200 [--device cpu]
+Sections (side by side in one run, same beds, same dt):
+
+- lammps: a random fill settled once under Earth gravity with this code (double; cached in
+  benchmarks/cache; beds above 50,000 grains are tiles of the settled 50,000 bed), then timed
+  from the same positions in each precision and in LAMMPS on one thread (pair granular
+  hertz/material + mindlin, fix wall/gran, the same material, friction, restitution, dt, skin).
+- scaling: cost per particle-step [us] of jittered lattice beds from 1,000 to 200,000 grains,
+  deep (a cube) and shallow (4 grains deep, footprint 2.5:1).
+- capture: the same steps replayed from captured graphs and launched kernel by kernel.
+- reorder: settled fills stored in the space-filling curve's order and in their fill order.
+- memory: device bytes per grain of a Simulation in each precision.
+
+Times are taken both as wall-clock and as the process's CPU time; on a machine shared with
+other work the CPU-time ratios are the steadier figures. Prints markdown tables; --json
+writes every row.
 """
 
 from __future__ import annotations
 
 import argparse
 import json
-import math
 import os
 import platform
 import sys
 import time
-
-import numpy as np
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 sys.path.insert(0, ROOT)
 
 import warp as wp  # noqa: E402
 
+from benchmarks import beds  # noqa: E402
 from benchmarks.peers import lammps_peer  # noqa: E402
-from soil import ContactLaw, Material, Simulation, SoilBuilder  # noqa: E402
 
-DENSITY, YOUNGS, POISSON, MU, RESTITUTION = 2600.0, 1e7, 0.3, 0.5, 0.5
-
-
-def material() -> Material:
-    angle = math.atan(MU)
-    # stick_speed large: plain Coulomb (Cundall-Strack), the model LAMMPS has
-    return Material(youngs_modulus=YOUNGS, poisson_ratio=POISSON, density=DENSITY, restitution=RESTITUTION,
-                    stick_angle=angle, slip_angle=angle, stick_speed=1e9)
+PRECISIONS = ("single", "mixed", "double")
 
 
-def build(positions, radii, box_hi, device, precision):
-    builder = SoilBuilder(gravity="earth")
-    mat = builder.add_material(material())
-    builder.add_container((0, 0, 0), box_hi, mat)
-    builder.add_particles(positions, radii, mat)
-    model, state, control = builder.finalize(device=device, precision=precision,
-                                             law=ContactLaw(damping=True, friction=True))
-    return Simulation(model, state, control)
+def machine(device: str) -> str:
+    load = os.getloadavg()[0] if hasattr(os, "getloadavg") else float("nan")
+    name = platform.processor() or platform.machine()
+    if device.startswith("cuda"):
+        name = wp.get_device(device).name
+    return f"{name}, {os.cpu_count()} cores, device {device}, load average {load:.1f} at start"
 
 
-def settled_bed(n, device, seed=0, settle_time=0.15):
-    side = 0.3 if n <= 20000 else 0.5
-    box_hi = np.array([side, side, 1.0])
-    positions, radii = lammps_peer.make_random_fill(n, 2.5e-3, 0.2, (0, 0, 0), box_hi, seed)
-    dt = 0.2 * lammps_peer.rayleigh_time_step(radii.min(), DENSITY, YOUNGS, POISSON)
-    cache = os.path.join(ROOT, "benchmarks", "cache", f"bed_{n}_{seed}.npz")
-    if os.path.exists(cache):
-        data = np.load(cache)
-        return data["positions"], radii, box_hi, dt, float(data["settle_seconds"])
-    sim = build(positions, radii, box_hi, device, "double")
-    start = time.perf_counter()
-    sim.run(settle_time, dt)
-    seconds = time.perf_counter() - start
-    settled = sim.positions()[np.argsort(sim.model.particle_order)]
-    os.makedirs(os.path.dirname(cache), exist_ok=True)
-    np.savez(cache, positions=settled, settle_seconds=seconds)
-    return settled, radii, box_hi, dt, seconds
+def time_ours(sim, steps: int, dt: float, warmup: int = 10) -> dict:
+    """Wall and CPU seconds of `steps` steps (one macro step), after `warmup` steps."""
+    sim.macro_step(warmup, dt)  # kernels loaded, graphs captured, contacts formed
+    wall, cpu = time.perf_counter(), time.process_time()
+    sim.macro_step(steps, dt)
+    wall, cpu = time.perf_counter() - wall, time.process_time() - cpu
+    n = sim.model.particle_count
+    return dict(wall_seconds=wall, cpu_seconds=cpu, particle_steps_per_second=n * steps / wall,
+                us_per_particle_step_cpu=cpu / (n * steps) * 1e6,
+                contacts_per_particle=float(sim.contact_counts().mean()))
 
 
-def time_ours(positions, radii, box_hi, dt, steps, device, precision):
-    sim = build(positions, radii, box_hi, device, precision)
-    sim.run(10 * dt, dt)  # warm-up: kernels loaded, contacts formed
-    wp.synchronize()
-    start = time.perf_counter()
-    sim.run(steps * dt, dt)
-    wp.synchronize()
-    seconds = time.perf_counter() - start
-    contacts = float(sim.state.contact_count.numpy().mean())
-    return seconds, contacts
+def time_lammps(positions, radii, box_hi, dt: float, steps: int) -> dict:
+    """LAMMPS on one thread: wall time of `steps` timed steps, CPU time as the difference of
+    runs of 2 x steps and steps (setup cancels)."""
+    args = (positions, radii, beds.DENSITY, beds.YOUNGS, beds.POISSON, beds.MU, beds.RESTITUTION, 0.0, (0, 0, 0),
+            box_hi, (0, 0, -9.81), dt)
+    cpu = []
+    for count in (steps, 2 * steps):
+        start = time.process_time()
+        result = lammps_peer.run_bed(*args, count, settle_first_steps=10)
+        cpu.append(time.process_time() - start)
+        if count == steps:
+            wall = result["seconds"]
+    n = len(radii)
+    return dict(wall_seconds=wall, cpu_seconds=cpu[1] - cpu[0], particle_steps_per_second=n * steps / wall,
+                us_per_particle_step_cpu=(cpu[1] - cpu[0]) / (n * steps) * 1e6)
 
 
-def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--n", type=int, nargs="+", default=[10000, 50000])
-    parser.add_argument("--steps", type=int, default=200)
-    parser.add_argument("--device", default="cpu")
-    parser.add_argument("--precisions", nargs="+", default=["single", "mixed", "double"])
-    parser.add_argument("--no-lammps", action="store_true")
-    args = parser.parse_args()
-    wp.config.log_level = max(wp.config.log_level, wp.LOG_WARNING)  # no per-module load lines
-    rows = []
-    machine = f"{platform.processor() or platform.machine()}, {os.cpu_count()} cores, {args.device}"
+def section_lammps(args, rows, log):
     for n in args.n:
-        positions, radii, box_hi, dt, settle_seconds = settled_bed(n, args.device)
-        for precision in args.precisions:
-            seconds, contacts = time_ours(positions, radii, box_hi, dt, args.steps, args.device, precision)
-            rows.append(dict(code="regolith-cosim", precision=precision, n=n, steps=args.steps, dt=dt,
-                             seconds=seconds, particle_steps_per_second=n * args.steps / seconds,
-                             contacts_per_particle=contacts, device=args.device))
-            print(json.dumps(rows[-1]), flush=True)
+        positions, radii, box_hi, dt = beds.settled_bed(n, args.device, log=log)
+        n = len(radii)
+        peer = None
         if not args.no_lammps and lammps_peer.lammps_available():
-            result = lammps_peer.run_bed(positions, radii, DENSITY, YOUNGS, POISSON, MU, RESTITUTION, 0.0,
-                                         (0, 0, 0), box_hi, (0, 0, -9.81), dt, args.steps, settle_first_steps=10)
-            rows.append(dict(code="LAMMPS", precision="double", n=n, steps=args.steps, dt=dt,
-                             seconds=result["seconds"], particle_steps_per_second=result["particle_steps_per_second"],
-                             contacts_per_particle=float("nan"), device="cpu (1 rank)"))
-            print(json.dumps(rows[-1]), flush=True)
-    print(f"\nmachine: {machine}\n")
-    print("| code | precision | particles | particle-steps/s | ratio to LAMMPS |")
-    print("|---|---|---|---|---|")
-    for row in rows:
-        peer = [r for r in rows if r["code"] == "LAMMPS" and r["n"] == row["n"]]
-        ratio = row["particle_steps_per_second"] / peer[0]["particle_steps_per_second"] if peer else float("nan")
-        print(f"| {row['code']} | {row['precision']} | {row['n']} | {row['particle_steps_per_second']:.3g} | "
-              f"{ratio:.2f} |")
+            peer = time_lammps(positions, radii, box_hi, dt, args.steps)
+            rows.append(dict(section="lammps", code="LAMMPS", precision="double", n=n, steps=args.steps, dt=dt,
+                             device="cpu (1 rank)", **peer))
+            log(json.dumps(rows[-1]))
+        for precision in args.precisions:
+            sim = beds.build(positions, radii, box_hi, args.device, precision)
+            row = dict(section="lammps", code="regolith-cosim", precision=precision, n=n, steps=args.steps, dt=dt,
+                       device=args.device, **time_ours(sim, args.steps, dt),
+                       bytes_per_grain=sim.bytes_per_grain()["total"])
+            if peer:
+                row["ratio_wall"] = row["particle_steps_per_second"] / peer["particle_steps_per_second"]
+                row["ratio_cpu"] = peer["us_per_particle_step_cpu"] / row["us_per_particle_step_cpu"]
+            rows.append(row)
+            log(json.dumps(row))
+
+
+def section_scaling(args, rows, log):
+    for shape in ("deep", "shallow"):
+        for n in args.scaling_n:
+            positions, radii, box_hi = beds.lattice_bed(n, shape)
+            sim = beds.build(positions, radii, box_hi, args.device, args.scaling_precision)
+            row = dict(section="scaling", shape=shape, precision=args.scaling_precision, n=len(radii),
+                       steps=args.steps, device=args.device, **time_ours(sim, args.steps, 2e-6, warmup=50))
+            rows.append(row)
+            log(json.dumps(row))
+
+
+def section_capture(args, rows, log):
+    for n in args.capture_n:
+        positions, radii, box_hi = beds.lattice_bed(n, "deep")
+        timed = {}
+        for capture in (True, False):
+            sim = beds.build(positions, radii, box_hi, args.device, "double", capture=capture)
+            timed[capture] = time_ours(sim, args.steps, 2e-6, warmup=50)
+        captured, launched = timed[True]["us_per_particle_step_cpu"], timed[False]["us_per_particle_step_cpu"]
+        rows.append(dict(section="capture", n=len(radii), steps=args.steps, device=args.device, precision="double",
+                         captured_us=captured, launched_us=launched, saving=1.0 - captured / launched,
+                         captured_wall=timed[True]["wall_seconds"], launched_wall=timed[False]["wall_seconds"]))
+        log(json.dumps(rows[-1]))
+
+
+def section_reorder(args, rows, log):
+    from soil import NeighbourSettings
+
+    for n in args.reorder_n:
+        positions, radii, box_hi, dt = beds.settled_bed(n, args.device, log=log)
+        timed = {}
+        for reorder in (True, False):
+            sim = beds.build(positions, radii, box_hi, args.device, "double",
+                             neighbours=NeighbourSettings(reorder=reorder))
+            timed[reorder] = time_ours(sim, args.steps, dt)["us_per_particle_step_cpu"]
+        rows.append(dict(section="reorder", n=len(radii), steps=args.steps, device=args.device, precision="double",
+                         reordered_us=timed[True], unordered_us=timed[False], speedup=timed[False] / timed[True]))
+        log(json.dumps(rows[-1]))
+
+
+def section_memory(args, rows, log):
+    positions, radii, box_hi = beds.lattice_bed(args.memory_n, "shallow")
+    for precision in PRECISIONS:
+        sim = beds.build(positions, radii, box_hi, args.device, precision)
+        sim.macro_step(20, 2e-6)
+        sim.monitor.arm(sim)  # its last-good copy counts too
+        parts = sim.bytes_per_grain()
+        rows.append(dict(section="memory", precision=precision, n=len(radii), capacity=sim.state.capacity,
+                         rigid_capacity=sim.state.rigid_capacity, **{k: float(v) for k, v in parts.items()}))
+        log(json.dumps(rows[-1]))
+
+
+def tables(rows, header: str) -> str:
+    out = [header, ""]
+    lam = [r for r in rows if r["section"] == "lammps"]
+    if lam:
+        out += ["| grains | code | precision | particle-steps/s (wall) | us per particle-step (CPU) | ratio to LAMMPS "
+                "(CPU) | ratio (wall) | contacts per grain |", "|---|---|---|---|---|---|---|---|"]
+        for r in lam:
+            out.append(f"| {r['n']} | {r['code']} | {r['precision']} | {r['particle_steps_per_second']:.3g} | "
+                       f"{r['us_per_particle_step_cpu']:.3f} | {r.get('ratio_cpu', float('nan')):.2f} | "
+                       f"{r.get('ratio_wall', float('nan')):.2f} | "
+                       f"{r.get('contacts_per_particle', float('nan')):.2f} |")
+        out.append("")
+    scaling = [r for r in rows if r["section"] == "scaling"]
+    if scaling:
+        out += ["| bed | grains | us per particle-step (CPU) | relative to the smallest | contacts per grain |",
+                "|---|---|---|---|---|"]
+        for shape in ("deep", "shallow"):
+            these = [r for r in scaling if r["shape"] == shape]
+            for r in these:
+                out.append(f"| {shape} | {r['n']} | {r['us_per_particle_step_cpu']:.3f} | "
+                           f"{r['us_per_particle_step_cpu'] / these[0]['us_per_particle_step_cpu']:.2f} | "
+                           f"{r['contacts_per_particle']:.2f} |")
+            if these:
+                costs = [r["us_per_particle_step_cpu"] for r in these]
+                out.append(f"| {shape}: max / min | | {max(costs) / min(costs):.2f} | | |")
+        out.append("")
+    capture = [r for r in rows if r["section"] == "capture"]
+    if capture:
+        out += ["| grains | captured: us per particle-step (CPU) | launched one by one | saving |", "|---|---|---|---|"]
+        for r in capture:
+            out.append(f"| {r['n']} | {r['captured_us']:.3f} | {r['launched_us']:.3f} | {100 * r['saving']:.0f} % |")
+        out.append("")
+    reorder = [r for r in rows if r["section"] == "reorder"]
+    if reorder:
+        out += ["| grains (settled fill) | stored in curve order: us per particle-step (CPU) | in fill order | "
+                "speed-up |", "|---|---|---|---|"]
+        for r in reorder:
+            out.append(f"| {r['n']} | {r['reordered_us']:.3f} | {r['unordered_us']:.3f} | {r['speedup']:.2f} |")
+        out.append("")
+    memory = [r for r in rows if r["section"] == "memory"]
+    if memory:
+        keys = [k for k in memory[0] if k not in ("section", "precision", "n", "capacity", "rigid_capacity")]
+        out += ["| precision | " + " | ".join(keys) + " |", "|---|" + "---|" * len(keys)]
+        for r in memory:
+            out.append(f"| {r['precision']} | " + " | ".join(f"{r[k]:.0f}" for k in keys) + " |")
+        r = memory[0]
+        out.append(f"\n(bytes per grain; {r['n']} grains, {r['capacity']} neighbour slots and {r['rigid_capacity']} "
+                   "wall/wheel slots per grain)")
+    return "\n".join(out)
+
+
+def main(argv=None) -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--sections", nargs="+", default=["lammps", "scaling", "capture", "reorder", "memory"],
+                        choices=["lammps", "scaling", "capture", "reorder", "memory"])
+    parser.add_argument("--quick", action="store_true", help="small sizes and few steps (minutes)")
+    parser.add_argument("--n", type=int, nargs="+", default=None, help="grains of the LAMMPS comparison")
+    parser.add_argument("--scaling-n", type=int, nargs="+", default=None)
+    parser.add_argument("--scaling-precision", default="double", choices=PRECISIONS)
+    parser.add_argument("--capture-n", type=int, nargs="+", default=None)
+    parser.add_argument("--reorder-n", type=int, nargs="+", default=None)
+    parser.add_argument("--memory-n", type=int, default=None)
+    parser.add_argument("--steps", type=int, default=None)
+    parser.add_argument("--device", default="cpu")
+    parser.add_argument("--precisions", nargs="+", default=list(PRECISIONS), choices=PRECISIONS)
+    parser.add_argument("--no-lammps", action="store_true")
+    parser.add_argument("--json", default=None, help="write the rows to this file")
+    args = parser.parse_args(argv)
+    quick = args.quick
+    args.n = args.n or ([10000] if quick else [10000, 50000, 200000])
+    args.scaling_n = args.scaling_n or ([1000, 10000] if quick else [1000, 10000, 50000, 200000])
+    args.capture_n = args.capture_n or [1000, 10000]
+    args.reorder_n = args.reorder_n or ([10000] if quick else [10000, 50000])
+    args.memory_n = args.memory_n or (10000 if quick else 100000)
+    args.steps = args.steps or (50 if quick else 200)
+    wp.config.log_level = max(wp.config.log_level, wp.LOG_WARNING)  # no per-module load lines
+    command = "python benchmarks/throughput.py " + " ".join(argv or sys.argv[1:])
+    header = f"machine: {machine(args.device)}\ncommand: {command}"
+    print(header, flush=True)
+    rows: list[dict] = []
+
+    def log(text):
+        print(text, flush=True)
+
+    for name in args.sections:
+        globals()[f"section_{name}"](args, rows, log)
+    print()
+    print(tables(rows, header))
+    if args.json:
+        with open(args.json, "w") as f:
+            json.dump(rows, f, indent=1)
 
 
 if __name__ == "__main__":

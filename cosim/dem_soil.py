@@ -3,12 +3,11 @@
 from __future__ import annotations
 
 import warnings
-from typing import Sequence
+from collections.abc import Sequence
 
 import numpy as np
 
 from .contract import WheelKinematics, WheelWrench
-from .terrain import quat_integrate, quat_slerp
 
 
 class WallProximityWarning(UserWarning):
@@ -39,11 +38,13 @@ class DemSoil:
         self.wall_clearance = (5 * float(sim.model.radius_numpy().mean()) if wall_clearance is None
                                else float(wall_clearance))
         self._warned_wall = False
+        # the boundaries' kinds and initial geometry, read once (their motion comes with each macro step)
+        self._walls = (sim.model.boundary_kind.numpy().copy(), sim.model.boundary_geometry_numpy())
 
     @classmethod
     def from_bed(cls, bed, wheels, wheel_material, dt: float, surface_height: float | None = None,
                  device=None, precision: str = "mixed", order_seed: int | None = None,
-                 wall_clearance: float | None = None, law=None) -> "DemSoil":
+                 wall_clearance: float | None = None, law=None) -> DemSoil:
         """A DemSoil on a saved bed (path of soil.bed.save_bed, or load_bed's (builder, saved))
         with one body per wheel shape (GrouserWheel/MeshWheel), all of `wheel_material`.
 
@@ -94,60 +95,44 @@ class DemSoil:
 
     def advance(self, t_end: float, start: Sequence[WheelKinematics],
                 end: Sequence[WheelKinematics] | None = None) -> list[WheelWrench]:
+        """Advance the soil to t_end [s] in whole DEM steps, the wheels moving from `start` with
+        constant velocities (end None) or towards `end`; returns each wheel's wrench.
+
+        The DEM steps run on the device as one macro step (soil.Simulation.macro_step): the
+        wheels are posed there at each step and their wrenches summed there; the host reads
+        the result once.
+        """
         sim, control = self.sim, self.sim.control
         if len(start) != self.wheel_count:
             raise ValueError(f"expected kinematics of {self.wheel_count} wheels, got {len(start)}")
+        if end is not None and len(end) != self.wheel_count:
+            raise ValueError(f"expected end kinematics of {self.wheel_count} wheels, got {len(end)}")
         t0 = sim.time
         span = float(t_end) - t0
-        if span <= 0:
+        if not span > 0:
             raise ValueError(f"t_end {t_end!r} s must be after the soil's time {t0!r} s")
         steps = max(1, int(np.ceil(span / self.dt - 1e-9)))
-        h = span / steps
-        wheels = self.wheel_count
-        force_sum = np.zeros((wheels, 3))
-        torque_sum = np.zeros((wheels, 3))
-        work = np.zeros(wheels)
-        for k in range(1, steps + 1):
-            tau = k * h
-            fraction = tau / span
-            velocities, spins = [], []
-            for b, k0 in enumerate(start):
-                if end is None:
-                    position = k0.position + k0.linear_velocity * tau
-                    orientation = quat_integrate(k0.orientation, k0.angular_velocity, tau)
-                    velocity, spin = k0.linear_velocity, k0.angular_velocity
-                else:
-                    k1 = end[b]
-                    position = (1 - fraction) * k0.position + fraction * k1.position
-                    orientation = quat_slerp(k0.orientation, k1.orientation, fraction)
-                    velocity = (1 - fraction) * k0.linear_velocity + fraction * k1.linear_velocity
-                    spin = (1 - fraction) * k0.angular_velocity + fraction * k1.angular_velocity
-                control.set_body_motion(b, position, orientation, velocity, spin)
-                velocities.append(velocity)
-                spins.append(spin)
-            sim.step(h)
-            force = sim.state.body_force.numpy().astype(np.float64)
-            torque = sim.state.body_torque.numpy().astype(np.float64)
-            force_sum += force
-            torque_sum += torque
-            # the soil's force on the wheel does -F.v work on the soil side's books
-            work -= (np.einsum("ij,ij->i", force, np.asarray(velocities))
-                     + np.einsum("ij,ij->i", torque, np.asarray(spins))) * h
-        if steps % 50 == 0 or steps > 50:
-            sim.check_finite()
-        contacts = sim.state.body_contacts.numpy()
-        self._check_walls(control.body_position_host)
-        return [WheelWrench(force=force_sum[b] / steps, torque=torque_sum[b] / steps, force_end=force[b].copy(),
-                            torque_end=torque[b].copy(), contact_count=int(contacts[b]), sinkage=self._sinkage(b),
-                            work_on_soil=float(work[b]))
-                for b in range(wheels)]
+
+        def stack(kinematics):
+            return tuple(np.array([getattr(k, name) for k in kinematics], dtype=np.float64)
+                         for name in ("position", "orientation", "linear_velocity", "angular_velocity"))
+
+        control.set_body_path(span, *stack(start), end=None if end is None else stack(end))
+        report = sim.macro_step(steps, span / steps, path=True)
+        self._check_walls(control.body_position_host, report.boundary_displacement)
+        return [WheelWrench(force=report.body_force[b], torque=report.body_torque[b],
+                            force_end=report.body_force_end[b], torque_end=report.body_torque_end[b],
+                            contact_count=int(report.body_contacts[b]), sinkage=self._sinkage(b),
+                            work_on_soil=float(report.body_work[b]))
+                for b in range(self.wheel_count)]
 
     def current_wrenches(self) -> list[WheelWrench]:
         """The wrench on every wheel at this instant (e.g. after place_wheels): force and torque
         are the instantaneous ones, the work is zero."""
-        force = self.sim.state.body_force.numpy().astype(np.float64)
-        torque = self.sim.state.body_torque.numpy().astype(np.float64)
-        contacts = self.sim.state.body_contacts.numpy()
+        state = self.sim.state
+        force = state.body_force.numpy().astype(np.float64).reshape(-1, 3)
+        torque = state.body_torque.numpy().astype(np.float64).reshape(-1, 3)
+        contacts = state.body_contacts.numpy()
         return [WheelWrench(force=force[b], torque=torque[b], force_end=force[b].copy(), torque_end=torque[b].copy(),
                             contact_count=int(contacts[b]), sinkage=self._sinkage(b))
                 for b in range(self.wheel_count)]
@@ -173,17 +158,18 @@ class DemSoil:
         self._warned_wall = bool(data["warned_wall"])
 
     # -- walls ---------------------------------------------------------------------
-    def _container_walls(self):
-        """(point, inward normal) of the side walls (vertical planes) where they are now."""
-        kinds = self.sim.model.boundary_kind.numpy()
-        geometry = self.sim.boundary_geometry()
-        return [(g[:3], g[3:]) for kind, g in zip(kinds, geometry) if kind == 0 and abs(g[5]) < 0.5]
+    def _container_walls(self, displacement: np.ndarray):
+        """(point, inward normal) of the side walls (vertical planes), displaced by
+        `displacement` [m] (boundary_count, 3) from their initial geometry."""
+        kinds, geometry = self._walls
+        return [(g[:3] + d, g[3:]) for kind, g, d in zip(kinds, geometry, displacement)
+                if kind == 0 and abs(g[5]) < 0.5]
 
-    def _check_walls(self, positions: np.ndarray) -> None:
+    def _check_walls(self, positions: np.ndarray, displacement: np.ndarray) -> None:
         if self._warned_wall:
             return
         rotations = self.sim.control.body_rotation_host
-        walls = self._container_walls()
+        walls = self._container_walls(displacement)
         for b, hub in enumerate(positions):
             shape = self.sim.model.bodies[b]
             for point, normal in walls:

@@ -13,26 +13,29 @@
 
 import warp as _wp
 
-from .builder import SoilBuilder
-from .geometry import GrouserWheel, MeshWheel
-from .contact import ContactLaw
-from .control import SoilControl
-from .gravity import GRAVITY_PRESETS, gravity_vector
 from . import advisor
 from .advisor import largest_stable_step, macroscopic_stiffness, rayleigh_time_step, recommended_time_step
+from .builder import SoilBuilder
+from .contact import ContactLaw
+from .control import SoilControl
+from .errors import OverlapWarning, SoilInputError
+from .geometry import GrouserWheel, MeshWheel
+from .gravity import GRAVITY_PRESETS, gravity_vector
 from .integrator import JoltBeeman, StepController, VelocityVerlet
 from .materials import Material, damping_ratio_for_restitution, restitution_of_damping_ratio
 from .model import SoilModel
+from .neighbours import NeighbourSettings
 from .precision import PRECISIONS, get_precision
-from .simulation import Simulation, SimulationDiverged
+from .simulation import MacroStepReport, Simulation, SimulationDiverged
 from .stability import DivergenceMonitor
 from .state import SoilState
 
 __all__ = [
     "DivergenceMonitor", "JoltBeeman", "StepController", "advisor", "largest_stable_step", "macroscopic_stiffness",
     "rayleigh_time_step", "recommended_time_step",
-    "ContactLaw", "GRAVITY_PRESETS", "GrouserWheel", "MeshWheel", "Material", "PRECISIONS", "Simulation", "SimulationDiverged",
-    "SoilBuilder", "SoilControl", "SoilModel", "SoilState", "VelocityVerlet",
+    "ContactLaw", "GRAVITY_PRESETS", "GrouserWheel", "MacroStepReport", "MeshWheel", "Material", "NeighbourSettings",
+    "OverlapWarning", "PRECISIONS", "Simulation", "SimulationDiverged", "SoilBuilder", "SoilControl", "SoilInputError",
+    "SoilModel", "SoilState", "VelocityVerlet",
     "damping_ratio_for_restitution", "get_precision", "gravity_vector", "quiet_warp", "restitution_of_damping_ratio",
 ]
 

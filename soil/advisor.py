@@ -1,4 +1,4 @@
-"""Stiffness and time-step advice (DESIGN.md section 6, paper sections 4 and 5).
+"""Stiffness and time-step advice (docs/physics.md section 2, paper sections 4 and 5).
 
     from soil import advisor
     advisor.rayleigh_time_step(1e8, 0.3, 2600.0, 2.5e-3)            # [s]
@@ -122,9 +122,6 @@ class TimeStepAdvice:
 
 def _scene_values(scene, radius, gravity, height):
     """(r_min [m], m of that grain [kg], largest E* [Pa], poisson, density, |g| [m/s^2], H [m], speed0 [m/s])."""
-    from .model import SoilModel
-    from .simulation import Simulation
-
     speed0 = 0.0
     if isinstance(scene, Material):
         if radius is None or gravity is None:
@@ -133,8 +130,8 @@ def _scene_values(scene, radius, gravity, height):
         mass = scene.density * 4.0 / 3.0 * math.pi * radius**3
         e_star = scene.youngs_modulus / (2.0 * (1.0 - scene.poisson_ratio**2))
         return radius, mass, e_star, g, height if height is not None else 20.0 * radius, speed0
-    sim = scene if isinstance(scene, Simulation) else None
-    model: SoilModel = sim.model if sim is not None else scene
+    sim = scene if hasattr(scene, "model") else None  # a Simulation (duck-typed: no import cycle)
+    model = sim.model if sim is not None else scene
     radii = model.radius_numpy()
     i = int(np.argmin(radii))
     r = float(radii[i]) if radius is None else float(radius)

@@ -270,38 +270,36 @@ def load_bed(path) -> tuple[SoilBuilder, dict]:
 def restore_state(model, state, saved: dict) -> None:
     """Put a saved bed state (from load_bed) into a freshly finalized state, contact history included.
 
-    Handles particle permutations (order_seed), and wheels and boundaries added after the bed
-    was saved (they start at rest, with no force).
+    Handles particle permutations (order_seed), beds written before the neighbour list
+    existed (their keyed history is converted), and wheels and boundaries added after the
+    bed was saved (they start at rest, with no force).
     The clock restarts at t = 0: a run on a bed starts when the bed is ready.
     """
+    from .state import current_format, per_grain
+
     n = model.particle_count
-    order = model.particle_order  # builder index of each model particle
+    order = model.particle_order  # builder index (= the saved model index) of each model particle
     inverse = np.empty_like(order)
     inverse[order] = np.arange(n)
-    data = {k: v for k, v in saved.items() if k not in ("precision", "metrics", "model")}
+    data = current_format({k: v for k, v in saved.items() if k not in ("precision", "metrics", "model")}, n)
     # masses as saved (recomputing them from rounded radii could change the last bit)
     for name, values in saved.get("model", {}).items():
         array = getattr(model, name)
         array.assign(values[order].astype(array.numpy().dtype))
-    for name in ("position", "velocity", "angular_velocity", "force", "torque", "contact_count"):
-        data[name] = data[name][order]
-    for name in ("force_previous", "torque_previous"):  # jolt-Beeman history (absent in older files)
-        if name in data:
-            data[name] = data[name][order]
-    for name in ("contact_partner", "contact_tangential", "contact_rolling"):
-        data[name] = data[name][order]
-    partner = data["contact_partner"]
-    is_particle = (partner >= 0) & (partner < n)
-    partner[is_particle] = inverse[partner[is_particle]]
-    for name, array in state.arrays.items():
-        if name.startswith("body_"):
-            data[name] = array.numpy()
-        elif name not in data:  # fields an integrator added after the bed was written
-            data[name] = array.numpy()
-        elif name.startswith("boundary_") and len(data[name]) < array.shape[0]:
-            values = array.numpy()  # boundaries added after loading the bed: at rest
-            values[: len(data[name])] = data[name]
+    state.layout.gather_constants(model)
+    for name in list(data):
+        if name != "time" and per_grain(name):
+            data[name] = np.asarray(data[name])[order]
+    neighbours = data["neighbours"]
+    data["neighbours"] = np.where(neighbours >= 0, inverse[np.maximum(neighbours, 0)], -1).astype(np.int32)
+    current = state.to_numpy()
+    for name, values in current.items():
+        if name.startswith("body_") or name not in data:  # fields added after the bed was written
             data[name] = values
+        elif name.startswith("boundary_") and len(data[name]) < len(values):
+            padded = values.copy()  # boundaries added after loading the bed: at rest
+            padded[: len(data[name])] = data[name]
+            data[name] = padded
     data["time"] = 0.0
     state.load_numpy(data)
 

@@ -1,6 +1,6 @@
 """Moving boundaries: translation of walls and boxes, prescribed or under a load, on the device.
 
-A boundary (plane or box, soil.kernels) keeps its initial geometry in the model; the
+A boundary (plane or box, soil.sdf) keeps its initial geometry in the model; the
 state carries where it is now and how it moves (soil.state):
 
     boundary_displacement  d [m]      from the initial geometry,
@@ -36,18 +36,17 @@ steps stay graph-capturable.
 
 import warp as wp
 
+from .precision import kernel_factory, kernel_module, soil_kernel
+
 MOTION_PRESCRIBED = 0
 """The boundary moves with the velocity the control prescribes (zero: fixed)."""
 MOTION_LOADED = 1
 """The boundary is a rigid body free along a direction, pushed by a load (see the module docstring)."""
 
-_cache: dict = {}
-
-
-def make_boundary_kernels(hi):
+@kernel_factory
+def boundary_kernels(hi):
     """The boundary-motion kernels for the precision's `hi` type."""
-    if hi in _cache:
-        return _cache[hi]
+    kernel = soil_kernel(kernel_module("boundaries", hi))
     vec_hi = wp.types.vector(3, hi)
 
     @wp.func
@@ -55,7 +54,7 @@ def make_boundary_kernels(hi):
         """The part of `velocity` perpendicular to `direction` (unit)."""
         return velocity - wp.dot(velocity, direction) * direction
 
-    @wp.kernel(module="unique")
+    @kernel
     def boundary_acceleration(
         mode: wp.array(dtype=wp.int32),
         direction: wp.array(dtype=vec_hi),
@@ -75,7 +74,7 @@ def make_boundary_kernels(hi):
             a = (load[b] + wp.dot(force_in[b], e) - damping[b] * wp.dot(velocity_in[b], e)) / mass[b]
         acceleration_out[b] = a
 
-    @wp.kernel(module="unique")
+    @kernel
     def verlet_kick_drift(
         mode: wp.array(dtype=wp.int32),
         prescribed: wp.array(dtype=vec_hi),
@@ -98,7 +97,7 @@ def make_boundary_kernels(hi):
         displacement_out[b] = displacement_in[b] + dt * velocity
         velocity_out[b] = velocity
 
-    @wp.kernel(module="unique")
+    @kernel
     def verlet_kick(
         mode: wp.array(dtype=wp.int32),
         direction: wp.array(dtype=vec_hi),
@@ -112,7 +111,7 @@ def make_boundary_kernels(hi):
         if mode[b] == MOTION_LOADED:
             velocity_io[b] = velocity_io[b] + (hi(0.5) * dt * acceleration_new[b]) * direction[b]
 
-    @wp.kernel(module="unique")
+    @kernel
     def beeman_predict(
         mode: wp.array(dtype=wp.int32),
         prescribed: wp.array(dtype=vec_hi),
@@ -146,7 +145,7 @@ def make_boundary_kernels(hi):
         velocity_out[b] = velocity
         acceleration_previous_out[b] = acceleration_in[b]
 
-    @wp.kernel(module="unique")
+    @kernel
     def beeman_correct(
         mode: wp.array(dtype=wp.int32),
         direction: wp.array(dtype=vec_hi),
@@ -171,10 +170,8 @@ def make_boundary_kernels(hi):
             along = wp.dot(velocity_in[b], e) + (dt / hi(6.0)) * (hi(2.0) * acceleration_new[b] + hi(5.0) * a - a_minus)
             velocity_io[b] = across(velocity_io[b], e) + along * e
 
-    kernels = dict(boundary_acceleration=boundary_acceleration, verlet_kick_drift=verlet_kick_drift,
-                   verlet_kick=verlet_kick, beeman_predict=beeman_predict, beeman_correct=beeman_correct)
-    _cache[hi] = kernels
-    return kernels
+    return dict(boundary_acceleration=boundary_acceleration, verlet_kick_drift=verlet_kick_drift,
+                verlet_kick=verlet_kick, beeman_predict=beeman_predict, beeman_correct=beeman_correct)
 
 
 def _motion(control):
@@ -185,8 +182,8 @@ def update_acceleration(model, state, control) -> None:
     """state.boundary_acceleration from state.boundary_force and state.boundary_velocity."""
     if not model.boundary_count:
         return
-    kernels = make_boundary_kernels(model.precision.hi)
-    wp.launch(kernels["boundary_acceleration"], dim=model.boundary_count,
+    kernels = boundary_kernels(model.precision.hi)
+    wp.launch(kernels.boundary_acceleration, dim=model.boundary_count,
               inputs=[control.boundary_mode, control.boundary_direction, control.boundary_mass,
                       control.boundary_load, control.boundary_damping, state.boundary_velocity, state.boundary_force],
               outputs=[state.boundary_acceleration], device=model.device)
@@ -196,8 +193,8 @@ def verlet_first_half(model, state_in, state_out, control, dt: float) -> None:
     """Move the boundaries over a velocity-Verlet step (before the forces of state_out)."""
     if not model.boundary_count:
         return
-    kernels = make_boundary_kernels(model.precision.hi)
-    wp.launch(kernels["verlet_kick_drift"], dim=model.boundary_count,
+    kernels = boundary_kernels(model.precision.hi)
+    wp.launch(kernels.verlet_kick_drift, dim=model.boundary_count,
               inputs=_motion(control) + [state_in.boundary_displacement, state_in.boundary_velocity,
                                          state_in.boundary_acceleration, model.precision.hi(dt)],
               outputs=[state_out.boundary_displacement, state_out.boundary_velocity], device=model.device)
@@ -209,8 +206,8 @@ def verlet_second_half(model, state_out, control, dt: float) -> None:
     """Second half kick of the loaded boundaries with state_out's new acceleration."""
     if not model.boundary_count:
         return
-    kernels = make_boundary_kernels(model.precision.hi)
-    wp.launch(kernels["verlet_kick"], dim=model.boundary_count,
+    kernels = boundary_kernels(model.precision.hi)
+    wp.launch(kernels.verlet_kick, dim=model.boundary_count,
               inputs=[control.boundary_mode, control.boundary_direction, state_out.boundary_acceleration,
                       model.precision.hi(dt)],
               outputs=[state_out.boundary_velocity], device=model.device)
@@ -220,8 +217,8 @@ def beeman_predict(model, state_in, state_out, control, dt: float) -> None:
     """Jolt-Beeman prediction of the boundaries' motion into state_out."""
     if not model.boundary_count:
         return
-    kernels = make_boundary_kernels(model.precision.hi)
-    wp.launch(kernels["beeman_predict"], dim=model.boundary_count,
+    kernels = boundary_kernels(model.precision.hi)
+    wp.launch(kernels.beeman_predict, dim=model.boundary_count,
               inputs=_motion(control) + [state_in.boundary_displacement, state_in.boundary_velocity,
                                          state_in.boundary_acceleration, state_in.boundary_acceleration_previous,
                                          state_in.step_previous, model.precision.hi(dt)],
@@ -233,8 +230,8 @@ def beeman_correct(model, state_in, state_out, control, dt: float) -> None:
     """Jolt-Beeman correction of the loaded boundaries' velocity with state_out's new acceleration."""
     if not model.boundary_count:
         return
-    kernels = make_boundary_kernels(model.precision.hi)
-    wp.launch(kernels["beeman_correct"], dim=model.boundary_count,
+    kernels = boundary_kernels(model.precision.hi)
+    wp.launch(kernels.beeman_correct, dim=model.boundary_count,
               inputs=[control.boundary_mode, control.boundary_direction, state_in.boundary_velocity,
                       state_in.boundary_acceleration, state_in.boundary_acceleration_previous,
                       state_in.step_previous, state_out.boundary_acceleration, model.precision.hi(dt)],

@@ -3,19 +3,25 @@
 from __future__ import annotations
 
 import math
+import warnings
 
 import numpy as np
 import warp as wp
 
 from .contact import ContactLaw
 from .control import SoilControl
-from .gravity import gravity_vector
+from .errors import OverlapWarning, SoilInputError
 from .geometry import GrouserWheel, MeshWheel
-from .kernels import BODY_MESH, BODY_WHEEL, BOUNDARY_BOX, BOUNDARY_PLANE
+from .gravity import gravity_vector
 from .materials import Material, MaterialTable
 from .model import SoilModel
 from .precision import get_precision
+from .sdf import BODY_MESH, BODY_WHEEL, BOUNDARY_BOX, BOUNDARY_PLANE
 from .state import SoilState
+
+DEEP_OVERLAP = 0.1
+"""Overlap, as a fraction of the smaller radius, above which finalize() warns that grains
+were created inside each other (or inside a wall) (OverlapWarning)."""
 
 
 class SoilBuilder:
@@ -46,7 +52,7 @@ class SoilBuilder:
             self.add_material(Material())
         index = int(material)
         if not 0 <= index < len(self.materials.materials):
-            raise ValueError(f"material index must be in [0, {len(self.materials.materials)}), got {material!r}")
+            raise SoilInputError(f"material index must be in [0, {len(self.materials.materials)}), got {material!r}")
         return index
 
     # -- particles ---------------------------------------------------------------
@@ -56,39 +62,72 @@ class SoilBuilder:
 
     def add_particles(self, positions, radii, material=0, velocities=None, angular_velocities=None,
                       fixed=False, lock_rotation=False) -> np.ndarray:
-        """Add spheres. positions [m] shape (n, 3); radii [m] shape (n,) or scalar.
+        """Add spheres. positions [m] shape (n, 3); radii [m] shape (n,) or one radius for all;
+        velocities [m/s] and angular_velocities [rad/s] shape (n, 3) or (3,) for all; fixed and
+        lock_rotation: one flag or shape (n,).
 
         Returns the builder indices of the new particles, shape (n,).
         """
-        positions = np.asarray(positions, dtype=np.float64).reshape(-1, 3)
+        positions = np.asarray(positions, dtype=np.float64)
+        if positions.ndim != 2 or positions.shape[1] != 3:
+            raise SoilInputError(f"positions must have shape (n, 3) [m] (x, y, z per grain), got shape "
+                                 f"{positions.shape}")
         n = len(positions)
-        radii = np.broadcast_to(np.asarray(radii, dtype=np.float64), (n,)).copy()
-        if not np.all(np.isfinite(positions)):
-            raise ValueError("particle positions must be finite [m]")
-        if not np.all(np.isfinite(radii) & (radii > 0)):
-            raise ValueError(f"particle radii must be finite and > 0 [m], got min {radii.min() if n else None}")
+        radii = np.asarray(radii, dtype=np.float64)
+        if radii.ndim == 0:
+            radii = np.full(n, float(radii))
+        elif radii.shape != (n,):
+            raise SoilInputError(f"radii must be one radius or shape (n,) = ({n},), one per position [m], got shape "
+                                 f"{radii.shape}")
+        bad = ~np.isfinite(positions).all(axis=1)
+        if bad.any():
+            i = int(np.argmax(bad))
+            raise SoilInputError(f"positions must be finite [m]: {int(bad.sum())} are not, e.g. positions[{i}] = "
+                                 f"{tuple(float(v) for v in positions[i])}")
+        bad = ~(np.isfinite(radii) & (radii > 0))
+        if bad.any():
+            i = int(np.argmax(bad))
+            raise SoilInputError(f"radii must be finite and > 0 [m]: {int(bad.sum())} are not, e.g. radii[{i}] = "
+                                 f"{float(radii[i])!r}")
 
         def vectors(values, name):
             if values is None:
                 return np.zeros((n, 3))
-            values = np.broadcast_to(np.asarray(values, dtype=np.float64), (n, 3)).copy()
+            values = np.asarray(values, dtype=np.float64)
+            if values.shape not in ((3,), (n, 3)):
+                raise SoilInputError(f"{name} must have shape (n, 3) = ({n}, 3) or (3,), got shape {values.shape}")
+            values = np.broadcast_to(values, (n, 3)).copy()
             if not np.all(np.isfinite(values)):
-                raise ValueError(f"particle {name} must be finite")
+                raise SoilInputError(f"{name} must be finite")
             return values
 
+        def flags(values, name):
+            values = np.asarray(values)
+            if values.shape not in ((), (n,)):
+                raise SoilInputError(f"{name} must be one flag or shape (n,) = ({n},), got shape {values.shape}")
+            return np.broadcast_to(values.astype(bool), (n,)).copy()
+
         start = self.particle_count
+        velocities = vectors(velocities, "velocities [m/s]")
+        spins = vectors(angular_velocities, "angular_velocities [rad/s]")
+        fixed, lock_rotation = flags(fixed, "fixed"), flags(lock_rotation, "lock_rotation")
         self._positions.append(positions)
         self._radii.append(radii)
         self._material.append(np.full(n, self._material_index(material), dtype=np.int32))
-        self._velocity.append(vectors(velocities, "velocities [m/s]"))
-        self._spin.append(vectors(angular_velocities, "angular velocities [rad/s]"))
-        self._fixed.append(np.broadcast_to(np.asarray(fixed, dtype=bool), (n,)).copy())
-        self._lock_rotation.append(np.broadcast_to(np.asarray(lock_rotation, dtype=bool), (n,)).copy())
+        self._velocity.append(velocities)
+        self._spin.append(spins)
+        self._fixed.append(fixed)
+        self._lock_rotation.append(lock_rotation)
         return np.arange(start, start + n)
 
     def add_particle(self, position, radius, material=0, velocity=None, angular_velocity=None,
                      fixed=False, lock_rotation=False) -> int:
-        """Add one sphere; returns its builder index."""
+        """Add one sphere: position [m] (3,), radius [m]; returns its builder index."""
+        position = np.asarray(position, dtype=np.float64)
+        if position.shape != (3,):
+            raise SoilInputError(f"position must be 3 numbers (x, y, z) [m], got shape {position.shape}")
+        if np.ndim(radius) != 0:
+            raise SoilInputError(f"radius must be one number [m], got {radius!r}")
         return int(self.add_particles([position], [radius], material, velocity, angular_velocity,
                                       fixed, lock_rotation)[0])
 
@@ -104,9 +143,9 @@ class SoilBuilder:
         normal = np.asarray(normal, dtype=np.float64).reshape(3)
         length = np.linalg.norm(normal)
         if not np.all(np.isfinite(point)):
-            raise ValueError(f"plane point must be a finite 3-vector [m], got {point}")
+            raise SoilInputError(f"plane point must be a finite 3-vector [m], got {point}")
         if not np.isfinite(length) or length == 0:
-            raise ValueError(f"plane normal must be a non-zero finite 3-vector, got {normal}")
+            raise SoilInputError(f"plane normal must be a non-zero finite 3-vector, got {normal}")
         return self._add_boundary(BOUNDARY_PLANE, [*point, *(normal / length)], self._material_index(material), report)
 
     def add_box(self, lower, upper, material=0, report: bool = True) -> int:
@@ -117,7 +156,7 @@ class SoilBuilder:
         lower = np.asarray(lower, dtype=np.float64).reshape(3)
         upper = np.asarray(upper, dtype=np.float64).reshape(3)
         if not np.all(upper > lower):
-            raise ValueError(f"box upper corner must exceed lower corner on every axis, got {lower} .. {upper}")
+            raise SoilInputError(f"box upper corner must exceed lower corner on every axis, got {lower} .. {upper}")
         return self._add_boundary(BOUNDARY_BOX, [*lower, *upper], self._material_index(material), report)
 
     def _add_boundary(self, kind: int, row, material: int, report: bool = True) -> int:
@@ -130,7 +169,8 @@ class SoilBuilder:
         lower = np.asarray(lower, dtype=np.float64).reshape(3)
         upper = np.asarray(upper, dtype=np.float64).reshape(3)
         if not np.all(upper > lower):
-            raise ValueError(f"container upper corner must exceed lower corner on every axis, got {lower} .. {upper}")
+            raise SoilInputError(f"container upper corner must exceed lower corner on every axis, got {lower} .. "
+                                 f"{upper}")
         walls = [self.add_plane(lower, (0, 0, 1), material, report)]
         for axis in range(2):
             inward = np.zeros(3)
@@ -151,26 +191,30 @@ class SoilBuilder:
 
     # -- finalize ----------------------------------------------------------------
     def finalize(self, device: str | None = None, precision="double", law: ContactLaw | None = None,
-                 contact_capacity: int = 16, order_seed: int | None = None):
+                 contact_capacity: int = 16, order_seed: int | None = None, rigid_capacity: int = 4):
         """Create (model, state, control) on `device` ("cpu", "cuda:0", None = Warp's default).
 
         law: contact-law switches; by default rolling and cohesion are on only if a
-        material uses them. contact_capacity: history slots per particle (grown
-        automatically when exceeded). order_seed: permute particle indices (changes
-        only the summation order, for scatter studies).
+        material uses them. contact_capacity: neighbour-list slots per grain;
+        rigid_capacity: contact slots per grain for walls and wheels (both grown
+        automatically when exceeded, the macro step then redone). order_seed: permute
+        particle indices (changes only the summation order, for scatter studies).
         """
         prec = get_precision(precision)
         device = str(wp.get_device(device))
         if self.particle_count == 0:
-            raise ValueError("the scene has no particles")
+            raise SoilInputError("the scene has no particles")
         if not self.materials.materials:
             self.add_material(Material())
         if law is None:
             mats = self.materials.materials
             law = ContactLaw(rolling=any(m.rolling_friction > 0 for m in mats),
                              cohesion=any(m.cohesion > 0 for m in mats))
-        if int(contact_capacity) < 1:
-            raise ValueError(f"contact_capacity must be >= 1, got {contact_capacity}")
+        for name, value in (("contact_capacity", contact_capacity), ("rigid_capacity", rigid_capacity)):
+            if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < 1:
+                raise SoilInputError(f"{name} must be an integer >= 1, got {value!r}")
+        self._check_inside()
+        self._check_overlaps()
 
         positions = np.concatenate(self._positions)
         radii = np.concatenate(self._radii)
@@ -216,12 +260,70 @@ class SoilBuilder:
             particle_order=order,
             **body_arrays,
         )
-        state = SoilState.for_model(model, int(contact_capacity))
+        state = SoilState.for_model(model, int(contact_capacity), int(rigid_capacity))
         state.position.assign(positions.astype(hi))
         state.velocity.assign(velocity.astype(hi))
         state.angular_velocity.assign(spin.astype(hi))
         control = SoilControl.for_model(model)
         return model, state, control
+
+    def _check_inside(self) -> None:
+        """Free grains whose centre lies behind a wall (outside the container) or inside a box are an error."""
+        if not self._boundaries:
+            return
+        positions = np.concatenate(self._positions)
+        free = ~np.concatenate(self._fixed)
+        for b, (kind, row, _, _) in enumerate(self._boundaries):
+            row = np.asarray(row, dtype=np.float64)
+            if kind == BOUNDARY_PLANE:
+                outside = free & ((positions - row[:3]) @ row[3:] < 0)
+                where = f"behind boundary {b}, the plane through {tuple(float(v) for v in row[:3])} m (grains " \
+                        f"stay on the side its normal {tuple(float(v) for v in row[3:])} points to)"
+            else:
+                outside = free & np.all((positions > row[:3]) & (positions < row[3:]), axis=1)
+                where = (f"inside boundary {b}, the solid box {tuple(float(v) for v in row[:3])} .. "
+                         f"{tuple(float(v) for v in row[3:])} m")
+            if outside.any():
+                i = int(np.argmax(outside))
+                raise SoilInputError(f"{int(outside.sum())} grain(s) have their centre {where}, e.g. particle {i} "
+                                     f"at {tuple(float(v) for v in positions[i])} m: move them inside the container "
+                                     "(or fix them)")
+
+    def _check_overlaps(self) -> None:
+        """Warn when grains were created deep inside each other or inside a wall (OverlapWarning)."""
+        from scipy.spatial import cKDTree
+
+        positions = np.concatenate(self._positions)
+        radii = np.concatenate(self._radii)
+        fixed = np.concatenate(self._fixed)
+        worst, where, count = 0.0, "", 0
+        if len(radii) > 1:
+            reach = 2.0 * radii.max() - DEEP_OVERLAP * radii.min()
+            pairs = cKDTree(positions).query_pairs(reach, output_type="ndarray")
+            if len(pairs):
+                i, j = pairs[:, 0], pairs[:, 1]
+                depth = radii[i] + radii[j] - np.linalg.norm(positions[i] - positions[j], axis=1)
+                ratio = depth / np.minimum(radii[i], radii[j])
+                deep = (ratio > DEEP_OVERLAP) & ~(fixed[i] & fixed[j])
+                count += int(deep.sum())
+                if deep.any():
+                    k = int(np.argmax(np.where(deep, ratio, -np.inf)))
+                    worst, where = float(ratio[k]), f"particles {int(i[k])} and {int(j[k])} by {depth[k]:.3g} m"
+        for b, (kind, row, _, _) in enumerate(self._boundaries):
+            if kind != BOUNDARY_PLANE:
+                continue
+            row = np.asarray(row, dtype=np.float64)
+            depth = radii - (positions - row[:3]) @ row[3:]
+            ratio = np.where(fixed, -np.inf, depth / radii)
+            deep = ratio > DEEP_OVERLAP
+            count += int(deep.sum())
+            if deep.any() and ratio.max() > worst:
+                k = int(np.argmax(ratio))
+                worst, where = float(ratio[k]), f"particle {k} and boundary {b} by {depth[k]:.3g} m"
+        if count:
+            warnings.warn(f"{count} contact(s) were created with an overlap above {DEEP_OVERLAP:g} x the smaller "
+                          f"radius (the deepest: {where}, {worst:.3g} x its radius): their first contact throws the "
+                          "grains apart; space them out", OverlapWarning, stacklevel=3)
 
     def _body_arrays(self, prec, device) -> dict:
         kinds, shapes, materials, point_offsets, index_offsets = [], [], [], [], []

@@ -1,6 +1,6 @@
-"""The contact law as Warp functions (DESIGN.md section 2), generic in precision.
+"""The contact law as Warp functions (docs/physics.md section 1), generic in precision.
 
-`make_contact_law(hi, lo, law)` returns a @wp.func that turns one contact (overlap,
+`contact_functions(hi, lo, law).contact_law` is a @wp.func that turns one contact (overlap,
 normal, relative motion, history) into the force and rolling torque on the particle.
 Terms that the ContactLaw switches off are removed at compile time (wp.static), so
 they cost nothing. Geometry and history use `hi`; the force law itself uses `lo`.
@@ -18,10 +18,12 @@ from .materials import (
     PAIR_E_STAR,
     PAIR_G_STAR,
     PAIR_ROLLING,
+    PAIR_SHEAR_ROOT,
     PAIR_STICK_SPEED,
     PAIR_TAN_SLIP,
     PAIR_TAN_STICK,
 )
+from .precision import kernel_factory
 
 
 @dataclass(frozen=True)
@@ -38,14 +40,9 @@ class ContactLaw:
     """Cohesive attraction cohesion * pi R* delta inside the overlap."""
 
 
-_cache: dict = {}
-
-
-def make_contact_law(hi, lo, law: ContactLaw):
+@kernel_factory
+def contact_functions(hi, lo, law: ContactLaw):
     """The contact @wp.func for precision types (hi, lo) and the switches in `law`."""
-    key = (hi, lo, law)
-    if key in _cache:
-        return _cache[key]
     vec_hi = wp.types.vector(3, hi)
     DAMPING, FRICTION, ROLLING, COHESION = law.damping, law.friction, law.rolling, law.cohesion
 
@@ -53,11 +50,11 @@ def make_contact_law(hi, lo, law: ContactLaw):
     def rotate_into_plane(h: vec_hi, n: vec_hi):
         # History is kept in the tangent plane; when the normal turns, turn the history
         # with it and keep its length (a frame-indifferent spring).
-        length_before = wp.length(h)
+        before = wp.dot(h, h)
         h = h - wp.dot(h, n) * n
-        length_after = wp.length(h)
-        if length_after > hi(0.0):
-            h = h * (length_before / length_after)
+        after = wp.dot(h, h)
+        if after > hi(0.0):
+            h = h * wp.sqrt(before / after)
         return h
 
     @wp.func
@@ -79,6 +76,11 @@ def make_contact_law(hi, lo, law: ContactLaw):
         normal: unit vector from particle i towards its partner; overlap [m] > 0;
         relative_velocity: velocity of i's contact point minus the partner's [m/s];
         relative_spin: angular velocity of i minus the partner's [rad/s].
+
+        Every damper is c = 2 D sqrt(m k) of its own stiffness k; the stiffnesses are
+        multiples of the normal one (k_T / k = 4 G* / E*, a pair constant; k_r / k =
+        2.25 mu_r^2 R*^2), so one square root serves all three. Limits are compared as
+        squares: a sliding contact is the only one that needs a length.
         """
         ov = lo(overlap)
         sqrt_rd = wp.sqrt(radius_eff * ov)
@@ -88,9 +90,11 @@ def make_contact_law(hi, lo, law: ContactLaw):
         normal_stiffness = lo(2.0) * e_star * sqrt_rd
         fn = lo(4.0 / 3.0) * e_star * sqrt_rd * ov
         approach_speed = wp.dot(relative_velocity, normal)
+        damper = lo(0.0)  # 2 D sqrt(m* k): the normal damper [N s/m]
         if wp.static(DAMPING):
             # Lehr: c = 2 D sqrt(m* k), mass-scaled, so e does not depend on impact speed.
-            fn = fn + lo(2.0) * damping_ratio * wp.sqrt(mass_eff * normal_stiffness) * lo(approach_speed)
+            damper = lo(2.0) * damping_ratio * wp.sqrt(mass_eff * normal_stiffness)
+            fn = fn + damper * lo(approach_speed)
         fn = wp.max(fn, lo(0.0))  # a contact pushes, it never pulls (cohesion aside)
         force = -hi(fn) * normal
         if wp.static(COHESION):
@@ -103,16 +107,18 @@ def make_contact_law(hi, lo, law: ContactLaw):
             kt = lo(8.0) * pair[row, PAIR_G_STAR] * sqrt_rd  # Mindlin tangential stiffness
             kelvin = -(hi(kt) * tangential)
             if wp.static(DAMPING):
-                kelvin = kelvin - hi(lo(2.0) * damping_ratio * wp.sqrt(mass_eff * kt)) * vt
-            vt_speed = wp.length(vt)
-            if wp.length(kelvin) <= hi(fn * pair[row, PAIR_TAN_STICK]) and vt_speed <= hi(pair[row, PAIR_STICK_SPEED]):
+                kelvin = kelvin - hi(damper * pair[row, PAIR_SHEAR_ROOT]) * vt  # 2 D sqrt(m* k_T)
+            stick_limit = hi(fn * pair[row, PAIR_TAN_STICK])
+            stick_speed = hi(pair[row, PAIR_STICK_SPEED])
+            vt_squared = wp.dot(vt, vt)
+            if wp.dot(kelvin, kelvin) <= stick_limit * stick_limit and vt_squared <= stick_speed * stick_speed:
                 force = force + kelvin  # stick: the Kelvin element carries the load
             else:
                 # slip: Coulomb force with the slip angle, opposing the sliding
                 direction = vec_hi()
-                if vt_speed > hi(0.0):
-                    direction = -vt / vt_speed
-                elif wp.length(kelvin) > hi(0.0):
+                if vt_squared > hi(0.0):
+                    direction = -vt / wp.sqrt(vt_squared)
+                elif wp.dot(kelvin, kelvin) > hi(0.0):
                     direction = wp.normalize(kelvin)
                 slip = hi(fn * pair[row, PAIR_TAN_SLIP]) * direction
                 force = force + slip
@@ -132,17 +138,16 @@ def make_contact_law(hi, lo, law: ContactLaw):
             kr = lo(2.25) * mu_r * mu_r * radius_eff * radius_eff * normal_stiffness
             torque = -hi(kr) * rolling
             limit = hi(mu_r * radius_eff * fn)
-            magnitude = wp.length(torque)
-            if magnitude > limit:
-                torque = torque * (limit / magnitude)
+            squared = wp.dot(torque, torque)
+            if squared > limit * limit:
+                torque = torque * (limit / wp.sqrt(squared))
                 if kr > lo(0.0):
                     rolling = -torque / hi(kr)
                 else:
                     rolling = vec_hi()
             elif wp.static(DAMPING):
-                inertia_eff = lo(1.4) * mass_eff * radius_eff * radius_eff
-                torque = torque - hi(lo(2.0) * damping_ratio * wp.sqrt(inertia_eff * kr)) * spin
+                # 2 D sqrt(I* k_r), I* = 1.4 m* R*^2: 1.5 sqrt(1.4) mu_r R*^2 times the normal damper
+                torque = torque - hi(lo(1.5 * math.sqrt(1.4)) * mu_r * radius_eff * radius_eff * damper) * spin
         return force, torque, tangential, rolling
 
-    _cache[key] = (contact_law, rotate_into_plane)
-    return _cache[key]
+    return dict(contact_law=contact_law, rotate_into_plane=rotate_into_plane)

@@ -1,11 +1,48 @@
-"""Control: what the user prescribes from outside the soil."""
+"""Control: what the user prescribes from outside the soil, and the wheels' paths on the device."""
 
-from __future__ import annotations
 
 import numpy as np
 import warp as wp
 
 from .boundaries import MOTION_LOADED, MOTION_PRESCRIBED
+from .precision import kernel_factory, kernel_module, soil_kernel
+
+PATH_COLUMNS = 28
+"""Columns of a body path row: start position (3), orientation (w, x, y, z) (4), velocity (3),
+angular velocity (3), the same at the end (13), span [s] (1), 1 if the end is given (1)."""
+
+
+def quaternion_multiply(a, b) -> np.ndarray:
+    """Hamilton product a b of quaternions (w, x, y, z)."""
+    w1, x1, y1, z1 = a
+    w2, x2, y2, z2 = b
+    return np.array([w1 * w2 - x1 * x2 - y1 * y2 - z1 * z2, w1 * x2 + x1 * w2 + y1 * z2 - z1 * y2,
+                     w1 * y2 - x1 * z2 + y1 * w2 + z1 * x2, w1 * z2 + x1 * y2 - y1 * x2 + z1 * w2])
+
+
+def quaternion_integrate(q, omega, dt: float) -> np.ndarray:
+    """Rotate q (body -> world) by a constant world-frame angular velocity omega [rad/s] for dt [s]."""
+    omega = np.asarray(omega, dtype=np.float64)
+    angle = float(np.linalg.norm(omega)) * dt
+    if angle < 1e-15:
+        return np.array(q, dtype=np.float64)
+    axis = omega / np.linalg.norm(omega)
+    turned = quaternion_multiply(np.r_[np.cos(angle / 2), np.sin(angle / 2) * axis], q)  # world frame: from the left
+    return turned / np.linalg.norm(turned)
+
+
+def quaternion_slerp(q0, q1, a: float) -> np.ndarray:
+    """Spherical interpolation between unit quaternions, a in [0, 1] (the short way round)."""
+    q0 = np.asarray(q0, dtype=np.float64)
+    q1 = np.asarray(q1, dtype=np.float64)
+    dot = float(np.dot(q0, q1))
+    if dot < 0.0:
+        q1, dot = -q1, -dot
+    if dot > 0.9995:
+        out = q0 + a * (q1 - q0)
+        return out / np.linalg.norm(out)
+    theta = np.arccos(dot)
+    return (np.sin((1 - a) * theta) * q0 + np.sin(a * theta) * q1) / np.sin(theta)
 
 
 def quaternion_to_matrix(q) -> np.ndarray:
@@ -16,6 +53,87 @@ def quaternion_to_matrix(q) -> np.ndarray:
         [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
         [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
     ])
+
+
+@kernel_factory
+def path_kernels(hi):
+    """The body-path kernels for the precision type `hi`."""
+    kernel = soil_kernel(kernel_module("path", hi))
+    vec_hi = wp.types.vector(3, hi)
+    vec4_hi = wp.types.vector(4, hi)
+    mat_hi = wp.types.matrix((3, 3), hi)
+
+    @wp.func
+    def quaternion_product(a: vec4_hi, b: vec4_hi):
+        """Hamilton product a b of quaternions (w, x, y, z)."""
+        return vec4_hi(a[0] * b[0] - a[1] * b[1] - a[2] * b[2] - a[3] * b[3],
+                       a[0] * b[1] + a[1] * b[0] + a[2] * b[3] - a[3] * b[2],
+                       a[0] * b[2] - a[1] * b[3] + a[2] * b[0] + a[3] * b[1],
+                       a[0] * b[3] + a[1] * b[2] - a[2] * b[1] + a[3] * b[0])
+
+    @wp.func
+    def rotation_of(q: vec4_hi):
+        """Rotation matrix (body -> world) of a unit quaternion (w, x, y, z)."""
+        q = q / wp.length(q)
+        w, x, y, z = q[0], q[1], q[2], q[3]
+        one, two = hi(1.0), hi(2.0)
+        return mat_hi(one - two * (y * y + z * z), two * (x * y - w * z), two * (x * z + w * y),
+                      two * (x * y + w * z), one - two * (x * x + z * z), two * (y * z - w * x),
+                      two * (x * z - w * y), two * (y * z + w * x), one - two * (x * x + y * y))
+
+    @kernel
+    def follow_path(path: wp.array2d(dtype=hi), step: wp.array(dtype=wp.int32), dt: hi,
+                    position_out: wp.array(dtype=vec_hi), rotation_out: wp.array(dtype=mat_hi),
+                    velocity_out: wp.array(dtype=vec_hi), angular_velocity_out: wp.array(dtype=vec_hi)):
+        """Pose and velocities of body b at the end of the path's next step, tau = (step + 1) dt:
+        constant velocities from the start, or interpolated towards the end pose (the same
+        rules as soil.control.quaternion_integrate / quaternion_slerp on the host)."""
+        b = wp.tid()
+        tau = hi(step[0] + 1) * dt
+        p0 = vec_hi(path[b, 0], path[b, 1], path[b, 2])
+        q0 = vec4_hi(path[b, 3], path[b, 4], path[b, 5], path[b, 6])
+        v0 = vec_hi(path[b, 7], path[b, 8], path[b, 9])
+        w0 = vec_hi(path[b, 10], path[b, 11], path[b, 12])
+        position = p0 + v0 * tau
+        orientation = q0
+        velocity = v0
+        spin = w0
+        if path[b, 27] > hi(0.0):
+            a = tau / path[b, 26]
+            p1 = vec_hi(path[b, 13], path[b, 14], path[b, 15])
+            q1 = vec4_hi(path[b, 16], path[b, 17], path[b, 18], path[b, 19])
+            velocity = (hi(1.0) - a) * v0 + a * vec_hi(path[b, 20], path[b, 21], path[b, 22])
+            spin = (hi(1.0) - a) * w0 + a * vec_hi(path[b, 23], path[b, 24], path[b, 25])
+            position = (hi(1.0) - a) * p0 + a * p1
+            dot = wp.dot(q0, q1)
+            if dot < hi(0.0):
+                q1 = -q1
+                dot = -dot
+            if dot > hi(0.9995):
+                orientation = q0 + a * (q1 - q0)
+                orientation = orientation / wp.length(orientation)
+            else:
+                theta = wp.acos(dot)
+                orientation = (wp.sin((hi(1.0) - a) * theta) * q0 + wp.sin(a * theta) * q1) / wp.sin(theta)
+        else:
+            angle = wp.length(w0) * tau
+            if angle >= hi(1.0e-15):
+                axis = w0 / wp.length(w0)
+                half = hi(0.5) * angle
+                turn = vec4_hi(wp.cos(half), wp.sin(half) * axis[0], wp.sin(half) * axis[1], wp.sin(half) * axis[2])
+                orientation = quaternion_product(turn, q0)
+                orientation = orientation / wp.length(orientation)
+        position_out[b] = position
+        rotation_out[b] = rotation_of(orientation)
+        velocity_out[b] = velocity
+        angular_velocity_out[b] = spin
+
+    @kernel
+    def next_step(step: wp.array(dtype=wp.int32)):
+        """Count a step of the path."""
+        step[0] = step[0] + 1
+
+    return dict(follow_path=follow_path, next_step=next_step)
 
 
 class SoilControl:
@@ -79,6 +197,14 @@ class SoilControl:
         """Device copy of boundary_load_host [N], shape (boundary_count,)."""
         self.boundary_damping = wp.zeros(nb, dtype=scalar, device=device)
         """Device copy of boundary_damping_host [N s/m], shape (boundary_count,)."""
+        self.external_force_used = False
+        """Whether external_force is applied (set_external_force); when False the kernels skip it."""
+        self.body_path = wp.zeros((body_count, PATH_COLUMNS), dtype=scalar, device=device)
+        """The bodies' path over a macro step (set_body_path), shape (body_count, PATH_COLUMNS), on the device."""
+        self.path_step = wp.zeros(1, dtype=wp.int32, device=device)
+        """Steps taken along the path so far [-], shape (1,), int32 (counted on the device)."""
+        self.path_active = False
+        """True while the bodies follow body_path (the steps then pose them on the device)."""
         self._dirty = body_count > 0 or nb > 0  # host copies changed since the last push()
 
     @classmethod
@@ -94,6 +220,70 @@ class SoilControl:
     @property
     def boundary_count(self) -> int:
         return len(self.boundary_mode_host)
+
+    def set_external_force(self, force) -> None:
+        """Extra force on every particle [N], shape (particle_count, 3), model order (None: none)."""
+        if force is None:
+            self.external_force.zero_()
+            self.external_force_used = False
+            return
+        force = np.asarray(force, dtype=np.float64)
+        if force.shape != tuple(self.external_force.shape) + (3,) or not np.all(np.isfinite(force)):
+            raise ValueError(f"external force must be finite, shape ({self.external_force.shape[0]}, 3) [N], "
+                             f"got shape {force.shape}")
+        self.external_force.assign(force.astype(self.external_force.numpy().dtype))
+        self.external_force_used = bool(np.any(force))
+
+    def set_body_path(self, span: float, position, orientation, velocity, angular_velocity, end=None) -> None:
+        """Let every body follow a path over the next `span` [s], posed on the device at each step:
+        with constant velocity and angular velocity from the start pose (end None), or
+        interpolated towards `end` = (position, orientation, velocity, angular_velocity) (linear,
+        orientation by slerp). Arrays: position [m] (body_count, 3), orientation quaternion
+        (w, x, y, z) (body_count, 4), velocity [m/s] (body_count, 3), angular velocity [rad/s]
+        (body_count, 3), world frame. One copy to the device; the host copies of the motion
+        (body_*_host) are set to the path's end. Ends with set_body_motion or clear_body_path.
+        """
+        count = self.body_count
+        start = [np.asarray(a, dtype=np.float64).reshape(count, width)
+                 for a, width in zip((position, orientation, velocity, angular_velocity), (3, 4, 3, 3))]
+        finish = start if end is None else [np.asarray(a, dtype=np.float64).reshape(count, width)
+                                            for a, width in zip(end, (3, 4, 3, 3))]
+        rows = np.zeros((count, PATH_COLUMNS))
+        rows[:, :13] = np.hstack(start)
+        rows[:, 13:26] = np.hstack(finish)
+        rows[:, 26] = span
+        rows[:, 27] = 0.0 if end is None else 1.0
+        self.body_path.assign(rows.astype(np.float64 if self.body_path.dtype is wp.float64 else np.float32))
+        self.path_step.zero_()
+        self.path_active = True
+        for b in range(count):
+            p0, q0, v0, w0 = (part[b] for part in start)
+            if end is None:
+                pose = (p0 + v0 * span, quaternion_integrate(q0, w0, span), v0, w0)
+            else:
+                pose = tuple(part[b] for part in finish)
+            self.body_position_host[b] = pose[0]
+            self.body_rotation_host[b] = quaternion_to_matrix(pose[1])
+            self.body_velocity_host[b] = pose[2]
+            self.body_angular_velocity_host[b] = pose[3]
+
+    def clear_body_path(self) -> None:
+        """Stop following the path: the device poses are the host copies again (at the next push)."""
+        self.path_active = False
+        self._dirty = True
+
+    def follow_path(self, dt: float) -> None:
+        """Pose the bodies for the end of the path's next step of length dt [s] (on the device; capturable)."""
+        kernels = path_kernels(self.body_path.dtype)
+        wp.launch(kernels.follow_path, dim=self.body_count, inputs=[self.body_path, self.path_step,
+                                                                     self.body_path.dtype(dt)],
+                  outputs=[self.body_position, self.body_rotation, self.body_velocity, self.body_angular_velocity],
+                  device=self.body_path.device)
+
+    def count_path_step(self) -> None:
+        """Count the step just taken along the path (on the device; capturable)."""
+        wp.launch(path_kernels(self.body_path.dtype).next_step, dim=1, inputs=[self.path_step],
+                  device=self.body_path.device)
 
     def set_body_motion(self, body: int, position=None, orientation=None, velocity=None, angular_velocity=None,
                         rotation=None) -> None:
@@ -111,6 +301,7 @@ class SoilControl:
             self.body_velocity_host[body] = velocity
         if angular_velocity is not None:
             self.body_angular_velocity_host[body] = angular_velocity
+        self.path_active = False
         self._dirty = True
 
     # -- boundaries --------------------------------------------------------------------
@@ -189,12 +380,12 @@ class SoilControl:
         self._dirty = True
 
     def push(self) -> None:
-        """Send the host motion to the device (only when it changed)."""
+        """Send the host motion to the device (only when it changed; between steps, never inside one)."""
         if not self._dirty:
             return
         dtype = self.body_position.dtype._wp_scalar_type_
         np_type = np.float64 if dtype is wp.float64 else np.float32
-        if self.body_count:
+        if self.body_count and not self.path_active:
             self.body_position.assign(self.body_position_host.astype(np_type))
             self.body_rotation.assign(self.body_rotation_host.astype(np_type))
             self.body_velocity.assign(self.body_velocity_host.astype(np_type))
@@ -217,6 +408,7 @@ class SoilControl:
         without _host) and external_force [N] (particle_count, 3)."""
         data = {name: getattr(self, f"{name}_host").copy() for name in self._HOST}
         data["external_force"] = self.external_force.numpy().copy()  # a view on the CPU otherwise
+        data["external_force_used"] = np.bool_(self.external_force_used)
         return data
 
     def load_state_dict(self, data: dict) -> None:
@@ -232,4 +424,6 @@ class SoilControl:
             raise ValueError(f"control.external_force: saved {force.shape[0]} particles, the model has "
                              f"{self.external_force.shape[0]}")
         self.external_force.assign(force.astype(self.external_force.numpy().dtype, copy=False))
+        self.external_force_used = bool(data.get("external_force_used", np.any(force)))
+        self.path_active = False
         self._dirty = True

@@ -13,3 +13,11 @@ class RegolithError(Exception):
 
 class RegolithWarning(UserWarning):
     """Base class of every regolith-cosim warning (filter them all with this class)."""
+
+
+class SoilInputError(RegolithError, ValueError):
+    """Bad input to the soil API (a builder argument, a step, a setting): the message names it and what is allowed."""
+
+
+class OverlapWarning(RegolithWarning):
+    """Grains were created deep inside each other: their first contact throws them apart."""

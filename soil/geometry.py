@@ -58,7 +58,7 @@ class GrouserWheel:
         return math.hypot(self.outer_radius, 0.5 * self.width)
 
     def shape_row(self) -> list[float]:
-        """The kernel's geometry row (see soil.kernels wheel_contact)."""
+        """The kernel's geometry row (see soil.sdf wheel_distance)."""
         return [self.radius, 0.5 * self.width, float(self.grouser_count), self.grouser_height,
                 self.grouser_thickness, self.bounding_radius]
 
@@ -155,7 +155,7 @@ class MeshWheel:
         return float(np.hypot(self.vertices[:, 0], self.vertices[:, 2]).max())
 
     @classmethod
-    def load(cls, path: str | os.PathLike, scale: float = 1.0) -> "MeshWheel":
+    def load(cls, path: str | os.PathLike, scale: float = 1.0) -> MeshWheel:
         """Load an OBJ or STL file (units: metres times `scale`), axle along the file's Y axis."""
         path = os.fspath(path)
         extension = os.path.splitext(path)[1].lower()

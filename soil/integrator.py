@@ -1,13 +1,15 @@
-"""Time integrators. Every integrator has step(model, state_in, state_out, control, dt, contacts).
+"""Time integrators and their kernels. Every integrator has
+step(model, state_in, state_out, control, dt, contacts), which only launches device work
+(no host read, no allocation): a step can be captured into a graph and replayed.
 
 - VelocityVerlet: plain explicit velocity Verlet, fixed step.
-- JoltBeeman: the jolt-Beeman predictor-corrector (DESIGN.md section 3), one force
+- JoltBeeman: the jolt-Beeman predictor-corrector (docs/physics.md section 2), one force
   evaluation per step, with the predictor/corrector gap as local error estimate; used
   with a fixed step (Simulation.run) or with the PID StepController
-  (Simulation.run_adaptive).
-"""
+  (Simulation.run_adaptive), whose error norm is reduced on the device.
 
-from __future__ import annotations
+No `from __future__ import annotations` here: Warp reads the kernels' annotations as types.
+"""
 
 import math
 from dataclasses import dataclass, field, fields
@@ -16,19 +18,293 @@ import numpy as np
 import warp as wp
 
 from . import boundaries
+from . import status as status_columns
+from .contact import ContactLaw
 from .control import SoilControl
-from .integrator_kernels import (
-    SUMMARY_COLUMNS,
-    SUMMARY_NONFINITE,
-    SUMMARY_POSITION_GAP,
-    SUMMARY_SPEED,
-    SUMMARY_VELOCITY_GAP,
-    SUMMARY_WORST,
-    make_integrator_kernels,
-)
 from .model import SoilModel
+from .precision import kernel_factory, kernel_module, soil_kernel
 from .solver import ContactSolver
 from .state import SoilState
+
+CHUNK = 256
+"""Grains per partial sum of the error norm (fixed: the reduction is deterministic)."""
+
+# Columns of the per-step summary of JoltBeeman (shape (SUMMARY_COLUMNS,), dtype hi).
+SUMMARY_POSITION_GAP = 0
+"""max_i |x_corrected - x_predicted| / r_i [-]."""
+SUMMARY_VELOCITY_GAP = 1
+"""max_i max(|v_corr - v_pred|, r_i |w_corr - w_pred|) [m/s]."""
+SUMMARY_SPEED = 2
+"""max_i max(|v_i|, r_i |w_i|) after the step [m/s]."""
+SUMMARY_NONFINITE = 3
+"""1 if any position, velocity or spin is NaN/inf after the step, else 0."""
+SUMMARY_WORST = 4
+"""Model index of a particle with a non-finite state (when flagged), else -1."""
+SUMMARY_RMS = 5
+"""sqrt(mean_i e_i^2) of the per-grain error e_i (StepController) [-]."""
+SUMMARY_MAX = 6
+"""max_i e_i [-]."""
+SUMMARY_STATUS = 7
+"""First of the columns holding the step status (soil.status) after the step."""
+SUMMARY_COLUMNS = SUMMARY_STATUS + status_columns.COLUMNS
+
+
+@kernel_factory
+def integrator_kernels(hi, lo, law: ContactLaw):
+    """The velocity-Verlet and jolt-Beeman kernels for precision types (hi, lo)."""
+    kernel = soil_kernel(kernel_module("integrator", hi, lo, law))
+    vec_hi = wp.types.vector(3, hi)
+
+    @wp.func
+    def acceleration_of(force: vec_hi, inv_mass: lo, gravity: vec_hi):
+        """Acceleration [m/s^2] of a grain under `force`; fixed grains (inv_mass 0) feel no gravity."""
+        inv_m = hi(inv_mass)
+        acceleration = force * inv_m
+        if inv_m > hi(0.0):
+            acceleration = acceleration + gravity
+        return acceleration
+
+    @wp.func
+    def flag_nonfinite(x: vec_hi, v: vec_hi, w: vec_hi, grain: int, status_out: wp.array(dtype=wp.int32)):
+        """Mark a non-finite grain in the status (max of model indices: order-independent)."""
+        if not (wp.isfinite(x) and wp.isfinite(v) and wp.isfinite(w)):
+            status_out[status_columns.NONFINITE] = 1
+            wp.atomic_max(status_out, status_columns.WORST, grain)
+
+    @wp.func
+    def backward_step(a: vec_hi, a_previous: vec_hi, ratio: hi):
+        """Acceleration one step of the NEW length dt before t, with constant jolt.
+
+        The jolt is (a - a_previous) / dt_previous; extrapolated back by dt it gives
+        a(t - dt) = a - (dt / dt_previous) (a - a_previous). With this `a_minus` the
+        fixed-step Beeman formulas are exact for a constant jolt at any step ratio.
+        ratio = 0 (no history) means zero jolt: a_minus = a.
+        """
+        return a - ratio * (a - a_previous)
+
+    @kernel
+    def kick_drift(
+        x_in: wp.array(dtype=vec_hi),
+        v_in: wp.array(dtype=vec_hi),
+        w_in: wp.array(dtype=vec_hi),
+        force_in: wp.array(dtype=vec_hi),
+        torque_in: wp.array(dtype=vec_hi),
+        inv_mass: wp.array(dtype=lo),
+        inv_inertia: wp.array(dtype=lo),
+        gravity: vec_hi,
+        dt: hi,
+        # outputs
+        x_out: wp.array(dtype=vec_hi),
+        v_out: wp.array(dtype=vec_hi),
+        w_out: wp.array(dtype=vec_hi),
+    ):
+        """Velocity Verlet, first half: half kick with the old forces, then a full drift."""
+        i = wp.tid()
+        v_half = v_in[i] + hi(0.5) * dt * acceleration_of(force_in[i], inv_mass[i], gravity)
+        v_out[i] = v_half
+        w_out[i] = w_in[i] + hi(0.5) * dt * hi(inv_inertia[i]) * torque_in[i]
+        x_out[i] = x_in[i] + dt * v_half
+
+    @kernel
+    def kick(
+        force_in: wp.array(dtype=vec_hi),
+        torque_in: wp.array(dtype=vec_hi),
+        inv_mass: wp.array(dtype=lo),
+        inv_inertia: wp.array(dtype=lo),
+        order: wp.array(dtype=wp.int32),
+        x_in: wp.array(dtype=vec_hi),
+        gravity: vec_hi,
+        dt: hi,
+        # in/out
+        v_io: wp.array(dtype=vec_hi),
+        w_io: wp.array(dtype=vec_hi),
+        status_out: wp.array(dtype=wp.int32),
+    ):
+        """Velocity Verlet, second half kick with the new forces; flags a non-finite grain."""
+        i = wp.tid()
+        v = v_io[i] + hi(0.5) * dt * acceleration_of(force_in[i], inv_mass[i], gravity)
+        w = w_io[i] + hi(0.5) * dt * hi(inv_inertia[i]) * torque_in[i]
+        v_io[i] = v
+        w_io[i] = w
+        flag_nonfinite(x_in[i], v, w, order[i], status_out)
+
+    @kernel
+    def beeman_predict(
+        x_in: wp.array(dtype=vec_hi),
+        v_in: wp.array(dtype=vec_hi),
+        w_in: wp.array(dtype=vec_hi),
+        force_in: wp.array(dtype=vec_hi),
+        torque_in: wp.array(dtype=vec_hi),
+        force_previous_in: wp.array(dtype=vec_hi),
+        torque_previous_in: wp.array(dtype=vec_hi),
+        step_previous_in: wp.array(dtype=hi),
+        inv_mass: wp.array(dtype=lo),
+        inv_inertia: wp.array(dtype=lo),
+        gravity: vec_hi,
+        dt: hi,
+        # outputs
+        x_out: wp.array(dtype=vec_hi),
+        v_out: wp.array(dtype=vec_hi),
+        w_out: wp.array(dtype=vec_hi),
+        force_previous_out: wp.array(dtype=vec_hi),
+        torque_previous_out: wp.array(dtype=vec_hi),
+        step_previous_out: wp.array(dtype=hi),
+    ):
+        """Explicit jolt-Beeman prediction (no force evaluation).
+
+        x+ = x + v dt + (4 a - a_minus) dt^2 / 6   (Beeman; = Taylor with constant jolt)
+        v_pred = v + (3 a - a_minus) dt / 2        (Taylor with constant jolt; the forces
+                                                    of the new state see this velocity)
+        """
+        i = wp.tid()
+        h_prev = step_previous_in[0]
+        ratio = hi(0.0)
+        if h_prev > hi(0.0):
+            ratio = dt / h_prev
+        inv_i = hi(inv_inertia[i])
+        a = acceleration_of(force_in[i], inv_mass[i], gravity)
+        a_minus = backward_step(a, acceleration_of(force_previous_in[i], inv_mass[i], gravity), ratio)
+        alpha = torque_in[i] * inv_i
+        alpha_minus = backward_step(alpha, torque_previous_in[i] * inv_i, ratio)
+        v = v_in[i]
+        x_out[i] = x_in[i] + dt * v + (dt * dt / hi(6.0)) * (hi(4.0) * a - a_minus)
+        v_out[i] = v + (hi(0.5) * dt) * (hi(3.0) * a - a_minus)
+        w_out[i] = w_in[i] + (hi(0.5) * dt) * (hi(3.0) * alpha - alpha_minus)
+        force_previous_out[i] = force_in[i]
+        torque_previous_out[i] = torque_in[i]
+        if i == 0:
+            step_previous_out[0] = dt
+
+    @kernel
+    def beeman_correct(
+        v_in: wp.array(dtype=vec_hi),
+        w_in: wp.array(dtype=vec_hi),
+        x_new: wp.array(dtype=vec_hi),
+        force_in: wp.array(dtype=vec_hi),
+        torque_in: wp.array(dtype=vec_hi),
+        force_previous_in: wp.array(dtype=vec_hi),
+        torque_previous_in: wp.array(dtype=vec_hi),
+        step_previous_in: wp.array(dtype=hi),
+        force_new: wp.array(dtype=vec_hi),
+        torque_new: wp.array(dtype=vec_hi),
+        inv_mass: wp.array(dtype=lo),
+        inv_inertia: wp.array(dtype=lo),
+        radius: wp.array(dtype=lo),
+        order: wp.array(dtype=wp.int32),
+        gravity: vec_hi,
+        dt: hi,
+        # outputs
+        v_out: wp.array(dtype=vec_hi),
+        w_out: wp.array(dtype=vec_hi),
+        gaps_out: wp.array2d(dtype=hi),
+        status_out: wp.array(dtype=wp.int32),
+    ):
+        """Beeman correction with the new forces, and the predictor/corrector gap.
+
+        v+ = v + (2 a+ + 5 a - a_minus) dt / 6. The gap to the prediction is
+        v+ - v_pred = (a+ - 2 a + a_minus) dt / 3 (a second difference: O(dt^3) where
+        the motion is smooth); the position the new acceleration would give,
+        x + v dt + (a+ + 2 a) dt^2 / 6, differs from the predicted x+ by half that
+        times dt. Positions stay as predicted, so the new forces belong to them.
+        """
+        i = wp.tid()
+        h_prev = step_previous_in[0]
+        ratio = hi(0.0)
+        if h_prev > hi(0.0):
+            ratio = dt / h_prev
+        inv_i = hi(inv_inertia[i])
+        a = acceleration_of(force_in[i], inv_mass[i], gravity)
+        a_minus = backward_step(a, acceleration_of(force_previous_in[i], inv_mass[i], gravity), ratio)
+        a_plus = acceleration_of(force_new[i], inv_mass[i], gravity)
+        alpha = torque_in[i] * inv_i
+        alpha_minus = backward_step(alpha, torque_previous_in[i] * inv_i, ratio)
+        alpha_plus = torque_new[i] * inv_i
+        v = v_in[i] + (dt / hi(6.0)) * (hi(2.0) * a_plus + hi(5.0) * a - a_minus)
+        w = w_in[i] + (dt / hi(6.0)) * (hi(2.0) * alpha_plus + hi(5.0) * alpha - alpha_minus)
+        v_out[i] = v
+        w_out[i] = w
+
+        r = hi(radius[i])
+        velocity_gap = wp.length(a_plus - hi(2.0) * a + a_minus) * dt / hi(3.0)
+        spin_gap = wp.length(alpha_plus - hi(2.0) * alpha + alpha_minus) * dt / hi(3.0) * r
+        gaps_out[i, 0] = hi(0.5) * dt * velocity_gap / r  # per grain, for the error norm
+        gaps_out[i, 1] = wp.max(velocity_gap, spin_gap)
+        flag_nonfinite(x_new[i], v, w, order[i], status_out)
+
+    @wp.func
+    def grain_error(gaps: wp.array2d(dtype=hi), i: int, position_weight: hi, scale: hi):
+        """e_i = max(w |dx_i| / r_i, |dv_i| / V) (StepController), inf for a non-finite gap."""
+        velocity = gaps[i, 1]
+        e = hi(0.0)
+        if scale > hi(0.0):
+            e = velocity / scale
+        elif velocity > hi(0.0):
+            e = hi(wp.inf)
+        e = wp.max(e, position_weight * gaps[i, 0])
+        if not wp.isfinite(e):
+            e = hi(wp.inf)
+        return e
+
+    @kernel
+    def norm_partial(gaps: wp.array2d(dtype=hi), v_in: wp.array(dtype=vec_hi), w_in: wp.array(dtype=vec_hi),
+                     radius: wp.array(dtype=lo), slot: wp.array(dtype=wp.int32), summary: wp.array(dtype=hi),
+                     position_weight: hi, pass_index: int, chunk: int,
+                     partial_out: wp.array2d(dtype=hi)):
+        """Per chunk of model indices (a fixed order): pass 0 the maxima of the gaps and of the
+        speed; pass 1 the sum of e_i^2 and max e_i with the scale found by pass 0."""
+        c = wp.tid()
+        first = hi(0.0)
+        second = hi(0.0)
+        third = hi(0.0)
+        scale = summary[SUMMARY_RMS]  # pass 1: the scale, parked there by norm_total's pass 0
+        for p in range(c * chunk, wp.min(c * chunk + chunk, slot.shape[0])):
+            i = slot[p]
+            if pass_index == 0:
+                first = wp.max(first, gaps[i, 0])
+                second = wp.max(second, gaps[i, 1])
+                third = wp.max(third, wp.max(wp.length(v_in[i]), hi(radius[i]) * wp.length(w_in[i])))
+            else:
+                e = grain_error(gaps, i, position_weight, scale)
+                first = first + e * e
+                second = wp.max(second, e)
+        partial_out[c, 0] = first
+        partial_out[c, 1] = second
+        partial_out[c, 2] = third
+
+    @kernel
+    def norm_total(partial: wp.array2d(dtype=hi), status: wp.array(dtype=wp.int32), scale_floor: hi,
+                   use_speed: int, pass_index: int, count: int, summary_out: wp.array(dtype=hi)):
+        """Fold the chunks in order into the summary (pass 0: maxima, and the velocity scale
+        V = max(scale_floor, speed) parked in SUMMARY_RMS; pass 1: the RMS and the maximum)."""
+        first = hi(0.0)
+        second = hi(0.0)
+        third = hi(0.0)
+        for c in range(partial.shape[0]):
+            if pass_index == 0:
+                first = wp.max(first, partial[c, 0])
+                second = wp.max(second, partial[c, 1])
+                third = wp.max(third, partial[c, 2])
+            else:
+                first = first + partial[c, 0]
+                second = wp.max(second, partial[c, 1])
+        if pass_index == 0:
+            summary_out[SUMMARY_POSITION_GAP] = first
+            summary_out[SUMMARY_VELOCITY_GAP] = second
+            summary_out[SUMMARY_SPEED] = third
+            summary_out[SUMMARY_NONFINITE] = hi(status[status_columns.NONFINITE])
+            summary_out[SUMMARY_WORST] = hi(status[status_columns.WORST])
+            for column in range(status_columns.COLUMNS):
+                summary_out[SUMMARY_STATUS + column] = hi(status[column])
+            scale = scale_floor
+            if use_speed != 0:
+                scale = wp.max(scale_floor, third)
+            summary_out[SUMMARY_RMS] = scale
+        else:
+            summary_out[SUMMARY_RMS] = wp.sqrt(first / hi(count))
+            summary_out[SUMMARY_MAX] = second
+
+    return dict(kick_drift=kick_drift, kick=kick, beeman_predict=beeman_predict, beeman_correct=beeman_correct,
+                norm_partial=norm_partial, norm_total=norm_total, acceleration_of=acceleration_of)
 
 
 class VelocityVerlet:
@@ -40,22 +316,27 @@ class VelocityVerlet:
 
     name = "verlet"
 
+    def bind(self, model: SoilModel) -> None:
+        """Allocate what the steps need (before a step is captured)."""
+
     def step(self, model: SoilModel, state_in: SoilState, state_out: SoilState, control: SoilControl,
              dt: float, contacts: ContactSolver) -> None:
         prec = model.precision
+        kernels = integrator_kernels(prec.hi, prec.lo, model.law)
         gravity = prec.vec_hi(*model.gravity)
         hi_dt = prec.hi(dt)
-        control.push()  # the boundaries move with this step's control
-        wp.launch(contacts.kernels["kick_drift"], dim=model.particle_count,
+        layout = state_in.layout
+        wp.launch(kernels.kick_drift, dim=model.particle_count,
                   inputs=[state_in.position, state_in.velocity, state_in.angular_velocity, state_in.force,
-                          state_in.torque, model.inv_mass, model.inv_inertia, gravity, hi_dt],
+                          state_in.torque, layout.inv_mass, layout.inv_inertia, gravity, hi_dt],
                   outputs=[state_out.position, state_out.velocity, state_out.angular_velocity],
                   device=model.device)
         boundaries.verlet_first_half(model, state_in, state_out, control, dt)
         contacts.compute(state_in, state_out, control, dt)
-        wp.launch(contacts.kernels["kick"], dim=model.particle_count,
-                  inputs=[state_out.force, state_out.torque, model.inv_mass, model.inv_inertia, gravity, hi_dt],
-                  outputs=[state_out.velocity, state_out.angular_velocity], device=model.device)
+        wp.launch(kernels.kick, dim=model.particle_count,
+                  inputs=[state_out.force, state_out.torque, layout.inv_mass, layout.inv_inertia, layout.order,
+                          state_out.position, gravity, hi_dt],
+                  outputs=[state_out.velocity, state_out.angular_velocity, contacts.status], device=model.device)
         boundaries.verlet_second_half(model, state_out, control, dt)
         # Verlet keeps no multi-step history: a jolt-Beeman step after it starts afresh (zero jolt)
         state_out.step_previous.zero_()
@@ -84,9 +365,9 @@ class JoltBeeman:
 
     Local error estimate (the predictor/corrector gap), per particle:
     |v+ - v_pred| = |a+ - 2 a + a_minus| dt/3 [m/s] (and r |w+ - w_pred| for the spin),
-    and the position gap dt/2 of that, divided by the radius [-]. After each step the
-    maxima are in `summary` (device array, see soil.integrator_kernels SUMMARY_*);
-    `read_summary()` copies them to the host.
+    and the position gap dt/2 of that, divided by the radius [-], in `gaps`.
+    `read_summary()` reduces them on the device (chunks in model-index order, so the norm
+    does not depend on the storage order) and reads the result once.
     """
 
     name = "jolt-beeman"
@@ -95,59 +376,88 @@ class JoltBeeman:
 
     def __init__(self):
         self.gaps = None
-        """Per-particle gaps of the last step: [position gap / r, velocity gap m/s], shape
-        (particle_count, 2), dtype hi (for the RMS error norm)."""
+        """Per-grain gaps of the last step, storage order: [position gap / r, velocity gap m/s],
+        shape (particle_count, 2), dtype hi."""
         self.summary = None
-        """Per-step maxima [position gap / r, velocity gap m/s, speed m/s, non-finite flag, index],
-        shape (SUMMARY_COLUMNS,), dtype hi, on the model's device."""
+        """Reductions of the last read_summary (columns SUMMARY_*), shape (SUMMARY_COLUMNS,), dtype hi."""
+        self._partial = None
+        self._model = None
+
+    def bind(self, model: SoilModel) -> None:
+        """Allocate what the steps need (before a step is captured)."""
+        n = model.particle_count
+        if self.gaps is not None and self.gaps.shape[0] == n and self.gaps.device == wp.get_device(model.device) \
+                and self.gaps.dtype == model.precision.hi:
+            self._model = model
+            return
+        self._model = model
+        self.summary = wp.zeros(SUMMARY_COLUMNS, dtype=model.precision.hi, device=model.device)
+        self.gaps = wp.zeros((n, 2), dtype=model.precision.hi, device=model.device)
+        self._partial = wp.zeros(((n + CHUNK - 1) // CHUNK, 3), dtype=model.precision.hi, device=model.device)
 
     def step(self, model: SoilModel, state_in: SoilState, state_out: SoilState, control: SoilControl,
              dt: float, contacts: ContactSolver) -> None:
         prec = model.precision
-        kernels = make_integrator_kernels(prec.hi, prec.lo, model.law)
+        kernels = integrator_kernels(prec.hi, prec.lo, model.law)
         gravity = prec.vec_hi(*model.gravity)
         hi_dt = prec.hi(dt)
         n = model.particle_count
-        if self.summary is None or self.summary.device != wp.get_device(model.device) or self.gaps.shape[0] != n:
-            self.summary = wp.zeros(SUMMARY_COLUMNS, dtype=prec.hi, device=model.device)
-            self.gaps = wp.zeros((n, 2), dtype=prec.hi, device=model.device)
-        control.push()  # the boundaries move with this step's control
-        wp.launch(kernels["beeman_predict"], dim=n,
+        if self._model is not model:
+            self.bind(model)
+        layout = state_in.layout
+        wp.launch(kernels.beeman_predict, dim=n,
                   inputs=[state_in.position, state_in.velocity, state_in.angular_velocity, state_in.force,
                           state_in.torque, state_in.force_previous, state_in.torque_previous,
-                          state_in.step_previous, model.inv_mass, model.inv_inertia, gravity, hi_dt],
+                          state_in.step_previous, layout.inv_mass, layout.inv_inertia, gravity, hi_dt],
                   outputs=[state_out.position, state_out.velocity, state_out.angular_velocity,
                            state_out.force_previous, state_out.torque_previous, state_out.step_previous],
                   device=model.device)
         boundaries.beeman_predict(model, state_in, state_out, control, dt)
         contacts.compute(state_in, state_out, control, dt)
-        self.summary.zero_()
-        wp.launch(kernels["beeman_correct"], dim=n,
+        wp.launch(kernels.beeman_correct, dim=n,
                   inputs=[state_in.velocity, state_in.angular_velocity, state_out.position, state_in.force,
                           state_in.torque, state_in.force_previous, state_in.torque_previous,
-                          state_in.step_previous, state_out.force, state_out.torque, model.inv_mass,
-                          model.inv_inertia, model.radius, gravity, hi_dt],
-                  outputs=[state_out.velocity, state_out.angular_velocity, self.summary, self.gaps],
+                          state_in.step_previous, state_out.force, state_out.torque, layout.inv_mass,
+                          layout.inv_inertia, layout.radius, layout.order, gravity, hi_dt],
+                  outputs=[state_out.velocity, state_out.angular_velocity, self.gaps, contacts.status],
                   device=model.device)
         boundaries.beeman_correct(model, state_in, state_out, control, dt)
         state_out.time = state_in.time + dt
 
-    def read_summary(self) -> dict:
-        """The last step's maxima on the host: position_gap [-] (/ radius), velocity_gap [m/s],
-        speed [m/s], nonfinite (bool), worst (index of a non-finite particle or -1)."""
+    def read_summary(self, state: SoilState, status: wp.array, position_weight: float = 1.0,
+                     scale_floor: float = 1.0, use_speed: bool = False) -> dict:
+        """The last step's error norms, reduced on the device and read once: position_gap [-]
+        (max |dx| / r), velocity_gap [m/s], speed [m/s] (max over grains), nonfinite (bool),
+        worst (model index of a non-finite grain or -1), rms and max of the per-grain error
+        e_i = max(position_weight |dx_i| / r_i, |dv_i| / V), V = max(scale_floor, speed if
+        use_speed) (StepController.error), and status (the step status, soil.status columns)."""
+        model = self._model
+        prec = model.precision
+        kernels = integrator_kernels(prec.hi, prec.lo, model.law)
+        layout = state.layout
+        for pass_index in (0, 1):
+            wp.launch(kernels.norm_partial, dim=self._partial.shape[0],
+                      inputs=[self.gaps, state.velocity, state.angular_velocity, layout.radius, layout.slot,
+                              self.summary, prec.hi(position_weight), pass_index, CHUNK],
+                      outputs=[self._partial], device=model.device)
+            wp.launch(kernels.norm_total, dim=1,
+                      inputs=[self._partial, status, prec.hi(scale_floor), int(use_speed), pass_index,
+                              model.particle_count],
+                      outputs=[self.summary], device=model.device)
         values = self.summary.numpy().astype(np.float64)
         nonfinite = bool(values[SUMMARY_NONFINITE] > 0)
-        return {"gaps": self.gaps.numpy().astype(np.float64),
-                "position_gap": float(values[SUMMARY_POSITION_GAP]),
+        return {"position_gap": float(values[SUMMARY_POSITION_GAP]),
                 "velocity_gap": float(values[SUMMARY_VELOCITY_GAP]),
                 "speed": float(values[SUMMARY_SPEED]),
-                "nonfinite": nonfinite,
-                "worst": int(values[SUMMARY_WORST]) if nonfinite else -1}
+                "nonfinite": nonfinite or not np.isfinite(values[SUMMARY_MAX]),
+                "worst": int(values[SUMMARY_WORST]) if nonfinite else -1,
+                "rms": float(values[SUMMARY_RMS]), "max": float(values[SUMMARY_MAX]),
+                "status": values[SUMMARY_STATUS:].astype(np.int64)}
 
 
 @dataclass
 class StepController:
-    """PID step-size control in Soderlind's form (DESIGN.md section 3) on a NORMALISED error.
+    """PID step-size control in Soderlind's form (docs/physics.md section 2) on a NORMALISED error.
 
     The local error of a step is the jolt-Beeman predictor/corrector gap, made
     dimensionless with the scene's own scales:
@@ -286,25 +596,25 @@ class StepController:
             self.dt = float(np.clip(self.dt_initial or 0.1 * self.dt_max, self.dt_min, self.dt_max))
         self._gravity_speed = math.sqrt(float(np.linalg.norm(model.gravity)) * float(model.radius_numpy().mean()))
 
+    def error_scales(self) -> dict:
+        """How JoltBeeman.read_summary should weigh the per-grain gaps for this controller:
+        position_weight [-], scale_floor [m/s] (the velocity scale V before this step's speed),
+        use_speed (whether V grows with this step's largest speed)."""
+        if not self.normalise:
+            return dict(position_weight=0.0, scale_floor=1.0, use_speed=False)
+        return dict(position_weight=1.0, scale_floor=max(self._gravity_speed, self.speed_seen, self.velocity_scale),
+                    use_speed=True)
+
     def error(self, summary: dict) -> float:
-        """Normalised error [-] of a step from JoltBeeman.read_summary()."""
+        """Normalised error [-] of a step from JoltBeeman.read_summary(**error_scales())."""
         if summary["nonfinite"]:
             return math.inf
-        rms = self.norm == "rms" and "gaps" in summary
-        if not self.normalise:
-            return self._rms_norm(summary["gaps"][:, 1]) if rms else summary["velocity_gap"]
-        self.speed_seen = max(self.speed_seen, summary["speed"])
-        scale = max(self._gravity_speed, self.speed_seen, self.velocity_scale)
-        if rms:
-            gaps = summary["gaps"]
-            per_grain = np.maximum(gaps[:, 0], gaps[:, 1] / scale if scale > 0 else np.where(gaps[:, 1] > 0, np.inf, 0))
-            return self._rms_norm(per_grain)
-        velocity = summary["velocity_gap"] / scale if scale > 0 else (math.inf if summary["velocity_gap"] > 0 else 0.0)
-        return max(summary["position_gap"], velocity)
-
-    def _rms_norm(self, per_grain: np.ndarray) -> float:
-        """RMS over grains, raised to max / grain_factor where one grain stands out (it must not hide)."""
-        return float(max(np.sqrt(np.mean(per_grain**2)), per_grain.max(initial=0.0) / self.grain_factor))
+        if self.normalise:
+            self.speed_seen = max(self.speed_seen, summary["speed"])
+        if self.norm == "max":
+            return summary["max"]
+        # RMS over grains, raised to max / grain_factor where one grain stands out (it must not hide)
+        return max(summary["rms"], summary["max"] / self.grain_factor)
 
     def decide(self, err: float, dt: float) -> tuple[bool, float]:
         """(accept, next step [s]) for a step of length dt [s] with normalised error err."""

@@ -1,4 +1,4 @@
-"""Contact materials and their pairing rules (DESIGN.md section 2)."""
+"""Contact materials and their pairing rules (docs/physics.md section 1)."""
 
 from __future__ import annotations
 
@@ -113,7 +113,7 @@ class Material:
         """G = E / (2 (1 + nu)) [Pa]."""
         return self.youngs_modulus / (2.0 * (1.0 + self.poisson_ratio))
 
-    def with_(self, **changes) -> "Material":
+    def with_(self, **changes) -> Material:
         return replace(self, **changes)
 
 
@@ -122,8 +122,11 @@ def _finite(x) -> bool:
 
 
 # Columns of the pair-parameter table shared by the kernels.
-PAIR_E_STAR, PAIR_G_STAR, PAIR_DAMPING, PAIR_TAN_STICK, PAIR_TAN_SLIP, PAIR_STICK_SPEED, PAIR_ROLLING, PAIR_COHESION = range(8)
-PAIR_COLUMNS = 8
+(PAIR_E_STAR, PAIR_G_STAR, PAIR_DAMPING, PAIR_TAN_STICK, PAIR_TAN_SLIP, PAIR_STICK_SPEED, PAIR_ROLLING,
+ PAIR_COHESION) = range(8)
+PAIR_SHEAR_ROOT = 8
+"""sqrt(k_T / k_N) = sqrt(4 G* / E*) [-]: the tangential damper is this times the normal one."""
+PAIR_COLUMNS = 9
 
 
 @dataclass(frozen=True)
@@ -195,5 +198,7 @@ class MaterialTable:
                 extra = self.overrides.get((min(i, j), max(i, j)))
                 if extra:
                     props = replace(props, **extra)
-                table[i * count + j] = props.row()
+                table[i * count + j, :PAIR_SHEAR_ROOT] = props.row()
+                table[i * count + j, PAIR_SHEAR_ROOT] = math.sqrt(4.0 * props.effective_shear_modulus
+                                                                  / props.effective_modulus)
         return table

@@ -42,7 +42,7 @@ class SoilModel:
     boundary_kind: wp.array
     """Boundary type per boundary (BOUNDARY_PLANE or BOUNDARY_BOX), shape (boundary_count,), int32."""
     boundary_geometry: wp.array
-    """Initial boundary geometry rows [m], shape (boundary_count, 6), dtype hi (see soil.kernels);
+    """Initial boundary geometry rows [m], shape (boundary_count, 6), dtype hi (see soil.sdf);
     a boundary that moves is there displaced by state.boundary_displacement."""
     boundary_material: wp.array
     """Material index per boundary, shape (boundary_count,), int32."""
@@ -58,7 +58,7 @@ class SoilModel:
     body_kind: wp.array = None
     """BODY_WHEEL or BODY_MESH per body, shape (body_count,), int32."""
     body_shape: wp.array = None
-    """Geometry row per body [m], shape (body_count, 6), dtype hi (see soil.kernels)."""
+    """Geometry row per body [m], shape (body_count, 6), dtype hi (see soil.sdf)."""
     body_mesh: wp.array = None
     """Warp mesh id per body (0 for parametric wheels), shape (body_count,), uint64."""
     body_material: wp.array = None

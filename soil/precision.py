@@ -1,4 +1,4 @@
-"""Floating-point precision modes (DESIGN.md section 4).
+"""Floating-point precision modes (docs/physics.md section 3) and the one kernel factory cache.
 
 `hi` is the type of everything where rounding accumulates: absolute positions and
 their updates, velocities, force/torque sums, contact history, wheel wrench sums.
@@ -7,11 +7,18 @@ their updates, velocities, force/torque sums, contact history, wheel wrench sums
 - single: hi = lo = float32
 - double: hi = lo = float64
 - mixed:  hi = float64, lo = float32
+
+One generic source serves every precision: a module's kernels are made by a factory
+function of (hi, lo, switches) decorated with `kernel_factory`, which builds them once
+per combination and returns them as attributes (`kernels.contact_forces`).
 """
 
 from __future__ import annotations
 
+import dataclasses
+import functools
 from dataclasses import dataclass
+from types import SimpleNamespace
 
 import numpy as np
 import warp as wp
@@ -30,12 +37,24 @@ class Precision:
         return wp.types.vector(3, self.hi)
 
     @property
+    def mat_hi(self):
+        return wp.types.matrix((3, 3), self.hi)
+
+    @property
     def np_hi(self):
         return np.float64 if self.hi is wp.float64 else np.float32
 
     @property
     def np_lo(self):
         return np.float64 if self.lo is wp.float64 else np.float32
+
+    @property
+    def hi_bytes(self) -> int:
+        return 8 if self.hi is wp.float64 else 4
+
+    @property
+    def lo_bytes(self) -> int:
+        return 8 if self.lo is wp.float64 else 4
 
 
 def get_precision(name: str) -> Precision:
@@ -49,3 +68,36 @@ def get_precision(name: str) -> Precision:
     if name == "mixed":
         return Precision("mixed", wp.float64, wp.float32)
     raise ValueError(f"precision must be one of {PRECISIONS}, got {name!r}")
+
+
+def kernel_module(name: str, *key) -> str:
+    """The Warp module of one kernel-factory call (e.g. `kernel_module("contact", hi, lo, law)`):
+    its kernels compile together, once per combination."""
+    def part(value):
+        if isinstance(value, type):
+            return value.__name__
+        if dataclasses.is_dataclass(value):
+            return "".join("1" if v else "0" for v in dataclasses.astuple(value))
+        return str(value)
+
+    return "soil_" + "_".join([name] + [part(k) for k in key])
+
+
+def soil_kernel(module: str):
+    """Decorator of the soil's kernels: compiled in `module` (kernel_module), forward only
+    (nothing differentiates through the DEM, so no adjoint code is generated)."""
+    return wp.kernel(module=module, enable_backward=False)
+
+
+def kernel_factory(build):
+    """Cache a factory of Warp functions and kernels per argument tuple (precision types,
+    contact-law switches). The factory returns a dict of its kernels; callers get them as
+    attributes of a namespace, built once per combination."""
+
+    @functools.cache
+    def cached(*args):
+        return SimpleNamespace(**build(*args))
+
+    cached.__doc__ = build.__doc__
+    cached.__name__ = build.__name__
+    return cached

@@ -1,29 +1,145 @@
-"""A soil simulation: model + double-buffered state + control + integrator."""
+"""A soil simulation: model + state buffers + control + integrator, stepped in macro steps.
 
-from __future__ import annotations
+A macro step is a run of fixed DEM steps that stays on the device: each step is captured
+once as a graph (`wp.ScopedCapture`: a CUDA graph on a GPU, Warp's recorded replay on the
+CPU) and replayed; the neighbour-list rebuild is a device-side branch inside it; wheel
+poses along a path and the wheel wrench sums are computed on the device. After the macro
+step the host reads one small report (status flags, storage needs, wheel wrenches). If
+the contact storage overflowed, it grows and the macro step is redone from its start,
+which three rotating state buffers keep untouched, so the result equals a run that had
+enough storage from the start (docs/performance.md).
+"""
 
 import math
+import warnings
+from dataclasses import dataclass
 
 import numpy as np
+import warp as wp
 
-from .control import SoilControl
-from .integrator import JoltBeeman, StepController, VelocityVerlet
-from .kernels import BOUNDARY_BOX
+from . import status as status_columns
+from .boundaries import boundary_kernels
+from .control import SoilControl, path_kernels
+from .errors import RegolithWarning, SoilInputError
+from .integrator import JoltBeeman, StepController, VelocityVerlet, integrator_kernels
 from .model import SoilModel
+from .neighbours import NeighbourList, NeighbourSettings
+from .precision import kernel_factory, kernel_module, soil_kernel
+from .sdf import BOUNDARY_BOX
 from .solver import ContactSolver
 from .stability import DivergenceMonitor, SimulationDiverged  # noqa: F401 (SimulationDiverged re-exported)
-from .state import SoilState
+from .state import GrainLayout, SoilState
+
+REPORT_BOUNDS = status_columns.COLUMNS
+"""Report columns after the status (soil.status): the grains' box at the last list build,
+lower corner [m] (3) then upper corner [m] (3)."""
+REPORT_BODIES = REPORT_BOUNDS + 6
+"""First report column of the bodies: per body the force sum [N] (3) and torque sum [N m] (3)
+over the macro step's steps, force and torque at its end (6), work done on the soil [J] (1),
+grains touching at its end (1); then per boundary its displacement at the end [m] (3)."""
+BODY_COLUMNS = 14
+
+
+class CaptureWarning(RegolithWarning):
+    """The device could not capture a step as a graph; steps are launched one by one."""
+
+
+@kernel_factory
+def macro_kernels(hi):
+    """Kernels of a macro step's bookkeeping for the precision type `hi` (sums in float64)."""
+    kernel = soil_kernel(kernel_module("macro", hi))
+    vec_hi = wp.types.vector(3, hi)
+
+    @kernel
+    def accumulate_wrench(force: wp.array(dtype=vec_hi), torque: wp.array(dtype=vec_hi),
+                          velocity: wp.array(dtype=vec_hi), angular_velocity: wp.array(dtype=vec_hi), dt: wp.float64,
+                          force_sum_out: wp.array(dtype=wp.vec3d), torque_sum_out: wp.array(dtype=wp.vec3d),
+                          work_out: wp.array(dtype=wp.float64)):
+        """Add a step's wrench on body b to the macro step's sums (one thread per body: a fixed
+        order); the soil's force does -F.v - T.w work on the soil side's books."""
+        b = wp.tid()
+        f = wp.vec3d(wp.float64(force[b][0]), wp.float64(force[b][1]), wp.float64(force[b][2]))
+        t = wp.vec3d(wp.float64(torque[b][0]), wp.float64(torque[b][1]), wp.float64(torque[b][2]))
+        v = wp.vec3d(wp.float64(velocity[b][0]), wp.float64(velocity[b][1]), wp.float64(velocity[b][2]))
+        w = wp.vec3d(wp.float64(angular_velocity[b][0]), wp.float64(angular_velocity[b][1]),
+                     wp.float64(angular_velocity[b][2]))
+        force_sum_out[b] = force_sum_out[b] + f
+        torque_sum_out[b] = torque_sum_out[b] + t
+        work_out[b] = work_out[b] - (wp.dot(f, v) + wp.dot(t, w)) * dt
+
+    @kernel
+    def fill_report(status: wp.array(dtype=wp.int32), grid: wp.array(dtype=hi), force_sum: wp.array(dtype=wp.vec3d),
+                    torque_sum: wp.array(dtype=wp.vec3d), work: wp.array(dtype=wp.float64),
+                    force: wp.array(dtype=vec_hi), torque: wp.array(dtype=vec_hi), contacts: wp.array(dtype=wp.int32),
+                    boundary_displacement: wp.array(dtype=vec_hi), report_out: wp.array(dtype=wp.float64)):
+        """Everything the host needs after a macro step, in one array (read once)."""
+        for c in range(status_columns.COLUMNS):
+            report_out[c] = wp.float64(status[c])
+        for axis in range(3):
+            report_out[REPORT_BOUNDS + axis] = wp.float64(grid[axis])
+            report_out[REPORT_BOUNDS + 3 + axis] = wp.float64(grid[6 + axis])
+        for b in range(force.shape[0]):
+            base = REPORT_BODIES + BODY_COLUMNS * b
+            for axis in range(3):
+                report_out[base + axis] = force_sum[b][axis]
+                report_out[base + 3 + axis] = torque_sum[b][axis]
+                report_out[base + 6 + axis] = wp.float64(force[b][axis])
+                report_out[base + 9 + axis] = wp.float64(torque[b][axis])
+            report_out[base + 12] = work[b]
+            report_out[base + 13] = wp.float64(contacts[b])
+        walls = REPORT_BODIES + BODY_COLUMNS * force.shape[0]
+        for b in range(boundary_displacement.shape[0]):
+            for axis in range(3):
+                report_out[walls + 3 * b + axis] = wp.float64(boundary_displacement[b][axis])
+
+    return dict(accumulate_wrench=accumulate_wrench, fill_report=fill_report)
+
+
+@dataclass
+class MacroStepReport:
+    """What a macro step (Simulation.macro_step) returns, read from the device at once.
+
+    Bodies' arrays are world frame, float64, one row per body."""
+
+    steps: int
+    """DEM steps taken [-]."""
+    dt: float
+    """Their length [s]."""
+    body_force: np.ndarray
+    """Mean force of the soil on each body over the steps [N], shape (body_count, 3)."""
+    body_torque: np.ndarray
+    """Mean torque of the soil on each body about its hub [N m], shape (body_count, 3)."""
+    body_force_end: np.ndarray
+    """Force of the soil on each body at the end [N], shape (body_count, 3)."""
+    body_torque_end: np.ndarray
+    """Torque at the end [N m], shape (body_count, 3)."""
+    body_work: np.ndarray
+    """Work done on the soil by each body over the steps [J], shape (body_count,) (sum of -F.v dt - T.w dt)."""
+    body_contacts: np.ndarray
+    """Grains touching each body at the end [-], shape (body_count,), int64."""
+    boundary_displacement: np.ndarray
+    """Translation of each boundary from its initial geometry at the end [m], shape (boundary_count, 3)."""
+    rebuilds: int
+    """Neighbour-list builds during the macro step [-]."""
+    redone: int
+    """How often the macro step was redone after the contact storage grew [-]."""
 
 
 class Simulation:
     """Steps a soil model in time.
 
-    `state` is always the current state; a step writes into a second buffer and swaps,
-    so a step that fails (history overflow, divergence) leaves `state` untouched.
+    `state` is always the current state; a step writes into another buffer and only then
+    becomes current, so a step or macro step that fails (storage overflow, divergence)
+    leaves `state` untouched.
+
+    neighbours: how the neighbour list is kept (soil.neighbours.NeighbourSettings).
+    capture: replay captured graphs of the steps (True, the default) or launch every kernel
+    from the host (for comparison; both give bitwise the same results).
     """
 
     def __init__(self, model: SoilModel, state: SoilState, control: SoilControl | None = None, integrator=None,
-                 monitor: DivergenceMonitor | None = None, checkpoint_path=None):
+                 monitor: DivergenceMonitor | None = None, checkpoint_path=None,
+                 neighbours: NeighbourSettings | None = None, capture: bool = True):
         self.model = model
         self.monitor = monitor or DivergenceMonitor()
         """Divergence checks of run() and run_adaptive() (soil.stability)."""
@@ -37,11 +153,32 @@ class Simulation:
         """Steps accepted at dt_min although their error exceeded the tolerance."""
         self.control = control or SoilControl.for_model(model)
         self.integrator = integrator or VelocityVerlet()
-        self.contacts = ContactSolver(model)
+        self.capture = bool(capture)
+        """Whether steps are replayed from captured graphs."""
+        if state.layout is None:
+            state.layout = GrainLayout(model, state.capacity)
+        state.layout.gather_constants(model)
+        self.status = status_columns.make_status(model.device)
+        """Step status on the device (soil.status), cleared at each macro step."""
+        self.neighbour_list = NeighbourList(model, neighbours, positions=state.position.numpy())
+        self.contacts = ContactSolver(model, self.neighbour_list, self.status)
         self.state = state
-        self._next = SoilState.for_model(model, state.capacity)
+        self._buffers = [state] + [SoilState.for_model(model, state.capacity, state.rigid_capacity, layout=state.layout)
+                                   for _ in range(2)]
         self.steps = 0
         self._controller = None  # run_adaptive's StepController, kept between calls
+        self._graphs: dict = {}
+        self._graph_signature = None
+        self._modules_loaded = False
+        self._rebuilds_since_reorder = 0
+        self._bounds = None
+        device = model.device
+        bodies = max(model.body_count, 1)
+        self._force_sum = wp.zeros(bodies, dtype=wp.vec3d, device=device)
+        self._torque_sum = wp.zeros(bodies, dtype=wp.vec3d, device=device)
+        self._work = wp.zeros(bodies, dtype=wp.float64, device=device)
+        self._report = wp.zeros(REPORT_BODIES + BODY_COLUMNS * model.body_count + 3 * model.boundary_count,
+                                dtype=wp.float64, device=device)
         if not state.forces_valid:  # a restored state keeps its own forces: restarts stay bit-identical
             self.refresh_forces()
 
@@ -50,50 +187,248 @@ class Simulation:
         """Simulated time [s]."""
         return self.state.time
 
+    # -- buffers ---------------------------------------------------------------------
+    def _spares(self) -> list[SoilState]:
+        if not any(b is self.state for b in self._buffers):  # the state was replaced from outside
+            self._buffers = [self.state] + [SoilState.for_model(self.model, self.state.capacity,
+                                                                self.state.rigid_capacity, layout=self.state.layout)
+                                            for _ in range(2)]
+        spares = [b for b in self._buffers if b is not self.state]
+        for spare in spares:
+            spare.layout = self.state.layout
+            spare.grow_capacity(self.state.capacity, self.state.rigid_capacity)
+        return spares
+
+    def _grow(self, capacity: int, rigid_capacity: int) -> None:
+        """Widen the contact storage of every buffer (and the layout) to at least these slots per grain."""
+        capacity = max(capacity, self.state.capacity)
+        rigid_capacity = max(rigid_capacity, self.state.rigid_capacity)
+        for buffer in self._buffers:
+            buffer.grow_capacity(capacity, rigid_capacity)
+
+    def _needs_growth(self, values) -> tuple[int, int] | None:
+        """New (capacity, rigid capacity) if the status shows an overflow, else None (with headroom)."""
+        needed = int(values[status_columns.NEEDED_NEIGHBOURS])
+        rigid = int(values[status_columns.NEEDED_RIGID])
+        if needed <= self.state.capacity and rigid <= self.state.rigid_capacity:
+            return None
+        return (max(self.state.capacity, needed + 4 if needed > self.state.capacity else 0),
+                max(self.state.rigid_capacity, rigid + 1 if rigid > self.state.rigid_capacity else 0))
+
+    def bytes_per_grain(self) -> dict:
+        """Device memory per grain [B]: each state buffer, the layout (order, constants, two
+        neighbour lists), the contact solver's and the list build's scratch, the integrator's,
+        the monitor's last good state, and the total."""
+        n = max(self.model.particle_count, 1)
+        parts = {
+            "state buffers (3)": sum(b.bytes_per_grain() for b in self._buffers),
+            "layout": self.state.layout.bytes_per_grain(),
+            "contact scratch": self.contacts.bytes_per_grain(),
+            "list build scratch": self.neighbour_list.bytes_per_grain(),
+            "integrator": (self.integrator.gaps.capacity / n if getattr(self.integrator, "gaps", None) is not None
+                           else 0.0),
+            "monitor snapshot": self.monitor.bytes_per_grain(),
+        }
+        parts["total"] = sum(parts.values())
+        return parts
+
+    # -- forces without moving ------------------------------------------------------------
     def refresh_forces(self) -> None:
-        """Recompute forces (and contact list) of the current state without moving it."""
+        """Recompute forces (and the contact list) of the current state without moving it."""
+        self.control.push()
         while True:
-            self._next.assign(self.state)
-            self.contacts.compute(self.state, self._next, self.control, 0.0)
-            if not self._overflowed():
+            spare = self._spares()[0]
+            self.contacts.reserve(self.state.rigid_capacity)
+            spare.assign(self.state)
+            status_columns.clear(self.status)
+            self.contacts.compute(self.state, spare, self.control, 0.0)
+            values = self.status.numpy()
+            growth = self._needs_growth(values)
+            if growth is None:
                 break
-        self.state, self._next = self._next, self.state
+            self._grow(*growth)
+        self._rebuilds_since_reorder += int(values[status_columns.REBUILDS])
+        self.state = spare
         self.state.forces_valid = True
 
-    def _overflowed(self) -> bool:
-        if not self.contacts.take_overflow():
-            return False
-        capacity = 2 * self.state.capacity
-        self.state.grow_capacity(capacity)
-        self._next.grow_capacity(capacity)
-        return True
+    # -- macro steps -----------------------------------------------------------------------
+    def _signature(self) -> tuple:
+        """Identity of every array a captured step uses: a graph is valid while it holds."""
+        arrays = []
+        for buffer in self._buffers:
+            arrays += list(buffer.arrays.values()) + [buffer.list_index]
+        arrays += list(self.state.layout.arrays.values())
+        arrays += self.contacts.device_arrays()
+        arrays += [getattr(self.integrator, "gaps", None)]
+        return (tuple(id(b) for b in self._buffers), tuple(None if a is None else a.ptr for a in arrays),
+                self.control.external_force_used, self.neighbour_list.dims)
+
+    def _run_step(self, dt: float, state_in: SoilState, state_out: SoilState, path: bool) -> None:
+        """One DEM step state_in -> state_out: replayed from its graph, or launched."""
+        def body():
+            if path:
+                self.control.follow_path(dt)
+            self.integrator.step(self.model, state_in, state_out, self.control, dt, self.contacts)
+            if self.model.body_count:
+                kernels = macro_kernels(self.model.precision.hi)
+                wp.launch(kernels.accumulate_wrench, dim=self.model.body_count,
+                          inputs=[state_out.body_force, state_out.body_torque, self.control.body_velocity,
+                                  self.control.body_angular_velocity, float(dt)],
+                          outputs=[self._force_sum, self._torque_sum, self._work], device=self.model.device)
+            if path:
+                self.control.count_path_step()
+
+        if self.capture:
+            key = (dt, id(state_in), id(state_out), path, type(self.integrator))
+            entry = self._graphs.get(key)
+            if entry is None:
+                evaluations = self.contacts.evaluations
+                try:
+                    with wp.ScopedCapture(device=self.model.device) as capture:
+                        body()
+                    entry = self._graphs[key] = (capture.graph, self.contacts.evaluations - evaluations)
+                except Exception as error:  # e.g. a GPU driver without conditional graph nodes
+                    warnings.warn(f"steps cannot be captured as graphs on {self.model.device} ({error}); launching "
+                                  "them one by one", CaptureWarning, stacklevel=3)
+                    self.capture = False
+                    self._graphs.clear()
+                self.contacts.evaluations = evaluations  # counted when the graph runs
+            if entry is not None:
+                graph, evaluations = entry
+                wp.capture_launch(graph)
+                self.contacts.evaluations += evaluations
+                state_out.time = state_in.time + dt
+                return
+        body()
+        state_out.time = state_in.time + dt
+
+    def _load_modules(self) -> None:
+        """Load (compile) every module a step uses before a graph is captured: a GPU driver older
+        than CUDA 12.3 cannot load modules during a capture."""
+        if self._modules_loaded or not wp.get_device(self.model.device).is_cuda:
+            return
+        prec = self.model.precision
+        namespaces = [integrator_kernels(prec.hi, prec.lo, self.model.law), boundary_kernels(prec.hi),
+                      path_kernels(prec.hi), macro_kernels(prec.hi), self.contacts.kernels, self.neighbour_list.kernels]
+        modules = {value.module for space in namespaces for value in vars(space).values()
+                   if isinstance(value, wp.Kernel)}
+        for module in modules:
+            module.load(wp.get_device(self.model.device))
+        self._modules_loaded = True
+
+    def _prepare(self) -> None:
+        """Allocate everything a captured step touches, and drop graphs whose arrays changed."""
+        self._load_modules()
+        self._spares()
+        self.contacts.reserve(self.state.rigid_capacity)
+        self.integrator.bind(self.model)
+        signature = self._signature()
+        if signature != self._graph_signature:
+            self._graphs.clear()
+            self._graph_signature = signature
+
+    def _maybe_reorder(self) -> None:
+        """Between macro steps: move the grains into the list's curve order when it was rebuilt
+        (and re-plan the grid when the grains' box has outgrown it)."""
+        neighbours = self.neighbour_list
+        if self._bounds is not None and neighbours.wants_plan(*self._bounds):
+            neighbours.plan(np.vstack(self._bounds))
+            self._bounds = None
+        if not neighbours.reorder_enabled or self._rebuilds_since_reorder < neighbours.settings.reorder_every:
+            return
+        spare = self._spares()[0]
+        neighbours.reorder(self.state, spare)
+        self.state = spare
+        self._rebuilds_since_reorder = 0
+
+    def macro_step(self, steps: int, dt: float, path: bool = False) -> MacroStepReport:
+        """Advance by `steps` fixed steps of dt [s], on the device, with one read at the end.
+
+        path: the bodies follow the path set by control.set_body_path (posed on the device
+        at each step); otherwise they keep the motion the control holds. Raises
+        SimulationDiverged if a grain's state became non-finite (the state is then the last
+        step's, for the report).
+        """
+        steps = _check_count(steps, "steps")
+        dt = _check_step(dt)
+        self._maybe_reorder()
+        if not path:
+            self.control.path_active = False
+        self.control.push()
+        model = self.model
+        redone = 0
+        start = self.state
+        while True:
+            self._prepare()
+            spares = self._spares()
+            status_columns.clear(self.status)
+            for array in (self._force_sum, self._torque_sum, self._work):
+                array.zero_()
+            if path:
+                self.control.path_step.zero_()
+            self.neighbour_list.save(start)
+            current = start
+            for k in range(steps):
+                target = spares[k % 2]
+                self._run_step(dt, current, target, path)
+                current = target
+            kernels = macro_kernels(model.precision.hi)
+            wp.launch(kernels.fill_report, dim=1,
+                      inputs=[self.status, self.neighbour_list.grid, self._force_sum, self._torque_sum, self._work,
+                              current.body_force, current.body_torque, current.body_contacts,
+                              current.boundary_displacement],
+                      outputs=[self._report], device=model.device)
+            values = self._report.numpy().copy()  # the one read of the macro step
+            growth = self._needs_growth(values)
+            if growth is None:
+                break
+            self.neighbour_list.restore(start)
+            self._grow(*growth)
+            redone += 1
+        self.state = current
+        self.state.forces_valid = True
+        self.steps += steps
+        rebuilds = int(values[status_columns.REBUILDS])
+        self._rebuilds_since_reorder += rebuilds
+        self._bounds = (values[REPORT_BOUNDS:REPORT_BOUNDS + 3], values[REPORT_BOUNDS + 3:REPORT_BOUNDS + 6])
+        if values[status_columns.NONFINITE] > 0:
+            self.monitor.fail(self, "non-finite particle state (NaN or inf)", int(values[status_columns.WORST]))
+        walls = REPORT_BODIES + BODY_COLUMNS * model.body_count
+        bodies = values[REPORT_BODIES:walls].reshape(model.body_count, BODY_COLUMNS)
+        return MacroStepReport(steps=steps, dt=dt, body_force=bodies[:, 0:3] / steps,
+                               body_torque=bodies[:, 3:6] / steps, body_force_end=bodies[:, 6:9].copy(),
+                               body_torque_end=bodies[:, 9:12].copy(), body_work=bodies[:, 12].copy(),
+                               body_contacts=bodies[:, 13].astype(np.int64),
+                               boundary_displacement=values[walls:].reshape(model.boundary_count, 3),
+                               rebuilds=rebuilds, redone=redone)
 
     def step(self, dt: float) -> None:
         """Advance by dt [s]."""
-        if not dt > 0:
-            raise ValueError(f"dt must be > 0 [s], got {dt!r}")
-        while True:
-            self.integrator.step(self.model, self.state, self._next, self.control, dt, self.contacts)
-            if not self._overflowed():
-                break  # else: more contacts than history slots; slots were widened, redo the step
-        self.state, self._next = self._next, self.state
-        self.state.forces_valid = True
-        self.steps += 1
+        self.macro_step(1, dt)
 
     def run(self, duration: float, dt: float, callback=None, check_every: int = 200) -> None:
         """Advance by `duration` [s] with fixed steps dt [s]; callback(sim) after each step.
 
-        Every `check_every` steps and at the end the DivergenceMonitor checks the state
-        (NaN, speed, overlap, energy) and raises SimulationDiverged on failure.
+        The steps run as macro steps of `check_every` steps (one host read each; with a
+        callback, of one step). Every `check_every` steps and at the end the DivergenceMonitor
+        checks the state (NaN, speed, overlap, energy) and raises SimulationDiverged on failure.
         """
+        dt = _check_step(dt)
+        if not (isinstance(duration, (int, float, np.floating, np.integer)) and math.isfinite(duration)
+                and duration >= 0):
+            raise SoilInputError(f"duration must be finite and >= 0 [s], got {duration!r}")
+        check_every = _check_count(check_every, "check_every")
         if not self.monitor.armed:
             self.monitor.arm(self)
         steps = int(round(duration / dt))
-        for k in range(steps):
-            self.step(dt)
+        done = 0
+        while done < steps:
+            chunk = 1 if callback is not None else min(check_every - done % check_every, steps - done)
+            self.macro_step(chunk, dt)
+            done += chunk
             if callback is not None:
                 callback(self)
-            if (k + 1) % check_every == 0 or k + 1 == steps:
+            if done % check_every == 0 or done == steps:
                 self.monitor.check(self)
 
     def run_adaptive(self, duration: float, controller: StepController | None = None, callback=None,
@@ -102,15 +437,20 @@ class Simulation:
 
         The integrator must be a JoltBeeman (one is installed if the simulation still has
         its default VelocityVerlet and has not stepped). A rejected step is simply not
-        swapped in: `state` (positions, velocities, forces, previous forces, contact
-        history) stays bit-for-bit what it was, and the step is redone shorter.
-        The controller keeps its state between calls (pass the same one to continue).
-        callback(sim) runs after each accepted step; every `check_every` accepted steps the
-        DivergenceMonitor checks the state (the speed is checked after every step).
+        made current: `state` (positions, velocities, forces, previous forces, contact
+        history) stays bit-for-bit what it was, and the step is redone shorter. The
+        controller decides on the host after each step, from an error norm reduced on the
+        device (one small read per step). The controller keeps its state between calls
+        (pass the same one to continue). callback(sim) runs after each accepted step; every
+        `check_every` accepted steps the DivergenceMonitor checks the state (the speed is
+        checked after every step).
 
         Returns {'accepted', 'rejected', 'forced', 'evaluations', 'dt_smallest', 'dt_largest', 'dt_next'}
         for this call (steps, evaluations [-], steps [s]).
         """
+        if not (isinstance(duration, (int, float, np.floating, np.integer)) and math.isfinite(duration)
+                and duration >= 0):
+            raise SoilInputError(f"duration must be finite and >= 0 [s], got {duration!r}")
         if not isinstance(self.integrator, JoltBeeman):
             if isinstance(self.integrator, VelocityVerlet) and self.steps == 0:
                 self.integrator = JoltBeeman()
@@ -121,6 +461,9 @@ class Simulation:
         controller.setup(self)
         if not self.monitor.armed:
             self.monitor.arm(self)
+        self.control.path_active = False
+        self.control.push()
+        self.integrator.bind(self.model)
         counts = dict(accepted=0, rejected=0, forced=0, evaluations=self.contacts.evaluations)
         smallest, largest = math.inf, 0.0
         t_end = self.time + duration
@@ -130,16 +473,22 @@ class Simulation:
             # land on t_end without a sliver of a last step (a tiny step spoils the next jolt)
             h = remaining if remaining <= dt else (0.5 * remaining if remaining < 2.0 * dt else dt)
             while True:
-                self.integrator.step(self.model, self.state, self._next, self.control, h, self.contacts)
-                if not self._overflowed():
+                following = self._spares()[0]
+                self.contacts.reserve(self.state.rigid_capacity)
+                status_columns.clear(self.status)
+                self.integrator.step(self.model, self.state, following, self.control, h, self.contacts)
+                summary = self.integrator.read_summary(following, self.status, **controller.error_scales())
+                growth = self._needs_growth(summary["status"])
+                if growth is None:
                     break
-            summary = self.integrator.read_summary()
+                self._grow(*growth)
+            self._rebuilds_since_reorder += int(summary["status"][status_columns.REBUILDS])
             err = controller.error(summary)
             accepted, proposal = controller.decide(err, h)
             if not accepted and h <= controller.dt_min * (1.0 + 1e-9):
                 if summary["nonfinite"]:
                     self.monitor.fail(self, f"non-finite state even at dt_min = {controller.dt_min:.4g} s",
-                                      summary["worst"], state=self._next)
+                                      summary["worst"], state=following)
                 accepted = True
                 counts["forced"] += 1
                 self.forced_steps += 1
@@ -148,7 +497,7 @@ class Simulation:
                 self.rejected_steps += 1
                 dt = proposal
                 continue
-            self.state, self._next = self._next, self.state
+            self.state = following
             self.state.forces_valid = True
             self.steps += 1
             self.accepted_steps += 1
@@ -161,6 +510,7 @@ class Simulation:
                 callback(self)
             if counts["accepted"] % check_every == 0:
                 self.monitor.check(self)
+                self._maybe_reorder()
         controller.dt = dt
         self.monitor.check(self)
         counts["evaluations"] = self.contacts.evaluations - counts["evaluations"]
@@ -169,8 +519,8 @@ class Simulation:
 
     def check_finite(self) -> None:
         """Raise SimulationDiverged if any particle position or velocity is not finite."""
-        x = self.state.position.numpy()
-        v = self.state.velocity.numpy()
+        x = self.positions()
+        v = self.velocities()
         bad = ~(np.isfinite(x).all(axis=1) & np.isfinite(v).all(axis=1))
         if bad.any():
             self.monitor.fail(self, f"non-finite particle state in {int(bad.sum())} particle(s)", int(np.argmax(bad)))
@@ -179,20 +529,23 @@ class Simulation:
     def state_dict(self) -> dict:
         """Everything a bit-for-bit continuation needs, as numpy arrays and scalars (no pickles).
 
-        Keys: 'state/<array>' and 'state/time' (SoilState.to_numpy: particles, contact
-        history, forces, bodies' and boundaries' wrenches and motion), 'control/<name>'
-        (SoilControl.state_dict), 'steps', 'accepted_steps', 'rejected_steps', 'forced_steps',
-        'evaluations' [-], 'next_capacity' (history slots of the second buffer), 'integrator'
-        (its name), 'precision', 'controller/<field>' (StepController, after run_adaptive),
-        'monitor/<field>' (DivergenceMonitor). The model is not included: load into a
-        Simulation built from the same scene (builder, device, precision, order_seed).
+        Keys: 'state/<array>' and 'state/time' (SoilState.to_numpy, model order: particles,
+        contact history with the neighbour list it is aligned with, forces, bodies' and
+        boundaries' wrenches and motion), 'control/<name>' (SoilControl.state_dict), 'steps',
+        'accepted_steps', 'rejected_steps', 'forced_steps', 'evaluations' [-], 'capacity' and
+        'rigid_capacity' (contact slots per grain), 'integrator' (its name), 'precision',
+        'controller/<field>' (StepController, after run_adaptive), 'monitor/<field>'
+        (DivergenceMonitor). The model is not included: load into a Simulation built from the
+        same scene (builder, device, precision, order_seed). The storage order is not part of
+        it: the physics does not depend on it.
         """
         data = {f"state/{k}": np.asarray(v) for k, v in self.state.to_numpy().items()}
         data.update({f"control/{k}": v for k, v in self.control.state_dict().items()})
         for name in ("steps", "accepted_steps", "rejected_steps", "forced_steps"):
             data[name] = np.int64(getattr(self, name))
         data["evaluations"] = np.int64(self.contacts.evaluations)
-        data["next_capacity"] = np.int64(self._next.capacity)
+        data["capacity"] = np.int64(self.state.capacity)
+        data["rigid_capacity"] = np.int64(self.state.rigid_capacity)
         data["integrator"] = np.str_(self.integrator.name)
         data["precision"] = np.str_(self.model.precision.name)
         if self._controller is not None:
@@ -215,8 +568,12 @@ class Simulation:
         name = str(data["integrator"])
         if name not in integrators:
             raise ValueError(f"saved integrator {name!r} is unknown; known: {sorted(integrators)}")
+        capacity = int(data.get("capacity", data.get("next_capacity", self.state.capacity)))
+        rigid_capacity = int(data.get("rigid_capacity", self.state.rigid_capacity))
+        self._spares()
+        self._grow(capacity, rigid_capacity)
         self.state.load_numpy({k[len("state/"):]: v for k, v in data.items() if k.startswith("state/")})
-        self._next.grow_capacity(max(int(data["next_capacity"]), self.state.capacity))
+        self._grow(self.state.capacity, self.state.rigid_capacity)
         self.control.load_state_dict({k[len("control/"):]: v for k, v in data.items() if k.startswith("control/")})
         for key in ("steps", "accepted_steps", "rejected_steps", "forced_steps"):
             setattr(self, key, int(data[key]))
@@ -232,18 +589,54 @@ class Simulation:
         if self.monitor.armed:
             self.monitor.snapshot(self)
 
-    # -- diagnostics (host side) ------------------------------------------------
+    # -- diagnostics (host side, model order) ---------------------------------------------
+    def _model_order(self, array: wp.array) -> np.ndarray:
+        values = array.numpy()
+        out = np.empty(values.shape, dtype=np.float64)
+        out[self.state.layout.order.numpy()] = values
+        return out
+
     def positions(self) -> np.ndarray:
-        """Particle positions [m], shape (particle_count, 3), float64."""
-        return self.state.position.numpy().astype(np.float64)
+        """Particle positions [m], shape (particle_count, 3), float64, model order."""
+        return self._model_order(self.state.position)
 
     def velocities(self) -> np.ndarray:
-        """Particle velocities [m/s], shape (particle_count, 3), float64."""
-        return self.state.velocity.numpy().astype(np.float64)
+        """Particle velocities [m/s], shape (particle_count, 3), float64, model order."""
+        return self._model_order(self.state.velocity)
 
     def angular_velocities(self) -> np.ndarray:
-        """Particle angular velocities [rad/s], shape (particle_count, 3), float64."""
-        return self.state.angular_velocity.numpy().astype(np.float64)
+        """Particle angular velocities [rad/s], shape (particle_count, 3), float64, model order."""
+        return self._model_order(self.state.angular_velocity)
+
+    def forces(self) -> np.ndarray:
+        """Contact + external force on each particle [N], shape (particle_count, 3), float64, model order."""
+        return self._model_order(self.state.force)
+
+    def contact_counts(self) -> np.ndarray:
+        """Contacts of each particle (grains, walls, wheels) [-], shape (particle_count,), int64, model order."""
+        return self._model_order(self.state.contact_count).astype(np.int64)
+
+    def contact_history(self, particle: int) -> list[dict]:
+        """The contacts of one particle (model index) with their history: a list of
+        {'partner': ('grain', model index) or ('boundary', index) or ('body', index),
+        'tangential' [m] (3,), 'rolling' [rad] (3,)} (zero vectors for switched-off terms)."""
+        data = self.state.to_numpy()
+        if not 0 <= particle < self.model.particle_count:
+            raise IndexError(f"particle must be in [0, {self.model.particle_count}), got {particle}")
+        contacts = []
+        touching = data["pair_touching"][particle]
+        for k in range(int(data["neighbour_count"][particle])):
+            if touching[k // 32] >> np.uint32(k % 32) & np.uint32(1):
+                contacts.append({"partner": ("grain", int(data["neighbours"][particle, k])),
+                                 "tangential": _row(data["pair_tangential"], particle, k),
+                                 "rolling": _row(data["pair_rolling"], particle, k)})
+        walls = self.model.boundary_count
+        for s in range(int(data["rigid_count"][particle])):
+            key = int(data["rigid_key"][particle, s])
+            partner = ("boundary", key) if key < walls else ("body", key - walls)
+            contacts.append({"partner": partner, "tangential": _row(data["rigid_tangential"], particle, s),
+                             "rolling": _row(data["rigid_rolling"], particle, s)})
+        return contacts
 
     def boundary_wrenches(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """The grains' force and torque on every boundary at the current time:
@@ -266,7 +659,7 @@ class Simulation:
 
     def boundary_geometry(self) -> np.ndarray:
         """Current geometry rows of every boundary [m], shape (boundary_count, 6), float64: a plane's
-        (point, unit normal), a box's (lower corner, upper corner), displaced (soil.kernels)."""
+        (point, unit normal), a box's (lower corner, upper corner), displaced (soil.sdf)."""
         rows = self.model.boundary_geometry_numpy().copy()
         shift = self.boundary_displacements()
         kinds = self.model.boundary_kind.numpy()
@@ -299,3 +692,20 @@ class Simulation:
     def total_energy(self) -> float:
         """Kinetic + gravity + elastic energy [J]."""
         return self.kinetic_energy() + self.gravity_energy() + self.elastic_energy()
+
+
+def _row(values: np.ndarray, particle: int, k: int) -> np.ndarray:
+    return values[particle, k].astype(np.float64) if values.shape[1] else np.zeros(3)
+
+
+def _check_step(dt) -> float:
+    """dt as a float, or SoilInputError: a step must be finite and > 0 [s]."""
+    if not (isinstance(dt, (int, float, np.floating, np.integer)) and math.isfinite(dt) and dt > 0):
+        raise SoilInputError(f"dt must be finite and > 0 [s], got {dt!r}")
+    return float(dt)
+
+
+def _check_count(value, name: str) -> int:
+    if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < 1:
+        raise SoilInputError(f"{name} must be an integer >= 1, got {value!r}")
+    return int(value)

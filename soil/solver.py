@@ -1,141 +1,543 @@
-"""Contact detection + force evaluation on the neighbour grid."""
+"""Contact forces: each grain gathers the forces of its contacts, in its own thread, with no atomics.
 
-from __future__ import annotations
+Grain-grain contacts are found in the grain's row of the neighbour list (soil.neighbours);
+both grains of a pair evaluate the same contact with mirrored inputs and keep their own
+(mirrored) history, aligned with their rows. Contacts with rigid partners (walls, boxes,
+wheels: the signed distances of soil.sdf) are evaluated by the same code for every kind of
+partner, and their history is kept in slots keyed by the partner. The sums are in a fixed
+order (the row, then the rigid partners by index), so runs repeat bit for bit on every
+device, whatever the storage order.
+
+The reaction of each rigid contact is written beside its slot and summed per wall and
+wheel in chunks of model indices, then over the chunks (`wrench_partial`, `wrench_total`):
+deterministic, no atomics.
+"""
+
 
 import numpy as np
 import warp as wp
 
-from .kernels import make_kernels
-from .model import SoilModel
-from .state import SoilState
+from . import status as status_columns
 from .boundaries import update_acceleration
+from .contact import ContactLaw, contact_functions
 from .control import SoilControl
+from .model import SoilModel
+from .neighbours import NeighbourList
+from .precision import kernel_factory, kernel_module, soil_kernel
+from .sdf import BODY_WHEEL, sdf_functions
+from .state import SoilState
+
+CHUNK = 256
+"""Grains per partial sum of a wall's or wheel's wrench (fixed: the sums are deterministic)."""
 
 
-def _grid_dim(particle_count: int) -> int:
-    return int(np.clip(2 * round(particle_count ** (1.0 / 3.0)), 8, 128))
+@kernel_factory
+def contact_kernels(hi, lo, law: ContactLaw):
+    """The contact kernels and their argument bundles for precision types (hi, lo) and the switches."""
+    kernel = soil_kernel(kernel_module("contact", hi, lo, law))
+    vec_hi = wp.types.vector(3, hi)
+    mat_hi = wp.types.matrix((3, 3), hi)
+    contact_law = contact_functions(hi, lo, law).contact_law
+    sdf = sdf_functions(hi)
+    boundary_contact, boundary_reference = sdf.boundary_contact, sdf.boundary_reference
+    wheel_distance, mesh_distance = sdf.wheel_distance, sdf.mesh_distance
+    FRICTION, ROLLING = law.friction, law.rolling
+
+    @wp.struct
+    class Grains:
+        """The grains' constants in storage order (GrainLayout)."""
+
+        order: wp.array(dtype=wp.int32)
+        radius: wp.array(dtype=lo)
+        mass: wp.array(dtype=lo)
+        inv_mass: wp.array(dtype=lo)
+        material: wp.array(dtype=wp.int32)
+        pair: wp.array2d(dtype=lo)
+        material_count: int
+
+    @wp.struct
+    class Walls:
+        """Boundaries: model geometry and the state's displacement and velocity."""
+
+        kind: wp.array(dtype=wp.int32)
+        geometry: wp.array2d(dtype=hi)
+        material: wp.array(dtype=wp.int32)
+        displacement: wp.array(dtype=vec_hi)
+        velocity: wp.array(dtype=vec_hi)
+
+    @wp.struct
+    class Bodies:
+        """Wheels: model geometry and the control's poses and velocities."""
+
+        kind: wp.array(dtype=wp.int32)
+        shape: wp.array2d(dtype=hi)
+        mesh: wp.array(dtype=wp.uint64)
+        material: wp.array(dtype=wp.int32)
+        mesh_points: wp.array(dtype=vec_hi)
+        mesh_indices: wp.array(dtype=wp.int32)
+        point_offset: wp.array(dtype=wp.int32)
+        index_offset: wp.array(dtype=wp.int32)
+        position: wp.array(dtype=vec_hi)
+        rotation: wp.array(dtype=mat_hi)
+        velocity: wp.array(dtype=vec_hi)
+        angular_velocity: wp.array(dtype=vec_hi)
+
+    @wp.struct
+    class History:
+        """A state's contact history (SoilState pair_* and rigid_*)."""
+
+        touching: wp.array2d(dtype=wp.uint32)
+        tangential: wp.array2d(dtype=vec_hi)
+        rolling: wp.array2d(dtype=vec_hi)
+        rigid_key: wp.array2d(dtype=wp.int32)
+        rigid_count: wp.array(dtype=wp.int32)
+        rigid_tangential: wp.array2d(dtype=vec_hi)
+        rigid_rolling: wp.array2d(dtype=vec_hi)
+
+    @wp.func
+    def rigid_slot(history: History, i: int, key: int):
+        """The slot of rigid partner `key` in grain i's history, -1 if it had none."""
+        for s in range(wp.min(history.rigid_count[i], history.rigid_key.shape[1])):
+            if history.rigid_key[i, s] == key:
+                return s
+        return -1
+
+    @kernel
+    def contact_forces(
+        position: wp.array(dtype=vec_hi),
+        velocity: wp.array(dtype=vec_hi),
+        angular_velocity: wp.array(dtype=vec_hi),
+        grains: Grains,
+        walls: Walls,
+        bodies: Bodies,
+        neighbours: wp.array3d(dtype=wp.int32),
+        neighbour_count: wp.array2d(dtype=wp.int32),
+        list_index: wp.array(dtype=wp.int32),
+        rebuilt: wp.array(dtype=wp.int32),
+        history_in: History,
+        external_force: wp.array(dtype=vec_hi),
+        external: int,
+        dt: hi,
+        # outputs
+        force_out: wp.array(dtype=vec_hi),
+        torque_out: wp.array(dtype=vec_hi),
+        contact_count_out: wp.array(dtype=wp.int32),
+        history_out: History,
+        reaction_force_out: wp.array2d(dtype=vec_hi),
+        reaction_torque_out: wp.array2d(dtype=vec_hi),
+        status_out: wp.array(dtype=wp.int32),
+    ):
+        """Force and torque on grain i at the state's positions and velocities, its new history,
+        and the reactions of its rigid contacts. After a rebuild the pair history was remapped
+        into history_out, and is read from there."""
+        i = wp.tid()
+        xi = position[i]
+        vi = velocity[i]
+        wi = angular_velocity[i]
+        ri = grains.radius[i]
+        inv_mass_i = grains.inv_mass[i]
+        total_force = vec_hi()
+        if external != 0:
+            total_force = external_force[grains.order[i]]
+        total_torque = vec_hi()
+        contacts = int(0)  # noqa: UP018 (a Warp variable the kernel changes: not a constant)
+
+        # grains: the row of the neighbour list; history bit k marks entry k in contact
+        row = list_index[0]
+        remapped = rebuilt[0] != 0
+        count = neighbour_count[row, i]
+        capacity = neighbours.shape[2]
+        for word in range(history_out.touching.shape[1]):
+            held = history_out.touching[i, word]  # what the output buffer holds (remapped, or from before)
+            was = held
+            if not remapped:
+                was = history_in.touching[i, word]
+            now = wp.uint32(0)
+            for k in range(word * 32, wp.min(word * 32 + 32, count)):
+                j = neighbours[row, i, k]
+                gap = position[j] - xi
+                rj = grains.radius[j]
+                reach = hi(ri + rj)
+                squared = wp.dot(gap, gap)
+                distance = reach  # most entries are not in contact: no square root for them
+                inv_sum = lo(0.0)
+                if squared < reach * reach:
+                    distance = wp.sqrt(squared)
+                    inv_sum = inv_mass_i + grains.inv_mass[j]
+                overlap = reach - distance
+                if overlap > hi(0.0) and distance > hi(0.0) and inv_sum > lo(0.0):
+                    n = gap / distance
+                    lever_i = hi(ri) - hi(0.5) * overlap
+                    lever_j = hi(rj) - hi(0.5) * overlap
+                    v_j = velocity[j] - wp.cross(angular_velocity[j], lever_j * n)  # partner's contact point
+                    v_rel = (vi + wp.cross(wi, lever_i * n)) - v_j
+                    bit = wp.uint32(1) << wp.uint32(k & 31)
+                    t_hist = vec_hi()
+                    r_hist = vec_hi()
+                    if (was & bit) != wp.uint32(0):
+                        if wp.static(FRICTION):
+                            if remapped:
+                                t_hist = history_out.tangential[i, k]
+                            else:
+                                t_hist = history_in.tangential[i, k]
+                        if wp.static(ROLLING):
+                            if remapped:
+                                r_hist = history_out.rolling[i, k]
+                            else:
+                                r_hist = history_in.rolling[i, k]
+                    pair_row = grains.material[i] * grains.material_count + grains.material[j]
+                    f, m_roll, t_new, r_new = contact_law(
+                        n, overlap, v_rel, wi - angular_velocity[j], ri * rj / (ri + rj), lo(1.0) / inv_sum,
+                        grains.pair, pair_row, t_hist, r_hist, dt)
+                    total_force = total_force + f
+                    total_torque = total_torque + wp.cross(lever_i * n, f) + m_roll
+                    if wp.static(FRICTION):
+                        history_out.tangential[i, k] = t_new
+                    if wp.static(ROLLING):
+                        history_out.rolling[i, k] = r_new
+                    now = now | bit
+                    contacts += 1
+            # entries out of contact hold zero: clear what the buffer held and no contact wrote
+            clear = held & ~now
+            if clear != wp.uint32(0):
+                for k in range(word * 32, wp.min(word * 32 + 32, capacity)):
+                    if (clear >> wp.uint32(k & 31)) & wp.uint32(1) != wp.uint32(0):
+                        if wp.static(FRICTION):
+                            history_out.tangential[i, k] = vec_hi()
+                        if wp.static(ROLLING):
+                            history_out.rolling[i, k] = vec_hi()
+            history_out.touching[i, word] = now
+
+        # rigid partners: walls (fixed grains do not touch them), then wheels (every grain)
+        wall_count = walls.kind.shape[0]
+        slots = history_out.rigid_key.shape[1]
+        stored = int(0)  # noqa: UP018 (a Warp variable the kernel changes: not a constant)
+        for partner in range(wall_count + bodies.kind.shape[0]):
+            overlap = hi(0.0)
+            n = vec_hi()
+            v_partner = vec_hi()
+            w_partner = vec_hi()
+            reference = vec_hi()
+            mass_eff = lo(0.0)
+            partner_material = int(0)  # noqa: UP018 (a Warp variable the kernel changes: not a constant)
+            if partner < wall_count:
+                if inv_mass_i > lo(0.0):
+                    shift = walls.displacement[partner]
+                    overlap, n = boundary_contact(walls.kind[partner], walls.geometry, partner, xi - shift, hi(ri))
+                    v_partner = walls.velocity[partner]  # a translating wall: its contact point moves with it
+                    reference = boundary_reference(walls.kind[partner], walls.geometry, partner) + shift
+                    mass_eff = lo(1.0) / inv_mass_i
+                    partner_material = walls.material[partner]
+            else:
+                b = partner - wall_count
+                hub = bodies.position[b]
+                rotation = bodies.rotation[b]
+                local = wp.transpose(rotation) * (xi - hub)
+                reach = bodies.shape[b, 5] + hi(ri)
+                if wp.length(local) < reach:
+                    distance = reach
+                    n_out = vec_hi()
+                    if bodies.kind[b] == BODY_WHEEL:
+                        distance, n_out = wheel_distance(bodies.shape, b, local)
+                    else:
+                        distance, n_out = mesh_distance(bodies.mesh[b], bodies.mesh_points, bodies.mesh_indices,
+                                                        bodies.point_offset[b], bodies.index_offset[b], local,
+                                                        hi(2.0) * reach)
+                    overlap = hi(ri) - distance
+                    n = -(rotation * n_out)  # from the grain towards the wheel
+                    contact_point = xi + (hi(ri) - overlap) * n
+                    w_partner = bodies.angular_velocity[b]
+                    v_partner = bodies.velocity[b] + wp.cross(w_partner, contact_point - hub)
+                    reference = hub
+                    mass_eff = grains.mass[i]
+                    partner_material = bodies.material[b]
+            if overlap > hi(0.0):
+                lever_i = hi(ri) - overlap
+                v_rel = vi + wp.cross(wi, lever_i * n) - v_partner
+                slot = rigid_slot(history_in, i, partner)
+                t_hist = vec_hi()
+                r_hist = vec_hi()
+                if slot >= 0:
+                    if wp.static(FRICTION):
+                        t_hist = history_in.rigid_tangential[i, slot]
+                    if wp.static(ROLLING):
+                        r_hist = history_in.rigid_rolling[i, slot]
+                pair_row = grains.material[i] * grains.material_count + partner_material
+                f, m_roll, t_new, r_new = contact_law(n, overlap, v_rel, wi - w_partner, ri, mass_eff, grains.pair,
+                                                      pair_row, t_hist, r_hist, dt)
+                total_force = total_force + f
+                total_torque = total_torque + wp.cross(lever_i * n, f) + m_roll
+                if stored < slots:
+                    history_out.rigid_key[i, stored] = partner
+                    if wp.static(FRICTION):
+                        history_out.rigid_tangential[i, stored] = t_new
+                    if wp.static(ROLLING):
+                        history_out.rigid_rolling[i, stored] = r_new
+                    reaction_force_out[i, stored] = -f
+                    reaction_torque_out[i, stored] = wp.cross(xi + lever_i * n - reference, -f) - m_roll
+                stored += 1
+                contacts += 1
+        history_out.rigid_count[i] = wp.min(stored, slots)
+        for s in range(stored, slots):  # free slots hold zero (only those the buffer used are written)
+            if history_out.rigid_key[i, s] >= 0:
+                history_out.rigid_key[i, s] = -1
+                if wp.static(FRICTION):
+                    history_out.rigid_tangential[i, s] = vec_hi()
+                if wp.static(ROLLING):
+                    history_out.rigid_rolling[i, s] = vec_hi()
+        if stored > slots:
+            wp.atomic_max(status_out, status_columns.NEEDED_RIGID, stored)
+
+        force_out[i] = total_force
+        torque_out[i] = total_torque
+        contact_count_out[i] = contacts
+
+    @kernel
+    def elastic_energy(
+        position: wp.array(dtype=vec_hi),
+        grains: Grains,
+        walls: Walls,
+        neighbours: wp.array3d(dtype=wp.int32),
+        neighbour_count: wp.array2d(dtype=wp.int32),
+        row: int,
+        # outputs
+        energy_out: wp.array(dtype=hi),
+    ):
+        """Hertz strain energy (8/15) E* sqrt(R*) delta^2.5 per grain [J]; pairs split half-half."""
+        i = wp.tid()
+        xi = position[i]
+        ri = grains.radius[i]
+        total = hi(0.0)
+        for k in range(neighbour_count[row, i]):
+            j = neighbours[row, i, k]
+            rj = grains.radius[j]
+            overlap = hi(ri + rj) - wp.length(position[j] - xi)
+            if overlap > hi(0.0):
+                r_eff = hi(ri * rj / (ri + rj))
+                e_star = hi(grains.pair[grains.material[i] * grains.material_count + grains.material[j], 0])
+                total += hi(0.5 * 8.0 / 15.0) * e_star * wp.sqrt(r_eff) * wp.pow(overlap, hi(2.5))
+        for b in range(walls.kind.shape[0]):
+            overlap, n = boundary_contact(walls.kind[b], walls.geometry, b, xi - walls.displacement[b], hi(ri))
+            if overlap > hi(0.0):
+                e_star = hi(grains.pair[grains.material[i] * grains.material_count + walls.material[b], 0])
+                total += hi(8.0 / 15.0) * e_star * wp.sqrt(hi(ri)) * wp.pow(overlap, hi(2.5))
+        energy_out[i] = total
+
+    @kernel
+    def wrench_partial(
+        slot: wp.array(dtype=wp.int32),
+        rigid_key: wp.array2d(dtype=wp.int32),
+        rigid_count: wp.array(dtype=wp.int32),
+        reaction_force: wp.array2d(dtype=vec_hi),
+        reaction_torque: wp.array2d(dtype=vec_hi),
+        chunk: int,
+        # outputs
+        force_out: wp.array2d(dtype=vec_hi),
+        torque_out: wp.array2d(dtype=vec_hi),
+        contact_out: wp.array2d(dtype=wp.int32),
+    ):
+        """Per chunk of model indices, the reactions on each rigid partner, summed in model-index
+        order: the sums depend neither on thread scheduling nor on the storage order."""
+        c = wp.tid()
+        for key in range(force_out.shape[1]):
+            force_out[c, key] = vec_hi()
+            torque_out[c, key] = vec_hi()
+            contact_out[c, key] = 0
+        for p in range(c * chunk, wp.min(c * chunk + chunk, slot.shape[0])):
+            i = slot[p]
+            for s in range(wp.min(rigid_count[i], rigid_key.shape[1])):
+                key = rigid_key[i, s]
+                force_out[c, key] = force_out[c, key] + reaction_force[i, s]
+                torque_out[c, key] = torque_out[c, key] + reaction_torque[i, s]
+                contact_out[c, key] = contact_out[c, key] + 1
+
+    @kernel
+    def wrench_total(
+        force_in: wp.array2d(dtype=vec_hi),
+        torque_in: wp.array2d(dtype=vec_hi),
+        contact_in: wp.array2d(dtype=wp.int32),
+        wall_reported: wp.array(dtype=wp.int32),
+        # outputs
+        wall_force_out: wp.array(dtype=vec_hi),
+        wall_torque_out: wp.array(dtype=vec_hi),
+        wall_contact_out: wp.array(dtype=wp.int32),
+        body_force_out: wp.array(dtype=vec_hi),
+        body_torque_out: wp.array(dtype=vec_hi),
+        body_contact_out: wp.array(dtype=wp.int32),
+    ):
+        """Total of the chunk sums of rigid partner `key` (walls first, then wheels); walls built
+        with report=False read zero."""
+        key = wp.tid()
+        wall_count = wall_reported.shape[0]
+        total_force = vec_hi()
+        total_torque = vec_hi()
+        contacts = int(0)  # noqa: UP018 (a Warp variable the kernel changes: not a constant)
+        summed = True
+        if key < wall_count:
+            summed = wall_reported[key] >= 0
+        if summed:
+            for c in range(force_in.shape[0]):
+                total_force = total_force + force_in[c, key]
+                total_torque = total_torque + torque_in[c, key]
+                contacts += contact_in[c, key]
+        if key < wall_count:
+            wall_force_out[key] = total_force
+            wall_torque_out[key] = total_torque
+            wall_contact_out[key] = contacts
+        else:
+            body_force_out[key - wall_count] = total_force
+            body_torque_out[key - wall_count] = total_torque
+            body_contact_out[key - wall_count] = contacts
+
+    return dict(Grains=Grains, Walls=Walls, Bodies=Bodies, History=History, contact_forces=contact_forces,
+                elastic_energy=elastic_energy, wrench_partial=wrench_partial, wrench_total=wrench_total)
 
 
 class ContactSolver:
-    """Finds contacts with a Warp HashGrid and evaluates the contact law for every particle.
+    """Evaluates the contact law for every grain at a state's positions, through the neighbour list.
 
-    The reactions on bodies (wheels) and boundaries (walls) are written per particle into
-    scratch arrays of shape (particle_count, columns), one column per body and one per
-    boundary built with report=True, then summed per column in a fixed order (chunks of
-    particles, then the chunks): deterministic, no atomics. The scratch costs 52 bytes
-    (double; 28 single) per particle per column, which is why walls that need no force
-    can opt out (SoilBuilder.add_plane(..., report=False)).
+    One per Simulation: it owns the neighbour list (soil.neighbours), the per-grain reactions
+    on rigid partners (shape (particle_count, rigid slots)) and their chunk sums.
     """
 
-    def __init__(self, model: SoilModel):
+    def __init__(self, model: SoilModel, neighbours: NeighbourList, status: wp.array):
         self.model = model
         prec = model.precision
+        self.kernels = contact_kernels(prec.hi, prec.lo, model.law)
+        self.neighbours = neighbours
+        self.status = status
+        """The step status array (soil.status), shared with the Simulation."""
         device = model.device
-        self.kernels = make_kernels(prec.hi, prec.lo, model.law)
-        dim = _grid_dim(model.particle_count)
-        self.grid = wp.HashGrid(dim, dim, dim, device=device, dtype=prec.hi)
-        self.overflow = wp.zeros(1, dtype=wp.int32, device=device)
-        self._chunk = 256
-        self._body = _WrenchScratch(model.particle_count, model.body_count, self._chunk, prec.vec_hi, device)
-        self.body_column = wp.array(np.arange(model.body_count, dtype=np.int32), dtype=wp.int32, device=device)
-        """Scratch column of each body (all of them), shape (body_count,), int32."""
-        reports = model.boundary_reports
-        columns = np.where(reports, np.cumsum(reports) - 1, -1).astype(np.int32)
-        self.boundary_column = (model.boundary_column if model.boundary_column is not None
-                                else wp.array(columns, dtype=wp.int32, device=device))
-        """Scratch column of each boundary (-1: not reported), shape (boundary_count,), int32."""
-        self._boundary = _WrenchScratch(model.particle_count, int(reports.sum()), self._chunk, prec.vec_hi, device)
+        self._partners = model.boundary_count + model.body_count
+        self._chunks = (model.particle_count + CHUNK - 1) // CHUNK
+        width = max(self._partners, 1)
+        self._partial_force = wp.zeros((self._chunks, width), dtype=prec.vec_hi, device=device)
+        self._partial_torque = wp.zeros((self._chunks, width), dtype=prec.vec_hi, device=device)
+        self._partial_contacts = wp.zeros((self._chunks, width), dtype=wp.int32, device=device)
+        self._reaction_force = self._reaction_torque = None
+        self._wall_reported = (model.boundary_column if model.boundary_column is not None
+                               else wp.zeros(model.boundary_count, dtype=wp.int32, device=device))
         self.evaluations = 0
         """Number of force evaluations so far (the cost unit of integrators)."""
 
+    def reserve(self, rigid_capacity: int):
+        """The per-grain reaction scratch, sized for `rigid_capacity` slots (allocated here,
+        before a step is captured)."""
+        if self._reaction_force is None or self._reaction_force.shape[1] != rigid_capacity:
+            shape = (self.model.particle_count, rigid_capacity)
+            self._reaction_force = wp.zeros(shape, dtype=self.model.precision.vec_hi, device=self.model.device)
+            self._reaction_torque = wp.zeros(shape, dtype=self.model.precision.vec_hi, device=self.model.device)
+        return self._reaction_force, self._reaction_torque
+
+    def device_arrays(self) -> list:
+        """The scratch arrays a captured step uses (a graph stays valid while they do)."""
+        return [self._reaction_force, self._reaction_torque, self._partial_force, *self.neighbours.device_arrays()]
+
+    def bytes_per_grain(self) -> float:
+        """Device memory of the solver's scratch per grain [B]."""
+        n = max(self.model.particle_count, 1)
+        arrays = [self._partial_force, self._partial_torque, self._partial_contacts]
+        if self._reaction_force is not None:
+            arrays += [self._reaction_force, self._reaction_torque]
+        return sum(a.capacity for a in arrays) / n
+
+    # -- argument bundles ------------------------------------------------------------------
+    def grains(self, state: SoilState):
+        layout = state.layout
+        bundle = self.kernels.Grains()
+        bundle.order, bundle.radius, bundle.mass = layout.order, layout.radius, layout.mass
+        bundle.inv_mass, bundle.material = layout.inv_mass, layout.material
+        bundle.pair, bundle.material_count = self.model.pair, self.model.material_count
+        return bundle
+
+    def walls(self, state: SoilState):
+        model = self.model
+        bundle = self.kernels.Walls()
+        bundle.kind, bundle.geometry, bundle.material = model.boundary_kind, model.boundary_geometry, \
+            model.boundary_material
+        bundle.displacement, bundle.velocity = state.boundary_displacement, state.boundary_velocity
+        return bundle
+
+    def bodies(self, control: SoilControl):
+        model = self.model
+        bundle = self.kernels.Bodies()
+        bundle.kind, bundle.shape, bundle.mesh, bundle.material = (model.body_kind, model.body_shape, model.body_mesh,
+                                                                   model.body_material)
+        bundle.mesh_points, bundle.mesh_indices = model.mesh_points, model.mesh_indices
+        bundle.point_offset, bundle.index_offset = model.body_point_offset, model.body_index_offset
+        bundle.position, bundle.rotation = control.body_position, control.body_rotation
+        bundle.velocity, bundle.angular_velocity = control.body_velocity, control.body_angular_velocity
+        return bundle
+
+    def history(self, state: SoilState):
+        bundle = self.kernels.History()
+        bundle.touching, bundle.tangential, bundle.rolling = (state.pair_touching, state.pair_tangential,
+                                                              state.pair_rolling)
+        bundle.rigid_key, bundle.rigid_count = state.rigid_key, state.rigid_count
+        bundle.rigid_tangential, bundle.rigid_rolling = state.rigid_tangential, state.rigid_rolling
+        return bundle
+
+    # -- evaluation --------------------------------------------------------------------------
     def compute(self, state_in: SoilState, state_out: SoilState, control: SoilControl, dt: float) -> None:
-        """Forces at state_out's positions/velocities (and boundary positions/velocities);
-        history read from state_in, written to state_out. Then the wrenches on bodies and
-        boundaries and the loaded boundaries' accelerations (soil.boundaries) of state_out.
+        """Forces at state_out's positions/velocities (and boundary positions/velocities); history
+        read from state_in, written to state_out (the neighbour list is checked and, when a grain
+        has moved too far, rebuilt first). Then the wrenches on walls and wheels and the loaded
+        walls' accelerations (soil.boundaries) of state_out. No host read: capturable.
 
         state_in and state_out must be different objects (history is double-buffered).
         """
         model = self.model
-        hi = model.precision.hi
-        self.grid.build(state_out.position, model.search_radius)
-        control.push()
+        self.neighbours.update(state_in, state_out, self.status)
+        reaction_force, reaction_torque = self.reserve(state_out.rigid_capacity)
+        layout = state_out.layout
         wp.launch(
-            self.kernels["contact_forces"],
+            self.kernels.contact_forces,
             dim=model.particle_count,
-            inputs=[
-                self.grid.id, state_out.position, state_out.velocity, state_out.angular_velocity,
-                model.radius, model.mass, model.inv_mass, model.material, model.pair, model.material_count,
-                model.boundary_kind, model.boundary_geometry, model.boundary_material, self.boundary_column,
-                state_out.boundary_displacement, state_out.boundary_velocity,
-                control.external_force, model.body_kind, model.body_shape, model.body_mesh, model.body_material,
-                model.mesh_points, model.mesh_indices, model.body_point_offset, model.body_index_offset,
-                control.body_position, control.body_rotation, control.body_velocity, control.body_angular_velocity,
-                hi(model.search_radius), hi(dt),
-                state_in.contact_partner, state_in.contact_tangential, state_in.contact_rolling,
-                state_in.contact_count,
-            ],
-            outputs=[
-                state_out.force, state_out.torque, state_out.contact_partner, state_out.contact_tangential,
-                state_out.contact_rolling, state_out.contact_count, self.overflow,
-                self._body.force, self._body.torque, self._body.contact,
-                self._boundary.force, self._boundary.torque, self._boundary.contact,
-            ],
+            inputs=[state_out.position, state_out.velocity, state_out.angular_velocity, self.grains(state_out),
+                    self.walls(state_out), self.bodies(control), layout.neighbours, layout.neighbour_count,
+                    state_out.list_index, self.neighbours.rebuilt, self.history(state_in), control.external_force,
+                    int(control.external_force_used), model.precision.hi(dt)],
+            outputs=[state_out.force, state_out.torque, state_out.contact_count, self.history(state_out),
+                     reaction_force, reaction_torque, self.status],
             device=model.device,
         )
-        if model.body_count:
-            self._sum(self._body, self.body_column, state_out.body_force, state_out.body_torque,
-                      state_out.body_contacts)
+        if self._partners:
+            self._sum(state_out, reaction_force, reaction_torque)
         if model.boundary_count:
-            self._sum(self._boundary, self.boundary_column, state_out.boundary_force, state_out.boundary_torque,
-                      state_out.boundary_contacts)
             update_acceleration(model, state_out, control)
         self.evaluations += 1
 
-    def _sum(self, scratch: "_WrenchScratch", column: wp.array, force_out, torque_out, contact_out) -> None:
-        """Per-item totals from the scratch: chunk sums in index order, then the chunks in order."""
+    def _sum(self, state: SoilState, reaction_force, reaction_torque) -> None:
+        """Wall and wheel totals: chunk sums in model-index order, then the chunks in order."""
         device = self.model.device
-        if scratch.columns:
-            wp.launch(self.kernels["wrench_partial"], dim=(scratch.partial_force.shape[0], scratch.columns),
-                      inputs=[scratch.force, scratch.torque, scratch.contact, self._chunk],
-                      outputs=[scratch.partial_force, scratch.partial_torque, scratch.partial_contact],
-                      device=device)
-        wp.launch(self.kernels["wrench_total"], dim=column.shape[0],
-                  inputs=[scratch.partial_force, scratch.partial_torque, scratch.partial_contact, column],
-                  outputs=[force_out, torque_out, contact_out], device=device)
+        wp.launch(self.kernels.wrench_partial, dim=self._chunks,
+                  inputs=[state.layout.slot, state.rigid_key, state.rigid_count, reaction_force, reaction_torque,
+                          CHUNK],
+                  outputs=[self._partial_force, self._partial_torque, self._partial_contacts], device=device)
+        wp.launch(self.kernels.wrench_total, dim=self._partners,
+                  inputs=[self._partial_force, self._partial_torque, self._partial_contacts, self._wall_reported],
+                  outputs=[state.boundary_force, state.boundary_torque, state.boundary_contacts, state.body_force,
+                           state.body_torque, state.body_contacts], device=device)
 
-    def take_overflow(self) -> bool:
-        """True if a particle had more contacts than its history slots since the last call."""
-        flag = bool(self.overflow.numpy()[0])
-        if flag:
-            self.overflow.zero_()
-        return flag
+    def current_list(self, state: SoilState) -> int:
+        """Index of a neighbour list valid for `state`'s positions (host read): its own, or the
+        other one built afresh when a grain has moved too far (the state is not changed)."""
+        row = int(state.list_index.numpy()[0])
+        if not self.neighbours.stale(state):
+            return row
+        self.neighbours.build_other(state, self.status)
+        return 1 - row
 
     def elastic_energy(self, state: SoilState) -> float:
-        """Hertz strain energy stored in all contacts [J]."""
+        """Hertz strain energy stored in all grain-grain and grain-wall contacts [J]."""
         model = self.model
+        row = self.current_list(state)
         energy = wp.zeros(model.particle_count, dtype=model.precision.hi, device=model.device)
-        self.grid.build(state.position, model.search_radius)
-        wp.launch(
-            self.kernels["elastic_energy"], dim=model.particle_count,
-            inputs=[self.grid.id, state.position, model.radius, model.material, model.pair, model.material_count,
-                    model.boundary_kind, model.boundary_geometry, model.boundary_material,
-                    state.boundary_displacement, model.precision.hi(model.search_radius)],
-            outputs=[energy], device=model.device)
-        return float(np.sum(energy.numpy(), dtype=np.float64))
-
-
-class _WrenchScratch:
-    """Per-particle reactions, shape (particle_count, columns), and their chunk sums, shape
-    (chunks, columns). With no columns the arrays shrink to one element (never written)."""
-
-    def __init__(self, particle_count: int, columns: int, chunk: int, vec_hi, device: str):
-        self.columns = columns
-        rows = particle_count if columns else 1
-        chunks = (particle_count + chunk - 1) // chunk if columns else 1
-        width = max(columns, 1)
-        self.force = wp.zeros((rows, width), dtype=vec_hi, device=device)
-        self.torque = wp.zeros((rows, width), dtype=vec_hi, device=device)
-        self.contact = wp.zeros((rows, width), dtype=wp.int32, device=device)
-        self.partial_force = wp.zeros((chunks, width), dtype=vec_hi, device=device)
-        self.partial_torque = wp.zeros((chunks, width), dtype=vec_hi, device=device)
-        self.partial_contact = wp.zeros((chunks, width), dtype=wp.int32, device=device)
+        layout = state.layout
+        wp.launch(self.kernels.elastic_energy, dim=model.particle_count,
+                  inputs=[state.position, self.grains(state), self.walls(state), layout.neighbours,
+                          layout.neighbour_count, row],
+                  outputs=[energy], device=model.device)
+        per_grain = np.empty(model.particle_count)
+        per_grain[layout.order.numpy()] = energy.numpy()
+        return float(np.sum(per_grain, dtype=np.float64))

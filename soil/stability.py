@@ -1,4 +1,4 @@
-"""Divergence detection (DESIGN.md section 3): stop an exploding simulation, keep the last good state.
+"""Divergence detection (docs/physics.md section 2): stop an exploding simulation, keep the last good state.
 
 An explicit DEM step that is too large for the contact stiffness pumps energy into the
 contacts: overlaps deepen, speeds grow without bound, then values turn NaN. The
@@ -22,8 +22,6 @@ the step, the worst particle and its position, carries the snapshot as numpy arr
 `last_good`, and, if the Simulation has a checkpoint_path, writes it there atomically.
 """
 
-from __future__ import annotations
-
 import math
 import os
 from dataclasses import dataclass, field
@@ -32,12 +30,81 @@ import numpy as np
 import warp as wp
 
 from .boundaries import MOTION_LOADED
+from .errors import RegolithError
 from .files import atomic_path
-from .integrator_kernels import CHECK_COLUMNS, CHECK_NONFINITE, CHECK_OVERLAP, CHECK_SPEED, make_integrator_kernels
+from .precision import kernel_factory, kernel_module, soil_kernel
+from .sdf import sdf_functions
 from .state import SoilState
 
+# Columns of the divergence-check summary (shape (CHECK_COLUMNS,), dtype hi).
+CHECK_SPEED = 0
+"""max_i max(|v_i|, r_i |w_i|) [m/s]."""
+CHECK_OVERLAP = 1
+"""max over contacts of overlap / radius [-] (grain-grain and grain-wall)."""
+CHECK_NONFINITE = 2
+"""1 if any particle state is not finite."""
+CHECK_COLUMNS = 3
 
-class SimulationDiverged(RuntimeError):
+
+@kernel_factory
+def check_kernels(hi, lo):
+    """The divergence-check kernel for precision types (hi, lo)."""
+    kernel = soil_kernel(kernel_module("check", hi, lo))
+    vec_hi = wp.types.vector(3, hi)
+    boundary_contact = sdf_functions(hi).boundary_contact
+
+    @kernel
+    def divergence_metrics(
+        x_in: wp.array(dtype=vec_hi),
+        v_in: wp.array(dtype=vec_hi),
+        w_in: wp.array(dtype=vec_hi),
+        radius: wp.array(dtype=lo),
+        inv_mass: wp.array(dtype=lo),
+        neighbours: wp.array3d(dtype=wp.int32),
+        neighbour_count: wp.array2d(dtype=wp.int32),
+        row: int,
+        boundary_kind: wp.array(dtype=wp.int32),
+        boundary_geometry: wp.array2d(dtype=hi),
+        boundary_displacement: wp.array(dtype=vec_hi),
+        # outputs
+        speed_out: wp.array(dtype=hi),
+        overlap_out: wp.array(dtype=hi),
+        summary_out: wp.array(dtype=hi),
+    ):
+        """Per grain (storage order): speed [m/s] and the largest overlap / radius [-] over its
+        neighbour-list row and the walls; maxima into summary_out (atomic max: order-independent).
+
+        A non-finite grain gets speed = overlap = +inf so that the host can locate it.
+        """
+        i = wp.tid()
+        xi = x_in[i]
+        ri = hi(radius[i])
+        if not (wp.isfinite(xi) and wp.isfinite(v_in[i]) and wp.isfinite(w_in[i])):
+            inf = hi(wp.inf)
+            speed_out[i] = inf
+            overlap_out[i] = inf
+            wp.atomic_max(summary_out, CHECK_NONFINITE, hi(1.0))
+            return
+        worst = hi(0.0)
+        for k in range(neighbour_count[row, i]):
+            j = neighbours[row, i, k]
+            rj = hi(radius[j])
+            overlap = ri + rj - wp.length(x_in[j] - xi)
+            worst = wp.max(worst, overlap / wp.min(ri, rj))
+        if inv_mass[i] > lo(0.0):
+            for b in range(boundary_kind.shape[0]):
+                overlap, n = boundary_contact(boundary_kind[b], boundary_geometry, b, xi - boundary_displacement[b], ri)
+                worst = wp.max(worst, overlap / ri)
+        speed = wp.max(wp.length(v_in[i]), ri * wp.length(w_in[i]))  # spin counts at the surface
+        speed_out[i] = speed
+        overlap_out[i] = worst
+        wp.atomic_max(summary_out, CHECK_SPEED, speed)
+        wp.atomic_max(summary_out, CHECK_OVERLAP, worst)
+
+    return dict(divergence_metrics=divergence_metrics)
+
+
+class SimulationDiverged(RegolithError, RuntimeError):
     """The simulation became unstable; `last_good` holds the last good state as numpy arrays.
 
     Attributes: time [s] and step of the failure, particle (model index, or None), position [m]
@@ -180,11 +247,15 @@ class DivergenceMonitor:
         """Copy the current state into the last-good buffer (device to device)."""
         state = sim.state
         if self._good is None:
-            self._good = SoilState.for_model(sim.model, state.capacity)
-        if self._good.capacity < state.capacity:
-            self._good.grow_capacity(state.capacity)
-        self._good.assign(state)
+            self._good = SoilState.for_model(sim.model, state.capacity, state.rigid_capacity)
+        self._good.assign(state)  # arrays (and its own layout) follow the state's shapes
         self._good_step = sim.steps
+
+    def bytes_per_grain(self) -> float:
+        """Device memory of the last good state per grain [B] (0 before the first snapshot)."""
+        if self._good is None:
+            return 0.0
+        return self._good.bytes_per_grain() + self._good.layout.bytes_per_grain()
 
     def last_good(self) -> dict:
         data = self._good.to_numpy()
@@ -206,37 +277,41 @@ class DivergenceMonitor:
             return
         model = sim.model
         prec = model.precision
-        kernels = make_integrator_kernels(prec.hi, prec.lo, model.law)
+        kernels = check_kernels(prec.hi, prec.lo)
         n = model.particle_count
         state = sim.state
+        layout = state.layout
         speed = wp.zeros(n, dtype=prec.hi, device=model.device)
         overlap = wp.zeros(n, dtype=prec.hi, device=model.device)
         summary = wp.zeros(CHECK_COLUMNS, dtype=prec.hi, device=model.device)
-        grid = sim.contacts.grid
-        grid.build(state.position, model.search_radius)
-        wp.launch(kernels["divergence_metrics"], dim=n,
-                  inputs=[grid.id, state.position, state.velocity, state.angular_velocity, model.radius,
-                          model.inv_mass, model.boundary_kind, model.boundary_geometry,
-                          state.boundary_displacement, prec.hi(model.search_radius)],
+        row = sim.contacts.current_list(state)
+        wp.launch(kernels.divergence_metrics, dim=n,
+                  inputs=[state.position, state.velocity, state.angular_velocity, layout.radius, layout.inv_mass,
+                          layout.neighbours, layout.neighbour_count, row, model.boundary_kind,
+                          model.boundary_geometry, state.boundary_displacement],
                   outputs=[speed, overlap, summary], device=model.device)
         values = summary.numpy().astype(np.float64)
         self._update_bounds(sim)
+
+        def worst_grain(per_slot: wp.array, pick) -> int:  # the model index of the worst grain
+            return int(layout.order.numpy()[pick(per_slot.numpy())])
+
         if values[CHECK_NONFINITE] > 0:
-            worst = int(np.argmax(~np.isfinite(speed.numpy())))
-            self.fail(sim, "non-finite particle state (NaN or inf)", worst)
+            self.fail(sim, "non-finite particle state (NaN or inf)",
+                      worst_grain(speed, lambda v: np.argmax(~np.isfinite(v))))
         if not self.enabled:
             self.snapshot(sim)
             return
         if values[CHECK_SPEED] > self.speed_bound:
             self.fail(sim, f"speed {values[CHECK_SPEED]:.4g} m/s exceeds the bound {self.speed_bound:.4g} m/s",
-                      int(np.argmax(speed.numpy())))
+                      worst_grain(speed, np.argmax))
         if values[CHECK_OVERLAP] > self.max_overlap_ratio:
             self.fail(sim, f"overlap {values[CHECK_OVERLAP]:.4g} x radius exceeds {self.max_overlap_ratio:g} x radius",
-                      int(np.argmax(overlap.numpy())))
+                      worst_grain(overlap, np.argmax))
         kinetic = sim.kinetic_energy()
         if not kinetic <= self.energy_bound:
             self.fail(sim, f"kinetic energy {kinetic:.4g} J exceeds the bound {self.energy_bound:.4g} J "
-                      "(gravity, initial motion, overlaps and wheels cannot supply it)", int(np.argmax(speed.numpy())))
+                      "(gravity, initial motion, overlaps and wheels cannot supply it)", worst_grain(speed, np.argmax))
         self.snapshot(sim)
 
     def fail(self, sim, reason: str, particle: int | None, state: SoilState | None = None) -> None:
@@ -245,7 +320,7 @@ class DivergenceMonitor:
         position = None
         where = ""
         if particle is not None and 0 <= particle < sim.model.particle_count:
-            position = state.position.numpy()[particle].astype(np.float64)
+            position = state.position.numpy()[int(state.layout.slot.numpy()[particle])].astype(np.float64)
             builder_index = int(sim.model.particle_order[particle]) if sim.model.particle_order is not None \
                 else particle
             where = (f" at particle {particle} (builder index {builder_index}), position "

@@ -1,23 +1,129 @@
-"""The mutable soil state: what changes every step."""
+"""The mutable soil state: what changes every step, and where each grain is stored.
+
+Grains are stored in an order of their own (soil.neighbours sorts them along a
+space-filling curve so that near grains sit near each other in memory). Every array of a
+SoilState is in that storage order; `GrainLayout.order` names the model index of the grain
+in each slot. What leaves the state (`to_numpy`, checkpoints, beds, Simulation.positions())
+is in model order, with contact partners named by model index, so the storage order is
+invisible outside; the physics does not depend on it either (docs/performance.md).
+"""
 
 from __future__ import annotations
 
 import numpy as np
 import warp as wp
 
+UNBUILT = 1.0e30
+"""Build position [m] of a grain whose neighbour list was never built: any check finds it
+far from there and rebuilds the list."""
+
+
+def _resize_like(target, source: wp.array) -> wp.array:
+    """`target` if it has the shape and type of `source`, else a new array that has them."""
+    if target is not None and target.shape == source.shape and target.dtype == source.dtype \
+            and target.device == source.device:
+        return target
+    return wp.empty(source.shape, dtype=source.dtype, device=source.device)
+
+
+class GrainLayout:
+    """Where each grain is stored, its constants in storage order, and the grains near it.
+
+    Shared by the state buffers of a Simulation (they are always in the same storage
+    order). Two neighbour lists: a state's pair history is aligned with the list its
+    `list_index` names; a rebuild writes the other one, so a step never overwrites the
+    list its input state needs (soil.neighbours).
+    """
+
+    def __init__(self, model, capacity: int):
+        n = model.particle_count
+        device = model.device
+        prec = model.precision
+        self.model = model
+        self.order = wp.array(np.arange(n, dtype=np.int32), dtype=wp.int32, device=device)
+        """Model index of the grain stored in each slot [-], shape (particle_count,), int32."""
+        self.slot = wp.array(np.arange(n, dtype=np.int32), dtype=wp.int32, device=device)
+        """Storage slot of each model index [-], shape (particle_count,), int32."""
+        self.radius = wp.clone(model.radius)
+        """Radius of the grain in each slot [m], shape (particle_count,), dtype lo."""
+        self.mass = wp.clone(model.mass)
+        """Mass of the grain in each slot [kg], shape (particle_count,), dtype lo."""
+        self.inv_mass = wp.clone(model.inv_mass)
+        """Inverse mass of the grain in each slot [1/kg], shape (particle_count,), dtype lo; 0: fixed."""
+        self.inv_inertia = wp.clone(model.inv_inertia)
+        """Inverse moment of inertia of the grain in each slot [1/(kg m^2)], shape (particle_count,), dtype lo."""
+        self.material = wp.clone(model.material)
+        """Material index of the grain in each slot [-], shape (particle_count,), int32."""
+        self.neighbours = wp.full((2, n, capacity), -1, dtype=wp.int32, device=device)
+        """Two neighbour lists: slots of the grains within r_i + r_j + skin of each grain at the
+        list's build [-], shape (2, particle_count, capacity), int32 (-1 past the count)."""
+        self.neighbour_count = wp.zeros((2, n), dtype=wp.int32, device=device)
+        """Entries used in each row of the two lists [-], shape (2, particle_count), int32."""
+        self.build_position = wp.full((2, n), prec.vec_hi(UNBUILT, UNBUILT, UNBUILT), dtype=prec.vec_hi,
+                                      device=device)
+        """Position of each grain when the list was built [m], shape (2, particle_count)."""
+
+    @property
+    def capacity(self) -> int:
+        """Neighbour slots per grain [-]."""
+        return int(self.neighbours.shape[2])
+
+    def gather_constants(self, model) -> None:
+        """Take the grains' constants from the model again (after the model's arrays changed,
+        e.g. masses restored from a bed)."""
+        self.model = model
+        order = self.order.numpy()
+        for name in ("radius", "mass", "inv_mass", "inv_inertia", "material"):
+            getattr(self, name).assign(getattr(model, name).numpy()[order])
+
+    @property
+    def arrays(self) -> dict[str, wp.array]:
+        return {name: value for name, value in vars(self).items() if isinstance(value, wp.array)}
+
+    def grow(self, capacity: int) -> None:
+        """Widen both lists to `capacity` slots per grain, keeping their entries."""
+        old = self.capacity
+        if capacity <= old:
+            return
+        values = self.neighbours.numpy()
+        wider = np.full(values.shape[:2] + (capacity,), -1, dtype=np.int32)
+        wider[:, :, :old] = values
+        self.neighbours = wp.array(wider, dtype=wp.int32, device=self.neighbours.device)
+
+    def assign(self, other: GrainLayout) -> None:
+        """Copy `other` into this layout (arrays are reshaped to other's)."""
+        self.model = other.model
+        for name, array in other.arrays.items():
+            target = _resize_like(getattr(self, name, None), array)
+            wp.copy(target, array)
+            setattr(self, name, target)
+
+    def bytes_per_grain(self) -> float:
+        """Device memory of the layout per grain [B]."""
+        n = max(int(self.order.shape[0]), 1)
+        return sum(a.capacity for a in self.arrays.values()) / n
+
 
 class SoilState:
-    """Particle kinematics, the latest forces and the per-contact history.
+    """Particle kinematics, the latest forces and the per-contact history, in storage order.
 
-    Contact history is stored per particle in `capacity` slots keyed by the partner:
-    a particle index, or particle_count + boundary index for boundaries. Because the
-    key is the partner, history survives any rebuild of the neighbour grid.
+    Contact history: a grain's contacts with other grains keep theirs in `pair_*`, aligned
+    with the grain's row of its neighbour list (GrainLayout.neighbours[list_index]); a bit
+    in `pair_touching` marks the entries in contact. Contacts with rigid partners (walls,
+    boxes, wheels) keep theirs in `rigid_*` slots keyed by the partner: boundary index b,
+    or boundary_count + body index. History that the contact law does not use (friction or
+    rolling off) has zero width: it is neither stored, read nor written.
     """
 
     def __init__(self, particle_count: int, capacity: int, vec_hi, device: str, body_count: int = 0,
-                 boundary_count: int = 0):
+                 boundary_count: int = 0, *, rigid_capacity: int = 4, friction: bool = True, rolling: bool = True,
+                 layout: GrainLayout | None = None):
         n = particle_count
         scalar = vec_hi._wp_scalar_type_
+        tangential = capacity if friction else 0
+        spin = capacity if rolling else 0
+        self.layout = layout
+        """Storage order, grain constants and neighbour lists (shared with the other buffers of a Simulation)."""
         self.position = wp.zeros(n, dtype=vec_hi, device=device)
         """Particle centre positions [m], shape (particle_count,)."""
         self.velocity = wp.zeros(n, dtype=vec_hi, device=device)
@@ -28,19 +134,32 @@ class SoilState:
         """Contact + external force on each particle at the state's time [N], shape (particle_count,)."""
         self.torque = wp.zeros(n, dtype=vec_hi, device=device)
         """Contact torque on each particle about its centre [N m], shape (particle_count,)."""
-        self.contact_partner = wp.full((n, capacity), -1, dtype=wp.int32, device=device)
-        """Partner key per history slot [-], shape (particle_count, capacity)."""
-        self.contact_tangential = wp.zeros((n, capacity), dtype=vec_hi, device=device)
-        """Accumulated tangential displacement per slot [m], shape (particle_count, capacity)."""
-        self.contact_rolling = wp.zeros((n, capacity), dtype=vec_hi, device=device)
-        """Accumulated rolling angle per slot [rad], shape (particle_count, capacity)."""
-        self.contact_count = wp.zeros(n, dtype=wp.int32, device=device)
-        """Number of used history slots (= contacts) per particle, shape (particle_count,)."""
         self.force_previous = wp.zeros(n, dtype=vec_hi, device=device)
         """Force of the previous step's state (time - step_previous) [N], shape (particle_count,).
         Multi-step integrators (jolt-Beeman) take the jolt from it."""
         self.torque_previous = wp.zeros(n, dtype=vec_hi, device=device)
         """Torque of the previous step's state [N m], shape (particle_count,)."""
+        self.contact_count = wp.zeros(n, dtype=wp.int32, device=device)
+        """Contacts of each particle (grains, walls, wheels) at the state's time [-], shape (particle_count,)."""
+        self._pair_capacity = int(capacity)
+        self.pair_touching = wp.zeros((n, _words(capacity)), dtype=wp.uint32, device=device)
+        """Bit k of word k // 32: neighbour-list entry k is in contact [-], shape
+        (particle_count, ceil(capacity / 32)), uint32."""
+        self.pair_tangential = wp.zeros((n, tangential), dtype=vec_hi, device=device)
+        """Accumulated tangential displacement per neighbour-list entry [m], shape (particle_count, capacity)
+        (width 0 without friction)."""
+        self.pair_rolling = wp.zeros((n, spin), dtype=vec_hi, device=device)
+        """Accumulated rolling angle per neighbour-list entry [rad], shape (particle_count, capacity)
+        (width 0 without rolling resistance)."""
+        self.rigid_key = wp.full((n, rigid_capacity), -1, dtype=wp.int32, device=device)
+        """Rigid partner of each rigid-contact slot [-] (boundary b, or boundary_count + body), shape
+        (particle_count, rigid_capacity), int32, -1 past rigid_count."""
+        self.rigid_count = wp.zeros(n, dtype=wp.int32, device=device)
+        """Used rigid-contact slots of each particle [-], shape (particle_count,)."""
+        self.rigid_tangential = wp.zeros((n, rigid_capacity if friction else 0), dtype=vec_hi, device=device)
+        """Accumulated tangential displacement per rigid-contact slot [m], shape (particle_count, rigid_capacity)."""
+        self.rigid_rolling = wp.zeros((n, rigid_capacity if rolling else 0), dtype=vec_hi, device=device)
+        """Accumulated rolling angle per rigid-contact slot [rad], shape (particle_count, rigid_capacity)."""
         self.step_previous = wp.zeros(1, dtype=scalar, device=device)
         """Length of the step that produced this state [s], shape (1,); 0 = no history
         (start-up: jolt-Beeman then assumes zero jolt)."""
@@ -70,16 +189,21 @@ class SoilState:
         resistance torques included."""
         self.boundary_contacts = wp.zeros(nb, dtype=wp.int32, device=device)
         """Number of particles touching each boundary, shape (boundary_count,)."""
+        self.list_index = wp.zeros(1, dtype=wp.int32, device=device)
+        """Which of the layout's two neighbour lists the pair history is aligned with [-], shape (1,), int32."""
         self.time = 0.0
         """Simulated time [s] (a Python float, i.e. double precision)."""
         self.forces_valid = False
         """True when force/torque/history belong to the positions (after a step or a restore)."""
 
     @classmethod
-    def for_model(cls, model, capacity: int) -> "SoilState":
-        """A zero state sized for `model` (particles, bodies, boundaries) with `capacity` history slots."""
-        return cls(model.particle_count, capacity, model.precision.vec_hi, model.device, model.body_count,
-                   model.boundary_count)
+    def for_model(cls, model, capacity: int, rigid_capacity: int = 4, layout: GrainLayout | None = None) -> SoilState:
+        """A zero state sized for `model` (particles, bodies, boundaries) with `capacity` neighbour
+        slots and `rigid_capacity` rigid-contact slots per grain; a new layout unless one is given."""
+        layout = layout or GrainLayout(model, capacity)
+        return cls(model.particle_count, layout.capacity, model.precision.vec_hi, model.device, model.body_count,
+                   model.boundary_count, rigid_capacity=rigid_capacity, friction=model.law.friction,
+                   rolling=model.law.rolling, layout=layout)
 
     @property
     def boundary_count(self) -> int:
@@ -87,53 +211,114 @@ class SoilState:
 
     @property
     def capacity(self) -> int:
-        return int(self.contact_partner.shape[1])
+        """Neighbour-list slots per grain [-]."""
+        return self._pair_capacity
+
+    @property
+    def rigid_capacity(self) -> int:
+        """Rigid-contact slots per grain [-]."""
+        return int(self.rigid_key.shape[1])
 
     @property
     def arrays(self) -> dict[str, wp.array]:
-        return {name: value for name, value in vars(self).items() if isinstance(value, wp.array)}
+        """The state's physical arrays by name, in storage order (the list index and the layout excluded)."""
+        return {name: value for name, value in vars(self).items()
+                if isinstance(value, wp.array) and name != "list_index"}
 
-    def assign(self, other: "SoilState") -> None:
-        """Copy every array and the time from `other` (same shapes)."""
-        for name, array in self.arrays.items():
-            source = getattr(other, name)
-            if source.shape != array.shape:
-                raise ValueError(f"state.{name}: shape {source.shape} does not match {array.shape}")
-            wp.copy(array, source)
+    def bytes_per_grain(self) -> float:
+        """Device memory of this buffer per grain [B] (the shared layout not included)."""
+        n = max(int(self.position.shape[0]), 1)
+        return sum(a.capacity for a in self.arrays.values()) / n
+
+    # -- copies and growth -------------------------------------------------------------
+    def assign(self, other: SoilState) -> None:
+        """Copy every array, the list index and the time from `other`; arrays are reshaped to
+        other's (e.g. after its storage grew). A state with its own layout gets a copy of other's."""
+        for name, array in other.arrays.items():
+            target = _resize_like(getattr(self, name, None), array)
+            wp.copy(target, array)
+            setattr(self, name, target)
+        wp.copy(self.list_index, other.list_index)
+        self._pair_capacity = other._pair_capacity
+        if other.layout is not None and self.layout is not other.layout:
+            if self.layout is None:
+                self.layout = GrainLayout.__new__(GrainLayout)
+            self.layout.assign(other.layout)
         self.time = other.time
         self.forces_valid = other.forces_valid
 
-    def grow_capacity(self, capacity: int) -> None:
-        """Widen the history storage to `capacity` slots per particle, keeping the history."""
-        old = self.capacity
-        if capacity <= old:
-            return
-        device = self.position.device
-        for name, fill in (("contact_partner", -1), ("contact_tangential", 0), ("contact_rolling", 0)):
-            array = getattr(self, name)
-            values = array.numpy()
-            wider = np.full((values.shape[0], capacity) + values.shape[2:], fill, dtype=values.dtype)
-            wider[:, :old] = values
-            setattr(self, name, wp.array(wider, dtype=array.dtype, device=device))
+    def grow_capacity(self, capacity: int | None = None, rigid_capacity: int | None = None) -> None:
+        """Widen the neighbour slots to `capacity` and the rigid-contact slots to `rigid_capacity`
+        per grain, keeping the history (and the layout's lists)."""
+        if capacity is not None and capacity > self._pair_capacity:
+            self._widen("pair_touching", _words(capacity), 0)
+            for name in ("pair_tangential", "pair_rolling"):
+                if getattr(self, name).shape[1]:
+                    self._widen(name, capacity, 0)
+            self._pair_capacity = int(capacity)
+        if capacity is not None and self.layout is not None:
+            self.layout.grow(capacity)
+        if rigid_capacity is not None and rigid_capacity > self.rigid_capacity:
+            self._widen("rigid_key", rigid_capacity, -1)
+            for name in ("rigid_tangential", "rigid_rolling"):
+                if getattr(self, name).shape[1]:
+                    self._widen(name, rigid_capacity, 0)
 
+    def _widen(self, name: str, width: int, fill) -> None:
+        array = getattr(self, name)
+        values = array.numpy()
+        wider = np.full((values.shape[0], width) + values.shape[2:], fill, dtype=values.dtype)
+        wider[:, : values.shape[1]] = values
+        setattr(self, name, wp.array(wider, dtype=array.dtype, device=array.device))
+
+    # -- model order -------------------------------------------------------------------
     def to_numpy(self) -> dict[str, np.ndarray]:
-        """Every array as a numpy copy (on the CPU .numpy() is a view that later steps overwrite) and the time."""
-        data = {name: array.numpy().copy() for name, array in self.arrays.items()}
+        """Every array as a numpy copy in model order, and the time.
+
+        Per-grain rows are in model order; the neighbour list of the state (`neighbours`
+        [-] (n, capacity), model indices, -1 past `neighbour_count`; `build_position` [m]
+        (n, 3)) is given with it, since the pair history is aligned with its rows.
+        """
+        order = self.layout.order.numpy()
+        data = {}
+        for name, array in self.arrays.items():
+            values = array.numpy()
+            if per_grain(name):
+                model_order = np.empty_like(values)
+                model_order[order] = values
+                values = model_order
+            data[name] = values.copy()  # on the CPU .numpy() is a view that later steps overwrite
+        which = int(self.list_index.numpy()[0])
+        neighbours = self.layout.neighbours.numpy()[which]
+        counts = self.layout.neighbour_count.numpy()[which]
+        used = np.arange(neighbours.shape[1])[None, :] < counts[:, None]
+        ids = np.where(used, order[np.clip(neighbours, 0, len(order) - 1)], -1).astype(np.int32)
+        for name, values in (("neighbours", ids), ("neighbour_count", counts),
+                             ("build_position", self.layout.build_position.numpy()[which])):
+            model_order = np.empty_like(values)
+            model_order[order] = values
+            data[name] = model_order
         data["time"] = np.float64(self.time)
         return data
 
     def load_numpy(self, data: dict) -> None:
-        """Fill this state from `to_numpy()` output (history capacity may differ: it is grown).
+        """Fill this state from `to_numpy()` output (model order; storage may be grown).
 
-        Boundary arrays missing from `data` (files written before boundaries moved) are zero:
-        the boundaries are at their initial geometry, at rest.
+        The neighbour list goes into the layout's first list. Data written before the
+        neighbour list existed (a `contact_partner` array of keyed history slots) is
+        converted: its contacts keep their history, and the list is rebuilt at the first step.
+        Boundary arrays missing from `data` are zero: the boundaries are at their initial
+        geometry, at rest.
         """
-        capacity = data["contact_partner"].shape[1]
-        if capacity > self.capacity:
-            self.grow_capacity(capacity)
+        data = current_format(data, len(self.position))
+        layout = self.layout
+        order = layout.order.numpy()
+        slot = layout.slot.numpy()
+        neighbours = np.asarray(data["neighbours"])
+        self.grow_capacity(neighbours.shape[1], np.asarray(data["rigid_key"]).shape[1])
         for name, array in self.arrays.items():
             if name not in data:
-                if name.startswith("boundary_"):
+                if name.startswith("boundary_") or name in ("body_force", "body_torque", "body_contacts"):
                     array.zero_()
                     continue
                 raise KeyError(f"state data has no {name!r} array")
@@ -141,11 +326,87 @@ class SoilState:
             if values.shape[:1] != tuple(array.shape[:1]):
                 raise ValueError(f"state.{name}: saved shape {values.shape} does not fit {array.shape} "
                                  "(a different scene?)")
-            if name.startswith("contact_") and values.ndim >= 2 and values.shape[1] < array.shape[1]:
-                fill = -1 if name == "contact_partner" else 0
-                padded = np.full(array.shape + ((3,) if values.ndim == 3 else ()), fill, dtype=values.dtype)
-                padded[:, : values.shape[1]] = values
-                values = padded
+            if per_grain(name):
+                values = values[order]
+                if array.ndim >= 2 and values.shape[1] != array.shape[1]:
+                    values = _fit_width(values, array.shape[1], -1 if name == "rigid_key" else 0)
             array.assign(values.astype(array.numpy().dtype, copy=False))
+        rows = neighbours[order]
+        slots = np.where(rows >= 0, slot[np.maximum(rows, 0)], -1).astype(np.int32)
+        lists = layout.neighbours.numpy()
+        lists[0] = _fit_width(slots, layout.capacity, -1)
+        layout.neighbours.assign(lists)
+        counts = layout.neighbour_count.numpy()
+        counts[0] = np.asarray(data["neighbour_count"])[order]
+        layout.neighbour_count.assign(counts)
+        built = layout.build_position.numpy()
+        built[0] = np.asarray(data["build_position"])[order]
+        layout.build_position.assign(built.astype(built.dtype))
+        self.list_index.zero_()
         self.time = float(data["time"])
         self.forces_valid = True  # a saved state carries the forces of its own step
+
+
+def per_grain(name: str) -> bool:
+    """Whether a state array (or to_numpy() entry) has one row per grain."""
+    return not (name.startswith(("boundary_", "body_")) or name in ("step_previous", "time"))
+
+
+def current_format(data: dict, particle_count: int) -> dict:
+    """State data (to_numpy() layout, model order) from data of any version: keyed history
+    slots (`contact_partner`, written before the neighbour list existed) are converted."""
+    data = dict(data)
+    if "contact_partner" in data:
+        data = _from_keyed_history(data, particle_count)
+    return data
+
+
+def _words(capacity: int) -> int:
+    return max(1, (int(capacity) + 31) // 32)
+
+
+def _fit_width(values: np.ndarray, width: int, fill) -> np.ndarray:
+    """values with axis 1 cut or padded (with fill) to `width`."""
+    out = np.full((values.shape[0], width) + values.shape[2:], fill, dtype=values.dtype)
+    keep = min(width, values.shape[1])
+    out[:, :keep] = values[:, :keep]
+    return out
+
+
+def _from_keyed_history(data: dict, n: int) -> dict:
+    """Convert state data with keyed history slots (`contact_partner`: a particle index, or
+    particle_count + boundary index) to neighbour rows and rigid slots, model order."""
+    partner = np.asarray(data.pop("contact_partner"))
+    tangential = np.asarray(data.pop("contact_tangential"))
+    rolling = np.asarray(data.pop("contact_rolling"))
+    used = np.asarray(data.pop("contact_count"))
+    slots = partner.shape[1]
+    is_pair = (partner >= 0) & (partner < n) & (np.arange(slots)[None, :] < used[:, None])
+    is_rigid = (partner >= n) & (np.arange(slots)[None, :] < used[:, None])
+    width = max(int(is_pair.sum(axis=1).max(initial=0)), 1)
+    rigid_width = max(int(is_rigid.sum(axis=1).max(initial=0)), 4)
+    neighbours = np.full((n, width), -1, dtype=np.int32)
+    pair_t = np.zeros((n, width, 3), dtype=tangential.dtype)
+    pair_r = np.zeros((n, width, 3), dtype=rolling.dtype)
+    touching = np.zeros((n, _words(width)), dtype=np.uint32)
+    rigid_key = np.full((n, rigid_width), -1, dtype=np.int32)
+    rigid_t = np.zeros((n, rigid_width, 3), dtype=tangential.dtype)
+    rigid_r = np.zeros((n, rigid_width, 3), dtype=rolling.dtype)
+    counts = np.zeros(n, dtype=np.int32)
+    rigid_counts = np.zeros(n, dtype=np.int32)
+    for i in np.flatnonzero(is_pair.any(axis=1) | is_rigid.any(axis=1)):
+        k = r = 0
+        for s in range(int(used[i])):
+            if is_pair[i, s]:
+                neighbours[i, k], pair_t[i, k], pair_r[i, k] = partner[i, s], tangential[i, s], rolling[i, s]
+                touching[i, k // 32] |= np.uint32(1 << (k % 32))
+                k += 1
+            elif is_rigid[i, s]:
+                rigid_key[i, r], rigid_t[i, r], rigid_r[i, r] = partner[i, s] - n, tangential[i, s], rolling[i, s]
+                r += 1
+        counts[i], rigid_counts[i] = k, r
+    data.update(neighbours=neighbours, neighbour_count=counts, pair_touching=touching, pair_tangential=pair_t,
+                pair_rolling=pair_r, rigid_key=rigid_key, rigid_count=rigid_counts, rigid_tangential=rigid_t,
+                rigid_rolling=rigid_r, contact_count=used.astype(np.int32),
+                build_position=np.full((n, 3), UNBUILT))
+    return data

@@ -1,0 +1,630 @@
+"""The Verlet neighbour list: which grains each grain may touch, rebuilt only when needed.
+
+A grain's row lists every grain j within r_i + r_j + skin of it when the list was built.
+While no grain has moved more than skin / 2 since the build, every contact is a pair in
+the list (two grains closing by at most one skin), so a step only loops over its row. The
+check runs on the device after each step's prediction (LAMMPS' `neigh_modify check yes`)
+and the rebuild is a device-side branch (`wp.capture_if`), so a step never asks the host.
+
+A build sorts the grains into cells of a grid whose cells are sized per axis from the
+grains' bounding box (at least 2 r_max + skin, so a grain's partners lie in its own and the
+26 adjacent cells; the cell counts per axis follow the domain's shape, so a wide, shallow
+bed is not aliased onto a cube). The sort key is the cell's Morton code (a space-filling
+curve); ties go by model index. A row lists its partners cell by cell in a fixed order, so
+the list, and every sum over it, depends on positions and model indices only, not on the
+storage order.
+
+`reorder` moves the grains in memory into that same curve order (between steps): near
+grains then share cache lines. The history is remapped at every build (a pair keeps its
+tangential and rolling history from one list to the next) and carried along by a reorder.
+Design notes and measurements: docs/performance.md.
+"""
+
+
+import math
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+import warp as wp
+
+from . import status as status_columns
+from .contact import ContactLaw
+from .precision import kernel_factory, kernel_module, soil_kernel
+from .state import GrainLayout, SoilState
+
+REORDER_FROM = 4096
+"""Grains from which the storage is reordered by default (below it all of them fit in cache)."""
+CHUNK = 256
+"""Grains per partial sum of the bounding box (fixed: the reduction is deterministic)."""
+MAX_CELLS_PER_AXIS = 1024
+"""Cells per axis at most (10 bits of the Morton key each)."""
+
+
+@dataclass(frozen=True)
+class NeighbourSettings:
+    """How the neighbour list is kept.
+
+    skin: extra reach of the list beyond contact [m]; None: 0.3 x the largest grain radius.
+    A larger skin rebuilds less often and loops over more pairs per step.
+    reorder: sort the grains in memory along the space-filling curve when the list is
+    rebuilt (between macro steps); None: when there are at least REORDER_FROM grains.
+    reorder_every: reorder after this many rebuilds [-].
+    """
+
+    skin: float | None = None
+    reorder: bool | None = None
+    reorder_every: int = 1
+
+    def __post_init__(self):
+        if self.skin is not None and not (isinstance(self.skin, (int, float)) and math.isfinite(self.skin)
+                                          and self.skin > 0):
+            raise ValueError(f"neighbour skin must be finite and > 0 [m], got {self.skin!r}")
+        if not (isinstance(self.reorder_every, int) and self.reorder_every >= 1):
+            raise ValueError(f"reorder_every must be an integer >= 1, got {self.reorder_every!r}")
+
+
+@wp.func
+def spread_bits(v: int):
+    """The low 10 bits of v, moved to every third bit (Morton interleave)."""
+    v = v & 0x3FF
+    v = (v | (v << 16)) & 0x030000FF
+    v = (v | (v << 8)) & 0x0300F00F
+    v = (v | (v << 4)) & 0x030C30C3
+    v = (v | (v << 2)) & 0x09249249
+    return v
+
+
+@wp.func
+def compact_bits(v: int):
+    """Inverse of spread_bits: every third bit of v gathered into the low 10 bits."""
+    v = v & 0x09249249
+    v = (v | (v >> 2)) & 0x030C30C3
+    v = (v | (v >> 4)) & 0x0300F00F
+    v = (v | (v >> 8)) & 0x030000FF
+    v = (v | (v >> 16)) & 0x3FF
+    return v
+
+
+@wp.kernel(enable_backward=False)
+def gather_1d(source: wp.array(dtype=Any), origin: wp.array(dtype=wp.int32), target_out: wp.array(dtype=Any)):
+    """target[q] = source[origin[q]]."""
+    q = wp.tid()
+    target_out[q] = source[origin[q]]
+
+
+@wp.kernel(enable_backward=False)
+def gather_2d(source: wp.array2d(dtype=Any), origin: wp.array(dtype=wp.int32), target_out: wp.array2d(dtype=Any)):
+    """target[q, k] = source[origin[q], k]."""
+    q, k = wp.tid()
+    target_out[q, k] = source[origin[q], k]
+
+
+@kernel_factory
+def neighbour_kernels(hi, lo, law: ContactLaw):
+    """The neighbour-list kernels for precision types (hi, lo) and the contact-law switches."""
+    kernel = soil_kernel(kernel_module("neighbours", hi, lo, law))
+    vec_hi = wp.types.vector(3, hi)
+    FRICTION, ROLLING = law.friction, law.rolling
+
+    @wp.func
+    def cell_of(x: vec_hi, grid: wp.array(dtype=hi), dims: wp.vec3i):
+        """Cell coordinates of x, clamped into the grid (a NaN lands in cell 0)."""
+        cell = wp.vec3i()
+        for axis in range(3):
+            f = (x[axis] - grid[axis]) / grid[3 + axis]
+            c = int(0)  # noqa: UP018 (a Warp variable the kernel changes: not a constant)
+            if f >= hi(dims[axis] - 1):
+                c = dims[axis] - 1
+            elif f >= hi(0.0):  # False for NaN
+                c = int(f)
+            cell[axis] = c
+        return cell
+
+    @kernel
+    def begin_check(list_index_in: wp.array(dtype=wp.int32),
+                    list_index_out: wp.array(dtype=wp.int32), rebuild_out: wp.array(dtype=wp.int32),
+                    rebuilt_out: wp.array(dtype=wp.int32)):
+        """Before a step's check: the output state keeps its input's list unless it is rebuilt."""
+        list_index_out[0] = list_index_in[0]
+        rebuild_out[0] = 0
+        rebuilt_out[0] = 0
+
+    @kernel
+    def check_moved(position: wp.array(dtype=vec_hi), build_position: wp.array2d(dtype=vec_hi),
+                    list_index: wp.array(dtype=wp.int32), half_skin: hi, rebuild_out: wp.array(dtype=wp.int32)):
+        """Flag a rebuild when a grain has moved more than half the skin since the build
+        (the same value from every thread that writes it: no atomics needed)."""
+        i = wp.tid()
+        d = position[i] - build_position[list_index[0], i]
+        if not (wp.dot(d, d) <= half_skin * half_skin):  # NaN moves too
+            rebuild_out[0] = 1
+
+    @kernel
+    def bounds_partial(position: wp.array(dtype=vec_hi), chunk: int,
+                       lower_out: wp.array(dtype=vec_hi), upper_out: wp.array(dtype=vec_hi)):
+        """Bounding box of the finite positions of each chunk of grains."""
+        c = wp.tid()
+        big = hi(1.0e30)
+        lower = vec_hi(big, big, big)
+        upper = vec_hi(-big, -big, -big)
+        for i in range(c * chunk, wp.min(c * chunk + chunk, position.shape[0])):
+            x = position[i]
+            if wp.isfinite(x):
+                lower = wp.min(lower, x)
+                upper = wp.max(upper, x)
+        lower_out[c] = lower
+        upper_out[c] = upper
+
+    @kernel
+    def bounds_total(lower_in: wp.array(dtype=vec_hi), upper_in: wp.array(dtype=vec_hi), cell_min: hi,
+                     dims: wp.vec3i, grid_out: wp.array(dtype=hi)):
+        """The grid: origin [m] (3), cell size [m] per axis (3), at least cell_min, covering the box,
+        and the box's upper corner [m] (3)."""
+        big = hi(1.0e30)
+        lower = vec_hi(big, big, big)
+        upper = vec_hi(-big, -big, -big)
+        for c in range(lower_in.shape[0]):
+            lower = wp.min(lower, lower_in[c])
+            upper = wp.max(upper, upper_in[c])
+        for axis in range(3):
+            origin = lower[axis]
+            extent = upper[axis] - lower[axis]
+            if not (extent >= hi(0.0)):  # no finite grain at all
+                origin = hi(0.0)
+                extent = hi(0.0)
+            grid_out[axis] = origin
+            grid_out[3 + axis] = wp.max(cell_min, extent * hi(1.000001) / hi(dims[axis]))
+            grid_out[6 + axis] = origin + extent
+
+    @kernel
+    def cell_keys(position: wp.array(dtype=vec_hi), slot: wp.array(dtype=wp.int32), grid: wp.array(dtype=hi),
+                  dims: wp.vec3i, keys_out: wp.array(dtype=wp.int32), values_out: wp.array(dtype=wp.int32)):
+        """Morton key of each grain's cell, listed by model index (so that the stable sort breaks
+        ties by model index, whatever the storage order)."""
+        p = wp.tid()
+        cell = cell_of(position[slot[p]], grid, dims)
+        keys_out[p] = spread_bits(cell[0]) | (spread_bits(cell[1]) << 1) | (spread_bits(cell[2]) << 2)
+        values_out[p] = p
+
+    @kernel
+    def cell_ranges(keys: wp.array(dtype=wp.int32), values: wp.array(dtype=wp.int32), slot: wp.array(dtype=wp.int32),
+                    count: int, dims: wp.vec3i,
+                    cell_start_out: wp.array(dtype=wp.int32), cell_end_out: wp.array(dtype=wp.int32),
+                    cell_slot_out: wp.array(dtype=wp.int32)):
+        """Where each occupied cell's grains start and end in the sorted order, and their slots."""
+        q = wp.tid()
+        key = keys[q]
+        cell = compact_bits(key) + dims[0] * (compact_bits(key >> 1) + dims[1] * compact_bits(key >> 2))
+        first = q == 0
+        if not first:
+            first = keys[q - 1] != key
+        if first:
+            cell_start_out[cell] = q
+        last = q == count - 1
+        if not last:
+            last = keys[q + 1] != key
+        if last:
+            cell_end_out[cell] = q + 1
+        cell_slot_out[q] = slot[values[q]]
+
+    @kernel
+    def build_rows(position: wp.array(dtype=vec_hi), radius: wp.array(dtype=lo), inv_mass: wp.array(dtype=lo),
+                   order: wp.array(dtype=wp.int32), grid: wp.array(dtype=hi), dims: wp.vec3i,
+                   cell_start: wp.array(dtype=wp.int32), cell_end: wp.array(dtype=wp.int32),
+                   cell_slot: wp.array(dtype=wp.int32), skin: hi,
+                   target: wp.array(dtype=wp.int32),
+                   neighbours_out: wp.array3d(dtype=wp.int32), neighbour_count_out: wp.array2d(dtype=wp.int32),
+                   build_position_out: wp.array2d(dtype=vec_hi), status_out: wp.array(dtype=wp.int32)):
+        """Row of grain i in list `target`: the grains within r_i + r_j + skin, in ascending model
+        index (so the row, and every sum over it, depends neither on the storage order nor on
+        the grid). Two fixed grains never pair."""
+        i = wp.tid()
+        t = target[0]
+        capacity = neighbours_out.shape[2]
+        x = position[i]
+        ri = hi(radius[i])
+        free = inv_mass[i] > lo(0.0)
+        home = cell_of(x, grid, dims)
+        count = int(0)  # noqa: UP018 (a Warp variable the kernel changes: not a constant)
+        for dz in range(-1, 2):
+            cz = home[2] + dz
+            if cz < 0 or cz >= dims[2]:
+                continue
+            for dy in range(-1, 2):
+                cy = home[1] + dy
+                if cy < 0 or cy >= dims[1]:
+                    continue
+                for dx in range(-1, 2):
+                    cx = home[0] + dx
+                    if cx < 0 or cx >= dims[0]:
+                        continue
+                    cell = cx + dims[0] * (cy + dims[1] * cz)
+                    for q in range(cell_start[cell], cell_end[cell]):
+                        j = cell_slot[q]
+                        if j != i and (free or inv_mass[j] > lo(0.0)):
+                            gap = position[j] - x
+                            reach = ri + hi(radius[j]) + skin
+                            if wp.dot(gap, gap) < reach * reach:
+                                if count < capacity:
+                                    neighbours_out[t, i, count] = j
+                                count += 1
+        stored = wp.min(count, capacity)
+        for k in range(1, stored):  # insertion sort by model index (rows are short)
+            j = neighbours_out[t, i, k]
+            key = order[j]
+            m = k - 1
+            while m >= 0:  # (no short-circuit `and` in kernels: test the index first)
+                if order[neighbours_out[t, i, m]] > key:
+                    neighbours_out[t, i, m + 1] = neighbours_out[t, i, m]
+                    m -= 1
+                else:
+                    break
+            neighbours_out[t, i, m + 1] = j
+        neighbour_count_out[t, i] = stored
+        build_position_out[t, i] = x
+        if count > capacity:
+            wp.atomic_max(status_out, status_columns.NEEDED_NEIGHBOURS, count)
+
+    @kernel
+    def remap_history(neighbours: wp.array3d(dtype=wp.int32), neighbour_count: wp.array2d(dtype=wp.int32),
+                      list_index_in: wp.array(dtype=wp.int32), target: wp.array(dtype=wp.int32),
+                      order: wp.array(dtype=wp.int32),
+                      touching_in: wp.array2d(dtype=wp.uint32), tangential_in: wp.array2d(dtype=vec_hi),
+                      rolling_in: wp.array2d(dtype=vec_hi), touching_old: wp.array2d(dtype=wp.uint32),
+                      touching_out: wp.array2d(dtype=wp.uint32), tangential_out: wp.array2d(dtype=vec_hi),
+                      rolling_out: wp.array2d(dtype=vec_hi)):
+        """Carry each pair's history from its entry in the old row to its entry in the new one
+        (both rows ascend in model index: one merge pass).
+
+        Entries out of contact hold zero in every buffer (their bit is clear), so the history
+        arrays are a function of the contacts alone: entries the output held before
+        (touching_old) and that carry nothing now are cleared."""
+        i = wp.tid()
+        old = list_index_in[0]
+        new = target[0]
+        old_count = neighbour_count[old, i]
+        new_count = neighbour_count[new, i]
+        capacity = neighbours.shape[2]
+        kk = int(0)  # noqa: UP018 (a Warp variable the kernel changes: not a constant)
+        for word in range(touching_out.shape[1]):
+            bits = wp.uint32(0)
+            for k in range(word * 32, wp.min(word * 32 + 32, new_count)):
+                key = order[neighbours[new, i, k]]
+                while kk < old_count:
+                    if order[neighbours[old, i, kk]] < key:
+                        kk += 1
+                    else:
+                        break
+                if kk < old_count:
+                    if neighbours[old, i, kk] == neighbours[new, i, k]:
+                        if (touching_in[i, kk >> 5] >> wp.uint32(kk & 31)) & wp.uint32(1) != wp.uint32(0):
+                            bits = bits | (wp.uint32(1) << wp.uint32(k & 31))
+                            if wp.static(FRICTION):
+                                tangential_out[i, k] = tangential_in[i, kk]
+                            if wp.static(ROLLING):
+                                rolling_out[i, k] = rolling_in[i, kk]
+            clear = touching_old[i, word] & ~bits
+            if clear != wp.uint32(0):
+                for k in range(word * 32, wp.min(word * 32 + 32, capacity)):
+                    if (clear >> wp.uint32(k & 31)) & wp.uint32(1) != wp.uint32(0):
+                        if wp.static(FRICTION):
+                            tangential_out[i, k] = vec_hi()
+                        if wp.static(ROLLING):
+                            rolling_out[i, k] = vec_hi()
+            touching_out[i, word] = bits
+
+    @kernel
+    def finish_build(target: wp.array(dtype=wp.int32), list_index_out: wp.array(dtype=wp.int32),
+                     rebuilt_out: wp.array(dtype=wp.int32), status_out: wp.array(dtype=wp.int32)):
+        """The output state's history is now aligned with the new list."""
+        list_index_out[0] = target[0]
+        rebuilt_out[0] = 1
+        status_out[status_columns.REBUILDS] = status_out[status_columns.REBUILDS] + 1
+
+    @kernel
+    def other_list(list_index_in: wp.array(dtype=wp.int32), target_out: wp.array(dtype=wp.int32)):
+        """The list a build writes: the one the input state does not use."""
+        target_out[0] = 1 - list_index_in[0]
+
+    @kernel
+    def new_slots(values: wp.array(dtype=wp.int32), new_slot_out: wp.array(dtype=wp.int32)):
+        """New storage slot of each model index: its place in the sorted order."""
+        q = wp.tid()
+        new_slot_out[values[q]] = q
+
+    @kernel
+    def storage_origin(values: wp.array(dtype=wp.int32), slot: wp.array(dtype=wp.int32),
+                       origin_out: wp.array(dtype=wp.int32)):
+        """Old slot of the grain that moves to new slot q."""
+        q = wp.tid()
+        origin_out[q] = slot[values[q]]
+
+    @kernel
+    def relabel_rows(neighbours: wp.array3d(dtype=wp.int32), neighbour_count: wp.array2d(dtype=wp.int32),
+                     build_position: wp.array2d(dtype=vec_hi), list_index_in: wp.array(dtype=wp.int32),
+                     origin: wp.array(dtype=wp.int32), order: wp.array(dtype=wp.int32),
+                     new_slot: wp.array(dtype=wp.int32),
+                     neighbours_out: wp.array3d(dtype=wp.int32), neighbour_count_out: wp.array2d(dtype=wp.int32),
+                     build_position_out: wp.array2d(dtype=vec_hi), list_index_out: wp.array(dtype=wp.int32)):
+        """Move each row of the current list to its grain's new slot (into the other list), naming
+        the partners by their new slots."""
+        q = wp.tid()
+        c = list_index_in[0]
+        t = 1 - c
+        old = origin[q]
+        count = neighbour_count[c, old]
+        for k in range(count):
+            neighbours_out[t, q, k] = new_slot[order[neighbours[c, old, k]]]
+        neighbour_count_out[t, q] = count
+        build_position_out[t, q] = build_position[c, old]
+        if q == 0:
+            list_index_out[0] = t
+
+    @kernel
+    def relabel_layout(values: wp.array(dtype=wp.int32), radius: wp.array(dtype=lo), mass: wp.array(dtype=lo),
+                       inv_mass: wp.array(dtype=lo), inv_inertia: wp.array(dtype=lo),
+                       material: wp.array(dtype=wp.int32),
+                       order_out: wp.array(dtype=wp.int32), slot_out: wp.array(dtype=wp.int32),
+                       radius_out: wp.array(dtype=lo), mass_out: wp.array(dtype=lo), inv_mass_out: wp.array(dtype=lo),
+                       inv_inertia_out: wp.array(dtype=lo), material_out: wp.array(dtype=wp.int32)):
+        """The layout in the new order: model index per slot, its inverse, and the grains'
+        constants gathered from the model (model order)."""
+        q = wp.tid()
+        p = values[q]
+        order_out[q] = p
+        slot_out[p] = q
+        radius_out[q] = radius[p]
+        mass_out[q] = mass[p]
+        inv_mass_out[q] = inv_mass[p]
+        inv_inertia_out[q] = inv_inertia[p]
+        material_out[q] = material[p]
+
+    @kernel
+    def copy_list(neighbours: wp.array3d(dtype=wp.int32), neighbour_count: wp.array2d(dtype=wp.int32),
+                  build_position: wp.array2d(dtype=vec_hi), source: wp.array(dtype=wp.int32),
+                  target: wp.array(dtype=wp.int32), neighbours_out: wp.array3d(dtype=wp.int32),
+                  neighbour_count_out: wp.array2d(dtype=wp.int32), build_position_out: wp.array2d(dtype=vec_hi)):
+        """Copy grain i's row of list source[0] into list target[0] of the output arrays."""
+        i = wp.tid()
+        s = source[0]
+        t = target[0]
+        count = neighbour_count[s, i]
+        for k in range(count):
+            neighbours_out[t, i, k] = neighbours[s, i, k]
+        neighbour_count_out[t, i] = count
+        build_position_out[t, i] = build_position[s, i]
+
+    return dict(copy_list=copy_list, begin_check=begin_check, check_moved=check_moved, bounds_partial=bounds_partial,
+                bounds_total=bounds_total, cell_keys=cell_keys, cell_ranges=cell_ranges, build_rows=build_rows,
+                remap_history=remap_history, finish_build=finish_build, other_list=other_list, new_slots=new_slots,
+                storage_origin=storage_origin, relabel_rows=relabel_rows, relabel_layout=relabel_layout)
+
+
+class NeighbourList:
+    """Keeps the layout's neighbour lists of a model (see the module docstring)."""
+
+    def __init__(self, model, settings: NeighbourSettings | None = None, positions: np.ndarray | None = None):
+        self.model = model
+        self.settings = settings or NeighbourSettings()
+        prec = model.precision
+        self.kernels = neighbour_kernels(prec.hi, prec.lo, model.law)
+        self.skin = float(self.settings.skin if self.settings.skin is not None else 0.3 * model.max_radius)
+        """Extra reach of the list beyond contact [m]."""
+        self.cell_min = 2.0 * model.max_radius + self.skin
+        """Smallest cell size [m]: the largest pair reach."""
+        n = model.particle_count
+        self.reorder_enabled = bool(self.settings.reorder if self.settings.reorder is not None
+                                    else n >= REORDER_FROM)
+        """Whether the storage follows the space-filling curve (reordered between macro steps)."""
+        device = model.device
+        self._chunks = (n + CHUNK - 1) // CHUNK
+        self._lower = wp.zeros(self._chunks, dtype=prec.vec_hi, device=device)
+        self._upper = wp.zeros(self._chunks, dtype=prec.vec_hi, device=device)
+        self.grid = wp.zeros(9, dtype=prec.hi, device=device)
+        """Of the last build: the grid origin = the grains' lower corner [m] (3), the cell size per
+        axis [m] (3) and the grains' upper corner [m] (3)."""
+        self._keys = wp.zeros(2 * n, dtype=wp.int32, device=device)
+        self._values = wp.zeros(2 * n, dtype=wp.int32, device=device)
+        self._cell_slot = wp.zeros(n, dtype=wp.int32, device=device)
+        self._target = wp.zeros(1, dtype=wp.int32, device=device)
+        self._rebuild = wp.zeros(1, dtype=wp.int32, device=device)
+        self.rebuilt = wp.zeros(1, dtype=wp.int32, device=device)
+        """1 when the last check rebuilt the list (the output state's history is then remapped)."""
+        self._origin = wp.zeros(n, dtype=wp.int32, device=device)
+        self._new_slot = wp.zeros(n, dtype=wp.int32, device=device)
+        self._zero = wp.zeros(1, dtype=wp.int32, device=device)
+        self._saved = None
+        self.dims = (1, 1, 1)
+        self._cell_start = self._cell_end = None
+        self.plan(positions)
+
+    # -- the grid ---------------------------------------------------------------------
+    def plan(self, positions: np.ndarray | None) -> None:
+        """Cell counts per axis from the grains' bounding box (host positions [m], (n, 3)):
+        about one cell of the largest pair reach per grain diameter, at most 4 cells per grain."""
+        n = self.model.particle_count
+        if positions is None or not np.isfinite(positions).all():
+            extent = np.full(3, self.cell_min * max(1.0, n ** (1 / 3)))
+        else:
+            extent = positions.max(axis=0) - positions.min(axis=0)
+        dims = np.clip(np.floor(extent / self.cell_min), 1, MAX_CELLS_PER_AXIS).astype(np.int64)
+        while dims.prod() > max(4 * n, 64):
+            dims = np.maximum(1, dims // 2)
+        dims = tuple(int(d) for d in dims)
+        if dims == self.dims and self._cell_start is not None:
+            return
+        self.dims = dims
+        cells = int(np.prod(dims))
+        self._cell_start = wp.zeros(cells, dtype=wp.int32, device=self.model.device)
+        self._cell_end = wp.zeros(cells, dtype=wp.int32, device=self.model.device)
+
+    def wants_plan(self, lower: np.ndarray, upper: np.ndarray) -> bool:
+        """Whether the grains' box (lower, upper [m]) has drifted from the grid's plan by a factor of 2."""
+        ideal = np.clip(np.floor((upper - lower) / self.cell_min), 1, MAX_CELLS_PER_AXIS)
+        return bool(np.any(ideal > 2 * np.asarray(self.dims)) or np.any(2 * ideal < np.asarray(self.dims)))
+
+    def device_arrays(self) -> list:
+        """The scratch arrays a captured step uses (a graph stays valid while they do)."""
+        return [self._keys, self._values, self._cell_slot, self._cell_start, self._cell_end, self.grid]
+
+    def bytes_per_grain(self) -> float:
+        """Device memory of the build's scratch per grain [B]."""
+        n = max(self.model.particle_count, 1)
+        arrays = (self._keys, self._values, self._cell_slot, self._origin, self._new_slot, self._cell_start,
+                  self._cell_end, self._lower, self._upper)
+        return sum(a.capacity for a in arrays) / n
+
+    # -- steps ------------------------------------------------------------------------
+    def update(self, state_in: SoilState, state_out: SoilState, status: wp.array) -> None:
+        """Inside a step, after state_out's positions are predicted: rebuild the list when a grain
+        has moved more than half the skin since the build of state_in's list, remapping the pair
+        history of state_in into state_out; otherwise state_out keeps state_in's list. No host
+        read: the rebuild is a device-side branch (capturable)."""
+        k = self.kernels
+        device = self.model.device
+        wp.launch(k.begin_check, dim=1, inputs=[state_in.list_index],
+                  outputs=[state_out.list_index, self._rebuild, self.rebuilt], device=device)
+        wp.launch(k.check_moved, dim=self.model.particle_count,
+                  inputs=[state_out.position, state_in.layout.build_position, state_in.list_index,
+                          self.model.precision.hi(0.5 * self.skin)],
+                  outputs=[self._rebuild], device=device)
+        wp.capture_if(self._rebuild, on_true=lambda: self._build(state_out.position, state_in, state_out, status))
+
+    def build(self, state: SoilState, status: wp.array) -> None:
+        """Build the list from `state`'s positions now (the other list; history remapped into
+        place) and align `state` with it: for a state whose list is stale or was never built."""
+        layout = state.layout
+        k = self.kernels
+        device = self.model.device
+        wp.launch(k.other_list, dim=1, inputs=[state.list_index], outputs=[self._target], device=device)
+        self._sort(state.position, layout)
+        self._rows(state.position, layout, status)
+        # history: from copies of the state's entries into entries aligned with the new rows
+        touching = wp.clone(state.pair_touching)
+        wp.launch(k.remap_history, dim=self.model.particle_count,
+                  inputs=[layout.neighbours, layout.neighbour_count, state.list_index, self._target, layout.order,
+                          touching, wp.clone(state.pair_tangential), wp.clone(state.pair_rolling), touching],
+                  outputs=[state.pair_touching, state.pair_tangential, state.pair_rolling], device=device)
+        wp.launch(k.finish_build, dim=1, inputs=[self._target], outputs=[state.list_index, self.rebuilt, status],
+                  device=device)
+
+    def build_other(self, state: SoilState, status: wp.array) -> None:
+        """Build the list `state` does not use from its positions, leaving the state as it is
+        (for diagnostics of a state whose own list is stale)."""
+        wp.launch(self.kernels.other_list, dim=1, inputs=[state.list_index], outputs=[self._target],
+                  device=self.model.device)
+        self._sort(state.position, state.layout)
+        self._rows(state.position, state.layout, status)
+
+    def stale(self, state: SoilState) -> bool:
+        """Whether a grain of `state` has moved more than half the skin since its list was built (host read)."""
+        k = self.kernels
+        self._rebuild.zero_()
+        wp.launch(k.check_moved, dim=self.model.particle_count,
+                  inputs=[state.position, state.layout.build_position, state.list_index,
+                          self.model.precision.hi(0.5 * self.skin)],
+                  outputs=[self._rebuild], device=self.model.device)
+        return bool(self._rebuild.numpy()[0])
+
+    def _build(self, position, state_in: SoilState, state_out: SoilState, status) -> None:
+        k = self.kernels
+        device = self.model.device
+        layout = state_in.layout
+        wp.launch(k.other_list, dim=1, inputs=[state_in.list_index], outputs=[self._target], device=device)
+        self._sort(position, layout)
+        self._rows(position, layout, status)
+        wp.launch(k.remap_history, dim=self.model.particle_count,
+                  inputs=[layout.neighbours, layout.neighbour_count, state_in.list_index, self._target,
+                          layout.order, state_in.pair_touching, state_in.pair_tangential, state_in.pair_rolling,
+                          state_out.pair_touching],
+                  outputs=[state_out.pair_touching, state_out.pair_tangential, state_out.pair_rolling],
+                  device=device)
+        wp.launch(k.finish_build, dim=1, inputs=[self._target], outputs=[state_out.list_index, self.rebuilt, status],
+                  device=device)
+
+    def _sort(self, position, layout: GrainLayout) -> None:
+        """The grid from the grains' box, and the grains sorted by (cell key, model index)."""
+        k = self.kernels
+        device = self.model.device
+        n = self.model.particle_count
+        hi = self.model.precision.hi
+        dims = wp.vec3i(*self.dims)
+        wp.launch(k.bounds_partial, dim=self._chunks, inputs=[position, CHUNK], outputs=[self._lower, self._upper],
+                  device=device)
+        wp.launch(k.bounds_total, dim=1, inputs=[self._lower, self._upper, hi(self.cell_min), dims],
+                  outputs=[self.grid], device=device)
+        wp.launch(k.cell_keys, dim=n, inputs=[position, layout.slot, self.grid, dims],
+                  outputs=[self._keys, self._values], device=device)
+        wp.utils.radix_sort_pairs(self._keys, self._values, n, 0, 30)
+
+    def _rows(self, position, layout: GrainLayout, status) -> None:
+        k = self.kernels
+        device = self.model.device
+        n = self.model.particle_count
+        dims = wp.vec3i(*self.dims)
+        self._cell_start.zero_()
+        self._cell_end.zero_()
+        wp.launch(k.cell_ranges, dim=n, inputs=[self._keys, self._values, layout.slot, n, dims],
+                  outputs=[self._cell_start, self._cell_end, self._cell_slot], device=device)
+        wp.launch(k.build_rows, dim=n,
+                  inputs=[position, layout.radius, layout.inv_mass, layout.order, self.grid, dims, self._cell_start,
+                          self._cell_end, self._cell_slot, self.model.precision.hi(self.skin), self._target],
+                  outputs=[layout.neighbours, layout.neighbour_count, layout.build_position, status],
+                  device=device)
+
+    # -- saving a list (a macro step redone from its start needs the start's list) -----------
+    def save(self, state: SoilState) -> None:
+        """Keep a copy of `state`'s current list (restore() puts it back)."""
+        layout = state.layout
+        n = self.model.particle_count
+        if self._saved is None or self._saved[0].shape[2] != layout.capacity:
+            device = self.model.device
+            self._saved = (wp.zeros((1, n, layout.capacity), dtype=wp.int32, device=device),
+                           wp.zeros((1, n), dtype=wp.int32, device=device),
+                           wp.zeros((1, n), dtype=self.model.precision.vec_hi, device=device))
+        wp.launch(self.kernels.copy_list, dim=n,
+                  inputs=[layout.neighbours, layout.neighbour_count, layout.build_position, state.list_index,
+                          self._zero],
+                  outputs=list(self._saved), device=self.model.device)
+
+    def restore(self, state: SoilState) -> None:
+        """Put the list saved by save() back where `state` expects it."""
+        layout = state.layout
+        wp.launch(self.kernels.copy_list, dim=self.model.particle_count,
+                  inputs=[*self._saved, self._zero, state.list_index],
+                  outputs=[layout.neighbours, layout.neighbour_count, layout.build_position],
+                  device=self.model.device)
+
+    # -- reordering (between steps) ------------------------------------------------------
+    def reorder(self, state: SoilState, spare: SoilState) -> None:
+        """Store the grains of `state` in the order of the space-filling curve, into `spare`
+        (which becomes the current state: the caller swaps them). The layout (order,
+        constants, current list) follows. Changes no value, only where values are stored."""
+        layout = state.layout
+        model = self.model
+        k = self.kernels
+        device = model.device
+        n = model.particle_count
+        self._sort(state.position, layout)
+        wp.launch(k.new_slots, dim=n, inputs=[self._values], outputs=[self._new_slot], device=device)
+        wp.launch(k.storage_origin, dim=n, inputs=[self._values, layout.slot], outputs=[self._origin], device=device)
+        wp.launch(k.relabel_rows, dim=n,
+                  inputs=[layout.neighbours, layout.neighbour_count, layout.build_position, state.list_index,
+                          self._origin, layout.order, self._new_slot],
+                  outputs=[layout.neighbours, layout.neighbour_count, layout.build_position, spare.list_index],
+                  device=device)
+        for name, array in state.arrays.items():
+            target = getattr(spare, name)
+            if name.startswith(("boundary_", "body_")) or name == "step_previous":
+                wp.copy(target, array)
+            elif array.ndim == 1:
+                wp.launch(gather_1d, dim=n, inputs=[array, self._origin], outputs=[target], device=device)
+            elif array.shape[1]:
+                wp.launch(gather_2d, dim=array.shape, inputs=[array, self._origin], outputs=[target], device=device)
+        wp.launch(k.relabel_layout, dim=n,
+                  inputs=[self._values, model.radius, model.mass, model.inv_mass, model.inv_inertia, model.material],
+                  outputs=[layout.order, layout.slot, layout.radius, layout.mass, layout.inv_mass,
+                           layout.inv_inertia, layout.material], device=device)
+        spare.time = state.time
+        spare.forces_valid = state.forces_valid

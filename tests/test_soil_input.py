@@ -1,0 +1,86 @@
+"""Bad input to the soil API gets a clear error naming the argument and what is allowed."""
+
+import math
+
+import numpy as np
+import pytest
+
+from soil import Material, OverlapWarning, Simulation, SoilBuilder, SoilInputError
+from soil.errors import RegolithError
+
+
+def builder_with_box():
+    builder = SoilBuilder(gravity=9.81)
+    builder.add_material(Material(youngs_modulus=1e6))
+    builder.add_container((0, 0, 0), (0.1, 0.1, 0.1))
+    return builder
+
+
+def test_positions_must_be_n_by_3():
+    with pytest.raises(SoilInputError, match=r"positions must have shape \(n, 3\).*\(4, 2\)"):
+        builder_with_box().add_particles(np.zeros((4, 2)), 0.01)
+    with pytest.raises(SoilInputError, match=r"position must be 3 numbers"):
+        builder_with_box().add_particle((0.05, 0.05), 0.01)
+
+
+def test_radii_must_match_positions():
+    with pytest.raises(SoilInputError, match=r"radii must be one radius or shape \(n,\) = \(3,\).*\(2,\)"):
+        builder_with_box().add_particles(np.full((3, 3), 0.05), [0.01, 0.01])
+
+
+def test_a_bad_radius_is_named_with_its_value():
+    radii = [0.002, 0.003, math.inf]
+    with pytest.raises(SoilInputError, match=r"radii must be finite and > 0 \[m\].*radii\[2\] = inf"):
+        builder_with_box().add_particles(np.full((3, 3), 0.05), radii)
+    with pytest.raises(SoilInputError, match=r"radii\[0\] = -0.001"):
+        builder_with_box().add_particles(np.full((1, 3), 0.05), -0.001)
+    with pytest.raises(SoilInputError, match=r"positions must be finite.*positions\[1\]"):
+        builder_with_box().add_particles([(0.05, 0.05, 0.05), (0.05, math.nan, 0.05)], 0.01)
+
+
+@pytest.mark.parametrize("dt", [-1e-4, 0.0, math.nan, math.inf])
+def test_a_step_must_be_finite_and_positive(dt):
+    builder = builder_with_box()
+    builder.add_particle((0.05, 0.05, 0.05), 0.01)
+    sim = Simulation(*builder.finalize("cpu", "double"))
+    for run in (lambda: sim.run(0.01, dt), lambda: sim.step(dt), lambda: sim.macro_step(3, dt)):
+        with pytest.raises(SoilInputError, match=r"dt must be finite and > 0 \[s\]"):
+            run()
+    with pytest.raises(SoilInputError, match=r"duration must be finite and >= 0 \[s\]"):
+        sim.run(-0.01, 1e-4)
+    assert sim.steps == 0
+
+
+def test_grains_created_inside_each_other_are_reported():
+    """Two pairs pressed 50 % and 20 % into each other, one grain 30 % into the floor: a warning
+    with the count and the deepest overlap."""
+    builder = builder_with_box()
+    r = 0.01
+    builder.add_particles([(0.02, 0.05, 0.05), (0.03, 0.05, 0.05),  # 1.0 r apart: overlap 1.0 r
+                           (0.06, 0.05, 0.05), (0.078, 0.05, 0.05),  # 1.8 r apart: overlap 0.2 r
+                           (0.05, 0.02, 0.007)], r)  # 0.3 r into the floor
+    with pytest.warns(OverlapWarning, match=r"3 contact\(s\).*deepest: particles 0 and 1 by 0.01 m, 1 x its radius"):
+        builder.finalize("cpu", "double")
+    spaced = builder_with_box()
+    spaced.add_particles([(0.02, 0.05, 0.05), (0.0419, 0.05, 0.05)], r)  # 0.05 r: a settled contact, no warning
+    import warnings
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", OverlapWarning)
+        spaced.finalize("cpu", "double")
+
+
+def test_grains_outside_the_container_are_refused():
+    builder = builder_with_box()
+    builder.add_particles([(0.05, 0.05, 0.05), (0.05, 0.12, 0.05)], 0.01)
+    with pytest.raises(SoilInputError, match=r"1 grain\(s\) have their centre behind boundary 4.*particle 1"):
+        builder.finalize("cpu", "double")
+    box = builder_with_box()
+    box.add_box((0.04, 0.04, 0.0), (0.06, 0.06, 0.02))
+    box.add_particle((0.05, 0.05, 0.01), 0.005)
+    with pytest.raises(RegolithError, match=r"inside boundary 5, the solid box"):
+        box.finalize("cpu", "double")
+    fixed = builder_with_box()  # a fixed grain may sit anywhere: walls do not act on it
+    fixed.add_particle((0.05, 0.05, -0.05), 0.01, fixed=True)
+    fixed.add_particle((0.05, 0.05, 0.05), 0.01)
+    fixed.finalize("cpu", "double")
