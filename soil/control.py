@@ -422,7 +422,7 @@ class SoilControl:
 
     def state_dict(self) -> dict:
         """The control as numpy arrays: the host copies of body and boundary motion (names
-        without _host) and external_force [N] (particle_count, 3)."""
+        without _host), external_force [N] (particle_count, 3) and body_posed [-] (body_count,)."""
         data = {name: getattr(self, f"{name}_host").copy() for name in self._HOST}
         data["external_force"] = self.external_force.numpy().copy()  # a view on the CPU otherwise
         data["external_force_used"] = np.bool_(self.external_force_used)
