@@ -112,13 +112,20 @@ class DemSoil:
         if not span > 0:
             raise ValueError(f"t_end {t_end!r} s must be after the soil's time {t0!r} s")
         steps = max(1, int(np.ceil(span / self.dt - 1e-9)))
+        h = span / steps
+        if abs(steps * self.dt - span) <= 64 * np.spacing(max(abs(float(t_end)), span)):
+            # whole DEM steps up to the clock's rounding: step with dt itself, not with a length that
+            # changes in its last bits from one macro step to the next (each new length is a new
+            # captured graph, soil.Simulation)
+            h = self.dt
 
         def stack(kinematics):
             return tuple(np.array([getattr(k, name) for k in kinematics], dtype=np.float64)
                          for name in ("position", "orientation", "linear_velocity", "angular_velocity"))
 
         control.set_body_path(span, *stack(start), end=None if end is None else stack(end))
-        report = sim.macro_step(steps, span / steps, path=True)
+        report = sim.macro_step(steps, h, path=True)
+        sim.state.time = float(t_end)  # the coupler's clock (the steps' sum differs by its rounding only)
         self._check_walls(control.body_position_host, report.boundary_displacement)
         return [WheelWrench(force=report.body_force[b], torque=report.body_torque[b],
                             force_end=report.body_force_end[b], torque_end=report.body_torque_end[b],

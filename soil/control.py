@@ -167,6 +167,12 @@ class SoilControl:
         """Device copy of body_velocity_host [m/s], shape (body_count,)."""
         self.body_angular_velocity = wp.zeros(body_count, dtype=vec_hi, device=device)
         """Device copy of body_angular_velocity_host [rad/s], shape (body_count,)."""
+        self.body_posed_host = np.zeros(body_count, dtype=np.int32)
+        """1 once a body has been posed (set_body_motion with a position, or set_body_path), else 0 [-],
+        shape (body_count,), int32 (host copy). A body not yet posed touches nothing: its placeholder
+        pose (the origin) may lie inside the grains, whose forces would then be computed with it."""
+        self.body_posed = wp.zeros(body_count, dtype=wp.int32, device=device)
+        """Device copy of body_posed_host [-], shape (body_count,), int32."""
 
         nb = boundary_count
         self.boundary_reports = (np.ones(nb, dtype=bool) if boundary_reports is None
@@ -209,7 +215,8 @@ class SoilControl:
 
     @classmethod
     def for_model(cls, model) -> "SoilControl":
-        """A control sized for `model`: no external forces, bodies at the origin, boundaries fixed."""
+        """A control sized for `model`: no external forces, bodies not yet posed (at the origin,
+        touching nothing), boundaries fixed."""
         return cls(model.particle_count, model.precision.vec_hi, model.device, model.body_count,
                    model.boundary_count, model.boundary_reports)
 
@@ -256,6 +263,9 @@ class SoilControl:
         self.body_path.assign(rows.astype(np.float64 if self.body_path.dtype is wp.float64 else np.float32))
         self.path_step.zero_()
         self.path_active = True
+        if not self.body_posed_host.all():  # the first path poses the bodies (one copy, once)
+            self.body_posed_host[:] = 1
+            self.body_posed.assign(self.body_posed_host)
         for b in range(count):
             p0, q0, v0, w0 = (part[b] for part in start)
             if end is None:
@@ -288,11 +298,16 @@ class SoilControl:
     def set_body_motion(self, body: int, position=None, orientation=None, velocity=None, angular_velocity=None,
                         rotation=None) -> None:
         """Prescribe a body's pose and velocity: position [m] (3,), orientation quaternion
-        (w, x, y, z) or rotation matrix (3, 3), velocity [m/s] (3,), angular velocity [rad/s] (3,)."""
+        (w, x, y, z) or rotation matrix (3, 3), velocity [m/s] (3,), angular velocity [rad/s] (3,).
+
+        A body touches the grains once it has a position. Forces already computed (a
+        Simulation computes them when it is made) stay those of the earlier pose until the
+        next force evaluation: call Simulation.refresh_forces() after placing a body by hand."""
         if not 0 <= body < self.body_count:
             raise IndexError(f"body index must be in [0, {self.body_count}), got {body}")
         if position is not None:
             self.body_position_host[body] = position
+            self.body_posed_host[body] = 1
         if orientation is not None:
             self.body_rotation_host[body] = quaternion_to_matrix(orientation)
         if rotation is not None:
@@ -385,6 +400,8 @@ class SoilControl:
             return
         dtype = self.body_position.dtype._wp_scalar_type_
         np_type = np.float64 if dtype is wp.float64 else np.float32
+        if self.body_count:
+            self.body_posed.assign(self.body_posed_host)
         if self.body_count and not self.path_active:
             self.body_position.assign(self.body_position_host.astype(np_type))
             self.body_rotation.assign(self.body_rotation_host.astype(np_type))
@@ -405,10 +422,11 @@ class SoilControl:
 
     def state_dict(self) -> dict:
         """The control as numpy arrays: the host copies of body and boundary motion (names
-        without _host) and external_force [N] (particle_count, 3)."""
+        without _host), external_force [N] (particle_count, 3) and body_posed [-] (body_count,)."""
         data = {name: getattr(self, f"{name}_host").copy() for name in self._HOST}
         data["external_force"] = self.external_force.numpy().copy()  # a view on the CPU otherwise
         data["external_force_used"] = np.bool_(self.external_force_used)
+        data["body_posed"] = self.body_posed_host.copy()
         return data
 
     def load_state_dict(self, data: dict) -> None:
@@ -425,5 +443,7 @@ class SoilControl:
                              f"{self.external_force.shape[0]}")
         self.external_force.assign(force.astype(self.external_force.numpy().dtype, copy=False))
         self.external_force_used = bool(data.get("external_force_used", np.any(force)))
+        # saved before bodies could be unposed: every body counted as posed
+        self.body_posed_host[...] = np.asarray(data.get("body_posed", np.ones_like(self.body_posed_host)))
         self.path_active = False
         self._dirty = True

@@ -38,6 +38,9 @@ REPORT_BODIES = REPORT_BOUNDS + 6
 over the macro step's steps, force and torque at its end (6), work done on the soil [J] (1),
 grains touching at its end (1); then per boundary its displacement at the end [m] (3)."""
 BODY_COLUMNS = 14
+MAX_GRAPHS = 32
+"""Captured steps kept at most; the oldest is dropped first (a caller that keeps changing the
+step length would otherwise hold ever more graphs)."""
 
 
 class CaptureWarning(RegolithWarning):
@@ -282,6 +285,8 @@ class Simulation:
             key = (dt, id(state_in), id(state_out), path, type(self.integrator))
             entry = self._graphs.get(key)
             if entry is None:
+                if len(self._graphs) >= MAX_GRAPHS:
+                    del self._graphs[next(iter(self._graphs))]
                 evaluations = self.contacts.evaluations
                 try:
                     with wp.ScopedCapture(device=self.model.device) as capture:

@@ -81,6 +81,7 @@ def contact_kernels(hi, lo, law: ContactLaw):
         rotation: wp.array(dtype=mat_hi)
         velocity: wp.array(dtype=vec_hi)
         angular_velocity: wp.array(dtype=vec_hi)
+        posed: wp.array(dtype=wp.int32)
 
     @wp.struct
     class History:
@@ -234,7 +235,7 @@ def contact_kernels(hi, lo, law: ContactLaw):
                 rotation = bodies.rotation[b]
                 local = wp.transpose(rotation) * (xi - hub)
                 reach = bodies.shape[b, 5] + hi(ri)
-                if wp.length(local) < reach:
+                if bodies.posed[b] != 0 and wp.length(local) < reach:  # a body not yet posed is nowhere
                     distance = reach
                     n_out = vec_hi()
                     if bodies.kind[b] == BODY_WHEEL:
@@ -467,6 +468,7 @@ class ContactSolver:
         bundle.point_offset, bundle.index_offset = model.body_point_offset, model.body_index_offset
         bundle.position, bundle.rotation = control.body_position, control.body_rotation
         bundle.velocity, bundle.angular_velocity = control.body_velocity, control.body_angular_velocity
+        bundle.posed = control.body_posed
         return bundle
 
     def history(self, state: SoilState):

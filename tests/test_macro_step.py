@@ -103,3 +103,29 @@ def test_device_wheel_path_and_wrench_sums_match_stepping_from_the_host(device):
             np.testing.assert_allclose(on_device.sim.control.body_rotation.numpy()[0],
                                        sim.control.body_rotation.numpy()[0], rtol=0, atol=1e-12)
     assert wrench.contact_count > 0
+
+
+def test_macro_steps_of_whole_dem_steps_step_with_dt_and_keep_the_coupler_clock(device, monkeypatch):
+    """A coupler's macro step of ten DEM steps, its times summed in floats as a coupler sums
+    them (late in a long run, where the clock's last bit is 7e-15 s): every DEM step is the
+    scene's dt itself, not a length that changes in its last bits from one macro step to the
+    next (each new length is a new captured step), and the soil's time is the coupler's."""
+    side = soil(device)
+    side.sim.state.time = 37.0  # a late start: a coarse clock
+    lengths = []
+    macro_step = side.sim.macro_step
+
+    def recording(steps, dt, **kwargs):
+        lengths.append(dt)
+        return macro_step(steps, dt, **kwargs)
+
+    monkeypatch.setattr(side.sim, "macro_step", recording)
+    t, macro = 37.0, 10 * 1e-4
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", WallProximityWarning)
+        for k in range(12):
+            start = pose(k * macro)
+            t += macro
+            side.advance(t, [start])
+            assert side.time == t
+    assert lengths == [1e-4] * 12, lengths

@@ -129,3 +129,58 @@ def test_a_checkpoint_continues_bitwise_in_another_storage_order(device):
     np.testing.assert_array_equal(resumed.positions(), reference.positions())
     np.testing.assert_array_equal(resumed.angular_velocities(), reference.angular_velocities())
     assert not np.array_equal(reference.state.layout.order.numpy(), np.arange(reference.model.particle_count))
+
+
+
+LATTICE = (2e-3, 2e-3 * (1 - 1e-3) * 2, (6, 6, 3))
+"""The standing lattice: grain radius [m], pitch [m] (0.1 % less than a diameter), grains per axis."""
+
+
+def standing_lattice(device, wheels=()):
+    """Grains on a simple cubic lattice (LATTICE), pressed 0.1 % together in a box they fill,
+    at Phobos gravity: a bed that stands still from the first step. Each wheel of `wheels` is
+    (shape, hub [m]), posed after the Simulation is made, as a user placing a wheel would.
+    Returns the simulation and the box's upper corner [m]."""
+    radius, pitch, n = LATTICE
+    grid = np.stack(np.meshgrid(*[np.arange(k) for k in n], indexing="ij"), -1).reshape(-1, 3)
+    box = [n[0] * pitch, n[1] * pitch, 0.1]
+    builder = SoilBuilder(gravity="phobos")
+    mat = builder.add_material(Material(youngs_modulus=1e6, restitution=0.3))
+    builder.add_container((0, 0, 0), box, mat)
+    builder.add_particles(0.5 * pitch + grid * pitch, radius, mat)
+    for shape, _ in wheels:
+        builder.add_wheel(shape, mat)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # the lattice starts pressed: on purpose
+        model, state, control = builder.finalize(device, "double")
+    sim = Simulation(model, state, control)
+    for b, (_, hub) in enumerate(wheels):
+        sim.control.set_body_motion(b, hub, (1, 0, 0, 0), (0, 0, 0), (0, 0, 0))
+    return sim, np.array(box)
+
+
+def test_a_parked_or_resting_wheel_rebuilds_the_list_no_more_often_than_no_wheel(device):
+    """A standing bed with a wheel resting on it (its bottom grouser pressed 10 um into a top
+    grain) and a wheel parked far away keeps its neighbour list as long as the same bed
+    without wheels: wheels that do not stir the grains do not make the list stale. (A wheel
+    sat at the origin until posed, inside the bed's corner, when the Simulation computed its
+    first forces: the first step blew the corner apart and the list was rebuilt at every step.)"""
+    from soil import GrouserWheel
+
+    wheel = GrouserWheel(radius=0.012, width=0.01, grouser_count=8, grouser_height=0.001, grouser_thickness=0.001)
+    radius, pitch, n = LATTICE
+    plain, box = standing_lattice(device)
+    top = (n[2] - 0.5) * pitch + radius
+    hub = (2.5 * pitch, 0.5 * box[1], top + wheel.outer_radius - 1e-5)  # above the third column of grains
+    wheeled, _ = standing_lattice(device, [(wheel, hub), (wheel, (10.0, 10.0, 10.0))])
+    dt = 2e-5
+    rebuilds = {"plain": 0, "wheeled": 0}
+    for _ in range(5):
+        rebuilds["plain"] += plain.macro_step(20, dt).rebuilds
+        report = wheeled.macro_step(20, dt)
+        rebuilds["wheeled"] += report.rebuilds
+    assert rebuilds["wheeled"] <= rebuilds["plain"], rebuilds
+    assert report.body_contacts[0] > 0 and report.body_contacts[1] == 0, "one wheel rests on the bed, one is away"
+    # the grains stand: none moved more than the skin's half (the list's own criterion)
+    moved = np.linalg.norm(wheeled.positions() - plain.positions(), axis=1)
+    assert moved.max() < 0.5 * wheeled.neighbour_list.skin
