@@ -1,0 +1,420 @@
+"""A soil patch that follows the rover, so a traverse can be longer than any bed (docs/rover.md).
+
+The soil is a lattice of copies of one settled tile (the scene's [bed], settled in its box and
+saved): the grains of the copy in cell (i, j) sit at the tile's grains shifted by (i a_x, j a_y)
+from the lattice origin. Only the grains inside a window, an axis-aligned rectangle centred near
+the rover's wheels, are simulated: the patch. A band of grains along the window's edge is frozen
+(inverse mass 0), a rough wall that holds the soil in; the floor z = 0 is a plane.
+
+When the wheels' centre has moved more than `recentre_distance` from the window's centre along x
+or y, the window is moved onto it (`follow`, between two macro steps, on the host: no device read
+inside a DEM step). Then
+
+- grains whose centre is outside the new window are removed (behind the rover), and so are the
+  strays that flew over the band into the part of the new window that was not simulated;
+- the lattice's grains in that part are placed, with their settled velocities, spins and
+  contact history, from the tile (ahead of the rover);
+- the band is frozen again where the new window's edge is (grains there keep their place and
+  lose their speed) and unfrozen elsewhere;
+- the contact history is carried over: partners are renumbered, contacts with grains that left
+  are dropped, a placed grain keeps its tile history with grains placed with it and with the
+  floor;
+- a new soil model and state are built (SoilBuilder, soil.bed.restore_state) and the forces are
+  recomputed at the current state (Simulation.refresh_forces).
+
+Everything is numpy on the host in a fixed order, so a run with a moving patch repeats bit for
+bit and continues bitwise from a checkpoint (`state_dict` holds the patch's grains and books).
+The mass placed and removed is booked: mass now = initial mass + added - removed.
+
+Limits: the tile's side walls leave a slightly looser layer at every seam of the lattice (the
+grains there settled against a wall); a grain thrown over the band lands outside the window and
+is removed at the next move; the band is at rest, not a moving soil (a rover must keep its
+clearance from it).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from soil import DivergenceMonitor, Simulation, SoilBuilder
+from soil.bed import load_bed, restore_state
+from soil.kernels import BOUNDARY_PLANE
+
+PER_GRAIN = ("position", "velocity", "angular_velocity", "force", "torque", "force_previous", "torque_previous",
+             "contact_count", "contact_partner", "contact_tangential", "contact_rolling")
+"""State arrays with one row per grain that a move carries over (soil.SoilState)."""
+
+
+@dataclass
+class Tile:
+    """The settled tile: its grains in tile coordinates (0 <= x < size_x, 0 <= y < size_y), the
+    constants and the state they were saved with."""
+
+    size: np.ndarray
+    """Tile size along x and y [m], shape (2,)."""
+    state: dict
+    """Per-grain state arrays (PER_GRAIN names), rows in tile order."""
+    radius: np.ndarray
+    """Grain radii [m], shape (n,)."""
+    material: np.ndarray
+    """Material index per grain, shape (n,), int32."""
+    mass: np.ndarray
+    """Masses [kg], shape (n,)."""
+    inv_mass: np.ndarray
+    """Inverse masses of the free grains [1/kg], shape (n,)."""
+    inv_inertia: np.ndarray
+    """Inverse moments of inertia of the free grains [1/(kg m^2)], shape (n,)."""
+    floor_key: int
+    """Contact-history key of the tile's floor (particle count + its boundary index) [-]."""
+    floor_material: int
+    """Material index of the floor [-]."""
+    materials: list
+    """soil.Material by index."""
+    overrides: dict
+    """Pair overrides of the material table."""
+
+    @property
+    def count(self) -> int:
+        return len(self.radius)
+
+    @classmethod
+    def load(cls, path, size, precision: str) -> "Tile":
+        """The tile of a bed saved by soil.bed.save_bed (its floor is the plane z = 0)."""
+        builder, saved = load_bed(path)
+        model, state, control = builder.finalize(device="cpu", precision=precision)
+        restore_state(model, state, saved)
+        kinds = model.boundary_kind.numpy()
+        geometry = model.boundary_geometry.numpy().astype(np.float64)
+        floors = [b for b, (kind, row) in enumerate(zip(kinds, geometry))
+                  if kind == BOUNDARY_PLANE and np.allclose(row[3:], (0.0, 0.0, 1.0)) and abs(row[2]) < 1e-12]
+        if not floors:
+            raise ValueError(f"{path}: the bed has no floor plane z = 0 to stand a patch on")
+        data = state.to_numpy()
+        return cls(size=np.asarray(size, dtype=np.float64), state={k: data[k] for k in PER_GRAIN},
+                   radius=model.radius.numpy(), material=model.material.numpy(), mass=model.mass.numpy(),
+                   inv_mass=model.inv_mass.numpy(), inv_inertia=model.inv_inertia.numpy(),
+                   floor_key=model.particle_count + floors[0],
+                   floor_material=int(model.boundary_material.numpy()[floors[0]]),
+                   materials=list(model.materials.materials), overrides=dict(model.materials.overrides))
+
+
+def _inside(xy: np.ndarray, low: np.ndarray, high: np.ndarray) -> np.ndarray:
+    """Points [m], shape (n, 2), in the half-open box low <= p < high."""
+    return np.all((xy >= low) & (xy < high), axis=1)
+
+
+class SoilPatch:
+    """The moving window of soil (module docstring). Build the first soil with `start`, then call
+    `follow` before every macro step; a move returns a new Simulation.
+
+    Args:
+        tile: the settled tile.
+        length, width: window size along x and y [m].
+        band: width of the frozen band at the window's edge [m].
+        recentre_distance: the window moves when the wheels' centre is farther than this from its
+            centre along x or y [m].
+        wheels: (shape, soil.Material) of every wheel body, in wheel order.
+        gravity: [m/s^2], shape (3,).
+        device, precision, law: as SoilBuilder.finalize.
+        order_seed: permute the grains placed at each move (summation order, for replicas).
+    """
+
+    def __init__(self, tile: Tile, length: float, width: float, band: float, recentre_distance: float, wheels,
+                 gravity, device: str, precision: str, law, order_seed: int | None = None):
+        self.tile = tile
+        self.half = 0.5 * np.array([length, width], dtype=np.float64)
+        """Half the window's size along x, y [m], shape (2,)."""
+        self.band = float(band)
+        """Frozen band width [m]."""
+        self.recentre_distance = float(recentre_distance)
+        """[m]"""
+        self.wheels = list(wheels)
+        self.gravity = np.asarray(gravity, dtype=np.float64).reshape(3)
+        self.device, self.precision, self.law, self.order_seed = device, precision, law, order_seed
+        self.centre = np.zeros(2)
+        """Window centre [m], shape (2,)."""
+        self.origin = np.zeros(2)
+        """Lattice origin: the lower corner of the tile copy (0, 0) [m], shape (2,)."""
+        self.moves = 0
+        """How often the window moved [-]."""
+        self.mass_initial = 0.0
+        """Soil mass of the first window [kg]."""
+        self.mass_added = 0.0
+        """Soil mass placed ahead so far [kg]."""
+        self.mass_removed = 0.0
+        """Soil mass removed so far [kg]."""
+        self.grains_added = 0
+        self.grains_removed = 0
+        self.next_id = 0
+        # per grain, model order: identity, constants, frozen flag
+        self.ids = np.zeros(0, dtype=np.int64)
+        """Grain id (unique over the run) per model particle, shape (N,)."""
+        self.radius = np.zeros(0)
+        self.material = np.zeros(0, dtype=np.int32)
+        self.mass = np.zeros(0)
+        self.free_inv_mass = np.zeros(0)
+        self.free_inv_inertia = np.zeros(0)
+        self.frozen = np.zeros(0, dtype=bool)
+        """Whether each grain is in the frozen band, shape (N,)."""
+
+    # -- the window ---------------------------------------------------------------------
+    def window(self, centre=None) -> tuple[np.ndarray, np.ndarray]:
+        """(low, high) corners of the window around `centre` (default: the current one) [m], shape (2,) each."""
+        centre = self.centre if centre is None else np.asarray(centre, dtype=np.float64)
+        return centre - self.half, centre + self.half
+
+    @property
+    def particle_count(self) -> int:
+        return len(self.ids)
+
+    @property
+    def soil_mass(self) -> float:
+        """Mass of the grains in the patch now [kg]."""
+        return float(np.sum(self.mass, dtype=np.float64))
+
+    def books(self) -> dict:
+        """particle_count [-], soil_mass, mass_initial, mass_added, mass_removed [kg], moves [-]."""
+        return {"particle_count": self.particle_count, "soil_mass": self.soil_mass, "mass_initial": self.mass_initial,
+                "mass_added": self.mass_added, "mass_removed": self.mass_removed, "moves": self.moves}
+
+    def _lattice(self, low: np.ndarray, high: np.ndarray, old: tuple | None):
+        """Tile grains of the lattice whose centres lie in [low, high) and not in the old window:
+        (tile index, cell offset [m] (k, 2)), cells in (i, j) order, grains in tile order."""
+        size = self.tile.size
+        first = np.floor((low - self.origin) / size).astype(int)
+        last = np.floor((high - self.origin) / size).astype(int)
+        xy = self.tile.state["position"][:, :2]
+        picks, offsets = [], []
+        for i in range(first[0], last[0] + 1):
+            for j in range(first[1], last[1] + 1):
+                shift = self.origin + size * (i, j)
+                points = xy + shift
+                take = _inside(points, low, high)
+                if old is not None:
+                    take &= ~_inside(points, *old)
+                index = np.flatnonzero(take)
+                picks.append(index)
+                offsets.append(np.broadcast_to(shift, (len(index), 2)))
+        return np.concatenate(picks), np.concatenate(offsets) if offsets else np.zeros((0, 2))
+
+    def _permute(self, count: int) -> np.ndarray:
+        if self.order_seed is None:
+            return np.arange(count)
+        return np.random.default_rng([self.order_seed, self.moves]).permutation(count)
+
+    # -- building ----------------------------------------------------------------------------
+    def start(self, centre) -> Simulation:
+        """The first patch: the lattice's grains in the window around `centre` [m] (x, y), the band frozen."""
+        self.centre = np.asarray(centre, dtype=np.float64).reshape(2).copy()
+        self.origin = self.centre - self.half
+        return self._assemble(None, self._lattice(*self.window(), None), time=0.0, steps=0, control=None,
+                              monitor=None, integrator=None)
+
+    def follow(self, sim: Simulation, point) -> Simulation | None:
+        """Move the window when the wheels' centre `point` [m] (x, y) is too far from its centre; returns
+        the new simulation, or None when the window stays."""
+        point = np.asarray(point, dtype=np.float64).reshape(2)
+        if np.all(np.abs(point - self.centre) <= self.recentre_distance):
+            return None
+        return self.recentre(sim, point)
+
+    def recentre(self, sim: Simulation, centre) -> Simulation:
+        """Move the window onto `centre` [m] (x, y) (module docstring); returns the new simulation."""
+        old = self.window()
+        self.centre = np.asarray(centre, dtype=np.float64).reshape(2).copy()
+        self.moves += 1
+        return self._assemble(sim, self._lattice(*self.window(), old), time=sim.time, steps=sim.steps,
+                              control=sim.control.state_dict(), monitor=sim.monitor, integrator=sim.integrator,
+                              old_window=old)
+
+    def _assemble(self, sim, placed, time, steps, control, monitor, integrator, old_window=None) -> Simulation:
+        tile = self.tile
+        low, high = self.window()
+        wheels = len(self.wheels)
+        # grains kept (inside the new window, not strays in its new part), in their model order
+        if sim is not None:
+            state = sim.state.to_numpy()
+            n_old = sim.model.particle_count
+            xy = state["position"][:, :2]
+            inside = _inside(xy, low, high)
+            keep = inside & _inside(xy, *old_window)
+            kept = np.flatnonzero(keep)
+            gone = np.flatnonzero(~keep)
+            self.mass_removed += float(np.sum(self.mass[gone], dtype=np.float64))
+            self.grains_removed += len(gone)
+        else:
+            state, n_old, kept = None, 0, np.zeros(0, dtype=np.int64)
+        picks, shifts = placed
+        order = self._permute(len(picks))
+        picks, shifts = picks[order], shifts[order]
+        n_kept, n_new = len(kept), len(kept) + len(picks)
+        capacity = max(tile.state["contact_partner"].shape[1],
+                       0 if state is None else state["contact_partner"].shape[1])
+
+        # the contact-history keys of the new model: particles 0..n_new-1, the floor n_new, wheels after it
+        def remap_kept(partner):
+            out = np.full_like(partner, -1)
+            new_index = np.full(n_old, -1, dtype=np.int64)
+            new_index[kept] = np.arange(n_kept)
+            particle = (partner >= 0) & (partner < n_old)
+            out[particle] = new_index[partner[particle]]
+            other = partner >= n_old  # the floor and the wheels keep their place after the particles
+            out[other] = partner[other] - n_old + n_new
+            return out
+
+        def remap_placed(partner):
+            out = np.full_like(partner, -1)
+            # a placed grain keeps its history with grains of its own tile copy placed with it
+            for shift in np.unique(shifts, axis=0):
+                members = np.flatnonzero(np.all(shifts == shift, axis=1))
+                copy = np.full(tile.count, -1, dtype=np.int64)
+                copy[picks[members]] = n_kept + members
+                rows = partner[members]
+                particle = (rows >= 0) & (rows < tile.count)
+                mapped = np.full_like(rows, -1)
+                mapped[particle] = copy[rows[particle]]
+                mapped[rows == tile.floor_key] = n_new
+                out[members] = mapped
+            return out
+
+        arrays = {}
+        for name in PER_GRAIN:
+            parts = []
+            if state is not None:
+                parts.append(_widen(state[name][kept], capacity, name))
+            parts.append(_widen(tile.state[name][picks], capacity, name))
+            arrays[name] = np.concatenate(parts)
+        partner = np.concatenate([remap_kept(_widen(state["contact_partner"][kept], capacity, "contact_partner"))
+                                  if state is not None else
+                                  np.zeros((0, capacity), dtype=np.int32),
+                                  remap_placed(_widen(tile.state["contact_partner"][picks], capacity,
+                                                      "contact_partner"))])
+        placed_xyz = np.c_[shifts, np.zeros(len(picks))]
+        arrays["position"][n_kept:] += placed_xyz
+        _compact_history(arrays, partner)
+
+        # constants per grain
+        def joined(mine, theirs):
+            return np.concatenate([mine[kept], theirs[picks]])
+
+        self.ids = np.concatenate([self.ids[kept], self.next_id + np.arange(len(picks), dtype=np.int64)])
+        self.next_id += len(picks)
+        self.radius = joined(self.radius, tile.radius)
+        self.material = joined(self.material, tile.material)
+        self.mass = joined(self.mass, tile.mass)
+        self.free_inv_mass = joined(self.free_inv_mass, tile.inv_mass)
+        self.free_inv_inertia = joined(self.free_inv_inertia, tile.inv_inertia)
+        added = float(np.sum(tile.mass[picks], dtype=np.float64))
+        if sim is None:
+            self.mass_initial = added
+        else:
+            self.mass_added += added
+            self.grains_added += len(picks)
+        # the band: grains within `band` of the window's edge are frozen, the others free
+        self.frozen = ~_inside(arrays["position"][:, :2], low + self.band, high - self.band)
+        arrays["velocity"][self.frozen] = 0.0
+        arrays["angular_velocity"][self.frozen] = 0.0
+        new = self._simulation(arrays, time, steps, control, monitor, integrator, arm=True)
+        assert new.model.particle_count == n_new and new.model.body_count == wheels
+        return new
+
+    def _simulation(self, arrays: dict, time: float, steps: int, control, monitor, integrator,
+                    arm: bool) -> Simulation:
+        """A Simulation of the patch's grains (model order = the patch's order) with `arrays` as state."""
+        tile = self.tile
+        builder = SoilBuilder(gravity=self.gravity)
+        for material in tile.materials:
+            builder.add_material(material)
+        for (i, j), values in tile.overrides.items():
+            builder.materials.set_pair(i, j, **values)
+        builder.add_plane((0.0, 0.0, 0.0), (0.0, 0.0, 1.0), tile.floor_material)
+        # one call per run of equal materials, so the builder's order is the patch's order
+        cuts = np.flatnonzero(np.diff(self.material)) + 1
+        for rows in np.split(np.arange(len(self.material)), cuts):
+            if len(rows):
+                builder.add_particles(arrays["position"][rows], self.radius[rows], int(self.material[rows[0]]))
+        for shape, material in self.wheels:
+            builder.add_wheel(shape, material)
+        model, state, soil_control = builder.finalize(device=self.device, precision=self.precision, law=self.law,
+                                                      contact_capacity=arrays["contact_partner"].shape[1])
+        inv_mass = np.where(self.frozen, 0, self.free_inv_mass).astype(self.free_inv_mass.dtype)
+        inv_inertia = np.where(self.frozen, 0, self.free_inv_inertia).astype(self.free_inv_inertia.dtype)
+        saved = {**arrays, "step_previous": np.zeros(1), "time": 0.0,
+                 "model": {"mass": self.mass, "inv_mass": inv_mass, "inv_inertia": inv_inertia}}
+        restore_state(model, state, saved)  # model order = builder order here: no permutation
+        state.time = float(time)
+        if control is not None:
+            soil_control.load_state_dict(control)
+        kept_monitor = None
+        if monitor is not None:
+            kept_monitor = DivergenceMonitor(monitor.speed_factor, monitor.energy_factor, monitor.max_overlap_ratio,
+                                             monitor.height, monitor.speed_floor, monitor.enabled)
+        sim = Simulation(model, state, soil_control, integrator=integrator, monitor=kept_monitor)
+        sim.steps = int(steps)
+        sim.refresh_forces()
+        if arm and monitor is not None and monitor.armed:
+            sim.monitor.arm(sim)
+        return sim
+
+    # -- checkpoints -----------------------------------------------------------------------------
+    def state_dict(self) -> dict:
+        """The window, the books and the patch's grains (ids, constants, band, positions)."""
+        return {"centre": self.centre.copy(), "origin": self.origin.copy(), "moves": self.moves,
+                "mass_initial": self.mass_initial, "mass_added": self.mass_added, "mass_removed": self.mass_removed,
+                "grains_added": self.grains_added, "grains_removed": self.grains_removed, "next_id": self.next_id,
+                "ids": self.ids.copy(), "radius": self.radius.copy(), "material": self.material.copy(),
+                "mass": self.mass.copy(), "free_inv_mass": self.free_inv_mass.copy(),
+                "free_inv_inertia": self.free_inv_inertia.copy(), "frozen": self.frozen.copy()}
+
+    def load_state_dict(self, state: dict, sim: Simulation) -> Simulation:
+        """Take a checkpoint's patch back; returns a simulation of its grains (its state is then loaded
+        by Simulation.load_state_dict over it)."""
+        self.centre = np.array(state["centre"], dtype=np.float64)
+        self.origin = np.array(state["origin"], dtype=np.float64)
+        self.moves = int(state["moves"])
+        self.mass_initial = float(state["mass_initial"])
+        self.mass_added = float(state["mass_added"])
+        self.mass_removed = float(state["mass_removed"])
+        self.grains_added = int(state["grains_added"])
+        self.grains_removed = int(state["grains_removed"])
+        self.next_id = int(state["next_id"])
+        for name in ("ids", "radius", "material", "mass", "free_inv_mass", "free_inv_inertia", "frozen"):
+            setattr(self, name, np.array(state[name]))
+        n = len(self.ids)
+        like = sim.state.to_numpy()
+        arrays = {name: np.zeros((n, *like[name].shape[1:]), dtype=like[name].dtype) for name in PER_GRAIN}
+        arrays["contact_partner"][:] = -1
+        # grains far apart until the checkpoint's state is loaded over them: nothing touches
+        arrays["position"][:, 2] = 4 * np.arange(n) * float(self.radius.max())
+        return self._simulation(arrays, sim.time, sim.steps, None, sim.monitor, sim.integrator, arm=False)
+
+
+def _widen(values: np.ndarray, capacity: int, name: str) -> np.ndarray:
+    """History arrays padded to `capacity` slots (partners with -1)."""
+    if not name.startswith("contact_") or values.ndim < 2 or values.shape[1] == capacity:
+        return values.copy()
+    fill = -1 if name == "contact_partner" else 0
+    out = np.full((values.shape[0], capacity, *values.shape[2:]), fill, dtype=values.dtype)
+    out[:, : values.shape[1]] = values
+    return out
+
+
+def _compact_history(arrays: dict, partner: np.ndarray) -> None:
+    """Keep the history slots whose partner is still there (partner >= 0, slot < count), packed to the
+    front in their order; update contact_count."""
+    count = arrays["contact_count"]
+    slots = np.arange(partner.shape[1])
+    valid = (partner >= 0) & (slots[None, :] < count[:, None])
+    order = np.argsort(~valid, axis=1, kind="stable")
+    arrays["contact_partner"] = np.where(np.take_along_axis(valid, order, axis=1),
+                                         np.take_along_axis(partner, order, axis=1), -1).astype(partner.dtype)
+    for name in ("contact_tangential", "contact_rolling"):
+        moved = np.take_along_axis(arrays[name], order[:, :, None], axis=1)
+        moved[~np.take_along_axis(valid, order, axis=1)] = 0
+        arrays[name] = moved
+    arrays["contact_count"] = valid.sum(axis=1).astype(count.dtype)
+
+
+__all__ = ["SoilPatch", "Tile"]
