@@ -523,7 +523,9 @@ def _copy_truncated(old, new, counts: dict, rows: dict | None = None) -> None:
 
     def visit(name, obj):
         if isinstance(obj, h5py.Group):
-            new.require_group(name)
+            group = new.require_group(name)
+            for key, value in obj.attrs.items():
+                group.attrs[key] = value
             return
         count = (rows or {}).get(name, counts[name.split("/")[0]])
         growing = obj.maxshape[0] is None

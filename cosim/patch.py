@@ -86,7 +86,7 @@ class Tile:
         model, state, control = builder.finalize(device="cpu", precision=precision)
         restore_state(model, state, saved)
         kinds = model.boundary_kind.numpy()
-        geometry = model.boundary_geometry.numpy().astype(np.float64)
+        geometry = model.boundary_geometry_numpy()
         floors = [b for b, (kind, row) in enumerate(zip(kinds, geometry))
                   if kind == BOUNDARY_PLANE and np.allclose(row[3:], (0.0, 0.0, 1.0)) and abs(row[2]) < 1e-12]
         if not floors:
@@ -229,6 +229,15 @@ class SoilPatch:
                               control=sim.control.state_dict(), monitor=sim.monitor, integrator=sim.integrator,
                               old_window=old)
 
+    @staticmethod
+    def _control(control: dict, kept: np.ndarray, placed: int) -> dict:
+        """The control's state for the new grains: per-grain external forces of the kept grains, none on
+        the placed ones; the wheels' and the floor's motion as they were."""
+        out = dict(control)
+        force = np.asarray(control["external_force"])
+        out["external_force"] = np.concatenate([force[kept], np.zeros((placed, *force.shape[1:]), force.dtype)])
+        return out
+
     def _assemble(self, sim, placed, time, steps, control, monitor, integrator, old_window=None) -> Simulation:
         tile = self.tile
         low, high = self.window()
@@ -316,6 +325,8 @@ class SoilPatch:
         self.frozen = ~_inside(arrays["position"][:, :2], low + self.band, high - self.band)
         arrays["velocity"][self.frozen] = 0.0
         arrays["angular_velocity"][self.frozen] = 0.0
+        if control is not None:
+            control = self._control(control, kept, len(picks))
         new = self._simulation(arrays, time, steps, control, monitor, integrator, arm=True)
         assert new.model.particle_count == n_new and new.model.body_count == wheels
         return new
@@ -329,7 +340,7 @@ class SoilPatch:
             builder.add_material(material)
         for (i, j), values in tile.overrides.items():
             builder.materials.set_pair(i, j, **values)
-        builder.add_plane((0.0, 0.0, 0.0), (0.0, 0.0, 1.0), tile.floor_material)
+        builder.add_plane((0.0, 0.0, 0.0), (0.0, 0.0, 1.0), tile.floor_material, report=False)
         # one call per run of equal materials, so the builder's order is the patch's order
         cuts = np.flatnonzero(np.diff(self.material)) + 1
         for rows in np.split(np.arange(len(self.material)), cuts):
@@ -348,9 +359,10 @@ class SoilPatch:
         if control is not None:
             soil_control.load_state_dict(control)
         kept_monitor = None
-        if monitor is not None:
-            kept_monitor = DivergenceMonitor(monitor.speed_factor, monitor.energy_factor, monitor.max_overlap_ratio,
-                                             monitor.height, monitor.speed_floor, monitor.enabled)
+        if monitor is not None:  # the same factors; armed again below on the new grains (their own height)
+            kept_monitor = DivergenceMonitor(speed_factor=monitor.speed_factor, energy_factor=monitor.energy_factor,
+                                             max_overlap_ratio=monitor.max_overlap_ratio,
+                                             speed_floor=monitor.speed_floor, enabled=monitor.enabled)
         sim = Simulation(model, state, soil_control, integrator=integrator, monitor=kept_monitor)
         sim.steps = int(steps)
         sim.refresh_forces()
