@@ -33,10 +33,10 @@ frame (forward = its body's +x axis turned into the horizontal plane, up = +z):
 
 and over the driving phase: energy = integral of the power [J], energy_per_metre = energy /
 travel [J/m], and the time immobile [s] under the stuck criterion: the rover is immobile at a
-macro step when, over the last radian of wheel turn before it (a window of 1 / mean spin), its
-body advanced less than (1 - stuck_slip) of its wheels' rim travel (with the default stuck_slip
-0.9: its slip over the window is at least 0.9, or it went backwards); it is stuck when it is
-immobile at the end of the drive. The steady-state window is found as for a wheel (MSER-5 on
+macro step when, over the last radian of (mean) wheel turn before it, its body advanced no
+more than (1 - stuck_slip) of its wheels' rim travel (with the default stuck_slip 0.9: its
+slip over the window is at least 0.9, or it went backwards); it is stuck when it is immobile at
+the end of the drive. Steps before the wheels have turned one radian are not judged. The steady-state window is found as for a wheel (MSER-5 on
 the forward speed and the mean sinkage); slip, sinkage, drawbar pull, torque, normal force and
 power per wheel and the rover's slip, net traction and power are means over it.
 
@@ -278,10 +278,11 @@ def immobile_steps(time: np.ndarray, position: np.ndarray, orientation: np.ndarr
     rim_travel = np.cumsum(rim_speed * dt)
     turned = np.cumsum(np.mean(spin, axis=1) * dt)  # mean wheel turn since the first record [rad]
     for k in range(1, n):
-        start = min(int(np.searchsorted(turned, turned[k] - 1.0, side="right")), k - 1)
+        if turned[k] < 1.0:  # not yet a radian of turn to judge over
+            continue
+        start = min(int(np.searchsorted(turned, turned[k] - 1.0, side="right")) - 1, k - 1)
         advance = float((np.asarray(position[k]) - np.asarray(position[start])) @ rover_forward(orientation[k]))
         out[k] = advance <= (1.0 - stuck_slip) * (rim_travel[k] - rim_travel[start])
-    out[0] = out[1]
     return out
 
 

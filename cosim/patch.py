@@ -1,8 +1,10 @@
 """A soil patch that follows the rover, so a traverse can be longer than any bed (docs/rover.md).
 
-The soil is a lattice of copies of one settled tile (the scene's [bed], settled in its box and
-saved): the grains of the copy in cell (i, j) sit at the tile's grains shifted by (i a_x, j a_y)
-from the lattice origin. Only the grains inside a window, an axis-aligned rectangle centred near
+The soil is a lattice of copies of one settled tile: the scene's [bed], settled in its box and
+saved, without the grains next to its side walls (`Tile.load`: the walls order the packing
+near them), and without the few grains that would overlap a grain of the neighbouring copy.
+The grains of the copy in cell (i, j) sit at the tile's grains shifted by (i a_x, j a_y) from
+the lattice origin. Only the grains inside a window, an axis-aligned rectangle centred near
 the rover's wheels, are simulated: the patch. A band of grains along the window's edge is frozen
 (inverse mass 0), a rough wall that holds the soil in; the floor z = 0 is a plane.
 
@@ -26,8 +28,8 @@ Everything is numpy on the host in a fixed order, so a run with a moving patch r
 bit and continues bitwise from a checkpoint (`state_dict` holds the patch's grains and books).
 The mass placed and removed is booked: mass now = initial mass + added - removed.
 
-Limits: the tile's side walls leave a slightly looser layer at every seam of the lattice (the
-grains there settled against a wall); a grain thrown over the band lands outside the window and
+Limits: the seams of the lattice are cuts through a settled packing: a few grains are missing
+there and the grains across a seam start without contact history; a grain thrown over the band lands outside the window and
 is removed at the next move; the band is at rest, not a moving soil (a rover must keep its
 clearance from it).
 """
@@ -80,8 +82,14 @@ class Tile:
         return len(self.radius)
 
     @classmethod
-    def load(cls, path, size, precision: str) -> "Tile":
-        """The tile of a bed saved by soil.bed.save_bed (its floor is the plane z = 0)."""
+    def load(cls, path, size, precision: str, margin: float) -> "Tile":
+        """The tile cut from a bed saved by soil.bed.save_bed (its floor the plane z = 0, its box spanning
+        0 .. size along x and y [m]): the grains whose centres lie more than `margin` [m] from its side
+        walls, where the walls ordered the packing. The tile's period is size - 2 margin. A grain that
+        would overlap a grain of a neighbouring copy deeper than any two grains of the tile overlap is
+        left out (the later one in the bed's order), so the copies fit without a jolt."""
+        from scipy.spatial import cKDTree
+
         builder, saved = load_bed(path)
         model, state, control = builder.finalize(device="cpu", precision=precision)
         restore_state(model, state, saved)
@@ -92,10 +100,49 @@ class Tile:
         if not floors:
             raise ValueError(f"{path}: the bed has no floor plane z = 0 to stand a patch on")
         data = state.to_numpy()
-        return cls(size=np.asarray(size, dtype=np.float64), state={k: data[k] for k in PER_GRAIN},
-                   radius=model.radius.numpy(), material=model.material.numpy(), mass=model.mass.numpy(),
-                   inv_mass=model.inv_mass.numpy(), inv_inertia=model.inv_inertia.numpy(),
-                   floor_key=model.particle_count + floors[0],
+        n = model.particle_count
+        x = data["position"].astype(np.float64)
+        r = model.radius_numpy()
+        period = np.asarray(size, dtype=np.float64) - 2.0 * margin
+        if np.any(period <= 4.0 * r.max()):
+            raise ValueError(f"{path}: the bed ({size[0]} x {size[1]} m) leaves no tile {2 * margin} m in from its walls")
+        keep = _inside(x[:, :2], np.full(2, margin), margin + period)
+        tree = cKDTree(x[keep])
+        inner = tree.query_pairs(2.0 * r.max(), output_type="ndarray")
+        kept_index = np.flatnonzero(keep)
+        rk = r[kept_index]
+        if len(inner):
+            gap = (np.linalg.norm(x[kept_index][inner[:, 0]] - x[kept_index][inner[:, 1]], axis=1)
+                   - rk[inner[:, 0]] - rk[inner[:, 1]])
+            allowed = max(0.0, -float(gap.min()))
+        else:
+            allowed = 0.0
+        dropped = np.zeros(len(kept_index), dtype=bool)
+        for ix in (-1, 0, 1):
+            for iy in (-1, 0, 1):
+                if ix == iy == 0:
+                    continue
+                shifted = x[kept_index] + np.array([ix * period[0], iy * period[1], 0.0])
+                for i, neighbours in enumerate(tree.query_ball_point(shifted, 2.0 * r.max())):
+                    for j in neighbours:
+                        if dropped[i] or dropped[j]:
+                            continue
+                        overlap = rk[i] + rk[j] - float(np.linalg.norm(shifted[i] - x[kept_index][j]))
+                        if overlap > allowed:
+                            dropped[max(i, j)] = True
+        rows = kept_index[~dropped]
+        count = len(rows)
+        new_index = np.full(n, -1, dtype=np.int64)
+        new_index[rows] = np.arange(count)
+        grains = {k: data[k][rows].copy() for k in PER_GRAIN}
+        partner = grains["contact_partner"]
+        particle = (partner >= 0) & (partner < n)
+        partner[particle] = new_index[partner[particle]]
+        partner[partner >= n] += count - n  # the walls keep their keys after the grains
+        grains["position"][:, :2] -= margin
+        return cls(size=period, state=grains, radius=model.radius.numpy()[rows], material=model.material.numpy()[rows],
+                   mass=model.mass.numpy()[rows], inv_mass=model.inv_mass.numpy()[rows],
+                   inv_inertia=model.inv_inertia.numpy()[rows], floor_key=count + floors[0],
                    floor_material=int(model.boundary_material.numpy()[floors[0]]),
                    materials=list(model.materials.materials), overrides=dict(model.materials.overrides))
 
@@ -198,6 +245,22 @@ class SoilPatch:
                 picks.append(index)
                 offsets.append(np.broadcast_to(shift, (len(index), 2)))
         return np.concatenate(picks), np.concatenate(offsets) if offsets else np.zeros((0, 2))
+
+    def surface_height(self, sim: Simulation) -> float:
+        """Undisturbed surface z of the patch [m]: the mean top (z + r) of the highest grain in each column
+        of a grid of one mean grain diameter over the free part of the window (as soil.bed.bed_metrics
+        measures a bed). It is the lattice's own surface: the tile's seams make it differ from the tile's."""
+        low, high = self.window()
+        x = sim.positions()
+        r = sim.model.radius_numpy()
+        free = _inside(x[:, :2], low + self.band, high - self.band)
+        cell = 2.0 * float(r.mean())
+        column = np.floor((x[free, :2] - low) / cell).astype(np.int64)
+        tops = x[free, 2] + r[free]
+        keys = column[:, 0] * 1_000_003 + column[:, 1]
+        order = np.lexsort((tops, keys))
+        last = np.r_[keys[order][1:] != keys[order][:-1], True]
+        return float(np.mean(tops[order][last]))
 
     def _permute(self, count: int) -> np.ndarray:
         if self.order_seed is None:

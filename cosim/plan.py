@@ -148,7 +148,7 @@ class RoverPlan:
 
 
 def _nominal_omega(section: DriveSection, wheel_count: int) -> float:
-    if section.kind != "speed":
+    if section.kind != "speed" or (isinstance(section.speed, list) and len(section.speed) != wheel_count):
         return math.nan
     return float(np.mean(np.abs(np.broadcast_to(np.asarray(section.speed, dtype=float), (wheel_count,)))))
 
@@ -167,6 +167,8 @@ class PatchPlan:
     """Least gap between a wheel and the band [m]."""
     recentre_distance: float
     """The window moves when the wheels' centre is this far from its centre along x or y [m]."""
+    tile_margin: float
+    """The tile is the bed without the grains this close to its side walls [m]."""
 
 
 @dataclass(frozen=True)
@@ -689,10 +691,19 @@ def _rover(scene: Scene, wheels: tuple[WheelPlan, ...], gravity: np.ndarray, pro
         if p.recentre_distance is not None and p.recentre_distance > slack:
             problems.append(f"patch.recentre_distance: ({p.recentre_distance} m) lets the wheels come closer than the "
                             f"clearance to the frozen band; allowed: <= {slack:.4g} m")
-        if band < 2 * b.radius_mean * (1 + b.radius_spread):
-            problems.append(f"patch.band: ({band} m) must be at least one largest grain diameter "
-                            f"({2 * b.radius_mean * (1 + b.radius_spread):.4g} m) to hold the soil in")
-        patch = PatchPlan(p.length, p.width, band, clearance, recentre)
+        largest = 2 * b.radius_mean * (1 + b.radius_spread)
+        if band < largest:
+            problems.append(f"patch.band: ({band} m) must be at least one largest grain diameter ({largest:.4g} m) "
+                            "to hold the soil in")
+        if clearance < largest:
+            problems.append(f"patch.clearance: ({clearance} m) must be at least one largest grain diameter "
+                            f"({largest:.4g} m): a grain caught between a wheel and the frozen band has nowhere to go")
+        margin = p.tile_margin if p.tile_margin is not None else 2 * largest
+        for key, size in (("length", b.length), ("width", b.width)):
+            if size - 2 * margin < 2 * largest:
+                problems.append(f"bed.{key}: the tile is the bed {margin:.4g} m in from its walls (patch.tile_margin): "
+                                f"bed.{key} = {size} m leaves too little; allowed: >= {2 * margin + 2 * largest:.4g} m")
+        patch = PatchPlan(p.length, p.width, band, clearance, recentre, margin)
         start_x = rover.start.x if rover.start.x is not None else 0.0
         start_y = rover.start.y if rover.start.y is not None else 0.0
     else:

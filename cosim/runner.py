@@ -336,7 +336,7 @@ class Runner:
                        soil_mass_removed=books["mass_removed"], soil_mass=books["soil_mass"],
                        soil_mass_initial=books["mass_initial"],
                        particle_count_max=int(np.max(series["soil_particle_count"])) if len(series["time"]) else 0)
-        findings = advice.check(plan, system.bed.surface_height, out.get("sinkage_tips"))
+        findings = advice.check(plan, system.soil.surface_height, out.get("sinkage_tips"))
         out.update(simulated_time=float(system.coupler.time), macro_steps=int(system.coupler.step_count),
                    wall_time=float(wall), particle_count=int(system.sim.model.particle_count), dt=plan.dt,
                    macro_step=plan.macro_step, froude_number=plan.froude_number,
@@ -387,7 +387,7 @@ def _attributes(plan: RunPlan, system: CoupledSystem, source: str, findings) -> 
         "name": plan.name, "scene_toml": plan.scene.to_toml(), "scene_source": source, "precision": plan.precision,
         "device": plan.device, "scheme": plan.scheme, "order_seed": -1 if plan.order_seed is None else plan.order_seed,
         "dt": plan.dt, "macro_step": plan.macro_step, "substeps": plan.substeps, "duration": plan.scene.run.duration,
-        "gravity": np.asarray(plan.gravity), "surface_height": system.bed.surface_height,
+        "gravity": np.asarray(plan.gravity), "surface_height": system.soil.surface_height,
         "start_position": system.rover.position.copy(), "omega": plan.drive_omega,
         "rim_radius": plan.wheel.rim_radius, "outer_radius": plan.wheel.outer_radius, "wheel_load": plan.wheel_load,
         "mode": plan.testbed.mode if rover is None else rover.drive.kind,
@@ -412,7 +412,7 @@ def run_plan(plan: RunPlan, out_dir: str, overwrite: bool = False, progress: boo
         folder.check_free(overwrite)
         bed = settled_bed(plan, folder.path, progress=progress)
         system = CoupledSystem.build(plan, bed)
-        findings = advice.check(plan, bed.surface_height)
+        findings = advice.check(plan, system.soil.surface_height)
         for finding in findings:
             if not finding.ok:
                 log.warning("validity: %s", finding.message)

@@ -15,7 +15,7 @@
                shape (a [wheel] section); [rover.controllers.<name>] named drives (kind "speed" |
                "torque" | "slip" | "fmu" | "python")
     [patch]    a soil patch that follows the rover (the [bed] is its settled tile): length, width,
-               band, clearance, recentre_distance
+               band, clearance, recentre_distance, tile_margin
     [landing]  enabled, max_time, speed_ratio, hold_time
     [run]      duration, dt | dt_factor, macro_step | substeps, scheme, order_seed
     [output]   snapshot_interval, checkpoint_interval, flush_every
@@ -426,10 +426,14 @@ class PatchSection(_Section):
     band: float | None = Field(None, gt=0)
     """Width of the frozen band at the window's edge that holds the soil in [m] (default 2 largest grain diameters)."""
     clearance: float | None = Field(None, ge=0)
-    """Least gap between a wheel and the frozen band [m] (default 4 mean grain diameters)."""
+    """Least gap between a wheel and the frozen band [m] (default 4 mean grain diameters; at least one
+    largest grain diameter)."""
     recentre_distance: float | None = Field(None, gt=0)
     """The window moves when the wheels' centre is this far from its centre along x or y [m] (default: as
     far as the clearance allows)."""
+    tile_margin: float | None = Field(None, ge=0)
+    """The tile is the [bed] without the grains this close to its side walls [m] (default 2 largest grain
+    diameters: the walls order the packing near them)."""
 
 
 class LandingSection(_Section):

@@ -84,11 +84,12 @@ class CoupledSystem:
         patch = None
         if plan.patch is not None:
             p, spec = plan.patch, plan.bed.spec
-            tile = Tile.load(bed.path, (spec.length, spec.width), plan.precision)
+            tile = Tile.load(bed.path, (spec.length, spec.width), plan.precision, p.tile_margin)
             patch = SoilPatch(tile, p.length, p.width, p.band, p.recentre_distance, wheels, plan.gravity, plan.device,
                               plan.precision, plan.law, plan.order_seed)
             centre = np.asarray(r.start[:2]) + r.hub_offsets[:, :2].mean(axis=0)
             sim = patch.start(centre)
+            surface = patch.surface_height(sim)
         else:
             builder, saved = load_bed(bed.path)
             builder.gravity = np.asarray(plan.gravity, dtype=np.float64)  # settled on the floor; now the slope
@@ -98,7 +99,8 @@ class CoupledSystem:
                                                      order_seed=plan.order_seed)
             restore_state(model, state, saved)
             sim = Simulation(model, state, control)
-        soil = DemSoil(sim, plan.dt, bed.surface_height, patch=patch)
+            surface = bed.surface_height
+        soil = DemSoil(sim, plan.dt, surface, patch=patch)
         rover = open_rover(plan)
         lift = _lift(soil, rover.wheel_kinematics(), plan)
         if r.model == "fmu":
@@ -107,7 +109,7 @@ class CoupledSystem:
                     rover.close()
                     raise SceneError([f"rover.file: the FMU starts with a wheel {lift:.4g} m in the soil and has no "
                                       "start.z parameter to lift it; start it above the soil (surface at z = "
-                                      f"{bed.surface_height:.4g} m)"])
+                                      f"{surface:.4g} m)"])
             else:
                 z = rover.body_kinematics().position[2] + lift
                 rover.close()
@@ -125,7 +127,7 @@ class CoupledSystem:
     @property
     def geometries(self) -> list[WheelGeometry]:
         """What cosim.metrics needs of each wheel and the ground, in wheel order."""
-        return [WheelGeometry(w.rim_radius, w.outer_radius, self.bed.surface_height) for w in self.plan.wheels]
+        return [WheelGeometry(w.rim_radius, w.outer_radius, self.soil.surface_height) for w in self.plan.wheels]
 
     @property
     def geometry(self) -> WheelGeometry:
