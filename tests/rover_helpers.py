@@ -150,10 +150,10 @@ def small_rover_model(kind: str, fmu: str | None = None) -> str:
 
 
 def write_small_rover(folder, kind="mmx", fmu=None, name="small", drive="cruise", duration=0.5, length=0.25,
-                      width=0.16, snapshots=0.0, checkpoints=1.0, extra="") -> str:
+                      width=0.15, radius=0.005, snapshots=0.0, checkpoints=1.0, extra="") -> str:
     """The small four-wheeled rover scene in `folder` (MJCF or FMU); returns its path."""
     model = small_rover_model(kind, fmu)
-    text = SMALL_ROVER.format(name=name, soil=SOIL.format(length=length, width=width, radius=0.0035), model=model,
+    text = SMALL_ROVER.format(name=name, soil=SOIL.format(length=length, width=width, radius=radius), model=model,
                               drive=drive,
                               duration=duration, snapshots=snapshots, checkpoints=checkpoints, extra=extra)
     path = folder / f"{name}.toml"
