@@ -80,7 +80,11 @@ def check(plan: RunPlan, surface_height: float | None = None, sinkage_tips: floa
     g = plan.g
     findings = []
     omega = plan.drive_omega
-    omega_key = "testbed.omega" if t is not None else f"rover.{'controllers.' if isinstance(plan.scene.rover.drive, str) else ''}drive.speed"
+    if t is not None:
+        omega_key = "testbed.omega"
+    else:
+        named = isinstance(plan.scene.rover.drive, str)
+        omega_key = f"rover.controllers.{plan.rover.drive.name}.speed" if named else "rover.drive.speed"
 
     fr = plan.froude_number
     if math.isfinite(omega):

@@ -36,7 +36,8 @@ travel [J/m], and the time immobile [s] under the stuck criterion: the rover is 
 macro step when, over the last radian of (mean) wheel turn before it, its body advanced no
 more than (1 - stuck_slip) of its wheels' rim travel (with the default stuck_slip 0.9: its
 slip over the window is at least 0.9, or it went backwards); it is stuck when it is immobile at
-the end of the drive. Steps before the wheels have turned one radian are not judged. The steady-state window is found as for a wheel (MSER-5 on
+the end of the drive. Steps before the wheels have turned one radian are not judged. The
+steady-state window is found as for a wheel (MSER-5 on
 the forward speed and the mean sinkage); slip, sinkage, drawbar pull, torque, normal force and
 power per wheel and the rover's slip, net traction and power are means over it.
 

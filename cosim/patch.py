@@ -29,7 +29,8 @@ bit and continues bitwise from a checkpoint (`state_dict` holds the patch's grai
 The mass placed and removed is booked: mass now = initial mass + added - removed.
 
 Limits: the seams of the lattice are cuts through a settled packing: a few grains are missing
-there and the grains across a seam start without contact history; a grain thrown over the band lands outside the window and
+there and the grains across a seam start without contact history; a grain thrown over the band
+lands outside the window and
 is removed at the next move; the band is at rest, not a moving soil (a rover must keep its
 clearance from it).
 """
@@ -82,7 +83,7 @@ class Tile:
         return len(self.radius)
 
     @classmethod
-    def load(cls, path, size, precision: str, margin: float) -> "Tile":
+    def load(cls, path, size, precision: str, margin: float) -> Tile:
         """The tile cut from a bed saved by soil.bed.save_bed (its floor the plane z = 0, its box spanning
         0 .. size along x and y [m]): the grains whose centres lie more than `margin` [m] from its side
         walls, where the walls ordered the packing. The tile's period is size - 2 margin. A grain that
@@ -105,7 +106,8 @@ class Tile:
         r = model.radius_numpy()
         period = np.asarray(size, dtype=np.float64) - 2.0 * margin
         if np.any(period <= 4.0 * r.max()):
-            raise ValueError(f"{path}: the bed ({size[0]} x {size[1]} m) leaves no tile {2 * margin} m in from its walls")
+            raise ValueError(f"{path}: the bed ({size[0]} x {size[1]} m) leaves no tile {2 * margin} m in from "
+                             "its walls")
         keep = _inside(x[:, :2], np.full(2, margin), margin + period)
         tree = cKDTree(x[keep])
         inner = tree.query_pairs(2.0 * r.max(), output_type="ndarray")

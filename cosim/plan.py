@@ -244,13 +244,17 @@ class RunPlan:
     def wheel_load(self) -> float:
         """Load per wheel [N]: the testbed's m |g|; a rover's m |g| cos(slope) / wheel count."""
         if self.rover is None:
+            assert self.testbed is not None
             return self.testbed.mass * self.g
         return self.rover.mass * self.g * math.cos(self.slope) / len(self.wheels)
 
     @property
     def drive_omega(self) -> float:
         """Wheel speed of the drive [rad/s] (nan when the controller sets it as it goes)."""
-        return self.testbed.omega if self.rover is None else self.rover.nominal_omega
+        if self.rover is not None:
+            return self.rover.nominal_omega
+        assert self.testbed is not None
+        return self.testbed.omega
 
     @property
     def froude_number(self) -> float:
@@ -402,7 +406,8 @@ def resolve(scene: Scene) -> RunPlan:
         shapes = rover.wheel_shape or {}
         unknown = sorted(set(shapes) - set(names or []))
         if names is not None and unknown:
-            problems.append(f"rover.wheel_shape: no wheel named {', '.join(unknown)}; the wheels are {', '.join(names)}")
+            problems.append(f"rover.wheel_shape: no wheel named {', '.join(unknown)}; the wheels are "
+                            f"{', '.join(names)}")
         wheels = tuple(_wheel(scene, soil_material.youngs_modulus, shapes[n], f"rover.wheel_shape.{n}")
                        if n in shapes else wheel for n in (names or []))
         if g > 0 and -gravity[2] < 0.5 * g:
@@ -464,6 +469,7 @@ def resolve(scene: Scene) -> RunPlan:
 def _testbed(scene: Scene, wheel: WheelPlan, problems: list[str]) -> TestbedPlan:
     """The testbed's plan; its wheel must fit the bed and stay clear of its walls."""
     t, b = scene.testbed, scene.bed
+    assert t is not None
     clearance = 2 * b.radius_mean
     start_x = t.start_x if t.start_x is not None else wheel.outer_radius + 6 * b.radius_mean
     testbed = TestbedPlan(t.mass, t.omega, t.mode, t.slip, t.drawbar_load, t.drawbar_ramp, start_x, 0.5 * b.width)
@@ -494,6 +500,7 @@ def _rover_wheel_names(scene: Scene) -> list[str] | None:
     from rover_models.mjcf import MMX_WHEELS
 
     rover = scene.rover
+    assert rover is not None
     if rover.model == "mmx":
         return list(rover.wheels or MMX_WHEELS)
     if rover.model == "mjcf":
@@ -586,6 +593,7 @@ def _inspect_fmu(scene: Scene, path: str, count: int, gravity, problems: list[st
     from rover_models.fmu_rover import FmuRover, check_rover_fmu
 
     rover = scene.rover
+    assert rover is not None
     found = check_rover_fmu(path, count, rover.wheel_prefix)
     start = rover.start
     values = dict(rover.start_values or {})
@@ -612,6 +620,7 @@ def _inspect_fmu(scene: Scene, path: str, count: int, gravity, problems: list[st
 def _check_drive(scene: Scene, wheels: tuple[WheelPlan, ...], layout: dict, problems: list[str]) -> DrivePlan:
     """The drive's controller must exist and fit the rover (wheel counts, command kinds)."""
     rover = scene.rover
+    assert rover is not None
     section = rover.drive_section
     name = rover.drive if isinstance(rover.drive, str) else section.kind
     key = f"rover.controllers.{name}" if isinstance(rover.drive, str) else "rover.drive"
@@ -652,6 +661,7 @@ def _check_drive(scene: Scene, wheels: tuple[WheelPlan, ...], layout: dict, prob
 def _rover(scene: Scene, wheels: tuple[WheelPlan, ...], gravity: np.ndarray, problems: list[str]):
     """The rover's plan and its patch's; the rover must fit its bed (or its patch's window)."""
     rover, b = scene.rover, scene.bed
+    assert rover is not None
     names = [w for w in _rover_wheel_names(scene)]
     heading = math.radians(rover.start.heading_deg)
     if rover.model == "fmu":
@@ -683,9 +693,9 @@ def _rover(scene: Scene, wheels: tuple[WheelPlan, ...], gravity: np.ndarray, pro
         slack = 0.5 * min(p.length, p.width) - footprint - band - clearance
         if slack <= 0:
             least = 2 * (footprint + band + clearance) + 2 * diameter
-            problems.append(f"patch.length: the window ({p.length} x {p.width} m) must hold the rover (footprint radius "
-                            f"{footprint:.4g} m, any heading), the clearance {clearance:.4g} m and the frozen band "
-                            f"{band:.4g} m on every side; allowed: patch.length and patch.width > {least:.4g} m")
+            problems.append(f"patch.length: the window ({p.length} x {p.width} m) must hold the rover (footprint "
+                            f"radius {footprint:.4g} m, any heading), the clearance {clearance:.4g} m and the frozen "
+                            f"band {band:.4g} m on every side; allowed: patch.length and patch.width > {least:.4g} m")
             slack = math.nan
         recentre = p.recentre_distance if p.recentre_distance is not None else slack
         if p.recentre_distance is not None and p.recentre_distance > slack:
@@ -732,9 +742,9 @@ def _rover(scene: Scene, wheels: tuple[WheelPlan, ...], gravity: np.ndarray, pro
         if math.isfinite(omega) and abs(math.cos(heading)) > 0:
             reach = omega * max(w.outer_radius for w in wheels) * scene.run.duration
             if high[0] + reach > b.length - clearance:
-                problems.append(f"run.duration: at its wheels' rim speed the rover may travel {reach:.4g} m and hit the "
-                                f"far wall (bed.length = {b.length} m); shorten run.duration, lengthen the bed or use "
-                                "a [patch]")
+                problems.append(f"run.duration: at its wheels' rim speed the rover may travel {reach:.4g} m and hit "
+                                f"the far wall (bed.length = {b.length} m); shorten run.duration, lengthen the bed or "
+                                "use a [patch]")
     plan = RoverPlan(model=rover.model, source=source, wheel_names=tuple(names), body=rover.body,
                      prefix=rover.wheel_prefix, start_values=tuple(sorted((rover.start_values or {}).items())),
                      start=(float(start_x), float(start_y), heading), hub_offsets=hubs,

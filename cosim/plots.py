@@ -128,7 +128,7 @@ def _rover_plots(plt, runs, colours, plot_dir: str, dpi: int) -> list[str]:
     """trajectory.png and wheels.png of rover runs (module docstring)."""
     written = []
     fig, axes = plt.subplots(1, 3, figsize=(17, 4.6))
-    for path, group, s in runs:
+    for _, group, s in runs:
         driving = s["phase"] == 1
         xy = s["rover_position"][:, :2]
         colour = colours[group]

@@ -14,7 +14,7 @@ the controller's (a controller without state_dict is taken to be stateless).
 from __future__ import annotations
 
 import math
-from typing import Sequence
+from collections.abc import Sequence
 
 import numpy as np
 
@@ -28,6 +28,7 @@ def open_rover(plan: RunPlan, start_z: float | None = None):
     """The plan's rover model at its start heading and horizontal position: a MujocoRover (moved there)
     or an FmuRover (its start.* parameters set; start_z [m] sets start.z)."""
     r = plan.rover
+    assert r is not None
     x, y, heading = r.start
     if r.model == "fmu":
         from rover_models.fmu_rover import FmuRover
@@ -49,6 +50,7 @@ def open_rover(plan: RunPlan, start_z: float | None = None):
 def make_controller(plan: RunPlan):
     """The drive's controller (cosim.controllers.Controller) for the plan's rover."""
     r = plan.rover
+    assert r is not None
     section = r.drive.section
     n = len(r.wheel_names)
     radii = tuple(w.rim_radius for w in plan.wheels)
@@ -173,7 +175,8 @@ class RoverDriver:
 
     # -- checkpoints ------------------------------------------------------------------
     def state_dict(self) -> dict:
-        out = {"phase": self.phase, "drive_start": self.drive_start, "command_torque": self.last_command.mode == "torque",
+        out = {"phase": self.phase, "drive_start": self.drive_start,
+               "command_torque": self.last_command.mode == "torque",
                "command": np.asarray(self.last_command.values, dtype=np.float64)}
         out.update({f"model/{k}": v for k, v in self.rover.state_dict().items()})
         if hasattr(self.controller, "state_dict"):

@@ -200,8 +200,9 @@ class Runner:
         body = rover.body_kinematics()
         spins = [float(k.angular_velocity @ wheel_frame(k.orientation, g.axis_local)[0])
                  for k, g in zip(record.kinematics, system.geometries)]
-        quantities = metrics.rover_quantities(body, per_wheel, record.wrenches, [g.rim_radius for g in system.geometries],
-                                              spins, self.body_position if driving else None, self.body_travel)
+        radii = [g.rim_radius for g in system.geometries]
+        quantities = metrics.rover_quantities(body, per_wheel, record.wrenches, radii, spins,
+                                              self.body_position if driving else None, self.body_travel)
         self.body_position, self.body_travel = body.position.copy(), quantities["travel"]
         for name, value in (("position", body.position), ("orientation", body.orientation),
                             ("linear_velocity", body.linear_velocity), ("angular_velocity", body.angular_velocity),

@@ -285,7 +285,8 @@ class DriveSection(_Section):
 
     @model_validator(mode="after")
     def _by_kind(self):
-        keys = {"speed": ("speed",), "torque": ("torque",), "slip": ("target_slip", "kp", "ki", "omega_min", "omega_max"),
+        keys = {"speed": ("speed",), "torque": ("torque",),
+                "slip": ("target_slip", "kp", "ki", "omega_min", "omega_max"),
                 "fmu": ("file", "mode", "start_values"), "python": ("function", "args")}
         wrong = [k for kind, names in keys.items() if kind != self.kind for k in names
                  if getattr(self, k) is not None]

@@ -27,6 +27,7 @@ from .dem_soil import DemSoil
 from .metrics import WheelGeometry
 from .patch import SoilPatch, Tile
 from .plan import RunPlan, SceneError
+from .rover import RoverDriver, make_controller, open_rover
 from .single_wheel import SingleWheelRig
 
 START_GAP = 0.05
@@ -41,8 +42,8 @@ class CoupledSystem:
     plan: RunPlan
     bed: Bed
     soil: DemSoil
-    rover: object
-    """SingleWheelRig (testbed) or cosim.rover.RoverDriver."""
+    rover: SingleWheelRig | RoverDriver
+    """The rover side: the testbed's rig, or a rover and its drive."""
     coupler: Coupler
     patch: SoilPatch | None = None
 
@@ -77,9 +78,8 @@ class CoupledSystem:
     def _build_rover(cls, plan: RunPlan, bed: Bed) -> "CoupledSystem":
         """A rover on the bed (or on a patch of tiles of it), lowered until its lowest wheel just clears
         the highest grain under it, braked for the landing."""
-        from .rover import RoverDriver, make_controller, open_rover
-
         r = plan.rover
+        assert r is not None
         wheels = [(w.shape, w.material) for w in plan.wheels]
         patch = None
         if plan.patch is not None:

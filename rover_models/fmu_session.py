@@ -10,8 +10,8 @@ from __future__ import annotations
 
 import os
 import shutil
-import zipfile
 import xml.etree.ElementTree as ET
+import zipfile
 
 import numpy as np
 

@@ -83,7 +83,8 @@ def write_rig(folder, name="rig", slope_deg=0.0, heading=0.0, speed=2.0, duratio
     (folder / "rig.xml").write_text(single_wheel_rig_xml(
         wheel_radius=0.02, wheel_width=0.02, wheel_mass=RIG_WHEEL, carriage_mass=RIG_CARRIAGE,
         ballast_mass=RIG_BALLAST, motor_kv=0.5, gravity=(0.0, 0.0, -MOON)))
-    text = RIG.format(name=name, gravity=gravity(slope_deg), soil=SOIL.format(length=length, width=width, radius=radius),
+    soil = SOIL.format(length=length, width=width, radius=radius)
+    text = RIG.format(name=name, gravity=gravity(slope_deg), soil=soil,
                       grousers=grousers, grouser_height=grouser_height, heading=heading, speed=speed,
                       duration=duration, snapshots=snapshots, checkpoints=checkpoints)
     path = folder / f"{name}.toml"

@@ -10,8 +10,17 @@ import textwrap
 import numpy as np
 import pytest
 
-from cosim.output import (REQUIRED_ATTRIBUTES, RESULTS_FORMAT, ROVER_SERIES, SOIL_SERIES, WHEEL_SERIES, ResultsWriter,
-                          documented_layout, open_results, xdmf_references)
+from cosim.output import (
+    REQUIRED_ATTRIBUTES,
+    RESULTS_FORMAT,
+    ROVER_SERIES,
+    SOIL_SERIES,
+    WHEEL_SERIES,
+    ResultsWriter,
+    documented_layout,
+    open_results,
+    xdmf_references,
+)
 from cosim.plan import load_plan
 from cosim.scene import scene_from_text
 from helpers import write_tiny

@@ -25,7 +25,8 @@ band = {band}
 clearance = {band}
 """
 FINE = {"length": 0.1, "width": 0.1, "extra": PATCH.format(size=0.12, band=0.0081)}
-"""A tile cut from a 10 x 10 cm bed of 3.5 mm grains, a 12 cm window, a band and a clearance of one largest grain diameter."""
+"""A tile cut from a 10 x 10 cm bed of 3.5 mm grains, a 12 cm window, a band and a clearance of one largest
+grain diameter."""
 COARSE = {"length": 0.1, "width": 0.1, "radius": 0.005, "extra": PATCH.format(size=0.12, band=0.0115)}
 """The same with 5 mm grains (fewer grains, longer steps: the long drive)."""
 
@@ -148,9 +149,9 @@ def _replicas(folder, name, bed, seeds=(0, 1, 2), **settings):
 
 
 def test_the_wheel_feels_the_same_soil_on_the_patch_as_on_a_long_bed(folder, coarse_tile):
-    """The same rig on the moving patch (tiles cut from a 10 x 10 cm bed, a 12 cm window, 5 mm grains) and on a 20 cm static
-    bed of the same grains whose side walls are where the patch's frozen band is: steady-state wheel load and
-    sinkage agree within the scatter of summation-order replicas (|difference of the means| <= 3 standard
+    """The same rig on the moving patch (tiles cut from a 10 x 10 cm bed, a 12 cm window, 5 mm grains) and on a
+    20 cm static bed of the same grains whose side walls are where the patch's frozen band is: steady-state wheel load
+    and sinkage agree within the scatter of summation-order replicas (|difference of the means| <= 3 standard
     errors of that difference from 3 + 3 replicas, plus a quarter grain radius for the sinkage: what a user
     cannot tell apart); the load is the rig's weight in both, within 3 %."""
     _, tile_bed = coarse_tile

@@ -73,7 +73,8 @@ def test_fmu_rover_input_errors_name_the_field(tmp_path, fmus, capsys):
         # the rover FMU has four wheels, the scene says two
         (["rover.wheel_count=2"], "rover.wheel_count", "the scene expects 2 wheel(s)"),
         # a drive-controller FMU for one wheel on a four-wheeled rover
-        ([f'rover.drive={{kind="fmu", file="{fmus["controller1"]}"}}'], "rover.drive.file", "missing wheel_1.speed_command"),
+        ([f'rover.drive={{kind="fmu", file="{fmus["controller1"]}"}}'], "rover.drive.file",
+         "missing wheel_1.speed_command"),
         # FMU placement keys the rover FMU has, but an MJCF key it cannot take
         (['rover.body="chassis"'], "rover.body", "body.* outputs"),
     ]

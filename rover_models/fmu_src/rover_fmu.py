@@ -93,8 +93,9 @@ class MmxRoverFmu(Fmi2Slave):
             reg(name, self.p, Fmi2Causality.parameter, Fmi2Variability.tunable)
         for name in self.u:
             reg(name, self.u, Fmi2Causality.input, Fmi2Variability.continuous)
-        self.register_variable(Real("total_mass", causality=Fmi2Causality.output, variability=Fmi2Variability.continuous,
-                                    getter=lambda: self._geometry()["mass"]), nested=False)
+        self.register_variable(Real("total_mass", causality=Fmi2Causality.output,
+                                    variability=Fmi2Variability.continuous, getter=lambda: self._geometry()["mass"]),
+                               nested=False)
         for i in range(4):
             for k, name in enumerate(["position." + a for a in AXES] + ["orientation." + a for a in "wxyz"]
                                      + ["velocity." + a for a in AXES] + ["angular_velocity." + a for a in AXES]):
@@ -104,8 +105,8 @@ class MmxRoverFmu(Fmi2Slave):
         for k, name in enumerate(["position." + a for a in AXES] + ["orientation." + a for a in "wxyz"]
                                  + ["velocity." + a for a in AXES] + ["angular_velocity." + a for a in AXES]):
             self.register_variable(Real(f"body.{name}", causality=Fmi2Causality.output,
-                                        variability=Fmi2Variability.continuous, getter=lambda k=k: self._outputs()[4][k]),
-                                   nested=False)
+                                        variability=Fmi2Variability.continuous,
+                                        getter=lambda k=k: self._outputs()[4][k]), nested=False)
 
     # -- the rover's constant geometry ---------------------------------------------------
     def _geometry(self):
