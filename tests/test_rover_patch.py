@@ -168,6 +168,5 @@ def test_the_wheel_feels_the_same_soil_on_the_patch_as_on_a_long_bed(folder, coa
         error = math.sqrt(a.var(ddof=1) / len(a) + b.var(ddof=1) / len(b))
         report[name] = (a.mean(), b.mean(), error)
         assert abs(a.mean() - b.mean()) <= 3 * error + floor, json.dumps(report)
-    print(json.dumps(report))
     assert report["normal_force"][0] == pytest.approx(weight, rel=0.03)
     assert report["normal_force"][1] == pytest.approx(weight, rel=0.03)
