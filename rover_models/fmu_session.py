@@ -73,6 +73,7 @@ def instantiate_cosim(path: str | os.PathLike, md, instance_name: str, start_tim
     unzipdir = extract(os.fspath(path))
     kwargs = dict(guid=md.guid, unzipDirectory=unzipdir,
                   modelIdentifier=md.coSimulation.modelIdentifier, instanceName=instance_name)
+    cwd = os.getcwd()  # fmpy enters the library's folder to load it and stays there when loading fails
     try:
         if md.fmiVersion == "2.0":
             from fmpy.fmi2 import FMU2Slave
@@ -89,6 +90,7 @@ def instantiate_cosim(path: str | os.PathLike, md, instance_name: str, start_tim
         fmu.enterInitializationMode(startTime=start_time)
         return fmu, unzipdir, fmu.setFloat64, fmu.getFloat64
     except Exception as error:
+        os.chdir(cwd)  # never stay in the folder that is removed next
         shutil.rmtree(unzipdir, ignore_errors=True)
         raise FmuError(f"{os.fspath(path)}: the FMU could not be instantiated: {error}") from error
 
