@@ -495,8 +495,9 @@ def _testbed(scene: Scene, wheel: WheelPlan, problems: list[str]) -> TestbedPlan
 # rovers
 
 
-def _rover_wheel_names(scene: Scene) -> list[str] | None:
-    """The wheel names the scene gives or implies (None: an FMU, whose wheels are counted when it is read)."""
+def _rover_wheel_names(scene: Scene) -> list[str]:
+    """The wheel names the scene gives or implies; an FMU's are read from it (SceneError naming rover.file,
+    rover.wheel_count or rover.wheel_prefix when they do not fit the convention)."""
     from rover_models.mjcf import MMX_WHEELS
 
     rover = scene.rover
@@ -576,15 +577,15 @@ def _inspect_mjcf(source: str, wheels: list[str], body: str | None, heading: flo
     except (ValueError, FileNotFoundError, OSError) as error:
         problems.append(f"{field}: the MJCF cannot be loaded: {error}")
         return None
-    try:
-        base = rover.body_id(body)
-    except KeyError as error:
-        problems.append(f"rover.body: {error.args[0]}")
-        return None
+    if body is not None:  # the reported body must exist
+        try:
+            rover.body_id(body)
+        except KeyError as error:
+            problems.append(f"rover.body: {error.args[0]}")
+            return None
     rover.move_base(np.zeros(3), heading)
     origin = rover.body_kinematics(rover.body_id()).position
     hubs = np.array([k.position for k in rover.wheel_kinematics()]) - origin
-    del base
     return {"hubs": hubs, "mass": rover.total_mass, **rover.drives, "start": True}
 
 
