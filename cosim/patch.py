@@ -43,11 +43,14 @@ import numpy as np
 
 from soil import DivergenceMonitor, Simulation, SoilBuilder
 from soil.bed import load_bed, restore_state
-from soil.kernels import BOUNDARY_PLANE
+from soil.sdf import BOUNDARY_PLANE
+from soil.state import UNBUILT, per_grain
 
-PER_GRAIN = ("position", "velocity", "angular_velocity", "force", "torque", "force_previous", "torque_previous",
-             "contact_count", "contact_partner", "contact_tangential", "contact_rolling")
-"""State arrays with one row per grain that a move carries over (soil.SoilState)."""
+
+def grain_rows(data: dict) -> dict:
+    """The arrays of SoilState.to_numpy() output that have one row per grain (model order): kinematics,
+    forces, the neighbour list and the pair history aligned with it, the rigid-contact history."""
+    return {name: np.asarray(values) for name, values in data.items() if name != "time" and per_grain(name)}
 
 
 @dataclass
@@ -58,7 +61,7 @@ class Tile:
     size: np.ndarray
     """Tile size along x and y [m], shape (2,)."""
     state: dict
-    """Per-grain state arrays (PER_GRAIN names), rows in tile order."""
+    """Per-grain state arrays (grain_rows), rows in tile order, neighbours by tile index."""
     radius: np.ndarray
     """Grain radii [m], shape (n,)."""
     material: np.ndarray
@@ -70,7 +73,7 @@ class Tile:
     inv_inertia: np.ndarray
     """Inverse moments of inertia of the free grains [1/(kg m^2)], shape (n,)."""
     floor_key: int
-    """Contact-history key of the tile's floor (particle count + its boundary index) [-]."""
+    """Rigid-contact key of the tile's floor (its boundary index) [-]."""
     floor_material: int
     """Material index of the floor [-]."""
     materials: list
@@ -136,15 +139,12 @@ class Tile:
         count = len(rows)
         new_index = np.full(n, -1, dtype=np.int64)
         new_index[rows] = np.arange(count)
-        grains = {k: data[k][rows].copy() for k in PER_GRAIN}
-        partner = grains["contact_partner"]
-        particle = (partner >= 0) & (partner < n)
-        partner[particle] = new_index[partner[particle]]
-        partner[partner >= n] += count - n  # the walls keep their keys after the grains
+        grains = _remap_history({k: v[rows] for k, v in grain_rows(data).items()},
+                                lambda j: new_index[j], lambda key: key)
         grains["position"][:, :2] -= margin
         return cls(size=period, state=grains, radius=model.radius.numpy()[rows], material=model.material.numpy()[rows],
                    mass=model.mass.numpy()[rows], inv_mass=model.inv_mass.numpy()[rows],
-                   inv_inertia=model.inv_inertia.numpy()[rows], floor_key=count + floors[0],
+                   inv_inertia=model.inv_inertia.numpy()[rows], floor_key=floors[0],
                    floor_material=int(model.boundary_material.numpy()[floors[0]]),
                    materials=list(model.materials.materials), overrides=dict(model.materials.overrides))
 
@@ -324,50 +324,27 @@ class SoilPatch:
         order = self._permute(len(picks))
         picks, shifts = picks[order], shifts[order]
         n_kept, n_new = len(kept), len(kept) + len(picks)
-        capacity = max(tile.state["contact_partner"].shape[1],
-                       0 if state is None else state["contact_partner"].shape[1])
-
-        # the contact-history keys of the new model: particles 0..n_new-1, the floor n_new, wheels after it
-        def remap_kept(partner):
-            out = np.full_like(partner, -1)
-            new_index = np.full(n_old, -1, dtype=np.int64)
-            new_index[kept] = np.arange(n_kept)
-            particle = (partner >= 0) & (partner < n_old)
-            out[particle] = new_index[partner[particle]]
-            other = partner >= n_old  # the floor and the wheels keep their place after the particles
-            out[other] = partner[other] - n_old + n_new
-            return out
-
-        def remap_placed(partner):
-            out = np.full_like(partner, -1)
-            # a placed grain keeps its history with grains of its own tile copy placed with it
-            for shift in np.unique(shifts, axis=0):
-                members = np.flatnonzero(np.all(shifts == shift, axis=1))
-                copy = np.full(tile.count, -1, dtype=np.int64)
-                copy[picks[members]] = n_kept + members
-                rows = partner[members]
-                particle = (rows >= 0) & (rows < tile.count)
-                mapped = np.full_like(rows, -1)
-                mapped[particle] = copy[rows[particle]]
-                mapped[rows == tile.floor_key] = n_new
-                out[members] = mapped
-            return out
-
-        arrays = {}
-        for name in PER_GRAIN:
-            parts = []
-            if state is not None:
-                parts.append(_widen(state[name][kept], capacity, name))
-            parts.append(_widen(tile.state[name][picks], capacity, name))
-            arrays[name] = np.concatenate(parts)
-        partner = np.concatenate([remap_kept(_widen(state["contact_partner"][kept], capacity, "contact_partner"))
-                                  if state is not None else
-                                  np.zeros((0, capacity), dtype=np.int32),
-                                  remap_placed(_widen(tile.state["contact_partner"][picks], capacity,
-                                                      "contact_partner"))])
-        placed_xyz = np.c_[shifts, np.zeros(len(picks))]
-        arrays["position"][n_kept:] += placed_xyz
-        _compact_history(arrays, partner)
+        # the new model's grains: kept 0 .. n_kept-1, placed after them; rigid keys: the floor 0, wheels 1 + b
+        old_to_new = np.full(n_old, -1, dtype=np.int64)
+        old_to_new[kept] = np.arange(n_kept)
+        parts = []
+        if state is not None:
+            parts.append(_remap_history({k: v[kept] for k, v in grain_rows(state).items()},
+                                        lambda j: old_to_new[j], lambda key: key))
+        # a placed grain keeps its history with grains of its own tile copy placed with it, and with the floor
+        copy = np.full((len(picks), tile.count), -1, dtype=np.int64)
+        for shift in np.unique(shifts, axis=0):
+            members = np.flatnonzero(np.all(shifts == shift, axis=1))
+            in_copy = np.full(tile.count, -1, dtype=np.int64)
+            in_copy[picks[members]] = n_kept + members
+            copy[members] = in_copy
+        rows = np.arange(len(picks))[:, None]
+        placed_rows = _remap_history({k: v[picks] for k, v in tile.state.items()},
+                                     lambda j: copy[np.broadcast_to(rows, j.shape), j],
+                                     lambda key: np.where(key == tile.floor_key, 0, -1))
+        placed_rows["position"][:, :2] += shifts
+        parts.append(placed_rows)
+        arrays = _stack_rows(parts)
 
         # constants per grain
         def joined(mine, theirs):
@@ -414,7 +391,8 @@ class SoilPatch:
         for shape, material in self.wheels:
             builder.add_wheel(shape, material)
         model, state, soil_control = builder.finalize(device=self.device, precision=self.precision, law=self.law,
-                                                      contact_capacity=arrays["contact_partner"].shape[1])
+                                                      contact_capacity=max(1, arrays["neighbours"].shape[1]),
+                                                      rigid_capacity=max(1, arrays["rigid_key"].shape[1]))
         inv_mass = np.where(self.frozen, 0, self.free_inv_mass).astype(self.free_inv_mass.dtype)
         inv_inertia = np.where(self.frozen, 0, self.free_inv_inertia).astype(self.free_inv_inertia.dtype)
         saved = {**arrays, "step_previous": np.zeros(1), "time": 0.0,
@@ -460,38 +438,93 @@ class SoilPatch:
         for name in ("ids", "radius", "material", "mass", "free_inv_mass", "free_inv_inertia", "frozen"):
             setattr(self, name, np.array(state[name]))
         n = len(self.ids)
-        like = sim.state.to_numpy()
-        arrays = {name: np.zeros((n, *like[name].shape[1:]), dtype=like[name].dtype) for name in PER_GRAIN}
-        arrays["contact_partner"][:] = -1
+        arrays = {name: np.zeros((n, *values.shape[1:]), dtype=values.dtype)
+                  for name, values in grain_rows(sim.state.to_numpy()).items()}
+        for name in ("neighbours", "rigid_key"):
+            arrays[name][:] = -1
+        arrays["build_position"][:] = UNBUILT
         # grains far apart until the checkpoint's state is loaded over them: nothing touches
         arrays["position"][:, 2] = 4 * np.arange(n) * float(self.radius.max())
         return self._simulation(arrays, sim.time, sim.steps, None, sim.monitor, sim.integrator, arm=False)
 
 
-def _widen(values: np.ndarray, capacity: int, name: str) -> np.ndarray:
-    """History arrays padded to `capacity` slots (partners with -1)."""
-    if not name.startswith("contact_") or values.ndim < 2 or values.shape[1] == capacity:
-        return values.copy()
-    fill = -1 if name == "contact_partner" else 0
-    out = np.full((values.shape[0], capacity, *values.shape[2:]), fill, dtype=values.dtype)
-    out[:, : values.shape[1]] = values
+def _unpack(words: np.ndarray, width: int) -> np.ndarray:
+    """Bit k of word k // 32 of each row, shape (rows, width), bool."""
+    k = np.arange(width)
+    return ((words[:, k // 32] >> (k % 32).astype(np.uint32)) & 1).astype(bool)
+
+
+def _pack(bits: np.ndarray) -> np.ndarray:
+    """The inverse of _unpack: shape (rows, ceil(width / 32)), uint32."""
+    rows, width = bits.shape
+    words = np.zeros((rows, max(1, (width + 31) // 32)), dtype=np.uint64)
+    for k in range(width):
+        words[:, k // 32] |= bits[:, k].astype(np.uint64) << np.uint64(k % 32)
+    return words.astype(np.uint32)
+
+
+def _compact(keep: np.ndarray, *arrays):
+    """Move the entries of each row where `keep` to its front, in their order; the rest is zeroed."""
+    order = np.argsort(~keep, axis=1, kind="stable")
+    kept = np.take_along_axis(keep, order, axis=1)
+    out = []
+    for values in arrays:
+        if values.shape[1] == 0:  # history the contact law does not use (zero width)
+            out.append(values.copy())
+            continue
+        index = order.reshape(order.shape + (1,) * (values.ndim - 2))
+        moved = np.take_along_axis(values, index, axis=1).copy()
+        moved[~kept] = 0
+        out.append(moved)
+    return kept, out
+
+
+def _remap_history(rows: dict, partner, rigid) -> dict:
+    """Per-grain rows (grain_rows) with their contact history renamed: `partner(j)` gives the new index of
+    grain j (-1: gone), `rigid(key)` the new key of a rigid partner (-1: gone); entries of partners that
+    are gone are dropped, the others keep their history, packed to the front. The neighbour list is
+    marked unbuilt, so the next step builds it again (carrying the history of every listed pair)."""
+    rows = {k: v.copy() for k, v in rows.items()}
+    neighbours = rows["neighbours"].astype(np.int64)
+    width = neighbours.shape[1]
+    listed = (np.arange(width)[None, :] < rows["neighbour_count"][:, None]) & (neighbours >= 0)
+    mapped = np.where(listed, partner(np.maximum(neighbours, 0)), -1)
+    keep = mapped >= 0
+    touching = _unpack(rows["pair_touching"], width)
+    kept, (mapped, touching, tangential, rolling) = _compact(
+        keep, mapped, touching, rows["pair_tangential"], rows["pair_rolling"])
+    rows["neighbours"] = np.where(kept, mapped, -1).astype(np.int32)
+    rows["neighbour_count"] = kept.sum(axis=1).astype(rows["neighbour_count"].dtype)
+    rows["pair_touching"] = _pack(touching & kept)
+    rows["pair_tangential"], rows["pair_rolling"] = tangential, rolling
+    key = rows["rigid_key"].astype(np.int64)
+    used = (np.arange(key.shape[1])[None, :] < rows["rigid_count"][:, None]) & (key >= 0)
+    new_key = np.where(used, rigid(np.maximum(key, 0)), -1)
+    kept, (new_key, tangential, rolling) = _compact(new_key >= 0, new_key, rows["rigid_tangential"],
+                                                    rows["rigid_rolling"])
+    rows["rigid_key"] = np.where(kept, new_key, -1).astype(np.int32)
+    rows["rigid_count"] = kept.sum(axis=1).astype(rows["rigid_count"].dtype)
+    rows["rigid_tangential"], rows["rigid_rolling"] = tangential, rolling
+    rows["build_position"] = np.full_like(rows["build_position"], UNBUILT)
+    return rows
+
+
+def _stack_rows(parts: list[dict]) -> dict:
+    """Per-grain rows of several blocks stacked, their history widths made equal (padded)."""
+    out = {}
+    for name in parts[-1]:
+        blocks = [np.asarray(p[name]) for p in parts]
+        if blocks[0].ndim >= 2:
+            width = max(b.shape[1] for b in blocks)
+            fill = -1 if name in ("neighbours", "rigid_key") else 0
+            padded = []
+            for b in blocks:
+                wide = np.full((b.shape[0], width, *b.shape[2:]), fill, dtype=b.dtype)
+                wide[:, : b.shape[1]] = b
+                padded.append(wide)
+            blocks = padded
+        out[name] = np.concatenate(blocks)
     return out
-
-
-def _compact_history(arrays: dict, partner: np.ndarray) -> None:
-    """Keep the history slots whose partner is still there (partner >= 0, slot < count), packed to the
-    front in their order; update contact_count."""
-    count = arrays["contact_count"]
-    slots = np.arange(partner.shape[1])
-    valid = (partner >= 0) & (slots[None, :] < count[:, None])
-    order = np.argsort(~valid, axis=1, kind="stable")
-    arrays["contact_partner"] = np.where(np.take_along_axis(valid, order, axis=1),
-                                         np.take_along_axis(partner, order, axis=1), -1).astype(partner.dtype)
-    for name in ("contact_tangential", "contact_rolling"):
-        moved = np.take_along_axis(arrays[name], order[:, :, None], axis=1)
-        moved[~np.take_along_axis(valid, order, axis=1)] = 0
-        arrays[name] = moved
-    arrays["contact_count"] = valid.sum(axis=1).astype(count.dtype)
 
 
 __all__ = ["SoilPatch", "Tile"]

@@ -142,7 +142,7 @@ def test_a_rover_drives_five_patch_lengths_on_a_bounded_patch(folder, coarse_til
 def _replicas(folder, name, bed, seeds=(0, 1, 2), **settings):
     out = []
     for seed in seeds:
-        scene = write_rig(folder, name=name, duration=1.2, **settings)
+        scene = write_rig(folder, name=name, duration=2.0, **settings)
         plan = load_plan(scene, [f'bed.bed_file="{bed}"', f"run.order_seed={seed}"])
         out.append(run_plan(plan, str(folder / f"{name}_{seed}")).summary)
     return out
@@ -150,10 +150,12 @@ def _replicas(folder, name, bed, seeds=(0, 1, 2), **settings):
 
 def test_the_wheel_feels_the_same_soil_on_the_patch_as_on_a_long_bed(folder, coarse_tile):
     """The same rig on the moving patch (tiles cut from a 10 x 10 cm bed, a 12 cm window, 5 mm grains) and on a
-    20 cm static bed of the same grains whose side walls are where the patch's frozen band is: steady-state wheel load
-    and sinkage agree within the scatter of summation-order replicas (|difference of the means| <= 3 standard
-    errors of that difference from 3 + 3 replicas, plus a quarter grain radius for the sinkage: what a user
-    cannot tell apart); the load is the rig's weight in both, within 3 %."""
+    20 cm static bed of the same grains whose side walls are where the patch's frozen band is, driven 2 s:
+    steady-state wheel load and sinkage agree within the scatter of summation-order replicas
+    (|difference of the means| <= 3 standard errors of that difference from 3 + 3 replicas) plus what a
+    user cannot tell apart (the floors of cosim.study's replica criterion: a quarter grain radius of
+    sinkage; for the load 2 % of the weight: a wheel crossing a seam of the tiles sinks a little faster
+    for a while, measured 1.3 %); the load is the rig's weight within 3 % on both."""
     _, tile_bed = coarse_tile
     width = 0.12 - 2 * 0.0115
     long_plan = load_plan(write_rig(folder, name="long_bed", length=0.2, width=width, radius=0.005))
@@ -162,7 +164,7 @@ def test_the_wheel_feels_the_same_soil_on_the_patch_as_on_a_long_bed(folder, coa
     on_bed = _replicas(folder, "on_bed", long_bed, length=0.2, width=width, radius=0.005)
     weight = (RIG_BALLAST + RIG_WHEEL) * MOON
     report = {}
-    for name, floor in (("normal_force", 0.0), ("sinkage", 0.25 * 0.005)):
+    for name, floor in (("normal_force", 0.02 * weight), ("sinkage", 0.25 * 0.005)):
         a = np.array([r[name] for r in on_patch])
         b = np.array([r[name] for r in on_bed])
         error = math.sqrt(a.var(ddof=1) / len(a) + b.var(ddof=1) / len(b))
