@@ -73,23 +73,31 @@ def ground_pressure(plan: RunPlan) -> float:
 def check(plan: RunPlan, surface_height: float | None = None, sinkage_tips: float | None = None) -> list[Finding]:
     """The validity findings of a plan; the settled surface height [m] and the measured tip
     sinkage [m] sharpen the depth and floor checks when known."""
-    spec, wheel, t = plan.bed.spec, plan.wheel, plan.testbed
+    spec, t = plan.bed.spec, plan.testbed
+    # a rover: judge its narrowest wheel with the largest outer radius
+    wheel = min(plan.wheels or (plan.wheel,), key=lambda w: w.width)
     diameter = 2.0 * spec.radius_mean
     g = plan.g
     findings = []
+    omega = plan.drive_omega
+    if t is not None:
+        omega_key = "testbed.omega"
+    else:
+        named = isinstance(plan.scene.rover.drive, str)
+        omega_key = f"rover.controllers.{plan.rover.drive.name}.speed" if named else "rover.drive.speed"
 
     fr = plan.froude_number
-    findings.append(_finding(
-        "froude", fr, FROUDE_LIMIT, fr <= FROUDE_LIMIT,
-        f"Froude number omega^2 r / g = {fr:.3g} <= {FROUDE_LIMIT}: quasi-static",
-        f"Froude number omega^2 r / g = {fr:.3g} > {FROUDE_LIMIT}: the wheel hops at this speed and gravity; "
-        f"lower testbed.omega to <= {math.sqrt(FROUDE_LIMIT * g / wheel.outer_radius):.3g} rad/s",
-        "testbed.omega"))
+    if math.isfinite(omega):
+        findings.append(_finding(
+            "froude", fr, FROUDE_LIMIT, fr <= FROUDE_LIMIT,
+            f"Froude number omega^2 r / g = {fr:.3g} <= {FROUDE_LIMIT}: quasi-static",
+            f"Froude number omega^2 r / g = {fr:.3g} > {FROUDE_LIMIT}: the wheel hops at this speed and gravity; "
+            f"lower {omega_key} to <= {math.sqrt(FROUDE_LIMIT * g / wheel.outer_radius):.3g} rad/s", omega_key))
 
     material = plan.soil_material
     smallest = spec.radius_mean * (1 - spec.radius_spread)
     depth_now = surface_height if surface_height is not None else spec.depth
-    speed = math.sqrt(2 * g * max(depth_now, smallest)) + t.omega * wheel.outer_radius
+    speed = math.sqrt(2 * g * max(depth_now, smallest)) + (omega if math.isfinite(omega) else 0.0) * wheel.outer_radius
     contact = advisor.hertz_contact_time(material.youngs_modulus, material.poisson_ratio, material.density,
                                          smallest, max(speed, 1e-12))
     steps = contact / plan.dt
@@ -125,15 +133,23 @@ def check(plan: RunPlan, surface_height: float | None = None, sinkage_tips: floa
         f"only {clearance:.3g} grain diameters between the grouser tips and the floor {when}: the wheel feels the "
         "floor; deepen bed.depth", "bed.depth"))
 
-    side = (spec.width - wheel.width) / 2 / diameter
-    end = (spec.length - (t.start_x + wheel.outer_radius
-                          + t.omega * wheel.outer_radius * plan.scene.run.duration)) / diameter
-    walls = min(side, end)
-    findings.append(_finding(
-        "wall_clearance", walls, WALL_GRAINS, walls >= WALL_GRAINS,
-        f"wheel-wall clearance >= {walls:.3g} grain diameters (side {side:.3g}, far end {end:.3g})",
-        f"the wheel comes within {walls:.3g} grain diameters of a wall (side {side:.3g}, far end after the drive "
-        f"{end:.3g}): widen bed.width or lengthen bed.length", "bed.width, bed.length"))
+    if t is not None:
+        side = (spec.width - wheel.width) / 2 / diameter
+        end = (spec.length - (t.start_x + wheel.outer_radius
+                              + t.omega * wheel.outer_radius * plan.scene.run.duration)) / diameter
+        walls = min(side, end)
+        findings.append(_finding(
+            "wall_clearance", walls, WALL_GRAINS, walls >= WALL_GRAINS,
+            f"wheel-wall clearance >= {walls:.3g} grain diameters (side {side:.3g}, far end {end:.3g})",
+            f"the wheel comes within {walls:.3g} grain diameters of a wall (side {side:.3g}, far end after the drive "
+            f"{end:.3g}): widen bed.width or lengthen bed.length", "bed.width, bed.length"))
+    elif plan.patch is not None:
+        gap = plan.patch.clearance / diameter
+        findings.append(_finding(
+            "wall_clearance", gap, WALL_GRAINS, gap >= WALL_GRAINS,
+            f"the wheels keep >= {gap:.3g} grain diameters from the patch's frozen band",
+            f"the wheels may come within {gap:.3g} grain diameters of the patch's frozen band: raise patch.clearance "
+            "(and the window size)", "patch.clearance, patch.length, patch.width"))
 
     pressure = ground_pressure(plan)
     bound = advisor.macroscopic_stiffness(depth, pressure, OVERLAP_RATIO, spec.radius_mean, material.density, g)

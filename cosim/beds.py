@@ -97,7 +97,7 @@ def _settle(plan: RunPlan, path: str, info_path: str, progress: bool) -> Bed:
     bar = _SettleBar(bed.settle_max_time, progress)
     start = time.perf_counter()
     try:
-        sim, report, metrics = make_settled_bed(bed.spec, plan.gravity, device=plan.device, precision="double",
+        sim, report, metrics = make_settled_bed(bed.spec, plan.settle_gravity, device=plan.device, precision="double",
                                                 dt=bed.settle_dt, ke_ratio=bed.settle_ke_ratio,
                                                 max_time=bed.settle_max_time, progress=bar.update)
     finally:

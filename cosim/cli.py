@@ -121,7 +121,12 @@ SUMMARY_KEYS = (
     ("steady_state", "", 1), ("validity", "", 1), ("landing_time", "s", 1), ("window", "s", 1),
     ("slip", "", 1), ("travel", "mm", 1e3), ("forward_speed", "mm/s", 1e3), ("sinkage", "mm", 1e3),
     ("sinkage_tips", "mm", 1e3), ("drawbar_pull", "N", 1), ("dp_over_w", "", 1), ("driving_torque", "N m", 1),
-    ("normal_force", "N", 1), ("contact_fraction", "", 1), ("froude_number", "", 1), ("simulated_time", "s", 1),
+    ("normal_force", "N", 1), ("net_traction", "N", 1), ("net_traction_over_weight", "", 1), ("power", "W", 1),
+    ("displacement", "mm", 1e3), ("energy_per_metre", "J/m", 1), ("time_immobile", "s", 1), ("stuck", "", 1),
+    ("wheel_slip", "", 1), ("wheel_sinkage", "mm", 1e3), ("wheel_normal_force", "N", 1), ("wheel_power", "W", 1),
+    ("patch_moves", "", 1), ("particle_count_max", "", 1), ("soil_mass_added", "kg", 1),
+    ("soil_mass_removed", "kg", 1),
+    ("contact_fraction", "", 1), ("froude_number", "", 1), ("simulated_time", "s", 1),
     ("wall_time", "s", 1), ("particle_count", "", 1), ("particle_steps_per_second", "1/s", 1),
 )
 
@@ -137,7 +142,7 @@ def _print_summary(result) -> None:
             sem = s.get(f"{key}_sem")
             text = f"{value * scale:.4g}" + (f" +- {sem * scale:.2g} (within-run s.e.)" if sem and sem == sem else "")
         elif isinstance(value, list):
-            text = " .. ".join(f"{v:.4g}" for v in value)
+            text = (" .. " if key == "window" else ", ").join(f"{v * scale:.4g}" for v in value)
         else:
             text = str(value)
         print(f"  {key:26s} {text} {unit}".rstrip())
@@ -204,6 +209,11 @@ def cmd_study(args) -> int:
     from . import study
 
     plan = _plan(args)
+    if plan.rover is not None and args.kind in ("slip", "timestep"):
+        from .scene import SceneError
+
+        raise SceneError([f"cosim study {args.kind}: runs the single-wheel [testbed]; for a rover compare drives "
+                          "with `cosim sweep SCENE --param rover.drive=NAME1,NAME2` ([rover.controllers])"])
     if args.kind == "precision":
         out = args.out or os.path.join("runs", f"{plan.name}_precision")
         precisions = [p.strip() for p in args.precisions.split(",") if p.strip()]

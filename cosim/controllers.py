@@ -7,6 +7,10 @@ A controller is any callable
 called by the Coupler at the start of every macro step with the time t [s], the wheels'
 current kinematics (list of WheelKinematics) and the wrenches of the previous macro step
 (list of WheelWrench). The command is held by the rover over the macro step.
+
+A controller with internal state also has `state_dict()` / `load_state_dict(state)` (numpy
+arrays and scalars) so that a run continued from a checkpoint gives the same commands; one
+without them is taken to be stateless.
 """
 
 from __future__ import annotations
@@ -60,6 +64,12 @@ class ConstantSpeed:
     def __call__(self, t, wheel_states, wrenches) -> DriveCommand:
         return DriveCommand("speed", self.speed)
 
+    def state_dict(self) -> dict:
+        return {}
+
+    def load_state_dict(self, state: dict) -> None:
+        pass
+
 
 class ConstantTorque:
     """Every wheel at a constant hinge torque [N m] (one value or one per wheel)."""
@@ -70,6 +80,12 @@ class ConstantTorque:
 
     def __call__(self, t, wheel_states, wrenches) -> DriveCommand:
         return DriveCommand("torque", self.torque)
+
+    def state_dict(self) -> dict:
+        return {}
+
+    def load_state_dict(self, state: dict) -> None:
+        pass
 
 
 class SlipController:
@@ -138,3 +154,14 @@ class SlipController:
             if out[i] == raw:  # anti-windup: integrate only while unclamped
                 self.integral[i] += error * dt
         return DriveCommand("speed", out)
+
+    def state_dict(self) -> dict:
+        """The integrals, the last slips and the time of the last call (nan: none yet)."""
+        return {"integral": self.integral.copy(), "slip": self.slip.copy(),
+                "t_prev": np.nan if self._t_prev is None else self._t_prev}
+
+    def load_state_dict(self, state: dict) -> None:
+        self.integral = np.array(state["integral"], dtype=np.float64)
+        self.slip = np.array(state["slip"], dtype=np.float64)
+        t_prev = float(state["t_prev"])
+        self._t_prev = None if np.isnan(t_prev) else t_prev

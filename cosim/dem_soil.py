@@ -24,9 +24,12 @@ class DemSoil:
         surface_height: undisturbed soil surface z [m], for the sinkage.
         wall_clearance: warn (WallProximityWarning) when a wheel's outer rim comes closer
             than this to a container wall [m]; default 5 mean grain radii.
+        patch: a cosim.patch.SoilPatch that follows the wheels; before each macro step it may
+            move and replace `sim` (host side, between DEM steps).
     """
 
-    def __init__(self, sim, dt: float, surface_height: float = 0.0, wall_clearance: float | None = None):
+    def __init__(self, sim, dt: float, surface_height: float = 0.0, wall_clearance: float | None = None,
+                 patch=None):
         if sim.model.body_count < 1:
             raise ValueError("the soil simulation has no wheel bodies (SoilBuilder.add_wheel)")
         if not dt > 0:
@@ -40,6 +43,7 @@ class DemSoil:
         self._warned_wall = False
         # the boundaries' kinds and initial geometry, read once (their motion comes with each macro step)
         self._walls = (sim.model.boundary_kind.numpy().copy(), sim.model.boundary_geometry_numpy())
+        self.patch = patch
 
     @classmethod
     def from_bed(cls, bed, wheels, wheel_material, dt: float, surface_height: float | None = None,
@@ -75,16 +79,20 @@ class DemSoil:
             raise ValueError(f"the soil was settled under gravity {self.sim.model.gravity} m/s^2, the scene asks "
                              f"for {gravity}: settle the bed under the scene's gravity")
 
-    def highest_grain_under(self, wheel: int, hub: Sequence[float]) -> float:
+    def highest_grain_under(self, wheel: int, hub: Sequence[float], axle: Sequence[float] = (0.0, 1.0, 0.0)) -> float:
         """Top (z + r) [m] of the highest grain inside the wheel's horizontal footprint when
-        its hub is at `hub` (axle along Y); -inf if none. Place a wheel at
-        max(...) + outer radius to start it just touching, not pressed into, the soil."""
+        its hub is at `hub` and its axle along `axle` (a horizontal unit vector, world); -inf if
+        none. Place a wheel at max(...) + outer radius to start it just touching, not pressed
+        into, the soil."""
         shape = self.sim.model.bodies[wheel]
         x = self.sim.positions()
         r = self.sim.model.radius_numpy()
-        reach = shape.outer_radius if hasattr(shape, "radius") else shape.outer_radius
+        reach = shape.outer_radius
         half_width = 0.5 * getattr(shape, "width", 2 * reach)
-        inside = (np.abs(x[:, 0] - hub[0]) < reach + r) & (np.abs(x[:, 1] - hub[1]) < half_width + r)
+        across = np.array([axle[0], axle[1]], dtype=np.float64) / np.hypot(axle[0], axle[1])
+        along = np.array([across[1], -across[0]])
+        offset = x[:, :2] - np.asarray(hub, dtype=np.float64)[:2]
+        inside = (np.abs(offset @ along) < reach + r) & (np.abs(offset @ across) < half_width + r)
         return float(np.max(x[inside, 2] + r[inside])) if inside.any() else -np.inf
 
     def place_wheels(self, kinematics: Sequence[WheelKinematics]) -> None:
@@ -102,11 +110,15 @@ class DemSoil:
         wheels are posed there at each step and their wrenches summed there; the host reads
         the result once.
         """
-        sim, control = self.sim, self.sim.control
         if len(start) != self.wheel_count:
             raise ValueError(f"expected kinematics of {self.wheel_count} wheels, got {len(start)}")
         if end is not None and len(end) != self.wheel_count:
             raise ValueError(f"expected end kinematics of {self.wheel_count} wheels, got {len(end)}")
+        if self.patch is not None:  # the patch follows the wheels' centre, between macro steps
+            moved = self.patch.follow(self.sim, np.mean([k.position[:2] for k in start], axis=0))
+            if moved is not None:
+                self.sim = moved
+        sim, control = self.sim, self.sim.control
         t0 = sim.time
         span = float(t_end) - t0
         if not span > 0:
@@ -154,13 +166,19 @@ class DemSoil:
     # -- checkpoints -----------------------------------------------------------------
     def state_dict(self) -> dict:
         """Everything the soil side needs to continue bit for bit, as numpy arrays and scalars:
-        its Simulation's state_dict() under 'simulation/' and its own 'warned_wall' flag."""
+        its Simulation's state_dict() under 'simulation/', a moving patch's under 'patch/' and its
+        own 'warned_wall' flag."""
         data = {f"simulation/{k}": v for k, v in self.sim.state_dict().items()}
+        if self.patch is not None:
+            data.update({f"patch/{k}": v for k, v in self.patch.state_dict().items()})
         data["warned_wall"] = np.bool_(self._warned_wall)
         return data
 
     def load_state_dict(self, data: dict) -> None:
         """Continue from state_dict() output (into a DemSoil built from the same scene and bed)."""
+        if self.patch is not None:  # the patch's grains first: the simulation's state is loaded over them
+            self.sim = self.patch.load_state_dict({k[len("patch/"):]: v for k, v in data.items()
+                                                   if k.startswith("patch/")}, self.sim)
         self.sim.load_state_dict({k[len("simulation/"):]: v for k, v in data.items() if k.startswith("simulation/")})
         self._warned_wall = bool(data["warned_wall"])
 

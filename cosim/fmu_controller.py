@@ -182,3 +182,24 @@ class FmuController(FmuSession):
                 self._step(self._time, t - self._time, 0)
         self._time = t
         return DriveCommand(self.mode, self._get(self._vr_cmd))
+
+    # -- checkpoints ----------------------------------------------------------------------
+    def state_dict(self) -> dict:
+        """The time of the last call (nan: not called yet) and the FMU's serialized state (empty before
+        the first call; FmuError when the FMU cannot save its state)."""
+        if self.fmu is None:
+            return {"time": np.nan, "fmu_state": np.zeros(0, dtype=np.uint8)}
+        return {"time": self._time, "fmu_state": self.save_state()}
+
+    def load_state_dict(self, state: dict) -> None:
+        t = float(state["time"])
+        if np.isnan(t):
+            return
+        if self.fmu is None:  # instantiate it as the first call would, then put the saved state in
+            self.fmu, self._unzipdir, self._set, self._get = instantiate_cosim(
+                self.path, self.md, self.instance_name, t)
+            self._initializing = True
+            for vr, value in self._start_values:
+                self._set([vr], [value])
+        self.load_state(state["fmu_state"])
+        self._time = t

@@ -10,7 +10,9 @@ Per wheel and macro step (`wheel_quantities`), in the wheel's own frame (axle = 
     sinkage_tips    the same for the grouser tips (hub z - outer radius) [m]
     drawbar_pull    soil force on the wheel along the forward direction [N] (the net traction)
     driving_torque  torque the drive supplies against the soil, -(soil torque . axle) [N m]
-    normal_force    soil force along -gravity [N] (carries the wheel load at rest)
+    normal_force    soil force along the bed normal, up (+z) [N] (carries the wheel load at rest;
+                    m |g| cos(slope) summed over a rover's wheels)
+    power           power the drive delivers against the soil's torque, driving_torque x spin [W]
 
 Over a run (`summarize`): a steady-state window is found in the driving phase by the MSER-5
 rule (White 1997: the truncation that minimises the standard error of the mean of what
@@ -18,6 +20,26 @@ remains) applied to the forward speed (or, at imposed slip, the drawbar pull) an
 sinkage; over that window slip = 1 - mean(v) / (mean(omega) r) from mean speeds, sinkage,
 drawbar pull, DP/W and torque are means. A run with no steady state gets a status saying
 why: 'never touched the soil', 'no landing', 'airborne', 'stuck' or 'too short'.
+
+For a rover (`rover_quantities` per macro step, `summarize_rover` over a run), in the rover's
+frame (forward = its body's +x axis turned into the horizontal plane, up = +z):
+
+    forward_speed   body velocity along forward [m/s]
+    slip            1 - forward_speed / (mean over the wheels of spin x rim radius) [-]
+    net_traction    sum over the wheels of the soil force along forward [N] (what a drawbar
+                    would feel; on a slope it carries the weight's downhill part)
+    power           sum of the wheels' power [W]
+    travel          horizontal path length of the body since the drive started [m]
+
+and over the driving phase: energy = integral of the power [J], energy_per_metre = energy /
+travel [J/m], and the time immobile [s] under the stuck criterion: the rover is immobile at a
+macro step when, over the last radian of (mean) wheel turn before it, its body advanced no
+more than (1 - stuck_slip) of its wheels' rim travel (with the default stuck_slip 0.9: its
+slip over the window is at least 0.9, or it went backwards); it is stuck when it is immobile at
+the end of the drive. Steps before the wheels have turned one radian are not judged. The
+steady-state window is found as for a wheel (MSER-5 on
+the forward speed and the mean sinkage); slip, sinkage, drawbar pull, torque, normal force and
+power per wheel and the rover's slip, net traction and power are means over it.
 
 Across replicas (`ensemble`): mean, standard deviation, a 95 % Student-t interval, and
 whether the metric is macroscopically deterministic (replica std within its tolerance).
@@ -31,7 +53,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from .contract import WheelKinematics, WheelWrench
-from .terrain import wheel_frame
+from .terrain import quat_to_matrix, wheel_frame
 
 STEADY = "steady"
 NEVER_TOUCHED = "never touched the soil"
@@ -41,7 +63,7 @@ STUCK = "stuck"
 TOO_SHORT = "too short"
 
 WHEEL_UNITS = {"travel": "m", "slip": "1", "sinkage": "m", "sinkage_tips": "m", "drawbar_pull": "N",
-               "driving_torque": "N m", "normal_force": "N"}
+               "driving_torque": "N m", "normal_force": "N", "power": "W"}
 """Units of the per-wheel quantities."""
 
 
@@ -85,6 +107,7 @@ def wheel_quantities(kinematics: WheelKinematics, wrench: WheelWrench, geometry:
         "drawbar_pull": float(wrench.force @ forward),
         "driving_torque": -float(wrench.torque @ axis),
         "normal_force": float(wrench.force @ up),
+        "power": -float(wrench.torque @ axis) * spin,
     }
 
 
@@ -204,12 +227,156 @@ def _forward_speed(series: dict) -> np.ndarray:
 
 
 # ------------------------------------------------------------------------------------
+# rovers
+
+ROVER_UNITS = {"forward_speed": "m/s", "slip": "1", "net_traction": "N", "power": "W", "travel": "m"}
+"""Units of the rover quantities (per macro step)."""
+
+
+def rover_forward(orientation: np.ndarray) -> np.ndarray:
+    """The rover's forward direction: its body +x axis in the horizontal plane, unit [-], shape (3,)."""
+    x_axis = np.asarray(quat_to_matrix(orientation))[:, 0]
+    horizontal = np.array([x_axis[0], x_axis[1], 0.0])
+    norm = np.linalg.norm(horizontal)
+    return horizontal / norm if norm > 1e-9 else np.zeros(3)
+
+
+def rover_quantities(body: WheelKinematics, wheels: list[dict], wrenches: list[WheelWrench],
+                     rim_radii, spins, previous_position: np.ndarray | None, previous_travel: float) -> dict:
+    """The rover quantities of the module docstring at one macro step (units: ROVER_UNITS).
+
+    wheels: wheel_quantities of each wheel; spins: each wheel's spin about its axle [rad/s];
+    previous_position: the body position at the previous record [m] (None: the drive has not
+    started, travel stays 0); previous_travel [m]."""
+    forward = rover_forward(body.orientation)
+    speed = float(body.linear_velocity @ forward)
+    rim = float(np.mean(np.asarray(spins) * np.asarray(rim_radii)))
+    travel = previous_travel
+    if previous_position is not None:
+        step = body.position - previous_position
+        travel += float(np.hypot(step[0], step[1]))
+    return {"forward_speed": speed, "slip": float(slip_of(speed, rim, 1.0)),
+            "net_traction": float(sum(w.force @ forward for w in wrenches)),
+            "power": float(sum(q["power"] for q in wheels)), "travel": travel}
+
+
+def immobile_steps(time: np.ndarray, position: np.ndarray, orientation: np.ndarray, spin: np.ndarray,
+                   rim_radius: np.ndarray, stuck_slip: float) -> np.ndarray:
+    """The stuck criterion (module docstring) at every record of a drive: bool, shape (S,).
+
+    time [s] (S,); position: body positions [m] (S, 3); orientation: body quaternions (S, 4);
+    spin: the wheels' spins about their axles [rad/s] (S, W); rim_radius [m] (W,). A record
+    whose window reaches back before the first one is judged over what there is (at least one
+    macro step)."""
+    time = np.asarray(time, dtype=float)
+    n = len(time)
+    out = np.zeros(n, dtype=bool)
+    if n < 2:
+        return out
+    spin = np.abs(np.asarray(spin, dtype=float))
+    rim_speed = np.mean(spin * np.asarray(rim_radius, dtype=float), axis=1)
+    dt = np.diff(time, prepend=time[0])
+    rim_travel = np.cumsum(rim_speed * dt)
+    turned = np.cumsum(np.mean(spin, axis=1) * dt)  # mean wheel turn since the first record [rad]
+    for k in range(1, n):
+        if turned[k] < 1.0:  # not yet a radian of turn to judge over
+            continue
+        start = min(int(np.searchsorted(turned, turned[k] - 1.0, side="right")) - 1, k - 1)
+        advance = float((np.asarray(position[k]) - np.asarray(position[start])) @ rover_forward(orientation[k]))
+        out[k] = advance <= (1.0 - stuck_slip) * (rim_travel[k] - rim_travel[start])
+    return out
+
+
+def summarize_rover(series: dict, *, rim_radii, weight: float, stuck_slip: float = 0.9, landed: bool = True,
+                    min_fraction: float = 0.25) -> dict:
+    """Metrics of a rover run from its written series (cosim.output.read_series: the wheel series (S, W),
+    'rover/...' series (S, ...)); over the driving phase only.
+
+    Returns {'steady_state', 'window' [s], 'landing_time' [s]; over the window: 'slip' [-] (the rover's),
+    'forward_speed' [m/s], 'net_traction' [N], 'net_traction_over_weight' [-], 'power' [W], 'sinkage',
+    'sinkage_tips' [m] (mean over the wheels), 'drawbar_pull' [N] (= net_traction), 'dp_over_w' [-],
+    'driving_torque' [N m] (summed), 'normal_force' [N] (summed), 'contact_fraction' [-], and per wheel
+    lists 'wheel_slip', 'wheel_sinkage', 'wheel_drawbar_pull', 'wheel_driving_torque', 'wheel_normal_force',
+    'wheel_power'; over the drive: 'travel' [m] (path), 'displacement' [m], 'energy' [J],
+    'energy_per_metre' [J/m], 'time_immobile' [s], 'stuck' (bool), 'stuck_criterion' (text)}."""
+    time = np.asarray(series["time"], dtype=float)
+    phase = np.asarray(series["phase"])
+    contacts = np.asarray(series["contact_count"])
+    driving = phase == 1
+    out: dict = {"steady_state": STEADY, "window": [math.nan, math.nan],
+                 "stuck_criterion": f"immobile while the body advances less than {1 - stuck_slip:.3g} x the wheels' "
+                                    "rim travel over the last radian of wheel turn; stuck when immobile at the end"}
+    out["landing_time"] = float(time[np.argmax(driving)] - time[0]) if driving.any() else math.nan
+    if len(time) == 0 or not np.any(contacts > 0):
+        out["steady_state"] = NEVER_TOUCHED
+        return out
+    if not landed or not driving.any():
+        out["steady_state"] = NO_LANDING
+        return out
+    index = np.flatnonzero(driving)
+    rim_radii = np.asarray(rim_radii, dtype=float)
+    position = np.asarray(series["rover_position"])[index]
+    orientation = np.asarray(series["rover_orientation"])[index]
+    speed = np.asarray(series["rover_forward_speed"])[index]
+    power = np.asarray(series["rover_power"])[index]
+    sinkage = np.asarray(series["sinkage"])[index]
+    spins = np.array([[v @ wheel_frame(q, (0.0, 1.0, 0.0))[0] for q, v in zip(qs, ws)]
+                      for qs, ws in zip(np.asarray(series["orientation"])[index],
+                                        np.asarray(series["angular_velocity"])[index])])
+    times = time[index]
+    dt = np.diff(np.r_[time[index[0] - 1] if index[0] > 0 else times[0], times])
+    out["travel"] = float(np.asarray(series["rover_travel"])[index[-1]])
+    out["displacement"] = float(np.linalg.norm((position[-1] - position[0])[:2]))
+    out["energy"] = float(np.sum(power * dt))
+    out["energy_per_metre"] = out["energy"] / out["travel"] if out["travel"] > 0 else math.inf
+    immobile = immobile_steps(times, position, orientation, spins, rim_radii, stuck_slip)
+    out["time_immobile"] = float(np.sum(dt[immobile]))
+    out["stuck"] = bool(immobile[-1])
+    start, found = steady_window({"driving": speed, "sinkage": sinkage.mean(axis=1)}, min_fraction)
+    window = np.arange(start, len(index)) if found else np.arange(len(index) // 2, len(index))
+    rows = index[window]
+    out["window"] = [float(time[rows[0]]), float(time[rows[-1]])]
+    rim = float(np.mean(np.mean(spins[window] * rim_radii, axis=1)))
+    out["forward_speed"] = float(np.mean(speed[window]))
+    out["forward_speed_sem"] = batch_standard_error(speed[window])
+    out["slip"] = float(slip_of(out["forward_speed"], rim, 1.0))
+    traction = np.asarray(series["rover_net_traction"])[rows]
+    out["net_traction"] = float(np.mean(traction))
+    out["net_traction_sem"] = batch_standard_error(traction)
+    out["net_traction_over_weight"] = out["net_traction"] / weight if weight > 0 else math.nan
+    out["power"] = float(np.mean(power[window]))
+    for name in ("sinkage", "sinkage_tips", "drawbar_pull", "driving_torque", "normal_force", "power"):
+        values = np.asarray(series[name])[rows]
+        out[f"wheel_{name}"] = [float(v) for v in values.mean(axis=0)]
+    wheel_speed = np.array([[v @ wheel_frame(q, (0.0, 1.0, 0.0))[1] for q, v in zip(qs, vs)]
+                            for qs, vs in zip(np.asarray(series["orientation"])[rows],
+                                              np.asarray(series["linear_velocity"])[rows])])
+    out["wheel_slip"] = [float(slip_of(np.mean(wheel_speed[:, i]), np.mean(spins[window, i]), rim_radii[i]))
+                         for i in range(len(rim_radii))]
+    out["sinkage"] = float(np.mean(out["wheel_sinkage"]))
+    out["sinkage_sem"] = batch_standard_error(np.asarray(series["sinkage"])[rows].mean(axis=1))
+    out["sinkage_tips"] = float(np.mean(out["wheel_sinkage_tips"]))
+    out["drawbar_pull"] = out["net_traction"]
+    out["dp_over_w"] = out["net_traction_over_weight"]
+    out["driving_torque"] = float(np.sum(out["wheel_driving_torque"]))
+    out["normal_force"] = float(np.sum(out["wheel_normal_force"]))
+    out["contact_fraction"] = float(np.mean(np.all(contacts[rows] > 0, axis=1)))
+    if out["stuck"]:
+        out["steady_state"] = STUCK
+    elif out["contact_fraction"] < 0.9:
+        out["steady_state"] = AIRBORNE
+    elif not found:
+        out["steady_state"] = TOO_SHORT
+    return out
+
+
+# ------------------------------------------------------------------------------------
 # replicas
 
 
 REPLICA_METRICS = ("slip", "sinkage", "sinkage_tips", "drawbar_pull", "dp_over_w", "driving_torque", "travel",
                    "forward_speed")
-"""Metrics an ensemble reports."""
+"""Metrics an ensemble reports (a rover's summary has them too: rover-level values)."""
 
 
 def ensemble(values, relative_tolerance: float = 0.05, absolute_tolerance: float = 0.0) -> dict:

@@ -29,8 +29,10 @@ and a `description`; every time series grows along its first axis.
         contact_count     (S, W)     grains touching the wheel [count]
         work_on_rover     (S, W)     [J]
         work_on_soil      (S, W)     [J]
-        travel, slip, sinkage, sinkage_tips, drawbar_pull, driving_torque, normal_force
-                          (S, W)     cosim.metrics definitions [m, 1, m, m, N, N m, N]
+        travel, slip, sinkage, sinkage_tips, drawbar_pull, driving_torque, normal_force, power
+                          (S, W)     cosim.metrics definitions [m, 1, m, m, N, N m, N, W]
+        speed_command     (S, W)     wheel speed commanded over the step [rad/s] (nan: a torque was)
+        torque_command    (S, W)     wheel torque commanded over the step [N m] (nan: a speed was)
         mesh/vertices     (V, 3)     all wheel meshes in their wheel frames [m] (for display)
         mesh/triangles    (F, 3)     indices into vertices
         mesh/wheel        (V,)       wheel index of each vertex
@@ -44,20 +46,43 @@ and a `description`; every time series grows along its first axis.
     /rover/
         time              (S,)       [s]
         state             (S, K)     attributes `columns` and `units` (JSON lists) name them
-    /particles/
-        radius            (N,)       [m]  (model order: fixed for the run)
+        position          (S, 3)     the rover body's frame origin (testbed: the hub) [m]
+        orientation       (S, 4)     its quaternion (w, x, y, z), body -> world [1]
+        linear_velocity   (S, 3)     [m/s]
+        angular_velocity  (S, 3)     [rad/s]
+        forward_speed, slip, net_traction, power, travel
+                          (S,)       cosim.metrics rover definitions [m/s, 1, N, W, m]
+    /soil/
+        particle_count    (S,)       grains simulated [count]
+        mass              (S,)       their mass [kg]
+        mass_added        (S,)       soil placed ahead by a moving patch so far [kg]
+        mass_removed      (S,)       soil removed behind it so far [kg]
+        moves             (S,)       how often the patch moved so far [count]
+    /particles/                      (attribute `layout`: "fixed" or "ragged")
         time              (T,)       [s]
+        wheel_vertices    (T, V, 3)  float32 [m], the wheel meshes posed at each snapshot
+        rover_position    (T, 3)     the rover body at each snapshot [m]
+        rover_forward     (T, 3)     its x axis, world [1]
+        rover_up          (T, 3)     its z axis, world [1]
+      fixed (the grains stay the same):
+        radius            (N,)       [m]  (model order: fixed for the run)
         position          (T, N, 3)  float64 [m]
         velocity          (T, N, 3)  float32 [m/s]
-        wheel_vertices    (T, V, 3)  float32 [m], the wheel meshes posed at each snapshot
+      ragged (a moving patch: grains come and go; snapshot k is rows first[k] .. first[k] + count[k]):
+        first, count      (T,)       [count]
+        id                (R,)       grain id, unique over the run [1]
+        radius            (R,)       [m]
+        position          (R, 3)     float64 [m]
+        velocity          (R, 3)     float32 [m/s]
 
 The file is written in SWMR mode (libver 'latest'): records are buffered and flushed
 every `flush_every` macro steps, so a killed run leaves a readable file with everything
 up to the last flush; `open_results` reads it (also while a run is still writing). A
 resume (`ResultsWriter.resume`) copies what the checkpoint covers into a fresh file and
 replaces the old one atomically, so a file left flagged by a killed writer needs no tool.
-``results.xdmf`` beside it references /particles (Polyvertex) and the wheel mesh
-(Triangle) as temporal collections via HDF5 hyperslabs; open it in ParaView.
+``results.xdmf`` beside it references /particles (Polyvertex), the wheel meshes (Triangle) and
+the rover body (a point with its forward and up axes) as temporal collections via HDF5
+hyperslabs; open it in ParaView.
 """
 
 from __future__ import annotations
@@ -95,6 +120,9 @@ WHEEL_SERIES = {
     "drawbar_pull": (None, np.float64, "N", "soil force on the wheel along its forward direction"),
     "driving_torque": (None, np.float64, "N m", "torque the drive supplies against the soil"),
     "normal_force": (None, np.float64, "N", "soil force on the wheel along the bed normal"),
+    "power": (None, np.float64, "W", "power the drive delivers against the soil torque, driving_torque x spin"),
+    "speed_command": (None, np.float64, "rad/s", "wheel speed commanded over the step (nan: a torque was)"),
+    "torque_command": (None, np.float64, "N m", "wheel torque commanded over the step (nan: a speed was)"),
 }
 """Per-wheel datasets under /wheels, each shaped (S, W) or (S, W, k)."""
 
@@ -106,6 +134,30 @@ BOUNDARY_SERIES = {
     "displacement": (3, np.float64, "m", "displacement of the wall from its place at the start"),
 }
 """Per-wall datasets under /boundaries, each shaped (S, B) or (S, B, 3)."""
+
+ROVER_SERIES = {
+    # name: (trailing shape (None: scalar), units, description); row key "rover_<name>"
+    "position": (3, "m", "rover body frame origin, world frame"),
+    "orientation": (4, "1", "quaternion (w, x, y, z), rover body -> world"),
+    "linear_velocity": (3, "m/s", "velocity of the body frame origin, world frame"),
+    "angular_velocity": (3, "rad/s", "body angular velocity, world frame"),
+    "forward_speed": (None, "m/s", "body velocity along its forward direction"),
+    "slip": (None, "1", "1 - forward speed / mean rim speed of the wheels"),
+    "net_traction": (None, "N", "sum of the wheels' soil forces along the rover's forward direction"),
+    "power": (None, "W", "sum of the wheels' drive power against the soil"),
+    "travel": (None, "m", "horizontal path length of the body since the drive started"),
+}
+"""Rover datasets under /rover, each shaped (S,) or (S, k)."""
+
+SOIL_SERIES = {
+    # name: (dtype, units, description); row key "soil_<name>"
+    "particle_count": (np.int64, "count", "grains simulated"),
+    "mass": (np.float64, "kg", "mass of the grains simulated"),
+    "mass_added": (np.float64, "kg", "soil placed ahead by the moving patch so far"),
+    "mass_removed": (np.float64, "kg", "soil removed behind the moving patch so far"),
+    "moves": (np.int64, "count", "moves of the patch so far"),
+}
+"""Soil bookkeeping under /soil, each shaped (S,)."""
 
 STEP_SERIES = {"wheels/time": ("s", "end time of the macro step"),
                "wheels/phase": ("1", "0: landing, 1: driving"),
@@ -129,15 +181,23 @@ def package_versions() -> dict:
 
 
 def documented_layout(wheels: int, particles: int, vertices: int, triangles: int, columns: int,
-                      boundaries: int = 0) -> dict:
-    """{dataset path: (shape with None for the growing axis, numpy kind)}: the layout above."""
+                      boundaries: int = 0, ragged: bool = False) -> dict:
+    """{dataset path: (shape with None for the growing axis, numpy kind)}: the layout above (ragged:
+    the particle rows R are the growing axis of the row datasets)."""
     layout = {"wheels/time": ((None,), "f"), "wheels/phase": ((None,), "i"), "rover/time": ((None,), "f"),
-              "rover/state": ((None, columns), "f"), "particles/radius": ((particles,), "f"),
-              "particles/time": ((None,), "f"), "particles/position": ((None, particles, 3), "f"),
-              "particles/velocity": ((None, particles, 3), "f"),
-              "particles/wheel_vertices": ((None, vertices, 3), "f"),
+              "rover/state": ((None, columns), "f"),
+              "particles/time": ((None,), "f"), "particles/wheel_vertices": ((None, vertices, 3), "f"),
+              "particles/rover_position": ((None, 3), "f"), "particles/rover_forward": ((None, 3), "f"),
+              "particles/rover_up": ((None, 3), "f"),
               "wheels/mesh/vertices": ((vertices, 3), "f"), "wheels/mesh/triangles": ((triangles, 3), "i"),
               "wheels/mesh/wheel": ((vertices,), "i")}
+    if ragged:
+        layout.update({"particles/first": ((None,), "i"), "particles/count": ((None,), "i"),
+                       "particles/id": ((None,), "i"), "particles/radius": ((None,), "f"),
+                       "particles/position": ((None, 3), "f"), "particles/velocity": ((None, 3), "f")})
+    else:
+        layout.update({"particles/radius": ((particles,), "f"), "particles/position": ((None, particles, 3), "f"),
+                       "particles/velocity": ((None, particles, 3), "f")})
     for name, (tail, dtype, _, _) in WHEEL_SERIES.items():
         layout[f"wheels/{name}"] = ((None, wheels) if tail is None else (None, wheels, tail), np.dtype(dtype).kind)
     if boundaries:
@@ -146,6 +206,10 @@ def documented_layout(wheels: int, particles: int, vertices: int, triangles: int
             layout[f"boundaries/{name}"] = (shape, np.dtype(dtype).kind)
         layout.update({"boundaries/kind": ((boundaries,), "i"), "boundaries/geometry": ((boundaries, 6), "f"),
                        "boundaries/report": ((boundaries,), "i")})
+    for name, (tail, _, _) in ROVER_SERIES.items():
+        layout[f"rover/{name}"] = ((None,) if tail is None else (None, tail), "f")
+    for name, (dtype, _, _) in SOIL_SERIES.items():
+        layout[f"soil/{name}"] = ((None,), np.dtype(dtype).kind)
     return layout
 
 
@@ -195,10 +259,12 @@ class ResultsWriter:
     @classmethod
     def create(cls, path, *, attrs: dict, radius: np.ndarray, wheel_count: int, mesh: tuple,
                rover_columns: list[str], rover_units: list[str], boundaries: dict | None = None,
-               flush_every: int = 50, xdmf: bool = True) -> "ResultsWriter":
+               flush_every: int = 50, xdmf: bool = True, ragged: bool = False) -> "ResultsWriter":
         """A new file; refuses to replace an existing one (the caller decides about that).
 
-        boundaries: {'kind' (B,), 'geometry' (B, 6) [m], 'report' (B,)} of the soil's walls, or None."""
+        boundaries: {'kind' (B,), 'geometry' (B, 6) [m], 'report' (B,)} of the soil's walls, or None.
+        ragged: the grains change between snapshots (a moving patch): `radius` gives the first
+        snapshot's count only, each snapshot gives its own radii."""
         import h5py
 
         writer = cls(path, flush_every, xdmf)
@@ -253,18 +319,43 @@ class ResultsWriter:
             series(r, "state", (0, len(rover_columns)), np.float64, "see columns/units", "rover state per step")
             r["state"].attrs["columns"] = json.dumps(list(rover_columns))
             r["state"].attrs["units"] = json.dumps(list(rover_units))
+            for name, (tail, units, description) in ROVER_SERIES.items():
+                series(r, name, (0,) if tail is None else (0, tail), np.float64, units, description)
+            g = f.create_group("soil")
+            for name, (dtype, units, description) in SOIL_SERIES.items():
+                series(g, name, (0,), dtype, units, description)
             p = f.create_group("particles")
-            p["radius"] = np.asarray(radius, dtype=np.float64)
-            _units(p["radius"], "m", "grain radii (model order)")
+            p.attrs["layout"] = "ragged" if ragged else "fixed"
             p.create_dataset("time", (0,), np.float64, maxshape=(None,), chunks=(64,))
             _units(p["time"], "s", "snapshot times")
-            p.create_dataset("position", (0, n, 3), np.float64, maxshape=(None, n, 3), chunks=(1, n, 3))
-            _units(p["position"], "m", "grain centres")
-            p.create_dataset("velocity", (0, n, 3), np.float32, maxshape=(None, n, 3), chunks=(1, n, 3))
-            _units(p["velocity"], "m/s", "grain velocities")
+            if ragged:
+                chunk = max(1024, min(65536, len(radius)))
+                for name, dtype, units, description in (("first", np.int64, "count", "first row of each snapshot"),
+                                                        ("count", np.int64, "count", "rows of each snapshot")):
+                    p.create_dataset(name, (0,), dtype, maxshape=(None,), chunks=(64,))
+                    _units(p[name], units, description)
+                for name, tail, dtype, units, description in (
+                        ("id", (), np.int64, "1", "grain id, unique over the run"),
+                        ("radius", (), np.float64, "m", "grain radii"),
+                        ("position", (3,), np.float64, "m", "grain centres"),
+                        ("velocity", (3,), np.float32, "m/s", "grain velocities")):
+                    p.create_dataset(name, (0, *tail), dtype, maxshape=(None, *tail), chunks=(chunk, *tail))
+                    _units(p[name], units, description)
+            else:
+                p["radius"] = np.asarray(radius, dtype=np.float64)
+                _units(p["radius"], "m", "grain radii (model order)")
+                p.create_dataset("position", (0, n, 3), np.float64, maxshape=(None, n, 3), chunks=(1, n, 3))
+                _units(p["position"], "m", "grain centres")
+                p.create_dataset("velocity", (0, n, 3), np.float32, maxshape=(None, n, 3), chunks=(1, n, 3))
+                _units(p["velocity"], "m/s", "grain velocities")
             nv = len(m["vertices"])
             p.create_dataset("wheel_vertices", (0, nv, 3), np.float32, maxshape=(None, nv, 3), chunks=(1, nv, 3))
             _units(p["wheel_vertices"], "m", "wheel meshes posed at each snapshot, world frame")
+            p.create_dataset("rover_position", (0, 3), np.float64, maxshape=(None, 3), chunks=(64, 3))
+            _units(p["rover_position"], "m", "rover body frame origin at each snapshot")
+            for name, axis in (("rover_forward", "x"), ("rover_up", "z")):
+                p.create_dataset(name, (0, 3), np.float64, maxshape=(None, 3), chunks=(64, 3))
+                _units(p[name], "1", f"rover body {axis} axis at each snapshot, world frame")
             f.swmr_mode = True
         except BaseException:
             f.close()
@@ -288,8 +379,13 @@ class ResultsWriter:
                 if old.attrs.get("format") != RESULTS_FORMAT:
                     raise ValueError(f"{writer.path} is not a regolith-cosim results file of format "
                                      f"{RESULTS_FORMAT!r}")
-                _copy_truncated(old, new, {"wheels": steps, "rover": steps, "boundaries": steps,
-                                           "particles": snapshots})
+                rows = {}
+                if "first" in old["particles"]:  # ragged snapshots: keep the rows of the first `snapshots`
+                    kept = (int(old["particles/first"][snapshots - 1] + old["particles/count"][snapshots - 1])
+                            if snapshots else 0)
+                    rows = {f"particles/{name}": kept for name in ("id", "radius", "position", "velocity")}
+                _copy_truncated(old, new, {"wheels": steps, "rover": steps, "boundaries": steps, "soil": steps,
+                                           "particles": snapshots}, rows)
                 new.attrs["status"] = "running"
                 new.attrs["message"] = ""
         f = h5py.File(writer.path, "r+", libver="latest")
@@ -302,20 +398,36 @@ class ResultsWriter:
     # -- writing --------------------------------------------------------------------
     def append_step(self, row: dict) -> None:
         """Buffer one macro step: 'time' [s], 'phase', every WHEEL_SERIES name (W, ...), 'rover_state' (K,),
-        and with walls 'boundary_<name>' for every BOUNDARY_SERIES name (B, ...)."""
+        'rover_<name>' for every ROVER_SERIES name, 'soil_<name>' for every SOIL_SERIES name, and with walls
+        'boundary_<name>' for every BOUNDARY_SERIES name (B, ...)."""
         self._buffer.append(row)
         self.steps += 1
         if len(self._buffer) >= self.flush_every:
             self.flush()
 
     def add_snapshot(self, time: float, position: np.ndarray, velocity: np.ndarray,
-                     wheel_vertices: np.ndarray) -> None:
-        """Write one particle snapshot now (and flush)."""
+                     wheel_vertices: np.ndarray, rover_pose: tuple | None = None, radius: np.ndarray | None = None,
+                     ids: np.ndarray | None = None) -> None:
+        """Write one particle snapshot now (and flush). rover_pose: (position [m] (3,), rotation body -> world
+        (3, 3)) of the rover body; radius [m] and ids: the grains' (a ragged file only)."""
         self.flush_records()
         p = self._file["particles"]
         k = self.snapshots
-        for name, value in (("time", time), ("position", position), ("velocity", velocity),
-                            ("wheel_vertices", wheel_vertices)):
+        pose = rover_pose if rover_pose is not None else (np.full(3, np.nan), np.full((3, 3), np.nan))
+        axes = np.asarray(pose[1], dtype=np.float64)
+        per_snapshot = [("time", time), ("wheel_vertices", wheel_vertices), ("rover_position", pose[0]),
+                        ("rover_forward", axes[:, 0]), ("rover_up", axes[:, 2])]
+        if p.attrs.get("layout") == "ragged":
+            first = int(p["position"].shape[0])
+            rows = len(position)
+            per_snapshot += [("first", first), ("count", rows)]
+            for name, value in (("position", position), ("velocity", velocity), ("radius", radius), ("id", ids)):
+                dataset = p[name]
+                dataset.resize(first + rows, axis=0)
+                dataset[first:first + rows] = value
+        else:
+            per_snapshot += [("position", position), ("velocity", velocity)]
+        for name, value in per_snapshot:
             dataset = p[name]
             dataset.resize(k + 1, axis=0)
             dataset[k] = value
@@ -345,6 +457,10 @@ class ResultsWriter:
             for name in BOUNDARY_SERIES:
                 put(f["boundaries"][name], np.array([r[f"boundary_{name}"] for r in rows]))
         put(f["rover/state"], np.array([r["rover_state"] for r in rows], dtype=np.float64))
+        for name in ROVER_SERIES:
+            put(f["rover"][name], np.array([r[f"rover_{name}"] for r in rows], dtype=np.float64))
+        for name, (dtype, _, _) in SOIL_SERIES.items():
+            put(f["soil"][name], np.array([r[f"soil_{name}"] for r in rows], dtype=dtype))
         self._buffer = []
 
     def flush(self) -> None:
@@ -397,8 +513,9 @@ class ResultsWriter:
                 write_xdmf(f, target)
 
 
-def _copy_truncated(old, new, counts: dict) -> None:
-    """Copy file `old` into `new`, cutting the growing datasets of each top group to counts[group] rows."""
+def _copy_truncated(old, new, counts: dict, rows: dict | None = None) -> None:
+    """Copy file `old` into `new`, cutting the growing datasets of each top group to counts[group] rows
+    (rows[dataset path], when given, instead)."""
     import h5py
 
     for key, value in old.attrs.items():
@@ -406,9 +523,11 @@ def _copy_truncated(old, new, counts: dict) -> None:
 
     def visit(name, obj):
         if isinstance(obj, h5py.Group):
-            new.require_group(name)
+            group = new.require_group(name)
+            for key, value in obj.attrs.items():
+                group.attrs[key] = value
             return
-        count = counts[name.split("/")[0]]
+        count = (rows or {}).get(name, counts[name.split("/")[0]])
         growing = obj.maxshape[0] is None
         if growing and obj.shape[0] < count:
             raise ValueError(f"the results file holds {obj.shape[0]} rows of {name}, the checkpoint expects {count}: "
@@ -422,11 +541,14 @@ def _copy_truncated(old, new, counts: dict) -> None:
 
 
 def read_series(path) -> dict:
-    """The time series of one results.h5 as numpy arrays (+ 'rover_state', 'rover_columns',
-    'snapshot_time', 'attrs'), for summaries, plots and studies."""
+    """The time series of one results.h5 as numpy arrays (the wheel series by name, 'rover_<name>',
+    'soil_<name>', 'rover_state', 'rover_columns', 'snapshot_time', 'attrs'), for summaries, plots and studies."""
     with open_results(path) as f:
-        out = {name: f["wheels"][name][()] for name in ["time", "phase", *WHEEL_SERIES]}
+        out = {name: f["wheels"][name][()] for name in ["time", "phase", *WHEEL_SERIES] if name in f["wheels"]}
         out["rover_state"] = f["rover/state"][()]
+        out.update({f"rover_{name}": f["rover"][name][()] for name in ROVER_SERIES if name in f["rover"]})
+        if "soil" in f:
+            out.update({f"soil_{name}": f["soil"][name][()] for name in SOIL_SERIES})
         out["rover_columns"] = json.loads(f["rover/state"].attrs["columns"])
         out["snapshot_time"] = f["particles/time"][()]
         out["attrs"] = {k: (v.decode() if isinstance(v, bytes) else v) for k, v in f.attrs.items()}
@@ -461,6 +583,18 @@ def _slab(parent, h5name: str, path: str, full_shape: tuple, dtype, index: int) 
     return slab
 
 
+def _rows(parent, h5name: str, path: str, full_shape: tuple, dtype, first: int, count: int) -> ET.Element:
+    """Rows first .. first + count of an (R, ...) dataset as an XDMF HyperSlab."""
+    tail = full_shape[1:]
+    slab = ET.SubElement(parent, "DataItem", ItemType="HyperSlab", Type="HyperSlab",
+                         Dimensions=" ".join(str(s) for s in (count, *tail)))
+    rank = len(full_shape)
+    select = ET.SubElement(slab, "DataItem", Dimensions=f"3 {rank}", Format="XML")
+    select.text = " ".join(str(v) for v in ([first] + [0] * (rank - 1) + [1] * rank + [count, *tail]))
+    _data_item(slab, h5name, path, full_shape, dtype)
+    return slab
+
+
 def write_xdmf(f, xdmf_path: str) -> None:
     """Write an XDMF 3 file describing the particle snapshots (and wheel meshes) of an open results file.
 
@@ -470,7 +604,11 @@ def write_xdmf(f, xdmf_path: str) -> None:
     p = f["particles"]
     times = p["time"][()]
     t_count = len(times)
+    ragged = p.attrs.get("layout") == "ragged"
     n = p["radius"].shape[0]
+    if ragged:
+        first, counts = p["first"][()], p["count"][()]
+        rows = p["position"].shape[0]
     root = ET.Element("Xdmf", Version="3.0")
     domain = ET.SubElement(root, "Domain")
     grains = ET.SubElement(domain, "Grid", Name="particles", GridType="Collection", CollectionType="Temporal")
@@ -478,16 +616,35 @@ def write_xdmf(f, xdmf_path: str) -> None:
     nv = mesh["vertices"].shape[0]
     nt = mesh["triangles"].shape[0]
     wheel = ET.SubElement(domain, "Grid", Name="wheels", GridType="Collection", CollectionType="Temporal")
+    rover = ET.SubElement(domain, "Grid", Name="rover", GridType="Collection", CollectionType="Temporal")
     for k in range(t_count):
         grid = ET.SubElement(grains, "Grid", Name=f"particles_{k}", GridType="Uniform")
         ET.SubElement(grid, "Time", Value=repr(float(times[k])))
-        ET.SubElement(grid, "Topology", TopologyType="Polyvertex", NumberOfElements=str(n), NodesPerElement="1")
+        count = int(counts[k]) if ragged else n
+        ET.SubElement(grid, "Topology", TopologyType="Polyvertex", NumberOfElements=str(count), NodesPerElement="1")
         geometry = ET.SubElement(grid, "Geometry", GeometryType="XYZ")
-        _slab(geometry, h5name, "/particles/position", (t_count, n, 3), p["position"].dtype, k)
         radius = ET.SubElement(grid, "Attribute", Name="radius", AttributeType="Scalar", Center="Node")
-        _data_item(radius, h5name, "/particles/radius", (n,), p["radius"].dtype)
         velocity = ET.SubElement(grid, "Attribute", Name="velocity", AttributeType="Vector", Center="Node")
-        _slab(velocity, h5name, "/particles/velocity", (t_count, n, 3), p["velocity"].dtype, k)
+        if ragged:
+            start = int(first[k])
+            _rows(geometry, h5name, "/particles/position", (rows, 3), p["position"].dtype, start, count)
+            _rows(radius, h5name, "/particles/radius", (rows,), p["radius"].dtype, start, count)
+            _rows(velocity, h5name, "/particles/velocity", (rows, 3), p["velocity"].dtype, start, count)
+            ident = ET.SubElement(grid, "Attribute", Name="id", AttributeType="Scalar", Center="Node")
+            _rows(ident, h5name, "/particles/id", (rows,), p["id"].dtype, start, count)
+        else:
+            _slab(geometry, h5name, "/particles/position", (t_count, n, 3), p["position"].dtype, k)
+            _data_item(radius, h5name, "/particles/radius", (n,), p["radius"].dtype)
+            _slab(velocity, h5name, "/particles/velocity", (t_count, n, 3), p["velocity"].dtype, k)
+
+        body = ET.SubElement(rover, "Grid", Name=f"rover_{k}", GridType="Uniform")
+        ET.SubElement(body, "Time", Value=repr(float(times[k])))
+        ET.SubElement(body, "Topology", TopologyType="Polyvertex", NumberOfElements="1", NodesPerElement="1")
+        where = ET.SubElement(body, "Geometry", GeometryType="XYZ")
+        _rows(where, h5name, "/particles/rover_position", (t_count, 3), p["rover_position"].dtype, k, 1)
+        for label in ("forward", "up"):
+            attribute = ET.SubElement(body, "Attribute", Name=label, AttributeType="Vector", Center="Node")
+            _rows(attribute, h5name, f"/particles/rover_{label}", (t_count, 3), p[f"rover_{label}"].dtype, k, 1)
 
         wgrid = ET.SubElement(wheel, "Grid", Name=f"wheels_{k}", GridType="Uniform")
         ET.SubElement(wgrid, "Time", Value=repr(float(times[k])))

@@ -8,6 +8,11 @@ bed, the drive stays clear of the far wall, a bed file matches the scene's soil 
 gravity, the device exists) and raises SceneError naming the field to change. Everything
 after this point (cosim.system, cosim.runner, studies, advice) reads the plan, never the
 raw scene.
+
+A rover scene is checked here too, before anything runs: the MJCF is compiled and its wheel
+bodies found, an FMU's variables are checked against the convention and its start pose read,
+the drive's controller is looked up (an FMU's outputs, a Python callable's import), wheel counts
+are compared, and the rover must fit its bed or patch.
 """
 
 from __future__ import annotations
@@ -23,8 +28,12 @@ import numpy as np
 from soil import ContactLaw, GrouserWheel, Material, MeshWheel, gravity_vector
 from soil.advisor import rayleigh_time_step
 from soil.bed import BedSpec
+from soil.errors import RegolithError
 
-from .scene import MaterialSection, OutputSection, Scene, SceneError
+from .scene import DriveSection, MaterialSection, MmxSection, OutputSection, Scene, SceneError, WheelSection
+
+WALL_GRAINS = 4
+"""Default gap between a rover's wheels and a wall or a patch's frozen band, in mean grain diameters [-]."""
 
 
 @dataclass(frozen=True)
@@ -83,6 +92,86 @@ class TestbedPlan:
 
 
 @dataclass(frozen=True)
+class DrivePlan:
+    """The rover's drive after the landing (cosim.rover.make_controller builds it)."""
+
+    name: str
+    """The controller's name ([rover.controllers]) or the kind for an inline drive."""
+    section: DriveSection
+    """Its scene section (kind and settings)."""
+    file: str | None
+    """kind 'fmu': the FMU's absolute path."""
+
+    @property
+    def kind(self) -> str:
+        return self.section.kind
+
+
+@dataclass(frozen=True)
+class RoverPlan:
+    """A rover on the soil: its model, wheels, start pose and drive, checked at plan time."""
+
+    model: str
+    """'mjcf', 'mmx' or 'fmu'."""
+    source: str
+    """MJCF: the file's absolute path, or the built-in rover's MJCF text; FMU: the file's absolute path."""
+    wheel_names: tuple[str, ...]
+    """Wheel names (MJCF bodies; FMU: <prefix>0 ..), in wheel order."""
+    body: str | None
+    """MJCF body reported as the rover's pose (None: its base)."""
+    prefix: str
+    """FMU wheel variable prefix."""
+    start_values: tuple[tuple[str, float], ...]
+    """FMU parameters set before the start."""
+    start: tuple[float, float, float]
+    """Start of the base's frame origin: x [m], y [m], heading about +z [rad]."""
+    hub_offsets: np.ndarray
+    """Hub positions relative to the base's frame origin at the start pose [m], shape (W, 3)."""
+    footprint_radius: float
+    """Largest horizontal distance from the wheels' centre to a wheel's outer rim, any heading [m]."""
+    mass: float
+    """Total mass [kg] (nan when the FMU does not say)."""
+    takes_speed: bool
+    """Whether the rover takes wheel speed commands (it is braked by them while landing)."""
+    takes_torque: bool
+    """Whether the rover takes wheel torque commands."""
+    start_parameters: bool
+    """FMU: whether it has start.x/y/z/heading parameters."""
+    drive: DrivePlan
+    stuck_slip: float
+    """Stuck criterion's slip [-] (cosim.metrics)."""
+
+    @property
+    def nominal_omega(self) -> float:
+        """Mean commanded wheel speed [rad/s] of a constant-speed drive; nan for other drives."""
+        return _nominal_omega(self.drive.section, len(self.wheel_names))
+
+
+def _nominal_omega(section: DriveSection, wheel_count: int) -> float:
+    if section.kind != "speed" or (isinstance(section.speed, list) and len(section.speed) != wheel_count):
+        return math.nan
+    return float(np.mean(np.abs(np.broadcast_to(np.asarray(section.speed, dtype=float), (wheel_count,)))))
+
+
+@dataclass(frozen=True)
+class PatchPlan:
+    """The moving soil patch (cosim.patch)."""
+
+    length: float
+    """Window size along x [m]."""
+    width: float
+    """Window size along y [m]."""
+    band: float
+    """Frozen band at the window's edge [m]."""
+    clearance: float
+    """Least gap between a wheel and the band [m]."""
+    recentre_distance: float
+    """The window moves when the wheels' centre is this far from its centre along x or y [m]."""
+    tile_margin: float
+    """The tile is the bed without the grains this close to its side walls [m]."""
+
+
+@dataclass(frozen=True)
 class LandingPlan:
     """The landing phase before the drive."""
 
@@ -111,7 +200,9 @@ class RunPlan:
     soil_material: Material
     bed: BedPlan
     wheel: WheelPlan
-    testbed: TestbedPlan
+    """The shared wheel ([wheel]); a rover's wheels may differ: see `wheels`."""
+    testbed: TestbedPlan | None
+    """The single-wheel testbed (None for a rover)."""
     landing: LandingPlan
     dt: float
     """DEM step [s]."""
@@ -126,6 +217,12 @@ class RunPlan:
     output: OutputSection
     dt_setting: str = field(default="run.dt_factor")
     """The scene key that sets the DEM step (named in divergence messages)."""
+    rover: RoverPlan | None = None
+    """A rover (None: the testbed)."""
+    patch: PatchPlan | None = None
+    """A soil patch following the rover (None: the bed is the whole soil)."""
+    wheels: tuple[WheelPlan, ...] = ()
+    """Every wheel's plan, in wheel order (the testbed: its one wheel)."""
 
     @property
     def g(self) -> float:
@@ -133,14 +230,41 @@ class RunPlan:
         return float(np.linalg.norm(self.gravity))
 
     @property
+    def settle_gravity(self) -> tuple[float, float, float]:
+        """Gravity the bed settles under [m/s^2]: the scene's for the testbed; |g| along -z for a rover,
+        whose scene gravity may be tilted (a slope): the soil rests on the floor, then the slope is applied."""
+        return self.gravity if self.rover is None else (0.0, 0.0, -self.g)
+
+    @property
+    def slope(self) -> float:
+        """Angle between gravity and -z [rad] (the slope a tilted gravity vector makes)."""
+        return math.acos(min(1.0, -self.gravity[2] / self.g)) if self.g > 0 else 0.0
+
+    @property
     def wheel_load(self) -> float:
-        """Vertical wheel load W = m |g| [N]."""
-        return self.testbed.mass * self.g
+        """Load per wheel [N]: the testbed's m |g|; a rover's m |g| cos(slope) / wheel count."""
+        if self.rover is None:
+            assert self.testbed is not None
+            return self.testbed.mass * self.g
+        return self.rover.mass * self.g * math.cos(self.slope) / len(self.wheels)
+
+    @property
+    def drive_omega(self) -> float:
+        """Wheel speed of the drive [rad/s] (nan when the controller sets it as it goes)."""
+        if self.rover is not None:
+            return self.rover.nominal_omega
+        assert self.testbed is not None
+        return self.testbed.omega
 
     @property
     def froude_number(self) -> float:
-        """omega^2 r / |g| of the drive [-] (inf without gravity)."""
-        return self.testbed.omega**2 * self.wheel.outer_radius / self.g if self.g > 0 else math.inf
+        """omega^2 r / |g| of the drive [-] (inf without gravity; nan when the drive speed is not set)."""
+        return self.drive_omega**2 * self.wheel.outer_radius / self.g if self.g > 0 else math.inf
+
+    @property
+    def outer_radius(self) -> float:
+        """The largest wheel outer radius [m]."""
+        return max(w.outer_radius for w in self.wheels)
 
     def hub_start(self, surface_height: float) -> np.ndarray:
         """Hub position [m], shape (3,), with the wheel's lowest point on the surface."""
@@ -193,8 +317,8 @@ def resolve_device(name: str) -> str:
     return f"cuda:{index}"
 
 
-def _wheel(scene: Scene, soil_modulus: float) -> WheelPlan:
-    w = scene.wheel
+def _wheel(scene: Scene, soil_modulus: float, w: WheelSection | None = None, key: str = "wheel") -> WheelPlan:
+    w = scene.wheel if w is None else w
     material = to_material(w.material, soil_modulus)
     if w.type == "grouser":
         shape = GrouserWheel(radius=w.radius, width=w.width, grouser_count=w.grouser_count,
@@ -202,11 +326,11 @@ def _wheel(scene: Scene, soil_modulus: float) -> WheelPlan:
         return WheelPlan(shape, material, shape.outer_radius, w.radius, w.width)
     path = scene.resolve(w.file)
     if not os.path.isfile(path):
-        raise SceneError([f"wheel.file: mesh file not found: {path!r} (paths are relative to the scene file)"])
+        raise SceneError([f"{key}.file: mesh file not found: {path!r} (paths are relative to the scene file)"])
     try:
         shape = MeshWheel.load(path, scale=w.scale)
     except (ValueError, OSError) as error:
-        raise SceneError([f"wheel.file: {error}"]) from None
+        raise SceneError([f"{key}.file: {error}"]) from None
     width = float(shape.vertices[:, 1].max() - shape.vertices[:, 1].min())
     return WheelPlan(shape, material, shape.outer_radius, shape.outer_radius, width)
 
@@ -273,10 +397,26 @@ def resolve(scene: Scene) -> RunPlan:
     problems: list[str] = []
     soil_material = to_material(scene.soil)
     gravity = gravity_vector(scene.scene.gravity)
+    g = float(np.linalg.norm(gravity))
     device = resolve_device(scene.scene.device)
     wheel = _wheel(scene, soil_material.youngs_modulus)
+    rover = scene.rover
+    if rover is not None:
+        names = _rover_wheel_names(scene)
+        shapes = rover.wheel_shape or {}
+        unknown = sorted(set(shapes) - set(names or []))
+        if names is not None and unknown:
+            problems.append(f"rover.wheel_shape: no wheel named {', '.join(unknown)}; the wheels are "
+                            f"{', '.join(names)}")
+        wheels = tuple(_wheel(scene, soil_material.youngs_modulus, shapes[n], f"rover.wheel_shape.{n}")
+                       if n in shapes else wheel for n in (names or []))
+        if g > 0 and -gravity[2] < 0.5 * g:
+            problems.append(f"scene.gravity: a rover's soil rests on the floor z = 0, so gravity must point down (-z) "
+                            f"within 60 deg (a slope); got {list(gravity)} m/s^2")
+    else:
+        wheels = (wheel,)
     section = scene.soil.law
-    materials = (soil_material, wheel.material)
+    materials = (soil_material, *(w.material for w in wheels or (wheel,)))
     law = ContactLaw(damping=section.damping, friction=section.friction,
                      rolling=section.rolling if section.rolling is not None else any(m.rolling_friction > 0
                                                                                      for m in materials),
@@ -285,15 +425,51 @@ def resolve(scene: Scene) -> RunPlan:
     b = scene.bed
     spec = BedSpec(length=b.length, width=b.width, depth=b.depth, radius_mean=b.radius_mean,
                    radius_spread=b.radius_spread, material=soil_material, seed=b.seed)
+    settle_gravity = gravity if rover is None else np.array([0.0, 0.0, -g])
     bed_file = scene.resolve(b.bed_file)
     if bed_file is not None:
-        problems += _check_bed_file(bed_file, soil_material, gravity, b)
+        problems += _check_bed_file(bed_file, soil_material, settle_gravity, b)
     settle_dt = b.settle_dt_factor * rayleigh_time_step(soil_material.youngs_modulus, soil_material.poisson_ratio,
                                                         soil_material.density, b.radius_mean * (1 - b.radius_spread))
     bed = BedPlan(spec, settle_dt, b.settle_ke_ratio, b.settle_max_time, bed_file,
-                  bed_key(scene, soil_material, gravity, device))
+                  bed_key(scene, soil_material, settle_gravity, device))
 
-    t = scene.testbed
+    testbed = rover_plan = patch = None
+    if rover is None:
+        testbed = _testbed(scene, wheel, problems)
+    elif names is not None:
+        rover_plan, patch = _rover(scene, wheels, gravity, problems)
+
+    dt, macro_step, substeps, dt_key = _time_steps(scene, soil_material)
+    if macro_step > scene.run.duration:
+        problems.append(f"run.macro_step: the macro step ({macro_step:.4g} s) is longer than run.duration "
+                        f"({scene.run.duration} s)")
+    if scene.output.checkpoint_interval < macro_step:
+        problems.append(f"output.checkpoint_interval: {scene.output.checkpoint_interval} s is shorter than the "
+                        f"macro step {macro_step:.4g} s")
+    land = scene.landing
+    if land.enabled and g == 0:
+        problems.append("landing.enabled: a wheel cannot land without gravity; set landing.enabled = false")
+    outer = max([w.outer_radius for w in wheels] or [wheel.outer_radius])
+    scale_time = math.sqrt(outer / g) if g > 0 else 0.0
+    hold = land.hold_time if land.hold_time is not None else scale_time
+    landing = LandingPlan(land.enabled, max(1, int(math.ceil(land.max_time / macro_step))),
+                          land.speed_ratio * math.sqrt(g * outer),
+                          max(1, int(math.ceil(hold / macro_step))))
+    if problems:
+        raise SceneError(problems)
+    return RunPlan(scene=scene, name=scene.scene.name, device=device, precision=scene.scene.precision,
+                   gravity=tuple(float(v) for v in gravity), law=law, soil_material=soil_material, bed=bed,
+                   wheel=wheel, testbed=testbed, landing=landing, dt=dt, macro_step=macro_step, substeps=substeps,
+                   drive_steps=max(1, int(round(scene.run.duration / macro_step))), scheme=scene.run.scheme,
+                   order_seed=scene.run.order_seed, output=scene.output, dt_setting=dt_key, rover=rover_plan,
+                   patch=patch, wheels=wheels)
+
+
+def _testbed(scene: Scene, wheel: WheelPlan, problems: list[str]) -> TestbedPlan:
+    """The testbed's plan; its wheel must fit the bed and stay clear of its walls."""
+    t, b = scene.testbed, scene.bed
+    assert t is not None
     clearance = 2 * b.radius_mean
     start_x = t.start_x if t.start_x is not None else wheel.outer_radius + 6 * b.radius_mean
     testbed = TestbedPlan(t.mass, t.omega, t.mode, t.slip, t.drawbar_load, t.drawbar_ramp, start_x, 0.5 * b.width)
@@ -312,30 +488,274 @@ def resolve(scene: Scene) -> RunPlan:
         problems.append(f"run.duration: at the wheel's rim speed it may travel {reach:.4g} m from x = {start_x:.4g} m "
                         f"and hit the far wall (bed.length = {b.length} m); allowed: duration <= {longest:.4g} s, "
                         "or a longer bed")
+    return testbed
 
-    dt, macro_step, substeps, dt_key = _time_steps(scene, soil_material)
-    if macro_step > scene.run.duration:
-        problems.append(f"run.macro_step: the macro step ({macro_step:.4g} s) is longer than run.duration "
-                        f"({scene.run.duration} s)")
-    if scene.output.checkpoint_interval < macro_step:
-        problems.append(f"output.checkpoint_interval: {scene.output.checkpoint_interval} s is shorter than the "
-                        f"macro step {macro_step:.4g} s")
-    g = float(np.linalg.norm(gravity))
-    land = scene.landing
-    if land.enabled and g == 0:
-        problems.append("landing.enabled: a wheel cannot land without gravity; set landing.enabled = false")
-    scale_time = math.sqrt(wheel.outer_radius / g) if g > 0 else 0.0
-    hold = land.hold_time if land.hold_time is not None else scale_time
-    landing = LandingPlan(land.enabled, max(1, int(math.ceil(land.max_time / macro_step))),
-                          land.speed_ratio * math.sqrt(g * wheel.outer_radius),
-                          max(1, int(math.ceil(hold / macro_step))))
-    if problems:
-        raise SceneError(problems)
-    return RunPlan(scene=scene, name=scene.scene.name, device=device, precision=scene.scene.precision,
-                   gravity=tuple(float(v) for v in gravity), law=law, soil_material=soil_material, bed=bed,
-                   wheel=wheel, testbed=testbed, landing=landing, dt=dt, macro_step=macro_step, substeps=substeps,
-                   drive_steps=max(1, int(round(scene.run.duration / macro_step))), scheme=scene.run.scheme,
-                   order_seed=scene.run.order_seed, output=scene.output, dt_setting=dt_key)
+
+# ------------------------------------------------------------------------------------
+# rovers
+
+
+def _rover_wheel_names(scene: Scene) -> list[str]:
+    """The wheel names the scene gives or implies; an FMU's are read from it (SceneError naming rover.file,
+    rover.wheel_count or rover.wheel_prefix when they do not fit the convention)."""
+    from rover_models.mjcf import MMX_WHEELS
+
+    rover = scene.rover
+    assert rover is not None
+    if rover.model == "mmx":
+        return list(rover.wheels or MMX_WHEELS)
+    if rover.model == "mjcf":
+        return list(rover.wheels)
+    path = scene.resolve(rover.file)
+    try:
+        from rover_models.fmu_rover import check_rover_fmu
+    except ImportError as error:
+        raise SceneError([f"rover.model: 'fmu' needs fmpy ({error}); pip install 'regolith-cosim[fmu]'"]) from None
+    try:
+        found = check_rover_fmu(path, rover.wheel_count, rover.wheel_prefix)
+    except RegolithError as error:
+        field = ("rover.wheel_count" if "the scene expects" in str(error) and rover.wheel_count is not None
+                 else "rover.wheel_prefix" if "the scene expects" in str(error) else "rover.file")
+        raise SceneError([f"{field}: {error}"]) from None
+    return [f"{rover.wheel_prefix}{i}" for i in range(found["wheel_count"])]
+
+
+def mmx_xml(scene: Scene, gravity) -> str:
+    """The built-in rover's MJCF for a scene ([rover.mmx], the [wheel] radius and width)."""
+    from rover_models.mjcf import mmx_rover_xml
+
+    w = scene.wheel
+    radius = w.radius if w.type == "grouser" else None
+    params = (scene.rover.mmx or MmxSection()).model_dump()
+    params["body_size"] = tuple(params["body_size"])
+    if radius is None:  # a mesh wheel: its extents from the mesh
+        shape = MeshWheel.load(scene.resolve(w.file), scale=w.scale)
+        radius = shape.outer_radius
+        width = float(np.ptp(shape.vertices[:, 1]))
+    else:
+        width = w.width
+    return mmx_rover_xml(wheel_radius=radius, wheel_width=width, gravity=tuple(float(v) for v in gravity), **params)
+
+
+def import_callable(spec: str, base_dir: str | None):
+    """The object named by 'module:function' (the scene file's folder searched first); SceneError
+    naming rover.drive.function when it cannot be imported."""
+    import importlib
+    import sys
+
+    module_name, _, name = spec.partition(":")
+    added = base_dir is not None and base_dir not in sys.path
+    if added:
+        sys.path.insert(0, base_dir)
+    try:
+        module = importlib.import_module(module_name)
+    except Exception as error:  # noqa: BLE001 - any failure to import is the user's module's problem
+        raise SceneError([f"rover.drive.function: cannot import module {module_name!r}: "
+                          f"{type(error).__name__}: {error}"]) from None
+    finally:
+        if added:
+            sys.path.remove(base_dir)
+    target = getattr(module, name, None)
+    if target is None or not callable(target):
+        raise SceneError([f"rover.drive.function: module {module_name!r} has no callable {name!r}"])
+    return target
+
+
+def _inspect_mjcf(source: str, wheels: list[str], body: str | None, heading: float, gravity, field: str,
+                  problems: list[str]) -> dict | None:
+    """Compile an MJCF, find its wheels and base, and measure it at the start heading."""
+    try:
+        from rover_models.mujoco_rover import MujocoRover
+    except ImportError as error:
+        problems.append(f"rover.model: an MJCF rover needs mujoco ({error}); pip install 'regolith-cosim[mujoco]'")
+        return None
+    try:
+        rover = MujocoRover(source, wheels, gravity=gravity)
+    except KeyError as error:
+        problems.append(f"rover.wheels: {error.args[0]}")
+        return None
+    except (ValueError, FileNotFoundError, OSError) as error:
+        problems.append(f"{field}: the MJCF cannot be loaded: {error}")
+        return None
+    if body is not None:  # the reported body must exist
+        try:
+            rover.body_id(body)
+        except KeyError as error:
+            problems.append(f"rover.body: {error.args[0]}")
+            return None
+    rover.move_base(np.zeros(3), heading)
+    origin = rover.body_kinematics(rover.body_id()).position
+    hubs = np.array([k.position for k in rover.wheel_kinematics()]) - origin
+    return {"hubs": hubs, "mass": rover.total_mass, **rover.drives, "start": True}
+
+
+def _inspect_fmu(scene: Scene, path: str, count: int, gravity, problems: list[str]) -> dict | None:
+    """Open a rover FMU at its start pose (scene start values), read its wheels and body, close it."""
+    from rover_models.fmu_rover import FmuRover, check_rover_fmu
+
+    rover = scene.rover
+    assert rover is not None
+    found = check_rover_fmu(path, count, rover.wheel_prefix)
+    start = rover.start
+    values = dict(rover.start_values or {})
+    if found["start"]:
+        values.update({"start.x": 0.0, "start.y": 0.0, "start.heading": math.radians(start.heading_deg)})
+    elif start.x is not None or start.y is not None or start.heading_deg != 0.0:
+        problems.append(f"rover.start: the FMU {path} has no start.x, start.y, start.z, start.heading parameters, so "
+                        "the scene cannot place it; remove [rover.start] (the FMU starts where it says)")
+    try:
+        fmu = FmuRover(path, count, gravity=gravity, start_values=values, prefix=rover.wheel_prefix)
+    except RegolithError as error:
+        problems.append(f"rover.start_values: {error}")
+        return None
+    try:
+        body = fmu.body_kinematics()
+        hubs = np.array([k.position for k in fmu.wheel_kinematics()]) - (body.position if found["start"] else 0.0)
+        mass = fmu.total_mass
+    finally:
+        fmu.close()
+    return {"hubs": hubs, "mass": math.nan if mass is None else mass, "speed": found["speed"],
+            "torque": found["torque"], "start": found["start"]}
+
+
+def _check_drive(scene: Scene, wheels: tuple[WheelPlan, ...], layout: dict, problems: list[str]) -> DrivePlan:
+    """The drive's controller must exist and fit the rover (wheel counts, command kinds)."""
+    rover = scene.rover
+    assert rover is not None
+    section = rover.drive_section
+    name = rover.drive if isinstance(rover.drive, str) else section.kind
+    key = f"rover.controllers.{name}" if isinstance(rover.drive, str) else "rover.drive"
+    n = len(wheels)
+    file = None
+    for value_key in ("speed", "torque"):
+        value = getattr(section, value_key)
+        if isinstance(value, list) and len(value) != n:
+            problems.append(f"{key}.{value_key}: {len(value)} values for {n} wheels; give one value or one per wheel")
+    wants = {"speed": "speed", "slip": "speed", "torque": "torque"}.get(section.kind)
+    if section.kind == "fmu":
+        file = scene.resolve(section.file)
+        try:
+            from .fmu_controller import FmuController
+
+            controller = FmuController(file, n, mode=section.mode, start_values=section.start_values)
+            wants = controller.mode
+        except ImportError as error:
+            problems.append(f"{key}.kind: an FMU controller needs fmpy ({error})")
+        except RegolithError as error:
+            problems.append(f"{key}.file: {error}")
+        except ValueError as error:
+            problems.append(f"{key}.mode: {error}")
+    elif section.kind == "python":
+        try:
+            import_callable(section.function, scene.base_dir)
+        except SceneError as error:
+            problems += [p.replace("rover.drive.function", f"{key}.function") for p in error.problems]
+    elif section.kind == "slip" and section.omega_min is not None and section.omega_min > section.omega_max:
+        problems.append(f"{key}.omega_min: ({section.omega_min} rad/s) must be <= omega_max ({section.omega_max})")
+    if wants is not None and layout is not None and not layout[wants]:
+        what = ("velocity actuators on every wheel hinge (MJCF) or <prefix><i>.speed_command inputs (FMU)"
+                if wants == "speed" else "a hinge on every wheel (MJCF) or <prefix><i>.torque_command inputs (FMU)")
+        problems.append(f"{key}.kind: a {section.kind!r} drive commands wheel {wants}s, but the rover has no {what}")
+    return DrivePlan(name, section, file)
+
+
+def _rover(scene: Scene, wheels: tuple[WheelPlan, ...], gravity: np.ndarray, problems: list[str]):
+    """The rover's plan and its patch's; the rover must fit its bed (or its patch's window)."""
+    rover, b = scene.rover, scene.bed
+    assert rover is not None
+    names = [w for w in _rover_wheel_names(scene)]
+    heading = math.radians(rover.start.heading_deg)
+    if rover.model == "fmu":
+        source = scene.resolve(rover.file)
+        layout = _inspect_fmu(scene, source, len(names), gravity, problems)
+    else:
+        if rover.model == "mjcf":
+            source = scene.resolve(rover.file)
+            if not os.path.isfile(source):
+                problems.append(f"rover.file: MJCF file not found: {source!r} (paths are relative to the scene file)")
+                return None, None
+        else:
+            source = mmx_xml(scene, gravity)
+        layout = _inspect_mjcf(source, names, rover.body, heading, gravity, "rover.file", problems)
+    drive = _check_drive(scene, wheels, layout, problems)
+    if layout is None:
+        return None, None
+    hubs = layout["hubs"]
+    outer = np.array([w.outer_radius for w in wheels])
+    centre = hubs[:, :2].mean(axis=0)
+    footprint = float(np.max(np.linalg.norm(hubs[:, :2] - centre, axis=1) + np.maximum(outer, [
+        math.hypot(w.outer_radius, w.width / 2) for w in wheels])))
+    diameter = 2 * b.radius_mean
+    patch = None
+    if scene.patch is not None:
+        p = scene.patch
+        band = p.band if p.band is not None else 4 * b.radius_mean * (1 + b.radius_spread)
+        clearance = p.clearance if p.clearance is not None else WALL_GRAINS * diameter
+        slack = 0.5 * min(p.length, p.width) - footprint - band - clearance
+        if slack <= 0:
+            least = 2 * (footprint + band + clearance) + 2 * diameter
+            problems.append(f"patch.length: the window ({p.length} x {p.width} m) must hold the rover (footprint "
+                            f"radius {footprint:.4g} m, any heading), the clearance {clearance:.4g} m and the frozen "
+                            f"band {band:.4g} m on every side; allowed: patch.length and patch.width > {least:.4g} m")
+            slack = math.nan
+        recentre = p.recentre_distance if p.recentre_distance is not None else slack
+        if p.recentre_distance is not None and p.recentre_distance > slack:
+            problems.append(f"patch.recentre_distance: ({p.recentre_distance} m) lets the wheels come closer than the "
+                            f"clearance to the frozen band; allowed: <= {slack:.4g} m")
+        largest = 2 * b.radius_mean * (1 + b.radius_spread)
+        if band < largest:
+            problems.append(f"patch.band: ({band} m) must be at least one largest grain diameter ({largest:.4g} m) "
+                            "to hold the soil in")
+        if clearance < largest:
+            problems.append(f"patch.clearance: ({clearance} m) must be at least one largest grain diameter "
+                            f"({largest:.4g} m): a grain caught between a wheel and the frozen band has nowhere to go")
+        margin = p.tile_margin if p.tile_margin is not None else 2 * largest
+        for key, size in (("length", b.length), ("width", b.width)):
+            if size - 2 * margin < 2 * largest:
+                problems.append(f"bed.{key}: the tile is the bed {margin:.4g} m in from its walls (patch.tile_margin): "
+                                f"bed.{key} = {size} m leaves too little; allowed: >= {2 * margin + 2 * largest:.4g} m")
+        patch = PatchPlan(p.length, p.width, band, clearance, recentre, margin)
+        start_x = rover.start.x if rover.start.x is not None else 0.0
+        start_y = rover.start.y if rover.start.y is not None else 0.0
+    else:
+        # on a bed the rover keeps its start heading: its wheels' bounding box at that heading
+        clearance = diameter
+        turn = np.array([[math.cos(heading), -math.sin(heading)], [math.sin(heading), math.cos(heading)]])
+        corners = np.concatenate([hub[:2] + np.array([[sx * w.outer_radius, sy * w.width / 2]
+                                                      for sx in (-1, 1) for sy in (-1, 1)]) @ turn.T
+                                  for hub, w in zip(hubs, wheels)])
+        box_low, box_high = corners.min(axis=0), corners.max(axis=0)
+        start_x = rover.start.x if rover.start.x is not None else clearance + 6 * b.radius_mean - box_low[0]
+        start_y = rover.start.y if rover.start.y is not None else 0.5 * b.width - 0.5 * (box_low[1] + box_high[1])
+        low = np.array([start_x, start_y]) + box_low
+        high = np.array([start_x, start_y]) + box_high
+        if high[1] - low[1] + 2 * clearance > b.width:
+            problems.append(f"bed.width: the rover ({high[1] - low[1]:.4g} m across its wheels) and a clearance of "
+                            f"{clearance:.4g} m to the side walls need bed.width >= "
+                            f"{high[1] - low[1] + 2 * clearance:.4g} m (or use a [patch])")
+        elif low[1] < clearance or high[1] > b.width - clearance:
+            problems.append(f"rover.start.y: the rover ({low[1]:.4g} .. {high[1]:.4g} m across) comes closer than "
+                            f"{clearance:.4g} m to a side wall of the bed (0 .. {b.width} m)")
+        if low[0] < clearance:
+            problems.append(f"rover.start.x: the rover's rear reaches {low[0]:.4g} m, closer than {clearance:.4g} m "
+                            f"to the x = 0 wall; allowed: rover.start.x >= {start_x + clearance - low[0]:.4g} m")
+        omega = _nominal_omega(drive.section, len(names))
+        if math.isfinite(omega) and abs(math.cos(heading)) > 0:
+            reach = omega * max(w.outer_radius for w in wheels) * scene.run.duration
+            if high[0] + reach > b.length - clearance:
+                problems.append(f"run.duration: at its wheels' rim speed the rover may travel {reach:.4g} m and hit "
+                                f"the far wall (bed.length = {b.length} m); shorten run.duration, lengthen the bed or "
+                                "use a [patch]")
+    plan = RoverPlan(model=rover.model, source=source, wheel_names=tuple(names), body=rover.body,
+                     prefix=rover.wheel_prefix, start_values=tuple(sorted((rover.start_values or {}).items())),
+                     start=(float(start_x), float(start_y), heading), hub_offsets=hubs,
+                     footprint_radius=footprint, mass=float(layout["mass"]), takes_speed=bool(layout["speed"]),
+                     takes_torque=bool(layout["torque"]), start_parameters=bool(layout["start"]), drive=drive,
+                     stuck_slip=rover.stuck_slip)
+    if not math.isfinite(plan.mass):
+        problems.append(f"rover.file: the FMU {source} does not give the rover's mass (a total_mass parameter or "
+                        "output [kg]); the metrics per weight need it")
+    return plan, patch
 
 
 def load_plan(path, overrides=None) -> RunPlan:

@@ -4,6 +4,8 @@
                          replicas overlaid, one colour per group; the steady-state window shaded
     slip_drawbar.png     slip and drawbar pull over time
     drawbar_slip.png     steady-state drawbar pull against slip, one point per run (>= 2 runs)
+    trajectory.png       (rovers) the rover body's path seen from above, and its travel and slip over time
+    wheels.png           (rovers) slip, sinkage, driving torque and power of every wheel over the drive
     scatter.png          (studies) mean, std and min-max of the metrics per group
     dbp_slip.png         (slip study) DP/W, torque and sinkage against imposed slip with 95 % intervals
 """
@@ -95,6 +97,9 @@ def plot_output(out_dir: str, plot_dir: str | None = None, dpi: int = 120) -> li
         plt.close(fig)
         written.append(path)
 
+    rovers = [run for run in runs if run[2]["attrs"].get("kind") == "rover"]
+    if rovers:
+        written += _rover_plots(plt, rovers, colours, plot_dir, dpi)
     overlay([("travel", "travel [mm]", 1e3, "-"), ("sinkage", "rim sinkage [mm]", 1e3, "-"),
              ("sinkage_tips", "grouser-tip sinkage [mm]", 1e3, "-")], "travel_sinkage.png")
     overlay([("slip", "slip [-]", 1.0, "-"), ("drawbar_pull", "drawbar pull [N]", 1.0, "-"),
@@ -116,6 +121,65 @@ def plot_output(out_dir: str, plot_dir: str | None = None, dpi: int = 120) -> li
         fig.savefig(path, dpi=dpi)
         plt.close(fig)
         written.append(path)
+    return written
+
+
+def _rover_plots(plt, runs, colours, plot_dir: str, dpi: int) -> list[str]:
+    """trajectory.png and wheels.png of rover runs (module docstring)."""
+    written = []
+    fig, axes = plt.subplots(1, 3, figsize=(17, 4.6))
+    for _, group, s in runs:
+        driving = s["phase"] == 1
+        xy = s["rover_position"][:, :2]
+        colour = colours[group]
+        axes[0].plot(xy[:, 0] * 1e3, xy[:, 1] * 1e3, color=colour, lw=1.2, label=group)
+        if driving.any():
+            axes[0].plot(*(xy[np.argmax(driving)] * 1e3), "o", color=colour, ms=4)
+        axes[1].plot(s["time"], s["rover_travel"] * 1e3, color=colour, lw=1.2)
+        axes[2].plot(s["time"][driving], s["rover_slip"][driving], color=colour, lw=1.0)
+    axes[0].set_aspect("equal", adjustable="datalim")
+    axes[0].set_xlabel("x [mm]")
+    axes[0].set_ylabel("y [mm]")
+    axes[0].set_title("path of the rover body (dot: drive start)")
+    axes[1].set_xlabel("time [s]")
+    axes[1].set_ylabel("travel since the drive started [mm]")
+    axes[2].set_xlabel("time [s]")
+    axes[2].set_ylabel("rover slip [-]")
+    for ax in axes:
+        ax.grid(True, alpha=0.3)
+    axes[0].legend(fontsize=8)
+    fig.suptitle(_title(runs))
+    fig.tight_layout()
+    path = os.path.join(plot_dir, "trajectory.png")
+    fig.savefig(path, dpi=dpi)
+    plt.close(fig)
+    written.append(path)
+
+    panels = [("slip", "slip [-]", 1.0), ("sinkage", "rim sinkage [mm]", 1e3),
+              ("driving_torque", "driving torque [N m]", 1.0), ("power", "drive power [W]", 1.0)]
+    fig, axes = plt.subplots(1, len(panels), figsize=(5.5 * len(panels), 4.2))
+    names = json.loads(runs[0][2]["attrs"].get("wheel_names", "[]"))
+    for ax, (key, label, scale) in zip(axes, panels):
+        for _, group, s in runs:
+            driving = s["phase"] == 1
+            values, time = s[key][driving] * scale, s["time"][driving]
+            if len(runs) == 1:  # one run: every wheel
+                for i in range(values.shape[1]):
+                    ax.plot(time, values[:, i], lw=1.0, label=names[i] if i < len(names) else f"wheel {i}")
+            else:  # many: the wheels' mean per run
+                ax.plot(time, np.nanmean(values, axis=1), color=colours[group], lw=1.0, alpha=0.7, label=group)
+        ax.set_xlabel("time [s]")
+        ax.set_ylabel(label)
+        ax.grid(True, alpha=0.3)
+        handles, labels = ax.get_legend_handles_labels()
+        unique = dict(zip(labels, handles))
+        ax.legend(unique.values(), unique.keys(), fontsize=7)
+    fig.suptitle(_title(runs) + ("" if len(runs) == 1 else ": mean over the wheels"))
+    fig.tight_layout()
+    path = os.path.join(plot_dir, "wheels.png")
+    fig.savefig(path, dpi=dpi)
+    plt.close(fig)
+    written.append(path)
     return written
 
 

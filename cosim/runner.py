@@ -38,6 +38,7 @@ from .plan import RunPlan, load_plan, resolve
 from .scene import Scene, SceneError, scene_from_text
 from .single_wheel import PHASE_DRIVING, PHASE_LANDING
 from .system import CoupledSystem
+from .terrain import quat_to_matrix, wheel_frame
 
 log = logging.getLogger(__name__)
 
@@ -87,6 +88,10 @@ class Runner:
         rover = system.rover
         self.drive_start_step = int(loop.get("drive_start_step", -1 if rover.phase == PHASE_LANDING else 0))
         self.drive_start_position = np.array(loop.get("drive_start_position", rover.position.copy()), dtype=float)
+        self.body_position = np.array(loop.get("body_position", rover.body_kinematics().position), dtype=float)
+        """The rover body's position at the last record [m], shape (3,)."""
+        self.body_travel = float(loop.get("body_travel", 0.0))
+        """The body's horizontal path since the drive started [m]."""
         self.rest_heights = [float(z) for z in np.atleast_1d(loop.get("rest_heights", []))]
         self.landing_failed = bool(loop.get("landing_failed", False))
         self.next_snapshot = float(loop.get("next_snapshot", system.coupler.time))
@@ -183,13 +188,29 @@ class Runner:
         system = self.system
         rover = system.rover
         row = {"time": record.time, "phase": rover.phase, "rover_state": rover.state_row()}
+        driving = self.drive_start_step >= 0  # the step that ends the landing still belongs to it
         if rover.phase == PHASE_LANDING:
-            self._landing(record)  # the step that ends the landing still belongs to it
+            self._landing(record)
         drive_start = self.drive_start_position if self.drive_start_step >= 0 else None
-        per_wheel = [metrics.wheel_quantities(k, w, system.geometry, drive_start)
-                     for k, w in zip(record.kinematics, record.wrenches)]
+        per_wheel = [metrics.wheel_quantities(k, w, g, drive_start)
+                     for k, w, g in zip(record.kinematics, record.wrenches, system.geometries)]
         for name in metrics.WHEEL_UNITS:
             row[name] = np.array([q[name] for q in per_wheel])
+        row["speed_command"], row["torque_command"] = rover.command_row()
+        body = rover.body_kinematics()
+        spins = [float(k.angular_velocity @ wheel_frame(k.orientation, g.axis_local)[0])
+                 for k, g in zip(record.kinematics, system.geometries)]
+        radii = [g.rim_radius for g in system.geometries]
+        quantities = metrics.rover_quantities(body, per_wheel, record.wrenches, radii, spins,
+                                              self.body_position if driving else None, self.body_travel)
+        self.body_position, self.body_travel = body.position.copy(), quantities["travel"]
+        for name, value in (("position", body.position), ("orientation", body.orientation),
+                            ("linear_velocity", body.linear_velocity), ("angular_velocity", body.angular_velocity),
+                            *quantities.items()):
+            row[f"rover_{name}"] = value
+        books = self._soil_books()
+        for name, value in books.items():
+            row[f"soil_{name}"] = value
         row["position"] = np.array([k.position for k in record.kinematics])
         row["orientation"] = np.array([k.orientation for k in record.kinematics])
         row["linear_velocity"] = np.array([k.linear_velocity for k in record.kinematics])
@@ -204,6 +225,19 @@ class Runner:
             row.update(boundary_force=force, boundary_torque=torque, boundary_contact_count=contacts,
                        boundary_displacement=system.sim.boundary_displacements())
         self.writer.append_step(row)
+
+    def _soil_books(self) -> dict:
+        """particle_count, mass [kg], mass_added, mass_removed [kg], moves: the soil's books now."""
+        patch = self.system.patch
+        if patch is not None:
+            b = patch.books()
+            return {"particle_count": b["particle_count"], "mass": b["soil_mass"], "mass_added": b["mass_added"],
+                    "mass_removed": b["mass_removed"], "moves": b["moves"]}
+        sim = self.system.sim
+        if not hasattr(self, "_static_mass"):
+            self._static_mass = float(np.sum(sim.model.mass_numpy()))
+        return {"particle_count": sim.model.particle_count, "mass": self._static_mass, "mass_added": 0.0,
+                "mass_removed": 0.0, "moves": 0}
 
     def _landing(self, record: MacroStepRecord) -> None:
         """The wheel has landed when, over the last `hold_steps` macro steps, it touched the soil at
@@ -224,21 +258,28 @@ class Runner:
             log.info("landed at t = %.4g s; driving for %.4g s", record.time, self.plan.scene.run.duration)
         elif self.system.coupler.step_count >= landing.max_steps:
             self.landing_failed = True
-            log.warning("the wheel was not at rest on the soil after landing.max_time = %g s (raise landing.max_time, "
-                        "or lower testbed.mass if it keeps sinking)", self.plan.scene.landing.max_time)
+            log.warning("the %s was not at rest on the soil after landing.max_time = %g s (raise landing.max_time, "
+                        "or lighten it if it keeps sinking)", "wheel" if self.plan.rover is None else "rover",
+                        self.plan.scene.landing.max_time)
 
     def _snapshot(self) -> None:
-        sim = self.system.sim
+        system = self.system
+        sim = system.sim
         vertices, _, owner = self.mesh
-        posed = self.system.posed_wheel_vertices(vertices, owner)
-        self.writer.add_snapshot(self.system.coupler.time, sim.positions(), sim.velocities().astype(np.float32),
-                                 posed.astype(np.float32))
+        posed = system.posed_wheel_vertices(vertices, owner)
+        body = system.rover.body_kinematics()
+        patch = system.patch
+        self.writer.add_snapshot(system.coupler.time, sim.positions(), sim.velocities().astype(np.float32),
+                                 posed.astype(np.float32), rover_pose=(body.position, quat_to_matrix(body.orientation)),
+                                 radius=None if patch is None else sim.model.radius_numpy(),
+                                 ids=None if patch is None else patch.ids)
         if self.plan.output.snapshot_interval > 0:
             self.next_snapshot = self.system.coupler.time + self.plan.output.snapshot_interval
 
     def loop_state(self, wall: float) -> dict:
         """The loop's own state (what `Runner(..., loop=...)` takes back)."""
         return {"drive_start_step": self.drive_start_step, "drive_start_position": self.drive_start_position,
+                "body_position": self.body_position, "body_travel": self.body_travel,
                 "rest_heights": np.asarray(self.rest_heights, dtype=np.float64), "landing_failed": self.landing_failed,
                 "next_snapshot": self.next_snapshot, "next_checkpoint": self.next_checkpoint,
                 "wall_time": self.wall_before + wall, "steps": self.writer.steps,
@@ -249,6 +290,7 @@ class Runner:
         data = self.system.state_dict()
         data.update({f"loop/{k}": np.asarray(v) for k, v in self.loop_state(wall).items()})
         data["scene_toml"] = np.array(self.plan.scene.to_toml())
+        data["scene_base_dir"] = np.array(self.plan.scene.base_dir or "")
         data["bed_path"] = np.array(self.system.bed.path)
         write_checkpoint(self.folder.checkpoint, data)
         self.last_checkpoint_time = self.system.coupler.time
@@ -280,10 +322,22 @@ class Runner:
         """The run's summary, computed from results.h5 (cosim.metrics.summarize) plus run facts."""
         plan, system = self.plan, self.system
         series = read_series(self.writer.path)
-        out = metrics.summarize(series, rim_radius=plan.wheel.rim_radius, wheel_load=plan.wheel_load,
-                                mode=plan.testbed.mode, landed=not self.landing_failed) if len(series["time"]) else {
-            "steady_state": metrics.TOO_SHORT}
-        findings = advice.check(plan, system.bed.surface_height, out.get("sinkage_tips"))
+        if not len(series["time"]):
+            out = {"steady_state": metrics.TOO_SHORT}
+        elif plan.rover is None:
+            out = metrics.summarize(series, rim_radius=plan.wheel.rim_radius, wheel_load=plan.wheel_load,
+                                    mode=plan.testbed.mode, landed=not self.landing_failed)
+        else:
+            out = metrics.summarize_rover(series, rim_radii=[w.rim_radius for w in plan.wheels],
+                                          weight=plan.rover.mass * plan.g, stuck_slip=plan.rover.stuck_slip,
+                                          landed=not self.landing_failed)
+        if system.patch is not None:
+            books = system.patch.books()
+            out.update(patch_moves=books["moves"], soil_mass_added=books["mass_added"],
+                       soil_mass_removed=books["mass_removed"], soil_mass=books["soil_mass"],
+                       soil_mass_initial=books["mass_initial"],
+                       particle_count_max=int(np.max(series["soil_particle_count"])) if len(series["time"]) else 0)
+        findings = advice.check(plan, system.soil.surface_height, out.get("sinkage_tips"))
         out.update(simulated_time=float(system.coupler.time), macro_steps=int(system.coupler.step_count),
                    wall_time=float(wall), particle_count=int(system.sim.model.particle_count), dt=plan.dt,
                    macro_step=plan.macro_step, froude_number=plan.froude_number,
@@ -329,17 +383,26 @@ def _install_sigint(runner: Runner):
 def _attributes(plan: RunPlan, system: CoupledSystem, source: str, findings) -> dict:
     import json
 
-    return {
+    rover = plan.rover
+    out = {
         "name": plan.name, "scene_toml": plan.scene.to_toml(), "scene_source": source, "precision": plan.precision,
         "device": plan.device, "scheme": plan.scheme, "order_seed": -1 if plan.order_seed is None else plan.order_seed,
         "dt": plan.dt, "macro_step": plan.macro_step, "substeps": plan.substeps, "duration": plan.scene.run.duration,
-        "gravity": np.asarray(plan.gravity), "surface_height": system.bed.surface_height,
-        "start_position": system.rover.position.copy(), "omega": plan.testbed.omega,
+        "gravity": np.asarray(plan.gravity), "surface_height": system.soil.surface_height,
+        "start_position": system.rover.position.copy(), "omega": plan.drive_omega,
         "rim_radius": plan.wheel.rim_radius, "outer_radius": plan.wheel.outer_radius, "wheel_load": plan.wheel_load,
-        "mode": plan.testbed.mode, "particle_count": system.sim.model.particle_count,
+        "mode": plan.testbed.mode if rover is None else rover.drive.kind,
+        "particle_count": system.sim.model.particle_count,
         "wheel_names": json.dumps(list(system.rover.wheel_names)),
         "bed": json.dumps(system.bed.info, default=float), "findings": json.dumps([f.as_dict() for f in findings]),
+        "kind": "testbed" if rover is None else "rover",
+        "rim_radii": np.array([w.rim_radius for w in plan.wheels]),
+        "outer_radii": np.array([w.outer_radius for w in plan.wheels]),
     }
+    if rover is not None:
+        out.update(rover_model=rover.model, rover_mass=rover.mass, drive=rover.drive.name,
+                   stuck_slip=rover.stuck_slip, slope=plan.slope)
+    return out
 
 
 def run_plan(plan: RunPlan, out_dir: str, overwrite: bool = False, progress: bool = False,
@@ -350,7 +413,7 @@ def run_plan(plan: RunPlan, out_dir: str, overwrite: bool = False, progress: boo
         folder.check_free(overwrite)
         bed = settled_bed(plan, folder.path, progress=progress)
         system = CoupledSystem.build(plan, bed)
-        findings = advice.check(plan, bed.surface_height)
+        findings = advice.check(plan, system.soil.surface_height)
         for finding in findings:
             if not finding.ok:
                 log.warning("validity: %s", finding.message)
@@ -360,12 +423,16 @@ def run_plan(plan: RunPlan, out_dir: str, overwrite: bool = False, progress: boo
             f.write(plan.scene.to_toml())
         write_json(folder.file(RUN_FILE), {"status": "running", "device": plan.device, "precision": plan.precision,
                                            "bed": bed.info, "findings": [f.as_dict() for f in findings]})
-        writer = ResultsWriter.create(
-            folder.results, attrs=_attributes(plan, system, source, findings),
-            radius=system.sim.model.radius_numpy(), wheel_count=len(system.rover.wheel_names),
-            mesh=system.wheel_mesh(), rover_columns=system.rover.state_columns, rover_units=system.rover.state_units,
-            boundaries=system.boundaries(), flush_every=plan.output.flush_every)
-        return Runner(system, writer, folder, progress=progress, hooks=hooks).run()
+        try:
+            writer = ResultsWriter.create(
+                folder.results, attrs=_attributes(plan, system, source, findings),
+                radius=system.sim.model.radius_numpy(), wheel_count=len(system.rover.wheel_names),
+                mesh=system.wheel_mesh(), rover_columns=system.rover.state_columns,
+                rover_units=system.rover.state_units, boundaries=system.boundaries(),
+                flush_every=plan.output.flush_every, ragged=system.patch is not None)
+            return Runner(system, writer, folder, progress=progress, hooks=hooks).run()
+        finally:
+            system.close()
 
 
 def run_scene(scene: Scene | str | os.PathLike, out_dir: str, overwrite: bool = False, progress: bool = False,
@@ -392,6 +459,18 @@ def absolute_paths(plan: RunPlan) -> RunPlan:
         changes["wheel.file"] = scene.resolve(scene.wheel.file)
     if scene.bed.bed_file:
         changes["bed.bed_file"] = scene.resolve(scene.bed.bed_file)
+    rover = scene.rover
+    if rover is not None:
+        if rover.file:
+            changes["rover.file"] = scene.resolve(rover.file)
+        for name, shape in (rover.wheel_shape or {}).items():
+            if shape.type == "mesh":
+                changes[f"rover.wheel_shape.{name}.file"] = scene.resolve(shape.file)
+        if not isinstance(rover.drive, str) and rover.drive.file:
+            changes["rover.drive.file"] = scene.resolve(rover.drive.file)
+        for name, drive in (rover.controllers or {}).items():
+            if drive.file:
+                changes[f"rover.controllers.{name}.file"] = scene.resolve(drive.file)
     return plan.with_changes(**changes) if changes else plan
 
 
@@ -411,7 +490,8 @@ def resume(out_dir: str, progress: bool = False, hooks: dict | None = None) -> R
             if not os.path.isfile(folder.file(name)):
                 raise FileNotFoundError(f"{folder.path!r} has no {name}: not a run folder that can be resumed")
         checkpoint = load_checkpoint(folder.checkpoint)
-        scene = scene_from_text(str(checkpoint["scene_toml"]))
+        base_dir = str(checkpoint["scene_base_dir"]) if "scene_base_dir" in checkpoint else ""
+        scene = scene_from_text(str(checkpoint["scene_toml"]), base_dir=base_dir or None)
         with open(folder.file(SCENE_FILE)) as f:
             if f.read() != scene.to_toml():
                 log.warning("scene.toml was edited after the run started; the checkpoint's copy of the scene is used")
@@ -428,11 +508,14 @@ def resume(out_dir: str, progress: bool = False, hooks: dict | None = None) -> R
             raise SceneError(error.problems + [f"the run's bed {bed_path!r} is needed to resume"]) from None
         bed = Bed(bed.path, bed.surface_height, _read_json(folder.file(RUN_FILE)).get("bed", bed.info))
         system = CoupledSystem.build(plan, bed)
-        system.load_state_dict(checkpoint)
-        writer = ResultsWriter.resume(folder.results, steps, int(checkpoint["loop/snapshots"]),
-                                      flush_every=plan.output.flush_every)
-        loop = {k[len("loop/"):]: v for k, v in checkpoint.items() if k.startswith("loop/")}
-        return Runner(system, writer, folder, loop=loop, progress=progress, hooks=hooks).run()
+        try:
+            system.load_state_dict(checkpoint)
+            writer = ResultsWriter.resume(folder.results, steps, int(checkpoint["loop/snapshots"]),
+                                          flush_every=plan.output.flush_every)
+            loop = {k[len("loop/"):]: v for k, v in checkpoint.items() if k.startswith("loop/")}
+            return Runner(system, writer, folder, loop=loop, progress=progress, hooks=hooks).run()
+        finally:
+            system.close()
 
 
 def _finished(checkpoint: dict, plan: RunPlan) -> bool:

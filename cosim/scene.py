@@ -9,6 +9,13 @@
     [wheel]    type = "grouser" (radius, width, grouser_count, grouser_height, grouser_thickness)
                or type = "mesh" (file, scale); [wheel.material]
     [testbed]  mass, omega, mode ("free" | "slip"), slip, drawbar_load, drawbar_ramp, start_x
+    [rover]    instead of [testbed]: model ("mjcf" | "mmx" | "fmu"), file, wheels | wheel_count,
+               wheel_prefix, body, start_values, drive, stuck_slip; [rover.start] x, y, heading_deg;
+               [rover.mmx] the built-in rover's parameters; [rover.wheel_shape.<wheel>] a wheel's own
+               shape (a [wheel] section); [rover.controllers.<name>] named drives (kind "speed" |
+               "torque" | "slip" | "fmu" | "python")
+    [patch]    a soil patch that follows the rover (the [bed] is its settled tile): length, width,
+               band, clearance, recentre_distance, tile_margin
     [landing]  enabled, max_time, speed_ratio, hold_time
     [run]      duration, dt | dt_factor, macro_step | substeps, scheme, order_seed
     [output]   snapshot_interval, checkpoint_interval, flush_every
@@ -244,6 +251,192 @@ class TestbedSection(_Section):
     """Initial hub x [m]; default: wheel outer radius + 6 grain radii from the x = 0 wall."""
 
 
+class DriveSection(_Section):
+    """How the wheels are driven after the landing (cosim.controllers, cosim.fmu_controller)."""
+
+    kind: Literal["speed", "torque", "slip", "fmu", "python"] = "speed"
+    """speed: constant wheel speeds; torque: constant wheel torques; slip: the PI slip controller;
+    fmu: a drive-controller FMU; python: a controller made by a Python callable."""
+    speed: float | list[float] | None = None
+    """kind 'speed': wheel speed about the axle [rad/s], one value or one per wheel."""
+    torque: float | list[float] | None = None
+    """kind 'torque': wheel torque about the axle [N m], one value or one per wheel."""
+    target_slip: float | None = Field(None, ge=0, lt=1)
+    """kind 'slip': the slip s = 1 - v / (omega r) to hold [-]."""
+    kp: float | None = Field(None, ge=0)
+    """kind 'slip': proportional gain on the hub velocity error [-] (default 1)."""
+    ki: float | None = Field(None, ge=0)
+    """kind 'slip': integral gain [1/s] (default 20)."""
+    omega_min: float | None = None
+    """kind 'slip': lowest commanded speed [rad/s] (default: 0.1 x omega_max)."""
+    omega_max: float | None = Field(None, gt=0)
+    """kind 'slip': highest commanded speed [rad/s] (required)."""
+    file: str | None = None
+    """kind 'fmu': the controller FMU, relative to the scene file."""
+    mode: Literal["speed", "torque"] | None = None
+    """kind 'fmu': which command outputs to read (default: the ones the FMU has)."""
+    start_values: dict[str, float] | None = None
+    """kind 'fmu': FMU parameters {name: value}."""
+    function: str | None = None
+    """kind 'python': "module:function", called once as function(wheel_count=n, wheel_radius=(r, ...), **args);
+    it returns the controller (cosim.controllers.Controller). The scene file's folder is searched first."""
+    args: dict[str, Any] | None = None
+    """kind 'python': keyword arguments of the function."""
+
+    @model_validator(mode="after")
+    def _by_kind(self):
+        keys = {"speed": ("speed",), "torque": ("torque",),
+                "slip": ("target_slip", "kp", "ki", "omega_min", "omega_max"),
+                "fmu": ("file", "mode", "start_values"), "python": ("function", "args")}
+        wrong = [k for kind, names in keys.items() if kind != self.kind for k in names
+                 if getattr(self, k) is not None]
+        if wrong:
+            raise ValueError(f"{wrong[0]}: {', '.join(wrong)} do(es) not belong to kind = {self.kind!r}; it takes "
+                             f"{', '.join(keys[self.kind])}")
+        required = {"speed": "speed", "torque": "torque", "slip": "target_slip", "fmu": "file", "python": "function"}
+        if getattr(self, required[self.kind]) is None:
+            raise ValueError(f"{required[self.kind]}: is required for kind = {self.kind!r}")
+        if self.kind == "slip" and self.omega_max is None:
+            raise ValueError("omega_max: is required for kind = 'slip' (the highest wheel speed it may command "
+                             "[rad/s])")
+        for name in ("speed", "torque"):
+            value = getattr(self, name)
+            values = value if isinstance(value, list) else [] if value is None else [value]
+            if not all(math.isfinite(v) for v in values) or (isinstance(value, list) and not value):
+                raise ValueError(f"{name}: must be a finite number or a non-empty list of them")
+        if self.function is not None and not re.fullmatch(r"[A-Za-z_][\w.]*:[A-Za-z_]\w*", self.function):
+            raise ValueError(f"function: must be 'module:function' (e.g. 'my_controllers:make'), got "
+                             f"{self.function!r}")
+        return self
+
+
+class StartSection(_Section):
+    """Where the rover starts (its base body's frame origin); its height is found: the lowest grouser
+    tip just above the highest grain under it."""
+
+    x: float | None = None
+    """[m]; default: clear of the bed's x = 0 wall (a bed), 0 (a patch)."""
+    y: float | None = None
+    """[m]; default: the bed's centre line (a bed), 0 (a patch)."""
+    heading_deg: float = 0.0
+    """Turn of the rover about +z [deg] (0: as in its model, wheels rolling towards +x)."""
+
+
+class MmxSection(_Section):
+    """Parameters of the built-in MMX-like rover (rover_models.mjcf.mmx_rover_xml); the wheel radius
+    and width are those of the [wheel] section."""
+
+    body_mass: float = Field(17.0, gt=0)
+    """[kg]"""
+    leg_mass: float = Field(0.5, gt=0)
+    """[kg]"""
+    wheel_mass: float = Field(1.5, gt=0)
+    """[kg]"""
+    body_size: list[float] = [0.41, 0.37, 0.30]
+    """Body box, full sizes along x, y, z [m]."""
+    wheelbase: float = Field(0.40, gt=0)
+    """Distance between the front and rear axles [m]."""
+    track: float = Field(0.50, gt=0)
+    """Distance between the left and right wheels [m]."""
+    leg_drop: float = Field(0.15, ge=0)
+    """Hubs below the body centre [m]."""
+    motor_kv: float = Field(20.0, gt=0)
+    """Velocity-motor gain [N m s/rad]."""
+    timestep: float = Field(1.0e-3, gt=0)
+    """MuJoCo's step [s]."""
+
+    @field_validator("body_size")
+    @classmethod
+    def _size(cls, value):
+        if len(value) != 3 or not all(math.isfinite(v) and v > 0 for v in value):
+            raise ValueError("must be 3 finite sizes > 0 [m]")
+        return value
+
+
+class RoverSection(_Section):
+    """A rover on the soil (instead of the single-wheel [testbed])."""
+
+    model: Literal["mjcf", "mmx", "fmu"] = "mmx"
+    """mjcf: an MJCF file; mmx: the built-in MMX-like rover ([rover.mmx]); fmu: a rover FMU."""
+    file: str | None = None
+    """The MJCF or FMU file, relative to the scene file."""
+    wheels: list[str] | None = None
+    """MJCF: the wheel body names (their order is the wheel order everywhere); default for 'mmx':
+    wheel_fl, wheel_fr, wheel_rl, wheel_rr."""
+    wheel_count: int | None = Field(None, ge=1)
+    """FMU: how many wheels (<prefix>0 .. <prefix>n-1); default: as many as the FMU has."""
+    wheel_prefix: str = Field("wheel_", min_length=1)
+    """FMU: the wheels' variable prefix (wheel_0.force.x, ...)."""
+    body: str | None = None
+    """MJCF: the body reported as the rover's pose (default: the base carrying the first wheel)."""
+    start_values: dict[str, float] | None = None
+    """FMU: parameters {name: value} set before it starts."""
+    mmx: MmxSection | None = None
+    start: StartSection = StartSection()
+    wheel_shape: dict[str, WheelSection] | None = None
+    """A wheel's own shape, by wheel name; the others use [wheel]."""
+    drive: str | DriveSection = DriveSection(kind="speed", speed=0.0)
+    """The drive: a table (kind = ...), or the name of one of [rover.controllers]."""
+    controllers: dict[str, DriveSection] | None = None
+    """Named drives; `drive = "<name>"` picks one (`cosim sweep --param rover.drive=a,b` compares them)."""
+    stuck_slip: float = Field(0.9, gt=0, lt=1)
+    """Stuck criterion: the rover is immobile while its slip over one radian of wheel turn is at least this [-]."""
+
+    @model_validator(mode="after")
+    def _by_model(self):
+        if self.model in ("mjcf", "fmu") and not self.file:
+            raise ValueError(f"file: is required for model = {self.model!r}")
+        if self.model == "mmx" and self.file:
+            raise ValueError("file: the built-in rover (model = 'mmx') takes no file; its parameters go in [rover.mmx]")
+        if self.model == "mjcf" and not self.wheels:
+            raise ValueError("wheels: name the MJCF's wheel bodies, e.g. wheels = [\"wheel_fl\", \"wheel_fr\"]")
+        if self.model == "fmu" and self.wheels:
+            raise ValueError("wheels: an FMU's wheels are numbered; give wheel_count and wheel_prefix instead")
+        if self.model != "fmu" and (self.wheel_count is not None or self.start_values):
+            wrong = "wheel_count" if self.wheel_count is not None else "start_values"
+            raise ValueError(f"{wrong}: belongs to model = 'fmu'")
+        if self.model != "mmx" and self.mmx is not None:
+            raise ValueError("mmx: [rover.mmx] belongs to model = 'mmx'")
+        if self.model == "fmu" and self.body is not None:
+            raise ValueError("body: an FMU reports its body through body.* outputs; body names an MJCF body")
+        if self.wheels is not None and len(set(self.wheels)) != len(self.wheels):
+            raise ValueError(f"wheels: names a wheel twice: {self.wheels}")
+        if self.file and self.model == "mjcf" and os.path.splitext(self.file)[1].lower() not in (".xml", ".mjcf"):
+            raise ValueError(f"file: an MJCF file ends in .xml, got {self.file!r}")
+        if self.file and self.model == "fmu" and os.path.splitext(self.file)[1].lower() != ".fmu":
+            raise ValueError(f"file: an FMU file ends in .fmu, got {self.file!r}")
+        if isinstance(self.drive, str) and self.drive not in (self.controllers or {}):
+            names = ", ".join(sorted(self.controllers or {})) or "none are defined"
+            raise ValueError(f"drive: unknown controller {self.drive!r}; [rover.controllers] has: {names}")
+        return self
+
+    @property
+    def drive_section(self) -> DriveSection:
+        """The drive in use (a named controller resolved)."""
+        return self.controllers[self.drive] if isinstance(self.drive, str) else self.drive
+
+
+class PatchSection(_Section):
+    """A window of soil that follows the rover: grains far behind are removed, settled soil from the
+    [bed] tile is placed ahead (docs/rover.md). The window is centred on the rover's wheels."""
+
+    length: float = Field(..., gt=0)
+    """Window size along x [m]."""
+    width: float = Field(..., gt=0)
+    """Window size along y [m]."""
+    band: float | None = Field(None, gt=0)
+    """Width of the frozen band at the window's edge that holds the soil in [m] (default 2 largest grain diameters)."""
+    clearance: float | None = Field(None, ge=0)
+    """Least gap between a wheel and the frozen band [m] (default 4 mean grain diameters; at least one
+    largest grain diameter)."""
+    recentre_distance: float | None = Field(None, gt=0)
+    """The window moves when the wheels' centre is this far from its centre along x or y [m] (default: as
+    far as the clearance allows)."""
+    tile_margin: float | None = Field(None, ge=0)
+    """The tile is the [bed] without the grains this close to its side walls [m] (default 2 largest grain
+    diameters: the walls order the packing near them)."""
+
+
 class LandingSection(_Section):
     """The wheel lands before it drives: it settles onto the soil under its load, not turning."""
 
@@ -299,13 +492,28 @@ class Scene(_Section):
     soil: SoilSection = SoilSection()
     bed: BedSection = BedSection()
     wheel: WheelSection = WheelSection()
-    testbed: TestbedSection = TestbedSection()
+    testbed: TestbedSection | None = None
+    """The single-wheel testbed (the default when there is no [rover])."""
+    rover: RoverSection | None = None
+    """A rover (instead of the testbed)."""
+    patch: PatchSection | None = None
+    """A soil patch following the rover (rovers only)."""
     landing: LandingSection = LandingSection()
     run: RunSection = RunSection()
     output: OutputSection = OutputSection()
 
     base_dir: str | None = Field(None, exclude=True)
     """Folder that relative paths (wheel.file, bed.bed_file) are relative to; not a scene key."""
+
+    @model_validator(mode="after")
+    def _one_rover(self):
+        if self.rover is not None and self.testbed is not None:
+            raise ValueError("rover: a scene has either a single-wheel [testbed] or a [rover], not both")
+        if self.patch is not None and self.rover is None:
+            raise ValueError("patch: a moving soil patch follows a [rover]; the single-wheel testbed runs on its bed")
+        if self.rover is None and self.testbed is None:
+            object.__setattr__(self, "testbed", TestbedSection())
+        return self
 
     def resolve(self, path: str | None) -> str | None:
         """A path of the scene made absolute (relative paths are relative to the scene file)."""
@@ -338,10 +546,17 @@ _PHRASES = (
 )
 
 
+_UNION_MEMBERS = ("str", "DriveSection", "float", "list[float]", "int")
+"""Type names pydantic puts into an error's location for union fields."""
+
+
 def _format_errors(error: ValidationError) -> list[str]:
     problems = []
     for item in error.errors():
-        loc = ".".join(str(p) for p in item["loc"] if not str(p).startswith("function-after"))
+        parts = [str(p) for p in item["loc"] if not str(p).startswith("function-after")]
+        if "str" in parts and isinstance(item.get("input"), dict):
+            continue  # a table given where a name or a table is allowed: the table's own errors say what is wrong
+        loc = ".".join(p for p in parts if p not in _UNION_MEMBERS)
         message = item["msg"]
         if message.startswith("Value error, "):
             message = message[len("Value error, "):]

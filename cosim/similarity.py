@@ -59,6 +59,9 @@ def _section(data: dict, dotted: str) -> dict:
 
 def gravity_twin(scene: Scene, gravity) -> tuple[dict, float]:
     """(the twin scene as a dictionary, the factor s = |g_new| / |g_old|)."""
+    if scene.rover is not None:
+        raise SceneError(["rover: the gravity twin scales the single-wheel [testbed]'s keys; a rover scene's drives, "
+                          "masses and model are not scaled here"])
     old = gravity_vector(scene.scene.gravity)
     try:
         target = gravity_vector(gravity)

@@ -130,6 +130,14 @@ class SingleWheelRig:
         self.time = float(t_end)
 
     # -- records and checkpoints ---------------------------------------------------------
+    def body_kinematics(self) -> WheelKinematics:
+        """The carriage: the hub's position and velocity, no rotation."""
+        return WheelKinematics(self.position.copy(), [1.0, 0.0, 0.0, 0.0], self.velocity.copy(), np.zeros(3))
+
+    def command_row(self) -> tuple[np.ndarray, np.ndarray]:
+        """(wheel speed [rad/s], torque nan) the rig turns the wheel at, shape (1,) each."""
+        return np.array([self.omega]), np.array([np.nan])
+
     def state_row(self) -> np.ndarray:
         """The rig's state, `state_columns` [SI], shape (9,)."""
         return np.r_[self.position, self.velocity, self.angle, self.omega, self.resisting_force(self.time)]

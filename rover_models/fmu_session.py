@@ -10,8 +10,10 @@ from __future__ import annotations
 
 import os
 import shutil
-import zipfile
 import xml.etree.ElementTree as ET
+import zipfile
+
+import numpy as np
 
 from fmpy import extract, read_model_description
 from fmpy.fmi1 import FMICallException
@@ -71,6 +73,7 @@ def instantiate_cosim(path: str | os.PathLike, md, instance_name: str, start_tim
     unzipdir = extract(os.fspath(path))
     kwargs = dict(guid=md.guid, unzipDirectory=unzipdir,
                   modelIdentifier=md.coSimulation.modelIdentifier, instanceName=instance_name)
+    cwd = os.getcwd()  # fmpy enters the library's folder to load it and stays there when loading fails
     try:
         if md.fmiVersion == "2.0":
             from fmpy.fmi2 import FMU2Slave
@@ -87,6 +90,7 @@ def instantiate_cosim(path: str | os.PathLike, md, instance_name: str, start_tim
         fmu.enterInitializationMode(startTime=start_time)
         return fmu, unzipdir, fmu.setFloat64, fmu.getFloat64
     except Exception as error:
+        os.chdir(cwd)  # never stay in the folder that is removed next
         shutil.rmtree(unzipdir, ignore_errors=True)
         raise FmuError(f"{os.fspath(path)}: the FMU could not be instantiated: {error}") from error
 
@@ -161,6 +165,37 @@ class FmuSession:
                 raise FmuStepError(f"{self.path}: the FMU asked to terminate at t={last:g} s")
             if early and last < t + h:  # FMI 3.0 early return: go on from where it stopped
                 self._step(last, t + h - last, depth)
+
+    @property
+    def can_save_state(self) -> bool:
+        """Whether the FMU can hand out its state as bytes (canGetAndSetFMUstate and canSerializeFMUstate)."""
+        cs = self.md.coSimulation
+        return bool(cs.canGetAndSetFMUstate and cs.canSerializeFMUstate)
+
+    def save_state(self) -> np.ndarray:
+        """The FMU's serialized state (fmi*SerializeFMUstate) as bytes, shape (n,), uint8; FmuError when the
+        FMU cannot save its state."""
+        if not self.can_save_state:
+            raise FmuError(f"{self.path}: the FMU cannot save its state (it does not declare canGetAndSetFMUstate "
+                           "and canSerializeFMUstate), so a run with it cannot be continued from a checkpoint")
+        self._ready()
+        state = self.fmu.getFMUState()
+        try:
+            return np.frombuffer(self.fmu.serializeFMUState(state), dtype=np.uint8).copy()
+        finally:
+            self.fmu.freeFMUState(state)
+
+    def load_state(self, data: np.ndarray) -> None:
+        """Put a state from `save_state` back into the (instantiated) FMU."""
+        if not self.can_save_state:
+            raise FmuError(f"{self.path}: the FMU cannot restore a saved state (it does not declare "
+                           "canGetAndSetFMUstate and canSerializeFMUstate): this run cannot be resumed")
+        self._ready()
+        state = self.fmu.deserializeFMUState(np.asarray(data, dtype=np.uint8).tobytes())
+        try:
+            self.fmu.setFMUState(state)
+        finally:
+            self.fmu.freeFMUState(state)
 
     def close(self) -> None:
         """Terminate and free the FMU instance, remove the unpacked files."""

@@ -239,7 +239,81 @@ class MujocoRover:
         self.wheel_torques[:] = torques
         self._write_xfrc()
 
+    # --- the rover body, placement and checkpoints -------------------------------------
+
+    def body_id(self, name: str | None = None) -> int:
+        """MuJoCo id of body `name`; None: the rover's base, the child of the world that carries the first wheel."""
+        if name is not None:
+            bodies = [self.model.body(i).name for i in range(self.model.nbody)]
+            if name not in bodies:
+                raise KeyError(f"body {name!r} not in the model; its bodies are: {bodies}")
+            return bodies.index(name)
+        body = int(self.wheel_body_ids[0])
+        while self.model.body_parentid[body] != 0:
+            body = int(self.model.body_parentid[body])
+        return body
+
+    def body_kinematics(self, body: int) -> WheelKinematics:
+        """Pose and velocity of body `body` (an id) at its frame origin, world frame (as wheel_kinematics)."""
+        vel = np.zeros(6)
+        mujoco.mj_objectVelocity(self.model, self.data, mujoco.mjtObj.mjOBJ_XBODY, int(body), vel, 0)
+        return WheelKinematics(self.data.xpos[body].copy(), self.data.xquat[body].copy(), vel[3:].copy(),
+                               vel[:3].copy())
+
+    def move_base(self, translation: Sequence[float], yaw: float = 0.0, pivot: Sequence[float] | None = None) -> None:
+        """Move the whole rover rigidly before it starts: turn it by `yaw` [rad] about the vertical through
+        `pivot` [m] (default: the base body), then shift it by `translation` [m], shape (3,).
+
+        Free-floating bases move through their joint position (qpos); a base mounted on the world
+        by other joints (a test rig on slides) moves through its body frame (model.body_pos)."""
+        translation = np.asarray(translation, dtype=np.float64).reshape(3)
+        base = self.body_id()
+        pivot = self.data.xpos[base].copy() if pivot is None else np.asarray(pivot, dtype=np.float64).reshape(3)
+        turn = np.array([np.cos(yaw / 2), 0.0, 0.0, np.sin(yaw / 2)])
+        rotation = np.array([[np.cos(yaw), -np.sin(yaw), 0.0], [np.sin(yaw), np.cos(yaw), 0.0], [0.0, 0.0, 1.0]])
+        for body in range(1, self.model.nbody):
+            if self.model.body_parentid[body] != 0:
+                continue
+            free = [j for j in range(self.model.body_jntadr[body],
+                                     self.model.body_jntadr[body] + self.model.body_jntnum[body])
+                    if self.model.jnt_type[j] == mujoco.mjtJoint.mjJNT_FREE]
+            if free:
+                adr = int(self.model.jnt_qposadr[free[0]])
+                position, quaternion = self.data.qpos[adr:adr + 3], self.data.qpos[adr + 3:adr + 7]
+            else:
+                position, quaternion = self.model.body_pos[body], self.model.body_quat[body]
+            position[:] = pivot + rotation @ (position - pivot) + translation
+            out = np.zeros(4)
+            mujoco.mju_mulQuat(out, turn, np.array(quaternion, dtype=np.float64))
+            quaternion[:] = out
+        mujoco.mj_forward(self.model, self.data)
+
+    def state_dict(self) -> dict:
+        """The rover's checkpoint state: MuJoCo's integration state (mj_getState, mjSTATE_INTEGRATION:
+        time, qpos, qvel, act, ctrl, warm start, applied forces), the drive mode and the held wrenches."""
+        spec = mujoco.mjtState.mjSTATE_INTEGRATION
+        state = np.empty(mujoco.mj_stateSize(self.model, spec))
+        mujoco.mj_getState(self.model, self.data, state, spec)
+        return {"mujoco_state": state, "torque_mode": self.drive_mode == "torque",
+                "wheel_torques": self.wheel_torques.copy(), "hub_wrenches": self.hub_wrenches.copy()}
+
+    def load_state_dict(self, state: dict) -> None:
+        if bool(state["torque_mode"]):
+            self.set_wheel_torques(np.asarray(state["wheel_torques"]))
+        elif self.drive_mode != "speed":
+            self.set_wheel_speeds(np.zeros(len(self.wheel_names)))
+        self.hub_wrenches[:] = np.asarray(state["hub_wrenches"])
+        mujoco.mj_setState(self.model, self.data, np.asarray(state["mujoco_state"], dtype=np.float64),
+                           mujoco.mjtState.mjSTATE_INTEGRATION)
+        mujoco.mj_forward(self.model, self.data)
+
     # --- conveniences ---------------------------------------------------------------
+
+    @property
+    def drives(self) -> dict:
+        """{'speed': every wheel has a velocity actuator, 'torque': every wheel has a hinge}."""
+        return {"speed": all(a is not None for a in self._actuators),
+                "torque": all(d is not None for d in self._hinge_dof)}
 
     @property
     def total_mass(self) -> float:

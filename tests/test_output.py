@@ -10,8 +10,17 @@ import textwrap
 import numpy as np
 import pytest
 
-from cosim.output import (REQUIRED_ATTRIBUTES, RESULTS_FORMAT, WHEEL_SERIES, ResultsWriter, documented_layout,
-                          open_results, xdmf_references)
+from cosim.output import (
+    REQUIRED_ATTRIBUTES,
+    RESULTS_FORMAT,
+    ROVER_SERIES,
+    SOIL_SERIES,
+    WHEEL_SERIES,
+    ResultsWriter,
+    documented_layout,
+    open_results,
+    xdmf_references,
+)
 from cosim.plan import load_plan
 from cosim.scene import scene_from_text
 from helpers import write_tiny
@@ -42,7 +51,7 @@ def test_layout_matches_the_documentation(tiny_run):
         snapshots = f["particles/time"].shape[0]
         for name, (shape, kind) in layout.items():
             dataset = f[name]
-            expected = tuple((steps if name.startswith(("wheels", "rover", "boundaries")) else snapshots)
+            expected = tuple((steps if name.startswith(("wheels", "rover", "boundaries", "soil")) else snapshots)
                              if s is None else s for s in shape)
             assert dataset.shape == expected, name
             assert dataset.dtype.kind == kind, name
@@ -94,7 +103,8 @@ def test_xdmf_references_existing_datasets(tiny_run):
     path = tiny_run / "results.xdmf"
     root = ET.parse(path).getroot()
     collections = root.findall("./Domain/Grid")
-    assert [c.get("CollectionType") for c in collections] == ["Temporal", "Temporal"]
+    assert [c.get("Name") for c in collections] == ["particles", "wheels", "rover"]
+    assert [c.get("CollectionType") for c in collections] == ["Temporal"] * 3
     particles = collections[0].findall("Grid")
     assert particles[0].find("Topology").get("TopologyType") == "Polyvertex"
     assert {a.get("Name") for a in particles[0].findall("Attribute")} == {"radius", "velocity"}
@@ -124,6 +134,10 @@ def _record(t):
     record = {"time": t, "phase": 1, "rover_state": [t]}
     for name, (tail, *_) in WHEEL_SERIES.items():
         record[name] = np.full((1,) if tail is None else (1, tail), t)
+    for name, (tail, *_) in ROVER_SERIES.items():
+        record[f"rover_{name}"] = np.full(() if tail is None else (tail,), t)
+    for name in SOIL_SERIES:
+        record[f"soil_{name}"] = t
     return record
 
 

@@ -142,8 +142,16 @@ def test_mesh_wheel_scene(tmp_path):
 
 
 @pytest.mark.parametrize("path", sorted(glob.glob(os.path.join(EXAMPLES, "*.toml"))))
-def test_examples_are_valid(path):
-    plan = load_plan(path, ['scene.device="cpu"'])
+def test_examples_are_valid(path, tmp_path_factory):
+    overrides = ['scene.device="cpu"']
+    if "fmus/" in open(path).read():  # the example's FMUs are built from rover_models/fmu_src first
+        pytest.importorskip("pythonfmu")
+        from rover_models.fmu_src.build_fmus import build_rover_fmu, build_slip_controller_fmu
+
+        folder = tmp_path_factory.mktemp("example_fmus")
+        overrides += [f'rover.file="{build_rover_fmu(folder)}"',
+                      f'rover.controllers.fmu_slip.file="{build_slip_controller_fmu(folder, 4)}"']
+    plan = load_plan(path, overrides)
     assert plan.drive_steps >= 1
 
 

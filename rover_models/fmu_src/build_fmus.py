@@ -1,11 +1,16 @@
-"""Build the test/example rover FMUs from the sources in this folder (nothing downloaded).
+"""Build the test/example FMUs from the sources in this folder (nothing downloaded).
 
 - build_rig_fmu2(dest): rig_fmu.py -> FMI 2.0 co-simulation FMU with pythonfmu.
 - build_rig_fmu3(dest): rig_fmu3.c -> FMI 3.0 co-simulation source FMU, compiled with the
   local C compiler (gcc) against the FMI 3.0 headers that ship with fmpy; the FMU also
   carries its sources.
+  Both model the single-wheel rig of rover_models.mjcf.single_wheel_rig_xml.
+- build_rover_fmu(dest): rover_fmu.py -> the MMX-like rover of rover_models.mjcf.mmx_rover_xml
+  as an FMI 2.0 FMU (pythonfmu) that can save its state.
+- build_slip_controller_fmu(dest, wheel_count): slip_controller_fmu.py -> a PI traction
+  controller FMU for cosim.fmu_controller.
 
-Both model the single-wheel rig of rover_models.mjcf.single_wheel_rig_xml.
+    python -m rover_models.fmu_src.build_fmus --out fmus     # all of them into ./fmus
 """
 
 from __future__ import annotations
@@ -53,6 +58,51 @@ def build_rig_fmu2(dest: str | os.PathLike, variable_steps: bool = True, name: s
             needsExecutionTool=False,
         )
     )
+
+
+def build_rover_fmu(dest: str | os.PathLike) -> Path:
+    """The MMX-like rover FMU (FMI 2.0, pythonfmu, state save/restore) built into folder `dest`; returns its path."""
+    from pythonfmu.builder import FmuBuilder
+
+    dest = Path(dest)
+    dest.mkdir(parents=True, exist_ok=True)
+    return Path(FmuBuilder.build_FMU(HERE / "rover_fmu.py", dest=dest / "MmxRoverFmu.fmu", needsExecutionTool=False,
+                                     canGetAndSetFMUstate=True, canSerializeFMUstate=True))
+
+
+def build_slip_controller_fmu(dest: str | os.PathLike, wheel_count: int = 4) -> Path:
+    """The slip-controller FMU for `wheel_count` wheels (FMI 2.0, pythonfmu) built into folder `dest`;
+    returns its path (SlipControllerFmu<n>.fmu)."""
+    from pythonfmu.builder import FmuBuilder
+
+    if int(wheel_count) < 1:
+        raise ValueError(f"wheel_count must be >= 1, got {wheel_count}")
+    dest = Path(dest)
+    dest.mkdir(parents=True, exist_ok=True)
+    name = f"SlipControllerFmu{int(wheel_count)}"
+    source = (HERE / "slip_controller_fmu.py").read_text()
+    # pythonfmu imports the slave module by name: one module and class name per wheel count
+    source = source.replace("WHEELS = 4\n", f"WHEELS = {int(wheel_count)}\n", 1)
+    source = source.replace("class SlipControllerFmu(", f"class {name}(", 1)
+    with tempfile.TemporaryDirectory(prefix="slip_fmu_") as tmp:
+        script = Path(tmp) / f"{name.lower()}.py"
+        script.write_text(source)
+        return Path(FmuBuilder.build_FMU(script, dest=dest / f"{name}.fmu", needsExecutionTool=False,
+                                         canGetAndSetFMUstate=True, canSerializeFMUstate=True))
+
+
+def main(argv=None) -> None:
+    import argparse
+
+    parser = argparse.ArgumentParser(description="build the project's FMUs from their sources")
+    parser.add_argument("--out", default="fmus", help="folder to write the FMUs into")
+    parser.add_argument("--wheels", type=int, default=4, help="wheel count of the slip-controller FMU")
+    args = parser.parse_args(argv)
+    built = [build_rover_fmu(args.out), build_slip_controller_fmu(args.out, args.wheels), build_rig_fmu2(args.out)]
+    if shutil.which("gcc"):
+        built.append(build_rig_fmu3(args.out))
+    for path in built:
+        print(path)
 
 
 def _model_description_fmi3(model_identifier: str) -> str:
@@ -113,3 +163,7 @@ def build_rig_fmu3(dest: str | os.PathLike, compiler: str = "gcc") -> Path:
             fmu.write(library, f"binaries/{platform}/{model_identifier}{suffix}")
             fmu.write(HERE / "rig_fmu3.c", "sources/rig_fmu3.c")
     return target
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,105 @@
+"""Rover scenes: every bad rover input is rejected at plan time, naming the field, with exit code 2,
+before anything runs (no bed is settled, no run folder written)."""
+
+import os
+
+import pytest
+
+from cosim.cli import main
+from cosim.plan import load_plan
+from rover_helpers import write_rig, write_small_rover
+
+pytest.importorskip("mujoco")
+
+
+@pytest.fixture(scope="module")
+def fmus(tmp_path_factory):
+    """The project's rover FMU and a slip-controller FMU for one wheel (built from rover_models/fmu_src)."""
+    pytest.importorskip("fmpy")
+    pytest.importorskip("pythonfmu")
+    from rover_models.fmu_src.build_fmus import build_rover_fmu, build_slip_controller_fmu
+
+    folder = tmp_path_factory.mktemp("fmus")
+    return {"rover": str(build_rover_fmu(folder)), "controller1": str(build_slip_controller_fmu(folder, 1)),
+            "controller4": str(build_slip_controller_fmu(folder, 4))}
+
+
+def _rig(tmp_path, extra="", **kw):
+    return write_rig(tmp_path, extra=extra, **kw)
+
+
+BAD = [
+    # (what, how the rig scene is changed: extra TOML or --set overrides, field named, words of the message)
+    ("a wheel body the MJCF lacks", ['rover.wheels=["wheel", "wheel_2"]'], "rover.wheels", "not in the model"),
+    ("a reported body the MJCF lacks", ['rover.body="chassis"'], "rover.body", "not in the model"),
+    ("a missing MJCF file", ['rover.file="nowhere.xml"'], "rover.file", "not found"),
+    ("an unknown controller", ['rover.drive="turbo"'], "rover.drive", "unknown controller"),
+    ("an unknown drive kind", ['rover.drive.kind="warp"'], "rover.drive.kind", "'speed'"),
+    ("a callable that cannot be imported", ['rover.drive={kind="python", function="no_such_module:make"}'],
+     "rover.drive.function", "cannot import"),
+    ("a module without the callable", ['rover.drive={kind="python", function="os:no_such_function"}'],
+     "rover.drive.function", "no callable"),
+    ("one speed per wheel, wrong count", ["rover.drive.speed=[1.0, 2.0]"], "rover.drive.speed", "2 values for 1"),
+    ("a slip drive without its top speed", ['rover.drive={kind="slip", target_slip=0.2}'], "rover.drive.omega_max",
+     "required"),
+    ("keys of another drive kind", ["rover.drive.target_slip=0.2"], "rover.drive.target_slip", "kind = 'speed'"),
+    ("a rover and a testbed", ["testbed.mass=1.0"], "rover", "not both"),
+    ("a patch too small for the rover", ["patch.length=0.04", "patch.width=0.04"], "patch.length",
+     "must hold the rover"),
+    ("a rover wider than its bed", ["bed.width=0.02", "bed.radius_mean=0.002"], "bed.width", "rover"),
+    ("gravity pointing up", ["scene.gravity=[0.0, 0.0, 1.6]"], "scene.gravity", "down"),
+]
+
+
+@pytest.mark.parametrize("what,changes,field,words", BAD, ids=[b[0] for b in BAD])
+def test_bad_rover_input_is_rejected_with_exit_code_2(tmp_path, capsys, what, changes, field, words):
+    scene = _rig(tmp_path)
+    out = tmp_path / "out"
+    args = ["run", scene, "--out", str(out), "--no-progress"]
+    for change in changes:
+        args += ["--set", change]
+    assert main(args) == 2
+    message = capsys.readouterr().err
+    assert field in message and words in message, message
+    assert not out.exists() or not os.listdir(out), "nothing may be written before the scene is valid"
+
+
+def test_fmu_rover_input_errors_name_the_field(tmp_path, fmus, capsys):
+    """An FMU without the rover variables, a wheel count the FMU does not have, an FMU controller for
+    another wheel count: exit code 2, the field named, the FMU's variables listed."""
+    cases = [
+        # the controller FMU has no wheel_0.force.* inputs: not a rover
+        (["rover.model=\"fmu\"", f'rover.file="{fmus["controller1"]}"'], "rover.file", "force"),
+        # the rover FMU has four wheels, the scene says two
+        (["rover.wheel_count=2"], "rover.wheel_count", "the scene expects 2 wheel(s)"),
+        # a drive-controller FMU for one wheel on a four-wheeled rover
+        ([f'rover.drive={{kind="fmu", file="{fmus["controller1"]}"}}'], "rover.drive.file",
+         "missing wheel_1.speed_command"),
+        # FMU placement keys the rover FMU has, but an MJCF key it cannot take
+        (['rover.body="chassis"'], "rover.body", "body.* outputs"),
+    ]
+    for changes, field, words in cases:
+        scene = write_small_rover(tmp_path, kind="fmu", fmu=fmus["rover"])
+        args = ["run", scene, "--out", str(tmp_path / "out"), "--no-progress"]
+        for change in changes:
+            args += ["--set", change]
+        assert main(args) == 2, changes
+        message = capsys.readouterr().err
+        assert field in message and words in message, message
+
+
+def test_a_good_rover_scene_resolves_with_its_wheels_footprint_and_mass(tmp_path, fmus):
+    """The plan reads the rover's wheels, mass and footprint from the model itself: the MJCF and the FMU of
+    the same rover agree (their masses to rounding, their hubs exactly: the same geometry)."""
+    from rover_helpers import SMALL_MMX
+
+    mjcf = load_plan(write_small_rover(tmp_path, name="m"))
+    fmu = load_plan(write_small_rover(tmp_path, kind="fmu", fmu=fmus["rover"], name="f"))
+    mass = SMALL_MMX["body_mass"] + 4 * (SMALL_MMX["leg_mass"] + SMALL_MMX["wheel_mass"])
+    assert mjcf.rover.mass == pytest.approx(mass, rel=1e-12)
+    assert fmu.rover.mass == pytest.approx(mass, rel=1e-12)
+    assert mjcf.rover.wheel_names == ("wheel_fl", "wheel_fr", "wheel_rl", "wheel_rr")
+    assert fmu.rover.wheel_names == ("wheel_0", "wheel_1", "wheel_2", "wheel_3")
+    assert abs(mjcf.rover.hub_offsets - fmu.rover.hub_offsets).max() < 1e-12
+    assert mjcf.wheel_load == pytest.approx(mass * 1.625 / 4, rel=1e-9)
+    assert mjcf.rover.takes_speed and mjcf.rover.takes_torque and fmu.rover.takes_speed and fmu.rover.takes_torque
