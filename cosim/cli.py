@@ -309,6 +309,7 @@ def lab_lines(summary: dict) -> list[str]:
                          + (f" +- {fit['friction_angle_se_deg']:.2g} (s.e.)" if fit.get("points", 0) > 2 else ""))
             lines.append(f"{state + ' cohesion':26s} {fit['cohesion_pa']:.4g} Pa"
                          + (f" +- {fit['cohesion_se_pa']:.2g} (s.e.)" if fit.get("points", 0) > 2 else ""))
+            lines.append(f"{state + ' angle (c = 0)':26s} {fit['friction_angle_origin_deg']:.4g} deg")
     elif summary["test"] == "plate":
         fit = summary["bekker"]
         if fit["k_c"] == fit["k_c"]:

@@ -37,6 +37,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..scene import SceneError, parse_value
+from ..study import Executor
 from . import common
 from .scene import LabPlan
 
@@ -166,8 +167,6 @@ def calibrate(plan: LabPlan, out_dir: str, targets: dict[str, float], parameters
     """Tune `parameters` until the lab measures `targets` (module docstring); returns the summary
     (also OUT/summary.json) with the best values, what they measure and whether every target is
     within its tolerance."""
-    from scipy import optimize
-
     if max_evaluations < 2:
         raise SceneError([f"--max-evaluations: must be >= 2 (got {max_evaluations})"])
     tolerances = tolerances or {name: default_tolerance(name, value) for name, value in targets.items()}
@@ -176,7 +175,15 @@ def calibrate(plan: LabPlan, out_dir: str, targets: dict[str, float], parameters
             plan.with_changes(_overrides([p], [value]))
     common.prepare_folder(plan, out_dir, overwrite)
     tests = {TARGETS[name].test for name in targets}
-    run_on = {"executor": executor, "scheduler": scheduler, "workers": workers}
+    with Executor(executor, scheduler, workers) as cluster:  # one cluster for every evaluation
+        return _calibrate(plan, out_dir, targets, parameters, tolerances, max_evaluations, tests, {"executor": cluster})
+
+
+def _calibrate(plan: LabPlan, out_dir: str, targets: dict, parameters: list[Parameter], tolerances: dict,
+               max_evaluations: int, tests: set[str], run_on: dict) -> dict:
+    """The optimisation loop of `calibrate` (run_on: the executor the lab tests use)."""
+    from scipy import optimize
+
     history: list[dict] = []
     scale = np.array([p.high - p.low for p in parameters])
     low = np.array([p.low for p in parameters])

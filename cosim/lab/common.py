@@ -138,12 +138,16 @@ def lab_task(task: dict) -> dict:
     return out
 
 
-def map_tasks(plan: LabPlan, runner, arguments: list[dict], labels: list[str], executor: str = "serial",
+def map_tasks(plan: LabPlan, runner, arguments: list[dict], labels: list[str], executor="serial",
               scheduler: str | None = None, workers: int | None = None) -> list[dict]:
-    """runner(plan, **arguments) once per arguments dict, through cosim.study.Executor (dask or serial)."""
+    """runner(plan, **arguments) once per arguments dict, through cosim.study.Executor: executor
+    is 'dask' or 'serial' (an Executor is made for these tasks) or an Executor already open
+    (a calibration keeps one cluster for all its evaluations)."""
     toml = plan.scene.to_toml()
     tasks = [{"runner": runner, "scene_toml": toml, "base_dir": plan.scene.base_dir, "arguments": a, "label": label,
               "replica": a.get("replica")} for a, label in zip(arguments, labels)]
+    if isinstance(executor, Executor):
+        return executor.map(lab_task, tasks)
     with Executor(executor, scheduler, workers) as ex:
         return ex.map(lab_task, tasks)
 

@@ -119,7 +119,8 @@ class ShearSection(_LabSection):
     displacement: float | None = Field(None, gt=0)
     """Shear displacement [m]; default 0.2 x length."""
     gap: float | None = Field(None, gt=0)
-    """Gap between the two halves of the box [m]; default half the smallest grain radius."""
+    """Gap between the two halves of the box [m]; default 1.5 smallest grain radii: as wide as it can be
+    without letting a grain out, so the frames' edges plough few grains."""
     wall_friction_deg: float = Field(0.0, ge=0, lt=90)
     """Friction angle of the box walls [deg] (0: smooth; the lid and floor are rough: the soil's own)."""
 

@@ -8,15 +8,17 @@ and the Mohr-Coulomb friction angle and cohesion from a straight-line fit.
     consolidate: a rough lid plane on the grains, dead-loaded with sigma L W (a rigid body
              free along -Z, its mass the sample's, critically damped against the sample's
              stiffness) until it stops moving;
-    shear:   the upper frame and the lid move along +X at the shear speed v; the lid keeps its
-             load (it rises and falls with the sample's dilation).
+    shear:   the upper frame and the lid move along +X at the shear speed v (reached linearly over
+             the first 2 % of the samples); the lid keeps its load (it rises and falls with
+             the sample's dilation).
 
 Measured (every recorded step, from the boundary wrenches):
     tau     = -(F_x on the upper frame + F_x on the lid) / (L W)         [Pa]
     sigma_n = (F_z on the lid + weight of the grains above the shear plane) / (L W)   [Pa]
 Peak: the largest tau of the curve smoothed over 1/20 of the displacement; residual: the
 mean over the last quarter. tau = c + sigma_n tan(phi) fitted (scipy.stats.linregress) to
-every (sigma_n, tau) pair of every replica, for the peak and for the residual state.
+every (sigma_n, tau) pair of every replica, for the peak and for the residual state; and
+tau = sigma_n tan(phi_0) through the origin (a cohesionless soil's angle).
 Quasi-static when the inertial number I = (v / 10 d) d / sqrt(sigma / rho) <= 1e-3.
 """
 
@@ -119,7 +121,7 @@ def box(plan: LabPlan) -> ShearBox:
     length = section.length if section.length is not None else 12 * d
     width = section.width if section.width is not None else 12 * d
     height = section.height if section.height is not None else 8 * d
-    gap = section.gap if section.gap is not None else 0.5 * r_min
+    gap = section.gap if section.gap is not None else 1.5 * r_min
     displacement = section.displacement if section.displacement is not None else 0.2 * length
     problems = []
     for name, value in (("length", length), ("width", width), ("height", height)):
@@ -257,19 +259,24 @@ def run_replica(plan: LabPlan, replica: int = 0, stage: str = "shear", specimen:
 
 def mohr_coulomb(sigma, tau) -> dict:
     """tau = c + sigma tan(phi) by least squares (scipy.stats.linregress): friction angle phi [deg],
-    cohesion c [Pa] and their standard errors (NaN with two points or one stress)."""
+    cohesion c [Pa] and their standard errors (NaN with two points or one stress); and the
+    line through the origin tau = sigma tan(phi_0) (c = 0, a cohesionless soil's angle, from
+    a single stress on): friction_angle_origin_deg."""
     from scipy import stats
 
     sigma, tau = np.asarray(sigma, dtype=float), np.asarray(tau, dtype=float)
+    origin = math.degrees(math.atan(float(np.sum(sigma * tau) / np.sum(sigma**2)))) if len(sigma) else math.nan
     if len(np.unique(sigma)) < 2:
-        return {"friction_angle_deg": math.nan, "cohesion_pa": math.nan, "points": int(len(sigma))}
+        return {"friction_angle_deg": math.nan, "cohesion_pa": math.nan, "friction_angle_origin_deg": origin,
+                "points": int(len(sigma))}
     fit = stats.linregress(sigma, tau)
     enough = len(sigma) > 2
     slope_error = fit.stderr if enough else math.nan
     return {"friction_angle_deg": math.degrees(math.atan(fit.slope)),
             "friction_angle_se_deg": math.degrees(slope_error / (1 + fit.slope**2)) if enough else math.nan,
             "cohesion_pa": float(fit.intercept), "cohesion_se_pa": float(fit.intercept_stderr) if enough else math.nan,
-            "tan_phi": float(fit.slope), "r_squared": float(fit.rvalue**2), "points": int(len(sigma))}
+            "tan_phi": float(fit.slope), "r_squared": float(fit.rvalue**2), "friction_angle_origin_deg": origin,
+            "points": int(len(sigma))}
 
 
 def quasi_static_numbers(plan: LabPlan, geometry: ShearBox) -> list[dict]:
