@@ -57,8 +57,9 @@ def run_heap(base_positions, base_radius: float, positions, radii, density: floa
     n_base = len(base_positions)
     every = np.concatenate([base_positions, positions])
     every_radius = np.concatenate([np.full(n_base, base_radius), radii])
-    grains = lammps_peer._granular_model(youngs_modulus, poisson, friction_coefficient, restitution)
-    smooth = lammps_peer._granular_model(youngs_modulus, poisson, 0.0, restitution)
+    # limit_damping: the normal force never pulls (as ours: damping cannot make it attractive)
+    grains = lammps_peer._granular_model(youngs_modulus, poisson, friction_coefficient, restitution) + " limit_damping"
+    smooth = lammps_peer._granular_model(youngs_modulus, poisson, 0.0, restitution) + " limit_damping"
     top = max(float(np.max([upper[2] for _, upper in tube_boxes])), float(np.max(positions[:, 2] + radii)))
     skin = 0.3 * float(radii.max())
     lmp = lammps_peer._new_lammps()
@@ -67,6 +68,15 @@ def run_heap(base_positions, base_radius: float, positions, radii, density: floa
             data = os.path.join(tmp, "heap.data")
             lammps_peer._write_data_file(data, every, every_radius, density, [0.0, 0.0, 0.0],
                                          [base_width, base_width, top + 2 * skin])
+            if n_base:  # fixed grains weigh as a wall in our contact law (m* = m of the moving grain)
+                lines = open(data).read().splitlines()
+                first = lines.index("Atoms # sphere") + 2
+                for i in range(first, first + n_base):
+                    fields = lines[i].split()
+                    fields[3] = _num(1e9 * density)
+                    lines[i] = " ".join(fields)
+                with open(data, "w") as f:
+                    f.write("\n".join(lines) + "\n")
             script = [
                 "units si", "atom_style sphere", "atom_modify map array", "boundary f f fm", "newton off",
                 "comm_modify vel yes", f"read_data {data}",

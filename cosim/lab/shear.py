@@ -16,7 +16,7 @@ Measured (every recorded step, from the boundary wrenches):
     tau     = -(F_x on the upper frame + F_x on the lid) / (L W)         [Pa]
     sigma_n = (F_z on the lid + weight of the grains above the shear plane) / (L W)   [Pa]
 Peak: the largest tau of the curve smoothed over 1/20 of the displacement; residual: the
-mean over the last quarter. tau = c + sigma_n tan(phi) fitted (scipy.stats.linregress) to
+mean over the second half of the displacement. tau = c + sigma_n tan(phi) fitted (scipy.stats.linregress) to
 every (sigma_n, tau) pair of every replica, for the peak and for the residual state; and
 tau = sigma_n tan(phi_0) through the origin (a cohesionless soil's angle).
 Quasi-static when the inertial number I = (v / 10 d) d / sqrt(sigma / rho) <= 1e-3.
@@ -237,7 +237,7 @@ def _shear(plan: LabPlan, geometry: ShearBox, replica: int, path: str, stress: f
     inner = slice(edge, len(u) - edge) if len(u) > 2 * edge + 1 else slice(None)
     peak = int(np.argmax(smooth[inner])) + (inner.start or 0)
     near = slice(max(0, peak - window // 2), peak + window // 2 + 1)
-    residual = u >= 0.75 * u[-1]
+    residual = u >= 0.5 * u[-1]
     return {"replica": replica, "stress": stress, "displacement": u, "tau": tau, "sigma": sigma,
             "tau_lower": tau_lower, "rise": rise,
             "peak_tau": float(smooth[peak]), "peak_sigma": float(sigma[near].mean()),
