@@ -293,7 +293,11 @@ def _figure(out_dir: str, history: list[dict], parameters: list[Parameter], targ
     plt = common.pyplot()
     if plt is None or not history:
         return None
+    from matplotlib.ticker import MaxNLocator
+
     fig, axes = plt.subplots(1, len(targets) + 1, figsize=(5 * (len(targets) + 1), 4), squeeze=False)
+    for ax in axes[0]:
+        ax.xaxis.set_major_locator(MaxNLocator(integer=True))
     numbers = [row["evaluation"] for row in history]
     for ax, name in zip(axes[0], targets):
         ax.plot(numbers, [row["measured"][name] for row in history], "o-")
