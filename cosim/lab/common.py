@@ -9,6 +9,8 @@ import math
 import os
 import time
 import traceback
+from collections.abc import Sequence
+from typing import Any
 
 import numpy as np
 
@@ -184,7 +186,7 @@ def prepare_folder(plan: LabPlan, out_dir: str, overwrite: bool) -> None:
         f.write(plan.scene.to_toml())
 
 
-def write_csv(path: str, columns: list[tuple[str, str, object]]) -> None:
+def write_csv(path: str, columns: Sequence[tuple[str, str, Any]]) -> None:
     """A CSV file whose header names each column with its unit, 'name [unit]'."""
     arrays = [np.asarray(values).reshape(-1) for _, _, values in columns]
     length = max((len(a) for a in arrays), default=0)

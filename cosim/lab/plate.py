@@ -19,6 +19,8 @@ from __future__ import annotations
 import logging
 import math
 import os
+from collections.abc import Callable
+from typing import Any
 
 import numpy as np
 
@@ -195,14 +197,12 @@ def bekker_fit(curves: list[tuple[float, np.ndarray, np.ndarray]], fit_from: flo
     """
     from scipy import optimize, stats
 
-    b, z, p = [], [], []
-    per_width = {}
+    parts: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []
+    per_width: dict[float, dict] = {}
     for width, sinkage, pressure in curves:
         use = (np.asarray(sinkage) >= fit_from) & (np.asarray(pressure) > 0)
-        b.append(np.full(use.sum(), width))
-        z.append(np.asarray(sinkage)[use])
-        p.append(np.asarray(pressure)[use])
-    b, z, p = np.concatenate(b), np.concatenate(z), np.concatenate(p)
+        parts.append((np.full(use.sum(), width), np.asarray(sinkage)[use], np.asarray(pressure)[use]))
+    b, z, p = (np.concatenate([part[i] for part in parts]) for i in range(3))
     result = {"points": int(len(z)), "k_c": math.nan, "k_phi": math.nan, "k": math.nan, "n": math.nan,
               "k_c_se": math.nan, "k_phi_se": math.nan, "n_se": math.nan, "r_squared": math.nan, "rms_pa": math.nan,
               "per_width": per_width}
@@ -219,15 +219,10 @@ def bekker_fit(curves: list[tuple[float, np.ndarray, np.ndarray]], fit_from: flo
         ks = np.array([w["k"] for w in per_width.values()])
         slope, intercept = np.polyfit(inverse, ks, 1)
 
-        def model(x, k_c, k_phi, n):
-            return (k_c / x[1] + k_phi) * x[0] ** n
-
+        model: Callable[..., Any] = _bekker_widths
         start = [slope, intercept, n0]
     else:
-
-        def model(x, k, n):
-            return k * x[0] ** n
-
+        model = _bekker_one_width
         start = [next(iter(per_width.values()))["k"], n0]
     try:
         values, covariance = optimize.curve_fit(model, (z, b), p, p0=start, maxfev=20000)
@@ -245,6 +240,16 @@ def bekker_fit(curves: list[tuple[float, np.ndarray, np.ndarray]], fit_from: flo
     else:
         result.update(k=float(values[0]), n=float(values[1]), n_se=float(errors[1]))
     return result
+
+
+def _bekker_widths(x, k_c, k_phi, n):
+    """p = (k_c / b + k_phi) z^n for x = (z, b)."""
+    return (k_c / x[1] + k_phi) * x[0] ** n
+
+
+def _bekker_one_width(x, k, n):
+    """p = k z^n for x = (z, b)."""
+    return k * x[0] ** n
 
 
 def bekker_pressure(fit: dict, width: float, sinkage) -> np.ndarray:

@@ -196,12 +196,12 @@ def measure_heap(positions, radii, centre, base_top: float, bin_width: float, se
     if flank.sum() < 3:
         return result
     slope = np.polyfit(centres[flank], profile[flank], 1)[0]
-    angles = []
+    fitted = []
     for s in range(sectors):
         use = flank & np.isfinite(tops[s])
         if use.sum() >= 3:
-            angles.append(math.degrees(math.atan(-np.polyfit(centres[use], tops[s, use], 1)[0])))
-    angles = np.asarray(angles)
+            fitted.append(math.degrees(math.atan(-np.polyfit(centres[use], tops[s, use], 1)[0])))
+    angles = np.asarray(fitted)
     result.update(angle_profile=math.degrees(math.atan(-slope)), sectors_fitted=len(angles))
     if len(angles):
         result.update(angle=float(angles.mean()), angle_std=float(angles.std(ddof=1)) if len(angles) > 1 else math.nan,

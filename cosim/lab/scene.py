@@ -297,8 +297,8 @@ def resolve_lab(scene: LabScene, needs_gravity: bool = False, test: str = "lab")
     if problems:
         raise SceneError(problems)
     return LabPlan(scene=scene, name=scene.scene.name, device=device, precision=scene.scene.precision,
-                   gravity=tuple(float(v) for v in gravity), law=law, soil=soil, radius_mean=bed.radius_mean,
-                   radius_spread=bed.radius_spread, seed=bed.seed, dt=dt)
+                   gravity=(float(gravity[0]), float(gravity[1]), float(gravity[2])), law=law, soil=soil,
+                   radius_mean=bed.radius_mean, radius_spread=bed.radius_spread, seed=bed.seed, dt=dt)
 
 
 def load_lab_plan(path, overrides=None, needs_gravity: bool = False, test: str = "lab") -> LabPlan:

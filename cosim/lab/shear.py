@@ -152,8 +152,8 @@ def _specimen(plan: LabPlan, geometry: ShearBox, replica: int, path: str) -> dic
     wall = builder.add_material(plan.wall_material(plan.scene.shear.wall_friction_deg))
     builder.add_plane((0, 0, 0), (0, 0, 1), grain)
     lower, upper = geometry.frames()
-    for corners in lower + upper:
-        builder.add_box(*corners, wall)
+    for low, high in lower + upper:
+        builder.add_box(low, high, wall)
     seed, order_seed = common.replica_seeds(plan, replica)
     positions, radii = common.lattice_fill(plan, (0, 0, 0), (geometry.length, geometry.width), geometry.count, seed)
     builder.add_particles(positions, radii, grain)
@@ -334,9 +334,10 @@ def shear_test(plan: LabPlan, out_dir: str, overwrite: bool = False, executor: s
               for row in zip(r["displacement"], r["tau"], r["sigma"], r["tau_lower"], r["rise"])]
     names = [("replica", "1"), ("normal_stress_nominal", "Pa"), ("displacement", "m"), ("shear_stress", "Pa"),
              ("normal_stress", "Pa"), ("shear_stress_lower_half", "Pa"), ("lid_rise", "m")]
+    columns = list(zip(*curves)) if curves else [() for _ in names]
     common.write_csv(os.path.join(out_dir, "shear.csv"),
-                     [(n, unit, [c[i] for c in curves]) for i, (n, unit) in enumerate(names)])
-    points = summary["points"]
+                     [(n, unit, column) for (n, unit), column in zip(names, columns)])
+    points: list[dict] = summary["points"]  # type: ignore[assignment]
     common.write_csv(os.path.join(out_dir, "shear_points.csv"), [
         ("replica", "1", [p["replica"] for p in points]),
         ("normal_stress_nominal", "Pa", [p["normal_stress_nominal_pa"] for p in points]),
