@@ -268,7 +268,8 @@ def quasi_static_numbers(plan: LabPlan, column_height: float, lift_speed_value: 
 def repose_test(plan: LabPlan, out_dir: str, overwrite: bool = False, executor: str = "serial",
                 scheduler: str | None = None, workers: int | None = None) -> dict:
     """Run lab.replicas heaps (through cosim.study.Executor), write the report into out_dir
-    (repose.csv, repose_history.csv, summary.json, repose.png) and return the summary."""
+    (repose.csv: the surface profiles; repose_grains.csv: the heaps' grains, to measure again;
+    repose_history.csv; summary.json; repose.png) and return the summary."""
     common.prepare_folder(plan, out_dir, overwrite)
     replicas = plan.scene.lab.replicas
     geo = geometry(plan, 0)
@@ -302,6 +303,10 @@ def repose_test(plan: LabPlan, out_dir: str, overwrite: bool = False, executor: 
     common.write_csv(os.path.join(out_dir, "repose.csv"), [
         ("replica", "1", [row[0] for row in rows]), ("radius", "m", [row[1] for row in rows]),
         ("surface_height", "m", [row[2] for row in rows]), ("sectors_filled", "1", [row[3] for row in rows])])
+    grains = [(r["replica"], *x, radius) for r in done for x, radius in zip(r["positions"], r["radii"])]
+    common.write_csv(os.path.join(out_dir, "repose_grains.csv"), [
+        ("replica", "1", [g[0] for g in grains]), ("x", "m", [g[1] for g in grains]), ("y", "m", [g[2] for g in grains]),
+        ("z", "m", [g[3] for g in grains]), ("radius", "m", [g[4] for g in grains])])
     history = [(r["replica"], *h) for r in done for h in r["history"]]
     common.write_csv(os.path.join(out_dir, "repose_history.csv"), [
         ("replica", "1", [h[0] for h in history]), ("time", "s", [h[1] for h in history]),
