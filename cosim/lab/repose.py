@@ -304,9 +304,9 @@ def repose_test(plan: LabPlan, out_dir: str, overwrite: bool = False, executor: 
         ("replica", "1", [row[0] for row in rows]), ("radius", "m", [row[1] for row in rows]),
         ("surface_height", "m", [row[2] for row in rows]), ("sectors_filled", "1", [row[3] for row in rows])])
     grains = [(r["replica"], *x, radius) for r in done for x, radius in zip(r["positions"], r["radii"])]
-    common.write_csv(os.path.join(out_dir, "repose_grains.csv"), [
-        ("replica", "1", [g[0] for g in grains]), ("x", "m", [g[1] for g in grains]), ("y", "m", [g[2] for g in grains]),
-        ("z", "m", [g[3] for g in grains]), ("radius", "m", [g[4] for g in grains])])
+    common.write_csv(os.path.join(out_dir, "repose_grains.csv"),
+                     [(name, unit, [g[i] for g in grains]) for i, (name, unit) in
+                      enumerate((("replica", "1"), ("x", "m"), ("y", "m"), ("z", "m"), ("radius", "m")))])
     history = [(r["replica"], *h) for r in done for h in r["history"]]
     common.write_csv(os.path.join(out_dir, "repose_history.csv"), [
         ("replica", "1", [h[0] for h in history]), ("time", "s", [h[1] for h in history]),
