@@ -241,3 +241,22 @@ def test_plate_bekker_fit_reproduces_its_curves(tmp_path):
     with pytest.raises(SceneError, match="bed.bed_file: the bed's grains are not the scene's"):
         plate_check(resolve_lab(other))
     plate_check(resolve_lab(lab_scene_from_text(PLATE, overrides={"bed.bed_file": str(bed)})))
+
+
+def test_cosim_lab_repose_writes_its_report(tmp_path, capsys):
+    """The command end to end on a heap too small to measure (phases cut short): exit 0, every
+    file written, the CSV headers with units, the notes saying what was cut short."""
+    scene = tmp_path / "heap.toml"
+    scene.write_text("[scene]\ngravity = 'earth'\nprecision = 'double'\ndevice = 'cpu'\n[soil]\nyoungs_modulus = 1e5\n"
+                     "[bed]\nradius_mean = 0.002\n[lab]\nmax_time_factor = 2.0\n"
+                     "[repose]\ntube_width = 0.02\nfill_height = 0.01\nlift_ratio = 0.3\nbase_width = 0.04\n")
+    out = tmp_path / "out"
+    assert main(["lab", "repose", str(scene), "--serial", "--out", str(out)]) == 0
+    printed = capsys.readouterr().out
+    assert "angle of repose" in printed and "lift speed v / sqrt(g d) = 0.3" in printed
+    assert "hit lab.max_time_factor" in printed
+    for name in ("scene.toml", "summary.json", "repose.csv", "repose_grains.csv", "repose_history.csv", "repose.png"):
+        assert (out / name).is_file(), name
+    assert (out / "repose.csv").read_text().splitlines()[0] == ("replica [1],radius [m],surface_height [m],"
+                                                                 "sectors_filled [1]")
+    assert main(["lab", "repose", str(scene), "--serial", "--out", str(out)]) == 3  # nothing is overwritten
