@@ -10,6 +10,8 @@
     cosim study slip SCENE.toml --slips 0.1,0.2,0.4 [--replicas K] [--out DIR] ...
     cosim sweep SCENE.toml --param wheel.radius=0.03,0.04 --param wheel.grouser_count=0,12 [--out DIR] ...
     cosim scale SCENE.toml --gravity G --out TWIN.toml
+    cosim lab repose|shear|plate SCENE.toml [--out DIR] [--replicas K] [--set key=value ...] [--workers N | --serial]
+    cosim calibrate SCENE.toml --target repose=30 --vary soil.rolling_friction=0:0.3 [--tolerance repose=1] ...
 
 Output: results and summaries on stdout; progress bars, notes and warnings on stderr;
 Warp's own messages only with --verbose.
@@ -273,6 +275,111 @@ def cmd_export_fmu(args) -> int:
     return EXIT_OK
 
 
+# -- the soil lab (cosim.lab, docs/lab.md) -------------------------------------------------------
+
+
+def _lab_plan(args, test: str):
+    from .lab.scene import load_lab_plan
+
+    overrides = _overrides(args)
+    if args.replicas is not None:
+        overrides.append(f"lab.replicas={args.replicas}")
+    return load_lab_plan(args.scene, overrides, needs_gravity=test in ("repose", "plate", "calibrate"), test=test)
+
+
+def cmd_lab(args) -> int:
+    from .lab import plate_test, repose_test, shear_test
+
+    plan = _lab_plan(args, args.test)
+    out = args.out or os.path.join("runs", f"{plan.name}_{args.test}")
+    run = {"repose": repose_test, "shear": shear_test, "plate": plate_test}[args.test]
+    summary = run(plan, out, overwrite=args.overwrite, **_executor(args))
+    print(f"{args.test}: {out}")
+    for line in lab_lines(summary):
+        print(f"  {line}")
+    return EXIT_OK
+
+
+def lab_lines(summary: dict) -> list[str]:
+    """The measured values of a lab summary, its quasi-static numbers and notes, as text lines."""
+
+    def stats(name, value, unit):
+        if value.get("n", 0) > 1:
+            return (f"{name:26s} {value['mean']:.4g} {unit} +- {value['ci95']:.2g} (95 %, {value['n']} replicas; "
+                    f"min {value['min']:.4g}, max {value['max']:.4g})")
+        return f"{name:26s} {value.get('mean', float('nan')):.4g} {unit}"
+
+    lines = []
+    if summary["test"] == "repose":
+        lines.append(stats("angle of repose", summary["repose_angle_deg"], "deg"))
+    elif summary["test"] == "shear":
+        for state in ("peak", "residual"):
+            fit = summary[state]
+            lines.append(f"{state + ' friction angle':26s} {fit['friction_angle_deg']:.4g} deg"
+                         + (f" +- {fit['friction_angle_se_deg']:.2g} (s.e.)" if fit.get("points", 0) > 2 else ""))
+            lines.append(f"{state + ' cohesion':26s} {fit['cohesion_pa']:.4g} Pa"
+                         + (f" +- {fit['cohesion_se_pa']:.2g} (s.e.)" if fit.get("points", 0) > 2 else ""))
+            lines.append(f"{state + ' angle (c = 0)':26s} {fit['friction_angle_origin_deg']:.4g} deg")
+    elif summary["test"] == "plate":
+        fit = summary["bekker"]
+        if fit["k_c"] == fit["k_c"]:
+            lines.append(f"{'Bekker k_c':26s} {fit['k_c']:.4g} N/m^(n+1) +- {fit['k_c_se']:.2g} (s.e.)")
+            lines.append(f"{'Bekker k_phi':26s} {fit['k_phi']:.4g} N/m^(n+2) +- {fit['k_phi_se']:.2g} (s.e.)")
+        else:
+            lines.append(f"{'Bekker k':26s} {fit['k']:.4g} N/m^(n+2) (one plate width: k = k_c / b + k_phi)")
+        lines.append(f"{'Bekker n':26s} {fit['n']:.4g} +- {fit['n_se']:.2g} (s.e.); R^2 {fit['r_squared']:.3f}")
+    for number in summary.get("quasi_static", []):
+        flag = "ok" if number["ok"] else "OUT OF RANGE"
+        lines.append(f"[{flag}] {number['name']} = {number['value']:.3g} (limit {number['limit']:.3g})")
+    lines += [f"! {note}" for note in summary.get("notes", [])]
+    if summary.get("figure"):
+        lines.append(f"figure: {summary['figure']}")
+    return lines
+
+
+def cmd_calibrate(args) -> int:
+    from .lab.calibrate import calibrate, parse_parameters, parse_targets, parse_tolerances
+
+    targets = parse_targets(args.target)
+    parameters = parse_parameters(args.vary)
+    tolerances = parse_tolerances(args.tolerance, targets)
+    plan = _lab_plan(args, "calibrate" if "repose" in targets else "shear")
+    out = args.out or os.path.join("runs", f"{plan.name}_calibrate")
+    summary = calibrate(plan, out, targets, parameters, tolerances, max_evaluations=args.max_evaluations,
+                        overwrite=args.overwrite, **_executor(args))
+    best = summary["best"]
+    print(f"calibrate: {out}: {summary['message']} ({len(summary['evaluations'])} evaluations, {summary['method']})")
+    for key, value in best["values"].items():
+        print(f"  {key:40s} {value:.6g}")
+    for name, value in best["measured"].items():
+        print(f"  {name + ' measured':40s} {value:.4g} (target {summary['targets'][name]:g} +- "
+              f"{summary['tolerances'][name]:g})")
+    print(f"  calibrated scene: {summary['calibrated_scene']}")
+    return EXIT_OK if summary["converged"] else EXIT_UNSTEADY
+
+
+def add_lab_commands(sub, scene_options, cluster_options) -> None:
+    """`cosim lab TEST SCENE` and `cosim calibrate SCENE` (docs/lab.md)."""
+    p = sub.add_parser("lab", help="soil lab tests: angle of repose, direct shear, pressure-sinkage (docs/lab.md)")
+    p.add_argument("test", choices=["repose", "shear", "plate"])
+    scene_options(p)
+    cluster_options(p)
+    p.add_argument("--replicas", type=int, help="specimens (overrides lab.replicas)")
+    p.set_defaults(func=cmd_lab)
+
+    p = sub.add_parser("calibrate", help="tune contact parameters to target bulk values with the lab tests")
+    scene_options(p)
+    cluster_options(p)
+    p.add_argument("--target", action="append", required=True, metavar="NAME=VALUE",
+                   help="repose [deg], friction, friction_residual [deg], cohesion, cohesion_residual [Pa]")
+    p.add_argument("--vary", action="append", required=True, metavar="KEY[,KEY]=LOW:HIGH",
+                   help="a scene key (or keys set together) and its range, e.g. soil.rolling_friction=0:0.3")
+    p.add_argument("--tolerance", action="append", metavar="NAME=VALUE", help="per target (default 1 deg, 10 %% Pa)")
+    p.add_argument("--max-evaluations", type=int, default=12, help="most lab evaluations (default 12)")
+    p.add_argument("--replicas", type=int, help="specimens per evaluation (overrides lab.replicas)")
+    p.set_defaults(func=cmd_calibrate)
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="cosim", description="regolith-cosim: DEM soil co-simulated with rovers",
                                      epilog="exit status: 0 ok, 1 unexpected error, 2 bad input, 3 output folder "
@@ -352,6 +459,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--python", help="the soil server's default Python (default: this one)")
     p.add_argument("--bed-folder", help="where a scene's bed is settled and cached (default: a temporary folder)")
     p.set_defaults(func=cmd_export_fmu)
+
+    add_lab_commands(sub, scene_options, cluster_options)
     return parser
 
 

@@ -1,0 +1,320 @@
+"""Calibration: tune scene keys (contact parameters) until the lab tests measure target bulk values.
+
+    cosim calibrate SCENE --target repose=30 --vary soil.rolling_friction=0:0.3
+    cosim calibrate SCENE --target friction=25 --target cohesion=200 \\
+        --vary soil.stick_angle_deg,soil.slip_angle_deg=10:40 --vary soil.cohesion=0:2000
+
+Targets (what the lab measures):
+    repose             angle of repose [deg]                  (repose test, mean over replicas)
+    friction           peak Mohr-Coulomb friction angle [deg] (shear test)
+    friction_residual  residual friction angle [deg]          (shear test)
+    cohesion           peak Mohr-Coulomb cohesion [Pa]        (shear test)
+    cohesion_residual  residual cohesion [Pa]                 (shear test)
+
+Each --vary names one scene key, or several joined by commas that take one value together
+(a stick and a slip angle moved as one friction angle), and its range LOW:HIGH.
+
+The loop (one evaluation = the lab tests the targets need, with lab.replicas replicas,
+run through cosim.study.Executor; each in OUT/evaluations/NNN/):
+- one key, one target: Brent's method (scipy.optimize.brentq) on measured - target over
+  [LOW, HIGH]; both ends are measured first and must bracket the target;
+- otherwise: Nelder-Mead (scipy.optimize.minimize, bounded) on the sum of squared misfits,
+  each over its tolerance, in the keys scaled to [0, 1], from the scene's values.
+Both stop at the first evaluation whose every target is within its tolerance (--tolerance
+NAME=VALUE; defaults 1 deg, and 10 % or 1 Pa for cohesion) or after --max-evaluations.
+The measurements are chaotic: replicas (lab.replicas) average the scatter that the
+tolerance must exceed. Output: history.csv, summary.json, calibrate.png, and
+calibrated.toml, the scene with the best values found.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import os
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..scene import SceneError, parse_value
+from ..study import Executor
+from . import common
+from .scene import LabPlan
+
+log = logging.getLogger("cosim.lab")
+
+
+@dataclass(frozen=True)
+class Target:
+    """A bulk value the lab measures."""
+
+    name: str
+    test: str
+    """'repose' or 'shear'."""
+    unit: str
+    key: tuple[str, str]
+    """Where the value sits in the test's summary."""
+
+
+TARGETS = {
+    "repose": Target("repose", "repose", "deg", ("repose_angle_deg", "mean")),
+    "friction": Target("friction", "shear", "deg", ("peak", "friction_angle_deg")),
+    "friction_residual": Target("friction_residual", "shear", "deg", ("residual", "friction_angle_deg")),
+    "cohesion": Target("cohesion", "shear", "Pa", ("peak", "cohesion_pa")),
+    "cohesion_residual": Target("cohesion_residual", "shear", "Pa", ("residual", "cohesion_pa")),
+}
+
+
+@dataclass(frozen=True)
+class Parameter:
+    """Scene keys that take one value together, and their range."""
+
+    keys: tuple[str, ...]
+    low: float
+    high: float
+
+    @property
+    def name(self) -> str:
+        return ",".join(self.keys)
+
+
+class _Converged(Exception):
+    """Every target is within its tolerance: the optimiser stops here."""
+
+
+class _OutOfEvaluations(Exception):
+    """--max-evaluations evaluations were made: the optimiser stops here."""
+
+
+def parse_targets(texts: list[str]) -> dict[str, float]:
+    """['repose=30', ...] -> {'repose': 30.0}; SceneError names a bad one."""
+    targets = {}
+    for text in texts or []:
+        name, _, value = text.partition("=")
+        name = name.strip()
+        if name not in TARGETS:
+            raise SceneError([f"--target {text!r}: unknown target {name!r}; allowed: {', '.join(TARGETS)}"])
+        number = parse_value(value)
+        if not isinstance(number, (int, float)) or not math.isfinite(number):
+            raise SceneError([f"--target {text!r}: the value must be a finite number ({TARGETS[name].unit})"])
+        if TARGETS[name].unit == "deg" and not 0 < number < 90:
+            raise SceneError([f"--target {text!r}: an angle must be in (0, 90) deg"])
+        targets[name] = float(number)
+    if not targets:
+        raise SceneError(["--target: give at least one target, e.g. --target repose=30"])
+    return targets
+
+
+def parse_parameters(texts: list[str]) -> list[Parameter]:
+    """['soil.rolling_friction=0:0.3', 'soil.stick_angle_deg,soil.slip_angle_deg=10:40'] -> Parameters."""
+    parameters = []
+    for text in texts or []:
+        keys, _, bounds = text.partition("=")
+        low, _, high = bounds.partition(":")
+        low, high = parse_value(low), parse_value(high)
+        names = tuple(k.strip() for k in keys.split(",") if k.strip())
+        if not names or not all(isinstance(v, (int, float)) and math.isfinite(v) for v in (low, high)) or low >= high:
+            raise SceneError([f"--vary {text!r}: expected KEY[,KEY...]=LOW:HIGH with LOW < HIGH, e.g. "
+                              "soil.rolling_friction=0:0.3"])
+        parameters.append(Parameter(names, float(low), float(high)))
+    if not parameters:
+        raise SceneError(["--vary: give at least one scene key to vary, e.g. --vary soil.rolling_friction=0:0.3"])
+    return parameters
+
+
+def default_tolerance(name: str, target: float) -> float:
+    """1 deg for an angle; for a cohesion 10 % of the target, at least 1 Pa."""
+    return 1.0 if TARGETS[name].unit == "deg" else max(0.1 * abs(target), 1.0)
+
+
+def parse_tolerances(texts: list[str], targets: dict[str, float]) -> dict[str, float]:
+    """Tolerances per target: --tolerance NAME=VALUE, else default_tolerance."""
+    tolerances = {name: default_tolerance(name, value) for name, value in targets.items()}
+    for text in texts or []:
+        name, _, value = text.partition("=")
+        number = parse_value(value)
+        if name not in targets or not isinstance(number, (int, float)) or not number > 0:
+            raise SceneError([f"--tolerance {text!r}: expected NAME=VALUE > 0 for one of the targets "
+                              f"({', '.join(targets)})"])
+        tolerances[name] = float(number)
+    return tolerances
+
+
+def _overrides(parameters: list[Parameter], values) -> dict:
+    return {key: float(v) for p, v in zip(parameters, values) for key in p.keys}
+
+
+def measure(plan: LabPlan, tests: set[str], out_dir: str, executor: dict) -> dict[str, float]:
+    """Run the lab tests `tests` on a plan into out_dir/<test>; the measured value of every target
+    those tests give."""
+    from .repose import repose_test
+    from .shear import shear_test
+
+    runners = {"repose": repose_test, "shear": shear_test}
+    measured = {}
+    for test in sorted(tests):
+        summary = runners[test](plan, os.path.join(out_dir, test), overwrite=True, **executor)
+        for target in TARGETS.values():
+            if target.test == test:
+                section, field = target.key
+                measured[target.name] = float(summary[section].get(field, math.nan))
+    return measured
+
+
+def calibrate(plan: LabPlan, out_dir: str, targets: dict[str, float], parameters: list[Parameter],
+              tolerances: dict[str, float] | None = None, max_evaluations: int = 12, overwrite: bool = False,
+              executor: str = "serial", scheduler: str | None = None, workers: int | None = None) -> dict:
+    """Tune `parameters` until the lab measures `targets` (module docstring); returns the summary
+    (also OUT/summary.json) with the best values, what they measure and whether every target is
+    within its tolerance."""
+    if max_evaluations < 2:
+        raise SceneError([f"--max-evaluations: must be >= 2 (got {max_evaluations})"])
+    tolerances = tolerances or {name: default_tolerance(name, value) for name, value in targets.items()}
+    for p in parameters:  # both ends must be valid scenes (a slip angle above the stick angle, ...)
+        for value in (p.low, p.high):
+            plan.with_changes(_overrides([p], [value]))
+    common.prepare_folder(plan, out_dir, overwrite)
+    tests = {TARGETS[name].test for name in targets}
+    with Executor(executor, scheduler, workers) as cluster:  # one cluster for every evaluation
+        return _calibrate(plan, out_dir, targets, parameters, tolerances, max_evaluations, tests, {"executor": cluster})
+
+
+def _calibrate(plan: LabPlan, out_dir: str, targets: dict, parameters: list[Parameter], tolerances: dict,
+               max_evaluations: int, tests: set[str], run_on: dict) -> dict:
+    """The optimisation loop of `calibrate` (run_on: the executor the lab tests use)."""
+    from scipy import optimize
+
+    history: list[dict] = []
+    scale = np.array([p.high - p.low for p in parameters])
+    low = np.array([p.low for p in parameters])
+
+    def evaluate(values) -> dict:
+        values = [float(v) for v in values]
+        for row in history:  # an optimiser may ask twice for the same point
+            if np.allclose(row["values"], values, rtol=0, atol=1e-12 * scale.max()):
+                return row
+        number = len(history) + 1
+        folder = os.path.join(out_dir, "evaluations", f"{number:03d}")
+        log.info("calibrate: evaluation %d: %s", number, ", ".join(f"{p.name} = {v:.6g}"
+                                                                  for p, v in zip(parameters, values)))
+        measured = measure(plan.with_changes(_overrides(parameters, values)), tests, folder, run_on)
+        misfit = {name: measured[name] - targets[name] for name in targets}
+        cost = float(sum((misfit[n] / tolerances[n]) ** 2 for n in targets))
+        within = all(abs(misfit[n]) <= tolerances[n] for n in targets)
+        row = {"evaluation": number, "values": values, "measured": measured, "misfit": misfit, "cost": cost,
+               "within": within, "folder": folder}
+        history.append(row)
+        log.info("calibrate: evaluation %d measured %s", number,
+                 ", ".join(f"{n} {measured[n]:.4g} (target {targets[n]:.4g})" for n in targets))
+        if within:
+            raise _Converged
+        if len(history) >= max_evaluations:
+            raise _OutOfEvaluations
+        return row
+
+    method = "brentq" if len(parameters) == 1 and len(targets) == 1 else "nelder-mead"
+    message = ""
+    try:
+        if method == "brentq":
+            (name,) = targets
+            p = parameters[0]
+            at_low, at_high = evaluate([p.low]), evaluate([p.high])
+            if np.sign(at_low["misfit"][name]) == np.sign(at_high["misfit"][name]):
+                message = (f"the target {name} = {targets[name]:g} is not between what the ends of {p.name} measure "
+                           f"({at_low['measured'][name]:.4g} at {p.low:g}, {at_high['measured'][name]:.4g} at "
+                           f"{p.high:g}): widen the range or vary another key")
+            else:
+                optimize.brentq(lambda v: evaluate([v])["misfit"][name], p.low, p.high,
+                                xtol=1e-4 * (p.high - p.low), maxiter=max_evaluations)
+        else:
+            start = []
+            for p in parameters:
+                current = plan.scene.to_dict()
+                for part in p.keys[0].split("."):
+                    current = current.get(part, {}) if isinstance(current, dict) else {}
+                value = current if isinstance(current, (int, float)) else 0.5 * (p.low + p.high)
+                start.append(min(max((value - p.low) / (p.high - p.low), 0.0), 1.0))
+            optimize.minimize(lambda u: evaluate(low + scale * np.asarray(u))["cost"], np.asarray(start),
+                              method="Nelder-Mead", bounds=[(0.0, 1.0)] * len(parameters),
+                              options={"maxfev": max_evaluations, "xatol": 1e-3, "fatol": 0.1,
+                                       "initial_simplex": _simplex(np.asarray(start))})
+    except _Converged:
+        message = "every target is within its tolerance"
+    except _OutOfEvaluations:
+        message = f"stopped after --max-evaluations {max_evaluations} evaluations"
+    except RuntimeError as error:  # brentq without convergence
+        message = f"the optimiser stopped: {error}"
+    best = min(history, key=lambda row: row["cost"])
+    converged = best["within"]
+    if not message:
+        message = "every target is within its tolerance" if converged else "the optimiser ended outside the tolerance"
+    best_overrides = _overrides(parameters, best["values"])
+    calibrated = plan.with_changes(best_overrides)
+    path = os.path.join(out_dir, "calibrated.toml")
+    with open(path, "w") as f:
+        f.write(calibrated.scene.to_toml())
+    summary = {"test": "calibrate", "name": plan.name, "method": method, "converged": converged, "message": message,
+               "targets": targets, "tolerances": tolerances,
+               "parameters": [{"keys": list(p.keys), "low": p.low, "high": p.high} for p in parameters],
+               "best": {"evaluation": best["evaluation"], "values": dict(zip([p.name for p in parameters],
+                                                                             best["values"])),
+                        "measured": best["measured"], "misfit": best["misfit"]},
+               "calibrated_scene": path,
+               "evaluations": [{k: row[k] for k in ("evaluation", "values", "measured", "misfit", "cost", "within")}
+                               for row in history]}
+    columns = [("evaluation", "1", [row["evaluation"] for row in history])]
+    for i, p in enumerate(parameters):
+        columns.append((p.name, "scene units", [row["values"][i] for row in history]))
+    for name in targets:
+        unit = TARGETS[name].unit
+        columns.append((f"{name}_measured", unit, [row["measured"][name] for row in history]))
+        columns.append((f"{name}_target", unit, [targets[name]] * len(history)))
+    columns.append(("cost", "1", [row["cost"] for row in history]))
+    common.write_csv(os.path.join(out_dir, "history.csv"), columns)
+    summary["figure"] = _figure(out_dir, history, parameters, targets, tolerances)
+    common.write_summary(out_dir, summary)
+    log.info("calibrate: %s; best (evaluation %d): %s", message, best["evaluation"],
+             ", ".join(f"{p.name} = {v:.6g}" for p, v in zip(parameters, best["values"])))
+    return summary
+
+
+def _simplex(start: np.ndarray) -> np.ndarray:
+    """The first Nelder-Mead simplex: the start and a step of 0.25 (of each range) along each key,
+    inwards from a bound."""
+    points = [start]
+    for i in range(len(start)):
+        point = start.copy()
+        point[i] += 0.25 if start[i] <= 0.75 else -0.25
+        points.append(point)
+    return np.asarray(points)
+
+
+def _figure(out_dir: str, history: list[dict], parameters: list[Parameter], targets: dict, tolerances: dict):
+    plt = common.pyplot()
+    if plt is None or not history:
+        return None
+    from matplotlib.ticker import MaxNLocator
+
+    fig, axes = plt.subplots(1, len(targets) + 1, figsize=(5 * (len(targets) + 1), 4), squeeze=False)
+    for ax in axes[0]:
+        ax.xaxis.set_major_locator(MaxNLocator(integer=True))
+    numbers = [row["evaluation"] for row in history]
+    for ax, name in zip(axes[0], targets):
+        ax.plot(numbers, [row["measured"][name] for row in history], "o-")
+        ax.axhspan(targets[name] - tolerances[name], targets[name] + tolerances[name], color="tab:green", alpha=0.2,
+                   label="target +- tolerance")
+        ax.set_xlabel("evaluation")
+        ax.set_ylabel(f"{name} [{TARGETS[name].unit}]")
+        ax.legend(fontsize=8)
+    ax = axes[0][-1]
+    for i, p in enumerate(parameters):
+        ax.plot(numbers, [(row["values"][i] - p.low) / (p.high - p.low) for row in history], "o-", label=p.name)
+    ax.set_xlabel("evaluation")
+    ax.set_ylabel("value within its range [-]")
+    ax.set_ylim(-0.05, 1.05)
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    path = os.path.join(out_dir, "calibrate.png")
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+    return path

@@ -1,0 +1,253 @@
+"""What the lab tests share: fills, phases that run until a condition, replicas through
+cosim.study.Executor, and the report files (CSV with units, summary JSON, figure)."""
+
+from __future__ import annotations
+
+import csv
+import logging
+import math
+import os
+import time
+import traceback
+from collections.abc import Sequence
+from typing import Any
+
+import numpy as np
+
+from soil import Simulation
+from soil.errors import RegolithError
+
+from ..beds import write_json
+from ..metrics import ensemble
+from ..scene import SceneError
+from ..study import Executor, prepare_study
+from .scene import LabPlan, lab_scene_from_text, resolve_lab
+
+log = logging.getLogger("cosim.lab")
+
+SCENE_FILE = "scene.toml"
+SUMMARY_FILE = "summary.json"
+
+
+# -- grains ---------------------------------------------------------------------------------
+
+
+def replica_seeds(plan: LabPlan, replica: int) -> tuple[int, int]:
+    """(fill seed, order_seed) of replica k: a new specimen (bed.seed + k) summed in its own order (k)."""
+    return plan.seed + replica, replica
+
+
+def lattice_fill(plan: LabPlan, lower, upper_xy, count: int, seed: int) -> tuple[np.ndarray, np.ndarray]:
+    """`count` grains on a jittered cubic lattice filling the footprint lower[:2] .. upper_xy
+    from z = lower[2] upwards, layer by layer, not touching each other or the footprint's sides.
+
+    Returns positions [m] shape (count, 3) and radii [m] shape (count,) (uniform in
+    radius_mean (1 +- radius_spread))."""
+    rng = np.random.default_rng(seed)
+    r_max = plan.radius_mean * (1 + plan.radius_spread)
+    pitch = 2.04 * r_max
+    lower = np.asarray(lower, dtype=np.float64)
+    span = np.asarray(upper_xy, dtype=np.float64) - lower[:2]
+    nx, ny = (int((s - 2 * r_max) // pitch) + 1 for s in span)
+    if min(nx, ny) < 1:
+        raise SceneError([f"a fill region of {span[0]:.4g} x {span[1]:.4g} m cannot hold a grain of radius "
+                          f"{r_max:.4g} m (bed.radius_mean, bed.radius_spread)"])
+    layers = -(-count // (nx * ny))
+    grid = np.stack(np.meshgrid(np.arange(nx), np.arange(ny), np.arange(layers), indexing="ij"), -1).reshape(-1, 3)
+    grid = grid[np.lexsort((grid[:, 1], grid[:, 0], grid[:, 2]))][:count]  # lowest layers first
+    radii = plan.radius_mean * (1 + plan.radius_spread * rng.uniform(-1, 1, count))
+    # centre the lattice in the footprint; each grain may move within its cell without touching a neighbour
+    offset = lower + np.array([0.5 * (span[0] - (nx - 1) * pitch), 0.5 * (span[1] - (ny - 1) * pitch), r_max * 1.01])
+    slack = 0.5 * pitch - radii[:, None]
+    jitter = rng.uniform(-1, 1, (count, 3)) * slack
+    jitter[:, 2] = np.abs(jitter[:, 2])  # never below the first layer's floor
+    return offset + grid * pitch + jitter, radii
+
+
+def grains_for(plan: LabPlan, volume: float) -> int:
+    """Grains of the mean size that fill `volume` [m^3] at the packing fraction of a random packing [-]."""
+    from .scene import PACKING_FRACTION
+
+    mean_volume = 4.0 / 3.0 * math.pi * plan.radius_mean**3 * (1 + plan.radius_spread**2)  # E[r^3] of a uniform r
+    return max(1, int(round(PACKING_FRACTION * volume / mean_volume)))
+
+
+def finalize(plan: LabPlan, builder, order_seed: int | None) -> Simulation:
+    """A Simulation of the builder on the plan's device, precision and contact law."""
+    model, state, control = builder.finalize(device=plan.device, precision=plan.precision, law=plan.law,
+                                             order_seed=order_seed)
+    return Simulation(model, state, control)
+
+
+# -- phases ---------------------------------------------------------------------------------
+
+
+def moving_energy(sim: Simulation) -> float:
+    """Translational kinetic energy of the free grains [J]: whether grains still move (a grain
+    spinning in place, which no twisting friction stops, does not change a heap)."""
+    free = sim.model.inv_mass.numpy() > 0
+    v = sim.velocities()[free]
+    return float(0.5 * np.sum(sim.model.mass_numpy()[free] * np.sum(v * v, axis=1)))
+
+
+def kinetic_threshold(sim: Simulation, ratio: float, g: float) -> float:
+    """ratio * N m_mean |g| r_mean over the free grains [J]: 'still' on Earth and on Phobos alike."""
+    free = sim.model.inv_mass.numpy() > 0
+    mass = sim.model.mass_numpy()[free]
+    radius = sim.model.radius_numpy()[free]
+    return ratio * len(mass) * float(mass.mean()) * g * float(radius.mean())
+
+
+def run_until(sim: Simulation, dt: float, done, max_time: float, chunk: float, min_time: float = 0.0,
+              callback=None) -> tuple[float, bool]:
+    """Step in chunks of `chunk` [s] until done(sim) (checked after each chunk, not before
+    min_time [s]) or max_time [s]. Returns (elapsed time [s], whether done)."""
+    start = sim.time
+    while sim.time - start < max_time - 0.5 * dt:
+        sim.run(min(chunk, max_time - (sim.time - start)), dt, callback=callback)
+        sim.check_finite()
+        if sim.time - start >= min_time and done(sim):
+            return sim.time - start, True
+    return sim.time - start, False
+
+
+def chunk_steps(plan: LabPlan, duration: float) -> float:
+    """`duration` [s] rounded to whole DEM steps (at least one) [s]."""
+    return max(1, round(duration / plan.dt)) * plan.dt
+
+
+# -- replicas -------------------------------------------------------------------------------
+
+
+def lab_task(task: dict) -> dict:
+    """Run one lab task: task['runner'](plan, **task['arguments']), the plan from the task's
+    scene_toml, base_dir and overrides; never raises (a failed replica is a result). Module
+    level, and the runner a module-level function: picklable for dask workers."""
+    import warp as wp
+
+    wp.config.log_level = wp.LOG_ERROR
+    started = time.perf_counter()
+    out = {"label": task.get("label"), "replica": task.get("replica")}
+    try:
+        plan = resolve_lab(lab_scene_from_text(task["scene_toml"], task.get("base_dir"), task.get("overrides")))
+        result = task["runner"](plan, **task.get("arguments", {}))
+        out.update(ok=True, result=result)
+    except BaseException as error:  # noqa: BLE001 - reported with the others
+        out.update(ok=False, error=f"{type(error).__name__}: {error}", traceback=traceback.format_exc(limit=6))
+        if isinstance(error, KeyboardInterrupt):
+            raise
+    out["wall_time"] = time.perf_counter() - started
+    return out
+
+
+def map_tasks(plan: LabPlan, runner, arguments: list[dict], labels: list[str], executor="serial",
+              scheduler: str | None = None, workers: int | None = None) -> list[dict]:
+    """runner(plan, **arguments) once per arguments dict, through cosim.study.Executor: executor
+    is 'dask' or 'serial' (an Executor is made for these tasks) or an Executor already open
+    (a calibration keeps one cluster for all its evaluations)."""
+    toml = plan.scene.to_toml()
+    tasks = [{"runner": runner, "scene_toml": toml, "base_dir": plan.scene.base_dir, "arguments": a, "label": label,
+              "replica": a.get("replica")} for a, label in zip(arguments, labels)]
+    if isinstance(executor, Executor):
+        return executor.map(lab_task, tasks)
+    with Executor(executor, scheduler, workers) as ex:
+        return ex.map(lab_task, tasks)
+
+
+def successful(results: list[dict], test: str) -> list[dict]:
+    """The results of the replicas that ran; LabFailed when none did (the first error is named)."""
+    good = [r["result"] for r in results if r.get("ok")]
+    failed = [r for r in results if not r.get("ok")]
+    for r in failed:
+        log.warning("%s %s failed: %s", test, r.get("label"), r.get("error"))
+    if not good:
+        first = failed[0] if failed else {}
+        raise LabFailed(f"every {test} replica failed; the first: {first.get('error')}\n{first.get('traceback', '')}")
+    return good
+
+
+class LabFailed(RegolithError, RuntimeError):
+    """No replica of a lab test produced a result."""
+
+
+def statistics(values) -> dict:
+    """Replica statistics of one measured value (cosim.metrics.ensemble: n, mean, std, ci95, min, max)."""
+    stats = ensemble(list(values))
+    return {k: stats[k] for k in ("n", "mean", "std", "ci95", "min", "max") if k in stats}
+
+
+# -- report files -----------------------------------------------------------------------------
+
+
+def prepare_folder(plan: LabPlan, out_dir: str, overwrite: bool) -> None:
+    """Create the output folder (a non-empty one only with overwrite) and write the scene as run."""
+    prepare_study(out_dir, overwrite)
+    with open(os.path.join(out_dir, SCENE_FILE), "w") as f:
+        f.write(plan.scene.to_toml())
+
+
+def write_csv(path: str, columns: Sequence[tuple[str, str, Any]]) -> None:
+    """A CSV file whose header names each column with its unit, 'name [unit]'."""
+    arrays = [np.asarray(values).reshape(-1) for _, _, values in columns]
+    length = max((len(a) for a in arrays), default=0)
+    with open(path, "w", newline="") as f:
+        writer = csv.writer(f)
+        writer.writerow([f"{name} [{unit}]" for name, unit, _ in columns])
+        for i in range(length):
+            writer.writerow([_cell(a[i]) if i < len(a) else "" for a in arrays])
+
+
+def _cell(value):
+    if isinstance(value, (float, np.floating)):
+        return "" if not np.isfinite(value) else f"{float(value):.10g}"
+    return value.item() if isinstance(value, np.generic) else value
+
+
+def write_summary(out_dir: str, summary: dict) -> str:
+    path = os.path.join(out_dir, SUMMARY_FILE)
+    write_json(path, summary)
+    return path
+
+
+def pyplot():
+    """matplotlib's pyplot with the file backend, or None when matplotlib is missing (pip install .[plot])."""
+    try:
+        import matplotlib
+    except ImportError:
+        log.warning("matplotlib is not installed: no figure (pip install 'regolith-cosim[plot]')")
+        return None
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    return plt
+
+
+def soil_summary(plan: LabPlan) -> dict:
+    """The soil under test, for the summaries (SI units, angles in degrees)."""
+    s = plan.soil
+    return {"youngs_modulus_pa": s.youngs_modulus, "poisson_ratio": s.poisson_ratio,
+            "stick_angle_deg": math.degrees(s.stick_angle), "slip_angle_deg": math.degrees(s.slip_angle),
+            "stick_speed_m_s": s.stick_speed, "rolling_friction": s.rolling_friction, "cohesion_pa": s.cohesion,
+            "restitution": s.restitution, "damping_ratio": s.lehr_damping, "density_kg_m3": s.density,
+            "radius_mean_m": plan.radius_mean, "radius_spread": plan.radius_spread, "law": {
+                "damping": plan.law.damping, "friction": plan.law.friction, "rolling": plan.law.rolling,
+                "cohesion": plan.law.cohesion}}
+
+
+def quasi_static(name: str, value: float, limit: float, meaning: str) -> dict:
+    """One dimensionless number of a test against the limit that keeps it quasi-static."""
+    return {"name": name, "value": float(value), "limit": float(limit), "ok": bool(value <= limit * (1 + 1e-9)),
+            "meaning": meaning}
+
+
+def stiffness_number(plan: LabPlan, pressure: float) -> dict:
+    """p / E* against 1e-3: the Hertz overlap of grains under the pressure stays below about 1 %
+    of their radius (delta / r ~ (p / E*)^(2/3))."""
+    e_star = plan.soil.youngs_modulus / (2 * (1 - plan.soil.poisson_ratio**2))
+    return quasi_static("stiffness p / E*", pressure / e_star, 1e-3,
+                        "largest pressure over the contact modulus: overlaps stay small (rigid grains)")
+
+
+def log_numbers(numbers: list[dict]) -> None:
+    for n in numbers:
+        log.info("  %-28s %.3g (limit %.3g)%s", n["name"], n["value"], n["limit"], "" if n["ok"] else "  OUT OF RANGE")

@@ -1,0 +1,360 @@
+"""Pressure-sinkage (bevameter): square plates pushed into the bed at a constant speed; the
+pressure-sinkage curves and Bekker's p = (k_c / b + k_phi) z^n fitted to them.
+
+    bed:    the scene's [bed] (settled here, its walls smooth unless plate.wall_friction_deg,
+            or bed.bed_file), one bed per replica (seed bed.seed + k), shared by the plates;
+    plate:  a rigid square box of side b (each of plate.widths), centred over the bed, starts
+            just above the highest grain under it and moves down at the speed v until its
+            sinkage z (the bed's mean surface minus the plate's underside) reaches max_sinkage;
+    read:   pressure p = F_z / b^2, F_z the grains' force on the plate (boundary wrench).
+
+The fit (scipy.optimize.curve_fit) takes every point with z >= plate.fit_from of every
+plate and replica: with two or more widths it gives k_c [N/m^(n+1)], k_phi [N/m^(n+2)] and
+n; with one width only k = k_c / b + k_phi and n. Quasi-static when v / sqrt(g d) and the
+inertial number (v / b) d / sqrt(p / rho) are small (docs/lab.md).
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import os
+from collections.abc import Callable
+from typing import Any
+
+import numpy as np
+
+from soil.bed import BedSpec, bed_metrics, build_bed, load_bed, read_bed_header, restore_state, save_bed
+
+from . import common
+from .scene import LabPlan, SceneError
+
+log = logging.getLogger("cosim.lab")
+
+RECORDS = 400
+"""Samples of a pressure-sinkage curve [-]."""
+
+
+def widths(plan: LabPlan) -> tuple[float, ...]:
+    """plate.widths, or 0.25 and 0.4 x the smaller bed side [m]."""
+    given = plan.scene.plate.widths
+    if given is not None:
+        return tuple(sorted(given))
+    side = min(plan.scene.bed.length, plan.scene.bed.width)
+    return (0.25 * side, 0.4 * side)
+
+
+def plate_speed(plan: LabPlan) -> float:
+    """plate.speed, or plate.speed_ratio (default 0.05) x sqrt(|g| d) [m/s]."""
+    section = plan.scene.plate
+    if section.speed is not None:
+        return section.speed
+    return (section.speed_ratio if section.speed_ratio is not None else 0.05) * math.sqrt(plan.g * plan.diameter)
+
+
+def bed_spec(plan: LabPlan, replica: int) -> BedSpec:
+    """The bed of replica k (seed bed.seed + k; smooth walls unless plate.wall_friction_deg)."""
+    bed = plan.scene.bed
+    seed, _ = common.replica_seeds(plan, replica)
+    return BedSpec(length=bed.length, width=bed.width, depth=bed.depth, radius_mean=bed.radius_mean,
+                   radius_spread=bed.radius_spread, material=plan.soil,
+                   wall_material=plan.wall_material(plan.scene.plate.wall_friction_deg), seed=seed)
+
+
+def check(plan: LabPlan) -> None:
+    """SceneError for plates that do not fit the bed or a bed file of another soil or gravity."""
+    bed = plan.scene.bed
+    d = plan.diameter
+    problems = []
+    side = min(bed.length, bed.width)
+    for b in widths(plan):
+        if b > side - 4 * d:
+            problems.append(f"plate.widths: a {b:.4g} m plate leaves less than two grain diameters to the walls of "
+                            f"the {bed.length:.4g} x {bed.width:.4g} m bed (widen [bed] or narrow the plate)")
+        if b < 3 * d:
+            problems.append(f"plate.widths: a {b:.4g} m plate is narrower than three grain diameters ({3 * d:.4g} m)")
+    sinkage = plan.scene.plate.max_sinkage
+    if sinkage is not None and sinkage > bed.depth - 2 * d:
+        problems.append(f"plate.max_sinkage: ({sinkage:.4g} m) must leave two grain diameters of the bed "
+                        f"(bed.depth = {bed.depth:.4g} m) under the plate")
+    path = plan.scene.resolve(bed.bed_file)
+    if path is not None:
+        try:
+            header = read_bed_header(path)
+        except (OSError, ValueError) as error:
+            problems.append(f"bed.bed_file: {error}")
+        else:
+            if header["materials"] and header["materials"][0] != plan.soil:
+                problems.append("bed.bed_file: the bed's grains are not the scene's [soil]; the lab measures [soil]")
+            if not np.allclose(header["gravity"], plan.gravity, rtol=1e-12, atol=0):
+                problems.append(f"bed.bed_file: settled under gravity {list(header['gravity'])} m/s^2, the scene "
+                                f"has {list(plan.gravity)}")
+            if "height" not in header["metrics"]:
+                problems.append("bed.bed_file: the bed has no surface height metric (soil.bed.save_bed with metrics)")
+    if problems:
+        raise SceneError(problems)
+
+
+def _bed(plan: LabPlan, replica: int, path: str) -> dict:
+    """Settle replica k's bed into `path` (or take bed.bed_file): its surface height [m], its
+    centre (x, y) [m] and, per plate width, the top of the highest grain under the plate [m]."""
+    given = plan.scene.resolve(plan.scene.bed.bed_file)
+    if given is not None:
+        header = read_bed_header(given)
+        builder, saved = load_bed(given)
+        model, state, _ = builder.finalize(device=plan.device, precision=plan.precision, law=plan.law)
+        restore_state(model, state, saved)
+        spec = header["spec"] or {}
+        centre = (0.5 * spec.get("length", plan.scene.bed.length), 0.5 * spec.get("width", plan.scene.bed.width))
+        info = {"path": given, "surface": float(header["metrics"]["height"]), "settled": True, "settle_time": 0.0,
+                "source": "file"}
+        positions, radii = state.position.numpy().astype(float), model.radius_numpy()
+    else:
+        spec = bed_spec(plan, replica)
+        builder = build_bed(spec, np.asarray(plan.gravity))
+        _, order_seed = common.replica_seeds(plan, replica)
+        sim = common.finalize(plan, builder, order_seed)
+        bed = plan.scene.bed
+        threshold = common.kinetic_threshold(sim, bed.settle_ke_ratio, plan.g)
+        settle_time, settled = common.run_until(sim, plan.dt, lambda s: common.moving_energy(s) < threshold,
+                                                max(bed.settle_max_time, plan.max_phase_time(1.0)),
+                                                common.chunk_steps(plan, plan.time_scale), 5 * plan.time_scale)
+        metrics = bed_metrics(sim, spec)
+        save_bed(path, sim, spec, metrics)
+        centre = (0.5 * spec.length, 0.5 * spec.width)
+        info = {"path": path, "surface": float(metrics["height"]), "settled": settled, "settle_time": settle_time,
+                "packing_fraction": float(metrics["packing_fraction"]), "source": "settled"}
+        positions, radii = sim.positions(), sim.model.radius_numpy()
+    tops = {}
+    for b in widths(plan):
+        reach = 0.5 * b + radii
+        under = (np.abs(positions[:, 0] - centre[0]) < reach) & (np.abs(positions[:, 1] - centre[1]) < reach)
+        tops[str(b)] = float(np.max(positions[under, 2] + radii[under])) if under.any() else info["surface"]
+    return {"replica": replica, "centre": centre, "tops": tops, **info}
+
+
+def _press(plan: LabPlan, replica: int, path: str, surface: float, width: float, centre, top: float) -> dict:
+    """Push a plate of side `width` [m], centred at `centre` (x, y) [m], into the saved bed from
+    just above `top` [m] (the highest grain under it); the pressure-sinkage curve."""
+    from soil import Simulation
+
+    builder, saved = load_bed(path)
+    half = 0.5 * width
+    start = top + 0.1 * plan.radius_mean
+    thickness = 2 * plan.diameter
+    section = plan.scene.plate
+    friction = section.friction_deg if section.friction_deg is not None else math.degrees(plan.soil.stick_angle)
+    material = builder.add_material(plan.wall_material(friction))
+    plate = builder.add_box((centre[0] - half, centre[1] - half, start), (centre[0] + half, centre[1] + half,
+                                                                          start + thickness), material)
+    _, order_seed = common.replica_seeds(plan, replica)
+    model, state, control = builder.finalize(device=plan.device, precision=plan.precision, law=plan.law,
+                                             order_seed=order_seed)
+    restore_state(model, state, saved)
+    sim = Simulation(model, state, control)
+    speed = plate_speed(plan)
+    deepest = max_sinkage(plan, surface)
+    duration = (start - (surface - deepest)) / speed
+    control.set_boundary_velocity(plate, (0.0, 0.0, -speed))
+    steps = int(math.ceil(duration / plan.dt))
+    every = max(1, steps // RECORDS)
+    rows = []
+    for k in range(0, steps, every):
+        sim.run(min(every, steps - k) * plan.dt, plan.dt)
+        force = sim.boundary_wrenches()[0][plate]
+        underside = start + sim.boundary_displacements()[plate, 2]
+        rows.append((sim.time, surface - underside, force[2] / width**2, force[0], force[1]))
+    sim.check_finite()
+    time, sinkage, pressure, fx, fy = (np.array(c) for c in zip(*rows))
+    return {"replica": replica, "width": width, "time": time, "sinkage": sinkage, "pressure": pressure,
+            "side_force": np.hypot(fx, fy), "start_gap": start - surface, "speed": speed,
+            "steps": int(sim.steps), "particles": int(model.particle_count)}
+
+
+def max_sinkage(plan: LabPlan, surface: float) -> float:
+    """plate.max_sinkage, or 0.4 x the settled bed depth [m]."""
+    given = plan.scene.plate.max_sinkage
+    return given if given is not None else 0.4 * surface
+
+
+def run_replica(plan: LabPlan, replica: int = 0, stage: str = "plate", bed: str = "", surface: float = 0.0,
+                width: float = 0.0, centre=(0.0, 0.0), top: float = 0.0) -> dict:
+    """One task: stage 'bed' settles replica k's bed into the file `bed`; stage 'plate' pushes a
+    plate of side `width` [m] into it (surface: the bed's mean surface height [m]; centre: the
+    plate's (x, y) [m]; top: the highest grain under it [m])."""
+    if stage == "bed":
+        return _bed(plan, replica, bed)
+    return _press(plan, replica, bed, surface, width, centre, top)
+
+
+def bekker_fit(curves: list[tuple[float, np.ndarray, np.ndarray]], fit_from: float) -> dict:
+    """Bekker's p = (k_c / b + k_phi) z^n fitted to pressure-sinkage curves (b [m], z [m], p [Pa]).
+
+    Points with z >= fit_from [m] and p > 0 count. Two or more widths: k_c [N/m^(n+1)], k_phi
+    [N/m^(n+2)], n and their standard errors (scipy.optimize.curve_fit, started from a
+    log-log regression per width); one width: k = k_c / b + k_phi [N/m^(n+2)] and n. Also
+    r_squared and the rms residual [Pa] over the points fitted, and k, n per width.
+    """
+    from scipy import optimize, stats
+
+    parts: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []
+    per_width: dict[float, dict] = {}
+    for width, sinkage, pressure in curves:
+        use = (np.asarray(sinkage) >= fit_from) & (np.asarray(pressure) > 0)
+        parts.append((np.full(use.sum(), width), np.asarray(sinkage)[use], np.asarray(pressure)[use]))
+    b, z, p = (np.concatenate([part[i] for part in parts]) for i in range(3))
+    result = {"points": int(len(z)), "k_c": math.nan, "k_phi": math.nan, "k": math.nan, "n": math.nan,
+              "k_c_se": math.nan, "k_phi_se": math.nan, "n_se": math.nan, "r_squared": math.nan, "rms_pa": math.nan,
+              "per_width": per_width}
+    for width in np.unique(b):
+        mine = b == width
+        if mine.sum() >= 3:
+            line = stats.linregress(np.log(z[mine]), np.log(p[mine]))
+            per_width[float(width)] = {"k": float(math.exp(line.intercept)), "n": float(line.slope)}
+    if len(per_width) == 0 or len(z) < 4:
+        return result
+    n0 = float(np.mean([w["n"] for w in per_width.values()]))
+    if len(per_width) >= 2:
+        inverse = np.array([1 / w for w in per_width])
+        ks = np.array([w["k"] for w in per_width.values()])
+        slope, intercept = np.polyfit(inverse, ks, 1)
+
+        model: Callable[..., Any] = _bekker_widths
+        start = [slope, intercept, n0]
+    else:
+        model = _bekker_one_width
+        start = [next(iter(per_width.values()))["k"], n0]
+    try:
+        values, covariance = optimize.curve_fit(model, (z, b), p, p0=start, maxfev=20000)
+    except (RuntimeError, optimize.OptimizeWarning) as error:
+        log.warning("the Bekker fit did not converge: %s", error)
+        return result
+    errors = np.sqrt(np.diag(covariance)) if np.all(np.isfinite(covariance)) else np.full(len(values), math.nan)
+    fitted = model((z, b), *values)
+    residual = p - fitted
+    result.update(r_squared=float(1 - np.sum(residual**2) / np.sum((p - p.mean()) ** 2)),
+                  rms_pa=float(np.sqrt(np.mean(residual**2))))
+    if len(values) == 3:
+        result.update(k_c=float(values[0]), k_phi=float(values[1]), n=float(values[2]), k_c_se=float(errors[0]),
+                      k_phi_se=float(errors[1]), n_se=float(errors[2]))
+    else:
+        result.update(k=float(values[0]), n=float(values[1]), n_se=float(errors[1]))
+    return result
+
+
+def _bekker_widths(x, k_c, k_phi, n):
+    """p = (k_c / b + k_phi) z^n for x = (z, b)."""
+    return (k_c / x[1] + k_phi) * x[0] ** n
+
+
+def _bekker_one_width(x, k, n):
+    """p = k z^n for x = (z, b)."""
+    return k * x[0] ** n
+
+
+def bekker_pressure(fit: dict, width: float, sinkage) -> np.ndarray:
+    """The fitted Bekker pressure [Pa] of a plate of side `width` [m] at `sinkage` [m]."""
+    k = fit["k"] if math.isnan(fit["k_c"]) else fit["k_c"] / width + fit["k_phi"]
+    return k * np.maximum(np.asarray(sinkage, dtype=float), 0.0) ** fit["n"]
+
+
+def quasi_static_numbers(plan: LabPlan, speed: float, narrowest: float, largest_pressure: float) -> list[dict]:
+    """The dimensionless numbers of a plate test (docs/lab.md)."""
+    pressure = max(largest_pressure, 1e-300)
+    return [common.quasi_static("plate speed v / sqrt(g d)", speed / math.sqrt(plan.g * plan.diameter), 0.1,
+                                "slow against the grains' own fall speed over one diameter"),
+            common.quasi_static("inertial number I", speed / narrowest * plan.diameter
+                                / math.sqrt(pressure / plan.soil.density), 1e-3,
+                                "(v / b) d / sqrt(p / rho) at the largest pressure: quasi-static flow under the plate"),
+            common.stiffness_number(plan, largest_pressure)]
+
+
+def plate_test(plan: LabPlan, out_dir: str, overwrite: bool = False, executor: str = "serial",
+               scheduler: str | None = None, workers: int | None = None) -> dict:
+    """Settle lab.replicas beds, push every plate into each (through cosim.study.Executor), fit
+    Bekker and write the report into out_dir (plate.csv, summary.json, plate.png)."""
+    check(plan)
+    common.prepare_folder(plan, out_dir, overwrite)
+    sides = widths(plan)
+    replicas = plan.scene.lab.replicas if plan.scene.bed.bed_file is None else 1
+    speed = plate_speed(plan)
+    log.info("plate: widths %s m at %.3g m/s into a %.3g x %.3g m bed; %d replica(s)",
+             ", ".join(f"{b:.3g}" for b in sides), speed, plan.scene.bed.length, plan.scene.bed.width, replicas)
+    folder = os.path.join(out_dir, "beds")
+    os.makedirs(folder, exist_ok=True)
+    beds = common.map_tasks(plan, run_replica, [{"replica": k, "stage": "bed", "bed": os.path.join(folder,
+                                                                                                f"replica_{k}.h5")}
+                                            for k in range(replicas)], [f"bed {k}" for k in range(replicas)],
+                            executor, scheduler, workers)
+    ready = common.successful(beds, "plate bed")
+    jobs = [{"replica": bed["replica"], "stage": "plate", "bed": bed["path"], "surface": bed["surface"], "width": b,
+             "centre": bed["centre"], "top": bed["tops"][str(b)]} for bed in ready for b in sides]
+    labels = [f"replica {j['replica']}, plate {j['width']:.3g} m" for j in jobs]
+    results = common.map_tasks(plan, run_replica, jobs, labels, executor, scheduler, workers)
+    done = common.successful(results, "plate")
+    fit_from = plan.scene.plate.fit_from if plan.scene.plate.fit_from is not None else 0.25 * plan.diameter
+    fit = bekker_fit([(r["width"], r["sinkage"], r["pressure"]) for r in done], fit_from)
+    largest = max(float(np.max(r["pressure"])) for r in done)
+    numbers = quasi_static_numbers(plan, speed, min(sides), largest)
+    surface = float(np.mean([bed["surface"] for bed in ready]))
+    notes = [f"bed {bed['replica']}: not settled within the time limit" for bed in ready if not bed["settled"]]
+    side = min(plan.scene.bed.length, plan.scene.bed.width)
+    notes += [f"plate {b:.3g} m: the walls are {(side - b) / 2:.3g} m from its edge, less than its width; the walls "
+              "may carry part of the load (a wider bed)" for b in sides if (side - b) / 2 < b]
+    if surface - max_sinkage(plan, surface) < 3 * plan.diameter:
+        notes.append("the plate ends less than three grain diameters above the floor: the floor stiffens the curve")
+    summary = {
+        "test": "plate", "name": plan.name, "gravity": plan.g, "soil": common.soil_summary(plan), "bekker": fit,
+        "curves": [{"replica": r["replica"], "width_m": r["width"], "max_sinkage_m": float(r["sinkage"].max()),
+                    "max_pressure_pa": float(r["pressure"].max()), "steps": r["steps"]} for r in done],
+        "beds": [{k: bed[k] for k in ("replica", "surface", "settled", "settle_time", "source")} for bed in ready],
+        "failed": [{"label": r.get("label"), "error": r.get("error")} for r in beds + results if not r.get("ok")],
+        "geometry": {"widths_m": list(sides), "speed_m_s": speed, "max_sinkage_m": max_sinkage(plan, surface),
+                     "surface_m": surface, "bed_length_m": plan.scene.bed.length, "bed_width_m": plan.scene.bed.width,
+                     "fit_from_m": fit_from, "grain_diameter_m": plan.diameter, "dt_s": plan.dt},
+        "quasi_static": numbers, "notes": notes,
+    }
+    rows = [(r["replica"], r["width"], t, z, p, f) for r in done
+            for t, z, p, f in zip(r["time"], r["sinkage"], r["pressure"], r["side_force"])]
+    names = [("replica", "1"), ("plate_width", "m"), ("time", "s"), ("sinkage", "m"), ("pressure", "Pa"),
+             ("side_force", "N")]
+    common.write_csv(os.path.join(out_dir, "plate.csv"),
+                     [(n, unit, [row[i] for row in rows]) for i, (n, unit) in enumerate(names)])
+    summary["figure"] = _figure(out_dir, done, fit, fit_from)
+    common.write_summary(out_dir, summary)
+    return summary
+
+
+def _figure(out_dir: str, done: list[dict], fit: dict, fit_from: float) -> str | None:
+    plt = common.pyplot()
+    if plt is None:
+        return None
+    fig, (linear, logarithmic) = plt.subplots(1, 2, figsize=(12, 4.5))
+    sides = sorted({r["width"] for r in done})
+    colours = {b: plt.cm.tab10(i % 10) for i, b in enumerate(sides)}
+    for r in done:
+        label = f"b = {r['width'] * 1e3:.3g} mm" if r["replica"] == done[0]["replica"] else None
+        for ax in (linear, logarithmic):
+            ax.plot(r["sinkage"] * 1e3, r["pressure"], ".", ms=2, color=colours[r["width"]], label=label)
+    if np.isfinite(fit["n"]):
+        for b in sides:
+            z = np.linspace(fit_from, max(r["sinkage"].max() for r in done), 100)
+            for ax in (linear, logarithmic):
+                ax.plot(z * 1e3, bekker_pressure(fit, b, z), "-", color=colours[b])
+    if math.isnan(fit["k_c"]):
+        title = f"Bekker: k = {fit['k']:.3g} N/m^(n+2), n = {fit['n']:.3g}"
+    else:
+        title = f"Bekker: k_c = {fit['k_c']:.3g}, k_phi = {fit['k_phi']:.3g}, n = {fit['n']:.3g}"
+    linear.set_title(title + f" (R^2 {fit['r_squared']:.3f})", fontsize=9)
+    for ax in (linear, logarithmic):
+        ax.set_xlabel("sinkage [mm]")
+        ax.set_ylabel("pressure [Pa]")
+    logarithmic.set_xscale("log")
+    logarithmic.set_yscale("log")
+    logarithmic.set_xlim(left=max(fit_from * 1e3 * 0.5, 1e-3))
+    linear.legend(fontsize=8)
+    fig.tight_layout()
+    path = os.path.join(out_dir, "plate.png")
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+    return path
