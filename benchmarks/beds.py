@@ -28,12 +28,29 @@ def material() -> Material:
     """The benchmark grains: E = 10 MPa, e = 0.5, Coulomb friction mu = 0.5 (stick = slip angle, no
     stick speed: the model LAMMPS has)."""
     angle = math.atan(MU)
-    return Material(youngs_modulus=YOUNGS, poisson_ratio=POISSON, density=DENSITY, restitution=RESTITUTION,
-                    stick_angle=angle, slip_angle=angle, stick_speed=1e9)
+    return Material(
+        youngs_modulus=YOUNGS,
+        poisson_ratio=POISSON,
+        density=DENSITY,
+        restitution=RESTITUTION,
+        stick_angle=angle,
+        slip_angle=angle,
+        stick_speed=1e9,
+    )
 
 
-def build(positions, radii, box_hi, device, precision, gravity=9.81, grains: Material | None = None,
-          neighbours: NeighbourSettings | None = None, capture: bool = True, wheels=()) -> Simulation:
+def build(
+    positions,
+    radii,
+    box_hi,
+    device,
+    precision,
+    gravity=9.81,
+    grains: Material | None = None,
+    neighbours: NeighbourSettings | None = None,
+    capture: bool = True,
+    wheels=(),
+) -> Simulation:
     """A Simulation of the grains in an open-top box from the origin to box_hi [m]."""
     builder = SoilBuilder(gravity=gravity)
     mat = builder.add_material(grains or material())
@@ -66,8 +83,13 @@ def lattice_bed(n: int, shape: str = "deep", radius: float = RADIUS, squeeze: fl
     grid = np.stack(np.meshgrid(np.arange(nx), np.arange(ny), np.arange(nz), indexing="ij"), -1).reshape(-1, 3)
     positions = radius * (1.0 - squeeze) + grid * pitch
     radii = np.full(len(grid), radius)
-    box_hi = np.array([(nx - 1) * pitch + 2 * radius * (1.0 - squeeze), (ny - 1) * pitch + 2 * radius * (1.0 - squeeze),
-                       max(1.0, 4 * nz * pitch)])
+    box_hi = np.array(
+        [
+            (nx - 1) * pitch + 2 * radius * (1.0 - squeeze),
+            (ny - 1) * pitch + 2 * radius * (1.0 - squeeze),
+            max(1.0, 4 * nz * pitch),
+        ]
+    )
     return positions, radii, box_hi
 
 

@@ -111,8 +111,12 @@ def main(argv=None) -> None:
         runs: dict = {name: [] for name in sources}
         for _ in range(args.repeats):
             for name, source in sources.items():
-                done = subprocess.run([sys.executable, os.path.abspath(__file__), "--source", source, "--json", *sizes],
-                                      capture_output=True, text=True, check=True)
+                done = subprocess.run(
+                    [sys.executable, os.path.abspath(__file__), "--source", source, "--json", *sizes],
+                    capture_output=True,
+                    text=True,
+                    check=True,
+                )
                 runs[name].append(json.loads(done.stdout.strip().splitlines()[-1]))
                 print(name, json.dumps(runs[name][-1]), flush=True)
         keys = ("no_wheel_us_per_grain_step", "wheel_us_per_grain_step", "wheel_rebuilds_per_step", "wheel_contacts")
@@ -120,8 +124,10 @@ def main(argv=None) -> None:
         for name, source in sources.items():
             print(f"{name} ({source}): median of {args.repeats}: {json.dumps(median[name])}")
         ratio = {name: m["wheel_us_per_grain_step"] / m["no_wheel_us_per_grain_step"] for name, m in median.items()}
-        print(f"wheel / no wheel: other {ratio['other']:.2f}, this {ratio['this']:.2f}; other / this with the wheel: "
-              f"{median['other']['wheel_us_per_grain_step'] / median['this']['wheel_us_per_grain_step']:.2f}")
+        print(
+            f"wheel / no wheel: other {ratio['other']:.2f}, this {ratio['this']:.2f}; other / this with the wheel: "
+            f"{median['other']['wheel_us_per_grain_step'] / median['this']['wheel_us_per_grain_step']:.2f}"
+        )
         return
     sys.path.insert(0, os.path.abspath(args.source))
     result = measure(args.grains, args.macro_steps, args.substeps)

@@ -56,9 +56,16 @@ def main(argv=None) -> None:
         omega = math.sqrt(froude * base.g / base.wheel.outer_radius)
         duration = args.turns * 2 * math.pi / omega
         for k in range(args.replicas):
-            plan = base.with_changes(**{"testbed.omega": omega, "run.duration": duration, "bed.bed_file": bed.path,
-                                        "run.order_seed": k, "output.snapshot_interval": 0.0,
-                                        "output.checkpoint_interval": duration})
+            plan = base.with_changes(
+                **{
+                    "testbed.omega": omega,
+                    "run.duration": duration,
+                    "bed.bed_file": bed.path,
+                    "run.order_seed": k,
+                    "output.snapshot_interval": 0.0,
+                    "output.checkpoint_interval": duration,
+                }
+            )
             out = os.path.join(args.out, f"fr_{froude:.3g}_{k}")
             started = time.perf_counter()
             result = run_plan(plan, out, overwrite=True)
@@ -68,26 +75,40 @@ def main(argv=None) -> None:
             z = s["position"][:, 0, 2]
             landed = z[np.argmax(drive) - 1] if drive.any() else math.nan
             scale = math.sqrt(base.g * base.wheel.outer_radius)
-            row = {"froude": froude, "omega": omega, "replica": k, "status": result.status,
-                   "steady_state": result.summary.get("steady_state"),
-                   "airborne": float(np.mean(s["contact_count"][drive, 0] == 0)) if drive.any() else math.nan,
-                   "lift": float((z[drive].max() - landed) / base.wheel.outer_radius) if drive.any() else math.nan,
-                   "vz_rms": float(np.sqrt(np.mean(s["linear_velocity"][drive, 0, 2] ** 2)) / scale)
-                   if drive.any() else math.nan,
-                   "slip": result.summary.get("slip"), "wall_time": wall}
+            row = {
+                "froude": froude,
+                "omega": omega,
+                "replica": k,
+                "status": result.status,
+                "steady_state": result.summary.get("steady_state"),
+                "airborne": float(np.mean(s["contact_count"][drive, 0] == 0)) if drive.any() else math.nan,
+                "lift": float((z[drive].max() - landed) / base.wheel.outer_radius) if drive.any() else math.nan,
+                "vz_rms": float(np.sqrt(np.mean(s["linear_velocity"][drive, 0, 2] ** 2)) / scale)
+                if drive.any()
+                else math.nan,
+                "slip": result.summary.get("slip"),
+                "wall_time": wall,
+            }
             rows.append(row)
             print(json.dumps(row), flush=True)
     onset = min((r["froude"] for r in rows if r["airborne"] > 0.01), default=None)
-    report = {"scene": args.scene, "overrides": args.set, "rows": rows, "onset": onset,
-              "machine": f"{platform.machine()}, {os.cpu_count()} cores, {platform.python_version()}"}
+    report = {
+        "scene": args.scene,
+        "overrides": args.set,
+        "rows": rows,
+        "onset": onset,
+        "machine": f"{platform.machine()}, {os.cpu_count()} cores, {platform.python_version()}",
+    }
     with open(os.path.join(args.out, "froude_hop.json"), "w") as f:
         json.dump(report, f, indent=2)
     print("\n| Fr | omega [rad/s] | airborne [-] | lift / r [-] | vz_rms / sqrt(g r) [-] | slip | status |")
     print("|---|---|---|---|---|---|---|")
     for r in rows:
         slip = "-" if r["slip"] is None else f"{r['slip']:.3f}"
-        print(f"| {r['froude']:.3g} | {r['omega']:.3g} | {r['airborne']:.3f} | {r['lift']:.3f} | {r['vz_rms']:.3f} "
-              f"| {slip} | {r['steady_state']} |")
+        print(
+            f"| {r['froude']:.3g} | {r['omega']:.3g} | {r['airborne']:.3f} | {r['lift']:.3f} | {r['vz_rms']:.3f} "
+            f"| {slip} | {r['steady_state']} |"
+        )
     print(f"\nhop onset (airborne > 1 %): Fr = {onset}")
 
 

@@ -51,9 +51,17 @@ from soil.advisor import rayleigh_time_step  # noqa: E402
 from soil.bed import PHOBOS_REGOLITH, BedSpec, insert_grains, kinetic_energy_threshold  # noqa: E402
 from soil.gravity import GRAVITY_PRESETS  # noqa: E402
 
-TEST_FILES = ["tests/test_neighbours.py", "tests/test_macro_step.py", "tests/test_contact_law.py",
-              "tests/test_friction.py", "tests/test_integrator.py", "tests/test_energy.py",
-              "tests/test_boundaries.py", "tests/test_stability.py", "tests/test_dem_soil_state.py"]
+TEST_FILES = [
+    "tests/test_neighbours.py",
+    "tests/test_macro_step.py",
+    "tests/test_contact_law.py",
+    "tests/test_friction.py",
+    "tests/test_integrator.py",
+    "tests/test_energy.py",
+    "tests/test_boundaries.py",
+    "tests/test_stability.py",
+    "tests/test_dem_soil_state.py",
+]
 WHEEL = GrouserWheel(radius=0.09, width=0.06, grouser_count=12, grouser_height=0.006, grouser_thickness=0.003)
 """The MMX-like wheel of examples/phobos_single_wheel_gpu.toml."""
 SIZES = {
@@ -112,8 +120,10 @@ class Suite:
             result = {"ok": False, "error": f"{type(error).__name__}: {error}"}
         result["seconds"] = time.perf_counter() - start
         self.results["sections"][name] = result
-        self.log(f"{name}: {'ok' if result['ok'] else 'FAILED'} ({result['seconds']:.1f} s) "
-                 f"{json.dumps({k: v for k, v in result.items() if not isinstance(v, (list, dict))})}")
+        self.log(
+            f"{name}: {'ok' if result['ok'] else 'FAILED'} ({result['seconds']:.1f} s) "
+            f"{json.dumps({k: v for k, v in result.items() if not isinstance(v, (list, dict))})}"
+        )
         self.write()
 
     # -- sections -------------------------------------------------------------------------
@@ -145,18 +155,29 @@ class Suite:
                     sim.macro_step(steps, dt)
                     seconds = time.perf_counter() - start
                 n = len(tiled_radii)
-                rows.append(dict(bed=label, grains=n, precision=precision, steps=steps, seconds=seconds,
-                                 particle_steps_per_second=n * steps / seconds, captured=sim.capture,
-                                 warnings=[str(w.message) for w in caught],
-                                 bytes_per_grain=sim.bytes_per_grain()["total"],
-                                 contacts_per_grain=float(sim.contact_counts().mean())))
+                rows.append(
+                    dict(
+                        bed=label,
+                        grains=n,
+                        precision=precision,
+                        steps=steps,
+                        seconds=seconds,
+                        particle_steps_per_second=n * steps / seconds,
+                        captured=sim.capture,
+                        warnings=[str(w.message) for w in caught],
+                        bytes_per_grain=sim.bytes_per_grain()["total"],
+                        contacts_per_grain=float(sim.contact_counts().mean()),
+                    )
+                )
                 self.log(json.dumps(rows[-1]))
                 del sim
         rate = {(r["bed"], r["precision"]): r["particle_steps_per_second"] for r in rows}
         single = rate[("1M", "single")]
-        targets = {"single at 1M >= 3e8 particle-steps/s": single >= 3e8,
-                   "double >= 0.5 x single at 1M": rate[("1M", "double")] >= 0.5 * single,
-                   "mixed >= 0.8 x single at 1M": rate[("1M", "mixed")] >= 0.8 * single}
+        targets = {
+            "single at 1M >= 3e8 particle-steps/s": single >= 3e8,
+            "double >= 0.5 x single at 1M": rate[("1M", "double")] >= 0.5 * single,
+            "mixed >= 0.8 x single at 1M": rate[("1M", "mixed")] >= 0.8 * single,
+        }
         return {"rows": rows, "targets": targets, "ok": True}
 
     def coupled_run(self):
@@ -165,8 +186,7 @@ class Suite:
         with 20 % slip."""
         positions, radii, box_hi = beds.lattice_bed(size("base", self.small), "shallow")
         dt = 0.2 * rayleigh_time_step(beds.YOUNGS, beds.POISSON, beds.DENSITY, radii.min())
-        wheel = GrouserWheel(radius=0.02, width=0.012, grouser_count=8, grouser_height=0.002,
-                             grouser_thickness=0.0015)
+        wheel = GrouserWheel(radius=0.02, width=0.012, grouser_count=8, grouser_height=0.002, grouser_thickness=0.0015)
         builder = SoilBuilder(gravity=9.81)
         mat = builder.add_material(beds.material())
         builder.add_container((0, 0, 0), box_hi, mat)
@@ -210,8 +230,13 @@ class Suite:
                 sim = Simulation(*builder.finalize(device, "double", order_seed=seed))
             sim.run(duration, dt)
             z = sim.positions()[:, 2]
-            stats.append({"mean_height": float(z.mean()), "top": float(np.max(z + sim.model.radius_numpy())),
-                          "kinetic_energy": sim.kinetic_energy()})
+            stats.append(
+                {
+                    "mean_height": float(z.mean()),
+                    "top": float(np.max(z + sim.model.radius_numpy())),
+                    "kinetic_energy": sim.kinetic_energy(),
+                }
+            )
         return stats
 
     def agreement(self):
@@ -224,18 +249,24 @@ class Suite:
             b = np.array([s[key] for s in device])
             scatter = math.sqrt(a.var(ddof=1) / len(a) + b.var(ddof=1) / len(b)) if len(a) > 1 else 0.0
             allowed = 4.0 * scatter + 1e-9 * abs(a.mean())
-            verdict[key] = {"cpu_mean": float(a.mean()), "device_mean": float(b.mean()),
-                            "replica_scatter": scatter, "agrees": bool(abs(a.mean() - b.mean()) <= allowed)}
+            verdict[key] = {
+                "cpu_mean": float(a.mean()),
+                "device_mean": float(b.mean()),
+                "replica_scatter": scatter,
+                "agrees": bool(abs(a.mean() - b.mean()) <= allowed),
+            }
         return {"statistics": verdict, "ok": all(v["agrees"] for v in verdict.values())}
 
     def paper(self):
         """200,000 grains of Phobos regolith at Phobos gravity, double, a wheel driving through."""
         length, width, depth = size("paper_tile", self.small)
-        spec = BedSpec(length=length, width=width, depth=depth, radius_mean=2.0e-3, radius_spread=0.2,
-                       material=PHOBOS_REGOLITH)
+        spec = BedSpec(
+            length=length, width=width, depth=depth, radius_mean=2.0e-3, radius_spread=0.2, material=PHOBOS_REGOLITH
+        )
         positions, radii = insert_grains(spec)
-        dt = 0.2 * rayleigh_time_step(PHOBOS_REGOLITH.youngs_modulus, PHOBOS_REGOLITH.poisson_ratio,
-                                      PHOBOS_REGOLITH.density, radii.min())
+        dt = 0.2 * rayleigh_time_step(
+            PHOBOS_REGOLITH.youngs_modulus, PHOBOS_REGOLITH.poisson_ratio, PHOBOS_REGOLITH.density, radii.min()
+        )
         wall_height = 4 * depth
         box = np.array([length, width, wall_height])
         tile = beds.build(positions, radii, box, self.device, "double", gravity="phobos", grains=PHOBOS_REGOLITH)
@@ -247,10 +278,17 @@ class Suite:
         mat = builder.add_material(PHOBOS_REGOLITH)
         builder.add_container((0, 0, 0), box, mat)
         builder.add_particles(positions, radii, mat)
-        wheel = WHEEL if not self.small else GrouserWheel(radius=0.012, width=0.01, grouser_count=8,
-                                                          grouser_height=0.001, grouser_thickness=0.001)
-        builder.add_wheel(wheel, builder.add_material(Material(youngs_modulus=2e5, stick_angle=math.radians(30),
-                                                               slip_angle=math.radians(25))))
+        wheel = (
+            WHEEL
+            if not self.small
+            else GrouserWheel(radius=0.012, width=0.01, grouser_count=8, grouser_height=0.001, grouser_thickness=0.001)
+        )
+        builder.add_wheel(
+            wheel,
+            builder.add_material(
+                Material(youngs_modulus=2e5, stick_angle=math.radians(30), slip_angle=math.radians(25))
+            ),
+        )
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
             model, state, control = builder.finalize(self.device, "double")
@@ -279,11 +317,20 @@ class Suite:
         per_step = seconds / steps
         projected = per_step * 60.0 / dt
         n = model.particle_count
-        return {"grains": n, "dt": dt, "settling": settling, "timed_steps": steps, "timed_seconds": seconds,
-                "particle_steps_per_second": n * steps / seconds, "projected_60s_seconds": projected,
-                "gravity": GRAVITY_PRESETS["phobos"], "wheel_contacts": int(wrench.contact_count),
-                "contacts_per_grain": float(soil.sim.contact_counts().mean()),
-                "targets": {"60 s in at most 10 minutes": projected <= 600.0}, "ok": True}
+        return {
+            "grains": n,
+            "dt": dt,
+            "settling": settling,
+            "timed_steps": steps,
+            "timed_seconds": seconds,
+            "particle_steps_per_second": n * steps / seconds,
+            "projected_60s_seconds": projected,
+            "gravity": GRAVITY_PRESETS["phobos"],
+            "wheel_contacts": int(wrench.contact_count),
+            "contacts_per_grain": float(soil.sim.contact_counts().mean()),
+            "targets": {"60 s in at most 10 minutes": projected <= 600.0},
+            "ok": True,
+        }
 
     def settle(self, sim, dt: float, max_time: float, max_seconds: float) -> dict:
         """Run until the kinetic energy is below soil.bed's settling threshold (as soil.bed.settle
@@ -299,9 +346,14 @@ class Suite:
             if energy < threshold and sim.time - start > 10 * interval:
                 settled = True
                 break
-        result = {"settled": settled, "simulated_seconds": sim.time - start,
-                  "wall_seconds": time.perf_counter() - started, "kinetic_energy": energy, "threshold": threshold,
-                  "contacts_per_grain": float(sim.contact_counts().mean())}
+        result = {
+            "settled": settled,
+            "simulated_seconds": sim.time - start,
+            "wall_seconds": time.perf_counter() - started,
+            "kinetic_energy": energy,
+            "threshold": threshold,
+            "contacts_per_grain": float(sim.contact_counts().mean()),
+        }
         self.log(f"tile settling: {json.dumps(result)}")
         return result
 
@@ -313,11 +365,18 @@ class Suite:
         try:
             done = subprocess.run(command, cwd=ROOT, capture_output=True, text=True, timeout=left)
         except subprocess.TimeoutExpired as error:
-            return {"ok": False, "error": f"the CUDA tests did not finish in {left:.0f} s",
-                    "tail": (error.stdout or b"")[-2000:].decode(errors="replace") if error.stdout else ""}
+            return {
+                "ok": False,
+                "error": f"the CUDA tests did not finish in {left:.0f} s",
+                "tail": (error.stdout or b"")[-2000:].decode(errors="replace") if error.stdout else "",
+            }
         tail = (done.stdout + done.stderr).strip().splitlines()[-15:]
-        return {"returncode": done.returncode, "summary": tail[-1] if tail else "", "tail": tail,
-                "ok": done.returncode == 0}
+        return {
+            "returncode": done.returncode,
+            "summary": tail[-1] if tail else "",
+            "tail": tail,
+            "ok": done.returncode == 0,
+        }
 
     # -- output ---------------------------------------------------------------------------------
     def write(self) -> None:
@@ -330,36 +389,52 @@ class Suite:
 
     def markdown(self) -> str:
         r = self.results
-        lines = [f"GPU suite on {r['device']} ({r['machine']}){' (small mode)' if r['small'] else ''}: "
-                 f"{r.get('seconds', 0):.0f} s", ""]
+        lines = [
+            f"GPU suite on {r['device']} ({r['machine']}){' (small mode)' if r['small'] else ''}: "
+            f"{r.get('seconds', 0):.0f} s",
+            "",
+        ]
         lines += ["| section | result | seconds |", "|---|---|---|"]
         for name, result in r["sections"].items():
-            lines.append(f"| {name} | {'ok' if result['ok'] else 'FAILED: ' + result.get('error', '')} | "
-                         f"{result['seconds']:.1f} |")
+            lines.append(
+                f"| {name} | {'ok' if result['ok'] else 'FAILED: ' + result.get('error', '')} | "
+                f"{result['seconds']:.1f} |"
+            )
         throughput = r["sections"].get("throughput", {})
         if throughput.get("rows"):
-            lines += ["", "| bed | grains | precision | particle-steps/s | bytes per grain | captured |",
-                      "|---|---|---|---|---|---|"]
+            lines += [
+                "",
+                "| bed | grains | precision | particle-steps/s | bytes per grain | captured |",
+                "|---|---|---|---|---|---|",
+            ]
             for row in throughput["rows"]:
-                lines.append(f"| {row['bed']} | {row['grains']} | {row['precision']} | "
-                             f"{row['particle_steps_per_second']:.3g} | {row['bytes_per_grain']:.0f} | "
-                             f"{row['captured']} |")
+                lines.append(
+                    f"| {row['bed']} | {row['grains']} | {row['precision']} | "
+                    f"{row['particle_steps_per_second']:.3g} | {row['bytes_per_grain']:.0f} | "
+                    f"{row['captured']} |"
+                )
         paper = r["sections"].get("paper", {})
         if "projected_60s_seconds" in paper:
             projected = paper["projected_60s_seconds"]
             settling = paper["settling"]
-            lines += ["", f"Paper case: {paper['grains']} grains, Phobos gravity, double, dt = {paper['dt']:.3g} s "
-                      f"(tile {'settled' if settling['settled'] else 'NOT settled'} in "
-                      f"{settling['simulated_seconds']:.3g} s, {settling['contacts_per_grain']:.1f} contacts per "
-                      "grain): "
-                      f"{paper['particle_steps_per_second']:.3g} particle-steps/s "
-                      f"({paper['contacts_per_grain']:.1f} contacts per grain), 60 s projected in {projected:.0f} s "
-                      f"({projected / 60:.1f} min)."]
+            lines += [
+                "",
+                f"Paper case: {paper['grains']} grains, Phobos gravity, double, dt = {paper['dt']:.3g} s "
+                f"(tile {'settled' if settling['settled'] else 'NOT settled'} in "
+                f"{settling['simulated_seconds']:.3g} s, {settling['contacts_per_grain']:.1f} contacts per "
+                "grain): "
+                f"{paper['particle_steps_per_second']:.3g} particle-steps/s "
+                f"({paper['contacts_per_grain']:.1f} contacts per grain), 60 s projected in {projected:.0f} s "
+                f"({projected / 60:.1f} min).",
+            ]
         targets = {}
         for result in r["sections"].values():
             targets.update(result.get("targets", {}))
-        checks = {"repeat": "a coupled run repeats bit for bit",
-                  "agreement": "device agrees with the CPU within the replica scatter", "tests": "the CUDA tests pass"}
+        checks = {
+            "repeat": "a coupled run repeats bit for bit",
+            "agreement": "device agrees with the CPU within the replica scatter",
+            "tests": "the CUDA tests pass",
+        }
         for name, label in checks.items():
             if name in r["sections"]:
                 targets[label] = r["sections"][name]["ok"]
@@ -375,8 +450,12 @@ def main(argv=None) -> int:
     parser.add_argument("--small", action="store_true", help="small sizes: the suite's own check, on any device")
     parser.add_argument("--out", default="runs/gpu_suite", help="folder for results.json and results.md")
     parser.add_argument("--budget", type=float, default=480.0, help="seconds the whole suite should take")
-    parser.add_argument("--sections", nargs="+", default=["throughput", "repeat", "agreement", "paper", "tests"],
-                        choices=["throughput", "repeat", "agreement", "paper", "tests"])
+    parser.add_argument(
+        "--sections",
+        nargs="+",
+        default=["throughput", "repeat", "agreement", "paper", "tests"],
+        choices=["throughput", "repeat", "agreement", "paper", "tests"],
+    )
     args = parser.parse_args(argv)
     quiet_warp()
     wp.init()

@@ -40,8 +40,9 @@ def main(argv=None) -> None:
     rng = np.random.default_rng(2)
     grid = np.stack(np.meshgrid(np.arange(13), np.arange(4), np.arange(3), indexing="ij"), -1).reshape(-1, 3)
     builder.add_particles(0.0035 + grid * 0.0068 + rng.uniform(-2e-4, 2e-4, grid.shape), 0.003, mat)
-    builder.add_wheel(GrouserWheel(radius=0.02, width=0.012, grouser_count=8, grouser_height=0.002,
-                                   grouser_thickness=0.0015), mat)
+    builder.add_wheel(
+        GrouserWheel(radius=0.02, width=0.012, grouser_count=8, grouser_height=0.002, grouser_thickness=0.0015), mat
+    )
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         model, state, control = builder.finalize(args.device, "double")
@@ -66,8 +67,12 @@ def main(argv=None) -> None:
         for k in range(args.macro_steps + 1):
             before = dict(counts)
             t = k * macro
-            start = WheelKinematics(np.array([0.03 + 0.05 * t, 0.015, 0.0415 - 0.3 * t]), np.array([1.0, 0, 0, 0]),
-                                    np.array([0.05, 0.0, -0.3]), np.array([0.0, 2.5, 0.0]))
+            start = WheelKinematics(
+                np.array([0.03 + 0.05 * t, 0.015, 0.0415 - 0.3 * t]),
+                np.array([1.0, 0, 0, 0]),
+                np.array([0.05, 0.0, -0.3]),
+                np.array([0.0, 2.5, 0.0]),
+            )
             soil.advance((k + 1) * macro, [start])
             if k:  # the first one loads kernels and captures graphs
                 per_step.append({key: counts[key] - before[key] for key in counts})

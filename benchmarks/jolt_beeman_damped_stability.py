@@ -23,7 +23,7 @@ def spectral_radius(w_dt: float, gamma_dt: float) -> float:
         x, v, a, a_minus = unit
         x_new = x + v + (4 * a - a_minus) / 6
         v_pred = v + (3 * a - a_minus) / 2
-        a_new = -w_dt**2 * x_new - gamma_dt * v_pred
+        a_new = -(w_dt**2) * x_new - gamma_dt * v_pred
         v_new = v + (2 * a_new + 5 * a - a_minus) / 6
         columns.append([x_new, v_new, a_new, a])
     return float(max(abs(np.linalg.eigvals(np.array(columns).T))))
@@ -44,4 +44,6 @@ if __name__ == "__main__":
     print("| gamma dt | largest stable w dt |\n|---|---|")
     for gamma_dt in (0.0, 0.1, 0.2, 0.3, 0.4, 0.5):
         print(f"| {gamma_dt:.1f} | {largest_stable(grid, lambda w: spectral_radius(w, gamma_dt)):.3f} |")
-    print(f"\npure damping (w = 0): stable for gamma dt <= {largest_stable(grid, lambda g: spectral_radius(0.0, g)):.3f}")
+    print(
+        f"\npure damping (w = 0): stable for gamma dt <= {largest_stable(grid, lambda g: spectral_radius(0.0, g)):.3f}"
+    )

@@ -44,9 +44,15 @@ def stiff_overrides(plan, modulus: float) -> dict:
     dt = contact / 10
     substeps = max(1, round(plan.macro_step / dt))
     rayleigh = advisor.rayleigh_time_step(modulus, material.poisson_ratio, material.density, smallest)
-    return {"soil.youngs_modulus": modulus, "wheel.material.youngs_modulus": modulus, "run.dt": dt,
-            "run.substeps": substeps, "run.dt_factor": None, "run.macro_step": None,
-            "bed.settle_dt_factor": min(1.0, dt / rayleigh)}  # the bed settles with the run's step
+    return {
+        "soil.youngs_modulus": modulus,
+        "wheel.material.youngs_modulus": modulus,
+        "run.dt": dt,
+        "run.substeps": substeps,
+        "run.dt_factor": None,
+        "run.macro_step": None,
+        "bed.settle_dt_factor": min(1.0, dt / rayleigh),
+    }  # the bed settles with the run's step
 
 
 def main(argv=None) -> None:
@@ -69,33 +75,64 @@ def main(argv=None) -> None:
 
     base = load_plan(args.scene, args.set)
     precisions = [p.strip() for p in args.precisions.split(",") if p.strip()]
-    cases = {"adapted": base,
-             "stiff": base.with_changes(**stiff_overrides(base, args.stiff))}
+    cases = {"adapted": base, "stiff": base.with_changes(**stiff_overrides(base, args.stiff))}
     rows = []
     for name, plan in cases.items():
         started = time.perf_counter()
-        report = precision_study(plan, os.path.join(args.out, name), replicas=args.replicas, precisions=precisions,
-                                 executor="serial" if args.serial else "dask", workers=args.workers, overwrite=True)
+        report = precision_study(
+            plan,
+            os.path.join(args.out, name),
+            replicas=args.replicas,
+            precisions=precisions,
+            executor="serial" if args.serial else "dask",
+            workers=args.workers,
+            overwrite=True,
+        )
         wall = time.perf_counter() - started
         for row in report["rows"]:
-            rows.append({"case": name, "youngs_modulus": plan.soil_material.youngs_modulus, "dt": plan.dt,
-                         "study_wall_time": wall, **{k: v for k, v in row.items() if k != "stats"}})
+            rows.append(
+                {
+                    "case": name,
+                    "youngs_modulus": plan.soil_material.youngs_modulus,
+                    "dt": plan.dt,
+                    "study_wall_time": wall,
+                    **{k: v for k, v in row.items() if k != "stats"},
+                }
+            )
             print(json.dumps(rows[-1]), flush=True)
     with open(os.path.join(args.out, "precision_experiment.json"), "w") as f:
-        json.dump({"scene": args.scene, "overrides": args.set, "rows": rows, "replicas": args.replicas,
-                   "machine": f"{platform.machine()}, {os.cpu_count()} cores, Python {platform.python_version()}"},
-                  f, indent=2, default=float)
-    print("\n| E [Pa] | dt [s] | precision | steady | wall per replica [s] | slip mean +- std | sinkage [mm] mean "
-          "+- std | travel [mm] mean +- std (min..max) |")
+        json.dump(
+            {
+                "scene": args.scene,
+                "overrides": args.set,
+                "rows": rows,
+                "replicas": args.replicas,
+                "machine": f"{platform.machine()}, {os.cpu_count()} cores, Python {platform.python_version()}",
+            },
+            f,
+            indent=2,
+            default=float,
+        )
+    print(
+        "\n| E [Pa] | dt [s] | precision | steady | wall per replica [s] | slip mean +- std | sinkage [mm] mean "
+        "+- std | travel [mm] mean +- std (min..max) |"
+    )
     print("|---|---|---|---|---|---|---|---|")
     for r in rows:
+
         def cell(key, scale=1.0):
             mean, std = r.get(f"{key}_mean"), r.get(f"{key}_std")
             return "-" if mean is None else f"{mean * scale:.4g} +- {std * scale:.2g}"
-        travel = "-" if r.get("travel_mean") is None else (
-            f"{cell('travel', 1e3)} ({r['travel_min'] * 1e3:.3g}..{r['travel_max'] * 1e3:.3g})")
-        print(f"| {r['youngs_modulus']:.3g} | {r['dt']:.3g} | {r['precision']} | {r['steady']}/{r['replicas']} | "
-              f"{r.get('wall_time_mean', math.nan):.4g} | {cell('slip')} | {cell('sinkage', 1e3)} | {travel} |")
+
+        travel = (
+            "-"
+            if r.get("travel_mean") is None
+            else (f"{cell('travel', 1e3)} ({r['travel_min'] * 1e3:.3g}..{r['travel_max'] * 1e3:.3g})")
+        )
+        print(
+            f"| {r['youngs_modulus']:.3g} | {r['dt']:.3g} | {r['precision']} | {r['steady']}/{r['replicas']} | "
+            f"{r.get('wall_time_mean', math.nan):.4g} | {cell('slip')} | {cell('sinkage', 1e3)} | {travel} |"
+        )
 
 
 if __name__ == "__main__":

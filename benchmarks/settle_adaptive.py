@@ -64,9 +64,15 @@ def settle(sim, advance, threshold, interval, max_time):
             break
     wp.synchronize()
     settled = outcome or ("yes" if energy < threshold else "no")
-    return dict(settled=settled, time=sim.time, kinetic_energy=energy,
-                wall_s=time.perf_counter() - start, evaluations=sim.contacts.evaluations,
-                rejected=sim.rejected_steps, steps=sim.steps)
+    return dict(
+        settled=settled,
+        time=sim.time,
+        kinetic_energy=energy,
+        wall_s=time.perf_counter() - start,
+        evaluations=sim.contacts.evaluations,
+        rejected=sim.rejected_steps,
+        steps=sim.steps,
+    )
 
 
 def main() -> None:
@@ -77,10 +83,16 @@ def main() -> None:
     parser.add_argument("--max-time", type=float, default=20.0, help="give up after this simulated time [s]")
     parser.add_argument("--device", default="cpu")
     parser.add_argument("--precision", default="double")
-    parser.add_argument("--norms", nargs="+", default=["rms", "max"], choices=["rms", "max", "rms-unguarded"],
-                        help="error norms of the adaptive runs (one run each); rms-unguarded: grain_factor = inf")
-    parser.add_argument("--dt-max-factor", type=float, default=2.0,
-                        help="adaptive runs: dt_max = this x the advised step")
+    parser.add_argument(
+        "--norms",
+        nargs="+",
+        default=["rms", "max"],
+        choices=["rms", "max", "rms-unguarded"],
+        help="error norms of the adaptive runs (one run each); rms-unguarded: grain_factor = inf",
+    )
+    parser.add_argument(
+        "--dt-max-factor", type=float, default=2.0, help="adaptive runs: dt_max = this x the advised step"
+    )
     args = parser.parse_args()
     wp.config.log_level = max(wp.config.log_level, wp.LOG_WARNING)
     wp.init()
@@ -105,15 +117,19 @@ def main() -> None:
         rows.append(dict(method=f"adaptive tol = {args.tol:g}, {norm} norm", **adaptive))
 
     n = probe.model.particle_count
-    print(f"\n{n} grains, Phobos gravity 5.7e-3 m/s^2, E = {spec.material.youngs_modulus:g} Pa, "
-          f"{args.precision}, device {args.device} ({platform.processor() or platform.machine()}, "
-          f"{os.cpu_count()} cores); threshold {threshold:.3g} J (ratio {args.ke_ratio:g}); "
-          f"advised dt {advice.dt_max:.3g} s, Rayleigh {advice.rayleigh:.3g} s\n")
+    print(
+        f"\n{n} grains, Phobos gravity 5.7e-3 m/s^2, E = {spec.material.youngs_modulus:g} Pa, "
+        f"{args.precision}, device {args.device} ({platform.processor() or platform.machine()}, "
+        f"{os.cpu_count()} cores); threshold {threshold:.3g} J (ratio {args.ke_ratio:g}); "
+        f"advised dt {advice.dt_max:.3g} s, Rayleigh {advice.rayleigh:.3g} s\n"
+    )
     print("| method | settled | simulated [s] | force evaluations | rejected | wall [s] | evaluations/s |")
     print("|---|---|---|---|---|---|---|")
     for row in rows:
-        print(f"| {row['method']} | {row['settled']} | {row['time']:.3f} | {row['evaluations']} | {row['rejected']} "
-              f"| {row['wall_s']:.1f} | {row['evaluations'] / row['wall_s']:.0f} |")
+        print(
+            f"| {row['method']} | {row['settled']} | {row['time']:.3f} | {row['evaluations']} | {row['rejected']} "
+            f"| {row['wall_s']:.1f} | {row['evaluations'] / row['wall_s']:.0f} |"
+        )
     for row in rows:
         print(json.dumps(dict(n=n, **row)))
 

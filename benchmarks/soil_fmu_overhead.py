@@ -57,28 +57,46 @@ def main() -> None:
         md = read_model_description(str(path))
         var = {v.name: v for v in md.modelVariables}
         hub0 = np.array([float(var[f"wheel_0.position.{a}"].start) for a in "xyz"]) - [0, 0, 0.004]
-        names = [f"wheel_0.{q}.{a}" for q, axes in (("position", "xyz"), ("orientation", "wxyz"), ("velocity", "xyz"),
-                                                    ("angular_velocity", "xyz")) for a in axes]
+        names = [
+            f"wheel_0.{q}.{a}"
+            for q, axes in (
+                ("position", "xyz"),
+                ("orientation", "wxyz"),
+                ("velocity", "xyz"),
+                ("angular_velocity", "xyz"),
+            )
+            for a in axes
+        ]
         refs = [var[n].valueReference for n in names]
         outputs = [var[f"wheel_0.{q}.{a}"].valueReference for q in ("force", "torque") for a in "xyz"]
         speed, spin = 0.02, 0.8
 
         def kinematics(t):
-            return WheelKinematics(hub0 + [speed * t, 0, 0], (math.cos(spin * t / 2), 0, math.sin(spin * t / 2), 0),
-                                   (speed, 0, 0), (0, spin, 0))
+            return WheelKinematics(
+                hub0 + [speed * t, 0, 0],
+                (math.cos(spin * t / 2), 0, math.sin(spin * t / 2), 0),
+                (speed, 0, 0),
+                (0, spin, 0),
+            )
 
         def values(k):
             return [*k.position, *k.orientation, *k.linear_velocity, *k.angular_velocity]
 
         scene = load_scene(scene_file)
-        print(f"scene {scene_file}: {scene.scene.device}, precision {scene.scene.precision}, "
-              f"DEM step {config.dem_step:.4g} s")
+        print(
+            f"scene {scene_file}: {scene.scene.device}, precision {scene.scene.precision}, "
+            f"DEM step {config.dem_step:.4g} s"
+        )
         for substeps in [int(s) for s in args.substeps.split(",")]:
             h = substeps * config.dem_step
             with zipfile.ZipFile(path) as z:
                 soil = soil_from_config(json.loads(z.read("resources/soil.json")), config.bed_file)
-            fmu = FMU2Slave(guid=md.guid, unzipDirectory=extract(str(path)),
-                            modelIdentifier=md.coSimulation.modelIdentifier, instanceName="soil")
+            fmu = FMU2Slave(
+                guid=md.guid,
+                unzipDirectory=extract(str(path)),
+                modelIdentifier=md.coSimulation.modelIdentifier,
+                instanceName="soil",
+            )
             fmu.instantiate()
             fmu.setupExperiment(startTime=0.0)
             fmu.enterInitializationMode()
@@ -105,10 +123,12 @@ def main() -> None:
             fmu.terminate()
             fmu.freeInstance()
             n = soil.sim.model.particle_count
-            print(f"{n} grains, {substeps} DEM step(s) per macro step, {args.steps} macro steps: server start "
-                  f"{start_time:.2f} s; per macro step FMU {1e3 * wall_fmu / args.steps:.2f} ms, in-process "
-                  f"{1e3 * wall_soil / args.steps:.2f} ms, ratio {wall_fmu / wall_soil:.2f}; "
-                  f"wrenches bitwise equal: {equal}")
+            print(
+                f"{n} grains, {substeps} DEM step(s) per macro step, {args.steps} macro steps: server start "
+                f"{start_time:.2f} s; per macro step FMU {1e3 * wall_fmu / args.steps:.2f} ms, in-process "
+                f"{1e3 * wall_soil / args.steps:.2f} ms, ratio {wall_fmu / wall_soil:.2f}; "
+                f"wrenches bitwise equal: {equal}"
+            )
 
 
 if __name__ == "__main__":

@@ -57,16 +57,32 @@ def time_ours(sim, steps: int, dt: float, warmup: int = 10) -> dict:
     sim.macro_step(steps, dt)
     wall, cpu = time.perf_counter() - wall, time.process_time() - cpu
     n = sim.model.particle_count
-    return dict(wall_seconds=wall, cpu_seconds=cpu, particle_steps_per_second=n * steps / wall,
-                us_per_particle_step_cpu=cpu / (n * steps) * 1e6,
-                contacts_per_particle=float(sim.contact_counts().mean()))
+    return dict(
+        wall_seconds=wall,
+        cpu_seconds=cpu,
+        particle_steps_per_second=n * steps / wall,
+        us_per_particle_step_cpu=cpu / (n * steps) * 1e6,
+        contacts_per_particle=float(sim.contact_counts().mean()),
+    )
 
 
 def time_lammps(positions, radii, box_hi, dt: float, steps: int) -> dict:
     """LAMMPS on one thread: wall time of `steps` timed steps, CPU time as the difference of
     runs of 2 x steps and steps (setup cancels)."""
-    args = (positions, radii, beds.DENSITY, beds.YOUNGS, beds.POISSON, beds.MU, beds.RESTITUTION, 0.0, (0, 0, 0),
-            box_hi, (0, 0, -9.81), dt)
+    args = (
+        positions,
+        radii,
+        beds.DENSITY,
+        beds.YOUNGS,
+        beds.POISSON,
+        beds.MU,
+        beds.RESTITUTION,
+        0.0,
+        (0, 0, 0),
+        box_hi,
+        (0, 0, -9.81),
+        dt,
+    )
     cpu = []
     for count in (steps, 2 * steps):
         start = time.process_time()
@@ -75,8 +91,12 @@ def time_lammps(positions, radii, box_hi, dt: float, steps: int) -> dict:
         if count == steps:
             wall = result["seconds"]
     n = len(radii)
-    return dict(wall_seconds=wall, cpu_seconds=cpu[1] - cpu[0], particle_steps_per_second=n * steps / wall,
-                us_per_particle_step_cpu=(cpu[1] - cpu[0]) / (n * steps) * 1e6)
+    return dict(
+        wall_seconds=wall,
+        cpu_seconds=cpu[1] - cpu[0],
+        particle_steps_per_second=n * steps / wall,
+        us_per_particle_step_cpu=(cpu[1] - cpu[0]) / (n * steps) * 1e6,
+    )
 
 
 def section_lammps(args, rows, log):
@@ -86,14 +106,32 @@ def section_lammps(args, rows, log):
         peer = None
         if not args.no_lammps and lammps_peer.lammps_available():
             peer = time_lammps(positions, radii, box_hi, dt, args.steps)
-            rows.append(dict(section="lammps", code="LAMMPS", precision="double", n=n, steps=args.steps, dt=dt,
-                             device="cpu (1 rank)", **peer))
+            rows.append(
+                dict(
+                    section="lammps",
+                    code="LAMMPS",
+                    precision="double",
+                    n=n,
+                    steps=args.steps,
+                    dt=dt,
+                    device="cpu (1 rank)",
+                    **peer,
+                )
+            )
             log(json.dumps(rows[-1]))
         for precision in args.precisions:
             sim = beds.build(positions, radii, box_hi, args.device, precision)
-            row = dict(section="lammps", code="regolith-cosim", precision=precision, n=n, steps=args.steps, dt=dt,
-                       device=args.device, **time_ours(sim, args.steps, dt),
-                       bytes_per_grain=sim.bytes_per_grain()["total"])
+            row = dict(
+                section="lammps",
+                code="regolith-cosim",
+                precision=precision,
+                n=n,
+                steps=args.steps,
+                dt=dt,
+                device=args.device,
+                **time_ours(sim, args.steps, dt),
+                bytes_per_grain=sim.bytes_per_grain()["total"],
+            )
             if peer:
                 row["ratio_wall"] = row["particle_steps_per_second"] / peer["particle_steps_per_second"]
                 row["ratio_cpu"] = peer["us_per_particle_step_cpu"] / row["us_per_particle_step_cpu"]
@@ -106,8 +144,15 @@ def section_scaling(args, rows, log):
         for n in args.scaling_n:
             positions, radii, box_hi = beds.lattice_bed(n, shape)
             sim = beds.build(positions, radii, box_hi, args.device, args.scaling_precision)
-            row = dict(section="scaling", shape=shape, precision=args.scaling_precision, n=len(radii),
-                       steps=args.steps, device=args.device, **time_ours(sim, args.steps, 2e-6, warmup=50))
+            row = dict(
+                section="scaling",
+                shape=shape,
+                precision=args.scaling_precision,
+                n=len(radii),
+                steps=args.steps,
+                device=args.device,
+                **time_ours(sim, args.steps, 2e-6, warmup=50),
+            )
             rows.append(row)
             log(json.dumps(row))
 
@@ -120,9 +165,20 @@ def section_capture(args, rows, log):
             sim = beds.build(positions, radii, box_hi, args.device, "double", capture=capture)
             timed[capture] = time_ours(sim, args.steps, 2e-6, warmup=50)
         captured, launched = timed[True]["us_per_particle_step_cpu"], timed[False]["us_per_particle_step_cpu"]
-        rows.append(dict(section="capture", n=len(radii), steps=args.steps, device=args.device, precision="double",
-                         captured_us=captured, launched_us=launched, saving=1.0 - captured / launched,
-                         captured_wall=timed[True]["wall_seconds"], launched_wall=timed[False]["wall_seconds"]))
+        rows.append(
+            dict(
+                section="capture",
+                n=len(radii),
+                steps=args.steps,
+                device=args.device,
+                precision="double",
+                captured_us=captured,
+                launched_us=launched,
+                saving=1.0 - captured / launched,
+                captured_wall=timed[True]["wall_seconds"],
+                launched_wall=timed[False]["wall_seconds"],
+            )
+        )
         log(json.dumps(rows[-1]))
 
 
@@ -133,11 +189,22 @@ def section_reorder(args, rows, log):
         positions, radii, box_hi, dt = beds.settled_bed(n, args.device, log=log)
         timed = {}
         for reorder in (True, False):
-            sim = beds.build(positions, radii, box_hi, args.device, "double",
-                             neighbours=NeighbourSettings(reorder=reorder))
+            sim = beds.build(
+                positions, radii, box_hi, args.device, "double", neighbours=NeighbourSettings(reorder=reorder)
+            )
             timed[reorder] = time_ours(sim, args.steps, dt)["us_per_particle_step_cpu"]
-        rows.append(dict(section="reorder", n=len(radii), steps=args.steps, device=args.device, precision="double",
-                         reordered_us=timed[True], unordered_us=timed[False], speedup=timed[False] / timed[True]))
+        rows.append(
+            dict(
+                section="reorder",
+                n=len(radii),
+                steps=args.steps,
+                device=args.device,
+                precision="double",
+                reordered_us=timed[True],
+                unordered_us=timed[False],
+                speedup=timed[False] / timed[True],
+            )
+        )
         log(json.dumps(rows[-1]))
 
 
@@ -148,8 +215,16 @@ def section_memory(args, rows, log):
         sim.macro_step(20, 2e-6)
         sim.monitor.arm(sim)  # its last-good copy counts too
         parts = sim.bytes_per_grain()
-        rows.append(dict(section="memory", precision=precision, n=len(radii), capacity=sim.state.capacity,
-                         rigid_capacity=sim.state.rigid_capacity, **{k: float(v) for k, v in parts.items()}))
+        rows.append(
+            dict(
+                section="memory",
+                precision=precision,
+                n=len(radii),
+                capacity=sim.state.capacity,
+                rigid_capacity=sim.state.rigid_capacity,
+                **{k: float(v) for k, v in parts.items()},
+            )
+        )
         log(json.dumps(rows[-1]))
 
 
@@ -157,24 +232,33 @@ def tables(rows, header: str) -> str:
     out = [header, ""]
     lam = [r for r in rows if r["section"] == "lammps"]
     if lam:
-        out += ["| grains | code | precision | particle-steps/s (wall) | us per particle-step (CPU) | ratio to LAMMPS "
-                "(CPU) | ratio (wall) | contacts per grain |", "|---|---|---|---|---|---|---|---|"]
+        out += [
+            "| grains | code | precision | particle-steps/s (wall) | us per particle-step (CPU) | ratio to LAMMPS "
+            "(CPU) | ratio (wall) | contacts per grain |",
+            "|---|---|---|---|---|---|---|---|",
+        ]
         for r in lam:
-            out.append(f"| {r['n']} | {r['code']} | {r['precision']} | {r['particle_steps_per_second']:.3g} | "
-                       f"{r['us_per_particle_step_cpu']:.3f} | {r.get('ratio_cpu', float('nan')):.2f} | "
-                       f"{r.get('ratio_wall', float('nan')):.2f} | "
-                       f"{r.get('contacts_per_particle', float('nan')):.2f} |")
+            out.append(
+                f"| {r['n']} | {r['code']} | {r['precision']} | {r['particle_steps_per_second']:.3g} | "
+                f"{r['us_per_particle_step_cpu']:.3f} | {r.get('ratio_cpu', float('nan')):.2f} | "
+                f"{r.get('ratio_wall', float('nan')):.2f} | "
+                f"{r.get('contacts_per_particle', float('nan')):.2f} |"
+            )
         out.append("")
     scaling = [r for r in rows if r["section"] == "scaling"]
     if scaling:
-        out += ["| bed | grains | us per particle-step (CPU) | relative to the smallest | contacts per grain |",
-                "|---|---|---|---|---|"]
+        out += [
+            "| bed | grains | us per particle-step (CPU) | relative to the smallest | contacts per grain |",
+            "|---|---|---|---|---|",
+        ]
         for shape in ("deep", "shallow"):
             these = [r for r in scaling if r["shape"] == shape]
             for r in these:
-                out.append(f"| {shape} | {r['n']} | {r['us_per_particle_step_cpu']:.3f} | "
-                           f"{r['us_per_particle_step_cpu'] / these[0]['us_per_particle_step_cpu']:.2f} | "
-                           f"{r['contacts_per_particle']:.2f} |")
+                out.append(
+                    f"| {shape} | {r['n']} | {r['us_per_particle_step_cpu']:.3f} | "
+                    f"{r['us_per_particle_step_cpu'] / these[0]['us_per_particle_step_cpu']:.2f} | "
+                    f"{r['contacts_per_particle']:.2f} |"
+                )
             if these:
                 costs = [r["us_per_particle_step_cpu"] for r in these]
                 out.append(f"| {shape}: max / min | | {max(costs) / min(costs):.2f} | | |")
@@ -187,8 +271,10 @@ def tables(rows, header: str) -> str:
         out.append("")
     reorder = [r for r in rows if r["section"] == "reorder"]
     if reorder:
-        out += ["| grains (settled fill) | stored in curve order: us per particle-step (CPU) | in fill order | "
-                "speed-up |", "|---|---|---|---|"]
+        out += [
+            "| grains (settled fill) | stored in curve order: us per particle-step (CPU) | in fill order | speed-up |",
+            "|---|---|---|---|",
+        ]
         for r in reorder:
             out.append(f"| {r['n']} | {r['reordered_us']:.3f} | {r['unordered_us']:.3f} | {r['speedup']:.2f} |")
         out.append("")
@@ -199,15 +285,21 @@ def tables(rows, header: str) -> str:
         for r in memory:
             out.append(f"| {r['precision']} | " + " | ".join(f"{r[k]:.0f}" for k in keys) + " |")
         r = memory[0]
-        out.append(f"\n(bytes per grain; {r['n']} grains, {r['capacity']} neighbour slots and {r['rigid_capacity']} "
-                   "wall/wheel slots per grain)")
+        out.append(
+            f"\n(bytes per grain; {r['n']} grains, {r['capacity']} neighbour slots and {r['rigid_capacity']} "
+            "wall/wheel slots per grain)"
+        )
     return "\n".join(out)
 
 
 def main(argv=None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--sections", nargs="+", default=["lammps", "scaling", "capture", "reorder", "memory"],
-                        choices=["lammps", "scaling", "capture", "reorder", "memory"])
+    parser.add_argument(
+        "--sections",
+        nargs="+",
+        default=["lammps", "scaling", "capture", "reorder", "memory"],
+        choices=["lammps", "scaling", "capture", "reorder", "memory"],
+    )
     parser.add_argument("--quick", action="store_true", help="small sizes and few steps (minutes)")
     parser.add_argument("--n", type=int, nargs="+", default=None, help="grains of the LAMMPS comparison")
     parser.add_argument("--scaling-n", type=int, nargs="+", default=None)

@@ -88,78 +88,136 @@ def check(plan: RunPlan, surface_height: float | None = None, sinkage_tips: floa
 
     fr = plan.froude_number
     if math.isfinite(omega):
-        findings.append(_finding(
-            "froude", fr, FROUDE_LIMIT, fr <= FROUDE_LIMIT,
-            f"Froude number omega^2 r / g = {fr:.3g} <= {FROUDE_LIMIT}: quasi-static",
-            f"Froude number omega^2 r / g = {fr:.3g} > {FROUDE_LIMIT}: the wheel hops at this speed and gravity; "
-            f"lower {omega_key} to <= {math.sqrt(FROUDE_LIMIT * g / wheel.outer_radius):.3g} rad/s", omega_key))
+        findings.append(
+            _finding(
+                "froude",
+                fr,
+                FROUDE_LIMIT,
+                fr <= FROUDE_LIMIT,
+                f"Froude number omega^2 r / g = {fr:.3g} <= {FROUDE_LIMIT}: quasi-static",
+                f"Froude number omega^2 r / g = {fr:.3g} > {FROUDE_LIMIT}: the wheel hops at this speed and gravity; "
+                f"lower {omega_key} to <= {math.sqrt(FROUDE_LIMIT * g / wheel.outer_radius):.3g} rad/s",
+                omega_key,
+            )
+        )
 
     material = plan.soil_material
     smallest = spec.radius_mean * (1 - spec.radius_spread)
     depth_now = surface_height if surface_height is not None else spec.depth
     speed = math.sqrt(2 * g * max(depth_now, smallest)) + (omega if math.isfinite(omega) else 0.0) * wheel.outer_radius
-    contact = advisor.hertz_contact_time(material.youngs_modulus, material.poisson_ratio, material.density,
-                                         smallest, max(speed, 1e-12))
+    contact = advisor.hertz_contact_time(
+        material.youngs_modulus, material.poisson_ratio, material.density, smallest, max(speed, 1e-12)
+    )
     steps = contact / plan.dt
-    findings.append(_finding(
-        "contact_steps", steps, CONTACT_STEPS, steps >= CONTACT_STEPS,
-        f"{steps:.3g} DEM steps per contact time ({contact:.3g} s at {speed:.3g} m/s)",
-        f"only {steps:.3g} DEM steps per contact time ({contact:.3g} s): contacts are under-resolved; lower "
-        f"{plan.dt_setting} so dt <= {contact / CONTACT_STEPS:.3g} s", plan.dt_setting))
+    findings.append(
+        _finding(
+            "contact_steps",
+            steps,
+            CONTACT_STEPS,
+            steps >= CONTACT_STEPS,
+            f"{steps:.3g} DEM steps per contact time ({contact:.3g} s at {speed:.3g} m/s)",
+            f"only {steps:.3g} DEM steps per contact time ({contact:.3g} s): contacts are under-resolved; lower "
+            f"{plan.dt_setting} so dt <= {contact / CONTACT_STEPS:.3g} s",
+            plan.dt_setting,
+        )
+    )
 
     across = wheel.width / diameter
-    findings.append(_finding(
-        "grains_across", across, GRAINS_ACROSS, across >= GRAINS_ACROSS,
-        f"{across:.3g} grain diameters across the wheel",
-        f"only {across:.3g} grain diameters across the wheel width: the grains are too coarse for the wheel "
-        f"(>= {GRAINS_ACROSS} needed); lower bed.radius_mean to <= {wheel.width / (2 * GRAINS_ACROSS):.3g} m or "
-        "widen the wheel", "bed.radius_mean, wheel.width"))
+    findings.append(
+        _finding(
+            "grains_across",
+            across,
+            GRAINS_ACROSS,
+            across >= GRAINS_ACROSS,
+            f"{across:.3g} grain diameters across the wheel",
+            f"only {across:.3g} grain diameters across the wheel width: the grains are too coarse for the wheel "
+            f"(>= {GRAINS_ACROSS} needed); lower bed.radius_mean to <= {wheel.width / (2 * GRAINS_ACROSS):.3g} m or "
+            "widen the wheel",
+            "bed.radius_mean, wheel.width",
+        )
+    )
 
     depth = surface_height if surface_height is not None else spec.depth
     estimated = "" if surface_height is not None else " (fill height; the settled bed is lower)"
     radii = depth / wheel.outer_radius
-    findings.append(_finding(
-        "bed_depth", radii, DEPTH_RADII, radii >= DEPTH_RADII,
-        f"bed depth {depth:.3g} m = {radii:.3g} wheel radii{estimated}",
-        f"the bed is {depth:.3g} m deep{estimated}, {radii:.3g} wheel radii: the floor carries part of the "
-        f"wheel's load; deepen bed.depth to >= {DEPTH_RADII * wheel.outer_radius / 0.85:.3g} m", "bed.depth"))
+    findings.append(
+        _finding(
+            "bed_depth",
+            radii,
+            DEPTH_RADII,
+            radii >= DEPTH_RADII,
+            f"bed depth {depth:.3g} m = {radii:.3g} wheel radii{estimated}",
+            f"the bed is {depth:.3g} m deep{estimated}, {radii:.3g} wheel radii: the floor carries part of the "
+            f"wheel's load; deepen bed.depth to >= {DEPTH_RADII * wheel.outer_radius / 0.85:.3g} m",
+            "bed.depth",
+        )
+    )
 
     sink = max(sinkage_tips or 0.0, 0.0)
     clearance = (depth - sink) / diameter
     when = f"at the measured tip sinkage {sink:.3g} m" if sinkage_tips is not None else "at the start"
-    findings.append(_finding(
-        "floor_clearance", clearance, FLOOR_GRAINS, clearance >= FLOOR_GRAINS,
-        f"{clearance:.3g} grain diameters between the grouser tips and the floor {when}",
-        f"only {clearance:.3g} grain diameters between the grouser tips and the floor {when}: the wheel feels the "
-        "floor; deepen bed.depth", "bed.depth"))
+    findings.append(
+        _finding(
+            "floor_clearance",
+            clearance,
+            FLOOR_GRAINS,
+            clearance >= FLOOR_GRAINS,
+            f"{clearance:.3g} grain diameters between the grouser tips and the floor {when}",
+            f"only {clearance:.3g} grain diameters between the grouser tips and the floor {when}: the wheel feels the "
+            "floor; deepen bed.depth",
+            "bed.depth",
+        )
+    )
 
     if t is not None:
         side = (spec.width - wheel.width) / 2 / diameter
-        end = (spec.length - (t.start_x + wheel.outer_radius
-                              + t.omega * wheel.outer_radius * plan.scene.run.duration)) / diameter
+        end = (
+            spec.length - (t.start_x + wheel.outer_radius + t.omega * wheel.outer_radius * plan.scene.run.duration)
+        ) / diameter
         walls = min(side, end)
-        findings.append(_finding(
-            "wall_clearance", walls, WALL_GRAINS, walls >= WALL_GRAINS,
-            f"wheel-wall clearance >= {walls:.3g} grain diameters (side {side:.3g}, far end {end:.3g})",
-            f"the wheel comes within {walls:.3g} grain diameters of a wall (side {side:.3g}, far end after the drive "
-            f"{end:.3g}): widen bed.width or lengthen bed.length", "bed.width, bed.length"))
+        findings.append(
+            _finding(
+                "wall_clearance",
+                walls,
+                WALL_GRAINS,
+                walls >= WALL_GRAINS,
+                f"wheel-wall clearance >= {walls:.3g} grain diameters (side {side:.3g}, far end {end:.3g})",
+                f"the wheel comes within {walls:.3g} grain diameters of a wall (side {side:.3g}, far end after the drive "
+                f"{end:.3g}): widen bed.width or lengthen bed.length",
+                "bed.width, bed.length",
+            )
+        )
     elif plan.patch is not None:
         gap = plan.patch.clearance / diameter
-        findings.append(_finding(
-            "wall_clearance", gap, WALL_GRAINS, gap >= WALL_GRAINS,
-            f"the wheels keep >= {gap:.3g} grain diameters from the patch's frozen band",
-            f"the wheels may come within {gap:.3g} grain diameters of the patch's frozen band: raise patch.clearance "
-            "(and the window size)", "patch.clearance, patch.length, patch.width"))
+        findings.append(
+            _finding(
+                "wall_clearance",
+                gap,
+                WALL_GRAINS,
+                gap >= WALL_GRAINS,
+                f"the wheels keep >= {gap:.3g} grain diameters from the patch's frozen band",
+                f"the wheels may come within {gap:.3g} grain diameters of the patch's frozen band: raise patch.clearance "
+                "(and the window size)",
+                "patch.clearance, patch.length, patch.width",
+            )
+        )
 
     pressure = ground_pressure(plan)
     bound = advisor.macroscopic_stiffness(depth, pressure, OVERLAP_RATIO, spec.radius_mean, material.density, g)
     ratio = material.youngs_modulus / bound if bound > 0 else math.inf
-    findings.append(_finding(
-        "overlap", ratio, 1.0, ratio >= 1.0,
-        f"E = {material.youngs_modulus:.3g} Pa is {ratio:.3g} x the eq. 10 bound {bound:.3g} Pa (overlaps <= "
-        f"{OVERLAP_RATIO} r under the wheel's {pressure:.3g} Pa)",
-        f"E = {material.youngs_modulus:.3g} Pa is below the eq. 10 bound {bound:.3g} Pa: overlaps exceed "
-        f"{OVERLAP_RATIO} r under the wheel; raise soil.youngs_modulus", "soil.youngs_modulus"))
+    findings.append(
+        _finding(
+            "overlap",
+            ratio,
+            1.0,
+            ratio >= 1.0,
+            f"E = {material.youngs_modulus:.3g} Pa is {ratio:.3g} x the eq. 10 bound {bound:.3g} Pa (overlaps <= "
+            f"{OVERLAP_RATIO} r under the wheel's {pressure:.3g} Pa)",
+            f"E = {material.youngs_modulus:.3g} Pa is below the eq. 10 bound {bound:.3g} Pa: overlaps exceed "
+            f"{OVERLAP_RATIO} r under the wheel; raise soil.youngs_modulus",
+            "soil.youngs_modulus",
+        )
+    )
     return findings
 
 

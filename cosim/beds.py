@@ -60,11 +60,19 @@ def bed_from_file(path: str, setting: str = "bed.bed_file") -> Bed:
     except (OSError, ValueError) as error:
         raise SceneError([f"{setting}: {error}"]) from None
     if "height" not in header["metrics"]:
-        raise SceneError([f"{setting}: {path!r} has no surface height metric (save beds with soil.bed.save_bed "
-                          "and bed metrics)"])
-    return Bed(path, float(header["metrics"]["height"]),
-               {"source": "file", "path": path, "metrics": {k: _plain(v) for k, v in header["metrics"].items()},
-                "particle_count": header["particle_count"]})
+        raise SceneError(
+            [f"{setting}: {path!r} has no surface height metric (save beds with soil.bed.save_bed and bed metrics)"]
+        )
+    return Bed(
+        path,
+        float(header["metrics"]["height"]),
+        {
+            "source": "file",
+            "path": path,
+            "metrics": {k: _plain(v) for k, v in header["metrics"].items()},
+            "particle_count": header["particle_count"],
+        },
+    )
 
 
 def _plain(value):
@@ -97,23 +105,46 @@ def _settle(plan: RunPlan, path: str, info_path: str, progress: bool) -> Bed:
     bar = _SettleBar(bed.settle_max_time, progress)
     start = time.perf_counter()
     try:
-        sim, report, metrics = make_settled_bed(bed.spec, plan.settle_gravity, device=plan.device, precision="double",
-                                                dt=bed.settle_dt, ke_ratio=bed.settle_ke_ratio,
-                                                max_time=bed.settle_max_time, progress=bar.update)
+        sim, report, metrics = make_settled_bed(
+            bed.spec,
+            plan.settle_gravity,
+            device=plan.device,
+            precision="double",
+            dt=bed.settle_dt,
+            ke_ratio=bed.settle_ke_ratio,
+            max_time=bed.settle_max_time,
+            progress=bar.update,
+        )
     finally:
         bar.close()
     wall = time.perf_counter() - start
     if not report["settled"]:
-        log.warning("the bed did not reach the kinetic-energy threshold in bed.settle_max_time = %g s (KE %.3g J > "
-                    "%.3g J); it is used as it is (raise bed.settle_max_time or bed.settle_ke_ratio)",
-                    bed.settle_max_time, report["kinetic_energy"], report["threshold"])
+        log.warning(
+            "the bed did not reach the kinetic-energy threshold in bed.settle_max_time = %g s (KE %.3g J > "
+            "%.3g J); it is used as it is (raise bed.settle_max_time or bed.settle_ke_ratio)",
+            bed.settle_max_time,
+            report["kinetic_energy"],
+            report["threshold"],
+        )
     metrics = bed_metrics(sim, bed.spec)
     save_bed(path, sim, bed.spec, metrics)
-    info = {"key": bed.key, "report": report, "metrics": metrics, "dt": bed.settle_dt, "wall_time": wall,
-            "particle_count": sim.model.particle_count}
+    info = {
+        "key": bed.key,
+        "report": report,
+        "metrics": metrics,
+        "dt": bed.settle_dt,
+        "wall_time": wall,
+        "particle_count": sim.model.particle_count,
+    }
     write_json(info_path, info)
-    log.info("settled %d grains in %.1f s wall (%.3g s simulated); surface at z = %.4g m, packing %.3f",
-             sim.model.particle_count, wall, report["time"], metrics["height"], metrics["packing_fraction"])
+    log.info(
+        "settled %d grains in %.1f s wall (%.3g s simulated); surface at z = %.4g m, packing %.3f",
+        sim.model.particle_count,
+        wall,
+        report["time"],
+        metrics["height"],
+        metrics["packing_fraction"],
+    )
     return Bed(path, float(metrics["height"]), {**info, "source": "settled", "path": path})
 
 
@@ -126,8 +157,13 @@ class _SettleBar:
         if enabled:
             from tqdm import tqdm
 
-            self.bar = tqdm(total=total, desc="settling bed", unit="s",
-                            bar_format="{desc}: {n:.2f}/{total:.2f} s sim [{elapsed}, {postfix}]", leave=True)
+            self.bar = tqdm(
+                total=total,
+                desc="settling bed",
+                unit="s",
+                bar_format="{desc}: {n:.2f}/{total:.2f} s sim [{elapsed}, {postfix}]",
+                leave=True,
+            )
 
     def update(self, t, energy, threshold):
         if self.bar is not None:

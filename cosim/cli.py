@@ -120,16 +120,40 @@ def cmd_resume(args) -> int:
 
 
 SUMMARY_KEYS = (
-    ("steady_state", "", 1), ("validity", "", 1), ("landing_time", "s", 1), ("window", "s", 1),
-    ("slip", "", 1), ("travel", "mm", 1e3), ("forward_speed", "mm/s", 1e3), ("sinkage", "mm", 1e3),
-    ("sinkage_tips", "mm", 1e3), ("drawbar_pull", "N", 1), ("dp_over_w", "", 1), ("driving_torque", "N m", 1),
-    ("normal_force", "N", 1), ("net_traction", "N", 1), ("net_traction_over_weight", "", 1), ("power", "W", 1),
-    ("displacement", "mm", 1e3), ("energy_per_metre", "J/m", 1), ("time_immobile", "s", 1), ("stuck", "", 1),
-    ("wheel_slip", "", 1), ("wheel_sinkage", "mm", 1e3), ("wheel_normal_force", "N", 1), ("wheel_power", "W", 1),
-    ("patch_moves", "", 1), ("particle_count_max", "", 1), ("soil_mass_added", "kg", 1),
+    ("steady_state", "", 1),
+    ("validity", "", 1),
+    ("landing_time", "s", 1),
+    ("window", "s", 1),
+    ("slip", "", 1),
+    ("travel", "mm", 1e3),
+    ("forward_speed", "mm/s", 1e3),
+    ("sinkage", "mm", 1e3),
+    ("sinkage_tips", "mm", 1e3),
+    ("drawbar_pull", "N", 1),
+    ("dp_over_w", "", 1),
+    ("driving_torque", "N m", 1),
+    ("normal_force", "N", 1),
+    ("net_traction", "N", 1),
+    ("net_traction_over_weight", "", 1),
+    ("power", "W", 1),
+    ("displacement", "mm", 1e3),
+    ("energy_per_metre", "J/m", 1),
+    ("time_immobile", "s", 1),
+    ("stuck", "", 1),
+    ("wheel_slip", "", 1),
+    ("wheel_sinkage", "mm", 1e3),
+    ("wheel_normal_force", "N", 1),
+    ("wheel_power", "W", 1),
+    ("patch_moves", "", 1),
+    ("particle_count_max", "", 1),
+    ("soil_mass_added", "kg", 1),
     ("soil_mass_removed", "kg", 1),
-    ("contact_fraction", "", 1), ("froude_number", "", 1), ("simulated_time", "s", 1),
-    ("wall_time", "s", 1), ("particle_count", "", 1), ("particle_steps_per_second", "1/s", 1),
+    ("contact_fraction", "", 1),
+    ("froude_number", "", 1),
+    ("simulated_time", "s", 1),
+    ("wall_time", "s", 1),
+    ("particle_count", "", 1),
+    ("particle_steps_per_second", "1/s", 1),
 )
 
 
@@ -179,8 +203,9 @@ def advise_lines(plan) -> list[str]:
     material = plan.soil_material
     r_min = spec.radius_mean * (1 - spec.radius_spread)
     pressure = advice.ground_pressure(plan)
-    e_min = advisor.macroscopic_stiffness(spec.depth, pressure, advice.OVERLAP_RATIO, spec.radius_mean,
-                                          material.density, plan.g)
+    e_min = advisor.macroscopic_stiffness(
+        spec.depth, pressure, advice.OVERLAP_RATIO, spec.radius_mean, material.density, plan.g
+    )
     rayleigh = advisor.rayleigh_time_step(material.youngs_modulus, material.poisson_ratio, material.density, r_min)
     steps = advisor.recommended_time_step(material, radius=r_min, gravity=plan.g, height=spec.depth, pressure=pressure)
     lines = [
@@ -214,13 +239,18 @@ def cmd_study(args) -> int:
     if plan.rover is not None and args.kind in ("slip", "timestep"):
         from .scene import SceneError
 
-        raise SceneError([f"cosim study {args.kind}: runs the single-wheel [testbed]; for a rover compare drives "
-                          "with `cosim sweep SCENE --param rover.drive=NAME1,NAME2` ([rover.controllers])"])
+        raise SceneError(
+            [
+                f"cosim study {args.kind}: runs the single-wheel [testbed]; for a rover compare drives "
+                "with `cosim sweep SCENE --param rover.drive=NAME1,NAME2` ([rover.controllers])"
+            ]
+        )
     if args.kind == "precision":
         out = args.out or os.path.join("runs", f"{plan.name}_precision")
         precisions = [p.strip() for p in args.precisions.split(",") if p.strip()]
-        report = study.precision_study(plan, out, replicas=args.replicas, precisions=precisions,
-                                       overwrite=args.overwrite, **_executor(args))
+        report = study.precision_study(
+            plan, out, replicas=args.replicas, precisions=precisions, overwrite=args.overwrite, **_executor(args)
+        )
         failed = sum(1 for r in report["replicas"] if not r.get("ok"))
         print(f"study written to {out} ({failed} failed replica(s))")
         return EXIT_OK if failed == 0 else EXIT_ERROR
@@ -229,13 +259,11 @@ def cmd_study(args) -> int:
 
         out = args.out or os.path.join("runs", f"{plan.name}_slip")
         slips = [parse_value(s) for s in args.slips.split(",") if s.strip()]
-        report = study.slip_study(plan, out, slips, replicas=args.replicas, overwrite=args.overwrite,
-                                  **_executor(args))
+        report = study.slip_study(plan, out, slips, replicas=args.replicas, overwrite=args.overwrite, **_executor(args))
         print(report["text"])
         return EXIT_OK if report["ok"] else EXIT_UNSTEADY
     out = args.out or os.path.join("runs", f"{plan.name}_timestep")
-    report = study.timestep_study(plan, out, duration=args.duration, max_tries=args.max_tries,
-                                  overwrite=args.overwrite)
+    report = study.timestep_study(plan, out, duration=args.duration, max_tries=args.max_tries, overwrite=args.overwrite)
     return EXIT_OK if report.get("largest_stable") else EXIT_ERROR
 
 
@@ -253,8 +281,9 @@ def cmd_sweep(args) -> int:
 def cmd_scale(args) -> int:
     from .similarity import write_gravity_twin
 
-    path, factor = write_gravity_twin(args.scene, args.gravity, args.out, overwrite=args.overwrite,
-                                      overrides=_overrides(args))
+    path, factor = write_gravity_twin(
+        args.scene, args.gravity, args.out, overwrite=args.overwrite, overrides=_overrides(args)
+    )
     print(f"{path}: the DEM-similar scene at |g| x {factor:.6g}")
     return EXIT_OK
 
@@ -270,8 +299,10 @@ def cmd_export_fmu(args) -> int:
         if args.device:
             config.device = args.device
         path = export_soil_fmu(config, args.out, fmi_version=args.fmi, wheel_count=args.wheels, python=args.python)
-    print(f"wrote {path}: FMI {args.fmi}.0 co-simulation, {args.wheels} wheel(s), DEM step {config.dem_step:.4g} s, "
-          f"surface z = {config.surface_height:.4g} m; the soil server runs on {config.device}")
+    print(
+        f"wrote {path}: FMI {args.fmi}.0 co-simulation, {args.wheels} wheel(s), DEM step {config.dem_step:.4g} s, "
+        f"surface z = {config.surface_height:.4g} m; the soil server runs on {config.device}"
+    )
     return EXIT_OK
 
 
@@ -305,8 +336,10 @@ def lab_lines(summary: dict) -> list[str]:
 
     def stats(name, value, unit):
         if value.get("n", 0) > 1:
-            return (f"{name:26s} {value['mean']:.4g} {unit} +- {value['ci95']:.2g} (95 %, {value['n']} replicas; "
-                    f"min {value['min']:.4g}, max {value['max']:.4g})")
+            return (
+                f"{name:26s} {value['mean']:.4g} {unit} +- {value['ci95']:.2g} (95 %, {value['n']} replicas; "
+                f"min {value['min']:.4g}, max {value['max']:.4g})"
+            )
         return f"{name:26s} {value.get('mean', float('nan')):.4g} {unit}"
 
     lines = []
@@ -315,10 +348,14 @@ def lab_lines(summary: dict) -> list[str]:
     elif summary["test"] == "shear":
         for state in ("peak", "residual"):
             fit = summary[state]
-            lines.append(f"{state + ' friction angle':26s} {fit['friction_angle_deg']:.4g} deg"
-                         + (f" +- {fit['friction_angle_se_deg']:.2g} (s.e.)" if fit.get("points", 0) > 2 else ""))
-            lines.append(f"{state + ' cohesion':26s} {fit['cohesion_pa']:.4g} Pa"
-                         + (f" +- {fit['cohesion_se_pa']:.2g} (s.e.)" if fit.get("points", 0) > 2 else ""))
+            lines.append(
+                f"{state + ' friction angle':26s} {fit['friction_angle_deg']:.4g} deg"
+                + (f" +- {fit['friction_angle_se_deg']:.2g} (s.e.)" if fit.get("points", 0) > 2 else "")
+            )
+            lines.append(
+                f"{state + ' cohesion':26s} {fit['cohesion_pa']:.4g} Pa"
+                + (f" +- {fit['cohesion_se_pa']:.2g} (s.e.)" if fit.get("points", 0) > 2 else "")
+            )
             lines.append(f"{state + ' angle (c = 0)':26s} {fit['friction_angle_origin_deg']:.4g} deg")
     elif summary["test"] == "plate":
         fit = summary["bekker"]
@@ -345,15 +382,25 @@ def cmd_calibrate(args) -> int:
     tolerances = parse_tolerances(args.tolerance, targets)
     plan = _lab_plan(args, "calibrate" if "repose" in targets else "shear")
     out = args.out or os.path.join("runs", f"{plan.name}_calibrate")
-    summary = calibrate(plan, out, targets, parameters, tolerances, max_evaluations=args.max_evaluations,
-                        overwrite=args.overwrite, **_executor(args))
+    summary = calibrate(
+        plan,
+        out,
+        targets,
+        parameters,
+        tolerances,
+        max_evaluations=args.max_evaluations,
+        overwrite=args.overwrite,
+        **_executor(args),
+    )
     best = summary["best"]
     print(f"calibrate: {out}: {summary['message']} ({len(summary['evaluations'])} evaluations, {summary['method']})")
     for key, value in best["values"].items():
         print(f"  {key:40s} {value:.6g}")
     for name, value in best["measured"].items():
-        print(f"  {name + ' measured':40s} {value:.4g} (target {summary['targets'][name]:g} +- "
-              f"{summary['tolerances'][name]:g})")
+        print(
+            f"  {name + ' measured':40s} {value:.4g} (target {summary['targets'][name]:g} +- "
+            f"{summary['tolerances'][name]:g})"
+        )
     print(f"  calibrated scene: {summary['calibrated_scene']}")
     return EXIT_OK if summary["converged"] else EXIT_UNSTEADY
 
@@ -370,10 +417,20 @@ def add_lab_commands(sub, scene_options, cluster_options) -> None:
     p = sub.add_parser("calibrate", help="tune contact parameters to target bulk values with the lab tests")
     scene_options(p)
     cluster_options(p)
-    p.add_argument("--target", action="append", required=True, metavar="NAME=VALUE",
-                   help="repose [deg], friction, friction_residual [deg], cohesion, cohesion_residual [Pa]")
-    p.add_argument("--vary", action="append", required=True, metavar="KEY[,KEY]=LOW:HIGH",
-                   help="a scene key (or keys set together) and its range, e.g. soil.rolling_friction=0:0.3")
+    p.add_argument(
+        "--target",
+        action="append",
+        required=True,
+        metavar="NAME=VALUE",
+        help="repose [deg], friction, friction_residual [deg], cohesion, cohesion_residual [Pa]",
+    )
+    p.add_argument(
+        "--vary",
+        action="append",
+        required=True,
+        metavar="KEY[,KEY]=LOW:HIGH",
+        help="a scene key (or keys set together) and its range, e.g. soil.rolling_friction=0:0.3",
+    )
     p.add_argument("--tolerance", action="append", metavar="NAME=VALUE", help="per target (default 1 deg, 10 %% Pa)")
     p.add_argument("--max-evaluations", type=int, default=12, help="most lab evaluations (default 12)")
     p.add_argument("--replicas", type=int, help="specimens per evaluation (overrides lab.replicas)")
@@ -381,17 +438,24 @@ def add_lab_commands(sub, scene_options, cluster_options) -> None:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="cosim", description="regolith-cosim: DEM soil co-simulated with rovers",
-                                     epilog="exit status: 0 ok, 1 unexpected error, 2 bad input, 3 output folder "
-                                            "not free, 4 diverged, 5 OS error, 6 no steady-state result, "
-                                            "130 interrupted")
+    parser = argparse.ArgumentParser(
+        prog="cosim",
+        description="regolith-cosim: DEM soil co-simulated with rovers",
+        epilog="exit status: 0 ok, 1 unexpected error, 2 bad input, 3 output folder "
+        "not free, 4 diverged, 5 OS error, 6 no steady-state result, "
+        "130 interrupted",
+    )
     parser.add_argument("--verbose", "-v", action="store_true", help="debug log lines, Warp's messages, tracebacks")
     sub = parser.add_subparsers(dest="command", required=True)
 
     def scene_options(p, device=True):
         p.add_argument("scene", help="scene file (TOML)")
-        p.add_argument("--set", action="append", metavar="KEY=VALUE",
-                       help="override a scene key, e.g. --set wheel.radius=0.05 (repeatable)")
+        p.add_argument(
+            "--set",
+            action="append",
+            metavar="KEY=VALUE",
+            help="override a scene key, e.g. --set wheel.radius=0.05 (repeatable)",
+        )
         if device:
             p.add_argument("--device", help="Warp device: cpu, cuda, cuda:N (overrides scene.device)")
             p.add_argument("--precision", choices=["single", "double", "mixed"], help="overrides scene.precision")
@@ -407,8 +471,12 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("run", help="run a scene")
     scene_options(p)
     cluster_options(p)
-    p.add_argument("--replicas", type=int, default=1,
-                   help="K > 1: run K replicas differing only in summation order and report error bars")
+    p.add_argument(
+        "--replicas",
+        type=int,
+        default=1,
+        help="K > 1: run K replicas differing only in summation order and report error bars",
+    )
     p.add_argument("--no-progress", action="store_true")
     p.set_defaults(func=cmd_run)
 

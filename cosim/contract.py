@@ -8,8 +8,9 @@ an FMU) can be coupled to any rover (MuJoCo, FMU).
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass, field
-from typing import Protocol, Sequence, runtime_checkable
+from typing import Protocol, runtime_checkable
 
 import numpy as np
 

@@ -15,8 +15,9 @@ without them is taken to be stateless.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import Protocol, Sequence, runtime_checkable
+from typing import Protocol, runtime_checkable
 
 import numpy as np
 
@@ -157,8 +158,11 @@ class SlipController:
 
     def state_dict(self) -> dict:
         """The integrals, the last slips and the time of the last call (nan: none yet)."""
-        return {"integral": self.integral.copy(), "slip": self.slip.copy(),
-                "t_prev": np.nan if self._t_prev is None else self._t_prev}
+        return {
+            "integral": self.integral.copy(),
+            "slip": self.slip.copy(),
+            "t_prev": np.nan if self._t_prev is None else self._t_prev,
+        }
 
     def load_state_dict(self, state: dict) -> None:
         self.integral = np.array(state["integral"], dtype=np.float64)

@@ -23,8 +23,8 @@ exceeds `energy_atol + energy_rtol * sum |W_rover|` a CouplingEnergyWarning is i
 from __future__ import annotations
 
 import warnings
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
-from typing import Callable, Sequence
 
 import numpy as np
 
@@ -64,16 +64,20 @@ def stack_records(records: Sequence[MacroStepRecord]) -> dict[str, np.ndarray]:
     """Records as arrays (S = records, W = wheels): time [s] (S,); position [m], linear_velocity
     [m/s], angular_velocity [rad/s], force [N], torque [N m] (S, W, 3); orientation (S, W, 4);
     sinkage [m], contact_count, work_on_rover, work_on_soil [J] (S, W)."""
+
     def wheels(get):
         return np.array([[get(k, w) for k, w in zip(r.kinematics, r.wrenches)] for r in records])
 
     return {
         "time": np.array([r.time for r in records], dtype=np.float64),
-        "position": wheels(lambda k, w: k.position), "orientation": wheels(lambda k, w: k.orientation),
+        "position": wheels(lambda k, w: k.position),
+        "orientation": wheels(lambda k, w: k.orientation),
         "linear_velocity": wheels(lambda k, w: k.linear_velocity),
         "angular_velocity": wheels(lambda k, w: k.angular_velocity),
-        "force": wheels(lambda k, w: w.force), "torque": wheels(lambda k, w: w.torque),
-        "sinkage": wheels(lambda k, w: w.sinkage), "contact_count": wheels(lambda k, w: w.contact_count),
+        "force": wheels(lambda k, w: w.force),
+        "torque": wheels(lambda k, w: w.torque),
+        "sinkage": wheels(lambda k, w: w.sinkage),
+        "contact_count": wheels(lambda k, w: w.contact_count),
         "work_on_rover": np.array([r.work_on_rover for r in records]),
         "work_on_soil": np.array([r.work_on_soil for r in records]),
     }
@@ -180,19 +184,24 @@ class Coupler:
 
         # Energy bookkeeping (see module docstring).
         h = self.macro_step
-        w_rover = np.array([
-            w.force @ (b.position - a.position)  # exact for a force held constant
-            + w.torque @ (a.angular_velocity + b.angular_velocity) * (h / 2)
-            for w, a, b in zip(held, k0, k1)
-        ])
+        w_rover = np.array(
+            [
+                w.force @ (b.position - a.position)  # exact for a force held constant
+                + w.torque @ (a.angular_velocity + b.angular_velocity) * (h / 2)
+                for w, a, b in zip(held, k0, k1)
+            ]
+        )
         # The soil moved each wheel along the extrapolated path (end: p_ext, q_ext); the
         # next step starts it where the rover really is, a jump that does work on the
         # soil too. Without it, W_rover + W_soil carries a spurious +F . a H^2 / 2 per step.
         w_soil = np.array([w.work_on_soil - _jump_work(w, a, b, h) for w, a, b in zip(wrenches, k0, k1)])
         self.energy_created += float(np.sum(w_rover + w_soil))
         self.energy_exchanged += float(np.sum(np.abs(w_rover)))
-        if (not self._warned and self.step_count > self.energy_warmup
-                and self.energy_created > self.energy_atol + self.energy_rtol * self.energy_exchanged):
+        if (
+            not self._warned
+            and self.step_count > self.energy_warmup
+            and self.energy_created > self.energy_atol + self.energy_rtol * self.energy_exchanged
+        ):
             self._warned = True
             warnings.warn(
                 f"coupling created {self.energy_created:.3e} J by t={t1:.6g} s "
@@ -204,7 +213,7 @@ class Coupler:
             )
         return MacroStepRecord(t1, k1, list(held), w_rover, w_soil)
 
-    def run(self, t_end: float, callback: Callable[["Coupler"], None] | None = None) -> list[MacroStepRecord]:
+    def run(self, t_end: float, callback: Callable[[Coupler], None] | None = None) -> list[MacroStepRecord]:
         """Macro-step until t_end [s] (rounded to a whole number of steps); returns the records.
 
         callback(coupler) is called after every macro step.
@@ -220,8 +229,13 @@ class Coupler:
     # -- checkpoints -------------------------------------------------------------------
     def state_dict(self) -> dict:
         """The coupler's own state (the sides and the controller keep theirs)."""
-        state = {"time": self.time, "step_count": self.step_count, "energy_created": self.energy_created,
-                 "energy_exchanged": self.energy_exchanged, "warned": self._warned}
+        state = {
+            "time": self.time,
+            "step_count": self.step_count,
+            "energy_created": self.energy_created,
+            "energy_exchanged": self.energy_exchanged,
+            "warned": self._warned,
+        }
         for name, wrenches in (("lagged", self._lagged), ("last", self._last)):
             for field in _WRENCH_FIELDS:
                 state[f"{name}/{field}"] = np.array([getattr(w, field) for w in wrenches])
@@ -235,10 +249,25 @@ class Coupler:
         self._warned = bool(state["warned"])
         for name in ("lagged", "last"):
             values = {field: state[f"{name}/{field}"] for field in _WRENCH_FIELDS}
-            setattr(self, f"_{name}", [
-                WheelWrench(**{field: (int(v[i]) if field == "contact_count" else
-                                       float(v[i]) if np.ndim(v[i]) == 0 else np.array(v[i], dtype=np.float64))
-                               for field, v in values.items()}) for i in range(self.wheel_count)])
+            setattr(
+                self,
+                f"_{name}",
+                [
+                    WheelWrench(
+                        **{
+                            field: (
+                                int(v[i])
+                                if field == "contact_count"
+                                else float(v[i])
+                                if np.ndim(v[i]) == 0
+                                else np.array(v[i], dtype=np.float64)
+                            )
+                            for field, v in values.items()
+                        }
+                    )
+                    for i in range(self.wheel_count)
+                ],
+            )
 
 
 def _jump_work(w: WheelWrench, k0: WheelKinematics, k1: WheelKinematics, h: float) -> float:

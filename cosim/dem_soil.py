@@ -28,8 +28,7 @@ class DemSoil:
             move and replace `sim` (host side, between DEM steps).
     """
 
-    def __init__(self, sim, dt: float, surface_height: float = 0.0, wall_clearance: float | None = None,
-                 patch=None):
+    def __init__(self, sim, dt: float, surface_height: float = 0.0, wall_clearance: float | None = None, patch=None):
         if sim.model.body_count < 1:
             raise ValueError("the soil simulation has no wheel bodies (SoilBuilder.add_wheel)")
         if not dt > 0:
@@ -38,17 +37,28 @@ class DemSoil:
         self.dt = float(dt)
         self.surface_height = float(surface_height)
         self.wheel_count = sim.model.body_count
-        self.wall_clearance = (5 * float(sim.model.radius_numpy().mean()) if wall_clearance is None
-                               else float(wall_clearance))
+        self.wall_clearance = (
+            5 * float(sim.model.radius_numpy().mean()) if wall_clearance is None else float(wall_clearance)
+        )
         self._warned_wall = False
         # the boundaries' kinds and initial geometry, read once (their motion comes with each macro step)
         self._walls = (sim.model.boundary_kind.numpy().copy(), sim.model.boundary_geometry_numpy())
         self.patch = patch
 
     @classmethod
-    def from_bed(cls, bed, wheels, wheel_material, dt: float, surface_height: float | None = None,
-                 device=None, precision: str = "mixed", order_seed: int | None = None,
-                 wall_clearance: float | None = None, law=None) -> DemSoil:
+    def from_bed(
+        cls,
+        bed,
+        wheels,
+        wheel_material,
+        dt: float,
+        surface_height: float | None = None,
+        device=None,
+        precision: str = "mixed",
+        order_seed: int | None = None,
+        wall_clearance: float | None = None,
+        law=None,
+    ) -> DemSoil:
         """A DemSoil on a saved bed (path of soil.bed.save_bed, or load_bed's (builder, saved))
         with one body per wheel shape (GrouserWheel/MeshWheel), all of `wheel_material`.
 
@@ -76,8 +86,10 @@ class DemSoil:
     def set_gravity(self, gravity: Sequence[float]) -> None:
         gravity = np.asarray(gravity, dtype=np.float64).reshape(3)
         if not np.allclose(gravity, self.sim.model.gravity, rtol=1e-12, atol=0):
-            raise ValueError(f"the soil was settled under gravity {self.sim.model.gravity} m/s^2, the scene asks "
-                             f"for {gravity}: settle the bed under the scene's gravity")
+            raise ValueError(
+                f"the soil was settled under gravity {self.sim.model.gravity} m/s^2, the scene asks "
+                f"for {gravity}: settle the bed under the scene's gravity"
+            )
 
     def highest_grain_under(self, wheel: int, hub: Sequence[float], axle: Sequence[float] = (0.0, 1.0, 0.0)) -> float:
         """Top (z + r) [m] of the highest grain inside the wheel's horizontal footprint when
@@ -101,8 +113,9 @@ class DemSoil:
             self.sim.control.set_body_motion(b, k.position, k.orientation, k.linear_velocity, k.angular_velocity)
         self.sim.refresh_forces()
 
-    def advance(self, t_end: float, start: Sequence[WheelKinematics],
-                end: Sequence[WheelKinematics] | None = None) -> list[WheelWrench]:
+    def advance(
+        self, t_end: float, start: Sequence[WheelKinematics], end: Sequence[WheelKinematics] | None = None
+    ) -> list[WheelWrench]:
         """Advance the soil to t_end [s] in whole DEM steps, the wheels moving from `start` with
         constant velocities (end None) or towards `end`; returns each wheel's wrench.
 
@@ -132,18 +145,27 @@ class DemSoil:
             h = self.dt
 
         def stack(kinematics):
-            return tuple(np.array([getattr(k, name) for k in kinematics], dtype=np.float64)
-                         for name in ("position", "orientation", "linear_velocity", "angular_velocity"))
+            return tuple(
+                np.array([getattr(k, name) for k in kinematics], dtype=np.float64)
+                for name in ("position", "orientation", "linear_velocity", "angular_velocity")
+            )
 
         control.set_body_path(span, *stack(start), end=None if end is None else stack(end))
         report = sim.macro_step(steps, h, path=True)
         sim.state.time = float(t_end)  # the coupler's clock (the steps' sum differs by its rounding only)
         self._check_walls(control.body_position_host, report.boundary_displacement)
-        return [WheelWrench(force=report.body_force[b], torque=report.body_torque[b],
-                            force_end=report.body_force_end[b], torque_end=report.body_torque_end[b],
-                            contact_count=int(report.body_contacts[b]), sinkage=self._sinkage(b),
-                            work_on_soil=float(report.body_work[b]))
-                for b in range(self.wheel_count)]
+        return [
+            WheelWrench(
+                force=report.body_force[b],
+                torque=report.body_torque[b],
+                force_end=report.body_force_end[b],
+                torque_end=report.body_torque_end[b],
+                contact_count=int(report.body_contacts[b]),
+                sinkage=self._sinkage(b),
+                work_on_soil=float(report.body_work[b]),
+            )
+            for b in range(self.wheel_count)
+        ]
 
     def current_wrenches(self) -> list[WheelWrench]:
         """The wrench on every wheel at this instant (e.g. after place_wheels): force and torque
@@ -152,15 +174,24 @@ class DemSoil:
         force = state.body_force.numpy().astype(np.float64).reshape(-1, 3)
         torque = state.body_torque.numpy().astype(np.float64).reshape(-1, 3)
         contacts = state.body_contacts.numpy()
-        return [WheelWrench(force=force[b], torque=torque[b], force_end=force[b].copy(), torque_end=torque[b].copy(),
-                            contact_count=int(contacts[b]), sinkage=self._sinkage(b))
-                for b in range(self.wheel_count)]
+        return [
+            WheelWrench(
+                force=force[b],
+                torque=torque[b],
+                force_end=force[b].copy(),
+                torque_end=torque[b].copy(),
+                contact_count=int(contacts[b]),
+                sinkage=self._sinkage(b),
+            )
+            for b in range(self.wheel_count)
+        ]
 
     def _sinkage(self, wheel: int) -> float:
         """Depth of the wheel's rim bottom below the undisturbed surface [m]."""
         shape = self.sim.model.bodies[wheel]
-        lowest = self.sim.control.body_position_host[wheel, 2] - getattr(shape, "radius",
-                                                                          getattr(shape, "outer_radius", 0.0))
+        lowest = self.sim.control.body_position_host[wheel, 2] - getattr(
+            shape, "radius", getattr(shape, "outer_radius", 0.0)
+        )
         return self.surface_height - float(lowest)
 
     # -- checkpoints -----------------------------------------------------------------
@@ -177,9 +208,10 @@ class DemSoil:
     def load_state_dict(self, data: dict) -> None:
         """Continue from state_dict() output (into a DemSoil built from the same scene and bed)."""
         if self.patch is not None:  # the patch's grains first: the simulation's state is loaded over them
-            self.sim = self.patch.load_state_dict({k[len("patch/"):]: v for k, v in data.items()
-                                                   if k.startswith("patch/")}, self.sim)
-        self.sim.load_state_dict({k[len("simulation/"):]: v for k, v in data.items() if k.startswith("simulation/")})
+            self.sim = self.patch.load_state_dict(
+                {k[len("patch/") :]: v for k, v in data.items() if k.startswith("patch/")}, self.sim
+            )
+        self.sim.load_state_dict({k[len("simulation/") :]: v for k, v in data.items() if k.startswith("simulation/")})
         self._warned_wall = bool(data["warned_wall"])
 
     # -- walls ---------------------------------------------------------------------
@@ -187,8 +219,9 @@ class DemSoil:
         """(point, inward normal) of the side walls (vertical planes), displaced by
         `displacement` [m] (boundary_count, 3) from their initial geometry."""
         kinds, geometry = self._walls
-        return [(g[:3] + d, g[3:]) for kind, g, d in zip(kinds, geometry, displacement)
-                if kind == 0 and abs(g[5]) < 0.5]
+        return [
+            (g[:3] + d, g[3:]) for kind, g, d in zip(kinds, geometry, displacement) if kind == 0 and abs(g[5]) < 0.5
+        ]
 
     def _check_walls(self, positions: np.ndarray, displacement: np.ndarray) -> None:
         if self._warned_wall:
@@ -201,9 +234,13 @@ class DemSoil:
                 gap = float((hub - point) @ normal) - _extent(shape, rotations[b], normal)
                 if gap < self.wall_clearance:
                     self._warned_wall = True
-                    warnings.warn(f"wheel {b} is {gap:.4g} m from a container wall (hub at {np.round(hub, 4)}), "
-                                  f"closer than {self.wall_clearance:.3g} m: the wall influences the result; "
-                                  "make the bed larger", WallProximityWarning, stacklevel=3)
+                    warnings.warn(
+                        f"wheel {b} is {gap:.4g} m from a container wall (hub at {np.round(hub, 4)}), "
+                        f"closer than {self.wall_clearance:.3g} m: the wall influences the result; "
+                        "make the bed larger",
+                        WallProximityWarning,
+                        stacklevel=3,
+                    )
                     return
 
 

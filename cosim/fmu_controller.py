@@ -32,7 +32,7 @@ retry and close() are rover_models.fmu_session's, shared with the FMU rover, not
 from __future__ import annotations
 
 import os
-from typing import Sequence
+from collections.abc import Sequence
 
 import numpy as np
 
@@ -94,8 +94,10 @@ class FmuController(FmuSession):
         if mode is None:
             declared = [m for m, f in found.items() if f]
             if len(declared) == 2:
-                raise ValueError(f"{self.path}: the FMU has both wheel_<i>.speed_command and "
-                                 f"wheel_<i>.torque_command outputs; choose mode='speed' or mode='torque'")
+                raise ValueError(
+                    f"{self.path}: the FMU has both wheel_<i>.speed_command and "
+                    f"wheel_<i>.torque_command outputs; choose mode='speed' or mode='torque'"
+                )
             mode = declared[0] if declared else "speed"
         if mode not in _COMMANDS:
             raise ValueError(f"mode must be 'speed' or 'torque' (or None), got {mode!r}")
@@ -109,7 +111,8 @@ class FmuController(FmuSession):
             missing = [f"wheel_{i}.{suffix}" for i in expected if i not in have]
             extra = [f"wheel_{i}.{suffix}" for i in have if i not in expected]
             problems = ([f"missing {', '.join(missing)}"] if missing else []) + (
-                [f"unexpected {', '.join(extra)}"] if extra else [])
+                [f"unexpected {', '.join(extra)}"] if extra else []
+            )
             raise FmuVariableError(
                 f"{self.path}: a {mode} controller for {wheel_count or 'any'} wheel(s) needs outputs "
                 f"wheel_<i>.{suffix} for i = 0 .. wheel_count-1; "
@@ -154,19 +157,25 @@ class FmuController(FmuSession):
     ) -> DriveCommand:
         n = self.wheel_count
         if len(wheel_states) != n or len(wrenches) != n:
-            raise ValueError(f"{len(wheel_states)} wheel states and {len(wrenches)} wrenches "
-                             f"for a controller of {n} wheel(s)")
+            raise ValueError(
+                f"{len(wheel_states)} wheel states and {len(wrenches)} wrenches for a controller of {n} wheel(s)"
+            )
         t = float(t)
         if self._slots.size:
-            values = np.concatenate([
-                np.concatenate([k.position, k.orientation, k.linear_velocity, k.angular_velocity, w.force, w.torque])
-                for k, w in zip(wheel_states, wrenches)
-            ])[self._slots]
+            values = np.concatenate(
+                [
+                    np.concatenate(
+                        [k.position, k.orientation, k.linear_velocity, k.angular_velocity, w.force, w.torque]
+                    )
+                    for k, w in zip(wheel_states, wrenches)
+                ]
+            )[self._slots]
         if self.fmu is None:
             if self._time is not None:
                 raise RuntimeError(f"{self.path}: the controller is closed")
             self.fmu, self._unzipdir, self._set, self._get = instantiate_cosim(
-                self.path, self.md, self.instance_name, t)
+                self.path, self.md, self.instance_name, t
+            )
             self._initializing, self._time = True, t
             for vr, value in self._start_values:
                 self._set([vr], [value])
@@ -197,7 +206,8 @@ class FmuController(FmuSession):
             return
         if self.fmu is None:  # instantiate it as the first call would, then put the saved state in
             self.fmu, self._unzipdir, self._set, self._get = instantiate_cosim(
-                self.path, self.md, self.instance_name, t)
+                self.path, self.md, self.instance_name, t
+            )
             self._initializing = True
             for vr, value in self._start_values:
                 self._set([vr], [value])

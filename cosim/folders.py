@@ -71,27 +71,31 @@ class RunFolder:
     def create(self) -> None:
         """Make the folder (and its parents); a clear error when the path names a file or lies below one."""
         if os.path.exists(self.path) and not os.path.isdir(self.path):
-            raise OutputFolderError(f"output folder {self.path!r} exists and is a file, not a folder: choose another "
-                                    "--out")
+            raise OutputFolderError(
+                f"output folder {self.path!r} exists and is a file, not a folder: choose another --out"
+            )
         try:
             os.makedirs(self.path, exist_ok=True)
         except (NotADirectoryError, FileExistsError):
-            raise OutputFolderError(f"cannot create the output folder {self.path!r}: a part of the path is a file, "
-                                    "not a folder") from None
+            raise OutputFolderError(
+                f"cannot create the output folder {self.path!r}: a part of the path is a file, not a folder"
+            ) from None
 
-    def locked(self) -> "RunFolder":
+    def locked(self) -> RunFolder:
         """Take the folder's lock (FolderInUseError when another process holds it); a context manager."""
         self.create()
         lock = FileLock(self.file(LOCK_FILE))
         try:
             lock.acquire(timeout=0)
         except Timeout:
-            raise FolderInUseError(f"output folder {self.path!r} is in use by another run (it holds "
-                                   f"{LOCK_FILE}); wait for it to finish, stop it, or choose another --out") from None
+            raise FolderInUseError(
+                f"output folder {self.path!r} is in use by another run (it holds "
+                f"{LOCK_FILE}); wait for it to finish, stop it, or choose another --out"
+            ) from None
         self._lock = lock
         return self
 
-    def __enter__(self) -> "RunFolder":
+    def __enter__(self) -> RunFolder:
         if self._lock is None:
             self.locked()
         return self
@@ -109,9 +113,11 @@ class RunFolder:
         """Refuse a folder holding a run unless overwrite (nothing is removed here)."""
         present = self.run_files()
         if present and not overwrite:
-            raise OutputExistsError(f"output folder {self.path!r} already holds a run ({', '.join(present)}); "
-                                    "nothing is overwritten: choose another --out, continue with `cosim resume`, or "
-                                    "pass --overwrite to replace the run (a cached bed.h5 is kept and reused)")
+            raise OutputExistsError(
+                f"output folder {self.path!r} already holds a run ({', '.join(present)}); "
+                "nothing is overwritten: choose another --out, continue with `cosim resume`, or "
+                "pass --overwrite to replace the run (a cached bed.h5 is kept and reused)"
+            )
 
     def clear_run(self) -> None:
         """Remove the previous run's outputs (the bed cache and other files stay)."""

@@ -62,8 +62,16 @@ AIRBORNE = "airborne"
 STUCK = "stuck"
 TOO_SHORT = "too short"
 
-WHEEL_UNITS = {"travel": "m", "slip": "1", "sinkage": "m", "sinkage_tips": "m", "drawbar_pull": "N",
-               "driving_torque": "N m", "normal_force": "N", "power": "W"}
+WHEEL_UNITS = {
+    "travel": "m",
+    "slip": "1",
+    "sinkage": "m",
+    "sinkage_tips": "m",
+    "drawbar_pull": "N",
+    "driving_torque": "N m",
+    "normal_force": "N",
+    "power": "W",
+}
 """Units of the per-wheel quantities."""
 
 
@@ -90,8 +98,9 @@ def slip_of(forward_speed, spin, rim_radius: float):
         return np.where(np.abs(rim) > 0, 1.0 - np.asarray(forward_speed, dtype=float) / rim, np.nan)
 
 
-def wheel_quantities(kinematics: WheelKinematics, wrench: WheelWrench, geometry: WheelGeometry,
-                     drive_start_position: np.ndarray | None) -> dict[str, float]:
+def wheel_quantities(
+    kinematics: WheelKinematics, wrench: WheelWrench, geometry: WheelGeometry, drive_start_position: np.ndarray | None
+) -> dict[str, float]:
     """The quantities of the module docstring for one wheel at one instant (units: WHEEL_UNITS)."""
     axis, forward = wheel_frame(kinematics.orientation, geometry.axis_local)
     up = np.asarray(geometry.up)
@@ -161,8 +170,15 @@ def batch_standard_error(values: np.ndarray, batches: int = 8) -> float:
     return float(np.std(means, ddof=1) / math.sqrt(batches))
 
 
-def summarize(series: dict, *, rim_radius: float, wheel_load: float, mode: str = "free",
-              landed: bool = True, min_fraction: float = 0.25) -> dict:
+def summarize(
+    series: dict,
+    *,
+    rim_radius: float,
+    wheel_load: float,
+    mode: str = "free",
+    landed: bool = True,
+    min_fraction: float = 0.25,
+) -> dict:
     """Steady-state metrics of one wheel from written series (cosim.output.read_series keys:
     time, phase, linear_velocity, angular_velocity, slip, sinkage, sinkage_tips, drawbar_pull,
     driving_torque, normal_force, travel, contact_count; per-wheel arrays (S, W)), wheel 0.
@@ -193,13 +209,16 @@ def summarize(series: dict, *, rim_radius: float, wheel_load: float, mode: str =
     out["travel"] = float(np.asarray(series["travel"])[index[-1], 0])
     key = pull if mode == "slip" else forward
     start, found = steady_window({"driving": key, "sinkage": sinkage}, min_fraction)
-    window = index[start:] if found else index[len(index) // 2:]
+    window = index[start:] if found else index[len(index) // 2 :]
     out["window"] = [float(time[window[0]]), float(time[window[-1]])]
-    quantities = {"forward_speed": forward[window - index[0]], "sinkage": sinkage[window - index[0]],
-                  "sinkage_tips": np.asarray(series["sinkage_tips"])[window, 0],
-                  "drawbar_pull": pull[window - index[0]],
-                  "driving_torque": np.asarray(series["driving_torque"])[window, 0],
-                  "normal_force": np.asarray(series["normal_force"])[window, 0]}
+    quantities = {
+        "forward_speed": forward[window - index[0]],
+        "sinkage": sinkage[window - index[0]],
+        "sinkage_tips": np.asarray(series["sinkage_tips"])[window, 0],
+        "drawbar_pull": pull[window - index[0]],
+        "driving_torque": np.asarray(series["driving_torque"])[window, 0],
+        "normal_force": np.asarray(series["normal_force"])[window, 0],
+    }
     for name, values in quantities.items():
         out[name] = float(np.mean(values))
         out[f"{name}_sem"] = batch_standard_error(values)
@@ -241,8 +260,15 @@ def rover_forward(orientation: np.ndarray) -> np.ndarray:
     return horizontal / norm if norm > 1e-9 else np.zeros(3)
 
 
-def rover_quantities(body: WheelKinematics, wheels: list[dict], wrenches: list[WheelWrench],
-                     rim_radii, spins, previous_position: np.ndarray | None, previous_travel: float) -> dict:
+def rover_quantities(
+    body: WheelKinematics,
+    wheels: list[dict],
+    wrenches: list[WheelWrench],
+    rim_radii,
+    spins,
+    previous_position: np.ndarray | None,
+    previous_travel: float,
+) -> dict:
     """The rover quantities of the module docstring at one macro step (units: ROVER_UNITS).
 
     wheels: wheel_quantities of each wheel; spins: each wheel's spin about its axle [rad/s];
@@ -255,13 +281,23 @@ def rover_quantities(body: WheelKinematics, wheels: list[dict], wrenches: list[W
     if previous_position is not None:
         step = body.position - previous_position
         travel += float(np.hypot(step[0], step[1]))
-    return {"forward_speed": speed, "slip": float(slip_of(speed, rim, 1.0)),
-            "net_traction": float(sum(w.force @ forward for w in wrenches)),
-            "power": float(sum(q["power"] for q in wheels)), "travel": travel}
+    return {
+        "forward_speed": speed,
+        "slip": float(slip_of(speed, rim, 1.0)),
+        "net_traction": float(sum(w.force @ forward for w in wrenches)),
+        "power": float(sum(q["power"] for q in wheels)),
+        "travel": travel,
+    }
 
 
-def immobile_steps(time: np.ndarray, position: np.ndarray, orientation: np.ndarray, spin: np.ndarray,
-                   rim_radius: np.ndarray, stuck_slip: float) -> np.ndarray:
+def immobile_steps(
+    time: np.ndarray,
+    position: np.ndarray,
+    orientation: np.ndarray,
+    spin: np.ndarray,
+    rim_radius: np.ndarray,
+    stuck_slip: float,
+) -> np.ndarray:
     """The stuck criterion (module docstring) at every record of a drive: bool, shape (S,).
 
     time [s] (S,); position: body positions [m] (S, 3); orientation: body quaternions (S, 4);
@@ -287,8 +323,9 @@ def immobile_steps(time: np.ndarray, position: np.ndarray, orientation: np.ndarr
     return out
 
 
-def summarize_rover(series: dict, *, rim_radii, weight: float, stuck_slip: float = 0.9, landed: bool = True,
-                    min_fraction: float = 0.25) -> dict:
+def summarize_rover(
+    series: dict, *, rim_radii, weight: float, stuck_slip: float = 0.9, landed: bool = True, min_fraction: float = 0.25
+) -> dict:
     """Metrics of a rover run from its written series (cosim.output.read_series: the wheel series (S, W),
     'rover/...' series (S, ...)); over the driving phase only.
 
@@ -303,9 +340,12 @@ def summarize_rover(series: dict, *, rim_radii, weight: float, stuck_slip: float
     phase = np.asarray(series["phase"])
     contacts = np.asarray(series["contact_count"])
     driving = phase == 1
-    out: dict = {"steady_state": STEADY, "window": [math.nan, math.nan],
-                 "stuck_criterion": f"immobile while the body advances less than {1 - stuck_slip:.3g} x the wheels' "
-                                    "rim travel over the last radian of wheel turn; stuck when immobile at the end"}
+    out: dict = {
+        "steady_state": STEADY,
+        "window": [math.nan, math.nan],
+        "stuck_criterion": f"immobile while the body advances less than {1 - stuck_slip:.3g} x the wheels' "
+        "rim travel over the last radian of wheel turn; stuck when immobile at the end",
+    }
     out["landing_time"] = float(time[np.argmax(driving)] - time[0]) if driving.any() else math.nan
     if len(time) == 0 or not np.any(contacts > 0):
         out["steady_state"] = NEVER_TOUCHED
@@ -320,9 +360,12 @@ def summarize_rover(series: dict, *, rim_radii, weight: float, stuck_slip: float
     speed = np.asarray(series["rover_forward_speed"])[index]
     power = np.asarray(series["rover_power"])[index]
     sinkage = np.asarray(series["sinkage"])[index]
-    spins = np.array([[v @ wheel_frame(q, (0.0, 1.0, 0.0))[0] for q, v in zip(qs, ws)]
-                      for qs, ws in zip(np.asarray(series["orientation"])[index],
-                                        np.asarray(series["angular_velocity"])[index])])
+    spins = np.array(
+        [
+            [v @ wheel_frame(q, (0.0, 1.0, 0.0))[0] for q, v in zip(qs, ws)]
+            for qs, ws in zip(np.asarray(series["orientation"])[index], np.asarray(series["angular_velocity"])[index])
+        ]
+    )
     times = time[index]
     dt = np.diff(np.r_[time[index[0] - 1] if index[0] > 0 else times[0], times])
     out["travel"] = float(np.asarray(series["rover_travel"])[index[-1]])
@@ -348,11 +391,16 @@ def summarize_rover(series: dict, *, rim_radii, weight: float, stuck_slip: float
     for name in ("sinkage", "sinkage_tips", "drawbar_pull", "driving_torque", "normal_force", "power"):
         values = np.asarray(series[name])[rows]
         out[f"wheel_{name}"] = [float(v) for v in values.mean(axis=0)]
-    wheel_speed = np.array([[v @ wheel_frame(q, (0.0, 1.0, 0.0))[1] for q, v in zip(qs, vs)]
-                            for qs, vs in zip(np.asarray(series["orientation"])[rows],
-                                              np.asarray(series["linear_velocity"])[rows])])
-    out["wheel_slip"] = [float(slip_of(np.mean(wheel_speed[:, i]), np.mean(spins[window, i]), rim_radii[i]))
-                         for i in range(len(rim_radii))]
+    wheel_speed = np.array(
+        [
+            [v @ wheel_frame(q, (0.0, 1.0, 0.0))[1] for q, v in zip(qs, vs)]
+            for qs, vs in zip(np.asarray(series["orientation"])[rows], np.asarray(series["linear_velocity"])[rows])
+        ]
+    )
+    out["wheel_slip"] = [
+        float(slip_of(np.mean(wheel_speed[:, i]), np.mean(spins[window, i]), rim_radii[i]))
+        for i in range(len(rim_radii))
+    ]
     out["sinkage"] = float(np.mean(out["wheel_sinkage"]))
     out["sinkage_sem"] = batch_standard_error(np.asarray(series["sinkage"])[rows].mean(axis=1))
     out["sinkage_tips"] = float(np.mean(out["wheel_sinkage_tips"]))
@@ -374,8 +422,16 @@ def summarize_rover(series: dict, *, rim_radii, weight: float, stuck_slip: float
 # replicas
 
 
-REPLICA_METRICS = ("slip", "sinkage", "sinkage_tips", "drawbar_pull", "dp_over_w", "driving_torque", "travel",
-                   "forward_speed")
+REPLICA_METRICS = (
+    "slip",
+    "sinkage",
+    "sinkage_tips",
+    "drawbar_pull",
+    "dp_over_w",
+    "driving_torque",
+    "travel",
+    "forward_speed",
+)
 """Metrics an ensemble reports (a rover's summary has them too: rover-level values)."""
 
 
@@ -394,5 +450,13 @@ def ensemble(values, relative_tolerance: float = 0.05, absolute_tolerance: float
     std = float(np.std(values, ddof=1)) if n > 1 else math.nan
     ci95 = float(stats.t.ppf(0.975, n - 1) * std / math.sqrt(n)) if n > 1 else math.nan
     tolerance = max(relative_tolerance * abs(mean), absolute_tolerance)
-    return {"n": n, "mean": mean, "std": std, "ci95": ci95, "min": float(values.min()), "max": float(values.max()),
-            "tolerance": tolerance, "deterministic": bool(n > 1 and std <= tolerance)}
+    return {
+        "n": n,
+        "mean": mean,
+        "std": std,
+        "ci95": ci95,
+        "min": float(values.min()),
+        "max": float(values.max()),
+        "tolerance": tolerance,
+        "deterministic": bool(n > 1 and std <= tolerance),
+    }

@@ -96,7 +96,7 @@ import numpy as np
 
 from soil.files import atomic_path, atomic_write_text
 
-from .folders import RESULTS_FILE, XDMF_FILE
+from .folders import XDMF_FILE
 
 RESULTS_FORMAT = "regolith-cosim results 2"
 
@@ -159,9 +159,11 @@ SOIL_SERIES = {
 }
 """Soil bookkeeping under /soil, each shaped (S,)."""
 
-STEP_SERIES = {"wheels/time": ("s", "end time of the macro step"),
-               "wheels/phase": ("1", "0: landing, 1: driving"),
-               "rover/time": ("s", "end time of the macro step")}
+STEP_SERIES = {
+    "wheels/time": ("s", "end time of the macro step"),
+    "wheels/phase": ("1", "0: landing, 1: driving"),
+    "rover/time": ("s", "end time of the macro step"),
+}
 
 
 def package_versions() -> dict:
@@ -170,8 +172,18 @@ def package_versions() -> dict:
     import h5py
 
     versions = {}
-    for name in ("regolith-cosim", "warp-lang", "numpy", "scipy", "h5py", "pydantic", "mujoco", "fmpy", "dask",
-                 "distributed"):
+    for name in (
+        "regolith-cosim",
+        "warp-lang",
+        "numpy",
+        "scipy",
+        "h5py",
+        "pydantic",
+        "mujoco",
+        "fmpy",
+        "dask",
+        "distributed",
+    ):
         try:
             versions[name] = metadata.version(name)
         except metadata.PackageNotFoundError:
@@ -180,32 +192,57 @@ def package_versions() -> dict:
     return versions
 
 
-def documented_layout(wheels: int, particles: int, vertices: int, triangles: int, columns: int,
-                      boundaries: int = 0, ragged: bool = False) -> dict:
+def documented_layout(
+    wheels: int, particles: int, vertices: int, triangles: int, columns: int, boundaries: int = 0, ragged: bool = False
+) -> dict:
     """{dataset path: (shape with None for the growing axis, numpy kind)}: the layout above (ragged:
     the particle rows R are the growing axis of the row datasets)."""
-    layout = {"wheels/time": ((None,), "f"), "wheels/phase": ((None,), "i"), "rover/time": ((None,), "f"),
-              "rover/state": ((None, columns), "f"),
-              "particles/time": ((None,), "f"), "particles/wheel_vertices": ((None, vertices, 3), "f"),
-              "particles/rover_position": ((None, 3), "f"), "particles/rover_forward": ((None, 3), "f"),
-              "particles/rover_up": ((None, 3), "f"),
-              "wheels/mesh/vertices": ((vertices, 3), "f"), "wheels/mesh/triangles": ((triangles, 3), "i"),
-              "wheels/mesh/wheel": ((vertices,), "i")}
+    layout = {
+        "wheels/time": ((None,), "f"),
+        "wheels/phase": ((None,), "i"),
+        "rover/time": ((None,), "f"),
+        "rover/state": ((None, columns), "f"),
+        "particles/time": ((None,), "f"),
+        "particles/wheel_vertices": ((None, vertices, 3), "f"),
+        "particles/rover_position": ((None, 3), "f"),
+        "particles/rover_forward": ((None, 3), "f"),
+        "particles/rover_up": ((None, 3), "f"),
+        "wheels/mesh/vertices": ((vertices, 3), "f"),
+        "wheels/mesh/triangles": ((triangles, 3), "i"),
+        "wheels/mesh/wheel": ((vertices,), "i"),
+    }
     if ragged:
-        layout.update({"particles/first": ((None,), "i"), "particles/count": ((None,), "i"),
-                       "particles/id": ((None,), "i"), "particles/radius": ((None,), "f"),
-                       "particles/position": ((None, 3), "f"), "particles/velocity": ((None, 3), "f")})
+        layout.update(
+            {
+                "particles/first": ((None,), "i"),
+                "particles/count": ((None,), "i"),
+                "particles/id": ((None,), "i"),
+                "particles/radius": ((None,), "f"),
+                "particles/position": ((None, 3), "f"),
+                "particles/velocity": ((None, 3), "f"),
+            }
+        )
     else:
-        layout.update({"particles/radius": ((particles,), "f"), "particles/position": ((None, particles, 3), "f"),
-                       "particles/velocity": ((None, particles, 3), "f")})
+        layout.update(
+            {
+                "particles/radius": ((particles,), "f"),
+                "particles/position": ((None, particles, 3), "f"),
+                "particles/velocity": ((None, particles, 3), "f"),
+            }
+        )
     for name, (tail, dtype, _, _) in WHEEL_SERIES.items():
         layout[f"wheels/{name}"] = ((None, wheels) if tail is None else (None, wheels, tail), np.dtype(dtype).kind)
     if boundaries:
         for name, (tail, dtype, _, _) in BOUNDARY_SERIES.items():
             shape = (None, boundaries) if tail is None else (None, boundaries, tail)
             layout[f"boundaries/{name}"] = (shape, np.dtype(dtype).kind)
-        layout.update({"boundaries/kind": ((boundaries,), "i"), "boundaries/geometry": ((boundaries, 6), "f"),
-                       "boundaries/report": ((boundaries,), "i")})
+        layout.update(
+            {
+                "boundaries/kind": ((boundaries,), "i"),
+                "boundaries/geometry": ((boundaries, 6), "f"),
+                "boundaries/report": ((boundaries,), "i"),
+            }
+        )
     for name, (tail, _, _) in ROVER_SERIES.items():
         layout[f"rover/{name}"] = ((None,) if tail is None else (None, tail), "f")
     for name, (dtype, _, _) in SOIL_SERIES.items():
@@ -213,10 +250,36 @@ def documented_layout(wheels: int, particles: int, vertices: int, triangles: int
     return layout
 
 
-REQUIRED_ATTRIBUTES = ("format", "status", "message", "name", "scene_toml", "scene_source", "versions", "created",
-                       "precision", "device", "scheme", "order_seed", "dt", "macro_step", "substeps", "duration",
-                       "gravity", "surface_height", "start_position", "omega", "rim_radius", "outer_radius",
-                       "wheel_load", "mode", "particle_count", "wheel_names", "bed", "findings")
+REQUIRED_ATTRIBUTES = (
+    "format",
+    "status",
+    "message",
+    "name",
+    "scene_toml",
+    "scene_source",
+    "versions",
+    "created",
+    "precision",
+    "device",
+    "scheme",
+    "order_seed",
+    "dt",
+    "macro_step",
+    "substeps",
+    "duration",
+    "gravity",
+    "surface_height",
+    "start_position",
+    "omega",
+    "rim_radius",
+    "outer_radius",
+    "wheel_load",
+    "mode",
+    "particle_count",
+    "wheel_names",
+    "bed",
+    "findings",
+)
 
 
 def open_results(path, mode="r"):
@@ -257,9 +320,21 @@ class ResultsWriter:
 
     # -- create / resume -----------------------------------------------------------
     @classmethod
-    def create(cls, path, *, attrs: dict, radius: np.ndarray, wheel_count: int, mesh: tuple,
-               rover_columns: list[str], rover_units: list[str], boundaries: dict | None = None,
-               flush_every: int = 50, xdmf: bool = True, ragged: bool = False) -> "ResultsWriter":
+    def create(
+        cls,
+        path,
+        *,
+        attrs: dict,
+        radius: np.ndarray,
+        wheel_count: int,
+        mesh: tuple,
+        rover_columns: list[str],
+        rover_units: list[str],
+        boundaries: dict | None = None,
+        flush_every: int = 50,
+        xdmf: bool = True,
+        ragged: bool = False,
+    ) -> ResultsWriter:
         """A new file; refuses to replace an existing one (the caller decides about that).
 
         boundaries: {'kind' (B,), 'geometry' (B, 6) [m], 'report' (B,)} of the soil's walls, or None.
@@ -287,8 +362,9 @@ class ResultsWriter:
             rows = max(1, min(1024, 4 * flush_every))
 
             def series(group, name, shape, dtype, units, description):
-                dataset = group.create_dataset(name, shape, dtype, maxshape=(None,) + shape[1:],
-                                               chunks=(rows,) + shape[1:])
+                dataset = group.create_dataset(
+                    name, shape, dtype, maxshape=(None,) + shape[1:], chunks=(rows,) + shape[1:]
+                )
                 _units(dataset, units, description)
 
             g = f.create_group("wheels")
@@ -330,15 +406,18 @@ class ResultsWriter:
             _units(p["time"], "s", "snapshot times")
             if ragged:
                 chunk = max(1024, min(65536, len(radius)))
-                for name, dtype, units, description in (("first", np.int64, "count", "first row of each snapshot"),
-                                                        ("count", np.int64, "count", "rows of each snapshot")):
+                for name, dtype, units, description in (
+                    ("first", np.int64, "count", "first row of each snapshot"),
+                    ("count", np.int64, "count", "rows of each snapshot"),
+                ):
                     p.create_dataset(name, (0,), dtype, maxshape=(None,), chunks=(64,))
                     _units(p[name], units, description)
                 for name, tail, dtype, units, description in (
-                        ("id", (), np.int64, "1", "grain id, unique over the run"),
-                        ("radius", (), np.float64, "m", "grain radii"),
-                        ("position", (3,), np.float64, "m", "grain centres"),
-                        ("velocity", (3,), np.float32, "m/s", "grain velocities")):
+                    ("id", (), np.int64, "1", "grain id, unique over the run"),
+                    ("radius", (), np.float64, "m", "grain radii"),
+                    ("position", (3,), np.float64, "m", "grain centres"),
+                    ("velocity", (3,), np.float32, "m/s", "grain velocities"),
+                ):
                     p.create_dataset(name, (0, *tail), dtype, maxshape=(None, *tail), chunks=(chunk, *tail))
                     _units(p[name], units, description)
             else:
@@ -365,7 +444,7 @@ class ResultsWriter:
         return writer
 
     @classmethod
-    def resume(cls, path, steps: int, snapshots: int, flush_every: int = 50, xdmf: bool = True) -> "ResultsWriter":
+    def resume(cls, path, steps: int, snapshots: int, flush_every: int = 50, xdmf: bool = True) -> ResultsWriter:
         """Continue a file from a checkpoint: its first `steps` records and `snapshots` snapshots are
         copied into a fresh file that atomically replaces it (a file a killed writer left flagged
         as open needs no repair tool), and writing goes on there."""
@@ -377,15 +456,21 @@ class ResultsWriter:
         with atomic_path(writer.path, ".h5.tmp") as temporary:
             with open_results(writer.path) as old, h5py.File(temporary, "w", libver="latest") as new:
                 if old.attrs.get("format") != RESULTS_FORMAT:
-                    raise ValueError(f"{writer.path} is not a regolith-cosim results file of format "
-                                     f"{RESULTS_FORMAT!r}")
+                    raise ValueError(f"{writer.path} is not a regolith-cosim results file of format {RESULTS_FORMAT!r}")
                 rows = {}
                 if "first" in old["particles"]:  # ragged snapshots: keep the rows of the first `snapshots`
-                    kept = (int(old["particles/first"][snapshots - 1] + old["particles/count"][snapshots - 1])
-                            if snapshots else 0)
+                    kept = (
+                        int(old["particles/first"][snapshots - 1] + old["particles/count"][snapshots - 1])
+                        if snapshots
+                        else 0
+                    )
                     rows = {f"particles/{name}": kept for name in ("id", "radius", "position", "velocity")}
-                _copy_truncated(old, new, {"wheels": steps, "rover": steps, "boundaries": steps, "soil": steps,
-                                           "particles": snapshots}, rows)
+                _copy_truncated(
+                    old,
+                    new,
+                    {"wheels": steps, "rover": steps, "boundaries": steps, "soil": steps, "particles": snapshots},
+                    rows,
+                )
                 new.attrs["status"] = "running"
                 new.attrs["message"] = ""
         f = h5py.File(writer.path, "r+", libver="latest")
@@ -405,9 +490,16 @@ class ResultsWriter:
         if len(self._buffer) >= self.flush_every:
             self.flush()
 
-    def add_snapshot(self, time: float, position: np.ndarray, velocity: np.ndarray,
-                     wheel_vertices: np.ndarray, rover_pose: tuple | None = None, radius: np.ndarray | None = None,
-                     ids: np.ndarray | None = None) -> None:
+    def add_snapshot(
+        self,
+        time: float,
+        position: np.ndarray,
+        velocity: np.ndarray,
+        wheel_vertices: np.ndarray,
+        rover_pose: tuple | None = None,
+        radius: np.ndarray | None = None,
+        ids: np.ndarray | None = None,
+    ) -> None:
         """Write one particle snapshot now (and flush). rover_pose: (position [m] (3,), rotation body -> world
         (3, 3)) of the rover body; radius [m] and ids: the grains' (a ragged file only)."""
         self.flush_records()
@@ -415,8 +507,13 @@ class ResultsWriter:
         k = self.snapshots
         pose = rover_pose if rover_pose is not None else (np.full(3, np.nan), np.full((3, 3), np.nan))
         axes = np.asarray(pose[1], dtype=np.float64)
-        per_snapshot = [("time", time), ("wheel_vertices", wheel_vertices), ("rover_position", pose[0]),
-                        ("rover_forward", axes[:, 0]), ("rover_up", axes[:, 2])]
+        per_snapshot = [
+            ("time", time),
+            ("wheel_vertices", wheel_vertices),
+            ("rover_position", pose[0]),
+            ("rover_forward", axes[:, 0]),
+            ("rover_up", axes[:, 2]),
+        ]
         if p.attrs.get("layout") == "ragged":
             first = int(p["position"].shape[0])
             rows = len(position)
@@ -424,7 +521,7 @@ class ResultsWriter:
             for name, value in (("position", position), ("velocity", velocity), ("radius", radius), ("id", ids)):
                 dataset = p[name]
                 dataset.resize(first + rows, axis=0)
-                dataset[first:first + rows] = value
+                dataset[first : first + rows] = value
         else:
             per_snapshot += [("position", position), ("velocity", velocity)]
         for name, value in per_snapshot:
@@ -530,8 +627,10 @@ def _copy_truncated(old, new, counts: dict, rows: dict | None = None) -> None:
         count = (rows or {}).get(name, counts[name.split("/")[0]])
         growing = obj.maxshape[0] is None
         if growing and obj.shape[0] < count:
-            raise ValueError(f"the results file holds {obj.shape[0]} rows of {name}, the checkpoint expects {count}: "
-                             "the file is older than the checkpoint")
+            raise ValueError(
+                f"the results file holds {obj.shape[0]} rows of {name}, the checkpoint expects {count}: "
+                "the file is older than the checkpoint"
+            )
         data = obj[:count] if growing else obj[()]
         dataset = new.create_dataset(name, data=data, maxshape=obj.maxshape, chunks=obj.chunks)
         for key, value in obj.attrs.items():
@@ -562,8 +661,14 @@ def read_series(path) -> dict:
 def _data_item(parent, h5name: str, path: str, shape: tuple, dtype) -> ET.Element:
     dtype = np.dtype(dtype)
     number = "Int" if dtype.kind in "iu" else "Float"
-    item = ET.SubElement(parent, "DataItem", Dimensions=" ".join(str(s) for s in shape), NumberType=number,
-                         Precision=str(dtype.itemsize), Format="HDF")
+    item = ET.SubElement(
+        parent,
+        "DataItem",
+        Dimensions=" ".join(str(s) for s in shape),
+        NumberType=number,
+        Precision=str(dtype.itemsize),
+        Format="HDF",
+    )
     item.text = f"{h5name}:{path}"
     return item
 
@@ -571,8 +676,9 @@ def _data_item(parent, h5name: str, path: str, shape: tuple, dtype) -> ET.Elemen
 def _slab(parent, h5name: str, path: str, full_shape: tuple, dtype, index: int) -> ET.Element:
     """Row `index` of a (T, ...) dataset as an XDMF HyperSlab."""
     tail = full_shape[1:]
-    slab = ET.SubElement(parent, "DataItem", ItemType="HyperSlab", Type="HyperSlab",
-                         Dimensions=" ".join(str(s) for s in tail))
+    slab = ET.SubElement(
+        parent, "DataItem", ItemType="HyperSlab", Type="HyperSlab", Dimensions=" ".join(str(s) for s in tail)
+    )
     rank = len(full_shape)
     select = ET.SubElement(slab, "DataItem", Dimensions=f"3 {rank}", Format="XML")
     start = [index] + [0] * (rank - 1)
@@ -586,8 +692,9 @@ def _slab(parent, h5name: str, path: str, full_shape: tuple, dtype, index: int) 
 def _rows(parent, h5name: str, path: str, full_shape: tuple, dtype, first: int, count: int) -> ET.Element:
     """Rows first .. first + count of an (R, ...) dataset as an XDMF HyperSlab."""
     tail = full_shape[1:]
-    slab = ET.SubElement(parent, "DataItem", ItemType="HyperSlab", Type="HyperSlab",
-                         Dimensions=" ".join(str(s) for s in (count, *tail)))
+    slab = ET.SubElement(
+        parent, "DataItem", ItemType="HyperSlab", Type="HyperSlab", Dimensions=" ".join(str(s) for s in (count, *tail))
+    )
     rank = len(full_shape)
     select = ET.SubElement(slab, "DataItem", Dimensions=f"3 {rank}", Format="XML")
     select.text = " ".join(str(v) for v in ([first] + [0] * (rank - 1) + [1] * rank + [count, *tail]))
@@ -675,8 +782,6 @@ def xdmf_references(xdmf_path: str) -> list[tuple[str, str, tuple, tuple | None]
             select = [c for c in parent if c.get("Format") == "XML"][0]
             values = [int(v) for v in select.text.split()]
             rank = len(shape)
-            slab = (tuple(values[:rank]), tuple(values[rank:2 * rank]), tuple(values[2 * rank:]))
+            slab = (tuple(values[:rank]), tuple(values[rank : 2 * rank]), tuple(values[2 * rank :]))
         refs.append((os.path.join(folder, name), path, shape, slab))
     return refs
-
-

@@ -99,8 +99,11 @@ class Tile:
         restore_state(model, state, saved)
         kinds = model.boundary_kind.numpy()
         geometry = model.boundary_geometry_numpy()
-        floors = [b for b, (kind, row) in enumerate(zip(kinds, geometry))
-                  if kind == BOUNDARY_PLANE and np.allclose(row[3:], (0.0, 0.0, 1.0)) and abs(row[2]) < 1e-12]
+        floors = [
+            b
+            for b, (kind, row) in enumerate(zip(kinds, geometry))
+            if kind == BOUNDARY_PLANE and np.allclose(row[3:], (0.0, 0.0, 1.0)) and abs(row[2]) < 1e-12
+        ]
         if not floors:
             raise ValueError(f"{path}: the bed has no floor plane z = 0 to stand a patch on")
         data = state.to_numpy()
@@ -109,16 +112,20 @@ class Tile:
         r = model.radius_numpy()
         period = np.asarray(size, dtype=np.float64) - 2.0 * margin
         if np.any(period <= 4.0 * r.max()):
-            raise ValueError(f"{path}: the bed ({size[0]} x {size[1]} m) leaves no tile {2 * margin} m in from "
-                             "its walls")
+            raise ValueError(
+                f"{path}: the bed ({size[0]} x {size[1]} m) leaves no tile {2 * margin} m in from its walls"
+            )
         keep = _inside(x[:, :2], np.full(2, margin), margin + period)
         tree = cKDTree(x[keep])
         inner = tree.query_pairs(2.0 * r.max(), output_type="ndarray")
         kept_index = np.flatnonzero(keep)
         rk = r[kept_index]
         if len(inner):
-            gap = (np.linalg.norm(x[kept_index][inner[:, 0]] - x[kept_index][inner[:, 1]], axis=1)
-                   - rk[inner[:, 0]] - rk[inner[:, 1]])
+            gap = (
+                np.linalg.norm(x[kept_index][inner[:, 0]] - x[kept_index][inner[:, 1]], axis=1)
+                - rk[inner[:, 0]]
+                - rk[inner[:, 1]]
+            )
             allowed = max(0.0, -float(gap.min()))
         else:
             allowed = 0.0
@@ -139,14 +146,23 @@ class Tile:
         count = len(rows)
         new_index = np.full(n, -1, dtype=np.int64)
         new_index[rows] = np.arange(count)
-        grains = _remap_history({k: v[rows] for k, v in grain_rows(data).items()},
-                                lambda j: new_index[j], lambda key: key)
+        grains = _remap_history(
+            {k: v[rows] for k, v in grain_rows(data).items()}, lambda j: new_index[j], lambda key: key
+        )
         grains["position"][:, :2] -= margin
-        return cls(size=period, state=grains, radius=model.radius.numpy()[rows], material=model.material.numpy()[rows],
-                   mass=model.mass.numpy()[rows], inv_mass=model.inv_mass.numpy()[rows],
-                   inv_inertia=model.inv_inertia.numpy()[rows], floor_key=floors[0],
-                   floor_material=int(model.boundary_material.numpy()[floors[0]]),
-                   materials=list(model.materials.materials), overrides=dict(model.materials.overrides))
+        return cls(
+            size=period,
+            state=grains,
+            radius=model.radius.numpy()[rows],
+            material=model.material.numpy()[rows],
+            mass=model.mass.numpy()[rows],
+            inv_mass=model.inv_mass.numpy()[rows],
+            inv_inertia=model.inv_inertia.numpy()[rows],
+            floor_key=floors[0],
+            floor_material=int(model.boundary_material.numpy()[floors[0]]),
+            materials=list(model.materials.materials),
+            overrides=dict(model.materials.overrides),
+        )
 
 
 def _inside(xy: np.ndarray, low: np.ndarray, high: np.ndarray) -> np.ndarray:
@@ -170,8 +186,20 @@ class SoilPatch:
         order_seed: permute the grains placed at each move (summation order, for replicas).
     """
 
-    def __init__(self, tile: Tile, length: float, width: float, band: float, recentre_distance: float, wheels,
-                 gravity, device: str, precision: str, law, order_seed: int | None = None):
+    def __init__(
+        self,
+        tile: Tile,
+        length: float,
+        width: float,
+        band: float,
+        recentre_distance: float,
+        wheels,
+        gravity,
+        device: str,
+        precision: str,
+        law,
+        order_seed: int | None = None,
+    ):
         self.tile = tile
         self.half = 0.5 * np.array([length, width], dtype=np.float64)
         """Half the window's size along x, y [m], shape (2,)."""
@@ -225,8 +253,14 @@ class SoilPatch:
 
     def books(self) -> dict:
         """particle_count [-], soil_mass, mass_initial, mass_added, mass_removed [kg], moves [-]."""
-        return {"particle_count": self.particle_count, "soil_mass": self.soil_mass, "mass_initial": self.mass_initial,
-                "mass_added": self.mass_added, "mass_removed": self.mass_removed, "moves": self.moves}
+        return {
+            "particle_count": self.particle_count,
+            "soil_mass": self.soil_mass,
+            "mass_initial": self.mass_initial,
+            "mass_added": self.mass_added,
+            "mass_removed": self.mass_removed,
+            "moves": self.moves,
+        }
 
     def _lattice(self, low: np.ndarray, high: np.ndarray, old: tuple | None):
         """Tile grains of the lattice whose centres lie in [low, high) and not in the old window:
@@ -274,8 +308,9 @@ class SoilPatch:
         """The first patch: the lattice's grains in the window around `centre` [m] (x, y), the band frozen."""
         self.centre = np.asarray(centre, dtype=np.float64).reshape(2).copy()
         self.origin = self.centre - self.half
-        return self._assemble(None, self._lattice(*self.window(), None), time=0.0, steps=0, control=None,
-                              monitor=None, integrator=None)
+        return self._assemble(
+            None, self._lattice(*self.window(), None), time=0.0, steps=0, control=None, monitor=None, integrator=None
+        )
 
     def follow(self, sim: Simulation, point) -> Simulation | None:
         """Move the window when the wheels' centre `point` [m] (x, y) is too far from its centre; returns
@@ -290,9 +325,16 @@ class SoilPatch:
         old = self.window()
         self.centre = np.asarray(centre, dtype=np.float64).reshape(2).copy()
         self.moves += 1
-        return self._assemble(sim, self._lattice(*self.window(), old), time=sim.time, steps=sim.steps,
-                              control=sim.control.state_dict(), monitor=sim.monitor, integrator=sim.integrator,
-                              old_window=old)
+        return self._assemble(
+            sim,
+            self._lattice(*self.window(), old),
+            time=sim.time,
+            steps=sim.steps,
+            control=sim.control.state_dict(),
+            monitor=sim.monitor,
+            integrator=sim.integrator,
+            old_window=old,
+        )
 
     @staticmethod
     def _control(control: dict, kept: np.ndarray, placed: int) -> dict:
@@ -329,8 +371,11 @@ class SoilPatch:
         old_to_new[kept] = np.arange(n_kept)
         parts = []
         if state is not None:
-            parts.append(_remap_history({k: v[kept] for k, v in grain_rows(state).items()},
-                                        lambda j: old_to_new[j], lambda key: key))
+            parts.append(
+                _remap_history(
+                    {k: v[kept] for k, v in grain_rows(state).items()}, lambda j: old_to_new[j], lambda key: key
+                )
+            )
         # a placed grain keeps its history with grains of its own tile copy placed with it, and with the floor
         copy = np.full((len(picks), tile.count), -1, dtype=np.int64)
         for shift in np.unique(shifts, axis=0):
@@ -339,9 +384,11 @@ class SoilPatch:
             in_copy[picks[members]] = n_kept + members
             copy[members] = in_copy
         rows = np.arange(len(picks))[:, None]
-        placed_rows = _remap_history({k: v[picks] for k, v in tile.state.items()},
-                                     lambda j: copy[np.broadcast_to(rows, j.shape), j],
-                                     lambda key: np.where(key == tile.floor_key, 0, -1))
+        placed_rows = _remap_history(
+            {k: v[picks] for k, v in tile.state.items()},
+            lambda j: copy[np.broadcast_to(rows, j.shape), j],
+            lambda key: np.where(key == tile.floor_key, 0, -1),
+        )
         placed_rows["position"][:, :2] += shifts
         parts.append(placed_rows)
         arrays = _stack_rows(parts)
@@ -373,8 +420,7 @@ class SoilPatch:
         assert new.model.particle_count == n_new and new.model.body_count == wheels
         return new
 
-    def _simulation(self, arrays: dict, time: float, steps: int, control, monitor, integrator,
-                    arm: bool) -> Simulation:
+    def _simulation(self, arrays: dict, time: float, steps: int, control, monitor, integrator, arm: bool) -> Simulation:
         """A Simulation of the patch's grains (model order = the patch's order) with `arrays` as state."""
         tile = self.tile
         builder = SoilBuilder(gravity=self.gravity)
@@ -390,22 +436,34 @@ class SoilPatch:
                 builder.add_particles(arrays["position"][rows], self.radius[rows], int(self.material[rows[0]]))
         for shape, material in self.wheels:
             builder.add_wheel(shape, material)
-        model, state, soil_control = builder.finalize(device=self.device, precision=self.precision, law=self.law,
-                                                      contact_capacity=max(1, arrays["neighbours"].shape[1]),
-                                                      rigid_capacity=max(1, arrays["rigid_key"].shape[1]))
+        model, state, soil_control = builder.finalize(
+            device=self.device,
+            precision=self.precision,
+            law=self.law,
+            contact_capacity=max(1, arrays["neighbours"].shape[1]),
+            rigid_capacity=max(1, arrays["rigid_key"].shape[1]),
+        )
         inv_mass = np.where(self.frozen, 0, self.free_inv_mass).astype(self.free_inv_mass.dtype)
         inv_inertia = np.where(self.frozen, 0, self.free_inv_inertia).astype(self.free_inv_inertia.dtype)
-        saved = {**arrays, "step_previous": np.zeros(1), "time": 0.0,
-                 "model": {"mass": self.mass, "inv_mass": inv_mass, "inv_inertia": inv_inertia}}
+        saved = {
+            **arrays,
+            "step_previous": np.zeros(1),
+            "time": 0.0,
+            "model": {"mass": self.mass, "inv_mass": inv_mass, "inv_inertia": inv_inertia},
+        }
         restore_state(model, state, saved)  # model order = builder order here: no permutation
         state.time = float(time)
         if control is not None:
             soil_control.load_state_dict(control)
         kept_monitor = None
         if monitor is not None:  # the same factors; armed again below on the new grains (their own height)
-            kept_monitor = DivergenceMonitor(speed_factor=monitor.speed_factor, energy_factor=monitor.energy_factor,
-                                             max_overlap_ratio=monitor.max_overlap_ratio,
-                                             speed_floor=monitor.speed_floor, enabled=monitor.enabled)
+            kept_monitor = DivergenceMonitor(
+                speed_factor=monitor.speed_factor,
+                energy_factor=monitor.energy_factor,
+                max_overlap_ratio=monitor.max_overlap_ratio,
+                speed_floor=monitor.speed_floor,
+                enabled=monitor.enabled,
+            )
         sim = Simulation(model, state, soil_control, integrator=integrator, monitor=kept_monitor)
         sim.steps = int(steps)
         sim.refresh_forces()
@@ -416,12 +474,24 @@ class SoilPatch:
     # -- checkpoints -----------------------------------------------------------------------------
     def state_dict(self) -> dict:
         """The window, the books and the patch's grains (ids, constants, band, positions)."""
-        return {"centre": self.centre.copy(), "origin": self.origin.copy(), "moves": self.moves,
-                "mass_initial": self.mass_initial, "mass_added": self.mass_added, "mass_removed": self.mass_removed,
-                "grains_added": self.grains_added, "grains_removed": self.grains_removed, "next_id": self.next_id,
-                "ids": self.ids.copy(), "radius": self.radius.copy(), "material": self.material.copy(),
-                "mass": self.mass.copy(), "free_inv_mass": self.free_inv_mass.copy(),
-                "free_inv_inertia": self.free_inv_inertia.copy(), "frozen": self.frozen.copy()}
+        return {
+            "centre": self.centre.copy(),
+            "origin": self.origin.copy(),
+            "moves": self.moves,
+            "mass_initial": self.mass_initial,
+            "mass_added": self.mass_added,
+            "mass_removed": self.mass_removed,
+            "grains_added": self.grains_added,
+            "grains_removed": self.grains_removed,
+            "next_id": self.next_id,
+            "ids": self.ids.copy(),
+            "radius": self.radius.copy(),
+            "material": self.material.copy(),
+            "mass": self.mass.copy(),
+            "free_inv_mass": self.free_inv_mass.copy(),
+            "free_inv_inertia": self.free_inv_inertia.copy(),
+            "frozen": self.frozen.copy(),
+        }
 
     def load_state_dict(self, state: dict, sim: Simulation) -> Simulation:
         """Take a checkpoint's patch back; returns a simulation of its grains (its state is then loaded
@@ -438,8 +508,10 @@ class SoilPatch:
         for name in ("ids", "radius", "material", "mass", "free_inv_mass", "free_inv_inertia", "frozen"):
             setattr(self, name, np.array(state[name]))
         n = len(self.ids)
-        arrays = {name: np.zeros((n, *values.shape[1:]), dtype=values.dtype)
-                  for name, values in grain_rows(sim.state.to_numpy()).items()}
+        arrays = {
+            name: np.zeros((n, *values.shape[1:]), dtype=values.dtype)
+            for name, values in grain_rows(sim.state.to_numpy()).items()
+        }
         for name in ("neighbours", "rigid_key"):
             arrays[name][:] = -1
         arrays["build_position"][:] = UNBUILT
@@ -492,7 +564,8 @@ def _remap_history(rows: dict, partner, rigid) -> dict:
     keep = mapped >= 0
     touching = _unpack(rows["pair_touching"], width)
     kept, (mapped, touching, tangential, rolling) = _compact(
-        keep, mapped, touching, rows["pair_tangential"], rows["pair_rolling"])
+        keep, mapped, touching, rows["pair_tangential"], rows["pair_rolling"]
+    )
     rows["neighbours"] = np.where(kept, mapped, -1).astype(np.int32)
     rows["neighbour_count"] = kept.sum(axis=1).astype(rows["neighbour_count"].dtype)
     rows["pair_touching"] = _pack(touching & kept)
@@ -500,8 +573,9 @@ def _remap_history(rows: dict, partner, rigid) -> dict:
     key = rows["rigid_key"].astype(np.int64)
     used = (np.arange(key.shape[1])[None, :] < rows["rigid_count"][:, None]) & (key >= 0)
     new_key = np.where(used, rigid(np.maximum(key, 0)), -1)
-    kept, (new_key, tangential, rolling) = _compact(new_key >= 0, new_key, rows["rigid_tangential"],
-                                                    rows["rigid_rolling"])
+    kept, (new_key, tangential, rolling) = _compact(
+        new_key >= 0, new_key, rows["rigid_tangential"], rows["rigid_rolling"]
+    )
     rows["rigid_key"] = np.where(kept, new_key, -1).astype(np.int32)
     rows["rigid_count"] = kept.sum(axis=1).astype(rows["rigid_count"].dtype)
     rows["rigid_tangential"], rows["rigid_rolling"] = tangential, rolling

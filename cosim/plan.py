@@ -270,7 +270,7 @@ class RunPlan:
         """Hub position [m], shape (3,), with the wheel's lowest point on the surface."""
         return np.array([self.testbed.start_x, self.testbed.start_y, surface_height + self.wheel.outer_radius])
 
-    def with_changes(self, **overrides) -> "RunPlan":
+    def with_changes(self, **overrides) -> RunPlan:
         """The plan of the same scene with `overrides` ({'a.b': value}) applied, resolved again."""
         from .scene import validate_scene
 
@@ -292,11 +292,18 @@ def to_material(section: MaterialSection, default_modulus: float | None = None) 
     restitution = section.restitution if section.damping_ratio is None else None
     if restitution is None and section.damping_ratio is None:
         restitution = 0.3
-    return Material(youngs_modulus=section.youngs_modulus or default_modulus, poisson_ratio=section.poisson_ratio,
-                    density=section.density, restitution=restitution, damping_ratio=section.damping_ratio,
-                    stick_angle=math.radians(section.stick_angle_deg), slip_angle=math.radians(section.slip_angle_deg),
-                    stick_speed=section.stick_speed, rolling_friction=section.rolling_friction,
-                    cohesion=section.cohesion)
+    return Material(
+        youngs_modulus=section.youngs_modulus or default_modulus,
+        poisson_ratio=section.poisson_ratio,
+        density=section.density,
+        restitution=restitution,
+        damping_ratio=section.damping_ratio,
+        stick_angle=math.radians(section.stick_angle_deg),
+        slip_angle=math.radians(section.slip_angle_deg),
+        stick_speed=section.stick_speed,
+        rolling_friction=section.rolling_friction,
+        cohesion=section.cohesion,
+    )
 
 
 def resolve_device(name: str) -> str:
@@ -312,8 +319,12 @@ def resolve_device(name: str) -> str:
     index = 0 if name == "cuda" else int(name[5:])
     if index >= count:
         have = ", ".join(["cpu"] + [f"cuda:{i}" for i in range(count)])
-        raise SceneError([f"scene.device: {name!r} asked for, but this machine has no such CUDA device "
-                          f"(it has: {have}); use 'default' (a GPU when present, else the CPU) or 'cpu'"])
+        raise SceneError(
+            [
+                f"scene.device: {name!r} asked for, but this machine has no such CUDA device "
+                f"(it has: {have}); use 'default' (a GPU when present, else the CPU) or 'cpu'"
+            ]
+        )
     return f"cuda:{index}"
 
 
@@ -321,8 +332,13 @@ def _wheel(scene: Scene, soil_modulus: float, w: WheelSection | None = None, key
     w = scene.wheel if w is None else w
     material = to_material(w.material, soil_modulus)
     if w.type == "grouser":
-        shape = GrouserWheel(radius=w.radius, width=w.width, grouser_count=w.grouser_count,
-                             grouser_height=w.grouser_height, grouser_thickness=w.grouser_thickness)
+        shape = GrouserWheel(
+            radius=w.radius,
+            width=w.width,
+            grouser_count=w.grouser_count,
+            grouser_height=w.grouser_height,
+            grouser_thickness=w.grouser_thickness,
+        )
         return WheelPlan(shape, material, shape.outer_radius, w.radius, w.width)
     path = scene.resolve(w.file)
     if not os.path.isfile(path):
@@ -343,8 +359,10 @@ def _time_steps(scene: Scene, material: Material) -> tuple[float, float, int, st
         dt, key = r.dt, "run.dt"
     else:
         factor = r.dt_factor if r.dt_factor is not None else 0.2
-        dt, key = factor * rayleigh_time_step(material.youngs_modulus, material.poisson_ratio, material.density,
-                                              smallest), "run.dt_factor"
+        dt, key = (
+            factor * rayleigh_time_step(material.youngs_modulus, material.poisson_ratio, material.density, smallest),
+            "run.dt_factor",
+        )
     if r.macro_step is not None:
         substeps = max(1, int(round(r.macro_step / dt)))
         if r.dt is None:  # dt from the factor: shrink it so H is a whole number of steps
@@ -356,9 +374,14 @@ def _time_steps(scene: Scene, material: Material) -> tuple[float, float, int, st
 
 def bed_key(scene: Scene, material: Material, gravity: np.ndarray, device: str) -> str:
     """Hash of everything a settled bed depends on."""
-    parts = {"bed": scene.bed.model_dump(exclude={"bed_file"}), "soil": scene.soil.model_dump(exclude={"law"}),
-             "gravity": [float(g) for g in gravity], "device": "cpu" if device == "cpu" else "cuda", "format": 2,
-             "material": repr(material)}
+    parts = {
+        "bed": scene.bed.model_dump(exclude={"bed_file"}),
+        "soil": scene.soil.model_dump(exclude={"law"}),
+        "gravity": [float(g) for g in gravity],
+        "device": "cpu" if device == "cpu" else "cuda",
+        "format": 2,
+        "material": repr(material),
+    }
     return hashlib.sha256(json.dumps(parts, sort_keys=True).encode()).hexdigest()[:16]
 
 
@@ -375,20 +398,27 @@ def _check_bed_file(path: str, material: Material, gravity: np.ndarray, bed) -> 
         return [f"bed.bed_file: {error}"]
     problems = []
     if not np.allclose(header["gravity"], gravity, rtol=1e-12, atol=0):
-        problems.append(f"bed.bed_file: the bed was settled under gravity {list(header['gravity'])} m/s^2, the scene "
-                        f"asks for {list(gravity)}: settle a bed under the scene's gravity (remove bed.bed_file)")
+        problems.append(
+            f"bed.bed_file: the bed was settled under gravity {list(header['gravity'])} m/s^2, the scene "
+            f"asks for {list(gravity)}: settle a bed under the scene's gravity (remove bed.bed_file)"
+        )
     saved = header["spec"] or {}
     for key in ("length", "width", "depth", "radius_mean", "radius_spread", "seed"):
         if key in saved and saved[key] != getattr(bed, key):
-            problems.append(f"bed.{key}: the bed file has {key} = {saved[key]!r}, the scene says {getattr(bed, key)!r}; "
-                            "make [bed] match the file (or remove bed.bed_file to settle a new bed)")
+            problems.append(
+                f"bed.{key}: the bed file has {key} = {saved[key]!r}, the scene says {getattr(bed, key)!r}; "
+                "make [bed] match the file (or remove bed.bed_file to settle a new bed)"
+            )
     grains = header["materials"][0] if header["materials"] else None
     if grains is not None and grains != material:
         differ = [name for name in material.__dataclass_fields__ if getattr(grains, name) != getattr(material, name)]
-        shown = ", ".join(f"{n} {getattr(grains, n)!r} in the file vs {getattr(material, n)!r} in [soil]"
-                          for n in differ)
-        problems.append(f"bed.bed_file: the bed's grains are a different soil material ({shown}); make [soil] match "
-                        "the bed or remove bed.bed_file to settle a bed of the scene's soil")
+        shown = ", ".join(
+            f"{n} {getattr(grains, n)!r} in the file vs {getattr(material, n)!r} in [soil]" for n in differ
+        )
+        problems.append(
+            f"bed.bed_file: the bed's grains are a different soil material ({shown}); make [soil] match "
+            "the bed or remove bed.bed_file to settle a bed of the scene's soil"
+        )
     return problems
 
 
@@ -406,33 +436,56 @@ def resolve(scene: Scene) -> RunPlan:
         shapes = rover.wheel_shape or {}
         unknown = sorted(set(shapes) - set(names or []))
         if names is not None and unknown:
-            problems.append(f"rover.wheel_shape: no wheel named {', '.join(unknown)}; the wheels are "
-                            f"{', '.join(names)}")
-        wheels = tuple(_wheel(scene, soil_material.youngs_modulus, shapes[n], f"rover.wheel_shape.{n}")
-                       if n in shapes else wheel for n in (names or []))
+            problems.append(
+                f"rover.wheel_shape: no wheel named {', '.join(unknown)}; the wheels are {', '.join(names)}"
+            )
+        wheels = tuple(
+            _wheel(scene, soil_material.youngs_modulus, shapes[n], f"rover.wheel_shape.{n}") if n in shapes else wheel
+            for n in (names or [])
+        )
         if g > 0 and -gravity[2] < 0.5 * g:
-            problems.append(f"scene.gravity: a rover's soil rests on the floor z = 0, so gravity must point down (-z) "
-                            f"within 60 deg (a slope); got {list(gravity)} m/s^2")
+            problems.append(
+                f"scene.gravity: a rover's soil rests on the floor z = 0, so gravity must point down (-z) "
+                f"within 60 deg (a slope); got {list(gravity)} m/s^2"
+            )
     else:
         wheels = (wheel,)
     section = scene.soil.law
     materials = (soil_material, *(w.material for w in wheels or (wheel,)))
-    law = ContactLaw(damping=section.damping, friction=section.friction,
-                     rolling=section.rolling if section.rolling is not None else any(m.rolling_friction > 0
-                                                                                     for m in materials),
-                     cohesion=section.cohesion if section.cohesion is not None else any(m.cohesion > 0
-                                                                                       for m in materials))
+    law = ContactLaw(
+        damping=section.damping,
+        friction=section.friction,
+        rolling=section.rolling if section.rolling is not None else any(m.rolling_friction > 0 for m in materials),
+        cohesion=section.cohesion if section.cohesion is not None else any(m.cohesion > 0 for m in materials),
+    )
     b = scene.bed
-    spec = BedSpec(length=b.length, width=b.width, depth=b.depth, radius_mean=b.radius_mean,
-                   radius_spread=b.radius_spread, material=soil_material, seed=b.seed)
+    spec = BedSpec(
+        length=b.length,
+        width=b.width,
+        depth=b.depth,
+        radius_mean=b.radius_mean,
+        radius_spread=b.radius_spread,
+        material=soil_material,
+        seed=b.seed,
+    )
     settle_gravity = gravity if rover is None else np.array([0.0, 0.0, -g])
     bed_file = scene.resolve(b.bed_file)
     if bed_file is not None:
         problems += _check_bed_file(bed_file, soil_material, settle_gravity, b)
-    settle_dt = b.settle_dt_factor * rayleigh_time_step(soil_material.youngs_modulus, soil_material.poisson_ratio,
-                                                        soil_material.density, b.radius_mean * (1 - b.radius_spread))
-    bed = BedPlan(spec, settle_dt, b.settle_ke_ratio, b.settle_max_time, bed_file,
-                  bed_key(scene, soil_material, settle_gravity, device))
+    settle_dt = b.settle_dt_factor * rayleigh_time_step(
+        soil_material.youngs_modulus,
+        soil_material.poisson_ratio,
+        soil_material.density,
+        b.radius_mean * (1 - b.radius_spread),
+    )
+    bed = BedPlan(
+        spec,
+        settle_dt,
+        b.settle_ke_ratio,
+        b.settle_max_time,
+        bed_file,
+        bed_key(scene, soil_material, settle_gravity, device),
+    )
 
     testbed = rover_plan = patch = None
     if rover is None:
@@ -442,28 +495,52 @@ def resolve(scene: Scene) -> RunPlan:
 
     dt, macro_step, substeps, dt_key = _time_steps(scene, soil_material)
     if macro_step > scene.run.duration:
-        problems.append(f"run.macro_step: the macro step ({macro_step:.4g} s) is longer than run.duration "
-                        f"({scene.run.duration} s)")
+        problems.append(
+            f"run.macro_step: the macro step ({macro_step:.4g} s) is longer than run.duration ({scene.run.duration} s)"
+        )
     if scene.output.checkpoint_interval < macro_step:
-        problems.append(f"output.checkpoint_interval: {scene.output.checkpoint_interval} s is shorter than the "
-                        f"macro step {macro_step:.4g} s")
+        problems.append(
+            f"output.checkpoint_interval: {scene.output.checkpoint_interval} s is shorter than the "
+            f"macro step {macro_step:.4g} s"
+        )
     land = scene.landing
     if land.enabled and g == 0:
         problems.append("landing.enabled: a wheel cannot land without gravity; set landing.enabled = false")
     outer = max([w.outer_radius for w in wheels] or [wheel.outer_radius])
     scale_time = math.sqrt(outer / g) if g > 0 else 0.0
     hold = land.hold_time if land.hold_time is not None else scale_time
-    landing = LandingPlan(land.enabled, max(1, int(math.ceil(land.max_time / macro_step))),
-                          land.speed_ratio * math.sqrt(g * outer),
-                          max(1, int(math.ceil(hold / macro_step))))
+    landing = LandingPlan(
+        land.enabled,
+        max(1, int(math.ceil(land.max_time / macro_step))),
+        land.speed_ratio * math.sqrt(g * outer),
+        max(1, int(math.ceil(hold / macro_step))),
+    )
     if problems:
         raise SceneError(problems)
-    return RunPlan(scene=scene, name=scene.scene.name, device=device, precision=scene.scene.precision,
-                   gravity=tuple(float(v) for v in gravity), law=law, soil_material=soil_material, bed=bed,
-                   wheel=wheel, testbed=testbed, landing=landing, dt=dt, macro_step=macro_step, substeps=substeps,
-                   drive_steps=max(1, int(round(scene.run.duration / macro_step))), scheme=scene.run.scheme,
-                   order_seed=scene.run.order_seed, output=scene.output, dt_setting=dt_key, rover=rover_plan,
-                   patch=patch, wheels=wheels)
+    return RunPlan(
+        scene=scene,
+        name=scene.scene.name,
+        device=device,
+        precision=scene.scene.precision,
+        gravity=tuple(float(v) for v in gravity),
+        law=law,
+        soil_material=soil_material,
+        bed=bed,
+        wheel=wheel,
+        testbed=testbed,
+        landing=landing,
+        dt=dt,
+        macro_step=macro_step,
+        substeps=substeps,
+        drive_steps=max(1, int(round(scene.run.duration / macro_step))),
+        scheme=scene.run.scheme,
+        order_seed=scene.run.order_seed,
+        output=scene.output,
+        dt_setting=dt_key,
+        rover=rover_plan,
+        patch=patch,
+        wheels=wheels,
+    )
 
 
 def _testbed(scene: Scene, wheel: WheelPlan, problems: list[str]) -> TestbedPlan:
@@ -476,18 +553,24 @@ def _testbed(scene: Scene, wheel: WheelPlan, problems: list[str]) -> TestbedPlan
     if wheel.width >= b.width:
         problems.append(f"wheel.width: the wheel ({wheel.width:.4g} m) is wider than the bed (bed.width = {b.width} m)")
     elif (b.width - wheel.width) / 2 < clearance:
-        problems.append(f"wheel.width: the wheel is too close to the side walls: gap {(b.width - wheel.width) / 2:.4g} "
-                        f"m per side; allowed: >= 2 mean grain radii = {clearance:.4g} m (widen bed.width)")
+        problems.append(
+            f"wheel.width: the wheel is too close to the side walls: gap {(b.width - wheel.width) / 2:.4g} "
+            f"m per side; allowed: >= 2 mean grain radii = {clearance:.4g} m (widen bed.width)"
+        )
     if start_x - wheel.outer_radius < clearance:
-        problems.append(f"testbed.start_x: the wheel ({start_x} m, outer radius {wheel.outer_radius:.4g} m) starts "
-                        f"too close to the x = 0 wall; allowed: start_x >= {wheel.outer_radius + clearance:.4g} m")
+        problems.append(
+            f"testbed.start_x: the wheel ({start_x} m, outer radius {wheel.outer_radius:.4g} m) starts "
+            f"too close to the x = 0 wall; allowed: start_x >= {wheel.outer_radius + clearance:.4g} m"
+        )
     rim_speed = t.omega * wheel.outer_radius * ((1 - t.slip) if t.mode == "slip" else 1.0)
     reach = rim_speed * scene.run.duration
     if start_x + reach + wheel.outer_radius > b.length - clearance:
         longest = max(0.0, (b.length - clearance - wheel.outer_radius - start_x) / max(rim_speed, 1e-30))
-        problems.append(f"run.duration: at the wheel's rim speed it may travel {reach:.4g} m from x = {start_x:.4g} m "
-                        f"and hit the far wall (bed.length = {b.length} m); allowed: duration <= {longest:.4g} s, "
-                        "or a longer bed")
+        problems.append(
+            f"run.duration: at the wheel's rim speed it may travel {reach:.4g} m from x = {start_x:.4g} m "
+            f"and hit the far wall (bed.length = {b.length} m); allowed: duration <= {longest:.4g} s, "
+            "or a longer bed"
+        )
     return testbed
 
 
@@ -514,8 +597,13 @@ def _rover_wheel_names(scene: Scene) -> list[str]:
     try:
         found = check_rover_fmu(path, rover.wheel_count, rover.wheel_prefix)
     except RegolithError as error:
-        field = ("rover.wheel_count" if "the scene expects" in str(error) and rover.wheel_count is not None
-                 else "rover.wheel_prefix" if "the scene expects" in str(error) else "rover.file")
+        field = (
+            "rover.wheel_count"
+            if "the scene expects" in str(error) and rover.wheel_count is not None
+            else "rover.wheel_prefix"
+            if "the scene expects" in str(error)
+            else "rover.file"
+        )
         raise SceneError([f"{field}: {error}"]) from None
     return [f"{rover.wheel_prefix}{i}" for i in range(found["wheel_count"])]
 
@@ -550,8 +638,9 @@ def import_callable(spec: str, base_dir: str | None):
     try:
         module = importlib.import_module(module_name)
     except Exception as error:  # noqa: BLE001 - any failure to import is the user's module's problem
-        raise SceneError([f"rover.drive.function: cannot import module {module_name!r}: "
-                          f"{type(error).__name__}: {error}"]) from None
+        raise SceneError(
+            [f"rover.drive.function: cannot import module {module_name!r}: {type(error).__name__}: {error}"]
+        ) from None
     finally:
         if added:
             sys.path.remove(base_dir)
@@ -561,8 +650,9 @@ def import_callable(spec: str, base_dir: str | None):
     return target
 
 
-def _inspect_mjcf(source: str, wheels: list[str], body: str | None, heading: float, gravity, field: str,
-                  problems: list[str]) -> dict | None:
+def _inspect_mjcf(
+    source: str, wheels: list[str], body: str | None, heading: float, gravity, field: str, problems: list[str]
+) -> dict | None:
     """Compile an MJCF, find its wheels and base, and measure it at the start heading."""
     try:
         from rover_models.mujoco_rover import MujocoRover
@@ -601,8 +691,10 @@ def _inspect_fmu(scene: Scene, path: str, count: int, gravity, problems: list[st
     if found["start"]:
         values.update({"start.x": 0.0, "start.y": 0.0, "start.heading": math.radians(start.heading_deg)})
     elif start.x is not None or start.y is not None or start.heading_deg != 0.0:
-        problems.append(f"rover.start: the FMU {path} has no start.x, start.y, start.z, start.heading parameters, so "
-                        "the scene cannot place it; remove [rover.start] (the FMU starts where it says)")
+        problems.append(
+            f"rover.start: the FMU {path} has no start.x, start.y, start.z, start.heading parameters, so "
+            "the scene cannot place it; remove [rover.start] (the FMU starts where it says)"
+        )
     try:
         fmu = FmuRover(path, count, gravity=gravity, start_values=values, prefix=rover.wheel_prefix)
     except RegolithError as error:
@@ -614,8 +706,13 @@ def _inspect_fmu(scene: Scene, path: str, count: int, gravity, problems: list[st
         mass = fmu.total_mass
     finally:
         fmu.close()
-    return {"hubs": hubs, "mass": math.nan if mass is None else mass, "speed": found["speed"],
-            "torque": found["torque"], "start": found["start"]}
+    return {
+        "hubs": hubs,
+        "mass": math.nan if mass is None else mass,
+        "speed": found["speed"],
+        "torque": found["torque"],
+        "start": found["start"],
+    }
 
 
 def _check_drive(scene: Scene, wheels: tuple[WheelPlan, ...], layout: dict, problems: list[str]) -> DrivePlan:
@@ -653,8 +750,11 @@ def _check_drive(scene: Scene, wheels: tuple[WheelPlan, ...], layout: dict, prob
     elif section.kind == "slip" and section.omega_min is not None and section.omega_min > section.omega_max:
         problems.append(f"{key}.omega_min: ({section.omega_min} rad/s) must be <= omega_max ({section.omega_max})")
     if wants is not None and layout is not None and not layout[wants]:
-        what = ("velocity actuators on every wheel hinge (MJCF) or <prefix><i>.speed_command inputs (FMU)"
-                if wants == "speed" else "a hinge on every wheel (MJCF) or <prefix><i>.torque_command inputs (FMU)")
+        what = (
+            "velocity actuators on every wheel hinge (MJCF) or <prefix><i>.speed_command inputs (FMU)"
+            if wants == "speed"
+            else "a hinge on every wheel (MJCF) or <prefix><i>.torque_command inputs (FMU)"
+        )
         problems.append(f"{key}.kind: a {section.kind!r} drive commands wheel {wants}s, but the rover has no {what}")
     return DrivePlan(name, section, file)
 
@@ -683,8 +783,12 @@ def _rover(scene: Scene, wheels: tuple[WheelPlan, ...], gravity: np.ndarray, pro
     hubs = layout["hubs"]
     outer = np.array([w.outer_radius for w in wheels])
     centre = hubs[:, :2].mean(axis=0)
-    footprint = float(np.max(np.linalg.norm(hubs[:, :2] - centre, axis=1) + np.maximum(outer, [
-        math.hypot(w.outer_radius, w.width / 2) for w in wheels])))
+    footprint = float(
+        np.max(
+            np.linalg.norm(hubs[:, :2] - centre, axis=1)
+            + np.maximum(outer, [math.hypot(w.outer_radius, w.width / 2) for w in wheels])
+        )
+    )
     diameter = 2 * b.radius_mean
     patch = None
     if scene.patch is not None:
@@ -694,26 +798,36 @@ def _rover(scene: Scene, wheels: tuple[WheelPlan, ...], gravity: np.ndarray, pro
         slack = 0.5 * min(p.length, p.width) - footprint - band - clearance
         if slack <= 0:
             least = 2 * (footprint + band + clearance) + 2 * diameter
-            problems.append(f"patch.length: the window ({p.length} x {p.width} m) must hold the rover (footprint "
-                            f"radius {footprint:.4g} m, any heading), the clearance {clearance:.4g} m and the frozen "
-                            f"band {band:.4g} m on every side; allowed: patch.length and patch.width > {least:.4g} m")
+            problems.append(
+                f"patch.length: the window ({p.length} x {p.width} m) must hold the rover (footprint "
+                f"radius {footprint:.4g} m, any heading), the clearance {clearance:.4g} m and the frozen "
+                f"band {band:.4g} m on every side; allowed: patch.length and patch.width > {least:.4g} m"
+            )
             slack = math.nan
         recentre = p.recentre_distance if p.recentre_distance is not None else slack
         if p.recentre_distance is not None and p.recentre_distance > slack:
-            problems.append(f"patch.recentre_distance: ({p.recentre_distance} m) lets the wheels come closer than the "
-                            f"clearance to the frozen band; allowed: <= {slack:.4g} m")
+            problems.append(
+                f"patch.recentre_distance: ({p.recentre_distance} m) lets the wheels come closer than the "
+                f"clearance to the frozen band; allowed: <= {slack:.4g} m"
+            )
         largest = 2 * b.radius_mean * (1 + b.radius_spread)
         if band < largest:
-            problems.append(f"patch.band: ({band} m) must be at least one largest grain diameter ({largest:.4g} m) "
-                            "to hold the soil in")
+            problems.append(
+                f"patch.band: ({band} m) must be at least one largest grain diameter ({largest:.4g} m) "
+                "to hold the soil in"
+            )
         if clearance < largest:
-            problems.append(f"patch.clearance: ({clearance} m) must be at least one largest grain diameter "
-                            f"({largest:.4g} m): a grain caught between a wheel and the frozen band has nowhere to go")
+            problems.append(
+                f"patch.clearance: ({clearance} m) must be at least one largest grain diameter "
+                f"({largest:.4g} m): a grain caught between a wheel and the frozen band has nowhere to go"
+            )
         margin = p.tile_margin if p.tile_margin is not None else 2 * largest
         for key, size in (("length", b.length), ("width", b.width)):
             if size - 2 * margin < 2 * largest:
-                problems.append(f"bed.{key}: the tile is the bed {margin:.4g} m in from its walls (patch.tile_margin): "
-                                f"bed.{key} = {size} m leaves too little; allowed: >= {2 * margin + 2 * largest:.4g} m")
+                problems.append(
+                    f"bed.{key}: the tile is the bed {margin:.4g} m in from its walls (patch.tile_margin): "
+                    f"bed.{key} = {size} m leaves too little; allowed: >= {2 * margin + 2 * largest:.4g} m"
+                )
         patch = PatchPlan(p.length, p.width, band, clearance, recentre, margin)
         start_x = rover.start.x if rover.start.x is not None else 0.0
         start_y = rover.start.y if rover.start.y is not None else 0.0
@@ -721,40 +835,65 @@ def _rover(scene: Scene, wheels: tuple[WheelPlan, ...], gravity: np.ndarray, pro
         # on a bed the rover keeps its start heading: its wheels' bounding box at that heading
         clearance = diameter
         turn = np.array([[math.cos(heading), -math.sin(heading)], [math.sin(heading), math.cos(heading)]])
-        corners = np.concatenate([hub[:2] + np.array([[sx * w.outer_radius, sy * w.width / 2]
-                                                      for sx in (-1, 1) for sy in (-1, 1)]) @ turn.T
-                                  for hub, w in zip(hubs, wheels)])
+        corners = np.concatenate(
+            [
+                hub[:2]
+                + np.array([[sx * w.outer_radius, sy * w.width / 2] for sx in (-1, 1) for sy in (-1, 1)]) @ turn.T
+                for hub, w in zip(hubs, wheels)
+            ]
+        )
         box_low, box_high = corners.min(axis=0), corners.max(axis=0)
         start_x = rover.start.x if rover.start.x is not None else clearance + 6 * b.radius_mean - box_low[0]
         start_y = rover.start.y if rover.start.y is not None else 0.5 * b.width - 0.5 * (box_low[1] + box_high[1])
         low = np.array([start_x, start_y]) + box_low
         high = np.array([start_x, start_y]) + box_high
         if high[1] - low[1] + 2 * clearance > b.width:
-            problems.append(f"bed.width: the rover ({high[1] - low[1]:.4g} m across its wheels) and a clearance of "
-                            f"{clearance:.4g} m to the side walls need bed.width >= "
-                            f"{high[1] - low[1] + 2 * clearance:.4g} m (or use a [patch])")
+            problems.append(
+                f"bed.width: the rover ({high[1] - low[1]:.4g} m across its wheels) and a clearance of "
+                f"{clearance:.4g} m to the side walls need bed.width >= "
+                f"{high[1] - low[1] + 2 * clearance:.4g} m (or use a [patch])"
+            )
         elif low[1] < clearance or high[1] > b.width - clearance:
-            problems.append(f"rover.start.y: the rover ({low[1]:.4g} .. {high[1]:.4g} m across) comes closer than "
-                            f"{clearance:.4g} m to a side wall of the bed (0 .. {b.width} m)")
+            problems.append(
+                f"rover.start.y: the rover ({low[1]:.4g} .. {high[1]:.4g} m across) comes closer than "
+                f"{clearance:.4g} m to a side wall of the bed (0 .. {b.width} m)"
+            )
         if low[0] < clearance:
-            problems.append(f"rover.start.x: the rover's rear reaches {low[0]:.4g} m, closer than {clearance:.4g} m "
-                            f"to the x = 0 wall; allowed: rover.start.x >= {start_x + clearance - low[0]:.4g} m")
+            problems.append(
+                f"rover.start.x: the rover's rear reaches {low[0]:.4g} m, closer than {clearance:.4g} m "
+                f"to the x = 0 wall; allowed: rover.start.x >= {start_x + clearance - low[0]:.4g} m"
+            )
         omega = _nominal_omega(drive.section, len(names))
         if math.isfinite(omega) and abs(math.cos(heading)) > 0:
             reach = omega * max(w.outer_radius for w in wheels) * scene.run.duration
             if high[0] + reach > b.length - clearance:
-                problems.append(f"run.duration: at its wheels' rim speed the rover may travel {reach:.4g} m and hit "
-                                f"the far wall (bed.length = {b.length} m); shorten run.duration, lengthen the bed or "
-                                "use a [patch]")
-    plan = RoverPlan(model=rover.model, source=source, wheel_names=tuple(names), body=rover.body,
-                     prefix=rover.wheel_prefix, start_values=tuple(sorted((rover.start_values or {}).items())),
-                     start=(float(start_x), float(start_y), heading), hub_offsets=hubs,
-                     footprint_radius=footprint, mass=float(layout["mass"]), takes_speed=bool(layout["speed"]),
-                     takes_torque=bool(layout["torque"]), start_parameters=bool(layout["start"]), drive=drive,
-                     stuck_slip=rover.stuck_slip)
+                problems.append(
+                    f"run.duration: at its wheels' rim speed the rover may travel {reach:.4g} m and hit "
+                    f"the far wall (bed.length = {b.length} m); shorten run.duration, lengthen the bed or "
+                    "use a [patch]"
+                )
+    plan = RoverPlan(
+        model=rover.model,
+        source=source,
+        wheel_names=tuple(names),
+        body=rover.body,
+        prefix=rover.wheel_prefix,
+        start_values=tuple(sorted((rover.start_values or {}).items())),
+        start=(float(start_x), float(start_y), heading),
+        hub_offsets=hubs,
+        footprint_radius=footprint,
+        mass=float(layout["mass"]),
+        takes_speed=bool(layout["speed"]),
+        takes_torque=bool(layout["torque"]),
+        start_parameters=bool(layout["start"]),
+        drive=drive,
+        stuck_slip=rover.stuck_slip,
+    )
     if not math.isfinite(plan.mass):
-        problems.append(f"rover.file: the FMU {source} does not give the rover's mass (a total_mass parameter or "
-                        "output [kg]); the metrics per weight need it")
+        problems.append(
+            f"rover.file: the FMU {source} does not give the rover's mass (a total_mass parameter or "
+            "output [kg]); the metrics per weight need it"
+        )
     return plan, patch
 
 

@@ -1,13 +1,13 @@
 """`cosim plot OUT`: PNGs of one run or many (replicas, studies, sweeps) found under OUT.
 
-    travel_sinkage.png   travel and sinkage (rim and grouser tips) over time (the paper's figures 2-4);
-                         replicas overlaid, one colour per group; the steady-state window shaded
-    slip_drawbar.png     slip and drawbar pull over time
-    drawbar_slip.png     steady-state drawbar pull against slip, one point per run (>= 2 runs)
-    trajectory.png       (rovers) the rover body's path seen from above, and its travel and slip over time
-    wheels.png           (rovers) slip, sinkage, driving torque and power of every wheel over the drive
-    scatter.png          (studies) mean, std and min-max of the metrics per group
-    dbp_slip.png         (slip study) DP/W, torque and sinkage against imposed slip with 95 % intervals
+travel_sinkage.png   travel and sinkage (rim and grouser tips) over time (the paper's figures 2-4);
+                     replicas overlaid, one colour per group; the steady-state window shaded
+slip_drawbar.png     slip and drawbar pull over time
+drawbar_slip.png     steady-state drawbar pull against slip, one point per run (>= 2 runs)
+trajectory.png       (rovers) the rover body's path seen from above, and its travel and slip over time
+wheels.png           (rovers) slip, sinkage, driving torque and power of every wheel over the drive
+scatter.png          (studies) mean, std and min-max of the metrics per group
+dbp_slip.png         (slip study) DP/W, torque and sinkage against imposed slip with 95 % intervals
 """
 
 from __future__ import annotations
@@ -80,8 +80,15 @@ def plot_output(out_dir: str, plot_dir: str | None = None, dpi: int = 120) -> li
                 if len(s["time"]) == 0:
                     continue
                 alpha = 0.9 if counts[group] == 1 else max(0.25, 1.0 / np.sqrt(counts[group]))
-                ax.plot(s["time"], s[key][:, 0] * scale, style, color=colours[group], lw=1.2, alpha=alpha,
-                        label=None if group in seen else f"{group} ({counts[group]})" if counts[group] > 1 else group)
+                ax.plot(
+                    s["time"],
+                    s[key][:, 0] * scale,
+                    style,
+                    color=colours[group],
+                    lw=1.2,
+                    alpha=alpha,
+                    label=None if group in seen else f"{group} ({counts[group]})" if counts[group] > 1 else group,
+                )
                 seen.add(group)
                 window = json.loads(s["attrs"].get("summary", "{}")).get("window")
                 if window and len(runs) == 1 and np.all(np.isfinite(window)):
@@ -100,10 +107,22 @@ def plot_output(out_dir: str, plot_dir: str | None = None, dpi: int = 120) -> li
     rovers = [run for run in runs if run[2]["attrs"].get("kind") == "rover"]
     if rovers:
         written += _rover_plots(plt, rovers, colours, plot_dir, dpi)
-    overlay([("travel", "travel [mm]", 1e3, "-"), ("sinkage", "rim sinkage [mm]", 1e3, "-"),
-             ("sinkage_tips", "grouser-tip sinkage [mm]", 1e3, "-")], "travel_sinkage.png")
-    overlay([("slip", "slip [-]", 1.0, "-"), ("drawbar_pull", "drawbar pull [N]", 1.0, "-"),
-             ("driving_torque", "driving torque [N m]", 1.0, "-")], "slip_drawbar.png")
+    overlay(
+        [
+            ("travel", "travel [mm]", 1e3, "-"),
+            ("sinkage", "rim sinkage [mm]", 1e3, "-"),
+            ("sinkage_tips", "grouser-tip sinkage [mm]", 1e3, "-"),
+        ],
+        "travel_sinkage.png",
+    )
+    overlay(
+        [
+            ("slip", "slip [-]", 1.0, "-"),
+            ("drawbar_pull", "drawbar pull [N]", 1.0, "-"),
+            ("driving_torque", "driving torque [N m]", 1.0, "-"),
+        ],
+        "slip_drawbar.png",
+    )
     if len(runs) >= 2:
         fig, ax = plt.subplots(figsize=(6, 4.2))
         for _, group, s in runs:
@@ -155,8 +174,12 @@ def _rover_plots(plt, runs, colours, plot_dir: str, dpi: int) -> list[str]:
     plt.close(fig)
     written.append(path)
 
-    panels = [("slip", "slip [-]", 1.0), ("sinkage", "rim sinkage [mm]", 1e3),
-              ("driving_torque", "driving torque [N m]", 1.0), ("power", "drive power [W]", 1.0)]
+    panels = [
+        ("slip", "slip [-]", 1.0),
+        ("sinkage", "rim sinkage [mm]", 1e3),
+        ("driving_torque", "driving torque [N m]", 1.0),
+        ("power", "drive power [W]", 1.0),
+    ]
     fig, axes = plt.subplots(1, len(panels), figsize=(5.5 * len(panels), 4.2))
     names = json.loads(runs[0][2]["attrs"].get("wheel_names", "[]"))
     for ax, (key, label, scale) in zip(axes, panels):
@@ -196,8 +219,9 @@ def plot_scatter(out_dir: str, rows: list[dict], key: str, dpi: int = 120) -> st
     plt = _pyplot()
     fig, axes = plt.subplots(1, 3, figsize=(14, 4))
     x = np.arange(len(rows))
-    for ax, (name, label, scale) in zip(axes, [("travel", "travel [mm]", 1e3), ("slip", "slip [-]", 1.0),
-                                               ("sinkage", "sinkage [mm]", 1e3)]):
+    for ax, (name, label, scale) in zip(
+        axes, [("travel", "travel [mm]", 1e3), ("slip", "slip [-]", 1.0), ("sinkage", "sinkage [mm]", 1e3)]
+    ):
         mean = np.array([r.get(f"{name}_mean", np.nan) for r in rows]) * scale
         low = mean - np.array([r.get(f"{name}_min", np.nan) for r in rows]) * scale
         high = np.array([r.get(f"{name}_max", np.nan) for r in rows]) * scale - mean
@@ -221,9 +245,14 @@ def plot_slip_curve(out_dir: str, rows: list[dict], dpi: int = 120) -> str:
     """DP/W, driving torque and sinkage against slip with 95 % intervals (a slip study's rows)."""
     plt = _pyplot()
     fig, axes = plt.subplots(1, 3, figsize=(14, 4))
-    for ax, (name, label, scale) in zip(axes, [("dp_over_w", "DP/W [-]", 1.0),
-                                               ("driving_torque", "driving torque [N m]", 1.0),
-                                               ("sinkage", "rim sinkage [mm]", 1e3)]):
+    for ax, (name, label, scale) in zip(
+        axes,
+        [
+            ("dp_over_w", "DP/W [-]", 1.0),
+            ("driving_torque", "driving torque [N m]", 1.0),
+            ("sinkage", "rim sinkage [mm]", 1e3),
+        ],
+    ):
         slip = np.array([r.get("slip_mean", r["slip_set"]) for r in rows])
         mean = np.array([r.get(f"{name}_mean", np.nan) for r in rows]) * scale
         ci = np.nan_to_num(np.array([r.get(f"{name}_ci95", np.nan) for r in rows]) * scale)

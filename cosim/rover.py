@@ -60,10 +60,15 @@ def make_controller(plan: RunPlan):
         return ConstantTorque(section.torque, n)
     if section.kind == "slip":
         omega_max = section.omega_max
-        return SlipController(section.target_slip, radii, n, kp=1.0 if section.kp is None else section.kp,
-                              ki=20.0 if section.ki is None else section.ki,
-                              omega_min=0.1 * omega_max if section.omega_min is None else section.omega_min,
-                              omega_max=omega_max)
+        return SlipController(
+            section.target_slip,
+            radii,
+            n,
+            kp=1.0 if section.kp is None else section.kp,
+            ki=20.0 if section.ki is None else section.ki,
+            omega_min=0.1 * omega_max if section.omega_min is None else section.omega_min,
+            omega_max=omega_max,
+        )
     if section.kind == "fmu":
         from .fmu_controller import FmuController
 
@@ -71,8 +76,12 @@ def make_controller(plan: RunPlan):
     factory = import_callable(section.function, plan.scene.base_dir)
     controller = factory(wheel_count=n, wheel_radius=radii, **(section.args or {}))
     if not callable(controller):
-        raise SceneError([f"rover.drive.function: {section.function} returned {type(controller).__name__}, not a "
-                          "controller (a callable (t, wheel_states, wrenches) -> DriveCommand)"])
+        raise SceneError(
+            [
+                f"rover.drive.function: {section.function} returned {type(controller).__name__}, not a "
+                "controller (a callable (t, wheel_states, wrenches) -> DriveCommand)"
+            ]
+        )
     return controller
 
 
@@ -137,8 +146,9 @@ class RoverDriver:
         else:
             command = self.controller(t, wheel_states, wrenches)
             if len(command.values) != len(self.wheel_names):
-                raise ValueError(f"the controller commanded {len(command.values)} wheels, the rover has "
-                                 f"{len(self.wheel_names)}")
+                raise ValueError(
+                    f"the controller commanded {len(command.values)} wheels, the rover has {len(self.wheel_names)}"
+                )
         self.last_command = command
         return command
 
@@ -175,9 +185,12 @@ class RoverDriver:
 
     # -- checkpoints ------------------------------------------------------------------
     def state_dict(self) -> dict:
-        out = {"phase": self.phase, "drive_start": self.drive_start,
-               "command_torque": self.last_command.mode == "torque",
-               "command": np.asarray(self.last_command.values, dtype=np.float64)}
+        out = {
+            "phase": self.phase,
+            "drive_start": self.drive_start,
+            "command_torque": self.last_command.mode == "torque",
+            "command": np.asarray(self.last_command.values, dtype=np.float64),
+        }
         out.update({f"model/{k}": v for k, v in self.rover.state_dict().items()})
         if hasattr(self.controller, "state_dict"):
             out.update({f"controller/{k}": v for k, v in self.controller.state_dict().items()})
@@ -186,8 +199,9 @@ class RoverDriver:
     def load_state_dict(self, state: dict) -> None:
         self.phase = int(state["phase"])
         self.drive_start = float(state["drive_start"])
-        self.last_command = DriveCommand("torque" if bool(state["command_torque"]) else "speed",
-                                         np.array(state["command"]))
+        self.last_command = DriveCommand(
+            "torque" if bool(state["command_torque"]) else "speed", np.array(state["command"])
+        )
         self.rover.load_state_dict({k[6:]: v for k, v in state.items() if k.startswith("model/")})
         if hasattr(self.controller, "load_state_dict"):
             self.controller.load_state_dict({k[11:]: v for k, v in state.items() if k.startswith("controller/")})

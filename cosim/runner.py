@@ -17,7 +17,6 @@ writes a checkpoint and stops cleanly; a second one stops at once.
 from __future__ import annotations
 
 import logging
-import math
 import os
 import signal
 import time
@@ -36,7 +35,7 @@ from .folders import DIVERGED_FILE, RUN_FILE, SCENE_FILE, RunFolder
 from .output import ResultsWriter, read_series
 from .plan import RunPlan, load_plan, resolve
 from .scene import Scene, SceneError, scene_from_text
-from .single_wheel import PHASE_DRIVING, PHASE_LANDING
+from .single_wheel import PHASE_LANDING
 from .system import CoupledSystem
 from .terrain import quat_to_matrix, wheel_frame
 
@@ -74,8 +73,15 @@ class Runner:
         hooks: {'step': f(runner), 'checkpoint': f(runner)} called after each macro step / checkpoint.
     """
 
-    def __init__(self, system: CoupledSystem, writer: ResultsWriter, folder: RunFolder, loop: dict | None = None,
-                 progress: bool = False, hooks: dict | None = None):
+    def __init__(
+        self,
+        system: CoupledSystem,
+        writer: ResultsWriter,
+        folder: RunFolder,
+        loop: dict | None = None,
+        progress: bool = False,
+        hooks: dict | None = None,
+    ):
         self.system = system
         self.plan: RunPlan = system.plan
         self.writer = writer
@@ -95,7 +101,9 @@ class Runner:
         self.rest_heights = [float(z) for z in np.atleast_1d(loop.get("rest_heights", []))]
         self.landing_failed = bool(loop.get("landing_failed", False))
         self.next_snapshot = float(loop.get("next_snapshot", system.coupler.time))
-        self.next_checkpoint = float(loop.get("next_checkpoint", system.coupler.time + self.plan.output.checkpoint_interval))
+        self.next_checkpoint = float(
+            loop.get("next_checkpoint", system.coupler.time + self.plan.output.checkpoint_interval)
+        )
         self.wall_before = float(loop.get("wall_time", 0.0))
         self.steps_at_start = system.coupler.step_count
         self.last_checkpoint_time = system.coupler.time
@@ -104,8 +112,9 @@ class Runner:
     @property
     def done(self) -> bool:
         steps = self.system.coupler.step_count
-        return self.landing_failed or (self.drive_start_step >= 0
-                                       and steps - self.drive_start_step >= self.plan.drive_steps)
+        return self.landing_failed or (
+            self.drive_start_step >= 0 and steps - self.drive_start_step >= self.plan.drive_steps
+        )
 
     def run(self) -> RunResult:
         plan, system = self.plan, self.system
@@ -141,22 +150,28 @@ class Runner:
                         self.hooks["checkpoint"](self)
                 self._update_bar(bar, started)
                 if self.stop_requested and not last:
-                    raise RunInterrupted(f"stopped at t = {coupler.time:.6g} s after a checkpoint; continue with: "
-                                         f"cosim resume {self.folder.path}")
+                    raise RunInterrupted(
+                        f"stopped at t = {coupler.time:.6g} s after a checkpoint; continue with: "
+                        f"cosim resume {self.folder.path}"
+                    )
             status = "complete"
         except SimulationDiverged as error:
             status = "diverged"
-            message = (f"{error}. Change {plan.dt_setting} (the DEM step is now {plan.dt:.3g} s), soften or stiffen "
-                       "the soil as `cosim advise` says, or shorten run.macro_step. The last checkpoint is "
-                       f"{self.folder.checkpoint} (t = {self.last_checkpoint_time:.6g} s)")
+            message = (
+                f"{error}. Change {plan.dt_setting} (the DEM step is now {plan.dt:.3g} s), soften or stiffen "
+                "the soil as `cosim advise` says, or shorten run.macro_step. The last checkpoint is "
+                f"{self.folder.checkpoint} (t = {self.last_checkpoint_time:.6g} s)"
+            )
             if error.last_good is not None:
                 write_checkpoint(self.folder.file(DIVERGED_FILE), error.last_good)
                 message += f"; the last good soil state is {self.folder.file(DIVERGED_FILE)}"
             raise RunDiverged(message) from error
         except (KeyboardInterrupt, RunInterrupted) as error:
             status = "interrupted"
-            message = str(error) or (f"interrupted at t = {coupler.time:.6g} s; resume continues from the checkpoint "
-                                     f"at t = {self.last_checkpoint_time:.6g} s")
+            message = str(error) or (
+                f"interrupted at t = {coupler.time:.6g} s; resume continues from the checkpoint "
+                f"at t = {self.last_checkpoint_time:.6g} s"
+            )
             raise
         except BaseException as error:
             status, message = "failed", f"{type(error).__name__}: {error}"
@@ -192,21 +207,30 @@ class Runner:
         if rover.phase == PHASE_LANDING:
             self._landing(record)
         drive_start = self.drive_start_position if self.drive_start_step >= 0 else None
-        per_wheel = [metrics.wheel_quantities(k, w, g, drive_start)
-                     for k, w, g in zip(record.kinematics, record.wrenches, system.geometries)]
+        per_wheel = [
+            metrics.wheel_quantities(k, w, g, drive_start)
+            for k, w, g in zip(record.kinematics, record.wrenches, system.geometries)
+        ]
         for name in metrics.WHEEL_UNITS:
             row[name] = np.array([q[name] for q in per_wheel])
         row["speed_command"], row["torque_command"] = rover.command_row()
         body = rover.body_kinematics()
-        spins = [float(k.angular_velocity @ wheel_frame(k.orientation, g.axis_local)[0])
-                 for k, g in zip(record.kinematics, system.geometries)]
+        spins = [
+            float(k.angular_velocity @ wheel_frame(k.orientation, g.axis_local)[0])
+            for k, g in zip(record.kinematics, system.geometries)
+        ]
         radii = [g.rim_radius for g in system.geometries]
-        quantities = metrics.rover_quantities(body, per_wheel, record.wrenches, radii, spins,
-                                              self.body_position if driving else None, self.body_travel)
+        quantities = metrics.rover_quantities(
+            body, per_wheel, record.wrenches, radii, spins, self.body_position if driving else None, self.body_travel
+        )
         self.body_position, self.body_travel = body.position.copy(), quantities["travel"]
-        for name, value in (("position", body.position), ("orientation", body.orientation),
-                            ("linear_velocity", body.linear_velocity), ("angular_velocity", body.angular_velocity),
-                            *quantities.items()):
+        for name, value in (
+            ("position", body.position),
+            ("orientation", body.orientation),
+            ("linear_velocity", body.linear_velocity),
+            ("angular_velocity", body.angular_velocity),
+            *quantities.items(),
+        ):
             row[f"rover_{name}"] = value
         books = self._soil_books()
         for name, value in books.items():
@@ -222,8 +246,12 @@ class Runner:
         row["work_on_soil"] = record.work_on_soil
         if system.sim.model.boundary_count:
             force, torque, contacts = system.sim.boundary_wrenches()
-            row.update(boundary_force=force, boundary_torque=torque, boundary_contact_count=contacts,
-                       boundary_displacement=system.sim.boundary_displacements())
+            row.update(
+                boundary_force=force,
+                boundary_torque=torque,
+                boundary_contact_count=contacts,
+                boundary_displacement=system.sim.boundary_displacements(),
+            )
         self.writer.append_step(row)
 
     def _soil_books(self) -> dict:
@@ -231,13 +259,23 @@ class Runner:
         patch = self.system.patch
         if patch is not None:
             b = patch.books()
-            return {"particle_count": b["particle_count"], "mass": b["soil_mass"], "mass_added": b["mass_added"],
-                    "mass_removed": b["mass_removed"], "moves": b["moves"]}
+            return {
+                "particle_count": b["particle_count"],
+                "mass": b["soil_mass"],
+                "mass_added": b["mass_added"],
+                "mass_removed": b["mass_removed"],
+                "moves": b["moves"],
+            }
         sim = self.system.sim
         if not hasattr(self, "_static_mass"):
             self._static_mass = float(np.sum(sim.model.mass_numpy()))
-        return {"particle_count": sim.model.particle_count, "mass": self._static_mass, "mass_added": 0.0,
-                "mass_removed": 0.0, "moves": 0}
+        return {
+            "particle_count": sim.model.particle_count,
+            "mass": self._static_mass,
+            "mass_added": 0.0,
+            "mass_removed": 0.0,
+            "moves": 0,
+        }
 
     def _landing(self, record: MacroStepRecord) -> None:
         """The wheel has landed when, over the last `hold_steps` macro steps, it touched the soil at
@@ -247,10 +285,12 @@ class Runner:
         landing = self.plan.landing
         touching = all(w.contact_count > 0 for w in record.wrenches)
         self.rest_heights = (self.rest_heights + [min(k.position[2] for k in record.kinematics)]) if touching else []
-        self.rest_heights = self.rest_heights[-(landing.hold_steps + 1):]
+        self.rest_heights = self.rest_heights[-(landing.hold_steps + 1) :]
         hold_time = landing.hold_steps * self.plan.macro_step
-        if (len(self.rest_heights) > landing.hold_steps
-                and abs(self.rest_heights[-1] - self.rest_heights[0]) < landing.speed_limit * hold_time):
+        if (
+            len(self.rest_heights) > landing.hold_steps
+            and abs(self.rest_heights[-1] - self.rest_heights[0]) < landing.speed_limit * hold_time
+        ):
             rover = self.system.rover
             rover.start_drive()
             self.drive_start_step = self.system.coupler.step_count
@@ -258,9 +298,12 @@ class Runner:
             log.info("landed at t = %.4g s; driving for %.4g s", record.time, self.plan.scene.run.duration)
         elif self.system.coupler.step_count >= landing.max_steps:
             self.landing_failed = True
-            log.warning("the %s was not at rest on the soil after landing.max_time = %g s (raise landing.max_time, "
-                        "or lighten it if it keeps sinking)", "wheel" if self.plan.rover is None else "rover",
-                        self.plan.scene.landing.max_time)
+            log.warning(
+                "the %s was not at rest on the soil after landing.max_time = %g s (raise landing.max_time, "
+                "or lighten it if it keeps sinking)",
+                "wheel" if self.plan.rover is None else "rover",
+                self.plan.scene.landing.max_time,
+            )
 
     def _snapshot(self) -> None:
         system = self.system
@@ -269,21 +312,33 @@ class Runner:
         posed = system.posed_wheel_vertices(vertices, owner)
         body = system.rover.body_kinematics()
         patch = system.patch
-        self.writer.add_snapshot(system.coupler.time, sim.positions(), sim.velocities().astype(np.float32),
-                                 posed.astype(np.float32), rover_pose=(body.position, quat_to_matrix(body.orientation)),
-                                 radius=None if patch is None else sim.model.radius_numpy(),
-                                 ids=None if patch is None else patch.ids)
+        self.writer.add_snapshot(
+            system.coupler.time,
+            sim.positions(),
+            sim.velocities().astype(np.float32),
+            posed.astype(np.float32),
+            rover_pose=(body.position, quat_to_matrix(body.orientation)),
+            radius=None if patch is None else sim.model.radius_numpy(),
+            ids=None if patch is None else patch.ids,
+        )
         if self.plan.output.snapshot_interval > 0:
             self.next_snapshot = self.system.coupler.time + self.plan.output.snapshot_interval
 
     def loop_state(self, wall: float) -> dict:
         """The loop's own state (what `Runner(..., loop=...)` takes back)."""
-        return {"drive_start_step": self.drive_start_step, "drive_start_position": self.drive_start_position,
-                "body_position": self.body_position, "body_travel": self.body_travel,
-                "rest_heights": np.asarray(self.rest_heights, dtype=np.float64), "landing_failed": self.landing_failed,
-                "next_snapshot": self.next_snapshot, "next_checkpoint": self.next_checkpoint,
-                "wall_time": self.wall_before + wall, "steps": self.writer.steps,
-                "snapshots": self.writer.snapshots}
+        return {
+            "drive_start_step": self.drive_start_step,
+            "drive_start_position": self.drive_start_position,
+            "body_position": self.body_position,
+            "body_travel": self.body_travel,
+            "rest_heights": np.asarray(self.rest_heights, dtype=np.float64),
+            "landing_failed": self.landing_failed,
+            "next_snapshot": self.next_snapshot,
+            "next_checkpoint": self.next_checkpoint,
+            "wall_time": self.wall_before + wall,
+            "steps": self.writer.steps,
+            "snapshots": self.writer.snapshots,
+        }
 
     def _checkpoint(self, wall: float) -> None:
         self.writer.flush()
@@ -301,8 +356,13 @@ class Runner:
             return None
         from tqdm import tqdm
 
-        return tqdm(total=self.plan.drive_steps, desc="landing", unit="step", leave=True,
-                    bar_format="{desc}: {n}/{total} macro steps [{elapsed}<{remaining}, {postfix}]")
+        return tqdm(
+            total=self.plan.drive_steps,
+            desc="landing",
+            unit="step",
+            leave=True,
+            bar_format="{desc}: {n}/{total} macro steps [{elapsed}<{remaining}, {postfix}]",
+        )
 
     def _update_bar(self, bar, started: float) -> None:
         if bar is None:
@@ -314,8 +374,9 @@ class Runner:
         wall = time.perf_counter() - started
         done = coupler.step_count - self.steps_at_start
         rate = self.system.sim.model.particle_count * self.plan.substeps * done / max(wall, 1e-9)
-        bar.set_postfix_str(f"t = {coupler.time:.4g} s sim, dt {self.plan.dt:.3g} s, {rate:.3g} particle-steps/s",
-                            refresh=False)
+        bar.set_postfix_str(
+            f"t = {coupler.time:.4g} s sim, dt {self.plan.dt:.3g} s, {rate:.3g} particle-steps/s", refresh=False
+        )
         bar.refresh()
 
     def summary(self, wall: float, session_wall: float) -> dict:
@@ -325,28 +386,49 @@ class Runner:
         if not len(series["time"]):
             out = {"steady_state": metrics.TOO_SHORT}
         elif plan.rover is None:
-            out = metrics.summarize(series, rim_radius=plan.wheel.rim_radius, wheel_load=plan.wheel_load,
-                                    mode=plan.testbed.mode, landed=not self.landing_failed)
+            out = metrics.summarize(
+                series,
+                rim_radius=plan.wheel.rim_radius,
+                wheel_load=plan.wheel_load,
+                mode=plan.testbed.mode,
+                landed=not self.landing_failed,
+            )
         else:
-            out = metrics.summarize_rover(series, rim_radii=[w.rim_radius for w in plan.wheels],
-                                          weight=plan.rover.mass * plan.g, stuck_slip=plan.rover.stuck_slip,
-                                          landed=not self.landing_failed)
+            out = metrics.summarize_rover(
+                series,
+                rim_radii=[w.rim_radius for w in plan.wheels],
+                weight=plan.rover.mass * plan.g,
+                stuck_slip=plan.rover.stuck_slip,
+                landed=not self.landing_failed,
+            )
         if system.patch is not None:
             books = system.patch.books()
-            out.update(patch_moves=books["moves"], soil_mass_added=books["mass_added"],
-                       soil_mass_removed=books["mass_removed"], soil_mass=books["soil_mass"],
-                       soil_mass_initial=books["mass_initial"],
-                       particle_count_max=int(np.max(series["soil_particle_count"])) if len(series["time"]) else 0)
+            out.update(
+                patch_moves=books["moves"],
+                soil_mass_added=books["mass_added"],
+                soil_mass_removed=books["mass_removed"],
+                soil_mass=books["soil_mass"],
+                soil_mass_initial=books["mass_initial"],
+                particle_count_max=int(np.max(series["soil_particle_count"])) if len(series["time"]) else 0,
+            )
         findings = advice.check(plan, system.soil.surface_height, out.get("sinkage_tips"))
-        out.update(simulated_time=float(system.coupler.time), macro_steps=int(system.coupler.step_count),
-                   wall_time=float(wall), particle_count=int(system.sim.model.particle_count), dt=plan.dt,
-                   macro_step=plan.macro_step, froude_number=plan.froude_number,
-                   coupling_energy_created=float(system.coupler.energy_created),
-                   validity=advice.verdict(findings), findings=[f.as_dict() for f in findings])
+        out.update(
+            simulated_time=float(system.coupler.time),
+            macro_steps=int(system.coupler.step_count),
+            wall_time=float(wall),
+            particle_count=int(system.sim.model.particle_count),
+            dt=plan.dt,
+            macro_step=plan.macro_step,
+            froude_number=plan.froude_number,
+            coupling_energy_created=float(system.coupler.energy_created),
+            validity=advice.verdict(findings),
+            findings=[f.as_dict() for f in findings],
+        )
         done = system.coupler.step_count - self.steps_at_start
         if session_wall > 0 and done:
-            out["particle_steps_per_second"] = float(system.sim.model.particle_count * plan.substeps * done
-                                                     / session_wall)
+            out["particle_steps_per_second"] = float(
+                system.sim.model.particle_count * plan.substeps * done / session_wall
+            )
         return out
 
 
@@ -385,28 +467,52 @@ def _attributes(plan: RunPlan, system: CoupledSystem, source: str, findings) -> 
 
     rover = plan.rover
     out = {
-        "name": plan.name, "scene_toml": plan.scene.to_toml(), "scene_source": source, "precision": plan.precision,
-        "device": plan.device, "scheme": plan.scheme, "order_seed": -1 if plan.order_seed is None else plan.order_seed,
-        "dt": plan.dt, "macro_step": plan.macro_step, "substeps": plan.substeps, "duration": plan.scene.run.duration,
-        "gravity": np.asarray(plan.gravity), "surface_height": system.soil.surface_height,
-        "start_position": system.rover.position.copy(), "omega": plan.drive_omega,
-        "rim_radius": plan.wheel.rim_radius, "outer_radius": plan.wheel.outer_radius, "wheel_load": plan.wheel_load,
+        "name": plan.name,
+        "scene_toml": plan.scene.to_toml(),
+        "scene_source": source,
+        "precision": plan.precision,
+        "device": plan.device,
+        "scheme": plan.scheme,
+        "order_seed": -1 if plan.order_seed is None else plan.order_seed,
+        "dt": plan.dt,
+        "macro_step": plan.macro_step,
+        "substeps": plan.substeps,
+        "duration": plan.scene.run.duration,
+        "gravity": np.asarray(plan.gravity),
+        "surface_height": system.soil.surface_height,
+        "start_position": system.rover.position.copy(),
+        "omega": plan.drive_omega,
+        "rim_radius": plan.wheel.rim_radius,
+        "outer_radius": plan.wheel.outer_radius,
+        "wheel_load": plan.wheel_load,
         "mode": plan.testbed.mode if rover is None else rover.drive.kind,
         "particle_count": system.sim.model.particle_count,
         "wheel_names": json.dumps(list(system.rover.wheel_names)),
-        "bed": json.dumps(system.bed.info, default=float), "findings": json.dumps([f.as_dict() for f in findings]),
+        "bed": json.dumps(system.bed.info, default=float),
+        "findings": json.dumps([f.as_dict() for f in findings]),
         "kind": "testbed" if rover is None else "rover",
         "rim_radii": np.array([w.rim_radius for w in plan.wheels]),
         "outer_radii": np.array([w.outer_radius for w in plan.wheels]),
     }
     if rover is not None:
-        out.update(rover_model=rover.model, rover_mass=rover.mass, drive=rover.drive.name,
-                   stuck_slip=rover.stuck_slip, slope=plan.slope)
+        out.update(
+            rover_model=rover.model,
+            rover_mass=rover.mass,
+            drive=rover.drive.name,
+            stuck_slip=rover.stuck_slip,
+            slope=plan.slope,
+        )
     return out
 
 
-def run_plan(plan: RunPlan, out_dir: str, overwrite: bool = False, progress: bool = False,
-             hooks: dict | None = None, source: str = "") -> RunResult:
+def run_plan(
+    plan: RunPlan,
+    out_dir: str,
+    overwrite: bool = False,
+    progress: bool = False,
+    hooks: dict | None = None,
+    source: str = "",
+) -> RunResult:
     """Run a resolved plan into `out_dir` (see the module docstring)."""
     folder = RunFolder(out_dir)
     with folder.locked():
@@ -421,22 +527,42 @@ def run_plan(plan: RunPlan, out_dir: str, overwrite: bool = False, progress: boo
         folder.clear_run()
         with open(folder.file(SCENE_FILE), "w") as f:
             f.write(plan.scene.to_toml())
-        write_json(folder.file(RUN_FILE), {"status": "running", "device": plan.device, "precision": plan.precision,
-                                           "bed": bed.info, "findings": [f.as_dict() for f in findings]})
+        write_json(
+            folder.file(RUN_FILE),
+            {
+                "status": "running",
+                "device": plan.device,
+                "precision": plan.precision,
+                "bed": bed.info,
+                "findings": [f.as_dict() for f in findings],
+            },
+        )
         try:
             writer = ResultsWriter.create(
-                folder.results, attrs=_attributes(plan, system, source, findings),
-                radius=system.sim.model.radius_numpy(), wheel_count=len(system.rover.wheel_names),
-                mesh=system.wheel_mesh(), rover_columns=system.rover.state_columns,
-                rover_units=system.rover.state_units, boundaries=system.boundaries(),
-                flush_every=plan.output.flush_every, ragged=system.patch is not None)
+                folder.results,
+                attrs=_attributes(plan, system, source, findings),
+                radius=system.sim.model.radius_numpy(),
+                wheel_count=len(system.rover.wheel_names),
+                mesh=system.wheel_mesh(),
+                rover_columns=system.rover.state_columns,
+                rover_units=system.rover.state_units,
+                boundaries=system.boundaries(),
+                flush_every=plan.output.flush_every,
+                ragged=system.patch is not None,
+            )
             return Runner(system, writer, folder, progress=progress, hooks=hooks).run()
         finally:
             system.close()
 
 
-def run_scene(scene: Scene | str | os.PathLike, out_dir: str, overwrite: bool = False, progress: bool = False,
-              hooks: dict | None = None, overrides=None) -> RunResult:
+def run_scene(
+    scene: Scene | str | os.PathLike,
+    out_dir: str,
+    overwrite: bool = False,
+    progress: bool = False,
+    hooks: dict | None = None,
+    overrides=None,
+) -> RunResult:
     """Run a scene (a Scene or a TOML path, with --set overrides) into `out_dir`."""
     source = ""
     if isinstance(scene, Scene):
@@ -446,8 +572,7 @@ def run_scene(scene: Scene | str | os.PathLike, out_dir: str, overwrite: bool = 
         plan = load_plan(path, overrides)
         with open(path) as f:
             source = f.read()
-    return run_plan(absolute_paths(plan), out_dir, overwrite=overwrite, progress=progress, hooks=hooks,
-                    source=source)
+    return run_plan(absolute_paths(plan), out_dir, overwrite=overwrite, progress=progress, hooks=hooks, source=source)
 
 
 def absolute_paths(plan: RunPlan) -> RunPlan:
@@ -510,9 +635,10 @@ def resume(out_dir: str, progress: bool = False, hooks: dict | None = None) -> R
         system = CoupledSystem.build(plan, bed)
         try:
             system.load_state_dict(checkpoint)
-            writer = ResultsWriter.resume(folder.results, steps, int(checkpoint["loop/snapshots"]),
-                                          flush_every=plan.output.flush_every)
-            loop = {k[len("loop/"):]: v for k, v in checkpoint.items() if k.startswith("loop/")}
+            writer = ResultsWriter.resume(
+                folder.results, steps, int(checkpoint["loop/snapshots"]), flush_every=plan.output.flush_every
+            )
+            loop = {k[len("loop/") :]: v for k, v in checkpoint.items() if k.startswith("loop/")}
             return Runner(system, writer, folder, loop=loop, progress=progress, hooks=hooks).run()
         finally:
             system.close()
@@ -521,7 +647,8 @@ def resume(out_dir: str, progress: bool = False, hooks: dict | None = None) -> R
 def _finished(checkpoint: dict, plan: RunPlan) -> bool:
     start = int(checkpoint["loop/drive_start_step"])
     return bool(checkpoint["loop/landing_failed"]) or (
-        start >= 0 and int(checkpoint["coupler/step_count"]) - start >= plan.drive_steps)
+        start >= 0 and int(checkpoint["coupler/step_count"]) - start >= plan.drive_steps
+    )
 
 
 def final_state(out_dir: str) -> dict:
@@ -530,5 +657,14 @@ def final_state(out_dir: str) -> dict:
     return {k: v for k, v in data.items() if k.split("/")[0] in ("soil", "rover", "coupler")}
 
 
-__all__ = ["RunDiverged", "RunInterrupted", "RunResult", "Runner", "final_state", "load_checkpoint", "resume",
-           "run_plan", "run_scene"]
+__all__ = [
+    "RunDiverged",
+    "RunInterrupted",
+    "RunResult",
+    "Runner",
+    "final_state",
+    "load_checkpoint",
+    "resume",
+    "run_plan",
+    "run_scene",
+]

@@ -78,8 +78,10 @@ class SceneSection(_Section):
     def _gravity(cls, value):
         if isinstance(value, str):
             if value not in GRAVITY_PRESET_NAMES:
-                raise ValueError(f"unknown gravity preset {value!r}; allowed: {', '.join(GRAVITY_PRESET_NAMES)}, "
-                                 "a magnitude [m/s^2] or a 3-vector")
+                raise ValueError(
+                    f"unknown gravity preset {value!r}; allowed: {', '.join(GRAVITY_PRESET_NAMES)}, "
+                    "a magnitude [m/s^2] or a 3-vector"
+                )
         elif isinstance(value, list):
             if len(value) != 3 or not all(math.isfinite(v) for v in value):
                 raise ValueError("a gravity vector must be 3 finite numbers [m/s^2]")
@@ -118,8 +120,10 @@ class MaterialSection(_Section):
     @model_validator(mode="after")
     def _angles(self):
         if self.slip_angle_deg > self.stick_angle_deg:
-            raise ValueError(f"slip_angle_deg: must be <= stick_angle_deg ({self.stick_angle_deg}) since sliding "
-                             f"friction cannot exceed sticking friction (got {self.slip_angle_deg})")
+            raise ValueError(
+                f"slip_angle_deg: must be <= stick_angle_deg ({self.stick_angle_deg}) since sliding "
+                f"friction cannot exceed sticking friction (got {self.slip_angle_deg})"
+            )
         if self.restitution is not None and self.damping_ratio is not None:
             raise ValueError("damping_ratio: give restitution or damping_ratio, not both")
         return self
@@ -174,8 +178,10 @@ class BedSection(_Section):
         smallest = 4 * self.radius_mean * (1 + self.radius_spread)
         for name in ("length", "width", "depth"):
             if getattr(self, name) < smallest:
-                raise ValueError(f"{name}: ({getattr(self, name)} m) must hold at least two of the largest grains "
-                                 f"(>= {smallest:.4g} m)")
+                raise ValueError(
+                    f"{name}: ({getattr(self, name)} m) must hold at least two of the largest grains "
+                    f"(>= {smallest:.4g} m)"
+                )
         return self
 
 
@@ -203,26 +209,38 @@ class WheelSection(_Section):
         if self.type == "grouser":
             wrong = [k for k in mesh_keys if getattr(self, k) is not None]
             if wrong:
-                raise ValueError(f"{wrong[0]}: {', '.join(wrong)} belong(s) to type = 'mesh'; a grouser wheel takes "
-                                 f"{', '.join(grouser_keys)}")
-            defaults = {"radius": 0.04, "width": 0.03, "grouser_count": 12, "grouser_height": 0.004,
-                        "grouser_thickness": 0.002}
+                raise ValueError(
+                    f"{wrong[0]}: {', '.join(wrong)} belong(s) to type = 'mesh'; a grouser wheel takes "
+                    f"{', '.join(grouser_keys)}"
+                )
+            defaults = {
+                "radius": 0.04,
+                "width": 0.03,
+                "grouser_count": 12,
+                "grouser_height": 0.004,
+                "grouser_thickness": 0.002,
+            }
             for key, value in defaults.items():
                 if getattr(self, key) is None:
                     object.__setattr__(self, key, value)
             if self.grouser_count:
                 if not self.grouser_height > 0 or not self.grouser_thickness > 0:
-                    raise ValueError("grouser_height: grouser_height and grouser_thickness must be > 0 [m] when "
-                                     "grouser_count > 0")
+                    raise ValueError(
+                        "grouser_height: grouser_height and grouser_thickness must be > 0 [m] when grouser_count > 0"
+                    )
                 spacing = 2 * math.pi * self.radius / self.grouser_count
                 if self.grouser_thickness >= min(spacing, self.radius):
-                    raise ValueError(f"grouser_thickness: ({self.grouser_thickness} m) must be < the grouser spacing "
-                                     f"{spacing:.4g} m and < radius")
+                    raise ValueError(
+                        f"grouser_thickness: ({self.grouser_thickness} m) must be < the grouser spacing "
+                        f"{spacing:.4g} m and < radius"
+                    )
         else:
             wrong = [k for k in grouser_keys if getattr(self, k) is not None]
             if wrong:
-                raise ValueError(f"{wrong[0]}: {', '.join(wrong)} belong(s) to type = 'grouser'; a mesh wheel takes "
-                                 f"{', '.join(mesh_keys)}")
+                raise ValueError(
+                    f"{wrong[0]}: {', '.join(wrong)} belong(s) to type = 'grouser'; a mesh wheel takes "
+                    f"{', '.join(mesh_keys)}"
+                )
             if not self.file:
                 raise ValueError("file: is required for type = 'mesh' (an .obj or .stl file)")
             if os.path.splitext(self.file)[1].lower() not in (".obj", ".stl"):
@@ -285,28 +303,33 @@ class DriveSection(_Section):
 
     @model_validator(mode="after")
     def _by_kind(self):
-        keys = {"speed": ("speed",), "torque": ("torque",),
-                "slip": ("target_slip", "kp", "ki", "omega_min", "omega_max"),
-                "fmu": ("file", "mode", "start_values"), "python": ("function", "args")}
-        wrong = [k for kind, names in keys.items() if kind != self.kind for k in names
-                 if getattr(self, k) is not None]
+        keys = {
+            "speed": ("speed",),
+            "torque": ("torque",),
+            "slip": ("target_slip", "kp", "ki", "omega_min", "omega_max"),
+            "fmu": ("file", "mode", "start_values"),
+            "python": ("function", "args"),
+        }
+        wrong = [k for kind, names in keys.items() if kind != self.kind for k in names if getattr(self, k) is not None]
         if wrong:
-            raise ValueError(f"{wrong[0]}: {', '.join(wrong)} do(es) not belong to kind = {self.kind!r}; it takes "
-                             f"{', '.join(keys[self.kind])}")
+            raise ValueError(
+                f"{wrong[0]}: {', '.join(wrong)} do(es) not belong to kind = {self.kind!r}; it takes "
+                f"{', '.join(keys[self.kind])}"
+            )
         required = {"speed": "speed", "torque": "torque", "slip": "target_slip", "fmu": "file", "python": "function"}
         if getattr(self, required[self.kind]) is None:
             raise ValueError(f"{required[self.kind]}: is required for kind = {self.kind!r}")
         if self.kind == "slip" and self.omega_max is None:
-            raise ValueError("omega_max: is required for kind = 'slip' (the highest wheel speed it may command "
-                             "[rad/s])")
+            raise ValueError(
+                "omega_max: is required for kind = 'slip' (the highest wheel speed it may command [rad/s])"
+            )
         for name in ("speed", "torque"):
             value = getattr(self, name)
             values = value if isinstance(value, list) else [] if value is None else [value]
             if not all(math.isfinite(v) for v in values) or (isinstance(value, list) and not value):
                 raise ValueError(f"{name}: must be a finite number or a non-empty list of them")
         if self.function is not None and not re.fullmatch(r"[A-Za-z_][\w.]*:[A-Za-z_]\w*", self.function):
-            raise ValueError(f"function: must be 'module:function' (e.g. 'my_controllers:make'), got "
-                             f"{self.function!r}")
+            raise ValueError(f"function: must be 'module:function' (e.g. 'my_controllers:make'), got {self.function!r}")
         return self
 
 
@@ -389,7 +412,7 @@ class RoverSection(_Section):
         if self.model == "mmx" and self.file:
             raise ValueError("file: the built-in rover (model = 'mmx') takes no file; its parameters go in [rover.mmx]")
         if self.model == "mjcf" and not self.wheels:
-            raise ValueError("wheels: name the MJCF's wheel bodies, e.g. wheels = [\"wheel_fl\", \"wheel_fr\"]")
+            raise ValueError('wheels: name the MJCF\'s wheel bodies, e.g. wheels = ["wheel_fl", "wheel_fr"]')
         if self.model == "fmu" and self.wheels:
             raise ValueError("wheels: an FMU's wheels are numbered; give wheel_count and wheel_prefix instead")
         if self.model != "fmu" and (self.wheel_count is not None or self.start_values):
@@ -473,8 +496,10 @@ class RunSection(_Section):
         if self.dt is not None and self.macro_step is not None:
             ratio = self.macro_step / self.dt
             if abs(ratio - round(ratio)) > 1e-6 * max(1.0, ratio) or round(ratio) < 1:
-                raise ValueError(f"macro_step: ({self.macro_step} s) must be a whole multiple (>= 1) of dt "
-                                 f"({self.dt} s); macro_step / dt = {ratio:.6g}")
+                raise ValueError(
+                    f"macro_step: ({self.macro_step} s) must be a whole multiple (>= 1) of dt "
+                    f"({self.dt} s); macro_step / dt = {ratio:.6g}"
+                )
         return self
 
 
@@ -559,11 +584,11 @@ def _format_errors(error: ValidationError) -> list[str]:
         loc = ".".join(p for p in parts if p not in _UNION_MEMBERS)
         message = item["msg"]
         if message.startswith("Value error, "):
-            message = message[len("Value error, "):]
+            message = message[len("Value error, ") :]
         named = re.match(r"^([a-z_]+): ", message)
         if named:
             loc = f"{loc}.{named.group(1)}" if loc else named.group(1)
-            message = message[named.end():]
+            message = message[named.end() :]
         for old, new in _PHRASES:
             message = message.replace(old, new)
         if item["type"] == "extra_forbidden":
@@ -599,8 +624,11 @@ def apply_overrides(data: dict, overrides: list[str] | dict | None) -> dict:
     data = json.loads(json.dumps(data))
     if not overrides:
         return data
-    items = ([parse_override(o) for o in overrides] if isinstance(overrides, (list, tuple))
-             else [(k.split("."), v) for k, v in overrides.items()])
+    items = (
+        [parse_override(o) for o in overrides]
+        if isinstance(overrides, (list, tuple))
+        else [(k.split("."), v) for k, v in overrides.items()]
+    )
     for path, value in items:
         node = data
         for part in path[:-1]:

@@ -37,12 +37,24 @@ from soil import gravity_vector
 
 from .scene import Scene, SceneError, load_scene
 
-TIME_KEYS = [("run", "duration"), ("run", "dt"), ("run", "macro_step"), ("landing", "max_time"),
-             ("landing", "hold_time"), ("bed", "settle_max_time"), ("output", "snapshot_interval"),
-             ("output", "checkpoint_interval")]
+TIME_KEYS = [
+    ("run", "duration"),
+    ("run", "dt"),
+    ("run", "macro_step"),
+    ("landing", "max_time"),
+    ("landing", "hold_time"),
+    ("bed", "settle_max_time"),
+    ("output", "snapshot_interval"),
+    ("output", "checkpoint_interval"),
+]
 """Scene keys that are times [s]: / sqrt(s)."""
-STIFFNESS_KEYS = [("soil", "youngs_modulus"), ("soil", "cohesion"), ("wheel.material", "youngs_modulus"),
-                  ("wheel.material", "cohesion"), ("testbed", "drawbar_load")]
+STIFFNESS_KEYS = [
+    ("soil", "youngs_modulus"),
+    ("soil", "cohesion"),
+    ("wheel.material", "youngs_modulus"),
+    ("wheel.material", "cohesion"),
+    ("testbed", "drawbar_load"),
+]
 """Scene keys that scale like a force or a pressure: x s."""
 SPEED_KEYS = [("testbed", "omega"), ("soil", "stick_speed"), ("wheel.material", "stick_speed")]
 """Scene keys that are speeds or rates [m/s, rad/s]: x sqrt(s)."""
@@ -60,8 +72,12 @@ def _section(data: dict, dotted: str) -> dict:
 def gravity_twin(scene: Scene, gravity) -> tuple[dict, float]:
     """(the twin scene as a dictionary, the factor s = |g_new| / |g_old|)."""
     if scene.rover is not None:
-        raise SceneError(["rover: the gravity twin scales the single-wheel [testbed]'s keys; a rover scene's drives, "
-                          "masses and model are not scaled here"])
+        raise SceneError(
+            [
+                "rover: the gravity twin scales the single-wheel [testbed]'s keys; a rover scene's drives, "
+                "masses and model are not scaled here"
+            ]
+        )
     old = gravity_vector(scene.scene.gravity)
     try:
         target = gravity_vector(gravity)
@@ -78,16 +94,26 @@ def gravity_twin(scene: Scene, gravity) -> tuple[dict, float]:
     wheel_material.setdefault("youngs_modulus", _section(data, "soil").get("youngs_modulus", 2.0e5))
     soil = _section(data, "soil")
     soil.setdefault("youngs_modulus", 2.0e5)
-    for keys, factor in ((TIME_KEYS, 1 / math.sqrt(s)), (STIFFNESS_KEYS, s), (SPEED_KEYS, math.sqrt(s)),
-                         (RATE_KEYS, s**1.5)):
+    for keys, factor in (
+        (TIME_KEYS, 1 / math.sqrt(s)),
+        (STIFFNESS_KEYS, s),
+        (SPEED_KEYS, math.sqrt(s)),
+        (RATE_KEYS, s**1.5),
+    ):
         for section, key in keys:
             node = _section(data, section)
             if key in node and node[key] is not None:
                 node[key] = float(node[key]) * factor
-    for section, key, default in (("testbed", "omega", 0.25), ("run", "duration", 3.0),
-                                  ("soil", "stick_speed", 1e-4), ("wheel.material", "stick_speed", 1e-4),
-                                  ("landing", "max_time", 30.0), ("bed", "settle_max_time", 10.0),
-                                  ("output", "snapshot_interval", 0.25), ("output", "checkpoint_interval", 0.5)):
+    for section, key, default in (
+        ("testbed", "omega", 0.25),
+        ("run", "duration", 3.0),
+        ("soil", "stick_speed", 1e-4),
+        ("wheel.material", "stick_speed", 1e-4),
+        ("landing", "max_time", 30.0),
+        ("bed", "settle_max_time", 10.0),
+        ("output", "snapshot_interval", 0.25),
+        ("output", "checkpoint_interval", 0.5),
+    ):
         node = _section(data, section)
         if key not in node:  # a default of the schema: scale it explicitly
             node[key] = default * (math.sqrt(s) if key in ("omega", "stick_speed") else 1 / math.sqrt(s))
@@ -110,8 +136,10 @@ def write_gravity_twin(path: str, gravity, out: str, overwrite: bool = False, ov
         from .folders import OutputExistsError
 
         raise OutputExistsError(f"{out!r} exists; pass --overwrite to replace it")
-    header = (f"# The DEM-similar twin of {os.path.basename(path)} at |g| x {s:.9g} (cosim scale; "
-              "cosim/similarity.py): stiffnesses and forces x s, speeds x sqrt(s), times / sqrt(s).\n")
+    header = (
+        f"# The DEM-similar twin of {os.path.basename(path)} at |g| x {s:.9g} (cosim scale; "
+        "cosim/similarity.py): stiffnesses and forces x s, speeds x sqrt(s), times / sqrt(s).\n"
+    )
     with open(out, "w") as f:
         f.write(header + tomli_w.dumps(twin.to_dict()))
     return out, s

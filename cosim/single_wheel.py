@@ -15,7 +15,7 @@ once, in cosim.metrics.
 from __future__ import annotations
 
 import math
-from typing import Sequence
+from collections.abc import Sequence
 
 import numpy as np
 
@@ -47,9 +47,19 @@ class SingleWheelRig:
     wheel speed [rad/s], resisting force on the carriage [N]."""
     state_units = ["m", "m", "m", "m/s", "m/s", "m/s", "rad", "rad/s", "N"]
 
-    def __init__(self, mass: float, radius: float, omega: float, hub: Sequence[float], mode: str = "free",
-                 slip: float = 0.0, drawbar_load: float = 0.0, drawbar_ramp: float = 0.0,
-                 gravity=(0.0, 0.0, -9.81), landed: bool = False):
+    def __init__(
+        self,
+        mass: float,
+        radius: float,
+        omega: float,
+        hub: Sequence[float],
+        mode: str = "free",
+        slip: float = 0.0,
+        drawbar_load: float = 0.0,
+        drawbar_ramp: float = 0.0,
+        gravity=(0.0, 0.0, -9.81),
+        landed: bool = False,
+    ):
         if mode not in ("free", "slip"):
             raise ValueError(f"testbed.mode must be 'free' or 'slip', got {mode!r}")
         if not (mass > 0 and math.isfinite(mass)):
@@ -105,8 +115,14 @@ class SingleWheelRig:
 
     def wheel_kinematics(self) -> list[WheelKinematics]:
         half = 0.5 * self.angle
-        return [WheelKinematics(self.position.copy(), [math.cos(half), 0.0, math.sin(half), 0.0],
-                                self.velocity.copy(), [0.0, self.omega, 0.0])]
+        return [
+            WheelKinematics(
+                self.position.copy(),
+                [math.cos(half), 0.0, math.sin(half), 0.0],
+                self.velocity.copy(),
+                [0.0, self.omega, 0.0],
+            )
+        ]
 
     def apply_wheel_wrenches(self, wrenches: Sequence[WheelWrench]) -> None:
         if len(wrenches) != 1:
@@ -144,9 +160,17 @@ class SingleWheelRig:
 
     def state_dict(self) -> dict:
         held = self.held
-        return {"position": self.position.copy(), "velocity": self.velocity.copy(), "angle": self.angle,
-                "omega": self.omega, "time": self.time, "phase": self.phase, "drive_start": self.drive_start,
-                "held_force": held.force.copy(), "held_torque": held.torque.copy()}
+        return {
+            "position": self.position.copy(),
+            "velocity": self.velocity.copy(),
+            "angle": self.angle,
+            "omega": self.omega,
+            "time": self.time,
+            "phase": self.phase,
+            "drive_start": self.drive_start,
+            "held_force": held.force.copy(),
+            "held_torque": held.torque.copy(),
+        }
 
     def load_state_dict(self, state: dict) -> None:
         self.position = np.array(state["position"], dtype=np.float64)

@@ -27,7 +27,6 @@ import shutil
 import time
 import traceback
 
-
 from . import metrics
 from .beds import BED_FILE, BED_INFO_FILE, settled_bed, write_json
 from .folders import RunFolder
@@ -38,9 +37,22 @@ log = logging.getLogger(__name__)
 
 PRECISION_ORDER = ("single", "mixed", "double")
 
-METRIC_UNITS = {"slip": "1", "sinkage": "m", "sinkage_tips": "m", "drawbar_pull": "N", "dp_over_w": "1",
-                "driving_torque": "N m", "travel": "m", "forward_speed": "m/s", "wall_time": "s", "net_traction": "N",
-                "net_traction_over_weight": "1", "power": "W", "energy_per_metre": "J/m", "time_immobile": "s"}
+METRIC_UNITS = {
+    "slip": "1",
+    "sinkage": "m",
+    "sinkage_tips": "m",
+    "drawbar_pull": "N",
+    "dp_over_w": "1",
+    "driving_torque": "N m",
+    "travel": "m",
+    "forward_speed": "m/s",
+    "wall_time": "s",
+    "net_traction": "N",
+    "net_traction_over_weight": "1",
+    "power": "W",
+    "energy_per_metre": "J/m",
+    "time_immobile": "s",
+}
 
 
 # ------------------------------------------------------------------------------------
@@ -69,8 +81,9 @@ def run_task(task: dict) -> dict:
         result = run_plan(task_plan(task), task["out_dir"], overwrite=task.get("overwrite", False))
         out.update(ok=True, status=result.status, summary=result.summary)
     except BaseException as error:  # noqa: BLE001 - a failed replica is a result, not a crash
-        out.update(ok=False, status="failed", error=f"{type(error).__name__}: {error}",
-                   traceback=traceback.format_exc(limit=5))
+        out.update(
+            ok=False, status="failed", error=f"{type(error).__name__}: {error}", traceback=traceback.format_exc(limit=5)
+        )
         if isinstance(error, KeyboardInterrupt):
             raise
     out["wall_time"] = time.perf_counter() - started
@@ -111,8 +124,9 @@ class Executor:
         if self.scheduler:
             self.client = Client(self.scheduler)
         else:
-            self.cluster = LocalCluster(n_workers=self.workers, threads_per_worker=1, processes=True,
-                                        dashboard_address=None)
+            self.cluster = LocalCluster(
+                n_workers=self.workers, threads_per_worker=1, processes=True, dashboard_address=None
+            )
             self.client = Client(self.cluster)
         log.info("dask: %s", self.client)
         return self
@@ -142,8 +156,13 @@ class Executor:
             try:
                 results[i] = future.result()
             except Exception as error:  # the worker itself failed
-                results[i] = {"label": tasks[i].get("label"), "ok": False, "status": "failed",
-                              "error": f"{type(error).__name__}: {error}", "out_dir": tasks[i].get("out_dir")}
+                results[i] = {
+                    "label": tasks[i].get("label"),
+                    "ok": False,
+                    "status": "failed",
+                    "error": f"{type(error).__name__}: {error}",
+                    "out_dir": tasks[i].get("out_dir"),
+                }
             _report(results[i], tasks[i].get("label"), done, len(tasks))
         return results
 
@@ -151,7 +170,7 @@ class Executor:
 def _report(result, label, done, total):
     if not isinstance(result, dict) or "ok" not in result:
         return
-    state = (result.get("status", "ok") if result.get("ok") else f"FAILED: {result.get('error')}")
+    state = result.get("status", "ok") if result.get("ok") else f"FAILED: {result.get('error')}"
     wall = result.get("wall_time")
     log.info("[%d/%d] %s: %s%s", done, total, label, state, f" ({wall:.1f} s)" if wall else "")
 
@@ -164,8 +183,10 @@ def prepare_study(out_dir: str, overwrite: bool) -> None:
     if present and not overwrite:
         from .folders import OutputExistsError
 
-        raise OutputExistsError(f"study folder {out_dir!r} is not empty ({', '.join(sorted(present)[:6])}); nothing "
-                                "is overwritten: choose another --out or pass --overwrite (the settled bed is kept)")
+        raise OutputExistsError(
+            f"study folder {out_dir!r} is not empty ({', '.join(sorted(present)[:6])}); nothing "
+            "is overwritten: choose another --out or pass --overwrite (the settled bed is kept)"
+        )
     for name in present:
         path = os.path.join(out_dir, name)
         shutil.rmtree(path) if os.path.isdir(path) else os.remove(path)
@@ -187,37 +208,51 @@ def _tolerances(plan: RunPlan) -> dict[str, float]:
     r = plan.bed.spec.radius_mean
     rim = plan.drive_omega * plan.wheel.rim_radius
     rim = rim if math.isfinite(rim) else 0.0  # a controller sets the speed: relative tolerances only
-    return {"slip": 0.02, "sinkage": 0.25 * r, "sinkage_tips": 0.25 * r, "drawbar_pull": 0.01 * plan.wheel_load,
-            "dp_over_w": 0.01, "driving_torque": 0.01 * plan.wheel_load * plan.wheel.rim_radius,
-            "travel": 0.05 * rim * plan.scene.run.duration, "forward_speed": 0.02 * rim}
+    return {
+        "slip": 0.02,
+        "sinkage": 0.25 * r,
+        "sinkage_tips": 0.25 * r,
+        "drawbar_pull": 0.01 * plan.wheel_load,
+        "dp_over_w": 0.01,
+        "driving_torque": 0.01 * plan.wheel_load * plan.wheel.rim_radius,
+        "travel": 0.05 * rim * plan.scene.run.duration,
+        "forward_speed": 0.02 * rim,
+    }
 
 
 def ensemble_table(results: list[dict], plan: RunPlan) -> dict:
     """metrics.ensemble of every REPLICA_METRIC over the runs with a steady state."""
     steady = [r for r in results if r.get("ok") and r.get("summary", {}).get("steady_state") == metrics.STEADY]
     floors = _tolerances(plan)
-    table = {name: metrics.ensemble([r["summary"].get(name) for r in steady], absolute_tolerance=floors[name])
-             for name in metrics.REPLICA_METRICS}
+    table = {
+        name: metrics.ensemble([r["summary"].get(name) for r in steady], absolute_tolerance=floors[name])
+        for name in metrics.REPLICA_METRICS
+    }
     table["wall_time"] = metrics.ensemble([r["summary"].get("wall_time") for r in results if r.get("ok")])
     return {"replicas": len(results), "steady": len(steady), "metrics": table}
 
 
 def _ensemble_text(stats: dict, title: str) -> str:
-    lines = [title, f"  {stats['steady']} of {stats['replicas']} replicas reached a steady state",
-             f"  {'metric':16s} {'mean':>11s} {'std':>10s} {'95% CI +-':>10s} {'min':>11s} {'max':>11s}  unit  "
-             "deterministic"]
+    lines = [
+        title,
+        f"  {stats['steady']} of {stats['replicas']} replicas reached a steady state",
+        f"  {'metric':16s} {'mean':>11s} {'std':>10s} {'95% CI +-':>10s} {'min':>11s} {'max':>11s}  unit  "
+        "deterministic",
+    ]
     for name, row in stats["metrics"].items():
         if row.get("n", 0) == 0:
             continue
-        det = "" if name == "wall_time" else ("yes" if row["deterministic"] else
-                                             f"NO (std > {row['tolerance']:.3g})")
-        lines.append(f"  {name:16s} {row['mean']:11.5g} {row['std']:10.3g} {row['ci95']:10.3g} {row['min']:11.5g} "
-                     f"{row['max']:11.5g}  {METRIC_UNITS.get(name, ''):4s}  {det}")
+        det = "" if name == "wall_time" else ("yes" if row["deterministic"] else f"NO (std > {row['tolerance']:.3g})")
+        lines.append(
+            f"  {name:16s} {row['mean']:11.5g} {row['std']:10.3g} {row['ci95']:10.3g} {row['min']:11.5g} "
+            f"{row['max']:11.5g}  {METRIC_UNITS.get(name, ''):4s}  {det}"
+        )
     return "\n".join(lines)
 
 
 def _write_csv(path: str, rows: list[dict], keys: list[str], units: dict[str, str]) -> None:
     """A CSV whose header names each column with its unit, e.g. 'slip_mean [1]'."""
+
     def header(key):
         base = key.rsplit("_", 1)[0] if key.rsplit("_", 1)[-1] in ("mean", "std", "ci95", "min", "max") else key
         unit = units.get(base)
@@ -242,8 +277,15 @@ def _flat(stats: dict) -> dict:
 # replicas of one scene
 
 
-def replica_run(plan: RunPlan, out_dir: str, replicas: int, overwrite: bool = False, executor: str = "dask",
-                scheduler: str | None = None, workers: int | None = None) -> dict:
+def replica_run(
+    plan: RunPlan,
+    out_dir: str,
+    replicas: int,
+    overwrite: bool = False,
+    executor: str = "dask",
+    scheduler: str | None = None,
+    workers: int | None = None,
+) -> dict:
     """K replicas of a scene that differ only in summation order, with error bars (module docstring).
 
     Returns {'ok' (every replica steady and the statistics exist), 'stats', 'results', 'text'}."""
@@ -257,18 +299,34 @@ def replica_run(plan: RunPlan, out_dir: str, replicas: int, overwrite: bool = Fa
     with Executor(executor, scheduler, workers) as ex:
         bed = _shared_bed(plan, out_dir, ex)
         text = plan.scene.to_toml()
-        tasks = [{"scene_toml": text, "out_dir": os.path.join(out_dir, f"replica_{k:03d}"),
-                  "overrides": {"run.order_seed": k, "bed.bed_file": bed}, "label": f"replica_{k:03d}",
-                  "base_dir": plan.scene.base_dir}
-                 for k in range(replicas)]
+        tasks = [
+            {
+                "scene_toml": text,
+                "out_dir": os.path.join(out_dir, f"replica_{k:03d}"),
+                "overrides": {"run.order_seed": k, "bed.bed_file": bed},
+                "label": f"replica_{k:03d}",
+                "base_dir": plan.scene.base_dir,
+            }
+            for k in range(replicas)
+        ]
         results = ex.map(run_task, tasks)
     stats = ensemble_table(results, plan)
-    report = {"kind": "replicas", "scene_toml": text, "bed_file": bed, "stats": stats, "results": results,
-              "criterion": "a metric is macroscopically deterministic when its replica std is <= max(5 % of its "
-                           "mean, its absolute floor) (cosim.study._tolerances)"}
+    report = {
+        "kind": "replicas",
+        "scene_toml": text,
+        "bed_file": bed,
+        "stats": stats,
+        "results": results,
+        "criterion": "a metric is macroscopically deterministic when its replica std is <= max(5 % of its "
+        "mean, its absolute floor) (cosim.study._tolerances)",
+    }
     write_json(os.path.join(out_dir, "ensemble.json"), report)
-    _write_csv(os.path.join(out_dir, "ensemble.csv"), [{"metric": k, **v} for k, v in stats["metrics"].items()],
-               ["metric", "n", "mean", "std", "ci95", "min", "max", "tolerance", "deterministic"], {})
+    _write_csv(
+        os.path.join(out_dir, "ensemble.csv"),
+        [{"metric": k, **v} for k, v in stats["metrics"].items()],
+        ["metric", "n", "mean", "std", "ci95", "min", "max", "tolerance", "deterministic"],
+        {},
+    )
     report["text"] = _ensemble_text(stats, f"{plan.name}: {replicas} replicas (summation order), {out_dir}")
     report["ok"] = stats["steady"] == replicas and stats["steady"] >= 2
     return report
@@ -278,9 +336,17 @@ def replica_run(plan: RunPlan, out_dir: str, replicas: int, overwrite: bool = Fa
 # precision study
 
 
-def precision_study(plan: RunPlan, out_dir: str, replicas: int = 3, precisions=PRECISION_ORDER,
-                    executor: str = "dask", scheduler: str | None = None, workers: int | None = None,
-                    overwrite: bool = False, plot: bool = True) -> dict:
+def precision_study(
+    plan: RunPlan,
+    out_dir: str,
+    replicas: int = 3,
+    precisions=PRECISION_ORDER,
+    executor: str = "dask",
+    scheduler: str | None = None,
+    workers: int | None = None,
+    overwrite: bool = False,
+    plot: bool = True,
+) -> dict:
     """The paper's replica experiment per precision; returns {'rows', 'replicas', ...}."""
     from .runner import absolute_paths
 
@@ -295,10 +361,18 @@ def precision_study(plan: RunPlan, out_dir: str, replicas: int = 3, precisions=P
     text = plan.scene.to_toml()
     with Executor(executor, scheduler, workers) as ex:
         bed = _shared_bed(plan, out_dir, ex)
-        tasks = [{"scene_toml": text, "out_dir": os.path.join(out_dir, precision, f"replica_{k:03d}"),
-                  "overrides": {"scene.precision": precision, "run.order_seed": k, "bed.bed_file": bed},
-                  "label": f"{precision}/replica_{k:03d}", "precision": precision, "replica": k}
-                 for precision in precisions for k in range(replicas)]
+        tasks = [
+            {
+                "scene_toml": text,
+                "out_dir": os.path.join(out_dir, precision, f"replica_{k:03d}"),
+                "overrides": {"scene.precision": precision, "run.order_seed": k, "bed.bed_file": bed},
+                "label": f"{precision}/replica_{k:03d}",
+                "precision": precision,
+                "replica": k,
+            }
+            for precision in precisions
+            for k in range(replicas)
+        ]
         started = time.perf_counter()
         results = ex.map(run_task, tasks)
         wall = time.perf_counter() - started
@@ -306,15 +380,30 @@ def precision_study(plan: RunPlan, out_dir: str, replicas: int = 3, precisions=P
     for precision in precisions:
         members = [r for t, r in zip(tasks, results) if t["precision"] == precision]
         stats = ensemble_table(members, plan)
-        rows.append({"precision": precision, "replicas": stats["replicas"], "steady": stats["steady"],
-                     "failed": sum(1 for r in members if not r.get("ok")), **_flat(stats), "stats": stats})
+        rows.append(
+            {
+                "precision": precision,
+                "replicas": stats["replicas"],
+                "steady": stats["steady"],
+                "failed": sum(1 for r in members if not r.get("ok")),
+                **_flat(stats),
+                "stats": stats,
+            }
+        )
     for task, result in zip(tasks, results):
         result.update(precision=task["precision"], replica=task["replica"])
-    report = {"kind": "precision", "replicas": results, "rows": rows, "wall_time": wall, "bed_file": bed,
-              "scene_toml": text}
+    report = {
+        "kind": "precision",
+        "replicas": results,
+        "rows": rows,
+        "wall_time": wall,
+        "bed_file": bed,
+        "scene_toml": text,
+    }
     write_json(os.path.join(out_dir, "study.json"), report)
-    keys = ["precision", "replicas", "steady", "failed"] + [f"{m}_{k}" for m in ("wall_time",) + metrics.REPLICA_METRICS
-                                                            for k in ("mean", "std", "ci95", "min", "max")]
+    keys = ["precision", "replicas", "steady", "failed"] + [
+        f"{m}_{k}" for m in ("wall_time",) + metrics.REPLICA_METRICS for k in ("mean", "std", "ci95", "min", "max")
+    ]
     _write_csv(os.path.join(out_dir, "study.csv"), rows, keys, METRIC_UNITS)
     for row in rows:
         log.info("%s", _ensemble_text(row["stats"], f"precision {row['precision']}"))
@@ -330,9 +419,17 @@ def precision_study(plan: RunPlan, out_dir: str, replicas: int = 3, precisions=P
 # drawbar pull / slip
 
 
-def slip_study(plan: RunPlan, out_dir: str, slips, replicas: int = 1, executor: str = "dask",
-               scheduler: str | None = None, workers: int | None = None, overwrite: bool = False,
-               plot: bool = True) -> dict:
+def slip_study(
+    plan: RunPlan,
+    out_dir: str,
+    slips,
+    replicas: int = 1,
+    executor: str = "dask",
+    scheduler: str | None = None,
+    workers: int | None = None,
+    overwrite: bool = False,
+    plot: bool = True,
+) -> dict:
     """Imposed slips after landing: DP, DP/W, torque and sinkage against slip, with error bars."""
     from .runner import absolute_paths
 
@@ -352,34 +449,56 @@ def slip_study(plan: RunPlan, out_dir: str, slips, replicas: int = 1, executor: 
     text = plan.scene.to_toml()
     with Executor(executor, scheduler, workers) as ex:
         bed = _shared_bed(plan, out_dir, ex)
-        tasks = [{"scene_toml": text, "out_dir": os.path.join(out_dir, f"slip_{s:+.3f}", f"replica_{k:03d}"),
-                  "overrides": {"testbed.mode": "slip", "testbed.slip": s, "run.order_seed": k, "bed.bed_file": bed},
-                  "label": f"slip {s:+.3f} replica {k}", "slip": s}
-                 for s in slips for k in range(replicas)]
+        tasks = [
+            {
+                "scene_toml": text,
+                "out_dir": os.path.join(out_dir, f"slip_{s:+.3f}", f"replica_{k:03d}"),
+                "overrides": {"testbed.mode": "slip", "testbed.slip": s, "run.order_seed": k, "bed.bed_file": bed},
+                "label": f"slip {s:+.3f} replica {k}",
+                "slip": s,
+            }
+            for s in slips
+            for k in range(replicas)
+        ]
         results = ex.map(run_task, tasks)
     rows = []
     for s in slips:
         members = [r for t, r in zip(tasks, results) if t["slip"] == s]
         stats = ensemble_table(members, plan)
-        rows.append({"slip_set": s, "replicas": stats["replicas"], "steady": stats["steady"], **_flat(stats),
-                     "stats": stats})
-    report = {"kind": "slip", "rows": rows, "runs": results, "scene_toml": text, "bed_file": bed,
-              "wheel_load": plan.wheel_load}
+        rows.append(
+            {"slip_set": s, "replicas": stats["replicas"], "steady": stats["steady"], **_flat(stats), "stats": stats}
+        )
+    report = {
+        "kind": "slip",
+        "rows": rows,
+        "runs": results,
+        "scene_toml": text,
+        "bed_file": bed,
+        "wheel_load": plan.wheel_load,
+    }
     write_json(os.path.join(out_dir, "study.json"), report)
-    keys = ["slip_set", "replicas", "steady"] + [f"{m}_{k}" for m in ("slip", "drawbar_pull", "dp_over_w",
-                                                                      "driving_torque", "sinkage", "sinkage_tips")
-                                                 for k in ("mean", "std", "ci95")]
+    keys = ["slip_set", "replicas", "steady"] + [
+        f"{m}_{k}"
+        for m in ("slip", "drawbar_pull", "dp_over_w", "driving_torque", "sinkage", "sinkage_tips")
+        for k in ("mean", "std", "ci95")
+    ]
     _write_csv(os.path.join(out_dir, "study.csv"), rows, keys, {**METRIC_UNITS, "slip_set": "1"})
-    lines = [f"{plan.name}: drawbar pull against imposed slip (W = {plan.wheel_load:.4g} N), {out_dir}",
-             f"  {'slip':>6s} {'steady':>7s} {'DP [N]':>12s} {'DP/W':>14s} {'torque [N m]':>14s} {'sinkage [mm]':>13s}"]
+    lines = [
+        f"{plan.name}: drawbar pull against imposed slip (W = {plan.wheel_load:.4g} N), {out_dir}",
+        f"  {'slip':>6s} {'steady':>7s} {'DP [N]':>12s} {'DP/W':>14s} {'torque [N m]':>14s} {'sinkage [mm]':>13s}",
+    ]
     for row in rows:
+
         def cell(name, scale=1.0):
             mean, ci = row.get(f"{name}_mean"), row.get(f"{name}_ci95")
             if mean is None:
                 return "-"
             return f"{mean * scale:.4g}" + (f"+-{ci * scale:.2g}" if ci is not None and ci == ci else "")
-        lines.append(f"  {row['slip_set']:6.3f} {row['steady']:3d}/{row['replicas']:<3d} {cell('drawbar_pull'):>12s} "
-                     f"{cell('dp_over_w'):>14s} {cell('driving_torque'):>14s} {cell('sinkage', 1e3):>13s}")
+
+        lines.append(
+            f"  {row['slip_set']:6.3f} {row['steady']:3d}/{row['replicas']:<3d} {cell('drawbar_pull'):>12s} "
+            f"{cell('dp_over_w'):>14s} {cell('driving_torque'):>14s} {cell('sinkage', 1e3):>13s}"
+        )
     report["text"] = "\n".join(lines)
     report["ok"] = all(row["steady"] == row["replicas"] for row in rows)
     if plot:
@@ -406,8 +525,16 @@ def parse_params(params: list[str]) -> dict[str, list]:
     return grid
 
 
-def sweep(plan: RunPlan, out_dir: str, params: list[str], executor: str = "dask", scheduler: str | None = None,
-          workers: int | None = None, overwrite: bool = False, plot: bool = True) -> dict:
+def sweep(
+    plan: RunPlan,
+    out_dir: str,
+    params: list[str],
+    executor: str = "dask",
+    scheduler: str | None = None,
+    workers: int | None = None,
+    overwrite: bool = False,
+    plot: bool = True,
+) -> dict:
     """One run per point of the grid; points that share a bed share one settled bed."""
     from .plots import plot_table
     from .runner import absolute_paths
@@ -433,9 +560,18 @@ def sweep(plan: RunPlan, out_dir: str, params: list[str], executor: str = "dask"
         for p in plans:
             if not p.bed.bed_file:
                 beds.setdefault(p.bed.key, p)
-        settled = ex.map(settle_task, [{"scene_toml": p.scene.to_toml(), "folder": os.path.join(out_dir, "beds", key),
-                                        "label": f"bed {key}", "base_dir": plan.scene.base_dir}
-                                       for key, p in beds.items()])
+        settled = ex.map(
+            settle_task,
+            [
+                {
+                    "scene_toml": p.scene.to_toml(),
+                    "folder": os.path.join(out_dir, "beds", key),
+                    "label": f"bed {key}",
+                    "base_dir": plan.scene.base_dir,
+                }
+                for key, p in beds.items()
+            ],
+        )
         bed_paths = {key: r.get("path") for key, r in zip(beds, settled)}
         tasks = []
         for i, (point, p) in enumerate(zip(points, plans)):
@@ -443,13 +579,33 @@ def sweep(plan: RunPlan, out_dir: str, params: list[str], executor: str = "dask"
             if not p.bed.bed_file:
                 overrides["bed.bed_file"] = bed_paths[p.bed.key]
             name = f"{i:03d}_" + "_".join(f"{k.split('.')[-1]}={v}" for k, v in point.items())
-            tasks.append({"scene_toml": text, "overrides": overrides, "out_dir": os.path.join(out_dir, name),
-                          "label": name, "point": point, "base_dir": plan.scene.base_dir})
+            tasks.append(
+                {
+                    "scene_toml": text,
+                    "overrides": overrides,
+                    "out_dir": os.path.join(out_dir, name),
+                    "label": name,
+                    "point": point,
+                    "base_dir": plan.scene.base_dir,
+                }
+            )
         results = ex.map(run_task, tasks)
     columns = ("steady_state", "slip", "travel", "sinkage", "drawbar_pull", "driving_torque", "wall_time")
     if plan.rover is not None:  # drive controllers side by side
-        columns = ("steady_state", "slip", "travel", "forward_speed", "sinkage", "net_traction",
-                   "net_traction_over_weight", "power", "energy_per_metre", "time_immobile", "stuck", "wall_time")
+        columns = (
+            "steady_state",
+            "slip",
+            "travel",
+            "forward_speed",
+            "sinkage",
+            "net_traction",
+            "net_traction_over_weight",
+            "power",
+            "energy_per_metre",
+            "time_immobile",
+            "stuck",
+            "wall_time",
+        )
     rows = []
     for task, result in zip(tasks, results):
         row = {**task["point"], "ok": result.get("ok"), "status": result.get("status")}
@@ -479,8 +635,14 @@ def sweep(plan: RunPlan, out_dir: str, params: list[str], executor: str = "dask"
 # time-step study
 
 
-def timestep_study(plan: RunPlan, out_dir: str, duration: float = 0.05, growth: float = 1.5, max_tries: int = 8,
-                   overwrite: bool = False) -> dict:
+def timestep_study(
+    plan: RunPlan,
+    out_dir: str,
+    duration: float = 0.05,
+    growth: float = 1.5,
+    max_tries: int = 8,
+    overwrite: bool = False,
+) -> dict:
     """The largest stable DEM step for the scene's bed with the wheel resting on it and turning.
 
     The search starts at the scene's own step and grows it by `growth` until a run of
@@ -491,8 +653,9 @@ def timestep_study(plan: RunPlan, out_dir: str, duration: float = 0.05, growth: 
     from .system import CoupledSystem
 
     if not (duration > 0 and growth > 1 and max_tries >= 1):
-        raise SceneError([f"--duration, growth, --max-tries: need > 0, > 1, >= 1 (got {duration}, {growth}, "
-                          f"{max_tries})"])
+        raise SceneError(
+            [f"--duration, growth, --max-tries: need > 0, > 1, >= 1 (got {duration}, {growth}, {max_tries})"]
+        )
     out_dir = os.path.abspath(out_dir)
     prepare_study(out_dir, overwrite)
     bed = settled_bed(plan, out_dir)
@@ -519,8 +682,15 @@ def timestep_study(plan: RunPlan, out_dir: str, duration: float = 0.05, growth: 
         except SimulationDiverged as error:
             ok, message = False, str(error)
         tries.append((dt, ok, message))
-        log.info("try %d/%d: dt = %.4g s (%.3g x the scene's): %s (%.1f s wall)", len(tries), max_tries, dt,
-                 dt / plan.dt, "stable" if ok else "UNSTABLE", time.perf_counter() - started)
+        log.info(
+            "try %d/%d: dt = %.4g s (%.3g x the scene's): %s (%.1f s wall)",
+            len(tries),
+            max_tries,
+            dt,
+            dt / plan.dt,
+            "stable" if ok else "UNSTABLE",
+            time.perf_counter() - started,
+        )
         return ok
 
     dt = plan.dt
@@ -542,19 +712,40 @@ def timestep_study(plan: RunPlan, out_dir: str, duration: float = 0.05, growth: 
                 break
             first_bad = dt
     advice = advisor.recommended_time_step(make_simulation())
-    report = {"kind": "timestep", "scene_dt": plan.dt, "duration": duration, "largest_stable": largest,
-              "first_unstable": first_bad, "recommended": None if largest is None else 0.5 * largest,
-              "tried": [{"dt": d, "stable": ok, "message": m} for d, ok, m in tries],
-              "advisor": {"dt_min": advice.dt_min, "dt_max": advice.dt_max, "critical_step": advice.critical_step,
-                          "contact_time": advice.contact_time}}
+    report = {
+        "kind": "timestep",
+        "scene_dt": plan.dt,
+        "duration": duration,
+        "largest_stable": largest,
+        "first_unstable": first_bad,
+        "recommended": None if largest is None else 0.5 * largest,
+        "tried": [{"dt": d, "stable": ok, "message": m} for d, ok, m in tries],
+        "advisor": {
+            "dt_min": advice.dt_min,
+            "dt_max": advice.dt_max,
+            "critical_step": advice.critical_step,
+            "contact_time": advice.contact_time,
+        },
+    }
     write_json(os.path.join(out_dir, "study.json"), report)
     if largest is None:
-        log.error("no stable step found in %d tries down to %.4g s: the scene is unstable at any step tried; check "
-                  "`cosim advise` (stiffness, overlaps)", len(tries), dt)
+        log.error(
+            "no stable step found in %d tries down to %.4g s: the scene is unstable at any step tried; check "
+            "`cosim advise` (stiffness, overlaps)",
+            len(tries),
+            dt,
+        )
     else:
-        log.info("largest stable step %s s, first unstable %s s, recommended %s s; the advisor says %.4g .. %.4g s; "
-                 "the scene uses %.4g s", _s(largest), _s(first_bad), _s(report["recommended"]), advice.dt_min,
-                 advice.dt_max, plan.dt)
+        log.info(
+            "largest stable step %s s, first unstable %s s, recommended %s s; the advisor says %.4g .. %.4g s; "
+            "the scene uses %.4g s",
+            _s(largest),
+            _s(first_bad),
+            _s(report["recommended"]),
+            advice.dt_min,
+            advice.dt_max,
+            plan.dt,
+        )
     return report
 
 
@@ -562,5 +753,13 @@ def _s(value) -> str:
     return "-" if value is None or (isinstance(value, float) and math.isnan(value)) else f"{value:.4g}"
 
 
-__all__ = ["Executor", "ensemble_table", "precision_study", "replica_run", "run_task", "slip_study", "sweep",
-           "timestep_study"]
+__all__ = [
+    "Executor",
+    "ensemble_table",
+    "precision_study",
+    "replica_run",
+    "run_task",
+    "slip_study",
+    "sweep",
+    "timestep_study",
+]

@@ -53,13 +53,14 @@ class CoupledSystem:
         return self.soil.sim
 
     @classmethod
-    def build(cls, plan: RunPlan, bed: Bed) -> "CoupledSystem":
+    def build(cls, plan: RunPlan, bed: Bed) -> CoupledSystem:
         if plan.rover is not None:
             return cls._build_rover(plan, bed)
         builder, saved = load_bed(bed.path)
         builder.add_wheel(plan.wheel.shape, plan.wheel.material)
-        model, state, control = builder.finalize(device=plan.device, precision=plan.precision, law=plan.law,
-                                                 order_seed=plan.order_seed)
+        model, state, control = builder.finalize(
+            device=plan.device, precision=plan.precision, law=plan.law, order_seed=plan.order_seed
+        )
         restore_state(model, state, saved)
         sim = Simulation(model, state, control)
         soil = DemSoil(sim, plan.dt, bed.surface_height)
@@ -67,15 +68,24 @@ class CoupledSystem:
         highest = soil.highest_grain_under(0, hub)
         hub[2] = max(hub[2], highest + plan.wheel.outer_radius + START_GAP * plan.bed.spec.radius_mean)
         t = plan.testbed
-        rover = SingleWheelRig(t.mass, plan.wheel.rim_radius, t.omega, hub, mode=t.mode, slip=t.slip,
-                               drawbar_load=t.drawbar_load, drawbar_ramp=t.drawbar_ramp, gravity=plan.gravity,
-                               landed=not plan.landing.enabled)
+        rover = SingleWheelRig(
+            t.mass,
+            plan.wheel.rim_radius,
+            t.omega,
+            hub,
+            mode=t.mode,
+            slip=t.slip,
+            drawbar_load=t.drawbar_load,
+            drawbar_ramp=t.drawbar_ramp,
+            gravity=plan.gravity,
+            landed=not plan.landing.enabled,
+        )
         soil.place_wheels(rover.wheel_kinematics())
         coupler = Coupler(soil, rover, plan.macro_step, scheme=plan.scheme, gravity=plan.gravity)
         return cls(plan, bed, soil, rover, coupler)
 
     @classmethod
-    def _build_rover(cls, plan: RunPlan, bed: Bed) -> "CoupledSystem":
+    def _build_rover(cls, plan: RunPlan, bed: Bed) -> CoupledSystem:
         """A rover on the bed (or on a patch of tiles of it), lowered until its lowest wheel just clears
         the highest grain under it, braked for the landing."""
         r = plan.rover
@@ -85,8 +95,19 @@ class CoupledSystem:
         if plan.patch is not None:
             p, spec = plan.patch, plan.bed.spec
             tile = Tile.load(bed.path, (spec.length, spec.width), plan.precision, p.tile_margin)
-            patch = SoilPatch(tile, p.length, p.width, p.band, p.recentre_distance, wheels, plan.gravity, plan.device,
-                              plan.precision, plan.law, plan.order_seed)
+            patch = SoilPatch(
+                tile,
+                p.length,
+                p.width,
+                p.band,
+                p.recentre_distance,
+                wheels,
+                plan.gravity,
+                plan.device,
+                plan.precision,
+                plan.law,
+                plan.order_seed,
+            )
             centre = np.asarray(r.start[:2]) + r.hub_offsets[:, :2].mean(axis=0)
             sim = patch.start(centre)
             surface = patch.surface_height(sim)
@@ -95,8 +116,9 @@ class CoupledSystem:
             builder.gravity = np.asarray(plan.gravity, dtype=np.float64)  # settled on the floor; now the slope
             for shape, material in wheels:
                 builder.add_wheel(shape, material)
-            model, state, control = builder.finalize(device=plan.device, precision=plan.precision, law=plan.law,
-                                                     order_seed=plan.order_seed)
+            model, state, control = builder.finalize(
+                device=plan.device, precision=plan.precision, law=plan.law, order_seed=plan.order_seed
+            )
             restore_state(model, state, saved)
             sim = Simulation(model, state, control)
             surface = bed.surface_height
@@ -107,9 +129,13 @@ class CoupledSystem:
             if not r.start_parameters:
                 if lift > 0:
                     rover.close()
-                    raise SceneError([f"rover.file: the FMU starts with a wheel {lift:.4g} m in the soil and has no "
-                                      "start.z parameter to lift it; start it above the soil (surface at z = "
-                                      f"{surface:.4g} m)"])
+                    raise SceneError(
+                        [
+                            f"rover.file: the FMU starts with a wheel {lift:.4g} m in the soil and has no "
+                            "start.z parameter to lift it; start it above the soil (surface at z = "
+                            f"{surface:.4g} m)"
+                        ]
+                    )
             else:
                 z = rover.body_kinematics().position[2] + lift
                 rover.close()
@@ -117,11 +143,13 @@ class CoupledSystem:
         else:
             rover.move_base(np.array([0.0, 0.0, lift]))
         body = rover.body_id(r.body) if r.model != "fmu" else None
-        driver = RoverDriver(rover, make_controller(plan), takes_speed=r.takes_speed, body=body,
-                             landed=not plan.landing.enabled)
+        driver = RoverDriver(
+            rover, make_controller(plan), takes_speed=r.takes_speed, body=body, landed=not plan.landing.enabled
+        )
         soil.place_wheels(driver.wheel_kinematics())
-        coupler = Coupler(soil, driver, plan.macro_step, scheme=plan.scheme, gravity=plan.gravity,
-                          controller=driver.command)
+        coupler = Coupler(
+            soil, driver, plan.macro_step, scheme=plan.scheme, gravity=plan.gravity, controller=driver.command
+        )
         return cls(plan, bed, soil, driver, coupler, patch)
 
     @property
@@ -149,13 +177,16 @@ class CoupledSystem:
     def load_state_dict(self, state: dict) -> None:
         for prefix, part in self._parts():
             head = prefix + "/"
-            part.load_state_dict({k[len(head):]: v for k, v in state.items() if k.startswith(head)})
+            part.load_state_dict({k[len(head) :]: v for k, v in state.items() if k.startswith(head)})
 
     def boundaries(self) -> dict:
         """The soil's walls as built: 'kind' (B,), 'geometry' (B, 6) [m], 'report' (B,) (cosim.output)."""
         model = self.sim.model
-        return {"kind": model.boundary_kind.numpy(), "geometry": model.boundary_geometry_numpy(),
-                "report": model.boundary_reports}
+        return {
+            "kind": model.boundary_kind.numpy(),
+            "geometry": model.boundary_geometry_numpy(),
+            "report": model.boundary_reports,
+        }
 
     def wheel_mesh(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Display mesh of the wheels: vertices [m] (V, 3) in wheel frames, triangles (F, 3), owner wheel (V,)."""
@@ -173,8 +204,7 @@ class CoupledSystem:
     def posed_wheel_vertices(self, vertices: np.ndarray, owner: np.ndarray) -> np.ndarray:
         """The display mesh at the wheels' current poses [m], shape (V, 3)."""
         control = self.sim.control
-        return (np.einsum("vij,vj->vi", control.body_rotation_host[owner], vertices)
-                + control.body_position_host[owner])
+        return np.einsum("vij,vj->vi", control.body_rotation_host[owner], vertices) + control.body_position_host[owner]
 
     def close(self) -> None:
         """Free what the rover side holds (FMU instances)."""

@@ -19,7 +19,7 @@ fed the same states get the same wrenches (used to compare MuJoCo with FMU rover
 
 from __future__ import annotations
 
-from typing import Sequence
+from collections.abc import Sequence
 
 import numpy as np
 

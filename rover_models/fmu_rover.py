@@ -28,7 +28,7 @@ and `load_state_dict` says so.
 from __future__ import annotations
 
 import os
-from typing import Sequence
+from collections.abc import Sequence
 
 import numpy as np
 
@@ -52,8 +52,8 @@ def _wheel_indices(names, prefix: str) -> list[int]:
     found = set()
     for name in names:
         head = name.split(".")[0]
-        if head.startswith(prefix) and head[len(prefix):].isdigit():
-            found.add(int(head[len(prefix):]))
+        if head.startswith(prefix) and head[len(prefix) :].isdigit():
+            found.add(int(head[len(prefix) :]))
     return sorted(found)
 
 
@@ -70,17 +70,21 @@ def check_rover_fmu(path: str | os.PathLike, wheel_count: int | None = None, pre
     count = len(found) if wheel_count is None else int(wheel_count)
     if count < 1 or found != list(range(count)):
         have = ", ".join(f"{prefix}{i}" for i in found) or "none"
-        raise FmuError(f"{path}: the scene expects {count} wheel(s) ({prefix}0 .. {prefix}{count - 1}), the FMU has "
-                       f"{len(found)} ({have}); a rover FMU needs {prefix}<i>.* variables for i = 0 .. n-1; the FMU "
-                       f"has: {listing}")
+        raise FmuError(
+            f"{path}: the scene expects {count} wheel(s) ({prefix}0 .. {prefix}{count - 1}), the FMU has "
+            f"{len(found)} ({have}); a rover FMU needs {prefix}<i>.* variables for i = 0 .. n-1; the FMU "
+            f"has: {listing}"
+        )
 
     def need(name, causalities):
         v = variables.get(name)
         if v is None:
             raise FmuVariableError(f"{path}: no variable {name!r}; the FMU has: {listing}")
         if v.type != real or (causalities and v.causality not in causalities):
-            raise FmuVariableError(f"{path}: variable {name!r} is {v.causality} {v.type}, expected "
-                                   f"{' or '.join(causalities)} {real}; the FMU has: {listing}")
+            raise FmuVariableError(
+                f"{path}: variable {name!r} is {v.causality} {v.type}, expected "
+                f"{' or '.join(causalities)} {real}; the FMU has: {listing}"
+            )
 
     for i in range(count):
         for suffix in _INPUTS:
@@ -90,12 +94,14 @@ def check_rover_fmu(path: str | os.PathLike, wheel_count: int | None = None, pre
     for axis in "xyz":
         need(f"gravity.{axis}", ("parameter", "input"))
     mass = variables.get("total_mass")
-    return {"wheel_count": count,
-            "speed": all(f"{prefix}{i}.speed_command" in variables for i in range(count)),
-            "torque": all(f"{prefix}{i}.torque_command" in variables for i in range(count)),
-            "body": all(f"body.{s}" in variables for s in _OUTPUTS),
-            "start": all(name in variables for name in _START),
-            "total_mass": None if mass is None or mass.start is None else float(mass.start)}
+    return {
+        "wheel_count": count,
+        "speed": all(f"{prefix}{i}.speed_command" in variables for i in range(count)),
+        "torque": all(f"{prefix}{i}.torque_command" in variables for i in range(count)),
+        "body": all(f"body.{s}" in variables for s in _OUTPUTS),
+        "start": all(name in variables for name in _START),
+        "total_mass": None if mass is None or mass.start is None else float(mass.start),
+    }
 
 
 class FmuRover(FmuSession):
@@ -148,13 +154,17 @@ class FmuRover(FmuSession):
         self._vr_speed = self._optional(".speed_command")
         self._vr_torque = self._optional(".torque_command")
         self._vr_mode = [self._vr("drive_mode", ("input", "parameter"))] if "drive_mode" in self.variables else None
-        self._vr_body = ([self._vr(f"body.{s}", ("output",)) for s in _OUTPUTS]
-                         if all(f"body.{s}" in self.variables for s in _OUTPUTS) else None)
+        self._vr_body = (
+            [self._vr(f"body.{s}", ("output",)) for s in _OUTPUTS]
+            if all(f"body.{s}" in self.variables for s in _OUTPUTS)
+            else None
+        )
         self.drive_mode = "speed"
         """'speed' or 'torque': which command inputs drive the wheels."""
 
-        self.fmu, self._unzipdir, self._set, self._get = instantiate_cosim(self.path, self.md, instance_name,
-                                                                           start_time)
+        self.fmu, self._unzipdir, self._set, self._get = instantiate_cosim(
+            self.path, self.md, instance_name, start_time
+        )
         self._initializing = True
         self._time = float(start_time)
         for name, value in (start_values or {}).items():
@@ -218,8 +228,12 @@ class FmuRover(FmuSession):
         self._ready()
         if self._vr_body is None:
             wheels = self.wheel_kinematics()
-            return WheelKinematics(np.mean([k.position for k in wheels], axis=0), [1.0, 0.0, 0.0, 0.0],
-                                   np.mean([k.linear_velocity for k in wheels], axis=0), np.zeros(3))
+            return WheelKinematics(
+                np.mean([k.position for k in wheels], axis=0),
+                [1.0, 0.0, 0.0, 0.0],
+                np.mean([k.linear_velocity for k in wheels], axis=0),
+                np.zeros(3),
+            )
         v = np.array(self._get(self._vr_body))
         return WheelKinematics(v[0:3], v[3:7], v[7:10], v[10:13])
 
@@ -241,16 +255,18 @@ class FmuRover(FmuSession):
     def set_wheel_speeds(self, speeds: Sequence[float]) -> None:
         """Wheel speed commands [rad/s], shape (wheel_count,) (needs <prefix><i>.speed_command)."""
         if self._vr_speed is None:
-            raise FmuVariableError(f"{self.path}: no {self.prefix}<i>.speed_command inputs; the FMU has: "
-                                   f"{self._listing()}")
+            raise FmuVariableError(
+                f"{self.path}: no {self.prefix}<i>.speed_command inputs; the FMU has: {self._listing()}"
+            )
         self._mode("speed")
         self._set(self._vr_speed, [float(s) for s in np.asarray(speeds).reshape(-1)])
 
     def set_wheel_torques(self, torques: Sequence[float]) -> None:
         """Wheel torque commands [N m], shape (wheel_count,) (needs <prefix><i>.torque_command)."""
         if self._vr_torque is None:
-            raise FmuVariableError(f"{self.path}: no {self.prefix}<i>.torque_command inputs; the FMU has: "
-                                   f"{self._listing()}")
+            raise FmuVariableError(
+                f"{self.path}: no {self.prefix}<i>.torque_command inputs; the FMU has: {self._listing()}"
+            )
         self._mode("torque")
         self._set(self._vr_torque, [float(s) for s in np.asarray(torques).reshape(-1)])
 

@@ -14,7 +14,6 @@ import xml.etree.ElementTree as ET
 import zipfile
 
 import numpy as np
-
 from fmpy import extract, read_model_description
 from fmpy.fmi1 import FMICallException
 
@@ -71,8 +70,12 @@ def instantiate_cosim(path: str | os.PathLike, md, instance_name: str, start_tim
     its Real (2.0) / Float64 (3.0) setter and getter.
     """
     unzipdir = extract(os.fspath(path))
-    kwargs = dict(guid=md.guid, unzipDirectory=unzipdir,
-                  modelIdentifier=md.coSimulation.modelIdentifier, instanceName=instance_name)
+    kwargs = dict(
+        guid=md.guid,
+        unzipDirectory=unzipdir,
+        modelIdentifier=md.coSimulation.modelIdentifier,
+        instanceName=instance_name,
+    )
     cwd = os.getcwd()  # fmpy enters the library's folder to load it and stays there when loading fails
     try:
         if md.fmiVersion == "2.0":
@@ -127,11 +130,15 @@ class FmuSession:
         if v is None:
             raise FmuVariableError(f"{self.path}: no variable {name!r}; the FMU has: {self._listing()}")
         if v.type != self._real_type:
-            raise FmuVariableError(f"{self.path}: variable {name!r} is {v.type}, expected {self._real_type}; "
-                                   f"the FMU has: {self._listing()}")
+            raise FmuVariableError(
+                f"{self.path}: variable {name!r} is {v.type}, expected {self._real_type}; "
+                f"the FMU has: {self._listing()}"
+            )
         if causalities is not None and v.causality not in causalities:
-            raise FmuVariableError(f"{self.path}: variable {name!r} has causality {v.causality}, expected "
-                                   f"{' or '.join(causalities)}; the FMU has: {self._listing()}")
+            raise FmuVariableError(
+                f"{self.path}: variable {name!r} has causality {v.causality}, expected "
+                f"{' or '.join(causalities)}; the FMU has: {self._listing()}"
+            )
         return v.valueReference
 
     def _ready(self) -> None:
@@ -176,8 +183,10 @@ class FmuSession:
         """The FMU's serialized state (fmi*SerializeFMUstate) as bytes, shape (n,), uint8; FmuError when the
         FMU cannot save its state."""
         if not self.can_save_state:
-            raise FmuError(f"{self.path}: the FMU cannot save its state (it does not declare canGetAndSetFMUstate "
-                           "and canSerializeFMUstate), so a run with it cannot be continued from a checkpoint")
+            raise FmuError(
+                f"{self.path}: the FMU cannot save its state (it does not declare canGetAndSetFMUstate "
+                "and canSerializeFMUstate), so a run with it cannot be continued from a checkpoint"
+            )
         self._ready()
         state = self.fmu.getFMUState()
         try:
@@ -188,8 +197,10 @@ class FmuSession:
     def load_state(self, data: np.ndarray) -> None:
         """Put a state from `save_state` back into the (instantiated) FMU."""
         if not self.can_save_state:
-            raise FmuError(f"{self.path}: the FMU cannot restore a saved state (it does not declare "
-                           "canGetAndSetFMUstate and canSerializeFMUstate): this run cannot be resumed")
+            raise FmuError(
+                f"{self.path}: the FMU cannot restore a saved state (it does not declare "
+                "canGetAndSetFMUstate and canSerializeFMUstate): this run cannot be resumed"
+            )
         self._ready()
         state = self.fmu.deserializeFMUState(np.asarray(data, dtype=np.uint8).tobytes())
         try:

@@ -24,7 +24,7 @@ its implicit damping, so a stiff motor then needs a smaller timestep.
 from __future__ import annotations
 
 import os
-from typing import Sequence
+from collections.abc import Sequence
 
 import mujoco
 import numpy as np
@@ -32,7 +32,7 @@ import numpy as np
 from cosim.contract import WheelKinematics, WheelWrench
 
 
-def load_model(model: "str | os.PathLike | mujoco.MjModel") -> mujoco.MjModel:
+def load_model(model: str | os.PathLike | mujoco.MjModel) -> mujoco.MjModel:
     """An MjModel from an MjModel, an MJCF file path or an MJCF string."""
     if isinstance(model, mujoco.MjModel):
         return model
@@ -84,8 +84,11 @@ class MujocoRover:
 
         self._hinge_dof = [self._find_hinge_dof(b) for b in self.wheel_body_ids]
         self._actuators = self._find_actuators(wheel_actuators)
-        self._actuator_gains = {a: (self.model.actuator_gainprm[a].copy(), self.model.actuator_biasprm[a].copy())
-                                for a in self._actuators if a is not None}
+        self._actuator_gains = {
+            a: (self.model.actuator_gainprm[a].copy(), self.model.actuator_biasprm[a].copy())
+            for a in self._actuators
+            if a is not None
+        }
         self.drive_mode = "speed"
         """'speed' (velocity actuators) or 'torque' (hinge torques)."""
         self.wheel_torques = np.zeros(len(self.wheel_names))
@@ -120,9 +123,12 @@ class MujocoRover:
         out = []
         for body in self.wheel_body_ids:
             joints = range(self.model.body_jntadr[body], self.model.body_jntadr[body] + self.model.body_jntnum[body])
-            found = [a for a in range(self.model.nu)
-                     if self.model.actuator_trntype[a] == mujoco.mjtTrn.mjTRN_JOINT
-                     and self.model.actuator_trnid[a, 0] in joints]
+            found = [
+                a
+                for a in range(self.model.nu)
+                if self.model.actuator_trntype[a] == mujoco.mjtTrn.mjTRN_JOINT
+                and self.model.actuator_trnid[a, 0] in joints
+            ]
             out.append(found[0] if found else None)
         return out
 
@@ -209,8 +215,10 @@ class MujocoRover:
         if speeds.shape != (len(self.wheel_names),):
             raise ValueError(f"{speeds.size} speeds for {len(self.wheel_names)} wheels")
         if any(a is None for a in self._actuators):
-            raise ValueError(f"no velocity actuator found for wheels "
-                             f"{[n for n, a in zip(self.wheel_names, self._actuators) if a is None]}")
+            raise ValueError(
+                f"no velocity actuator found for wheels "
+                f"{[n for n, a in zip(self.wheel_names, self._actuators) if a is None]}"
+            )
         if self.drive_mode != "speed":
             for a, (gain, bias) in self._actuator_gains.items():
                 self.model.actuator_gainprm[a] = gain
@@ -257,8 +265,9 @@ class MujocoRover:
         """Pose and velocity of body `body` (an id) at its frame origin, world frame (as wheel_kinematics)."""
         vel = np.zeros(6)
         mujoco.mj_objectVelocity(self.model, self.data, mujoco.mjtObj.mjOBJ_XBODY, int(body), vel, 0)
-        return WheelKinematics(self.data.xpos[body].copy(), self.data.xquat[body].copy(), vel[3:].copy(),
-                               vel[:3].copy())
+        return WheelKinematics(
+            self.data.xpos[body].copy(), self.data.xquat[body].copy(), vel[3:].copy(), vel[:3].copy()
+        )
 
     def move_base(self, translation: Sequence[float], yaw: float = 0.0, pivot: Sequence[float] | None = None) -> None:
         """Move the whole rover rigidly before it starts: turn it by `yaw` [rad] about the vertical through
@@ -274,12 +283,16 @@ class MujocoRover:
         for body in range(1, self.model.nbody):
             if self.model.body_parentid[body] != 0:
                 continue
-            free = [j for j in range(self.model.body_jntadr[body],
-                                     self.model.body_jntadr[body] + self.model.body_jntnum[body])
-                    if self.model.jnt_type[j] == mujoco.mjtJoint.mjJNT_FREE]
+            free = [
+                j
+                for j in range(
+                    self.model.body_jntadr[body], self.model.body_jntadr[body] + self.model.body_jntnum[body]
+                )
+                if self.model.jnt_type[j] == mujoco.mjtJoint.mjJNT_FREE
+            ]
             if free:
                 adr = int(self.model.jnt_qposadr[free[0]])
-                position, quaternion = self.data.qpos[adr:adr + 3], self.data.qpos[adr + 3:adr + 7]
+                position, quaternion = self.data.qpos[adr : adr + 3], self.data.qpos[adr + 3 : adr + 7]
             else:
                 position, quaternion = self.model.body_pos[body], self.model.body_quat[body]
             position[:] = pivot + rotation @ (position - pivot) + translation
@@ -294,8 +307,12 @@ class MujocoRover:
         spec = mujoco.mjtState.mjSTATE_INTEGRATION
         state = np.empty(mujoco.mj_stateSize(self.model, spec))
         mujoco.mj_getState(self.model, self.data, state, spec)
-        return {"mujoco_state": state, "torque_mode": self.drive_mode == "torque",
-                "wheel_torques": self.wheel_torques.copy(), "hub_wrenches": self.hub_wrenches.copy()}
+        return {
+            "mujoco_state": state,
+            "torque_mode": self.drive_mode == "torque",
+            "wheel_torques": self.wheel_torques.copy(),
+            "hub_wrenches": self.hub_wrenches.copy(),
+        }
 
     def load_state_dict(self, state: dict) -> None:
         if bool(state["torque_mode"]):
@@ -303,8 +320,12 @@ class MujocoRover:
         elif self.drive_mode != "speed":
             self.set_wheel_speeds(np.zeros(len(self.wheel_names)))
         self.hub_wrenches[:] = np.asarray(state["hub_wrenches"])
-        mujoco.mj_setState(self.model, self.data, np.asarray(state["mujoco_state"], dtype=np.float64),
-                           mujoco.mjtState.mjSTATE_INTEGRATION)
+        mujoco.mj_setState(
+            self.model,
+            self.data,
+            np.asarray(state["mujoco_state"], dtype=np.float64),
+            mujoco.mjtState.mjSTATE_INTEGRATION,
+        )
         mujoco.mj_forward(self.model, self.data)
 
     # --- conveniences ---------------------------------------------------------------
@@ -312,8 +333,10 @@ class MujocoRover:
     @property
     def drives(self) -> dict:
         """{'speed': every wheel has a velocity actuator, 'torque': every wheel has a hinge}."""
-        return {"speed": all(a is not None for a in self._actuators),
-                "torque": all(d is not None for d in self._hinge_dof)}
+        return {
+            "speed": all(a is not None for a in self._actuators),
+            "torque": all(d is not None for d in self._hinge_dof),
+        }
 
     @property
     def total_mass(self) -> float:

@@ -1,14 +1,14 @@
 """soil: the DEM regolith model in NVIDIA Warp kernels (CPU or CUDA).
 
-    from soil import SoilBuilder, Material, Simulation
-    builder = SoilBuilder(gravity="phobos")
-    builder.add_material(Material(youngs_modulus=1e7))
-    builder.add_container((0, 0, 0), (0.1, 0.1, 0.1))
-    builder.add_particles(positions, radii)
-    model, state, control = builder.finalize(device="cpu", precision="mixed")
-    sim = Simulation(model, state, control)
-    sim.run(duration=1.0, dt=1e-4)
-    force, torque, contacts = sim.boundary_wrenches()   # the grains' push on each wall
+from soil import SoilBuilder, Material, Simulation
+builder = SoilBuilder(gravity="phobos")
+builder.add_material(Material(youngs_modulus=1e7))
+builder.add_container((0, 0, 0), (0.1, 0.1, 0.1))
+builder.add_particles(positions, radii)
+model, state, control = builder.finalize(device="cpu", precision="mixed")
+sim = Simulation(model, state, control)
+sim.run(duration=1.0, dt=1e-4)
+force, torque, contacts = sim.boundary_wrenches()   # the grains' push on each wall
 """
 
 import warp as _wp
@@ -31,12 +31,36 @@ from .stability import DivergenceMonitor
 from .state import SoilState
 
 __all__ = [
-    "DivergenceMonitor", "JoltBeeman", "StepController", "advisor", "largest_stable_step", "macroscopic_stiffness",
-    "rayleigh_time_step", "recommended_time_step",
-    "ContactLaw", "GRAVITY_PRESETS", "GrouserWheel", "MacroStepReport", "MeshWheel", "Material", "NeighbourSettings",
-    "OverlapWarning", "PRECISIONS", "Simulation", "SimulationDiverged", "SoilBuilder", "SoilControl", "SoilInputError",
-    "SoilModel", "SoilState", "VelocityVerlet",
-    "damping_ratio_for_restitution", "get_precision", "gravity_vector", "quiet_warp", "restitution_of_damping_ratio",
+    "DivergenceMonitor",
+    "JoltBeeman",
+    "StepController",
+    "advisor",
+    "largest_stable_step",
+    "macroscopic_stiffness",
+    "rayleigh_time_step",
+    "recommended_time_step",
+    "ContactLaw",
+    "GRAVITY_PRESETS",
+    "GrouserWheel",
+    "MacroStepReport",
+    "MeshWheel",
+    "Material",
+    "NeighbourSettings",
+    "OverlapWarning",
+    "PRECISIONS",
+    "Simulation",
+    "SimulationDiverged",
+    "SoilBuilder",
+    "SoilControl",
+    "SoilInputError",
+    "SoilModel",
+    "SoilState",
+    "VelocityVerlet",
+    "damping_ratio_for_restitution",
+    "get_precision",
+    "gravity_vector",
+    "quiet_warp",
+    "restitution_of_damping_ratio",
 ]
 
 

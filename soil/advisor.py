@@ -68,16 +68,18 @@ def hertz_impact(e_star: float, r_star: float, m_star: float, speed: float) -> H
     return HertzImpact(overlap, k * overlap**1.5, HERTZ_TIME_FACTOR * overlap / speed, 2.0 / omega)
 
 
-def hertz_contact_time(youngs_modulus: float, poisson_ratio: float, density: float, radius: float,
-                       speed: float) -> float:
+def hertz_contact_time(
+    youngs_modulus: float, poisson_ratio: float, density: float, radius: float, speed: float
+) -> float:
     """Contact time [s] of two equal elastic spheres (E [Pa], nu, rho [kg/m^3], r [m]) closing at speed [m/s]."""
     mass = density * 4.0 / 3.0 * math.pi * radius**3
     e_star = youngs_modulus / (2.0 * (1.0 - poisson_ratio**2))
     return hertz_impact(e_star, 0.5 * radius, 0.5 * mass, speed).contact_time
 
 
-def macroscopic_stiffness(soil_height: float, pressure, overlap_factor, radius: float, density: float,
-                          gravity) -> float:
+def macroscopic_stiffness(
+    soil_height: float, pressure, overlap_factor, radius: float, density: float, gravity
+) -> float:
     """Smallest macroscopic particle stiffness (paper eq. 10) [Pa]:
 
         E_mP >= z_h |3 p + z_h rho_p g| / (3 |u| r)
@@ -148,9 +150,16 @@ def _scene_values(scene, radius, gravity, height):
     return r, mass, e_star, g, height, speed0
 
 
-def recommended_time_step(scene, *, radius: float | None = None, gravity=None, height: float | None = None,
-                          impact_speed: float | None = None, pressure: float = 0.0,
-                          safety: float = 0.3) -> TimeStepAdvice:
+def recommended_time_step(
+    scene,
+    *,
+    radius: float | None = None,
+    gravity=None,
+    height: float | None = None,
+    impact_speed: float | None = None,
+    pressure: float = 0.0,
+    safety: float = 0.3,
+) -> TimeStepAdvice:
     """Recommended step range for a scene: a Simulation, a SoilModel, or a Material (then give radius, gravity).
 
     The stiffest expected contact is the deeper of (a) an impact of two of the smallest
@@ -181,10 +190,16 @@ def recommended_time_step(scene, *, radius: float | None = None, gravity=None, h
     rayleigh = rayleigh_time_step(e_star * 2.0 * (1.0 - nu**2), nu, density, r)
     dt_max = safety * critical
     return TimeStepAdvice(
-        dt_min=min(impact.contact_time / 100.0, dt_max), dt_max=dt_max, critical_step=critical, rayleigh=rayleigh,
-        contact_time=impact.contact_time, impact_speed=impact_speed, static_overlap=static_overlap,
+        dt_min=min(impact.contact_time / 100.0, dt_max),
+        dt_max=dt_max,
+        critical_step=critical,
+        rayleigh=rayleigh,
+        contact_time=impact.contact_time,
+        impact_speed=impact_speed,
+        static_overlap=static_overlap,
         impact_overlap=impact.max_overlap,
-        inputs=dict(radius=r, mass=mass, e_star=e_star, gravity=g, height=h, pressure=pressure))
+        inputs=dict(radius=r, mass=mass, e_star=e_star, gravity=g, height=h, pressure=pressure),
+    )
 
 
 @dataclass
@@ -201,9 +216,16 @@ class StableStepSearch:
     """(dt [s], stable: bool, message) for every run, in order."""
 
 
-def largest_stable_step(make_simulation, duration: float, dt_start: float, growth: float = 1.5,
-                        safety: float = 0.5, dt_stop: float | None = None, max_runs: int = 30,
-                        check_every: int = 20) -> StableStepSearch:
+def largest_stable_step(
+    make_simulation,
+    duration: float,
+    dt_start: float,
+    growth: float = 1.5,
+    safety: float = 0.5,
+    dt_stop: float | None = None,
+    max_runs: int = 30,
+    check_every: int = 20,
+) -> StableStepSearch:
     """The paper's search (section 5): raise the step geometrically until the scene explodes.
 
     make_simulation() -> a fresh Simulation of the scene (called once per try);

@@ -56,8 +56,10 @@ class BedSpec:
         if not 0 <= self.radius_spread < 1:
             raise ValueError(f"bed.radius_spread must be in [0, 1), got {self.radius_spread!r}")
         if min(self.length, self.width, self.depth) < 4 * self.radius_mean * (1 + self.radius_spread):
-            raise ValueError("bed.length, width and depth must each hold at least two grains "
-                             f"(> {4 * self.radius_mean * (1 + self.radius_spread):.4g} m)")
+            raise ValueError(
+                "bed.length, width and depth must each hold at least two grains "
+                f"(> {4 * self.radius_mean * (1 + self.radius_spread):.4g} m)"
+            )
 
 
 def insert_grains(spec: BedSpec) -> tuple[np.ndarray, np.ndarray]:
@@ -73,8 +75,11 @@ def insert_grains(spec: BedSpec) -> tuple[np.ndarray, np.ndarray]:
     a = 2.0 * r_max * 1.02  # centre-to-centre distance of lattice neighbours
     row, layer = a * math.sqrt(3.0) / 2.0, a * math.sqrt(2.0 / 3.0)
     # a lattice site lies 0.5 a from the walls or more: a grain jittered by its slack still clears them
-    counts = [int((spec.length - 2.0 * a) // a) + 1, int((spec.width - a - row / 3.0) // row) + 1,
-              int((spec.depth - a) // layer) + 1]
+    counts = [
+        int((spec.length - 2.0 * a) // a) + 1,
+        int((spec.width - a - row / 3.0) // row) + 1,
+        int((spec.depth - a) // layer) + 1,
+    ]
     i, j, k = (g.reshape(-1) for g in np.meshgrid(*[np.arange(c) for c in counts], indexing="ij"))
     lattice = np.column_stack([(i + 0.5 * (j % 2) + 0.5 * (k % 2)) * a, (j + (k % 2) / 3.0) * row, k * layer])
     radii = spec.radius_mean * (1 + spec.radius_spread * rng.uniform(-1, 1, len(lattice)))
@@ -113,8 +118,9 @@ def kinetic_energy_threshold(sim, ratio: float = 1e-4) -> float:
     return ratio * len(mass) * float(mass.mean()) * g * float(radius.mean())
 
 
-def settle(sim, dt: float, ke_ratio: float = 1e-4, max_time: float = 20.0, check_interval: float | None = None,
-           progress=None) -> dict:
+def settle(
+    sim, dt: float, ke_ratio: float = 1e-4, max_time: float = 20.0, check_interval: float | None = None, progress=None
+) -> dict:
     """Run until the kinetic energy falls below the gravity-scaled threshold.
 
     Returns {'time': settling time [s], 'kinetic_energy': [J], 'threshold': [J], 'settled': bool}.
@@ -144,8 +150,9 @@ def bed_metrics(sim, spec: BedSpec, margin: float | None = None) -> dict:
     x = sim.positions()
     r = sim.model.radius_numpy()
     margin = 3 * spec.radius_mean if margin is None else margin
-    inside = ((x[:, 0] > margin) & (x[:, 0] < spec.length - margin) & (x[:, 1] > margin)
-              & (x[:, 1] < spec.width - margin))
+    inside = (
+        (x[:, 0] > margin) & (x[:, 0] < spec.length - margin) & (x[:, 1] > margin) & (x[:, 1] < spec.width - margin)
+    )
     cell = 2 * spec.radius_mean
     ij = np.floor(x[inside, :2] / cell).astype(int)
     tops = x[inside, 2] + r[inside]
@@ -185,8 +192,9 @@ def save_bed(path, sim, spec: BedSpec | None = None, metrics: dict | None = None
             f.attrs["materials"] = json.dumps([asdict(m) for m in model.materials.materials])
             f.attrs["pair_overrides"] = json.dumps([[list(k), v] for k, v in model.materials.overrides.items()])
             if spec is not None:
-                f.attrs["spec"] = json.dumps({k: v for k, v in asdict(spec).items()
-                                              if k not in ("material", "wall_material")})
+                f.attrs["spec"] = json.dumps(
+                    {k: v for k, v in asdict(spec).items() if k not in ("material", "wall_material")}
+                )
             for key, value in (metrics or {}).items():
                 f.attrs[f"metric_{key}"] = value
             particles = f.create_group("particles")
@@ -230,11 +238,13 @@ def read_bed_header(path) -> dict:
     (list of Material, the grains' first), 'metrics' (dict), 'particle_count', 'spec' (the BedSpec
     fields without materials, or None)}."""
     with _open_bed(path) as f:
-        return {"spec": json.loads(f.attrs["spec"]) if "spec" in f.attrs else None,
-                "gravity": np.asarray(f.attrs["gravity"], dtype=np.float64),
-                "materials": [Material(**values) for values in json.loads(f.attrs["materials"])],
-                "metrics": {k[len("metric_"):]: f.attrs[k] for k in f.attrs if k.startswith("metric_")},
-                "particle_count": int(f["particles/radius"].shape[0])}
+        return {
+            "spec": json.loads(f.attrs["spec"]) if "spec" in f.attrs else None,
+            "gravity": np.asarray(f.attrs["gravity"], dtype=np.float64),
+            "materials": [Material(**values) for values in json.loads(f.attrs["materials"])],
+            "metrics": {k[len("metric_") :]: f.attrs[k] for k in f.attrs if k.startswith("metric_")},
+            "particle_count": int(f["particles/radius"].shape[0]),
+        }
 
 
 def load_bed(path) -> tuple[SoilBuilder, dict]:
@@ -255,14 +265,21 @@ def load_bed(path) -> tuple[SoilBuilder, dict]:
         saved["model"] = {name: f["particles"][name][()] for name in ("mass", "inv_mass", "inv_inertia")}
         kinds = f["boundaries/kind"][()]
         reports = f["boundaries/report"][()] if "report" in f["boundaries"] else np.ones(len(kinds), dtype=bool)
-        for kind, geometry, wall, report in zip(kinds, f["boundaries/geometry"][()], f["boundaries/material"][()],
-                                                reports):
+        for kind, geometry, wall, report in zip(
+            kinds, f["boundaries/geometry"][()], f["boundaries/material"][()], reports
+        ):
             builder._add_boundary(int(kind), geometry, int(wall), bool(report))
         saved["precision"] = f.attrs["precision"]
-        saved["metrics"] = {k[len("metric_"):]: f.attrs[k] for k in f.attrs if k.startswith("metric_")}
-    builder.add_particles(saved["position"], radius, 0, velocities=saved["velocity"],
-                          angular_velocities=saved["angular_velocity"], fixed=inv_mass == 0,
-                          lock_rotation=inv_inertia == 0)
+        saved["metrics"] = {k[len("metric_") :]: f.attrs[k] for k in f.attrs if k.startswith("metric_")}
+    builder.add_particles(
+        saved["position"],
+        radius,
+        0,
+        velocities=saved["velocity"],
+        angular_velocities=saved["angular_velocity"],
+        fixed=inv_mass == 0,
+        lock_rotation=inv_inertia == 0,
+    )
     builder._material[-1] = material.astype(np.int32)
     return builder, saved
 
@@ -304,8 +321,9 @@ def restore_state(model, state, saved: dict) -> None:
     state.load_numpy(data)
 
 
-def make_settled_bed(spec: BedSpec, gravity, device=None, precision="double", dt=None, ke_ratio=1e-4,
-                     max_time=20.0, progress=None):
+def make_settled_bed(
+    spec: BedSpec, gravity, device=None, precision="double", dt=None, ke_ratio=1e-4, max_time=20.0, progress=None
+):
     """Fill, settle and measure a bed; returns (simulation, settle report, metrics)."""
     from .simulation import Simulation
 

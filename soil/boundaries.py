@@ -43,6 +43,7 @@ MOTION_PRESCRIBED = 0
 MOTION_LOADED = 1
 """The boundary is a rigid body free along a direction, pushed by a load (see the module docstring)."""
 
+
 @kernel_factory
 def boundary_kernels(hi):
     """The boundary-motion kernels for the precision's `hi` type."""
@@ -170,8 +171,13 @@ def boundary_kernels(hi):
             along = wp.dot(velocity_in[b], e) + (dt / hi(6.0)) * (hi(2.0) * acceleration_new[b] + hi(5.0) * a - a_minus)
             velocity_io[b] = across(velocity_io[b], e) + along * e
 
-    return dict(boundary_acceleration=boundary_acceleration, verlet_kick_drift=verlet_kick_drift,
-                verlet_kick=verlet_kick, beeman_predict=beeman_predict, beeman_correct=beeman_correct)
+    return dict(
+        boundary_acceleration=boundary_acceleration,
+        verlet_kick_drift=verlet_kick_drift,
+        verlet_kick=verlet_kick,
+        beeman_predict=beeman_predict,
+        beeman_correct=beeman_correct,
+    )
 
 
 def _motion(control):
@@ -183,10 +189,21 @@ def update_acceleration(model, state, control) -> None:
     if not model.boundary_count:
         return
     kernels = boundary_kernels(model.precision.hi)
-    wp.launch(kernels.boundary_acceleration, dim=model.boundary_count,
-              inputs=[control.boundary_mode, control.boundary_direction, control.boundary_mass,
-                      control.boundary_load, control.boundary_damping, state.boundary_velocity, state.boundary_force],
-              outputs=[state.boundary_acceleration], device=model.device)
+    wp.launch(
+        kernels.boundary_acceleration,
+        dim=model.boundary_count,
+        inputs=[
+            control.boundary_mode,
+            control.boundary_direction,
+            control.boundary_mass,
+            control.boundary_load,
+            control.boundary_damping,
+            state.boundary_velocity,
+            state.boundary_force,
+        ],
+        outputs=[state.boundary_acceleration],
+        device=model.device,
+    )
 
 
 def verlet_first_half(model, state_in, state_out, control, dt: float) -> None:
@@ -194,10 +211,19 @@ def verlet_first_half(model, state_in, state_out, control, dt: float) -> None:
     if not model.boundary_count:
         return
     kernels = boundary_kernels(model.precision.hi)
-    wp.launch(kernels.verlet_kick_drift, dim=model.boundary_count,
-              inputs=_motion(control) + [state_in.boundary_displacement, state_in.boundary_velocity,
-                                         state_in.boundary_acceleration, model.precision.hi(dt)],
-              outputs=[state_out.boundary_displacement, state_out.boundary_velocity], device=model.device)
+    wp.launch(
+        kernels.verlet_kick_drift,
+        dim=model.boundary_count,
+        inputs=_motion(control)
+        + [
+            state_in.boundary_displacement,
+            state_in.boundary_velocity,
+            state_in.boundary_acceleration,
+            model.precision.hi(dt),
+        ],
+        outputs=[state_out.boundary_displacement, state_out.boundary_velocity],
+        device=model.device,
+    )
     # Verlet keeps no previous acceleration (a later jolt-Beeman step starts with zero jolt)
     state_out.boundary_acceleration_previous.zero_()
 
@@ -207,10 +233,18 @@ def verlet_second_half(model, state_out, control, dt: float) -> None:
     if not model.boundary_count:
         return
     kernels = boundary_kernels(model.precision.hi)
-    wp.launch(kernels.verlet_kick, dim=model.boundary_count,
-              inputs=[control.boundary_mode, control.boundary_direction, state_out.boundary_acceleration,
-                      model.precision.hi(dt)],
-              outputs=[state_out.boundary_velocity], device=model.device)
+    wp.launch(
+        kernels.verlet_kick,
+        dim=model.boundary_count,
+        inputs=[
+            control.boundary_mode,
+            control.boundary_direction,
+            state_out.boundary_acceleration,
+            model.precision.hi(dt),
+        ],
+        outputs=[state_out.boundary_velocity],
+        device=model.device,
+    )
 
 
 def beeman_predict(model, state_in, state_out, control, dt: float) -> None:
@@ -218,12 +252,25 @@ def beeman_predict(model, state_in, state_out, control, dt: float) -> None:
     if not model.boundary_count:
         return
     kernels = boundary_kernels(model.precision.hi)
-    wp.launch(kernels.beeman_predict, dim=model.boundary_count,
-              inputs=_motion(control) + [state_in.boundary_displacement, state_in.boundary_velocity,
-                                         state_in.boundary_acceleration, state_in.boundary_acceleration_previous,
-                                         state_in.step_previous, model.precision.hi(dt)],
-              outputs=[state_out.boundary_displacement, state_out.boundary_velocity,
-                       state_out.boundary_acceleration_previous], device=model.device)
+    wp.launch(
+        kernels.beeman_predict,
+        dim=model.boundary_count,
+        inputs=_motion(control)
+        + [
+            state_in.boundary_displacement,
+            state_in.boundary_velocity,
+            state_in.boundary_acceleration,
+            state_in.boundary_acceleration_previous,
+            state_in.step_previous,
+            model.precision.hi(dt),
+        ],
+        outputs=[
+            state_out.boundary_displacement,
+            state_out.boundary_velocity,
+            state_out.boundary_acceleration_previous,
+        ],
+        device=model.device,
+    )
 
 
 def beeman_correct(model, state_in, state_out, control, dt: float) -> None:
@@ -231,8 +278,19 @@ def beeman_correct(model, state_in, state_out, control, dt: float) -> None:
     if not model.boundary_count:
         return
     kernels = boundary_kernels(model.precision.hi)
-    wp.launch(kernels.beeman_correct, dim=model.boundary_count,
-              inputs=[control.boundary_mode, control.boundary_direction, state_in.boundary_velocity,
-                      state_in.boundary_acceleration, state_in.boundary_acceleration_previous,
-                      state_in.step_previous, state_out.boundary_acceleration, model.precision.hi(dt)],
-              outputs=[state_out.boundary_velocity], device=model.device)
+    wp.launch(
+        kernels.beeman_correct,
+        dim=model.boundary_count,
+        inputs=[
+            control.boundary_mode,
+            control.boundary_direction,
+            state_in.boundary_velocity,
+            state_in.boundary_acceleration,
+            state_in.boundary_acceleration_previous,
+            state_in.step_previous,
+            state_out.boundary_acceleration,
+            model.precision.hi(dt),
+        ],
+        outputs=[state_out.boundary_velocity],
+        device=model.device,
+    )

@@ -60,8 +60,9 @@ class SoilBuilder:
     def particle_count(self) -> int:
         return int(sum(len(r) for r in self._radii))
 
-    def add_particles(self, positions, radii, material=0, velocities=None, angular_velocities=None,
-                      fixed=False, lock_rotation=False) -> np.ndarray:
+    def add_particles(
+        self, positions, radii, material=0, velocities=None, angular_velocities=None, fixed=False, lock_rotation=False
+    ) -> np.ndarray:
         """Add spheres. positions [m] shape (n, 3); radii [m] shape (n,) or one radius for all;
         velocities [m/s] and angular_velocities [rad/s] shape (n, 3) or (3,) for all; fixed and
         lock_rotation: one flag or shape (n,).
@@ -70,25 +71,30 @@ class SoilBuilder:
         """
         positions = np.asarray(positions, dtype=np.float64)
         if positions.ndim != 2 or positions.shape[1] != 3:
-            raise SoilInputError(f"positions must have shape (n, 3) [m] (x, y, z per grain), got shape "
-                                 f"{positions.shape}")
+            raise SoilInputError(
+                f"positions must have shape (n, 3) [m] (x, y, z per grain), got shape {positions.shape}"
+            )
         n = len(positions)
         radii = np.asarray(radii, dtype=np.float64)
         if radii.ndim == 0:
             radii = np.full(n, float(radii))
         elif radii.shape != (n,):
-            raise SoilInputError(f"radii must be one radius or shape (n,) = ({n},), one per position [m], got shape "
-                                 f"{radii.shape}")
+            raise SoilInputError(
+                f"radii must be one radius or shape (n,) = ({n},), one per position [m], got shape {radii.shape}"
+            )
         bad = ~np.isfinite(positions).all(axis=1)
         if bad.any():
             i = int(np.argmax(bad))
-            raise SoilInputError(f"positions must be finite [m]: {int(bad.sum())} are not, e.g. positions[{i}] = "
-                                 f"{tuple(float(v) for v in positions[i])}")
+            raise SoilInputError(
+                f"positions must be finite [m]: {int(bad.sum())} are not, e.g. positions[{i}] = "
+                f"{tuple(float(v) for v in positions[i])}"
+            )
         bad = ~(np.isfinite(radii) & (radii > 0))
         if bad.any():
             i = int(np.argmax(bad))
-            raise SoilInputError(f"radii must be finite and > 0 [m]: {int(bad.sum())} are not, e.g. radii[{i}] = "
-                                 f"{float(radii[i])!r}")
+            raise SoilInputError(
+                f"radii must be finite and > 0 [m]: {int(bad.sum())} are not, e.g. radii[{i}] = {float(radii[i])!r}"
+            )
 
         def vectors(values, name):
             if values is None:
@@ -120,16 +126,18 @@ class SoilBuilder:
         self._lock_rotation.append(lock_rotation)
         return np.arange(start, start + n)
 
-    def add_particle(self, position, radius, material=0, velocity=None, angular_velocity=None,
-                     fixed=False, lock_rotation=False) -> int:
+    def add_particle(
+        self, position, radius, material=0, velocity=None, angular_velocity=None, fixed=False, lock_rotation=False
+    ) -> int:
         """Add one sphere: position [m] (3,), radius [m]; returns its builder index."""
         position = np.asarray(position, dtype=np.float64)
         if position.shape != (3,):
             raise SoilInputError(f"position must be 3 numbers (x, y, z) [m], got shape {position.shape}")
         if np.ndim(radius) != 0:
             raise SoilInputError(f"radius must be one number [m], got {radius!r}")
-        return int(self.add_particles([position], [radius], material, velocity, angular_velocity,
-                                      fixed, lock_rotation)[0])
+        return int(
+            self.add_particles([position], [radius], material, velocity, angular_velocity, fixed, lock_rotation)[0]
+        )
 
     # -- boundaries --------------------------------------------------------------
     def add_plane(self, point, normal, material=0, report: bool = True) -> int:
@@ -169,8 +177,9 @@ class SoilBuilder:
         lower = np.asarray(lower, dtype=np.float64).reshape(3)
         upper = np.asarray(upper, dtype=np.float64).reshape(3)
         if not np.all(upper > lower):
-            raise SoilInputError(f"container upper corner must exceed lower corner on every axis, got {lower} .. "
-                                 f"{upper}")
+            raise SoilInputError(
+                f"container upper corner must exceed lower corner on every axis, got {lower} .. {upper}"
+            )
         walls = [self.add_plane(lower, (0, 0, 1), material, report)]
         for axis in range(2):
             inward = np.zeros(3)
@@ -190,8 +199,15 @@ class SoilBuilder:
         return len(self._bodies) - 1
 
     # -- finalize ----------------------------------------------------------------
-    def finalize(self, device: str | None = None, precision="double", law: ContactLaw | None = None,
-                 contact_capacity: int = 16, order_seed: int | None = None, rigid_capacity: int = 4):
+    def finalize(
+        self,
+        device: str | None = None,
+        precision="double",
+        law: ContactLaw | None = None,
+        contact_capacity: int = 16,
+        order_seed: int | None = None,
+        rigid_capacity: int = 4,
+    ):
         """Create (model, state, control) on `device` ("cpu", "cuda:0", None = Warp's default).
 
         law: contact-law switches; by default rolling and cohesion are on only if a
@@ -208,8 +224,9 @@ class SoilBuilder:
             self.add_material(Material())
         if law is None:
             mats = self.materials.materials
-            law = ContactLaw(rolling=any(m.rolling_friction > 0 for m in mats),
-                             cohesion=any(m.cohesion > 0 for m in mats))
+            law = ContactLaw(
+                rolling=any(m.rolling_friction > 0 for m in mats), cohesion=any(m.cohesion > 0 for m in mats)
+            )
         for name, value in (("contact_capacity", contact_capacity), ("rigid_capacity", rigid_capacity)):
             if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < 1:
                 raise SoilInputError(f"{name} must be an integer >= 1, got {value!r}")
@@ -227,7 +244,8 @@ class SoilBuilder:
         if order_seed is not None:
             order = np.random.default_rng(order_seed).permutation(len(radii))
         positions, radii, material, velocity, spin, fixed, locked = (
-            a[order] for a in (positions, radii, material, velocity, spin, fixed, locked))
+            a[order] for a in (positions, radii, material, velocity, spin, fixed, locked)
+        )
 
         density = np.array([self.materials.materials[m].density for m in material])
         mass = density * (4.0 / 3.0) * math.pi * radii**3
@@ -244,7 +262,11 @@ class SoilBuilder:
 
         body_arrays = self._body_arrays(prec, device)
         model = SoilModel(
-            device=device, precision=prec, law=law, materials=self.materials, gravity=self.gravity.copy(),
+            device=device,
+            precision=prec,
+            law=law,
+            materials=self.materials,
+            gravity=self.gravity.copy(),
             particle_count=len(radii),
             radius=wp.array(radii.astype(lo), dtype=prec.lo, device=device),
             mass=wp.array(mass.astype(lo), dtype=prec.lo, device=device),
@@ -277,17 +299,23 @@ class SoilBuilder:
             row = np.asarray(row, dtype=np.float64)
             if kind == BOUNDARY_PLANE:
                 outside = free & ((positions - row[:3]) @ row[3:] < 0)
-                where = f"behind boundary {b}, the plane through {tuple(float(v) for v in row[:3])} m (grains " \
-                        f"stay on the side its normal {tuple(float(v) for v in row[3:])} points to)"
+                where = (
+                    f"behind boundary {b}, the plane through {tuple(float(v) for v in row[:3])} m (grains "
+                    f"stay on the side its normal {tuple(float(v) for v in row[3:])} points to)"
+                )
             else:
                 outside = free & np.all((positions > row[:3]) & (positions < row[3:]), axis=1)
-                where = (f"inside boundary {b}, the solid box {tuple(float(v) for v in row[:3])} .. "
-                         f"{tuple(float(v) for v in row[3:])} m")
+                where = (
+                    f"inside boundary {b}, the solid box {tuple(float(v) for v in row[:3])} .. "
+                    f"{tuple(float(v) for v in row[3:])} m"
+                )
             if outside.any():
                 i = int(np.argmax(outside))
-                raise SoilInputError(f"{int(outside.sum())} grain(s) have their centre {where}, e.g. particle {i} "
-                                     f"at {tuple(float(v) for v in positions[i])} m: move them inside the container "
-                                     "(or fix them)")
+                raise SoilInputError(
+                    f"{int(outside.sum())} grain(s) have their centre {where}, e.g. particle {i} "
+                    f"at {tuple(float(v) for v in positions[i])} m: move them inside the container "
+                    "(or fix them)"
+                )
 
     def _check_overlaps(self) -> None:
         """Warn when grains were created deep inside each other or inside a wall (OverlapWarning)."""
@@ -321,9 +349,13 @@ class SoilBuilder:
                 k = int(np.argmax(ratio))
                 worst, where = float(ratio[k]), f"particle {k} and boundary {b} by {depth[k]:.3g} m"
         if count:
-            warnings.warn(f"{count} contact(s) were created with an overlap above {DEEP_OVERLAP:g} x the smaller "
-                          f"radius (the deepest: {where}, {worst:.3g} x its radius): their first contact throws the "
-                          "grains apart; space them out", OverlapWarning, stacklevel=3)
+            warnings.warn(
+                f"{count} contact(s) were created with an overlap above {DEEP_OVERLAP:g} x the smaller "
+                f"radius (the deepest: {where}, {worst:.3g} x its radius): their first contact throws the "
+                "grains apart; space them out",
+                OverlapWarning,
+                stacklevel=3,
+            )
 
     def _body_arrays(self, prec, device) -> dict:
         kinds, shapes, materials, point_offsets, index_offsets = [], [], [], [], []
@@ -340,8 +372,10 @@ class SoilBuilder:
                 continue
             kinds.append(BODY_MESH)
             shapes.append([0, 0, 0, 0, 0, shape.bounding_radius])
-            mesh = wp.Mesh(points=wp.array(shape.vertices.astype(np.float32), dtype=wp.vec3, device=device),
-                           indices=wp.array(shape.triangles.reshape(-1), dtype=wp.int32, device=device))
+            mesh = wp.Mesh(
+                points=wp.array(shape.vertices.astype(np.float32), dtype=wp.vec3, device=device),
+                indices=wp.array(shape.triangles.reshape(-1), dtype=wp.int32, device=device),
+            )
             meshes.append(mesh)
             mesh_ids.append(mesh.id)
             points.append(shape.vertices)

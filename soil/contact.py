@@ -6,7 +6,6 @@ Terms that the ContactLaw switches off are removed at compile time (wp.static), 
 they cost nothing. Geometry and history use `hi`; the force law itself uses `lo`.
 """
 
-
 import math
 from dataclasses import dataclass
 

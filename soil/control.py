@@ -1,6 +1,5 @@
 """Control: what the user prescribes from outside the soil, and the wheels' paths on the device."""
 
-
 import numpy as np
 import warp as wp
 
@@ -16,8 +15,14 @@ def quaternion_multiply(a, b) -> np.ndarray:
     """Hamilton product a b of quaternions (w, x, y, z)."""
     w1, x1, y1, z1 = a
     w2, x2, y2, z2 = b
-    return np.array([w1 * w2 - x1 * x2 - y1 * y2 - z1 * z2, w1 * x2 + x1 * w2 + y1 * z2 - z1 * y2,
-                     w1 * y2 - x1 * z2 + y1 * w2 + z1 * x2, w1 * z2 + x1 * y2 - y1 * x2 + z1 * w2])
+    return np.array(
+        [
+            w1 * w2 - x1 * x2 - y1 * y2 - z1 * z2,
+            w1 * x2 + x1 * w2 + y1 * z2 - z1 * y2,
+            w1 * y2 - x1 * z2 + y1 * w2 + z1 * x2,
+            w1 * z2 + x1 * y2 - y1 * x2 + z1 * w2,
+        ]
+    )
 
 
 def quaternion_integrate(q, omega, dt: float) -> np.ndarray:
@@ -48,11 +53,13 @@ def quaternion_slerp(q0, q1, a: float) -> np.ndarray:
 def quaternion_to_matrix(q) -> np.ndarray:
     """Rotation matrix (body -> world), shape (3, 3), of a unit quaternion (w, x, y, z)."""
     w, x, y, z = np.asarray(q, dtype=np.float64) / np.linalg.norm(q)
-    return np.array([
-        [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
-        [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
-        [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
-    ])
+    return np.array(
+        [
+            [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+            [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+            [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
+        ]
+    )
 
 
 @kernel_factory
@@ -66,10 +73,12 @@ def path_kernels(hi):
     @wp.func
     def quaternion_product(a: vec4_hi, b: vec4_hi):
         """Hamilton product a b of quaternions (w, x, y, z)."""
-        return vec4_hi(a[0] * b[0] - a[1] * b[1] - a[2] * b[2] - a[3] * b[3],
-                       a[0] * b[1] + a[1] * b[0] + a[2] * b[3] - a[3] * b[2],
-                       a[0] * b[2] - a[1] * b[3] + a[2] * b[0] + a[3] * b[1],
-                       a[0] * b[3] + a[1] * b[2] - a[2] * b[1] + a[3] * b[0])
+        return vec4_hi(
+            a[0] * b[0] - a[1] * b[1] - a[2] * b[2] - a[3] * b[3],
+            a[0] * b[1] + a[1] * b[0] + a[2] * b[3] - a[3] * b[2],
+            a[0] * b[2] - a[1] * b[3] + a[2] * b[0] + a[3] * b[1],
+            a[0] * b[3] + a[1] * b[2] - a[2] * b[1] + a[3] * b[0],
+        )
 
     @wp.func
     def rotation_of(q: vec4_hi):
@@ -77,14 +86,28 @@ def path_kernels(hi):
         q = q / wp.length(q)
         w, x, y, z = q[0], q[1], q[2], q[3]
         one, two = hi(1.0), hi(2.0)
-        return mat_hi(one - two * (y * y + z * z), two * (x * y - w * z), two * (x * z + w * y),
-                      two * (x * y + w * z), one - two * (x * x + z * z), two * (y * z - w * x),
-                      two * (x * z - w * y), two * (y * z + w * x), one - two * (x * x + y * y))
+        return mat_hi(
+            one - two * (y * y + z * z),
+            two * (x * y - w * z),
+            two * (x * z + w * y),
+            two * (x * y + w * z),
+            one - two * (x * x + z * z),
+            two * (y * z - w * x),
+            two * (x * z - w * y),
+            two * (y * z + w * x),
+            one - two * (x * x + y * y),
+        )
 
     @kernel
-    def follow_path(path: wp.array2d(dtype=hi), step: wp.array(dtype=wp.int32), dt: hi,
-                    position_out: wp.array(dtype=vec_hi), rotation_out: wp.array(dtype=mat_hi),
-                    velocity_out: wp.array(dtype=vec_hi), angular_velocity_out: wp.array(dtype=vec_hi)):
+    def follow_path(
+        path: wp.array2d(dtype=hi),
+        step: wp.array(dtype=wp.int32),
+        dt: hi,
+        position_out: wp.array(dtype=vec_hi),
+        rotation_out: wp.array(dtype=mat_hi),
+        velocity_out: wp.array(dtype=vec_hi),
+        angular_velocity_out: wp.array(dtype=vec_hi),
+    ):
         """Pose and velocities of body b at the end of the path's next step, tau = (step + 1) dt:
         constant velocities from the start, or interpolated towards the end pose (the same
         rules as soil.control.quaternion_integrate / quaternion_slerp on the host)."""
@@ -145,8 +168,15 @@ class SoilControl:
     each force evaluation when something changed, never inside a step's kernels.
     """
 
-    def __init__(self, particle_count: int, vec_hi, device: str, body_count: int = 0, boundary_count: int = 0,
-                 boundary_reports=None):
+    def __init__(
+        self,
+        particle_count: int,
+        vec_hi,
+        device: str,
+        body_count: int = 0,
+        boundary_count: int = 0,
+        boundary_reports=None,
+    ):
         self.external_force = wp.zeros(particle_count, dtype=vec_hi, device=device)
         """Extra force on each particle [N], shape (particle_count,); zero by default."""
         scalar = vec_hi._wp_scalar_type_
@@ -175,8 +205,11 @@ class SoilControl:
         """Device copy of body_posed_host [-], shape (body_count,), int32."""
 
         nb = boundary_count
-        self.boundary_reports = (np.ones(nb, dtype=bool) if boundary_reports is None
-                                 else np.asarray(boundary_reports, dtype=bool).reshape(nb))
+        self.boundary_reports = (
+            np.ones(nb, dtype=bool)
+            if boundary_reports is None
+            else np.asarray(boundary_reports, dtype=bool).reshape(nb)
+        )
         """Whether each boundary's grain force is summed (model.boundary_reports), shape (boundary_count,)."""
         self.boundary_mode_host = np.zeros(nb, dtype=np.int32)
         """MOTION_PRESCRIBED or MOTION_LOADED per boundary (soil.boundaries), shape (boundary_count,) (host copy)."""
@@ -217,8 +250,14 @@ class SoilControl:
     def for_model(cls, model) -> "SoilControl":
         """A control sized for `model`: no external forces, bodies not yet posed (at the origin,
         touching nothing), boundaries fixed."""
-        return cls(model.particle_count, model.precision.vec_hi, model.device, model.body_count,
-                   model.boundary_count, model.boundary_reports)
+        return cls(
+            model.particle_count,
+            model.precision.vec_hi,
+            model.device,
+            model.body_count,
+            model.boundary_count,
+            model.boundary_reports,
+        )
 
     @property
     def body_count(self) -> int:
@@ -236,8 +275,9 @@ class SoilControl:
             return
         force = np.asarray(force, dtype=np.float64)
         if force.shape != tuple(self.external_force.shape) + (3,) or not np.all(np.isfinite(force)):
-            raise ValueError(f"external force must be finite, shape ({self.external_force.shape[0]}, 3) [N], "
-                             f"got shape {force.shape}")
+            raise ValueError(
+                f"external force must be finite, shape ({self.external_force.shape[0]}, 3) [N], got shape {force.shape}"
+            )
         self.external_force.assign(force.astype(self.external_force.numpy().dtype))
         self.external_force_used = bool(np.any(force))
 
@@ -251,10 +291,15 @@ class SoilControl:
         (body_*_host) are set to the path's end. Ends with set_body_motion or clear_body_path.
         """
         count = self.body_count
-        start = [np.asarray(a, dtype=np.float64).reshape(count, width)
-                 for a, width in zip((position, orientation, velocity, angular_velocity), (3, 4, 3, 3))]
-        finish = start if end is None else [np.asarray(a, dtype=np.float64).reshape(count, width)
-                                            for a, width in zip(end, (3, 4, 3, 3))]
+        start = [
+            np.asarray(a, dtype=np.float64).reshape(count, width)
+            for a, width in zip((position, orientation, velocity, angular_velocity), (3, 4, 3, 3))
+        ]
+        finish = (
+            start
+            if end is None
+            else [np.asarray(a, dtype=np.float64).reshape(count, width) for a, width in zip(end, (3, 4, 3, 3))]
+        )
         rows = np.zeros((count, PATH_COLUMNS))
         rows[:, :13] = np.hstack(start)
         rows[:, 13:26] = np.hstack(finish)
@@ -285,18 +330,23 @@ class SoilControl:
     def follow_path(self, dt: float) -> None:
         """Pose the bodies for the end of the path's next step of length dt [s] (on the device; capturable)."""
         kernels = path_kernels(self.body_path.dtype)
-        wp.launch(kernels.follow_path, dim=self.body_count, inputs=[self.body_path, self.path_step,
-                                                                     self.body_path.dtype(dt)],
-                  outputs=[self.body_position, self.body_rotation, self.body_velocity, self.body_angular_velocity],
-                  device=self.body_path.device)
+        wp.launch(
+            kernels.follow_path,
+            dim=self.body_count,
+            inputs=[self.body_path, self.path_step, self.body_path.dtype(dt)],
+            outputs=[self.body_position, self.body_rotation, self.body_velocity, self.body_angular_velocity],
+            device=self.body_path.device,
+        )
 
     def count_path_step(self) -> None:
         """Count the step just taken along the path (on the device; capturable)."""
-        wp.launch(path_kernels(self.body_path.dtype).next_step, dim=1, inputs=[self.path_step],
-                  device=self.body_path.device)
+        wp.launch(
+            path_kernels(self.body_path.dtype).next_step, dim=1, inputs=[self.path_step], device=self.body_path.device
+        )
 
-    def set_body_motion(self, body: int, position=None, orientation=None, velocity=None, angular_velocity=None,
-                        rotation=None) -> None:
+    def set_body_motion(
+        self, body: int, position=None, orientation=None, velocity=None, angular_velocity=None, rotation=None
+    ) -> None:
         """Prescribe a body's pose and velocity: position [m] (3,), orientation quaternion
         (w, x, y, z) or rotation matrix (3, 3), velocity [m/s] (3,), angular velocity [rad/s] (3,).
 
@@ -344,8 +394,9 @@ class SoilControl:
         self.boundary_velocity_host[indices] = velocity
         self._dirty = True
 
-    def set_boundary_load(self, boundary: int, load: float, direction=None, mass: float | None = None,
-                          damping: float | None = None) -> None:
+    def set_boundary_load(
+        self, boundary: int, load: float, direction=None, mass: float | None = None, damping: float | None = None
+    ) -> None:
         """Make a boundary a rigid body free along a unit `direction`, pushed by `load` [N]:
 
             mass * a = load + F_grains . direction - damping * v . direction
@@ -359,8 +410,10 @@ class SoilControl:
         """
         (index,) = self._boundary_indices(boundary)
         if not self.boundary_reports[index]:
-            raise ValueError(f"boundary {index} was built with report=False: a loaded boundary needs its grain "
-                             "force (build it with report=True)")
+            raise ValueError(
+                f"boundary {index} was built with report=False: a loaded boundary needs its grain "
+                "force (build it with report=True)"
+            )
         loaded = self.boundary_mode_host[index] == MOTION_LOADED
         if direction is None and not loaded:
             raise ValueError(f"boundary {index} is not loaded yet: give its free direction (a 3-vector)")
@@ -417,8 +470,18 @@ class SoilControl:
         self._dirty = False
 
     # -- checkpoints -------------------------------------------------------------------
-    _HOST = ("body_position", "body_rotation", "body_velocity", "body_angular_velocity", "boundary_mode",
-             "boundary_velocity", "boundary_direction", "boundary_mass", "boundary_load", "boundary_damping")
+    _HOST = (
+        "body_position",
+        "body_rotation",
+        "body_velocity",
+        "body_angular_velocity",
+        "boundary_mode",
+        "boundary_velocity",
+        "boundary_direction",
+        "boundary_mass",
+        "boundary_load",
+        "boundary_damping",
+    )
 
     def state_dict(self) -> dict:
         """The control as numpy arrays: the host copies of body and boundary motion (names
@@ -439,8 +502,10 @@ class SoilControl:
             target[...] = values
         force = np.asarray(data["external_force"])
         if force.shape[0] != self.external_force.shape[0]:
-            raise ValueError(f"control.external_force: saved {force.shape[0]} particles, the model has "
-                             f"{self.external_force.shape[0]}")
+            raise ValueError(
+                f"control.external_force: saved {force.shape[0]} particles, the model has "
+                f"{self.external_force.shape[0]}"
+            )
         self.external_force.assign(force.astype(self.external_force.numpy().dtype, copy=False))
         self.external_force_used = bool(data.get("external_force_used", np.any(force)))
         # saved before bodies could be unposed: every body counted as posed

@@ -35,12 +35,18 @@ class GrouserWheel:
 
         check("radius", _positive(self.radius), "> 0 [m]")
         check("width", _positive(self.width), "> 0 [m]")
-        check("grouser_count", isinstance(self.grouser_count, (int, np.integer)) and 0 <= self.grouser_count <= 360,
-              "an integer in [0, 360]")
+        check(
+            "grouser_count",
+            isinstance(self.grouser_count, (int, np.integer)) and 0 <= self.grouser_count <= 360,
+            "an integer in [0, 360]",
+        )
         if self.grouser_count:
             check("grouser_height", _positive(self.grouser_height), "> 0 [m] when grouser_count > 0")
-            check("grouser_thickness", _positive(self.grouser_thickness) and self.grouser_thickness < self.radius,
-                  "> 0 [m] and < radius when grouser_count > 0")
+            check(
+                "grouser_thickness",
+                _positive(self.grouser_thickness) and self.grouser_thickness < self.radius,
+                "> 0 [m] and < radius when grouser_count > 0",
+            )
             spacing = 2 * math.pi * self.radius / self.grouser_count
             check("grouser_thickness", self.grouser_thickness < spacing, f"< the grouser spacing {spacing:.4g} m")
 
@@ -59,8 +65,14 @@ class GrouserWheel:
 
     def shape_row(self) -> list[float]:
         """The kernel's geometry row (see soil.sdf wheel_distance)."""
-        return [self.radius, 0.5 * self.width, float(self.grouser_count), self.grouser_height,
-                self.grouser_thickness, self.bounding_radius]
+        return [
+            self.radius,
+            0.5 * self.width,
+            float(self.grouser_count),
+            self.grouser_height,
+            self.grouser_thickness,
+            self.bounding_radius,
+        ]
 
     def profile(self, arc_segments: int = 720) -> np.ndarray:
         """Outline of the wheel in the X-Z plane, counter-clockwise about +Y [m], shape (k, 2)."""
@@ -140,8 +152,10 @@ class MeshWheel:
         edges = np.sort(np.concatenate([triangles[:, [0, 1]], triangles[:, [1, 2]], triangles[:, [2, 0]]]), axis=1)
         _, counts = np.unique(edges, axis=0, return_counts=True)
         if np.any(counts != 2):
-            raise ValueError(f"mesh {self.name!r} is not closed (watertight): {int(np.sum(counts != 2))} edges are not "
-                             "shared by exactly two triangles; inside/outside needs a closed surface")
+            raise ValueError(
+                f"mesh {self.name!r} is not closed (watertight): {int(np.sum(counts != 2))} edges are not "
+                "shared by exactly two triangles; inside/outside needs a closed surface"
+            )
         object.__setattr__(self, "vertices", vertices)
         object.__setattr__(self, "triangles", triangles.astype(np.int32))
 

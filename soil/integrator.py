@@ -246,10 +246,18 @@ def integrator_kernels(hi, lo, law: ContactLaw):
         return e
 
     @kernel
-    def norm_partial(gaps: wp.array2d(dtype=hi), v_in: wp.array(dtype=vec_hi), w_in: wp.array(dtype=vec_hi),
-                     radius: wp.array(dtype=lo), slot: wp.array(dtype=wp.int32), summary: wp.array(dtype=hi),
-                     position_weight: hi, pass_index: int, chunk: int,
-                     partial_out: wp.array2d(dtype=hi)):
+    def norm_partial(
+        gaps: wp.array2d(dtype=hi),
+        v_in: wp.array(dtype=vec_hi),
+        w_in: wp.array(dtype=vec_hi),
+        radius: wp.array(dtype=lo),
+        slot: wp.array(dtype=wp.int32),
+        summary: wp.array(dtype=hi),
+        position_weight: hi,
+        pass_index: int,
+        chunk: int,
+        partial_out: wp.array2d(dtype=hi),
+    ):
         """Per chunk of model indices (a fixed order): pass 0 the maxima of the gaps and of the
         speed; pass 1 the sum of e_i^2 and max e_i with the scale found by pass 0."""
         c = wp.tid()
@@ -272,8 +280,15 @@ def integrator_kernels(hi, lo, law: ContactLaw):
         partial_out[c, 2] = third
 
     @kernel
-    def norm_total(partial: wp.array2d(dtype=hi), status: wp.array(dtype=wp.int32), scale_floor: hi,
-                   use_speed: int, pass_index: int, count: int, summary_out: wp.array(dtype=hi)):
+    def norm_total(
+        partial: wp.array2d(dtype=hi),
+        status: wp.array(dtype=wp.int32),
+        scale_floor: hi,
+        use_speed: int,
+        pass_index: int,
+        count: int,
+        summary_out: wp.array(dtype=hi),
+    ):
         """Fold the chunks in order into the summary (pass 0: maxima, and the velocity scale
         V = max(scale_floor, speed) parked in SUMMARY_RMS; pass 1: the RMS and the maximum)."""
         first = hi(0.0)
@@ -303,8 +318,15 @@ def integrator_kernels(hi, lo, law: ContactLaw):
             summary_out[SUMMARY_RMS] = wp.sqrt(first / hi(count))
             summary_out[SUMMARY_MAX] = second
 
-    return dict(kick_drift=kick_drift, kick=kick, beeman_predict=beeman_predict, beeman_correct=beeman_correct,
-                norm_partial=norm_partial, norm_total=norm_total, acceleration_of=acceleration_of)
+    return dict(
+        kick_drift=kick_drift,
+        kick=kick,
+        beeman_predict=beeman_predict,
+        beeman_correct=beeman_correct,
+        norm_partial=norm_partial,
+        norm_total=norm_total,
+        acceleration_of=acceleration_of,
+    )
 
 
 class VelocityVerlet:
@@ -319,24 +341,55 @@ class VelocityVerlet:
     def bind(self, model: SoilModel) -> None:
         """Allocate what the steps need (before a step is captured)."""
 
-    def step(self, model: SoilModel, state_in: SoilState, state_out: SoilState, control: SoilControl,
-             dt: float, contacts: ContactSolver) -> None:
+    def step(
+        self,
+        model: SoilModel,
+        state_in: SoilState,
+        state_out: SoilState,
+        control: SoilControl,
+        dt: float,
+        contacts: ContactSolver,
+    ) -> None:
         prec = model.precision
         kernels = integrator_kernels(prec.hi, prec.lo, model.law)
         gravity = prec.vec_hi(*model.gravity)
         hi_dt = prec.hi(dt)
         layout = state_in.layout
-        wp.launch(kernels.kick_drift, dim=model.particle_count,
-                  inputs=[state_in.position, state_in.velocity, state_in.angular_velocity, state_in.force,
-                          state_in.torque, layout.inv_mass, layout.inv_inertia, gravity, hi_dt],
-                  outputs=[state_out.position, state_out.velocity, state_out.angular_velocity],
-                  device=model.device)
+        wp.launch(
+            kernels.kick_drift,
+            dim=model.particle_count,
+            inputs=[
+                state_in.position,
+                state_in.velocity,
+                state_in.angular_velocity,
+                state_in.force,
+                state_in.torque,
+                layout.inv_mass,
+                layout.inv_inertia,
+                gravity,
+                hi_dt,
+            ],
+            outputs=[state_out.position, state_out.velocity, state_out.angular_velocity],
+            device=model.device,
+        )
         boundaries.verlet_first_half(model, state_in, state_out, control, dt)
         contacts.compute(state_in, state_out, control, dt)
-        wp.launch(kernels.kick, dim=model.particle_count,
-                  inputs=[state_out.force, state_out.torque, layout.inv_mass, layout.inv_inertia, layout.order,
-                          state_out.position, gravity, hi_dt],
-                  outputs=[state_out.velocity, state_out.angular_velocity, contacts.status], device=model.device)
+        wp.launch(
+            kernels.kick,
+            dim=model.particle_count,
+            inputs=[
+                state_out.force,
+                state_out.torque,
+                layout.inv_mass,
+                layout.inv_inertia,
+                layout.order,
+                state_out.position,
+                gravity,
+                hi_dt,
+            ],
+            outputs=[state_out.velocity, state_out.angular_velocity, contacts.status],
+            device=model.device,
+        )
         boundaries.verlet_second_half(model, state_out, control, dt)
         # Verlet keeps no multi-step history: a jolt-Beeman step after it starts afresh (zero jolt)
         state_out.step_previous.zero_()
@@ -386,8 +439,12 @@ class JoltBeeman:
     def bind(self, model: SoilModel) -> None:
         """Allocate what the steps need (before a step is captured)."""
         n = model.particle_count
-        if self.gaps is not None and self.gaps.shape[0] == n and self.gaps.device == wp.get_device(model.device) \
-                and self.gaps.dtype == model.precision.hi:
+        if (
+            self.gaps is not None
+            and self.gaps.shape[0] == n
+            and self.gaps.device == wp.get_device(model.device)
+            and self.gaps.dtype == model.precision.hi
+        ):
             self._model = model
             return
         self._model = model
@@ -395,8 +452,15 @@ class JoltBeeman:
         self.gaps = wp.zeros((n, 2), dtype=model.precision.hi, device=model.device)
         self._partial = wp.zeros(((n + CHUNK - 1) // CHUNK, 3), dtype=model.precision.hi, device=model.device)
 
-    def step(self, model: SoilModel, state_in: SoilState, state_out: SoilState, control: SoilControl,
-             dt: float, contacts: ContactSolver) -> None:
+    def step(
+        self,
+        model: SoilModel,
+        state_in: SoilState,
+        state_out: SoilState,
+        control: SoilControl,
+        dt: float,
+        contacts: ContactSolver,
+    ) -> None:
         prec = model.precision
         kernels = integrator_kernels(prec.hi, prec.lo, model.law)
         gravity = prec.vec_hi(*model.gravity)
@@ -405,27 +469,70 @@ class JoltBeeman:
         if self._model is not model:
             self.bind(model)
         layout = state_in.layout
-        wp.launch(kernels.beeman_predict, dim=n,
-                  inputs=[state_in.position, state_in.velocity, state_in.angular_velocity, state_in.force,
-                          state_in.torque, state_in.force_previous, state_in.torque_previous,
-                          state_in.step_previous, layout.inv_mass, layout.inv_inertia, gravity, hi_dt],
-                  outputs=[state_out.position, state_out.velocity, state_out.angular_velocity,
-                           state_out.force_previous, state_out.torque_previous, state_out.step_previous],
-                  device=model.device)
+        wp.launch(
+            kernels.beeman_predict,
+            dim=n,
+            inputs=[
+                state_in.position,
+                state_in.velocity,
+                state_in.angular_velocity,
+                state_in.force,
+                state_in.torque,
+                state_in.force_previous,
+                state_in.torque_previous,
+                state_in.step_previous,
+                layout.inv_mass,
+                layout.inv_inertia,
+                gravity,
+                hi_dt,
+            ],
+            outputs=[
+                state_out.position,
+                state_out.velocity,
+                state_out.angular_velocity,
+                state_out.force_previous,
+                state_out.torque_previous,
+                state_out.step_previous,
+            ],
+            device=model.device,
+        )
         boundaries.beeman_predict(model, state_in, state_out, control, dt)
         contacts.compute(state_in, state_out, control, dt)
-        wp.launch(kernels.beeman_correct, dim=n,
-                  inputs=[state_in.velocity, state_in.angular_velocity, state_out.position, state_in.force,
-                          state_in.torque, state_in.force_previous, state_in.torque_previous,
-                          state_in.step_previous, state_out.force, state_out.torque, layout.inv_mass,
-                          layout.inv_inertia, layout.radius, layout.order, gravity, hi_dt],
-                  outputs=[state_out.velocity, state_out.angular_velocity, self.gaps, contacts.status],
-                  device=model.device)
+        wp.launch(
+            kernels.beeman_correct,
+            dim=n,
+            inputs=[
+                state_in.velocity,
+                state_in.angular_velocity,
+                state_out.position,
+                state_in.force,
+                state_in.torque,
+                state_in.force_previous,
+                state_in.torque_previous,
+                state_in.step_previous,
+                state_out.force,
+                state_out.torque,
+                layout.inv_mass,
+                layout.inv_inertia,
+                layout.radius,
+                layout.order,
+                gravity,
+                hi_dt,
+            ],
+            outputs=[state_out.velocity, state_out.angular_velocity, self.gaps, contacts.status],
+            device=model.device,
+        )
         boundaries.beeman_correct(model, state_in, state_out, control, dt)
         state_out.time = state_in.time + dt
 
-    def read_summary(self, state: SoilState, status: wp.array, position_weight: float = 1.0,
-                     scale_floor: float = 1.0, use_speed: bool = False) -> dict:
+    def read_summary(
+        self,
+        state: SoilState,
+        status: wp.array,
+        position_weight: float = 1.0,
+        scale_floor: float = 1.0,
+        use_speed: bool = False,
+    ) -> dict:
         """The last step's error norms, reduced on the device and read once: position_gap [-]
         (max |dx| / r), velocity_gap [m/s], speed [m/s] (max over grains), nonfinite (bool),
         worst (model index of a non-finite grain or -1), rms and max of the per-grain error
@@ -436,23 +543,42 @@ class JoltBeeman:
         kernels = integrator_kernels(prec.hi, prec.lo, model.law)
         layout = state.layout
         for pass_index in (0, 1):
-            wp.launch(kernels.norm_partial, dim=self._partial.shape[0],
-                      inputs=[self.gaps, state.velocity, state.angular_velocity, layout.radius, layout.slot,
-                              self.summary, prec.hi(position_weight), pass_index, CHUNK],
-                      outputs=[self._partial], device=model.device)
-            wp.launch(kernels.norm_total, dim=1,
-                      inputs=[self._partial, status, prec.hi(scale_floor), int(use_speed), pass_index,
-                              model.particle_count],
-                      outputs=[self.summary], device=model.device)
+            wp.launch(
+                kernels.norm_partial,
+                dim=self._partial.shape[0],
+                inputs=[
+                    self.gaps,
+                    state.velocity,
+                    state.angular_velocity,
+                    layout.radius,
+                    layout.slot,
+                    self.summary,
+                    prec.hi(position_weight),
+                    pass_index,
+                    CHUNK,
+                ],
+                outputs=[self._partial],
+                device=model.device,
+            )
+            wp.launch(
+                kernels.norm_total,
+                dim=1,
+                inputs=[self._partial, status, prec.hi(scale_floor), int(use_speed), pass_index, model.particle_count],
+                outputs=[self.summary],
+                device=model.device,
+            )
         values = self.summary.numpy().astype(np.float64)
         nonfinite = bool(values[SUMMARY_NONFINITE] > 0)
-        return {"position_gap": float(values[SUMMARY_POSITION_GAP]),
-                "velocity_gap": float(values[SUMMARY_VELOCITY_GAP]),
-                "speed": float(values[SUMMARY_SPEED]),
-                "nonfinite": nonfinite or not np.isfinite(values[SUMMARY_MAX]),
-                "worst": int(values[SUMMARY_WORST]) if nonfinite else -1,
-                "rms": float(values[SUMMARY_RMS]), "max": float(values[SUMMARY_MAX]),
-                "status": values[SUMMARY_STATUS:].astype(np.int64)}
+        return {
+            "position_gap": float(values[SUMMARY_POSITION_GAP]),
+            "velocity_gap": float(values[SUMMARY_VELOCITY_GAP]),
+            "speed": float(values[SUMMARY_SPEED]),
+            "nonfinite": nonfinite or not np.isfinite(values[SUMMARY_MAX]),
+            "worst": int(values[SUMMARY_WORST]) if nonfinite else -1,
+            "rms": float(values[SUMMARY_RMS]),
+            "max": float(values[SUMMARY_MAX]),
+            "status": values[SUMMARY_STATUS:].astype(np.int64),
+        }
 
 
 @dataclass
@@ -536,8 +662,10 @@ class StepController:
         if not self.grain_factor >= 1.0:
             raise ValueError(f"grain_factor must be >= 1 (inf: pure RMS), got {self.grain_factor!r}")
         if not 0 < self.rho_min < self.reject_below <= 1.0 < self.rho_max:
-            raise ValueError("need 0 < rho_min < reject_below <= 1 < rho_max, got "
-                             f"{self.rho_min}, {self.reject_below}, {self.rho_max}")
+            raise ValueError(
+                "need 0 < rho_min < reject_below <= 1 < rho_max, got "
+                f"{self.rho_min}, {self.reject_below}, {self.rho_max}"
+            )
 
     _OPTIONAL = ("dt_max", "dt_min", "dt_initial", "dt")
 
@@ -602,8 +730,11 @@ class StepController:
         use_speed (whether V grows with this step's largest speed)."""
         if not self.normalise:
             return dict(position_weight=0.0, scale_floor=1.0, use_speed=False)
-        return dict(position_weight=1.0, scale_floor=max(self._gravity_speed, self.speed_seen, self.velocity_scale),
-                    use_speed=True)
+        return dict(
+            position_weight=1.0,
+            scale_floor=max(self._gravity_speed, self.speed_seen, self.velocity_scale),
+            use_speed=True,
+        )
 
     def error(self, summary: dict) -> float:
         """Normalised error [-] of a step from JoltBeeman.read_summary(**error_scales())."""

@@ -95,8 +95,11 @@ class Material:
         else:
             check("damping_ratio", _finite(self.damping_ratio) and self.damping_ratio >= 0, ">= 0")
         check("stick_angle", _finite(self.stick_angle) and 0.0 <= self.stick_angle < math.pi / 2, "in [0, pi/2) [rad]")
-        check("slip_angle", _finite(self.slip_angle) and 0.0 <= self.slip_angle <= self.stick_angle,
-              "in [0, stick_angle] [rad] (sliding friction cannot exceed sticking friction)")
+        check(
+            "slip_angle",
+            _finite(self.slip_angle) and 0.0 <= self.slip_angle <= self.stick_angle,
+            "in [0, stick_angle] [rad] (sliding friction cannot exceed sticking friction)",
+        )
         check("stick_speed", _finite(self.stick_speed) and self.stick_speed > 0, "> 0 [m/s]")
         check("rolling_friction", _finite(self.rolling_friction) and self.rolling_friction >= 0, ">= 0")
         check("cohesion", _finite(self.cohesion) and self.cohesion >= 0, ">= 0 [Pa]")
@@ -122,8 +125,16 @@ def _finite(x) -> bool:
 
 
 # Columns of the pair-parameter table shared by the kernels.
-(PAIR_E_STAR, PAIR_G_STAR, PAIR_DAMPING, PAIR_TAN_STICK, PAIR_TAN_SLIP, PAIR_STICK_SPEED, PAIR_ROLLING,
- PAIR_COHESION) = range(8)
+(
+    PAIR_E_STAR,
+    PAIR_G_STAR,
+    PAIR_DAMPING,
+    PAIR_TAN_STICK,
+    PAIR_TAN_SLIP,
+    PAIR_STICK_SPEED,
+    PAIR_ROLLING,
+    PAIR_COHESION,
+) = range(8)
 PAIR_SHEAR_ROOT = 8
 """sqrt(k_T / k_N) = sqrt(4 G* / E*) [-]: the tangential damper is this times the normal one."""
 PAIR_COLUMNS = 9
@@ -143,8 +154,16 @@ class PairProperties:
     cohesion: float  # [Pa]
 
     def row(self) -> list[float]:
-        return [self.effective_modulus, self.effective_shear_modulus, self.damping_ratio, self.tan_stick,
-                self.tan_slip, self.stick_speed, self.rolling_friction, self.cohesion]
+        return [
+            self.effective_modulus,
+            self.effective_shear_modulus,
+            self.damping_ratio,
+            self.tan_stick,
+            self.tan_slip,
+            self.stick_speed,
+            self.rolling_friction,
+            self.cohesion,
+        ]
 
 
 def pair_properties(a: Material, b: Material) -> PairProperties:
@@ -199,6 +218,7 @@ class MaterialTable:
                 if extra:
                     props = replace(props, **extra)
                 table[i * count + j, :PAIR_SHEAR_ROOT] = props.row()
-                table[i * count + j, PAIR_SHEAR_ROOT] = math.sqrt(4.0 * props.effective_shear_modulus
-                                                                  / props.effective_modulus)
+                table[i * count + j, PAIR_SHEAR_ROOT] = math.sqrt(
+                    4.0 * props.effective_shear_modulus / props.effective_modulus
+                )
         return table

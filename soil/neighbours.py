@@ -20,7 +20,6 @@ tangential and rolling history from one list to the next) and carried along by a
 Design notes and measurements: docs/performance.md.
 """
 
-
 import math
 from dataclasses import dataclass
 from typing import Any
@@ -57,8 +56,9 @@ class NeighbourSettings:
     reorder_every: int = 1
 
     def __post_init__(self):
-        if self.skin is not None and not (isinstance(self.skin, (int, float)) and math.isfinite(self.skin)
-                                          and self.skin > 0):
+        if self.skin is not None and not (
+            isinstance(self.skin, (int, float)) and math.isfinite(self.skin) and self.skin > 0
+        ):
             raise ValueError(f"neighbour skin must be finite and > 0 [m], got {self.skin!r}")
         if not (isinstance(self.reorder_every, int) and self.reorder_every >= 1):
             raise ValueError(f"reorder_every must be an integer >= 1, got {self.reorder_every!r}")
@@ -122,17 +122,25 @@ def neighbour_kernels(hi, lo, law: ContactLaw):
         return cell
 
     @kernel
-    def begin_check(list_index_in: wp.array(dtype=wp.int32),
-                    list_index_out: wp.array(dtype=wp.int32), rebuild_out: wp.array(dtype=wp.int32),
-                    rebuilt_out: wp.array(dtype=wp.int32)):
+    def begin_check(
+        list_index_in: wp.array(dtype=wp.int32),
+        list_index_out: wp.array(dtype=wp.int32),
+        rebuild_out: wp.array(dtype=wp.int32),
+        rebuilt_out: wp.array(dtype=wp.int32),
+    ):
         """Before a step's check: the output state keeps its input's list unless it is rebuilt."""
         list_index_out[0] = list_index_in[0]
         rebuild_out[0] = 0
         rebuilt_out[0] = 0
 
     @kernel
-    def check_moved(position: wp.array(dtype=vec_hi), build_position: wp.array2d(dtype=vec_hi),
-                    list_index: wp.array(dtype=wp.int32), half_skin: hi, rebuild_out: wp.array(dtype=wp.int32)):
+    def check_moved(
+        position: wp.array(dtype=vec_hi),
+        build_position: wp.array2d(dtype=vec_hi),
+        list_index: wp.array(dtype=wp.int32),
+        half_skin: hi,
+        rebuild_out: wp.array(dtype=wp.int32),
+    ):
         """Flag a rebuild when a grain has moved more than half the skin since the build
         (the same value from every thread that writes it: no atomics needed)."""
         i = wp.tid()
@@ -141,8 +149,12 @@ def neighbour_kernels(hi, lo, law: ContactLaw):
             rebuild_out[0] = 1
 
     @kernel
-    def bounds_partial(position: wp.array(dtype=vec_hi), chunk: int,
-                       lower_out: wp.array(dtype=vec_hi), upper_out: wp.array(dtype=vec_hi)):
+    def bounds_partial(
+        position: wp.array(dtype=vec_hi),
+        chunk: int,
+        lower_out: wp.array(dtype=vec_hi),
+        upper_out: wp.array(dtype=vec_hi),
+    ):
         """Bounding box of the finite positions of each chunk of grains."""
         c = wp.tid()
         big = hi(1.0e30)
@@ -157,8 +169,13 @@ def neighbour_kernels(hi, lo, law: ContactLaw):
         upper_out[c] = upper
 
     @kernel
-    def bounds_total(lower_in: wp.array(dtype=vec_hi), upper_in: wp.array(dtype=vec_hi), cell_min: hi,
-                     dims: wp.vec3i, grid_out: wp.array(dtype=hi)):
+    def bounds_total(
+        lower_in: wp.array(dtype=vec_hi),
+        upper_in: wp.array(dtype=vec_hi),
+        cell_min: hi,
+        dims: wp.vec3i,
+        grid_out: wp.array(dtype=hi),
+    ):
         """The grid: origin [m] (3), cell size [m] per axis (3), at least cell_min, covering the box,
         and the box's upper corner [m] (3)."""
         big = hi(1.0e30)
@@ -178,8 +195,14 @@ def neighbour_kernels(hi, lo, law: ContactLaw):
             grid_out[6 + axis] = origin + extent
 
     @kernel
-    def cell_keys(position: wp.array(dtype=vec_hi), slot: wp.array(dtype=wp.int32), grid: wp.array(dtype=hi),
-                  dims: wp.vec3i, keys_out: wp.array(dtype=wp.int32), values_out: wp.array(dtype=wp.int32)):
+    def cell_keys(
+        position: wp.array(dtype=vec_hi),
+        slot: wp.array(dtype=wp.int32),
+        grid: wp.array(dtype=hi),
+        dims: wp.vec3i,
+        keys_out: wp.array(dtype=wp.int32),
+        values_out: wp.array(dtype=wp.int32),
+    ):
         """Morton key of each grain's cell, listed by model index (so that the stable sort breaks
         ties by model index, whatever the storage order)."""
         p = wp.tid()
@@ -188,10 +211,16 @@ def neighbour_kernels(hi, lo, law: ContactLaw):
         values_out[p] = p
 
     @kernel
-    def cell_ranges(keys: wp.array(dtype=wp.int32), values: wp.array(dtype=wp.int32), slot: wp.array(dtype=wp.int32),
-                    count: int, dims: wp.vec3i,
-                    cell_start_out: wp.array(dtype=wp.int32), cell_end_out: wp.array(dtype=wp.int32),
-                    cell_slot_out: wp.array(dtype=wp.int32)):
+    def cell_ranges(
+        keys: wp.array(dtype=wp.int32),
+        values: wp.array(dtype=wp.int32),
+        slot: wp.array(dtype=wp.int32),
+        count: int,
+        dims: wp.vec3i,
+        cell_start_out: wp.array(dtype=wp.int32),
+        cell_end_out: wp.array(dtype=wp.int32),
+        cell_slot_out: wp.array(dtype=wp.int32),
+    ):
         """Where each occupied cell's grains start and end in the sorted order, and their slots."""
         q = wp.tid()
         key = keys[q]
@@ -209,13 +238,23 @@ def neighbour_kernels(hi, lo, law: ContactLaw):
         cell_slot_out[q] = slot[values[q]]
 
     @kernel
-    def build_rows(position: wp.array(dtype=vec_hi), radius: wp.array(dtype=lo), inv_mass: wp.array(dtype=lo),
-                   order: wp.array(dtype=wp.int32), grid: wp.array(dtype=hi), dims: wp.vec3i,
-                   cell_start: wp.array(dtype=wp.int32), cell_end: wp.array(dtype=wp.int32),
-                   cell_slot: wp.array(dtype=wp.int32), skin: hi,
-                   target: wp.array(dtype=wp.int32),
-                   neighbours_out: wp.array3d(dtype=wp.int32), neighbour_count_out: wp.array2d(dtype=wp.int32),
-                   build_position_out: wp.array2d(dtype=vec_hi), status_out: wp.array(dtype=wp.int32)):
+    def build_rows(
+        position: wp.array(dtype=vec_hi),
+        radius: wp.array(dtype=lo),
+        inv_mass: wp.array(dtype=lo),
+        order: wp.array(dtype=wp.int32),
+        grid: wp.array(dtype=hi),
+        dims: wp.vec3i,
+        cell_start: wp.array(dtype=wp.int32),
+        cell_end: wp.array(dtype=wp.int32),
+        cell_slot: wp.array(dtype=wp.int32),
+        skin: hi,
+        target: wp.array(dtype=wp.int32),
+        neighbours_out: wp.array3d(dtype=wp.int32),
+        neighbour_count_out: wp.array2d(dtype=wp.int32),
+        build_position_out: wp.array2d(dtype=vec_hi),
+        status_out: wp.array(dtype=wp.int32),
+    ):
         """Row of grain i in list `target`: the grains within r_i + r_j + skin, in ascending model
         index (so the row, and every sum over it, depends neither on the storage order nor on
         the grid). Two fixed grains never pair."""
@@ -267,13 +306,20 @@ def neighbour_kernels(hi, lo, law: ContactLaw):
             wp.atomic_max(status_out, status_columns.NEEDED_NEIGHBOURS, count)
 
     @kernel
-    def remap_history(neighbours: wp.array3d(dtype=wp.int32), neighbour_count: wp.array2d(dtype=wp.int32),
-                      list_index_in: wp.array(dtype=wp.int32), target: wp.array(dtype=wp.int32),
-                      order: wp.array(dtype=wp.int32),
-                      touching_in: wp.array2d(dtype=wp.uint32), tangential_in: wp.array2d(dtype=vec_hi),
-                      rolling_in: wp.array2d(dtype=vec_hi), touching_old: wp.array2d(dtype=wp.uint32),
-                      touching_out: wp.array2d(dtype=wp.uint32), tangential_out: wp.array2d(dtype=vec_hi),
-                      rolling_out: wp.array2d(dtype=vec_hi)):
+    def remap_history(
+        neighbours: wp.array3d(dtype=wp.int32),
+        neighbour_count: wp.array2d(dtype=wp.int32),
+        list_index_in: wp.array(dtype=wp.int32),
+        target: wp.array(dtype=wp.int32),
+        order: wp.array(dtype=wp.int32),
+        touching_in: wp.array2d(dtype=wp.uint32),
+        tangential_in: wp.array2d(dtype=vec_hi),
+        rolling_in: wp.array2d(dtype=vec_hi),
+        touching_old: wp.array2d(dtype=wp.uint32),
+        touching_out: wp.array2d(dtype=wp.uint32),
+        tangential_out: wp.array2d(dtype=vec_hi),
+        rolling_out: wp.array2d(dtype=vec_hi),
+    ):
         """Carry each pair's history from its entry in the old row to its entry in the new one
         (both rows ascend in model index: one merge pass).
 
@@ -315,8 +361,12 @@ def neighbour_kernels(hi, lo, law: ContactLaw):
             touching_out[i, word] = bits
 
     @kernel
-    def finish_build(target: wp.array(dtype=wp.int32), list_index_out: wp.array(dtype=wp.int32),
-                     rebuilt_out: wp.array(dtype=wp.int32), status_out: wp.array(dtype=wp.int32)):
+    def finish_build(
+        target: wp.array(dtype=wp.int32),
+        list_index_out: wp.array(dtype=wp.int32),
+        rebuilt_out: wp.array(dtype=wp.int32),
+        status_out: wp.array(dtype=wp.int32),
+    ):
         """The output state's history is now aligned with the new list."""
         list_index_out[0] = target[0]
         rebuilt_out[0] = 1
@@ -334,19 +384,27 @@ def neighbour_kernels(hi, lo, law: ContactLaw):
         new_slot_out[values[q]] = q
 
     @kernel
-    def storage_origin(values: wp.array(dtype=wp.int32), slot: wp.array(dtype=wp.int32),
-                       origin_out: wp.array(dtype=wp.int32)):
+    def storage_origin(
+        values: wp.array(dtype=wp.int32), slot: wp.array(dtype=wp.int32), origin_out: wp.array(dtype=wp.int32)
+    ):
         """Old slot of the grain that moves to new slot q."""
         q = wp.tid()
         origin_out[q] = slot[values[q]]
 
     @kernel
-    def relabel_rows(neighbours: wp.array3d(dtype=wp.int32), neighbour_count: wp.array2d(dtype=wp.int32),
-                     build_position: wp.array2d(dtype=vec_hi), list_index_in: wp.array(dtype=wp.int32),
-                     origin: wp.array(dtype=wp.int32), order: wp.array(dtype=wp.int32),
-                     new_slot: wp.array(dtype=wp.int32),
-                     neighbours_out: wp.array3d(dtype=wp.int32), neighbour_count_out: wp.array2d(dtype=wp.int32),
-                     build_position_out: wp.array2d(dtype=vec_hi), list_index_out: wp.array(dtype=wp.int32)):
+    def relabel_rows(
+        neighbours: wp.array3d(dtype=wp.int32),
+        neighbour_count: wp.array2d(dtype=wp.int32),
+        build_position: wp.array2d(dtype=vec_hi),
+        list_index_in: wp.array(dtype=wp.int32),
+        origin: wp.array(dtype=wp.int32),
+        order: wp.array(dtype=wp.int32),
+        new_slot: wp.array(dtype=wp.int32),
+        neighbours_out: wp.array3d(dtype=wp.int32),
+        neighbour_count_out: wp.array2d(dtype=wp.int32),
+        build_position_out: wp.array2d(dtype=vec_hi),
+        list_index_out: wp.array(dtype=wp.int32),
+    ):
         """Move each row of the current list to its grain's new slot (into the other list), naming
         the partners by their new slots."""
         q = wp.tid()
@@ -362,12 +420,21 @@ def neighbour_kernels(hi, lo, law: ContactLaw):
             list_index_out[0] = t
 
     @kernel
-    def relabel_layout(values: wp.array(dtype=wp.int32), radius: wp.array(dtype=lo), mass: wp.array(dtype=lo),
-                       inv_mass: wp.array(dtype=lo), inv_inertia: wp.array(dtype=lo),
-                       material: wp.array(dtype=wp.int32),
-                       order_out: wp.array(dtype=wp.int32), slot_out: wp.array(dtype=wp.int32),
-                       radius_out: wp.array(dtype=lo), mass_out: wp.array(dtype=lo), inv_mass_out: wp.array(dtype=lo),
-                       inv_inertia_out: wp.array(dtype=lo), material_out: wp.array(dtype=wp.int32)):
+    def relabel_layout(
+        values: wp.array(dtype=wp.int32),
+        radius: wp.array(dtype=lo),
+        mass: wp.array(dtype=lo),
+        inv_mass: wp.array(dtype=lo),
+        inv_inertia: wp.array(dtype=lo),
+        material: wp.array(dtype=wp.int32),
+        order_out: wp.array(dtype=wp.int32),
+        slot_out: wp.array(dtype=wp.int32),
+        radius_out: wp.array(dtype=lo),
+        mass_out: wp.array(dtype=lo),
+        inv_mass_out: wp.array(dtype=lo),
+        inv_inertia_out: wp.array(dtype=lo),
+        material_out: wp.array(dtype=wp.int32),
+    ):
         """The layout in the new order: model index per slot, its inverse, and the grains'
         constants gathered from the model (model order)."""
         q = wp.tid()
@@ -381,10 +448,16 @@ def neighbour_kernels(hi, lo, law: ContactLaw):
         material_out[q] = material[p]
 
     @kernel
-    def copy_list(neighbours: wp.array3d(dtype=wp.int32), neighbour_count: wp.array2d(dtype=wp.int32),
-                  build_position: wp.array2d(dtype=vec_hi), source: wp.array(dtype=wp.int32),
-                  target: wp.array(dtype=wp.int32), neighbours_out: wp.array3d(dtype=wp.int32),
-                  neighbour_count_out: wp.array2d(dtype=wp.int32), build_position_out: wp.array2d(dtype=vec_hi)):
+    def copy_list(
+        neighbours: wp.array3d(dtype=wp.int32),
+        neighbour_count: wp.array2d(dtype=wp.int32),
+        build_position: wp.array2d(dtype=vec_hi),
+        source: wp.array(dtype=wp.int32),
+        target: wp.array(dtype=wp.int32),
+        neighbours_out: wp.array3d(dtype=wp.int32),
+        neighbour_count_out: wp.array2d(dtype=wp.int32),
+        build_position_out: wp.array2d(dtype=vec_hi),
+    ):
         """Copy grain i's row of list source[0] into list target[0] of the output arrays."""
         i = wp.tid()
         s = source[0]
@@ -395,10 +468,23 @@ def neighbour_kernels(hi, lo, law: ContactLaw):
         neighbour_count_out[t, i] = count
         build_position_out[t, i] = build_position[s, i]
 
-    return dict(copy_list=copy_list, begin_check=begin_check, check_moved=check_moved, bounds_partial=bounds_partial,
-                bounds_total=bounds_total, cell_keys=cell_keys, cell_ranges=cell_ranges, build_rows=build_rows,
-                remap_history=remap_history, finish_build=finish_build, other_list=other_list, new_slots=new_slots,
-                storage_origin=storage_origin, relabel_rows=relabel_rows, relabel_layout=relabel_layout)
+    return dict(
+        copy_list=copy_list,
+        begin_check=begin_check,
+        check_moved=check_moved,
+        bounds_partial=bounds_partial,
+        bounds_total=bounds_total,
+        cell_keys=cell_keys,
+        cell_ranges=cell_ranges,
+        build_rows=build_rows,
+        remap_history=remap_history,
+        finish_build=finish_build,
+        other_list=other_list,
+        new_slots=new_slots,
+        storage_origin=storage_origin,
+        relabel_rows=relabel_rows,
+        relabel_layout=relabel_layout,
+    )
 
 
 class NeighbourList:
@@ -414,8 +500,7 @@ class NeighbourList:
         self.cell_min = 2.0 * model.max_radius + self.skin
         """Smallest cell size [m]: the largest pair reach."""
         n = model.particle_count
-        self.reorder_enabled = bool(self.settings.reorder if self.settings.reorder is not None
-                                    else n >= REORDER_FROM)
+        self.reorder_enabled = bool(self.settings.reorder if self.settings.reorder is not None else n >= REORDER_FROM)
         """Whether the storage follows the space-filling curve (reordered between macro steps)."""
         device = model.device
         self._chunks = (n + CHUNK - 1) // CHUNK
@@ -471,8 +556,17 @@ class NeighbourList:
     def bytes_per_grain(self) -> float:
         """Device memory of the build's scratch per grain [B]."""
         n = max(self.model.particle_count, 1)
-        arrays = (self._keys, self._values, self._cell_slot, self._origin, self._new_slot, self._cell_start,
-                  self._cell_end, self._lower, self._upper)
+        arrays = (
+            self._keys,
+            self._values,
+            self._cell_slot,
+            self._origin,
+            self._new_slot,
+            self._cell_start,
+            self._cell_end,
+            self._lower,
+            self._upper,
+        )
         return sum(a.capacity for a in arrays) / n
 
     # -- steps ------------------------------------------------------------------------
@@ -483,12 +577,25 @@ class NeighbourList:
         read: the rebuild is a device-side branch (capturable)."""
         k = self.kernels
         device = self.model.device
-        wp.launch(k.begin_check, dim=1, inputs=[state_in.list_index],
-                  outputs=[state_out.list_index, self._rebuild, self.rebuilt], device=device)
-        wp.launch(k.check_moved, dim=self.model.particle_count,
-                  inputs=[state_out.position, state_in.layout.build_position, state_in.list_index,
-                          self.model.precision.hi(0.5 * self.skin)],
-                  outputs=[self._rebuild], device=device)
+        wp.launch(
+            k.begin_check,
+            dim=1,
+            inputs=[state_in.list_index],
+            outputs=[state_out.list_index, self._rebuild, self.rebuilt],
+            device=device,
+        )
+        wp.launch(
+            k.check_moved,
+            dim=self.model.particle_count,
+            inputs=[
+                state_out.position,
+                state_in.layout.build_position,
+                state_in.list_index,
+                self.model.precision.hi(0.5 * self.skin),
+            ],
+            outputs=[self._rebuild],
+            device=device,
+        )
         wp.capture_if(self._rebuild, on_true=lambda: self._build(state_out.position, state_in, state_out, status))
 
     def build(self, state: SoilState, status: wp.array) -> None:
@@ -502,18 +609,37 @@ class NeighbourList:
         self._rows(state.position, layout, status)
         # history: from copies of the state's entries into entries aligned with the new rows
         touching = wp.clone(state.pair_touching)
-        wp.launch(k.remap_history, dim=self.model.particle_count,
-                  inputs=[layout.neighbours, layout.neighbour_count, state.list_index, self._target, layout.order,
-                          touching, wp.clone(state.pair_tangential), wp.clone(state.pair_rolling), touching],
-                  outputs=[state.pair_touching, state.pair_tangential, state.pair_rolling], device=device)
-        wp.launch(k.finish_build, dim=1, inputs=[self._target], outputs=[state.list_index, self.rebuilt, status],
-                  device=device)
+        wp.launch(
+            k.remap_history,
+            dim=self.model.particle_count,
+            inputs=[
+                layout.neighbours,
+                layout.neighbour_count,
+                state.list_index,
+                self._target,
+                layout.order,
+                touching,
+                wp.clone(state.pair_tangential),
+                wp.clone(state.pair_rolling),
+                touching,
+            ],
+            outputs=[state.pair_touching, state.pair_tangential, state.pair_rolling],
+            device=device,
+        )
+        wp.launch(
+            k.finish_build,
+            dim=1,
+            inputs=[self._target],
+            outputs=[state.list_index, self.rebuilt, status],
+            device=device,
+        )
 
     def build_other(self, state: SoilState, status: wp.array) -> None:
         """Build the list `state` does not use from its positions, leaving the state as it is
         (for diagnostics of a state whose own list is stale)."""
-        wp.launch(self.kernels.other_list, dim=1, inputs=[state.list_index], outputs=[self._target],
-                  device=self.model.device)
+        wp.launch(
+            self.kernels.other_list, dim=1, inputs=[state.list_index], outputs=[self._target], device=self.model.device
+        )
         self._sort(state.position, state.layout)
         self._rows(state.position, state.layout, status)
 
@@ -521,10 +647,18 @@ class NeighbourList:
         """Whether a grain of `state` has moved more than half the skin since its list was built (host read)."""
         k = self.kernels
         self._rebuild.zero_()
-        wp.launch(k.check_moved, dim=self.model.particle_count,
-                  inputs=[state.position, state.layout.build_position, state.list_index,
-                          self.model.precision.hi(0.5 * self.skin)],
-                  outputs=[self._rebuild], device=self.model.device)
+        wp.launch(
+            k.check_moved,
+            dim=self.model.particle_count,
+            inputs=[
+                state.position,
+                state.layout.build_position,
+                state.list_index,
+                self.model.precision.hi(0.5 * self.skin),
+            ],
+            outputs=[self._rebuild],
+            device=self.model.device,
+        )
         return bool(self._rebuild.numpy()[0])
 
     def _build(self, position, state_in: SoilState, state_out: SoilState, status) -> None:
@@ -534,14 +668,30 @@ class NeighbourList:
         wp.launch(k.other_list, dim=1, inputs=[state_in.list_index], outputs=[self._target], device=device)
         self._sort(position, layout)
         self._rows(position, layout, status)
-        wp.launch(k.remap_history, dim=self.model.particle_count,
-                  inputs=[layout.neighbours, layout.neighbour_count, state_in.list_index, self._target,
-                          layout.order, state_in.pair_touching, state_in.pair_tangential, state_in.pair_rolling,
-                          state_out.pair_touching],
-                  outputs=[state_out.pair_touching, state_out.pair_tangential, state_out.pair_rolling],
-                  device=device)
-        wp.launch(k.finish_build, dim=1, inputs=[self._target], outputs=[state_out.list_index, self.rebuilt, status],
-                  device=device)
+        wp.launch(
+            k.remap_history,
+            dim=self.model.particle_count,
+            inputs=[
+                layout.neighbours,
+                layout.neighbour_count,
+                state_in.list_index,
+                self._target,
+                layout.order,
+                state_in.pair_touching,
+                state_in.pair_tangential,
+                state_in.pair_rolling,
+                state_out.pair_touching,
+            ],
+            outputs=[state_out.pair_touching, state_out.pair_tangential, state_out.pair_rolling],
+            device=device,
+        )
+        wp.launch(
+            k.finish_build,
+            dim=1,
+            inputs=[self._target],
+            outputs=[state_out.list_index, self.rebuilt, status],
+            device=device,
+        )
 
     def _sort(self, position, layout: GrainLayout) -> None:
         """The grid from the grains' box, and the grains sorted by (cell key, model index)."""
@@ -550,12 +700,27 @@ class NeighbourList:
         n = self.model.particle_count
         hi = self.model.precision.hi
         dims = wp.vec3i(*self.dims)
-        wp.launch(k.bounds_partial, dim=self._chunks, inputs=[position, CHUNK], outputs=[self._lower, self._upper],
-                  device=device)
-        wp.launch(k.bounds_total, dim=1, inputs=[self._lower, self._upper, hi(self.cell_min), dims],
-                  outputs=[self.grid], device=device)
-        wp.launch(k.cell_keys, dim=n, inputs=[position, layout.slot, self.grid, dims],
-                  outputs=[self._keys, self._values], device=device)
+        wp.launch(
+            k.bounds_partial,
+            dim=self._chunks,
+            inputs=[position, CHUNK],
+            outputs=[self._lower, self._upper],
+            device=device,
+        )
+        wp.launch(
+            k.bounds_total,
+            dim=1,
+            inputs=[self._lower, self._upper, hi(self.cell_min), dims],
+            outputs=[self.grid],
+            device=device,
+        )
+        wp.launch(
+            k.cell_keys,
+            dim=n,
+            inputs=[position, layout.slot, self.grid, dims],
+            outputs=[self._keys, self._values],
+            device=device,
+        )
         wp.utils.radix_sort_pairs(self._keys, self._values, n, 0, 30)
 
     def _rows(self, position, layout: GrainLayout, status) -> None:
@@ -565,13 +730,32 @@ class NeighbourList:
         dims = wp.vec3i(*self.dims)
         self._cell_start.zero_()
         self._cell_end.zero_()
-        wp.launch(k.cell_ranges, dim=n, inputs=[self._keys, self._values, layout.slot, n, dims],
-                  outputs=[self._cell_start, self._cell_end, self._cell_slot], device=device)
-        wp.launch(k.build_rows, dim=n,
-                  inputs=[position, layout.radius, layout.inv_mass, layout.order, self.grid, dims, self._cell_start,
-                          self._cell_end, self._cell_slot, self.model.precision.hi(self.skin), self._target],
-                  outputs=[layout.neighbours, layout.neighbour_count, layout.build_position, status],
-                  device=device)
+        wp.launch(
+            k.cell_ranges,
+            dim=n,
+            inputs=[self._keys, self._values, layout.slot, n, dims],
+            outputs=[self._cell_start, self._cell_end, self._cell_slot],
+            device=device,
+        )
+        wp.launch(
+            k.build_rows,
+            dim=n,
+            inputs=[
+                position,
+                layout.radius,
+                layout.inv_mass,
+                layout.order,
+                self.grid,
+                dims,
+                self._cell_start,
+                self._cell_end,
+                self._cell_slot,
+                self.model.precision.hi(self.skin),
+                self._target,
+            ],
+            outputs=[layout.neighbours, layout.neighbour_count, layout.build_position, status],
+            device=device,
+        )
 
     # -- saving a list (a macro step redone from its start needs the start's list) -----------
     def save(self, state: SoilState) -> None:
@@ -580,21 +764,29 @@ class NeighbourList:
         n = self.model.particle_count
         if self._saved is None or self._saved[0].shape[2] != layout.capacity:
             device = self.model.device
-            self._saved = (wp.zeros((1, n, layout.capacity), dtype=wp.int32, device=device),
-                           wp.zeros((1, n), dtype=wp.int32, device=device),
-                           wp.zeros((1, n), dtype=self.model.precision.vec_hi, device=device))
-        wp.launch(self.kernels.copy_list, dim=n,
-                  inputs=[layout.neighbours, layout.neighbour_count, layout.build_position, state.list_index,
-                          self._zero],
-                  outputs=list(self._saved), device=self.model.device)
+            self._saved = (
+                wp.zeros((1, n, layout.capacity), dtype=wp.int32, device=device),
+                wp.zeros((1, n), dtype=wp.int32, device=device),
+                wp.zeros((1, n), dtype=self.model.precision.vec_hi, device=device),
+            )
+        wp.launch(
+            self.kernels.copy_list,
+            dim=n,
+            inputs=[layout.neighbours, layout.neighbour_count, layout.build_position, state.list_index, self._zero],
+            outputs=list(self._saved),
+            device=self.model.device,
+        )
 
     def restore(self, state: SoilState) -> None:
         """Put the list saved by save() back where `state` expects it."""
         layout = state.layout
-        wp.launch(self.kernels.copy_list, dim=self.model.particle_count,
-                  inputs=[*self._saved, self._zero, state.list_index],
-                  outputs=[layout.neighbours, layout.neighbour_count, layout.build_position],
-                  device=self.model.device)
+        wp.launch(
+            self.kernels.copy_list,
+            dim=self.model.particle_count,
+            inputs=[*self._saved, self._zero, state.list_index],
+            outputs=[layout.neighbours, layout.neighbour_count, layout.build_position],
+            device=self.model.device,
+        )
 
     # -- reordering (between steps) ------------------------------------------------------
     def reorder(self, state: SoilState, spare: SoilState) -> None:
@@ -609,11 +801,21 @@ class NeighbourList:
         self._sort(state.position, layout)
         wp.launch(k.new_slots, dim=n, inputs=[self._values], outputs=[self._new_slot], device=device)
         wp.launch(k.storage_origin, dim=n, inputs=[self._values, layout.slot], outputs=[self._origin], device=device)
-        wp.launch(k.relabel_rows, dim=n,
-                  inputs=[layout.neighbours, layout.neighbour_count, layout.build_position, state.list_index,
-                          self._origin, layout.order, self._new_slot],
-                  outputs=[layout.neighbours, layout.neighbour_count, layout.build_position, spare.list_index],
-                  device=device)
+        wp.launch(
+            k.relabel_rows,
+            dim=n,
+            inputs=[
+                layout.neighbours,
+                layout.neighbour_count,
+                layout.build_position,
+                state.list_index,
+                self._origin,
+                layout.order,
+                self._new_slot,
+            ],
+            outputs=[layout.neighbours, layout.neighbour_count, layout.build_position, spare.list_index],
+            device=device,
+        )
         for name, array in state.arrays.items():
             target = getattr(spare, name)
             if name.startswith(("boundary_", "body_")) or name == "step_previous":
@@ -622,9 +824,20 @@ class NeighbourList:
                 wp.launch(gather_1d, dim=n, inputs=[array, self._origin], outputs=[target], device=device)
             elif array.shape[1]:
                 wp.launch(gather_2d, dim=array.shape, inputs=[array, self._origin], outputs=[target], device=device)
-        wp.launch(k.relabel_layout, dim=n,
-                  inputs=[self._values, model.radius, model.mass, model.inv_mass, model.inv_inertia, model.material],
-                  outputs=[layout.order, layout.slot, layout.radius, layout.mass, layout.inv_mass,
-                           layout.inv_inertia, layout.material], device=device)
+        wp.launch(
+            k.relabel_layout,
+            dim=n,
+            inputs=[self._values, model.radius, model.mass, model.inv_mass, model.inv_inertia, model.material],
+            outputs=[
+                layout.order,
+                layout.slot,
+                layout.radius,
+                layout.mass,
+                layout.inv_mass,
+                layout.inv_inertia,
+                layout.material,
+            ],
+            device=device,
+        )
         spare.time = state.time
         spare.forces_valid = state.forces_valid

@@ -73,6 +73,7 @@ def get_precision(name: str) -> Precision:
 def kernel_module(name: str, *key) -> str:
     """The Warp module of one kernel-factory call (e.g. `kernel_module("contact", hi, lo, law)`):
     its kernels compile together, once per combination."""
+
     def part(value):
         if isinstance(value, type):
             return value.__name__

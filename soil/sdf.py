@@ -64,8 +64,9 @@ def sdf_functions(hi):
         """Reference point of a boundary's torque [m], undisplaced: a plane's point, a box's centre."""
         if kind == BOUNDARY_PLANE:
             return vec_hi(geometry[b, 0], geometry[b, 1], geometry[b, 2])
-        return hi(0.5) * vec_hi(geometry[b, 0] + geometry[b, 3], geometry[b, 1] + geometry[b, 4],
-                                geometry[b, 2] + geometry[b, 5])
+        return hi(0.5) * vec_hi(
+            geometry[b, 0] + geometry[b, 3], geometry[b, 1] + geometry[b, 4], geometry[b, 2] + geometry[b, 5]
+        )
 
     @wp.func
     def box_distance(q: vec_hi, half: vec_hi):
@@ -161,16 +162,24 @@ def sdf_functions(hi):
         return a + ab * (vb * denominator) + ac * (vc * denominator)
 
     @wp.func
-    def mesh_distance(mesh: wp.uint64, points: wp.array(dtype=vec_hi), indices: wp.array(dtype=wp.int32),
-                      point_offset: int, index_offset: int, p: vec_hi, max_distance: hi):
+    def mesh_distance(
+        mesh: wp.uint64,
+        points: wp.array(dtype=vec_hi),
+        indices: wp.array(dtype=wp.int32),
+        point_offset: int,
+        index_offset: int,
+        p: vec_hi,
+        max_distance: hi,
+    ):
         """Signed distance of p from a closed mesh and the outward normal; (max_distance, 0) if far.
 
         Warp's mesh query (float32) finds the closest triangle and the inside/outside
         sign; the closest point is then recomputed in `hi` from the triangle's `hi`
         vertices, so tiny overlaps stay resolved in double and mixed precision.
         """
-        query = wp.mesh_query_point_sign_normal(mesh, wp.vec3(wp.float32(p[0]), wp.float32(p[1]), wp.float32(p[2])),
-                                                wp.float32(max_distance))
+        query = wp.mesh_query_point_sign_normal(
+            mesh, wp.vec3(wp.float32(p[0]), wp.float32(p[1]), wp.float32(p[2])), wp.float32(max_distance)
+        )
         if not query.result:
             return max_distance, vec_hi()
         base = index_offset + 3 * query.face
@@ -184,5 +193,11 @@ def sdf_functions(hi):
             return side * distance, side * gap / distance
         return hi(0.0), wp.normalize(wp.cross(b - a, c - a))
 
-    return dict(boundary_contact=boundary_contact, boundary_reference=boundary_reference, box_distance=box_distance,
-                wheel_distance=wheel_distance, closest_on_triangle=closest_on_triangle, mesh_distance=mesh_distance)
+    return dict(
+        boundary_contact=boundary_contact,
+        boundary_reference=boundary_reference,
+        box_distance=box_distance,
+        wheel_distance=wheel_distance,
+        closest_on_triangle=closest_on_triangle,
+        mesh_distance=mesh_distance,
+    )

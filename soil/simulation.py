@@ -54,27 +54,42 @@ def macro_kernels(hi):
     vec_hi = wp.types.vector(3, hi)
 
     @kernel
-    def accumulate_wrench(force: wp.array(dtype=vec_hi), torque: wp.array(dtype=vec_hi),
-                          velocity: wp.array(dtype=vec_hi), angular_velocity: wp.array(dtype=vec_hi), dt: wp.float64,
-                          force_sum_out: wp.array(dtype=wp.vec3d), torque_sum_out: wp.array(dtype=wp.vec3d),
-                          work_out: wp.array(dtype=wp.float64)):
+    def accumulate_wrench(
+        force: wp.array(dtype=vec_hi),
+        torque: wp.array(dtype=vec_hi),
+        velocity: wp.array(dtype=vec_hi),
+        angular_velocity: wp.array(dtype=vec_hi),
+        dt: wp.float64,
+        force_sum_out: wp.array(dtype=wp.vec3d),
+        torque_sum_out: wp.array(dtype=wp.vec3d),
+        work_out: wp.array(dtype=wp.float64),
+    ):
         """Add a step's wrench on body b to the macro step's sums (one thread per body: a fixed
         order); the soil's force does -F.v - T.w work on the soil side's books."""
         b = wp.tid()
         f = wp.vec3d(wp.float64(force[b][0]), wp.float64(force[b][1]), wp.float64(force[b][2]))
         t = wp.vec3d(wp.float64(torque[b][0]), wp.float64(torque[b][1]), wp.float64(torque[b][2]))
         v = wp.vec3d(wp.float64(velocity[b][0]), wp.float64(velocity[b][1]), wp.float64(velocity[b][2]))
-        w = wp.vec3d(wp.float64(angular_velocity[b][0]), wp.float64(angular_velocity[b][1]),
-                     wp.float64(angular_velocity[b][2]))
+        w = wp.vec3d(
+            wp.float64(angular_velocity[b][0]), wp.float64(angular_velocity[b][1]), wp.float64(angular_velocity[b][2])
+        )
         force_sum_out[b] = force_sum_out[b] + f
         torque_sum_out[b] = torque_sum_out[b] + t
         work_out[b] = work_out[b] - (wp.dot(f, v) + wp.dot(t, w)) * dt
 
     @kernel
-    def fill_report(status: wp.array(dtype=wp.int32), grid: wp.array(dtype=hi), force_sum: wp.array(dtype=wp.vec3d),
-                    torque_sum: wp.array(dtype=wp.vec3d), work: wp.array(dtype=wp.float64),
-                    force: wp.array(dtype=vec_hi), torque: wp.array(dtype=vec_hi), contacts: wp.array(dtype=wp.int32),
-                    boundary_displacement: wp.array(dtype=vec_hi), report_out: wp.array(dtype=wp.float64)):
+    def fill_report(
+        status: wp.array(dtype=wp.int32),
+        grid: wp.array(dtype=hi),
+        force_sum: wp.array(dtype=wp.vec3d),
+        torque_sum: wp.array(dtype=wp.vec3d),
+        work: wp.array(dtype=wp.float64),
+        force: wp.array(dtype=vec_hi),
+        torque: wp.array(dtype=vec_hi),
+        contacts: wp.array(dtype=wp.int32),
+        boundary_displacement: wp.array(dtype=vec_hi),
+        report_out: wp.array(dtype=wp.float64),
+    ):
         """Everything the host needs after a macro step, in one array (read once)."""
         for c in range(status_columns.COLUMNS):
             report_out[c] = wp.float64(status[c])
@@ -140,9 +155,17 @@ class Simulation:
     from the host (for comparison; both give bitwise the same results).
     """
 
-    def __init__(self, model: SoilModel, state: SoilState, control: SoilControl | None = None, integrator=None,
-                 monitor: DivergenceMonitor | None = None, checkpoint_path=None,
-                 neighbours: NeighbourSettings | None = None, capture: bool = True):
+    def __init__(
+        self,
+        model: SoilModel,
+        state: SoilState,
+        control: SoilControl | None = None,
+        integrator=None,
+        monitor: DivergenceMonitor | None = None,
+        checkpoint_path=None,
+        neighbours: NeighbourSettings | None = None,
+        capture: bool = True,
+    ):
         self.model = model
         self.monitor = monitor or DivergenceMonitor()
         """Divergence checks of run() and run_adaptive() (soil.stability)."""
@@ -166,8 +189,9 @@ class Simulation:
         self.neighbour_list = NeighbourList(model, neighbours, positions=state.position.numpy())
         self.contacts = ContactSolver(model, self.neighbour_list, self.status)
         self.state = state
-        self._buffers = [state] + [SoilState.for_model(model, state.capacity, state.rigid_capacity, layout=state.layout)
-                                   for _ in range(2)]
+        self._buffers = [state] + [
+            SoilState.for_model(model, state.capacity, state.rigid_capacity, layout=state.layout) for _ in range(2)
+        ]
         self.steps = 0
         self._controller = None  # run_adaptive's StepController, kept between calls
         self._graphs: dict = {}
@@ -180,8 +204,9 @@ class Simulation:
         self._force_sum = wp.zeros(bodies, dtype=wp.vec3d, device=device)
         self._torque_sum = wp.zeros(bodies, dtype=wp.vec3d, device=device)
         self._work = wp.zeros(bodies, dtype=wp.float64, device=device)
-        self._report = wp.zeros(REPORT_BODIES + BODY_COLUMNS * model.body_count + 3 * model.boundary_count,
-                                dtype=wp.float64, device=device)
+        self._report = wp.zeros(
+            REPORT_BODIES + BODY_COLUMNS * model.body_count + 3 * model.boundary_count, dtype=wp.float64, device=device
+        )
         if not state.forces_valid:  # a restored state keeps its own forces: restarts stay bit-identical
             self.refresh_forces()
 
@@ -193,9 +218,12 @@ class Simulation:
     # -- buffers ---------------------------------------------------------------------
     def _spares(self) -> list[SoilState]:
         if not any(b is self.state for b in self._buffers):  # the state was replaced from outside
-            self._buffers = [self.state] + [SoilState.for_model(self.model, self.state.capacity,
-                                                                self.state.rigid_capacity, layout=self.state.layout)
-                                            for _ in range(2)]
+            self._buffers = [self.state] + [
+                SoilState.for_model(
+                    self.model, self.state.capacity, self.state.rigid_capacity, layout=self.state.layout
+                )
+                for _ in range(2)
+            ]
         spares = [b for b in self._buffers if b is not self.state]
         for spare in spares:
             spare.layout = self.state.layout
@@ -215,8 +243,10 @@ class Simulation:
         rigid = int(values[status_columns.NEEDED_RIGID])
         if needed <= self.state.capacity and rigid <= self.state.rigid_capacity:
             return None
-        return (max(self.state.capacity, needed + 4 if needed > self.state.capacity else 0),
-                max(self.state.rigid_capacity, rigid + 1 if rigid > self.state.rigid_capacity else 0))
+        return (
+            max(self.state.capacity, needed + 4 if needed > self.state.capacity else 0),
+            max(self.state.rigid_capacity, rigid + 1 if rigid > self.state.rigid_capacity else 0),
+        )
 
     def bytes_per_grain(self) -> dict:
         """Device memory per grain [B]: each state buffer, the layout (order, constants, two
@@ -228,8 +258,9 @@ class Simulation:
             "layout": self.state.layout.bytes_per_grain(),
             "contact scratch": self.contacts.bytes_per_grain(),
             "list build scratch": self.neighbour_list.bytes_per_grain(),
-            "integrator": (self.integrator.gaps.capacity / n if getattr(self.integrator, "gaps", None) is not None
-                           else 0.0),
+            "integrator": (
+                self.integrator.gaps.capacity / n if getattr(self.integrator, "gaps", None) is not None else 0.0
+            ),
             "monitor snapshot": self.monitor.bytes_per_grain(),
         }
         parts["total"] = sum(parts.values())
@@ -263,21 +294,35 @@ class Simulation:
         arrays += list(self.state.layout.arrays.values())
         arrays += self.contacts.device_arrays()
         arrays += [getattr(self.integrator, "gaps", None)]
-        return (tuple(id(b) for b in self._buffers), tuple(None if a is None else a.ptr for a in arrays),
-                self.control.external_force_used, self.neighbour_list.dims)
+        return (
+            tuple(id(b) for b in self._buffers),
+            tuple(None if a is None else a.ptr for a in arrays),
+            self.control.external_force_used,
+            self.neighbour_list.dims,
+        )
 
     def _run_step(self, dt: float, state_in: SoilState, state_out: SoilState, path: bool) -> None:
         """One DEM step state_in -> state_out: replayed from its graph, or launched."""
+
         def body():
             if path:
                 self.control.follow_path(dt)
             self.integrator.step(self.model, state_in, state_out, self.control, dt, self.contacts)
             if self.model.body_count:
                 kernels = macro_kernels(self.model.precision.hi)
-                wp.launch(kernels.accumulate_wrench, dim=self.model.body_count,
-                          inputs=[state_out.body_force, state_out.body_torque, self.control.body_velocity,
-                                  self.control.body_angular_velocity, float(dt)],
-                          outputs=[self._force_sum, self._torque_sum, self._work], device=self.model.device)
+                wp.launch(
+                    kernels.accumulate_wrench,
+                    dim=self.model.body_count,
+                    inputs=[
+                        state_out.body_force,
+                        state_out.body_torque,
+                        self.control.body_velocity,
+                        self.control.body_angular_velocity,
+                        float(dt),
+                    ],
+                    outputs=[self._force_sum, self._torque_sum, self._work],
+                    device=self.model.device,
+                )
             if path:
                 self.control.count_path_step()
 
@@ -293,8 +338,12 @@ class Simulation:
                         body()
                     entry = self._graphs[key] = (capture.graph, self.contacts.evaluations - evaluations)
                 except Exception as error:  # e.g. a GPU driver without conditional graph nodes
-                    warnings.warn(f"steps cannot be captured as graphs on {self.model.device} ({error}); launching "
-                                  "them one by one", CaptureWarning, stacklevel=3)
+                    warnings.warn(
+                        f"steps cannot be captured as graphs on {self.model.device} ({error}); launching "
+                        "them one by one",
+                        CaptureWarning,
+                        stacklevel=3,
+                    )
                     self.capture = False
                     self._graphs.clear()
                 self.contacts.evaluations = evaluations  # counted when the graph runs
@@ -313,10 +362,17 @@ class Simulation:
         if self._modules_loaded or not wp.get_device(self.model.device).is_cuda:
             return
         prec = self.model.precision
-        namespaces = [integrator_kernels(prec.hi, prec.lo, self.model.law), boundary_kernels(prec.hi),
-                      path_kernels(prec.hi), macro_kernels(prec.hi), self.contacts.kernels, self.neighbour_list.kernels]
-        modules = {value.module for space in namespaces for value in vars(space).values()
-                   if isinstance(value, wp.Kernel)}
+        namespaces = [
+            integrator_kernels(prec.hi, prec.lo, self.model.law),
+            boundary_kernels(prec.hi),
+            path_kernels(prec.hi),
+            macro_kernels(prec.hi),
+            self.contacts.kernels,
+            self.neighbour_list.kernels,
+        ]
+        modules = {
+            value.module for space in namespaces for value in vars(space).values() if isinstance(value, wp.Kernel)
+        }
         for module in modules:
             module.load(wp.get_device(self.model.device))
         self._modules_loaded = True
@@ -378,11 +434,23 @@ class Simulation:
                 self._run_step(dt, current, target, path)
                 current = target
             kernels = macro_kernels(model.precision.hi)
-            wp.launch(kernels.fill_report, dim=1,
-                      inputs=[self.status, self.neighbour_list.grid, self._force_sum, self._torque_sum, self._work,
-                              current.body_force, current.body_torque, current.body_contacts,
-                              current.boundary_displacement],
-                      outputs=[self._report], device=model.device)
+            wp.launch(
+                kernels.fill_report,
+                dim=1,
+                inputs=[
+                    self.status,
+                    self.neighbour_list.grid,
+                    self._force_sum,
+                    self._torque_sum,
+                    self._work,
+                    current.body_force,
+                    current.body_torque,
+                    current.body_contacts,
+                    current.boundary_displacement,
+                ],
+                outputs=[self._report],
+                device=model.device,
+            )
             values = self._report.numpy().copy()  # the one read of the macro step
             growth = self._needs_growth(values)
             if growth is None:
@@ -395,17 +463,24 @@ class Simulation:
         self.steps += steps
         rebuilds = int(values[status_columns.REBUILDS])
         self._rebuilds_since_reorder += rebuilds
-        self._bounds = (values[REPORT_BOUNDS:REPORT_BOUNDS + 3], values[REPORT_BOUNDS + 3:REPORT_BOUNDS + 6])
+        self._bounds = (values[REPORT_BOUNDS : REPORT_BOUNDS + 3], values[REPORT_BOUNDS + 3 : REPORT_BOUNDS + 6])
         if values[status_columns.NONFINITE] > 0:
             self.monitor.fail(self, "non-finite particle state (NaN or inf)", int(values[status_columns.WORST]))
         walls = REPORT_BODIES + BODY_COLUMNS * model.body_count
         bodies = values[REPORT_BODIES:walls].reshape(model.body_count, BODY_COLUMNS)
-        return MacroStepReport(steps=steps, dt=dt, body_force=bodies[:, 0:3] / steps,
-                               body_torque=bodies[:, 3:6] / steps, body_force_end=bodies[:, 6:9].copy(),
-                               body_torque_end=bodies[:, 9:12].copy(), body_work=bodies[:, 12].copy(),
-                               body_contacts=bodies[:, 13].astype(np.int64),
-                               boundary_displacement=values[walls:].reshape(model.boundary_count, 3),
-                               rebuilds=rebuilds, redone=redone)
+        return MacroStepReport(
+            steps=steps,
+            dt=dt,
+            body_force=bodies[:, 0:3] / steps,
+            body_torque=bodies[:, 3:6] / steps,
+            body_force_end=bodies[:, 6:9].copy(),
+            body_torque_end=bodies[:, 9:12].copy(),
+            body_work=bodies[:, 12].copy(),
+            body_contacts=bodies[:, 13].astype(np.int64),
+            boundary_displacement=values[walls:].reshape(model.boundary_count, 3),
+            rebuilds=rebuilds,
+            redone=redone,
+        )
 
     def step(self, dt: float) -> None:
         """Advance by dt [s]."""
@@ -419,8 +494,9 @@ class Simulation:
         checks the state (NaN, speed, overlap, energy) and raises SimulationDiverged on failure.
         """
         dt = _check_step(dt)
-        if not (isinstance(duration, (int, float, np.floating, np.integer)) and math.isfinite(duration)
-                and duration >= 0):
+        if not (
+            isinstance(duration, (int, float, np.floating, np.integer)) and math.isfinite(duration) and duration >= 0
+        ):
             raise SoilInputError(f"duration must be finite and >= 0 [s], got {duration!r}")
         check_every = _check_count(check_every, "check_every")
         if not self.monitor.armed:
@@ -436,8 +512,9 @@ class Simulation:
             if done % check_every == 0 or done == steps:
                 self.monitor.check(self)
 
-    def run_adaptive(self, duration: float, controller: StepController | None = None, callback=None,
-                     check_every: int = 100) -> dict:
+    def run_adaptive(
+        self, duration: float, controller: StepController | None = None, callback=None, check_every: int = 100
+    ) -> dict:
         """Advance by `duration` [s] with jolt-Beeman steps chosen by a PID StepController.
 
         The integrator must be a JoltBeeman (one is installed if the simulation still has
@@ -453,8 +530,9 @@ class Simulation:
         Returns {'accepted', 'rejected', 'forced', 'evaluations', 'dt_smallest', 'dt_largest', 'dt_next'}
         for this call (steps, evaluations [-], steps [s]).
         """
-        if not (isinstance(duration, (int, float, np.floating, np.integer)) and math.isfinite(duration)
-                and duration >= 0):
+        if not (
+            isinstance(duration, (int, float, np.floating, np.integer)) and math.isfinite(duration) and duration >= 0
+        ):
             raise SoilInputError(f"duration must be finite and >= 0 [s], got {duration!r}")
         if not isinstance(self.integrator, JoltBeeman):
             if isinstance(self.integrator, VelocityVerlet) and self.steps == 0:
@@ -492,8 +570,12 @@ class Simulation:
             accepted, proposal = controller.decide(err, h)
             if not accepted and h <= controller.dt_min * (1.0 + 1e-9):
                 if summary["nonfinite"]:
-                    self.monitor.fail(self, f"non-finite state even at dt_min = {controller.dt_min:.4g} s",
-                                      summary["worst"], state=following)
+                    self.monitor.fail(
+                        self,
+                        f"non-finite state even at dt_min = {controller.dt_min:.4g} s",
+                        summary["worst"],
+                        state=following,
+                    )
                 accepted = True
                 counts["forced"] += 1
                 self.forced_steps += 1
@@ -564,8 +646,9 @@ class Simulation:
         model = self.model
         precision = str(data["precision"])
         if precision != model.precision.name:
-            raise ValueError(f"the saved simulation ran in {precision!r} precision, this one in "
-                             f"{model.precision.name!r}")
+            raise ValueError(
+                f"the saved simulation ran in {precision!r} precision, this one in {model.precision.name!r}"
+            )
         saved = data["state/position"].shape[0]
         if saved != model.particle_count:
             raise ValueError(f"the saved simulation has {saved} particles, this model {model.particle_count}")
@@ -577,20 +660,20 @@ class Simulation:
         rigid_capacity = int(data.get("rigid_capacity", self.state.rigid_capacity))
         self._spares()
         self._grow(capacity, rigid_capacity)
-        self.state.load_numpy({k[len("state/"):]: v for k, v in data.items() if k.startswith("state/")})
+        self.state.load_numpy({k[len("state/") :]: v for k, v in data.items() if k.startswith("state/")})
         self._grow(self.state.capacity, self.state.rigid_capacity)
-        self.control.load_state_dict({k[len("control/"):]: v for k, v in data.items() if k.startswith("control/")})
+        self.control.load_state_dict({k[len("control/") :]: v for k, v in data.items() if k.startswith("control/")})
         for key in ("steps", "accepted_steps", "rejected_steps", "forced_steps"):
             setattr(self, key, int(data[key]))
         self.contacts.evaluations = int(data["evaluations"])
         if self.integrator.name != name:
             self.integrator = integrators[name]()
-        controller = {k[len("controller/"):]: v for k, v in data.items() if k.startswith("controller/")}
+        controller = {k[len("controller/") :]: v for k, v in data.items() if k.startswith("controller/")}
         self._controller = None
         if controller:
             self._controller = StepController()
             self._controller.load_state_dict(controller)
-        self.monitor.load_state_dict({k[len("monitor/"):]: v for k, v in data.items() if k.startswith("monitor/")})
+        self.monitor.load_state_dict({k[len("monitor/") :]: v for k, v in data.items() if k.startswith("monitor/")})
         if self.monitor.armed:
             self.monitor.snapshot(self)
 
@@ -632,15 +715,24 @@ class Simulation:
         touching = data["pair_touching"][particle]
         for k in range(int(data["neighbour_count"][particle])):
             if touching[k // 32] >> np.uint32(k % 32) & np.uint32(1):
-                contacts.append({"partner": ("grain", int(data["neighbours"][particle, k])),
-                                 "tangential": _row(data["pair_tangential"], particle, k),
-                                 "rolling": _row(data["pair_rolling"], particle, k)})
+                contacts.append(
+                    {
+                        "partner": ("grain", int(data["neighbours"][particle, k])),
+                        "tangential": _row(data["pair_tangential"], particle, k),
+                        "rolling": _row(data["pair_rolling"], particle, k),
+                    }
+                )
         walls = self.model.boundary_count
         for s in range(int(data["rigid_count"][particle])):
             key = int(data["rigid_key"][particle, s])
             partner = ("boundary", key) if key < walls else ("body", key - walls)
-            contacts.append({"partner": partner, "tangential": _row(data["rigid_tangential"], particle, s),
-                             "rolling": _row(data["rigid_rolling"], particle, s)})
+            contacts.append(
+                {
+                    "partner": partner,
+                    "tangential": _row(data["rigid_tangential"], particle, s),
+                    "rolling": _row(data["rigid_rolling"], particle, s),
+                }
+            )
         return contacts
 
     def boundary_wrenches(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -650,9 +742,11 @@ class Simulation:
         (boundary_count, 3), contacts [-] shape (boundary_count,) int64), float64, world frame.
         Boundaries built with report=False read zero."""
         state = self.state
-        return (state.boundary_force.numpy().astype(np.float64).reshape(-1, 3),
-                state.boundary_torque.numpy().astype(np.float64).reshape(-1, 3),
-                state.boundary_contacts.numpy().astype(np.int64))
+        return (
+            state.boundary_force.numpy().astype(np.float64).reshape(-1, 3),
+            state.boundary_torque.numpy().astype(np.float64).reshape(-1, 3),
+            state.boundary_contacts.numpy().astype(np.int64),
+        )
 
     def boundary_displacements(self) -> np.ndarray:
         """Translation of every boundary from its initial geometry [m], shape (boundary_count, 3), float64."""

@@ -13,7 +13,6 @@ wheel in chunks of model indices, then over the chunks (`wrench_partial`, `wrenc
 deterministic, no atomics.
 """
 
-
 import numpy as np
 import warp as wp
 
@@ -188,8 +187,18 @@ def contact_kernels(hi, lo, law: ContactLaw):
                                 r_hist = history_in.rolling[i, k]
                     pair_row = grains.material[i] * grains.material_count + grains.material[j]
                     f, m_roll, t_new, r_new = contact_law(
-                        n, overlap, v_rel, wi - angular_velocity[j], ri * rj / (ri + rj), lo(1.0) / inv_sum,
-                        grains.pair, pair_row, t_hist, r_hist, dt)
+                        n,
+                        overlap,
+                        v_rel,
+                        wi - angular_velocity[j],
+                        ri * rj / (ri + rj),
+                        lo(1.0) / inv_sum,
+                        grains.pair,
+                        pair_row,
+                        t_hist,
+                        r_hist,
+                        dt,
+                    )
                     total_force = total_force + f
                     total_torque = total_torque + wp.cross(lever_i * n, f) + m_roll
                     if wp.static(FRICTION):
@@ -241,9 +250,15 @@ def contact_kernels(hi, lo, law: ContactLaw):
                     if bodies.kind[b] == BODY_WHEEL:
                         distance, n_out = wheel_distance(bodies.shape, b, local)
                     else:
-                        distance, n_out = mesh_distance(bodies.mesh[b], bodies.mesh_points, bodies.mesh_indices,
-                                                        bodies.point_offset[b], bodies.index_offset[b], local,
-                                                        hi(2.0) * reach)
+                        distance, n_out = mesh_distance(
+                            bodies.mesh[b],
+                            bodies.mesh_points,
+                            bodies.mesh_indices,
+                            bodies.point_offset[b],
+                            bodies.index_offset[b],
+                            local,
+                            hi(2.0) * reach,
+                        )
                     overlap = hi(ri) - distance
                     n = -(rotation * n_out)  # from the grain towards the wheel
                     contact_point = xi + (hi(ri) - overlap) * n
@@ -264,8 +279,9 @@ def contact_kernels(hi, lo, law: ContactLaw):
                     if wp.static(ROLLING):
                         r_hist = history_in.rigid_rolling[i, slot]
                 pair_row = grains.material[i] * grains.material_count + partner_material
-                f, m_roll, t_new, r_new = contact_law(n, overlap, v_rel, wi - w_partner, ri, mass_eff, grains.pair,
-                                                      pair_row, t_hist, r_hist, dt)
+                f, m_roll, t_new, r_new = contact_law(
+                    n, overlap, v_rel, wi - w_partner, ri, mass_eff, grains.pair, pair_row, t_hist, r_hist, dt
+                )
                 total_force = total_force + f
                 total_torque = total_torque + wp.cross(lever_i * n, f) + m_roll
                 if stored < slots:
@@ -390,8 +406,16 @@ def contact_kernels(hi, lo, law: ContactLaw):
             body_torque_out[key - wall_count] = total_torque
             body_contact_out[key - wall_count] = contacts
 
-    return dict(Grains=Grains, Walls=Walls, Bodies=Bodies, History=History, contact_forces=contact_forces,
-                elastic_energy=elastic_energy, wrench_partial=wrench_partial, wrench_total=wrench_total)
+    return dict(
+        Grains=Grains,
+        Walls=Walls,
+        Bodies=Bodies,
+        History=History,
+        contact_forces=contact_forces,
+        elastic_energy=elastic_energy,
+        wrench_partial=wrench_partial,
+        wrench_total=wrench_total,
+    )
 
 
 class ContactSolver:
@@ -416,8 +440,11 @@ class ContactSolver:
         self._partial_torque = wp.zeros((self._chunks, width), dtype=prec.vec_hi, device=device)
         self._partial_contacts = wp.zeros((self._chunks, width), dtype=wp.int32, device=device)
         self._reaction_force = self._reaction_torque = None
-        self._wall_reported = (model.boundary_column if model.boundary_column is not None
-                               else wp.zeros(model.boundary_count, dtype=wp.int32, device=device))
+        self._wall_reported = (
+            model.boundary_column
+            if model.boundary_column is not None
+            else wp.zeros(model.boundary_count, dtype=wp.int32, device=device)
+        )
         self.evaluations = 0
         """Number of force evaluations so far (the cost unit of integrators)."""
 
@@ -454,16 +481,23 @@ class ContactSolver:
     def walls(self, state: SoilState):
         model = self.model
         bundle = self.kernels.Walls()
-        bundle.kind, bundle.geometry, bundle.material = model.boundary_kind, model.boundary_geometry, \
-            model.boundary_material
+        bundle.kind, bundle.geometry, bundle.material = (
+            model.boundary_kind,
+            model.boundary_geometry,
+            model.boundary_material,
+        )
         bundle.displacement, bundle.velocity = state.boundary_displacement, state.boundary_velocity
         return bundle
 
     def bodies(self, control: SoilControl):
         model = self.model
         bundle = self.kernels.Bodies()
-        bundle.kind, bundle.shape, bundle.mesh, bundle.material = (model.body_kind, model.body_shape, model.body_mesh,
-                                                                   model.body_material)
+        bundle.kind, bundle.shape, bundle.mesh, bundle.material = (
+            model.body_kind,
+            model.body_shape,
+            model.body_mesh,
+            model.body_material,
+        )
         bundle.mesh_points, bundle.mesh_indices = model.mesh_points, model.mesh_indices
         bundle.point_offset, bundle.index_offset = model.body_point_offset, model.body_index_offset
         bundle.position, bundle.rotation = control.body_position, control.body_rotation
@@ -473,8 +507,11 @@ class ContactSolver:
 
     def history(self, state: SoilState):
         bundle = self.kernels.History()
-        bundle.touching, bundle.tangential, bundle.rolling = (state.pair_touching, state.pair_tangential,
-                                                              state.pair_rolling)
+        bundle.touching, bundle.tangential, bundle.rolling = (
+            state.pair_touching,
+            state.pair_tangential,
+            state.pair_rolling,
+        )
         bundle.rigid_key, bundle.rigid_count = state.rigid_key, state.rigid_count
         bundle.rigid_tangential, bundle.rigid_rolling = state.rigid_tangential, state.rigid_rolling
         return bundle
@@ -495,12 +532,31 @@ class ContactSolver:
         wp.launch(
             self.kernels.contact_forces,
             dim=model.particle_count,
-            inputs=[state_out.position, state_out.velocity, state_out.angular_velocity, self.grains(state_out),
-                    self.walls(state_out), self.bodies(control), layout.neighbours, layout.neighbour_count,
-                    state_out.list_index, self.neighbours.rebuilt, self.history(state_in), control.external_force,
-                    int(control.external_force_used), model.precision.hi(dt)],
-            outputs=[state_out.force, state_out.torque, state_out.contact_count, self.history(state_out),
-                     reaction_force, reaction_torque, self.status],
+            inputs=[
+                state_out.position,
+                state_out.velocity,
+                state_out.angular_velocity,
+                self.grains(state_out),
+                self.walls(state_out),
+                self.bodies(control),
+                layout.neighbours,
+                layout.neighbour_count,
+                state_out.list_index,
+                self.neighbours.rebuilt,
+                self.history(state_in),
+                control.external_force,
+                int(control.external_force_used),
+                model.precision.hi(dt),
+            ],
+            outputs=[
+                state_out.force,
+                state_out.torque,
+                state_out.contact_count,
+                self.history(state_out),
+                reaction_force,
+                reaction_torque,
+                self.status,
+            ],
             device=model.device,
         )
         if self._partners:
@@ -512,14 +568,27 @@ class ContactSolver:
     def _sum(self, state: SoilState, reaction_force, reaction_torque) -> None:
         """Wall and wheel totals: chunk sums in model-index order, then the chunks in order."""
         device = self.model.device
-        wp.launch(self.kernels.wrench_partial, dim=self._chunks,
-                  inputs=[state.layout.slot, state.rigid_key, state.rigid_count, reaction_force, reaction_torque,
-                          CHUNK],
-                  outputs=[self._partial_force, self._partial_torque, self._partial_contacts], device=device)
-        wp.launch(self.kernels.wrench_total, dim=self._partners,
-                  inputs=[self._partial_force, self._partial_torque, self._partial_contacts, self._wall_reported],
-                  outputs=[state.boundary_force, state.boundary_torque, state.boundary_contacts, state.body_force,
-                           state.body_torque, state.body_contacts], device=device)
+        wp.launch(
+            self.kernels.wrench_partial,
+            dim=self._chunks,
+            inputs=[state.layout.slot, state.rigid_key, state.rigid_count, reaction_force, reaction_torque, CHUNK],
+            outputs=[self._partial_force, self._partial_torque, self._partial_contacts],
+            device=device,
+        )
+        wp.launch(
+            self.kernels.wrench_total,
+            dim=self._partners,
+            inputs=[self._partial_force, self._partial_torque, self._partial_contacts, self._wall_reported],
+            outputs=[
+                state.boundary_force,
+                state.boundary_torque,
+                state.boundary_contacts,
+                state.body_force,
+                state.body_torque,
+                state.body_contacts,
+            ],
+            device=device,
+        )
 
     def current_list(self, state: SoilState) -> int:
         """Index of a neighbour list valid for `state`'s positions (host read): its own, or the
@@ -536,10 +605,20 @@ class ContactSolver:
         row = self.current_list(state)
         energy = wp.zeros(model.particle_count, dtype=model.precision.hi, device=model.device)
         layout = state.layout
-        wp.launch(self.kernels.elastic_energy, dim=model.particle_count,
-                  inputs=[state.position, self.grains(state), self.walls(state), layout.neighbours,
-                          layout.neighbour_count, row],
-                  outputs=[energy], device=model.device)
+        wp.launch(
+            self.kernels.elastic_energy,
+            dim=model.particle_count,
+            inputs=[
+                state.position,
+                self.grains(state),
+                self.walls(state),
+                layout.neighbours,
+                layout.neighbour_count,
+                row,
+            ],
+            outputs=[energy],
+            device=model.device,
+        )
         per_grain = np.empty(model.particle_count)
         per_grain[layout.order.numpy()] = energy.numpy()
         return float(np.sum(per_grain, dtype=np.float64))

@@ -112,9 +112,18 @@ class SimulationDiverged(RegolithError, RuntimeError):
     plus 'step'), checkpoint (path written, or None).
     """
 
-    def __init__(self, message: str, last_good: dict | None = None, *, time: float | None = None,
-                 step: int | None = None, particle: int | None = None, position=None, reason: str = "",
-                 checkpoint: str | None = None):
+    def __init__(
+        self,
+        message: str,
+        last_good: dict | None = None,
+        *,
+        time: float | None = None,
+        step: int | None = None,
+        particle: int | None = None,
+        position=None,
+        reason: str = "",
+        checkpoint: str | None = None,
+    ):
         super().__init__(message)
         self.last_good = last_good
         self.time = time
@@ -186,7 +195,7 @@ class DivergenceMonitor:
         self._v0 = float(np.max(np.maximum(v, spin)[free])) if free.any() else 0.0
         self._v_elastic = math.sqrt(2.0 * elastic / float(m_free.min()))
         self._energy0 = sim.kinetic_energy() + elastic
-        self._body_reach = (model.body_shape.numpy()[:, 5].astype(np.float64) if model.body_count else np.zeros(0))
+        self._body_reach = model.body_shape.numpy()[:, 5].astype(np.float64) if model.body_count else np.zeros(0)
         self._v_body = 0.0
         self._update_bounds(sim)
         self.armed = True
@@ -196,33 +205,43 @@ class DivergenceMonitor:
     def _update_bounds(self, sim) -> None:
         control = sim.control
         if len(self._body_reach):
-            rim = (np.linalg.norm(control.body_velocity_host, axis=1)
-                   + np.linalg.norm(control.body_angular_velocity_host, axis=1) * self._body_reach)
+            rim = (
+                np.linalg.norm(control.body_velocity_host, axis=1)
+                + np.linalg.norm(control.body_angular_velocity_host, axis=1) * self._body_reach
+            )
             self._v_body = max(self._v_body, float(rim.max()))
         load_work = 0.0
         if sim.model.boundary_count:  # moving walls drive the grains like wheels; loads do work
             walls = np.linalg.norm(sim.boundary_velocities(), axis=1)
-            self._v_body = max(self._v_body, float(walls.max()),
-                               float(np.linalg.norm(control.boundary_velocity_host, axis=1).max()))
+            self._v_body = max(
+                self._v_body, float(walls.max()), float(np.linalg.norm(control.boundary_velocity_host, axis=1).max())
+            )
             loaded = control.boundary_mode_host == MOTION_LOADED
             travel = np.linalg.norm(sim.boundary_displacements(), axis=1) + self._height
             load_work = float(np.sum(np.abs(control.boundary_load_host[loaded]) * travel[loaded]))
-        scale = (math.sqrt(2.0 * self._g * self._height) + self._v0 + self._v_elastic + self._v_body
-                 + self.speed_floor)
+        scale = math.sqrt(2.0 * self._g * self._height) + self._v0 + self._v_elastic + self._v_body + self.speed_floor
         self.speed_bound = self.speed_factor * scale
-        supply = (self._energy0 + self._mass_total * self._g * self._height + load_work
-                  + 0.5 * self._mass_total * (self._v_body**2 + self.speed_floor**2))
+        supply = (
+            self._energy0
+            + self._mass_total * self._g * self._height
+            + load_work
+            + 0.5 * self._mass_total * (self._v_body**2 + self.speed_floor**2)
+        )
         self.energy_bound = self.energy_factor * supply
 
     _SCALES = ("_g", "_height", "_mass_total", "_v0", "_v_elastic", "_energy0", "_v_body", "_body_reach")
 
     def state_dict(self) -> dict:
         """Settings, and once armed the scene's scales and bounds, as numpy scalars/arrays."""
-        data = {"speed_factor": np.float64(self.speed_factor), "energy_factor": np.float64(self.energy_factor),
-                "max_overlap_ratio": np.float64(self.max_overlap_ratio),
-                "height": np.float64(np.nan if self.height is None else self.height),
-                "speed_floor": np.float64(self.speed_floor), "enabled": np.bool_(self.enabled),
-                "armed": np.bool_(self.armed)}
+        data = {
+            "speed_factor": np.float64(self.speed_factor),
+            "energy_factor": np.float64(self.energy_factor),
+            "max_overlap_ratio": np.float64(self.max_overlap_ratio),
+            "height": np.float64(np.nan if self.height is None else self.height),
+            "speed_floor": np.float64(self.speed_floor),
+            "enabled": np.bool_(self.enabled),
+            "armed": np.bool_(self.armed),
+        }
         if self.armed:
             data.update(speed_bound=np.float64(self.speed_bound), energy_bound=np.float64(self.energy_bound))
             data.update({name[1:]: np.asarray(getattr(self, name), dtype=np.float64) for name in self._SCALES})
@@ -285,11 +304,25 @@ class DivergenceMonitor:
         overlap = wp.zeros(n, dtype=prec.hi, device=model.device)
         summary = wp.zeros(CHECK_COLUMNS, dtype=prec.hi, device=model.device)
         row = sim.contacts.current_list(state)
-        wp.launch(kernels.divergence_metrics, dim=n,
-                  inputs=[state.position, state.velocity, state.angular_velocity, layout.radius, layout.inv_mass,
-                          layout.neighbours, layout.neighbour_count, row, model.boundary_kind,
-                          model.boundary_geometry, state.boundary_displacement],
-                  outputs=[speed, overlap, summary], device=model.device)
+        wp.launch(
+            kernels.divergence_metrics,
+            dim=n,
+            inputs=[
+                state.position,
+                state.velocity,
+                state.angular_velocity,
+                layout.radius,
+                layout.inv_mass,
+                layout.neighbours,
+                layout.neighbour_count,
+                row,
+                model.boundary_kind,
+                model.boundary_geometry,
+                state.boundary_displacement,
+            ],
+            outputs=[speed, overlap, summary],
+            device=model.device,
+        )
         values = summary.numpy().astype(np.float64)
         self._update_bounds(sim)
 
@@ -297,21 +330,32 @@ class DivergenceMonitor:
             return int(layout.order.numpy()[pick(per_slot.numpy())])
 
         if values[CHECK_NONFINITE] > 0:
-            self.fail(sim, "non-finite particle state (NaN or inf)",
-                      worst_grain(speed, lambda v: np.argmax(~np.isfinite(v))))
+            self.fail(
+                sim, "non-finite particle state (NaN or inf)", worst_grain(speed, lambda v: np.argmax(~np.isfinite(v)))
+            )
         if not self.enabled:
             self.snapshot(sim)
             return
         if values[CHECK_SPEED] > self.speed_bound:
-            self.fail(sim, f"speed {values[CHECK_SPEED]:.4g} m/s exceeds the bound {self.speed_bound:.4g} m/s",
-                      worst_grain(speed, np.argmax))
+            self.fail(
+                sim,
+                f"speed {values[CHECK_SPEED]:.4g} m/s exceeds the bound {self.speed_bound:.4g} m/s",
+                worst_grain(speed, np.argmax),
+            )
         if values[CHECK_OVERLAP] > self.max_overlap_ratio:
-            self.fail(sim, f"overlap {values[CHECK_OVERLAP]:.4g} x radius exceeds {self.max_overlap_ratio:g} x radius",
-                      worst_grain(overlap, np.argmax))
+            self.fail(
+                sim,
+                f"overlap {values[CHECK_OVERLAP]:.4g} x radius exceeds {self.max_overlap_ratio:g} x radius",
+                worst_grain(overlap, np.argmax),
+            )
         kinetic = sim.kinetic_energy()
         if not kinetic <= self.energy_bound:
-            self.fail(sim, f"kinetic energy {kinetic:.4g} J exceeds the bound {self.energy_bound:.4g} J "
-                      "(gravity, initial motion, overlaps and wheels cannot supply it)", worst_grain(speed, np.argmax))
+            self.fail(
+                sim,
+                f"kinetic energy {kinetic:.4g} J exceeds the bound {self.energy_bound:.4g} J "
+                "(gravity, initial motion, overlaps and wheels cannot supply it)",
+                worst_grain(speed, np.argmax),
+            )
         self.snapshot(sim)
 
     def fail(self, sim, reason: str, particle: int | None, state: SoilState | None = None) -> None:
@@ -321,10 +365,13 @@ class DivergenceMonitor:
         where = ""
         if particle is not None and 0 <= particle < sim.model.particle_count:
             position = state.position.numpy()[int(state.layout.slot.numpy()[particle])].astype(np.float64)
-            builder_index = int(sim.model.particle_order[particle]) if sim.model.particle_order is not None \
-                else particle
-            where = (f" at particle {particle} (builder index {builder_index}), position "
-                     f"({position[0]:.6g}, {position[1]:.6g}, {position[2]:.6g}) m")
+            builder_index = (
+                int(sim.model.particle_order[particle]) if sim.model.particle_order is not None else particle
+            )
+            where = (
+                f" at particle {particle} (builder index {builder_index}), position "
+                f"({position[0]:.6g}, {position[1]:.6g}, {position[2]:.6g}) m"
+            )
         good = self.last_good() if self._good is not None else None
         checkpoint = None
         saved = ""
@@ -333,6 +380,14 @@ class DivergenceMonitor:
             if getattr(sim, "checkpoint_path", None):
                 checkpoint = write_checkpoint(sim.checkpoint_path, good)
                 saved += f" and {checkpoint}"
-        message = (f"simulation diverged at t = {state.time:.9g} s (step {sim.steps}): {reason}{where}{saved}")
-        raise SimulationDiverged(message, good, time=state.time, step=sim.steps, particle=particle,
-                                 position=position, reason=reason, checkpoint=checkpoint)
+        message = f"simulation diverged at t = {state.time:.9g} s (step {sim.steps}): {reason}{where}{saved}"
+        raise SimulationDiverged(
+            message,
+            good,
+            time=state.time,
+            step=sim.steps,
+            particle=particle,
+            position=position,
+            reason=reason,
+            checkpoint=checkpoint,
+        )

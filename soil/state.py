@@ -20,8 +20,12 @@ far from there and rebuilds the list."""
 
 def _resize_like(target, source: wp.array) -> wp.array:
     """`target` if it has the shape and type of `source`, else a new array that has them."""
-    if target is not None and target.shape == source.shape and target.dtype == source.dtype \
-            and target.device == source.device:
+    if (
+        target is not None
+        and target.shape == source.shape
+        and target.dtype == source.dtype
+        and target.device == source.device
+    ):
         return target
     return wp.empty(source.shape, dtype=source.dtype, device=source.device)
 
@@ -59,8 +63,7 @@ class GrainLayout:
         list's build [-], shape (2, particle_count, capacity), int32 (-1 past the count)."""
         self.neighbour_count = wp.zeros((2, n), dtype=wp.int32, device=device)
         """Entries used in each row of the two lists [-], shape (2, particle_count), int32."""
-        self.build_position = wp.full((2, n), prec.vec_hi(UNBUILT, UNBUILT, UNBUILT), dtype=prec.vec_hi,
-                                      device=device)
+        self.build_position = wp.full((2, n), prec.vec_hi(UNBUILT, UNBUILT, UNBUILT), dtype=prec.vec_hi, device=device)
         """Position of each grain when the list was built [m], shape (2, particle_count)."""
 
     @property
@@ -115,9 +118,20 @@ class SoilState:
     rolling off) has zero width: it is neither stored, read nor written.
     """
 
-    def __init__(self, particle_count: int, capacity: int, vec_hi, device: str, body_count: int = 0,
-                 boundary_count: int = 0, *, rigid_capacity: int = 4, friction: bool = True, rolling: bool = True,
-                 layout: GrainLayout | None = None):
+    def __init__(
+        self,
+        particle_count: int,
+        capacity: int,
+        vec_hi,
+        device: str,
+        body_count: int = 0,
+        boundary_count: int = 0,
+        *,
+        rigid_capacity: int = 4,
+        friction: bool = True,
+        rolling: bool = True,
+        layout: GrainLayout | None = None,
+    ):
         n = particle_count
         scalar = vec_hi._wp_scalar_type_
         tangential = capacity if friction else 0
@@ -201,9 +215,18 @@ class SoilState:
         """A zero state sized for `model` (particles, bodies, boundaries) with `capacity` neighbour
         slots and `rigid_capacity` rigid-contact slots per grain; a new layout unless one is given."""
         layout = layout or GrainLayout(model, capacity)
-        return cls(model.particle_count, layout.capacity, model.precision.vec_hi, model.device, model.body_count,
-                   model.boundary_count, rigid_capacity=rigid_capacity, friction=model.law.friction,
-                   rolling=model.law.rolling, layout=layout)
+        return cls(
+            model.particle_count,
+            layout.capacity,
+            model.precision.vec_hi,
+            model.device,
+            model.body_count,
+            model.boundary_count,
+            rigid_capacity=rigid_capacity,
+            friction=model.law.friction,
+            rolling=model.law.rolling,
+            layout=layout,
+        )
 
     @property
     def boundary_count(self) -> int:
@@ -222,8 +245,9 @@ class SoilState:
     @property
     def arrays(self) -> dict[str, wp.array]:
         """The state's physical arrays by name, in storage order (the list index and the layout excluded)."""
-        return {name: value for name, value in vars(self).items()
-                if isinstance(value, wp.array) and name != "list_index"}
+        return {
+            name: value for name, value in vars(self).items() if isinstance(value, wp.array) and name != "list_index"
+        }
 
     def bytes_per_grain(self) -> float:
         """Device memory of this buffer per grain [B] (the shared layout not included)."""
@@ -293,8 +317,11 @@ class SoilState:
         counts = self.layout.neighbour_count.numpy()[which]
         used = np.arange(neighbours.shape[1])[None, :] < counts[:, None]
         ids = np.where(used, order[np.clip(neighbours, 0, len(order) - 1)], -1).astype(np.int32)
-        for name, values in (("neighbours", ids), ("neighbour_count", counts),
-                             ("build_position", self.layout.build_position.numpy()[which])):
+        for name, values in (
+            ("neighbours", ids),
+            ("neighbour_count", counts),
+            ("build_position", self.layout.build_position.numpy()[which]),
+        ):
             model_order = np.empty_like(values)
             model_order[order] = values
             data[name] = model_order
@@ -324,8 +351,9 @@ class SoilState:
                 raise KeyError(f"state data has no {name!r} array")
             values = np.asarray(data[name])
             if values.shape[:1] != tuple(array.shape[:1]):
-                raise ValueError(f"state.{name}: saved shape {values.shape} does not fit {array.shape} "
-                                 "(a different scene?)")
+                raise ValueError(
+                    f"state.{name}: saved shape {values.shape} does not fit {array.shape} (a different scene?)"
+                )
             if per_grain(name):
                 values = values[order]
                 if array.ndim >= 2 and values.shape[1] != array.shape[1]:
@@ -405,8 +433,17 @@ def _from_keyed_history(data: dict, n: int) -> dict:
                 rigid_key[i, r], rigid_t[i, r], rigid_r[i, r] = partner[i, s] - n, tangential[i, s], rolling[i, s]
                 r += 1
         counts[i], rigid_counts[i] = k, r
-    data.update(neighbours=neighbours, neighbour_count=counts, pair_touching=touching, pair_tangential=pair_t,
-                pair_rolling=pair_r, rigid_key=rigid_key, rigid_count=rigid_counts, rigid_tangential=rigid_t,
-                rigid_rolling=rigid_r, contact_count=used.astype(np.int32),
-                build_position=np.full((n, 3), UNBUILT))
+    data.update(
+        neighbours=neighbours,
+        neighbour_count=counts,
+        pair_touching=touching,
+        pair_tangential=pair_t,
+        pair_rolling=pair_r,
+        rigid_key=rigid_key,
+        rigid_count=rigid_counts,
+        rigid_tangential=rigid_t,
+        rigid_rolling=rigid_r,
+        contact_count=used.astype(np.int32),
+        build_position=np.full((n, 3), UNBUILT),
+    )
     return data

@@ -58,8 +58,12 @@ class FmpySoil:
         self.md = read_model_description(spec["fmu"])
         self.variables = {v.name: v for v in self.md.modelVariables}
         unzip = extract(spec["fmu"], unzipdir=spec["unzip"])
-        kwargs = dict(guid=self.md.guid, unzipDirectory=unzip, modelIdentifier=self.md.coSimulation.modelIdentifier,
-                      instanceName=spec["name"])
+        kwargs = dict(
+            guid=self.md.guid,
+            unzipDirectory=unzip,
+            modelIdentifier=self.md.coSimulation.modelIdentifier,
+            instanceName=spec["name"],
+        )
         self.version = int(self.md.fmiVersion[0])
         if self.version == 2:
             from ctypes import byref
@@ -138,12 +142,12 @@ class LibcosimSoils:
     """All instances in one libcosim execution (fixed step, override manipulator for the inputs)."""
 
     def __init__(self, specs, h):
+        from libcosimpy._internal import get_last_error_message
         from libcosimpy.CosimExecution import CosimExecution
         from libcosimpy.CosimLogging import CosimLogLevel, log_output_level
         from libcosimpy.CosimManipulator import CosimManipulator
         from libcosimpy.CosimObserver import CosimObserver
         from libcosimpy.CosimSlave import CosimLocalSlave
-        from libcosimpy._internal import get_last_error_message
 
         log_output_level(CosimLogLevel.WARNING)  # libcosim prints everything to stdout by default
         step_ns = round(h * 1e9)
@@ -193,8 +197,14 @@ class LibcosimSoils:
 
 
 def run():
-    result = {"regolith_importable": REGOLITH_IMPORTABLE, "status": [], "outputs": [], "elapsed": [],
-              "messages": messages, "server_pids": []}
+    result = {
+        "regolith_importable": REGOLITH_IMPORTABLE,
+        "status": [],
+        "outputs": [],
+        "elapsed": [],
+        "messages": messages,
+        "server_pids": [],
+    }
     if job["master"] == "libcosim":
         try:
             soils = LibcosimSoils(job["instances"], job["steps"][0]["h"])

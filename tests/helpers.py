@@ -12,17 +12,34 @@ def hertz_rest_overlap(mass, gravity, e_star, radius):
     return (3.0 * mass * gravity / (4.0 * e_star * math.sqrt(radius))) ** (2.0 / 3.0)
 
 
-def sphere_on_plane(device, precision, gravity, material, radius=5e-3, origin=(0.0, 0.0, 0.0),
-                    velocity=(0, 0, 0), spin=(0, 0, 0), law=None, lock_rotation=False, plane_material=None,
-                    overlap=0.0):
+def sphere_on_plane(
+    device,
+    precision,
+    gravity,
+    material,
+    radius=5e-3,
+    origin=(0.0, 0.0, 0.0),
+    velocity=(0, 0, 0),
+    spin=(0, 0, 0),
+    law=None,
+    lock_rotation=False,
+    plane_material=None,
+    overlap=0.0,
+):
     """A sphere touching (or pressed `overlap` [m] into) the plane z = origin_z; returns a Simulation."""
     builder = SoilBuilder(gravity=gravity)
     soil = builder.add_material(material)
     wall = builder.add_material(plane_material) if plane_material else soil
     origin = np.asarray(origin, dtype=float)
     builder.add_plane(origin, (0, 0, 1), wall)
-    builder.add_particle(origin + (0, 0, radius - overlap), radius, soil, velocity=velocity, angular_velocity=spin,
-                         lock_rotation=lock_rotation)
+    builder.add_particle(
+        origin + (0, 0, radius - overlap),
+        radius,
+        soil,
+        velocity=velocity,
+        angular_velocity=spin,
+        lock_rotation=lock_rotation,
+    )
     model, state, control = builder.finalize(device=device, precision=precision, law=law)
     return Simulation(model, state, control)
 

@@ -77,16 +77,47 @@ def gravity(slope_deg: float = 0.0) -> str:
     return f"[{-MOON * math.sin(a)!r}, 0.0, {-MOON * math.cos(a)!r}]"
 
 
-def write_rig(folder, name="rig", slope_deg=0.0, heading=0.0, speed=2.0, duration=1.5, length=0.2, width=0.05,
-              grousers=8, grouser_height=0.003, snapshots=0.0, checkpoints=1.0, radius=0.0035, extra="") -> str:
+def write_rig(
+    folder,
+    name="rig",
+    slope_deg=0.0,
+    heading=0.0,
+    speed=2.0,
+    duration=1.5,
+    length=0.2,
+    width=0.05,
+    grousers=8,
+    grouser_height=0.003,
+    snapshots=0.0,
+    checkpoints=1.0,
+    radius=0.0035,
+    extra="",
+) -> str:
     """A rig scene (and its rig.xml) in `folder`; returns the scene's path."""
-    (folder / "rig.xml").write_text(single_wheel_rig_xml(
-        wheel_radius=0.02, wheel_width=0.02, wheel_mass=RIG_WHEEL, carriage_mass=RIG_CARRIAGE,
-        ballast_mass=RIG_BALLAST, motor_kv=0.5, gravity=(0.0, 0.0, -MOON)))
+    (folder / "rig.xml").write_text(
+        single_wheel_rig_xml(
+            wheel_radius=0.02,
+            wheel_width=0.02,
+            wheel_mass=RIG_WHEEL,
+            carriage_mass=RIG_CARRIAGE,
+            ballast_mass=RIG_BALLAST,
+            motor_kv=0.5,
+            gravity=(0.0, 0.0, -MOON),
+        )
+    )
     soil = SOIL.format(length=length, width=width, radius=radius)
-    text = RIG.format(name=name, gravity=gravity(slope_deg), soil=soil,
-                      grousers=grousers, grouser_height=grouser_height, heading=heading, speed=speed,
-                      duration=duration, snapshots=snapshots, checkpoints=checkpoints)
+    text = RIG.format(
+        name=name,
+        gravity=gravity(slope_deg),
+        soil=soil,
+        grousers=grousers,
+        grouser_height=grouser_height,
+        heading=heading,
+        speed=speed,
+        duration=duration,
+        snapshots=snapshots,
+        checkpoints=checkpoints,
+    )
     path = folder / f"{name}.toml"
     path.write_text(text + extra)
     return str(path)
@@ -133,8 +164,16 @@ checkpoint_interval = {checkpoints}
 flush_every = 25
 {extra}"""
 
-SMALL_MMX = {"body_mass": 0.4, "leg_mass": 0.02, "wheel_mass": 0.05, "body_size": [0.1, 0.08, 0.04],
-             "wheelbase": 0.1, "track": 0.1, "leg_drop": 0.02, "motor_kv": 2.0}
+SMALL_MMX = {
+    "body_mass": 0.4,
+    "leg_mass": 0.02,
+    "wheel_mass": 0.05,
+    "body_size": [0.1, 0.08, 0.04],
+    "wheelbase": 0.1,
+    "track": 0.1,
+    "leg_drop": 0.02,
+    "motor_kv": 2.0,
+}
 """The small MMX-like rover ([rover.mmx]); the FMU takes the same as start values."""
 
 
@@ -144,19 +183,42 @@ def small_rover_model(kind: str, fmu: str | None = None) -> str:
     if kind == "mmx":
         rows = "\n".join(f"{k} = {v}" for k, v in SMALL_MMX.items())
         return f'model = "mmx"\n[rover.mmx]\n{rows}\n'
-    values = {**{k: v for k, v in SMALL_MMX.items() if k != "body_size"}, "wheel_radius": 0.025,
-              "wheel_width": 0.02, **{f'"body_size.{a}"': v for a, v in zip("xyz", SMALL_MMX["body_size"])}}
+    values = {
+        **{k: v for k, v in SMALL_MMX.items() if k != "body_size"},
+        "wheel_radius": 0.025,
+        "wheel_width": 0.02,
+        **{f'"body_size.{a}"': v for a, v in zip("xyz", SMALL_MMX["body_size"])},
+    }
     inline = ", ".join(f"{k} = {v}" for k, v in values.items())
     return f'model = "fmu"\nfile = "{fmu}"\nstart_values = {{{inline}}}\n'
 
 
-def write_small_rover(folder, kind="mmx", fmu=None, name="small", drive="cruise", duration=0.5, length=0.25,
-                      width=0.15, radius=0.005, snapshots=0.0, checkpoints=1.0, extra="") -> str:
+def write_small_rover(
+    folder,
+    kind="mmx",
+    fmu=None,
+    name="small",
+    drive="cruise",
+    duration=0.5,
+    length=0.25,
+    width=0.15,
+    radius=0.005,
+    snapshots=0.0,
+    checkpoints=1.0,
+    extra="",
+) -> str:
     """The small four-wheeled rover scene in `folder` (MJCF or FMU); returns its path."""
     model = small_rover_model(kind, fmu)
-    text = SMALL_ROVER.format(name=name, soil=SOIL.format(length=length, width=width, radius=radius), model=model,
-                              drive=drive,
-                              duration=duration, snapshots=snapshots, checkpoints=checkpoints, extra=extra)
+    text = SMALL_ROVER.format(
+        name=name,
+        soil=SOIL.format(length=length, width=width, radius=radius),
+        model=model,
+        drive=drive,
+        duration=duration,
+        snapshots=snapshots,
+        checkpoints=checkpoints,
+        extra=extra,
+    )
     path = folder / f"{name}.toml"
     path.write_text(text)
     return str(path)

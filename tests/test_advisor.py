@@ -4,8 +4,8 @@ import math
 
 import pytest
 
-from soil import ContactLaw, JoltBeeman, Material, advisor, macroscopic_stiffness, rayleigh_time_step
 from helpers import effective_modulus, hertz_rest_overlap, sphere_on_plane
+from soil import ContactLaw, JoltBeeman, Material, advisor, macroscopic_stiffness, rayleigh_time_step
 
 
 def test_rayleigh_time_step_by_hand():
@@ -23,8 +23,9 @@ def test_macroscopic_stiffness_paper_eq10_by_hand():
     # Earth: 30 + 1275.3 = 1305.3 Pa -> 870200 Pa
     assert macroscopic_stiffness(0.05, 10.0, 0.01, 2.5e-3, 2600.0, 9.81) == pytest.approx(870200.0, rel=1e-4)
     # vectors along gravity give the same; no wheel (p = 0): 0.05 * 0.741 / 7.5e-5 = 494 Pa
-    assert macroscopic_stiffness(0.05, (0, 0, -10.0), (0, 0, 0.01), 2.5e-3, 2600.0, (0, 0, -5.7e-3)) == \
-        pytest.approx(20494.0, rel=1e-4)
+    assert macroscopic_stiffness(0.05, (0, 0, -10.0), (0, 0, 0.01), 2.5e-3, 2600.0, (0, 0, -5.7e-3)) == pytest.approx(
+        20494.0, rel=1e-4
+    )
     assert macroscopic_stiffness(0.05, 0.0, 0.01, 2.5e-3, 2600.0, 5.7e-3) == pytest.approx(494.0, rel=1e-4)
     # the Phobos bed material of soil.bed (2e5 Pa) satisfies it with room for a 10 Pa wheel
     from soil.bed import PHOBOS_REGOLITH
@@ -66,8 +67,9 @@ def test_largest_stable_step_brackets_the_linear_limit():
     limit = 2.0 / math.sqrt(2 * e_star * math.sqrt(r * rest) / mass)
 
     def make():
-        sim = sphere_on_plane("cpu", "double", g, mat, radius=r, overlap=1.01 * rest,
-                              law=ContactLaw(damping=False, friction=False))
+        sim = sphere_on_plane(
+            "cpu", "double", g, mat, radius=r, overlap=1.01 * rest, law=ContactLaw(damping=False, friction=False)
+        )
         sim.integrator = JoltBeeman()
         return sim
 

@@ -5,9 +5,9 @@ import math
 import numpy as np
 import pytest
 
+from helpers import effective_modulus, hertz_impact_overlap, hertz_rest_overlap
 from soil import ContactLaw, Material, Simulation, SoilBuilder
 from soil.bed import load_bed, restore_state, save_bed
-from helpers import effective_modulus, hertz_impact_overlap, hertz_rest_overlap
 
 G = 9.81
 R = 4e-3
@@ -25,6 +25,7 @@ def sphere_mass(radius, density=2600.0):
 
 
 # -- forces and torques on resting grains --------------------------------------------------
+
 
 def test_resting_sphere_loads_plane_and_box_with_its_weight_and_lever(device):
     """A sphere resting off-centre on a plane, another on a box: each boundary carries
@@ -70,8 +71,9 @@ def test_torque_on_the_floor_includes_the_rolling_resistance(device):
     point = np.array([-0.01, 0.0, 0.0])
     builder.add_plane(point, (0, 0, 1), mat)
     overlap = hertz_rest_overlap(sphere_mass(radius), G, effective_modulus(material, material), radius)
-    builder.add_particle((0, 0, radius - overlap), radius, mat, velocity=(v0, 0, 0),
-                         angular_velocity=(0, v0 / (radius - overlap), 0))
+    builder.add_particle(
+        (0, 0, radius - overlap), radius, mat, velocity=(v0, 0, 0), angular_velocity=(0, v0 / (radius - overlap), 0)
+    )
     model, state, control = builder.finalize(device, "double")
     sim = Simulation(model, state, control)
     dt = 1e-5
@@ -100,6 +102,7 @@ def test_torque_on_the_floor_includes_the_rolling_resistance(device):
 
 # -- beds: the floor carries the weight ------------------------------------------------------
 
+
 def column(device, wall_friction, columns=4, layers=16, order_seed=None, top=1.0, closed=False):
     """Grains on a jittered lattice in a narrow container (floor at z = 0, walls up to `top`,
     closed by a lid plane there if `closed`); walls of their own material with friction
@@ -110,8 +113,9 @@ def column(device, wall_friction, columns=4, layers=16, order_seed=None, top=1.0
     width = columns * 2.2 * R
     walls = builder.add_container((0, 0, 0), (width, width, top), wall, open_top=not closed)
     rng = np.random.default_rng(1)
-    grid = np.stack(np.meshgrid(np.arange(columns), np.arange(columns), np.arange(layers), indexing="ij"),
-                    -1).reshape(-1, 3)
+    grid = np.stack(np.meshgrid(np.arange(columns), np.arange(columns), np.arange(layers), indexing="ij"), -1).reshape(
+        -1, 3
+    )
     positions = 1.1 * R + grid * 2.2 * R + rng.uniform(-0.05 * R, 0.05 * R, grid.shape)
     builder.add_particles(positions, R * rng.uniform(0.85, 1.0, len(grid)), grain)
     model, state, control = builder.finalize(device, "double", order_seed=order_seed)
@@ -178,6 +182,7 @@ def test_loaded_lid_on_a_settled_bed_is_carried_by_the_grains(device, tmp_path):
 
 # -- moving walls -------------------------------------------------------------------------------
 
+
 def test_wall_moving_into_a_resting_sphere_is_a_hertz_impact(device):
     """A plane moving at V hits a free sphere (no gravity, elastic, frictionless): in the
     wall's frame it is a sphere hitting a wall at V, so the sphere leaves at 2 V after the
@@ -234,8 +239,11 @@ def test_sphere_on_a_conveyor_plane(device, rolls):
     t0 = sim.time
     final = 2.0 / 7.0 * speed if rolls else speed
     times, velocities = [], []
-    sim.run(0.04 if rolls else 0.09, dt, callback=lambda s: (times.append(s.time - t0),
-                                                            velocities.append(s.velocities()[0, 0])))
+    sim.run(
+        0.04 if rolls else 0.09,
+        dt,
+        callback=lambda s: (times.append(s.time - t0), velocities.append(s.velocities()[0, 0])),
+    )
     times, velocities = np.array(times), np.array(velocities)
     slide = final / (mu * G)
     sliding = (times > 0.1 * slide) & (times < 0.8 * slide)
@@ -261,10 +269,12 @@ def test_walls_moved_together_carry_a_sphere_along(device):
     slick = builder.add_material(coulomb(0.0))
     builder.add_plane((0, 0, 0), (0, 0, 1), slick)
     inner, wall = radius + gap, 1e-3
-    frame = [builder.add_box((-inner - wall, -inner - wall, 0.001), (-inner, inner + wall, 0.02), grain),
-             builder.add_box((inner, -inner - wall, 0.001), (inner + wall, inner + wall, 0.02), grain),
-             builder.add_box((-inner, -inner - wall, 0.001), (inner, -inner, 0.02), grain),
-             builder.add_box((-inner, inner, 0.001), (inner, inner + wall, 0.02), grain)]
+    frame = [
+        builder.add_box((-inner - wall, -inner - wall, 0.001), (-inner, inner + wall, 0.02), grain),
+        builder.add_box((inner, -inner - wall, 0.001), (inner + wall, inner + wall, 0.02), grain),
+        builder.add_box((-inner, -inner - wall, 0.001), (inner, -inner, 0.02), grain),
+        builder.add_box((-inner, inner, 0.001), (inner, inner + wall, 0.02), grain),
+    ]
     builder.add_particle((0, 0, radius), radius, grain)
     model, state, control = builder.finalize(device, "double")
     sim = Simulation(model, state, control)
@@ -278,6 +288,7 @@ def test_walls_moved_together_carry_a_sphere_along(device):
 
 
 # -- loaded walls --------------------------------------------------------------------------------
+
 
 @pytest.mark.parametrize("integrator", ["verlet", "jolt-beeman"])
 def test_loaded_lid_rests_at_the_hertz_overlap(device, integrator):
@@ -337,10 +348,19 @@ def test_loaded_wall_needs_a_reporting_boundary_and_valid_input(device):
 
 # -- determinism and checkpoints ------------------------------------------------------------------
 
+
 def _wrench_arrays(sim):
     state = sim.state
-    return [a.numpy() for a in (state.boundary_force, state.boundary_torque, state.boundary_contacts,
-                                state.boundary_displacement, state.boundary_velocity)]
+    return [
+        a.numpy()
+        for a in (
+            state.boundary_force,
+            state.boundary_torque,
+            state.boundary_contacts,
+            state.boundary_displacement,
+            state.boundary_velocity,
+        )
+    ]
 
 
 def test_boundary_wrenches_repeat_bit_for_bit_and_do_not_depend_on_the_order(device):

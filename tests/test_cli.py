@@ -19,8 +19,19 @@ def cli_run(tmp_path_factory, tiny_bed):
     folder = tmp_path_factory.mktemp("cli")
     scene = write_tiny(folder)
     out = folder / "run"
-    code = main(["run", scene, "--out", str(out), "--no-progress", "--precision", "double",
-                 "--set", f'bed.bed_file="{tiny_bed}"'])
+    code = main(
+        [
+            "run",
+            scene,
+            "--out",
+            str(out),
+            "--no-progress",
+            "--precision",
+            "double",
+            "--set",
+            f'bed.bed_file="{tiny_bed}"',
+        ]
+    )
     assert code in (0, 6)  # the tiny drive is too short for a steady state: exit 6 says so
     return scene, out, code
 
@@ -50,8 +61,20 @@ def test_overwrite_reuses_the_cached_bed(tmp_path, capsys):
     out = tmp_path / "run"
     assert main(["run", scene, "--out", str(out), "--no-progress", "--set", "run.duration=0.02"]) in (0, 6)
     bed = os.stat(out / "bed.h5").st_mtime_ns
-    assert main(["run", scene, "--out", str(out), "--no-progress", "--overwrite", "--set", "testbed.omega=0.5",
-                 "--set", "run.duration=0.02"]) in (0, 6)
+    assert main(
+        [
+            "run",
+            scene,
+            "--out",
+            str(out),
+            "--no-progress",
+            "--overwrite",
+            "--set",
+            "testbed.omega=0.5",
+            "--set",
+            "run.duration=0.02",
+        ]
+    ) in (0, 6)
     assert "reusing the settled bed" in capsys.readouterr().err
     assert os.stat(out / "bed.h5").st_mtime_ns == bed
 
@@ -68,8 +91,15 @@ def test_advise_prints_the_bounds_and_the_validity_checks(cli_run, capsys):
     scene, _, _ = cli_run
     assert main(["advise", scene]) == 0
     text = capsys.readouterr().out
-    for words in ("eq. 10", "Rayleigh", "recommended dt", "froude", "grains_across", "floor_clearance",
-                  "verdict: out of range"):
+    for words in (
+        "eq. 10",
+        "Rayleigh",
+        "recommended dt",
+        "froude",
+        "grains_across",
+        "floor_clearance",
+        "verdict: out of range",
+    ):
         assert words in text, words
 
 
@@ -84,19 +114,41 @@ def test_no_library_chatter_on_the_output():
     for args in (["--help"], ["plot", "--help"], ["advise", "--help"]):
         done = subprocess.run([sys.executable, "-m", "cosim", *args], capture_output=True, text=True, timeout=120)
         assert done.returncode == 0
-        chatter = [line for line in (done.stdout + done.stderr).splitlines()
-                   if line.startswith(("Warp ", "Module ")) or "CUDA warning" in line]
+        chatter = [
+            line
+            for line in (done.stdout + done.stderr).splitlines()
+            if line.startswith(("Warp ", "Module ")) or "CUDA warning" in line
+        ]
         assert not chatter, (args, chatter)
 
 
 def test_no_warp_lines_during_a_run(tmp_path, tiny_bed):
     scene = write_tiny(tmp_path)
-    done = subprocess.run([sys.executable, "-m", "cosim", "run", scene, "--out", str(tmp_path / "o"), "--no-progress",
-                           "--set", f'bed.bed_file="{tiny_bed}"', "--set", "run.duration=0.01"],
-                          capture_output=True, text=True, timeout=300)
+    done = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "cosim",
+            "run",
+            scene,
+            "--out",
+            str(tmp_path / "o"),
+            "--no-progress",
+            "--set",
+            f'bed.bed_file="{tiny_bed}"',
+            "--set",
+            "run.duration=0.01",
+        ],
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
     assert done.returncode in (0, 6), done.stderr
-    chatter = [line for line in (done.stdout + done.stderr).splitlines()
-               if line.startswith(("Warp ", "Module ")) or "CUDA warning" in line]
+    chatter = [
+        line
+        for line in (done.stdout + done.stderr).splitlines()
+        if line.startswith(("Warp ", "Module ")) or "CUDA warning" in line
+    ]
     assert not chatter, chatter
     assert done.stdout.splitlines()[0].startswith(("complete:", "unsteady:"))
 
@@ -138,8 +190,21 @@ def test_a_missing_cuda_device_is_exit_2(tmp_path, capsys):
 def test_a_wheel_that_never_touches_the_soil_is_reported(tmp_path, tiny_bed, capsys):
     """No landing and one macro step: the wheel starts just above the grains and never reaches them."""
     scene = write_tiny(tmp_path)
-    code = main(["run", scene, "--out", str(tmp_path / "air"), "--no-progress", "--set", f'bed.bed_file="{tiny_bed}"',
-                 "--set", "landing.enabled=false", "--set", "run.duration=0.0017"])
+    code = main(
+        [
+            "run",
+            scene,
+            "--out",
+            str(tmp_path / "air"),
+            "--no-progress",
+            "--set",
+            f'bed.bed_file="{tiny_bed}"',
+            "--set",
+            "landing.enabled=false",
+            "--set",
+            "run.duration=0.0017",
+        ]
+    )
     assert code == 6
     captured = capsys.readouterr()
     assert "never touched the soil" in captured.out and "never touched the soil" in captured.err
@@ -151,8 +216,28 @@ def test_a_wheel_that_never_touches_the_soil_is_reported(tmp_path, tiny_bed, cap
 def test_study_precision_on_a_local_cluster(tmp_path, tiny_bed):
     scene = write_tiny(tmp_path)
     out = tmp_path / "study"
-    assert main(["study", "precision", scene, "--replicas", "2", "--precisions", "single,double", "--out", str(out),
-                 "--workers", "2", "--set", f'bed.bed_file="{tiny_bed}"', "--set", "run.duration=0.03"]) == 0
+    assert (
+        main(
+            [
+                "study",
+                "precision",
+                scene,
+                "--replicas",
+                "2",
+                "--precisions",
+                "single,double",
+                "--out",
+                str(out),
+                "--workers",
+                "2",
+                "--set",
+                f'bed.bed_file="{tiny_bed}"',
+                "--set",
+                "run.duration=0.03",
+            ]
+        )
+        == 0
+    )
     report = json.loads((out / "study.json").read_text())
     assert [r["precision"] for r in report["rows"]] == ["single", "double"]
     assert all(r["replicas"] == 2 and r["failed"] == 0 for r in report["rows"])
@@ -169,8 +254,21 @@ def test_sweep_validates_every_point_first(tmp_path, tiny_bed, capsys):
     # a wheel wider than the bed is a bad scene: the sweep refuses before running anything
     assert main(["sweep", scene, "--param", "wheel.width=0.02,0.07", "--out", str(out), "--serial"]) == 2
     assert "point {'wheel.width': 0.07}" in capsys.readouterr().err and not out.exists()
-    code = main(["sweep", scene, "--param", "testbed.omega=0.5,1.0", "--set", f'bed.bed_file="{tiny_bed}"',
-                 "--set", "run.duration=0.01", "--out", str(out), "--serial"])
+    code = main(
+        [
+            "sweep",
+            scene,
+            "--param",
+            "testbed.omega=0.5,1.0",
+            "--set",
+            f'bed.bed_file="{tiny_bed}"',
+            "--set",
+            "run.duration=0.01",
+            "--out",
+            str(out),
+            "--serial",
+        ]
+    )
     assert code == 0
     report = json.loads((out / "study.json").read_text())
     assert [r["ok"] for r in report["rows"]] == [True, True]
@@ -184,8 +282,10 @@ def test_a_failed_task_is_reported_and_the_others_finish(tmp_path, tiny_bed):
     blocker.write_text("x")
     text = open(write_tiny(tmp_path)).read()
     overrides = {"bed.bed_file": str(tiny_bed), "run.duration": 0.01}
-    tasks = [{"scene_toml": text, "overrides": overrides, "out_dir": str(blocker / "a"), "label": "bad"},
-             {"scene_toml": text, "overrides": overrides, "out_dir": str(tmp_path / "b"), "label": "good"}]
+    tasks = [
+        {"scene_toml": text, "overrides": overrides, "out_dir": str(blocker / "a"), "label": "bad"},
+        {"scene_toml": text, "overrides": overrides, "out_dir": str(tmp_path / "b"), "label": "good"},
+    ]
     with Executor("serial") as ex:
         bad, good = ex.map(run_task, tasks)
     assert not bad["ok"] and "a part of the path is a file" in bad["error"]

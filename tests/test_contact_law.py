@@ -5,8 +5,8 @@ import math
 import numpy as np
 import pytest
 
-from soil import ContactLaw, Material, Simulation, SoilBuilder, damping_ratio_for_restitution
 from helpers import effective_modulus, hertz_rest_overlap, sphere_on_plane
+from soil import ContactLaw, Material, Simulation, SoilBuilder, damping_ratio_for_restitution
 
 GLASS = Material(youngs_modulus=48e9, poisson_ratio=0.2, density=2800.0, damping_ratio=0.0)
 
@@ -124,7 +124,9 @@ def test_restitution_matches_target_for_every_speed(device):
     cases = []
     for target in targets:
         # the floor has D = 0, the pair takes the mean: give the grain 2 D so the pair has D
-        grain = builder.add_material(Material(youngs_modulus=1e8, damping_ratio=2 * damping_ratio_for_restitution(target)))
+        grain = builder.add_material(
+            Material(youngs_modulus=1e8, damping_ratio=2 * damping_ratio_for_restitution(target))
+        )
         for speed in speeds:
             x = 3 * radius * len(cases)
             builder.add_particle((x, 0, radius + 1e-9), radius, grain, velocity=(0, 0, -speed))

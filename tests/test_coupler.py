@@ -16,7 +16,6 @@ from cosim.terrain import SpringDamperTerrain  # noqa: E402
 from rover_models.mjcf import MMX_WHEELS, mmx_rover_xml, single_wheel_rig_xml  # noqa: E402
 from rover_models.mujoco_rover import MujocoRover  # noqa: E402
 
-
 # --- the analytic terrain on its own ---------------------------------------------------
 
 

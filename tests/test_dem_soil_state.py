@@ -4,9 +4,9 @@ import warnings
 
 import numpy as np
 
-from soil import GrouserWheel, Material, Simulation, SoilBuilder
 from cosim.contract import WheelKinematics
 from cosim.dem_soil import DemSoil, WallProximityWarning
+from soil import GrouserWheel, Material, Simulation, SoilBuilder
 
 WHEEL = GrouserWheel(radius=0.02, width=0.012, grouser_count=8, grouser_height=0.002, grouser_thickness=0.0015)
 
@@ -27,8 +27,14 @@ def soil_with_wheel(device):
 
 def kinematics(t):
     """The wheel rolls along +x while pressing down into the grains."""
-    return [WheelKinematics(np.array([0.02 + 0.05 * t, 0.015, 0.04 - 0.05 * t]), np.array([1.0, 0, 0, 0]),
-                            np.array([0.05, 0.0, -0.05]), np.array([0.0, 2.5, 0.0]))]
+    return [
+        WheelKinematics(
+            np.array([0.02 + 0.05 * t, 0.015, 0.04 - 0.05 * t]),
+            np.array([1.0, 0, 0, 0]),
+            np.array([0.05, 0.0, -0.05]),
+            np.array([0.0, 2.5, 0.0]),
+        )
+    ]
 
 
 def advance(soil, start, macro_steps, macro=1e-3):

@@ -13,8 +13,9 @@ def bouncing_box(device, precision):
     rng = np.random.default_rng(7)
     grid = np.stack(np.meshgrid(*[np.arange(3)] * 3, indexing="ij"), -1).reshape(-1, 3)
     positions = 0.008 + grid * 0.012 + rng.uniform(-1e-3, 1e-3, grid.shape)
-    builder.add_particles(positions, rng.uniform(0.004, 0.005, len(grid)), mat,
-                          velocities=rng.normal(0, 0.3, grid.shape))
+    builder.add_particles(
+        positions, rng.uniform(0.004, 0.005, len(grid)), mat, velocities=rng.normal(0, 0.3, grid.shape)
+    )
     model, state, control = builder.finalize(device, precision, law=ContactLaw(damping=False, friction=False))
     return Simulation(model, state, control)
 

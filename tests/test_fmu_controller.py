@@ -22,7 +22,7 @@ from rover_models.fmu_rover import FmuVariableError  # noqa: E402
 #     torque_command = -r force.x          (only with torque=True; checks the wrench inputs)
 # Direct feedthrough, no state. A distinct module/class name per build: pythonfmu imports
 # the slave module by name into this (shared) interpreter.
-_SOURCE = '''
+_SOURCE = """
 from pythonfmu import Fmi2Causality, Fmi2Slave, Fmi2Variability, Real
 
 WHEELS = {wheels}
@@ -69,7 +69,7 @@ class {name}(Fmi2Slave):
 
     def do_step(self, current_time, step_size):
         return True
-'''
+"""
 
 
 def _build(folder, name, wheels, torque):
@@ -100,7 +100,8 @@ def fmus(tmp_path_factory):
         "two": _build(folder, "SlipFmuTwo", wheels=2, torque=True),
         # Same FMU, command output renamed: the controller finds no wheel_0.speed_command.
         "no_command": _rename_in_model_description(
-            one, folder / "NoCommand.fmu", '"wheel_0.speed_command"', '"wheel_0.speed_cmd"'),
+            one, folder / "NoCommand.fmu", '"wheel_0.speed_command"', '"wheel_0.speed_cmd"'
+        ),
     }
 
 
@@ -126,8 +127,14 @@ def test_fmu_controller_returns_the_formula(fmus):
     ]
     with FmuController(fmus["two"], 2, mode="speed", start_values=start) as controller:
         assert isinstance(controller, Controller)
-        assert controller.input_names == ["wheel_0.velocity.x", "wheel_0.angular_velocity.y", "wheel_0.force.x",
-                                          "wheel_1.velocity.x", "wheel_1.angular_velocity.y", "wheel_1.force.x"]
+        assert controller.input_names == [
+            "wheel_0.velocity.x",
+            "wheel_0.angular_velocity.y",
+            "wheel_0.force.x",
+            "wheel_1.velocity.x",
+            "wheel_1.angular_velocity.y",
+            "wheel_1.force.x",
+        ]
         for t, wheels in states:
             kin = [_kin(v, w) for v, w in wheels]
             command = controller(t, kin, [WheelWrench(), WheelWrench()])
@@ -158,7 +165,9 @@ def test_missing_command_outputs_are_a_clear_error(fmus):
     assert "missing wheel_0.speed_command" in message
     assert "wheel_0.speed_cmd (output, Real)" in message and "wheel_0.velocity.x (input, Real)" in message
     # Wheel count mismatch: the scene has 3 wheels, the FMU commands 2.
-    with pytest.raises(FmuVariableError, match=r"missing wheel_2\.speed_command.*the FMU has: .*wheel_1\.speed_command"):
+    with pytest.raises(
+        FmuVariableError, match=r"missing wheel_2\.speed_command.*the FMU has: .*wheel_1\.speed_command"
+    ):
         FmuController(fmus["two"], 3, mode="speed")
     # ... or 1 wheel while the FMU commands 2.
     with pytest.raises(FmuVariableError, match=r"unexpected wheel_1\.speed_command"):

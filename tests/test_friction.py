@@ -5,16 +5,23 @@ import math
 import numpy as np
 import pytest
 
-from soil import ContactLaw, Material, NeighbourSettings, Simulation, SoilBuilder
 from helpers import sphere_on_plane
+from soil import ContactLaw, Material, NeighbourSettings, Simulation, SoilBuilder
 
 MU = 0.3
 
 
 def coulomb(mu, **kw):
     angle = math.atan(mu)
-    return Material(youngs_modulus=1e7, poisson_ratio=0.3, density=2600.0, restitution=0.3,
-                    stick_angle=angle, slip_angle=angle, **kw)
+    return Material(
+        youngs_modulus=1e7,
+        poisson_ratio=0.3,
+        density=2600.0,
+        restitution=0.3,
+        stick_angle=angle,
+        slip_angle=angle,
+        **kw,
+    )
 
 
 @pytest.mark.parametrize("precision", ["double", "mixed"])
@@ -68,8 +75,15 @@ def test_incline_rolls_without_slip_iff_tan_below_three_and_a_half_mu(device, th
         assert slip_speed > 0.1 * v2
 
 
-STICKY = Material(youngs_modulus=1e7, poisson_ratio=0.3, density=2600.0, restitution=0.1,
-                  stick_angle=math.radians(30), slip_angle=math.radians(20), stick_speed=0.01)
+STICKY = Material(
+    youngs_modulus=1e7,
+    poisson_ratio=0.3,
+    density=2600.0,
+    restitution=0.1,
+    stick_angle=math.radians(30),
+    slip_angle=math.radians(20),
+    stick_speed=0.01,
+)
 
 
 def sliding_block(device, theta_deg, v0):
@@ -79,8 +93,16 @@ def sliding_block(device, theta_deg, v0):
     mass = 2600 * 4 / 3 * math.pi * radius**3
     e_star = 1 / (2 * (1 - 0.3**2) / 1e7)
     overlap = (3 * mass * 9.81 * math.cos(theta) / (4 * e_star * math.sqrt(radius))) ** (2 / 3)
-    sim = sphere_on_plane(device, "double", tilted_gravity(theta), STICKY, radius=radius,
-                          lock_rotation=True, velocity=(v0, 0, 0), overlap=overlap)
+    sim = sphere_on_plane(
+        device,
+        "double",
+        tilted_gravity(theta),
+        STICKY,
+        radius=radius,
+        lock_rotation=True,
+        velocity=(v0, 0, 0),
+        overlap=overlap,
+    )
     sim.run(0.05, 2e-5)
     v1, t1 = sim.velocities()[0, 0], sim.time
     sim.run(0.05, 2e-5)
@@ -161,8 +183,13 @@ def test_history_storage_grows_instead_of_dropping_contacts(device):
         builder.add_container((-0.02, -0.02, 0), (0.02, 0.02, 0.1), mat)
         grid = np.stack(np.meshgrid(*[np.arange(4)] * 3, indexing="ij"), -1).reshape(-1, 3)
         positions = (grid - 1.5) * 0.0095 + (0, 0, 0.02)
-        builder.add_particles(positions + rng.normal(0, 1e-4, positions.shape) * (capacity == 1) * 0
-                              + np.random.default_rng(5).normal(0, 1e-4, positions.shape), 0.005, mat)
+        builder.add_particles(
+            positions
+            + rng.normal(0, 1e-4, positions.shape) * (capacity == 1) * 0
+            + np.random.default_rng(5).normal(0, 1e-4, positions.shape),
+            0.005,
+            mat,
+        )
         model, state, control = builder.finalize(device, "double", contact_capacity=capacity)
         sim = Simulation(model, state, control)
         sim.run(0.02, 5e-6)
@@ -176,8 +203,7 @@ def test_rolling_resistance_stops_a_rolling_sphere(device):
     rolling sphere at a = (5/7) mu_r g (torque / (I + m R^2) * R)."""
     mu_r, g, radius, v0 = 0.05, 9.81, 5e-3, 0.2
     material = coulomb(0.5, rolling_friction=mu_r)
-    sim = sphere_on_plane(device, "double", g, material, radius=radius, velocity=(v0, 0, 0),
-                          spin=(0, v0 / radius, 0))
+    sim = sphere_on_plane(device, "double", g, material, radius=radius, velocity=(v0, 0, 0), spin=(0, v0 / radius, 0))
     sim.run(0.01, 2e-6)
     v1, t1 = sim.velocities()[0, 0], sim.time
     sim.run(0.05, 2e-6)
@@ -198,8 +224,9 @@ def test_cohesion_holds_a_sphere_against_pull(device):
     outcomes = {}
     for factor in (0.2, 3.0):
         g_pull = factor * max_pull / mass
-        sim = sphere_on_plane(device, "double", (0, 0, g_pull), material, radius=radius,
-                              law=ContactLaw(friction=False, cohesion=True))
+        sim = sphere_on_plane(
+            device, "double", (0, 0, g_pull), material, radius=radius, law=ContactLaw(friction=False, cohesion=True)
+        )
         sim.run(0.05, 5e-6)
         outcomes[factor] = sim.positions()[0, 2] < 2 * radius
     assert outcomes == {0.2: True, 3.0: False}

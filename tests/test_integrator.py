@@ -10,8 +10,9 @@ from soil import ContactLaw, JoltBeeman, Material, Simulation, SoilBuilder, Step
 GLASS = Material(youngs_modulus=48e9, poisson_ratio=0.2, density=2800.0, damping_ratio=0.0)
 RADIUS, SPEED = 0.01, 1.0
 MASS = GLASS.density * 4.0 / 3.0 * math.pi * RADIUS**3
-IMPACT = advisor.hertz_impact(GLASS.youngs_modulus / (2 * (1 - GLASS.poisson_ratio**2)), RADIUS / 2, MASS / 2,
-                              2 * SPEED)
+IMPACT = advisor.hertz_impact(
+    GLASS.youngs_modulus / (2 * (1 - GLASS.poisson_ratio**2)), RADIUS / 2, MASS / 2, 2 * SPEED
+)
 CONTACT_TIME = IMPACT.contact_time
 GAP = 2 * SPEED * 5 * CONTACT_TIME  # free flight of 5 contact times before the impact
 DURATION = GAP / (2 * SPEED) + 11 * CONTACT_TIME  # ... and 10 after it
@@ -32,14 +33,17 @@ def impact_error(sim):
     delayed by the contact time. max(separation error / max overlap, speed error / 2 v)."""
     separation_theory = 2 * RADIUS + 2 * SPEED * (sim.time - GAP / (2 * SPEED) - CONTACT_TIME)
     x, v = sim.positions(), sim.velocities()
-    return max(abs(x[1, 0] - x[0, 0] - separation_theory) / IMPACT.max_overlap,
-               abs(v[1, 0] - v[0, 0] - 2 * SPEED) / (2 * SPEED))
+    return max(
+        abs(x[1, 0] - x[0, 0] - separation_theory) / IMPACT.max_overlap,
+        abs(v[1, 0] - v[0, 0] - 2 * SPEED) / (2 * SPEED),
+    )
 
 
 def adaptive_run(device, tolerance):
     sim = two_spheres(device, JoltBeeman())
-    stats = sim.run_adaptive(DURATION, StepController(tolerance=tolerance, dt_max=CONTACT_TIME,
-                                                      dt_min=1e-5 * CONTACT_TIME))
+    stats = sim.run_adaptive(
+        DURATION, StepController(tolerance=tolerance, dt_max=CONTACT_TIME, dt_min=1e-5 * CONTACT_TIME)
+    )
     assert sim.time == pytest.approx(DURATION, rel=1e-12)
     return sim, stats
 
@@ -81,13 +85,20 @@ def test_variable_steps_keep_second_order(device):
     k = 4.0 / 3.0 * e_star * math.sqrt(r)
     period = 2 * math.pi / math.sqrt(1.5 * k * math.sqrt(rest) / mass)
     duration = 3 * period
-    exact = solve_ivp(lambda t, s: [s[1], -g + k * max(-s[0], 0.0) ** 1.5 / mass], (0, duration),
-                      [-1.6 * rest, 0.0], rtol=1e-12, atol=1e-18, method="DOP853").y[:, -1]
+    exact = solve_ivp(
+        lambda t, s: [s[1], -g + k * max(-s[0], 0.0) ** 1.5 / mass],
+        (0, duration),
+        [-1.6 * rest, 0.0],
+        rtol=1e-12,
+        atol=1e-18,
+        method="DOP853",
+    ).y[:, -1]
     pattern = np.random.default_rng(5).uniform(0.5, 2.0, 64)
     errors = []
     for base in (period / 40, period / 80, period / 160):
-        sim = sphere_on_plane(device, "double", g, mat, radius=r, overlap=1.6 * rest,
-                              law=ContactLaw(damping=False, friction=False))
+        sim = sphere_on_plane(
+            device, "double", g, mat, radius=r, overlap=1.6 * rest, law=ContactLaw(damping=False, friction=False)
+        )
         sim.integrator = JoltBeeman()
         step = 0
         while duration - sim.time > 1e-15:
@@ -142,8 +153,12 @@ def sliding_pile(device, capacity=16):
     mat = builder.add_material(Material(youngs_modulus=1e7, restitution=0.5, stick_speed=0.05))
     builder.add_plane((0, 0, 0), (0, 0, 1), mat)
     r = 5e-3
-    builder.add_particles([(0, 0, r * 0.999), (2 * r * 0.999, 0, r * 0.999), (r * 0.999, 0, r * (1 + 1.7305))], r, mat,
-                          velocities=[(0.02, 0, 0), (0.01, 0.01, 0), (0.0, 0.02, -0.01)])
+    builder.add_particles(
+        [(0, 0, r * 0.999), (2 * r * 0.999, 0, r * 0.999), (r * 0.999, 0, r * (1 + 1.7305))],
+        r,
+        mat,
+        velocities=[(0.02, 0, 0), (0.01, 0.01, 0), (0.0, 0.02, -0.01)],
+    )
     model, state, control = builder.finalize(device, "double", contact_capacity=capacity)
     return Simulation(model, state, control, integrator=JoltBeeman())
 
@@ -168,8 +183,11 @@ def test_rejected_step_restores_whole_state_bitwise(device, capacity):
     sim = sliding_pile(device, capacity)
     sim.integrator = RecordingBeeman()
     accepted_dts = []
-    stats = sim.run_adaptive(0.003, StepController(tolerance=1e-7, dt_max=2e-5, dt_initial=2e-5),
-                             callback=lambda s: accepted_dts.append(s.state.step_previous.numpy()[0]))
+    stats = sim.run_adaptive(
+        0.003,
+        StepController(tolerance=1e-7, dt_max=2e-5, dt_initial=2e-5),
+        callback=lambda s: accepted_dts.append(s.state.step_previous.numpy()[0]),
+    )
     assert stats["rejected"] > 0 and stats["accepted"] > 10, stats
     assert np.any(sim.state.contact_count.numpy() > 0)
     calls = sim.integrator.calls

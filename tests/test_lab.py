@@ -33,23 +33,28 @@ def test_a_wheel_scene_is_a_lab_scene_and_measures_its_own_soil():
     assert lab.dt == pytest.approx(wheel.dt)
 
 
-@pytest.mark.parametrize("text, named", [
-    ("[repose]\ntube_widht = 0.02", "repose.tube_widht: unknown key"),
-    ("[repose]\nlift_speed = 0.01\nlift_ratio = 0.1", "repose.lift_speed: give lift_speed or lift_ratio"),
-    ("[repose]\nfit_range = [0.9, 0.1]", "repose.fit_range"),
-    ("[shear]\nnormal_stresses = [100.0, -5.0]", "shear.normal_stresses"),
-    ("[shear]\ninertial_number = nan", "shear.inertial_number"),
-    ("[plate]\nwidths = [0.02, 0.02]", "plate.widths: each width once"),
-    ("[lab]\nreplicas = 0", "lab.replicas"),
-])
+@pytest.mark.parametrize(
+    "text, named",
+    [
+        ("[repose]\ntube_widht = 0.02", "repose.tube_widht: unknown key"),
+        ("[repose]\nlift_speed = 0.01\nlift_ratio = 0.1", "repose.lift_speed: give lift_speed or lift_ratio"),
+        ("[repose]\nfit_range = [0.9, 0.1]", "repose.fit_range"),
+        ("[shear]\nnormal_stresses = [100.0, -5.0]", "shear.normal_stresses"),
+        ("[shear]\ninertial_number = nan", "shear.inertial_number"),
+        ("[plate]\nwidths = [0.02, 0.02]", "plate.widths: each width once"),
+        ("[lab]\nreplicas = 0", "lab.replicas"),
+    ],
+)
 def test_bad_lab_keys_are_named(text, named):
     with pytest.raises(SceneError) as error:
         lab_scene_from_text(text)
     assert named in str(error.value)
 
 
-@pytest.mark.parametrize("gravity, named", [(0.0, "needs gravity"), ("[1.0, 0.0, -9.81]", "along -Z"),
-                                            ("[0.0, 0.0, 9.81]", "must point down")])
+@pytest.mark.parametrize(
+    "gravity, named",
+    [(0.0, "needs gravity"), ("[1.0, 0.0, -9.81]", "along -Z"), ("[0.0, 0.0, 9.81]", "must point down")],
+)
 def test_gravity_must_point_down(gravity, named):
     scene = lab_scene_from_text(f"[scene]\ngravity = {gravity}\ndevice = 'cpu'")
     with pytest.raises(SceneError, match=named):
@@ -65,8 +70,22 @@ def test_lab_commands_fail_cleanly_on_bad_input(tmp_path, capsys):
     assert main(["calibrate", str(scene), "--target", "repose=30", "--vary", "soil.rolling_friction=0.3:0"]) == 2
     assert "LOW < HIGH" in capsys.readouterr().err
     # a range whose end is no valid scene is refused before anything runs
-    assert main(["calibrate", str(scene), "--serial", "--out", str(tmp_path / "out"), "--target", "repose=30",
-                 "--vary", "soil.slip_angle_deg=10:40"]) == 2
+    assert (
+        main(
+            [
+                "calibrate",
+                str(scene),
+                "--serial",
+                "--out",
+                str(tmp_path / "out"),
+                "--target",
+                "repose=30",
+                "--vary",
+                "soil.slip_angle_deg=10:40",
+            ]
+        )
+        == 2
+    )
     assert "slip_angle_deg" in capsys.readouterr().err
 
 
@@ -150,9 +169,15 @@ inertial_number = 0.01
 
 def shear_angle(tmp_path, name, friction_deg, rolling, law="", replicas=1) -> dict:
     text = SHEAR + f"[soil.law]\n{law}\n" if law else SHEAR
-    scene = lab_scene_from_text(text, overrides={"soil.stick_angle_deg": friction_deg,
-                                                 "soil.slip_angle_deg": friction_deg,
-                                                 "soil.rolling_friction": rolling, "lab.replicas": replicas})
+    scene = lab_scene_from_text(
+        text,
+        overrides={
+            "soil.stick_angle_deg": friction_deg,
+            "soil.slip_angle_deg": friction_deg,
+            "soil.rolling_friction": rolling,
+            "lab.replicas": replicas,
+        },
+    )
     return shear_test(resolve_lab(scene), str(tmp_path / name))
 
 
@@ -218,7 +243,9 @@ def test_plate_bekker_fit_reproduces_its_curves(tmp_path):
     the measured one (measured: within 6 %). A few grains under a plate make the curve jump
     by about 15 % of its value as the grains under it give way (R^2 0.34-0.76 between
     machines): the fit follows the trend, which is what the 15 % bound checks, not the jumps."""
-    summary = plate_test(resolve_lab(lab_scene_from_text(PLATE, overrides={"lab.replicas": 2})), str(tmp_path / "plate"))
+    summary = plate_test(
+        resolve_lab(lab_scene_from_text(PLATE, overrides={"lab.replicas": 2})), str(tmp_path / "plate")
+    )
     fit = summary["bekker"]
     assert 0.2 < fit["n"] < 1.5 and fit["k_phi"] > 0
     data = np.genfromtxt(tmp_path / "plate" / "plate.csv", delimiter=",", names=True)
@@ -247,9 +274,11 @@ def test_cosim_lab_repose_writes_its_report(tmp_path, capsys):
     """The command end to end on a heap too small to measure (phases cut short): exit 0, every
     file written, the CSV headers with units, the notes saying what was cut short."""
     scene = tmp_path / "heap.toml"
-    scene.write_text("[scene]\ngravity = 'earth'\nprecision = 'double'\ndevice = 'cpu'\n[soil]\nyoungs_modulus = 1e5\n"
-                     "[bed]\nradius_mean = 0.002\n[lab]\nmax_time_factor = 2.0\n"
-                     "[repose]\ntube_width = 0.02\nfill_height = 0.01\nlift_ratio = 0.3\nbase_width = 0.04\n")
+    scene.write_text(
+        "[scene]\ngravity = 'earth'\nprecision = 'double'\ndevice = 'cpu'\n[soil]\nyoungs_modulus = 1e5\n"
+        "[bed]\nradius_mean = 0.002\n[lab]\nmax_time_factor = 2.0\n"
+        "[repose]\ntube_width = 0.02\nfill_height = 0.01\nlift_ratio = 0.3\nbase_width = 0.04\n"
+    )
     out = tmp_path / "out"
     assert main(["lab", "repose", str(scene), "--serial", "--out", str(out)]) == 0
     printed = capsys.readouterr().out
@@ -257,6 +286,7 @@ def test_cosim_lab_repose_writes_its_report(tmp_path, capsys):
     assert "hit lab.max_time_factor" in printed
     for name in ("scene.toml", "summary.json", "repose.csv", "repose_grains.csv", "repose_history.csv", "repose.png"):
         assert (out / name).is_file(), name
-    assert (out / "repose.csv").read_text().splitlines()[0] == ("replica [1],radius [m],surface_height [m],"
-                                                                 "sectors_filled [1]")
+    assert (out / "repose.csv").read_text().splitlines()[0] == (
+        "replica [1],radius [m],surface_height [m],sectors_filled [1]"
+    )
     assert main(["lab", "repose", str(scene), "--serial", "--out", str(out)]) == 3  # nothing is overwritten

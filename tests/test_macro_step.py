@@ -29,8 +29,12 @@ def soil(device, precision="double"):
 
 def pose(t):
     """The wheel rolls along +x, pressing down, and yaws a little."""
-    return WheelKinematics(np.array([0.03 + 0.05 * t, 0.015, 0.0415 - 0.3 * t]), quat_integrate([1.0, 0, 0, 0],
-                           np.array([0, 0, 0.3]), t), np.array([0.05, 0.0, -0.3]), np.array([0.0, 2.5, 0.3]))
+    return WheelKinematics(
+        np.array([0.03 + 0.05 * t, 0.015, 0.0415 - 0.3 * t]),
+        quat_integrate([1.0, 0, 0, 0], np.array([0, 0, 0.3]), t),
+        np.array([0.05, 0.0, -0.3]),
+        np.array([0.0, 2.5, 0.3]),
+    )
 
 
 class ReadCounter:
@@ -98,10 +102,12 @@ def test_device_wheel_path_and_wrench_sums_match_stepping_from_the_host(device):
             np.testing.assert_allclose(wrench.force, force / 10, rtol=0, atol=1e-6 * scale)
             np.testing.assert_allclose(wrench.torque, torque / 10, rtol=0, atol=1e-6 * scale * 0.02)
             assert abs(wrench.work_on_soil - work) <= 1e-6 * abs(work) + 1e-15
-            np.testing.assert_allclose(on_device.sim.control.body_position.numpy()[0],
-                                       sim.control.body_position.numpy()[0], rtol=0, atol=1e-12)
-            np.testing.assert_allclose(on_device.sim.control.body_rotation.numpy()[0],
-                                       sim.control.body_rotation.numpy()[0], rtol=0, atol=1e-12)
+            np.testing.assert_allclose(
+                on_device.sim.control.body_position.numpy()[0], sim.control.body_position.numpy()[0], rtol=0, atol=1e-12
+            )
+            np.testing.assert_allclose(
+                on_device.sim.control.body_rotation.numpy()[0], sim.control.body_rotation.numpy()[0], rtol=0, atol=1e-12
+            )
     assert wrench.contact_count > 0
 
 

@@ -14,8 +14,9 @@ def test_definitions_on_a_wheel_turned_about_its_axle():
     """A wheel tilted 90 deg about its axle (Y): its forward direction stays +X, the definitions do not move."""
     geometry = metrics.WheelGeometry(rim_radius=0.04, outer_radius=0.045, surface_height=0.1)
     half = math.pi / 4
-    k = WheelKinematics([0.3, 0.0, 0.13], [math.cos(half), 0.0, math.sin(half), 0.0], [0.006, 0.0, 0.0],
-                        [0.0, 0.25, 0.0])
+    k = WheelKinematics(
+        [0.3, 0.0, 0.13], [math.cos(half), 0.0, math.sin(half), 0.0], [0.006, 0.0, 0.0], [0.0, 0.25, 0.0]
+    )
     w = WheelWrench(force=[1.5, 0.2, 30.0], torque=[0.0, -0.8, 0.0])
     q = metrics.wheel_quantities(k, w, geometry, drive_start_position=np.array([0.25, 0.0, 0.13]))
     assert q["travel"] == pytest.approx(0.05)
@@ -57,7 +58,9 @@ def _series(n_landing=60, n_drive=400, v_ss=0.006, omega=0.25, r=0.04, contacts=
     phase = np.r_[np.zeros(n_landing, int), np.ones(n_drive, int)]
     k = np.arange(n_drive)
     v = np.r_[np.zeros(n_landing), v_ss * (1 - np.exp(-k / 30.0)) + 2e-4 * rng.standard_normal(n_drive)]
-    sink = np.r_[np.full(n_landing, 0.004), 0.004 + 0.003 * (1 - np.exp(-k / 30.0)) + 1e-4 * rng.standard_normal(n_drive)]
+    sink = np.r_[
+        np.full(n_landing, 0.004), 0.004 + 0.003 * (1 - np.exp(-k / 30.0)) + 1e-4 * rng.standard_normal(n_drive)
+    ]
     spin = np.r_[np.zeros(n_landing), np.full(n_drive, omega)]
     velocity = np.zeros((n, 1, 3))
     velocity[:, 0, 0] = v
@@ -67,10 +70,20 @@ def _series(n_landing=60, n_drive=400, v_ss=0.006, omega=0.25, r=0.04, contacts=
     orientation[:, 0, 0] = 1.0
     travel = np.r_[np.zeros(n_landing), np.cumsum(v[n_landing:]) * 0.05][:, None]
     pull = 0.5 + 0.01 * rng.standard_normal(n)
-    return {"time": time, "phase": phase, "linear_velocity": velocity, "angular_velocity": angular,
-            "orientation": orientation, "sinkage": sink[:, None], "sinkage_tips": sink[:, None] + 0.004,
-            "drawbar_pull": pull[:, None], "driving_torque": np.full((n, 1), 0.1), "normal_force": np.full((n, 1), 10.0),
-            "travel": travel, "contact_count": np.full((n, 1), contacts)}
+    return {
+        "time": time,
+        "phase": phase,
+        "linear_velocity": velocity,
+        "angular_velocity": angular,
+        "orientation": orientation,
+        "sinkage": sink[:, None],
+        "sinkage_tips": sink[:, None] + 0.004,
+        "drawbar_pull": pull[:, None],
+        "driving_torque": np.full((n, 1), 0.1),
+        "normal_force": np.full((n, 1), 10.0),
+        "travel": travel,
+        "contact_count": np.full((n, 1), contacts),
+    }
 
 
 def test_landing_then_a_steady_state_window_with_its_metrics():
@@ -87,8 +100,10 @@ def test_landing_then_a_steady_state_window_with_its_metrics():
 
 
 def test_runs_without_a_steady_state_say_why():
-    assert metrics.summarize(_series(contacts=0), rim_radius=0.04, wheel_load=10.0)["steady_state"] == \
-        metrics.NEVER_TOUCHED
+    assert (
+        metrics.summarize(_series(contacts=0), rim_radius=0.04, wheel_load=10.0)["steady_state"]
+        == metrics.NEVER_TOUCHED
+    )
     hopping = _series()
     hopping["contact_count"][::2] = 0  # in the air half of the time
     assert metrics.summarize(hopping, rim_radius=0.04, wheel_load=10.0)["steady_state"] == metrics.AIRBORNE
@@ -96,8 +111,10 @@ def test_runs_without_a_steady_state_say_why():
     drifting = _series()
     drifting["sinkage"][60:, 0] = np.linspace(0.004, 0.03, 400)  # digging in without end
     assert metrics.summarize(drifting, rim_radius=0.04, wheel_load=10.0)["steady_state"] == metrics.TOO_SHORT
-    assert metrics.summarize(_series(), rim_radius=0.04, wheel_load=10.0, landed=False)["steady_state"] == \
-        metrics.NO_LANDING
+    assert (
+        metrics.summarize(_series(), rim_radius=0.04, wheel_load=10.0, landed=False)["steady_state"]
+        == metrics.NO_LANDING
+    )
 
 
 def test_the_95_percent_interval_covers_the_mean_95_percent_of_the_time():

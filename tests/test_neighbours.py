@@ -12,8 +12,9 @@ from soil import Material, NeighbourSettings, Simulation, SoilBuilder
 SIZE = 0.05  # box side [m]
 
 
-def rain(device, n_side=7, skin=None, reorder=None, capture=True, capacity=16, rigid_capacity=4, seed=0,
-         precision="double"):
+def rain(
+    device, n_side=7, skin=None, reorder=None, capture=True, capacity=16, rigid_capacity=4, seed=0, precision="double"
+):
     """n_side^3 grains of radii 1.5 .. 4 mm (a size ratio of 2.7) thrown about in a closed box."""
     rng = np.random.default_rng(seed)
     grid = np.stack(np.meshgrid(*[np.arange(n_side)] * 3, indexing="ij"), -1).reshape(-1, 3)
@@ -26,10 +27,10 @@ def rain(device, n_side=7, skin=None, reorder=None, capture=True, capacity=16, r
     builder.add_particles(positions, radii, mat, velocities=rng.normal(0, 0.4, grid.shape))
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")  # a few grains start pressed together: on purpose
-        model, state, control = builder.finalize(device, precision, contact_capacity=capacity,
-                                                 rigid_capacity=rigid_capacity)
-    return Simulation(model, state, control, neighbours=NeighbourSettings(skin=skin, reorder=reorder),
-                      capture=capture)
+        model, state, control = builder.finalize(
+            device, precision, contact_capacity=capacity, rigid_capacity=rigid_capacity
+        )
+    return Simulation(model, state, control, neighbours=NeighbourSettings(skin=skin, reorder=reorder), capture=capture)
 
 
 def brute_force_contacts(sim):
@@ -77,9 +78,9 @@ def test_the_list_finds_exactly_the_contacts_of_brute_force(device, skin):
         candidates = cKDTree(built).query_pairs(reach, output_type="ndarray")
         gap = np.linalg.norm(built[candidates[:, 0]] - built[candidates[:, 1]], axis=1)
         within = gap < r[candidates[:, 0]] + r[candidates[:, 1]] + sim.neighbour_list.skin
-        rows = {(i, int(j)) for i in range(len(r)) for j in data["neighbours"][i, :data["neighbour_count"][i]]}
+        rows = {(i, int(j)) for i in range(len(r)) for j in data["neighbours"][i, : data["neighbour_count"][i]]}
         assert rows == {tuple(p) for p in candidates[within]} | {tuple(p[::-1]) for p in candidates[within]}
-        assert all(np.all(np.diff(data["neighbours"][i, :data["neighbour_count"][i]]) > 0) for i in range(len(r)))
+        assert all(np.all(np.diff(data["neighbours"][i, : data["neighbour_count"][i]]) > 0) for i in range(len(r)))
     assert rebuilds > (5 if skin == 1e-4 else 0), "the list was rebuilt along the way"
 
 
@@ -129,7 +130,6 @@ def test_a_checkpoint_continues_bitwise_in_another_storage_order(device):
     np.testing.assert_array_equal(resumed.positions(), reference.positions())
     np.testing.assert_array_equal(resumed.angular_velocities(), reference.angular_velocities())
     assert not np.array_equal(reference.state.layout.order.numpy(), np.arange(reference.model.particle_count))
-
 
 
 LATTICE = (2e-3, 2e-3 * (1 - 1e-3) * 2, (6, 6, 3))

@@ -41,9 +41,14 @@ def test_layout_matches_the_documentation(tiny_run):
 
     with open_results(tiny_run / "results.h5") as f:
         mesh = f["wheels/mesh"]
-        layout = documented_layout(wheels=1, particles=f["particles/radius"].shape[0],
-                                   vertices=mesh["vertices"].shape[0], triangles=mesh["triangles"].shape[0],
-                                   columns=f["rover/state"].shape[1], boundaries=f["boundaries/kind"].shape[0])
+        layout = documented_layout(
+            wheels=1,
+            particles=f["particles/radius"].shape[0],
+            vertices=mesh["vertices"].shape[0],
+            triangles=mesh["triangles"].shape[0],
+            columns=f["rover/state"].shape[1],
+            boundaries=f["boundaries/kind"].shape[0],
+        )
         found = set()
         f.visititems(lambda name, obj: found.add(name) if isinstance(obj, h5py.Dataset) else None)
         assert found == set(layout), f"undocumented {found - set(layout)}, missing {set(layout) - found}"
@@ -51,8 +56,10 @@ def test_layout_matches_the_documentation(tiny_run):
         snapshots = f["particles/time"].shape[0]
         for name, (shape, kind) in layout.items():
             dataset = f[name]
-            expected = tuple((steps if name.startswith(("wheels", "rover", "boundaries", "soil")) else snapshots)
-                             if s is None else s for s in shape)
+            expected = tuple(
+                (steps if name.startswith(("wheels", "rover", "boundaries", "soil")) else snapshots) if s is None else s
+                for s in shape
+            )
             assert dataset.shape == expected, name
             assert dataset.dtype.kind == kind, name
         for key in REQUIRED_ATTRIBUTES:
@@ -88,9 +95,11 @@ def test_every_dataset_carries_its_unit(tiny_run):
 
     missing = []
     with open_results(tiny_run / "results.h5") as f:
+
         def visit(name, obj):
             if isinstance(obj, h5py.Dataset) and not obj.attrs.get("units"):
                 missing.append(name)
+
         f.visititems(visit)
         assert f["wheels/force"].attrs["units"] == "N" and f["wheels/slip"].attrs["units"] == "1"
         assert f["particles/position"].attrs["units"] == "m"
@@ -125,9 +134,16 @@ def test_xdmf_references_existing_datasets(tiny_run):
 
 
 def _writer(path, flush_every=3):
-    return ResultsWriter.create(path, attrs={"name": "t"}, radius=np.ones(4), wheel_count=1,
-                                mesh=(np.eye(3), np.array([[0, 1, 2]]), np.zeros(3, int)),
-                                rover_columns=["x"], rover_units=["m"], flush_every=flush_every)
+    return ResultsWriter.create(
+        path,
+        attrs={"name": "t"},
+        radius=np.ones(4),
+        wheel_count=1,
+        mesh=(np.eye(3), np.array([[0, 1, 2]]), np.zeros(3, int)),
+        rover_columns=["x"],
+        rover_units=["m"],
+        flush_every=flush_every,
+    )
 
 
 def _record(t):

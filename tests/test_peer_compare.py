@@ -46,13 +46,37 @@ def test_settled_bed_matches_lammps():
     peers = []
     for replica in range(3):
         nudge = np.random.default_rng(replica).normal(0.0, 1e-9, positions.shape)  # a replica, not a new scene
-        peers.append(lammps_peer.run_bed(positions + nudge, radii, density, youngs, poisson, mu, e, 0.0, (0, 0, 0),
-                                         box_hi, (0, 0, -9.81), dt, steps))
+        peers.append(
+            lammps_peer.run_bed(
+                positions + nudge,
+                radii,
+                density,
+                youngs,
+                poisson,
+                mu,
+                e,
+                0.0,
+                (0, 0, 0),
+                box_hi,
+                (0, 0, -9.81),
+                dt,
+                steps,
+            )
+        )
 
     builder = SoilBuilder(gravity=9.81)
     angle = math.atan(mu)
-    mat = builder.add_material(Material(youngs_modulus=youngs, poisson_ratio=poisson, density=density,
-                                        restitution=e, stick_angle=angle, slip_angle=angle, stick_speed=1e9))
+    mat = builder.add_material(
+        Material(
+            youngs_modulus=youngs,
+            poisson_ratio=poisson,
+            density=density,
+            restitution=e,
+            stick_angle=angle,
+            slip_angle=angle,
+            stick_speed=1e9,
+        )
+    )
     builder.add_container((0, 0, 0), box_hi, mat)
     builder.add_particles(positions, radii, mat)
     model, state, control = builder.finalize("cpu", "double", law=ContactLaw())

@@ -90,8 +90,20 @@ def test_lammps_bed_settles(rolling_friction):
     pos, rad = lammps_peer.make_random_fill(200, 2.5e-3, 0.2, lo, hi, seed=1)
     dt = 0.2 * lammps_peer.rayleigh_time_step(rad.min(), 2600.0, 1e8, 0.3)
     result = lammps_peer.run_bed(
-        pos, rad, 2600.0, 1e8, 0.3, 0.5, 0.3, rolling_friction, lo, hi,
-        [0.0, 0.0, -9.81], dt, steps=100, settle_first_steps=20000,
+        pos,
+        rad,
+        2600.0,
+        1e8,
+        0.3,
+        0.5,
+        0.3,
+        rolling_friction,
+        lo,
+        hi,
+        [0.0, 0.0, -9.81],
+        dt,
+        steps=100,
+        settle_first_steps=20000,
     )
     x = result["positions"]
     assert x.shape == (200, 3) and np.all(np.isfinite(x))

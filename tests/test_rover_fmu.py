@@ -146,7 +146,8 @@ def test_wrong_variable_names_list_the_fmu_variables(fmus, tmp_path):
     assert "wheel_0.velocity.y" in message and "wheel_0.vel_y" in message and "gravity.z" in message
 
     retyped = _rewrite_model_description(
-        path, tmp_path / "retyped.fmu",
+        path,
+        tmp_path / "retyped.fmu",
         '<Float64 name="wheel_0.force.z" valueReference="13" causality="input" start="0.0"/>',
         '<Int32 name="wheel_0.force.z" valueReference="13" causality="input" start="0"/>',
     )
@@ -180,8 +181,9 @@ def test_speed_command_drives_the_wheel(fmus):
     rover.close()
 
 
-@pytest.mark.parametrize("case", ["not_a_zip", "no_model_description", "truncated_model_description", "no_wheels",
-                                  "broken_binary"])
+@pytest.mark.parametrize(
+    "case", ["not_a_zip", "no_model_description", "truncated_model_description", "no_wheels", "broken_binary"]
+)
 def test_a_file_that_is_not_a_rover_fmu_is_a_clear_error(tmp_path, fmus, case):
     """Each names the file and what is wrong; nothing is left unpacked in the temp folder."""
     import tempfile
@@ -213,14 +215,16 @@ def test_a_file_that_is_not_a_rover_fmu_is_a_clear_error(tmp_path, fmus, case):
         from pythonfmu.builder import FmuBuilder
 
         script = tmp_path / "plain_fmu.py"
-        script.write_text("from pythonfmu import Fmi2Causality, Fmi2Slave, Real\n\n\n"
-                          "class PlainFmu(Fmi2Slave):\n"
-                          "    def __init__(self, **kwargs):\n"
-                          "        super().__init__(**kwargs)\n"
-                          "        self.x = 0.0\n"
-                          "        self.register_variable(Real('x', causality=Fmi2Causality.output))\n\n"
-                          "    def do_step(self, t, h):\n"
-                          "        return True\n")
+        script.write_text(
+            "from pythonfmu import Fmi2Causality, Fmi2Slave, Real\n\n\n"
+            "class PlainFmu(Fmi2Slave):\n"
+            "    def __init__(self, **kwargs):\n"
+            "        super().__init__(**kwargs)\n"
+            "        self.x = 0.0\n"
+            "        self.register_variable(Real('x', causality=Fmi2Causality.output))\n\n"
+            "    def do_step(self, t, h):\n"
+            "        return True\n"
+        )
         path = FmuBuilder.build_FMU(script, dest=tmp_path)
         words = "needs wheel_<i>"
     before = set(os.listdir(tempfile.gettempdir()))

@@ -40,8 +40,11 @@ def test_wrench_at_offset_hub_gives_analytic_accelerations():
     com_local = np.array([0.08, -0.05, 0.03])
     mass, inertia = 2.5, np.array([0.011, 0.023, 0.031])
     xml = FREE_BODY.format(
-        body_quat=" ".join(map(str, body_q)), com=" ".join(map(str, com_local)),
-        inertial_quat=" ".join(map(str, inertial_q)), mass=mass, inertia=" ".join(map(str, inertia)),
+        body_quat=" ".join(map(str, body_q)),
+        com=" ".join(map(str, com_local)),
+        inertial_quat=" ".join(map(str, inertial_q)),
+        mass=mass,
+        inertia=" ".join(map(str, inertia)),
     )
     rover = MujocoRover(xml, ["hub"])
     force = np.array([3.0, -1.0, 2.0])
@@ -219,8 +222,13 @@ def test_held_hub_wrench_moves_the_centre_of_mass_along_the_analytic_path():
     hub without the shift (or at the wrong point) turns the body."""
     com_local = np.array([0.06, -0.05, 0.06])
     mass = 1.7
-    xml = FREE_BODY.format(body_quat="1 0 0 0", com=" ".join(map(str, com_local)), inertial_quat="1 0 0 0",
-                           mass=mass, inertia="0.01 0.02 0.03").replace('gravity="0 0 0"', 'gravity="0 0 -9.81"')
+    xml = FREE_BODY.format(
+        body_quat="1 0 0 0",
+        com=" ".join(map(str, com_local)),
+        inertial_quat="1 0 0 0",
+        mass=mass,
+        inertia="0.01 0.02 0.03",
+    ).replace('gravity="0 0 0"', 'gravity="0 0 -9.81"')
     rover = MujocoRover(xml, ["hub"])
     assert rover.timestep == 1e-4
     force = np.array([0.8, -0.3, 25.0])
@@ -250,8 +258,11 @@ def test_velocity_motor_against_a_held_soil_torque():
     point is the steady state omega = ctrl + T / kv of the continuous motor, reached as
     exp(-kv t / I) up to O(h)."""
     kv, radius, wheel_mass = 0.5, 0.1, 1.0
-    rover = MujocoRover(single_wheel_rig_xml(wheel_mass=wheel_mass, wheel_radius=radius, motor_kv=kv,
-                                             timestep=1e-3), ["wheel"], gravity=(0, 0, 0))
+    rover = MujocoRover(
+        single_wheel_rig_xml(wheel_mass=wheel_mass, wheel_radius=radius, motor_kv=kv, timestep=1e-3),
+        ["wheel"],
+        gravity=(0, 0, 0),
+    )
     i_yy = 0.5 * wheel_mass * radius**2
     ctrl, soil_torque = 6.0, -0.4  # the soil resists the drive
     rover.set_wheel_speeds([ctrl])

@@ -10,14 +10,14 @@ import pytest
 
 mujoco = pytest.importorskip("mujoco")
 
-from soil import GrouserWheel, Material, Simulation, SoilBuilder  # noqa: E402
-from soil.bed import BedSpec, bed_metrics, build_bed, save_bed, settle, rayleigh_time_step  # noqa: E402
-from cosim.coupler import Coupler, CouplingEnergyWarning, stack_records  # noqa: E402
 from cosim.controllers import SlipController  # noqa: E402
+from cosim.coupler import Coupler, CouplingEnergyWarning, stack_records  # noqa: E402
 from cosim.dem_soil import DemSoil  # noqa: E402
 from cosim.single_wheel import SingleWheelRig  # noqa: E402
 from rover_models.mjcf import MMX_WHEELS, mmx_rover_xml, single_wheel_rig_xml  # noqa: E402
 from rover_models.mujoco_rover import MujocoRover  # noqa: E402
+from soil import GrouserWheel, Material, Simulation, SoilBuilder  # noqa: E402
+from soil.bed import BedSpec, bed_metrics, build_bed, rayleigh_time_step, save_bed, settle  # noqa: E402
 
 WHEEL = GrouserWheel(radius=0.03, width=0.02, grouser_count=10, grouser_height=0.003, grouser_thickness=0.002)
 
@@ -25,8 +25,15 @@ WHEEL = GrouserWheel(radius=0.03, width=0.02, grouser_count=10, grouser_height=0
 def soil_material(gravity):
     # stiffness scaled with gravity (paper eq. 10: E ~ load): same overlap/radius and
     # the same number of steps per settling time at every g
-    return Material(youngs_modulus=1e7 * gravity / 9.81, poisson_ratio=0.3, density=2600, restitution=0.2,
-                    stick_angle=math.radians(30), slip_angle=math.radians(25), rolling_friction=0.1)
+    return Material(
+        youngs_modulus=1e7 * gravity / 9.81,
+        poisson_ratio=0.3,
+        density=2600,
+        restitution=0.2,
+        stick_angle=math.radians(30),
+        slip_angle=math.radians(25),
+        rolling_friction=0.1,
+    )
 
 
 _beds = {}
@@ -36,8 +43,14 @@ def settled_bed(tmp_path_factory, gravity, length, width, depth=0.02, radius=3.5
     """A settled bed saved to HDF5 (cached per test session); returns (path, surface, dt)."""
     key = (gravity, length, width, depth, radius)
     if key not in _beds:
-        spec = BedSpec(length=length, width=width, depth=depth, radius_mean=radius, radius_spread=0.15,
-                       material=soil_material(gravity))
+        spec = BedSpec(
+            length=length,
+            width=width,
+            depth=depth,
+            radius_mean=radius,
+            radius_spread=0.15,
+            material=soil_material(gravity),
+        )
         sim = Simulation(*build_bed(spec, gravity).finalize("cpu", "double"))
         dt = 0.2 * rayleigh_time_step(spec.material, radius * 0.85)
         report = settle(sim, dt, ke_ratio=1e-3, max_time=60 * math.sqrt(radius / gravity))
@@ -50,9 +63,18 @@ def settled_bed(tmp_path_factory, gravity, length, width, depth=0.02, radius=3.5
 
 
 def small_rover_xml(gravity):
-    return mmx_rover_xml(wheel_radius=WHEEL.radius, wheel_width=WHEEL.width, body_mass=0.5, leg_mass=0.05,
-                         wheel_mass=0.1, body_size=(0.12, 0.1, 0.05), wheelbase=0.12, track=0.14,
-                         leg_drop=0.03, gravity=(0, 0, -gravity))
+    return mmx_rover_xml(
+        wheel_radius=WHEEL.radius,
+        wheel_width=WHEEL.width,
+        body_mass=0.5,
+        leg_mass=0.05,
+        wheel_mass=0.1,
+        body_size=(0.12, 0.1, 0.05),
+        wheelbase=0.12,
+        track=0.14,
+        leg_drop=0.03,
+        gravity=(0, 0, -gravity),
+    )
 
 
 @pytest.mark.parametrize("gravity", [9.81, 5.7e-3])
@@ -146,19 +168,33 @@ def test_coupled_result_converges_as_the_macro_step_shrinks():
     angle = slip angle, no stick-speed switch, no rolling resistance): a 1e-12 m change of
     the start height changes the path by 1e-12 m, and the result is smooth in H."""
     gravity = 9.81
-    material = Material(youngs_modulus=1e7, poisson_ratio=0.3, density=2600, restitution=0.2,
-                        stick_angle=math.radians(25), slip_angle=math.radians(25), stick_speed=1e9)
+    material = Material(
+        youngs_modulus=1e7,
+        poisson_ratio=0.3,
+        density=2600,
+        restitution=0.2,
+        stick_angle=math.radians(25),
+        slip_angle=math.radians(25),
+        stick_speed=1e9,
+    )
     paths = {}
     for substeps in (1, 2, 4, 8):
         soil = rigid_granular_floor(gravity, material)
-        rig = SingleWheelRig(mass=0.1, radius=SMOOTH_WHEEL.radius, omega=2.0,
-                             hub=(0.05, 0.03, soil.surface_height + SMOOTH_WHEEL.outer_radius), gravity=(0, 0, -gravity),
-                             landed=True)
+        rig = SingleWheelRig(
+            mass=0.1,
+            radius=SMOOTH_WHEEL.radius,
+            omega=2.0,
+            hub=(0.05, 0.03, soil.surface_height + SMOOTH_WHEEL.outer_radius),
+            gravity=(0, 0, -gravity),
+            landed=True,
+        )
         soil.place_wheels(rig.wheel_kinematics())
         coupler = Coupler(soil, rig, substeps * soil.dt, gravity=(0, 0, -gravity))
         samples = []
-        coupler.run(8 * 140 * soil.dt,
-                    callback=lambda c: samples.append(rig.position.copy()) if c.step_count % (8 // substeps) == 0 else None)
+        coupler.run(
+            8 * 140 * soil.dt,
+            callback=lambda c: samples.append(rig.position.copy()) if c.step_count % (8 // substeps) == 0 else None,
+        )
         paths[substeps] = np.array(samples)
     reference = paths[1]
     assert np.ptp(reference[:, 2]) > 5e-5 and np.ptp(reference[:, 0]) > 5e-4, "it bounces and rolls"
@@ -182,9 +218,16 @@ def test_slip_controller_holds_target_slip_on_a_bed(tmp_path_factory):
     gravity, target = 9.81, 0.3
     bed, surface, dt = settled_bed(tmp_path_factory, gravity, 0.3, 0.06)
     soil = DemSoil.from_bed(bed, [WHEEL], soil_material(gravity), dt, surface, device="cpu", precision="double")
-    xml = single_wheel_rig_xml(wheel_radius=WHEEL.radius, wheel_width=WHEEL.width, wheel_mass=0.05,
-                               carriage_mass=0.1, ballast_mass=0.15, motor_kv=0.5,
-                               hub_height=surface + WHEEL.outer_radius - 0.001, gravity=(0, 0, -gravity))
+    xml = single_wheel_rig_xml(
+        wheel_radius=WHEEL.radius,
+        wheel_width=WHEEL.width,
+        wheel_mass=0.05,
+        carriage_mass=0.1,
+        ballast_mass=0.15,
+        motor_kv=0.5,
+        hub_height=surface + WHEEL.outer_radius - 0.001,
+        gravity=(0, 0, -gravity),
+    )
     # the rig runs along y = 0; put it on the bed's centre line (the bed spans y in [0, 0.06])
     xml = xml.replace('<body name="carriage" pos="0 0 ', '<body name="carriage" pos="0 0.03 ', 1)
     rover = MujocoRover(xml, ["wheel"], gravity=(0, 0, -gravity))

@@ -60,8 +60,18 @@ def test_a_move_keeps_the_grains_that_stay_and_their_contact_history(tile):
     spec = plan.bed.spec
     tile_grains = Tile.load(bed.path, (spec.length, spec.width), plan.precision, plan.patch.tile_margin)
     wheel = plan.wheels[0]
-    patch = SoilPatch(tile_grains, 0.15, 0.12, 0.008, 0.01, [(wheel.shape, wheel.material)], plan.gravity,
-                      "cpu", plan.precision, plan.law)
+    patch = SoilPatch(
+        tile_grains,
+        0.15,
+        0.12,
+        0.008,
+        0.01,
+        [(wheel.shape, wheel.material)],
+        plan.gravity,
+        "cpu",
+        plan.precision,
+        plan.law,
+    )
     sim = patch.start((0.0, 0.0))
     sim.control.set_body_motion(0, (0.0, 0.0, 0.2), (1.0, 0.0, 0.0, 0.0))  # the wheel far above the soil
     sim.refresh_forces()
@@ -73,8 +83,9 @@ def test_a_move_keeps_the_grains_that_stay_and_their_contact_history(tile):
     assert moved.model.particle_count == patch.particle_count != sim.model.particle_count
 
     books = patch.books()
-    assert books["soil_mass"] == pytest.approx(books["mass_initial"] + books["mass_added"] - books["mass_removed"],
-                                               rel=1e-14)
+    assert books["soil_mass"] == pytest.approx(
+        books["mass_initial"] + books["mass_added"] - books["mass_removed"], rel=1e-14
+    )
     assert float(np.sum(moved.model.mass_numpy())) == pytest.approx(books["soil_mass"], rel=1e-12)
     assert books["mass_added"] > 0 and books["mass_removed"] > 0
 

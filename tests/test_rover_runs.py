@@ -55,8 +55,11 @@ def test_on_a_slope_the_forces_balance_slip_grows_and_the_stuck_criterion_fires(
     for name, slope, grousers in (("g0", 0, 8), ("g10", 10, 8), ("g20", 20, 8), ("smooth20", 20, 0)):
         scene = write_rig(folder, name=f"slope_{name}", slope_deg=slope, grousers=grousers, duration=1.2)
         if not grousers:
-            text = open(scene).read().replace("grouser_count = 0\ngrouser_height = 0.003\ngrouser_thickness = 0.002",
-                                              "grouser_count = 0")
+            text = (
+                open(scene)
+                .read()
+                .replace("grouser_count = 0\ngrouser_height = 0.003\ngrouser_thickness = 0.002", "grouser_count = 0")
+            )
             open(scene, "w").write(text)
         plan = load_plan(scene, [f'bed.bed_file="{rig_bed}"'])
         assert plan.slope == pytest.approx(math.radians(slope), abs=1e-12)
@@ -122,8 +125,7 @@ def test_the_rover_fmu_moves_as_the_mjcf_on_an_analytic_terrain(fmus):
     g = (0.0, 0.0, -9.81)
 
     def run(rover):
-        soil = SpringDamperTerrain(0.1, 4, traction="slip", substeps=2, stiffness=2e5, damping=2000,
-                                   slip_velocity=0.05)
+        soil = SpringDamperTerrain(0.1, 4, traction="slip", substeps=2, stiffness=2e5, damping=2000, slip_velocity=0.05)
         return stack_records(Coupler(soil, rover, 2e-3, gravity=g, controller=ConstantSpeed(2.0, 4)).run(1.0))
 
     a = run(MujocoRover(mmx_rover_xml(gravity=g), list(MMX_WHEELS), gravity=g))
@@ -210,8 +212,19 @@ def test_resume_of_a_rover_on_a_moving_patch_is_bitwise(folder):
     """A rig on a moving patch, stopped after its second checkpoint in the drive (the window has moved by then
     and moves again after it) and resumed: every array of the final state and every dataset of results.h5 (the
     ragged particle snapshots included) equal an uninterrupted run's bit for bit."""
-    scene = write_rig(folder, name="patch_resume", heading=20.0, speed=4.0, duration=1.6, length=0.1, width=0.1,
-                      radius=0.005, snapshots=0.3, checkpoints=0.5, extra=PATCH)
+    scene = write_rig(
+        folder,
+        name="patch_resume",
+        heading=20.0,
+        speed=4.0,
+        duration=1.6,
+        length=0.1,
+        width=0.1,
+        radius=0.005,
+        snapshots=0.3,
+        checkpoints=0.5,
+        extra=PATCH,
+    )
     plan = load_plan(scene)
     baseline = run_plan(plan, str(folder / "patch_a"))
     assert baseline.summary["patch_moves"] >= 4
@@ -226,11 +239,19 @@ def test_resume_of_an_fmu_rover_with_an_fmu_controller_is_bitwise(folder, fmus):
     extra = f"""
 [rover.controllers.fmu_slip]
 kind = "fmu"
-file = "{fmus['controller']}"
+file = "{fmus["controller"]}"
 start_values = {{target_slip = 0.3, wheel_radius = 0.025, omega_max = 3.0, omega_min = 0.3}}
 """
-    scene = write_small_rover(folder, kind="fmu", fmu=fmus["rover"], name="fmu_resume", drive="fmu_slip",
-                              duration=0.3, checkpoints=0.2, extra=extra)
+    scene = write_small_rover(
+        folder,
+        kind="fmu",
+        fmu=fmus["rover"],
+        name="fmu_resume",
+        drive="fmu_slip",
+        duration=0.3,
+        checkpoints=0.2,
+        extra=extra,
+    )
     bed = settled_bed(load_plan(scene), str(folder / "small_bed")).path
     plan = load_plan(scene, [f'bed.bed_file="{bed}"'])
     run_plan(plan, str(folder / "fmu_a"))
@@ -254,9 +275,15 @@ def test_a_rover_run_folder_has_documented_results_units_xdmf_and_plots(folder):
     with open_results(run / "results.h5") as f:
         assert f["particles"].attrs["layout"] == "ragged"
         mesh = f["wheels/mesh"]
-        layout = documented_layout(wheels=1, particles=0, vertices=mesh["vertices"].shape[0],
-                                   triangles=mesh["triangles"].shape[0], columns=f["rover/state"].shape[1],
-                                   boundaries=f["boundaries/kind"].shape[0] if "boundaries" in f else 0, ragged=True)
+        layout = documented_layout(
+            wheels=1,
+            particles=0,
+            vertices=mesh["vertices"].shape[0],
+            triangles=mesh["triangles"].shape[0],
+            columns=f["rover/state"].shape[1],
+            boundaries=f["boundaries/kind"].shape[0] if "boundaries" in f else 0,
+            ragged=True,
+        )
         found, missing_units = set(), []
 
         def visit(name, obj):
@@ -302,8 +329,22 @@ speed = 2.5
     text = text.replace('wheels = ["wheel"]\n', 'wheels = ["wheel"]\ndrive = "slow"\n')
     open(scene, "w").write(text)
     out = folder / "sweep_out"
-    assert main(["sweep", scene, "--param", "rover.drive=slow,fast", "--set", f'bed.bed_file="{rig_bed}"',
-                 "--serial", "--out", str(out)]) == 0
+    assert (
+        main(
+            [
+                "sweep",
+                scene,
+                "--param",
+                "rover.drive=slow,fast",
+                "--set",
+                f'bed.bed_file="{rig_bed}"',
+                "--serial",
+                "--out",
+                str(out),
+            ]
+        )
+        == 0
+    )
     header, *rows = (out / "study.csv").read_text().splitlines()
     assert header.startswith("rover.drive,ok,status,steady_state,slip [1],travel [m]")
     assert "energy_per_metre [J/m]" in header and "time_immobile [s]" in header

@@ -20,8 +20,11 @@ def fmus(tmp_path_factory):
     from rover_models.fmu_src.build_fmus import build_rover_fmu, build_slip_controller_fmu
 
     folder = tmp_path_factory.mktemp("fmus")
-    return {"rover": str(build_rover_fmu(folder)), "controller1": str(build_slip_controller_fmu(folder, 1)),
-            "controller4": str(build_slip_controller_fmu(folder, 4))}
+    return {
+        "rover": str(build_rover_fmu(folder)),
+        "controller1": str(build_slip_controller_fmu(folder, 1)),
+        "controller4": str(build_slip_controller_fmu(folder, 4)),
+    }
 
 
 def _rig(tmp_path, extra="", **kw):
@@ -35,17 +38,33 @@ BAD = [
     ("a missing MJCF file", ['rover.file="nowhere.xml"'], "rover.file", "not found"),
     ("an unknown controller", ['rover.drive="turbo"'], "rover.drive", "unknown controller"),
     ("an unknown drive kind", ['rover.drive.kind="warp"'], "rover.drive.kind", "'speed'"),
-    ("a callable that cannot be imported", ['rover.drive={kind="python", function="no_such_module:make"}'],
-     "rover.drive.function", "cannot import"),
-    ("a module without the callable", ['rover.drive={kind="python", function="os:no_such_function"}'],
-     "rover.drive.function", "no callable"),
+    (
+        "a callable that cannot be imported",
+        ['rover.drive={kind="python", function="no_such_module:make"}'],
+        "rover.drive.function",
+        "cannot import",
+    ),
+    (
+        "a module without the callable",
+        ['rover.drive={kind="python", function="os:no_such_function"}'],
+        "rover.drive.function",
+        "no callable",
+    ),
     ("one speed per wheel, wrong count", ["rover.drive.speed=[1.0, 2.0]"], "rover.drive.speed", "2 values for 1"),
-    ("a slip drive without its top speed", ['rover.drive={kind="slip", target_slip=0.2}'], "rover.drive.omega_max",
-     "required"),
+    (
+        "a slip drive without its top speed",
+        ['rover.drive={kind="slip", target_slip=0.2}'],
+        "rover.drive.omega_max",
+        "required",
+    ),
     ("keys of another drive kind", ["rover.drive.target_slip=0.2"], "rover.drive.target_slip", "kind = 'speed'"),
     ("a rover and a testbed", ["testbed.mass=1.0"], "rover", "not both"),
-    ("a patch too small for the rover", ["patch.length=0.04", "patch.width=0.04"], "patch.length",
-     "must hold the rover"),
+    (
+        "a patch too small for the rover",
+        ["patch.length=0.04", "patch.width=0.04"],
+        "patch.length",
+        "must hold the rover",
+    ),
     ("a rover wider than its bed", ["bed.width=0.02", "bed.radius_mean=0.002"], "bed.width", "rover"),
     ("gravity pointing up", ["scene.gravity=[0.0, 0.0, 1.6]"], "scene.gravity", "down"),
 ]
@@ -69,12 +88,15 @@ def test_fmu_rover_input_errors_name_the_field(tmp_path, fmus, capsys):
     another wheel count: exit code 2, the field named, the FMU's variables listed."""
     cases = [
         # the controller FMU has no wheel_0.force.* inputs: not a rover
-        (["rover.model=\"fmu\"", f'rover.file="{fmus["controller1"]}"'], "rover.file", "force"),
+        (['rover.model="fmu"', f'rover.file="{fmus["controller1"]}"'], "rover.file", "force"),
         # the rover FMU has four wheels, the scene says two
         (["rover.wheel_count=2"], "rover.wheel_count", "the scene expects 2 wheel(s)"),
         # a drive-controller FMU for one wheel on a four-wheeled rover
-        ([f'rover.drive={{kind="fmu", file="{fmus["controller1"]}"}}'], "rover.drive.file",
-         "missing wheel_1.speed_command"),
+        (
+            [f'rover.drive={{kind="fmu", file="{fmus["controller1"]}"}}'],
+            "rover.drive.file",
+            "missing wheel_1.speed_command",
+        ),
         # FMU placement keys the rover FMU has, but an MJCF key it cannot take
         (['rover.body="chassis"'], "rover.body", "body.* outputs"),
     ]

@@ -16,32 +16,39 @@ BAD_SCENES = [
     # (what is wrong, TOML added to / replacing the tiny scene, field named, words of the allowed values)
     ("unknown key", "[bed]\nlenght = 0.2\n", "bed.lenght", "unknown key"),
     ("unknown section", "[whee]\nradius = 0.1\n", "whee", "unknown key"),
-    ("wrong type", "[testbed]\nmass = \"heavy\"\n", "testbed.mass", "number"),
+    ("wrong type", '[testbed]\nmass = "heavy"\n', "testbed.mass", "number"),
     ("negative radius", "[wheel]\nradius = -0.03\n", "wheel.radius", "> 0"),
-    ("slip angle above stick angle", "[soil]\nstick_angle_deg = 20.0\nslip_angle_deg = 30.0\n",
-     "soil.slip_angle_deg", "stick_angle_deg"),
+    (
+        "slip angle above stick angle",
+        "[soil]\nstick_angle_deg = 20.0\nslip_angle_deg = 30.0\n",
+        "soil.slip_angle_deg",
+        "stick_angle_deg",
+    ),
     ("friction angle >= 90 deg", "[soil]\nstick_angle_deg = 90.0\n", "soil.stick_angle_deg", "< 90"),
-    ("missing mesh file", "[wheel]\ntype = \"mesh\"\nfile = \"no_such_wheel.obj\"\n", "wheel.file", "not found"),
-    ("mesh keys on a grouser wheel", "[wheel]\nfile = \"w.obj\"\n", "wheel.file", "mesh"),
-    ("unknown gravity preset", "[scene]\ngravity = \"titan\"\n", "scene.gravity", "phobos"),
+    ("missing mesh file", '[wheel]\ntype = "mesh"\nfile = "no_such_wheel.obj"\n', "wheel.file", "not found"),
+    ("mesh keys on a grouser wheel", '[wheel]\nfile = "w.obj"\n', "wheel.file", "mesh"),
+    ("unknown gravity preset", '[scene]\ngravity = "titan"\n', "scene.gravity", "phobos"),
     ("gravity vector of 2", "[scene]\ngravity = [0.0, -1.0]\n", "scene.gravity", "3"),
-    ("unknown precision", "[scene]\nprecision = \"half\"\n", "scene.precision", "'double'"),
-    ("unknown device", "[scene]\ndevice = \"tpu\"\n", "scene.device", "cuda"),
+    ("unknown precision", '[scene]\nprecision = "half"\n', "scene.precision", "'double'"),
+    ("unknown device", '[scene]\ndevice = "tpu"\n', "scene.device", "cuda"),
     ("wheel wider than the bed", "[wheel]\nwidth = 0.07\n", "wheel.width", "wider than the bed"),
     ("wheel too close to the side walls", "[wheel]\nwidth = 0.052\n", "wheel.width", "side walls"),
     ("start too close to the wall", "[testbed]\nstart_x = 0.02\n", "testbed.start_x", "start_x >="),
     ("would drive into the far wall", "[run]\nduration = 10.0\n", "run.duration", "duration <="),
     ("dt <= 0", "[run]\ndt = 0.0\n", "run.dt", "> 0"),
     ("dt and dt_factor", "[run]\ndt = 1e-4\ndt_factor = 0.2\n", "run.dt", "not both"),
-    ("macro step not a multiple of dt", "[run]\ndt = 1e-4\nmacro_step = 2.5e-4\n", "run.macro_step",
-     "whole multiple"),
+    ("macro step not a multiple of dt", "[run]\ndt = 1e-4\nmacro_step = 2.5e-4\n", "run.macro_step", "whole multiple"),
     ("radius spread >= 1", "[bed]\nradius_spread = 1.0\n", "bed.radius_spread", "< 1"),
     ("bed too thin for its grains", "[bed]\ndepth = 0.01\n", "bed.depth", "two of the largest grains"),
-    ("missing bed file", "[bed]\nbed_file = \"nowhere.h5\"\n", "bed.bed_file", "not found"),
-    ("unknown mode", "[testbed]\nmode = \"towed\"\n", "testbed.mode", "'free'"),
-    ("unknown coupling scheme", "[run]\nscheme = \"newton\"\n", "run.scheme", "gauss-seidel"),
-    ("grousers thicker than their spacing", "[wheel]\ngrouser_count = 60\ngrouser_thickness = 0.004\n",
-     "wheel.grouser_thickness", "spacing"),
+    ("missing bed file", '[bed]\nbed_file = "nowhere.h5"\n', "bed.bed_file", "not found"),
+    ("unknown mode", '[testbed]\nmode = "towed"\n', "testbed.mode", "'free'"),
+    ("unknown coupling scheme", '[run]\nscheme = "newton"\n', "run.scheme", "gauss-seidel"),
+    (
+        "grousers thicker than their spacing",
+        "[wheel]\ngrouser_count = 60\ngrouser_thickness = 0.004\n",
+        "wheel.grouser_thickness",
+        "spacing",
+    ),
     # every number must be finite: inf and nan are named, not accepted
     ("infinite bed length", "[bed]\nlength = inf\n", "bed.length", "finite"),
     ("nan omega", "[testbed]\nomega = nan\n", "testbed.omega", "finite"),
@@ -86,8 +93,10 @@ def test_bad_scene_is_rejected_naming_the_field(tmp_path, what, extra, field, al
     assert allowed in message, message
 
 
-@pytest.mark.parametrize("extra,field", [(BAD_SCENES[0][1], "bed.lenght"), (BAD_SCENES[3][1], "wheel.radius"),
-                                         (BAD_SCENES[18][1], "run.macro_step")])
+@pytest.mark.parametrize(
+    "extra,field",
+    [(BAD_SCENES[0][1], "bed.lenght"), (BAD_SCENES[3][1], "wheel.radius"), (BAD_SCENES[18][1], "run.macro_step")],
+)
 def test_cli_rejects_bad_scene_with_exit_2(tmp_path, capsys, extra, field):
     path = tmp_path / "bad.toml"
     path.write_text(_merge(extra))
@@ -129,8 +138,9 @@ def test_mesh_wheel_scene(tmp_path):
     pytest.importorskip("trimesh")
     from soil import GrouserWheel, MeshWheel
 
-    vertices, triangles = GrouserWheel(radius=0.025, width=0.02, grouser_count=8, grouser_height=0.003,
-                                       grouser_thickness=0.002).to_mesh(arc_segments=64)
+    vertices, triangles = GrouserWheel(
+        radius=0.025, width=0.02, grouser_count=8, grouser_height=0.003, grouser_thickness=0.002
+    ).to_mesh(arc_segments=64)
     MeshWheel(vertices, triangles).save(tmp_path / "wheel.obj")
     (tmp_path / "mesh.toml").write_text(_merge('[wheel]\ntype = "mesh"\nfile = "wheel.obj"\n'))
     plan = load_plan(tmp_path / "mesh.toml")
@@ -149,8 +159,15 @@ def test_examples_are_valid(path, tmp_path_factory):
         from rover_models.fmu_src.build_fmus import build_rover_fmu, build_slip_controller_fmu
 
         folder = tmp_path_factory.mktemp("example_fmus")
-        overrides += [f'rover.file="{build_rover_fmu(folder)}"',
-                      f'rover.controllers.fmu_slip.file="{build_slip_controller_fmu(folder, 4)}"']
+        overrides += [
+            f'rover.file="{build_rover_fmu(folder)}"',
+            f'rover.controllers.fmu_slip.file="{build_slip_controller_fmu(folder, 4)}"',
+        ]
+    if "[repose]" in open(path).read() or "[shear]" in open(path).read():  # a lab scene (cosim lab)
+        from cosim.lab.scene import load_lab_plan
+
+        load_lab_plan(path, overrides)
+        return
     plan = load_plan(path, overrides)
     assert plan.drive_steps >= 1
 

@@ -23,17 +23,18 @@ import pytest
 
 fmpy = pytest.importorskip("fmpy")
 from fmpy.validation import validate_fmu  # noqa: E402
+
 if shutil.which("gcc") is None:
     pytest.skip("gcc is needed to build the soil FMU's front end", allow_module_level=True)
 if not sys.platform.startswith("linux"):
     pytest.skip("the soil FMU tests inspect /proc (Linux)", allow_module_level=True)
 
-from soil import GrouserWheel  # noqa: E402
 from cosim.contract import WheelKinematics  # noqa: E402
 from cosim.dem_soil import DemSoil  # noqa: E402
 from cosim.plan import load_plan  # noqa: E402
 from cosim.soil_fmu import build_frontend, export_soil_fmu, soil_config_from  # noqa: E402
 from helpers import TINY_SCENE  # noqa: E402
+from soil import GrouserWheel  # noqa: E402
 
 HERE = Path(__file__).resolve().parent
 H = 2.0**-9  # macro step [s]: a whole number of nanoseconds (libcosim's clock) and exact in binary
@@ -61,8 +62,10 @@ def tiny(tmp_path_factory, frontends):
     scene_file = folder / "tiny.toml"
     scene_file.write_text(TINY_SCENE.replace('precision = "mixed"', 'precision = "mixed"\ndevice = "cpu"'))
     config = soil_config_from(scene_file, bed_folder=folder / "bed")
-    fmus = {version: export_soil_fmu(config, folder / f"soil{version}.fmu", fmi_version=version,
-                                     library=frontends[version]) for version in (2, 3)}
+    fmus = {
+        version: export_soil_fmu(config, folder / f"soil{version}.fmu", fmi_version=version, library=frontends[version])
+        for version in (2, 3)
+    }
     return {"folder": folder, "plan": load_plan(scene_file), "config": config, "fmus": fmus}
 
 
@@ -112,8 +115,9 @@ def importer(tmp_path_factory):
     workdir = tmp_path_factory.mktemp("importer")
     for name in ("cosim", "soil"):
         (workdir / name).mkdir()
-        (workdir / name / "__init__.py").write_text(f"raise ImportError('the decoy {name} package in the "
-                                                    "importer\'s working directory was imported')\n")
+        (workdir / name / "__init__.py").write_text(
+            f"raise ImportError('the decoy {name} package in the importer's working directory was imported')\n"
+        )
     counter = iter(range(10**6))
 
     def run(job: dict, env_extra: dict | None = None, timeout: float = 300.0, background: bool = False):
@@ -127,8 +131,9 @@ def importer(tmp_path_factory):
         command = [sys.executable, "-I", "-S", str(HERE / "fmu_importer.py"), str(job_file), str(result_file)]
         env = {**{k: v for k, v in os.environ.items() if not k.startswith("REGOLITH_")}, **(env_extra or {})}
         if background:
-            return subprocess.Popen(command, cwd=workdir, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
-                                    text=True)
+            return subprocess.Popen(
+                command, cwd=workdir, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True
+            )
         done = subprocess.run(command, cwd=workdir, env=env, capture_output=True, text=True, timeout=timeout)
         assert done.returncode == 0, f"the importer failed ({done.returncode}):\n{done.stdout}\n{done.stderr}"
         result = json.loads(result_file.read_text())
@@ -144,21 +149,29 @@ def importer(tmp_path_factory):
 
 def _start_hub(fmu) -> np.ndarray:
     description = fmpy.read_model_description(str(fmu))
-    starts = {v.name: float(v.start) for v in description.modelVariables if v.start is not None
-              and v.name.startswith("wheel_0.position")}
+    starts = {
+        v.name: float(v.start)
+        for v in description.modelVariables
+        if v.start is not None and v.name.startswith("wheel_0.position")
+    }
     return np.array([starts[f"wheel_0.position.{a}"] for a in AXES])
 
 
 def _kinematics(hub0: np.ndarray, t: float) -> WheelKinematics:
     angle = SPIN * t
-    return WheelKinematics(hub0 + VELOCITY * t, (math.cos(angle / 2), 0.0, math.sin(angle / 2), 0.0), VELOCITY,
-                           (0.0, SPIN, 0.0))
+    return WheelKinematics(
+        hub0 + VELOCITY * t, (math.cos(angle / 2), 0.0, math.sin(angle / 2), 0.0), VELOCITY, (0.0, SPIN, 0.0)
+    )
 
 
 def _inputs(k: WheelKinematics, wheel: int = 0) -> dict:
     values = {}
-    for name, vector, axes in (("position", k.position, AXES), ("orientation", k.orientation, "wxyz"),
-                               ("velocity", k.linear_velocity, AXES), ("angular_velocity", k.angular_velocity, AXES)):
+    for name, vector, axes in (
+        ("position", k.position, AXES),
+        ("orientation", k.orientation, "wxyz"),
+        ("velocity", k.linear_velocity, AXES),
+        ("angular_velocity", k.angular_velocity, AXES),
+    ):
         values.update({f"wheel_{wheel}.{name}.{a}": float(v) for a, v in zip(axes, vector)})
     return values
 
@@ -166,14 +179,25 @@ def _inputs(k: WheelKinematics, wheel: int = 0) -> dict:
 def _in_process_soil(tiny) -> DemSoil:
     """The peer: a DemSoil built from the scene's own objects and the same bed file."""
     plan = tiny["plan"]
-    return DemSoil.from_bed(tiny["config"].bed_file, [plan.wheel.shape], plan.wheel.material, plan.dt,
-                            surface_height=tiny["config"].surface_height, device="cpu",
-                            precision=plan.precision, law=plan.law, order_seed=plan.order_seed)
+    return DemSoil.from_bed(
+        tiny["config"].bed_file,
+        [plan.wheel.shape],
+        plan.wheel.material,
+        plan.dt,
+        surface_height=tiny["config"].surface_height,
+        device="cpu",
+        precision=plan.precision,
+        law=plan.law,
+        order_seed=plan.order_seed,
+    )
 
 
 def _as_outputs(w, wheel: int = 0) -> dict:
-    out = {f"wheel_{wheel}.sinkage": w.sinkage, f"wheel_{wheel}.work_on_soil": w.work_on_soil,
-           f"wheel_{wheel}.contact_count": w.contact_count}
+    out = {
+        f"wheel_{wheel}.sinkage": w.sinkage,
+        f"wheel_{wheel}.work_on_soil": w.work_on_soil,
+        f"wheel_{wheel}.contact_count": w.contact_count,
+    }
     for name in ("force", "torque", "force_end", "torque_end"):
         out.update({f"wheel_{wheel}.{name}.{a}": float(v) for a, v in zip(AXES, getattr(w, name))})
     return out
@@ -183,8 +207,11 @@ def _job(fmu, steps: int, master: str = "fmpy", start: dict | None = None) -> tu
     """A job driving one wheel along the motion for `steps` macro steps; returns (job, kinematics per step)."""
     hub0 = _start_hub(fmu) - np.array([0.0, 0.0, PRESS])
     motion = [_kinematics(hub0, k * H) for k in range(steps)]
-    job = {"master": master, "instances": [{"fmu": str(fmu), "start": {**_inputs(motion[0]), **(start or {})}}],
-           "steps": [{"h": H, "inputs": [_inputs(k)]} for k in motion]}
+    job = {
+        "master": master,
+        "instances": [{"fmu": str(fmu), "start": {**_inputs(motion[0]), **(start or {})}}],
+        "steps": [{"h": H, "inputs": [_inputs(k)]} for k in motion],
+    }
     return job, motion
 
 
@@ -247,7 +274,9 @@ def test_fmu_steps_bitwise_like_the_in_process_soil(tiny, importer, master, vers
     assert len(got) == steps
     for k in range(steps):
         assert got[k][0] == expected[k], f"step {k}"
-    assert expected[-1]["wheel_0.contact_count"] > 0 and expected[-1]["wheel_0.force.z"] > 0, "the bed carries the wheel"
+    assert expected[-1]["wheel_0.contact_count"] > 0 and expected[-1]["wheel_0.force.z"] > 0, (
+        "the bed carries the wheel"
+    )
     assert "Warp" not in result["stdout"] and "Module" not in result["stdout"], result["stdout"]
 
 
@@ -285,8 +314,10 @@ def test_hung_server_times_out_with_an_error(tiny, importer):
     result = importer(job)
     assert [s[0] for s in result["status"]] == ["ok", "ok", "error"]
     assert timeout <= result["elapsed"][1] < timeout + 10.0
-    assert any(m[0] == "error" and "did not answer within 2 s (parameter server_step_timeout)" in m[2]
-               for m in result["messages"]), result["messages"]
+    assert any(
+        m[0] == "error" and "did not answer within 2 s (parameter server_step_timeout)" in m[2]
+        for m in result["messages"]
+    ), result["messages"]
     assert result["servers_after_free"] == [], "the hung server was killed"
 
 
@@ -353,11 +384,13 @@ def test_several_instances_in_one_master(tiny, importer, frontends):
     """Two one-wheel instances of one FMU and a two-wheel FMU in one fmpy master: each instance has
     its own server; identical inputs give identical wrenches; the two-wheel FMU's wheels start apart."""
     small = dataclasses.replace(tiny["config"], wheel=SMALL_WHEEL)  # two of the scene's wheels fill the tiny bed
-    fmu2 = export_soil_fmu(small, tiny["folder"] / "two_wheels.fmu", fmi_version=2, wheel_count=2,
-                           library=frontends[2])
+    fmu2 = export_soil_fmu(small, tiny["folder"] / "two_wheels.fmu", fmi_version=2, wheel_count=2, library=frontends[2])
     description = fmpy.read_model_description(str(fmu2))
-    starts = {v.name: float(v.start) for v in description.modelVariables if v.name.startswith("wheel_")
-              and v.start is not None}
+    starts = {
+        v.name: float(v.start)
+        for v in description.modelVariables
+        if v.name.startswith("wheel_") and v.start is not None
+    }
     x0, x1 = starts["wheel_0.position.x"], starts["wheel_1.position.x"]
     assert x1 - x0 > 2 * SMALL_WHEEL.outer_radius and "wheel_2.position.x" not in starts
 
@@ -381,11 +414,23 @@ def test_export_fmu_command_from_a_run_folder(tmp_path):
     from helpers import write_tiny
 
     scene = write_tiny(tmp_path)
-    Path(scene).write_text(Path(scene).read_text().replace('precision = "mixed"', 'precision = "mixed"\ndevice = "cpu"'))
+    Path(scene).write_text(
+        Path(scene).read_text().replace('precision = "mixed"', 'precision = "mixed"\ndevice = "cpu"')
+    )
     run = tmp_path / "run"
     small = [f"wheel.{key}={getattr(SMALL_WHEEL, key)}" for key in ("radius", "width", "grouser_height")]
-    assert main(["run", scene, "--out", str(run), "--no-progress", "--set", "run.duration=0.0034",
-                 *[a for value in small for a in ("--set", value)]]) in (0, 6)  # 6: too short for a steady state
+    assert main(
+        [
+            "run",
+            scene,
+            "--out",
+            str(run),
+            "--no-progress",
+            "--set",
+            "run.duration=0.0034",
+            *[a for value in small for a in ("--set", value)],
+        ]
+    ) in (0, 6)  # 6: too short for a steady state
     out = tmp_path / "soil.fmu"
     assert main(["export-fmu", str(run), "--out", str(out), "--fmi", "3", "--wheels", "2"]) == 0
     assert validate_fmu(str(out)) == []

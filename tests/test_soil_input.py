@@ -56,9 +56,16 @@ def test_grains_created_inside_each_other_are_reported():
     with the count and the deepest overlap."""
     builder = builder_with_box()
     r = 0.01
-    builder.add_particles([(0.02, 0.05, 0.05), (0.03, 0.05, 0.05),  # 1.0 r apart: overlap 1.0 r
-                           (0.06, 0.05, 0.05), (0.078, 0.05, 0.05),  # 1.8 r apart: overlap 0.2 r
-                           (0.05, 0.02, 0.007)], r)  # 0.3 r into the floor
+    builder.add_particles(
+        [
+            (0.02, 0.05, 0.05),
+            (0.03, 0.05, 0.05),  # 1.0 r apart: overlap 1.0 r
+            (0.06, 0.05, 0.05),
+            (0.078, 0.05, 0.05),  # 1.8 r apart: overlap 0.2 r
+            (0.05, 0.02, 0.007),
+        ],
+        r,
+    )  # 0.3 r into the floor
     with pytest.warns(OverlapWarning, match=r"3 contact\(s\).*deepest: particles 0 and 1 by 0.01 m, 1 x its radius"):
         builder.finalize("cpu", "double")
     spaced = builder_with_box()

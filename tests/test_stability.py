@@ -5,25 +5,37 @@ import math
 import numpy as np
 import pytest
 
-from soil import (JoltBeeman, Material, Simulation, SimulationDiverged, SoilBuilder, StepController,
-                  advisor)
+from soil import JoltBeeman, Material, Simulation, SimulationDiverged, SoilBuilder, StepController, advisor
 
 R = 5e-3
 
 
-def pile(device, gravity, youngs_modulus, drop=0.0, stick_speed=1e-3, precision="double", integrator=None,
-         checkpoint_path=None, seed=3):
+def pile(
+    device,
+    gravity,
+    youngs_modulus,
+    drop=0.0,
+    stick_speed=1e-3,
+    precision="double",
+    integrator=None,
+    checkpoint_path=None,
+    seed=3,
+):
     """Eight grains (radius 0.9..1 x 5 mm) in a 2x2x2 stack in a small box, friction on.
 
     drop > 0: every grain starts moving down at sqrt(2 g drop) [m/s] (an impact at once)."""
     builder = SoilBuilder(gravity=gravity)
-    mat = builder.add_material(Material(youngs_modulus=youngs_modulus, poisson_ratio=0.3, density=2600.0,
-                                        restitution=0.5, stick_speed=stick_speed))
+    mat = builder.add_material(
+        Material(
+            youngs_modulus=youngs_modulus, poisson_ratio=0.3, density=2600.0, restitution=0.5, stick_speed=stick_speed
+        )
+    )
     builder.add_container((0, 0, 0), (6 * R, 6 * R, 40 * R), mat)
     rng = np.random.default_rng(seed)
     k = np.arange(8)
-    positions = np.stack([1.5 * R + 3 * R * (k % 2), 1.5 * R + 3 * R * ((k // 2) % 2), 1.2 * R + 2.3 * R * (k // 4)],
-                         1) + rng.uniform(-0.2 * R, 0.2 * R, (8, 3))
+    positions = np.stack(
+        [1.5 * R + 3 * R * (k % 2), 1.5 * R + 3 * R * ((k // 2) % 2), 1.2 * R + 2.3 * R * (k // 4)], 1
+    ) + rng.uniform(-0.2 * R, 0.2 * R, (8, 3))
     positions[:, 2] = np.maximum(positions[:, 2], R)
     speed = math.sqrt(2 * gravity * drop)
     builder.add_particles(positions, R * rng.uniform(0.9, 1.0, 8), mat, velocities=(0, 0, -speed))
@@ -57,9 +69,9 @@ def test_same_tolerance_same_steps_at_earth_and_phobos_gravity(device):
     absolute = {}
     for gravity in (9.81, 5.7e-3):
         sim = scaled_pile(device, gravity)
-        absolute[gravity] = sim.run_adaptive(math.sqrt(R / gravity),
-                                             StepController(tolerance=1e-4 * math.sqrt(9.81 * R),
-                                                            normalise=False))["accepted"]
+        absolute[gravity] = sim.run_adaptive(
+            math.sqrt(R / gravity), StepController(tolerance=1e-4 * math.sqrt(9.81 * R), normalise=False)
+        )["accepted"]
     assert absolute[9.81] > 3 * absolute[5.7e-3], absolute
 
 
@@ -85,7 +97,9 @@ def test_extremes_stable_at_half_the_advised_step_detected_at_five_times(device,
             try:
                 sim.run(300 * factor * advice.dt_max, factor * advice.dt_max, check_every=10)
             except SimulationDiverged as error:
-                assert factor > 1, f"E = {youngs_modulus:g}, g = {gravity:g}: diverged at half the advised step: {error}"
+                assert factor > 1, (
+                    f"E = {youngs_modulus:g}, g = {gravity:g}: diverged at half the advised step: {error}"
+                )
                 assert "t = " in str(error) and "step" in str(error) and "particle" in str(error)
                 assert error.particle is not None and error.step >= 1
                 assert all(np.all(np.isfinite(v)) for v in error.last_good.values())
@@ -94,7 +108,9 @@ def test_extremes_stable_at_half_the_advised_step_detected_at_five_times(device,
             assert np.all(np.isfinite(sim.positions())) and np.all(np.isfinite(sim.velocities()))
             assert total_energy(sim) <= energy + 0.02 * scale, (youngs_modulus, factor)
     # the soft cases always explode; stiff grains at milli-g may stay bounded for 300 steps at 5x
-    assert len(diverged) >= 2 and 1e5 in diverged, f"only E = {diverged} exploded at 5x the advised step (g = {gravity})"
+    assert len(diverged) >= 2 and 1e5 in diverged, (
+        f"only E = {diverged} exploded at 5x the advised step (g = {gravity})"
+    )
 
 
 def test_divergence_names_time_step_and_particle_and_saves_last_good(device, tmp_path):
@@ -155,22 +171,31 @@ def walled_pile_with_spectators(device, spectators):
     """The 8-grain impact of `pile` (floor plane, four box walls) plus `spectators` grains
     in free fall far above it: they have no error at all, so they dilute an RMS norm."""
     builder = SoilBuilder(gravity=9.81)
-    mat = builder.add_material(Material(youngs_modulus=1e7, poisson_ratio=0.3, density=2600.0, restitution=0.5,
-                                        stick_speed=1e-3))
+    mat = builder.add_material(
+        Material(youngs_modulus=1e7, poisson_ratio=0.3, density=2600.0, restitution=0.5, stick_speed=1e-3)
+    )
     builder.add_plane((0, 0, 0), (0, 0, 1), mat)
-    for lower, upper in [((-R, -R, 0), (0, 7 * R, 40 * R)), ((6 * R, -R, 0), (7 * R, 7 * R, 40 * R)),
-                         ((0, -R, 0), (6 * R, 0, 40 * R)), ((0, 6 * R, 0), (6 * R, 7 * R, 40 * R))]:
+    for lower, upper in [
+        ((-R, -R, 0), (0, 7 * R, 40 * R)),
+        ((6 * R, -R, 0), (7 * R, 7 * R, 40 * R)),
+        ((0, -R, 0), (6 * R, 0, 40 * R)),
+        ((0, 6 * R, 0), (6 * R, 7 * R, 40 * R)),
+    ]:
         builder.add_box(lower, upper, mat)
     rng = np.random.default_rng(3)
     k = np.arange(8)
-    positions = np.stack([1.5 * R + 3 * R * (k % 2), 1.5 * R + 3 * R * ((k // 2) % 2), 1.2 * R + 2.3 * R * (k // 4)],
-                         1) + rng.uniform(-0.2 * R, 0.2 * R, (8, 3))
+    positions = np.stack(
+        [1.5 * R + 3 * R * (k % 2), 1.5 * R + 3 * R * ((k // 2) % 2), 1.2 * R + 2.3 * R * (k // 4)], 1
+    ) + rng.uniform(-0.2 * R, 0.2 * R, (8, 3))
     positions[:, 2] = np.maximum(positions[:, 2], R)
     builder.add_particles(positions, R * rng.uniform(0.9, 1.0, 8), mat, velocities=(0, 0, -math.sqrt(2 * 9.81 * 2 * R)))
     side = int(math.ceil(math.sqrt(spectators)))
     i = np.arange(spectators)
-    builder.add_particles(np.stack([1.0 + 3 * R * (i % side), 1.0 + 3 * R * (i // side), np.ones(spectators)], 1),
-                          np.full(spectators, R), mat)
+    builder.add_particles(
+        np.stack([1.0 + 3 * R * (i % side), 1.0 + 3 * R * (i // side), np.ones(spectators)], 1),
+        np.full(spectators, R),
+        mat,
+    )
     model, state, control = builder.finalize(device, "double")
     return Simulation(model, state, control, integrator=JoltBeeman())
 
@@ -187,8 +212,10 @@ def test_an_unstable_grain_cannot_hide_in_a_large_bed(device):
         energy = total_energy(sim)
         scale = sim.model.mass_numpy()[:8].sum() * 9.81 * 3 * R  # the pile's drop energy (8 grains first)
         assert np.all(sim.positions()[:8, 2] < 0.5)  # the pile comes first (builder order)
-        sim.run_adaptive(300 * 5 * advice.dt_max,
-                         StepController(tolerance=1e-3, dt_max=20 * advice.dt_max, grain_factor=grain_factor))
+        sim.run_adaptive(
+            300 * 5 * advice.dt_max,
+            StepController(tolerance=1e-3, dt_max=20 * advice.dt_max, grain_factor=grain_factor),
+        )
         outcome[name] = (total_energy(sim) - energy) / scale
     assert outcome["guarded"] <= 0.02, outcome
     assert outcome["pure rms"] > 0.5, outcome  # the hazard the guard exists for

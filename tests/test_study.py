@@ -63,8 +63,11 @@ def test_resume_after_a_hard_interrupt_is_bitwise_identical(scene_path, tiny_bed
 
     broken = tmp_path / "broken"
     with pytest.raises(KeyboardInterrupt):
-        run_plan(_plan(scene_path, tiny_bed), str(broken),
-                 hooks={"checkpoint": stop_after_second_checkpoint, "step": stop_mid_interval})
+        run_plan(
+            _plan(scene_path, tiny_bed),
+            str(broken),
+            hooks={"checkpoint": stop_after_second_checkpoint, "step": stop_mid_interval},
+        )
     info = json.loads((broken / "run.json").read_text())
     assert info["status"] == "interrupted"
     with open_results(broken / "results.h5") as f:
@@ -130,8 +133,15 @@ def test_divergence_names_time_grain_position_and_setting(scene_path, tiny_bed, 
     with pytest.raises(RunDiverged) as info:
         run_plan(_plan(scene_path, tiny_bed, "run.dt=1.7e-4"), str(out), hooks={"step": explode})
     message = str(info.value)
-    for words in ("diverged at t = ", "particle 3", "position (", "m/s exceeds", "Change run.dt ",
-                  "checkpoint.npz", "diverged_state.npz"):
+    for words in (
+        "diverged at t = ",
+        "particle 3",
+        "position (",
+        "m/s exceeds",
+        "Change run.dt ",
+        "checkpoint.npz",
+        "diverged_state.npz",
+    ):
         assert words in message, (words, message)
     with open_results(out / "results.h5") as f:
         assert f.attrs["status"] == "diverged"
@@ -148,18 +158,36 @@ def test_a_folder_in_use_is_refused_and_left_alone(scene_path, tiny_bed, baselin
 
     busy = tmp_path / "busy"
     shutil.copytree(baseline, busy)
-    holder = subprocess.Popen([sys.executable, "-c", textwrap.dedent(f"""
+    holder = subprocess.Popen(
+        [
+            sys.executable,
+            "-c",
+            textwrap.dedent(f"""
         import sys, time
         from cosim.folders import RunFolder
         with RunFolder({str(busy)!r}).locked():
             print("locked", flush=True)
             time.sleep(60)
-    """)], stdout=subprocess.PIPE, text=True)
+    """),
+        ],
+        stdout=subprocess.PIPE,
+        text=True,
+    )
     try:
         assert holder.stdout.readline().strip() == "locked"
         before = {p.name: p.stat().st_mtime_ns for p in busy.iterdir()}
-        code = main(["run", scene_path, "--out", str(busy), "--overwrite", "--no-progress", "--set",
-                     f'bed.bed_file="{tiny_bed}"'])
+        code = main(
+            [
+                "run",
+                scene_path,
+                "--out",
+                str(busy),
+                "--overwrite",
+                "--no-progress",
+                "--set",
+                f'bed.bed_file="{tiny_bed}"',
+            ]
+        )
         assert code == 3
         assert {p.name: p.stat().st_mtime_ns for p in busy.iterdir()} == before
     finally:
@@ -167,13 +195,17 @@ def test_a_folder_in_use_is_refused_and_left_alone(scene_path, tiny_bed, baselin
         holder.wait()
 
 
-@pytest.mark.parametrize("override,words", [
-    ('bed.bed_file="/nonexistent/bed.h5"', "bed.bed_file"),
-    ("testbed.omega=nan", "testbed.omega"),
-    ("bed.seed=-1", "bed.seed"),
-])
-def test_overwrite_with_a_bad_scene_keeps_the_old_run(scene_path, tiny_bed, baseline, tmp_path, capsys, override,
-                                                     words):
+@pytest.mark.parametrize(
+    "override,words",
+    [
+        ('bed.bed_file="/nonexistent/bed.h5"', "bed.bed_file"),
+        ("testbed.omega=nan", "testbed.omega"),
+        ("bed.seed=-1", "bed.seed"),
+    ],
+)
+def test_overwrite_with_a_bad_scene_keeps_the_old_run(
+    scene_path, tiny_bed, baseline, tmp_path, capsys, override, words
+):
     import shutil
 
     from cosim.cli import main
@@ -181,8 +213,20 @@ def test_overwrite_with_a_bad_scene_keeps_the_old_run(scene_path, tiny_bed, base
     old = tmp_path / "old"
     shutil.copytree(baseline, old)
     before = {p.name: p.stat().st_mtime_ns for p in old.iterdir()}
-    code = main(["run", scene_path, "--out", str(old), "--overwrite", "--no-progress", "--set",
-                 f'bed.bed_file="{tiny_bed}"', "--set", override])
+    code = main(
+        [
+            "run",
+            scene_path,
+            "--out",
+            str(old),
+            "--overwrite",
+            "--no-progress",
+            "--set",
+            f'bed.bed_file="{tiny_bed}"',
+            "--set",
+            override,
+        ]
+    )
     assert code == 2
     assert words in capsys.readouterr().err
     assert {p.name: p.stat().st_mtime_ns for p in old.iterdir()} == before
@@ -213,8 +257,7 @@ def test_dask_ensemble_matches_serial_runs(scene_path, tiny_bed, tmp_path):
 def test_timestep_study_ends_with_an_answer_in_bounded_tries(scene_path, tiny_bed, tmp_path):
     from cosim.study import timestep_study
 
-    report = timestep_study(_plan(scene_path, tiny_bed), str(tmp_path / "ts"), duration=0.02, growth=3.0,
-                            max_tries=5)
+    report = timestep_study(_plan(scene_path, tiny_bed), str(tmp_path / "ts"), duration=0.02, growth=3.0, max_tries=5)
     assert 1 <= len(report["tried"]) <= 5
     assert report["tried"][0]["dt"] == pytest.approx(report["scene_dt"])
     assert report["largest_stable"] is not None and report["largest_stable"] >= report["scene_dt"]

@@ -52,9 +52,11 @@ def test_advice_names_the_faults_of_a_bad_wheel_test():
     assert not findings["froude"].ok and "testbed.omega" in findings["froude"].message
     assert not findings["grains_across"].ok and findings["grains_across"].value == pytest.approx(5.0)
     assert not findings["bed_depth"].ok and findings["bed_depth"].value == pytest.approx(
-        0.0145 / plan.wheel.outer_radius)
+        0.0145 / plan.wheel.outer_radius
+    )
     assert not findings["floor_clearance"].ok and findings["floor_clearance"].value == pytest.approx(
-        (0.0145 - 0.0) / 0.006, rel=1e-3)
+        (0.0145 - 0.0) / 0.006, rel=1e-3
+    )
     assert findings["overlap"].ok  # E = 2e5 Pa was adapted to milli-g (eq. 10): that part was right
     assert advice.verdict(list(findings.values())).startswith("out of range: froude")
     for finding in findings.values():  # every warning names the setting to change
@@ -66,8 +68,21 @@ def test_replicas_give_error_bars_on_a_real_run(tmp_path, tiny_bed, capsys):
     statistics are those of the three summaries, and the scatter is real (the runs differ)."""
     scene = write_tiny(tmp_path)
     out = tmp_path / "replicas"
-    code = main(["run", scene, "--out", str(out), "--replicas", "3", "--serial", "--set",
-                 f'bed.bed_file="{tiny_bed}"', "--set", "run.duration=0.5"])
+    code = main(
+        [
+            "run",
+            scene,
+            "--out",
+            str(out),
+            "--replicas",
+            "3",
+            "--serial",
+            "--set",
+            f'bed.bed_file="{tiny_bed}"',
+            "--set",
+            "run.duration=0.5",
+        ]
+    )
     text = capsys.readouterr().out
     report = json.loads((out / "ensemble.json").read_text())
     summaries = [r["summary"] for r in report["results"]]
@@ -89,8 +104,24 @@ def test_drawbar_pull_rises_with_slip(tmp_path, tiny_bed, capsys):
     by more than the within-run standard errors."""
     scene = write_tiny(tmp_path)
     out = tmp_path / "slip"
-    main(["study", "slip", scene, "--slips", "0.05,0.6", "--replicas", "1", "--serial", "--out", str(out),
-          "--set", f'bed.bed_file="{tiny_bed}"', "--set", "run.duration=0.5"])
+    main(
+        [
+            "study",
+            "slip",
+            scene,
+            "--slips",
+            "0.05,0.6",
+            "--replicas",
+            "1",
+            "--serial",
+            "--out",
+            str(out),
+            "--set",
+            f'bed.bed_file="{tiny_bed}"',
+            "--set",
+            "run.duration=0.5",
+        ]
+    )
     report = json.loads((out / "study.json").read_text())
     low, high = (r["summary"] for r in report["runs"])
     assert low["slip"] == pytest.approx(0.05, abs=1e-9) and high["slip"] == pytest.approx(0.6, abs=1e-9)
@@ -116,7 +147,11 @@ def test_the_gravity_twin_scales_every_derived_quantity_exactly(tmp_path):
     for name in ("dt", "macro_step"):
         assert getattr(b, name) == pytest.approx(getattr(a, name) / math.sqrt(s), rel=1e-12), name
     assert (b.substeps, b.drive_steps, b.landing.max_steps, b.landing.hold_steps) == (
-        a.substeps, a.drive_steps, a.landing.max_steps, a.landing.hold_steps)
+        a.substeps,
+        a.drive_steps,
+        a.landing.max_steps,
+        a.landing.hold_steps,
+    )
     assert b.landing.speed_limit == pytest.approx(a.landing.speed_limit * math.sqrt(s), rel=1e-12)
     assert b.froude_number == pytest.approx(a.froude_number, rel=1e-12)
     for fa, fb in zip(advice.check(a), advice.check(b)):
@@ -137,8 +172,9 @@ def test_the_gravity_twin_gives_the_same_dimensionless_results(tmp_path):
     twin, _ = write_gravity_twin(scene, "earth", str(tmp_path / "twin.toml"))
     stats = []
     for path, out in ((scene, "moon"), (twin, "earth")):
-        plan = load_plan(path, ["run.duration=0.5"] if path == scene else [
-            f"run.duration={0.5 / math.sqrt(9.80665 / 1.625)!r}"])
+        plan = load_plan(
+            path, ["run.duration=0.5"] if path == scene else [f"run.duration={0.5 / math.sqrt(9.80665 / 1.625)!r}"]
+        )
         stats.append(replica_run(plan, str(tmp_path / out), 3, executor="serial")["stats"]["metrics"])
     moon, earth = stats
     for name in ("slip", "sinkage", "sinkage_tips", "travel"):

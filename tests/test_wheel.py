@@ -5,13 +5,13 @@ import math
 import numpy as np
 import pytest
 
-from soil import GrouserWheel, Material, MeshWheel, Simulation, SoilBuilder
-from soil.bed import BedSpec, bed_metrics, build_bed, load_bed, restore_state, save_bed, settle
 from cosim.contract import WheelKinematics
 from cosim.dem_soil import DemSoil, WallProximityWarning
 from cosim.metrics import slip_of
-from helpers import drive
 from cosim.single_wheel import SingleWheelRig
+from helpers import drive
+from soil import GrouserWheel, Material, MeshWheel, Simulation, SoilBuilder
+from soil.bed import BedSpec, bed_metrics, build_bed, load_bed, restore_state, save_bed, settle
 
 WHEEL = GrouserWheel(radius=0.03, width=0.02, grouser_count=10, grouser_height=0.003, grouser_thickness=0.002)
 
@@ -118,8 +118,9 @@ def test_torque_about_the_hub_moves_with_the_hub(device):
 def test_slip_and_sinkage_definitions_on_a_prescribed_motion():
     omega, r = 0.5, 0.04
     for slip in (-0.2, 0.0, 0.3, 0.9):
-        rig = SingleWheelRig(mass=1.0, radius=r, omega=omega, hub=(0, 0, 0.1), mode="slip", slip=slip,
-                             gravity=(0, 0, 0), landed=True)
+        rig = SingleWheelRig(
+            mass=1.0, radius=r, omega=omega, hub=(0, 0, 0.1), mode="slip", slip=slip, gravity=(0, 0, 0), landed=True
+        )
         rig.advance(2.0)
         v = (rig.position[0] - 0.0) / 2.0
         assert slip_of(v, omega, r) == pytest.approx(slip, abs=1e-12)
@@ -130,10 +131,22 @@ def test_slip_and_sinkage_definitions_on_a_prescribed_motion():
 
 def bed_and_wheel(device, gravity, youngs_modulus, spec=None, wheel=WHEEL, settle_time=None):
     """A small settled bed (stiffness scaled with gravity) with the wheel added."""
-    spec = spec or BedSpec(length=0.12, width=0.05, depth=0.025, radius_mean=3e-3, radius_spread=0.15,
-                           material=Material(youngs_modulus=youngs_modulus, poisson_ratio=0.3, density=2600,
-                                             restitution=0.2, stick_angle=math.radians(30),
-                                             slip_angle=math.radians(25), rolling_friction=0.1))
+    spec = spec or BedSpec(
+        length=0.12,
+        width=0.05,
+        depth=0.025,
+        radius_mean=3e-3,
+        radius_spread=0.15,
+        material=Material(
+            youngs_modulus=youngs_modulus,
+            poisson_ratio=0.3,
+            density=2600,
+            restitution=0.2,
+            stick_angle=math.radians(30),
+            slip_angle=math.radians(25),
+            rolling_friction=0.1,
+        ),
+    )
     builder = build_bed(spec, gravity)
     model, state, control = builder.finalize(device, "double")
     sim = Simulation(model, state, control)
@@ -166,8 +179,13 @@ def test_wheel_on_a_settled_bed_carries_its_weight(device, gravity, tmp_path):
     wheel_sim = Simulation(model, state, control)
     soil = DemSoil(wheel_sim, dt, surface_height=surface, wall_clearance=0.0)
     mass = 0.05
-    rig = SingleWheelRig(mass=mass, radius=WHEEL.radius, omega=0.0,
-                         hub=(0.06, 0.025, surface + WHEEL.outer_radius), gravity=(0, 0, -gravity))
+    rig = SingleWheelRig(
+        mass=mass,
+        radius=WHEEL.radius,
+        omega=0.0,
+        hub=(0.06, 0.025, surface + WHEEL.outer_radius),
+        gravity=(0, 0, -gravity),
+    )
     soil.place_wheels(rig.wheel_kinematics())
     t_scale = math.sqrt(0.003 / gravity)
     result = drive(soil, rig, duration=40 * t_scale, macro_step=5 * dt)
@@ -184,8 +202,9 @@ def rigid_ground(device, gravity, mu):
     """A rigid, rough floor: a lattice of fixed grains; the wheel rolls on their tops."""
     builder = SoilBuilder(gravity=gravity)
     angle = math.atan(mu)
-    mat = builder.add_material(Material(youngs_modulus=1e8, restitution=0.2, stick_angle=angle, slip_angle=angle,
-                                        stick_speed=1e-3))
+    mat = builder.add_material(
+        Material(youngs_modulus=1e8, restitution=0.2, stick_angle=angle, slip_angle=angle, stick_speed=1e-3)
+    )
     r = 0.001
     xs, ys = np.meshgrid(np.arange(0, 0.4, 2 * r), np.arange(-0.012, 0.012, 2 * r), indexing="ij")
     builder.add_particles(np.column_stack([xs.ravel(), ys.ravel(), np.zeros(xs.size)]), r, mat, fixed=True)
@@ -202,8 +221,15 @@ def test_rigid_wheel_on_rigid_ground_rolls_below_and_spins_above_the_traction_li
     g, mu, mass, omega = 9.81, 0.5, 2.0, 10.0
     sim, wheel, r = rigid_ground(device, g, mu)
     soil = DemSoil(sim, 2e-5, surface_height=r, wall_clearance=0.0)
-    rig = SingleWheelRig(mass=mass, radius=wheel.radius, omega=omega, hub=(0.05, 0.0, r + wheel.radius - 2e-5),
-                         drawbar_load=load_ratio * mu * mass * g, gravity=(0, 0, -g), landed=True)
+    rig = SingleWheelRig(
+        mass=mass,
+        radius=wheel.radius,
+        omega=omega,
+        hub=(0.05, 0.0, r + wheel.radius - 2e-5),
+        drawbar_load=load_ratio * mu * mass * g,
+        gravity=(0, 0, -g),
+        landed=True,
+    )
     rig.velocity[0] = omega * wheel.radius  # start rolling
     soil.place_wheels(rig.wheel_kinematics())
     result = drive(soil, rig, duration=0.1, macro_step=1e-4)
@@ -219,8 +245,14 @@ def test_rigid_wheel_on_rigid_ground_rolls_below_and_spins_above_the_traction_li
 
 
 def test_saved_bed_reloads_bit_identically_and_runs_the_same(device, tmp_path):
-    spec = BedSpec(length=0.06, width=0.04, depth=0.02, radius_mean=3e-3, radius_spread=0.15,
-                   material=Material(youngs_modulus=1e6, restitution=0.3))
+    spec = BedSpec(
+        length=0.06,
+        width=0.04,
+        depth=0.02,
+        radius_mean=3e-3,
+        radius_spread=0.15,
+        material=Material(youngs_modulus=1e6, restitution=0.3),
+    )
     builder = build_bed(spec, 9.81)
     model, state, control = builder.finalize(device, "mixed")
     sim = Simulation(model, state, control)

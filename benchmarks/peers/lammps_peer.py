@@ -195,9 +195,7 @@ def make_random_fill(
     # Centre the grid in x, y so the margin to the side walls is even.
     off_x = lo[0] + 0.5 * (hi[0] - lo[0] - nx * cell)
     off_y = lo[1] + 0.5 * (hi[1] - lo[1] - ny * cell)
-    centres = np.stack(
-        [off_x + (ix + 0.5) * cell, off_y + (iy + 0.5) * cell, lo[2] + (iz + 0.5) * cell], axis=1
-    )
+    centres = np.stack([off_x + (ix + 0.5) * cell, off_y + (iy + 0.5) * cell, lo[2] + (iz + 0.5) * cell], axis=1)
     # Jitter within the cell; 0.95 keeps a small gap to cell faces and walls.
     room = 0.95 * (0.5 * cell - radii)
     positions = centres + rng.uniform(-1.0, 1.0, size=(n, 3)) * room[:, None]
@@ -234,9 +232,7 @@ def rolling_coefficients(
     m_roll = 0.4 * m_min
     gamma_roll = 2.0 * damping_ratio * math.sqrt(k_roll * m_roll)
     if gamma_roll * dt / m_roll > 0.5:
-        raise ValueError(
-            f"rolling damping {gamma_roll:.3g} N s/m too large for mass {m_roll:.3g} kg at dt {dt:.3g} s"
-        )
+        raise ValueError(f"rolling damping {gamma_roll:.3g} N s/m too large for mass {m_roll:.3g} kg at dt {dt:.3g} s")
     return k_roll, gamma_roll
 
 
@@ -245,9 +241,7 @@ def _num(x) -> str:
     return repr(float(x))
 
 
-def _granular_model(
-    youngs_modulus, poisson, friction_coefficient, restitution, rolling=None
-) -> str:
+def _granular_model(youngs_modulus, poisson, friction_coefficient, restitution, rolling=None) -> str:
     """The pair_coeff / fix wall/gran model string (see module docstring)."""
     if not 0.0 < restitution <= 1.0:
         # coeff_restitution takes ln(e): e = 0 is -inf, e > 1 adds energy.
@@ -360,9 +354,7 @@ def run_bed(
 
     rolling = None
     if rolling_friction > 0.0:
-        k_roll, gamma_roll = rolling_coefficients(
-            rolling_friction, radii, density, youngs_modulus, poisson, dt
-        )
+        k_roll, gamma_roll = rolling_coefficients(rolling_friction, radii, density, youngs_modulus, poisson, dt)
         rolling = (k_roll, gamma_roll, rolling_friction)
     model = _granular_model(youngs_modulus, poisson, friction_coefficient, restitution, rolling)
 

@@ -27,10 +27,28 @@ from . import lammps_peer
 _num = lammps_peer._num
 
 
-def run_heap(base_positions, base_radius: float, positions, radii, density: float, youngs_modulus: float,
-             poisson: float, friction_coefficient: float, restitution: float, tube_boxes, base_width: float,
-             gravity: float, dt: float, lift_speed: float, clearance: float, chunk_steps: int,
-             settle_energy: float, rest_energy: float, min_steps: int, max_steps: int) -> dict:
+def run_heap(
+    base_positions,
+    base_radius: float,
+    positions,
+    radii,
+    density: float,
+    youngs_modulus: float,
+    poisson: float,
+    friction_coefficient: float,
+    restitution: float,
+    tube_boxes,
+    base_width: float,
+    gravity: float,
+    dt: float,
+    lift_speed: float,
+    clearance: float,
+    chunk_steps: int,
+    settle_energy: float,
+    rest_energy: float,
+    min_steps: int,
+    max_steps: int,
+) -> dict:
     """Settle the grains in the tube, lift it, let the heap come to rest.
 
     Args:
@@ -66,8 +84,9 @@ def run_heap(base_positions, base_radius: float, positions, radii, density: floa
     try:
         with tempfile.TemporaryDirectory() as tmp:
             data = os.path.join(tmp, "heap.data")
-            lammps_peer._write_data_file(data, every, every_radius, density, [0.0, 0.0, 0.0],
-                                         [base_width, base_width, top + 2 * skin])
+            lammps_peer._write_data_file(
+                data, every, every_radius, density, [0.0, 0.0, 0.0], [base_width, base_width, top + 2 * skin]
+            )
             if n_base:  # fixed grains weigh as a wall in our contact law (m* = m of the moving grain)
                 lines = open(data).read().splitlines()
                 first = lines.index("Atoms # sphere") + 2
@@ -78,13 +97,22 @@ def run_heap(base_positions, base_radius: float, positions, radii, density: floa
                 with open(data, "w") as f:
                     f.write("\n".join(lines) + "\n")
             script = [
-                "units si", "atom_style sphere", "atom_modify map array", "boundary f f fm", "newton off",
-                "comm_modify vel yes", f"read_data {data}",
+                "units si",
+                "atom_style sphere",
+                "atom_modify map array",
+                "boundary f f fm",
+                "newton off",
+                "comm_modify vel yes",
+                f"read_data {data}",
             ]
-            script += ([f"group base id 1:{n_base}", "group mobile subtract all base"] if n_base
-                       else ["group mobile union all"])
+            script += (
+                [f"group base id 1:{n_base}", "group mobile subtract all base"]
+                if n_base
+                else ["group mobile union all"]
+            )
             script += [
-                "pair_style granular", f"pair_coeff * * {grains}",
+                "pair_style granular",
+                f"pair_coeff * * {grains}",
                 f"neighbor {_num(skin)} bin",
                 "neigh_modify delay 0 every 1 check yes" + (" exclude group base base" if n_base else ""),
                 "fix integrate mobile nve/sphere",
@@ -95,13 +123,19 @@ def run_heap(base_positions, base_radius: float, positions, radii, density: floa
             ]
             for k, (lower, upper) in enumerate(tube_boxes):
                 # a union of regions cannot move in LAMMPS: one moving block (and one fix) per wall
-                script.append(f"region wall{k} block {_num(lower[0])} {_num(upper[0])} {_num(lower[1])} "
-                              f"{_num(upper[1])} {_num(lower[2])} {_num(upper[2])} side out "
-                              "move NULL NULL v_lift units box")
+                script.append(
+                    f"region wall{k} block {_num(lower[0])} {_num(upper[0])} {_num(lower[1])} "
+                    f"{_num(upper[1])} {_num(lower[2])} {_num(upper[2])} side out "
+                    "move NULL NULL v_lift units box"
+                )
                 script.append(f"fix tube{k} mobile wall/gran/region granular {smooth} region wall{k}")
-            script += [f"fix gravity mobile gravity {_num(gravity)} vector 0 0 -1",
-                       "compute translation mobile ke",
-                       f"timestep {_num(dt)}", "thermo 0", "run 0"]
+            script += [
+                f"fix gravity mobile gravity {_num(gravity)} vector 0 0 -1",
+                "compute translation mobile ke",
+                f"timestep {_num(dt)}",
+                "thermo 0",
+                "run 0",
+            ]
             for line in script:
                 lmp.command(line)
 
@@ -144,9 +178,17 @@ def run_heap(base_positions, base_radius: float, positions, radii, density: floa
         lmp.close()
     if not np.all(np.isfinite(x)):
         raise RuntimeError("LAMMPS heap went non-finite")
-    return {"positions": x, "radii": r, "settle_time": settle_steps * dt, "lift_time": lift_steps * dt,
-            "rest_time": rest_steps * dt, "settled": settled, "lifted": lifted, "rested": rested,
-            "lammps_version": version}
+    return {
+        "positions": x,
+        "radii": r,
+        "settle_time": settle_steps * dt,
+        "lift_time": lift_steps * dt,
+        "rest_time": rest_steps * dt,
+        "settled": settled,
+        "lifted": lifted,
+        "rested": rested,
+        "lammps_version": version,
+    }
 
 
 def run_lab_heap(plan, replica: int = 0) -> dict:
@@ -161,19 +203,45 @@ def run_lab_heap(plan, replica: int = 0) -> dict:
 
     soil = plan.soil
     if soil.stick_angle != soil.slip_angle or soil.rolling_friction or soil.cohesion or soil.restitution is None:
-        raise ValueError("the LAMMPS heap models one friction angle (stick = slip), no rolling resistance, no "
-                         "cohesion and a restitution")
+        raise ValueError(
+            "the LAMMPS heap models one friction angle (stick = slip), no rolling resistance, no "
+            "cohesion and a restitution"
+        )
     geo = repose.geometry(plan, replica)
     chunk = int(round(common.chunk_steps(plan, plan.time_scale) / plan.dt))
     mass = soil.density * 4.0 / 3.0 * math.pi * geo.fill_radii**3
     scale = len(mass) * float(mass.mean()) * plan.g * float(geo.fill_radii.mean())  # as common.kinetic_threshold
     r_max = plan.radius_mean * (1 + plan.radius_spread)
-    result = run_heap(geo.base_positions, geo.base_radius, geo.fill_positions, geo.fill_radii, soil.density,
-                      soil.youngs_modulus, soil.poisson_ratio, math.tan(soil.stick_angle), soil.restitution,
-                      geo.tube_boxes(), geo.base_width, plan.g, plan.dt, geo.lift_speed, r_max, chunk,
-                      plan.scene.bed.settle_ke_ratio * scale, plan.scene.lab.rest_ke_ratio * scale,
-                      int(round(5 * plan.time_scale / plan.dt)), int(round(plan.max_phase_time(1.0) / plan.dt)))
+    result = run_heap(
+        geo.base_positions,
+        geo.base_radius,
+        geo.fill_positions,
+        geo.fill_radii,
+        soil.density,
+        soil.youngs_modulus,
+        soil.poisson_ratio,
+        math.tan(soil.stick_angle),
+        soil.restitution,
+        geo.tube_boxes(),
+        geo.base_width,
+        plan.g,
+        plan.dt,
+        geo.lift_speed,
+        r_max,
+        chunk,
+        plan.scene.bed.settle_ke_ratio * scale,
+        plan.scene.lab.rest_ke_ratio * scale,
+        int(round(5 * plan.time_scale / plan.dt)),
+        int(round(plan.max_phase_time(1.0) / plan.dt)),
+    )
     section = plan.scene.repose
-    heap = repose.measure_heap(result["positions"], result["radii"], geo.centre, geo.base_top, plan.diameter,
-                               section.sectors, section.fit_range)
+    heap = repose.measure_heap(
+        result["positions"],
+        result["radii"],
+        geo.centre,
+        geo.base_top,
+        plan.diameter,
+        section.sectors,
+        section.fit_range,
+    )
     return {**result, **heap}

@@ -43,36 +43,50 @@ def main() -> None:
     settle_steps = int(round(args.settle_time / dt))
 
     result = lammps_peer.run_bed(
-        positions, radii, density, youngs, poisson,
-        friction_coefficient=0.5, restitution=0.5, rolling_friction=args.rolling_friction,
-        box_lo=box_lo, box_hi=box_hi, gravity=[0.0, 0.0, -9.81],
-        dt=dt, steps=args.steps, settle_first_steps=settle_steps,
+        positions,
+        radii,
+        density,
+        youngs,
+        poisson,
+        friction_coefficient=0.5,
+        restitution=0.5,
+        rolling_friction=args.rolling_friction,
+        box_lo=box_lo,
+        box_hi=box_hi,
+        gravity=[0.0, 0.0, -9.81],
+        dt=dt,
+        steps=args.steps,
+        settle_first_steps=settle_steps,
     )
     speeds = np.linalg.norm(result["velocities"], axis=1)
-    print(json.dumps({
-        "peer": "lammps",
-        "lammps_version": result["lammps_version"],
-        "n": args.n,
-        "steps": args.steps,
-        "dt": dt,
-        "dt_rayleigh": dt_rayleigh,
-        "seconds": result["seconds"],
-        "particle_steps_per_second": result["particle_steps_per_second"],
-        "settle_steps": settle_steps,
-        "settle_seconds": result["settle_seconds"],
-        "settle_particle_steps_per_second": args.n * settle_steps / result["settle_seconds"],
-        "rolling_friction": args.rolling_friction,
-        "kinetic_energy": result["kinetic_energy"],
-        "mean_speed": float(speeds.mean()),
-        "max_speed": float(speeds.max()),
-        "bed_height": result["bed_height"],
-        "packing_fraction": result["packing_fraction"],
-        "packing_fraction_bulk": result["packing_fraction_bulk"],
-        "threads": 1,
-        "mpi_ranks": 1,
-        "cpu": platform.processor() or platform.machine(),
-        "command": " ".join(["python"] + sys.argv),
-    }))
+    print(
+        json.dumps(
+            {
+                "peer": "lammps",
+                "lammps_version": result["lammps_version"],
+                "n": args.n,
+                "steps": args.steps,
+                "dt": dt,
+                "dt_rayleigh": dt_rayleigh,
+                "seconds": result["seconds"],
+                "particle_steps_per_second": result["particle_steps_per_second"],
+                "settle_steps": settle_steps,
+                "settle_seconds": result["settle_seconds"],
+                "settle_particle_steps_per_second": args.n * settle_steps / result["settle_seconds"],
+                "rolling_friction": args.rolling_friction,
+                "kinetic_energy": result["kinetic_energy"],
+                "mean_speed": float(speeds.mean()),
+                "max_speed": float(speeds.max()),
+                "bed_height": result["bed_height"],
+                "packing_fraction": result["packing_fraction"],
+                "packing_fraction_bulk": result["packing_fraction_bulk"],
+                "threads": 1,
+                "mpi_ranks": 1,
+                "cpu": platform.processor() or platform.machine(),
+                "command": " ".join(["python"] + sys.argv),
+            }
+        )
+    )
 
 
 if __name__ == "__main__":

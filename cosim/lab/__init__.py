@@ -18,5 +18,16 @@ from .repose import measure_heap, repose_test
 from .scene import LabPlan, LabScene, load_lab_plan, resolve_lab
 from .shear import mohr_coulomb, shear_test
 
-__all__ = ["LabPlan", "LabScene", "bekker_fit", "calibrate", "load_lab_plan", "measure_heap", "mohr_coulomb",
-           "plate_test", "repose_test", "resolve_lab", "shear_test"]
+__all__ = [
+    "LabPlan",
+    "LabScene",
+    "bekker_fit",
+    "calibrate",
+    "load_lab_plan",
+    "measure_heap",
+    "mohr_coulomb",
+    "plate_test",
+    "repose_test",
+    "resolve_lab",
+    "shear_test",
+]

@@ -114,8 +114,9 @@ def parse_parameters(texts: list[str]) -> list[Parameter]:
         low, high = parse_value(low), parse_value(high)
         names = tuple(k.strip() for k in keys.split(",") if k.strip())
         if not names or not all(isinstance(v, (int, float)) and math.isfinite(v) for v in (low, high)) or low >= high:
-            raise SceneError([f"--vary {text!r}: expected KEY[,KEY...]=LOW:HIGH with LOW < HIGH, e.g. "
-                              "soil.rolling_friction=0:0.3"])
+            raise SceneError(
+                [f"--vary {text!r}: expected KEY[,KEY...]=LOW:HIGH with LOW < HIGH, e.g. soil.rolling_friction=0:0.3"]
+            )
         parameters.append(Parameter(names, float(low), float(high)))
     if not parameters:
         raise SceneError(["--vary: give at least one scene key to vary, e.g. --vary soil.rolling_friction=0:0.3"])
@@ -134,8 +135,9 @@ def parse_tolerances(texts: list[str], targets: dict[str, float]) -> dict[str, f
         name, _, value = text.partition("=")
         number = parse_value(value)
         if name not in targets or not isinstance(number, (int, float)) or not number > 0:
-            raise SceneError([f"--tolerance {text!r}: expected NAME=VALUE > 0 for one of the targets "
-                              f"({', '.join(targets)})"])
+            raise SceneError(
+                [f"--tolerance {text!r}: expected NAME=VALUE > 0 for one of the targets ({', '.join(targets)})"]
+            )
         tolerances[name] = float(number)
     return tolerances
 
@@ -161,9 +163,18 @@ def measure(plan: LabPlan, tests: set[str], out_dir: str, executor: dict) -> dic
     return measured
 
 
-def calibrate(plan: LabPlan, out_dir: str, targets: dict[str, float], parameters: list[Parameter],
-              tolerances: dict[str, float] | None = None, max_evaluations: int = 12, overwrite: bool = False,
-              executor: str = "serial", scheduler: str | None = None, workers: int | None = None) -> dict:
+def calibrate(
+    plan: LabPlan,
+    out_dir: str,
+    targets: dict[str, float],
+    parameters: list[Parameter],
+    tolerances: dict[str, float] | None = None,
+    max_evaluations: int = 12,
+    overwrite: bool = False,
+    executor: str = "serial",
+    scheduler: str | None = None,
+    workers: int | None = None,
+) -> dict:
     """Tune `parameters` until the lab measures `targets` (module docstring); returns the summary
     (also OUT/summary.json) with the best values, what they measure and whether every target is
     within its tolerance."""
@@ -179,8 +190,16 @@ def calibrate(plan: LabPlan, out_dir: str, targets: dict[str, float], parameters
         return _calibrate(plan, out_dir, targets, parameters, tolerances, max_evaluations, tests, {"executor": cluster})
 
 
-def _calibrate(plan: LabPlan, out_dir: str, targets: dict, parameters: list[Parameter], tolerances: dict,
-               max_evaluations: int, tests: set[str], run_on: dict) -> dict:
+def _calibrate(
+    plan: LabPlan,
+    out_dir: str,
+    targets: dict,
+    parameters: list[Parameter],
+    tolerances: dict,
+    max_evaluations: int,
+    tests: set[str],
+    run_on: dict,
+) -> dict:
     """The optimisation loop of `calibrate` (run_on: the executor the lab tests use)."""
     from scipy import optimize
 
@@ -195,17 +214,28 @@ def _calibrate(plan: LabPlan, out_dir: str, targets: dict, parameters: list[Para
                 return row
         number = len(history) + 1
         folder = os.path.join(out_dir, "evaluations", f"{number:03d}")
-        log.info("calibrate: evaluation %d: %s", number, ", ".join(f"{p.name} = {v:.6g}"
-                                                                  for p, v in zip(parameters, values)))
+        log.info(
+            "calibrate: evaluation %d: %s", number, ", ".join(f"{p.name} = {v:.6g}" for p, v in zip(parameters, values))
+        )
         measured = measure(plan.with_changes(_overrides(parameters, values)), tests, folder, run_on)
         misfit = {name: measured[name] - targets[name] for name in targets}
         cost = float(sum((misfit[n] / tolerances[n]) ** 2 for n in targets))
         within = all(abs(misfit[n]) <= tolerances[n] for n in targets)
-        row = {"evaluation": number, "values": values, "measured": measured, "misfit": misfit, "cost": cost,
-               "within": within, "folder": folder}
+        row = {
+            "evaluation": number,
+            "values": values,
+            "measured": measured,
+            "misfit": misfit,
+            "cost": cost,
+            "within": within,
+            "folder": folder,
+        }
         history.append(row)
-        log.info("calibrate: evaluation %d measured %s", number,
-                 ", ".join(f"{n} {measured[n]:.4g} (target {targets[n]:.4g})" for n in targets))
+        log.info(
+            "calibrate: evaluation %d measured %s",
+            number,
+            ", ".join(f"{n} {measured[n]:.4g} (target {targets[n]:.4g})" for n in targets),
+        )
         if within:
             raise _Converged
         if len(history) >= max_evaluations:
@@ -220,12 +250,19 @@ def _calibrate(plan: LabPlan, out_dir: str, targets: dict, parameters: list[Para
             p = parameters[0]
             at_low, at_high = evaluate([p.low]), evaluate([p.high])
             if np.sign(at_low["misfit"][name]) == np.sign(at_high["misfit"][name]):
-                message = (f"the target {name} = {targets[name]:g} is not between what the ends of {p.name} measure "
-                           f"({at_low['measured'][name]:.4g} at {p.low:g}, {at_high['measured'][name]:.4g} at "
-                           f"{p.high:g}): widen the range or vary another key")
+                message = (
+                    f"the target {name} = {targets[name]:g} is not between what the ends of {p.name} measure "
+                    f"({at_low['measured'][name]:.4g} at {p.low:g}, {at_high['measured'][name]:.4g} at "
+                    f"{p.high:g}): widen the range or vary another key"
+                )
             else:
-                optimize.brentq(lambda v: evaluate([v])["misfit"][name], p.low, p.high,
-                                xtol=1e-4 * (p.high - p.low), maxiter=max_evaluations)
+                optimize.brentq(
+                    lambda v: evaluate([v])["misfit"][name],
+                    p.low,
+                    p.high,
+                    xtol=1e-4 * (p.high - p.low),
+                    maxiter=max_evaluations,
+                )
         else:
             start = []
             for p in parameters:
@@ -234,10 +271,18 @@ def _calibrate(plan: LabPlan, out_dir: str, targets: dict, parameters: list[Para
                     current = current.get(part, {}) if isinstance(current, dict) else {}
                 value = current if isinstance(current, (int, float)) else 0.5 * (p.low + p.high)
                 start.append(min(max((value - p.low) / (p.high - p.low), 0.0), 1.0))
-            optimize.minimize(lambda u: evaluate(low + scale * np.asarray(u))["cost"], np.asarray(start),
-                              method="Nelder-Mead", bounds=[(0.0, 1.0)] * len(parameters),
-                              options={"maxfev": max_evaluations, "xatol": 1e-3, "fatol": 0.1,
-                                       "initial_simplex": _simplex(np.asarray(start))})
+            optimize.minimize(
+                lambda u: evaluate(low + scale * np.asarray(u))["cost"],
+                np.asarray(start),
+                method="Nelder-Mead",
+                bounds=[(0.0, 1.0)] * len(parameters),
+                options={
+                    "maxfev": max_evaluations,
+                    "xatol": 1e-3,
+                    "fatol": 0.1,
+                    "initial_simplex": _simplex(np.asarray(start)),
+                },
+            )
     except _Converged:
         message = "every target is within its tolerance"
     except _OutOfEvaluations:
@@ -253,15 +298,26 @@ def _calibrate(plan: LabPlan, out_dir: str, targets: dict, parameters: list[Para
     path = os.path.join(out_dir, "calibrated.toml")
     with open(path, "w") as f:
         f.write(calibrated.scene.to_toml())
-    summary = {"test": "calibrate", "name": plan.name, "method": method, "converged": converged, "message": message,
-               "targets": targets, "tolerances": tolerances,
-               "parameters": [{"keys": list(p.keys), "low": p.low, "high": p.high} for p in parameters],
-               "best": {"evaluation": best["evaluation"], "values": dict(zip([p.name for p in parameters],
-                                                                             best["values"])),
-                        "measured": best["measured"], "misfit": best["misfit"]},
-               "calibrated_scene": path,
-               "evaluations": [{k: row[k] for k in ("evaluation", "values", "measured", "misfit", "cost", "within")}
-                               for row in history]}
+    summary = {
+        "test": "calibrate",
+        "name": plan.name,
+        "method": method,
+        "converged": converged,
+        "message": message,
+        "targets": targets,
+        "tolerances": tolerances,
+        "parameters": [{"keys": list(p.keys), "low": p.low, "high": p.high} for p in parameters],
+        "best": {
+            "evaluation": best["evaluation"],
+            "values": dict(zip([p.name for p in parameters], best["values"])),
+            "measured": best["measured"],
+            "misfit": best["misfit"],
+        },
+        "calibrated_scene": path,
+        "evaluations": [
+            {k: row[k] for k in ("evaluation", "values", "measured", "misfit", "cost", "within")} for row in history
+        ],
+    }
     columns = [("evaluation", "1", [row["evaluation"] for row in history])]
     for i, p in enumerate(parameters):
         columns.append((p.name, "scene units", [row["values"][i] for row in history]))
@@ -273,8 +329,12 @@ def _calibrate(plan: LabPlan, out_dir: str, targets: dict, parameters: list[Para
     common.write_csv(os.path.join(out_dir, "history.csv"), columns)
     summary["figure"] = _figure(out_dir, history, parameters, targets, tolerances)
     common.write_summary(out_dir, summary)
-    log.info("calibrate: %s; best (evaluation %d): %s", message, best["evaluation"],
-             ", ".join(f"{p.name} = {v:.6g}" for p, v in zip(parameters, best["values"])))
+    log.info(
+        "calibrate: %s; best (evaluation %d): %s",
+        message,
+        best["evaluation"],
+        ", ".join(f"{p.name} = {v:.6g}" for p, v in zip(parameters, best["values"])),
+    )
     return summary
 
 
@@ -301,8 +361,13 @@ def _figure(out_dir: str, history: list[dict], parameters: list[Parameter], targ
     numbers = [row["evaluation"] for row in history]
     for ax, name in zip(axes[0], targets):
         ax.plot(numbers, [row["measured"][name] for row in history], "o-")
-        ax.axhspan(targets[name] - tolerances[name], targets[name] + tolerances[name], color="tab:green", alpha=0.2,
-                   label="target +- tolerance")
+        ax.axhspan(
+            targets[name] - tolerances[name],
+            targets[name] + tolerances[name],
+            color="tab:green",
+            alpha=0.2,
+            label="target +- tolerance",
+        )
         ax.set_xlabel("evaluation")
         ax.set_ylabel(f"{name} [{TARGETS[name].unit}]")
         ax.legend(fontsize=8)

@@ -50,8 +50,12 @@ def lattice_fill(plan: LabPlan, lower, upper_xy, count: int, seed: int) -> tuple
     span = np.asarray(upper_xy, dtype=np.float64) - lower[:2]
     nx, ny = (int((s - 2 * r_max) // pitch) + 1 for s in span)
     if min(nx, ny) < 1:
-        raise SceneError([f"a fill region of {span[0]:.4g} x {span[1]:.4g} m cannot hold a grain of radius "
-                          f"{r_max:.4g} m (bed.radius_mean, bed.radius_spread)"])
+        raise SceneError(
+            [
+                f"a fill region of {span[0]:.4g} x {span[1]:.4g} m cannot hold a grain of radius "
+                f"{r_max:.4g} m (bed.radius_mean, bed.radius_spread)"
+            ]
+        )
     layers = -(-count // (nx * ny))
     grid = np.stack(np.meshgrid(np.arange(nx), np.arange(ny), np.arange(layers), indexing="ij"), -1).reshape(-1, 3)
     grid = grid[np.lexsort((grid[:, 1], grid[:, 0], grid[:, 2]))][:count]  # lowest layers first
@@ -74,8 +78,9 @@ def grains_for(plan: LabPlan, volume: float) -> int:
 
 def finalize(plan: LabPlan, builder, order_seed: int | None) -> Simulation:
     """A Simulation of the builder on the plan's device, precision and contact law."""
-    model, state, control = builder.finalize(device=plan.device, precision=plan.precision, law=plan.law,
-                                             order_seed=order_seed)
+    model, state, control = builder.finalize(
+        device=plan.device, precision=plan.precision, law=plan.law, order_seed=order_seed
+    )
     return Simulation(model, state, control)
 
 
@@ -98,8 +103,9 @@ def kinetic_threshold(sim: Simulation, ratio: float, g: float) -> float:
     return ratio * len(mass) * float(mass.mean()) * g * float(radius.mean())
 
 
-def run_until(sim: Simulation, dt: float, done, max_time: float, chunk: float, min_time: float = 0.0,
-              callback=None) -> tuple[float, bool]:
+def run_until(
+    sim: Simulation, dt: float, done, max_time: float, chunk: float, min_time: float = 0.0, callback=None
+) -> tuple[float, bool]:
     """Step in chunks of `chunk` [s] until done(sim) (checked after each chunk, not before
     min_time [s]) or max_time [s]. Returns (elapsed time [s], whether done)."""
     start = sim.time
@@ -140,14 +146,30 @@ def lab_task(task: dict) -> dict:
     return out
 
 
-def map_tasks(plan: LabPlan, runner, arguments: list[dict], labels: list[str], executor="serial",
-              scheduler: str | None = None, workers: int | None = None) -> list[dict]:
+def map_tasks(
+    plan: LabPlan,
+    runner,
+    arguments: list[dict],
+    labels: list[str],
+    executor="serial",
+    scheduler: str | None = None,
+    workers: int | None = None,
+) -> list[dict]:
     """runner(plan, **arguments) once per arguments dict, through cosim.study.Executor: executor
     is 'dask' or 'serial' (an Executor is made for these tasks) or an Executor already open
     (a calibration keeps one cluster for all its evaluations)."""
     toml = plan.scene.to_toml()
-    tasks = [{"runner": runner, "scene_toml": toml, "base_dir": plan.scene.base_dir, "arguments": a, "label": label,
-              "replica": a.get("replica")} for a, label in zip(arguments, labels)]
+    tasks = [
+        {
+            "runner": runner,
+            "scene_toml": toml,
+            "base_dir": plan.scene.base_dir,
+            "arguments": a,
+            "label": label,
+            "replica": a.get("replica"),
+        }
+        for a, label in zip(arguments, labels)
+    ]
     if isinstance(executor, Executor):
         return executor.map(lab_task, tasks)
     with Executor(executor, scheduler, workers) as ex:
@@ -225,27 +247,49 @@ def pyplot():
 def soil_summary(plan: LabPlan) -> dict:
     """The soil under test, for the summaries (SI units, angles in degrees)."""
     s = plan.soil
-    return {"youngs_modulus_pa": s.youngs_modulus, "poisson_ratio": s.poisson_ratio,
-            "stick_angle_deg": math.degrees(s.stick_angle), "slip_angle_deg": math.degrees(s.slip_angle),
-            "stick_speed_m_s": s.stick_speed, "rolling_friction": s.rolling_friction, "cohesion_pa": s.cohesion,
-            "restitution": s.restitution, "damping_ratio": s.lehr_damping, "density_kg_m3": s.density,
-            "radius_mean_m": plan.radius_mean, "radius_spread": plan.radius_spread, "law": {
-                "damping": plan.law.damping, "friction": plan.law.friction, "rolling": plan.law.rolling,
-                "cohesion": plan.law.cohesion}}
+    return {
+        "youngs_modulus_pa": s.youngs_modulus,
+        "poisson_ratio": s.poisson_ratio,
+        "stick_angle_deg": math.degrees(s.stick_angle),
+        "slip_angle_deg": math.degrees(s.slip_angle),
+        "stick_speed_m_s": s.stick_speed,
+        "rolling_friction": s.rolling_friction,
+        "cohesion_pa": s.cohesion,
+        "restitution": s.restitution,
+        "damping_ratio": s.lehr_damping,
+        "density_kg_m3": s.density,
+        "radius_mean_m": plan.radius_mean,
+        "radius_spread": plan.radius_spread,
+        "law": {
+            "damping": plan.law.damping,
+            "friction": plan.law.friction,
+            "rolling": plan.law.rolling,
+            "cohesion": plan.law.cohesion,
+        },
+    }
 
 
 def quasi_static(name: str, value: float, limit: float, meaning: str) -> dict:
     """One dimensionless number of a test against the limit that keeps it quasi-static."""
-    return {"name": name, "value": float(value), "limit": float(limit), "ok": bool(value <= limit * (1 + 1e-9)),
-            "meaning": meaning}
+    return {
+        "name": name,
+        "value": float(value),
+        "limit": float(limit),
+        "ok": bool(value <= limit * (1 + 1e-9)),
+        "meaning": meaning,
+    }
 
 
 def stiffness_number(plan: LabPlan, pressure: float) -> dict:
     """p / E* against 1e-3: the Hertz overlap of grains under the pressure stays below about 1 %
     of their radius (delta / r ~ (p / E*)^(2/3))."""
     e_star = plan.soil.youngs_modulus / (2 * (1 - plan.soil.poisson_ratio**2))
-    return quasi_static("stiffness p / E*", pressure / e_star, 1e-3,
-                        "largest pressure over the contact modulus: overlaps stay small (rigid grains)")
+    return quasi_static(
+        "stiffness p / E*",
+        pressure / e_star,
+        1e-3,
+        "largest pressure over the contact modulus: overlaps stay small (rigid grains)",
+    )
 
 
 def log_numbers(numbers: list[dict]) -> None:

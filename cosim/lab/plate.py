@@ -56,9 +56,16 @@ def bed_spec(plan: LabPlan, replica: int) -> BedSpec:
     """The bed of replica k (seed bed.seed + k; smooth walls unless plate.wall_friction_deg)."""
     bed = plan.scene.bed
     seed, _ = common.replica_seeds(plan, replica)
-    return BedSpec(length=bed.length, width=bed.width, depth=bed.depth, radius_mean=bed.radius_mean,
-                   radius_spread=bed.radius_spread, material=plan.soil,
-                   wall_material=plan.wall_material(plan.scene.plate.wall_friction_deg), seed=seed)
+    return BedSpec(
+        length=bed.length,
+        width=bed.width,
+        depth=bed.depth,
+        radius_mean=bed.radius_mean,
+        radius_spread=bed.radius_spread,
+        material=plan.soil,
+        wall_material=plan.wall_material(plan.scene.plate.wall_friction_deg),
+        seed=seed,
+    )
 
 
 def check(plan: LabPlan) -> None:
@@ -69,14 +76,18 @@ def check(plan: LabPlan) -> None:
     side = min(bed.length, bed.width)
     for b in widths(plan):
         if b > side - 4 * d:
-            problems.append(f"plate.widths: a {b:.4g} m plate leaves less than two grain diameters to the walls of "
-                            f"the {bed.length:.4g} x {bed.width:.4g} m bed (widen [bed] or narrow the plate)")
+            problems.append(
+                f"plate.widths: a {b:.4g} m plate leaves less than two grain diameters to the walls of "
+                f"the {bed.length:.4g} x {bed.width:.4g} m bed (widen [bed] or narrow the plate)"
+            )
         if b < 3 * d:
             problems.append(f"plate.widths: a {b:.4g} m plate is narrower than three grain diameters ({3 * d:.4g} m)")
     sinkage = plan.scene.plate.max_sinkage
     if sinkage is not None and sinkage > bed.depth - 2 * d:
-        problems.append(f"plate.max_sinkage: ({sinkage:.4g} m) must leave two grain diameters of the bed "
-                        f"(bed.depth = {bed.depth:.4g} m) under the plate")
+        problems.append(
+            f"plate.max_sinkage: ({sinkage:.4g} m) must leave two grain diameters of the bed "
+            f"(bed.depth = {bed.depth:.4g} m) under the plate"
+        )
     path = plan.scene.resolve(bed.bed_file)
     if path is not None:
         try:
@@ -87,8 +98,10 @@ def check(plan: LabPlan) -> None:
             if header["materials"] and header["materials"][0] != plan.soil:
                 problems.append("bed.bed_file: the bed's grains are not the scene's [soil]; the lab measures [soil]")
             if not np.allclose(header["gravity"], plan.gravity, rtol=1e-12, atol=0):
-                problems.append(f"bed.bed_file: settled under gravity {list(header['gravity'])} m/s^2, the scene "
-                                f"has {list(plan.gravity)}")
+                problems.append(
+                    f"bed.bed_file: settled under gravity {list(header['gravity'])} m/s^2, the scene "
+                    f"has {list(plan.gravity)}"
+                )
             if "height" not in header["metrics"]:
                 problems.append("bed.bed_file: the bed has no surface height metric (soil.bed.save_bed with metrics)")
     if problems:
@@ -106,8 +119,13 @@ def _bed(plan: LabPlan, replica: int, path: str) -> dict:
         restore_state(model, state, saved)
         spec = header["spec"] or {}
         centre = (0.5 * spec.get("length", plan.scene.bed.length), 0.5 * spec.get("width", plan.scene.bed.width))
-        info = {"path": given, "surface": float(header["metrics"]["height"]), "settled": True, "settle_time": 0.0,
-                "source": "file"}
+        info = {
+            "path": given,
+            "surface": float(header["metrics"]["height"]),
+            "settled": True,
+            "settle_time": 0.0,
+            "source": "file",
+        }
         positions, radii = state.position.numpy().astype(float), model.radius_numpy()
     else:
         spec = bed_spec(plan, replica)
@@ -116,14 +134,25 @@ def _bed(plan: LabPlan, replica: int, path: str) -> dict:
         sim = common.finalize(plan, builder, order_seed)
         bed = plan.scene.bed
         threshold = common.kinetic_threshold(sim, bed.settle_ke_ratio, plan.g)
-        settle_time, settled = common.run_until(sim, plan.dt, lambda s: common.moving_energy(s) < threshold,
-                                                max(bed.settle_max_time, plan.max_phase_time(1.0)),
-                                                common.chunk_steps(plan, plan.time_scale), 5 * plan.time_scale)
+        settle_time, settled = common.run_until(
+            sim,
+            plan.dt,
+            lambda s: common.moving_energy(s) < threshold,
+            max(bed.settle_max_time, plan.max_phase_time(1.0)),
+            common.chunk_steps(plan, plan.time_scale),
+            5 * plan.time_scale,
+        )
         metrics = bed_metrics(sim, spec)
         save_bed(path, sim, spec, metrics)
         centre = (0.5 * spec.length, 0.5 * spec.width)
-        info = {"path": path, "surface": float(metrics["height"]), "settled": settled, "settle_time": settle_time,
-                "packing_fraction": float(metrics["packing_fraction"]), "source": "settled"}
+        info = {
+            "path": path,
+            "surface": float(metrics["height"]),
+            "settled": settled,
+            "settle_time": settle_time,
+            "packing_fraction": float(metrics["packing_fraction"]),
+            "source": "settled",
+        }
         positions, radii = sim.positions(), sim.model.radius_numpy()
     tops = {}
     for b in widths(plan):
@@ -145,11 +174,13 @@ def _press(plan: LabPlan, replica: int, path: str, surface: float, width: float,
     section = plan.scene.plate
     friction = section.friction_deg if section.friction_deg is not None else math.degrees(plan.soil.stick_angle)
     material = builder.add_material(plan.wall_material(friction))
-    plate = builder.add_box((centre[0] - half, centre[1] - half, start), (centre[0] + half, centre[1] + half,
-                                                                          start + thickness), material)
+    plate = builder.add_box(
+        (centre[0] - half, centre[1] - half, start), (centre[0] + half, centre[1] + half, start + thickness), material
+    )
     _, order_seed = common.replica_seeds(plan, replica)
-    model, state, control = builder.finalize(device=plan.device, precision=plan.precision, law=plan.law,
-                                             order_seed=order_seed)
+    model, state, control = builder.finalize(
+        device=plan.device, precision=plan.precision, law=plan.law, order_seed=order_seed
+    )
     restore_state(model, state, saved)
     sim = Simulation(model, state, control)
     speed = plate_speed(plan)
@@ -166,9 +197,18 @@ def _press(plan: LabPlan, replica: int, path: str, surface: float, width: float,
         rows.append((sim.time, surface - underside, force[2] / width**2, force[0], force[1]))
     sim.check_finite()
     time, sinkage, pressure, fx, fy = (np.array(c) for c in zip(*rows))
-    return {"replica": replica, "width": width, "time": time, "sinkage": sinkage, "pressure": pressure,
-            "side_force": np.hypot(fx, fy), "start_gap": start - surface, "speed": speed,
-            "steps": int(sim.steps), "particles": int(model.particle_count)}
+    return {
+        "replica": replica,
+        "width": width,
+        "time": time,
+        "sinkage": sinkage,
+        "pressure": pressure,
+        "side_force": np.hypot(fx, fy),
+        "start_gap": start - surface,
+        "speed": speed,
+        "steps": int(sim.steps),
+        "particles": int(model.particle_count),
+    }
 
 
 def max_sinkage(plan: LabPlan, surface: float) -> float:
@@ -177,8 +217,16 @@ def max_sinkage(plan: LabPlan, surface: float) -> float:
     return given if given is not None else 0.4 * surface
 
 
-def run_replica(plan: LabPlan, replica: int = 0, stage: str = "plate", bed: str = "", surface: float = 0.0,
-                width: float = 0.0, centre=(0.0, 0.0), top: float = 0.0) -> dict:
+def run_replica(
+    plan: LabPlan,
+    replica: int = 0,
+    stage: str = "plate",
+    bed: str = "",
+    surface: float = 0.0,
+    width: float = 0.0,
+    centre=(0.0, 0.0),
+    top: float = 0.0,
+) -> dict:
     """One task: stage 'bed' settles replica k's bed into the file `bed`; stage 'plate' pushes a
     plate of side `width` [m] into it (surface: the bed's mean surface height [m]; centre: the
     plate's (x, y) [m]; top: the highest grain under it [m])."""
@@ -203,9 +251,19 @@ def bekker_fit(curves: list[tuple[float, np.ndarray, np.ndarray]], fit_from: flo
         use = (np.asarray(sinkage) >= fit_from) & (np.asarray(pressure) > 0)
         parts.append((np.full(use.sum(), width), np.asarray(sinkage)[use], np.asarray(pressure)[use]))
     b, z, p = (np.concatenate([part[i] for part in parts]) for i in range(3))
-    result = {"points": int(len(z)), "k_c": math.nan, "k_phi": math.nan, "k": math.nan, "n": math.nan,
-              "k_c_se": math.nan, "k_phi_se": math.nan, "n_se": math.nan, "r_squared": math.nan, "rms_pa": math.nan,
-              "per_width": per_width}
+    result = {
+        "points": int(len(z)),
+        "k_c": math.nan,
+        "k_phi": math.nan,
+        "k": math.nan,
+        "n": math.nan,
+        "k_c_se": math.nan,
+        "k_phi_se": math.nan,
+        "n_se": math.nan,
+        "r_squared": math.nan,
+        "rms_pa": math.nan,
+        "per_width": per_width,
+    }
     for width in np.unique(b):
         mine = b == width
         if mine.sum() >= 3:
@@ -232,11 +290,19 @@ def bekker_fit(curves: list[tuple[float, np.ndarray, np.ndarray]], fit_from: flo
     errors = np.sqrt(np.diag(covariance)) if np.all(np.isfinite(covariance)) else np.full(len(values), math.nan)
     fitted = model((z, b), *values)
     residual = p - fitted
-    result.update(r_squared=float(1 - np.sum(residual**2) / np.sum((p - p.mean()) ** 2)),
-                  rms_pa=float(np.sqrt(np.mean(residual**2))))
+    result.update(
+        r_squared=float(1 - np.sum(residual**2) / np.sum((p - p.mean()) ** 2)),
+        rms_pa=float(np.sqrt(np.mean(residual**2))),
+    )
     if len(values) == 3:
-        result.update(k_c=float(values[0]), k_phi=float(values[1]), n=float(values[2]), k_c_se=float(errors[0]),
-                      k_phi_se=float(errors[1]), n_se=float(errors[2]))
+        result.update(
+            k_c=float(values[0]),
+            k_phi=float(values[1]),
+            n=float(values[2]),
+            k_c_se=float(errors[0]),
+            k_phi_se=float(errors[1]),
+            n_se=float(errors[2]),
+        )
     else:
         result.update(k=float(values[0]), n=float(values[1]), n_se=float(errors[1]))
     return result
@@ -261,16 +327,31 @@ def bekker_pressure(fit: dict, width: float, sinkage) -> np.ndarray:
 def quasi_static_numbers(plan: LabPlan, speed: float, narrowest: float, largest_pressure: float) -> list[dict]:
     """The dimensionless numbers of a plate test (docs/lab.md)."""
     pressure = max(largest_pressure, 1e-300)
-    return [common.quasi_static("plate speed v / sqrt(g d)", speed / math.sqrt(plan.g * plan.diameter), 0.1,
-                                "slow against the grains' own fall speed over one diameter"),
-            common.quasi_static("inertial number I", speed / narrowest * plan.diameter
-                                / math.sqrt(pressure / plan.soil.density), 1e-3,
-                                "(v / b) d / sqrt(p / rho) at the largest pressure: quasi-static flow under the plate"),
-            common.stiffness_number(plan, largest_pressure)]
+    return [
+        common.quasi_static(
+            "plate speed v / sqrt(g d)",
+            speed / math.sqrt(plan.g * plan.diameter),
+            0.1,
+            "slow against the grains' own fall speed over one diameter",
+        ),
+        common.quasi_static(
+            "inertial number I",
+            speed / narrowest * plan.diameter / math.sqrt(pressure / plan.soil.density),
+            1e-3,
+            "(v / b) d / sqrt(p / rho) at the largest pressure: quasi-static flow under the plate",
+        ),
+        common.stiffness_number(plan, largest_pressure),
+    ]
 
 
-def plate_test(plan: LabPlan, out_dir: str, overwrite: bool = False, executor: str = "serial",
-               scheduler: str | None = None, workers: int | None = None) -> dict:
+def plate_test(
+    plan: LabPlan,
+    out_dir: str,
+    overwrite: bool = False,
+    executor: str = "serial",
+    scheduler: str | None = None,
+    workers: int | None = None,
+) -> dict:
     """Settle lab.replicas beds, push every plate into each (through cosim.study.Executor), fit
     Bekker and write the report into out_dir (plate.csv, summary.json, plate.png)."""
     check(plan)
@@ -278,17 +359,39 @@ def plate_test(plan: LabPlan, out_dir: str, overwrite: bool = False, executor: s
     sides = widths(plan)
     replicas = plan.scene.lab.replicas if plan.scene.bed.bed_file is None else 1
     speed = plate_speed(plan)
-    log.info("plate: widths %s m at %.3g m/s into a %.3g x %.3g m bed; %d replica(s)",
-             ", ".join(f"{b:.3g}" for b in sides), speed, plan.scene.bed.length, plan.scene.bed.width, replicas)
+    log.info(
+        "plate: widths %s m at %.3g m/s into a %.3g x %.3g m bed; %d replica(s)",
+        ", ".join(f"{b:.3g}" for b in sides),
+        speed,
+        plan.scene.bed.length,
+        plan.scene.bed.width,
+        replicas,
+    )
     folder = os.path.join(out_dir, "beds")
     os.makedirs(folder, exist_ok=True)
-    beds = common.map_tasks(plan, run_replica, [{"replica": k, "stage": "bed", "bed": os.path.join(folder,
-                                                                                                f"replica_{k}.h5")}
-                                            for k in range(replicas)], [f"bed {k}" for k in range(replicas)],
-                            executor, scheduler, workers)
+    beds = common.map_tasks(
+        plan,
+        run_replica,
+        [{"replica": k, "stage": "bed", "bed": os.path.join(folder, f"replica_{k}.h5")} for k in range(replicas)],
+        [f"bed {k}" for k in range(replicas)],
+        executor,
+        scheduler,
+        workers,
+    )
     ready = common.successful(beds, "plate bed")
-    jobs = [{"replica": bed["replica"], "stage": "plate", "bed": bed["path"], "surface": bed["surface"], "width": b,
-             "centre": bed["centre"], "top": bed["tops"][str(b)]} for bed in ready for b in sides]
+    jobs = [
+        {
+            "replica": bed["replica"],
+            "stage": "plate",
+            "bed": bed["path"],
+            "surface": bed["surface"],
+            "width": b,
+            "centre": bed["centre"],
+            "top": bed["tops"][str(b)],
+        }
+        for bed in ready
+        for b in sides
+    ]
     labels = [f"replica {j['replica']}, plate {j['width']:.3g} m" for j in jobs]
     results = common.map_tasks(plan, run_replica, jobs, labels, executor, scheduler, workers)
     done = common.successful(results, "plate")
@@ -299,27 +402,62 @@ def plate_test(plan: LabPlan, out_dir: str, overwrite: bool = False, executor: s
     surface = float(np.mean([bed["surface"] for bed in ready]))
     notes = [f"bed {bed['replica']}: not settled within the time limit" for bed in ready if not bed["settled"]]
     side = min(plan.scene.bed.length, plan.scene.bed.width)
-    notes += [f"plate {b:.3g} m: the walls are {(side - b) / 2:.3g} m from its edge, less than its width; the walls "
-              "may carry part of the load (a wider bed)" for b in sides if (side - b) / 2 < b]
+    notes += [
+        f"plate {b:.3g} m: the walls are {(side - b) / 2:.3g} m from its edge, less than its width; the walls "
+        "may carry part of the load (a wider bed)"
+        for b in sides
+        if (side - b) / 2 < b
+    ]
     if surface - max_sinkage(plan, surface) < 3 * plan.diameter:
         notes.append("the plate ends less than three grain diameters above the floor: the floor stiffens the curve")
     summary = {
-        "test": "plate", "name": plan.name, "gravity": plan.g, "soil": common.soil_summary(plan), "bekker": fit,
-        "curves": [{"replica": r["replica"], "width_m": r["width"], "max_sinkage_m": float(r["sinkage"].max()),
-                    "max_pressure_pa": float(r["pressure"].max()), "steps": r["steps"]} for r in done],
+        "test": "plate",
+        "name": plan.name,
+        "gravity": plan.g,
+        "soil": common.soil_summary(plan),
+        "bekker": fit,
+        "curves": [
+            {
+                "replica": r["replica"],
+                "width_m": r["width"],
+                "max_sinkage_m": float(r["sinkage"].max()),
+                "max_pressure_pa": float(r["pressure"].max()),
+                "steps": r["steps"],
+            }
+            for r in done
+        ],
         "beds": [{k: bed[k] for k in ("replica", "surface", "settled", "settle_time", "source")} for bed in ready],
         "failed": [{"label": r.get("label"), "error": r.get("error")} for r in beds + results if not r.get("ok")],
-        "geometry": {"widths_m": list(sides), "speed_m_s": speed, "max_sinkage_m": max_sinkage(plan, surface),
-                     "surface_m": surface, "bed_length_m": plan.scene.bed.length, "bed_width_m": plan.scene.bed.width,
-                     "fit_from_m": fit_from, "grain_diameter_m": plan.diameter, "dt_s": plan.dt},
-        "quasi_static": numbers, "notes": notes,
+        "geometry": {
+            "widths_m": list(sides),
+            "speed_m_s": speed,
+            "max_sinkage_m": max_sinkage(plan, surface),
+            "surface_m": surface,
+            "bed_length_m": plan.scene.bed.length,
+            "bed_width_m": plan.scene.bed.width,
+            "fit_from_m": fit_from,
+            "grain_diameter_m": plan.diameter,
+            "dt_s": plan.dt,
+        },
+        "quasi_static": numbers,
+        "notes": notes,
     }
-    rows = [(r["replica"], r["width"], t, z, p, f) for r in done
-            for t, z, p, f in zip(r["time"], r["sinkage"], r["pressure"], r["side_force"])]
-    names = [("replica", "1"), ("plate_width", "m"), ("time", "s"), ("sinkage", "m"), ("pressure", "Pa"),
-             ("side_force", "N")]
-    common.write_csv(os.path.join(out_dir, "plate.csv"),
-                     [(n, unit, [row[i] for row in rows]) for i, (n, unit) in enumerate(names)])
+    rows = [
+        (r["replica"], r["width"], t, z, p, f)
+        for r in done
+        for t, z, p, f in zip(r["time"], r["sinkage"], r["pressure"], r["side_force"])
+    ]
+    names = [
+        ("replica", "1"),
+        ("plate_width", "m"),
+        ("time", "s"),
+        ("sinkage", "m"),
+        ("pressure", "Pa"),
+        ("side_force", "N"),
+    ]
+    common.write_csv(
+        os.path.join(out_dir, "plate.csv"), [(n, unit, [row[i] for row in rows]) for i, (n, unit) in enumerate(names)]
+    )
     summary["figure"] = _figure(out_dir, done, fit, fit_from)
     common.write_summary(out_dir, summary)
     return summary

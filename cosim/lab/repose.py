@@ -73,8 +73,12 @@ class ReposeGeometry:
         """(lower, upper) corners of the four wall boxes [m]: -x, +x, -y, +y."""
         (x0, y0), w, t = self.tube_lower, self.tube_width, self.wall_thickness
         x1, y1, z0, z1 = x0 + w, y0 + w, self.tube_bottom, self.tube_top
-        return [((x0 - t, y0 - t, z0), (x0, y1 + t, z1)), ((x1, y0 - t, z0), (x1 + t, y1 + t, z1)),
-                ((x0, y0 - t, z0), (x1, y0, z1)), ((x0, y1, z0), (x1, y1 + t, z1))]
+        return [
+            ((x0 - t, y0 - t, z0), (x0, y1 + t, z1)),
+            ((x1, y0 - t, z0), (x1 + t, y1 + t, z1)),
+            ((x0, y0 - t, z0), (x1, y0, z1)),
+            ((x0, y1, z0), (x1, y1 + t, z1)),
+        ]
 
 
 def lift_speed(plan: LabPlan) -> float:
@@ -94,15 +98,18 @@ def geometry(plan: LabPlan, replica: int = 0) -> ReposeGeometry:
     height = section.fill_height if section.fill_height is not None else 1.5 * width
     problems = []
     if width < 4 * r_max * 1.05:
-        problems.append(f"repose.tube_width: ({width:.4g} m) must hold two of the largest grains (>= "
-                        f"{4.2 * r_max:.4g} m)")
+        problems.append(
+            f"repose.tube_width: ({width:.4g} m) must hold two of the largest grains (>= {4.2 * r_max:.4g} m)"
+        )
     count = common.grains_for(plan, width * width * height)
     volume = width * width * height  # the heap keeps the column's bulk volume
     footprint = (3 * volume / (math.pi * math.tan(math.radians(SMALLEST_ANGLE_DEG)))) ** (1 / 3)
     base_width = section.base_width if section.base_width is not None else 2 * (footprint + 3 * d)
     if base_width < width + 4 * d:
-        problems.append(f"repose.base_width: ({base_width:.4g} m) must exceed the tube ({width:.4g} m) by 4 grain "
-                        f"diameters ({width + 4 * d:.4g} m)")
+        problems.append(
+            f"repose.base_width: ({base_width:.4g} m) must exceed the tube ({width:.4g} m) by 4 grain "
+            f"diameters ({width + 4 * d:.4g} m)"
+        )
     if problems:
         raise SceneError(problems)
     if section.base == "grains":
@@ -117,12 +124,24 @@ def geometry(plan: LabPlan, replica: int = 0) -> ReposeGeometry:
         radius, base, base_top = 0.0, np.zeros((0, 3)), 0.0
     lower = (0.5 * (base_width - width), 0.5 * (base_width - width))
     seed, _ = common.replica_seeds(plan, replica)
-    positions, radii = common.lattice_fill(plan, (lower[0], lower[1], base_top), (lower[0] + width,
-                                                                                   lower[1] + width), count, seed)
+    positions, radii = common.lattice_fill(
+        plan, (lower[0], lower[1], base_top), (lower[0] + width, lower[1] + width), count, seed
+    )
     top = float(np.max(positions[:, 2] + radii)) + d
-    return ReposeGeometry(base_width=base_width, base_positions=base, base_radius=radius, base_top=base_top,
-                          fill_positions=positions, fill_radii=radii, tube_lower=lower, tube_width=width,
-                          wall_thickness=d, tube_bottom=base_top, tube_top=top, lift_speed=lift_speed(plan))
+    return ReposeGeometry(
+        base_width=base_width,
+        base_positions=base,
+        base_radius=radius,
+        base_top=base_top,
+        fill_positions=positions,
+        fill_radii=radii,
+        tube_lower=lower,
+        tube_width=width,
+        wall_thickness=d,
+        tube_bottom=base_top,
+        tube_top=top,
+        lift_speed=lift_speed(plan),
+    )
 
 
 def build(plan: LabPlan, geo: ReposeGeometry, order_seed: int | None):
@@ -144,8 +163,9 @@ def build(plan: LabPlan, geo: ReposeGeometry, order_seed: int | None):
     return common.finalize(plan, builder, order_seed), tube
 
 
-def measure_heap(positions, radii, centre, base_top: float, bin_width: float, sectors: int = 16,
-                 fit_range=(0.1, 0.9)) -> dict:
+def measure_heap(
+    positions, radii, centre, base_top: float, bin_width: float, sectors: int = 16, fit_range=(0.1, 0.9)
+) -> dict:
     """The angle of repose of a heap from its surface profile.
 
     The heap is cut into `sectors` equal angular sectors about its axis `centre` (x, y) [m]
@@ -188,11 +208,21 @@ def measure_heap(positions, radii, centre, base_top: float, bin_width: float, se
     k = np.arange(bins)
     low, high = toe + fit_range[0] * rise, toe + fit_range[1] * rise
     flank = (k >= peak_bin) & (k <= end) & (profile >= low) & (profile <= high)
-    result = {"height": peak, "toe": toe, "footprint": float((end + 1) * bin_width),
-              "window": [int(k[flank].min()), int(k[flank].max())] if flank.any() else [peak_bin, end],
-              "radius": centres, "profile": profile, "filled": filled, "tops": tops,
-              "angle": math.nan, "angle_sem": math.nan, "angle_std": math.nan, "angle_profile": math.nan,
-              "sectors_fitted": 0}
+    result = {
+        "height": peak,
+        "toe": toe,
+        "footprint": float((end + 1) * bin_width),
+        "window": [int(k[flank].min()), int(k[flank].max())] if flank.any() else [peak_bin, end],
+        "radius": centres,
+        "profile": profile,
+        "filled": filled,
+        "tops": tops,
+        "angle": math.nan,
+        "angle_sem": math.nan,
+        "angle_std": math.nan,
+        "angle_profile": math.nan,
+        "sectors_fitted": 0,
+    }
     if flank.sum() < 3:
         return result
     slope = np.polyfit(centres[flank], profile[flank], 1)[0]
@@ -204,8 +234,11 @@ def measure_heap(positions, radii, centre, base_top: float, bin_width: float, se
     angles = np.asarray(fitted)
     result.update(angle_profile=math.degrees(math.atan(-slope)), sectors_fitted=len(angles))
     if len(angles):
-        result.update(angle=float(angles.mean()), angle_std=float(angles.std(ddof=1)) if len(angles) > 1 else math.nan,
-                      angle_sem=float(angles.std(ddof=1) / math.sqrt(len(angles))) if len(angles) > 1 else math.nan)
+        result.update(
+            angle=float(angles.mean()),
+            angle_std=float(angles.std(ddof=1)) if len(angles) > 1 else math.nan,
+            angle_sem=float(angles.std(ddof=1) / math.sqrt(len(angles))) if len(angles) > 1 else math.nan,
+        )
     return result
 
 
@@ -230,8 +263,9 @@ def run_replica(plan: LabPlan, replica: int = 0) -> dict:
         return lambda s: (record(s), common.moving_energy(s) < threshold)[1]
 
     min_time = 5 * plan.time_scale
-    settle_time, settled = common.run_until(sim, plan.dt, still(plan.scene.bed.settle_ke_ratio), longest, chunk,
-                                            min_time)
+    settle_time, settled = common.run_until(
+        sim, plan.dt, still(plan.scene.bed.settle_ke_ratio), longest, chunk, min_time
+    )
     column = float(np.max(sim.positions()[free, 2] + sim.model.radius_numpy()[free]))
     sim.control.set_boundary_velocity(tube, (0.0, 0.0, geo.lift_speed))
     r_max = plan.radius_mean * (1 + plan.radius_spread)
@@ -249,68 +283,152 @@ def run_replica(plan: LabPlan, replica: int = 0) -> dict:
     heap = measure_heap(x, r, geo.centre, geo.base_top, plan.diameter, section.sectors, section.fit_range)
     near_wall = np.min(np.stack([x[:, 0], x[:, 1], geo.base_width - x[:, 0], geo.base_width - x[:, 1]]), axis=0)
     history_array = np.asarray(history) if history else np.zeros((0, 3))
-    return {**heap, "replica": replica, "grains": int(free.sum()), "base_grains": int(len(geo.base_positions)),
-            "positions": x, "radii": r, "centre": geo.centre, "base_top": geo.base_top, "base_width": geo.base_width,
-            "tube_width": geo.tube_width, "column_height": column - geo.base_top, "lift_speed": geo.lift_speed,
-            "settle_time": settle_time, "settled": settled, "lift_time": lift_time, "lifted": lifted,
-            "rest_time": rest_time, "rested": rested, "at_walls": int(np.sum(near_wall < 2 * plan.diameter)),
-            "history": history_array, "steps": int(sim.steps), "particles": int(sim.model.particle_count)}
+    return {
+        **heap,
+        "replica": replica,
+        "grains": int(free.sum()),
+        "base_grains": int(len(geo.base_positions)),
+        "positions": x,
+        "radii": r,
+        "centre": geo.centre,
+        "base_top": geo.base_top,
+        "base_width": geo.base_width,
+        "tube_width": geo.tube_width,
+        "column_height": column - geo.base_top,
+        "lift_speed": geo.lift_speed,
+        "settle_time": settle_time,
+        "settled": settled,
+        "lift_time": lift_time,
+        "lifted": lifted,
+        "rest_time": rest_time,
+        "rested": rested,
+        "at_walls": int(np.sum(near_wall < 2 * plan.diameter)),
+        "history": history_array,
+        "steps": int(sim.steps),
+        "particles": int(sim.model.particle_count),
+    }
 
 
 def quasi_static_numbers(plan: LabPlan, column_height: float, lift_speed_value: float) -> list[dict]:
     """The dimensionless numbers of a heap test (docs/lab.md)."""
     pressure = PACKING_FRACTION * plan.soil.density * plan.g * column_height
-    return [common.quasi_static("lift speed v / sqrt(g d)", lift_speed_value / math.sqrt(plan.g * plan.diameter), 0.3,
-                                "the tube rises slowly against the grains' own fall speed over one diameter"),
-            common.stiffness_number(plan, pressure)]
+    return [
+        common.quasi_static(
+            "lift speed v / sqrt(g d)",
+            lift_speed_value / math.sqrt(plan.g * plan.diameter),
+            0.3,
+            "the tube rises slowly against the grains' own fall speed over one diameter",
+        ),
+        common.stiffness_number(plan, pressure),
+    ]
 
 
-def repose_test(plan: LabPlan, out_dir: str, overwrite: bool = False, executor: str = "serial",
-                scheduler: str | None = None, workers: int | None = None) -> dict:
+def repose_test(
+    plan: LabPlan,
+    out_dir: str,
+    overwrite: bool = False,
+    executor: str = "serial",
+    scheduler: str | None = None,
+    workers: int | None = None,
+) -> dict:
     """Run lab.replicas heaps (through cosim.study.Executor), write the report into out_dir
     (repose.csv: the surface profiles; repose_grains.csv: the heaps' grains, to measure again;
     repose_history.csv; summary.json; repose.png) and return the summary."""
     common.prepare_folder(plan, out_dir, overwrite)
     replicas = plan.scene.lab.replicas
     geo = geometry(plan, 0)
-    log.info("repose: %d grains in a %.3g m tube on a %.3g m base, lifted at %.3g m/s; %d replica(s)",
-             len(geo.fill_radii), geo.tube_width, geo.base_width, geo.lift_speed, replicas)
-    results = common.map_tasks(plan, run_replica, [{"replica": k} for k in range(replicas)],
-                               [f"replica {k}" for k in range(replicas)], executor, scheduler, workers)
+    log.info(
+        "repose: %d grains in a %.3g m tube on a %.3g m base, lifted at %.3g m/s; %d replica(s)",
+        len(geo.fill_radii),
+        geo.tube_width,
+        geo.base_width,
+        geo.lift_speed,
+        replicas,
+    )
+    results = common.map_tasks(
+        plan,
+        run_replica,
+        [{"replica": k} for k in range(replicas)],
+        [f"replica {k}" for k in range(replicas)],
+        executor,
+        scheduler,
+        workers,
+    )
     done = common.successful(results, "repose")
     angles = [r["angle"] for r in done]
     numbers = quasi_static_numbers(plan, max(r["column_height"] for r in done), geo.lift_speed)
     notes = _notes(plan, done)
     summary = {
-        "test": "repose", "name": plan.name, "gravity": plan.g, "soil": common.soil_summary(plan),
+        "test": "repose",
+        "name": plan.name,
+        "gravity": plan.g,
+        "soil": common.soil_summary(plan),
         "repose_angle_deg": common.statistics(angles),
         "repose_angle_profile_deg": common.statistics([r["angle_profile"] for r in done]),
-        "replicas": [{"replica": r["replica"], "angle_deg": r["angle"], "angle_sem_deg": r["angle_sem"],
-                      "angle_profile_deg": r["angle_profile"], "height_m": r["height"], "toe_m": r["toe"],
-                      "footprint_m": r["footprint"], "grains": r["grains"], "settled": r["settled"],
-                      "lifted": r["lifted"], "rested": r["rested"], "settle_time_s": r["settle_time"],
-                      "lift_time_s": r["lift_time"], "rest_time_s": r["rest_time"], "grains_at_walls": r["at_walls"],
-                      "steps": r["steps"]} for r in done],
+        "replicas": [
+            {
+                "replica": r["replica"],
+                "angle_deg": r["angle"],
+                "angle_sem_deg": r["angle_sem"],
+                "angle_profile_deg": r["angle_profile"],
+                "height_m": r["height"],
+                "toe_m": r["toe"],
+                "footprint_m": r["footprint"],
+                "grains": r["grains"],
+                "settled": r["settled"],
+                "lifted": r["lifted"],
+                "rested": r["rested"],
+                "settle_time_s": r["settle_time"],
+                "lift_time_s": r["lift_time"],
+                "rest_time_s": r["rest_time"],
+                "grains_at_walls": r["at_walls"],
+                "steps": r["steps"],
+            }
+            for r in done
+        ],
         "failed": [{"label": r.get("label"), "error": r.get("error")} for r in results if not r.get("ok")],
-        "geometry": {"tube_width_m": geo.tube_width,
-                     "column_height_m": float(np.mean([r["column_height"] for r in done])),
-                     "base": plan.scene.repose.base, "base_width_m": geo.base_width, "grains": len(geo.fill_radii),
-                     "base_grains": len(geo.base_positions), "lift_speed_m_s": geo.lift_speed,
-                     "grain_diameter_m": plan.diameter, "dt_s": plan.dt},
-        "quasi_static": numbers, "notes": notes,
+        "geometry": {
+            "tube_width_m": geo.tube_width,
+            "column_height_m": float(np.mean([r["column_height"] for r in done])),
+            "base": plan.scene.repose.base,
+            "base_width_m": geo.base_width,
+            "grains": len(geo.fill_radii),
+            "base_grains": len(geo.base_positions),
+            "lift_speed_m_s": geo.lift_speed,
+            "grain_diameter_m": plan.diameter,
+            "dt_s": plan.dt,
+        },
+        "quasi_static": numbers,
+        "notes": notes,
     }
     rows = [(r["replica"], c, p, f) for r in done for c, p, f in zip(r["radius"], r["profile"], r["filled"])]
-    common.write_csv(os.path.join(out_dir, "repose.csv"), [
-        ("replica", "1", [row[0] for row in rows]), ("radius", "m", [row[1] for row in rows]),
-        ("surface_height", "m", [row[2] for row in rows]), ("sectors_filled", "1", [row[3] for row in rows])])
+    common.write_csv(
+        os.path.join(out_dir, "repose.csv"),
+        [
+            ("replica", "1", [row[0] for row in rows]),
+            ("radius", "m", [row[1] for row in rows]),
+            ("surface_height", "m", [row[2] for row in rows]),
+            ("sectors_filled", "1", [row[3] for row in rows]),
+        ],
+    )
     grains = [(r["replica"], *x, radius) for r in done for x, radius in zip(r["positions"], r["radii"])]
-    common.write_csv(os.path.join(out_dir, "repose_grains.csv"),
-                     [(name, unit, [g[i] for g in grains]) for i, (name, unit) in
-                      enumerate((("replica", "1"), ("x", "m"), ("y", "m"), ("z", "m"), ("radius", "m")))])
+    common.write_csv(
+        os.path.join(out_dir, "repose_grains.csv"),
+        [
+            (name, unit, [g[i] for g in grains])
+            for i, (name, unit) in enumerate((("replica", "1"), ("x", "m"), ("y", "m"), ("z", "m"), ("radius", "m")))
+        ],
+    )
     history = [(r["replica"], *h) for r in done for h in r["history"]]
-    common.write_csv(os.path.join(out_dir, "repose_history.csv"), [
-        ("replica", "1", [h[0] for h in history]), ("time", "s", [h[1] for h in history]),
-        ("translational_kinetic_energy", "J", [h[2] for h in history]), ("tube_lift", "m", [h[3] for h in history])])
+    common.write_csv(
+        os.path.join(out_dir, "repose_history.csv"),
+        [
+            ("replica", "1", [h[0] for h in history]),
+            ("time", "s", [h[1] for h in history]),
+            ("translational_kinetic_energy", "J", [h[2] for h in history]),
+            ("tube_lift", "m", [h[3] for h in history]),
+        ],
+    )
     summary["figure"] = _figure(out_dir, done, summary)
     common.write_summary(out_dir, summary)
     return summary
@@ -326,11 +444,15 @@ def _notes(plan: LabPlan, done: list[dict]) -> list[str]:
         if r["at_walls"]:
             notes.append(f"replica {k}: {r['at_walls']} grain(s) reached the side walls: widen repose.base_width")
         if not np.isfinite(r["angle"]):
-            notes.append(f"replica {k}: the flank is shorter than three bins: more grains (repose.fill_height) or "
-                         "a wider tube (repose.tube_width)")
+            notes.append(
+                f"replica {k}: the flank is shorter than three bins: more grains (repose.fill_height) or "
+                "a wider tube (repose.tube_width)"
+            )
         elif r["height"] - r["toe"] < 2 * plan.diameter:
-            notes.append(f"replica {k}: the heap rises only {(r['height'] - r['toe']) / plan.diameter:.2g} grain "
-                         "diameters above its toe: its angle is coarse (more grains)")
+            notes.append(
+                f"replica {k}: the heap rises only {(r['height'] - r['toe']) / plan.diameter:.2g} grain "
+                "diameters above its toe: its angle is coarse (more grains)"
+            )
     return notes
 
 
@@ -346,8 +468,10 @@ def _figure(out_dir: str, done: list[dict], summary: dict) -> str | None:
     from matplotlib.collections import PatchCollection
     from matplotlib.patches import Circle
 
-    grains = [Circle(((px - first["centre"][0]) * 1e3, (pz - first["base_top"]) * 1e3), pr * 1e3)
-              for (px, _, pz), pr in zip(x[slab], first["radii"][slab])]
+    grains = [
+        Circle(((px - first["centre"][0]) * 1e3, (pz - first["base_top"]) * 1e3), pr * 1e3)
+        for (px, _, pz), pr in zip(x[slab], first["radii"][slab])
+    ]
     side.add_collection(PatchCollection(grains, facecolor="tan", edgecolor="saddlebrown", lw=0.5))
     side.autoscale_view()
     side.set_aspect("equal")
@@ -355,12 +479,13 @@ def _figure(out_dir: str, done: list[dict], summary: dict) -> str | None:
     side.set_ylabel("height above the base [mm]")
     side.set_title(f"replica {first['replica']}: grains within one diameter of the axis plane")
     for r in done:
-        line, = prof.plot(r["radius"] * 1e3, r["profile"] * 1e3, ".-", label=f"replica {r['replica']}: "
-                          f"{r['angle']:.1f} deg")
+        (line,) = prof.plot(
+            r["radius"] * 1e3, r["profile"] * 1e3, ".-", label=f"replica {r['replica']}: {r['angle']:.1f} deg"
+        )
         if np.isfinite(r["angle"]):
             lo, hi = r["window"]
-            radius = r["radius"][lo:hi + 1]
-            fit = np.polyfit(radius, r["profile"][lo:hi + 1], 1)
+            radius = r["radius"][lo : hi + 1]
+            fit = np.polyfit(radius, r["profile"][lo : hi + 1], 1)
             prof.plot(radius * 1e3, np.polyval(fit, radius) * 1e3, "-", color=line.get_color(), lw=3, alpha=0.4)
     stats = summary["repose_angle_deg"]
     title = f"angle of repose {stats.get('mean', math.nan):.1f} deg"

@@ -129,8 +129,10 @@ class ShearSection(_LabSection):
         _exclusive(self, "speed", "inertial_number")
         if self.normal_stresses is not None:
             if not self.normal_stresses or not all(math.isfinite(s) and s > 0 for s in self.normal_stresses):
-                raise ValueError(f"normal_stresses: must be a non-empty list of finite stresses > 0 [Pa] "
-                                 f"(got {self.normal_stresses})")
+                raise ValueError(
+                    f"normal_stresses: must be a non-empty list of finite stresses > 0 [Pa] "
+                    f"(got {self.normal_stresses})"
+                )
         return self
 
 
@@ -259,8 +261,9 @@ class LabPlan:
         """The soil with its friction angles capped at `friction_deg` [deg] and no cohesion: a wall
         (the weaker friction of a pair governs, so a wall never grips harder than the soil)."""
         angle = math.radians(friction_deg)
-        return self.soil.with_(stick_angle=min(angle, self.soil.stick_angle),
-                               slip_angle=min(angle, self.soil.slip_angle), cohesion=0.0)
+        return self.soil.with_(
+            stick_angle=min(angle, self.soil.stick_angle), slip_angle=min(angle, self.soil.slip_angle), cohesion=0.0
+        )
 
     def with_changes(self, overrides: dict) -> LabPlan:
         """The plan of the same scene with {'a.b': value} applied."""
@@ -283,9 +286,12 @@ def resolve_lab(scene: LabScene, needs_gravity: bool = False, test: str = "lab")
     soil = to_material(scene.soil)
     device = resolve_device(scene.scene.device)
     law_section = scene.soil.law
-    law = ContactLaw(damping=law_section.damping, friction=law_section.friction,
-                     rolling=law_section.rolling if law_section.rolling is not None else soil.rolling_friction > 0,
-                     cohesion=law_section.cohesion if law_section.cohesion is not None else soil.cohesion > 0)
+    law = ContactLaw(
+        damping=law_section.damping,
+        friction=law_section.friction,
+        rolling=law_section.rolling if law_section.rolling is not None else soil.rolling_friction > 0,
+        cohesion=law_section.cohesion if law_section.cohesion is not None else soil.cohesion > 0,
+    )
     bed = scene.bed
     smallest = bed.radius_mean * (1 - bed.radius_spread)
     run = scene.run
@@ -296,9 +302,19 @@ def resolve_lab(scene: LabScene, needs_gravity: bool = False, test: str = "lab")
         dt = factor * rayleigh_time_step(soil.youngs_modulus, soil.poisson_ratio, soil.density, smallest)
     if problems:
         raise SceneError(problems)
-    return LabPlan(scene=scene, name=scene.scene.name, device=device, precision=scene.scene.precision,
-                   gravity=(float(gravity[0]), float(gravity[1]), float(gravity[2])), law=law, soil=soil,
-                   radius_mean=bed.radius_mean, radius_spread=bed.radius_spread, seed=bed.seed, dt=dt)
+    return LabPlan(
+        scene=scene,
+        name=scene.scene.name,
+        device=device,
+        precision=scene.scene.precision,
+        gravity=(float(gravity[0]), float(gravity[1]), float(gravity[2])),
+        law=law,
+        soil=soil,
+        radius_mean=bed.radius_mean,
+        radius_spread=bed.radius_spread,
+        seed=bed.seed,
+        dt=dt,
+    )
 
 
 def load_lab_plan(path, overrides=None, needs_gravity: bool = False, test: str = "lab") -> LabPlan:

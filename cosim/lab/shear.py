@@ -87,8 +87,12 @@ class ShearBox:
         length, width, t = self.length, self.width, self.wall
 
         def frame(z0, z1):
-            return [((-t, -t, z0), (0.0, width + t, z1)), ((length, -t, z0), (length + t, width + t, z1)),
-                    ((0.0, -t, z0), (length, 0.0, z1)), ((0.0, width, z0), (length, width + t, z1))]
+            return [
+                ((-t, -t, z0), (0.0, width + t, z1)),
+                ((length, -t, z0), (length + t, width + t, z1)),
+                ((0.0, -t, z0), (length, 0.0, z1)),
+                ((0.0, width, z0), (length, width + t, z1)),
+            ]
 
         return frame(0.0, self.plane - 0.5 * self.gap), frame(self.plane + 0.5 * self.gap, self.top)
 
@@ -128,11 +132,14 @@ def box(plan: LabPlan) -> ShearBox:
         if value < 4 * d:
             problems.append(f"shear.{name}: ({value:.4g} m) must hold at least four grain diameters ({4 * d:.4g} m)")
     if gap >= 2 * r_min:
-        problems.append(f"shear.gap: ({gap:.4g} m) must be smaller than the smallest grain ({2 * r_min:.4g} m) or "
-                        "grains leak out between the halves")
+        problems.append(
+            f"shear.gap: ({gap:.4g} m) must be smaller than the smallest grain ({2 * r_min:.4g} m) or "
+            "grains leak out between the halves"
+        )
     if displacement >= 0.5 * length:
-        problems.append(f"shear.displacement: ({displacement:.4g} m) must be less than half the box length "
-                        f"({0.5 * length:.4g} m)")
+        problems.append(
+            f"shear.displacement: ({displacement:.4g} m) must be less than half the box length ({0.5 * length:.4g} m)"
+        )
     if problems:
         raise SceneError(problems)
     stresses = normal_stresses(plan)
@@ -141,8 +148,18 @@ def box(plan: LabPlan) -> ShearBox:
     r_max = plan.radius_mean * (1 + plan.radius_spread)
     nx, ny = (int((s - 2 * r_max) // (2.04 * r_max)) + 1 for s in (length, width))
     loose = (-(-count // (nx * ny)) + 1) * 2.04 * r_max
-    return ShearBox(length, width, height, gap, max(d, displacement + d), max(loose, height) + 2 * d, displacement,
-                    shear_speed(plan, stresses), stresses, count)
+    return ShearBox(
+        length,
+        width,
+        height,
+        gap,
+        max(d, displacement + d),
+        max(loose, height) + 2 * d,
+        displacement,
+        shear_speed(plan, stresses),
+        stresses,
+        count,
+    )
 
 
 def _specimen(plan: LabPlan, geometry: ShearBox, replica: int, path: str) -> dict:
@@ -161,9 +178,14 @@ def _specimen(plan: LabPlan, geometry: ShearBox, replica: int, path: str) -> dic
     settled, time_taken = True, 0.0
     if plan.g > 0:
         threshold = common.kinetic_threshold(sim, plan.scene.bed.settle_ke_ratio, plan.g)
-        time_taken, settled = common.run_until(sim, plan.dt, lambda s: common.moving_energy(s) < threshold,
-                                               plan.max_phase_time(1.0), common.chunk_steps(plan, plan.time_scale),
-                                               5 * plan.time_scale)
+        time_taken, settled = common.run_until(
+            sim,
+            plan.dt,
+            lambda s: common.moving_energy(s) < threshold,
+            plan.max_phase_time(1.0),
+            common.chunk_steps(plan, plan.time_scale),
+            5 * plan.time_scale,
+        )
     save_bed(path, sim)
     top = float(np.max(sim.positions()[:, 2] + sim.model.radius_numpy()))
     return {"replica": replica, "path": path, "settled": settled, "settle_time": time_taken, "top": top}
@@ -183,8 +205,9 @@ def _shear(plan: LabPlan, geometry: ShearBox, replica: int, path: str, stress: f
     grain = 0  # the specimen's first material is the soil
     lid = builder.add_plane((0, 0, top + 0.1 * plan.radius_mean), (0, 0, -1), grain)
     _, order_seed = common.replica_seeds(plan, replica)
-    model, state, control = builder.finalize(device=plan.device, precision=plan.precision, law=plan.law,
-                                             order_seed=order_seed)
+    model, state, control = builder.finalize(
+        device=plan.device, precision=plan.precision, law=plan.law, order_seed=order_seed
+    )
     restore_state(model, state, saved)
     from soil import Simulation
 
@@ -224,9 +247,15 @@ def _shear(plan: LabPlan, geometry: ShearBox, replica: int, path: str, stress: f
         k += 1
         force = sim.boundary_wrenches()[0]
         shift = sim.boundary_displacements()
-        rows.append((shift[upper[0], 0], -(force[upper, 0].sum() + force[lid, 0]) / geometry.area,
-                     (force[lid, 2] + weight_above) / geometry.area, force[[0] + lower, 0].sum() / geometry.area,
-                     shift[lid, 2] - z0))
+        rows.append(
+            (
+                shift[upper[0], 0],
+                -(force[upper, 0].sum() + force[lid, 0]) / geometry.area,
+                (force[lid, 2] + weight_above) / geometry.area,
+                force[[0] + lower, 0].sum() / geometry.area,
+                shift[lid, 2] - z0,
+            )
+        )
         if k > 2 * RECORDS + ramp:
             break
     sim.check_finite()
@@ -238,17 +267,31 @@ def _shear(plan: LabPlan, geometry: ShearBox, replica: int, path: str, stress: f
     peak = int(np.argmax(smooth[inner])) + (inner.start or 0)
     near = slice(max(0, peak - window // 2), peak + window // 2 + 1)
     residual = u >= 0.5 * u[-1]
-    return {"replica": replica, "stress": stress, "displacement": u, "tau": tau, "sigma": sigma,
-            "tau_lower": tau_lower, "rise": rise,
-            "peak_tau": float(smooth[peak]), "peak_sigma": float(sigma[near].mean()),
-            "peak_displacement": float(u[peak]),
-            "residual_tau": float(tau[residual].mean()), "residual_sigma": float(sigma[residual].mean()),
-            "consolidated": consolidated_ok, "consolidate_time": consolidate_time, "lid_damping": damping,
-            "weight_above": weight_above, "steps": int(sim.steps), "particles": int(model.particle_count)}
+    return {
+        "replica": replica,
+        "stress": stress,
+        "displacement": u,
+        "tau": tau,
+        "sigma": sigma,
+        "tau_lower": tau_lower,
+        "rise": rise,
+        "peak_tau": float(smooth[peak]),
+        "peak_sigma": float(sigma[near].mean()),
+        "peak_displacement": float(u[peak]),
+        "residual_tau": float(tau[residual].mean()),
+        "residual_sigma": float(sigma[residual].mean()),
+        "consolidated": consolidated_ok,
+        "consolidate_time": consolidate_time,
+        "lid_damping": damping,
+        "weight_above": weight_above,
+        "steps": int(sim.steps),
+        "particles": int(model.particle_count),
+    }
 
 
-def run_replica(plan: LabPlan, replica: int = 0, stage: str = "shear", specimen: str = "",
-                stress: float = 0.0, top: float = 0.0) -> dict:
+def run_replica(
+    plan: LabPlan, replica: int = 0, stage: str = "shear", specimen: str = "", stress: float = 0.0, top: float = 0.0
+) -> dict:
     """One task of the test: stage 'specimen' settles replica k into the file `specimen`;
     stage 'shear' consolidates that specimen (grains up to `top` [m]) under `stress` [Pa] and shears it."""
     geometry = box(plan)
@@ -267,84 +310,174 @@ def mohr_coulomb(sigma, tau) -> dict:
     sigma, tau = np.asarray(sigma, dtype=float), np.asarray(tau, dtype=float)
     origin = math.degrees(math.atan(float(np.sum(sigma * tau) / np.sum(sigma**2)))) if len(sigma) else math.nan
     if len(np.unique(sigma)) < 2:
-        return {"friction_angle_deg": math.nan, "cohesion_pa": math.nan, "friction_angle_origin_deg": origin,
-                "points": int(len(sigma))}
+        return {
+            "friction_angle_deg": math.nan,
+            "cohesion_pa": math.nan,
+            "friction_angle_origin_deg": origin,
+            "points": int(len(sigma)),
+        }
     fit = stats.linregress(sigma, tau)
     enough = len(sigma) > 2
     slope_error = fit.stderr if enough else math.nan
-    return {"friction_angle_deg": math.degrees(math.atan(fit.slope)),
-            "friction_angle_se_deg": math.degrees(slope_error / (1 + fit.slope**2)) if enough else math.nan,
-            "cohesion_pa": float(fit.intercept), "cohesion_se_pa": float(fit.intercept_stderr) if enough else math.nan,
-            "tan_phi": float(fit.slope), "r_squared": float(fit.rvalue**2), "friction_angle_origin_deg": origin,
-            "points": int(len(sigma))}
+    return {
+        "friction_angle_deg": math.degrees(math.atan(fit.slope)),
+        "friction_angle_se_deg": math.degrees(slope_error / (1 + fit.slope**2)) if enough else math.nan,
+        "cohesion_pa": float(fit.intercept),
+        "cohesion_se_pa": float(fit.intercept_stderr) if enough else math.nan,
+        "tan_phi": float(fit.slope),
+        "r_squared": float(fit.rvalue**2),
+        "friction_angle_origin_deg": origin,
+        "points": int(len(sigma)),
+    }
 
 
 def quasi_static_numbers(plan: LabPlan, geometry: ShearBox) -> list[dict]:
     """The dimensionless numbers of a shear test (docs/lab.md)."""
-    return [common.quasi_static("inertial number I", inertial_number(plan, geometry.speed, min(geometry.stresses)),
-                                1e-3, "(v / 10 d) d / sqrt(sigma / rho) at the lowest stress: quasi-static shear"),
-            common.stiffness_number(plan, max(geometry.stresses))]
+    return [
+        common.quasi_static(
+            "inertial number I",
+            inertial_number(plan, geometry.speed, min(geometry.stresses)),
+            1e-3,
+            "(v / 10 d) d / sqrt(sigma / rho) at the lowest stress: quasi-static shear",
+        ),
+        common.stiffness_number(plan, max(geometry.stresses)),
+    ]
 
 
-def shear_test(plan: LabPlan, out_dir: str, overwrite: bool = False, executor: str = "serial",
-               scheduler: str | None = None, workers: int | None = None) -> dict:
+def shear_test(
+    plan: LabPlan,
+    out_dir: str,
+    overwrite: bool = False,
+    executor: str = "serial",
+    scheduler: str | None = None,
+    workers: int | None = None,
+) -> dict:
     """Settle lab.replicas specimens, shear each at every normal stress (through
     cosim.study.Executor), fit Mohr-Coulomb and write the report into out_dir (shear.csv,
     shear_points.csv, summary.json, shear.png). Returns the summary."""
     common.prepare_folder(plan, out_dir, overwrite)
     geometry = box(plan)
     replicas = plan.scene.lab.replicas
-    log.info("shear: %d grains in a %.3g x %.3g m box, %.3g m high; normal stresses %s Pa; shear at %.3g m/s "
-             "to %.3g m; %d replica(s)", geometry.count, geometry.length, geometry.width, geometry.height,
-             ", ".join(f"{s:.4g}" for s in geometry.stresses), geometry.speed, geometry.displacement, replicas)
+    log.info(
+        "shear: %d grains in a %.3g x %.3g m box, %.3g m high; normal stresses %s Pa; shear at %.3g m/s "
+        "to %.3g m; %d replica(s)",
+        geometry.count,
+        geometry.length,
+        geometry.width,
+        geometry.height,
+        ", ".join(f"{s:.4g}" for s in geometry.stresses),
+        geometry.speed,
+        geometry.displacement,
+        replicas,
+    )
     folder = os.path.join(out_dir, "specimens")
     os.makedirs(folder, exist_ok=True)
     paths = [os.path.join(folder, f"replica_{k}.h5") for k in range(replicas)]
-    specimens = common.map_tasks(plan, run_replica, [{"replica": k, "stage": "specimen", "specimen": p}
-                                                 for k, p in enumerate(paths)],
-                                 [f"specimen {k}" for k in range(replicas)], executor, scheduler, workers)
+    specimens = common.map_tasks(
+        plan,
+        run_replica,
+        [{"replica": k, "stage": "specimen", "specimen": p} for k, p in enumerate(paths)],
+        [f"specimen {k}" for k in range(replicas)],
+        executor,
+        scheduler,
+        workers,
+    )
     ready = common.successful(specimens, "shear specimen")
-    jobs = [{"replica": s["replica"], "stage": "shear", "specimen": s["path"], "stress": sigma, "top": s["top"]}
-            for s in ready for sigma in geometry.stresses]
-    results = common.map_tasks(plan, run_replica, jobs, [f"replica {j['replica']}, sigma {j['stress']:.4g} Pa"
-                                                      for j in jobs], executor, scheduler, workers)
+    jobs = [
+        {"replica": s["replica"], "stage": "shear", "specimen": s["path"], "stress": sigma, "top": s["top"]}
+        for s in ready
+        for sigma in geometry.stresses
+    ]
+    results = common.map_tasks(
+        plan,
+        run_replica,
+        jobs,
+        [f"replica {j['replica']}, sigma {j['stress']:.4g} Pa" for j in jobs],
+        executor,
+        scheduler,
+        workers,
+    )
     done = common.successful(results, "shear")
     peak = mohr_coulomb([r["peak_sigma"] for r in done], [r["peak_tau"] for r in done])
     residual = mohr_coulomb([r["residual_sigma"] for r in done], [r["residual_tau"] for r in done])
     numbers = quasi_static_numbers(plan, geometry)
-    notes = [f"replica {s['replica']}: the specimen had not settled within lab.max_time_factor" for s in ready
-             if not s["settled"]]
-    notes += [f"replica {r['replica']}, sigma {r['stress']:.4g} Pa: the lid was still moving after consolidation"
-              for r in done if not r["consolidated"]]
+    notes = [
+        f"replica {s['replica']}: the specimen had not settled within lab.max_time_factor"
+        for s in ready
+        if not s["settled"]
+    ]
+    notes += [
+        f"replica {r['replica']}, sigma {r['stress']:.4g} Pa: the lid was still moving after consolidation"
+        for r in done
+        if not r["consolidated"]
+    ]
     summary = {
-        "test": "shear", "name": plan.name, "gravity": plan.g, "soil": common.soil_summary(plan),
-        "peak": peak, "residual": residual,
-        "points": [{"replica": r["replica"], "normal_stress_nominal_pa": r["stress"], "peak_sigma_pa": r["peak_sigma"],
-                    "peak_tau_pa": r["peak_tau"], "peak_displacement_m": r["peak_displacement"],
-                    "residual_sigma_pa": r["residual_sigma"], "residual_tau_pa": r["residual_tau"],
-                    "consolidated": r["consolidated"], "steps": r["steps"]} for r in done],
+        "test": "shear",
+        "name": plan.name,
+        "gravity": plan.g,
+        "soil": common.soil_summary(plan),
+        "peak": peak,
+        "residual": residual,
+        "points": [
+            {
+                "replica": r["replica"],
+                "normal_stress_nominal_pa": r["stress"],
+                "peak_sigma_pa": r["peak_sigma"],
+                "peak_tau_pa": r["peak_tau"],
+                "peak_displacement_m": r["peak_displacement"],
+                "residual_sigma_pa": r["residual_sigma"],
+                "residual_tau_pa": r["residual_tau"],
+                "consolidated": r["consolidated"],
+                "steps": r["steps"],
+            }
+            for r in done
+        ],
         "failed": [{"label": r.get("label"), "error": r.get("error")} for r in specimens + results if not r.get("ok")],
-        "geometry": {"length_m": geometry.length, "width_m": geometry.width, "height_m": geometry.height,
-                     "gap_m": geometry.gap, "grains": geometry.count, "displacement_m": geometry.displacement,
-                     "speed_m_s": geometry.speed, "normal_stresses_pa": list(geometry.stresses),
-                     "grain_diameter_m": plan.diameter, "dt_s": plan.dt},
-        "quasi_static": numbers, "notes": notes,
+        "geometry": {
+            "length_m": geometry.length,
+            "width_m": geometry.width,
+            "height_m": geometry.height,
+            "gap_m": geometry.gap,
+            "grains": geometry.count,
+            "displacement_m": geometry.displacement,
+            "speed_m_s": geometry.speed,
+            "normal_stresses_pa": list(geometry.stresses),
+            "grain_diameter_m": plan.diameter,
+            "dt_s": plan.dt,
+        },
+        "quasi_static": numbers,
+        "notes": notes,
     }
-    curves = [(r["replica"], r["stress"], *row) for r in done
-              for row in zip(r["displacement"], r["tau"], r["sigma"], r["tau_lower"], r["rise"])]
-    names = [("replica", "1"), ("normal_stress_nominal", "Pa"), ("displacement", "m"), ("shear_stress", "Pa"),
-             ("normal_stress", "Pa"), ("shear_stress_lower_half", "Pa"), ("lid_rise", "m")]
+    curves = [
+        (r["replica"], r["stress"], *row)
+        for r in done
+        for row in zip(r["displacement"], r["tau"], r["sigma"], r["tau_lower"], r["rise"])
+    ]
+    names = [
+        ("replica", "1"),
+        ("normal_stress_nominal", "Pa"),
+        ("displacement", "m"),
+        ("shear_stress", "Pa"),
+        ("normal_stress", "Pa"),
+        ("shear_stress_lower_half", "Pa"),
+        ("lid_rise", "m"),
+    ]
     columns = list(zip(*curves)) if curves else [() for _ in names]
-    common.write_csv(os.path.join(out_dir, "shear.csv"),
-                     [(n, unit, column) for (n, unit), column in zip(names, columns)])
+    common.write_csv(
+        os.path.join(out_dir, "shear.csv"), [(n, unit, column) for (n, unit), column in zip(names, columns)]
+    )
     points: list[dict] = summary["points"]  # type: ignore[assignment]
-    common.write_csv(os.path.join(out_dir, "shear_points.csv"), [
-        ("replica", "1", [p["replica"] for p in points]),
-        ("normal_stress_nominal", "Pa", [p["normal_stress_nominal_pa"] for p in points]),
-        ("peak_normal_stress", "Pa", [p["peak_sigma_pa"] for p in points]),
-        ("peak_shear_stress", "Pa", [p["peak_tau_pa"] for p in points]),
-        ("residual_normal_stress", "Pa", [p["residual_sigma_pa"] for p in points]),
-        ("residual_shear_stress", "Pa", [p["residual_tau_pa"] for p in points])])
+    common.write_csv(
+        os.path.join(out_dir, "shear_points.csv"),
+        [
+            ("replica", "1", [p["replica"] for p in points]),
+            ("normal_stress_nominal", "Pa", [p["normal_stress_nominal_pa"] for p in points]),
+            ("peak_normal_stress", "Pa", [p["peak_sigma_pa"] for p in points]),
+            ("peak_shear_stress", "Pa", [p["peak_tau_pa"] for p in points]),
+            ("residual_normal_stress", "Pa", [p["residual_sigma_pa"] for p in points]),
+            ("residual_shear_stress", "Pa", [p["residual_tau_pa"] for p in points]),
+        ],
+    )
     summary["figure"] = _figure(out_dir, done, summary)
     common.write_summary(out_dir, summary)
     return summary
@@ -370,8 +503,13 @@ def _figure(out_dir: str, done: list[dict], summary: dict) -> str | None:
     top = max(r["peak_sigma"] for r in done) * 1.1
     for key, marker, style in (("peak", "o", "-"), ("residual", "s", "--")):
         fit = summary[key]
-        mohr.plot([r[f"{key}_sigma"] for r in done], [r[f"{key}_tau"] for r in done], marker, ls="none",
-                  label=f"{key}: phi {fit['friction_angle_deg']:.1f} deg, c {fit['cohesion_pa']:.3g} Pa")
+        mohr.plot(
+            [r[f"{key}_sigma"] for r in done],
+            [r[f"{key}_tau"] for r in done],
+            marker,
+            ls="none",
+            label=f"{key}: phi {fit['friction_angle_deg']:.1f} deg, c {fit['cohesion_pa']:.3g} Pa",
+        )
         if np.isfinite(fit["friction_angle_deg"]):
             s = np.array([0.0, top])
             mohr.plot(s, fit["cohesion_pa"] + s * fit["tan_phi"], style, color="grey")

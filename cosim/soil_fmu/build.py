@@ -37,8 +37,14 @@ STEP_TIMEOUT = 300.0
 """Default longest wait for one doStep [s]."""
 
 UNITS = {
-    "1": {}, "s": {"s": 1}, "m": {"m": 1}, "m/s": {"m": 1, "s": -1}, "m/s2": {"m": 1, "s": -2},
-    "rad/s": {"rad": 1, "s": -1}, "N": {"kg": 1, "m": 1, "s": -2}, "N.m": {"kg": 1, "m": 2, "s": -2},
+    "1": {},
+    "s": {"s": 1},
+    "m": {"m": 1},
+    "m/s": {"m": 1, "s": -1},
+    "m/s2": {"m": 1, "s": -2},
+    "rad/s": {"rad": 1, "s": -1},
+    "N": {"kg": 1, "m": 1, "s": -2},
+    "N.m": {"kg": 1, "m": 2, "s": -2},
     "J": {"kg": 1, "m": 2, "s": -2},
 }
 LOG_CATEGORIES = {
@@ -67,50 +73,132 @@ def variables(wheel_count: int, dem_step: float, gravity, starts: np.ndarray) ->
     fixed = ("parameter", "fixed")
     rows = [
         Variable("time", 0, "Float64", "independent", "continuous", "simulation time", "s"),
-        Variable("dem_step", 1, "Float64", *fixed, "DEM step: each doStep is split into whole DEM steps of at most "
-                 "this length", "s", float(dem_step)),
+        Variable(
+            "dem_step",
+            1,
+            "Float64",
+            *fixed,
+            "DEM step: each doStep is split into whole DEM steps of at most this length",
+            "s",
+            float(dem_step),
+        ),
     ]
     for k, axis in enumerate("xyz"):
-        rows.append(Variable(f"gravity.{axis}", 2 + k, "Float64", *fixed,
-                             "gravity of the settled bed (another value is an error)", "m/s2", float(gravity[k])))
+        rows.append(
+            Variable(
+                f"gravity.{axis}",
+                2 + k,
+                "Float64",
+                *fixed,
+                "gravity of the settled bed (another value is an error)",
+                "m/s2",
+                float(gravity[k]),
+            )
+        )
     rows += [
-        Variable("server_start_timeout", 5, "Float64", *fixed, "longest wait for the soil server to start", "s",
-                 START_TIMEOUT),
-        Variable("server_step_timeout", 6, "Float64", *fixed, "longest wait for the soil server's answer to one "
-                 "doStep", "s", STEP_TIMEOUT),
-        Variable("python", 7, "String", *fixed, "the soil server's Python (with regolith-cosim); empty: "
-                 "$REGOLITH_SOIL_PYTHON, else the exporting Python (resources/frontend.txt)", start=""),
-        Variable("device", 8, "String", *fixed, "the soil server's Warp device (cpu, cuda, cuda:N); empty: "
-                 "$REGOLITH_SOIL_DEVICE, else the scene's device", start=""),
+        Variable(
+            "server_start_timeout",
+            5,
+            "Float64",
+            *fixed,
+            "longest wait for the soil server to start",
+            "s",
+            START_TIMEOUT,
+        ),
+        Variable(
+            "server_step_timeout",
+            6,
+            "Float64",
+            *fixed,
+            "longest wait for the soil server's answer to one doStep",
+            "s",
+            STEP_TIMEOUT,
+        ),
+        Variable(
+            "python",
+            7,
+            "String",
+            *fixed,
+            "the soil server's Python (with regolith-cosim); empty: "
+            "$REGOLITH_SOIL_PYTHON, else the exporting Python (resources/frontend.txt)",
+            start="",
+        ),
+        Variable(
+            "device",
+            8,
+            "String",
+            *fixed,
+            "the soil server's Warp device (cpu, cuda, cuda:N); empty: $REGOLITH_SOIL_DEVICE, else the scene's device",
+            start="",
+        ),
     ]
-    inputs = [("position", "xyz", "m", "hub position, world frame"),
-              ("orientation", "wxyz", "1", "unit quaternion body -> world"),
-              ("velocity", "xyz", "m/s", "hub velocity, world frame"),
-              ("angular_velocity", "xyz", "rad/s", "angular velocity, world frame")]
-    outputs = [("force", "xyz", "N", "soil force on the wheel, mean over the step"),
-               ("torque", "xyz", "N.m", "soil torque about the hub, mean over the step"),
-               ("force_end", "xyz", "N", "soil force on the wheel at the step's end"),
-               ("torque_end", "xyz", "N.m", "soil torque about the hub at the step's end")]
+    inputs = [
+        ("position", "xyz", "m", "hub position, world frame"),
+        ("orientation", "wxyz", "1", "unit quaternion body -> world"),
+        ("velocity", "xyz", "m/s", "hub velocity, world frame"),
+        ("angular_velocity", "xyz", "rad/s", "angular velocity, world frame"),
+    ]
+    outputs = [
+        ("force", "xyz", "N", "soil force on the wheel, mean over the step"),
+        ("torque", "xyz", "N.m", "soil torque about the hub, mean over the step"),
+        ("force_end", "xyz", "N", "soil force on the wheel at the step's end"),
+        ("torque_end", "xyz", "N.m", "soil torque about the hub at the step's end"),
+    ]
     for i in range(wheel_count):
         vr = VR_WHEEL * (i + 1)
         k = 0
         for quantity, axes, unit, text in inputs:
             for axis in axes:
-                rows.append(Variable(f"wheel_{i}.{quantity}.{axis}", vr, "Float64", "input", "continuous", text,
-                                     unit, float(starts[i, k])))
+                rows.append(
+                    Variable(
+                        f"wheel_{i}.{quantity}.{axis}",
+                        vr,
+                        "Float64",
+                        "input",
+                        "continuous",
+                        text,
+                        unit,
+                        float(starts[i, k]),
+                    )
+                )
                 vr += 1
                 k += 1
         for quantity, axes, unit, text in outputs:
             for axis in axes:
-                rows.append(Variable(f"wheel_{i}.{quantity}.{axis}", vr, "Float64", "output", "continuous", text,
-                                     unit))
+                rows.append(Variable(f"wheel_{i}.{quantity}.{axis}", vr, "Float64", "output", "continuous", text, unit))
                 vr += 1
-        rows.append(Variable(f"wheel_{i}.sinkage", vr, "Float64", "output", "continuous",
-                             "depth of the rim's bottom below the undisturbed surface", "m"))
-        rows.append(Variable(f"wheel_{i}.work_on_soil", vr + 1, "Float64", "output", "continuous",
-                             "work done by the wheel on the soil during the step", "J"))
-        rows.append(Variable(f"wheel_{i}.contact_count", vr + 2, "Int32", "output", "discrete",
-                             "grains touching the wheel at the step's end"))
+        rows.append(
+            Variable(
+                f"wheel_{i}.sinkage",
+                vr,
+                "Float64",
+                "output",
+                "continuous",
+                "depth of the rim's bottom below the undisturbed surface",
+                "m",
+            )
+        )
+        rows.append(
+            Variable(
+                f"wheel_{i}.work_on_soil",
+                vr + 1,
+                "Float64",
+                "output",
+                "continuous",
+                "work done by the wheel on the soil during the step",
+                "J",
+            )
+        )
+        rows.append(
+            Variable(
+                f"wheel_{i}.contact_count",
+                vr + 2,
+                "Int32",
+                "output",
+                "discrete",
+                "grains touching the wheel at the step's end",
+            )
+        )
     return rows
 
 
@@ -127,50 +215,70 @@ def _units_xml() -> str:
 
 
 def _categories_xml() -> str:
-    return "\n".join(f"    <Category name={quoteattr(n)} description={quoteattr(d)}/>" for n, d in LOG_CATEGORIES.items())
+    return "\n".join(
+        f"    <Category name={quoteattr(n)} description={quoteattr(d)}/>" for n, d in LOG_CATEGORIES.items()
+    )
 
 
-def model_description(fmi_version: int, rows: list[Variable], token: str, description: str, macro_step: float,
-                      duration: float) -> str:
+def model_description(
+    fmi_version: int, rows: list[Variable], token: str, description: str, macro_step: float, duration: float
+) -> str:
     """modelDescription.xml text for FMI `fmi_version` (2 or 3)."""
-    head = (f'modelName="{MODEL_IDENTIFIER}" description={quoteattr(description)} generationTool="regolith-cosim" '
-            'variableNamingConvention="structured"')
-    experiment = f'  <DefaultExperiment startTime="0.0" stopTime="{_number(duration)}" stepSize="{_number(macro_step)}"/>'
-    common = (f"  <UnitDefinitions>\n{_units_xml()}\n  </UnitDefinitions>\n"
-              f"  <LogCategories>\n{_categories_xml()}\n  </LogCategories>\n{experiment}\n")
+    head = (
+        f'modelName="{MODEL_IDENTIFIER}" description={quoteattr(description)} generationTool="regolith-cosim" '
+        'variableNamingConvention="structured"'
+    )
+    experiment = (
+        f'  <DefaultExperiment startTime="0.0" stopTime="{_number(duration)}" stepSize="{_number(macro_step)}"/>'
+    )
+    common = (
+        f"  <UnitDefinitions>\n{_units_xml()}\n  </UnitDefinitions>\n"
+        f"  <LogCategories>\n{_categories_xml()}\n  </LogCategories>\n{experiment}\n"
+    )
     outputs = [v for v in rows if v.causality == "output"]
     if fmi_version == 2:
         rows = [v for v in rows if v.causality != "independent"]  # FMI 2.0 has no time variable
         index = {v.vr: i + 1 for i, v in enumerate(rows)}
         variables_xml = "\n".join(_scalar_variable(v) for v in rows)
-        structure = ("    <Outputs>\n" + "\n".join(f'      <Unknown index="{index[v.vr]}" dependencies=""/>'
-                                                   for v in outputs)
-                     + "\n    </Outputs>\n    <InitialUnknowns>\n"
-                     + "\n".join(f'      <Unknown index="{index[v.vr]}"/>' for v in outputs)
-                     + "\n    </InitialUnknowns>")
-        return (f'<?xml version="1.0" encoding="UTF-8"?>\n<fmiModelDescription fmiVersion="2.0" {head} '
-                f'guid="{token}" numberOfEventIndicators="0">\n'
-                f'  <CoSimulation modelIdentifier="{MODEL_IDENTIFIER}" needsExecutionTool="true" '
-                'canHandleVariableCommunicationStepSize="true" canNotUseMemoryManagementFunctions="true" '
-                'canGetAndSetFMUstate="false" canSerializeFMUstate="false"/>\n'
-                f"{common}  <ModelVariables>\n{variables_xml}\n  </ModelVariables>\n"
-                f"  <ModelStructure>\n{structure}\n  </ModelStructure>\n</fmiModelDescription>\n")
-    variables_xml = "\n".join(_variable_fmi3(v) for v in rows)
-    structure = ("\n".join(f'    <Output valueReference="{v.vr}" dependencies=""/>' for v in outputs) + "\n"
-                 + "\n".join(f'    <InitialUnknown valueReference="{v.vr}"/>' for v in outputs))
-    return (f'<?xml version="1.0" encoding="UTF-8"?>\n<fmiModelDescription fmiVersion="3.0" {head} '
-            f'instantiationToken="{token}">\n'
+        structure = (
+            "    <Outputs>\n"
+            + "\n".join(f'      <Unknown index="{index[v.vr]}" dependencies=""/>' for v in outputs)
+            + "\n    </Outputs>\n    <InitialUnknowns>\n"
+            + "\n".join(f'      <Unknown index="{index[v.vr]}"/>' for v in outputs)
+            + "\n    </InitialUnknowns>"
+        )
+        return (
+            f'<?xml version="1.0" encoding="UTF-8"?>\n<fmiModelDescription fmiVersion="2.0" {head} '
+            f'guid="{token}" numberOfEventIndicators="0">\n'
             f'  <CoSimulation modelIdentifier="{MODEL_IDENTIFIER}" needsExecutionTool="true" '
-            'canHandleVariableCommunicationStepSize="true" canReturnEarlyAfterIntermediateUpdate="false" '
-            'hasEventMode="false" providesIntermediateUpdate="false" canGetAndSetFMUState="false" '
-            'canSerializeFMUState="false"/>\n'
+            'canHandleVariableCommunicationStepSize="true" canNotUseMemoryManagementFunctions="true" '
+            'canGetAndSetFMUstate="false" canSerializeFMUstate="false"/>\n'
             f"{common}  <ModelVariables>\n{variables_xml}\n  </ModelVariables>\n"
-            f"  <ModelStructure>\n{structure}\n  </ModelStructure>\n</fmiModelDescription>\n")
+            f"  <ModelStructure>\n{structure}\n  </ModelStructure>\n</fmiModelDescription>\n"
+        )
+    variables_xml = "\n".join(_variable_fmi3(v) for v in rows)
+    structure = (
+        "\n".join(f'    <Output valueReference="{v.vr}" dependencies=""/>' for v in outputs)
+        + "\n"
+        + "\n".join(f'    <InitialUnknown valueReference="{v.vr}"/>' for v in outputs)
+    )
+    return (
+        f'<?xml version="1.0" encoding="UTF-8"?>\n<fmiModelDescription fmiVersion="3.0" {head} '
+        f'instantiationToken="{token}">\n'
+        f'  <CoSimulation modelIdentifier="{MODEL_IDENTIFIER}" needsExecutionTool="true" '
+        'canHandleVariableCommunicationStepSize="true" canReturnEarlyAfterIntermediateUpdate="false" '
+        'hasEventMode="false" providesIntermediateUpdate="false" canGetAndSetFMUState="false" '
+        'canSerializeFMUState="false"/>\n'
+        f"{common}  <ModelVariables>\n{variables_xml}\n  </ModelVariables>\n"
+        f"  <ModelStructure>\n{structure}\n  </ModelStructure>\n</fmiModelDescription>\n"
+    )
 
 
 def _scalar_variable(v: Variable) -> str:
-    head = (f"    <ScalarVariable name={quoteattr(v.name)} valueReference=\"{v.vr}\" causality=\"{v.causality}\" "
-            f"variability=\"{v.variability}\" description={quoteattr(v.description)}>")
+    head = (
+        f'    <ScalarVariable name={quoteattr(v.name)} valueReference="{v.vr}" causality="{v.causality}" '
+        f'variability="{v.variability}" description={quoteattr(v.description)}>'
+    )
     if v.type == "Float64":
         start = f' start="{_number(v.start)}"' if v.start is not None else ""
         return f'{head}<Real unit="{v.unit}"{start}/></ScalarVariable>'
@@ -180,8 +288,10 @@ def _scalar_variable(v: Variable) -> str:
 
 
 def _variable_fmi3(v: Variable) -> str:
-    head = (f"    <{v.type} name={quoteattr(v.name)} valueReference=\"{v.vr}\" causality=\"{v.causality}\" "
-            f"variability=\"{v.variability}\" description={quoteattr(v.description)}")
+    head = (
+        f'    <{v.type} name={quoteattr(v.name)} valueReference="{v.vr}" causality="{v.causality}" '
+        f'variability="{v.variability}" description={quoteattr(v.description)}'
+    )
     if v.type == "Float64":
         start = f' start="{_number(v.start)}"' if v.start is not None else ""
         return f'{head} unit="{v.unit}"{start}/>'
@@ -194,8 +304,12 @@ def frontend_text(rows: list[Variable], token: str, wheel_count: int, python: st
     """resources/frontend.txt: what the front end reads at instantiation (soil_fmu.c, read_frontend)."""
     if "\n" in python:
         raise ValueError(f"the server's Python path must not contain a line break: {python!r}")
-    lines = ["# soil FMU front end: instantiation token, wheel count, default server Python, start values",
-             f"token {token}", f"wheels {wheel_count}", f"python {python}"]
+    lines = [
+        "# soil FMU front end: instantiation token, wheel count, default server Python, start values",
+        f"token {token}",
+        f"wheels {wheel_count}",
+        f"python {python}",
+    ]
     lines += [f"real {v.vr} {_number(v.start)}" for v in rows if v.type == "Float64" and v.start is not None]
     return "\n".join(lines) + "\n"
 
@@ -230,8 +344,21 @@ def build_frontend(fmi_version: int, folder, compiler: str = "gcc") -> Path:
     library = folder / f"{MODEL_IDENTIFIER}_fmi{fmi_version}{suffix}"
     include = Path(fmpy.__file__).parent / "c-code"
     sources = [str(HERE / name) for name in SOURCES[fmi_version] if name.endswith(".c")]
-    command = [compiler, "-shared", "-fPIC", "-fvisibility=hidden", "-O2", "-std=c99", "-Wall",
-               "-Wno-unused-parameter", f"-I{include}", *sources, "-o", str(library), "-lm"]
+    command = [
+        compiler,
+        "-shared",
+        "-fPIC",
+        "-fvisibility=hidden",
+        "-O2",
+        "-std=c99",
+        "-Wall",
+        "-Wno-unused-parameter",
+        f"-I{include}",
+        *sources,
+        "-o",
+        str(library),
+        "-lm",
+    ]
     done = subprocess.run(command, capture_output=True, text=True, check=False)
     if done.returncode != 0:
         raise RuntimeError(f"compiling the soil FMU front end failed ({' '.join(command)}):\n{done.stderr}")
@@ -274,9 +401,11 @@ def wheel_start_positions(config, wheel_count: int) -> np.ndarray:
     else:
         spacing = (hi[0] - lo[0] - 2.0 * margin) / (wheel_count - 1)
         if spacing < 2.0 * outer * 1.05:
-            raise ValueError(f"the bed ({hi[0] - lo[0]:.4g} m long) cannot hold {wheel_count} wheels of outer radius "
-                             f"{outer:.4g} m side by side with {margin:.4g} m margins: use fewer wheels (--wheels) or a "
-                             "longer bed")
+            raise ValueError(
+                f"the bed ({hi[0] - lo[0]:.4g} m long) cannot hold {wheel_count} wheels of outer radius "
+                f"{outer:.4g} m side by side with {margin:.4g} m margins: use fewer wheels (--wheels) or a "
+                "longer bed"
+            )
         xs = [lo[0] + margin + i * spacing for i in range(wheel_count)]
     y = 0.5 * (lo[1] + hi[1])
     positions = []
@@ -294,8 +423,15 @@ def wheel_start_positions(config, wheel_count: int) -> np.ndarray:
 # -- the FMU ----------------------------------------------------------------------------------------
 
 
-def export_soil_fmu(config, destination, fmi_version: int = 2, wheel_count: int = 1, python: str | None = None,
-                    library=None, compiler: str = "gcc") -> Path:
+def export_soil_fmu(
+    config,
+    destination,
+    fmi_version: int = 2,
+    wheel_count: int = 1,
+    python: str | None = None,
+    library=None,
+    compiler: str = "gcc",
+) -> Path:
     """Write the soil FMU of `config` (a cosim.soil_fmu.SoilFmuConfig) to `destination` (.fmu).
 
     fmi_version: 2 or 3. wheel_count: wheels in one instance (all of config.wheel's shape, on
@@ -322,8 +458,10 @@ def export_soil_fmu(config, destination, fmi_version: int = 2, wheel_count: int 
     rows = variables(wheel_count, config.dem_step, data["gravity"], starts)
     token = "{" + str(uuid.uuid4()) + "}"
     macro_step = config.macro_step or 10 * config.dem_step
-    description = (f"DEM regolith soil '{config.name}' (regolith-cosim): wheel kinematics in, wheel wrenches out; "
-                   f"{wheel_count} wheel(s); needs the soil server's Python (docs/fmu.md)")
+    description = (
+        f"DEM regolith soil '{config.name}' (regolith-cosim): wheel kinematics in, wheel wrenches out; "
+        f"{wheel_count} wheel(s); needs the soil server's Python (docs/fmu.md)"
+    )
     platform, suffix = _platform(fmi_version)
     destination = Path(destination)
     destination.parent.mkdir(parents=True, exist_ok=True)
@@ -332,8 +470,10 @@ def export_soil_fmu(config, destination, fmi_version: int = 2, wheel_count: int 
             library = build_frontend(fmi_version, folder, compiler)
         with atomic_path(destination, ".fmu.tmp") as temporary:
             with zipfile.ZipFile(temporary, "w", zipfile.ZIP_DEFLATED) as fmu:
-                fmu.writestr("modelDescription.xml", model_description(fmi_version, rows, token, description,
-                                                                       macro_step, config.duration))
+                fmu.writestr(
+                    "modelDescription.xml",
+                    model_description(fmi_version, rows, token, description, macro_step, config.duration),
+                )
                 fmu.write(library, f"binaries/{platform}/{MODEL_IDENTIFIER}{suffix}")
                 fmu.writestr("resources/frontend.txt", frontend_text(rows, token, wheel_count, python))
                 fmu.writestr("resources/soil.json", json.dumps(data, indent=1))

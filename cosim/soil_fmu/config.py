@@ -92,10 +92,20 @@ def soil_config_from(path, bed_folder=None) -> SoilFmuConfig:
             raise ValueError("a scene without bed.bed_file needs a bed_folder to settle its bed in")
         bed = settled_bed(plan, os.fspath(bed_folder) if bed_folder else "")
     return SoilFmuConfig(
-        bed_file=os.path.abspath(bed.path), wheel=plan.wheel.shape, wheel_material=plan.wheel.material,
-        dem_step=plan.dt, surface_height=bed.surface_height, law=plan.law, precision=plan.precision,
-        device=plan.device, order_seed=plan.order_seed, macro_step=plan.macro_step,
-        duration=plan.scene.run.duration, start_x=plan.testbed.start_x, name=plan.name)
+        bed_file=os.path.abspath(bed.path),
+        wheel=plan.wheel.shape,
+        wheel_material=plan.wheel.material,
+        dem_step=plan.dt,
+        surface_height=bed.surface_height,
+        law=plan.law,
+        precision=plan.precision,
+        device=plan.device,
+        order_seed=plan.order_seed,
+        macro_step=plan.macro_step,
+        duration=plan.scene.run.duration,
+        start_x=plan.testbed.start_x,
+        name=plan.name,
+    )
 
 
 def bed_surface_height(bed_file) -> float:
@@ -119,14 +129,26 @@ def config_to_json(config: SoilFmuConfig, wheel_count: int) -> dict:
     if isinstance(shape, GrouserWheel):
         wheel = {"type": "grouser", **asdict(shape)}
     else:
-        wheel = {"type": "mesh", "name": shape.name, "vertices": shape.vertices.tolist(),
-                 "triangles": shape.triangles.tolist()}
+        wheel = {
+            "type": "mesh",
+            "name": shape.name,
+            "vertices": shape.vertices.tolist(),
+            "triangles": shape.triangles.tolist(),
+        }
     return {
-        "format": CONFIG_FORMAT, "name": config.name, "wheel_count": int(wheel_count), "wheel": wheel,
-        "wheel_material": asdict(config.wheel_material), "law": asdict(config.law) if config.law else None,
-        "dem_step": float(config.dem_step), "surface_height": float(config.surface_height),
-        "precision": config.precision, "device": config.device, "order_seed": config.order_seed,
-        "gravity": _bed_gravity(config.bed_file), "extra": config.extra,
+        "format": CONFIG_FORMAT,
+        "name": config.name,
+        "wheel_count": int(wheel_count),
+        "wheel": wheel,
+        "wheel_material": asdict(config.wheel_material),
+        "law": asdict(config.law) if config.law else None,
+        "dem_step": float(config.dem_step),
+        "surface_height": float(config.surface_height),
+        "precision": config.precision,
+        "device": config.device,
+        "order_seed": config.order_seed,
+        "gravity": _bed_gravity(config.bed_file),
+        "extra": config.extra,
     }
 
 
@@ -143,8 +165,10 @@ def soil_from_config(data: dict, bed_file, dem_step: float | None = None, device
     from soil import ContactLaw, GrouserWheel, Material, MeshWheel
 
     if data.get("format") != CONFIG_FORMAT:
-        raise ValueError(f"not a soil FMU configuration (format {data.get('format')!r}, expected {CONFIG_FORMAT!r}): "
-                         "export the FMU again with this regolith-cosim")
+        raise ValueError(
+            f"not a soil FMU configuration (format {data.get('format')!r}, expected {CONFIG_FORMAT!r}): "
+            "export the FMU again with this regolith-cosim"
+        )
     wheel = dict(data["wheel"])
     kind = wheel.pop("type")
     if kind == "grouser":
@@ -152,7 +176,14 @@ def soil_from_config(data: dict, bed_file, dem_step: float | None = None, device
     else:
         shape = MeshWheel(np.asarray(wheel["vertices"]), np.asarray(wheel["triangles"]), name=wheel.get("name", "mesh"))
     law = ContactLaw(**data["law"]) if data.get("law") else None
-    return DemSoil.from_bed(bed_file, [shape] * int(data["wheel_count"]), Material(**data["wheel_material"]),
-                            dem_step if dem_step is not None else float(data["dem_step"]),
-                            surface_height=float(data["surface_height"]), device=device or data["device"],
-                            precision=data["precision"], order_seed=data.get("order_seed"), law=law)
+    return DemSoil.from_bed(
+        bed_file,
+        [shape] * int(data["wheel_count"]),
+        Material(**data["wheel_material"]),
+        dem_step if dem_step is not None else float(data["dem_step"]),
+        surface_height=float(data["surface_height"]),
+        device=device or data["device"],
+        precision=data["precision"],
+        order_seed=data.get("order_seed"),
+        law=law,
+    )

@@ -102,13 +102,20 @@ class StepStart:
         sim = self.soil.sim
         model = sim.model
         if self.state is None or self.state.capacity != sim.state.capacity:
-            self.state = SoilState(model.particle_count, sim.state.capacity, model.precision.vec_hi, model.device,
-                                   model.body_count)
+            self.state = SoilState(
+                model.particle_count, sim.state.capacity, model.precision.vec_hi, model.device, model.body_count
+            )
         self.state.assign(sim.state)
         control = sim.control
-        self.motion = [(control.body_position_host[b].copy(), control.body_rotation_host[b].copy(),
-                        control.body_velocity_host[b].copy(), control.body_angular_velocity_host[b].copy())
-                       for b in range(control.body_count)]
+        self.motion = [
+            (
+                control.body_position_host[b].copy(),
+                control.body_rotation_host[b].copy(),
+                control.body_velocity_host[b].copy(),
+                control.body_angular_velocity_host[b].copy(),
+            )
+            for b in range(control.body_count)
+        ]
         self.steps = sim.steps
 
     def restore(self) -> None:
@@ -131,8 +138,10 @@ class SoilSession:
 
         protocol = int(settings.get("protocol", 0))
         if protocol != PROTOCOL_VERSION:
-            raise ValueError(f"the FMU front end speaks protocol {protocol}, this server {PROTOCOL_VERSION}: "
-                             "export the FMU again with the regolith-cosim this Python has")
+            raise ValueError(
+                f"the FMU front end speaks protocol {protocol}, this server {PROTOCOL_VERSION}: "
+                "export the FMU again with the regolith-cosim this Python has"
+            )
         resources = settings["resources"]
         with open(os.path.join(resources, CONFIG_FILE)) as f:
             config = json.load(f)
@@ -148,8 +157,10 @@ class SoilSession:
         self.soil.set_gravity([float(g) for g in settings["gravity"].split()])
         self.start = StepStart(self.soil)
         sim = self.soil.sim
-        self.description = (f"{sim.model.particle_count} grains, {self.wheel_count} wheel(s) on {sim.model.device}, "
-                            f"precision {sim.model.precision.name}, DEM step {dem_step:.6g} s")
+        self.description = (
+            f"{sim.model.particle_count} grains, {self.wheel_count} wheel(s) on {sim.model.device}, "
+            f"precision {sim.model.precision.name}, DEM step {dem_step:.6g} s"
+        )
 
     def kinematics(self, values: np.ndarray):
         from cosim.contract import WheelKinematics
@@ -179,8 +190,10 @@ class SoilSession:
                 raise SimulationDiverged("a wheel wrench is not finite")
         except SimulationDiverged as error:
             self.start.restore()
-            raise StepRefused(f"the soil refused the step from t = {soil.time:.9g} s by {step:.6g} s and is back at "
-                              f"its start; retry a shorter step or gentler wheel motion: {error}") from error
+            raise StepRefused(
+                f"the soil refused the step from t = {soil.time:.9g} s by {step:.6g} s and is back at "
+                f"its start; retry a shorter step or gentler wheel motion: {error}"
+            ) from error
         except BaseException:
             self.start.restore()
             raise
@@ -188,8 +201,10 @@ class SoilSession:
 
 
 def outputs(wrenches) -> bytes:
-    rows = [np.r_[w.force, w.torque, w.force_end, w.torque_end, w.sinkage, w.work_on_soil, w.contact_count]
-            for w in wrenches]
+    rows = [
+        np.r_[w.force, w.torque, w.force_end, w.torque_end, w.sinkage, w.work_on_soil, w.contact_count]
+        for w in wrenches
+    ]
     return np.asarray(rows, dtype="<f8").tobytes()
 
 

@@ -27,9 +27,16 @@ HERE = Path(__file__).resolve().parent
 
 # FMI 3.0 variables of rig_fmu3.c: (name, valueReference, causality, start or None).
 _PARAMETERS = [
-    ("gravity.x", 0.0), ("gravity.y", 0.0), ("gravity.z", -9.81), ("total_mass", 15.0),
-    ("vertical_mass", 10.0), ("wheel_inertia", 0.005), ("motor_kv", 20.0), ("hub_height", 0.1),
-    ("internal_step", 1.0e-3), ("max_step", 0.0),
+    ("gravity.x", 0.0),
+    ("gravity.y", 0.0),
+    ("gravity.z", -9.81),
+    ("total_mass", 15.0),
+    ("vertical_mass", 10.0),
+    ("wheel_inertia", 0.005),
+    ("motor_kv", 20.0),
+    ("hub_height", 0.1),
+    ("internal_step", 1.0e-3),
+    ("max_step", 0.0),
 ]
 _INPUTS = [f"wheel_0.{q}.{a}" for q in ("force", "torque") for a in "xyz"] + ["wheel_0.speed_command"]
 _OUTPUTS = (
@@ -66,8 +73,15 @@ def build_rover_fmu(dest: str | os.PathLike) -> Path:
 
     dest = Path(dest)
     dest.mkdir(parents=True, exist_ok=True)
-    return Path(FmuBuilder.build_FMU(HERE / "rover_fmu.py", dest=dest / "MmxRoverFmu.fmu", needsExecutionTool=False,
-                                     canGetAndSetFMUstate=True, canSerializeFMUstate=True))
+    return Path(
+        FmuBuilder.build_FMU(
+            HERE / "rover_fmu.py",
+            dest=dest / "MmxRoverFmu.fmu",
+            needsExecutionTool=False,
+            canGetAndSetFMUstate=True,
+            canSerializeFMUstate=True,
+        )
+    )
 
 
 def build_slip_controller_fmu(dest: str | os.PathLike, wheel_count: int = 4) -> Path:
@@ -87,8 +101,15 @@ def build_slip_controller_fmu(dest: str | os.PathLike, wheel_count: int = 4) -> 
     with tempfile.TemporaryDirectory(prefix="slip_fmu_") as tmp:
         script = Path(tmp) / f"{name.lower()}.py"
         script.write_text(source)
-        return Path(FmuBuilder.build_FMU(script, dest=dest / f"{name}.fmu", needsExecutionTool=False,
-                                         canGetAndSetFMUstate=True, canSerializeFMUstate=True))
+        return Path(
+            FmuBuilder.build_FMU(
+                script,
+                dest=dest / f"{name}.fmu",
+                needsExecutionTool=False,
+                canGetAndSetFMUstate=True,
+                canSerializeFMUstate=True,
+            )
+        )
 
 
 def main(argv=None) -> None:
@@ -109,7 +130,9 @@ def _model_description_fmi3(model_identifier: str) -> str:
     rows = ['    <Float64 name="time" valueReference="0" causality="independent" variability="continuous"/>']
     vr = 1
     for name, start in _PARAMETERS:
-        rows.append(f'    <Float64 name="{name}" valueReference="{vr}" causality="parameter" variability="tunable" start="{start!r}"/>')
+        rows.append(
+            f'    <Float64 name="{name}" valueReference="{vr}" causality="parameter" variability="tunable" start="{start!r}"/>'
+        )
         vr += 1
     for name in _INPUTS:
         rows.append(f'    <Float64 name="{name}" valueReference="{vr}" causality="input" start="0.0"/>')
@@ -153,9 +176,23 @@ def build_rig_fmu3(dest: str | os.PathLike, compiler: str = "gcc") -> Path:
     with tempfile.TemporaryDirectory(prefix="rig_fmu3_") as tmp:
         library = Path(tmp) / f"{model_identifier}{suffix}"
         subprocess.run(
-            [compiler, "-shared", "-fPIC", "-O2", "-std=c99", "-Wall", "-Wno-unused-parameter",
-             f"-I{include}", str(HERE / "rig_fmu3.c"), "-o", str(library), "-lm"],
-            check=True, capture_output=True, text=True,
+            [
+                compiler,
+                "-shared",
+                "-fPIC",
+                "-O2",
+                "-std=c99",
+                "-Wall",
+                "-Wno-unused-parameter",
+                f"-I{include}",
+                str(HERE / "rig_fmu3.c"),
+                "-o",
+                str(library),
+                "-lm",
+            ],
+            check=True,
+            capture_output=True,
+            text=True,
         )
         target = dest / f"{model_identifier}.fmu"
         with zipfile.ZipFile(target, "w") as fmu:

@@ -29,9 +29,16 @@ class RigFmu(Fmi2Slave):
     def __init__(self, **kwargs):
         super().__init__(**kwargs)
         self.p = {  # parameters, SI units
-            "gravity.x": 0.0, "gravity.y": 0.0, "gravity.z": -9.81,
-            "total_mass": 15.0, "vertical_mass": 10.0, "wheel_inertia": 0.005,
-            "motor_kv": 20.0, "hub_height": 0.1, "internal_step": 1.0e-3, "max_step": 0.0,
+            "gravity.x": 0.0,
+            "gravity.y": 0.0,
+            "gravity.z": -9.81,
+            "total_mass": 15.0,
+            "vertical_mass": 10.0,
+            "wheel_inertia": 0.005,
+            "motor_kv": 20.0,
+            "hub_height": 0.1,
+            "internal_step": 1.0e-3,
+            "max_step": 0.0,
         }
         self.u = {f"wheel_0.{q}.{a}": 0.0 for q in ("force", "torque") for a in AXES}
         self.u["wheel_0.speed_command"] = 0.0
@@ -40,9 +47,15 @@ class RigFmu(Fmi2Slave):
 
         def reg(name, store, causality, variability):
             self.register_variable(
-                Real(name, causality=causality, variability=variability,
-                     getter=lambda: store[name], setter=lambda v: store.__setitem__(name, v)),
-                nested=False)
+                Real(
+                    name,
+                    causality=causality,
+                    variability=variability,
+                    getter=lambda: store[name],
+                    setter=lambda v: store.__setitem__(name, v),
+                ),
+                nested=False,
+            )
 
         for name in self.p:
             reg(name, self.p, Fmi2Causality.parameter, Fmi2Variability.tunable)
@@ -50,7 +63,11 @@ class RigFmu(Fmi2Slave):
             reg(name, self.u, Fmi2Causality.input, Fmi2Variability.continuous)
         outputs = {}
         for a in AXES:
-            outputs[f"wheel_0.position.{a}"] = lambda a=a: {"x": self.s["x"], "y": 0.0, "z": self.p["hub_height"] + self.s["z"]}[a]
+            outputs[f"wheel_0.position.{a}"] = lambda a=a: {
+                "x": self.s["x"],
+                "y": 0.0,
+                "z": self.p["hub_height"] + self.s["z"],
+            }[a]
         half = lambda: 0.5 * self.s["theta"]
         outputs["wheel_0.orientation.w"] = lambda: math.cos(half())
         outputs["wheel_0.orientation.x"] = lambda: 0.0
@@ -60,8 +77,10 @@ class RigFmu(Fmi2Slave):
             outputs[f"wheel_0.velocity.{a}"] = lambda a=a: {"x": self.s["vx"], "y": 0.0, "z": self.s["vz"]}[a]
             outputs[f"wheel_0.angular_velocity.{a}"] = lambda a=a: self.s["omega"] if a == "y" else 0.0
         for name, getter in outputs.items():
-            self.register_variable(Real(name, causality=Fmi2Causality.output,
-                                        variability=Fmi2Variability.continuous, getter=getter), nested=False)
+            self.register_variable(
+                Real(name, causality=Fmi2Causality.output, variability=Fmi2Variability.continuous, getter=getter),
+                nested=False,
+            )
 
     def _substep(self, h):
         p, u, s = self.p, self.u, self.s
@@ -69,7 +88,9 @@ class RigFmu(Fmi2Slave):
         # Velocities first (semi-implicit Euler); the motor torque kv (cmd - omega) implicitly.
         s["vx"] += h * (u["wheel_0.force.x"] + m * p["gravity.x"]) / m
         s["vz"] += h * (u["wheel_0.force.z"] + mz * p["gravity.z"]) / mz
-        s["omega"] = (inertia * s["omega"] + h * (u["wheel_0.torque.y"] + kv * u["wheel_0.speed_command"])) / (inertia + h * kv)
+        s["omega"] = (inertia * s["omega"] + h * (u["wheel_0.torque.y"] + kv * u["wheel_0.speed_command"])) / (
+            inertia + h * kv
+        )
         s["x"] += h * s["vx"]
         s["z"] += h * s["vz"]
         s["theta"] += h * s["omega"]

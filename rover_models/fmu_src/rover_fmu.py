@@ -37,16 +37,26 @@ _EY = np.array([0.0, 1.0, 0.0])
 
 def _rotation(q):
     w, x, y, z = q
-    return np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
-                     [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
-                     [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)]])
+    return np.array(
+        [
+            [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+            [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+            [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
+        ]
+    )
 
 
 def _multiply(a, b):
     aw, ax, ay, az = a
     bw, bx, by, bz = b
-    return np.array([aw * bw - ax * bx - ay * by - az * bz, aw * bx + ax * bw + ay * bz - az * by,
-                     aw * by - ax * bz + ay * bw + az * bx, aw * bz + ax * by - ay * bx + az * bw])
+    return np.array(
+        [
+            aw * bw - ax * bx - ay * by - az * bz,
+            aw * bx + ax * bw + ay * bz - az * by,
+            aw * by - ax * bz + ay * bw + az * bx,
+            aw * bz + ax * by - ay * bx + az * bw,
+        ]
+    )
 
 
 def _skew_inertia(mass, d):
@@ -61,11 +71,26 @@ class MmxRoverFmu(Fmi2Slave):
     def __init__(self, **kwargs):
         super().__init__(**kwargs)
         self.p = {  # parameters, SI units; the defaults of rover_models.mjcf.mmx_rover_xml
-            "gravity.x": 0.0, "gravity.y": 0.0, "gravity.z": -9.81,
-            "wheel_radius": 0.1, "wheel_width": 0.06, "body_mass": 17.0, "leg_mass": 0.5, "wheel_mass": 1.5,
-            "body_size.x": 0.41, "body_size.y": 0.37, "body_size.z": 0.30, "wheelbase": 0.40, "track": 0.50,
-            "leg_drop": 0.15, "motor_kv": 20.0, "internal_step": 1.0e-3,
-            "start.x": 0.0, "start.y": 0.0, "start.z": 0.25, "start.heading": 0.0,
+            "gravity.x": 0.0,
+            "gravity.y": 0.0,
+            "gravity.z": -9.81,
+            "wheel_radius": 0.1,
+            "wheel_width": 0.06,
+            "body_mass": 17.0,
+            "leg_mass": 0.5,
+            "wheel_mass": 1.5,
+            "body_size.x": 0.41,
+            "body_size.y": 0.37,
+            "body_size.z": 0.30,
+            "wheelbase": 0.40,
+            "track": 0.50,
+            "leg_drop": 0.15,
+            "motor_kv": 20.0,
+            "internal_step": 1.0e-3,
+            "start.x": 0.0,
+            "start.y": 0.0,
+            "start.z": 0.25,
+            "start.heading": 0.0,
         }
         self.u = {}
         for i in range(4):
@@ -85,28 +110,61 @@ class MmxRoverFmu(Fmi2Slave):
         self.angle = np.zeros(4)  # hinge angles [rad]
 
         def reg(name, store, causality, variability):
-            self.register_variable(Real(name, causality=causality, variability=variability,
-                                        getter=lambda: store[name], setter=lambda v: store.__setitem__(name, v)),
-                                   nested=False)
+            self.register_variable(
+                Real(
+                    name,
+                    causality=causality,
+                    variability=variability,
+                    getter=lambda: store[name],
+                    setter=lambda v: store.__setitem__(name, v),
+                ),
+                nested=False,
+            )
 
         for name in self.p:
             reg(name, self.p, Fmi2Causality.parameter, Fmi2Variability.tunable)
         for name in self.u:
             reg(name, self.u, Fmi2Causality.input, Fmi2Variability.continuous)
-        self.register_variable(Real("total_mass", causality=Fmi2Causality.output,
-                                    variability=Fmi2Variability.continuous, getter=lambda: self._geometry()["mass"]),
-                               nested=False)
+        self.register_variable(
+            Real(
+                "total_mass",
+                causality=Fmi2Causality.output,
+                variability=Fmi2Variability.continuous,
+                getter=lambda: self._geometry()["mass"],
+            ),
+            nested=False,
+        )
         for i in range(4):
-            for k, name in enumerate(["position." + a for a in AXES] + ["orientation." + a for a in "wxyz"]
-                                     + ["velocity." + a for a in AXES] + ["angular_velocity." + a for a in AXES]):
-                self.register_variable(Real(f"wheel_{i}.{name}", causality=Fmi2Causality.output,
-                                            variability=Fmi2Variability.continuous,
-                                            getter=lambda i=i, k=k: self._outputs()[i][k]), nested=False)
-        for k, name in enumerate(["position." + a for a in AXES] + ["orientation." + a for a in "wxyz"]
-                                 + ["velocity." + a for a in AXES] + ["angular_velocity." + a for a in AXES]):
-            self.register_variable(Real(f"body.{name}", causality=Fmi2Causality.output,
-                                        variability=Fmi2Variability.continuous,
-                                        getter=lambda k=k: self._outputs()[4][k]), nested=False)
+            for k, name in enumerate(
+                ["position." + a for a in AXES]
+                + ["orientation." + a for a in "wxyz"]
+                + ["velocity." + a for a in AXES]
+                + ["angular_velocity." + a for a in AXES]
+            ):
+                self.register_variable(
+                    Real(
+                        f"wheel_{i}.{name}",
+                        causality=Fmi2Causality.output,
+                        variability=Fmi2Variability.continuous,
+                        getter=lambda i=i, k=k: self._outputs()[i][k],
+                    ),
+                    nested=False,
+                )
+        for k, name in enumerate(
+            ["position." + a for a in AXES]
+            + ["orientation." + a for a in "wxyz"]
+            + ["velocity." + a for a in AXES]
+            + ["angular_velocity." + a for a in AXES]
+        ):
+            self.register_variable(
+                Real(
+                    f"body.{name}",
+                    causality=Fmi2Causality.output,
+                    variability=Fmi2Variability.continuous,
+                    getter=lambda k=k: self._outputs()[4][k],
+                ),
+                nested=False,
+            )
 
     # -- the rover's constant geometry ---------------------------------------------------
     def _geometry(self):
@@ -137,8 +195,14 @@ class MmxRoverFmu(Fmi2Slave):
             matrix[3:6, 6 + i] = axial * _EY
             matrix[6 + i, 3:6] = axial * _EY
             matrix[6 + i, 6 + i] = axial
-        return {"mass": mass, "com": com, "hubs": [h - com for h in hubs], "inertia": inertia, "axial": axial,
-                "matrix": matrix}
+        return {
+            "mass": mass,
+            "com": com,
+            "hubs": [h - com for h in hubs],
+            "inertia": inertia,
+            "axial": axial,
+            "matrix": matrix,
+        }
 
     def _start(self):
         if self.ready:
@@ -231,8 +295,13 @@ class MmxRoverFmu(Fmi2Slave):
     # -- checkpoints (canGetAndSetFMUstate, canSerializeFMUstate) ------------------------------
     def _get_fmu_state(self):
         state = super()._get_fmu_state()
-        state["_internal"] = {"ready": self.ready, "q": self.q.tolist(), "c": self.c.tolist(),
-                              "v": self.v.tolist(), "angle": self.angle.tolist()}
+        state["_internal"] = {
+            "ready": self.ready,
+            "q": self.q.tolist(),
+            "c": self.c.tolist(),
+            "v": self.v.tolist(),
+            "angle": self.angle.tolist(),
+        }
         return state
 
     def _set_fmu_state(self, state):

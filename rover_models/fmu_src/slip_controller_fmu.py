@@ -35,8 +35,7 @@ class SlipControllerFmu(Fmi2Slave):
 
     def __init__(self, **kwargs):
         super().__init__(**kwargs)
-        self.p = {"target_slip": 0.2, "wheel_radius": 0.1, "kp": 1.0, "ki": 20.0, "omega_min": 0.01,
-                  "omega_max": 100.0}
+        self.p = {"target_slip": 0.2, "wheel_radius": 0.1, "kp": 1.0, "ki": 20.0, "omega_min": 0.01, "omega_max": 100.0}
         self.u = {}
         for i in range(WHEELS):
             for quantity, axes in (("velocity", "xyz"), ("angular_velocity", "xyz"), ("orientation", "wxyz")):
@@ -45,18 +44,31 @@ class SlipControllerFmu(Fmi2Slave):
         self.integral = [0.0] * WHEELS
 
         def reg(name, store, causality, variability):
-            self.register_variable(Real(name, causality=causality, variability=variability,
-                                        getter=lambda: store[name], setter=lambda v: store.__setitem__(name, v)),
-                                   nested=False)
+            self.register_variable(
+                Real(
+                    name,
+                    causality=causality,
+                    variability=variability,
+                    getter=lambda: store[name],
+                    setter=lambda v: store.__setitem__(name, v),
+                ),
+                nested=False,
+            )
 
         for name in self.p:
             reg(name, self.p, Fmi2Causality.parameter, Fmi2Variability.tunable)
         for name in self.u:
             reg(name, self.u, Fmi2Causality.input, Fmi2Variability.continuous)
         for i in range(WHEELS):
-            self.register_variable(Real(f"wheel_{i}.speed_command", causality=Fmi2Causality.output,
-                                        variability=Fmi2Variability.continuous,
-                                        getter=lambda i=i: self._law(i, 0.0)[0]), nested=False)
+            self.register_variable(
+                Real(
+                    f"wheel_{i}.speed_command",
+                    causality=Fmi2Causality.output,
+                    variability=Fmi2Variability.continuous,
+                    getter=lambda i=i: self._law(i, 0.0)[0],
+                ),
+                nested=False,
+            )
 
     def _law(self, i, dt):
         """(command, error, clamped) of wheel i from the current inputs and the integral plus e dt."""
