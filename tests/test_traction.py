@@ -64,36 +64,31 @@ def test_advice_names_the_faults_of_a_bad_wheel_test():
 
 
 def test_replicas_give_error_bars_on_a_real_run(tmp_path, tiny_bed, capsys):
-    """`cosim run --replicas 3`: three summation orders of the same scene, each a steady state; the
-    statistics are those of the three summaries, and the scatter is real (the runs differ)."""
+    """`cosim run --replicas 3`: three summation orders of the same scene at an imposed slip of
+    0.3 (after landing, about one wheel turn over the grousers' pitch, 0.8 s). Measured: every
+    replica steady, with drawbar pulls 0.008, -0.001, 0.010 N; a replica can miss the steady
+    state (its window would start late), so two of three must reach it. The statistics are
+    those of the steady replicas' summaries, and the scatter is real (the runs differ)."""
     scene = write_tiny(tmp_path)
     out = tmp_path / "replicas"
-    code = main(
-        [
-            "run",
-            scene,
-            "--out",
-            str(out),
-            "--replicas",
-            "3",
-            "--serial",
-            "--set",
-            f'bed.bed_file="{tiny_bed}"',
-            "--set",
-            "run.duration=0.5",
-        ]
-    )
+    settings = [f'bed.bed_file="{tiny_bed}"', "run.duration=0.8", 'testbed.mode="slip"', "testbed.slip=0.3",
+                "testbed.omega=2.0"]
+    code = main(["run", scene, "--out", str(out), "--replicas", "3", "--serial"]
+                + [arg for setting in settings for arg in ("--set", setting)])
     text = capsys.readouterr().out
     report = json.loads((out / "ensemble.json").read_text())
-    summaries = [r["summary"] for r in report["results"]]
-    assert code == 0, text
-    assert [s["steady_state"] for s in summaries] == ["steady"] * 3
-    slips = np.array([s["slip"] for s in summaries])
-    stats = report["stats"]["metrics"]["slip"]
-    assert stats["n"] == 3 and stats["mean"] == pytest.approx(slips.mean())
-    assert stats["std"] == pytest.approx(slips.std(ddof=1)) and stats["std"] > 0  # the orders do differ
-    assert stats["ci95"] == pytest.approx(4.303 * stats["std"] / math.sqrt(3), rel=1e-3)  # t(0.975, 2) = 4.303
-    assert "slip" in text and "95% CI" in text
+    steady = [r["summary"] for r in report["results"] if r["summary"]["steady_state"] == "steady"]
+    assert len(steady) >= 2, [r["summary"]["steady_state"] for r in report["results"]]
+    assert code == 0 or len(steady) < 3, text  # a replica that is not steady makes the run unsteady
+    for metric in ("drawbar_pull", "sinkage"):
+        values = np.array([s[metric] for s in steady])
+        stats = report["stats"]["metrics"][metric]
+        assert stats["n"] == len(steady) and stats["mean"] == pytest.approx(values.mean())
+        assert stats["std"] == pytest.approx(values.std(ddof=1)) and stats["std"] > 0  # the orders do differ
+        t = {2: 12.706, 3: 4.303}[len(steady)]  # Student t(0.975, n - 1)
+        assert stats["ci95"] == pytest.approx(t * stats["std"] / math.sqrt(len(steady)), rel=1e-3)
+    assert all(s["slip"] == pytest.approx(0.3, abs=1e-9) for s in steady)
+    assert "drawbar_pull" in text and "95% CI" in text
     header = (out / "ensemble.csv").read_text().splitlines()[0]
     assert header.startswith("metric,n,mean,std,ci95")
 
@@ -163,21 +158,22 @@ def test_the_gravity_twin_scales_every_derived_quantity_exactly(tmp_path):
 
 @pytest.mark.slow
 def test_the_gravity_twin_gives_the_same_dimensionless_results(tmp_path):
-    """The moon scene and its Earth twin, 3 summation orders each: slip, sinkage / r and travel / r
-    agree within the replica scatter (their 95 % intervals overlap), as the similarity says."""
+    """The moon scene and its Earth twin, 3 summation orders each, at an imposed slip of 0.3 (as
+    in the replica test): sinkage, sinkage of the grouser tips (lengths are not scaled) and
+    DP/W agree within the replica scatter (their 95 % intervals overlap), as the similarity
+    says. Each side needs two steady replicas for an interval."""
     from cosim.similarity import write_gravity_twin
     from cosim.study import replica_run
 
     scene = write_tiny(tmp_path)
-    twin, _ = write_gravity_twin(scene, "earth", str(tmp_path / "twin.toml"))
+    twin, s = write_gravity_twin(scene, "earth", str(tmp_path / "twin.toml"))
     stats = []
-    for path, out in ((scene, "moon"), (twin, "earth")):
-        plan = load_plan(
-            path, ["run.duration=0.5"] if path == scene else [f"run.duration={0.5 / math.sqrt(9.80665 / 1.625)!r}"]
-        )
-        stats.append(replica_run(plan, str(tmp_path / out), 3, executor="serial")["stats"]["metrics"])
-    moon, earth = stats
-    for name in ("slip", "sinkage", "sinkage_tips", "travel"):
+    for path, out, time_scale in ((scene, "moon", 1.0), (twin, "earth", 1.0 / math.sqrt(s))):
+        settings = [f"run.duration={0.8 * time_scale!r}", 'testbed.mode="slip"', "testbed.slip=0.3",
+                    f"testbed.omega={2.0 / time_scale!r}"]
+        stats.append(replica_run(load_plan(path, settings), str(tmp_path / out), 3, executor="serial")["stats"])
+    moon, earth = (side["metrics"] for side in stats)
+    for name in ("sinkage", "sinkage_tips", "dp_over_w"):
         a, b = moon[name], earth[name]
-        assert a["n"] == b["n"] == 3, name
+        assert a["n"] >= 2 and b["n"] >= 2, (name, a, b)
         assert abs(a["mean"] - b["mean"]) <= a["ci95"] + b["ci95"], (name, a, b)
