@@ -489,7 +489,7 @@ def slip_study(
     ]
     for row in rows:
 
-        def cell(name, scale=1.0):
+        def cell(name, scale=1.0, row=row):
             mean, ci = row.get(f"{name}_mean"), row.get(f"{name}_ci95")
             if mean is None:
                 return "-"

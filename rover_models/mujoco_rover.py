@@ -4,8 +4,9 @@ Frames and conventions:
 - a wheel is a MuJoCo body; its hub is the body frame origin (data.xpos), its
   orientation data.xquat (w, x, y, z, body -> world);
 - velocities come from mj_objectVelocity(mjOBJ_XBODY, flg_local=0): the 6D velocity at
-  the body frame origin with world orientation (mjOBJ_BODY would give it at the CoM). cvel is NOT used directly: its linear part is the
-  velocity of the point coinciding with the subtree CoM of the root, not of the hub;
+  the body frame origin with world orientation (mjOBJ_BODY would give it at the CoM). cvel
+  is NOT used directly: its linear part is the velocity of the point coinciding with the
+  subtree CoM of the root, not of the hub;
 - data.xfrc_applied holds a world-frame wrench at the body CoM (data.xipos), so the soil
   torque about the hub is shifted: tau_com = tau_hub + (p_hub - p_com) x F. The shift is
   redone at every MuJoCo step (between mj_step1 and mj_step2) because p_hub - p_com
@@ -94,7 +95,8 @@ class MujocoRover:
         self.wheel_torques = np.zeros(len(self.wheel_names))
         """Commanded hinge torques in torque mode [N m], shape (wheel_count,)."""
         self.hub_wrenches = np.zeros((len(self.wheel_names), 6))
-        """Held soil wrench per wheel, world frame: force [N] then torque about the hub [N m], shape (wheel_count, 6)."""
+        """Held soil wrench per wheel, world frame: force [N] then torque about the hub [N m],
+        shape (wheel_count, 6)."""
 
         if gravity is not None:
             self.set_gravity(gravity)

@@ -68,7 +68,10 @@ class RigFmu(Fmi2Slave):
                 "y": 0.0,
                 "z": self.p["hub_height"] + self.s["z"],
             }[a]
-        half = lambda: 0.5 * self.s["theta"]
+
+        def half():
+            return 0.5 * self.s["theta"]
+
         outputs["wheel_0.orientation.w"] = lambda: math.cos(half())
         outputs["wheel_0.orientation.x"] = lambda: 0.0
         outputs["wheel_0.orientation.y"] = lambda: math.sin(half())
