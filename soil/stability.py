@@ -364,6 +364,7 @@ class DivergenceMonitor:
         position = None
         where = ""
         if particle is not None and 0 <= particle < sim.model.particle_count:
+            assert state.layout is not None  # every state of a Simulation has its layout
             position = state.position.numpy()[int(state.layout.slot.numpy()[particle])].astype(np.float64)
             builder_index = (
                 int(sim.model.particle_order[particle]) if sim.model.particle_order is not None else particle
