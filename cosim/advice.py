@@ -83,6 +83,7 @@ def check(plan: RunPlan, surface_height: float | None = None, sinkage_tips: floa
     if t is not None:
         omega_key = "testbed.omega"
     else:
+        assert plan.rover is not None and plan.scene.rover is not None  # a plan has a testbed or a rover
         named = isinstance(plan.scene.rover.drive, str)
         omega_key = f"rover.controllers.{plan.rover.drive.name}.speed" if named else "rover.drive.speed"
 

@@ -436,7 +436,10 @@ class RoverSection(_Section):
     @property
     def drive_section(self) -> DriveSection:
         """The drive in use (a named controller resolved)."""
-        return self.controllers[self.drive] if isinstance(self.drive, str) else self.drive
+        if isinstance(self.drive, str):
+            assert self.controllers is not None  # the validator checked that the name is one of them
+            return self.controllers[self.drive]
+        return self.drive
 
 
 class PatchSection(_Section):
