@@ -673,13 +673,14 @@ def timestep_study(
     prepare_study(out_dir, overwrite)
     bed = settled_bed(plan, out_dir)
     assert plan.testbed is not None, "the stable-step search turns the single-wheel testbed's wheel"
-    rim = plan.testbed.omega * plan.wheel.outer_radius
+    omega = plan.testbed.omega
+    rim = omega * plan.wheel.outer_radius
 
     def make_simulation():
         system = CoupledSystem.build(plan, bed)
         sim = system.sim
         hub = system.rover.position
-        sim.control.set_body_motion(0, hub, [1, 0, 0, 0], [rim, 0, 0], [0, plan.testbed.omega, 0])
+        sim.control.set_body_motion(0, hub, [1, 0, 0, 0], [rim, 0, 0], [0, omega, 0])
         sim.refresh_forces()
         return sim
 

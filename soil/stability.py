@@ -277,6 +277,7 @@ class DivergenceMonitor:
         return self._good.bytes_per_grain() + self._good.layout.bytes_per_grain()
 
     def last_good(self) -> dict:
+        assert self._good is not None, "no good state was kept yet"
         data = self._good.to_numpy()
         data["step"] = np.int64(self._good_step)
         return data

@@ -16,6 +16,7 @@ False, pythonfmu's Discard/Error answer) without changing the state.
 """
 
 import math
+from collections.abc import Callable
 
 from pythonfmu import Fmi2Causality, Fmi2Slave, Fmi2Variability, Real
 
@@ -61,7 +62,7 @@ class RigFmu(Fmi2Slave):
             reg(name, self.p, Fmi2Causality.parameter, Fmi2Variability.tunable)
         for name in self.u:
             reg(name, self.u, Fmi2Causality.input, Fmi2Variability.continuous)
-        outputs = {}
+        outputs: dict[str, Callable[..., float]] = {}
         for a in AXES:
             outputs[f"wheel_0.position.{a}"] = lambda a=a: {
                 "x": self.s["x"],
