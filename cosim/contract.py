@@ -1,4 +1,4 @@
-"""The soil <-> rover coupling contract (DESIGN.md section 5).
+"""The soil <-> rover coupling contract (docs/coupling.md, "The contract").
 
 Per wheel, world frame, Z up, SI units. The rover side hands the soil side the hub
 kinematics of every wheel; the soil side answers with the wrench on every wheel.

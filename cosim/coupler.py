@@ -1,4 +1,4 @@
-"""Macro-step coupling of a SoilSide with a RoverSide (DESIGN.md section 5).
+"""Macro-step coupling of a SoilSide with a RoverSide (docs/coupling.md, "Macro steps").
 
 Schemes, macro step H, from t to t + H:
 
