@@ -43,7 +43,8 @@ if __name__ == "__main__":
     grid = np.linspace(1e-3, 3.0, 3000)
     print("| gamma dt | largest stable w dt |\n|---|---|")
     for gamma_dt in (0.0, 0.1, 0.2, 0.3, 0.4, 0.5):
-        print(f"| {gamma_dt:.1f} | {largest_stable(grid, lambda w: spectral_radius(w, gamma_dt)):.3f} |")
+        stable = largest_stable(grid, lambda w, gamma_dt=gamma_dt: spectral_radius(w, gamma_dt))
+        print(f"| {gamma_dt:.1f} | {stable:.3f} |")
     print(
         f"\npure damping (w = 0): stable for gamma dt <= {largest_stable(grid, lambda g: spectral_radius(0.0, g)):.3f}"
     )

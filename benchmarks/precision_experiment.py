@@ -120,7 +120,7 @@ def main(argv=None) -> None:
     print("|---|---|---|---|---|---|---|---|")
     for r in rows:
 
-        def cell(key, scale=1.0):
+        def cell(key, scale=1.0, r=r):
             mean, std = r.get(f"{key}_mean"), r.get(f"{key}_std")
             return "-" if mean is None else f"{mean * scale:.4g} +- {std * scale:.2g}"
 

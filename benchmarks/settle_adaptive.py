@@ -113,7 +113,9 @@ def main() -> None:
         sim = make(spec, args.device, args.precision)
         guard = dict(norm="rms", grain_factor=math.inf) if norm == "rms-unguarded" else dict(norm=norm)
         controller = StepController(tolerance=args.tol, dt_max=args.dt_max_factor * advice.dt_max, **guard)
-        adaptive = settle(sim, lambda s, d: s.run_adaptive(d, controller), threshold, interval, args.max_time)
+        adaptive = settle(
+            sim, lambda s, d, controller=controller: s.run_adaptive(d, controller), threshold, interval, args.max_time
+        )
         rows.append(dict(method=f"adaptive tol = {args.tol:g}, {norm} norm", **adaptive))
 
     n = probe.model.particle_count

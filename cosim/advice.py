@@ -83,6 +83,7 @@ def check(plan: RunPlan, surface_height: float | None = None, sinkage_tips: floa
     if t is not None:
         omega_key = "testbed.omega"
     else:
+        assert plan.rover is not None and plan.scene.rover is not None  # a plan has a testbed or a rover
         named = isinstance(plan.scene.rover.drive, str)
         omega_key = f"rover.controllers.{plan.rover.drive.name}.speed" if named else "rover.drive.speed"
 
@@ -182,8 +183,8 @@ def check(plan: RunPlan, surface_height: float | None = None, sinkage_tips: floa
                 WALL_GRAINS,
                 walls >= WALL_GRAINS,
                 f"wheel-wall clearance >= {walls:.3g} grain diameters (side {side:.3g}, far end {end:.3g})",
-                f"the wheel comes within {walls:.3g} grain diameters of a wall (side {side:.3g}, far end after the drive "
-                f"{end:.3g}): widen bed.width or lengthen bed.length",
+                f"the wheel comes within {walls:.3g} grain diameters of a wall (side {side:.3g}, far end after the "
+                f"drive {end:.3g}): widen bed.width or lengthen bed.length",
                 "bed.width, bed.length",
             )
         )
@@ -196,8 +197,8 @@ def check(plan: RunPlan, surface_height: float | None = None, sinkage_tips: floa
                 WALL_GRAINS,
                 gap >= WALL_GRAINS,
                 f"the wheels keep >= {gap:.3g} grain diameters from the patch's frozen band",
-                f"the wheels may come within {gap:.3g} grain diameters of the patch's frozen band: raise patch.clearance "
-                "(and the window size)",
+                f"the wheels may come within {gap:.3g} grain diameters of the patch's frozen band: raise "
+                "patch.clearance (and the window size)",
                 "patch.clearance, patch.length, patch.width",
             )
         )

@@ -1,4 +1,4 @@
-"""The soil <-> rover coupling contract (DESIGN.md section 5).
+"""The soil <-> rover coupling contract (docs/coupling.md, "The contract").
 
 Per wheel, world frame, Z up, SI units. The rover side hands the soil side the hub
 kinematics of every wheel; the soil side answers with the wrench on every wheel.
@@ -71,7 +71,10 @@ class SoilSide(Protocol):
     """Anything that answers wheel kinematics with wheel wrenches."""
 
     wheel_count: int
-    time: float  # [s]
+
+    @property
+    def time(self) -> float:
+        """The soil's time [s] (read only: `advance` moves it)."""
 
     def set_gravity(self, gravity: Sequence[float]) -> None:
         """Set the scene's gravity vector [m/s^2], shape (3,)."""
@@ -95,7 +98,10 @@ class RoverSide(Protocol):
     """A multibody rover model that carries wheels."""
 
     wheel_names: list[str]
-    time: float  # [s]
+
+    @property
+    def time(self) -> float:
+        """The rover's time [s] (read only: `advance` moves it)."""
 
     def set_gravity(self, gravity: Sequence[float]) -> None:
         """Set the scene's gravity vector [m/s^2], shape (3,)."""

@@ -1,4 +1,4 @@
-"""Macro-step coupling of a SoilSide with a RoverSide (DESIGN.md section 5).
+"""Macro-step coupling of a SoilSide with a RoverSide (docs/coupling.md, "Macro steps").
 
 Schemes, macro step H, from t to t + H:
 
@@ -25,6 +25,7 @@ from __future__ import annotations
 import warnings
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
@@ -229,7 +230,7 @@ class Coupler:
     # -- checkpoints -------------------------------------------------------------------
     def state_dict(self) -> dict:
         """The coupler's own state (the sides and the controller keep theirs)."""
-        state = {
+        state: dict[str, Any] = {
             "time": self.time,
             "step_count": self.step_count,
             "energy_created": self.energy_created,
@@ -249,25 +250,20 @@ class Coupler:
         self._warned = bool(state["warned"])
         for name in ("lagged", "last"):
             values = {field: state[f"{name}/{field}"] for field in _WRENCH_FIELDS}
-            setattr(
-                self,
-                f"_{name}",
-                [
-                    WheelWrench(
-                        **{
-                            field: (
-                                int(v[i])
-                                if field == "contact_count"
-                                else float(v[i])
-                                if np.ndim(v[i]) == 0
-                                else np.array(v[i], dtype=np.float64)
-                            )
-                            for field, v in values.items()
-                        }
+            wrenches = []
+            for i in range(self.wheel_count):
+                fields: dict[str, Any] = {
+                    field: (
+                        int(v[i])
+                        if field == "contact_count"
+                        else float(v[i])
+                        if np.ndim(v[i]) == 0
+                        else np.array(v[i], dtype=np.float64)
                     )
-                    for i in range(self.wheel_count)
-                ],
-            )
+                    for field, v in values.items()
+                }
+                wrenches.append(WheelWrench(**fields))
+            setattr(self, f"_{name}", wrenches)
 
 
 def _jump_work(w: WheelWrench, k0: WheelKinematics, k1: WheelKinematics, h: float) -> float:

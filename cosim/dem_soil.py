@@ -6,6 +6,7 @@ import warnings
 from collections.abc import Sequence
 
 import numpy as np
+from numpy.typing import ArrayLike
 
 from .contract import WheelKinematics, WheelWrench
 
@@ -84,14 +85,14 @@ class DemSoil:
         return self.sim.time
 
     def set_gravity(self, gravity: Sequence[float]) -> None:
-        gravity = np.asarray(gravity, dtype=np.float64).reshape(3)
-        if not np.allclose(gravity, self.sim.model.gravity, rtol=1e-12, atol=0):
+        asked = np.asarray(gravity, dtype=np.float64).reshape(3)
+        if not np.allclose(asked, self.sim.model.gravity, rtol=1e-12, atol=0):
             raise ValueError(
                 f"the soil was settled under gravity {self.sim.model.gravity} m/s^2, the scene asks "
-                f"for {gravity}: settle the bed under the scene's gravity"
+                f"for {asked}: settle the bed under the scene's gravity"
             )
 
-    def highest_grain_under(self, wheel: int, hub: Sequence[float], axle: Sequence[float] = (0.0, 1.0, 0.0)) -> float:
+    def highest_grain_under(self, wheel: int, hub: ArrayLike, axle: ArrayLike = (0.0, 1.0, 0.0)) -> float:
         """Top (z + r) [m] of the highest grain inside the wheel's horizontal footprint when
         its hub is at `hub` and its axle along `axle` (a horizontal unit vector, world); -inf if
         none. Place a wheel at max(...) + outer radius to start it just touching, not pressed
@@ -101,7 +102,8 @@ class DemSoil:
         r = self.sim.model.radius_numpy()
         reach = shape.outer_radius
         half_width = 0.5 * getattr(shape, "width", 2 * reach)
-        across = np.array([axle[0], axle[1]], dtype=np.float64) / np.hypot(axle[0], axle[1])
+        a = np.asarray(axle, dtype=np.float64)
+        across = a[:2] / np.hypot(a[0], a[1])
         along = np.array([across[1], -across[0]])
         offset = x[:, :2] - np.asarray(hub, dtype=np.float64)[:2]
         inside = (np.abs(offset @ along) < reach + r) & (np.abs(offset @ across) < half_width + r)

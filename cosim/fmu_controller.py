@@ -183,6 +183,7 @@ class FmuController(FmuSession):
                 self._set(self._vr_in, [float(x) for x in values])
             self._ready()
         else:
+            assert self._time is not None  # set when the FMU was instantiated
             if t < self._time:
                 raise ValueError(f"cannot step backwards: controller time {self._time}, t {t}")
             if self._slots.size:

@@ -91,6 +91,7 @@ import json
 import os
 import xml.etree.ElementTree as ET
 from datetime import datetime, timezone
+from typing import Any
 
 import numpy as np
 
@@ -311,7 +312,7 @@ class ResultsWriter:
         self.path = os.fspath(path)
         self.flush_every = int(flush_every)
         self.xdmf = xdmf
-        self._file = None
+        self._file: Any = None  # the open h5py.File (h5py is imported when needed); None when closed
         self._buffer: list[dict] = []
         self.steps = 0
         """Macro-step records written or buffered."""
@@ -412,13 +413,13 @@ class ResultsWriter:
                 ):
                     p.create_dataset(name, (0,), dtype, maxshape=(None,), chunks=(64,))
                     _units(p[name], units, description)
-                for name, tail, dtype, units, description in (
+                for name, row, dtype, units, description in (
                     ("id", (), np.int64, "1", "grain id, unique over the run"),
                     ("radius", (), np.float64, "m", "grain radii"),
                     ("position", (3,), np.float64, "m", "grain centres"),
                     ("velocity", (3,), np.float32, "m/s", "grain velocities"),
                 ):
-                    p.create_dataset(name, (0, *tail), dtype, maxshape=(None, *tail), chunks=(chunk, *tail))
+                    p.create_dataset(name, (0, *row), dtype, maxshape=(None, *row), chunks=(chunk, *row))
                     _units(p[name], units, description)
             else:
                 p["radius"] = np.asarray(radius, dtype=np.float64)
@@ -774,12 +775,15 @@ def xdmf_references(xdmf_path: str) -> list[tuple[str, str, tuple, tuple | None]
     for item in tree.iter("DataItem"):
         if item.get("Format") != "HDF":
             continue
-        name, path = item.text.strip().split(":", 1)
-        shape = tuple(int(s) for s in item.get("Dimensions").split())
+        text, dimensions = item.text, item.get("Dimensions")
+        assert text is not None and dimensions is not None  # an HDF DataItem names its dataset and shape
+        name, path = text.strip().split(":", 1)
+        shape = tuple(int(s) for s in dimensions.split())
         slab = None
         parent = parents.get(item)
         if parent is not None and parent.get("ItemType") == "HyperSlab":
             select = [c for c in parent if c.get("Format") == "XML"][0]
+            assert select.text is not None  # a hyperslab's selection lists its numbers
             values = [int(v) for v in select.text.split()]
             rank = len(shape)
             slab = (tuple(values[:rank]), tuple(values[rank : 2 * rank]), tuple(values[2 * rank :]))

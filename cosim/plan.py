@@ -268,6 +268,7 @@ class RunPlan:
 
     def hub_start(self, surface_height: float) -> np.ndarray:
         """Hub position [m], shape (3,), with the wheel's lowest point on the surface."""
+        assert self.testbed is not None  # a single-wheel plan
         return np.array([self.testbed.start_x, self.testbed.start_y, surface_height + self.wheel.outer_radius])
 
     def with_changes(self, **overrides) -> RunPlan:
@@ -292,8 +293,10 @@ def to_material(section: MaterialSection, default_modulus: float | None = None) 
     restitution = section.restitution if section.damping_ratio is None else None
     if restitution is None and section.damping_ratio is None:
         restitution = 0.3
+    modulus = section.youngs_modulus or default_modulus
+    assert modulus is not None  # a wheel's material falls back on the soil's modulus
     return Material(
-        youngs_modulus=section.youngs_modulus or default_modulus,
+        youngs_modulus=modulus,
         poisson_ratio=section.poisson_ratio,
         density=section.density,
         restitution=restitution,
@@ -332,6 +335,9 @@ def _wheel(scene: Scene, soil_modulus: float, w: WheelSection | None = None, key
     w = scene.wheel if w is None else w
     material = to_material(w.material, soil_modulus)
     if w.type == "grouser":
+        # the section's validator filled in every grouser default
+        assert w.radius is not None and w.width is not None and w.grouser_count is not None
+        assert w.grouser_height is not None and w.grouser_thickness is not None
         shape = GrouserWheel(
             radius=w.radius,
             width=w.width,
@@ -341,14 +347,15 @@ def _wheel(scene: Scene, soil_modulus: float, w: WheelSection | None = None, key
         )
         return WheelPlan(shape, material, shape.outer_radius, w.radius, w.width)
     path = scene.resolve(w.file)
+    assert path is not None and w.scale is not None  # the validator requires a mesh wheel's file, defaults its scale
     if not os.path.isfile(path):
         raise SceneError([f"{key}.file: mesh file not found: {path!r} (paths are relative to the scene file)"])
     try:
-        shape = MeshWheel.load(path, scale=w.scale)
+        mesh = MeshWheel.load(path, scale=w.scale)
     except (ValueError, OSError) as error:
         raise SceneError([f"{key}.file: {error}"]) from None
-    width = float(shape.vertices[:, 1].max() - shape.vertices[:, 1].min())
-    return WheelPlan(shape, material, shape.outer_radius, shape.outer_radius, width)
+    width = float(mesh.vertices[:, 1].max() - mesh.vertices[:, 1].min())
+    return WheelPlan(mesh, material, mesh.outer_radius, mesh.outer_radius, width)
 
 
 def _time_steps(scene: Scene, material: Material) -> tuple[float, float, int, str]:
@@ -522,7 +529,7 @@ def resolve(scene: Scene) -> RunPlan:
         name=scene.scene.name,
         device=device,
         precision=scene.scene.precision,
-        gravity=tuple(float(v) for v in gravity),
+        gravity=(float(gravity[0]), float(gravity[1]), float(gravity[2])),
         law=law,
         soil_material=soil_material,
         bed=bed,
@@ -588,8 +595,10 @@ def _rover_wheel_names(scene: Scene) -> list[str]:
     if rover.model == "mmx":
         return list(rover.wheels or MMX_WHEELS)
     if rover.model == "mjcf":
+        assert rover.wheels is not None  # the validator requires an MJCF's wheel names
         return list(rover.wheels)
     path = scene.resolve(rover.file)
+    assert path is not None  # the validator requires an FMU's file
     try:
         from rover_models.fmu_rover import check_rover_fmu
     except ImportError as error:
@@ -614,15 +623,20 @@ def mmx_xml(scene: Scene, gravity) -> str:
 
     w = scene.wheel
     radius = w.radius if w.type == "grouser" else None
+    assert scene.rover is not None
     params = (scene.rover.mmx or MmxSection()).model_dump()
     params["body_size"] = tuple(params["body_size"])
     if radius is None:  # a mesh wheel: its extents from the mesh
-        shape = MeshWheel.load(scene.resolve(w.file), scale=w.scale)
+        path = scene.resolve(w.file)
+        assert path is not None and w.scale is not None  # the validator requires the file, defaults the scale
+        shape = MeshWheel.load(path, scale=w.scale)
         radius = shape.outer_radius
         width = float(np.ptp(shape.vertices[:, 1]))
     else:
+        assert w.width is not None  # the validator fills a grouser wheel's width
         width = w.width
-    return mmx_rover_xml(wheel_radius=radius, wheel_width=width, gravity=tuple(float(v) for v in gravity), **params)
+    g = (float(gravity[0]), float(gravity[1]), float(gravity[2]))
+    return mmx_rover_xml(wheel_radius=radius, wheel_width=width, gravity=g, **params)
 
 
 def import_callable(spec: str, base_dir: str | None):
@@ -632,9 +646,9 @@ def import_callable(spec: str, base_dir: str | None):
     import sys
 
     module_name, _, name = spec.partition(":")
-    added = base_dir is not None and base_dir not in sys.path
-    if added:
-        sys.path.insert(0, base_dir)
+    added = base_dir if base_dir is not None and base_dir not in sys.path else None
+    if added is not None:
+        sys.path.insert(0, added)
     try:
         module = importlib.import_module(module_name)
     except Exception as error:  # noqa: BLE001 - any failure to import is the user's module's problem
@@ -642,8 +656,8 @@ def import_callable(spec: str, base_dir: str | None):
             [f"rover.drive.function: cannot import module {module_name!r}: {type(error).__name__}: {error}"]
         ) from None
     finally:
-        if added:
-            sys.path.remove(base_dir)
+        if added is not None:
+            sys.path.remove(added)
     target = getattr(module, name, None)
     if target is None or not callable(target):
         raise SceneError([f"rover.drive.function: module {module_name!r} has no callable {name!r}"])
@@ -715,7 +729,7 @@ def _inspect_fmu(scene: Scene, path: str, count: int, gravity, problems: list[st
     }
 
 
-def _check_drive(scene: Scene, wheels: tuple[WheelPlan, ...], layout: dict, problems: list[str]) -> DrivePlan:
+def _check_drive(scene: Scene, wheels: tuple[WheelPlan, ...], layout: dict | None, problems: list[str]) -> DrivePlan:
     """The drive's controller must exist and fit the rover (wheel counts, command kinds)."""
     rover = scene.rover
     assert rover is not None
@@ -731,6 +745,7 @@ def _check_drive(scene: Scene, wheels: tuple[WheelPlan, ...], layout: dict, prob
     wants = {"speed": "speed", "slip": "speed", "torque": "torque"}.get(section.kind)
     if section.kind == "fmu":
         file = scene.resolve(section.file)
+        assert file is not None  # the validator requires an FMU drive's file
         try:
             from .fmu_controller import FmuController
 
@@ -743,11 +758,17 @@ def _check_drive(scene: Scene, wheels: tuple[WheelPlan, ...], layout: dict, prob
         except ValueError as error:
             problems.append(f"{key}.mode: {error}")
     elif section.kind == "python":
+        assert section.function is not None  # the validator requires a python drive's function
         try:
             import_callable(section.function, scene.base_dir)
         except SceneError as error:
             problems += [p.replace("rover.drive.function", f"{key}.function") for p in error.problems]
-    elif section.kind == "slip" and section.omega_min is not None and section.omega_min > section.omega_max:
+    elif (
+        section.kind == "slip"
+        and section.omega_min is not None
+        and section.omega_max is not None  # the validator requires it for a slip drive
+        and section.omega_min > section.omega_max
+    ):
         problems.append(f"{key}.omega_min: ({section.omega_min} rad/s) must be <= omega_max ({section.omega_max})")
     if wants is not None and layout is not None and not layout[wants]:
         what = (
@@ -765,12 +786,15 @@ def _rover(scene: Scene, wheels: tuple[WheelPlan, ...], gravity: np.ndarray, pro
     assert rover is not None
     names = [w for w in _rover_wheel_names(scene)]
     heading = math.radians(rover.start.heading_deg)
+    source: str | None
     if rover.model == "fmu":
         source = scene.resolve(rover.file)
+        assert source is not None  # the validator requires an FMU's file
         layout = _inspect_fmu(scene, source, len(names), gravity, problems)
     else:
         if rover.model == "mjcf":
             source = scene.resolve(rover.file)
+            assert source is not None  # the validator requires an MJCF's file
             if not os.path.isfile(source):
                 problems.append(f"rover.file: MJCF file not found: {source!r} (paths are relative to the scene file)")
                 return None, None

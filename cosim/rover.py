@@ -54,12 +54,16 @@ def make_controller(plan: RunPlan):
     section = r.drive.section
     n = len(r.wheel_names)
     radii = tuple(w.rim_radius for w in plan.wheels)
+    # the drive section's validator requires each kind's own keys
     if section.kind == "speed":
+        assert section.speed is not None
         return ConstantSpeed(section.speed, n)
     if section.kind == "torque":
+        assert section.torque is not None
         return ConstantTorque(section.torque, n)
     if section.kind == "slip":
         omega_max = section.omega_max
+        assert section.target_slip is not None and omega_max is not None
         return SlipController(
             section.target_slip,
             radii,
@@ -72,7 +76,9 @@ def make_controller(plan: RunPlan):
     if section.kind == "fmu":
         from .fmu_controller import FmuController
 
+        assert r.drive.file is not None
         return FmuController(r.drive.file, n, mode=section.mode, start_values=section.start_values)
+    assert section.function is not None
     factory = import_callable(section.function, plan.scene.base_dir)
     controller = factory(wheel_count=n, wheel_radius=radii, **(section.args or {}))
     if not callable(controller):

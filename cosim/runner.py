@@ -21,6 +21,7 @@ import os
 import signal
 import time
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 
@@ -383,9 +384,11 @@ class Runner:
         """The run's summary, computed from results.h5 (cosim.metrics.summarize) plus run facts."""
         plan, system = self.plan, self.system
         series = read_series(self.writer.path)
+        out: dict[str, Any]
         if not len(series["time"]):
             out = {"steady_state": metrics.TOO_SHORT}
         elif plan.rover is None:
+            assert plan.testbed is not None  # a plan has a testbed or a rover
             out = metrics.summarize(
                 series,
                 rim_radius=plan.wheel.rim_radius,
@@ -466,6 +469,11 @@ def _attributes(plan: RunPlan, system: CoupledSystem, source: str, findings) -> 
     import json
 
     rover = plan.rover
+    if rover is None:
+        assert plan.testbed is not None  # a plan has a testbed or a rover
+        mode = plan.testbed.mode
+    else:
+        mode = rover.drive.kind
     out = {
         "name": plan.name,
         "scene_toml": plan.scene.to_toml(),
@@ -485,7 +493,7 @@ def _attributes(plan: RunPlan, system: CoupledSystem, source: str, findings) -> 
         "rim_radius": plan.wheel.rim_radius,
         "outer_radius": plan.wheel.outer_radius,
         "wheel_load": plan.wheel_load,
-        "mode": plan.testbed.mode if rover is None else rover.drive.kind,
+        "mode": mode,
         "particle_count": system.sim.model.particle_count,
         "wheel_names": json.dumps(list(system.rover.wheel_names)),
         "bed": json.dumps(system.bed.info, default=float),

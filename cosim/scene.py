@@ -223,16 +223,18 @@ class WheelSection(_Section):
             for key, value in defaults.items():
                 if getattr(self, key) is None:
                     object.__setattr__(self, key, value)
-            if self.grouser_count:
-                if not self.grouser_height > 0 or not self.grouser_thickness > 0:
+            radius, count = self.radius, self.grouser_count
+            height, thickness = self.grouser_height, self.grouser_thickness
+            assert radius is not None and count is not None and height is not None and thickness is not None
+            if count:
+                if not height > 0 or not thickness > 0:
                     raise ValueError(
                         "grouser_height: grouser_height and grouser_thickness must be > 0 [m] when grouser_count > 0"
                     )
-                spacing = 2 * math.pi * self.radius / self.grouser_count
-                if self.grouser_thickness >= min(spacing, self.radius):
+                spacing = 2 * math.pi * radius / count
+                if thickness >= min(spacing, radius):
                     raise ValueError(
-                        f"grouser_thickness: ({self.grouser_thickness} m) must be < the grouser spacing "
-                        f"{spacing:.4g} m and < radius"
+                        f"grouser_thickness: ({thickness} m) must be < the grouser spacing {spacing:.4g} m and < radius"
                     )
         else:
             wrong = [k for k in grouser_keys if getattr(self, k) is not None]
@@ -436,7 +438,10 @@ class RoverSection(_Section):
     @property
     def drive_section(self) -> DriveSection:
         """The drive in use (a named controller resolved)."""
-        return self.controllers[self.drive] if isinstance(self.drive, str) else self.drive
+        if isinstance(self.drive, str):
+            assert self.controllers is not None  # the validator checked that the name is one of them
+            return self.controllers[self.drive]
+        return self.drive
 
 
 class PatchSection(_Section):

@@ -18,6 +18,7 @@ import math
 from collections.abc import Sequence
 
 import numpy as np
+from numpy.typing import ArrayLike
 
 from .contract import WheelKinematics, WheelWrench
 
@@ -52,7 +53,7 @@ class SingleWheelRig:
         mass: float,
         radius: float,
         omega: float,
-        hub: Sequence[float],
+        hub: ArrayLike,
         mode: str = "free",
         slip: float = 0.0,
         drawbar_load: float = 0.0,
@@ -118,9 +119,9 @@ class SingleWheelRig:
         return [
             WheelKinematics(
                 self.position.copy(),
-                [math.cos(half), 0.0, math.sin(half), 0.0],
+                np.array([math.cos(half), 0.0, math.sin(half), 0.0]),
                 self.velocity.copy(),
-                [0.0, self.omega, 0.0],
+                np.array([0.0, self.omega, 0.0]),
             )
         ]
 
@@ -148,7 +149,7 @@ class SingleWheelRig:
     # -- records and checkpoints ---------------------------------------------------------
     def body_kinematics(self) -> WheelKinematics:
         """The carriage: the hub's position and velocity, no rotation."""
-        return WheelKinematics(self.position.copy(), [1.0, 0.0, 0.0, 0.0], self.velocity.copy(), np.zeros(3))
+        return WheelKinematics(self.position.copy(), np.array([1.0, 0.0, 0.0, 0.0]), self.velocity.copy(), np.zeros(3))
 
     def command_row(self) -> tuple[np.ndarray, np.ndarray]:
         """(wheel speed [rad/s], torque nan) the rig turns the wheel at, shape (1,) each."""

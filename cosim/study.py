@@ -26,11 +26,15 @@ import os
 import shutil
 import time
 import traceback
+from typing import TYPE_CHECKING, Any
 
 from . import metrics
 from .beds import BED_FILE, BED_INFO_FILE, settled_bed, write_json
 from .folders import RunFolder
 from .plan import RunPlan, resolve
+
+if TYPE_CHECKING:  # dask is imported when a study runs on it
+    from dask.distributed import Client, LocalCluster
 from .scene import SceneError, scene_from_text
 
 log = logging.getLogger(__name__)
@@ -113,8 +117,8 @@ class Executor:
         self.kind = kind
         self.scheduler = scheduler
         self.workers = workers or os.cpu_count() or 1
-        self.client = None
-        self.cluster = None
+        self.client: Client | None = None
+        self.cluster: LocalCluster | None = None
 
     def __enter__(self):
         if self.kind == "serial":
@@ -141,16 +145,17 @@ class Executor:
     def map(self, function, tasks: list[dict]) -> list[dict]:
         """Results in task order; a task whose worker died becomes {'ok': False, 'error': ...}."""
         if self.kind == "serial":
-            results = []
+            results: list = []
             for task in tasks:
                 results.append(function(task))
                 _report(results[-1], task.get("label"), len(results), len(tasks))
             return results
         from dask.distributed import as_completed
 
+        assert self.client is not None  # __enter__ connected it
         futures = self.client.map(function, tasks, pure=False)
         index = {f.key: i for i, f in enumerate(futures)}
-        results: list = [None] * len(tasks)
+        results = [None] * len(tasks)
         for done, future in enumerate(as_completed(futures), 1):
             i = index[future.key]
             try:
@@ -489,7 +494,7 @@ def slip_study(
     ]
     for row in rows:
 
-        def cell(name, scale=1.0):
+        def cell(name, scale=1.0, row=row):
             mean, ci = row.get(f"{name}_mean"), row.get(f"{name}_ci95")
             if mean is None:
                 return "-"
@@ -556,7 +561,7 @@ def sweep(
     out_dir = os.path.abspath(out_dir)
     prepare_study(out_dir, overwrite)
     with Executor(executor, scheduler, workers) as ex:
-        beds = {}
+        beds: dict[str, RunPlan] = {}
         for p in plans:
             if not p.bed.bed_file:
                 beds.setdefault(p.bed.key, p)
@@ -573,7 +578,7 @@ def sweep(
             ],
         )
         bed_paths = {key: r.get("path") for key, r in zip(beds, settled)}
-        tasks = []
+        tasks: list[dict[str, Any]] = []
         for i, (point, p) in enumerate(zip(points, plans)):
             overrides = dict(point)
             if not p.bed.bed_file:
@@ -590,7 +595,15 @@ def sweep(
                 }
             )
         results = ex.map(run_task, tasks)
-    columns = ("steady_state", "slip", "travel", "sinkage", "drawbar_pull", "driving_torque", "wall_time")
+    columns: tuple[str, ...] = (
+        "steady_state",
+        "slip",
+        "travel",
+        "sinkage",
+        "drawbar_pull",
+        "driving_torque",
+        "wall_time",
+    )
     if plan.rover is not None:  # drive controllers side by side
         columns = (
             "steady_state",
@@ -659,13 +672,15 @@ def timestep_study(
     out_dir = os.path.abspath(out_dir)
     prepare_study(out_dir, overwrite)
     bed = settled_bed(plan, out_dir)
-    rim = plan.testbed.omega * plan.wheel.outer_radius
+    assert plan.testbed is not None, "the stable-step search turns the single-wheel testbed's wheel"
+    omega = plan.testbed.omega
+    rim = omega * plan.wheel.outer_radius
 
     def make_simulation():
         system = CoupledSystem.build(plan, bed)
         sim = system.sim
         hub = system.rover.position
-        sim.control.set_body_motion(0, hub, [1, 0, 0, 0], [rim, 0, 0], [0, plan.testbed.omega, 0])
+        sim.control.set_body_motion(0, hub, [1, 0, 0, 0], [rim, 0, 0], [0, omega, 0])
         sim.refresh_forces()
         return sim
 

@@ -68,6 +68,7 @@ class CoupledSystem:
         highest = soil.highest_grain_under(0, hub)
         hub[2] = max(hub[2], highest + plan.wheel.outer_radius + START_GAP * plan.bed.spec.radius_mean)
         t = plan.testbed
+        assert t is not None  # a plan without a rover has a testbed
         rover = SingleWheelRig(
             t.mass,
             plan.wheel.rim_radius,

@@ -22,6 +22,7 @@ from __future__ import annotations
 from collections.abc import Sequence
 
 import numpy as np
+from numpy.typing import ArrayLike
 
 from .contract import WheelKinematics, WheelWrench
 
@@ -83,7 +84,7 @@ def quat_slerp(q0: np.ndarray, q1: np.ndarray, a: float) -> np.ndarray:
     return (np.sin((1 - a) * theta) * q0 + np.sin(a * theta) * q1) / np.sin(theta)
 
 
-def wheel_frame(orientation: np.ndarray, axis_local: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def wheel_frame(orientation: np.ndarray, axis_local: ArrayLike) -> tuple[np.ndarray, np.ndarray]:
     """Spin axis and rolling (forward) direction of a wheel in the world frame.
 
     Returns (axis, forward), unit vectors, shape (3,) each. forward = axis x z_up, so a

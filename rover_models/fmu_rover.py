@@ -230,7 +230,7 @@ class FmuRover(FmuSession):
             wheels = self.wheel_kinematics()
             return WheelKinematics(
                 np.mean([k.position for k in wheels], axis=0),
-                [1.0, 0.0, 0.0, 0.0],
+                np.array([1.0, 0.0, 0.0, 0.0]),
                 np.mean([k.linear_velocity for k in wheels], axis=0),
                 np.zeros(3),
             )

@@ -12,6 +12,7 @@ import os
 import shutil
 import xml.etree.ElementTree as ET
 import zipfile
+from typing import Any
 
 import numpy as np
 from fmpy import extract, read_model_description
@@ -117,9 +118,9 @@ class FmuSession:
         self.max_halvings = int(max_halvings)
         self.retry_on_error = bool(retry_on_error)
         self.instance_name = instance_name
-        self.fmu = None
-        """The fmpy slave; None before instantiation and after close()."""
-        self._unzipdir = None
+        self.fmu: Any = None
+        """The fmpy slave (an FMU2Slave or FMU3Slave); None before instantiation and after close()."""
+        self._unzipdir: str | None = None
         self._initializing = False
 
     def _listing(self) -> str:
@@ -217,7 +218,8 @@ class FmuSession:
             finally:
                 self.fmu.freeInstance()
                 self.fmu = None
-                shutil.rmtree(self._unzipdir, ignore_errors=True)
+                if self._unzipdir is not None:
+                    shutil.rmtree(self._unzipdir, ignore_errors=True)
 
     def __enter__(self):
         return self

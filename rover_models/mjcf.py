@@ -71,7 +71,8 @@ def single_wheel_rig_xml(
         <body name="wheel">
           <joint name="wheel_hinge" type="hinge" axis="0 1 0"/>
           <inertial pos="0 0 0" mass="{wheel_mass:.10g}" diaginertia="{_fmt((ixx, iyy, izz))}"/>
-          <geom name="wheel_geom" type="cylinder" size="{wheel_radius:.10g} {wheel_width / 2:.10g}" euler="1.5707963267948966 0 0" rgba="0.2 0.2 0.2 1"/>
+          <geom name="wheel_geom" type="cylinder" size="{wheel_radius:.10g} {wheel_width / 2:.10g}"
+                euler="1.5707963267948966 0 0" rgba="0.2 0.2 0.2 1"/>
         </body>
       </body>
     </body>
@@ -121,12 +122,14 @@ def mmx_rover_xml(
         shoulder_y = (sy / 2) if y > 0 else -(sy / 2)
         legs.append(
             f"""      <body name="leg_{name[-2:]}" pos="{x:.10g} {shoulder_y:.10g} 0">
-        <inertial pos="0 {(y - shoulder_y) / 2:.10g} {-leg_drop / 2:.10g}" mass="{leg_mass:.10g}" diaginertia="1e-3 1e-3 1e-3"/>
+        <inertial pos="0 {(y - shoulder_y) / 2:.10g} {-leg_drop / 2:.10g}" mass="{leg_mass:.10g}"
+                  diaginertia="1e-3 1e-3 1e-3"/>
         <geom type="capsule" fromto="0 0 0 0 {y - shoulder_y:.10g} {-leg_drop:.10g}" size="0.015" rgba="0.7 0.7 0.7 1"/>
         <body name="{name}" pos="0 {y - shoulder_y:.10g} {-leg_drop:.10g}">
           <joint name="{name}_hinge" type="hinge" axis="0 1 0"/>
           <inertial pos="0 0 0" mass="{wheel_mass:.10g}" diaginertia="{_fmt(iw)}"/>
-          <geom name="{name}_geom" type="cylinder" size="{wheel_radius:.10g} {wheel_width / 2:.10g}" euler="1.5707963267948966 0 0" rgba="0.2 0.2 0.2 1"/>
+          <geom name="{name}_geom" type="cylinder" size="{wheel_radius:.10g} {wheel_width / 2:.10g}"
+                euler="1.5707963267948966 0 0" rgba="0.2 0.2 0.2 1"/>
         </body>
       </body>"""
         )

@@ -4,8 +4,9 @@ Frames and conventions:
 - a wheel is a MuJoCo body; its hub is the body frame origin (data.xpos), its
   orientation data.xquat (w, x, y, z, body -> world);
 - velocities come from mj_objectVelocity(mjOBJ_XBODY, flg_local=0): the 6D velocity at
-  the body frame origin with world orientation (mjOBJ_BODY would give it at the CoM). cvel is NOT used directly: its linear part is the
-  velocity of the point coinciding with the subtree CoM of the root, not of the hub;
+  the body frame origin with world orientation (mjOBJ_BODY would give it at the CoM). cvel
+  is NOT used directly: its linear part is the velocity of the point coinciding with the
+  subtree CoM of the root, not of the hub;
 - data.xfrc_applied holds a world-frame wrench at the body CoM (data.xipos), so the soil
   torque about the hub is shifted: tau_com = tau_hub + (p_hub - p_com) x F. The shift is
   redone at every MuJoCo step (between mj_step1 and mj_step2) because p_hub - p_com
@@ -28,6 +29,7 @@ from collections.abc import Sequence
 
 import mujoco
 import numpy as np
+from numpy.typing import ArrayLike
 
 from cosim.contract import WheelKinematics, WheelWrench
 
@@ -94,7 +96,8 @@ class MujocoRover:
         self.wheel_torques = np.zeros(len(self.wheel_names))
         """Commanded hinge torques in torque mode [N m], shape (wheel_count,)."""
         self.hub_wrenches = np.zeros((len(self.wheel_names), 6))
-        """Held soil wrench per wheel, world frame: force [N] then torque about the hub [N m], shape (wheel_count, 6)."""
+        """Held soil wrench per wheel, world frame: force [N] then torque about the hub [N m],
+        shape (wheel_count, 6)."""
 
         if gravity is not None:
             self.set_gravity(gravity)
@@ -209,11 +212,11 @@ class MujocoRover:
 
     # --- drive commands --------------------------------------------------------------------
 
-    def set_wheel_speeds(self, speeds: Sequence[float]) -> None:
+    def set_wheel_speeds(self, speeds: ArrayLike) -> None:
         """Velocity-actuator targets [rad/s], shape (wheel_count,); switches to speed mode."""
-        speeds = np.asarray(speeds, dtype=np.float64).reshape(-1)
-        if speeds.shape != (len(self.wheel_names),):
-            raise ValueError(f"{speeds.size} speeds for {len(self.wheel_names)} wheels")
+        targets = np.asarray(speeds, dtype=np.float64).reshape(-1)
+        if targets.shape != (len(self.wheel_names),):
+            raise ValueError(f"{targets.size} speeds for {len(self.wheel_names)} wheels")
         if any(a is None for a in self._actuators):
             raise ValueError(
                 f"no velocity actuator found for wheels "
@@ -227,14 +230,14 @@ class MujocoRover:
                 if dof is not None:
                     self.data.qfrc_applied[dof] = 0.0
             self.drive_mode = "speed"
-        for a, s in zip(self._actuators, speeds):
-            self.data.ctrl[a] = s
+        for actuator, s in zip(self._actuators, targets):
+            self.data.ctrl[actuator] = s
 
-    def set_wheel_torques(self, torques: Sequence[float]) -> None:
+    def set_wheel_torques(self, torques: ArrayLike) -> None:
         """Hinge torques [N m], shape (wheel_count,); switches to torque mode (motors off)."""
-        torques = np.asarray(torques, dtype=np.float64).reshape(-1)
-        if torques.shape != (len(self.wheel_names),):
-            raise ValueError(f"{torques.size} torques for {len(self.wheel_names)} wheels")
+        commands = np.asarray(torques, dtype=np.float64).reshape(-1)
+        if commands.shape != (len(self.wheel_names),):
+            raise ValueError(f"{commands.size} torques for {len(self.wheel_names)} wheels")
         missing = [n for n, d in zip(self.wheel_names, self._hinge_dof) if d is None]
         if missing:
             raise ValueError(f"wheels {missing} have no hinge joint to apply a torque on")
@@ -244,7 +247,7 @@ class MujocoRover:
                 self.model.actuator_gainprm[a] = 0.0
                 self.model.actuator_biasprm[a] = 0.0
             self.drive_mode = "torque"
-        self.wheel_torques[:] = torques
+        self.wheel_torques[:] = commands
         self._write_xfrc()
 
     # --- the rover body, placement and checkpoints -------------------------------------
@@ -269,15 +272,15 @@ class MujocoRover:
             self.data.xpos[body].copy(), self.data.xquat[body].copy(), vel[3:].copy(), vel[:3].copy()
         )
 
-    def move_base(self, translation: Sequence[float], yaw: float = 0.0, pivot: Sequence[float] | None = None) -> None:
+    def move_base(self, translation: ArrayLike, yaw: float = 0.0, pivot: ArrayLike | None = None) -> None:
         """Move the whole rover rigidly before it starts: turn it by `yaw` [rad] about the vertical through
         `pivot` [m] (default: the base body), then shift it by `translation` [m], shape (3,).
 
         Free-floating bases move through their joint position (qpos); a base mounted on the world
         by other joints (a test rig on slides) moves through its body frame (model.body_pos)."""
-        translation = np.asarray(translation, dtype=np.float64).reshape(3)
+        shift = np.asarray(translation, dtype=np.float64).reshape(3)
         base = self.body_id()
-        pivot = self.data.xpos[base].copy() if pivot is None else np.asarray(pivot, dtype=np.float64).reshape(3)
+        centre = self.data.xpos[base].copy() if pivot is None else np.asarray(pivot, dtype=np.float64).reshape(3)
         turn = np.array([np.cos(yaw / 2), 0.0, 0.0, np.sin(yaw / 2)])
         rotation = np.array([[np.cos(yaw), -np.sin(yaw), 0.0], [np.sin(yaw), np.cos(yaw), 0.0], [0.0, 0.0, 1.0]])
         for body in range(1, self.model.nbody):
@@ -295,7 +298,7 @@ class MujocoRover:
                 position, quaternion = self.data.qpos[adr : adr + 3], self.data.qpos[adr + 3 : adr + 7]
             else:
                 position, quaternion = self.model.body_pos[body], self.model.body_quat[body]
-            position[:] = pivot + rotation @ (position - pivot) + translation
+            position[:] = centre + rotation @ (position - centre) + shift
             out = np.zeros(4)
             mujoco.mju_mulQuat(out, turn, np.array(quaternion, dtype=np.float64))
             quaternion[:] = out

@@ -27,7 +27,7 @@ were created inside each other (or inside a wall) (OverlapWarning)."""
 class SoilBuilder:
     """Collects particles, materials and boundaries; `finalize()` makes model, state, control."""
 
-    def __init__(self, gravity="earth"):
+    def __init__(self, gravity="earth") -> None:
         self.gravity = gravity_vector(gravity)
         self.materials = MaterialTable()
         self._positions: list[np.ndarray] = []
@@ -38,7 +38,7 @@ class SoilBuilder:
         self._fixed: list[np.ndarray] = []
         self._lock_rotation: list[np.ndarray] = []
         self._boundaries: list[tuple[int, list[float], int, bool]] = []  # kind, geometry row, material, report
-        self._bodies: list[tuple[object, int]] = []
+        self._bodies: list[tuple[GrouserWheel | MeshWheel, int]] = []
 
     # -- materials ---------------------------------------------------------------
     def add_material(self, material: Material) -> int:
@@ -295,8 +295,8 @@ class SoilBuilder:
             return
         positions = np.concatenate(self._positions)
         free = ~np.concatenate(self._fixed)
-        for b, (kind, row, _, _) in enumerate(self._boundaries):
-            row = np.asarray(row, dtype=np.float64)
+        for b, (kind, values, _, _) in enumerate(self._boundaries):
+            row = np.asarray(values, dtype=np.float64)
             if kind == BOUNDARY_PLANE:
                 outside = free & ((positions - row[:3]) @ row[3:] < 0)
                 where = (
@@ -337,10 +337,10 @@ class SoilBuilder:
                 if deep.any():
                     k = int(np.argmax(np.where(deep, ratio, -np.inf)))
                     worst, where = float(ratio[k]), f"particles {int(i[k])} and {int(j[k])} by {depth[k]:.3g} m"
-        for b, (kind, row, _, _) in enumerate(self._boundaries):
+        for b, (kind, values, _, _) in enumerate(self._boundaries):
             if kind != BOUNDARY_PLANE:
                 continue
-            row = np.asarray(row, dtype=np.float64)
+            row = np.asarray(values, dtype=np.float64)
             depth = radii - (positions - row[:3]) @ row[3:]
             ratio = np.where(fixed, -np.inf, depth / radii)
             deep = ratio > DEEP_OVERLAP

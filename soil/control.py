@@ -451,7 +451,7 @@ class SoilControl:
         """Send the host motion to the device (only when it changed; between steps, never inside one)."""
         if not self._dirty:
             return
-        dtype = self.body_position.dtype._wp_scalar_type_
+        dtype = self.body_position.dtype._wp_scalar_type_  # type: ignore[attr-defined]  # a Warp vector type
         np_type = np.float64 if dtype is wp.float64 else np.float32
         if self.body_count:
             self.body_posed.assign(self.body_posed_host)

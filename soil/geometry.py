@@ -9,6 +9,7 @@ from __future__ import annotations
 import math
 import os
 from dataclasses import dataclass
+from typing import cast
 
 import numpy as np
 
@@ -121,13 +122,13 @@ def extrude_profile(profile: np.ndarray, width: float) -> tuple[np.ndarray, np.n
         # outward-facing side quads (outline turns about +Y)
         triangles += [(a, c, b), (b, c, d)]
         triangles += [(centre_lo, a, b), (centre_hi, d, c)]
-    triangles = np.array(triangles, dtype=np.int32)
+    faces = np.array(triangles, dtype=np.int32)
     # orient all faces outward: flip if the signed volume is negative
-    v = vertices[triangles]
+    v = vertices[faces]
     volume = np.einsum("ij,ij->i", v[:, 0], np.cross(v[:, 1], v[:, 2])).sum() / 6.0
     if volume < 0:
-        triangles = triangles[:, ::-1].copy()
-    return vertices.astype(np.float64), triangles
+        faces = faces[:, ::-1].copy()
+    return vertices.astype(np.float64), faces
 
 
 @dataclass(frozen=True)
@@ -184,7 +185,8 @@ class MeshWheel:
         except ImportError as error:  # pragma: no cover - depends on the install
             raise ImportError("loading OBJ/STL wheels needs trimesh: pip install 'regolith-cosim[mesh]'") from error
         try:
-            mesh = trimesh.load(path, force="mesh", process=True)
+            # force="mesh": a Trimesh whatever the file holds
+            mesh = cast("trimesh.Trimesh", trimesh.load(path, force="mesh", process=True))
         except Exception as error:
             raise ValueError(f"cannot read wheel mesh {path!r}: {error}") from error
         if len(mesh.faces) == 0:
@@ -199,4 +201,4 @@ class MeshWheel:
 
 
 def _positive(x) -> bool:
-    return isinstance(x, (int, float, np.floating, np.integer)) and math.isfinite(x) and x > 0
+    return isinstance(x, (int, float, np.floating, np.integer)) and math.isfinite(x) and bool(x > 0)

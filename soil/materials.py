@@ -34,8 +34,9 @@ def restitution_of_damping_ratio(damping_ratio: float) -> float:
     def closed(_, s):
         return s[0]
 
-    closed.terminal = True
-    closed.direction = -1
+    # solve_ivp reads an event's settings off the function's attributes
+    closed.terminal = True  # type: ignore[attr-defined]
+    closed.direction = -1  # type: ignore[attr-defined]
     sol = solve_ivp(rhs, (0.0, 100.0), [1e-12, 1.0], events=closed, rtol=1e-10, atol=1e-13, max_step=0.01)
     return float(-sol.y_events[0][0][1]) if sol.t_events[0].size else 0.0
 
@@ -109,6 +110,7 @@ class Material:
         """The Lehr damping ratio D [-] this material uses."""
         if self.damping_ratio is not None:
             return float(self.damping_ratio)
+        assert self.restitution is not None  # __post_init__ requires one of the two
         return damping_ratio_for_restitution(float(self.restitution))
 
     @property

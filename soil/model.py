@@ -48,28 +48,28 @@ class SoilModel:
     """Material index per boundary, shape (boundary_count,), int32."""
     max_radius: float
     """Largest particle radius [m]."""
-    boundary_column: wp.array = None
+    boundary_column: wp.array | None = None
     """Column of each boundary in the per-particle force scratch, shape (boundary_count,), int32;
     -1 for boundaries built with report=False (their force and torque are not summed)."""
-    particle_order: np.ndarray = field(default=None)
+    particle_order: np.ndarray | None = field(default=None)
     """Builder index of each model particle, shape (particle_count,), int64 (identity unless permuted)."""
     bodies: list = field(default_factory=list)
     """Wheel geometries (GrouserWheel or MeshWheel), one per body."""
-    body_kind: wp.array = None
+    body_kind: wp.array | None = None
     """BODY_WHEEL or BODY_MESH per body, shape (body_count,), int32."""
-    body_shape: wp.array = None
+    body_shape: wp.array | None = None
     """Geometry row per body [m], shape (body_count, 6), dtype hi (see soil.sdf)."""
-    body_mesh: wp.array = None
+    body_mesh: wp.array | None = None
     """Warp mesh id per body (0 for parametric wheels), shape (body_count,), uint64."""
-    body_material: wp.array = None
+    body_material: wp.array | None = None
     """Material index per body, shape (body_count,), int32."""
-    mesh_points: wp.array = None
+    mesh_points: wp.array | None = None
     """All mesh vertices in their wheel frames [m], shape (vertex_count,), vec3 hi."""
-    mesh_indices: wp.array = None
+    mesh_indices: wp.array | None = None
     """All mesh triangles' vertex indices, flattened, shape (3 * triangle_count,), int32."""
-    body_point_offset: wp.array = None
+    body_point_offset: wp.array | None = None
     """First vertex of each body's mesh in mesh_points, shape (body_count,), int32."""
-    body_index_offset: wp.array = None
+    body_index_offset: wp.array | None = None
     """First index of each body's mesh in mesh_indices, shape (body_count,), int32."""
     meshes: list = field(default_factory=list)
     """The wp.Mesh objects (kept alive here), one per mesh body."""

@@ -77,7 +77,7 @@ def kernel_module(name: str, *key) -> str:
     def part(value):
         if isinstance(value, type):
             return value.__name__
-        if dataclasses.is_dataclass(value):
+        if dataclasses.is_dataclass(value) and not isinstance(value, type):
             return "".join("1" if v else "0" for v in dataclasses.astuple(value))
         return str(value)
 

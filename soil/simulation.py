@@ -75,7 +75,8 @@ def macro_kernels(hi):
         )
         force_sum_out[b] = force_sum_out[b] + f
         torque_sum_out[b] = torque_sum_out[b] + t
-        work_out[b] = work_out[b] - (wp.dot(f, v) + wp.dot(t, w)) * dt
+        # Warp's stubs do not list vec3d among the vector types wp.dot takes
+        work_out[b] = work_out[b] - (wp.dot(f, v) + wp.dot(t, w)) * dt  # type: ignore[call-overload]
 
     @kernel
     def fill_report(
@@ -193,12 +194,12 @@ class Simulation:
             SoilState.for_model(model, state.capacity, state.rigid_capacity, layout=state.layout) for _ in range(2)
         ]
         self.steps = 0
-        self._controller = None  # run_adaptive's StepController, kept between calls
+        self._controller: StepController | None = None  # run_adaptive's, kept between calls
         self._graphs: dict = {}
-        self._graph_signature = None
+        self._graph_signature: tuple | None = None
         self._modules_loaded = False
         self._rebuilds_since_reorder = 0
-        self._bounds = None
+        self._bounds: tuple | None = None
         device = model.device
         bodies = max(model.body_count, 1)
         self._force_sum = wp.zeros(bodies, dtype=wp.vec3d, device=device)
@@ -253,14 +254,15 @@ class Simulation:
         neighbour lists), the contact solver's and the list build's scratch, the integrator's,
         the monitor's last good state, and the total."""
         n = max(self.model.particle_count, 1)
+        layout = self.state.layout
+        assert layout is not None  # every state of a Simulation has its layout
+        gaps = getattr(self.integrator, "gaps", None)
         parts = {
             "state buffers (3)": sum(b.bytes_per_grain() for b in self._buffers),
-            "layout": self.state.layout.bytes_per_grain(),
+            "layout": layout.bytes_per_grain(),
             "contact scratch": self.contacts.bytes_per_grain(),
             "list build scratch": self.neighbour_list.bytes_per_grain(),
-            "integrator": (
-                self.integrator.gaps.capacity / n if getattr(self.integrator, "gaps", None) is not None else 0.0
-            ),
+            "integrator": gaps.capacity / n if gaps is not None else 0.0,
             "monitor snapshot": self.monitor.bytes_per_grain(),
         }
         parts["total"] = sum(parts.values())
@@ -288,10 +290,12 @@ class Simulation:
     # -- macro steps -----------------------------------------------------------------------
     def _signature(self) -> tuple:
         """Identity of every array a captured step uses: a graph is valid while it holds."""
-        arrays = []
+        layout = self.state.layout
+        assert layout is not None  # every state of a Simulation has its layout
+        arrays: list = []
         for buffer in self._buffers:
             arrays += list(buffer.arrays.values()) + [buffer.list_index]
-        arrays += list(self.state.layout.arrays.values())
+        arrays += list(layout.arrays.values())
         arrays += self.contacts.device_arrays()
         arrays += [getattr(self.integrator, "gaps", None)]
         return (
@@ -542,12 +546,13 @@ class Simulation:
         controller = controller if controller is not None else self._controller or StepController()
         self._controller = controller
         controller.setup(self)
+        assert controller.dt is not None and controller.dt_min is not None  # setup() resolved them
         if not self.monitor.armed:
             self.monitor.arm(self)
         self.control.path_active = False
         self.control.push()
         self.integrator.bind(self.model)
-        counts = dict(accepted=0, rejected=0, forced=0, evaluations=self.contacts.evaluations)
+        counts: dict[str, float] = dict(accepted=0, rejected=0, forced=0, evaluations=self.contacts.evaluations)
         smallest, largest = math.inf, 0.0
         t_end = self.time + duration
         dt = controller.dt
@@ -681,7 +686,9 @@ class Simulation:
     def _model_order(self, array: wp.array) -> np.ndarray:
         values = array.numpy()
         out = np.empty(values.shape, dtype=np.float64)
-        out[self.state.layout.order.numpy()] = values
+        layout = self.state.layout
+        assert layout is not None  # every state of a Simulation has its layout
+        out[layout.order.numpy()] = values
         return out
 
     def positions(self) -> np.ndarray:

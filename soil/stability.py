@@ -277,6 +277,7 @@ class DivergenceMonitor:
         return self._good.bytes_per_grain() + self._good.layout.bytes_per_grain()
 
     def last_good(self) -> dict:
+        assert self._good is not None, "no good state was kept yet"
         data = self._good.to_numpy()
         data["step"] = np.int64(self._good_step)
         return data
@@ -364,6 +365,7 @@ class DivergenceMonitor:
         position = None
         where = ""
         if particle is not None and 0 <= particle < sim.model.particle_count:
+            assert state.layout is not None  # every state of a Simulation has its layout
             position = state.position.numpy()[int(state.layout.slot.numpy()[particle])].astype(np.float64)
             builder_index = (
                 int(sim.model.particle_order[particle]) if sim.model.particle_order is not None else particle

@@ -44,9 +44,9 @@ class GrainLayout:
         device = model.device
         prec = model.precision
         self.model = model
-        self.order = wp.array(np.arange(n, dtype=np.int32), dtype=wp.int32, device=device)
+        self.order: wp.array = wp.array(np.arange(n, dtype=np.int32), dtype=wp.int32, device=device)
         """Model index of the grain stored in each slot [-], shape (particle_count,), int32."""
-        self.slot = wp.array(np.arange(n, dtype=np.int32), dtype=wp.int32, device=device)
+        self.slot: wp.array = wp.array(np.arange(n, dtype=np.int32), dtype=wp.int32, device=device)
         """Storage slot of each model index [-], shape (particle_count,), int32."""
         self.radius = wp.clone(model.radius)
         """Radius of the grain in each slot [m], shape (particle_count,), dtype lo."""
@@ -303,7 +303,9 @@ class SoilState:
         [-] (n, capacity), model indices, -1 past `neighbour_count`; `build_position` [m]
         (n, 3)) is given with it, since the pair history is aligned with its rows.
         """
-        order = self.layout.order.numpy()
+        layout = self.layout
+        assert layout is not None, "a state read in model order needs its layout"
+        order = layout.order.numpy()
         data = {}
         for name, array in self.arrays.items():
             values = array.numpy()
@@ -313,14 +315,14 @@ class SoilState:
                 values = model_order
             data[name] = values.copy()  # on the CPU .numpy() is a view that later steps overwrite
         which = int(self.list_index.numpy()[0])
-        neighbours = self.layout.neighbours.numpy()[which]
-        counts = self.layout.neighbour_count.numpy()[which]
+        neighbours = layout.neighbours.numpy()[which]
+        counts = layout.neighbour_count.numpy()[which]
         used = np.arange(neighbours.shape[1])[None, :] < counts[:, None]
         ids = np.where(used, order[np.clip(neighbours, 0, len(order) - 1)], -1).astype(np.int32)
         for name, values in (
             ("neighbours", ids),
             ("neighbour_count", counts),
-            ("build_position", self.layout.build_position.numpy()[which]),
+            ("build_position", layout.build_position.numpy()[which]),
         ):
             model_order = np.empty_like(values)
             model_order[order] = values
@@ -339,6 +341,7 @@ class SoilState:
         """
         data = current_format(data, len(self.position))
         layout = self.layout
+        assert layout is not None, "a state filled in model order needs its layout"
         order = layout.order.numpy()
         slot = layout.slot.numpy()
         neighbours = np.asarray(data["neighbours"])

@@ -1,4 +1,4 @@
-"""The contact model against closed-form theory (DESIGN.md section 6)."""
+"""The contact model against closed-form theory (docs/physics.md, section 4)."""
 
 import math
 
@@ -28,7 +28,7 @@ def hertz_impact_theory(radius, e_modulus, nu, density, closing_speed):
 def test_hertz_impact_matches_theory(device, precision):
     radius, speed = 0.01, 10.0
     theory = hertz_impact_theory(radius, 48e9, 0.2, 2800.0, 2 * speed)
-    # published reference values (DESIGN.md section 6) agree with the closed form
+    # the reference values (docs/physics.md, section 4) agree with the closed form
     assert theory[0] == pytest.approx(274.1e-6, rel=1e-3)
     assert theory[1] == pytest.approx(10.70e3, rel=1e-3)
     assert theory[2] == pytest.approx(40.34e-6, rel=1e-3)
@@ -97,7 +97,7 @@ def test_rest_overlap_matches_hertz(device, precision, gravity):
 
 
 def test_single_precision_cannot_resolve_phobos_rest_but_mixed_can(device):
-    """DESIGN.md section 4: ~10 nm overlap vs float32 spacing of 6e-8 m at 0.5 m from the origin."""
+    """docs/physics.md, section 3: ~10 nm overlap vs float32 spacing of 6e-8 m at 0.5 m from the origin."""
     radius, gravity = 5e-3, 5.7e-3
     origin = (0.0, 0.0, 0.5)
     errors = {}

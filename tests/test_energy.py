@@ -1,4 +1,4 @@
-"""Energy conservation without damping and friction (DESIGN.md section 6)."""
+"""Energy conservation without damping and friction (docs/physics.md, section 4)."""
 
 import numpy as np
 import pytest

@@ -59,7 +59,8 @@ class {name}(Fmi2Slave):
             if TORQUE:
                 self.register_variable(Real(f"wheel_{{i}}.torque_command", causality=Fmi2Causality.output,
                                             variability=Fmi2Variability.continuous,
-                                            getter=lambda i=i: -self.p["wheel_radius"] * self.u[f"wheel_{{i}}.force.x"]),
+                                            getter=lambda i=i: (-self.p["wheel_radius"]
+                                                                * self.u[f"wheel_{{i}}.force.x"])),
                                        nested=False)
 
     def _speed(self, i):

@@ -1,4 +1,4 @@
-"""Tangential contact: Kelvin element with stick/slip, rolling, history (DESIGN.md section 6)."""
+"""Tangential contact: Kelvin element with stick/slip, rolling, history (docs/physics.md, sections 1 and 4)."""
 
 import math
 

@@ -1,4 +1,4 @@
-"""Jolt-Beeman integration and PID step control against Hertz theory (DESIGN.md section 3)."""
+"""Jolt-Beeman integration and PID step control against Hertz theory (docs/physics.md, section 2)."""
 
 import math
 
@@ -49,7 +49,7 @@ def adaptive_run(device, tolerance):
 
 
 def test_theory_values_of_the_impact():
-    # the closed form the tests compare with (DESIGN.md section 6 numbers at 2 x 10 m/s)
+    # the closed form the tests compare with (the Hertz impact of docs/physics.md, section 4, at 2 x 10 m/s)
     fast = advisor.hertz_impact(48e9 / (2 * (1 - 0.04)), 0.005, MASS / 2, 20.0)
     assert fast.max_overlap == pytest.approx(274.1e-6, rel=1e-3)
     assert fast.peak_force == pytest.approx(10.70e3, rel=1e-3)

@@ -191,8 +191,9 @@ def test_shear_friction_angle_rises_with_grain_friction_and_rolling_resistance(t
     & Roux, Phys. Rev. E 78, 011307, 2008; the frames and the short displacement of a box this
     small add dilation), 23-28 deg with friction 0.5, 31-43 deg (mean 37, sd 4) with rolling
     friction 0.3 as well. One specimen's scatter is as large as the rolling step, so the two
-    frictional cases fit two specimens each; the bounds leave about two scatters. The shear force on the upper half comes back on the lower half (the
-    grains' momentum barely changes): within 10 % over the residual window."""
+    frictional cases fit two specimens each; the bounds leave about two scatters. The shear
+    force on the upper half comes back on the lower half (the grains' momentum barely changes):
+    within 10 % over the residual window."""
     frictionless = shear_angle(tmp_path, "mu0", 0.0, 0.0, "friction = false")
     frictional = shear_angle(tmp_path, "mu05", math.degrees(math.atan(0.5)), 0.0, replicas=2)
     rolling = shear_angle(tmp_path, "mu05_roll", math.degrees(math.atan(0.5)), 0.3, replicas=2)

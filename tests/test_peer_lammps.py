@@ -41,8 +41,8 @@ def hertz_impact_theory(radius, youngs_modulus, poisson, density, closing_speed)
     return delta_max, peak_force, contact_time
 
 
-def test_hertz_theory_matches_design_table():
-    # The DESIGN.md section 6 numbers, so the formulas above are the right ones.
+def test_hertz_theory_matches_the_reference_table():
+    # The Hertz-impact numbers of docs/physics.md, section 4, so the formulas above are the right ones.
     delta, force, t_c = hertz_impact_theory(0.01, 48e9, 0.2, 2800.0, 20.0)
     assert delta == pytest.approx(274.1e-6, rel=1e-3)
     assert force == pytest.approx(10.70e3, rel=1e-3)

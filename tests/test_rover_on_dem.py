@@ -191,10 +191,12 @@ def test_coupled_result_converges_as_the_macro_step_shrinks():
         soil.place_wheels(rig.wheel_kinematics())
         coupler = Coupler(soil, rig, substeps * soil.dt, gravity=(0, 0, -gravity))
         samples = []
-        coupler.run(
-            8 * 140 * soil.dt,
-            callback=lambda c: samples.append(rig.position.copy()) if c.step_count % (8 // substeps) == 0 else None,
-        )
+
+        def sample(c, samples=samples, rig=rig, every=8 // substeps):
+            if c.step_count % every == 0:
+                samples.append(rig.position.copy())
+
+        coupler.run(8 * 140 * soil.dt, callback=sample)
         paths[substeps] = np.array(samples)
     reference = paths[1]
     assert np.ptp(reference[:, 2]) > 5e-5 and np.ptp(reference[:, 0]) > 5e-4, "it bounces and rolls"

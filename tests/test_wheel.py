@@ -269,7 +269,7 @@ def test_saved_bed_reloads_bit_identically_and_runs_the_same(device, tmp_path):
     np.testing.assert_array_equal(sim2.positions(), sim.positions())
     # and a file that is not a bed is refused clearly
     (tmp_path / "junk.h5").write_bytes(b"not hdf5")
-    with pytest.raises(Exception):
+    with pytest.raises(ValueError, match="junk.h5.*not a readable HDF5 bed file"):
         load_bed(tmp_path / "junk.h5")
 
 

@@ -1,6 +1,6 @@
 """LAMMPS (GRANULAR package) as a peer to measure regolith-cosim against.
 
-Same physics class as our DEM core (DESIGN.md sections 2 and 7): Hertz normal
+Same physics class as our DEM core (docs/physics.md, section 1): Hertz normal
 force from material constants, Mindlin tangential spring with history and a
 Coulomb limit, optional SDS rolling resistance, restitution-based damping.
 Everything here is SI (LAMMPS ``units si``), numpy in and numpy out, one MPI
@@ -35,8 +35,8 @@ model on every ``fix wall/gran``)::
   turns it into the Tsuji-form damping force
   F_d = -eta v_n, eta = 2 sqrt(5/6) beta sqrt(m* k_t), beta = -ln e / sqrt(pi^2 + ln^2 e),
   k_t = 2 E* a = 3/2 F_N/delta the tangent Hertz stiffness (a = sqrt(R* delta)).
-  That is the DESIGN.md mapping ("D_eff = sqrt(5/6) D with the tangent
-  stiffness") with D = beta, i.e. the same e -> damping map as ours.
+  That is Lehr damping on the tangent stiffness (docs/physics.md, section 1)
+  with D_eff = sqrt(5/6) D and D = beta, i.e. the same e -> damping map as ours.
 * ``tangential mindlin NULL 1.0 mu``: k_t = 8 G* a from E, nu (NULL), tangential
   damping = 1.0 x normal damping, Coulomb limit mu |F_N|. One friction
   coefficient (LAMMPS has no separate stick and slip angles).

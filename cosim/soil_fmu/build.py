@@ -202,7 +202,8 @@ def variables(wheel_count: int, dem_step: float, gravity, starts: np.ndarray) ->
     return rows
 
 
-def _number(value: float) -> str:
+def _number(value: float | str) -> str:
+    """A Float64 start value as the exact text of a float."""
     return repr(float(value))
 
 
@@ -284,6 +285,7 @@ def _scalar_variable(v: Variable) -> str:
         return f'{head}<Real unit="{v.unit}"{start}/></ScalarVariable>'
     if v.type == "Int32":
         return f"{head}<Integer/></ScalarVariable>"
+    assert isinstance(v.start, str)  # every String variable has a start text
     return f"{head}<String start={quoteattr(v.start)}/></ScalarVariable>"
 
 
@@ -297,6 +299,7 @@ def _variable_fmi3(v: Variable) -> str:
         return f'{head} unit="{v.unit}"{start}/>'
     if v.type == "Int32":
         return f"{head}/>"
+    assert isinstance(v.start, str)  # every String variable has a start text
     return f"{head}><Start value={quoteattr(v.start)}/></String>"
 
 

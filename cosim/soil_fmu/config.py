@@ -10,8 +10,12 @@ import json
 import math
 import os
 from dataclasses import asdict, dataclass, field
+from typing import TYPE_CHECKING
 
 import numpy as np
+
+if TYPE_CHECKING:  # soil (and Warp) load only when a soil is built
+    from soil import ContactLaw, GrouserWheel, Material, MeshWheel
 
 CONFIG_FORMAT = "regolith-cosim soil FMU 1"
 
@@ -22,15 +26,15 @@ class SoilFmuConfig:
 
     bed_file: str
     """A settled bed saved by soil.bed.save_bed (its grains, walls, materials and gravity)."""
-    wheel: object
+    wheel: GrouserWheel | MeshWheel
     """Shape of every wheel: soil.GrouserWheel or soil.MeshWheel."""
-    wheel_material: object
+    wheel_material: Material
     """soil.Material of the wheels."""
     dem_step: float
     """DEM step [s]; a macro step is split into whole DEM steps of at most this length."""
     surface_height: float
     """Undisturbed soil surface z [m] (sinkage is measured from it)."""
-    law: object = None
+    law: ContactLaw | None = None
     """soil.ContactLaw switches; None: rolling and cohesion on when a material uses them."""
     precision: str = "mixed"
     """Floating-point mode of the DEM: single, double or mixed."""
@@ -91,6 +95,7 @@ def soil_config_from(path, bed_folder=None) -> SoilFmuConfig:
         if bed_folder is None and not plan.bed.bed_file:
             raise ValueError("a scene without bed.bed_file needs a bed_folder to settle its bed in")
         bed = settled_bed(plan, os.fspath(bed_folder) if bed_folder else "")
+    assert plan.testbed is not None, "a soil FMU is exported from a single-wheel scene"
     return SoilFmuConfig(
         bed_file=os.path.abspath(bed.path),
         wheel=plan.wheel.shape,
@@ -171,6 +176,7 @@ def soil_from_config(data: dict, bed_file, dem_step: float | None = None, device
         )
     wheel = dict(data["wheel"])
     kind = wheel.pop("type")
+    shape: GrouserWheel | MeshWheel
     if kind == "grouser":
         shape = GrouserWheel(**wheel)
     else:

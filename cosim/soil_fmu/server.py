@@ -120,6 +120,7 @@ class StepStart:
 
     def restore(self) -> None:
         sim = self.soil.sim
+        assert self.state is not None, "restore() follows take()"
         if sim.state.capacity > self.state.capacity:  # the refused step widened the contact history
             self.state.grow_capacity(sim.state.capacity)
         sim.state.assign(self.state)

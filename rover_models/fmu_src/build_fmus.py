@@ -131,7 +131,8 @@ def _model_description_fmi3(model_identifier: str) -> str:
     vr = 1
     for name, start in _PARAMETERS:
         rows.append(
-            f'    <Float64 name="{name}" valueReference="{vr}" causality="parameter" variability="tunable" start="{start!r}"/>'
+            f'    <Float64 name="{name}" valueReference="{vr}" causality="parameter" variability="tunable" '
+            f'start="{start!r}"/>'
         )
         vr += 1
     for name in _INPUTS:
@@ -146,7 +147,8 @@ def _model_description_fmi3(model_identifier: str) -> str:
     variables = "\n".join(rows)
     return f"""<?xml version="1.0" encoding="UTF-8"?>
 <fmiModelDescription fmiVersion="3.0" modelName="{model_identifier}" instantiationToken="{{{uuid.uuid4()}}}"
-    description="Single-wheel test rig (regolith-cosim)" generationTool="regolith-cosim" variableNamingConvention="structured">
+    description="Single-wheel test rig (regolith-cosim)" generationTool="regolith-cosim"
+    variableNamingConvention="structured">
   <CoSimulation modelIdentifier="{model_identifier}" canHandleVariableCommunicationStepSize="true"
       fixedInternalStepSize="0.001" canReturnEarlyAfterIntermediateUpdate="false"/>
   <DefaultExperiment startTime="0" stopTime="1" stepSize="0.001"/>

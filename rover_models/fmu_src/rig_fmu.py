@@ -16,6 +16,7 @@ False, pythonfmu's Discard/Error answer) without changing the state.
 """
 
 import math
+from collections.abc import Callable
 
 from pythonfmu import Fmi2Causality, Fmi2Slave, Fmi2Variability, Real
 
@@ -61,14 +62,17 @@ class RigFmu(Fmi2Slave):
             reg(name, self.p, Fmi2Causality.parameter, Fmi2Variability.tunable)
         for name in self.u:
             reg(name, self.u, Fmi2Causality.input, Fmi2Variability.continuous)
-        outputs = {}
+        outputs: dict[str, Callable[..., float]] = {}
         for a in AXES:
             outputs[f"wheel_0.position.{a}"] = lambda a=a: {
                 "x": self.s["x"],
                 "y": 0.0,
                 "z": self.p["hub_height"] + self.s["z"],
             }[a]
-        half = lambda: 0.5 * self.s["theta"]
+
+        def half():
+            return 0.5 * self.s["theta"]
+
         outputs["wheel_0.orientation.w"] = lambda: math.cos(half())
         outputs["wheel_0.orientation.x"] = lambda: 0.0
         outputs["wheel_0.orientation.y"] = lambda: math.sin(half())
