@@ -448,3 +448,13 @@ def test_export_fmu_command_from_a_run_folder(tmp_path):
     assert config["surface_height"] == pytest.approx(run_info["metrics"]["height"], rel=1e-12)
     assert config["wheel"]["radius"] == loaded.scene.wheel.radius == SMALL_WHEEL.radius
     assert float(description.defaultExperiment.stepSize) == pytest.approx(macro_step, rel=1e-12)
+
+
+def test_a_rover_scene_is_refused_before_a_bed_is_settled(tmp_path):
+    """A soil FMU serves a [testbed] scene: a rover scene gets a SceneError naming the section, and
+    no bed is settled into the folder first."""
+    from cosim.scene import SceneError
+
+    with pytest.raises(SceneError, match=r"testbed: a soil FMU is exported from a single-wheel scene"):
+        soil_config_from(HERE.parent / "examples" / "phobos_rover_patch.toml", bed_folder=tmp_path)
+    assert not any(tmp_path.iterdir())

@@ -92,10 +92,12 @@ def soil_config_from(path, bed_folder=None) -> SoilFmuConfig:
         bed = bed_from_file(bed_path)
     else:
         plan = load_plan(path)
+        _require_single_wheel(plan, path)  # before a bed is settled
         if bed_folder is None and not plan.bed.bed_file:
             raise ValueError("a scene without bed.bed_file needs a bed_folder to settle its bed in")
         bed = settled_bed(plan, os.fspath(bed_folder) if bed_folder else "")
-    assert plan.testbed is not None, "a soil FMU is exported from a single-wheel scene"
+    _require_single_wheel(plan, path)
+    assert plan.testbed is not None
     return SoilFmuConfig(
         bed_file=os.path.abspath(bed.path),
         wheel=plan.wheel.shape,
@@ -193,3 +195,17 @@ def soil_from_config(data: dict, bed_file, dem_step: float | None = None, device
         order_seed=data.get("order_seed"),
         law=law,
     )
+
+
+def _require_single_wheel(plan, path) -> None:
+    """A soil FMU serves the wheels of a [testbed] scene; a rover scene ([rover]) is refused."""
+    if plan.testbed is None:
+        from ..scene import SceneError
+
+        raise SceneError(
+            [
+                "testbed: a soil FMU is exported from a single-wheel scene ([testbed]); "
+                "this scene drives a rover ([rover]): run it with `cosim run`"
+            ],
+            os.fspath(path),
+        )
