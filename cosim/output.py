@@ -11,7 +11,7 @@ and a `description`; every time series grows along its first axis.
         message         why the run stopped ("" when complete)
         summary         JSON: the run's summary (cosim.metrics.summarize), written at the end
         name, scene_toml (the scene as run), scene_source (the scene file's text), versions (JSON),
-        created, precision, device, scheme, order_seed (-1: none), dt [s], macro_step [s], substeps,
+        created, precision, device, scheme, integrator, order_seed (-1: none), dt [s], macro_step [s], substeps,
         duration [s], gravity [m/s^2] (3,), surface_height [m], start_position [m] (3,), omega [rad/s],
         rim_radius [m], outer_radius [m], wheel_load [N], mode, particle_count, wheel_names (JSON),
         bed (JSON: source, settle report, metrics), findings (JSON: the validity checks at the start)
@@ -263,6 +263,7 @@ REQUIRED_ATTRIBUTES = (
     "precision",
     "device",
     "scheme",
+    "integrator",
     "order_seed",
     "dt",
     "macro_step",

@@ -304,12 +304,18 @@ class SoilPatch:
         return np.random.default_rng([self.order_seed, self.moves]).permutation(count)
 
     # -- building ----------------------------------------------------------------------------
-    def start(self, centre) -> Simulation:
+    def start(self, centre, integrator=None) -> Simulation:
         """The first patch: the lattice's grains in the window around `centre` [m] (x, y), the band frozen."""
         self.centre = np.asarray(centre, dtype=np.float64).reshape(2).copy()
         self.origin = self.centre - self.half
         return self._assemble(
-            None, self._lattice(*self.window(), None), time=0.0, steps=0, control=None, monitor=None, integrator=None
+            None,
+            self._lattice(*self.window(), None),
+            time=0.0,
+            steps=0,
+            control=None,
+            monitor=None,
+            integrator=integrator,
         )
 
     def follow(self, sim: Simulation, point) -> Simulation | None:

@@ -215,6 +215,8 @@ class RunPlan:
     scheme: str
     order_seed: int | None
     output: OutputSection
+    integrator: str = "velocity-verlet"
+    """The DEM integrator's name (run.integrator): 'velocity-verlet' or 'jolt-beeman'."""
     dt_setting: str = field(default="run.dt_factor")
     """The scene key that sets the DEM step (named in divergence messages)."""
     rover: RoverPlan | None = None
@@ -541,6 +543,7 @@ def resolve(scene: Scene) -> RunPlan:
         substeps=substeps,
         drive_steps=max(1, int(round(scene.run.duration / macro_step))),
         scheme=scene.run.scheme,
+        integrator=scene.run.integrator,
         order_seed=scene.run.order_seed,
         output=scene.output,
         dt_setting=dt_key,
@@ -930,3 +933,10 @@ def load_plan(path, overrides=None) -> RunPlan:
         return resolve(scene)
     except SceneError as error:
         raise SceneError(error.problems, os.fspath(path)) from None
+
+
+def make_integrator(name: str):
+    """A new integrator object for a plan's `integrator` name."""
+    from soil import JoltBeeman, VelocityVerlet
+
+    return JoltBeeman() if name == "jolt-beeman" else VelocityVerlet()

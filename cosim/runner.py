@@ -481,6 +481,7 @@ def _attributes(plan: RunPlan, system: CoupledSystem, source: str, findings) -> 
         "precision": plan.precision,
         "device": plan.device,
         "scheme": plan.scheme,
+        "integrator": plan.integrator,
         "order_seed": -1 if plan.order_seed is None else plan.order_seed,
         "dt": plan.dt,
         "macro_step": plan.macro_step,

@@ -17,7 +17,7 @@
     [patch]    a soil patch that follows the rover (the [bed] is its settled tile): length, width,
                band, clearance, recentre_distance, tile_margin
     [landing]  enabled, max_time, speed_ratio, hold_time
-    [run]      duration, dt | dt_factor, macro_step | substeps, scheme, order_seed
+    [run]      duration, dt | dt_factor, macro_step | substeps, scheme, integrator, order_seed
     [output]   snapshot_interval, checkpoint_interval, flush_every
 
 This module only validates: every number must be finite and in its range, unknown keys
@@ -489,6 +489,9 @@ class RunSection(_Section):
     substeps: int | None = Field(None, ge=1)
     """DEM steps per macro step (instead of macro_step; default 10)."""
     scheme: Literal["gauss-seidel", "jacobi"] = "gauss-seidel"
+    integrator: Literal["velocity-verlet", "jolt-beeman"] = "velocity-verlet"
+    """The DEM integrator at the fixed step dt: velocity-verlet, or the paper's jolt-beeman
+    predictor-corrector (its damped modes need gamma dt <= 0.6: docs/physics.md section 2)."""
     order_seed: int | None = Field(None, ge=0)
     """Permute particle indices (summation order only), for replica studies (>= 0)."""
 

@@ -26,7 +26,7 @@ from .coupler import Coupler
 from .dem_soil import DemSoil
 from .metrics import WheelGeometry
 from .patch import SoilPatch, Tile
-from .plan import RunPlan, SceneError
+from .plan import RunPlan, SceneError, make_integrator
 from .rover import RoverDriver, make_controller, open_rover
 from .single_wheel import SingleWheelRig
 
@@ -62,7 +62,7 @@ class CoupledSystem:
             device=plan.device, precision=plan.precision, law=plan.law, order_seed=plan.order_seed
         )
         restore_state(model, state, saved)
-        sim = Simulation(model, state, control)
+        sim = Simulation(model, state, control, integrator=make_integrator(plan.integrator))
         soil = DemSoil(sim, plan.dt, bed.surface_height)
         hub = plan.hub_start(bed.surface_height)
         highest = soil.highest_grain_under(0, hub)
@@ -110,7 +110,7 @@ class CoupledSystem:
                 plan.order_seed,
             )
             centre = np.asarray(r.start[:2]) + r.hub_offsets[:, :2].mean(axis=0)
-            sim = patch.start(centre)
+            sim = patch.start(centre, make_integrator(plan.integrator))
             surface = patch.surface_height(sim)
         else:
             builder, saved = load_bed(bed.path)
@@ -121,7 +121,7 @@ class CoupledSystem:
                 device=plan.device, precision=plan.precision, law=plan.law, order_seed=plan.order_seed
             )
             restore_state(model, state, saved)
-            sim = Simulation(model, state, control)
+            sim = Simulation(model, state, control, integrator=make_integrator(plan.integrator))
             surface = bed.surface_height
         soil = DemSoil(sim, plan.dt, surface, patch=patch)
         rover = open_rover(plan)

@@ -265,3 +265,35 @@ def test_timestep_study_ends_with_an_answer_in_bounded_tries(scene_path, tiny_be
         assert report["largest_stable"] < report["first_unstable"]
         assert report["tried"][-1]["stable"] is False
     assert json.loads((tmp_path / "ts" / "study.json").read_text())["kind"] == "timestep"
+
+
+def test_a_jolt_beeman_scene_carries_the_wheel_and_resumes_bitwise(scene_path, tiny_bed, baseline, tmp_path):
+    """run.integrator = "jolt-beeman" (the paper's predictor-corrector): the wheel lands and, over the
+    drive, the soil carries its weight (mean vertical force within 15 % of m g; measured -8 % with
+    jolt-Beeman, -3.5 % with velocity Verlet on this bed: the wheel still rocks on a few coarse
+    grains) at a sinkage between zero and the wheel's radius; the file names the integrator, and a
+    stopped run resumes bit for bit (the previous force travels in the checkpoint). Which grains give
+    way differs between integrators, so the sinkage is bounded, not compared."""
+    plan = _plan(scene_path, tiny_bed, 'run.integrator="jolt-beeman"')
+    assert plan.integrator == "jolt-beeman"
+    whole = tmp_path / "jb"
+    assert run_plan(plan, str(whole)).status in ("complete", "unsteady")
+    weight = plan.testbed.mass * plan.g
+    for folder in (whole, baseline):
+        with open_results(folder / "results.h5") as f:
+            drive = f["wheels/phase"][()] == 1
+            vertical = -(f["wheels/force"][:, 0, :] @ np.asarray(plan.gravity)) / plan.g
+            assert drive.sum() > 20 and abs(vertical[drive].mean() - weight) < 0.15 * weight, folder
+            assert 0 < f["wheels/sinkage"][:, 0][drive].mean() < plan.wheel.rim_radius
+            if folder == whole:
+                assert f.attrs["integrator"] == "jolt-beeman"
+    stopped = tmp_path / "stopped"
+
+    def request_stop(runner):
+        if runner.system.coupler.step_count == 25:
+            runner.stop_requested = True
+
+    with pytest.raises(RunInterrupted):
+        run_plan(plan, str(stopped), hooks={"step": request_stop})
+    resume(str(stopped))
+    _assert_same_run(whole, stopped)
