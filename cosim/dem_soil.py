@@ -8,10 +8,12 @@ from collections.abc import Sequence
 import numpy as np
 from numpy.typing import ArrayLike
 
+from soil.errors import RegolithWarning
+
 from .contract import WheelKinematics, WheelWrench
 
 
-class WallProximityWarning(UserWarning):
+class WallProximityWarning(RegolithWarning):
     """A wheel came within a few grain radii of a container wall: results feel the wall."""
 
 

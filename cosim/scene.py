@@ -69,7 +69,7 @@ class SceneSection(_Section):
     gravity: str | float | list[float] = "phobos"
     """A preset name, a magnitude along -Z [m/s^2] or a 3-vector [m/s^2]."""
     precision: Literal["single", "double", "mixed"] = "mixed"
-    """Floating-point mode of the DEM (docs/precision.md)."""
+    """Floating-point mode of the DEM (docs/physics.md section 3)."""
     device: str = "default"
     """Warp device: 'default' (CUDA when a GPU is present, else the CPU), 'cpu', 'cuda' or 'cuda:N'."""
 

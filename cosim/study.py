@@ -328,10 +328,10 @@ def replica_run(
     write_json(os.path.join(out_dir, "ensemble.json"), report)
     _write_csv(
         os.path.join(out_dir, "ensemble.csv"),
-        [{"metric": k, **v} for k, v in stats["metrics"].items()],
-        ["metric", "n", "mean", "std", "ci95", "min", "max", "tolerance", "deterministic"],
+        [{"metric": k, **v, "unit": METRIC_UNITS.get(k, "")} for k, v in stats["metrics"].items()],
+        ["metric", "unit", "n", "mean", "std", "ci95", "min", "max", "tolerance", "deterministic"],
         {},
-    )
+    )  # one metric per row: its unit is a column (mean, std, ci95, min, max, tolerance are in it)
     report["text"] = _ensemble_text(stats, f"{plan.name}: {replicas} replicas (summation order), {out_dir}")
     report["ok"] = stats["steady"] == replicas and stats["steady"] >= 2
     return report

@@ -90,7 +90,9 @@ def test_replicas_give_error_bars_on_a_real_run(tmp_path, tiny_bed, capsys):
     assert all(s["slip"] == pytest.approx(0.3, abs=1e-9) for s in steady)
     assert "drawbar_pull" in text and "95% CI" in text
     header = (out / "ensemble.csv").read_text().splitlines()[0]
-    assert header.startswith("metric,n,mean,std,ci95")
+    assert header.startswith("metric,unit,n,mean,std,ci95")
+    units = {line.split(",")[0]: line.split(",")[1] for line in (out / "ensemble.csv").read_text().splitlines()[1:]}
+    assert units["drawbar_pull"] == "N" and units["sinkage"] == "m" and units["slip"] == "1"
 
 
 def test_drawbar_pull_rises_with_slip(tmp_path, tiny_bed, capsys):
