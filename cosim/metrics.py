@@ -19,7 +19,8 @@ rule (White 1997: the truncation that minimises the standard error of the mean o
 remains) applied to the forward speed (or, at imposed slip, the drawbar pull) and the
 sinkage; over that window slip = 1 - mean(v) / (mean(omega) r) from mean speeds, sinkage,
 drawbar pull, DP/W and torque are means. A run with no steady state gets a status saying
-why: 'never touched the soil', 'no landing', 'airborne', 'stuck' or 'too short'.
+why: 'never touched the soil', 'no landing', 'airborne', 'stuck', 'too short' or 'still
+sinking'.
 
 For a rover (`rover_quantities` per macro step, `summarize_rover` over a run), in the rover's
 frame (forward = its body's +x axis turned into the horizontal plane, up = +z):
@@ -61,6 +62,7 @@ NO_LANDING = "no landing"
 AIRBORNE = "airborne"
 STUCK = "stuck"
 TOO_SHORT = "too short"
+SINKING = "still sinking"
 
 WHEEL_UNITS = {
     "travel": "m",
@@ -178,6 +180,7 @@ def summarize(
     mode: str = "free",
     landed: bool = True,
     min_fraction: float = 0.25,
+    grain_radius: float | None = None,
 ) -> dict:
     """Steady-state metrics of one wheel from written series (cosim.output.read_series keys:
     time, phase, linear_velocity, angular_velocity, slip, sinkage, sinkage_tips, drawbar_pull,
@@ -186,8 +189,12 @@ def summarize(
     Returns {'steady_state': status, 'window': [t0, t1] [s], and over the window: 'slip' [-],
     'sinkage', 'sinkage_tips' [m], 'drawbar_pull' [N], 'dp_over_w' [-], 'driving_torque' [N m],
     'normal_force' [N], 'forward_speed' [m/s], 'contact_fraction' [-], with '<name>_sem'
-    (batch-means standard error within the window); 'travel' [m] over the drive,
-    'landing_time' [s]}.
+    (batch-means standard error within the window); 'sinkage_rate' [m/s] (slope of the
+    sinkage over the window); 'travel' [m] over the drive, 'landing_time' [s]}.
+
+    The window is the steady state of the traction (forward speed, or drawbar pull at an
+    imposed slip). The sinkage must be steady over it as well: stationary by MSER-5, or
+    drifting by less than half of `grain_radius` [m] over the window; else 'still sinking'.
     """
     time = np.asarray(series["time"], dtype=float)
     phase = np.asarray(series["phase"])
@@ -208,9 +215,18 @@ def summarize(
     pull = np.asarray(series["drawbar_pull"])[index, 0]
     out["travel"] = float(np.asarray(series["travel"])[index[-1], 0])
     key = pull if mode == "slip" else forward
-    start, found = steady_window({"driving": key, "sinkage": sinkage}, min_fraction)
+    start, found = steady_window({"driving": key}, min_fraction)
     window = index[start:] if found else index[len(index) // 2 :]
     out["window"] = [float(time[window[0]]), float(time[window[-1]])]
+    # the sinkage over the traction's window: stationary by MSER-5, or drifting by less than
+    # half a grain radius over it (the grain-scale roughness of the surface it is measured from)
+    window_sinkage, window_time = sinkage[window - index[0]], time[window]
+    rate = float(np.polyfit(window_time - window_time[0], window_sinkage, 1)[0]) if len(window) > 1 else 0.0
+    out["sinkage_rate"] = rate
+    cut = mser_truncation(window_sinkage)
+    sinkage_steady = (cut is not None and len(window_sinkage) - cut >= max(min_fraction * len(window_sinkage), 4)) or (
+        grain_radius is not None and abs(rate) * (window_time[-1] - window_time[0]) < 0.5 * grain_radius
+    )
     quantities = {
         "forward_speed": forward[window - index[0]],
         "sinkage": sinkage[window - index[0]],
@@ -232,6 +248,8 @@ def summarize(
         out["steady_state"] = STUCK
     elif not found:
         out["steady_state"] = TOO_SHORT
+    elif not sinkage_steady:
+        out["steady_state"] = SINKING
     return out
 
 

@@ -395,6 +395,7 @@ class Runner:
                 wheel_load=plan.wheel_load,
                 mode=plan.testbed.mode,
                 landed=not self.landing_failed,
+                grain_radius=plan.bed.spec.radius_mean,
             )
         else:
             out = metrics.summarize_rover(

@@ -110,7 +110,17 @@ def test_runs_without_a_steady_state_say_why():
     assert metrics.summarize(_series(v_ss=1e-6), rim_radius=0.04, wheel_load=10.0)["steady_state"] == metrics.STUCK
     drifting = _series()
     drifting["sinkage"][60:, 0] = np.linspace(0.004, 0.03, 400)  # digging in without end
-    assert metrics.summarize(drifting, rim_radius=0.04, wheel_load=10.0)["steady_state"] == metrics.TOO_SHORT
+    assert (
+        metrics.summarize(drifting, rim_radius=0.04, wheel_load=10.0, grain_radius=0.002)["steady_state"]
+        == metrics.SINKING
+    )
+    creeping = _series()  # 0.5 mm over the whole drive: less than half a 2 mm grain radius over the window
+    creeping["sinkage"][60:, 0] += np.linspace(0.0, 0.0005, 400)
+    steady = metrics.summarize(creeping, rim_radius=0.04, wheel_load=10.0, grain_radius=0.002)
+    assert steady["steady_state"] == metrics.STEADY and 0 < steady["sinkage_rate"]
+    unsettled = _series()  # the traction itself never settles: the speed keeps rising
+    unsettled["linear_velocity"][60:, 0, 0] = np.linspace(0.001, 0.02, 400)
+    assert metrics.summarize(unsettled, rim_radius=0.04, wheel_load=10.0)["steady_state"] == metrics.TOO_SHORT
     assert (
         metrics.summarize(_series(), rim_radius=0.04, wheel_load=10.0, landed=False)["steady_state"]
         == metrics.NO_LANDING
