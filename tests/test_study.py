@@ -201,6 +201,9 @@ def test_a_folder_in_use_is_refused_and_left_alone(scene_path, tiny_bed, baselin
         ('bed.bed_file="/nonexistent/bed.h5"', "bed.bed_file"),
         ("testbed.omega=nan", "testbed.omega"),
         ("bed.seed=-1", "bed.seed"),
+        ("bed.length=inf", "bed.length"),
+        ('scene.device="cuda:63"', "scene.device"),
+        ('bed.bed_file="NOT_HDF5"', "bed.bed_file"),
     ],
 )
 def test_overwrite_with_a_bad_scene_keeps_the_old_run(
@@ -213,6 +216,9 @@ def test_overwrite_with_a_bad_scene_keeps_the_old_run(
     old = tmp_path / "old"
     shutil.copytree(baseline, old)
     before = {p.name: p.stat().st_mtime_ns for p in old.iterdir()}
+    if "NOT_HDF5" in override:  # a file that exists but is not a bed
+        (tmp_path / "bed.h5").write_bytes(b"not an hdf5 file")
+        override = override.replace("NOT_HDF5", str(tmp_path / "bed.h5"))
     code = main(
         [
             "run",
@@ -297,3 +303,18 @@ def test_a_jolt_beeman_scene_carries_the_wheel_and_resumes_bitwise(scene_path, t
         run_plan(plan, str(stopped), hooks={"step": request_stop})
     resume(str(stopped))
     _assert_same_run(whole, stopped)
+
+
+def test_a_timestep_search_that_finds_no_stable_step_ends_with_a_clear_failure(scene_path, tiny_bed, tmp_path, capsys):
+    """Every try explodes (a step 20 x the advised one): the search stops after --max-tries runs,
+    logs one line per try, says that no stable step was found, and the CLI exits 1."""
+    from cosim.cli import main
+
+    args = ["study", "timestep", scene_path, "--out", str(tmp_path / "ts"), "--max-tries", "2"]
+    for setting in (f'bed.bed_file="{tiny_bed}"', "run.dt=0.006", "run.macro_step=0.006"):
+        args += ["--set", setting]
+    assert main(args) == 1
+    text = capsys.readouterr().err
+    assert "try 1/2" in text and "try 2/2" in text and "UNSTABLE" in text and "no stable step found in 2 tries" in text
+    report = json.loads((tmp_path / "ts" / "study.json").read_text())
+    assert report["largest_stable"] is None and len(report["tried"]) == 2
