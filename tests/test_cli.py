@@ -7,6 +7,7 @@ import os
 import subprocess
 import sys
 
+import numpy as np
 import pytest
 
 from cosim.cli import main
@@ -290,3 +291,33 @@ def test_a_failed_task_is_reported_and_the_others_finish(tmp_path, tiny_bed):
         bad, good = ex.map(run_task, tasks)
     assert not bad["ok"] and "a part of the path is a file" in bad["error"]
     assert good["ok"] and good["summary"]["macro_steps"] > 0
+
+
+def test_a_disk_that_turns_read_only_mid_run_loses_nothing_written(tmp_path, tiny_bed, capsys, monkeypatch):
+    """The second checkpoint cannot be written (EROFS): one clear line with the path and exit 5, no
+    traceback; the first checkpoint and the rows it covers stay readable, and the run resumes from it."""
+    from cosim import runner
+    from cosim.output import open_results
+
+    real = runner.write_checkpoint
+    calls = []
+
+    def read_only_after_first(path, data):
+        calls.append(path)
+        if len(calls) >= 2:
+            raise OSError(errno.EROFS, "Read-only file system", str(path))
+        return real(path, data)
+
+    monkeypatch.setattr(runner, "write_checkpoint", read_only_after_first)
+    scene = write_tiny(tmp_path)
+    out = tmp_path / "run"
+    code = main(["run", scene, "--out", str(out), "--no-progress", "--set", f'bed.bed_file="{tiny_bed}"'])
+    err = capsys.readouterr().err
+    assert code == 5 and "Read-only file system" in err and "checkpoint" in err and "Traceback" not in err
+    with open_results(out / "results.h5") as f:
+        assert f["wheels/time"].shape[0] > 0
+    monkeypatch.setattr(runner, "write_checkpoint", real)  # the disk is writable again
+    assert main(["resume", str(out), "--no-progress"]) in (0, 6)
+    with open_results(out / "results.h5") as f:
+        time = f["wheels/time"][()]
+    assert np.all(np.diff(time) > 0)  # no lost or duplicated rows
