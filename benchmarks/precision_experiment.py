@@ -55,6 +55,55 @@ def stiff_overrides(plan, modulus: float) -> dict:
     }  # the bed settles with the run's step
 
 
+END_KEYS = ("landed_sinkage", "final_sinkage", "final_travel", "drive_slip")
+"""Per replica, from its results.h5: sinkage [m] at the end of the landing and over the last
+tenth of the run, travel [m] at the end, slip [-] from mean speeds over the drive's second half.
+The paper compares such trajectories over time, whether or not a run reached a steady state."""
+
+
+def end_values(path: str) -> dict:
+    import numpy as np
+
+    from cosim.metrics import slip_of
+    from cosim.output import read_series
+
+    s = read_series(path)
+    drive = np.flatnonzero(s["phase"] == 1)
+    sinkage = s["sinkage"][:, 0]
+    last = max(1, len(sinkage) // 10)
+    late = drive[len(drive) // 2 :] if len(drive) else drive
+    rim = float(s["attrs"]["rim_radius"]) if "attrs" in s else None
+    return {
+        "landed_sinkage": float(sinkage[drive[0]]) if len(drive) else math.nan,
+        "final_sinkage": float(sinkage[-last:].mean()),
+        "final_travel": float(s["travel"][-1, 0]),
+        "drive_slip": float(
+            slip_of(s["linear_velocity"][late, 0, 0].mean(), s["angular_velocity"][late, 0, 1].mean(), rim)
+        )
+        if len(late) and rim
+        else math.nan,
+    }
+
+
+def spread(ends: list[dict]) -> dict:
+    """Mean, standard deviation (ddof 1), min and max over the replicas of each END_KEYS value."""
+    import numpy as np
+
+    out = {}
+    for key in END_KEYS:
+        values = np.array([e[key] for e in ends], dtype=float)
+        values = values[np.isfinite(values)]
+        out.update(
+            {
+                f"{key}_mean": float(values.mean()) if len(values) else math.nan,
+                f"{key}_std": float(values.std(ddof=1)) if len(values) > 1 else math.nan,
+                f"{key}_min": float(values.min()) if len(values) else math.nan,
+                f"{key}_max": float(values.max()) if len(values) else math.nan,
+            }
+        )
+    return out
+
+
 def main(argv=None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--scene", default=os.path.join(ROOT, "benchmarks", "scenes", "precision_small.toml"))
@@ -90,6 +139,10 @@ def main(argv=None) -> None:
         )
         wall = time.perf_counter() - started
         for row in report["rows"]:
+            ends = [
+                end_values(os.path.join(args.out, name, row["precision"], f"replica_{k:03d}", "results.h5"))
+                for k in range(args.replicas)
+            ]
             rows.append(
                 {
                     "case": name,
@@ -97,6 +150,7 @@ def main(argv=None) -> None:
                     "dt": plan.dt,
                     "study_wall_time": wall,
                     **{k: v for k, v in row.items() if k != "stats"},
+                    **spread(ends),
                 }
             )
             print(json.dumps(rows[-1]), flush=True)
@@ -114,24 +168,20 @@ def main(argv=None) -> None:
             default=float,
         )
     print(
-        "\n| E [Pa] | dt [s] | precision | steady | wall per replica [s] | slip mean +- std | sinkage [mm] mean "
-        "+- std | travel [mm] mean +- std (min..max) |"
+        "\n| E [Pa] | dt [s] | precision | steady | wall per replica [s] | landed sinkage [mm] | final sinkage [mm] "
+        "| final travel [mm] (min..max) | slip, drive's 2nd half |"
     )
-    print("|---|---|---|---|---|---|---|---|")
+    print("|---|---|---|---|---|---|---|---|---|")
     for r in rows:
 
-        def cell(key, scale=1.0, r=r):
-            mean, std = r.get(f"{key}_mean"), r.get(f"{key}_std")
-            return "-" if mean is None else f"{mean * scale:.4g} +- {std * scale:.2g}"
+        def cell(key, scale=1e3, r=r):
+            return f"{r[key + '_mean'] * scale:.4g} +- {r[key + '_std'] * scale:.2g}"
 
-        travel = (
-            "-"
-            if r.get("travel_mean") is None
-            else (f"{cell('travel', 1e3)} ({r['travel_min'] * 1e3:.3g}..{r['travel_max'] * 1e3:.3g})")
-        )
         print(
             f"| {r['youngs_modulus']:.3g} | {r['dt']:.3g} | {r['precision']} | {r['steady']}/{r['replicas']} | "
-            f"{r.get('wall_time_mean', math.nan):.4g} | {cell('slip')} | {cell('sinkage', 1e3)} | {travel} |"
+            f"{r.get('wall_time_mean', math.nan):.4g} | {cell('landed_sinkage')} | {cell('final_sinkage')} | "
+            f"{cell('final_travel')} ({r['final_travel_min'] * 1e3:.3g}..{r['final_travel_max'] * 1e3:.3g}) | "
+            f"{cell('drive_slip', 1.0)} |"
         )
 
 
