@@ -9,7 +9,9 @@ settled bed and for the same number of wheel turns. For each the drive reports:
     vz_rms     RMS vertical hub speed during the drive / sqrt(g r) [-]
 
 The hop onset is the smallest Froude number at which the wheel leaves the soil
-(airborne > 1 %). cosim/advice.py sets FROUDE_LIMIT below it (docs/validity.md).
+(airborne > 1 %). Before it, the slip starts to depend on the speed (the test stops being
+quasi-static); cosim/advice.py sets FROUDE_LIMIT at the largest Froude number whose slip
+matches the slowest run's (docs/validity.md).
 
     python benchmarks/froude_hop.py --froude 0.01 0.03 0.1 0.3 --turns 0.5 --out runs/froude_hop [--replicas 2]
 """
