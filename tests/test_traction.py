@@ -71,10 +71,17 @@ def test_replicas_give_error_bars_on_a_real_run(tmp_path, tiny_bed, capsys):
     those of the steady replicas' summaries, and the scatter is real (the runs differ)."""
     scene = write_tiny(tmp_path)
     out = tmp_path / "replicas"
-    settings = [f'bed.bed_file="{tiny_bed}"', "run.duration=0.8", 'testbed.mode="slip"', "testbed.slip=0.3",
-                "testbed.omega=2.0"]
-    code = main(["run", scene, "--out", str(out), "--replicas", "3", "--serial"]
-                + [arg for setting in settings for arg in ("--set", setting)])
+    settings = [
+        f'bed.bed_file="{tiny_bed}"',
+        "run.duration=0.8",
+        'testbed.mode="slip"',
+        "testbed.slip=0.3",
+        "testbed.omega=2.0",
+    ]
+    code = main(
+        ["run", scene, "--out", str(out), "--replicas", "3", "--serial"]
+        + [arg for setting in settings for arg in ("--set", setting)]
+    )
     text = capsys.readouterr().out
     report = json.loads((out / "ensemble.json").read_text())
     steady = [r["summary"] for r in report["results"] if r["summary"]["steady_state"] == "steady"]
@@ -171,8 +178,12 @@ def test_the_gravity_twin_gives_the_same_dimensionless_results(tmp_path):
     twin, s = write_gravity_twin(scene, "earth", str(tmp_path / "twin.toml"))
     stats = []
     for path, out, time_scale in ((scene, "moon", 1.0), (twin, "earth", 1.0 / math.sqrt(s))):
-        settings = [f"run.duration={0.8 * time_scale!r}", 'testbed.mode="slip"', "testbed.slip=0.3",
-                    f"testbed.omega={2.0 / time_scale!r}"]
+        settings = [
+            f"run.duration={0.8 * time_scale!r}",
+            'testbed.mode="slip"',
+            "testbed.slip=0.3",
+            f"testbed.omega={2.0 / time_scale!r}",
+        ]
         stats.append(replica_run(load_plan(path, settings), str(tmp_path / out), 3, executor="serial")["stats"])
     moon, earth = (side["metrics"] for side in stats)
     for name in ("sinkage", "sinkage_tips", "dp_over_w"):
