@@ -16,9 +16,10 @@ Per wheel and macro step (`wheel_quantities`), in the wheel's own frame (axle = 
 
 Over a run (`summarize`): a steady-state window is found in the driving phase by the MSER-5
 rule (White 1997: the truncation that minimises the standard error of the mean of what
-remains) applied to the forward speed (or, at imposed slip, the drawbar pull) and the
-sinkage; over that window slip = 1 - mean(v) / (mean(omega) r) from mean speeds, sinkage,
-drawbar pull, DP/W and torque are means. A run with no steady state gets a status saying
+remains) applied to the forward speed (or, at imposed slip, the drawbar pull), the sinkage
+steady over that window too (MSER-5, or a drift under half a grain radius); over it
+slip = 1 - mean(v) / (mean(omega) r) from mean speeds, and sinkage, drawbar pull, DP/W and
+torque are means. A run with no steady state gets a status saying
 why: 'never touched the soil', 'no landing', 'airborne', 'stuck', 'too short' or 'still
 sinking'.
 
