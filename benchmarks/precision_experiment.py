@@ -64,7 +64,7 @@ The paper compares such trajectories over time, whether or not a run reached a s
 def end_values(path: str) -> dict:
     import numpy as np
 
-    from cosim.metrics import slip_of
+    from cosim.metrics import forward_speed, slip_of
     from cosim.output import read_series
 
     s = read_series(path)
@@ -77,9 +77,7 @@ def end_values(path: str) -> dict:
         "landed_sinkage": float(sinkage[drive[0]]) if len(drive) else math.nan,
         "final_sinkage": float(sinkage[-last:].mean()),
         "final_travel": float(s["travel"][-1, 0]),
-        "drive_slip": float(
-            slip_of(s["linear_velocity"][late, 0, 0].mean(), s["angular_velocity"][late, 0, 1].mean(), rim)
-        )
+        "drive_slip": float(slip_of(forward_speed(s)[late].mean(), s["angular_velocity"][late, 0, 1].mean(), rim))
         if len(late) and rim
         else math.nan,
     }

@@ -210,7 +210,7 @@ def summarize(
         out["steady_state"] = NO_LANDING
         return out
     index = np.flatnonzero(driving)
-    forward = _forward_speed(series)[index]
+    forward = forward_speed(series)[index]
     spin = np.asarray(series["angular_velocity"])[index, 0, 1]
     sinkage = np.asarray(series["sinkage"])[index, 0]
     pull = np.asarray(series["drawbar_pull"])[index, 0]
@@ -254,7 +254,7 @@ def summarize(
     return out
 
 
-def _forward_speed(series: dict) -> np.ndarray:
+def forward_speed(series: dict) -> np.ndarray:
     """Hub speed along the wheel's forward direction [m/s], shape (S,), wheel 0."""
     orientation = np.asarray(series["orientation"])[:, 0]
     velocity = np.asarray(series["linear_velocity"])[:, 0]
