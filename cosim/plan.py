@@ -28,6 +28,7 @@ import numpy as np
 from soil import ContactLaw, GrouserWheel, Material, MeshWheel, gravity_vector
 from soil.advisor import rayleigh_time_step
 from soil.bed import BedSpec
+from soil.contact import LAW_VERSION
 from soil.errors import RegolithError
 
 from .scene import DriveSection, MaterialSection, MmxSection, OutputSection, Scene, SceneError, WheelSection
@@ -390,6 +391,7 @@ def bed_key(scene: Scene, material: Material, gravity: np.ndarray, device: str) 
         "device": "cpu" if device == "cpu" else "cuda",
         "format": 2,
         "material": repr(material),
+        "contact_law": LAW_VERSION,
     }
     return hashlib.sha256(json.dumps(parts, sort_keys=True).encode()).hexdigest()[:16]
 

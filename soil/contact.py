@@ -25,6 +25,11 @@ from .materials import (
 from .precision import kernel_factory
 
 
+LAW_VERSION = 2
+"""Changes whenever the contact law's equations change, so that beds settled under another law
+are not reused from a cache (2: the passive stick/slip switch, docs/physics.md section 1.3)."""
+
+
 @dataclass(frozen=True)
 class ContactLaw:
     """Which terms of the contact model a scene turns on."""
@@ -102,7 +107,8 @@ def contact_functions(hi, lo, law: ContactLaw):
         tangential = vec_hi()
         if wp.static(FRICTION):
             vt = relative_velocity - approach_speed * normal
-            tangential = rotate_into_plane(tangential_in, normal) + vt * dt
+            held = rotate_into_plane(tangential_in, normal)  # the spring as the last step left it
+            tangential = held + vt * dt
             kt = lo(8.0) * pair[row, PAIR_G_STAR] * sqrt_rd  # Mindlin tangential stiffness
             kelvin = -(hi(kt) * tangential)
             if wp.static(DAMPING):
@@ -113,19 +119,30 @@ def contact_functions(hi, lo, law: ContactLaw):
             if wp.dot(kelvin, kelvin) <= stick_limit * stick_limit and vt_squared <= stick_speed * stick_speed:
                 force = force + kelvin  # stick: the Kelvin element carries the load
             else:
-                # slip: Coulomb force with the slip angle, opposing the sliding
+                # slip: Coulomb force with the slip angle, opposing the sliding (docs/physics.md
+                # section 1.3: why this is passive)
+                slip_limit = hi(fn * pair[row, PAIR_TAN_SLIP])
+                magnitude = slip_limit
                 direction = vec_hi()
                 if vt_squared > hi(0.0):
-                    direction = -vt / wp.sqrt(vt_squared)
+                    speed = wp.sqrt(vt_squared)
+                    direction = -vt / speed
+                    # Sliding friction stops a contact, it never reverses it: within one step the
+                    # impulse is at most the one that brings the contact point to rest (a solid
+                    # sphere's contact point answers an impulse J with 3.5 J / m*). A full Coulomb
+                    # force would throw a slow contact back past v_Tmin every step: the
+                    # high-frequency oscillation in which stick cannot occur.
+                    magnitude = wp.min(slip_limit, hi(mass_eff / lo(3.5)) * speed / dt)
                 elif wp.dot(kelvin, kelvin) > hi(0.0):
                     direction = wp.normalize(kelvin)
-                slip = hi(fn * pair[row, PAIR_TAN_SLIP]) * direction
-                force = force + slip
-                # the spring keeps the slip force, so a re-stick starts where slip ended
-                if kt > lo(0.0):
-                    tangential = -slip / hi(kt)
-                else:
-                    tangential = vec_hi()
+                force = force + magnitude * direction
+                # The spring never gains energy while sliding: it keeps what it held, unloads if
+                # the motion unloads it, and is cut to the slip force when it holds more.
+                if wp.dot(tangential, tangential) > wp.dot(held, held):
+                    tangential = held
+                spring_force = hi(kt) * wp.length(tangential)
+                if spring_force > slip_limit:
+                    tangential = tangential * (slip_limit / spring_force)
 
         rolling = vec_hi()
         torque = vec_hi()
