@@ -468,6 +468,7 @@ def resolve(scene: Scene) -> RunPlan:
         friction=section.friction,
         rolling=section.rolling if section.rolling is not None else any(m.rolling_friction > 0 for m in materials),
         cohesion=section.cohesion if section.cohesion is not None else any(m.cohesion > 0 for m in materials),
+        twisting=section.twisting,
     )
     b = scene.bed
     spec = BedSpec(

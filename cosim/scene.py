@@ -136,6 +136,8 @@ class LawSection(_Section):
     """None: on when a material has rolling_friction > 0."""
     cohesion: bool | None = None
     """None: on when a material has cohesion > 0."""
+    twisting: bool = False
+    """Twisting resistance about the contact normal (from the Mindlin patch; no parameter)."""
 
 
 class SoilSection(MaterialSection):

@@ -42,13 +42,57 @@ class ContactLaw:
     """Elastic-plastic rolling resistance torque, capped at mu_r R* |F_N|."""
     cohesion: bool = False
     """Cohesive attraction cohesion * pi R* delta inside the overlap."""
+    twisting: bool = False
+    """Elastic-plastic twisting resistance about the normal (the Mindlin patch's, no parameter)."""
+
+    @property
+    def spin(self) -> bool:
+        """Whether contacts keep a spin history (rolling and/or twisting angles)."""
+        return self.rolling or self.twisting
+
+
+def spin_history_type(hi, law: ContactLaw):
+    """The Warp vector of one contact's spin history: the rolling angle [rad] (3 components),
+    and with twisting the twist angle about the normal [rad] as a 4th."""
+    return wp.types.vector(4 if law.twisting else 3, hi)
 
 
 @kernel_factory
 def contact_functions(hi, lo, law: ContactLaw):
     """The contact @wp.func for precision types (hi, lo) and the switches in `law`."""
     vec_hi = wp.types.vector(3, hi)
+    vec_spin = spin_history_type(hi, law)
     DAMPING, FRICTION, ROLLING, COHESION = law.damping, law.friction, law.rolling, law.cohesion
+    TWISTING = law.twisting
+
+    @wp.func
+    def rolling_part(h: vec_spin):
+        """The rolling angle [rad] (3,) of a spin history."""
+        return vec_hi(h[0], h[1], h[2])
+
+    if TWISTING:
+
+        @wp.func
+        def twist_part(h: vec_spin):
+            """The twist angle about the normal [rad] of a spin history."""
+            return h[3]
+
+        @wp.func
+        def spin_history(rolling: vec_hi, twist: hi):
+            """A spin history from a rolling angle [rad] (3,) and a twist angle [rad]."""
+            return vec_spin(rolling[0], rolling[1], rolling[2], twist)
+
+    else:
+
+        @wp.func
+        def twist_part(h: vec_spin):
+            """No twist angle without twisting resistance."""
+            return hi(0.0)
+
+        @wp.func
+        def spin_history(rolling: vec_hi, twist: hi):
+            """A spin history from a rolling angle [rad] (3,) (the twist is not kept)."""
+            return rolling
 
     @wp.func
     def rotate_into_plane(h: vec_hi, n: vec_hi):
@@ -72,10 +116,10 @@ def contact_functions(hi, lo, law: ContactLaw):
         pair: wp.array2d(dtype=lo),
         row: int,
         tangential_in: vec_hi,
-        rolling_in: vec_hi,
+        spin_in: vec_spin,
         dt: hi,
     ):
-        """Force [N] and rolling torque [N m] on particle i, and its new histories.
+        """Force [N] and rolling/twisting torque [N m] on particle i, and its new histories.
 
         normal: unit vector from particle i towards its partner; overlap [m] > 0;
         relative_velocity: velocity of i's contact point minus the partner's [m/s];
@@ -107,8 +151,7 @@ def contact_functions(hi, lo, law: ContactLaw):
         tangential = vec_hi()
         if wp.static(FRICTION):
             vt = relative_velocity - approach_speed * normal
-            held = rotate_into_plane(tangential_in, normal)  # the spring as the last step left it
-            tangential = held + vt * dt
+            tangential = rotate_into_plane(tangential_in, normal) + vt * dt
             kt = lo(8.0) * pair[row, PAIR_G_STAR] * sqrt_rd  # Mindlin tangential stiffness
             kelvin = -(hi(kt) * tangential)
             if wp.static(DAMPING):
@@ -116,46 +159,36 @@ def contact_functions(hi, lo, law: ContactLaw):
             stick_limit = hi(fn * pair[row, PAIR_TAN_STICK])
             stick_speed = hi(pair[row, PAIR_STICK_SPEED])
             vt_squared = wp.dot(vt, vt)
-            if wp.dot(kelvin, kelvin) <= stick_limit * stick_limit and vt_squared <= stick_speed * stick_speed:
-                force = force + kelvin  # stick: the Kelvin element carries the load
+            slip_limit = hi(fn * pair[row, PAIR_TAN_SLIP])
+            kelvin_squared = wp.dot(kelvin, kelvin)
+            sticks = kelvin_squared <= stick_limit * stick_limit and vt_squared <= stick_speed * stick_speed
+            if sticks or kelvin_squared <= slip_limit * slip_limit:
+                force = force + kelvin  # the Kelvin element carries the load
             else:
-                # slip: Coulomb force with the slip angle, opposing the sliding (docs/physics.md
-                # section 1.3: why this is passive)
-                slip_limit = hi(fn * pair[row, PAIR_TAN_SLIP])
-                magnitude = slip_limit
-                direction = vec_hi()
-                if vt_squared > hi(0.0):
-                    speed = wp.sqrt(vt_squared)
-                    direction = -vt / speed
-                    # Sliding friction stops a contact, it never reverses it: within one step the
-                    # impulse is at most the one that brings the contact point to rest (a solid
-                    # sphere's contact point answers an impulse J with 3.5 J / m*). A full Coulomb
-                    # force would throw a slow contact back past v_Tmin every step: the
-                    # high-frequency oscillation in which stick cannot occur.
-                    magnitude = wp.min(slip_limit, hi(mass_eff / lo(3.5)) * speed / dt)
-                elif wp.dot(kelvin, kelvin) > hi(0.0):
-                    direction = wp.normalize(kelvin)
-                force = force + magnitude * direction
-                # The spring never gains energy while sliding: it keeps what it held, unloads if
-                # the motion unloads it, and is cut to the slip force when it holds more.
-                if wp.dot(tangential, tangential) > wp.dot(held, held):
-                    tangential = held
+                # Slip (docs/physics.md section 1.3): the element holds at most the slip force
+                # F_N tan(phi_g). Its spring is cut to that force along itself and the force is
+                # the spring's, so leaving stick never loads the spring, and the cut only takes
+                # energy out: the switch is passive. Setting the spring to the full slip force
+                # instead (when slipping by speed) made energy at every switch and drove the
+                # high-frequency oscillation in which stick cannot occur.
                 spring_force = hi(kt) * wp.length(tangential)
                 if spring_force > slip_limit:
                     tangential = tangential * (slip_limit / spring_force)
+                force = force - hi(kt) * tangential
 
         rolling = vec_hi()
         torque = vec_hi()
         if wp.static(ROLLING):
             mu_r = pair[row, PAIR_ROLLING]
             spin = relative_spin - wp.dot(relative_spin, normal) * normal
-            rolling = rotate_into_plane(rolling_in, normal) + spin * dt
+            rolling = rotate_into_plane(rolling_part(spin_in), normal) + spin * dt
             # elastic-plastic spring-dashpot rolling resistance (Ai et al. 2011)
             kr = lo(2.25) * mu_r * mu_r * radius_eff * radius_eff * normal_stiffness
             torque = -hi(kr) * rolling
             limit = hi(mu_r * radius_eff * fn)
             squared = wp.dot(torque, torque)
             if squared > limit * limit:
+                # plastic: the spring is cut to the limit (it never gains energy), as for sliding
                 torque = torque * (limit / wp.sqrt(squared))
                 if kr > lo(0.0):
                     rolling = -torque / hi(kr)
@@ -164,6 +197,31 @@ def contact_functions(hi, lo, law: ContactLaw):
             elif wp.static(DAMPING):
                 # 2 D sqrt(I* k_r), I* = 1.4 m* R*^2: 1.5 sqrt(1.4) mu_r R*^2 times the normal damper
                 torque = torque - hi(lo(1.5 * math.sqrt(1.4)) * mu_r * radius_eff * radius_eff * damper) * spin
-        return force, torque, tangential, rolling
+        twist = hi(0.0)
+        if wp.static(TWISTING):
+            # Twisting resistance about the normal from the Mindlin contact patch of radius
+            # a = sqrt(R* delta) (Marshall 2009): stiffness k_T a^2 / 2, damper c_T a^2 / 2,
+            # limit 2/3 a F_N tan(phi_g); elastic-plastic like the rolling resistance.
+            patch_squared = radius_eff * ov
+            twist_rate = wp.dot(relative_spin, normal)
+            twist = twist_part(spin_in) + twist_rate * dt
+            k_twist = lo(4.0) * pair[row, PAIR_G_STAR] * sqrt_rd * patch_squared  # (8 G* a) a^2 / 2
+            moment = -hi(k_twist) * twist
+            limit = hi(lo(2.0 / 3.0) * wp.sqrt(patch_squared) * fn * pair[row, PAIR_TAN_SLIP])
+            if wp.abs(moment) > limit:
+                moment = wp.sign(moment) * limit
+                if k_twist > lo(0.0):
+                    twist = -moment / hi(k_twist)
+                else:
+                    twist = hi(0.0)
+            elif wp.static(DAMPING):
+                moment = moment - hi(lo(0.5) * damper * pair[row, PAIR_SHEAR_ROOT] * patch_squared) * twist_rate
+            torque = torque + moment * normal
+        return force, torque, tangential, spin_history(rolling, twist)
 
-    return dict(contact_law=contact_law, rotate_into_plane=rotate_into_plane)
+    return dict(
+        contact_law=contact_law,
+        rotate_into_plane=rotate_into_plane,
+        spin_history=spin_history,
+        rolling_part=rolling_part,
+    )

@@ -28,7 +28,7 @@ import numpy as np
 import warp as wp
 
 from . import status as status_columns
-from .contact import ContactLaw
+from .contact import ContactLaw, spin_history_type
 from .precision import kernel_factory, kernel_module, soil_kernel
 from .state import GrainLayout, SoilState
 
@@ -105,7 +105,8 @@ def neighbour_kernels(hi, lo, law: ContactLaw):
     """The neighbour-list kernels for precision types (hi, lo) and the contact-law switches."""
     kernel = soil_kernel(kernel_module("neighbours", hi, lo, law))
     vec_hi = wp.types.vector(3, hi)
-    FRICTION, ROLLING = law.friction, law.rolling
+    FRICTION, SPIN = law.friction, law.spin
+    vec_spin = spin_history_type(hi, law)
 
     @wp.func
     def cell_of(x: vec_hi, grid: wp.array(dtype=hi), dims: wp.vec3i):
@@ -314,11 +315,11 @@ def neighbour_kernels(hi, lo, law: ContactLaw):
         order: wp.array(dtype=wp.int32),
         touching_in: wp.array2d(dtype=wp.uint32),
         tangential_in: wp.array2d(dtype=vec_hi),
-        rolling_in: wp.array2d(dtype=vec_hi),
+        rolling_in: wp.array2d(dtype=vec_spin),
         touching_old: wp.array2d(dtype=wp.uint32),
         touching_out: wp.array2d(dtype=wp.uint32),
         tangential_out: wp.array2d(dtype=vec_hi),
-        rolling_out: wp.array2d(dtype=vec_hi),
+        rolling_out: wp.array2d(dtype=vec_spin),
     ):
         """Carry each pair's history from its entry in the old row to its entry in the new one
         (both rows ascend in model index: one merge pass).
@@ -348,7 +349,7 @@ def neighbour_kernels(hi, lo, law: ContactLaw):
                             bits = bits | (wp.uint32(1) << wp.uint32(k & 31))
                             if wp.static(FRICTION):
                                 tangential_out[i, k] = tangential_in[i, kk]
-                            if wp.static(ROLLING):
+                            if wp.static(SPIN):
                                 rolling_out[i, k] = rolling_in[i, kk]
             clear = touching_old[i, word] & ~bits
             if clear != wp.uint32(0):
@@ -356,8 +357,8 @@ def neighbour_kernels(hi, lo, law: ContactLaw):
                     if (clear >> wp.uint32(k & 31)) & wp.uint32(1) != wp.uint32(0):
                         if wp.static(FRICTION):
                             tangential_out[i, k] = vec_hi()
-                        if wp.static(ROLLING):
-                            rolling_out[i, k] = vec_hi()
+                        if wp.static(SPIN):
+                            rolling_out[i, k] = vec_spin()
             touching_out[i, word] = bits
 
     @kernel

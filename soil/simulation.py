@@ -714,7 +714,7 @@ class Simulation:
     def contact_history(self, particle: int) -> list[dict]:
         """The contacts of one particle (model index) with their history: a list of
         {'partner': ('grain', model index) or ('boundary', index) or ('body', index),
-        'tangential' [m] (3,), 'rolling' [rad] (3,)} (zero vectors for switched-off terms)."""
+        'tangential' [m] (3,), 'rolling' [rad] (3,), 'twist' [rad]} (zero for switched-off terms)."""
         data = self.state.to_numpy()
         if not 0 <= particle < self.model.particle_count:
             raise IndexError(f"particle must be in [0, {self.model.particle_count}), got {particle}")
@@ -727,6 +727,7 @@ class Simulation:
                         "partner": ("grain", int(data["neighbours"][particle, k])),
                         "tangential": _row(data["pair_tangential"], particle, k),
                         "rolling": _row(data["pair_rolling"], particle, k),
+                        "twist": _twist(data["pair_rolling"], particle, k),
                     }
                 )
         walls = self.model.boundary_count
@@ -738,6 +739,7 @@ class Simulation:
                     "partner": partner,
                     "tangential": _row(data["rigid_tangential"], particle, s),
                     "rolling": _row(data["rigid_rolling"], particle, s),
+                    "twist": _twist(data["rigid_rolling"], particle, s),
                 }
             )
         return contacts
@@ -801,7 +803,11 @@ class Simulation:
 
 
 def _row(values: np.ndarray, particle: int, k: int) -> np.ndarray:
-    return values[particle, k].astype(np.float64) if values.shape[1] else np.zeros(3)
+    return values[particle, k, :3].astype(np.float64) if values.shape[1] else np.zeros(3)
+
+
+def _twist(values: np.ndarray, particle: int, k: int) -> float:
+    return float(values[particle, k, 3]) if values.shape[1] and values.shape[2] == 4 else 0.0
 
 
 def _check_step(dt) -> float:

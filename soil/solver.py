@@ -18,7 +18,7 @@ import warp as wp
 
 from . import status as status_columns
 from .boundaries import update_acceleration
-from .contact import ContactLaw, contact_functions
+from .contact import ContactLaw, contact_functions, spin_history_type
 from .control import SoilControl
 from .model import SoilModel
 from .neighbours import NeighbourList
@@ -40,7 +40,8 @@ def contact_kernels(hi, lo, law: ContactLaw):
     sdf = sdf_functions(hi)
     boundary_contact, boundary_reference = sdf.boundary_contact, sdf.boundary_reference
     wheel_distance, mesh_distance = sdf.wheel_distance, sdf.mesh_distance
-    FRICTION, ROLLING = law.friction, law.rolling
+    FRICTION, SPIN = law.friction, law.spin
+    vec_spin = spin_history_type(hi, law)
 
     @wp.struct
     class Grains:
@@ -88,11 +89,11 @@ def contact_kernels(hi, lo, law: ContactLaw):
 
         touching: wp.array2d(dtype=wp.uint32)
         tangential: wp.array2d(dtype=vec_hi)
-        rolling: wp.array2d(dtype=vec_hi)
+        rolling: wp.array2d(dtype=vec_spin)
         rigid_key: wp.array2d(dtype=wp.int32)
         rigid_count: wp.array(dtype=wp.int32)
         rigid_tangential: wp.array2d(dtype=vec_hi)
-        rigid_rolling: wp.array2d(dtype=vec_hi)
+        rigid_rolling: wp.array2d(dtype=vec_spin)
 
     @wp.func
     def rigid_slot(history: History, i: int, key: int):
@@ -173,14 +174,14 @@ def contact_kernels(hi, lo, law: ContactLaw):
                     v_rel = (vi + wp.cross(wi, lever_i * n)) - v_j
                     bit = wp.uint32(1) << wp.uint32(k & 31)
                     t_hist = vec_hi()
-                    r_hist = vec_hi()
+                    r_hist = vec_spin()
                     if (was & bit) != wp.uint32(0):
                         if wp.static(FRICTION):
                             if remapped:
                                 t_hist = history_out.tangential[i, k]
                             else:
                                 t_hist = history_in.tangential[i, k]
-                        if wp.static(ROLLING):
+                        if wp.static(SPIN):
                             if remapped:
                                 r_hist = history_out.rolling[i, k]
                             else:
@@ -203,7 +204,7 @@ def contact_kernels(hi, lo, law: ContactLaw):
                     total_torque = total_torque + wp.cross(lever_i * n, f) + m_roll
                     if wp.static(FRICTION):
                         history_out.tangential[i, k] = t_new
-                    if wp.static(ROLLING):
+                    if wp.static(SPIN):
                         history_out.rolling[i, k] = r_new
                     now = now | bit
                     contacts += 1
@@ -214,8 +215,8 @@ def contact_kernels(hi, lo, law: ContactLaw):
                     if (clear >> wp.uint32(k & 31)) & wp.uint32(1) != wp.uint32(0):
                         if wp.static(FRICTION):
                             history_out.tangential[i, k] = vec_hi()
-                        if wp.static(ROLLING):
-                            history_out.rolling[i, k] = vec_hi()
+                        if wp.static(SPIN):
+                            history_out.rolling[i, k] = vec_spin()
             history_out.touching[i, word] = now
 
         # rigid partners: walls (fixed grains do not touch them), then wheels (every grain)
@@ -272,11 +273,11 @@ def contact_kernels(hi, lo, law: ContactLaw):
                 v_rel = vi + wp.cross(wi, lever_i * n) - v_partner
                 slot = rigid_slot(history_in, i, partner)
                 t_hist = vec_hi()
-                r_hist = vec_hi()
+                r_hist = vec_spin()
                 if slot >= 0:
                     if wp.static(FRICTION):
                         t_hist = history_in.rigid_tangential[i, slot]
-                    if wp.static(ROLLING):
+                    if wp.static(SPIN):
                         r_hist = history_in.rigid_rolling[i, slot]
                 pair_row = grains.material[i] * grains.material_count + partner_material
                 f, m_roll, t_new, r_new = contact_law(
@@ -288,7 +289,7 @@ def contact_kernels(hi, lo, law: ContactLaw):
                     history_out.rigid_key[i, stored] = partner
                     if wp.static(FRICTION):
                         history_out.rigid_tangential[i, stored] = t_new
-                    if wp.static(ROLLING):
+                    if wp.static(SPIN):
                         history_out.rigid_rolling[i, stored] = r_new
                     reaction_force_out[i, stored] = -f
                     reaction_torque_out[i, stored] = wp.cross(xi + lever_i * n - reference, -f) - m_roll
@@ -300,8 +301,8 @@ def contact_kernels(hi, lo, law: ContactLaw):
                 history_out.rigid_key[i, s] = -1
                 if wp.static(FRICTION):
                     history_out.rigid_tangential[i, s] = vec_hi()
-                if wp.static(ROLLING):
-                    history_out.rigid_rolling[i, s] = vec_hi()
+                if wp.static(SPIN):
+                    history_out.rigid_rolling[i, s] = vec_spin()
         if stored > slots:
             wp.atomic_max(status_out, status_columns.NEEDED_RIGID, stored)
 

@@ -130,12 +130,15 @@ class SoilState:
         rigid_capacity: int = 4,
         friction: bool = True,
         rolling: bool = True,
+        twisting: bool = False,
         layout: GrainLayout | None = None,
     ):
         n = particle_count
         scalar = vec_hi._wp_scalar_type_
         tangential = capacity if friction else 0
-        spin = capacity if rolling else 0
+        keeps_spin = rolling or twisting
+        spin = capacity if keeps_spin else 0
+        vec_spin = wp.types.vector(4 if twisting else 3, scalar)  # contact.spin_history_type
         self.layout = layout
         """Storage order, grain constants and neighbour lists (shared with the other buffers of a Simulation)."""
         self.position = wp.zeros(n, dtype=vec_hi, device=device)
@@ -162,9 +165,10 @@ class SoilState:
         self.pair_tangential = wp.zeros((n, tangential), dtype=vec_hi, device=device)
         """Accumulated tangential displacement per neighbour-list entry [m], shape (particle_count, capacity)
         (width 0 without friction)."""
-        self.pair_rolling = wp.zeros((n, spin), dtype=vec_hi, device=device)
-        """Accumulated rolling angle per neighbour-list entry [rad], shape (particle_count, capacity)
-        (width 0 without rolling resistance)."""
+        self.pair_rolling = wp.zeros((n, spin), dtype=vec_spin, device=device)
+        """Spin history per neighbour-list entry: the accumulated rolling angle [rad] (3 components)
+        and, with twisting resistance, the twist angle about the normal [rad] (a 4th), shape
+        (particle_count, capacity) (width 0 without rolling or twisting resistance)."""
         self.rigid_key = wp.full((n, rigid_capacity), -1, dtype=wp.int32, device=device)
         """Rigid partner of each rigid-contact slot [-] (boundary b, or boundary_count + body), shape
         (particle_count, rigid_capacity), int32, -1 past rigid_count."""
@@ -172,8 +176,8 @@ class SoilState:
         """Used rigid-contact slots of each particle [-], shape (particle_count,)."""
         self.rigid_tangential = wp.zeros((n, rigid_capacity if friction else 0), dtype=vec_hi, device=device)
         """Accumulated tangential displacement per rigid-contact slot [m], shape (particle_count, rigid_capacity)."""
-        self.rigid_rolling = wp.zeros((n, rigid_capacity if rolling else 0), dtype=vec_hi, device=device)
-        """Accumulated rolling angle per rigid-contact slot [rad], shape (particle_count, rigid_capacity)."""
+        self.rigid_rolling = wp.zeros((n, rigid_capacity if keeps_spin else 0), dtype=vec_spin, device=device)
+        """Spin history per rigid-contact slot [rad] (as pair_rolling), shape (particle_count, rigid_capacity)."""
         self.step_previous = wp.zeros(1, dtype=scalar, device=device)
         """Length of the step that produced this state [s], shape (1,); 0 = no history
         (start-up: jolt-Beeman then assumes zero jolt)."""
@@ -225,6 +229,7 @@ class SoilState:
             rigid_capacity=rigid_capacity,
             friction=model.law.friction,
             rolling=model.law.rolling,
+            twisting=model.law.twisting,
             layout=layout,
         )
 
@@ -361,6 +366,8 @@ class SoilState:
                 values = values[order]
                 if array.ndim >= 2 and values.shape[1] != array.shape[1]:
                     values = _fit_width(values, array.shape[1], -1 if name == "rigid_key" else 0)
+                if name in SPIN_HISTORY and values.shape[2:] != (array.dtype._length_,):
+                    values = _fit_components(values, array.dtype._length_)
             array.assign(values.astype(array.numpy().dtype, copy=False))
         rows = neighbours[order]
         slots = np.where(rows >= 0, slot[np.maximum(rows, 0)], -1).astype(np.int32)
@@ -404,6 +411,19 @@ def _fit_width(values: np.ndarray, width: int, fill) -> np.ndarray:
     return out
 
 
+SPIN_HISTORY = ("pair_rolling", "rigid_rolling")
+"""State arrays of spin history: 3 components (rolling), 4 with twisting (docs/physics.md section 1)."""
+
+
+def _fit_components(values: np.ndarray, components: int) -> np.ndarray:
+    """Spin history of another contact law (with or without the twist angle) cut or padded with
+    zeros to `components`: a contact loaded into a law with twisting starts untwisted."""
+    out = np.zeros(values.shape[:2] + (components,), dtype=values.dtype)
+    keep = min(components, values.shape[2] if values.ndim == 3 else 0)
+    out[..., :keep] = values[..., :keep]
+    return out
+
+
 def _from_keyed_history(data: dict, n: int) -> dict:
     """Convert state data with keyed history slots (`contact_partner`: a particle index, or
     particle_count + boundary index) to neighbour rows and rigid slots, model order."""
@@ -418,11 +438,11 @@ def _from_keyed_history(data: dict, n: int) -> dict:
     rigid_width = max(int(is_rigid.sum(axis=1).max(initial=0)), 4)
     neighbours = np.full((n, width), -1, dtype=np.int32)
     pair_t = np.zeros((n, width, 3), dtype=tangential.dtype)
-    pair_r = np.zeros((n, width, 3), dtype=rolling.dtype)
+    pair_r = np.zeros((n, width) + rolling.shape[2:], dtype=rolling.dtype)
     touching = np.zeros((n, _words(width)), dtype=np.uint32)
     rigid_key = np.full((n, rigid_width), -1, dtype=np.int32)
     rigid_t = np.zeros((n, rigid_width, 3), dtype=tangential.dtype)
-    rigid_r = np.zeros((n, rigid_width, 3), dtype=rolling.dtype)
+    rigid_r = np.zeros((n, rigid_width) + rolling.shape[2:], dtype=rolling.dtype)
     counts = np.zeros(n, dtype=np.int32)
     rigid_counts = np.zeros(n, dtype=np.int32)
     for i in np.flatnonzero(is_pair.any(axis=1) | is_rigid.any(axis=1)):

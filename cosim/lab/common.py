@@ -265,6 +265,7 @@ def soil_summary(plan: LabPlan) -> dict:
             "friction": plan.law.friction,
             "rolling": plan.law.rolling,
             "cohesion": plan.law.cohesion,
+            "twisting": plan.law.twisting,
         },
     }
 

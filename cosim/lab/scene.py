@@ -291,6 +291,7 @@ def resolve_lab(scene: LabScene, needs_gravity: bool = False, test: str = "lab")
         friction=law_section.friction,
         rolling=law_section.rolling if law_section.rolling is not None else soil.rolling_friction > 0,
         cohesion=law_section.cohesion if law_section.cohesion is not None else soil.cohesion > 0,
+        twisting=law_section.twisting,
     )
     bed = scene.bed
     smallest = bed.radius_mean * (1 - bed.radius_spread)
