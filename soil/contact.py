@@ -24,7 +24,6 @@ from .materials import (
 )
 from .precision import kernel_factory
 
-
 LAW_VERSION = 2
 """Changes whenever the contact law's equations change, so that beds settled under another law
 are not reused from a cache (2: the passive stick/slip switch, docs/physics.md section 1.3)."""

@@ -7,13 +7,22 @@ import numpy as np
 import pytest
 from scipy.spatial import cKDTree
 
-from soil import Material, NeighbourSettings, Simulation, SoilBuilder
+from soil import ContactLaw, Material, NeighbourSettings, Simulation, SoilBuilder
 
 SIZE = 0.05  # box side [m]
 
 
 def rain(
-    device, n_side=7, skin=None, reorder=None, capture=True, capacity=16, rigid_capacity=4, seed=0, precision="double"
+    device,
+    n_side=7,
+    skin=None,
+    reorder=None,
+    capture=True,
+    capacity=16,
+    rigid_capacity=4,
+    seed=0,
+    precision="double",
+    law=None,
 ):
     """n_side^3 grains of radii 1.5 .. 4 mm (a size ratio of 2.7) thrown about in a closed box."""
     rng = np.random.default_rng(seed)
@@ -28,7 +37,7 @@ def rain(
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")  # a few grains start pressed together: on purpose
         model, state, control = builder.finalize(
-            device, precision, contact_capacity=capacity, rigid_capacity=rigid_capacity
+            device, precision, contact_capacity=capacity, rigid_capacity=rigid_capacity, law=law
         )
     return Simulation(model, state, control, neighbours=NeighbourSettings(skin=skin, reorder=reorder), capture=capture)
 
@@ -99,13 +108,18 @@ def test_runs_repeat_bitwise_whatever_the_storage_order_and_capture(device):
             np.testing.assert_array_equal(a, b)
 
 
-def test_an_overflow_is_redone_bitwise_equal_to_ample_storage(device):
+TWISTING = ContactLaw(rolling=True, twisting=True)
+"""Rolling and twisting resistance: the spin history then has a 4th component (the twist)."""
+
+
+@pytest.mark.parametrize("law", [None, TWISTING], ids=["default", "twisting"])
+def test_an_overflow_is_redone_bitwise_equal_to_ample_storage(device, law):
     """Sparse grains (one neighbour slot and one wall slot per grain are enough at the start)
     fall and pile up: the storage overflows inside macro steps, grows, and each such macro step
     is redone from its start; the result is bit for bit that of ample storage from the start."""
-    tight = rain(device, n_side=4, reorder=True, capacity=1, rigid_capacity=1)
+    tight = rain(device, n_side=4, reorder=True, capacity=1, rigid_capacity=1, law=law)
     assert tight.state.capacity == 1 and tight.state.rigid_capacity == 1
-    ample = rain(device, n_side=4, reorder=True, capacity=48, rigid_capacity=6)
+    ample = rain(device, n_side=4, reorder=True, capacity=48, rigid_capacity=6, law=law)
     redone = 0
     for _ in range(10):
         redone += tight.macro_step(500, 2e-5).redone
@@ -117,14 +131,15 @@ def test_an_overflow_is_redone_bitwise_equal_to_ample_storage(device):
         np.testing.assert_array_equal(a, b)
 
 
-def test_a_checkpoint_continues_bitwise_in_another_storage_order(device):
+@pytest.mark.parametrize("law", [None, TWISTING], ids=["default", "twisting"])
+def test_a_checkpoint_continues_bitwise_in_another_storage_order(device, law):
     """state_dict() is in model order: a run saved with reordering on continues, loaded into a
     simulation that never reorders, bit for bit as the original."""
-    reference = rain(device, skin=5e-4, reorder=True)
+    reference = rain(device, skin=5e-4, reorder=True, law=law)
     reference.macro_step(100, 2e-5)
     saved = reference.state_dict()
     reference.macro_step(100, 2e-5)
-    resumed = rain(device, skin=5e-4, reorder=False)
+    resumed = rain(device, skin=5e-4, reorder=False, law=law)
     resumed.load_state_dict(saved)
     resumed.macro_step(100, 2e-5)
     np.testing.assert_array_equal(resumed.positions(), reference.positions())

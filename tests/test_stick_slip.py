@@ -7,7 +7,7 @@ import pytest
 import warp as wp
 
 from helpers import sphere_on_plane
-from soil import ContactLaw, Material, Simulation, SoilBuilder
+from soil import ContactLaw, Material, NeighbourSettings, Simulation, SoilBuilder
 from soil.contact import contact_functions
 from soil.materials import MaterialTable
 
@@ -286,24 +286,33 @@ def former_switch(material, overlap, radius, normals, velocities, dt):
     return np.array(forces), np.array(springs)
 
 
-def test_twisting_resistance_stops_a_spinning_sphere_at_the_coulomb_rate():
-    """A sphere spinning about the normal of its plane: tangential friction sees no sliding, so
+@pytest.mark.parametrize("partner", ["wall", "grain"])
+def test_twisting_resistance_stops_a_spinning_sphere_at_the_coulomb_rate(partner):
+    """A sphere spinning about the normal of its contact: tangential friction sees no sliding, so
     without twisting resistance it spins for ever. With it, the plastic moment 2/3 a F_N tan(phi_g)
-    (a = sqrt(R delta), the static Hertz patch) stops it at I dw/dt = -M."""
+    (a = sqrt(R* delta), the static Hertz patch) stops it at I dw/dt = -M. On a fixed grain the
+    neighbour list is rebuilt every step (a skin of 1e-12 m): the twist angle must survive it."""
     radius, g, w0 = 5e-3, 9.81, 20.0
     material = Material(youngs_modulus=1e7, restitution=0.3, stick_angle=0.5, slip_angle=0.4)
     mass = 2600 * 4 / 3 * math.pi * radius**3
     e_star = 1 / (2 * (1 - 0.3**2) / 1e7)
-    overlap = (3 * mass * g / (4 * e_star * math.sqrt(radius))) ** (2 / 3)
-    moment = 2 / 3 * math.sqrt(radius * overlap) * mass * g * math.tan(0.4)
+    r_eff = radius if partner == "wall" else radius / 2
+    overlap = (3 * mass * g / (4 * e_star * math.sqrt(r_eff))) ** (2 / 3)
+    moment = 2 / 3 * math.sqrt(r_eff * overlap) * mass * g * math.tan(0.4)
     deceleration = moment / (0.4 * mass * radius**2)
     spins = {}
     for twisting in (False, True):
-        sim = sphere_on_plane(
-            "cpu", "double", g, material, radius=radius, spin=(0, 0, w0), overlap=overlap,
-            law=ContactLaw(twisting=twisting),
-        )
+        builder = SoilBuilder(gravity=g)
+        soil = builder.add_material(material)
+        if partner == "wall":
+            builder.add_plane((0, 0, 0), (0, 0, 1), soil)
+            builder.add_particle((0, 0, radius - overlap), radius, soil, angular_velocity=(0, 0, w0))
+        else:
+            builder.add_particle((0, 0, -radius), radius, soil, fixed=True)
+            builder.add_particle((0, 0, radius - overlap), radius, soil, angular_velocity=(0, 0, w0))
+        model, state, control = builder.finalize("cpu", "double", law=ContactLaw(twisting=twisting))
+        sim = Simulation(model, state, control, neighbours=NeighbourSettings(skin=1e-12))
         sim.run(0.5 * w0 / deceleration, 1e-5)
-        spins[twisting] = sim.angular_velocities()[0, 2]
+        spins[twisting] = sim.angular_velocities()[-1, 2]
     assert spins[False] == pytest.approx(w0, rel=1e-6)
     assert spins[True] == pytest.approx(0.5 * w0, rel=0.02)
