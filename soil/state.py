@@ -366,8 +366,9 @@ class SoilState:
                 values = values[order]
                 if array.ndim >= 2 and values.shape[1] != array.shape[1]:
                     values = _fit_width(values, array.shape[1], -1 if name == "rigid_key" else 0)
-                if name in SPIN_HISTORY and values.shape[2:] != (array.dtype._length_,):
-                    values = _fit_components(values, array.dtype._length_)
+                components = getattr(array.dtype, "_length_", 0)  # of a Warp vector type
+                if name in SPIN_HISTORY and values.shape[2:] != (components,):
+                    values = _fit_components(values, components)
             array.assign(values.astype(array.numpy().dtype, copy=False))
         rows = neighbours[order]
         slots = np.where(rows >= 0, slot[np.maximum(rows, 0)], -1).astype(np.int32)
