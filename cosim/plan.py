@@ -29,6 +29,7 @@ from soil import ContactLaw, GrouserWheel, Material, MeshWheel, gravity_vector
 from soil.advisor import rayleigh_time_step
 from soil.bed import BedSpec
 from soil.contact import LAW_VERSION
+from soil.materials import stick_speed_for
 from soil.errors import RegolithError
 
 from .scene import DriveSection, MaterialSection, MmxSection, OutputSection, Scene, SceneError, WheelSection
@@ -291,13 +292,18 @@ class RunPlan:
 # ------------------------------------------------------------------------------------
 
 
-def to_material(section: MaterialSection, default_modulus: float | None = None) -> Material:
-    """A soil.Material from a material section (restitution 0.3 when neither it nor damping is given)."""
+def to_material(
+    section: MaterialSection, default_modulus: float | None = None, default_stick_speed: float | None = None
+) -> Material:
+    """A soil.Material from a material section (restitution 0.3 when neither it nor damping is given;
+    the stick speed `default_stick_speed` [m/s] when the section gives none)."""
     restitution = section.restitution if section.damping_ratio is None else None
     if restitution is None and section.damping_ratio is None:
         restitution = 0.3
     modulus = section.youngs_modulus or default_modulus
     assert modulus is not None  # a wheel's material falls back on the soil's modulus
+    stick_speed = section.stick_speed or default_stick_speed
+    assert stick_speed is not None  # resolve gives the scene's default
     return Material(
         youngs_modulus=modulus,
         poisson_ratio=section.poisson_ratio,
@@ -306,7 +312,7 @@ def to_material(section: MaterialSection, default_modulus: float | None = None) 
         damping_ratio=section.damping_ratio,
         stick_angle=math.radians(section.stick_angle_deg),
         slip_angle=math.radians(section.slip_angle_deg),
-        stick_speed=section.stick_speed,
+        stick_speed=stick_speed,
         rolling_friction=section.rolling_friction,
         cohesion=section.cohesion,
     )
@@ -334,9 +340,22 @@ def resolve_device(name: str) -> str:
     return f"cuda:{index}"
 
 
+ZERO_GRAVITY_STICK_SPEED = 1.0e-4
+"""The default stick speed of a scene without gravity [m/s] (that of 2 mm grains at Phobos)."""
+
+
+def default_stick_speed(scene: Scene) -> float:
+    """The scene's stick speed where its soil gives none [m/s]: soil.materials.stick_speed_for its
+    gravity and mean grain diameter (ZERO_GRAVITY_STICK_SPEED without gravity)."""
+    if scene.soil.stick_speed is not None:
+        return scene.soil.stick_speed
+    g = float(np.linalg.norm(gravity_vector(scene.scene.gravity)))
+    return stick_speed_for(g, 2 * scene.bed.radius_mean) if g > 0 else ZERO_GRAVITY_STICK_SPEED
+
+
 def _wheel(scene: Scene, soil_modulus: float, w: WheelSection | None = None, key: str = "wheel") -> WheelPlan:
     w = scene.wheel if w is None else w
-    material = to_material(w.material, soil_modulus)
+    material = to_material(w.material, soil_modulus, default_stick_speed(scene))
     if w.type == "grouser":
         # the section's validator filled in every grouser default
         assert w.radius is not None and w.width is not None and w.grouser_count is not None
@@ -436,7 +455,7 @@ def _check_bed_file(path: str, material: Material, gravity: np.ndarray, bed) -> 
 def resolve(scene: Scene) -> RunPlan:
     """The run plan of a validated scene; SceneError lists every cross-section problem."""
     problems: list[str] = []
-    soil_material = to_material(scene.soil)
+    soil_material = to_material(scene.soil, default_stick_speed=default_stick_speed(scene))
     gravity = gravity_vector(scene.scene.gravity)
     g = float(np.linalg.norm(gravity))
     device = resolve_device(scene.scene.device)

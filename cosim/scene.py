@@ -111,8 +111,10 @@ class MaterialSection(_Section):
     """Lehr damping ratio D [-] (instead of restitution)."""
     stick_angle_deg: float = Field(25.0, ge=0, lt=90)
     slip_angle_deg: float = Field(20.0, ge=0, lt=90)
-    stick_speed: float = Field(1.0e-4, gt=0)
-    """[m/s]"""
+    stick_speed: float | None = Field(None, gt=0)
+    """Stick speed v_Tmin [m/s]; default 0.02 sqrt(|g| d) (d: the mean grain diameter), the same
+    fraction of the grains' own speed scale at every gravity (1e-4 m/s for 2 mm grains at Phobos;
+    docs/physics.md section 1.3). A wheel's material defaults to the soil's."""
     rolling_friction: float = Field(0.1, ge=0)
     cohesion: float = Field(0.0, ge=0)
     """[Pa]"""

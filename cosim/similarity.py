@@ -107,8 +107,6 @@ def gravity_twin(scene: Scene, gravity) -> tuple[dict, float]:
     for section, key, default in (
         ("testbed", "omega", 0.25),
         ("run", "duration", 3.0),
-        ("soil", "stick_speed", 1e-4),
-        ("wheel.material", "stick_speed", 1e-4),
         ("landing", "max_time", 30.0),
         ("bed", "settle_max_time", 10.0),
         ("output", "snapshot_interval", 0.25),
@@ -116,7 +114,7 @@ def gravity_twin(scene: Scene, gravity) -> tuple[dict, float]:
     ):
         node = _section(data, section)
         if key not in node:  # a default of the schema: scale it explicitly
-            node[key] = default * (math.sqrt(s) if key in ("omega", "stick_speed") else 1 / math.sqrt(s))
+            node[key] = default * (math.sqrt(s) if key == "omega" else 1 / math.sqrt(s))
     data["bed"].pop("bed_file", None)  # a bed settled at the old gravity cannot serve the twin
     return data, s
 

@@ -122,6 +122,22 @@ class Material:
         return replace(self, **changes)
 
 
+STICK_SPEED_RATIO = 0.02
+"""The default stick speed as a fraction of sqrt(|g| d) [-] (docs/physics.md section 1.3)."""
+
+
+def stick_speed_for(gravity: float, grain_diameter: float) -> float:
+    """The default stick speed v_Tmin = STICK_SPEED_RATIO sqrt(|g| d) [m/s] for gravity |g| [m/s^2]
+    and mean grain diameter d [m]: the same fraction of the grains' speed scale at any gravity, so
+    the gravity twin (speeds x sqrt(s)) keeps it."""
+    if not (math.isfinite(gravity) and gravity > 0 and math.isfinite(grain_diameter) and grain_diameter > 0):
+        raise ValueError(
+            f"the default stick speed needs gravity > 0 and a grain diameter > 0 (got {gravity!r} m/s^2, "
+            f"{grain_diameter!r} m): give the stick speed"
+        )
+    return STICK_SPEED_RATIO * math.sqrt(gravity * grain_diameter)
+
+
 def _finite(x) -> bool:
     return x is not None and math.isfinite(x)
 

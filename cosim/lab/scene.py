@@ -39,7 +39,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_valida
 from soil import ContactLaw, Material, gravity_vector
 from soil.advisor import rayleigh_time_step
 
-from ..plan import resolve_device, to_material
+from ..plan import default_stick_speed, resolve_device, to_material
 from ..scene import Scene, SceneError, _format_errors, apply_overrides
 
 PACKING_FRACTION = 0.6
@@ -283,7 +283,7 @@ def resolve_lab(scene: LabScene, needs_gravity: bool = False, test: str = "lab")
         problems.append(f"scene.gravity: must point down (-Z) (got {list(gravity)} m/s^2)")
     if needs_gravity and g == 0:
         problems.append(f"scene.gravity: the {test} test needs gravity (got 0): grains must settle")
-    soil = to_material(scene.soil)
+    soil = to_material(scene.soil, default_stick_speed=default_stick_speed(scene))
     device = resolve_device(scene.scene.device)
     law_section = scene.soil.law
     law = ContactLaw(
