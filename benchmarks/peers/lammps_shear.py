@@ -1,6 +1,6 @@
 """A direct shear box in LAMMPS: the peer of `cosim lab shear`.
 
-The same test as cosim.lab.shear, given as arrays (run_specimen needs numpy and LAMMPS only):
+The same test as cosim.lab.shear, given as numbers (`shear` needs numpy and LAMMPS only):
 the same lattice fill, a rough floor plane at z = 0, two frames of four box walls each split
 by the gap at the shear plane (`fix wall/gran/region` on blocks, side out), the same contact
 model as lammps_peer.run_bed (Hertz from E and nu, Mindlin tangential spring with a Coulomb
@@ -8,32 +8,37 @@ limit mu = tan(phi), restitution damping, `limit_damping`; no rolling resistance
 phases, checked every chunk as ours checks them:
 
     settle       the grains fall into the box until their translational kinetic energy
-                 < settle_energy (after min_steps); once per specimen;
-    consolidate  a rough lid plane, starting 0.1 r above the highest grain, carries the dead
-                 load sigma L W until it has stopped sinking and carries its load within 5 %;
-    shear        the upper frame and the lid move along +X at the shear speed (reached linearly
-                 over the first RAMP of the records) until the frame has moved the displacement.
+                 < settle_energy (after min_steps);
+    consolidate  a rough lid plane, 0.1 r above the highest grain, carries the dead load
+                 sigma L W until it has stopped sinking and carries its load within 5 %;
+    shear        the upper frame and the lid move along +X at the shear speed (set once per record,
+                 reached linearly over the first RAMP of the records) until the frame has moved
+                 the displacement.
 
 The loaded lid: a plane region whose height follows one extra atom (the lid atom: its own
-type, excluded from every pair and wall, free along Z only) that carries the lid's mass and
-is pushed by `fix addforce` with load + the grains' force on the lid plane (the wall fix's
-`contacts` array, summed) - c v_z: the rigid body free along -Z of soil.boundaries (mass the
-sample's, damper c critical against the sample's stiffness), integrated by the same velocity
-Verlet as the grains, its force from the same step.
+type, excluded from every pair and wall, parked above the frames while the grains settle)
+that carries the lid's mass and is pushed by `fix addforce` with the load + the grains' force
+on the lid plane (the wall fix's `contacts` array, summed) - c v_z: the rigid body free along
+-Z of soil.boundaries (mass the sample's, damper c critical against the sample's stiffness),
+integrated by the same velocity Verlet as the grains, its force from the same step.
 
 Measured from the wall fixes' contact forces at the end of every record, as ours:
 tau = -(F_x on the upper frame + F_x on the lid) / (L W), sigma_n = (F_z on the lid + weight
-of the grains above the shear plane) / (L W); peak, residual and the Mohr-Coulomb fits by
-cosim.lab.shear's own functions.
+of the grains above the shear plane) / (L W); peak and residual by cosim.lab.shear.strength,
+the Mohr-Coulomb fits by cosim.lab.shear.mohr_coulomb.
 
 Differences from ours:
-- Each normal stress starts a new LAMMPS run from the settled grains' positions and velocities
-  (ours restores its saved specimen, contact springs included): LAMMPS's tangential springs
-  start from zero at consolidation, which the consolidation re-loads at once.
-- The lid's displacement is LAMMPS's region displacement, its velocity the finite difference
-  of it over the step (ours carries the lid's velocity in the state): the same at this step.
-- LAMMPS has one friction coefficient (no separate stick and slip angles, no stick speed):
+- Ours settles a specimen once and restores it for every normal stress; here every normal
+  stress settles the fill again in a fresh LAMMPS run (one rank: the same specimen each time,
+  contact springs included).
+- The lid's velocity in its contacts is the finite difference of the region's displacement
+  over the step (ours carries the lid's velocity in the state); both integrate by velocity
+  Verlet at the plan's step.
+- LAMMPS has one friction coefficient (no separate stick and slip angles, no stick speed), so
   the comparison's soil has stick = slip angle and a stick speed far above any sliding speed.
+  A sliding contact differs still: LAMMPS's force follows the trial spring-dashpot force, its
+  spring cut back to the Coulomb limit; ours opposes the sliding velocity, at most the impulse
+  that stops the contact within a step, its spring never loaded while sliding (docs/physics.md).
 One MPI rank, units SI.
 """
 
