@@ -474,7 +474,8 @@ def compare(plan, replicas: int, out_dir: str, executor: str = "serial", workers
     fills (replica k: fill seed bed.seed + k). Returns, for 'ours' and 'lammps', the per-specimen peak and
     residual angles through the origin [deg] ('peak', 'residual': lists), their replica statistics
     ('peak_stats', 'residual_stats': cosim.lab.common.statistics) and the Mohr-Coulomb fits over every point
-    ('peak_fit', 'residual_fit'), and each side's wall time [s]."""
+    ('peak_fit', 'residual_fit'), the statistics of the lid's rise at the end of every curve [m]
+    ('rise_stats': dilation > 0) and each side's wall time [s]."""
     import time
 
     from cosim.lab import common
@@ -495,14 +496,21 @@ def compare(plan, replicas: int, out_dir: str, executor: str = "serial", workers
         for p in summary["points"]
     ]
     ours = [specimen_angles([p for p in ours_points if p["replica"] == k]) for k in range(replicas)]
+    curves = np.genfromtxt(os.path.join(out_dir, "shear.csv"), delimiter=",", names=True)
+    ours_rise = []  # the lid's rise at the end of each curve (dilation > 0, compaction < 0)
+    for p in summary["points"]:
+        curve = (curves["replica_1"] == p["replica"]) & (
+            curves["normal_stress_nominal_Pa"] == p["normal_stress_nominal_pa"]
+        )
+        ours_rise.append(float(curves["lid_rise_m"][curve][-1]))
     started = time.perf_counter()
     peer = [run_lab_shear(plan, k) for k in range(replicas)]
     lammps_time = time.perf_counter() - started
     lammps = [specimen_angles(r["points"]) for r in peer]
     lammps_points = [p for r in peer for p in r["points"]]
 
-    def side(angles, points, seconds, consolidated):
-        out: dict = {"seconds": seconds, "consolidated": consolidated}
+    def side(angles, points, rise, seconds, consolidated):
+        out: dict = {"seconds": seconds, "consolidated": consolidated, "rise_stats": common.statistics(rise)}
         for state in ("peak", "residual"):
             out[state] = [a[state] for a in angles]
             out[f"{state}_stats"] = common.statistics(out[state])
@@ -514,10 +522,11 @@ def compare(plan, replicas: int, out_dir: str, executor: str = "serial", workers
     return {
         "replicas": replicas,
         "grains": lab_shear.box(plan).count,
-        "ours": side(ours, ours_points, ours_time, all(p["consolidated"] for p in summary["points"])),
+        "ours": side(ours, ours_points, ours_rise, ours_time, all(p["consolidated"] for p in summary["points"])),
         "lammps": side(
             lammps,
             lammps_points,
+            [float(p["rise"][-1]) for p in lammps_points],
             lammps_time,
             all(r["settled"] for r in peer) and all(p["consolidated"] for p in lammps_points),
         ),

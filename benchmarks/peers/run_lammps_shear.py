@@ -3,7 +3,8 @@
 Scene: benchmarks/peers/lammps_shear.py COMPARISON_SCENE (270 grains, 1 and 2 kPa, Hertz-Mindlin-Coulomb
 with mu = 0.5, restitution 0.3, no rolling resistance, Earth gravity; ours on the CPU in double precision).
 Per specimen the peak and residual friction angles through the origin (tau = sigma tan(phi_0) over its two
-normal stresses); the means and standard deviations over the replicas, and Mohr-Coulomb over every point.
+normal stresses); the means and standard deviations over the replicas, Mohr-Coulomb over every point, and
+the lid's rise at the end of the shear (dilation > 0).
 
 Run from the repository root::
 
@@ -42,6 +43,8 @@ def main() -> None:
                 f"{state} {stats['mean']:.1f} +- {stats['std']:.1f} deg "
                 f"(Mohr-Coulomb {fit['friction_angle_deg']:.1f} deg, c {fit['cohesion_pa']:.0f} Pa)"
             )
+        rise = side["rise_stats"]
+        cells.append(f"lid rise {rise['mean'] * 1e6:.0f} +- {rise['std'] * 1e6:.0f} um")
         print(f"  {name:7s} {'; '.join(cells)}; {side['seconds']:.0f} s")
     print(json.dumps(result))
 
