@@ -260,13 +260,6 @@ def _shear(plan: LabPlan, geometry: ShearBox, replica: int, path: str, stress: f
             break
     sim.check_finite()
     u, tau, sigma, tau_lower, rise = (np.array(c) for c in zip(*rows))
-    window = max(1, len(u) // 20)
-    smooth = np.convolve(tau, np.ones(window) / window, mode="same")
-    edge = window // 2  # the running mean is biased where it runs off the ends
-    inner = slice(edge, len(u) - edge) if len(u) > 2 * edge + 1 else slice(None)
-    peak = int(np.argmax(smooth[inner])) + (inner.start or 0)
-    near = slice(max(0, peak - window // 2), peak + window // 2 + 1)
-    residual = u >= 0.5 * u[-1]
     return {
         "replica": replica,
         "stress": stress,
@@ -275,17 +268,34 @@ def _shear(plan: LabPlan, geometry: ShearBox, replica: int, path: str, stress: f
         "sigma": sigma,
         "tau_lower": tau_lower,
         "rise": rise,
-        "peak_tau": float(smooth[peak]),
-        "peak_sigma": float(sigma[near].mean()),
-        "peak_displacement": float(u[peak]),
-        "residual_tau": float(tau[residual].mean()),
-        "residual_sigma": float(sigma[residual].mean()),
+        **strength(u, tau, sigma),
         "consolidated": consolidated_ok,
         "consolidate_time": consolidate_time,
         "lid_damping": damping,
         "weight_above": weight_above,
         "steps": int(sim.steps),
         "particles": int(model.particle_count),
+    }
+
+
+def strength(u, tau, sigma) -> dict:
+    """Peak and residual of a shear curve (displacement u [m], tau and sigma_n [Pa] per record):
+    the peak is the largest tau smoothed over 1/20 of the records, with the mean sigma_n around
+    it; the residual the means over the second half of the displacement."""
+    u, tau, sigma = (np.asarray(c, dtype=float) for c in (u, tau, sigma))
+    window = max(1, len(u) // 20)
+    smooth = np.convolve(tau, np.ones(window) / window, mode="same")
+    edge = window // 2  # the running mean is biased where it runs off the ends
+    inner = slice(edge, len(u) - edge) if len(u) > 2 * edge + 1 else slice(None)
+    peak = int(np.argmax(smooth[inner])) + (inner.start or 0)
+    near = slice(max(0, peak - window // 2), peak + window // 2 + 1)
+    residual = u >= 0.5 * u[-1]
+    return {
+        "peak_tau": float(smooth[peak]),
+        "peak_sigma": float(sigma[near].mean()),
+        "peak_displacement": float(u[peak]),
+        "residual_tau": float(tau[residual].mean()),
+        "residual_sigma": float(sigma[residual].mean()),
     }
 
 
