@@ -29,8 +29,8 @@ from soil import ContactLaw, GrouserWheel, Material, MeshWheel, gravity_vector
 from soil.advisor import rayleigh_time_step
 from soil.bed import BedSpec
 from soil.contact import LAW_VERSION
-from soil.materials import stick_speed_for
 from soil.errors import RegolithError
+from soil.materials import stick_speed_for
 
 from .scene import DriveSection, MaterialSection, MmxSection, OutputSection, Scene, SceneError, WheelSection
 

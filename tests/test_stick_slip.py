@@ -316,3 +316,22 @@ def test_twisting_resistance_stops_a_spinning_sphere_at_the_coulomb_rate(partner
         spins[twisting] = sim.angular_velocities()[-1, 2]
     assert spins[False] == pytest.approx(w0, rel=1e-6)
     assert spins[True] == pytest.approx(0.5 * w0, rel=0.02)
+
+
+def test_a_state_saved_without_twisting_loads_into_a_law_with_it_and_back():
+    """Spin histories of 3 (rolling) and 4 (rolling and twist) components convert on load: a bed
+    settled without twisting can be driven with it; the twist starts at zero, the rolling is kept."""
+    from test_neighbours import rain
+
+    plain = rain("cpu", n_side=3, law=ContactLaw(rolling=True))
+    plain.macro_step(200, 2e-5)
+    saved = plain.state_dict()
+    twisting = rain("cpu", n_side=3, law=ContactLaw(rolling=True, twisting=True))
+    twisting.load_state_dict(saved)
+    rolling = twisting.state.to_numpy()["pair_rolling"]
+    assert rolling.shape[2] == 4 and np.all(rolling[..., 3] == 0)
+    np.testing.assert_array_equal(rolling[..., :3], plain.state.to_numpy()["pair_rolling"])
+    twisting.macro_step(200, 2e-5)
+    back = rain("cpu", n_side=3, law=ContactLaw(rolling=True))
+    back.load_state_dict(twisting.state_dict())
+    assert back.state.to_numpy()["pair_rolling"].shape[2] == 3

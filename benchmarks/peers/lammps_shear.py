@@ -36,9 +36,9 @@ Differences from ours:
   Verlet at the plan's step.
 - LAMMPS has one friction coefficient (no separate stick and slip angles, no stick speed), so
   the comparison's soil has stick = slip angle and a stick speed far above any sliding speed.
-  A sliding contact differs still: LAMMPS's force follows the trial spring-dashpot force, its
-  spring cut back to the Coulomb limit; ours opposes the sliding velocity, at most the impulse
-  that stops the contact within a step, its spring never loaded while sliding (docs/physics.md).
+  A sliding contact differs in a detail: LAMMPS's force follows the trial spring-dashpot force,
+  its spring cut back to the Coulomb limit (dashpot included); ours is the spring's force, the
+  spring cut along itself to the limit, no dashpot while cut (docs/physics.md section 1.3).
 One MPI rank, units SI.
 """
 
