@@ -148,6 +148,10 @@ def test_the_gravity_twin_scales_every_derived_quantity_exactly(tmp_path):
     assert b.soil_material.youngs_modulus == pytest.approx(a.soil_material.youngs_modulus * s, rel=1e-14)
     assert b.wheel.material.youngs_modulus == pytest.approx(a.wheel.material.youngs_modulus * s, rel=1e-14)
     assert b.testbed.omega == pytest.approx(a.testbed.omega * math.sqrt(s), rel=1e-14)
+    # the tiny scene gives no stick speed: the default 0.02 sqrt(|g| d) scales by itself
+    for material_a, material_b in ((a.soil_material, b.soil_material), (a.wheel.material, b.wheel.material)):
+        assert material_a.stick_speed == pytest.approx(0.02 * math.sqrt(1.625 * 2 * 0.0035), rel=1e-12)
+        assert material_b.stick_speed == pytest.approx(material_a.stick_speed * math.sqrt(s), rel=1e-12)
     for name in ("dt", "macro_step"):
         assert getattr(b, name) == pytest.approx(getattr(a, name) / math.sqrt(s), rel=1e-12), name
     assert (b.substeps, b.drive_steps, b.landing.max_steps, b.landing.hold_steps) == (
