@@ -115,86 +115,103 @@ class _Scene:
         return int(np.searchsorted(self.step_time, time + 1e-9)) - 1
 
 
-def _draw(fig, scene: _Scene, s: Snapshot, values: np.ndarray) -> None:
-    from matplotlib.collections import EllipseCollection, LineCollection, PolyCollection
+class _Frame:
+    """The figure: two panels, the colour bar and the labels made once (the layout is computed for the
+    first frame and then kept: laying out every frame would cost more than drawing it); `draw` puts one
+    snapshot's grains, wheels and corner text in."""
 
-    fig.clear()
-    side, cut = fig.subplots(2, 1, sharex=True)
-    colour_map = "viridis"
-    norm = (0.0, scene.vmax)
-    wheel0 = s.wheel_vertices[scene.vertex_wheel == 0]
-    hub = wheel0.mean(axis=0)
-    if scene.follow and np.all(np.isfinite(s.rover_position)):
-        centre = s.rover_position[0]
-        x_range = (centre - scene.half_width, centre + scene.half_width)
-    else:
-        x_range = scene.x_range
+    COLOUR_MAP = "viridis"
 
-    def grains(ax, centres, radii, colours):
-        ax.add_collection(
-            EllipseCollection(
-                2 * radii * 1e3,
-                2 * radii * 1e3,
-                np.zeros(len(radii)),
-                units="xy",
-                offsets=centres * 1e3,
-                offset_transform=ax.transData,
-                array=colours,
-                cmap=colour_map,
-                clim=norm,
-                linewidths=0,
-            )
+    def __init__(self, fig, scene: _Scene):
+        from matplotlib import cm, colors
+
+        self.fig, self.scene = fig, scene
+        self.side, self.cut = fig.subplots(2, 1, sharex=True)
+        for ax in (self.side, self.cut):
+            if np.isfinite(scene.surface):
+                ax.axhline(scene.surface * 1e3, color="0.3", ls="--", lw=0.8)
+            ax.set_xlim(scene.x_range[0] * 1e3, scene.x_range[1] * 1e3)
+            ax.set_ylim(scene.z_range[0] * 1e3, scene.z_range[1] * 1e3 + 2)
+            ax.set_aspect("equal")
+            ax.set_ylabel("z [mm]")
+        self.side.set_title("side view", fontsize=9, loc="left")
+        self.cut.set_xlabel("x [mm]")
+        mappable = cm.ScalarMappable(norm=colors.Normalize(0.0, scene.vmax), cmap=self.COLOUR_MAP)
+        label = "grain speed [mm/s]" if scene.colour == "speed" else "grain displacement [mm]"
+        fig.colorbar(mappable, ax=[self.side, self.cut], label=label, shrink=0.8, extend="max")
+        fig.suptitle(f"{scene.name}: |g| = {scene.gravity:.3g} m/s^2, dashed: undisturbed surface", fontsize=10)
+        self.corner = self.side.text(
+            0.01,
+            0.97,
+            "",
+            transform=self.side.transAxes,
+            va="top",
+            fontsize=9,
+            bbox={"facecolor": "white", "alpha": 0.8, "edgecolor": "none"},
         )
+        self.artists: list = []
+        self.laid_out = False
 
-    # side view, looking along +y: the grains behind the wheel's mid-plane, the wheels, then the grains in front
-    order = np.argsort(-s.position[:, 1])
-    behind = order[s.position[order, 1] >= hub[1]]
-    front = order[s.position[order, 1] < hub[1]]
-    grains(side, s.position[behind][:, [0, 2]], s.radius[behind], values[behind])
-    wheel_faces = s.wheel_vertices[scene.triangles][:, :, [0, 2]] * 1e3
-    side.add_collection(PolyCollection(wheel_faces, facecolors="0.7", edgecolors="none"))
-    grains(side, s.position[front][:, [0, 2]], s.radius[front], values[front])
-    # the cut: grains the plane y = hub_y passes through, at their cut radius, and the wheel's outline in it
-    dy = s.position[:, 1] - hub[1]
-    inside = np.abs(dy) < s.radius
-    cut_radius = np.sqrt(np.maximum(s.radius[inside] ** 2 - dy[inside] ** 2, 0.0))
-    grains(cut, s.position[inside][:, [0, 2]], cut_radius, values[inside])
-    segments = _plane_section(s.wheel_vertices, scene.triangles, hub[1])
-    if len(segments):
-        cut.add_collection(LineCollection(list(segments[:, :, [0, 2]] * 1e3), colors="k", linewidths=1.2))
-    for ax, title in ((side, "side view"), (cut, f"cut through the wheel's mid-plane (y = {hub[1] * 1e3:.1f} mm)")):
-        if np.isfinite(scene.surface):
-            ax.axhline(scene.surface * 1e3, color="0.3", ls="--", lw=0.8)
-        ax.set_xlim(x_range[0] * 1e3, x_range[1] * 1e3)
-        ax.set_ylim(scene.z_range[0] * 1e3, scene.z_range[1] * 1e3 + 2)
-        ax.set_aspect("equal")
-        ax.set_ylabel("z [mm]")
-        ax.set_title(title, fontsize=9, loc="left")
-    cut.set_xlabel("x [mm]")
-    row = scene.step(s.time)
-    corner = [f"t = {s.time:.3g} s"]
-    if row >= 0:
-        driving = scene.phase[row] == 1
-        corner.append("driving" if driving else "landing")
-        if driving and np.isfinite(scene.slip[row]):
-            corner.append(f"slip {scene.slip[row]:.2f}")
-        if np.isfinite(scene.sinkage[row]):
-            corner.append(f"sinkage {scene.sinkage[row] * 1e3:.1f} mm")
-    side.text(
-        0.01,
-        0.97,
-        ", ".join(corner),
-        transform=side.transAxes,
-        va="top",
-        fontsize=9,
-        bbox={"facecolor": "white", "alpha": 0.8, "edgecolor": "none"},
-    )
-    from matplotlib import cm, colors
+    def _grains(self, ax, centres, radii, values) -> None:
+        from matplotlib.collections import EllipseCollection
 
-    mappable = cm.ScalarMappable(norm=colors.Normalize(*norm), cmap=colour_map)
-    label = "grain speed [mm/s]" if scene.colour == "speed" else "grain displacement [mm]"
-    fig.colorbar(mappable, ax=[side, cut], label=label, shrink=0.8, extend="max")
-    fig.suptitle(f"{scene.name}: |g| = {scene.gravity:.3g} m/s^2, dashed: undisturbed surface", fontsize=10)
+        collection = EllipseCollection(
+            2 * radii * 1e3,
+            2 * radii * 1e3,
+            np.zeros(len(radii)),
+            units="xy",
+            offsets=centres * 1e3,
+            offset_transform=ax.transData,
+            array=values,
+            cmap=self.COLOUR_MAP,
+            clim=(0.0, self.scene.vmax),
+            linewidths=0,
+        )
+        self.artists.append(ax.add_collection(collection))
+
+    def draw(self, s: Snapshot, values: np.ndarray) -> None:
+        from matplotlib.collections import LineCollection, PolyCollection
+
+        scene, side, cut = self.scene, self.side, self.cut
+        for artist in self.artists:
+            artist.remove()
+        self.artists = []
+        hub = s.wheel_vertices[scene.vertex_wheel == 0].mean(axis=0)
+        if scene.follow and np.all(np.isfinite(s.rover_position)):
+            centre = s.rover_position[0]
+            side.set_xlim((centre - scene.half_width) * 1e3, (centre + scene.half_width) * 1e3)
+        # side view, looking along +y: the grains behind the wheel's mid-plane, the wheels, then those in front
+        order = np.argsort(-s.position[:, 1])
+        behind = order[s.position[order, 1] >= hub[1]]
+        front = order[s.position[order, 1] < hub[1]]
+        self._grains(side, s.position[behind][:, [0, 2]], s.radius[behind], values[behind])
+        wheel_faces = s.wheel_vertices[scene.triangles][:, :, [0, 2]] * 1e3
+        self.artists.append(side.add_collection(PolyCollection(list(wheel_faces), facecolors="0.7", edgecolors="none")))
+        self._grains(side, s.position[front][:, [0, 2]], s.radius[front], values[front])
+        # the cut: the grains the plane y = hub y passes through, at their cut radius, and the wheel's outline in it
+        dy = s.position[:, 1] - hub[1]
+        inside = np.abs(dy) < s.radius
+        cut_radius = np.sqrt(np.maximum(s.radius[inside] ** 2 - dy[inside] ** 2, 0.0))
+        self._grains(cut, s.position[inside][:, [0, 2]], cut_radius, values[inside])
+        segments = _plane_section(s.wheel_vertices, scene.triangles, hub[1])
+        if len(segments):
+            lines = LineCollection(list(segments[:, :, [0, 2]] * 1e3), colors="k", linewidths=1.2)
+            self.artists.append(cut.add_collection(lines))
+        cut.set_title(f"cut through the wheel's mid-plane (y = {hub[1] * 1e3:.1f} mm)", fontsize=9, loc="left")
+        row = scene.step(s.time)
+        corner = [f"t = {s.time:.3g} s"]
+        if row >= 0:
+            driving = scene.phase[row] == 1
+            corner.append("driving" if driving else "landing")
+            if driving and np.isfinite(scene.slip[row]):
+                corner.append(f"slip {scene.slip[row]:.2f}")
+            if np.isfinite(scene.sinkage[row]):
+                corner.append(f"sinkage {scene.sinkage[row] * 1e3:.1f} mm")
+        self.corner.set_text(", ".join(corner))
+        if not self.laid_out:
+            self.fig.canvas.draw()  # the constrained layout, once
+            self.fig.set_layout_engine("none")
+            self.laid_out = True
 
 
 def _plane_section(vertices: np.ndarray, triangles: np.ndarray, y: float) -> np.ndarray:
@@ -242,6 +259,7 @@ def render(
         width = scene.half_width * 2 if scene.follow else scene.x_range[1] - scene.x_range[0]
         aspect = (scene.z_range[1] - scene.z_range[0] + 2e-3) / max(width, 1e-9)
         fig = plt.figure(figsize=(10, float(np.clip(2 * 8.3 * aspect + 1.4, 3.0, 14.0))), layout="constrained")
+        view = _Frame(fig, scene)
         displacements = Displacements()
         os.makedirs(out if kind == "frames" else os.path.dirname(os.path.abspath(out)), exist_ok=True)
         try:
@@ -250,19 +268,19 @@ def render(
                 for k in range(chosen + 1):  # the displacements need the snapshots before it
                     s = read_snapshot(f, k)
                     values = scene.values(s, displacements)
-                _draw(fig, scene, s, values)
+                view.draw(s, values)
                 fig.savefig(out, dpi=dpi)
             elif kind == "frames":
                 for k in range(count):
                     s = read_snapshot(f, k)
-                    _draw(fig, scene, s, scene.values(s, displacements))
+                    view.draw(s, scene.values(s, displacements))
                     fig.savefig(os.path.join(out, f"frame_{k:04d}.png"), dpi=dpi)
             else:
                 writer = _movie_writer(kind, out, fps)
                 with writer.saving(fig, out, dpi):
                     for k in range(count):
                         s = read_snapshot(f, k)
-                        _draw(fig, scene, s, scene.values(s, displacements))
+                        view.draw(s, scene.values(s, displacements))
                         writer.grab_frame()
         finally:
             plt.close(fig)
