@@ -179,6 +179,12 @@ def _same_run(a, b):
             for name in fa[group]:
                 if hasattr(fa[group][name], "shape"):
                     np.testing.assert_array_equal(fa[group][name][()], fb[group][name][()], err_msg=name)
+    # results.xdmf's data: rebuilt after the resume, the same snapshots
+    with open_results(a / "results.xdmf.h5") as fa, open_results(b / "results.xdmf.h5") as fb:
+        assert list(fa["snapshots"]) == list(fb["snapshots"])
+        for name in fa["snapshots"]:
+            for key in fa["snapshots"][name]:
+                np.testing.assert_array_equal(fa["snapshots"][name][key][()], fb["snapshots"][name][key][()])
 
 
 def _interrupted(plan, out, after=2):
