@@ -21,7 +21,7 @@ Warp's own messages only with --verbose.
 Exit status:
     0    done (a run: a steady-state result)
     1    an unexpected error (a bug: please report it with the traceback --verbose prints)
-    2    bad input: a scene, an argument, a bed file, a mesh or an FMU (the message names it)
+    2    bad input: a scene, an argument, a bed file, a mesh, an FMU or a run to view or export (the message names it)
     3    the output folder holds a run (pass --overwrite) or is in use by another process
     4    the simulation diverged (the message says where and what to change)
     5    an operating-system error: a path that cannot be written or read, a full disk

@@ -1,4 +1,4 @@
-"""Run output: results.h5 (HDF5, written as the run goes) and results.xdmf (ParaView).
+"""Run output: results.h5 (HDF5, written as the run goes) and results.xdmf (ParaView, VTK, meshio).
 
 HDF5 layout of ``results.h5`` (S = macro steps recorded, W = wheels, T = particle
 snapshots, N = particles, V = wheel-mesh vertices, F = wheel-mesh triangles, K = rover
@@ -80,9 +80,11 @@ every `flush_every` macro steps, so a killed run leaves a readable file with eve
 up to the last flush; `open_results` reads it (also while a run is still writing). A
 resume (`ResultsWriter.resume`) copies what the checkpoint covers into a fresh file and
 replaces the old one atomically, so a file left flagged by a killed writer needs no tool.
-``results.xdmf`` beside it references /particles (Polyvertex), the wheel meshes (Triangle) and
-the rover body (a point with its forward and up axes) as temporal collections via HDF5
-hyperslabs; open it in ParaView.
+``results.xdmf`` beside it shows the snapshots as temporal collections: the wheel meshes
+(Triangle), the rover body (a point with its forward and up axes) and the grains (Polyvertex);
+its data file ``results.xdmf.h5`` holds each snapshot as plain datasets (`sync_xdmf_data`), so
+that ParaView, VTK's XDMF reader and meshio's `TimeSeriesReader` read it, also while the run
+writes results.h5. At the end of a run ``results.vtkhdf`` (cosim.vtkhdf) follows.
 """
 
 from __future__ import annotations
