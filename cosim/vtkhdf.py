@@ -77,15 +77,27 @@ class _Series:
 class PolyBlock:
     """One temporal PolyData block of the collection: its points, one kind of cell (`topology`), its
     point and cell data, and the Steps offsets. `static_cells`: the cells (and so the point and cell
-    counts) are the same in every step and written once."""
+    counts) are the same in every step and written once; `static_data`: the point or cell arrays that
+    are, too."""
 
-    def __init__(self, root, name: str, index: int, topology: str, static_cells: bool, point_data, cell_data):
+    def __init__(
+        self,
+        root,
+        name: str,
+        index: int,
+        topology: str,
+        static_cells: bool,
+        point_data: dict,
+        cell_data: dict,
+        static_data: tuple = (),
+    ):
         group = root.create_group(name, track_order=True)
         group.attrs["Version"] = np.array(VTKHDF_VERSION, dtype=np.int64)
         group.attrs.create("Type", np.bytes_("PolyData"))
         group.attrs["Index"] = np.int64(index)
         self.topology = topology
         self.static_cells = static_cells
+        self.static_data = set(static_data)
         self.steps = 0
         int64 = np.int64
         self.points = _Series(group, "Points", (3,), np.float64, "m", "point coordinates of every step, concatenated")
@@ -155,10 +167,13 @@ class PolyBlock:
             id_starts.append(arrays["Connectivity"].rows - int(arrays["NumberOfConnectivityIds"][part]))
         self.cell_offsets.append([cell_starts])
         self.connectivity_offsets.append([id_starts])
-        for key, series in self.point_data.items():
-            self.point_data_offsets[key].append([series.append(point_data[key])])
-        for key, series in self.cell_data.items():
-            self.cell_data_offsets[key].append([series.append(cell_data[key])])
+        for arrays, offsets, values in (
+            (self.point_data, self.point_data_offsets, point_data),
+            (self.cell_data, self.cell_data_offsets, cell_data),
+        ):
+            for key, series in arrays.items():
+                # a static array is read from row 0 by every step
+                offsets[key].append([0 if key in self.static_data and not first else series.append(values[key])])
         self.steps += 1
         self.steps_group.attrs["NSteps"] = np.int64(self.steps)
 
@@ -218,10 +233,11 @@ def write_vtkhdf(results_path, vtkhdf_path=None) -> str:
                 point_data={
                     "radius": ((), f64, "m", "grain radius"),
                     "velocity": ((3,), f32, "m/s", "grain velocity"),
-                    "displacement": ((3,), f64, "m", "displacement from where the grain was first seen"),
+                    "displacement": ((3,), f32, "m", "displacement from where the grain was first seen"),
                     "id": ((), i64, "1", "grain id, unique over the run"),
                 },
                 cell_data={},
+                static_data=("radius", "id") if fixed else (),
             )
             wheels = PolyBlock(
                 root,
@@ -231,6 +247,7 @@ def write_vtkhdf(results_path, vtkhdf_path=None) -> str:
                 static_cells=True,
                 point_data={"wheel": ((), i64, "1", "wheel index of each vertex")},
                 cell_data={},
+                static_data=("wheel",),
             )
             rover = PolyBlock(
                 root,
@@ -256,8 +273,14 @@ def write_vtkhdf(results_path, vtkhdf_path=None) -> str:
                     point_data={},
                     cell_data={
                         "wall": ((), i64, "1", "wall index (results.h5 /boundaries)"),
-                        "force": ((3,), f64, "N", "force of the grains on the wall at the nearest macro step"),
+                        "force": (
+                            (3,),
+                            f64,
+                            "N",
+                            "force of the grains on the wall at the snapshot (the end of its macro step)",
+                        ),
                     },
+                    static_data=("wall",),
                 )
                 blocks["boundaries"] = walls
             assembly = root.create_group("Assembly", track_order=True)
@@ -289,7 +312,7 @@ def write_vtkhdf(results_path, vtkhdf_path=None) -> str:
                 wheels.add_step(s.time, s.wheel_vertices, triangles, {"wheel": vertex_wheel}, {})
                 rover.add_step(s.time, s.rover_position, [[0]], {"forward": s.rover_forward, "up": s.rover_up}, {})
                 if walls is not None:
-                    # the macro step nearest the snapshot (none before the first: the walls at rest, no force)
+                    # the macro step the snapshot ends (none before the first: the walls at rest, no force)
                     row = int(np.searchsorted(step_times, s.time - 1e-12)) if len(step_times) else -1
                     if len(step_times) == 0 or (row == 0 and s.time < step_times[0] - 1e-12):
                         moved, on_wall = np.zeros((len(wall_index), 3)), np.zeros((len(wall_index), 3))
