@@ -110,6 +110,13 @@ def _snapshots(run):
         return [read_snapshot(f, k) for k in range(snapshot_count(f))]
 
 
+def _xdmf_grain_arrays(run) -> set:
+    """The point arrays of the grains in results.xdmf: the grain ids too where the grains change."""
+    with open_results(run / "results.h5") as f:
+        ragged = f["particles"].attrs["layout"] == "ragged"
+    return {"radius [m]", "velocity [m s-1]", "position [m]"} | ({"id [1]"} if ragged else set())
+
+
 def test_meshio_reads_the_xdmf_time_series(run, capfd):
     meshio = pytest.importorskip("meshio")
     import warnings
@@ -124,7 +131,7 @@ def test_meshio_reads_the_xdmf_time_series(run, capfd):
             for k in (0, len(snapshots) - 1):
                 time, point_data, _ = reader.read_data(k)
                 assert time == snapshots[k].time
-                assert {"radius [m]", "velocity [m s-1]", "position [m]"} <= set(point_data)
+                assert set(point_data) == _xdmf_grain_arrays(run)
                 np.testing.assert_array_equal(point_data["position [m]"], snapshots[k].position)
                 np.testing.assert_array_equal(point_data["velocity [m s-1]"], snapshots[k].velocity)
     captured = capfd.readouterr()
@@ -166,7 +173,8 @@ def test_vtk_xdmf_reader_reads_every_step_without_messages(run, vtk_messages):
         assert set(blocks) == {"particles", "wheels", "rover"}
         grains = blocks["particles"]
         assert grains.GetNumberOfPoints() == grains.GetNumberOfCells() == len(snapshots[k].ids)
-        assert {"radius [m]", "velocity [m s-1]", "position [m]"} <= _arrays(grains.GetPointData())
+        assert _arrays(grains.GetPointData()) == _xdmf_grain_arrays(run)
+        assert _arrays(blocks["rover"].GetPointData()) == {"forward [1]", "up [1]"}
         np.testing.assert_allclose(vtk_to_numpy(grains.GetPoints().GetData()), snapshots[k].position)
         assert blocks["wheels"].GetNumberOfPoints() == len(snapshots[k].wheel_vertices)
     assert vtk_messages() == ""
