@@ -90,7 +90,6 @@ writes results.h5. At the end of a run ``results.vtkhdf`` (cosim.vtkhdf) follows
 from __future__ import annotations
 
 import json
-import logging
 import os
 import xml.etree.ElementTree as ET
 from datetime import datetime, timezone
@@ -102,8 +101,6 @@ from soil.files import atomic_path, atomic_write_text
 
 from .folders import XDMF_DATA_FILE, XDMF_FILE
 from .snapshots import ARRAY_NAMES, read_snapshot
-
-log = logging.getLogger(__name__)
 
 RESULTS_FORMAT = "regolith-cosim results 2"
 
@@ -763,11 +760,7 @@ def write_xdmf(f, xdmf_path: str) -> None:
     import h5py
 
     data_path = os.path.join(os.path.dirname(os.path.abspath(xdmf_path)), XDMF_DATA_FILE)
-    try:
-        sync_xdmf_data(f, data_path)
-    except OSError as error:  # e.g. a viewer holds the data file: the next snapshot tries again
-        log.warning("results.xdmf not updated: %s: %s", data_path, error)
-        return
+    sync_xdmf_data(f, data_path)
     h5name = XDMF_DATA_FILE
     root = ET.Element("Xdmf", Version="3.0")
     domain = ET.SubElement(root, "Domain")
