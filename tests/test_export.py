@@ -255,6 +255,18 @@ def test_view_writes_a_movie_and_frames_of_a_moving_patch(tmp_path, capsys):
     assert str(movie) in capsys.readouterr().out
 
 
+def test_view_without_ffmpeg_writes_a_gif_and_says_what_an_mp4_needs(tmp_path, monkeypatch, capsys):
+    from cosim import view
+
+    monkeypatch.setattr(view, "ffmpeg_path", lambda: None)
+    folder = tmp_path / "patch"
+    made_up_results(folder, 100, 2, ragged=True)
+    assert main(["view", str(folder), "--dpi", "30"]) == 0  # the default: RUN/plots/view.gif
+    assert (folder / "plots" / "view.gif").stat().st_size > 1_000
+    assert main(["view", str(folder), "--out", str(tmp_path / "movie.mp4")]) == 2
+    assert "imageio-ffmpeg" in capsys.readouterr().err
+
+
 def test_view_refuses_bad_arguments_with_one_line(tiny_run, tmp_path, capsys):
     empty = tmp_path / "empty"
     made_up_results(empty, 10, 0)
