@@ -178,24 +178,22 @@ class PolyBlock:
         self.steps_group.attrs["NSteps"] = np.int64(self.steps)
 
 
+def _box_corners(lower: np.ndarray, upper: np.ndarray) -> np.ndarray:
+    """(8, 3) corners of an axis-aligned box; bit 0, 1, 2 of the index pick the upper x, y, z."""
+    return np.array([[(upper if i & bit else lower)[axis] for axis, bit in enumerate((1, 2, 4))] for i in range(8)])
+
+
 def _wall_faces(kind: int, geometry: np.ndarray, lower: np.ndarray, upper: np.ndarray) -> np.ndarray:
     """(faces, 4, 3) quads of one wall: a plane (point, normal) drawn over the box lower..upper, a box
     (lower corner, upper corner) as its six faces [m]."""
     if kind == 1:
-        a, b = geometry[:3], geometry[3:]
-        corners = np.array([[(b if i & 1 else a)[0], (b if i & 2 else a)[1], (b if i & 4 else a)[2]] for i in range(8)])
         faces = [(0, 2, 3, 1), (4, 5, 7, 6), (0, 1, 5, 4), (2, 6, 7, 3), (0, 4, 6, 2), (1, 3, 7, 5)]
-        return corners[np.array(faces)]
+        return _box_corners(geometry[:3], geometry[3:])[np.array(faces)]
     point, normal = geometry[:3], geometry[3:] / np.linalg.norm(geometry[3:])
     u = np.cross(normal, [1.0, 0.0, 0.0] if abs(normal[0]) < 0.9 else [0.0, 1.0, 0.0])
     u /= np.linalg.norm(u)
     v = np.cross(normal, u)
-    box = np.array(
-        [
-            [(upper if i & 1 else lower)[0], (upper if i & 2 else lower)[1], (upper if i & 4 else lower)[2]]
-            for i in range(8)
-        ]
-    )
+    box = _box_corners(lower, upper)
     centre = (lower + upper) / 2
     centre = centre - np.dot(centre - point, normal) * normal
     su, sv = (box - centre) @ u, (box - centre) @ v
@@ -312,12 +310,11 @@ def write_vtkhdf(results_path, vtkhdf_path=None) -> str:
                 wheels.add_step(s.time, s.wheel_vertices, triangles, {"wheel": vertex_wheel}, {})
                 rover.add_step(s.time, s.rover_position, [[0]], {"forward": s.rover_forward, "up": s.rover_up}, {})
                 if walls is not None:
-                    # the macro step the snapshot ends (none before the first: the walls at rest, no force)
-                    row = int(np.searchsorted(step_times, s.time - 1e-12)) if len(step_times) else -1
-                    if len(step_times) == 0 or (row == 0 and s.time < step_times[0] - 1e-12):
+                    # the last macro step at or before the snapshot (none yet: the walls at rest, no force)
+                    row = int(np.searchsorted(step_times, s.time + 1e-9)) - 1
+                    if row < 0:
                         moved, on_wall = np.zeros((len(wall_index), 3)), np.zeros((len(wall_index), 3))
                     else:
-                        row = min(row, len(step_times) - 1)
                         moved, on_wall = displacement[row][wall_index], force[row][wall_index]
                     points = (wall_faces + moved[:, None, :]).reshape(-1, 3)
                     cells = np.arange(len(points)).reshape(-1, 4)
@@ -326,8 +323,8 @@ def write_vtkhdf(results_path, vtkhdf_path=None) -> str:
 
 
 def _walls(f):
-    """The walls' quads (Q, 4, 3) [m], the wall index of each quad, and the box planes are drawn over:
-    the extent of the grains of the first snapshot, the wheels over the run and the walls' own points."""
+    """The walls' quads (Q, 4, 3) [m] and the wall index of each quad; planes are drawn over the extent of
+    the grains of the first snapshot, the wheels over the run and the walls' own points."""
     kinds = f["boundaries/kind"][()]
     geometry = f["boundaries/geometry"][()]
     first = read_snapshot(f, 0)

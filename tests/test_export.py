@@ -3,7 +3,7 @@ vtkHDFReader reads results.vtkhdf (every step, equal to results.h5), all without
 `cosim view` draws a movie of the run.
 
 Three outputs: the tiny run (a real run: landing and drive), a file of the main job's size (5,642
-grains, 9 snapshots, five walls) and a ragged one (a moving patch: the grains change), the last two
+grains, 9 snapshots, four walls and a plate) and a ragged one (a moving patch: the grains change), the last two
 written with ResultsWriter from made-up grains.
 """
 
@@ -37,15 +37,16 @@ def _row(t: float, walls: int) -> dict:
 
 def made_up_results(folder, grains: int, snapshots: int, ragged: bool = False) -> str:
     """results.h5 (and its results.xdmf) of `grains` made-up grains in a 0.16 m bed with a cube for a wheel,
-    five walls and `snapshots` snapshots (ragged: a different number of grains in each)."""
+    four walls and a plate, and `snapshots` snapshots (ragged: a different number of grains in each)."""
     rng = np.random.default_rng(1)
     cube = np.array([[x, y, z] for x in (-1, 1) for y in (-1, 1) for z in (-1, 1)], dtype=float) * 0.02
     faces = np.array([[0, 1, 3], [0, 3, 2], [4, 6, 7], [4, 7, 5], [0, 4, 5], [0, 5, 1]])
     geometry = np.array(
         [[0, 0, 0, 0, 0, 1], [0, 0, 0, 1, 0, 0], [0.16, 0.065, 0.1, -1, 0, 0], [0, 0, 0, 0, 1, 0]]
-        + [[0.16, 0.065, 0.1, 0, -1, 0]],
+        + [[0.05, 0.02, 0.04, 0.08, 0.045, 0.05]],  # four planes (point, normal) and a box (corners): a plate
         dtype=float,
     )
+    kinds = np.array([0, 0, 0, 0, 1])
     walls = len(geometry)
     os.makedirs(folder, exist_ok=True)
     path = os.path.join(folder, "results.h5")
@@ -57,7 +58,7 @@ def made_up_results(folder, grains: int, snapshots: int, ragged: bool = False) -
         mesh=(cube, faces, np.zeros(len(cube), int)),
         rover_columns=["x"],
         rover_units=["m"],
-        boundaries={"kind": np.zeros(walls, int), "geometry": geometry, "report": np.ones(walls, int)},
+        boundaries={"kind": kinds, "geometry": geometry, "report": np.ones(walls, int)},
         ragged=ragged,
     )
     with writer:
@@ -186,6 +187,8 @@ def test_vtkhdf_round_trip(run, vtk_messages):
     from vtk.util.numpy_support import vtk_to_numpy
 
     snapshots = _snapshots(run)
+    with open_results(run / "results.h5") as f:
+        faces = int(np.sum(np.where(f["boundaries/kind"][()] == 1, 6, 1)))
     path = write_vtkhdf(run / "results.h5", run / "export.vtkhdf")
     reader = vtk.vtkHDFReader()
     reader.SetFileName(path)
@@ -208,7 +211,7 @@ def test_vtkhdf_round_trip(run, vtk_messages):
         np.testing.assert_array_equal(vtk_to_numpy(wheels.GetPoints().GetData()), snapshot.wheel_vertices)
         assert wheels.GetNumberOfPolys() > 0
         np.testing.assert_array_equal(vtk_to_numpy(blocks["rover"].GetPoints().GetData())[0], snapshot.rover_position)
-        assert blocks["boundaries"].GetNumberOfPolys() == 5  # five planes
+        assert blocks["boundaries"].GetNumberOfPolys() == faces  # a quad per plane, six per box
         assert _arrays(blocks["boundaries"].GetCellData()) == {"wall [1]", "force [N]"}
     assert reader.GetTimeValue() == pytest.approx(snapshots[-1].time)
     assert vtk_messages() == ""
