@@ -1,8 +1,9 @@
 """`cosim view RUN`: a picture of a run without ParaView, one frame per particle snapshot.
 
 Each frame shows the grains from the side (seen along +y, the nearer grains drawn last) and in a
-cut through the first wheel's mid-plane (the grains that the plane cuts, drawn at their cut
-radius, and the wheel's outline in that plane: the rut), coloured by speed or by displacement
+cut by the x-z plane through the first wheel's hub, its mid-plane when its axle lies along y as
+on the testbed (the grains that the plane cuts, drawn at their cut radius, and the wheel's
+outline in that plane: the rut), coloured by speed or by displacement
 (from where each grain was first seen), with the wheels, the undisturbed surface, and the time,
 phase, slip and sinkage in the corner. Rover runs and moving patches are followed: the view
 is centred on the rover body.
