@@ -5,6 +5,8 @@
     cosim resume OUT
     cosim advise SCENE.toml [--set key=value ...]
     cosim plot OUT
+    cosim view RUN [--out movie.mp4|movie.gif|picture.png|frames/] [--color speed|displacement]
+    cosim export vtkhdf RUN [--out FILE]
     cosim study precision SCENE.toml --replicas N [--precisions single,mixed,double] [--out DIR] ...
     cosim study timestep SCENE.toml [--out DIR] [--duration S] [--max-tries N]
     cosim study slip SCENE.toml --slips 0.1,0.2,0.4 [--replicas K] [--out DIR] ...
@@ -19,7 +21,7 @@ Warp's own messages only with --verbose.
 Exit status:
     0    done (a run: a steady-state result)
     1    an unexpected error (a bug: please report it with the traceback --verbose prints)
-    2    bad input: a scene, an argument, a bed file, a mesh or an FMU (the message names it)
+    2    bad input: a scene, an argument, a bed file, a mesh, an FMU or a run to view or export (the message names it)
     3    the output folder holds a run (pass --overwrite) or is in use by another process
     4    the simulation diverged (the message says where and what to change)
     5    an operating-system error: a path that cannot be written or read, a full disk
@@ -184,6 +186,26 @@ def cmd_plot(args) -> int:
 
     for path in plot_output(args.out, args.plot_dir):
         print(path)
+    return EXIT_OK
+
+
+def cmd_view(args) -> int:
+    from .view import render, summary_line
+
+    print(summary_line(render(args.run, args.out, colour=args.color, fps=args.fps, dpi=args.dpi, frame=args.frame)))
+    return EXIT_OK
+
+
+def cmd_export(args) -> int:
+    """cosim export vtkhdf RUN [--out FILE]: results.vtkhdf from what results.h5 holds."""
+    from .folders import RESULTS_FILE
+    from .vtkhdf import write_vtkhdf
+
+    results = os.path.join(args.run, RESULTS_FILE) if os.path.isdir(args.run) else args.run
+    if not os.path.isfile(results):
+        raise ValueError(f"{args.run!r} is not a run folder: no {RESULTS_FILE} in it")
+    path = write_vtkhdf(results, args.out)
+    print(f"{path}: {os.path.getsize(path) / 1024:.0f} kB (open it in ParaView or with VTK's vtkHDFReader)")
     return EXIT_OK
 
 
@@ -493,6 +515,25 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("out", help="a run folder or a study folder")
     p.add_argument("--plot-dir", help="where to write the PNGs (default OUT/plots)")
     p.set_defaults(func=cmd_plot)
+
+    p = sub.add_parser("view", help="a movie or picture of a run's grains and wheels, no ParaView needed")
+    p.add_argument("run", help="a run folder (or its results.h5)")
+    p.add_argument(
+        "--out",
+        help="movie.mp4 (ffmpeg), movie.gif, picture.png (one frame) or a folder for PNG frames "
+        "(default RUN/plots/view.mp4, view.gif without ffmpeg)",
+    )
+    p.add_argument("--color", choices=["speed", "displacement"], default="speed", help="what colours the grains")
+    p.add_argument("--frame", type=int, help="with a .png: the snapshot to draw (default the last; -1 counts back)")
+    p.add_argument("--fps", type=int, default=5, help="movie frames per second (one frame per snapshot; default 5)")
+    p.add_argument("--dpi", type=int, default=100, help="pixels per inch of the frames (10 in wide; default 100)")
+    p.set_defaults(func=cmd_view)
+
+    p = sub.add_parser("export", help="export a run's snapshots to another format (vtkhdf: ParaView, VTK)")
+    p.add_argument("format", choices=["vtkhdf"])
+    p.add_argument("run", help="a run folder (or its results.h5)")
+    p.add_argument("--out", help="the file to write (default RUN/results.vtkhdf)")
+    p.set_defaults(func=cmd_export)
 
     p = sub.add_parser("study", help="precision (replica scatter), time-step or drawbar-pull/slip studies")
     p.add_argument("kind", choices=["precision", "timestep", "slip"])

@@ -4,7 +4,9 @@
     run.json          status, summary, validity findings, wall time
     bed.h5, bed.json  the settled bed (a cache kept across --overwrite)
     results.h5        time series and particle snapshots (cosim.output)
-    results.xdmf      ParaView view of the snapshots
+    results.xdmf      the snapshots for ParaView, VTK and meshio (XDMF 3)
+    results.xdmf.h5   its data: each snapshot as plain datasets
+    results.vtkhdf    the snapshots as one temporal VTKHDF file (cosim.vtkhdf)
     checkpoint.npz    what `cosim resume` continues from (written atomically)
     diverged_state.npz  the last good soil state when the DEM exploded
     plots/            `cosim plot`
@@ -27,13 +29,25 @@ from soil.errors import RegolithError
 
 RESULTS_FILE = "results.h5"
 XDMF_FILE = "results.xdmf"
+XDMF_DATA_FILE = "results.xdmf.h5"
+VTKHDF_FILE = "results.vtkhdf"
 CHECKPOINT_FILE = "checkpoint.npz"
 RUN_FILE = "run.json"
 SCENE_FILE = "scene.toml"
 DIVERGED_FILE = "diverged_state.npz"
 PLOTS_DIR = "plots"
 LOCK_FILE = ".lock"
-RUN_OUTPUTS = (RESULTS_FILE, XDMF_FILE, CHECKPOINT_FILE, RUN_FILE, SCENE_FILE, DIVERGED_FILE, PLOTS_DIR)
+RUN_OUTPUTS = (
+    RESULTS_FILE,
+    XDMF_FILE,
+    XDMF_DATA_FILE,
+    VTKHDF_FILE,
+    CHECKPOINT_FILE,
+    RUN_FILE,
+    SCENE_FILE,
+    DIVERGED_FILE,
+    PLOTS_DIR,
+)
 """What a run writes (the bed cache and foreign files are not among them)."""
 
 

@@ -1,4 +1,4 @@
-"""Run output: results.h5 (HDF5, written as the run goes) and results.xdmf (ParaView).
+"""Run output: results.h5 (HDF5, written as the run goes) and results.xdmf (ParaView, VTK, meshio).
 
 HDF5 layout of ``results.h5`` (S = macro steps recorded, W = wheels, T = particle
 snapshots, N = particles, V = wheel-mesh vertices, F = wheel-mesh triangles, K = rover
@@ -80,9 +80,11 @@ every `flush_every` macro steps, so a killed run leaves a readable file with eve
 up to the last flush; `open_results` reads it (also while a run is still writing). A
 resume (`ResultsWriter.resume`) copies what the checkpoint covers into a fresh file and
 replaces the old one atomically, so a file left flagged by a killed writer needs no tool.
-``results.xdmf`` beside it references /particles (Polyvertex), the wheel meshes (Triangle) and
-the rover body (a point with its forward and up axes) as temporal collections via HDF5
-hyperslabs; open it in ParaView.
+``results.xdmf`` beside it shows the snapshots as temporal collections: the wheel meshes
+(Triangle), the rover body (a point with its forward and up axes) and the grains (Polyvertex);
+its data file ``results.xdmf.h5`` holds each snapshot as plain datasets (`sync_xdmf_data`), so
+that ParaView, VTK's XDMF reader and meshio's `TimeSeriesReader` read it, also while the run
+writes results.h5. At the end of a run ``results.vtkhdf`` (cosim.vtkhdf) follows.
 """
 
 from __future__ import annotations
@@ -97,7 +99,8 @@ import numpy as np
 
 from soil.files import atomic_path, atomic_write_text
 
-from .folders import XDMF_FILE
+from .folders import XDMF_DATA_FILE, XDMF_FILE
+from .snapshots import ARRAY_NAMES, read_snapshot
 
 RESULTS_FORMAT = "regolith-cosim results 2"
 
@@ -475,6 +478,10 @@ class ResultsWriter:
                 )
                 new.attrs["status"] = "running"
                 new.attrs["message"] = ""
+        # the XDMF data file is rebuilt from the cut results: a resumed snapshot may differ from the lost one
+        data_path = os.path.join(os.path.dirname(os.path.abspath(writer.path)), XDMF_DATA_FILE)
+        if os.path.exists(data_path):
+            os.remove(data_path)
         f = h5py.File(writer.path, "r+", libver="latest")
         f.swmr_mode = True
         writer._file = f
@@ -659,15 +666,80 @@ def read_series(path) -> dict:
 # ------------------------------------------------------------------------------------
 # XDMF
 
+XDMF_DATA_FORMAT = "regolith-cosim xdmf data 1"
 
-def _data_item(parent, h5name: str, path: str, shape: tuple, dtype) -> ET.Element:
-    dtype = np.dtype(dtype)
-    number = "Int" if dtype.kind in "iu" else "Float"
+
+def _plain(group, name: str, data, units: str, description: str) -> None:
+    if name in group:
+        del group[name]
+    group[name] = data
+    _units(group[name], units, description)
+
+
+def sync_xdmf_data(f, data_path: str) -> None:
+    """Bring results.xdmf.h5 up to date with the open results file `f`: each particle snapshot as plain
+    datasets (no hyperslabs: meshio's XDMF reader follows none), copied once and kept when its time is
+    unchanged; snapshots the results no longer hold (a resume cut them) are removed.
+
+    Layout (V wheel-mesh vertices, F triangles, n grains of the snapshot):
+        /mesh/triangles (F, 3), /mesh/wheel (V,) [1], /mesh/vertex (1, 1) [1]: the rover's one-point cell
+        /grains/radius (N,) [m], /grains/vertex (N, 1) [1]   (fixed layout: the same grains in every snapshot)
+        /snapshots/<k:06d>/   attribute time [s]
+            position (n, 3) [m], velocity (n, 3) [m/s], wheel_vertices (V, 3) [m],
+            rover_position, rover_forward, rover_up (1, 3) [m, 1, 1]
+            radius (n,) [m], vertex (n, 1) [1], id (n,) [1]   (ragged layout: the grains change)
+    """
+    import h5py
+
+    p = f["particles"]
+    times = p["time"][()]
+    ragged = p.attrs.get("layout") == "ragged"
+    with h5py.File(data_path, "a", locking=False) as out:
+        out.attrs["format"] = XDMF_DATA_FORMAT
+        out.attrs["results"] = os.path.basename(f.filename)
+        if "mesh" not in out:
+            mesh = out.create_group("mesh")
+            _plain(mesh, "triangles", f["wheels/mesh/triangles"][()], "1", "vertex indices of each wheel triangle")
+            _plain(mesh, "wheel", f["wheels/mesh/wheel"][()], "1", "wheel index of each vertex")
+            _plain(mesh, "vertex", np.zeros((1, 1), np.int32), "1", "the one-point cell of the rover body")
+        if not ragged and "grains" not in out:
+            grains = out.create_group("grains")
+            radius = p["radius"][()]
+            _plain(grains, "radius", radius, "m", "grain radii (model order)")
+            _plain(grains, "vertex", np.arange(len(radius), dtype=np.int32)[:, None], "1", "one cell per grain")
+        snapshots = out.require_group("snapshots")
+        for name in list(snapshots):
+            if int(name) >= len(times):
+                del snapshots[name]
+        for k, time in enumerate(times):
+            name = f"{k:06d}"
+            if name in snapshots and snapshots[name].attrs.get("time") == time:
+                continue
+            if name in snapshots:
+                del snapshots[name]
+            snap = snapshots.create_group(name)
+            s = read_snapshot(f, k)
+            if ragged:
+                _plain(snap, "radius", s.radius, "m", "grain radii")
+                _plain(snap, "id", s.ids, "1", "grain id, unique over the run")
+                _plain(snap, "vertex", np.arange(len(s.ids), dtype=np.int32)[:, None], "1", "one cell per grain")
+            _plain(snap, "position", s.position, "m", "grain centres")
+            _plain(snap, "velocity", s.velocity, "m/s", "grain velocities")
+            _plain(snap, "wheel_vertices", s.wheel_vertices, "m", "wheel meshes posed, world frame")
+            _plain(snap, "rover_position", s.rover_position[None], "m", "rover body frame origin")
+            _plain(snap, "rover_forward", s.rover_forward[None], "1", "rover body x axis, world frame")
+            _plain(snap, "rover_up", s.rover_up[None], "1", "rover body z axis, world frame")
+            snap.attrs["time"] = time  # last: a snapshot with its time is complete
+            snap.attrs["time_units"] = "s"
+
+
+def _data_item(parent, h5name: str, path: str, dataset) -> ET.Element:
+    dtype = dataset.dtype
     item = ET.SubElement(
         parent,
         "DataItem",
-        Dimensions=" ".join(str(s) for s in shape),
-        NumberType=number,
+        Dimensions=" ".join(str(s) for s in dataset.shape),
+        NumberType="Int" if dtype.kind in "iu" else "Float",
         Precision=str(dtype.itemsize),
         Format="HDF",
     )
@@ -675,118 +747,83 @@ def _data_item(parent, h5name: str, path: str, shape: tuple, dtype) -> ET.Elemen
     return item
 
 
-def _slab(parent, h5name: str, path: str, full_shape: tuple, dtype, index: int) -> ET.Element:
-    """Row `index` of a (T, ...) dataset as an XDMF HyperSlab."""
-    tail = full_shape[1:]
-    slab = ET.SubElement(
-        parent, "DataItem", ItemType="HyperSlab", Type="HyperSlab", Dimensions=" ".join(str(s) for s in tail)
-    )
-    rank = len(full_shape)
-    select = ET.SubElement(slab, "DataItem", Dimensions=f"3 {rank}", Format="XML")
-    start = [index] + [0] * (rank - 1)
-    stride = [1] * rank
-    count = [1, *tail]
-    select.text = " ".join(str(v) for v in (*start, *stride, *count))
-    _data_item(slab, h5name, path, full_shape, dtype)
-    return slab
-
-
-def _rows(parent, h5name: str, path: str, full_shape: tuple, dtype, first: int, count: int) -> ET.Element:
-    """Rows first .. first + count of an (R, ...) dataset as an XDMF HyperSlab."""
-    tail = full_shape[1:]
-    slab = ET.SubElement(
-        parent, "DataItem", ItemType="HyperSlab", Type="HyperSlab", Dimensions=" ".join(str(s) for s in (count, *tail))
-    )
-    rank = len(full_shape)
-    select = ET.SubElement(slab, "DataItem", Dimensions=f"3 {rank}", Format="XML")
-    select.text = " ".join(str(v) for v in ([first] + [0] * (rank - 1) + [1] * rank + [count, *tail]))
-    _data_item(slab, h5name, path, full_shape, dtype)
-    return slab
-
-
 def write_xdmf(f, xdmf_path: str) -> None:
-    """Write an XDMF 3 file describing the particle snapshots (and wheel meshes) of an open results file.
+    """Write results.xdmf (XDMF 3) and its data file results.xdmf.h5 (`sync_xdmf_data`) for an open
+    results file: three temporal collections, the wheel meshes (Triangle), the rover body (a point with
+    its forward and up axes) and, last, the grains (Polyvertex, with radius, velocity and position as
+    point data: meshio's time series reader takes the last collection, holds its first mesh fixed and
+    gives per step only the point data). Every DataItem names a whole dataset of the data file, so
+    the readers need no hyperslabs and the file stays readable while results.h5 is being written.
 
-    Written to a temporary file and renamed, so a reader never sees half a file.
+    The XML is written to a temporary file and renamed, so a reader never sees half a file.
     """
-    h5name = os.path.basename(f.filename)
-    p = f["particles"]
-    times = p["time"][()]
-    t_count = len(times)
-    ragged = p.attrs.get("layout") == "ragged"
-    n = p["radius"].shape[0]
-    if ragged:
-        first, counts = p["first"][()], p["count"][()]
-        rows = p["position"].shape[0]
+    import h5py
+
+    data_path = os.path.join(os.path.dirname(os.path.abspath(xdmf_path)), XDMF_DATA_FILE)
+    sync_xdmf_data(f, data_path)
+    h5name = XDMF_DATA_FILE
     root = ET.Element("Xdmf", Version="3.0")
     domain = ET.SubElement(root, "Domain")
-    grains = ET.SubElement(domain, "Grid", Name="particles", GridType="Collection", CollectionType="Temporal")
-    mesh = f["wheels/mesh"]
-    nv = mesh["vertices"].shape[0]
-    nt = mesh["triangles"].shape[0]
-    wheel = ET.SubElement(domain, "Grid", Name="wheels", GridType="Collection", CollectionType="Temporal")
-    rover = ET.SubElement(domain, "Grid", Name="rover", GridType="Collection", CollectionType="Temporal")
-    for k in range(t_count):
-        grid = ET.SubElement(grains, "Grid", Name=f"particles_{k}", GridType="Uniform")
-        ET.SubElement(grid, "Time", Value=repr(float(times[k])))
-        count = int(counts[k]) if ragged else n
-        ET.SubElement(grid, "Topology", TopologyType="Polyvertex", NumberOfElements=str(count), NodesPerElement="1")
-        geometry = ET.SubElement(grid, "Geometry", GeometryType="XYZ")
-        radius = ET.SubElement(grid, "Attribute", Name="radius", AttributeType="Scalar", Center="Node")
-        velocity = ET.SubElement(grid, "Attribute", Name="velocity", AttributeType="Vector", Center="Node")
-        if ragged:
-            start = int(first[k])
-            _rows(geometry, h5name, "/particles/position", (rows, 3), p["position"].dtype, start, count)
-            _rows(radius, h5name, "/particles/radius", (rows,), p["radius"].dtype, start, count)
-            _rows(velocity, h5name, "/particles/velocity", (rows, 3), p["velocity"].dtype, start, count)
-            ident = ET.SubElement(grid, "Attribute", Name="id", AttributeType="Scalar", Center="Node")
-            _rows(ident, h5name, "/particles/id", (rows,), p["id"].dtype, start, count)
-        else:
-            _slab(geometry, h5name, "/particles/position", (t_count, n, 3), p["position"].dtype, k)
-            _data_item(radius, h5name, "/particles/radius", (n,), p["radius"].dtype)
-            _slab(velocity, h5name, "/particles/velocity", (t_count, n, 3), p["velocity"].dtype, k)
+    collections = {
+        name: ET.SubElement(domain, "Grid", Name=name, GridType="Collection", CollectionType="Temporal")
+        for name in ("wheels", "rover", "particles")
+    }
+    with h5py.File(data_path, "r", locking=False) as data:
+        for name in sorted(data["snapshots"]):
+            where = f"/snapshots/{name}"
+            time = repr(float(data[where].attrs["time"]))
 
-        body = ET.SubElement(rover, "Grid", Name=f"rover_{k}", GridType="Uniform")
-        ET.SubElement(body, "Time", Value=repr(float(times[k])))
-        ET.SubElement(body, "Topology", TopologyType="Polyvertex", NumberOfElements="1", NodesPerElement="1")
-        where = ET.SubElement(body, "Geometry", GeometryType="XYZ")
-        _rows(where, h5name, "/particles/rover_position", (t_count, 3), p["rover_position"].dtype, k, 1)
-        for label in ("forward", "up"):
-            attribute = ET.SubElement(body, "Attribute", Name=label, AttributeType="Vector", Center="Node")
-            _rows(attribute, h5name, f"/particles/rover_{label}", (t_count, 3), p[f"rover_{label}"].dtype, k, 1)
+            def grid(collection: str, topology: str, cells: str, geometry: str, arrays: dict) -> None:
+                uniform = ET.SubElement(
+                    collections[collection],
+                    "Grid",
+                    Name=f"{collection}_{name}",  # noqa: B023 (used at once, in this iteration)
+                    GridType="Uniform",
+                )
+                ET.SubElement(uniform, "Time", Value=time)  # noqa: B023
+                element = ET.SubElement(
+                    uniform, "Topology", TopologyType=topology, NumberOfElements=str(data[cells].shape[0])
+                )
+                if topology == "Polyvertex":
+                    element.set("NodesPerElement", "1")
+                _data_item(element, h5name, cells, data[cells])
+                _data_item(ET.SubElement(uniform, "Geometry", GeometryType="XYZ"), h5name, geometry, data[geometry])
+                for key, path in arrays.items():
+                    kind = "Vector" if len(data[path].shape) == 2 else "Scalar"
+                    attribute = ET.SubElement(
+                        uniform, "Attribute", Name=ARRAY_NAMES[key], AttributeType=kind, Center="Node"
+                    )
+                    _data_item(attribute, h5name, path, data[path])
 
-        wgrid = ET.SubElement(wheel, "Grid", Name=f"wheels_{k}", GridType="Uniform")
-        ET.SubElement(wgrid, "Time", Value=repr(float(times[k])))
-        topology = ET.SubElement(wgrid, "Topology", TopologyType="Triangle", NumberOfElements=str(nt))
-        _data_item(topology, h5name, "/wheels/mesh/triangles", (nt, 3), mesh["triangles"].dtype)
-        wgeometry = ET.SubElement(wgrid, "Geometry", GeometryType="XYZ")
-        _slab(wgeometry, h5name, "/particles/wheel_vertices", (t_count, nv, 3), p["wheel_vertices"].dtype, k)
+            grid("wheels", "Triangle", "/mesh/triangles", f"{where}/wheel_vertices", {"wheel": "/mesh/wheel"})
+            grid(
+                "rover",
+                "Polyvertex",
+                "/mesh/vertex",
+                f"{where}/rover_position",
+                {"forward": f"{where}/rover_forward", "up": f"{where}/rover_up"},
+            )
+            ragged = "id" in data[where]
+            per_grain = where if ragged else "/grains"
+            arrays = {"radius": f"{per_grain}/radius", "velocity": f"{where}/velocity", "position": f"{where}/position"}
+            if ragged:
+                arrays["id"] = f"{where}/id"
+            grid("particles", "Polyvertex", f"{per_grain}/vertex", f"{where}/position", arrays)
     ET.indent(root)
-    text = '<?xml version="1.0" ?>\n<!DOCTYPE Xdmf SYSTEM "Xdmf.dtd" []>\n' + ET.tostring(root, encoding="unicode")
+    text = '<?xml version="1.0" ?>\n' + ET.tostring(root, encoding="unicode")
     atomic_write_text(xdmf_path, text + "\n")
 
 
-def xdmf_references(xdmf_path: str) -> list[tuple[str, str, tuple, tuple | None]]:
-    """(h5 file, dataset path, declared shape, hyperslab (start, stride, count) or None) of every
-    HDF DataItem in an XDMF file (used by the tests and `cosim plot --check`)."""
+def xdmf_references(xdmf_path: str) -> list[tuple[str, str, tuple]]:
+    """(h5 file, dataset path, declared shape) of every HDF DataItem in an XDMF file (used by the tests)."""
     tree = ET.parse(xdmf_path)
     folder = os.path.dirname(os.path.abspath(xdmf_path))
     refs = []
-    parents = {child: parent for parent in tree.iter() for child in parent}
     for item in tree.iter("DataItem"):
         if item.get("Format") != "HDF":
             continue
         text, dimensions = item.text, item.get("Dimensions")
         assert text is not None and dimensions is not None  # an HDF DataItem names its dataset and shape
         name, path = text.strip().split(":", 1)
-        shape = tuple(int(s) for s in dimensions.split())
-        slab = None
-        parent = parents.get(item)
-        if parent is not None and parent.get("ItemType") == "HyperSlab":
-            select = [c for c in parent if c.get("Format") == "XML"][0]
-            assert select.text is not None  # a hyperslab's selection lists its numbers
-            values = [int(v) for v in select.text.split()]
-            rank = len(shape)
-            slab = (tuple(values[:rank]), tuple(values[rank : 2 * rank]), tuple(values[2 * rank :]))
-        refs.append((os.path.join(folder, name), path, shape, slab))
+        refs.append((os.path.join(folder, name), path, tuple(int(s) for s in dimensions.split())))
     return refs

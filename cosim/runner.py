@@ -32,13 +32,14 @@ from soil.stability import write_checkpoint
 from . import advice, metrics
 from .beds import Bed, bed_from_file, settled_bed, write_json
 from .coupler import MacroStepRecord
-from .folders import DIVERGED_FILE, RUN_FILE, SCENE_FILE, RunFolder
+from .folders import DIVERGED_FILE, RUN_FILE, SCENE_FILE, VTKHDF_FILE, RunFolder
 from .output import ResultsWriter, read_series
 from .plan import RunPlan, load_plan, resolve
 from .scene import Scene, SceneError, scene_from_text
 from .single_wheel import PHASE_LANDING
 from .system import CoupledSystem
 from .terrain import quat_to_matrix, wheel_frame
+from .vtkhdf import write_vtkhdf
 
 log = logging.getLogger(__name__)
 
@@ -195,10 +196,21 @@ class Runner:
                 message = f"no steady-state result: {summary.get('steady_state')}"
                 log.warning("%s: %s", self.folder.path, message)
             self.writer.mark(status, message, summary)
+            if status in ("complete", "unsteady"):  # a stopped run: `cosim export vtkhdf` when wanted
+                self._export_vtkhdf()
             info = _read_json(self.folder.file(RUN_FILE))
             info.update(status=status, message=message, summary=summary, wall_time=wall)
             write_json(self.folder.file(RUN_FILE), info)
         return RunResult(self.folder.path, status, summary)
+
+    def _export_vtkhdf(self) -> None:
+        """results.vtkhdf from the closed results.h5; a failed export is logged, never hides how the run ended."""
+        if self.writer.snapshots == 0:
+            return
+        try:
+            write_vtkhdf(self.folder.results)
+        except Exception as error:
+            log.warning("%s not written (`cosim export vtkhdf %s` retries): %s", VTKHDF_FILE, self.folder.path, error)
 
     def _after_step(self, record: MacroStepRecord) -> None:
         system = self.system

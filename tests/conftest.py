@@ -35,3 +35,15 @@ def tiny_bed(tmp_path_factory):
 
     folder = tmp_path_factory.mktemp("tiny_bed")
     return settled_bed(load_plan(write_tiny(folder)), str(folder)).path
+
+
+@pytest.fixture(scope="session")
+def tiny_run(tmp_path_factory, tiny_bed):
+    """A run folder of the tiny scene on its settled bed, made once per session (read it, do not change it)."""
+    from cosim.runner import run_scene
+    from helpers import write_tiny
+
+    folder = tmp_path_factory.mktemp("tiny_run")
+    result = run_scene(write_tiny(folder), str(folder / "run"), overrides=[f'bed.bed_file="{tiny_bed}"'])
+    assert result.status in ("complete", "unsteady")
+    return folder / "run"

@@ -1,0 +1,101 @@
+"""The particle snapshots of a results.h5, one at a time, the same way for both layouts (fixed and ragged).
+
+The exports (results.xdmf, results.vtkhdf) and `cosim view` read the snapshots through `read_snapshot`,
+so the two layouts of /particles (cosim.output) are unpacked in one place.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+ARRAY_NAMES = {
+    "radius": "radius [m]",
+    "velocity": "velocity [m s-1]",
+    "position": "position [m]",
+    "displacement": "displacement [m]",
+    "id": "id [1]",
+    "forward": "forward [1]",
+    "up": "up [1]",
+    "wheel": "wheel [1]",
+    "wall": "wall [1]",
+    "force": "force [N]",
+}
+"""The names results.xdmf and results.vtkhdf give their arrays: viewers show names, not HDF5 attributes,
+so each name carries its unit (written without '/', which VTKHDF array names cannot hold)."""
+
+
+@dataclass(frozen=True)
+class Snapshot:
+    """One particle snapshot (n grains, V wheel-mesh vertices), world frame, SI units."""
+
+    index: int
+    time: float
+    """[s]"""
+    position: np.ndarray
+    """(n, 3) grain centres [m]"""
+    velocity: np.ndarray
+    """(n, 3) grain velocities [m/s]"""
+    radius: np.ndarray
+    """(n,) grain radii [m]"""
+    ids: np.ndarray
+    """(n,) grain ids, unique over the run (fixed layout: the model index)"""
+    wheel_vertices: np.ndarray
+    """(V, 3) the wheel meshes posed [m]"""
+    rover_position: np.ndarray
+    """(3,) the rover body's frame origin (testbed: the hub) [m]"""
+    rover_forward: np.ndarray
+    """(3,) its x axis [1]"""
+    rover_up: np.ndarray
+    """(3,) its z axis [1]"""
+
+
+def snapshot_count(f) -> int:
+    """Snapshots in an open results file."""
+    return int(f["particles/time"].shape[0])
+
+
+def read_snapshot(f, k: int) -> Snapshot:
+    """Snapshot k of an open results file (h5py.File, cosim.output.open_results)."""
+    p = f["particles"]
+    if p.attrs.get("layout") == "ragged":
+        rows = slice(int(p["first"][k]), int(p["first"][k] + p["count"][k]))
+        position, velocity = p["position"][rows], p["velocity"][rows]
+        radius, ids = p["radius"][rows], p["id"][rows]
+    else:
+        position, velocity = p["position"][k], p["velocity"][k]
+        radius = p["radius"][()]
+        ids = np.arange(len(radius), dtype=np.int64)
+    return Snapshot(
+        index=k,
+        time=float(p["time"][k]),
+        position=position,
+        velocity=velocity,
+        radius=radius,
+        ids=ids,
+        wheel_vertices=p["wheel_vertices"][k],
+        rover_position=p["rover_position"][k],
+        rover_forward=p["rover_forward"][k],
+        rover_up=p["rover_up"][k],
+    )
+
+
+class Displacements:
+    """Each grain's displacement [m] from where it was first seen in the snapshots (a grain a moving
+    patch places later starts from where it was placed). Feed the snapshots in order."""
+
+    def __init__(self) -> None:
+        self._ids = np.zeros(0, dtype=np.int64)  # sorted
+        self._first = np.zeros((0, 3), dtype=np.float64)
+
+    def of(self, snapshot: Snapshot) -> np.ndarray:
+        """(n, 3) displacement of the snapshot's grains [m]."""
+        ids = np.asarray(snapshot.ids, dtype=np.int64)
+        new = ~np.isin(ids, self._ids)
+        if new.any():
+            ids_all = np.concatenate([self._ids, ids[new]])
+            first_all = np.concatenate([self._first, snapshot.position[new]])
+            order = np.argsort(ids_all, kind="stable")
+            self._ids, self._first = ids_all[order], first_all[order]
+        return snapshot.position - self._first[np.searchsorted(self._ids, ids)]

@@ -1,0 +1,320 @@
+"""`cosim view RUN`: a picture of a run without ParaView, one frame per particle snapshot.
+
+Each frame shows the grains from the side (seen along +y, the nearer grains drawn last) and in a
+cut by the x-z plane through the first wheel's hub, its mid-plane when its axle lies along y as
+on the testbed (the grains that the plane cuts, drawn at their cut radius, and the wheel's
+outline in that plane: the rut), coloured by speed or by displacement
+(from where each grain was first seen), with the wheels, the undisturbed surface, and the time,
+phase, slip and sinkage in the corner. Rover runs and moving patches are followed: the view
+is centred on the rover body.
+
+Output by the suffix of `out`: .mp4 (ffmpeg: the one imageio-ffmpeg ships, else one on PATH),
+.gif (Pillow), .png (one frame: the last, or `frame`), or a folder (one PNG per snapshot). It
+draws with matplotlib's Agg backend: no display and no GPU needed.
+"""
+
+from __future__ import annotations
+
+import os
+import shutil
+
+import numpy as np
+
+from soil.errors import RegolithError
+
+from .folders import PLOTS_DIR, RESULTS_FILE
+from .output import open_results
+from .snapshots import Displacements, Snapshot, read_snapshot, snapshot_count
+
+COLOURS = ("speed", "displacement")
+"""What the grains can be coloured by."""
+
+MOVIE_SUFFIXES = (".mp4", ".gif")
+
+
+class ViewError(RegolithError, ValueError):
+    """`cosim view` cannot make a picture of what it was given (the message names the file or argument)."""
+
+
+def ffmpeg_path() -> str | None:
+    """The ffmpeg executable: imageio-ffmpeg's bundled one, else one on PATH, else None."""
+    try:
+        import imageio_ffmpeg
+
+        return imageio_ffmpeg.get_ffmpeg_exe()
+    except (ImportError, RuntimeError):
+        return shutil.which("ffmpeg")
+
+
+def default_output(run_dir: str) -> str:
+    """RUN/plots/view.mp4, or view.gif where there is no ffmpeg."""
+    return os.path.join(run_dir, PLOTS_DIR, "view.mp4" if ffmpeg_path() else "view.gif")
+
+
+def _output_kind(out: str) -> str:
+    suffix = os.path.splitext(out)[1].lower()
+    if suffix in MOVIE_SUFFIXES or suffix == ".png":
+        return suffix
+    if suffix == "" or out.endswith(os.sep) or os.path.isdir(out):
+        return "frames"
+    raise ViewError(f"--out {out!r}: unknown suffix {suffix!r} (use .mp4, .gif, .png or a folder for PNG frames)")
+
+
+def _results(run_dir: str) -> str:
+    path = os.path.join(run_dir, RESULTS_FILE) if os.path.isdir(run_dir) else run_dir
+    if not os.path.isfile(path):
+        raise ViewError(f"{run_dir!r} is not a run folder: no {RESULTS_FILE} in it")
+    return path
+
+
+class _Scene:
+    """What every frame shares: the run's attributes, the mesh, the colour range and the view box."""
+
+    def __init__(self, f, colour: str):
+        attrs = {k: (v.decode() if isinstance(v, bytes) else v) for k, v in f.attrs.items()}
+        self.name = str(attrs.get("name", "run"))
+        self.gravity = float(np.linalg.norm(np.asarray(attrs.get("gravity", [0, 0, 0]), dtype=float)))
+        self.surface = float(attrs.get("surface_height", np.nan))
+        self.rover = attrs.get("kind") == "rover"
+        self.follow = self.rover or f["particles"].attrs.get("layout") == "ragged"
+        self.colour = colour
+        self.triangles = f["wheels/mesh/triangles"][()]
+        self.vertex_wheel = f["wheels/mesh/wheel"][()]
+        self.step_time = f["wheels/time"][()]
+        self.phase = f["wheels/phase"][()]
+        self.slip = (f["rover/slip"] if self.rover else f["wheels/slip"])[()]
+        self.slip = self.slip if self.slip.ndim == 1 else self.slip[:, 0]
+        self.sinkage = f["wheels/sinkage"][()][:, 0] if len(self.step_time) else np.zeros(0)
+        count = snapshot_count(f)
+        # one pass for the colour range: the largest per-snapshot 99th percentile (a few fast grains do not wash
+        # it out) over the drive (the landing's impact would), or over every snapshot without a drive
+        displacements = Displacements()
+        peaks, driving = [], []
+        for k in range(count):
+            s = read_snapshot(f, k)
+            peaks.append(np.percentile(self.values(s, displacements), 99) if len(s.ids) else 0.0)
+            row = self.step(s.time)
+            driving.append(row >= 0 and self.phase[row] == 1)
+        peaks_arr = np.asarray(peaks)[driving] if any(driving) else np.asarray(peaks)
+        self.vmax = max(float(np.max(peaks_arr)), 1e-9)
+        first = read_snapshot(f, 0)
+        wheels = f["particles/wheel_vertices"][()]
+        low = np.min(first.position - first.radius[:, None], axis=0)
+        high = np.max(first.position + first.radius[:, None], axis=0)
+        self.z_range = (low[2], max(high[2], float(np.nanmax(wheels[..., 2]))))
+        self.x_range = (min(low[0], float(np.nanmin(wheels[..., 0]))), max(high[0], float(np.nanmax(wheels[..., 0]))))
+        self.half_width = (high[0] - low[0]) / 2
+
+    def values(self, s: Snapshot, displacements: Displacements) -> np.ndarray:
+        """Speed or displacement magnitude of each grain [mm/s or mm]."""
+        if self.colour == "speed":
+            return np.linalg.norm(np.asarray(s.velocity, dtype=np.float64), axis=1) * 1e3
+        return np.linalg.norm(displacements.of(s), axis=1) * 1e3
+
+    def step(self, time: float) -> int:
+        """The last macro step at or before `time` (-1: none yet)."""
+        return int(np.searchsorted(self.step_time, time + 1e-9)) - 1
+
+
+class _Frame:
+    """The figure: two panels, the colour bar and the labels made once (the layout is computed for the
+    first frame and then kept: laying out every frame would cost more than drawing it); `draw` puts one
+    snapshot's grains, wheels and corner text in."""
+
+    COLOUR_MAP = "viridis"
+
+    def __init__(self, fig, scene: _Scene):
+        from matplotlib import cm, colors
+
+        self.fig, self.scene = fig, scene
+        self.side, self.cut = fig.subplots(2, 1, sharex=True)
+        for ax in (self.side, self.cut):
+            if np.isfinite(scene.surface):
+                ax.axhline(scene.surface * 1e3, color="0.3", ls="--", lw=0.8)
+            ax.set_xlim(scene.x_range[0] * 1e3, scene.x_range[1] * 1e3)
+            ax.set_ylim(scene.z_range[0] * 1e3, scene.z_range[1] * 1e3 + 2)
+            ax.set_aspect("equal")
+            ax.set_ylabel("z [mm]")
+        self.side.set_title("side view", fontsize=9, loc="left")
+        self.cut.set_xlabel("x [mm]")
+        mappable = cm.ScalarMappable(norm=colors.Normalize(0.0, scene.vmax), cmap=self.COLOUR_MAP)
+        label = "grain speed [mm/s]" if scene.colour == "speed" else "grain displacement [mm]"
+        fig.colorbar(mappable, ax=[self.side, self.cut], label=label, shrink=0.8, extend="max")
+        fig.suptitle(f"{scene.name}: |g| = {scene.gravity:.3g} m/s^2, dashed: undisturbed surface", fontsize=10)
+        self.corner = self.side.text(
+            0.01,
+            0.97,
+            "",
+            transform=self.side.transAxes,
+            va="top",
+            fontsize=9,
+            bbox={"facecolor": "white", "alpha": 0.8, "edgecolor": "none"},
+        )
+        self.artists: list = []
+        self.laid_out = False
+
+    def _grains(self, ax, centres, radii, values) -> None:
+        from matplotlib.collections import EllipseCollection
+
+        collection = EllipseCollection(
+            2 * radii * 1e3,
+            2 * radii * 1e3,
+            np.zeros(len(radii)),
+            units="xy",
+            offsets=centres * 1e3,
+            offset_transform=ax.transData,
+            array=values,
+            cmap=self.COLOUR_MAP,
+            clim=(0.0, self.scene.vmax),
+            linewidths=0,
+        )
+        self.artists.append(ax.add_collection(collection))
+
+    def draw(self, s: Snapshot, values: np.ndarray) -> None:
+        from matplotlib.collections import LineCollection, PolyCollection
+
+        scene, side, cut = self.scene, self.side, self.cut
+        for artist in self.artists:
+            artist.remove()
+        self.artists = []
+        hub = s.wheel_vertices[scene.vertex_wheel == 0].mean(axis=0)
+        if scene.follow and np.all(np.isfinite(s.rover_position)):
+            centre = s.rover_position[0]
+            side.set_xlim((centre - scene.half_width) * 1e3, (centre + scene.half_width) * 1e3)
+        # side view, looking along +y: the grains behind the wheel's mid-plane, the wheels, then those in front
+        order = np.argsort(-s.position[:, 1])
+        behind = order[s.position[order, 1] >= hub[1]]
+        front = order[s.position[order, 1] < hub[1]]
+        self._grains(side, s.position[behind][:, [0, 2]], s.radius[behind], values[behind])
+        wheel_faces = s.wheel_vertices[scene.triangles][:, :, [0, 2]] * 1e3
+        self.artists.append(side.add_collection(PolyCollection(list(wheel_faces), facecolors="0.7", edgecolors="none")))
+        self._grains(side, s.position[front][:, [0, 2]], s.radius[front], values[front])
+        # the cut: the grains the plane y = hub y passes through, at their cut radius, and the wheel's outline in it
+        dy = s.position[:, 1] - hub[1]
+        inside = np.abs(dy) < s.radius
+        cut_radius = np.sqrt(np.maximum(s.radius[inside] ** 2 - dy[inside] ** 2, 0.0))
+        self._grains(cut, s.position[inside][:, [0, 2]], cut_radius, values[inside])
+        segments = _plane_section(s.wheel_vertices, scene.triangles, hub[1])
+        if len(segments):
+            lines = LineCollection(list(segments[:, :, [0, 2]] * 1e3), colors="k", linewidths=1.2)
+            self.artists.append(cut.add_collection(lines))
+        cut.set_title(f"cut through the wheel's mid-plane (y = {hub[1] * 1e3:.1f} mm)", fontsize=9, loc="left")
+        row = scene.step(s.time)
+        corner = [f"t = {s.time:.3g} s"]
+        if row >= 0:
+            driving = scene.phase[row] == 1
+            corner.append("driving" if driving else "landing")
+            if driving and np.isfinite(scene.slip[row]):
+                corner.append(f"slip {scene.slip[row]:.2f}")
+            if np.isfinite(scene.sinkage[row]):
+                corner.append(f"sinkage {scene.sinkage[row] * 1e3:.1f} mm")
+        self.corner.set_text(", ".join(corner))
+        if not self.laid_out:
+            self.fig.canvas.draw()  # the constrained layout, once
+            self.fig.set_layout_engine("none")
+            self.laid_out = True
+
+
+def _plane_section(vertices: np.ndarray, triangles: np.ndarray, y: float) -> np.ndarray:
+    """(M, 2, 3) segments where the plane at height y along the y axis cuts a triangle mesh."""
+    corners = vertices[triangles]  # (F, 3, 3)
+    side = corners[:, :, 1] - y
+    segments = []
+    for a, b in ((0, 1), (1, 2), (2, 0)):
+        crossing = (side[:, a] * side[:, b]) < 0
+        fraction = side[:, a] / np.where(crossing, side[:, a] - side[:, b], 1.0)
+        points = corners[:, a] + fraction[:, None] * (corners[:, b] - corners[:, a])
+        segments.append(np.where(crossing[:, None], points, np.nan))
+    stacked = np.stack(segments, axis=1)  # (F, 3 edges, 3)
+    two = np.sum(np.isfinite(stacked[:, :, 0]), axis=1) == 2
+    picked = [row[np.isfinite(row[:, 0])] for row in stacked[two]]
+    return np.array(picked).reshape(-1, 2, 3) if picked else np.zeros((0, 2, 3))
+
+
+def render(
+    run_dir: str,
+    out: str | None = None,
+    colour: str = "speed",
+    fps: int = 5,
+    dpi: int = 100,
+    frame: int | None = None,
+) -> str:
+    """Write the picture of a run (module docstring); returns the path written."""
+    if colour not in COLOURS:
+        raise ViewError(f"--color {colour!r}: choose one of {', '.join(COLOURS)}")
+    path = _results(run_dir)
+    out = out or default_output(os.path.dirname(os.path.abspath(path)))
+    kind = _output_kind(out)
+    with open_results(path) as f:
+        count = snapshot_count(f)
+        if count == 0:
+            raise ViewError(
+                f"{path} holds no particle snapshots (output.snapshot_interval, or a run that stopped early)"
+            )
+        if frame is not None and not -count <= frame < count:
+            raise ViewError(f"--frame {frame}: {path} holds snapshots 0 .. {count - 1}")
+        scene = _Scene(f, colour)
+        from .plots import _pyplot
+
+        plt = _pyplot()
+        width = scene.half_width * 2 if scene.follow else scene.x_range[1] - scene.x_range[0]
+        aspect = (scene.z_range[1] - scene.z_range[0] + 2e-3) / max(width, 1e-9)
+        fig = plt.figure(figsize=(10, float(np.clip(2 * 8.3 * aspect + 1.4, 3.0, 14.0))), layout="constrained")
+        view = _Frame(fig, scene)
+        displacements = Displacements()
+        os.makedirs(out if kind == "frames" else os.path.dirname(os.path.abspath(out)), exist_ok=True)
+        try:
+            if kind == ".png":
+                chosen = (frame if frame is not None else -1) % count
+                for k in range(chosen + 1):  # the displacements need the snapshots before it
+                    s = read_snapshot(f, k)
+                    values = scene.values(s, displacements)
+                view.draw(s, values)
+                fig.savefig(out, dpi=dpi)
+            elif kind == "frames":
+                for k in range(count):
+                    s = read_snapshot(f, k)
+                    view.draw(s, scene.values(s, displacements))
+                    fig.savefig(os.path.join(out, f"frame_{k:04d}.png"), dpi=dpi)
+            else:
+                writer = _movie_writer(kind, out, fps)
+                with writer.saving(fig, out, dpi):
+                    for k in range(count):
+                        s = read_snapshot(f, k)
+                        view.draw(s, scene.values(s, displacements))
+                        writer.grab_frame()
+        finally:
+            plt.close(fig)
+    return out
+
+
+def _movie_writer(kind: str, out: str, fps: int):
+    import logging
+
+    from matplotlib import animation, rcParams
+
+    logging.getLogger("matplotlib.animation").setLevel(logging.WARNING)  # not the ffmpeg command line
+
+    if kind == ".gif":
+        return animation.PillowWriter(fps=fps)
+    ffmpeg = ffmpeg_path()
+    if ffmpeg is None:
+        raise ViewError(
+            f"--out {out!r}: an .mp4 needs ffmpeg (pip install imageio-ffmpeg); or write a .gif or a folder of PNGs"
+        )
+    rcParams["animation.ffmpeg_path"] = ffmpeg
+    # yuv420p plays everywhere; it needs even frame sizes, which the scale filter guarantees
+    return animation.FFMpegWriter(
+        fps=fps, codec="libx264", extra_args=["-pix_fmt", "yuv420p", "-vf", "scale=trunc(iw/2)*2:trunc(ih/2)*2"]
+    )
+
+
+def summary_line(path: str) -> str:
+    """What `cosim view` prints: the file and its size."""
+    if os.path.isdir(path):
+        names = sorted(os.listdir(path))
+        return f"{path}: {len(names)} frames"
+    return f"{path}: {os.path.getsize(path) / 1024:.0f} kB"
+
+
+__all__ = ["COLOURS", "ViewError", "default_output", "ffmpeg_path", "render", "summary_line"]

@@ -1,0 +1,285 @@
+"""The run's snapshots open in the readers users reach for: meshio and VTK read results.xdmf, VTK's
+vtkHDFReader reads results.vtkhdf (every step, equal to results.h5), all without error output; and
+`cosim view` draws a movie of the run.
+
+Three outputs: the tiny run (a real run: landing and drive), a file of the main job's size (5,642
+grains, 9 snapshots, four walls and a plate) and a ragged one (a moving patch: the grains change), the last two
+written with ResultsWriter from made-up grains.
+"""
+
+import os
+
+import numpy as np
+import pytest
+
+from cosim.cli import main
+from cosim.output import BOUNDARY_SERIES, ROVER_SERIES, SOIL_SERIES, WHEEL_SERIES, ResultsWriter, open_results
+from cosim.snapshots import read_snapshot, snapshot_count
+from cosim.vtkhdf import write_vtkhdf
+
+vtk = pytest.importorskip("vtk")
+MAIN_JOB_GRAINS = 5642
+MAIN_JOB_SNAPSHOTS = 9  # 14 s of driving and about 6 s of landing, a snapshot every 2.5 s
+
+
+def _row(t: float, walls: int) -> dict:
+    row = {"time": t, "phase": int(t > 0.5), "rover_state": [t]}
+    for name, (tail, *_) in WHEEL_SERIES.items():
+        row[name] = np.full((1,) if tail is None else (1, tail), 1e-3 * t)
+    for name, (tail, *_) in BOUNDARY_SERIES.items():
+        row[f"boundary_{name}"] = np.full((walls,) if tail is None else (walls, tail), 1e-3 * t)
+    for name, (tail, *_) in ROVER_SERIES.items():
+        row[f"rover_{name}"] = np.full(() if tail is None else (tail,), t)
+    for name in SOIL_SERIES:
+        row[f"soil_{name}"] = 1
+    return row
+
+
+def made_up_results(folder, grains: int, snapshots: int, ragged: bool = False) -> str:
+    """results.h5 (and its results.xdmf) of `grains` made-up grains in a 0.16 m bed with a cube for a wheel,
+    four walls and a plate, and `snapshots` snapshots (ragged: a different number of grains in each)."""
+    rng = np.random.default_rng(1)
+    cube = np.array([[x, y, z] for x in (-1, 1) for y in (-1, 1) for z in (-1, 1)], dtype=float) * 0.02
+    faces = np.array([[0, 1, 3], [0, 3, 2], [4, 6, 7], [4, 7, 5], [0, 4, 5], [0, 5, 1]])
+    geometry = np.array(
+        [[0, 0, 0, 0, 0, 1], [0, 0, 0, 1, 0, 0], [0.16, 0.065, 0.1, -1, 0, 0], [0, 0, 0, 0, 1, 0]]
+        + [[0.05, 0.02, 0.04, 0.08, 0.045, 0.05]],  # four planes (point, normal) and a box (corners): a plate
+        dtype=float,
+    )
+    kinds = np.array([0, 0, 0, 0, 1])
+    walls = len(geometry)
+    os.makedirs(folder, exist_ok=True)
+    path = os.path.join(folder, "results.h5")
+    writer = ResultsWriter.create(
+        path,
+        attrs={"name": "made_up", "gravity": [0, 0, -5.7e-3], "surface_height": 0.034, "kind": "testbed"},
+        radius=np.full(grains, 2e-3),
+        wheel_count=1,
+        mesh=(cube, faces, np.zeros(len(cube), int)),
+        rover_columns=["x"],
+        rover_units=["m"],
+        boundaries={"kind": kinds, "geometry": geometry, "report": np.ones(walls, int)},
+        ragged=ragged,
+    )
+    with writer:
+        for k in range(snapshots):
+            t = 0.25 * k
+            for j in range(3):
+                writer.append_step(_row(t + 0.25 * (j + 1) / 3, walls))
+            n = grains - 7 * k if ragged else grains
+            position = rng.uniform([0, 0, 0], [0.16, 0.065, 0.034], (n, 3))
+            hub = np.array([0.04 + 0.01 * k, 0.0325, 0.05])
+            writer.add_snapshot(
+                t,
+                position,
+                rng.normal(0, 1e-3, (n, 3)).astype(np.float32),
+                (cube + hub).astype(np.float32),
+                rover_pose=(hub, np.eye(3)),
+                radius=np.full(n, 2e-3) if ragged else None,
+                ids=np.arange(7 * k, 7 * k + n) if ragged else None,
+            )
+    return path
+
+
+@pytest.fixture(scope="module", params=["tiny_run", "main_job_size", "ragged"])
+def run(request, tmp_path_factory):
+    if request.param == "tiny_run":
+        return request.getfixturevalue("tiny_run")
+    folder = tmp_path_factory.mktemp(request.param)
+    if request.param == "main_job_size":
+        made_up_results(folder, MAIN_JOB_GRAINS, MAIN_JOB_SNAPSHOTS)
+    else:
+        made_up_results(folder, 300, 4, ragged=True)
+    return folder
+
+
+@pytest.fixture
+def vtk_messages(tmp_path):
+    """VTK's errors and warnings go to a file; yields a function that returns what was written."""
+    log = tmp_path / "vtk.log"
+    window = vtk.vtkFileOutputWindow()
+    window.SetFileName(str(log))
+    window.SetFlush(True)
+    previous = vtk.vtkOutputWindow.GetInstance()
+    vtk.vtkOutputWindow.SetInstance(window)
+    yield lambda: log.read_text() if log.exists() else ""
+    vtk.vtkOutputWindow.SetInstance(previous)
+
+
+def _snapshots(run):
+    with open_results(run / "results.h5") as f:
+        return [read_snapshot(f, k) for k in range(snapshot_count(f))]
+
+
+def _xdmf_grain_arrays(run) -> set:
+    """The point arrays of the grains in results.xdmf: the grain ids too where the grains change."""
+    with open_results(run / "results.h5") as f:
+        ragged = f["particles"].attrs["layout"] == "ragged"
+    return {"radius [m]", "velocity [m s-1]", "position [m]"} | ({"id [1]"} if ragged else set())
+
+
+def test_meshio_reads_the_xdmf_time_series(run, capfd):
+    meshio = pytest.importorskip("meshio")
+    import warnings
+
+    snapshots = _snapshots(run)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        with meshio.xdmf.TimeSeriesReader(str(run / "results.xdmf")) as reader:
+            points, cells = reader.read_points_cells()
+            assert reader.num_steps == len(snapshots)
+            assert points.shape == (len(snapshots[0].ids), 3) and cells[0].type == "vertex"
+            for k in (0, len(snapshots) - 1):
+                time, point_data, _ = reader.read_data(k)
+                assert time == snapshots[k].time
+                assert set(point_data) == _xdmf_grain_arrays(run)
+                np.testing.assert_array_equal(point_data["position [m]"], snapshots[k].position)
+                np.testing.assert_array_equal(point_data["velocity [m s-1]"], snapshots[k].velocity)
+    captured = capfd.readouterr()
+    assert captured.out == "" and captured.err == ""
+
+
+def _blocks(data) -> dict:
+    """{block name: dataset} of a VTK composite dataset (a partitioned collection: its first partitions)."""
+    if data.IsA("vtkPartitionedDataSetCollection"):
+        return {
+            data.GetMetaData(i).Get(vtk.vtkCompositeDataSet.NAME()): data.GetPartition(i, 0)
+            for i in range(data.GetNumberOfPartitionedDataSets())
+        }
+    out = {}
+    iterator = data.NewIterator()
+    iterator.InitTraversal()
+    while not iterator.IsDoneWithTraversal():
+        out[iterator.GetCurrentMetaData().Get(vtk.vtkCompositeDataSet.NAME())] = iterator.GetCurrentDataObject()
+        iterator.GoToNextItem()
+    return out
+
+
+def _arrays(attributes) -> set:
+    return {attributes.GetArrayName(i) for i in range(attributes.GetNumberOfArrays())}
+
+
+def test_vtk_xdmf_reader_reads_every_step_without_messages(run, vtk_messages):
+    from vtk.util.numpy_support import vtk_to_numpy
+
+    snapshots = _snapshots(run)
+    reader = vtk.vtkXdmfReader()
+    reader.SetFileName(str(run / "results.xdmf"))
+    reader.UpdateInformation()
+    times = reader.GetOutputInformation(0).Get(vtk.vtkStreamingDemandDrivenPipeline.TIME_STEPS())
+    assert len(times) == len(snapshots)
+    for k in (0, len(snapshots) - 1):
+        reader.UpdateTimeStep(times[k])
+        blocks = _blocks(reader.GetOutputDataObject(0))
+        assert set(blocks) == {"particles", "wheels", "rover"}
+        grains = blocks["particles"]
+        assert grains.GetNumberOfPoints() == grains.GetNumberOfCells() == len(snapshots[k].ids)
+        assert _arrays(grains.GetPointData()) == _xdmf_grain_arrays(run)
+        assert _arrays(blocks["rover"].GetPointData()) == {"forward [1]", "up [1]"}
+        np.testing.assert_allclose(vtk_to_numpy(grains.GetPoints().GetData()), snapshots[k].position)
+        assert blocks["wheels"].GetNumberOfPoints() == len(snapshots[k].wheel_vertices)
+    assert vtk_messages() == ""
+
+
+def test_vtkhdf_round_trip(run, vtk_messages):
+    """vtkHDFReader reads every snapshot of results.vtkhdf: grains, wheels, rover and walls, the positions,
+    velocities and radii those of results.h5."""
+    from vtk.util.numpy_support import vtk_to_numpy
+
+    snapshots = _snapshots(run)
+    with open_results(run / "results.h5") as f:
+        faces = int(np.sum(np.where(f["boundaries/kind"][()] == 1, 6, 1)))
+    path = write_vtkhdf(run / "results.h5", run / "export.vtkhdf")
+    reader = vtk.vtkHDFReader()
+    reader.SetFileName(path)
+    reader.UpdateInformation()
+    assert reader.GetNumberOfSteps() == len(snapshots)
+    for k, snapshot in enumerate(snapshots):
+        reader.SetStep(k)
+        reader.Update()
+        blocks = _blocks(reader.GetOutputDataObject(0))
+        assert set(blocks) == {"grains", "wheels", "rover", "boundaries"}
+        grains = blocks["grains"]
+        assert grains.GetNumberOfPoints() == grains.GetNumberOfVerts() == len(snapshot.ids)
+        assert _arrays(grains.GetPointData()) == {"radius [m]", "velocity [m s-1]", "displacement [m]", "id [1]"}
+        np.testing.assert_array_equal(vtk_to_numpy(grains.GetPoints().GetData()), snapshot.position)
+        point_data = grains.GetPointData()
+        np.testing.assert_array_equal(vtk_to_numpy(point_data.GetArray("velocity [m s-1]")), snapshot.velocity)
+        np.testing.assert_array_equal(vtk_to_numpy(point_data.GetArray("radius [m]")), snapshot.radius)
+        np.testing.assert_array_equal(vtk_to_numpy(point_data.GetArray("id [1]")), snapshot.ids)
+        wheels = blocks["wheels"]
+        np.testing.assert_array_equal(vtk_to_numpy(wheels.GetPoints().GetData()), snapshot.wheel_vertices)
+        assert wheels.GetNumberOfPolys() > 0
+        np.testing.assert_array_equal(vtk_to_numpy(blocks["rover"].GetPoints().GetData())[0], snapshot.rover_position)
+        assert blocks["boundaries"].GetNumberOfPolys() == faces  # a quad per plane, six per box
+        assert _arrays(blocks["boundaries"].GetCellData()) == {"wall [1]", "force [N]"}
+    assert reader.GetTimeValue() == pytest.approx(snapshots[-1].time)
+    assert vtk_messages() == ""
+
+
+def test_a_run_ends_with_its_vtkhdf_and_the_cli_exports_it(tiny_run, tmp_path, capsys):
+    assert (tiny_run / "results.vtkhdf").stat().st_size > 0
+    out = tmp_path / "again.vtkhdf"
+    assert main(["export", "vtkhdf", str(tiny_run), "--out", str(out)]) == 0
+    assert out.stat().st_size > 0 and str(out) in capsys.readouterr().out
+
+
+def test_view_draws_the_run_and_the_frames_differ_where_the_wheel_moved(tiny_run, tmp_path, capsys):
+    from matplotlib.image import imread
+
+    snapshots = _snapshots(tiny_run)
+    hub = [s.wheel_vertices.mean(axis=0) for s in (snapshots[0], snapshots[-1])]
+    assert np.linalg.norm(hub[1] - hub[0]) > 5e-3  # the wheel landed and drove
+    first, last = tmp_path / "first.png", tmp_path / "last.png"
+    assert main(["view", str(tiny_run), "--out", str(first), "--frame", "0", "--dpi", "40"]) == 0
+    assert main(["view", str(tiny_run), "--out", str(last), "--dpi", "40"]) == 0  # the last snapshot
+    first_image, last_image = imread(first), imread(last)
+    assert first_image.shape == last_image.shape
+    changed = np.any(np.abs(first_image - last_image) > 0.1, axis=2)
+    assert changed.mean() > 0.01
+    # the rows and columns that changed include those of the wheel's way: between the two hubs, in the
+    # upper panel (the side view) and in the lower one (the cut)
+    rows = np.flatnonzero(changed.any(axis=1))
+    assert rows.min() < changed.shape[0] / 2 < rows.max()
+    assert str(last) in capsys.readouterr().out
+
+
+def test_view_writes_a_movie_and_frames_of_a_moving_patch(tmp_path, capsys):
+    from cosim.view import ffmpeg_path
+
+    folder = tmp_path / "patch"
+    made_up_results(folder, 300, 4, ragged=True)
+    movie = tmp_path / ("run.mp4" if ffmpeg_path() else "run.gif")
+    assert main(["view", str(folder), "--out", str(movie), "--dpi", "30", "--color", "displacement"]) == 0
+    assert movie.stat().st_size > 5_000
+    frames = tmp_path / "frames"
+    assert main(["view", str(folder), "--out", f"{frames}{os.sep}", "--dpi", "30"]) == 0
+    assert sorted(os.listdir(frames)) == [f"frame_{k:04d}.png" for k in range(4)]
+    assert str(movie) in capsys.readouterr().out
+
+
+def test_view_without_ffmpeg_writes_a_gif_and_says_what_an_mp4_needs(tmp_path, monkeypatch, capsys):
+    from cosim import view
+
+    monkeypatch.setattr(view, "ffmpeg_path", lambda: None)
+    folder = tmp_path / "patch"
+    made_up_results(folder, 100, 2, ragged=True)
+    assert main(["view", str(folder), "--dpi", "30"]) == 0  # the default: RUN/plots/view.gif
+    assert (folder / "plots" / "view.gif").stat().st_size > 1_000
+    assert main(["view", str(folder), "--out", str(tmp_path / "movie.mp4")]) == 2
+    assert "imageio-ffmpeg" in capsys.readouterr().err
+
+
+def test_view_refuses_bad_arguments_with_one_line(tiny_run, tmp_path, capsys):
+    empty = tmp_path / "empty"
+    made_up_results(empty, 10, 0)
+    for argv, named in (
+        (["view", str(tmp_path / "missing")], "missing"),
+        (["view", str(tiny_run), "--out", str(tmp_path / "movie.avi")], "movie.avi"),
+        (["view", str(empty)], "results.h5"),
+        (["view", str(tiny_run), "--out", str(tmp_path / "one.png"), "--frame", "999"], "--frame"),
+        (["export", "vtkhdf", str(empty)], "results.h5"),
+    ):
+        assert main(argv) == 2, argv
+        error = capsys.readouterr().err.strip()
+        assert named in error and "\n" not in error, error
