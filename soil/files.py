@@ -74,7 +74,7 @@ def check_hdf5(path, what: str = "HDF5 file") -> None:
     with open(path, "rb") as f:
         head = f.read(64)
     if not head.startswith(HDF5_SIGNATURE) or len(head) < 48:
-        raise DamagedFileError(f"{path}: not an HDF5 {what} (no HDF5 signature; {size} bytes)")
+        raise DamagedFileError(f"{path}: not a readable HDF5 {what} (no HDF5 signature; {size} bytes)")
     version = head[8]
     if version >= 2:
         offsets, start = head[9], 12
