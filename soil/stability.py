@@ -172,7 +172,7 @@ def read_checkpoint(path) -> dict:
 
     path = os.fspath(path)
     try:
-        with np.load(path, allow_pickle=False) as stored:
+        with open(path, "rb") as handle, np.load(handle, allow_pickle=False) as stored:  # closed also on failure
             data = {key: stored[key] for key in stored.files}
     except (FileNotFoundError, PermissionError):
         raise
