@@ -69,8 +69,8 @@ def check_binaries(path: str | os.PathLike, md) -> None:
     import fmpy
 
     path = os.fspath(path)
-    found = fmpy.supported_platforms(path)
-    here = fmpy.platform if md.fmiVersion == "2.0" else fmpy.platform_tuple
+    found = fmpy.supported_platforms(path)  # FMI 2.0 platform names for both versions (linux64, win64, ...)
+    here = fmpy.platform
     if here not in found:
         others = ", ".join(p for p in found if p != "c-code") or "none"
         sources = " It ships C sources: rebuild it here with `fmpy compile`." if "c-code" in found else ""
