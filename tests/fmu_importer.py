@@ -13,6 +13,7 @@ Job (JSON):
                 A discarded step is not counted: the next step starts at the same time.
                 "save_state": true takes an FMU state before the step (fmi2GetFMUstate / fmi3GetFMUState);
                 "restore_state": true restores it before the step (after a Discard: a master's retry).
+                "t_offset": a step from t + t_offset instead of t (a master that goes on after a Discard).
     master "simulate": fmpy.simulate_fmu on the first instance's FMU with its start values until
                 stop_time (output_interval h of the first step); the result holds its last time, or what
                 it raised.
@@ -277,7 +278,7 @@ def run():
                 soil.save_state()
             soil.set(values)
         started = time.perf_counter()
-        statuses = [soil.step(t, step["h"]) for soil in soils]
+        statuses = [soil.step(t + step.get("t_offset", 0.0), step["h"]) for soil in soils]
         result["elapsed"].append(time.perf_counter() - started)
         result["status"].append(statuses)
         result["outputs"].append([soil.outputs() for soil in soils])

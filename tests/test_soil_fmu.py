@@ -508,6 +508,22 @@ def test_a_master_retries_a_discarded_step_from_a_restored_state_with_half_the_s
     assert got == expected
 
 
+def test_a_master_that_goes_on_after_a_discard_is_told_where_the_soil_is(tiny, importer):
+    """After a Discard at t = H, a doStep from 2 H (a master that logs the Discard and goes on) is an error
+    that says the soil is earlier, at its last successful time, and what to do."""
+    job, motion = _job(tiny["fmus"][2], 2)
+    job["steps"] = [
+        {"h": H, "inputs": [_inputs(motion[0])]},
+        {"h": H, "inputs": [_rammed(motion, 1)]},
+        {"h": H, "inputs": [_inputs(motion[1])], "t_offset": H},
+    ]
+    result = importer(job)
+    assert [s[0] for s in result["status"]] == ["ok", "ok", "discard", "error"]
+    errors = [m[2] for m in result["messages"] if m[0] == "error"]
+    assert errors and f"but the soil is at t = {H!r} s, earlier: its last step was discarded" in errors[0], errors
+    assert "fmi2LastSuccessfulTime" in errors[0]
+
+
 @pytest.mark.parametrize("version", [2, 3])
 def test_fmpy_compile_rebuilds_the_soil_fmu_and_it_steps_bitwise_like_the_original(tiny, importer, tmp_path, version):
     """The FMU declares its sources (FMI 2 SourceFiles, FMI 3 buildDescription.xml): `fmpy compile` builds its
