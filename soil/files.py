@@ -85,5 +85,6 @@ def check_hdf5(path, what: str = "HDF5 file") -> None:
     end = struct.unpack("<Q" if offsets == 8 else "<I", head[start + 2 * offsets : start + 3 * offsets])[0]
     if end > size:
         raise DamagedFileError(
-            f"{path}: the {what} is truncated: it holds {size} of the {end} bytes its header records"
+            f"{path}: the {what} is truncated: it holds {size} of the {end} bytes its header records "
+            "(cut short, or its writer is creating it right now)"
         )
