@@ -140,6 +140,7 @@ def settled_bed(plan: RunPlan, folder: str, progress: bool = False) -> Bed:
             check_cached_bed(path, plan.bed.key, info)
             log.info("reusing the settled bed %s (key %s)", path, plan.bed.key)
             return Bed(path, float(info["metrics"]["height"]), {**info, "source": "cache", "path": path})
+    check_memory(plan)  # studies and sweeps settle here first: refuse before allocating the grains
     return _settle(plan, path, info_path, progress)
 
 
