@@ -161,9 +161,10 @@ class Runner:
                         self.hooks["checkpoint"](self)
                 self._update_bar(bar, started)
                 if self.stop_requested and not last:
+                    words = SIGNAL_WORDS.get(self.stop_signal, self.stop_signal)
                     raise RunInterrupted(
-                        f"{self.stop_signal}: stopped at t = {coupler.time:.6g} s after a checkpoint; continue "
-                        f"with: cosim resume {self.folder.path}",
+                        f"{words}: stopped at t = {coupler.time:.6g} s after a checkpoint; continue with: "
+                        f"cosim resume {self.folder.path}",
                         signal=self.stop_signal,
                     )
             status = "complete"
@@ -465,6 +466,8 @@ def _read_json(path: str) -> dict:
 
 STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM)
 """Ctrl-C, and SIGTERM (what batch schedulers and `docker stop` send): both stop a run cleanly."""
+SIGNAL_WORDS = {"SIGINT": "Ctrl-C"}
+"""How a message names a stop signal."""
 
 
 def _install_stop_handlers(runner: Runner) -> dict:
@@ -481,7 +484,8 @@ def _install_stop_handlers(runner: Runner) -> dict:
             raise KeyboardInterrupt(f"{name} twice: stopped at once")
         runner.stop_requested = True
         runner.stop_signal = name
-        log.warning("%s: finishing the macro step and writing a checkpoint (%s again to stop at once)", name, name)
+        words = SIGNAL_WORDS.get(name, name)
+        log.warning("%s: finishing the macro step and writing a checkpoint (%s again to stop at once)", words, words)
 
     return {number: signal.signal(number, handler) for number in STOP_SIGNALS}
 
