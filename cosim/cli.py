@@ -578,6 +578,7 @@ def _dispatch(args) -> int:
 
     from .beds import SettlingDiverged
     from .folders import OutputFolderError
+    from .lab.common import LabDiverged
     from .runner import RunDiverged, RunInterrupted
     from .scene import SceneError
 
@@ -591,7 +592,7 @@ def _dispatch(args) -> int:
         return fail(EXIT_INPUT, error)
     except OutputFolderError as error:
         return fail(EXIT_FOLDER, error)
-    except (RunDiverged, SettlingDiverged, SimulationDiverged) as error:
+    except (RunDiverged, SettlingDiverged, SimulationDiverged, LabDiverged) as error:
         return fail(EXIT_DIVERGED, error)
     except (KeyboardInterrupt, RunInterrupted) as error:
         print(f"\ncosim: interrupted. {error}".rstrip(), file=sys.stderr)

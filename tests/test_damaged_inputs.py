@@ -363,3 +363,19 @@ def test_resume_of_an_empty_folder_leaves_nothing_behind(tmp_path, capsys):
     assert main(["resume", str(empty), "--no-progress"]) == 5
     assert "not a run folder that can be resumed" in first_error_line(capsys)
     assert os.listdir(empty) == []
+
+
+def test_a_lab_test_whose_every_replica_diverged_is_exit_4(tmp_path, capsys, monkeypatch):
+    import cosim.lab
+    from cosim.lab.common import successful
+
+    failed = [{"ok": False, "diverged": True, "label": "repose 0", "error": "SimulationDiverged: boom"}]
+
+    def diverging(plan, out, **kwargs):
+        return successful(failed, "repose")
+
+    monkeypatch.setattr(cosim.lab, "repose_test", diverging)
+    scene = os.path.join(os.path.dirname(__file__), "..", "examples", "phobos_lab.toml")
+    assert main(["lab", "repose", scene, "--out", str(tmp_path / "lab"), "--serial"]) == 4
+    line = first_error_line(capsys)
+    assert "every repose replica diverged" in line and "run.dt_factor" in line, line
