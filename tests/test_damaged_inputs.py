@@ -294,6 +294,7 @@ def test_row11_a_divergence_while_settling_is_exit_4_with_the_phase_and_the_key(
     line = first_error_line(capsys)
     assert line.startswith("cosim: error: the bed diverged while settling, at t = ") and "grain " in line, line
     assert "bed.settle_dt_factor" in line and "scene.gravity" in line and "last_good" not in line
+    assert set(os.listdir(tmp_path / "boom")) <= {".lock"}  # nothing of a run was written
 
 
 # -- row 12: a scene name that is a path ---------------------------------------------------------
