@@ -10,7 +10,8 @@ from contextlib import contextmanager
 @contextmanager
 def atomic_path(path, suffix: str = ".tmp"):
     """Yield a temporary path beside `path` to write to; on success it is fsynced and renamed
-    onto `path` (os.replace, atomic), on any error it is removed and `path` is left untouched.
+    onto `path` (os.replace, atomic), on any error it is removed and `path` is left untouched (an
+    OSError that names no file, e.g. a full disk during a write, is raised naming `path`).
 
     The file gets the permissions of a normally created one (mkstemp's 0600 would hide it).
     """
@@ -30,9 +31,11 @@ def atomic_path(path, suffix: str = ".tmp"):
         finally:
             os.close(descriptor)
         os.replace(temporary, path)
-    except BaseException:
+    except BaseException as error:
         if os.path.exists(temporary):
             os.remove(temporary)
+        if isinstance(error, OSError) and not error.filename:  # a full disk while writing: name the file
+            raise with_path(error, path) from error
         raise
 
 

@@ -31,7 +31,7 @@ import warp as wp
 
 from .boundaries import MOTION_LOADED
 from .errors import RegolithError
-from .files import atomic_path, with_path
+from .files import atomic_path
 from .precision import kernel_factory, kernel_module, soil_kernel
 from .sdf import sdf_functions
 from .state import SoilState
@@ -156,12 +156,9 @@ def write_checkpoint(path, data: dict) -> str:
     path = os.fspath(path)
     arrays: dict = {key: np.asarray(value) for key, value in data.items() if key != CHECKSUM_KEY}
     arrays[CHECKSUM_KEY] = np.array(checkpoint_digest(arrays))
-    try:
-        with atomic_path(path, ".npz.tmp") as temporary:
-            with open(temporary, "wb") as f:
-                np.savez(f, **arrays)
-    except OSError as error:
-        raise with_path(error, path) from error
+    with atomic_path(path, ".npz.tmp") as temporary:  # an OSError names `path`
+        with open(temporary, "wb") as f:
+            np.savez(f, **arrays)
     return path
 
 

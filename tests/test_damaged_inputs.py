@@ -380,3 +380,18 @@ def test_a_lab_test_whose_every_replica_diverged_is_exit_4(tmp_path, capsys, mon
     assert main(["lab", "repose", scene, "--out", str(tmp_path / "lab"), "--serial"]) == 4
     line = first_error_line(capsys)
     assert "every repose replica diverged" in line and "run.dt_factor" in line, line
+
+
+def test_a_full_disk_while_a_checkpoint_is_written_names_the_checkpoint(tmp_path):
+    import errno
+    from unittest import mock
+
+    from soil.stability import write_checkpoint
+
+    def full(file, **arrays):
+        raise OSError(errno.ENOSPC, "No space left on device")  # a write into an open file names no path
+
+    with mock.patch("numpy.savez", full), pytest.raises(OSError) as info:
+        write_checkpoint(tmp_path / "checkpoint.npz", {"a": np.zeros(3)})
+    assert info.value.filename == str(tmp_path / "checkpoint.npz") and info.value.errno == errno.ENOSPC
+    assert os.listdir(tmp_path) == []  # no temporary file left behind
