@@ -13,7 +13,9 @@ import os
 import time
 from dataclasses import dataclass, field
 
+from soil.errors import RegolithError
 from soil.files import atomic_write_text
+from soil.stability import SimulationDiverged
 
 from .plan import RunPlan
 from .scene import SceneError
@@ -22,6 +24,23 @@ BED_FILE = "bed.h5"
 BED_INFO_FILE = "bed.json"
 
 log = logging.getLogger(__name__)
+
+
+class SettlingDiverged(RegolithError, RuntimeError):
+    """The bed exploded while it settled (before any run): the message names the phase, the time, the
+    grain and the scene keys to change (exit 4 on the command line, like any divergence)."""
+
+    def __init__(self, error: SimulationDiverged, plan: RunPlan):
+        where = f", grain {error.particle}" if error.particle is not None else ""
+        if error.position is not None:
+            where += " at ({:.4g}, {:.4g}, {:.4g}) m".format(*error.position)
+        time = f"t = {error.time:.6g} s" if error.time is not None else "the start"
+        super().__init__(
+            f"the bed diverged while settling, at {time} of the settling{where}: {error.reason or error}. "
+            f"Lower bed.settle_dt_factor (the settling step is {plan.bed.settle_dt:.3g} s), check scene.gravity "
+            f"(|g| = {plan.g:.4g} m/s^2) and the friction angles (soil.stick_angle_deg, soil.slip_angle_deg); "
+            "nothing was written"
+        )
 
 
 @dataclass(frozen=True)
@@ -79,6 +98,31 @@ def _plain(value):
     return value.item() if hasattr(value, "item") else value
 
 
+def memory_estimate(plan: RunPlan):
+    """soil.memory.MemoryEstimate of the plan's largest soil: the settling (double precision) unless a bed
+    file is given, else the run in its precision; grains counted without allocating them."""
+    from soil.bed import grain_count, read_bed_header
+    from soil.memory import estimate
+
+    if plan.bed.bed_file:
+        try:
+            grains = read_bed_header(plan.bed.bed_file)["particle_count"]
+        except (OSError, ValueError):
+            grains = 0  # an unreadable bed file is reported where it is read
+        return estimate(grains, plan.precision, plan.device)
+    grains = grain_count(plan.bed.spec)
+    double = estimate(grains, "double", plan.device)
+    run = estimate(grains, plan.precision, plan.device)
+    return double if double.device_bytes >= run.device_bytes else run
+
+
+def check_memory(plan: RunPlan) -> None:
+    """Refuse a scene whose soil cannot fit this machine's free memory (soil.memory.SoilTooLargeError)."""
+    from soil.memory import check_fits
+
+    check_fits(memory_estimate(plan), f"the soil of scene {plan.name!r}")
+
+
 def settled_bed(plan: RunPlan, folder: str, progress: bool = False) -> Bed:
     """The plan's bed: its bed_file, else a cached bed in `folder` with the same key, else
     one settled now (double precision, on the plan's device) and saved there."""
@@ -93,9 +137,32 @@ def settled_bed(plan: RunPlan, folder: str, progress: bool = False) -> Bed:
         except (OSError, ValueError):
             info = {}
         if info.get("key") == plan.bed.key:
+            check_cached_bed(path, plan.bed.key, info)
             log.info("reusing the settled bed %s (key %s)", path, plan.bed.key)
             return Bed(path, float(info["metrics"]["height"]), {**info, "source": "cache", "path": path})
+    check_memory(plan)  # studies and sweeps settle here first: refuse before allocating the grains
     return _settle(plan, path, info_path, progress)
+
+
+def check_cached_bed(path: str, key: str, info: dict) -> None:
+    """Refuse a cached bed.h5 that is not the bed bed.json describes (replaced by another scene's bed,
+    damaged): DamagedFileError naming the file; a run must never go on with other grains than planned."""
+    from soil.bed import read_bed_header
+    from soil.errors import DamagedFileError
+
+    header = read_bed_header(path)  # DamagedFileError when it is not a readable bed
+    remedy = f"delete it and {BED_INFO_FILE} beside it to settle the bed again"
+    if header["key"] and header["key"] != key:
+        raise DamagedFileError(
+            f"{path}: the cached bed was made for another scene (bed key {header['key']}, "
+            f"{BED_INFO_FILE} and the scene say {key}); {remedy}"
+        )
+    expected = info.get("particle_count")
+    if expected is not None and int(expected) != header["particle_count"]:
+        raise DamagedFileError(
+            f"{path}: the cached bed holds {header['particle_count']} grains, {BED_INFO_FILE} says {expected} "
+            f"(the file was replaced); {remedy}"
+        )
 
 
 def _settle(plan: RunPlan, path: str, info_path: str, progress: bool) -> Bed:
@@ -115,6 +182,8 @@ def _settle(plan: RunPlan, path: str, info_path: str, progress: bool) -> Bed:
             max_time=bed.settle_max_time,
             progress=bar.update,
         )
+    except SimulationDiverged as error:
+        raise SettlingDiverged(error, plan) from None
     finally:
         bar.close()
     wall = time.perf_counter() - start
@@ -127,7 +196,7 @@ def _settle(plan: RunPlan, path: str, info_path: str, progress: bool) -> Bed:
             report["threshold"],
         )
     metrics = bed_metrics(sim, bed.spec)
-    save_bed(path, sim, bed.spec, metrics)
+    save_bed(path, sim, bed.spec, metrics, key=bed.key)
     info = {
         "key": bed.key,
         "report": report,

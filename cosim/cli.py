@@ -26,7 +26,8 @@ Exit status:
     4    the simulation diverged (the message says where and what to change)
     5    an operating-system error: a path that cannot be written or read, a full disk
     6    the run finished without a steady-state result (the summary says why: airborne, stuck, ...)
-    130  interrupted (`cosim resume OUT` continues)
+    130  interrupted by Ctrl-C (`cosim resume OUT` continues)
+    143  stopped by SIGTERM (a batch scheduler, `docker stop`): checkpointed, `cosim resume OUT` continues
 """
 
 from __future__ import annotations
@@ -38,6 +39,7 @@ import sys
 
 EXIT_OK, EXIT_ERROR, EXIT_INPUT, EXIT_FOLDER, EXIT_DIVERGED, EXIT_OS, EXIT_UNSTEADY = 0, 1, 2, 3, 4, 5, 6
 EXIT_INTERRUPTED = 130
+EXIT_TERMINATED = 143
 
 log = logging.getLogger("cosim")
 
@@ -240,8 +242,12 @@ def advise_lines(plan) -> list[str]:
         f"{steps.critical_step:.4g} s)",
         f"  the scene uses dt = {plan.dt:.4g} s, macro step H = {plan.macro_step:.4g} s ({plan.substeps} substeps); "
         + ("dt is within the advised limit" if plan.dt <= steps.dt_max else "dt is ABOVE the advised limit"),
-        "validity checks:",
     ]
+    from .beds import memory_estimate
+
+    memory = memory_estimate(plan)
+    lines.append(f"  memory estimate            {memory.text()}" + ("" if memory.fits else ": DOES NOT FIT"))
+    lines.append("validity checks:")
     findings = advice.check(plan)
     for finding in findings:
         lines.append(f"  [{'ok' if finding.ok else 'OUT OF RANGE'}] {finding.check}: {finding.message}")
@@ -465,7 +471,7 @@ def build_parser() -> argparse.ArgumentParser:
         description="regolith-cosim: DEM soil co-simulated with rovers",
         epilog="exit status: 0 ok, 1 unexpected error, 2 bad input, 3 output folder "
         "not free, 4 diverged, 5 OS error, 6 no steady-state result, "
-        "130 interrupted",
+        "130 interrupted, 143 stopped by SIGTERM",
     )
     parser.add_argument("--verbose", "-v", action="store_true", help="debug log lines, Warp's messages, tracebacks")
     sub = parser.add_subparsers(dest="command", required=True)
@@ -573,10 +579,28 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+def _stop_on_sigterm():
+    """SIGTERM (a batch scheduler, `docker stop`) stops like Ctrl-C: a run checkpoints and stops cleanly
+    (cosim.runner installs its own handler while it steps); elsewhere the command unwinds, locks released.
+    Returns the handler it replaced (None outside the main thread)."""
+    import signal
+    import threading
+
+    def terminate(signum, frame):
+        raise KeyboardInterrupt("SIGTERM")
+
+    if threading.current_thread() is not threading.main_thread():
+        return None
+    return signal.signal(signal.SIGTERM, terminate)
+
+
 def main(argv=None) -> int:
+    import signal
+
     parser = build_parser()
     args = parser.parse_args(argv)
     _setup_output(args.verbose)
+    previous = _stop_on_sigterm()
     try:
         return _dispatch(args)
     except Exception:
@@ -584,12 +608,18 @@ def main(argv=None) -> int:
             raise
         log.exception("cosim: unexpected error (a bug; --verbose shows the full traceback)")
         return EXIT_ERROR
+    finally:
+        if previous is not None:
+            signal.signal(signal.SIGTERM, previous)
 
 
 def _dispatch(args) -> int:
     from soil.errors import RegolithError
+    from soil.stability import SimulationDiverged
 
+    from .beds import SettlingDiverged
     from .folders import OutputFolderError
+    from .lab.common import LabDiverged
     from .runner import RunDiverged, RunInterrupted
     from .scene import SceneError
 
@@ -603,11 +633,12 @@ def _dispatch(args) -> int:
         return fail(EXIT_INPUT, error)
     except OutputFolderError as error:
         return fail(EXIT_FOLDER, error)
-    except RunDiverged as error:
+    except (RunDiverged, SettlingDiverged, SimulationDiverged, LabDiverged) as error:
         return fail(EXIT_DIVERGED, error)
     except (KeyboardInterrupt, RunInterrupted) as error:
         print(f"\ncosim: interrupted. {error}".rstrip(), file=sys.stderr)
-        return EXIT_INTERRUPTED
+        terminated = getattr(error, "signal", None) == "SIGTERM" or str(error).startswith("SIGTERM")
+        return EXIT_TERMINATED if terminated else EXIT_INTERRUPTED
     except RegolithError as error:  # an FMU, a mesh, a bed: bad input the project recognised
         return fail(EXIT_INPUT, error)
     except OSError as error:

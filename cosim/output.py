@@ -97,7 +97,7 @@ from typing import Any
 
 import numpy as np
 
-from soil.files import atomic_path, atomic_write_text
+from soil.files import atomic_path, atomic_write_text, with_path
 
 from .folders import XDMF_DATA_FILE, XDMF_FILE
 from .snapshots import ARRAY_NAMES, read_snapshot
@@ -288,10 +288,16 @@ REQUIRED_ATTRIBUTES = (
 
 
 def open_results(path, mode="r"):
-    """Open a results.h5 for reading, also while a run still writes it (SWMR) or after it was killed."""
+    """Open a results.h5 for reading, also while a run still writes it (SWMR) or after it was killed.
+
+    A file that is not HDF5 or is shorter than its header says (cut short) is refused at once
+    (DamagedFileError): SWMR reads retry failed reads and would take minutes to give up on it."""
     import h5py
 
+    from soil.files import check_hdf5
+
     path = os.fspath(path)
+    check_hdf5(path, "results file")
     try:
         return h5py.File(path, mode, libver="latest", locking=False)
     except OSError:
@@ -570,11 +576,14 @@ class ResultsWriter:
         self._buffer = []
 
     def flush(self) -> None:
-        """Write buffered records and flush the file to disk."""
+        """Write buffered records and flush the file to disk (an OSError names the file)."""
         if self._file is None:
             return
-        self.flush_records()
-        self._file.flush()
+        try:
+            self.flush_records()
+            self._file.flush()
+        except OSError as error:
+            raise with_path(error, self.path) from error
 
     def close(self, status: str | None = None, message: str = "", summary: dict | None = None) -> None:
         """Flush and close; with a status, record it (see `mark`)."""
@@ -648,9 +657,52 @@ def _copy_truncated(old, new, counts: dict, rows: dict | None = None) -> None:
     old.visititems(visit)
 
 
+def check_results(path) -> dict:
+    """The root attributes of a results.h5 after checking that it is one and can be read to its end:
+    DamagedFileError naming the file otherwise (FileNotFoundError when it is absent)."""
+    from soil.errors import DamagedFileError
+
+    path = os.fspath(path)
+    try:
+        with open_results(path) as f:
+            attrs = {k: (v.decode() if isinstance(v, bytes) else v) for k, v in f.attrs.items()}
+            if attrs.get("format") != RESULTS_FORMAT:
+                raise DamagedFileError(
+                    f"{path}: not a regolith-cosim results file (format {attrs.get('format')!r}, "
+                    f"expected {RESULTS_FORMAT!r})"
+                )
+            for dataset in _datasets(f):
+                dataset[()]  # every byte read once: a damaged chunk fails here, not in the middle of a resume
+    except (DamagedFileError, FileNotFoundError):
+        raise
+    except Exception as error:  # h5py reports damaged files as OSError, RuntimeError, KeyError, ...
+        raise DamagedFileError(f"{path}: the results file is damaged ({error})") from None
+    return attrs
+
+
+def _datasets(f) -> list:
+    import h5py
+
+    found: list = []
+    f.visititems(lambda name, obj: found.append(obj) if isinstance(obj, h5py.Dataset) else None)
+    return found
+
+
 def read_series(path) -> dict:
     """The time series of one results.h5 as numpy arrays (the wheel series by name, 'rover_<name>',
-    'soil_<name>', 'rover_state', 'rover_columns', 'snapshot_time', 'attrs'), for summaries, plots and studies."""
+    'soil_<name>', 'rover_state', 'rover_columns', 'snapshot_time', 'attrs'), for summaries, plots and studies.
+    DamagedFileError naming the file when it is damaged."""
+    from soil.errors import DamagedFileError
+
+    try:
+        return _read_series(path)
+    except (DamagedFileError, FileNotFoundError):
+        raise
+    except Exception as error:  # h5py reports damaged files as OSError, RuntimeError, KeyError, ...
+        raise DamagedFileError(f"{os.fspath(path)}: the results file is damaged ({error})") from None
+
+
+def _read_series(path) -> dict:
     with open_results(path) as f:
         out = {name: f["wheels"][name][()] for name in ["time", "phase", *WHEEL_SERIES] if name in f["wheels"]}
         out["rover_state"] = f["rover/state"][()]

@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import logging
 import math
 import os
 from dataclasses import dataclass, field
@@ -33,6 +34,8 @@ from soil.errors import RegolithError
 from soil.materials import stick_speed_for
 
 from .scene import DriveSection, MaterialSection, MmxSection, OutputSection, Scene, SceneError, WheelSection
+
+log = logging.getLogger(__name__)
 
 WALL_GRAINS = 4
 """Default gap between a rover's wheels and a wall or a patch's frozen band, in mean grain diameters [-]."""
@@ -377,6 +380,12 @@ def _wheel(scene: Scene, soil_modulus: float, w: WheelSection | None = None, key
     except (ValueError, OSError) as error:
         raise SceneError([f"{key}.file: {error}"]) from None
     width = float(mesh.vertices[:, 1].max() - mesh.vertices[:, 1].min())
+    log.info(
+        "wheel mesh %s: %d triangles, closed (watertight), consistently wound, volume %.4g m^3",
+        path,
+        len(mesh.triangles),
+        mesh.volume,
+    )
     return WheelPlan(mesh, material, mesh.outer_radius, mesh.outer_radius, width)
 
 
@@ -596,7 +605,14 @@ def _testbed(scene: Scene, wheel: WheelPlan, problems: list[str]) -> TestbedPlan
         )
     rim_speed = t.omega * wheel.outer_radius * ((1 - t.slip) if t.mode == "slip" else 1.0)
     reach = rim_speed * scene.run.duration
-    if start_x + reach + wheel.outer_radius > b.length - clearance:
+    key = "wheel.scale" if scene.wheel.type == "mesh" else "wheel.radius"
+    if start_x + wheel.outer_radius > b.length - clearance:  # too large to stand in the bed at all
+        problems.append(
+            f"{key}: the wheel (outer radius {wheel.outer_radius:.4g} m, its hub at x = {start_x:.4g} m) does not fit "
+            f"the bed (bed.length = {b.length} m); allowed: bed.length >= "
+            f"{start_x + wheel.outer_radius + clearance:.4g} m, or a smaller wheel"
+        )
+    elif start_x + reach + wheel.outer_radius > b.length - clearance:
         longest = max(0.0, (b.length - clearance - wheel.outer_radius - start_x) / max(rim_speed, 1e-30))
         problems.append(
             f"run.duration: at the wheel's rim speed it may travel {reach:.4g} m from x = {start_x:.4g} m "
@@ -721,6 +737,7 @@ def _inspect_mjcf(
 def _inspect_fmu(scene: Scene, path: str, count: int, gravity, problems: list[str]) -> dict | None:
     """Open a rover FMU at its start pose (scene start values), read its wheels and body, close it."""
     from rover_models.fmu_rover import FmuRover, check_rover_fmu
+    from rover_models.fmu_session import FmuError
 
     rover = scene.rover
     assert rover is not None
@@ -736,6 +753,9 @@ def _inspect_fmu(scene: Scene, path: str, count: int, gravity, problems: list[st
         )
     try:
         fmu = FmuRover(path, count, gravity=gravity, start_values=values, prefix=rover.wheel_prefix)
+    except FmuError as error:  # the file itself: no binary for this platform, cannot be instantiated
+        problems.append(f"rover.file: {error}")
+        return None
     except RegolithError as error:
         problems.append(f"rover.start_values: {error}")
         return None

@@ -18,6 +18,8 @@ import os
 
 import numpy as np
 
+from soil.errors import DamagedFileError
+
 from .folders import PLOTS_DIR, RESULTS_FILE
 from .output import read_series
 
@@ -58,15 +60,21 @@ def plot_output(out_dir: str, plot_dir: str | None = None, dpi: int = 120) -> li
     if not paths:
         raise FileNotFoundError(f"no {RESULTS_FILE} under {out_dir!r}: run `cosim run SCENE --out {out_dir}` first")
     plot_dir = plot_dir or os.path.join(out_dir, PLOTS_DIR)
-    os.makedirs(plot_dir, exist_ok=True)
     runs = []
+    damaged = []
     for path in paths:
         try:
             series = read_series(path)
-        except Exception as error:  # a broken file must not stop the plots of the others
-            log.warning("skipping %s: %s", path, error)
+        except DamagedFileError as error:  # a broken file must not stop the plots of the others
+            damaged.append(error)
             continue
         runs.append((path, _group(path, series["attrs"], out_dir), series))
+    if not runs:  # nothing to plot: say why instead of writing empty figures
+        extra = f" (and {len(damaged) - 1} more damaged file(s))" if len(damaged) > 1 else ""
+        raise DamagedFileError(f"{damaged[0]}{extra}; no plot was written")
+    for problem in damaged:
+        log.warning("skipping %s", problem)
+    os.makedirs(plot_dir, exist_ok=True)
     groups = sorted({g for _, g, _ in runs})
     colours = {g: plt.cm.tab10(i % 10) for i, g in enumerate(groups)}
     counts = {g: sum(1 for _, h, _ in runs if h == g) for g in groups}

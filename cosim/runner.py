@@ -20,6 +20,7 @@ import logging
 import os
 import signal
 import time
+import uuid
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -27,10 +28,10 @@ import numpy as np
 
 from soil import SimulationDiverged
 from soil.errors import RegolithError
-from soil.stability import write_checkpoint
+from soil.stability import read_checkpoint, write_checkpoint
 
 from . import advice, metrics
-from .beds import Bed, bed_from_file, settled_bed, write_json
+from .beds import Bed, bed_from_file, check_memory, settled_bed, write_json
 from .coupler import MacroStepRecord
 from .folders import DIVERGED_FILE, RUN_FILE, SCENE_FILE, VTKHDF_FILE, RunFolder
 from .output import ResultsWriter, read_series
@@ -52,7 +53,12 @@ class RunDiverged(RegolithError, RuntimeError):
 
 
 class RunInterrupted(RegolithError):
-    """The run was stopped on request (Ctrl-C) after a checkpoint; `cosim resume OUT` continues it."""
+    """The run was stopped on request (Ctrl-C, SIGTERM) after a checkpoint; `cosim resume OUT` continues it."""
+
+    def __init__(self, message: str, signal: str = "SIGINT"):
+        super().__init__(message)
+        self.signal = signal
+        """The signal's name: SIGINT (exit 130) or SIGTERM (exit 143)."""
 
 
 @dataclass
@@ -91,6 +97,8 @@ class Runner:
         self.progress = progress
         self.hooks = hooks or {}
         self.stop_requested = False
+        self.stop_signal = "SIGINT"
+        """The signal that asked for the stop (SIGINT: Ctrl-C, SIGTERM: a scheduler or container)."""
         self.mesh = system.wheel_mesh()
         loop = loop or {}
         rover = system.rover
@@ -109,6 +117,8 @@ class Runner:
         self.wall_before = float(loop.get("wall_time", 0.0))
         self.steps_at_start = system.coupler.step_count
         self.last_checkpoint_time = system.coupler.time
+        self.run_id = str(_read_json(folder.file(RUN_FILE)).get("run_id", ""))
+        """Ties every checkpoint to this run (run.json, results.h5 and checkpoint.npz carry it)."""
 
     # -- the loop ------------------------------------------------------------------------
     @property
@@ -122,7 +132,7 @@ class Runner:
         plan, system = self.plan, self.system
         coupler = system.coupler
         started = time.perf_counter()
-        previous_handler = _install_sigint(self)
+        previous_handlers = _install_stop_handlers(self)
         bar = self._bar()
         status, message = "running", ""
         try:
@@ -152,17 +162,24 @@ class Runner:
                         self.hooks["checkpoint"](self)
                 self._update_bar(bar, started)
                 if self.stop_requested and not last:
+                    words = SIGNAL_WORDS.get(self.stop_signal, self.stop_signal)
                     raise RunInterrupted(
-                        f"stopped at t = {coupler.time:.6g} s after a checkpoint; continue with: "
-                        f"cosim resume {self.folder.path}"
+                        f"{words}: stopped at t = {coupler.time:.6g} s after a checkpoint; continue with: "
+                        f"cosim resume {self.folder.path}",
+                        signal=self.stop_signal,
                     )
             status = "complete"
         except SimulationDiverged as error:
             status = "diverged"
+            phase = "landing" if self.drive_start_step < 0 else "drive"
             message = (
-                f"{error}. Change {plan.dt_setting} (the DEM step is now {plan.dt:.3g} s), soften or stiffen "
-                "the soil as `cosim advise` says, or shorten run.macro_step. The last checkpoint is "
-                f"{self.folder.checkpoint} (t = {self.last_checkpoint_time:.6g} s)"
+                f"the run diverged during the {phase}: {error}. Change {plan.dt_setting} (the DEM step is now "
+                f"{plan.dt:.3g} s), soften or stiffen the soil as `cosim advise` says, or shorten run.macro_step. "
+                + (
+                    f"The last checkpoint is {self.folder.checkpoint} (t = {self.last_checkpoint_time:.6g} s)"
+                    if os.path.isfile(self.folder.checkpoint)
+                    else "It diverged before the first checkpoint: there is none to resume from"
+                )
             )
             if error.last_good is not None:
                 write_checkpoint(self.folder.file(DIVERGED_FILE), error.last_good)
@@ -179,8 +196,8 @@ class Runner:
             status, message = "failed", f"{type(error).__name__}: {error}"
             raise
         finally:
-            if previous_handler is not None:
-                signal.signal(signal.SIGINT, previous_handler)
+            for number, previous in previous_handlers.items():
+                signal.signal(number, previous)
             if bar is not None:
                 bar.close()
             wall = self.wall_before + time.perf_counter() - started
@@ -360,6 +377,7 @@ class Runner:
         data["scene_toml"] = np.array(self.plan.scene.to_toml())
         data["scene_base_dir"] = np.array(self.plan.scene.base_dir or "")
         data["bed_path"] = np.array(self.system.bed.path)
+        data["run_id"] = np.array(self.run_id)
         write_checkpoint(self.folder.checkpoint, data)
         self.last_checkpoint_time = self.system.coupler.time
 
@@ -458,20 +476,30 @@ def _read_json(path: str) -> dict:
         return {}
 
 
-def _install_sigint(runner: Runner):
-    """First Ctrl-C: stop cleanly after the macro step (with a checkpoint); second: at once."""
+STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM)
+"""Ctrl-C, and SIGTERM (what batch schedulers and `docker stop` send): both stop a run cleanly."""
+SIGNAL_WORDS = {"SIGINT": "Ctrl-C"}
+"""How a message names a stop signal."""
+
+
+def _install_stop_handlers(runner: Runner) -> dict:
+    """First Ctrl-C or SIGTERM: stop cleanly after the macro step (with a checkpoint); a second: at once.
+    Returns the handlers it replaced (empty outside the main thread, where Python allows none)."""
     import threading
 
     if threading.current_thread() is not threading.main_thread():
-        return None
+        return {}
 
     def handler(signum, frame):
+        name = signal.Signals(signum).name
         if runner.stop_requested:
-            raise KeyboardInterrupt("interrupted twice: stopped at once")
+            raise KeyboardInterrupt(f"{name} twice: stopped at once")
         runner.stop_requested = True
-        log.warning("Ctrl-C: finishing the macro step and writing a checkpoint (Ctrl-C again to stop at once)")
+        runner.stop_signal = name
+        words = SIGNAL_WORDS.get(name, name)
+        log.warning("%s: finishing the macro step and writing a checkpoint (%s again to stop at once)", words, words)
 
-    return signal.signal(signal.SIGINT, handler)
+    return {number: signal.signal(number, handler) for number in STOP_SIGNALS}
 
 
 # ------------------------------------------------------------------------------------
@@ -536,6 +564,7 @@ def run_plan(
     source: str = "",
 ) -> RunResult:
     """Run a resolved plan into `out_dir` (see the module docstring)."""
+    check_memory(plan)  # before anything is allocated or written
     folder = RunFolder(out_dir)
     with folder.locked():
         folder.check_free(overwrite)
@@ -547,12 +576,14 @@ def run_plan(
                 log.warning("validity: %s", finding.message)
         # everything is built: only now the previous run goes
         folder.clear_run()
+        run_id = uuid.uuid4().hex
         with open(folder.file(SCENE_FILE), "w") as f:
             f.write(plan.scene.to_toml())
         write_json(
             folder.file(RUN_FILE),
             {
                 "status": "running",
+                "run_id": run_id,
                 "device": plan.device,
                 "precision": plan.precision,
                 "bed": bed.info,
@@ -562,7 +593,7 @@ def run_plan(
         try:
             writer = ResultsWriter.create(
                 folder.results,
-                attrs=_attributes(plan, system, source, findings),
+                attrs={**_attributes(plan, system, source, findings), "run_id": run_id},
                 radius=system.sim.model.radius_numpy(),
                 wheel_count=len(system.rover.wheel_names),
                 mesh=system.wheel_mesh(),
@@ -622,21 +653,36 @@ def absolute_paths(plan: RunPlan) -> RunPlan:
 
 
 def load_checkpoint(path: str) -> dict:
-    """A checkpoint's arrays (numpy; no pickles)."""
-    with np.load(path, allow_pickle=False) as data:
-        return {key: data[key] for key in data.files}
+    """A checkpoint's arrays (numpy; no pickles), its checksum verified (DamagedFileError when damaged)."""
+    return read_checkpoint(path)
+
+
+FINISHED = ("complete", "unsteady")
+"""The statuses of a run whose results are written to the end."""
 
 
 def resume(out_dir: str, progress: bool = False, hooks: dict | None = None) -> RunResult:
-    """Continue a run from its checkpoint to the result an uninterrupted run gives."""
+    """Continue a run from its checkpoint to the result an uninterrupted run gives.
+
+    Every file is checked before anything is changed: a damaged results.h5 or checkpoint, or a
+    checkpoint of another run, is refused (DamagedFileError naming the file and what is left) and the
+    folder stays as it was. A run whose drive is complete in the checkpoint but whose results were not
+    finished (killed after its final checkpoint) gets its results finished: status, summary, run.json.
+    """
     folder = RunFolder(out_dir)
     if not os.path.isdir(folder.path):
         raise FileNotFoundError(f"{folder.path!r} is not a folder: nothing to resume")
-    with folder.locked():
-        for name in (SCENE_FILE, RUN_FILE, os.path.basename(folder.checkpoint), os.path.basename(folder.results)):
+    needed = (SCENE_FILE, RUN_FILE, os.path.basename(folder.checkpoint), os.path.basename(folder.results))
+
+    def check_files() -> None:
+        for name in needed:
             if not os.path.isfile(folder.file(name)):
                 raise FileNotFoundError(f"{folder.path!r} has no {name}: not a run folder that can be resumed")
-        checkpoint = load_checkpoint(folder.checkpoint)
+
+    check_files()  # before the lock: a folder that is not a run gets no .lock either
+    with folder.locked():
+        check_files()
+        checkpoint, info = _checked_inputs(folder)
         base_dir = str(checkpoint["scene_base_dir"]) if "scene_base_dir" in checkpoint else ""
         scene = scene_from_text(str(checkpoint["scene_toml"]), base_dir=base_dir or None)
         with open(folder.file(SCENE_FILE)) as f:
@@ -645,15 +691,17 @@ def resume(out_dir: str, progress: bool = False, hooks: dict | None = None) -> R
         plan = resolve(scene)
         steps = int(checkpoint["loop/steps"])
         if checkpoint["coupler/step_count"] and _finished(checkpoint, plan):
-            info = _read_json(folder.file(RUN_FILE))
-            log.info("%s: the run is already complete", folder.path)
-            return RunResult(folder.path, info.get("status", "complete"), info.get("summary", {}))
+            if info.get("status") in FINISHED and _results_status(folder.results) == info["status"]:
+                log.info("%s: the run is already complete", folder.path)
+                return RunResult(folder.path, info["status"], info.get("summary", {}))
+            log.info("%s: the drive is complete in the checkpoint; finishing the results", folder.path)
         bed_path = str(checkpoint["bed_path"])
         try:
             bed = bed_from_file(bed_path, "checkpoint bed")
         except SceneError as error:
             raise SceneError(error.problems + [f"the run's bed {bed_path!r} is needed to resume"]) from None
-        bed = Bed(bed.path, bed.surface_height, _read_json(folder.file(RUN_FILE)).get("bed", bed.info))
+        _check_run_bed(bed_path, info.get("bed", {}))
+        bed = Bed(bed.path, bed.surface_height, info.get("bed", bed.info))
         system = CoupledSystem.build(plan, bed)
         try:
             system.load_state_dict(checkpoint)
@@ -664,6 +712,91 @@ def resume(out_dir: str, progress: bool = False, hooks: dict | None = None) -> R
             return Runner(system, writer, folder, loop=loop, progress=progress, hooks=hooks).run()
         finally:
             system.close()
+
+
+def _checked_inputs(folder: RunFolder) -> tuple[dict, dict]:
+    """(checkpoint arrays, run.json) of a folder to resume, after checking that results.h5 is readable, that
+    the checkpoint is intact and that both belong to the same run; DamagedFileError naming the file otherwise."""
+    from soil.errors import DamagedFileError
+
+    from .output import check_results
+
+    unchanged = "; nothing was changed"
+    try:
+        checkpoint = load_checkpoint(folder.checkpoint)
+    except DamagedFileError as error:
+        raise DamagedFileError(f"{error}{unchanged}. {_recoverable(folder.results)}") from None
+    at = f"t = {float(checkpoint.get('coupler/time', np.nan)):.6g} s"
+    try:
+        attrs = check_results(folder.results)
+    except DamagedFileError as error:
+        raise DamagedFileError(
+            f"{error}{unchanged}. The checkpoint ({at}) is intact, but the records it continues are lost: "
+            "start the run again with `cosim run SCENE --out FOLDER --overwrite`"
+        ) from None
+    info = _read_json(folder.file(RUN_FILE))
+    run_id = str(checkpoint["run_id"]) if "run_id" in checkpoint else None
+    expected = info.get("run_id") or attrs.get("run_id")
+    if run_id is not None and expected is not None:
+        same = run_id == expected
+    else:  # a run written before run ids: its scene must be the checkpoint's
+        same = str(checkpoint["scene_toml"]) == attrs.get("scene_toml", str(checkpoint["scene_toml"]))
+    if not same:
+        name = scene_from_text(str(checkpoint["scene_toml"])).scene.name
+        raise DamagedFileError(
+            f"{folder.checkpoint}: the checkpoint belongs to another run (scene {name!r}, run id {run_id}; "
+            f"this folder's run is {expected}){unchanged}. Put back this run's checkpoint, or start it again "
+            "with `cosim run SCENE --out FOLDER --overwrite`"
+        )
+    return checkpoint, info
+
+
+def _recoverable(results: str) -> str:
+    """What can still be read of a results.h5, in words (for a message about a damaged folder)."""
+    from soil.errors import DamagedFileError
+
+    from .output import check_results
+
+    try:
+        check_results(results)
+        series = read_series(results)
+    except (DamagedFileError, OSError, KeyError, ValueError, RuntimeError):
+        return f"{results} is damaged too: nothing can be recovered; start the run again with --overwrite"
+    count = len(series["time"])
+    status = series["attrs"].get("status")
+    if status in FINISHED:
+        return f"{results} is intact and finished (status {status}, {count} macro steps): the run's result is kept"
+    last = f" (up to t = {series['time'][-1]:.6g} s)" if count else ""
+    return (
+        f"{results} is readable: it holds {count} macro steps{last}, the results up to its last flush "
+        "(cosim plot FOLDER shows them); to finish the run start it again with --overwrite"
+    )
+
+
+def _results_status(path: str) -> str:
+    from .output import open_results
+
+    with open_results(path) as f:
+        status = f.attrs.get("status", "")
+    return status.decode() if isinstance(status, bytes) else str(status)
+
+
+def _check_run_bed(path: str, info: dict) -> None:
+    """Refuse a run's bed that is not the one it started on (replaced since: another scene's bed)."""
+    from soil.bed import read_bed_header
+    from soil.errors import DamagedFileError
+
+    key = info.get("key")
+    if not key:
+        return
+    found = read_bed_header(path)
+    if (found["key"] and found["key"] != key) or found["particle_count"] != info.get(
+        "particle_count", found["particle_count"]
+    ):
+        raise DamagedFileError(
+            f"{path}: the run's bed was replaced ({found['particle_count']} grains, key {found['key'] or 'none'}; "
+            f"the run started on {info.get('particle_count')} grains, key {key}); nothing was changed"
+        )
 
 
 def _finished(checkpoint: dict, plan: RunPlan) -> bool:

@@ -73,6 +73,17 @@ class SceneSection(_Section):
     device: str = "default"
     """Warp device: 'default' (CUDA when a GPU is present, else the CPU), 'cpu', 'cuda' or 'cuda:N'."""
 
+    @field_validator("name")
+    @classmethod
+    def _name(cls, value: str) -> str:
+        # the name becomes a folder under runs/: a path in it would put the run elsewhere
+        if "/" in value or "\\" in value or value in (".", "..") or value.startswith(".") or "\0" in value:
+            raise ValueError(
+                "must be a plain name, not a path (no '/', '\\', no leading '.'): the run goes to runs/NAME; "
+                "choose another folder with --out"
+            )
+        return value
+
     @field_validator("gravity")
     @classmethod
     def _gravity(cls, value):

@@ -63,6 +63,20 @@ def read_cosim_description(path: str | os.PathLike):
     return md
 
 
+def check_binaries(path: str | os.PathLike, md) -> None:
+    """FmuError naming the FMU file when it ships no binary this machine can load (only C sources, or
+    binaries for other platforms): before anything is unpacked."""
+    import fmpy
+
+    path = os.fspath(path)
+    found = fmpy.supported_platforms(path)  # FMI 2.0 platform names for both versions (linux64, win64, ...)
+    here = fmpy.platform
+    if here not in found:
+        others = ", ".join(p for p in found if p != "c-code") or "none"
+        sources = " It ships C sources: rebuild it here with `fmpy compile`." if "c-code" in found else ""
+        raise FmuError(f"{path}: the FMU has no binary for this platform ({here}; binaries for: {others}).{sources}")
+
+
 def instantiate_cosim(path: str | os.PathLike, md, instance_name: str, start_time: float):
     """Unpack and instantiate a co-simulation FMU (model description `md`) and enter
     initialization mode at start_time [s]; a failure removes the unpacked files again.
@@ -70,6 +84,7 @@ def instantiate_cosim(path: str | os.PathLike, md, instance_name: str, start_tim
     Returns (slave, unzip directory, set_real, get_real): the fmpy FMU2Slave/FMU3Slave and
     its Real (2.0) / Float64 (3.0) setter and getter.
     """
+    check_binaries(path, md)
     unzipdir = extract(os.fspath(path))
     kwargs = dict(
         guid=md.guid,

@@ -10,6 +10,7 @@ from dataclasses import asdict, dataclass
 import numpy as np
 
 from .builder import SoilBuilder
+from .errors import DamagedFileError
 from .files import atomic_path
 from .materials import Material
 
@@ -71,6 +72,19 @@ def insert_grains(spec: BedSpec) -> tuple[np.ndarray, np.ndarray]:
     Returns positions [m] shape (n, 3) (bed floor at z = 0, corner at x = y = 0) and radii [m] shape (n,).
     """
     rng = np.random.default_rng(spec.seed)
+    a, row, layer, counts = _lattice(spec)
+    i, j, k = (g.reshape(-1) for g in np.meshgrid(*[np.arange(c) for c in counts], indexing="ij"))
+    lattice = np.column_stack([(i + 0.5 * (j % 2) + 0.5 * (k % 2)) * a, (j + (k % 2) / 3.0) * row, k * layer])
+    radii = spec.radius_mean * (1 + spec.radius_spread * rng.uniform(-1, 1, len(lattice)))
+    slack = 0.5 * a - radii  # each grain may move this far without touching a neighbour
+    direction = rng.normal(size=(len(lattice), 3))
+    direction /= np.linalg.norm(direction, axis=1, keepdims=True)
+    positions = 0.5 * a + lattice + direction * (slack * rng.uniform(0, 1, len(lattice)))[:, None]
+    return positions, radii
+
+
+def _lattice(spec: BedSpec) -> tuple[float, float, float, list[int]]:
+    """The insertion lattice: neighbour spacing a, row and layer spacing [m], sites along x, y, z."""
     r_max = spec.radius_mean * (1 + spec.radius_spread)
     a = 2.0 * r_max * 1.02  # centre-to-centre distance of lattice neighbours
     row, layer = a * math.sqrt(3.0) / 2.0, a * math.sqrt(2.0 / 3.0)
@@ -80,14 +94,12 @@ def insert_grains(spec: BedSpec) -> tuple[np.ndarray, np.ndarray]:
         int((spec.width - a - row / 3.0) // row) + 1,
         int((spec.depth - a) // layer) + 1,
     ]
-    i, j, k = (g.reshape(-1) for g in np.meshgrid(*[np.arange(c) for c in counts], indexing="ij"))
-    lattice = np.column_stack([(i + 0.5 * (j % 2) + 0.5 * (k % 2)) * a, (j + (k % 2) / 3.0) * row, k * layer])
-    radii = spec.radius_mean * (1 + spec.radius_spread * rng.uniform(-1, 1, len(lattice)))
-    slack = 0.5 * a - radii  # each grain may move this far without touching a neighbour
-    direction = rng.normal(size=(len(lattice), 3))
-    direction /= np.linalg.norm(direction, axis=1, keepdims=True)
-    positions = 0.5 * a + lattice + direction * (slack * rng.uniform(0, 1, len(lattice)))[:, None]
-    return positions, radii
+    return a, row, layer, counts
+
+
+def grain_count(spec: BedSpec) -> int:
+    """How many grains insert_grains puts into the bed, computed without allocating them."""
+    return math.prod(_lattice(spec)[3])
 
 
 def build_bed(spec: BedSpec, gravity="phobos", wall_height: float | None = None) -> SoilBuilder:
@@ -171,12 +183,13 @@ def bed_metrics(sim, spec: BedSpec, margin: float | None = None) -> dict:
 BED_FORMAT = "regolith-cosim bed 1"
 
 
-def save_bed(path, sim, spec: BedSpec | None = None, metrics: dict | None = None) -> None:
+def save_bed(path, sim, spec: BedSpec | None = None, metrics: dict | None = None, key: str = "") -> None:
     """Write the soil (grains, materials, walls, full state incl. contact history) to HDF5.
 
     Walls are saved where they are now (moved walls become the bed's initial geometry, with
     zero displacement); their velocities and the grains' forces on them are kept. The
     control (prescribed wall motion, loads) is not part of a bed: set it again after loading.
+    `key` (optional) ties the file to what it was made for (a scene's bed key: read_bed_header['key']).
     Written to a temporary file first and renamed, so an existing file is never left half-written.
     """
     import h5py
@@ -187,6 +200,7 @@ def save_bed(path, sim, spec: BedSpec | None = None, metrics: dict | None = None
     with atomic_path(path, ".h5.tmp") as temporary:
         with h5py.File(temporary, "w") as f:
             f.attrs["format"] = BED_FORMAT
+            f.attrs["bed_key"] = key
             f.attrs["precision"] = model.precision.name
             f.attrs["gravity"] = model.gravity
             f.attrs["materials"] = json.dumps([asdict(m) for m in model.materials.materials])
@@ -217,34 +231,55 @@ def save_bed(path, sim, spec: BedSpec | None = None, metrics: dict | None = None
 
 
 def _open_bed(path):
-    """The bed file opened for reading; ValueError naming the path when it is not a readable bed."""
+    """The bed file opened for reading; DamagedFileError (a ValueError) naming the path when it is not a
+    readable bed: truncated, another format, or another HDF5 file (a results.h5)."""
     import h5py
+
+    from .errors import DamagedFileError
+    from .files import check_hdf5
 
     path = os.fspath(path)
     if not os.path.isfile(path):
         raise FileNotFoundError(f"bed file not found: {path!r}")
+    check_hdf5(path, "bed file")
     try:
         f = h5py.File(path, "r")
     except OSError as error:
-        raise ValueError(f"{path!r} is not a readable HDF5 bed file (truncated or another format): {error}") from None
-    if f.attrs.get("format") != BED_FORMAT:
+        raise DamagedFileError(
+            f"{path!r} is not a readable HDF5 bed file (truncated or another format): {error}"
+        ) from None
+    found = f.attrs.get("format")
+    if found != BED_FORMAT:
         f.close()
-        raise ValueError(f"{path!r} is not a regolith-cosim bed file (format {f.attrs.get('format')!r})")
+        raise DamagedFileError(
+            f"{path!r} is not a regolith-cosim bed file (format {found!r}, expected {BED_FORMAT!r}; "
+            "beds are written by soil.bed.save_bed or a run's bed.h5)"
+        )
     return f
 
 
 def read_bed_header(path) -> dict:
     """What a saved bed was made of, without its state: {'gravity' [m/s^2] (3,), 'materials'
     (list of Material, the grains' first), 'metrics' (dict), 'particle_count', 'spec' (the BedSpec
-    fields without materials, or None)}."""
-    with _open_bed(path) as f:
-        return {
-            "spec": json.loads(f.attrs["spec"]) if "spec" in f.attrs else None,
-            "gravity": np.asarray(f.attrs["gravity"], dtype=np.float64),
-            "materials": [Material(**values) for values in json.loads(f.attrs["materials"])],
-            "metrics": {k[len("metric_") :]: f.attrs[k] for k in f.attrs if k.startswith("metric_")},
-            "particle_count": int(f["particles/radius"].shape[0]),
-        }
+    fields without materials, or None), 'key' (save_bed's key, "" when none)}."""
+    try:
+        with _open_bed(path) as f:
+            return _header(f)
+    except (KeyError, TypeError, ValueError, OSError) as error:
+        if isinstance(error, (FileNotFoundError, DamagedFileError)):
+            raise
+        raise DamagedFileError(f"{os.fspath(path)!r}: the bed file is damaged ({error})") from None
+
+
+def _header(f) -> dict:
+    return {
+        "spec": json.loads(f.attrs["spec"]) if "spec" in f.attrs else None,
+        "gravity": np.asarray(f.attrs["gravity"], dtype=np.float64),
+        "materials": [Material(**values) for values in json.loads(f.attrs["materials"])],
+        "metrics": {k[len("metric_") :]: f.attrs[k] for k in f.attrs if k.startswith("metric_")},
+        "particle_count": int(f["particles/radius"].shape[0]),
+        "key": str(f.attrs.get("bed_key", "")),
+    }
 
 
 def load_bed(path) -> tuple[SoilBuilder, dict]:

@@ -21,3 +21,8 @@ class SoilInputError(RegolithError, ValueError):
 
 class OverlapWarning(RegolithWarning):
     """Grains were created deep inside each other: their first contact throws them apart."""
+
+
+class DamagedFileError(RegolithError, ValueError):
+    """A file the project reads is damaged (truncated, bytes changed) or is not the file it should be
+    (another format, another scene's): the message names the file, what is wrong and what is left."""

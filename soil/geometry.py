@@ -8,10 +8,13 @@ from __future__ import annotations
 
 import math
 import os
+import warnings
 from dataclasses import dataclass
 from typing import cast
 
 import numpy as np
+
+from .errors import RegolithWarning
 
 
 @dataclass(frozen=True)
@@ -108,6 +111,10 @@ class GrouserWheel:
         return extrude_profile(self.profile(arc_segments), self.width)
 
 
+class MeshOrientationWarning(RegolithWarning):
+    """A wheel mesh was wound inside out (inward normals) and was turned over."""
+
+
 def extrude_profile(profile: np.ndarray, width: float) -> tuple[np.ndarray, np.ndarray]:
     """Extrude a star-shaped X-Z outline (about the origin) along Y into a closed mesh."""
     k = len(profile)
@@ -184,14 +191,42 @@ class MeshWheel:
             import trimesh
         except ImportError as error:  # pragma: no cover - depends on the install
             raise ImportError("loading OBJ/STL wheels needs trimesh: pip install 'regolith-cosim[mesh]'") from error
+        kind = "STL (binary or ASCII)" if extension == ".stl" else "Wavefront OBJ"
         try:
             # force="mesh": a Trimesh whatever the file holds
             mesh = cast("trimesh.Trimesh", trimesh.load(path, force="mesh", process=True))
-        except Exception as error:
-            raise ValueError(f"cannot read wheel mesh {path!r}: {error}") from error
-        if len(mesh.faces) == 0:
-            raise ValueError(f"wheel mesh {path!r} has no triangles")
+        except Exception:
+            # trimesh's own message names what failed inside it (a text decoder, a struct), not the file
+            raise ValueError(
+                f"cannot read wheel mesh {path!r}: not a readable {kind} file (damaged or another format)"
+            ) from None
+        if len(getattr(mesh, "faces", ())) == 0:
+            raise ValueError(f"wheel mesh {path!r} has no triangles: not a readable {kind} file")
+        if not mesh.is_watertight:
+            raise ValueError(
+                f"wheel mesh {path!r} is not closed (watertight): inside and outside of the wheel need a closed "
+                "surface; close its holes (e.g. trimesh.repair.fill_holes) and export it again"
+            )
+        if not mesh.is_winding_consistent:
+            raise ValueError(
+                f"wheel mesh {path!r} has inconsistent winding (neighbouring triangles face opposite ways): "
+                "its normals cannot all point outward; fix the mesh (e.g. trimesh.repair.fix_winding)"
+            )
+        if mesh.volume < 0:  # closed and consistent, but every normal points inward
+            warnings.warn(
+                f"wheel mesh {path!r} is wound inside out (normals inward, volume {mesh.volume:.4g} m^3): "
+                "its triangles were turned over so that the normals point outward",
+                MeshOrientationWarning,
+                stacklevel=2,
+            )
+            trimesh.repair.fix_inversion(mesh)
         return cls(np.asarray(mesh.vertices) * scale, np.asarray(mesh.faces), name=os.path.basename(path))
+
+    @property
+    def volume(self) -> float:
+        """Enclosed volume [m^3] (positive: the normals point outward, as the SDF needs)."""
+        v = self.vertices[self.triangles]
+        return float(np.einsum("ij,ij->i", v[:, 0], np.cross(v[:, 1], v[:, 2])).sum() / 6.0)
 
     def save(self, path: str | os.PathLike) -> None:
         """Write the mesh as OBJ or STL (by extension)."""

@@ -134,14 +134,55 @@ class SimulationDiverged(RegolithError, RuntimeError):
         self.checkpoint = checkpoint
 
 
+CHECKSUM_KEY = "integrity/sha256"
+"""The key of a checkpoint's checksum: SHA-256 over every other array (name, dtype, shape, bytes)."""
+
+
+def checkpoint_digest(data: dict) -> str:
+    """SHA-256 (hex) over the arrays of a state dict, in key order (name, dtype, shape and bytes of each)."""
+    import hashlib
+
+    digest = hashlib.sha256()
+    for key in sorted(k for k in data if k != CHECKSUM_KEY):
+        value = np.ascontiguousarray(np.asarray(data[key]))
+        digest.update(f"{key}|{value.dtype.str}|{value.shape}|".encode())
+        digest.update(value.tobytes())
+    return digest.hexdigest()
+
+
 def write_checkpoint(path, data: dict) -> str:
     """Write a state dict (numpy arrays) to `path` as .npz atomically (soil.files.atomic_path),
-    so a crash never leaves half a checkpoint."""
+    so a crash never leaves half a checkpoint; its checksum goes with it (read_checkpoint verifies it)."""
     path = os.fspath(path)
-    with atomic_path(path, ".npz.tmp") as temporary:
+    arrays: dict = {key: np.asarray(value) for key, value in data.items() if key != CHECKSUM_KEY}
+    arrays[CHECKSUM_KEY] = np.array(checkpoint_digest(arrays))
+    with atomic_path(path, ".npz.tmp") as temporary:  # an OSError names `path`
         with open(temporary, "wb") as f:
-            np.savez(f, **data)
+            np.savez(f, **arrays)
     return path
+
+
+def read_checkpoint(path) -> dict:
+    """A checkpoint's arrays (no pickles), its checksum verified; DamagedFileError naming the file when
+    it is not a readable .npz (cut short, bytes changed) or its arrays do not match their checksum."""
+    from .errors import DamagedFileError
+
+    path = os.fspath(path)
+    try:
+        with open(path, "rb") as handle, np.load(handle, allow_pickle=False) as stored:  # closed also on failure
+            data = {key: stored[key] for key in stored.files}
+    except (FileNotFoundError, PermissionError):
+        raise
+    except Exception as error:  # zipfile.BadZipFile, a bad CRC, a cut header, a garbled array header
+        raise DamagedFileError(
+            f"{path}: the checkpoint is damaged (not a readable .npz archive: {error}); it was left as it is"
+        ) from None
+    saved = data.pop(CHECKSUM_KEY, None)
+    if saved is not None and str(saved) != checkpoint_digest(data):
+        raise DamagedFileError(
+            f"{path}: the checkpoint is damaged (its arrays do not match their SHA-256 checksum); it was left as it is"
+        )
+    return data
 
 
 @dataclass
@@ -378,7 +419,7 @@ class DivergenceMonitor:
         checkpoint = None
         saved = ""
         if good is not None:
-            saved = f"; last good state t = {float(good['time']):.9g} s, step {int(good['step'])} in .last_good"
+            saved = f"; the last good state (t = {float(good['time']):.9g} s, step {int(good['step'])}) is kept"
             if getattr(sim, "checkpoint_path", None):
                 checkpoint = write_checkpoint(sim.checkpoint_path, good)
                 saved += f" and {checkpoint}"

@@ -125,3 +125,20 @@ def test_a_good_rover_scene_resolves_with_its_wheels_footprint_and_mass(tmp_path
     assert abs(mjcf.rover.hub_offsets - fmu.rover.hub_offsets).max() < 1e-12
     assert mjcf.wheel_load == pytest.approx(mass * 1.625 / 4, rel=1e-9)
     assert mjcf.rover.takes_speed and mjcf.rover.takes_torque and fmu.rover.takes_speed and fmu.rover.takes_torque
+
+
+def test_a_rover_fmu_without_binaries_is_blamed_on_rover_file(tmp_path, fmus, capsys):
+    """An FMU that ships no binary for this platform: exit 2, rover.file named (not rover.start_values)."""
+    import zipfile
+
+    stripped = tmp_path / "no_binaries.fmu"
+    with zipfile.ZipFile(fmus["rover"]) as src, zipfile.ZipFile(stripped, "w") as out:
+        for item in src.namelist():
+            if not item.startswith("binaries/"):
+                out.writestr(item, src.read(item))
+    scene = write_small_rover(tmp_path, kind="fmu", fmu=str(stripped))
+    assert main(["advise", scene]) == 2
+    err = capsys.readouterr().err
+    problem = err.splitlines()[1]
+    assert problem.startswith("  - rover.file:") and "no binary for this platform" in problem, err
+    assert "start_values" not in err

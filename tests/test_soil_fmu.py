@@ -458,3 +458,95 @@ def test_a_rover_scene_is_refused_before_a_bed_is_settled(tmp_path):
     with pytest.raises(SceneError, match=r"testbed: a soil FMU is exported from a single-wheel scene"):
         soil_config_from(HERE.parent / "examples" / "phobos_rover_patch.toml", bed_folder=tmp_path)
     assert not any(tmp_path.iterdir())
+
+
+# -- masters that retry a discarded step (issue 24) --------------------------------------------------------
+
+
+def _rammed(motion, k: int) -> dict:
+    """Step k's inputs with the hub rammed down at 10 m/s: the DEM diverges, the FMU answers Discard."""
+    return _inputs(WheelKinematics(motion[k].position, motion[k].orientation, (0.02, 0.0, -10.0), (0, SPIN, 0)))
+
+
+@pytest.mark.parametrize("version", [2, 3])
+def test_fmpy_simulate_fmu_on_a_discard_stops_at_the_last_successful_time(tiny, importer, version):
+    """fmpy's simulate_fmu retries a discarded FMI 2.0 step unchanged; the soil, which would refuse it forever,
+    answers fmi2Terminated and fmpy stops at the last successful time. With FMI 3.0 fmpy stops at the Discard."""
+    job, motion = _job(tiny["fmus"][version], 1)
+    job.update(master="simulate", stop_time=4 * H)
+    job["instances"][0]["start"].update(_rammed(motion, 0))
+    result = importer(job, timeout=120)
+    if version == 3:  # fmpy 0.3 does not retry an FMI 3.0 Discard: it raises at once (no hang either)
+        assert "fmi3DoStep failed with status 2 (discard)" in result["raised"], result
+        return
+    assert result["last_time"] == 0.0  # the first step was refused: nothing after t = 0 was computed
+    assert result["servers_after_free"] == []
+    assert "retried unchanged after its Discard" in result["stdout"], result["stdout"]
+
+
+@pytest.mark.parametrize("version", [2, 3])
+def test_a_master_retries_a_discarded_step_from_a_restored_state_with_half_the_step(tiny, importer, version):
+    """The master keeps an FMU state before each step; on Discard it restores it and retries with half the
+    step, then goes on: the wrenches are bitwise those of the in-process soil taking the half steps."""
+    job, motion = _job(tiny["fmus"][version], 2)
+    hub0 = motion[0].position
+    half = [_kinematics(hub0, H + k * H / 2) for k in range(2)]  # from t = H in two halves
+    job["steps"] = [
+        {"h": H, "inputs": [_inputs(motion[0])]},
+        {"h": H, "inputs": [_rammed(motion, 1)], "save_state": True},  # refused
+        {"h": H / 2, "inputs": [_inputs(half[0])], "restore_state": True},
+        {"h": H / 2, "inputs": [_inputs(half[1])]},
+    ]
+    result = importer(job)
+    assert [s[0] for s in result["status"]] == ["ok", "ok", "discard", "ok", "ok"], result["messages"]
+
+    soil = _in_process_soil(tiny)
+    soil.place_wheels([motion[0]])
+    expected = [_as_outputs(soil.advance(soil.time + H, [motion[0]])[0])]
+    expected += [_as_outputs(soil.advance(soil.time + H / 2, [k])[0]) for k in half]
+    got = [result["outputs"][i][0] for i in (1, 3, 4)]
+    assert got == expected
+
+
+def test_a_master_that_goes_on_after_a_discard_is_told_where_the_soil_is(tiny, importer):
+    """After a Discard at t = H, a doStep from 2 H (a master that logs the Discard and goes on) is an error
+    that says the soil is earlier, at its last successful time, and what to do."""
+    job, motion = _job(tiny["fmus"][2], 2)
+    job["steps"] = [
+        {"h": H, "inputs": [_inputs(motion[0])]},
+        {"h": H, "inputs": [_rammed(motion, 1)]},
+        {"h": H, "inputs": [_inputs(motion[1])], "t_offset": H},
+    ]
+    result = importer(job)
+    assert [s[0] for s in result["status"]] == ["ok", "ok", "discard", "error"]
+    errors = [m[2] for m in result["messages"] if m[0] == "error"]
+    assert errors and f"but the soil is at t = {H!r} s, earlier: its last step was discarded" in errors[0], errors
+    assert "fmi2LastSuccessfulTime" in errors[0]
+
+
+@pytest.mark.parametrize("version", [2, 3])
+def test_fmpy_compile_rebuilds_the_soil_fmu_and_it_steps_bitwise_like_the_original(tiny, importer, tmp_path, version):
+    """The FMU declares its sources (FMI 2 SourceFiles, FMI 3 buildDescription.xml): `fmpy compile` builds its
+    binary again (here after removing the shipped one) and the rebuilt FMU steps bitwise like the original."""
+    if shutil.which("cmake") is None:
+        pytest.skip("fmpy compile needs cmake")
+    original = tiny["fmus"][version]
+    rebuilt = tmp_path / f"rebuilt{version}.fmu"
+    with zipfile.ZipFile(original) as src, zipfile.ZipFile(rebuilt, "w", zipfile.ZIP_DEFLATED) as out:
+        for item in src.namelist():
+            if not item.startswith("binaries/"):
+                out.writestr(item, src.read(item))
+    assert fmpy.supported_platforms(str(rebuilt)) == ["c-code"]
+    done = subprocess.run(
+        [sys.executable, "-m", "fmpy.cli", "compile", str(rebuilt)], capture_output=True, text=True, timeout=300
+    )
+    assert done.returncode == 0, done.stdout + done.stderr
+    assert fmpy.platform in fmpy.supported_platforms(str(rebuilt))
+    job, _ = _job(original, 3)
+    twin = dict(job["instances"][0], fmu=str(rebuilt))
+    job["instances"].append(twin)
+    job["steps"] = [dict(step, inputs=step["inputs"] * 2) for step in job["steps"]]
+    result = importer(job)
+    assert all(s == ["ok", "ok"] for s in result["status"]), result["status"]
+    for outputs in result["outputs"]:
+        assert outputs[0] == outputs[1]

@@ -14,7 +14,7 @@ from typing import Any
 
 import numpy as np
 
-from soil import Simulation
+from soil import Simulation, SimulationDiverged
 from soil.errors import RegolithError
 
 from ..beds import write_json
@@ -140,6 +140,7 @@ def lab_task(task: dict) -> dict:
         out.update(ok=True, result=result)
     except BaseException as error:  # noqa: BLE001 - reported with the others
         out.update(ok=False, error=f"{type(error).__name__}: {error}", traceback=traceback.format_exc(limit=6))
+        out["diverged"] = isinstance(error, SimulationDiverged)
         if isinstance(error, KeyboardInterrupt):
             raise
     out["wall_time"] = time.perf_counter() - started
@@ -184,12 +185,22 @@ def successful(results: list[dict], test: str) -> list[dict]:
         log.warning("%s %s failed: %s", test, r.get("label"), r.get("error"))
     if not good:
         first = failed[0] if failed else {}
+        if failed and all(r.get("diverged") for r in failed):
+            raise LabDiverged(
+                f"every {test} replica diverged (the DEM exploded during the lab test); the first: "
+                f"{first.get('error')}. Lower run.dt_factor (or set a smaller run.dt), or soften the soil as "
+                "`cosim advise` says"
+            )
         raise LabFailed(f"every {test} replica failed; the first: {first.get('error')}\n{first.get('traceback', '')}")
     return good
 
 
 class LabFailed(RegolithError, RuntimeError):
     """No replica of a lab test produced a result."""
+
+
+class LabDiverged(LabFailed):
+    """Every replica of a lab test diverged (exit 4 on the command line, like any divergence)."""
 
 
 def statistics(values) -> dict:

@@ -8,7 +8,8 @@ Nothing is downloaded. The FMU holds:
     resources/frontend.txt                  instantiation token, wheel count, default server Python, start values
     resources/soil.json                     the soil configuration (cosim.soil_fmu.config)
     resources/bed.h5                        the settled bed
-    sources/                                the front end's C sources
+    sources/                                the front end's C sources (declared: FMI 2.0 SourceFiles, FMI 3.0
+                                            sources/buildDescription.xml), so `fmpy compile` rebuilds it
 """
 
 from __future__ import annotations
@@ -253,7 +254,10 @@ def model_description(
             f'guid="{token}" numberOfEventIndicators="0">\n'
             f'  <CoSimulation modelIdentifier="{MODEL_IDENTIFIER}" needsExecutionTool="true" '
             'canHandleVariableCommunicationStepSize="true" canNotUseMemoryManagementFunctions="true" '
-            'canGetAndSetFMUstate="false" canSerializeFMUstate="false"/>\n'
+            'canGetAndSetFMUstate="true" canSerializeFMUstate="false">\n'
+            "    <SourceFiles>\n"
+            + "".join(f'      <File name="{name}"/>\n' for name in SOURCES[2] if name.endswith(".c"))
+            + "    </SourceFiles>\n  </CoSimulation>\n"
             f"{common}  <ModelVariables>\n{variables_xml}\n  </ModelVariables>\n"
             f"  <ModelStructure>\n{structure}\n  </ModelStructure>\n</fmiModelDescription>\n"
         )
@@ -268,10 +272,22 @@ def model_description(
         f'instantiationToken="{token}">\n'
         f'  <CoSimulation modelIdentifier="{MODEL_IDENTIFIER}" needsExecutionTool="true" '
         'canHandleVariableCommunicationStepSize="true" canReturnEarlyAfterIntermediateUpdate="false" '
-        'hasEventMode="false" providesIntermediateUpdate="false" canGetAndSetFMUState="false" '
+        'hasEventMode="false" providesIntermediateUpdate="false" canGetAndSetFMUState="true" '
         'canSerializeFMUState="false"/>\n'
         f"{common}  <ModelVariables>\n{variables_xml}\n  </ModelVariables>\n"
         f"  <ModelStructure>\n{structure}\n  </ModelStructure>\n</fmiModelDescription>\n"
+    )
+
+
+def build_description() -> str:
+    """sources/buildDescription.xml of the FMI 3.0 FMU: the front end's sources, so that an importer
+    (`fmpy compile`) can build its binary for another platform. (FMI 2.0 lists them in SourceFiles.)"""
+    files = "".join(f'      <SourceFile name="{name}"/>\n' for name in SOURCES[3] if name.endswith(".c"))
+    return (
+        '<?xml version="1.0" encoding="UTF-8"?>\n<fmiBuildDescription fmiVersion="3.0">\n'
+        f'  <BuildConfiguration modelIdentifier="{MODEL_IDENTIFIER}">\n'
+        f'    <SourceFileSet language="C99">\n{files}    </SourceFileSet>\n'
+        "  </BuildConfiguration>\n</fmiBuildDescription>\n"
     )
 
 
@@ -483,6 +499,8 @@ def export_soil_fmu(
                 fmu.write(config.bed_file, "resources/bed.h5")
                 for name in SOURCES[fmi_version]:
                     fmu.write(HERE / name, f"sources/{name}")
+                if fmi_version == 3:
+                    fmu.writestr("sources/buildDescription.xml", build_description())
     return destination
 
 

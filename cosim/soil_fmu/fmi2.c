@@ -176,20 +176,30 @@ FMI2_Export fmi2Status fmi2GetRealStatus(fmi2Component c, const fmi2StatusKind s
     return fmi2OK;
 }
 
+/* After a Discard: false while a shorter retry can succeed; true once the same step was retried unchanged
+ * and refused again (the soil is deterministic: the master should stop at the last successful time). */
 FMI2_Export fmi2Status fmi2GetBooleanStatus(fmi2Component c, const fmi2StatusKind s, fmi2Boolean *value) {
     if (s != fmi2Terminated) return fmi2Error;
-    *value = fmi2False;
+    *value = SOIL(c)->terminated ? fmi2True : fmi2False;
     return fmi2OK;
 }
 
-/* Not supported: asynchronous steps, FMU state, derivatives. */
+/* FMU states: the soil snapshot the server keeps (no serialization). */
+FMI2_Export fmi2Status fmi2GetFMUstate(fmi2Component c, fmi2FMUstate *state) {
+    return STATUS[soil_get_state(SOIL(c), (SoilSnapshot **)state)];
+}
+FMI2_Export fmi2Status fmi2SetFMUstate(fmi2Component c, fmi2FMUstate state) {
+    return STATUS[soil_set_state(SOIL(c), (const SoilSnapshot *)state)];
+}
+FMI2_Export fmi2Status fmi2FreeFMUstate(fmi2Component c, fmi2FMUstate *state) {
+    return STATUS[soil_free_state(SOIL(c), (SoilSnapshot **)state)];
+}
+
+/* Not supported: asynchronous steps, serialized FMU states, derivatives. */
 FMI2_Export fmi2Status fmi2CancelStep(fmi2Component c) { return fmi2Error; }
 FMI2_Export fmi2Status fmi2GetStatus(fmi2Component c, const fmi2StatusKind s, fmi2Status *value) { return fmi2Error; }
 FMI2_Export fmi2Status fmi2GetIntegerStatus(fmi2Component c, const fmi2StatusKind s, fmi2Integer *value) { return fmi2Error; }
 FMI2_Export fmi2Status fmi2GetStringStatus(fmi2Component c, const fmi2StatusKind s, fmi2String *value) { return fmi2Error; }
-FMI2_Export fmi2Status fmi2GetFMUstate(fmi2Component c, fmi2FMUstate *state) { return fmi2Error; }
-FMI2_Export fmi2Status fmi2SetFMUstate(fmi2Component c, fmi2FMUstate state) { return fmi2Error; }
-FMI2_Export fmi2Status fmi2FreeFMUstate(fmi2Component c, fmi2FMUstate *state) { return fmi2Error; }
 FMI2_Export fmi2Status fmi2SerializedFMUstateSize(fmi2Component c, fmi2FMUstate state, size_t *size) { return fmi2Error; }
 FMI2_Export fmi2Status fmi2SerializeFMUstate(fmi2Component c, fmi2FMUstate state, fmi2Byte serialized[], size_t size) { return fmi2Error; }
 FMI2_Export fmi2Status fmi2DeSerializeFMUstate(fmi2Component c, const fmi2Byte serialized[], size_t size, fmi2FMUstate *state) { return fmi2Error; }

@@ -9,6 +9,7 @@ typedef struct {
     Soil *soil;
     fmi3LogMessageCallback logger;
     fmi3InstanceEnvironment environment;
+    int early_return_allowed; /* the importer reads earlyReturn (fmi3InstantiateCoSimulation) */
 } Fmu;
 
 static const fmi3Status STATUS[] = {fmi3OK, fmi3Warning, fmi3Discard, fmi3Error};
@@ -40,6 +41,7 @@ FMI3_Export fmi3Instance fmi3InstantiateCoSimulation(
     if (!fmu) return NULL;
     fmu->logger = logMessage;
     fmu->environment = instanceEnvironment;
+    fmu->early_return_allowed = earlyReturnAllowed;
     fmu->soil = soil_new(instanceName, resourcePath, instantiationToken, log_fmi3, fmu, loggingOn);
     if (!fmu->soil) {
         free(fmu);
@@ -132,10 +134,23 @@ FMI3_Export fmi3Status fmi3DoStep(fmi3Instance instance, fmi3Float64 currentComm
                                   fmi3Boolean *earlyReturn, fmi3Float64 *lastSuccessfulTime) {
     SoilStatus status = soil_step(SOIL(instance), currentCommunicationPoint, communicationStepSize);
     *eventHandlingNeeded = fmi3False;
-    *terminateSimulation = fmi3False;
-    *earlyReturn = fmi3False;
+    /* a Discard stops the soil at the step's start: an early return at the last successful time; an
+     * unchanged retry of a refused step cannot succeed: terminate (the master stops there) */
+    *terminateSimulation = SOIL(instance)->terminated ? fmi3True : fmi3False;
+    *earlyReturn = status == SOIL_DISCARD && ((Fmu *)instance)->early_return_allowed ? fmi3True : fmi3False;
     *lastSuccessfulTime = SOIL(instance)->real[VR_TIME];
     return STATUS[status];
+}
+
+/* FMU states: the soil snapshot the server keeps (no serialization). */
+FMI3_Export fmi3Status fmi3GetFMUState(fmi3Instance instance, fmi3FMUState *FMUState) {
+    return STATUS[soil_get_state(SOIL(instance), (SoilSnapshot **)FMUState)];
+}
+FMI3_Export fmi3Status fmi3SetFMUState(fmi3Instance instance, fmi3FMUState FMUState) {
+    return STATUS[soil_set_state(SOIL(instance), (const SoilSnapshot *)FMUState)];
+}
+FMI3_Export fmi3Status fmi3FreeFMUState(fmi3Instance instance, fmi3FMUState *FMUState) {
+    return STATUS[soil_free_state(SOIL(instance), (SoilSnapshot **)FMUState)];
 }
 
 /* Everything below is not supported by this FMU (from fmi3FunctionTypes.h). */
@@ -164,9 +179,6 @@ FMI3_Export fmi3Status fmi3SetBinary(fmi3Instance instance, const fmi3ValueRefer
 FMI3_Export fmi3Status fmi3SetClock(fmi3Instance instance, const fmi3ValueReference valueReferences[], size_t nValueReferences, const fmi3Clock values[]) { return fmi3Error; }
 FMI3_Export fmi3Status fmi3GetNumberOfVariableDependencies(fmi3Instance instance, fmi3ValueReference valueReference, size_t* nDependencies) { return fmi3Error; }
 FMI3_Export fmi3Status fmi3GetVariableDependencies(fmi3Instance instance, fmi3ValueReference dependent, size_t elementIndicesOfDependent[], fmi3ValueReference independents[], size_t elementIndicesOfIndependents[], fmi3DependencyKind dependencyKinds[], size_t nDependencies) { return fmi3Error; }
-FMI3_Export fmi3Status fmi3GetFMUState(fmi3Instance instance, fmi3FMUState* FMUState) { return fmi3Error; }
-FMI3_Export fmi3Status fmi3SetFMUState(fmi3Instance instance, fmi3FMUState FMUState) { return fmi3Error; }
-FMI3_Export fmi3Status fmi3FreeFMUState(fmi3Instance instance, fmi3FMUState* FMUState) { return fmi3Error; }
 FMI3_Export fmi3Status fmi3SerializedFMUStateSize(fmi3Instance instance, fmi3FMUState FMUState, size_t* size) { return fmi3Error; }
 FMI3_Export fmi3Status fmi3SerializeFMUState(fmi3Instance instance, fmi3FMUState FMUState, fmi3Byte serializedState[], size_t size) { return fmi3Error; }
 FMI3_Export fmi3Status fmi3DeserializeFMUState(fmi3Instance instance, const fmi3Byte serializedState[], size_t size, fmi3FMUState* FMUState) { return fmi3Error; }

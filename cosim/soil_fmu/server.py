@@ -14,6 +14,9 @@ answers each request with one message:
     PLACE (2) float64[W, 13] wheel inputs          -> OUTPUTS (11) float64[W, 15], or ERROR
     STEP  (3) float64 step [s], float64[W, 13]     -> OUTPUTS, DISCARD (12) text, or ERROR
     BYE   (4)                                      -> OK, then the server exits
+    SAVE  (5) uint32 id: keep the soil as it is now under id (an FMU state; an id again: replace it) -> OK
+    RESTORE (6) uint32 id: put the soil back to the state kept under id                    -> OK, or ERROR
+    FREE  (7) uint32 id: forget that state                                                 -> OK
     ERROR (13) text: what went wrong.
 
 Wheel inputs: position (3) [m], orientation quaternion w x y z (4), velocity (3) [m/s],
@@ -41,8 +44,8 @@ import warnings
 
 import numpy as np
 
-PROTOCOL_VERSION = 1
-INIT, PLACE, STEP, BYE = 1, 2, 3, 4
+PROTOCOL_VERSION = 2
+INIT, PLACE, STEP, BYE, SAVE, RESTORE, FREE = 1, 2, 3, 4, 5, 6, 7
 OK, OUTPUTS, DISCARD, ERROR = 10, 11, 12, 13
 HEADER = struct.Struct("<II")
 INPUTS_PER_WHEEL = 13
@@ -157,6 +160,8 @@ class SoilSession:
         self.soil = soil_from_config(config, os.path.join(resources, BED_FILE), dem_step, device)
         self.soil.set_gravity([float(g) for g in settings["gravity"].split()])
         self.start = StepStart(self.soil)
+        self.states: dict[int, StepStart] = {}
+        """FMU states (fmi2GetFMUstate, fmi3GetFMUState) by the front end's id: device copies of the soil."""
         sim = self.soil.sim
         self.description = (
             f"{sim.model.particle_count} grains, {self.wheel_count} wheel(s) on {sim.model.device}, "
@@ -199,6 +204,22 @@ class SoilSession:
             self.start.restore()
             raise
         return data
+
+    def save(self, ident: int) -> bytes:
+        kept = self.states.get(ident) or StepStart(self.soil)
+        kept.take()
+        self.states[ident] = kept
+        return f"FMU state {ident} kept at t = {self.soil.time:.9g} s".encode()
+
+    def restore(self, ident: int) -> bytes:
+        if ident not in self.states:
+            raise ValueError(f"no FMU state {ident} (freed, or taken by another soil)")
+        self.states[ident].restore()
+        return f"FMU state {ident} restored: t = {self.soil.time:.9g} s".encode()
+
+    def free(self, ident: int) -> bytes:
+        self.states.pop(ident, None)
+        return f"FMU state {ident} freed".encode()
 
 
 def outputs(wrenches) -> bytes:
@@ -247,6 +268,10 @@ def _answer(channel: Channel) -> None:
             elif kind == STEP:
                 values = np.frombuffer(payload, "<f8")
                 channel.send(OUTPUTS, session.step(float(values[0]), values[1:]))
+            elif kind in (SAVE, RESTORE, FREE):
+                ident = int(np.frombuffer(payload, "<u4")[0])
+                action = {SAVE: session.save, RESTORE: session.restore, FREE: session.free}[kind]
+                channel.send(OK, action(ident))
             else:
                 raise RuntimeError(f"unknown message kind {kind}")
         except StepRefused as refused:

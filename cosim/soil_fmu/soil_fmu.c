@@ -33,8 +33,8 @@
 extern char **environ;
 
 /* Protocol (docs/fmu.md): frames of uint32 kind, uint32 payload length, payload. */
-enum { PROTOCOL_VERSION = 1 };
-enum { MSG_INIT = 1, MSG_PLACE = 2, MSG_STEP = 3, MSG_BYE = 4,
+enum { PROTOCOL_VERSION = 2 };
+enum { MSG_INIT = 1, MSG_PLACE = 2, MSG_STEP = 3, MSG_BYE = 4, MSG_SAVE = 5, MSG_RESTORE = 6, MSG_FREE = 7,
        MSG_OK = 10, MSG_OUTPUTS = 11, MSG_DISCARD = 12, MSG_ERROR = 13 };
 
 #define SERVER_MODULE "cosim.soil_fmu.server"
@@ -540,6 +540,8 @@ SoilStatus soil_start(Soil *s) {
     free(values);
     if (status != SOIL_OK) return SOIL_ERROR;
     s->initialized = 1;
+    s->generation++;
+    s->discards = s->terminated = 0;
     return SOIL_OK;
 }
 
@@ -560,9 +562,18 @@ SoilStatus soil_step(Soil *s, double time, double step) {
         soil_log(s, SOIL_ERROR, "logStatusError", "communicationStepSize must be > 0 [s], got %g", step);
         return SOIL_ERROR;
     }
-    if (fabs(time - s->real[VR_TIME]) > tolerance) {
-        soil_log(s, SOIL_ERROR, "logStatusError", "doStep from t = %.17g s, but the soil is at t = %.17g s "
-                 "(the soil cannot go back in time)", time, s->real[VR_TIME]);
+    if (time > s->real[VR_TIME] + tolerance) {
+        soil_log(s, SOIL_ERROR, "logStatusError", "doStep from t = %.17g s, but the soil is at t = %.17g s, "
+                 "earlier: %s", time, s->real[VR_TIME],
+                 s->discards ? "its last step was discarded, so the next one must start at the last successful "
+                 "time (fmi2GetRealStatus(fmi2LastSuccessfulTime), FMI 3: lastSuccessfulTime), with a shorter "
+                 "step or after restoring an FMU state" : "the soil cannot skip time");
+        return SOIL_ERROR;
+    }
+    if (time < s->real[VR_TIME] - tolerance) {
+        soil_log(s, SOIL_ERROR, "logStatusError", "doStep from t = %.17g s, but the soil is at t = %.17g s, "
+                 "later: the soil goes back in time only by restoring an FMU state taken then "
+                 "(canGetAndSetFMUstate: fmi2SetFMUstate / fmi3SetFMUState)", time, s->real[VR_TIME]);
         return SOIL_ERROR;
     }
     values = inputs(s);
@@ -572,7 +583,94 @@ SoilStatus soil_step(Soil *s, double time, double step) {
     status = request(s, MSG_STEP, values, (uint32_t)((size_t)(s->wheel_count * W_INPUTS + 1) * sizeof(double)),
                      s->real[VR_STEP_TIMEOUT], "server_step_timeout", doing);
     free(values);
-    if (status == SOIL_OK) s->real[VR_TIME] = time + step;
+    if (status == SOIL_OK) {
+        s->real[VR_TIME] = time + step;
+        s->discards = 0;
+        s->terminated = 0;
+    } else if (status == SOIL_DISCARD) {
+        /* the soil is deterministic: the same step from the same state is refused again */
+        if (s->discards > 0 && step >= s->discarded_step * (1 - 1e-12)) {
+            s->terminated = 1;
+            soil_log(s, SOIL_DISCARD, "logStatusDiscard", "the step from t = %.9g s was retried unchanged after "
+                     "its Discard and was refused again: terminating (fmi2Terminated); retry with a shorter step "
+                     "instead", time);
+        } else {
+            soil_log(s, SOIL_DISCARD, "logStatusDiscard", "the soil stays at t = %.9g s, the last successful time: "
+                     "retry from there with a shorter step (or restore an FMU state)", time);
+        }
+        s->discards++;
+        s->discarded_step = step;
+    }
+    return status;
+}
+
+/* ---------------------------------------------------------------------------- FMU states */
+
+static SoilStatus state_request(Soil *s, uint32_t kind, unsigned id, const char *doing) {
+    uint32_t payload = (uint32_t)id;
+    return request(s, kind, &payload, sizeof payload, s->real[VR_STEP_TIMEOUT], "server_step_timeout", doing);
+}
+
+SoilStatus soil_get_state(Soil *s, SoilSnapshot **state) {
+    SoilSnapshot *snapshot = *state;
+    size_t size = (size_t)s->wheel_count * W_SIZE * sizeof(double);
+    if (s->failed || !s->initialized) {
+        soil_log(s, SOIL_ERROR, "logStatusError", "an FMU state can be taken after initialization, while the "
+                 "soil server runs");
+        return SOIL_ERROR;
+    }
+    if (snapshot && snapshot->generation != s->generation) {
+        soil_log(s, SOIL_ERROR, "logStatusError", "the FMU state belongs to a soil that was reset or stopped");
+        return SOIL_ERROR;
+    }
+    if (!snapshot) {
+        snapshot = calloc(1, sizeof(SoilSnapshot));
+        if (!snapshot || !(snapshot->wheel = malloc(size))) {
+            free(snapshot);
+            return server_failed(s, "out of memory");
+        }
+        snapshot->id = ++s->next_state;
+        snapshot->generation = s->generation;
+    }
+    if (state_request(s, MSG_SAVE, snapshot->id, "saving an FMU state") != SOIL_OK) {
+        if (!*state) {
+            free(snapshot->wheel);
+            free(snapshot);
+        }
+        return SOIL_ERROR;
+    }
+    memcpy(snapshot->real, s->real, sizeof s->real);
+    memcpy(snapshot->wheel, s->wheel, size);
+    snapshot->discards = s->discards;
+    snapshot->terminated = s->terminated;
+    snapshot->discarded_step = s->discarded_step;
+    *state = snapshot;
+    return SOIL_OK;
+}
+
+SoilStatus soil_set_state(Soil *s, const SoilSnapshot *snapshot) {
+    if (!snapshot || s->failed || !s->initialized || snapshot->generation != s->generation) {
+        soil_log(s, SOIL_ERROR, "logStatusError", "the FMU state cannot be restored: %s",
+                 !snapshot ? "none given" : "it belongs to a soil that was reset or stopped, or the server failed");
+        return SOIL_ERROR;
+    }
+    if (state_request(s, MSG_RESTORE, snapshot->id, "restoring an FMU state") != SOIL_OK) return SOIL_ERROR;
+    memcpy(s->real, snapshot->real, sizeof s->real);
+    memcpy(s->wheel, snapshot->wheel, (size_t)s->wheel_count * W_SIZE * sizeof(double));
+    s->discards = snapshot->discards;
+    s->terminated = snapshot->terminated;
+    s->discarded_step = snapshot->discarded_step;
+    return SOIL_OK;
+}
+
+SoilStatus soil_free_state(Soil *s, SoilSnapshot **state) {
+    SoilStatus status = SOIL_OK;
+    if (!*state) return SOIL_OK;
+    if (s->initialized && !s->failed && (*state)->generation == s->generation)
+        status = state_request(s, MSG_FREE, (*state)->id, "freeing an FMU state");
+    free((*state)->wheel);
+    free(*state);
+    *state = NULL;
     return status;
 }
 

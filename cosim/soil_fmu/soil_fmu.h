@@ -69,7 +69,23 @@ typedef struct {
     char line[512];        /* the server's stderr line being read */
     size_t line_length;
     char tail[2048];       /* the server's last stderr lines, for error messages */
+
+    int discards;          /* Discards in a row from the same time (0 after a successful step) */
+    double discarded_step; /* the size of the last discarded step [s] */
+    int terminated;        /* a step was retried unchanged after its Discard: it cannot succeed (fmi2Terminated) */
+    unsigned generation;   /* counts the servers started: an FMU state belongs to one */
+    unsigned next_state;   /* the id of the next FMU state the server keeps */
 } Soil;
+
+/* An FMU state (fmi2GetFMUstate / fmi3GetFMUState): the soil snapshot the server keeps under `id`, and
+ * the front end's own values (time, parameters, wheel inputs and outputs) at that moment. */
+typedef struct {
+    unsigned id, generation;
+    double real[VR_REAL_PARAMETERS];
+    double *wheel;
+    int discards, terminated;
+    double discarded_step;
+} SoilSnapshot;
 
 /* Read resources/frontend.txt; NULL (and a logged error) if it is missing or belongs to another FMU. */
 Soil *soil_new(const char *instance_name, const char *resources, const char *token, SoilLogger logger,
@@ -86,6 +102,11 @@ SoilStatus soil_set_real(Soil *soil, unsigned vr, double value);
 SoilStatus soil_get_integer(Soil *soil, unsigned vr, int *value);
 SoilStatus soil_get_string(Soil *soil, unsigned vr, const char **value);
 SoilStatus soil_set_string(Soil *soil, unsigned vr, const char *value);
+
+/* FMU states: *state NULL: a new one; else it is overwritten. Valid while the server that took it runs. */
+SoilStatus soil_get_state(Soil *soil, SoilSnapshot **state);
+SoilStatus soil_set_state(Soil *soil, const SoilSnapshot *state);
+SoilStatus soil_free_state(Soil *soil, SoilSnapshot **state);
 
 void soil_log(Soil *soil, SoilStatus status, const char *category, const char *format, ...);
 

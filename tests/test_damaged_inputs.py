@@ -1,0 +1,397 @@
+"""Nothing lost, nothing silently wrong: damaged or foreign files (results, checkpoint, bed, mesh), a
+scene too large for the machine, a scene name that is a path, kill -9 after the final checkpoint,
+SIGTERM, and a bed that explodes while it settles. Each case asserts the exit code, the first line
+of the message, and that no file written before changed (checksums).
+
+One complete and one interrupted tiny run are shared by the module; each case works on a copy."""
+
+import hashlib
+import json
+import os
+import shutil
+import signal
+import subprocess
+import sys
+import textwrap
+import time
+
+import numpy as np
+import pytest
+
+from cosim.cli import main
+from cosim.plan import load_plan
+from cosim.runner import run_plan
+from helpers import write_tiny
+
+
+def digests(folder) -> dict:
+    """sha256 of every file under folder (the lock file aside)."""
+    out = {}
+    for root, _, files in os.walk(folder):
+        for name in files:
+            if name != ".lock":
+                path = os.path.join(root, name)
+                with open(path, "rb") as f:
+                    out[os.path.relpath(path, folder)] = hashlib.sha256(f.read()).hexdigest()
+    return out
+
+
+def first_error_line(capsys) -> str:
+    err = capsys.readouterr().err
+    assert "Traceback" not in err, err
+    lines = [line for line in err.splitlines() if line.startswith("cosim: error:")]
+    assert lines, err
+    return lines[0]
+
+
+@pytest.fixture(scope="module")
+def scene(tmp_path_factory):
+    return write_tiny(tmp_path_factory.mktemp("damaged"))
+
+
+@pytest.fixture(scope="module")
+def complete(scene, tiny_bed, tmp_path_factory):
+    """A finished tiny run on the shared bed."""
+    out = tmp_path_factory.mktemp("complete") / "run"
+    result = run_plan(load_plan(scene, [f'bed.bed_file="{tiny_bed}"']), str(out))
+    assert result.status in ("complete", "unsteady")
+    return out
+
+
+@pytest.fixture(scope="module")
+def interrupted(scene, tiny_bed, tmp_path_factory):
+    """A tiny run stopped hard three macro steps after its first checkpoint (status interrupted)."""
+    out = tmp_path_factory.mktemp("interrupted") / "run"
+    seen = []
+
+    def checkpoint(runner):
+        seen.append(runner.system.coupler.step_count)
+
+    def step(runner):
+        if seen and runner.system.coupler.step_count == seen[0] + 3:
+            raise KeyboardInterrupt("test: stopped")
+
+    with pytest.raises(KeyboardInterrupt):
+        run_plan(
+            load_plan(scene, [f'bed.bed_file="{tiny_bed}"']), str(out), hooks={"checkpoint": checkpoint, "step": step}
+        )
+    assert json.loads((out / "run.json").read_text())["status"] == "interrupted"
+    return out
+
+
+def copy(folder, tmp_path, name="copy"):
+    target = tmp_path / name
+    shutil.copytree(folder, target, ignore=shutil.ignore_patterns(".lock"))
+    return target
+
+
+def cut(path, fraction):
+    os.truncate(path, int(os.path.getsize(path) * fraction))
+
+
+# -- row 1: a bed_file that is another HDF5 file ------------------------------------------------
+def test_row01_a_results_file_given_as_bed_file_is_one_clear_line(scene, complete, tmp_path, capsys):
+    before = digests(complete)
+    for command in (["advise", scene], ["run", scene, "--out", str(tmp_path / "o"), "--no-progress"]):
+        assert main([*command, "--set", f'bed.bed_file="{complete / "results.h5"}"']) == 2
+        err = capsys.readouterr().err
+        assert "Traceback" not in err and err.startswith("cosim: error: invalid scene")
+        assert "bed.bed_file" in err and "not a regolith-cosim bed file" in err, err
+    assert digests(complete) == before and not (tmp_path / "o").exists()
+
+
+# -- row 2: a scene too large for the machine -----------------------------------------------------
+HUGE = ["--set", "bed.length=10", "--set", "bed.width=10", "--set", "bed.depth=1", "--set", "bed.radius_mean=0.001"]
+
+
+def test_row02_a_huge_scene_is_refused_with_the_estimate(scene, tmp_path, capsys):
+    assert main(["advise", scene, *HUGE]) == 0
+    out = capsys.readouterr().out
+    assert "memory estimate" in out and "grains in double" in out and "DOES NOT FIT" in out
+    assert main(["run", scene, "--out", str(tmp_path / "huge"), "--no-progress", *HUGE]) == 2
+    line = first_error_line(capsys)
+    assert "does not fit this machine" in line and "GB of host memory" in line and "free" in line, line
+    assert not (tmp_path / "huge").exists()
+
+
+@pytest.mark.parametrize("precision", ["single", "mixed", "double"])
+def test_the_memory_estimate_matches_the_measured_bytes_per_grain(precision):
+    """soil.memory's formula against Simulation.bytes_per_grain() of a small bed (monitor armed)."""
+    from soil import Simulation
+    from soil.bed import BedSpec, build_bed, grain_count
+    from soil.memory import device_bytes_per_grain
+
+    spec = BedSpec(length=0.06, width=0.04, depth=0.03, radius_mean=0.002)
+    model, state, control = build_bed(spec, "moon").finalize(device="cpu", precision=precision)
+    assert model.particle_count == grain_count(spec)
+    sim = Simulation(model, state, control)
+    sim.monitor.arm(sim)
+    measured = sim.bytes_per_grain()["total"]
+    assert measured == pytest.approx(device_bytes_per_grain(precision), rel=0.1)
+
+
+# -- rows 3, 4, 5: a results.h5 cut short -------------------------------------------------------
+def test_row03_resume_of_an_interrupted_run_with_a_cut_results_file(interrupted, tmp_path, capsys):
+    folder = copy(interrupted, tmp_path)
+    cut(folder / "results.h5", 0.5)
+    before = digests(folder)
+    assert main(["resume", str(folder), "--no-progress"]) == 2
+    line = first_error_line(capsys)
+    assert "results.h5: the results file is truncated" in line and "nothing was changed" in line, line
+    assert "checkpoint" in line and "--overwrite" in line
+    assert digests(folder) == before
+
+
+def test_row04_plot_of_a_cut_results_file_writes_no_empty_figures(interrupted, tmp_path, capsys):
+    folder = copy(interrupted, tmp_path)
+    cut(folder / "results.h5", 0.5)
+    before = digests(folder)
+    assert main(["plot", str(folder)]) == 2
+    line = first_error_line(capsys)
+    assert "results.h5: the results file is truncated" in line and "no plot was written" in line, line
+    assert digests(folder) == before and not (folder / "plots").exists()
+
+
+def test_row05_plot_of_a_complete_run_cut_to_30_percent_fails_at_once(complete, tmp_path, capsys):
+    folder = copy(complete, tmp_path)
+    cut(folder / "results.h5", 0.3)
+    before = digests(folder)
+    start = time.perf_counter()
+    assert main(["plot", str(folder)]) == 2
+    assert time.perf_counter() - start < 20  # the SWMR read used to retry for minutes
+    assert "truncated" in first_error_line(capsys)
+    assert digests(folder) == before
+
+
+# -- rows 6, 7: a damaged or foreign checkpoint ---------------------------------------------------
+@pytest.mark.parametrize("damage", ["cut", "flipped"])
+def test_row06_resume_with_a_damaged_checkpoint(interrupted, tmp_path, capsys, damage):
+    folder = copy(interrupted, tmp_path)
+    path = folder / "checkpoint.npz"
+    if damage == "cut":
+        cut(path, 0.5)
+    else:
+        data = bytearray(path.read_bytes())
+        data[len(data) // 2] ^= 0xFF
+        path.write_bytes(bytes(data))
+    before = digests(folder)
+    assert main(["resume", str(folder), "--no-progress"]) == 2
+    line = first_error_line(capsys)
+    assert "checkpoint.npz: the checkpoint is damaged" in line and "nothing was changed" in line, line
+    assert "results.h5 is readable: it holds" in line  # what can still be recovered
+    assert digests(folder) == before
+
+
+def test_row06_a_checkpoint_whose_arrays_were_changed_fails_its_checksum(interrupted, tmp_path):
+    from soil.errors import DamagedFileError
+    from soil.stability import read_checkpoint
+
+    data = dict(np.load(interrupted / "checkpoint.npz"))
+    data["coupler/time"] = np.array(1.0)  # a valid archive, but not what was written
+    np.savez(tmp_path / "edited.npz", **data)
+    with pytest.raises(DamagedFileError, match="do not match their SHA-256 checksum"):
+        read_checkpoint(tmp_path / "edited.npz")
+
+
+def test_row07_another_runs_checkpoint_is_refused(interrupted, complete, tmp_path, capsys):
+    folder = copy(interrupted, tmp_path)
+    shutil.copy(complete / "checkpoint.npz", folder / "checkpoint.npz")
+    before = digests(folder)
+    assert main(["resume", str(folder), "--no-progress"]) == 2
+    line = first_error_line(capsys)
+    assert "checkpoint.npz: the checkpoint belongs to another run" in line, line
+    assert digests(folder) == before
+    assert json.loads((folder / "run.json").read_text())["status"] == "interrupted"  # still resumable
+    shutil.copy(interrupted / "checkpoint.npz", folder / "checkpoint.npz")
+    assert main(["resume", str(folder), "--no-progress"]) in (0, 6)
+
+
+# -- row 8: a cached bed replaced by another scene's ----------------------------------------------
+def test_row08_a_replaced_cached_bed_is_refused(scene, tmp_path, capsys):
+    short = ["--set", "run.duration=0.0017", "--set", "landing.enabled=false", "--no-progress"]
+    own, other = tmp_path / "own", tmp_path / "other"
+    assert main(["run", scene, "--out", str(own), *short]) in (0, 6)
+    assert main(["run", scene, "--out", str(other), "--set", "bed.length=0.1", *short]) in (0, 6)
+    capsys.readouterr()
+    shutil.copy(other / "bed.h5", own / "bed.h5")
+    before = digests(own)
+    assert main(["run", scene, "--out", str(own), "--overwrite", *short]) == 2
+    line = first_error_line(capsys)
+    assert "bed.h5: the cached bed was made for another scene" in line, line
+    assert digests(own) == before
+
+
+# -- row 9: a mesh wheel wound inside out, and unreadable meshes ----------------------------------
+def test_row09_an_inverted_mesh_is_turned_over_and_open_meshes_are_refused(tmp_path):
+    trimesh = pytest.importorskip("trimesh")
+    from soil import GrouserWheel, MeshWheel
+    from soil.geometry import MeshOrientationWarning
+
+    vertices, triangles = GrouserWheel(0.025, 0.02, 8, 0.003, 0.002).to_mesh(90)
+    trimesh.Trimesh(vertices, triangles[:, ::-1], process=False).export(tmp_path / "inverted.stl")
+    with pytest.warns(MeshOrientationWarning, match="inside out"):
+        mesh = MeshWheel.load(tmp_path / "inverted.stl")
+    assert mesh.volume == pytest.approx(MeshWheel(vertices, triangles).volume, rel=1e-9) and mesh.volume > 0
+    trimesh.Trimesh(vertices, triangles[:-2], process=False).export(tmp_path / "open.stl")
+    with pytest.raises(ValueError, match="open.stl' is not closed"):
+        MeshWheel.load(tmp_path / "open.stl")
+
+
+@pytest.mark.parametrize("name", ["garbage.stl", "cut.stl", "garbage.obj"])
+def test_a_corrupt_mesh_file_names_the_file_and_its_format(tmp_path, capsys, name):
+    pytest.importorskip("trimesh")
+    from soil import GrouserWheel, MeshWheel
+
+    path = tmp_path / name
+    if name == "cut.stl":
+        MeshWheel(*GrouserWheel(0.025, 0.02, 8, 0.003, 0.002).to_mesh(90)).save(path)
+        cut(path, 0.5)
+    else:
+        path.write_bytes(bytes(range(256)) * 4)
+    scene = write_tiny(tmp_path)
+    grouser = (
+        "[wheel]\nradius = 0.025\nwidth = 0.02\ngrouser_count = 8\ngrouser_height = 0.003\ngrouser_thickness = 0.002\n"
+    )
+    with open(scene) as f:
+        text = f.read().replace(grouser, f'[wheel]\ntype = "mesh"\nfile = "{name}"\n')
+    with open(scene, "w") as f:
+        f.write(text)
+    assert main(["advise", scene]) == 2
+    err = capsys.readouterr().err
+    kind = "STL (binary or ASCII)" if name.endswith(".stl") else "Wavefront OBJ"
+    assert f"wheel.file: cannot read wheel mesh '{path}': not a readable {kind} file" in err, err
+    assert "charset" not in err and "Traceback" not in err
+
+
+# -- row 10: kill -9 right after the final checkpoint ---------------------------------------------
+def test_row10_kill_9_after_the_final_checkpoint_then_resume_finishes_the_result(scene, tiny_bed, complete, tmp_path):
+    out = tmp_path / "killed"
+    script = textwrap.dedent(f"""
+        import os, signal
+        from cosim.plan import load_plan
+        from cosim.runner import run_plan
+        def kill(runner):
+            if runner.done:  # the final checkpoint is on disk: die before the results are finished
+                os.kill(os.getpid(), signal.SIGKILL)
+        run_plan(load_plan({scene!r}, ['bed.bed_file="{tiny_bed}"']), {str(out)!r}, hooks={{"checkpoint": kill}})
+    """)
+    done = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=300)
+    assert done.returncode == -signal.SIGKILL, done.stderr
+    assert json.loads((out / "run.json").read_text())["status"] == "running"
+    assert main(["resume", str(out), "--no-progress"]) in (0, 6)
+    info, reference = (json.loads((f / "run.json").read_text()) for f in (out, complete))
+    assert info["status"] == reference["status"] and info["summary"]["slip"] == reference["summary"]["slip"]
+    from cosim.output import open_results
+
+    with open_results(out / "results.h5") as f:
+        assert f.attrs["status"] == info["status"] and json.loads(f.attrs["summary"])["slip"] == info["summary"]["slip"]
+
+
+# -- row 11: a bed that explodes while it settles ------------------------------------------------
+def test_row11_a_divergence_while_settling_is_exit_4_with_the_phase_and_the_key(scene, tmp_path, capsys):
+    args = ["--set", "scene.gravity=1000", "--set", "bed.settle_dt_factor=1", "--no-progress"]
+    assert main(["run", scene, "--out", str(tmp_path / "boom"), *args]) == 4
+    line = first_error_line(capsys)
+    assert line.startswith("cosim: error: the bed diverged while settling, at t = ") and "grain " in line, line
+    assert "bed.settle_dt_factor" in line and "scene.gravity" in line and "last_good" not in line
+    assert set(os.listdir(tmp_path / "boom")) <= {".lock"}  # nothing of a run was written
+
+
+# -- row 12: a scene name that is a path ---------------------------------------------------------
+def test_row12_a_scene_name_is_a_name_not_a_path(scene, tmp_path, capsys, monkeypatch):
+    work = tmp_path / "a" / "b"
+    work.mkdir(parents=True)
+    monkeypatch.chdir(work)
+    assert main(["run", scene, "--no-progress", "--set", 'scene.name="../../x"']) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("cosim: error: invalid scene") and "scene.name: must be a plain name, not a path" in err
+    assert not (tmp_path / "x").exists() and not (work / "runs").exists()
+
+
+# -- row 13: SIGTERM ----------------------------------------------------------------------------
+def test_row13_sigterm_checkpoints_stops_cleanly_and_resumes(scene, tiny_bed, complete, tmp_path):
+    out = tmp_path / "term"
+    script = textwrap.dedent(f"""
+        import os, signal, sys
+        from cosim import runner
+        from cosim.cli import main
+        original = runner.Runner._after_step
+        def after_step(self, record):
+            original(self, record)
+            if self.system.coupler.step_count == 20:
+                os.kill(os.getpid(), signal.SIGTERM)  # what a batch scheduler or `docker stop` sends
+        runner.Runner._after_step = after_step
+        sys.exit(main(["run", {scene!r}, "--out", {str(out)!r}, "--no-progress", "--set", 'bed.bed_file="{tiny_bed}"']))
+    """)
+    done = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=300)
+    assert done.returncode == 143, done.stderr
+    assert "cosim: interrupted. SIGTERM: stopped at t = " in done.stderr
+    assert json.loads((out / "run.json").read_text())["status"] == "interrupted"
+    assert int(np.load(out / "checkpoint.npz")["coupler/step_count"]) == 20  # a checkpoint of the moment
+    assert main(["resume", str(out), "--no-progress"]) in (0, 6)
+    info, reference = (json.loads((f / "run.json").read_text()) for f in (out, complete))
+    assert info["summary"]["slip"] == reference["summary"]["slip"]  # bitwise on the CPU
+
+
+# -- misleading messages ------------------------------------------------------------------------
+def test_a_wheel_larger_than_its_bed_is_named_as_such(scene, capsys):
+    assert main(["advise", scene, "--set", "wheel.radius=0.07"]) == 2
+    err = capsys.readouterr().err
+    assert (
+        err.splitlines()[1].startswith("  - wheel.radius: the wheel (outer radius 0.07301 m") and "does not fit" in err
+    )
+    assert "run.duration" not in err
+
+
+def test_a_full_disk_during_the_run_names_the_file(scene, tiny_bed, tmp_path, capsys, monkeypatch):
+    import errno
+
+    from cosim import output
+
+    def full(self):
+        raise OSError(errno.ENOSPC, "No space left on device")  # as h5py reports it: no file name
+
+    monkeypatch.setattr(output.ResultsWriter, "flush_records", full)
+    out = tmp_path / "full"
+    assert main(["run", scene, "--out", str(out), "--no-progress", "--set", f'bed.bed_file="{tiny_bed}"']) == 5
+    line = first_error_line(capsys)
+    assert line == f"cosim: error: {out / 'results.h5'}: No space left on device", line
+
+
+def test_resume_of_an_empty_folder_leaves_nothing_behind(tmp_path, capsys):
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    assert main(["resume", str(empty), "--no-progress"]) == 5
+    assert "not a run folder that can be resumed" in first_error_line(capsys)
+    assert os.listdir(empty) == []
+
+
+def test_a_lab_test_whose_every_replica_diverged_is_exit_4(tmp_path, capsys, monkeypatch):
+    import cosim.lab
+    from cosim.lab.common import successful
+
+    failed = [{"ok": False, "diverged": True, "label": "repose 0", "error": "SimulationDiverged: boom"}]
+
+    def diverging(plan, out, **kwargs):
+        return successful(failed, "repose")
+
+    monkeypatch.setattr(cosim.lab, "repose_test", diverging)
+    scene = os.path.join(os.path.dirname(__file__), "..", "examples", "phobos_lab.toml")
+    assert main(["lab", "repose", scene, "--out", str(tmp_path / "lab"), "--serial"]) == 4
+    line = first_error_line(capsys)
+    assert "every repose replica diverged" in line and "run.dt_factor" in line, line
+
+
+def test_a_full_disk_while_a_checkpoint_is_written_names_the_checkpoint(tmp_path):
+    import errno
+    from unittest import mock
+
+    from soil.stability import write_checkpoint
+
+    def full(file, **arrays):
+        raise OSError(errno.ENOSPC, "No space left on device")  # a write into an open file names no path
+
+    with mock.patch("numpy.savez", full), pytest.raises(OSError) as info:
+        write_checkpoint(tmp_path / "checkpoint.npz", {"a": np.zeros(3)})
+    assert info.value.filename == str(tmp_path / "checkpoint.npz") and info.value.errno == errno.ENOSPC
+    assert os.listdir(tmp_path) == []  # no temporary file left behind
