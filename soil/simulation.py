@@ -821,7 +821,8 @@ class Simulation:
         boundaries' wrenches and motion), 'control/<name>' (SoilControl.state_dict), 'steps',
         'accepted_steps', 'rejected_steps', 'forced_steps', 'evaluations' [-], 'capacity' and
         'rigid_capacity' (contact slots per grain), 'integrator' (its name), 'precision',
-        'controller/<field>' (StepController, after run_adaptive), 'monitor/<field>'
+        'controller/<field>' (StepController, after run_adaptive), 'step_control/<field>' (the
+        settings of the device step control and its state, 'step_control/device'), 'monitor/<field>'
         (DivergenceMonitor). The model is not included: load into a Simulation built from the
         same scene (builder, device, precision, order_seed). The storage order is not part of
         it: the physics does not depend on it.
@@ -837,6 +838,8 @@ class Simulation:
         data["precision"] = np.str_(self.model.precision.name)
         if self._controller is not None:
             data.update({f"controller/{k}": v for k, v in self._controller.state_dict().items()})
+        if self.step_control is not None:
+            data.update({f"step_control/{k}": v for k, v in self.step_control.state_dict().items()})
         data.update({f"monitor/{k}": v for k, v in self.monitor.state_dict().items()})
         return data
 
@@ -873,6 +876,11 @@ class Simulation:
         if controller:
             self._controller = StepController()
             self._controller.load_state_dict(controller)
+        steps = {k[len("step_control/") :]: v for k, v in data.items() if k.startswith("step_control/")}
+        if steps:
+            settings = StepController()
+            settings.load_state_dict({k: v for k, v in steps.items() if k != "device"})
+            self.enable_step_control(settings).load_state_dict(steps)
         self.monitor.load_state_dict({k[len("monitor/") :]: v for k, v in data.items() if k.startswith("monitor/")})
         if self.monitor.armed:
             self.monitor.snapshot(self)
