@@ -492,7 +492,8 @@ class RunSection(_Section):
     scheme: Literal["gauss-seidel", "jacobi"] = "gauss-seidel"
     integrator: Literal["velocity-verlet", "jolt-beeman"] = "velocity-verlet"
     """The DEM integrator at the fixed step dt: velocity-verlet, or the paper's jolt-beeman
-    predictor-corrector (its damped modes need gamma dt <= 0.6: docs/physics.md section 2)."""
+    predictor-corrector (its damped modes need gamma dt <= 0.6: docs/physics.md section 2).
+    With step_control = "pid" the substeps are always jolt-beeman (its error estimate)."""
     order_seed: int | None = Field(None, ge=0)
     """Permute particle indices (summation order only), for replica studies (>= 0)."""
     step_control: Literal["fixed", "pid"] = "fixed"
@@ -510,9 +511,6 @@ class RunSection(_Section):
 
     @model_validator(mode="after")
     def _exclusive(self):
-        verlet = self.integrator == "velocity-verlet" and "integrator" in self.model_fields_set
-        if self.step_control == "pid" and verlet:
-            raise ValueError("integrator: step_control = 'pid' steps with jolt-beeman (its error estimate)")
         if self.dt_min is not None and self.dt_max is not None and self.dt_min > self.dt_max:
             raise ValueError(f"dt_min: ({self.dt_min} s) must not exceed dt_max ({self.dt_max} s)")
         if self.dt is not None and self.dt_factor is not None:

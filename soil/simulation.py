@@ -10,6 +10,7 @@ which three rotating state buffers keep untouched, so the result equals a run th
 enough storage from the start (docs/performance.md).
 """
 
+import functools
 import math
 import warnings
 from dataclasses import dataclass
@@ -560,9 +561,9 @@ class Simulation:
         )
         return self.step_control
 
-    def _substep_loop(self, current: SoilState, trial: SoilState, path: bool, weights: dict):
-        """The macro step's substep loop (to be captured): step current -> trial, decide on the
-        device, copy an accepted trial over current; until the span is covered."""
+    def _substep(self, current: SoilState, trial: SoilState, path: bool, weights: dict):
+        """One substep of the macro step's loop (captured inside it): step current -> trial,
+        decide on the device, copy an accepted trial over current."""
         control = self.step_control
         integrator = self.integrator
         assert control is not None and isinstance(integrator, JoltBeeman)  # enable_step_control saw to both
@@ -584,7 +585,7 @@ class Simulation:
             control.decide(summary, self.status, capacity, rigid_capacity)
             wp.capture_if(control.accepted, on_true=accept)
 
-        return lambda: wp.capture_while(control.running, substep)
+        return substep
 
     def macro_step_adaptive(self, span: float, path: bool = False) -> MacroStepReport:
         """Advance by `span` [s] in as many jolt-Beeman substeps as the PID step control needs,
@@ -623,7 +624,9 @@ class Simulation:
             self.neighbour_list.save(start)
             current.assign(start)
 
-            loop = self._substep_loop(current, trial, path, weights)
+            # substeps until the span is covered
+            loop = functools.partial(wp.capture_while, control.running, self._substep(current, trial, path, weights))
+
             per_substep = self._replay(("adaptive", id(current), id(trial), path, type(self.integrator)), loop)
             if per_substep is None:
                 loop()  # launched (the host reads the condition at every substep)
