@@ -166,12 +166,13 @@ def figure(rows: list[dict], path: str, axes: dict) -> None:
     )
     for (i, method), (j, factor) in itertools.product(enumerate(methods), enumerate(factors)):
         ax = grid[i][j]
-        for radius, marker in markers.items():
+        for shift, (radius, marker) in enumerate(markers.items()):
             picked = [r for r in rows if r["method"] == method and r["factor"] == factor and r["radius"] == radius]
             for precision_shift, precision in enumerate(axes["precision"]):
                 points = [r for r in picked if r["precision"] == precision]
                 ax.scatter(
-                    [r["youngs_modulus"] * (1.25**precision_shift) for r in points],
+                    # side by side, not on top of each other: radius, then precision
+                    [r["youngs_modulus"] * 2.2 ** (shift + len(markers) * precision_shift) for r in points],
                     [r["gravity"] for r in points],
                     c=[colours[r["result"]] for r in points],
                     marker=marker,
@@ -189,6 +190,16 @@ def figure(rows: list[dict], path: str, axes: dict) -> None:
     fig.suptitle("green stable, orange energy drift, red diverged", fontsize=10)
     fig.tight_layout()
     fig.savefig(path, dpi=110)
+
+
+def read_rows(path: str) -> list[dict]:
+    """The rows of a stability CSV written by main(), numbers as numbers."""
+    with open(path) as f:
+        rows = list(csv.DictReader(f))
+    for row in rows:
+        for name in ("gravity", "youngs_modulus", "radius", "factor"):
+            row[name] = float(row[name])
+    return rows
 
 
 def main() -> None:
