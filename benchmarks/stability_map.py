@@ -25,6 +25,7 @@ radius, coloured by class) to --out, and prints a markdown table plus the points
 advisor's own step (factor 1) is not stable.
 
     python benchmarks/stability_map.py --soil phobos                 # small grid, ~2 min on a 2-core CPU
+    python benchmarks/stability_map.py --soil phobos --grid medium   # every axis, factors 1 and 4 only
     python benchmarks/stability_map.py --soil lammps --grid full     # every axis at full resolution
 """
 
@@ -54,6 +55,14 @@ GRIDS = {
         radius=(1e-4, 1e-2),
         factor=(1.0, 4.0),
         precision=("double",),
+        method=("velocity-verlet", "jolt-beeman", "pid"),
+    ),
+    "medium": dict(
+        gravity=(1e-4, 5.7e-3, 1.62, 9.81, 30.0),
+        youngs_modulus=(1e4, 1e5, 1e6, 1e7, 1e8, 1e9),
+        radius=(1e-4, 1e-3, 1e-2),
+        factor=(1.0, 4.0),
+        precision=("single", "double"),
         method=("velocity-verlet", "jolt-beeman", "pid"),
     ),
     "full": dict(

@@ -433,9 +433,10 @@ class Runner:
         )
         done = system.coupler.step_count - self.steps_at_start
         if session_wall > 0 and done:
-            out["particle_steps_per_second"] = float(
-                system.sim.model.particle_count * plan.substeps * done / session_wall
-            )
+            # DEM steps of this session's macro steps: the PID's vary (the last `done` rows of the series)
+            taken = series.get("soil_dem_steps")
+            steps = float(np.sum(taken[-done:])) if taken is not None and len(taken) >= done else plan.substeps * done
+            out["particle_steps_per_second"] = float(system.sim.model.particle_count * steps / session_wall)
         return out
 
 

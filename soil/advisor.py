@@ -123,10 +123,11 @@ class TimeStepAdvice:
 
     @property
     def overlap_ratio(self) -> float:
-        """The deeper expected overlap (static or impact) over the smallest radius [-]. Above 0.5
-        no step helps: the grains sink into each other, outside the Hertz law, and the divergence
-        monitor's overlap bound stops the run at any step, PID included (the stability map,
-        docs/physics.md section 2); stiffen the soil (cosim advise: eq. 10)."""
+        """The deeper expected overlap (static or impact) over the smallest radius [-]. From about
+        0.8 no step helps: the grains sink into each other, far outside the Hertz law, and the
+        divergence monitor's overlap bound (0.5 r) stops the run at any step, PID included (the
+        stability map, BENCHMARKS.md: every point where the advised step failed had >= 0.89, none
+        with <= 0.73 failed); stiffen the soil (cosim advise: eq. 10)."""
         return max(self.static_overlap, self.impact_overlap) / self.inputs["radius"]
 
 
