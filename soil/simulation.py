@@ -692,6 +692,8 @@ class Simulation:
         The steps run as macro steps of `check_every` steps (one host read each; with a
         callback, of one step). Every `check_every` steps and at the end the DivergenceMonitor
         checks the state (NaN, speed, overlap, energy) and raises SimulationDiverged on failure.
+        With a step control (enable_step_control) the macro steps of check_every x dt take PID
+        substeps instead (macro_step_adaptive; the callback runs after each macro step).
         """
         dt = _check_step(dt)
         if not (
@@ -702,6 +704,14 @@ class Simulation:
         if not self.monitor.armed:
             self.monitor.arm(self)
         steps = int(round(duration / dt))
+        if self.step_control is not None:
+            chunks = -(-steps // check_every)
+            for _ in range(chunks):
+                self.macro_step_adaptive(duration / chunks)
+                if callback is not None:
+                    callback(self)
+                self.monitor.check(self)
+            return
         done = 0
         while done < steps:
             chunk = 1 if callback is not None else min(check_every - done % check_every, steps - done)

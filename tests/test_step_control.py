@@ -154,3 +154,41 @@ def test_a_scene_whose_fixed_step_diverges_completes_under_pid(tmp_path, tiny_be
         assert f["soil/dt_mean"].attrs["units"] == "s" and f["soil/dem_steps"].attrs["units"] == "count"
         steps = f["soil/dem_steps"][()]
         assert (steps[1:] >= 1).all() and int(steps.sum()) == summary["dem_steps"]
+
+
+def test_the_soil_fmu_carries_the_step_control(tiny_bed):
+    """run.step_control = 'pid' travels into the soil FMU's configuration (resources/soil.json),
+    and the soil server's DemSoil takes PID substeps that land on the macro step's end."""
+    from cosim.contract import WheelKinematics
+    from cosim.soil_fmu.config import SoilFmuConfig, bed_surface_height, config_to_json, soil_from_config
+    from soil import GrouserWheel, Material
+
+    wheel = GrouserWheel(radius=0.025, width=0.02, grouser_count=8, grouser_height=0.003, grouser_thickness=0.002)
+    config = SoilFmuConfig(
+        bed_file=tiny_bed,
+        wheel=wheel,
+        wheel_material=Material(youngs_modulus=1e6),
+        dem_step=1e-4,
+        surface_height=bed_surface_height(tiny_bed),
+        step_control=dict(tolerance=1e-2, dt_min=None, dt_max=None),
+    )
+    data = json.loads(json.dumps(config_to_json(config, 1)))
+    side = soil_from_config(data, tiny_bed)
+    assert side.sim.step_control is not None and side.sim.step_control.controller.tolerance == 1e-2
+    hub = np.array([0.04, 0.03, config.surface_height + wheel.outer_radius + 0.002])
+    start = WheelKinematics(hub, np.array([1.0, 0, 0, 0]), np.zeros(3), np.zeros(3))
+    side.place_wheels([start])
+    t_end = side.time + 1.7e-3
+    side.advance(t_end, [start])
+    assert side.time == t_end and side.last_report.steps >= 1
+
+
+def test_simulation_run_takes_pid_substeps_once_a_step_control_is_on(device):
+    """Simulation.run (settling, the lab) with a step control: macro steps of check_every x dt in
+    PID substeps, ending on the duration, as accurate against Hertz theory as the PID needs."""
+    sim = two_spheres(device, JoltBeeman())
+    sim.enable_step_control(StepController(tolerance=1e-4, dt_max=CONTACT_TIME, dt_min=1e-5 * CONTACT_TIME))
+    sim.run(DURATION, CONTACT_TIME / 50, check_every=80)
+    assert sim.time == pytest.approx(DURATION, rel=1e-12)
+    assert sim.contacts.evaluations < DURATION / (CONTACT_TIME / 50) / 4  # a quarter of the fixed steps'
+    assert impact_error(sim) < 5e-3
