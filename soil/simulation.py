@@ -556,6 +556,7 @@ class Simulation:
                 raise TypeError(f"step control needs the JoltBeeman integrator, not {type(self.integrator).__name__}")
         controller = controller or StepController()
         controller.setup(self)
+        self._graphs.clear()  # a captured substep loop holds the old controller's settings and arrays
         self.step_control = DeviceStepControl(
             controller, self.model.precision, self.model.device, controller.error_scales()["scale_floor"]
         )
@@ -627,7 +628,8 @@ class Simulation:
             # substeps until the span is covered
             loop = functools.partial(wp.capture_while, control.running, self._substep(current, trial, path, weights))
 
-            per_substep = self._replay(("adaptive", id(current), id(trial), path, type(self.integrator)), loop)
+            key = ("adaptive", id(current), id(trial), path, type(self.integrator))
+            per_substep = self._replay(key, loop)
             if per_substep is None:
                 loop()  # launched (the host reads the condition at every substep)
             values = self._read_report(current, control)
