@@ -192,3 +192,32 @@ def test_simulation_run_takes_pid_substeps_once_a_step_control_is_on(device):
     assert sim.time == pytest.approx(DURATION, rel=1e-12)
     assert sim.contacts.evaluations < DURATION / (CONTACT_TIME / 50) / 4  # a quarter of the fixed steps'
     assert impact_error(sim) < 5e-3
+
+
+def test_a_pid_scene_stopped_and_resumed_is_bit_for_bit_the_whole_run(tmp_path, tiny_bed):
+    """`cosim resume` of a PID scene: stopped after a checkpoint and resumed, the run equals the
+    uninterrupted one bit for bit (state, time series, summary): the substep sequence is part of
+    the checkpoint."""
+    import h5py
+    from test_study import _assert_same_run
+
+    from cosim.plan import load_plan
+    from cosim.runner import RunInterrupted, resume, run_plan
+    from helpers import write_tiny
+
+    settings = ["run.dt=0.0017", "run.duration=0.034", "landing.max_time=0.3", "output.checkpoint_interval=0.0085"]
+    settings += [f'bed.bed_file="{tiny_bed}"', "run.step_control=pid", "run.dt_max=0.0017"]
+    plan = load_plan(write_tiny(tmp_path), settings)
+    whole, stopped = tmp_path / "whole", tmp_path / "stopped"
+    assert run_plan(plan, str(whole)).status in ("complete", "unsteady")
+
+    def request_stop(runner):
+        if runner.system.coupler.step_count == 60:
+            runner.stop_requested = True
+
+    with pytest.raises(RunInterrupted):
+        run_plan(plan, str(stopped), hooks={"step": request_stop})
+    resume(str(stopped))
+    _assert_same_run(whole, stopped)
+    with h5py.File(whole / "results.h5", "r") as f:  # the PID did vary the steps
+        assert f["soil/dt_min"][()][1:].min() < 0.0017
