@@ -1,7 +1,8 @@
 """Where the numerics hold: a soil's small pile over a grid of the numbers that decide stability.
 
 For one soil (--soil phobos: soil.bed.PHOBOS_REGOLITH, the main job's grains; --soil lammps:
-the grains of the LAMMPS comparison bed, benchmarks/beds.py) each point of the grid
+the grains of the LAMMPS comparison bed, benchmarks/beds.py; --soil SCENE.toml: that scene's
+[soil]) each point of the grid
 
     gravity [m/s^2] x Young's modulus [Pa] x grain radius [m] x step factor x precision x method
 
@@ -24,7 +25,8 @@ drift) and stability_<soil>.png (one panel per method and factor: E against g, a
 radius, coloured by class) to --out, and prints a markdown table plus the points where the
 advisor's own step (factor 1) is not stable.
 
-    python benchmarks/stability_map.py --soil phobos                 # small grid, ~2 min on a 2-core CPU
+    python benchmarks/stability_map.py --soil phobos                 # small grid, ~1 min on a 2-core CPU
+    python benchmarks/stability_map.py --soil examples/earth_single_wheel.toml   # a scene's soil
     python benchmarks/stability_map.py --soil phobos --grid medium   # every axis, factors 1 and 4 only
     python benchmarks/stability_map.py --soil lammps --grid full     # every axis at full resolution
 """
@@ -79,11 +81,16 @@ ADVISED_STEPS = 400
 
 
 def soil_material(name: str):
+    """The soil's grains: 'phobos', 'lammps', or a scene file's soil (cosim.plan: [soil])."""
     if name == "phobos":
         return PHOBOS_REGOLITH
-    from benchmarks.beds import material
+    if name == "lammps":
+        from benchmarks.beds import material
 
-    return material()
+        return material()
+    from cosim.plan import load_plan
+
+    return load_plan(name).soil_material
 
 
 def pile(material, gravity: float, radius: float, precision: str, seed: int = 3) -> Simulation:
@@ -213,7 +220,9 @@ def read_rows(path: str) -> list[dict]:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    parser.add_argument("--soil", choices=("phobos", "lammps"), default="phobos")
+    parser.add_argument(
+        "--soil", default="phobos", help="phobos, lammps, or a scene file (TOML) whose [soil] is mapped"
+    )
     parser.add_argument("--grid", choices=tuple(GRIDS), default="small")
     parser.add_argument("--tol", type=float, default=1e-2, help="PID tolerance (normalised local error)")
     parser.add_argument("--drift", type=float, default=0.02, help="energy-rise bound, fraction of KE0 + M g r")
@@ -232,12 +241,13 @@ def main() -> None:
             f"({row['evaluations']} evaluations)",
             flush=True,
         )
-    csv_path = os.path.join(args.out, f"stability_{args.soil}.csv")
+    label = os.path.splitext(os.path.basename(args.soil))[0]
+    csv_path = os.path.join(args.out, f"stability_{label}.csv")
     with open(csv_path, "w", newline="") as f:
         writer = csv.DictWriter(f, fieldnames=list(rows[0]))
         writer.writeheader()
         writer.writerows(rows)
-    figure(rows, os.path.join(args.out, f"stability_{args.soil}.png"), axes)
+    figure(rows, os.path.join(args.out, f"stability_{label}.png"), axes)
     print(f"\n{csv_path}\n")
     columns = [(m, f) for m in axes["method"] for f in axes["factor"]]
     print("| g [m/s^2] | E [Pa] | r [mm] | " + " | ".join(f"{m} {f:g}x" for m, f in columns) + " |")
