@@ -416,6 +416,7 @@ class Simulation:
             boundary_kernels(prec.hi),
             path_kernels(prec.hi),
             macro_kernels(prec.hi),
+            step_control.step_control_kernels(prec.hi),
             self.contacts.kernels,
             self.neighbour_list.kernels,
         ]
