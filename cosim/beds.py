@@ -165,6 +165,17 @@ def check_cached_bed(path: str, key: str, info: dict) -> None:
         )
 
 
+def _settle_step_control(plan: RunPlan):
+    """The PID controller that settles the bed (run.step_control = 'pid'), or None: fixed steps."""
+    if plan.step_control != "pid":
+        return None
+    from soil import StepController
+
+    return StepController(
+        tolerance=plan.tolerance, dt_min=plan.dt_min, dt_max=plan.dt_max, dt_initial=plan.bed.settle_dt
+    )
+
+
 def _settle(plan: RunPlan, path: str, info_path: str, progress: bool) -> Bed:
     from soil.bed import bed_metrics, make_settled_bed, save_bed
 
@@ -181,6 +192,7 @@ def _settle(plan: RunPlan, path: str, info_path: str, progress: bool) -> Bed:
             ke_ratio=bed.settle_ke_ratio,
             max_time=bed.settle_max_time,
             progress=bar.update,
+            step_control=_settle_step_control(plan),
         )
     except SimulationDiverged as error:
         raise SettlingDiverged(error, plan) from None

@@ -47,6 +47,8 @@ class DemSoil:
         # the boundaries' kinds and initial geometry, read once (their motion comes with each macro step)
         self._walls = (sim.model.boundary_kind.numpy().copy(), sim.model.boundary_geometry_numpy())
         self.patch = patch
+        self.last_report = None
+        """The soil.MacroStepReport of the last advance() (steps taken, rejected, dt range, evaluations)."""
 
     @classmethod
     def from_bed(
@@ -134,6 +136,8 @@ class DemSoil:
         if self.patch is not None:  # the patch follows the wheels' centre, between macro steps
             moved = self.patch.follow(self.sim, np.mean([k.position[:2] for k in start], axis=0))
             if moved is not None:
+                if moved.step_control is None:  # the step control's state goes on with the soil
+                    moved.step_control = self.sim.step_control
                 self.sim = moved
         sim, control = self.sim, self.sim.control
         t0 = sim.time
@@ -155,7 +159,11 @@ class DemSoil:
             )
 
         control.set_body_path(span, *stack(start), end=None if end is None else stack(end))
-        report = sim.macro_step(steps, h, path=True)
+        if sim.step_control is not None:  # PID substeps (soil.step_control), landing on t_end
+            report = sim.macro_step_adaptive(span, path=True)
+        else:
+            report = sim.macro_step(steps, h, path=True)
+        self.last_report = report
         sim.state.time = float(t_end)  # the coupler's clock (the steps' sum differs by its rounding only)
         self._check_walls(control.body_position_host, report.boundary_displacement)
         return [

@@ -58,6 +58,10 @@ and a `description`; every time series grows along its first axis.
         mass_added        (S,)       soil placed ahead by a moving patch so far [kg]
         mass_removed      (S,)       soil removed behind it so far [kg]
         moves             (S,)       how often the patch moved so far [count]
+        dem_steps         (S,)       DEM steps of the macro step (PID: accepted substeps) [count]
+        dem_steps_rejected (S,)      PID substeps thrown away in the macro step [count]
+        dt_min, dt_mean, dt_max (S,) shortest, mean, longest DEM step of the macro step [s]
+        force_evaluations (S,)       force evaluations of the macro step, rejected included [count]
     /particles/                      (attribute `layout`: "fixed" or "ragged")
         time              (T,)       [s]
         wheel_vertices    (T, V, 3)  float32 [m], the wheel meshes posed at each snapshot
@@ -160,6 +164,12 @@ SOIL_SERIES = {
     "mass_added": (np.float64, "kg", "soil placed ahead by the moving patch so far"),
     "mass_removed": (np.float64, "kg", "soil removed behind the moving patch so far"),
     "moves": (np.int64, "count", "moves of the patch so far"),
+    "dem_steps": (np.int64, "count", "DEM steps of the macro step (run.step_control = 'pid': accepted substeps)"),
+    "dem_steps_rejected": (np.int64, "count", "PID substeps computed and thrown away in the macro step"),
+    "dt_min": (np.float64, "s", "shortest DEM step of the macro step"),
+    "dt_mean": (np.float64, "s", "mean DEM step of the macro step (its span / dem_steps)"),
+    "dt_max": (np.float64, "s", "longest DEM step of the macro step"),
+    "force_evaluations": (np.int64, "count", "force evaluations of the macro step (rejected substeps included)"),
 }
 """Soil bookkeeping under /soil, each shaped (S,)."""
 
@@ -708,7 +718,7 @@ def _read_series(path) -> dict:
         out["rover_state"] = f["rover/state"][()]
         out.update({f"rover_{name}": f["rover"][name][()] for name in ROVER_SERIES if name in f["rover"]})
         if "soil" in f:
-            out.update({f"soil_{name}": f["soil"][name][()] for name in SOIL_SERIES})
+            out.update({f"soil_{name}": f["soil"][name][()] for name in SOIL_SERIES if name in f["soil"]})
         out["rover_columns"] = json.loads(f["rover/state"].attrs["columns"])
         out["snapshot_time"] = f["particles/time"][()]
         out["attrs"] = {k: (v.decode() if isinstance(v, bytes) else v) for k, v in f.attrs.items()}

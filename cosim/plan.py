@@ -224,6 +224,14 @@ class RunPlan:
     """The DEM integrator's name (run.integrator): 'velocity-verlet' or 'jolt-beeman'."""
     dt_setting: str = field(default="run.dt_factor")
     """The scene key that sets the DEM step (named in divergence messages)."""
+    step_control: str = "fixed"
+    """'fixed' (every DEM step dt) or 'pid' (run.step_control: the PID substeps of soil.step_control)."""
+    tolerance: float = 1e-2
+    """The PID's normalised local error per substep [-]."""
+    dt_min: float | None = None
+    """The PID's shortest substep [s] (None: dt_max x 1e-4)."""
+    dt_max: float | None = None
+    """The PID's longest substep [s] (None: the advisor's limit for the simulation)."""
     rover: RoverPlan | None = None
     """A rover (None: the testbed)."""
     patch: PatchPlan | None = None
@@ -421,6 +429,8 @@ def bed_key(scene: Scene, material: Material, gravity: np.ndarray, device: str) 
         "material": repr(material),
         "contact_law": LAW_VERSION,
     }
+    if scene.run.step_control == "pid":  # a bed settled with PID substeps is another bed (fixed keys unchanged)
+        parts["step_control"] = scene.run.model_dump(include={"step_control", "tolerance", "dt_min", "dt_max"})
     return hashlib.sha256(json.dumps(parts, sort_keys=True).encode()).hexdigest()[:16]
 
 
@@ -574,7 +584,11 @@ def resolve(scene: Scene) -> RunPlan:
         substeps=substeps,
         drive_steps=max(1, int(round(scene.run.duration / macro_step))),
         scheme=scene.run.scheme,
-        integrator=scene.run.integrator,
+        integrator="jolt-beeman" if scene.run.step_control == "pid" else scene.run.integrator,
+        step_control=scene.run.step_control,
+        tolerance=scene.run.tolerance,
+        dt_min=scene.run.dt_min,
+        dt_max=scene.run.dt_max,
         order_seed=scene.run.order_seed,
         output=scene.output,
         dt_setting=dt_key,
@@ -975,6 +989,18 @@ def load_plan(path, overrides=None) -> RunPlan:
         return resolve(scene)
     except SceneError as error:
         raise SceneError(error.problems, os.fspath(path)) from None
+
+
+def enable_step_control(plan: RunPlan, sim) -> None:
+    """Give a soil Simulation the plan's step control (nothing for fixed steps): the PID's first
+    substep is the plan's fixed dt (within dt_min, dt_max)."""
+    if plan.step_control != "pid":
+        return
+    from soil import StepController
+
+    sim.enable_step_control(
+        StepController(tolerance=plan.tolerance, dt_min=plan.dt_min, dt_max=plan.dt_max, dt_initial=plan.dt)
+    )
 
 
 def make_integrator(name: str):

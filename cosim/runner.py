@@ -263,6 +263,7 @@ class Runner:
         ):
             row[f"rover_{name}"] = value
         books = self._soil_books()
+        books.update(_step_statistics(system.soil.last_report, self.plan.macro_step))
         for name, value in books.items():
             row[f"soil_{name}"] = value
         row["position"] = np.array([k.position for k in record.kinematics])
@@ -452,6 +453,8 @@ class Runner:
             wall_time=float(wall),
             particle_count=int(system.sim.model.particle_count),
             dt=plan.dt,
+            step_control=plan.step_control,
+            **step_summary(series),
             macro_step=plan.macro_step,
             froude_number=plan.froude_number,
             coupling_energy_created=float(system.coupler.energy_created),
@@ -460,10 +463,46 @@ class Runner:
         )
         done = system.coupler.step_count - self.steps_at_start
         if session_wall > 0 and done:
-            out["particle_steps_per_second"] = float(
-                system.sim.model.particle_count * plan.substeps * done / session_wall
-            )
+            # DEM steps of this session's macro steps: the PID's vary (the last `done` rows of the series)
+            taken = series.get("soil_dem_steps")
+            steps = float(np.sum(taken[-done:])) if taken is not None and len(taken) >= done else plan.substeps * done
+            out["particle_steps_per_second"] = float(system.sim.model.particle_count * steps / session_wall)
         return out
+
+
+def _step_statistics(report, span: float) -> dict:
+    """The DEM steps of a macro step (soil.MacroStepReport; None before the first): steps, rejected
+    substeps, dt min/mean/max [s] and force evaluations, as the SOIL_SERIES of results.h5 name them."""
+    if report is None:
+        return dict(
+            dem_steps=0, dem_steps_rejected=0, dt_min=np.nan, dt_mean=np.nan, dt_max=np.nan, force_evaluations=0
+        )
+    return dict(
+        dem_steps=report.steps,
+        dem_steps_rejected=report.rejected,
+        dt_min=report.dt_min,
+        dt_mean=span / max(report.steps, 1),
+        dt_max=report.dt_max,
+        force_evaluations=report.evaluations,
+    )
+
+
+def step_summary(series: dict) -> dict:
+    """The run's DEM steps from results.h5's series: dem_steps, dem_steps_rejected,
+    force_evaluations [-] in total and dt_min, dt_mean, dt_max [s] over the macro steps."""
+    steps = series.get("soil_dem_steps")
+    if steps is None or not len(steps) or not np.sum(steps):
+        return {}
+    taken = steps > 0
+    span = float(np.sum(series["soil_dt_mean"][taken] * steps[taken]))
+    return dict(
+        dem_steps=int(np.sum(steps)),
+        dem_steps_rejected=int(np.sum(series["soil_dem_steps_rejected"])),
+        force_evaluations=int(np.sum(series["soil_force_evaluations"])),
+        dt_min=float(np.min(series["soil_dt_min"][taken])),
+        dt_mean=span / float(np.sum(steps)),
+        dt_max=float(np.max(series["soil_dt_max"][taken])),
+    )
 
 
 def _read_json(path: str) -> dict:

@@ -17,7 +17,8 @@
     [patch]    a soil patch that follows the rover (the [bed] is its settled tile): length, width,
                band, clearance, recentre_distance, tile_margin
     [landing]  enabled, max_time, speed_ratio, hold_time
-    [run]      duration, dt | dt_factor, macro_step | substeps, scheme, integrator, order_seed
+    [run]      duration, dt | dt_factor, macro_step | substeps, scheme, integrator, order_seed,
+               step_control (fixed | pid), tolerance, dt_min, dt_max
     [output]   snapshot_interval, checkpoint_interval, flush_every
 
 This module only validates: every number must be finite and in its range, unknown keys
@@ -506,12 +507,27 @@ class RunSection(_Section):
     scheme: Literal["gauss-seidel", "jacobi"] = "gauss-seidel"
     integrator: Literal["velocity-verlet", "jolt-beeman"] = "velocity-verlet"
     """The DEM integrator at the fixed step dt: velocity-verlet, or the paper's jolt-beeman
-    predictor-corrector (its damped modes need gamma dt <= 0.6: docs/physics.md section 2)."""
+    predictor-corrector (its damped modes need gamma dt <= 0.6: docs/physics.md section 2).
+    With step_control = "pid" the substeps are always jolt-beeman (its error estimate)."""
     order_seed: int | None = Field(None, ge=0)
     """Permute particle indices (summation order only), for replica studies (>= 0)."""
+    step_control: Literal["fixed", "pid"] = "fixed"
+    """The DEM step inside each macro step (settling, landing and drive): fixed at dt, or the
+    paper's PID step control (jolt-beeman substeps, as many as the error tolerance needs,
+    landing on the macro step's end; docs/physics.md section 2)."""
+    tolerance: float = Field(1e-2, gt=0, lt=1)
+    """step_control = "pid": the normalised local error per substep [-] (soil.StepController; 1e-2
+    settles frictional beds with fewer evaluations than the advised fixed step, BENCHMARKS.md)."""
+    dt_min: float | None = Field(None, gt=0)
+    """step_control = "pid": the shortest substep [s]; default dt_max x 1e-4."""
+    dt_max: float | None = Field(None, gt=0)
+    """step_control = "pid": the longest substep [s]; default the advisor's stability limit
+    (soil.advisor.recommended_time_step)."""
 
     @model_validator(mode="after")
     def _exclusive(self):
+        if self.dt_min is not None and self.dt_max is not None and self.dt_min > self.dt_max:
+            raise ValueError(f"dt_min: ({self.dt_min} s) must not exceed dt_max ({self.dt_max} s)")
         if self.dt is not None and self.dt_factor is not None:
             raise ValueError("dt: give dt or dt_factor, not both")
         if self.macro_step is not None and self.substeps is not None:

@@ -26,7 +26,7 @@ from .coupler import Coupler
 from .dem_soil import DemSoil
 from .metrics import WheelGeometry
 from .patch import SoilPatch, Tile
-from .plan import RunPlan, SceneError, make_integrator
+from .plan import RunPlan, SceneError, enable_step_control, make_integrator
 from .rover import RoverDriver, make_controller, open_rover
 from .single_wheel import SingleWheelRig
 
@@ -63,6 +63,7 @@ class CoupledSystem:
         )
         restore_state(model, state, saved)
         sim = Simulation(model, state, control, integrator=make_integrator(plan.integrator))
+        enable_step_control(plan, sim)
         soil = DemSoil(sim, plan.dt, bed.surface_height)
         hub = plan.hub_start(bed.surface_height)
         highest = soil.highest_grain_under(0, hub)
@@ -111,6 +112,7 @@ class CoupledSystem:
             )
             centre = np.asarray(r.start[:2]) + r.hub_offsets[:, :2].mean(axis=0)
             sim = patch.start(centre, make_integrator(plan.integrator))
+            enable_step_control(plan, sim)
             surface = patch.surface_height(sim)
         else:
             builder, saved = load_bed(bed.path)
@@ -122,6 +124,7 @@ class CoupledSystem:
             )
             restore_state(model, state, saved)
             sim = Simulation(model, state, control, integrator=make_integrator(plan.integrator))
+            enable_step_control(plan, sim)
             surface = bed.surface_height
         soil = DemSoil(sim, plan.dt, surface, patch=patch)
         rover = open_rover(plan)

@@ -121,6 +121,15 @@ class TimeStepAdvice:
     inputs: dict = field(default_factory=dict)
     """The scene values used (radius, mass, E*, gravity, height, pressure)."""
 
+    @property
+    def overlap_ratio(self) -> float:
+        """The deeper expected overlap (static or impact) over the smallest radius [-]. From about
+        0.8 no step helps: the grains sink into each other, far outside the Hertz law, and the
+        divergence monitor's overlap bound (0.5 r) stops the run at any step, PID included (the
+        stability map, BENCHMARKS.md: every point where the advised step failed had >= 0.89, none
+        with <= 0.73 failed); stiffen the soil (cosim advise: eq. 10)."""
+        return max(self.static_overlap, self.impact_overlap) / self.inputs["radius"]
+
 
 def _scene_values(scene, radius, gravity, height):
     """(r_min [m], m of that grain [kg], largest E* [Pa], poisson, density, |g| [m/s^2], H [m], speed0 [m/s])."""

@@ -133,7 +133,9 @@ def kinetic_energy_threshold(sim, ratio: float = 1e-4) -> float:
 def settle(
     sim, dt: float, ke_ratio: float = 1e-4, max_time: float = 20.0, check_interval: float | None = None, progress=None
 ) -> dict:
-    """Run until the kinetic energy falls below the gravity-scaled threshold.
+    """Run until the kinetic energy falls below the gravity-scaled threshold: fixed steps dt [s],
+    or, when the simulation has a step control (Simulation.enable_step_control), PID substeps
+    (Simulation.run).
 
     Returns {'time': settling time [s], 'kinetic_energy': [J], 'threshold': [J], 'settled': bool}.
     """
@@ -142,7 +144,7 @@ def settle(
     start = sim.time
     energy = sim.kinetic_energy()
     while sim.time - start < max_time:
-        sim.run(interval, dt)
+        sim.run(interval, dt)  # with a step control: PID substeps in macro steps of 200 dt
         sim.check_finite()
         energy = sim.kinetic_energy()
         if progress is not None:
@@ -357,14 +359,26 @@ def restore_state(model, state, saved: dict) -> None:
 
 
 def make_settled_bed(
-    spec: BedSpec, gravity, device=None, precision="double", dt=None, ke_ratio=1e-4, max_time=20.0, progress=None
+    spec: BedSpec,
+    gravity,
+    device=None,
+    precision="double",
+    dt=None,
+    ke_ratio=1e-4,
+    max_time=20.0,
+    progress=None,
+    step_control=None,
 ):
-    """Fill, settle and measure a bed; returns (simulation, settle report, metrics)."""
+    """Fill, settle and measure a bed; returns (simulation, settle report, metrics).
+
+    step_control: a soil.StepController to settle with PID substeps (jolt-Beeman), None: fixed steps dt."""
     from .simulation import Simulation
 
     builder = build_bed(spec, gravity)
     model, state, control = builder.finalize(device=device, precision=precision)
     sim = Simulation(model, state, control)
+    if step_control is not None:
+        sim.enable_step_control(step_control)
     dt = dt or 0.2 * rayleigh_time_step(spec.material, spec.radius_mean * (1 - spec.radius_spread))
     report = settle(sim, dt, ke_ratio=ke_ratio, max_time=max_time, progress=progress)
     metrics = bed_metrics(sim, spec)

@@ -83,13 +83,14 @@ def boundary_kernels(hi):
         displacement_in: wp.array(dtype=vec_hi),
         velocity_in: wp.array(dtype=vec_hi),
         acceleration_in: wp.array(dtype=hi),
-        dt: hi,
+        step_length: wp.array(dtype=hi),
         # outputs
         displacement_out: wp.array(dtype=vec_hi),
         velocity_out: wp.array(dtype=vec_hi),
     ):
         """Velocity Verlet, first half: half kick along e (loaded), then a full drift."""
         b = wp.tid()
+        dt = step_length[0]
         velocity = prescribed[b]
         if mode[b] == MOTION_LOADED:
             e = direction[b]
@@ -103,12 +104,13 @@ def boundary_kernels(hi):
         mode: wp.array(dtype=wp.int32),
         direction: wp.array(dtype=vec_hi),
         acceleration_new: wp.array(dtype=hi),
-        dt: hi,
+        step_length: wp.array(dtype=hi),
         # in/out
         velocity_io: wp.array(dtype=vec_hi),
     ):
         """Velocity Verlet, second half kick along e with the new acceleration."""
         b = wp.tid()
+        dt = step_length[0]
         if mode[b] == MOTION_LOADED:
             velocity_io[b] = velocity_io[b] + (hi(0.5) * dt * acceleration_new[b]) * direction[b]
 
@@ -122,7 +124,7 @@ def boundary_kernels(hi):
         acceleration_in: wp.array(dtype=hi),
         acceleration_previous_in: wp.array(dtype=hi),
         step_previous_in: wp.array(dtype=hi),
-        dt: hi,
+        step_length: wp.array(dtype=hi),
         # outputs
         displacement_out: wp.array(dtype=vec_hi),
         velocity_out: wp.array(dtype=vec_hi),
@@ -130,6 +132,7 @@ def boundary_kernels(hi):
     ):
         """Jolt-Beeman prediction along e (same formulas and step-ratio rule as the grains')."""
         b = wp.tid()
+        dt = step_length[0]
         velocity = prescribed[b]
         moved = dt * velocity
         if mode[b] == MOTION_LOADED:
@@ -155,12 +158,13 @@ def boundary_kernels(hi):
         acceleration_previous_in: wp.array(dtype=hi),
         step_previous_in: wp.array(dtype=hi),
         acceleration_new: wp.array(dtype=hi),
-        dt: hi,
+        step_length: wp.array(dtype=hi),
         # in/out
         velocity_io: wp.array(dtype=vec_hi),
     ):
         """Beeman correction along e: v+ = v + (2 a+ + 5 a - a_minus) dt / 6."""
         b = wp.tid()
+        dt = step_length[0]
         if mode[b] == MOTION_LOADED:
             e = direction[b]
             ratio = hi(0.0)
@@ -206,7 +210,7 @@ def update_acceleration(model, state, control) -> None:
     )
 
 
-def verlet_first_half(model, state_in, state_out, control, dt: float) -> None:
+def verlet_first_half(model, state_in, state_out, control, dt: wp.array) -> None:
     """Move the boundaries over a velocity-Verlet step (before the forces of state_out)."""
     if not model.boundary_count:
         return
@@ -219,7 +223,7 @@ def verlet_first_half(model, state_in, state_out, control, dt: float) -> None:
             state_in.boundary_displacement,
             state_in.boundary_velocity,
             state_in.boundary_acceleration,
-            model.precision.hi(dt),
+            dt,
         ],
         outputs=[state_out.boundary_displacement, state_out.boundary_velocity],
         device=model.device,
@@ -228,7 +232,7 @@ def verlet_first_half(model, state_in, state_out, control, dt: float) -> None:
     state_out.boundary_acceleration_previous.zero_()
 
 
-def verlet_second_half(model, state_out, control, dt: float) -> None:
+def verlet_second_half(model, state_out, control, dt: wp.array) -> None:
     """Second half kick of the loaded boundaries with state_out's new acceleration."""
     if not model.boundary_count:
         return
@@ -240,14 +244,14 @@ def verlet_second_half(model, state_out, control, dt: float) -> None:
             control.boundary_mode,
             control.boundary_direction,
             state_out.boundary_acceleration,
-            model.precision.hi(dt),
+            dt,
         ],
         outputs=[state_out.boundary_velocity],
         device=model.device,
     )
 
 
-def beeman_predict(model, state_in, state_out, control, dt: float) -> None:
+def beeman_predict(model, state_in, state_out, control, dt: wp.array) -> None:
     """Jolt-Beeman prediction of the boundaries' motion into state_out."""
     if not model.boundary_count:
         return
@@ -262,7 +266,7 @@ def beeman_predict(model, state_in, state_out, control, dt: float) -> None:
             state_in.boundary_acceleration,
             state_in.boundary_acceleration_previous,
             state_in.step_previous,
-            model.precision.hi(dt),
+            dt,
         ],
         outputs=[
             state_out.boundary_displacement,
@@ -273,7 +277,7 @@ def beeman_predict(model, state_in, state_out, control, dt: float) -> None:
     )
 
 
-def beeman_correct(model, state_in, state_out, control, dt: float) -> None:
+def beeman_correct(model, state_in, state_out, control, dt: wp.array) -> None:
     """Jolt-Beeman correction of the loaded boundaries' velocity with state_out's new acceleration."""
     if not model.boundary_count:
         return
@@ -289,7 +293,7 @@ def beeman_correct(model, state_in, state_out, control, dt: float) -> None:
             state_in.boundary_acceleration_previous,
             state_in.step_previous,
             state_out.boundary_acceleration,
-            model.precision.hi(dt),
+            dt,
         ],
         outputs=[state_out.boundary_velocity],
         device=model.device,

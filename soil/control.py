@@ -102,17 +102,22 @@ def path_kernels(hi):
     def follow_path(
         path: wp.array2d(dtype=hi),
         step: wp.array(dtype=wp.int32),
-        dt: hi,
+        step_length: wp.array(dtype=hi),
+        tau_in: wp.array(dtype=hi),
+        timed: int,
         position_out: wp.array(dtype=vec_hi),
         rotation_out: wp.array(dtype=mat_hi),
         velocity_out: wp.array(dtype=vec_hi),
         angular_velocity_out: wp.array(dtype=vec_hi),
     ):
-        """Pose and velocities of body b at the end of the path's next step, tau = (step + 1) dt:
+        """Pose and velocities of body b at the end of the path's next step, tau = (step + 1) dt
+        (fixed steps) or tau_in (timed != 0: variable steps):
         constant velocities from the start, or interpolated towards the end pose (the same
         rules as soil.control.quaternion_integrate / quaternion_slerp on the host)."""
         b = wp.tid()
-        tau = hi(step[0] + 1) * dt
+        tau = hi(step[0] + 1) * step_length[0]
+        if timed != 0:  # variable steps: the time since the path's start, kept by the step control
+            tau = tau_in[0]
         p0 = vec_hi(path[b, 0], path[b, 1], path[b, 2])
         q0 = vec4_hi(path[b, 3], path[b, 4], path[b, 5], path[b, 6])
         v0 = vec_hi(path[b, 7], path[b, 8], path[b, 9])
@@ -327,13 +332,15 @@ class SoilControl:
         self.path_active = False
         self._dirty = True
 
-    def follow_path(self, dt: float) -> None:
-        """Pose the bodies for the end of the path's next step of length dt [s] (on the device; capturable)."""
+    def follow_path(self, dt: wp.array, tau: wp.array | None = None) -> None:
+        """Pose the bodies for the end of the path's next step (on the device; capturable): of
+        length dt[0] [s] after `path_step` steps, or, with `tau`, at tau[0] [s] after the path's
+        start (variable steps). Both arrays hold one value of the path's precision."""
         kernels = path_kernels(self.body_path.dtype)
         wp.launch(
             kernels.follow_path,
             dim=self.body_count,
-            inputs=[self.body_path, self.path_step, self.body_path.dtype(dt)],
+            inputs=[self.body_path, self.path_step, dt, dt if tau is None else tau, int(tau is not None)],
             outputs=[self.body_position, self.body_rotation, self.body_velocity, self.body_angular_velocity],
             device=self.body_path.device,
         )

@@ -92,7 +92,7 @@ def integrator_kernels(hi, lo, law: ContactLaw):
         inv_mass: wp.array(dtype=lo),
         inv_inertia: wp.array(dtype=lo),
         gravity: vec_hi,
-        dt: hi,
+        step_length: wp.array(dtype=hi),
         # outputs
         x_out: wp.array(dtype=vec_hi),
         v_out: wp.array(dtype=vec_hi),
@@ -100,6 +100,7 @@ def integrator_kernels(hi, lo, law: ContactLaw):
     ):
         """Velocity Verlet, first half: half kick with the old forces, then a full drift."""
         i = wp.tid()
+        dt = step_length[0]
         v_half = v_in[i] + hi(0.5) * dt * acceleration_of(force_in[i], inv_mass[i], gravity)
         v_out[i] = v_half
         w_out[i] = w_in[i] + hi(0.5) * dt * hi(inv_inertia[i]) * torque_in[i]
@@ -114,7 +115,7 @@ def integrator_kernels(hi, lo, law: ContactLaw):
         order: wp.array(dtype=wp.int32),
         x_in: wp.array(dtype=vec_hi),
         gravity: vec_hi,
-        dt: hi,
+        step_length: wp.array(dtype=hi),
         # in/out
         v_io: wp.array(dtype=vec_hi),
         w_io: wp.array(dtype=vec_hi),
@@ -122,6 +123,7 @@ def integrator_kernels(hi, lo, law: ContactLaw):
     ):
         """Velocity Verlet, second half kick with the new forces; flags a non-finite grain."""
         i = wp.tid()
+        dt = step_length[0]
         v = v_io[i] + hi(0.5) * dt * acceleration_of(force_in[i], inv_mass[i], gravity)
         w = w_io[i] + hi(0.5) * dt * hi(inv_inertia[i]) * torque_in[i]
         v_io[i] = v
@@ -141,7 +143,7 @@ def integrator_kernels(hi, lo, law: ContactLaw):
         inv_mass: wp.array(dtype=lo),
         inv_inertia: wp.array(dtype=lo),
         gravity: vec_hi,
-        dt: hi,
+        step_length: wp.array(dtype=hi),
         # outputs
         x_out: wp.array(dtype=vec_hi),
         v_out: wp.array(dtype=vec_hi),
@@ -157,6 +159,7 @@ def integrator_kernels(hi, lo, law: ContactLaw):
                                                     of the new state see this velocity)
         """
         i = wp.tid()
+        dt = step_length[0]
         h_prev = step_previous_in[0]
         ratio = hi(0.0)
         if h_prev > hi(0.0):
@@ -192,7 +195,7 @@ def integrator_kernels(hi, lo, law: ContactLaw):
         radius: wp.array(dtype=lo),
         order: wp.array(dtype=wp.int32),
         gravity: vec_hi,
-        dt: hi,
+        step_length: wp.array(dtype=hi),
         # outputs
         v_out: wp.array(dtype=vec_hi),
         w_out: wp.array(dtype=vec_hi),
@@ -208,6 +211,7 @@ def integrator_kernels(hi, lo, law: ContactLaw):
         times dt. Positions stay as predicted, so the new forces belong to them.
         """
         i = wp.tid()
+        dt = step_length[0]
         h_prev = step_previous_in[0]
         ratio = hi(0.0)
         if h_prev > hi(0.0):
@@ -283,7 +287,7 @@ def integrator_kernels(hi, lo, law: ContactLaw):
     def norm_total(
         partial: wp.array2d(dtype=hi),
         status: wp.array(dtype=wp.int32),
-        scale_floor: hi,
+        scale_floor_in: wp.array(dtype=hi),
         use_speed: int,
         pass_index: int,
         count: int,
@@ -310,9 +314,9 @@ def integrator_kernels(hi, lo, law: ContactLaw):
             summary_out[SUMMARY_WORST] = hi(status[status_columns.WORST])
             for column in range(status_columns.COLUMNS):
                 summary_out[SUMMARY_STATUS + column] = hi(status[column])
-            scale = scale_floor
+            scale = scale_floor_in[0]
             if use_speed != 0:
-                scale = wp.max(scale_floor, third)
+                scale = wp.max(scale, third)
             summary_out[SUMMARY_RMS] = scale
         else:
             summary_out[SUMMARY_RMS] = wp.sqrt(first / hi(count))
@@ -347,13 +351,12 @@ class VelocityVerlet:
         state_in: SoilState,
         state_out: SoilState,
         control: SoilControl,
-        dt: float,
+        dt: wp.array,
         contacts: ContactSolver,
     ) -> None:
         prec = model.precision
         kernels = integrator_kernels(prec.hi, prec.lo, model.law)
         gravity = prec.vec_hi(*model.gravity)
-        hi_dt = prec.hi(dt)
         layout = state_in.layout
         wp.launch(
             kernels.kick_drift,
@@ -367,7 +370,7 @@ class VelocityVerlet:
                 layout.inv_mass,
                 layout.inv_inertia,
                 gravity,
-                hi_dt,
+                dt,
             ],
             outputs=[state_out.position, state_out.velocity, state_out.angular_velocity],
             device=model.device,
@@ -385,7 +388,7 @@ class VelocityVerlet:
                 layout.order,
                 state_out.position,
                 gravity,
-                hi_dt,
+                dt,
             ],
             outputs=[state_out.velocity, state_out.angular_velocity, contacts.status],
             device=model.device,
@@ -393,7 +396,6 @@ class VelocityVerlet:
         boundaries.verlet_second_half(model, state_out, control, dt)
         # Verlet keeps no multi-step history: a jolt-Beeman step after it starts afresh (zero jolt)
         state_out.step_previous.zero_()
-        state_out.time = state_in.time + dt
 
 
 class JoltBeeman:
@@ -435,6 +437,8 @@ class JoltBeeman:
         """Reductions of the last read_summary (columns SUMMARY_*), shape (SUMMARY_COLUMNS,), dtype hi."""
         self._partial = None
         self._model = None
+        self.scale_floor = None
+        """The velocity scale's floor V of the error norm [m/s], shape (1,), dtype hi (read_summary fills it)."""
 
     def bind(self, model: SoilModel) -> None:
         """Allocate what the steps need (before a step is captured)."""
@@ -449,6 +453,7 @@ class JoltBeeman:
             return
         self._model = model
         self.summary = wp.zeros(SUMMARY_COLUMNS, dtype=model.precision.hi, device=model.device)
+        self.scale_floor = wp.zeros(1, dtype=model.precision.hi, device=model.device)
         self.gaps = wp.zeros((n, 2), dtype=model.precision.hi, device=model.device)
         self._partial = wp.zeros(((n + CHUNK - 1) // CHUNK, 3), dtype=model.precision.hi, device=model.device)
 
@@ -458,13 +463,12 @@ class JoltBeeman:
         state_in: SoilState,
         state_out: SoilState,
         control: SoilControl,
-        dt: float,
+        dt: wp.array,
         contacts: ContactSolver,
     ) -> None:
         prec = model.precision
         kernels = integrator_kernels(prec.hi, prec.lo, model.law)
         gravity = prec.vec_hi(*model.gravity)
-        hi_dt = prec.hi(dt)
         n = model.particle_count
         if self._model is not model:
             self.bind(model)
@@ -484,7 +488,7 @@ class JoltBeeman:
                 layout.inv_mass,
                 layout.inv_inertia,
                 gravity,
-                hi_dt,
+                dt,
             ],
             outputs=[
                 state_out.position,
@@ -517,27 +521,18 @@ class JoltBeeman:
                 layout.radius,
                 layout.order,
                 gravity,
-                hi_dt,
+                dt,
             ],
             outputs=[state_out.velocity, state_out.angular_velocity, self.gaps, contacts.status],
             device=model.device,
         )
         boundaries.beeman_correct(model, state_in, state_out, control, dt)
-        state_out.time = state_in.time + dt
 
-    def read_summary(
-        self,
-        state: SoilState,
-        status: wp.array,
-        position_weight: float = 1.0,
-        scale_floor: float = 1.0,
-        use_speed: bool = False,
-    ) -> dict:
-        """The last step's error norms, reduced on the device and read once: position_gap [-]
-        (max |dx| / r), velocity_gap [m/s], speed [m/s] (max over grains), nonfinite (bool),
-        worst (model index of a non-finite grain or -1), rms and max of the per-grain error
-        e_i = max(position_weight |dx_i| / r_i, |dv_i| / V), V = max(scale_floor, speed if
-        use_speed) (StepController.error), and status (the step status, soil.status columns)."""
+    def reduce_error(
+        self, state: SoilState, status: wp.array, position_weight: float, scale_floor: wp.array, use_speed: bool
+    ) -> None:
+        """Reduce the last step's gaps into `summary` on the device (no host read: capturable), the
+        velocity scale's floor V read from scale_floor[0] [m/s] (see read_summary)."""
         model = self._model
         prec = model.precision
         kernels = integrator_kernels(prec.hi, prec.lo, model.law)
@@ -563,10 +558,26 @@ class JoltBeeman:
             wp.launch(
                 kernels.norm_total,
                 dim=1,
-                inputs=[self._partial, status, prec.hi(scale_floor), int(use_speed), pass_index, model.particle_count],
+                inputs=[self._partial, status, scale_floor, int(use_speed), pass_index, model.particle_count],
                 outputs=[self.summary],
                 device=model.device,
             )
+
+    def read_summary(
+        self,
+        state: SoilState,
+        status: wp.array,
+        position_weight: float = 1.0,
+        scale_floor: float = 1.0,
+        use_speed: bool = False,
+    ) -> dict:
+        """The last step's error norms, reduced on the device and read once: position_gap [-]
+        (max |dx| / r), velocity_gap [m/s], speed [m/s] (max over grains), nonfinite (bool),
+        worst (model index of a non-finite grain or -1), rms and max of the per-grain error
+        e_i = max(position_weight |dx_i| / r_i, |dv_i| / V), V = max(scale_floor, speed if
+        use_speed) (StepController.error), and status (the step status, soil.status columns)."""
+        self.scale_floor.fill_(float(scale_floor))
+        self.reduce_error(state, status, position_weight, self.scale_floor, use_speed)
         values = self.summary.numpy().astype(np.float64)
         nonfinite = bool(values[SUMMARY_NONFINITE] > 0)
         return {

@@ -10,6 +10,7 @@ which three rotating state buffers keep untouched, so the result equals a run th
 enough storage from the start (docs/performance.md).
 """
 
+import functools
 import math
 import warnings
 from dataclasses import dataclass
@@ -18,6 +19,7 @@ import numpy as np
 import warp as wp
 
 from . import status as status_columns
+from . import step_control
 from .boundaries import boundary_kernels
 from .control import SoilControl, path_kernels
 from .errors import RegolithWarning, SoilInputError
@@ -29,6 +31,7 @@ from .sdf import BOUNDARY_BOX
 from .solver import ContactSolver
 from .stability import DivergenceMonitor, SimulationDiverged  # noqa: F401 (SimulationDiverged re-exported)
 from .state import GrainLayout, SoilState
+from .step_control import DeviceStepControl
 
 REPORT_BOUNDS = status_columns.COLUMNS
 """Report columns after the status (soil.status): the grains' box at the last list build,
@@ -59,22 +62,29 @@ def macro_kernels(hi):
         torque: wp.array(dtype=vec_hi),
         velocity: wp.array(dtype=vec_hi),
         angular_velocity: wp.array(dtype=vec_hi),
-        dt: wp.float64,
+        step_length: wp.array(dtype=wp.float64),
+        weighted: int,
         force_sum_out: wp.array(dtype=wp.vec3d),
         torque_sum_out: wp.array(dtype=wp.vec3d),
         work_out: wp.array(dtype=wp.float64),
     ):
         """Add a step's wrench on body b to the macro step's sums (one thread per body: a fixed
-        order); the soil's force does -F.v - T.w work on the soil side's books."""
+        order), weighted by the step's length when the steps vary (weighted != 0); the soil's
+        force does -F.v - T.w work on the soil side's books."""
         b = wp.tid()
+        dt = step_length[0]
         f = wp.vec3d(wp.float64(force[b][0]), wp.float64(force[b][1]), wp.float64(force[b][2]))
         t = wp.vec3d(wp.float64(torque[b][0]), wp.float64(torque[b][1]), wp.float64(torque[b][2]))
         v = wp.vec3d(wp.float64(velocity[b][0]), wp.float64(velocity[b][1]), wp.float64(velocity[b][2]))
         w = wp.vec3d(
             wp.float64(angular_velocity[b][0]), wp.float64(angular_velocity[b][1]), wp.float64(angular_velocity[b][2])
         )
-        force_sum_out[b] = force_sum_out[b] + f
-        torque_sum_out[b] = torque_sum_out[b] + t
+        if weighted != 0:
+            force_sum_out[b] = force_sum_out[b] + f * dt
+            torque_sum_out[b] = torque_sum_out[b] + t * dt
+        else:
+            force_sum_out[b] = force_sum_out[b] + f
+            torque_sum_out[b] = torque_sum_out[b] + t
         # Warp's stubs do not list vec3d among the vector types wp.dot takes
         work_out[b] = work_out[b] - (wp.dot(f, v) + wp.dot(t, w)) * dt  # type: ignore[call-overload]
 
@@ -142,6 +152,16 @@ class MacroStepReport:
     """Neighbour-list builds during the macro step [-]."""
     redone: int
     """How often the macro step was redone after the contact storage grew [-]."""
+    rejected: int = 0
+    """Substeps the step control computed and threw away [-] (0 with fixed steps)."""
+    forced: int = 0
+    """Substeps accepted at dt_min although their error exceeded the tolerance [-]."""
+    dt_min: float = math.nan
+    """Shortest step taken [s] (with fixed steps: dt)."""
+    dt_max: float = math.nan
+    """Longest step taken [s] (with fixed steps: dt)."""
+    evaluations: int = 0
+    """Force evaluations of the macro step, rejected substeps included [-]."""
 
 
 class Simulation:
@@ -205,9 +225,18 @@ class Simulation:
         self._force_sum = wp.zeros(bodies, dtype=wp.vec3d, device=device)
         self._torque_sum = wp.zeros(bodies, dtype=wp.vec3d, device=device)
         self._work = wp.zeros(bodies, dtype=wp.float64, device=device)
-        self._report = wp.zeros(
-            REPORT_BODIES + BODY_COLUMNS * model.body_count + 3 * model.boundary_count, dtype=wp.float64, device=device
-        )
+        self._report_steps = REPORT_BODIES + BODY_COLUMNS * model.body_count + 3 * model.boundary_count
+        """First report column of the step control's block (soil.step_control columns)."""
+        self._report = wp.zeros(self._report_steps + step_control.COLUMNS, dtype=wp.float64, device=device)
+        hi = model.precision.hi
+        self._step_length = wp.zeros(1, dtype=hi, device=device)
+        """The DEM step the kernels read [s], shape (1,): on the device, so that a step's length can be
+        decided there (step control) and one captured graph serves every length."""
+        self._step_length64 = wp.zeros(1, dtype=wp.float64, device=device)
+        """The same step in float64 (the wrench sums and the work)."""
+        self._no_step = wp.zeros(1, dtype=hi, device=device)
+        self.step_control: DeviceStepControl | None = None
+        """The PID step control of macro_step_adaptive (enable_step_control), or None."""
         if not state.forces_valid:  # a restored state keeps its own forces: restarts stay bit-identical
             self.refresh_forces()
 
@@ -277,7 +306,7 @@ class Simulation:
             self.contacts.reserve(self.state.rigid_capacity)
             spare.assign(self.state)
             status_columns.clear(self.status)
-            self.contacts.compute(self.state, spare, self.control, 0.0)
+            self.contacts.compute(self.state, spare, self.control, self._no_step)
             values = self.status.numpy()
             growth = self._needs_growth(values)
             if growth is None:
@@ -305,59 +334,75 @@ class Simulation:
             self.neighbour_list.dims,
         )
 
+    def _set_step(self, dt: float) -> None:
+        """Write the step length the kernels read (a host-to-device copy, no read)."""
+        self._step_length.fill_(float(dt))
+        self._step_length64.fill_(float(dt))
+
+    def _accumulate_wrench(self, state: SoilState, weighted: bool) -> None:
+        if not self.model.body_count:
+            return
+        wp.launch(
+            macro_kernels(self.model.precision.hi).accumulate_wrench,
+            dim=self.model.body_count,
+            inputs=[
+                state.body_force,
+                state.body_torque,
+                self.control.body_velocity,
+                self.control.body_angular_velocity,
+                self._step_length64,
+                int(weighted),
+            ],
+            outputs=[self._force_sum, self._torque_sum, self._work],
+            device=self.model.device,
+        )
+
+    def _replay(self, key: tuple, body) -> int | None:
+        """Run `body` from its captured graph (captured at its first use): the force evaluations
+        one replay counts, or None when the device cannot capture (then run `body` yourself)."""
+        if not self.capture:
+            return None
+        entry = self._graphs.get(key)
+        if entry is None:
+            if len(self._graphs) >= MAX_GRAPHS:
+                del self._graphs[next(iter(self._graphs))]
+            evaluations = self.contacts.evaluations
+            try:
+                with wp.ScopedCapture(device=self.model.device) as capture:
+                    body()
+                entry = self._graphs[key] = (capture.graph, self.contacts.evaluations - evaluations)
+            except Exception as error:  # e.g. a GPU driver without conditional graph nodes
+                warnings.warn(
+                    f"steps cannot be captured as graphs on {self.model.device} ({error}); launching them one by one",
+                    CaptureWarning,
+                    stacklevel=4,
+                )
+                self.capture = False
+                self._graphs.clear()
+            self.contacts.evaluations = evaluations  # counted when the graph runs
+        if entry is None:
+            return None
+        graph, evaluations = entry
+        wp.capture_launch(graph)
+        return evaluations
+
     def _run_step(self, dt: float, state_in: SoilState, state_out: SoilState, path: bool) -> None:
-        """One DEM step state_in -> state_out: replayed from its graph, or launched."""
+        """One DEM step state_in -> state_out of the length in _step_length (dt [s]): replayed from
+        its graph, or launched."""
 
         def body():
             if path:
-                self.control.follow_path(dt)
-            self.integrator.step(self.model, state_in, state_out, self.control, dt, self.contacts)
-            if self.model.body_count:
-                kernels = macro_kernels(self.model.precision.hi)
-                wp.launch(
-                    kernels.accumulate_wrench,
-                    dim=self.model.body_count,
-                    inputs=[
-                        state_out.body_force,
-                        state_out.body_torque,
-                        self.control.body_velocity,
-                        self.control.body_angular_velocity,
-                        float(dt),
-                    ],
-                    outputs=[self._force_sum, self._torque_sum, self._work],
-                    device=self.model.device,
-                )
+                self.control.follow_path(self._step_length)
+            self.integrator.step(self.model, state_in, state_out, self.control, self._step_length, self.contacts)
+            self._accumulate_wrench(state_out, weighted=False)
             if path:
                 self.control.count_path_step()
 
-        if self.capture:
-            key = (dt, id(state_in), id(state_out), path, type(self.integrator))
-            entry = self._graphs.get(key)
-            if entry is None:
-                if len(self._graphs) >= MAX_GRAPHS:
-                    del self._graphs[next(iter(self._graphs))]
-                evaluations = self.contacts.evaluations
-                try:
-                    with wp.ScopedCapture(device=self.model.device) as capture:
-                        body()
-                    entry = self._graphs[key] = (capture.graph, self.contacts.evaluations - evaluations)
-                except Exception as error:  # e.g. a GPU driver without conditional graph nodes
-                    warnings.warn(
-                        f"steps cannot be captured as graphs on {self.model.device} ({error}); launching "
-                        "them one by one",
-                        CaptureWarning,
-                        stacklevel=3,
-                    )
-                    self.capture = False
-                    self._graphs.clear()
-                self.contacts.evaluations = evaluations  # counted when the graph runs
-            if entry is not None:
-                graph, evaluations = entry
-                wp.capture_launch(graph)
-                self.contacts.evaluations += evaluations
-                state_out.time = state_in.time + dt
-                return
-        body()
+        evaluations = self._replay((id(state_in), id(state_out), path, type(self.integrator)), body)
+        if evaluations is None:
+            body()
+        else:
+            self.contacts.evaluations += evaluations
         state_out.time = state_in.time + dt
 
     def _load_modules(self) -> None:
@@ -371,6 +416,7 @@ class Simulation:
             boundary_kernels(prec.hi),
             path_kernels(prec.hi),
             macro_kernels(prec.hi),
+            step_control.step_control_kernels(prec.hi),
             self.contacts.kernels,
             self.neighbour_list.kernels,
         ]
@@ -423,6 +469,7 @@ class Simulation:
         model = self.model
         redone = 0
         start = self.state
+        evaluations_before = self.contacts.evaluations
         while True:
             self._prepare()
             spares = self._spares()
@@ -432,30 +479,13 @@ class Simulation:
             if path:
                 self.control.path_step.zero_()
             self.neighbour_list.save(start)
+            self._set_step(dt)
             current = start
             for k in range(steps):
                 target = spares[k % 2]
                 self._run_step(dt, current, target, path)
                 current = target
-            kernels = macro_kernels(model.precision.hi)
-            wp.launch(
-                kernels.fill_report,
-                dim=1,
-                inputs=[
-                    self.status,
-                    self.neighbour_list.grid,
-                    self._force_sum,
-                    self._torque_sum,
-                    self._work,
-                    current.body_force,
-                    current.body_torque,
-                    current.body_contacts,
-                    current.boundary_displacement,
-                ],
-                outputs=[self._report],
-                device=model.device,
-            )
-            values = self._report.numpy().copy()  # the one read of the macro step
+            values = self._read_report(current)
             growth = self._needs_growth(values)
             if growth is None:
                 break
@@ -465,6 +495,7 @@ class Simulation:
         self.state = current
         self.state.forces_valid = True
         self.steps += steps
+        evaluations = self.contacts.evaluations - evaluations_before
         rebuilds = int(values[status_columns.REBUILDS])
         self._rebuilds_since_reorder += rebuilds
         self._bounds = (values[REPORT_BOUNDS : REPORT_BOUNDS + 3], values[REPORT_BOUNDS + 3 : REPORT_BOUNDS + 6])
@@ -481,9 +512,177 @@ class Simulation:
             body_torque_end=bodies[:, 9:12].copy(),
             body_work=bodies[:, 12].copy(),
             body_contacts=bodies[:, 13].astype(np.int64),
-            boundary_displacement=values[walls:].reshape(model.boundary_count, 3),
+            boundary_displacement=values[walls : self._report_steps].reshape(model.boundary_count, 3),
             rebuilds=rebuilds,
             redone=redone,
+            dt_min=dt,
+            dt_max=dt,
+            evaluations=evaluations,
+        )
+
+    def _read_report(self, current: SoilState, steps: DeviceStepControl | None = None) -> np.ndarray:
+        """Pack what the host needs after a macro step into one array (with the step control's
+        block when `steps` is given) and read it: the one read of the macro step."""
+        wp.launch(
+            macro_kernels(self.model.precision.hi).fill_report,
+            dim=1,
+            inputs=[
+                self.status,
+                self.neighbour_list.grid,
+                self._force_sum,
+                self._torque_sum,
+                self._work,
+                current.body_force,
+                current.body_torque,
+                current.body_contacts,
+                current.boundary_displacement,
+            ],
+            outputs=[self._report],
+            device=self.model.device,
+        )
+        if steps is not None:
+            wp.copy(self._report, steps.control, dest_offset=self._report_steps, count=step_control.COLUMNS)
+        return self._report.numpy().copy()
+
+    # -- step control on the device -------------------------------------------------------
+    def enable_step_control(self, controller: StepController | None = None) -> DeviceStepControl:
+        """Use the PID step control (StepController; default settings when None) in
+        macro_step_adaptive. The integrator must be a JoltBeeman (one is installed if the
+        simulation still has its default VelocityVerlet and has not stepped): its
+        predictor/corrector gap is the error estimate."""
+        if not isinstance(self.integrator, JoltBeeman):
+            if isinstance(self.integrator, VelocityVerlet) and self.steps == 0:
+                self.integrator = JoltBeeman()
+            else:
+                raise TypeError(f"step control needs the JoltBeeman integrator, not {type(self.integrator).__name__}")
+        controller = controller or StepController()
+        controller.setup(self)
+        self._graphs.clear()  # a captured substep loop holds the old controller's settings and arrays
+        self.step_control = DeviceStepControl(
+            controller, self.model.precision, self.model.device, controller.error_scales()["scale_floor"]
+        )
+        return self.step_control
+
+    def _substep(self, current: SoilState, trial: SoilState, path: bool, weights: dict):
+        """One substep of the macro step's loop (captured inside it): step current -> trial,
+        decide on the device, copy an accepted trial over current."""
+        control = self.step_control
+        integrator = self.integrator
+        assert control is not None and isinstance(integrator, JoltBeeman)  # enable_step_control saw to both
+        integrator.bind(self.model)
+        scale_floor, summary = integrator.scale_floor, integrator.summary
+        assert scale_floor is not None and summary is not None
+        capacity, rigid_capacity = self.state.capacity, self.state.rigid_capacity
+
+        def accept():
+            self._accumulate_wrench(trial, weighted=True)
+            current.assign(trial)
+
+        def substep():
+            control.propose(self._step_length, self._step_length64, scale_floor)
+            if path:
+                self.control.follow_path(self._step_length, control.tau)
+            integrator.step(self.model, current, trial, self.control, self._step_length, self.contacts)
+            integrator.reduce_error(trial, self.status, weights["position_weight"], scale_floor, weights["use_speed"])
+            control.decide(summary, self.status, capacity, rigid_capacity)
+            wp.capture_if(control.accepted, on_true=accept)
+
+        return substep
+
+    def macro_step_adaptive(self, span: float, path: bool = False) -> MacroStepReport:
+        """Advance by `span` [s] in as many jolt-Beeman substeps as the PID step control needs,
+        landing exactly on the span's end, on the device with one read at the end.
+
+        The substep loop with its accept/reject decision is one captured graph
+        (`wp.capture_while`, soil.step_control): each substep steps the current state into a
+        trial buffer, the decision runs on the device, and an accepted trial is copied over
+        the current state; a rejected one leaves it untouched (contact history and list
+        included), so the retry starts from it bit for bit. The wheels' wrench sums are
+        weighted by the substeps' lengths (the report's means are time means). Needs
+        enable_step_control() first. Raises SimulationDiverged if a substep at dt_min is
+        still non-finite.
+        """
+        span = _check_step(span)
+        control = self.step_control
+        if control is None:
+            raise RuntimeError("call enable_step_control() before macro_step_adaptive()")
+        controller = control.controller
+        self._maybe_reorder()
+        if not path:
+            self.control.path_active = False
+        self.control.push()
+        model = self.model
+        redone = 0
+        start = self.state
+        evaluations_before = self.contacts.evaluations
+        control.begin(span)
+        weights = controller.error_scales()
+        while True:
+            self._prepare()
+            current, trial = self._spares()
+            status_columns.clear(self.status)
+            for array in (self._force_sum, self._torque_sum, self._work):
+                array.zero_()
+            self.neighbour_list.save(start)
+            current.assign(start)
+
+            # substeps until the span is covered
+            loop = functools.partial(wp.capture_while, control.running, self._substep(current, trial, path, weights))
+
+            key = ("adaptive", id(current), id(trial), path, type(self.integrator))
+            per_substep = self._replay(key, loop)
+            if per_substep is None:
+                loop()  # launched (the host reads the condition at every substep)
+            values = self._read_report(current, control)
+            steps = values[self._report_steps :]
+            if per_substep is not None:
+                tried = int(steps[step_control.ACCEPTED] + steps[step_control.REJECTED])
+                self.contacts.evaluations += per_substep * tried
+            growth = self._needs_growth(values)
+            if growth is None:
+                break
+            self.neighbour_list.restore(start)
+            self._grow(*growth)
+            control.redo()
+            redone += 1
+        accepted = int(steps[step_control.ACCEPTED])
+        rejected = int(steps[step_control.REJECTED])
+        forced = int(steps[step_control.FORCED])
+        self.state = current
+        self.state.time = start.time + span
+        self.state.forces_valid = True
+        self.steps += accepted
+        self.accepted_steps += accepted
+        self.rejected_steps += rejected
+        self.forced_steps += forced
+        rebuilds = int(values[status_columns.REBUILDS])
+        self._rebuilds_since_reorder += rebuilds
+        self._bounds = (values[REPORT_BOUNDS : REPORT_BOUNDS + 3], values[REPORT_BOUNDS + 3 : REPORT_BOUNDS + 6])
+        if steps[step_control.DIVERGED] > 0 or values[status_columns.NONFINITE] > 0:
+            self.monitor.fail(
+                self,
+                f"non-finite particle state (NaN or inf) even at dt_min = {controller.dt_min:.4g} s",
+                int(values[status_columns.WORST]),
+            )
+        walls = REPORT_BODIES + BODY_COLUMNS * model.body_count
+        bodies = values[REPORT_BODIES:walls].reshape(model.body_count, BODY_COLUMNS)
+        return MacroStepReport(
+            steps=accepted,
+            dt=span / max(accepted, 1),
+            body_force=bodies[:, 0:3] / span,
+            body_torque=bodies[:, 3:6] / span,
+            body_force_end=bodies[:, 6:9].copy(),
+            body_torque_end=bodies[:, 9:12].copy(),
+            body_work=bodies[:, 12].copy(),
+            body_contacts=bodies[:, 13].astype(np.int64),
+            boundary_displacement=values[walls : self._report_steps].reshape(model.boundary_count, 3),
+            rebuilds=rebuilds,
+            redone=redone,
+            rejected=rejected,
+            forced=forced,
+            dt_min=float(steps[step_control.SMALLEST]),
+            dt_max=float(steps[step_control.LARGEST]),
+            evaluations=self.contacts.evaluations - evaluations_before,
         )
 
     def step(self, dt: float) -> None:
@@ -496,6 +695,8 @@ class Simulation:
         The steps run as macro steps of `check_every` steps (one host read each; with a
         callback, of one step). Every `check_every` steps and at the end the DivergenceMonitor
         checks the state (NaN, speed, overlap, energy) and raises SimulationDiverged on failure.
+        With a step control (enable_step_control) the macro steps of check_every x dt take PID
+        substeps instead (macro_step_adaptive; the callback runs after each macro step).
         """
         dt = _check_step(dt)
         if not (
@@ -506,6 +707,14 @@ class Simulation:
         if not self.monitor.armed:
             self.monitor.arm(self)
         steps = int(round(duration / dt))
+        if self.step_control is not None:
+            chunks = -(-steps // check_every)
+            for _ in range(chunks):
+                self.macro_step_adaptive(duration / chunks)
+                if callback is not None:
+                    callback(self)
+                self.monitor.check(self)
+            return
         done = 0
         while done < steps:
             chunk = 1 if callback is not None else min(check_every - done % check_every, steps - done)
@@ -564,7 +773,9 @@ class Simulation:
                 following = self._spares()[0]
                 self.contacts.reserve(self.state.rigid_capacity)
                 status_columns.clear(self.status)
-                self.integrator.step(self.model, self.state, following, self.control, h, self.contacts)
+                self._set_step(h)
+                self.integrator.step(self.model, self.state, following, self.control, self._step_length, self.contacts)
+                following.time = self.state.time + h
                 summary = self.integrator.read_summary(following, self.status, **controller.error_scales())
                 growth = self._needs_growth(summary["status"])
                 if growth is None:
@@ -626,7 +837,8 @@ class Simulation:
         boundaries' wrenches and motion), 'control/<name>' (SoilControl.state_dict), 'steps',
         'accepted_steps', 'rejected_steps', 'forced_steps', 'evaluations' [-], 'capacity' and
         'rigid_capacity' (contact slots per grain), 'integrator' (its name), 'precision',
-        'controller/<field>' (StepController, after run_adaptive), 'monitor/<field>'
+        'controller/<field>' (StepController, after run_adaptive), 'step_control/<field>' (the
+        settings of the device step control and its state, 'step_control/device'), 'monitor/<field>'
         (DivergenceMonitor). The model is not included: load into a Simulation built from the
         same scene (builder, device, precision, order_seed). The storage order is not part of
         it: the physics does not depend on it.
@@ -642,6 +854,8 @@ class Simulation:
         data["precision"] = np.str_(self.model.precision.name)
         if self._controller is not None:
             data.update({f"controller/{k}": v for k, v in self._controller.state_dict().items()})
+        if self.step_control is not None:
+            data.update({f"step_control/{k}": v for k, v in self.step_control.state_dict().items()})
         data.update({f"monitor/{k}": v for k, v in self.monitor.state_dict().items()})
         return data
 
@@ -678,6 +892,11 @@ class Simulation:
         if controller:
             self._controller = StepController()
             self._controller.load_state_dict(controller)
+        steps = {k[len("step_control/") :]: v for k, v in data.items() if k.startswith("step_control/")}
+        if steps:
+            settings = StepController()
+            settings.load_state_dict({k: v for k, v in steps.items() if k != "device"})
+            self.enable_step_control(settings).load_state_dict(steps)
         self.monitor.load_state_dict({k[len("monitor/") :]: v for k, v in data.items() if k.startswith("monitor/")})
         if self.monitor.armed:
             self.monitor.snapshot(self)

@@ -118,7 +118,7 @@ def contact_kernels(hi, lo, law: ContactLaw):
         history_in: History,
         external_force: wp.array(dtype=vec_hi),
         external: int,
-        dt: hi,
+        step_length: wp.array(dtype=hi),
         # outputs
         force_out: wp.array(dtype=vec_hi),
         torque_out: wp.array(dtype=vec_hi),
@@ -132,6 +132,7 @@ def contact_kernels(hi, lo, law: ContactLaw):
         and the reactions of its rigid contacts. After a rebuild the pair history was remapped
         into history_out, and is read from there."""
         i = wp.tid()
+        dt = step_length[0]
         xi = position[i]
         vi = velocity[i]
         wi = angular_velocity[i]
@@ -518,7 +519,7 @@ class ContactSolver:
         return bundle
 
     # -- evaluation --------------------------------------------------------------------------
-    def compute(self, state_in: SoilState, state_out: SoilState, control: SoilControl, dt: float) -> None:
+    def compute(self, state_in: SoilState, state_out: SoilState, control: SoilControl, dt: wp.array) -> None:
         """Forces at state_out's positions/velocities (and boundary positions/velocities); history
         read from state_in, written to state_out (the neighbour list is checked and, when a grain
         has moved too far, rebuilt first). Then the wrenches on walls and wheels and the loaded
@@ -547,7 +548,7 @@ class ContactSolver:
                 self.history(state_in),
                 control.external_force,
                 int(control.external_force_used),
-                model.precision.hi(dt),
+                dt,
             ],
             outputs=[
                 state_out.force,

@@ -171,7 +171,7 @@ class RecordingBeeman(JoltBeeman):
         self.calls = []
 
     def step(self, model, state_in, state_out, control, dt, contacts):
-        self.calls.append((dt, state_in.to_numpy()))
+        self.calls.append((float(dt.numpy()[0]), state_in.to_numpy()))  # dt: the device array the kernels read
         super().step(model, state_in, state_out, control, dt, contacts)
 
 

@@ -81,7 +81,20 @@ def finalize(plan: LabPlan, builder, order_seed: int | None) -> Simulation:
     model, state, control = builder.finalize(
         device=plan.device, precision=plan.precision, law=plan.law, order_seed=order_seed
     )
-    return Simulation(model, state, control)
+    return with_step_control(plan, Simulation(model, state, control))
+
+
+def with_step_control(plan: LabPlan, sim: Simulation) -> Simulation:
+    """`sim` with the scene's step control (run.step_control = "pid": PID substeps in every
+    Simulation.run, the first one plan.dt long); fixed steps otherwise."""
+    run = plan.scene.run
+    if run.step_control == "pid":
+        from soil import StepController
+
+        sim.enable_step_control(
+            StepController(tolerance=run.tolerance, dt_min=run.dt_min, dt_max=run.dt_max, dt_initial=plan.dt)
+        )
+    return sim
 
 
 # -- phases ---------------------------------------------------------------------------------

@@ -182,7 +182,7 @@ def _press(plan: LabPlan, replica: int, path: str, surface: float, width: float,
         device=plan.device, precision=plan.precision, law=plan.law, order_seed=order_seed
     )
     restore_state(model, state, saved)
-    sim = Simulation(model, state, control)
+    sim = common.with_step_control(plan, Simulation(model, state, control))
     speed = plate_speed(plan)
     deepest = max_sinkage(plan, surface)
     duration = (start - (surface - deepest)) / speed

@@ -211,7 +211,7 @@ def _shear(plan: LabPlan, geometry: ShearBox, replica: int, path: str, stress: f
     restore_state(model, state, saved)
     from soil import Simulation
 
-    sim = Simulation(model, state, control)
+    sim = common.with_step_control(plan, Simulation(model, state, control))
     sample_mass = float(model.mass_numpy().sum())
     damping, period = _lid_dynamics(plan, geometry, stress, sample_mass)
     load = stress * geometry.area

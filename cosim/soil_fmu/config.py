@@ -50,6 +50,9 @@ class SoilFmuConfig:
     """Hub x of a single wheel at the start [m]; None: outer radius + 6 grain radii from the bed's end."""
     name: str = "soil"
     """Label (modelDescription description)."""
+    step_control: dict | None = None
+    """The PID step control of the DEM (run.step_control = "pid"): {'tolerance' [-], 'dt_min' [s]
+    or None, 'dt_max' [s] or None} (soil.StepController); None: fixed steps of dem_step."""
     python: str | None = None
     """The soil server's Python by default; None: the Python that exports."""
     extra: dict = field(default_factory=dict)
@@ -112,6 +115,11 @@ def soil_config_from(path, bed_folder=None) -> SoilFmuConfig:
         duration=plan.scene.run.duration,
         start_x=plan.testbed.start_x,
         name=plan.name,
+        step_control=(
+            dict(tolerance=plan.tolerance, dt_min=plan.dt_min, dt_max=plan.dt_max)
+            if plan.step_control == "pid"
+            else None
+        ),
     )
 
 
@@ -155,6 +163,7 @@ def config_to_json(config: SoilFmuConfig, wheel_count: int) -> dict:
         "device": config.device,
         "order_seed": config.order_seed,
         "gravity": _bed_gravity(config.bed_file),
+        "step_control": config.step_control,
         "extra": config.extra,
     }
 
@@ -184,7 +193,7 @@ def soil_from_config(data: dict, bed_file, dem_step: float | None = None, device
     else:
         shape = MeshWheel(np.asarray(wheel["vertices"]), np.asarray(wheel["triangles"]), name=wheel.get("name", "mesh"))
     law = ContactLaw(**data["law"]) if data.get("law") else None
-    return DemSoil.from_bed(
+    soil = DemSoil.from_bed(
         bed_file,
         [shape] * int(data["wheel_count"]),
         Material(**data["wheel_material"]),
@@ -195,6 +204,11 @@ def soil_from_config(data: dict, bed_file, dem_step: float | None = None, device
         order_seed=data.get("order_seed"),
         law=law,
     )
+    if data.get("step_control"):  # PID substeps in every macro step, the first one dem_step long
+        from soil import StepController
+
+        soil.sim.enable_step_control(StepController(**data["step_control"], dt_initial=soil.dt))
+    return soil
 
 
 def _require_single_wheel(plan, path) -> None:
