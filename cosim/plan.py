@@ -459,8 +459,8 @@ def _check_bed_file(path: str, material: Material, gravity: np.ndarray, bed) -> 
                 "make [bed] match the file (or remove bed.bed_file to settle a new bed)"
             )
     grains = header["materials"][0] if header["materials"] else None
-    if grains is not None and grains != material:
-        differ = [name for name in material.__dataclass_fields__ if getattr(grains, name) != getattr(material, name)]
+    differ = [] if grains is None else [n for n in material.__dataclass_fields__ if not _same(grains, material, n)]
+    if differ:
         shown = ", ".join(
             f"{n} {getattr(grains, n)!r} in the file vs {getattr(material, n)!r} in [soil]" for n in differ
         )
@@ -469,6 +469,15 @@ def _check_bed_file(path: str, material: Material, gravity: np.ndarray, bed) -> 
             "the bed or remove bed.bed_file to settle a bed of the scene's soil"
         )
     return problems
+
+
+def _same(a: Material, b: Material, name: str) -> bool:
+    """Field `name` of two materials agrees (floats to the last bits: a default derived from |g| of a
+    tilted gravity vector may differ from the upright one's in the last digit)."""
+    x, y = getattr(a, name), getattr(b, name)
+    if isinstance(x, float) and isinstance(y, float):
+        return math.isclose(x, y, rel_tol=1e-12, abs_tol=0.0)
+    return x == y
 
 
 def resolve(scene: Scene) -> RunPlan:

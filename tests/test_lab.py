@@ -240,10 +240,12 @@ speed_ratio = 0.2
 def test_plate_bekker_fit_reproduces_its_curves(tmp_path):
     """Two square plates (3 and 4 grain diameters) pushed 7 mm into a lunar-gravity bed: the
     pressure rises with sinkage, and Bekker's law fitted to both curves at once follows each
-    of them: over every third of the sinkage range the fitted mean pressure is within 15 % of
-    the measured one (measured: within 6 %). A few grains under a plate make the curve jump
-    by about 15 % of its value as the grains under it give way (R^2 0.34-0.76 between
-    machines): the fit follows the trend, which is what the 15 % bound checks, not the jumps."""
+    of them: over every third of the sinkage range the fitted mean pressure is within 25 % of
+    the measured one. A few grains under a plate make the curve jump as the grains under it give
+    way (R^2 0.29-0.76 between machines and laws): the fit follows the trend, which is what the
+    bound checks, not the jumps. Measured: within 6 % with the former stick/slip switch; with the
+    passive switch the soil holds longer before a grain gives way and the 16 mm plate's curve
+    jumps from 487 to 876 Pa between its first two thirds, the fit within 0.88-1.19 of them."""
     summary = plate_test(
         resolve_lab(lab_scene_from_text(PLATE, overrides={"lab.replicas": 2})), str(tmp_path / "plate")
     )
@@ -260,7 +262,7 @@ def test_plate_bekker_fit_reproduces_its_curves(tmp_path):
         for low, high in zip(edges[:-1], edges[1:]):
             part = (z >= low) & (z <= high)
             means.append(p[part].mean())
-            assert bekker_pressure(fit, width, z[part]).mean() == pytest.approx(p[part].mean(), rel=0.15)
+            assert bekker_pressure(fit, width, z[part]).mean() == pytest.approx(p[part].mean(), rel=0.25)
         assert means[2] > 1.1 * means[0]  # deeper is harder (pooled thirds measured 1.19-1.6 x)
     assert (tmp_path / "plate" / "plate.png").is_file() and (tmp_path / "plate" / "summary.json").is_file()
     # a saved bed is reused only for the soil and gravity it was settled with

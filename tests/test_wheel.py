@@ -217,7 +217,9 @@ def rigid_ground(device, gravity, mu):
 @pytest.mark.parametrize("load_ratio", [0.5, 1.5])
 def test_rigid_wheel_on_rigid_ground_rolls_below_and_spins_above_the_traction_limit(device, load_ratio):
     """Driven at omega against a drawbar load F: below mu m g it rolls without slip
-    (s ~ 0), above it the wheel cannot transmit F and spins (the carriage is pushed back)."""
+    (s ~ 0), above it the wheel cannot transmit F and spins (the carriage is pushed back).
+    Below the limit the elastic contacts pass the load on through their springs, with a creep of
+    under 1 % and a drawbar pull that swings about F over about 0.1 s: it is averaged over 0.2 s."""
     g, mu, mass, omega = 9.81, 0.5, 2.0, 10.0
     sim, wheel, r = rigid_ground(device, g, mu)
     soil = DemSoil(sim, 2e-5, surface_height=r, wall_clearance=0.0)
@@ -232,8 +234,8 @@ def test_rigid_wheel_on_rigid_ground_rolls_below_and_spins_above_the_traction_li
     )
     rig.velocity[0] = omega * wheel.radius  # start rolling
     soil.place_wheels(rig.wheel_kinematics())
-    result = drive(soil, rig, duration=0.1, macro_step=1e-4)
-    tail = result["time"] > 0.05
+    result = drive(soil, rig, duration=0.3 if load_ratio < 1 else 0.1, macro_step=1e-4)
+    tail = result["time"] > (0.1 if load_ratio < 1 else 0.05)
     slip = np.mean(result["slip"][tail])
     if load_ratio < 1:
         assert abs(slip) < 0.02, f"slip {slip} below the traction limit"
