@@ -466,7 +466,6 @@ class Simulation:
         if not path:
             self.control.path_active = False
         self.control.push()
-        model = self.model
         redone = 0
         start = self.state
         evaluations_before = self.contacts.evaluations
@@ -501,23 +500,35 @@ class Simulation:
         self._bounds = (values[REPORT_BOUNDS : REPORT_BOUNDS + 3], values[REPORT_BOUNDS + 3 : REPORT_BOUNDS + 6])
         if values[status_columns.NONFINITE] > 0:
             self.monitor.fail(self, "non-finite particle state (NaN or inf)", int(values[status_columns.WORST]))
-        walls = REPORT_BODIES + BODY_COLUMNS * model.body_count
-        bodies = values[REPORT_BODIES:walls].reshape(model.body_count, BODY_COLUMNS)
-        return MacroStepReport(
+        return self._macro_report(
+            values,
+            steps,
             steps=steps,
             dt=dt,
-            body_force=bodies[:, 0:3] / steps,
-            body_torque=bodies[:, 3:6] / steps,
-            body_force_end=bodies[:, 6:9].copy(),
-            body_torque_end=bodies[:, 9:12].copy(),
-            body_work=bodies[:, 12].copy(),
-            body_contacts=bodies[:, 13].astype(np.int64),
-            boundary_displacement=values[walls : self._report_steps].reshape(model.boundary_count, 3),
             rebuilds=rebuilds,
             redone=redone,
             dt_min=dt,
             dt_max=dt,
             evaluations=evaluations,
+        )
+
+    def _macro_report(self, values: np.ndarray, averaged_over: float, **fields) -> MacroStepReport:
+        """The macro step's report from the array read back: the wheels' wrench sums divided by
+        `averaged_over` (the step count, or the span [s] where the sums are weighted by each
+        substep's length), their end values, work and contacts, the walls' displacement, and
+        `fields` (the step counts and lengths)."""
+        model = self.model
+        walls = REPORT_BODIES + BODY_COLUMNS * model.body_count
+        bodies = values[REPORT_BODIES:walls].reshape(model.body_count, BODY_COLUMNS)
+        return MacroStepReport(
+            body_force=bodies[:, 0:3] / averaged_over,
+            body_torque=bodies[:, 3:6] / averaged_over,
+            body_force_end=bodies[:, 6:9].copy(),
+            body_torque_end=bodies[:, 9:12].copy(),
+            body_work=bodies[:, 12].copy(),
+            body_contacts=bodies[:, 13].astype(np.int64),
+            boundary_displacement=values[walls : self._report_steps].reshape(model.boundary_count, 3),
+            **fields,
         )
 
     def _read_report(self, current: SoilState, steps: DeviceStepControl | None = None) -> np.ndarray:
@@ -611,7 +622,6 @@ class Simulation:
         if not path:
             self.control.path_active = False
         self.control.push()
-        model = self.model
         redone = 0
         start = self.state
         evaluations_before = self.contacts.evaluations
@@ -664,18 +674,11 @@ class Simulation:
                 f"non-finite particle state (NaN or inf) even at dt_min = {controller.dt_min:.4g} s",
                 int(values[status_columns.WORST]),
             )
-        walls = REPORT_BODIES + BODY_COLUMNS * model.body_count
-        bodies = values[REPORT_BODIES:walls].reshape(model.body_count, BODY_COLUMNS)
-        return MacroStepReport(
+        return self._macro_report(
+            values,
+            span,
             steps=accepted,
             dt=span / max(accepted, 1),
-            body_force=bodies[:, 0:3] / span,
-            body_torque=bodies[:, 3:6] / span,
-            body_force_end=bodies[:, 6:9].copy(),
-            body_torque_end=bodies[:, 9:12].copy(),
-            body_work=bodies[:, 12].copy(),
-            body_contacts=bodies[:, 13].astype(np.int64),
-            boundary_displacement=values[walls : self._report_steps].reshape(model.boundary_count, 3),
             rebuilds=rebuilds,
             redone=redone,
             rejected=rejected,
