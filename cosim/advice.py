@@ -24,7 +24,7 @@ from dataclasses import asdict, dataclass
 
 from soil import advisor
 
-from .plan import RunPlan
+from .plan import WALL_GRAINS, RunPlan
 
 FROUDE_LIMIT = 0.1
 """Largest Froude number omega^2 r / |g| of a quasi-static wheel test [-]: measured on the testbed,
@@ -38,8 +38,6 @@ DEPTH_RADII = 1.0
 """Shallowest settled bed, in wheel outer radii [-]."""
 FLOOR_GRAINS = 4
 """Fewest grain diameters between the grouser tips and the floor [-]."""
-WALL_GRAINS = 4
-"""Fewest grain diameters between the wheel and a side or end wall [-]."""
 OVERLAP_RATIO = 0.01
 """Largest static overlap / radius the stiffness should allow (eq. 10's u) [-]."""
 

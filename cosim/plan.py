@@ -9,10 +9,10 @@ gravity, the device exists) and raises SceneError naming the field to change. Ev
 after this point (cosim.system, cosim.runner, studies, advice) reads the plan, never the
 raw scene.
 
-A rover scene is checked here too, before anything runs: the MJCF is compiled and its wheel
-bodies found, an FMU's variables are checked against the convention and its start pose read,
-the drive's controller is looked up (an FMU's outputs, a Python callable's import), wheel counts
-are compared, and the rover must fit its bed or patch.
+A rover scene is checked here too, before anything runs: cosim.probe opens what the scene
+names (the MJCF compiled, the FMU instantiated at its start pose, the drive's controller
+looked up) once, and resolve compares what it found with the rest of the scene (wheel counts,
+command kinds) and checks that the rover fits its bed or patch.
 """
 
 from __future__ import annotations
@@ -30,15 +30,16 @@ from soil import ContactLaw, GrouserWheel, Material, MeshWheel, gravity_vector
 from soil.advisor import rayleigh_time_step
 from soil.bed import BedSpec
 from soil.contact import LAW_VERSION
-from soil.errors import RegolithError
 from soil.materials import stick_speed_for
 
-from .scene import DriveSection, MaterialSection, MmxSection, OutputSection, Scene, SceneError, WheelSection
+from . import probe
+from .scene import DriveSection, MaterialSection, OutputSection, Scene, SceneError, WheelSection
 
 log = logging.getLogger(__name__)
 
 WALL_GRAINS = 4
-"""Default gap between a rover's wheels and a wall or a patch's frozen band, in mean grain diameters [-]."""
+"""Fewest mean grain diameters between a wheel and a wall (cosim.advice) and the default gap between a
+rover's wheels and a patch's frozen band [-]."""
 
 
 @dataclass(frozen=True)
@@ -287,9 +288,11 @@ class RunPlan:
         return np.array([self.testbed.start_x, self.testbed.start_y, surface_height + self.wheel.outer_radius])
 
     def with_changes(self, **overrides) -> RunPlan:
-        """The plan of the same scene with `overrides` ({'a.b': value}) applied, resolved again."""
+        """The plan of the same scene with `overrides` ({'a.b': value}) applied, resolved again; this
+        plan itself when the overrides leave the scene as it is (nothing is opened or probed again)."""
         from .scene import validate_scene
 
+        unchanged = self.scene.to_dict()
         data = self.scene.to_dict()
         for key, value in overrides.items():
             node = data
@@ -297,7 +300,8 @@ class RunPlan:
             for part in path:
                 node = node.setdefault(part, {})
             node[last] = value
-        return resolve(validate_scene(data, self.scene.base_dir))
+        scene = validate_scene(data, self.scene.base_dir)
+        return self if scene.to_dict() == unchanged else resolve(scene)
 
 
 # ------------------------------------------------------------------------------------
@@ -327,28 +331,6 @@ def to_material(
         rolling_friction=section.rolling_friction,
         cohesion=section.cohesion,
     )
-
-
-def resolve_device(name: str) -> str:
-    """A Warp device name for a scene's device ('default' -> the first GPU, else 'cpu'); SceneError if absent."""
-    import warp as wp
-
-    wp.init()
-    if name == "default":
-        return str(wp.get_device())
-    if name == "cpu":
-        return "cpu"
-    count = wp.get_cuda_device_count() if wp.is_cuda_available() else 0
-    index = 0 if name == "cuda" else int(name[5:])
-    if index >= count:
-        have = ", ".join(["cpu"] + [f"cuda:{i}" for i in range(count)])
-        raise SceneError(
-            [
-                f"scene.device: {name!r} asked for, but this machine has no such CUDA device "
-                f"(it has: {have}); use 'default' (a GPU when present, else the CPU) or 'cpu'"
-            ]
-        )
-    return f"cuda:{index}"
 
 
 ZERO_GRAVITY_STICK_SPEED = 1.0e-4
@@ -397,18 +379,24 @@ def _wheel(scene: Scene, soil_modulus: float, w: WheelSection | None = None, key
     return WheelPlan(mesh, material, mesh.outer_radius, mesh.outer_radius, width)
 
 
+def dem_time_step(scene: Scene, material: Material) -> tuple[float, str]:
+    """(dt [s], the key that set it): run.dt, else run.dt_factor (default 0.2) x the Rayleigh time step
+    of the smallest grain of `material` (before a macro step rounds it: see `_time_steps`)."""
+    r = scene.run
+    if r.dt is not None:
+        return r.dt, "run.dt"
+    smallest = scene.bed.radius_mean * (1 - scene.bed.radius_spread)
+    factor = r.dt_factor if r.dt_factor is not None else 0.2
+    return (
+        factor * rayleigh_time_step(material.youngs_modulus, material.poisson_ratio, material.density, smallest),
+        "run.dt_factor",
+    )
+
+
 def _time_steps(scene: Scene, material: Material) -> tuple[float, float, int, str]:
     """(dt [s], macro step H [s], substeps, the key that set dt): H is exactly substeps x dt."""
     r = scene.run
-    smallest = scene.bed.radius_mean * (1 - scene.bed.radius_spread)
-    if r.dt is not None:
-        dt, key = r.dt, "run.dt"
-    else:
-        factor = r.dt_factor if r.dt_factor is not None else 0.2
-        dt, key = (
-            factor * rayleigh_time_step(material.youngs_modulus, material.poisson_ratio, material.density, smallest),
-            "run.dt_factor",
-        )
+    dt, key = dem_time_step(scene, material)
     if r.macro_step is not None:
         substeps = max(1, int(round(r.macro_step / dt)))
         if r.dt is None:  # dt from the factor: shrink it so H is a whole number of steps
@@ -486,11 +474,11 @@ def resolve(scene: Scene) -> RunPlan:
     soil_material = to_material(scene.soil, default_stick_speed=default_stick_speed(scene))
     gravity = gravity_vector(scene.scene.gravity)
     g = float(np.linalg.norm(gravity))
-    device = resolve_device(scene.scene.device)
+    device = probe.resolve_device(scene.scene.device)
     wheel = _wheel(scene, soil_material.youngs_modulus)
     rover = scene.rover
     if rover is not None:
-        names = _rover_wheel_names(scene)
+        names = probe.rover_wheel_names(scene)
         shapes = rover.wheel_shape or {}
         unknown = sorted(set(shapes) - set(names or []))
         if names is not None and unknown:
@@ -550,7 +538,7 @@ def resolve(scene: Scene) -> RunPlan:
     if rover is None:
         testbed = _testbed(scene, wheel, problems)
     elif names is not None:
-        rover_plan, patch = _rover(scene, wheels, gravity, problems)
+        rover_plan, patch = _rover(scene, names, wheels, gravity, problems)
 
     dt, macro_step, substeps, dt_key = _time_steps(scene, soil_material)
     if macro_step > scene.run.duration:
@@ -649,155 +637,9 @@ def _testbed(scene: Scene, wheel: WheelPlan, problems: list[str]) -> TestbedPlan
 # rovers
 
 
-def _rover_wheel_names(scene: Scene) -> list[str]:
-    """The wheel names the scene gives or implies; an FMU's are read from it (SceneError naming rover.file,
-    rover.wheel_count or rover.wheel_prefix when they do not fit the convention)."""
-    from rover_models.mjcf import MMX_WHEELS
-
-    rover = scene.rover
-    assert rover is not None
-    if rover.model == "mmx":
-        return list(rover.wheels or MMX_WHEELS)
-    if rover.model == "mjcf":
-        assert rover.wheels is not None  # the validator requires an MJCF's wheel names
-        return list(rover.wheels)
-    path = scene.resolve(rover.file)
-    assert path is not None  # the validator requires an FMU's file
-    try:
-        from rover_models.fmu_rover import check_rover_fmu
-    except ImportError as error:
-        raise SceneError([f"rover.model: 'fmu' needs fmpy ({error}); pip install 'regolith-cosim[fmu]'"]) from None
-    try:
-        found = check_rover_fmu(path, rover.wheel_count, rover.wheel_prefix)
-    except RegolithError as error:
-        field = (
-            "rover.wheel_count"
-            if "the scene expects" in str(error) and rover.wheel_count is not None
-            else "rover.wheel_prefix"
-            if "the scene expects" in str(error)
-            else "rover.file"
-        )
-        raise SceneError([f"{field}: {error}"]) from None
-    return [f"{rover.wheel_prefix}{i}" for i in range(found["wheel_count"])]
-
-
-def mmx_xml(scene: Scene, gravity) -> str:
-    """The built-in rover's MJCF for a scene ([rover.mmx], the [wheel] radius and width)."""
-    from rover_models.mjcf import mmx_rover_xml
-
-    w = scene.wheel
-    radius = w.radius if w.type == "grouser" else None
-    assert scene.rover is not None
-    params = (scene.rover.mmx or MmxSection()).model_dump()
-    params["body_size"] = tuple(params["body_size"])
-    if radius is None:  # a mesh wheel: its extents from the mesh
-        path = scene.resolve(w.file)
-        assert path is not None and w.scale is not None  # the validator requires the file, defaults the scale
-        shape = MeshWheel.load(path, scale=w.scale)
-        radius = shape.outer_radius
-        width = float(np.ptp(shape.vertices[:, 1]))
-    else:
-        assert w.width is not None  # the validator fills a grouser wheel's width
-        width = w.width
-    g = (float(gravity[0]), float(gravity[1]), float(gravity[2]))
-    return mmx_rover_xml(wheel_radius=radius, wheel_width=width, gravity=g, **params)
-
-
-def import_callable(spec: str, base_dir: str | None):
-    """The object named by 'module:function' (the scene file's folder searched first); SceneError
-    naming rover.drive.function when it cannot be imported."""
-    import importlib
-    import sys
-
-    module_name, _, name = spec.partition(":")
-    added = base_dir if base_dir is not None and base_dir not in sys.path else None
-    if added is not None:
-        sys.path.insert(0, added)
-    try:
-        module = importlib.import_module(module_name)
-    except Exception as error:  # noqa: BLE001 - any failure to import is the user's module's problem
-        raise SceneError(
-            [f"rover.drive.function: cannot import module {module_name!r}: {type(error).__name__}: {error}"]
-        ) from None
-    finally:
-        if added is not None:
-            sys.path.remove(added)
-    target = getattr(module, name, None)
-    if target is None or not callable(target):
-        raise SceneError([f"rover.drive.function: module {module_name!r} has no callable {name!r}"])
-    return target
-
-
-def _inspect_mjcf(
-    source: str, wheels: list[str], body: str | None, heading: float, gravity, field: str, problems: list[str]
-) -> dict | None:
-    """Compile an MJCF, find its wheels and base, and measure it at the start heading."""
-    try:
-        from rover_models.mujoco_rover import MujocoRover
-    except ImportError as error:
-        problems.append(f"rover.model: an MJCF rover needs mujoco ({error}); pip install 'regolith-cosim[mujoco]'")
-        return None
-    try:
-        rover = MujocoRover(source, wheels, gravity=gravity)
-    except KeyError as error:
-        problems.append(f"rover.wheels: {error.args[0]}")
-        return None
-    except (ValueError, FileNotFoundError, OSError) as error:
-        problems.append(f"{field}: the MJCF cannot be loaded: {error}")
-        return None
-    if body is not None:  # the reported body must exist
-        try:
-            rover.body_id(body)
-        except KeyError as error:
-            problems.append(f"rover.body: {error.args[0]}")
-            return None
-    rover.move_base(np.zeros(3), heading)
-    origin = rover.body_kinematics(rover.body_id()).position
-    hubs = np.array([k.position for k in rover.wheel_kinematics()]) - origin
-    return {"hubs": hubs, "mass": rover.total_mass, **rover.drives, "start": True}
-
-
-def _inspect_fmu(scene: Scene, path: str, count: int, gravity, problems: list[str]) -> dict | None:
-    """Open a rover FMU at its start pose (scene start values), read its wheels and body, close it."""
-    from rover_models.fmu_rover import FmuRover, check_rover_fmu
-    from rover_models.fmu_session import FmuError
-
-    rover = scene.rover
-    assert rover is not None
-    found = check_rover_fmu(path, count, rover.wheel_prefix)
-    start = rover.start
-    values = dict(rover.start_values or {})
-    if found["start"]:
-        values.update({"start.x": 0.0, "start.y": 0.0, "start.heading": math.radians(start.heading_deg)})
-    elif start.x is not None or start.y is not None or start.heading_deg != 0.0:
-        problems.append(
-            f"rover.start: the FMU {path} has no start.x, start.y, start.z, start.heading parameters, so "
-            "the scene cannot place it; remove [rover.start] (the FMU starts where it says)"
-        )
-    try:
-        fmu = FmuRover(path, count, gravity=gravity, start_values=values, prefix=rover.wheel_prefix)
-    except FmuError as error:  # the file itself: no binary for this platform, cannot be instantiated
-        problems.append(f"rover.file: {error}")
-        return None
-    except RegolithError as error:
-        problems.append(f"rover.start_values: {error}")
-        return None
-    try:
-        body = fmu.body_kinematics()
-        hubs = np.array([k.position for k in fmu.wheel_kinematics()]) - (body.position if found["start"] else 0.0)
-        mass = fmu.total_mass
-    finally:
-        fmu.close()
-    return {
-        "hubs": hubs,
-        "mass": math.nan if mass is None else mass,
-        "speed": found["speed"],
-        "torque": found["torque"],
-        "start": found["start"],
-    }
-
-
-def _check_drive(scene: Scene, wheels: tuple[WheelPlan, ...], layout: dict | None, problems: list[str]) -> DrivePlan:
+def _check_drive(
+    scene: Scene, wheels: tuple[WheelPlan, ...], layout: probe.RoverLayout | None, problems: list[str]
+) -> DrivePlan:
     """The drive's controller must exist and fit the rover (wheel counts, command kinds)."""
     rover = scene.rover
     assert rover is not None
@@ -813,32 +655,17 @@ def _check_drive(scene: Scene, wheels: tuple[WheelPlan, ...], layout: dict | Non
     wants = {"speed": "speed", "slip": "speed", "torque": "torque"}.get(section.kind)
     if section.kind == "fmu":
         file = scene.resolve(section.file)
-        assert file is not None  # the validator requires an FMU drive's file
-        try:
-            from .fmu_controller import FmuController
-
-            controller = FmuController(file, n, mode=section.mode, start_values=section.start_values)
-            wants = controller.mode
-        except ImportError as error:
-            problems.append(f"{key}.kind: an FMU controller needs fmpy ({error})")
-        except RegolithError as error:
-            problems.append(f"{key}.file: {error}")
-        except ValueError as error:
-            problems.append(f"{key}.mode: {error}")
-    elif section.kind == "python":
-        assert section.function is not None  # the validator requires a python drive's function
-        try:
-            import_callable(section.function, scene.base_dir)
-        except SceneError as error:
-            problems += [p.replace("rover.drive.function", f"{key}.function") for p in error.problems]
-    elif (
+    if section.kind in ("fmu", "python"):
+        opened = probe.probe_drive(scene, section, key, n, problems)
+        wants = opened if section.kind == "fmu" else wants
+    if (
         section.kind == "slip"
         and section.omega_min is not None
         and section.omega_max is not None  # the validator requires it for a slip drive
         and section.omega_min > section.omega_max
     ):
         problems.append(f"{key}.omega_min: ({section.omega_min} rad/s) must be <= omega_max ({section.omega_max})")
-    if wants is not None and layout is not None and not layout[wants]:
+    if wants is not None and layout is not None and not layout.takes(wants):
         what = (
             "velocity actuators on every wheel hinge (MJCF) or <prefix><i>.speed_command inputs (FMU)"
             if wants == "speed"
@@ -848,31 +675,25 @@ def _check_drive(scene: Scene, wheels: tuple[WheelPlan, ...], layout: dict | Non
     return DrivePlan(name, section, file)
 
 
-def _rover(scene: Scene, wheels: tuple[WheelPlan, ...], gravity: np.ndarray, problems: list[str]):
+def _rover(scene: Scene, names: list[str], wheels: tuple[WheelPlan, ...], gravity: np.ndarray, problems: list[str]):
     """The rover's plan and its patch's; the rover must fit its bed (or its patch's window)."""
     rover, b = scene.rover, scene.bed
     assert rover is not None
-    names = [w for w in _rover_wheel_names(scene)]
     heading = math.radians(rover.start.heading_deg)
     source: str | None
-    if rover.model == "fmu":
-        source = scene.resolve(rover.file)
-        assert source is not None  # the validator requires an FMU's file
-        layout = _inspect_fmu(scene, source, len(names), gravity, problems)
+    if rover.model == "mmx":
+        source = probe.mmx_xml(scene, gravity)
     else:
-        if rover.model == "mjcf":
-            source = scene.resolve(rover.file)
-            assert source is not None  # the validator requires an MJCF's file
-            if not os.path.isfile(source):
-                problems.append(f"rover.file: MJCF file not found: {source!r} (paths are relative to the scene file)")
-                return None, None
-        else:
-            source = mmx_xml(scene, gravity)
-        layout = _inspect_mjcf(source, names, rover.body, heading, gravity, "rover.file", problems)
+        source = scene.resolve(rover.file)
+        assert source is not None  # the validator requires an MJCF's or an FMU's file
+        if rover.model == "mjcf" and not os.path.isfile(source):
+            problems.append(f"rover.file: MJCF file not found: {source!r} (paths are relative to the scene file)")
+            return None, None
+    layout = probe.probe_rover(scene, source, names, gravity, problems)
     drive = _check_drive(scene, wheels, layout, problems)
     if layout is None:
         return None, None
-    hubs = layout["hubs"]
+    hubs = layout.hub_offsets
     outer = np.array([w.outer_radius for w in wheels])
     centre = hubs[:, :2].mean(axis=0)
     footprint = float(
@@ -974,10 +795,10 @@ def _rover(scene: Scene, wheels: tuple[WheelPlan, ...], gravity: np.ndarray, pro
         start=(float(start_x), float(start_y), heading),
         hub_offsets=hubs,
         footprint_radius=footprint,
-        mass=float(layout["mass"]),
-        takes_speed=bool(layout["speed"]),
-        takes_torque=bool(layout["torque"]),
-        start_parameters=bool(layout["start"]),
+        mass=float(layout.mass),
+        takes_speed=layout.takes_speed,
+        takes_torque=layout.takes_torque,
+        start_parameters=layout.start_parameters,
         drive=drive,
         stuck_slip=rover.stuck_slip,
     )

@@ -20,7 +20,8 @@ import numpy as np
 
 from .contract import WheelKinematics, WheelWrench
 from .controllers import ConstantSpeed, ConstantTorque, DriveCommand, SlipController
-from .plan import RunPlan, SceneError, import_callable
+from .plan import RunPlan, SceneError
+from .probe import import_callable
 from .single_wheel import PHASE_DRIVING, PHASE_LANDING
 
 

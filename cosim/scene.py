@@ -567,7 +567,8 @@ class Scene(_Section):
     output: OutputSection = OutputSection()
 
     base_dir: str | None = Field(None, exclude=True)
-    """Folder that relative paths (wheel.file, bed.bed_file) are relative to; not a scene key."""
+    """Folder that relative paths (wheel.file, bed.bed_file, rover files) are relative to; not a scene key.
+    Validation makes every path of the scene absolute against it (the working directory when None)."""
 
     @model_validator(mode="after")
     def _one_rover(self):
@@ -577,6 +578,22 @@ class Scene(_Section):
             raise ValueError("patch: a moving soil patch follows a [rover]; the single-wheel testbed runs on its bed")
         if self.rover is None and self.testbed is None:
             object.__setattr__(self, "testbed", TestbedSection())
+        return self
+
+    @model_validator(mode="after")
+    def _absolute_paths(self):
+        # Every file the scene names is made absolute once, here: the plan, the run folder's scene.toml
+        # and a study's workers then read the same paths wherever the scene file was.
+        sections = [self.wheel, self.bed]
+        if self.rover is not None:
+            sections += [self.rover, *(self.rover.wheel_shape or {}).values(), *(self.rover.controllers or {}).values()]
+            if not isinstance(self.rover.drive, str) and self.rover.drive is not None:
+                sections.append(self.rover.drive)
+        for section in sections:
+            key = "bed_file" if section is self.bed else "file"
+            path = getattr(section, key)
+            if path:  # set without validation: the section was validated with this file already
+                object.__setattr__(section, key, self.resolve(path))
         return self
 
     def resolve(self, path: str | None) -> str | None:
@@ -678,16 +695,22 @@ def apply_overrides(data: dict, overrides: list[str] | dict | None) -> dict:
     return data
 
 
-def validate_scene(data: dict, base_dir: str | None = None, source: str | None = None) -> Scene:
-    """Validate a scene dictionary; raises SceneError listing every problem found."""
+def validate_scene(
+    data: dict, base_dir: str | None = None, source: str | None = None, model: type[Scene] | None = None
+) -> Scene:
+    """Validate a scene dictionary as a `model` (Scene, or a subclass with more sections; default Scene);
+    raises SceneError listing every problem found."""
+    model = Scene if model is None else model
     try:
-        return Scene.model_validate({**data, "base_dir": base_dir})
+        return model.model_validate({**data, "base_dir": base_dir})
     except ValidationError as error:
         raise SceneError(_format_errors(error), source) from None
 
 
-def load_scene(path: str | os.PathLike, overrides: list[str] | dict | None = None) -> Scene:
-    """Read, override (--set key=value) and validate a TOML scene file."""
+def load_scene(
+    path: str | os.PathLike, overrides: list[str] | dict | None = None, model: type[Scene] | None = None
+) -> Scene:
+    """Read, override (--set key=value) and validate a TOML scene file (as `model`: see validate_scene)."""
     path = os.fspath(path)
     if not os.path.isfile(path):
         raise SceneError([f"scene file not found: {path!r}"])
@@ -699,13 +722,13 @@ def load_scene(path: str | os.PathLike, overrides: list[str] | dict | None = Non
     except (OSError, UnicodeDecodeError) as error:
         raise SceneError([f"cannot read the scene file: {error}"], path) from None
     data = apply_overrides(data, overrides)
-    return validate_scene(data, base_dir=os.path.dirname(os.path.abspath(path)), source=path)
+    return validate_scene(data, base_dir=os.path.dirname(os.path.abspath(path)), source=path, model=model)
 
 
-def scene_from_text(text: str, base_dir: str | None = None, overrides=None) -> Scene:
-    """Validate a scene given as TOML text."""
+def scene_from_text(text: str, base_dir: str | None = None, overrides=None, model: type[Scene] | None = None) -> Scene:
+    """Validate a scene given as TOML text (as `model`: see validate_scene)."""
     try:
         data = tomllib.loads(text)
     except tomllib.TOMLDecodeError as error:
         raise SceneError([f"not valid TOML: {error}"]) from None
-    return validate_scene(apply_overrides(data, overrides), base_dir=base_dir)
+    return validate_scene(apply_overrides(data, overrides), base_dir=base_dir, model=model)

@@ -217,11 +217,6 @@ class FmuRover(FmuSession):
 
     # --- the rover body ------------------------------------------------------------------
 
-    @property
-    def has_body(self) -> bool:
-        """Whether the FMU reports its body's pose and velocity (body.* outputs)."""
-        return self._vr_body is not None
-
     def body_kinematics(self) -> WheelKinematics:
         """Pose and velocity of the rover body (body.* outputs); without them the wheels' centroid,
         their mean velocity and no rotation."""

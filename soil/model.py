@@ -97,11 +97,6 @@ class SoilModel:
         """Initial boundary geometry rows [m], shape (boundary_count, 6), float64."""
         return self.boundary_geometry.numpy().astype(np.float64).reshape(-1, 6)
 
-    @property
-    def search_radius(self) -> float:
-        """Neighbour search radius [m]: two of the largest radius."""
-        return 2.0 * self.max_radius
-
     def radius_numpy(self) -> np.ndarray:
         return self.radius.numpy().astype(np.float64)
 

@@ -48,14 +48,6 @@ class Precision:
     def np_lo(self):
         return np.float64 if self.lo is wp.float64 else np.float32
 
-    @property
-    def hi_bytes(self) -> int:
-        return 8 if self.hi is wp.float64 else 4
-
-    @property
-    def lo_bytes(self) -> int:
-        return 8 if self.lo is wp.float64 else 4
-
 
 def get_precision(name: str) -> Precision:
     """Return the Precision for 'single', 'double' or 'mixed'."""

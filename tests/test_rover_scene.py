@@ -142,3 +142,22 @@ def test_a_rover_fmu_without_binaries_is_blamed_on_rover_file(tmp_path, fmus, ca
     problem = err.splitlines()[1]
     assert problem.startswith("  - rover.file:") and "no binary for this platform" in problem, err
     assert "start_values" not in err
+
+
+def test_a_run_opens_its_rover_model_once(tmp_path, monkeypatch):
+    """Resolving a scene probes its rover (cosim.probe: the MJCF compiled) once; the run that follows
+    uses that plan (its paths are absolute from the start) and does not resolve the scene again."""
+    import cosim.probe
+    from cosim.runner import run_scene
+
+    probes = []
+    probe_rover = cosim.probe.probe_rover
+
+    def counted(*args, **kwargs):
+        probes.append(args[1])
+        return probe_rover(*args, **kwargs)
+
+    monkeypatch.setattr(cosim.probe, "probe_rover", counted)
+    scene = write_rig(tmp_path, duration=0.015, length=0.1, width=0.1, radius=0.005, checkpoints=0.015)
+    run_scene(scene, str(tmp_path / "run"), overrides=["landing.enabled=false"])
+    assert len(probes) == 1

@@ -315,8 +315,3 @@ def stiffness_number(plan: LabPlan, pressure: float) -> dict:
         1e-3,
         "largest pressure over the contact modulus: overlaps stay small (rigid grains)",
     )
-
-
-def log_numbers(numbers: list[dict]) -> None:
-    for n in numbers:
-        log.info("  %-28s %.3g (limit %.3g)%s", n["name"], n["value"], n["limit"], "" if n["ok"] else "  OUT OF RANGE")

@@ -28,19 +28,14 @@ import os
 from dataclasses import dataclass
 from typing import Literal
 
-try:
-    import tomllib
-except ImportError:  # Python 3.10
-    import tomli as tomllib
-
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 from soil import ContactLaw, Material, gravity_vector
-from soil.advisor import rayleigh_time_step
 
-from ..plan import default_stick_speed, resolve_device, to_material
-from ..scene import Scene, SceneError, _format_errors, apply_overrides
+from ..plan import default_stick_speed, dem_time_step, to_material
+from ..probe import resolve_device
+from ..scene import Scene, SceneError, apply_overrides, load_scene, scene_from_text, validate_scene
 
 PACKING_FRACTION = 0.6
 """Solid fraction assumed when a fill height is turned into a grain count [-] (random packing of spheres)."""
@@ -177,34 +172,22 @@ class LabScene(Scene):
 
 def validate_lab_scene(data: dict, base_dir: str | None = None, source: str | None = None) -> LabScene:
     """Validate a lab scene dictionary; SceneError lists every problem found."""
-    try:
-        return LabScene.model_validate({**data, "base_dir": base_dir})
-    except ValidationError as error:
-        raise SceneError(_format_errors(error), source) from None
+    return _lab(validate_scene(data, base_dir, source, model=LabScene))
 
 
 def load_lab_scene(path, overrides=None) -> LabScene:
     """Read, override (['a.b=1', ...] or {'a.b': 1}) and validate a lab scene file."""
-    path = os.fspath(path)
-    if not os.path.isfile(path):
-        raise SceneError([f"scene file not found: {path!r}"])
-    try:
-        with open(path, "rb") as f:
-            data = tomllib.load(f)
-    except tomllib.TOMLDecodeError as error:
-        raise SceneError([f"not valid TOML: {error}"], path) from None
-    except (OSError, UnicodeDecodeError) as error:
-        raise SceneError([f"cannot read the scene file: {error}"], path) from None
-    return validate_lab_scene(apply_overrides(data, overrides), os.path.dirname(os.path.abspath(path)), path)
+    return _lab(load_scene(path, overrides, model=LabScene))
 
 
 def lab_scene_from_text(text: str, base_dir: str | None = None, overrides=None) -> LabScene:
     """Validate a lab scene given as TOML text (what lab tasks carry to their workers)."""
-    try:
-        data = tomllib.loads(text)
-    except tomllib.TOMLDecodeError as error:
-        raise SceneError([f"not valid TOML: {error}"]) from None
-    return validate_lab_scene(apply_overrides(data, overrides), base_dir)
+    return _lab(scene_from_text(text, base_dir, overrides, model=LabScene))
+
+
+def _lab(scene: Scene) -> LabScene:
+    assert isinstance(scene, LabScene)  # validated as one
+    return scene
 
 
 # ------------------------------------------------------------------------------------
@@ -241,11 +224,6 @@ class LabPlan:
     def diameter(self) -> float:
         """Mean grain diameter d [m]."""
         return 2.0 * self.radius_mean
-
-    @property
-    def grain_mass(self) -> float:
-        """Mass of a grain of the mean radius [kg]."""
-        return self.soil.density * 4.0 / 3.0 * math.pi * self.radius_mean**3
 
     @property
     def time_scale(self) -> float:
@@ -294,13 +272,7 @@ def resolve_lab(scene: LabScene, needs_gravity: bool = False, test: str = "lab")
         twisting=law_section.twisting,
     )
     bed = scene.bed
-    smallest = bed.radius_mean * (1 - bed.radius_spread)
-    run = scene.run
-    if run.dt is not None:
-        dt = run.dt
-    else:
-        factor = run.dt_factor if run.dt_factor is not None else 0.2
-        dt = factor * rayleigh_time_step(soil.youngs_modulus, soil.poisson_ratio, soil.density, smallest)
+    dt, _ = dem_time_step(scene, soil)
     if problems:
         raise SceneError(problems)
     return LabPlan(
