@@ -20,8 +20,10 @@ Warp's own messages only with --verbose.
 
 Exit status:
     0    done (a run: a steady-state result)
-    1    an unexpected error (a bug: please report it with the traceback --verbose prints)
-    2    bad input: a scene, an argument, a bed file, a mesh, an FMU or a run to view or export (the message names it)
+    1    an unexpected error (a bug: please report it with the traceback --verbose prints), or a failure
+         that is not the input's (a model refused a step, a tool is missing: the message names it)
+    2    bad input, and only that: a scene, an argument, a bed file, a mesh, an FMU or a run to view or
+         export (the message names it)
     3    the output folder holds a run (pass --overwrite) or is in use by another process
     4    the simulation diverged (the message says where and what to change)
     5    an operating-system error: a path that cannot be written or read, a full disk
@@ -200,12 +202,14 @@ def cmd_view(args) -> int:
 
 def cmd_export(args) -> int:
     """cosim export vtkhdf RUN [--out FILE]: results.vtkhdf from what results.h5 holds."""
+    from soil.errors import ArgumentError
+
     from .folders import RESULTS_FILE
     from .vtkhdf import write_vtkhdf
 
     results = os.path.join(args.run, RESULTS_FILE) if os.path.isdir(args.run) else args.run
     if not os.path.isfile(results):
-        raise ValueError(f"{args.run!r} is not a run folder: no {RESULTS_FILE} in it")
+        raise ArgumentError(f"{args.run!r} is not a run folder: no {RESULTS_FILE} in it")
     path = write_vtkhdf(results, args.out)
     print(f"{path}: {os.path.getsize(path) / 1024:.0f} kB (open it in ParaView or with VTK's vtkHDFReader)")
     return EXIT_OK
@@ -603,10 +607,14 @@ def main(argv=None) -> int:
     previous = _stop_on_sigterm()
     try:
         return _dispatch(args)
-    except Exception:
+    except Exception as error:  # noqa: BLE001 - what no rule below expected: a bug, exit 1
         if args.verbose:
-            raise
-        log.exception("cosim: unexpected error (a bug; --verbose shows the full traceback)")
+            log.exception("cosim: unexpected error (a bug: please report it with this traceback)")
+        else:
+            print(
+                f"cosim: unexpected error: {type(error).__name__}: {error} (a bug: --verbose shows the traceback)",
+                file=sys.stderr,
+            )
         return EXIT_ERROR
     finally:
         if previous is not None:
@@ -614,7 +622,10 @@ def main(argv=None) -> int:
 
 
 def _dispatch(args) -> int:
-    from soil.errors import RegolithError
+    """Run the command; the project's own errors become their exit status and a one-line message
+    (bad input: 2, only soil.errors.InputError; a failure the project reports that is not the
+    input's: 1); anything else propagates to `main` as unexpected."""
+    from soil.errors import InputError, RegolithError
     from soil.stability import SimulationDiverged
 
     from .beds import SettlingDiverged
@@ -639,13 +650,15 @@ def _dispatch(args) -> int:
         print(f"\ncosim: interrupted. {error}".rstrip(), file=sys.stderr)
         terminated = getattr(error, "signal", None) == "SIGTERM" or str(error).startswith("SIGTERM")
         return EXIT_TERMINATED if terminated else EXIT_INTERRUPTED
-    except RegolithError as error:  # an FMU, a mesh, a bed: bad input the project recognised
+    except InputError as error:  # an FMU, a mesh, a bed, an argument: bad input the project recognised
         return fail(EXIT_INPUT, error)
+    except RegolithError as error:  # a failure the project reports (a model refused a step, a tool is missing)
+        if args.verbose:
+            log.exception("cosim: %s", type(error).__name__)
+        return fail(EXIT_ERROR, f"{type(error).__name__}: {error}")
     except OSError as error:
         where = f"{error.filename}: " if getattr(error, "filename", None) else ""
         return fail(EXIT_OS, f"{where}{error.strerror or error}")
-    except ValueError as error:
-        return fail(EXIT_INPUT, error)
 
 
 if __name__ == "__main__":

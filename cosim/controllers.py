@@ -21,6 +21,8 @@ from typing import Protocol, runtime_checkable
 
 import numpy as np
 
+from soil.errors import ArgumentError
+
 from .contract import WheelKinematics, WheelWrench
 from .terrain import wheel_frame
 
@@ -36,7 +38,7 @@ class DriveCommand:
 
     def __post_init__(self):
         if self.mode not in ("speed", "torque"):
-            raise ValueError(f"DriveCommand mode must be 'speed' or 'torque', got {self.mode!r}")
+            raise ArgumentError(f"DriveCommand mode must be 'speed' or 'torque', got {self.mode!r}")
         self.values = np.asarray(self.values, dtype=np.float64).reshape(-1)
 
 
@@ -117,7 +119,7 @@ class SlipController:
         axis_local: Sequence[float] = (0.0, 1.0, 0.0),
     ):
         if not 0.0 <= target_slip < 1.0:
-            raise ValueError(f"target_slip must be in [0, 1), got {target_slip}")
+            raise ArgumentError(f"target_slip must be in [0, 1), got {target_slip}")
         self.target_slip = float(target_slip)
         """Target driving slip s* [-]."""
         self.wheel_radius = np.broadcast_to(np.asarray(wheel_radius, dtype=np.float64), (wheel_count,)).copy()

@@ -42,6 +42,7 @@ from rover_models.fmu_session import (
     FmuVariableError,
     instantiate_cosim,
 )
+from soil.errors import ArgumentError, InternalError
 
 from .contract import WheelKinematics, WheelWrench
 from .controllers import DriveCommand
@@ -94,13 +95,13 @@ class FmuController(FmuSession):
         if mode is None:
             declared = [m for m, f in found.items() if f]
             if len(declared) == 2:
-                raise ValueError(
+                raise ArgumentError(
                     f"{self.path}: the FMU has both wheel_<i>.speed_command and "
                     f"wheel_<i>.torque_command outputs; choose mode='speed' or mode='torque'"
                 )
             mode = declared[0] if declared else "speed"
         if mode not in _COMMANDS:
-            raise ValueError(f"mode must be 'speed' or 'torque' (or None), got {mode!r}")
+            raise ArgumentError(f"mode must be 'speed' or 'torque' (or None), got {mode!r}")
         self.mode = mode
         """'speed' or 'torque': the kind of DriveCommand returned."""
         suffix, have = _COMMANDS[mode], found[mode]
@@ -157,7 +158,7 @@ class FmuController(FmuSession):
     ) -> DriveCommand:
         n = self.wheel_count
         if len(wheel_states) != n or len(wrenches) != n:
-            raise ValueError(
+            raise ArgumentError(
                 f"{len(wheel_states)} wheel states and {len(wrenches)} wrenches for a controller of {n} wheel(s)"
             )
         t = float(t)
@@ -172,7 +173,7 @@ class FmuController(FmuSession):
             )[self._slots]
         if self.fmu is None:
             if self._time is not None:
-                raise RuntimeError(f"{self.path}: the controller is closed")
+                raise InternalError(f"{self.path}: the controller is closed")
             self.fmu, self._unzipdir, self._set, self._get = instantiate_cosim(
                 self.path, self.md, self.instance_name, t
             )
@@ -185,7 +186,7 @@ class FmuController(FmuSession):
         else:
             assert self._time is not None  # set when the FMU was instantiated
             if t < self._time:
-                raise ValueError(f"cannot step backwards: controller time {self._time}, t {t}")
+                raise ArgumentError(f"cannot step backwards: controller time {self._time}, t {t}")
             if self._slots.size:
                 self._set(self._vr_in, [float(x) for x in values])
             if t > self._time:

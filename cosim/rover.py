@@ -18,6 +18,8 @@ from collections.abc import Sequence
 
 import numpy as np
 
+from soil.errors import ArgumentError
+
 from .contract import WheelKinematics, WheelWrench
 from .controllers import ConstantSpeed, ConstantTorque, DriveCommand, SlipController
 from .plan import RunPlan, SceneError
@@ -153,7 +155,7 @@ class RoverDriver:
         else:
             command = self.controller(t, wheel_states, wrenches)
             if len(command.values) != len(self.wheel_names):
-                raise ValueError(
+                raise ArgumentError(
                     f"the controller commanded {len(command.values)} wheels, the rover has {len(self.wheel_names)}"
                 )
         self.last_command = command

@@ -44,12 +44,12 @@ except ImportError:  # Python 3.10
 import tomli_w
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
-from soil.errors import RegolithError
+from soil.errors import InputError
 
 GRAVITY_PRESET_NAMES = ("earth", "mars", "moon", "phobos", "phobos_min", "phobos_max", "deimos")
 
 
-class SceneError(RegolithError, ValueError):
+class SceneError(InputError, ValueError):
     """A scene is invalid; `problems` lists one message per bad field."""
 
     def __init__(self, problems: list[str], source: str | None = None):

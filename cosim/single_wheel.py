@@ -20,6 +20,8 @@ from collections.abc import Sequence
 import numpy as np
 from numpy.typing import ArrayLike
 
+from soil.errors import ArgumentError
+
 from .contract import WheelKinematics, WheelWrench
 
 PHASE_LANDING, PHASE_DRIVING = 0, 1
@@ -62,13 +64,13 @@ class SingleWheelRig:
         landed: bool = False,
     ):
         if mode not in ("free", "slip"):
-            raise ValueError(f"testbed.mode must be 'free' or 'slip', got {mode!r}")
+            raise ArgumentError(f"testbed.mode must be 'free' or 'slip', got {mode!r}")
         if not (mass > 0 and math.isfinite(mass)):
-            raise ValueError(f"testbed.mass must be > 0 [kg], got {mass!r}")
+            raise ArgumentError(f"testbed.mass must be > 0 [kg], got {mass!r}")
         if not (radius > 0 and math.isfinite(radius)):
-            raise ValueError(f"wheel radius must be > 0 [m], got {radius!r}")
+            raise ArgumentError(f"wheel radius must be > 0 [m], got {radius!r}")
         if mode == "slip" and not -1.0 < slip < 1.0:
-            raise ValueError(f"testbed.slip must be in (-1, 1), got {slip!r}")
+            raise ArgumentError(f"testbed.slip must be in (-1, 1), got {slip!r}")
         self.mass = float(mass)
         self.radius = float(radius)
         self.drive_omega = float(omega)
@@ -127,14 +129,14 @@ class SingleWheelRig:
 
     def apply_wheel_wrenches(self, wrenches: Sequence[WheelWrench]) -> None:
         if len(wrenches) != 1:
-            raise ValueError(f"the single-wheel rig has 1 wheel, got {len(wrenches)} wrenches")
+            raise ArgumentError(f"the single-wheel rig has 1 wheel, got {len(wrenches)} wrenches")
         self.held = wrenches[0]
 
     def advance(self, t_end: float) -> None:
         """Move the carriage to t_end [s] under the held wrench (exact for a wrench held constant)."""
         h = float(t_end) - self.time
         if h < 0:
-            raise ValueError(f"t_end {t_end!r} s is before the rig's time {self.time!r} s")
+            raise ArgumentError(f"t_end {t_end!r} s is before the rig's time {self.time!r} s")
         force = self.held.force
         acceleration = np.zeros(3)
         acceleration[2] = force[2] / self.mass + self.gravity[2]

@@ -28,6 +28,8 @@ import time
 import traceback
 from typing import TYPE_CHECKING, Any
 
+from soil.errors import ArgumentError, InternalError
+
 from . import metrics
 from .beds import BED_FILE, BED_INFO_FILE, settled_bed, write_json
 from .folders import RunFolder
@@ -111,9 +113,9 @@ class Executor:
 
     def __init__(self, kind: str = "dask", scheduler: str | None = None, workers: int | None = None):
         if kind not in ("dask", "serial"):
-            raise ValueError(f"executor must be 'dask' or 'serial', got {kind!r}")
+            raise ArgumentError(f"executor must be 'dask' or 'serial', got {kind!r}")
         if workers is not None and workers < 1:
-            raise ValueError(f"--workers must be >= 1, got {workers}")
+            raise ArgumentError(f"--workers must be >= 1, got {workers}")
         self.kind = kind
         self.scheduler = scheduler
         self.workers = workers or os.cpu_count() or 1
@@ -203,7 +205,7 @@ def _shared_bed(plan: RunPlan, out_dir: str, ex: Executor) -> str:
     log.info("settling the shared bed ...")
     result = ex.map(settle_task, [{"scene_toml": plan.scene.to_toml(), "folder": out_dir, "label": "bed"}])[0]
     if not isinstance(result, dict) or "path" not in result:
-        raise RuntimeError(f"settling the bed failed: {result}")
+        raise InternalError(f"settling the bed failed: {result}")
     return result["path"]
 
 
@@ -438,7 +440,10 @@ def slip_study(
     """Imposed slips after landing: DP, DP/W, torque and sinkage against slip, with error bars."""
     from .runner import absolute_paths
 
-    slips = [float(s) for s in slips]
+    try:
+        slips = [float(s) for s in slips]
+    except (TypeError, ValueError):
+        raise SceneError([f"--slips: {list(slips)!r} must be numbers in (-1, 1)"]) from None
     problems = [f"--slips: {s} must be in (-1, 1)" for s in slips if not -1 < s < 1]
     if not slips:
         problems.append("--slips: give at least one slip")

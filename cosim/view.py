@@ -20,7 +20,7 @@ import shutil
 
 import numpy as np
 
-from soil.errors import RegolithError
+from soil.errors import InputError
 
 from .folders import PLOTS_DIR, RESULTS_FILE
 from .output import open_results
@@ -32,7 +32,7 @@ COLOURS = ("speed", "displacement")
 MOVIE_SUFFIXES = (".mp4", ".gif")
 
 
-class ViewError(RegolithError, ValueError):
+class ViewError(InputError, ValueError):
     """`cosim view` cannot make a picture of what it was given (the message names the file or argument)."""
 
 

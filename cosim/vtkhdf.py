@@ -24,6 +24,7 @@ from typing import Any
 
 import numpy as np
 
+from soil.errors import ArgumentError
 from soil.files import atomic_path
 
 from .folders import RESULTS_FILE, VTKHDF_FILE
@@ -215,7 +216,7 @@ def write_vtkhdf(results_path, vtkhdf_path=None) -> str:
     with open_results(results_path) as f, atomic_path(target, ".vtkhdf.tmp") as temporary:
         count = snapshot_count(f)
         if count == 0:
-            raise ValueError(f"{results_path} holds no particle snapshots: nothing to export")
+            raise ArgumentError(f"{results_path} holds no particle snapshots: nothing to export")
         fixed = f["particles"].attrs.get("layout") != "ragged"
         with h5py.File(temporary, "w", track_order=True) as out:
             root = out.create_group("VTKHDF", track_order=True)

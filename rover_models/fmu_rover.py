@@ -33,6 +33,7 @@ from collections.abc import Sequence
 import numpy as np
 
 from cosim.contract import WheelKinematics, WheelWrench
+from soil.errors import ArgumentError, InternalError
 
 from .fmu_session import FmuError, FmuSession, FmuStepError, FmuVariableError, instantiate_cosim, read_cosim_description
 
@@ -188,7 +189,7 @@ class FmuRover(FmuSession):
     def set_gravity(self, gravity: Sequence[float]) -> None:
         g = [float(x) for x in np.asarray(gravity, dtype=np.float64).reshape(3)]
         if not self._initializing and self._gravity_causality == "parameter" and self._gravity_variability != "tunable":
-            raise RuntimeError(f"{self.path}: gravity.* is a fixed parameter; set gravity before the first step")
+            raise InternalError(f"{self.path}: gravity.* is a fixed parameter; set gravity before the first step")
         self._set(self._vr_gravity, g)
 
     def wheel_kinematics(self) -> list[WheelKinematics]:
@@ -201,7 +202,7 @@ class FmuRover(FmuSession):
 
     def apply_wheel_wrenches(self, wrenches: Sequence[WheelWrench]) -> None:
         if len(wrenches) != len(self.wheel_names):
-            raise ValueError(f"{len(wrenches)} wrenches for {len(self.wheel_names)} wheels")
+            raise ArgumentError(f"{len(wrenches)} wrenches for {len(self.wheel_names)} wheels")
         values = np.concatenate([np.concatenate([w.force, w.torque]) for w in wrenches])
         self._set(list(self._vr_in.reshape(-1)), [float(x) for x in values])
 
@@ -210,7 +211,7 @@ class FmuRover(FmuSession):
         self._ready()
         t_end = float(t_end)
         if t_end < self._time:
-            raise ValueError(f"cannot advance backwards: rover time {self._time}, t_end {t_end}")
+            raise ArgumentError(f"cannot advance backwards: rover time {self._time}, t_end {t_end}")
         if t_end > self._time:
             self._step(self._time, t_end - self._time, 0)
         self._time = t_end

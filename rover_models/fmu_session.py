@@ -18,16 +18,16 @@ import numpy as np
 from fmpy import extract, read_model_description
 from fmpy.fmi1 import FMICallException
 
-from soil.errors import RegolithError
+from soil.errors import InputError, RegolithError
 
 _DISCARD, _ERROR = 2, 3
 
 
-class FmuError(RegolithError, ValueError):
+class FmuError(InputError, ValueError):
     """An FMU file cannot be used: not an FMU, no or a broken model description, wrong kind."""
 
 
-class FmuVariableError(RegolithError, KeyError):
+class FmuVariableError(InputError, KeyError):
     """A variable the convention needs is missing or has the wrong type/causality."""
 
     def __str__(self):  # KeyError would print the message with quotes

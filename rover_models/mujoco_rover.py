@@ -32,6 +32,7 @@ import numpy as np
 from numpy.typing import ArrayLike
 
 from cosim.contract import WheelKinematics, WheelWrench
+from soil.errors import ArgumentError
 
 
 def load_model(model: str | os.PathLike | mujoco.MjModel) -> mujoco.MjModel:
@@ -74,7 +75,7 @@ class MujocoRover:
         self.wheel_names = list(wheel_bodies)
         """Wheel body names, in wheel order."""
         if not self.wheel_names:
-            raise ValueError("wheel_bodies is empty: name at least one wheel body")
+            raise ArgumentError("wheel_bodies is empty: name at least one wheel body")
         bodies = [self.model.body(i).name for i in range(self.model.nbody)]
         missing = [n for n in self.wheel_names if n not in bodies]
         if missing:
@@ -116,7 +117,7 @@ class MujocoRover:
         actuators = [self.model.actuator(i).name for i in range(self.model.nu)]
         if names is not None:
             if len(names) != len(self.wheel_names):
-                raise ValueError(f"{len(names)} wheel_actuators for {len(self.wheel_names)} wheels")
+                raise ArgumentError(f"{len(names)} wheel_actuators for {len(self.wheel_names)} wheels")
             out = []
             for n in names:
                 if n is not None and n not in actuators:
@@ -164,7 +165,7 @@ class MujocoRover:
 
     def apply_wheel_wrenches(self, wrenches: Sequence[WheelWrench]) -> None:
         if len(wrenches) != len(self.wheel_names):
-            raise ValueError(f"{len(wrenches)} wrenches for {len(self.wheel_names)} wheels")
+            raise ArgumentError(f"{len(wrenches)} wrenches for {len(self.wheel_names)} wheels")
         for i, w in enumerate(wrenches):
             self.hub_wrenches[i, :3] = w.force
             self.hub_wrenches[i, 3:] = w.torque
@@ -186,7 +187,7 @@ class MujocoRover:
         """Step MuJoCo with its own timestep until exactly t_end [s] (the last step shortened)."""
         t_end = float(t_end)
         if t_end < self.data.time - 1e-12:
-            raise ValueError(f"cannot advance backwards: rover time {self.data.time}, t_end {t_end}")
+            raise ArgumentError(f"cannot advance backwards: rover time {self.data.time}, t_end {t_end}")
         # A remainder below this is rounding, not a step worth taking.
         eps = 1e-9 * self.timestep
         split = self.model.opt.integrator != mujoco.mjtIntegrator.mjINT_RK4
@@ -216,9 +217,9 @@ class MujocoRover:
         """Velocity-actuator targets [rad/s], shape (wheel_count,); switches to speed mode."""
         targets = np.asarray(speeds, dtype=np.float64).reshape(-1)
         if targets.shape != (len(self.wheel_names),):
-            raise ValueError(f"{targets.size} speeds for {len(self.wheel_names)} wheels")
+            raise ArgumentError(f"{targets.size} speeds for {len(self.wheel_names)} wheels")
         if any(a is None for a in self._actuators):
-            raise ValueError(
+            raise ArgumentError(
                 f"no velocity actuator found for wheels "
                 f"{[n for n, a in zip(self.wheel_names, self._actuators) if a is None]}"
             )
@@ -237,10 +238,10 @@ class MujocoRover:
         """Hinge torques [N m], shape (wheel_count,); switches to torque mode (motors off)."""
         commands = np.asarray(torques, dtype=np.float64).reshape(-1)
         if commands.shape != (len(self.wheel_names),):
-            raise ValueError(f"{commands.size} torques for {len(self.wheel_names)} wheels")
+            raise ArgumentError(f"{commands.size} torques for {len(self.wheel_names)} wheels")
         missing = [n for n, d in zip(self.wheel_names, self._hinge_dof) if d is None]
         if missing:
-            raise ValueError(f"wheels {missing} have no hinge joint to apply a torque on")
+            raise ArgumentError(f"wheels {missing} have no hinge joint to apply a torque on")
         if self.drive_mode != "torque":
             for a in self._actuator_gains:
                 # A velocity actuator is kv (ctrl - qvel): zero gain and bias switch it off.

@@ -25,6 +25,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from .errors import SoilInputError
 from .materials import Material
 
 HERTZ_TIME_FACTOR = 2.0 * math.gamma(1.4) * math.sqrt(math.pi) / math.gamma(0.9)
@@ -61,7 +62,7 @@ def hertz_impact(e_star: float, r_star: float, m_star: float, speed: float) -> H
     Two equal spheres (E, nu, r, m): E* = E / (2 (1 - nu^2)), R* = r / 2, m* = m / 2.
     A sphere on a wall of the same material: R* = r, m* = m."""
     if not speed > 0:
-        raise ValueError(f"impact speed must be > 0 [m/s], got {speed!r}")
+        raise SoilInputError(f"impact speed must be > 0 [m/s], got {speed!r}")
     k = 4.0 / 3.0 * e_star * math.sqrt(r_star)
     overlap = (5.0 * m_star * speed**2 / (4.0 * k)) ** 0.4
     omega = math.sqrt(2.0 * e_star * math.sqrt(r_star * overlap) / m_star)
@@ -92,7 +93,7 @@ def macroscopic_stiffness(
     g = np.atleast_1d(np.asarray(gravity, dtype=float))
     u = float(np.linalg.norm(np.atleast_1d(np.asarray(overlap_factor, dtype=float))))
     if not (u > 0 and radius > 0 and soil_height >= 0):
-        raise ValueError("overlap_factor and radius must be > 0 and soil_height >= 0")
+        raise SoilInputError("overlap_factor and radius must be > 0 and soil_height >= 0")
     load = float(np.linalg.norm(3.0 * p + soil_height * density * g))
     return soil_height * load / (3.0 * u * radius)
 
@@ -136,7 +137,7 @@ def _scene_values(scene, radius, gravity, height):
     speed0 = 0.0
     if isinstance(scene, Material):
         if radius is None or gravity is None:
-            raise ValueError("with a Material, give radius [m] and gravity [m/s^2]")
+            raise SoilInputError("with a Material, give radius [m] and gravity [m/s^2]")
         g = float(np.linalg.norm(np.atleast_1d(gravity)))
         mass = scene.density * 4.0 / 3.0 * math.pi * radius**3
         e_star = scene.youngs_modulus / (2.0 * (1.0 - scene.poisson_ratio**2))
@@ -186,7 +187,7 @@ def recommended_time_step(
     if impact_speed is None:
         impact_speed = math.sqrt(2.0 * g * h) + speed0
     if not impact_speed > 0:
-        raise ValueError("no gravity and nothing moving: give impact_speed [m/s] (or dt_max directly)")
+        raise SoilInputError("no gravity and nothing moving: give impact_speed [m/s] (or dt_max directly)")
     r_star, m_star = 0.5 * r, 0.5 * mass
     impact = hertz_impact(e_star, r_star, m_star, impact_speed)
     column_force = (pressure + 0.6 * density * g * h) * (2.0 * r) ** 2
@@ -246,7 +247,7 @@ def largest_stable_step(
     from .stability import SimulationDiverged
 
     if not (growth > 1 and 0 < safety <= 1 and dt_start > 0 and duration > 0):
-        raise ValueError("need growth > 1, 0 < safety <= 1, dt_start > 0, duration > 0")
+        raise SoilInputError("need growth > 1, 0 < safety <= 1, dt_start > 0, duration > 0")
 
     def stable(dt):
         sim = make_simulation()

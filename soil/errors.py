@@ -1,9 +1,18 @@
 """The one base class of the errors and warnings regolith-cosim raises on purpose.
 
 Every package of the project (soil, cosim, rover_models) derives its exceptions from
-`RegolithError` (and, where it helps callers, from the matching built-in: ValueError for
-bad input, RuntimeError for a failed run), so `except RegolithError` catches exactly what
-the project reports and nothing of Python's own.
+`RegolithError`, in one of two kinds:
+
+- `InputError`: bad input (a scene, an argument, a file, a model, a setting); the message names
+  it and what is allowed. The command line exits 2 on these and only these. Each one also
+  derives from the matching built-in (ValueError, KeyError), so callers that catch those keep
+  working.
+- any other RegolithError: a run or a command failed for a reason that is not its input (it
+  diverged, a model refused a step, the machine lacks a tool, the project broke one of its own
+  rules); these derive from RuntimeError.
+
+So `except RegolithError` catches exactly what the project reports and nothing of Python's own,
+and `except InputError` exactly what the user can fix by changing the input.
 """
 
 
@@ -15,14 +24,35 @@ class RegolithWarning(UserWarning):
     """Base class of every regolith-cosim warning (filter them all with this class)."""
 
 
-class SoilInputError(RegolithError, ValueError):
+class InputError(RegolithError):
+    """Bad input (the message names it and what is allowed): the base of every input error, each
+    of which also derives from a built-in (ValueError, KeyError)."""
+
+
+class SoilInputError(InputError, ValueError):
     """Bad input to the soil API (a builder argument, a step, a setting): the message names it and what is allowed."""
+
+
+class ArgumentError(InputError, ValueError):
+    """A bad argument outside a scene file: a command-line option, an argument of a cosim or
+    rover_models function or class, a command a drive controller returns (the message names it and
+    what is allowed)."""
+
+
+class DamagedFileError(InputError, ValueError):
+    """A file the project reads is damaged (truncated, bytes changed) or is not the file it should be
+    (another format, another scene's): the message names the file, what is wrong and what is left."""
+
+
+class InternalError(RegolithError, RuntimeError):
+    """The project broke one of its own rules (a call out of order, a state that cannot occur): a bug,
+    not bad input; the message says what was expected."""
+
+
+class SetupError(RegolithError, RuntimeError):
+    """The machine lacks what a command needs (a C compiler, a POSIX system) or its tool failed on the
+    project's own sources: the message names it."""
 
 
 class OverlapWarning(RegolithWarning):
     """Grains were created deep inside each other: their first contact throws them apart."""
-
-
-class DamagedFileError(RegolithError, ValueError):
-    """A file the project reads is damaged (truncated, bytes changed) or is not the file it should be
-    (another format, another scene's): the message names the file, what is wrong and what is left."""

@@ -14,7 +14,7 @@ from typing import cast
 
 import numpy as np
 
-from .errors import RegolithWarning
+from .errors import DamagedFileError, RegolithWarning, SoilInputError
 
 
 @dataclass(frozen=True)
@@ -35,7 +35,7 @@ class GrouserWheel:
     def __post_init__(self):
         def check(name, ok, allowed):
             if not ok:
-                raise ValueError(f"wheel.{name} must be {allowed}, got {getattr(self, name)!r}")
+                raise SoilInputError(f"wheel.{name} must be {allowed}, got {getattr(self, name)!r}")
 
         check("radius", _positive(self.radius), "> 0 [m]")
         check("width", _positive(self.width), "> 0 [m]")
@@ -152,15 +152,17 @@ class MeshWheel:
         vertices = np.asarray(self.vertices, dtype=np.float64)
         triangles = np.asarray(self.triangles)
         if vertices.ndim != 2 or vertices.shape[1] != 3 or len(vertices) < 4 or not np.all(np.isfinite(vertices)):
-            raise ValueError(f"mesh {self.name!r}: vertices must be finite, shape (v >= 4, 3), got {vertices.shape}")
+            raise SoilInputError(
+                f"mesh {self.name!r}: vertices must be finite, shape (v >= 4, 3), got {vertices.shape}"
+            )
         if triangles.ndim != 2 or triangles.shape[1] != 3 or len(triangles) < 4:
-            raise ValueError(f"mesh {self.name!r}: triangles must have shape (t >= 4, 3), got {triangles.shape}")
+            raise SoilInputError(f"mesh {self.name!r}: triangles must have shape (t >= 4, 3), got {triangles.shape}")
         if triangles.min() < 0 or triangles.max() >= len(vertices):
-            raise ValueError(f"mesh {self.name!r}: triangle indices must be in [0, {len(vertices)})")
+            raise SoilInputError(f"mesh {self.name!r}: triangle indices must be in [0, {len(vertices)})")
         edges = np.sort(np.concatenate([triangles[:, [0, 1]], triangles[:, [1, 2]], triangles[:, [2, 0]]]), axis=1)
         _, counts = np.unique(edges, axis=0, return_counts=True)
         if np.any(counts != 2):
-            raise ValueError(
+            raise SoilInputError(
                 f"mesh {self.name!r} is not closed (watertight): {int(np.sum(counts != 2))} edges are not "
                 "shared by exactly two triangles; inside/outside needs a closed surface"
             )
@@ -182,11 +184,11 @@ class MeshWheel:
         path = os.fspath(path)
         extension = os.path.splitext(path)[1].lower()
         if extension not in (".obj", ".stl"):
-            raise ValueError(f"wheel mesh file must be .obj or .stl, got {path!r}")
+            raise SoilInputError(f"wheel mesh file must be .obj or .stl, got {path!r}")
         if not os.path.isfile(path):
             raise FileNotFoundError(f"wheel mesh file not found: {path!r}")
         if not (_positive(scale)):
-            raise ValueError(f"mesh scale must be > 0, got {scale!r}")
+            raise SoilInputError(f"mesh scale must be > 0, got {scale!r}")
         try:
             import trimesh
         except ImportError as error:  # pragma: no cover - depends on the install
@@ -197,18 +199,18 @@ class MeshWheel:
             mesh = cast("trimesh.Trimesh", trimesh.load(path, force="mesh", process=True))
         except Exception:
             # trimesh's own message names what failed inside it (a text decoder, a struct), not the file
-            raise ValueError(
+            raise DamagedFileError(
                 f"cannot read wheel mesh {path!r}: not a readable {kind} file (damaged or another format)"
             ) from None
         if len(getattr(mesh, "faces", ())) == 0:
-            raise ValueError(f"wheel mesh {path!r} has no triangles: not a readable {kind} file")
+            raise DamagedFileError(f"wheel mesh {path!r} has no triangles: not a readable {kind} file")
         if not mesh.is_watertight:
-            raise ValueError(
+            raise SoilInputError(
                 f"wheel mesh {path!r} is not closed (watertight): inside and outside of the wheel need a closed "
                 "surface; close its holes (e.g. trimesh.repair.fill_holes) and export it again"
             )
         if not mesh.is_winding_consistent:
-            raise ValueError(
+            raise SoilInputError(
                 f"wheel mesh {path!r} has inconsistent winding (neighbouring triangles face opposite ways): "
                 "its normals cannot all point outward; fix the mesh (e.g. trimesh.repair.fix_winding)"
             )

@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from .errors import SoilInputError
+
 GRAVITY_PRESETS: dict[str, float] = {
     "earth": 9.80665,
     "mars": 3.721,
@@ -19,13 +21,13 @@ def gravity_vector(value) -> np.ndarray:
     """Gravity vector [m/s^2], shape (3,), from a preset name, a magnitude (along -Z) or a 3-vector."""
     if isinstance(value, str):
         if value not in GRAVITY_PRESETS:
-            raise ValueError(f"gravity preset must be one of {sorted(GRAVITY_PRESETS)}, got {value!r}")
+            raise SoilInputError(f"gravity preset must be one of {sorted(GRAVITY_PRESETS)}, got {value!r}")
         return np.array([0.0, 0.0, -GRAVITY_PRESETS[value]])
     array = np.asarray(value, dtype=np.float64)
     if array.ndim == 0:
         if not np.isfinite(array) or array < 0:
-            raise ValueError(f"gravity magnitude must be a finite number >= 0 [m/s^2], got {value!r}")
+            raise SoilInputError(f"gravity magnitude must be a finite number >= 0 [m/s^2], got {value!r}")
         return np.array([0.0, 0.0, -float(array)])
     if array.shape != (3,) or not np.all(np.isfinite(array)):
-        raise ValueError(f"gravity must be a preset name, a magnitude or 3 finite numbers [m/s^2], got {value!r}")
+        raise SoilInputError(f"gravity must be a preset name, a magnitude or 3 finite numbers [m/s^2], got {value!r}")
     return array.copy()

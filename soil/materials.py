@@ -8,6 +8,8 @@ from functools import lru_cache
 
 import numpy as np
 
+from .errors import SoilInputError
+
 
 @lru_cache(maxsize=256)
 def restitution_of_damping_ratio(damping_ratio: float) -> float:
@@ -47,14 +49,14 @@ def damping_ratio_for_restitution(restitution: float) -> float:
     from scipy.optimize import brentq
 
     if not 0.0 < restitution <= 1.0:
-        raise ValueError(f"restitution must be in (0, 1], got {restitution!r}")
+        raise SoilInputError(f"restitution must be in (0, 1], got {restitution!r}")
     if restitution == 1.0:
         return 0.0
     high = 0.5
     while restitution_of_damping_ratio(high) > restitution:
         high *= 2.0
         if high > 1e3:
-            raise ValueError(f"restitution {restitution} is too small to reach with Lehr damping")
+            raise SoilInputError(f"restitution {restitution} is too small to reach with Lehr damping")
     return float(brentq(lambda d: restitution_of_damping_ratio(d) - restitution, 0.0, high, xtol=1e-10))
 
 
@@ -86,7 +88,7 @@ class Material:
     def __post_init__(self):
         def check(name, ok, allowed):
             if not ok:
-                raise ValueError(f"material.{name} must be {allowed}, got {getattr(self, name)!r}")
+                raise SoilInputError(f"material.{name} must be {allowed}, got {getattr(self, name)!r}")
 
         check("youngs_modulus", _finite(self.youngs_modulus) and self.youngs_modulus > 0, "> 0 [Pa]")
         check("poisson_ratio", _finite(self.poisson_ratio) and -1.0 < self.poisson_ratio < 0.5, "in (-1, 0.5)")
@@ -131,7 +133,7 @@ def stick_speed_for(gravity: float, grain_diameter: float) -> float:
     and mean grain diameter d [m]: the same fraction of the grains' speed scale at any gravity, so
     the gravity twin (speeds x sqrt(s)) keeps it."""
     if not (math.isfinite(gravity) and gravity > 0 and math.isfinite(grain_diameter) and grain_diameter > 0):
-        raise ValueError(
+        raise SoilInputError(
             f"the default stick speed needs gravity > 0 and a grain diameter > 0 (got {gravity!r} m/s^2, "
             f"{grain_diameter!r} m): give the stick speed"
         )
@@ -222,7 +224,7 @@ class MaterialTable:
         allowed = set(PairProperties.__dataclass_fields__)
         for name in fields:
             if name not in allowed:
-                raise ValueError(f"pair property {name!r} is unknown; allowed: {sorted(allowed)}")
+                raise SoilInputError(f"pair property {name!r} is unknown; allowed: {sorted(allowed)}")
         self.overrides[(min(i, j), max(i, j))] = dict(fields)
 
     def pair_table(self) -> np.ndarray:

@@ -18,7 +18,7 @@ from __future__ import annotations
 import os
 from dataclasses import dataclass
 
-from .errors import RegolithError
+from .errors import InputError
 
 BASE_BYTES = {"single": 1080, "mixed": 1945, "double": 1977}
 """Device bytes per grain besides the pair contact slots (4 wall/wheel slots included) [B]."""
@@ -30,7 +30,7 @@ DEFAULT_CONTACT_CAPACITY = 16
 """Pair contact slots per grain at the start (SoilBuilder.finalize's default)."""
 
 
-class SoilTooLargeError(RegolithError, ValueError):
+class SoilTooLargeError(InputError, ValueError):
     """The soil does not fit this machine's free memory: the message gives the estimate and what is free."""
 
 

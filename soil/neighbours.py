@@ -29,6 +29,7 @@ import warp as wp
 
 from . import status as status_columns
 from .contact import ContactLaw, spin_history_type
+from .errors import SoilInputError
 from .precision import kernel_factory, kernel_module, soil_kernel
 from .state import GrainLayout, SoilState
 
@@ -59,9 +60,9 @@ class NeighbourSettings:
         if self.skin is not None and not (
             isinstance(self.skin, (int, float)) and math.isfinite(self.skin) and self.skin > 0
         ):
-            raise ValueError(f"neighbour skin must be finite and > 0 [m], got {self.skin!r}")
+            raise SoilInputError(f"neighbour skin must be finite and > 0 [m], got {self.skin!r}")
         if not (isinstance(self.reorder_every, int) and self.reorder_every >= 1):
-            raise ValueError(f"reorder_every must be an integer >= 1, got {self.reorder_every!r}")
+            raise SoilInputError(f"reorder_every must be an integer >= 1, got {self.reorder_every!r}")
 
 
 @wp.func

@@ -23,6 +23,8 @@ from types import SimpleNamespace
 import numpy as np
 import warp as wp
 
+from .errors import SoilInputError
+
 PRECISIONS = ("single", "double", "mixed")
 
 
@@ -59,7 +61,7 @@ def get_precision(name: str) -> Precision:
         return Precision("double", wp.float64, wp.float64)
     if name == "mixed":
         return Precision("mixed", wp.float64, wp.float32)
-    raise ValueError(f"precision must be one of {PRECISIONS}, got {name!r}")
+    raise SoilInputError(f"precision must be one of {PRECISIONS}, got {name!r}")
 
 
 def kernel_module(name: str, *key) -> str:

@@ -178,6 +178,35 @@ def test_a_full_disk_is_one_clear_line_with_the_path(tmp_path, tiny_bed, capsys,
     assert code == 5 and "No space left on device" in err and "results.h5" in err and "Traceback" not in err
 
 
+@pytest.mark.parametrize("verbose", [False, True])
+def test_an_internal_error_is_exit_1_not_bad_input(tmp_path, tiny_bed, capsys, monkeypatch, verbose):
+    """A plain ValueError deep inside a run is a bug, not bad input: exit 1, one line naming the error
+    (its traceback under --verbose), never the exit 2 of a bad scene."""
+    from cosim import advice
+
+    def broken(plan, surface_height):
+        raise ValueError("an internal check broke")
+
+    monkeypatch.setattr(advice, "check", broken)
+    scene = write_tiny(tmp_path)
+    flags = ["--verbose"] if verbose else []
+    argv = ["run", scene, "--out", str(tmp_path / "run"), "--no-progress", "--set", f'bed.bed_file="{tiny_bed}"']
+    assert main(flags + argv) == 1
+    err = capsys.readouterr().err
+    assert "ValueError: an internal check broke" in err
+    assert ("Traceback" in err) == verbose
+    if not verbose:
+        assert err.count("\n") == 1
+
+
+def test_a_bad_scene_field_is_exit_2_naming_it(tmp_path, capsys):
+    scene = write_tiny(tmp_path)
+    assert main(["run", scene, "--out", str(tmp_path / "run"), "--no-progress", "--set", "wheel.radius=-1"]) == 2
+    err = capsys.readouterr().err
+    assert "wheel.radius" in err and "Traceback" not in err
+    assert not (tmp_path / "run").exists()
+
+
 def test_a_missing_cuda_device_is_exit_2(tmp_path, capsys):
     import warp as wp
 

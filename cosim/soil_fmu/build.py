@@ -26,6 +26,8 @@ from xml.sax.saxutils import quoteattr
 
 import numpy as np
 
+from soil.errors import ArgumentError, SetupError
+
 HERE = Path(__file__).resolve().parent
 MODEL_IDENTIFIER = "RegolithSoil"
 SOURCES = {2: ["soil_fmu.h", "soil_fmu.c", "fmi2.c"], 3: ["soil_fmu.h", "soil_fmu.c", "fmi3.c"]}
@@ -322,7 +324,7 @@ def _variable_fmi3(v: Variable) -> str:
 def frontend_text(rows: list[Variable], token: str, wheel_count: int, python: str) -> str:
     """resources/frontend.txt: what the front end reads at instantiation (soil_fmu.c, read_frontend)."""
     if "\n" in python:
-        raise ValueError(f"the server's Python path must not contain a line break: {python!r}")
+        raise ArgumentError(f"the server's Python path must not contain a line break: {python!r}")
     lines = [
         "# soil FMU front end: instantiation token, wheel count, default server Python, start values",
         f"token {token}",
@@ -352,11 +354,11 @@ def build_frontend(fmi_version: int, folder, compiler: str = "gcc") -> Path:
     import fmpy
 
     if fmi_version not in SOURCES:
-        raise ValueError(f"fmi_version must be 2 or 3, got {fmi_version!r}")
+        raise ArgumentError(f"fmi_version must be 2 or 3, got {fmi_version!r}")
     if fmpy.system == "windows":
-        raise RuntimeError("the soil FMU front end needs a POSIX system (Linux, macOS)")
+        raise SetupError("the soil FMU front end needs a POSIX system (Linux, macOS)")
     if shutil.which(compiler) is None:
-        raise RuntimeError(f"C compiler {compiler!r} not found: it builds the soil FMU's front end")
+        raise SetupError(f"C compiler {compiler!r} not found: it builds the soil FMU's front end")
     _, suffix = _platform(fmi_version)
     folder = Path(folder)
     folder.mkdir(parents=True, exist_ok=True)
@@ -380,7 +382,7 @@ def build_frontend(fmi_version: int, folder, compiler: str = "gcc") -> Path:
     ]
     done = subprocess.run(command, capture_output=True, text=True, check=False)
     if done.returncode != 0:
-        raise RuntimeError(f"compiling the soil FMU front end failed ({' '.join(command)}):\n{done.stderr}")
+        raise SetupError(f"compiling the soil FMU front end failed ({' '.join(command)}):\n{done.stderr}")
     return library
 
 
@@ -420,7 +422,7 @@ def wheel_start_positions(config, wheel_count: int) -> np.ndarray:
     else:
         spacing = (hi[0] - lo[0] - 2.0 * margin) / (wheel_count - 1)
         if spacing < 2.0 * outer * 1.05:
-            raise ValueError(
+            raise ArgumentError(
                 f"the bed ({hi[0] - lo[0]:.4g} m long) cannot hold {wheel_count} wheels of outer radius "
                 f"{outer:.4g} m side by side with {margin:.4g} m margins: use fewer wheels (--wheels) or a "
                 "longer bed"
@@ -466,9 +468,9 @@ def export_soil_fmu(
     from .config import config_to_json
 
     if fmi_version not in SOURCES:
-        raise ValueError(f"fmi_version must be 2 or 3, got {fmi_version!r}")
+        raise ArgumentError(f"fmi_version must be 2 or 3, got {fmi_version!r}")
     if not (isinstance(wheel_count, (int, np.integer)) and 1 <= wheel_count <= 10000):
-        raise ValueError(f"wheel_count must be an integer in [1, 10000], got {wheel_count!r}")
+        raise ArgumentError(f"wheel_count must be an integer in [1, 10000], got {wheel_count!r}")
     python = python or config.python or sys.executable
     data = config_to_json(config, wheel_count)
     starts = np.zeros((wheel_count, 13))

@@ -14,6 +14,8 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from soil.errors import ArgumentError, DamagedFileError
+
 if TYPE_CHECKING:  # soil (and Warp) load only when a soil is built
     from soil import ContactLaw, GrouserWheel, Material, MeshWheel
 
@@ -60,11 +62,11 @@ class SoilFmuConfig:
 
     def __post_init__(self):
         if not (isinstance(self.dem_step, (int, float)) and math.isfinite(self.dem_step) and self.dem_step > 0):
-            raise ValueError(f"dem_step must be > 0 [s], got {self.dem_step!r}")
+            raise ArgumentError(f"dem_step must be > 0 [s], got {self.dem_step!r}")
         if self.precision not in ("single", "double", "mixed"):
-            raise ValueError(f"precision must be single, double or mixed, got {self.precision!r}")
+            raise ArgumentError(f"precision must be single, double or mixed, got {self.precision!r}")
         if self.macro_step is not None and not self.macro_step > 0:
-            raise ValueError(f"macro_step must be > 0 [s], got {self.macro_step!r}")
+            raise ArgumentError(f"macro_step must be > 0 [s], got {self.macro_step!r}")
         if not os.path.isfile(self.bed_file):
             raise FileNotFoundError(f"bed file not found: {self.bed_file!r}")
 
@@ -97,7 +99,7 @@ def soil_config_from(path, bed_folder=None) -> SoilFmuConfig:
         plan = load_plan(path)
         _require_single_wheel(plan, path)  # before a bed is settled
         if bed_folder is None and not plan.bed.bed_file:
-            raise ValueError("a scene without bed.bed_file needs a bed_folder to settle its bed in")
+            raise ArgumentError("a scene without bed.bed_file needs a bed_folder to settle its bed in")
         bed = settled_bed(plan, os.fspath(bed_folder) if bed_folder else "")
     _require_single_wheel(plan, path)
     assert plan.testbed is not None
@@ -129,7 +131,7 @@ def bed_surface_height(bed_file) -> float:
 
     _, saved = load_bed(bed_file)
     if "height" not in saved["metrics"]:
-        raise ValueError(f"the bed file {bed_file!r} has no height metric: give surface_height [m]")
+        raise ArgumentError(f"the bed file {bed_file!r} has no height metric: give surface_height [m]")
     return float(saved["metrics"]["height"])
 
 
@@ -181,7 +183,7 @@ def soil_from_config(data: dict, bed_file, dem_step: float | None = None, device
     from soil import ContactLaw, GrouserWheel, Material, MeshWheel
 
     if data.get("format") != CONFIG_FORMAT:
-        raise ValueError(
+        raise DamagedFileError(
             f"not a soil FMU configuration (format {data.get('format')!r}, expected {CONFIG_FORMAT!r}): "
             "export the FMU again with this regolith-cosim"
         )
