@@ -17,7 +17,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from soil import MeshWheel
-from soil.errors import RegolithError
+from soil.errors import ArgumentError, RegolithError
 
 from .scene import DriveSection, MmxSection, Scene, SceneError
 
@@ -167,6 +167,8 @@ def probe_drive(scene: Scene, section: DriveSection, key: str, wheel_count: int,
             return FmuController(file, wheel_count, mode=section.mode, start_values=section.start_values).mode
         except ImportError as error:
             problems.append(f"{key}.kind: an FMU controller needs fmpy ({error})")
+        except ArgumentError as error:  # the mode asked for, or the FMU's outputs leave it open
+            problems.append(f"{key}.mode: {error}")
         except RegolithError as error:
             problems.append(f"{key}.file: {error}")
         except ValueError as error:
