@@ -10,158 +10,35 @@ which three rotating state buffers keep untouched, so the result equals a run th
 enough storage from the start (docs/performance.md).
 """
 
-import functools
 import math
-import warnings
-from dataclasses import dataclass
 
 import numpy as np
 import warp as wp
 
+from . import adaptive, step_control
 from . import status as status_columns
-from . import step_control
 from .boundaries import boundary_kernels
 from .control import SoilControl, path_kernels
-from .errors import RegolithWarning, SoilInputError
+from .errors import SoilInputError
 from .integrator import JoltBeeman, StepController, VelocityVerlet, integrator_kernels
+from .macro import (  # noqa: F401 (CaptureWarning and the report's columns re-exported)
+    BODY_COLUMNS,
+    REPORT_BODIES,
+    REPORT_BOUNDS,
+    CaptureWarning,
+    MacroStepReport,
+    MacroSums,
+    StepGraphs,
+    grain_box,
+    macro_kernels,
+)
 from .model import SoilModel
 from .neighbours import NeighbourList, NeighbourSettings
-from .precision import kernel_factory, kernel_module, soil_kernel
 from .sdf import BOUNDARY_BOX
 from .solver import ContactSolver
 from .stability import DivergenceMonitor, SimulationDiverged  # noqa: F401 (SimulationDiverged re-exported)
 from .state import GrainLayout, SoilState
 from .step_control import DeviceStepControl
-
-REPORT_BOUNDS = status_columns.COLUMNS
-"""Report columns after the status (soil.status): the grains' box at the last list build,
-lower corner [m] (3) then upper corner [m] (3)."""
-REPORT_BODIES = REPORT_BOUNDS + 6
-"""First report column of the bodies: per body the force sum [N] (3) and torque sum [N m] (3)
-over the macro step's steps, force and torque at its end (6), work done on the soil [J] (1),
-grains touching at its end (1); then per boundary its displacement at the end [m] (3)."""
-BODY_COLUMNS = 14
-MAX_GRAPHS = 32
-"""Captured steps kept at most; the oldest is dropped first (a caller that keeps changing the
-step length would otherwise hold ever more graphs)."""
-
-
-class CaptureWarning(RegolithWarning):
-    """The device could not capture a step as a graph; steps are launched one by one."""
-
-
-@kernel_factory
-def macro_kernels(hi):
-    """Kernels of a macro step's bookkeeping for the precision type `hi` (sums in float64)."""
-    kernel = soil_kernel(kernel_module("macro", hi))
-    vec_hi = wp.types.vector(3, hi)
-
-    @kernel
-    def accumulate_wrench(
-        force: wp.array(dtype=vec_hi),
-        torque: wp.array(dtype=vec_hi),
-        velocity: wp.array(dtype=vec_hi),
-        angular_velocity: wp.array(dtype=vec_hi),
-        step_length: wp.array(dtype=wp.float64),
-        weighted: int,
-        force_sum_out: wp.array(dtype=wp.vec3d),
-        torque_sum_out: wp.array(dtype=wp.vec3d),
-        work_out: wp.array(dtype=wp.float64),
-    ):
-        """Add a step's wrench on body b to the macro step's sums (one thread per body: a fixed
-        order), weighted by the step's length when the steps vary (weighted != 0); the soil's
-        force does -F.v - T.w work on the soil side's books."""
-        b = wp.tid()
-        dt = step_length[0]
-        f = wp.vec3d(wp.float64(force[b][0]), wp.float64(force[b][1]), wp.float64(force[b][2]))
-        t = wp.vec3d(wp.float64(torque[b][0]), wp.float64(torque[b][1]), wp.float64(torque[b][2]))
-        v = wp.vec3d(wp.float64(velocity[b][0]), wp.float64(velocity[b][1]), wp.float64(velocity[b][2]))
-        w = wp.vec3d(
-            wp.float64(angular_velocity[b][0]), wp.float64(angular_velocity[b][1]), wp.float64(angular_velocity[b][2])
-        )
-        if weighted != 0:
-            force_sum_out[b] = force_sum_out[b] + f * dt
-            torque_sum_out[b] = torque_sum_out[b] + t * dt
-        else:
-            force_sum_out[b] = force_sum_out[b] + f
-            torque_sum_out[b] = torque_sum_out[b] + t
-        # Warp's stubs do not list vec3d among the vector types wp.dot takes
-        work_out[b] = work_out[b] - (wp.dot(f, v) + wp.dot(t, w)) * dt  # type: ignore[call-overload]
-
-    @kernel
-    def fill_report(
-        status: wp.array(dtype=wp.int32),
-        grid: wp.array(dtype=hi),
-        force_sum: wp.array(dtype=wp.vec3d),
-        torque_sum: wp.array(dtype=wp.vec3d),
-        work: wp.array(dtype=wp.float64),
-        force: wp.array(dtype=vec_hi),
-        torque: wp.array(dtype=vec_hi),
-        contacts: wp.array(dtype=wp.int32),
-        boundary_displacement: wp.array(dtype=vec_hi),
-        report_out: wp.array(dtype=wp.float64),
-    ):
-        """Everything the host needs after a macro step, in one array (read once)."""
-        for c in range(status_columns.COLUMNS):
-            report_out[c] = wp.float64(status[c])
-        for axis in range(3):
-            report_out[REPORT_BOUNDS + axis] = wp.float64(grid[axis])
-            report_out[REPORT_BOUNDS + 3 + axis] = wp.float64(grid[6 + axis])
-        for b in range(force.shape[0]):
-            base = REPORT_BODIES + BODY_COLUMNS * b
-            for axis in range(3):
-                report_out[base + axis] = force_sum[b][axis]
-                report_out[base + 3 + axis] = torque_sum[b][axis]
-                report_out[base + 6 + axis] = wp.float64(force[b][axis])
-                report_out[base + 9 + axis] = wp.float64(torque[b][axis])
-            report_out[base + 12] = work[b]
-            report_out[base + 13] = wp.float64(contacts[b])
-        walls = REPORT_BODIES + BODY_COLUMNS * force.shape[0]
-        for b in range(boundary_displacement.shape[0]):
-            for axis in range(3):
-                report_out[walls + 3 * b + axis] = wp.float64(boundary_displacement[b][axis])
-
-    return dict(accumulate_wrench=accumulate_wrench, fill_report=fill_report)
-
-
-@dataclass
-class MacroStepReport:
-    """What a macro step (Simulation.macro_step) returns, read from the device at once.
-
-    Bodies' arrays are world frame, float64, one row per body."""
-
-    steps: int
-    """DEM steps taken [-]."""
-    dt: float
-    """Their length [s]."""
-    body_force: np.ndarray
-    """Mean force of the soil on each body over the steps [N], shape (body_count, 3)."""
-    body_torque: np.ndarray
-    """Mean torque of the soil on each body about its hub [N m], shape (body_count, 3)."""
-    body_force_end: np.ndarray
-    """Force of the soil on each body at the end [N], shape (body_count, 3)."""
-    body_torque_end: np.ndarray
-    """Torque at the end [N m], shape (body_count, 3)."""
-    body_work: np.ndarray
-    """Work done on the soil by each body over the steps [J], shape (body_count,) (sum of -F.v dt - T.w dt)."""
-    body_contacts: np.ndarray
-    """Grains touching each body at the end [-], shape (body_count,), int64."""
-    boundary_displacement: np.ndarray
-    """Translation of each boundary from its initial geometry at the end [m], shape (boundary_count, 3)."""
-    rebuilds: int
-    """Neighbour-list builds during the macro step [-]."""
-    redone: int
-    """How often the macro step was redone after the contact storage grew [-]."""
-    rejected: int = 0
-    """Substeps the step control computed and threw away [-] (0 with fixed steps)."""
-    forced: int = 0
-    """Substeps accepted at dt_min although their error exceeded the tolerance [-]."""
-    dt_min: float = math.nan
-    """Shortest step taken [s] (with fixed steps: dt)."""
-    dt_max: float = math.nan
-    """Longest step taken [s] (with fixed steps: dt)."""
-    evaluations: int = 0
-    """Force evaluations of the macro step, rejected substeps included [-]."""
 
 
 class Simulation:
@@ -200,8 +77,8 @@ class Simulation:
         """Steps accepted at dt_min although their error exceeded the tolerance."""
         self.control = control or SoilControl.for_model(model)
         self.integrator = integrator or VelocityVerlet()
-        self.capture = bool(capture)
-        """Whether steps are replayed from captured graphs."""
+        self.graphs = StepGraphs(model.device, capture)
+        """The captured steps (soil.macro.StepGraphs)."""
         if state.layout is None:
             state.layout = GrainLayout(model, state.capacity)
         state.layout.gather_constants(model)
@@ -215,19 +92,11 @@ class Simulation:
         ]
         self.steps = 0
         self._controller: StepController | None = None  # run_adaptive's, kept between calls
-        self._graphs: dict = {}
-        self._graph_signature: tuple | None = None
-        self._modules_loaded = False
         self._rebuilds_since_reorder = 0
         self._bounds: tuple | None = None
         device = model.device
-        bodies = max(model.body_count, 1)
-        self._force_sum = wp.zeros(bodies, dtype=wp.vec3d, device=device)
-        self._torque_sum = wp.zeros(bodies, dtype=wp.vec3d, device=device)
-        self._work = wp.zeros(bodies, dtype=wp.float64, device=device)
-        self._report_steps = REPORT_BODIES + BODY_COLUMNS * model.body_count + 3 * model.boundary_count
-        """First report column of the step control's block (soil.step_control columns)."""
-        self._report = wp.zeros(self._report_steps + step_control.COLUMNS, dtype=wp.float64, device=device)
+        self.sums = MacroSums(model)
+        """The macro step's wrench sums and report on the device (soil.macro.MacroSums)."""
         hi = model.precision.hi
         self._step_length = wp.zeros(1, dtype=hi, device=device)
         """The DEM step the kernels read [s], shape (1,): on the device, so that a step's length can be
@@ -244,6 +113,11 @@ class Simulation:
     def time(self) -> float:
         """Simulated time [s]."""
         return self.state.time
+
+    @property
+    def capture(self) -> bool:
+        """Whether steps are replayed from captured graphs (False after the device failed to capture)."""
+        return self.graphs.enabled
 
     # -- buffers ---------------------------------------------------------------------
     def _spares(self) -> list[SoilState]:
@@ -340,51 +214,9 @@ class Simulation:
         self._step_length64.fill_(float(dt))
 
     def _accumulate_wrench(self, state: SoilState, weighted: bool) -> None:
-        if not self.model.body_count:
-            return
-        wp.launch(
-            macro_kernels(self.model.precision.hi).accumulate_wrench,
-            dim=self.model.body_count,
-            inputs=[
-                state.body_force,
-                state.body_torque,
-                self.control.body_velocity,
-                self.control.body_angular_velocity,
-                self._step_length64,
-                int(weighted),
-            ],
-            outputs=[self._force_sum, self._torque_sum, self._work],
-            device=self.model.device,
-        )
-
-    def _replay(self, key: tuple, body) -> int | None:
-        """Run `body` from its captured graph (captured at its first use): the force evaluations
-        one replay counts, or None when the device cannot capture (then run `body` yourself)."""
-        if not self.capture:
-            return None
-        entry = self._graphs.get(key)
-        if entry is None:
-            if len(self._graphs) >= MAX_GRAPHS:
-                del self._graphs[next(iter(self._graphs))]
-            evaluations = self.contacts.evaluations
-            try:
-                with wp.ScopedCapture(device=self.model.device) as capture:
-                    body()
-                entry = self._graphs[key] = (capture.graph, self.contacts.evaluations - evaluations)
-            except Exception as error:  # e.g. a GPU driver without conditional graph nodes
-                warnings.warn(
-                    f"steps cannot be captured as graphs on {self.model.device} ({error}); launching them one by one",
-                    CaptureWarning,
-                    stacklevel=4,
-                )
-                self.capture = False
-                self._graphs.clear()
-            self.contacts.evaluations = evaluations  # counted when the graph runs
-        if entry is None:
-            return None
-        graph, evaluations = entry
-        wp.capture_launch(graph)
-        return evaluations
+        """Add the bodies' wrench of `state` to the macro step's sums (capturable)."""
+        control = self.control
+        self.sums.accumulate(state, control.body_velocity, control.body_angular_velocity, self._step_length64, weighted)
 
     def _run_step(self, dt: float, state_in: SoilState, state_out: SoilState, path: bool) -> None:
         """One DEM step state_in -> state_out of the length in _step_length (dt [s]): replayed from
@@ -398,45 +230,33 @@ class Simulation:
             if path:
                 self.control.count_path_step()
 
-        evaluations = self._replay((id(state_in), id(state_out), path, type(self.integrator)), body)
+        evaluations = self.graphs.replay(
+            (id(state_in), id(state_out), path, type(self.integrator)), body, self.contacts
+        )
         if evaluations is None:
             body()
         else:
             self.contacts.evaluations += evaluations
         state_out.time = state_in.time + dt
 
-    def _load_modules(self) -> None:
-        """Load (compile) every module a step uses before a graph is captured: a GPU driver older
-        than CUDA 12.3 cannot load modules during a capture."""
-        if self._modules_loaded or not wp.get_device(self.model.device).is_cuda:
-            return
-        prec = self.model.precision
-        namespaces = [
-            integrator_kernels(prec.hi, prec.lo, self.model.law),
-            boundary_kernels(prec.hi),
-            path_kernels(prec.hi),
-            macro_kernels(prec.hi),
-            step_control.step_control_kernels(prec.hi),
-            self.contacts.kernels,
-            self.neighbour_list.kernels,
-        ]
-        modules = {
-            value.module for space in namespaces for value in vars(space).values() if isinstance(value, wp.Kernel)
-        }
-        for module in modules:
-            module.load(wp.get_device(self.model.device))
-        self._modules_loaded = True
-
     def _prepare(self) -> None:
         """Allocate everything a captured step touches, and drop graphs whose arrays changed."""
-        self._load_modules()
+        prec = self.model.precision
+        self.graphs.load_modules(
+            [
+                integrator_kernels(prec.hi, prec.lo, self.model.law),
+                boundary_kernels(prec.hi),
+                path_kernels(prec.hi),
+                macro_kernels(prec.hi),
+                step_control.step_control_kernels(prec.hi),
+                self.contacts.kernels,
+                self.neighbour_list.kernels,
+            ]
+        )
         self._spares()
         self.contacts.reserve(self.state.rigid_capacity)
         self.integrator.bind(self.model)
-        signature = self._signature()
-        if signature != self._graph_signature:
-            self._graphs.clear()
-            self._graph_signature = signature
+        self.graphs.check(self._signature())
 
     def _maybe_reorder(self) -> None:
         """Between macro steps: move the grains into the list's curve order when it was rebuilt
@@ -473,8 +293,7 @@ class Simulation:
             self._prepare()
             spares = self._spares()
             status_columns.clear(self.status)
-            for array in (self._force_sum, self._torque_sum, self._work):
-                array.zero_()
+            self.sums.clear()
             if path:
                 self.control.path_step.zero_()
             self.neighbour_list.save(start)
@@ -484,7 +303,7 @@ class Simulation:
                 target = spares[k % 2]
                 self._run_step(dt, current, target, path)
                 current = target
-            values = self._read_report(current)
+            values = self.sums.read(self.status, self.neighbour_list.grid, current)
             growth = self._needs_growth(values)
             if growth is None:
                 break
@@ -497,10 +316,10 @@ class Simulation:
         evaluations = self.contacts.evaluations - evaluations_before
         rebuilds = int(values[status_columns.REBUILDS])
         self._rebuilds_since_reorder += rebuilds
-        self._bounds = (values[REPORT_BOUNDS : REPORT_BOUNDS + 3], values[REPORT_BOUNDS + 3 : REPORT_BOUNDS + 6])
+        self._bounds = grain_box(values)
         if values[status_columns.NONFINITE] > 0:
             self.monitor.fail(self, "non-finite particle state (NaN or inf)", int(values[status_columns.WORST]))
-        return self._macro_report(
+        return self.sums.report(
             values,
             steps,
             steps=steps,
@@ -512,93 +331,13 @@ class Simulation:
             evaluations=evaluations,
         )
 
-    def _macro_report(self, values: np.ndarray, averaged_over: float, **fields) -> MacroStepReport:
-        """The macro step's report from the array read back: the wheels' wrench sums divided by
-        `averaged_over` (the step count, or the span [s] where the sums are weighted by each
-        substep's length), their end values, work and contacts, the walls' displacement, and
-        `fields` (the step counts and lengths)."""
-        model = self.model
-        walls = REPORT_BODIES + BODY_COLUMNS * model.body_count
-        bodies = values[REPORT_BODIES:walls].reshape(model.body_count, BODY_COLUMNS)
-        return MacroStepReport(
-            body_force=bodies[:, 0:3] / averaged_over,
-            body_torque=bodies[:, 3:6] / averaged_over,
-            body_force_end=bodies[:, 6:9].copy(),
-            body_torque_end=bodies[:, 9:12].copy(),
-            body_work=bodies[:, 12].copy(),
-            body_contacts=bodies[:, 13].astype(np.int64),
-            boundary_displacement=values[walls : self._report_steps].reshape(model.boundary_count, 3),
-            **fields,
-        )
-
-    def _read_report(self, current: SoilState, steps: DeviceStepControl | None = None) -> np.ndarray:
-        """Pack what the host needs after a macro step into one array (with the step control's
-        block when `steps` is given) and read it: the one read of the macro step."""
-        wp.launch(
-            macro_kernels(self.model.precision.hi).fill_report,
-            dim=1,
-            inputs=[
-                self.status,
-                self.neighbour_list.grid,
-                self._force_sum,
-                self._torque_sum,
-                self._work,
-                current.body_force,
-                current.body_torque,
-                current.body_contacts,
-                current.boundary_displacement,
-            ],
-            outputs=[self._report],
-            device=self.model.device,
-        )
-        if steps is not None:
-            wp.copy(self._report, steps.control, dest_offset=self._report_steps, count=step_control.COLUMNS)
-        return self._report.numpy().copy()
-
     # -- step control on the device -------------------------------------------------------
     def enable_step_control(self, controller: StepController | None = None) -> DeviceStepControl:
         """Use the PID step control (StepController; default settings when None) in
         macro_step_adaptive. The integrator must be a JoltBeeman (one is installed if the
         simulation still has its default VelocityVerlet and has not stepped): its
         predictor/corrector gap is the error estimate."""
-        if not isinstance(self.integrator, JoltBeeman):
-            if isinstance(self.integrator, VelocityVerlet) and self.steps == 0:
-                self.integrator = JoltBeeman()
-            else:
-                raise TypeError(f"step control needs the JoltBeeman integrator, not {type(self.integrator).__name__}")
-        controller = controller or StepController()
-        controller.setup(self)
-        self._graphs.clear()  # a captured substep loop holds the old controller's settings and arrays
-        self.step_control = DeviceStepControl(
-            controller, self.model.precision, self.model.device, controller.error_scales()["scale_floor"]
-        )
-        return self.step_control
-
-    def _substep(self, current: SoilState, trial: SoilState, path: bool, weights: dict):
-        """One substep of the macro step's loop (captured inside it): step current -> trial,
-        decide on the device, copy an accepted trial over current."""
-        control = self.step_control
-        integrator = self.integrator
-        assert control is not None and isinstance(integrator, JoltBeeman)  # enable_step_control saw to both
-        integrator.bind(self.model)
-        scale_floor, summary = integrator.scale_floor, integrator.summary
-        assert scale_floor is not None and summary is not None
-        capacity, rigid_capacity = self.state.capacity, self.state.rigid_capacity
-
-        def accept():
-            self._accumulate_wrench(trial, weighted=True)
-            current.assign(trial)
-
-        def substep():
-            control.propose(self._step_length, self._step_length64, scale_floor)
-            if path:
-                self.control.follow_path(self._step_length, control.tau)
-            integrator.step(self.model, current, trial, self.control, self._step_length, self.contacts)
-            integrator.reduce_error(trial, self.status, weights["position_weight"], scale_floor, weights["use_speed"])
-            control.decide(summary, self.status, capacity, rigid_capacity)
-            wp.capture_if(control.accepted, on_true=accept)
-
-        return substep
+        return adaptive.enable_step_control(self, controller)
 
     def macro_step_adaptive(self, span: float, path: bool = False) -> MacroStepReport:
         """Advance by `span` [s] in as many jolt-Beeman substeps as the PID step control needs,
@@ -611,82 +350,9 @@ class Simulation:
         included), so the retry starts from it bit for bit. The wheels' wrench sums are
         weighted by the substeps' lengths (the report's means are time means). Needs
         enable_step_control() first. Raises SimulationDiverged if a substep at dt_min is
-        still non-finite.
+        still non-finite. (soil.adaptive)
         """
-        span = _check_step(span)
-        control = self.step_control
-        if control is None:
-            raise RuntimeError("call enable_step_control() before macro_step_adaptive()")
-        controller = control.controller
-        self._maybe_reorder()
-        if not path:
-            self.control.path_active = False
-        self.control.push()
-        redone = 0
-        start = self.state
-        evaluations_before = self.contacts.evaluations
-        control.begin(span)
-        weights = controller.error_scales()
-        while True:
-            self._prepare()
-            current, trial = self._spares()
-            status_columns.clear(self.status)
-            for array in (self._force_sum, self._torque_sum, self._work):
-                array.zero_()
-            self.neighbour_list.save(start)
-            current.assign(start)
-
-            # substeps until the span is covered
-            loop = functools.partial(wp.capture_while, control.running, self._substep(current, trial, path, weights))
-
-            key = ("adaptive", id(current), id(trial), path, type(self.integrator))
-            per_substep = self._replay(key, loop)
-            if per_substep is None:
-                loop()  # launched (the host reads the condition at every substep)
-            values = self._read_report(current, control)
-            steps = values[self._report_steps :]
-            if per_substep is not None:
-                tried = int(steps[step_control.ACCEPTED] + steps[step_control.REJECTED])
-                self.contacts.evaluations += per_substep * tried
-            growth = self._needs_growth(values)
-            if growth is None:
-                break
-            self.neighbour_list.restore(start)
-            self._grow(*growth)
-            control.redo()
-            redone += 1
-        accepted = int(steps[step_control.ACCEPTED])
-        rejected = int(steps[step_control.REJECTED])
-        forced = int(steps[step_control.FORCED])
-        self.state = current
-        self.state.time = start.time + span
-        self.state.forces_valid = True
-        self.steps += accepted
-        self.accepted_steps += accepted
-        self.rejected_steps += rejected
-        self.forced_steps += forced
-        rebuilds = int(values[status_columns.REBUILDS])
-        self._rebuilds_since_reorder += rebuilds
-        self._bounds = (values[REPORT_BOUNDS : REPORT_BOUNDS + 3], values[REPORT_BOUNDS + 3 : REPORT_BOUNDS + 6])
-        if steps[step_control.DIVERGED] > 0 or values[status_columns.NONFINITE] > 0:
-            self.monitor.fail(
-                self,
-                f"non-finite particle state (NaN or inf) even at dt_min = {controller.dt_min:.4g} s",
-                int(values[status_columns.WORST]),
-            )
-        return self._macro_report(
-            values,
-            span,
-            steps=accepted,
-            dt=span / max(accepted, 1),
-            rebuilds=rebuilds,
-            redone=redone,
-            rejected=rejected,
-            forced=forced,
-            dt_min=float(steps[step_control.SMALLEST]),
-            dt_max=float(steps[step_control.LARGEST]),
-            evaluations=self.contacts.evaluations - evaluations_before,
-        )
+        return adaptive.macro_step_adaptive(self, _check_step(span), path)
 
     def step(self, dt: float) -> None:
         """Advance by dt [s]."""
@@ -741,87 +407,12 @@ class Simulation:
         device (one small read per step). The controller keeps its state between calls
         (pass the same one to continue). callback(sim) runs after each accepted step; every
         `check_every` accepted steps the DivergenceMonitor checks the state (the speed is
-        checked after every step).
+        checked after every step). (soil.adaptive)
 
         Returns {'accepted', 'rejected', 'forced', 'evaluations', 'dt_smallest', 'dt_largest', 'dt_next'}
         for this call (steps, evaluations [-], steps [s]).
         """
-        if not (
-            isinstance(duration, (int, float, np.floating, np.integer)) and math.isfinite(duration) and duration >= 0
-        ):
-            raise SoilInputError(f"duration must be finite and >= 0 [s], got {duration!r}")
-        if not isinstance(self.integrator, JoltBeeman):
-            if isinstance(self.integrator, VelocityVerlet) and self.steps == 0:
-                self.integrator = JoltBeeman()
-            else:
-                raise TypeError(f"run_adaptive needs the JoltBeeman integrator, not {type(self.integrator).__name__}")
-        controller = controller if controller is not None else self._controller or StepController()
-        self._controller = controller
-        controller.setup(self)
-        assert controller.dt is not None and controller.dt_min is not None  # setup() resolved them
-        if not self.monitor.armed:
-            self.monitor.arm(self)
-        self.control.path_active = False
-        self.control.push()
-        self.integrator.bind(self.model)
-        counts: dict[str, float] = dict(accepted=0, rejected=0, forced=0, evaluations=self.contacts.evaluations)
-        smallest, largest = math.inf, 0.0
-        t_end = self.time + duration
-        dt = controller.dt
-        while t_end - self.time > 1e-9 * controller.dt_min:
-            remaining = t_end - self.time
-            # land on t_end without a sliver of a last step (a tiny step spoils the next jolt)
-            h = remaining if remaining <= dt else (0.5 * remaining if remaining < 2.0 * dt else dt)
-            while True:
-                following = self._spares()[0]
-                self.contacts.reserve(self.state.rigid_capacity)
-                status_columns.clear(self.status)
-                self._set_step(h)
-                self.integrator.step(self.model, self.state, following, self.control, self._step_length, self.contacts)
-                following.time = self.state.time + h
-                summary = self.integrator.read_summary(following, self.status, **controller.error_scales())
-                growth = self._needs_growth(summary["status"])
-                if growth is None:
-                    break
-                self._grow(*growth)
-            self._rebuilds_since_reorder += int(summary["status"][status_columns.REBUILDS])
-            err = controller.error(summary)
-            accepted, proposal = controller.decide(err, h)
-            if not accepted and h <= controller.dt_min * (1.0 + 1e-9):
-                if summary["nonfinite"]:
-                    self.monitor.fail(
-                        self,
-                        f"non-finite state even at dt_min = {controller.dt_min:.4g} s",
-                        summary["worst"],
-                        state=following,
-                    )
-                accepted = True
-                counts["forced"] += 1
-                self.forced_steps += 1
-            if not accepted:
-                counts["rejected"] += 1
-                self.rejected_steps += 1
-                dt = proposal
-                continue
-            self.state = following
-            self.state.forces_valid = True
-            self.steps += 1
-            self.accepted_steps += 1
-            counts["accepted"] += 1
-            smallest, largest = min(smallest, h), max(largest, h)
-            # a step shortened to land on t_end says nothing about the step the scene allows
-            dt = proposal if h >= dt else max(proposal, dt)
-            self.monitor.check_speed(self, summary["speed"])
-            if callback is not None:
-                callback(self)
-            if counts["accepted"] % check_every == 0:
-                self.monitor.check(self)
-                self._maybe_reorder()
-        controller.dt = dt
-        self.monitor.check(self)
-        counts["evaluations"] = self.contacts.evaluations - counts["evaluations"]
-        counts.update(dt_smallest=smallest, dt_largest=largest, dt_next=dt)
-        return counts
+        return adaptive.run_adaptive(self, duration, controller, callback, check_every)
 
     def check_finite(self) -> None:
         """Raise SimulationDiverged if any particle position or velocity is not finite."""

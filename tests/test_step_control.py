@@ -11,7 +11,7 @@ from test_integrator import CONTACT_TIME, DURATION, impact_error, two_spheres
 from test_macro_step import ReadCounter, pose, soil
 
 from cosim.dem_soil import WallProximityWarning
-from soil import JoltBeeman, StepController, step_control
+from soil import JoltBeeman, StepController, adaptive, step_control
 
 
 def pid_impact(device, tolerance, macro_steps=10):
@@ -62,7 +62,7 @@ def test_a_rejected_substep_leaves_the_state_bit_for_bit(device):
         control = sim.enable_step_control(StepController(tolerance=1e-3, dt_max=1e-2, dt_min=1e-6))
         current, trial = sim._spares()
         current.assign(sim.state)
-        substep = sim._substep(current, trial, False, control.controller.error_scales())
+        substep = adaptive.substep(sim, current, trial, False, control.controller.error_scales())
         before = current.to_numpy()
         if first is not None:
             control.begin(1.0)

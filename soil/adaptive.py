@@ -1,0 +1,230 @@
+"""Adaptive stepping of a Simulation: jolt-Beeman steps whose length a PID controller chooses.
+
+Two ways, both behind Simulation methods:
+
+- `macro_step_adaptive` (Simulation.macro_step_adaptive): the substep loop with its
+  accept/reject decision runs on the device as one captured graph (`wp.capture_while`), the
+  decision made by the device step control (soil.step_control.DeviceStepControl, whose
+  kernels it launches); the host reads one report at the end.
+- `run_adaptive` (Simulation.run_adaptive): the StepController decides on the host after
+  each step from an error norm reduced on the device (one small read per step).
+
+A rejected step is never made current: the state it started from is untouched, so the retry
+starts from it bit for bit.
+"""
+
+import functools
+import math
+
+import numpy as np
+import warp as wp
+
+from . import status as status_columns
+from . import step_control
+from .errors import SoilInputError
+from .integrator import JoltBeeman, StepController, VelocityVerlet
+from .macro import MacroStepReport, grain_box
+from .state import SoilState
+from .step_control import DeviceStepControl
+
+
+def use_jolt_beeman(sim, purpose: str) -> None:
+    """Install a JoltBeeman integrator in `sim` if it still has its default VelocityVerlet and has
+    not stepped; TypeError if it has another integrator (`purpose` names who needs it)."""
+    if not isinstance(sim.integrator, JoltBeeman):
+        if isinstance(sim.integrator, VelocityVerlet) and sim.steps == 0:
+            sim.integrator = JoltBeeman()
+        else:
+            raise TypeError(f"{purpose} needs the JoltBeeman integrator, not {type(sim.integrator).__name__}")
+
+
+def enable_step_control(sim, controller: StepController | None = None) -> DeviceStepControl:
+    """The device step control of `sim` with `controller`'s settings (Simulation.enable_step_control)."""
+    use_jolt_beeman(sim, "step control")
+    controller = controller or StepController()
+    controller.setup(sim)
+    sim.graphs.clear()  # a captured substep loop holds the old controller's settings and arrays
+    sim.step_control = DeviceStepControl(
+        controller, sim.model.precision, sim.model.device, controller.error_scales()["scale_floor"]
+    )
+    return sim.step_control
+
+
+def substep(sim, current: SoilState, trial: SoilState, path: bool, weights: dict):
+    """One substep of the macro step's loop (captured inside it), as a function of no arguments:
+    step current -> trial, decide on the device, copy an accepted trial over current.
+    weights: StepController.error_scales()."""
+    control = sim.step_control
+    integrator = sim.integrator
+    assert control is not None and isinstance(integrator, JoltBeeman)  # enable_step_control saw to both
+    integrator.bind(sim.model)
+    scale_floor, summary = integrator.scale_floor, integrator.summary
+    assert scale_floor is not None and summary is not None
+    capacity, rigid_capacity = sim.state.capacity, sim.state.rigid_capacity
+
+    def accept():
+        sim._accumulate_wrench(trial, weighted=True)
+        current.assign(trial)
+
+    def one_substep():
+        control.propose(sim._step_length, sim._step_length64, scale_floor)
+        if path:
+            sim.control.follow_path(sim._step_length, control.tau)
+        integrator.step(sim.model, current, trial, sim.control, sim._step_length, sim.contacts)
+        integrator.reduce_error(trial, sim.status, weights["position_weight"], scale_floor, weights["use_speed"])
+        control.decide(summary, sim.status, capacity, rigid_capacity)
+        wp.capture_if(control.accepted, on_true=accept)
+
+    return one_substep
+
+
+def macro_step_adaptive(sim, span: float, path: bool) -> MacroStepReport:
+    """Simulation.macro_step_adaptive (its docstring); span [s] already checked."""
+    control = sim.step_control
+    if control is None:
+        raise RuntimeError("call enable_step_control() before macro_step_adaptive()")
+    controller = control.controller
+    sim._maybe_reorder()
+    if not path:
+        sim.control.path_active = False
+    sim.control.push()
+    redone = 0
+    start = sim.state
+    evaluations_before = sim.contacts.evaluations
+    control.begin(span)
+    weights = controller.error_scales()
+    while True:
+        sim._prepare()
+        current, trial = sim._spares()
+        status_columns.clear(sim.status)
+        sim.sums.clear()
+        sim.neighbour_list.save(start)
+        current.assign(start)
+
+        # substeps until the span is covered
+        loop = functools.partial(wp.capture_while, control.running, substep(sim, current, trial, path, weights))
+
+        key = ("adaptive", id(current), id(trial), path, type(sim.integrator))
+        per_substep = sim.graphs.replay(key, loop, sim.contacts)
+        if per_substep is None:
+            loop()  # launched (the host reads the condition at every substep)
+        values = sim.sums.read(sim.status, sim.neighbour_list.grid, current, control)
+        steps = values[sim.sums.steps_column :]
+        if per_substep is not None:
+            tried = int(steps[step_control.ACCEPTED] + steps[step_control.REJECTED])
+            sim.contacts.evaluations += per_substep * tried
+        growth = sim._needs_growth(values)
+        if growth is None:
+            break
+        sim.neighbour_list.restore(start)
+        sim._grow(*growth)
+        control.redo()
+        redone += 1
+    accepted = int(steps[step_control.ACCEPTED])
+    rejected = int(steps[step_control.REJECTED])
+    forced = int(steps[step_control.FORCED])
+    sim.state = current
+    sim.state.time = start.time + span
+    sim.state.forces_valid = True
+    sim.steps += accepted
+    sim.accepted_steps += accepted
+    sim.rejected_steps += rejected
+    sim.forced_steps += forced
+    rebuilds = int(values[status_columns.REBUILDS])
+    sim._rebuilds_since_reorder += rebuilds
+    sim._bounds = grain_box(values)
+    if steps[step_control.DIVERGED] > 0 or values[status_columns.NONFINITE] > 0:
+        sim.monitor.fail(
+            sim,
+            f"non-finite particle state (NaN or inf) even at dt_min = {controller.dt_min:.4g} s",
+            int(values[status_columns.WORST]),
+        )
+    return sim.sums.report(
+        values,
+        span,
+        steps=accepted,
+        dt=span / max(accepted, 1),
+        rebuilds=rebuilds,
+        redone=redone,
+        rejected=rejected,
+        forced=forced,
+        dt_min=float(steps[step_control.SMALLEST]),
+        dt_max=float(steps[step_control.LARGEST]),
+        evaluations=sim.contacts.evaluations - evaluations_before,
+    )
+
+
+def run_adaptive(
+    sim, duration: float, controller: StepController | None = None, callback=None, check_every: int = 100
+) -> dict:
+    """Simulation.run_adaptive (its docstring)."""
+    if not (isinstance(duration, (int, float, np.floating, np.integer)) and math.isfinite(duration) and duration >= 0):
+        raise SoilInputError(f"duration must be finite and >= 0 [s], got {duration!r}")
+    use_jolt_beeman(sim, "run_adaptive")
+    controller = controller if controller is not None else sim._controller or StepController()
+    sim._controller = controller
+    controller.setup(sim)
+    assert controller.dt is not None and controller.dt_min is not None  # setup() resolved them
+    if not sim.monitor.armed:
+        sim.monitor.arm(sim)
+    sim.control.path_active = False
+    sim.control.push()
+    sim.integrator.bind(sim.model)
+    counts: dict[str, float] = dict(accepted=0, rejected=0, forced=0, evaluations=sim.contacts.evaluations)
+    smallest, largest = math.inf, 0.0
+    t_end = sim.time + duration
+    dt = controller.dt
+    while t_end - sim.time > 1e-9 * controller.dt_min:
+        remaining = t_end - sim.time
+        # land on t_end without a sliver of a last step (a tiny step spoils the next jolt)
+        h = remaining if remaining <= dt else (0.5 * remaining if remaining < 2.0 * dt else dt)
+        while True:
+            following = sim._spares()[0]
+            sim.contacts.reserve(sim.state.rigid_capacity)
+            status_columns.clear(sim.status)
+            sim._set_step(h)
+            sim.integrator.step(sim.model, sim.state, following, sim.control, sim._step_length, sim.contacts)
+            following.time = sim.state.time + h
+            summary = sim.integrator.read_summary(following, sim.status, **controller.error_scales())
+            growth = sim._needs_growth(summary["status"])
+            if growth is None:
+                break
+            sim._grow(*growth)
+        sim._rebuilds_since_reorder += int(summary["status"][status_columns.REBUILDS])
+        err = controller.error(summary)
+        accepted, proposal = controller.decide(err, h)
+        if not accepted and h <= controller.dt_min * (1.0 + 1e-9):
+            if summary["nonfinite"]:
+                sim.monitor.fail(
+                    sim,
+                    f"non-finite state even at dt_min = {controller.dt_min:.4g} s",
+                    summary["worst"],
+                    state=following,
+                )
+            accepted = True
+            counts["forced"] += 1
+            sim.forced_steps += 1
+        if not accepted:
+            counts["rejected"] += 1
+            sim.rejected_steps += 1
+            dt = proposal
+            continue
+        sim.state = following
+        sim.state.forces_valid = True
+        sim.steps += 1
+        sim.accepted_steps += 1
+        counts["accepted"] += 1
+        smallest, largest = min(smallest, h), max(largest, h)
+        # a step shortened to land on t_end says nothing about the step the scene allows
+        dt = proposal if h >= dt else max(proposal, dt)
+        sim.monitor.check_speed(sim, summary["speed"])
+        if callback is not None:
+            callback(sim)
+        if counts["accepted"] % check_every == 0:
+            sim.monitor.check(sim)
+            sim._maybe_reorder()
+    controller.dt = dt
+    sim.monitor.check(sim)
+    counts["evaluations"] = sim.contacts.evaluations - counts["evaluations"]
+    counts.update(dt_smallest=smallest, dt_largest=largest, dt_next=dt)
+    return counts
