@@ -9,6 +9,7 @@ import numpy as np
 from numpy.typing import ArrayLike
 
 from soil.errors import RegolithWarning
+from soil.sdf import BOUNDARY_PLANE
 
 from .contract import WheelKinematics, WheelWrench
 
@@ -27,25 +28,21 @@ class DemSoil:
         surface_height: undisturbed soil surface z [m], for the sinkage.
         wall_clearance: warn (WallProximityWarning) when a wheel's outer rim comes closer
             than this to a container wall [m]; default 5 mean grain radii.
-        patch: a cosim.patch.SoilPatch that follows the wheels; before each macro step it may
+        patch: a soil.patch.SoilPatch that follows the wheels; before each macro step it may
             move and replace `sim` (host side, between DEM steps).
     """
 
     def __init__(self, sim, dt: float, surface_height: float = 0.0, wall_clearance: float | None = None, patch=None):
-        if sim.model.body_count < 1:
+        if sim.body_count < 1:
             raise ValueError("the soil simulation has no wheel bodies (SoilBuilder.add_wheel)")
         if not dt > 0:
             raise ValueError(f"dt must be > 0 [s], got {dt!r}")
         self.sim = sim
         self.dt = float(dt)
         self.surface_height = float(surface_height)
-        self.wheel_count = sim.model.body_count
-        self.wall_clearance = (
-            5 * float(sim.model.radius_numpy().mean()) if wall_clearance is None else float(wall_clearance)
-        )
+        self.wheel_count = sim.body_count
+        self.wall_clearance = 5 * float(sim.radii().mean()) if wall_clearance is None else float(wall_clearance)
         self._warned_wall = False
-        # the boundaries' kinds and initial geometry, read once (their motion comes with each macro step)
-        self._walls = (sim.model.boundary_kind.numpy().copy(), sim.model.boundary_geometry_numpy())
         self.patch = patch
         self.last_report = None
         """The soil.MacroStepReport of the last advance() (steps taken, rejected, dt range, evaluations)."""
@@ -90,9 +87,9 @@ class DemSoil:
 
     def set_gravity(self, gravity: Sequence[float]) -> None:
         asked = np.asarray(gravity, dtype=np.float64).reshape(3)
-        if not np.allclose(asked, self.sim.model.gravity, rtol=1e-12, atol=0):
+        if not np.allclose(asked, self.sim.gravity, rtol=1e-12, atol=0):
             raise ValueError(
-                f"the soil was settled under gravity {self.sim.model.gravity} m/s^2, the scene asks "
+                f"the soil was settled under gravity {self.sim.gravity} m/s^2, the scene asks "
                 f"for {asked}: settle the bed under the scene's gravity"
             )
 
@@ -101,9 +98,9 @@ class DemSoil:
         its hub is at `hub` and its axle along `axle` (a horizontal unit vector, world); -inf if
         none. Place a wheel at max(...) + outer radius to start it just touching, not pressed
         into, the soil."""
-        shape = self.sim.model.bodies[wheel]
+        shape = self.sim.body_shapes[wheel]
         x = self.sim.positions()
-        r = self.sim.model.radius_numpy()
+        r = self.sim.radii()
         reach = shape.outer_radius
         half_width = 0.5 * getattr(shape, "width", 2 * reach)
         a = np.asarray(axle, dtype=np.float64)
@@ -116,7 +113,7 @@ class DemSoil:
     def place_wheels(self, kinematics: Sequence[WheelKinematics]) -> None:
         """Put the wheels at these poses without stepping (e.g. before the first macro step)."""
         for b, k in enumerate(kinematics):
-            self.sim.control.set_body_motion(b, k.position, k.orientation, k.linear_velocity, k.angular_velocity)
+            self.sim.set_body_motion(b, k.position, k.orientation, k.linear_velocity, k.angular_velocity)
         self.sim.refresh_forces()
 
     def advance(
@@ -125,9 +122,9 @@ class DemSoil:
         """Advance the soil to t_end [s] in whole DEM steps, the wheels moving from `start` with
         constant velocities (end None) or towards `end`; returns each wheel's wrench.
 
-        The DEM steps run on the device as one macro step (soil.Simulation.macro_step): the
-        wheels are posed there at each step and their wrenches summed there; the host reads
-        the result once.
+        The DEM steps run on the device as one macro step that lands on t_end
+        (soil.Simulation.advance_to): the wheels are posed there at each step and their wrenches
+        summed there; the host reads the result once.
         """
         if len(start) != self.wheel_count:
             raise ValueError(f"expected kinematics of {self.wheel_count} wheels, got {len(start)}")
@@ -136,21 +133,12 @@ class DemSoil:
         if self.patch is not None:  # the patch follows the wheels' centre, between macro steps
             moved = self.patch.follow(self.sim, np.mean([k.position[:2] for k in start], axis=0))
             if moved is not None:
-                if moved.step_control is None:  # the step control's state goes on with the soil
-                    moved.step_control = self.sim.step_control
                 self.sim = moved
-        sim, control = self.sim, self.sim.control
+        sim = self.sim
         t0 = sim.time
         span = float(t_end) - t0
         if not span > 0:
             raise ValueError(f"t_end {t_end!r} s must be after the soil's time {t0!r} s")
-        steps = max(1, int(np.ceil(span / self.dt - 1e-9)))
-        h = span / steps
-        if abs(steps * self.dt - span) <= 64 * np.spacing(max(abs(float(t_end)), span)):
-            # whole DEM steps up to the clock's rounding: step with dt itself, not with a length that
-            # changes in its last bits from one macro step to the next (each new length is a new
-            # captured graph, soil.Simulation)
-            h = self.dt
 
         def stack(kinematics):
             return tuple(
@@ -158,14 +146,11 @@ class DemSoil:
                 for name in ("position", "orientation", "linear_velocity", "angular_velocity")
             )
 
-        control.set_body_path(span, *stack(start), end=None if end is None else stack(end))
-        if sim.step_control is not None:  # PID substeps (soil.step_control), landing on t_end
-            report = sim.macro_step_adaptive(span, path=True)
-        else:
-            report = sim.macro_step(steps, h, path=True)
+        sim.set_body_path(span, *stack(start), end=None if end is None else stack(end))
+        # whole DEM steps of about dt, or PID substeps with a step control; the soil's clock is t_end
+        report = sim.advance_to(t_end, self.dt, path=True)
         self.last_report = report
-        sim.state.time = float(t_end)  # the coupler's clock (the steps' sum differs by its rounding only)
-        self._check_walls(control.body_position_host, report.boundary_displacement)
+        self._check_walls(sim.body_positions(), report.boundary_displacement)
         return [
             WheelWrench(
                 force=report.body_force[b],
@@ -182,10 +167,7 @@ class DemSoil:
     def current_wrenches(self) -> list[WheelWrench]:
         """The wrench on every wheel at this instant (e.g. after place_wheels): force and torque
         are the instantaneous ones, the work is zero."""
-        state = self.sim.state
-        force = state.body_force.numpy().astype(np.float64).reshape(-1, 3)
-        torque = state.body_torque.numpy().astype(np.float64).reshape(-1, 3)
-        contacts = state.body_contacts.numpy()
+        force, torque, contacts = self.sim.body_wrenches()
         return [
             WheelWrench(
                 force=force[b],
@@ -200,10 +182,8 @@ class DemSoil:
 
     def _sinkage(self, wheel: int) -> float:
         """Depth of the wheel's rim bottom below the undisturbed surface [m]."""
-        shape = self.sim.model.bodies[wheel]
-        lowest = self.sim.control.body_position_host[wheel, 2] - getattr(
-            shape, "radius", getattr(shape, "outer_radius", 0.0)
-        )
+        shape = self.sim.body_shapes[wheel]
+        lowest = self.sim.body_positions()[wheel, 2] - getattr(shape, "radius", getattr(shape, "outer_radius", 0.0))
         return self.surface_height - float(lowest)
 
     # -- checkpoints -----------------------------------------------------------------
@@ -230,18 +210,17 @@ class DemSoil:
     def _container_walls(self, displacement: np.ndarray):
         """(point, inward normal) of the side walls (vertical planes), displaced by
         `displacement` [m] (boundary_count, 3) from their initial geometry."""
-        kinds, geometry = self._walls
-        return [
-            (g[:3] + d, g[3:]) for kind, g, d in zip(kinds, geometry, displacement) if kind == 0 and abs(g[5]) < 0.5
-        ]
+        kinds = self.sim.boundary_kinds()
+        geometry = self.sim.boundary_geometry(displacement)
+        return [(g[:3], g[3:]) for kind, g in zip(kinds, geometry) if kind == BOUNDARY_PLANE and abs(g[5]) < 0.5]
 
     def _check_walls(self, positions: np.ndarray, displacement: np.ndarray) -> None:
         if self._warned_wall:
             return
-        rotations = self.sim.control.body_rotation_host
+        rotations = self.sim.body_rotations()
         walls = self._container_walls(displacement)
         for b, hub in enumerate(positions):
-            shape = self.sim.model.bodies[b]
+            shape = self.sim.body_shapes[b]
             for point, normal in walls:
                 gap = float((hub - point) @ normal) - _extent(shape, rotations[b], normal)
                 if gap < self.wall_clearance:

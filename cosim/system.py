@@ -6,7 +6,7 @@
 The system holds the soil simulation (soil.Simulation), the DEM soil side
 (cosim.dem_soil.DemSoil), the rover side (the single-wheel testbed, or a rover model with its
 drive: cosim.rover.RoverDriver), the Coupler, and for a rover on a moving patch the patch
-(cosim.patch.SoilPatch). Each of them owns its checkpoint state (`state_dict` /
+(soil.patch.SoilPatch). Each of them owns its checkpoint state (`state_dict` /
 `load_state_dict`); the system only gathers them under prefixes, so a checkpoint is a flat
 dict of numpy arrays. Runs, studies, sweeps and advice all build through here.
 """
@@ -20,12 +20,12 @@ import numpy as np
 from soil import Simulation
 from soil.bed import load_bed, restore_state
 from soil.control import quaternion_to_matrix
+from soil.patch import SoilPatch, Tile
 
 from .beds import Bed
 from .coupler import Coupler
 from .dem_soil import DemSoil
 from .metrics import WheelGeometry
-from .patch import SoilPatch, Tile
 from .plan import RunPlan, SceneError, enable_step_control, make_integrator
 from .rover import RoverDriver, make_controller, open_rover
 from .single_wheel import SingleWheelRig

@@ -476,6 +476,26 @@ class SoilControl:
             self.boundary_damping.assign(self.boundary_damping_host.astype(np_type))
         self._dirty = False
 
+    # -- snapshots (Simulation.snapshot) -------------------------------------------------
+    def snapshot(self) -> dict:
+        """The control now, without a device read: numpy copies of the host motion (as state_dict)
+        and body_posed, a device copy of external_force, and external_force_used."""
+        data = {name: getattr(self, f"{name}_host").copy() for name in self._HOST}
+        data["body_posed"] = self.body_posed_host.copy()
+        data["external_force"] = wp.clone(self.external_force)
+        data["external_force_used"] = self.external_force_used
+        return data
+
+    def restore(self, data: dict) -> None:
+        """Back to a snapshot() of this control (device to device); the motion is sent at the next push()."""
+        for name in self._HOST:
+            getattr(self, f"{name}_host")[...] = data[name]
+        self.body_posed_host[...] = data["body_posed"]
+        wp.copy(self.external_force, data["external_force"])
+        self.external_force_used = bool(data["external_force_used"])
+        self.path_active = False
+        self._dirty = True
+
     # -- checkpoints -------------------------------------------------------------------
     _HOST = (
         "body_position",

@@ -16,6 +16,7 @@ import numpy as np
 import warp as wp
 
 from . import adaptive, step_control
+from . import snapshot as snapshot_module
 from . import status as status_columns
 from .boundaries import boundary_kernels
 from .control import SoilControl, path_kernels
@@ -35,6 +36,7 @@ from .macro import (  # noqa: F401 (CaptureWarning and the report's columns re-e
 from .model import SoilModel
 from .neighbours import NeighbourList, NeighbourSettings
 from .sdf import BOUNDARY_BOX
+from .snapshot import SimulationSnapshot
 from .solver import ContactSolver
 from .stability import DivergenceMonitor, SimulationDiverged  # noqa: F401 (SimulationDiverged re-exported)
 from .state import GrainLayout, SoilState
@@ -94,6 +96,8 @@ class Simulation:
         self._controller: StepController | None = None  # run_adaptive's, kept between calls
         self._rebuilds_since_reorder = 0
         self._bounds: tuple | None = None
+        # the boundaries' kinds and initial geometry, read once (their motion is in the state)
+        self._boundaries = (model.boundary_kind.numpy().copy(), model.boundary_geometry_numpy())
         device = model.device
         self.sums = MacroSums(model)
         """The macro step's wrench sums and report on the device (soil.macro.MacroSums)."""
@@ -118,6 +122,121 @@ class Simulation:
     def capture(self) -> bool:
         """Whether steps are replayed from captured graphs (False after the device failed to capture)."""
         return self.graphs.enabled
+
+    # -- what the model holds, for callers that only hold the simulation ----------------------
+    @property
+    def particle_count(self) -> int:
+        """Grains simulated [-]."""
+        return self.model.particle_count
+
+    @property
+    def body_count(self) -> int:
+        """Bodies (wheels) [-]."""
+        return self.model.body_count
+
+    @property
+    def body_shapes(self) -> list:
+        """The shape of every body (soil.GrouserWheel, soil.MeshWheel), in body order."""
+        return list(self.model.bodies)
+
+    @property
+    def gravity(self) -> np.ndarray:
+        """Gravity [m/s^2], shape (3,), float64 (a copy)."""
+        return np.array(self.model.gravity, dtype=np.float64)
+
+    @property
+    def device(self) -> str:
+        """The Warp device the simulation runs on."""
+        return str(self.model.device)
+
+    @property
+    def precision_name(self) -> str:
+        """The precision it runs in (soil.PRECISIONS: 'single', 'mixed', 'double')."""
+        return self.model.precision.name
+
+    def radii(self) -> np.ndarray:
+        """Grain radii [m], shape (particle_count,), float64, model order."""
+        return self.model.radius_numpy()
+
+    def boundary_kinds(self) -> np.ndarray:
+        """The kind of every boundary (soil.sdf.BOUNDARY_PLANE, BOUNDARY_BOX) [-], shape (boundary_count,), int32."""
+        return self._boundary_rows()[0].copy()
+
+    def _boundary_rows(self) -> tuple[np.ndarray, np.ndarray]:
+        """(kinds, initial geometry rows) of the boundaries."""
+        return self._boundaries
+
+    # -- the bodies: prescribed motion (host side) and the soil's wrench on them ----------------
+    def set_body_motion(
+        self, body: int, position=None, orientation=None, velocity=None, angular_velocity=None, rotation=None
+    ) -> None:
+        """Prescribe a body's pose and velocity (SoilControl.set_body_motion): position [m] (3,),
+        orientation quaternion (w, x, y, z) or rotation matrix (3, 3), velocity [m/s] (3,), angular
+        velocity [rad/s] (3,), world frame. Call refresh_forces() to have the forces of the new pose
+        before the next step."""
+        self.control.set_body_motion(body, position, orientation, velocity, angular_velocity, rotation)
+
+    def set_body_path(self, span: float, position, orientation, velocity, angular_velocity, end=None) -> None:
+        """Let every body follow a path over the next `span` [s] (SoilControl.set_body_path: arrays
+        (body_count, 3) [m], (body_count, 4) quaternions, (body_count, 3) [m/s] and [rad/s], world
+        frame; end: the same four at the span's end, or None for constant velocities). The next
+        macro step with path=True poses the bodies along it on the device."""
+        self.control.set_body_path(span, position, orientation, velocity, angular_velocity, end=end)
+
+    def body_positions(self) -> np.ndarray:
+        """Hub position of every body as last prescribed (set_body_motion, or the end of the path of
+        set_body_path) [m], shape (body_count, 3), float64, world frame (a copy; no device read)."""
+        return self.control.body_position_host.copy()
+
+    def body_rotations(self) -> np.ndarray:
+        """Rotation body -> world of every body as last prescribed [-], shape (body_count, 3, 3), float64 (a copy)."""
+        return self.control.body_rotation_host.copy()
+
+    def body_velocities(self) -> np.ndarray:
+        """Hub velocity of every body as last prescribed [m/s], shape (body_count, 3), float64 (a copy)."""
+        return self.control.body_velocity_host.copy()
+
+    def body_angular_velocities(self) -> np.ndarray:
+        """Angular velocity of every body as last prescribed [rad/s], shape (body_count, 3), float64 (a copy)."""
+        return self.control.body_angular_velocity_host.copy()
+
+    def body_wrenches(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The soil's wrench on every body at the current time: (force [N] shape (body_count, 3), torque
+        [N m] about its hub shape (body_count, 3), grains touching it [-] shape (body_count,) int64),
+        float64, world frame."""
+        state = self.state
+        return (
+            state.body_force.numpy().astype(np.float64).reshape(-1, 3),
+            state.body_torque.numpy().astype(np.float64).reshape(-1, 3),
+            state.body_contacts.numpy().astype(np.int64),
+        )
+
+    # -- divergence checks -----------------------------------------------------------------
+    def arm_monitor(self) -> None:
+        """Let the divergence monitor take the scene's scales from the current state (e.g. after the
+        bodies were placed) and keep it as the last good state (DivergenceMonitor.arm)."""
+        self.monitor.arm(self)
+
+    def check_divergence(self) -> None:
+        """Check the current state against the monitor's bounds (NaN, speed, overlap, energy; arming
+        it first if it is not armed); raises SimulationDiverged (DivergenceMonitor.check)."""
+        self.monitor.check(self)
+
+    # -- snapshots -------------------------------------------------------------------------
+    def snapshot(self, into: SimulationSnapshot | None = None) -> SimulationSnapshot:
+        """The whole simulation now, to go back to with restore(): the state (time, grains, contact
+        history, storage order and lists, walls' motion), the control (bodies' and boundaries'
+        motion, external forces), the step counters, the divergence monitor's bounds and the step
+        controller's state. Device to device, no host read. `into`: an earlier snapshot of this
+        simulation whose device buffers are reused (it is overwritten)."""
+        return snapshot_module.take(self, into)
+
+    def restore(self, snapshot: SimulationSnapshot) -> None:
+        """Put the simulation back to `snapshot` (from this simulation's snapshot()): the next step
+        gives the same bits as if nothing had happened since. Contact storage grown since stays
+        grown; the force evaluation count (work done) and captured graphs are kept; the monitor's
+        last good state is not rolled back."""
+        snapshot_module.put_back(self, snapshot)
 
     # -- buffers ---------------------------------------------------------------------
     def _spares(self) -> list[SoilState]:
@@ -330,6 +449,34 @@ class Simulation:
             dt_max=dt,
             evaluations=evaluations,
         )
+
+    def advance_to(self, end_time: float, dt: float, path: bool = False) -> MacroStepReport:
+        """Advance to `end_time` [s] in one macro step that lands on it exactly: the state's time is
+        then float(end_time) itself, not the sum of the steps (which differs from it by rounding), so
+        a caller's clock and the soil's agree to the last bit.
+
+        Fixed steps: the span is split into the fewest whole steps no longer than dt [s] (up to a
+        rounding of 1e-9 steps), of dt itself when the span is a whole number of dt up to the clock's
+        rounding (a length that changed in its last bits from one macro step to the next would be a
+        new captured graph). With a step control (enable_step_control): PID substeps over the span
+        (macro_step_adaptive). path: as macro_step. Raises SoilInputError unless end_time is after
+        the current time.
+        """
+        dt = _check_step(dt)
+        t0 = self.time
+        span = float(end_time) - t0
+        if not span > 0:
+            raise SoilInputError(f"end_time {end_time!r} s must be after the soil's time {t0!r} s")
+        if self.step_control is not None:
+            report = self.macro_step_adaptive(span, path=path)
+        else:
+            steps = max(1, int(np.ceil(span / dt - 1e-9)))
+            h = span / steps
+            if abs(steps * dt - span) <= 64 * np.spacing(max(abs(float(end_time)), span)):
+                h = dt
+            report = self.macro_step(steps, h, path=path)
+        self.state.time = float(end_time)
+        return report
 
     # -- step control on the device -------------------------------------------------------
     def enable_step_control(self, controller: StepController | None = None) -> DeviceStepControl:
@@ -578,12 +725,14 @@ class Simulation:
         """Translation velocity of every boundary [m/s], shape (boundary_count, 3), float64."""
         return self.state.boundary_velocity.numpy().astype(np.float64).reshape(-1, 3)
 
-    def boundary_geometry(self) -> np.ndarray:
-        """Current geometry rows of every boundary [m], shape (boundary_count, 6), float64: a plane's
-        (point, unit normal), a box's (lower corner, upper corner), displaced (soil.sdf)."""
-        rows = self.model.boundary_geometry_numpy().copy()
-        shift = self.boundary_displacements()
-        kinds = self.model.boundary_kind.numpy()
+    def boundary_geometry(self, displacement=None) -> np.ndarray:
+        """Geometry rows of every boundary [m], shape (boundary_count, 6), float64: a plane's (point,
+        unit normal), a box's (lower corner, upper corner) (soil.sdf), displaced by `displacement`
+        [m], shape (boundary_count, 3) (e.g. a MacroStepReport's boundary_displacement; default: the
+        current displacement, read from the device)."""
+        kinds, initial = self._boundary_rows()
+        rows = initial.copy()
+        shift = self.boundary_displacements() if displacement is None else np.asarray(displacement, dtype=np.float64)
         rows[:, :3] += shift
         rows[kinds == BOUNDARY_BOX, 3:] += shift[kinds == BOUNDARY_BOX]
         return rows

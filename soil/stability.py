@@ -270,6 +270,18 @@ class DivergenceMonitor:
         )
         self.energy_bound = self.energy_factor * supply
 
+    def for_new_grains(self) -> "DivergenceMonitor":
+        """A monitor with this one's settings (factors, overlap limit, speed floor, on or off), not
+        armed: for a simulation of other grains (a moved soil patch), whose scales it takes when it
+        is armed on them; the fall height is measured on them again (not carried over)."""
+        return DivergenceMonitor(
+            speed_factor=self.speed_factor,
+            energy_factor=self.energy_factor,
+            max_overlap_ratio=self.max_overlap_ratio,
+            speed_floor=self.speed_floor,
+            enabled=self.enabled,
+        )
+
     _SCALES = ("_g", "_height", "_mass_total", "_v0", "_v_elastic", "_energy0", "_v_body", "_body_reach")
 
     def state_dict(self) -> dict:

@@ -1,4 +1,4 @@
-"""The moving soil patch (cosim.patch): a move keeps the grains that stay and their contact history,
+"""The moving soil patch (soil.patch): a move keeps the grains that stay and their contact history,
 the mass placed and removed is booked, a rover drives many patch lengths with a bounded grain count,
 and the wheel feels the same soil as on a long static bed."""
 
@@ -54,7 +54,7 @@ def test_a_move_keeps_the_grains_that_stay_and_their_contact_history(tile):
     and after (to rounding: the summation order changes with the grain count), which needs every
     contact partner renumbered and every history slot kept; the mass is booked exactly; placed grains
     press no deeper into the ones that stay than grains of the tile into each other."""
-    from cosim.patch import SoilPatch, Tile
+    from soil.patch import SoilPatch, Tile
 
     plan, bed = tile
     spec = plan.bed.spec

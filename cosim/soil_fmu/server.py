@@ -89,47 +89,19 @@ class StepRefused(RuntimeError):
 
 
 class StepStart:
-    """The soil at the start of a macro step, to go back to when the step is refused.
-
-    The state is copied device to device (no host read); the wheels' prescribed motion
-    and the step counter are host values.
-    """
+    """The soil at the start of a macro step, to go back to when the step is refused: a snapshot
+    of the whole simulation (soil.Simulation.snapshot), kept on its device (no host read)."""
 
     def __init__(self, soil):
         self.soil = soil
-        self.state = None
+        self.snapshot = None
 
     def take(self) -> None:
-        from soil import SoilState
-
-        sim = self.soil.sim
-        model = sim.model
-        if self.state is None or self.state.capacity != sim.state.capacity:
-            self.state = SoilState(
-                model.particle_count, sim.state.capacity, model.precision.vec_hi, model.device, model.body_count
-            )
-        self.state.assign(sim.state)
-        control = sim.control
-        self.motion = [
-            (
-                control.body_position_host[b].copy(),
-                control.body_rotation_host[b].copy(),
-                control.body_velocity_host[b].copy(),
-                control.body_angular_velocity_host[b].copy(),
-            )
-            for b in range(control.body_count)
-        ]
-        self.steps = sim.steps
+        self.snapshot = self.soil.sim.snapshot(into=self.snapshot)
 
     def restore(self) -> None:
-        sim = self.soil.sim
-        assert self.state is not None, "restore() follows take()"
-        if sim.state.capacity > self.state.capacity:  # the refused step widened the contact history
-            self.state.grow_capacity(sim.state.capacity)
-        sim.state.assign(self.state)
-        for b, (position, rotation, velocity, spin) in enumerate(self.motion):
-            sim.control.set_body_motion(b, position, velocity=velocity, angular_velocity=spin, rotation=rotation)
-        sim.steps = self.steps
+        assert self.snapshot is not None, "restore() follows take()"
+        self.soil.sim.restore(self.snapshot)
 
 
 class SoilSession:
@@ -164,8 +136,8 @@ class SoilSession:
         """FMU states (fmi2GetFMUstate, fmi3GetFMUState) by the front end's id: device copies of the soil."""
         sim = self.soil.sim
         self.description = (
-            f"{sim.model.particle_count} grains, {self.wheel_count} wheel(s) on {sim.model.device}, "
-            f"precision {sim.model.precision.name}, DEM step {dem_step:.6g} s"
+            f"{sim.particle_count} grains, {self.wheel_count} wheel(s) on {sim.device}, "
+            f"precision {sim.precision_name}, DEM step {dem_step:.6g} s"
         )
 
     def kinematics(self, values: np.ndarray):
@@ -176,8 +148,7 @@ class SoilSession:
 
     def place(self, values: np.ndarray) -> bytes:
         self.soil.place_wheels(self.kinematics(values))
-        sim = self.soil.sim
-        sim.monitor.arm(sim)
+        self.soil.sim.arm_monitor()
         return outputs(self.soil.current_wrenches())
 
     def step(self, step: float, values: np.ndarray) -> bytes:
@@ -190,7 +161,7 @@ class SoilSession:
         self.start.take()
         try:
             wrenches = soil.advance(soil.time + step, kinematics)
-            sim.monitor.check(sim)  # speed, overlap, energy and NaN bounds (soil.stability)
+            sim.check_divergence()  # speed, overlap, energy and NaN bounds (soil.stability)
             data = outputs(wrenches)
             if not np.all(np.isfinite(np.frombuffer(data, "<f8"))):
                 raise SimulationDiverged("a wheel wrench is not finite")

@@ -41,16 +41,13 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from soil import DivergenceMonitor, Simulation, SoilBuilder
-from soil.bed import load_bed, restore_state
-from soil.sdf import BOUNDARY_PLANE
-from soil.state import UNBUILT, per_grain
-
-
-def grain_rows(data: dict) -> dict:
-    """The arrays of SoilState.to_numpy() output that have one row per grain (model order): kinematics,
-    forces, the neighbour list and the pair history aligned with it, the rigid-contact history."""
-    return {name: np.asarray(values) for name, values in data.items() if name != "time" and per_grain(name)}
+from .bed import load_bed, restore_state
+from .builder import SoilBuilder
+from .errors import SoilInputError
+from .grains import append_grains, grain_rows, renumber_history, select_grains
+from .sdf import BOUNDARY_PLANE
+from .simulation import Simulation
+from .state import UNBUILT
 
 
 @dataclass
@@ -105,14 +102,13 @@ class Tile:
             if kind == BOUNDARY_PLANE and np.allclose(row[3:], (0.0, 0.0, 1.0)) and abs(row[2]) < 1e-12
         ]
         if not floors:
-            raise ValueError(f"{path}: the bed has no floor plane z = 0 to stand a patch on")
+            raise SoilInputError(f"{path}: the bed has no floor plane z = 0 to stand a patch on")
         data = state.to_numpy()
-        n = model.particle_count
         x = data["position"].astype(np.float64)
         r = model.radius_numpy()
         period = np.asarray(size, dtype=np.float64) - 2.0 * margin
         if np.any(period <= 4.0 * r.max()):
-            raise ValueError(
+            raise SoilInputError(
                 f"{path}: the bed ({size[0]} x {size[1]} m) leaves no tile {2 * margin} m in from its walls"
             )
         keep = _inside(x[:, :2], np.full(2, margin), margin + period)
@@ -143,12 +139,7 @@ class Tile:
                         if overlap > allowed:
                             dropped[max(i, j)] = True
         rows = kept_index[~dropped]
-        count = len(rows)
-        new_index = np.full(n, -1, dtype=np.int64)
-        new_index[rows] = np.arange(count)
-        grains = _remap_history(
-            {k: v[rows] for k, v in grain_rows(data).items()}, lambda j: new_index[j], lambda key: key
-        )
+        grains = select_grains(grain_rows(data), rows)
         grains["position"][:, :2] -= margin
         return cls(
             size=period,
@@ -331,7 +322,7 @@ class SoilPatch:
         old = self.window()
         self.centre = np.asarray(centre, dtype=np.float64).reshape(2).copy()
         self.moves += 1
-        return self._assemble(
+        moved = self._assemble(
             sim,
             self._lattice(*self.window(), old),
             time=sim.time,
@@ -341,6 +332,8 @@ class SoilPatch:
             integrator=sim.integrator,
             old_window=old,
         )
+        moved.step_control = sim.step_control  # the PID step control's state goes on with the soil
+        return moved
 
     @staticmethod
     def _control(control: dict, kept: np.ndarray, placed: int) -> dict:
@@ -358,7 +351,6 @@ class SoilPatch:
         # grains kept (inside the new window, not strays in its new part), in their model order
         if sim is not None:
             state = sim.state.to_numpy()
-            n_old = sim.model.particle_count
             xy = state["position"][:, :2]
             inside = _inside(xy, low, high)
             keep = inside & _inside(xy, *old_window)
@@ -367,21 +359,15 @@ class SoilPatch:
             self.mass_removed += float(np.sum(self.mass[gone], dtype=np.float64))
             self.grains_removed += len(gone)
         else:
-            state, n_old, kept = None, 0, np.zeros(0, dtype=np.int64)
+            state, kept = None, np.zeros(0, dtype=np.int64)
         picks, shifts = placed
         order = self._permute(len(picks))
         picks, shifts = picks[order], shifts[order]
         n_kept, n_new = len(kept), len(kept) + len(picks)
         # the new model's grains: kept 0 .. n_kept-1, placed after them; rigid keys: the floor 0, wheels 1 + b
-        old_to_new = np.full(n_old, -1, dtype=np.int64)
-        old_to_new[kept] = np.arange(n_kept)
         parts = []
         if state is not None:
-            parts.append(
-                _remap_history(
-                    {k: v[kept] for k, v in grain_rows(state).items()}, lambda j: old_to_new[j], lambda key: key
-                )
-            )
+            parts.append(select_grains(grain_rows(state), kept))
         # a placed grain keeps its history with grains of its own tile copy placed with it, and with the floor
         copy = np.full((len(picks), tile.count), -1, dtype=np.int64)
         for shift in np.unique(shifts, axis=0):
@@ -390,14 +376,14 @@ class SoilPatch:
             in_copy[picks[members]] = n_kept + members
             copy[members] = in_copy
         rows = np.arange(len(picks))[:, None]
-        placed_rows = _remap_history(
+        placed_rows = renumber_history(
             {k: v[picks] for k, v in tile.state.items()},
             lambda j: copy[np.broadcast_to(rows, j.shape), j],
             lambda key: np.where(key == tile.floor_key, 0, -1),
         )
         placed_rows["position"][:, :2] += shifts
         parts.append(placed_rows)
-        arrays = _stack_rows(parts)
+        arrays = append_grains(parts)
 
         # constants per grain
         def joined(mine, theirs):
@@ -461,15 +447,8 @@ class SoilPatch:
         state.time = float(time)
         if control is not None:
             soil_control.load_state_dict(control)
-        kept_monitor = None
-        if monitor is not None:  # the same factors; armed again below on the new grains (their own height)
-            kept_monitor = DivergenceMonitor(
-                speed_factor=monitor.speed_factor,
-                energy_factor=monitor.energy_factor,
-                max_overlap_ratio=monitor.max_overlap_ratio,
-                speed_floor=monitor.speed_floor,
-                enabled=monitor.enabled,
-            )
+        # the same settings; armed again below on the new grains (their own height)
+        kept_monitor = None if monitor is None else monitor.for_new_grains()
         sim = Simulation(model, state, soil_control, integrator=integrator, monitor=kept_monitor)
         sim.steps = int(steps)
         sim.refresh_forces()
@@ -524,87 +503,6 @@ class SoilPatch:
         # grains far apart until the checkpoint's state is loaded over them: nothing touches
         arrays["position"][:, 2] = 4 * np.arange(n) * float(self.radius.max())
         return self._simulation(arrays, sim.time, sim.steps, None, sim.monitor, sim.integrator, arm=False)
-
-
-def _unpack(words: np.ndarray, width: int) -> np.ndarray:
-    """Bit k of word k // 32 of each row, shape (rows, width), bool."""
-    k = np.arange(width)
-    return ((words[:, k // 32] >> (k % 32).astype(np.uint32)) & 1).astype(bool)
-
-
-def _pack(bits: np.ndarray) -> np.ndarray:
-    """The inverse of _unpack: shape (rows, ceil(width / 32)), uint32."""
-    rows, width = bits.shape
-    words = np.zeros((rows, max(1, (width + 31) // 32)), dtype=np.uint64)
-    for k in range(width):
-        words[:, k // 32] |= bits[:, k].astype(np.uint64) << np.uint64(k % 32)
-    return words.astype(np.uint32)
-
-
-def _compact(keep: np.ndarray, *arrays):
-    """Move the entries of each row where `keep` to its front, in their order; the rest is zeroed."""
-    order = np.argsort(~keep, axis=1, kind="stable")
-    kept = np.take_along_axis(keep, order, axis=1)
-    out = []
-    for values in arrays:
-        if values.shape[1] == 0:  # history the contact law does not use (zero width)
-            out.append(values.copy())
-            continue
-        index = order.reshape(order.shape + (1,) * (values.ndim - 2))
-        moved = np.take_along_axis(values, index, axis=1).copy()
-        moved[~kept] = 0
-        out.append(moved)
-    return kept, out
-
-
-def _remap_history(rows: dict, partner, rigid) -> dict:
-    """Per-grain rows (grain_rows) with their contact history renamed: `partner(j)` gives the new index of
-    grain j (-1: gone), `rigid(key)` the new key of a rigid partner (-1: gone); entries of partners that
-    are gone are dropped, the others keep their history, packed to the front. The neighbour list is
-    marked unbuilt, so the next step builds it again (carrying the history of every listed pair)."""
-    rows = {k: v.copy() for k, v in rows.items()}
-    neighbours = rows["neighbours"].astype(np.int64)
-    width = neighbours.shape[1]
-    listed = (np.arange(width)[None, :] < rows["neighbour_count"][:, None]) & (neighbours >= 0)
-    mapped = np.where(listed, partner(np.maximum(neighbours, 0)), -1)
-    keep = mapped >= 0
-    touching = _unpack(rows["pair_touching"], width)
-    kept, (mapped, touching, tangential, rolling) = _compact(
-        keep, mapped, touching, rows["pair_tangential"], rows["pair_rolling"]
-    )
-    rows["neighbours"] = np.where(kept, mapped, -1).astype(np.int32)
-    rows["neighbour_count"] = kept.sum(axis=1).astype(rows["neighbour_count"].dtype)
-    rows["pair_touching"] = _pack(touching & kept)
-    rows["pair_tangential"], rows["pair_rolling"] = tangential, rolling
-    key = rows["rigid_key"].astype(np.int64)
-    used = (np.arange(key.shape[1])[None, :] < rows["rigid_count"][:, None]) & (key >= 0)
-    new_key = np.where(used, rigid(np.maximum(key, 0)), -1)
-    kept, (new_key, tangential, rolling) = _compact(
-        new_key >= 0, new_key, rows["rigid_tangential"], rows["rigid_rolling"]
-    )
-    rows["rigid_key"] = np.where(kept, new_key, -1).astype(np.int32)
-    rows["rigid_count"] = kept.sum(axis=1).astype(rows["rigid_count"].dtype)
-    rows["rigid_tangential"], rows["rigid_rolling"] = tangential, rolling
-    rows["build_position"] = np.full_like(rows["build_position"], UNBUILT)
-    return rows
-
-
-def _stack_rows(parts: list[dict]) -> dict:
-    """Per-grain rows of several blocks stacked, their history widths made equal (padded)."""
-    out = {}
-    for name in parts[-1]:
-        blocks = [np.asarray(p[name]) for p in parts]
-        if blocks[0].ndim >= 2:
-            width = max(b.shape[1] for b in blocks)
-            fill = -1 if name in ("neighbours", "rigid_key") else 0
-            padded = []
-            for b in blocks:
-                wide = np.full((b.shape[0], width, *b.shape[2:]), fill, dtype=b.dtype)
-                wide[:, : b.shape[1]] = b
-                padded.append(wide)
-            blocks = padded
-        out[name] = np.concatenate(blocks)
-    return out
 
 
 __all__ = ["SoilPatch", "Tile"]
