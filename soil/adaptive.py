@@ -68,8 +68,9 @@ def substep(sim, current: SoilState, trial: SoilState, path: bool, weights: dict
 
     def one_substep():
         control.propose(sim._step_length, sim._step_length64, scale_floor)
+        trial.copy_bodies(current)
         if path:
-            sim.control.follow_path(sim._step_length, control.tau)
+            sim.control.follow_path(trial, sim._step_length, control.tau)
         integrator.step(sim.model, current, trial, sim.control, sim._step_length, sim.contacts)
         integrator.reduce_error(trial, sim.status, weights["position_weight"], scale_floor, weights["use_speed"])
         control.decide(summary, sim.status, capacity, rigid_capacity)
@@ -87,7 +88,7 @@ def macro_step_adaptive(sim, span: float, path: bool) -> MacroStepReport:
     sim._maybe_reorder()
     if not path:
         sim.control.path_active = False
-    sim.control.push()
+    sim.control.push(sim.state)
     redone = 0
     start = sim.state
     evaluations_before = sim.contacts.evaluations
@@ -168,7 +169,7 @@ def run_adaptive(
     if not sim.monitor.armed:
         sim.monitor.arm(sim)
     sim.control.path_active = False
-    sim.control.push()
+    sim.control.push(sim.state)
     sim.integrator.bind(sim.model)
     counts: dict[str, float] = dict(accepted=0, rejected=0, forced=0, evaluations=sim.contacts.evaluations)
     smallest, largest = math.inf, 0.0
@@ -183,6 +184,7 @@ def run_adaptive(
             sim.contacts.reserve(sim.state.rigid_capacity)
             status_columns.clear(sim.status)
             sim._set_step(h)
+            following.copy_bodies(sim.state)
             sim.integrator.step(sim.model, sim.state, following, sim.control, sim._step_length, sim.contacts)
             following.time = sim.state.time + h
             summary = sim.integrator.read_summary(following, sim.status, **controller.error_scales())

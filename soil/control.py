@@ -166,11 +166,15 @@ def path_kernels(hi):
 
 class SoilControl:
     """External inputs of a step: extra particle forces, the prescribed motion of bodies
-    (wheels) and the motion of boundaries (walls, boxes: prescribed velocity or a load).
+    (wheels: a pose held, or a path over a macro step) and of boundaries (walls, boxes:
+    prescribed velocity or a load).
 
-    Motion is set on the host (`set_body_motion`, `set_boundary_velocity`,
+    Motion is set on the host (`set_body_motion`, `set_body_path`, `set_boundary_velocity`,
     `set_boundary_load`) and sent to the device by `push()`; the Simulation pushes before
-    each force evaluation when something changed, never inside a step's kernels.
+    each force evaluation when something changed, never inside a step's kernels. The bodies'
+    pose and velocity themselves live in the state (SoilState.body_*): push() writes a held
+    pose there, and a path poses them there at every step; the control keeps host copies of
+    what it prescribed (body_*_host).
     """
 
     def __init__(
@@ -185,7 +189,6 @@ class SoilControl:
         self.external_force = wp.zeros(particle_count, dtype=vec_hi, device=device)
         """Extra force on each particle [N], shape (particle_count,); zero by default."""
         scalar = vec_hi._wp_scalar_type_
-        mat_hi = wp.types.matrix((3, 3), scalar)
         self.body_position_host = np.zeros((body_count, 3))
         """Hub position of each body, world [m], shape (body_count, 3) (host copy)."""
         self.body_rotation_host = np.tile(np.eye(3), (body_count, 1, 1))
@@ -194,20 +197,11 @@ class SoilControl:
         """Velocity of each hub, world [m/s], shape (body_count, 3) (host copy)."""
         self.body_angular_velocity_host = np.zeros((body_count, 3))
         """Angular velocity of each body, world [rad/s], shape (body_count, 3) (host copy)."""
-        self.body_position = wp.zeros(body_count, dtype=vec_hi, device=device)
-        """Device copy of body_position_host [m], shape (body_count,)."""
-        self.body_rotation = wp.zeros(body_count, dtype=mat_hi, device=device)
-        """Device copy of body_rotation_host [-], shape (body_count,)."""
-        self.body_velocity = wp.zeros(body_count, dtype=vec_hi, device=device)
-        """Device copy of body_velocity_host [m/s], shape (body_count,)."""
-        self.body_angular_velocity = wp.zeros(body_count, dtype=vec_hi, device=device)
-        """Device copy of body_angular_velocity_host [rad/s], shape (body_count,)."""
         self.body_posed_host = np.zeros(body_count, dtype=np.int32)
         """1 once a body has been posed (set_body_motion with a position, or set_body_path), else 0 [-],
         shape (body_count,), int32 (host copy). A body not yet posed touches nothing: its placeholder
         pose (the origin) may lie inside the grains, whose forces would then be computed with it."""
-        self.body_posed = wp.zeros(body_count, dtype=wp.int32, device=device)
-        """Device copy of body_posed_host [-], shape (body_count,), int32."""
+        self._scalar = scalar
 
         nb = boundary_count
         self.boundary_reports = (
@@ -250,6 +244,7 @@ class SoilControl:
         self.path_active = False
         """True while the bodies follow body_path (the steps then pose them on the device)."""
         self._dirty = body_count > 0 or nb > 0  # host copies changed since the last push()
+        self._posed_dirty = False  # body_posed_host changed by a path (sent at the next push())
 
     @classmethod
     def for_model(cls, model) -> "SoilControl":
@@ -315,7 +310,7 @@ class SoilControl:
         self.path_active = True
         if not self.body_posed_host.all():  # the first path poses the bodies (one copy, once)
             self.body_posed_host[:] = 1
-            self.body_posed.assign(self.body_posed_host)
+            self._posed_dirty = True
         for b in range(count):
             p0, q0, v0, w0 = (part[b] for part in start)
             if end is None:
@@ -332,16 +327,17 @@ class SoilControl:
         self.path_active = False
         self._dirty = True
 
-    def follow_path(self, dt: wp.array, tau: wp.array | None = None) -> None:
-        """Pose the bodies for the end of the path's next step (on the device; capturable): of
-        length dt[0] [s] after `path_step` steps, or, with `tau`, at tau[0] [s] after the path's
-        start (variable steps). Both arrays hold one value of the path's precision."""
+    def follow_path(self, state, dt: wp.array, tau: wp.array | None = None) -> None:
+        """Pose the bodies of `state` (a SoilState, the step's output) for the end of the path's next
+        step (on the device; capturable): of length dt[0] [s] after `path_step` steps, or, with
+        `tau`, at tau[0] [s] after the path's start (variable steps). Both arrays hold one value of
+        the path's precision."""
         kernels = path_kernels(self.body_path.dtype)
         wp.launch(
             kernels.follow_path,
             dim=self.body_count,
             inputs=[self.body_path, self.path_step, dt, dt if tau is None else tau, int(tau is not None)],
-            outputs=[self.body_position, self.body_rotation, self.body_velocity, self.body_angular_velocity],
+            outputs=[state.body_position, state.body_rotation, state.body_velocity, state.body_angular_velocity],
             device=self.body_path.device,
         )
 
@@ -454,19 +450,23 @@ class SoilControl:
         self.boundary_mode_host[indices] = MOTION_PRESCRIBED
         self._dirty = True
 
-    def push(self) -> None:
-        """Send the host motion to the device (only when it changed; between steps, never inside one)."""
+    def push(self, state) -> None:
+        """Send the host motion to the device (only when it changed; between steps, never inside one):
+        the boundaries' motion into the control's device arrays, the bodies' pose and velocity into
+        `state` (the current SoilState; a step carries them on, a path moves them)."""
+        if self._posed_dirty and not self._dirty and self.body_count:
+            state.body_posed.assign(self.body_posed_host)
+        self._posed_dirty = False
         if not self._dirty:
             return
-        dtype = self.body_position.dtype._wp_scalar_type_  # type: ignore[attr-defined]  # a Warp vector type
-        np_type = np.float64 if dtype is wp.float64 else np.float32
+        np_type = np.float64 if self._scalar is wp.float64 else np.float32
         if self.body_count:
-            self.body_posed.assign(self.body_posed_host)
+            state.body_posed.assign(self.body_posed_host)
         if self.body_count and not self.path_active:
-            self.body_position.assign(self.body_position_host.astype(np_type))
-            self.body_rotation.assign(self.body_rotation_host.astype(np_type))
-            self.body_velocity.assign(self.body_velocity_host.astype(np_type))
-            self.body_angular_velocity.assign(self.body_angular_velocity_host.astype(np_type))
+            state.body_position.assign(self.body_position_host.astype(np_type))
+            state.body_rotation.assign(self.body_rotation_host.astype(np_type))
+            state.body_velocity.assign(self.body_velocity_host.astype(np_type))
+            state.body_angular_velocity.assign(self.body_angular_velocity_host.astype(np_type))
         if self.boundary_count:
             self.boundary_mode.assign(self.boundary_mode_host)
             self.boundary_velocity.assign(self.boundary_velocity_host.astype(np_type))

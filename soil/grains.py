@@ -67,11 +67,12 @@ def renumber_history(
     return rows
 
 
-def select_grains(rows: dict, index, rigid: Callable[[np.ndarray], np.ndarray] | None = None) -> dict:
+def select_grains(rows: dict, index, rigid: Callable[[np.ndarray], np.ndarray] | None = None, offset: int = 0) -> dict:
     """The grains `index` (model indices, shape (k,), in the order wanted; or a boolean mask, shape
-    (n,)) of per-grain rows (grain_rows), numbered 0 .. k-1 in that order, their contacts with grains
-    not selected dropped and the others renumbered (renumber_history). rigid: the new key of each
-    rigid partner (default: the same key). Removing grains is selecting the others."""
+    (n,)) of per-grain rows (grain_rows), numbered offset .. offset + k - 1 in that order (offset: the
+    grains of the blocks they will be appended after, append_grains), their contacts with grains not
+    selected dropped and the others renumbered (renumber_history). rigid: the new key of each rigid
+    partner (default: the same key). Removing grains is selecting the others."""
     count = len(rows["neighbours"])
     index = np.asarray(index)
     if index.dtype == bool:
@@ -81,8 +82,10 @@ def select_grains(rows: dict, index, rigid: Callable[[np.ndarray], np.ndarray] |
     index = index.astype(np.int64)
     if index.size and (index.min() < 0 or index.max() >= count or len(np.unique(index)) != len(index)):
         raise SoilInputError(f"grain indices must be distinct and in [0, {count}), got {index.tolist()[:10]}...")
+    if offset < 0:
+        raise SoilInputError(f"offset must be >= 0, got {offset!r}")
     new_index = np.full(count, -1, dtype=np.int64)
-    new_index[index] = np.arange(len(index))
+    new_index[index] = offset + np.arange(len(index))
     return renumber_history(
         {k: v[index] for k, v in rows.items()},
         lambda j: new_index[j],

@@ -248,16 +248,23 @@ class MacroSums:
         for array in (self.force_sum, self.torque_sum, self.work):
             array.zero_()
 
-    def accumulate(self, state, velocity: wp.array, angular_velocity: wp.array, step_length64, weighted: bool) -> None:
-        """Add the bodies' wrench of `state` to the sums (capturable): velocity [m/s] and angular
-        velocity [rad/s] of the bodies, shape (body_count,); step_length64 [s] shape (1,), float64;
+    def accumulate(self, state, step_length64: wp.array, weighted: bool) -> None:
+        """Add the bodies' wrench of `state` (a SoilState at a step's end, with the bodies' velocities
+        the wrench works against) to the sums (capturable): step_length64 [s] shape (1,), float64;
         weighted: multiply by the step's length (variable steps)."""
         if not self.model.body_count:
             return
         wp.launch(
             macro_kernels(self.model.precision.hi).accumulate_wrench,
             dim=self.model.body_count,
-            inputs=[state.body_force, state.body_torque, velocity, angular_velocity, step_length64, int(weighted)],
+            inputs=[
+                state.body_force,
+                state.body_torque,
+                state.body_velocity,
+                state.body_angular_velocity,
+                step_length64,
+                int(weighted),
+            ],
             outputs=[self.force_sum, self.torque_sum, self.work],
             device=self.model.device,
         )

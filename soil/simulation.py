@@ -293,7 +293,7 @@ class Simulation:
     # -- forces without moving ------------------------------------------------------------
     def refresh_forces(self) -> None:
         """Recompute forces (and the contact list) of the current state without moving it."""
-        self.control.push()
+        self.control.push(self.state)
         while True:
             spare = self._spares()[0]
             self.contacts.reserve(self.state.rigid_capacity)
@@ -334,16 +334,16 @@ class Simulation:
 
     def _accumulate_wrench(self, state: SoilState, weighted: bool) -> None:
         """Add the bodies' wrench of `state` to the macro step's sums (capturable)."""
-        control = self.control
-        self.sums.accumulate(state, control.body_velocity, control.body_angular_velocity, self._step_length64, weighted)
+        self.sums.accumulate(state, self._step_length64, weighted)
 
     def _run_step(self, dt: float, state_in: SoilState, state_out: SoilState, path: bool) -> None:
         """One DEM step state_in -> state_out of the length in _step_length (dt [s]): replayed from
         its graph, or launched."""
 
         def body():
+            state_out.copy_bodies(state_in)
             if path:
-                self.control.follow_path(self._step_length)
+                self.control.follow_path(state_out, self._step_length)
             self.integrator.step(self.model, state_in, state_out, self.control, self._step_length, self.contacts)
             self._accumulate_wrench(state_out, weighted=False)
             if path:
@@ -404,7 +404,7 @@ class Simulation:
         self._maybe_reorder()
         if not path:
             self.control.path_active = False
-        self.control.push()
+        self.control.push(self.state)
         redone = 0
         start = self.state
         evaluations_before = self.contacts.evaluations

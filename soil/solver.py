@@ -67,7 +67,7 @@ def contact_kernels(hi, lo, law: ContactLaw):
 
     @wp.struct
     class Bodies:
-        """Wheels: model geometry and the control's poses and velocities."""
+        """Wheels: model geometry and the state's poses and velocities."""
 
         kind: wp.array(dtype=wp.int32)
         shape: wp.array2d(dtype=hi)
@@ -491,7 +491,7 @@ class ContactSolver:
         bundle.displacement, bundle.velocity = state.boundary_displacement, state.boundary_velocity
         return bundle
 
-    def bodies(self, control: SoilControl):
+    def bodies(self, state: SoilState):
         model = self.model
         bundle = self.kernels.Bodies()
         bundle.kind, bundle.shape, bundle.mesh, bundle.material = (
@@ -502,9 +502,9 @@ class ContactSolver:
         )
         bundle.mesh_points, bundle.mesh_indices = model.mesh_points, model.mesh_indices
         bundle.point_offset, bundle.index_offset = model.body_point_offset, model.body_index_offset
-        bundle.position, bundle.rotation = control.body_position, control.body_rotation
-        bundle.velocity, bundle.angular_velocity = control.body_velocity, control.body_angular_velocity
-        bundle.posed = control.body_posed
+        bundle.position, bundle.rotation = state.body_position, state.body_rotation
+        bundle.velocity, bundle.angular_velocity = state.body_velocity, state.body_angular_velocity
+        bundle.posed = state.body_posed
         return bundle
 
     def history(self, state: SoilState):
@@ -540,7 +540,7 @@ class ContactSolver:
                 state_out.angular_velocity,
                 self.grains(state_out),
                 self.walls(state_out),
-                self.bodies(control),
+                self.bodies(state_out),
                 layout.neighbours,
                 layout.neighbour_count,
                 state_out.list_index,

@@ -187,6 +187,17 @@ class SoilState:
         """Soil torque on each body about its hub, world [N m], shape (body_count,)."""
         self.body_contacts = wp.zeros(body_count, dtype=wp.int32, device=device)
         """Number of particles touching each body, shape (body_count,)."""
+        self.body_position = wp.zeros(body_count, dtype=vec_hi, device=device)
+        """Hub position of each body at the state's time, world [m], shape (body_count,)."""
+        self.body_rotation = wp.zeros(body_count, dtype=wp.types.matrix((3, 3), scalar), device=device)
+        """Rotation body -> world of each body at the state's time [-], shape (body_count,) of 3x3."""
+        self.body_velocity = wp.zeros(body_count, dtype=vec_hi, device=device)
+        """Velocity of each hub, world [m/s], shape (body_count,)."""
+        self.body_angular_velocity = wp.zeros(body_count, dtype=vec_hi, device=device)
+        """Angular velocity of each body, world [rad/s], shape (body_count,)."""
+        self.body_posed = wp.zeros(body_count, dtype=wp.int32, device=device)
+        """1 once a body has been posed, else 0 [-], shape (body_count,), int32: a body not yet posed
+        touches nothing (its placeholder pose, the origin, may lie inside the grains)."""
         nb = boundary_count
         self.boundary_displacement = wp.zeros(nb, dtype=vec_hi, device=device)
         """Translation of each boundary from its initial geometry (model.boundary_geometry) [m],
@@ -260,6 +271,15 @@ class SoilState:
         return sum(a.capacity for a in self.arrays.values()) / n
 
     # -- copies and growth -------------------------------------------------------------
+    BODY_MOTION = ("body_position", "body_rotation", "body_velocity", "body_angular_velocity", "body_posed")
+    """The arrays of the bodies' pose and velocity (set by the control, carried from step to step)."""
+
+    def copy_bodies(self, other: SoilState) -> None:
+        """Take the bodies' pose, velocity and posed flags from `other` (device to device; capturable):
+        a step carries them to its output state, where a path may then move them."""
+        for name in self.BODY_MOTION:
+            wp.copy(getattr(self, name), getattr(other, name))
+
     def assign(self, other: SoilState) -> None:
         """Copy every array, the list index and the time from `other`; arrays are reshaped to
         other's (e.g. after its storage grew). A state with its own layout gets a copy of other's."""
@@ -353,7 +373,7 @@ class SoilState:
         self.grow_capacity(neighbours.shape[1], np.asarray(data["rigid_key"]).shape[1])
         for name, array in self.arrays.items():
             if name not in data:
-                if name.startswith("boundary_") or name in ("body_force", "body_torque", "body_contacts"):
+                if name.startswith(("boundary_", "body_")):  # bodies: posed by the control before a step
                     array.zero_()
                     continue
                 raise KeyError(f"state data has no {name!r} array")

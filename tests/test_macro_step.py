@@ -103,10 +103,10 @@ def test_device_wheel_path_and_wrench_sums_match_stepping_from_the_host(device):
             np.testing.assert_allclose(wrench.torque, torque / 10, rtol=0, atol=1e-6 * scale * 0.02)
             assert abs(wrench.work_on_soil - work) <= 1e-6 * abs(work) + 1e-15
             np.testing.assert_allclose(
-                on_device.sim.control.body_position.numpy()[0], sim.control.body_position.numpy()[0], rtol=0, atol=1e-12
+                on_device.sim.state.body_position.numpy()[0], sim.state.body_position.numpy()[0], rtol=0, atol=1e-12
             )
             np.testing.assert_allclose(
-                on_device.sim.control.body_rotation.numpy()[0], sim.control.body_rotation.numpy()[0], rtol=0, atol=1e-12
+                on_device.sim.state.body_rotation.numpy()[0], sim.state.body_rotation.numpy()[0], rtol=0, atol=1e-12
             )
     assert wrench.contact_count > 0
 
