@@ -27,6 +27,7 @@ from .model import SoilModel
 from .neighbours import NeighbourSettings
 from .precision import PRECISIONS, get_precision
 from .simulation import MacroStepReport, Simulation, SimulationDiverged
+from .snapshot import SimulationSnapshot
 from .stability import DivergenceMonitor
 from .state import SoilState
 
@@ -50,6 +51,7 @@ __all__ = [
     "PRECISIONS",
     "Simulation",
     "SimulationDiverged",
+    "SimulationSnapshot",
     "SoilBuilder",
     "SoilControl",
     "SoilInputError",

@@ -8,6 +8,9 @@ step the host reads one small report (status flags, storage needs, wheel wrenche
 the contact storage overflowed, it grows and the macro step is redone from its start,
 which three rotating state buffers keep untouched, so the result equals a run that had
 enough storage from the start (docs/performance.md).
+
+The capture cache and the report live in soil.macro, adaptive (PID) stepping in
+soil.adaptive, snapshots in soil.snapshot; Simulation is the surface over them.
 """
 
 import math
@@ -49,6 +52,24 @@ class Simulation:
     `state` is always the current state; a step writes into another buffer and only then
     becomes current, so a step or macro step that fails (storage overflow, divergence)
     leaves `state` untouched.
+
+    The public surface:
+
+    - stepping: macro_step (fixed steps), advance_to (a macro step landing on an end time),
+      macro_step_adaptive and enable_step_control (PID substeps), step, run, run_adaptive,
+      refresh_forces;
+    - the bodies: set_body_motion, set_body_path, body_positions, body_rotations,
+      body_velocities, body_angular_velocities, body_wrenches, body_count, body_shapes;
+    - the grains and walls (model order, host copies): positions, velocities,
+      angular_velocities, forces, contact_counts, contact_history, radii, particle_count,
+      boundary_wrenches, boundary_displacements, boundary_velocities, boundary_geometry,
+      boundary_kinds, kinetic_energy, gravity_energy, elastic_energy, total_energy, check_finite,
+      bytes_per_grain;
+    - state as a whole: snapshot / restore (in memory, on the device), state_dict /
+      load_state_dict (checkpoints), arm_monitor / check_divergence (soil.stability);
+    - attributes: model, state (the current SoilState), control (SoilControl), integrator,
+      monitor (DivergenceMonitor), step_control, time, steps and the step counters, gravity,
+      device, precision_name.
 
     neighbours: how the neighbour list is kept (soil.neighbours.NeighbourSettings).
     capture: replay captured graphs of the steps (True, the default) or launch every kernel
@@ -575,7 +596,11 @@ class Simulation:
 
         Keys: 'state/<array>' and 'state/time' (SoilState.to_numpy, model order: particles,
         contact history with the neighbour list it is aligned with, forces, bodies' and
-        boundaries' wrenches and motion), 'control/<name>' (SoilControl.state_dict), 'steps',
+        boundaries' wrenches and motion: 'state/body_position', 'body_rotation', 'body_velocity',
+        'body_angular_velocity', 'body_posed'; on loading, the pose the control prescribed is
+        sent into the state before the next step, so checkpoints written before the pose was
+        part of the state, which lack these keys, load as they always did), 'control/<name>'
+        (SoilControl.state_dict), 'steps',
         'accepted_steps', 'rejected_steps', 'forced_steps', 'evaluations' [-], 'capacity' and
         'rigid_capacity' (contact slots per grain), 'integrator' (its name), 'precision',
         'controller/<field>' (StepController, after run_adaptive), 'step_control/<field>' (the
