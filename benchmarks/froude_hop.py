@@ -46,9 +46,9 @@ def main(argv=None) -> None:
 
     wp.config.log_level = wp.LOG_ERROR
     from cosim.beds import settled_bed
+    from cosim.launch import run_plan
     from cosim.output import read_series
     from cosim.plan import load_plan
-    from cosim.runner import run_plan
 
     base = load_plan(args.scene, args.set)
     os.makedirs(args.out, exist_ok=True)

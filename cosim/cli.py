@@ -94,7 +94,7 @@ def _plan(args):
 
 
 def cmd_run(args) -> int:
-    from .runner import run_plan
+    from .launch import run_plan
 
     plan = _plan(args)
     out = args.out or os.path.join("runs", plan.name)
@@ -112,13 +112,13 @@ def cmd_run(args) -> int:
 
 
 def _absolute(plan):
-    from .runner import absolute_paths
+    from .launch import absolute_paths
 
     return absolute_paths(plan)
 
 
 def cmd_resume(args) -> int:
-    from .runner import resume
+    from .launch import resume
 
     result = resume(args.out, progress=not args.no_progress)
     _print_summary(result)

@@ -4,6 +4,12 @@ Per wheel, world frame, Z up, SI units. The rover side hands the soil side the h
 kinematics of every wheel; the soil side answers with the wrench on every wheel.
 Both sides implement a small protocol so that any soil (DEM, analytic test terrain,
 an FMU) can be coupled to any rover (MuJoCo, FMU).
+
+`SoilSide` is also everything the run layer (coupler, runner, records, results writer,
+metrics, studies) knows of a soil: a terrain model is added by implementing it (and
+registering its builder in cosim.system). Its optional capabilities (walls, particles,
+health checks, inner-step statistics) have a defined "absent" answer; `SoilSideDefaults`
+gives them all, so a terrain without walls or particles writes only what it has.
 """
 
 from __future__ import annotations
@@ -13,6 +19,7 @@ from dataclasses import dataclass, field
 from typing import Protocol, runtime_checkable
 
 import numpy as np
+from numpy.typing import ArrayLike
 
 
 def _vec(value, size: int, name: str) -> np.ndarray:
@@ -66,15 +73,110 @@ class WheelWrench:
     """Work done by the wheel on the soil during the macro step [J]."""
 
 
+def wheel_frame(orientation: ArrayLike, axis_local: ArrayLike) -> tuple[np.ndarray, np.ndarray]:
+    """Spin axis and rolling (forward) direction of a wheel in the world frame.
+
+    orientation: unit quaternion (w, x, y, z), body -> world, shape (4,); axis_local: the spin
+    axis in the wheel body frame, shape (3,). Returns (axis, forward), unit vectors, shape (3,)
+    each. forward = axis x z_up, so a positive spin about the axis rolls the wheel forward. A
+    wheel lying flat (axis near vertical) has no rolling direction; forward is then the zero vector.
+
+    The contract's wheel-frame convention, so it lives here; the quaternion maths is soil's
+    (soil.control), imported when first needed: `import cosim` and the rover models that use
+    this module pull in numpy only.
+    """
+    from soil.control import quaternion_to_matrix
+
+    axis = quaternion_to_matrix(orientation) @ np.asarray(axis_local, dtype=np.float64)
+    forward = np.cross(axis, _UP)
+    norm = np.linalg.norm(forward)
+    return axis, (forward / norm if norm > 1e-9 else np.zeros(3))
+
+
+_UP = np.array([0.0, 0.0, 1.0])
+
+
+@dataclass(frozen=True)
+class StepStatistics:
+    """How a soil's own inner steps went over its last `advance` (a DEM: its DEM steps)."""
+
+    steps: int
+    """Inner steps taken (PID step control: the accepted substeps) [count]."""
+    rejected: int
+    """Inner steps computed and thrown away (PID step control) [count]."""
+    dt_min: float
+    """Shortest inner step [s]."""
+    dt_max: float
+    """Longest inner step [s]."""
+    evaluations: int
+    """Force evaluations, rejected steps included [count]."""
+
+
+@dataclass(frozen=True)
+class SoilBooks:
+    """A soil's bookkeeping at one instant (results.h5 /soil and the run summary)."""
+
+    element_count: int
+    """Elements simulated: grains of a DEM, cells or nodes of a continuum, 0 for an analytic
+    terrain [count]. Throughput is reported per element step."""
+    mass: float
+    """Mass of the soil simulated [kg] (0 for an analytic terrain)."""
+    mass_initial: float = 0.0
+    """The mass at the start of the run [kg] (a moving domain: it changes)."""
+    mass_added: float = 0.0
+    """Soil placed ahead by a moving domain so far [kg]."""
+    mass_removed: float = 0.0
+    """Soil removed behind a moving domain so far [kg]."""
+    moves: int = 0
+    """How often a moving domain moved so far [count]."""
+    moving: bool = False
+    """The soil domain follows the rover (a DEM's moving patch): the summary reports its books."""
+
+
+@dataclass(frozen=True)
+class Particles:
+    """The soil's particles at one instant (results.h5 /particles), N particles."""
+
+    position: np.ndarray
+    """Centres, world frame [m], shape (N, 3), float64."""
+    velocity: np.ndarray
+    """Velocities, world frame [m/s], shape (N, 3)."""
+    radius: np.ndarray
+    """Radii [m], shape (N,)."""
+    ids: np.ndarray | None = None
+    """Particle ids unique over the run, shape (N,), when particles come and go (a moving patch;
+    the file's ragged layout); None when the particles are the same all run (the fixed layout)."""
+
+
+WALL_NAMES = ("kind", "geometry", "report")
+"""Keys of `SoilSide.walls()`: 'kind' (B,) int (0 plane: point, unit normal; 1 box: lower, upper
+corner), 'geometry' (B, 6) [m] as built, 'report' (B,) int (1: the wall's force is summed)."""
+
+WALL_LOAD_NAMES = ("force", "torque", "contact_count", "displacement")
+"""Keys of `SoilSide.wall_loads()`: 'force' (B, 3) [N] of the soil on each wall, 'torque' (B, 3)
+[N m] about the wall's reference point, 'contact_count' (B,) [count], 'displacement' (B, 3) [m]
+of each wall from its place at the start; at the end of the last macro step."""
+
+
 @runtime_checkable
 class SoilSide(Protocol):
-    """Anything that answers wheel kinematics with wheel wrenches."""
+    """Anything that answers wheel kinematics with wheel wrenches, and what the run layer reads of it.
+
+    W = wheel_count, wheels in the rover's wheel order; world frame, Z up, SI units. The
+    required members are the coupling itself (`time`, `set_gravity`, `advance`), the ground's
+    height, the wheels' poses and a checkpoint; the optional ones (SoilSideDefaults gives
+    their absent answer) are walls, particles, health checks and inner-step statistics.
+    """
 
     wheel_count: int
 
     @property
     def time(self) -> float:
         """The soil's time [s] (read only: `advance` moves it)."""
+
+    @property
+    def surface_height(self) -> float:
+        """Height z of the undisturbed soil surface [m]: the reference of sinkage."""
 
     def set_gravity(self, gravity: Sequence[float]) -> None:
         """Set the scene's gravity vector [m/s^2], shape (3,)."""
@@ -91,6 +193,73 @@ class SoilSide(Protocol):
         t_end) by interpolation; with `end` None the motion is extrapolated from `start`
         at constant velocity. Returns one WheelWrench per wheel.
         """
+
+    def place_wheels(self, kinematics: Sequence[WheelKinematics]) -> None:
+        """Put the wheels at these poses without advancing (before the first macro step)."""
+
+    def wheel_poses(self) -> tuple[np.ndarray, np.ndarray]:
+        """The wheels' poses as the soil last moved them: hub positions [m] (W, 3) and rotations
+        body -> world (W, 3, 3) (the display mesh of results.h5 is posed with them)."""
+
+    def highest_point_under(self, wheel: int, hub: ArrayLike, axle: ArrayLike = (0.0, 1.0, 0.0)) -> float:
+        """Top z [m] of the soil inside the wheel's horizontal footprint when its hub is at `hub` (3,)
+        and its axle along `axle` (a horizontal unit vector, world); -inf where there is none. A wheel
+        placed at this + its outer radius starts just touching the soil."""
+
+    def books(self) -> SoilBooks:
+        """The soil's bookkeeping now."""
+
+    def state_dict(self) -> dict:
+        """Everything needed to continue bit for bit, as numpy arrays and scalars (a checkpoint)."""
+
+    def load_state_dict(self, data: dict) -> None:
+        """Continue from `state_dict()` output (into a soil built from the same scene)."""
+
+    # -- optional capabilities: SoilSideDefaults answers "absent" ---------------------------
+
+    def step_statistics(self) -> StepStatistics | None:
+        """How the inner steps of the last `advance` went; None before the first one, or for a
+        soil without inner steps."""
+
+    def start_health_checks(self) -> None:
+        """Before the run's first macro step: take what later `check_health` calls compare with
+        (a soil restored from a checkpoint keeps what its checkpoint took)."""
+
+    def check_health(self) -> None:
+        """Check that the soil has not diverged; raise soil.SimulationDiverged (with its last good
+        state, where kept) when it has. The runner calls it every few macro steps and at checkpoints."""
+
+    def walls(self) -> dict | None:
+        """The soil container's walls as built (keys WALL_NAMES); None for a soil without walls."""
+
+    def wall_loads(self) -> dict | None:
+        """The walls' loads now (keys WALL_LOAD_NAMES); None for a soil without walls."""
+
+    def particles(self) -> Particles | None:
+        """The particles now (results.h5 snapshots); None for a soil without particles (a continuum)."""
+
+
+class SoilSideDefaults:
+    """The absent answers of SoilSide's optional capabilities: no walls, no particles, nothing
+    to check, no inner steps. A terrain model derives from it and overrides what it has."""
+
+    def step_statistics(self) -> StepStatistics | None:
+        return None
+
+    def start_health_checks(self) -> None:
+        return None
+
+    def check_health(self) -> None:
+        return None
+
+    def walls(self) -> dict | None:
+        return None
+
+    def wall_loads(self) -> dict | None:
+        return None
+
+    def particles(self) -> Particles | None:
+        return None
 
 
 @runtime_checkable

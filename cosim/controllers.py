@@ -23,8 +23,7 @@ import numpy as np
 
 from soil.errors import ArgumentError
 
-from .contract import WheelKinematics, WheelWrench
-from .terrain import wheel_frame
+from .contract import WheelKinematics, WheelWrench, wheel_frame
 
 
 @dataclass

@@ -29,11 +29,11 @@ from typing import Any
 
 import numpy as np
 
+from soil.control import quaternion_integrate, quaternion_multiply
 from soil.errors import RegolithError, RegolithWarning
 
 from .contract import RoverSide, SoilSide, WheelKinematics, WheelWrench
 from .controllers import apply_command
-from .terrain import quat_integrate, quat_multiply
 
 
 class CouplingEnergyWarning(RegolithWarning, RuntimeWarning):
@@ -270,8 +270,8 @@ def _jump_work(w: WheelWrench, k0: WheelKinematics, k1: WheelKinematics, h: floa
     """Work [J] of the soil's end wrench on the wheel when it jumps from the extrapolated
     end pose (k0 moved at constant velocity for h) to the rover's actual pose k1."""
     dp = k1.position - (k0.position + k0.linear_velocity * h)
-    q_ext = quat_integrate(k0.orientation, k0.angular_velocity, h)
-    dq = quat_multiply(k1.orientation, q_ext * np.array([1.0, -1.0, -1.0, -1.0]))
+    q_ext = quaternion_integrate(k0.orientation, k0.angular_velocity, h)
+    dq = quaternion_multiply(k1.orientation, q_ext * np.array([1.0, -1.0, -1.0, -1.0]))
     if dq[0] < 0.0:
         dq = -dq
     sin_half = np.linalg.norm(dq[1:])

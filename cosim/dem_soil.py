@@ -11,7 +11,7 @@ from numpy.typing import ArrayLike
 from soil.errors import RegolithWarning
 from soil.sdf import BOUNDARY_PLANE
 
-from .contract import WheelKinematics, WheelWrench
+from .contract import Particles, SoilBooks, StepStatistics, WheelKinematics, WheelWrench
 
 
 class WallProximityWarning(RegolithWarning):
@@ -46,6 +46,7 @@ class DemSoil:
         self.patch = patch
         self.last_report = None
         """The soil.MacroStepReport of the last advance() (steps taken, rejected, dt range, evaluations)."""
+        self._static_mass: float | None = None
 
     @classmethod
     def from_bed(
@@ -233,6 +234,86 @@ class DemSoil:
                         stacklevel=3,
                     )
                     return
+
+    # -- the rest of the SoilSide contract (cosim.contract) ------------------------------
+    def highest_point_under(self, wheel: int, hub: ArrayLike, axle: ArrayLike = (0.0, 1.0, 0.0)) -> float:
+        """SoilSide: the top of the highest grain under the wheel (highest_grain_under)."""
+        return self.highest_grain_under(wheel, hub, axle)
+
+    def wheel_poses(self) -> tuple[np.ndarray, np.ndarray]:
+        """SoilSide: the wheel bodies' hub positions [m] (W, 3) and rotations (W, 3, 3) as the last
+        DEM step (or place_wheels) left them."""
+        control = self.sim.control
+        return control.body_position_host, control.body_rotation_host
+
+    def books(self) -> SoilBooks:
+        """SoilSide: the grains simulated and their mass; a moving patch's books when there is one."""
+        if self.patch is not None:
+            b = self.patch.books()
+            return SoilBooks(
+                element_count=b["particle_count"],
+                mass=b["soil_mass"],
+                mass_initial=b["mass_initial"],
+                mass_added=b["mass_added"],
+                mass_removed=b["mass_removed"],
+                moves=b["moves"],
+                moving=True,
+            )
+        if self._static_mass is None:  # a bed's grains stay the same: their mass is summed once
+            self._static_mass = float(np.sum(self.sim.model.mass_numpy()))
+        return SoilBooks(
+            element_count=self.sim.model.particle_count, mass=self._static_mass, mass_initial=self._static_mass
+        )
+
+    def step_statistics(self) -> StepStatistics | None:
+        """SoilSide: the DEM steps of the last macro step (soil.MacroStepReport); None before the first."""
+        report = self.last_report
+        if report is None:
+            return None
+        return StepStatistics(report.steps, report.rejected, report.dt_min, report.dt_max, report.evaluations)
+
+    def start_health_checks(self) -> None:
+        """SoilSide: arm the simulation's divergence monitor (soil.DivergenceMonitor) unless a
+        checkpoint armed it already."""
+        if not self.sim.monitor.armed:
+            self.sim.monitor.arm(self.sim)
+
+    def check_health(self) -> None:
+        """SoilSide: the divergence monitor's full check (soil.SimulationDiverged with the last good state)."""
+        self.sim.monitor.check(self.sim)
+
+    def walls(self) -> dict | None:
+        """SoilSide: the container walls as built (cosim.contract.WALL_NAMES); None without walls."""
+        model = self.sim.model
+        if not model.boundary_count:
+            return None
+        return {
+            "kind": model.boundary_kind.numpy(),
+            "geometry": model.boundary_geometry_numpy(),
+            "report": model.boundary_reports,
+        }
+
+    def wall_loads(self) -> dict | None:
+        """SoilSide: the walls' loads now (cosim.contract.WALL_LOAD_NAMES); None without walls."""
+        if not self.sim.model.boundary_count:
+            return None
+        force, torque, contacts = self.sim.boundary_wrenches()
+        return {
+            "force": force,
+            "torque": torque,
+            "contact_count": contacts,
+            "displacement": self.sim.boundary_displacements(),
+        }
+
+    def particles(self) -> Particles:
+        """SoilSide: the grains now; with a moving patch the grains come and go (ids given)."""
+        sim = self.sim
+        return Particles(
+            position=sim.positions(),
+            velocity=sim.velocities(),
+            radius=sim.model.radius_numpy(),
+            ids=None if self.patch is None else self.patch.ids,
+        )
 
 
 def _extent(shape, rotation: np.ndarray, direction: np.ndarray) -> float:

@@ -20,6 +20,7 @@ replaced with overwrite=True, and only after the new run has been validated and 
 
 from __future__ import annotations
 
+import json
 import os
 import shutil
 
@@ -141,3 +142,12 @@ class RunFolder:
                 shutil.rmtree(path)
             elif os.path.exists(path):
                 os.remove(path)
+
+
+def read_json(path: str) -> dict:
+    """A run folder's JSON file (run.json) as a dict; {} when it is missing or unreadable."""
+    try:
+        with open(path) as f:
+            return json.load(f)
+    except (OSError, ValueError):
+        return {}

@@ -54,8 +54,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .contract import WheelKinematics, WheelWrench
-from .terrain import quat_to_matrix, wheel_frame
+from soil.control import quaternion_to_matrix
+
+from .contract import WheelKinematics, WheelWrench, wheel_frame
+from .single_wheel import PHASE_DRIVING
 
 STEADY = "steady"
 NEVER_TOUCHED = "never touched the soil"
@@ -201,7 +203,7 @@ def summarize(
     phase = np.asarray(series["phase"])
     contacts = np.asarray(series["contact_count"])[:, 0]
     out: dict = {"steady_state": STEADY, "window": [math.nan, math.nan]}
-    driving = phase == 1
+    driving = phase == PHASE_DRIVING
     out["landing_time"] = float(time[np.argmax(driving)] - time[0]) if driving.any() else math.nan
     if len(time) == 0 or not np.any(contacts > 0):
         out["steady_state"] = NEVER_TOUCHED
@@ -273,7 +275,7 @@ ROVER_UNITS = {"forward_speed": "m/s", "slip": "1", "net_traction": "N", "power"
 
 def rover_forward(orientation: np.ndarray) -> np.ndarray:
     """The rover's forward direction: its body +x axis in the horizontal plane, unit [-], shape (3,)."""
-    x_axis = np.asarray(quat_to_matrix(orientation))[:, 0]
+    x_axis = np.asarray(quaternion_to_matrix(orientation))[:, 0]
     horizontal = np.array([x_axis[0], x_axis[1], 0.0])
     norm = np.linalg.norm(horizontal)
     return horizontal / norm if norm > 1e-9 else np.zeros(3)
@@ -358,7 +360,7 @@ def summarize_rover(
     time = np.asarray(series["time"], dtype=float)
     phase = np.asarray(series["phase"])
     contacts = np.asarray(series["contact_count"])
-    driving = phase == 1
+    driving = phase == PHASE_DRIVING
     out: dict = {
         "steady_state": STEADY,
         "window": [math.nan, math.nan],

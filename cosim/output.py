@@ -17,7 +17,7 @@ and a `description`; every time series grows along its first axis.
         bed (JSON: source, settle report, metrics), findings (JSON: the validity checks at the start)
     /wheels/                        one row per macro step, wheel quantities at its end
         time              (S,)       [s]
-        phase             (S,)       0 landing, 1 driving
+        phase             (S,)       0 landing, 1 driving (cosim.single_wheel.PHASE_LANDING, PHASE_DRIVING)
         position          (S, W, 3)  hub position [m]
         orientation       (S, W, 4)  quaternion (w, x, y, z) body -> world [1]
         linear_velocity   (S, W, 3)  [m/s]
@@ -444,9 +444,10 @@ class ResultsWriter:
             else:
                 p["radius"] = np.asarray(radius, dtype=np.float64)
                 _units(p["radius"], "m", "grain radii (model order)")
-                p.create_dataset("position", (0, n, 3), np.float64, maxshape=(None, n, 3), chunks=(1, n, 3))
+                snapshot_chunk = (1, max(n, 1), 3)  # HDF5 chunks are not empty: a soil without grains (N = 0) too
+                p.create_dataset("position", (0, n, 3), np.float64, maxshape=(None, n, 3), chunks=snapshot_chunk)
                 _units(p["position"], "m", "grain centres")
-                p.create_dataset("velocity", (0, n, 3), np.float32, maxshape=(None, n, 3), chunks=(1, n, 3))
+                p.create_dataset("velocity", (0, n, 3), np.float32, maxshape=(None, n, 3), chunks=snapshot_chunk)
                 _units(p["velocity"], "m/s", "grain velocities")
             nv = len(m["vertices"])
             p.create_dataset("wheel_vertices", (0, nv, 3), np.float32, maxshape=(None, nv, 3), chunks=(1, nv, 3))

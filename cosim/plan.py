@@ -23,6 +23,7 @@ import logging
 import math
 import os
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 
@@ -191,6 +192,16 @@ class LandingPlan:
 
 
 @dataclass(frozen=True)
+class TerrainPlan:
+    """The terrain model the wheels run on ([terrain]; cosim.system.TERRAIN_MODELS builds it)."""
+
+    model: str = "dem"
+    """'dem' (the grains of [bed]) or 'analytic' (cosim.terrain.SpringDamperTerrain)."""
+    parameters: tuple[tuple[str, Any], ...] = ()
+    """The model's own parameters given in the scene, (name, value) pairs (its defaults for the rest)."""
+
+
+@dataclass(frozen=True)
 class RunPlan:
     """Everything a run needs, resolved from a scene (see the module docstring)."""
 
@@ -239,6 +250,8 @@ class RunPlan:
     """A soil patch following the rover (None: the bed is the whole soil)."""
     wheels: tuple[WheelPlan, ...] = ()
     """Every wheel's plan, in wheel order (the testbed: its one wheel)."""
+    terrain: TerrainPlan = TerrainPlan()
+    """The terrain model (default: the DEM bed)."""
 
     @property
     def g(self) -> float:
@@ -592,7 +605,17 @@ def resolve(scene: Scene) -> RunPlan:
         rover=rover_plan,
         patch=patch,
         wheels=wheels,
+        terrain=_terrain(scene),
     )
+
+
+def _terrain(scene: Scene) -> TerrainPlan:
+    """The scene's terrain model and the parameters it gives for it (scene.TerrainSection)."""
+    section = scene.terrain
+    if section is None:
+        return TerrainPlan()
+    given = section.model_dump(exclude={"model"}, exclude_none=True)
+    return TerrainPlan(section.model, tuple(sorted(given.items())))
 
 
 def _testbed(scene: Scene, wheel: WheelPlan, problems: list[str]) -> TestbedPlan:

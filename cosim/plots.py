@@ -22,6 +22,7 @@ from soil.errors import DamagedFileError
 
 from .folders import PLOTS_DIR, RESULTS_FILE
 from .output import read_series
+from .single_wheel import PHASE_DRIVING
 
 log = logging.getLogger(__name__)
 
@@ -156,7 +157,7 @@ def _rover_plots(plt, runs, colours, plot_dir: str, dpi: int) -> list[str]:
     written = []
     fig, axes = plt.subplots(1, 3, figsize=(17, 4.6))
     for _, group, s in runs:
-        driving = s["phase"] == 1
+        driving = s["phase"] == PHASE_DRIVING
         xy = s["rover_position"][:, :2]
         colour = colours[group]
         axes[0].plot(xy[:, 0] * 1e3, xy[:, 1] * 1e3, color=colour, lw=1.2, label=group)
@@ -192,7 +193,7 @@ def _rover_plots(plt, runs, colours, plot_dir: str, dpi: int) -> list[str]:
     names = json.loads(runs[0][2]["attrs"].get("wheel_names", "[]"))
     for ax, (key, label, scale) in zip(axes, panels):
         for _, group, s in runs:
-            driving = s["phase"] == 1
+            driving = s["phase"] == PHASE_DRIVING
             values, time = s[key][driving] * scale, s["time"][driving]
             if len(runs) == 1:  # one run: every wheel
                 for i in range(values.shape[1]):

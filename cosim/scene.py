@@ -481,6 +481,43 @@ class PatchSection(_Section):
     diameters: the walls order the packing near them)."""
 
 
+ANALYTIC_KEYS = ("stiffness", "damping", "friction", "traction", "slip_scale", "slip_velocity", "surface_height")
+"""The [terrain] keys of model = "analytic"."""
+
+
+class TerrainSection(_Section):
+    """The terrain the wheels run on: the DEM bed of [bed] (the default), or the analytic test terrain
+    (cosim.terrain.SpringDamperTerrain: flat spring-damper ground, each wheel a disc of its rim
+    radius). Unset analytic keys take the terrain's defaults."""
+
+    model: Literal["dem", "analytic"] = "dem"
+    stiffness: float | None = Field(None, gt=0)
+    """analytic: normal penalty stiffness per wheel [N/m] (default 2e4)."""
+    damping: float | None = Field(None, ge=0)
+    """analytic: normal damping per wheel [N s/m] (default 500)."""
+    friction: float | None = Field(None, ge=0)
+    """analytic: friction / traction coefficient [-] (default 0.6)."""
+    traction: Literal["coulomb", "slip"] | None = None
+    """analytic: 'coulomb' (regularised Coulomb, the default) or 'slip' (a slip-ratio traction law)."""
+    slip_scale: float | None = Field(None, gt=0)
+    """analytic: the slip at which the 'slip' law reaches 63 % of mu F_n [-] (default 0.1)."""
+    slip_velocity: float | None = Field(None, gt=0)
+    """analytic: regularisation velocity of the friction laws [m/s] (default 1e-3)."""
+    surface_height: float | None = None
+    """analytic: height z of the ground [m] (default 0)."""
+
+    @model_validator(mode="after")
+    def _keys_of_model(self):
+        if self.model != "analytic":
+            given = [key for key in ANALYTIC_KEYS if getattr(self, key) is not None]
+            if given:
+                raise ValueError(
+                    f'{given[0]}: a key of the analytic terrain (model = "analytic"); '
+                    f"model = {self.model!r} takes none of {', '.join(ANALYTIC_KEYS)}"
+                )
+        return self
+
+
 class LandingSection(_Section):
     """The wheel lands before it drives: it settles onto the soil under its load, not turning."""
 
@@ -562,6 +599,8 @@ class Scene(_Section):
     """A rover (instead of the testbed)."""
     patch: PatchSection | None = None
     """A soil patch following the rover (rovers only)."""
+    terrain: TerrainSection | None = None
+    """The terrain model (default: the DEM bed of [bed])."""
     landing: LandingSection = LandingSection()
     run: RunSection = RunSection()
     output: OutputSection = OutputSection()
@@ -576,6 +615,8 @@ class Scene(_Section):
             raise ValueError("rover: a scene has either a single-wheel [testbed] or a [rover], not both")
         if self.patch is not None and self.rover is None:
             raise ValueError("patch: a moving soil patch follows a [rover]; the single-wheel testbed runs on its bed")
+        if self.patch is not None and self.terrain is not None and self.terrain.model != "dem":
+            raise ValueError("patch: a moving soil patch is a window of DEM grains; terrain.model must be 'dem'")
         if self.rover is None and self.testbed is None:
             object.__setattr__(self, "testbed", TestbedSection())
         return self

@@ -78,7 +78,7 @@ def task_plan(task: dict) -> RunPlan:
 
 def run_task(task: dict) -> dict:
     """Run one scene (task: scene_toml, overrides, out_dir, label, overwrite); never raises."""
-    from .runner import run_plan
+    from .launch import run_plan
 
     _quiet()
     started = time.perf_counter()
@@ -296,7 +296,7 @@ def replica_run(
     """K replicas of a scene that differ only in summation order, with error bars (module docstring).
 
     Returns {'ok' (every replica steady and the statistics exist), 'stats', 'results', 'text'}."""
-    from .runner import absolute_paths
+    from .launch import absolute_paths
 
     if replicas < 2:
         raise SceneError([f"--replicas: must be >= 2 for error bars, got {replicas}"])
@@ -355,7 +355,7 @@ def precision_study(
     plot: bool = True,
 ) -> dict:
     """The paper's replica experiment per precision; returns {'rows', 'replicas', ...}."""
-    from .runner import absolute_paths
+    from .launch import absolute_paths
 
     plan = absolute_paths(plan)
     for p in precisions:
@@ -438,7 +438,7 @@ def slip_study(
     plot: bool = True,
 ) -> dict:
     """Imposed slips after landing: DP, DP/W, torque and sinkage against slip, with error bars."""
-    from .runner import absolute_paths
+    from .launch import absolute_paths
 
     try:
         slips = [float(s) for s in slips]
@@ -546,8 +546,8 @@ def sweep(
     plot: bool = True,
 ) -> dict:
     """One run per point of the grid; points that share a bed share one settled bed."""
+    from .launch import absolute_paths
     from .plots import plot_table
-    from .runner import absolute_paths
 
     plan = absolute_paths(plan)
     grid = parse_params(params)
@@ -668,6 +668,7 @@ def timestep_study(
     runs, each logged as it ends. The answer is the last stable step times 0.5."""
     from soil import advisor
 
+    from .dem_soil import DemSoil
     from .system import CoupledSystem
 
     if not (duration > 0 and growth > 1 and max_tries >= 1):
@@ -683,7 +684,8 @@ def timestep_study(
 
     def make_simulation():
         system = CoupledSystem.build(plan, bed)
-        sim = system.sim
+        assert isinstance(system.soil, DemSoil), "the stable-step search is of the DEM step"
+        sim = system.soil.sim
         hub = system.rover.position
         sim.control.set_body_motion(0, hub, [1, 0, 0, 0], [rim, 0, 0], [0, omega, 0])
         sim.refresh_forces()

@@ -3,16 +3,21 @@
     system = CoupledSystem.build(plan, bed)
     record = system.coupler.step()
 
-The system holds the soil simulation (soil.Simulation), the DEM soil side
-(cosim.dem_soil.DemSoil), the rover side (the single-wheel testbed, or a rover model with its
-drive: cosim.rover.RoverDriver), the Coupler, and for a rover on a moving patch the patch
-(soil.patch.SoilPatch). Each of them owns its checkpoint state (`state_dict` /
+The system holds the soil side (a cosim.contract.SoilSide: the DEM soil, cosim.dem_soil.DemSoil,
+with its simulation and, for a rover on a moving patch, its patch; or another terrain model),
+the rover side (the single-wheel testbed, or a rover model with its drive:
+cosim.rover.RoverDriver) and the Coupler. Each of them owns its checkpoint state (`state_dict` /
 `load_state_dict`); the system only gathers them under prefixes, so a checkpoint is a flat
 dict of numpy arrays. Runs, studies, sweeps and advice all build through here.
+
+Terrain models ([terrain] model) are registered in TERRAIN_MODELS: a builder of the soil side
+from the plan (and, for the DEM, its settled bed). Adding one is a SoilSide implementation and
+one entry there; the runner, the records and the results writer read only the contract.
 """
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -23,12 +28,14 @@ from soil.control import quaternion_to_matrix
 from soil.patch import SoilPatch, Tile
 
 from .beds import Bed
+from .contract import SoilSide
 from .coupler import Coupler
 from .dem_soil import DemSoil
 from .metrics import WheelGeometry
 from .plan import RunPlan, SceneError, enable_step_control, make_integrator
 from .rover import RoverDriver, make_controller, open_rover
 from .single_wheel import SingleWheelRig
+from .terrain import SpringDamperTerrain
 
 START_GAP = 0.05
 """Gap between the wheel and the highest grain under it at the start, in mean grain radii [-]:
@@ -37,36 +44,30 @@ a wheel pressed into the grains would be shot off them in milli-g."""
 
 @dataclass
 class CoupledSystem:
-    """The parts of a coupled run, built from a plan and a bed."""
+    """The parts of a coupled run, built from a plan (and, on a DEM terrain, its bed)."""
 
     plan: RunPlan
-    bed: Bed
-    soil: DemSoil
+    bed: Bed | None
+    """The settled bed the soil was opened from (None: a terrain without a bed)."""
+    soil: SoilSide
     rover: SingleWheelRig | RoverDriver
     """The rover side: the testbed's rig, or a rover and its drive."""
     coupler: Coupler
-    patch: SoilPatch | None = None
-
-    @property
-    def sim(self) -> Simulation:
-        """The soil simulation now (a moving patch replaces it when it moves)."""
-        return self.soil.sim
 
     @classmethod
-    def build(cls, plan: RunPlan, bed: Bed) -> CoupledSystem:
-        if plan.rover is not None:
-            return cls._build_rover(plan, bed)
-        builder, saved = load_bed(bed.path)
-        builder.add_wheel(plan.wheel.shape, plan.wheel.material)
-        model, state, control = builder.finalize(
-            device=plan.device, precision=plan.precision, law=plan.law, order_seed=plan.order_seed
-        )
-        restore_state(model, state, saved)
-        sim = Simulation(model, state, control, integrator=make_integrator(plan.integrator))
-        enable_step_control(plan, sim)
-        soil = DemSoil(sim, plan.dt, bed.surface_height)
-        hub = plan.hub_start(bed.surface_height)
-        highest = soil.highest_grain_under(0, hub)
+    def build(cls, plan: RunPlan, bed: Bed | None) -> CoupledSystem:
+        """The system of `plan` on its terrain model (TERRAIN_MODELS); `bed`: the settled bed of a
+        terrain that needs one (`needs_bed`), else None."""
+        soil = TERRAIN_MODELS[plan.terrain.model].build(plan, bed)
+        if plan.rover is None:
+            return cls._on_testbed(plan, bed, soil)
+        return cls._with_rover(plan, bed, soil)
+
+    @classmethod
+    def _on_testbed(cls, plan: RunPlan, bed: Bed | None, soil: SoilSide) -> CoupledSystem:
+        """The single-wheel testbed on the soil, its wheel just clear of the highest point under it."""
+        hub = plan.hub_start(soil.surface_height)
+        highest = soil.highest_point_under(0, hub)
         hub[2] = max(hub[2], highest + plan.wheel.outer_radius + START_GAP * plan.bed.spec.radius_mean)
         t = plan.testbed
         assert t is not None  # a plan without a rover has a testbed
@@ -87,46 +88,11 @@ class CoupledSystem:
         return cls(plan, bed, soil, rover, coupler)
 
     @classmethod
-    def _build_rover(cls, plan: RunPlan, bed: Bed) -> CoupledSystem:
-        """A rover on the bed (or on a patch of tiles of it), lowered until its lowest wheel just clears
-        the highest grain under it, braked for the landing."""
+    def _with_rover(cls, plan: RunPlan, bed: Bed | None, soil: SoilSide) -> CoupledSystem:
+        """A rover on the soil, lowered until its lowest wheel just clears the highest point under
+        it, braked for the landing."""
         r = plan.rover
         assert r is not None
-        wheels = [(w.shape, w.material) for w in plan.wheels]
-        patch = None
-        if plan.patch is not None:
-            p, spec = plan.patch, plan.bed.spec
-            tile = Tile.load(bed.path, (spec.length, spec.width), plan.precision, p.tile_margin)
-            patch = SoilPatch(
-                tile,
-                p.length,
-                p.width,
-                p.band,
-                p.recentre_distance,
-                wheels,
-                plan.gravity,
-                plan.device,
-                plan.precision,
-                plan.law,
-                plan.order_seed,
-            )
-            centre = np.asarray(r.start[:2]) + r.hub_offsets[:, :2].mean(axis=0)
-            sim = patch.start(centre, make_integrator(plan.integrator))
-            enable_step_control(plan, sim)
-            surface = patch.surface_height(sim)
-        else:
-            builder, saved = load_bed(bed.path)
-            builder.gravity = np.asarray(plan.gravity, dtype=np.float64)  # settled on the floor; now the slope
-            for shape, material in wheels:
-                builder.add_wheel(shape, material)
-            model, state, control = builder.finalize(
-                device=plan.device, precision=plan.precision, law=plan.law, order_seed=plan.order_seed
-            )
-            restore_state(model, state, saved)
-            sim = Simulation(model, state, control, integrator=make_integrator(plan.integrator))
-            enable_step_control(plan, sim)
-            surface = bed.surface_height
-        soil = DemSoil(sim, plan.dt, surface, patch=patch)
         rover = open_rover(plan)
         lift = _lift(soil, rover.wheel_kinematics(), plan)
         if r.model == "fmu":
@@ -137,7 +103,7 @@ class CoupledSystem:
                         [
                             f"rover.file: the FMU starts with a wheel {lift:.4g} m in the soil and has no "
                             "start.z parameter to lift it; start it above the soil (surface at z = "
-                            f"{surface:.4g} m)"
+                            f"{soil.surface_height:.4g} m)"
                         ]
                     )
             else:
@@ -154,7 +120,7 @@ class CoupledSystem:
         coupler = Coupler(
             soil, driver, plan.macro_step, scheme=plan.scheme, gravity=plan.gravity, controller=driver.command
         )
-        return cls(plan, bed, soil, driver, coupler, patch)
+        return cls(plan, bed, soil, driver, coupler)
 
     @property
     def geometries(self) -> list[WheelGeometry]:
@@ -183,14 +149,9 @@ class CoupledSystem:
             head = prefix + "/"
             part.load_state_dict({k[len(head) :]: v for k, v in state.items() if k.startswith(head)})
 
-    def boundaries(self) -> dict:
-        """The soil's walls as built: 'kind' (B,), 'geometry' (B, 6) [m], 'report' (B,) (cosim.output)."""
-        model = self.sim.model
-        return {
-            "kind": model.boundary_kind.numpy(),
-            "geometry": model.boundary_geometry_numpy(),
-            "report": model.boundary_reports,
-        }
+    def boundaries(self) -> dict | None:
+        """The soil's walls as built (cosim.contract.WALL_NAMES; cosim.output), None without walls."""
+        return self.soil.walls()
 
     def wheel_mesh(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Display mesh of the wheels: vertices [m] (V, 3) in wheel frames, triangles (F, 3), owner wheel (V,)."""
@@ -207,8 +168,8 @@ class CoupledSystem:
 
     def posed_wheel_vertices(self, vertices: np.ndarray, owner: np.ndarray) -> np.ndarray:
         """The display mesh at the wheels' current poses [m], shape (V, 3)."""
-        control = self.sim.control
-        return np.einsum("vij,vj->vi", control.body_rotation_host[owner], vertices) + control.body_position_host[owner]
+        position, rotation = self.soil.wheel_poses()
+        return np.einsum("vij,vj->vi", rotation[owner], vertices) + position[owner]
 
     def close(self) -> None:
         """Free what the rover side holds (FMU instances)."""
@@ -216,13 +177,99 @@ class CoupledSystem:
             self.rover.close()
 
 
-def _lift(soil: DemSoil, kinematics, plan: RunPlan) -> float:
-    """How far to raise the rover [m] so its lowest wheel clears the highest grain under it by START_GAP."""
+def _lift(soil: SoilSide, kinematics, plan: RunPlan) -> float:
+    """How far to raise the rover [m] so its lowest wheel clears the highest point under it by START_GAP."""
     gap = START_GAP * plan.bed.spec.radius_mean
     lift = -np.inf
     for i, (k, wheel) in enumerate(zip(kinematics, plan.wheels)):
         axle = quaternion_to_matrix(k.orientation)[:, 1]
-        top = soil.highest_grain_under(i, k.position, axle)
+        top = soil.highest_point_under(i, k.position, axle)
         top = max(top, soil.surface_height)
         lift = max(lift, top + wheel.outer_radius + gap - k.position[2])
     return float(lift)
+
+
+# ------------------------------------------------------------------------------------
+# terrain models
+
+
+def _dem_soil(plan: RunPlan, bed: Bed | None) -> DemSoil:
+    """The DEM soil: the settled bed's grains with one body per wheel (the testbed's one wheel, or
+    a rover's on the bed or on a patch of tiles of it)."""
+    assert bed is not None  # the DEM terrain needs its bed (TerrainModel.needs_bed)
+    if plan.rover is None:
+        builder, saved = load_bed(bed.path)
+        builder.add_wheel(plan.wheel.shape, plan.wheel.material)
+        model, state, control = builder.finalize(
+            device=plan.device, precision=plan.precision, law=plan.law, order_seed=plan.order_seed
+        )
+        restore_state(model, state, saved)
+        sim = Simulation(model, state, control, integrator=make_integrator(plan.integrator))
+        enable_step_control(plan, sim)
+        return DemSoil(sim, plan.dt, bed.surface_height)
+    r = plan.rover
+    wheels = [(w.shape, w.material) for w in plan.wheels]
+    patch = None
+    if plan.patch is not None:
+        p, spec = plan.patch, plan.bed.spec
+        tile = Tile.load(bed.path, (spec.length, spec.width), plan.precision, p.tile_margin)
+        patch = SoilPatch(
+            tile,
+            p.length,
+            p.width,
+            p.band,
+            p.recentre_distance,
+            wheels,
+            plan.gravity,
+            plan.device,
+            plan.precision,
+            plan.law,
+            plan.order_seed,
+        )
+        centre = np.asarray(r.start[:2]) + r.hub_offsets[:, :2].mean(axis=0)
+        sim = patch.start(centre, make_integrator(plan.integrator))
+        enable_step_control(plan, sim)
+        surface = patch.surface_height(sim)
+    else:
+        builder, saved = load_bed(bed.path)
+        builder.gravity = np.asarray(plan.gravity, dtype=np.float64)  # settled on the floor; now the slope
+        for shape, material in wheels:
+            builder.add_wheel(shape, material)
+        model, state, control = builder.finalize(
+            device=plan.device, precision=plan.precision, law=plan.law, order_seed=plan.order_seed
+        )
+        restore_state(model, state, saved)
+        sim = Simulation(model, state, control, integrator=make_integrator(plan.integrator))
+        enable_step_control(plan, sim)
+        surface = bed.surface_height
+    return DemSoil(sim, plan.dt, surface, patch=patch)
+
+
+def _analytic_soil(plan: RunPlan, bed: Bed | None) -> SpringDamperTerrain:
+    """The analytic test terrain (cosim.terrain): flat spring-damper ground, wheels as discs of
+    their rim radius, with the [terrain] section's parameters."""
+    parameters = dict(plan.terrain.parameters)
+    z0 = parameters.pop("surface_height", 0.0)
+    return SpringDamperTerrain([w.rim_radius for w in plan.wheels], len(plan.wheels), z0=z0, **parameters)
+
+
+@dataclass(frozen=True)
+class TerrainModel:
+    """How the builder makes the soil side of one terrain model."""
+
+    build: Callable[[RunPlan, Bed | None], SoilSide]
+    """The soil side of a plan, its wheels not yet placed (the builder places them)."""
+    needs_bed: bool
+    """The terrain opens a settled DEM bed: the run settles or reuses one first (cosim.beds)."""
+
+
+TERRAIN_MODELS: dict[str, TerrainModel] = {
+    "dem": TerrainModel(_dem_soil, needs_bed=True),
+    "analytic": TerrainModel(_analytic_soil, needs_bed=False),
+}
+"""The terrain models by [terrain] model name."""
+
+
+def needs_bed(plan: RunPlan) -> bool:
+    """Whether the plan's terrain opens a settled bed (settled or reused before the system is built)."""
+    return TERRAIN_MODELS[plan.terrain.model].needs_bed

@@ -24,77 +24,11 @@ from collections.abc import Sequence
 import numpy as np
 from numpy.typing import ArrayLike
 
-from .contract import WheelKinematics, WheelWrench
+from soil.control import quaternion_integrate, quaternion_slerp, quaternion_to_matrix
+
+from .contract import SoilBooks, SoilSideDefaults, WheelKinematics, WheelWrench, wheel_frame
 
 _EZ = np.array([0.0, 0.0, 1.0])
-
-
-# --- small quaternion helpers (w, x, y, z), body -> world ---------------------------
-
-
-def quat_to_matrix(q: np.ndarray) -> np.ndarray:
-    """Rotation matrix [-], shape (3, 3), of a unit quaternion (w, x, y, z), shape (4,)."""
-    w, x, y, z = np.asarray(q, dtype=np.float64) / np.linalg.norm(q)
-    return np.array(
-        [
-            [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
-            [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
-            [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
-        ]
-    )
-
-
-def quat_multiply(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """Hamilton product a * b of quaternions (w, x, y, z), shape (4,)."""
-    aw, ax, ay, az = a
-    bw, bx, by, bz = b
-    return np.array(
-        [
-            aw * bw - ax * bx - ay * by - az * bz,
-            aw * bx + ax * bw + ay * bz - az * by,
-            aw * by - ax * bz + ay * bw + az * bx,
-            aw * bz + ax * by - ay * bx + az * bw,
-        ]
-    )
-
-
-def quat_integrate(q: np.ndarray, omega_world: np.ndarray, dt: float) -> np.ndarray:
-    """Rotate q (body -> world) by a constant world-frame angular velocity [rad/s] for dt [s]."""
-    angle = np.linalg.norm(omega_world) * dt
-    if angle < 1e-15:
-        return np.array(q, dtype=np.float64)
-    axis = omega_world / np.linalg.norm(omega_world)
-    dq = np.concatenate([[np.cos(angle / 2)], np.sin(angle / 2) * axis])
-    # World-frame rotation acts from the left.
-    out = quat_multiply(dq, q)
-    return out / np.linalg.norm(out)
-
-
-def quat_slerp(q0: np.ndarray, q1: np.ndarray, a: float) -> np.ndarray:
-    """Spherical interpolation between unit quaternions, a in [0, 1]."""
-    q0 = np.asarray(q0, dtype=np.float64)
-    q1 = np.asarray(q1, dtype=np.float64)
-    dot = float(np.dot(q0, q1))
-    if dot < 0.0:  # take the short way round
-        q1, dot = -q1, -dot
-    if dot > 0.9995:
-        out = q0 + a * (q1 - q0)
-        return out / np.linalg.norm(out)
-    theta = np.arccos(dot)
-    return (np.sin((1 - a) * theta) * q0 + np.sin(a * theta) * q1) / np.sin(theta)
-
-
-def wheel_frame(orientation: np.ndarray, axis_local: ArrayLike) -> tuple[np.ndarray, np.ndarray]:
-    """Spin axis and rolling (forward) direction of a wheel in the world frame.
-
-    Returns (axis, forward), unit vectors, shape (3,) each. forward = axis x z_up, so a
-    positive spin about the axis rolls the wheel forward. A wheel lying flat (axis near
-    vertical) has no rolling direction; forward is then the zero vector.
-    """
-    axis = quat_to_matrix(orientation) @ axis_local
-    forward = np.cross(axis, _EZ)
-    norm = np.linalg.norm(forward)
-    return axis, (forward / norm if norm > 1e-9 else np.zeros(3))
 
 
 def slip_ratio(v_forward: float, rim_speed: float, v_eps: float) -> float:
@@ -110,10 +44,11 @@ def slip_ratio(v_forward: float, rim_speed: float, v_eps: float) -> float:
 # --- the terrain --------------------------------------------------------------------
 
 
-class SpringDamperTerrain:
+class SpringDamperTerrain(SoilSideDefaults):
     """Flat analytic ground with a spring-damper normal law and a friction/traction law.
 
-    Implements the SoilSide protocol of cosim.contract. Wheels are discs of radius
+    Implements the SoilSide protocol of cosim.contract (no walls, no particles: a continuum
+    whose state is its time and the wheels' poses). Wheels are discs of radius
     `wheel_radius` (one value or one per wheel) whose spin axis is `axis_local` in the
     wheel body frame; the hub is the body frame origin.
 
@@ -164,9 +99,46 @@ class SpringDamperTerrain:
         """Current soil time [s]."""
         self.gravity = np.array([0.0, 0.0, -9.81])
         """Scene gravity [m/s^2], shape (3,). Kept for the contract; the analytic ground needs none."""
+        self._hub_position = np.zeros((self.wheel_count, 3))
+        self._hub_rotation = np.tile(np.eye(3), (self.wheel_count, 1, 1))
 
     def set_gravity(self, gravity: Sequence[float]) -> None:
         self.gravity = np.asarray(gravity, dtype=np.float64).reshape(3).copy()
+
+    @property
+    def surface_height(self) -> float:
+        """The ground's height z0 [m]."""
+        return self.z0
+
+    def static_sinkage(self, load: float) -> float:
+        """Sinkage [m] of a wheel at rest under a vertical load [N]: the spring's load / stiffness."""
+        return float(load) / self.stiffness
+
+    def place_wheels(self, kinematics: Sequence[WheelKinematics]) -> None:
+        for i, k in enumerate(kinematics):
+            self._set_pose(i, k.position, k.orientation)
+
+    def wheel_poses(self) -> tuple[np.ndarray, np.ndarray]:
+        return self._hub_position.copy(), self._hub_rotation.copy()
+
+    def highest_point_under(self, wheel: int, hub: ArrayLike, axle: ArrayLike = (0.0, 1.0, 0.0)) -> float:
+        return self.z0  # flat ground
+
+    def books(self) -> SoilBooks:
+        return SoilBooks(element_count=0, mass=0.0)
+
+    def state_dict(self) -> dict:
+        """The terrain's time [s] and the wheels' poses (its laws hold no other state)."""
+        return {"time": self.time, "hub_position": self._hub_position.copy(), "hub_rotation": self._hub_rotation.copy()}
+
+    def load_state_dict(self, data: dict) -> None:
+        self.time = float(data["time"])
+        self._hub_position = np.array(data["hub_position"], dtype=np.float64)
+        self._hub_rotation = np.array(data["hub_rotation"], dtype=np.float64)
+
+    def _set_pose(self, wheel: int, position, orientation) -> None:
+        self._hub_position[wheel] = position
+        self._hub_rotation[wheel] = quaternion_to_matrix(orientation)
 
     # The contact law at one instant ------------------------------------------------
 
@@ -226,7 +198,9 @@ class SpringDamperTerrain:
                 torque_sum += tau
                 # Power into the wheel: F . v_hub + tau_hub . omega.
                 work_on_wheel += (f @ state[2] + tau @ state[3]) * h
-            f_end, tau_end, sinkage = self.contact(i, *self._state_at(k0, k1, span, span))
+            at_end = self._state_at(k0, k1, span, span)
+            f_end, tau_end, sinkage = self.contact(i, *at_end)
+            self._set_pose(i, at_end[0], at_end[1])
             out.append(
                 WheelWrench(
                     force=force_sum / self.substeps,
@@ -247,14 +221,14 @@ class SpringDamperTerrain:
         if k1 is None:
             return (
                 k0.position + k0.linear_velocity * tau,
-                quat_integrate(k0.orientation, k0.angular_velocity, tau),
+                quaternion_integrate(k0.orientation, k0.angular_velocity, tau),
                 k0.linear_velocity,
                 k0.angular_velocity,
             )
         a = tau / span
         return (
             (1 - a) * k0.position + a * k1.position,
-            quat_slerp(k0.orientation, k1.orientation, a),
+            quaternion_slerp(k0.orientation, k1.orientation, a),
             (1 - a) * k0.linear_velocity + a * k1.linear_velocity,
             (1 - a) * k0.angular_velocity + a * k1.angular_velocity,
         )

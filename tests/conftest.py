@@ -40,7 +40,7 @@ def tiny_bed(tmp_path_factory):
 @pytest.fixture(scope="session")
 def tiny_run(tmp_path_factory, tiny_bed):
     """A run folder of the tiny scene on its settled bed, made once per session (read it, do not change it)."""
-    from cosim.runner import run_scene
+    from cosim.launch import run_scene
     from helpers import write_tiny
 
     folder = tmp_path_factory.mktemp("tiny_run")

@@ -19,8 +19,8 @@ import numpy as np
 import pytest
 
 from cosim.cli import main
+from cosim.launch import run_plan
 from cosim.plan import load_plan
-from cosim.runner import run_plan
 from helpers import write_tiny
 
 
@@ -269,7 +269,7 @@ def test_row10_kill_9_after_the_final_checkpoint_then_resume_finishes_the_result
     script = textwrap.dedent(f"""
         import os, signal
         from cosim.plan import load_plan
-        from cosim.runner import run_plan
+        from cosim.launch import run_plan
         def kill(runner):
             if runner.done:  # the final checkpoint is on disk: die before the results are finished
                 os.kill(os.getpid(), signal.SIGKILL)

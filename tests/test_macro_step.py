@@ -8,8 +8,8 @@ import warp as wp
 
 from cosim.contract import WheelKinematics
 from cosim.dem_soil import DemSoil, WallProximityWarning
-from cosim.terrain import quat_integrate, quat_slerp
 from soil import GrouserWheel, Material, Simulation, SoilBuilder
+from soil.control import quaternion_integrate, quaternion_slerp
 
 WHEEL = GrouserWheel(radius=0.02, width=0.012, grouser_count=8, grouser_height=0.002, grouser_thickness=0.0015)
 
@@ -31,7 +31,7 @@ def pose(t):
     """The wheel rolls along +x, pressing down, and yaws a little."""
     return WheelKinematics(
         np.array([0.03 + 0.05 * t, 0.015, 0.0415 - 0.3 * t]),
-        quat_integrate([1.0, 0, 0, 0], np.array([0, 0, 0.3]), t),
+        quaternion_integrate([1.0, 0, 0, 0], np.array([0, 0, 0.3]), t),
         np.array([0.05, 0.0, -0.3]),
         np.array([0.0, 2.5, 0.3]),
     )
@@ -85,12 +85,12 @@ def test_device_wheel_path_and_wrench_sums_match_stepping_from_the_host(device):
                 tau = step * h
                 if end is None:
                     position = start.position + start.linear_velocity * tau
-                    orientation = quat_integrate(start.orientation, start.angular_velocity, tau)
+                    orientation = quaternion_integrate(start.orientation, start.angular_velocity, tau)
                     velocity, spin = start.linear_velocity, start.angular_velocity
                 else:
                     a = tau / 1e-3
                     position = (1 - a) * start.position + a * end.position
-                    orientation = quat_slerp(start.orientation, end.orientation, a)
+                    orientation = quaternion_slerp(start.orientation, end.orientation, a)
                     velocity = (1 - a) * start.linear_velocity + a * end.linear_velocity
                     spin = (1 - a) * start.angular_velocity + a * end.angular_velocity
                 sim.control.set_body_motion(0, position, orientation, velocity, spin)

@@ -8,10 +8,10 @@ import pytest
 mujoco = pytest.importorskip("mujoco")
 
 from cosim.contract import RoverSide, WheelWrench  # noqa: E402
-from cosim.terrain import quat_multiply, quat_to_matrix  # noqa: E402
 from rover_models import asset_path  # noqa: E402
 from rover_models.mjcf import MMX_WHEELS, mmx_rover_xml, single_wheel_rig_xml  # noqa: E402
 from rover_models.mujoco_rover import MujocoRover  # noqa: E402
+from soil.control import quaternion_multiply, quaternion_to_matrix  # noqa: E402
 
 
 def _axis_quat(axis, angle):
@@ -53,8 +53,8 @@ def test_wrench_at_offset_hub_gives_analytic_accelerations():
     mujoco.mj_forward(rover.model, rover.data)
 
     # Theory, from the MJCF numbers only.
-    R_body = quat_to_matrix(body_q)
-    R_inertia = R_body @ quat_to_matrix(inertial_q)
+    R_body = quaternion_to_matrix(body_q)
+    R_inertia = R_body @ quaternion_to_matrix(inertial_q)
     p_hub = np.array([0.3, -0.2, 0.5])
     p_com = p_hub + R_body @ com_local
     I_world = R_inertia @ np.diag(inertia) @ R_inertia.T
@@ -99,12 +99,12 @@ def test_wheel_kinematics_match_prescribed_motion():
     (k,) = rover.wheel_kinematics()
 
     pivot = np.array([0.1, 0.2, 0.3])
-    Rz = quat_to_matrix(_axis_quat([0, 0, 1], psi))
+    Rz = quaternion_to_matrix(_axis_quat([0, 0, 1], psi))
     p_hub = pivot + Rz @ [L, 0, 0]
     np.testing.assert_allclose(k.position, p_hub, atol=1e-12)
     np.testing.assert_allclose(k.linear_velocity, np.cross([0, 0, Omega], p_hub - pivot), atol=1e-12)
     np.testing.assert_allclose(k.angular_velocity, [0, 0, Omega] + omega * (Rz @ [0, 1, 0]), atol=1e-12)
-    q = quat_multiply(_axis_quat([0, 0, 1], psi), _axis_quat([0, 1, 0], theta))
+    q = quaternion_multiply(_axis_quat([0, 0, 1], psi), _axis_quat([0, 1, 0], theta))
     assert min(np.linalg.norm(k.orientation - q), np.linalg.norm(k.orientation + q)) < 1e-12
     # cvel's linear part is taken at the subtree CoM, so it is not the hub velocity:
     # this test would catch an adapter that read cvel directly.

@@ -10,9 +10,9 @@ import pytest
 from scipy.spatial import cKDTree
 
 from cosim.beds import settled_bed
+from cosim.launch import run_plan
 from cosim.output import read_series
 from cosim.plan import load_plan
-from cosim.runner import run_plan
 from rover_helpers import MOON, RIG_BALLAST, RIG_WHEEL, write_rig
 
 pytest.importorskip("mujoco")

@@ -12,9 +12,9 @@ import pytest
 
 from cosim.beds import settled_bed
 from cosim.cli import main
+from cosim.launch import final_state, resume, run_plan
 from cosim.output import documented_layout, open_results, read_series, xdmf_references
 from cosim.plan import load_plan
-from cosim.runner import final_state, resume, run_plan
 from rover_helpers import MOON, RIG_BALLAST, RIG_CARRIAGE, RIG_WHEEL, write_rig, write_small_rover
 
 pytest.importorskip("mujoco")

@@ -137,7 +137,8 @@ def test_a_scene_whose_fixed_step_diverges_completes_under_pid(tmp_path, tiny_be
     the summary carry the step statistics with their units."""
     import h5py
 
-    from cosim.runner import RunDiverged, run_scene
+    from cosim.launch import run_scene
+    from cosim.runner import RunDiverged
     from helpers import write_tiny
 
     scene = write_tiny(tmp_path, "")
@@ -201,8 +202,9 @@ def test_a_pid_scene_stopped_and_resumed_is_bit_for_bit_the_whole_run(tmp_path, 
     import h5py
     from test_study import _assert_same_run
 
+    from cosim.launch import resume, run_plan
     from cosim.plan import load_plan
-    from cosim.runner import RunInterrupted, resume, run_plan
+    from cosim.runner import RunInterrupted
     from helpers import write_tiny
 
     settings = ["run.dt=0.0017", "run.duration=0.034", "landing.max_time=0.3", "output.checkpoint_interval=0.0085"]

@@ -11,9 +11,10 @@ import textwrap
 import numpy as np
 import pytest
 
+from cosim.launch import final_state, resume, run_plan
 from cosim.output import open_results
 from cosim.plan import load_plan
-from cosim.runner import RunDiverged, RunInterrupted, final_state, resume, run_plan
+from cosim.runner import RunDiverged, RunInterrupted
 from helpers import write_tiny
 
 
@@ -88,7 +89,7 @@ def test_resume_after_kill_9_needs_no_tool_and_is_bitwise_identical(scene_path, 
     script = textwrap.dedent(f"""
         import os, signal
         from cosim.plan import load_plan
-        from cosim.runner import run_plan
+        from cosim.launch import run_plan
         plan = load_plan({scene_path!r}, ['bed.bed_file="{tiny_bed}"'])
         seen = []
         def kill(runner):
@@ -126,9 +127,9 @@ def test_divergence_names_time_grain_position_and_setting(scene_path, tiny_bed, 
 
     def explode(runner):  # a grain suddenly flies off, as in a DEM explosion
         if runner.system.coupler.step_count == 9:
-            v = runner.system.sim.state.velocity.numpy()
+            v = runner.system.soil.sim.state.velocity.numpy()
             v[3] = (0.0, 0.0, 1e3)
-            runner.system.sim.state.velocity.assign(v)
+            runner.system.soil.sim.state.velocity.assign(v)
 
     with pytest.raises(RunDiverged) as info:
         run_plan(_plan(scene_path, tiny_bed, "run.dt=1.7e-4"), str(out), hooks={"step": explode})

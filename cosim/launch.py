@@ -1,0 +1,306 @@
+"""The entry points of a run: run a plan, run a scene, resume a run folder.
+
+    result = run_scene("examples/phobos_single_wheel.toml", "runs/phobos")
+    result = resume("runs/phobos")
+
+`run_scene` resolves the scene into a plan (cosim.plan); `run_plan` takes the output folder's
+lock (cosim.folders), settles or reuses the bed when the plan's terrain needs one (cosim.beds,
+cosim.system.needs_bed), builds the coupled system (cosim.system) and only then replaces a
+previous run; then the Runner (cosim.runner) steps it, writing results.h5 (cosim.output) with
+the rows of cosim.records. `resume` checks a run folder's files, rebuilds the system from its
+checkpoint.npz and continues to the result an uninterrupted run gives (bitwise on the CPU).
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import uuid
+
+import numpy as np
+
+from soil.stability import read_checkpoint
+
+from . import advice, records
+from .beds import Bed, bed_from_file, check_memory, settled_bed, write_json
+from .folders import RUN_FILE, SCENE_FILE, RunFolder, read_json
+from .output import ResultsWriter, read_series
+from .plan import RunPlan, load_plan, resolve
+from .runner import Runner, RunResult
+from .scene import Scene, SceneError, scene_from_text
+from .system import CoupledSystem, needs_bed
+
+log = logging.getLogger(__name__)
+
+
+def run_plan(
+    plan: RunPlan,
+    out_dir: str,
+    overwrite: bool = False,
+    progress: bool = False,
+    hooks: dict | None = None,
+    source: str = "",
+) -> RunResult:
+    """Run a resolved plan into `out_dir` (see the module docstring)."""
+    bedded = needs_bed(plan)
+    if bedded:
+        check_memory(plan)  # before anything is allocated or written
+    folder = RunFolder(out_dir)
+    with folder.locked():
+        folder.check_free(overwrite)
+        bed = settled_bed(plan, folder.path, progress=progress) if bedded else None
+        system = CoupledSystem.build(plan, bed)
+        findings = advice.check(plan, system.soil.surface_height)
+        for finding in findings:
+            if not finding.ok:
+                log.warning("validity: %s", finding.message)
+        # everything is built: only now the previous run goes
+        folder.clear_run()
+        run_id = uuid.uuid4().hex
+        with open(folder.file(SCENE_FILE), "w") as f:
+            f.write(plan.scene.to_toml())
+        write_json(
+            folder.file(RUN_FILE),
+            {
+                "status": "running",
+                "run_id": run_id,
+                "device": plan.device,
+                "precision": plan.precision,
+                "bed": {} if bed is None else bed.info,
+                "findings": [f.as_dict() for f in findings],
+            },
+        )
+        try:
+            particles = system.soil.particles()
+            writer = ResultsWriter.create(
+                folder.results,
+                attrs={**records.attributes(plan, system, source, findings), "run_id": run_id},
+                radius=np.zeros(0) if particles is None else particles.radius,
+                wheel_count=len(system.rover.wheel_names),
+                mesh=system.wheel_mesh(),
+                rover_columns=system.rover.state_columns,
+                rover_units=system.rover.state_units,
+                boundaries=system.boundaries(),
+                flush_every=plan.output.flush_every,
+                ragged=particles is not None and particles.ids is not None,
+            )
+            return Runner(system, writer, folder, progress=progress, hooks=hooks).run()
+        finally:
+            system.close()
+
+
+def run_scene(
+    scene: Scene | str | os.PathLike,
+    out_dir: str,
+    overwrite: bool = False,
+    progress: bool = False,
+    hooks: dict | None = None,
+    overrides=None,
+) -> RunResult:
+    """Run a scene (a Scene or a TOML path, with --set overrides) into `out_dir`."""
+    source = ""
+    if isinstance(scene, Scene):
+        plan = resolve(scene)
+    else:
+        path = os.fspath(scene)
+        plan = load_plan(path, overrides)
+        with open(path) as f:
+            source = f.read()
+    return run_plan(absolute_paths(plan), out_dir, overwrite=overwrite, progress=progress, hooks=hooks, source=source)
+
+
+def absolute_paths(plan: RunPlan) -> RunPlan:
+    """The plan whose scene names wheel.file and bed.bed_file by absolute paths, so that the run
+    folder's scene.toml does not depend on where the original scene file was."""
+    scene = plan.scene
+    changes = {}
+    if scene.wheel.type == "mesh" and scene.wheel.file:
+        changes["wheel.file"] = scene.resolve(scene.wheel.file)
+    if scene.bed.bed_file:
+        changes["bed.bed_file"] = scene.resolve(scene.bed.bed_file)
+    rover = scene.rover
+    if rover is not None:
+        if rover.file:
+            changes["rover.file"] = scene.resolve(rover.file)
+        for name, shape in (rover.wheel_shape or {}).items():
+            if shape.type == "mesh":
+                changes[f"rover.wheel_shape.{name}.file"] = scene.resolve(shape.file)
+        if not isinstance(rover.drive, str) and rover.drive.file:
+            changes["rover.drive.file"] = scene.resolve(rover.drive.file)
+        for name, drive in (rover.controllers or {}).items():
+            if drive.file:
+                changes[f"rover.controllers.{name}.file"] = scene.resolve(drive.file)
+    return plan.with_changes(**changes) if changes else plan
+
+
+def load_checkpoint(path: str) -> dict:
+    """A checkpoint's arrays (numpy; no pickles), its checksum verified (DamagedFileError when damaged)."""
+    return read_checkpoint(path)
+
+
+FINISHED = ("complete", "unsteady")
+"""The statuses of a run whose results are written to the end."""
+
+
+def resume(out_dir: str, progress: bool = False, hooks: dict | None = None) -> RunResult:
+    """Continue a run from its checkpoint to the result an uninterrupted run gives.
+
+    Every file is checked before anything is changed: a damaged results.h5 or checkpoint, or a
+    checkpoint of another run, is refused (DamagedFileError naming the file and what is left) and the
+    folder stays as it was. A run whose drive is complete in the checkpoint but whose results were not
+    finished (killed after its final checkpoint) gets its results finished: status, summary, run.json.
+    """
+    folder = RunFolder(out_dir)
+    if not os.path.isdir(folder.path):
+        raise FileNotFoundError(f"{folder.path!r} is not a folder: nothing to resume")
+    needed = (SCENE_FILE, RUN_FILE, os.path.basename(folder.checkpoint), os.path.basename(folder.results))
+
+    def check_files() -> None:
+        for name in needed:
+            if not os.path.isfile(folder.file(name)):
+                raise FileNotFoundError(f"{folder.path!r} has no {name}: not a run folder that can be resumed")
+
+    check_files()  # before the lock: a folder that is not a run gets no .lock either
+    with folder.locked():
+        check_files()
+        checkpoint, info = _checked_inputs(folder)
+        base_dir = str(checkpoint["scene_base_dir"]) if "scene_base_dir" in checkpoint else ""
+        scene = scene_from_text(str(checkpoint["scene_toml"]), base_dir=base_dir or None)
+        with open(folder.file(SCENE_FILE)) as f:
+            if f.read() != scene.to_toml():
+                log.warning("scene.toml was edited after the run started; the checkpoint's copy of the scene is used")
+        plan = resolve(scene)
+        steps = int(checkpoint["loop/steps"])
+        if checkpoint["coupler/step_count"] and _finished(checkpoint, plan):
+            if info.get("status") in FINISHED and _results_status(folder.results) == info["status"]:
+                log.info("%s: the run is already complete", folder.path)
+                return RunResult(folder.path, info["status"], info.get("summary", {}))
+            log.info("%s: the drive is complete in the checkpoint; finishing the results", folder.path)
+        system = CoupledSystem.build(plan, _run_bed(str(checkpoint["bed_path"]), info) if needs_bed(plan) else None)
+        try:
+            system.load_state_dict(checkpoint)
+            writer = ResultsWriter.resume(
+                folder.results, steps, int(checkpoint["loop/snapshots"]), flush_every=plan.output.flush_every
+            )
+            loop = {k[len("loop/") :]: v for k, v in checkpoint.items() if k.startswith("loop/")}
+            return Runner(system, writer, folder, loop=loop, progress=progress, hooks=hooks).run()
+        finally:
+            system.close()
+
+
+def _run_bed(bed_path: str, info: dict) -> Bed:
+    """The bed a run started on (its checkpoint names it), refused when it is missing or was replaced."""
+    try:
+        bed = bed_from_file(bed_path, "checkpoint bed")
+    except SceneError as error:
+        raise SceneError(error.problems + [f"the run's bed {bed_path!r} is needed to resume"]) from None
+    _check_run_bed(bed_path, info.get("bed", {}))
+    return Bed(bed.path, bed.surface_height, info.get("bed", bed.info))
+
+
+def _checked_inputs(folder: RunFolder) -> tuple[dict, dict]:
+    """(checkpoint arrays, run.json) of a folder to resume, after checking that results.h5 is readable, that
+    the checkpoint is intact and that both belong to the same run; DamagedFileError naming the file otherwise."""
+    from soil.errors import DamagedFileError
+
+    from .output import check_results
+
+    unchanged = "; nothing was changed"
+    try:
+        checkpoint = load_checkpoint(folder.checkpoint)
+    except DamagedFileError as error:
+        raise DamagedFileError(f"{error}{unchanged}. {_recoverable(folder.results)}") from None
+    at = f"t = {float(checkpoint.get('coupler/time', np.nan)):.6g} s"
+    try:
+        attrs = check_results(folder.results)
+    except DamagedFileError as error:
+        raise DamagedFileError(
+            f"{error}{unchanged}. The checkpoint ({at}) is intact, but the records it continues are lost: "
+            "start the run again with `cosim run SCENE --out FOLDER --overwrite`"
+        ) from None
+    info = read_json(folder.file(RUN_FILE))
+    run_id = str(checkpoint["run_id"]) if "run_id" in checkpoint else None
+    expected = info.get("run_id") or attrs.get("run_id")
+    if run_id is not None and expected is not None:
+        same = run_id == expected
+    else:  # a run written before run ids: its scene must be the checkpoint's
+        same = str(checkpoint["scene_toml"]) == attrs.get("scene_toml", str(checkpoint["scene_toml"]))
+    if not same:
+        name = scene_from_text(str(checkpoint["scene_toml"])).scene.name
+        raise DamagedFileError(
+            f"{folder.checkpoint}: the checkpoint belongs to another run (scene {name!r}, run id {run_id}; "
+            f"this folder's run is {expected}){unchanged}. Put back this run's checkpoint, or start it again "
+            "with `cosim run SCENE --out FOLDER --overwrite`"
+        )
+    return checkpoint, info
+
+
+def _recoverable(results: str) -> str:
+    """What can still be read of a results.h5, in words (for a message about a damaged folder)."""
+    from soil.errors import DamagedFileError
+
+    from .output import check_results
+
+    try:
+        check_results(results)
+        series = read_series(results)
+    except (DamagedFileError, OSError, KeyError, ValueError, RuntimeError):
+        return f"{results} is damaged too: nothing can be recovered; start the run again with --overwrite"
+    count = len(series["time"])
+    status = series["attrs"].get("status")
+    if status in FINISHED:
+        return f"{results} is intact and finished (status {status}, {count} macro steps): the run's result is kept"
+    last = f" (up to t = {series['time'][-1]:.6g} s)" if count else ""
+    return (
+        f"{results} is readable: it holds {count} macro steps{last}, the results up to its last flush "
+        "(cosim plot FOLDER shows them); to finish the run start it again with --overwrite"
+    )
+
+
+def _results_status(path: str) -> str:
+    from .output import open_results
+
+    with open_results(path) as f:
+        status = f.attrs.get("status", "")
+    return status.decode() if isinstance(status, bytes) else str(status)
+
+
+def _check_run_bed(path: str, info: dict) -> None:
+    """Refuse a run's bed that is not the one it started on (replaced since: another scene's bed)."""
+    from soil.bed import read_bed_header
+    from soil.errors import DamagedFileError
+
+    key = info.get("key")
+    if not key:
+        return
+    found = read_bed_header(path)
+    if (found["key"] and found["key"] != key) or found["particle_count"] != info.get(
+        "particle_count", found["particle_count"]
+    ):
+        raise DamagedFileError(
+            f"{path}: the run's bed was replaced ({found['particle_count']} grains, key {found['key'] or 'none'}; "
+            f"the run started on {info.get('particle_count')} grains, key {key}); nothing was changed"
+        )
+
+
+def _finished(checkpoint: dict, plan: RunPlan) -> bool:
+    start = int(checkpoint["loop/drive_start_step"])
+    return bool(checkpoint["loop/landing_failed"]) or (
+        start >= 0 and int(checkpoint["coupler/step_count"]) - start >= plan.drive_steps
+    )
+
+
+def final_state(out_dir: str) -> dict:
+    """The latest checkpoint's system state arrays (for comparisons)."""
+    data = load_checkpoint(os.path.join(out_dir, "checkpoint.npz"))
+    return {k: v for k, v in data.items() if k.split("/")[0] in ("soil", "rover", "coupler")}
+
+
+__all__ = [
+    "absolute_paths",
+    "final_state",
+    "load_checkpoint",
+    "resume",
+    "run_plan",
+    "run_scene",
+]
