@@ -21,14 +21,14 @@ import numpy as np
 
 from soil.stability import read_checkpoint
 
-from . import advice, records
+from . import records
 from .beds import Bed, bed_from_file, check_memory, settled_bed, write_json
 from .folders import RUN_FILE, SCENE_FILE, RunFolder, read_json
 from .output import ResultsWriter, read_series
 from .plan import RunPlan, load_plan, resolve
 from .runner import Runner, RunResult
 from .scene import Scene, SceneError, scene_from_text
-from .system import CoupledSystem, needs_bed
+from .system import CoupledSystem, needs_bed, validity
 
 log = logging.getLogger(__name__)
 
@@ -50,7 +50,7 @@ def run_plan(
         folder.check_free(overwrite)
         bed = settled_bed(plan, folder.path, progress=progress) if bedded else None
         system = CoupledSystem.build(plan, bed)
-        findings = advice.check(plan, system.soil.surface_height)
+        findings = validity(plan, system.soil.surface_height)
         for finding in findings:
             if not finding.ok:
                 log.warning("validity: %s", finding.message)

@@ -444,10 +444,11 @@ class ResultsWriter:
             else:
                 p["radius"] = np.asarray(radius, dtype=np.float64)
                 _units(p["radius"], "m", "grain radii (model order)")
-                snapshot_chunk = (1, max(n, 1), 3)  # HDF5 chunks are not empty: a soil without grains (N = 0) too
-                p.create_dataset("position", (0, n, 3), np.float64, maxshape=(None, n, 3), chunks=snapshot_chunk)
+                # HDF5 chunks are not empty: a soil without grains (N = 0) gets an open grain axis for its chunk
+                grains, grain_chunk = (n, (1, n, 3)) if n else (None, (1, 1, 3))
+                p.create_dataset("position", (0, n, 3), np.float64, maxshape=(None, grains, 3), chunks=grain_chunk)
                 _units(p["position"], "m", "grain centres")
-                p.create_dataset("velocity", (0, n, 3), np.float32, maxshape=(None, n, 3), chunks=snapshot_chunk)
+                p.create_dataset("velocity", (0, n, 3), np.float32, maxshape=(None, grains, 3), chunks=grain_chunk)
                 _units(p["velocity"], "m/s", "grain velocities")
             nv = len(m["vertices"])
             p.create_dataset("wheel_vertices", (0, nv, 3), np.float32, maxshape=(None, nv, 3), chunks=(1, nv, 3))

@@ -23,7 +23,7 @@ from .contract import StepStatistics, wheel_frame
 from .coupler import MacroStepRecord
 from .output import read_series
 from .plan import RunPlan
-from .system import CoupledSystem
+from .system import CoupledSystem, validity
 
 
 def step_row(
@@ -225,7 +225,7 @@ def run_summary(
             soil_mass_initial=books.mass_initial,
             particle_count_max=int(np.max(series["soil_particle_count"])) if len(series["time"]) else 0,
         )
-    findings = advice.check(plan, soil.surface_height, out.get("sinkage_tips"))
+    findings = validity(plan, soil.surface_height, out.get("sinkage_tips"))
     out.update(
         simulated_time=float(system.coupler.time),
         macro_steps=int(system.coupler.step_count),

@@ -27,6 +27,8 @@ from soil.bed import load_bed, restore_state
 from soil.control import quaternion_to_matrix
 from soil.patch import SoilPatch, Tile
 
+from . import advice
+from .advice import Finding
 from .beds import Bed
 from .contract import SoilSide
 from .coupler import Coupler
@@ -253,6 +255,11 @@ def _analytic_soil(plan: RunPlan, bed: Bed | None) -> SpringDamperTerrain:
     return SpringDamperTerrain([w.rim_radius for w in plan.wheels], len(plan.wheels), z0=z0, **parameters)
 
 
+def _no_findings(plan: RunPlan, surface_height: float | None = None, sinkage_tips: float | None = None) -> list:
+    """A terrain whose results hold whatever its resolution: nothing to check."""
+    return []
+
+
 @dataclass(frozen=True)
 class TerrainModel:
     """How the builder makes the soil side of one terrain model."""
@@ -261,13 +268,22 @@ class TerrainModel:
     """The soil side of a plan, its wheels not yet placed (the builder places them)."""
     needs_bed: bool
     """The terrain opens a settled DEM bed: the run settles or reuses one first (cosim.beds)."""
+    validity: Callable[..., list[Finding]]
+    """The validity checks of a run on it: (plan, surface_height [m], sinkage_tips [m] or None) ->
+    findings (cosim.advice.check for the DEM's grain scales)."""
 
 
 TERRAIN_MODELS: dict[str, TerrainModel] = {
-    "dem": TerrainModel(_dem_soil, needs_bed=True),
-    "analytic": TerrainModel(_analytic_soil, needs_bed=False),
+    "dem": TerrainModel(_dem_soil, needs_bed=True, validity=advice.check),
+    "analytic": TerrainModel(_analytic_soil, needs_bed=False, validity=_no_findings),
 }
 """The terrain models by [terrain] model name."""
+
+
+def validity(plan: RunPlan, surface_height: float, sinkage_tips: float | None = None) -> list[Finding]:
+    """The validity findings of a run of `plan` on its terrain (cosim.advice.Finding), at its start
+    (sinkage_tips None) or from its summary."""
+    return TERRAIN_MODELS[plan.terrain.model].validity(plan, surface_height, sinkage_tips)
 
 
 def needs_bed(plan: RunPlan) -> bool:
