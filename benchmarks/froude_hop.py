@@ -49,6 +49,7 @@ def main(argv=None) -> None:
     from cosim.launch import run_plan
     from cosim.output import read_series
     from cosim.plan import load_plan
+    from cosim.single_wheel import PHASE_DRIVING
 
     base = load_plan(args.scene, args.set)
     os.makedirs(args.out, exist_ok=True)
@@ -73,7 +74,7 @@ def main(argv=None) -> None:
             result = run_plan(plan, out, overwrite=True)
             wall = time.perf_counter() - started
             s = read_series(os.path.join(out, "results.h5"))
-            drive = s["phase"] == 1
+            drive = s["phase"] == PHASE_DRIVING
             z = s["position"][:, 0, 2]
             landed = z[np.argmax(drive) - 1] if drive.any() else math.nan
             scale = math.sqrt(base.g * base.wheel.outer_radius)

@@ -66,9 +66,10 @@ def end_values(path: str) -> dict:
 
     from cosim.metrics import forward_speed, slip_of
     from cosim.output import read_series
+    from cosim.single_wheel import PHASE_DRIVING
 
     s = read_series(path)
-    drive = np.flatnonzero(s["phase"] == 1)
+    drive = np.flatnonzero(s["phase"] == PHASE_DRIVING)
     sinkage = s["sinkage"][:, 0]
     last = max(1, len(sinkage) // 10)
     late = drive[len(drive) // 2 :] if len(drive) else drive

@@ -24,6 +24,7 @@ from soil.errors import InputError
 
 from .folders import PLOTS_DIR, RESULTS_FILE
 from .output import open_results
+from .single_wheel import PHASE_DRIVING
 from .snapshots import Displacements, Snapshot, read_snapshot, snapshot_count
 
 COLOURS = ("speed", "displacement")
@@ -94,7 +95,7 @@ class _Scene:
             s = read_snapshot(f, k)
             peaks.append(np.percentile(self.values(s, displacements), 99) if len(s.ids) else 0.0)
             row = self.step(s.time)
-            driving.append(row >= 0 and self.phase[row] == 1)
+            driving.append(row >= 0 and self.phase[row] == PHASE_DRIVING)
         peaks_arr = np.asarray(peaks)[driving] if any(driving) else np.asarray(peaks)
         self.vmax = max(float(np.max(peaks_arr)), 1e-9)
         first = read_snapshot(f, 0)
@@ -202,7 +203,7 @@ class _Frame:
         row = scene.step(s.time)
         corner = [f"t = {s.time:.3g} s"]
         if row >= 0:
-            driving = scene.phase[row] == 1
+            driving = scene.phase[row] == PHASE_DRIVING
             corner.append("driving" if driving else "landing")
             if driving and np.isfinite(scene.slip[row]):
                 corner.append(f"slip {scene.slip[row]:.2f}")

@@ -23,6 +23,7 @@ from cosim.output import (
 )
 from cosim.plan import load_plan
 from cosim.scene import scene_from_text
+from cosim.single_wheel import PHASE_DRIVING, PHASE_LANDING
 
 
 def test_layout_matches_the_documentation(tiny_run):
@@ -64,17 +65,19 @@ def test_layout_matches_the_documentation(tiny_run):
         # the time series are consistent with each other and with the definitions of cosim.metrics
         assert np.all(np.diff(f["wheels/time"][()]) > 0)
         phase = f["wheels/phase"][()]
-        assert phase[0] == 0 and phase[-1] == 1 and np.all(np.diff(phase) >= 0)  # landing, then the drive
+        # landing, then the drive
+        assert phase[0] == PHASE_LANDING and phase[-1] == PHASE_DRIVING and np.all(np.diff(phase) >= 0)
         np.testing.assert_allclose(f["wheels/drawbar_pull"][:, 0], f["wheels/force"][:, 0, 0])
         np.testing.assert_allclose(f["wheels/driving_torque"][:, 0], -f["wheels/torque"][:, 0, 1])
-        start = f["wheels/position"][np.argmax(phase == 1) - 1, 0, 0]
-        np.testing.assert_allclose(f["wheels/travel"][phase == 1, 0], f["wheels/position"][phase == 1, 0, 0] - start)
-        assert np.all(np.isnan(f["wheels/slip"][phase == 0, 0]))  # the wheel does not turn while landing
-        assert steps - np.sum(phase == 0) == load_plan(tiny_run / "scene.toml").drive_steps
+        start = f["wheels/position"][np.argmax(phase == PHASE_DRIVING) - 1, 0, 0]
+        driving = phase == PHASE_DRIVING
+        np.testing.assert_allclose(f["wheels/travel"][driving, 0], f["wheels/position"][driving, 0, 0] - start)
+        assert np.all(np.isnan(f["wheels/slip"][phase == PHASE_LANDING, 0]))  # the wheel does not turn while landing
+        assert steps - np.sum(phase == PHASE_LANDING) == load_plan(tiny_run / "scene.toml").drive_steps
         # the walls: over the drive the floor (boundary 0) carries the grains' weight and the wheel's load,
         # less what the side walls hold by friction
         load = float(np.sum(f["particles/radius"][()] ** 3) * 4 / 3 * np.pi * 2600 * 1.625) + 0.3 * 1.625
-        walls = f["boundaries/force"][phase == 1].mean(axis=0)
+        walls = f["boundaries/force"][phase == PHASE_DRIVING].mean(axis=0)
         assert -1.05 * load < walls[0, 2] < -0.6 * load, (walls[:, 2], load)
         assert np.sum(walls[:, 2]) == pytest.approx(-load, rel=0.1)
 
@@ -141,7 +144,7 @@ def _writer(path, flush_every=3):
 
 
 def _record(t):
-    record = {"time": t, "phase": 1, "rover_state": [t]}
+    record = {"time": t, "phase": PHASE_DRIVING, "rover_state": [t]}
     for name, (tail, *_) in WHEEL_SERIES.items():
         record[name] = np.full((1,) if tail is None else (1, tail), t)
     for name, (tail, *_) in ROVER_SERIES.items():

@@ -13,6 +13,7 @@ from cosim.beds import settled_bed
 from cosim.launch import run_plan
 from cosim.output import read_series
 from cosim.plan import load_plan
+from cosim.single_wheel import PHASE_DRIVING
 from rover_helpers import MOON, RIG_BALLAST, RIG_WHEEL, write_rig
 
 pytest.importorskip("mujoco")
@@ -128,7 +129,7 @@ def test_a_rover_drives_five_patch_lengths_on_a_bounded_patch(folder, coarse_til
     result = run_plan(plan, str(folder / "long_drive"))
     s = read_series(folder / "long_drive" / "results.h5")
     summary = result.summary
-    driving = s["phase"] == 1
+    driving = s["phase"] == PHASE_DRIVING
     position = s["rover_position"][driving]
     advance = position[-1] - position[0]
     assert np.linalg.norm(advance[:2]) > 5 * plan.patch.length, summary["travel"]

@@ -15,6 +15,7 @@ from cosim.cli import main
 from cosim.launch import final_state, resume, run_plan
 from cosim.output import documented_layout, open_results, read_series, xdmf_references
 from cosim.plan import load_plan
+from cosim.single_wheel import PHASE_DRIVING
 from rover_helpers import MOON, RIG_BALLAST, RIG_CARRIAGE, RIG_WHEEL, write_rig, write_small_rover
 
 pytest.importorskip("mujoco")
@@ -323,7 +324,7 @@ def test_a_rover_run_folder_has_documented_results_units_xdmf_and_plots(folder):
     for name in ("trajectory.png", "wheels.png"):
         assert os.path.getsize(run / "plots" / name) > 10_000
     series = read_series(run / "results.h5")
-    driving = series["phase"] == 1
+    driving = series["phase"] == PHASE_DRIVING
     assert np.all(np.isfinite(series["speed_command"][driving])) and np.all(np.isnan(series["torque_command"]))
 
 
