@@ -47,7 +47,8 @@ NO_PARTICLES = Particles(np.zeros((0, 3)), np.zeros((0, 3), np.float32), np.zero
 
 
 class RunDiverged(RegolithError, RuntimeError):
-    """The DEM exploded; the message names where and what to change, the last good state is saved."""
+    """The soil diverged (soil.SimulationDiverged); the message names where and what to change, the last good
+    state is saved."""
 
 
 class RunInterrupted(RegolithError):
