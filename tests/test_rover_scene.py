@@ -148,7 +148,7 @@ def test_a_run_opens_its_rover_model_once(tmp_path, monkeypatch):
     """Resolving a scene probes its rover (cosim.probe: the MJCF compiled) once; the run that follows
     uses that plan (its paths are absolute from the start) and does not resolve the scene again."""
     import cosim.probe
-    from cosim.runner import run_scene
+    from cosim.launch import run_scene
 
     probes = []
     probe_rover = cosim.probe.probe_rover
