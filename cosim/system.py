@@ -255,6 +255,11 @@ def _analytic_soil(plan: RunPlan, bed: Bed | None) -> SpringDamperTerrain:
     return SpringDamperTerrain([w.rim_radius for w in plan.wheels], len(plan.wheels), z0=z0, **parameters)
 
 
+def _dem_validity(plan: RunPlan, surface_height: float | None = None, sinkage_tips: float | None = None) -> list:
+    """cosim.advice.check: the DEM's grain scales against the wheel, the bed and the sinkage."""
+    return advice.check(plan, surface_height, sinkage_tips)
+
+
 def _no_findings(plan: RunPlan, surface_height: float | None = None, sinkage_tips: float | None = None) -> list:
     """A terrain whose results hold whatever its resolution: nothing to check."""
     return []
@@ -274,7 +279,7 @@ class TerrainModel:
 
 
 TERRAIN_MODELS: dict[str, TerrainModel] = {
-    "dem": TerrainModel(_dem_soil, needs_bed=True, validity=advice.check),
+    "dem": TerrainModel(_dem_soil, needs_bed=True, validity=_dem_validity),
     "analytic": TerrainModel(_analytic_soil, needs_bed=False, validity=_no_findings),
 }
 """The terrain models by [terrain] model name."""
