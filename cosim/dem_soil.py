@@ -243,8 +243,7 @@ class DemSoil:
     def wheel_poses(self) -> tuple[np.ndarray, np.ndarray]:
         """SoilSide: the wheel bodies' hub positions [m] (W, 3) and rotations (W, 3, 3) as the last
         DEM step (or place_wheels) left them."""
-        control = self.sim.control
-        return control.body_position_host, control.body_rotation_host
+        return self.sim.body_positions(), self.sim.body_rotations()
 
     def books(self) -> SoilBooks:
         """SoilSide: the grains simulated and their mass; a moving patch's books when there is one."""
@@ -261,9 +260,7 @@ class DemSoil:
             )
         if self._static_mass is None:  # a bed's grains stay the same: their mass is summed once
             self._static_mass = float(np.sum(self.sim.model.mass_numpy()))
-        return SoilBooks(
-            element_count=self.sim.model.particle_count, mass=self._static_mass, mass_initial=self._static_mass
-        )
+        return SoilBooks(element_count=self.sim.particle_count, mass=self._static_mass, mass_initial=self._static_mass)
 
     def step_statistics(self) -> StepStatistics | None:
         """SoilSide: the DEM steps of the last macro step (soil.MacroStepReport); None before the first."""
@@ -276,11 +273,11 @@ class DemSoil:
         """SoilSide: arm the simulation's divergence monitor (soil.DivergenceMonitor) unless a
         checkpoint armed it already."""
         if not self.sim.monitor.armed:
-            self.sim.monitor.arm(self.sim)
+            self.sim.arm_monitor()
 
     def check_health(self) -> None:
         """SoilSide: the divergence monitor's full check (soil.SimulationDiverged with the last good state)."""
-        self.sim.monitor.check(self.sim)
+        self.sim.check_divergence()
 
     def walls(self) -> dict | None:
         """SoilSide: the container walls as built (cosim.contract.WALL_NAMES); None without walls."""
@@ -311,7 +308,7 @@ class DemSoil:
         return Particles(
             position=sim.positions(),
             velocity=sim.velocities(),
-            radius=sim.model.radius_numpy(),
+            radius=sim.radii(),
             ids=None if self.patch is None else self.patch.ids,
         )
 
