@@ -1,0 +1,45 @@
+"""The Soil Contact Model (SCM): a fast terrain of a deformable height field, in Warp kernels.
+
+A regular grid of nodes (spacing h) holds the soil height. Each step, every node casts a
+vertical ray up onto the wheels (the same shapes as the DEM's: soil.geometry GrouserWheel,
+exactly; MeshWheel, through Warp's mesh ray query) and finds the wheel surface above it. A
+node the wheel reaches below the soil's plastic surface is in contact; with z its sinkage
+below its reference level, its normal pressure is elastic-plastic:
+
+    sigma = min(K_e (z - z_p), (k_c / b + k_phi) z^n)      (Bekker's curve is the yield limit)
+
+where z_p is the node's plastic sinkage (raised to z - sigma / K_e when the node yields: the
+rut stays, and a second pass reloads elastically until it reaches the Bekker curve again)
+and b is the contact patch's width (the smaller of its extents along the axle and across it).
+The pressure acts along the wheel surface's normal on the wheel-surface area above the node
+(h^2 / |n_z|), so its vertical part is sigma h^2. The shear stress opposes the slip of the
+wheel surface over the node (Mohr-Coulomb strength, Janosi-Hanamoto mobilisation):
+
+    tau = (c + sigma tan(phi)) (1 - exp(-j / K))
+
+with j the node's shear displacement: the slip speed of the wheel surface over the node,
+integrated while the node is in contact (reset to 0 when the wheel leaves it).
+
+Memory does not grow with the distance travelled: the grid is a window of fixed size that
+follows a centre (the wheels' mean hub position, or a given point) in whole node steps. It is
+a ring buffer: node (I, J) of the infinite grid lives in slot (I mod nx, J mod ny); a slot
+that a new node enters is reset to the undisturbed soil, so ruts older than the window's
+reach are forgotten.
+
+Kernel discipline as the DEM's: one generic kernel source per precision (hi = the precision's
+`hi` type for every stored and summed quantity), no atomics, every sum in a fixed order
+(per wheel: nodes in storage order in chunks, then the chunks in order), no host reads inside a
+step (a step is graph-capturable), so runs repeat and resume bit for bit.
+
+    from soil import GrouserWheel
+    from soil.scm import ScmParameters, ScmTerrain
+    terrain = ScmTerrain(ScmParameters(...), [GrouserWheel(0.1, 0.05)], window=(1.0, 0.5))
+    terrain.advance(end_time=0.1, dt=1e-3, position=[[0, 0, 0.08]], orientation=[[1, 0, 0, 0]],
+                    velocity=[[0.01, 0, 0]], angular_velocity=[[0, 0.12, 0]])
+    contact = terrain.wheel_contact()        # force [N], torque about the hub [N m], nodes, sinkage [m]
+"""
+
+from .kernels import scm_kernels
+from .terrain import ScmParameters, ScmTerrain, WheelContact
+
+__all__ = ["ScmParameters", "ScmTerrain", "WheelContact", "scm_kernels"]

@@ -1,0 +1,516 @@
+"""The SCM terrain's host side: its parameters, state and stepping (soil.scm explains the model)."""
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass
+from typing import NamedTuple
+
+import numpy as np
+import warp as wp
+
+from ..errors import SoilInputError
+from ..geometry import GrouserWheel, MeshWheel
+from ..precision import get_precision
+from .kernels import GROUSER_WHEEL, MESH_WHEEL, scm_kernels
+
+CHUNK = 256
+"""Nodes per partial sum of a wheel's wrench and patch extents (fixed: the sums are deterministic)."""
+
+NO_KEY = 2147483647
+"""A node key no grid node has: a slot holding it is reset by the first step."""
+
+STATE_VERSION = 1
+
+
+@dataclass(frozen=True)
+class ScmParameters:
+    """The soil's SCM parameters (SI units). Wong's dry sand (Theory of Ground Vehicles) is
+    ScmParameters(k_c=0.99e3, k_phi=1528.43e3, n=1.1, cohesion=1.04e3, friction_angle=28,
+    janosi_k=0.02, elastic_stiffness=4e8, node_spacing=0.005)."""
+
+    k_c: float
+    """Bekker cohesive modulus k_c [Pa m^(1-n)] (>= 0)."""
+    k_phi: float
+    """Bekker frictional modulus k_phi [Pa m^(-n)] (>= 0; k_c + k_phi > 0)."""
+    n: float
+    """Bekker sinkage exponent n [-] (> 0)."""
+    cohesion: float
+    """Mohr-Coulomb cohesion c [Pa] (>= 0)."""
+    friction_angle: float
+    """Mohr-Coulomb internal friction angle phi [deg] (in [0, 90))."""
+    janosi_k: float
+    """Janosi-Hanamoto shear deformation modulus K [m] (> 0)."""
+    elastic_stiffness: float
+    """Unloading/reloading stiffness K_e [Pa/m] (> 0); larger than the Bekker curve's slope where
+    the soil is loaded, so that unloading is stiffer than loading."""
+    node_spacing: float
+    """Grid node spacing h [m] (> 0)."""
+    damping: float = 0.0
+    """Normal damping R [Pa s/m] (>= 0) on the wheel surface's speed into the soil."""
+    bulldozing: bool = False
+    """Move the soil displaced under a wheel to the rut's rims (the nodes next to the patch)."""
+    bulldozing_fraction: float = 1.0
+    """Fraction of the plastic volume moved to the rims [-] (in [0, 1]; the rest is compaction)."""
+    erosion_angle: float = 30.0
+    """Steepest slope the moved soil keeps between free nodes [deg] (in (0, 90))."""
+    erosion_iterations: int = 2
+    """Slope-limiting passes per step over the nodes out of contact (>= 0)."""
+
+    def __post_init__(self):
+        def number(name: str) -> float:
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, (int, float, np.integer, np.floating)):
+                raise SoilInputError(f"ScmParameters.{name} must be a number, got {value!r}")
+            if not math.isfinite(value):
+                raise SoilInputError(f"ScmParameters.{name} must be finite, got {value!r}")
+            return float(value)
+
+        def check(name: str, ok: bool, allowed: str) -> None:
+            if not ok:
+                raise SoilInputError(f"ScmParameters.{name} must be {allowed}, got {getattr(self, name)!r}")
+
+        for name in ("k_c", "k_phi", "cohesion", "damping"):
+            check(name, number(name) >= 0, ">= 0")
+        check("k_phi", self.k_c + self.k_phi > 0, "> 0 when k_c is 0 (k_c + k_phi > 0)")
+        for name in ("n", "janosi_k", "elastic_stiffness", "node_spacing"):
+            check(name, number(name) > 0, "> 0")
+        check("friction_angle", 0 <= number("friction_angle") < 90, "in [0, 90) [deg]")
+        check("bulldozing", isinstance(self.bulldozing, bool), "True or False")
+        check("bulldozing_fraction", 0 <= number("bulldozing_fraction") <= 1, "in [0, 1]")
+        check("erosion_angle", 0 < number("erosion_angle") < 90, "in (0, 90) [deg]")
+        iterations = self.erosion_iterations
+        check(
+            "erosion_iterations",
+            isinstance(iterations, (int, np.integer)) and not isinstance(iterations, bool) and iterations >= 0,
+            "an integer >= 0",
+        )
+
+    def bekker_pressure(self, sinkage, width):
+        """Bekker pressure (k_c / b + k_phi) z^n [Pa] at sinkage z [m] under a patch of width b [m]."""
+        return (self.k_c / width + self.k_phi) * np.power(sinkage, self.n)
+
+
+class WheelContact(NamedTuple):
+    """The soil's push on each wheel (world frame), arrays over the wheels."""
+
+    force: np.ndarray
+    """Force [N], shape (k, 3)."""
+    torque: np.ndarray
+    """Torque about the hub [N m], shape (k, 3)."""
+    contacts: np.ndarray
+    """Nodes in contact [-], shape (k,) (a mean over the steps for `wheel_contact(mean=True)`)."""
+    sinkage: np.ndarray
+    """Deepest sinkage of a contact node below its reference level [m], shape (k,)."""
+
+
+PATH_COLUMNS = 13
+"""Columns of a wheel's path row: position (3), orientation (w, x, y, z) (4), velocity (3), angular velocity (3)."""
+
+_NODE_STATE = ("key_i", "key_j", "reference", "plastic", "shear")
+"""The per-node arrays a run carries from step to step (the rest is rewritten every step)."""
+
+
+class ScmTerrain:
+    """An SCM terrain: a flat soil surface at height `surface_height` (world z up) under a window of
+    nodes that follows the wheels, and the wheels pressed into it.
+
+    Each step evaluates the wheels at their pose at the start of the step (on constant-velocity
+    paths from the start of `advance`, like soil.control's body paths) and updates the nodes.
+    """
+
+    def __init__(
+        self,
+        parameters: ScmParameters,
+        wheels: Sequence[GrouserWheel | MeshWheel],
+        *,
+        window: tuple[float, float] = (1.0, 0.5),
+        surface_height: float = 0.0,
+        centre: tuple[float, float] | None = None,
+        device: str = "cpu",
+        precision: str = "double",
+    ):
+        """
+        parameters: the soil (ScmParameters).
+        wheels: the wheels' shapes (soil.geometry), in the order of every per-wheel array.
+        window: the grid window's size along world x and y [m] (rounded to whole nodes); it must hold
+            every wheel's contact patch, so a rover's window spans its wheelbase and track.
+        surface_height: the undisturbed surface's height [m].
+        centre: a fixed window centre (x, y) [m]; None: the window follows the wheels' mean hub position.
+        device, precision: Warp device; "single", "double" or "mixed" (the SCM uses the `hi` type).
+        """
+        if not isinstance(parameters, ScmParameters):
+            raise SoilInputError(f"parameters must be ScmParameters, got {type(parameters).__name__}")
+        wheels = list(wheels)
+        if not wheels:
+            raise SoilInputError("wheels must name at least one wheel (GrouserWheel or MeshWheel)")
+        for index, wheel in enumerate(wheels):
+            if not isinstance(wheel, (GrouserWheel, MeshWheel)):
+                raise SoilInputError(f"wheels[{index}] must be a GrouserWheel or MeshWheel, got {type(wheel).__name__}")
+        if len(window) != 2 or not all(isinstance(s, (int, float)) and math.isfinite(s) and s > 0 for s in window):
+            raise SoilInputError(f"window must be two sizes > 0 [m], got {window!r}")
+        if not (isinstance(surface_height, (int, float)) and math.isfinite(surface_height)):
+            raise SoilInputError(f"surface_height must be a finite number [m], got {surface_height!r}")
+        if centre is not None and (
+            len(centre) != 2 or not all(isinstance(c, (int, float)) and math.isfinite(c) for c in centre)
+        ):
+            raise SoilInputError(f"centre must be None or two finite numbers (x, y) [m], got {centre!r}")
+        self.parameters = parameters
+        self.wheels = wheels
+        self.device = wp.get_device(device)
+        self.precision = get_precision(precision)
+        self.surface_height = float(surface_height)
+        spacing = parameters.node_spacing
+        self.shape = (max(2, int(round(window[0] / spacing))), max(2, int(round(window[1] / spacing))))
+        self.node_count = self.shape[0] * self.shape[1]
+        self._chunks = (self.node_count + CHUNK - 1) // CHUNK
+        self.kernels = scm_kernels(self.precision.hi)
+        self._follow = centre is None
+        self.time = 0.0
+        self.steps = 0
+        self._summed_steps = 0
+        self._build_arrays(centre)
+
+    # -- set-up ------------------------------------------------------------------------------
+    def _build_arrays(self, centre) -> None:
+        prec, device = self.precision, self.device
+        hi, np_hi = prec.hi, prec.np_hi
+        count = len(self.wheels)
+        zeros = lambda n, dtype: wp.zeros(n, dtype=dtype, device=device)  # noqa: E731
+        kinds, shapes, mesh_ids, point_offsets, index_offsets, points, indices = [], [], [], [], [], [], []
+        self._meshes = []
+        n_points = n_indices = 0
+        for wheel in self.wheels:
+            point_offsets.append(n_points)
+            index_offsets.append(n_indices)
+            if isinstance(wheel, GrouserWheel):
+                kinds.append(GROUSER_WHEEL)
+                shapes.append(wheel.shape_row())
+                mesh_ids.append(0)
+                continue
+            kinds.append(MESH_WHEEL)
+            shapes.append([0, 0, 0, 0, 0, wheel.bounding_radius])
+            mesh = wp.Mesh(
+                points=wp.array(wheel.vertices.astype(np.float32), dtype=wp.vec3, device=device),
+                indices=wp.array(wheel.triangles.reshape(-1), dtype=wp.int32, device=device),
+            )
+            self._meshes.append(mesh)
+            mesh_ids.append(mesh.id)
+            points.append(wheel.vertices)
+            indices.append(wheel.triangles.reshape(-1))
+            n_points += len(wheel.vertices)
+            n_indices += wheel.triangles.size
+        bundle = self.kernels.Wheels()
+        bundle.kind = wp.array(np.array(kinds, dtype=np.int32), dtype=wp.int32, device=device)
+        bundle.shape = wp.array(np.array(shapes, dtype=np_hi).reshape(-1, 6), dtype=hi, device=device)
+        bundle.mesh = wp.array(np.array(mesh_ids, dtype=np.uint64), dtype=wp.uint64, device=device)
+        bundle.mesh_points = wp.array(
+            (np.concatenate(points) if points else np.zeros((1, 3))).astype(np_hi), dtype=prec.vec_hi, device=device
+        )
+        bundle.mesh_indices = wp.array(
+            (np.concatenate(indices) if indices else np.zeros(3)).astype(np.int32), dtype=wp.int32, device=device
+        )
+        bundle.point_offset = wp.array(np.array(point_offsets, dtype=np.int32), dtype=wp.int32, device=device)
+        bundle.index_offset = wp.array(np.array(index_offsets, dtype=np.int32), dtype=wp.int32, device=device)
+        bundle.position = zeros(count, prec.vec_hi)
+        bundle.rotation = wp.array(np.tile(np.eye(3, dtype=np_hi), (count, 1, 1)), dtype=prec.mat_hi, device=device)
+        bundle.velocity = zeros(count, prec.vec_hi)
+        bundle.angular_velocity = zeros(count, prec.vec_hi)
+        self._wheels = bundle
+        path = np.zeros((count, PATH_COLUMNS), dtype=np_hi)
+        path[:, 3] = 1.0
+        self._path = wp.zeros(path.shape, dtype=hi, device=device)
+        self._path.assign(path)
+        self._path_start = 0.0
+
+        p = self.parameters
+        soil = self.kernels.Soil()
+        soil.k_c, soil.k_phi, soil.n = hi(p.k_c), hi(p.k_phi), hi(p.n)
+        soil.cohesion, soil.tan_phi = hi(p.cohesion), hi(math.tan(math.radians(p.friction_angle)))
+        soil.janosi_k, soil.elastic_stiffness, soil.damping = hi(p.janosi_k), hi(p.elastic_stiffness), hi(p.damping)
+        soil.spacing, soil.surface = hi(p.node_spacing), hi(self.surface_height)
+        soil.nx, soil.ny = self.shape
+        self._soil = soil
+        self._centre = wp.zeros(2, dtype=hi, device=device)
+        if centre is not None:
+            self._centre.assign(np.array(centre, dtype=np_hi))
+        self._origin = wp.zeros(2, dtype=wp.int32, device=device)
+
+        n = self.node_count
+        nodes = self.kernels.Nodes()
+        nodes.key_i = wp.full(n, NO_KEY, dtype=wp.int32, device=device)
+        nodes.key_j = wp.full(n, NO_KEY, dtype=wp.int32, device=device)
+        nodes.reference = zeros(n, hi)
+        nodes.plastic = zeros(n, hi)
+        nodes.shear = zeros(n, hi)
+        nodes.wheel = wp.full(n, -1, dtype=wp.int32, device=device)
+        nodes.hit = zeros(n, prec.vec_hi)
+        nodes.normal = zeros(n, prec.vec_hi)
+        nodes.pressure = zeros(n, hi)
+        nodes.flow = zeros(n, hi)
+        nodes.force = zeros(n, prec.vec_hi)
+        nodes.torque = zeros(n, prec.vec_hi)
+        self._nodes = nodes
+        self._reference_next = zeros(n, hi)
+
+        chunks = self._chunks
+        self._low = wp.zeros((count, 2 * chunks), dtype=hi, device=device)
+        self._high = wp.zeros((count, 2 * chunks), dtype=hi, device=device)
+        self._width = zeros(count, hi)
+        self._force_part = wp.zeros((count, chunks), dtype=prec.vec_hi, device=device)
+        self._torque_part = wp.zeros((count, chunks), dtype=prec.vec_hi, device=device)
+        self._count_part = wp.zeros((count, chunks), dtype=wp.int32, device=device)
+        self._deepest_part = wp.zeros((count, chunks), dtype=hi, device=device)
+        self._totals = wp.zeros((count, 8), dtype=hi, device=device)
+        self._sums = wp.zeros((count, 8), dtype=hi, device=device)
+
+    @property
+    def wheel_count(self) -> int:
+        return len(self.wheels)
+
+    # -- kinematics --------------------------------------------------------------------------
+    def set_wheels(self, position, orientation, velocity=None, angular_velocity=None) -> None:
+        """The wheels' hub positions [m] (k, 3), orientations (w, x, y, z) (k, 4) (wheel -> world; the
+        axle is the wheel's local Y), velocities [m/s] (k, 3) and angular velocities [rad/s] (k, 3),
+        world frame, at the current time: the start of a path of constant velocities that the next
+        steps follow. Velocities default to zero."""
+        count = self.wheel_count
+
+        def rows(name, value, width):
+            array = np.asarray(value, dtype=np.float64)
+            if array.shape != (count, width) or not np.all(np.isfinite(array)):
+                raise SoilInputError(f"{name} must be finite, shape ({count}, {width}), got {array.shape}")
+            return array
+
+        position = rows("position", position, 3)
+        orientation = rows("orientation", orientation, 4)
+        norms = np.linalg.norm(orientation, axis=1)
+        if np.any(norms < 1e-12):
+            raise SoilInputError("orientation must hold unit quaternions (w, x, y, z), got a zero row")
+        orientation = orientation / norms[:, None]
+        velocity = rows("velocity", np.zeros((count, 3)) if velocity is None else velocity, 3)
+        spin = rows("angular_velocity", np.zeros((count, 3)) if angular_velocity is None else angular_velocity, 3)
+        path = np.concatenate([position, orientation, velocity, spin], axis=1).astype(self.precision.np_hi)
+        self._path.assign(path)
+        self._path_start = self.time
+        self._pose(0.0)
+
+    def _pose(self, tau: float) -> None:
+        wheels = self._wheels
+        wp.launch(
+            self.kernels.follow_path,
+            dim=self.wheel_count,
+            inputs=[self._path, self.precision.hi(tau)],
+            outputs=[wheels.position, wheels.rotation, wheels.velocity, wheels.angular_velocity],
+            device=self.device,
+        )
+
+    # -- stepping ----------------------------------------------------------------------------
+    def step(self, dt: float) -> None:
+        """One step of dt [s] with the wheels at their pose at the current time; then the time moves on and
+        the wheels follow their path. No host read: capturable (for a fixed dt and path)."""
+        self._evaluate(dt)
+        self.time += dt
+        self._pose(self.time - self._path_start)
+
+    def _evaluate(self, dt: float) -> None:
+        """The step's kernels: contacts, stresses and node updates over dt [s], the wheels' wrenches."""
+        kernels, device, hi = self.kernels, self.device, self.precision.hi
+        nodes, wheels, soil = self._nodes, self._wheels, self._soil
+        count, chunks, n = self.wheel_count, self._chunks, self.node_count
+        wp.launch(
+            kernels.place_window,
+            dim=1,
+            inputs=[wheels, int(self._follow), self._centre, soil],
+            outputs=[self._origin],
+            device=device,
+        )
+        wp.launch(kernels.find_contacts, dim=n, inputs=[wheels, soil, self._origin, nodes], device=device)
+        wp.launch(
+            kernels.patch_partial,
+            dim=(count, chunks),
+            inputs=[wheels, nodes, n, CHUNK],
+            outputs=[self._low, self._high],
+            device=device,
+        )
+        wp.launch(
+            kernels.patch_width,
+            dim=count,
+            inputs=[self._low, self._high, chunks, soil],
+            outputs=[self._width],
+            device=device,
+        )
+        wp.launch(kernels.contact_stress, dim=n, inputs=[wheels, soil, self._width, hi(dt), nodes], device=device)
+        p = self.parameters
+        if p.bulldozing:
+            wp.launch(
+                kernels.bulldoze, dim=n, inputs=[soil, self._origin, hi(p.bulldozing_fraction), nodes], device=device
+            )
+            limit = hi(p.node_spacing * math.tan(math.radians(p.erosion_angle)))
+            for _ in range(p.erosion_iterations):
+                wp.launch(
+                    kernels.erode,
+                    dim=n,
+                    inputs=[soil, self._origin, limit, nodes],
+                    outputs=[self._reference_next],
+                    device=device,
+                )
+                wp.copy(nodes.reference, self._reference_next)
+        wp.launch(
+            kernels.wrench_partial,
+            dim=(count, chunks),
+            inputs=[nodes, n, CHUNK],
+            outputs=[self._force_part, self._torque_part, self._count_part, self._deepest_part],
+            device=device,
+        )
+        wp.launch(
+            kernels.wrench_total,
+            dim=count,
+            inputs=[self._force_part, self._torque_part, self._count_part, self._deepest_part, chunks],
+            outputs=[self._totals, self._sums],
+            device=device,
+        )
+        self.steps += 1
+        self._summed_steps += 1
+
+    def advance(
+        self,
+        end_time: float,
+        dt: float,
+        position=None,
+        orientation=None,
+        velocity=None,
+        angular_velocity=None,
+    ) -> int:
+        """Run from the current time to `end_time` [s] in equal steps of at most dt [s]; the wheels start
+        from the given kinematics (see set_wheels; None: they go on along their current path). Returns
+        the number of steps. `wheel_contact(mean=True)` then gives the means over these steps."""
+        if not (isinstance(dt, (int, float)) and math.isfinite(dt) and dt > 0):
+            raise SoilInputError(f"dt must be > 0 [s], got {dt!r}")
+        span = float(end_time) - self.time
+        if not math.isfinite(span) or span <= 0:
+            raise SoilInputError(f"end_time must be after the current time {self.time!r} s, got {end_time!r}")
+        if position is not None or orientation is not None:
+            if position is None or orientation is None:
+                raise SoilInputError("advance needs both position and orientation (or neither)")
+            self.set_wheels(position, orientation, velocity, angular_velocity)
+        steps = max(1, math.ceil(span / dt - 1e-9))
+        step = span / steps
+        start = self.time
+        self._sums.zero_()
+        self._summed_steps = 0
+        for k in range(1, steps + 1):
+            self._evaluate(step)
+            # the times from the start (not summed step by step): a run resumed at end_time poses its
+            # wheels at the same time as the run that went on
+            self.time = start + k * step if k < steps else float(end_time)
+            self._pose(self.time - self._path_start)
+        return steps
+
+    # -- results -----------------------------------------------------------------------------
+    def wheel_contact(self, mean: bool = False) -> WheelContact:
+        """The soil's push on each wheel at the last step (mean=True: the mean over the steps of the last
+        `advance`; the sinkage is then the mean of the steps' deepest sinkage)."""
+        if mean:
+            data = self._sums.numpy().astype(np.float64) / max(1, self._summed_steps)
+        else:
+            data = self._totals.numpy().astype(np.float64)
+        return WheelContact(data[:, 0:3].copy(), data[:, 3:6].copy(), data[:, 6].copy(), data[:, 7].copy())
+
+    def patch_width(self) -> np.ndarray:
+        """The Bekker width b of each wheel's contact patch at the last step [m], shape (k,) (inf: no contact)."""
+        width = self._width.numpy().astype(np.float64)
+        return np.where(width > 1e29, np.inf, width)
+
+    def window_origin(self) -> tuple[int, int]:
+        """The grid indices (I0, J0) of the window's first node (node (I, J) is at (I h, J h))."""
+        origin = self._origin.numpy()
+        return int(origin[0]), int(origin[1])
+
+    def height_field(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The soil surface in the window: x [m] (nx,), y [m] (ny,), height [m] (nx, ny), in grid order.
+        Under a wheel the surface is the wheel's; elsewhere the plastic surface (after elastic rebound).
+        Slots that no step has reached yet show the undisturbed surface."""
+        nodes = self._nodes
+        key_i, key_j = nodes.key_i.numpy(), nodes.key_j.numpy()
+        surface = nodes.reference.numpy().astype(np.float64) - nodes.plastic.numpy()
+        hit = nodes.hit.numpy()[:, 2].astype(np.float64)
+        surface = np.where(nodes.wheel.numpy() >= 0, np.minimum(surface, hit), surface)
+        surface = np.where(key_i == NO_KEY, self.surface_height, surface)
+        i0, j0 = self.window_origin()
+        nx, ny = self.shape
+        field = np.full((nx, ny), self.surface_height)
+        seen = key_i != NO_KEY
+        field[key_i[seen] - i0, key_j[seen] - j0] = surface[seen]
+        h = self.parameters.node_spacing
+        return (i0 + np.arange(nx)) * h, (j0 + np.arange(ny)) * h, field
+
+    def surface_height_at(self, x, y) -> np.ndarray:
+        """The soil surface's height [m] at world points (x, y) [m] (arrays of one shape), bilinear between
+        nodes; the undisturbed height outside the window."""
+        xs, ys, field = self.height_field()
+        h = self.parameters.node_spacing
+        x, y = np.broadcast_arrays(np.asarray(x, dtype=np.float64), np.asarray(y, dtype=np.float64))
+        u, v = (x - xs[0]) / h, (y - ys[0]) / h
+        i, j = np.floor(u).astype(int), np.floor(v).astype(int)
+        inside = (i >= 0) & (j >= 0) & (i < len(xs) - 1) & (j < len(ys) - 1)
+        i, j = np.clip(i, 0, len(xs) - 2), np.clip(j, 0, len(ys) - 2)
+        a, b = u - i, v - j
+        value = (
+            (1 - a) * (1 - b) * field[i, j]
+            + a * (1 - b) * field[i + 1, j]
+            + (1 - a) * b * field[i, j + 1]
+            + a * b * field[i + 1, j + 1]
+        )
+        return np.where(inside, value, self.surface_height)
+
+    def memory_bytes(self) -> int:
+        """Bytes of the device arrays the terrain holds (fixed at construction: independent of the distance)."""
+        arrays = [getattr(self._nodes, name) for name in self.kernels.Nodes.vars]
+        arrays += [self._reference_next, self._low, self._high, self._width, self._force_part, self._torque_part]
+        arrays += [self._count_part, self._deepest_part, self._totals, self._sums, self._path, self._origin]
+        return int(sum(a.capacity for a in arrays))
+
+    # -- checkpoints -------------------------------------------------------------------------
+    def state_dict(self) -> dict:
+        """Everything a resumed run needs to continue bit for bit (numpy arrays and numbers)."""
+        nodes = self._nodes
+        data = {name: getattr(nodes, name).numpy().copy() for name in _NODE_STATE}
+        data.update(
+            version=np.int64(STATE_VERSION),
+            shape=np.array(self.shape, dtype=np.int64),
+            precision=np.array(self.precision.name),
+            time=np.float64(self.time),
+            steps=np.int64(self.steps),
+            summed_steps=np.int64(self._summed_steps),
+            path=self._path.numpy().copy(),
+            path_start=np.float64(self._path_start),
+            origin=self._origin.numpy().copy(),
+            totals=self._totals.numpy().copy(),
+            sums=self._sums.numpy().copy(),
+            width=self._width.numpy().copy(),
+        )
+        return data
+
+    def load_state_dict(self, data: dict) -> None:
+        """Restore a state_dict of a terrain built alike (same parameters, wheels, window, precision)."""
+        if int(data.get("version", -1)) != STATE_VERSION:
+            raise SoilInputError(f"SCM state version {data.get('version')!r} is not {STATE_VERSION}")
+        if tuple(int(s) for s in data["shape"]) != self.shape or str(data["precision"]) != self.precision.name:
+            raise SoilInputError(
+                f"SCM state is of a {tuple(data['shape'])} window in {data['precision']} precision, this terrain's "
+                f"is {self.shape} in {self.precision.name}"
+            )
+        if np.asarray(data["path"]).shape != (self.wheel_count, PATH_COLUMNS):
+            raise SoilInputError(f"SCM state has {len(data['path'])} wheels, this terrain has {self.wheel_count}")
+        for name in _NODE_STATE:
+            getattr(self._nodes, name).assign(np.asarray(data[name]))
+        self.time = float(data["time"])
+        self.steps = int(data["steps"])
+        self._summed_steps = int(data["summed_steps"])
+        self._path.assign(np.asarray(data["path"]))
+        self._path_start = float(data["path_start"])
+        self._origin.assign(np.asarray(data["origin"]))
+        self._totals.assign(np.asarray(data["totals"]))
+        self._sums.assign(np.asarray(data["sums"]))
+        self._width.assign(np.asarray(data["width"]))
+        self._pose(self.time - self._path_start)

@@ -1,0 +1,285 @@
+"""The Soil Contact Model terrain (soil.scm) against closed-form answers computed here.
+
+Stress model of the implementation, and so of the reference integrals: each node's pressure
+comes from its own sinkage (Bekker's curve on loading, K_e on unloading and reloading), acts
+along the wheel surface's normal on the surface above the node, and the shear stress
+(Mohr-Coulomb, Janosi-Hanamoto) opposes the wheel surface's slip over the node. For a rigid
+wheel at a fixed sinkage that is the Wong-Reece integral over the contact arc with the local
+sinkage z(theta) = r (cos(theta) - cos(theta_1)) on the front arc, an elastic rebound behind
+the bottom (from the plastic sinkage the bottom left), and the shear displacement of a node
+fixed in the ground: j(theta) = int_theta^theta_1 (r omega - v cos(t)) r cos(t) / v dt.
+"""
+
+import math
+
+import numpy as np
+import pytest
+from scipy import integrate
+
+from soil import GrouserWheel, MeshWheel
+from soil.errors import SoilInputError
+from soil.scm import ScmParameters, ScmTerrain
+
+SPACING = 0.002
+SAND = dict(k_c=2.0e4, k_phi=5.0e5, n=1.1, cohesion=1.0e3, friction_angle=30.0, janosi_k=0.01, elastic_stiffness=2.0e7)
+UPRIGHT = [[1.0, 0.0, 0.0, 0.0]]
+
+
+def parameters(**changes) -> ScmParameters:
+    return ScmParameters(**{**SAND, "node_spacing": SPACING, **changes})
+
+
+def plate(length: float, width: float, thickness: float = 0.01) -> MeshWheel:
+    """A flat box plate, `length` along x and `width` along y, as a closed mesh (12 triangles)."""
+    corners = np.array([[x, y, z] for x in (-0.5, 0.5) for y in (-0.5, 0.5) for z in (-0.5, 0.5)])
+    corners *= [length, width, thickness]
+    faces = [(0, 1, 3), (0, 3, 2), (4, 6, 7), (4, 7, 5), (0, 4, 5), (0, 5, 1)]
+    faces += [(2, 3, 7), (2, 7, 6), (0, 2, 6), (0, 6, 4), (1, 5, 7), (1, 7, 3)]
+    return MeshWheel(corners, np.array(faces), name="plate")
+
+
+def centred(size: float) -> float:
+    """A centre coordinate that puts exactly size / h nodes under a span of `size` (none on its edges)."""
+    nodes = round(size / SPACING)
+    return 0.0 if nodes % 2 else 0.5 * SPACING
+
+
+class PlateRig:
+    """A plate pressed quasi-statically: its bottom face at a given depth below the surface."""
+
+    def __init__(self, length: float, width: float, soil: ScmParameters):
+        self.thickness = 0.01
+        self.area = length * width
+        self.centre = (centred(length), centred(width))
+        self.terrain = ScmTerrain(soil, [plate(length, width, self.thickness)], window=(0.1, 0.08), centre=self.centre)
+
+    def press(self, depth: float) -> float:
+        """Vertical force [N] with the plate's bottom `depth` [m] below the undisturbed surface."""
+        terrain = self.terrain
+        position = [[self.centre[0], self.centre[1], 0.5 * self.thickness - depth]]
+        terrain.advance(terrain.time + 1e-3, 1e-3, position, UPRIGHT)
+        return float(terrain.wheel_contact().force[0, 2])
+
+
+def test_plate_sinkage_is_bekkers_at_two_widths():
+    soil = parameters()
+    for width in (0.02, 0.04):
+        rig = PlateRig(0.06, width, soil)
+        for depth in (0.002, 0.005, 0.01):
+            expected = rig.area * (soil.k_c / width + soil.k_phi) * depth**soil.n
+            assert rig.press(depth) == pytest.approx(expected, rel=1e-12)
+        assert rig.terrain.patch_width()[0] == pytest.approx(width, rel=1e-12)
+
+
+def sink_under(rig: PlateRig, load: float, start: float) -> float:
+    """Lower the plate from `start` [m] in half secant steps (never past the balance: the force curve
+    is convex or straight) until the soil carries `load` [N]; returns the depth [m]."""
+    previous = (start, rig.press(start))
+    depth = start + 1e-5
+    force = rig.press(depth)
+    while load - force > 1e-10 * load:
+        slope = (force - previous[1]) / (depth - previous[0])
+        previous = (depth, force)
+        depth += 0.5 * (load - force) / slope
+        force = rig.press(depth)
+    return depth
+
+
+def test_plate_under_a_load_sinks_to_bekkers_depth():
+    soil = parameters()
+    width, length, load = 0.02, 0.06, 10.0
+    rig = PlateRig(length, width, soil)
+    expected = (load / (rig.area * (soil.k_c / width + soil.k_phi))) ** (1 / soil.n)
+    assert sink_under(rig, load, 0.0) == pytest.approx(expected, rel=1e-8)
+
+
+def test_unloading_is_elastic_and_reloading_retraces_it():
+    soil = parameters()
+    rig = PlateRig(0.06, 0.02, soil)
+    bekker = lambda z: rig.area * soil.bekker_pressure(z, 0.02)  # noqa: E731
+    top = rig.press(0.008)
+    assert top == pytest.approx(bekker(0.008), rel=1e-12)
+    lift = 2e-5
+    assert rig.press(0.008 - lift) == pytest.approx(top - rig.area * soil.elastic_stiffness * lift, rel=1e-9)
+    assert rig.press(0.008) == pytest.approx(top, rel=1e-9)  # back up the same line
+    assert rig.press(0.009) == pytest.approx(bekker(0.009), rel=1e-12)  # and on along Bekker's curve
+
+
+def test_ruts_persist_and_a_second_load_sinks_no_deeper():
+    soil = parameters()
+    rig = PlateRig(0.06, 0.02, soil)
+    load = rig.press(0.008)
+    assert rig.press(-0.005) == 0.0  # lifted clear
+    rut = 0.008 - load / rig.area / soil.elastic_stiffness  # the plastic sinkage under the plate
+    x, y = rig.centre
+    assert rig.terrain.surface_height_at(x, y) == pytest.approx(-rut, rel=1e-9)
+    assert rig.terrain.surface_height_at(x + 0.045, y) == 0.0  # beside the plate: untouched
+    # the same load again: the soil carries it on the unloading line, at no more sinkage
+    assert sink_under(rig, load, rut) <= 0.008 * (1 + 1e-9)
+
+
+def wheel_run(wheel, sinkage, slip, soil, radius=0.1, width=0.04, travel=0.08, wheels=1, gap=0.22):
+    """Wheels of `radius` and `width` in a line along +x (`gap` apart) at hub height radius - sinkage,
+    driven at slip `slip` over `travel` [m]; returns the terrain and the mean contact over the next
+    node spacing of travel (the mean over the ripple of nodes entering the patch)."""
+    speed, dt = 0.02, 0.01
+    spin = speed / (radius * (1 - slip))
+    hubs = [[-k * gap, centred(width), radius - sinkage] for k in range(wheels)]
+    terrain = ScmTerrain(soil, [wheel] * wheels, window=(0.3 + gap * (wheels - 1), 0.1))
+    end = travel / speed
+    terrain.advance(end, dt, hubs, UPRIGHT * wheels, [[speed, 0, 0]] * wheels, [[0, spin, 0]] * wheels)
+    terrain.advance(end + SPACING / speed, dt)
+    return terrain, terrain.wheel_contact(mean=True)
+
+
+def wong_reece(radius: float, width: float, sinkage: float, slip: float, soil: ScmParameters):
+    """(W, DP, T) [N, N, N m] of the stress model above, by scipy quadrature over the contact arc."""
+    r, n, elastic = radius, soil.n, soil.elastic_stiffness
+    k = soil.k_c / width + soil.k_phi
+    entry = math.acos(1 - sinkage / r)
+    plastic = sinkage - k * sinkage**n / elastic
+    rear = -math.acos(math.cos(entry) + plastic / r)  # where the rebounding soil lets go
+
+    def sigma(theta):
+        z = r * (math.cos(theta) - math.cos(entry))
+        return k * z**n if theta >= 0 else max(0.0, elastic * (z - plastic))
+
+    def tau(theta):
+        j = integrate.quad(lambda t: (1 / (1 - slip) - math.cos(t)) * r * math.cos(t), theta, entry)[0]
+        strength = soil.cohesion + sigma(theta) * math.tan(math.radians(soil.friction_angle))
+        return strength * (1 - math.exp(-j / soil.janosi_k))
+
+    def arc(f):
+        return sum(integrate.quad(f, a, b, epsabs=0, epsrel=1e-10, limit=200)[0] for a, b in ((rear, 0), (0, entry)))
+
+    load = r * width * arc(lambda t: sigma(t) * math.cos(t) + tau(t) * math.sin(t))
+    pull = r * width * arc(lambda t: tau(t) * math.cos(t) - sigma(t) * math.sin(t))
+    torque = r * r * width * arc(tau)
+    return load, pull, torque
+
+
+@pytest.mark.parametrize("slip", [0.1, 0.4])
+def test_rigid_wheel_matches_the_wong_reece_integrals(slip):
+    soil = parameters()
+    wheel = GrouserWheel(radius=0.1, width=0.04)
+    terrain, contact = wheel_run(wheel, 0.015, slip, soil)
+    load, pull, torque = wong_reece(0.1, 0.04, 0.015, slip, soil)
+    assert terrain.patch_width()[0] == pytest.approx(0.04, rel=1e-9)
+    force, moment = contact.force[0], contact.torque[0]
+    assert force[2] == pytest.approx(load, rel=0.01)
+    assert force[0] == pytest.approx(pull, rel=0.02)
+    assert -moment[1] == pytest.approx(torque, rel=0.01)  # the soil resists the wheel's spin about +y
+    assert abs(force[1]) < 1e-9 * load and abs(moment[0]) < 1e-9 * torque
+    sag = SPACING**2 / (8 * 0.1)  # the deepest node is at most h / 2 from the bottom: r (1 - cos(h / 2r))
+    assert 0.015 - sag <= contact.sinkage[0] <= 0.015 * (1 + 1e-12)
+
+
+def test_a_mesh_wheel_matches_the_same_parametric_wheel():
+    soil = parameters()
+    wheel = GrouserWheel(radius=0.1, width=0.04)
+    mesh = MeshWheel(*wheel.to_mesh(arc_segments=720))
+    smooth = wheel_run(wheel, 0.015, 0.2, soil)[1]
+    meshed = wheel_run(mesh, 0.015, 0.2, soil)[1]
+    np.testing.assert_allclose(meshed.force, smooth.force, rtol=5e-3, atol=1e-3)
+    np.testing.assert_allclose(meshed.torque, smooth.torque, rtol=5e-3, atol=1e-4)
+
+
+def test_a_wheel_in_a_rut_carries_less_at_the_same_height():
+    """A second wheel in the first one's rut, at the same hub height: the rut has yielded already."""
+    terrain, contact = wheel_run(GrouserWheel(0.1, 0.04), 0.015, 0.2, parameters(), travel=0.32, wheels=2)
+    front, rear = contact.force[:, 2]
+    assert 0 < rear < 0.5 * front
+
+
+def grousered_run(steps_before: int, steps_after: int, resume: bool, precision: str = "double"):
+    soil = parameters(bulldozing=True)
+    wheel = GrouserWheel(radius=0.08, width=0.04, grouser_count=12, grouser_height=0.006, grouser_thickness=0.003)
+
+    def build():
+        return ScmTerrain(soil, [wheel], window=(0.3, 0.1), precision=precision)
+
+    terrain = build()
+    dt = 0.01
+    terrain.advance(steps_before * dt, dt, [[0, 0.001, 0.07]], UPRIGHT, [[0.02, 0, 0]], [[0, 0.4, 0.01]])
+    if resume:
+        state = terrain.state_dict()
+        terrain = build()
+        terrain.load_state_dict(state)
+    if steps_after:
+        terrain.advance((steps_before + steps_after) * dt, dt)
+    return terrain
+
+
+def test_runs_repeat_and_resume_bit_for_bit():
+    first = grousered_run(30, 30, resume=False)
+    again = grousered_run(30, 30, resume=False)
+    resumed = grousered_run(30, 30, resume=True)
+    reference = first.state_dict()
+    assert first.wheel_contact().contacts[0] > 0
+    for other in (again, resumed):
+        state = other.state_dict()
+        for name, value in reference.items():
+            assert np.array_equal(state[name], value), name
+        for mine, theirs in zip(first.wheel_contact(mean=True), other.wheel_contact(mean=True)):
+            assert np.array_equal(mine, theirs)
+    _, _, field = first.height_field()
+    assert field.max() > 0  # bulldozing raised the rims
+
+
+def test_single_precision_runs_the_same_kernels():
+    single = grousered_run(20, 0, resume=False, precision="single").wheel_contact()
+    double = grousered_run(20, 0, resume=False).wheel_contact()
+    np.testing.assert_allclose(single.force, double.force, rtol=0.05, atol=0.05 * abs(double.force[0, 2]))
+
+
+def test_the_window_scrolls_with_the_wheel_in_fixed_memory():
+    soil = parameters()
+    wheel = GrouserWheel(radius=0.1, width=0.04)
+    terrain = ScmTerrain(soil, [wheel], window=(0.3, 0.1))
+    memory, shape = terrain.memory_bytes(), terrain.shape
+    speed, spin, dt = 0.1, 0.1 / (0.1 * 0.8), 0.01
+    terrain.set_wheels([[0.0, 0.0, 0.085]], UPRIGHT, [[speed, 0, 0]], [[0, spin, 0]])
+    means = []
+    for end in (1.0, 8.0):  # 0.1 m and 0.8 m of travel: far beyond the window's 0.3 m
+        terrain.advance(end, dt)
+        terrain.advance(end + SPACING / speed, dt)
+        means.append(terrain.wheel_contact(mean=True))
+    assert terrain.memory_bytes() == memory and terrain.shape == shape
+    np.testing.assert_allclose(means[1].force, means[0].force, rtol=1e-6, atol=1e-9)
+    hub = 0.8 + SPACING
+    x0, _ = terrain.window_origin()
+    assert x0 * SPACING == pytest.approx(hub - 0.15, abs=2 * SPACING)
+    assert terrain.surface_height_at(hub - 0.12, 0.0) < -0.005  # the rut behind the wheel, in the window
+    assert terrain.surface_height_at(hub - 0.5, 0.0) == 0.0  # out of the window: forgotten
+
+
+@pytest.mark.parametrize(
+    "field, value",
+    [
+        ("k_c", -1.0),
+        ("k_phi", float("nan")),
+        ("n", 0.0),
+        ("cohesion", -5.0),
+        ("friction_angle", 90.0),
+        ("janosi_k", 0.0),
+        ("elastic_stiffness", -1.0),
+        ("node_spacing", 0.0),
+        ("damping", -1.0),
+        ("bulldozing_fraction", 1.5),
+        ("erosion_iterations", 1.5),
+        ("n", "1.1"),
+    ],
+)
+def test_bad_parameters_are_refused_naming_the_field(field, value):
+    with pytest.raises(SoilInputError, match=rf"ScmParameters\.{field} must be"):
+        parameters(**{field: value})
+
+
+def test_bad_terrain_inputs_are_refused():
+    with pytest.raises(SoilInputError, match="window"):
+        ScmTerrain(parameters(), [GrouserWheel(0.1, 0.04)], window=(0.0, 0.1))
+    terrain = ScmTerrain(parameters(), [GrouserWheel(0.1, 0.04)], window=(0.1, 0.1))
+    with pytest.raises(SoilInputError, match="position"):
+        terrain.set_wheels([[0, 0]], UPRIGHT)
+    with pytest.raises(SoilInputError, match="dt"):
+        terrain.advance(1.0, 0.0)
