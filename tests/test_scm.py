@@ -47,11 +47,12 @@ def centred(size: float) -> float:
 class PlateRig:
     """A plate pressed quasi-statically: its bottom face at a given depth below the surface."""
 
-    def __init__(self, length: float, width: float, soil: ScmParameters):
+    def __init__(self, length: float, width: float, soil: ScmParameters, device: str = "cpu"):
         self.thickness = 0.01
         self.area = length * width
         self.centre = (centred(length), centred(width))
-        self.terrain = ScmTerrain(soil, [plate(length, width, self.thickness)], window=(0.1, 0.08), centre=self.centre)
+        shape = plate(length, width, self.thickness)
+        self.terrain = ScmTerrain(soil, [shape], window=(0.1, 0.08), centre=self.centre, device=device)
 
     def press(self, depth: float) -> float:
         """Vertical force [N] with the plate's bottom `depth` [m] below the undisturbed surface."""
@@ -61,10 +62,10 @@ class PlateRig:
         return float(terrain.wheel_contact().force[0, 2])
 
 
-def test_plate_sinkage_is_bekkers_at_two_widths():
+def test_plate_sinkage_is_bekkers_at_two_widths(device):
     soil = parameters()
     for width in (0.02, 0.04):
-        rig = PlateRig(0.06, width, soil)
+        rig = PlateRig(0.06, width, soil, device)
         for depth in (0.002, 0.005, 0.01):
             expected = rig.area * (soil.k_c / width + soil.k_phi) * depth**soil.n
             assert rig.press(depth) == pytest.approx(expected, rel=1e-12)
@@ -118,14 +119,14 @@ def test_ruts_persist_and_a_second_load_sinks_no_deeper():
     assert sink_under(rig, load, rut) <= 0.008 * (1 + 1e-9)
 
 
-def wheel_run(wheel, sinkage, slip, soil, radius=0.1, width=0.04, travel=0.08, wheels=1, gap=0.22):
+def wheel_run(wheel, sinkage, slip, soil, radius=0.1, width=0.04, travel=0.08, wheels=1, gap=0.22, device="cpu"):
     """Wheels of `radius` and `width` in a line along +x (`gap` apart) at hub height radius - sinkage,
     driven at slip `slip` over `travel` [m]; returns the terrain and the mean contact over the next
     node spacing of travel (the mean over the ripple of nodes entering the patch)."""
     speed, dt = 0.02, 0.01
     spin = speed / (radius * (1 - slip))
     hubs = [[-k * gap, centred(width), radius - sinkage] for k in range(wheels)]
-    terrain = ScmTerrain(soil, [wheel] * wheels, window=(0.3 + gap * (wheels - 1), 0.1))
+    terrain = ScmTerrain(soil, [wheel] * wheels, window=(0.3 + gap * (wheels - 1), 0.1), device=device)
     end = travel / speed
     terrain.advance(end, dt, hubs, UPRIGHT * wheels, [[speed, 0, 0]] * wheels, [[0, spin, 0]] * wheels)
     terrain.advance(end + SPACING / speed, dt)
@@ -159,16 +160,16 @@ def wong_reece(radius: float, width: float, sinkage: float, slip: float, soil: S
 
 
 @pytest.mark.parametrize("slip", [0.1, 0.4])
-def test_rigid_wheel_matches_the_wong_reece_integrals(slip):
+def test_rigid_wheel_matches_the_wong_reece_integrals(slip, device):
     soil = parameters()
     wheel = GrouserWheel(radius=0.1, width=0.04)
-    terrain, contact = wheel_run(wheel, 0.015, slip, soil)
+    terrain, contact = wheel_run(wheel, 0.015, slip, soil, device=device)
     load, pull, torque = wong_reece(0.1, 0.04, 0.015, slip, soil)
     assert terrain.patch_width()[0] == pytest.approx(0.04, rel=1e-9)
     force, moment = contact.force[0], contact.torque[0]
-    assert force[2] == pytest.approx(load, rel=0.01)
-    assert force[0] == pytest.approx(pull, rel=0.02)
-    assert -moment[1] == pytest.approx(torque, rel=0.01)  # the soil resists the wheel's spin about +y
+    assert force[2] == pytest.approx(load, rel=2e-3)
+    assert force[0] == pytest.approx(pull, rel=1e-2)
+    assert -moment[1] == pytest.approx(torque, rel=5e-3)  # the soil resists the wheel's spin about +y
     assert abs(force[1]) < 1e-9 * load and abs(moment[0]) < 1e-9 * torque
     sag = SPACING**2 / (8 * 0.1)  # the deepest node is at most h / 2 from the bottom: r (1 - cos(h / 2r))
     assert 0.015 - sag <= contact.sinkage[0] <= 0.015 * (1 + 1e-12)
@@ -191,12 +192,12 @@ def test_a_wheel_in_a_rut_carries_less_at_the_same_height():
     assert 0 < rear < 0.5 * front
 
 
-def grousered_run(steps_before: int, steps_after: int, resume: bool, precision: str = "double"):
+def grousered_run(steps_before: int, steps_after: int, resume: bool, precision: str = "double", device: str = "cpu"):
     soil = parameters(bulldozing=True)
     wheel = GrouserWheel(radius=0.08, width=0.04, grouser_count=12, grouser_height=0.006, grouser_thickness=0.003)
 
     def build():
-        return ScmTerrain(soil, [wheel], window=(0.3, 0.1), precision=precision)
+        return ScmTerrain(soil, [wheel], window=(0.3, 0.1), precision=precision, device=device)
 
     terrain = build()
     dt = 0.01
@@ -210,10 +211,10 @@ def grousered_run(steps_before: int, steps_after: int, resume: bool, precision: 
     return terrain
 
 
-def test_runs_repeat_and_resume_bit_for_bit():
-    first = grousered_run(30, 30, resume=False)
-    again = grousered_run(30, 30, resume=False)
-    resumed = grousered_run(30, 30, resume=True)
+def test_runs_repeat_and_resume_bit_for_bit(device):
+    first = grousered_run(30, 30, resume=False, device=device)
+    again = grousered_run(30, 30, resume=False, device=device)
+    resumed = grousered_run(30, 30, resume=True, device=device)
     reference = first.state_dict()
     assert first.wheel_contact().contacts[0] > 0
     for other in (again, resumed):

@@ -60,7 +60,8 @@ def scm_kernels(hi):
 
     @wp.struct
     class Nodes:
-        """Per-node state (kept) and the step's contact (rewritten every step)."""
+        """Per-node state (kept) and the step's contact: `wheel` at every node (-1: none), the other
+        arrays rewritten, and valid, at the contact nodes only."""
 
         key_i: wp.array(dtype=wp.int32)
         key_j: wp.array(dtype=wp.int32)
@@ -96,50 +97,82 @@ def scm_kernels(hi):
         return t_in, t_out, entered
 
     @wp.func
-    def grouser_wheel_ray(shape: wp.array2d(dtype=hi), w: int, o: vec_hi, d: vec_hi):
-        """First hit t along o + t d (wheel frame, o outside the wheel) with a grousered wheel (the solid
-        of soil.sdf wheel_distance: a cylinder and box grousers), and the outward normal; t = huge if none."""
-        radius = shape[w, 0]
-        half_width = shape[w, 1]
-        grousers = int(shape[w, 2])
-        best = hi(huge)
-        best_normal = vec_hi()
-        # the cylinder: inside the radius (a quadratic in t) and between the side faces (a slab)
+    def cylinder_interval(o: vec_hi, d: vec_hi, radius: hi, half_width: hi):
+        """The interval of t where o + t d (wheel frame) is inside the solid cylinder (axle Y, |y| <= half
+        width): (t_in, t_out; empty if t_in > t_out) and whether it enters through a side face."""
         a = d[0] * d[0] + d[2] * d[2]
         b = hi(2.0) * (o[0] * d[0] + o[2] * d[2])
         c = o[0] * o[0] + o[2] * o[2] - radius * radius
         t_in = hi(-huge)
         t_out = hi(huge)
-        radial_entry = False
         if a > hi(1.0e-12):
             disc = b * b - hi(4.0) * a * c
             if disc >= hi(0.0):
                 root = wp.sqrt(disc)
                 t_in = (-b - root) / (hi(2.0) * a)
                 t_out = (-b + root) / (hi(2.0) * a)
-                radial_entry = True
             else:
                 t_out = hi(-huge)
         elif c > hi(0.0):
             t_out = hi(-huge)
         t_in, t_out, side_entry = slab(o[1], d[1], -half_width, half_width, t_in, t_out)
+        return t_in, t_out, side_entry
+
+    @wp.func
+    def grouser_wheel_ray(shape: wp.array2d(dtype=hi), w: int, o: vec_hi, d: vec_hi):
+        """First hit t along o + t d (wheel frame, o outside the wheel) with a grousered wheel (the solid
+        of soil.sdf wheel_distance: a cylinder and box grousers), and the outward normal; t = huge if none.
+
+        Only the grousers that the ray can meet are tested: those at the angles (about the axle) that
+        the ray sweeps between entering the cylinder over the grouser tips and meeting the rim."""
+        radius = shape[w, 0]
+        half_width = shape[w, 1]
+        grousers = int(shape[w, 2])
+        height = shape[w, 3]
+        thickness = shape[w, 4]
+        best = hi(huge)
+        best_normal = vec_hi()
+        outer = wp.sqrt((radius + height) * (radius + height) + hi(0.25) * thickness * thickness)
+        a_in, a_out, a_side = cylinder_interval(o, d, outer, half_width)
+        if a_in > a_out or a_out < hi(0.0):
+            return best, best_normal  # the ray misses the cylinder that holds the whole wheel
+        t_in, t_out, side_entry = cylinder_interval(o, d, radius, half_width)
+        t_end = a_out
         if t_in <= t_out and t_in >= hi(0.0):
             best = t_in
+            t_end = t_in
             p = o + t_in * d
-            if side_entry or not radial_entry:
+            if side_entry:
                 best_normal = vec_hi(hi(0.0), -wp.sign(d[1]), hi(0.0))
             else:
                 best_normal = vec_hi(p[0], hi(0.0), p[2]) / radius
         if grousers > 0:
-            height = shape[w, 3]
-            thickness = shape[w, 4]
             pitch = hi(2.0 * 3.141592653589793) / hi(grousers)
             inner = radius - thickness
             centre = hi(0.5) * (inner + radius + height)
             half_r = hi(0.5) * (radius + height - inner)
             half_t = hi(0.5) * thickness
-            for k in range(grousers):
-                theta = hi(k) * pitch
+            # the swept angles: a grouser reaches less than half a pitch to each side of its angle
+            p_a = o + wp.max(a_in, hi(0.0)) * d
+            p_b = o + t_end * d
+            angle = wp.atan2(p_a[0], p_a[2])
+            span = wp.atan2(p_b[0], p_b[2]) - angle
+            if span > hi(3.141592653589793):
+                span -= hi(2.0 * 3.141592653589793)
+            if span < hi(-3.141592653589793):
+                span += hi(2.0 * 3.141592653589793)
+            step = int(1)  # noqa: UP018 (a Warp variable the kernel changes: not a constant)
+            if span < hi(0.0):
+                step = -1
+            count = int(wp.abs(span) / pitch) + 4
+            first = int(wp.round(angle / pitch)) - step
+            if count >= grousers:
+                count = grousers
+                first = 0
+                step = 1
+            for s in range(count):
+                index = ((first + step * s) % grousers + grousers) % grousers  # one angle per grouser
+                theta = hi(index) * pitch
                 e_r = vec_hi(wp.sin(theta), hi(0.0), wp.cos(theta))
                 e_t = vec_hi(wp.cos(theta), hi(0.0), -wp.sin(theta))
                 q = o - centre * e_r
@@ -258,8 +291,9 @@ def scm_kernels(hi):
                 best_wheel = w
                 best_normal = rotation * n_local
         nodes.wheel[k] = best_wheel
-        nodes.hit[k] = vec_hi(x, y, best_z)
-        nodes.normal[k] = best_normal
+        if best_wheel >= 0:  # the step's other arrays are read at contact nodes only
+            nodes.hit[k] = vec_hi(x, y, best_z)
+            nodes.normal[k] = best_normal
 
     @kernel
     def patch_partial(
@@ -323,13 +357,11 @@ def scm_kernels(hi):
         on its wheel and torque about the hub; the plastic flow (height) for bulldozing."""
         k = wp.tid()
         w = nodes.wheel[k]
-        nodes.flow[k] = hi(0.0)
-        if w < 0:
-            nodes.shear[k] = hi(0.0)
-            nodes.pressure[k] = hi(0.0)
-            nodes.force[k] = vec_hi()
-            nodes.torque[k] = vec_hi()
+        if w < 0:  # the wheel left (or never reached) the node; its other arrays are read at contacts only
+            if nodes.shear[k] != hi(0.0):
+                nodes.shear[k] = hi(0.0)
             return
+        nodes.flow[k] = hi(0.0)
         p = nodes.hit[k]
         n = nodes.normal[k]
         sinkage = nodes.reference[k] - p[2]
