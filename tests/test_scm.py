@@ -284,3 +284,8 @@ def test_bad_terrain_inputs_are_refused():
         terrain.set_wheels([[0, 0]], UPRIGHT)
     with pytest.raises(SoilInputError, match="dt"):
         terrain.advance(1.0, 0.0)
+    with pytest.raises(SoilInputError, match="wheel 0 .* leaves the SCM window"):
+        terrain.advance(1.0, 0.01, [[0, 0, 0.09]], UPRIGHT)  # 0.1 m wide: too small for a 0.2 m wheel
+    wide = ScmTerrain(parameters(), [GrouserWheel(0.1, 0.04)], window=(0.5, 0.2), centre=(0.0, 0.0))
+    with pytest.raises(SoilInputError, match="leaves the SCM window"):  # driven out of a fixed window
+        wide.advance(10.0, 0.01, [[0, 0, 0.09]], UPRIGHT, [[0.1, 0, 0]])

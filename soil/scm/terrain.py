@@ -8,6 +8,7 @@ from typing import NamedTuple
 import numpy as np
 import warp as wp
 
+from ..control import quaternion_integrate, quaternion_to_matrix
 from ..errors import SoilInputError
 from ..geometry import GrouserWheel, MeshWheel
 from ..precision import get_precision
@@ -218,6 +219,7 @@ class ScmTerrain:
         self._wheels = bundle
         path = np.zeros((count, PATH_COLUMNS), dtype=np_hi)
         path[:, 3] = 1.0
+        self._host_path = path.astype(np.float64)
         self._path = wp.zeros(path.shape, dtype=hi, device=device)
         self._path.assign(path)
         self._path_start = 0.0
@@ -291,8 +293,32 @@ class ScmTerrain:
         spin = rows("angular_velocity", np.zeros((count, 3)) if angular_velocity is None else angular_velocity, 3)
         path = np.concatenate([position, orientation, velocity, spin], axis=1).astype(self.precision.np_hi)
         self._path.assign(path)
+        self._host_path = path.astype(np.float64)
         self._path_start = self.time
+        self._check_window(0.0)
         self._pose(0.0)
+
+    def _check_window(self, tau: float) -> None:
+        """Refuse a pose (the path's at tau [s] after its start) with a wheel's footprint outside the
+        window: the nodes it would press on are not held. The footprint is that of the cylinder round
+        the wheel (its outer radius, its width) about its axle."""
+        path = self._host_path
+        hubs = path[:, 0:3] + path[:, 7:10] * tau
+        h, (nx, ny) = self.parameters.node_spacing, self.shape
+        centre = hubs[:, :2].mean(axis=0) if self._follow else self._centre.numpy().astype(np.float64)
+        low = (np.floor(centre / h) - np.array([nx // 2, ny // 2])) * h
+        high = low + (np.array([nx, ny]) - 1) * h
+        for index, (hub, wheel) in enumerate(zip(hubs, self.wheels)):
+            orientation = quaternion_integrate(path[index, 3:7], path[index, 10:13], tau)
+            axle = quaternion_to_matrix(orientation)[:2, 1]  # its world x and y parts
+            radius, half_width = _cylinder_of(wheel)
+            reach = radius * np.sqrt(np.clip(1 - axle**2, 0, 1)) + half_width * np.abs(axle)
+            if np.any(hub[:2] - reach < low) or np.any(hub[:2] + reach > high):
+                raise SoilInputError(
+                    f"wheel {index} (hub at x={hub[0]:.4g}, y={hub[1]:.4g} m, reach {reach[0]:.4g} x {reach[1]:.4g} m) "
+                    f"leaves the SCM window [{low[0]:.4g}, {high[0]:.4g}] x [{low[1]:.4g}, {high[1]:.4g}] m at "
+                    f"t={self._path_start + tau:.6g} s: enlarge `window` (it must hold every wheel's footprint)"
+                )
 
     def _pose(self, tau: float) -> None:
         wheels = self._wheels
@@ -393,6 +419,7 @@ class ScmTerrain:
             if position is None or orientation is None:
                 raise SoilInputError("advance needs both position and orientation (or neither)")
             self.set_wheels(position, orientation, velocity, angular_velocity)
+        self._check_window(float(end_time) - self._path_start)
         steps = max(1, math.ceil(span / dt - 1e-9))
         step = span / steps
         start = self.time
@@ -508,9 +535,17 @@ class ScmTerrain:
         self.steps = int(data["steps"])
         self._summed_steps = int(data["summed_steps"])
         self._path.assign(np.asarray(data["path"]))
+        self._host_path = np.asarray(data["path"], dtype=np.float64)
         self._path_start = float(data["path_start"])
         self._origin.assign(np.asarray(data["origin"]))
         self._totals.assign(np.asarray(data["totals"]))
         self._sums.assign(np.asarray(data["sums"]))
         self._width.assign(np.asarray(data["width"]))
         self._pose(self.time - self._path_start)
+
+
+def _cylinder_of(wheel: GrouserWheel | MeshWheel) -> tuple[float, float]:
+    """Radius and half width [m] of the cylinder about the axle (local Y) that holds the wheel."""
+    if isinstance(wheel, GrouserWheel):
+        return wheel.outer_radius, 0.5 * wheel.width
+    return wheel.outer_radius, float(np.abs(wheel.vertices[:, 1]).max())
