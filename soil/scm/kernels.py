@@ -542,15 +542,18 @@ def scm_kernels(hi):
     @kernel
     def follow_path(
         path: wp.array2d(dtype=hi),
-        tau: hi,
+        clock: wp.array(dtype=hi),
+        dt: hi,
         position: wp.array(dtype=vec_hi),
         rotation: wp.array(dtype=mat_hi),
         velocity: wp.array(dtype=vec_hi),
         angular_velocity: wp.array(dtype=vec_hi),
     ):
-        """Pose of wheel w at time tau after the path's start (constant velocities: the start position
-        plus v tau, the start orientation turned by omega tau), as soil.control's body paths."""
+        """Pose of wheel w at time tau = clock + dt after the path's start (constant velocities: the start
+        position plus v tau, the start orientation turned by omega tau), as soil.control's body paths.
+        The clock (the time since the path's start, on the device) moves on in `tick`."""
         w = wp.tid()
+        tau = clock[0] + dt
         p0 = vec_hi(path[w, 0], path[w, 1], path[w, 2])
         q0 = vec4_hi(path[w, 3], path[w, 4], path[w, 5], path[w, 6])
         v0 = vec_hi(path[w, 7], path[w, 8], path[w, 9])
@@ -573,6 +576,11 @@ def scm_kernels(hi):
         velocity[w] = v0
         angular_velocity[w] = w0
 
+    @kernel
+    def tick(clock: wp.array(dtype=hi), dt: hi):
+        """Move the path's clock on by dt (after the wheels were posed at clock + dt)."""
+        clock[0] = clock[0] + dt
+
     return dict(
         Soil=Soil,
         Wheels=Wheels,
@@ -587,4 +595,5 @@ def scm_kernels(hi):
         wrench_partial=wrench_partial,
         wrench_total=wrench_total,
         follow_path=follow_path,
+        tick=tick,
     )

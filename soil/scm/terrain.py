@@ -223,6 +223,7 @@ class ScmTerrain:
         self._path = wp.zeros(path.shape, dtype=hi, device=device)
         self._path.assign(path)
         self._path_start = 0.0
+        self._clock = wp.zeros(1, dtype=hi, device=device)
 
         p = self.parameters
         soil = self.kernels.Soil()
@@ -296,6 +297,7 @@ class ScmTerrain:
         self._host_path = path.astype(np.float64)
         self._path_start = self.time
         self._check_window(0.0)
+        self._clock.zero_()
         self._pose(0.0)
 
     def _check_window(self, tau: float) -> None:
@@ -320,23 +322,27 @@ class ScmTerrain:
                     f"t={self._path_start + tau:.6g} s: enlarge `window` (it must hold every wheel's footprint)"
                 )
 
-    def _pose(self, tau: float) -> None:
-        wheels = self._wheels
+    def _pose(self, dt: float) -> None:
+        """Pose the wheels at the path's clock + dt [s] and move the clock on by dt (no host read)."""
+        wheels, hi = self._wheels, self.precision.hi
         wp.launch(
             self.kernels.follow_path,
             dim=self.wheel_count,
-            inputs=[self._path, self.precision.hi(tau)],
+            inputs=[self._path, self._clock, hi(dt)],
             outputs=[wheels.position, wheels.rotation, wheels.velocity, wheels.angular_velocity],
             device=self.device,
         )
+        if dt:
+            wp.launch(self.kernels.tick, dim=1, inputs=[self._clock, hi(dt)], device=self.device)
 
     # -- stepping ----------------------------------------------------------------------------
     def step(self, dt: float) -> None:
         """One step of dt [s] with the wheels at their pose at the current time; then the time moves on and
-        the wheels follow their path. No host read: capturable (for a fixed dt and path)."""
+        the wheels follow their path (its clock is on the device). No host read: the launches of a step
+        can be captured in a CUDA graph and replayed for a fixed dt."""
         self._evaluate(dt)
+        self._pose(dt)
         self.time += dt
-        self._pose(self.time - self._path_start)
 
     def _evaluate(self, dt: float) -> None:
         """The step's kernels: contacts, stresses and node updates over dt [s], the wheels' wrenches."""
@@ -427,10 +433,8 @@ class ScmTerrain:
         self._summed_steps = 0
         for k in range(1, steps + 1):
             self._evaluate(step)
-            # the times from the start (not summed step by step): a run resumed at end_time poses its
-            # wheels at the same time as the run that went on
+            self._pose(step)
             self.time = start + k * step if k < steps else float(end_time)
-            self._pose(self.time - self._path_start)
         return steps
 
     # -- results -----------------------------------------------------------------------------
@@ -494,7 +498,15 @@ class ScmTerrain:
         """Bytes of the device arrays the terrain holds (fixed at construction: independent of the distance)."""
         arrays = [getattr(self._nodes, name) for name in self.kernels.Nodes.vars]
         arrays += [self._reference_next, self._low, self._high, self._width, self._force_part, self._torque_part]
-        arrays += [self._count_part, self._deepest_part, self._totals, self._sums, self._path, self._origin]
+        arrays += [
+            self._count_part,
+            self._deepest_part,
+            self._totals,
+            self._sums,
+            self._path,
+            self._origin,
+            self._clock,
+        ]
         return int(sum(a.capacity for a in arrays))
 
     # -- checkpoints -------------------------------------------------------------------------
@@ -511,6 +523,7 @@ class ScmTerrain:
             summed_steps=np.int64(self._summed_steps),
             path=self._path.numpy().copy(),
             path_start=np.float64(self._path_start),
+            clock=self._clock.numpy().copy(),
             origin=self._origin.numpy().copy(),
             totals=self._totals.numpy().copy(),
             sums=self._sums.numpy().copy(),
@@ -537,11 +550,12 @@ class ScmTerrain:
         self._path.assign(np.asarray(data["path"]))
         self._host_path = np.asarray(data["path"], dtype=np.float64)
         self._path_start = float(data["path_start"])
+        self._clock.assign(np.asarray(data["clock"]))
         self._origin.assign(np.asarray(data["origin"]))
         self._totals.assign(np.asarray(data["totals"]))
         self._sums.assign(np.asarray(data["sums"]))
         self._width.assign(np.asarray(data["width"]))
-        self._pose(self.time - self._path_start)
+        self._pose(0.0)
 
 
 def _cylinder_of(wheel: GrouserWheel | MeshWheel) -> tuple[float, float]:
