@@ -223,8 +223,16 @@ def test_runs_repeat_and_resume_bit_for_bit(device):
             assert np.array_equal(state[name], value), name
         for mine, theirs in zip(first.wheel_contact(mean=True), other.wheel_contact(mean=True)):
             assert np.array_equal(mine, theirs)
-    _, _, field = first.height_field()
-    assert field.max() > 0  # bulldozing raised the rims
+
+
+def test_bulldozing_moves_the_ruts_volume_to_its_rims():
+    """The raised rims hold the rut's plastic volume (fraction 1; the slope limiting moves soil, keeps it)."""
+    terrain = grousered_run(40, 0, resume=False)
+    _, _, field = terrain.height_field()
+    state = terrain.state_dict()
+    raised = np.sum(state["reference"] - terrain.surface_height)
+    assert raised > 0 and raised == pytest.approx(np.sum(state["plastic"]), rel=1e-9)
+    assert field.max() > 0.001 and field.min() < -0.005  # rims above the surface beside a rut
 
 
 def test_single_precision_runs_the_same_kernels():

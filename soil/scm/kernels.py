@@ -69,6 +69,7 @@ def scm_kernels(hi):
         plastic: wp.array(dtype=hi)
         shear: wp.array(dtype=hi)
         wheel: wp.array(dtype=wp.int32)
+        rim: wp.array(dtype=wp.int32)
         hit: wp.array(dtype=vec_hi)
         normal: wp.array(dtype=vec_hi)
         pressure: wp.array(dtype=hi)
@@ -409,33 +410,65 @@ def scm_kernels(hi):
             return -1
         return ((i % soil.nx + soil.nx) % soil.nx) * soil.ny + ((j % soil.ny + soil.ny) % soil.ny)
 
-    @wp.func
-    def free_neighbours(k: int, soil: Soil, origin: wp.array(dtype=wp.int32), nodes: Nodes):
-        """How many of node k's four neighbours are out of contact."""
-        count = int(0)  # noqa: UP018 (a Warp variable the kernel changes: not a constant)
-        for side in range(4):
-            di, dj = side_offset(side)
-            m = neighbour(k, di, dj, soil, origin, nodes)
-            if m >= 0:
-                if nodes.wheel[m] < 0:
-                    count += 1
-        return count
+    @kernel
+    def mark_rim(soil: Soil, origin: wp.array(dtype=wp.int32), nodes: Nodes):
+        """Per node out of contact: the wheel of its first neighbour in contact (sides in a fixed order),
+        -1 if none. These nodes are the rims of the contact patches."""
+        k = wp.tid()
+        rim = int(-1)  # noqa: UP018 (a Warp variable the kernel changes: not a constant)
+        if nodes.wheel[k] < 0:
+            for side in range(4):
+                di, dj = side_offset(side)
+                m = neighbour(k, di, dj, soil, origin, nodes)
+                if m >= 0 and rim < 0:
+                    rim = nodes.wheel[m]
+        nodes.rim[k] = rim
 
     @kernel
-    def bulldoze(soil: Soil, origin: wp.array(dtype=wp.int32), fraction: hi, nodes: Nodes):
-        """Per node out of contact: raise it by its share of its contact neighbours' plastic flow (each
-        contact node shares its flow equally among its free neighbours; gathered, in a fixed order)."""
+    def flow_partial(
+        nodes: Nodes, node_count: int, chunk: int, flow: wp.array2d(dtype=hi), rims: wp.array2d(dtype=wp.int32)
+    ):
+        """Per (wheel, chunk): the plastic flow (a height, summed over the wheel's contact nodes in storage
+        order) and the number of the wheel's rim nodes."""
+        w, c = wp.tid()
+        total = hi(0.0)
+        count = int(0)  # noqa: UP018 (a Warp variable the kernel changes: not a constant)
+        for k in range(c * chunk, wp.min((c + 1) * chunk, node_count)):
+            if nodes.wheel[k] == w:
+                total += nodes.flow[k]
+            if nodes.rim[k] == w:
+                count += 1
+        flow[w, c] = total
+        rims[w, c] = count
+
+    @kernel
+    def flow_total(
+        flow: wp.array2d(dtype=hi),
+        rims: wp.array2d(dtype=wp.int32),
+        chunks: int,
+        fraction: hi,
+        raise_by: wp.array(dtype=hi),
+    ):
+        """Per wheel: how much each of its rim nodes rises [m]: the moved fraction of the patch's plastic
+        flow shared equally among the rim nodes (the chunks in order)."""
+        w = wp.tid()
+        total = hi(0.0)
+        count = int(0)  # noqa: UP018 (a Warp variable the kernel changes: not a constant)
+        for c in range(chunks):
+            total += flow[w, c]
+            count += rims[w, c]
+        share = hi(0.0)
+        if count > 0:
+            share = fraction * total / hi(count)
+        raise_by[w] = share
+
+    @kernel
+    def bulldoze(raise_by: wp.array(dtype=hi), nodes: Nodes):
+        """Per rim node: rise by its wheel's share of the patch's displaced soil."""
         k = wp.tid()
-        if nodes.wheel[k] >= 0:
-            return
-        gain = hi(0.0)
-        for side in range(4):
-            di, dj = side_offset(side)
-            m = neighbour(k, di, dj, soil, origin, nodes)
-            if m >= 0:
-                if nodes.wheel[m] >= 0 and nodes.flow[m] > hi(0.0):
-                    gain += nodes.flow[m] / hi(free_neighbours(m, soil, origin, nodes))
-        nodes.reference[k] = nodes.reference[k] + fraction * gain
+        w = nodes.rim[k]
+        if w >= 0:
+            nodes.reference[k] = nodes.reference[k] + raise_by[w]
 
     @kernel
     def erode(
@@ -590,6 +623,9 @@ def scm_kernels(hi):
         patch_partial=patch_partial,
         patch_width=patch_width,
         contact_stress=contact_stress,
+        mark_rim=mark_rim,
+        flow_partial=flow_partial,
+        flow_total=flow_total,
         bulldoze=bulldoze,
         erode=erode,
         wrench_partial=wrench_partial,

@@ -49,9 +49,10 @@ class ScmParameters:
     damping: float = 0.0
     """Normal damping R [Pa s/m] (>= 0) on the wheel surface's speed into the soil."""
     bulldozing: bool = False
-    """Move the soil displaced under a wheel to the rut's rims (the nodes next to the patch)."""
+    """Move the soil that a wheel's patch displaces (its plastic sinkage) to the patch's rims (the nodes
+    out of contact next to it, shared equally), then let slopes steeper than the erosion angle slide."""
     bulldozing_fraction: float = 1.0
-    """Fraction of the plastic volume moved to the rims [-] (in [0, 1]; the rest is compaction)."""
+    """Fraction of the displaced volume moved to the rims [-] (in [0, 1]; the rest is compaction)."""
     erosion_angle: float = 30.0
     """Steepest slope the moved soil keeps between free nodes [deg] (in (0, 90))."""
     erosion_iterations: int = 2
@@ -246,6 +247,7 @@ class ScmTerrain:
         nodes.plastic = zeros(n, hi)
         nodes.shear = zeros(n, hi)
         nodes.wheel = wp.full(n, -1, dtype=wp.int32, device=device)
+        nodes.rim = wp.full(n, -1, dtype=wp.int32, device=device)
         nodes.hit = zeros(n, prec.vec_hi)
         nodes.normal = zeros(n, prec.vec_hi)
         nodes.pressure = zeros(n, hi)
@@ -263,6 +265,9 @@ class ScmTerrain:
         self._torque_part = wp.zeros((count, chunks), dtype=prec.vec_hi, device=device)
         self._count_part = wp.zeros((count, chunks), dtype=wp.int32, device=device)
         self._deepest_part = wp.zeros((count, chunks), dtype=hi, device=device)
+        self._flow_part = wp.zeros((count, chunks), dtype=hi, device=device)
+        self._rim_part = wp.zeros((count, chunks), dtype=wp.int32, device=device)
+        self._raise_by = zeros(count, hi)
         self._totals = wp.zeros((count, 8), dtype=hi, device=device)
         self._sums = wp.zeros((count, 8), dtype=hi, device=device)
 
@@ -374,9 +379,23 @@ class ScmTerrain:
         wp.launch(kernels.contact_stress, dim=n, inputs=[wheels, soil, self._width, hi(dt), nodes], device=device)
         p = self.parameters
         if p.bulldozing:
+            # the soil the patches displaced this step goes to their rims, shared equally
+            wp.launch(kernels.mark_rim, dim=n, inputs=[soil, self._origin, nodes], device=device)
             wp.launch(
-                kernels.bulldoze, dim=n, inputs=[soil, self._origin, hi(p.bulldozing_fraction), nodes], device=device
+                kernels.flow_partial,
+                dim=(count, chunks),
+                inputs=[nodes, n, CHUNK],
+                outputs=[self._flow_part, self._rim_part],
+                device=device,
             )
+            wp.launch(
+                kernels.flow_total,
+                dim=count,
+                inputs=[self._flow_part, self._rim_part, chunks, hi(p.bulldozing_fraction)],
+                outputs=[self._raise_by],
+                device=device,
+            )
+            wp.launch(kernels.bulldoze, dim=n, inputs=[self._raise_by, nodes], device=device)
             limit = hi(p.node_spacing * math.tan(math.radians(p.erosion_angle)))
             for _ in range(p.erosion_iterations):
                 wp.launch(
@@ -499,6 +518,9 @@ class ScmTerrain:
         arrays = [getattr(self._nodes, name) for name in self.kernels.Nodes.vars]
         arrays += [self._reference_next, self._low, self._high, self._width, self._force_part, self._torque_part]
         arrays += [
+            self._flow_part,
+            self._rim_part,
+            self._raise_by,
             self._count_part,
             self._deepest_part,
             self._totals,
