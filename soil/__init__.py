@@ -26,6 +26,7 @@ from .materials import Material, damping_ratio_for_restitution, restitution_of_d
 from .model import SoilModel
 from .neighbours import NeighbourSettings
 from .precision import PRECISIONS, get_precision
+from .scm import ScmParameters, ScmTerrain
 from .simulation import MacroStepReport, Simulation, SimulationDiverged
 from .snapshot import SimulationSnapshot
 from .stability import DivergenceMonitor
@@ -56,6 +57,8 @@ __all__ = [
     "SoilControl",
     "SoilInputError",
     "SoilModel",
+    "ScmParameters",
+    "ScmTerrain",
     "SoilState",
     "VelocityVerlet",
     "damping_ratio_for_restitution",
