@@ -10,7 +10,9 @@ below its reference level, its normal pressure is elastic-plastic:
 
 where z_p is the node's plastic sinkage (raised to z - sigma / K_e when the node yields: the
 rut stays, and a second pass reloads elastically until it reaches the Bekker curve again)
-and b is the contact patch's width (the smaller of its extents along the axle and across it).
+and b is the contact patch's width (the smaller of its extents along the axle and across it:
+the span of its contact nodes plus one spacing); an optional damping R adds R times the wheel
+surface's speed into the soil. Where several wheels reach a node, the lowest surface presses it.
 The pressure acts along the wheel surface's normal on the wheel-surface area above the node
 (h^2 / |n_z|), so its vertical part is sigma h^2. The shear stress opposes the slip of the
 wheel surface over the node (Mohr-Coulomb strength, Janosi-Hanamoto mobilisation):
@@ -18,7 +20,10 @@ wheel surface over the node (Mohr-Coulomb strength, Janosi-Hanamoto mobilisation
     tau = (c + sigma tan(phi)) (1 - exp(-j / K))
 
 with j the node's shear displacement: the slip speed of the wheel surface over the node,
-integrated while the node is in contact (reset to 0 when the wheel leaves it).
+integrated while the node is in contact (reset to 0 when the wheel leaves it). A step holds the
+wheels at their pose at its start (the plastic flow and j are first order in the step).
+Optional bulldozing moves the volume a patch displaces to its rims, then lets slopes steeper
+than an erosion angle slide.
 
 Memory does not grow with the distance travelled: the grid is a window of fixed size that
 follows a centre (the wheels' mean hub position, or a given point) in whole node steps. It is
