@@ -38,7 +38,7 @@ def stiff_overrides(plan, modulus: float) -> dict:
 
     spec = plan.bed.spec
     material = plan.soil_material
-    smallest = spec.radius_mean * (1 - spec.radius_spread)
+    smallest = spec.radius_min
     speed = math.sqrt(2 * plan.g * spec.depth) + plan.testbed.omega * plan.wheel.outer_radius
     contact = advisor.hertz_contact_time(modulus, material.poisson_ratio, material.density, smallest, speed)
     dt = contact / 10

@@ -104,7 +104,7 @@ def check(plan: RunPlan, surface_height: float | None = None, sinkage_tips: floa
         )
 
     material = plan.soil_material
-    smallest = spec.radius_mean * (1 - spec.radius_spread)
+    smallest = spec.radius_min
     depth_now = surface_height if surface_height is not None else spec.depth
     speed = math.sqrt(2 * g * max(depth_now, smallest)) + (omega if math.isfinite(omega) else 0.0) * wheel.outer_radius
     contact = advisor.hertz_contact_time(

@@ -2,17 +2,20 @@
 
 A bed settled for a plan is written to FOLDER/bed.h5 with FOLDER/bed.json beside it
 (its cache key, settling report and metrics). A later run whose plan has the same bed
-key (bed geometry, grains, soil material, gravity, device kind) reuses it.
+key (bed geometry, grains, soil material, gravity, device kind) reuses it. Within one
+process the bed stays in memory (Bed.saved): the file is the cache between processes.
 """
 
 from __future__ import annotations
 
+import functools
 import json
 import logging
 import os
 import time
 from dataclasses import dataclass, field
 
+from soil.bed import SavedBed, read_bed
 from soil.errors import RegolithError
 from soil.files import atomic_write_text
 from soil.stability import SimulationDiverged
@@ -45,7 +48,7 @@ class SettlingDiverged(RegolithError, RuntimeError):
 
 @dataclass(frozen=True)
 class Bed:
-    """A settled bed on disk."""
+    """A settled bed: on disk, and in memory once settled or read in this process."""
 
     path: str
     """The bed file (HDF5, soil.bed.save_bed)."""
@@ -53,6 +56,14 @@ class Bed:
     """Undisturbed surface z [m] (the bed's height metric)."""
     info: dict = field(default_factory=dict)
     """source ('file' | 'cache' | 'settled'), metrics, settling report, wall time [s]."""
+    settled: SavedBed | None = field(default=None, repr=False, compare=False)
+    """The bed as settled in this process (None: it is read from `path` when first needed)."""
+
+    @functools.cached_property
+    def saved(self) -> SavedBed:
+        """The bed in memory (soil.bed.open_bed opens it): the one settled in this process, else the
+        file read once (what it holds is what was settled, to the last bit)."""
+        return self.settled if self.settled is not None else read_bed(self.path)
 
 
 def write_json(path: str, data: dict) -> None:
@@ -177,7 +188,7 @@ def _settle_step_control(plan: RunPlan):
 
 
 def _settle(plan: RunPlan, path: str, info_path: str, progress: bool) -> Bed:
-    from soil.bed import bed_metrics, make_settled_bed, save_bed
+    from soil.bed import bed_metrics, make_settled_bed
 
     bed = plan.bed
     bar = _SettleBar(bed.settle_max_time, progress)
@@ -208,7 +219,8 @@ def _settle(plan: RunPlan, path: str, info_path: str, progress: bool) -> Bed:
             report["threshold"],
         )
     metrics = bed_metrics(sim, bed.spec)
-    save_bed(path, sim, bed.spec, metrics, key=bed.key)
+    saved = SavedBed.from_simulation(sim, bed.spec, metrics, key=bed.key)
+    saved.write(path)
     info = {
         "key": bed.key,
         "report": report,
@@ -226,7 +238,7 @@ def _settle(plan: RunPlan, path: str, info_path: str, progress: bool) -> Bed:
         metrics["height"],
         metrics["packing_fraction"],
     )
-    return Bed(path, float(metrics["height"]), {**info, "source": "settled", "path": path})
+    return Bed(path, float(metrics["height"]), {**info, "source": "settled", "path": path}, saved)
 
 
 class _SettleBar:

@@ -62,25 +62,28 @@ class DemSoil:
         wall_clearance: float | None = None,
         law=None,
     ) -> DemSoil:
-        """A DemSoil on a saved bed (path of soil.bed.save_bed, or load_bed's (builder, saved))
+        """A DemSoil on a saved bed (a soil.bed.SavedBed, or the path of a bed file: soil.bed.open_bed)
         with one body per wheel shape (GrouserWheel/MeshWheel), all of `wheel_material`.
 
         surface_height [m]: undisturbed surface; None takes the bed's saved height metric.
         law: soil.ContactLaw switches; None: rolling and cohesion on when a material uses them.
         """
-        from soil import Simulation
-        from soil.bed import load_bed, restore_state
+        from soil.bed import SavedBed, open_bed, read_bed
 
-        builder, saved = load_bed(bed) if not isinstance(bed, tuple) else bed
-        for shape in wheels:
-            builder.add_wheel(shape, wheel_material)
-        model, state, control = builder.finalize(device=device, precision=precision, law=law, order_seed=order_seed)
-        restore_state(model, state, saved)
+        saved = bed if isinstance(bed, SavedBed) else read_bed(bed)
         if surface_height is None:
-            if "height" not in saved.get("metrics", {}):
+            if "height" not in saved.metrics:
                 raise ValueError("the bed file has no height metric: pass surface_height [m]")
-            surface_height = float(saved["metrics"]["height"])
-        return cls(Simulation(model, state, control), dt, surface_height, wall_clearance)
+            surface_height = float(saved.metrics["height"])
+        sim = open_bed(
+            saved,
+            [(shape, wheel_material) for shape in wheels],
+            device=device,
+            precision=precision,
+            law=law,
+            order_seed=order_seed,
+        )
+        return cls(sim, dt, surface_height, wall_clearance)
 
     @property
     def time(self) -> float:

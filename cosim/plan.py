@@ -854,10 +854,3 @@ def enable_step_control(plan: RunPlan, sim) -> None:
     sim.enable_step_control(
         StepController(tolerance=plan.tolerance, dt_min=plan.dt_min, dt_max=plan.dt_max, dt_initial=plan.dt)
     )
-
-
-def make_integrator(name: str):
-    """A new integrator object for a plan's `integrator` name."""
-    from soil import JoltBeeman, VelocityVerlet
-
-    return JoltBeeman() if name == "jolt-beeman" else VelocityVerlet()

@@ -691,48 +691,31 @@ def timestep_study(
         sim.refresh_forces()
         return sim
 
-    tries = []
+    ended = [time.perf_counter()]  # when each try ended (the first entry: the search's start)
 
-    def stable(dt):
-        started = time.perf_counter()
-        sim = make_simulation()
-        from soil import SimulationDiverged
-
-        try:
-            sim.run(duration, dt, check_every=20)
-            ok, message = True, ""
-        except SimulationDiverged as error:
-            ok, message = False, str(error)
-        tries.append((dt, ok, message))
+    def log_try(dt, ok, message):
+        ended.append(time.perf_counter())
         log.info(
             "try %d/%d: dt = %.4g s (%.3g x the scene's): %s (%.1f s wall)",
-            len(tries),
+            len(ended) - 1,
             max_tries,
             dt,
             dt / plan.dt,
             "stable" if ok else "UNSTABLE",
-            time.perf_counter() - started,
+            ended[-1] - ended[-2],
         )
-        return ok
 
-    dt = plan.dt
-    largest = first_bad = None
-    if stable(dt):
-        largest = dt
-        while len(tries) < max_tries:
-            dt *= growth
-            if not stable(dt):
-                first_bad = dt
-                break
-            largest = dt
-    else:
-        first_bad = dt
-        while len(tries) < max_tries:
-            dt /= growth
-            if stable(dt):
-                largest = dt
-                break
-            first_bad = dt
+    search = advisor.largest_stable_step(
+        make_simulation,
+        duration,
+        dt_start=plan.dt,
+        growth=growth,
+        safety=0.5,
+        max_runs=max_tries,
+        check_every=20,
+        progress=log_try,
+    )
+    largest, first_bad, tries = search.largest_stable, search.first_unstable, search.tried
     advice = advisor.recommended_time_step(make_simulation())
     report = {
         "kind": "timestep",
@@ -740,7 +723,7 @@ def timestep_study(
         "duration": duration,
         "largest_stable": largest,
         "first_unstable": first_bad,
-        "recommended": None if largest is None else 0.5 * largest,
+        "recommended": search.recommended,
         "tried": [{"dt": d, "stable": ok, "message": m} for d, ok, m in tries],
         "advisor": {
             "dt_min": advice.dt_min,
@@ -755,7 +738,7 @@ def timestep_study(
             "no stable step found in %d tries down to %.4g s: the scene is unstable at any step tried; check "
             "`cosim advise` (stiffness, overlaps)",
             len(tries),
-            dt,
+            tries[-1][0],
         )
     else:
         log.info(

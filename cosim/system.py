@@ -22,9 +22,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from soil import Simulation
-from soil.bed import load_bed, restore_state
+from soil.bed import open_bed
 from soil.control import quaternion_to_matrix
+from soil.integrator import make_integrator
 from soil.patch import SoilPatch, Tile
 
 from . import advice
@@ -34,7 +34,7 @@ from .contract import SoilSide
 from .coupler import Coupler
 from .dem_soil import DemSoil
 from .metrics import WheelGeometry
-from .plan import RunPlan, SceneError, enable_step_control, make_integrator
+from .plan import RunPlan, SceneError, enable_step_control
 from .rover import RoverDriver, make_controller, open_rover
 from .single_wheel import SingleWheelRig
 from .terrain import SpringDamperTerrain
@@ -200,13 +200,15 @@ def _dem_soil(plan: RunPlan, bed: Bed | None) -> DemSoil:
     a rover's on the bed or on a patch of tiles of it)."""
     assert bed is not None  # the DEM terrain needs its bed (TerrainModel.needs_bed)
     if plan.rover is None:
-        builder, saved = load_bed(bed.path)
-        builder.add_wheel(plan.wheel.shape, plan.wheel.material)
-        model, state, control = builder.finalize(
-            device=plan.device, precision=plan.precision, law=plan.law, order_seed=plan.order_seed
+        sim = open_bed(
+            bed.saved,
+            [(plan.wheel.shape, plan.wheel.material)],
+            device=plan.device,
+            precision=plan.precision,
+            law=plan.law,
+            order_seed=plan.order_seed,
+            integrator=make_integrator(plan.integrator),
         )
-        restore_state(model, state, saved)
-        sim = Simulation(model, state, control, integrator=make_integrator(plan.integrator))
         enable_step_control(plan, sim)
         return DemSoil(sim, plan.dt, bed.surface_height)
     r = plan.rover
@@ -233,15 +235,16 @@ def _dem_soil(plan: RunPlan, bed: Bed | None) -> DemSoil:
         enable_step_control(plan, sim)
         surface = patch.surface_height(sim)
     else:
-        builder, saved = load_bed(bed.path)
-        builder.gravity = np.asarray(plan.gravity, dtype=np.float64)  # settled on the floor; now the slope
-        for shape, material in wheels:
-            builder.add_wheel(shape, material)
-        model, state, control = builder.finalize(
-            device=plan.device, precision=plan.precision, law=plan.law, order_seed=plan.order_seed
+        sim = open_bed(
+            bed.saved,
+            wheels,
+            device=plan.device,
+            precision=plan.precision,
+            law=plan.law,
+            order_seed=plan.order_seed,
+            integrator=make_integrator(plan.integrator),
+            gravity=plan.gravity,  # settled on the floor; now the slope
         )
-        restore_state(model, state, saved)
-        sim = Simulation(model, state, control, integrator=make_integrator(plan.integrator))
         enable_step_control(plan, sim)
         surface = bed.surface_height
     return DemSoil(sim, plan.dt, surface, patch=patch)

@@ -21,7 +21,7 @@ from .control import SoilControl
 from .errors import OverlapWarning, SoilInputError
 from .geometry import GrouserWheel, MeshWheel
 from .gravity import GRAVITY_PRESETS, gravity_vector
-from .integrator import JoltBeeman, StepController, VelocityVerlet
+from .integrator import JoltBeeman, StepController, VelocityVerlet, make_integrator
 from .materials import Material, damping_ratio_for_restitution, restitution_of_damping_ratio
 from .model import SoilModel
 from .neighbours import NeighbourSettings
@@ -64,6 +64,7 @@ __all__ = [
     "damping_ratio_for_restitution",
     "get_precision",
     "gravity_vector",
+    "make_integrator",
     "quiet_warp",
     "restitution_of_damping_ratio",
 ]

@@ -235,6 +235,7 @@ def largest_stable_step(
     dt_stop: float | None = None,
     max_runs: int = 30,
     check_every: int = 20,
+    progress=None,
 ) -> StableStepSearch:
     """The paper's search (section 5): raise the step geometrically until the scene explodes.
 
@@ -243,6 +244,7 @@ def largest_stable_step(
     every `check_every` steps); dt starts at dt_start [s] and grows by `growth` until
     SimulationDiverged (or dt_stop [s] / max_runs). The answer is the last stable step
     times `safety`. If dt_start already diverges the search goes down by `growth`.
+    progress(dt [s], stable: bool, message) is called after each try, when given.
     """
     from .stability import SimulationDiverged
 
@@ -253,9 +255,12 @@ def largest_stable_step(
         sim = make_simulation()
         try:
             sim.run(duration, dt, check_every=check_every)
+            ok, message = True, ""
         except SimulationDiverged as error:
-            return False, str(error)
-        return True, ""
+            ok, message = False, str(error)
+        if progress is not None:
+            progress(dt, ok, message)
+        return ok, message
 
     tried = []
     dt = dt_start

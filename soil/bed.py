@@ -5,14 +5,18 @@ from __future__ import annotations
 import json
 import math
 import os
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, field
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from .builder import SoilBuilder
-from .errors import DamagedFileError
+from .errors import DamagedFileError, SoilInputError
 from .files import atomic_path
 from .materials import Material
+
+if TYPE_CHECKING:
+    from .simulation import Simulation
 
 # Phobos-like regolith for DEM (coarse-grained): the sources are listed in README.md.
 PHOBOS_REGOLITH = Material(
@@ -26,6 +30,11 @@ PHOBOS_REGOLITH = Material(
     rolling_friction=0.1,  # rolling resistance mimics non-spherical grains
     cohesion=0.0,  # 0 .. 1000 Pa is possible on Phobos; off by default
 )
+
+
+def radius_range(radius_mean: float, radius_spread: float) -> tuple[float, float]:
+    """Smallest and largest grain radius [m] of radii uniform in radius_mean (1 -+ radius_spread)."""
+    return radius_mean * (1 - radius_spread), radius_mean * (1 + radius_spread)
 
 
 @dataclass(frozen=True)
@@ -49,6 +58,16 @@ class BedSpec:
     seed: int = 1
     """Random seed of the insertion [-]."""
 
+    @property
+    def radius_min(self) -> float:
+        """Smallest grain radius [m]: radius_mean (1 - radius_spread)."""
+        return radius_range(self.radius_mean, self.radius_spread)[0]
+
+    @property
+    def radius_max(self) -> float:
+        """Largest grain radius [m]: radius_mean (1 + radius_spread)."""
+        return radius_range(self.radius_mean, self.radius_spread)[1]
+
     def __post_init__(self):
         for name in ("length", "width", "depth", "radius_mean"):
             value = getattr(self, name)
@@ -56,10 +75,9 @@ class BedSpec:
                 raise ValueError(f"bed.{name} must be > 0 [m], got {value!r}")
         if not 0 <= self.radius_spread < 1:
             raise ValueError(f"bed.radius_spread must be in [0, 1), got {self.radius_spread!r}")
-        if min(self.length, self.width, self.depth) < 4 * self.radius_mean * (1 + self.radius_spread):
+        if min(self.length, self.width, self.depth) < 4 * self.radius_max:
             raise ValueError(
-                "bed.length, width and depth must each hold at least two grains "
-                f"(> {4 * self.radius_mean * (1 + self.radius_spread):.4g} m)"
+                f"bed.length, width and depth must each hold at least two grains (> {4 * self.radius_max:.4g} m)"
             )
 
 
@@ -85,8 +103,7 @@ def insert_grains(spec: BedSpec) -> tuple[np.ndarray, np.ndarray]:
 
 def _lattice(spec: BedSpec) -> tuple[float, float, float, list[int]]:
     """The insertion lattice: neighbour spacing a, row and layer spacing [m], sites along x, y, z."""
-    r_max = spec.radius_mean * (1 + spec.radius_spread)
-    a = 2.0 * r_max * 1.02  # centre-to-centre distance of lattice neighbours
+    a = 2.0 * spec.radius_max * 1.02  # centre-to-centre distance of lattice neighbours
     row, layer = a * math.sqrt(3.0) / 2.0, a * math.sqrt(2.0 / 3.0)
     # a lattice site lies 0.5 a from the walls or more: a grain jittered by its slack still clears them
     counts = [
@@ -185,51 +202,170 @@ def bed_metrics(sim, spec: BedSpec, margin: float | None = None) -> dict:
 BED_FORMAT = "regolith-cosim bed 1"
 
 
-def save_bed(path, sim, spec: BedSpec | None = None, metrics: dict | None = None, key: str = "") -> None:
-    """Write the soil (grains, materials, walls, full state incl. contact history) to HDF5.
+@dataclass(eq=False)
+class SavedBed:
+    """A settled bed in memory: what save_bed writes to a file and read_bed reads back, value for
+    value and dtype for dtype (the file is this, cached between processes).
 
-    Walls are saved where they are now (moved walls become the bed's initial geometry, with
-    zero displacement); their velocities and the grains' forces on them are kept. The
-    control (prescribed wall motion, loads) is not part of a bed: set it again after loading.
-    `key` (optional) ties the file to what it was made for (a scene's bed key: read_bed_header['key']).
-    Written to a temporary file first and renamed, so an existing file is never left half-written.
+    Open it with open_bed; builder() gives its SoilBuilder for adding walls or materials first.
+    Per-grain arrays are in the saved model's order ("bed order"); nothing here is changed by
+    opening the bed, so one SavedBed opens any number of simulations.
     """
-    import h5py
 
-    model = sim.model
-    if model.body_count:
-        raise ValueError("save_bed saves soil only: save the bed before adding wheels")
-    with atomic_path(path, ".h5.tmp") as temporary:
-        with h5py.File(temporary, "w") as f:
-            f.attrs["format"] = BED_FORMAT
-            f.attrs["bed_key"] = key
-            f.attrs["precision"] = model.precision.name
-            f.attrs["gravity"] = model.gravity
-            f.attrs["materials"] = json.dumps([asdict(m) for m in model.materials.materials])
-            f.attrs["pair_overrides"] = json.dumps([[list(k), v] for k, v in model.materials.overrides.items()])
-            if spec is not None:
-                f.attrs["spec"] = json.dumps(
-                    {k: v for k, v in asdict(spec).items() if k not in ("material", "wall_material")}
-                )
-            for key, value in (metrics or {}).items():
-                f.attrs[f"metric_{key}"] = value
-            particles = f.create_group("particles")
-            particles["radius"] = model.radius.numpy()
-            particles["material"] = model.material.numpy()
-            particles["mass"] = model.mass.numpy()
-            particles["inv_mass"] = model.inv_mass.numpy()
-            particles["inv_inertia"] = model.inv_inertia.numpy()
-            boundaries = f.create_group("boundaries")
-            boundaries["kind"] = model.boundary_kind.numpy()
-            boundaries["geometry"] = sim.boundary_geometry().astype(model.boundary_geometry.numpy().dtype)
-            boundaries["material"] = model.boundary_material.numpy()
-            boundaries["report"] = model.boundary_reports
-            state = f.create_group("state")
-            for name, value in sim.state.to_numpy().items():
-                if name == "boundary_displacement":
-                    value = np.zeros_like(value)  # the displacement is in the saved geometry
-                if not name.startswith("body_"):
+    gravity: np.ndarray
+    """Gravity the bed settled under [m/s^2], shape (3,), float64."""
+    materials: list[Material]
+    """Material table by index (the grains' first)."""
+    pair_overrides: dict
+    """Pair property overrides {(i, j): {field: value}} of the material table."""
+    precision: str
+    """Precision the bed was simulated in (soil.precision name)."""
+    radius: np.ndarray
+    """Grain radii [m], shape (n,), the saved model's lo dtype."""
+    material: np.ndarray
+    """Material index per grain, shape (n,), int32."""
+    mass: np.ndarray
+    """Grain masses [kg], shape (n,)."""
+    inv_mass: np.ndarray
+    """Inverse masses [1/kg], shape (n,); 0: a fixed grain."""
+    inv_inertia: np.ndarray
+    """Inverse moments of inertia [1/(kg m^2)], shape (n,); 0: a fixed or rotation-locked grain."""
+    boundary_kind: np.ndarray
+    """Boundary kinds (soil.sdf.BOUNDARY_*), shape (B,), int32."""
+    boundary_geometry: np.ndarray
+    """Boundary rows where the walls were when saved [m], shape (B, 6) (SoilBuilder.add_boundary)."""
+    boundary_material: np.ndarray
+    """Material index per boundary, shape (B,), int32."""
+    boundary_report: np.ndarray
+    """Whether the grains' force on each boundary is summed, shape (B,), bool."""
+    state: dict
+    """SoilState.to_numpy() arrays in bed order, body arrays left out, boundary displacements zero
+    (the displacement is in boundary_geometry)."""
+    spec: dict | None = None
+    """The BedSpec fields without its materials, or None."""
+    metrics: dict = field(default_factory=dict)
+    """bed_metrics() results ('height' [m], 'packing_fraction' [-], ...), or empty."""
+    key: str = ""
+    """What the bed was made for (a scene's bed key), "" when none."""
+
+    @property
+    def particle_count(self) -> int:
+        return len(self.radius)
+
+    @classmethod
+    def from_simulation(cls, sim, spec: BedSpec | None = None, metrics: dict | None = None, key: str = ""):
+        """The soil of `sim` as a saved bed (grains, materials, walls, the full state incl. contact
+        history), copied: later steps of `sim` do not change it.
+
+        Walls are saved where they are now (moved walls become the bed's initial geometry, with
+        zero displacement); their velocities and the grains' forces on them are kept. The
+        control (prescribed wall motion, loads) is not part of a bed: set it again after opening.
+        SoilInputError when `sim` has wheels: a bed is soil only.
+        """
+        model = sim.model
+        if model.body_count:
+            raise SoilInputError("a saved bed is soil only: save the bed before adding wheels")
+        state = {}
+        for name, value in sim.state.to_numpy().items():
+            if name == "boundary_displacement":
+                value = np.zeros_like(value)  # the displacement is in the saved geometry
+            if not name.startswith("body_"):
+                state[name] = value
+        return cls(
+            gravity=np.array(model.gravity, dtype=np.float64),
+            materials=list(model.materials.materials),
+            pair_overrides={tuple(k): dict(v) for k, v in model.materials.overrides.items()},
+            precision=model.precision.name,
+            radius=model.radius.numpy().copy(),  # on the CPU .numpy() is a view of the device array
+            material=model.material.numpy().copy(),
+            mass=model.mass.numpy().copy(),
+            inv_mass=model.inv_mass.numpy().copy(),
+            inv_inertia=model.inv_inertia.numpy().copy(),
+            boundary_kind=model.boundary_kind.numpy().copy(),
+            boundary_geometry=sim.boundary_geometry().astype(model.boundary_geometry.numpy().dtype),
+            boundary_material=model.boundary_material.numpy().copy(),
+            boundary_report=np.array(model.boundary_reports, dtype=bool),
+            state=state,
+            spec=None if spec is None else _spec_fields(spec),
+            metrics=dict(metrics or {}),
+            key=key,
+        )
+
+    def builder(self, gravity=None) -> SoilBuilder:
+        """A SoilBuilder holding the bed's materials, walls and grains, whose finalize() starts from
+        the saved state (contact history included, the clock at 0; SoilBuilder.start_from).
+
+        Add wheels, walls and materials to it before finalize(); add no grains. gravity: as
+        SoilBuilder's (a preset name or [m/s^2] (3,)); None: the gravity the bed settled under.
+        """
+        builder = self._builder_at_rest(gravity)
+        builder.start_from(self.state, {"mass": self.mass, "inv_mass": self.inv_mass, "inv_inertia": self.inv_inertia})
+        return builder
+
+    def _builder_at_rest(self, gravity=None) -> SoilBuilder:
+        """The bed's materials, walls and grains (at the saved positions and velocities), no saved state."""
+        builder = SoilBuilder(gravity=self.gravity if gravity is None else gravity)
+        for material in self.materials:
+            builder.add_material(material)
+        for (i, j), values in self.pair_overrides.items():
+            builder.materials.set_pair(i, j, **values)
+        for kind, geometry, wall, report in zip(
+            self.boundary_kind, self.boundary_geometry, self.boundary_material, self.boundary_report
+        ):
+            builder.add_boundary(int(kind), geometry, int(wall), bool(report))
+        builder.add_particles(
+            self.state["position"],
+            self.radius,
+            self.material,
+            velocities=self.state["velocity"],
+            angular_velocities=self.state["angular_velocity"],
+            fixed=self.inv_mass == 0,
+            lock_rotation=self.inv_inertia == 0,
+        )
+        return builder
+
+    def write(self, path) -> None:
+        """Write the bed to an HDF5 bed file (read_bed reads it back unchanged). Written to a
+        temporary file first and renamed, so an existing file is never left half-written."""
+        import h5py
+
+        with atomic_path(path, ".h5.tmp") as temporary:
+            with h5py.File(temporary, "w") as f:
+                f.attrs["format"] = BED_FORMAT
+                f.attrs["bed_key"] = self.key
+                f.attrs["precision"] = self.precision
+                f.attrs["gravity"] = self.gravity
+                f.attrs["materials"] = json.dumps([asdict(m) for m in self.materials])
+                f.attrs["pair_overrides"] = json.dumps([[list(k), v] for k, v in self.pair_overrides.items()])
+                if self.spec is not None:
+                    f.attrs["spec"] = json.dumps(self.spec)
+                for name, value in self.metrics.items():
+                    f.attrs[f"metric_{name}"] = value
+                particles = f.create_group("particles")
+                for name in ("radius", "material", "mass", "inv_mass", "inv_inertia"):
+                    particles[name] = getattr(self, name)
+                boundaries = f.create_group("boundaries")
+                boundaries["kind"] = self.boundary_kind
+                boundaries["geometry"] = self.boundary_geometry
+                boundaries["material"] = self.boundary_material
+                boundaries["report"] = self.boundary_report
+                state = f.create_group("state")
+                for name, value in self.state.items():
                     state[name] = value
+
+
+def _spec_fields(spec: BedSpec) -> dict:
+    """The BedSpec fields a bed file keeps (its materials are the file's material table)."""
+    return {k: v for k, v in asdict(spec).items() if k not in ("material", "wall_material")}
+
+
+def save_bed(path, sim, spec: BedSpec | None = None, metrics: dict | None = None, key: str = "") -> None:
+    """Write the soil of `sim` (grains, materials, walls, full state incl. contact history) to an
+    HDF5 bed file: SavedBed.from_simulation(sim, spec, metrics, key).write(path).
+
+    `key` (optional) ties the file to what it was made for (a scene's bed key: read_bed_header['key']).
+    """
+    SavedBed.from_simulation(sim, spec, metrics, key).write(path)
 
 
 def _open_bed(path):
@@ -237,7 +373,6 @@ def _open_bed(path):
     readable bed: truncated, another format, or another HDF5 file (a results.h5)."""
     import h5py
 
-    from .errors import DamagedFileError
     from .files import check_hdf5
 
     path = os.fspath(path)
@@ -264,9 +399,14 @@ def read_bed_header(path) -> dict:
     """What a saved bed was made of, without its state: {'gravity' [m/s^2] (3,), 'materials'
     (list of Material, the grains' first), 'metrics' (dict), 'particle_count', 'spec' (the BedSpec
     fields without materials, or None), 'key' (save_bed's key, "" when none)}."""
+    return _reading(path, _header)
+
+
+def _reading(path, read):
+    """read(the open bed file); DamagedFileError naming the path when a part of it is missing or unreadable."""
     try:
         with _open_bed(path) as f:
-            return _header(f)
+            return read(f)
     except (KeyError, TypeError, ValueError, OSError) as error:
         if isinstance(error, (FileNotFoundError, DamagedFileError)):
             raise
@@ -278,84 +418,107 @@ def _header(f) -> dict:
         "spec": json.loads(f.attrs["spec"]) if "spec" in f.attrs else None,
         "gravity": np.asarray(f.attrs["gravity"], dtype=np.float64),
         "materials": [Material(**values) for values in json.loads(f.attrs["materials"])],
-        "metrics": {k[len("metric_") :]: f.attrs[k] for k in f.attrs if k.startswith("metric_")},
+        "metrics": _metrics(f),
         "particle_count": int(f["particles/radius"].shape[0]),
         "key": str(f.attrs.get("bed_key", "")),
     }
 
 
-def load_bed(path) -> tuple[SoilBuilder, dict]:
-    """Read a saved bed: a SoilBuilder with the grains and walls (add wheels to it, then
-    finalize) and the saved state for `restore_state`."""
-    path = os.fspath(path)
-    with _open_bed(path) as f:
-        builder = SoilBuilder(gravity=np.asarray(f.attrs["gravity"]))
-        for values in json.loads(f.attrs["materials"]):
-            builder.add_material(Material(**values))
-        for (i, j), values in json.loads(f.attrs["pair_overrides"]):
-            builder.materials.set_pair(i, j, **values)
-        radius = f["particles/radius"][()]
-        material = f["particles/material"][()]
-        inv_mass = f["particles/inv_mass"][()]
-        inv_inertia = f["particles/inv_inertia"][()]
-        saved = {name: f["state"][name][()] for name in f["state"]}
-        saved["model"] = {name: f["particles"][name][()] for name in ("mass", "inv_mass", "inv_inertia")}
-        kinds = f["boundaries/kind"][()]
-        reports = f["boundaries/report"][()] if "report" in f["boundaries"] else np.ones(len(kinds), dtype=bool)
-        for kind, geometry, wall, report in zip(
-            kinds, f["boundaries/geometry"][()], f["boundaries/material"][()], reports
-        ):
-            builder._add_boundary(int(kind), geometry, int(wall), bool(report))
-        saved["precision"] = f.attrs["precision"]
-        saved["metrics"] = {k[len("metric_") :]: f.attrs[k] for k in f.attrs if k.startswith("metric_")}
-    builder.add_particles(
-        saved["position"],
-        radius,
-        0,
-        velocities=saved["velocity"],
-        angular_velocities=saved["angular_velocity"],
-        fixed=inv_mass == 0,
-        lock_rotation=inv_inertia == 0,
+def _metrics(f) -> dict:
+    return {k[len("metric_") :]: f.attrs[k] for k in f.attrs if k.startswith("metric_")}
+
+
+def read_bed(path) -> SavedBed:
+    """A bed file (save_bed, a run's bed.h5) in memory; FileNotFoundError, or DamagedFileError
+    naming the path when it is not a readable bed."""
+    return _reading(path, _read)
+
+
+def _read(f) -> SavedBed:
+    header = _header(f)
+    particles, boundaries = f["particles"], f["boundaries"]
+    kinds = boundaries["kind"][()]
+    return SavedBed(
+        gravity=header["gravity"],
+        materials=header["materials"],
+        pair_overrides={(i, j): values for (i, j), values in json.loads(f.attrs["pair_overrides"])},
+        precision=str(f.attrs["precision"]),
+        radius=particles["radius"][()],
+        material=particles["material"][()],
+        mass=particles["mass"][()],
+        inv_mass=particles["inv_mass"][()],
+        inv_inertia=particles["inv_inertia"][()],
+        boundary_kind=kinds,
+        boundary_geometry=boundaries["geometry"][()],
+        boundary_material=boundaries["material"][()],
+        boundary_report=boundaries["report"][()] if "report" in boundaries else np.ones(len(kinds), dtype=bool),
+        state={name: f["state"][name][()] for name in f["state"]},
+        spec=header["spec"],
+        metrics=header["metrics"],
+        key=header["key"],
     )
-    builder._material[-1] = material.astype(np.int32)
-    return builder, saved
+
+
+def open_bed(
+    bed,
+    wheels=(),
+    *,
+    device: str | None = None,
+    precision="double",
+    law=None,
+    order_seed: int | None = None,
+    integrator=None,
+    gravity=None,
+) -> Simulation:
+    """A ready soil.Simulation on a settled bed: its grains in their saved state (contact history
+    included, the clock at 0), plus one body per wheel.
+
+    bed: a SavedBed (in memory) or the path of a bed file (read_bed). wheels: (shape, material)
+    pairs in body order (GrouserWheel / MeshWheel; a Material or a material index). device,
+    precision, law, order_seed: as SoilBuilder.finalize; integrator: as Simulation (None: its
+    default); gravity: the run's gravity (a preset name or [m/s^2] (3,); None: the bed's own).
+    To add walls or materials first, use SavedBed.builder() and finalize it.
+    """
+    from .simulation import Simulation  # the simulation's kernels load on first use, not with soil.bed
+
+    saved = bed if isinstance(bed, SavedBed) else read_bed(bed)
+    builder = saved.builder(gravity)
+    for shape, material in wheels:
+        builder.add_wheel(shape, material)
+    model, state, control = builder.finalize(device=device, precision=precision, law=law, order_seed=order_seed)
+    return Simulation(model, state, control, integrator=integrator)
+
+
+def load_bed(path) -> tuple[SoilBuilder, dict]:
+    """Read a saved bed as a SoilBuilder with the grains and walls at rest (no saved state: add
+    wheels, finalize) and the saved state for restore_state. Code that finalizes first and restores
+    after; open_bed and SavedBed.builder() restore while building, before anything can step."""
+    bed = read_bed(path)
+    saved = dict(bed.state)
+    saved["model"] = {"mass": bed.mass, "inv_mass": bed.inv_mass, "inv_inertia": bed.inv_inertia}
+    saved["precision"] = bed.precision
+    saved["metrics"] = bed.metrics
+    return bed._builder_at_rest(), saved
 
 
 def restore_state(model, state, saved: dict) -> None:
-    """Put a saved bed state (from load_bed) into a freshly finalized state, contact history included.
+    """Put a saved bed state (from load_bed) into a freshly finalized state, contact history included,
+    the clock at t = 0 (what SoilBuilder.start_from does while finalizing).
 
     Handles particle permutations (order_seed), beds written before the neighbour list
     existed (their keyed history is converted), and wheels and boundaries added after the
     bed was saved (they start at rest, with no force).
-    The clock restarts at t = 0: a run on a bed starts when the bed is ready.
     """
-    from .state import current_format, per_grain
+    from .builder import _load_saved_state
 
-    n = model.particle_count
     order = model.particle_order  # builder index (= the saved model index) of each model particle
-    inverse = np.empty_like(order)
-    inverse[order] = np.arange(n)
-    data = current_format({k: v for k, v in saved.items() if k not in ("precision", "metrics", "model")}, n)
     # masses as saved (recomputing them from rounded radii could change the last bit)
     for name, values in saved.get("model", {}).items():
         array = getattr(model, name)
         array.assign(values[order].astype(array.numpy().dtype))
     state.layout.gather_constants(model)
-    for name in list(data):
-        if name != "time" and per_grain(name):
-            data[name] = np.asarray(data[name])[order]
-    neighbours = data["neighbours"]
-    data["neighbours"] = np.where(neighbours >= 0, inverse[np.maximum(neighbours, 0)], -1).astype(np.int32)
-    current = state.to_numpy()
-    for name, values in current.items():
-        if name.startswith("body_") or name not in data:  # fields added after the bed was written
-            data[name] = values
-        elif name.startswith("boundary_") and len(data[name]) < len(values):
-            padded = values.copy()  # boundaries added after loading the bed: at rest
-            padded[: len(data[name])] = data[name]
-            data[name] = padded
-    data["time"] = 0.0
-    state.load_numpy(data)
+    arrays = {k: v for k, v in saved.items() if k not in ("precision", "metrics", "model")}
+    _load_saved_state(model, state, arrays, 0.0)
 
 
 def make_settled_bed(
@@ -379,7 +542,7 @@ def make_settled_bed(
     sim = Simulation(model, state, control)
     if step_control is not None:
         sim.enable_step_control(step_control)
-    dt = dt or 0.2 * rayleigh_time_step(spec.material, spec.radius_mean * (1 - spec.radius_spread))
+    dt = dt or 0.2 * rayleigh_time_step(spec.material, spec.radius_min)
     report = settle(sim, dt, ke_ratio=ke_ratio, max_time=max_time, progress=progress)
     metrics = bed_metrics(sim, spec)
     return sim, report, metrics

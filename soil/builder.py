@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import math
 import warnings
+from dataclasses import dataclass
 
 import numpy as np
 import warp as wp
@@ -17,7 +18,7 @@ from .materials import Material, MaterialTable
 from .model import SoilModel
 from .precision import get_precision
 from .sdf import BODY_MESH, BODY_WHEEL, BOUNDARY_BOX, BOUNDARY_PLANE
-from .state import SoilState
+from .state import SoilState, current_format, per_grain
 
 DEEP_OVERLAP = 0.1
 """Overlap, as a fraction of the smaller radius, above which finalize() warns that grains
@@ -39,11 +40,28 @@ class SoilBuilder:
         self._lock_rotation: list[np.ndarray] = []
         self._boundaries: list[tuple[int, list[float], int, bool]] = []  # kind, geometry row, material, report
         self._bodies: list[tuple[GrouserWheel | MeshWheel, int]] = []
+        self._start: _SavedStart | None = None
 
     # -- materials ---------------------------------------------------------------
     def add_material(self, material: Material) -> int:
         """Register a material; returns its index."""
         return self.materials.add(material)
+
+    def _material_indices(self, material, n: int) -> np.ndarray:
+        """Material index of each of n new grains, int32 shape (n,): one material (a Material or an
+        index) for all, or an index per grain."""
+        if np.ndim(material) == 0:
+            return np.full(n, self._material_index(material), dtype=np.int32)
+        indices = np.asarray(material)
+        if indices.shape != (n,) or not np.issubdtype(indices.dtype, np.integer):
+            raise SoilInputError(
+                f"material must be one material, one index or an index per grain, shape ({n},), "
+                f"got shape {indices.shape} ({indices.dtype})"
+            )
+        count = len(self.materials.materials)
+        if n and not (indices.min() >= 0 and indices.max() < count):
+            raise SoilInputError(f"material indices must be in [0, {count}), got {indices.min()} .. {indices.max()}")
+        return indices.astype(np.int32)
 
     def _material_index(self, material) -> int:
         if isinstance(material, Material):
@@ -64,6 +82,7 @@ class SoilBuilder:
         self, positions, radii, material=0, velocities=None, angular_velocities=None, fixed=False, lock_rotation=False
     ) -> np.ndarray:
         """Add spheres. positions [m] shape (n, 3); radii [m] shape (n,) or one radius for all;
+        material: a Material or a material index for all, or an index per grain, shape (n,);
         velocities [m/s] and angular_velocities [rad/s] shape (n, 3) or (3,) for all; fixed and
         lock_rotation: one flag or shape (n,).
 
@@ -117,9 +136,10 @@ class SoilBuilder:
         velocities = vectors(velocities, "velocities [m/s]")
         spins = vectors(angular_velocities, "angular_velocities [rad/s]")
         fixed, lock_rotation = flags(fixed, "fixed"), flags(lock_rotation, "lock_rotation")
+        materials = self._material_indices(material, n)
         self._positions.append(positions)
         self._radii.append(radii)
-        self._material.append(np.full(n, self._material_index(material), dtype=np.int32))
+        self._material.append(materials)
         self._velocity.append(velocities)
         self._spin.append(spins)
         self._fixed.append(fixed)
@@ -167,6 +187,31 @@ class SoilBuilder:
             raise SoilInputError(f"box upper corner must exceed lower corner on every axis, got {lower} .. {upper}")
         return self._add_boundary(BOUNDARY_BOX, [*lower, *upper], self._material_index(material), report)
 
+    def add_boundary(self, kind: int, geometry, material=0, report: bool = True) -> int:
+        """Add a boundary from its geometry row as SoilModel.boundary_geometry stores it (e.g. a
+        saved bed's walls); returns its boundary index.
+
+        kind: soil.sdf.BOUNDARY_PLANE (geometry: a point [m] (3) and the unit normal (3)) or
+        BOUNDARY_BOX (geometry: lower and upper corner [m], 3 + 3). The row is kept as given:
+        add_plane normalises its normal, which could change the last bit of a saved one.
+        material and report as in add_plane.
+        """
+        row = np.asarray(geometry, dtype=np.float64)
+        if row.shape != (6,) or not np.all(np.isfinite(row)):
+            raise SoilInputError(f"boundary geometry must be 6 finite numbers, got {geometry!r}")
+        if kind == BOUNDARY_PLANE:
+            if not np.any(row[3:]):
+                raise SoilInputError(f"plane normal must be a non-zero 3-vector, got {row[3:]}")
+        elif kind == BOUNDARY_BOX:
+            if not np.all(row[3:] > row[:3]):
+                raise SoilInputError(f"box upper corner must exceed lower corner on every axis, got {row}")
+        else:
+            raise SoilInputError(
+                f"boundary kind must be BOUNDARY_PLANE ({BOUNDARY_PLANE}) or BOUNDARY_BOX "
+                f"({BOUNDARY_BOX}), got {kind!r}"
+            )
+        return self._add_boundary(kind, row, self._material_index(material), report)
+
     def _add_boundary(self, kind: int, row, material: int, report: bool = True) -> int:
         self._boundaries.append((int(kind), [float(g) for g in row], int(material), bool(report)))
         return len(self._boundaries) - 1
@@ -197,6 +242,26 @@ class SoilBuilder:
             raise TypeError(f"wheel shape must be a GrouserWheel or MeshWheel, got {type(shape).__name__}")
         self._bodies.append((shape, self._material_index(material)))
         return len(self._bodies) - 1
+
+    # -- a saved state to start from ------------------------------------------------
+    def start_from(self, state: dict, constants: dict | None = None, time: float = 0.0) -> None:
+        """Let finalize() start the soil in a saved state instead of at rest (a settled bed).
+
+        state: SoilState.to_numpy() output of a soil whose grains are this builder's, in
+        builder order (the saved model's order): kinematics, forces and contact history,
+        neighbours by builder index (data with keyed history slots, written before the
+        neighbour list existed, is converted). Wheels and boundaries beyond the saved ones
+        (added to this builder after the bed was saved) start at rest with no force; body
+        arrays are not taken from it.
+        constants: the grains' 'mass' [kg], 'inv_mass' [1/kg], 'inv_inertia' [1/(kg m^2)], each
+        shape (n,), builder order, used as given instead of recomputed from the radii
+        (recomputing them from rounded radii could change the last bit); None: computed.
+        time: the clock of the finalized state [s] (a run on a bed starts at 0 when the bed is ready).
+        finalize() permutes it all with order_seed like the grains.
+        """
+        if "position" not in state or ("neighbours" not in state and "contact_partner" not in state):
+            raise SoilInputError("a saved state needs SoilState.to_numpy()'s arrays (position, neighbours, ...)")
+        self._start = _SavedStart(dict(state), dict(constants or {}), float(time))
 
     # -- finalize ----------------------------------------------------------------
     def finalize(
@@ -252,6 +317,14 @@ class SoilBuilder:
         inertia = 0.4 * mass * radii**2
         inv_mass = np.where(fixed, 0.0, 1.0 / mass)
         inv_inertia = np.where(fixed | locked, 0.0, 1.0 / inertia)
+        start = self._start
+        if start is not None:
+            start.check(len(radii))
+            given = start.constants
+            mass, inv_mass, inv_inertia = (
+                np.asarray(given[name])[order] if name in given else computed
+                for name, computed in (("mass", mass), ("inv_mass", inv_mass), ("inv_inertia", inv_inertia))
+            )
 
         lo, hi = prec.np_lo, prec.np_hi
         kinds = np.array([b[0] for b in self._boundaries], dtype=np.int32)
@@ -287,6 +360,8 @@ class SoilBuilder:
         state.velocity.assign(velocity.astype(hi))
         state.angular_velocity.assign(spin.astype(hi))
         control = SoilControl.for_model(model)
+        if start is not None:
+            _load_saved_state(model, state, start.state, start.time)
         return model, state, control
 
     def _check_inside(self) -> None:
@@ -396,3 +471,48 @@ class SoilBuilder:
             body_index_offset=wp.array(np.array(index_offsets, dtype=np.int32), dtype=wp.int32, device=device),
             meshes=meshes,
         )
+
+
+@dataclass
+class _SavedStart:
+    """What SoilBuilder.start_from was given: state arrays and constants in builder order, the clock [s]."""
+
+    state: dict
+    constants: dict
+    time: float
+
+    def check(self, particle_count: int) -> None:
+        """SoilInputError when the saved arrays are not one row per grain of the builder."""
+        rows = {name: values for name, values in self.state.items() if per_grain(name)}
+        for name, values in {**rows, **self.constants}.items():
+            count = np.shape(values)[0] if np.ndim(values) else None
+            if count != particle_count:
+                raise SoilInputError(
+                    f"the saved {name!r} has {count} rows, the builder {particle_count} grains "
+                    "(start_from takes the state of the builder's own grains)"
+                )
+
+
+def _load_saved_state(model: SoilModel, state: SoilState, saved: dict, time: float) -> None:
+    """Fill a fresh state with saved arrays (SoilBuilder.start_from: builder order, neighbours by builder
+    index), permuted into model order; wheels and boundaries the saved state lacks start at rest."""
+    n = model.particle_count
+    order = model.particle_order  # builder index (= the saved model index) of each model particle
+    inverse = np.empty_like(order)
+    inverse[order] = np.arange(n)
+    data = current_format(saved, n)
+    for name in list(data):
+        if name != "time" and per_grain(name):
+            data[name] = np.asarray(data[name])[order]
+    neighbours = data["neighbours"]
+    data["neighbours"] = np.where(neighbours >= 0, inverse[np.maximum(neighbours, 0)], -1).astype(np.int32)
+    current = state.to_numpy()
+    for name, values in current.items():
+        if name.startswith("body_") or name not in data:  # fields added after the state was saved
+            data[name] = values
+        elif name.startswith("boundary_") and len(data[name]) < len(values):
+            padded = values.copy()  # boundaries added after the state was saved: at rest
+            padded[: len(data[name])] = data[name]
+            data[name] = padded
+    data["time"] = time
+    state.load_numpy(data)

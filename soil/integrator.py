@@ -8,6 +8,8 @@ step(model, state_in, state_out, control, dt, contacts), which only launches dev
   with a fixed step (Simulation.run) or with the PID StepController
   (Simulation.run_adaptive), whose error norm is reduced on the device.
 
+make_integrator(name) makes one by its name in a scene ('velocity-verlet', 'jolt-beeman').
+
 No `from __future__ import annotations` here: Warp reads the kernels' annotations as types.
 """
 
@@ -21,6 +23,7 @@ from . import boundaries
 from . import status as status_columns
 from .contact import ContactLaw
 from .control import SoilControl
+from .errors import SoilInputError
 from .model import SoilModel
 from .precision import kernel_factory, kernel_module, soil_kernel
 from .solver import ContactSolver
@@ -590,6 +593,17 @@ class JoltBeeman:
             "max": float(values[SUMMARY_MAX]),
             "status": values[SUMMARY_STATUS:].astype(np.int64),
         }
+
+
+INTEGRATORS = ("velocity-verlet", "jolt-beeman")
+"""The integrators by name (make_integrator)."""
+
+
+def make_integrator(name: str) -> VelocityVerlet | JoltBeeman:
+    """A new integrator object by name: 'velocity-verlet' (VelocityVerlet) or 'jolt-beeman' (JoltBeeman)."""
+    if name not in INTEGRATORS:
+        raise SoilInputError(f"integrator must be one of {list(INTEGRATORS)}, got {name!r}")
+    return JoltBeeman() if name == "jolt-beeman" else VelocityVerlet()
 
 
 @dataclass

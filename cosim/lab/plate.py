@@ -24,7 +24,7 @@ from typing import Any
 
 import numpy as np
 
-from soil.bed import BedSpec, bed_metrics, build_bed, load_bed, read_bed_header, restore_state, save_bed
+from soil.bed import BedSpec, bed_metrics, build_bed, read_bed, read_bed_header, save_bed
 
 from . import common
 from .scene import LabPlan, SceneError
@@ -113,15 +113,16 @@ def _bed(plan: LabPlan, replica: int, path: str) -> dict:
     centre (x, y) [m] and, per plate width, the top of the highest grain under the plate [m]."""
     given = plan.scene.resolve(plan.scene.bed.bed_file)
     if given is not None:
-        header = read_bed_header(given)
-        builder, saved = load_bed(given)
-        model, state, _ = builder.finalize(device=plan.device, precision=plan.precision, law=plan.law)
-        restore_state(model, state, saved)
-        spec = header["spec"] or {}
-        centre = (0.5 * spec.get("length", plan.scene.bed.length), 0.5 * spec.get("width", plan.scene.bed.width))
+        saved = read_bed(given)
+        model, state, _ = saved.builder().finalize(device=plan.device, precision=plan.precision, law=plan.law)
+        saved_spec = saved.spec or {}
+        centre = (
+            0.5 * saved_spec.get("length", plan.scene.bed.length),
+            0.5 * saved_spec.get("width", plan.scene.bed.width),
+        )
         info = {
             "path": given,
-            "surface": float(header["metrics"]["height"]),
+            "surface": float(saved.metrics["height"]),
             "settled": True,
             "settle_time": 0.0,
             "source": "file",
@@ -165,9 +166,7 @@ def _bed(plan: LabPlan, replica: int, path: str) -> dict:
 def _press(plan: LabPlan, replica: int, path: str, surface: float, width: float, centre, top: float) -> dict:
     """Push a plate of side `width` [m], centred at `centre` (x, y) [m], into the saved bed from
     just above `top` [m] (the highest grain under it); the pressure-sinkage curve."""
-    from soil import Simulation
-
-    builder, saved = load_bed(path)
+    builder = read_bed(path).builder()
     half = 0.5 * width
     start = top + 0.1 * plan.radius_mean
     thickness = 2 * plan.diameter
@@ -178,11 +177,8 @@ def _press(plan: LabPlan, replica: int, path: str, surface: float, width: float,
         (centre[0] - half, centre[1] - half, start), (centre[0] + half, centre[1] + half, start + thickness), material
     )
     _, order_seed = common.replica_seeds(plan, replica)
-    model, state, control = builder.finalize(
-        device=plan.device, precision=plan.precision, law=plan.law, order_seed=order_seed
-    )
-    restore_state(model, state, saved)
-    sim = common.with_step_control(plan, Simulation(model, state, control))
+    sim = common.finalize(plan, builder, order_seed)
+    control = sim.control
     speed = plate_speed(plan)
     deepest = max_sinkage(plan, surface)
     duration = (start - (surface - deepest)) / speed
@@ -207,7 +203,7 @@ def _press(plan: LabPlan, replica: int, path: str, surface: float, width: float,
         "start_gap": start - surface,
         "speed": speed,
         "steps": int(sim.steps),
-        "particles": int(model.particle_count),
+        "particles": int(sim.model.particle_count),
     }
 
 

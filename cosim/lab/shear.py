@@ -32,7 +32,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from soil import SoilBuilder
-from soil.bed import load_bed, restore_state, save_bed
+from soil.bed import radius_range, read_bed, save_bed
 
 from . import common
 from .scene import LabPlan, SceneError
@@ -121,7 +121,7 @@ def box(plan: LabPlan) -> ShearBox:
     """The shear box of a plan; SceneError names a box that cannot work."""
     section = plan.scene.shear
     d = plan.diameter
-    r_min = plan.radius_mean * (1 - plan.radius_spread)
+    r_min, _ = radius_range(plan.radius_mean, plan.radius_spread)
     length = section.length if section.length is not None else 12 * d
     width = section.width if section.width is not None else 12 * d
     height = section.height if section.height is not None else 8 * d
@@ -145,7 +145,7 @@ def box(plan: LabPlan) -> ShearBox:
     stresses = normal_stresses(plan)
     count = common.grains_for(plan, length * width * height)
     # the loose lattice stands about twice as high as the settled sample: frames high enough to hold it
-    r_max = plan.radius_mean * (1 + plan.radius_spread)
+    _, r_max = radius_range(plan.radius_mean, plan.radius_spread)
     nx, ny = (int((s - 2 * r_max) // (2.04 * r_max)) + 1 for s in (length, width))
     loose = (-(-count // (nx * ny)) + 1) * 2.04 * r_max
     return ShearBox(
@@ -201,18 +201,13 @@ def _lid_dynamics(plan: LabPlan, geometry: ShearBox, stress: float, mass: float)
 
 def _shear(plan: LabPlan, geometry: ShearBox, replica: int, path: str, stress: float, top: float) -> dict:
     """Consolidate the saved specimen (its highest grain reaching `top` [m]) under `stress` [Pa] and shear it."""
-    builder, saved = load_bed(path)
+    builder = read_bed(path).builder()
     grain = 0  # the specimen's first material is the soil
     lid = builder.add_plane((0, 0, top + 0.1 * plan.radius_mean), (0, 0, -1), grain)
     _, order_seed = common.replica_seeds(plan, replica)
-    model, state, control = builder.finalize(
-        device=plan.device, precision=plan.precision, law=plan.law, order_seed=order_seed
-    )
-    restore_state(model, state, saved)
-    from soil import Simulation
-
-    sim = common.with_step_control(plan, Simulation(model, state, control))
-    sample_mass = float(model.mass_numpy().sum())
+    sim = common.finalize(plan, builder, order_seed)
+    control = sim.control
+    sample_mass = float(sim.model.mass_numpy().sum())
     damping, period = _lid_dynamics(plan, geometry, stress, sample_mass)
     load = stress * geometry.area
     control.set_boundary_load(lid, load, direction=(0, 0, -1), mass=sample_mass, damping=damping)
@@ -230,7 +225,7 @@ def _shear(plan: LabPlan, geometry: ShearBox, replica: int, path: str, stress: f
         return still and abs(s.boundary_wrenches()[0][lid, 2] - load) < 0.05 * load
 
     consolidate_time, consolidated_ok = common.run_until(sim, plan.dt, consolidated, longest, chunk, 3 * period)
-    weight_above = float(np.sum(model.mass_numpy()[sim.positions()[:, 2] > geometry.plane])) * plan.g
+    weight_above = float(np.sum(sim.model.mass_numpy()[sim.positions()[:, 2] > geometry.plane])) * plan.g
     duration = geometry.displacement / geometry.speed
     steps = int(round(duration / plan.dt))
     every = max(1, steps // RECORDS)
@@ -274,7 +269,7 @@ def _shear(plan: LabPlan, geometry: ShearBox, replica: int, path: str, stress: f
         "lid_damping": damping,
         "weight_above": weight_above,
         "steps": int(sim.steps),
-        "particles": int(model.particle_count),
+        "particles": int(sim.model.particle_count),
     }
 
 
