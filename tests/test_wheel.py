@@ -11,7 +11,7 @@ from cosim.metrics import slip_of
 from cosim.single_wheel import SingleWheelRig
 from helpers import drive
 from soil import GrouserWheel, Material, MeshWheel, Simulation, SoilBuilder
-from soil.bed import BedSpec, bed_metrics, build_bed, load_bed, restore_state, save_bed, settle
+from soil.bed import BedSpec, SavedBed, bed_metrics, build_bed, open_bed, read_bed, save_bed, settle
 
 WHEEL = GrouserWheel(radius=0.03, width=0.02, grouser_count=10, grouser_height=0.003, grouser_thickness=0.002)
 
@@ -172,11 +172,12 @@ def test_wheel_on_a_settled_bed_carries_its_weight(device, gravity, tmp_path):
     spec, sim, dt = bed_and_wheel(device, gravity, 1e7 * gravity / 9.81)
     surface = bed_metrics(sim, spec)["height"]
     save_bed(tmp_path / "bed.h5", sim, spec)
-    builder, saved = load_bed(tmp_path / "bed.h5")
-    builder.add_wheel(WHEEL, Material(youngs_modulus=1e7 * gravity / 9.81, restitution=0.2))
-    model, state, control = builder.finalize(device, "double")
-    restore_state(model, state, saved)
-    wheel_sim = Simulation(model, state, control)
+    wheel_sim = open_bed(
+        tmp_path / "bed.h5",
+        [(WHEEL, Material(youngs_modulus=1e7 * gravity / 9.81, restitution=0.2))],
+        device=device,
+        precision="double",
+    )
     soil = DemSoil(wheel_sim, dt, surface_height=surface, wall_clearance=0.0)
     mass = 0.05
     rig = SingleWheelRig(
@@ -260,19 +261,71 @@ def test_saved_bed_reloads_bit_identically_and_runs_the_same(device, tmp_path):
     sim = Simulation(model, state, control)
     sim.run(0.02, 1e-4)
     save_bed(tmp_path / "bed.h5", sim, spec)
-    builder2, saved = load_bed(tmp_path / "bed.h5")
-    model2, state2, control2 = builder2.finalize(device, "mixed")
-    restore_state(model2, state2, saved)
+    sim2 = open_bed(tmp_path / "bed.h5", device=device, precision="mixed")
     for name, array in sim.state.arrays.items():
-        np.testing.assert_array_equal(getattr(state2, name).numpy(), array.numpy(), err_msg=name)
-    sim2 = Simulation(model2, state2, control2)
+        np.testing.assert_array_equal(getattr(sim2.state, name).numpy(), array.numpy(), err_msg=name)
     sim.run(0.02, 1e-4)
     sim2.run(0.02, 1e-4)
     np.testing.assert_array_equal(sim2.positions(), sim.positions())
     # and a file that is not a bed is refused clearly
     (tmp_path / "junk.h5").write_bytes(b"not hdf5")
     with pytest.raises(ValueError, match="junk.h5.*not a readable HDF5 bed file"):
-        load_bed(tmp_path / "junk.h5")
+        read_bed(tmp_path / "junk.h5")
+
+
+def test_a_bed_opens_the_same_from_memory_and_from_its_file(device, tmp_path):
+    """The bed file is a lossless cache of the bed in memory: every array comes back with its values
+    and dtype, and open_bed on either gives the same simulation to the last bit (positions,
+    velocities, contact history), before and after steps, with a wheel and permuted grains. Opening
+    leaves the bed in memory as it was, so one bed opens any number of simulations."""
+    spec = BedSpec(
+        length=0.06,
+        width=0.04,
+        depth=0.02,
+        radius_mean=3e-3,
+        radius_spread=0.15,
+        material=Material(youngs_modulus=1e6, restitution=0.3, rolling_friction=0.1),
+    )
+    sim = Simulation(*build_bed(spec, 9.81).finalize(device, "double"))
+    sim.run(0.02, 1e-4)
+    in_memory = SavedBed.from_simulation(sim, spec, bed_metrics(sim, spec), key="k")
+    in_memory.write(tmp_path / "bed.h5")
+    from_file = read_bed(tmp_path / "bed.h5")
+
+    def arrays(bed):
+        named = {name: value for name, value in vars(bed).items() if isinstance(value, np.ndarray)}
+        return {**named, **{f"state/{name}": np.asarray(value) for name, value in bed.state.items()}}
+
+    before = {name: value.copy() for name, value in arrays(in_memory).items()}
+    assert arrays(from_file).keys() == before.keys()
+    for name, value in arrays(from_file).items():
+        assert value.dtype == before[name].dtype, name
+        np.testing.assert_array_equal(value, before[name], err_msg=name)
+    assert (from_file.materials, from_file.pair_overrides, from_file.precision, from_file.spec, from_file.key) == (
+        in_memory.materials,
+        in_memory.pair_overrides,
+        in_memory.precision,
+        in_memory.spec,
+        in_memory.key,
+    )
+    assert from_file.metrics == pytest.approx(in_memory.metrics)
+
+    wheel = [(WHEEL, Material(youngs_modulus=1e6, restitution=0.2))]
+    opened = [
+        open_bed(bed, wheel, device=device, precision="mixed", order_seed=3) for bed in (in_memory, tmp_path / "bed.h5")
+    ]
+    for a in opened:
+        a.control.set_body_motion(0, (0.03, 0.02, 0.05), (1, 0, 0, 0), (0, 0, -0.1), (0, 2.0, 0))
+    for run in range(2):
+        first, second = (s.state.to_numpy() for s in opened)
+        assert first.keys() == second.keys()
+        for name in first:
+            np.testing.assert_array_equal(first[name], second[name], err_msg=f"{name} after {run} runs")
+        assert first["pair_tangential"].any(), "the bed carries contact history"
+        for a in opened:
+            a.run(0.005, 1e-4)
+    for name, value in arrays(in_memory).items():
+        np.testing.assert_array_equal(value, before[name], err_msg=f"opening changed the bed's {name}")
 
 
 def test_wall_proximity_warns(device):

@@ -396,22 +396,22 @@ def wheel_start_positions(config, wheel_count: int) -> np.ndarray:
     One wheel sits at config.start_x (default: outer radius + 6 mean grain radii from the bed's
     x-start wall); several are spread evenly between such margins at both ends.
     """
-    import h5py
+    from soil.bed import read_bed
+    from soil.sdf import BOUNDARY_PLANE
 
     shape = config.wheel
     outer = float(shape.outer_radius)
     width = float(getattr(shape, "width", 0.0)) or float(np.ptp(shape.vertices[:, 1]))
-    with h5py.File(config.bed_file, "r") as f:
-        x = f["state/position"][()].astype(np.float64)
-        r = f["particles/radius"][()].astype(np.float64)
-        kinds = f["boundaries/kind"][()]
-        geometry = f["boundaries/geometry"][()].astype(np.float64)
+    bed = read_bed(config.bed_file)
+    x = bed.state["position"].astype(np.float64)
+    r = bed.radius.astype(np.float64)
+    geometry = bed.boundary_geometry.astype(np.float64)
     lo = np.min(x - r[:, None], axis=0)
     hi = np.max(x + r[:, None], axis=0)
-    for kind, g in zip(kinds, geometry):  # side walls of the container bound the bed where present
+    for kind, g in zip(bed.boundary_kind, geometry):  # side walls of the container bound the bed where present
         point, normal = g[:3], g[3:6]
         for axis in (0, 1):
-            if kind == 0 and abs(abs(normal[axis]) - 1.0) < 1e-9:
+            if kind == BOUNDARY_PLANE and abs(abs(normal[axis]) - 1.0) < 1e-9:
                 if normal[axis] > 0:
                     lo[axis] = point[axis]
                 else:

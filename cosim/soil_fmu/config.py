@@ -171,10 +171,9 @@ def config_to_json(config: SoilFmuConfig, wheel_count: int) -> dict:
 
 
 def _bed_gravity(bed_file) -> list[float]:
-    import h5py
+    from soil.bed import read_bed_header
 
-    with h5py.File(bed_file, "r") as f:
-        return [float(g) for g in f.attrs["gravity"]]
+    return [float(g) for g in read_bed_header(bed_file)["gravity"]]
 
 
 def soil_from_config(data: dict, bed_file, dem_step: float | None = None, device: str | None = None):
