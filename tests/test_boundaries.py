@@ -7,7 +7,7 @@ import pytest
 
 from helpers import effective_modulus, hertz_impact_overlap, hertz_rest_overlap
 from soil import ContactLaw, Material, Simulation, SoilBuilder
-from soil.bed import load_bed, restore_state, save_bed
+from soil.bed import open_bed, read_bed, save_bed
 
 G = 9.81
 R = 4e-3
@@ -164,11 +164,10 @@ def test_loaded_lid_on_a_settled_bed_is_carried_by_the_grains(device, tmp_path):
     sim, walls, width = column(device, wall_friction=0.0, layers=8, top=0.2)
     sim.run(0.3, 1e-4)
     save_bed(tmp_path / "bed.h5", sim)
-    builder, saved = load_bed(tmp_path / "bed.h5")
+    builder = read_bed(tmp_path / "bed.h5").builder()
     top = float(np.max(sim.positions()[:, 2] + sim.model.radius_numpy()))
     lid = builder.add_plane((0, 0, top + 0.2 * R), (0, 0, -1), builder.add_material(coulomb(0.0, youngs_modulus=1e6)))
     model, state, control = builder.finalize(device, "double")
-    restore_state(model, state, saved)
     lidded = Simulation(model, state, control)
     weight = float(model.mass_numpy().sum()) * G
     load = 2.0 * weight
@@ -425,10 +424,8 @@ def test_a_saved_bed_keeps_its_walls_where_they_moved(device, tmp_path):
     sim.control.set_boundary_velocity(walls[1], (0.05, 0, 0))  # the -x wall squeezes the grains
     sim.run(0.03, 1e-4)
     save_bed(tmp_path / "bed.h5", sim)
-    builder, saved = load_bed(tmp_path / "bed.h5")
-    model, state, control = builder.finalize(device, "double")
-    restore_state(model, state, saved)
-    reloaded = Simulation(model, state, control)
+    reloaded = open_bed(tmp_path / "bed.h5", device=device, precision="double")
+    model = reloaded.model
     np.testing.assert_allclose(model.boundary_geometry_numpy(), sim.boundary_geometry(), rtol=0, atol=1e-15)
     assert np.all(reloaded.boundary_displacements() == 0)
     assert model.boundary_geometry_numpy()[walls[1], 0] == pytest.approx(0.05 * 0.03, rel=1e-9)

@@ -127,12 +127,12 @@ def soil_config_from(path, bed_folder=None) -> SoilFmuConfig:
 
 def bed_surface_height(bed_file) -> float:
     """The saved height metric of a bed file [m] (soil.bed.bed_metrics)."""
-    from soil.bed import load_bed
+    from soil.bed import read_bed_header
 
-    _, saved = load_bed(bed_file)
-    if "height" not in saved["metrics"]:
+    metrics = read_bed_header(bed_file)["metrics"]
+    if "height" not in metrics:
         raise ArgumentError(f"the bed file {bed_file!r} has no height metric: give surface_height [m]")
-    return float(saved["metrics"]["height"])
+    return float(metrics["height"])
 
 
 # -- resources/soil.json --------------------------------------------------------------------
