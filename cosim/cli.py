@@ -229,7 +229,7 @@ def advise_lines(plan) -> list[str]:
 
     spec = plan.bed.spec
     material = plan.soil_material
-    r_min = spec.radius_mean * (1 - spec.radius_spread)
+    r_min = spec.radius_min
     pressure = advice.ground_pressure(plan)
     e_min = advisor.macroscopic_stiffness(
         spec.depth, pressure, advice.OVERLAP_RATIO, spec.radius_mean, material.density, plan.g

@@ -398,7 +398,7 @@ def dem_time_step(scene: Scene, material: Material) -> tuple[float, str]:
     r = scene.run
     if r.dt is not None:
         return r.dt, "run.dt"
-    smallest = scene.bed.radius_mean * (1 - scene.bed.radius_spread)
+    smallest = scene.bed.radius_min
     factor = r.dt_factor if r.dt_factor is not None else 0.2
     return (
         factor * rayleigh_time_step(material.youngs_modulus, material.poisson_ratio, material.density, smallest),
@@ -536,7 +536,7 @@ def resolve(scene: Scene) -> RunPlan:
         soil_material.youngs_modulus,
         soil_material.poisson_ratio,
         soil_material.density,
-        b.radius_mean * (1 - b.radius_spread),
+        b.radius_min,
     )
     bed = BedPlan(
         spec,
@@ -729,7 +729,7 @@ def _rover(scene: Scene, names: list[str], wheels: tuple[WheelPlan, ...], gravit
     patch = None
     if scene.patch is not None:
         p = scene.patch
-        band = p.band if p.band is not None else 4 * b.radius_mean * (1 + b.radius_spread)
+        band = p.band if p.band is not None else 4 * b.radius_max
         clearance = p.clearance if p.clearance is not None else WALL_GRAINS * diameter
         slack = 0.5 * min(p.length, p.width) - footprint - band - clearance
         if slack <= 0:
@@ -746,7 +746,7 @@ def _rover(scene: Scene, names: list[str], wheels: tuple[WheelPlan, ...], gravit
                 f"patch.recentre_distance: ({p.recentre_distance} m) lets the wheels come closer than the "
                 f"clearance to the frozen band; allowed: <= {slack:.4g} m"
             )
-        largest = 2 * b.radius_mean * (1 + b.radius_spread)
+        largest = 2 * b.radius_max
         if band < largest:
             problems.append(
                 f"patch.band: ({band} m) must be at least one largest grain diameter ({largest:.4g} m) "

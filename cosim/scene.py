@@ -44,6 +44,7 @@ except ImportError:  # Python 3.10
 import tomli_w
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
+from soil.bed import radius_range
 from soil.errors import InputError
 
 GRAVITY_PRESET_NAMES = ("earth", "mars", "moon", "phobos", "phobos_min", "phobos_max", "deimos")
@@ -189,9 +190,19 @@ class BedSection(_Section):
     bed_file: str | None = None
     """A bed saved by soil.bed.save_bed (or a previous run's bed.h5) to use instead of settling one."""
 
+    @property
+    def radius_min(self) -> float:
+        """Smallest grain radius [m]: radius_mean (1 - radius_spread) (soil.bed.radius_range)."""
+        return radius_range(self.radius_mean, self.radius_spread)[0]
+
+    @property
+    def radius_max(self) -> float:
+        """Largest grain radius [m]: radius_mean (1 + radius_spread) (soil.bed.radius_range)."""
+        return radius_range(self.radius_mean, self.radius_spread)[1]
+
     @model_validator(mode="after")
     def _grains_fit(self):
-        smallest = 4 * self.radius_mean * (1 + self.radius_spread)
+        smallest = 4 * self.radius_max
         for name in ("length", "width", "depth"):
             if getattr(self, name) < smallest:
                 raise ValueError(

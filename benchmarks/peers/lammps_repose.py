@@ -211,7 +211,7 @@ def run_lab_heap(plan, replica: int = 0) -> dict:
     chunk = int(round(common.chunk_steps(plan, plan.time_scale) / plan.dt))
     mass = soil.density * 4.0 / 3.0 * math.pi * geo.fill_radii**3
     scale = len(mass) * float(mass.mean()) * plan.g * float(geo.fill_radii.mean())  # as common.kinetic_threshold
-    r_max = plan.radius_mean * (1 + plan.radius_spread)
+    r_max = plan.radius_max
     result = run_heap(
         geo.base_positions,
         geo.base_radius,

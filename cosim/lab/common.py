@@ -15,7 +15,6 @@ from typing import Any
 import numpy as np
 
 from soil import Simulation, SimulationDiverged
-from soil.bed import radius_range
 from soil.errors import RegolithError
 
 from ..beds import write_json
@@ -45,7 +44,7 @@ def lattice_fill(plan: LabPlan, lower, upper_xy, count: int, seed: int) -> tuple
     Returns positions [m] shape (count, 3) and radii [m] shape (count,) (uniform in
     radius_mean (1 +- radius_spread))."""
     rng = np.random.default_rng(seed)
-    _, r_max = radius_range(plan.radius_mean, plan.radius_spread)
+    r_max = plan.radius_max
     pitch = 2.04 * r_max
     lower = np.asarray(lower, dtype=np.float64)
     span = np.asarray(upper_xy, dtype=np.float64) - lower[:2]

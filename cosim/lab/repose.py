@@ -23,7 +23,6 @@ from dataclasses import dataclass
 import numpy as np
 
 from soil import SoilBuilder
-from soil.bed import radius_range
 
 from . import common
 from .scene import PACKING_FRACTION, LabPlan, SceneError
@@ -94,7 +93,7 @@ def geometry(plan: LabPlan, replica: int = 0) -> ReposeGeometry:
     """The heap test's geometry and its fill for replica k (fill seed bed.seed + k)."""
     section = plan.scene.repose
     d = plan.diameter
-    _, r_max = radius_range(plan.radius_mean, plan.radius_spread)
+    r_max = plan.radius_max
     width = section.tube_width if section.tube_width is not None else 10 * d
     height = section.fill_height if section.fill_height is not None else 1.5 * width
     problems = []
@@ -269,7 +268,7 @@ def run_replica(plan: LabPlan, replica: int = 0) -> dict:
     )
     column = float(np.max(sim.positions()[free, 2] + sim.model.radius_numpy()[free]))
     sim.control.set_boundary_velocity(tube, (0.0, 0.0, geo.lift_speed))
-    _, r_max = radius_range(plan.radius_mean, plan.radius_spread)
+    r_max = plan.radius_max
 
     def cleared(s):
         record(s)

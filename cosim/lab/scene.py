@@ -32,6 +32,7 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 from soil import ContactLaw, Material, gravity_vector
+from soil.bed import radius_range
 
 from ..plan import default_stick_speed, dem_time_step, to_material
 from ..probe import resolve_device
@@ -219,6 +220,16 @@ class LabPlan:
     def g(self) -> float:
         """|g| [m/s^2]."""
         return float(np.linalg.norm(self.gravity))
+
+    @property
+    def radius_min(self) -> float:
+        """Smallest grain radius [m]: radius_mean (1 - radius_spread) (soil.bed.radius_range)."""
+        return radius_range(self.radius_mean, self.radius_spread)[0]
+
+    @property
+    def radius_max(self) -> float:
+        """Largest grain radius [m]: radius_mean (1 + radius_spread) (soil.bed.radius_range)."""
+        return radius_range(self.radius_mean, self.radius_spread)[1]
 
     @property
     def diameter(self) -> float:

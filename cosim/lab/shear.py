@@ -32,7 +32,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from soil import SoilBuilder
-from soil.bed import radius_range, read_bed, save_bed
+from soil.bed import read_bed, save_bed
 
 from . import common
 from .scene import LabPlan, SceneError
@@ -121,7 +121,7 @@ def box(plan: LabPlan) -> ShearBox:
     """The shear box of a plan; SceneError names a box that cannot work."""
     section = plan.scene.shear
     d = plan.diameter
-    r_min, _ = radius_range(plan.radius_mean, plan.radius_spread)
+    r_min = plan.radius_min
     length = section.length if section.length is not None else 12 * d
     width = section.width if section.width is not None else 12 * d
     height = section.height if section.height is not None else 8 * d
@@ -145,7 +145,7 @@ def box(plan: LabPlan) -> ShearBox:
     stresses = normal_stresses(plan)
     count = common.grains_for(plan, length * width * height)
     # the loose lattice stands about twice as high as the settled sample: frames high enough to hold it
-    _, r_max = radius_range(plan.radius_mean, plan.radius_spread)
+    r_max = plan.radius_max
     nx, ny = (int((s - 2 * r_max) // (2.04 * r_max)) + 1 for s in (length, width))
     loose = (-(-count // (nx * ny)) + 1) * 2.04 * r_max
     return ShearBox(
