@@ -1,4 +1,5 @@
-"""Soil beds: fill a box with grains, settle them, measure, save and reload (HDF5)."""
+"""Soil beds: fill a box with grains, settle them, measure, keep them in memory (SavedBed), save and
+read them back (HDF5, value for value), and open one as a ready simulation with wheels (open_bed)."""
 
 from __future__ import annotations
 
@@ -250,10 +251,11 @@ class SavedBed:
 
     @property
     def particle_count(self) -> int:
+        """Number of grains [-]."""
         return len(self.radius)
 
     @classmethod
-    def from_simulation(cls, sim, spec: BedSpec | None = None, metrics: dict | None = None, key: str = ""):
+    def from_simulation(cls, sim, spec: BedSpec | None = None, metrics: dict | None = None, key: str = "") -> SavedBed:
         """The soil of `sim` as a saved bed (grains, materials, walls, the full state incl. contact
         history), copied: later steps of `sim` do not change it.
 
