@@ -300,12 +300,6 @@ class SavedBed:
         Add wheels, walls and materials to it before finalize(); add no grains. gravity: as
         SoilBuilder's (a preset name or [m/s^2] (3,)); None: the gravity the bed settled under.
         """
-        builder = self._builder_at_rest(gravity)
-        builder.start_from(self.state, {"mass": self.mass, "inv_mass": self.inv_mass, "inv_inertia": self.inv_inertia})
-        return builder
-
-    def _builder_at_rest(self, gravity=None) -> SoilBuilder:
-        """The bed's materials, walls and grains (at the saved positions and velocities), no saved state."""
         builder = SoilBuilder(gravity=self.gravity if gravity is None else gravity)
         for material in self.materials:
             builder.add_material(material)
@@ -324,6 +318,7 @@ class SavedBed:
             fixed=self.inv_mass == 0,
             lock_rotation=self.inv_inertia == 0,
         )
+        builder.start_from(self.state, {"mass": self.mass, "inv_mass": self.inv_mass, "inv_inertia": self.inv_inertia})
         return builder
 
     def write(self, path) -> None:
@@ -489,38 +484,6 @@ def open_bed(
         builder.add_wheel(shape, material)
     model, state, control = builder.finalize(device=device, precision=precision, law=law, order_seed=order_seed)
     return Simulation(model, state, control, integrator=integrator)
-
-
-def load_bed(path) -> tuple[SoilBuilder, dict]:
-    """Read a saved bed as a SoilBuilder with the grains and walls at rest (no saved state: add
-    wheels, finalize) and the saved state for restore_state. Code that finalizes first and restores
-    after; open_bed and SavedBed.builder() restore while building, before anything can step."""
-    bed = read_bed(path)
-    saved = dict(bed.state)
-    saved["model"] = {"mass": bed.mass, "inv_mass": bed.inv_mass, "inv_inertia": bed.inv_inertia}
-    saved["precision"] = bed.precision
-    saved["metrics"] = bed.metrics
-    return bed._builder_at_rest(), saved
-
-
-def restore_state(model, state, saved: dict) -> None:
-    """Put a saved bed state (from load_bed) into a freshly finalized state, contact history included,
-    the clock at t = 0 (what SoilBuilder.start_from does while finalizing).
-
-    Handles particle permutations (order_seed), beds written before the neighbour list
-    existed (their keyed history is converted), and wheels and boundaries added after the
-    bed was saved (they start at rest, with no force).
-    """
-    from .builder import _load_saved_state
-
-    order = model.particle_order  # builder index (= the saved model index) of each model particle
-    # masses as saved (recomputing them from rounded radii could change the last bit)
-    for name, values in saved.get("model", {}).items():
-        array = getattr(model, name)
-        array.assign(values[order].astype(array.numpy().dtype))
-    state.layout.gather_constants(model)
-    arrays = {k: v for k, v in saved.items() if k not in ("precision", "metrics", "model")}
-    _load_saved_state(model, state, arrays, 0.0)
 
 
 def make_settled_bed(

@@ -21,8 +21,8 @@ inside a DEM step). Then
 - the contact history is carried over: partners are renumbered, contacts with grains that left
   are dropped, a placed grain keeps its tile history with grains placed with it and with the
   floor;
-- a new soil model and state are built (SoilBuilder, soil.bed.restore_state) and the forces are
-  recomputed at the current state (Simulation.refresh_forces).
+- a new soil model and state are built (SoilBuilder.start_from: the state is in before anything
+  can step) and the forces are recomputed at the current state (Simulation.refresh_forces).
 
 Everything is numpy on the host in a fixed order, so a run with a moving patch repeats bit for
 bit and continues bitwise from a checkpoint (`state_dict` holds the patch's grains and books).
@@ -41,7 +41,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .bed import load_bed, restore_state
+from .bed import read_bed
 from .builder import SoilBuilder
 from .errors import SoilInputError
 from .grains import append_grains, grain_rows, renumber_history, select_grains
@@ -91,9 +91,7 @@ class Tile:
         left out (the later one in the bed's order), so the copies fit without a jolt."""
         from scipy.spatial import cKDTree
 
-        builder, saved = load_bed(path)
-        model, state, control = builder.finalize(device="cpu", precision=precision)
-        restore_state(model, state, saved)
+        model, state, control = read_bed(path).builder().finalize(device="cpu", precision=precision)
         kinds = model.boundary_kind.numpy()
         geometry = model.boundary_geometry_numpy()
         floors = [
@@ -428,6 +426,13 @@ class SoilPatch:
                 builder.add_particles(arrays["position"][rows], self.radius[rows], int(self.material[rows[0]]))
         for shape, material in self.wheels:
             builder.add_wheel(shape, material)
+        inv_mass = np.where(self.frozen, 0, self.free_inv_mass).astype(self.free_inv_mass.dtype)
+        inv_inertia = np.where(self.frozen, 0, self.free_inv_inertia).astype(self.free_inv_inertia.dtype)
+        builder.start_from(  # builder order = the patch's order (no order_seed): no permutation
+            {**arrays, "step_previous": np.zeros(1)},
+            {"mass": self.mass, "inv_mass": inv_mass, "inv_inertia": inv_inertia},
+            time=time,
+        )
         model, state, soil_control = builder.finalize(
             device=self.device,
             precision=self.precision,
@@ -435,16 +440,6 @@ class SoilPatch:
             contact_capacity=max(1, arrays["neighbours"].shape[1]),
             rigid_capacity=max(1, arrays["rigid_key"].shape[1]),
         )
-        inv_mass = np.where(self.frozen, 0, self.free_inv_mass).astype(self.free_inv_mass.dtype)
-        inv_inertia = np.where(self.frozen, 0, self.free_inv_inertia).astype(self.free_inv_inertia.dtype)
-        saved = {
-            **arrays,
-            "step_previous": np.zeros(1),
-            "time": 0.0,
-            "model": {"mass": self.mass, "inv_mass": inv_mass, "inv_inertia": inv_inertia},
-        }
-        restore_state(model, state, saved)  # model order = builder order here: no permutation
-        state.time = float(time)
         if control is not None:
             soil_control.load_state_dict(control)
         # the same settings; armed again below on the new grains (their own height)
