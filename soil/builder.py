@@ -26,7 +26,8 @@ were created inside each other (or inside a wall) (OverlapWarning)."""
 
 
 class SoilBuilder:
-    """Collects particles, materials and boundaries; `finalize()` makes model, state, control."""
+    """Collects particles, materials and boundaries; `finalize()` makes model, state, control (at
+    rest, or in a saved state given with `start_from`, e.g. a settled bed: soil.bed.SavedBed.builder)."""
 
     def __init__(self, gravity="earth") -> None:
         self.gravity = gravity_vector(gravity)

@@ -91,3 +91,28 @@ def test_grains_outside_the_container_are_refused():
     fixed.add_particle((0.05, 0.05, -0.05), 0.01, fixed=True)
     fixed.add_particle((0.05, 0.05, 0.05), 0.01)
     fixed.finalize("cpu", "double")
+
+
+def test_a_boundary_row_a_material_per_grain_and_a_saved_state_are_checked():
+    from soil.sdf import BOUNDARY_BOX, BOUNDARY_PLANE
+
+    builder = builder_with_box()
+    with pytest.raises(SoilInputError, match=r"boundary kind must be BOUNDARY_PLANE"):
+        builder.add_boundary(7, [0, 0, 0, 0, 0, 1])
+    with pytest.raises(SoilInputError, match=r"boundary geometry must be 6 finite numbers"):
+        builder.add_boundary(BOUNDARY_PLANE, [0, 0, 0, 0, 1])
+    with pytest.raises(SoilInputError, match=r"plane normal must be a non-zero"):
+        builder.add_boundary(BOUNDARY_PLANE, [0, 0, 0, 0, 0, 0])
+    with pytest.raises(SoilInputError, match=r"box upper corner must exceed"):
+        builder.add_boundary(BOUNDARY_BOX, [0, 0, 0, 0.1, 0.1, 0])
+    with pytest.raises(SoilInputError, match=r"material indices must be in \[0, 1\), got 0 .. 3"):
+        builder.add_particles(np.full((2, 3), 0.05), 0.01, np.array([0, 3]))
+    with pytest.raises(SoilInputError, match=r"an index per grain, shape \(2,\)"):
+        builder.add_particles(np.full((2, 3), 0.05), 0.01, np.array([0, 0, 0]))
+    assert builder.particle_count == 0  # a refused call adds nothing
+    builder.add_particles([(0.03, 0.05, 0.05), (0.07, 0.05, 0.05)], 0.01, np.array([0, 0]))
+    with pytest.raises(SoilInputError, match=r"needs SoilState.to_numpy"):
+        builder.start_from({"velocity": np.zeros((2, 3))})
+    builder.start_from({"position": np.zeros((3, 3)), "neighbours": np.full((3, 1), -1)})
+    with pytest.raises(SoilInputError, match=r"the saved 'position' has 3 rows, the builder 2 grains"):
+        builder.finalize("cpu", "double")
