@@ -216,7 +216,7 @@ def _dem_soil(plan: RunPlan, bed: Bed | None) -> DemSoil:
     patch = None
     if plan.patch is not None:
         p, spec = plan.patch, plan.bed.spec
-        tile = Tile.load(bed.path, (spec.length, spec.width), plan.precision, p.tile_margin)
+        tile = Tile.load(bed.saved, (spec.length, spec.width), plan.precision, p.tile_margin)
         patch = SoilPatch(
             tile,
             p.length,

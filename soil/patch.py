@@ -37,11 +37,12 @@ clearance from it).
 
 from __future__ import annotations
 
+import os
 from dataclasses import dataclass
 
 import numpy as np
 
-from .bed import read_bed
+from .bed import SavedBed, read_bed
 from .builder import SoilBuilder
 from .errors import SoilInputError
 from .grains import append_grains, grain_rows, renumber_history, select_grains
@@ -83,15 +84,18 @@ class Tile:
         return len(self.radius)
 
     @classmethod
-    def load(cls, path, size, precision: str, margin: float) -> Tile:
-        """The tile cut from a bed saved by soil.bed.save_bed (its floor the plane z = 0, its box spanning
-        0 .. size along x and y [m]): the grains whose centres lie more than `margin` [m] from its side
-        walls, where the walls ordered the packing. The tile's period is size - 2 margin. A grain that
-        would overlap a grain of a neighbouring copy deeper than any two grains of the tile overlap is
-        left out (the later one in the bed's order), so the copies fit without a jolt."""
+    def load(cls, bed, size, precision: str, margin: float) -> Tile:
+        """The tile cut from a settled bed (a soil.bed.SavedBed, or the path of its file: its floor the
+        plane z = 0, its box spanning 0 .. size along x and y [m]): the grains whose centres lie more
+        than `margin` [m] from its side walls, where the walls ordered the packing. The tile's period
+        is size - 2 margin. A grain that would overlap a grain of a neighbouring copy deeper than any
+        two grains of the tile overlap is left out (the later one in the bed's order), so the copies
+        fit without a jolt."""
         from scipy.spatial import cKDTree
 
-        model, state, control = read_bed(path).builder().finalize(device="cpu", precision=precision)
+        saved = bed if isinstance(bed, SavedBed) else read_bed(bed)
+        name = "the bed" if isinstance(bed, SavedBed) else os.fspath(bed)  # for the messages
+        model, state, control = saved.builder().finalize(device="cpu", precision=precision)
         kinds = model.boundary_kind.numpy()
         geometry = model.boundary_geometry_numpy()
         floors = [
@@ -100,14 +104,14 @@ class Tile:
             if kind == BOUNDARY_PLANE and np.allclose(row[3:], (0.0, 0.0, 1.0)) and abs(row[2]) < 1e-12
         ]
         if not floors:
-            raise SoilInputError(f"{path}: the bed has no floor plane z = 0 to stand a patch on")
+            raise SoilInputError(f"{name}: the bed has no floor plane z = 0 to stand a patch on")
         data = state.to_numpy()
         x = data["position"].astype(np.float64)
         r = model.radius_numpy()
         period = np.asarray(size, dtype=np.float64) - 2.0 * margin
         if np.any(period <= 4.0 * r.max()):
             raise SoilInputError(
-                f"{path}: the bed ({size[0]} x {size[1]} m) leaves no tile {2 * margin} m in from its walls"
+                f"{name}: the bed ({size[0]} x {size[1]} m) leaves no tile {2 * margin} m in from its walls"
             )
         keep = _inside(x[:, :2], np.full(2, margin), margin + period)
         tree = cKDTree(x[keep])
