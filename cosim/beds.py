@@ -227,12 +227,12 @@ def _settle(plan: RunPlan, path: str, info_path: str, progress: bool) -> Bed:
         "metrics": metrics,
         "dt": bed.settle_dt,
         "wall_time": wall,
-        "particle_count": sim.model.particle_count,
+        "particle_count": sim.particle_count,
     }
     write_json(info_path, info)
     log.info(
         "settled %d grains in %.1f s wall (%.3g s simulated); surface at z = %.4g m, packing %.3f",
-        sim.model.particle_count,
+        sim.particle_count,
         wall,
         report["time"],
         metrics["height"],

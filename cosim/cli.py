@@ -106,15 +106,9 @@ def cmd_run(args) -> int:
         return EXIT_OK if report["ok"] else EXIT_UNSTEADY
     with open(args.scene) as f:
         source = f.read()
-    result = run_plan(_absolute(plan), out, overwrite=args.overwrite, progress=not args.no_progress, source=source)
+    result = run_plan(plan, out, overwrite=args.overwrite, progress=not args.no_progress, source=source)
     _print_summary(result)
     return EXIT_OK if result.status == "complete" else EXIT_UNSTEADY
-
-
-def _absolute(plan):
-    from .launch import absolute_paths
-
-    return absolute_paths(plan)
 
 
 def cmd_resume(args) -> int:

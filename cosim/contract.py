@@ -21,11 +21,13 @@ from typing import Protocol, runtime_checkable
 import numpy as np
 from numpy.typing import ArrayLike
 
+from soil.errors import ArgumentError
+
 
 def _vec(value, size: int, name: str) -> np.ndarray:
     array = np.asarray(value, dtype=np.float64).reshape(-1)
     if array.shape != (size,) or not np.all(np.isfinite(array)):
-        raise ValueError(f"{name} must be {size} finite numbers, got {value!r}")
+        raise ArgumentError(f"{name} must be {size} finite numbers, got {value!r}")
     return array
 
 
@@ -47,7 +49,7 @@ class WheelKinematics:
         self.orientation = _vec(self.orientation, 4, "orientation")
         norm = np.linalg.norm(self.orientation)
         if not 0.5 < norm < 2.0:
-            raise ValueError(f"orientation must be a unit quaternion (w, x, y, z), got {self.orientation}")
+            raise ArgumentError(f"orientation must be a unit quaternion (w, x, y, z), got {self.orientation}")
         self.orientation = self.orientation / norm
         self.linear_velocity = _vec(self.linear_velocity, 3, "linear_velocity")
         self.angular_velocity = _vec(self.angular_velocity, 3, "angular_velocity")

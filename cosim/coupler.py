@@ -30,7 +30,7 @@ from typing import Any
 import numpy as np
 
 from soil.control import quaternion_integrate, quaternion_multiply
-from soil.errors import RegolithError, RegolithWarning
+from soil.errors import ArgumentError, RegolithError, RegolithWarning
 
 from .contract import RoverSide, SoilSide, WheelKinematics, WheelWrench
 from .controllers import apply_command
@@ -116,12 +116,12 @@ class Coupler:
     ):
         scheme = scheme.lower().replace("_", "-")
         if scheme not in ("gauss-seidel", "jacobi"):
-            raise ValueError(f"scheme must be 'gauss-seidel' or 'jacobi', got {scheme!r}")
+            raise ArgumentError(f"scheme must be 'gauss-seidel' or 'jacobi', got {scheme!r}")
         if not macro_step > 0.0:
-            raise ValueError(f"macro_step must be > 0, got {macro_step}")
+            raise ArgumentError(f"macro_step must be > 0, got {macro_step}")
         n = len(rover.wheel_names)
         if soil.wheel_count != n:
-            raise ValueError(f"the soil has {soil.wheel_count} wheels, the rover {n} ({rover.wheel_names})")
+            raise ArgumentError(f"the soil has {soil.wheel_count} wheels, the rover {n} ({rover.wheel_names})")
         self.soil = soil
         self.rover = rover
         self.macro_step = float(macro_step)

@@ -8,7 +8,7 @@ from collections.abc import Sequence
 import numpy as np
 from numpy.typing import ArrayLike
 
-from soil.errors import RegolithWarning
+from soil.errors import ArgumentError, RegolithWarning
 from soil.sdf import BOUNDARY_PLANE
 
 from .contract import Particles, SoilBooks, StepStatistics, WheelKinematics, WheelWrench
@@ -34,9 +34,9 @@ class DemSoil:
 
     def __init__(self, sim, dt: float, surface_height: float = 0.0, wall_clearance: float | None = None, patch=None):
         if sim.body_count < 1:
-            raise ValueError("the soil simulation has no wheel bodies (SoilBuilder.add_wheel)")
+            raise ArgumentError("the soil simulation has no wheel bodies (SoilBuilder.add_wheel)")
         if not dt > 0:
-            raise ValueError(f"dt must be > 0 [s], got {dt!r}")
+            raise ArgumentError(f"dt must be > 0 [s], got {dt!r}")
         self.sim = sim
         self.dt = float(dt)
         self.surface_height = float(surface_height)
@@ -73,7 +73,7 @@ class DemSoil:
         saved = bed if isinstance(bed, SavedBed) else read_bed(bed)
         if surface_height is None:
             if "height" not in saved.metrics:
-                raise ValueError("the bed file has no height metric: pass surface_height [m]")
+                raise ArgumentError("the bed file has no height metric: pass surface_height [m]")
             surface_height = float(saved.metrics["height"])
         sim = open_bed(
             saved,
@@ -92,7 +92,7 @@ class DemSoil:
     def set_gravity(self, gravity: Sequence[float]) -> None:
         asked = np.asarray(gravity, dtype=np.float64).reshape(3)
         if not np.allclose(asked, self.sim.gravity, rtol=1e-12, atol=0):
-            raise ValueError(
+            raise ArgumentError(
                 f"the soil was settled under gravity {self.sim.gravity} m/s^2, the scene asks "
                 f"for {asked}: settle the bed under the scene's gravity"
             )
@@ -131,9 +131,9 @@ class DemSoil:
         summed there; the host reads the result once.
         """
         if len(start) != self.wheel_count:
-            raise ValueError(f"expected kinematics of {self.wheel_count} wheels, got {len(start)}")
+            raise ArgumentError(f"expected kinematics of {self.wheel_count} wheels, got {len(start)}")
         if end is not None and len(end) != self.wheel_count:
-            raise ValueError(f"expected end kinematics of {self.wheel_count} wheels, got {len(end)}")
+            raise ArgumentError(f"expected end kinematics of {self.wheel_count} wheels, got {len(end)}")
         if self.patch is not None:  # the patch follows the wheels' centre, between macro steps
             moved = self.patch.follow(self.sim, np.mean([k.position[:2] for k in start], axis=0))
             if moved is not None:
@@ -142,7 +142,7 @@ class DemSoil:
         t0 = sim.time
         span = float(t_end) - t0
         if not span > 0:
-            raise ValueError(f"t_end {t_end!r} s must be after the soil's time {t0!r} s")
+            raise ArgumentError(f"t_end {t_end!r} s must be after the soil's time {t0!r} s")
 
         def stack(kinematics):
             return tuple(
@@ -262,7 +262,7 @@ class DemSoil:
                 moving=True,
             )
         if self._static_mass is None:  # a bed's grains stay the same: their mass is summed once
-            self._static_mass = float(np.sum(self.sim.model.mass_numpy()))
+            self._static_mass = float(np.sum(self.sim.masses()))
         return SoilBooks(element_count=self.sim.particle_count, mass=self._static_mass, mass_initial=self._static_mass)
 
     def step_statistics(self) -> StepStatistics | None:

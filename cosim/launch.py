@@ -106,31 +106,7 @@ def run_scene(
         plan = load_plan(path, overrides)
         with open(path) as f:
             source = f.read()
-    return run_plan(absolute_paths(plan), out_dir, overwrite=overwrite, progress=progress, hooks=hooks, source=source)
-
-
-def absolute_paths(plan: RunPlan) -> RunPlan:
-    """The plan whose scene names wheel.file and bed.bed_file by absolute paths, so that the run
-    folder's scene.toml does not depend on where the original scene file was."""
-    scene = plan.scene
-    changes = {}
-    if scene.wheel.type == "mesh" and scene.wheel.file:
-        changes["wheel.file"] = scene.resolve(scene.wheel.file)
-    if scene.bed.bed_file:
-        changes["bed.bed_file"] = scene.resolve(scene.bed.bed_file)
-    rover = scene.rover
-    if rover is not None:
-        if rover.file:
-            changes["rover.file"] = scene.resolve(rover.file)
-        for name, shape in (rover.wheel_shape or {}).items():
-            if shape.type == "mesh":
-                changes[f"rover.wheel_shape.{name}.file"] = scene.resolve(shape.file)
-        if not isinstance(rover.drive, str) and rover.drive.file:
-            changes["rover.drive.file"] = scene.resolve(rover.drive.file)
-        for name, drive in (rover.controllers or {}).items():
-            if drive.file:
-                changes[f"rover.controllers.{name}.file"] = scene.resolve(drive.file)
-    return plan.with_changes(**changes) if changes else plan
+    return run_plan(plan, out_dir, overwrite=overwrite, progress=progress, hooks=hooks, source=source)
 
 
 def load_checkpoint(path: str) -> dict:
@@ -297,7 +273,6 @@ def final_state(out_dir: str) -> dict:
 
 
 __all__ = [
-    "absolute_paths",
     "final_state",
     "load_checkpoint",
     "resume",

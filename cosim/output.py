@@ -101,6 +101,7 @@ from typing import Any
 
 import numpy as np
 
+from soil.errors import DamagedFileError
 from soil.files import atomic_path, atomic_write_text, with_path
 
 from .folders import XDMF_DATA_FILE, XDMF_FILE
@@ -479,7 +480,9 @@ class ResultsWriter:
         with atomic_path(writer.path, ".h5.tmp") as temporary:
             with open_results(writer.path) as old, h5py.File(temporary, "w", libver="latest") as new:
                 if old.attrs.get("format") != RESULTS_FORMAT:
-                    raise ValueError(f"{writer.path} is not a regolith-cosim results file of format {RESULTS_FORMAT!r}")
+                    raise DamagedFileError(
+                        f"{writer.path} is not a regolith-cosim results file of format {RESULTS_FORMAT!r}"
+                    )
                 rows = {}
                 if "first" in old["particles"]:  # ragged snapshots: keep the rows of the first `snapshots`
                     kept = (
@@ -657,7 +660,7 @@ def _copy_truncated(old, new, counts: dict, rows: dict | None = None) -> None:
         count = (rows or {}).get(name, counts[name.split("/")[0]])
         growing = obj.maxshape[0] is None
         if growing and obj.shape[0] < count:
-            raise ValueError(
+            raise DamagedFileError(
                 f"the results file holds {obj.shape[0]} rows of {name}, the checkpoint expects {count}: "
                 "the file is older than the checkpoint"
             )
@@ -672,7 +675,6 @@ def _copy_truncated(old, new, counts: dict, rows: dict | None = None) -> None:
 def check_results(path) -> dict:
     """The root attributes of a results.h5 after checking that it is one and can be read to its end:
     DamagedFileError naming the file otherwise (FileNotFoundError when it is absent)."""
-    from soil.errors import DamagedFileError
 
     path = os.fspath(path)
     try:
@@ -704,7 +706,6 @@ def read_series(path) -> dict:
     """The time series of one results.h5 as numpy arrays (the wheel series by name, 'rover_<name>',
     'soil_<name>', 'rover_state', 'rover_columns', 'snapshot_time', 'attrs'), for summaries, plots and studies.
     DamagedFileError naming the file when it is damaged."""
-    from soil.errors import DamagedFileError
 
     try:
         return _read_series(path)

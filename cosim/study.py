@@ -296,11 +296,8 @@ def replica_run(
     """K replicas of a scene that differ only in summation order, with error bars (module docstring).
 
     Returns {'ok' (every replica steady and the statistics exist), 'stats', 'results', 'text'}."""
-    from .launch import absolute_paths
-
     if replicas < 2:
         raise SceneError([f"--replicas: must be >= 2 for error bars, got {replicas}"])
-    plan = absolute_paths(plan)
     out_dir = os.path.abspath(out_dir)
     prepare_study(out_dir, overwrite)
     with Executor(executor, scheduler, workers) as ex:
@@ -355,9 +352,6 @@ def precision_study(
     plot: bool = True,
 ) -> dict:
     """The paper's replica experiment per precision; returns {'rows', 'replicas', ...}."""
-    from .launch import absolute_paths
-
-    plan = absolute_paths(plan)
     for p in precisions:
         if p not in PRECISION_ORDER:
             raise SceneError([f"--precisions: unknown precision {p!r}; allowed: {', '.join(PRECISION_ORDER)}"])
@@ -438,8 +432,6 @@ def slip_study(
     plot: bool = True,
 ) -> dict:
     """Imposed slips after landing: DP, DP/W, torque and sinkage against slip, with error bars."""
-    from .launch import absolute_paths
-
     try:
         slips = [float(s) for s in slips]
     except (TypeError, ValueError):
@@ -451,7 +443,6 @@ def slip_study(
         problems.append(f"--replicas: must be >= 1, got {replicas}")
     if problems:
         raise SceneError(problems)
-    plan = absolute_paths(plan)
     for s in slips:  # every point must be a valid scene before anything runs
         plan.with_changes(**{"testbed.mode": "slip", "testbed.slip": s})
     out_dir = os.path.abspath(out_dir)
@@ -546,10 +537,8 @@ def sweep(
     plot: bool = True,
 ) -> dict:
     """One run per point of the grid; points that share a bed share one settled bed."""
-    from .launch import absolute_paths
     from .plots import plot_table
 
-    plan = absolute_paths(plan)
     grid = parse_params(params)
     if not grid:
         raise SceneError(["--param: give at least one key=v1,v2,..."])

@@ -25,6 +25,7 @@ import numpy as np
 from numpy.typing import ArrayLike
 
 from soil.control import quaternion_integrate, quaternion_slerp, quaternion_to_matrix
+from soil.errors import ArgumentError
 
 from .contract import SoilBooks, SoilSideDefaults, WheelKinematics, WheelWrench, wheel_frame
 
@@ -73,7 +74,7 @@ class SpringDamperTerrain(SoilSideDefaults):
         time: float = 0.0,
     ):
         if traction not in ("coulomb", "slip"):
-            raise ValueError(f"traction must be 'coulomb' or 'slip', got {traction!r}")
+            raise ArgumentError(f"traction must be 'coulomb' or 'slip', got {traction!r}")
         self.wheel_count = int(wheel_count)
         self.wheel_radius = np.broadcast_to(np.asarray(wheel_radius, dtype=np.float64), (self.wheel_count,)).copy()
         """Wheel radii [m], shape (wheel_count,)."""
@@ -180,10 +181,10 @@ class SpringDamperTerrain(SoilSideDefaults):
         end: Sequence[WheelKinematics] | None = None,
     ) -> list[WheelWrench]:
         if len(start) != self.wheel_count or (end is not None and len(end) != self.wheel_count):
-            raise ValueError(f"expected kinematics of {self.wheel_count} wheels, got {len(start)}")
+            raise ArgumentError(f"expected kinematics of {self.wheel_count} wheels, got {len(start)}")
         span = float(t_end) - self.time
         if span <= 0.0:
-            raise ValueError(f"t_end={t_end} must be after the soil time {self.time}")
+            raise ArgumentError(f"t_end={t_end} must be after the soil time {self.time}")
         h = span / self.substeps
         out = []
         for i, k0 in enumerate(start):

@@ -21,7 +21,7 @@ import warp as wp
 
 from . import status as status_columns
 from . import step_control
-from .errors import SoilInputError
+from .errors import InternalError, SoilInputError
 from .integrator import JoltBeeman, StepController, VelocityVerlet
 from .macro import MacroStepReport, grain_box
 from .state import SoilState
@@ -83,7 +83,7 @@ def macro_step_adaptive(sim, span: float, path: bool) -> MacroStepReport:
     """Simulation.macro_step_adaptive (its docstring); span [s] already checked."""
     control = sim.step_control
     if control is None:
-        raise RuntimeError("call enable_step_control() before macro_step_adaptive()")
+        raise InternalError("call enable_step_control() before macro_step_adaptive()")
     controller = control.controller
     sim._maybe_reorder()
     if not path:

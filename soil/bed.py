@@ -73,11 +73,11 @@ class BedSpec:
         for name in ("length", "width", "depth", "radius_mean"):
             value = getattr(self, name)
             if not (isinstance(value, (int, float)) and math.isfinite(value) and value > 0):
-                raise ValueError(f"bed.{name} must be > 0 [m], got {value!r}")
+                raise SoilInputError(f"bed.{name} must be > 0 [m], got {value!r}")
         if not 0 <= self.radius_spread < 1:
-            raise ValueError(f"bed.radius_spread must be in [0, 1), got {self.radius_spread!r}")
+            raise SoilInputError(f"bed.radius_spread must be in [0, 1), got {self.radius_spread!r}")
         if min(self.length, self.width, self.depth) < 4 * self.radius_max:
-            raise ValueError(
+            raise SoilInputError(
                 f"bed.length, width and depth must each hold at least two grains (> {4 * self.radius_max:.4g} m)"
             )
 

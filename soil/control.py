@@ -3,7 +3,8 @@
 import numpy as np
 import warp as wp
 
-from .boundaries import MOTION_LOADED, MOTION_PRESCRIBED
+from .boundaries import MOTION_LOADED
+from .errors import SoilInputError
 from .precision import kernel_factory, kernel_module, soil_kernel
 
 PATH_COLUMNS = 28
@@ -275,7 +276,7 @@ class SoilControl:
             return
         force = np.asarray(force, dtype=np.float64)
         if force.shape != tuple(self.external_force.shape) + (3,) or not np.all(np.isfinite(force)):
-            raise ValueError(
+            raise SoilInputError(
                 f"external force must be finite, shape ({self.external_force.shape[0]}, 3) [N], got shape {force.shape}"
             )
         self.external_force.assign(force.astype(self.external_force.numpy().dtype))
@@ -393,7 +394,7 @@ class SoilControl:
         indices = self._boundary_indices(boundaries)
         velocity = np.asarray(velocity, dtype=np.float64)
         if velocity.shape != (3,) or not np.all(np.isfinite(velocity)):
-            raise ValueError(f"boundary velocity must be a finite 3-vector [m/s], got {velocity!r}")
+            raise SoilInputError(f"boundary velocity must be a finite 3-vector [m/s], got {velocity!r}")
         self.boundary_velocity_host[indices] = velocity
         self._dirty = True
 
@@ -413,41 +414,34 @@ class SoilControl:
         """
         (index,) = self._boundary_indices(boundary)
         if not self.boundary_reports[index]:
-            raise ValueError(
+            raise SoilInputError(
                 f"boundary {index} was built with report=False: a loaded boundary needs its grain "
                 "force (build it with report=True)"
             )
         loaded = self.boundary_mode_host[index] == MOTION_LOADED
         if direction is None and not loaded:
-            raise ValueError(f"boundary {index} is not loaded yet: give its free direction (a 3-vector)")
+            raise SoilInputError(f"boundary {index} is not loaded yet: give its free direction (a 3-vector)")
         if mass is None and not loaded:
-            raise ValueError(f"boundary {index} is not loaded yet: give its mass [kg]")
+            raise SoilInputError(f"boundary {index} is not loaded yet: give its mass [kg]")
         load = float(load)
         if not np.isfinite(load):
-            raise ValueError(f"boundary load must be finite [N], got {load!r}")
+            raise SoilInputError(f"boundary load must be finite [N], got {load!r}")
         if direction is not None:
             direction = np.asarray(direction, dtype=np.float64)
             length = np.linalg.norm(direction) if direction.shape == (3,) else np.nan
             if not (np.isfinite(length) and length > 0):
-                raise ValueError(f"boundary direction must be a non-zero finite 3-vector, got {direction!r}")
+                raise SoilInputError(f"boundary direction must be a non-zero finite 3-vector, got {direction!r}")
             self.boundary_direction_host[index] = direction / length
         if mass is not None:
             if not (np.isfinite(mass) and mass > 0):
-                raise ValueError(f"boundary mass must be finite and > 0 [kg], got {mass!r}")
+                raise SoilInputError(f"boundary mass must be finite and > 0 [kg], got {mass!r}")
             self.boundary_mass_host[index] = mass
         if damping is not None:
             if not (np.isfinite(damping) and damping >= 0):
-                raise ValueError(f"boundary damping must be finite and >= 0 [N s/m], got {damping!r}")
+                raise SoilInputError(f"boundary damping must be finite and >= 0 [N s/m], got {damping!r}")
             self.boundary_damping_host[index] = damping
         self.boundary_load_host[index] = load
         self.boundary_mode_host[index] = MOTION_LOADED
-        self._dirty = True
-
-    def remove_boundary_load(self, boundaries) -> None:
-        """End the load control of one or several boundaries: they move with their prescribed
-        velocity again (set_boundary_velocity; zero unless set)."""
-        indices = self._boundary_indices(boundaries)
-        self.boundary_mode_host[indices] = MOTION_PRESCRIBED
         self._dirty = True
 
     def push(self, state) -> None:
@@ -525,11 +519,11 @@ class SoilControl:
             target = getattr(self, f"{name}_host")
             values = np.asarray(data[name])
             if values.shape != target.shape:
-                raise ValueError(f"control.{name}: saved shape {values.shape} does not fit {target.shape}")
+                raise SoilInputError(f"control.{name}: saved shape {values.shape} does not fit {target.shape}")
             target[...] = values
         force = np.asarray(data["external_force"])
         if force.shape[0] != self.external_force.shape[0]:
-            raise ValueError(
+            raise SoilInputError(
                 f"control.external_force: saved {force.shape[0]} particles, the model has "
                 f"{self.external_force.shape[0]}"
             )

@@ -681,13 +681,13 @@ class StepController:
 
     def __post_init__(self):
         if not (math.isfinite(self.tolerance) and self.tolerance > 0):
-            raise ValueError(f"tolerance must be > 0, got {self.tolerance!r}")
+            raise SoilInputError(f"tolerance must be > 0, got {self.tolerance!r}")
         if self.norm not in ("rms", "max"):
-            raise ValueError(f"norm must be 'rms' or 'max', got {self.norm!r}")
+            raise SoilInputError(f"norm must be 'rms' or 'max', got {self.norm!r}")
         if not self.grain_factor >= 1.0:
-            raise ValueError(f"grain_factor must be >= 1 (inf: pure RMS), got {self.grain_factor!r}")
+            raise SoilInputError(f"grain_factor must be >= 1 (inf: pure RMS), got {self.grain_factor!r}")
         if not 0 < self.rho_min < self.reject_below <= 1.0 < self.rho_max:
-            raise ValueError(
+            raise SoilInputError(
                 "need 0 < rho_min < reject_below <= 1 < rho_max, got "
                 f"{self.rho_min}, {self.reject_below}, {self.rho_max}"
             )
@@ -714,7 +714,7 @@ class StepController:
         known = {f.name for f in fields(self)}
         unknown = set(data) - known
         if unknown:
-            raise ValueError(f"step controller: unknown fields {sorted(unknown)}")
+            raise SoilInputError(f"step controller: unknown fields {sorted(unknown)}")
         for name, value in data.items():
             value = np.asarray(value)
             if name == "history":
@@ -744,7 +744,7 @@ class StepController:
         if self.dt_min is None:
             self.dt_min = 1e-4 * self.dt_max
         if not 0 < self.dt_min <= self.dt_max:
-            raise ValueError(f"need 0 < dt_min <= dt_max, got {self.dt_min!r}, {self.dt_max!r} [s]")
+            raise SoilInputError(f"need 0 < dt_min <= dt_max, got {self.dt_min!r}, {self.dt_max!r} [s]")
         if self.dt is None:
             self.dt = float(np.clip(self.dt_initial or 0.1 * self.dt_max, self.dt_min, self.dt_max))
         self._gravity_speed = math.sqrt(float(np.linalg.norm(model.gravity)) * float(model.radius_numpy().mean()))

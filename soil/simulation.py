@@ -61,7 +61,7 @@ class Simulation:
     - the bodies: set_body_motion, set_body_path, body_positions, body_rotations,
       body_velocities, body_angular_velocities, body_wrenches, body_count, body_shapes;
     - the grains and walls (model order, host copies): positions, velocities,
-      angular_velocities, forces, contact_counts, contact_history, radii, particle_count,
+      angular_velocities, forces, contact_counts, contact_history, radii, masses, free_grains, particle_count,
       boundary_wrenches, boundary_displacements, boundary_velocities, boundary_geometry,
       boundary_kinds, kinetic_energy, gravity_energy, elastic_energy, total_energy, check_finite,
       bytes_per_grain;
@@ -178,6 +178,14 @@ class Simulation:
     def radii(self) -> np.ndarray:
         """Grain radii [m], shape (particle_count,), float64, model order."""
         return self.model.radius_numpy()
+
+    def masses(self) -> np.ndarray:
+        """Grain masses [kg], shape (particle_count,), float64, model order."""
+        return self.model.mass_numpy()
+
+    def free_grains(self) -> np.ndarray:
+        """Which grains move (False for grains held fixed: zero inverse mass) [-], shape (particle_count,), bool."""
+        return self.model.inv_mass.numpy() > 0
 
     def boundary_kinds(self) -> np.ndarray:
         """The kind of every boundary (soil.sdf.BOUNDARY_PLANE, BOUNDARY_BOX) [-], shape (boundary_count,), int32."""
@@ -631,16 +639,16 @@ class Simulation:
         model = self.model
         precision = str(data["precision"])
         if precision != model.precision.name:
-            raise ValueError(
+            raise SoilInputError(
                 f"the saved simulation ran in {precision!r} precision, this one in {model.precision.name!r}"
             )
         saved = data["state/position"].shape[0]
         if saved != model.particle_count:
-            raise ValueError(f"the saved simulation has {saved} particles, this model {model.particle_count}")
+            raise SoilInputError(f"the saved simulation has {saved} particles, this model {model.particle_count}")
         integrators = {VelocityVerlet.name: VelocityVerlet, JoltBeeman.name: JoltBeeman}
         name = str(data["integrator"])
         if name not in integrators:
-            raise ValueError(f"saved integrator {name!r} is unknown; known: {sorted(integrators)}")
+            raise SoilInputError(f"saved integrator {name!r} is unknown; known: {sorted(integrators)}")
         capacity = int(data.get("capacity", data.get("next_capacity", self.state.capacity)))
         rigid_capacity = int(data.get("rigid_capacity", self.state.rigid_capacity))
         self._spares()

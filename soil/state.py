@@ -13,6 +13,8 @@ from __future__ import annotations
 import numpy as np
 import warp as wp
 
+from .errors import SoilInputError
+
 UNBUILT = 1.0e30
 """Build position [m] of a grain whose neighbour list was never built: any check finds it
 far from there and rebuilds the list."""
@@ -379,7 +381,7 @@ class SoilState:
                 raise KeyError(f"state data has no {name!r} array")
             values = np.asarray(data[name])
             if values.shape[:1] != tuple(array.shape[:1]):
-                raise ValueError(
+                raise SoilInputError(
                     f"state.{name}: saved shape {values.shape} does not fit {array.shape} (a different scene?)"
                 )
             if per_grain(name):

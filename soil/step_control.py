@@ -25,6 +25,7 @@ import numpy as np
 import warp as wp
 
 from . import status as status_columns
+from .errors import InternalError
 from .integrator import (
     SUMMARY_MAX,
     SUMMARY_NONFINITE,
@@ -215,7 +216,7 @@ class DeviceStepControl:
 
     def __init__(self, controller: StepController, precision, device, gravity_speed: float):
         if controller.dt_max is None or controller.dt_min is None:
-            raise ValueError("the step controller's dt_min and dt_max must be resolved (StepController.setup)")
+            raise InternalError("the step controller's dt_min and dt_max must be resolved (StepController.setup)")
         self.controller = controller
         self.kernels = step_control_kernels(precision.hi)
         self.control = wp.zeros(COLUMNS, dtype=wp.float64, device=device)

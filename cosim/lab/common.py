@@ -103,16 +103,16 @@ def with_step_control(plan: LabPlan, sim: Simulation) -> Simulation:
 def moving_energy(sim: Simulation) -> float:
     """Translational kinetic energy of the free grains [J]: whether grains still move (a grain
     spinning in place, which no twisting friction stops, does not change a heap)."""
-    free = sim.model.inv_mass.numpy() > 0
+    free = sim.free_grains()
     v = sim.velocities()[free]
-    return float(0.5 * np.sum(sim.model.mass_numpy()[free] * np.sum(v * v, axis=1)))
+    return float(0.5 * np.sum(sim.masses()[free] * np.sum(v * v, axis=1)))
 
 
 def kinetic_threshold(sim: Simulation, ratio: float, g: float) -> float:
     """ratio * N m_mean |g| r_mean over the free grains [J]: 'still' on Earth and on Phobos alike."""
-    free = sim.model.inv_mass.numpy() > 0
-    mass = sim.model.mass_numpy()[free]
-    radius = sim.model.radius_numpy()[free]
+    free = sim.free_grains()
+    mass = sim.masses()[free]
+    radius = sim.radii()[free]
     return ratio * len(mass) * float(mass.mean()) * g * float(radius.mean())
 
 

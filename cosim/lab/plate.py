@@ -154,7 +154,7 @@ def _bed(plan: LabPlan, replica: int, path: str) -> dict:
             "packing_fraction": float(metrics["packing_fraction"]),
             "source": "settled",
         }
-        positions, radii = sim.positions(), sim.model.radius_numpy()
+        positions, radii = sim.positions(), sim.radii()
     tops = {}
     for b in widths(plan):
         reach = 0.5 * b + radii
@@ -203,7 +203,7 @@ def _press(plan: LabPlan, replica: int, path: str, surface: float, width: float,
         "start_gap": start - surface,
         "speed": speed,
         "steps": int(sim.steps),
-        "particles": int(sim.model.particle_count),
+        "particles": int(sim.particle_count),
     }
 
 

@@ -252,7 +252,7 @@ def run_replica(plan: LabPlan, replica: int = 0) -> dict:
     sim, tube = build(plan, geo, order_seed)
     chunk = common.chunk_steps(plan, plan.time_scale)
     longest = plan.max_phase_time(1.0)
-    free = sim.model.inv_mass.numpy() > 0
+    free = sim.free_grains()
     history: list[tuple[float, float, float]] = []
 
     def record(s):
@@ -266,7 +266,7 @@ def run_replica(plan: LabPlan, replica: int = 0) -> dict:
     settle_time, settled = common.run_until(
         sim, plan.dt, still(plan.scene.bed.settle_ke_ratio), longest, chunk, min_time
     )
-    column = float(np.max(sim.positions()[free, 2] + sim.model.radius_numpy()[free]))
+    column = float(np.max(sim.positions()[free, 2] + sim.radii()[free]))
     sim.control.set_boundary_velocity(tube, (0.0, 0.0, geo.lift_speed))
     r_max = plan.radius_max
 
@@ -278,7 +278,7 @@ def run_replica(plan: LabPlan, replica: int = 0) -> dict:
     lift_time, lifted = common.run_until(sim, plan.dt, cleared, longest, chunk)
     sim.control.set_boundary_velocity(tube, (0.0, 0.0, 0.0))
     rest_time, rested = common.run_until(sim, plan.dt, still(plan.scene.lab.rest_ke_ratio), longest, chunk, min_time)
-    x, r = sim.positions()[free], sim.model.radius_numpy()[free]
+    x, r = sim.positions()[free], sim.radii()[free]
     section = plan.scene.repose
     heap = measure_heap(x, r, geo.centre, geo.base_top, plan.diameter, section.sectors, section.fit_range)
     near_wall = np.min(np.stack([x[:, 0], x[:, 1], geo.base_width - x[:, 0], geo.base_width - x[:, 1]]), axis=0)
@@ -305,7 +305,7 @@ def run_replica(plan: LabPlan, replica: int = 0) -> dict:
         "at_walls": int(np.sum(near_wall < 2 * plan.diameter)),
         "history": history_array,
         "steps": int(sim.steps),
-        "particles": int(sim.model.particle_count),
+        "particles": int(sim.particle_count),
     }
 
 

@@ -187,7 +187,7 @@ def _specimen(plan: LabPlan, geometry: ShearBox, replica: int, path: str) -> dic
             5 * plan.time_scale,
         )
     save_bed(path, sim)
-    top = float(np.max(sim.positions()[:, 2] + sim.model.radius_numpy()))
+    top = float(np.max(sim.positions()[:, 2] + sim.radii()))
     return {"replica": replica, "path": path, "settled": settled, "settle_time": time_taken, "top": top}
 
 
@@ -207,7 +207,7 @@ def _shear(plan: LabPlan, geometry: ShearBox, replica: int, path: str, stress: f
     _, order_seed = common.replica_seeds(plan, replica)
     sim = common.finalize(plan, builder, order_seed)
     control = sim.control
-    sample_mass = float(sim.model.mass_numpy().sum())
+    sample_mass = float(sim.masses().sum())
     damping, period = _lid_dynamics(plan, geometry, stress, sample_mass)
     load = stress * geometry.area
     control.set_boundary_load(lid, load, direction=(0, 0, -1), mass=sample_mass, damping=damping)
@@ -225,7 +225,7 @@ def _shear(plan: LabPlan, geometry: ShearBox, replica: int, path: str, stress: f
         return still and abs(s.boundary_wrenches()[0][lid, 2] - load) < 0.05 * load
 
     consolidate_time, consolidated_ok = common.run_until(sim, plan.dt, consolidated, longest, chunk, 3 * period)
-    weight_above = float(np.sum(sim.model.mass_numpy()[sim.positions()[:, 2] > geometry.plane])) * plan.g
+    weight_above = float(np.sum(sim.masses()[sim.positions()[:, 2] > geometry.plane])) * plan.g
     duration = geometry.displacement / geometry.speed
     steps = int(round(duration / plan.dt))
     every = max(1, steps // RECORDS)
@@ -269,7 +269,7 @@ def _shear(plan: LabPlan, geometry: ShearBox, replica: int, path: str, stress: f
         "lid_damping": damping,
         "weight_above": weight_above,
         "steps": int(sim.steps),
-        "particles": int(sim.model.particle_count),
+        "particles": int(sim.particle_count),
     }
 
 

@@ -44,6 +44,8 @@ import warnings
 
 import numpy as np
 
+from soil.errors import ArgumentError, InternalError
+
 PROTOCOL_VERSION = 2
 INIT, PLACE, STEP, BYE, SAVE, RESTORE, FREE = 1, 2, 3, 4, 5, 6, 7
 OK, OUTPUTS, DISCARD, ERROR = 10, 11, 12, 13
@@ -114,7 +116,7 @@ class SoilSession:
 
         protocol = int(settings.get("protocol", 0))
         if protocol != PROTOCOL_VERSION:
-            raise ValueError(
+            raise ArgumentError(
                 f"the FMU front end speaks protocol {protocol}, this server {PROTOCOL_VERSION}: "
                 "export the FMU again with the regolith-cosim this Python has"
             )
@@ -123,10 +125,10 @@ class SoilSession:
             config = json.load(f)
         self.wheel_count = int(settings["wheels"])
         if self.wheel_count != int(config["wheel_count"]):
-            raise ValueError(f"the front end has {self.wheel_count} wheels, {CONFIG_FILE} {config['wheel_count']}")
+            raise ArgumentError(f"the front end has {self.wheel_count} wheels, {CONFIG_FILE} {config['wheel_count']}")
         dem_step = float(settings["dem_step"])
         if not dem_step > 0:
-            raise ValueError(f"dem_step must be > 0 [s], got {dem_step!r}")
+            raise ArgumentError(f"dem_step must be > 0 [s], got {dem_step!r}")
         device = settings.get("device") or os.environ.get(DEVICE_VARIABLE) or config["device"]
         quiet_warp()
         self.soil = soil_from_config(config, os.path.join(resources, BED_FILE), dem_step, device)
@@ -155,7 +157,7 @@ class SoilSession:
         from soil import SimulationDiverged
 
         if not step > 0:
-            raise ValueError(f"the step must be > 0 [s], got {step!r}")
+            raise ArgumentError(f"the step must be > 0 [s], got {step!r}")
         kinematics = self.kinematics(values)
         soil, sim = self.soil, self.soil.sim
         self.start.take()
@@ -184,7 +186,7 @@ class SoilSession:
 
     def restore(self, ident: int) -> bytes:
         if ident not in self.states:
-            raise ValueError(f"no FMU state {ident} (freed, or taken by another soil)")
+            raise ArgumentError(f"no FMU state {ident} (freed, or taken by another soil)")
         self.states[ident].restore()
         return f"FMU state {ident} restored: t = {self.soil.time:.9g} s".encode()
 
@@ -233,7 +235,7 @@ def _answer(channel: Channel) -> None:
                 channel.send(OK, b"bye")
                 return
             elif session is None:
-                raise RuntimeError(f"message kind {kind} before INIT")
+                raise InternalError(f"message kind {kind} before INIT")
             elif kind == PLACE:
                 channel.send(OUTPUTS, session.place(np.frombuffer(payload, "<f8")))
             elif kind == STEP:
@@ -244,7 +246,7 @@ def _answer(channel: Channel) -> None:
                 action = {SAVE: session.save, RESTORE: session.restore, FREE: session.free}[kind]
                 channel.send(OK, action(ident))
             else:
-                raise RuntimeError(f"unknown message kind {kind}")
+                raise InternalError(f"unknown message kind {kind}")
         except StepRefused as refused:
             channel.send(DISCARD, str(refused).encode())
         except Exception as error:

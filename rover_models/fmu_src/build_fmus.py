@@ -23,6 +23,8 @@ import uuid
 import zipfile
 from pathlib import Path
 
+from soil.errors import ArgumentError, SetupError
+
 HERE = Path(__file__).resolve().parent
 
 # FMI 3.0 variables of rig_fmu3.c: (name, valueReference, causality, start or None).
@@ -90,7 +92,7 @@ def build_slip_controller_fmu(dest: str | os.PathLike, wheel_count: int = 4) -> 
     from pythonfmu.builder import FmuBuilder
 
     if int(wheel_count) < 1:
-        raise ValueError(f"wheel_count must be >= 1, got {wheel_count}")
+        raise ArgumentError(f"wheel_count must be >= 1, got {wheel_count}")
     dest = Path(dest)
     dest.mkdir(parents=True, exist_ok=True)
     name = f"SlipControllerFmu{int(wheel_count)}"
@@ -171,7 +173,7 @@ def build_rig_fmu3(dest: str | os.PathLike, compiler: str = "gcc") -> Path:
     dest = Path(dest)
     dest.mkdir(parents=True, exist_ok=True)
     if shutil.which(compiler) is None:
-        raise RuntimeError(f"C compiler {compiler!r} not found; it is needed to build the FMI 3.0 test FMU")
+        raise SetupError(f"C compiler {compiler!r} not found; it is needed to build the FMI 3.0 test FMU")
     include = Path(fmpy.__file__).parent / "c-code"  # fmi3Functions.h & co ship with fmpy
     platform = fmpy.platform_tuple  # e.g. x86_64-linux
     suffix = {"windows": ".dll", "darwin": ".dylib"}.get(fmpy.system, ".so")
