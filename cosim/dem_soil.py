@@ -284,18 +284,18 @@ class DemSoil:
 
     def walls(self) -> dict | None:
         """SoilSide: the container walls as built (cosim.contract.WALL_NAMES); None without walls."""
-        model = self.sim.model
-        if not model.boundary_count:
+        sim = self.sim
+        if not sim.boundary_count:
             return None
         return {
-            "kind": model.boundary_kind.numpy(),
-            "geometry": model.boundary_geometry_numpy(),
-            "report": model.boundary_reports,
+            "kind": sim.boundary_kinds(),
+            "geometry": sim.initial_boundary_geometry(),
+            "report": sim.boundary_reports(),
         }
 
     def wall_loads(self) -> dict | None:
         """SoilSide: the walls' loads now (cosim.contract.WALL_LOAD_NAMES); None without walls."""
-        if not self.sim.model.boundary_count:
+        if not self.sim.boundary_count:
             return None
         force, torque, contacts = self.sim.boundary_wrenches()
         return {

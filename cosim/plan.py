@@ -162,7 +162,7 @@ def _nominal_omega(section: DriveSection, wheel_count: int) -> float:
 
 @dataclass(frozen=True)
 class PatchPlan:
-    """The moving soil patch (cosim.patch)."""
+    """The moving soil patch (soil.patch)."""
 
     length: float
     """Window size along x [m]."""

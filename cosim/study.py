@@ -676,7 +676,7 @@ def timestep_study(
         assert isinstance(system.soil, DemSoil), "the stable-step search is of the DEM step"
         sim = system.soil.sim
         hub = system.rover.position
-        sim.control.set_body_motion(0, hub, [1, 0, 0, 0], [rim, 0, 0], [0, omega, 0])
+        sim.set_body_motion(0, hub, [1, 0, 0, 0], [rim, 0, 0], [0, omega, 0])
         sim.refresh_forces()
         return sim
 

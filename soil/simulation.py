@@ -63,7 +63,8 @@ class Simulation:
     - the grains and walls (model order, host copies): positions, velocities,
       angular_velocities, forces, contact_counts, contact_history, radii, masses, free_grains, particle_count,
       boundary_wrenches, boundary_displacements, boundary_velocities, boundary_geometry,
-      boundary_kinds, kinetic_energy, gravity_energy, elastic_energy, total_energy, check_finite,
+      initial_boundary_geometry, boundary_reports, boundary_count, boundary_kinds, kinetic_energy,
+      gravity_energy, elastic_energy, total_energy, check_finite,
       bytes_per_grain;
     - state as a whole: snapshot / restore (in memory, on the device), state_dict /
       load_state_dict (checkpoints), arm_monitor / check_divergence (soil.stability);
@@ -186,6 +187,20 @@ class Simulation:
     def free_grains(self) -> np.ndarray:
         """Which grains move (False for grains held fixed: zero inverse mass) [-], shape (particle_count,), bool."""
         return self.model.inv_mass.numpy() > 0
+
+    @property
+    def boundary_count(self) -> int:
+        """Boundaries (walls, lids, plates) [-]."""
+        return self.model.boundary_count
+
+    def initial_boundary_geometry(self) -> np.ndarray:
+        """Geometry rows of every boundary as built [m], shape (boundary_count, 6), float64 (boundary_geometry
+        without displacement)."""
+        return self._boundary_rows()[1].copy()
+
+    def boundary_reports(self) -> np.ndarray:
+        """Whether each boundary reports its wrench (built with report=True) [-], shape (boundary_count,), bool."""
+        return np.asarray(self.model.boundary_reports)
 
     def boundary_kinds(self) -> np.ndarray:
         """The kind of every boundary (soil.sdf.BOUNDARY_PLANE, BOUNDARY_BOX) [-], shape (boundary_count,), int32."""
