@@ -53,10 +53,12 @@ SUMMARY_COLUMNS = SUMMARY_STATUS + status_columns.COLUMNS
 
 
 @kernel_factory
-def integrator_kernels(hi, lo, law: ContactLaw):
-    """The velocity-Verlet and jolt-Beeman kernels for precision types (hi, lo)."""
-    kernel = soil_kernel(kernel_module("integrator", hi, lo, law))
+def integrator_kernels(hi, mid, lo, law: ContactLaw):
+    """The velocity-Verlet and jolt-Beeman kernels for precision types (hi, mid, lo): spins and
+    torques are stored in mid (soil.precision), read into hi, and the new spin rounded to mid."""
+    kernel = soil_kernel(kernel_module("integrator", hi, mid, lo, law))
     vec_hi = wp.types.vector(3, hi)
+    vec_mid = wp.types.vector(3, mid)
 
     @wp.func
     def acceleration_of(force: vec_hi, inv_mass: lo, gravity: vec_hi):
@@ -89,9 +91,9 @@ def integrator_kernels(hi, lo, law: ContactLaw):
     def kick_drift(
         x_in: wp.array(dtype=vec_hi),
         v_in: wp.array(dtype=vec_hi),
-        w_in: wp.array(dtype=vec_hi),
+        w_in: wp.array(dtype=vec_mid),
         force_in: wp.array(dtype=vec_hi),
-        torque_in: wp.array(dtype=vec_hi),
+        torque_in: wp.array(dtype=vec_mid),
         inv_mass: wp.array(dtype=lo),
         inv_inertia: wp.array(dtype=lo),
         gravity: vec_hi,
@@ -99,20 +101,20 @@ def integrator_kernels(hi, lo, law: ContactLaw):
         # outputs
         x_out: wp.array(dtype=vec_hi),
         v_out: wp.array(dtype=vec_hi),
-        w_out: wp.array(dtype=vec_hi),
+        w_out: wp.array(dtype=vec_mid),
     ):
         """Velocity Verlet, first half: half kick with the old forces, then a full drift."""
         i = wp.tid()
         dt = step_length[0]
         v_half = v_in[i] + hi(0.5) * dt * acceleration_of(force_in[i], inv_mass[i], gravity)
         v_out[i] = v_half
-        w_out[i] = w_in[i] + hi(0.5) * dt * hi(inv_inertia[i]) * torque_in[i]
+        w_out[i] = vec_mid(vec_hi(w_in[i]) + hi(0.5) * dt * hi(inv_inertia[i]) * vec_hi(torque_in[i]))
         x_out[i] = x_in[i] + dt * v_half
 
     @kernel
     def kick(
         force_in: wp.array(dtype=vec_hi),
-        torque_in: wp.array(dtype=vec_hi),
+        torque_in: wp.array(dtype=vec_mid),
         inv_mass: wp.array(dtype=lo),
         inv_inertia: wp.array(dtype=lo),
         order: wp.array(dtype=wp.int32),
@@ -121,27 +123,27 @@ def integrator_kernels(hi, lo, law: ContactLaw):
         step_length: wp.array(dtype=hi),
         # in/out
         v_io: wp.array(dtype=vec_hi),
-        w_io: wp.array(dtype=vec_hi),
+        w_io: wp.array(dtype=vec_mid),
         status_out: wp.array(dtype=wp.int32),
     ):
         """Velocity Verlet, second half kick with the new forces; flags a non-finite grain."""
         i = wp.tid()
         dt = step_length[0]
         v = v_io[i] + hi(0.5) * dt * acceleration_of(force_in[i], inv_mass[i], gravity)
-        w = w_io[i] + hi(0.5) * dt * hi(inv_inertia[i]) * torque_in[i]
+        w = vec_mid(vec_hi(w_io[i]) + hi(0.5) * dt * hi(inv_inertia[i]) * vec_hi(torque_in[i]))
         v_io[i] = v
         w_io[i] = w
-        flag_nonfinite(x_in[i], v, w, order[i], status_out)
+        flag_nonfinite(x_in[i], v, vec_hi(w), order[i], status_out)
 
     @kernel
     def beeman_predict(
         x_in: wp.array(dtype=vec_hi),
         v_in: wp.array(dtype=vec_hi),
-        w_in: wp.array(dtype=vec_hi),
+        w_in: wp.array(dtype=vec_mid),
         force_in: wp.array(dtype=vec_hi),
-        torque_in: wp.array(dtype=vec_hi),
+        torque_in: wp.array(dtype=vec_mid),
         force_previous_in: wp.array(dtype=vec_hi),
-        torque_previous_in: wp.array(dtype=vec_hi),
+        torque_previous_in: wp.array(dtype=vec_mid),
         step_previous_in: wp.array(dtype=hi),
         inv_mass: wp.array(dtype=lo),
         inv_inertia: wp.array(dtype=lo),
@@ -150,9 +152,9 @@ def integrator_kernels(hi, lo, law: ContactLaw):
         # outputs
         x_out: wp.array(dtype=vec_hi),
         v_out: wp.array(dtype=vec_hi),
-        w_out: wp.array(dtype=vec_hi),
+        w_out: wp.array(dtype=vec_mid),
         force_previous_out: wp.array(dtype=vec_hi),
-        torque_previous_out: wp.array(dtype=vec_hi),
+        torque_previous_out: wp.array(dtype=vec_mid),
         step_previous_out: wp.array(dtype=hi),
     ):
         """Explicit jolt-Beeman prediction (no force evaluation).
@@ -170,12 +172,12 @@ def integrator_kernels(hi, lo, law: ContactLaw):
         inv_i = hi(inv_inertia[i])
         a = acceleration_of(force_in[i], inv_mass[i], gravity)
         a_minus = backward_step(a, acceleration_of(force_previous_in[i], inv_mass[i], gravity), ratio)
-        alpha = torque_in[i] * inv_i
-        alpha_minus = backward_step(alpha, torque_previous_in[i] * inv_i, ratio)
+        alpha = vec_hi(torque_in[i]) * inv_i
+        alpha_minus = backward_step(alpha, vec_hi(torque_previous_in[i]) * inv_i, ratio)
         v = v_in[i]
         x_out[i] = x_in[i] + dt * v + (dt * dt / hi(6.0)) * (hi(4.0) * a - a_minus)
         v_out[i] = v + (hi(0.5) * dt) * (hi(3.0) * a - a_minus)
-        w_out[i] = w_in[i] + (hi(0.5) * dt) * (hi(3.0) * alpha - alpha_minus)
+        w_out[i] = vec_mid(vec_hi(w_in[i]) + (hi(0.5) * dt) * (hi(3.0) * alpha - alpha_minus))
         force_previous_out[i] = force_in[i]
         torque_previous_out[i] = torque_in[i]
         if i == 0:
@@ -184,15 +186,15 @@ def integrator_kernels(hi, lo, law: ContactLaw):
     @kernel
     def beeman_correct(
         v_in: wp.array(dtype=vec_hi),
-        w_in: wp.array(dtype=vec_hi),
+        w_in: wp.array(dtype=vec_mid),
         x_new: wp.array(dtype=vec_hi),
         force_in: wp.array(dtype=vec_hi),
-        torque_in: wp.array(dtype=vec_hi),
+        torque_in: wp.array(dtype=vec_mid),
         force_previous_in: wp.array(dtype=vec_hi),
-        torque_previous_in: wp.array(dtype=vec_hi),
+        torque_previous_in: wp.array(dtype=vec_mid),
         step_previous_in: wp.array(dtype=hi),
         force_new: wp.array(dtype=vec_hi),
-        torque_new: wp.array(dtype=vec_hi),
+        torque_new: wp.array(dtype=vec_mid),
         inv_mass: wp.array(dtype=lo),
         inv_inertia: wp.array(dtype=lo),
         radius: wp.array(dtype=lo),
@@ -201,7 +203,7 @@ def integrator_kernels(hi, lo, law: ContactLaw):
         step_length: wp.array(dtype=hi),
         # outputs
         v_out: wp.array(dtype=vec_hi),
-        w_out: wp.array(dtype=vec_hi),
+        w_out: wp.array(dtype=vec_mid),
         gaps_out: wp.array2d(dtype=hi),
         status_out: wp.array(dtype=wp.int32),
     ):
@@ -223,11 +225,11 @@ def integrator_kernels(hi, lo, law: ContactLaw):
         a = acceleration_of(force_in[i], inv_mass[i], gravity)
         a_minus = backward_step(a, acceleration_of(force_previous_in[i], inv_mass[i], gravity), ratio)
         a_plus = acceleration_of(force_new[i], inv_mass[i], gravity)
-        alpha = torque_in[i] * inv_i
-        alpha_minus = backward_step(alpha, torque_previous_in[i] * inv_i, ratio)
-        alpha_plus = torque_new[i] * inv_i
+        alpha = vec_hi(torque_in[i]) * inv_i
+        alpha_minus = backward_step(alpha, vec_hi(torque_previous_in[i]) * inv_i, ratio)
+        alpha_plus = vec_hi(torque_new[i]) * inv_i
         v = v_in[i] + (dt / hi(6.0)) * (hi(2.0) * a_plus + hi(5.0) * a - a_minus)
-        w = w_in[i] + (dt / hi(6.0)) * (hi(2.0) * alpha_plus + hi(5.0) * alpha - alpha_minus)
+        w = vec_mid(vec_hi(w_in[i]) + (dt / hi(6.0)) * (hi(2.0) * alpha_plus + hi(5.0) * alpha - alpha_minus))
         v_out[i] = v
         w_out[i] = w
 
@@ -236,7 +238,7 @@ def integrator_kernels(hi, lo, law: ContactLaw):
         spin_gap = wp.length(alpha_plus - hi(2.0) * alpha + alpha_minus) * dt / hi(3.0) * r
         gaps_out[i, 0] = hi(0.5) * dt * velocity_gap / r  # per grain, for the error norm
         gaps_out[i, 1] = wp.max(velocity_gap, spin_gap)
-        flag_nonfinite(x_new[i], v, w, order[i], status_out)
+        flag_nonfinite(x_new[i], v, vec_hi(w), order[i], status_out)
 
     @wp.func
     def grain_error(gaps: wp.array2d(dtype=hi), i: int, position_weight: hi, scale: hi):
@@ -256,7 +258,7 @@ def integrator_kernels(hi, lo, law: ContactLaw):
     def norm_partial(
         gaps: wp.array2d(dtype=hi),
         v_in: wp.array(dtype=vec_hi),
-        w_in: wp.array(dtype=vec_hi),
+        w_in: wp.array(dtype=vec_mid),
         radius: wp.array(dtype=lo),
         slot: wp.array(dtype=wp.int32),
         summary: wp.array(dtype=hi),
@@ -277,7 +279,7 @@ def integrator_kernels(hi, lo, law: ContactLaw):
             if pass_index == 0:
                 first = wp.max(first, gaps[i, 0])
                 second = wp.max(second, gaps[i, 1])
-                third = wp.max(third, wp.max(wp.length(v_in[i]), hi(radius[i]) * wp.length(w_in[i])))
+                third = wp.max(third, wp.max(wp.length(v_in[i]), hi(radius[i]) * wp.length(vec_hi(w_in[i]))))
             else:
                 e = grain_error(gaps, i, position_weight, scale)
                 first = first + e * e
@@ -358,7 +360,7 @@ class VelocityVerlet:
         contacts: ContactSolver,
     ) -> None:
         prec = model.precision
-        kernels = integrator_kernels(prec.hi, prec.lo, model.law)
+        kernels = integrator_kernels(prec.hi, prec.mid, prec.lo, model.law)
         gravity = prec.vec_hi(*model.gravity)
         layout = state_in.layout
         wp.launch(
@@ -470,7 +472,7 @@ class JoltBeeman:
         contacts: ContactSolver,
     ) -> None:
         prec = model.precision
-        kernels = integrator_kernels(prec.hi, prec.lo, model.law)
+        kernels = integrator_kernels(prec.hi, prec.mid, prec.lo, model.law)
         gravity = prec.vec_hi(*model.gravity)
         n = model.particle_count
         if self._model is not model:
@@ -538,7 +540,7 @@ class JoltBeeman:
         velocity scale's floor V read from scale_floor[0] [m/s] (see read_summary)."""
         model = self._model
         prec = model.precision
-        kernels = integrator_kernels(prec.hi, prec.lo, model.law)
+        kernels = integrator_kernels(prec.hi, prec.mid, prec.lo, model.law)
         layout = state.layout
         for pass_index in (0, 1):
             wp.launch(

@@ -2,8 +2,10 @@
 
 The device bytes per grain are those of `Simulation.bytes_per_grain()` (state buffers, layout,
 contact and list scratch, the divergence monitor's last good state), measured once per
-precision on a 25,440-grain bed with rolling friction on (its largest layout) at two contact
-capacities (docs/performance.md section 5). They are linear in the contact slots per grain:
+precision on an 11,368-grain bed (mixed; 25,440 for single and double) with rolling friction
+on (its largest layout) at two contact capacities (docs/performance.md section 5). They are
+linear in the contact slots per grain (mixed keeps its contact history in float32, as single
+does):
 
     device bytes per grain = BASE[precision] + PER_SLOT[precision] x contact_capacity
 
@@ -20,9 +22,9 @@ from dataclasses import dataclass
 
 from .errors import InputError
 
-BASE_BYTES = {"single": 1080, "mixed": 1945, "double": 1977}
+BASE_BYTES = {"single": 1080, "mixed": 1416, "double": 1977}
 """Device bytes per grain besides the pair contact slots (4 wall/wheel slots included) [B]."""
-PER_SLOT_BYTES = {"single": 112, "mixed": 208, "double": 208}
+PER_SLOT_BYTES = {"single": 112, "mixed": 112, "double": 208}
 """Device bytes per pair contact slot of a grain (three state buffers and the monitor's copy) [B]."""
 HOST_BYTES_PER_GRAIN = 400
 """Host bytes per grain while a bed is inserted and its model built (measured peak about 370 B) [B]."""

@@ -102,12 +102,14 @@ def gather_2d(source: wp.array2d(dtype=Any), origin: wp.array(dtype=wp.int32), t
 
 
 @kernel_factory
-def neighbour_kernels(hi, lo, law: ContactLaw):
-    """The neighbour-list kernels for precision types (hi, lo) and the contact-law switches."""
-    kernel = soil_kernel(kernel_module("neighbours", hi, lo, law))
+def neighbour_kernels(hi, mid, lo, law: ContactLaw):
+    """The neighbour-list kernels for precision types (hi, mid, lo) and the contact-law switches
+    (the pair history is stored in mid: soil.precision)."""
+    kernel = soil_kernel(kernel_module("neighbours", hi, mid, lo, law))
     vec_hi = wp.types.vector(3, hi)
     FRICTION, SPIN = law.friction, law.spin
-    vec_spin = spin_history_type(hi, law)
+    vec_mid = wp.types.vector(3, mid)
+    vec_spin = spin_history_type(mid, law)
 
     @wp.func
     def cell_of(x: vec_hi, grid: wp.array(dtype=hi), dims: wp.vec3i):
@@ -315,11 +317,11 @@ def neighbour_kernels(hi, lo, law: ContactLaw):
         target: wp.array(dtype=wp.int32),
         order: wp.array(dtype=wp.int32),
         touching_in: wp.array2d(dtype=wp.uint32),
-        tangential_in: wp.array2d(dtype=vec_hi),
+        tangential_in: wp.array2d(dtype=vec_mid),
         rolling_in: wp.array2d(dtype=vec_spin),
         touching_old: wp.array2d(dtype=wp.uint32),
         touching_out: wp.array2d(dtype=wp.uint32),
-        tangential_out: wp.array2d(dtype=vec_hi),
+        tangential_out: wp.array2d(dtype=vec_mid),
         rolling_out: wp.array2d(dtype=vec_spin),
     ):
         """Carry each pair's history from its entry in the old row to its entry in the new one
@@ -357,7 +359,7 @@ def neighbour_kernels(hi, lo, law: ContactLaw):
                 for k in range(word * 32, wp.min(word * 32 + 32, capacity)):
                     if (clear >> wp.uint32(k & 31)) & wp.uint32(1) != wp.uint32(0):
                         if wp.static(FRICTION):
-                            tangential_out[i, k] = vec_hi()
+                            tangential_out[i, k] = vec_mid()
                         if wp.static(SPIN):
                             rolling_out[i, k] = vec_spin()
             touching_out[i, word] = bits
@@ -496,7 +498,7 @@ class NeighbourList:
         self.model = model
         self.settings = settings or NeighbourSettings()
         prec = model.precision
-        self.kernels = neighbour_kernels(prec.hi, prec.lo, model.law)
+        self.kernels = neighbour_kernels(prec.hi, prec.mid, prec.lo, model.law)
         self.skin = float(self.settings.skin if self.settings.skin is not None else 0.3 * model.max_radius)
         """Extra reach of the list beyond contact [m]."""
         self.cell_min = 2.0 * model.max_radius + self.skin

@@ -1,16 +1,22 @@
 """Floating-point precision modes (docs/physics.md section 3) and the one kernel factory cache.
 
-`hi` is the type of everything where rounding accumulates: absolute positions and
-their updates, velocities, force/torque sums, contact history, wheel wrench sums.
+`hi` is the type of everything where rounding accumulates against a small physical
+scale: absolute positions and their updates, velocities, forces, wheel and wall wrenches,
+the neighbour list's build positions. Arithmetic is done in `hi`.
+`mid` is the stored type of what the error analysis allows in 7 digits (docs/physics.md
+section 3): angular velocities, torques, and the contact history (tangential springs,
+rolling and twist angles). It is read into `hi`, updated there, and rounded when stored.
 `lo` is the type of the contact-law evaluation and the per-particle constants.
 
-- single: hi = lo = float32
-- double: hi = lo = float64
-- mixed:  hi = float64, lo = float32
+- single: hi = mid = lo = float32
+- double: hi = mid = lo = float64
+- mixed:  hi = float64, mid = lo = float32
 
 One generic source serves every precision: a module's kernels are made by a factory
-function of (hi, lo, switches) decorated with `kernel_factory`, which builds them once
-per combination and returns them as attributes (`kernels.contact_forces`).
+function of (hi, mid, lo, switches) decorated with `kernel_factory`, which builds them once
+per combination and returns them as attributes (`kernels.contact_forces`). Where mid is hi
+(single, double) its conversions are the identity: those precisions compute exactly as
+they did before mid existed.
 """
 
 from __future__ import annotations
@@ -32,11 +38,19 @@ PRECISIONS = ("single", "double", "mixed")
 class Precision:
     name: str
     hi: type
+    """Positions, velocities, forces and all arithmetic (module docstring)."""
     lo: type
+    """The contact law's evaluation and the per-grain constants."""
+    mid: type
+    """Stored spins, torques and contact history (module docstring)."""
 
     @property
     def vec_hi(self):
         return wp.types.vector(3, self.hi)
+
+    @property
+    def vec_mid(self):
+        return wp.types.vector(3, self.mid)
 
     @property
     def mat_hi(self):
@@ -50,22 +64,26 @@ class Precision:
     def np_lo(self):
         return np.float64 if self.lo is wp.float64 else np.float32
 
+    @property
+    def np_mid(self):
+        return np.float64 if self.mid is wp.float64 else np.float32
+
 
 def get_precision(name: str) -> Precision:
     """Return the Precision for 'single', 'double' or 'mixed'."""
     if isinstance(name, Precision):
         return name
     if name == "single":
-        return Precision("single", wp.float32, wp.float32)
+        return Precision("single", wp.float32, wp.float32, wp.float32)
     if name == "double":
-        return Precision("double", wp.float64, wp.float64)
+        return Precision("double", wp.float64, wp.float64, wp.float64)
     if name == "mixed":
-        return Precision("mixed", wp.float64, wp.float32)
+        return Precision("mixed", wp.float64, wp.float32, wp.float32)
     raise SoilInputError(f"precision must be one of {PRECISIONS}, got {name!r}")
 
 
 def kernel_module(name: str, *key) -> str:
-    """The Warp module of one kernel-factory call (e.g. `kernel_module("contact", hi, lo, law)`):
+    """The Warp module of one kernel-factory call (e.g. `kernel_module("contact", hi, mid, lo, law)`):
     its kernels compile together, once per combination."""
 
     def part(value):

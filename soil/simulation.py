@@ -407,7 +407,7 @@ class Simulation:
         prec = self.model.precision
         self.graphs.load_modules(
             [
-                integrator_kernels(prec.hi, prec.lo, self.model.law),
+                integrator_kernels(prec.hi, prec.mid, prec.lo, self.model.law),
                 boundary_kernels(prec.hi),
                 path_kernels(prec.hi),
                 macro_kernels(prec.hi),

@@ -31,17 +31,21 @@ CHUNK = 256
 
 
 @kernel_factory
-def contact_kernels(hi, lo, law: ContactLaw):
-    """The contact kernels and their argument bundles for precision types (hi, lo) and the switches."""
-    kernel = soil_kernel(kernel_module("contact", hi, lo, law))
+def contact_kernels(hi, mid, lo, law: ContactLaw):
+    """The contact kernels and their argument bundles for precision types (hi, mid, lo) and the switches.
+
+    Spins and history are stored in `mid` (soil.precision): read into `hi`, rounded when stored."""
+    kernel = soil_kernel(kernel_module("contact", hi, mid, lo, law))
     vec_hi = wp.types.vector(3, hi)
+    vec_mid = wp.types.vector(3, mid)
     mat_hi = wp.types.matrix((3, 3), hi)
     contact_law = contact_functions(hi, lo, law).contact_law
     sdf = sdf_functions(hi)
     boundary_contact, boundary_reference = sdf.boundary_contact, sdf.boundary_reference
     wheel_distance, mesh_distance = sdf.wheel_distance, sdf.mesh_distance
     FRICTION, SPIN = law.friction, law.spin
-    vec_spin = spin_history_type(hi, law)
+    vec_spin = spin_history_type(hi, law)  # the contact law's
+    vec_spin_mid = spin_history_type(mid, law)  # as stored
 
     @wp.struct
     class Grains:
@@ -88,12 +92,12 @@ def contact_kernels(hi, lo, law: ContactLaw):
         """A state's contact history (SoilState pair_* and rigid_*)."""
 
         touching: wp.array2d(dtype=wp.uint32)
-        tangential: wp.array2d(dtype=vec_hi)
-        rolling: wp.array2d(dtype=vec_spin)
+        tangential: wp.array2d(dtype=vec_mid)
+        rolling: wp.array2d(dtype=vec_spin_mid)
         rigid_key: wp.array2d(dtype=wp.int32)
         rigid_count: wp.array(dtype=wp.int32)
-        rigid_tangential: wp.array2d(dtype=vec_hi)
-        rigid_rolling: wp.array2d(dtype=vec_spin)
+        rigid_tangential: wp.array2d(dtype=vec_mid)
+        rigid_rolling: wp.array2d(dtype=vec_spin_mid)
 
     @wp.func
     def rigid_slot(history: History, i: int, key: int):
@@ -107,7 +111,7 @@ def contact_kernels(hi, lo, law: ContactLaw):
     def contact_forces(
         position: wp.array(dtype=vec_hi),
         velocity: wp.array(dtype=vec_hi),
-        angular_velocity: wp.array(dtype=vec_hi),
+        angular_velocity: wp.array(dtype=vec_mid),
         grains: Grains,
         walls: Walls,
         bodies: Bodies,
@@ -121,7 +125,7 @@ def contact_kernels(hi, lo, law: ContactLaw):
         step_length: wp.array(dtype=hi),
         # outputs
         force_out: wp.array(dtype=vec_hi),
-        torque_out: wp.array(dtype=vec_hi),
+        torque_out: wp.array(dtype=vec_mid),
         contact_count_out: wp.array(dtype=wp.int32),
         history_out: History,
         reaction_force_out: wp.array2d(dtype=vec_hi),
@@ -135,7 +139,7 @@ def contact_kernels(hi, lo, law: ContactLaw):
         dt = step_length[0]
         xi = position[i]
         vi = velocity[i]
-        wi = angular_velocity[i]
+        wi = vec_hi(angular_velocity[i])
         ri = grains.radius[i]
         inv_mass_i = grains.inv_mass[i]
         total_force = vec_hi()
@@ -171,7 +175,8 @@ def contact_kernels(hi, lo, law: ContactLaw):
                     n = gap / distance
                     lever_i = hi(ri) - hi(0.5) * overlap
                     lever_j = hi(rj) - hi(0.5) * overlap
-                    v_j = velocity[j] - wp.cross(angular_velocity[j], lever_j * n)  # partner's contact point
+                    w_j = vec_hi(angular_velocity[j])
+                    v_j = velocity[j] - wp.cross(w_j, lever_j * n)  # partner's contact point
                     v_rel = (vi + wp.cross(wi, lever_i * n)) - v_j
                     bit = wp.uint32(1) << wp.uint32(k & 31)
                     t_hist = vec_hi()
@@ -179,20 +184,20 @@ def contact_kernels(hi, lo, law: ContactLaw):
                     if (was & bit) != wp.uint32(0):
                         if wp.static(FRICTION):
                             if remapped:
-                                t_hist = history_out.tangential[i, k]
+                                t_hist = vec_hi(history_out.tangential[i, k])
                             else:
-                                t_hist = history_in.tangential[i, k]
+                                t_hist = vec_hi(history_in.tangential[i, k])
                         if wp.static(SPIN):
                             if remapped:
-                                r_hist = history_out.rolling[i, k]
+                                r_hist = vec_spin(history_out.rolling[i, k])
                             else:
-                                r_hist = history_in.rolling[i, k]
+                                r_hist = vec_spin(history_in.rolling[i, k])
                     pair_row = grains.material[i] * grains.material_count + grains.material[j]
                     f, m_roll, t_new, r_new = contact_law(
                         n,
                         overlap,
                         v_rel,
-                        wi - angular_velocity[j],
+                        wi - w_j,
                         ri * rj / (ri + rj),
                         lo(1.0) / inv_sum,
                         grains.pair,
@@ -204,9 +209,9 @@ def contact_kernels(hi, lo, law: ContactLaw):
                     total_force = total_force + f
                     total_torque = total_torque + wp.cross(lever_i * n, f) + m_roll
                     if wp.static(FRICTION):
-                        history_out.tangential[i, k] = t_new
+                        history_out.tangential[i, k] = vec_mid(t_new)
                     if wp.static(SPIN):
-                        history_out.rolling[i, k] = r_new
+                        history_out.rolling[i, k] = vec_spin_mid(r_new)
                     now = now | bit
                     contacts += 1
             # entries out of contact hold zero: clear what the buffer held and no contact wrote
@@ -215,9 +220,9 @@ def contact_kernels(hi, lo, law: ContactLaw):
                 for k in range(word * 32, wp.min(word * 32 + 32, capacity)):
                     if (clear >> wp.uint32(k & 31)) & wp.uint32(1) != wp.uint32(0):
                         if wp.static(FRICTION):
-                            history_out.tangential[i, k] = vec_hi()
+                            history_out.tangential[i, k] = vec_mid()
                         if wp.static(SPIN):
-                            history_out.rolling[i, k] = vec_spin()
+                            history_out.rolling[i, k] = vec_spin_mid()
             history_out.touching[i, word] = now
 
         # rigid partners: walls (fixed grains do not touch them), then wheels (every grain)
@@ -277,9 +282,9 @@ def contact_kernels(hi, lo, law: ContactLaw):
                 r_hist = vec_spin()
                 if slot >= 0:
                     if wp.static(FRICTION):
-                        t_hist = history_in.rigid_tangential[i, slot]
+                        t_hist = vec_hi(history_in.rigid_tangential[i, slot])
                     if wp.static(SPIN):
-                        r_hist = history_in.rigid_rolling[i, slot]
+                        r_hist = vec_spin(history_in.rigid_rolling[i, slot])
                 pair_row = grains.material[i] * grains.material_count + partner_material
                 f, m_roll, t_new, r_new = contact_law(
                     n, overlap, v_rel, wi - w_partner, ri, mass_eff, grains.pair, pair_row, t_hist, r_hist, dt
@@ -289,9 +294,9 @@ def contact_kernels(hi, lo, law: ContactLaw):
                 if stored < slots:
                     history_out.rigid_key[i, stored] = partner
                     if wp.static(FRICTION):
-                        history_out.rigid_tangential[i, stored] = t_new
+                        history_out.rigid_tangential[i, stored] = vec_mid(t_new)
                     if wp.static(SPIN):
-                        history_out.rigid_rolling[i, stored] = r_new
+                        history_out.rigid_rolling[i, stored] = vec_spin_mid(r_new)
                     reaction_force_out[i, stored] = -f
                     reaction_torque_out[i, stored] = wp.cross(xi + lever_i * n - reference, -f) - m_roll
                 stored += 1
@@ -301,14 +306,14 @@ def contact_kernels(hi, lo, law: ContactLaw):
             if history_out.rigid_key[i, s] >= 0:
                 history_out.rigid_key[i, s] = -1
                 if wp.static(FRICTION):
-                    history_out.rigid_tangential[i, s] = vec_hi()
+                    history_out.rigid_tangential[i, s] = vec_mid()
                 if wp.static(SPIN):
-                    history_out.rigid_rolling[i, s] = vec_spin()
+                    history_out.rigid_rolling[i, s] = vec_spin_mid()
         if stored > slots:
             wp.atomic_max(status_out, status_columns.NEEDED_RIGID, stored)
 
         force_out[i] = total_force
-        torque_out[i] = total_torque
+        torque_out[i] = vec_mid(total_torque)
         contact_count_out[i] = contacts
 
     @kernel
@@ -430,7 +435,7 @@ class ContactSolver:
     def __init__(self, model: SoilModel, neighbours: NeighbourList, status: wp.array):
         self.model = model
         prec = model.precision
-        self.kernels = contact_kernels(prec.hi, prec.lo, model.law)
+        self.kernels = contact_kernels(prec.hi, prec.mid, prec.lo, model.law)
         self.neighbours = neighbours
         self.status = status
         """The step status array (soil.status), shared with the Simulation."""

@@ -47,17 +47,18 @@ CHECK_COLUMNS = 3
 
 
 @kernel_factory
-def check_kernels(hi, lo):
-    """The divergence-check kernel for precision types (hi, lo)."""
-    kernel = soil_kernel(kernel_module("check", hi, lo))
+def check_kernels(hi, mid, lo):
+    """The divergence-check kernel for precision types (hi, mid, lo)."""
+    kernel = soil_kernel(kernel_module("check", hi, mid, lo))
     vec_hi = wp.types.vector(3, hi)
+    vec_mid = wp.types.vector(3, mid)
     boundary_contact = sdf_functions(hi).boundary_contact
 
     @kernel
     def divergence_metrics(
         x_in: wp.array(dtype=vec_hi),
         v_in: wp.array(dtype=vec_hi),
-        w_in: wp.array(dtype=vec_hi),
+        w_in: wp.array(dtype=vec_mid),
         radius: wp.array(dtype=lo),
         inv_mass: wp.array(dtype=lo),
         neighbours: wp.array3d(dtype=wp.int32),
@@ -79,7 +80,8 @@ def check_kernels(hi, lo):
         i = wp.tid()
         xi = x_in[i]
         ri = hi(radius[i])
-        if not (wp.isfinite(xi) and wp.isfinite(v_in[i]) and wp.isfinite(w_in[i])):
+        wi = vec_hi(w_in[i])
+        if not (wp.isfinite(xi) and wp.isfinite(v_in[i]) and wp.isfinite(wi)):
             inf = hi(wp.inf)
             speed_out[i] = inf
             overlap_out[i] = inf
@@ -95,7 +97,7 @@ def check_kernels(hi, lo):
             for b in range(boundary_kind.shape[0]):
                 overlap, n = boundary_contact(boundary_kind[b], boundary_geometry, b, xi - boundary_displacement[b], ri)
                 worst = wp.max(worst, overlap / ri)
-        speed = wp.max(wp.length(v_in[i]), ri * wp.length(w_in[i]))  # spin counts at the surface
+        speed = wp.max(wp.length(v_in[i]), ri * wp.length(wi))  # spin counts at the surface
         speed_out[i] = speed
         overlap_out[i] = worst
         wp.atomic_max(summary_out, CHECK_SPEED, speed)
@@ -350,7 +352,7 @@ class DivergenceMonitor:
             return
         model = sim.model
         prec = model.precision
-        kernels = check_kernels(prec.hi, prec.lo)
+        kernels = check_kernels(prec.hi, prec.mid, prec.lo)
         n = model.particle_count
         state = sim.state
         layout = state.layout

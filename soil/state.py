@@ -134,50 +134,53 @@ class SoilState:
         rolling: bool = True,
         twisting: bool = False,
         layout: GrainLayout | None = None,
+        vec_mid=None,
     ):
         n = particle_count
         scalar = vec_hi._wp_scalar_type_
+        vec_mid = vec_mid or vec_hi  # the stored type of spins, torques and history (soil.precision)
         tangential = capacity if friction else 0
         keeps_spin = rolling or twisting
         spin = capacity if keeps_spin else 0
-        vec_spin = wp.types.vector(4 if twisting else 3, scalar)  # contact.spin_history_type
+        vec_spin = wp.types.vector(4 if twisting else 3, vec_mid._wp_scalar_type_)  # contact.spin_history_type
         self.layout = layout
         """Storage order, grain constants and neighbour lists (shared with the other buffers of a Simulation)."""
         self.position = wp.zeros(n, dtype=vec_hi, device=device)
         """Particle centre positions [m], shape (particle_count,)."""
         self.velocity = wp.zeros(n, dtype=vec_hi, device=device)
         """Particle velocities [m/s], shape (particle_count,)."""
-        self.angular_velocity = wp.zeros(n, dtype=vec_hi, device=device)
-        """Particle angular velocities [rad/s], shape (particle_count,)."""
+        self.angular_velocity = wp.zeros(n, dtype=vec_mid, device=device)
+        """Particle angular velocities [rad/s], shape (particle_count,), dtype mid."""
         self.force = wp.zeros(n, dtype=vec_hi, device=device)
         """Contact + external force on each particle at the state's time [N], shape (particle_count,)."""
-        self.torque = wp.zeros(n, dtype=vec_hi, device=device)
-        """Contact torque on each particle about its centre [N m], shape (particle_count,)."""
+        self.torque = wp.zeros(n, dtype=vec_mid, device=device)
+        """Contact torque on each particle about its centre [N m], shape (particle_count,), dtype mid."""
         self.force_previous = wp.zeros(n, dtype=vec_hi, device=device)
         """Force of the previous step's state (time - step_previous) [N], shape (particle_count,).
         Multi-step integrators (jolt-Beeman) take the jolt from it."""
-        self.torque_previous = wp.zeros(n, dtype=vec_hi, device=device)
-        """Torque of the previous step's state [N m], shape (particle_count,)."""
+        self.torque_previous = wp.zeros(n, dtype=vec_mid, device=device)
+        """Torque of the previous step's state [N m], shape (particle_count,), dtype mid."""
         self.contact_count = wp.zeros(n, dtype=wp.int32, device=device)
         """Contacts of each particle (grains, walls, wheels) at the state's time [-], shape (particle_count,)."""
         self._pair_capacity = int(capacity)
         self.pair_touching = wp.zeros((n, _words(capacity)), dtype=wp.uint32, device=device)
         """Bit k of word k // 32: neighbour-list entry k is in contact [-], shape
         (particle_count, ceil(capacity / 32)), uint32."""
-        self.pair_tangential = wp.zeros((n, tangential), dtype=vec_hi, device=device)
-        """Accumulated tangential displacement per neighbour-list entry [m], shape (particle_count, capacity)
-        (width 0 without friction)."""
+        self.pair_tangential = wp.zeros((n, tangential), dtype=vec_mid, device=device)
+        """Accumulated tangential displacement per neighbour-list entry [m], shape (particle_count, capacity),
+        dtype mid (width 0 without friction)."""
         self.pair_rolling = wp.zeros((n, spin), dtype=vec_spin, device=device)
         """Spin history per neighbour-list entry: the accumulated rolling angle [rad] (3 components)
         and, with twisting resistance, the twist angle about the normal [rad] (a 4th), shape
-        (particle_count, capacity) (width 0 without rolling or twisting resistance)."""
+        (particle_count, capacity), dtype mid (width 0 without rolling or twisting resistance)."""
         self.rigid_key = wp.full((n, rigid_capacity), -1, dtype=wp.int32, device=device)
         """Rigid partner of each rigid-contact slot [-] (boundary b, or boundary_count + body), shape
         (particle_count, rigid_capacity), int32, -1 past rigid_count."""
         self.rigid_count = wp.zeros(n, dtype=wp.int32, device=device)
         """Used rigid-contact slots of each particle [-], shape (particle_count,)."""
-        self.rigid_tangential = wp.zeros((n, rigid_capacity if friction else 0), dtype=vec_hi, device=device)
-        """Accumulated tangential displacement per rigid-contact slot [m], shape (particle_count, rigid_capacity)."""
+        self.rigid_tangential = wp.zeros((n, rigid_capacity if friction else 0), dtype=vec_mid, device=device)
+        """Accumulated tangential displacement per rigid-contact slot [m], shape (particle_count, rigid_capacity),
+        dtype mid."""
         self.rigid_rolling = wp.zeros((n, rigid_capacity if keeps_spin else 0), dtype=vec_spin, device=device)
         """Spin history per rigid-contact slot [rad] (as pair_rolling), shape (particle_count, rigid_capacity)."""
         self.step_previous = wp.zeros(1, dtype=scalar, device=device)
@@ -244,6 +247,7 @@ class SoilState:
             rolling=model.law.rolling,
             twisting=model.law.twisting,
             layout=layout,
+            vec_mid=model.precision.vec_mid,
         )
 
     @property

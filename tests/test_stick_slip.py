@@ -21,7 +21,7 @@ SQUEEZE = {
 }
 
 
-def squeezed_sphere(partner, gravity, stick_speed, nudge):
+def squeezed_sphere(partner, gravity, stick_speed, nudge, precision="double"):
     """A sphere pressed 1 % of its radius between two vertical walls (or two fixed grains) of its
     own material, released at `nudge` [m/s] upwards; returns (simulation, grain mass)."""
     case = SQUEEZE[gravity]
@@ -43,7 +43,7 @@ def squeezed_sphere(partner, gravity, stick_speed, nudge):
     else:
         builder.add_particles([(-1.98 * r, 0, 0), (1.98 * r, 0, 0)], r, soil, fixed=True)
     builder.add_particle((0, 0, 0), r, soil, velocity=(0, 0, nudge))
-    model, state, control = builder.finalize(device="cpu", precision="double")
+    model, state, control = builder.finalize(device="cpu", precision=precision)
     return Simulation(model, state, control), 2600.0 * 4.0 / 3.0 * math.pi * r**3
 
 
@@ -69,24 +69,25 @@ def test_a_squeezed_sphere_comes_to_rest_with_each_side_carrying_half_its_weight
     np.testing.assert_allclose(carried, mass * gravity / 2, rtol=0.01)
 
 
-def tilted_block(gravity, stick_speed, theta_deg):
+def tilted_block(gravity, stick_speed, theta_deg, precision="double", youngs_modulus=1e7):
     """A rotation-locked sphere (a block) at rest on a plane at its static Hertz overlap, with the
     downhill pull m g sin(theta) of a slope of theta still to come (as an external force); stick/slip
     angles 30/20 deg. Returns (simulation, mass, step)."""
     theta, radius = math.radians(theta_deg), 5e-3
     mass = 2600 * 4 / 3 * math.pi * radius**3
-    e_star = 1 / (2 * (1 - 0.3**2) / 1e7)
+    e_star = 1 / (2 * (1 - 0.3**2) / youngs_modulus)
     overlap = (3 * mass * gravity * math.cos(theta) / (4 * e_star * math.sqrt(radius))) ** (2 / 3)
     material = Material(
-        youngs_modulus=1e7,
+        youngs_modulus=youngs_modulus,
         restitution=0.1,
         stick_angle=math.radians(30),
         slip_angle=math.radians(20),
         stick_speed=stick_speed,
     )
     g = (0.0, 0.0, -gravity * math.cos(theta))
-    sim = sphere_on_plane("cpu", "double", g, material, radius=radius, lock_rotation=True, overlap=overlap)
-    return sim, mass, 2e-5 * (9.81 / gravity) ** (1 / 3)  # the Hertz period grows as g^(-1/3)
+    sim = sphere_on_plane("cpu", precision, g, material, radius=radius, lock_rotation=True, overlap=overlap)
+    # the Hertz period grows as g^(-1/3) and shrinks as E^(-1/3)
+    return sim, mass, 2e-5 * (9.81 / gravity) ** (1 / 3) * (1e7 / youngs_modulus) ** (1 / 3)
 
 
 def tilt(sim, mass, gravity, theta_deg, duration, dt, increments=100):
