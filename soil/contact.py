@@ -3,7 +3,8 @@
 `contact_functions(hi, lo, law).contact_law` is a @wp.func that turns one contact (overlap,
 normal, relative motion, history) into the force and rolling torque on the particle.
 Terms that the ContactLaw switches off are removed at compile time (wp.static), so
-they cost nothing. Geometry and history use `hi`; the force law itself uses `lo`.
+they cost nothing. Geometry and history use `hi`; the force law itself uses `lo`. The callers
+store the history in `mid` (soil.precision) and convert it on the way in and out.
 """
 
 import math
@@ -50,10 +51,11 @@ class ContactLaw:
         return self.rolling or self.twisting
 
 
-def spin_history_type(hi, law: ContactLaw):
-    """The Warp vector of one contact's spin history: the rolling angle [rad] (3 components),
-    and with twisting the twist angle about the normal [rad] as a 4th."""
-    return wp.types.vector(4 if law.twisting else 3, hi)
+def spin_history_type(scalar, law: ContactLaw):
+    """The Warp vector of one contact's spin history in `scalar` (hi in the law, mid as stored):
+    the rolling angle [rad] (3 components), and with twisting the twist angle about the normal
+    [rad] as a 4th."""
+    return wp.types.vector(4 if law.twisting else 3, scalar)
 
 
 @kernel_factory

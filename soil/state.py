@@ -118,6 +118,9 @@ class SoilState:
     boxes, wheels) keep theirs in `rigid_*` slots keyed by the partner: boundary index b,
     or boundary_count + body index. History that the contact law does not use (friction or
     rolling off) has zero width: it is neither stored, read nor written.
+
+    Types (soil.precision): positions, velocities, forces and wrenches are `vec_hi`; spins,
+    torques and the contact history are `vec_mid` (float32 in mixed; `vec_hi` when not given).
     """
 
     def __init__(
