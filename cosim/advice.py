@@ -227,3 +227,133 @@ def verdict(findings: list[Finding]) -> str:
     """'valid' or the failed checks, comma-separated."""
     failed = [f.check for f in findings if not f.ok]
     return "valid" if not failed else "out of range: " + ", ".join(failed)
+
+
+# -- the SCM tier ------------------------------------------------------------------------------
+
+SCM_GROUSER_RATIO = 0.5
+"""Largest grouser height / sinkage for SCM [-]: taller grousers carry the traction by shearing soil
+between them, which a height field's surface shear does not represent."""
+SCM_SINKAGE_GRAINS = 3.0
+"""Shallowest sinkage for SCM, in grain diameters [-]: shallower, the wheel rides on a few grains and
+the continuum's pressure-sinkage curve does not hold."""
+SCM_SLIP_LIMIT = 0.6
+"""Highest slip for SCM [-]: beyond it the wheel digs in (soil flows round it, sinkage by slip) and the
+steady-state Bekker/Janosi model is outside the measured range."""
+
+USE_DEM = 'use the DEM there (terrain.model = "dem", or "dem" for that wheel in terrain.wheels)'
+
+
+def _scm_wheels(plan: RunPlan) -> list:
+    """The plan's wheels on SCM."""
+    models = plan.terrain.wheel_models
+    return [w for i, w in enumerate(plan.wheels) if not models or models[i] == "scm"]
+
+
+def _drive_slip(plan: RunPlan) -> tuple[float | None, str]:
+    """The slip the drive asks for (the testbed's slip mode, a slip controller) and its key; None if it sets none."""
+    t = plan.testbed
+    if t is not None:
+        return (t.slip, "testbed.slip") if t.mode == "slip" else (None, "")
+    assert plan.rover is not None and plan.scene.rover is not None
+    section = plan.rover.drive.section
+    target = getattr(section, "target_slip", None)
+    if target is None:
+        return None, ""
+    named = isinstance(plan.scene.rover.drive, str)
+    key = f"rover.controllers.{plan.rover.drive.name}.target_slip" if named else "rover.drive.target_slip"
+    return float(target), key
+
+
+def scm_check(plan: RunPlan, sinkage_tips: float | None = None) -> list[Finding]:
+    """Where the SCM tier cannot represent the run (each failed finding says to use the DEM):
+    grouser-dominated traction (grouser height > SCM_GROUSER_RATIO x sinkage), a sinkage below
+    SCM_SINKAGE_GRAINS grain diameters, a slip above SCM_SLIP_LIMIT, a Froude number above
+    FROUDE_LIMIT, and a calibration made at another gravity. The sinkage is the measured tip
+    sinkage when given, else Bekker's closed form for the wheel's load."""
+    from .scm_calibration import same_gravity
+    from .scm_soil import bekker_wheel_sinkage, scm_settings
+
+    wheels = _scm_wheels(plan)
+    if not wheels:
+        return []
+    indices = [plan.wheels.index(w) for w in wheels]
+    parameters = scm_settings(plan, indices, 0.0).parameters
+    wheel = min(wheels, key=lambda w: w.width)
+    if sinkage_tips is not None:
+        sinkage, how = float(sinkage_tips), "measured"
+    else:
+        sinkage = bekker_wheel_sinkage(parameters, plan.wheel_load, wheel.outer_radius, wheel.width)
+        how = "Bekker's closed form"
+    findings = []
+    grouser = float(getattr(wheel.shape, "grouser_height", 0.0)) if getattr(wheel.shape, "grouser_count", 0) else 0.0
+    if grouser > 0:
+        findings.append(
+            _finding(
+                "scm_grousers",
+                grouser / max(sinkage, 1e-12),
+                SCM_GROUSER_RATIO,
+                grouser <= SCM_GROUSER_RATIO * sinkage,
+                f"grouser height {grouser:.3g} m <= {SCM_GROUSER_RATIO} x sinkage {sinkage:.3g} m ({how}): SCM's "
+                "surface shear carries the traction",
+                f"grouser height {grouser:.3g} m > {SCM_GROUSER_RATIO} x sinkage {sinkage:.3g} m ({how}): the "
+                f"grousers carry the traction, which SCM does not represent; {USE_DEM}",
+                "wheel.grouser_height, terrain.model",
+            )
+        )
+    diameter = 2.0 * plan.bed.spec.radius_mean
+    findings.append(
+        _finding(
+            "scm_sinkage_grains",
+            sinkage / diameter,
+            SCM_SINKAGE_GRAINS,
+            sinkage >= SCM_SINKAGE_GRAINS * diameter,
+            f"sinkage {sinkage:.3g} m ({how}) = {sinkage / diameter:.3g} grain diameters: a continuum",
+            f"sinkage {sinkage:.3g} m ({how}) is {sinkage / diameter:.3g} grain diameters, below "
+            f"{SCM_SINKAGE_GRAINS}: the wheel rides on single grains, no continuum; {USE_DEM}",
+            "terrain.model, bed.radius_mean",
+        )
+    )
+    slip, key = _drive_slip(plan)
+    if slip is not None:
+        findings.append(
+            _finding(
+                "scm_slip",
+                slip,
+                SCM_SLIP_LIMIT,
+                abs(slip) <= SCM_SLIP_LIMIT,
+                f"slip {slip:.3g} <= {SCM_SLIP_LIMIT}",
+                f"slip {slip:.3g} > {SCM_SLIP_LIMIT}: the wheel digs in (slip sinkage, soil flowing round it), "
+                f"outside SCM's steady Bekker-Janosi model; {USE_DEM}",
+                key,
+            )
+        )
+    fr = plan.froude_number
+    if math.isfinite(fr):
+        findings.append(
+            _finding(
+                "scm_froude",
+                fr,
+                FROUDE_LIMIT,
+                fr <= FROUDE_LIMIT,
+                f"Froude number {fr:.3g} <= {FROUDE_LIMIT}: quasi-static, as SCM's laws are",
+                f"Froude number {fr:.3g} > {FROUDE_LIMIT}: a dynamic regime (soil inertia, the wheel hops) that "
+                f"SCM's quasi-static laws do not hold; {USE_DEM}",
+                "testbed.omega, rover.controllers",
+            )
+        )
+    calibrated = plan.terrain.calibration_gravity
+    if calibrated is not None:
+        findings.append(
+            _finding(
+                "scm_calibration_gravity",
+                calibrated,
+                plan.g,
+                same_gravity(calibrated, plan.g),
+                f"calibrated at the scene's gravity ({plan.g:.4g} m/s^2)",
+                f"calibrated at |g| = {calibrated:.4g} m/s^2, the scene's is {plan.g:.4g} m/s^2: the soil's response "
+                "depends on gravity; calibrate at the scene's (cosim calibrate-scm SCENE) or use the DEM",
+                "terrain.calibration",
+            )
+        )
+    return findings

@@ -196,9 +196,15 @@ class TerrainPlan:
     """The terrain model the wheels run on ([terrain]; cosim.system.TERRAIN_MODELS builds it)."""
 
     model: str = "dem"
-    """'dem' (the grains of [bed]) or 'analytic' (cosim.terrain.SpringDamperTerrain)."""
+    """'dem' (the grains of [bed]), 'scm' (soil.scm), 'mixed' (some wheels on the DEM, the others on
+    SCM: `wheel_models`) or 'analytic' (cosim.terrain.SpringDamperTerrain)."""
     parameters: tuple[tuple[str, Any], ...] = ()
-    """The model's own parameters given in the scene, (name, value) pairs (its defaults for the rest)."""
+    """The model's own parameters given in the scene, (name, value) pairs (its defaults for the rest);
+    SCM: the soil keys a calibration file gives are included."""
+    wheel_models: tuple[str, ...] = ()
+    """'mixed': each wheel's model ('dem' or 'scm'), in wheel order; () otherwise."""
+    calibration_gravity: float | None = None
+    """SCM from a calibration file: the |g| its DEM tests ran at [m/s^2]."""
 
 
 @dataclass(frozen=True)
@@ -575,6 +581,7 @@ def resolve(scene: Scene) -> RunPlan:
         land.speed_ratio * math.sqrt(g * outer),
         max(1, int(math.ceil(hold / macro_step))),
     )
+    terrain = _terrain(scene, len(wheels), problems)
     if problems:
         raise SceneError(problems)
     return RunPlan(
@@ -605,17 +612,43 @@ def resolve(scene: Scene) -> RunPlan:
         rover=rover_plan,
         patch=patch,
         wheels=wheels,
-        terrain=_terrain(scene),
+        terrain=terrain,
     )
 
 
-def _terrain(scene: Scene) -> TerrainPlan:
-    """The scene's terrain model and the parameters it gives for it (scene.TerrainSection)."""
+def _terrain(scene: Scene, wheel_count: int, problems: list[str]) -> TerrainPlan:
+    """The scene's terrain model and the parameters it gives for it (scene.TerrainSection); an SCM
+    calibration file's soil parameters fill the soil keys the scene does not give."""
     section = scene.terrain
     if section is None:
         return TerrainPlan()
-    given = section.model_dump(exclude={"model"}, exclude_none=True)
-    return TerrainPlan(section.model, tuple(sorted(given.items())))
+    given = section.model_dump(exclude={"model", "wheels", "calibration"}, exclude_none=True)
+    if section.model != "scm":
+        return TerrainPlan(section.model, tuple(sorted(given.items())))
+    gravity = None
+    if section.calibration is not None:
+        from .scm_calibration import CalibrationError, read_calibration
+
+        try:
+            calibration = read_calibration(section.calibration)
+        except CalibrationError as error:
+            problems.append(f"terrain.calibration: {error}")
+        else:
+            gravity = calibration.gravity
+            for key, value in calibration.parameters.items():
+                given.setdefault(key, value)
+    model = "scm"
+    models: tuple[str, ...] = ()
+    if section.wheels is not None:
+        if wheel_count and len(section.wheels) != wheel_count:
+            problems.append(
+                f"terrain.wheels: names {len(section.wheels)} wheels' models, the scene has {wheel_count} wheels"
+            )
+        elif set(section.wheels) == {"dem"}:
+            model = "dem"
+        elif "dem" in section.wheels:
+            model, models = "mixed", tuple(section.wheels)
+    return TerrainPlan(model, tuple(sorted(given.items())), models, gravity)
 
 
 def _testbed(scene: Scene, wheel: WheelPlan, problems: list[str]) -> TestbedPlan:

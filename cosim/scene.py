@@ -14,6 +14,8 @@
                [rover.mmx] the built-in rover's parameters; [rover.wheel_shape.<wheel>] a wheel's own
                shape (a [wheel] section); [rover.controllers.<name>] named drives (kind "speed" |
                "torque" | "slip" | "fmu" | "python")
+    [terrain]  model ("dem" | "scm" | "analytic") and the model's keys (scm: the Bekker, Mohr-Coulomb and
+               Janosi parameters or a calibration file, the grid; wheels: each wheel's model)
     [patch]    a soil patch that follows the rover (the [bed] is its settled tile): length, width,
                band, clearance, recentre_distance, tile_margin
     [landing]  enabled, max_time, speed_ratio, hold_time
@@ -492,16 +494,38 @@ class PatchSection(_Section):
     diameters: the walls order the packing near them)."""
 
 
-ANALYTIC_KEYS = ("stiffness", "damping", "friction", "traction", "slip_scale", "slip_velocity", "surface_height")
-"""The [terrain] keys of model = "analytic"."""
+ANALYTIC_KEYS = ("stiffness", "damping", "friction", "traction", "slip_scale", "slip_velocity")
+"""The [terrain] keys of model = "analytic" only."""
+
+SCM_SOIL_KEYS = ("k_c", "k_phi", "n", "cohesion", "friction_angle_deg", "janosi_k", "elastic_stiffness")
+"""The SCM soil's parameters: a scene on model = "scm" gives each, or a calibration file gives them."""
+
+SCM_KEYS = SCM_SOIL_KEYS + (
+    "pressure_damping",
+    "node_spacing",
+    "bulldozing",
+    "bulldozing_fraction",
+    "erosion_angle_deg",
+    "erosion_iterations",
+    "window_length",
+    "window_width",
+    "time_step",
+    "calibration",
+    "wheels",
+)
+"""The [terrain] keys of model = "scm" only."""
+
+TERRAIN_WHEEL_MODELS = ("dem", "scm")
+"""The models a wheel of terrain.wheels may name."""
 
 
 class TerrainSection(_Section):
-    """The terrain the wheels run on: the DEM bed of [bed] (the default), or the analytic test terrain
-    (cosim.terrain.SpringDamperTerrain: flat spring-damper ground, each wheel a disc of its rim
-    radius). Unset analytic keys take the terrain's defaults."""
+    """The terrain the wheels run on: the DEM bed of [bed] (the default), the Soil Contact Model
+    (model = "scm": soil.scm, a height field with Bekker pressure-sinkage and Janosi shear; docs/scm.md)
+    or the analytic test terrain (cosim.terrain.SpringDamperTerrain: flat spring-damper ground, each
+    wheel a disc of its rim radius). Unset keys take the model's defaults."""
 
-    model: Literal["dem", "analytic"] = "dem"
+    model: Literal["dem", "scm", "analytic"] = "dem"
     stiffness: float | None = Field(None, gt=0)
     """analytic: normal penalty stiffness per wheel [N/m] (default 2e4)."""
     damping: float | None = Field(None, ge=0)
@@ -515,18 +539,74 @@ class TerrainSection(_Section):
     slip_velocity: float | None = Field(None, gt=0)
     """analytic: regularisation velocity of the friction laws [m/s] (default 1e-3)."""
     surface_height: float | None = None
-    """analytic: height z of the ground [m] (default 0)."""
+    """analytic, scm: height z of the undisturbed ground [m] (default 0; scm with DEM wheels: the bed's)."""
+    k_c: float | None = Field(None, ge=0)
+    """scm: Bekker cohesive modulus k_c [Pa m^(1-n)]."""
+    k_phi: float | None = Field(None, ge=0)
+    """scm: Bekker frictional modulus k_phi [Pa m^(-n)]."""
+    n: float | None = Field(None, gt=0)
+    """scm: Bekker sinkage exponent [-]."""
+    cohesion: float | None = Field(None, ge=0)
+    """scm: Mohr-Coulomb cohesion [Pa]."""
+    friction_angle_deg: float | None = Field(None, ge=0, lt=90)
+    """scm: Mohr-Coulomb internal friction angle [deg]."""
+    janosi_k: float | None = Field(None, gt=0)
+    """scm: Janosi-Hanamoto shear deformation modulus K [m]."""
+    elastic_stiffness: float | None = Field(None, gt=0)
+    """scm: unloading/reloading stiffness K_e [Pa/m]."""
+    pressure_damping: float | None = Field(None, ge=0)
+    """scm: normal damping R [Pa s/m] on the wheel surface's speed into the soil (default: the
+    critical damping of a wheel's elastic bounce, cosim.scm_soil.scm_settings)."""
+    node_spacing: float | None = Field(None, gt=0)
+    """scm: grid node spacing [m] (default: the narrowest wheel's width / 12)."""
+    bulldozing: bool | None = None
+    """scm: move the soil a wheel displaces to its rut's rims (default false)."""
+    bulldozing_fraction: float | None = Field(None, ge=0, le=1)
+    """scm: fraction of the displaced volume moved to the rims [-] (default 1)."""
+    erosion_angle_deg: float | None = Field(None, gt=0, lt=90)
+    """scm: steepest slope the moved soil keeps [deg] (default 30)."""
+    erosion_iterations: int | None = Field(None, ge=0)
+    """scm: slope-limiting passes per step (default 2)."""
+    window_length: float | None = Field(None, gt=0)
+    """scm: the node window's size along x [m] (default: the wheels' span along x + 6 outer radii)."""
+    window_width: float | None = Field(None, gt=0)
+    """scm: the node window's size along y [m] (default: the wheels' span along y + 4 outer radii)."""
+    time_step: float | None = Field(None, gt=0)
+    """scm: the SCM step [s] (default: the macro step; each macro step is split into steps of at most this)."""
+    calibration: str | None = Field(None, min_length=1)
+    """scm: a calibration file (`cosim calibrate-scm`) giving the soil keys not given here."""
+    wheels: list[Literal["dem", "scm"]] | None = None
+    """scm: each wheel's model, in wheel order (e.g. ["dem", "scm", "scm", "scm"]): the "dem" wheels on
+    the grains of [bed] (and [patch]), the others on SCM (default: every wheel on SCM)."""
 
     @model_validator(mode="after")
     def _keys_of_model(self):
-        if self.model != "analytic":
-            given = [key for key in ANALYTIC_KEYS if getattr(self, key) is not None]
+        for keys, model in ((ANALYTIC_KEYS, "analytic"), (SCM_KEYS, "scm")):
+            if self.model == model:
+                continue
+            given = [key for key in keys if getattr(self, key) is not None]
             if given:
                 raise ValueError(
-                    f'{given[0]}: a key of the analytic terrain (model = "analytic"); '
-                    f"model = {self.model!r} takes none of {', '.join(ANALYTIC_KEYS)}"
+                    f"{given[0]}: a key of the {'analytic terrain' if model == 'analytic' else 'SCM terrain'} "
+                    f'(model = "{model}"); model = {self.model!r} takes none of {", ".join(keys)}'
+                )
+        if self.model == "dem" and self.surface_height is not None:
+            raise ValueError(
+                'surface_height: the DEM\'s surface is its settled bed\'s; a key of model = "analytic" or "scm"'
+            )
+        if self.model == "scm" and self.calibration is None:
+            missing = [key for key in SCM_SOIL_KEYS if getattr(self, key) is None]
+            if missing:
+                raise ValueError(
+                    f'{missing[0]}: model = "scm" needs the soil\'s {", ".join(missing)} (or calibration = a file '
+                    "written by `cosim calibrate-scm`)"
                 )
         return self
+
+    @property
+    def dem_wheels(self) -> bool:
+        """Some wheel runs on the DEM (model "dem", or "dem" in terrain.wheels)."""
+        return self.model == "dem" or "dem" in (self.wheels or [])
 
 
 class LandingSection(_Section):
@@ -626,8 +706,11 @@ class Scene(_Section):
             raise ValueError("rover: a scene has either a single-wheel [testbed] or a [rover], not both")
         if self.patch is not None and self.rover is None:
             raise ValueError("patch: a moving soil patch follows a [rover]; the single-wheel testbed runs on its bed")
-        if self.patch is not None and self.terrain is not None and self.terrain.model != "dem":
-            raise ValueError("patch: a moving soil patch is a window of DEM grains; terrain.model must be 'dem'")
+        if self.patch is not None and self.terrain is not None and not self.terrain.dem_wheels:
+            raise ValueError(
+                "patch: a moving soil patch is a window of DEM grains; terrain.model must be 'dem' (or terrain.wheels "
+                "name a 'dem' wheel)"
+            )
         if self.rover is None and self.testbed is None:
             object.__setattr__(self, "testbed", TestbedSection())
         return self
@@ -646,6 +729,8 @@ class Scene(_Section):
             path = getattr(section, key)
             if path:  # set without validation: the section was validated with this file already
                 object.__setattr__(section, key, self.resolve(path))
+        if self.terrain is not None and self.terrain.calibration:
+            object.__setattr__(self.terrain, "calibration", self.resolve(self.terrain.calibration))
         return self
 
     def resolve(self, path: str | None) -> str | None:

@@ -36,6 +36,8 @@ from .dem_soil import DemSoil
 from .metrics import WheelGeometry
 from .plan import RunPlan, SceneError, enable_step_control
 from .rover import RoverDriver, make_controller, open_rover
+from .scm_calibration import warn_gravity
+from .scm_soil import CompositeSoil, ScmSoil, scm_settings
 from .single_wheel import SingleWheelRig
 from .terrain import SpringDamperTerrain
 
@@ -195,9 +197,9 @@ def _lift(soil: SoilSide, kinematics, plan: RunPlan) -> float:
 # terrain models
 
 
-def _dem_soil(plan: RunPlan, bed: Bed | None) -> DemSoil:
+def _dem_soil(plan: RunPlan, bed: Bed | None, indices: list[int] | None = None) -> DemSoil:
     """The DEM soil: the settled bed's grains with one body per wheel (the testbed's one wheel, or
-    a rover's on the bed or on a patch of tiles of it)."""
+    a rover's on the bed or on a patch of tiles of it); `indices`: only these wheels (a mixed terrain)."""
     assert bed is not None  # the DEM terrain needs its bed (TerrainModel.needs_bed)
     if plan.rover is None:
         sim = open_bed(
@@ -213,6 +215,8 @@ def _dem_soil(plan: RunPlan, bed: Bed | None) -> DemSoil:
         return DemSoil(sim, plan.dt, bed.surface_height)
     r = plan.rover
     wheels = [(w.shape, w.material) for w in plan.wheels]
+    if indices is not None:
+        wheels = [wheels[i] for i in indices]
     patch = None
     if plan.patch is not None:
         p, spec = plan.patch, plan.bed.spec
@@ -258,6 +262,43 @@ def _analytic_soil(plan: RunPlan, bed: Bed | None) -> SpringDamperTerrain:
     return SpringDamperTerrain([w.rim_radius for w in plan.wheels], len(plan.wheels), z0=z0, **parameters)
 
 
+def _scm_soil(plan: RunPlan, bed: Bed | None) -> ScmSoil:
+    """The SCM terrain (soil.scm) under every wheel, with the [terrain] section's parameters."""
+    surface = dict(plan.terrain.parameters).get("surface_height", 0.0)
+    return _scm_part(plan, list(range(len(plan.wheels))), surface)
+
+
+def _scm_part(plan: RunPlan, indices: list[int], surface: float) -> ScmSoil:
+    if plan.terrain.calibration_gravity is not None:
+        section = plan.scene.terrain
+        warn_gravity(plan.terrain.calibration_gravity, plan.g, str(section.calibration if section else ""))
+    settings = scm_settings(plan, indices, surface)
+    wheels = [plan.wheels[i] for i in indices]
+    return ScmSoil.build(
+        settings, [w.shape for w in wheels], [w.rim_radius for w in wheels], plan.device, plan.precision
+    )
+
+
+def _mixed_soil(plan: RunPlan, bed: Bed | None) -> CompositeSoil:
+    """terrain.wheels: the "dem" wheels on the bed's grains (and patch), the others on SCM at the
+    DEM's surface height."""
+    models = plan.terrain.wheel_models
+    dem = [i for i, m in enumerate(models) if m == "dem"]
+    scm = [i for i, m in enumerate(models) if m == "scm"]
+    grains = _dem_soil(plan, bed, dem)
+    return CompositeSoil([(grains, dem), (_scm_part(plan, scm, grains.surface_height), scm)])
+
+
+def _scm_validity(plan: RunPlan, surface_height: float | None = None, sinkage_tips: float | None = None) -> list:
+    """cosim.advice.scm_check: where SCM cannot represent the wheel test."""
+    return advice.scm_check(plan, sinkage_tips)
+
+
+def _mixed_validity(plan: RunPlan, surface_height: float | None = None, sinkage_tips: float | None = None) -> list:
+    """The DEM's checks and SCM's."""
+    return advice.check(plan, surface_height, sinkage_tips) + advice.scm_check(plan, sinkage_tips)
+
+
 def _dem_validity(plan: RunPlan, surface_height: float | None = None, sinkage_tips: float | None = None) -> list:
     """cosim.advice.check: the DEM's grain scales against the wheel, the bed and the sinkage."""
     return advice.check(plan, surface_height, sinkage_tips)
@@ -284,6 +325,8 @@ class TerrainModel:
 TERRAIN_MODELS: dict[str, TerrainModel] = {
     "dem": TerrainModel(_dem_soil, needs_bed=True, validity=_dem_validity),
     "analytic": TerrainModel(_analytic_soil, needs_bed=False, validity=_no_findings),
+    "scm": TerrainModel(_scm_soil, needs_bed=False, validity=_scm_validity),
+    "mixed": TerrainModel(_mixed_soil, needs_bed=True, validity=_mixed_validity),
 }
 """The terrain models by [terrain] model name."""
 

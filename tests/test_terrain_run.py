@@ -142,6 +142,6 @@ def test_terrain_keys_are_checked():
         validate_scene({"terrain": {"model": "analytic", "stifness": 1.0}})
     assert "terrain.stifness: unknown key (not a scene setting; check the spelling)" in error.value.problems
     with pytest.raises(SceneError) as error:
-        validate_scene({"terrain": {"model": "scm"}})
+        validate_scene({"terrain": {"model": "fem"}})
     assert any(p.startswith("terrain.model:") for p in error.value.problems)
     assert validate_scene({}).terrain is None  # a DEM scene's scene.toml stays as it was

@@ -1,0 +1,121 @@
+"""SCM calibration files: the SCM soil parameters the DEM's virtual tests gave at one gravity
+(written by `cosim calibrate-scm`, cosim.lab.scm; read by a scene's [terrain] calibration key).
+
+    write_calibration("terrain.toml", calibration)
+    calibration = read_calibration("terrain.toml")      # .parameters, .standard_errors, .gravity, .source
+
+The file (TOML) records its format version, the SCM parameters and their standard errors, the
+gravity, the soil (its material and grain size) and the DEM tests it came from with their settings.
+"""
+
+from __future__ import annotations
+
+import math
+import warnings
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+try:
+    import tomllib
+except ImportError:  # Python 3.10
+    import tomli as tomllib
+
+import tomli_w
+
+from soil.errors import RegolithWarning
+
+FORMAT_VERSION = 1
+"""The calibration file's format version."""
+
+SOIL_KEYS = ("k_c", "k_phi", "n", "cohesion", "friction_angle_deg", "janosi_k", "elastic_stiffness")
+"""The SCM soil parameters a calibration gives (scene keys of [terrain] model = "scm")."""
+
+GRAVITY_TOLERANCE = 1e-3
+"""Relative difference of |g| below which a calibration's gravity is the scene's [-]."""
+
+
+class CalibrationGravityWarning(RegolithWarning):
+    """An SCM calibration is used at a gravity other than the one its DEM tests ran at: a soil's
+    pressure-sinkage and shear depend on gravity (a reduced-gravity soil is not the Earth soil)."""
+
+
+class CalibrationError(ValueError):
+    """A calibration file is unreadable or incomplete (the message names the file and the key)."""
+
+
+@dataclass
+class ScmCalibration:
+    """An SCM calibration: the parameters, their standard errors and where they came from."""
+
+    parameters: dict[str, float]
+    """SOIL_KEYS -> value (SI; the angle in degrees)."""
+    standard_errors: dict[str, float]
+    """SOIL_KEYS -> standard error of the fit (same units); nan where not estimated."""
+    gravity: float
+    """|g| of the DEM tests [m/s^2]."""
+    source: dict[str, Any] = field(default_factory=dict)
+    """The soil (material, grain size) and the DEM tests (their settings and summaries)."""
+
+
+def write_calibration(path: str, calibration: ScmCalibration) -> None:
+    """Write a calibration file (TOML)."""
+    data = {
+        "format": FORMAT_VERSION,
+        "gravity": float(calibration.gravity),
+        "scm": {k: float(calibration.parameters[k]) for k in SOIL_KEYS},
+        "standard_error": {k: float(calibration.standard_errors.get(k, math.nan)) for k in SOIL_KEYS},
+        "source": _plain(calibration.source),
+    }
+    with open(path, "wb") as f:
+        tomli_w.dump(data, f)
+
+
+def read_calibration(path: str) -> ScmCalibration:
+    """Read a calibration file; CalibrationError names what is wrong with it."""
+    try:
+        with open(path, "rb") as f:
+            data = tomllib.load(f)
+    except (OSError, tomllib.TOMLDecodeError) as error:
+        raise CalibrationError(f"{path}: not a readable calibration file ({error})") from error
+    if data.get("format") != FORMAT_VERSION:
+        raise CalibrationError(f"{path}: format {data.get('format')!r}, this version reads format {FORMAT_VERSION}")
+    scm = data.get("scm", {})
+    missing = [k for k in SOIL_KEYS if not isinstance(scm.get(k), (int, float)) or not math.isfinite(scm[k])]
+    if missing:
+        raise CalibrationError(f"{path}: [scm] lacks a finite {', '.join(missing)}")
+    gravity = data.get("gravity")
+    if not isinstance(gravity, (int, float)) or not gravity >= 0:
+        raise CalibrationError(f"{path}: gravity must be |g| >= 0 [m/s^2], got {gravity!r}")
+    errors = {k: float(v) for k, v in data.get("standard_error", {}).items()}
+    return ScmCalibration({k: float(scm[k]) for k in SOIL_KEYS}, errors, float(gravity), data.get("source", {}))
+
+
+def same_gravity(a: float, b: float) -> bool:
+    """Whether two |g| [m/s^2] are one gravity (within GRAVITY_TOLERANCE)."""
+    return abs(a - b) <= GRAVITY_TOLERANCE * max(abs(a), abs(b), 1e-12)
+
+
+def warn_gravity(calibrated: float, scene: float, path: str) -> None:
+    """CalibrationGravityWarning when a calibration of |g| `calibrated` is used at |g| `scene` [m/s^2]."""
+    if not same_gravity(calibrated, scene):
+        warnings.warn(
+            f"{path}: the SCM calibration ran its DEM tests at |g| = {calibrated:.4g} m/s^2, the scene's gravity is "
+            f"{scene:.4g} m/s^2; calibrate at the scene's gravity (cosim calibrate-scm SCENE)",
+            CalibrationGravityWarning,
+            stacklevel=3,
+        )
+
+
+def _plain(value):
+    """A TOML-writable copy (no None, numpy scalars as Python numbers)."""
+    if isinstance(value, dict):
+        return {str(k): _plain(v) for k, v in value.items() if v is not None}
+    if isinstance(value, (list, tuple)):
+        return [_plain(v) for v in value if v is not None]
+    if isinstance(value, np.ndarray):
+        return [_plain(v) for v in value.tolist()]
+    if isinstance(value, (np.floating, np.integer, np.bool_)):
+        return value.item()
+    return value

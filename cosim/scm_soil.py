@@ -1,0 +1,408 @@
+"""The SCM terrain (soil.scm, the Soil Contact Model) as a SoilSide, and a soil side that routes
+each wheel to its own terrain model (CompositeSoil: some wheels on the DEM, the others on SCM).
+
+    soil = ScmSoil(ScmTerrain(parameters, shapes, window=(0.6, 0.4)), time_step=1e-3, rim_radii=[0.1])
+    wrenches = soil.advance(t_end, start_kinematics, end_kinematics)
+
+Within a macro step ScmTerrain moves each wheel along a path of constant velocities from its
+start pose. Given the end kinematics too, the path is the chord from the start pose to the end
+pose (velocity (p1 - p0) / H, the angular velocity that turns q0 into q1 over H): the wheel then
+ends the macro step exactly where the rover says it is, as it does on the DEM.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import ArrayLike
+
+from soil.control import quaternion_integrate, quaternion_multiply, quaternion_to_matrix
+from soil.geometry import GrouserWheel
+from soil.scm import ScmParameters, ScmTerrain
+
+from .contract import (
+    Particles,
+    SoilBooks,
+    SoilSide,
+    SoilSideDefaults,
+    StepStatistics,
+    WheelKinematics,
+    WheelWrench,
+)
+
+
+def chord_angular_velocity(q0: np.ndarray, q1: np.ndarray, span: float) -> np.ndarray:
+    """The constant world-frame angular velocity [rad/s] (3,) that turns unit quaternion q0 into q1
+    in `span` [s] (the short way round): quaternion_integrate(q0, result, span) == q1."""
+    conjugate = np.array([q0[0], -q0[1], -q0[2], -q0[3]])
+    turn = quaternion_multiply(q1, conjugate)  # q1 = turn q0: the rotation in the world frame
+    if turn[0] < 0:
+        turn = -turn
+    sine = float(np.linalg.norm(turn[1:]))
+    if sine < 1e-15:
+        return np.zeros(3)
+    angle = 2.0 * math.atan2(sine, float(turn[0]))
+    return turn[1:] / sine * (angle / span)
+
+
+@dataclass(frozen=True)
+class ScmSettings:
+    """What the run layer gives an SCM terrain besides the wheels."""
+
+    parameters: ScmParameters
+    window: tuple[float, float]
+    """The node window's size along world x and y [m]."""
+    time_step: float
+    """The SCM step [s] (each macro step is split into equal steps of at most this)."""
+    surface_height: float = 0.0
+    """The undisturbed surface [m]."""
+
+
+DAMPING_RATIO = 0.2
+"""Default pressure damping as a fraction of a wheel's critical elastic damping [-]."""
+NODES_ACROSS = 12
+"""Default nodes across the narrowest wheel's width [-]."""
+
+
+def bekker_wheel_sinkage(parameters: ScmParameters, load: float, radius: float, width: float) -> float:
+    """Bekker's closed-form sinkage [m] of a rigid smooth wheel of `radius` and `width` [m] rolling
+    under `load` [N] (the front half of the rim in contact; Wong, Theory of Ground Vehicles):
+    z0 = (3 W / ((3 - n) (k_c + b k_phi) sqrt(D)))^(2 / (2 n + 1))."""
+    p = parameters
+    if load <= 0:
+        return 0.0
+    base = 3.0 * load / ((3.0 - p.n) * (p.k_c + width * p.k_phi) * math.sqrt(2.0 * radius))
+    return base ** (2.0 / (2.0 * p.n + 1.0))
+
+
+def scm_parameters(values: dict) -> ScmParameters:
+    """ScmParameters from [terrain] keys (scene.SCM_KEYS; the angles in degrees, the grid's spacing given)."""
+    optional = {
+        "pressure_damping": "damping",
+        "bulldozing": "bulldozing",
+        "bulldozing_fraction": "bulldozing_fraction",
+        "erosion_angle_deg": "erosion_angle",
+        "erosion_iterations": "erosion_iterations",
+    }
+    return ScmParameters(
+        k_c=values["k_c"],
+        k_phi=values["k_phi"],
+        n=values["n"],
+        cohesion=values["cohesion"],
+        friction_angle=values["friction_angle_deg"],
+        janosi_k=values["janosi_k"],
+        elastic_stiffness=values["elastic_stiffness"],
+        node_spacing=values["node_spacing"],
+        **{name: values[key] for key, name in optional.items() if key in values},
+    )
+
+
+def scm_settings(plan, wheels: Sequence[int], surface_height: float) -> ScmSettings:
+    """The SCM terrain of a run plan's wheels `wheels` (indices; cosim.plan.RunPlan) from its [terrain]
+    keys, with the defaults of the keys not given:
+
+    - node_spacing: the narrowest wheel's width / NODES_ACROSS;
+    - window: the wheels' hub span (a rover's hubs at any heading: twice their largest distance from
+      the rover's centre) plus 8 outer radii along x and 4 outer radii and a wheel width along y;
+    - time_step: the macro step;
+    - pressure_damping: DAMPING_RATIO of critical for a wheel's elastic bounce: R = 2 zeta sqrt(K_e m / A),
+      with m the wheel's load over |g| and A its width times the contact length at Bekker's sinkage (on
+      the far softer Bekker branch the same R is near critical: the wheel sinks without bouncing).
+    """
+    values = dict(plan.terrain.parameters)
+    chosen = [plan.wheels[i] for i in wheels]
+    values.setdefault("node_spacing", min(w.width for w in chosen) / NODES_ACROSS)
+    outer = max(w.outer_radius for w in chosen)
+    width = max(w.width for w in chosen)
+    if plan.rover is not None:
+        span = 2.0 * float(np.max(np.hypot(*plan.rover.hub_offsets[list(wheels), :2].T)))
+    else:
+        span = 0.0
+    window = (values.pop("window_length", span + 8 * outer), values.pop("window_width", span + width + 4 * outer))
+    time_step = values.pop("time_step", plan.macro_step)
+    if "pressure_damping" not in values:
+        values["pressure_damping"] = 0.0
+        parameters = scm_parameters(values)
+        if plan.g > 0:
+            wheel = chosen[0]
+            sinkage = bekker_wheel_sinkage(parameters, plan.wheel_load, wheel.outer_radius, wheel.width)
+            area = wheel.width * 2.0 * math.sqrt(max(2.0 * wheel.outer_radius * sinkage, values["node_spacing"] ** 2))
+            mass = plan.wheel_load / plan.g
+            values["pressure_damping"] = 2.0 * DAMPING_RATIO * math.sqrt(parameters.elastic_stiffness * mass / area)
+    values.pop("surface_height", None)
+    return ScmSettings(scm_parameters(values), (float(window[0]), float(window[1])), float(time_step), surface_height)
+
+
+class ScmSoil(SoilSideDefaults):
+    """SoilSide over a soil.scm.ScmTerrain: one terrain for all its wheels (their patches may share
+    nodes: the lowest surface presses a node), a window of nodes following their mean hub.
+
+    Args:
+        terrain: the SCM terrain with the wheels' shapes, in wheel order.
+        time_step: the SCM step [s].
+        rim_radii: each wheel's rim radius [m] (the sinkage is the rim bottom's depth below the
+            undisturbed surface, as on the DEM).
+    """
+
+    def __init__(self, terrain: ScmTerrain, time_step: float, rim_radii: Sequence[float]):
+        if not (math.isfinite(time_step) and time_step > 0):
+            raise ValueError(f"time_step must be > 0 [s], got {time_step!r}")
+        if len(rim_radii) != terrain.wheel_count:
+            raise ValueError(f"rim_radii: {len(rim_radii)} radii for {terrain.wheel_count} wheels")
+        self.terrain = terrain
+        self.time_step = float(time_step)
+        self.wheel_count = terrain.wheel_count
+        self.rim_radii = np.asarray(rim_radii, dtype=np.float64)
+        self.gravity = np.zeros(3)
+        self._steps = 0
+        self._step = 0.0
+        count = self.wheel_count
+        self._position = np.zeros((count, 3))
+        self._orientation = np.tile([1.0, 0.0, 0.0, 0.0], (count, 1))
+
+    @classmethod
+    def build(cls, settings: ScmSettings, shapes, rim_radii, device: str = "cpu", precision: str = "double"):
+        """An ScmSoil of these wheel shapes (soil.geometry GrouserWheel / MeshWheel) on `settings`."""
+        terrain = ScmTerrain(
+            settings.parameters,
+            list(shapes),
+            window=settings.window,
+            surface_height=settings.surface_height,
+            device=device,
+            precision=precision,
+        )
+        return cls(terrain, settings.time_step, rim_radii)
+
+    @property
+    def time(self) -> float:
+        return self.terrain.time
+
+    @property
+    def surface_height(self) -> float:
+        return self.terrain.surface_height
+
+    def set_gravity(self, gravity: Sequence[float]) -> None:
+        """SoilSide: kept for the record only: SCM's pressure-sinkage law holds the gravity it was
+        calibrated at (cosim.scm_calibration warns when that is another one)."""
+        self.gravity = np.asarray(gravity, dtype=np.float64).reshape(3).copy()
+
+    @staticmethod
+    def _stack(kinematics: Sequence[WheelKinematics]):
+        return tuple(
+            np.array([getattr(k, name) for k in kinematics], dtype=np.float64)
+            for name in ("position", "orientation", "linear_velocity", "angular_velocity")
+        )
+
+    def place_wheels(self, kinematics: Sequence[WheelKinematics]) -> None:
+        """SoilSide: the wheels at these poses (the start of a constant-velocity path), not advanced."""
+        position, orientation, velocity, spin = self._stack(kinematics)
+        self.terrain.set_wheels(position, orientation, velocity, spin)
+        self._position, self._orientation = position, orientation / np.linalg.norm(orientation, axis=1)[:, None]
+
+    def advance(
+        self, t_end: float, start: Sequence[WheelKinematics], end: Sequence[WheelKinematics] | None = None
+    ) -> list[WheelWrench]:
+        """SoilSide: SCM steps of at most time_step to t_end [s], the wheels on the chord from `start`
+        to `end` (or on `start`'s constant velocities); the mean wrench over the steps and the last."""
+        if len(start) != self.wheel_count or (end is not None and len(end) != self.wheel_count):
+            raise ValueError(f"expected kinematics of {self.wheel_count} wheels")
+        span = float(t_end) - self.time
+        if not span > 0:
+            raise ValueError(f"t_end {t_end!r} s must be after the soil's time {self.time!r} s")
+        position, orientation, velocity, spin = self._stack(start)
+        orientation = orientation / np.linalg.norm(orientation, axis=1)[:, None]
+        if end is not None:
+            position_end, orientation_end, _, _ = self._stack(end)
+            velocity = (position_end - position) / span
+            spin = np.array([chord_angular_velocity(q0, q1, span) for q0, q1 in zip(orientation, orientation_end)])
+        steps = self.terrain.advance(t_end, self.time_step, position, orientation, velocity, spin)
+        self._steps, self._step = steps, span / steps
+        self._position = position + velocity * span
+        self._orientation = np.array([quaternion_integrate(q, w, span) for q, w in zip(orientation, spin)])
+        mean = self.terrain.wheel_contact(mean=True)
+        last = self.terrain.wheel_contact(mean=False)
+        # the work the wheels did on the soil: the mean wrench against the path's (constant) velocities
+        work = -(np.einsum("ij,ij->i", mean.force, velocity) + np.einsum("ij,ij->i", mean.torque, spin)) * span
+        return [
+            WheelWrench(
+                force=mean.force[b],
+                torque=mean.torque[b],
+                force_end=last.force[b],
+                torque_end=last.torque[b],
+                contact_count=int(last.contacts[b]),
+                sinkage=self._sinkage(b),
+                work_on_soil=float(work[b]),
+            )
+            for b in range(self.wheel_count)
+        ]
+
+    def _sinkage(self, wheel: int) -> float:
+        """Depth of the wheel's rim bottom below the undisturbed surface [m] (as DemSoil's)."""
+        return self.surface_height - float(self._position[wheel, 2] - self.rim_radii[wheel])
+
+    def wheel_poses(self) -> tuple[np.ndarray, np.ndarray]:
+        """SoilSide: hub positions [m] (W, 3) and rotations (W, 3, 3) where the last advance left them."""
+        return self._position.copy(), np.array([quaternion_to_matrix(q) for q in self._orientation])
+
+    def highest_point_under(self, wheel: int, hub: ArrayLike, axle: ArrayLike = (0.0, 1.0, 0.0)) -> float:
+        """SoilSide: the highest node of the height field inside the wheel's footprint (its outer
+        radius along the ground, its width along the axle); the undisturbed surface outside the window."""
+        shape = self.terrain.wheels[wheel]
+        reach = shape.outer_radius
+        half_width = 0.5 * shape.width if isinstance(shape, GrouserWheel) else float(np.abs(shape.vertices[:, 1]).max())
+        a = np.asarray(axle, dtype=np.float64)
+        across = a[:2] / np.hypot(a[0], a[1])
+        along = np.array([across[1], -across[0]])
+        xs, ys, field = self.terrain.height_field()
+        x, y = np.meshgrid(xs, ys, indexing="ij")
+        centre = np.asarray(hub, dtype=np.float64)
+        offset = np.stack([x - centre[0], y - centre[1]], axis=-1)
+        inside = (np.abs(offset @ along) <= reach) & (np.abs(offset @ across) <= half_width)
+        return float(field[inside].max()) if inside.any() else self.surface_height
+
+    def books(self) -> SoilBooks:
+        """SoilSide: no grains (a continuum: its nodes are no mass of soil simulated)."""
+        return SoilBooks(element_count=0, mass=0.0)
+
+    def step_statistics(self) -> StepStatistics | None:
+        """SoilSide: the SCM steps of the last advance (all equal, none rejected)."""
+        if not self._steps:
+            return None
+        return StepStatistics(self._steps, 0, self._step, self._step, self._steps)
+
+    def state_dict(self) -> dict:
+        """SoilSide: the terrain's state under 'scm/' and the wheels' last poses."""
+        data = {f"scm/{k}": v for k, v in self.terrain.state_dict().items()}
+        data.update(
+            position=self._position.copy(),
+            orientation=self._orientation.copy(),
+            gravity=self.gravity.copy(),
+            last_steps=np.int64(self._steps),
+            last_step=np.float64(self._step),
+        )
+        return data
+
+    def load_state_dict(self, data: dict) -> None:
+        """SoilSide: continue from state_dict() output (into an ScmSoil built from the same scene)."""
+        self.terrain.load_state_dict({k[len("scm/") :]: v for k, v in data.items() if k.startswith("scm/")})
+        self._position = np.asarray(data["position"], dtype=np.float64).copy()
+        self._orientation = np.asarray(data["orientation"], dtype=np.float64).copy()
+        self.gravity = np.asarray(data["gravity"], dtype=np.float64).copy()
+        self._steps, self._step = int(data["last_steps"]), float(data["last_step"])
+
+
+class CompositeSoil(SoilSideDefaults):
+    """A SoilSide that routes each wheel to one of several soil sides (e.g. one wheel on the DEM, the
+    others on SCM): `parts` is [(soil, wheel indices)], every wheel in exactly one part, each part's
+    wheels in the order of its own wheel arrays.
+
+    The surface height is the first part's (the builder puts every part's surface there); the
+    grains, walls, health checks and inner-step statistics are those of the first part that has
+    them (the DEM part), the books the sum of the parts'.
+    """
+
+    def __init__(self, parts: Sequence[tuple[SoilSide, Sequence[int]]]):
+        indices = sorted(i for _, wheels in parts for i in wheels)
+        if indices != list(range(len(indices))) or not indices:
+            raise ValueError(f"the parts must hold every wheel 0..W-1 once, got {indices}")
+        for soil, wheels in parts:
+            if soil.wheel_count != len(wheels):
+                raise ValueError(f"a part of {soil.wheel_count} wheels is given {len(wheels)} wheel indices")
+        self.parts = [(soil, list(wheels)) for soil, wheels in parts]
+        self.wheel_count = len(indices)
+        self._owner = {
+            wheel: (k, local) for k, (_, wheels) in enumerate(self.parts) for local, wheel in enumerate(wheels)
+        }
+
+    def soil_of(self, wheel: int) -> SoilSide:
+        """The soil side that wheel `wheel` runs on."""
+        return self.parts[self._owner[wheel][0]][0]
+
+    @property
+    def time(self) -> float:
+        return self.parts[0][0].time
+
+    @property
+    def surface_height(self) -> float:
+        return self.parts[0][0].surface_height
+
+    def set_gravity(self, gravity: Sequence[float]) -> None:
+        for soil, _ in self.parts:
+            soil.set_gravity(gravity)
+
+    def place_wheels(self, kinematics: Sequence[WheelKinematics]) -> None:
+        for soil, wheels in self.parts:
+            soil.place_wheels([kinematics[i] for i in wheels])
+
+    def advance(
+        self, t_end: float, start: Sequence[WheelKinematics], end: Sequence[WheelKinematics] | None = None
+    ) -> list[WheelWrench]:
+        out: list[WheelWrench | None] = [None] * self.wheel_count
+        for soil, wheels in self.parts:
+            wrenches = soil.advance(
+                t_end, [start[i] for i in wheels], None if end is None else [end[i] for i in wheels]
+            )
+            for i, wrench in zip(wheels, wrenches):
+                out[i] = wrench
+        return [w for w in out if w is not None]
+
+    def wheel_poses(self) -> tuple[np.ndarray, np.ndarray]:
+        position, rotation = np.zeros((self.wheel_count, 3)), np.zeros((self.wheel_count, 3, 3))
+        for soil, wheels in self.parts:
+            p, r = soil.wheel_poses()
+            position[wheels], rotation[wheels] = p, r
+        return position, rotation
+
+    def highest_point_under(self, wheel: int, hub: ArrayLike, axle: ArrayLike = (0.0, 1.0, 0.0)) -> float:
+        part, local = self._owner[wheel]
+        return self.parts[part][0].highest_point_under(local, hub, axle)
+
+    def books(self) -> SoilBooks:
+        books = [soil.books() for soil, _ in self.parts]
+        moving = next((b for b in books if b.moving), None)
+        if moving is not None:
+            return moving
+        return SoilBooks(
+            element_count=sum(b.element_count for b in books),
+            mass=sum(b.mass for b in books),
+            mass_initial=sum(b.mass_initial for b in books),
+        )
+
+    def _first(self, name: str):
+        for soil, _ in self.parts:
+            value = getattr(soil, name)()
+            if value is not None:
+                return value
+        return None
+
+    def step_statistics(self) -> StepStatistics | None:
+        return self._first("step_statistics")
+
+    def start_health_checks(self) -> None:
+        for soil, _ in self.parts:
+            soil.start_health_checks()
+
+    def check_health(self) -> None:
+        for soil, _ in self.parts:
+            soil.check_health()
+
+    def walls(self) -> dict | None:
+        return self._first("walls")
+
+    def wall_loads(self) -> dict | None:
+        return self._first("wall_loads")
+
+    def particles(self) -> Particles | None:
+        return self._first("particles")
+
+    def state_dict(self) -> dict:
+        """Each part's state under 'part{k}/'."""
+        return {f"part{k}/{key}": v for k, (soil, _) in enumerate(self.parts) for key, v in soil.state_dict().items()}
+
+    def load_state_dict(self, data: dict) -> None:
+        for k, (soil, _) in enumerate(self.parts):
+            head = f"part{k}/"
+            soil.load_state_dict({key[len(head) :]: v for key, v in data.items() if key.startswith(head)})

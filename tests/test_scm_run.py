@@ -1,0 +1,186 @@
+"""Scenes on the SCM terrain ([terrain] model = "scm", cosim.scm_soil) run through the same entry
+point, runner and writer as on the DEM and the analytic terrain: the same datasets, a wheel that
+carries its load at Bekker's sinkage, a resume bit for bit, a heterogeneous rover (one wheel on the
+DEM, the others on SCM), and bad [terrain] keys refused by name."""
+
+import math
+
+import h5py
+import numpy as np
+import pytest
+from scipy.integrate import quad
+from scipy.optimize import brentq
+
+from cosim.contract import SoilSide
+from cosim.dem_soil import DemSoil
+from cosim.launch import resume, run_scene
+from cosim.output import read_series
+from cosim.plan import load_plan
+from cosim.scene import SceneError, validate_scene
+from cosim.scm_soil import CompositeSoil, ScmSoil, chord_angular_velocity
+from cosim.single_wheel import PHASE_DRIVING, PHASE_LANDING
+from cosim.system import CoupledSystem
+from helpers import write_tiny
+from soil.control import quaternion_integrate
+
+K_C, K_PHI, N = 2.0e3, 8.0e5, 1.1
+SCM = f"""
+[terrain]
+model = "scm"
+k_c = {K_C}
+k_phi = {K_PHI}
+n = {N}
+cohesion = 50.0
+friction_angle_deg = 30.0
+janosi_k = 0.002
+elastic_stiffness = 2.0e7
+"""
+SMOOTH = ["wheel.grouser_count=0", "run.duration=0.3"]
+"""The tiny wheel without grousers (a rigid cylinder: Bekker's wheel), driven long enough to roll steadily."""
+
+
+def _datasets(path) -> dict:
+    found = {}
+    with h5py.File(path, "r") as f:
+        f.visititems(lambda name, obj: found.update({name: obj.shape}) if isinstance(obj, h5py.Dataset) else None)
+    return found
+
+
+@pytest.fixture(scope="module")
+def scm_run(tmp_path_factory):
+    folder = tmp_path_factory.mktemp("scm")
+    result = run_scene(write_tiny(folder, SCM), str(folder / "run"), overrides=SMOOTH)
+    return folder / "run", result
+
+
+def test_the_scm_terrain_is_a_soil_side(tmp_path):
+    system = CoupledSystem.build(load_plan(write_tiny(tmp_path, SCM)), None)
+    assert isinstance(system.soil, ScmSoil) and isinstance(system.soil, SoilSide)
+    assert system.bed is None and system.boundaries() is None and system.soil.particles() is None
+    assert system.soil.books().element_count == 0
+
+
+def test_a_testbed_scene_on_scm_writes_the_analytic_runs_datasets(scm_run, tmp_path):
+    run, result = scm_run
+    assert result.status in ("complete", "unsteady")
+    assert not (run / "bed.h5").exists()
+    analytic = tmp_path / "analytic"
+    analytic.mkdir()
+    terrain = '\n[terrain]\nmodel = "analytic"\nstiffness = 500.0\ndamping = 24.0\n'
+    run_scene(write_tiny(analytic, terrain), str(analytic / "run"), overrides=["run.duration=0.02"])
+    assert set(_datasets(run / "results.h5")) == set(_datasets(analytic / "run" / "results.h5"))
+
+
+def _static_sinkage(load, radius, width, spacing):
+    """The rim bottom's sinkage [m] of a rigid cylinder at rest on Bekker soil: load = integral over its
+    contact (both halves) of (k_c / b + k_phi) z(x)^n, z(x) = z0 - (R - sqrt(R^2 - x^2)), b the patch's
+    smaller extent (its length 2 x0 or the width, plus one node spacing: soil.scm's patch width)."""
+
+    def carried(z0):
+        x0 = math.sqrt(max(0.0, 2 * radius * z0 - z0 * z0))
+        b = min(width, 2 * x0) + spacing
+        line, _ = quad(lambda x: (K_C / b + K_PHI) * max(0.0, z0 - radius + math.sqrt(radius**2 - x**2)) ** N, -x0, x0)
+        return width * line - load
+
+    return brentq(carried, 1e-7, 0.5 * radius)
+
+
+def test_the_wheel_carries_its_load_at_bekkers_sinkage(scm_run):
+    run, _ = scm_run
+    series = read_series(run / "results.h5")
+    load = float(series["attrs"]["wheel_load"])
+    plan = load_plan(run / "scene.toml")
+    landing = np.flatnonzero(series["phase"] == PHASE_LANDING)
+    rest = landing[-5:]  # at rest before the drive: the static wheel
+    expected = _static_sinkage(load, plan.wheel.rim_radius, plan.wheel.width, plan.wheel.width / 12)
+    np.testing.assert_allclose(series["normal_force"][rest, 0], load, rtol=2e-2)
+    np.testing.assert_allclose(series["sinkage"][rest, 0], expected, rtol=6e-2)
+    driving = np.flatnonzero(series["phase"] == PHASE_DRIVING)
+    steady = driving[len(driving) // 2 :]
+    np.testing.assert_allclose(series["normal_force"][steady, 0].mean(), load, rtol=2e-2)
+    assert np.all(series["contact_count"][steady, 0] > 0)
+    assert np.all(series["soil_particle_count"] == 0)
+
+
+def test_an_scm_run_resumes_bit_for_bit(scm_run, tmp_path):
+    run, _ = scm_run
+
+    def stop(runner):
+        if runner.system.coupler.step_count == 120:
+            runner.stop_requested = True
+
+    from cosim.runner import RunInterrupted
+
+    with pytest.raises(RunInterrupted):
+        run_scene(write_tiny(tmp_path, SCM), str(tmp_path / "run"), hooks={"step": stop}, overrides=SMOOTH)
+    resume(str(tmp_path / "run"))
+    first, second = read_series(run / "results.h5"), read_series(tmp_path / "run" / "results.h5")
+    for name in ("time", "position", "force", "torque", "sinkage", "rover_state", "contact_count"):
+        np.testing.assert_array_equal(first[name], second[name], err_msg=name)
+
+
+def test_a_rover_scene_runs_on_scm(tmp_path):
+    from rover_helpers import write_small_rover
+
+    pytest.importorskip("mujoco")
+    result = run_scene(write_small_rover(tmp_path, duration=0.15, extra=SCM), str(tmp_path / "run"))
+    assert result.status in ("complete", "unsteady")
+    series = read_series(tmp_path / "run" / "results.h5")
+    driving = series["phase"] == PHASE_DRIVING
+    weight = float(series["attrs"]["rover_mass"]) * float(np.linalg.norm(series["attrs"]["gravity"]))
+    np.testing.assert_allclose(series["normal_force"][driving].sum(axis=1).mean(), weight, rtol=5e-2)
+    assert series["rover_travel"][-1] > 0
+
+
+def test_a_heterogeneous_rover_puts_each_wheel_on_its_soil(tmp_path):
+    from rover_helpers import write_small_rover
+
+    pytest.importorskip("mujoco")
+    mixed = SCM + 'wheels = ["dem", "scm", "scm", "scm"]\n'
+    scene = write_small_rover(tmp_path, duration=0.02, extra=mixed)
+    plan = load_plan(scene)
+    assert plan.terrain.model == "mixed" and plan.terrain.wheel_models == ("dem", "scm", "scm", "scm")
+    result = run_scene(scene, str(tmp_path / "run"))
+    assert result.status in ("complete", "unsteady")
+    from cosim.beds import settled_bed
+
+    system = CoupledSystem.build(plan, settled_bed(plan, str(tmp_path / "run")))
+    soil = system.soil
+    assert isinstance(soil, CompositeSoil)
+    assert isinstance(soil.soil_of(0), DemSoil) and all(isinstance(soil.soil_of(i), ScmSoil) for i in (1, 2, 3))
+    assert soil.soil_of(0).surface_height == soil.soil_of(1).surface_height
+    series = read_series(tmp_path / "run" / "results.h5")
+    assert np.all(series["soil_particle_count"] > 0)  # the DEM wheel's grains
+    touching = series["contact_count"][-1]
+    assert np.all(touching > 0)  # every wheel on its soil: grains under wheel 0, SCM nodes under 1-3
+
+
+def test_chord_angular_velocity_turns_the_start_into_the_end():
+    q0 = np.array([0.9, 0.1, -0.3, 0.2])
+    q0 /= np.linalg.norm(q0)
+    q1 = quaternion_integrate(q0, [0.3, -1.2, 0.5], 0.01)
+    np.testing.assert_allclose(chord_angular_velocity(q0, q1, 0.01), [0.3, -1.2, 0.5], rtol=1e-9)
+
+
+@pytest.mark.parametrize(
+    "terrain, problem",
+    [
+        ({"model": "scm", "k_c": 1.0}, 'terrain.k_phi: model = "scm" needs the soil\'s'),
+        ({"model": "scm", "calibration": "c.toml", "kphi": 1.0}, "terrain.kphi: unknown key"),
+        ({"model": "dem", "janosi_k": 0.01}, "terrain.janosi_k: a key of the SCM terrain"),
+        ({"model": "analytic", "node_spacing": 0.01}, "terrain.node_spacing: a key of the SCM terrain"),
+        ({"model": "scm", "calibration": "c.toml", "n": -1.0}, "terrain.n:"),
+        ({"model": "scm", "calibration": "c.toml", "wheels": ["dem", "fem"]}, "terrain.wheels.1:"),
+        ({"model": "scm", "calibration": "c.toml", "stiffness": 1.0}, "terrain.stiffness: a key of the analytic"),
+    ],
+)
+def test_bad_terrain_keys_are_refused_by_name(terrain, problem):
+    with pytest.raises(SceneError) as error:
+        validate_scene({"terrain": terrain})
+    assert any(p.startswith(problem) for p in error.value.problems), error.value.problems
+
+
+def test_a_missing_calibration_file_is_refused(tmp_path):
+    with pytest.raises(SceneError) as error:
+        load_plan(write_tiny(tmp_path, '\n[terrain]\nmodel = "scm"\ncalibration = "nowhere.toml"\n'))
+    assert any(p.startswith("terrain.calibration:") and "nowhere.toml" in p for p in error.value.problems)
