@@ -14,6 +14,7 @@
     cosim scale SCENE.toml --gravity G --out TWIN.toml
     cosim lab repose|shear|plate SCENE.toml [--out DIR] [--replicas K] [--set key=value ...] [--workers N | --serial]
     cosim calibrate SCENE.toml --target repose=30 --vary soil.rolling_friction=0:0.3 [--tolerance repose=1] ...
+    cosim calibrate-scm SCENE.toml --out terrain.toml [--replicas K] [--set KEY=VALUE] [--lab-sizes]
 
 Output: results and summaries on stdout; progress bars, notes and warnings on stderr;
 Warp's own messages only with --verbose.
@@ -38,6 +39,7 @@ import argparse
 import logging
 import os
 import sys
+import time
 
 EXIT_OK, EXIT_ERROR, EXIT_INPUT, EXIT_FOLDER, EXIT_DIVERGED, EXIT_OS, EXIT_UNSTEADY = 0, 1, 2, 3, 4, 5, 6
 EXIT_INTERRUPTED = 130
@@ -461,6 +463,46 @@ def add_lab_commands(sub, scene_options, cluster_options) -> None:
     p.add_argument("--max-evaluations", type=int, default=12, help="most lab evaluations (default 12)")
     p.add_argument("--replicas", type=int, help="specimens per evaluation (overrides lab.replicas)")
     p.set_defaults(func=cmd_calibrate)
+
+    p = sub.add_parser(
+        "calibrate-scm",
+        help="SCM terrain parameters from DEM plate and shear tests of the scene's soil at its gravity",
+    )
+    scene_options(p)
+    cluster_options(p, out=False)
+    p.add_argument("--out", required=True, help="the calibration file to write (TOML; [terrain] calibration = ...)")
+    p.add_argument("--work", help="folder of the DEM tests (default: the file's name without .toml + _runs)")
+    p.add_argument("--replicas", type=int, help="beds and specimens per test (overrides lab.replicas)")
+    p.add_argument(
+        "--lab-sizes",
+        action="store_true",
+        help="the lab's own test sizes (docs/lab.md) instead of calibrate-scm's small ones (CPU minutes)",
+    )
+    p.set_defaults(func=cmd_calibrate_scm)
+
+
+def cmd_calibrate_scm(args) -> int:
+    from .lab.scene import load_lab_plan, load_lab_scene
+    from .lab.scm import calibrate_scm, small_tests
+    from .scm_calibration import SOIL_KEYS, write_calibration
+
+    overrides = _overrides(args)
+    if args.replicas is not None:
+        overrides.append(f"lab.replicas={args.replicas}")
+    if not args.lab_sizes:  # the small default tests where the scene sizes none
+        overrides = small_tests(load_lab_scene(args.scene, overrides)) + overrides
+    plan = load_lab_plan(args.scene, overrides, needs_gravity=True, test="plate")
+    work = args.work or os.path.splitext(args.out)[0] + "_runs"
+    started = time.perf_counter()
+    calibration = calibrate_scm(plan, work, overwrite=args.overwrite, **_executor(args))
+    calibration.source["overrides"] = overrides
+    calibration.source["wall_time_s"] = time.perf_counter() - started
+    write_calibration(args.out, calibration)
+    print(f"calibrate-scm: {args.out} (DEM tests in {work}, |g| = {plan.g:.4g} m/s^2)")
+    for key in SOIL_KEYS:
+        value, error = calibration.parameters[key], calibration.standard_errors[key]
+        print(f"  {key:20s} {value:12.5g} +- {error:.3g}")
+    return EXIT_OK
 
 
 def build_parser() -> argparse.ArgumentParser:

@@ -33,6 +33,10 @@ log = logging.getLogger("cosim.lab")
 
 RECORDS = 400
 """Samples of a pressure-sinkage curve [-]."""
+UNLOAD_HOLD_STEPS = 200
+UNLOAD_HOLD_TIME = 0.2
+"""Before an unloading the plate stands still for the longer of UNLOAD_HOLD_STEPS DEM steps and
+UNLOAD_HOLD_TIME x sqrt(d / |g|) [-]."""
 
 
 def widths(plan: LabPlan) -> tuple[float, ...]:
@@ -163,9 +167,14 @@ def _bed(plan: LabPlan, replica: int, path: str) -> dict:
     return {"replica": replica, "centre": centre, "tops": tops, **info}
 
 
-def _press(plan: LabPlan, replica: int, path: str, surface: float, width: float, centre, top: float) -> dict:
+def _press(
+    plan: LabPlan, replica: int, path: str, surface: float, width: float, centre, top: float, unload: bool = False
+) -> dict:
     """Push a plate of side `width` [m], centred at `centre` (x, y) [m], into the saved bed from
-    just above `top` [m] (the highest grain under it); the pressure-sinkage curve."""
+    just above `top` [m] (the highest grain under it); the pressure-sinkage curve. With `unload`, the
+    plate then stands still, then rises at the same speed until its pressure is a quarter of what it
+    held (or it has risen half its sinkage): the unloading curve ('unload_sinkage' [m],
+    'unload_pressure' [Pa], one sample per DEM step)."""
     builder = read_bed(path).builder()
     half = 0.5 * width
     start = top + 0.1 * plan.radius_mean
@@ -191,9 +200,33 @@ def _press(plan: LabPlan, replica: int, path: str, surface: float, width: float,
         force = sim.boundary_wrenches()[0][plate]
         underside = start + sim.boundary_displacements()[plate, 2]
         rows.append((sim.time, surface - underside, force[2] / width**2, force[0], force[1]))
+    unloading = []
+    if unload:
+        # held still first (the grains' damping forces of the loading die out), then raised at the
+        # loading speed, a sample every DEM step: the elastic rebound is a small fraction of the sinkage
+        control.set_boundary_velocity(plate, (0.0, 0.0, 0.0))
+        sim.run(max(UNLOAD_HOLD_STEPS * plan.dt, UNLOAD_HOLD_TIME * plan.time_scale), plan.dt)
+        unloading.append(
+            (surface - (start + sim.boundary_displacements()[plate, 2]), sim.boundary_wrenches()[0][plate][2] / width**2)
+        )
+        control.set_boundary_velocity(plate, (0.0, 0.0, speed))
+        for _ in range(steps):
+            sim.run(plan.dt, plan.dt)
+            z = surface - (start + sim.boundary_displacements()[plate, 2])
+            p = sim.boundary_wrenches()[0][plate][2] / width**2
+            unloading.append((z, p))
+            if p <= 0.25 * unloading[0][1] or z < 0.5 * deepest:
+                break
     sim.check_finite()
     time, sinkage, pressure, fx, fy = (np.array(c) for c in zip(*rows))
+    extra = {}
+    if unload:
+        extra = {
+            "unload_sinkage": np.array([u[0] for u in unloading]),
+            "unload_pressure": np.array([u[1] for u in unloading]),
+        }
     return {
+        **extra,
         "replica": replica,
         "width": width,
         "time": time,
@@ -222,13 +255,14 @@ def run_replica(
     width: float = 0.0,
     centre=(0.0, 0.0),
     top: float = 0.0,
+    unload: bool = False,
 ) -> dict:
     """One task: stage 'bed' settles replica k's bed into the file `bed`; stage 'plate' pushes a
     plate of side `width` [m] into it (surface: the bed's mean surface height [m]; centre: the
-    plate's (x, y) [m]; top: the highest grain under it [m])."""
+    plate's (x, y) [m]; top: the highest grain under it [m]; unload: then raise the plate, the unloading curve)."""
     if stage == "bed":
         return _bed(plan, replica, bed)
-    return _press(plan, replica, bed, surface, width, centre, top)
+    return _press(plan, replica, bed, surface, width, centre, top, unload)
 
 
 def bekker_fit(curves: list[tuple[float, np.ndarray, np.ndarray]], fit_from: float) -> dict:

@@ -33,14 +33,26 @@ def fit_bekker(curves, fit_from: float = 0.0) -> dict:
     if len({round(float(b), 12) for b, _, _ in curves}) < 2:
         raise ValueError("k_c and k_phi need plates of two or more widths")
     fit = bekker_fit([(float(b), np.asarray(z), np.asarray(p)) for b, z, p in curves], fit_from)
-    return {
-        "k_c": fit["k_c"],
-        "k_phi": fit["k_phi"],
-        "n": fit["n"],
-        "k_c_se": fit.get("k_c_se", math.nan),
-        "k_phi_se": fit.get("k_phi_se", math.nan),
-        "n_se": fit.get("n_se", math.nan),
-    }
+    out = {k: fit.get(k, math.nan) for k in ("k_c", "k_phi", "n", "k_c_se", "k_phi_se", "n_se", "r_squared")}
+    if not all(math.isfinite(out[k]) for k in ("k_c", "k_phi", "n")):
+        raise ValueError(f"the Bekker fit did not converge on {fit['points']} points")
+    if out["k_c"] < 0 or out["k_phi"] < 0:
+        # the widths' difference is within the scatter: one modulus, held >= 0 (SCM's moduli are)
+        from scipy.optimize import curve_fit
+
+        b = np.concatenate([np.full(len(z), float(w)) for w, z, _ in curves])
+        z = np.concatenate([np.asarray(z, dtype=float) for _, z, _ in curves])
+        p = np.concatenate([np.asarray(p, dtype=float) for _, _, p in curves])
+        use = (z >= fit_from) & (p > 0)
+        frictional = out["k_c"] < 0
+        shape = (lambda x, k, n: k * x[0] ** n) if frictional else (lambda x, k, n: k / x[1] * x[0] ** n)
+        start = (max(out["k_phi"], 1.0), out["n"]) if frictional else (max(out["k_c"], 1e-3), out["n"])
+        (k, n), covariance = curve_fit(shape, (z[use], b[use]), p[use], p0=start, maxfev=20000)
+        se = np.sqrt(np.diag(covariance))
+        kept, dropped = ("k_phi", "k_c") if frictional else ("k_c", "k_phi")
+        out.update({kept: float(k), f"{kept}_se": float(se[0]), dropped: 0.0, f"{dropped}_se": math.nan})
+        out.update(n=float(n), n_se=float(se[1]))
+    return out
 
 
 def fit_unloading(sinkage, pressure) -> dict:
@@ -81,26 +93,233 @@ def fit_mohr_coulomb(sigma, tau) -> dict:
 
 def fit_janosi(curves) -> dict:
     """Janosi-Hanamoto's K [m] (and its standard error) from shear curves [(displacement j [m] (S,),
-    tau [Pa] (S,))]: tau / tau_peak = 1 - exp(-j / K) fitted to every curve up to its peak (scipy curve_fit)."""
+    tau [Pa] (S,))]: tau = tau_max,i (1 - exp(-j / K)) fitted to every curve i up to its peak, one K
+    for all, each curve its own tau_max (scipy curve_fit)."""
     from scipy.optimize import curve_fit
 
-    xs, ys = [], []
+    xs, ys, owner = [], [], []
     for j, tau in curves:
         j, tau = np.asarray(j, dtype=float), np.asarray(tau, dtype=float)
         peak = int(np.argmax(tau))
         if peak < 2 or tau[peak] <= 0:
             continue
         xs.append(j[: peak + 1] - j[0])
-        ys.append(tau[: peak + 1] / tau[peak])
+        ys.append(tau[: peak + 1])
+        owner.append(np.full(peak + 1, len(owner)))
     if not xs:
         raise ValueError("no shear curve rises to a peak: K cannot be fitted")
-    x, y = np.concatenate(xs), np.concatenate(ys)
-    start = max(float(np.interp(0.63, np.maximum.accumulate(y), x)), 1e-9)
-    (k,), covariance = curve_fit(lambda u, k: 1 - np.exp(-u / k), x, y, p0=(start,), bounds=(1e-12, np.inf))
-    return {"janosi_k": float(k), "janosi_k_se": float(math.sqrt(covariance[0, 0]))}
+    x, y, index = np.concatenate(xs), np.concatenate(ys), np.concatenate(owner)
+    peaks = [float(part.max()) for part in ys]
+    scaled = np.concatenate([part / part.max() for part in ys])
+    start = max(float(np.median(x[(scaled > 0.5) & (scaled < 0.75)])) if np.any(scaled > 0.5) else x.max() / 3, 1e-9)
+
+    def model(u, k, *tau_max):
+        return np.asarray(tau_max)[index] * (1 - np.exp(-u / k))
+
+    values, covariance = curve_fit(model, x, y, p0=(start, *peaks), bounds=(1e-12, np.inf), maxfev=20000)
+    return {"janosi_k": float(values[0]), "janosi_k_se": float(math.sqrt(covariance[0, 0]))}
 
 
 def assemble(bekker: dict, unloading: dict, strength: dict, janosi: dict) -> tuple[dict, dict]:
     """(parameters, standard errors) over SOIL_KEYS from the four fits."""
     fits = {**bekker, **unloading, **strength, **janosi}
     return {k: float(fits[k]) for k in SOIL_KEYS}, {k: float(fits.get(f"{k}_se", math.nan)) for k in SOIL_KEYS}
+
+
+# -- the DEM tests -------------------------------------------------------------------------------
+
+SMALL_TESTS = {
+    "plate.speed_ratio": 0.1,
+    "shear.length_diameters": 10.0,
+    "shear.height_diameters": 6.0,
+    "plate.max_sinkage_depth": 0.3,
+}
+"""calibrate-scm's default sizes where the scene sets none (CPU minutes): the plates sink at the lab's
+quasi-static bound v / sqrt(g d) = 0.1 to 0.3 x the bed's fill depth (plates at least 3.2 and 4.6
+grain diameters wide); a shear box 10 grain
+diameters square and 6 high. --set any lab key (docs/lab.md) to make them bigger."""
+
+
+def small_tests(scene) -> list[str]:
+    """Overrides (KEY=VALUE) that size a lab scene's plate and shear tests to SMALL_TESTS where it sets nothing."""
+    d = 2 * scene.bed.radius_mean
+    out = []
+    plate, shear = scene.plate, scene.shear
+    if plate.widths is None:  # the lab's, but at least three grain diameters and four apart
+        side = min(scene.bed.length, scene.bed.width)
+        out.append(f"plate.widths=[{max(0.25 * side, 3.2 * d)!r}, {max(0.4 * side, 4.6 * d)!r}]")
+    if plate.speed is None and plate.speed_ratio is None:
+        out.append(f"plate.speed_ratio={SMALL_TESTS['plate.speed_ratio']}")
+    if plate.max_sinkage is None:
+        out.append(f"plate.max_sinkage={SMALL_TESTS['plate.max_sinkage_depth'] * scene.bed.depth!r}")
+    for key in ("length", "width"):
+        if getattr(shear, key) is None:
+            out.append(f"shear.{key}={SMALL_TESTS['shear.length_diameters'] * d!r}")
+    if shear.height is None:
+        out.append(f"shear.height={SMALL_TESTS['shear.height_diameters'] * d!r}")
+    return out
+
+
+def calibrate_scm(plan, out_dir: str, overwrite: bool = False, executor="serial", scheduler=None, workers=None):
+    """Run the DEM tests of a lab plan's soil at its gravity (plates of every plate.widths with their
+    unloading; direct shear at every shear.normal_stresses) and fit the SCM parameters. Writes
+    plate.csv, shear.csv and summary.json into out_dir; returns a cosim.scm_calibration.ScmCalibration."""
+    import os
+
+    from ..scm_calibration import ScmCalibration
+    from . import common, plate, shear
+
+    common.prepare_folder(plan, out_dir, overwrite)
+    plate.check(plan)
+    sides = plate.widths(plan)
+    if len(sides) < 2:
+        raise ValueError(f"plate.widths: k_c and k_phi need two or more plate widths, got {list(sides)}")
+    replicas = plan.scene.lab.replicas if plan.scene.bed.bed_file is None else 1
+    folder = os.path.join(out_dir, "beds")
+    os.makedirs(folder, exist_ok=True)
+    beds = common.map_tasks(
+        plan,
+        plate.run_replica,
+        [{"replica": k, "stage": "bed", "bed": os.path.join(folder, f"replica_{k}.h5")} for k in range(replicas)],
+        [f"bed {k}" for k in range(replicas)],
+        executor,
+        scheduler,
+        workers,
+    )
+    ready = common.successful(beds, "plate bed")
+    jobs = [
+        {
+            "replica": bed["replica"],
+            "stage": "plate",
+            "bed": bed["path"],
+            "surface": bed["surface"],
+            "width": b,
+            "centre": bed["centre"],
+            "top": bed["tops"][str(b)],
+            "unload": True,
+        }
+        for bed in ready
+        for b in sides
+    ]
+    labels = [f"replica {j['replica']}, plate {j['width']:.3g} m" for j in jobs]
+    plates = common.successful(
+        common.map_tasks(plan, plate.run_replica, jobs, labels, executor, scheduler, workers), "plate"
+    )
+    fit_from = plan.scene.plate.fit_from if plan.scene.plate.fit_from is not None else 0.25 * plan.diameter
+    bekker = fit_bekker([(r["width"], r["sinkage"], r["pressure"]) for r in plates], fit_from)
+    unloads = [
+        fit_unloading(r["unload_sinkage"], r["unload_pressure"]) for r in plates if len(r["unload_sinkage"]) >= 3
+    ]
+    if not unloads:
+        raise ValueError("no plate's unloading curve has three points: the elastic stiffness cannot be fitted")
+    stiffness = np.array([u["elastic_stiffness"] for u in unloads])
+    errors = np.array([u["elastic_stiffness_se"] for u in unloads])
+    # the plates' mean; its error: the scatter between plates, or the fits' own where one plate
+    spread = float(stiffness.std(ddof=1) / math.sqrt(len(stiffness))) if len(stiffness) > 1 else 0.0
+    unloading = {
+        "elastic_stiffness": float(stiffness.mean()),
+        "elastic_stiffness_se": max(spread, float(np.sqrt(np.sum(errors**2))) / len(errors)),
+    }
+
+    geometry = shear.box(plan)
+    specimens_folder = os.path.join(out_dir, "specimens")
+    os.makedirs(specimens_folder, exist_ok=True)
+    paths = [os.path.join(specimens_folder, f"replica_{k}.h5") for k in range(plan.scene.lab.replicas)]
+    specimens = common.successful(
+        common.map_tasks(
+            plan,
+            shear.run_replica,
+            [{"replica": k, "stage": "specimen", "specimen": p} for k, p in enumerate(paths)],
+            [f"specimen {k}" for k in range(len(paths))],
+            executor,
+            scheduler,
+            workers,
+        ),
+        "shear specimen",
+    )
+    shear_jobs = [
+        {"replica": s["replica"], "stage": "shear", "specimen": s["path"], "stress": sigma, "top": s["top"]}
+        for s in specimens
+        for sigma in geometry.stresses
+    ]
+    sheared = common.successful(
+        common.map_tasks(
+            plan,
+            shear.run_replica,
+            shear_jobs,
+            [f"replica {j['replica']}, sigma {j['stress']:.4g} Pa" for j in shear_jobs],
+            executor,
+            scheduler,
+            workers,
+        ),
+        "shear",
+    )
+    strength = fit_mohr_coulomb([r["peak_sigma"] for r in sheared], [r["peak_tau"] for r in sheared])
+    janosi = fit_janosi([(r["displacement"], r["tau"]) for r in sheared])
+    parameters, standard_errors = assemble(bekker, unloading, strength, janosi)
+
+    common.write_csv(
+        os.path.join(out_dir, "plate.csv"),
+        _columns(
+            [
+                ("replica", "1", [r["replica"] for r in plates for _ in r["sinkage"]]),
+                ("plate_width", "m", [r["width"] for r in plates for _ in r["sinkage"]]),
+                ("sinkage", "m", [z for r in plates for z in r["sinkage"]]),
+                ("pressure", "Pa", [p for r in plates for p in r["pressure"]]),
+            ]
+        ),
+    )
+    common.write_csv(
+        os.path.join(out_dir, "shear.csv"),
+        _columns(
+            [
+                ("replica", "1", [r["replica"] for r in sheared for _ in r["tau"]]),
+                ("normal_stress_nominal", "Pa", [r["stress"] for r in sheared for _ in r["tau"]]),
+                ("displacement", "m", [u for r in sheared for u in r["displacement"]]),
+                ("shear_stress", "Pa", [t for r in sheared for t in r["tau"]]),
+            ]
+        ),
+    )
+    scene = plan.scene
+    source = {
+        "scene": plan.name,
+        "gravity_vector": [float(g) for g in plan.gravity],
+        "soil": common.soil_summary(plan),
+        "grain": {
+            "radius_mean_m": scene.bed.radius_mean,
+            "radius_spread": scene.bed.radius_spread,
+            "diameter_m": plan.diameter,
+        },
+        "dem": {"precision": plan.precision, "dt_s": plan.dt, "replicas": replicas},
+        "plate": {
+            "widths_m": list(sides),
+            "speed_m_s": plate.plate_speed(plan),
+            "max_sinkage_m": plate.max_sinkage(plan, float(np.mean([b["surface"] for b in ready]))),
+            "fit_from_m": fit_from,
+            "bed_m": [scene.bed.length, scene.bed.width, scene.bed.depth],
+            "surface_m": [b["surface"] for b in ready],
+            "steps": [r["steps"] for r in plates],
+            "bekker_r_squared": bekker.get("r_squared", math.nan),
+            "unloading_stiffness_pa_m": [u["elastic_stiffness"] for u in unloads],
+        },
+        "shear": {
+            "box_m": [geometry.length, geometry.width, geometry.height],
+            "grains": geometry.count,
+            "normal_stresses_pa": list(geometry.stresses),
+            "speed_m_s": geometry.speed,
+            "displacement_m": geometry.displacement,
+            "peak_sigma_pa": [r["peak_sigma"] for r in sheared],
+            "peak_tau_pa": [r["peak_tau"] for r in sheared],
+            "steps": [r["steps"] for r in sheared],
+        },
+    }
+    calibration = ScmCalibration(parameters, standard_errors, plan.g, source)
+    common.write_summary(
+        out_dir, {"test": "calibrate-scm", "parameters": parameters, "standard_errors": standard_errors, **source}
+    )
+    return calibration
+
+
+def _columns(columns):
+    """write_csv's columns from (name, unit, values)."""
+    return [(name, unit, list(values)) for name, unit, values in columns]

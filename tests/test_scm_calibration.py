@@ -1,0 +1,103 @@
+"""The SCM calibration (cosim.lab.scm, cosim.scm_calibration): the fits recover known parameters from
+synthetic test curves with noise, within a few of their own standard errors; the calibration file
+round-trips; a calibration used at another gravity warns naming both gravities."""
+
+import math
+import warnings
+
+import numpy as np
+import pytest
+
+from cosim.lab.scm import fit_bekker, fit_janosi, fit_mohr_coulomb, fit_unloading
+from cosim.plan import load_plan
+from cosim.scm_calibration import (
+    SOIL_KEYS,
+    CalibrationGravityWarning,
+    ScmCalibration,
+    read_calibration,
+    write_calibration,
+)
+from cosim.system import CoupledSystem
+from helpers import write_tiny
+
+RNG = np.random.default_rng(7)
+
+
+def _close(value, error, truth, sigmas=4.0, rtol=0.05):
+    """value within `sigmas` of its standard error of the truth, and the error itself small (rtol)."""
+    assert math.isfinite(error) and error > 0
+    assert abs(value - truth) <= sigmas * error, (value, error, truth)
+    assert abs(value - truth) <= rtol * abs(truth), (value, truth)
+
+
+def test_the_bekker_fit_recovers_known_moduli_from_two_widths():
+    k_c, k_phi, n = 3.0e3, 6.0e5, 1.2
+    curves = []
+    for b in (0.03, 0.06, 0.09):
+        z = np.linspace(1e-3, 0.015, 60)
+        p = (k_c / b + k_phi) * z**n
+        curves.append((b, z, p * (1 + 0.01 * RNG.standard_normal(len(z)))))
+    fit = fit_bekker(curves)
+    _close(fit["k_c"], fit["k_c_se"], k_c, rtol=0.15)
+    _close(fit["k_phi"], fit["k_phi_se"], k_phi)
+    _close(fit["n"], fit["n_se"], n, rtol=0.02)
+
+
+def test_the_unloading_fit_recovers_the_elastic_stiffness():
+    stiffness = 4.0e6
+    z = np.linspace(0.010, 0.009, 40)
+    p = stiffness * (z - 0.009) * (1 + 0.005 * RNG.standard_normal(len(z)))
+    fit = fit_unloading(z, np.maximum(p, 0))
+    _close(fit["elastic_stiffness"], fit["elastic_stiffness_se"], stiffness)
+
+
+def test_the_shear_fits_recover_cohesion_friction_and_janosi_k():
+    cohesion, phi, k = 120.0, 32.0, 1.5e-3
+    sigma = np.repeat([100.0, 200.0, 400.0], 3)
+    tau = (cohesion + sigma * math.tan(math.radians(phi))) * (1 + 0.01 * RNG.standard_normal(len(sigma)))
+    strength = fit_mohr_coulomb(sigma, tau)
+    _close(strength["cohesion"], strength["cohesion_se"], cohesion, rtol=0.2)
+    _close(strength["friction_angle_deg"], strength["friction_angle_deg_se"], phi, rtol=0.03)
+    curves = []
+    for peak in (150.0, 300.0):
+        j = np.linspace(0, 0.01, 200)
+        curves.append((j, peak * (1 - np.exp(-j / k)) * (1 + 0.01 * RNG.standard_normal(len(j)))))
+    janosi = fit_janosi(curves)
+    _close(janosi["janosi_k"], janosi["janosi_k_se"], k)
+
+
+def test_a_cohesionless_soil_is_fitted_through_the_origin():
+    sigma = np.array([10.0, 20.0, 40.0])
+    strength = fit_mohr_coulomb(sigma, sigma * 0.5 - np.array([0.5, 0.2, 0.4]))
+    assert strength["cohesion"] == 0 and 24 < strength["friction_angle_deg"] < 27
+
+
+def _calibration(gravity):
+    values = dict(k_c=2.0e3, k_phi=8.0e5, n=1.1, cohesion=50.0, friction_angle_deg=30.0)
+    values.update(janosi_k=0.002, elastic_stiffness=2.0e7)
+    return ScmCalibration(values, {k: 0.1 for k in SOIL_KEYS}, gravity, {"soil": {"density": 2600.0}})
+
+
+def test_a_calibration_file_round_trips_and_warns_at_another_gravity(tmp_path):
+    path = tmp_path / "terrain.toml"
+    write_calibration(str(path), _calibration(9.81))
+    back = read_calibration(str(path))
+    assert back.parameters == _calibration(9.81).parameters and back.gravity == 9.81
+    assert back.source["soil"]["density"] == 2600.0
+    scene = write_tiny(tmp_path, f'\n[terrain]\nmodel = "scm"\ncalibration = "{path.name}"\nk_c = 1.0e3\n')
+    plan = load_plan(scene)
+    assert dict(plan.terrain.parameters)["k_c"] == 1.0e3  # a scene key wins over the file's
+    assert dict(plan.terrain.parameters)["k_phi"] == 8.0e5
+    with pytest.warns(CalibrationGravityWarning, match=r"9\.81 m/s\^2.*1\.625 m/s\^2"):
+        CoupledSystem.build(plan, None)
+    assert any(f.check == "scm_calibration_gravity" and not f.ok for f in _findings(plan))
+    write_calibration(str(path), _calibration(plan.g))
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", CalibrationGravityWarning)
+        CoupledSystem.build(load_plan(scene), None)
+
+
+def _findings(plan):
+    from cosim.system import validity
+
+    return validity(plan, 0.0)
