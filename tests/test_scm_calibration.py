@@ -101,3 +101,27 @@ def _findings(plan):
     from cosim.system import validity
 
     return validity(plan, 0.0)
+
+
+def test_calibrate_scm_runs_the_dem_tests_and_writes_a_usable_file(tmp_path):
+    """The command end to end on the tiny soil with tiny tests (its numbers are no soil's: plates of
+    three grains; the file's provenance and its use are what is checked)."""
+    from cosim.cli import main
+
+    scene = write_tiny(tmp_path)
+    out = tmp_path / "terrain.toml"
+    tiny = ["plate.widths=[0.0225,0.03]", "shear.normal_stresses=[25.0,50.0]", "shear.inertial_number=0.01"]
+    tiny += ["shear.length=0.028", "shear.width=0.028", "shear.height=0.028", "shear.displacement=0.005"]
+    code = main(["calibrate-scm", scene, "--out", str(out), "--serial", *[a for s in tiny for a in ("--set", s)]])
+    assert code == 0
+    calibration = read_calibration(str(out))
+    assert set(calibration.parameters) == set(SOIL_KEYS) and all(
+        math.isfinite(v) for v in calibration.parameters.values()
+    )
+    assert math.isfinite(calibration.standard_errors["n"]) and math.isfinite(calibration.standard_errors["janosi_k"])
+    assert calibration.gravity == pytest.approx(1.625)
+    source = calibration.source
+    assert source["grain"]["radius_mean_m"] == 0.0035 and source["plate"]["widths_m"] == [0.0225, 0.03]
+    assert source["shear"]["normal_stresses_pa"] == [25.0, 50.0] and source["dem"]["dt_s"] > 0
+    plan = load_plan(write_tiny(tmp_path, f'\n[terrain]\nmodel = "scm"\ncalibration = "{out.name}"\n', "scm.toml"))
+    assert plan.terrain.calibration_gravity == pytest.approx(1.625)

@@ -207,7 +207,10 @@ def _press(
         control.set_boundary_velocity(plate, (0.0, 0.0, 0.0))
         sim.run(max(UNLOAD_HOLD_STEPS * plan.dt, UNLOAD_HOLD_TIME * plan.time_scale), plan.dt)
         unloading.append(
-            (surface - (start + sim.boundary_displacements()[plate, 2]), sim.boundary_wrenches()[0][plate][2] / width**2)
+            (
+                surface - (start + sim.boundary_displacements()[plate, 2]),
+                sim.boundary_wrenches()[0][plate][2] / width**2,
+            )
         )
         control.set_boundary_velocity(plate, (0.0, 0.0, speed))
         for _ in range(steps):
