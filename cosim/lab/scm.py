@@ -97,7 +97,9 @@ def fit_janosi(curves) -> dict:
     for all, each curve its own tau_max (scipy curve_fit)."""
     from scipy.optimize import curve_fit
 
-    xs, ys, owner = [], [], []
+    xs: list[np.ndarray] = []
+    ys: list[np.ndarray] = []
+    owner: list[np.ndarray] = []
     for j, tau in curves:
         j, tau = np.asarray(j, dtype=float), np.asarray(tau, dtype=float)
         peak = int(np.argmax(tau))
