@@ -247,8 +247,12 @@ def advise_lines(plan) -> list[str]:
 
     memory = memory_estimate(plan)
     lines.append(f"  memory estimate            {memory.text()}" + ("" if memory.fits else ": DOES NOT FIT"))
-    lines.append("validity checks:")
-    findings = advice.check(plan)
+    from .system import TERRAIN_MODELS
+
+    lines.append(
+        f"validity checks ({plan.terrain.model} terrain):" if plan.terrain.model != "dem" else "validity checks:"
+    )
+    findings = TERRAIN_MODELS[plan.terrain.model].validity(plan)
     for finding in findings:
         lines.append(f"  [{'ok' if finding.ok else 'OUT OF RANGE'}] {finding.check}: {finding.message}")
     lines.append(f"verdict: {advice.verdict(findings)}")

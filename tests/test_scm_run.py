@@ -184,3 +184,21 @@ def test_a_missing_calibration_file_is_refused(tmp_path):
     with pytest.raises(SceneError) as error:
         load_plan(write_tiny(tmp_path, '\n[terrain]\nmodel = "scm"\ncalibration = "nowhere.toml"\n'))
     assert any(p.startswith("terrain.calibration:") and "nowhere.toml" in p for p in error.value.problems)
+
+
+def test_the_advisor_says_where_scm_cannot_represent_the_run(tmp_path):
+    from cosim.system import validity
+
+    def failed(overrides):
+        plan = load_plan(write_tiny(tmp_path, SCM), overrides)
+        return {f.check for f in validity(plan, 0.0) if not f.ok}, {f.check for f in validity(plan, 0.0)}
+
+    bad, _ = failed(['testbed.mode="slip"', "testbed.slip=0.7", "testbed.omega=3.0"])
+    assert {"scm_grousers", "scm_sinkage_grains", "scm_slip", "scm_froude"} <= bad
+    # a smooth wheel sinking many fine grains deep, slowly, at a moderate slip: nothing to flag
+    bad, checked = failed(
+        ["wheel.grouser_count=0", "bed.radius_mean=0.0002", 'testbed.mode="slip"', "testbed.slip=0.3"]
+    )
+    assert not bad and {"scm_sinkage_grains", "scm_slip", "scm_froude"} <= checked
+    message = next(f.message for f in validity(load_plan(write_tiny(tmp_path, SCM)), 0.0) if f.check == "scm_grousers")
+    assert "use the DEM" in message
