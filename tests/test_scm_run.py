@@ -125,6 +125,11 @@ def test_a_rover_scene_runs_on_scm(tmp_path):
     pytest.importorskip("mujoco")
     result = run_scene(write_small_rover(tmp_path, duration=0.15, extra=SCM), str(tmp_path / "run"))
     assert result.status in ("complete", "unsteady")
+    analytic = tmp_path / "analytic"
+    analytic.mkdir()
+    terrain = '\n[terrain]\nmodel = "analytic"\nstiffness = 2000.0\ndamping = 40.0\n'
+    run_scene(write_small_rover(analytic, duration=0.02, extra=terrain), str(analytic / "run"))
+    assert set(_datasets(tmp_path / "run" / "results.h5")) == set(_datasets(analytic / "run" / "results.h5"))
     series = read_series(tmp_path / "run" / "results.h5")
     driving = series["phase"] == PHASE_DRIVING
     weight = float(series["attrs"]["rover_mass"]) * float(np.linalg.norm(series["attrs"]["gravity"]))
