@@ -20,6 +20,7 @@ import numpy as np
 from numpy.typing import ArrayLike
 
 from soil.control import quaternion_integrate, quaternion_multiply, quaternion_to_matrix
+from soil.errors import ArgumentError
 from soil.geometry import GrouserWheel
 from soil.scm import ScmParameters, ScmTerrain
 
@@ -149,9 +150,9 @@ class ScmSoil(SoilSideDefaults):
 
     def __init__(self, terrain: ScmTerrain, time_step: float, rim_radii: Sequence[float]):
         if not (math.isfinite(time_step) and time_step > 0):
-            raise ValueError(f"time_step must be > 0 [s], got {time_step!r}")
+            raise ArgumentError(f"time_step must be > 0 [s], got {time_step!r}")
         if len(rim_radii) != terrain.wheel_count:
-            raise ValueError(f"rim_radii: {len(rim_radii)} radii for {terrain.wheel_count} wheels")
+            raise ArgumentError(f"rim_radii: {len(rim_radii)} radii for {terrain.wheel_count} wheels")
         self.terrain = terrain
         self.time_step = float(time_step)
         self.wheel_count = terrain.wheel_count
@@ -208,10 +209,10 @@ class ScmSoil(SoilSideDefaults):
         """SoilSide: SCM steps of at most time_step to t_end [s], the wheels on the chord from `start`
         to `end` (or on `start`'s constant velocities); the mean wrench over the steps and the last."""
         if len(start) != self.wheel_count or (end is not None and len(end) != self.wheel_count):
-            raise ValueError(f"expected kinematics of {self.wheel_count} wheels")
+            raise ArgumentError(f"expected kinematics of {self.wheel_count} wheels")
         span = float(t_end) - self.time
         if not span > 0:
-            raise ValueError(f"t_end {t_end!r} s must be after the soil's time {self.time!r} s")
+            raise ArgumentError(f"t_end {t_end!r} s must be after the soil's time {self.time!r} s")
         position, orientation, velocity, spin = self._stack(start)
         orientation = orientation / np.linalg.norm(orientation, axis=1)[:, None]
         if end is not None:
@@ -307,10 +308,10 @@ class CompositeSoil(SoilSideDefaults):
     def __init__(self, parts: Sequence[tuple[SoilSide, Sequence[int]]]):
         indices = sorted(i for _, wheels in parts for i in wheels)
         if indices != list(range(len(indices))) or not indices:
-            raise ValueError(f"the parts must hold every wheel 0..W-1 once, got {indices}")
+            raise ArgumentError(f"the parts must hold every wheel 0..W-1 once, got {indices}")
         for soil, wheels in parts:
             if soil.wheel_count != len(wheels):
-                raise ValueError(f"a part of {soil.wheel_count} wheels is given {len(wheels)} wheel indices")
+                raise ArgumentError(f"a part of {soil.wheel_count} wheels is given {len(wheels)} wheel indices")
         self.parts = [(soil, list(wheels)) for soil, wheels in parts]
         self.wheel_count = len(indices)
         self._owner = {

@@ -21,7 +21,9 @@ import math
 
 import numpy as np
 
+from ..scene import SceneError
 from ..scm_calibration import SOIL_KEYS
+from .common import LabFailed
 
 
 def fit_bekker(curves, fit_from: float = 0.0) -> dict:
@@ -31,11 +33,11 @@ def fit_bekker(curves, fit_from: float = 0.0) -> dict:
     from .plate import bekker_fit
 
     if len({round(float(b), 12) for b, _, _ in curves}) < 2:
-        raise ValueError("k_c and k_phi need plates of two or more widths")
+        raise LabFailed("k_c and k_phi need plates of two or more widths")
     fit = bekker_fit([(float(b), np.asarray(z), np.asarray(p)) for b, z, p in curves], fit_from)
     out = {k: fit.get(k, math.nan) for k in ("k_c", "k_phi", "n", "k_c_se", "k_phi_se", "n_se", "r_squared")}
     if not all(math.isfinite(out[k]) for k in ("k_c", "k_phi", "n")):
-        raise ValueError(f"the Bekker fit did not converge on {fit['points']} points")
+        raise LabFailed(f"the Bekker fit did not converge on {fit['points']} points")
     if out["k_c"] < 0 or out["k_phi"] < 0:
         # the widths' difference is within the scatter: one modulus, held >= 0 (SCM's moduli are)
         from scipy.optimize import curve_fit
@@ -64,7 +66,7 @@ def fit_unloading(sinkage, pressure) -> dict:
     z, p = np.asarray(sinkage, dtype=float), np.asarray(pressure, dtype=float)
     upper = p >= 0.5 * p[0]
     if upper.sum() < 3:
-        raise ValueError("the unloading branch has fewer than three points above half its load")
+        raise LabFailed("the unloading branch has fewer than three points above half its load")
     z, p = z[upper], p[upper]
     slope0 = (p[0] - p[-1]) / max(z[0] - z[-1], 1e-30)
     (slope, offset), covariance = curve_fit(lambda x, k, c: k * x + c, z, p, p0=(slope0, p[0] - slope0 * z[0]))
@@ -109,7 +111,7 @@ def fit_janosi(curves) -> dict:
         ys.append(tau[: peak + 1])
         owner.append(np.full(peak + 1, len(owner)))
     if not xs:
-        raise ValueError("no shear curve rises to a peak: K cannot be fitted")
+        raise LabFailed("no shear curve rises to a peak: K cannot be fitted")
     x, y, index = np.concatenate(xs), np.concatenate(ys), np.concatenate(owner)
     peaks = [float(part.max()) for part in ys]
     scaled = np.concatenate([part / part.max() for part in ys])
@@ -175,7 +177,7 @@ def calibrate_scm(plan, out_dir: str, overwrite: bool = False, executor="serial"
     plate.check(plan)
     sides = plate.widths(plan)
     if len(sides) < 2:
-        raise ValueError(f"plate.widths: k_c and k_phi need two or more plate widths, got {list(sides)}")
+        raise SceneError([f"plate.widths: k_c and k_phi need two or more plate widths, got {list(sides)}"])
     replicas = plan.scene.lab.replicas if plan.scene.bed.bed_file is None else 1
     folder = os.path.join(out_dir, "beds")
     os.makedirs(folder, exist_ok=True)
@@ -213,7 +215,7 @@ def calibrate_scm(plan, out_dir: str, overwrite: bool = False, executor="serial"
         fit_unloading(r["unload_sinkage"], r["unload_pressure"]) for r in plates if len(r["unload_sinkage"]) >= 3
     ]
     if not unloads:
-        raise ValueError("no plate's unloading curve has three points: the elastic stiffness cannot be fitted")
+        raise LabFailed("no plate's unloading curve has three points: the elastic stiffness cannot be fitted")
     stiffness = np.array([u["elastic_stiffness"] for u in unloads])
     errors = np.array([u["elastic_stiffness_se"] for u in unloads])
     # the plates' mean; its error: the scatter between plates, or the fits' own where one plate
