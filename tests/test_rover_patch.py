@@ -56,6 +56,7 @@ def test_a_move_keeps_the_grains_that_stay_and_their_contact_history(tile):
     contact partner renumbered and every history slot kept; the mass is booked exactly; placed grains
     press no deeper into the ones that stay than grains of the tile into each other."""
     from soil.patch import SoilPatch, Tile
+    from soil.precision import get_precision
 
     plan, bed = tile
     spec = plan.bed.spec
@@ -101,7 +102,10 @@ def test_a_move_keeps_the_grains_that_stay_and_their_contact_history(tile):
     assert far.sum() > 50
     force_after = moved.state.force.numpy()[i1][far]
     scale = np.abs(before_force[i0][far]).max()
-    np.testing.assert_allclose(force_after, before_force[i0][far], rtol=0, atol=1e-12 * scale)
+    # the history is stored in the precision's `mid` type (float32 in mixed): a move rewrites it, so
+    # the forces agree to that type's rounding of the springs (a lost slot would be off by O(scale))
+    stored = np.finfo(get_precision(plan.precision).np_mid).eps
+    np.testing.assert_allclose(force_after, before_force[i0][far], rtol=0, atol=max(1e-12, 4 * stored) * scale)
 
     def deepest(x, r, pairs_from=None):
         pairs = cKDTree(x).query_pairs(2.5 * r.max(), output_type="ndarray")
