@@ -162,7 +162,7 @@ def path_kernels(hi):
         """Count a step of the path."""
         step[0] = step[0] + 1
 
-    return dict(follow_path=follow_path, next_step=next_step)
+    return dict(follow_path=follow_path, next_step=next_step, rotation_of=rotation_of)
 
 
 class SoilControl:

@@ -5,6 +5,7 @@ soil.scm.terrain.ScmTerrain. No atomics; each sum over nodes runs in a fixed ord
 
 import warp as wp
 
+from ..control import path_kernels
 from ..precision import kernel_factory, kernel_module, soil_kernel
 
 MIN_NORMAL_Z = 0.2
@@ -554,23 +555,7 @@ def scm_kernels(hi):
         for a in range(8):
             sums[w, a] = sums[w, a] + totals[w, a]
 
-    @wp.func
-    def rotation_of(q: vec4_hi):
-        """Rotation matrix (body -> world) of a unit quaternion (w, x, y, z)."""
-        q = q / wp.length(q)
-        w, x, y, z = q[0], q[1], q[2], q[3]
-        one, two = hi(1.0), hi(2.0)
-        return mat_hi(
-            one - two * (y * y + z * z),
-            two * (x * y - w * z),
-            two * (x * z + w * y),
-            two * (x * y + w * z),
-            one - two * (x * x + z * z),
-            two * (y * z - w * x),
-            two * (x * z - w * y),
-            two * (y * z + w * x),
-            one - two * (x * x + y * y),
-        )
+    rotation_of = path_kernels(hi).rotation_of  # the bodies' rotation, written once (soil.control)
 
     @kernel
     def follow_path(
