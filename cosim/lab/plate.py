@@ -19,7 +19,7 @@ from __future__ import annotations
 import logging
 import math
 import os
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from typing import Any
 
 import numpy as np
@@ -377,6 +377,50 @@ def quasi_static_numbers(plan: LabPlan, speed: float, narrowest: float, largest_
     ]
 
 
+def press_plates(
+    plan: LabPlan,
+    out_dir: str,
+    sides: Sequence[float],
+    replicas: int,
+    executor: str = "serial",
+    scheduler: str | None = None,
+    workers: int | None = None,
+    unload: bool = False,
+) -> tuple[list[dict], list[dict], list[dict]]:
+    """Settle `replicas` beds (into out_dir/beds) and push every plate width of `sides` [m] into each
+    (through cosim.study.Executor); with `unload`, each plate is then held and raised (the unloading
+    branch). Returns (the settled beds, the plates' results, the failed tasks of either stage)."""
+    folder = os.path.join(out_dir, "beds")
+    os.makedirs(folder, exist_ok=True)
+    beds = common.map_tasks(
+        plan,
+        run_replica,
+        [{"replica": k, "stage": "bed", "bed": os.path.join(folder, f"replica_{k}.h5")} for k in range(replicas)],
+        [f"bed {k}" for k in range(replicas)],
+        executor,
+        scheduler,
+        workers,
+    )
+    ready = common.successful(beds, "plate bed")
+    jobs = [
+        {
+            "replica": bed["replica"],
+            "stage": "plate",
+            "bed": bed["path"],
+            "surface": bed["surface"],
+            "width": b,
+            "centre": bed["centre"],
+            "top": bed["tops"][str(b)],
+            **({"unload": True} if unload else {}),
+        }
+        for bed in ready
+        for b in sides
+    ]
+    labels = [f"replica {j['replica']}, plate {j['width']:.3g} m" for j in jobs]
+    results = common.map_tasks(plan, run_replica, jobs, labels, executor, scheduler, workers)
+    return ready, common.successful(results, "plate"), [r for r in beds + results if not r.get("ok")]
+
+
 def plate_test(
     plan: LabPlan,
     out_dir: str,
@@ -400,34 +444,7 @@ def plate_test(
         plan.scene.bed.width,
         replicas,
     )
-    folder = os.path.join(out_dir, "beds")
-    os.makedirs(folder, exist_ok=True)
-    beds = common.map_tasks(
-        plan,
-        run_replica,
-        [{"replica": k, "stage": "bed", "bed": os.path.join(folder, f"replica_{k}.h5")} for k in range(replicas)],
-        [f"bed {k}" for k in range(replicas)],
-        executor,
-        scheduler,
-        workers,
-    )
-    ready = common.successful(beds, "plate bed")
-    jobs = [
-        {
-            "replica": bed["replica"],
-            "stage": "plate",
-            "bed": bed["path"],
-            "surface": bed["surface"],
-            "width": b,
-            "centre": bed["centre"],
-            "top": bed["tops"][str(b)],
-        }
-        for bed in ready
-        for b in sides
-    ]
-    labels = [f"replica {j['replica']}, plate {j['width']:.3g} m" for j in jobs]
-    results = common.map_tasks(plan, run_replica, jobs, labels, executor, scheduler, workers)
-    done = common.successful(results, "plate")
+    ready, done, failed = press_plates(plan, out_dir, sides, replicas, executor, scheduler, workers)
     fit_from = plan.scene.plate.fit_from if plan.scene.plate.fit_from is not None else 0.25 * plan.diameter
     fit = bekker_fit([(r["width"], r["sinkage"], r["pressure"]) for r in done], fit_from)
     largest = max(float(np.max(r["pressure"])) for r in done)
@@ -460,7 +477,7 @@ def plate_test(
             for r in done
         ],
         "beds": [{k: bed[k] for k in ("replica", "surface", "settled", "settle_time", "source")} for bed in ready],
-        "failed": [{"label": r.get("label"), "error": r.get("error")} for r in beds + results if not r.get("ok")],
+        "failed": [{"label": r.get("label"), "error": r.get("error")} for r in failed],
         "geometry": {
             "widths_m": list(sides),
             "speed_m_s": speed,

@@ -179,36 +179,7 @@ def calibrate_scm(plan, out_dir: str, overwrite: bool = False, executor="serial"
     if len(sides) < 2:
         raise SceneError([f"plate.widths: k_c and k_phi need two or more plate widths, got {list(sides)}"])
     replicas = plan.scene.lab.replicas if plan.scene.bed.bed_file is None else 1
-    folder = os.path.join(out_dir, "beds")
-    os.makedirs(folder, exist_ok=True)
-    beds = common.map_tasks(
-        plan,
-        plate.run_replica,
-        [{"replica": k, "stage": "bed", "bed": os.path.join(folder, f"replica_{k}.h5")} for k in range(replicas)],
-        [f"bed {k}" for k in range(replicas)],
-        executor,
-        scheduler,
-        workers,
-    )
-    ready = common.successful(beds, "plate bed")
-    jobs = [
-        {
-            "replica": bed["replica"],
-            "stage": "plate",
-            "bed": bed["path"],
-            "surface": bed["surface"],
-            "width": b,
-            "centre": bed["centre"],
-            "top": bed["tops"][str(b)],
-            "unload": True,
-        }
-        for bed in ready
-        for b in sides
-    ]
-    labels = [f"replica {j['replica']}, plate {j['width']:.3g} m" for j in jobs]
-    plates = common.successful(
-        common.map_tasks(plan, plate.run_replica, jobs, labels, executor, scheduler, workers), "plate"
-    )
+    ready, plates, _ = plate.press_plates(plan, out_dir, sides, replicas, executor, scheduler, workers, unload=True)
     fit_from = plan.scene.plate.fit_from if plan.scene.plate.fit_from is not None else 0.25 * plan.diameter
     bekker = fit_bekker([(r["width"], r["sinkage"], r["pressure"]) for r in plates], fit_from)
     unloads = [
