@@ -332,7 +332,8 @@ def cmd_export_fmu(args) -> int:
             config.device = args.device
         path = export_soil_fmu(config, args.out, fmi_version=args.fmi, wheel_count=args.wheels, python=args.python)
     print(
-        f"wrote {path}: FMI {args.fmi}.0 co-simulation, {args.wheels} wheel(s), DEM step {config.dem_step:.4g} s, "
+        f"wrote {path}: FMI {args.fmi}.0 co-simulation, {args.wheels} wheel(s), "
+        f"{config.terrain.upper()} step {config.dem_step:.4g} s, "
         f"surface z = {config.surface_height:.4g} m; the soil server runs on {config.device}"
     )
     return EXIT_OK

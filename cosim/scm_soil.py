@@ -240,6 +240,28 @@ class ScmSoil(SoilSideDefaults):
             for b in range(self.wheel_count)
         ]
 
+    def current_wrenches(self) -> list[WheelWrench]:
+        """The wrench on every wheel at its pose now (e.g. after place_wheels), the soil left as it is:
+        the wrench of an SCM step of zero length (the nodes the wheels reach now, at their sinkage,
+        plastic state and shear displacement), taken on the terrain and then undone by restoring its
+        state (state_dict). As DemSoil.current_wrenches: the mean and end wrench alike, no work."""
+        kept = self.state_dict()
+        self.terrain.step(0.0)
+        now = self.terrain.wheel_contact(mean=False)
+        self.load_state_dict(kept)
+        return [
+            WheelWrench(
+                force=now.force[b],
+                torque=now.torque[b],
+                force_end=now.force[b].copy(),
+                torque_end=now.torque[b].copy(),
+                contact_count=int(now.contacts[b]),
+                sinkage=self._sinkage(b),
+                work_on_soil=0.0,
+            )
+            for b in range(self.wheel_count)
+        ]
+
     def _sinkage(self, wheel: int) -> float:
         """Depth of the wheel's rim bottom below the undisturbed surface [m] (as DemSoil's)."""
         return self.surface_height - float(self._position[wheel, 2] - self.rim_radii[wheel])

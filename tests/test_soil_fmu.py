@@ -550,3 +550,189 @@ def test_fmpy_compile_rebuilds_the_soil_fmu_and_it_steps_bitwise_like_the_origin
     assert all(s == ["ok", "ok"] for s in result["status"]), result["status"]
     for outputs in result["outputs"]:
         assert outputs[0] == outputs[1]
+
+
+# -- the SCM soil FMU ([terrain] model = "scm") ------------------------------------------------------------
+
+K_C, K_PHI, N = 2.0e3, 8.0e5, 1.1
+SCM_TERRAIN = f"""
+[terrain]
+model = "scm"
+k_c = {K_C}
+k_phi = {K_PHI}
+n = {N}
+cohesion = 50.0
+friction_angle_deg = 30.0
+janosi_k = 0.002
+elastic_stiffness = 2.0e7
+"""
+SCM_PRESS = 2e-3  # the rolling wheel starts this far below its resting height [m]
+
+
+@pytest.fixture(scope="session")
+def scm(tmp_path_factory, frontends):
+    """The tiny scene's smooth wheel (a rigid cylinder: Bekker's wheel) on SCM on the CPU, and its soil
+    FMUs (FMI 2.0 and 3.0, one wheel): no bed is settled."""
+    from helpers import write_tiny
+
+    folder = tmp_path_factory.mktemp("scm_fmu")
+    scene = Path(write_tiny(folder, SCM_TERRAIN))
+    text = scene.read_text().replace('precision = "mixed"', 'precision = "mixed"\ndevice = "cpu"')
+    scene.write_text(text.replace("grouser_count = 8", "grouser_count = 0"))
+    config = soil_config_from(scene)
+    fmus = {
+        version: export_soil_fmu(config, folder / f"scm{version}.fmu", fmi_version=version, library=frontends[version])
+        for version in (2, 3)
+    }
+    assert not any(folder.rglob("*.h5")), "no bed is settled for an SCM soil"
+    return {"folder": folder, "plan": load_plan(scene), "config": config, "fmus": fmus}
+
+
+def _runs_scm_soil(plan):
+    """The peer: the SCM soil side a run of the scene steps (cosim.system's builder)."""
+    from cosim.system import TERRAIN_MODELS
+
+    return TERRAIN_MODELS["scm"].build(plan, None)
+
+
+def _bekker_static_sinkage(load: float, radius: float, width: float, spacing: float) -> float:
+    """The sinkage [m] of a rigid cylinder at rest on Bekker soil under `load` [N]: load = integral over
+    its contact (both halves) of (k_c / b + k_phi) z(x)^n, z(x) = z0 - (R - sqrt(R^2 - x^2)), b the
+    patch's smaller extent (its length 2 x0 or the width, plus one node spacing: soil.scm's patch width)."""
+    from scipy.integrate import quad
+    from scipy.optimize import brentq
+
+    def carried(z0):
+        x0 = math.sqrt(max(0.0, 2 * radius * z0 - z0 * z0))
+        b = min(width, 2 * x0) + spacing
+        line, _ = quad(lambda x: (K_C / b + K_PHI) * max(0.0, z0 - radius + math.sqrt(radius**2 - x**2)) ** N, -x0, x0)
+        return width * line - load
+
+    return brentq(carried, 1e-7, 0.5 * radius)
+
+
+def test_scm_fmu_steps_bitwise_like_the_runs_scm_soil_and_carries_the_load_at_bekkers_sinkage(scm, importer):
+    """Two instances of the SCM soil FMU in fmpy (FMI 2.0). One wheel is held still at Bekker's static
+    sinkage under the scene's wheel load: the soil carries that load (to the grid's discretisation, 2 %),
+    at the start and after every step. The other rolls forward while sinking, with an FMU state taken
+    before its second step and restored after it, then two half steps: every output, the start's
+    included, is bitwise that of the run's own ScmSoil (cosim.system) stepped in-process along the
+    same steps (the half steps from a soil that never took the rolled-back one)."""
+    plan, fmu = scm["plan"], scm["fmus"][2]
+    wheel = plan.wheel
+    load = plan.wheel_load
+    sinkage = _bekker_static_sinkage(load, wheel.outer_radius, wheel.width, wheel.width / 12)
+    rest = _start_hub(fmu)
+    assert rest[2] == pytest.approx(plan.wheel.outer_radius, rel=1e-12)  # resting on the surface z = 0
+    spacing = scm["config"].scm.parameters.node_spacing
+    # half a node off y = 0, the wheel's edges fall between node rows: width / spacing = 12 rows carry it
+    offset = np.array([0.0, 0.5 * spacing, -sinkage])
+    held = _inputs(WheelKinematics(rest + offset, (1, 0, 0, 0), (0, 0, 0), (0, 0, 0)))
+    hub0 = rest - np.array([0.0, 0.0, SCM_PRESS])
+    motion = [_kinematics(hub0, k * H) for k in range(2)]
+    half = [_kinematics(hub0, H + k * H / 2) for k in range(2)]  # from t = H in two halves
+    job = {
+        "master": "fmpy",
+        "instances": [{"fmu": str(fmu), "start": held}, {"fmu": str(fmu), "start": _inputs(motion[0])}],
+        "steps": [
+            {"h": H, "inputs": [held, _inputs(motion[0])]},
+            {"h": H, "inputs": [held, _inputs(motion[1])], "save_state": True},
+            {"h": H / 2, "inputs": [held, _inputs(half[0])], "restore_state": True, "t_offset": -H},
+            {"h": H / 2, "inputs": [held, _inputs(half[1])], "t_offset": -H},
+        ],
+    }
+    result = importer(job)
+    assert all(s == ["ok", "ok"] for s in result["status"]), (result["status"], result["messages"])
+
+    for outputs in result["outputs"]:
+        assert outputs[0]["wheel_0.force.z"] == pytest.approx(load, rel=2e-2)
+        assert outputs[0]["wheel_0.force_end.z"] == pytest.approx(load, rel=2e-2)
+        assert outputs[0]["wheel_0.sinkage"] == pytest.approx(sinkage, rel=1e-9)
+        assert outputs[0]["wheel_0.contact_count"] > 0
+
+    soil, kept = _runs_scm_soil(plan), _runs_scm_soil(plan)
+    for side in (soil, kept):
+        side.place_wheels([motion[0]])
+    expected = [_as_outputs(soil.current_wrenches()[0])]
+    expected += [_as_outputs(soil.advance(soil.time + H, [k])[0]) for k in motion]
+    kept.advance(kept.time + H, [motion[0]])
+    expected += [_as_outputs(kept.advance(kept.time + H / 2, [k])[0]) for k in half]
+    got = [outputs[1] for outputs in result["outputs"]]
+    assert got == expected
+    assert expected[-1]["wheel_0.contact_count"] > 0 and expected[-1]["wheel_0.force.x"] != 0.0
+
+
+def test_scm_fmu_refuses_another_gravity_and_a_bad_quaternion_naming_them(scm, importer):
+    """FMI 3.0: an instance whose gravity parameter is not the scene's fails at initialization, naming
+    the gravity; an instance given a zero orientation quaternion fails at that step, naming it."""
+    fmu = scm["fmus"][3]
+    start = _inputs(WheelKinematics(_start_hub(fmu), (1, 0, 0, 0), (0, 0, 0), (0, 0, 0)))
+    bad = dict(start, **{f"wheel_0.orientation.{a}": 0.0 for a in "wxyz"})
+    job = {
+        "master": "fmpy",
+        "instances": [{"fmu": str(fmu), "start": {**start, "gravity.z": -9.81}}, {"fmu": str(fmu), "start": start}],
+        "steps": [{"h": H, "inputs": [start, bad]}],
+    }
+    result = importer(job)
+    assert result["status"] == [["error", "ok"], ["error", "error"]], result["messages"]
+    errors = [m[2] for m in result["messages"] if m[0] == "error"]
+    assert any("gravity: the SCM soil's parameters hold at the scene's gravity" in e for e in errors), errors
+    assert any("orientation must be a unit quaternion" in e for e in errors), errors
+    assert result["servers_after_free"] == []
+
+
+def test_scm_soil_server_puts_a_failed_step_back_and_spreads_several_wheels(scm, frontends, tmp_path):
+    """A two-wheel SCM FMU's soil server, in-process: the wheels start SCM_WHEEL_SPACING outer radii apart
+    on the surface inside a window lengthened to hold both; a step that drives wheel 1 out of the window
+    fails naming the window and leaves the soil at the step's start (the next step is bitwise a fresh
+    soil's). A configuration without its SCM settings, and a rover scene with per-wheel terrains, are
+    refused naming the field."""
+    from cosim.scene import SceneError
+    from cosim.soil_fmu.config import SCM_WHEEL_SPACING
+    from cosim.soil_fmu.server import PROTOCOL_VERSION, SoilSession
+    from soil.errors import InputError, SoilInputError
+
+    fmu = export_soil_fmu(scm["config"], tmp_path / "two.fmu", wheel_count=2, library=frontends[2])
+    description = fmpy.read_model_description(str(fmu))
+    starts = {
+        v.name: float(v.start)
+        for v in description.modelVariables
+        if v.name.startswith("wheel_") and v.start is not None
+    }
+    outer = scm["plan"].wheel.outer_radius
+    assert starts["wheel_1.position.x"] - starts["wheel_0.position.x"] == pytest.approx(SCM_WHEEL_SPACING * outer)
+    with zipfile.ZipFile(fmu) as z:
+        z.extractall(tmp_path / "two")
+        assert "resources/bed.h5" not in z.namelist()
+    window = json.loads((tmp_path / "two" / "resources" / "soil.json").read_text())["scm"]["window"]
+    assert window[0] == pytest.approx(scm["config"].scm.window[0] + SCM_WHEEL_SPACING * outer)
+
+    settings = {
+        "protocol": str(PROTOCOL_VERSION),
+        "resources": str(tmp_path / "two" / "resources"),
+        "wheels": "2",
+        "dem_step": repr(scm["config"].dem_step),
+        "gravity": " ".join(repr(g) for g in scm["config"].gravity),
+        "device": "cpu",
+    }
+    hubs = [np.array([starts[f"wheel_{i}.position.{a}"] for a in AXES]) - [0, 0, SCM_PRESS] for i in (0, 1)]
+    still = np.concatenate([np.r_[hub, 1, 0, 0, 0, 0, 0, 0, 0, 0, 0] for hub in hubs])
+    away = still.copy()
+    away[13 + 7] = 100.0  # wheel 1 at 100 m/s along x: 0.2 m in one step
+    session, fresh = SoilSession(settings), SoilSession(settings)
+    for side in (session, fresh):
+        side.place(still)
+    with pytest.raises(SoilInputError, match="leaves the SCM window"):
+        session.step(H, away)
+    assert session.soil.time == 0.0
+    assert session.step(H, still) == fresh.step(H, still)
+
+    with pytest.raises(InputError, match="terrain 'scm' needs scm"):
+        dataclasses.replace(scm["config"], scm=None)
+    pytest.importorskip("mujoco")
+    from rover_helpers import write_small_rover
+
+    mixed = SCM_TERRAIN + 'wheels = ["dem", "scm", "scm", "scm"]\n'
+    with pytest.raises(SceneError, match=r"terrain\.wheels: a soil FMU steps one terrain model for all its wheels"):
+        soil_config_from(write_small_rover(tmp_path, duration=0.02, extra=mixed), bed_folder=tmp_path / "bed")
+    assert not (tmp_path / "bed").exists()

@@ -7,7 +7,7 @@ Nothing is downloaded. The FMU holds:
     binaries/<platform>/RegolithSoil.so     the compiled front end (soil_fmu.c + fmi2.c or fmi3.c)
     resources/frontend.txt                  instantiation token, wheel count, default server Python, start values
     resources/soil.json                     the soil configuration (cosim.soil_fmu.config)
-    resources/bed.h5                        the settled bed
+    resources/bed.h5                        the settled bed (the DEM soil; an SCM soil has none)
     sources/                                the front end's C sources (declared: FMI 2.0 SourceFiles, FMI 3.0
                                             sources/buildDescription.xml), so `fmpy compile` rebuilds it
 """
@@ -59,6 +59,23 @@ LOG_CATEGORIES = {
 }
 
 
+TERRAIN_TEXT = {
+    "dem": {
+        "soil": "DEM regolith soil",
+        "dem_step": "DEM step: each doStep is split into whole DEM steps of at most this length",
+        "gravity": "gravity of the settled bed (another value is an error)",
+        "contact_count": "grains touching the wheel at the step's end",
+    },
+    "scm": {
+        "soil": "SCM (Soil Contact Model) soil",
+        "dem_step": "SCM step: each doStep is split into equal SCM steps of at most this length",
+        "gravity": "gravity the SCM parameters hold at, the scene's (another value is an error)",
+        "contact_count": "SCM nodes pressing on the wheel at the step's end",
+    },
+}
+"""The descriptions that name what the soil is, by terrain (cosim.soil_fmu.config.TERRAINS)."""
+
+
 @dataclass
 class Variable:
     name: str
@@ -71,8 +88,10 @@ class Variable:
     start: float | str | None = None
 
 
-def variables(wheel_count: int, dem_step: float, gravity, starts: np.ndarray) -> list[Variable]:
-    """Every variable of the FMU; `starts` [W, 13] are the wheel inputs' start values."""
+def variables(wheel_count: int, dem_step: float, gravity, starts: np.ndarray, terrain: str = "dem") -> list[Variable]:
+    """Every variable of the FMU; `starts` [W, 13] are the wheel inputs' start values; `terrain`
+    ('dem' or 'scm') words the descriptions (the variables are the same)."""
+    words = TERRAIN_TEXT[terrain]
     fixed = ("parameter", "fixed")
     rows = [
         Variable("time", 0, "Float64", "independent", "continuous", "simulation time", "s"),
@@ -81,7 +100,7 @@ def variables(wheel_count: int, dem_step: float, gravity, starts: np.ndarray) ->
             1,
             "Float64",
             *fixed,
-            "DEM step: each doStep is split into whole DEM steps of at most this length",
+            words["dem_step"],
             "s",
             float(dem_step),
         ),
@@ -93,7 +112,7 @@ def variables(wheel_count: int, dem_step: float, gravity, starts: np.ndarray) ->
                 2 + k,
                 "Float64",
                 *fixed,
-                "gravity of the settled bed (another value is an error)",
+                words["gravity"],
                 "m/s2",
                 float(gravity[k]),
             )
@@ -199,7 +218,7 @@ def variables(wheel_count: int, dem_step: float, gravity, starts: np.ndarray) ->
                 "Int32",
                 "output",
                 "discrete",
-                "grains touching the wheel at the step's end",
+                words["contact_count"],
             )
         )
     return rows
@@ -394,13 +413,21 @@ def wheel_start_positions(config, wheel_count: int) -> np.ndarray:
     point resting on the highest grain under it (touching, not pressed in).
 
     One wheel sits at config.start_x (default: outer radius + 6 mean grain radii from the bed's
-    x-start wall); several are spread evenly between such margins at both ends.
+    x-start wall); several are spread evenly between such margins at both ends. On SCM (no grains)
+    the wheels rest on the undisturbed surface along y = 0, the first at config.start_x (default
+    0), the others SCM_WHEEL_SPACING outer radii apart along x.
     """
     from soil.bed import read_bed
     from soil.sdf import BOUNDARY_PLANE
 
+    from .config import SCM_WHEEL_SPACING
+
     shape = config.wheel
     outer = float(shape.outer_radius)
+    if config.terrain == "scm":
+        x0 = config.start_x if config.start_x is not None else 0.0
+        xs = x0 + SCM_WHEEL_SPACING * outer * np.arange(wheel_count)
+        return np.column_stack([xs, np.zeros(wheel_count), np.full(wheel_count, config.surface_height + outer)])
     width = float(getattr(shape, "width", 0.0)) or float(np.ptp(shape.vertices[:, 1]))
     bed = read_bed(config.bed_file)
     x = bed.state["position"].astype(np.float64)
@@ -456,8 +483,9 @@ def export_soil_fmu(
     """Write the soil FMU of `config` (a cosim.soil_fmu.SoilFmuConfig) to `destination` (.fmu).
 
     fmi_version: 2 or 3. wheel_count: wheels in one instance (all of config.wheel's shape, on
-    one bed). python: the soil server's default Python (default config.python, else this
-    Python; an FMU user overrides it with the `python` parameter or REGOLITH_SOIL_PYTHON).
+    one bed, or on one SCM terrain whose window holds them all). python: the soil server's
+    default Python (default config.python, else this Python; an FMU user overrides it with the
+    `python` parameter or REGOLITH_SOIL_PYTHON).
     library: a front end already compiled by build_frontend for this FMI version (else compiled now).
     Returns the FMU's path.
     """
@@ -476,11 +504,12 @@ def export_soil_fmu(
     starts = np.zeros((wheel_count, 13))
     starts[:, 0:3] = wheel_start_positions(config, wheel_count)
     starts[:, 3] = 1.0  # orientation (1, 0, 0, 0): axle along the world's y axis
-    rows = variables(wheel_count, config.dem_step, data["gravity"], starts)
+    rows = variables(wheel_count, config.dem_step, data["gravity"], starts, config.terrain)
     token = "{" + str(uuid.uuid4()) + "}"
     macro_step = config.macro_step or 10 * config.dem_step
+    soil = TERRAIN_TEXT[config.terrain]["soil"]
     description = (
-        f"DEM regolith soil '{config.name}' (regolith-cosim): wheel kinematics in, wheel wrenches out; "
+        f"{soil} '{config.name}' (regolith-cosim): wheel kinematics in, wheel wrenches out; "
         f"{wheel_count} wheel(s); needs the soil server's Python (docs/fmu.md)"
     )
     platform, suffix = _platform(fmi_version)
@@ -498,7 +527,8 @@ def export_soil_fmu(
                 fmu.write(library, f"binaries/{platform}/{MODEL_IDENTIFIER}{suffix}")
                 fmu.writestr("resources/frontend.txt", frontend_text(rows, token, wheel_count, python))
                 fmu.writestr("resources/soil.json", json.dumps(data, indent=1))
-                fmu.write(config.bed_file, "resources/bed.h5")
+                if config.terrain == "dem":
+                    fmu.write(config.bed_file, "resources/bed.h5")
                 for name in SOURCES[fmi_version]:
                     fmu.write(HERE / name, f"sources/{name}")
                 if fmi_version == 3:

@@ -1,7 +1,9 @@
-"""What a soil FMU carries: the settled bed and the soil configuration (resources/soil.json).
+"""What a soil FMU carries: the soil configuration (resources/soil.json) and, on the DEM, the
+settled bed (resources/bed.h5).
 
 `soil_config_from(path)` is the one place that reads a scene file or a run folder;
-`soil_from_config(config)` builds the DemSoil the soil server steps.
+`soil_from_config(config)` builds the soil the soil server steps: a DemSoil on the bed's grains,
+or an ScmSoil (the Soil Contact Model, [terrain] model = "scm": no bed, its parameters in soil.json).
 """
 
 from __future__ import annotations
@@ -17,23 +19,34 @@ import numpy as np
 from soil.errors import ArgumentError, DamagedFileError
 
 if TYPE_CHECKING:  # soil (and Warp) load only when a soil is built
+    from cosim.scm_soil import ScmSettings
     from soil import ContactLaw, GrouserWheel, Material, MeshWheel
 
-CONFIG_FORMAT = "regolith-cosim soil FMU 1"
+CONFIG_FORMAT = "regolith-cosim soil FMU 2"
+"""The format of resources/soil.json: 2 names its terrain ('dem' or 'scm') and carries the SCM terrain."""
+READABLE_FORMATS = ("regolith-cosim soil FMU 1", CONFIG_FORMAT)
+"""The formats a soil server reads (format 1: a DEM soil)."""
+TERRAINS = ("dem", "scm")
+"""The terrain models a soil FMU steps (cosim.system.TERRAIN_MODELS' 'dem' and 'scm')."""
+SCM_WHEEL_SPACING = 4.0
+"""Distance between the hubs of neighbouring wheels at the start on one SCM terrain, in outer radii [-]
+(their patches and rims apart); the SCM window is lengthened along x by their span."""
 
 
 @dataclass
 class SoilFmuConfig:
     """Everything an exported soil FMU needs (SI units)."""
 
-    bed_file: str
-    """A settled bed saved by soil.bed.save_bed (its grains, walls, materials and gravity)."""
+    bed_file: str | None
+    """A settled bed saved by soil.bed.save_bed (its grains, walls, materials and gravity); None on
+    the SCM terrain (no grains)."""
     wheel: GrouserWheel | MeshWheel
     """Shape of every wheel: soil.GrouserWheel or soil.MeshWheel."""
-    wheel_material: Material
-    """soil.Material of the wheels."""
+    wheel_material: Material | None
+    """soil.Material of the wheels (the DEM's contacts; SCM does not use it)."""
     dem_step: float
-    """DEM step [s]; a macro step is split into whole DEM steps of at most this length."""
+    """The soil's inner step [s]: a macro step is split into whole DEM steps of at most this length
+    (on SCM: into equal SCM steps of at most this length)."""
     surface_height: float
     """Undisturbed soil surface z [m] (sinkage is measured from it)."""
     law: ContactLaw | None = None
@@ -59,6 +72,15 @@ class SoilFmuConfig:
     """The soil server's Python by default; None: the Python that exports."""
     extra: dict = field(default_factory=dict)
     """Free-form notes stored with the configuration."""
+    terrain: str = "dem"
+    """The terrain the server steps: 'dem' (the bed's grains, cosim.dem_soil.DemSoil) or 'scm' (the
+    Soil Contact Model of `scm`, cosim.scm_soil.ScmSoil)."""
+    scm: ScmSettings | None = None
+    """terrain 'scm': its parameters, node window [m] and surface height [m] (cosim.scm_soil.ScmSettings;
+    its time_step is ignored: dem_step is the SCM step)."""
+    gravity: tuple[float, ...] | None = None
+    """terrain 'scm': the scene's gravity vector [m/s^2], at which the SCM parameters hold (the DEM's
+    gravity is its bed's)."""
 
     def __post_init__(self):
         if not (isinstance(self.dem_step, (int, float)) and math.isfinite(self.dem_step) and self.dem_step > 0):
@@ -67,26 +89,43 @@ class SoilFmuConfig:
             raise ArgumentError(f"precision must be single, double or mixed, got {self.precision!r}")
         if self.macro_step is not None and not self.macro_step > 0:
             raise ArgumentError(f"macro_step must be > 0 [s], got {self.macro_step!r}")
-        if not os.path.isfile(self.bed_file):
-            raise FileNotFoundError(f"bed file not found: {self.bed_file!r}")
+        if self.terrain not in TERRAINS:
+            raise ArgumentError(f"terrain must be one of {', '.join(TERRAINS)}, got {self.terrain!r}")
+        if self.terrain == "scm":
+            if self.scm is None:
+                raise ArgumentError("terrain 'scm' needs scm (cosim.scm_soil.ScmSettings: its parameters and window)")
+            gravity = np.asarray(self.gravity if self.gravity is not None else [], dtype=np.float64)
+            if gravity.shape != (3,) or not np.all(np.isfinite(gravity)):
+                raise ArgumentError(f"terrain 'scm' needs gravity, 3 finite numbers [m/s^2], got {self.gravity!r}")
+        else:
+            if self.bed_file is None or not os.path.isfile(self.bed_file):
+                raise FileNotFoundError(f"bed file not found: {self.bed_file!r}")
+            if self.wheel_material is None:
+                raise ArgumentError("the DEM soil needs wheel_material (soil.Material of the wheels)")
 
 
 def soil_config_from(path, bed_folder=None) -> SoilFmuConfig:
     """The soil FMU configuration of a scene file (TOML) or a run folder (`cosim run --out`).
 
-    Both go through the run layer: the scene is resolved into a plan (cosim.plan), and the bed
-    is the run's (a run folder: the bed its run.json names, else its bed.h5) or the plan's
-    (its bed.bed_file, or a bed settled now in `bed_folder`, cached there by the bed key).
+    Both go through the run layer: the scene is resolved into a plan (cosim.plan). On the DEM the
+    bed is the run's (a run folder: the bed its run.json names, else its bed.h5) or the plan's
+    (its bed.bed_file, or a bed settled now in `bed_folder`, cached there by the bed key); on SCM
+    ([terrain] model = "scm") there is no bed: the plan's SCM terrain goes into the configuration.
     """
     from cosim.beds import bed_from_file, settled_bed
     from cosim.plan import load_plan
 
     path = os.fspath(path)
-    if os.path.isdir(path):
-        scene_file = os.path.join(path, "scene.toml")
-        if not os.path.isfile(scene_file):
-            raise FileNotFoundError(f"{path!r} is not a run folder: it has no scene.toml")
-        plan = load_plan(scene_file)
+    run_folder = os.path.isdir(path)
+    scene_file = os.path.join(path, "scene.toml") if run_folder else path
+    if run_folder and not os.path.isfile(scene_file):
+        raise FileNotFoundError(f"{path!r} is not a run folder: it has no scene.toml")
+    plan = load_plan(scene_file)
+    _require_fmu_scene(plan, path)  # before a bed is settled
+    assert plan.testbed is not None
+    if plan.terrain.model == "scm":
+        return _scm_config(plan)
+    if run_folder:
         bed_path = os.path.join(path, "bed.h5")
         run_file = os.path.join(path, "run.json")
         if os.path.isfile(run_file):
@@ -96,13 +135,9 @@ def soil_config_from(path, bed_folder=None) -> SoilFmuConfig:
             raise FileNotFoundError(f"the run folder {path!r} has no settled bed ({bed_path!r} is missing)")
         bed = bed_from_file(bed_path)
     else:
-        plan = load_plan(path)
-        _require_single_wheel(plan, path)  # before a bed is settled
         if bed_folder is None and not plan.bed.bed_file:
             raise ArgumentError("a scene without bed.bed_file needs a bed_folder to settle its bed in")
         bed = settled_bed(plan, os.fspath(bed_folder) if bed_folder else "")
-    _require_single_wheel(plan, path)
-    assert plan.testbed is not None
     return SoilFmuConfig(
         bed_file=os.path.abspath(bed.path),
         wheel=plan.wheel.shape,
@@ -125,6 +160,40 @@ def soil_config_from(path, bed_folder=None) -> SoilFmuConfig:
     )
 
 
+def _scm_config(plan) -> SoilFmuConfig:
+    """The SCM soil FMU of a single-wheel plan on [terrain] model = "scm": the run's SCM terrain
+    (cosim.scm_soil.scm_settings, as cosim.system builds it), its step the FMU's dem_step."""
+    from cosim.scm_calibration import warn_gravity
+    from cosim.scm_soil import scm_settings
+
+    assert plan.testbed is not None
+    surface = float(dict(plan.terrain.parameters).get("surface_height", 0.0))
+    extra = {}
+    if plan.terrain.calibration_gravity is not None:  # provenance: the soil's parameters came from a calibration
+        section = plan.scene.terrain
+        calibration = str(section.calibration if section else "")
+        warn_gravity(plan.terrain.calibration_gravity, plan.g, calibration)
+        extra = {"scm_calibration": calibration, "scm_calibration_gravity": plan.terrain.calibration_gravity}
+    settings = scm_settings(plan, [0], surface)
+    return SoilFmuConfig(
+        bed_file=None,
+        wheel=plan.wheel.shape,
+        wheel_material=plan.wheel.material,
+        dem_step=settings.time_step,
+        surface_height=settings.surface_height,
+        precision=plan.precision,
+        device=plan.device,
+        macro_step=plan.macro_step,
+        duration=plan.scene.run.duration,
+        start_x=plan.testbed.start_x,
+        name=plan.name,
+        terrain="scm",
+        scm=settings,
+        gravity=tuple(float(g) for g in plan.gravity),
+        extra=extra,
+    )
+
+
 def bed_surface_height(bed_file) -> float:
     """The saved height metric of a bed file [m] (soil.bed.bed_metrics)."""
     from soil.bed import read_bed_header
@@ -139,7 +208,7 @@ def bed_surface_height(bed_file) -> float:
 
 
 def config_to_json(config: SoilFmuConfig, wheel_count: int) -> dict:
-    """The soil server's configuration (resources/soil.json); the bed travels as resources/bed.h5."""
+    """The soil server's configuration (resources/soil.json); a DEM's bed travels as resources/bed.h5."""
     from soil import GrouserWheel
 
     shape = config.wheel
@@ -152,22 +221,51 @@ def config_to_json(config: SoilFmuConfig, wheel_count: int) -> dict:
             "vertices": shape.vertices.tolist(),
             "triangles": shape.triangles.tolist(),
         }
-    return {
+    data = {
         "format": CONFIG_FORMAT,
+        "terrain": config.terrain,
         "name": config.name,
         "wheel_count": int(wheel_count),
         "wheel": wheel,
-        "wheel_material": asdict(config.wheel_material),
-        "law": asdict(config.law) if config.law else None,
         "dem_step": float(config.dem_step),
         "surface_height": float(config.surface_height),
         "precision": config.precision,
         "device": config.device,
-        "order_seed": config.order_seed,
-        "gravity": _bed_gravity(config.bed_file),
-        "step_control": config.step_control,
         "extra": config.extra,
     }
+    if config.terrain == "scm":
+        assert config.scm is not None and config.gravity is not None  # SoilFmuConfig checks them
+        length, width = config.scm.window
+        data.update(
+            scm={
+                "parameters": asdict(config.scm.parameters),
+                "window": [float(length + scm_wheels_span(shape, wheel_count)), float(width)],
+            },
+            rim_radius=rim_radius(shape),
+            gravity=[float(g) for g in config.gravity],
+        )
+        return data
+    data.update(
+        wheel_material=asdict(config.wheel_material) if config.wheel_material else None,
+        law=asdict(config.law) if config.law else None,
+        order_seed=config.order_seed,
+        gravity=_bed_gravity(config.bed_file),
+        step_control=config.step_control,
+    )
+    return data
+
+
+def rim_radius(shape) -> float:
+    """The rim radius [m] of a wheel shape, as the run plan takes it (the sinkage's reference): a
+    grousered wheel's rim, a mesh wheel's outer radius (cosim.plan.WheelPlan)."""
+    from soil import GrouserWheel
+
+    return float(shape.radius if isinstance(shape, GrouserWheel) else shape.outer_radius)
+
+
+def scm_wheels_span(shape, wheel_count: int) -> float:
+    """The distance along x [m] from the first to the last wheel's hub at the start on one SCM terrain."""
+    return (wheel_count - 1) * SCM_WHEEL_SPACING * float(shape.outer_radius)
 
 
 def _bed_gravity(bed_file) -> list[float]:
@@ -176,29 +274,43 @@ def _bed_gravity(bed_file) -> list[float]:
     return [float(g) for g in read_bed_header(bed_file)["gravity"]]
 
 
-def soil_from_config(data: dict, bed_file, dem_step: float | None = None, device: str | None = None):
-    """The DemSoil of a soil.json configuration on `bed_file` (what the soil server steps)."""
-    from cosim.dem_soil import DemSoil
-    from soil import ContactLaw, GrouserWheel, Material, MeshWheel
+def _wheel_shape(wheel: dict):
+    from soil import GrouserWheel, MeshWheel
 
-    if data.get("format") != CONFIG_FORMAT:
+    wheel = dict(wheel)
+    kind = wheel.pop("type")
+    if kind == "grouser":
+        return GrouserWheel(**wheel)
+    return MeshWheel(np.asarray(wheel["vertices"]), np.asarray(wheel["triangles"]), name=wheel.get("name", "mesh"))
+
+
+def soil_from_config(data: dict, bed_file, dem_step: float | None = None, device: str | None = None):
+    """The soil of a soil.json configuration (what the soil server steps): a DemSoil on `bed_file`,
+    or, for terrain 'scm', an ScmSoil (`bed_file` unused, may be None). `dem_step` [s]: the inner step
+    (DEM or SCM) instead of the configuration's; `device`: the Warp device instead of its own."""
+    if data.get("format") not in READABLE_FORMATS:
         raise DamagedFileError(
             f"not a soil FMU configuration (format {data.get('format')!r}, expected {CONFIG_FORMAT!r}): "
             "export the FMU again with this regolith-cosim"
         )
-    wheel = dict(data["wheel"])
-    kind = wheel.pop("type")
-    shape: GrouserWheel | MeshWheel
-    if kind == "grouser":
-        shape = GrouserWheel(**wheel)
-    else:
-        shape = MeshWheel(np.asarray(wheel["vertices"]), np.asarray(wheel["triangles"]), name=wheel.get("name", "mesh"))
+    terrain = data.get("terrain", "dem")
+    if terrain not in TERRAINS:
+        raise DamagedFileError(
+            f"the soil FMU configuration names terrain {terrain!r}, this regolith-cosim steps {', '.join(TERRAINS)}"
+        )
+    step = dem_step if dem_step is not None else float(data["dem_step"])
+    shape = _wheel_shape(data["wheel"])
+    if terrain == "scm":
+        return _scm_soil(data, shape, step, device or data["device"])
+    from cosim.dem_soil import DemSoil
+    from soil import ContactLaw, Material
+
     law = ContactLaw(**data["law"]) if data.get("law") else None
     soil = DemSoil.from_bed(
         bed_file,
         [shape] * int(data["wheel_count"]),
         Material(**data["wheel_material"]),
-        dem_step if dem_step is not None else float(data["dem_step"]),
+        step,
         surface_height=float(data["surface_height"]),
         device=device or data["device"],
         precision=data["precision"],
@@ -212,15 +324,41 @@ def soil_from_config(data: dict, bed_file, dem_step: float | None = None, device
     return soil
 
 
-def _require_single_wheel(plan, path) -> None:
-    """A soil FMU serves the wheels of a [testbed] scene; a rover scene ([rover]) is refused."""
-    if plan.testbed is None:
-        from ..scene import SceneError
+def _scm_soil(data: dict, shape, time_step: float, device: str):
+    """The ScmSoil of an SCM configuration: every wheel of `shape` on one terrain, in SCM steps of at
+    most `time_step` [s]."""
+    from cosim.scm_soil import ScmSettings, ScmSoil
+    from soil.scm import ScmParameters
 
-        raise SceneError(
-            [
-                "testbed: a soil FMU is exported from a single-wheel scene ([testbed]); "
-                "this scene drives a rover ([rover]): run it with `cosim run`"
-            ],
-            os.fspath(path),
+    scm = data["scm"]
+    length, width = (float(size) for size in scm["window"])
+    settings = ScmSettings(
+        ScmParameters(**scm["parameters"]), (length, width), time_step, float(data["surface_height"])
+    )
+    count = int(data["wheel_count"])
+    return ScmSoil.build(settings, [shape] * count, [float(data["rim_radius"])] * count, device, data["precision"])
+
+
+def _require_fmu_scene(plan, path) -> None:
+    """A soil FMU serves the wheels of a [testbed] scene on one terrain model, the DEM or SCM: a rover
+    scene ([rover]), per-wheel terrains (terrain.wheels) and the analytic terrain are refused."""
+    from ..scene import SceneError
+
+    problems = []
+    if plan.terrain.model == "mixed":
+        problems.append(
+            "terrain.wheels: a soil FMU steps one terrain model for all its wheels; this scene puts some "
+            'wheels on the DEM and others on SCM: export one FMU per model ([terrain] model = "dem" or "scm")'
         )
+    elif plan.terrain.model not in TERRAINS:
+        problems.append(
+            f"terrain.model: a soil FMU steps the DEM or SCM terrain, not {plan.terrain.model!r} "
+            '([terrain] model = "dem" or "scm")'
+        )
+    if plan.testbed is None:
+        problems.append(
+            "testbed: a soil FMU is exported from a single-wheel scene ([testbed]); "
+            "this scene drives a rover ([rover]): run it with `cosim run`"
+        )
+    if problems:
+        raise SceneError(problems, os.fspath(path))

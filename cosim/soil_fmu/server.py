@@ -1,4 +1,4 @@
-"""The soil server: the DEM soil of an exported soil FMU, in a process of its own.
+"""The soil server: the soil of an exported soil FMU (the DEM's grains, or SCM), in a process of its own.
 
     python -E -m cosim.soil_fmu.server --fd 3
 
@@ -23,8 +23,10 @@ Wheel inputs: position (3) [m], orientation quaternion w x y z (4), velocity (3)
 angular velocity (3) [rad/s]. Outputs: force, torque (mean over the step), force_end,
 torque_end (3 each) [N, N m], sinkage [m], work on the soil [J], contact count.
 A STEP advances the soil by `step` from the kinematics (constant velocity over the step,
-DemSoil.advance). A step the soil cannot take (soil.SimulationDiverged) puts the soil back
-to the step's start and answers DISCARD, so the importer can retry a shorter step.
+DemSoil.advance or ScmSoil.advance). A step the soil cannot take (soil.SimulationDiverged: the
+DEM's divergence checks, or a non-finite wrench) puts the soil back to the step's start and
+answers DISCARD, so the importer can retry a shorter step; a step that fails otherwise (an SCM
+wheel leaving its node window) puts it back too and answers ERROR.
 The server exits when the socket closes or its parent (the importer) dies. docs/fmu.md
 describes the whole FMU.
 """
@@ -91,7 +93,7 @@ class StepRefused(RuntimeError):
 
 
 class StepStart:
-    """The soil at the start of a macro step, to go back to when the step is refused: a snapshot
+    """The DEM soil at the start of a macro step, to go back to when the step is refused: a snapshot
     of the whole simulation (soil.Simulation.snapshot), kept on its device (no host read)."""
 
     def __init__(self, soil):
@@ -104,6 +106,26 @@ class StepStart:
     def restore(self) -> None:
         assert self.snapshot is not None, "restore() follows take()"
         self.soil.sim.restore(self.snapshot)
+
+
+class StateStart:
+    """The SCM soil at the start of a macro step: its checkpoint (ScmSoil.state_dict), host copies
+    of the node window's few thousand nodes (cheap next to a step)."""
+
+    def __init__(self, soil):
+        self.soil = soil
+        self.state: dict | None = None
+
+    def take(self) -> None:
+        self.state = self.soil.state_dict()
+
+    def restore(self) -> None:
+        assert self.state is not None, "restore() follows take()"
+        self.soil.load_state_dict(self.state)
+
+
+STEP_STARTS: dict[str, type[StepStart] | type[StateStart]] = {"dem": StepStart, "scm": StateStart}
+"""How each terrain keeps its state at a step's start (and an FMU state)."""
 
 
 class SoilSession:
@@ -130,17 +152,34 @@ class SoilSession:
         if not dem_step > 0:
             raise ArgumentError(f"dem_step must be > 0 [s], got {dem_step!r}")
         device = settings.get("device") or os.environ.get(DEVICE_VARIABLE) or config["device"]
+        gravity = [float(g) for g in settings["gravity"].split()]
+        self.terrain = config.get("terrain", "dem")
+        if self.terrain == "scm" and not np.allclose(gravity, config["gravity"], rtol=1e-12, atol=0):
+            # SCM's pressure-sinkage law holds the gravity it was given (or calibrated) for
+            raise ArgumentError(
+                f"gravity: the SCM soil's parameters hold at the scene's gravity {config['gravity']} m/s^2, "
+                f"the FMU's gravity parameter asks for {gravity}: export the FMU from a scene at that gravity"
+            )
         quiet_warp()
         self.soil = soil_from_config(config, os.path.join(resources, BED_FILE), dem_step, device)
-        self.soil.set_gravity([float(g) for g in settings["gravity"].split()])
-        self.start = StepStart(self.soil)
-        self.states: dict[int, StepStart] = {}
-        """FMU states (fmi2GetFMUstate, fmi3GetFMUState) by the front end's id: device copies of the soil."""
-        sim = self.soil.sim
-        self.description = (
-            f"{sim.particle_count} grains, {self.wheel_count} wheel(s) on {sim.device}, "
-            f"precision {sim.precision_name}, DEM step {dem_step:.6g} s"
-        )
+        self.soil.set_gravity(gravity)
+        self.step_start = STEP_STARTS[self.terrain]
+        self.start = self.step_start(self.soil)
+        self.states: dict[int, StepStart | StateStart] = {}
+        """FMU states (fmi2GetFMUstate, fmi3GetFMUState) by the front end's id: copies of the soil."""
+        if self.terrain == "scm":
+            terrain = self.soil.terrain
+            nx, ny = terrain.shape
+            self.description = (
+                f"SCM terrain of {nx} x {ny} nodes, {self.wheel_count} wheel(s) on {terrain.device}, "
+                f"precision {terrain.precision.name}, SCM step {dem_step:.6g} s"
+            )
+        else:
+            sim = self.soil.sim
+            self.description = (
+                f"{sim.particle_count} grains, {self.wheel_count} wheel(s) on {sim.device}, "
+                f"precision {sim.precision_name}, DEM step {dem_step:.6g} s"
+            )
 
     def kinematics(self, values: np.ndarray):
         from cosim.contract import WheelKinematics
@@ -150,7 +189,7 @@ class SoilSession:
 
     def place(self, values: np.ndarray) -> bytes:
         self.soil.place_wheels(self.kinematics(values))
-        self.soil.sim.arm_monitor()
+        self.soil.start_health_checks()  # the DEM's divergence monitor; nothing on SCM
         return outputs(self.soil.current_wrenches())
 
     def step(self, step: float, values: np.ndarray) -> bytes:
@@ -159,11 +198,11 @@ class SoilSession:
         if not step > 0:
             raise ArgumentError(f"the step must be > 0 [s], got {step!r}")
         kinematics = self.kinematics(values)
-        soil, sim = self.soil, self.soil.sim
+        soil = self.soil
         self.start.take()
         try:
             wrenches = soil.advance(soil.time + step, kinematics)
-            sim.check_divergence()  # speed, overlap, energy and NaN bounds (soil.stability)
+            soil.check_health()  # the DEM's speed, overlap, energy and NaN bounds (soil.stability)
             data = outputs(wrenches)
             if not np.all(np.isfinite(np.frombuffer(data, "<f8"))):
                 raise SimulationDiverged("a wheel wrench is not finite")
@@ -179,7 +218,7 @@ class SoilSession:
         return data
 
     def save(self, ident: int) -> bytes:
-        kept = self.states.get(ident) or StepStart(self.soil)
+        kept = self.states.get(ident) or self.step_start(self.soil)
         kept.take()
         self.states[ident] = kept
         return f"FMU state {ident} kept at t = {self.soil.time:.9g} s".encode()
