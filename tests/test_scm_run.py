@@ -1,7 +1,7 @@
 """Scenes on the SCM terrain ([terrain] model = "scm", cosim.scm_soil) run through the same entry
 point, runner and writer as on the DEM and the analytic terrain: the same datasets, a wheel that
 carries its load at Bekker's sinkage, a resume bit for bit, a heterogeneous rover (one wheel on the
-DEM, the others on SCM), and bad [terrain] keys refused by name."""
+DEM, the others on SCM) and its resume bit for bit, and bad [terrain] keys refused by name."""
 
 import math
 
@@ -158,6 +158,41 @@ def test_a_heterogeneous_rover_puts_each_wheel_on_its_soil(tmp_path):
     assert np.all(series["soil_particle_count"] > 0)  # the DEM wheel's grains
     touching = series["contact_count"][-1]
     assert np.all(touching > 0)  # every wheel on its soil: grains under wheel 0, SCM nodes under 1-3
+
+
+def test_a_heterogeneous_rover_run_resumes_bit_for_bit(tmp_path):
+    """The heterogeneous rover (wheel 0 on the DEM's grains, 1-3 on SCM) stopped on request a few steps
+    into its drive (a checkpoint of both soils, then RunInterrupted) and resumed: its final state and
+    results.h5 (every dataset and attribute but the run's own: benchmarks/compare_runs.py) are the
+    uninterrupted run's to the last bit. Particle snapshots before and after the stop are compared too."""
+    from benchmarks.compare_runs import compare
+    from cosim.beds import settled_bed
+    from cosim.launch import final_state, run_plan
+    from cosim.runner import RunInterrupted
+    from rover_helpers import write_small_rover
+
+    pytest.importorskip("mujoco")
+    mixed = SCM + 'wheels = ["dem", "scm", "scm", "scm"]\n'
+    scene = write_small_rover(tmp_path, duration=0.03, snapshots=0.012, checkpoints=1.0, extra=mixed)
+    bed = settled_bed(load_plan(scene), str(tmp_path / "bed")).path  # one bed for both runs
+    plan = load_plan(scene, [f'bed.bed_file="{bed}"'])
+    run_plan(plan, str(tmp_path / "whole"))
+
+    def stop(runner):
+        if runner.drive_start_step >= 0 and runner.system.coupler.step_count == runner.drive_start_step + 4:
+            runner.stop_requested = True
+
+    with pytest.raises(RunInterrupted):
+        run_plan(plan, str(tmp_path / "resumed"), hooks={"step": stop})
+    stopped = read_series(tmp_path / "resumed" / "results.h5")
+    assert 0 < len(stopped["time"]) < len(read_series(tmp_path / "whole" / "results.h5")["time"])
+    resume(str(tmp_path / "resumed"))
+    whole, resumed = final_state(str(tmp_path / "whole")), final_state(str(tmp_path / "resumed"))
+    assert set(whole) == set(resumed)
+    assert any(k.startswith("soil/part0/") for k in whole) and any(k.startswith("soil/part1/scm/") for k in whole)
+    for key in whole:
+        np.testing.assert_array_equal(whole[key], resumed[key], err_msg=key)
+    assert compare(str(tmp_path / "whole" / "results.h5"), str(tmp_path / "resumed" / "results.h5")) == []
 
 
 def test_chord_angular_velocity_turns_the_start_into_the_end():
