@@ -15,6 +15,7 @@
     cosim lab repose|shear|plate SCENE.toml [--out DIR] [--replicas K] [--set key=value ...] [--workers N | --serial]
     cosim calibrate SCENE.toml --target repose=30 --vary soil.rolling_friction=0:0.3 [--tolerance repose=1] ...
     cosim calibrate-scm SCENE.toml --out terrain.toml [--replicas K] [--set KEY=VALUE] [--lab-sizes]
+                        [--from-wheel [--slips 0.05,0.1,0.2,0.4,0.6] [--wheel-runs STUDY] [--lab FILE]]
 
 Output: results and summaries on stdout; progress bars, notes and warnings on stderr;
 Warp's own messages only with --verbose.
@@ -483,24 +484,44 @@ def add_lab_commands(sub, scene_options, cluster_options) -> None:
         action="store_true",
         help="the lab's own test sizes (docs/lab.md) instead of calibrate-scm's small ones (CPU minutes)",
     )
+    p.add_argument(
+        "--from-wheel",
+        action="store_true",
+        help="then fit k_phi, n, phi and K to the DEM's single-wheel runs at --slips (cosim.lab.scm_wheel)",
+    )
+    p.add_argument("--slips", default="0.05,0.1,0.2,0.4,0.6", help="--from-wheel: the imposed slips of the DEM runs")
+    p.add_argument("--wheel-runs", help="--from-wheel: fit to this slip study's folder (cosim study slip), no new runs")
+    p.add_argument("--lab", help="--from-wheel: start from this calibration file, no plate and shear tests")
     p.set_defaults(func=cmd_calibrate_scm)
 
 
 def cmd_calibrate_scm(args) -> int:
+    from soil.errors import ArgumentError
+
     from .lab.scene import load_lab_plan, load_lab_scene
     from .lab.scm import calibrate_scm, small_tests
-    from .scm_calibration import SOIL_KEYS, write_calibration
+    from .scm_calibration import SOIL_KEYS, read_calibration, write_calibration
 
     overrides = _overrides(args)
     if args.replicas is not None:
         overrides.append(f"lab.replicas={args.replicas}")
     if not args.lab_sizes:  # the small default tests where the scene sizes none
         overrides = small_tests(load_lab_scene(args.scene, overrides)) + overrides
-    plan = load_lab_plan(args.scene, overrides, needs_gravity=True, test="plate")
     work = args.work or os.path.splitext(args.out)[0] + "_runs"
+    wheel_only = ("--wheel-runs", args.wheel_runs), ("--lab", args.lab)
+    misplaced = [name for name, value in wheel_only if value and not args.from_wheel]
+    if misplaced:
+        raise ArgumentError(f"{', '.join(misplaced)}: only with --from-wheel")
     started = time.perf_counter()
-    calibration = calibrate_scm(plan, work, overwrite=args.overwrite, **_executor(args))
-    calibration.source["overrides"] = overrides
+    if args.lab:
+        calibration = read_calibration(args.lab)
+        calibration.source = {"lab": os.path.abspath(args.lab), **calibration.source}
+    else:
+        plan = load_lab_plan(args.scene, overrides, needs_gravity=True, test="plate")
+        calibration = calibrate_scm(plan, work, overwrite=args.overwrite, **_executor(args))
+        calibration.source["overrides"] = overrides
+    if args.from_wheel:
+        calibration = _fit_to_wheel(args, calibration, work)
     calibration.source["wall_time_s"] = time.perf_counter() - started
     write_calibration(args.out, calibration)
     print(f"calibrate-scm: {args.out} (DEM tests in {work}, |g| = {plan.g:.4g} m/s^2)")
@@ -508,6 +529,40 @@ def cmd_calibrate_scm(args) -> int:
         value, error = calibration.parameters[key], calibration.standard_errors[key]
         print(f"  {key:20s} {value:12.5g} +- {error:.3g}")
     return EXIT_OK
+
+
+def _fit_to_wheel(args, lab, work: str):
+    """The lab calibration `lab` refitted to the DEM wheel runs (cosim calibrate-scm --from-wheel)."""
+    from .lab.scm_wheel import FITTED, fit_to_wheel, run_wheel_tests, wheel_targets
+    from .scene import SceneError, parse_value
+    from .scm_calibration import ScmCalibration, same_gravity
+
+    plan = _plan(args)
+    if plan.rover is not None:
+        raise SceneError(["calibrate-scm --from-wheel: fits to the single-wheel [testbed]; the scene has a [rover]"])
+    if not same_gravity(lab.gravity, plan.g):
+        raise SceneError([f"--lab: calibrated at |g| = {lab.gravity:.4g} m/s^2, the scene's is {plan.g:.4g} m/s^2"])
+    if args.wheel_runs:
+        folder = args.wheel_runs
+    else:
+        slips = [parse_value(s) for s in args.slips.split(",") if s.strip()]
+        replicas = args.replicas if args.replicas is not None else 3
+        folder = run_wheel_tests(plan, os.path.join(work, "wheel"), slips, replicas, **_executor(args))
+    parameters, errors, report = fit_to_wheel(plan, wheel_targets(folder), lab.parameters)
+    standard_errors = {k: (errors[k] if k in FITTED else lab.standard_errors.get(k, errors[k])) for k in errors}
+    source = {**lab.source, "wheel": {"runs": os.path.abspath(folder), **report}}
+    print(
+        f"calibrate-scm --from-wheel: fitted {', '.join(FITTED)} to {len(report['slips'])} slips "
+        f"(rms residual {report['rms_residual']:.3g} of W or W r, {report['evaluations']} evaluations)"
+    )
+    for row in report["slips"]:
+        load = report["wheel_load_n"]
+        print(
+            f"  slip {row['slip']:5.3f}: W_scm / W {row['scm_vertical_force'] / load:6.3f}, "
+            f"DP/W {row['scm_drawbar_pull'] / load:+7.3f} (DEM {row['drawbar_pull'] / load:+7.3f}), "
+            f"T {row['scm_driving_torque']:.3g} (DEM {row['driving_torque']:.3g}) N m"
+        )
+    return ScmCalibration(parameters, standard_errors, plan.g, source)
 
 
 def build_parser() -> argparse.ArgumentParser:

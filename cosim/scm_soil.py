@@ -101,9 +101,10 @@ def scm_parameters(values: dict) -> ScmParameters:
     )
 
 
-def scm_settings(plan, wheels: Sequence[int], surface_height: float) -> ScmSettings:
+def scm_settings(plan, wheels: Sequence[int], surface_height: float, soil: dict | None = None) -> ScmSettings:
     """The SCM terrain of a run plan's wheels `wheels` (indices; cosim.plan.RunPlan) from its [terrain]
-    keys, with the defaults of the keys not given:
+    keys (`soil`: SOIL_KEYS values that replace the plan's, as a calibration trying parameters does),
+    with the defaults of the keys not given:
 
     - node_spacing: the narrowest wheel's width / NODES_ACROSS;
     - window: the wheels' hub span (a rover's hubs at any heading: twice their largest distance from
@@ -113,7 +114,7 @@ def scm_settings(plan, wheels: Sequence[int], surface_height: float) -> ScmSetti
       with m the wheel's load over |g| and A its width times the contact length at Bekker's sinkage (on
       the far softer Bekker branch the same R is near critical: the wheel sinks without bouncing).
     """
-    values = dict(plan.terrain.parameters)
+    values = {**dict(plan.terrain.parameters), **(soil or {})}
     chosen = [plan.wheels[i] for i in wheels]
     values.setdefault("node_spacing", min(w.width for w in chosen) / NODES_ACROSS)
     outer = max(w.outer_radius for w in chosen)

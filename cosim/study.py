@@ -199,7 +199,12 @@ def prepare_study(out_dir: str, overwrite: bool) -> None:
         shutil.rmtree(path) if os.path.isdir(path) else os.remove(path)
 
 
-def _shared_bed(plan: RunPlan, out_dir: str, ex: Executor) -> str:
+def _shared_bed(plan: RunPlan, out_dir: str, ex: Executor) -> str | None:
+    """The settled bed every run of a study starts from (None: the terrain model needs none)."""
+    from .system import needs_bed
+
+    if not needs_bed(plan):
+        return None
     if plan.bed.bed_file:
         return plan.bed.bed_file
     log.info("settling the shared bed ...")
@@ -207,6 +212,11 @@ def _shared_bed(plan: RunPlan, out_dir: str, ex: Executor) -> str:
     if not isinstance(result, dict) or "path" not in result:
         raise InternalError(f"settling the bed failed: {result}")
     return result["path"]
+
+
+def _bed_override(bed: str | None) -> dict:
+    """A task's override that starts it from the shared bed (none without one)."""
+    return {} if bed is None else {"bed.bed_file": bed}
 
 
 def _tolerances(plan: RunPlan) -> dict[str, float]:
@@ -307,7 +317,7 @@ def replica_run(
             {
                 "scene_toml": text,
                 "out_dir": os.path.join(out_dir, f"replica_{k:03d}"),
-                "overrides": {"run.order_seed": k, "bed.bed_file": bed},
+                "overrides": {"run.order_seed": k, **_bed_override(bed)},
                 "label": f"replica_{k:03d}",
                 "base_dir": plan.scene.base_dir,
             }
@@ -366,7 +376,7 @@ def precision_study(
             {
                 "scene_toml": text,
                 "out_dir": os.path.join(out_dir, precision, f"replica_{k:03d}"),
-                "overrides": {"scene.precision": precision, "run.order_seed": k, "bed.bed_file": bed},
+                "overrides": {"scene.precision": precision, "run.order_seed": k, **_bed_override(bed)},
                 "label": f"{precision}/replica_{k:03d}",
                 "precision": precision,
                 "replica": k,
@@ -454,7 +464,7 @@ def slip_study(
             {
                 "scene_toml": text,
                 "out_dir": os.path.join(out_dir, f"slip_{s:+.3f}", f"replica_{k:03d}"),
-                "overrides": {"testbed.mode": "slip", "testbed.slip": s, "run.order_seed": k, "bed.bed_file": bed},
+                "overrides": {"testbed.mode": "slip", "testbed.slip": s, "run.order_seed": k, **_bed_override(bed)},
                 "label": f"slip {s:+.3f} replica {k}",
                 "slip": s,
             }

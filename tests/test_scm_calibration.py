@@ -125,3 +125,72 @@ def test_calibrate_scm_runs_the_dem_tests_and_writes_a_usable_file(tmp_path):
     assert source["shear"]["normal_stresses_pa"] == [25.0, 50.0] and source["dem"]["dt_s"] > 0
     plan = load_plan(write_tiny(tmp_path, f'\n[terrain]\nmodel = "scm"\ncalibration = "{out.name}"\n', "scm.toml"))
     assert plan.terrain.calibration_gravity == pytest.approx(1.625)
+
+
+# -- the fit to the DEM's wheel runs (cosim.lab.scm_wheel) ----------------------------------------
+
+
+def _wheel_plan():
+    import os
+
+    return load_plan(os.path.join(os.path.dirname(__file__), "..", "examples", "phobos_single_wheel.toml"))
+
+
+def test_the_wheel_fit_recovers_known_parameters_from_held_wheel_forces():
+    """Targets made by the SCM wheel at known parameters (2 slips, the main job's wheel; the soil's
+    moduli scaled so it carries the wheel's load at slip 0.2; the forces at each slip taken as the
+    DEM's) are fitted from a start 15 % to 60 % off: the fit returns the truth."""
+    from cosim.lab.scm_wheel import FITTED, WheelTarget, fit_to_wheel, scm_wheel_forces
+
+    plan = _wheel_plan()
+    truth = dict(
+        k_c=0.05, k_phi=4.0, n=0.4, cohesion=0.0, friction_angle_deg=28.0, janosi_k=1.0e-3, elastic_stiffness=2.0e4
+    )
+    truth["node_spacing"] = plan.wheel.width / 6  # a coarse grid: the fit's test, not the grid's (test_scm)
+    sinkage = 0.006
+    load, pull, torque = scm_wheel_forces(plan, truth, sinkage, 0.2)
+    scale = plan.wheel_load / load  # the load the truth carries at this sinkage: k_phi, k_c scaled to it
+    truth.update(k_c=truth["k_c"] * scale, k_phi=truth["k_phi"] * scale)
+    targets = []
+    for slip in (0.1, 0.5):
+        w, dp, t = scm_wheel_forces(plan, truth, sinkage, slip)
+        targets.append(WheelTarget(slip, sinkage, 1e-4, dp, 0.0, t, 0.0, 3, vertical_force=w))
+    start = {**truth, "k_phi": 0.7 * truth["k_phi"], "n": 0.47, "friction_angle_deg": 23.0, "janosi_k": 1.6e-3}
+    parameters, errors, report = fit_to_wheel(plan, targets, start)
+    assert report["rms_residual"] < 0.02
+    for key in FITTED:
+        assert parameters[key] == pytest.approx(truth[key], rel=0.05), key
+        assert math.isfinite(errors[key])
+    assert parameters["k_c"] == truth["k_c"] and parameters["elastic_stiffness"] == truth["elastic_stiffness"]
+
+
+def test_wheel_targets_read_a_slip_study_and_refuse_other_files(tmp_path):
+    import json
+
+    from cosim.lab.common import LabFailed
+    from cosim.lab.scm_wheel import wheel_targets
+
+    rows = [
+        {
+            "slip_set": s,
+            "steady": 2,
+            "slip_mean": s,
+            "sinkage_mean": 0.008,
+            "sinkage_ci95": 5e-4,
+            "drawbar_pull_mean": -3e-4,
+            "drawbar_pull_ci95": 1e-4,
+            "driving_torque_mean": 1.7e-5,
+            "driving_torque_ci95": 1e-6,
+        }
+        for s in (0.1, 0.4)
+    ]
+    study = {"kind": "slip", "wheel_load": 1.7e-3, "rows": rows + [{"slip_set": 0.6, "steady": 0}]}
+    (tmp_path / "study.json").write_text(json.dumps(study))
+    targets = wheel_targets(str(tmp_path))
+    assert [t.slip for t in targets] == [0.1, 0.4] and targets[0].sinkage == 0.008 and targets[1].replicas == 2
+    assert targets[0].vertical_force == 1.7e-3
+    (tmp_path / "study.json").write_text(json.dumps({"kind": "replicas", "rows": rows}))
+    with pytest.raises(LabFailed, match="slip study"):
+        wheel_targets(str(tmp_path))
+    with pytest.raises(LabFailed, match="study.json"):
+        wheel_targets(str(tmp_path / "nowhere"))

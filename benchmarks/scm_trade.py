@@ -1,0 +1,279 @@
+"""The speed-accuracy trade of the SCM tier against the DEM, for the main job's wheel.
+
+For each case, an SCM calibration file is run at the slips of a DEM slip study (`cosim study
+slip`: replicas, 95 % intervals) on the study's own scene with `[terrain] model = "scm"`, and
+its DP/W, sinkage and torque / (W r) are compared with the DEM's at each slip: the difference,
+the relative difference, and whether it is within the DEM's 95 % interval or within 15 %. Wall
+time per simulated second of both comes from the runs' summaries (a loaded machine inflates
+the DEM's; --timing measures both side by side on a quiet one).
+
+    python benchmarks/scm_trade.py --out runs/scm_trade \
+        --case "Phobos, lab-calibrated=runs/dem_phobos:examples/terrain/phobos_regolith_scm.toml" \
+        --case "Phobos, wheel-calibrated=runs/dem_phobos:wheel_phobos.toml" ... [--timing]
+
+A case is NAME=DEM_STUDY:CALIBRATION. Writes trade.json, trade.csv (units in the header),
+trade.png (DP/W, sinkage and torque against slip, DEM with error bars, one line per case) and
+prints the tables BENCHMARKS.md quotes.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+import platform
+import sys
+import time
+
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+sys.path.insert(0, ROOT)
+
+TOLERANCE = 0.15
+"""The relative difference under which SCM counts as agreeing where it is outside the DEM interval [-]."""
+QUANTITIES = (
+    ("dp_over_w", "DP/W", "1"),
+    ("sinkage", "sinkage", "m"),
+    ("torque_over_wr", "T/(W r)", "1"),
+)
+
+
+def dem_rows(study_folder: str) -> tuple[dict, list[dict]]:
+    """The DEM slip study's report and, per slip, mean and 95 % half-interval of each QUANTITY."""
+    with open(os.path.join(study_folder, "study.json")) as f:
+        study = json.load(f)
+    load = study["wheel_load"]
+    from cosim.scene import scene_from_text
+
+    rim = scene_from_text(study["scene_toml"]).wheel.radius
+    rows = []
+    for row in study["rows"]:
+        if not row.get("steady"):
+            continue
+        rows.append(
+            {
+                "slip": row["slip_set"],
+                "replicas": row["steady"],
+                "dp_over_w": row["dp_over_w_mean"],
+                "dp_over_w_ci95": row["dp_over_w_ci95"],
+                "sinkage": row["sinkage_mean"],
+                "sinkage_ci95": row["sinkage_ci95"],
+                "torque_over_wr": row["driving_torque_mean"] / (load * rim),
+                "torque_over_wr_ci95": row["driving_torque_ci95"] / (load * rim),
+            }
+        )
+    return study, rows
+
+
+def seconds_per_simulated_second(study: dict) -> float:
+    """Mean wall time per simulated second over a study's completed runs [s/s]."""
+    ratios = [
+        r["summary"]["wall_time"] / r["summary"]["simulated_time"]
+        for r in study.get("runs", [])
+        if r.get("ok") and r.get("summary", {}).get("simulated_time")
+    ]
+    return sum(ratios) / len(ratios) if ratios else math.nan
+
+
+def scm_study(study: dict, calibration: str, out_dir: str) -> dict:
+    """The DEM study's scene on the SCM calibration, one run per slip (SCM is deterministic)."""
+    from cosim import study as studies
+    from cosim.plan import resolve
+    from cosim.scene import scene_from_text
+
+    plan = resolve(scene_from_text(study["scene_toml"], overrides=on_scm(calibration)))
+    slips = [row["slip_set"] for row in study["rows"]]
+    return studies.slip_study(plan, out_dir, slips, replicas=1, executor="serial", overwrite=True, plot=False)
+
+
+def on_scm(calibration: str) -> dict:
+    """Scene overrides that put the wheel on the SCM of a calibration file."""
+    return {"terrain.model": "scm", "terrain.calibration": os.path.abspath(calibration)}
+
+
+def compare(dem: list[dict], scm: list[dict]) -> list[dict]:
+    """Per slip and quantity: DEM mean and interval, SCM value, difference, relative difference, agreement."""
+    out = []
+    for d in dem:
+        s = next((r for r in scm if abs(r["slip"] - d["slip"]) < 1e-9), None)
+        if s is None:
+            continue
+        row = {"slip": d["slip"]}
+        for key, _, _ in QUANTITIES:
+            difference = s[key] - d[key]
+            relative = abs(difference) / abs(d[key]) if d[key] else math.inf
+            row.update(
+                {
+                    f"{key}_dem": d[key],
+                    f"{key}_dem_ci95": d[f"{key}_ci95"],
+                    f"{key}_scm": s[key],
+                    f"{key}_difference": difference,
+                    f"{key}_relative": relative,
+                    f"{key}_agrees": abs(difference) <= d[f"{key}_ci95"] or relative <= TOLERANCE,
+                }
+            )
+        out.append(row)
+    return out
+
+
+def figure(path: str, dem_sets: dict, cases: list[dict]) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(1, len(QUANTITIES), figsize=(4.2 * len(QUANTITIES), 3.6))
+    for (key, label, unit), ax in zip(QUANTITIES, axes):
+        scale, shown = (1e3, "mm") if unit == "m" else (1.0, unit)
+        for name, rows in dem_sets.items():
+            ax.errorbar(
+                [r["slip"] for r in rows],
+                [scale * r[key] for r in rows],
+                yerr=[scale * r[f"{key}_ci95"] for r in rows],
+                fmt="o-",
+                capsize=3,
+                lw=2,
+                label=f"DEM {name} (95 %)",
+            )
+        for case in cases:
+            ax.plot(
+                [r["slip"] for r in case["comparison"]],
+                [scale * r[f"{key}_scm"] for r in case["comparison"]],
+                "s--",
+                label=f"SCM {case['name']}",
+            )
+        ax.set_xlabel("slip [-]")
+        ax.set_ylabel(f"{label} [{shown}]")
+        ax.grid(alpha=0.3)
+    axes[0].legend(fontsize=7)
+    fig.tight_layout()
+    fig.savefig(path, dpi=130)
+
+
+def timing(study_folder: str, calibration: str, out_dir: str, duration: float) -> dict:
+    """DEM and SCM runs of the study's scene at its first slip, one after the other on this machine:
+    wall time per simulated second of each (landing included)."""
+    from cosim.launch import run_plan
+    from cosim.plan import resolve
+    from cosim.scene import scene_from_text
+
+    with open(os.path.join(study_folder, "study.json")) as f:
+        study = json.load(f)
+    base = {"testbed.mode": "slip", "testbed.slip": study["rows"][0]["slip_set"], "run.duration": duration}
+    out = {}
+    for name, extra in (("dem", {"bed.bed_file": study["bed_file"]}), ("scm", on_scm(calibration))):
+        plan = resolve(scene_from_text(study["scene_toml"], overrides={**base, **extra}))
+        started = time.perf_counter()
+        result = run_plan(plan, os.path.join(out_dir, f"timing_{name}"), overwrite=True)
+        wall = time.perf_counter() - started
+        out[name] = {"wall_time_s": wall, "simulated_s": result.summary["simulated_time"]}
+        out[name]["seconds_per_simulated_second"] = wall / result.summary["simulated_time"]
+    out["ratio"] = out["dem"]["seconds_per_simulated_second"] / out["scm"]["seconds_per_simulated_second"]
+    return out
+
+
+def main(argv=None) -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--case", action="append", required=True, help="NAME=DEM_STUDY:CALIBRATION (repeatable)")
+    parser.add_argument("--out", required=True)
+    parser.add_argument("--timing", help="DEM_STUDY:CALIBRATION: time a DEM and an SCM run of it side by side")
+    parser.add_argument("--timing-duration", type=float, default=2.0, help="driving time of the timed runs [s]")
+    args = parser.parse_args(argv)
+    os.makedirs(args.out, exist_ok=True)
+    cases, dem_sets = [], {}
+    for index, text in enumerate(args.case):
+        name, _, pair = text.partition("=")
+        folder, _, calibration = pair.rpartition(":")
+        study, dem = dem_rows(folder)
+        dem_sets.setdefault(os.path.basename(os.path.normpath(folder)), dem)
+        started = time.perf_counter()
+        report = scm_study(study, calibration, os.path.join(args.out, f"case_{index}"))
+        scm_rows = []
+        for row in report["rows"]:
+            load, rim = report["wheel_load"], scm_rim(report)
+            scm_rows.append(
+                {
+                    "slip": row["slip_set"],
+                    "dp_over_w": row["dp_over_w_mean"],
+                    "sinkage": row["sinkage_mean"],
+                    "torque_over_wr": row["driving_torque_mean"] / (load * rim),
+                }
+            )
+        comparison = compare(dem, scm_rows)
+        cases.append(
+            {
+                "name": name,
+                "dem_study": os.path.abspath(folder),
+                "calibration": os.path.abspath(calibration),
+                "comparison": comparison,
+                "agreeing_slips": {k: sum(r[f"{k}_agrees"] for r in comparison) for k, _, _ in QUANTITIES},
+                "slips": len(comparison),
+                "dem_seconds_per_simulated_second": seconds_per_simulated_second(study),
+                "scm_seconds_per_simulated_second": seconds_per_simulated_second(report),
+                "scm_study_wall_s": time.perf_counter() - started,
+            }
+        )
+    result = {
+        "machine": f"{platform.machine()}, {os.cpu_count()} cores, {platform.python_version()}",
+        "tolerance": TOLERANCE,
+        "cases": cases,
+    }
+    if args.timing:
+        folder, _, calibration = args.timing.rpartition(":")
+        result["timing"] = timing(folder, calibration, args.out, args.timing_duration)
+    with open(os.path.join(args.out, "trade.json"), "w") as f:
+        json.dump(result, f, indent=1)
+    write_csv(os.path.join(args.out, "trade.csv"), cases)
+    figure(os.path.join(args.out, "trade.png"), dem_sets, cases)
+    print(tables(result))
+
+
+def scm_rim(report: dict) -> float:
+    from cosim.scene import scene_from_text
+
+    return scene_from_text(report["scene_toml"]).wheel.radius
+
+
+def write_csv(path: str, cases: list[dict]) -> None:
+    keys = ["slip"] + [f"{k}_{s}" for k, _, _ in QUANTITIES for s in ("dem", "dem_ci95", "scm", "relative", "agrees")]
+    units = {"slip": "1", "sinkage_dem": "m", "sinkage_dem_ci95": "m", "sinkage_scm": "m"}
+    with open(path, "w") as f:
+        f.write(",".join(["case"] + [f"{k} [{units.get(k, '1')}]" for k in keys]) + "\n")
+        for case in cases:
+            for row in case["comparison"]:
+                f.write(",".join([json.dumps(case["name"])] + [f"{row[k]:.6g}" for k in keys]) + "\n")
+
+
+def tables(result: dict) -> str:
+    lines = []
+    for case in result["cases"]:
+        lines.append(f"\n{case['name']} (DEM: {case['dem_study']}, SCM: {case['calibration']})")
+        lines.append("| slip | DP/W DEM | DP/W SCM | sinkage DEM [mm] | sinkage SCM [mm] | T/(W r) DEM | T/(W r) SCM |")
+        lines.append("|---|---|---|---|---|---|---|")
+        for r in case["comparison"]:
+            mark = {k: "" if r[f"{k}_agrees"] else " x" for k, _, _ in QUANTITIES}
+            lines.append(
+                f"| {r['slip']:.2f} | {r['dp_over_w_dem']:+.3f} +- {r['dp_over_w_dem_ci95']:.3f} | "
+                f"{r['dp_over_w_scm']:+.3f}{mark['dp_over_w']} | "
+                f"{1e3 * r['sinkage_dem']:.2f} +- {1e3 * r['sinkage_dem_ci95']:.2f} | "
+                f"{1e3 * r['sinkage_scm']:.2f}{mark['sinkage']} | "
+                f"{r['torque_over_wr_dem']:.3f} +- {r['torque_over_wr_dem_ci95']:.3f} | "
+                f"{r['torque_over_wr_scm']:.3f}{mark['torque_over_wr']} |"
+            )
+        agree = ", ".join(f"{label} {case['agreeing_slips'][k]}/{case['slips']}" for k, label, _ in QUANTITIES)
+        lines.append(
+            f"agreeing (within the DEM's 95 % interval or {100 * result['tolerance']:.0f} %): {agree}; wall time per "
+            f"simulated second: DEM {case['dem_seconds_per_simulated_second']:.3g} s, "
+            f"SCM {case['scm_seconds_per_simulated_second']:.3g} s (x marks a disagreement)"
+        )
+    if "timing" in result:
+        t = result["timing"]
+        lines.append(
+            f"\nside by side: DEM {t['dem']['seconds_per_simulated_second']:.3g} s, SCM "
+            f"{t['scm']['seconds_per_simulated_second']:.3g} s per simulated second: SCM {t['ratio']:.0f}x faster"
+        )
+    return "\n".join(lines)
+
+
+if __name__ == "__main__":
+    main()
