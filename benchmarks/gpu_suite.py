@@ -1,4 +1,4 @@
-"""The GPU suite: one prepared command for an 8-minute window on one H100/H200.
+"""The GPU suite: one prepared command for an 8-9 minute window on one H100/H200.
 
     python benchmarks/gpu_suite.py                          # on cuda:0; results in runs/gpu_suite/
     python benchmarks/gpu_suite.py --small --device cpu     # the same checks, small, on the CPU
@@ -7,19 +7,37 @@
 Sections, each timed, in this order (the tests last, within what is left of --budget):
 
 - throughput: a random fill settled on the device (Earth gravity, double), tiled to 100,000 and
-  1,000,000 grains; particle-steps/s in single, mixed and double (targets: single >= 3e8 at
-  1M; double >= 0.5 x and mixed >= 0.8 x single).
+  1,000,000 grains; particle-steps/s in single, mixed and double, and next to them the mixed
+  layout: each precision's device bytes per grain, measured (Simulation.bytes_per_grain) and
+  estimated (soil.memory). Targets at 1M: single >= 6e8 particle-steps/s, mixed >= 0.85 x and
+  double >= 0.5 x single, mixed bytes per grain <= 0.75 x double's.
 - repeat: a short coupled run (a grousered wheel resting pressed into a standing bed, driven
   through it by cosim.DemSoil) twice on the device: every wheel wrench and every grain bit for
   bit the same, with the wheel touching grains.
 - agreement: the same short settling run on the CPU and on the device, replicas differing
   only in summation order (order_seed): the device's bed statistics lie within the CPU
   replicas' scatter.
-- paper: the paper's case, 200,000 grains of Phobos regolith at Phobos gravity in double
-  precision with a wheel driving through them: one tile settled to the kinetic-energy
-  threshold of soil.bed.settle, tiled; 2,000 steps timed at the scene's step (0.2 Rayleigh
-  steps) and 60 s projected (target: at most 10 minutes).
+- paper: the testbed scene at the paper's scale (examples/phobos_single_wheel_gpu.toml: Phobos
+  regolith at Phobos gravity, here in double) run through cosim.launch.run_plan with the wheel in
+  the grains: it lands under its 8 kg load and drives at the main job's imposed slip (testbed
+  mode "slip", s = 0.1: the carriage's motion prescribed, the wheel free to sink). The bed is
+  the scene's [bed] as 2 x 2 copies of one quarter of it settled here (202k grains; the whole
+  bed, settled in one piece, holds 212k). 10 s of driving timed; the wheel's contact count
+  (grains touching it) at every macro step, min / mean / max, fails the section if it drops to
+  0 while driving; 60 s projected (target: at most 5 minutes).
+- rover: a short segment of the full-size rover scene (examples/phobos_rover_gpu.toml: the
+  MMX-like rover on a 1.1 m moving patch of about a million grains, mixed): it lands, then
+  drives 3 s; particle-steps/s and wall time per simulated second of the drive (and the
+  landing's particle-steps/s). Its [bed] (the tile the patch is copied from) is made 15 cm
+  square so that it settles in seconds, and the landing's rest criterion is held for 1 s
+  instead of sqrt(r / g) = 4.4 s.
 - tests: the CUDA variants of the soil tests (pytest -k cuda).
+
+The paper and rover runs stop at their section's wall-clock allowance (SIZES) and report what
+they reached. --small runs both scenes through the same code path, shrunk by scene overrides
+(PAPER_OVERRIDES, ROVER_OVERRIDES: coarse grains, a small wheel, a stronger gravity so that
+fractions of a second do, the rover without its landing): a check that the suite runs, not a
+measurement.
 
 Writes results.json (every figure) and results.md (a table with the targets) to --out.
 """
@@ -27,6 +45,7 @@ Writes results.json (every figure) and results.md (a table with the targets) to 
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import math
 import os
@@ -46,10 +65,14 @@ import warp as wp  # noqa: E402
 from benchmarks import beds  # noqa: E402
 from cosim.contract import WheelKinematics  # noqa: E402
 from cosim.dem_soil import DemSoil  # noqa: E402
-from soil import GrouserWheel, Material, Simulation, SoilBuilder, quiet_warp  # noqa: E402
+from cosim.folders import RunFolder  # noqa: E402
+from cosim.launch import run_plan  # noqa: E402
+from cosim.output import read_series  # noqa: E402
+from cosim.plan import RunPlan, load_plan  # noqa: E402
+from soil import GrouserWheel, Simulation, SoilBuilder, quiet_warp  # noqa: E402
 from soil.advisor import rayleigh_time_step  # noqa: E402
-from soil.bed import PHOBOS_REGOLITH, BedSpec, insert_grains, kinetic_energy_threshold  # noqa: E402
-from soil.gravity import GRAVITY_PRESETS  # noqa: E402
+from soil.bed import bed_metrics, build_bed, kinetic_energy_threshold, save_bed  # noqa: E402
+from soil.memory import device_bytes_per_grain  # noqa: E402
 
 TEST_FILES = [
     "tests/test_neighbours.py",
@@ -62,8 +85,6 @@ TEST_FILES = [
     "tests/test_stability.py",
     "tests/test_dem_soil_state.py",
 ]
-WHEEL = GrouserWheel(radius=0.09, width=0.06, grouser_count=12, grouser_height=0.006, grouser_thickness=0.003)
-"""The MMX-like wheel of examples/phobos_single_wheel_gpu.toml."""
 SIZES = {
     # name: (full, small)
     "base": (20000, 300),  # grains of the settled bed the throughput beds are tiled from
@@ -71,11 +92,74 @@ SIZES = {
     "throughput_steps": (200, 10),
     "repeat_macro_steps": (20, 3),
     "agreement": ((2000, 4, 0.1), (300, 2, 0.01)),  # grains, replicas, simulated seconds
-    "paper_tile": ((0.1, 0.1, 0.08), (0.03, 0.03, 0.03)),  # one tile of the Phobos bed [m]
-    "paper_tiles": ((6, 5), (2, 2)),
-    "paper_settle": ((30.0, 120.0), (20.0, 60.0)),  # settling of the tile at most [s simulated], [s wall]
-    "paper_steps": (2000, 20),
+    "paper_tiles": ((2, 2), (2, 1)),  # the scene's bed as nx x ny copies of one settled tile (202k grains)
+    "paper_settle_seconds": (60.0, 30.0),  # wall-clock allowance of the tile's settling [s]
+    "paper_seconds": (150.0, 60.0),  # wall-clock allowance of the coupled run [s]
+    "rover_seconds": (150.0, 60.0),
 }
+TESTS_RESERVE = 60.0
+"""Seconds of --budget the paper and rover runs leave for the sections after them [s]."""
+WARMUP_STEPS = 10
+"""Macro steps at the start of a scene run left out of its rates: the build, kernel loads, graph captures."""
+SECTIONS = ("throughput", "repeat", "agreement", "paper", "rover", "tests")
+PAPER_SCENE = os.path.join(ROOT, "examples", "phobos_single_wheel_gpu.toml")
+ROVER_SCENE = os.path.join(ROOT, "examples", "phobos_rover_gpu.toml")
+QUIET_OUTPUT = {"output.snapshot_interval": 0.0, "output.checkpoint_interval": 1.0e9}
+"""No snapshots but the first and last, no checkpoint but the last: the timed drive writes only its rows."""
+PAPER_OVERRIDES = (
+    {
+        "scene.precision": "double",
+        "testbed.mode": "slip",  # the main job's: the carriage driven at v = omega r (1 - s)
+        "testbed.slip": 0.1,
+        "run.duration": 10.0,
+    },
+    {  # the same scene shrunk, at Earth gravity (41 x faster in simulated time: fewer steps) with
+        # a load to match: 8 mm grains, a 4 cm wheel of 50 g, 0.3 s of driving
+        "scene.gravity": "earth",
+        "bed.length": 0.25,
+        "bed.width": 0.15,
+        "bed.depth": 0.07,
+        "bed.radius_mean": 0.008,
+        "bed.settle_max_time": 0.5,
+        "wheel.radius": 0.04,
+        "wheel.width": 0.03,
+        "wheel.grouser_count": 8,
+        "wheel.grouser_height": 0.004,
+        "wheel.grouser_thickness": 0.003,
+        "testbed.mass": 0.05,
+        "landing.max_time": 2.0,
+        "run.duration": 0.3,
+    },
+)
+"""Scene overrides of the paper section (full, small; small adds to full)."""
+ROVER_OVERRIDES = (
+    {
+        "bed.length": 0.15,  # the tile the patch is copied from: settles in seconds, not minutes
+        "bed.width": 0.15,
+        "bed.settle_max_time": 15.0,
+        "landing.hold_time": 1.0,
+        "landing.max_time": 8.0,
+        "run.duration": 3.0,
+    },
+    {  # the full-size rover (its 25 kg: lighter wheels would make the coupling stiff) at 0.2 m/s^2
+        # (it touches down sooner than at Phobos gravity, the soil still holding it) on 1.5 cm
+        # grains: a 1.25 m patch of about 2,000 of them, 0.7 s of driving
+        "scene.gravity": 0.2,
+        "bed.length": 0.3,
+        "bed.width": 0.3,
+        "bed.depth": 0.075,
+        "bed.radius_mean": 0.015,
+        "bed.settle_max_time": 1.5,
+        "patch.length": 1.25,  # the least window that holds the rover, the clearance and the band
+        "patch.width": 1.25,
+        "patch.band": 0.06,
+        "patch.clearance": 0.06,
+        "patch.tile_margin": 0.0,
+        "landing.enabled": False,  # on grains this coarse the wheels rock on a few: it drives as it touches down
+        "run.duration": 0.7,  # (its wheels touch down after 0.2-0.55 s)
+    },
+)
+"""Scene overrides of the rover section (full, small; small adds to full)."""
 
 
 def size(name, small):
@@ -93,6 +177,10 @@ def resting_height(sim, wheel: GrouserWheel, x: float, y: float) -> float:
     return float(np.max(p[under, 2] + np.sqrt(reach[under] ** 2 - dx[under] ** 2)))
 
 
+class OutOfTime(Exception):
+    """A section's wall-clock allowance ran out in a coupled run: the run stops, its figures so far stand."""
+
+
 class Suite:
     def __init__(self, device: str, small: bool, budget: float, out: str):
         self.device, self.small, self.budget, self.out = device, small, budget, out
@@ -106,6 +194,11 @@ class Suite:
 
     def elapsed(self) -> float:
         return time.perf_counter() - self.started
+
+    def allowance(self, name: str) -> float:
+        """Wall clock [s] a timed part may take: its SIZES entry, within what is left of --budget
+        after TESTS_RESERVE for the tests (at least 30 s)."""
+        return min(size(name, self.small), max(30.0, self.budget - self.elapsed() - TESTS_RESERVE))
 
     def log(self, text: str) -> None:
         print(f"[{self.elapsed():6.1f} s] {text}", flush=True)
@@ -154,6 +247,7 @@ class Suite:
                     start = time.perf_counter()
                     sim.macro_step(steps, dt)
                     seconds = time.perf_counter() - start
+                sim.arm_monitor()  # its last good state is device memory every run holds (after the timing)
                 n = len(tiled_radii)
                 rows.append(
                     dict(
@@ -166,19 +260,31 @@ class Suite:
                         captured=sim.capture,
                         warnings=[str(w.message) for w in caught],
                         bytes_per_grain=sim.bytes_per_grain()["total"],
+                        bytes_per_grain_estimate=device_bytes_per_grain(precision, sim.state.capacity),
+                        contact_capacity=sim.state.capacity,
                         contacts_per_grain=float(sim.contact_counts().mean()),
                     )
                 )
                 self.log(json.dumps(rows[-1]))
                 del sim
         rate = {(r["bed"], r["precision"]): r["particle_steps_per_second"] for r in rows}
+        memory = {(r["bed"], r["precision"]): r["bytes_per_grain"] for r in rows}
         single = rate[("1M", "single")]
-        targets = {
-            "single at 1M >= 3e8 particle-steps/s": single >= 3e8,
-            "double >= 0.5 x single at 1M": rate[("1M", "double")] >= 0.5 * single,
-            "mixed >= 0.8 x single at 1M": rate[("1M", "mixed")] >= 0.8 * single,
+        layout = {
+            precision: {
+                "bytes_per_grain": memory[("1M", precision)],
+                "x_double": memory[("1M", precision)] / memory[("1M", "double")],
+                "particle_steps_x_single": rate[("1M", precision)] / single,
+            }
+            for precision in ("single", "mixed", "double")
         }
-        return {"rows": rows, "targets": targets, "ok": True}
+        targets = {
+            "single at 1M >= 6e8 particle-steps/s": single >= 6e8,
+            "double >= 0.5 x single at 1M": rate[("1M", "double")] >= 0.5 * single,
+            "mixed >= 0.85 x single at 1M": rate[("1M", "mixed")] >= 0.85 * single,
+            "mixed layout: bytes per grain <= 0.75 x double at 1M": layout["mixed"]["x_double"] <= 0.75,
+        }
+        return {"rows": rows, "layout": layout, "targets": targets, "ok": True}
 
     def coupled_run(self):
         """A grousered wheel (radius 2 cm) resting on a standing bed (a pressed lattice: no
@@ -258,84 +364,194 @@ class Suite:
         return {"statistics": verdict, "ok": all(v["agrees"] for v in verdict.values())}
 
     def paper(self):
-        """200,000 grains of Phobos regolith at Phobos gravity, double, a wheel driving through."""
-        length, width, depth = size("paper_tile", self.small)
-        spec = BedSpec(
-            length=length, width=width, depth=depth, radius_mean=2.0e-3, radius_spread=0.2, material=PHOBOS_REGOLITH
-        )
-        positions, radii = insert_grains(spec)
-        dt = 0.2 * rayleigh_time_step(
-            PHOBOS_REGOLITH.youngs_modulus, PHOBOS_REGOLITH.poisson_ratio, PHOBOS_REGOLITH.density, radii.min()
-        )
-        wall_height = 4 * depth
-        box = np.array([length, width, wall_height])
-        tile = beds.build(positions, radii, box, self.device, "double", gravity="phobos", grains=PHOBOS_REGOLITH)
-        settling = self.settle(tile, dt, *size("paper_settle", self.small))
-        settled = tile.positions()[np.argsort(tile.model.particle_order)]
-        tx, ty = size("paper_tiles", self.small)
-        positions, radii, box = beds.tile(settled, radii, box, tx, ty)
-        builder = SoilBuilder(gravity="phobos")
-        mat = builder.add_material(PHOBOS_REGOLITH)
-        builder.add_container((0, 0, 0), box, mat)
-        builder.add_particles(positions, radii, mat)
-        wheel = (
-            WHEEL
-            if not self.small
-            else GrouserWheel(radius=0.012, width=0.01, grouser_count=8, grouser_height=0.001, grouser_thickness=0.001)
-        )
-        builder.add_wheel(
-            wheel,
-            builder.add_material(
-                Material(youngs_modulus=2e5, stick_angle=math.radians(30), slip_angle=math.radians(25))
-            ),
-        )
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore")
-            model, state, control = builder.finalize(self.device, "double")
-        soil = DemSoil(Simulation(model, state, control), dt, surface_height=0.0)
-        centre = (0.3 * box[0], 0.5 * box[1], 0.0)
-        # resting on the grains, pressed in by half a grain radius: it works in them from the start
-        hub = np.array([centre[0], centre[1], resting_height(soil.sim, wheel, *centre[:2]) - 0.5 * spec.radius_mean])
-        omega = 0.11 if not self.small else 0.8
-        velocity = np.array([omega * wheel.radius, 0.0, 0.0])
-        steps, macro = size("paper_steps", self.small), 10
-        warm = max(1, steps // 20)
-
-        def advance(k):
-            start = WheelKinematics(hub + velocity * k * macro * dt, [1.0, 0, 0, 0], velocity, [0.0, omega, 0.0])
-            return soil.advance((k + 1) * macro * dt, [start])[0]
-
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore")
-            for k in range(warm):  # kernels loaded, graphs captured
-                advance(k)
-            wp.synchronize_device(self.device)
-            started = time.perf_counter()
-            for k in range(warm, warm + steps // macro):
-                wrench = advance(k)
-            seconds = time.perf_counter() - started
-        per_step = seconds / steps
-        projected = per_step * 60.0 / dt
-        n = model.particle_count
-        return {
-            "grains": n,
-            "dt": dt,
+        """The testbed scene at the paper's scale, its wheel landed in the grains and driven at the
+        main job's slip (module docstring)."""
+        overrides = self.scene_overrides(PAPER_OVERRIDES)
+        plan = load_plan(PAPER_SCENE, overrides)
+        bed_path, settling = self.tiled_bed(plan, size("paper_tiles", self.small), "paper_bed.h5")
+        plan = load_plan(PAPER_SCENE, {**overrides, "bed.bed_file": bed_path})
+        run = self.scene_run(plan, "paper_run", self.allowance("paper_seconds"))
+        contacts = run.pop("contacts")
+        wheel = {k: v[0] for k, v in contacts.items()}  # the testbed has one wheel
+        per_second = run["wall_per_simulated_second"]
+        projected = None if per_second is None else 60.0 * per_second
+        touching = run["drive_steps"] > 0 and wheel["drive_min"] > 0
+        result = {
+            "scene": os.path.relpath(PAPER_SCENE, ROOT),
+            "overrides": overrides,
+            "precision": plan.precision,
+            "dt": plan.dt,
+            "substeps": plan.substeps,
+            "slip": plan.testbed.slip if plan.testbed else None,
             "settling": settling,
-            "timed_steps": steps,
-            "timed_seconds": seconds,
-            "particle_steps_per_second": n * steps / seconds,
+            **run,
+            "wheel_contacts": wheel,
             "projected_60s_seconds": projected,
-            "gravity": GRAVITY_PRESETS["phobos"],
-            "wheel_contacts": int(wrench.contact_count),
-            "contacts_per_grain": float(soil.sim.contact_counts().mean()),
-            "targets": {"60 s in at most 10 minutes": projected <= 600.0},
-            "ok": True,
+            "targets": {
+                "paper: 60 s of Phobos driving in at most 5 minutes (double)": projected is not None
+                and projected <= 300.0,
+                "paper: the wheel touches grains at every macro step of the drive": touching,
+            },
         }
+        problems = self.drive_problems(run, plan)
+        if run["drive_steps"] and not touching:
+            problems.append("the wheel lost every grain contact while driving")
+        result["ok"] = not problems
+        if problems:
+            result["error"] = "; ".join(problems)
+        return result
 
-    def settle(self, sim, dt: float, max_time: float, max_seconds: float) -> dict:
+    def rover(self):
+        """A few seconds of the full-size rover scene after its landing (module docstring)."""
+        overrides = self.scene_overrides(ROVER_OVERRIDES)
+        plan = load_plan(ROVER_SCENE, overrides)
+        run = self.scene_run(plan, "rover_run", self.allowance("rover_seconds"))
+        contacts = run.pop("contacts")
+        result = {
+            "scene": os.path.relpath(ROVER_SCENE, ROOT),
+            "overrides": overrides,
+            "precision": plan.precision,
+            "dt": plan.dt,
+            "substeps": plan.substeps,
+            "wheels": list(plan.rover.wheel_names) if plan.rover else [],
+            **run,
+            "wheel_contacts": contacts,
+        }
+        problems = self.drive_problems(run, plan)
+        if run["drive_steps"] and min(contacts["drive_max"]) == 0:
+            problems.append("a wheel never touched the grains while driving")
+        result["ok"] = not problems
+        if problems:
+            result["error"] = "; ".join(problems)
+        return result
+
+    def scene_overrides(self, overrides: tuple[dict, dict]) -> dict:
+        """A section's scene overrides on this device (the small ones over the full ones)."""
+        full, small = overrides
+        return {"scene.device": self.device, **QUIET_OUTPUT, **full, **(small if self.small else {})}
+
+    @staticmethod
+    def drive_problems(run: dict, plan: RunPlan) -> list[str]:
+        """What kept a scene run from its drive: no landing, or a drive cut short."""
+        if run["drive_steps"] == 0:
+            return [f"no drive: the run ended {run['status']!r} after {run['simulated_seconds']:.3g} s simulated"]
+        if run["drive_steps"] < plan.drive_steps:
+            return [
+                f"drove {run['drive_simulated_seconds']:.3g} s of the {plan.scene.run.duration:.3g} s asked "
+                f"(run {run['status']!r})"
+            ]
+        return []
+
+    def tiled_bed(self, plan: RunPlan, tiles: tuple[int, int], name: str) -> tuple[str, dict]:
+        """The plan's [bed] as nx x ny copies of one tile of it, settled here as the scene would
+        settle the whole bed (double, its settling step and kinetic-energy ratio, at most its
+        settle_max_time), the copies' shared walls removed; saved as a bed file for bed.bed_file.
+        A copy's grains start at rest and without contact history: the landing takes that up."""
+        spec = plan.bed.spec
+        nx, ny = tiles
+        piece = dataclasses.replace(spec, length=spec.length / nx, width=spec.width / ny)
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            tile = Simulation(*build_bed(piece, plan.settle_gravity).finalize(self.device, "double"))
+        settling = self.settle(
+            tile,
+            plan.bed.settle_dt,
+            plan.bed.settle_max_time,
+            self.allowance("paper_settle_seconds"),
+            plan.bed.settle_ke_ratio,
+        )
+        wall_height = 4 * spec.depth  # soil.bed.build_bed's container
+        positions, radii, box = beds.tile(
+            tile.positions(), tile.radii(), np.array([piece.length, piece.width, wall_height]), nx, ny
+        )
+        builder = SoilBuilder(gravity=plan.settle_gravity)
+        grain = builder.add_material(spec.material)
+        wall = builder.add_material(spec.wall_material) if spec.wall_material else grain
+        builder.add_container((0.0, 0.0, 0.0), box, wall)
+        builder.add_particles(positions, radii, grain)
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")  # the seams start with the walls' nm overlaps at most
+            bed = Simulation(*builder.finalize(self.device, "double"))
+        path = os.path.join(os.path.abspath(self.out), name)
+        os.makedirs(self.out, exist_ok=True)
+        save_bed(path, bed, spec, bed_metrics(bed, spec))
+        settling.update(tiles=[nx, ny], tile_grains=tile.particle_count, bed_grains=bed.particle_count)
+        return path, settling
+
+    def scene_run(self, plan: RunPlan, folder: str, allowance: float) -> dict:
+        """Run a plan through cosim.launch.run_plan into `folder` under --out, timing each macro
+        step on the host, for at most `allowance` [s] of wall clock (then it stops after the macro
+        step and reports what it reached). A macro step ends with the soil's one report read, so
+        the host clock between two steps is the device's time for one. The rates leave out the
+        run's first WARMUP_STEPS macro steps (the build, kernel loads, graph captures); the drive's
+        figures count only its own macro steps, not the landing's. Grain counts, DEM steps and the
+        wheels' contact counts (grains touching each wheel at the end of each macro step) come
+        from results.h5."""
+        out_dir = os.path.join(self.out, folder)
+        marks = []  # per macro step: (step number, host clock [s], simulated time [s], a drive step)
+        deadline = time.perf_counter() + allowance
+
+        def after_step(runner) -> None:
+            coupler = runner.system.coupler
+            driving = coupler.step_count > runner.drive_start_step >= 0  # the landing's last step is its own
+            marks.append((coupler.step_count, time.perf_counter(), coupler.time, driving))
+            if marks[-1][1] > deadline:
+                raise OutOfTime(f"{folder}: the {allowance:.3g} s allowance ran out at t = {coupler.time:.4g} s")
+
+        started = time.perf_counter()
+        try:
+            status = run_plan(plan, out_dir, overwrite=True, hooks={"step": after_step}).status
+        except OutOfTime as error:
+            status = str(error)
+        wall = time.perf_counter() - started
+        series = read_series(RunFolder(out_dir).results)
+        rows = np.array([m[0] for m in marks], dtype=np.int64) - 1
+        clock = np.diff([started] + [m[1] for m in marks])  # host seconds of each macro step
+        span = np.diff([0.0] + [m[2] for m in marks])  # its simulated seconds
+        driving = np.array([m[3] for m in marks], dtype=bool)
+        timed = rows >= WARMUP_STEPS
+        grains = series["soil_particle_count"][rows].astype(np.float64)
+        particle_steps = grains * series["soil_dem_steps"][rows]
+        counts = series["contact_count"][rows]  # (macro steps, wheels)
+
+        def rate(which) -> float:
+            seconds = float(clock[which].sum())
+            return float(particle_steps[which].sum()) / seconds if seconds > 0 else 0.0
+
+        def contacts(which) -> dict:
+            if not which.any():
+                return {}
+            c = counts[which]
+            return {"min": c.min(axis=0).tolist(), "mean": c.mean(axis=0).tolist(), "max": c.max(axis=0).tolist()}
+
+        drive_timed = driving & timed
+        drive_wall, drive_time = float(clock[drive_timed].sum()), float(span[drive_timed].sum())
+        result = {
+            "status": status,
+            "wall_seconds": wall,
+            "simulated_seconds": float(marks[-1][2]) if marks else 0.0,
+            "grains_min": float(grains.min()) if len(grains) else 0.0,
+            "grains_max": float(grains.max()) if len(grains) else 0.0,
+            "landing_simulated_seconds": float(span[~driving].sum()),
+            "landing_particle_steps_per_second": rate(~driving & timed),
+            "drive_steps": int(driving.sum()),
+            "drive_simulated_seconds": float(span[driving].sum()),
+            "drive_timed_simulated_seconds": drive_time,
+            "drive_wall_seconds": drive_wall,
+            "particle_steps_per_second": rate(drive_timed),
+            "wall_per_simulated_second": drive_wall / drive_time if drive_time > 0 else None,
+            "contacts": {
+                **{f"drive_{k}": v for k, v in contacts(driving).items()},
+                **{f"landing_{k}": v for k, v in contacts(~driving).items()},
+            },
+        }
+        self.log(f"{folder}: {json.dumps({k: v for k, v in result.items() if k != 'contacts'})}")
+        return result
+
+    def settle(self, sim, dt: float, max_time: float, max_seconds: float, ke_ratio: float = 1e-4) -> dict:
         """Run until the kinetic energy is below soil.bed's settling threshold (as soil.bed.settle
         does), for at most max_time [s] simulated and max_seconds [s] of wall clock."""
-        threshold = kinetic_energy_threshold(sim)
+        threshold = kinetic_energy_threshold(sim, ke_ratio)
         interval = max(50 * dt, 0.01 * max_time)
         started, start = time.perf_counter(), sim.time
         energy = sim.kinetic_energy()
@@ -404,28 +620,53 @@ class Suite:
         if throughput.get("rows"):
             lines += [
                 "",
-                "| bed | grains | precision | particle-steps/s | bytes per grain | captured |",
-                "|---|---|---|---|---|---|",
+                "| bed | grains | precision | particle-steps/s | x single | device bytes per grain (estimate) "
+                "| x double | captured |",
+                "|---|---|---|---|---|---|---|---|",
             ]
+            rate = {(row["bed"], row["precision"]): row["particle_steps_per_second"] for row in throughput["rows"]}
+            memory = {(row["bed"], row["precision"]): row["bytes_per_grain"] for row in throughput["rows"]}
             for row in throughput["rows"]:
+                bed = row["bed"]
                 lines.append(
-                    f"| {row['bed']} | {row['grains']} | {row['precision']} | "
-                    f"{row['particle_steps_per_second']:.3g} | {row['bytes_per_grain']:.0f} | "
-                    f"{row['captured']} |"
+                    f"| {bed} | {row['grains']} | {row['precision']} | {row['particle_steps_per_second']:.3g} | "
+                    f"{row['particle_steps_per_second'] / rate[(bed, 'single')]:.2f} | "
+                    f"{row['bytes_per_grain']:.0f} ({row['bytes_per_grain_estimate']:.0f}) | "
+                    f"{row['bytes_per_grain'] / memory[(bed, 'double')]:.2f} | {row['captured']} |"
                 )
         paper = r["sections"].get("paper", {})
-        if "projected_60s_seconds" in paper:
-            projected = paper["projected_60s_seconds"]
-            settling = paper["settling"]
+        if paper.get("projected_60s_seconds"):
+            settling, contacts = paper["settling"], paper["wheel_contacts"]
             lines += [
                 "",
-                f"Paper case: {paper['grains']} grains, Phobos gravity, double, dt = {paper['dt']:.3g} s "
-                f"(tile {'settled' if settling['settled'] else 'NOT settled'} in "
-                f"{settling['simulated_seconds']:.3g} s, {settling['contacts_per_grain']:.1f} contacts per "
-                "grain): "
-                f"{paper['particle_steps_per_second']:.3g} particle-steps/s "
-                f"({paper['contacts_per_grain']:.1f} contacts per grain), 60 s projected in {projected:.0f} s "
-                f"({projected / 60:.1f} min).",
+                f"Paper case ({paper['scene']}, {paper['precision']}, slip {paper['slip']}, dt = {paper['dt']:.3g} s): "
+                f"{settling['bed_grains']} grains ({settling['tiles'][0]} x {settling['tiles'][1]} tiles of "
+                f"{settling['tile_grains']}, the tile {'settled' if settling['settled'] else 'NOT settled'} in "
+                f"{settling['simulated_seconds']:.3g} s); landed in {paper['landing_simulated_seconds']:.3g} s, "
+                f"drove {paper['drive_simulated_seconds']:.3g} s ({paper['drive_timed_simulated_seconds']:.3g} s "
+                f"of it timed: {paper['drive_wall_seconds']:.1f} s wall): "
+                f"{paper['particle_steps_per_second']:.3g} particle-steps/s, 60 s projected in "
+                f"{paper['projected_60s_seconds']:.0f} s ({paper['projected_60s_seconds'] / 60:.1f} min); "
+                f"grains touching the wheel while driving: min {contacts['drive_min']}, mean "
+                f"{contacts['drive_mean']:.1f}, max {contacts['drive_max']}.",
+            ]
+        rover = r["sections"].get("rover", {})
+        if rover.get("wall_per_simulated_second"):
+            contacts = rover["wheel_contacts"]
+            lines += [
+                "",
+                f"Rover ({rover['scene']}, {rover['precision']}, dt = {rover['dt']:.3g} s): "
+                f"{rover['grains_min']:.0f}-{rover['grains_max']:.0f} grains in the patch; "
+                + (
+                    f"landed in {rover['landing_simulated_seconds']:.3g} s"
+                    if rover["landing_simulated_seconds"] > 0
+                    else "no landing phase"
+                )
+                + f", drove {rover['drive_simulated_seconds']:.3g} s ({rover['drive_timed_simulated_seconds']:.3g} s "
+                f"of it timed: {rover['drive_wall_seconds']:.1f} s wall): {rover['particle_steps_per_second']:.3g} "
+                f"particle-steps/s, {rover['wall_per_simulated_second']:.3g} s wall per simulated second; "
+                f"least grains touching a wheel while driving: {contacts['drive_min']} "
+                f"({', '.join(rover['wheels'])}).",
             ]
         targets = {}
         for result in r["sections"].values():
@@ -433,6 +674,7 @@ class Suite:
         checks = {
             "repeat": "a coupled run repeats bit for bit",
             "agreement": "device agrees with the CPU within the replica scatter",
+            "rover": "rover: lands and drives its segment",
             "tests": "the CUDA tests pass",
         }
         for name, label in checks.items():
@@ -449,13 +691,8 @@ def main(argv=None) -> int:
     parser.add_argument("--device", default=None, help="Warp device (default: cuda:0, or cpu with --small)")
     parser.add_argument("--small", action="store_true", help="small sizes: the suite's own check, on any device")
     parser.add_argument("--out", default="runs/gpu_suite", help="folder for results.json and results.md")
-    parser.add_argument("--budget", type=float, default=480.0, help="seconds the whole suite should take")
-    parser.add_argument(
-        "--sections",
-        nargs="+",
-        default=["throughput", "repeat", "agreement", "paper", "tests"],
-        choices=["throughput", "repeat", "agreement", "paper", "tests"],
-    )
+    parser.add_argument("--budget", type=float, default=510.0, help="seconds the whole suite should take")
+    parser.add_argument("--sections", nargs="+", default=list(SECTIONS), choices=SECTIONS)
     args = parser.parse_args(argv)
     quiet_warp()
     wp.init()

@@ -28,7 +28,7 @@ def test_the_gpu_suite_runs_small_on_the_cpu(tmp_path):
     assert done.returncode == 0, done.stdout[-3000:] + done.stderr[-3000:]
     results = json.loads((tmp_path / "results.json").read_text())
     sections = results["sections"]
-    assert set(sections) == {"throughput", "repeat", "agreement", "paper", "tests"}
+    assert set(sections) == {"throughput", "repeat", "agreement", "paper", "rover", "tests"}
     assert all(section["ok"] for section in sections.values()), sections
     assert sections["repeat"]["bitwise_equal"] and sections["repeat"]["wheel_contacts_max"] > 0
     rows = sections["throughput"]["rows"]
@@ -36,5 +36,14 @@ def test_the_gpu_suite_runs_small_on_the_cpu(tmp_path):
         (b, p) for b in ("100k", "1M") for p in ("single", "mixed", "double")
     }
     assert all(r["particle_steps_per_second"] > 0 and r["captured"] for r in rows)
-    assert sections["paper"]["projected_60s_seconds"] > 0
-    assert "| target | met |" in (tmp_path / "results.md").read_text()
+    assert all(r["bytes_per_grain"] > 0 and r["bytes_per_grain_estimate"] > 0 for r in rows)
+    layout = sections["throughput"]["layout"]
+    assert layout["double"]["x_double"] == 1.0 and 0 < layout["mixed"]["x_double"] < 1
+    # the paper case drives with its wheel in the grains: it touches them at every macro step
+    paper = sections["paper"]
+    assert paper["drive_steps"] > 0 and paper["wheel_contacts"]["drive_min"] > 0
+    assert paper["projected_60s_seconds"] > 0 and paper["particle_steps_per_second"] > 0
+    rover = sections["rover"]
+    assert rover["drive_steps"] > 0 and rover["particle_steps_per_second"] > 0 and rover["grains_min"] > 0
+    text = (tmp_path / "results.md").read_text()
+    assert "| target | met |" in text and "Paper case" in text and "Rover" in text
