@@ -11,7 +11,9 @@ the DEM's; --timing measures both side by side on a quiet one).
         --case "Phobos, lab-calibrated=runs/dem_phobos:examples/terrain/phobos_regolith_scm.toml" \
         --case "Phobos, wheel-calibrated=runs/dem_phobos:wheel_phobos.toml" ... [--timing]
 
-A case is NAME=DEM_STUDY:CALIBRATION. Writes trade.json, trade.csv (units in the header),
+A case is NAME=DEM_STUDY:CALIBRATION[:SCENE]: SCENE (e.g. the DEM scene's gravity twin, `cosim
+scale`) instead of the study's own; the comparison is dimensionless (DP/W, T / (W r); sinkage in m,
+which a twin keeps). Writes trade.json, trade.csv (units in the header),
 trade.png (DP/W, sinkage and torque against slip, DEM with error bars, one line per case) and
 prints the tables BENCHMARKS.md quotes.
 """
@@ -75,13 +77,17 @@ def seconds_per_simulated_second(study: dict) -> float:
     return sum(ratios) / len(ratios) if ratios else math.nan
 
 
-def scm_study(study: dict, calibration: str, out_dir: str) -> dict:
-    """The DEM study's scene on the SCM calibration, one run per slip (SCM is deterministic)."""
+def scm_study(study: dict, calibration: str, out_dir: str, scene: str | None = None) -> dict:
+    """The DEM study's scene (or `scene`, e.g. its gravity twin) on the SCM calibration, one run per
+    slip of the study (SCM is deterministic)."""
     from cosim import study as studies
-    from cosim.plan import resolve
+    from cosim.plan import load_plan, resolve
     from cosim.scene import scene_from_text
 
-    plan = resolve(scene_from_text(study["scene_toml"], overrides=on_scm(calibration)))
+    if scene:
+        plan = load_plan(scene, on_scm(calibration))
+    else:
+        plan = resolve(scene_from_text(study["scene_toml"], overrides=on_scm(calibration)))
     slips = [row["slip_set"] for row in study["rows"]]
     return studies.slip_study(plan, out_dir, slips, replicas=1, executor="serial", overwrite=True, plot=False)
 
@@ -174,7 +180,9 @@ def timing(study_folder: str, calibration: str, out_dir: str, duration: float) -
 
 def main(argv=None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--case", action="append", required=True, help="NAME=DEM_STUDY:CALIBRATION (repeatable)")
+    parser.add_argument(
+        "--case", action="append", required=True, help="NAME=DEM_STUDY:CALIBRATION[:SCENE] (repeatable)"
+    )
     parser.add_argument("--out", required=True)
     parser.add_argument("--timing", help="DEM_STUDY:CALIBRATION: time a DEM and an SCM run of it side by side")
     parser.add_argument("--timing-duration", type=float, default=2.0, help="driving time of the timed runs [s]")
@@ -182,12 +190,12 @@ def main(argv=None) -> None:
     os.makedirs(args.out, exist_ok=True)
     cases, dem_sets = [], {}
     for index, text in enumerate(args.case):
-        name, _, pair = text.partition("=")
-        folder, _, calibration = pair.rpartition(":")
+        name, _, spec = text.partition("=")
+        folder, calibration, *scene = spec.split(":")
         study, dem = dem_rows(folder)
         dem_sets.setdefault(os.path.basename(os.path.normpath(folder)), dem)
         started = time.perf_counter()
-        report = scm_study(study, calibration, os.path.join(args.out, f"case_{index}"))
+        report = scm_study(study, calibration, os.path.join(args.out, f"case_{index}"), scene[0] if scene else None)
         scm_rows = []
         for row in report["rows"]:
             load, rim = report["wheel_load"], scm_rim(report)
@@ -205,6 +213,7 @@ def main(argv=None) -> None:
                 "name": name,
                 "dem_study": os.path.abspath(folder),
                 "calibration": os.path.abspath(calibration),
+                "scene": os.path.abspath(scene[0]) if scene else "the DEM study's",
                 "comparison": comparison,
                 "agreeing_slips": {k: sum(r[f"{k}_agrees"] for r in comparison) for k, _, _ in QUANTITIES},
                 "slips": len(comparison),

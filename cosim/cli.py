@@ -9,7 +9,7 @@
     cosim export vtkhdf RUN [--out FILE]
     cosim study precision SCENE.toml --replicas N [--precisions single,mixed,double] [--out DIR] ...
     cosim study timestep SCENE.toml [--out DIR] [--duration S] [--max-tries N]
-    cosim study slip SCENE.toml --slips 0.1,0.2,0.4 [--replicas K] [--out DIR] ...
+    cosim study slip SCENE.toml --slips 0.1,0.2,0.4 [--replicas K] [--out DIR] [--from-runs STUDY ...] ...
     cosim sweep SCENE.toml --param wheel.radius=0.03,0.04 --param wheel.grouser_count=0,12 [--out DIR] ...
     cosim scale SCENE.toml --gravity G --out TWIN.toml
     cosim lab repose|shear|plate SCENE.toml [--out DIR] [--replicas K] [--set key=value ...] [--workers N | --serial]
@@ -291,6 +291,10 @@ def cmd_study(args) -> int:
         from .scene import parse_value
 
         out = args.out or os.path.join("runs", f"{plan.name}_slip")
+        if args.from_runs:  # tabulate runs already made: a study stopped before its end, or run in parts
+            report = study.slip_study_from_runs(args.from_runs, out, overwrite=args.overwrite)
+            print(report["text"])
+            return EXIT_OK if report["ok"] else EXIT_UNSTEADY
         slips = [parse_value(s) for s in args.slips.split(",") if s.strip()]
         report = study.slip_study(plan, out, slips, replicas=args.replicas, overwrite=args.overwrite, **_executor(args))
         print(report["text"])
@@ -648,6 +652,12 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--replicas", type=int, default=3, help="replicas per precision or slip")
     p.add_argument("--precisions", default="single,mixed,double")
     p.add_argument("--slips", default="0.1,0.2,0.3,0.5", help="slip: imposed slips, comma-separated")
+    p.add_argument(
+        "--from-runs",
+        nargs="+",
+        metavar="STUDY",
+        help="slip: tabulate the runs these study folders hold (stopped or run in parts) instead of running",
+    )
     p.add_argument("--duration", type=float, default=0.05, help="timestep: simulated time of each try [s]")
     p.add_argument("--max-tries", type=int, default=8, help="timestep: most runs of the search")
     p.set_defaults(func=cmd_study)

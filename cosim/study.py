@@ -472,9 +472,51 @@ def slip_study(
             for k in range(replicas)
         ]
         results = ex.map(run_task, tasks)
+    return _slip_report(plan, out_dir, slips, [t["slip"] for t in tasks], results, text, bed, plot)
+
+
+def slip_study_from_runs(folders, out_dir: str, overwrite: bool = False, plot: bool = True) -> dict:
+    """The slip study's table from runs already made (FOLDER/slip_*/replica_*/run.json under each of
+    `folders`: a study stopped before its end, or run in parts), written to out_dir like slip_study's
+    (a new folder: never one of `folders` or a folder holding one)."""
+    import glob
+    import json
+
+    out_dir = os.path.abspath(out_dir)
+    for folder in folders:
+        source = os.path.abspath(folder)
+        if os.path.commonpath([out_dir, source]) == out_dir:
+            raise ArgumentError(f"--out {out_dir}: holds the runs of {source}; tabulate into another folder")
+    found = []
+    for folder in folders:
+        for run_json in sorted(glob.glob(os.path.join(os.path.abspath(folder), "slip_*", "replica_*", "run.json"))):
+            try:
+                with open(run_json) as f:
+                    record = json.load(f)
+                slip = float(os.path.basename(os.path.dirname(os.path.dirname(run_json)))[len("slip_") :])
+            except (OSError, ValueError) as error:
+                raise ArgumentError(f"{run_json}: not a slip run's record ({error})") from None
+            found.append((slip, os.path.dirname(run_json), record))
+    if not found:
+        raise ArgumentError(f"no slip runs (slip_*/replica_*/run.json) under {', '.join(map(str, folders))}")
+    first = os.path.join(found[0][1], "scene.toml")
+    with open(first) as f:
+        text = f.read()
+    plan = resolve(scene_from_text(text, base_dir=os.path.dirname(first)))
+    results = [
+        {"label": os.path.relpath(path, out_dir), "out_dir": path, "ok": "summary" in record, **record}
+        for _, path, record in found
+    ]
+    slips = sorted({slip for slip, _, _ in found})
+    prepare_study(out_dir, overwrite)
+    return _slip_report(plan, out_dir, slips, [s for s, _, _ in found], results, text, None, plot)
+
+
+def _slip_report(plan, out_dir, slips, run_slips, results, text, bed, plot) -> dict:
+    """Tabulate, write (study.json, study.csv, plots) and describe a slip study's runs."""
     rows = []
     for s in slips:
-        members = [r for t, r in zip(tasks, results) if t["slip"] == s]
+        members = [r for slip, r in zip(run_slips, results) if slip == s]
         stats = ensemble_table(members, plan)
         rows.append(
             {"slip_set": s, "replicas": stats["replicas"], "steady": stats["steady"], **_flat(stats), "stats": stats}

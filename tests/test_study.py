@@ -321,3 +321,44 @@ def test_a_timestep_search_that_finds_no_stable_step_ends_with_a_clear_failure(s
     assert "try 1/2" in text and "try 2/2" in text and "UNSTABLE" in text and "no stable step found in 2 tries" in text
     report = json.loads((tmp_path / "ts" / "study.json").read_text())
     assert report["largest_stable"] is None and len(report["tried"]) == 2
+
+
+def test_a_slip_study_is_tabulated_from_the_runs_it_holds(tmp_path):
+    """A slip study stopped before its end (or run in parts): `slip_study_from_runs` tabulates the
+    runs two folders hold, steady ones only, with the Student-t interval of their mean; a running
+    run (no summary yet) and an unsteady one are counted but not averaged; the output folder may
+    not hold the runs it reads."""
+    from scipy import stats
+
+    from cosim.study import slip_study_from_runs
+    from soil.errors import ArgumentError
+
+    with open(write_tiny(tmp_path)) as f:
+        text = f.read()
+    pulls = {("a", 0): -1.0e-4, ("a", 1): -3.0e-4, ("b", 0): -2.0e-4}
+    for (part, k), pull in pulls.items():
+        run = tmp_path / part / "slip_+0.200" / f"replica_{k:03d}"
+        run.mkdir(parents=True)
+        (run / "scene.toml").write_text(text)
+        summary = {"steady_state": "steady", "drawbar_pull": pull, "slip": 0.2, "sinkage": 1e-3}
+        (run / "run.json").write_text(json.dumps({"status": "complete", "summary": summary}))
+    unsteady = tmp_path / "b" / "slip_+0.200" / "replica_001"
+    unsteady.mkdir()
+    (unsteady / "scene.toml").write_text(text)
+    summary = {"steady_state": "still sinking", "drawbar_pull": 5.0, "slip": 0.2}
+    (unsteady / "run.json").write_text(json.dumps({"status": "unsteady", "summary": summary}))
+    running = tmp_path / "b" / "slip_+0.400" / "replica_000"
+    running.mkdir(parents=True)
+    (running / "scene.toml").write_text(text)
+    (running / "run.json").write_text(json.dumps({"status": "running"}))
+
+    report = slip_study_from_runs([tmp_path / "a", tmp_path / "b"], str(tmp_path / "table"), plot=False)
+    row = {r["slip_set"]: r for r in report["rows"]}
+    assert row[0.2]["replicas"] == 4 and row[0.2]["steady"] == 3 and row[0.4]["steady"] == 0
+    values = np.array(list(pulls.values()))
+    assert row[0.2]["drawbar_pull_mean"] == pytest.approx(values.mean(), rel=1e-12)
+    interval = stats.t.ppf(0.975, 2) * values.std(ddof=1) / np.sqrt(3)
+    assert row[0.2]["drawbar_pull_ci95"] == pytest.approx(interval, rel=1e-12)
+    assert json.loads((tmp_path / "table" / "study.json").read_text())["kind"] == "slip"
+    with pytest.raises(ArgumentError, match="holds the runs"):
+        slip_study_from_runs([tmp_path / "a"], str(tmp_path))

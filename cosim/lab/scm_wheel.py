@@ -31,9 +31,9 @@ from .common import LabFailed
 FITTED = ("k_phi", "n", "friction_angle_deg", "janosi_k")
 """The SCM parameters the wheel runs move (the others keep the lab's values)."""
 
-STEPS_PER_NODE = 8
-"""SCM steps per node spacing of travel in the fit's wheel runs [-] (the run's step is finer; the
-held wheel's forces do not depend on it beyond the grid's ripple, which the grouser-pitch mean removes)."""
+STEPS_PER_NODE = 4
+"""SCM steps per node spacing of the grouser tips' travel in the fit's wheel runs [-] (the run's step is
+finer; the main job's held wheel: forces within 0.2 % of 8 steps per node, 1-3 % at 2)."""
 
 
 @dataclass(frozen=True)
@@ -114,7 +114,10 @@ def scm_wheel_forces(plan, soil: dict, sinkage: float, slip: float) -> tuple[flo
     rim = wheel.rim_radius
     omega = plan.drive_omega
     speed = omega * rim * (1.0 - slip)
-    base = scm_settings(plan, [0], 0.0, soil)
+    # a window of 4 outer radii round the one wheel: the nodes under it are the run's (the lattice is
+    # fixed in the world), three times fewer to step than the run's window
+    window = {"window_length": 4.0 * wheel.outer_radius, "window_width": wheel.width + 2.0 * wheel.outer_radius}
+    base = scm_settings(plan, [0], 0.0, {**window, **soil})
     spacing = base.parameters.node_spacing
     step = spacing / (STEPS_PER_NODE * omega * wheel.outer_radius)  # the fastest surface speed: the tips
     contact = 2.0 * math.sqrt(max(2.0 * rim * sinkage, spacing**2))
