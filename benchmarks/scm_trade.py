@@ -50,12 +50,14 @@ def dem_rows(study_folder: str) -> tuple[dict, list[dict]]:
     rim = scene_from_text(study["scene_toml"]).wheel.radius
     rows = []
     for row in study["rows"]:
-        if not row.get("steady"):
+        averaged = row.get("averaged", row.get("steady", 0))
+        if not averaged:
             continue
         rows.append(
             {
                 "slip": row["slip_set"],
-                "replicas": row["steady"],
+                "replicas": averaged,
+                "steady": row.get("steady", 0),
                 "dp_over_w": row["dp_over_w_mean"],
                 "dp_over_w_ci95": row["dp_over_w_ci95"],
                 "sinkage": row["sinkage_mean"],

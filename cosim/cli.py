@@ -292,7 +292,9 @@ def cmd_study(args) -> int:
 
         out = args.out or os.path.join("runs", f"{plan.name}_slip")
         if args.from_runs:  # tabulate runs already made: a study stopped before its end, or run in parts
-            report = study.slip_study_from_runs(args.from_runs, out, overwrite=args.overwrite)
+            report = study.slip_study_from_runs(
+                args.from_runs, out, overwrite=args.overwrite, include_sinking=args.include_sinking
+            )
             print(report["text"])
             return EXIT_OK if report["ok"] else EXIT_UNSTEADY
         slips = [parse_value(s) for s in args.slips.split(",") if s.strip()]
@@ -657,6 +659,11 @@ def build_parser() -> argparse.ArgumentParser:
         nargs="+",
         metavar="STUDY",
         help="slip: tabulate the runs these study folders hold (stopped or run in parts) instead of running",
+    )
+    p.add_argument(
+        "--include-sinking",
+        action="store_true",
+        help="--from-runs: average the runs whose traction is steady and sinkage still drifts too",
     )
     p.add_argument("--duration", type=float, default=0.05, help="timestep: simulated time of each try [s]")
     p.add_argument("--max-tries", type=int, default=8, help="timestep: most runs of the search")

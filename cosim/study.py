@@ -237,16 +237,18 @@ def _tolerances(plan: RunPlan) -> dict[str, float]:
     }
 
 
-def ensemble_table(results: list[dict], plan: RunPlan) -> dict:
-    """metrics.ensemble of every REPLICA_METRIC over the runs with a steady state."""
+def ensemble_table(results: list[dict], plan: RunPlan, states=(metrics.STEADY,)) -> dict:
+    """metrics.ensemble of every REPLICA_METRIC over the runs whose steady_state is in `states` (the
+    steady ones; with metrics.SINKING too, the runs whose traction is steady and sinkage still drifts)."""
+    averaged = [r for r in results if r.get("ok") and r.get("summary", {}).get("steady_state") in states]
     steady = [r for r in results if r.get("ok") and r.get("summary", {}).get("steady_state") == metrics.STEADY]
     floors = _tolerances(plan)
     table = {
-        name: metrics.ensemble([r["summary"].get(name) for r in steady], absolute_tolerance=floors[name])
+        name: metrics.ensemble([r["summary"].get(name) for r in averaged], absolute_tolerance=floors[name])
         for name in metrics.REPLICA_METRICS
     }
     table["wall_time"] = metrics.ensemble([r["summary"].get("wall_time") for r in results if r.get("ok")])
-    return {"replicas": len(results), "steady": len(steady), "metrics": table}
+    return {"replicas": len(results), "steady": len(steady), "averaged": len(averaged), "metrics": table}
 
 
 def _ensemble_text(stats: dict, title: str) -> str:
@@ -475,10 +477,14 @@ def slip_study(
     return _slip_report(plan, out_dir, slips, [t["slip"] for t in tasks], results, text, bed, plot)
 
 
-def slip_study_from_runs(folders, out_dir: str, overwrite: bool = False, plot: bool = True) -> dict:
+def slip_study_from_runs(
+    folders, out_dir: str, overwrite: bool = False, plot: bool = True, include_sinking: bool = False
+) -> dict:
     """The slip study's table from runs already made (FOLDER/slip_*/replica_*/run.json under each of
     `folders`: a study stopped before its end, or run in parts), written to out_dir like slip_study's
-    (a new folder: never one of `folders` or a folder holding one)."""
+    (a new folder: never one of `folders` or a folder holding one). include_sinking: average the
+    runs whose traction is steady and whose sinkage still drifts too (a wheel digging in at high
+    slip), each row's `averaged` counting them; the sinkage is then its mean over the window."""
     import glob
     import json
 
@@ -509,20 +515,29 @@ def slip_study_from_runs(folders, out_dir: str, overwrite: bool = False, plot: b
     ]
     slips = sorted({slip for slip, _, _ in found})
     prepare_study(out_dir, overwrite)
-    return _slip_report(plan, out_dir, slips, [s for s, _, _ in found], results, text, None, plot)
+    states = (metrics.STEADY, metrics.SINKING) if include_sinking else (metrics.STEADY,)
+    return _slip_report(plan, out_dir, slips, [s for s, _, _ in found], results, text, None, plot, states)
 
 
-def _slip_report(plan, out_dir, slips, run_slips, results, text, bed, plot) -> dict:
+def _slip_report(plan, out_dir, slips, run_slips, results, text, bed, plot, states=(metrics.STEADY,)) -> dict:
     """Tabulate, write (study.json, study.csv, plots) and describe a slip study's runs."""
     rows = []
     for s in slips:
         members = [r for slip, r in zip(run_slips, results) if slip == s]
-        stats = ensemble_table(members, plan)
+        stats = ensemble_table(members, plan, states)
         rows.append(
-            {"slip_set": s, "replicas": stats["replicas"], "steady": stats["steady"], **_flat(stats), "stats": stats}
+            {
+                "slip_set": s,
+                "replicas": stats["replicas"],
+                "steady": stats["steady"],
+                "averaged": stats["averaged"],
+                **_flat(stats),
+                "stats": stats,
+            }
         )
     report = {
         "kind": "slip",
+        "averaged_states": list(states),
         "rows": rows,
         "runs": results,
         "scene_toml": text,
@@ -540,6 +555,10 @@ def _slip_report(plan, out_dir, slips, run_slips, results, text, bed, plot) -> d
         f"{plan.name}: drawbar pull against imposed slip (W = {plan.wheel_load:.4g} N), {out_dir}",
         f"  {'slip':>6s} {'steady':>7s} {'DP [N]':>12s} {'DP/W':>14s} {'torque [N m]':>14s} {'sinkage [mm]':>13s}",
     ]
+
+    def averaged(row) -> str:
+        return "" if row["averaged"] == row["steady"] else f" ({row['averaged']} averaged)"
+
     for row in rows:
 
         def cell(name, scale=1.0, row=row):
@@ -549,7 +568,8 @@ def _slip_report(plan, out_dir, slips, run_slips, results, text, bed, plot) -> d
             return f"{mean * scale:.4g}" + (f"+-{ci * scale:.2g}" if ci is not None and ci == ci else "")
 
         lines.append(
-            f"  {row['slip_set']:6.3f} {row['steady']:3d}/{row['replicas']:<3d} {cell('drawbar_pull'):>12s} "
+            f"  {row['slip_set']:6.3f} {row['steady']:3d}/{row['replicas']:<3d}{averaged(row)} "
+            f"{cell('drawbar_pull'):>12s} "
             f"{cell('dp_over_w'):>14s} {cell('driving_torque'):>14s} {cell('sinkage', 1e3):>13s}"
         )
     report["text"] = "\n".join(lines)

@@ -326,8 +326,8 @@ def test_a_timestep_search_that_finds_no_stable_step_ends_with_a_clear_failure(s
 def test_a_slip_study_is_tabulated_from_the_runs_it_holds(tmp_path):
     """A slip study stopped before its end (or run in parts): `slip_study_from_runs` tabulates the
     runs two folders hold, steady ones only, with the Student-t interval of their mean; a running
-    run (no summary yet) and an unsteady one are counted but not averaged; the output folder may
-    not hold the runs it reads."""
+    run (no summary yet) and an unsteady one are counted but not averaged (include_sinking: the
+    still-sinking one is); the output folder may not hold the runs it reads."""
     from scipy import stats
 
     from cosim.study import slip_study_from_runs
@@ -360,5 +360,10 @@ def test_a_slip_study_is_tabulated_from_the_runs_it_holds(tmp_path):
     interval = stats.t.ppf(0.975, 2) * values.std(ddof=1) / np.sqrt(3)
     assert row[0.2]["drawbar_pull_ci95"] == pytest.approx(interval, rel=1e-12)
     assert json.loads((tmp_path / "table" / "study.json").read_text())["kind"] == "slip"
+    # --include-sinking: the run whose traction is steady and sinkage drifts is averaged too
+    sinking = slip_study_from_runs([tmp_path / "a", tmp_path / "b"], str(tmp_path / "t2"), include_sinking=True)
+    row = {r["slip_set"]: r for r in sinking["rows"]}
+    assert row[0.2]["steady"] == 3 and row[0.2]["averaged"] == 4
+    assert row[0.2]["drawbar_pull_mean"] == pytest.approx((values.sum() + 5.0) / 4, rel=1e-12)
     with pytest.raises(ArgumentError, match="holds the runs"):
         slip_study_from_runs([tmp_path / "a"], str(tmp_path))

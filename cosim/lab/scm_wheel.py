@@ -77,7 +77,8 @@ def wheel_targets(study_folder: str) -> list[WheelTarget]:
         raise LabFailed(f"{path}: no wheel_load > 0 [N]; the wheel fit needs the wheel's load")
     targets = []
     for row in study.get("rows", []):
-        if not row.get("steady"):
+        averaged = int(row.get("averaged", row.get("steady", 0)))  # a table --include-sinking averaged
+        if not averaged:
             continue
 
         def value(name: str, key: str = "mean", row=row) -> float:
@@ -93,7 +94,7 @@ def wheel_targets(study_folder: str) -> list[WheelTarget]:
                 drawbar_pull_ci95=value("drawbar_pull", "ci95"),
                 driving_torque=value("driving_torque"),
                 driving_torque_ci95=value("driving_torque", "ci95"),
-                replicas=int(row["steady"]),
+                replicas=averaged,
                 vertical_force=float(load),
             )
         )
