@@ -530,7 +530,7 @@ def cmd_calibrate_scm(args) -> int:
         calibration = _fit_to_wheel(args, calibration, work)
     calibration.source["wall_time_s"] = time.perf_counter() - started
     write_calibration(args.out, calibration)
-    print(f"calibrate-scm: {args.out} (DEM tests in {work}, |g| = {plan.g:.4g} m/s^2)")
+    print(f"calibrate-scm: {args.out} (DEM tests in {work}, |g| = {calibration.gravity:.4g} m/s^2)")
     for key in SOIL_KEYS:
         value, error = calibration.parameters[key], calibration.standard_errors[key]
         print(f"  {key:20s} {value:12.5g} +- {error:.3g}")

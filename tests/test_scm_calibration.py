@@ -194,3 +194,41 @@ def test_wheel_targets_read_a_slip_study_and_refuse_other_files(tmp_path):
         wheel_targets(str(tmp_path))
     with pytest.raises(LabFailed, match="study.json"):
         wheel_targets(str(tmp_path / "nowhere"))
+
+
+def test_calibrate_scm_from_wheel_writes_the_fit_and_refuses_misplaced_options(tmp_path, monkeypatch, capsys):
+    """The command's plumbing (the fit itself: the test above): --from-wheel --lab --wheel-runs reads
+    the lab file and the slip study, writes the fitted values with the lab's held ones and the
+    wheel runs' record; --lab without --from-wheel is bad input (exit 2) naming it."""
+    import json
+    import os
+
+    import cosim.lab.scm_wheel as scm_wheel
+    from cosim.cli import main
+
+    scene = os.path.join(os.path.dirname(__file__), "..", "examples", "phobos_single_wheel.toml")
+    lab_path = tmp_path / "lab.toml"
+    lab = {k: 1.0 for k in SOIL_KEYS}
+    write_calibration(str(lab_path), ScmCalibration(lab, {k: 0.1 for k in SOIL_KEYS}, 5.7e-3, {"scene": "x"}))
+    rows = [{"slip_set": s, "steady": 2, "slip_mean": s, "sinkage_mean": 0.008} for s in (0.1, 0.4)]
+    (tmp_path / "study").mkdir()
+    (tmp_path / "study" / "study.json").write_text(json.dumps({"kind": "slip", "wheel_load": 1.7e-3, "rows": rows}))
+    seen = {}
+
+    def fit(plan, targets, start):
+        seen.update(slips=[t.slip for t in targets], start=start)
+        report = {"slips": [], "rms_residual": 0.01, "evaluations": 3, "wheel_load_n": plan.wheel_load}
+        return {**start, "k_phi": 2.5}, {k: 0.2 for k in SOIL_KEYS}, report
+
+    monkeypatch.setattr(scm_wheel, "fit_to_wheel", fit)
+    out = tmp_path / "wheel.toml"
+    args = ["--from-wheel", "--lab", str(lab_path), "--wheel-runs", str(tmp_path / "study")]
+    assert main(["calibrate-scm", scene, "--out", str(out), *args]) == 0
+    written = read_calibration(str(out))
+    assert seen["slips"] == [0.1, 0.4] and seen["start"] == lab
+    assert written.parameters["k_phi"] == 2.5 and written.parameters["n"] == 1.0
+    assert written.standard_errors["k_phi"] == 0.2 and written.standard_errors["k_c"] == 0.1  # held: the lab's
+    assert written.source["wheel"]["runs"] == str(tmp_path / "study") and written.source["lab"] == str(lab_path)
+    capsys.readouterr()
+    assert main(["calibrate-scm", scene, "--out", str(tmp_path / "x.toml"), "--lab", str(lab_path)]) == 2
+    assert "--lab" in capsys.readouterr().err
