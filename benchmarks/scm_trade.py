@@ -91,7 +91,12 @@ def scm_study(study: dict, calibration: str, out_dir: str, scene: str | None = N
     else:
         plan = resolve(scene_from_text(study["scene_toml"], overrides=on_scm(calibration)))
     slips = [row["slip_set"] for row in study["rows"]]
-    return studies.slip_study(plan, out_dir, slips, replicas=1, executor="serial", overwrite=True, plot=False)
+    runs = os.path.join(out_dir, "runs")
+    studies.slip_study(plan, runs, slips, replicas=1, executor="serial", overwrite=True, plot=False)
+    # tabulated as the DEM's: runs whose traction is steady count even where the sinkage drifts
+    report = studies.slip_study_from_runs([runs], os.path.join(out_dir, "table"), True, False, include_sinking=True)
+    report["runs_study"] = runs
+    return report
 
 
 def on_scm(calibration: str) -> dict:
