@@ -624,6 +624,10 @@ class ScmTerrain:
             raise SoilInputError(f"SCM state has {len(data['path'])} wheels, this terrain has {self.wheel_count}")
         for name in _NODE_STATE:
             getattr(self._nodes, name).assign(np.asarray(data[name]))
+        # no contact anywhere, as in a terrain just built: the next step writes its boxes' nodes and
+        # releases the restored boxes' (a step taken since, e.g. of zero length to read the wrench at
+        # a new pose, may have marked contacts outside both)
+        self._nodes.wheel.fill_(-1)
         self.time = float(data["time"])
         self.steps = int(data["steps"])
         self._summed_steps = int(data["summed_steps"])
