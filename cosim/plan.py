@@ -554,10 +554,11 @@ def resolve(scene: Scene) -> RunPlan:
     )
 
     testbed = rover_plan = patch = None
+    walls = _on_grains(scene)
     if rover is None:
-        testbed = _testbed(scene, wheel, problems)
+        testbed = _testbed(scene, wheel, problems, walls)
     elif names is not None:
-        rover_plan, patch = _rover(scene, names, wheels, gravity, problems)
+        rover_plan, patch = _rover(scene, names, wheels, gravity, problems, walls)
 
     dt, macro_step, substeps, dt_key = _time_steps(scene, soil_material)
     if macro_step > scene.run.duration:
@@ -651,13 +652,24 @@ def _terrain(scene: Scene, wheel_count: int, problems: list[str]) -> TerrainPlan
     return TerrainPlan(model, tuple(sorted(given.items())), models, gravity)
 
 
-def _testbed(scene: Scene, wheel: WheelPlan, problems: list[str]) -> TestbedPlan:
-    """The testbed's plan; its wheel must fit the bed and stay clear of its walls."""
+def _on_grains(scene: Scene) -> bool:
+    """Whether some wheel runs on the grains of [bed] (the DEM, alone or mixed): only then do the bed's
+    walls bound the drive (SCM and the analytic terrain are unbounded: the bed only describes the soil)."""
+    section = scene.terrain
+    if section is None or section.model == "dem":
+        return True
+    return section.model == "scm" and section.wheels is not None and "dem" in section.wheels
+
+
+def _testbed(scene: Scene, wheel: WheelPlan, problems: list[str], walls: bool = True) -> TestbedPlan:
+    """The testbed's plan; its wheel must fit the bed and stay clear of its walls (`walls`: on grains)."""
     t, b = scene.testbed, scene.bed
     assert t is not None
     clearance = 2 * b.radius_mean
     start_x = t.start_x if t.start_x is not None else wheel.outer_radius + 6 * b.radius_mean
     testbed = TestbedPlan(t.mass, t.omega, t.mode, t.slip, t.drawbar_load, t.drawbar_ramp, start_x, 0.5 * b.width)
+    if not walls:
+        return testbed
     if wheel.width >= b.width:
         problems.append(f"wheel.width: the wheel ({wheel.width:.4g} m) is wider than the bed (bed.width = {b.width} m)")
     elif (b.width - wheel.width) / 2 < clearance:
@@ -731,8 +743,16 @@ def _check_drive(
     return DrivePlan(name, section, file)
 
 
-def _rover(scene: Scene, names: list[str], wheels: tuple[WheelPlan, ...], gravity: np.ndarray, problems: list[str]):
-    """The rover's plan and its patch's; the rover must fit its bed (or its patch's window)."""
+def _rover(
+    scene: Scene,
+    names: list[str],
+    wheels: tuple[WheelPlan, ...],
+    gravity: np.ndarray,
+    problems: list[str],
+    walls: bool = True,
+):
+    """The rover's plan and its patch's; the rover must fit its bed (or its patch's window); `walls`
+    False (no wheel on the grains): the bed's walls do not bound it."""
     rover, b = scene.rover, scene.bed
     assert rover is not None
     heading = math.radians(rover.start.heading_deg)
@@ -816,7 +836,9 @@ def _rover(scene: Scene, names: list[str], wheels: tuple[WheelPlan, ...], gravit
         start_y = rover.start.y if rover.start.y is not None else 0.5 * b.width - 0.5 * (box_low[1] + box_high[1])
         low = np.array([start_x, start_y]) + box_low
         high = np.array([start_x, start_y]) + box_high
-        if high[1] - low[1] + 2 * clearance > b.width:
+        if not walls:
+            pass  # no grains under the wheels: the bed's walls are not there
+        elif high[1] - low[1] + 2 * clearance > b.width:
             problems.append(
                 f"bed.width: the rover ({high[1] - low[1]:.4g} m across its wheels) and a clearance of "
                 f"{clearance:.4g} m to the side walls need bed.width >= "
@@ -827,13 +849,13 @@ def _rover(scene: Scene, names: list[str], wheels: tuple[WheelPlan, ...], gravit
                 f"rover.start.y: the rover ({low[1]:.4g} .. {high[1]:.4g} m across) comes closer than "
                 f"{clearance:.4g} m to a side wall of the bed (0 .. {b.width} m)"
             )
-        if low[0] < clearance:
+        if walls and low[0] < clearance:
             problems.append(
                 f"rover.start.x: the rover's rear reaches {low[0]:.4g} m, closer than {clearance:.4g} m "
                 f"to the x = 0 wall; allowed: rover.start.x >= {start_x + clearance - low[0]:.4g} m"
             )
         omega = _nominal_omega(drive.section, len(names))
-        if math.isfinite(omega) and abs(math.cos(heading)) > 0:
+        if walls and math.isfinite(omega) and abs(math.cos(heading)) > 0:
             reach = omega * max(w.outer_radius for w in wheels) * scene.run.duration
             if high[0] + reach > b.length - clearance:
                 problems.append(

@@ -608,8 +608,10 @@ def sweep(
     overwrite: bool = False,
     plot: bool = True,
 ) -> dict:
-    """One run per point of the grid; points that share a bed share one settled bed."""
+    """One run per point of the grid; points that share a bed share one settled bed (a point on a
+    terrain without grains, SCM or the analytic one, settles none)."""
     from .plots import plot_table
+    from .system import needs_bed
 
     grid = parse_params(params)
     if not grid:
@@ -629,7 +631,7 @@ def sweep(
     with Executor(executor, scheduler, workers) as ex:
         beds: dict[str, RunPlan] = {}
         for p in plans:
-            if not p.bed.bed_file:
+            if not p.bed.bed_file and needs_bed(p):
                 beds.setdefault(p.bed.key, p)
         settled = ex.map(
             settle_task,
@@ -647,7 +649,7 @@ def sweep(
         tasks: list[dict[str, Any]] = []
         for i, (point, p) in enumerate(zip(points, plans)):
             overrides = dict(point)
-            if not p.bed.bed_file:
+            if not p.bed.bed_file and needs_bed(p):
                 overrides["bed.bed_file"] = bed_paths[p.bed.key]
             name = f"{i:03d}_" + "_".join(f"{k.split('.')[-1]}={v}" for k, v in point.items())
             tasks.append(

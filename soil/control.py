@@ -29,11 +29,14 @@ def quaternion_multiply(a, b) -> np.ndarray:
 def quaternion_integrate(q, omega, dt: float) -> np.ndarray:
     """Rotate q (body -> world) by a constant world-frame angular velocity omega [rad/s] for dt [s]."""
     omega = np.asarray(omega, dtype=np.float64)
-    angle = float(np.linalg.norm(omega)) * dt
+    rate = np.linalg.norm(omega)
+    angle = float(rate) * dt
     if angle < 1e-15:
         return np.array(q, dtype=np.float64)
-    axis = omega / np.linalg.norm(omega)
-    turned = quaternion_multiply(np.r_[np.cos(angle / 2), np.sin(angle / 2) * axis], q)  # world frame: from the left
+    axis = omega / rate
+    sine = np.sin(angle / 2)
+    turn = np.array([np.cos(angle / 2), sine * axis[0], sine * axis[1], sine * axis[2]])
+    turned = quaternion_multiply(turn, q)  # world frame: from the left
     return turned / np.linalg.norm(turned)
 
 

@@ -242,3 +242,19 @@ def test_the_advisor_says_where_scm_cannot_represent_the_run(tmp_path):
     assert not bad and {"scm_sinkage_grains", "scm_slip", "scm_froude"} <= checked
     message = next(f.message for f in validity(load_plan(write_tiny(tmp_path, SCM)), 0.0) if f.check == "scm_grousers")
     assert "use the DEM" in message
+
+
+def test_the_traverse_example_lands_and_drives_its_rover_forward(tmp_path):
+    """examples/phobos_rover_scm_traverse.toml (the full-size rover's 100 m at Phobos gravity on SCM, README
+    step 14), its first seconds of driving: on SCM no bed walls bound the drive (its [bed] is 0.16 m long)."""
+    pytest.importorskip("mujoco")
+    import os
+
+    scene = os.path.join(os.path.dirname(__file__), "..", "examples", "phobos_rover_scm_traverse.toml")
+    plan = load_plan(scene)
+    assert plan.terrain.model == "scm" and plan.scene.run.duration * 0.006 > 90.0  # about 100 m planned
+    run_scene(scene, str(tmp_path / "run"), overrides=["run.duration=3.0"])
+    series = read_series(tmp_path / "run" / "results.h5")
+    driving = series["phase"] == PHASE_DRIVING
+    assert driving.sum() == 30 and np.all(series["contact_count"][driving] > 0)
+    assert series["rover_travel"][-1] > 0.005  # [m] it moves off from rest in 3 s at 6 mm/s

@@ -1,10 +1,10 @@
 """The Soil Contact Model (SCM): a fast terrain of a deformable height field, in Warp kernels.
 
-A regular grid of nodes (spacing h) holds the soil height. Each step, every node casts a
-vertical ray up onto the wheels (the same shapes as the DEM's: soil.geometry GrouserWheel,
-exactly; MeshWheel, through Warp's mesh ray query) and finds the wheel surface above it. A
-node the wheel reaches below the soil's plastic surface is in contact; with z its sinkage
-below its reference level, its normal pressure is elastic-plastic:
+A regular grid of nodes (spacing h) holds the soil height. Each step, every node under a
+wheel's footprint casts a vertical ray up onto the wheels (the same shapes as the DEM's:
+soil.geometry GrouserWheel, exactly; MeshWheel, through Warp's mesh ray query) and finds the
+wheel surface above it. A node the wheel reaches below the soil's plastic surface is in
+contact; with z its sinkage below its reference level, its normal pressure is elastic-plastic:
 
     sigma = min(K_e (z - z_p), (k_c / b + k_phi) z^n)      (Bekker's curve is the yield limit)
 
@@ -29,7 +29,11 @@ Memory does not grow with the distance travelled: the grid is a window of fixed 
 follows a centre (the wheels' mean hub position, or a given point) in whole node steps. It is
 a ring buffer: node (I, J) of the infinite grid lives in slot (I mod nx, J mod ny); a slot
 that a new node enters is reset to the undisturbed soil, so ruts older than the window's
-reach are forgotten.
+reach are forgotten. A step works only each wheel's box (the nodes under the footprint of the
+cylinder that holds it, plus one spacing; the nodes a box left are released: no contact, no
+shear displacement), and a slot is reset when a box first reaches it: the cost of a step is
+that of the wheels' footprints, not of the window (bulldozing, which lets any slope in the
+window slide, works every node as well).
 
 Kernel discipline as the DEM's: one generic kernel source per precision (hi = the precision's
 `hi` type for every stored and summed quantity), no atomics, every sum in a fixed order

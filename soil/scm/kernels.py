@@ -28,7 +28,8 @@ def scm_kernels(hi):
 
     @wp.struct
     class Soil:
-        """The soil's parameters and the grid's layout."""
+        """The soil's parameters and the grid's layout; `box`: the most nodes along x or y of a wheel's
+        box (the launch size of the kernels that work the boxes)."""
 
         k_c: hi
         k_phi: hi
@@ -42,10 +43,12 @@ def scm_kernels(hi):
         surface: hi
         nx: int
         ny: int
+        box: int
 
     @wp.struct
     class Wheels:
-        """Shapes (soil.sdf's rows), meshes and the current poses and velocities."""
+        """Shapes (soil.sdf's rows), meshes, the cylinder about each axle that holds the wheel (radius,
+        half width) and the current poses and velocities."""
 
         kind: wp.array(dtype=wp.int32)
         shape: wp.array2d(dtype=hi)
@@ -54,6 +57,7 @@ def scm_kernels(hi):
         mesh_indices: wp.array(dtype=wp.int32)
         point_offset: wp.array(dtype=wp.int32)
         index_offset: wp.array(dtype=wp.int32)
+        cylinder: wp.array2d(dtype=hi)
         position: wp.array(dtype=vec_hi)
         rotation: wp.array(dtype=mat_hi)
         velocity: wp.array(dtype=vec_hi)
@@ -61,8 +65,9 @@ def scm_kernels(hi):
 
     @wp.struct
     class Nodes:
-        """Per-node state (kept) and the step's contact: `wheel` at every node (-1: none), the other
-        arrays rewritten, and valid, at the contact nodes only."""
+        """Per-node state (kept) and the step's contact: `wheel` at every node (-1: none; written in the
+        wheels' boxes, cleared where a box left), the other arrays rewritten, and valid, at the contact
+        nodes only."""
 
         key_i: wp.array(dtype=wp.int32)
         key_j: wp.array(dtype=wp.int32)
@@ -226,6 +231,48 @@ def scm_kernels(hi):
         """The grid index (I or J) that a slot holds while the window starts at `origin`."""
         return origin + ((slot - origin) % count + count) % count
 
+    @wp.func
+    def slot_of(i: int, j: int, soil: Soil):
+        """The storage slot of grid node (I, J) (the ring buffer: (I mod nx, J mod ny))."""
+        return ((i % soil.nx + soil.nx) % soil.nx) * soil.ny + ((j % soil.ny + soil.ny) % soil.ny)
+
+    @wp.func
+    def in_window(i: int, j: int, soil: Soil, origin: wp.array(dtype=wp.int32)):
+        """Whether grid node (I, J) is in the window (it has a slot)."""
+        return i >= origin[0] and i < origin[0] + soil.nx and j >= origin[1] and j < origin[1] + soil.ny
+
+    @wp.func
+    def first_box(i: int, j: int, boxes: wp.array2d(dtype=wp.int32), count: int):
+        """The lowest of the first `count` wheels whose box holds grid node (I, J), -1 if none: where boxes
+        overlap, one wheel's thread works a node (each node once per kernel)."""
+        for w in range(count):
+            a = i - boxes[w, 0]
+            b = j - boxes[w, 1]
+            if a >= 0 and a < boxes[w, 2] and b >= 0 and b < boxes[w, 3]:
+                return w
+        return -1
+
+    @wp.func
+    def box_slot(
+        w: int, a: int, b: int, soil: Soil, origin: wp.array(dtype=wp.int32), boxes: wp.array2d(dtype=wp.int32)
+    ):
+        """Node (a, b) of wheel w's box: its slot and grid indices (I, J); slot -1 when the node is outside
+        the box or the window, or another (lower) wheel's box works it."""
+        i = boxes[w, 0] + a
+        j = boxes[w, 1] + b
+        k = int(-1)  # noqa: UP018 (a Warp variable the kernel changes: not a constant)
+        if a < boxes[w, 2] and b < boxes[w, 3] and in_window(i, j, soil, origin) and first_box(i, j, boxes, w) < 0:
+            k = slot_of(i, j, soil)
+        return k, i, j
+
+    @wp.func
+    def box_span(centre: hi, reach: hi, spacing: hi, most: int):
+        """The first grid index and the count (at most `most`) of the nodes within reach of centre plus
+        one spacing (a node beyond it is farther than a spacing from the wheel: no rounding reaches it)."""
+        first = int(wp.floor((centre - reach) / spacing)) - 1
+        last = int(wp.floor((centre + reach) / spacing)) + 1
+        return first, wp.min(last - first + 1, most)
+
     @kernel
     def place_window(
         wheels: Wheels,
@@ -233,12 +280,17 @@ def scm_kernels(hi):
         centre: wp.array(dtype=hi),
         soil: Soil,
         origin: wp.array(dtype=wp.int32),
+        boxes: wp.array2d(dtype=wp.int32),
+        boxes_before: wp.array2d(dtype=wp.int32),
     ):
-        """The window's first node (I0, J0): centred on the wheels' mean hub (follow != 0) or on `centre`."""
+        """The window's first node (I0, J0): centred on the wheels' mean hub (follow != 0) or on `centre`;
+        each wheel's box (first node I, J, and its nodes along x, y): the nodes under the footprint of the
+        cylinder that holds the wheel (radius r, half width w about its axle a: it reaches
+        w |a_x| + r sqrt(1 - a_x^2) along x), the only nodes it can touch; the last step's in `boxes_before`."""
         cx = centre[0]
         cy = centre[1]
+        count = wheels.position.shape[0]
         if follow != 0:
-            count = wheels.position.shape[0]
             sx = hi(0.0)
             sy = hi(0.0)
             for w in range(count):
@@ -248,20 +300,80 @@ def scm_kernels(hi):
             cy = sy / hi(count)
         origin[0] = int(wp.floor(cx / soil.spacing)) - soil.nx // 2
         origin[1] = int(wp.floor(cy / soil.spacing)) - soil.ny // 2
+        for w in range(count):
+            for e in range(4):
+                boxes_before[w, e] = boxes[w, e]
+            axle = wheels.rotation[w] * vec_hi(hi(0.0), hi(1.0), hi(0.0))
+            radius = wheels.cylinder[w, 0]
+            half_width = wheels.cylinder[w, 1]
+            reach_x = half_width * wp.abs(axle[0]) + radius * wp.sqrt(wp.max(hi(0.0), hi(1.0) - axle[0] * axle[0]))
+            reach_y = half_width * wp.abs(axle[1]) + radius * wp.sqrt(wp.max(hi(0.0), hi(1.0) - axle[1] * axle[1]))
+            hub = wheels.position[w]
+            first_i, count_i = box_span(hub[0], reach_x, soil.spacing, soil.box)
+            first_j, count_j = box_span(hub[1], reach_y, soil.spacing, soil.box)
+            boxes[w, 0] = first_i
+            boxes[w, 1] = first_j
+            boxes[w, 2] = count_i
+            boxes[w, 3] = count_j
 
-    @kernel
-    def find_contacts(wheels: Wheels, soil: Soil, origin: wp.array(dtype=wp.int32), nodes: Nodes):
-        """Per node: reset a slot that a new grid node entered; cast the vertical ray onto the wheels and
-        keep the lowest hit below the soil's plastic surface (wheel -1: no contact)."""
-        k = wp.tid()
-        i = grid_index(k // soil.ny, origin[0], soil.nx)
-        j = grid_index(k % soil.ny, origin[1], soil.ny)
+    @wp.func
+    def reset_slot(k: int, i: int, j: int, soil: Soil, nodes: Nodes):
+        """Slot k to grid node (I, J) if a new node entered it: the undisturbed soil, no contact."""
         if nodes.key_i[k] != i or nodes.key_j[k] != j:
             nodes.key_i[k] = i
             nodes.key_j[k] = j
             nodes.reference[k] = soil.surface
             nodes.plastic[k] = hi(0.0)
             nodes.shear[k] = hi(0.0)
+            nodes.wheel[k] = -1
+
+    @kernel
+    def enter_window(soil: Soil, origin: wp.array(dtype=wp.int32), nodes: Nodes):
+        """Per node of the window: reset a slot that a new grid node entered (before the steps that read
+        every node: bulldozing; otherwise a slot is reset when a wheel's box first reaches it)."""
+        k = wp.tid()
+        i = grid_index(k // soil.ny, origin[0], soil.nx)
+        j = grid_index(k % soil.ny, origin[1], soil.ny)
+        reset_slot(k, i, j, soil, nodes)
+
+    @kernel
+    def release(
+        soil: Soil,
+        origin: wp.array(dtype=wp.int32),
+        boxes: wp.array2d(dtype=wp.int32),
+        boxes_before: wp.array2d(dtype=wp.int32),
+        nodes: Nodes,
+    ):
+        """Per node of the last step's boxes that no box holds now: no contact, no shear displacement (a
+        node out of every box is out of every wheel's reach; its state stays as the wheel left it)."""
+        w, a, b = wp.tid()
+        count = boxes.shape[0]
+        i = boxes_before[w, 0] + a
+        j = boxes_before[w, 1] + b
+        if a >= boxes_before[w, 2] or b >= boxes_before[w, 3] or first_box(i, j, boxes_before, w) >= 0:
+            return  # outside the old box, or a lower wheel's old box holds it
+        if in_window(i, j, soil, origin) and first_box(i, j, boxes, count) >= 0:
+            return  # find_contacts works it
+        k = slot_of(i, j, soil)
+        if nodes.key_i[k] == i and nodes.key_j[k] == j:
+            nodes.wheel[k] = -1
+            nodes.shear[k] = hi(0.0)
+
+    @kernel
+    def find_contacts(
+        wheels: Wheels,
+        soil: Soil,
+        origin: wp.array(dtype=wp.int32),
+        boxes: wp.array2d(dtype=wp.int32),
+        nodes: Nodes,
+    ):
+        """Per node of the wheels' boxes: reset a slot that a new grid node entered; cast the vertical ray
+        onto the wheels and keep the lowest hit below the soil's plastic surface (wheel -1: no contact)."""
+        box_w, a, b = wp.tid()
+        k, i, j = box_slot(box_w, a, b, soil, origin, boxes)
+        if k < 0:
+            return
+        reset_slot(k, i, j, soil, nodes)
         x = hi(i) * soil.spacing
         y = hi(j) * soil.spacing
         top = nodes.reference[k] - nodes.plastic[k]
@@ -297,10 +409,39 @@ def scm_kernels(hi):
             nodes.hit[k] = vec_hi(x, y, best_z)
             nodes.normal[k] = best_normal
 
+    @wp.func
+    def box_row(row: int, w: int, boxes: wp.array2d(dtype=wp.int32), soil: Soil):
+        """Whether slot row `row` (I mod nx) holds a row of wheel w's box."""
+        return grid_index(row, boxes[w, 0], soil.nx) - boxes[w, 0] < boxes[w, 2]
+
+    @wp.func
+    def box_columns(part: int, w: int, boxes: wp.array2d(dtype=wp.int32), soil: Soil):
+        """Part 0 or 1 of the slot columns (J mod ny) of wheel w's box, [first, end), the parts in
+        ascending order (a box across the ring buffer's seam has two, one of them empty otherwise)."""
+        first = ((boxes[w, 1] % soil.ny) + soil.ny) % soil.ny
+        end = first + boxes[w, 3]
+        low = int(0)  # noqa: UP018 (a Warp variable the kernel changes: not a constant)
+        high = int(0)  # noqa: UP018
+        if boxes[w, 3] >= soil.ny:
+            if part == 0:
+                high = soil.ny
+        elif end <= soil.ny:
+            if part == 0:
+                low = first
+                high = end
+        elif part == 0:
+            high = end - soil.ny
+        else:
+            low = first
+            high = soil.ny
+        return low, high
+
     @kernel
     def patch_partial(
         wheels: Wheels,
         nodes: Nodes,
+        soil: Soil,
+        boxes: wp.array2d(dtype=wp.int32),
         node_count: int,
         chunk: int,
         low: wp.array2d(dtype=hi),
@@ -320,14 +461,21 @@ def scm_kernels(hi):
         l1 = hi(huge)
         h0 = hi(-huge)
         h1 = hi(-huge)
-        for k in range(c * chunk, wp.min((c + 1) * chunk, node_count)):
-            if nodes.wheel[k] == w:
-                u = wp.dot(nodes.hit[k], heading)
-                v = wp.dot(nodes.hit[k], a)
-                l0 = wp.min(l0, u)
-                h0 = wp.max(h0, u)
-                l1 = wp.min(l1, v)
-                h1 = wp.max(h1, v)
+        chunk_start = c * chunk
+        chunk_end = wp.min(chunk_start + chunk, node_count)
+        # the chunk's slots in storage order, only those of the wheel's box (no others hold its contacts)
+        for row in range(chunk_start // soil.ny, (chunk_end - 1) // soil.ny + 1):
+            if box_row(row, w, boxes, soil):
+                for part in range(2):
+                    first, end = box_columns(part, w, boxes, soil)
+                    for k in range(wp.max(chunk_start, row * soil.ny + first), wp.min(chunk_end, row * soil.ny + end)):
+                        if nodes.wheel[k] == w:
+                            u = wp.dot(nodes.hit[k], heading)
+                            v = wp.dot(nodes.hit[k], a)
+                            l0 = wp.min(l0, u)
+                            h0 = wp.max(h0, u)
+                            l1 = wp.min(l1, v)
+                            h1 = wp.max(h1, v)
         low[w, 2 * c + 0] = l0
         low[w, 2 * c + 1] = l1
         high[w, 2 * c + 0] = h0
@@ -354,10 +502,21 @@ def scm_kernels(hi):
         width[w] = b
 
     @kernel
-    def contact_stress(wheels: Wheels, soil: Soil, width: wp.array(dtype=hi), dt: hi, nodes: Nodes):
-        """Per node: the elastic-plastic pressure, the shear displacement and stress, the node's force
-        on its wheel and torque about the hub; the plastic flow (height) for bulldozing."""
-        k = wp.tid()
+    def contact_stress(
+        wheels: Wheels,
+        soil: Soil,
+        origin: wp.array(dtype=wp.int32),
+        boxes: wp.array2d(dtype=wp.int32),
+        width: wp.array(dtype=hi),
+        dt: hi,
+        nodes: Nodes,
+    ):
+        """Per node of the wheels' boxes: the elastic-plastic pressure, the shear displacement and stress,
+        the node's force on its wheel and torque about the hub; the plastic flow (height) for bulldozing."""
+        box_w, a, b = wp.tid()
+        k, _i, _j = box_slot(box_w, a, b, soil, origin, boxes)
+        if k < 0:
+            return
         w = nodes.wheel[k]
         if w < 0:  # the wheel left (or never reached) the node; its other arrays are read at contacts only
             if nodes.shear[k] != hi(0.0):
@@ -501,6 +660,8 @@ def scm_kernels(hi):
     @kernel
     def wrench_partial(
         nodes: Nodes,
+        soil: Soil,
+        boxes: wp.array2d(dtype=wp.int32),
         node_count: int,
         chunk: int,
         force: wp.array2d(dtype=vec_hi),
@@ -514,12 +675,19 @@ def scm_kernels(hi):
         t = vec_hi()
         n = int(0)  # noqa: UP018 (a Warp variable the kernel changes: not a constant)
         z = hi(0.0)
-        for k in range(c * chunk, wp.min((c + 1) * chunk, node_count)):
-            if nodes.wheel[k] == w:
-                f += nodes.force[k]
-                t += nodes.torque[k]
-                n += 1
-                z = wp.max(z, nodes.reference[k] - nodes.hit[k][2])
+        chunk_start = c * chunk
+        chunk_end = wp.min(chunk_start + chunk, node_count)
+        # the chunk's slots in storage order, only those of the wheel's box (no others hold its contacts)
+        for row in range(chunk_start // soil.ny, (chunk_end - 1) // soil.ny + 1):
+            if box_row(row, w, boxes, soil):
+                for part in range(2):
+                    first, end = box_columns(part, w, boxes, soil)
+                    for k in range(wp.max(chunk_start, row * soil.ny + first), wp.min(chunk_end, row * soil.ny + end)):
+                        if nodes.wheel[k] == w:
+                            f += nodes.force[k]
+                            t += nodes.torque[k]
+                            n += 1
+                            z = wp.max(z, nodes.reference[k] - nodes.hit[k][2])
         force[w, c] = f
         torque[w, c] = t
         count[w, c] = n
@@ -604,6 +772,8 @@ def scm_kernels(hi):
         Wheels=Wheels,
         Nodes=Nodes,
         place_window=place_window,
+        enter_window=enter_window,
+        release=release,
         find_contacts=find_contacts,
         patch_partial=patch_partial,
         patch_width=patch_width,

@@ -18,9 +18,12 @@ CHUNK = 256
 """Nodes per partial sum of a wheel's wrench and patch extents (fixed: the sums are deterministic)."""
 
 NO_KEY = 2147483647
-"""A node key no grid node has: a slot holding it is reset by the first step."""
+"""A node key no grid node has: a slot holding it is reset when a step first works it."""
 
-STATE_VERSION = 1
+NO_BOX = -(2**30)
+"""First node of a wheel's box before the first step (with no nodes: the first step releases none)."""
+
+STATE_VERSION = 2
 
 
 @dataclass(frozen=True)
@@ -109,7 +112,7 @@ PATH_COLUMNS = 13
 """Columns of a wheel's path row: position (3), orientation (w, x, y, z) (4), velocity (3), angular velocity (3)."""
 
 _NODE_STATE = ("key_i", "key_j", "reference", "plastic", "shear")
-"""The per-node arrays a run carries from step to step (the rest is rewritten every step)."""
+"""The per-node arrays a run carries from step to step (the rest is rewritten where a step reads it)."""
 
 
 class ScmTerrain:
@@ -165,12 +168,21 @@ class ScmTerrain:
         self.shape = (max(2, int(round(window[0] / spacing))), max(2, int(round(window[1] / spacing))))
         self.node_count = self.shape[0] * self.shape[1]
         self._chunks = (self.node_count + CHUNK - 1) // CHUNK
+        reach = max(math.hypot(*_cylinder_of(wheel)) for wheel in wheels)
+        self.box_size = int(math.floor(2 * reach / spacing)) + 5
+        """The most nodes along x or y of a wheel's box (kernels.place_window: the nodes under the footprint
+        of the cylinder that holds the wheel, plus one spacing round it, at any orientation; the
+        footprint's reach along x or y is at most the cylinder's half diagonal). A step works the
+        boxes' nodes only: its cost is that of the wheels' footprints, not of the window."""
         self.kernels = scm_kernels(self.precision.hi)
         self._follow = centre is None
+        self._footprint_bound = np.array([math.hypot(*_cylinder_of(wheel)) for wheel in wheels])
+        """Per wheel: the largest reach of its footprint along x or y at any orientation [m]."""
         self.time = 0.0
         self.steps = 0
         self._summed_steps = 0
         self._build_arrays(centre)
+        self._record_launches()
 
     # -- set-up ------------------------------------------------------------------------------
     def _build_arrays(self, centre) -> None:
@@ -213,6 +225,9 @@ class ScmTerrain:
         )
         bundle.point_offset = wp.array(np.array(point_offsets, dtype=np.int32), dtype=wp.int32, device=device)
         bundle.index_offset = wp.array(np.array(index_offsets, dtype=np.int32), dtype=wp.int32, device=device)
+        bundle.cylinder = wp.array(
+            np.array([_cylinder_of(wheel) for wheel in self.wheels], dtype=np_hi), dtype=hi, device=device
+        )
         bundle.position = zeros(count, prec.vec_hi)
         bundle.rotation = wp.array(np.tile(np.eye(3, dtype=np_hi), (count, 1, 1)), dtype=prec.mat_hi, device=device)
         bundle.velocity = zeros(count, prec.vec_hi)
@@ -233,11 +248,15 @@ class ScmTerrain:
         soil.janosi_k, soil.elastic_stiffness, soil.damping = hi(p.janosi_k), hi(p.elastic_stiffness), hi(p.damping)
         soil.spacing, soil.surface = hi(p.node_spacing), hi(self.surface_height)
         soil.nx, soil.ny = self.shape
+        soil.box = self.box_size
         self._soil = soil
         self._centre = wp.zeros(2, dtype=hi, device=device)
         if centre is not None:
             self._centre.assign(np.array(centre, dtype=np_hi))
         self._origin = wp.zeros(2, dtype=wp.int32, device=device)
+        no_box = np.tile(np.array([NO_BOX, NO_BOX, 0, 0], dtype=np.int32), (count, 1))
+        self._boxes: wp.array = wp.array(no_box, dtype=wp.int32, device=device)
+        self._boxes_before: wp.array = wp.array(no_box, dtype=wp.int32, device=device)
 
         n = self.node_count
         nodes = self.kernels.Nodes()
@@ -315,6 +334,9 @@ class ScmTerrain:
         centre = hubs[:, :2].mean(axis=0) if self._follow else self._centre.numpy().astype(np.float64)
         low = (np.floor(centre / h) - np.array([nx // 2, ny // 2])) * h
         high = low + (np.array([nx, ny]) - 1) * h
+        bound = self._footprint_bound[:, None]  # no axle turns a footprint beyond it (Cauchy-Schwarz)
+        if np.all(hubs[:, :2] - bound >= low) and np.all(hubs[:, :2] + bound <= high):
+            return  # every footprint inside at any orientation: the per-wheel turn need not be computed
         for index, (hub, wheel) in enumerate(zip(hubs, self.wheels)):
             orientation = quaternion_integrate(path[index, 3:7], path[index, 10:13], tau)
             axle = quaternion_to_matrix(orientation)[:2, 1]  # its world x and y parts
@@ -329,16 +351,84 @@ class ScmTerrain:
 
     def _pose(self, dt: float) -> None:
         """Pose the wheels at the path's clock + dt [s] and move the clock on by dt (no host read)."""
-        wheels, hi = self._wheels, self.precision.hi
-        wp.launch(
-            self.kernels.follow_path,
-            dim=self.wheel_count,
-            inputs=[self._path, self._clock, hi(dt)],
-            outputs=[wheels.position, wheels.rotation, wheels.velocity, wheels.angular_velocity],
-            device=self.device,
-        )
-        if dt:
-            wp.launch(self.kernels.tick, dim=1, inputs=[self._clock, hi(dt)], device=self.device)
+        launch = self._launch
+        if not dt:
+            launch["pose_now"].launch()
+            return
+        self._set_step(dt)
+        launch["pose_next"].launch()
+        launch["tick"].launch()
+
+    def _record_launches(self) -> None:
+        """The step's kernel launches, recorded once (wp.launch(record_cmd=True)) and replayed: their arrays
+        and structs stay where they are for the terrain's life, and on the CPU packing the arguments of
+        a launch costs about as much as a small kernel. Only the step length changes (_set_step)."""
+        kernels, device, hi, p = self.kernels, self.device, self.precision.hi, self.parameters
+        nodes, wheels, soil = self._nodes, self._wheels, self._soil
+        count, chunks, n = self.wheel_count, self._chunks, self.node_count
+        boxes, boxes_before, origin = self._boxes, self._boxes_before, self._origin
+        box = (count, self.box_size, self.box_size)
+
+        def record(kernel, dim, inputs, outputs=()):
+            return wp.launch(kernel, dim=dim, inputs=inputs, outputs=list(outputs), device=device, record_cmd=True)
+
+        pose = [wheels.position, wheels.rotation, wheels.velocity, wheels.angular_velocity]
+        self._launch = {
+            "place_window": record(
+                kernels.place_window, 1, [wheels, int(self._follow), self._centre, soil], [origin, boxes, boxes_before]
+            ),
+            "enter_window": record(kernels.enter_window, n, [soil, origin, nodes]),
+            "release": record(kernels.release, box, [soil, origin, boxes, boxes_before, nodes]),
+            "find_contacts": record(kernels.find_contacts, box, [wheels, soil, origin, boxes, nodes]),
+            "patch_partial": record(
+                kernels.patch_partial, (count, chunks), [wheels, nodes, soil, boxes, n, CHUNK], [self._low, self._high]
+            ),
+            "patch_width": record(kernels.patch_width, count, [self._low, self._high, chunks, soil], [self._width]),
+            "contact_stress": record(
+                kernels.contact_stress, box, [wheels, soil, origin, boxes, self._width, hi(0.0), nodes]
+            ),
+            "mark_rim": record(kernels.mark_rim, n, [soil, origin, nodes]),
+            "flow_partial": record(
+                kernels.flow_partial, (count, chunks), [nodes, n, CHUNK], [self._flow_part, self._rim_part]
+            ),
+            "flow_total": record(
+                kernels.flow_total,
+                count,
+                [self._flow_part, self._rim_part, chunks, hi(p.bulldozing_fraction)],
+                [self._raise_by],
+            ),
+            "bulldoze": record(kernels.bulldoze, n, [self._raise_by, nodes]),
+            "erode": record(
+                kernels.erode,
+                n,
+                [soil, origin, hi(p.node_spacing * math.tan(math.radians(p.erosion_angle))), nodes],
+                [self._reference_next],
+            ),
+            "wrench_partial": record(
+                kernels.wrench_partial,
+                (count, chunks),
+                [nodes, soil, boxes, n, CHUNK],
+                [self._force_part, self._torque_part, self._count_part, self._deepest_part],
+            ),
+            "wrench_total": record(
+                kernels.wrench_total,
+                count,
+                [self._force_part, self._torque_part, self._count_part, self._deepest_part, chunks],
+                [self._totals, self._sums],
+            ),
+            "pose_now": record(kernels.follow_path, count, [self._path, self._clock, hi(0.0)], pose),
+            "pose_next": record(kernels.follow_path, count, [self._path, self._clock, hi(0.0)], pose),
+            "tick": record(kernels.tick, 1, [self._clock, hi(0.0)]),
+        }
+        self._step_length = 0.0
+
+    def _set_step(self, dt: float) -> None:
+        """The step length dt [s] of the recorded launches that take it."""
+        if dt != self._step_length:
+            value = self.precision.hi(dt)
+            for name in ("contact_stress", "pose_next", "tick"):
+                self._launch[name].set_param_by_name("dt", value)
+            self._step_length = dt
 
     # -- stepping ----------------------------------------------------------------------------
     def step(self, dt: float) -> None:
@@ -350,76 +440,24 @@ class ScmTerrain:
         self.time += dt
 
     def _evaluate(self, dt: float) -> None:
-        """The step's kernels: contacts, stresses and node updates over dt [s], the wheels' wrenches."""
-        kernels, device, hi = self.kernels, self.device, self.precision.hi
-        nodes, wheels, soil = self._nodes, self._wheels, self._soil
-        count, chunks, n = self.wheel_count, self._chunks, self.node_count
-        wp.launch(
-            kernels.place_window,
-            dim=1,
-            inputs=[wheels, int(self._follow), self._centre, soil],
-            outputs=[self._origin],
-            device=device,
-        )
-        wp.launch(kernels.find_contacts, dim=n, inputs=[wheels, soil, self._origin, nodes], device=device)
-        wp.launch(
-            kernels.patch_partial,
-            dim=(count, chunks),
-            inputs=[wheels, nodes, n, CHUNK],
-            outputs=[self._low, self._high],
-            device=device,
-        )
-        wp.launch(
-            kernels.patch_width,
-            dim=count,
-            inputs=[self._low, self._high, chunks, soil],
-            outputs=[self._width],
-            device=device,
-        )
-        wp.launch(kernels.contact_stress, dim=n, inputs=[wheels, soil, self._width, hi(dt), nodes], device=device)
-        p = self.parameters
+        """The step's kernels: contacts, stresses and node updates over dt [s], the wheels' wrenches. The
+        wheels' boxes (the nodes under their footprints) are worked; with bulldozing, every node too."""
+        launch, p = self._launch, self.parameters
+        self._set_step(dt)
+        launch["place_window"].launch()
+        if p.bulldozing:  # its kernels read every node: every slot must hold its node
+            launch["enter_window"].launch()
+        for name in ("release", "find_contacts", "patch_partial", "patch_width", "contact_stress"):
+            launch[name].launch()
         if p.bulldozing:
             # the soil the patches displaced this step goes to their rims, shared equally
-            wp.launch(kernels.mark_rim, dim=n, inputs=[soil, self._origin, nodes], device=device)
-            wp.launch(
-                kernels.flow_partial,
-                dim=(count, chunks),
-                inputs=[nodes, n, CHUNK],
-                outputs=[self._flow_part, self._rim_part],
-                device=device,
-            )
-            wp.launch(
-                kernels.flow_total,
-                dim=count,
-                inputs=[self._flow_part, self._rim_part, chunks, hi(p.bulldozing_fraction)],
-                outputs=[self._raise_by],
-                device=device,
-            )
-            wp.launch(kernels.bulldoze, dim=n, inputs=[self._raise_by, nodes], device=device)
-            limit = hi(p.node_spacing * math.tan(math.radians(p.erosion_angle)))
+            for name in ("mark_rim", "flow_partial", "flow_total", "bulldoze"):
+                launch[name].launch()
             for _ in range(p.erosion_iterations):
-                wp.launch(
-                    kernels.erode,
-                    dim=n,
-                    inputs=[soil, self._origin, limit, nodes],
-                    outputs=[self._reference_next],
-                    device=device,
-                )
-                wp.copy(nodes.reference, self._reference_next)
-        wp.launch(
-            kernels.wrench_partial,
-            dim=(count, chunks),
-            inputs=[nodes, n, CHUNK],
-            outputs=[self._force_part, self._torque_part, self._count_part, self._deepest_part],
-            device=device,
-        )
-        wp.launch(
-            kernels.wrench_total,
-            dim=count,
-            inputs=[self._force_part, self._torque_part, self._count_part, self._deepest_part, chunks],
-            outputs=[self._totals, self._sums],
-            device=device,
-        )
+                launch["erode"].launch()
+                wp.copy(self._nodes.reference, self._reference_next)
+        launch["wrench_partial"].launch()
+        launch["wrench_total"].launch()
         self.steps += 1
         self._summed_steps += 1
 
@@ -476,15 +514,32 @@ class ScmTerrain:
         origin = self._origin.numpy()
         return int(origin[0]), int(origin[1])
 
+    def _window_nodes(self) -> dict:
+        """The per-node state (_NODE_STATE and `wheel`, numpy arrays by slot) of the window's nodes: a slot
+        that still holds a node the window left (no wheel's box has reached the slot since) reads as the
+        undisturbed soil under NO_KEY, as before any step (a step resets it when a box reaches it)."""
+        nodes = self._nodes
+        data = {name: getattr(nodes, name).numpy().copy() for name in (*_NODE_STATE, "wheel")}
+        (i0, j0), (nx, ny) = self.window_origin(), self.shape
+        slot = np.arange(self.node_count)
+        stale = (data["key_i"] != i0 + (slot // ny - i0) % nx) | (data["key_j"] != j0 + (slot % ny - j0) % ny)
+        data["key_i"][stale] = NO_KEY
+        data["key_j"][stale] = NO_KEY
+        data["reference"][stale] = self.surface_height
+        for name in ("plastic", "shear"):
+            data[name][stale] = 0
+        data["wheel"][stale] = -1
+        return data
+
     def height_field(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """The soil surface in the window: x [m] (nx,), y [m] (ny,), height [m] (nx, ny), in grid order.
         Under a wheel the surface is the wheel's; elsewhere the plastic surface (after elastic rebound).
         Slots that no step has reached yet show the undisturbed surface."""
-        nodes = self._nodes
-        key_i, key_j = nodes.key_i.numpy(), nodes.key_j.numpy()
-        surface = nodes.reference.numpy().astype(np.float64) - nodes.plastic.numpy()
-        hit = nodes.hit.numpy()[:, 2].astype(np.float64)
-        surface = np.where(nodes.wheel.numpy() >= 0, np.minimum(surface, hit), surface)
+        nodes = self._window_nodes()
+        key_i, key_j = nodes["key_i"], nodes["key_j"]
+        surface = nodes["reference"].astype(np.float64) - nodes["plastic"]
+        hit = self._nodes.hit.numpy()[:, 2].astype(np.float64)
+        surface = np.where(nodes["wheel"] >= 0, np.minimum(surface, hit), surface)
         surface = np.where(key_i == NO_KEY, self.surface_height, surface)
         i0, j0 = self.window_origin()
         nx, ny = self.shape
@@ -527,6 +582,8 @@ class ScmTerrain:
             self._sums,
             self._path,
             self._origin,
+            self._boxes,
+            self._boxes_before,
             self._clock,
         ]
         return int(sum(a.capacity for a in arrays))
@@ -534,8 +591,8 @@ class ScmTerrain:
     # -- checkpoints -------------------------------------------------------------------------
     def state_dict(self) -> dict:
         """Everything a resumed run needs to continue bit for bit (numpy arrays and numbers)."""
-        nodes = self._nodes
-        data = {name: getattr(nodes, name).numpy().copy() for name in _NODE_STATE}
+        nodes = self._window_nodes()
+        data = {name: nodes[name] for name in _NODE_STATE}
         data.update(
             version=np.int64(STATE_VERSION),
             shape=np.array(self.shape, dtype=np.int64),
@@ -547,6 +604,7 @@ class ScmTerrain:
             path_start=np.float64(self._path_start),
             clock=self._clock.numpy().copy(),
             origin=self._origin.numpy().copy(),
+            boxes=self._boxes.numpy().copy(),
             totals=self._totals.numpy().copy(),
             sums=self._sums.numpy().copy(),
             width=self._width.numpy().copy(),
@@ -566,6 +624,10 @@ class ScmTerrain:
             raise SoilInputError(f"SCM state has {len(data['path'])} wheels, this terrain has {self.wheel_count}")
         for name in _NODE_STATE:
             getattr(self._nodes, name).assign(np.asarray(data[name]))
+        # no contact anywhere, as in a terrain just built: the next step writes its boxes' nodes and
+        # releases the restored boxes' (a step taken since, e.g. of zero length to read the wrench at
+        # a new pose, may have marked contacts outside both)
+        self._nodes.wheel.fill_(-1)
         self.time = float(data["time"])
         self.steps = int(data["steps"])
         self._summed_steps = int(data["summed_steps"])
@@ -574,6 +636,7 @@ class ScmTerrain:
         self._path_start = float(data["path_start"])
         self._clock.assign(np.asarray(data["clock"]))
         self._origin.assign(np.asarray(data["origin"]))
+        self._boxes.assign(np.asarray(data["boxes"]))
         self._totals.assign(np.asarray(data["totals"]))
         self._sums.assign(np.asarray(data["sums"]))
         self._width.assign(np.asarray(data["width"]))
