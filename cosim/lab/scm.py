@@ -59,12 +59,15 @@ def fit_bekker(curves, fit_from: float = 0.0) -> dict:
 
 def fit_unloading(sinkage, pressure) -> dict:
     """The elastic stiffness K_e [Pa/m] (and its standard error) of an unloading branch: sinkage z [m]
-    and pressure p [Pa] from the deepest point on, the plate rising. A line p = K_e (z - z_p) through
-    the branch's upper half (p above half its start): its slope (scipy curve_fit)."""
+    and pressure p [Pa]: the plate held at its deepest point (the first sample), then rising. A line
+    p = K_e (z - z_p) through the rising samples of the branch's upper half (p above half the held
+    pressure; the held point itself carries no damping force and is left out): its slope (scipy
+    curve_fit)."""
     from scipy.optimize import curve_fit
 
     z, p = np.asarray(sinkage, dtype=float), np.asarray(pressure, dtype=float)
     upper = p >= 0.5 * p[0]
+    upper[0] = False
     if upper.sum() < 3:
         raise LabFailed("the unloading branch has fewer than three points above half its load")
     z, p = z[upper], p[upper]
