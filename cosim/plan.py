@@ -560,7 +560,12 @@ def resolve(scene: Scene) -> RunPlan:
     elif names is not None:
         rover_plan, patch = _rover(scene, names, wheels, gravity, problems, walls)
 
+    terrain = _terrain(scene, len(wheels), problems)
     dt, macro_step, substeps, dt_key = _time_steps(scene, soil_material)
+    if terrain.model == "scm" and scene.run.macro_step is None and not problems:
+        own = _scm_macro_step(terrain, list(wheels) or [wheel], testbed, rover_plan, g, gravity)
+        if math.isfinite(own):
+            dt, macro_step, substeps, dt_key = own, own, 1, "terrain (SCM's own step)"
     if macro_step > scene.run.duration:
         problems.append(
             f"run.macro_step: the macro step ({macro_step:.4g} s) is longer than run.duration ({scene.run.duration} s)"
@@ -582,7 +587,6 @@ def resolve(scene: Scene) -> RunPlan:
         land.speed_ratio * math.sqrt(g * outer),
         max(1, int(math.ceil(hold / macro_step))),
     )
-    terrain = _terrain(scene, len(wheels), problems)
     if problems:
         raise SceneError(problems)
     return RunPlan(
@@ -650,6 +654,23 @@ def _terrain(scene: Scene, wheel_count: int, problems: list[str]) -> TerrainPlan
         elif "dem" in section.wheels:
             model, models = "mixed", tuple(section.wheels)
     return TerrainPlan(model, tuple(sorted(given.items())), models, gravity)
+
+
+def _scm_macro_step(terrain: TerrainPlan, wheels, testbed, rover, g: float, gravity) -> float:
+    """A scene on SCM alone without run.macro_step: SCM's own coupling step [s] (cosim.scm_soil.
+    scm_macro_step: the wheels' elastic bounce and the grouser tips' travel over the grid, not the
+    grains' Rayleigh time); nan where the drive speed or the load is unknown (an FMU's)."""
+    from .scm_soil import scm_macro_step
+
+    if testbed is not None:
+        load, omega = testbed.mass * g, testbed.omega
+    elif rover is None:
+        return math.nan
+    else:
+        load = rover.mass * g * (-gravity[2] / g if g > 0 else 1.0) / len(wheels)
+        omega = rover.nominal_omega
+    rim_speed = abs(omega) * max(w.outer_radius for w in wheels)
+    return scm_macro_step(dict(terrain.parameters), wheels, load, g, rim_speed)
 
 
 def _on_grains(scene: Scene) -> bool:

@@ -226,6 +226,29 @@ def test_a_missing_calibration_file_is_refused(tmp_path):
     assert any(p.startswith("terrain.calibration:") and "nowhere.toml" in p for p in error.value.problems)
 
 
+def test_a_scene_on_scm_alone_steps_at_its_own_bounce_and_travel_limits(tmp_path):
+    """Without run.macro_step a scene on SCM alone couples at SCM's own step, not at the grains'
+    Rayleigh time: 0.2 rad of the wheel's elastic bounce, omega_e = sqrt(K_e A g / W) with A the width
+    times the contact length at Bekker's closed-form sinkage (z0 = (3 W / ((3 - n)(k_c + b k_phi)
+    sqrt(D)))^(2 / (2 n + 1)), computed here), or a quarter node spacing of the tips' travel, whichever
+    is shorter; a given macro step and a DEM scene keep theirs."""
+    scene = write_tiny(tmp_path, SCM)
+    plan = load_plan(scene, {"run.macro_step": None})
+    load, wheel = plan.wheel_load, plan.wheel
+    r, b = wheel.outer_radius, wheel.width
+    z0 = (3 * load / ((3 - N) * (K_C + b * K_PHI) * math.sqrt(2 * r))) ** (2 / (2 * N + 1))
+    area = b * 2 * math.sqrt(2 * r * z0)
+    bounce = math.sqrt(2.0e7 * area * plan.g / load)
+    travel = (b / 12) / (4 * plan.testbed.omega * r)
+    assert plan.macro_step == pytest.approx(min(0.2 / bounce, travel), rel=1e-9)
+    assert plan.substeps == 1 and plan.dt == plan.macro_step and "SCM" in plan.dt_setting
+    fast = load_plan(scene, {"run.macro_step": None, "testbed.omega": 40.0})  # the tips' travel binds
+    assert fast.macro_step == pytest.approx((b / 12) / (4 * 40.0 * r), rel=1e-9)
+    assert load_plan(scene).macro_step == 0.0017  # given: kept
+    dem = load_plan(write_tiny(tmp_path, "", "dem.toml"), {"run.macro_step": None})
+    assert dem.macro_step == pytest.approx(dem.dt * dem.substeps) and dem.substeps == 10
+
+
 def test_the_advisor_says_where_scm_cannot_represent_the_run(tmp_path):
     from cosim.system import validity
 

@@ -31,10 +31,6 @@ from .common import LabFailed
 FITTED = ("k_phi", "n", "friction_angle_deg", "janosi_k")
 """The SCM parameters the wheel runs move (the others keep the lab's values)."""
 
-STEPS_PER_NODE = 4
-"""SCM steps per node spacing of the grouser tips' travel in the fit's wheel runs [-] (the run's step is
-finer; the main job's held wheel: forces within 0.2 % of 8 steps per node, 1-3 % at 2)."""
-
 
 @dataclass(frozen=True)
 class WheelTarget:
@@ -109,7 +105,7 @@ def scm_wheel_forces(plan, soil: dict, sinkage: float, slip: float) -> tuple[flo
     soil: the means over two grouser pitches after one and a half contact lengths of travel."""
     from soil.scm import ScmTerrain
 
-    from ..scm_soil import scm_settings
+    from ..scm_soil import STEPS_PER_NODE, scm_settings
 
     wheel = plan.wheel
     rim = wheel.rim_radius
