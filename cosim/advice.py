@@ -265,12 +265,13 @@ def _drive_slip(plan: RunPlan) -> tuple[float | None, str]:
     return float(target), key
 
 
-def scm_check(plan: RunPlan, sinkage_tips: float | None = None) -> list[Finding]:
+def scm_check(plan: RunPlan, sinkage_tips: float | None = None, slip: float | None = None) -> list[Finding]:
     """Where the SCM tier cannot represent the run (each failed finding says to use the DEM):
     grouser-dominated traction (grouser height > SCM_GROUSER_RATIO x sinkage), a sinkage below
     SCM_SINKAGE_GRAINS grain diameters, a slip above SCM_SLIP_LIMIT, a Froude number above
     FROUDE_LIMIT, and a calibration made at another gravity. The sinkage is the measured tip
-    sinkage when given, else Bekker's closed form for the wheel's load."""
+    sinkage when given, else Bekker's closed form for the wheel's load; the slip the measured one
+    when given (a run's summary), else the drive's imposed or target slip."""
     from .scm_calibration import same_gravity
     from .scm_soil import bekker_wheel_sinkage, scm_settings
 
@@ -314,7 +315,9 @@ def scm_check(plan: RunPlan, sinkage_tips: float | None = None) -> list[Finding]
             "terrain.model, bed.radius_mean",
         )
     )
-    slip, key = _drive_slip(plan)
+    target, key = _drive_slip(plan)
+    how = "measured" if slip is not None and math.isfinite(slip) else "set"
+    slip = slip if how == "measured" else target
     if slip is not None:
         findings.append(
             _finding(
@@ -322,8 +325,8 @@ def scm_check(plan: RunPlan, sinkage_tips: float | None = None) -> list[Finding]
                 slip,
                 SCM_SLIP_LIMIT,
                 abs(slip) <= SCM_SLIP_LIMIT,
-                f"slip {slip:.3g} <= {SCM_SLIP_LIMIT}",
-                f"slip {slip:.3g} > {SCM_SLIP_LIMIT}: the wheel digs in (slip sinkage, soil flowing round it), "
+                f"slip {slip:.3g} ({how}) <= {SCM_SLIP_LIMIT}",
+                f"slip {slip:.3g} ({how}) > {SCM_SLIP_LIMIT}: the wheel digs in (slip sinkage, soil flowing round it), "
                 f"outside SCM's steady Bekker-Janosi model; {USE_DEM}",
                 key,
             )

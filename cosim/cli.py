@@ -38,6 +38,7 @@ from __future__ import annotations
 
 import argparse
 import logging
+import math
 import os
 import sys
 import time
@@ -219,7 +220,53 @@ def cmd_advise(args) -> int:
 
 
 def advise_lines(plan) -> list[str]:
-    """Stiffness, time-step and validity advice for a plan (soil.advisor, cosim.advice)."""
+    """Stiffness, time-step and validity advice for a plan (soil.advisor, cosim.advice); on SCM the
+    grid, the static sinkage and the coupling step instead of the grains' scales."""
+    from . import advice
+    from .system import TERRAIN_MODELS
+
+    lines = _scm_advice(plan) if plan.terrain.model == "scm" else _dem_advice(plan)
+    if plan.terrain.model == "mixed":
+        lines += _scm_advice(plan)[1:]
+    lines.append(
+        f"validity checks ({plan.terrain.model} terrain):" if plan.terrain.model != "dem" else "validity checks:"
+    )
+    findings = TERRAIN_MODELS[plan.terrain.model].validity(plan)
+    for finding in findings:
+        lines.append(f"  [{'ok' if finding.ok else 'OUT OF RANGE'}] {finding.check}: {finding.message}")
+    lines.append(f"verdict: {advice.verdict(findings)}")
+    if plan.terrain.model != "scm":
+        lines.append("largest stable step by trial: cosim study timestep SCENE")
+    return lines
+
+
+def _scm_advice(plan) -> list[str]:
+    """An SCM scene's grid, its wheels' Bekker sinkage and elastic bounce, and its coupling step."""
+    from .scm_soil import bekker_wheel_sinkage, elastic_bounce, scm_settings
+
+    indices = [i for i, m in enumerate(plan.terrain.wheel_models or ["scm"] * max(1, len(plan.wheels))) if m == "scm"]
+    settings = scm_settings(plan, indices, 0.0)
+    p = settings.parameters
+    wheel = plan.wheels[indices[0]] if plan.wheels else plan.wheel
+    sinkage = bekker_wheel_sinkage(p, plan.wheel_load, wheel.outer_radius, wheel.width)
+    omega, _ = elastic_bounce(p, wheel, plan.wheel_load, plan.g) if plan.g > 0 else (math.nan, 0.0)
+    nodes = math.ceil(settings.window[0] / p.node_spacing) * math.ceil(settings.window[1] / p.node_spacing)
+    return [
+        f"scene {plan.name}: |g| = {plan.g:.4g} m/s^2 on SCM (no grains), wheel load {plan.wheel_load:.4g} N",
+        f"  Bekker k_c, k_phi, n       {p.k_c:.4g} Pa m^(1-n), {p.k_phi:.4g} Pa m^-n, {p.n:.4g}; "
+        f"c = {p.cohesion:.4g} Pa, phi = {p.friction_angle:.4g} deg, K = {p.janosi_k:.4g} m, K_e = "
+        f"{p.elastic_stiffness:.4g} Pa/m",
+        f"  grid                       node spacing {p.node_spacing:.4g} m, window {settings.window[0]:.3g} x "
+        f"{settings.window[1]:.3g} m ({nodes:,} nodes, following the wheels)",
+        f"  static sinkage (Bekker)    {sinkage:.4g} m; elastic bounce omega_e = {omega:.4g} rad/s",
+        f"  the scene couples at H = {plan.macro_step:.4g} s (omega_e H = {omega * plan.macro_step:.3g} rad; "
+        f"set by {'run.macro_step' if plan.scene.run.macro_step is not None else plan.dt_setting}), "
+        f"SCM steps of at most {settings.time_step:.4g} s",
+    ]
+
+
+def _dem_advice(plan) -> list[str]:
+    """A DEM scene's stiffness, time-step and memory advice (soil.advisor)."""
     from soil import advisor
 
     from . import advice
@@ -248,16 +295,6 @@ def advise_lines(plan) -> list[str]:
 
     memory = memory_estimate(plan)
     lines.append(f"  memory estimate            {memory.text()}" + ("" if memory.fits else ": DOES NOT FIT"))
-    from .system import TERRAIN_MODELS
-
-    lines.append(
-        f"validity checks ({plan.terrain.model} terrain):" if plan.terrain.model != "dem" else "validity checks:"
-    )
-    findings = TERRAIN_MODELS[plan.terrain.model].validity(plan)
-    for finding in findings:
-        lines.append(f"  [{'ok' if finding.ok else 'OUT OF RANGE'}] {finding.check}: {finding.message}")
-    lines.append(f"verdict: {advice.verdict(findings)}")
-    lines.append("largest stable step by trial: cosim study timestep SCENE")
     return lines
 
 

@@ -249,6 +249,27 @@ def test_a_scene_on_scm_alone_steps_at_its_own_bounce_and_travel_limits(tmp_path
     assert dem.macro_step == pytest.approx(dem.dt * dem.substeps) and dem.substeps == 10
 
 
+def test_advise_on_an_scm_scene_gives_the_grid_and_the_step_not_the_grains(tmp_path, capsys):
+    """`cosim advise` on SCM: the soil's parameters, the grid, Bekker's static sinkage (computed here
+    from the closed form) and the coupling step with its bounce phase; no Rayleigh step or grain
+    memory (there are no grains to step)."""
+    from cosim.cli import main
+
+    scene = tmp_path / "own_step.toml"
+    scene.write_text(
+        (tmp_path / "x").parent.joinpath(write_tiny(tmp_path, SCM)).read_text().replace("macro_step = ", "# ")
+    )
+    assert main(["advise", str(scene)]) == 0
+    text = capsys.readouterr().out
+    plan = load_plan(scene)
+    r, b, load = plan.wheel.outer_radius, plan.wheel.width, plan.wheel_load
+    z0 = (3 * load / ((3 - N) * (K_C + b * K_PHI) * math.sqrt(2 * r))) ** (2 / (2 * N + 1))
+    assert f"static sinkage (Bekker)    {z0:.4g} m" in text
+    assert f"H = {plan.macro_step:.4g} s (omega_e H = 0.2 rad; set by terrain (SCM's own step))" in text
+    assert "node spacing" in text and "scm_sinkage_grains" in text
+    assert "Rayleigh" not in text and "memory estimate" not in text
+
+
 def test_the_advisor_says_where_scm_cannot_represent_the_run(tmp_path):
     from cosim.system import validity
 
@@ -265,6 +286,11 @@ def test_the_advisor_says_where_scm_cannot_represent_the_run(tmp_path):
     assert not bad and {"scm_sinkage_grains", "scm_slip", "scm_froude"} <= checked
     message = next(f.message for f in validity(load_plan(write_tiny(tmp_path, SCM)), 0.0) if f.check == "scm_grousers")
     assert "use the DEM" in message
+    # a run's summary: the measured slip is judged, not the one set (a free wheel's emerges)
+    plan = load_plan(write_tiny(tmp_path, SCM), ['testbed.mode="slip"', "testbed.slip=0.1"])
+    measured = next(f for f in validity(plan, 0.0, None, 0.75) if f.check == "scm_slip")
+    assert not measured.ok and "(measured)" in measured.message
+    assert next(f for f in validity(plan, 0.0) if f.check == "scm_slip").ok
 
 
 def test_the_traverse_example_lands_and_drives_its_rover_forward(tmp_path):
