@@ -256,9 +256,8 @@ def test_advise_on_an_scm_scene_gives_the_grid_and_the_step_not_the_grains(tmp_p
     from cosim.cli import main
 
     scene = tmp_path / "own_step.toml"
-    scene.write_text(
-        (tmp_path / "x").parent.joinpath(write_tiny(tmp_path, SCM)).read_text().replace("macro_step = ", "# ")
-    )
+    with open(write_tiny(tmp_path, SCM)) as f:
+        scene.write_text(f.read().replace("macro_step = ", "# "))
     assert main(["advise", str(scene)]) == 0
     text = capsys.readouterr().out
     plan = load_plan(scene)
