@@ -269,7 +269,8 @@ def scm_check(plan: RunPlan, sinkage_tips: float | None = None, slip: float | No
     """Where the SCM tier cannot represent the run (each failed finding says to use the DEM):
     grouser-dominated traction (grouser height > SCM_GROUSER_RATIO x sinkage), a sinkage below
     SCM_SINKAGE_GRAINS grain diameters, a slip above SCM_SLIP_LIMIT, a Froude number above
-    FROUDE_LIMIT, and a calibration made at another gravity. The sinkage is the measured tip
+    FROUDE_LIMIT, a calibration made at another gravity or to a shallower sinkage than the run's
+    (`scm_calibration_depth`: its DEM tests never reached it). The sinkage is the measured tip
     sinkage when given, else Bekker's closed form for the wheel's load; the slip the measured one
     when given (a run's summary), else the drive's imposed or target slip."""
     from .scm_calibration import same_gravity
@@ -316,8 +317,8 @@ def scm_check(plan: RunPlan, sinkage_tips: float | None = None, slip: float | No
         )
     )
     target, key = _drive_slip(plan)
-    how = "measured" if slip is not None and math.isfinite(slip) else "set"
-    slip = slip if how == "measured" else target
+    slip_how = "measured" if slip is not None and math.isfinite(slip) else "set"
+    slip = slip if slip_how == "measured" else target
     if slip is not None:
         findings.append(
             _finding(
@@ -325,8 +326,9 @@ def scm_check(plan: RunPlan, sinkage_tips: float | None = None, slip: float | No
                 slip,
                 SCM_SLIP_LIMIT,
                 abs(slip) <= SCM_SLIP_LIMIT,
-                f"slip {slip:.3g} ({how}) <= {SCM_SLIP_LIMIT}",
-                f"slip {slip:.3g} ({how}) > {SCM_SLIP_LIMIT}: the wheel digs in (slip sinkage, soil flowing round it), "
+                f"slip {slip:.3g} ({slip_how}) <= {SCM_SLIP_LIMIT}",
+                f"slip {slip:.3g} ({slip_how}) > {SCM_SLIP_LIMIT}: the wheel digs in (slip sinkage, soil flowing "
+                "round it), "
                 f"outside SCM's steady Bekker-Janosi model; {USE_DEM}",
                 key,
             )
@@ -356,6 +358,21 @@ def scm_check(plan: RunPlan, sinkage_tips: float | None = None, slip: float | No
                 f"calibrated at the scene's gravity ({plan.g:.4g} m/s^2)",
                 f"calibrated at |g| = {calibrated:.4g} m/s^2, the scene's is {plan.g:.4g} m/s^2: the soil's response "
                 "depends on gravity; calibrate at the scene's (cosim calibrate-scm SCENE) or use the DEM",
+                "terrain.calibration",
+            )
+        )
+    tested = plan.terrain.calibration_sinkage
+    if tested is not None:
+        findings.append(
+            _finding(
+                "scm_calibration_depth",
+                sinkage / tested,
+                1.0,
+                sinkage <= tested,
+                f"sinkage {sinkage:.3g} m ({how}) within the {tested:.3g} m the calibration's DEM tests reached",
+                f"sinkage {sinkage:.3g} m ({how}) is beyond the {tested:.3g} m the calibration's DEM tests "
+                "reached: Bekker's law is extrapolated; calibrate deeper (cosim calibrate-scm SCENE --set "
+                "plate.max_sinkage=..., --from-wheel) or use the DEM",
                 "terrain.calibration",
             )
         )

@@ -205,6 +205,8 @@ class TerrainPlan:
     """'mixed': each wheel's model ('dem' or 'scm'), in wheel order; () otherwise."""
     calibration_gravity: float | None = None
     """SCM from a calibration file: the |g| its DEM tests ran at [m/s^2]."""
+    calibration_sinkage: float | None = None
+    """SCM from a calibration file: the deepest sinkage its DEM tests reached [m] (None: not recorded)."""
 
 
 @dataclass(frozen=True)
@@ -630,16 +632,16 @@ def _terrain(scene: Scene, wheel_count: int, problems: list[str]) -> TerrainPlan
     given = section.model_dump(exclude={"model", "wheels", "calibration"}, exclude_none=True)
     if section.model != "scm":
         return TerrainPlan(section.model, tuple(sorted(given.items())))
-    gravity = None
+    gravity = depth = None
     if section.calibration is not None:
-        from .scm_calibration import CalibrationError, read_calibration
+        from .scm_calibration import CalibrationError, read_calibration, tested_sinkage
 
         try:
             calibration = read_calibration(section.calibration)
         except CalibrationError as error:
             problems.append(f"terrain.calibration: {error}")
         else:
-            gravity = calibration.gravity
+            gravity, depth = calibration.gravity, tested_sinkage(calibration)
             for key, value in calibration.parameters.items():
                 given.setdefault(key, value)
     model = "scm"
@@ -653,7 +655,7 @@ def _terrain(scene: Scene, wheel_count: int, problems: list[str]) -> TerrainPlan
             model = "dem"
         elif "dem" in section.wheels:
             model, models = "mixed", tuple(section.wheels)
-    return TerrainPlan(model, tuple(sorted(given.items())), models, gravity)
+    return TerrainPlan(model, tuple(sorted(given.items())), models, gravity, depth)
 
 
 def _scm_macro_step(terrain: TerrainPlan, wheels, testbed, rover, g: float, gravity) -> float:

@@ -92,6 +92,17 @@ def read_calibration(path: str) -> ScmCalibration:
     return ScmCalibration({k: float(scm[k]) for k in SOIL_KEYS}, errors, float(gravity), data.get("source", {}))
 
 
+def tested_sinkage(calibration: ScmCalibration) -> float | None:
+    """The deepest sinkage [m] the calibration's DEM tests reached: the plates' largest sinkage and
+    the wheel runs' sinkages (the upper ends of their 95 % intervals); None when the file does not say."""
+    source = calibration.source
+    depths = [float(source.get("plate", {}).get("max_sinkage_m", math.nan))]
+    for run in source.get("wheel", {}).get("slips", []):
+        depths.append(float(run["sinkage"]) + float(run.get("sinkage_ci95", 0.0)))
+    depths = [d for d in depths if math.isfinite(d)]
+    return max(depths) if depths else None
+
+
 def same_gravity(a: float, b: float) -> bool:
     """Whether two |g| [m/s^2] are one gravity (within GRAVITY_TOLERANCE)."""
     return abs(a - b) <= GRAVITY_TOLERANCE * max(abs(a), abs(b), 1e-12)

@@ -97,6 +97,26 @@ def test_a_calibration_file_round_trips_and_warns_at_another_gravity(tmp_path):
         CoupledSystem.build(load_plan(scene), None)
 
 
+def test_a_run_deeper_than_the_calibrations_tests_is_flagged(tmp_path):
+    """scm_calibration_depth: the wheel's sinkage (Bekker's closed form before a run) against the
+    deepest sinkage the calibration's DEM tests reached (its plates' and wheel runs'); a file that
+    records none is not judged."""
+    from cosim.scm_calibration import tested_sinkage
+
+    path = tmp_path / "terrain.toml"
+    scene = write_tiny(tmp_path, f'\n[terrain]\nmodel = "scm"\ncalibration = "{path.name}"\n')
+    depth = {}
+    for plate, wheel in ((1e-4, 1e-4), (1e-4, 0.05)):
+        source = {"plate": {"max_sinkage_m": plate}, "wheel": {"slips": [{"sinkage": wheel, "sinkage_ci95": 1e-5}]}}
+        write_calibration(str(path), ScmCalibration(_calibration(1.625).parameters, {}, 1.625, source))
+        plan = load_plan(scene)
+        assert plan.terrain.calibration_sinkage == tested_sinkage(read_calibration(str(path))) == wheel + 1e-5
+        depth[wheel] = next(f for f in _findings(plan) if f.check == "scm_calibration_depth")
+    assert not depth[1e-4].ok and "extrapolated" in depth[1e-4].message and depth[0.05].ok
+    write_calibration(str(path), _calibration(1.625))
+    assert not any(f.check == "scm_calibration_depth" for f in _findings(load_plan(scene)))
+
+
 def _findings(plan):
     from cosim.system import validity
 
