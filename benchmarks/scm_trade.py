@@ -163,23 +163,27 @@ def figure(path: str, dem_sets: dict, cases: list[dict]) -> None:
     fig.savefig(path, dpi=130)
 
 
-def timing(study_folder: str, calibration: str, out_dir: str, duration: float) -> dict:
+def timing(study_folder: str, calibration: str, out_dir: str, duration: float | None = None) -> dict:
     """DEM and SCM runs of the study's scene at its first slip, one after the other on this machine:
-    wall time per simulated second of each (landing included)."""
+    wall time per simulated second of each (landing included; `duration` [s] of driving, default the
+    study's own), each at its own coupling step (SCM's: cosim.scm_soil.scm_macro_step)."""
     from cosim.launch import run_plan
     from cosim.plan import resolve
     from cosim.scene import scene_from_text
 
     with open(os.path.join(study_folder, "study.json")) as f:
         study = json.load(f)
-    base = {"testbed.mode": "slip", "testbed.slip": study["rows"][0]["slip_set"], "run.duration": duration}
+    base = {"testbed.mode": "slip", "testbed.slip": study["rows"][0]["slip_set"]}
+    if duration is not None:
+        base["run.duration"] = duration
     out = {}
     for name, extra in (("dem", {"bed.bed_file": study["bed_file"]}), ("scm", on_scm(calibration))):
         plan = resolve(scene_from_text(study["scene_toml"], overrides={**base, **extra}))
         started = time.perf_counter()
         result = run_plan(plan, os.path.join(out_dir, f"timing_{name}"), overwrite=True)
         wall = time.perf_counter() - started
-        out[name] = {"wall_time_s": wall, "simulated_s": result.summary["simulated_time"]}
+        simulated = result.summary["simulated_time"]
+        out[name] = {"wall_time_s": wall, "simulated_s": simulated, "macro_step_s": plan.macro_step}
         out[name]["seconds_per_simulated_second"] = wall / result.summary["simulated_time"]
     out["ratio"] = out["dem"]["seconds_per_simulated_second"] / out["scm"]["seconds_per_simulated_second"]
     return out
@@ -192,7 +196,9 @@ def main(argv=None) -> None:
     )
     parser.add_argument("--out", required=True)
     parser.add_argument("--timing", help="DEM_STUDY:CALIBRATION: time a DEM and an SCM run of it side by side")
-    parser.add_argument("--timing-duration", type=float, default=2.0, help="driving time of the timed runs [s]")
+    parser.add_argument(
+        "--timing-duration", type=float, default=None, help="driving time of the timed runs [s] (default: the study's)"
+    )
     args = parser.parse_args(argv)
     os.makedirs(args.out, exist_ok=True)
     cases, dem_sets = [], {}
