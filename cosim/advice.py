@@ -265,14 +265,14 @@ def _drive_slip(plan: RunPlan) -> tuple[float | None, str]:
     return float(target), key
 
 
-def scm_check(plan: RunPlan, sinkage_tips: float | None = None, slip: float | None = None) -> list[Finding]:
+def scm_check(plan: RunPlan, measured: dict | None = None) -> list[Finding]:
     """Where the SCM tier cannot represent the run (each failed finding says to use the DEM):
     grouser-dominated traction (grouser height > SCM_GROUSER_RATIO x sinkage), a sinkage below
     SCM_SINKAGE_GRAINS grain diameters, a slip above SCM_SLIP_LIMIT, a Froude number above
-    FROUDE_LIMIT, a calibration made at another gravity or to a shallower sinkage than the run's
-    (`scm_calibration_depth`: its DEM tests never reached it). The sinkage is the measured tip
-    sinkage when given, else Bekker's closed form for the wheel's load; the slip the measured one
-    when given (a run's summary), else the drive's imposed or target slip."""
+    FROUDE_LIMIT, a calibration made at another gravity, and after a run a rim sinkage deeper than
+    the calibration's DEM tests reached (`scm_calibration_depth`). `measured`: a run summary's
+    'sinkage_tips', 'sinkage' [m] and 'slip' [-]; before a run the sinkage is Bekker's closed form
+    for the wheel's load and the slip the drive's imposed or target slip."""
     from .scm_calibration import same_gravity
     from .scm_soil import bekker_wheel_sinkage, scm_settings
 
@@ -282,6 +282,8 @@ def scm_check(plan: RunPlan, sinkage_tips: float | None = None, slip: float | No
     indices = [plan.wheels.index(w) for w in wheels]
     parameters = scm_settings(plan, indices, 0.0).parameters
     wheel = min(wheels, key=lambda w: w.width)
+    measured = measured or {}
+    sinkage_tips, slip = measured.get("sinkage_tips"), measured.get("slip")
     if sinkage_tips is not None:
         sinkage, how = float(sinkage_tips), "measured"
     else:
@@ -361,17 +363,19 @@ def scm_check(plan: RunPlan, sinkage_tips: float | None = None, slip: float | No
                 "terrain.calibration",
             )
         )
-    tested = plan.terrain.calibration_sinkage
-    if tested is not None:
+    # judged on the run's own rim sinkage: Bekker's closed form for a smooth wheel is no estimate of
+    # a grousered wheel's on SCM (the main job: 2.5x SCM's own)
+    tested, rim = plan.terrain.calibration_sinkage, measured.get("sinkage")
+    if tested is not None and rim is not None and math.isfinite(rim):
         findings.append(
             _finding(
                 "scm_calibration_depth",
-                sinkage / tested,
+                rim / tested,
                 1.0,
-                sinkage <= tested,
-                f"sinkage {sinkage:.3g} m ({how}) within the {tested:.3g} m the calibration's DEM tests reached",
-                f"sinkage {sinkage:.3g} m ({how}) is beyond the {tested:.3g} m the calibration's DEM tests "
-                "reached: Bekker's law is extrapolated; calibrate deeper (cosim calibrate-scm SCENE --set "
+                rim <= tested,
+                f"rim sinkage {rim:.3g} m within the {tested:.3g} m the calibration's DEM tests reached",
+                f"rim sinkage {rim:.3g} m is beyond the {tested:.3g} m the calibration's DEM tests reached: "
+                "Bekker's law is extrapolated; calibrate deeper (cosim calibrate-scm SCENE --set "
                 "plate.max_sinkage=..., --from-wheel) or use the DEM",
                 "terrain.calibration",
             )

@@ -247,9 +247,12 @@ def _scm_advice(plan) -> list[str]:
     indices = [i for i, m in enumerate(plan.terrain.wheel_models or ["scm"] * max(1, len(plan.wheels))) if m == "scm"]
     settings = scm_settings(plan, indices, 0.0)
     p = settings.parameters
-    wheel = plan.wheels[indices[0]] if plan.wheels else plan.wheel
+    wheels = [plan.wheels[i] for i in indices] if plan.wheels else [plan.wheel]
+    wheel = min(wheels, key=lambda w: w.width)
     sinkage = bekker_wheel_sinkage(p, plan.wheel_load, wheel.outer_radius, wheel.width)
-    omega, _ = elastic_bounce(p, wheel, plan.wheel_load, plan.g) if plan.g > 0 else (math.nan, 0.0)
+    omega = max(elastic_bounce(p, w, plan.wheel_load, plan.g)[0] for w in wheels) if plan.g > 0 else math.nan
+    given = plan.scene.run.macro_step is not None
+    source = "run.macro_step" if given else ("the DEM's step" if plan.terrain.model == "mixed" else "SCM's own step")
     nodes = math.ceil(settings.window[0] / p.node_spacing) * math.ceil(settings.window[1] / p.node_spacing)
     return [
         f"scene {plan.name}: |g| = {plan.g:.4g} m/s^2 on SCM (no grains), wheel load {plan.wheel_load:.4g} N",
@@ -260,7 +263,7 @@ def _scm_advice(plan) -> list[str]:
         f"{settings.window[1]:.3g} m ({nodes:,} nodes, following the wheels)",
         f"  static sinkage (Bekker)    {sinkage:.4g} m; elastic bounce omega_e = {omega:.4g} rad/s",
         f"  the scene couples at H = {plan.macro_step:.4g} s (omega_e H = {omega * plan.macro_step:.3g} rad; "
-        f"set by {'run.macro_step' if plan.scene.run.macro_step is not None else plan.dt_setting}), "
+        f"set by {source}), "
         f"SCM steps of at most {settings.time_step:.4g} s",
     ]
 

@@ -146,6 +146,7 @@ def resume(out_dir: str, progress: bool = False, hooks: dict | None = None) -> R
             if f.read() != scene.to_toml():
                 log.warning("scene.toml was edited after the run started; the checkpoint's copy of the scene is used")
         plan = resolve(scene)
+        _check_macro_step(checkpoint, plan)
         steps = int(checkpoint["loop/steps"])
         if checkpoint["coupler/step_count"] and _finished(checkpoint, plan):
             if info.get("status") in FINISHED and _results_status(folder.results) == info["status"]:
@@ -256,6 +257,20 @@ def _check_run_bed(path: str, info: dict) -> None:
         raise DamagedFileError(
             f"{path}: the run's bed was replaced ({found['particle_count']} grains, key {found['key'] or 'none'}; "
             f"the run started on {info.get('particle_count')} grains, key {key}); nothing was changed"
+        )
+
+
+def _check_macro_step(checkpoint: dict, plan: RunPlan) -> None:
+    """The checkpoint's coupler time must be its step count of the plan's macro steps: a scene that
+    resolves to another step now (SCM's own coupling step, new since the run began) cannot continue
+    the run it began."""
+    count, time = int(checkpoint["coupler/step_count"]), float(checkpoint["coupler/time"])
+    if count and abs(time - count * plan.macro_step) > 1e-6 * count * plan.macro_step:
+        raise SceneError(
+            [
+                f"run.macro_step: the run stepped {time / count:.6g} s per macro step, its scene now resolves to "
+                f"{plan.macro_step:.6g} s ({plan.dt_setting}); start it again (cosim run ... --overwrite)"
+            ]
         )
 
 

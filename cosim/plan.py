@@ -154,10 +154,16 @@ class RoverPlan:
         return _nominal_omega(self.drive.section, len(self.wheel_names))
 
 
-def _nominal_omega(section: DriveSection, wheel_count: int) -> float:
+def _wheel_speeds(section: DriveSection, wheel_count: int) -> np.ndarray | None:
+    """|omega| [rad/s] (wheel_count,) of a constant-speed drive; None for other drives."""
     if section.kind != "speed" or (isinstance(section.speed, list) and len(section.speed) != wheel_count):
-        return math.nan
-    return float(np.mean(np.abs(np.broadcast_to(np.asarray(section.speed, dtype=float), (wheel_count,)))))
+        return None
+    return np.abs(np.broadcast_to(np.asarray(section.speed, dtype=float), (wheel_count,)))
+
+
+def _nominal_omega(section: DriveSection, wheel_count: int) -> float:
+    speeds = _wheel_speeds(section, wheel_count)
+    return math.nan if speeds is None else float(np.mean(speeds))
 
 
 @dataclass(frozen=True)
@@ -230,7 +236,7 @@ class RunPlan:
     """The single-wheel testbed (None for a rover)."""
     landing: LandingPlan
     dt: float
-    """DEM step [s]."""
+    """DEM step [s] (a scene on SCM alone without run.macro_step: the macro step, one substep)."""
     macro_step: float
     """Coupling step H = substeps x dt [s]."""
     substeps: int
@@ -243,7 +249,8 @@ class RunPlan:
     integrator: str = "velocity-verlet"
     """The DEM integrator's name (run.integrator): 'velocity-verlet' or 'jolt-beeman'."""
     dt_setting: str = field(default="run.dt_factor")
-    """The scene key that sets the DEM step (named in divergence messages)."""
+    """The scene key that sets the DEM step (named in divergence messages); 'run.macro_step' on SCM
+    alone (its own coupling step when the scene gives none: cosim.scm_soil.scm_macro_step)."""
     step_control: str = "fixed"
     """'fixed' (every DEM step dt) or 'pid' (run.step_control: the PID substeps of soil.step_control)."""
     tolerance: float = 1e-2
@@ -567,7 +574,7 @@ def resolve(scene: Scene) -> RunPlan:
     if terrain.model == "scm" and scene.run.macro_step is None and not problems:
         own = _scm_macro_step(terrain, list(wheels) or [wheel], testbed, rover_plan, g, gravity)
         if math.isfinite(own):
-            dt, macro_step, substeps, dt_key = own, own, 1, "terrain (SCM's own step)"
+            dt, macro_step, substeps, dt_key = own, own, 1, "run.macro_step"
     if macro_step > scene.run.duration:
         problems.append(
             f"run.macro_step: the macro step ({macro_step:.4g} s) is longer than run.duration ({scene.run.duration} s)"
@@ -638,10 +645,11 @@ def _terrain(scene: Scene, wheel_count: int, problems: list[str]) -> TerrainPlan
 
         try:
             calibration = read_calibration(section.calibration)
+            depth = tested_sinkage(calibration, section.calibration)
         except CalibrationError as error:
             problems.append(f"terrain.calibration: {error}")
         else:
-            gravity, depth = calibration.gravity, tested_sinkage(calibration)
+            gravity = calibration.gravity
             for key, value in calibration.parameters.items():
                 given.setdefault(key, value)
     model = "scm"
@@ -660,19 +668,26 @@ def _terrain(scene: Scene, wheel_count: int, problems: list[str]) -> TerrainPlan
 
 def _scm_macro_step(terrain: TerrainPlan, wheels, testbed, rover, g: float, gravity) -> float:
     """A scene on SCM alone without run.macro_step: SCM's own coupling step [s] (cosim.scm_soil.
-    scm_macro_step: the wheels' elastic bounce and the grouser tips' travel over the grid, not the
-    grains' Rayleigh time); nan where the drive speed or the load is unknown (an FMU's)."""
+    scm_macro_step: the wheels' elastic bounce and the fastest wheel surface's travel over the grid,
+    not the grains' Rayleigh time; run.dt and run.substeps do not apply). The speed: the testbed's
+    omega at the outer radius (or the hub's, at a negative slip), a rover's fastest constant-speed
+    wheel, else the fastest SCM holds (Froude number 0.1: omega^2 r / g); nan without gravity or a
+    load (an FMU's)."""
     from .scm_soil import scm_macro_step
 
+    outer = max(w.outer_radius for w in wheels)
+    # a drive whose speed is not fixed (slip, torque, a controller): the fastest SCM holds, Froude 0.1
+    omega = math.sqrt(0.1 * g / outer) if g > 0 else math.nan
     if testbed is not None:
-        load, omega = testbed.mass * g, testbed.omega
-    elif rover is None:
-        return math.nan
-    else:
+        load = testbed.mass * g
+        speed = abs(testbed.omega) * max(outer, wheels[0].rim_radius * (1.0 - testbed.slip))
+    elif rover is not None:
         load = rover.mass * g * (-gravity[2] / g if g > 0 else 1.0) / len(wheels)
-        omega = rover.nominal_omega
-    rim_speed = abs(omega) * max(w.outer_radius for w in wheels)
-    return scm_macro_step(dict(terrain.parameters), wheels, load, g, rim_speed)
+        fixed = _wheel_speeds(rover.drive.section, len(wheels))
+        speed = (float(np.max(fixed)) if fixed is not None else omega) * outer
+    else:
+        return math.nan
+    return scm_macro_step(dict(terrain.parameters), wheels, load, g, speed)
 
 
 def _on_grains(scene: Scene) -> bool:

@@ -225,7 +225,7 @@ def run_summary(
             soil_mass_initial=books.mass_initial,
             particle_count_max=int(np.max(series["soil_particle_count"])) if len(series["time"]) else 0,
         )
-    findings = validity(plan, soil.surface_height, out.get("sinkage_tips"), out.get("slip"))
+    findings = validity(plan, soil.surface_height, out)
     out.update(
         simulated_time=float(system.coupler.time),
         macro_steps=int(system.coupler.step_count),

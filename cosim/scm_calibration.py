@@ -92,14 +92,21 @@ def read_calibration(path: str) -> ScmCalibration:
     return ScmCalibration({k: float(scm[k]) for k in SOIL_KEYS}, errors, float(gravity), data.get("source", {}))
 
 
-def tested_sinkage(calibration: ScmCalibration) -> float | None:
+def tested_sinkage(calibration: ScmCalibration, path: str = "") -> float | None:
     """The deepest sinkage [m] the calibration's DEM tests reached: the plates' largest sinkage and
-    the wheel runs' sinkages (the upper ends of their 95 % intervals); None when the file does not say."""
+    the wheel runs' rim sinkages (the upper ends of their 95 % intervals); None when the file does
+    not say. CalibrationError names a [source] entry that is not a number."""
     source = calibration.source
-    depths = [float(source.get("plate", {}).get("max_sinkage_m", math.nan))]
-    for run in source.get("wheel", {}).get("slips", []):
-        depths.append(float(run["sinkage"]) + float(run.get("sinkage_ci95", 0.0)))
-    depths = [d for d in depths if math.isfinite(d)]
+    try:
+        depths = [float(source.get("plate", {}).get("max_sinkage_m", math.nan))]
+        for run in source.get("wheel", {}).get("slips", []):
+            spread = float(run.get("sinkage_ci95", 0.0))
+            depths.append(float(run.get("sinkage", math.nan)) + (spread if math.isfinite(spread) else 0.0))
+    except (AttributeError, TypeError, ValueError) as error:
+        where = f"{path}: " if path else ""
+        keys = "[source.plate] max_sinkage_m or [source.wheel] slips' sinkage"
+        raise CalibrationError(f"{where}{keys}: {error}") from None
+    depths = [d for d in depths if math.isfinite(d) and d > 0]
     return max(depths) if depths else None
 
 

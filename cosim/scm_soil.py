@@ -94,11 +94,11 @@ def node_spacing(values: dict, wheels) -> float:
 def elastic_bounce(parameters: ScmParameters, wheel, load: float, g: float) -> tuple[float, float]:
     """(omega_e [rad/s], A [m^2]): the angular frequency of a wheel (a WheelPlan) bouncing on the
     soil's elastic stiffness K_e under `load` [N], omega_e = sqrt(K_e A / m) with m = load / |g| and A
-    its width times the contact length at Bekker's sinkage (at least a node spacing)."""
+    its width times the contact length at Bekker's sinkage (at least two node spacings); 0 without a load."""
     sinkage = bekker_wheel_sinkage(parameters, load, wheel.outer_radius, wheel.width)
     length = 2.0 * math.sqrt(max(2.0 * wheel.outer_radius * sinkage, parameters.node_spacing**2))
     area = wheel.width * length
-    return math.sqrt(parameters.elastic_stiffness * area * g / load), area
+    return (math.sqrt(parameters.elastic_stiffness * area * g / load) if load > 0 else 0.0), area
 
 
 def scm_macro_step(values: dict, wheels, load: float, g: float, rim_speed: float) -> float:
@@ -163,8 +163,9 @@ def scm_settings(plan, wheels: Sequence[int], surface_height: float, soil: dict 
         values["pressure_damping"] = 0.0
         parameters = scm_parameters(values)
         if plan.g > 0:
-            omega, area = elastic_bounce(parameters, chosen[0], plan.wheel_load, plan.g)
-            values["pressure_damping"] = 2.0 * DAMPING_RATIO * omega * (plan.wheel_load / plan.g) / area
+            _, area = elastic_bounce(parameters, chosen[0], plan.wheel_load, plan.g)
+            mass = plan.wheel_load / plan.g
+            values["pressure_damping"] = 2.0 * DAMPING_RATIO * math.sqrt(parameters.elastic_stiffness * mass / area)
     values.pop("surface_height", None)
     return ScmSettings(scm_parameters(values), (float(window[0]), float(window[1])), float(time_step), surface_height)
 

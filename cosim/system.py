@@ -289,22 +289,23 @@ def _mixed_soil(plan: RunPlan, bed: Bed | None) -> CompositeSoil:
     return CompositeSoil([(grains, dem), (_scm_part(plan, scm, grains.surface_height), scm)])
 
 
-def _scm_validity(plan: RunPlan, surface_height=None, sinkage_tips=None, slip=None) -> list:
+def _scm_validity(plan: RunPlan, surface_height=None, measured=None) -> list:
     """cosim.advice.scm_check: where SCM cannot represent the wheel test."""
-    return advice.scm_check(plan, sinkage_tips, slip)
+    return advice.scm_check(plan, measured)
 
 
-def _mixed_validity(plan: RunPlan, surface_height=None, sinkage_tips=None, slip=None) -> list:
+def _mixed_validity(plan: RunPlan, surface_height=None, measured=None) -> list:
     """The DEM's checks and SCM's."""
-    return advice.check(plan, surface_height, sinkage_tips) + advice.scm_check(plan, sinkage_tips, slip)
+    tips = (measured or {}).get("sinkage_tips")
+    return advice.check(plan, surface_height, tips) + advice.scm_check(plan, measured)
 
 
-def _dem_validity(plan: RunPlan, surface_height=None, sinkage_tips=None, slip=None) -> list:
+def _dem_validity(plan: RunPlan, surface_height=None, measured=None) -> list:
     """cosim.advice.check: the DEM's grain scales against the wheel, the bed and the sinkage."""
-    return advice.check(plan, surface_height, sinkage_tips)
+    return advice.check(plan, surface_height, (measured or {}).get("sinkage_tips"))
 
 
-def _no_findings(plan: RunPlan, surface_height=None, sinkage_tips=None, slip=None) -> list:
+def _no_findings(plan: RunPlan, surface_height=None, measured=None) -> list:
     """A terrain whose results hold whatever its resolution: nothing to check."""
     return []
 
@@ -318,8 +319,8 @@ class TerrainModel:
     needs_bed: bool
     """The terrain opens a settled DEM bed: the run settles or reuses one first (cosim.beds)."""
     validity: Callable[..., list[Finding]]
-    """The validity checks of a run on it: (plan, surface_height [m], sinkage_tips [m] or None, the
-    measured slip [-] or None) -> findings (cosim.advice.check for the DEM's grain scales)."""
+    """The validity checks of a run on it: (plan, surface_height [m] or None, the run summary's
+    measured values or None) -> findings (cosim.advice.check for the DEM's grain scales)."""
 
 
 TERRAIN_MODELS: dict[str, TerrainModel] = {
@@ -331,12 +332,10 @@ TERRAIN_MODELS: dict[str, TerrainModel] = {
 """The terrain models by [terrain] model name."""
 
 
-def validity(
-    plan: RunPlan, surface_height: float, sinkage_tips: float | None = None, slip: float | None = None
-) -> list[Finding]:
+def validity(plan: RunPlan, surface_height: float, measured: dict | None = None) -> list[Finding]:
     """The validity findings of a run of `plan` on its terrain (cosim.advice.Finding), at its start
-    (sinkage_tips and slip None) or from its summary (the measured tip sinkage [m] and slip [-])."""
-    return TERRAIN_MODELS[plan.terrain.model].validity(plan, surface_height, sinkage_tips, slip)
+    (measured None) or from its summary (`measured`: its 'sinkage' and 'sinkage_tips' [m], 'slip' [-])."""
+    return TERRAIN_MODELS[plan.terrain.model].validity(plan, surface_height, measured or {})
 
 
 def needs_bed(plan: RunPlan) -> bool:

@@ -10,6 +10,7 @@ import pytest
 
 from cosim.lab.scm import fit_bekker, fit_janosi, fit_mohr_coulomb, fit_unloading
 from cosim.plan import load_plan
+from cosim.scene import SceneError
 from cosim.scm_calibration import (
     SOIL_KEYS,
     CalibrationGravityWarning,
@@ -98,23 +99,32 @@ def test_a_calibration_file_round_trips_and_warns_at_another_gravity(tmp_path):
 
 
 def test_a_run_deeper_than_the_calibrations_tests_is_flagged(tmp_path):
-    """scm_calibration_depth: the wheel's sinkage (Bekker's closed form before a run) against the
-    deepest sinkage the calibration's DEM tests reached (its plates' and wheel runs'); a file that
-    records none is not judged."""
+    """scm_calibration_depth: a run's measured rim sinkage against the deepest sinkage the
+    calibration's DEM tests reached (its plates' and its wheel runs' upper 95 % ends, whichever is
+    deeper); not judged before a run, nor with a file that records none; a [source] that is not a
+    number is refused naming the file."""
     from cosim.scm_calibration import tested_sinkage
+    from cosim.system import validity
 
     path = tmp_path / "terrain.toml"
     scene = write_tiny(tmp_path, f'\n[terrain]\nmodel = "scm"\ncalibration = "{path.name}"\n')
-    depth = {}
-    for plate, wheel in ((1e-4, 1e-4), (1e-4, 0.05)):
-        source = {"plate": {"max_sinkage_m": plate}, "wheel": {"slips": [{"sinkage": wheel, "sinkage_ci95": 1e-5}]}}
+    for plate, wheel, deepest in ((0.02, 0.004, 0.02), (0.002, 0.01, 0.01 + 1e-4)):
+        source = {"plate": {"max_sinkage_m": plate}, "wheel": {"slips": [{"sinkage": wheel, "sinkage_ci95": 1e-4}]}}
         write_calibration(str(path), ScmCalibration(_calibration(1.625).parameters, {}, 1.625, source))
         plan = load_plan(scene)
-        assert plan.terrain.calibration_sinkage == tested_sinkage(read_calibration(str(path))) == wheel + 1e-5
-        depth[wheel] = next(f for f in _findings(plan) if f.check == "scm_calibration_depth")
-    assert not depth[1e-4].ok and "extrapolated" in depth[1e-4].message and depth[0.05].ok
+        assert plan.terrain.calibration_sinkage == pytest.approx(deepest, rel=1e-12)
+        assert tested_sinkage(read_calibration(str(path))) == plan.terrain.calibration_sinkage
+        assert not any(f.check == "scm_calibration_depth" for f in _findings(plan))  # before a run
+        for rim, ok in ((0.9 * deepest, True), (1.1 * deepest, False)):
+            (finding,) = [f for f in validity(plan, 0.0, {"sinkage": rim}) if f.check == "scm_calibration_depth"]
+            assert finding.ok == ok and ("extrapolated" in finding.message) != ok
     write_calibration(str(path), _calibration(1.625))
-    assert not any(f.check == "scm_calibration_depth" for f in _findings(load_plan(scene)))
+    plan = load_plan(scene)
+    assert not any(f.check == "scm_calibration_depth" for f in validity(plan, 0.0, {"sinkage": 1.0}))
+    source = {"plate": {"max_sinkage_m": "deep"}}
+    write_calibration(str(path), ScmCalibration(_calibration(1.625).parameters, {}, 1.625, source))
+    with pytest.raises(SceneError, match="terrain.toml: \\[source.plate\\] max_sinkage_m"):
+        load_plan(scene)
 
 
 def _findings(plan):

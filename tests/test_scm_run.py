@@ -241,12 +241,18 @@ def test_a_scene_on_scm_alone_steps_at_its_own_bounce_and_travel_limits(tmp_path
     bounce = math.sqrt(2.0e7 * area * plan.g / load)
     travel = (b / 12) / (4 * plan.testbed.omega * r)
     assert plan.macro_step == pytest.approx(min(0.2 / bounce, travel), rel=1e-9)
-    assert plan.substeps == 1 and plan.dt == plan.macro_step and "SCM" in plan.dt_setting
+    assert plan.substeps == 1 and plan.dt == plan.macro_step and plan.dt_setting == "run.macro_step"
     fast = load_plan(scene, {"run.macro_step": None, "testbed.omega": 40.0})  # the tips' travel binds
     assert fast.macro_step == pytest.approx((b / 12) / (4 * 40.0 * r), rel=1e-9)
     assert load_plan(scene).macro_step == 0.0017  # given: kept
     dem = load_plan(write_tiny(tmp_path, "", "dem.toml"), {"run.macro_step": None})
     assert dem.macro_step == pytest.approx(dem.dt * dem.substeps) and dem.substeps == 10
+    # a checkpoint stepped at another H (a run begun before SCM had its own step) is not continued
+    from cosim.launch import _check_macro_step
+
+    _check_macro_step({"coupler/step_count": 7, "coupler/time": 7 * plan.macro_step}, plan)
+    with pytest.raises(SceneError, match="run.macro_step: the run stepped 0.0017 s"):
+        _check_macro_step({"coupler/step_count": 7, "coupler/time": 7 * 0.0017}, plan)
 
 
 def test_advise_on_an_scm_scene_gives_the_grid_and_the_step_not_the_grains(tmp_path, capsys):
@@ -264,7 +270,7 @@ def test_advise_on_an_scm_scene_gives_the_grid_and_the_step_not_the_grains(tmp_p
     r, b, load = plan.wheel.outer_radius, plan.wheel.width, plan.wheel_load
     z0 = (3 * load / ((3 - N) * (K_C + b * K_PHI) * math.sqrt(2 * r))) ** (2 / (2 * N + 1))
     assert f"static sinkage (Bekker)    {z0:.4g} m" in text
-    assert f"H = {plan.macro_step:.4g} s (omega_e H = 0.2 rad; set by terrain (SCM's own step))" in text
+    assert f"H = {plan.macro_step:.4g} s (omega_e H = 0.2 rad; set by SCM's own step)" in text
     assert "node spacing" in text and "scm_sinkage_grains" in text
     assert "Rayleigh" not in text and "memory estimate" not in text
 
@@ -287,7 +293,7 @@ def test_the_advisor_says_where_scm_cannot_represent_the_run(tmp_path):
     assert "use the DEM" in message
     # a run's summary: the measured slip is judged, not the one set (a free wheel's emerges)
     plan = load_plan(write_tiny(tmp_path, SCM), ['testbed.mode="slip"', "testbed.slip=0.1"])
-    measured = next(f for f in validity(plan, 0.0, None, 0.75) if f.check == "scm_slip")
+    measured = next(f for f in validity(plan, 0.0, {"slip": 0.75}) if f.check == "scm_slip")
     assert not measured.ok and "(measured)" in measured.message
     assert next(f for f in validity(plan, 0.0) if f.check == "scm_slip").ok
 
