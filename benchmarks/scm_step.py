@@ -3,8 +3,8 @@
 A scene on SCM alone couples at SCM's own step (cosim.scm_soil.scm_macro_step: 0.2 rad of the
 wheel's elastic bounce, or a quarter node spacing of the grouser tips' travel) unless it sets
 run.macro_step. This runs the scene on an SCM calibration at one imposed slip with the DEM's own
-macro step (the finest: the grains' Rayleigh time, what an SCM scene coupled at before) and at
-the given steps, and prints DP/W, sinkage and torque of each, their difference from the finest
+macro step (from the grains' Rayleigh time: what an SCM scene coupled at before) and at
+the given steps, and prints DP/W, sinkage and torque of each, their difference from the DEM step's run
 and the wall time (the same script, one run after the other).
 
     python benchmarks/scm_step.py examples/phobos_single_wheel.toml \
@@ -79,15 +79,15 @@ def main(argv=None) -> None:
             }
         )
         print(json.dumps(rows[-1]), flush=True)
-    finest = rows[0]
+    reference = rows[0]  # the DEM's macro step: what an SCM scene coupled at before it had its own
     print(f"\n{args.scene} on {args.calibration}, slip {args.slip}, {args.duration} s driving; {platform.machine()}")
     print("| macro step [s] | omega_e H [rad] | DP/W | sinkage [mm] | torque [uN m] ", end="")
     print("| dDP/W | dsinkage | dtorque | wall [s] |")
     print("|---|---|---|---|---|---|---|---|---|")
     for r in rows:
-        d_dp = r["dp_over_w"] - finest["dp_over_w"]
-        d_z = (r["sinkage_m"] - finest["sinkage_m"]) / finest["sinkage_m"]
-        d_t = (r["torque_n_m"] - finest["torque_n_m"]) / finest["torque_n_m"]
+        d_dp = r["dp_over_w"] - reference["dp_over_w"]
+        d_z = (r["sinkage_m"] - reference["sinkage_m"]) / reference["sinkage_m"]
+        d_t = (r["torque_n_m"] - reference["torque_n_m"]) / reference["torque_n_m"]
         name = f"{r['macro_step_s']:.4g} ({r['label']})" if not r["label"][0].isdigit() else f"{r['macro_step_s']:.4g}"
         print(
             f"| {name} | {r['bounce_phase_rad']:.3f} | {r['dp_over_w']:+.4f} | {1e3 * r['sinkage_m']:.3f} | "
