@@ -335,6 +335,7 @@ class ResultsWriter:
         self.xdmf = xdmf
         self._file: Any = None  # the open h5py.File (h5py is imported when needed); None when closed
         self._buffer: list[dict] = []
+        self._datasets: dict[str, Any] = {}  # the open file's record datasets by path (h5py lookups cost)
         self.steps = 0
         """Macro-step records written or buffered."""
         self.snapshots = 0
@@ -566,28 +567,33 @@ class ResultsWriter:
         if not self._buffer:
             return
         f = self._file
+        if self._datasets.get("file") is not f:  # a new or reopened file: look its datasets up again
+            self._datasets = {"file": f}
         rows = self._buffer
         start = self.steps - len(rows)
         stop = self.steps
 
-        def put(dataset, values):
+        def put(path, values):
+            dataset = self._datasets.get(path)
+            if dataset is None:
+                dataset = self._datasets[path] = f[path]
             dataset.resize(stop, axis=0)
             dataset[start:stop] = values
 
         times = np.array([r["time"] for r in rows], dtype=np.float64)
-        put(f["wheels/time"], times)
-        put(f["rover/time"], times)
-        put(f["wheels/phase"], np.array([r["phase"] for r in rows], dtype=np.int8))
+        put("wheels/time", times)
+        put("rover/time", times)
+        put("wheels/phase", np.array([r["phase"] for r in rows], dtype=np.int8))
         for name in WHEEL_SERIES:
-            put(f["wheels"][name], np.array([r[name] for r in rows]))
+            put(f"wheels/{name}", np.array([r[name] for r in rows]))
         if "boundaries" in f:
             for name in BOUNDARY_SERIES:
-                put(f["boundaries"][name], np.array([r[f"boundary_{name}"] for r in rows]))
-        put(f["rover/state"], np.array([r["rover_state"] for r in rows], dtype=np.float64))
+                put(f"boundaries/{name}", np.array([r[f"boundary_{name}"] for r in rows]))
+        put("rover/state", np.array([r["rover_state"] for r in rows], dtype=np.float64))
         for name in ROVER_SERIES:
-            put(f["rover"][name], np.array([r[f"rover_{name}"] for r in rows], dtype=np.float64))
+            put(f"rover/{name}", np.array([r[f"rover_{name}"] for r in rows], dtype=np.float64))
         for name, (dtype, _, _) in SOIL_SERIES.items():
-            put(f["soil"][name], np.array([r[f"soil_{name}"] for r in rows], dtype=dtype))
+            put(f"soil/{name}", np.array([r[f"soil_{name}"] for r in rows], dtype=dtype))
         self._buffer = []
 
     def flush(self) -> None:
