@@ -111,7 +111,7 @@ def compare(dem: list[dict], scm: list[dict]) -> list[dict]:
         s = next((r for r in scm if abs(r["slip"] - d["slip"]) < 1e-9), None)
         if s is None:
             continue
-        row = {"slip": d["slip"]}
+        row = {"slip": d["slip"], "scm_status": s.get("status", "steady")}
         for key, _, _ in QUANTITIES:
             difference = s[key] - d[key]
             relative = abs(difference) / abs(d[key]) if d[key] else math.inf
@@ -135,7 +135,7 @@ def figure(path: str, dem_sets: dict, cases: list[dict]) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    fig, axes = plt.subplots(1, len(QUANTITIES), figsize=(4.2 * len(QUANTITIES), 3.6))
+    fig, axes = plt.subplots(1, len(QUANTITIES), figsize=(4.2 * len(QUANTITIES), 4.4))
     for (key, label, unit), ax in zip(QUANTITIES, axes):
         scale, shown = (1e3, "mm") if unit == "m" else (1.0, unit)
         for name, rows in dem_sets.items():
@@ -148,18 +148,42 @@ def figure(path: str, dem_sets: dict, cases: list[dict]) -> None:
                 lw=2,
                 label=f"DEM {name} (95 %)",
             )
+        # the axis spans the DEM's intervals and SCM's steady values; a run with no steady state (a
+        # wheel hopping on a too stiff soil) is drawn hollow, pinned to the edge where off the scale
+        shown_values = [
+            scale * (r[key] + sign * r[f"{key}_ci95"]) for rows in dem_sets.values() for r in rows for sign in (-1, 1)
+        ]
+        shown_values += [scale * r[f"{key}_scm"] for c in cases for r in c["comparison"] if r["scm_status"] == "steady"]
+        low, high = min(shown_values), max(shown_values)
+        pad = 0.15 * (high - low or 1.0)
+        low, high = low - pad, high + pad
         for case in cases:
-            ax.plot(
-                [r["slip"] for r in case["comparison"]],
-                [scale * r[f"{key}_scm"] for r in case["comparison"]],
-                "s--",
-                label=f"SCM {case['name']}",
+            rows = case["comparison"]
+            (line,) = ax.plot(
+                [r["slip"] for r in rows], [min(max(scale * r[f"{key}_scm"], low), high) for r in rows], "--"
             )
+            for r in rows:
+                value = scale * r[f"{key}_scm"]
+                steady = r["scm_status"] == "steady"
+                marker = "s" if low <= value <= high else ("^" if value > high else "v")
+                ax.plot(
+                    r["slip"],
+                    min(max(value, low), high),
+                    marker,
+                    color=line.get_color(),
+                    mfc=line.get_color() if steady else "none",
+                )
+            line.set_label(
+                f"SCM {case['name']}"
+                + ("" if all(r["scm_status"] == "steady" for r in rows) else " (hollow: not steady)")
+            )
+        ax.set_ylim(low, high)
         ax.set_xlabel("slip [-]")
         ax.set_ylabel(f"{label} [{shown}]")
         ax.grid(alpha=0.3)
-    axes[0].legend(fontsize=7)
-    fig.tight_layout()
+    handles, labels = axes[0].get_legend_handles_labels()
+    fig.tight_layout(rect=(0, 0.2, 1, 1))
+    fig.legend(handles, labels, loc="lower center", ncol=3, fontsize=7, frameon=False)
     fig.savefig(path, dpi=130)
 
 
@@ -210,14 +234,23 @@ def main(argv=None) -> None:
         started = time.perf_counter()
         report = scm_study(study, calibration, os.path.join(args.out, f"case_{index}"), scene[0] if scene else None)
         scm_rows = []
+        load, rim = report["wheel_load"], scm_rim(report)
         for row in report["rows"]:
-            load, rim = report["wheel_load"], scm_rim(report)
+            if "dp_over_w_mean" in row:
+                values = {k: row[f"{k}_mean"] for k in ("dp_over_w", "sinkage", "driving_torque")}
+                status = "steady"
+            else:  # no steady traction (e.g. a wheel hopping on a too stiff soil): the window's means, marked
+                runs = report["runs"]
+                summary = next(r["summary"] for r in runs if abs(r["summary"]["slip"] - row["slip_set"]) < 1e-6)
+                values = {k: summary[k] for k in ("dp_over_w", "sinkage", "driving_torque")}
+                status = summary["steady_state"]
             scm_rows.append(
                 {
                     "slip": row["slip_set"],
-                    "dp_over_w": row["dp_over_w_mean"],
-                    "sinkage": row["sinkage_mean"],
-                    "torque_over_wr": row["driving_torque_mean"] / (load * rim),
+                    "dp_over_w": values["dp_over_w"],
+                    "sinkage": values["sinkage"],
+                    "torque_over_wr": values["driving_torque"] / (load * rim),
+                    "status": status,
                 }
             )
         comparison = compare(dem, scm_rows)
@@ -260,10 +293,11 @@ def write_csv(path: str, cases: list[dict]) -> None:
     keys = ["slip"] + [f"{k}_{s}" for k, _, _ in QUANTITIES for s in ("dem", "dem_ci95", "scm", "relative", "agrees")]
     units = {"slip": "1", "sinkage_dem": "m", "sinkage_dem_ci95": "m", "sinkage_scm": "m"}
     with open(path, "w") as f:
-        f.write(",".join(["case"] + [f"{k} [{units.get(k, '1')}]" for k in keys]) + "\n")
+        f.write(",".join(["case"] + [f"{k} [{units.get(k, '1')}]" for k in keys] + ["scm_status [-]"]) + "\n")
         for case in cases:
             for row in case["comparison"]:
-                f.write(",".join([json.dumps(case["name"])] + [f"{row[k]:.6g}" for k in keys]) + "\n")
+                values = [json.dumps(case["name"])] + [f"{row[k]:.6g}" for k in keys] + [row["scm_status"]]
+                f.write(",".join(values) + "\n")
 
 
 def tables(result: dict) -> str:
@@ -281,6 +315,7 @@ def tables(result: dict) -> str:
                 f"{1e3 * r['sinkage_scm']:.2f}{mark['sinkage']} | "
                 f"{r['torque_over_wr_dem']:.3f} +- {r['torque_over_wr_dem_ci95']:.3f} | "
                 f"{r['torque_over_wr_scm']:.3f}{mark['torque_over_wr']} |"
+                + ("" if r["scm_status"] == "steady" else f" SCM: {r['scm_status']}")
             )
         agree = ", ".join(f"{label} {case['agreeing_slips'][k]}/{case['slips']}" for k, label, _ in QUANTITIES)
         lines.append(
