@@ -68,9 +68,9 @@ NODES_ACROSS = 12
 """Default nodes across the narrowest wheel's width [-]."""
 BOUNCE_PHASE = 0.2
 """Default coupling step of a scene on SCM alone, as the phase of a wheel's elastic bounce on the
-soil it spans, omega_e H [rad]: the main job on its wheel-fitted soil (slip 0.2) gives DP/W, sinkage
-and torque within 0.2, 0.1 and 0.1 % of H = 3.3 ms (the DEM's macro step) at 0.2, DP/W 4 % off at
-0.54 (BENCHMARKS.md, "SCM's own coupling step")."""
+soil it spans, omega_e H [rad]: the main job on its wheel-fitted soil (slip 0.2) gives DP/W within
+0.0004 and sinkage and torque within 0.05 % of H = 3.3 ms (the DEM's macro step) at 0.2, within
+0.3 % up to 1 rad, 3 % off in sinkage at 2 rad (BENCHMARKS.md, "SCM's own coupling step")."""
 STEPS_PER_NODE = 4
 """Default SCM steps per node spacing of the fastest wheel surface's travel (the grouser tips) [-]:
 the main job's held wheel gives forces within 0.2 % of 8 steps per node, 1-3 % at 2."""
