@@ -240,9 +240,9 @@ def main(argv=None) -> None:
                 values = {k: row[f"{k}_mean"] for k in ("dp_over_w", "sinkage", "driving_torque")}
                 status = "steady"
             else:  # no steady traction (e.g. a wheel hopping on a too stiff soil): the window's means, marked
-                runs = report["runs"]
-                summary = next(r["summary"] for r in runs if abs(r["summary"]["slip"] - row["slip_set"]) < 1e-6)
-                values = {k: summary[k] for k in ("dp_over_w", "sinkage", "driving_torque")}
+                folder = f"slip_{row['slip_set']:+.3f}"
+                summary = next(r["summary"] for r in report["runs"] if folder in r["out_dir"])
+                values = {k: summary.get(k, math.nan) for k in ("dp_over_w", "sinkage", "driving_torque")}
                 status = summary["steady_state"]
             scm_rows.append(
                 {
