@@ -436,6 +436,20 @@ def scm_kernels(hi):
             high = soil.ny
         return low, high
 
+    @wp.func
+    def chunk_box_slots(
+        row: int, part: int, w: int, chunk_start: int, chunk_end: int, boxes: wp.array2d(dtype=wp.int32), soil: Soil
+    ):
+        """The slots [start, stop) of slot row `row`, part `part` (box_columns) of wheel w's box that lie
+        in the chunk [chunk_start, chunk_end) of the storage order (empty where the row is not the box's)."""
+        start = int(0)  # noqa: UP018 (a Warp variable the kernel changes: not a constant)
+        stop = int(0)  # noqa: UP018
+        if box_row(row, w, boxes, soil):
+            first, end = box_columns(part, w, boxes, soil)
+            start = wp.max(chunk_start, row * soil.ny + first)
+            stop = wp.min(chunk_end, row * soil.ny + end)
+        return start, stop
+
     @kernel
     def patch_partial(
         wheels: Wheels,
@@ -465,17 +479,16 @@ def scm_kernels(hi):
         chunk_end = wp.min(chunk_start + chunk, node_count)
         # the chunk's slots in storage order, only those of the wheel's box (no others hold its contacts)
         for row in range(chunk_start // soil.ny, (chunk_end - 1) // soil.ny + 1):
-            if box_row(row, w, boxes, soil):
-                for part in range(2):
-                    first, end = box_columns(part, w, boxes, soil)
-                    for k in range(wp.max(chunk_start, row * soil.ny + first), wp.min(chunk_end, row * soil.ny + end)):
-                        if nodes.wheel[k] == w:
-                            u = wp.dot(nodes.hit[k], heading)
-                            v = wp.dot(nodes.hit[k], a)
-                            l0 = wp.min(l0, u)
-                            h0 = wp.max(h0, u)
-                            l1 = wp.min(l1, v)
-                            h1 = wp.max(h1, v)
+            for part in range(2):
+                start, stop = chunk_box_slots(row, part, w, chunk_start, chunk_end, boxes, soil)
+                for k in range(start, stop):
+                    if nodes.wheel[k] == w:
+                        u = wp.dot(nodes.hit[k], heading)
+                        v = wp.dot(nodes.hit[k], a)
+                        l0 = wp.min(l0, u)
+                        h0 = wp.max(h0, u)
+                        l1 = wp.min(l1, v)
+                        h1 = wp.max(h1, v)
         low[w, 2 * c + 0] = l0
         low[w, 2 * c + 1] = l1
         high[w, 2 * c + 0] = h0
@@ -679,15 +692,14 @@ def scm_kernels(hi):
         chunk_end = wp.min(chunk_start + chunk, node_count)
         # the chunk's slots in storage order, only those of the wheel's box (no others hold its contacts)
         for row in range(chunk_start // soil.ny, (chunk_end - 1) // soil.ny + 1):
-            if box_row(row, w, boxes, soil):
-                for part in range(2):
-                    first, end = box_columns(part, w, boxes, soil)
-                    for k in range(wp.max(chunk_start, row * soil.ny + first), wp.min(chunk_end, row * soil.ny + end)):
-                        if nodes.wheel[k] == w:
-                            f += nodes.force[k]
-                            t += nodes.torque[k]
-                            n += 1
-                            z = wp.max(z, nodes.reference[k] - nodes.hit[k][2])
+            for part in range(2):
+                start, stop = chunk_box_slots(row, part, w, chunk_start, chunk_end, boxes, soil)
+                for k in range(start, stop):
+                    if nodes.wheel[k] == w:
+                        f += nodes.force[k]
+                        t += nodes.torque[k]
+                        n += 1
+                        z = wp.max(z, nodes.reference[k] - nodes.hit[k][2])
         force[w, c] = f
         torque[w, c] = t
         count[w, c] = n
