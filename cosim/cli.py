@@ -127,6 +127,7 @@ SUMMARY_KEYS = (
     ("steady_state", "", 1),
     ("validity", "", 1),
     ("landing_time", "s", 1),
+    ("landing_sinkage", "mm", 1e3),
     ("window", "s", 1),
     ("slip", "", 1),
     ("travel", "mm", 1e3),
@@ -538,6 +539,13 @@ def add_lab_commands(sub, scene_options, cluster_options) -> None:
     p.add_argument("--slips", default="0.05,0.1,0.2,0.4,0.6", help="--from-wheel: the imposed slips of the DEM runs")
     p.add_argument("--wheel-runs", help="--from-wheel: fit to this slip study's folder (cosim study slip), no new runs")
     p.add_argument("--lab", help="--from-wheel: start from this calibration file, no plate and shear tests")
+    p.add_argument(
+        "--max-runs",
+        type=int,
+        default=30,
+        help="--from-wheel: most evaluations of the SCM runs of the DEM's protocol, one run per slip each "
+        "(default 30; 0: fit to the held wheel only)",
+    )
     p.set_defaults(func=cmd_calibrate_scm)
 
 
@@ -579,10 +587,14 @@ def cmd_calibrate_scm(args) -> int:
 
 def _fit_to_wheel(args, lab, work: str):
     """The lab calibration `lab` refitted to the DEM wheel runs (cosim calibrate-scm --from-wheel)."""
+    from soil.errors import ArgumentError
+
     from .lab.scm_wheel import FITTED, fit_to_wheel, run_wheel_tests, wheel_targets
     from .scene import SceneError, parse_value
     from .scm_calibration import ScmCalibration, same_gravity
 
+    if args.max_runs < 0:
+        raise ArgumentError(f"--max-runs: must be >= 0, got {args.max_runs}")
     plan = _plan(args)
     if plan.rover is not None:
         raise SceneError(["calibrate-scm --from-wheel: fits to the single-wheel [testbed]; the scene has a [rover]"])
@@ -594,19 +606,29 @@ def _fit_to_wheel(args, lab, work: str):
         slips = [parse_value(s) for s in args.slips.split(",") if s.strip()]
         replicas = args.replicas if args.replicas is not None else 3
         folder = run_wheel_tests(plan, os.path.join(work, "wheel"), slips, replicas, **_executor(args))
-    parameters, errors, report = fit_to_wheel(plan, wheel_targets(folder), lab.parameters)
+    runs = os.path.join(work, "wheel_scm") if args.max_runs else None
+    parameters, errors, report = fit_to_wheel(
+        plan, wheel_targets(folder), lab.parameters, runs=runs, max_runs=args.max_runs
+    )
     standard_errors = {k: (errors[k] if k in FITTED else lab.standard_errors.get(k, errors[k])) for k in errors}
     source = {**lab.source, "wheel": {"runs": os.path.abspath(folder), **report}}
     print(
-        f"calibrate-scm --from-wheel: fitted {', '.join(FITTED)} to {len(report['slips'])} slips "
-        f"(rms residual {report['rms_residual']:.3g} of W or W r, {report['evaluations']} evaluations)"
+        f"calibrate-scm --from-wheel: fitted {', '.join(FITTED)} to {len(report['slips'])} slips (rms residual "
+        f"{report['rms_residual']:.3g} tolerances; {report['evaluations']} held-wheel evaluations, "
+        f"{report['run_evaluations']} of the runs{f' in {runs}' if runs else ''})"
     )
     for row in report["slips"]:
         load = report["wheel_load_n"]
+        run = "run_" if runs else "scm_"
+        sinkage = (
+            f"sinkage {row['run_sinkage'] * 1e3:6.2f} mm"
+            if runs
+            else f"W_scm / W {row['scm_vertical_force'] / load:6.3f} at"
+        )
         print(
-            f"  slip {row['slip']:5.3f}: W_scm / W {row['scm_vertical_force'] / load:6.3f}, "
-            f"DP/W {row['scm_drawbar_pull'] / load:+7.3f} (DEM {row['drawbar_pull'] / load:+7.3f}), "
-            f"T {row['scm_driving_torque']:.3g} (DEM {row['driving_torque']:.3g}) N m"
+            f"  slip {row['slip']:5.3f}: {sinkage} (DEM {row['sinkage'] * 1e3:6.2f} mm), "
+            f"DP/W {row[run + 'drawbar_pull'] / load:+7.3f} (DEM {row['drawbar_pull'] / load:+7.3f}), "
+            f"T {row[run + 'driving_torque']:.3g} (DEM {row['driving_torque']:.3g}) N m"
         )
     return ScmCalibration(parameters, standard_errors, plan.g, source)
 

@@ -193,7 +193,8 @@ def summarize(
     'sinkage', 'sinkage_tips' [m], 'drawbar_pull' [N], 'dp_over_w' [-], 'driving_torque' [N m],
     'normal_force' [N], 'forward_speed' [m/s], 'contact_fraction' [-], with '<name>_sem'
     (batch-means standard error within the window); 'sinkage_rate' [m/s] (slope of the
-    sinkage over the window); 'travel' [m] over the drive, 'landing_time' [s]}.
+    sinkage over the window); 'travel' [m] over the drive, 'landing_time' [s], 'landing_sinkage' [m]
+    (the rim's sinkage as the drive starts: the wheel's static sinkage under its load)}.
 
     The window is the steady state of the traction (forward speed, or drawbar pull at an
     imposed slip). The sinkage must be steady over it as well: stationary by MSER-5, or
@@ -217,6 +218,8 @@ def summarize(
     sinkage = np.asarray(series["sinkage"])[index, 0]
     pull = np.asarray(series["drawbar_pull"])[index, 0]
     out["travel"] = float(np.asarray(series["travel"])[index[-1], 0])
+    if index[0] > 0:  # the last landing sample; none when the run started landed
+        out["landing_sinkage"] = float(np.asarray(series["sinkage"])[index[0] - 1, 0])
     key = pull if mode == "slip" else forward
     start, found = steady_window({"driving": key}, min_fraction)
     window = index[start:] if found else index[len(index) // 2 :]
@@ -446,6 +449,7 @@ def summarize_rover(
 REPLICA_METRICS = (
     "slip",
     "sinkage",
+    "landing_sinkage",
     "sinkage_tips",
     "drawbar_pull",
     "dp_over_w",

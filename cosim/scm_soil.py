@@ -69,8 +69,8 @@ NODES_ACROSS = 12
 BOUNCE_PHASE = 0.2
 """Default coupling step of a scene on SCM alone, as the phase of a wheel's elastic bounce on the
 soil it spans, omega_e H [rad]: the main job on its wheel-fitted soil (slip 0.2) gives DP/W within
-0.0004 and sinkage and torque within 0.05 % of H = 3.3 ms (the DEM's macro step) at 0.2, within
-0.3 % up to 1 rad, 3 % off in sinkage at 2 rad (BENCHMARKS.md, "SCM's own coupling step")."""
+0.0007 and sinkage and torque within 0.13 % of H = 3.3 ms (the DEM's macro step) at 0.2, within
+0.3 % up to 1 rad, DP/W 0.01 and torque 2-3 % off at 2 rad (BENCHMARKS.md, "SCM's own coupling step")."""
 STEPS_PER_NODE = 4
 """Default SCM steps per node spacing of the fastest wheel surface's travel (the grouser tips) [-]:
 the main job's held wheel gives forces within 0.2 % of 8 steps per node, 1-3 % at 2."""
