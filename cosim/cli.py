@@ -566,6 +566,8 @@ def cmd_calibrate_scm(args) -> int:
     misplaced = [name for name, value in wheel_only if value and not args.from_wheel]
     if misplaced:
         raise ArgumentError(f"{', '.join(misplaced)}: only with --from-wheel")
+    if args.max_runs < 0:  # before the lab's tests, not an hour into them
+        raise ArgumentError(f"--max-runs: must be >= 0, got {args.max_runs}")
     started = time.perf_counter()
     if args.lab:
         calibration = read_calibration(args.lab)
@@ -587,14 +589,10 @@ def cmd_calibrate_scm(args) -> int:
 
 def _fit_to_wheel(args, lab, work: str):
     """The lab calibration `lab` refitted to the DEM wheel runs (cosim calibrate-scm --from-wheel)."""
-    from soil.errors import ArgumentError
-
     from .lab.scm_wheel import FITTED, fit_to_wheel, run_wheel_tests, wheel_targets
     from .scene import SceneError, parse_value
     from .scm_calibration import ScmCalibration, same_gravity
 
-    if args.max_runs < 0:
-        raise ArgumentError(f"--max-runs: must be >= 0, got {args.max_runs}")
     plan = _plan(args)
     if plan.rover is not None:
         raise SceneError(["calibrate-scm --from-wheel: fits to the single-wheel [testbed]; the scene has a [rover]"])
