@@ -31,8 +31,8 @@ import time
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 sys.path.insert(0, ROOT)
 
-TOLERANCE = 0.15
-"""The relative difference under which SCM counts as agreeing where it is outside the DEM interval [-]."""
+from cosim.lab.scm_wheel import RELATIVE_TOLERANCE as TOLERANCE  # noqa: E402 (after the path)
+
 QUANTITIES = (
     ("dp_over_w", "DP/W", "1"),
     ("sinkage", "sinkage", "m"),

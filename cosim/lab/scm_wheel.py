@@ -41,7 +41,8 @@ from ..scm_calibration import SOIL_KEYS
 from .common import LabFailed
 
 RELATIVE_TOLERANCE = 0.15
-"""The relative difference from the DEM that counts as agreement (with its 95 % interval) [-]."""
+"""The relative difference from the DEM that counts as agreement (with its 95 % interval) [-]; the
+trade (benchmarks/scm_trade.py) counts with it too."""
 
 MISSING_RESIDUAL = 10.0
 """The residual of a quantity an SCM run gave no value of (no landing, airborne) [tolerances]."""
@@ -339,7 +340,7 @@ def fit_to_wheel(
             shifted = x.copy()
             shifted[i] += h
             jac[:, i] = (free_residuals(shifted) - f0) / h
-        free["jac"] = (x.copy(), jac)
+        free["jac"] = jac
         return jac
 
     x0 = _to_coordinates(floor)
@@ -359,7 +360,7 @@ def fit_to_wheel(
             x, fun, jac = result.x, result.fun, result.jac
         except _OutOfRuns:  # the best soil the runs met, with the last Jacobian the fit made
             x, fun = free["best"][0], free["best"][1]
-            jac = free["jac"][1] if free["jac"] is not None else None
+            jac = free["jac"]
     fitted = _from_coordinates(x)
     parameters = {**held, **fitted}
     dof = max(1, fun.size - x.size)
