@@ -17,6 +17,11 @@ Sections, each timed, in this order (the tests last, within what is left of --bu
 - agreement: the same short settling run on the CPU and on the device, replicas differing
   only in summation order (order_seed): the device's bed statistics lie within the CPU
   replicas' scatter.
+- batched: replicas of the main job (examples/phobos_single_wheel.toml, mixed, landing off, a
+  short drive) as K = 1, 4, 20 worlds of one simulation (cosim.batch.run_batched, the path of
+  `cosim run --replicas K` on a GPU); the total particle-steps/s of the drive per K (target: 20
+  worlds at least 10 x one), the wheel's contact count, and whether world 0 of every batch gave
+  its run alone (K = 1) bit for bit on the device.
 - paper: the testbed scene at the paper's scale (examples/phobos_single_wheel_gpu.toml: Phobos
   regolith at Phobos gravity, here in double) run through cosim.launch.run_plan with the wheel in
   the grains: it lands under its 8 kg load and drives at the main job's imposed slip (testbed
@@ -63,6 +68,8 @@ sys.path.insert(0, ROOT)
 import warp as wp  # noqa: E402
 
 from benchmarks import beds  # noqa: E402
+from cosim.batch import run_batched  # noqa: E402
+from cosim.beds import settled_bed  # noqa: E402
 from cosim.contract import WheelKinematics  # noqa: E402
 from cosim.dem_soil import DemSoil  # noqa: E402
 from cosim.folders import RunFolder  # noqa: E402
@@ -96,12 +103,14 @@ SIZES = {
     "paper_settle_seconds": (60.0, 30.0),  # wall-clock allowance of the tile's settling [s]
     "paper_seconds": (150.0, 60.0),  # wall-clock allowance of the coupled run [s]
     "rover_seconds": (150.0, 60.0),
+    "batch_worlds": ((1, 4, 20), (1, 2)),
 }
 TESTS_RESERVE = 60.0
 """Seconds of --budget the paper and rover runs leave for the sections after them [s]."""
 WARMUP_STEPS = 10
 """Macro steps at the start of a scene run left out of its rates: the build, kernel loads, graph captures."""
-SECTIONS = ("throughput", "repeat", "agreement", "paper", "rover", "tests")
+SECTIONS = ("throughput", "repeat", "agreement", "batched", "paper", "rover", "tests")
+MAIN_SCENE = os.path.join(ROOT, "examples", "phobos_single_wheel.toml")
 PAPER_SCENE = os.path.join(ROOT, "examples", "phobos_single_wheel_gpu.toml")
 ROVER_SCENE = os.path.join(ROOT, "examples", "phobos_rover_gpu.toml")
 QUIET_OUTPUT = {"output.snapshot_interval": 0.0, "output.checkpoint_interval": 1.0e9}
@@ -160,6 +169,23 @@ ROVER_OVERRIDES = (
     },
 )
 """Scene overrides of the rover section (full, small; small adds to full)."""
+BATCH_OVERRIDES = (
+    {"landing.enabled": False, "run.duration": 1.5},  # the wheel touches down within 0.2 s
+    {  # a coarse Earth-gravity bed: fractions of a second do
+        "scene.gravity": "earth",
+        "bed.length": 0.12,
+        "bed.width": 0.06,
+        "bed.depth": 0.03,
+        "bed.radius_mean": 0.0035,
+        "bed.settle_max_time": 0.3,
+        "wheel.radius": 0.025,
+        "wheel.width": 0.02,
+        "wheel.grouser_height": 0.003,
+        "testbed.omega": 1.0,
+        "run.duration": 0.15,
+    },
+)
+"""Scene overrides of the batched section (full, small; small adds to full)."""
 
 
 def size(name, small):
@@ -362,6 +388,67 @@ class Suite:
                 "agrees": bool(abs(a.mean() - b.mean()) <= allowed),
             }
         return {"statistics": verdict, "ok": all(v["agrees"] for v in verdict.values())}
+
+    def batched(self):
+        """Replicas of the main job as K worlds of one simulation (module docstring)."""
+        overrides = self.scene_overrides(BATCH_OVERRIDES)
+        folder = os.path.join(self.out, "batched")
+        bed = settled_bed(load_plan(MAIN_SCENE, overrides), folder)
+        overrides["bed.bed_file"] = bed.path
+        rows, forces = [], {}
+        for worlds in size("batch_worlds", self.small):
+            plans = [load_plan(MAIN_SCENE, {**overrides, "run.order_seed": k}) for k in range(worlds)]
+            out_dirs = [os.path.join(folder, f"worlds_{worlds}", f"replica_{k:03d}") for k in range(worlds)]
+            marks = []  # host clock [s] when world 0 finished each macro step
+
+            first = os.path.abspath(out_dirs[0])
+
+            def after_step(runner, first=first, marks=marks) -> None:
+                if runner.folder.path == first:
+                    marks.append(time.perf_counter())
+
+            results = run_batched(plans, out_dirs, overwrite=True, hooks={"step": after_step})
+            failed = [r.get("error") for r in results if not r.get("ok")]
+            series = read_series(RunFolder(out_dirs[0]).results)
+            timed = slice(WARMUP_STEPS, len(marks))
+            seconds = float(marks[-1] - marks[WARMUP_STEPS - 1]) if len(marks) > WARMUP_STEPS else 0.0
+            grains = float(series["soil_particle_count"][0])
+            steps = float(series["soil_dem_steps"][timed].sum())
+            counts = series["contact_count"][:, 0]
+            forces[worlds] = series["force"]
+            rows.append(
+                dict(
+                    worlds=worlds,
+                    grains_per_world=grains,
+                    macro_steps=len(marks),
+                    timed_seconds=seconds,
+                    particle_steps_per_second=worlds * grains * steps / seconds if seconds > 0 else 0.0,
+                    wheel_contacts_min=int(counts[len(counts) // 2 :].min()),
+                    wheel_contacts_mean=float(counts.mean()),
+                    failed=failed,
+                )
+            )
+            self.log(json.dumps(rows[-1]))
+        one = rows[0]["particle_steps_per_second"]
+        for row in rows:
+            row["x_one_world"] = row["particle_steps_per_second"] / one if one > 0 else 0.0
+        alone = forces[rows[0]["worlds"]]
+        same = all(np.array_equal(alone, f) for f in forces.values())
+        most = rows[-1]
+        return {
+            "scene": os.path.relpath(MAIN_SCENE, ROOT),
+            "overrides": overrides,
+            "rows": rows,
+            "world_0_as_alone": same,
+            "targets": {
+                f"batched: {most['worlds']} worlds of the main job >= 10 x the particle-steps/s of one": most[
+                    "x_one_world"
+                ]
+                >= 10.0,
+                "batched: world 0 of every batch is its run alone, bit for bit": same,
+            },
+            "ok": same and not any(row["failed"] for row in rows) and all(r["wheel_contacts_min"] > 0 for r in rows),
+        }
 
     def paper(self):
         """The testbed scene at the paper's scale, its wheel landed in the grains and driven at the
@@ -634,6 +721,22 @@ class Suite:
                     f"{row['bytes_per_grain']:.0f} ({row['bytes_per_grain_estimate']:.0f}) | "
                     f"{row['bytes_per_grain'] / memory[(bed, 'double')]:.2f} | {row['captured']} |"
                 )
+        batched = r["sections"].get("batched", {})
+        if batched.get("rows"):
+            lines += [
+                "",
+                f"Batched replicas of {batched['scene']} (worlds of one simulation; world 0 equal to its run alone "
+                f"bit for bit: {'yes' if batched['world_0_as_alone'] else 'NO'}):",
+                "",
+                "| worlds | grains per world | particle-steps/s (all worlds) | x one world "
+                "| wheel contacts min / mean |",
+                "|---|---|---|---|---|",
+            ]
+            lines += [
+                f"| {row['worlds']} | {row['grains_per_world']:.0f} | {row['particle_steps_per_second']:.3g} | "
+                f"{row['x_one_world']:.2f} | {row['wheel_contacts_min']} / {row['wheel_contacts_mean']:.1f} |"
+                for row in batched["rows"]
+            ]
         paper = r["sections"].get("paper", {})
         if paper.get("projected_60s_seconds"):
             settling, contacts = paper["settling"], paper["wheel_contacts"]

@@ -1,7 +1,7 @@
 """The `cosim` command line (also `python -m cosim`).
 
     cosim run SCENE.toml [--out DIR] [--device D] [--precision P] [--set key=value ...] [--overwrite]
-                         [--replicas K [--workers N | --scheduler ADDRESS | --serial]]
+                         [--replicas K [--workers N | --scheduler ADDRESS | --serial | --batched]]
     cosim resume OUT
     cosim advise SCENE.toml [--set key=value ...]
     cosim plot OUT
@@ -105,7 +105,9 @@ def cmd_run(args) -> int:
     if args.replicas > 1:
         from .study import replica_run
 
-        report = replica_run(plan, out, args.replicas, overwrite=args.overwrite, **_executor(args))
+        report = replica_run(
+            plan, out, args.replicas, overwrite=args.overwrite, batched=args.batched, **_executor(args)
+        )
         print(report["text"])
         return EXIT_OK if report["ok"] else EXIT_UNSTEADY
     with open(args.scene) as f:
@@ -670,6 +672,12 @@ def build_parser() -> argparse.ArgumentParser:
         type=int,
         default=1,
         help="K > 1: run K replicas differing only in summation order and report error bars",
+    )
+    p.add_argument(
+        "--batched",
+        action=argparse.BooleanOptionalAction,
+        default=None,
+        help="replicas as worlds of one simulation on one device (default: on a GPU, when the scene allows)",
     )
     p.add_argument("--no-progress", action="store_true")
     p.set_defaults(func=cmd_run)

@@ -13,9 +13,11 @@ checkpoint.npz and continues to the result an uninterrupted run gives (bitwise o
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import os
 import uuid
+from collections.abc import Iterator
 
 import numpy as np
 
@@ -23,6 +25,7 @@ from soil.stability import read_checkpoint
 
 from . import records
 from .beds import Bed, bed_from_file, check_memory, settled_bed, write_json
+from .contract import SoilSide
 from .folders import RUN_FILE, SCENE_FILE, RunFolder, read_json
 from .output import ResultsWriter, read_series
 from .plan import RunPlan, load_plan, resolve
@@ -42,14 +45,30 @@ def run_plan(
     source: str = "",
 ) -> RunResult:
     """Run a resolved plan into `out_dir` (see the module docstring)."""
+    with open_run(plan, out_dir, overwrite=overwrite, progress=progress, source=source) as (system, writer, folder):
+        return Runner(system, writer, folder, progress=progress, hooks=hooks).run()
+
+
+@contextlib.contextmanager
+def open_run(
+    plan: RunPlan,
+    out_dir: str,
+    overwrite: bool = False,
+    progress: bool = False,
+    source: str = "",
+    soil: SoilSide | None = None,
+) -> Iterator[tuple[CoupledSystem, ResultsWriter, RunFolder]]:
+    """A run set up in `out_dir` and not yet stepped: (system, writer, folder), the folder locked until the
+    block ends. `soil`: the soil side to couple (a world of a batch, cosim.batch); None: the plan's own,
+    on its settled bed."""
     bedded = needs_bed(plan)
-    if bedded:
+    if bedded and soil is None:
         check_memory(plan)  # before anything is allocated or written
     folder = RunFolder(out_dir)
     with folder.locked():
         folder.check_free(overwrite)
         bed = settled_bed(plan, folder.path, progress=progress) if bedded else None
-        system = CoupledSystem.build(plan, bed)
+        system = CoupledSystem.build(plan, bed, soil=soil)
         findings = validity(plan, system.soil.surface_height)
         for finding in findings:
             if not finding.ok:
@@ -84,7 +103,7 @@ def run_plan(
                 flush_every=plan.output.flush_every,
                 ragged=particles is not None and particles.ids is not None,
             )
-            return Runner(system, writer, folder, progress=progress, hooks=hooks).run()
+            yield system, writer, folder
         finally:
             system.close()
 
@@ -290,6 +309,7 @@ def final_state(out_dir: str) -> dict:
 __all__ = [
     "final_state",
     "load_checkpoint",
+    "open_run",
     "resume",
     "run_plan",
     "run_scene",

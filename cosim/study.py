@@ -306,15 +306,25 @@ def replica_run(
     executor: str = "dask",
     scheduler: str | None = None,
     workers: int | None = None,
+    batched: bool | None = None,
 ) -> dict:
     """K replicas of a scene that differ only in summation order, with error bars (module docstring).
 
+    batched: run the replicas as worlds of one simulation on one device (cosim.batch; each replica
+    bit for bit its run alone); None: when the device is a GPU and the scene can be batched.
     Returns {'ok' (every replica steady and the statistics exist), 'stats', 'results', 'text'}."""
+    from .batch import batch_problem, run_batched
+
     if replicas < 2:
         raise SceneError([f"--replicas: must be >= 2 for error bars, got {replicas}"])
+    problem = batch_problem(plan)
+    if batched and problem is not None:
+        raise SceneError([f"--batched: {problem}"])
+    if batched is None:
+        batched = problem is None and plan.device.startswith("cuda")
     out_dir = os.path.abspath(out_dir)
     prepare_study(out_dir, overwrite)
-    with Executor(executor, scheduler, workers) as ex:
+    with Executor("serial" if batched else executor, scheduler, workers) as ex:
         bed = _shared_bed(plan, out_dir, ex)
         text = plan.scene.to_toml()
         tasks = [
@@ -327,10 +337,17 @@ def replica_run(
             }
             for k in range(replicas)
         ]
-        results = ex.map(run_task, tasks)
+        if batched:
+            log.info("%d replicas as worlds of one simulation on %s", replicas, plan.device)
+            results = run_batched(
+                [task_plan(t) for t in tasks], [str(t["out_dir"]) for t in tasks], overwrite=overwrite
+            )
+        else:
+            results = ex.map(run_task, tasks)
     stats = ensemble_table(results, plan)
     report = {
         "kind": "replicas",
+        "batched": bool(batched),
         "scene_toml": text,
         "bed_file": bed,
         "stats": stats,

@@ -59,10 +59,12 @@ class CoupledSystem:
     coupler: Coupler
 
     @classmethod
-    def build(cls, plan: RunPlan, bed: Bed | None) -> CoupledSystem:
+    def build(cls, plan: RunPlan, bed: Bed | None, soil: SoilSide | None = None) -> CoupledSystem:
         """The system of `plan` on its terrain model (TERRAIN_MODELS); `bed`: the settled bed of a
-        terrain that needs one (`needs_bed`), else None."""
-        soil = TERRAIN_MODELS[plan.terrain.model].build(plan, bed)
+        terrain that needs one (`needs_bed`), else None; `soil`: a soil side built already (a world
+        of a batch, cosim.batch), its wheels not yet placed."""
+        if soil is None:
+            soil = TERRAIN_MODELS[plan.terrain.model].build(plan, bed)
         if plan.rover is None:
             return cls._on_testbed(plan, bed, soil)
         return cls._with_rover(plan, bed, soil)

@@ -73,6 +73,25 @@ class SoilModel:
     """First index of each body's mesh in mesh_indices, shape (body_count,), int32."""
     meshes: list = field(default_factory=list)
     """The wp.Mesh objects (kept alive here), one per mesh body."""
+    world_count: int = 1
+    """Independent copies of one scene in this model (soil.worlds): world w holds grains
+    w * world_size .. (w + 1) * world_size - 1 (model order), and its walls and wheels likewise
+    (walls_per_world, bodies_per_world); a grain touches only its own world's."""
+
+    @property
+    def world_size(self) -> int:
+        """Grains per world [-]."""
+        return self.particle_count // self.world_count
+
+    @property
+    def walls_per_world(self) -> int:
+        """Boundaries per world [-]."""
+        return self.boundary_count // self.world_count
+
+    @property
+    def bodies_per_world(self) -> int:
+        """Bodies (wheels) per world [-]."""
+        return self.body_count // self.world_count
 
     @property
     def body_count(self) -> int:

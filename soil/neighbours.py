@@ -39,6 +39,9 @@ CHUNK = 256
 """Grains per partial sum of the bounding box (fixed: the reduction is deterministic)."""
 MAX_CELLS_PER_AXIS = 1024
 """Cells per axis at most (10 bits of the Morton key each)."""
+MORTON_BITS = 30
+"""Bits of a cell's Morton code in the sort key; the world index (soil.worlds) sits above them."""
+MORTON_MASK = (1 << MORTON_BITS) - 1
 
 
 @dataclass(frozen=True)
@@ -204,19 +207,21 @@ def neighbour_kernels(hi, mid, lo, law: ContactLaw):
         slot: wp.array(dtype=wp.int32),
         grid: wp.array(dtype=hi),
         dims: wp.vec3i,
-        keys_out: wp.array(dtype=wp.int32),
+        world_size: int,
+        keys_out: wp.array(dtype=wp.int64),
         values_out: wp.array(dtype=wp.int32),
     ):
-        """Morton key of each grain's cell, listed by model index (so that the stable sort breaks
-        ties by model index, whatever the storage order)."""
+        """Key of each grain's cell: its world (soil.worlds) above the cell's Morton code, listed by
+        model index (so that the stable sort breaks ties by model index, whatever the storage order)."""
         p = wp.tid()
         cell = cell_of(position[slot[p]], grid, dims)
-        keys_out[p] = spread_bits(cell[0]) | (spread_bits(cell[1]) << 1) | (spread_bits(cell[2]) << 2)
+        morton = spread_bits(cell[0]) | (spread_bits(cell[1]) << 1) | (spread_bits(cell[2]) << 2)
+        keys_out[p] = (wp.int64(p // world_size) << wp.int64(MORTON_BITS)) | wp.int64(morton)
         values_out[p] = p
 
     @kernel
     def cell_ranges(
-        keys: wp.array(dtype=wp.int32),
+        keys: wp.array(dtype=wp.int64),
         values: wp.array(dtype=wp.int32),
         slot: wp.array(dtype=wp.int32),
         count: int,
@@ -225,10 +230,18 @@ def neighbour_kernels(hi, mid, lo, law: ContactLaw):
         cell_end_out: wp.array(dtype=wp.int32),
         cell_slot_out: wp.array(dtype=wp.int32),
     ):
-        """Where each occupied cell's grains start and end in the sorted order, and their slots."""
+        """Where each occupied cell's grains start and end in the sorted order, and their slots
+        (world w's cells are w * cells .. (w + 1) * cells - 1)."""
         q = wp.tid()
         key = keys[q]
-        cell = compact_bits(key) + dims[0] * (compact_bits(key >> 1) + dims[1] * compact_bits(key >> 2))
+        world = int(key >> wp.int64(MORTON_BITS))
+        morton = int(key & wp.int64(MORTON_MASK))
+        cells = dims[0] * dims[1] * dims[2]
+        cell = (
+            world * cells
+            + compact_bits(morton)
+            + dims[0] * (compact_bits(morton >> 1) + dims[1] * compact_bits(morton >> 2))
+        )
         first = q == 0
         if not first:
             first = keys[q - 1] != key
@@ -254,15 +267,17 @@ def neighbour_kernels(hi, mid, lo, law: ContactLaw):
         cell_slot: wp.array(dtype=wp.int32),
         skin: hi,
         target: wp.array(dtype=wp.int32),
+        world_size: int,
         neighbours_out: wp.array3d(dtype=wp.int32),
         neighbour_count_out: wp.array2d(dtype=wp.int32),
         build_position_out: wp.array2d(dtype=vec_hi),
         status_out: wp.array(dtype=wp.int32),
     ):
-        """Row of grain i in list `target`: the grains within r_i + r_j + skin, in ascending model
-        index (so the row, and every sum over it, depends neither on the storage order nor on
-        the grid). Two fixed grains never pair."""
+        """Row of grain i in list `target`: the grains of its world within r_i + r_j + skin, in
+        ascending model index (so the row, and every sum over it, depends neither on the storage
+        order nor on the grid, nor on other worlds). Two fixed grains never pair."""
         i = wp.tid()
+        first_cell = (order[i] // world_size) * dims[0] * dims[1] * dims[2]
         t = target[0]
         capacity = neighbours_out.shape[2]
         x = position[i]
@@ -282,7 +297,7 @@ def neighbour_kernels(hi, mid, lo, law: ContactLaw):
                     cx = home[0] + dx
                     if cx < 0 or cx >= dims[0]:
                         continue
-                    cell = cx + dims[0] * (cy + dims[1] * cz)
+                    cell = first_cell + cx + dims[0] * (cy + dims[1] * cz)
                     for q in range(cell_start[cell], cell_end[cell]):
                         j = cell_slot[q]
                         if j != i and (free or inv_mass[j] > lo(0.0)):
@@ -513,7 +528,7 @@ class NeighbourList:
         self.grid = wp.zeros(9, dtype=prec.hi, device=device)
         """Of the last build: the grid origin = the grains' lower corner [m] (3), the cell size per
         axis [m] (3) and the grains' upper corner [m] (3)."""
-        self._keys = wp.zeros(2 * n, dtype=wp.int32, device=device)
+        self._keys = wp.zeros(2 * n, dtype=wp.int64, device=device)
         self._values = wp.zeros(2 * n, dtype=wp.int32, device=device)
         self._cell_slot = wp.zeros(n, dtype=wp.int32, device=device)
         self._target = wp.zeros(1, dtype=wp.int32, device=device)
@@ -531,8 +546,9 @@ class NeighbourList:
     # -- the grid ---------------------------------------------------------------------
     def plan(self, positions: np.ndarray | None) -> None:
         """Cell counts per axis from the grains' bounding box (host positions [m], (n, 3)):
-        about one cell of the largest pair reach per grain diameter, at most 4 cells per grain."""
-        n = self.model.particle_count
+        about one cell of the largest pair reach per grain diameter, at most 4 cells per grain of
+        a world; every world (soil.worlds) has its own cells of this grid."""
+        n = self.model.world_size
         if positions is None or not np.isfinite(positions).all():
             extent = np.full(3, self.cell_min * max(1.0, n ** (1 / 3)))
         else:
@@ -544,7 +560,7 @@ class NeighbourList:
         if dims == self.dims and self._cell_start is not None:
             return
         self.dims = dims
-        cells = int(np.prod(dims))
+        cells = int(np.prod(dims)) * self.model.world_count
         self._cell_start = wp.zeros(cells, dtype=wp.int32, device=self.model.device)
         self._cell_end = wp.zeros(cells, dtype=wp.int32, device=self.model.device)
 
@@ -721,11 +737,12 @@ class NeighbourList:
         wp.launch(
             k.cell_keys,
             dim=n,
-            inputs=[position, layout.slot, self.grid, dims],
+            inputs=[position, layout.slot, self.grid, dims, self.model.world_size],
             outputs=[self._keys, self._values],
             device=device,
         )
-        wp.utils.radix_sort_pairs(self._keys, self._values, n, 0, 30)
+        world_bits = int(self.model.world_count - 1).bit_length()
+        wp.utils.radix_sort_pairs(self._keys, self._values, n, 0, MORTON_BITS + world_bits)
 
     def _rows(self, position, layout: GrainLayout, status) -> None:
         k = self.kernels
@@ -756,6 +773,7 @@ class NeighbourList:
                 self._cell_slot,
                 self.model.precision.hi(self.skin),
                 self._target,
+                self.model.world_size,
             ],
             outputs=[layout.neighbours, layout.neighbour_count, layout.build_position, status],
             device=device,

@@ -58,6 +58,7 @@ def contact_kernels(hi, mid, lo, law: ContactLaw):
         material: wp.array(dtype=wp.int32)
         pair: wp.array2d(dtype=lo)
         material_count: int
+        world_size: int  # grains per world (soil.worlds): a grain's world is its model index // world_size
 
     @wp.struct
     class Walls:
@@ -68,6 +69,7 @@ def contact_kernels(hi, mid, lo, law: ContactLaw):
         material: wp.array(dtype=wp.int32)
         displacement: wp.array(dtype=vec_hi)
         velocity: wp.array(dtype=vec_hi)
+        per_world: int  # world w's walls are w * per_world .. (w + 1) * per_world - 1
 
     @wp.struct
     class Bodies:
@@ -86,6 +88,7 @@ def contact_kernels(hi, mid, lo, law: ContactLaw):
         velocity: wp.array(dtype=vec_hi)
         angular_velocity: wp.array(dtype=vec_hi)
         posed: wp.array(dtype=wp.int32)
+        per_world: int  # world w's wheels are w * per_world .. (w + 1) * per_world - 1
 
     @wp.struct
     class History:
@@ -225,11 +228,16 @@ def contact_kernels(hi, mid, lo, law: ContactLaw):
                             history_out.rolling[i, k] = vec_spin_mid()
             history_out.touching[i, word] = now
 
-        # rigid partners: walls (fixed grains do not touch them), then wheels (every grain)
+        # rigid partners of the grain's world: walls (fixed grains do not touch them), then wheels
+        # (every grain); a partner's key is its index among all walls, then all wheels
         wall_count = walls.kind.shape[0]
+        world = grains.order[i] // grains.world_size
         slots = history_out.rigid_key.shape[1]
         stored = int(0)  # noqa: UP018 (a Warp variable the kernel changes: not a constant)
-        for partner in range(wall_count + bodies.kind.shape[0]):
+        for nth in range(walls.per_world + bodies.per_world):
+            partner = world * walls.per_world + nth
+            if nth >= walls.per_world:
+                partner = wall_count + world * bodies.per_world + nth - walls.per_world
             overlap = hi(0.0)
             n = vec_hi()
             v_partner = vec_hi()
@@ -340,7 +348,8 @@ def contact_kernels(hi, mid, lo, law: ContactLaw):
                 r_eff = hi(ri * rj / (ri + rj))
                 e_star = hi(grains.pair[grains.material[i] * grains.material_count + grains.material[j], 0])
                 total += hi(0.5 * 8.0 / 15.0) * e_star * wp.sqrt(r_eff) * wp.pow(overlap, hi(2.5))
-        for b in range(walls.kind.shape[0]):
+        first_wall = (grains.order[i] // grains.world_size) * walls.per_world
+        for b in range(first_wall, first_wall + walls.per_world):
             overlap, n = boundary_contact(walls.kind[b], walls.geometry, b, xi - walls.displacement[b], hi(ri))
             if overlap > hi(0.0):
                 e_star = hi(grains.pair[grains.material[i] * grains.material_count + walls.material[b], 0])
@@ -355,19 +364,24 @@ def contact_kernels(hi, mid, lo, law: ContactLaw):
         reaction_force: wp.array2d(dtype=vec_hi),
         reaction_torque: wp.array2d(dtype=vec_hi),
         chunk: int,
+        world_size: int,
+        world_chunks: int,
         # outputs
         force_out: wp.array2d(dtype=vec_hi),
         torque_out: wp.array2d(dtype=vec_hi),
         contact_out: wp.array2d(dtype=wp.int32),
     ):
         """Per chunk of model indices, the reactions on each rigid partner, summed in model-index
-        order: the sums depend neither on thread scheduling nor on the storage order."""
+        order: the sums depend neither on thread scheduling nor on the storage order. Each world's
+        chunks start at its first grain (world_chunks per world), as they would alone."""
         c = wp.tid()
         for key in range(force_out.shape[1]):
             force_out[c, key] = vec_hi()
             torque_out[c, key] = vec_hi()
             contact_out[c, key] = 0
-        for p in range(c * chunk, wp.min(c * chunk + chunk, slot.shape[0])):
+        world = c // world_chunks
+        start = world * world_size + (c - world * world_chunks) * chunk
+        for p in range(start, wp.min(start + chunk, world * world_size + world_size)):
             i = slot[p]
             for s in range(wp.min(rigid_count[i], rigid_key.shape[1])):
                 key = rigid_key[i, s]
@@ -381,6 +395,9 @@ def contact_kernels(hi, mid, lo, law: ContactLaw):
         torque_in: wp.array2d(dtype=vec_hi),
         contact_in: wp.array2d(dtype=wp.int32),
         wall_reported: wp.array(dtype=wp.int32),
+        walls_per_world: int,
+        bodies_per_world: int,
+        world_chunks: int,
         # outputs
         wall_force_out: wp.array(dtype=vec_hi),
         wall_torque_out: wp.array(dtype=vec_hi),
@@ -389,18 +406,22 @@ def contact_kernels(hi, mid, lo, law: ContactLaw):
         body_torque_out: wp.array(dtype=vec_hi),
         body_contact_out: wp.array(dtype=wp.int32),
     ):
-        """Total of the chunk sums of rigid partner `key` (walls first, then wheels); walls built
-        with report=False read zero."""
+        """Total of the chunk sums of rigid partner `key` (walls first, then wheels) over its world's
+        chunks; walls built with report=False read zero."""
         key = wp.tid()
         wall_count = wall_reported.shape[0]
         total_force = vec_hi()
         total_torque = vec_hi()
         contacts = int(0)  # noqa: UP018 (a Warp variable the kernel changes: not a constant)
         summed = True
+        world = int(0)  # noqa: UP018 (a Warp variable the kernel changes: not a constant)
         if key < wall_count:
             summed = wall_reported[key] >= 0
+            world = key // wp.max(walls_per_world, 1)
+        else:
+            world = (key - wall_count) // wp.max(bodies_per_world, 1)
         if summed:
-            for c in range(force_in.shape[0]):
+            for c in range(world * world_chunks, world * world_chunks + world_chunks):
                 total_force = total_force + force_in[c, key]
                 total_torque = total_torque + torque_in[c, key]
                 contacts += contact_in[c, key]
@@ -441,7 +462,9 @@ class ContactSolver:
         """The step status array (soil.status), shared with the Simulation."""
         device = model.device
         self._partners = model.boundary_count + model.body_count
-        self._chunks = (model.particle_count + CHUNK - 1) // CHUNK
+        self._world_chunks = (model.world_size + CHUNK - 1) // CHUNK
+        """Wrench chunks per world: each world's start at its first grain (soil.worlds)."""
+        self._chunks = model.world_count * self._world_chunks
         width = max(self._partners, 1)
         self._partial_force = wp.zeros((self._chunks, width), dtype=prec.vec_hi, device=device)
         self._partial_torque = wp.zeros((self._chunks, width), dtype=prec.vec_hi, device=device)
@@ -483,6 +506,7 @@ class ContactSolver:
         bundle.order, bundle.radius, bundle.mass = layout.order, layout.radius, layout.mass
         bundle.inv_mass, bundle.material = layout.inv_mass, layout.material
         bundle.pair, bundle.material_count = self.model.pair, self.model.material_count
+        bundle.world_size = max(self.model.world_size, 1)
         return bundle
 
     def walls(self, state: SoilState):
@@ -494,6 +518,7 @@ class ContactSolver:
             model.boundary_material,
         )
         bundle.displacement, bundle.velocity = state.boundary_displacement, state.boundary_velocity
+        bundle.per_world = model.walls_per_world
         return bundle
 
     def bodies(self, state: SoilState):
@@ -510,6 +535,7 @@ class ContactSolver:
         bundle.position, bundle.rotation = state.body_position, state.body_rotation
         bundle.velocity, bundle.angular_velocity = state.body_velocity, state.body_angular_velocity
         bundle.posed = state.body_posed
+        bundle.per_world = model.bodies_per_world
         return bundle
 
     def history(self, state: SoilState):
@@ -578,14 +604,31 @@ class ContactSolver:
         wp.launch(
             self.kernels.wrench_partial,
             dim=self._chunks,
-            inputs=[state.layout.slot, state.rigid_key, state.rigid_count, reaction_force, reaction_torque, CHUNK],
+            inputs=[
+                state.layout.slot,
+                state.rigid_key,
+                state.rigid_count,
+                reaction_force,
+                reaction_torque,
+                CHUNK,
+                self.model.world_size,
+                self._world_chunks,
+            ],
             outputs=[self._partial_force, self._partial_torque, self._partial_contacts],
             device=device,
         )
         wp.launch(
             self.kernels.wrench_total,
             dim=self._partners,
-            inputs=[self._partial_force, self._partial_torque, self._partial_contacts, self._wall_reported],
+            inputs=[
+                self._partial_force,
+                self._partial_torque,
+                self._partial_contacts,
+                self._wall_reported,
+                self.model.walls_per_world,
+                self.model.bodies_per_world,
+                self._world_chunks,
+            ],
             outputs=[
                 state.boundary_force,
                 state.boundary_torque,

@@ -28,7 +28,7 @@ def test_the_gpu_suite_runs_small_on_the_cpu(tmp_path):
     assert done.returncode == 0, done.stdout[-3000:] + done.stderr[-3000:]
     results = json.loads((tmp_path / "results.json").read_text())
     sections = results["sections"]
-    assert set(sections) == {"throughput", "repeat", "agreement", "paper", "rover", "tests"}
+    assert set(sections) == {"throughput", "repeat", "agreement", "batched", "paper", "rover", "tests"}
     assert all(section["ok"] for section in sections.values()), sections
     assert sections["repeat"]["bitwise_equal"] and sections["repeat"]["wheel_contacts_max"] > 0
     rows = sections["throughput"]["rows"]
@@ -45,5 +45,8 @@ def test_the_gpu_suite_runs_small_on_the_cpu(tmp_path):
     assert paper["projected_60s_seconds"] > 0 and paper["particle_steps_per_second"] > 0
     rover = sections["rover"]
     assert rover["drive_steps"] > 0 and rover["particle_steps_per_second"] > 0 and rover["grains_min"] > 0
+    batched = sections["batched"]  # replicas as worlds of one simulation: world 0 is its run alone
+    assert batched["world_0_as_alone"] and [r["worlds"] for r in batched["rows"]] == [1, 2]
+    assert all(r["particle_steps_per_second"] > 0 and r["wheel_contacts_min"] > 0 for r in batched["rows"])
     text = (tmp_path / "results.md").read_text()
-    assert "| target | met |" in text and "Paper case" in text and "Rover" in text
+    assert "| target | met |" in text and "Paper case" in text and "Rover" in text and "Batched replicas" in text

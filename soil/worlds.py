@@ -1,0 +1,537 @@
+"""Worlds: K copies of one soil scene stepped by the same launches, each exactly as it runs alone.
+
+    worlds = open_bed_worlds(bed, wheels, order_seeds=range(20), device="cuda:0")
+    sim = worlds.world(3)           # world 3 as a Simulation-like object (what cosim.DemSoil drives)
+
+Replicas of a small scene leave most of a GPU idle; K of them in one simulation fill it. World w
+holds grains w * n .. (w + 1) * n - 1 (model order), and its walls and wheels likewise
+(SoilModel.world_count). A grain's neighbour search covers only its world's cells (the world's
+bits above the Morton code of the sort key, soil.neighbours), its rigid partners are its world's
+walls and wheels, and a world's wheel wrenches are summed over chunks that start at the world's
+first grain (soil.solver). Every sum a world sees is then the sum it sees alone: the rows are in
+model-index order and entries out of contact add nothing, so a list rebuilt when another world
+needed it holds the same contacts in the same order, and storage grown for one world changes no
+value of another. Each world steps bit for bit as its scene alone (tests/test_worlds.py).
+
+Shared by the worlds: the DEM step (fixed steps only: under the PID step control the step would
+follow the most demanding world, so it is refused), the clock, storage growth and the divergence
+monitor (a world that diverges stops them all).
+
+Stepping: each world asks for its macro step (World.advance_to) with its wheels' path; the step
+runs once every active world has asked, and a world that is done leaves (Worlds.leave; its wheels
+then hold still). The worlds may be driven from one thread each (cosim.batch): the requests meet
+in a condition variable and every access to the shared simulation holds `Worlds.lock`.
+"""
+
+from __future__ import annotations
+
+import copy
+import threading
+from collections.abc import Iterable, Sequence
+from dataclasses import replace
+
+import numpy as np
+import warp as wp
+
+from .control import SoilControl
+from .errors import ArgumentError, SoilInputError
+from .macro import MacroStepReport
+from .model import SoilModel
+from .stability import SimulationDiverged
+from .state import SoilState, per_grain
+
+_PER_GRAIN_MODEL = ("radius", "mass", "inv_mass", "inv_inertia", "material")
+_PER_BODY_MODEL = ("body_kind", "body_shape", "body_mesh", "body_material")
+_PER_WALL_MODEL = ("boundary_kind", "boundary_geometry", "boundary_material")
+
+
+def join_worlds(parts: Sequence[tuple[SoilModel, SoilState, SoilControl]]):
+    """One (model, state, control) holding the worlds `parts` (each a finalized scene of one world,
+    all of the same shape: grains, walls, wheels, precision, law, device) side by side."""
+    if not parts:
+        raise ArgumentError("join_worlds needs at least one world")
+    models = [p[0] for p in parts]
+    first = models[0]
+    count = len(parts)
+    for w, m in enumerate(models):
+        shape = (m.particle_count, m.boundary_count, m.body_count, m.precision.name, m.law, m.device)
+        expected = (first.particle_count, first.boundary_count, first.body_count, first.precision.name)
+        if shape[:4] != expected or m.law != first.law or m.device != first.device or m.world_count != 1:
+            raise SoilInputError(
+                f"world {w} differs from world 0 (grains, walls, wheels, precision, law, device: {shape} vs "
+                f"{expected + (first.law, first.device)}): the worlds of a batch are copies of one scene"
+            )
+    n, walls, bodies = first.particle_count, first.boundary_count, first.body_count
+    device, prec = first.device, first.precision
+
+    def values(m: SoilModel, name: str) -> np.ndarray:
+        array = getattr(m, name)
+        assert array is not None, f"a finalized model has its {name}"
+        return array.numpy()
+
+    def joined(name: str) -> wp.array:
+        return wp.array(
+            np.concatenate([values(m, name) for m in models]), dtype=getattr(first, name).dtype, device=device
+        )
+
+    def offsets(name: str, counts: str) -> wp.array:
+        starts = np.cumsum([0] + [len(values(m, counts)) for m in models])
+        rows = [values(m, name) + starts[w] for w, m in enumerate(models)]
+        return wp.array(np.concatenate(rows).astype(np.int32), dtype=wp.int32, device=device)
+
+    reports = np.concatenate([m.boundary_reports for m in models])
+    model = SoilModel(
+        device=device,
+        precision=prec,
+        law=first.law,
+        materials=first.materials,
+        gravity=first.gravity.copy(),
+        particle_count=count * n,
+        **{name: joined(name) for name in _PER_GRAIN_MODEL + _PER_WALL_MODEL},
+        pair=first.pair,
+        boundary_column=wp.array(
+            np.where(reports, np.cumsum(reports) - 1, -1).astype(np.int32), dtype=wp.int32, device=device
+        ),
+        max_radius=max(m.max_radius for m in models),
+        particle_order=np.concatenate(
+            [(m.particle_order if m.particle_order is not None else np.arange(n)) + w * n for w, m in enumerate(models)]
+        ),
+        bodies=[shape for m in models for shape in m.bodies],
+        **{name: joined(name) for name in _PER_BODY_MODEL if bodies},
+        mesh_points=joined("mesh_points"),
+        mesh_indices=joined("mesh_indices"),
+        body_point_offset=offsets("body_point_offset", "mesh_points"),
+        body_index_offset=offsets("body_index_offset", "mesh_indices"),
+        meshes=[mesh for m in models for mesh in m.meshes],
+        world_count=count,
+    )
+    capacity = max(p[1].capacity for p in parts)
+    rigid_capacity = max(p[1].rigid_capacity for p in parts)
+    datas = []
+    for _, s, _ in parts:
+        s.grow_capacity(capacity, rigid_capacity)
+        datas.append(s.to_numpy())
+    state_data = {}
+    for name, first_values in datas[0].items():
+        if name in ("time", "step_previous"):
+            state_data[name] = first_values
+            continue
+        rows = []
+        for w, data in enumerate(datas):
+            v = np.asarray(data[name])
+            if name == "neighbours":
+                v = np.where(v >= 0, v + w * n, -1).astype(np.int32)
+            elif name == "rigid_key":
+                v = _rigid_keys_to_batch(v, w, walls, bodies, count)
+            rows.append(v)
+        state_data[name] = np.concatenate(rows)
+    state = SoilState.for_model(model, capacity, rigid_capacity)
+    state.load_numpy(state_data)
+    state.forces_valid = all(p[1].forces_valid for p in parts)
+    control = SoilControl.for_model(model)
+    controls = [p[2].state_dict() for p in parts]
+    control.load_state_dict(
+        {
+            name: np.concatenate([c[name] for c in controls])
+            if np.ndim(values)
+            else np.any([c[name] for c in controls])
+            for name, values in controls[0].items()
+        }
+    )
+    return model, state, control
+
+
+def _rigid_keys_to_batch(keys: np.ndarray, world: int, walls: int, bodies: int, count: int) -> np.ndarray:
+    """A world's rigid partner keys (wall b, or walls + wheel) as keys of the batch."""
+    out = np.where(keys < walls, keys + world * walls, keys - walls + count * walls + world * bodies)
+    return np.where(keys >= 0, out, -1).astype(np.int32)
+
+
+def _rigid_keys_to_world(keys: np.ndarray, world: int, walls: int, bodies: int, count: int) -> np.ndarray:
+    """The batch's rigid partner keys of world `world`'s grains as that world's own keys."""
+    total_walls = count * walls
+    out = np.where(keys < total_walls, keys - world * walls, keys - total_walls - world * bodies + walls)
+    return np.where(keys >= 0, out, -1).astype(np.int32)
+
+
+def world_state_dict(data: dict, world: int, model: SoilModel) -> dict:
+    """World `world`'s part of a batch's Simulation.state_dict() (or a monitor's last good state), in
+    the format of its scene alone: a solo Simulation of the same scene and order seed loads it and
+    continues bit for bit (the divergence monitor's bounds are the batch's)."""
+    n, walls, bodies, count = model.world_size, model.walls_per_world, model.bodies_per_world, model.world_count
+    grains = slice(world * n, (world + 1) * n)
+    wall_rows = slice(world * walls, (world + 1) * walls)
+    body_rows = slice(world * bodies, (world + 1) * bodies)
+    out = {}
+    for key, value in data.items():
+        part, _, name = key.partition("/")
+        if part not in ("state", "control") or not name:
+            out[key] = value
+            continue
+        v = np.asarray(value)
+        if name.startswith("body_"):
+            v = v[body_rows]
+        elif name.startswith("boundary_"):
+            v = v[wall_rows]
+        elif part == "control" and name == "external_force":
+            v = v[grains]
+        elif part == "state" and per_grain(name) and v.ndim and v.shape[0] == model.particle_count:
+            v = v[grains]
+            if name == "neighbours":
+                v = np.where(v >= 0, v - world * n, -1).astype(np.int32)
+            elif name == "rigid_key":
+                v = _rigid_keys_to_world(v, world, walls, bodies, count)
+        out[key] = v
+    return out
+
+
+def open_bed_worlds(
+    bed,
+    wheels=(),
+    order_seeds: Iterable[int | None] = (None,),
+    *,
+    device: str | None = None,
+    precision="double",
+    law=None,
+    integrator=None,
+    gravity=None,
+) -> Worlds:
+    """Worlds of one settled bed (soil.bed.open_bed's arguments), one per order seed: world w is the
+    simulation open_bed(..., order_seed=order_seeds[w]) gives."""
+    from .bed import SavedBed, read_bed
+    from .simulation import Simulation
+
+    saved = bed if isinstance(bed, SavedBed) else read_bed(bed)
+    parts = []
+    for seed in order_seeds:
+        builder = saved.builder(gravity)
+        for shape, material in wheels:
+            builder.add_wheel(shape, material)
+        parts.append(builder.finalize(device=device, precision=precision, law=law, order_seed=seed))
+    model, state, control = join_worlds(parts)
+    return Worlds(Simulation(model, state, control, integrator=integrator))
+
+
+class Worlds:
+    """The worlds of one Simulation (its model's world_count), stepped together (module docstring)."""
+
+    def __init__(self, sim):
+        if sim.step_control is not None:
+            raise ArgumentError(
+                "worlds share one DEM step: the PID step control would set it for all of them; run them at a fixed "
+                "step or one by one"
+            )
+        self.sim = sim
+        self.model: SoilModel = sim.model
+        self.count = self.model.world_count
+        self.lock = threading.RLock()
+        """Held by every access to the shared simulation."""
+        self._changed = threading.Condition(self.lock)
+        self.active = set(range(self.count))
+        """The worlds that still step (a world leaves when its run is done)."""
+        self._requests: dict[int, tuple] = {}
+        self._reports: dict[int, MacroStepReport] = {}
+        self._round = 0
+        self._failure: BaseException | None = None
+        self._refresh = False
+        self.rounds = 0
+        """Macro steps taken together [-]."""
+
+    def world(self, index: int) -> World:
+        if not 0 <= index < self.count:
+            raise ArgumentError(f"world index must be in 0 .. {self.count - 1}, got {index}")
+        return World(self, index)
+
+    def body_rows(self, world: int) -> slice:
+        per = self.model.bodies_per_world
+        return slice(world * per, (world + 1) * per)
+
+    def wall_rows(self, world: int) -> slice:
+        per = self.model.walls_per_world
+        return slice(world * per, (world + 1) * per)
+
+    def grain_rows(self, world: int) -> slice:
+        n = self.model.world_size
+        return slice(world * n, (world + 1) * n)
+
+    # -- forces of new poses: once, when a world first needs them --------------------------
+    def refresh_later(self) -> None:
+        with self.lock:
+            self._refresh = True
+
+    def ensure_forces(self) -> None:
+        """The forces of the bodies' poses as prescribed (a pending refresh_forces, done once for all worlds)."""
+        with self.lock:
+            if self._refresh:
+                self._refresh = False
+                self.sim.refresh_forces()
+
+    # -- stepping together --------------------------------------------------------------
+    def leave(self, world: int) -> None:
+        """World `world` steps no more: its wheels hold still; the others step without waiting for it."""
+        with self._changed:
+            self.active.discard(world)
+            self._requests.pop(world, None)
+            self._maybe_step()
+            self._changed.notify_all()
+
+    def advance_to(self, world: int, end_time: float, dt: float, path: bool, body_path: tuple | None):
+        """World `world`'s macro step to end_time [s] (its bodies along body_path: set_body_path's
+        arguments for its bodies, or None); returns its part of the report once every active world
+        has asked for the same step."""
+        with self._changed:
+            if world not in self.active:
+                raise ArgumentError(f"world {world} has left the batch")
+            if self._failure is not None:
+                raise self._world_failure(world)
+            self._requests[world] = (float(end_time), float(dt), bool(path), body_path)
+            mine = self._round
+            self._maybe_step()
+            while self._round == mine and self._failure is None:
+                self._changed.wait()
+            if world not in self._reports:
+                raise self._world_failure(world)
+            return self._reports.pop(world)
+
+    def _world_failure(self, world: int) -> BaseException:
+        """The batch's failure as world `world` sees it: a divergence carries that world's last good state."""
+        failure = self._failure
+        assert failure is not None
+        if isinstance(failure, SimulationDiverged) and failure.last_good is not None:
+            mine = copy.copy(failure)
+            part = world_state_dict({f"state/{k}": v for k, v in failure.last_good.items()}, world, self.model)
+            mine.last_good = {k[len("state/") :]: v for k, v in part.items()}
+            return mine
+        return failure
+
+    def _maybe_step(self) -> None:
+        """Step when every active world has asked (holding the lock)."""
+        if not self._requests or set(self._requests) != self.active:
+            return
+        requests, self._requests = self._requests, {}
+        ends = {(r[0], r[1], r[2]) for r in requests.values()}
+        if len(ends) != 1:
+            self._fail(ArgumentError(f"the worlds asked for different macro steps (end, dt, path): {sorted(ends)}"))
+            return
+        end_time, dt, path = ends.pop()
+        try:
+            self._step(end_time, dt, path, requests)
+        except BaseException as error:  # every waiting world gets it
+            self._fail(error)
+            return
+        self._round += 1
+        self.rounds += 1
+        self._changed.notify_all()
+
+    def _fail(self, error: BaseException) -> None:
+        self._failure = error
+        self._round += 1
+        self._changed.notify_all()
+
+    def _step(self, end_time: float, dt: float, path: bool, requests: dict) -> None:
+        self.ensure_forces()  # a step starts from the forces of the poses as placed, as alone
+        sim, control = self.sim, self.sim.control
+        span = end_time - sim.time
+        if path:
+            position, rotation = control.body_position_host.copy(), control.body_rotation_host
+            velocity = np.zeros_like(position)
+            spin = np.zeros_like(position)
+            orientation = np.array([_quaternion(r) for r in rotation]).reshape(-1, 4)
+            start = [position, orientation, velocity, spin]
+            end = None
+            ends = [a.copy() for a in start]
+            for w, (_, _, _, body_path) in requests.items():
+                if body_path is None:
+                    continue
+                rows = self.body_rows(w)
+                for column, values in zip(start, body_path[:4]):
+                    column[rows] = values
+                if body_path[4] is not None:
+                    end = ends
+                    for column, values in zip(ends, body_path[4]):
+                        column[rows] = values
+                else:
+                    for column, values in zip(ends, body_path[:4]):
+                        column[rows] = values
+            sim.set_body_path(span, *start, end=end)
+        report = sim.advance_to(end_time, dt, path=path)
+        for w in requests:
+            bodies, walls = self.body_rows(w), self.wall_rows(w)
+            self._reports[w] = replace(
+                report,
+                body_force=report.body_force[bodies],
+                body_torque=report.body_torque[bodies],
+                body_force_end=report.body_force_end[bodies],
+                body_torque_end=report.body_torque_end[bodies],
+                body_work=report.body_work[bodies],
+                body_contacts=report.body_contacts[bodies],
+                boundary_displacement=report.boundary_displacement[walls],
+            )
+
+
+def _quaternion(rotation: np.ndarray) -> np.ndarray:
+    """The unit quaternion (w, x, y, z) of a rotation matrix (3, 3)."""
+    from scipy.spatial.transform import Rotation
+
+    x, y, z, w = Rotation.from_matrix(rotation).as_quat()
+    return np.array([w, x, y, z])
+
+
+class World:
+    """One world of a Worlds batch with the Simulation interface a run layer uses (cosim.DemSoil):
+    its grains, walls and wheels by their own indices, its state_dict in its scene's own format."""
+
+    def __init__(self, worlds: Worlds, index: int):
+        self.worlds = worlds
+        self.index = index
+        self._sim = worlds.sim
+        self._grains = worlds.grain_rows(index)
+        self._bodies = worlds.body_rows(index)
+        self._walls = worlds.wall_rows(index)
+        self._path: tuple | None = None
+        self.monitor = self._sim.monitor
+        """The batch's divergence monitor (shared)."""
+
+    # -- what the world is ------------------------------------------------------------
+    @property
+    def time(self) -> float:
+        return self._sim.time
+
+    @property
+    def gravity(self) -> np.ndarray:
+        return self._sim.gravity
+
+    @property
+    def device(self) -> str:
+        return self._sim.device
+
+    @property
+    def precision_name(self) -> str:
+        return self._sim.precision_name
+
+    @property
+    def step_control(self):
+        return None
+
+    @property
+    def particle_count(self) -> int:
+        return self.worlds.model.world_size
+
+    @property
+    def body_count(self) -> int:
+        return self.worlds.model.bodies_per_world
+
+    @property
+    def boundary_count(self) -> int:
+        return self.worlds.model.walls_per_world
+
+    @property
+    def body_shapes(self) -> list:
+        return self._sim.body_shapes[self._bodies]
+
+    def _read(self, method, rows):
+        with self.worlds.lock:
+            return method()[rows]
+
+    def radii(self) -> np.ndarray:
+        return self._read(self._sim.radii, self._grains)
+
+    def masses(self) -> np.ndarray:
+        return self._read(self._sim.masses, self._grains)
+
+    def positions(self) -> np.ndarray:
+        return self._read(self._sim.positions, self._grains)
+
+    def velocities(self) -> np.ndarray:
+        return self._read(self._sim.velocities, self._grains)
+
+    def angular_velocities(self) -> np.ndarray:
+        return self._read(self._sim.angular_velocities, self._grains)
+
+    # -- walls ---------------------------------------------------------------------------
+    def boundary_kinds(self) -> np.ndarray:
+        return self._sim.boundary_kinds()[self._walls]
+
+    def boundary_reports(self) -> np.ndarray:
+        return self._sim.boundary_reports()[self._walls]
+
+    def initial_boundary_geometry(self) -> np.ndarray:
+        return self._sim.initial_boundary_geometry()[self._walls]
+
+    def boundary_displacements(self) -> np.ndarray:
+        return self._read(self._sim.boundary_displacements, self._walls)
+
+    def boundary_velocities(self) -> np.ndarray:
+        return self._read(self._sim.boundary_velocities, self._walls)
+
+    def boundary_geometry(self, displacement=None) -> np.ndarray:
+        with self.worlds.lock:
+            shift = self._sim.boundary_displacements()
+            if displacement is not None:
+                shift[self._walls] = np.asarray(displacement, dtype=np.float64).reshape(-1, 3)
+            return self._sim.boundary_geometry(shift)[self._walls]
+
+    def boundary_wrenches(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        with self.worlds.lock:
+            self.worlds.ensure_forces()
+            return tuple(values[self._walls] for values in self._sim.boundary_wrenches())
+
+    # -- wheels --------------------------------------------------------------------------
+    def set_body_motion(self, body: int, *args, **kwargs) -> None:
+        with self.worlds.lock:
+            self._sim.set_body_motion(self._bodies.start + body, *args, **kwargs)
+
+    def refresh_forces(self) -> None:
+        """The forces of the new poses are computed once for all worlds, when first needed."""
+        self.worlds.refresh_later()
+
+    def set_body_path(self, span: float, position, orientation, velocity, angular_velocity, end=None) -> None:
+        self._path = (position, orientation, velocity, angular_velocity, end)
+
+    def advance_to(self, end_time: float, dt: float, path: bool = False) -> MacroStepReport:
+        body_path, self._path = self._path, None
+        return self.worlds.advance_to(self.index, end_time, dt, path, body_path)
+
+    def leave(self) -> None:
+        self.worlds.leave(self.index)
+
+    def _control_rows(self, name: str) -> np.ndarray:
+        with self.worlds.lock:
+            return getattr(self._sim.control, name)[self._bodies].copy()
+
+    def body_positions(self) -> np.ndarray:
+        return self._control_rows("body_position_host")
+
+    def body_rotations(self) -> np.ndarray:
+        return self._control_rows("body_rotation_host")
+
+    def body_velocities(self) -> np.ndarray:
+        return self._control_rows("body_velocity_host")
+
+    def body_angular_velocities(self) -> np.ndarray:
+        return self._control_rows("body_angular_velocity_host")
+
+    def body_wrenches(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        with self.worlds.lock:
+            self.worlds.ensure_forces()
+            return tuple(values[self._bodies] for values in self._sim.body_wrenches())
+
+    # -- health and checkpoints ------------------------------------------------------------
+    def arm_monitor(self) -> None:
+        with self.worlds.lock:
+            self.worlds.ensure_forces()
+            if not self.monitor.armed:
+                self._sim.arm_monitor()
+
+    def check_divergence(self) -> None:
+        with self.worlds.lock:
+            self._sim.check_divergence()
+
+    def state_dict(self) -> dict:
+        """This world's state in its scene's own format (world_state_dict): `cosim resume` continues it alone."""
+        with self.worlds.lock:
+            self.worlds.ensure_forces()
+            return world_state_dict(self._sim.state_dict(), self.index, self.worlds.model)
+
+    def load_state_dict(self, data: dict) -> None:
+        raise ArgumentError("a world of a batch is not loaded from a checkpoint: resume its run on its own")

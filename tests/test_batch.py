@@ -1,0 +1,43 @@
+"""Replicas batched as worlds of one simulation (cosim.batch): each replica's results are bit for bit those
+of the same replica run alone, and the batch refuses what it cannot run."""
+
+import numpy as np
+import pytest
+
+from cosim.batch import batch_problem
+from cosim.output import read_series
+from cosim.plan import load_plan
+from cosim.scene import SceneError
+from cosim.study import replica_run
+from helpers import write_tiny
+
+REPLICAS = 3
+SAME_EVERYWHERE = ("wall_time", "session_wall_time", "particle_steps_per_second", "real_time_factor")
+
+
+def test_batched_replicas_equal_their_runs_alone(tmp_path, tiny_bed):
+    plan = load_plan(write_tiny(tmp_path), [f'bed.bed_file="{tiny_bed}"'])
+    alone = replica_run(plan, str(tmp_path / "alone"), REPLICAS, executor="serial", batched=False)
+    together = replica_run(plan, str(tmp_path / "together"), REPLICAS, batched=True)
+    assert together["batched"] and not alone["batched"]
+    for a, b in zip(alone["results"], together["results"]):
+        assert a["ok"] and b["ok"], (a.get("error"), b.get("error"))
+        series_a, series_b = read_series(f"{a['out_dir']}/results.h5"), read_series(f"{b['out_dir']}/results.h5")
+        assert len(series_a["time"]) > 20
+        for name, values in series_a.items():
+            if isinstance(values, np.ndarray) and name not in SAME_EVERYWHERE:
+                assert np.array_equal(values, series_b[name], equal_nan=True), f"{b['out_dir']}: {name} differs"
+        for name, value in a["summary"].items():
+            if isinstance(value, float) and "wall" not in name and "per_second" not in name:
+                assert value == b["summary"][name] or (np.isnan(value) and np.isnan(b["summary"][name])), name
+    # the replicas are replicas: their summation orders make them differ
+    drawbar = [r["summary"]["drawbar_pull"] for r in together["results"]]
+    assert len(set(drawbar)) == REPLICAS
+
+
+def test_what_a_batch_cannot_run_is_refused_by_name(tmp_path, tiny_bed):
+    plan = load_plan(write_tiny(tmp_path), [f'bed.bed_file="{tiny_bed}"', 'run.step_control="pid"'])
+    assert "step_control" in batch_problem(plan)
+    with pytest.raises(SceneError, match="--batched: run.step_control"):
+        replica_run(plan, str(tmp_path / "pid"), 2, batched=True)
+    assert batch_problem(load_plan(write_tiny(tmp_path), ['terrain.model="analytic"'])).startswith("terrain.model")
