@@ -19,15 +19,17 @@ from __future__ import annotations
 
 import contextlib
 import logging
+import os
 import signal
 import threading
 import time
 import traceback
+from dataclasses import replace
 
 from soil.integrator import make_integrator
 from soil.worlds import Worlds, open_bed_worlds
 
-from .beds import settled_bed
+from .beds import check_memory, settled_bed
 from .dem_soil import DemSoil
 from .launch import open_run
 from .plan import RunPlan
@@ -54,7 +56,9 @@ def run_batched(
 ) -> list[dict]:
     """Run `plans` (replicas of one scene: the same bed, any order seeds) as worlds of one simulation
     into `out_dirs`; returns one result per run as cosim.study.run_task does (label, out_dir, ok,
-    status, summary, wall_time, error). hooks: each Runner's (cosim.runner.Runner), called from its thread."""
+    status, summary, wall_time, error), each with the batch's figures ('batch': worlds, wall_seconds,
+    rounds, step_seconds: the host clock of the macro steps themselves). hooks: each Runner's
+    (cosim.runner.Runner), called from its thread."""
     first = plans[0]
     problem = batch_problem(first)
     if problem is not None:
@@ -62,6 +66,8 @@ def run_batched(
     started = time.perf_counter()
     with contextlib.ExitStack() as stack:
         bed = settled_bed(first, out_dirs[0])
+        on_bed = replace(first, bed=replace(first.bed, bed_file=os.path.abspath(bed.path)))
+        check_memory(on_bed, len(plans))  # the K worlds must fit: checked before they are allocated
         wheels = [(w.shape, w.material) for w in (first.wheels if first.rover else [first.wheel])]
         worlds = open_bed_worlds(
             bed.saved,
@@ -82,7 +88,8 @@ def run_batched(
         results = _run_threads(worlds, runners)
     wall = time.perf_counter() - started
     log.info("%d replicas as one batch of worlds: %.1f s, %d macro steps together", len(plans), wall, worlds.rounds)
-    return [{**r, "label": f"replica_{k:03d}", "wall_time": wall} for k, r in enumerate(results)]
+    batch = {"worlds": len(plans), "wall_seconds": wall, "rounds": worlds.rounds, "step_seconds": worlds.step_seconds}
+    return [{**r, "label": f"replica_{k:03d}", "wall_time": wall, "batch": batch} for k, r in enumerate(results)]
 
 
 def _run_threads(worlds: Worlds, runners: list[Runner]) -> list[dict]:

@@ -109,9 +109,10 @@ def _plain(value):
     return value.item() if hasattr(value, "item") else value
 
 
-def memory_estimate(plan: RunPlan):
+def memory_estimate(plan: RunPlan, worlds: int = 1):
     """soil.memory.MemoryEstimate of the plan's largest soil: the settling (double precision) unless a bed
-    file is given, else the run in its precision; grains counted without allocating them."""
+    file is given, else the run in its precision (`worlds` copies of it: replicas batched, cosim.batch);
+    grains counted without allocating them."""
     from soil.bed import grain_count, read_bed_header
     from soil.memory import estimate
 
@@ -120,18 +121,20 @@ def memory_estimate(plan: RunPlan):
             grains = read_bed_header(plan.bed.bed_file)["particle_count"]
         except (OSError, ValueError):
             grains = 0  # an unreadable bed file is reported where it is read
-        return estimate(grains, plan.precision, plan.device)
+        return estimate(worlds * grains, plan.precision, plan.device)
     grains = grain_count(plan.bed.spec)
     double = estimate(grains, "double", plan.device)
     run = estimate(grains, plan.precision, plan.device)
     return double if double.device_bytes >= run.device_bytes else run
 
 
-def check_memory(plan: RunPlan) -> None:
-    """Refuse a scene whose soil cannot fit this machine's free memory (soil.memory.SoilTooLargeError)."""
+def check_memory(plan: RunPlan, worlds: int = 1) -> None:
+    """Refuse a scene whose soil (`worlds` copies of it with a bed file) cannot fit this machine's free
+    memory (soil.memory.SoilTooLargeError)."""
     from soil.memory import check_fits
 
-    check_fits(memory_estimate(plan), f"the soil of scene {plan.name!r}")
+    what = f"the soil of scene {plan.name!r}" + (f" as {worlds} batched replicas" if worlds > 1 else "")
+    check_fits(memory_estimate(plan, worlds), what)
 
 
 def settled_bed(plan: RunPlan, folder: str, progress: bool = False) -> Bed:

@@ -27,6 +27,7 @@ from __future__ import annotations
 
 import copy
 import threading
+import time
 from collections.abc import Iterable, Sequence
 from dataclasses import replace
 
@@ -236,6 +237,9 @@ class Worlds:
         self._refresh = False
         self.rounds = 0
         """Macro steps taken together [-]."""
+        self.step_seconds = 0.0
+        """Host clock spent in those macro steps [s] (each ends with its report's read: the device's time);
+        the rest of a batch's wall is the worlds' own host work (rovers, records, writers)."""
 
     def world(self, index: int) -> World:
         if not 0 <= index < self.count:
@@ -354,7 +358,9 @@ class Worlds:
                     for column, values in zip(ends, body_path[:4]):
                         column[rows] = values
             sim.set_body_path(span, *start, end=end)
+        started = time.perf_counter()
         report = sim.advance_to(end_time, dt, path=path)
+        self.step_seconds += time.perf_counter() - started
         for w in requests:
             bodies, walls = self.body_rows(w), self.wall_rows(w)
             self._reports[w] = replace(

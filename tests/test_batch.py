@@ -5,11 +5,13 @@ import numpy as np
 import pytest
 
 from cosim.batch import batch_problem
+from cosim.beds import check_memory
 from cosim.output import read_series
 from cosim.plan import load_plan
 from cosim.scene import SceneError
 from cosim.study import replica_run
 from helpers import write_tiny
+from soil.memory import SoilTooLargeError
 
 REPLICAS = 3
 SAME_EVERYWHERE = ("wall_time", "session_wall_time", "particle_steps_per_second", "real_time_factor")
@@ -41,3 +43,7 @@ def test_what_a_batch_cannot_run_is_refused_by_name(tmp_path, tiny_bed):
     with pytest.raises(SceneError, match="--batched: run.step_control"):
         replica_run(plan, str(tmp_path / "pid"), 2, batched=True)
     assert batch_problem(load_plan(write_tiny(tmp_path), ['terrain.model="analytic"'])).startswith("terrain.model")
+    # K copies must fit: checked before anything is allocated (a million tiny beds: about a terabyte)
+    fixed = load_plan(write_tiny(tmp_path), [f'bed.bed_file="{tiny_bed}"'])
+    with pytest.raises(SoilTooLargeError, match="as 1000000 batched replicas does not fit"):
+        check_memory(fixed, 1_000_000)
