@@ -337,27 +337,31 @@ class Worlds:
         sim, control = self.sim, self.sim.control
         span = end_time - sim.time
         if path:
-            position, rotation = control.body_position_host.copy(), control.body_rotation_host
-            velocity = np.zeros_like(position)
-            spin = np.zeros_like(position)
-            orientation = np.array([_quaternion(r) for r in rotation]).reshape(-1, 4)
-            start = [position, orientation, velocity, spin]
-            end = None
-            ends = [a.copy() for a in start]
-            for w, (_, _, _, body_path) in requests.items():
-                if body_path is None:
-                    continue
+            paths = {w: r[3] for w, r in requests.items() if r[3] is not None}
+            if len({body_path[4] is None for body_path in paths.values()}) > 1:
+                raise ArgumentError("the worlds' wheel paths mix constant velocities and end poses in one macro step")
+            towards = any(body_path[4] is not None for body_path in paths.values())
+            # a world without a path (done) holds its wheels still where they are
+            count = self.model.body_count
+            start = [
+                control.body_position_host.copy(),
+                np.zeros((count, 4)),
+                np.zeros((count, 3)),
+                np.zeros((count, 3)),
+            ]
+            start[1][:, 0] = 1.0
+            for w in range(self.count):
+                if w not in paths:
+                    for b in range(self.body_rows(w).start, self.body_rows(w).stop):
+                        start[1][b] = _quaternion(control.body_rotation_host[b])
+            end = [a.copy() for a in start]
+            for w, body_path in paths.items():
                 rows = self.body_rows(w)
                 for column, values in zip(start, body_path[:4]):
                     column[rows] = values
-                if body_path[4] is not None:
-                    end = ends
-                    for column, values in zip(ends, body_path[4]):
-                        column[rows] = values
-                else:
-                    for column, values in zip(ends, body_path[:4]):
-                        column[rows] = values
-            sim.set_body_path(span, *start, end=end)
+                for column, values in zip(end, body_path[4] if towards else body_path[:4]):
+                    column[rows] = values
+            sim.set_body_path(span, *start, end=end if towards else None)
         started = time.perf_counter()
         report = sim.advance_to(end_time, dt, path=path)
         self.step_seconds += time.perf_counter() - started
