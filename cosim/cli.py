@@ -9,7 +9,7 @@
     cosim export vtkhdf RUN [--out FILE]
     cosim study precision SCENE.toml --replicas N [--precisions single,mixed,double] [--out DIR] ...
     cosim study timestep SCENE.toml [--out DIR] [--duration S] [--max-tries N]
-    cosim study slip SCENE.toml --slips 0.1,0.2,0.4 [--replicas K] [--out DIR] [--from-runs STUDY ...] ...
+    cosim study slip SCENE.toml --slips 0.1,0.2,0.4 [--replicas K] [--batched] [--out DIR] [--from-runs STUDY ...] ...
     cosim sweep SCENE.toml --param wheel.radius=0.03,0.04 --param wheel.grouser_count=0,12 [--out DIR] ...
     cosim scale SCENE.toml --gravity G --out TWIN.toml
     cosim lab repose|shear|plate SCENE.toml [--out DIR] [--replicas K] [--set key=value ...] [--workers N | --serial]
@@ -341,7 +341,9 @@ def cmd_study(args) -> int:
             print(report["text"])
             return EXIT_OK if report["ok"] else EXIT_UNSTEADY
         slips = [parse_value(s) for s in args.slips.split(",") if s.strip()]
-        report = study.slip_study(plan, out, slips, replicas=args.replicas, overwrite=args.overwrite, **_executor(args))
+        report = study.slip_study(
+            plan, out, slips, replicas=args.replicas, overwrite=args.overwrite, batched=args.batched, **_executor(args)
+        )
         print(report["text"])
         return EXIT_OK if report["ok"] else EXIT_UNSTEADY
     out = args.out or os.path.join("runs", f"{plan.name}_timestep")
@@ -732,6 +734,12 @@ def build_parser() -> argparse.ArgumentParser:
         "--include-sinking",
         action="store_true",
         help="--from-runs: average the runs whose traction is steady and sinkage still drifts too",
+    )
+    p.add_argument(
+        "--batched",
+        action=argparse.BooleanOptionalAction,
+        default=None,
+        help="slip: every run as a world of one simulation on one device (default: on a GPU, when the scene allows)",
     )
     p.add_argument("--duration", type=float, default=0.05, help="timestep: simulated time of each try [s]")
     p.add_argument("--max-tries", type=int, default=8, help="timestep: most runs of the search")

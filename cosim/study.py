@@ -215,6 +215,29 @@ def _shared_bed(plan: RunPlan, out_dir: str, ex: Executor) -> str | None:
     return result["path"]
 
 
+def _batching(plan: RunPlan, batched: bool | None) -> bool:
+    """Whether a study's runs go as worlds of one simulation (cosim.batch): as asked (refused, naming why,
+    when the scene cannot be batched), or, None, when the device is a GPU and the scene can be."""
+    from .batch import batch_problem
+
+    problem = batch_problem(plan)
+    if batched and problem is not None:
+        raise SceneError([f"--batched: {problem}"])
+    return problem is None and plan.device.startswith("cuda") if batched is None else bool(batched)
+
+
+def _run_tasks(ex: Executor, tasks: list[dict], batched: bool) -> list[dict]:
+    """The tasks' runs (run_task's results, in task order): on the executor, or as worlds of one simulation."""
+    if not batched:
+        return ex.map(run_task, tasks)
+    from .batch import run_batched
+
+    log.info("%d runs as worlds of one simulation", len(tasks))
+    plans = [task_plan(t) for t in tasks]
+    results = run_batched(plans, [str(t["out_dir"]) for t in tasks], overwrite=bool(tasks[0].get("overwrite")))
+    return [{**r, "label": t.get("label"), "overrides": t.get("overrides", {})} for r, t in zip(results, tasks)]
+
+
 def _bed_override(bed: str | None) -> dict:
     """A task's override that starts it from the shared bed (none without one)."""
     return {} if bed is None else {"bed.bed_file": bed}
@@ -313,15 +336,9 @@ def replica_run(
     batched: run the replicas as worlds of one simulation on one device (cosim.batch; each replica
     bit for bit its run alone); None: when the device is a GPU and the scene can be batched.
     Returns {'ok' (every replica steady and the statistics exist), 'stats', 'results', 'text'}."""
-    from .batch import batch_problem, run_batched
-
     if replicas < 2:
         raise SceneError([f"--replicas: must be >= 2 for error bars, got {replicas}"])
-    problem = batch_problem(plan)
-    if batched and problem is not None:
-        raise SceneError([f"--batched: {problem}"])
-    if batched is None:
-        batched = problem is None and plan.device.startswith("cuda")
+    batched = _batching(plan, batched)
     out_dir = os.path.abspath(out_dir)
     prepare_study(out_dir, overwrite)
     with Executor("serial" if batched else executor, scheduler, workers) as ex:
@@ -337,13 +354,7 @@ def replica_run(
             }
             for k in range(replicas)
         ]
-        if batched:
-            log.info("%d replicas as worlds of one simulation on %s", replicas, plan.device)
-            results = run_batched(
-                [task_plan(t) for t in tasks], [str(t["out_dir"]) for t in tasks], overwrite=overwrite
-            )
-        else:
-            results = ex.map(run_task, tasks)
+        results = _run_tasks(ex, tasks, batched)
     stats = ensemble_table(results, plan)
     report = {
         "kind": "replicas",
@@ -461,8 +472,12 @@ def slip_study(
     workers: int | None = None,
     overwrite: bool = False,
     plot: bool = True,
+    batched: bool | None = None,
 ) -> dict:
-    """Imposed slips after landing: DP, DP/W, torque and sinkage against slip, with error bars."""
+    """Imposed slips after landing: DP, DP/W, torque and sinkage against slip, with error bars.
+
+    batched: every slip's replicas as worlds of one simulation (cosim.batch; each run bit for bit as
+    alone); None: when the device is a GPU and the scene can be batched."""
     try:
         slips = [float(s) for s in slips]
     except (TypeError, ValueError):
@@ -476,10 +491,11 @@ def slip_study(
         raise SceneError(problems)
     for s in slips:  # every point must be a valid scene before anything runs
         plan.with_changes(**{"testbed.mode": "slip", "testbed.slip": s})
+    batched = _batching(plan, batched)
     out_dir = os.path.abspath(out_dir)
     prepare_study(out_dir, overwrite)
     text = plan.scene.to_toml()
-    with Executor(executor, scheduler, workers) as ex:
+    with Executor("serial" if batched else executor, scheduler, workers) as ex:
         bed = _shared_bed(plan, out_dir, ex)
         tasks = [
             {
@@ -492,7 +508,7 @@ def slip_study(
             for s in slips
             for k in range(replicas)
         ]
-        results = ex.map(run_task, tasks)
+        results = _run_tasks(ex, tasks, batched)
     return _slip_report(plan, out_dir, slips, [t["slip"] for t in tasks], results, text, bed, plot)
 
 

@@ -237,6 +237,7 @@ class Worlds:
         self._refresh = False
         self.rounds = 0
         """Macro steps taken together [-]."""
+        self._checked = -1  # the round the divergence monitor last checked
         self.step_seconds = 0.0
         """Host clock spent in those macro steps [s] (each ends with its report's read: the device's time);
         the rest of a batch's wall is the worlds' own host work (rovers, records, writers)."""
@@ -269,6 +270,19 @@ class Worlds:
             if self._refresh:
                 self._refresh = False
                 self.sim.refresh_forces()
+
+    def check_divergence(self, world: int) -> None:
+        """The divergence monitor's full check of the whole batch, once per macro step whichever world asks
+        first (it reads every grain); a divergence it finds reaches every world (with its own last good state)."""
+        with self.lock:
+            if self._failure is None and self._checked != self.rounds:
+                self._checked = self.rounds
+                try:
+                    self.sim.check_divergence()
+                except SimulationDiverged as error:
+                    self._fail(error)
+            if self._failure is not None:
+                raise self._world_failure(world)
 
     # -- stepping together --------------------------------------------------------------
     def leave(self, world: int) -> None:
@@ -534,8 +548,7 @@ class World:
                 self._sim.arm_monitor()
 
     def check_divergence(self) -> None:
-        with self.worlds.lock:
-            self._sim.check_divergence()
+        self.worlds.check_divergence(self.index)
 
     def state_dict(self) -> dict:
         """This world's state in its scene's own format (world_state_dict): `cosim resume` continues it alone."""

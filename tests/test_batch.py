@@ -9,7 +9,7 @@ from cosim.beds import check_memory
 from cosim.output import read_series
 from cosim.plan import load_plan
 from cosim.scene import SceneError
-from cosim.study import replica_run
+from cosim.study import replica_run, slip_study
 from helpers import write_tiny
 from soil.memory import SoilTooLargeError
 
@@ -35,6 +35,18 @@ def test_batched_replicas_equal_their_runs_alone(tmp_path, tiny_bed):
     # the replicas are replicas: their summation orders make them differ
     drawbar = [r["summary"]["drawbar_pull"] for r in together["results"]]
     assert len(set(drawbar)) == REPLICAS
+
+
+def test_a_batched_slip_study_gives_the_study_run_one_by_one(tmp_path, tiny_bed):
+    """Worlds of one batch may differ in their rig: two imposed slips in one simulation."""
+    plan = load_plan(write_tiny(tmp_path), [f'bed.bed_file="{tiny_bed}"'])
+    alone = slip_study(plan, str(tmp_path / "alone"), [0.1, 0.5], executor="serial", batched=False, plot=False)
+    together = slip_study(plan, str(tmp_path / "together"), [0.1, 0.5], batched=True, plot=False)
+    for a, b in zip(alone["runs"], together["runs"]):
+        assert a["ok"] and b["ok"] and a["label"] == b["label"], (a.get("error"), b.get("error"))
+        forces = [read_series(f"{r['out_dir']}/results.h5")["force"] for r in (a, b)]
+        assert np.array_equal(*forces), b["label"]
+    assert together["runs"][0]["summary"]["slip"] != together["runs"][1]["summary"]["slip"]
 
 
 def test_what_a_batch_cannot_run_is_refused_by_name(tmp_path, tiny_bed):

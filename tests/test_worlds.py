@@ -148,3 +148,42 @@ def test_the_worlds_of_a_batch_are_copies_of_one_scene_at_a_fixed_step(device):
     sim.enable_step_control()
     with pytest.raises(ArgumentError, match="fixed step"):
         Worlds(sim)
+
+
+def test_a_world_that_diverges_stops_the_batch_and_each_world_keeps_its_last_good_state(device):
+    """World 1's wheel is rammed into its grains at 30 m/s: the monitor finds it (in the step or in a
+    health check), and both worlds' runs get SimulationDiverged with a last good state of their own grains."""
+    from soil import SimulationDiverged
+
+    warnings.simplefilter("ignore", WallProximityWarning)
+    worlds = Worlds(Simulation(*join_worlds([scene(device, "double", seed) for seed in SEEDS[:2]])))
+    soils = [DemSoil(worlds.world(w), 1e-4, surface_height=0.02) for w in range(2)]
+    outcome: dict = {}
+
+    def ram(t):
+        return [WheelKinematics([0.035, 0.015, 0.036 - 30.0 * t], [1.0, 0, 0, 0], [0.0, 0.0, -30.0], [0.0, 0.0, 0.0])]
+
+    def run(w):
+        soil = soils[w]
+        try:
+            soil.place_wheels(kinematics(w, 0.0) if w == 0 else ram(0.0))
+            soil.start_health_checks()
+            for k in range(40):
+                soil.advance((k + 1) * MACRO, kinematics(w, k * MACRO) if w == 0 else ram(k * MACRO))
+                soil.check_health()
+            outcome[w] = "no divergence"
+        except SimulationDiverged as error:
+            outcome[w] = error
+        finally:
+            soil.sim.leave()
+
+    threads = [threading.Thread(target=run, args=(w,)) for w in range(2)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join(timeout=600)
+    n = worlds.model.world_size
+    for w in range(2):
+        assert isinstance(outcome[w], SimulationDiverged), outcome[w]
+        assert outcome[w].last_good is not None and outcome[w].last_good["position"].shape == (n, 3)
+    assert not np.array_equal(outcome[0].last_good["position"], outcome[1].last_good["position"])
