@@ -50,6 +50,7 @@ def build(
     neighbours: NeighbourSettings | None = None,
     capture: bool = True,
     wheels=(),
+    storage: str = "grain",
 ) -> Simulation:
     """A Simulation of the grains in an open-top box from the origin to box_hi [m]."""
     builder = SoilBuilder(gravity=gravity)
@@ -61,7 +62,7 @@ def build(
     law = ContactLaw(damping=True, friction=True, rolling=(grains or material()).rolling_friction > 0)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")  # lattice and tiled beds start with nm overlaps at most
-        model, state, control = builder.finalize(device=device, precision=precision, law=law)
+        model, state, control = builder.finalize(device=device, precision=precision, law=law, storage=storage)
     return Simulation(model, state, control, neighbours=neighbours, capture=capture)
 
 

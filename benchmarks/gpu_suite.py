@@ -18,6 +18,9 @@ Sections, each timed, in this order (the tests last, within what is left of --bu
 - agreement: the same short settling run on the CPU and on the device, replicas differing
   only in summation order (order_seed): the device's bed statistics lie within the CPU
   replicas' scatter.
+  The single and mixed rows again with the lists and contact history stored per slot (slot-major,
+  `SoilBuilder.finalize(storage="slot")`, what neighbouring GPU threads read at once): their
+  particle-steps/s against the per-grain rows (no target: the measurement decides the default).
 - batched: replicas of the main job (examples/phobos_single_wheel.toml, mixed, landing off, a
   short drive) as K = 1, 4, 20 worlds of one simulation (cosim.batch.run_batched, the path of
   `cosim run --replicas K` on a GPU); the total particle-steps/s of the drive per K (target: 20
@@ -106,6 +109,15 @@ SIZES = {
     "rover_seconds": (150.0, 60.0),
     "batch_worlds": ((1, 4, 20), (1, 2)),
 }
+SOIL_LAYOUTS = (
+    ("single", "grain"),
+    ("mixed", "grain"),
+    ("double", "grain"),
+    ("single", "slot"),
+    ("mixed", "slot"),
+)
+"""(precision, storage order) of the throughput rows: every precision stored per grain, and the two that
+GPU runs use stored per slot (soil.state: the lists and history as neighbouring threads read them)."""
 TESTS_RESERVE = 60.0
 """Seconds of --budget the paper and rover runs leave for the sections after them [s]."""
 WARMUP_STEPS = 10
@@ -265,8 +277,8 @@ class Suite:
         rows = []
         for label, (tx, ty) in size("tiles", self.small).items():
             tiled, tiled_radii, tiled_box = beds.tile(positions, radii, box_hi, tx, ty)
-            for precision in ("single", "mixed", "double"):
-                sim = beds.build(tiled, tiled_radii, tiled_box, self.device, precision)
+            for precision, storage in SOIL_LAYOUTS:
+                sim = beds.build(tiled, tiled_radii, tiled_box, self.device, precision, storage=storage)
                 with warnings.catch_warnings(record=True) as caught:
                     warnings.simplefilter("always")
                     sim.macro_step(20, dt)
@@ -281,6 +293,7 @@ class Suite:
                         bed=label,
                         grains=n,
                         precision=precision,
+                        storage=storage,
                         steps=steps,
                         seconds=seconds,
                         particle_steps_per_second=n * steps / seconds,
@@ -294,8 +307,12 @@ class Suite:
                 )
                 self.log(json.dumps(rows[-1]))
                 del sim
+        slot_rows = [r for r in rows if r["storage"] == "slot"]
+        rows = [r for r in rows if r["storage"] == "grain"]
         rate = {(r["bed"], r["precision"]): r["particle_steps_per_second"] for r in rows}
         memory = {(r["bed"], r["precision"]): r["bytes_per_grain"] for r in rows}
+        for r in slot_rows:
+            r["x_grain_storage"] = r["particle_steps_per_second"] / rate[(r["bed"], r["precision"])]
         single = rate[("1M", "single")]
         layout = {
             precision: {
@@ -311,7 +328,7 @@ class Suite:
             "mixed >= 0.85 x single at 1M": rate[("1M", "mixed")] >= 0.85 * single,
             "mixed layout: bytes per grain <= 0.75 x double at 1M": layout["mixed"]["x_double"] <= 0.75,
         }
-        return {"rows": rows, "layout": layout, "targets": targets, "ok": True}
+        return {"rows": rows, "slot_rows": slot_rows, "layout": layout, "targets": targets, "ok": True}
 
     def coupled_run(self):
         """A grousered wheel (radius 2 cm) resting on a standing bed (a pressed lattice: no
@@ -739,6 +756,20 @@ class Suite:
                 f"{row['x_one_world']:.2f} | {row['dem_share_of_wall']:.2f} | "
                 f"{row['wheel_contacts_min']} / {row['wheel_contacts_mean']:.1f} |"
                 for row in batched["rows"]
+            ]
+        if throughput.get("slot_rows"):
+            lines += [
+                "",
+                "Storage order: the neighbour lists and contact history stored per slot (slot-major) against per "
+                "grain, the same bed and steps:",
+                "",
+                "| bed | precision | particle-steps/s, per slot | x per grain |",
+                "|---|---|---|---|",
+            ]
+            lines += [
+                f"| {row['bed']} | {row['precision']} | {row['particle_steps_per_second']:.3g} | "
+                f"{row['x_grain_storage']:.2f} |"
+                for row in throughput["slot_rows"]
             ]
         paper = r["sections"].get("paper", {})
         if paper.get("projected_60s_seconds"):

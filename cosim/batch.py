@@ -78,6 +78,7 @@ def run_batched(
             law=first.law,
             integrator=make_integrator(first.integrator),
             gravity=first.gravity if first.rover else None,
+            storage=first.storage,
         )
         runners = []
         for k, (plan, out) in enumerate(zip(plans, out_dirs)):

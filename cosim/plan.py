@@ -225,6 +225,8 @@ class RunPlan:
     device: str
     """Warp device name, resolved ('cpu', 'cuda:0', ...)."""
     precision: str
+    storage: str
+    """The DEM's storage order (scene.storage): 'grain' or 'slot'."""
     gravity: tuple[float, float, float]
     """Gravity vector [m/s^2]."""
     law: ContactLaw
@@ -603,6 +605,7 @@ def resolve(scene: Scene) -> RunPlan:
         name=scene.scene.name,
         device=device,
         precision=scene.scene.precision,
+        storage=scene.scene.storage,
         gravity=(float(gravity[0]), float(gravity[1]), float(gravity[2])),
         law=law,
         soil_material=soil_material,

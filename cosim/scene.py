@@ -74,6 +74,9 @@ class SceneSection(_Section):
     """A preset name, a magnitude along -Z [m/s^2] or a 3-vector [m/s^2]."""
     precision: Literal["single", "double", "mixed"] = "mixed"
     """Floating-point mode of the DEM (docs/physics.md section 3)."""
+    storage: Literal["grain", "slot"] = "grain"
+    """Order of the DEM's neighbour lists and contact history in memory: per grain, or per slot (what
+    neighbouring GPU threads read together); the same results to the last bit (docs/performance.md section 2)."""
     device: str = "default"
     """Warp device: 'default' (CUDA when a GPU is present, else the CPU), 'cpu', 'cuda' or 'cuda:N'."""
 

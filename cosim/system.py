@@ -212,6 +212,7 @@ def _dem_soil(plan: RunPlan, bed: Bed | None, indices: list[int] | None = None) 
             law=plan.law,
             order_seed=plan.order_seed,
             integrator=make_integrator(plan.integrator),
+            storage=plan.storage,
         )
         enable_step_control(plan, sim)
         return DemSoil(sim, plan.dt, bed.surface_height)
@@ -249,6 +250,7 @@ def _dem_soil(plan: RunPlan, bed: Bed | None, indices: list[int] | None = None) 
             law=plan.law,
             order_seed=plan.order_seed,
             integrator=make_integrator(plan.integrator),
+            storage=plan.storage,
             gravity=plan.gravity,  # settled on the floor; now the slope
         )
         enable_step_control(plan, sim)

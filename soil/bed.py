@@ -466,13 +466,14 @@ def open_bed(
     order_seed: int | None = None,
     integrator=None,
     gravity=None,
+    storage: str = "grain",
 ) -> Simulation:
     """A ready soil.Simulation on a settled bed: its grains in their saved state (contact history
     included, the clock at 0), plus one body per wheel.
 
     bed: a SavedBed (in memory) or the path of a bed file (read_bed). wheels: (shape, material)
     pairs in body order (GrouserWheel / MeshWheel; a Material or a material index). device,
-    precision, law, order_seed: as SoilBuilder.finalize; integrator: as Simulation (None: its
+    precision, law, order_seed, storage: as SoilBuilder.finalize; integrator: as Simulation (None: its
     default); gravity: the run's gravity (a preset name or [m/s^2] (3,); None: the bed's own).
     To add walls or materials first, use SavedBed.builder() and finalize it.
     """
@@ -482,7 +483,9 @@ def open_bed(
     builder = saved.builder(gravity)
     for shape, material in wheels:
         builder.add_wheel(shape, material)
-    model, state, control = builder.finalize(device=device, precision=precision, law=law, order_seed=order_seed)
+    model, state, control = builder.finalize(
+        device=device, precision=precision, law=law, order_seed=order_seed, storage=storage
+    )
     return Simulation(model, state, control, integrator=integrator)
 
 

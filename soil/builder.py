@@ -25,6 +25,10 @@ DEEP_OVERLAP = 0.1
 were created inside each other (or inside a wall) (OverlapWarning)."""
 
 
+STORAGE_ORDERS = ("grain", "slot")
+"""Orders of the neighbour lists and contact history in memory (SoilBuilder.finalize's storage)."""
+
+
 class SoilBuilder:
     """Collects particles, materials and boundaries; `finalize()` makes model, state, control (at
     rest, or in a saved state given with `start_from`, e.g. a settled bed: soil.bed.SavedBed.builder)."""
@@ -273,6 +277,7 @@ class SoilBuilder:
         contact_capacity: int = 16,
         order_seed: int | None = None,
         rigid_capacity: int = 4,
+        storage: str = "grain",
     ):
         """Create (model, state, control) on `device` ("cpu", "cuda:0", None = Warp's default).
 
@@ -280,8 +285,12 @@ class SoilBuilder:
         material uses them. contact_capacity: neighbour-list slots per grain;
         rigid_capacity: contact slots per grain for walls and wheels (both grown
         automatically when exceeded, the macro step then redone). order_seed: permute
-        particle indices (changes only the summation order, for scatter studies).
+        particle indices (changes only the summation order, for scatter studies). storage: the
+        neighbour lists' and contact history's order in memory, "grain" (per grain) or "slot"
+        (per slot, for coalesced GPU reads; SoilModel.slot_major).
         """
+        if storage not in STORAGE_ORDERS:
+            raise SoilInputError(f"storage must be one of {', '.join(STORAGE_ORDERS)}, got {storage!r}")
         prec = get_precision(precision)
         device = str(wp.get_device(device))
         if self.particle_count == 0:
@@ -354,6 +363,7 @@ class SoilBuilder:
             boundary_column=wp.array(columns, dtype=wp.int32, device=device),
             max_radius=float(radii.max()),
             particle_order=order,
+            slot_major=storage == "slot",
             **body_arrays,
         )
         state = SoilState.for_model(model, int(contact_capacity), int(rigid_capacity))

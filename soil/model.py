@@ -73,6 +73,11 @@ class SoilModel:
     """First index of each body's mesh in mesh_indices, shape (body_count,), int32."""
     meshes: list = field(default_factory=list)
     """The wp.Mesh objects (kept alive here), one per mesh body."""
+    slot_major: bool = False
+    """The storage order of the neighbour lists and the contact history (soil.state): False, per
+    grain (a grain's entries side by side: what one CPU thread reads in turn); True, per slot
+    (entry k of every grain side by side: what neighbouring GPU threads read at once). The physics
+    is the same to the last bit (docs/performance.md section 2)."""
     world_count: int = 1
     """Independent copies of one scene in this model (soil.worlds): world w holds grains
     w * world_size .. (w + 1) * world_size - 1 (model order), and its walls and wheels likewise

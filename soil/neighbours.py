@@ -31,7 +31,7 @@ from . import status as status_columns
 from .contact import ContactLaw, spin_history_type
 from .errors import SoilInputError
 from .precision import kernel_factory, kernel_module, soil_kernel
-from .state import GrainLayout, SoilState
+from .state import GrainLayout, SoilState, storage_functions
 
 REORDER_FROM = 4096
 """Grains from which the storage is reordered by default (below it all of them fit in cache)."""
@@ -104,11 +104,22 @@ def gather_2d(source: wp.array2d(dtype=Any), origin: wp.array(dtype=wp.int32), t
     target_out[q, k] = source[origin[q], k]
 
 
+@wp.kernel(enable_backward=False)
+def gather_columns(source: wp.array2d(dtype=Any), origin: wp.array(dtype=wp.int32), target_out: wp.array2d(dtype=Any)):
+    """target[k, q] = source[k, origin[q]] (a slot-major array)."""
+    k, q = wp.tid()
+    target_out[k, q] = source[k, origin[q]]
+
+
 @kernel_factory
-def neighbour_kernels(hi, mid, lo, law: ContactLaw):
-    """The neighbour-list kernels for precision types (hi, mid, lo) and the contact-law switches
-    (the pair history is stored in mid: soil.precision)."""
-    kernel = soil_kernel(kernel_module("neighbours", hi, mid, lo, law))
+def neighbour_kernels(hi, mid, lo, law: ContactLaw, slot_major: bool = False):
+    """The neighbour-list kernels for precision types (hi, mid, lo), the contact-law switches (the
+    pair history is stored in mid: soil.precision) and the storage order (soil.state)."""
+    module = kernel_module("neighbours", hi, mid, lo, law, *(("slot",) if slot_major else ()))
+    kernel = soil_kernel(module)
+    storage = storage_functions(module, slot_major)
+    entry, set_entry, list_capacity = storage.entry, storage.set_entry, storage.list_capacity
+    at, put, slots = storage.at, storage.put, storage.slots
     vec_hi = wp.types.vector(3, hi)
     FRICTION, SPIN = law.friction, law.spin
     vec_mid = wp.types.vector(3, mid)
@@ -279,7 +290,7 @@ def neighbour_kernels(hi, mid, lo, law: ContactLaw):
         i = wp.tid()
         first_cell = (order[i] // world_size) * dims[0] * dims[1] * dims[2]
         t = target[0]
-        capacity = neighbours_out.shape[2]
+        capacity = list_capacity(neighbours_out)
         x = position[i]
         ri = hi(radius[i])
         free = inv_mass[i] > lo(0.0)
@@ -305,20 +316,20 @@ def neighbour_kernels(hi, mid, lo, law: ContactLaw):
                             reach = ri + hi(radius[j]) + skin
                             if wp.dot(gap, gap) < reach * reach:
                                 if count < capacity:
-                                    neighbours_out[t, i, count] = j
+                                    set_entry(neighbours_out, t, i, count, j)
                                 count += 1
         stored = wp.min(count, capacity)
         for k in range(1, stored):  # insertion sort by model index (rows are short)
-            j = neighbours_out[t, i, k]
+            j = entry(neighbours_out, t, i, k)
             key = order[j]
             m = k - 1
             while m >= 0:  # (no short-circuit `and` in kernels: test the index first)
-                if order[neighbours_out[t, i, m]] > key:
-                    neighbours_out[t, i, m + 1] = neighbours_out[t, i, m]
+                if order[entry(neighbours_out, t, i, m)] > key:
+                    set_entry(neighbours_out, t, i, m + 1, entry(neighbours_out, t, i, m))
                     m -= 1
                 else:
                     break
-            neighbours_out[t, i, m + 1] = j
+            set_entry(neighbours_out, t, i, m + 1, j)
         neighbour_count_out[t, i] = stored
         build_position_out[t, i] = x
         if count > capacity:
@@ -350,34 +361,34 @@ def neighbour_kernels(hi, mid, lo, law: ContactLaw):
         new = target[0]
         old_count = neighbour_count[old, i]
         new_count = neighbour_count[new, i]
-        capacity = neighbours.shape[2]
+        capacity = list_capacity(neighbours)
         kk = int(0)  # noqa: UP018 (a Warp variable the kernel changes: not a constant)
-        for word in range(touching_out.shape[1]):
+        for word in range(slots(touching_out)):
             bits = wp.uint32(0)
             for k in range(word * 32, wp.min(word * 32 + 32, new_count)):
-                key = order[neighbours[new, i, k]]
+                key = order[entry(neighbours, new, i, k)]
                 while kk < old_count:
-                    if order[neighbours[old, i, kk]] < key:
+                    if order[entry(neighbours, old, i, kk)] < key:
                         kk += 1
                     else:
                         break
                 if kk < old_count:
-                    if neighbours[old, i, kk] == neighbours[new, i, k]:
-                        if (touching_in[i, kk >> 5] >> wp.uint32(kk & 31)) & wp.uint32(1) != wp.uint32(0):
+                    if entry(neighbours, old, i, kk) == entry(neighbours, new, i, k):
+                        if (at(touching_in, i, kk >> 5) >> wp.uint32(kk & 31)) & wp.uint32(1) != wp.uint32(0):
                             bits = bits | (wp.uint32(1) << wp.uint32(k & 31))
                             if wp.static(FRICTION):
-                                tangential_out[i, k] = tangential_in[i, kk]
+                                put(tangential_out, i, k, at(tangential_in, i, kk))
                             if wp.static(SPIN):
-                                rolling_out[i, k] = rolling_in[i, kk]
-            clear = touching_old[i, word] & ~bits
+                                put(rolling_out, i, k, at(rolling_in, i, kk))
+            clear = at(touching_old, i, word) & ~bits
             if clear != wp.uint32(0):
                 for k in range(word * 32, wp.min(word * 32 + 32, capacity)):
                     if (clear >> wp.uint32(k & 31)) & wp.uint32(1) != wp.uint32(0):
                         if wp.static(FRICTION):
-                            tangential_out[i, k] = vec_mid()
+                            put(tangential_out, i, k, vec_mid())
                         if wp.static(SPIN):
-                            rolling_out[i, k] = vec_spin()
-            touching_out[i, word] = bits
+                            put(rolling_out, i, k, vec_spin())
+            put(touching_out, i, word, bits)
 
     @kernel
     def finish_build(
@@ -432,7 +443,7 @@ def neighbour_kernels(hi, mid, lo, law: ContactLaw):
         old = origin[q]
         count = neighbour_count[c, old]
         for k in range(count):
-            neighbours_out[t, q, k] = new_slot[order[neighbours[c, old, k]]]
+            set_entry(neighbours_out, t, q, k, new_slot[order[entry(neighbours, c, old, k)]])
         neighbour_count_out[t, q] = count
         build_position_out[t, q] = build_position[c, old]
         if q == 0:
@@ -483,7 +494,7 @@ def neighbour_kernels(hi, mid, lo, law: ContactLaw):
         t = target[0]
         count = neighbour_count[s, i]
         for k in range(count):
-            neighbours_out[t, i, k] = neighbours[s, i, k]
+            set_entry(neighbours_out, t, i, k, entry(neighbours, s, i, k))
         neighbour_count_out[t, i] = count
         build_position_out[t, i] = build_position[s, i]
 
@@ -513,7 +524,7 @@ class NeighbourList:
         self.model = model
         self.settings = settings or NeighbourSettings()
         prec = model.precision
-        self.kernels = neighbour_kernels(prec.hi, prec.mid, prec.lo, model.law)
+        self.kernels = neighbour_kernels(prec.hi, prec.mid, prec.lo, model.law, model.slot_major)
         self.skin = float(self.settings.skin if self.settings.skin is not None else 0.3 * model.max_radius)
         """Extra reach of the list beyond contact [m]."""
         self.cell_min = 2.0 * model.max_radius + self.skin
@@ -784,10 +795,10 @@ class NeighbourList:
         """Keep a copy of `state`'s current list (restore() puts it back)."""
         layout = state.layout
         n = self.model.particle_count
-        if self._saved is None or self._saved[0].shape[2] != layout.capacity:
+        if self._saved is None or self._saved[0].shape != (1, *layout.neighbours.shape[1:]):
             device = self.model.device
             self._saved = (
-                wp.zeros((1, n, layout.capacity), dtype=wp.int32, device=device),
+                wp.zeros((1, *layout.neighbours.shape[1:]), dtype=wp.int32, device=device),
                 wp.zeros((1, n), dtype=wp.int32, device=device),
                 wp.zeros((1, n), dtype=self.model.precision.vec_hi, device=device),
             )
@@ -844,8 +855,9 @@ class NeighbourList:
                 wp.copy(target, array)
             elif array.ndim == 1:
                 wp.launch(gather_1d, dim=n, inputs=[array, self._origin], outputs=[target], device=device)
-            elif array.shape[1]:
-                wp.launch(gather_2d, dim=array.shape, inputs=[array, self._origin], outputs=[target], device=device)
+            elif array.shape[0 if state.slot_major else 1]:
+                gather = gather_columns if state.slot_major else gather_2d
+                wp.launch(gather, dim=array.shape, inputs=[array, self._origin], outputs=[target], device=device)
         wp.launch(
             k.relabel_layout,
             dim=n,

@@ -24,18 +24,22 @@ from .model import SoilModel
 from .neighbours import NeighbourList
 from .precision import kernel_factory, kernel_module, soil_kernel
 from .sdf import BODY_WHEEL, sdf_functions
-from .state import SoilState
+from .state import SoilState, storage_functions
 
 CHUNK = 256
 """Grains per partial sum of a wall's or wheel's wrench (fixed: the sums are deterministic)."""
 
 
 @kernel_factory
-def contact_kernels(hi, mid, lo, law: ContactLaw):
-    """The contact kernels and their argument bundles for precision types (hi, mid, lo) and the switches.
+def contact_kernels(hi, mid, lo, law: ContactLaw, slot_major: bool = False):
+    """The contact kernels and their argument bundles for precision types (hi, mid, lo), the switches
+    and the storage order (soil.state).
 
     Spins and history are stored in `mid` (soil.precision): read into `hi`, rounded when stored."""
-    kernel = soil_kernel(kernel_module("contact", hi, mid, lo, law))
+    module = kernel_module("contact", hi, mid, lo, law, *(("slot",) if slot_major else ()))
+    kernel = soil_kernel(module)
+    storage = storage_functions(module, slot_major)
+    entry, list_capacity, at, put, slots = storage.entry, storage.list_capacity, storage.at, storage.put, storage.slots
     vec_hi = wp.types.vector(3, hi)
     vec_mid = wp.types.vector(3, mid)
     mat_hi = wp.types.matrix((3, 3), hi)
@@ -105,8 +109,8 @@ def contact_kernels(hi, mid, lo, law: ContactLaw):
     @wp.func
     def rigid_slot(history: History, i: int, key: int):
         """The slot of rigid partner `key` in grain i's history, -1 if it had none."""
-        for s in range(wp.min(history.rigid_count[i], history.rigid_key.shape[1])):
-            if history.rigid_key[i, s] == key:
+        for s in range(wp.min(history.rigid_count[i], slots(history.rigid_key))):
+            if at(history.rigid_key, i, s) == key:
                 return s
         return -1
 
@@ -155,15 +159,15 @@ def contact_kernels(hi, mid, lo, law: ContactLaw):
         row = list_index[0]
         remapped = rebuilt[0] != 0
         count = neighbour_count[row, i]
-        capacity = neighbours.shape[2]
-        for word in range(history_out.touching.shape[1]):
-            held = history_out.touching[i, word]  # what the output buffer holds (remapped, or from before)
+        capacity = list_capacity(neighbours)
+        for word in range(slots(history_out.touching)):
+            held = at(history_out.touching, i, word)  # what the output buffer holds (remapped, or from before)
             was = held
             if not remapped:
-                was = history_in.touching[i, word]
+                was = at(history_in.touching, i, word)
             now = wp.uint32(0)
             for k in range(word * 32, wp.min(word * 32 + 32, count)):
-                j = neighbours[row, i, k]
+                j = entry(neighbours, row, i, k)
                 gap = position[j] - xi
                 rj = grains.radius[j]
                 reach = hi(ri + rj)
@@ -187,14 +191,14 @@ def contact_kernels(hi, mid, lo, law: ContactLaw):
                     if (was & bit) != wp.uint32(0):
                         if wp.static(FRICTION):
                             if remapped:
-                                t_hist = vec_hi(history_out.tangential[i, k])
+                                t_hist = vec_hi(at(history_out.tangential, i, k))
                             else:
-                                t_hist = vec_hi(history_in.tangential[i, k])
+                                t_hist = vec_hi(at(history_in.tangential, i, k))
                         if wp.static(SPIN):
                             if remapped:
-                                r_hist = vec_spin(history_out.rolling[i, k])
+                                r_hist = vec_spin(at(history_out.rolling, i, k))
                             else:
-                                r_hist = vec_spin(history_in.rolling[i, k])
+                                r_hist = vec_spin(at(history_in.rolling, i, k))
                     pair_row = grains.material[i] * grains.material_count + grains.material[j]
                     f, m_roll, t_new, r_new = contact_law(
                         n,
@@ -212,9 +216,9 @@ def contact_kernels(hi, mid, lo, law: ContactLaw):
                     total_force = total_force + f
                     total_torque = total_torque + wp.cross(lever_i * n, f) + m_roll
                     if wp.static(FRICTION):
-                        history_out.tangential[i, k] = vec_mid(t_new)
+                        put(history_out.tangential, i, k, vec_mid(t_new))
                     if wp.static(SPIN):
-                        history_out.rolling[i, k] = vec_spin_mid(r_new)
+                        put(history_out.rolling, i, k, vec_spin_mid(r_new))
                     now = now | bit
                     contacts += 1
             # entries out of contact hold zero: clear what the buffer held and no contact wrote
@@ -223,16 +227,16 @@ def contact_kernels(hi, mid, lo, law: ContactLaw):
                 for k in range(word * 32, wp.min(word * 32 + 32, capacity)):
                     if (clear >> wp.uint32(k & 31)) & wp.uint32(1) != wp.uint32(0):
                         if wp.static(FRICTION):
-                            history_out.tangential[i, k] = vec_mid()
+                            put(history_out.tangential, i, k, vec_mid())
                         if wp.static(SPIN):
-                            history_out.rolling[i, k] = vec_spin_mid()
-            history_out.touching[i, word] = now
+                            put(history_out.rolling, i, k, vec_spin_mid())
+            put(history_out.touching, i, word, now)
 
         # rigid partners of the grain's world: walls (fixed grains do not touch them), then wheels
         # (every grain); a partner's key is its index among all walls, then all wheels
         wall_count = walls.kind.shape[0]
         world = grains.order[i] // grains.world_size
-        slots = history_out.rigid_key.shape[1]
+        rigid_slots = slots(history_out.rigid_key)
         stored = int(0)  # noqa: UP018 (a Warp variable the kernel changes: not a constant)
         for nth in range(walls.per_world + bodies.per_world):
             partner = world * walls.per_world + nth
@@ -290,34 +294,34 @@ def contact_kernels(hi, mid, lo, law: ContactLaw):
                 r_hist = vec_spin()
                 if slot >= 0:
                     if wp.static(FRICTION):
-                        t_hist = vec_hi(history_in.rigid_tangential[i, slot])
+                        t_hist = vec_hi(at(history_in.rigid_tangential, i, slot))
                     if wp.static(SPIN):
-                        r_hist = vec_spin(history_in.rigid_rolling[i, slot])
+                        r_hist = vec_spin(at(history_in.rigid_rolling, i, slot))
                 pair_row = grains.material[i] * grains.material_count + partner_material
                 f, m_roll, t_new, r_new = contact_law(
                     n, overlap, v_rel, wi - w_partner, ri, mass_eff, grains.pair, pair_row, t_hist, r_hist, dt
                 )
                 total_force = total_force + f
                 total_torque = total_torque + wp.cross(lever_i * n, f) + m_roll
-                if stored < slots:
-                    history_out.rigid_key[i, stored] = partner
+                if stored < rigid_slots:
+                    put(history_out.rigid_key, i, stored, partner)
                     if wp.static(FRICTION):
-                        history_out.rigid_tangential[i, stored] = vec_mid(t_new)
+                        put(history_out.rigid_tangential, i, stored, vec_mid(t_new))
                     if wp.static(SPIN):
-                        history_out.rigid_rolling[i, stored] = vec_spin_mid(r_new)
-                    reaction_force_out[i, stored] = -f
-                    reaction_torque_out[i, stored] = wp.cross(xi + lever_i * n - reference, -f) - m_roll
+                        put(history_out.rigid_rolling, i, stored, vec_spin_mid(r_new))
+                    put(reaction_force_out, i, stored, -f)
+                    put(reaction_torque_out, i, stored, wp.cross(xi + lever_i * n - reference, -f) - m_roll)
                 stored += 1
                 contacts += 1
-        history_out.rigid_count[i] = wp.min(stored, slots)
-        for s in range(stored, slots):  # free slots hold zero (only those the buffer used are written)
-            if history_out.rigid_key[i, s] >= 0:
-                history_out.rigid_key[i, s] = -1
+        history_out.rigid_count[i] = wp.min(stored, rigid_slots)
+        for s in range(stored, rigid_slots):  # free slots hold zero (only those the buffer used are written)
+            if at(history_out.rigid_key, i, s) >= 0:
+                put(history_out.rigid_key, i, s, -1)
                 if wp.static(FRICTION):
-                    history_out.rigid_tangential[i, s] = vec_mid()
+                    put(history_out.rigid_tangential, i, s, vec_mid())
                 if wp.static(SPIN):
-                    history_out.rigid_rolling[i, s] = vec_spin_mid()
-        if stored > slots:
+                    put(history_out.rigid_rolling, i, s, vec_spin_mid())
+        if stored > rigid_slots:
             wp.atomic_max(status_out, status_columns.NEEDED_RIGID, stored)
 
         force_out[i] = total_force
@@ -341,7 +345,7 @@ def contact_kernels(hi, mid, lo, law: ContactLaw):
         ri = grains.radius[i]
         total = hi(0.0)
         for k in range(neighbour_count[row, i]):
-            j = neighbours[row, i, k]
+            j = entry(neighbours, row, i, k)
             rj = grains.radius[j]
             overlap = hi(ri + rj) - wp.length(position[j] - xi)
             if overlap > hi(0.0):
@@ -383,10 +387,10 @@ def contact_kernels(hi, mid, lo, law: ContactLaw):
         start = world * world_size + (c - world * world_chunks) * chunk
         for p in range(start, wp.min(start + chunk, world * world_size + world_size)):
             i = slot[p]
-            for s in range(wp.min(rigid_count[i], rigid_key.shape[1])):
-                key = rigid_key[i, s]
-                force_out[c, key] = force_out[c, key] + reaction_force[i, s]
-                torque_out[c, key] = torque_out[c, key] + reaction_torque[i, s]
+            for s in range(wp.min(rigid_count[i], slots(rigid_key))):
+                key = at(rigid_key, i, s)
+                force_out[c, key] = force_out[c, key] + at(reaction_force, i, s)
+                torque_out[c, key] = torque_out[c, key] + at(reaction_torque, i, s)
                 contact_out[c, key] = contact_out[c, key] + 1
 
     @kernel
@@ -456,7 +460,7 @@ class ContactSolver:
     def __init__(self, model: SoilModel, neighbours: NeighbourList, status: wp.array):
         self.model = model
         prec = model.precision
-        self.kernels = contact_kernels(prec.hi, prec.mid, prec.lo, model.law)
+        self.kernels = contact_kernels(prec.hi, prec.mid, prec.lo, model.law, model.slot_major)
         self.neighbours = neighbours
         self.status = status
         """The step status array (soil.status), shared with the Simulation."""
@@ -481,8 +485,9 @@ class ContactSolver:
     def reserve(self, rigid_capacity: int):
         """The per-grain reaction scratch, sized for `rigid_capacity` slots (allocated here,
         before a step is captured)."""
-        if self._reaction_force is None or self._reaction_force.shape[1] != rigid_capacity:
-            shape = (self.model.particle_count, rigid_capacity)
+        n = self.model.particle_count
+        shape = (rigid_capacity, n) if self.model.slot_major else (n, rigid_capacity)
+        if self._reaction_force is None or self._reaction_force.shape != shape:
             self._reaction_force = wp.zeros(shape, dtype=self.model.precision.vec_hi, device=self.model.device)
             self._reaction_torque = wp.zeros(shape, dtype=self.model.precision.vec_hi, device=self.model.device)
         return self._reaction_force, self._reaction_torque

@@ -34,7 +34,7 @@ from .errors import RegolithError
 from .files import atomic_path
 from .precision import kernel_factory, kernel_module, soil_kernel
 from .sdf import sdf_functions
-from .state import SoilState
+from .state import SoilState, storage_functions
 
 # Columns of the divergence-check summary (shape (CHECK_COLUMNS,), dtype hi).
 CHECK_SPEED = 0
@@ -47,9 +47,11 @@ CHECK_COLUMNS = 3
 
 
 @kernel_factory
-def check_kernels(hi, mid, lo):
+def check_kernels(hi, mid, lo, slot_major: bool = False):
     """The divergence-check kernel for precision types (hi, mid, lo)."""
-    kernel = soil_kernel(kernel_module("check", hi, mid, lo))
+    module = kernel_module("check", hi, mid, lo, *(("slot",) if slot_major else ()))
+    kernel = soil_kernel(module)
+    entry = storage_functions(module, slot_major).entry
     vec_hi = wp.types.vector(3, hi)
     vec_mid = wp.types.vector(3, mid)
     boundary_contact = sdf_functions(hi).boundary_contact
@@ -89,7 +91,7 @@ def check_kernels(hi, mid, lo):
             return
         worst = hi(0.0)
         for k in range(neighbour_count[row, i]):
-            j = neighbours[row, i, k]
+            j = entry(neighbours, row, i, k)
             rj = hi(radius[j])
             overlap = ri + rj - wp.length(x_in[j] - xi)
             worst = wp.max(worst, overlap / wp.min(ri, rj))
@@ -352,7 +354,7 @@ class DivergenceMonitor:
             return
         model = sim.model
         prec = model.precision
-        kernels = check_kernels(prec.hi, prec.mid, prec.lo)
+        kernels = check_kernels(prec.hi, prec.mid, prec.lo, sim.model.slot_major)
         n = model.particle_count
         state = sim.state
         layout = state.layout

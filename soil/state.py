@@ -10,6 +10,9 @@ invisible outside; the physics does not depend on it either (docs/performance.md
 
 from __future__ import annotations
 
+from types import SimpleNamespace
+from typing import Any
+
 import numpy as np
 import warp as wp
 
@@ -60,9 +63,15 @@ class GrainLayout:
         """Inverse moment of inertia of the grain in each slot [1/(kg m^2)], shape (particle_count,), dtype lo."""
         self.material = wp.clone(model.material)
         """Material index of the grain in each slot [-], shape (particle_count,), int32."""
-        self.neighbours = wp.full((2, n, capacity), -1, dtype=wp.int32, device=device)
+        self.slot_major = bool(getattr(model, "slot_major", False))
+        """Whether the lists and the pair history are stored slot by slot (entry k of every grain
+        side by side: what neighbouring GPU threads read together) instead of grain by grain."""
+        self.neighbours = wp.full(
+            (2, capacity, n) if self.slot_major else (2, n, capacity), -1, dtype=wp.int32, device=device
+        )
         """Two neighbour lists: slots of the grains within r_i + r_j + skin of each grain at the
-        list's build [-], shape (2, particle_count, capacity), int32 (-1 past the count)."""
+        list's build [-], shape (2, particle_count, capacity), int32 (-1 past the count); slot-major:
+        (2, capacity, particle_count)."""
         self.neighbour_count = wp.zeros((2, n), dtype=wp.int32, device=device)
         """Entries used in each row of the two lists [-], shape (2, particle_count), int32."""
         self.build_position = wp.full((2, n), prec.vec_hi(UNBUILT, UNBUILT, UNBUILT), dtype=prec.vec_hi, device=device)
@@ -71,7 +80,7 @@ class GrainLayout:
     @property
     def capacity(self) -> int:
         """Neighbour slots per grain [-]."""
-        return int(self.neighbours.shape[2])
+        return int(self.neighbours.shape[1 if self.slot_major else 2])
 
     def gather_constants(self, model) -> None:
         """Take the grains' constants from the model again (after the model's arrays changed,
@@ -91,13 +100,18 @@ class GrainLayout:
         if capacity <= old:
             return
         values = self.neighbours.numpy()
-        wider = np.full(values.shape[:2] + (capacity,), -1, dtype=np.int32)
-        wider[:, :, :old] = values
+        if self.slot_major:
+            wider = np.full((2, capacity, values.shape[2]), -1, dtype=np.int32)
+            wider[:, :old] = values
+        else:
+            wider = np.full(values.shape[:2] + (capacity,), -1, dtype=np.int32)
+            wider[:, :, :old] = values
         self.neighbours = wp.array(wider, dtype=wp.int32, device=self.neighbours.device)
 
     def assign(self, other: GrainLayout) -> None:
         """Copy `other` into this layout (arrays are reshaped to other's)."""
         self.model = other.model
+        self.slot_major = other.slot_major
         for name, array in other.arrays.items():
             target = _resize_like(getattr(self, name, None), array)
             wp.copy(target, array)
@@ -138,8 +152,16 @@ class SoilState:
         twisting: bool = False,
         layout: GrainLayout | None = None,
         vec_mid=None,
+        slot_major: bool = False,
     ):
         n = particle_count
+        self.slot_major = bool(slot_major)
+        """Whether the contact history is stored slot-major (shape (slots, particle_count)) instead of per
+        grain (particle_count, slots): every per-grain history array below is then transposed."""
+
+        def per_slot(slots: int) -> tuple[int, int]:
+            return (slots, n) if self.slot_major else (n, slots)
+
         scalar = vec_hi._wp_scalar_type_
         vec_mid = vec_mid or vec_hi  # the stored type of spins, torques and history (soil.precision)
         tangential = capacity if friction else 0
@@ -166,25 +188,25 @@ class SoilState:
         self.contact_count = wp.zeros(n, dtype=wp.int32, device=device)
         """Contacts of each particle (grains, walls, wheels) at the state's time [-], shape (particle_count,)."""
         self._pair_capacity = int(capacity)
-        self.pair_touching = wp.zeros((n, _words(capacity)), dtype=wp.uint32, device=device)
+        self.pair_touching = wp.zeros(per_slot(_words(capacity)), dtype=wp.uint32, device=device)
         """Bit k of word k // 32: neighbour-list entry k is in contact [-], shape
         (particle_count, ceil(capacity / 32)), uint32."""
-        self.pair_tangential = wp.zeros((n, tangential), dtype=vec_mid, device=device)
+        self.pair_tangential = wp.zeros(per_slot(tangential), dtype=vec_mid, device=device)
         """Accumulated tangential displacement per neighbour-list entry [m], shape (particle_count, capacity),
         dtype mid (width 0 without friction)."""
-        self.pair_rolling = wp.zeros((n, spin), dtype=vec_spin, device=device)
+        self.pair_rolling = wp.zeros(per_slot(spin), dtype=vec_spin, device=device)
         """Spin history per neighbour-list entry: the accumulated rolling angle [rad] (3 components)
         and, with twisting resistance, the twist angle about the normal [rad] (a 4th), shape
         (particle_count, capacity), dtype mid (width 0 without rolling or twisting resistance)."""
-        self.rigid_key = wp.full((n, rigid_capacity), -1, dtype=wp.int32, device=device)
+        self.rigid_key = wp.full(per_slot(rigid_capacity), -1, dtype=wp.int32, device=device)
         """Rigid partner of each rigid-contact slot [-] (boundary b, or boundary_count + body), shape
         (particle_count, rigid_capacity), int32, -1 past rigid_count."""
         self.rigid_count = wp.zeros(n, dtype=wp.int32, device=device)
         """Used rigid-contact slots of each particle [-], shape (particle_count,)."""
-        self.rigid_tangential = wp.zeros((n, rigid_capacity if friction else 0), dtype=vec_mid, device=device)
+        self.rigid_tangential = wp.zeros(per_slot(rigid_capacity if friction else 0), dtype=vec_mid, device=device)
         """Accumulated tangential displacement per rigid-contact slot [m], shape (particle_count, rigid_capacity),
         dtype mid."""
-        self.rigid_rolling = wp.zeros((n, rigid_capacity if keeps_spin else 0), dtype=vec_spin, device=device)
+        self.rigid_rolling = wp.zeros(per_slot(rigid_capacity if keeps_spin else 0), dtype=vec_spin, device=device)
         """Spin history per rigid-contact slot [rad] (as pair_rolling), shape (particle_count, rigid_capacity)."""
         self.step_previous = wp.zeros(1, dtype=scalar, device=device)
         """Length of the step that produced this state [s], shape (1,); 0 = no history
@@ -251,6 +273,7 @@ class SoilState:
             twisting=model.law.twisting,
             layout=layout,
             vec_mid=model.precision.vec_mid,
+            slot_major=bool(getattr(model, "slot_major", False)),
         )
 
     @property
@@ -265,7 +288,7 @@ class SoilState:
     @property
     def rigid_capacity(self) -> int:
         """Rigid-contact slots per grain [-]."""
-        return int(self.rigid_key.shape[1])
+        return int(self.rigid_key.shape[0 if self.slot_major else 1])
 
     @property
     def arrays(self) -> dict[str, wp.array]:
@@ -298,6 +321,7 @@ class SoilState:
             setattr(self, name, target)
         wp.copy(self.list_index, other.list_index)
         self._pair_capacity = other._pair_capacity
+        self.slot_major = other.slot_major
         if other.layout is not None and self.layout is not other.layout:
             if self.layout is None:
                 self.layout = GrainLayout.__new__(GrainLayout)
@@ -311,7 +335,7 @@ class SoilState:
         if capacity is not None and capacity > self._pair_capacity:
             self._widen("pair_touching", _words(capacity), 0)
             for name in ("pair_tangential", "pair_rolling"):
-                if getattr(self, name).shape[1]:
+                if self._slots(name):
                     self._widen(name, capacity, 0)
             self._pair_capacity = int(capacity)
         if capacity is not None and self.layout is not None:
@@ -319,15 +343,20 @@ class SoilState:
         if rigid_capacity is not None and rigid_capacity > self.rigid_capacity:
             self._widen("rigid_key", rigid_capacity, -1)
             for name in ("rigid_tangential", "rigid_rolling"):
-                if getattr(self, name).shape[1]:
+                if self._slots(name):
                     self._widen(name, rigid_capacity, 0)
+
+    def _slots(self, name: str) -> int:
+        """Width of a per-grain history array [slots] (0: history the law does not keep)."""
+        return int(getattr(self, name).shape[0 if self.slot_major else 1])
 
     def _widen(self, name: str, width: int, fill) -> None:
         array = getattr(self, name)
-        values = array.numpy()
+        values = _grain_major(array.numpy(), self.slot_major)
         wider = np.full((values.shape[0], width) + values.shape[2:], fill, dtype=values.dtype)
         wider[:, : values.shape[1]] = values
-        setattr(self, name, wp.array(wider, dtype=array.dtype, device=array.device))
+        stored = _grain_major(wider, self.slot_major)  # the same swap stores it back
+        setattr(self, name, wp.array(np.ascontiguousarray(stored), dtype=array.dtype, device=array.device))
 
     # -- model order -------------------------------------------------------------------
     def to_numpy(self) -> dict[str, np.ndarray]:
@@ -344,12 +373,14 @@ class SoilState:
         for name, array in self.arrays.items():
             values = array.numpy()
             if per_grain(name):
+                if array.ndim == 2:
+                    values = _grain_major(values, self.slot_major)
                 model_order = np.empty_like(values)
                 model_order[order] = values
                 values = model_order
             data[name] = values.copy()  # on the CPU .numpy() is a view that later steps overwrite
         which = int(self.list_index.numpy()[0])
-        neighbours = layout.neighbours.numpy()[which]
+        neighbours = _grain_major(layout.neighbours.numpy()[which], layout.slot_major)
         counts = layout.neighbour_count.numpy()[which]
         used = np.arange(neighbours.shape[1])[None, :] < counts[:, None]
         ids = np.where(used, order[np.clip(neighbours, 0, len(order) - 1)], -1).astype(np.int32)
@@ -387,22 +418,26 @@ class SoilState:
                     continue
                 raise KeyError(f"state data has no {name!r} array")
             values = np.asarray(data[name])
-            if values.shape[:1] != tuple(array.shape[:1]):
+            rows = (len(order),) if per_grain(name) else tuple(array.shape[:1])
+            if values.shape[:1] != rows:
                 raise SoilInputError(
                     f"state.{name}: saved shape {values.shape} does not fit {array.shape} (a different scene?)"
                 )
             if per_grain(name):
                 values = values[order]
-                if array.ndim >= 2 and values.shape[1] != array.shape[1]:
-                    values = _fit_width(values, array.shape[1], -1 if name == "rigid_key" else 0)
+                width = self._slots(name) if array.ndim >= 2 else 0
+                if array.ndim >= 2 and values.shape[1] != width:
+                    values = _fit_width(values, width, -1 if name == "rigid_key" else 0)
                 components = getattr(array.dtype, "_length_", 0)  # of a Warp vector type
                 if name in SPIN_HISTORY and values.shape[2:] != (components,):
                     values = _fit_components(values, components)
+                if array.ndim == 2:
+                    values = np.ascontiguousarray(_grain_major(values, self.slot_major))
             array.assign(values.astype(array.numpy().dtype, copy=False))
         rows = neighbours[order]
         slots = np.where(rows >= 0, slot[np.maximum(rows, 0)], -1).astype(np.int32)
         lists = layout.neighbours.numpy()
-        lists[0] = _fit_width(slots, layout.capacity, -1)
+        lists[0] = _grain_major(_fit_width(slots, layout.capacity, -1), layout.slot_major)
         layout.neighbours.assign(lists)
         counts = layout.neighbour_count.numpy()
         counts[0] = np.asarray(data["neighbour_count"])[order]
@@ -413,6 +448,56 @@ class SoilState:
         self.list_index.zero_()
         self.time = float(data["time"])
         self.forces_valid = True  # a saved state carries the forces of its own step
+
+
+def storage_functions(module: str, slot_major: bool) -> SimpleNamespace:
+    """The kernels' access to per-grain entries (neighbour-list rows, contact history) in either storage
+    order, compiled into the Warp module `module` of the kernels that use them:
+
+    entry(rows, t, i, k) / set_entry(rows, t, i, k, value): entry k of grain i in list t of a layout's
+    neighbours; at(a, i, k) / put(a, i, k, value): slot k of grain i of a history array; list_capacity(rows),
+    slots(a): the entries per grain. Grain-major arrays are indexed [.., i, k], slot-major ones [.., k, i]."""
+    SLOT = bool(slot_major)
+
+    @wp.func(module=module)
+    def entry(rows: wp.array3d(dtype=wp.int32), t: int, i: int, k: int):
+        if wp.static(SLOT):
+            return rows[t, k, i]
+        return rows[t, i, k]
+
+    @wp.func(module=module)
+    def set_entry(rows: wp.array3d(dtype=wp.int32), t: int, i: int, k: int, value: int):
+        if wp.static(SLOT):
+            rows[t, k, i] = value
+        else:
+            rows[t, i, k] = value
+
+    @wp.func(module=module)
+    def list_capacity(rows: wp.array3d(dtype=wp.int32)):
+        if wp.static(SLOT):
+            return rows.shape[1]
+        return rows.shape[2]
+
+    @wp.func(module=module)
+    def at(a: wp.array2d(dtype=Any), i: int, k: int):
+        if wp.static(SLOT):
+            return a[k, i]
+        return a[i, k]
+
+    @wp.func(module=module)
+    def put(a: wp.array2d(dtype=Any), i: int, k: int, value: Any):
+        if wp.static(SLOT):
+            a[k, i] = value
+        else:
+            a[i, k] = value
+
+    @wp.func(module=module)
+    def slots(a: wp.array2d(dtype=Any)):
+        if wp.static(SLOT):
+            return a.shape[0]
+        return a.shape[1]
+
+    return SimpleNamespace(entry=entry, set_entry=set_entry, list_capacity=list_capacity, at=at, put=put, slots=slots)
 
 
 def per_grain(name: str) -> bool:
@@ -427,6 +512,12 @@ def current_format(data: dict, particle_count: int) -> dict:
     if "contact_partner" in data:
         data = _from_keyed_history(data, particle_count)
     return data
+
+
+def _grain_major(values: np.ndarray, slot_major: bool) -> np.ndarray:
+    """A per-grain history array as rows per grain (its first two axes swapped when stored slot-major;
+    the same swap stores rows per grain slot-major)."""
+    return np.swapaxes(values, 0, 1) if slot_major else values
 
 
 def _words(capacity: int) -> int:

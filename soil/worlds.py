@@ -55,11 +55,17 @@ def join_worlds(parts: Sequence[tuple[SoilModel, SoilState, SoilControl]]):
     first = models[0]
     count = len(parts)
     for w, m in enumerate(models):
-        shape = (m.particle_count, m.boundary_count, m.body_count, m.precision.name, m.law, m.device)
-        expected = (first.particle_count, first.boundary_count, first.body_count, first.precision.name)
-        if shape[:4] != expected or m.law != first.law or m.device != first.device or m.world_count != 1:
+        shape = (m.particle_count, m.boundary_count, m.body_count, m.precision.name, m.slot_major, m.law, m.device)
+        expected = (
+            first.particle_count,
+            first.boundary_count,
+            first.body_count,
+            first.precision.name,
+            first.slot_major,
+        )
+        if shape[:5] != expected or m.law != first.law or m.device != first.device or m.world_count != 1:
             raise SoilInputError(
-                f"world {w} differs from world 0 (grains, walls, wheels, precision, law, device: {shape} vs "
+                f"world {w} differs from world 0 (grains, walls, wheels, precision, storage, law, device: {shape} vs "
                 f"{expected + (first.law, first.device)}): the worlds of a batch are copies of one scene"
             )
     n, walls, bodies = first.particle_count, first.boundary_count, first.body_count
@@ -104,6 +110,7 @@ def join_worlds(parts: Sequence[tuple[SoilModel, SoilState, SoilControl]]):
         body_point_offset=offsets("body_point_offset", "mesh_points"),
         body_index_offset=offsets("body_index_offset", "mesh_indices"),
         meshes=[mesh for m in models for mesh in m.meshes],
+        slot_major=first.slot_major,
         world_count=count,
     )
     capacity = max(p[1].capacity for p in parts)
@@ -196,6 +203,7 @@ def open_bed_worlds(
     law=None,
     integrator=None,
     gravity=None,
+    storage: str = "grain",
 ) -> Worlds:
     """Worlds of one settled bed (soil.bed.open_bed's arguments), one per order seed: world w is the
     simulation open_bed(..., order_seed=order_seeds[w]) gives."""
@@ -208,7 +216,7 @@ def open_bed_worlds(
         builder = saved.builder(gravity)
         for shape, material in wheels:
             builder.add_wheel(shape, material)
-        parts.append(builder.finalize(device=device, precision=precision, law=law, order_seed=seed))
+        parts.append(builder.finalize(device=device, precision=precision, law=law, order_seed=seed, storage=storage))
     model, state, control = join_worlds(parts)
     return Worlds(Simulation(model, state, control, integrator=integrator))
 

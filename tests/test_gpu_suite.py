@@ -37,6 +37,9 @@ def test_the_gpu_suite_runs_small_on_the_cpu(tmp_path):
     }
     assert all(r["particle_steps_per_second"] > 0 and r["captured"] for r in rows)
     assert all(r["bytes_per_grain"] > 0 and r["bytes_per_grain_estimate"] > 0 for r in rows)
+    slot = sections["throughput"]["slot_rows"]  # the slot-major storage measured beside the per-grain one
+    assert {(r["bed"], r["precision"]) for r in slot} == {(b, p) for b in ("100k", "1M") for p in ("single", "mixed")}
+    assert all(r["x_grain_storage"] > 0 for r in slot)
     layout = sections["throughput"]["layout"]
     assert layout["double"]["x_double"] == 1.0 and 0 < layout["mixed"]["x_double"] < 1
     # the paper case drives with its wheel in the grains: it touches them at every macro step

@@ -28,7 +28,7 @@ LEAVES = {2: 12}
 """World 2 is done after 12 macro steps."""
 
 
-def scene(device, precision, seed):
+def scene(device, precision, seed, storage="grain"):
     """Grains in a small box, a grousered wheel above them (finalize's arguments: one world)."""
     builder = SoilBuilder(gravity=9.81)
     mat = builder.add_material(Material(youngs_modulus=1e6, restitution=0.3, rolling_friction=0.05))
@@ -37,7 +37,7 @@ def scene(device, precision, seed):
     grid = np.stack(np.meshgrid(np.arange(10), np.arange(4), np.arange(3), indexing="ij"), -1).reshape(-1, 3)
     builder.add_particles(0.0035 + grid * 0.0068 + rng.uniform(-2e-4, 2e-4, grid.shape), 0.003, mat)
     builder.add_wheel(WHEEL, mat)
-    return builder.finalize(device, precision, contact_capacity=2, rigid_capacity=1, order_seed=seed)
+    return builder.finalize(device, precision, contact_capacity=2, rigid_capacity=1, order_seed=seed, storage=storage)
 
 
 def kinematics(world, t):
@@ -82,18 +82,18 @@ def drive(soil, world, steps, start=0):
     return np.array(rows), rebuilds
 
 
-@pytest.mark.parametrize("precision", ["mixed", "double"])
-def test_each_world_steps_bit_for_bit_as_its_scene_alone(device, precision):
+@pytest.mark.parametrize("precision, storage", [("mixed", "grain"), ("double", "grain"), ("mixed", "slot")])
+def test_each_world_steps_bit_for_bit_as_its_scene_alone(device, precision, storage):
     warnings.simplefilter("ignore", WallProximityWarning)
     alone = []
     for w, seed in enumerate(SEEDS):
-        soil = DemSoil(Simulation(*scene(device, precision, seed)), 1e-4, surface_height=0.02)
+        soil = DemSoil(Simulation(*scene(device, precision, seed, storage)), 1e-4, surface_height=0.02)
         rows, rebuilds = drive(soil, w, LEAVES.get(w, STEPS))
         alone.append((rows, rebuilds, soil.sim.positions(), soil.sim.velocities(), soil.sim.state_dict()))
         if w == 0:
             continued = drive(soil, w, 4, start=STEPS)[0]
 
-    worlds = Worlds(Simulation(*join_worlds([scene(device, precision, seed) for seed in SEEDS])))
+    worlds = Worlds(Simulation(*join_worlds([scene(device, precision, seed, storage) for seed in SEEDS])))
     soils = [DemSoil(worlds.world(w), 1e-4, surface_height=0.02) for w in range(len(SEEDS))]
     together: dict = {}
 
@@ -130,7 +130,7 @@ def test_each_world_steps_bit_for_bit_as_its_scene_alone(device, precision):
         batch_rebuilds.append(rebuilds)
         assert saved["capacity"] > 2, "the storage grew"
     # a world's checkpoint continues alone as its scene alone does
-    resumed = DemSoil(Simulation(*scene(device, precision, SEEDS[0])), 1e-4, surface_height=0.02)
+    resumed = DemSoil(Simulation(*scene(device, precision, SEEDS[0], storage)), 1e-4, surface_height=0.02)
     resumed.sim.load_state_dict(together[0][4])
     assert np.array_equal(drive(resumed, 0, 4, start=STEPS)[0], continued)
     # the standing wheel's world was rebuilt when it did not need it: the case the design is for
