@@ -15,6 +15,8 @@ Sections (side by side in one run, same beds, same dt):
   deep (a cube) and shallow (4 grains deep, footprint 2.5:1).
 - capture: the same steps replayed from captured graphs and launched kernel by kernel.
 - reorder: settled fills stored in the space-filling curve's order and in their fill order.
+- storage: settled fills with the neighbour lists and contact history stored per grain and per slot
+  (SoilBuilder.finalize(storage=...)), mixed precision.
 - memory: device bytes per grain of a Simulation in each precision.
 
 Times are taken both as wall-clock and as the process's CPU time; on a machine shared with
@@ -208,6 +210,28 @@ def section_reorder(args, rows, log):
         log(json.dumps(rows[-1]))
 
 
+def section_storage(args, rows, log):
+    for n in args.storage_n:
+        positions, radii, box_hi, dt = beds.settled_bed(n, args.device, log=log)
+        timed = {}
+        for storage in ("grain", "slot"):
+            sim = beds.build(positions, radii, box_hi, args.device, "mixed", storage=storage)
+            timed[storage] = time_ours(sim, args.steps, dt)["us_per_particle_step_cpu"]
+        rows.append(
+            dict(
+                section="storage",
+                n=len(radii),
+                steps=args.steps,
+                device=args.device,
+                precision="mixed",
+                grain_us=timed["grain"],
+                slot_us=timed["slot"],
+                speedup=timed["grain"] / timed["slot"],
+            )
+        )
+        log(json.dumps(rows[-1]))
+
+
 def section_memory(args, rows, log):
     positions, radii, box_hi = beds.lattice_bed(args.memory_n, "shallow")
     for precision in PRECISIONS:
@@ -278,6 +302,15 @@ def tables(rows, header: str) -> str:
         for r in reorder:
             out.append(f"| {r['n']} | {r['reordered_us']:.3f} | {r['unordered_us']:.3f} | {r['speedup']:.2f} |")
         out.append("")
+    storage = [r for r in rows if r["section"] == "storage"]
+    if storage:
+        out += [
+            "| grains (settled fill, mixed) | per grain: us per particle-step (CPU) | per slot | speed-up |",
+            "|---|---|---|---|",
+        ]
+        for r in storage:
+            out.append(f"| {r['n']} | {r['grain_us']:.3f} | {r['slot_us']:.3f} | {r['speedup']:.2f} |")
+        out.append("")
     memory = [r for r in rows if r["section"] == "memory"]
     if memory:
         keys = [k for k in memory[0] if k not in ("section", "precision", "n", "capacity", "rigid_capacity")]
@@ -297,8 +330,8 @@ def main(argv=None) -> None:
     parser.add_argument(
         "--sections",
         nargs="+",
-        default=["lammps", "scaling", "capture", "reorder", "memory"],
-        choices=["lammps", "scaling", "capture", "reorder", "memory"],
+        default=["lammps", "scaling", "capture", "reorder", "storage", "memory"],
+        choices=["lammps", "scaling", "capture", "reorder", "storage", "memory"],
     )
     parser.add_argument("--quick", action="store_true", help="small sizes and few steps (minutes)")
     parser.add_argument("--n", type=int, nargs="+", default=None, help="grains of the LAMMPS comparison")
@@ -306,6 +339,7 @@ def main(argv=None) -> None:
     parser.add_argument("--scaling-precision", default="double", choices=PRECISIONS)
     parser.add_argument("--capture-n", type=int, nargs="+", default=None)
     parser.add_argument("--reorder-n", type=int, nargs="+", default=None)
+    parser.add_argument("--storage-n", type=int, nargs="+", default=None)
     parser.add_argument("--memory-n", type=int, default=None)
     parser.add_argument("--steps", type=int, default=None)
     parser.add_argument("--device", default="cpu")
@@ -318,6 +352,7 @@ def main(argv=None) -> None:
     args.scaling_n = args.scaling_n or ([1000, 10000] if quick else [1000, 10000, 50000, 200000])
     args.capture_n = args.capture_n or [1000, 10000]
     args.reorder_n = args.reorder_n or ([10000] if quick else [10000, 50000])
+    args.storage_n = args.storage_n or ([10000] if quick else [10000, 50000])
     args.memory_n = args.memory_n or (10000 if quick else 100000)
     args.steps = args.steps or (50 if quick else 200)
     wp.config.log_level = max(wp.config.log_level, wp.LOG_WARNING)  # no per-module load lines

@@ -1,6 +1,6 @@
 """Scene files: the TOML schema of a run, validated field by field.
 
-    [scene]    name, gravity (preset | magnitude [m/s^2] along -Z | 3-vector), precision, device
+    [scene]    name, gravity (preset | magnitude [m/s^2] along -Z | 3-vector), precision, storage, device
     [soil]     grain material (youngs_modulus, poisson_ratio, density, restitution or damping_ratio,
                stick_angle_deg, slip_angle_deg, stick_speed, rolling_friction, cohesion)
     [soil.law] contact-law switches (damping, friction, rolling, cohesion)
