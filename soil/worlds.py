@@ -25,7 +25,6 @@ in a condition variable and every access to the shared simulation holds `Worlds.
 
 from __future__ import annotations
 
-import copy
 import threading
 import time
 from collections.abc import Iterable, Sequence
@@ -324,15 +323,22 @@ class Worlds:
         failure = self._failure
         assert failure is not None
         if isinstance(failure, SimulationDiverged) and failure.last_good is not None:
-            mine = copy.copy(failure)
             part = world_state_dict({f"state/{k}": v for k, v in failure.last_good.items()}, world, self.model)
-            mine.last_good = {k[len("state/") :]: v for k, v in part.items()}
-            return mine
+            return SimulationDiverged(  # a new one per world (a copy could share the batch's attributes)
+                str(failure),
+                {k[len("state/") :]: v for k, v in part.items()},
+                time=failure.time,
+                step=failure.step,
+                particle=failure.particle,
+                position=failure.position,
+                reason=failure.reason,
+                checkpoint=failure.checkpoint,
+            )
         return failure
 
     def _maybe_step(self) -> None:
-        """Step when every active world has asked (holding the lock)."""
-        if not self._requests or set(self._requests) != self.active:
+        """Step when every active world has asked (holding the lock); nothing steps after a failure."""
+        if self._failure is not None or not self._requests or set(self._requests) != self.active:
             return
         requests, self._requests = self._requests, {}
         ends = {(r[0], r[1], r[2]) for r in requests.values()}
