@@ -26,6 +26,7 @@ import time
 import traceback
 from dataclasses import replace
 
+from soil.errors import ArgumentError
 from soil.integrator import make_integrator
 from soil.worlds import Worlds, open_bed_worlds
 
@@ -51,6 +52,25 @@ def batch_problem(plan: RunPlan) -> str | None:
     return None
 
 
+SOIL_FIELDS = ("bed", "wheels", "device", "precision", "storage", "contact law", "integrator", "dt", "macro step")
+"""What the worlds of one batch share (their plans must agree on it)."""
+
+
+def _soil_of(plan: RunPlan) -> tuple:
+    wheels = plan.wheels if plan.rover else [plan.wheel]
+    return (
+        plan.bed.bed_file or plan.bed.key,
+        repr([(w.shape, w.material) for w in wheels]),
+        plan.device,
+        plan.precision,
+        plan.storage,
+        plan.law,
+        plan.integrator,
+        plan.dt,
+        plan.macro_step,
+    )
+
+
 def run_batched(
     plans: list[RunPlan], out_dirs: list[str], overwrite: bool = False, hooks: dict | None = None
 ) -> list[dict]:
@@ -62,7 +82,14 @@ def run_batched(
     first = plans[0]
     problem = batch_problem(first)
     if problem is not None:
-        raise ValueError(f"cannot batch these runs: {problem}")
+        raise ArgumentError(f"cannot batch these runs: {problem}")
+    for k, plan in enumerate(plans[1:], start=1):
+        for name, ours, theirs in zip(SOIL_FIELDS, _soil_of(plan), _soil_of(first)):
+            if ours != theirs:
+                raise ArgumentError(
+                    f"run {k} cannot share the soil of run 0: its {name} is {ours!r}, run 0's {theirs!r} "
+                    "(batched runs differ only in their order seed and their rig or rover)"
+                )
     started = time.perf_counter()
     with contextlib.ExitStack() as stack:
         bed = settled_bed(first, out_dirs[0])

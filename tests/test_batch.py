@@ -49,12 +49,22 @@ def test_a_batched_slip_study_gives_the_study_run_one_by_one(tmp_path, tiny_bed)
     assert together["runs"][0]["summary"]["slip"] != together["runs"][1]["summary"]["slip"]
 
 
+def fixed_plan(tmp_path, tiny_bed):
+    return load_plan(write_tiny(tmp_path), [f'bed.bed_file="{tiny_bed}"'])
+
+
 def test_what_a_batch_cannot_run_is_refused_by_name(tmp_path, tiny_bed):
     plan = load_plan(write_tiny(tmp_path), [f'bed.bed_file="{tiny_bed}"', 'run.step_control="pid"'])
     assert "step_control" in batch_problem(plan)
     with pytest.raises(SceneError, match="--batched: run.step_control"):
         replica_run(plan, str(tmp_path / "pid"), 2, batched=True)
     assert batch_problem(load_plan(write_tiny(tmp_path), ['terrain.model="analytic"'])).startswith("terrain.model")
+    # the worlds share one soil: runs that differ in it are refused by name
+    from cosim.batch import run_batched
+
+    other = load_plan(write_tiny(tmp_path), [f'bed.bed_file="{tiny_bed}"', "scene.precision='double'"])
+    with pytest.raises(ValueError, match="its precision is 'double', run 0's 'mixed'"):
+        run_batched([fixed_plan(tmp_path, tiny_bed), other], [str(tmp_path / "a"), str(tmp_path / "b")])
     # K copies must fit: checked before anything is allocated (a million tiny beds: about a terabyte)
     fixed = load_plan(write_tiny(tmp_path), [f'bed.bed_file="{tiny_bed}"'])
     with pytest.raises(SoilTooLargeError, match="as 1000000 batched replicas does not fit"):
