@@ -13,7 +13,8 @@
 - sweep: a grid over scene keys (--param wheel.radius=0.03,0.04 ...), one run per point.
 
 Warp's CPU kernels are single-threaded, so the cluster uses processes with one thread
-each. A replica that fails is reported; the others still finish. Tasks carry the scene
+each. On a GPU, replicas and slip studies run as worlds of one simulation instead (cosim.batch,
+`--batched`; each run bit for bit as alone). A replica that fails is reported; the others still finish. Tasks carry the scene
 as TOML text plus overrides, and each worker resolves its own plan.
 """
 
