@@ -14,8 +14,8 @@
 
 Warp's CPU kernels are single-threaded, so the cluster uses processes with one thread
 each. On a GPU, replicas and slip studies run as worlds of one simulation instead (cosim.batch,
-`--batched`; each run bit for bit as alone). A replica that fails is reported; the others still finish. Tasks carry the scene
-as TOML text plus overrides, and each worker resolves its own plan.
+`--batched`; each run bit for bit as alone). A replica that fails is reported; the others still
+finish. Tasks carry the scene as TOML text plus overrides, and each worker resolves its own plan.
 """
 
 from __future__ import annotations

@@ -69,13 +69,17 @@ def check_kernels(hi, mid, lo, slot_major: bool = False):
         boundary_kind: wp.array(dtype=wp.int32),
         boundary_geometry: wp.array2d(dtype=hi),
         boundary_displacement: wp.array(dtype=vec_hi),
+        order: wp.array(dtype=wp.int32),
+        world_size: int,
+        walls_per_world: int,
         # outputs
         speed_out: wp.array(dtype=hi),
         overlap_out: wp.array(dtype=hi),
         summary_out: wp.array(dtype=hi),
     ):
         """Per grain (storage order): speed [m/s] and the largest overlap / radius [-] over its
-        neighbour-list row and the walls; maxima into summary_out (atomic max: order-independent).
+        neighbour-list row and its world's walls (soil.worlds); maxima into summary_out (atomic max:
+        order-independent).
 
         A non-finite grain gets speed = overlap = +inf so that the host can locate it.
         """
@@ -96,7 +100,8 @@ def check_kernels(hi, mid, lo, slot_major: bool = False):
             overlap = ri + rj - wp.length(x_in[j] - xi)
             worst = wp.max(worst, overlap / wp.min(ri, rj))
         if inv_mass[i] > lo(0.0):
-            for b in range(boundary_kind.shape[0]):
+            first_wall = (order[i] // world_size) * walls_per_world
+            for b in range(first_wall, first_wall + walls_per_world):
                 overlap, n = boundary_contact(boundary_kind[b], boundary_geometry, b, xi - boundary_displacement[b], ri)
                 worst = wp.max(worst, overlap / ri)
         speed = wp.max(wp.length(v_in[i]), ri * wp.length(wi))  # spin counts at the surface
@@ -377,6 +382,9 @@ class DivergenceMonitor:
                 model.boundary_kind,
                 model.boundary_geometry,
                 state.boundary_displacement,
+                layout.order,
+                max(model.world_size, 1),
+                model.walls_per_world,
             ],
             outputs=[speed, overlap, summary],
             device=model.device,

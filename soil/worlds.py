@@ -324,8 +324,14 @@ class Worlds:
         assert failure is not None
         if isinstance(failure, SimulationDiverged) and failure.last_good is not None:
             part = world_state_dict({f"state/{k}": v for k, v in failure.last_good.items()}, world, self.model)
+            n = self.model.world_size
+            where = (
+                ""
+                if failure.particle is None
+                else f" (world {failure.particle // n}'s particle {failure.particle % n})"
+            )
             return SimulationDiverged(  # a new one per world (a copy could share the batch's attributes)
-                str(failure),
+                f"{failure} [a batch of {self.count} worlds{where}]",
                 {k[len("state/") :]: v for k, v in part.items()},
                 time=failure.time,
                 step=failure.step,
