@@ -136,7 +136,7 @@ def _run_threads(worlds: Worlds, runners: list[Runner]) -> list[dict]:
                 ok=False, status="failed", error=f"{type(error).__name__}: {error}", traceback=traceback.format_exc(5)
             )
         finally:
-            worlds.world(k).leave()
+            worlds.leave(k)
         results[k] = out
 
     threads = [threading.Thread(target=run, args=(k,), name=f"world-{k}") for k in range(len(runners))]

@@ -446,18 +446,6 @@ class World:
         return self._sim.gravity
 
     @property
-    def device(self) -> str:
-        return self._sim.device
-
-    @property
-    def precision_name(self) -> str:
-        return self._sim.precision_name
-
-    @property
-    def step_control(self):
-        return None
-
-    @property
     def particle_count(self) -> int:
         return self.worlds.model.world_size
 
@@ -489,9 +477,6 @@ class World:
     def velocities(self) -> np.ndarray:
         return self._read(self._sim.velocities, self._grains)
 
-    def angular_velocities(self) -> np.ndarray:
-        return self._read(self._sim.angular_velocities, self._grains)
-
     # -- walls ---------------------------------------------------------------------------
     def boundary_kinds(self) -> np.ndarray:
         return self._sim.boundary_kinds()[self._walls]
@@ -504,9 +489,6 @@ class World:
 
     def boundary_displacements(self) -> np.ndarray:
         return self._read(self._sim.boundary_displacements, self._walls)
-
-    def boundary_velocities(self) -> np.ndarray:
-        return self._read(self._sim.boundary_velocities, self._walls)
 
     def boundary_geometry(self, displacement=None) -> np.ndarray:
         with self.worlds.lock:
@@ -548,12 +530,6 @@ class World:
 
     def body_rotations(self) -> np.ndarray:
         return self._control_rows("body_rotation_host")
-
-    def body_velocities(self) -> np.ndarray:
-        return self._control_rows("body_velocity_host")
-
-    def body_angular_velocities(self) -> np.ndarray:
-        return self._control_rows("body_angular_velocity_host")
 
     def body_wrenches(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         with self.worlds.lock:
