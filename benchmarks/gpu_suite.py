@@ -24,8 +24,9 @@ Sections, each timed, in this order (the tests last, within what is left of --bu
 - batched: replicas of the main job (examples/phobos_single_wheel.toml, mixed, landing off, a
   short drive) as K = 1, 4, 20 worlds of one simulation (cosim.batch.run_batched, the path of
   `cosim run --replicas K` on a GPU); the total particle-steps/s of the drive per K (target: 20
-  worlds at least 10 x one), the wheel's contact count, and whether world 0 of every batch gave
-  its run alone (K = 1) bit for bit on the device.
+  worlds at least 10 x one), the DEM steps' share of the wall and the runs' host work per world
+  per macro step (each run in a process of its own), the wheel's contact count, and whether world
+  0 of every batch gave its run alone (K = 1) bit for bit on the device.
 - paper: the testbed scene at the paper's scale (examples/phobos_single_wheel_gpu.toml: Phobos
   regolith at Phobos gravity, here in double) run through cosim.launch.run_plan with the wheel in
   the grains: it lands under its 8 kg load and drives at the main job's imposed slip (testbed
@@ -199,6 +200,11 @@ BATCH_OVERRIDES = (
     },
 )
 """Scene overrides of the batched section (full, small; small adds to full)."""
+
+
+def _figure(value) -> str:
+    """A table's figure to 2 decimals, '-' when not measured."""
+    return "-" if value is None else f"{value:.2f}"
 
 
 def size(name, small):
@@ -413,46 +419,57 @@ class Suite:
         folder = os.path.join(self.out, "batched")
         bed = settled_bed(load_plan(MAIN_SCENE, overrides), folder)
         overrides["bed.bed_file"] = os.path.abspath(bed.path)
-        rows, forces = [], {}
-        for worlds in size("batch_worlds", self.small):
-            plans = [load_plan(MAIN_SCENE, {**overrides, "run.order_seed": k}) for k in range(worlds)]
-            out_dirs = [os.path.join(folder, f"worlds_{worlds}", f"replica_{k:03d}") for k in range(worlds)]
-            marks = []  # host clock [s] when world 0 finished each macro step
 
-            first = os.path.abspath(out_dirs[0])
-
-            def after_step(runner, first=first, marks=marks) -> None:
-                if runner.folder.path == first:
-                    marks.append(time.perf_counter())
-
-            results = run_batched(plans, out_dirs, overwrite=True, hooks={"step": after_step})
-            failed = [r.get("error") for r in results if not r.get("ok")]
-            series = read_series(RunFolder(out_dirs[0]).results)
+        def row(worlds, series, marks, dem_seconds, failed) -> dict:
+            """The figures of a drive whose macro steps ended at host clock `marks` [s] (the DEM steps'
+            own host clock per macro step `dem_seconds`, None when not measured)."""
             timed = slice(WARMUP_STEPS, len(marks))
             seconds = float(marks[-1] - marks[WARMUP_STEPS - 1]) if len(marks) > WARMUP_STEPS else 0.0
             grains = float(series["soil_particle_count"][0])
             steps = float(series["soil_dem_steps"][timed].sum())
             counts = series["contact_count"][:, 0]
-            forces[worlds] = series["force"]
-            rows.append(
-                dict(
-                    worlds=worlds,
-                    grains_per_world=grains,
-                    macro_steps=len(marks),
-                    timed_seconds=seconds,
-                    particle_steps_per_second=worlds * grains * steps / seconds if seconds > 0 else 0.0,
-                    dem_share_of_wall=results[0]["batch"]["step_seconds"] / results[0]["batch"]["wall_seconds"],
-                    wheel_contacts_min=int(counts[len(counts) // 2 :].min()),
-                    wheel_contacts_mean=float(counts.mean()),
-                    failed=failed,
-                )
+            dem = None if dem_seconds is None else float(np.sum(dem_seconds[timed]))
+            return dict(
+                worlds=worlds,
+                grains_per_world=grains,
+                macro_steps=len(marks),
+                timed_seconds=seconds,
+                particle_steps_per_second=worlds * grains * steps / seconds if seconds > 0 else 0.0,
+                dem_share_of_wall=dem / seconds if dem is not None and seconds > 0 else None,
+                host_ms_per_world_step=None
+                if dem is None
+                else 1e3 * (seconds - dem) / max(worlds * (len(marks) - WARMUP_STEPS), 1),
+                wheel_contacts_min=int(counts[len(counts) // 2 :].min()),
+                wheel_contacts_mean=float(counts.mean()),
+                failed=failed,
             )
+
+        # the reference: world 0's replica run alone (cosim.launch.run_plan, as `cosim run` does)
+        plan = load_plan(MAIN_SCENE, {**overrides, "run.order_seed": 0})
+        out_alone = os.path.join(folder, "alone")
+        marks: list[float] = []
+        status = run_plan(plan, out_alone, overwrite=True, hooks={"step": lambda r: marks.append(time.perf_counter())})
+        series = read_series(RunFolder(out_alone).results)
+        alone = {
+            **row(1, series, marks, None, [] if status.status in ("complete", "unsteady") else [status.status]),
+            "worlds": "alone",
+        }
+        forces = {"alone": series["force"]}
+        rows = [alone]
+        for worlds in size("batch_worlds", self.small):
+            plans = [load_plan(MAIN_SCENE, {**overrides, "run.order_seed": k}) for k in range(worlds)]
+            out_dirs = [os.path.join(folder, f"worlds_{worlds}", f"replica_{k:03d}") for k in range(worlds)]
+            results = run_batched(plans, out_dirs, overwrite=True)
+            batch = results[0]["batch"]
+            series = read_series(RunFolder(out_dirs[0]).results)
+            failed = [r.get("error") for r in results if not r.get("ok")]
+            rows.append(row(worlds, series, batch["round_ends"], np.asarray(batch["round_steps"]), failed))
+            forces[worlds] = series["force"]
             self.log(json.dumps(rows[-1]))
         one = rows[0]["particle_steps_per_second"]
-        for row in rows:
-            row["x_one_world"] = row["particle_steps_per_second"] / one if one > 0 else 0.0
-        alone = forces[rows[0]["worlds"]]
-        same = all(np.array_equal(alone, f) for f in forces.values())
+        for r in rows:
+            r["x_one_world"] = r["particle_steps_per_second"] / one if one > 0 else 0.0
+        same = all(np.array_equal(forces["alone"], f) for f in forces.values())
         most = rows[-1]
         return {
             "scene": os.path.relpath(MAIN_SCENE, ROOT),
@@ -744,16 +761,19 @@ class Suite:
         if batched.get("rows"):
             lines += [
                 "",
-                f"Batched replicas of {batched['scene']} (worlds of one simulation; world 0 equal to its run alone "
+                f"Batched replicas of {batched['scene']} (worlds of one simulation, each run in a process of its "
+                f"own; 'x one world' against world 0's replica run alone; world 0 of every batch equal to that run "
                 f"bit for bit: {'yes' if batched['world_0_as_alone'] else 'NO'}):",
                 "",
                 "| worlds | grains per world | particle-steps/s (all worlds) | x one world "
-                "| DEM steps' share of the wall | wheel contacts min / mean |",
-                "|---|---|---|---|---|---|",
+                "| DEM steps' share of the wall | host work per world per macro step [ms] "
+                "| wheel contacts min / mean |",
+                "|---|---|---|---|---|---|---|",
             ]
             lines += [
                 f"| {row['worlds']} | {row['grains_per_world']:.0f} | {row['particle_steps_per_second']:.3g} | "
-                f"{row['x_one_world']:.2f} | {row['dem_share_of_wall']:.2f} | "
+                f"{row['x_one_world']:.2f} | {_figure(row['dem_share_of_wall'])} | "
+                f"{_figure(row['host_ms_per_world_step'])} | "
                 f"{row['wheel_contacts_min']} / {row['wheel_contacts_mean']:.1f} |"
                 for row in batched["rows"]
             ]

@@ -3,16 +3,24 @@
     results = run_batched(plans, out_dirs)        # cosim.study.replica_run(..., batched=True)
 
 Each replica is a world of one soil.worlds.Worlds (the same bed, its own order seed, wheel, rig
-or rover, results folder, checkpoints); the K runs are stepped from K threads that meet at each
-macro step, where the DEM steps every world in the same launches. A world's results are bit for
-bit those of its run alone (tests/test_batch.py), and each folder is an ordinary run folder:
-`cosim resume FOLDER` continues it alone.
+or rover, results folder, checkpoints). The simulation lives in this process, which serves it;
+each run (its rig or rover, coupler, records and results writer: cosim.runner.Runner, the path of
+a run alone) runs in a process of its own, whose soil side is a `RemoteWorld`: the Simulation
+interface cosim.DemSoil drives, over a pipe. So the K runs' host work goes on K cores at once
+instead of one after the other under one interpreter lock (docs/performance.md section 6): per
+macro step a run sends its wheels' path and gets its report and what it reads after the step
+(`Worlds.view`: its wheels' poses and its walls' loads, read from the device once for all
+worlds); the DEM steps every world in the same launches once every run has asked. A world's
+results are bit for bit those of its run alone (tests/test_batch.py), and each folder is an
+ordinary run folder: `cosim resume FOLDER` continues it alone.
 
 What a batch cannot run (`batch_problem` says why, and the replicas then run one by one): a
 terrain other than the DEM, a moving soil patch, the PID step control (one step for all worlds),
-an FMU rover (its instances are not shared across threads here). Shared by the worlds: the clock,
-the DEM step, the divergence monitor (a world that diverges stops the batch; each run reports it
-with its own last good state) and the wall time (each run's is the batch's).
+an FMU rover (its replicas run one by one). Shared by the worlds: the clock, the DEM step, the
+divergence monitor (a world that diverges stops the batch; each run reports it with its own last
+good state). Ctrl-C or SIGTERM to this process reaches every run, which stops after its macro step
+with a checkpoint (a second one: at once); a run whose process dies leaves the batch (its result
+says so), the others go on; if this process dies, every run stops with the error.
 """
 
 from __future__ import annotations
@@ -20,15 +28,23 @@ from __future__ import annotations
 import contextlib
 import logging
 import os
+import pickle
 import signal
-import threading
+import socket
+import subprocess
+import sys
 import time
 import traceback
 from dataclasses import replace
+from multiprocessing.connection import Connection, wait
 
-from soil.errors import ArgumentError
+import numpy as np
+
+from soil.errors import ArgumentError, RegolithError
 from soil.integrator import make_integrator
-from soil.worlds import Worlds, open_bed_worlds
+from soil.macro import MacroStepReport
+from soil.sdf import displaced_geometry
+from soil.worlds import World, Worlds, open_bed_worlds
 
 from .beds import check_memory, settled_bed
 from .dem_soil import DemSoil
@@ -71,14 +87,12 @@ def _soil_of(plan: RunPlan) -> tuple:
     )
 
 
-def run_batched(
-    plans: list[RunPlan], out_dirs: list[str], overwrite: bool = False, hooks: dict | None = None
-) -> list[dict]:
+def run_batched(plans: list[RunPlan], out_dirs: list[str], overwrite: bool = False) -> list[dict]:
     """Run `plans` (replicas of one scene: the same bed, any order seeds) as worlds of one simulation
     into `out_dirs`; returns one result per run as cosim.study.run_task does (label, out_dir, ok,
     status, summary, wall_time, error), each with the batch's figures ('batch': worlds, wall_seconds,
-    rounds, step_seconds: the host clock of the macro steps themselves). hooks: each Runner's
-    (cosim.runner.Runner), called from its thread."""
+    rounds, step_seconds: the host clock of the macro steps themselves, round_ends: the host clock
+    [s] at the end of each, round_steps: each one's step_seconds)."""
     first = plans[0]
     problem = batch_problem(first)
     if problem is not None:
@@ -91,79 +105,407 @@ def run_batched(
                     "(batched runs differ only in their order seed and their rig or rover)"
                 )
     started = time.perf_counter()
-    with contextlib.ExitStack() as stack:
-        bed = settled_bed(first, out_dirs[0])
-        on_bed = replace(first, bed=replace(first.bed, bed_file=os.path.abspath(bed.path)))
-        check_memory(on_bed, len(plans))  # the K worlds must fit: checked before they are allocated
-        wheels = [(w.shape, w.material) for w in (first.wheels if first.rover else [first.wheel])]
-        worlds = open_bed_worlds(
-            bed.saved,
-            wheels,
-            [p.order_seed for p in plans],
-            device=first.device,
-            precision=first.precision,
-            law=first.law,
-            integrator=make_integrator(first.integrator),
-            gravity=first.gravity if first.rover else None,
-            storage=first.storage,
-        )
-        runners = []
+    bed = settled_bed(first, out_dirs[0])
+    on_bed = replace(first, bed=replace(first.bed, bed_file=os.path.abspath(bed.path)))
+    check_memory(on_bed, len(plans))  # the K worlds must fit: checked before they are allocated
+    wheels = [(w.shape, w.material) for w in (first.wheels if first.rover else [first.wheel])]
+    worlds = open_bed_worlds(
+        bed.saved,
+        wheels,
+        [p.order_seed for p in plans],
+        device=first.device,
+        precision=first.precision,
+        law=first.law,
+        integrator=make_integrator(first.integrator),
+        gravity=first.gravity if first.rover else None,
+        storage=first.storage,
+    )
+    # a run opens the shared bed, not one of its own
+    plans = [p if p.bed.bed_file else replace(p, bed=replace(p.bed, bed_file=on_bed.bed.bed_file)) for p in plans]
+    hosts: list[_Host] = []
+    try:
         for k, (plan, out) in enumerate(zip(plans, out_dirs)):
-            soil = DemSoil(worlds.world(k), plan.dt, bed.surface_height)
-            system, writer, folder = stack.enter_context(open_run(plan, out, overwrite=overwrite, soil=soil))
-            runners.append(Runner(system, writer, folder, hooks=hooks))
-        worlds.ensure_forces()  # every world's wheels placed: their forces once
-        results = _run_threads(worlds, runners)
+            world = worlds.world(k)
+            hosts.append(_Host.start(k, world, (plan, out, overwrite, _description(world), bed.surface_height)))
+        results = _serve(worlds, hosts)
+    finally:
+        for host in hosts:
+            host.close()
     wall = time.perf_counter() - started
     log.info("%d replicas as one batch of worlds: %.1f s, %d macro steps together", len(plans), wall, worlds.rounds)
-    batch = {"worlds": len(plans), "wall_seconds": wall, "rounds": worlds.rounds, "step_seconds": worlds.step_seconds}
+    batch = {
+        "worlds": len(plans),
+        "wall_seconds": wall,
+        "rounds": worlds.rounds,
+        "step_seconds": worlds.step_seconds,
+        "round_ends": list(worlds.round_ends),
+        "round_steps": list(worlds.round_steps),
+    }
     return [{**r, "label": f"replica_{k:03d}", "wall_time": wall, "batch": batch} for k, r in enumerate(results)]
 
 
-def _run_threads(worlds: Worlds, runners: list[Runner]) -> list[dict]:
-    """Each runner in its own thread (the worlds meet at every macro step); a stop signal stops them all
-    cleanly after the macro step."""
-    results: list[dict] = [{} for _ in runners]
+# -- the serving side: this process, which owns the simulation ----------------------------------------
 
-    def run(k: int) -> None:
-        runner = runners[k]
-        out: dict = {"out_dir": runner.folder.path}
-        try:
-            result = runner.run()
-            out.update(ok=True, status=result.status, summary=result.summary)
-        except BaseException as error:  # noqa: BLE001 - a failed replica is a result
-            out.update(
-                ok=False, status="failed", error=f"{type(error).__name__}: {error}", traceback=traceback.format_exc(5)
+
+class _Host:
+    """A run's process as the server sees it: a Python of its own (not a fork: the device's context
+    would be copied; not multiprocessing's spawn: it would run the caller's script again), its end of a
+    socket pair passed as a descriptor, in a session of its own (see _forward_stop_signals)."""
+
+    def __init__(self, index: int, world: World, connection: Connection, process: subprocess.Popen, out_dir: str):
+        self.index = index
+        self.world = world
+        self.connection = connection
+        self.process = process
+        self.out_dir = out_dir
+        self.result: dict | None = None
+        self.waiting = False
+        """It asked for a macro step and waits for its report."""
+        self.ready = False
+        """Its run is set up (its wheels placed): the worlds' first forces wait for every run."""
+
+    @classmethod
+    def start(cls, index: int, world: World, job: tuple) -> _Host:
+        """Start world `index`'s process and send it its job (_run_world's arguments)."""
+        ours, theirs = socket.socketpair()
+        with theirs:
+            process = subprocess.Popen(
+                [sys.executable, "-c", "from cosim.batch import world_process; world_process()", str(theirs.fileno())],
+                pass_fds=(theirs.fileno(),),
+                start_new_session=True,
             )
-        finally:
-            worlds.leave(k)
-        results[k] = out
+        host = cls(index, world, Connection(ours.detach()), process, job[1])
+        _send(host, ("job", *job))
+        return host
 
-    threads = [threading.Thread(target=run, args=(k,), name=f"world-{k}") for k in range(len(runners))]
-    previous = _stop_all_on_signal(runners)
+    def close(self) -> None:
+        self.connection.close()
+        try:
+            self.process.wait(timeout=10.0)
+        except subprocess.TimeoutExpired:
+            self.process.kill()
+            self.process.wait()
+
+
+CALLS = (
+    "radii",
+    "masses",
+    "positions",
+    "velocities",
+    "boundary_displacements",
+    "boundary_wrenches",
+    "body_positions",
+    "body_rotations",
+    "body_wrenches",
+    "set_body_motion",
+    "refresh_forces",
+    "arm_monitor",
+    "monitor_armed",
+    "check_divergence",
+    "state_dict",
+)
+"""What a run's process may ask its world for (World's methods of these names)."""
+
+
+def _description(world: World) -> dict:
+    """What a world is and never changes in a run (RemoteWorld keeps it)."""
+    return {
+        "index": world.index,
+        "time": world.time,
+        "gravity": world.gravity,
+        "particle_count": world.particle_count,
+        "body_count": world.body_count,
+        "boundary_count": world.boundary_count,
+        "body_shapes": world.body_shapes,
+        "boundary_kinds": world.boundary_kinds(),
+        "boundary_reports": world.boundary_reports(),
+        "initial_boundary_geometry": world.initial_boundary_geometry(),
+    }
+
+
+def _sendable(error: BaseException) -> BaseException:
+    """The error itself when it crosses a pipe intact, else a RuntimeError naming it."""
     try:
-        for thread in threads:
-            thread.start()
-        for thread in threads:
-            while thread.is_alive():
-                thread.join(timeout=0.5)
+        pickle.loads(pickle.dumps(error))
+        return error
+    except Exception:  # noqa: BLE001 - any error that does not pickle is named instead
+        return RuntimeError(f"{type(error).__name__}: {error}")
+
+
+def _serve(worlds: Worlds, hosts: list[_Host]) -> list[dict]:
+    """Answer the runs' requests until every run is done; returns their results in order."""
+    previous = _forward_stop_signals(hosts)
+    started = False
+    try:
+        while True:
+            open_hosts = {h.connection: h for h in hosts if h.result is None}
+            if not open_hosts:
+                break
+            for connection in wait(list(open_hosts), timeout=0.5):
+                _answer(worlds, open_hosts[connection])  # type: ignore[index]
+            if not started and all(h.ready or h.result is not None for h in hosts):
+                worlds.ensure_forces()  # every world's wheels placed: their forces once, as alone
+                started = True
+                for host in hosts:
+                    if host.result is None:
+                        _send(host, ("go",))
+            for host in hosts:
+                if host.waiting:
+                    try:
+                        report = worlds.take(host.index)
+                    except BaseException as error:  # noqa: BLE001 - the batch's failure, as this world sees it
+                        host.waiting = False
+                        _send(host, ("error", _sendable(error)))
+                        continue
+                    if report is not None:
+                        host.waiting = False
+                        _send(host, ("report", report, worlds.view(host.index)))
     finally:
         for number, handler in previous.items():
             signal.signal(number, handler)
-    return results
+    return [h.result or {} for h in hosts]
 
 
-def _stop_all_on_signal(runners: list[Runner]) -> dict:
-    """Ctrl-C or SIGTERM asks every run of the batch to stop after its macro step with a checkpoint (the
-    runs' threads cannot take signals); returns the handlers it replaced."""
+def _answer(worlds: Worlds, host: _Host) -> None:
+    """One message of a run's process."""
+    try:
+        message = host.connection.recv()
+    except (EOFError, OSError):
+        with contextlib.suppress(subprocess.TimeoutExpired):
+            host.process.wait(timeout=5.0)
+        _finish(
+            worlds,
+            host,
+            {
+                "out_dir": host.out_dir,
+                "ok": False,
+                "status": "failed",
+                "error": f"the process of world {host.index} ended without a result (exit code "
+                f"{host.process.returncode}); its last checkpoint is in {host.out_dir}",
+            },
+        )
+        return
+    kind = message[0]
+    if kind == "call":
+        name, args, kwargs = message[1:]
+        try:
+            if name not in CALLS:
+                raise ArgumentError(f"a world is not asked for {name!r}: allowed {', '.join(CALLS)}")
+            value = host.world.monitor.armed if name == "monitor_armed" else getattr(host.world, name)(*args, **kwargs)
+            _send(host, ("value", value))
+        except BaseException as error:  # noqa: BLE001 - the run's process raises it
+            _send(host, ("error", _sendable(error)))
+    elif kind == "advance":
+        try:
+            worlds.submit(host.index, *message[1:])
+            host.waiting = True
+        except BaseException as error:  # noqa: BLE001
+            _send(host, ("error", _sendable(error)))
+    elif kind == "ready":
+        host.ready = True
+    elif kind == "done":
+        _finish(worlds, host, message[1])
+
+
+def _finish(worlds: Worlds, host: _Host, result: dict) -> None:
+    host.result = result
+    host.waiting = False
+    worlds.leave(host.index)
+
+
+def _send(host: _Host, message: tuple) -> None:
+    try:
+        host.connection.send(message)
+    except (BrokenPipeError, OSError):  # its process is gone: the next wait sees its end
+        pass
+
+
+def _forward_stop_signals(hosts: list[_Host]) -> dict:
+    """Ctrl-C or SIGTERM here reaches every run's process (each has a process group of its own, so a
+    terminal's Ctrl-C arrives once): each stops after its macro step with a checkpoint, or at once on
+    a second one. Returns the handlers it replaced."""
+    import threading
+
     if threading.current_thread() is not threading.main_thread():
         return {}
 
     def handler(signum, frame):
         name = signal.Signals(signum).name
         log.warning("%s: every run of the batch stops after its macro step with a checkpoint", name)
-        for runner in runners:
-            runner.stop_requested = True
-            runner.stop_signal = name
+        for host in hosts:
+            if host.result is None:
+                with contextlib.suppress(ProcessLookupError):
+                    os.kill(host.process.pid, signum)
 
     return {number: signal.signal(number, handler) for number in STOP_SIGNALS}
+
+
+# -- a run's side: its own process -----------------------------------------------------------------------
+
+
+def world_process() -> None:
+    """The entry of a run's process (_Host.start): its job from the descriptor in argv[1], then _run_world."""
+    connection = Connection(int(sys.argv[1]))
+    try:
+        _, *job = connection.recv()
+    except (EOFError, OSError):
+        return
+    _run_world(connection, *job)
+
+
+def _run_world(connection: Connection, plan: RunPlan, out_dir: str, overwrite: bool, description: dict, surface):
+    """A run's process: its run alone, on a RemoteWorld; its result goes back as its last message."""
+    world = RemoteWorld(connection, description)
+    out: dict = {"out_dir": os.path.abspath(out_dir)}
+    try:
+        soil = DemSoil(world, plan.dt, surface)
+        with open_run(plan, out_dir, overwrite=overwrite, soil=soil) as (system, writer, folder):
+            runner = Runner(system, writer, folder)
+            out["out_dir"] = folder.path
+            world.wait_for_start()
+            result = runner.run()
+        out.update(ok=True, status=result.status, summary=result.summary)
+    except BaseException as error:  # noqa: BLE001 - a failed replica is a result
+        out.update(
+            ok=False, status="failed", error=f"{type(error).__name__}: {error}", traceback=traceback.format_exc(5)
+        )
+    with contextlib.suppress(BrokenPipeError, OSError):
+        connection.send(("done", out))
+    connection.close()
+
+
+class BatchServerGone(RegolithError, RuntimeError):
+    """The process serving a batch's simulation ended before the run did."""
+
+
+class _RemoteMonitor:
+    def __init__(self, world: RemoteWorld):
+        self._world = world
+
+    @property
+    def armed(self) -> bool:
+        return bool(self._world._call("monitor_armed"))
+
+
+class RemoteWorld:
+    """A world of a batch served by another process (run_batched), with the Simulation interface
+    cosim.DemSoil drives (soil.worlds.World's): what never changes is kept, a macro step is one
+    request and its answer brings what the run reads after it (Worlds.view); the rest is asked."""
+
+    def __init__(self, connection: Connection, description: dict):
+        self._connection = connection
+        self.index = int(description["index"])
+        self.time = float(description["time"])
+        self.gravity = np.asarray(description["gravity"])
+        self.particle_count = int(description["particle_count"])
+        self.body_count = int(description["body_count"])
+        self.boundary_count = int(description["boundary_count"])
+        self.body_shapes = description["body_shapes"]
+        self._kinds = description["boundary_kinds"]
+        self._reports = description["boundary_reports"]
+        self._initial = description["initial_boundary_geometry"]
+        self._path: tuple | None = None
+        self._view: dict | None = None
+        self.monitor = _RemoteMonitor(self)
+
+    def _exchange(self, message: tuple):
+        try:
+            self._connection.send(message)
+            answer = self._connection.recv()
+        except (EOFError, OSError) as error:
+            raise BatchServerGone(
+                f"the process serving world {self.index}'s batch ended ({type(error).__name__}); this run's last "
+                "checkpoint continues it alone (cosim resume)"
+            ) from None
+        if answer[0] == "error":
+            raise answer[1]
+        return answer
+
+    def _call(self, name: str, *args, **kwargs):
+        return self._exchange(("call", name, args, kwargs))[1]
+
+    def wait_for_start(self) -> None:
+        """Tell the server this run is set up; return when every run of the batch is."""
+        self._exchange(("ready",))
+
+    # -- what the world is ----------------------------------------------------------------
+    def boundary_kinds(self) -> np.ndarray:
+        return self._kinds.copy()
+
+    def boundary_reports(self) -> np.ndarray:
+        return self._reports.copy()
+
+    def initial_boundary_geometry(self) -> np.ndarray:
+        return self._initial.copy()
+
+    def boundary_geometry(self, displacement=None) -> np.ndarray:
+        shift = self.boundary_displacements() if displacement is None else displacement
+        return displaced_geometry(self._kinds, self._initial, shift)
+
+    def radii(self) -> np.ndarray:
+        return self._call("radii")
+
+    def masses(self) -> np.ndarray:
+        return self._call("masses")
+
+    def positions(self) -> np.ndarray:
+        return self._call("positions")
+
+    def velocities(self) -> np.ndarray:
+        return self._call("velocities")
+
+    # -- read after a macro step: from its answer ---------------------------------------------
+    def _seen(self, name: str):
+        return None if self._view is None else self._view[name]
+
+    def boundary_displacements(self) -> np.ndarray:
+        seen = self._seen("boundary_displacements")
+        return self._call("boundary_displacements") if seen is None else seen.copy()
+
+    def boundary_wrenches(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        seen = self._seen("boundary_wrenches")
+        return self._call("boundary_wrenches") if seen is None else tuple(v.copy() for v in seen)
+
+    def body_positions(self) -> np.ndarray:
+        seen = self._seen("body_positions")
+        return self._call("body_positions") if seen is None else seen.copy()
+
+    def body_rotations(self) -> np.ndarray:
+        seen = self._seen("body_rotations")
+        return self._call("body_rotations") if seen is None else seen.copy()
+
+    def body_wrenches(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        return self._call("body_wrenches")
+
+    # -- wheels -------------------------------------------------------------------------------
+    def set_body_motion(self, body: int, *args, **kwargs) -> None:
+        self._view = None
+        self._call("set_body_motion", body, *args, **kwargs)
+
+    def refresh_forces(self) -> None:
+        self._view = None
+        self._call("refresh_forces")
+
+    def set_body_path(self, span: float, position, orientation, velocity, angular_velocity, end=None) -> None:
+        self._path = (position, orientation, velocity, angular_velocity, end)
+
+    def advance_to(self, end_time: float, dt: float, path: bool = False) -> MacroStepReport:
+        body_path, self._path = self._path, None
+        self._view = None
+        _, report, view = self._exchange(("advance", float(end_time), float(dt), bool(path), body_path))
+        self._view = view
+        self.time = float(view["time"])
+        return report
+
+    # -- health and checkpoints ---------------------------------------------------------------
+    def arm_monitor(self) -> None:
+        self._call("arm_monitor")
+
+    def check_divergence(self) -> None:
+        self._call("check_divergence")
+
+    def state_dict(self) -> dict:
+        return self._call("state_dict")
+
+    def load_state_dict(self, data: dict) -> None:
+        raise ArgumentError("a world of a batch is not loaded from a checkpoint: resume its run on its own")

@@ -6,6 +6,7 @@ kernels (soil.solver) turn them into overlaps; the divergence check (soil.stabil
 the energy diagnostics use the same functions.
 """
 
+import numpy as np
 import warp as wp
 
 from .precision import kernel_factory
@@ -21,6 +22,18 @@ BODY_WHEEL = 0
 """Parametric grousered wheel: shape row (radius, half width, grousers, grouser height, thickness, bounding radius)."""
 BODY_MESH = 1
 """Closed triangle mesh: shape row (0, 0, 0, 0, 0, bounding radius)."""
+
+
+def displaced_geometry(kinds, initial, displacement) -> np.ndarray:
+    """Geometry rows [m], shape (count, 6), float64, of boundaries of `kinds` (count,) whose initial rows
+    are `initial` (count, 6), moved by `displacement` [m] (count, 3): a plane's point moves, a box's two
+    corners move."""
+    rows = np.array(initial, dtype=np.float64, copy=True)
+    shift = np.asarray(displacement, dtype=np.float64).reshape(-1, 3)
+    rows[:, :3] += shift
+    box = np.asarray(kinds) == BOUNDARY_BOX
+    rows[box, 3:] += shift[box]
+    return rows
 
 
 @kernel_factory

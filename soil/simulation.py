@@ -38,7 +38,7 @@ from .macro import (  # noqa: F401 (CaptureWarning and the report's columns re-e
 )
 from .model import SoilModel
 from .neighbours import NeighbourList, NeighbourSettings
-from .sdf import BOUNDARY_BOX
+from .sdf import displaced_geometry
 from .snapshot import SimulationSnapshot
 from .solver import ContactSolver
 from .stability import DivergenceMonitor, SimulationDiverged  # noqa: F401 (SimulationDiverged re-exported)
@@ -779,11 +779,9 @@ class Simulation:
         [m], shape (boundary_count, 3) (e.g. a MacroStepReport's boundary_displacement; default: the
         current displacement, read from the device)."""
         kinds, initial = self._boundary_rows()
-        rows = initial.copy()
-        shift = self.boundary_displacements() if displacement is None else np.asarray(displacement, dtype=np.float64)
-        rows[:, :3] += shift
-        rows[kinds == BOUNDARY_BOX, 3:] += shift[kinds == BOUNDARY_BOX]
-        return rows
+        return displaced_geometry(
+            kinds, initial, self.boundary_displacements() if displacement is None else displacement
+        )
 
     def kinetic_energy(self) -> float:
         """Translational + rotational kinetic energy of the free particles [J]."""

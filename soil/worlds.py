@@ -19,8 +19,9 @@ monitor (a world that diverges stops them all).
 
 Stepping: each world asks for its macro step (World.advance_to) with its wheels' path; the step
 runs once every active world has asked, and a world that is done leaves (Worlds.leave; its wheels
-then hold still). The worlds may be driven from one thread each (cosim.batch): the requests meet
-in a condition variable and every access to the shared simulation holds `Worlds.lock`.
+then hold still). The worlds may be driven from one thread each (advance_to: the requests meet in
+a condition variable and every access to the shared simulation holds `Worlds.lock`) or served by
+one loop that answers them (submit, take, view: cosim.batch, each run in a process of its own).
 """
 
 from __future__ import annotations
@@ -244,7 +245,14 @@ class Worlds:
         self._refresh = False
         self.rounds = 0
         """Macro steps taken together [-]."""
+        self.round_ends: list[float] = []
+        """Host clock (time.perf_counter) [s] at the end of each of those macro steps."""
+        self.round_steps: list[float] = []
+        """Host clock spent in each of them [s] (as step_seconds)."""
+        self._last_step_seconds = 0.0
         self._checked = -1  # the round the divergence monitor last checked
+        self._view_round = -1  # the round whose walls `view` read
+        self._view: tuple = ()
         self.step_seconds = 0.0
         """Host clock spent in those macro steps [s] (each ends with its report's read: the device's time);
         the rest of a batch's wall is the worlds' own host work (rovers, records, writers)."""
@@ -270,6 +278,7 @@ class Worlds:
     def refresh_later(self) -> None:
         with self.lock:
             self._refresh = True
+            self._view_round = -1
 
     def ensure_forces(self) -> None:
         """The forces of the bodies' poses as prescribed (a pending refresh_forces, done once for all worlds)."""
@@ -303,20 +312,56 @@ class Worlds:
     def advance_to(self, world: int, end_time: float, dt: float, path: bool, body_path: tuple | None):
         """World `world`'s macro step to end_time [s] (its bodies along body_path: set_body_path's
         arguments for its bodies, or None); returns its part of the report once every active world
-        has asked for the same step."""
+        has asked for the same step (the worlds' threads wait here for one another)."""
+        with self._changed:
+            self.submit(world, end_time, dt, path, body_path)
+            while (report := self.take(world)) is None:
+                self._changed.wait()
+            return report
+
+    def submit(self, world: int, end_time: float, dt: float, path: bool, body_path: tuple | None) -> None:
+        """World `world` asks for its macro step (advance_to's arguments) without waiting: the step runs
+        as soon as every active world has asked; `take` then gives its report."""
         with self._changed:
             if world not in self.active:
                 raise ArgumentError(f"world {world} has left the batch")
             if self._failure is not None:
                 raise self._world_failure(world)
             self._requests[world] = (float(end_time), float(dt), bool(path), body_path)
-            mine = self._round
             self._maybe_step()
-            while self._round == mine and self._failure is None:
-                self._changed.wait()
-            if world not in self._reports:
+
+    def take(self, world: int) -> MacroStepReport | None:
+        """World `world`'s part of the report of the step it asked for (submit); None while other worlds
+        have still to ask. Raises the batch's failure as this world sees it."""
+        with self._changed:
+            if world in self._reports:
+                return self._reports.pop(world)
+            if self._failure is not None:
                 raise self._world_failure(world)
-            return self._reports.pop(world)
+            if world not in self._requests:
+                raise ArgumentError(f"world {world} has not asked for a macro step")
+            return None
+
+    def view(self, world: int) -> dict:
+        """What world `world`'s run reads between its macro steps, read from the device once per step for
+        all worlds: 'time' [s]; its wheels' 'body_positions' [m] (bodies, 3) and 'body_rotations' (bodies, 3,
+        3) as posed; its walls' 'boundary_displacements' [m] (walls, 3) and 'boundary_wrenches' (force [N]
+        (walls, 3), torque [N m] (walls, 3), contacts [-] (walls,)), as World's methods of those names give."""
+        with self.lock:
+            if self._view_round != self.rounds:
+                self.ensure_forces()
+                self._view = (self.sim.boundary_wrenches(), self.sim.boundary_displacements())
+                self._view_round = self.rounds
+            (force, torque, contacts), shift = self._view
+            bodies, walls = self.body_rows(world), self.wall_rows(world)
+            control = self.sim.control
+            return {
+                "time": self.sim.time,
+                "body_positions": control.body_position_host[bodies].copy(),
+                "body_rotations": control.body_rotation_host[bodies].copy(),
+                "boundary_displacements": shift[walls],
+                "boundary_wrenches": (force[walls], torque[walls], contacts[walls]),
+            }
 
     def _world_failure(self, world: int) -> BaseException:
         """The batch's failure as world `world` sees it: a divergence carries that world's last good state."""
@@ -359,6 +404,8 @@ class Worlds:
             return
         self._round += 1
         self.rounds += 1
+        self.round_ends.append(time.perf_counter())
+        self.round_steps.append(self._last_step_seconds)
         self._changed.notify_all()
 
     def _fail(self, error: BaseException) -> None:
@@ -398,7 +445,8 @@ class Worlds:
             sim.set_body_path(span, *start, end=end if towards else None)
         started = time.perf_counter()
         report = sim.advance_to(end_time, dt, path=path)
-        self.step_seconds += time.perf_counter() - started
+        self._last_step_seconds = time.perf_counter() - started
+        self.step_seconds += self._last_step_seconds
         for w in requests:
             bodies, walls = self.body_rows(w), self.wall_rows(w)
             self._reports[w] = replace(

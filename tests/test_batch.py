@@ -1,11 +1,18 @@
 """Replicas batched as worlds of one simulation (cosim.batch): each replica's results are bit for bit those
-of the same replica run alone, and the batch refuses what it cannot run."""
+of the same replica run alone, a stop signal or a dead run's process loses nothing of any run, and the
+batch refuses what it cannot run."""
+
+import os
+import signal
+import threading
+import time
 
 import numpy as np
 import pytest
 
-from cosim.batch import batch_problem
+from cosim.batch import batch_problem, run_batched
 from cosim.beds import check_memory
+from cosim.launch import final_state, resume, run_plan
 from cosim.output import read_series
 from cosim.plan import load_plan
 from cosim.scene import SceneError
@@ -60,8 +67,6 @@ def test_what_a_batch_cannot_run_is_refused_by_name(tmp_path, tiny_bed):
         replica_run(plan, str(tmp_path / "pid"), 2, batched=True)
     assert batch_problem(load_plan(write_tiny(tmp_path), ['terrain.model="analytic"'])).startswith("terrain.model")
     # the worlds share one soil: runs that differ in it are refused by name
-    from cosim.batch import run_batched
-
     other = load_plan(write_tiny(tmp_path), [f'bed.bed_file="{tiny_bed}"', "scene.precision='double'"])
     with pytest.raises(ValueError, match="its precision is 'double', run 0's 'mixed'"):
         run_batched([fixed_plan(tmp_path, tiny_bed), other], [str(tmp_path / "a"), str(tmp_path / "b")])
@@ -69,3 +74,110 @@ def test_what_a_batch_cannot_run_is_refused_by_name(tmp_path, tiny_bed):
     fixed = load_plan(write_tiny(tmp_path), [f'bed.bed_file="{tiny_bed}"'])
     with pytest.raises(SoilTooLargeError, match="as 1000000 batched replicas does not fit"):
         check_memory(fixed, 1_000_000)
+
+
+# -- a stop signal, a dead run: the batch's runs in processes of their own ------------------------------
+
+SEEDS = (0, 1)
+
+
+def seed_plan(tmp_path, tiny_bed, seed):
+    return load_plan(write_tiny(tmp_path), [f'bed.bed_file="{tiny_bed}"', f"run.order_seed={seed}"])
+
+
+@pytest.fixture(scope="module")
+def runs_alone(tmp_path_factory, tiny_bed):
+    """The tiny scene's runs of order seeds SEEDS, each alone, uninterrupted."""
+    folder = tmp_path_factory.mktemp("alone")
+    out = []
+    for seed in SEEDS:
+        run_plan(seed_plan(folder, tiny_bed, seed), str(folder / f"seed_{seed}"))
+        out.append(str(folder / f"seed_{seed}"))
+    return out
+
+
+def assert_same_run(a: str, b: str) -> None:
+    """Every series of results.h5 and the final soil state equal to the last bit (wall clocks aside; and
+    the divergence monitor's bounds, which a batch's worlds share: a resumed world's start from the batch's)."""
+    series_a, series_b = read_series(f"{a}/results.h5"), read_series(f"{b}/results.h5")
+    assert len(series_a["time"]) == len(series_b["time"]) > 20
+    for name, values in series_a.items():
+        if isinstance(values, np.ndarray) and name not in SAME_EVERYWHERE:
+            assert np.array_equal(values, series_b[name], equal_nan=True), f"{b}: {name} differs"
+    state_a, state_b = final_state(a), final_state(b)
+    assert set(state_a) == set(state_b)
+    for key in state_a:
+        if "/monitor/" not in key:
+            np.testing.assert_array_equal(state_a[key], state_b[key], err_msg=key)
+
+
+def when_checkpointed(folder, action) -> threading.Thread:
+    """Call action() once folder/checkpoint.npz exists (the run is past its first checkpoint)."""
+
+    def watch():
+        deadline = time.monotonic() + 300
+        while not os.path.exists(os.path.join(folder, "checkpoint.npz")) and time.monotonic() < deadline:
+            time.sleep(0.02)
+        action()
+
+    thread = threading.Thread(target=watch, daemon=True)
+    thread.start()
+    return thread
+
+
+def world_processes() -> list[int]:
+    """This process's batch children (cosim.batch.world_process), by /proc."""
+    pids = []
+    for entry in os.listdir("/proc"):
+        if not entry.isdigit():
+            continue
+        try:
+            with open(f"/proc/{entry}/cmdline", "rb") as f:
+                command = f.read()
+            with open(f"/proc/{entry}/stat") as f:
+                parent = int(f.read().rsplit(")", 1)[1].split()[1])
+        except OSError:
+            continue
+        if b"world_process" in command and parent == os.getpid():
+            pids.append(int(entry))
+    return pids
+
+
+def test_a_stop_signal_stops_every_run_of_a_batch_with_a_checkpoint_each_resumed_alone(tmp_path, tiny_bed, runs_alone):
+    """SIGTERM to the batch (what a scheduler sends): every run stops after its macro step with a checkpoint;
+    `cosim resume` of each folder then ends as its run alone does, bit for bit."""
+    plans = [seed_plan(tmp_path, tiny_bed, seed) for seed in SEEDS]
+    out = [str(tmp_path / f"replica_{k}") for k in range(len(plans))]
+    when_checkpointed(out[1], lambda: os.kill(os.getpid(), signal.SIGTERM))
+    results = run_batched(plans, out)
+    for result in results:
+        assert not result["ok"] and "RunInterrupted" in result["error"], result
+    for folder, alone in zip(out, runs_alone):
+        assert resume(folder).status in ("complete", "unsteady")
+        assert_same_run(alone, folder)
+
+
+@pytest.mark.skipif(not os.path.isdir("/proc"), reason="finds the batch's processes in /proc")
+def test_a_run_whose_process_dies_leaves_the_batch_and_the_others_finish_as_alone(tmp_path, tiny_bed, runs_alone):
+    """kill -9 of one run's process: its result says so, the other run goes on to its result alone bit for
+    bit, and the dead run resumes from its checkpoint to its own."""
+    plans = [seed_plan(tmp_path, tiny_bed, seed) for seed in SEEDS]
+    out = [str(tmp_path / f"replica_{k}") for k in range(len(plans))]
+    killed: list[int] = []
+
+    def kill_one():
+        pids = world_processes()
+        assert len(pids) == len(plans), pids
+        killed.append(pids[0])
+        os.kill(pids[0], signal.SIGKILL)
+
+    when_checkpointed(out[1], kill_one)
+    results = run_batched(plans, out)
+    assert killed
+    dead = [k for k, r in enumerate(results) if not r["ok"]]
+    assert len(dead) == 1 and "exit code -9" in results[dead[0]]["error"], results
+    (alive,) = set(range(len(plans))) - set(dead)
+    assert results[alive]["status"] in ("complete", "unsteady")
+    assert_same_run(runs_alone[alive], out[alive])
+    assert resume(out[dead[0]]).status in ("complete", "unsteady")
+    assert_same_run(runs_alone[dead[0]], out[dead[0]])
