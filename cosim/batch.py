@@ -147,6 +147,10 @@ def run_batched(plans: list[RunPlan], out_dirs: list[str], overwrite: bool = Fal
 # -- the serving side: this process, which owns the simulation ----------------------------------------
 
 
+_PACKAGES = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+"""Where cosim and soil are found (a run's process imports them from there, installed or not)."""
+
+
 class _Host:
     """A run's process as the server sees it: a Python of its own (not a fork: the device's context
     would be copied; not multiprocessing's spawn: it would run the caller's script again), its end of a
@@ -168,11 +172,13 @@ class _Host:
     def start(cls, index: int, world: World, job: tuple) -> _Host:
         """Start world `index`'s process and send it its job (_run_world's arguments)."""
         ours, theirs = socket.socketpair()
+        path = os.pathsep.join(filter(None, [_PACKAGES, os.environ.get("PYTHONPATH")]))
         with theirs:
             process = subprocess.Popen(
                 [sys.executable, "-c", "from cosim.batch import world_process; world_process()", str(theirs.fileno())],
                 pass_fds=(theirs.fileno(),),
                 start_new_session=True,
+                env={**os.environ, "PYTHONPATH": path},
             )
         host = cls(index, world, Connection(ours.detach()), process, job[1])
         _send(host, ("job", *job))
