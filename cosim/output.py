@@ -336,6 +336,7 @@ class ResultsWriter:
         self._file: Any = None  # the open h5py.File (h5py is imported when needed); None when closed
         self._buffer: list[dict] = []
         self._datasets: dict[str, Any] = {}  # the open file's record datasets by path (h5py lookups cost)
+        self._xdmf_known: dict[str, tuple] = {}  # write_xdmf's grids made so far, by snapshot
         self.steps = 0
         """Macro-step records written or buffered."""
         self.snapshots = 0
@@ -643,10 +644,10 @@ class ResultsWriter:
             return
         target = os.path.join(os.path.dirname(os.path.abspath(self.path)), XDMF_FILE)
         if self._file is not None:
-            write_xdmf(self._file, target)
+            write_xdmf(self._file, target, self._xdmf_known)
         else:
             with open_results(self.path) as f:
-                write_xdmf(f, target)
+                write_xdmf(f, target, self._xdmf_known)
 
 
 def _copy_truncated(old, new, counts: dict, rows: dict | None = None) -> None:
@@ -747,10 +748,15 @@ def _plain(group, name: str, data, units: str, description: str) -> None:
     _units(group[name], units, description)
 
 
-def sync_xdmf_data(f, data_path: str) -> None:
+def sync_xdmf_data(f, data_path: str, known: dict | None = None) -> np.ndarray:
     """Bring results.xdmf.h5 up to date with the open results file `f`: each particle snapshot as plain
     datasets (no hyperslabs: meshio's XDMF reader follows none), copied once and kept when its time is
-    unchanged; snapshots the results no longer hold (a resume cut them) are removed.
+    unchanged; snapshots the results no longer hold (a resume cut them) are removed. Returns the
+    snapshots' times [s] (S,).
+
+    known: what an earlier call of the same writer left (write_xdmf's cache: snapshot name -> (time, ...));
+    a snapshot in it at the same time is taken as written without being looked at, so that a run's
+    writes cost per new snapshot, not per snapshot so far. Entries that no longer hold are dropped.
 
     Layout (V wheel-mesh vertices, F triangles, n grains of the snapshot):
         /mesh/triangles (F, 3), /mesh/wheel (V,) [1], /mesh/vertex (1, 1) [1]: the rover's one-point cell
@@ -762,6 +768,9 @@ def sync_xdmf_data(f, data_path: str) -> None:
     """
     import h5py
 
+    known = {} if known is None else known
+    if not os.path.exists(data_path):
+        known.clear()  # a new data file (or one removed under the writer): nothing in it yet
     p = f["particles"]
     times = p["time"][()]
     ragged = p.attrs.get("layout") == "ragged"
@@ -782,8 +791,13 @@ def sync_xdmf_data(f, data_path: str) -> None:
         for name in list(snapshots):
             if int(name) >= len(times):
                 del snapshots[name]
+        for name in [n for n in known if int(n) >= len(times)]:
+            del known[name]
         for k, time in enumerate(times):
             name = f"{k:06d}"
+            if name in known and known[name][0] == time:
+                continue
+            known.pop(name, None)
             if name in snapshots and snapshots[name].attrs.get("time") == time:
                 continue
             if name in snapshots:
@@ -802,6 +816,7 @@ def sync_xdmf_data(f, data_path: str) -> None:
             _plain(snap, "rover_up", s.rover_up[None], "1", "rover body z axis, world frame")
             snap.attrs["time"] = time  # last: a snapshot with its time is complete
             snap.attrs["time_units"] = "s"
+    return times
 
 
 def _data_item(parent, h5name: str, path: str, dataset) -> ET.Element:
@@ -818,7 +833,50 @@ def _data_item(parent, h5name: str, path: str, dataset) -> ET.Element:
     return item
 
 
-def write_xdmf(f, xdmf_path: str) -> None:
+XDMF_COLLECTIONS = ("wheels", "rover", "particles")
+"""results.xdmf's temporal collections, in file order (meshio's reader takes the last: the grains)."""
+
+
+def _snapshot_grids(data, name: str) -> tuple[str, ...]:
+    """The XML of snapshot `name`'s grid in each of XDMF_COLLECTIONS, indented for its place in the file."""
+    h5name = XDMF_DATA_FILE
+    where = f"/snapshots/{name}"
+    time = repr(float(data[where].attrs["time"]))
+
+    def grid(collection: str, topology: str, cells: str, geometry: str, arrays: dict) -> str:
+        uniform = ET.Element("Grid", Name=f"{collection}_{name}", GridType="Uniform")
+        ET.SubElement(uniform, "Time", Value=time)
+        element = ET.SubElement(uniform, "Topology", TopologyType=topology, NumberOfElements=str(data[cells].shape[0]))
+        if topology == "Polyvertex":
+            element.set("NodesPerElement", "1")
+        _data_item(element, h5name, cells, data[cells])
+        _data_item(ET.SubElement(uniform, "Geometry", GeometryType="XYZ"), h5name, geometry, data[geometry])
+        for key, path in arrays.items():
+            kind = "Vector" if len(data[path].shape) == 2 else "Scalar"
+            attribute = ET.SubElement(uniform, "Attribute", Name=ARRAY_NAMES[key], AttributeType=kind, Center="Node")
+            _data_item(attribute, h5name, path, data[path])
+        ET.indent(uniform, level=3)  # Xdmf > Domain > collection > this grid
+        return ET.tostring(uniform, encoding="unicode")
+
+    ragged = "id" in data[where]
+    per_grain = where if ragged else "/grains"
+    arrays = {"radius": f"{per_grain}/radius", "velocity": f"{where}/velocity", "position": f"{where}/position"}
+    if ragged:
+        arrays["id"] = f"{where}/id"
+    return (
+        grid("wheels", "Triangle", "/mesh/triangles", f"{where}/wheel_vertices", {"wheel": "/mesh/wheel"}),
+        grid(
+            "rover",
+            "Polyvertex",
+            "/mesh/vertex",
+            f"{where}/rover_position",
+            {"forward": f"{where}/rover_forward", "up": f"{where}/rover_up"},
+        ),
+        grid("particles", "Polyvertex", f"{per_grain}/vertex", f"{where}/position", arrays),
+    )
+
+
+def write_xdmf(f, xdmf_path: str, known: dict | None = None) -> None:
     """Write results.xdmf (XDMF 3) and its data file results.xdmf.h5 (`sync_xdmf_data`) for an open
     results file: three temporal collections, the wheel meshes (Triangle), the rover body (a point with
     its forward and up axes) and, last, the grains (Polyvertex, with radius, velocity and position as
@@ -826,62 +884,35 @@ def write_xdmf(f, xdmf_path: str) -> None:
     gives per step only the point data). Every DataItem names a whole dataset of the data file, so
     the readers need no hyperslabs and the file stays readable while results.h5 is being written.
 
+    known: a dict the caller keeps between calls (ResultsWriter does): each snapshot's time and grids'
+    XML, made once, so a write costs per new snapshot and the XML's length, not a read of every
+    snapshot so far (which made a run's writes quadratic in its snapshots).
+
     The XML is written to a temporary file and renamed, so a reader never sees half a file.
     """
     import h5py
 
+    known = {} if known is None else known
     data_path = os.path.join(os.path.dirname(os.path.abspath(xdmf_path)), XDMF_DATA_FILE)
-    sync_xdmf_data(f, data_path)
-    h5name = XDMF_DATA_FILE
+    times = sync_xdmf_data(f, data_path, known)
+    names = [f"{k:06d}" for k in range(len(times))]
+    new = [name for name in names if name not in known]
+    if new:
+        with h5py.File(data_path, "r", locking=False) as data:
+            for name in new:
+                known[name] = (float(data[f"/snapshots/{name}"].attrs["time"]), _snapshot_grids(data, name))
     root = ET.Element("Xdmf", Version="3.0")
     domain = ET.SubElement(root, "Domain")
-    collections = {
-        name: ET.SubElement(domain, "Grid", Name=name, GridType="Collection", CollectionType="Temporal")
-        for name in ("wheels", "rover", "particles")
-    }
-    with h5py.File(data_path, "r", locking=False) as data:
-        for name in sorted(data["snapshots"]):
-            where = f"/snapshots/{name}"
-            time = repr(float(data[where].attrs["time"]))
-
-            def grid(collection: str, topology: str, cells: str, geometry: str, arrays: dict) -> None:
-                uniform = ET.SubElement(
-                    collections[collection],
-                    "Grid",
-                    Name=f"{collection}_{name}",  # noqa: B023 (used at once, in this iteration)
-                    GridType="Uniform",
-                )
-                ET.SubElement(uniform, "Time", Value=time)  # noqa: B023
-                element = ET.SubElement(
-                    uniform, "Topology", TopologyType=topology, NumberOfElements=str(data[cells].shape[0])
-                )
-                if topology == "Polyvertex":
-                    element.set("NodesPerElement", "1")
-                _data_item(element, h5name, cells, data[cells])
-                _data_item(ET.SubElement(uniform, "Geometry", GeometryType="XYZ"), h5name, geometry, data[geometry])
-                for key, path in arrays.items():
-                    kind = "Vector" if len(data[path].shape) == 2 else "Scalar"
-                    attribute = ET.SubElement(
-                        uniform, "Attribute", Name=ARRAY_NAMES[key], AttributeType=kind, Center="Node"
-                    )
-                    _data_item(attribute, h5name, path, data[path])
-
-            grid("wheels", "Triangle", "/mesh/triangles", f"{where}/wheel_vertices", {"wheel": "/mesh/wheel"})
-            grid(
-                "rover",
-                "Polyvertex",
-                "/mesh/vertex",
-                f"{where}/rover_position",
-                {"forward": f"{where}/rover_forward", "up": f"{where}/rover_up"},
-            )
-            ragged = "id" in data[where]
-            per_grain = where if ragged else "/grains"
-            arrays = {"radius": f"{per_grain}/radius", "velocity": f"{where}/velocity", "position": f"{where}/position"}
-            if ragged:
-                arrays["id"] = f"{where}/id"
-            grid("particles", "Polyvertex", f"{per_grain}/vertex", f"{where}/position", arrays)
+    for collection in XDMF_COLLECTIONS:
+        grid = ET.SubElement(domain, "Grid", Name=collection, GridType="Collection", CollectionType="Temporal")
+        if names:
+            grid.text = f"@{collection}@"  # the snapshots' grids go here, as made once
     ET.indent(root)
     text = '<?xml version="1.0" ?>\n' + ET.tostring(root, encoding="unicode")
+    for c, collection in enumerate(XDMF_COLLECTIONS):
+        if names:
+            grids = "\n      ".join(known[name][1][c] for name in names)
+            text = text.replace(f"@{collection}@", f"\n      {grids}\n    ", 1)
     atomic_write_text(xdmf_path, text + "\n")
 
 

@@ -205,3 +205,45 @@ def test_killed_writer_leaves_a_readable_file(tmp_path):
         assert list(f["wheels/time"][()]) == [float(k) for k in range(8)] + [108.0, 109.0, 110.0]
         assert f["wheels/force"].shape == (11, 1, 3) and f["wheels/force"].attrs["units"] == "N"
         assert f["particles/position"].shape == (1, 4, 3)
+
+
+def test_xdmf_kept_by_the_writer_equals_one_written_afresh(tmp_path, monkeypatch):
+    """The writer makes each snapshot's XDMF grids once (its writes grow with the new snapshots, not with
+    all so far): after 30 snapshots, a resume that cuts them to 12 and writes 5 more at other times, and
+    the data file removed under it, results.xdmf is the one written from the results file alone."""
+    from collections import Counter
+
+    from cosim import output
+
+    made = []
+    grids = output._snapshot_grids
+    monkeypatch.setattr(output, "_snapshot_grids", lambda data, name: made.append(name) or grids(data, name))
+
+    def afresh(results):
+        with open_results(results) as f:
+            output.write_xdmf(f, str(tmp_path / "fresh" / "results.xdmf"))
+        (tmp_path / "fresh" / "results.xdmf.h5").unlink()
+        return (tmp_path / "fresh" / "results.xdmf").read_text()
+
+    (tmp_path / "fresh").mkdir()
+    path = tmp_path / "results.h5"
+    grains = np.zeros((4, 3))
+    writer = _writer(path)
+    for k in range(30):
+        writer.add_snapshot(0.125 * k, grains + k, grains, np.full((3, 3), k))
+    assert sorted(made) == [f"{k:06d}" for k in range(30)]  # each once
+    writer.close("interrupted")
+    assert (tmp_path / "results.xdmf").read_text() == afresh(path)
+
+    writer = ResultsWriter.resume(path, steps=0, snapshots=12, flush_every=3)
+    made.clear()
+    for k in range(12, 17):
+        writer.add_snapshot(0.125 * k + 0.0625, grains - k, grains, np.full((3, 3), -k))
+    (tmp_path / "results.xdmf.h5").unlink()  # removed under the running writer: made again
+    writer.add_snapshot(3.0, grains, grains, np.zeros((3, 3)))
+    writer.close("complete")
+    # once for the resumed writer, once more when its data file went (the last snapshot came after)
+    assert Counter(made) == {**{f"{k:06d}": 2 for k in range(17)}, "000017": 1}
+    text = (tmp_path / "results.xdmf").read_text()
+    assert text == afresh(path)
+    assert 'Value="1.5625"' in text and 'Value="1.5"' not in text  # the resumed snapshot 12, not the cut one
