@@ -25,7 +25,8 @@ Sections, each timed, in this order (the tests last, within what is left of --bu
   short drive) as K = 1, 4, 20 worlds of one simulation (cosim.batch.run_batched, the path of
   `cosim run --replicas K` on a GPU); the total particle-steps/s of the drive per K (target: 20
   worlds at least 10 x one), the DEM steps' share of the wall and the runs' host work per world
-  per macro step (each run in a process of its own), the wheel's contact count, and whether world
+  per macro step (each run in a process of its own) with the serving process's part of it, the
+  wheel's contact count, and whether world
   0 of every batch gave its run alone (K = 1) bit for bit on the device.
 - paper: the testbed scene at the paper's scale (examples/phobos_single_wheel_gpu.toml: Phobos
   regolith at Phobos gravity, here in double) run through cosim.launch.run_plan with the wheel in
@@ -420,9 +421,10 @@ class Suite:
         bed = settled_bed(load_plan(MAIN_SCENE, overrides), folder)
         overrides["bed.bed_file"] = os.path.abspath(bed.path)
 
-        def row(worlds, series, marks, dem_seconds, failed) -> dict:
+        def row(worlds, series, marks, dem_seconds, failed, serve_seconds=None) -> dict:
             """The figures of a drive whose macro steps ended at host clock `marks` [s] (the DEM steps'
-            own host clock per macro step `dem_seconds`, None when not measured)."""
+            own host clock per macro step `dem_seconds`, and the serving process's own host work over the
+            whole batch `serve_seconds` [s], None when not measured)."""
             timed = slice(WARMUP_STEPS, len(marks))
             seconds = float(marks[-1] - marks[WARMUP_STEPS - 1]) if len(marks) > WARMUP_STEPS else 0.0
             grains = float(series["soil_particle_count"][0])
@@ -439,6 +441,9 @@ class Suite:
                 host_ms_per_world_step=None
                 if dem is None
                 else 1e3 * (seconds - dem) / max(worlds * (len(marks) - WARMUP_STEPS), 1),
+                serve_ms_per_world_step=None
+                if serve_seconds is None
+                else 1e3 * serve_seconds / max(worlds * len(marks), 1),
                 wheel_contacts_min=int(counts[len(counts) // 2 :].min()),
                 wheel_contacts_mean=float(counts.mean()),
                 failed=failed,
@@ -463,7 +468,16 @@ class Suite:
             batch = results[0]["batch"]
             series = read_series(RunFolder(out_dirs[0]).results)
             failed = [r.get("error") for r in results if not r.get("ok")]
-            rows.append(row(worlds, series, batch["round_ends"], np.asarray(batch["round_steps"]), failed))
+            rows.append(
+                row(
+                    worlds,
+                    series,
+                    batch["round_ends"],
+                    np.asarray(batch["round_steps"]),
+                    failed,
+                    batch["serve_seconds"],
+                )
+            )
             forces[worlds] = series["force"]
             self.log(json.dumps(rows[-1]))
         one = rows[0]["particle_steps_per_second"]
@@ -767,13 +781,13 @@ class Suite:
                 "",
                 "| worlds | grains per world | particle-steps/s (all worlds) | x one world "
                 "| DEM steps' share of the wall | host work per world per macro step [ms] "
-                "| wheel contacts min / mean |",
-                "|---|---|---|---|---|---|---|",
+                "| of it the server's [ms] | wheel contacts min / mean |",
+                "|---|---|---|---|---|---|---|---|",
             ]
             lines += [
                 f"| {row['worlds']} | {row['grains_per_world']:.0f} | {row['particle_steps_per_second']:.3g} | "
                 f"{row['x_one_world']:.2f} | {_figure(row['dem_share_of_wall'])} | "
-                f"{_figure(row['host_ms_per_world_step'])} | "
+                f"{_figure(row['host_ms_per_world_step'])} | {_figure(row['serve_ms_per_world_step'])} | "
                 f"{row['wheel_contacts_min']} / {row['wheel_contacts_mean']:.1f} |"
                 for row in batched["rows"]
             ]

@@ -92,7 +92,8 @@ def run_batched(plans: list[RunPlan], out_dirs: list[str], overwrite: bool = Fal
     into `out_dirs`; returns one result per run as cosim.study.run_task does (label, out_dir, ok,
     status, summary, wall_time, error), each with the batch's figures ('batch': worlds, wall_seconds,
     rounds, step_seconds: the host clock of the macro steps themselves, round_ends: the host clock
-    [s] at the end of each, round_steps: each one's step_seconds)."""
+    [s] at the end of each, round_steps: each one's step_seconds, serve_seconds: the serving process's
+    own host work, its loop's wall less its waits for the runs and the macro steps)."""
     first = plans[0]
     problem = batch_problem(first)
     if problem is not None:
@@ -127,7 +128,7 @@ def run_batched(plans: list[RunPlan], out_dirs: list[str], overwrite: bool = Fal
         for k, (plan, out) in enumerate(zip(plans, out_dirs)):
             world = worlds.world(k)
             hosts.append(_Host.start(k, world, (plan, out, overwrite, _description(world), bed.surface_height)))
-        results = _serve(worlds, hosts)
+        results, serve_seconds = _serve(worlds, hosts)
     finally:
         for host in hosts:
             host.close()
@@ -140,6 +141,7 @@ def run_batched(plans: list[RunPlan], out_dirs: list[str], overwrite: bool = Fal
         "step_seconds": worlds.step_seconds,
         "round_ends": list(worlds.round_ends),
         "round_steps": list(worlds.round_steps),
+        "serve_seconds": serve_seconds,
     }
     return [{**r, "label": f"replica_{k:03d}", "wall_time": wall, "batch": batch} for k, r in enumerate(results)]
 
@@ -238,16 +240,21 @@ def _sendable(error: BaseException) -> BaseException:
         return RuntimeError(f"{type(error).__name__}: {error}")
 
 
-def _serve(worlds: Worlds, hosts: list[_Host]) -> list[dict]:
-    """Answer the runs' requests until every run is done; returns their results in order."""
+def _serve(worlds: Worlds, hosts: list[_Host]) -> tuple[list[dict], float]:
+    """Answer the runs' requests until every run is done; returns their results in order and this
+    process's own host work [s] (the loop's wall less its waits for messages and the macro steps)."""
     previous = _forward_stop_signals(hosts)
     started = False
+    begun, waited, stepped = time.perf_counter(), 0.0, worlds.step_seconds
     try:
         while True:
             open_hosts = {h.connection: h for h in hosts if h.result is None}
             if not open_hosts:
                 break
-            for connection in wait(list(open_hosts), timeout=0.5):
+            before = time.perf_counter()
+            ready = wait(list(open_hosts), timeout=0.5)
+            waited += time.perf_counter() - before
+            for connection in ready:
                 _answer(worlds, open_hosts[connection])  # type: ignore[index]
             if not started and all(h.ready or h.result is not None for h in hosts):
                 worlds.ensure_forces()  # every world's wheels placed: their forces once, as alone
@@ -269,7 +276,8 @@ def _serve(worlds: Worlds, hosts: list[_Host]) -> list[dict]:
     finally:
         for number, handler in previous.items():
             signal.signal(number, handler)
-    return [h.result or {} for h in hosts]
+    busy = time.perf_counter() - begun - waited - (worlds.step_seconds - stepped)
+    return [h.result or {} for h in hosts], busy
 
 
 def _answer(worlds: Worlds, host: _Host) -> None:

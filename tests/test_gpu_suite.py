@@ -52,5 +52,6 @@ def test_the_gpu_suite_runs_small_on_the_cpu(tmp_path):
     assert batched["world_0_as_alone"] and [r["worlds"] for r in batched["rows"]] == ["alone", 1, 2]
     assert all(r["particle_steps_per_second"] > 0 and r["wheel_contacts_min"] > 0 for r in batched["rows"])
     assert all(r["host_ms_per_world_step"] > 0 and 0 < r["dem_share_of_wall"] < 1 for r in batched["rows"][1:])
+    assert all(0 < r["serve_ms_per_world_step"] < 1e3 for r in batched["rows"][1:])
     text = (tmp_path / "results.md").read_text()
     assert "| target | met |" in text and "Paper case" in text and "Rover" in text and "Batched replicas" in text
