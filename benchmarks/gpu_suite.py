@@ -26,8 +26,8 @@ Sections, each timed, in this order (the tests last, within what is left of --bu
   `cosim run --replicas K` on a GPU); the total particle-steps/s of the drive per K (target: 20
   worlds at least 10 x one), the DEM steps' share of the wall and the runs' host work per world
   per macro step (each run in a process of its own) with the serving process's part of it, the
-  wheel's contact count, and whether world
-  0 of every batch gave its run alone (K = 1) bit for bit on the device.
+  wheel's contact count, and whether world 0 of every batch gave its run alone (K = 1) bit for bit
+  on the device.
 - paper: the testbed scene at the paper's scale (examples/phobos_single_wheel_gpu.toml: Phobos
   regolith at Phobos gravity, here in double) run through cosim.launch.run_plan with the wheel in
   the grains: it lands under its 8 kg load and drives at the main job's imposed slip (testbed

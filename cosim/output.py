@@ -896,11 +896,11 @@ def write_xdmf(f, xdmf_path: str, known: dict | None = None) -> None:
     data_path = os.path.join(os.path.dirname(os.path.abspath(xdmf_path)), XDMF_DATA_FILE)
     times = sync_xdmf_data(f, data_path, known)
     names = [f"{k:06d}" for k in range(len(times))]
-    new = [name for name in names if name not in known]
+    new = [(name, time) for name, time in zip(names, times) if name not in known]
     if new:
         with h5py.File(data_path, "r", locking=False) as data:
-            for name in new:
-                known[name] = (float(data[f"/snapshots/{name}"].attrs["time"]), _snapshot_grids(data, name))
+            for name, time in new:
+                known[name] = (time, _snapshot_grids(data, name))
     root = ET.Element("Xdmf", Version="3.0")
     domain = ET.SubElement(root, "Domain")
     for collection in XDMF_COLLECTIONS:
