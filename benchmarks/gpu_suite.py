@@ -50,7 +50,10 @@ they reached. --small runs both scenes through the same code path, shrunk by sce
 fractions of a second do, the rover without its landing): a check that the suite runs, not a
 measurement.
 
-Writes results.json (every figure) and results.md (a table with the targets) to --out.
+Writes results.json (every figure) and results.md (a table with the targets) to --out, and to
+--results too when given, after every section. On a lent machine (where Warp and MuJoCo travel as
+benchmarks/gpu_carry.py's parts) run it as BENCHMARKS.md, "Running the GPU suite on a lent
+machine", says.
 """
 
 from __future__ import annotations
@@ -228,8 +231,11 @@ class OutOfTime(Exception):
 
 
 class Suite:
-    def __init__(self, device: str, small: bool, budget: float, out: str):
+    def __init__(self, device: str, small: bool, budget: float, out: str, results: str | None = None):
         self.device, self.small, self.budget, self.out = device, small, budget, out
+        self.results_dirs = list(dict.fromkeys([out, results or out]))
+        """Where results.json and results.md go after every section (--out, and --results: a lent
+        machine's $OUT, so that a command stopped at its time limit still returns the sections done)."""
         self.started = time.perf_counter()
         self.results: dict = {"device": device, "small": small, "machine": self.machine(), "sections": {}}
 
@@ -733,12 +739,13 @@ class Suite:
 
     # -- output ---------------------------------------------------------------------------------
     def write(self) -> None:
-        os.makedirs(self.out, exist_ok=True)
         self.results["seconds"] = self.elapsed()
-        with open(os.path.join(self.out, "results.json"), "w") as f:
-            json.dump(self.results, f, indent=1, default=str)
-        with open(os.path.join(self.out, "results.md"), "w") as f:
-            f.write(self.markdown())
+        for folder in self.results_dirs:
+            os.makedirs(folder, exist_ok=True)
+            with open(os.path.join(folder, "results.json"), "w") as f:
+                json.dump(self.results, f, indent=1, default=str)
+            with open(os.path.join(folder, "results.md"), "w") as f:
+                f.write(self.markdown())
 
     def markdown(self) -> str:
         r = self.results
@@ -861,7 +868,8 @@ def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--device", default=None, help="Warp device (default: cuda:0, or cpu with --small)")
     parser.add_argument("--small", action="store_true", help="small sizes: the suite's own check, on any device")
-    parser.add_argument("--out", default="runs/gpu_suite", help="folder for results.json and results.md")
+    parser.add_argument("--out", default="runs/gpu_suite", help="folder for the runs, results.json and results.md")
+    parser.add_argument("--results", help="a second folder for results.json and results.md (a lent machine's $OUT)")
     parser.add_argument("--budget", type=float, default=510.0, help="seconds the whole suite should take")
     parser.add_argument("--sections", nargs="+", default=list(SECTIONS), choices=SECTIONS)
     parser.add_argument("--worlds", nargs="+", type=int, help="the batched section's world counts (default 1 4 20)")
@@ -874,7 +882,7 @@ def main(argv=None) -> int:
     if device.startswith("cuda") and not wp.is_cuda_available():
         print("no CUDA device here: run with --small --device cpu for the CPU check", file=sys.stderr)
         return 2
-    suite = Suite(device, args.small, args.budget, args.out)
+    suite = Suite(device, args.small, args.budget, args.out, args.results)
     for name in args.sections:
         suite.section(name, getattr(suite, name))
     print(suite.markdown())

@@ -3,8 +3,13 @@ reports, so the suite prepared for a GPU window cannot rot."""
 
 import json
 import os
+import shutil
 import subprocess
 import sys
+import zipfile
+
+import numpy as np
+import pytest
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
@@ -19,6 +24,8 @@ def test_the_gpu_suite_runs_small_on_the_cpu(tmp_path):
             "cpu",
             "--out",
             str(tmp_path),
+            "--results",
+            str(tmp_path / "returned"),
         ],
         cwd=ROOT,
         capture_output=True,
@@ -27,6 +34,8 @@ def test_the_gpu_suite_runs_small_on_the_cpu(tmp_path):
     )
     assert done.returncode == 0, done.stdout[-3000:] + done.stderr[-3000:]
     results = json.loads((tmp_path / "results.json").read_text())
+    # what a lent machine's $OUT gets back (--results): the same figures
+    assert json.loads((tmp_path / "returned" / "results.json").read_text())["sections"] == results["sections"]
     sections = results["sections"]
     assert set(sections) == {"throughput", "repeat", "agreement", "batched", "paper", "rover", "tests"}
     assert all(section["ok"] for section in sections.values()), sections
@@ -55,3 +64,53 @@ def test_the_gpu_suite_runs_small_on_the_cpu(tmp_path):
     assert all(0 < r["serve_ms_per_world_step"] < 1e3 for r in batched["rows"][1:])
     text = (tmp_path / "results.md").read_text()
     assert "| target | met |" in text and "Paper case" in text and "Rover" in text and "Batched replicas" in text
+
+
+def _wheel(folder, name, version, files):
+    """A minimal wheel of `files` (path -> bytes), as pip installs it."""
+    info = f"{name}-{version}.dist-info"
+    files = {
+        **files,
+        f"{info}/METADATA": f"Metadata-Version: 2.1\nName: {name}\nVersion: {version}\n".encode(),
+        f"{info}/WHEEL": b"Wheel-Version: 1.0\nGenerator: test\nRoot-Is-Purelib: true\nTag: py3-none-any\n",
+    }
+    files[f"{info}/RECORD"] = "".join(f"{path},,\n" for path in [*files, f"{info}/RECORD"]).encode()
+    path = os.path.join(folder, f"{name}-{version}-py3-none-any.whl")
+    with zipfile.ZipFile(path, "w") as wheel:
+        for member, data in files.items():
+            wheel.writestr(member, data)
+    return path
+
+
+def test_the_packages_carried_to_a_gpu_machine_arrive_whole(tmp_path):
+    """benchmarks/gpu_carry.py: Warp's wheel cut into parts that each fit a call, put back together
+    into the very bytes it was; a missing or damaged part is named, with the call that brings it."""
+    sys.path.insert(0, ROOT)
+    from benchmarks import gpu_carry
+
+    rng = np.random.default_rng(0)
+    native = {path: rng.integers(0, 4, 300_000, dtype=np.uint8).tobytes() for path in gpu_carry.NATIVE}
+    wheels = [
+        _wheel(tmp_path, "warp_lang", "1.0", {**native, "warp/__init__.py": b"ok = True\n"}),
+        _wheel(tmp_path, "tomli_w", "1.0", {"tomli_w/__init__.py": b"ok = True\n"}),
+    ]
+    carry, site = str(tmp_path / "carry"), str(tmp_path / "site")
+    version = f"{sys.version_info[0]}.{sys.version_info[1]}"
+    manifest = gpu_carry.pack(version, carry, wheels=wheels, limit=100_000)
+    assert len(manifest["parts"]) >= 2 and all(p["bytes"] <= 100_000 for p in manifest["parts"])
+    gpu_carry.install(carry, site)
+    for path, data in native.items():
+        assert (tmp_path / "site" / path).read_bytes() == data
+    assert (tmp_path / "site" / "warp" / "__init__.py").read_bytes() == b"ok = True\n"
+    assert (tmp_path / "site" / "tomli_w" / "__init__.py").is_file()
+    assert any(p.name.startswith("warp_lang-1.0.dist-info") for p in (tmp_path / "site").iterdir())
+
+    last = tmp_path / "carry" / str(len(manifest["parts"])) / "carry.tar.part"
+    damaged = bytearray(last.read_bytes())
+    damaged[0] ^= 0xFF
+    last.write_bytes(bytes(damaged))
+    with pytest.raises(gpu_carry.CarryError, match=f"part {len(manifest['parts'])} .* is damaged"):
+        gpu_carry.check(carry)
+    shutil.rmtree(tmp_path / "carry" / "1")
+    with pytest.raises(gpu_carry.CarryError, match=r"part 1 is missing .*carry \['.gpu_carry/1'\]"):
+        gpu_carry.install(carry, site)
