@@ -1,5 +1,6 @@
 """The GPU suite (benchmarks/gpu_suite.py) in its small mode on the CPU: every section runs and
-reports, so the suite prepared for a GPU window cannot rot."""
+reports, so the suite prepared for a GPU window cannot rot; and the packages it needs there
+(benchmarks/gpu_carry.py) arrive whole."""
 
 import json
 import os
@@ -12,6 +13,9 @@ import numpy as np
 import pytest
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+sys.path.insert(0, ROOT)
+
+from benchmarks import gpu_carry  # noqa: E402
 
 
 def test_the_gpu_suite_runs_small_on_the_cpu(tmp_path):
@@ -85,9 +89,6 @@ def _wheel(folder, name, version, files):
 def test_the_packages_carried_to_a_gpu_machine_arrive_whole(tmp_path):
     """benchmarks/gpu_carry.py: Warp's wheel cut into parts that each fit a call, put back together
     into the very bytes it was; a missing or damaged part is named, with the call that brings it."""
-    sys.path.insert(0, ROOT)
-    from benchmarks import gpu_carry
-
     rng = np.random.default_rng(0)
     native = {path: rng.integers(0, 4, 300_000, dtype=np.uint8).tobytes() for path in gpu_carry.NATIVE}
     wheels = [
