@@ -145,10 +145,8 @@ class CarryError(RuntimeError):
 
 def check(out: str = CARRY) -> dict:
     """The manifest, once every part under `out` is present and intact; else CarryError naming the parts."""
-    manifests = sorted(
-        (os.path.join(out, k, MANIFEST) for k in (os.listdir(out) if os.path.isdir(out) else [])),
-    )
-    present = [m for m in manifests if os.path.isfile(m)]
+    folders = sorted(os.listdir(out)) if os.path.isdir(out) else []
+    present = [m for m in (os.path.join(out, k, MANIFEST) for k in folders) if os.path.isfile(m)]
     if not present:
         raise CarryError(f"no part in {out}: each call carries one (carry: ['.gpu_carry/K'])")
     with open(present[0]) as f:
