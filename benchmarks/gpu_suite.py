@@ -4,6 +4,7 @@
     python benchmarks/gpu_suite.py --small --device cpu     # the same checks, small, on the CPU
                                                             # (the test suite runs this: it cannot rot)
     python benchmarks/gpu_suite.py --device cpu --sections batched --worlds 1 4   # batching on a CPU
+    python benchmarks/gpu_suite.py --sections batched --step-control pid          # batched PID worlds
 
 Sections, each timed, in this order (the tests last, within what is left of --budget):
 
@@ -27,7 +28,10 @@ Sections, each timed, in this order (the tests last, within what is left of --bu
   worlds at least 10 x one), the DEM steps' share of the wall and the runs' host work per world
   per macro step (each run in a process of its own) with the serving process's part of it, the
   wheel's contact count, and whether world 0 of every batch gave its run alone (K = 1) bit for bit
-  on the device.
+  on the device. With --step-control pid every run takes PID substeps, each world under its own
+  controller; the loop of a batch's substeps then runs as long as its slowest world, and the
+  section reports that padding: the substeps the loop ran (per macro step the most any world
+  tried) over the mean a world tried (1 alone).
 - paper: the testbed scene at the paper's scale (examples/phobos_single_wheel_gpu.toml: Phobos
   regolith at Phobos gravity, here in double) run through cosim.launch.run_plan with the wheel in
   the grains: it lands under its 8 kg load and drives at the main job's imposed slip (testbed
@@ -231,8 +235,12 @@ class OutOfTime(Exception):
 
 
 class Suite:
-    def __init__(self, device: str, small: bool, budget: float, out: str, results: str | None = None):
+    def __init__(
+        self, device: str, small: bool, budget: float, out: str, results: str | None = None, step_control="fixed"
+    ):
         self.device, self.small, self.budget, self.out = device, small, budget, out
+        self.step_control = step_control
+        """The batched section's DEM steps: 'fixed' or 'pid' (run.step_control)."""
         self.results_dirs = list(dict.fromkeys([out, results or out]))
         """Where results.json and results.md go after every section (--out, and --results: a lent
         machine's $OUT, so that a command stopped at its time limit still returns the sections done)."""
@@ -422,15 +430,21 @@ class Suite:
 
     def batched(self):
         """Replicas of the main job as K worlds of one simulation (module docstring)."""
-        overrides = self.scene_overrides(BATCH_OVERRIDES)
+        overrides = {**self.scene_overrides(BATCH_OVERRIDES), "run.step_control": self.step_control}
         folder = os.path.join(self.out, "batched")
         bed = settled_bed(load_plan(MAIN_SCENE, overrides), folder)
         overrides["bed.bed_file"] = os.path.abspath(bed.path)
 
-        def row(worlds, series, marks, dem_seconds, failed, serve_seconds=None) -> dict:
+        def padding(every) -> float:
+            """The substeps a batch's loop ran over those a world tried, the worlds' series `every`: per
+            macro step the loop runs as long as the world that tried most (accepted and rejected)."""
+            tried = np.array([s["soil_dem_steps"] + s["soil_dem_steps_rejected"] for s in every], dtype=float)
+            return float(tried.max(axis=0).sum() / tried.mean(axis=0).sum()) if tried.sum() > 0 else 1.0
+
+        def row(worlds, series, marks, dem_seconds, failed, serve_seconds=None, every=None) -> dict:
             """The figures of a drive whose macro steps ended at host clock `marks` [s] (the DEM steps'
             own host clock per macro step `dem_seconds`, and the serving process's own host work over the
-            whole batch `serve_seconds` [s], None when not measured)."""
+            whole batch `serve_seconds` [s], None when not measured; `every`: every world's series)."""
             timed = slice(WARMUP_STEPS, len(marks))
             seconds = float(marks[-1] - marks[WARMUP_STEPS - 1]) if len(marks) > WARMUP_STEPS else 0.0
             grains = float(series["soil_particle_count"][0])
@@ -452,6 +466,8 @@ class Suite:
                 else 1e3 * serve_seconds / max(worlds * len(marks), 1),
                 wheel_contacts_min=int(counts[len(counts) // 2 :].min()),
                 wheel_contacts_mean=float(counts.mean()),
+                substeps_per_macro_step=float(series["soil_dem_steps"].mean()),
+                loop_padding=padding(every or [series]),
                 failed=failed,
             )
 
@@ -472,8 +488,9 @@ class Suite:
             out_dirs = [os.path.join(folder, f"worlds_{worlds}", f"replica_{k:03d}") for k in range(worlds)]
             results = run_batched(plans, out_dirs, overwrite=True)
             batch = results[0]["batch"]
-            series = read_series(RunFolder(out_dirs[0]).results)
             failed = [r.get("error") for r in results if not r.get("ok")]
+            every = [read_series(RunFolder(d).results) for d, r in zip(out_dirs, results) if r.get("ok")]
+            series = read_series(RunFolder(out_dirs[0]).results)
             rows.append(
                 row(
                     worlds,
@@ -482,6 +499,7 @@ class Suite:
                     np.asarray(batch["round_steps"]),
                     failed,
                     batch["serve_seconds"],
+                    every,
                 )
             )
             forces[worlds] = series["force"]
@@ -494,6 +512,7 @@ class Suite:
         return {
             "scene": os.path.relpath(MAIN_SCENE, ROOT),
             "overrides": overrides,
+            "step_control": self.step_control,
             "rows": rows,
             "world_0_as_alone": same,
             "targets": {
@@ -783,19 +802,20 @@ class Suite:
             lines += [
                 "",
                 f"Batched replicas of {batched['scene']} (worlds of one simulation, each run in a process of its "
-                f"own; 'x one world' against world 0's replica run alone; world 0 of every batch equal to that run "
-                f"bit for bit: {'yes' if batched['world_0_as_alone'] else 'NO'}):",
+                f"own; steps: {batched['step_control']}; 'x one world' against world 0's replica run alone; world 0 "
+                f"of every batch equal to that run bit for bit: {'yes' if batched['world_0_as_alone'] else 'NO'}):",
                 "",
                 "| worlds | grains per world | particle-steps/s (all worlds) | x one world "
                 "| DEM steps' share of the wall | host work per world per macro step [ms] "
-                "| of it the server's [ms] | wheel contacts min / mean |",
-                "|---|---|---|---|---|---|---|---|",
+                "| of it the server's [ms] | wheel contacts min / mean | substeps per macro step | loop padding |",
+                "|---|---|---|---|---|---|---|---|---|---|",
             ]
             lines += [
                 f"| {row['worlds']} | {row['grains_per_world']:.0f} | {row['particle_steps_per_second']:.3g} | "
                 f"{row['x_one_world']:.2f} | {_figure(row['dem_share_of_wall'])} | "
                 f"{_figure(row['host_ms_per_world_step'])} | {_figure(row['serve_ms_per_world_step'])} | "
-                f"{row['wheel_contacts_min']} / {row['wheel_contacts_mean']:.1f} |"
+                f"{row['wheel_contacts_min']} / {row['wheel_contacts_mean']:.1f} | "
+                f"{row['substeps_per_macro_step']:.1f} | {row['loop_padding']:.3f} |"
                 for row in batched["rows"]
             ]
         if throughput.get("slot_rows"):
@@ -873,6 +893,12 @@ def main(argv=None) -> int:
     parser.add_argument("--budget", type=float, default=510.0, help="seconds the whole suite should take")
     parser.add_argument("--sections", nargs="+", default=list(SECTIONS), choices=SECTIONS)
     parser.add_argument("--worlds", nargs="+", type=int, help="the batched section's world counts (default 1 4 20)")
+    parser.add_argument(
+        "--step-control",
+        choices=("fixed", "pid"),
+        default="fixed",
+        help="the batched section's DEM steps: fixed (default) or PID substeps, each world its own controller",
+    )
     args = parser.parse_args(argv)
     if args.worlds:
         SIZES["batch_worlds"] = (tuple(args.worlds), tuple(args.worlds))
@@ -882,7 +908,7 @@ def main(argv=None) -> int:
     if device.startswith("cuda") and not wp.is_cuda_available():
         print("no CUDA device here: run with --small --device cpu for the CPU check", file=sys.stderr)
         return 2
-    suite = Suite(device, args.small, args.budget, args.out, args.results)
+    suite = Suite(device, args.small, args.budget, args.out, args.results, args.step_control)
     for name in args.sections:
         suite.section(name, getattr(suite, name))
     print(suite.markdown())

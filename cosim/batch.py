@@ -15,12 +15,14 @@ results are bit for bit those of its run alone (tests/test_batch.py), and each f
 ordinary run folder: `cosim resume FOLDER` continues it alone.
 
 What a batch cannot run (`batch_problem` says why, and the replicas then run one by one): a
-terrain other than the DEM, a moving soil patch, the PID step control (one step for all worlds),
-an FMU rover (its replicas run one by one). Shared by the worlds: the clock, the DEM step, the
-divergence monitor (a world that diverges stops the batch; each run reports it with its own last
-good state). Ctrl-C or SIGTERM to this process reaches every run, which stops after its macro step
-with a checkpoint (a second one: at once); a run whose process dies leaves the batch (its result
-says so), the others go on; if this process dies, every run stops with the error.
+terrain other than the DEM, a moving soil patch, an FMU rover (its replicas run one by one).
+Under the PID step control (run.step_control = 'pid') each world has its own controller and takes
+the substeps its run takes alone (soil.step_control). Shared by the worlds: the clock, the DEM
+step at fixed steps, the divergence monitor (a world that diverges stops the batch; each run
+reports it with its own last good state). Ctrl-C or SIGTERM to this process reaches every run,
+which stops after its macro step with a checkpoint (a second one: at once); a run whose process
+dies leaves the batch (its result says so), the others go on; if this process dies, every run
+stops with the error.
 """
 
 from __future__ import annotations
@@ -49,7 +51,7 @@ from soil.worlds import World, Worlds, open_bed_worlds
 from .beds import check_memory, settled_bed
 from .dem_soil import DemSoil
 from .launch import open_run
-from .plan import RunPlan
+from .plan import RunPlan, enable_step_control
 from .runner import STOP_SIGNALS, Runner
 
 log = logging.getLogger(__name__)
@@ -61,14 +63,23 @@ def batch_problem(plan: RunPlan) -> str | None:
         return f"terrain.model {plan.terrain.model!r}: only the DEM terrain is batched"
     if plan.patch is not None:
         return "a moving soil patch (rover.patch) changes its grains: its replicas run one by one"
-    if plan.step_control != "fixed":
-        return "run.step_control = 'pid' sets one step per world: batched worlds share a fixed step"
     if plan.rover is not None and plan.rover.model == "fmu":
         return "an FMU rover: its replicas run one by one"
     return None
 
 
-SOIL_FIELDS = ("bed", "wheels", "device", "precision", "storage", "contact law", "integrator", "dt", "macro step")
+SOIL_FIELDS = (
+    "bed",
+    "wheels",
+    "device",
+    "precision",
+    "storage",
+    "contact law",
+    "integrator",
+    "dt",
+    "macro step",
+    "step control",
+)
 """What the worlds of one batch share (their plans must agree on it)."""
 
 
@@ -84,6 +95,7 @@ def _soil_of(plan: RunPlan) -> tuple:
         plan.integrator,
         plan.dt,
         plan.macro_step,
+        (plan.step_control, plan.tolerance, plan.dt_min, plan.dt_max),
     )
 
 
@@ -121,6 +133,7 @@ def run_batched(plans: list[RunPlan], out_dirs: list[str], overwrite: bool = Fal
         gravity=first.gravity if first.rover else None,
         storage=first.storage,
     )
+    enable_step_control(first, worlds.sim)  # PID substeps: a controller per world
     # a run opens the shared bed, not one of its own
     plans = [p if p.bed.bed_file else replace(p, bed=replace(p.bed, bed_file=on_bed.bed.bed_file)) for p in plans]
     hosts: list[_Host] = []

@@ -10,7 +10,9 @@ Two ways, both behind Simulation methods:
   each step from an error norm reduced on the device (one small read per step).
 
 A rejected step is never made current: the state it started from is untouched, so the retry
-starts from it bit for bit.
+starts from it bit for bit. The worlds of soil.worlds each have their own step control in the
+same launches (soil.step_control): a world that keeps nothing of a substep others kept takes
+its state back into the trial before the trial becomes current.
 """
 
 import functools
@@ -45,14 +47,19 @@ def enable_step_control(sim, controller: StepController | None = None) -> Device
     controller.setup(sim)
     sim.graphs.clear()  # a captured substep loop holds the old controller's settings and arrays
     sim.step_control = DeviceStepControl(
-        controller, sim.model.precision, sim.model.device, controller.error_scales()["scale_floor"]
+        controller,
+        sim.model.precision,
+        sim.model.device,
+        controller.error_scales()["scale_floor"],
+        worlds=sim.model.world_count,
     )
     return sim.step_control
 
 
 def substep(sim, current: SoilState, trial: SoilState, path: bool, weights: dict):
     """One substep of the macro step's loop (captured inside it), as a function of no arguments:
-    step current -> trial, decide on the device, copy an accepted trial over current.
+    step current -> trial, decide on the device (each world), copy a trial that a world kept over
+    current, the worlds that kept nothing of it taking their own state back into it first.
     weights: StepController.error_scales()."""
     control = sim.step_control
     integrator = sim.integrator
@@ -62,8 +69,12 @@ def substep(sim, current: SoilState, trial: SoilState, path: bool, weights: dict
     assert scale_floor is not None and summary is not None
     capacity, rigid_capacity = sim.state.capacity, sim.state.rigid_capacity
 
+    def restore():
+        trial.copy_worlds(current, control.restore, sim.model)
+        sim.neighbour_list.remap_worlds(current, trial, control.restore)
+
     def accept():
-        sim._accumulate_wrench(trial, weighted=True)
+        sim._accumulate_wrench(trial, weighted=True, worlds=control.accepted)
         current.assign(trial)
 
     def one_substep():
@@ -74,7 +85,8 @@ def substep(sim, current: SoilState, trial: SoilState, path: bool, weights: dict
         integrator.step(sim.model, current, trial, sim.control, sim._step_length, sim.contacts)
         integrator.reduce_error(trial, sim.status, weights["position_weight"], scale_floor, weights["use_speed"])
         control.decide(summary, sim.status, capacity, rigid_capacity)
-        wp.capture_if(control.accepted, on_true=accept)
+        wp.capture_if(control.any_restore, on_true=restore)
+        wp.capture_if(control.any_accepted, on_true=accept)
 
     return one_substep
 
@@ -110,10 +122,10 @@ def macro_step_adaptive(sim, span: float, path: bool) -> MacroStepReport:
         if per_substep is None:
             loop()  # launched (the host reads the condition at every substep)
         values = sim.sums.read(sim.status, sim.neighbour_list.grid, current, control)
-        steps = values[sim.sums.steps_column :]
-        if per_substep is not None:
-            tried = int(steps[step_control.ACCEPTED] + steps[step_control.REJECTED])
-            sim.contacts.evaluations += per_substep * tried
+        steps = values[sim.sums.steps_column :].reshape(control.worlds, step_control.COLUMNS)
+        if per_substep is not None:  # the loop ran as long as the world that tried most substeps
+            tried = steps[:, step_control.ACCEPTED] + steps[:, step_control.REJECTED]
+            sim.contacts.evaluations += per_substep * int(tried.max())
         growth = sim._needs_growth(values)
         if growth is None:
             break
@@ -121,37 +133,54 @@ def macro_step_adaptive(sim, span: float, path: bool) -> MacroStepReport:
         sim._grow(*growth)
         control.redo()
         redone += 1
-    accepted = int(steps[step_control.ACCEPTED])
-    rejected = int(steps[step_control.REJECTED])
-    forced = int(steps[step_control.FORCED])
+    accepted = steps[:, step_control.ACCEPTED].astype(np.int64)
+    rejected = steps[:, step_control.REJECTED].astype(np.int64)
+    forced = steps[:, step_control.FORCED].astype(np.int64)
     sim.state = current
     sim.state.time = start.time + span
     sim.state.forces_valid = True
-    sim.steps += accepted
-    sim.accepted_steps += accepted
-    sim.rejected_steps += rejected
-    sim.forced_steps += forced
+    sim.steps += int(accepted.max())
+    sim.accepted_steps += int(accepted.sum())
+    sim.rejected_steps += int(rejected.sum())
+    sim.forced_steps += int(forced.sum())
     rebuilds = int(values[status_columns.REBUILDS])
     sim._rebuilds_since_reorder += rebuilds
     sim._bounds = grain_box(values)
-    if steps[step_control.DIVERGED] > 0 or values[status_columns.NONFINITE] > 0:
+    if (steps[:, step_control.DIVERGED] > 0).any() or values[status_columns.NONFINITE] > 0:
         sim.monitor.fail(
             sim,
             f"non-finite particle state (NaN or inf) even at dt_min = {controller.dt_min:.4g} s",
             int(values[status_columns.WORST]),
         )
-    return sim.sums.report(
+    evaluations = sim.contacts.evaluations - evaluations_before
+    tried = accepted + rejected
+    per_world = tuple(
+        dict(
+            steps=int(accepted[w]),
+            dt=span / max(int(accepted[w]), 1),
+            rejected=int(rejected[w]),
+            forced=int(forced[w]),
+            dt_min=float(steps[w, step_control.SMALLEST]),
+            dt_max=float(steps[w, step_control.LARGEST]),
+            evaluations=int(round(evaluations * tried[w] / max(int(tried.max()), 1))),
+        )
+        for w in range(control.worlds)
+    )
+    if control.worlds == 1:
+        return sim.sums.report(values, span, rebuilds=rebuilds, redone=redone, **per_world[0])
+    return sim.sums.report(  # the batch as a whole; each world's own figures in world_steps
         values,
         span,
-        steps=accepted,
-        dt=span / max(accepted, 1),
+        steps=int(accepted.max()),
+        dt=span / max(int(accepted.max()), 1),
         rebuilds=rebuilds,
         redone=redone,
-        rejected=rejected,
-        forced=forced,
-        dt_min=float(steps[step_control.SMALLEST]),
-        dt_max=float(steps[step_control.LARGEST]),
-        evaluations=sim.contacts.evaluations - evaluations_before,
+        rejected=int(rejected.sum()),
+        forced=int(forced.sum()),
+        dt_min=float(steps[:, step_control.SMALLEST].min()),
+        dt_max=float(steps[:, step_control.LARGEST].max()),
+        evaluations=evaluations,
+        world_steps=per_world,
     )
 
 
@@ -161,6 +190,11 @@ def run_adaptive(
     """Simulation.run_adaptive (its docstring)."""
     if not (isinstance(duration, (int, float, np.floating, np.integer)) and math.isfinite(duration) and duration >= 0):
         raise SoilInputError(f"duration must be finite and >= 0 [s], got {duration!r}")
+    if sim.model.world_count > 1:
+        raise SoilInputError(
+            "run_adaptive decides on the host for one world; worlds (soil.worlds) take their PID substeps each "
+            "under its own controller on the device: enable_step_control(), then macro steps"
+        )
     use_jolt_beeman(sim, "run_adaptive")
     controller = controller if controller is not None else sim._controller or StepController()
     sim._controller = controller

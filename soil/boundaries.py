@@ -84,13 +84,15 @@ def boundary_kernels(hi):
         velocity_in: wp.array(dtype=vec_hi),
         acceleration_in: wp.array(dtype=hi),
         step_length: wp.array(dtype=hi),
+        walls_per_world: int,
         # outputs
         displacement_out: wp.array(dtype=vec_hi),
         velocity_out: wp.array(dtype=vec_hi),
     ):
         """Velocity Verlet, first half: half kick along e (loaded), then a full drift."""
         b = wp.tid()
-        dt = step_length[0]
+        world = b // walls_per_world
+        dt = step_length[world]
         velocity = prescribed[b]
         if mode[b] == MOTION_LOADED:
             e = direction[b]
@@ -105,12 +107,14 @@ def boundary_kernels(hi):
         direction: wp.array(dtype=vec_hi),
         acceleration_new: wp.array(dtype=hi),
         step_length: wp.array(dtype=hi),
+        walls_per_world: int,
         # in/out
         velocity_io: wp.array(dtype=vec_hi),
     ):
         """Velocity Verlet, second half kick along e with the new acceleration."""
         b = wp.tid()
-        dt = step_length[0]
+        world = b // walls_per_world
+        dt = step_length[world]
         if mode[b] == MOTION_LOADED:
             velocity_io[b] = velocity_io[b] + (hi(0.5) * dt * acceleration_new[b]) * direction[b]
 
@@ -125,6 +129,7 @@ def boundary_kernels(hi):
         acceleration_previous_in: wp.array(dtype=hi),
         step_previous_in: wp.array(dtype=hi),
         step_length: wp.array(dtype=hi),
+        walls_per_world: int,
         # outputs
         displacement_out: wp.array(dtype=vec_hi),
         velocity_out: wp.array(dtype=vec_hi),
@@ -132,14 +137,15 @@ def boundary_kernels(hi):
     ):
         """Jolt-Beeman prediction along e (same formulas and step-ratio rule as the grains')."""
         b = wp.tid()
-        dt = step_length[0]
+        world = b // walls_per_world
+        dt = step_length[world]
         velocity = prescribed[b]
         moved = dt * velocity
         if mode[b] == MOTION_LOADED:
             e = direction[b]
             ratio = hi(0.0)
-            if step_previous_in[0] > hi(0.0):
-                ratio = dt / step_previous_in[0]
+            if step_previous_in[world] > hi(0.0):
+                ratio = dt / step_previous_in[world]
             a = acceleration_in[b]
             a_minus = a - ratio * (a - acceleration_previous_in[b])
             along = wp.dot(velocity_in[b], e)
@@ -159,17 +165,19 @@ def boundary_kernels(hi):
         step_previous_in: wp.array(dtype=hi),
         acceleration_new: wp.array(dtype=hi),
         step_length: wp.array(dtype=hi),
+        walls_per_world: int,
         # in/out
         velocity_io: wp.array(dtype=vec_hi),
     ):
         """Beeman correction along e: v+ = v + (2 a+ + 5 a - a_minus) dt / 6."""
         b = wp.tid()
-        dt = step_length[0]
+        world = b // walls_per_world
+        dt = step_length[world]
         if mode[b] == MOTION_LOADED:
             e = direction[b]
             ratio = hi(0.0)
-            if step_previous_in[0] > hi(0.0):
-                ratio = dt / step_previous_in[0]
+            if step_previous_in[world] > hi(0.0):
+                ratio = dt / step_previous_in[world]
             a = acceleration_in[b]
             a_minus = a - ratio * (a - acceleration_previous_in[b])
             along = wp.dot(velocity_in[b], e) + (dt / hi(6.0)) * (hi(2.0) * acceleration_new[b] + hi(5.0) * a - a_minus)
@@ -224,6 +232,7 @@ def verlet_first_half(model, state_in, state_out, control, dt: wp.array) -> None
             state_in.boundary_velocity,
             state_in.boundary_acceleration,
             dt,
+            model.walls_per_world,
         ],
         outputs=[state_out.boundary_displacement, state_out.boundary_velocity],
         device=model.device,
@@ -245,6 +254,7 @@ def verlet_second_half(model, state_out, control, dt: wp.array) -> None:
             control.boundary_direction,
             state_out.boundary_acceleration,
             dt,
+            model.walls_per_world,
         ],
         outputs=[state_out.boundary_velocity],
         device=model.device,
@@ -267,6 +277,7 @@ def beeman_predict(model, state_in, state_out, control, dt: wp.array) -> None:
             state_in.boundary_acceleration_previous,
             state_in.step_previous,
             dt,
+            model.walls_per_world,
         ],
         outputs=[
             state_out.boundary_displacement,
@@ -294,6 +305,7 @@ def beeman_correct(model, state_in, state_out, control, dt: wp.array) -> None:
             state_in.step_previous,
             state_out.boundary_acceleration,
             dt,
+            model.walls_per_world,
         ],
         outputs=[state_out.boundary_velocity],
         device=model.device,

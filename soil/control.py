@@ -109,6 +109,7 @@ def path_kernels(hi):
         step_length: wp.array(dtype=hi),
         tau_in: wp.array(dtype=hi),
         timed: int,
+        bodies_per_world: int,
         position_out: wp.array(dtype=vec_hi),
         rotation_out: wp.array(dtype=mat_hi),
         velocity_out: wp.array(dtype=vec_hi),
@@ -119,9 +120,10 @@ def path_kernels(hi):
         constant velocities from the start, or interpolated towards the end pose (the same
         rules as soil.control.quaternion_integrate / quaternion_slerp on the host)."""
         b = wp.tid()
-        tau = hi(step[0] + 1) * step_length[0]
-        if timed != 0:  # variable steps: the time since the path's start, kept by the step control
-            tau = tau_in[0]
+        world = b // bodies_per_world  # type: ignore[operator]  # b: a Warp int (wp.tid)
+        tau = hi(step[0] + 1) * step_length[world]
+        if timed != 0:  # variable steps: the time since the path's start, kept by each world's step control
+            tau = tau_in[world]
         p0 = vec_hi(path[b, 0], path[b, 1], path[b, 2])
         q0 = vec4_hi(path[b, 3], path[b, 4], path[b, 5], path[b, 6])
         v0 = vec_hi(path[b, 7], path[b, 8], path[b, 9])
@@ -333,14 +335,21 @@ class SoilControl:
 
     def follow_path(self, state, dt: wp.array, tau: wp.array | None = None) -> None:
         """Pose the bodies of `state` (a SoilState, the step's output) for the end of the path's next
-        step (on the device; capturable): of length dt[0] [s] after `path_step` steps, or, with
-        `tau`, at tau[0] [s] after the path's start (variable steps). Both arrays hold one value of
-        the path's precision."""
+        step (on the device; capturable): of length dt[w] [s] after `path_step` steps, or, with
+        `tau`, at tau[w] [s] after the path's start (variable steps), w the body's world. Both arrays
+        hold one value per world (soil.worlds; one for a scene alone) of the path's precision."""
         kernels = path_kernels(self.body_path.dtype)
         wp.launch(
             kernels.follow_path,
             dim=self.body_count,
-            inputs=[self.body_path, self.path_step, dt, dt if tau is None else tau, int(tau is not None)],
+            inputs=[
+                self.body_path,
+                self.path_step,
+                dt,
+                dt if tau is None else tau,
+                int(tau is not None),
+                max(self.body_count // dt.shape[0], 1),  # dt: one value per world
+            ],
             outputs=[state.body_position, state.body_rotation, state.body_velocity, state.body_angular_velocity],
             device=self.body_path.device,
         )

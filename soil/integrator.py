@@ -98,6 +98,7 @@ def integrator_kernels(hi, mid, lo, law: ContactLaw):
         inv_inertia: wp.array(dtype=lo),
         gravity: vec_hi,
         step_length: wp.array(dtype=hi),
+        world_size: int,
         # outputs
         x_out: wp.array(dtype=vec_hi),
         v_out: wp.array(dtype=vec_hi),
@@ -105,7 +106,7 @@ def integrator_kernels(hi, mid, lo, law: ContactLaw):
     ):
         """Velocity Verlet, first half: half kick with the old forces, then a full drift."""
         i = wp.tid()
-        dt = step_length[0]
+        dt = step_length[i // world_size]
         v_half = v_in[i] + hi(0.5) * dt * acceleration_of(force_in[i], inv_mass[i], gravity)
         v_out[i] = v_half
         w_out[i] = vec_mid(vec_hi(w_in[i]) + hi(0.5) * dt * hi(inv_inertia[i]) * vec_hi(torque_in[i]))
@@ -121,6 +122,7 @@ def integrator_kernels(hi, mid, lo, law: ContactLaw):
         x_in: wp.array(dtype=vec_hi),
         gravity: vec_hi,
         step_length: wp.array(dtype=hi),
+        world_size: int,
         # in/out
         v_io: wp.array(dtype=vec_hi),
         w_io: wp.array(dtype=vec_mid),
@@ -128,7 +130,7 @@ def integrator_kernels(hi, mid, lo, law: ContactLaw):
     ):
         """Velocity Verlet, second half kick with the new forces; flags a non-finite grain."""
         i = wp.tid()
-        dt = step_length[0]
+        dt = step_length[i // world_size]
         v = v_io[i] + hi(0.5) * dt * acceleration_of(force_in[i], inv_mass[i], gravity)
         w = vec_mid(vec_hi(w_io[i]) + hi(0.5) * dt * hi(inv_inertia[i]) * vec_hi(torque_in[i]))
         v_io[i] = v
@@ -149,6 +151,7 @@ def integrator_kernels(hi, mid, lo, law: ContactLaw):
         inv_inertia: wp.array(dtype=lo),
         gravity: vec_hi,
         step_length: wp.array(dtype=hi),
+        world_size: int,
         # outputs
         x_out: wp.array(dtype=vec_hi),
         v_out: wp.array(dtype=vec_hi),
@@ -164,8 +167,9 @@ def integrator_kernels(hi, mid, lo, law: ContactLaw):
                                                     of the new state see this velocity)
         """
         i = wp.tid()
-        dt = step_length[0]
-        h_prev = step_previous_in[0]
+        world = i // world_size  # a world's grains are one block of storage (soil.worlds)
+        dt = step_length[world]
+        h_prev = step_previous_in[world]
         ratio = hi(0.0)
         if h_prev > hi(0.0):
             ratio = dt / h_prev
@@ -180,8 +184,8 @@ def integrator_kernels(hi, mid, lo, law: ContactLaw):
         w_out[i] = vec_mid(vec_hi(w_in[i]) + (hi(0.5) * dt) * (hi(3.0) * alpha - alpha_minus))
         force_previous_out[i] = force_in[i]
         torque_previous_out[i] = torque_in[i]
-        if i == 0:
-            step_previous_out[0] = dt
+        if i % world_size == 0:
+            step_previous_out[world] = dt
 
     @kernel
     def beeman_correct(
@@ -201,6 +205,7 @@ def integrator_kernels(hi, mid, lo, law: ContactLaw):
         order: wp.array(dtype=wp.int32),
         gravity: vec_hi,
         step_length: wp.array(dtype=hi),
+        world_size: int,
         # outputs
         v_out: wp.array(dtype=vec_hi),
         w_out: wp.array(dtype=vec_mid),
@@ -216,8 +221,9 @@ def integrator_kernels(hi, mid, lo, law: ContactLaw):
         times dt. Positions stay as predicted, so the new forces belong to them.
         """
         i = wp.tid()
-        dt = step_length[0]
-        h_prev = step_previous_in[0]
+        world = i // world_size  # a world's grains are one block of storage (soil.worlds)
+        dt = step_length[world]
+        h_prev = step_previous_in[world]
         ratio = hi(0.0)
         if h_prev > hi(0.0):
             ratio = dt / h_prev
@@ -257,29 +263,38 @@ def integrator_kernels(hi, mid, lo, law: ContactLaw):
     @kernel
     def norm_partial(
         gaps: wp.array2d(dtype=hi),
+        x_in: wp.array(dtype=vec_hi),
         v_in: wp.array(dtype=vec_hi),
         w_in: wp.array(dtype=vec_mid),
         radius: wp.array(dtype=lo),
         slot: wp.array(dtype=wp.int32),
-        summary: wp.array(dtype=hi),
+        summary: wp.array2d(dtype=hi),
         position_weight: hi,
         pass_index: int,
         chunk: int,
+        world_size: int,
+        chunks_per_world: int,
         partial_out: wp.array2d(dtype=hi),
     ):
-        """Per chunk of model indices (a fixed order): pass 0 the maxima of the gaps and of the
-        speed; pass 1 the sum of e_i^2 and max e_i with the scale found by pass 0."""
+        """Per chunk of a world's model indices (a fixed order, each world's chunks from its first
+        grain): pass 0 the maxima of the gaps and of the speed, and whether a grain is non-finite;
+        pass 1 the sum of e_i^2 and max e_i with the world's scale found by pass 0."""
         c = wp.tid()
+        world = c // chunks_per_world
+        begin = world * world_size + (c - world * chunks_per_world) * chunk
         first = hi(0.0)
         second = hi(0.0)
         third = hi(0.0)
-        scale = summary[SUMMARY_RMS]  # pass 1: the scale, parked there by norm_total's pass 0
-        for p in range(c * chunk, wp.min(c * chunk + chunk, slot.shape[0])):
+        fourth = hi(0.0)
+        scale = summary[world, SUMMARY_RMS]  # pass 1: the scale, parked there by norm_total's pass 0
+        for p in range(begin, wp.min(begin + chunk, (world + 1) * world_size)):
             i = slot[p]
             if pass_index == 0:
                 first = wp.max(first, gaps[i, 0])
                 second = wp.max(second, gaps[i, 1])
                 third = wp.max(third, wp.max(wp.length(v_in[i]), hi(radius[i]) * wp.length(vec_hi(w_in[i]))))
+                if not (wp.isfinite(x_in[i]) and wp.isfinite(v_in[i]) and wp.isfinite(vec_hi(w_in[i]))):
+                    fourth = hi(1.0)  # flag_nonfinite's test, per world
             else:
                 e = grain_error(gaps, i, position_weight, scale)
                 first = first + e * e
@@ -287,6 +302,7 @@ def integrator_kernels(hi, mid, lo, law: ContactLaw):
         partial_out[c, 0] = first
         partial_out[c, 1] = second
         partial_out[c, 2] = third
+        partial_out[c, 3] = fourth
 
     @kernel
     def norm_total(
@@ -295,37 +311,41 @@ def integrator_kernels(hi, mid, lo, law: ContactLaw):
         scale_floor_in: wp.array(dtype=hi),
         use_speed: int,
         pass_index: int,
-        count: int,
-        summary_out: wp.array(dtype=hi),
+        world_size: int,
+        chunks_per_world: int,
+        summary_out: wp.array2d(dtype=hi),
     ):
-        """Fold the chunks in order into the summary (pass 0: maxima, and the velocity scale
+        """Fold world w's chunks in order into its summary row (pass 0: maxima, and the velocity scale
         V = max(scale_floor, speed) parked in SUMMARY_RMS; pass 1: the RMS and the maximum)."""
+        w = wp.tid()
         first = hi(0.0)
         second = hi(0.0)
         third = hi(0.0)
-        for c in range(partial.shape[0]):
+        fourth = hi(0.0)
+        for c in range(w * chunks_per_world, (w + 1) * chunks_per_world):
             if pass_index == 0:
                 first = wp.max(first, partial[c, 0])
                 second = wp.max(second, partial[c, 1])
                 third = wp.max(third, partial[c, 2])
+                fourth = wp.max(fourth, partial[c, 3])
             else:
                 first = first + partial[c, 0]
                 second = wp.max(second, partial[c, 1])
         if pass_index == 0:
-            summary_out[SUMMARY_POSITION_GAP] = first
-            summary_out[SUMMARY_VELOCITY_GAP] = second
-            summary_out[SUMMARY_SPEED] = third
-            summary_out[SUMMARY_NONFINITE] = hi(status[status_columns.NONFINITE])
-            summary_out[SUMMARY_WORST] = hi(status[status_columns.WORST])
+            summary_out[w, SUMMARY_POSITION_GAP] = first
+            summary_out[w, SUMMARY_VELOCITY_GAP] = second
+            summary_out[w, SUMMARY_SPEED] = third
+            summary_out[w, SUMMARY_NONFINITE] = fourth
+            summary_out[w, SUMMARY_WORST] = hi(status[status_columns.WORST])
             for column in range(status_columns.COLUMNS):
-                summary_out[SUMMARY_STATUS + column] = hi(status[column])
-            scale = scale_floor_in[0]
+                summary_out[w, SUMMARY_STATUS + column] = hi(status[column])
+            scale = scale_floor_in[w]
             if use_speed != 0:
                 scale = wp.max(scale, third)
-            summary_out[SUMMARY_RMS] = scale
+            summary_out[w, SUMMARY_RMS] = scale
         else:
-            summary_out[SUMMARY_RMS] = wp.sqrt(first / hi(count))
-            summary_out[SUMMARY_MAX] = second
+            summary_out[w, SUMMARY_RMS] = wp.sqrt(first / hi(world_size))
+            summary_out[w, SUMMARY_MAX] = second
 
     return dict(
         kick_drift=kick_drift,
@@ -376,6 +396,7 @@ class VelocityVerlet:
                 layout.inv_inertia,
                 gravity,
                 dt,
+                model.world_size,
             ],
             outputs=[state_out.position, state_out.velocity, state_out.angular_velocity],
             device=model.device,
@@ -394,6 +415,7 @@ class VelocityVerlet:
                 state_out.position,
                 gravity,
                 dt,
+                model.world_size,
             ],
             outputs=[state_out.velocity, state_out.angular_velocity, contacts.status],
             device=model.device,
@@ -439,11 +461,13 @@ class JoltBeeman:
         """Per-grain gaps of the last step, storage order: [position gap / r, velocity gap m/s],
         shape (particle_count, 2), dtype hi."""
         self.summary = None
-        """Reductions of the last read_summary (columns SUMMARY_*), shape (SUMMARY_COLUMNS,), dtype hi."""
+        """Reductions of the last step's error per world (columns SUMMARY_*), shape (worlds, SUMMARY_COLUMNS),
+        dtype hi (soil.worlds: one row for a scene alone)."""
         self._partial = None
         self._model = None
         self.scale_floor = None
-        """The velocity scale's floor V of the error norm [m/s], shape (1,), dtype hi (read_summary fills it)."""
+        """The velocity scale's floor V of each world's error norm [m/s], shape (worlds,), dtype hi (read_summary
+        fills it)."""
 
     def bind(self, model: SoilModel) -> None:
         """Allocate what the steps need (before a step is captured)."""
@@ -451,16 +475,19 @@ class JoltBeeman:
         if (
             self.gaps is not None
             and self.gaps.shape[0] == n
+            and self.summary.shape[0] == model.world_count
             and self.gaps.device == wp.get_device(model.device)
             and self.gaps.dtype == model.precision.hi
         ):
             self._model = model
             return
         self._model = model
-        self.summary = wp.zeros(SUMMARY_COLUMNS, dtype=model.precision.hi, device=model.device)
-        self.scale_floor = wp.zeros(1, dtype=model.precision.hi, device=model.device)
+        worlds = model.world_count
+        self.summary = wp.zeros((worlds, SUMMARY_COLUMNS), dtype=model.precision.hi, device=model.device)
+        self.scale_floor = wp.zeros(worlds, dtype=model.precision.hi, device=model.device)
         self.gaps = wp.zeros((n, 2), dtype=model.precision.hi, device=model.device)
-        self._partial = wp.zeros(((n + CHUNK - 1) // CHUNK, 3), dtype=model.precision.hi, device=model.device)
+        self._chunks_per_world = max(1, (model.world_size + CHUNK - 1) // CHUNK)
+        self._partial = wp.zeros((worlds * self._chunks_per_world, 4), dtype=model.precision.hi, device=model.device)
 
     def step(
         self,
@@ -494,6 +521,7 @@ class JoltBeeman:
                 layout.inv_inertia,
                 gravity,
                 dt,
+                model.world_size,
             ],
             outputs=[
                 state_out.position,
@@ -527,6 +555,7 @@ class JoltBeeman:
                 layout.order,
                 gravity,
                 dt,
+                model.world_size,
             ],
             outputs=[state_out.velocity, state_out.angular_velocity, self.gaps, contacts.status],
             device=model.device,
@@ -536,8 +565,9 @@ class JoltBeeman:
     def reduce_error(
         self, state: SoilState, status: wp.array, position_weight: float, scale_floor: wp.array, use_speed: bool
     ) -> None:
-        """Reduce the last step's gaps into `summary` on the device (no host read: capturable), the
-        velocity scale's floor V read from scale_floor[0] [m/s] (see read_summary)."""
+        """Reduce the last step's gaps into each world's row of `summary` on the device (no host read:
+        capturable), the velocity scale's floor V of world w read from scale_floor[w] [m/s] (see
+        read_summary)."""
         model = self._model
         prec = model.precision
         kernels = integrator_kernels(prec.hi, prec.mid, prec.lo, model.law)
@@ -548,6 +578,7 @@ class JoltBeeman:
                 dim=self._partial.shape[0],
                 inputs=[
                     self.gaps,
+                    state.position,
                     state.velocity,
                     state.angular_velocity,
                     layout.radius,
@@ -556,14 +587,24 @@ class JoltBeeman:
                     prec.hi(position_weight),
                     pass_index,
                     CHUNK,
+                    model.world_size,
+                    self._chunks_per_world,
                 ],
                 outputs=[self._partial],
                 device=model.device,
             )
             wp.launch(
                 kernels.norm_total,
-                dim=1,
-                inputs=[self._partial, status, scale_floor, int(use_speed), pass_index, model.particle_count],
+                dim=model.world_count,
+                inputs=[
+                    self._partial,
+                    status,
+                    scale_floor,
+                    int(use_speed),
+                    pass_index,
+                    model.world_size,
+                    self._chunks_per_world,
+                ],
                 outputs=[self.summary],
                 device=model.device,
             )
@@ -583,7 +624,7 @@ class JoltBeeman:
         use_speed) (StepController.error), and status (the step status, soil.status columns)."""
         self.scale_floor.fill_(float(scale_floor))
         self.reduce_error(state, status, position_weight, self.scale_floor, use_speed)
-        values = self.summary.numpy().astype(np.float64)
+        values = self.summary.numpy()[0].astype(np.float64)  # a scene alone: one world
         nonfinite = bool(values[SUMMARY_NONFINITE] > 0)
         return {
             "position_gap": float(values[SUMMARY_POSITION_GAP]),

@@ -52,15 +52,21 @@ def macro_kernels(hi):
         angular_velocity: wp.array(dtype=vec_hi),
         step_length: wp.array(dtype=wp.float64),
         weighted: int,
+        active: wp.array(dtype=wp.int32),
+        bodies_per_world: int,
         force_sum_out: wp.array(dtype=wp.vec3d),
         torque_sum_out: wp.array(dtype=wp.vec3d),
         work_out: wp.array(dtype=wp.float64),
     ):
         """Add a step's wrench on body b to the macro step's sums (one thread per body: a fixed
-        order), weighted by the step's length when the steps vary (weighted != 0); the soil's
+        order), weighted by the step's length when the steps vary (weighted != 0), for the bodies of
+        the worlds whose step counts (active[world] != 0: a world's substep accepted); the soil's
         force does -F.v - T.w work on the soil side's books."""
         b = wp.tid()
-        dt = step_length[0]
+        world = b // bodies_per_world  # type: ignore[operator]  # b: a Warp int (wp.tid)
+        if active[world] == 0:
+            return
+        dt = step_length[world]
         f = wp.vec3d(wp.float64(force[b][0]), wp.float64(force[b][1]), wp.float64(force[b][2]))
         t = wp.vec3d(wp.float64(torque[b][0]), wp.float64(torque[b][1]), wp.float64(torque[b][2]))
         v = wp.vec3d(wp.float64(velocity[b][0]), wp.float64(velocity[b][1]), wp.float64(velocity[b][2]))
@@ -150,6 +156,10 @@ class MacroStepReport:
     """Longest step taken [s] (with fixed steps: dt)."""
     evaluations: int = 0
     """Force evaluations of the macro step, rejected substeps included [-]."""
+    world_steps: tuple = ()
+    """With the step control in worlds (soil.worlds): each world's own steps, dt, rejected, forced,
+    dt_min, dt_max and evaluations (dicts of those fields; the fields above are then the batch's:
+    the most steps any world took, the rejected and forced ones of all); empty otherwise."""
 
 
 class StepGraphs:
@@ -238,20 +248,25 @@ class MacroSums:
         """Sum of each body's torque [N m] (or [N m s]), shape (bodies,)."""
         self.work = wp.zeros(bodies, dtype=wp.float64, device=device)
         """Work done on the soil by each body [J], shape (bodies,)."""
+        self.every_world = wp.ones(model.world_count, dtype=wp.int32, device=device)
+        """accumulate's `active` when every world's step counts, shape (worlds,)."""
         self.steps_column = REPORT_BODIES + BODY_COLUMNS * model.body_count + 3 * model.boundary_count
         """First report column of the step control's block (soil.step_control columns)."""
-        self.values = wp.zeros(self.steps_column + step_control.COLUMNS, dtype=wp.float64, device=device)
-        """The report array on the device, shape (steps_column + soil.step_control.COLUMNS,)."""
+        self.values = wp.zeros(
+            self.steps_column + step_control.COLUMNS * model.world_count, dtype=wp.float64, device=device
+        )
+        """The report array on the device, shape (steps_column + soil.step_control.COLUMNS x worlds,)."""
 
     def clear(self) -> None:
         """Zero the sums (at a macro step's start)."""
         for array in (self.force_sum, self.torque_sum, self.work):
             array.zero_()
 
-    def accumulate(self, state, step_length64: wp.array, weighted: bool) -> None:
+    def accumulate(self, state, step_length64: wp.array, weighted: bool, active: wp.array | None = None) -> None:
         """Add the bodies' wrench of `state` (a SoilState at a step's end, with the bodies' velocities
-        the wrench works against) to the sums (capturable): step_length64 [s] shape (1,), float64;
-        weighted: multiply by the step's length (variable steps)."""
+        the wrench works against) to the sums (capturable): step_length64 [s] shape (worlds,), float64
+        (soil.worlds; one value for a scene alone); weighted: multiply by the step's length (variable
+        steps); active: int32 (worlds,), the worlds whose bodies count (None: all)."""
         if not self.model.body_count:
             return
         wp.launch(
@@ -264,6 +279,8 @@ class MacroSums:
                 state.body_angular_velocity,
                 step_length64,
                 int(weighted),
+                self.every_world if active is None else active,
+                self.model.bodies_per_world,
             ],
             outputs=[self.force_sum, self.torque_sum, self.work],
             device=self.model.device,
@@ -292,7 +309,7 @@ class MacroSums:
             device=self.model.device,
         )
         if steps is not None:
-            wp.copy(self.values, steps.control, dest_offset=self.steps_column, count=step_control.COLUMNS)
+            wp.copy(self.values, steps.control, dest_offset=self.steps_column, count=steps.control.shape[0])
         return self.values.numpy().copy()
 
     def report(self, values: np.ndarray, averaged_over: float, **fields) -> MacroStepReport:

@@ -346,6 +346,8 @@ def neighbour_kernels(hi, mid, lo, law: ContactLaw, slot_major: bool = False):
         tangential_in: wp.array2d(dtype=vec_mid),
         rolling_in: wp.array2d(dtype=vec_spin),
         touching_old: wp.array2d(dtype=wp.uint32),
+        worlds: wp.array(dtype=wp.int32),
+        world_size: int,
         touching_out: wp.array2d(dtype=wp.uint32),
         tangential_out: wp.array2d(dtype=vec_mid),
         rolling_out: wp.array2d(dtype=vec_spin),
@@ -355,8 +357,11 @@ def neighbour_kernels(hi, mid, lo, law: ContactLaw, slot_major: bool = False):
 
         Entries out of contact hold zero in every buffer (their bit is clear), so the history
         arrays are a function of the contacts alone: entries the output held before
-        (touching_old) and that carry nothing now are cleared."""
+        (touching_old) and that carry nothing now are cleared. Only the grains of the worlds
+        flagged in `worlds` (soil.worlds) are remapped."""
         i = wp.tid()
+        if worlds[i // world_size] == 0:
+            return
         old = list_index_in[0]
         new = target[0]
         old_count = neighbour_count[old, i]
@@ -544,6 +549,7 @@ class NeighbourList:
         self._cell_slot = wp.zeros(n, dtype=wp.int32, device=device)
         self._target = wp.zeros(1, dtype=wp.int32, device=device)
         self._rebuild = wp.zeros(1, dtype=wp.int32, device=device)
+        self._every_world = wp.ones(model.world_count, dtype=wp.int32, device=device)
         self.rebuilt = wp.zeros(1, dtype=wp.int32, device=device)
         """1 when the last check rebuilt the list (the output state's history is then remapped)."""
         self._origin = wp.zeros(n, dtype=wp.int32, device=device)
@@ -653,6 +659,8 @@ class NeighbourList:
                 wp.clone(state.pair_tangential),
                 wp.clone(state.pair_rolling),
                 touching,
+                self._every_world,
+                self.model.world_size,
             ],
             outputs=[state.pair_touching, state.pair_tangential, state.pair_rolling],
             device=device,
@@ -712,6 +720,8 @@ class NeighbourList:
                 state_in.pair_tangential,
                 state_in.pair_rolling,
                 state_out.pair_touching,
+                self._every_world,
+                self.model.world_size,
             ],
             outputs=[state_out.pair_touching, state_out.pair_tangential, state_out.pair_rolling],
             device=device,
@@ -722,6 +732,32 @@ class NeighbourList:
             inputs=[self._target],
             outputs=[state_out.list_index, self.rebuilt, status],
             device=device,
+        )
+
+    def remap_worlds(self, source: SoilState, target: SoilState, worlds: wp.array) -> None:
+        """Carry the pair history of `source` (aligned with its list) into `target` (aligned with
+        target's list, the same one or one built since) for the grains of the worlds flagged in
+        `worlds` (int32 (world_count,)): those worlds' entries then hold source's contacts in
+        target's rows (soil.step_control: a world that keeps nothing of a substep another world
+        kept). On the device; capturable."""
+        wp.launch(
+            self.kernels.remap_history,
+            dim=self.model.particle_count,
+            inputs=[
+                source.layout.neighbours,
+                source.layout.neighbour_count,
+                source.list_index,
+                target.list_index,
+                source.layout.order,
+                source.pair_touching,
+                source.pair_tangential,
+                source.pair_rolling,
+                target.pair_touching,
+                worlds,
+                self.model.world_size,
+            ],
+            outputs=[target.pair_touching, target.pair_tangential, target.pair_rolling],
+            device=self.model.device,
         )
 
     def _sort(self, position, layout: GrainLayout) -> None:

@@ -14,6 +14,7 @@ soil.adaptive, snapshots in soil.snapshot; Simulation is the surface over them.
 """
 
 import math
+from types import SimpleNamespace
 
 import numpy as np
 import warp as wp
@@ -42,7 +43,7 @@ from .sdf import displaced_geometry
 from .snapshot import SimulationSnapshot
 from .solver import ContactSolver
 from .stability import DivergenceMonitor, SimulationDiverged  # noqa: F401 (SimulationDiverged re-exported)
-from .state import GrainLayout, SoilState
+from .state import GrainLayout, SoilState, copy_world_words
 from .step_control import DeviceStepControl
 
 
@@ -124,12 +125,14 @@ class Simulation:
         self.sums = MacroSums(model)
         """The macro step's wrench sums and report on the device (soil.macro.MacroSums)."""
         hi = model.precision.hi
-        self._step_length = wp.zeros(1, dtype=hi, device=device)
-        """The DEM step the kernels read [s], shape (1,): on the device, so that a step's length can be
-        decided there (step control) and one captured graph serves every length."""
-        self._step_length64 = wp.zeros(1, dtype=wp.float64, device=device)
+        worlds = model.world_count
+        self._step_length = wp.zeros(worlds, dtype=hi, device=device)
+        """The DEM step the kernels read [s], one per world (soil.worlds), shape (worlds,): on the device,
+        so that a step's length can be decided there (step control) and one captured graph serves
+        every length."""
+        self._step_length64 = wp.zeros(worlds, dtype=wp.float64, device=device)
         """The same step in float64 (the wrench sums and the work)."""
-        self._no_step = wp.zeros(1, dtype=hi, device=device)
+        self._no_step = wp.zeros(worlds, dtype=hi, device=device)
         self.step_control: DeviceStepControl | None = None
         """The PID step control of macro_step_adaptive (enable_step_control), or None."""
         if not state.forces_valid:  # a restored state keeps its own forces: restarts stay bit-identical
@@ -376,9 +379,10 @@ class Simulation:
         self._step_length.fill_(float(dt))
         self._step_length64.fill_(float(dt))
 
-    def _accumulate_wrench(self, state: SoilState, weighted: bool) -> None:
-        """Add the bodies' wrench of `state` to the macro step's sums (capturable)."""
-        self.sums.accumulate(state, self._step_length64, weighted)
+    def _accumulate_wrench(self, state: SoilState, weighted: bool, worlds: wp.array | None = None) -> None:
+        """Add the bodies' wrench of `state` to the macro step's sums (capturable); worlds: int32 (worlds,),
+        those whose step counts (None: all)."""
+        self.sums.accumulate(state, self._step_length64, weighted, worlds)
 
     def _run_step(self, dt: float, state_in: SoilState, state_out: SoilState, path: bool) -> None:
         """One DEM step state_in -> state_out of the length in _step_length (dt [s]): replayed from
@@ -414,6 +418,7 @@ class Simulation:
                 step_control.step_control_kernels(prec.hi),
                 self.contacts.kernels,
                 self.neighbour_list.kernels,
+                SimpleNamespace(copy_world_words=copy_world_words),  # the worlds' restore (soil.step_control)
             ]
         )
         self._spares()

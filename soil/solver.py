@@ -130,6 +130,7 @@ def contact_kernels(hi, mid, lo, law: ContactLaw, slot_major: bool = False):
         external_force: wp.array(dtype=vec_hi),
         external: int,
         step_length: wp.array(dtype=hi),
+        world_size: int,
         # outputs
         force_out: wp.array(dtype=vec_hi),
         torque_out: wp.array(dtype=vec_mid),
@@ -143,7 +144,7 @@ def contact_kernels(hi, mid, lo, law: ContactLaw, slot_major: bool = False):
         and the reactions of its rigid contacts. After a rebuild the pair history was remapped
         into history_out, and is read from there."""
         i = wp.tid()
-        dt = step_length[0]
+        dt = step_length[i // world_size]  # each world's step (soil.worlds: a world is one block of storage)
         xi = position[i]
         vi = velocity[i]
         wi = vec_hi(angular_velocity[i])
@@ -585,6 +586,7 @@ class ContactSolver:
                 control.external_force,
                 int(control.external_force_used),
                 dt,
+                model.world_size,
             ],
             outputs=[
                 state_out.force,

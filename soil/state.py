@@ -23,6 +23,38 @@ UNBUILT = 1.0e30
 far from there and rebuilds the list."""
 
 
+PAIR_HISTORY = ("pair_touching", "pair_tangential", "pair_rolling")
+"""State arrays aligned with the neighbour list's rows (remapped, not copied, across lists)."""
+
+
+@wp.kernel(enable_backward=False)
+def copy_world_words(
+    source: wp.array(dtype=wp.uint32),
+    words_per_element: int,
+    inner: int,
+    rows: int,
+    rows_per_world: int,
+    worlds: wp.array(dtype=wp.int32),
+    target_out: wp.array(dtype=wp.uint32),
+):
+    """Copy the words of the rows (grains, walls, wheels or worlds) whose world is flagged in
+    `worlds`: word t is in element t // words_per_element, which lies in row (element // inner) %
+    rows (inner: the elements of a row that follow one another, 1 where the row is the fastest
+    index), of world row // rows_per_world. A copy by bits: every type, every precision."""
+    t = wp.tid()
+    row = (t // words_per_element // inner) % rows  # type: ignore[operator]  # t: a Warp int (wp.tid)
+    if worlds[row // rows_per_world] != 0:
+        target_out[t] = source[t]
+
+
+def _word_view(array: wp.array) -> wp.array:
+    """A uint32 view of the memory of a contiguous array (no copy; it does not own the memory)."""
+    size = wp.types.type_size_in_bytes(array.dtype)
+    if size % 4 or not array.is_contiguous:
+        raise TypeError(f"copy_worlds copies whole 32-bit words of contiguous arrays, not {array.dtype} {array.shape}")
+    return wp.array(ptr=array.ptr, dtype=wp.uint32, shape=(array.size * size // 4,), device=array.device)
+
+
 def _resize_like(target, source: wp.array) -> wp.array:
     """`target` if it has the shape and type of `source`, else a new array that has them."""
     if (
@@ -153,6 +185,7 @@ class SoilState:
         layout: GrainLayout | None = None,
         vec_mid=None,
         slot_major: bool = False,
+        worlds: int = 1,
     ):
         n = particle_count
         self.slot_major = bool(slot_major)
@@ -208,9 +241,9 @@ class SoilState:
         dtype mid."""
         self.rigid_rolling = wp.zeros(per_slot(rigid_capacity if keeps_spin else 0), dtype=vec_spin, device=device)
         """Spin history per rigid-contact slot [rad] (as pair_rolling), shape (particle_count, rigid_capacity)."""
-        self.step_previous = wp.zeros(1, dtype=scalar, device=device)
-        """Length of the step that produced this state [s], shape (1,); 0 = no history
-        (start-up: jolt-Beeman then assumes zero jolt)."""
+        self.step_previous = wp.zeros(max(int(worlds), 1), dtype=scalar, device=device)
+        """Length of the step that produced each world's state [s], shape (worlds,) (soil.worlds; one for a
+        scene alone); 0 = no history (start-up: jolt-Beeman then assumes zero jolt)."""
         self.body_force = wp.zeros(body_count, dtype=vec_hi, device=device)
         """Soil force on each body (wheel) at the state's time, world [N], shape (body_count,)."""
         self.body_torque = wp.zeros(body_count, dtype=vec_hi, device=device)
@@ -274,6 +307,7 @@ class SoilState:
             layout=layout,
             vec_mid=model.precision.vec_mid,
             slot_major=bool(getattr(model, "slot_major", False)),
+            worlds=model.world_count,
         )
 
     @property
@@ -328,6 +362,39 @@ class SoilState:
             self.layout.assign(other.layout)
         self.time = other.time
         self.forces_valid = other.forces_valid
+
+    def copy_worlds(self, other: SoilState, worlds: wp.array, model) -> None:
+        """Take from `other` (a state of the same shape) the rows of the worlds flagged in `worlds`
+        (int32 (model.world_count,), soil.worlds) of every array but the pair history (PAIR_HISTORY,
+        which NeighbourList.remap_worlds carries over: the lists may differ). On the device; capturable."""
+        n, count = model.particle_count, model.world_count
+        for name, array in self.arrays.items():
+            if name in PAIR_HISTORY or array.size == 0:
+                continue
+            if name == "step_previous":
+                rows, per_world, inner = count, 1, 1
+            elif name.startswith("body_"):
+                rows, per_world, inner = model.body_count, model.bodies_per_world, 1
+            elif name.startswith("boundary_"):
+                rows, per_world, inner = model.boundary_count, model.walls_per_world, 1
+            else:  # one row per grain; a per-grain 2D array (n, slots) keeps a row's slots together
+                rows, per_world = n, model.world_size
+                inner = array.shape[1] if array.ndim == 2 and not self.slot_major else 1
+            words = _word_view(array)
+            wp.launch(
+                copy_world_words,
+                dim=words.shape[0],
+                inputs=[
+                    _word_view(getattr(other, name)),
+                    words.shape[0] // array.size,
+                    inner,
+                    rows,
+                    per_world,
+                    worlds,
+                ],
+                outputs=[words],
+                device=array.device,
+            )
 
     def grow_capacity(self, capacity: int | None = None, rigid_capacity: int | None = None) -> None:
         """Widen the neighbour slots to `capacity` and the rigid-contact slots to `rigid_capacity`

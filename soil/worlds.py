@@ -13,9 +13,10 @@ model-index order and entries out of contact add nothing, so a list rebuilt when
 needed it holds the same contacts in the same order, and storage grown for one world changes no
 value of another. Each world steps bit for bit as its scene alone (tests/test_worlds.py).
 
-Shared by the worlds: the DEM step (fixed steps only: under the PID step control the step would
-follow the most demanding world, so it is refused), the clock, storage growth and the divergence
-monitor (a world that diverges stops them all).
+Shared by the worlds: the clock (each macro step), storage growth and the divergence monitor (a
+world that diverges stops them all). The DEM step is the same for all at fixed steps; under the PID
+step control (Simulation.enable_step_control on the worlds' simulation) each world has its own
+controller and takes its own substeps, those it takes alone (soil.step_control).
 
 Stepping: each world asks for its macro step (World.advance_to) with its wheels' path; the step
 runs once every active world has asked, and a world that is done leaves (Worlds.leave; its wheels
@@ -121,7 +122,7 @@ def join_worlds(parts: Sequence[tuple[SoilModel, SoilState, SoilControl]]):
         datas.append(s.to_numpy())
     state_data = {}
     for name, first_values in datas[0].items():
-        if name in ("time", "step_previous"):
+        if name == "time":
             state_data[name] = first_values
             continue
         rows = []
@@ -173,11 +174,16 @@ def world_state_dict(data: dict, world: int, model: SoilModel) -> dict:
     out = {}
     for key, value in data.items():
         part, _, name = key.partition("/")
+        if key == "step_control/device" and np.ndim(value) == 2:  # the worlds' controllers: a row each
+            out[key] = np.asarray(value)[world].copy()
+            continue
         if part not in ("state", "control") or not name:
             out[key] = value
             continue
         v = np.asarray(value)
-        if name.startswith("body_"):
+        if name == "step_previous":
+            v = v[world : world + 1]
+        elif name.startswith("body_"):
             v = v[body_rows]
         elif name.startswith("boundary_"):
             v = v[wall_rows]
@@ -225,11 +231,6 @@ class Worlds:
     """The worlds of one Simulation (its model's world_count), stepped together (module docstring)."""
 
     def __init__(self, sim):
-        if sim.step_control is not None:
-            raise ArgumentError(
-                "worlds share one DEM step: the PID step control would set it for all of them; run them at a fixed "
-                "step or one by one"
-            )
         self.sim = sim
         self.model: SoilModel = sim.model
         self.count = self.model.world_count
@@ -449,8 +450,11 @@ class Worlds:
         self.step_seconds += self._last_step_seconds
         for w in requests:
             bodies, walls = self.body_rows(w), self.wall_rows(w)
+            own = report.world_steps[w] if report.world_steps else {}  # the step control's figures of world w
             self._reports[w] = replace(
                 report,
+                **own,
+                world_steps=(),
                 body_force=report.body_force[bodies],
                 body_torque=report.body_torque[bodies],
                 body_force_end=report.body_force_end[bodies],

@@ -24,15 +24,21 @@ REPLICAS = 3
 SAME_EVERYWHERE = ("wall_time", "session_wall_time", "particle_steps_per_second", "real_time_factor")
 
 
-def test_batched_replicas_equal_their_runs_alone(tmp_path, tiny_bed):
-    plan = load_plan(write_tiny(tmp_path), [f'bed.bed_file="{tiny_bed}"'])
-    alone = replica_run(plan, str(tmp_path / "alone"), REPLICAS, executor="serial", batched=False)
-    together = replica_run(plan, str(tmp_path / "together"), REPLICAS, batched=True)
+@pytest.mark.parametrize("step_control", ["fixed", "pid"])
+def test_batched_replicas_equal_their_runs_alone(tmp_path, tiny_bed, step_control):
+    """At fixed steps and under the PID step control (each world its own controller: its substeps,
+    series dem_steps, those of its run alone)."""
+    plan = load_plan(write_tiny(tmp_path), [f'bed.bed_file="{tiny_bed}"', f'run.step_control="{step_control}"'])
+    replicas = REPLICAS if step_control == "fixed" else 2
+    alone = replica_run(plan, str(tmp_path / "alone"), replicas, executor="serial", batched=False)
+    together = replica_run(plan, str(tmp_path / "together"), replicas, batched=True)
     assert together["batched"] and not alone["batched"]
     for a, b in zip(alone["results"], together["results"]):
         assert a["ok"] and b["ok"], (a.get("error"), b.get("error"))
         series_a, series_b = read_series(f"{a['out_dir']}/results.h5"), read_series(f"{b['out_dir']}/results.h5")
         assert len(series_a["time"]) > 20
+        if step_control == "pid":  # the controller chose: substeps of varying count per macro step
+            assert len(set(series_a["soil_dem_steps"].tolist())) > 1
         for name, values in series_a.items():
             if isinstance(values, np.ndarray) and name not in SAME_EVERYWHERE:
                 assert np.array_equal(values, series_b[name], equal_nan=True), f"{b['out_dir']}: {name} differs"
@@ -41,7 +47,7 @@ def test_batched_replicas_equal_their_runs_alone(tmp_path, tiny_bed):
                 assert value == b["summary"][name] or (np.isnan(value) and np.isnan(b["summary"][name])), name
     # the replicas are replicas: their summation orders make them differ
     drawbar = [r["summary"]["drawbar_pull"] for r in together["results"]]
-    assert len(set(drawbar)) == REPLICAS
+    assert len(set(drawbar)) == replicas
 
 
 def test_a_batched_slip_study_gives_the_study_run_one_by_one(tmp_path, tiny_bed):
@@ -61,11 +67,10 @@ def fixed_plan(tmp_path, tiny_bed):
 
 
 def test_what_a_batch_cannot_run_is_refused_by_name(tmp_path, tiny_bed):
-    plan = load_plan(write_tiny(tmp_path), [f'bed.bed_file="{tiny_bed}"', 'run.step_control="pid"'])
-    assert "step_control" in batch_problem(plan)
-    with pytest.raises(SceneError, match="--batched: run.step_control"):
-        replica_run(plan, str(tmp_path / "pid"), 2, batched=True)
-    assert batch_problem(load_plan(write_tiny(tmp_path), ['terrain.model="analytic"'])).startswith("terrain.model")
+    analytic = load_plan(write_tiny(tmp_path), ['terrain.model="analytic"'])
+    assert batch_problem(analytic).startswith("terrain.model")
+    with pytest.raises(SceneError, match="--batched: terrain.model"):
+        replica_run(analytic, str(tmp_path / "analytic"), 2, batched=True)
     # the worlds share one soil: runs that differ in it are refused by name
     other = load_plan(write_tiny(tmp_path), [f'bed.bed_file="{tiny_bed}"', "scene.precision='double'"])
     with pytest.raises(ValueError, match="its precision is 'double', run 0's 'mixed'"):

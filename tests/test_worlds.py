@@ -3,7 +3,9 @@
 The worlds differ in summation order (order seed) and in how their wheel moves (one stands still,
 so its neighbour list is rebuilt only because the others need it); the contact storage starts
 too small, so it grows during the run (for one world, for all); one world leaves early. Every
-wrench, every grain and the checkpoint of each world must equal those of the same scene run alone.
+wrench, every grain and the checkpoint of each world must equal those of the same scene run alone,
+at a fixed step and under the PID step control, where each world takes the substeps it takes
+alone (the worlds then take different numbers of substeps and reject different ones).
 """
 
 import threading
@@ -14,8 +16,8 @@ import pytest
 
 from cosim.contract import WheelKinematics
 from cosim.dem_soil import DemSoil, WallProximityWarning
-from soil import GrouserWheel, Material, Simulation, SoilBuilder
-from soil.errors import ArgumentError
+from soil import GrouserWheel, Material, Simulation, SoilBuilder, StepController
+from soil.errors import SoilInputError
 from soil.worlds import Worlds, join_worlds
 
 WHEEL = GrouserWheel(radius=0.02, width=0.012, grouser_count=8, grouser_height=0.002, grouser_thickness=0.0015)
@@ -71,29 +73,49 @@ def contacts(saved):
 
 
 def drive(soil, world, steps, start=0):
-    """(wrench rows, rebuilds per macro step) of `steps` macro steps from macro step `start`."""
+    """(wrench rows, (rebuilds, substeps, rejected) per macro step) of `steps` macro steps from macro
+    step `start`."""
     rows, rebuilds = [], []
     if start == 0:
         soil.place_wheels(kinematics(world, 0.0))
     for k in range(start, start + steps):
         w = soil.advance((k + 1) * MACRO, kinematics(world, k * MACRO))[0]
         rows.append(np.concatenate([w.force, w.torque, w.force_end, w.torque_end, [w.contact_count, w.work_on_soil]]))
-        rebuilds.append(soil.last_report.rebuilds)
+        report = soil.last_report
+        rebuilds.append((report.rebuilds, report.steps, report.rejected))
     return np.array(rows), rebuilds
 
 
-@pytest.mark.parametrize("precision, storage", [("mixed", "grain"), ("double", "grain"), ("mixed", "slot")])
-def test_each_world_steps_bit_for_bit_as_its_scene_alone(device, precision, storage):
+def simulation(parts, step_control):
+    """A Simulation of `parts` (finalize's results), with its PID step control when asked: a tolerance
+    tight enough that substeps are rejected (Simulation.enable_step_control)."""
+    sim = Simulation(*parts)
+    if step_control == "pid":
+        sim.enable_step_control(StepController(tolerance=2e-4, dt_max=1e-4))
+    return sim
+
+
+@pytest.mark.parametrize(
+    "precision, storage, step_control",
+    [
+        ("mixed", "grain", "fixed"),
+        ("double", "grain", "fixed"),
+        ("mixed", "slot", "fixed"),
+        ("double", "grain", "pid"),
+        ("mixed", "slot", "pid"),
+    ],
+)
+def test_each_world_steps_bit_for_bit_as_its_scene_alone(device, precision, storage, step_control):
     warnings.simplefilter("ignore", WallProximityWarning)
     alone = []
     for w, seed in enumerate(SEEDS):
-        soil = DemSoil(Simulation(*scene(device, precision, seed, storage)), 1e-4, surface_height=0.02)
+        soil = DemSoil(simulation(scene(device, precision, seed, storage), step_control), 1e-4, surface_height=0.02)
         rows, rebuilds = drive(soil, w, LEAVES.get(w, STEPS))
         alone.append((rows, rebuilds, soil.sim.positions(), soil.sim.velocities(), soil.sim.state_dict()))
         if w == 0:
             continued = drive(soil, w, 4, start=STEPS)[0]
 
-    worlds = Worlds(Simulation(*join_worlds([scene(device, precision, seed, storage) for seed in SEEDS])))
+    worlds = Worlds(simulation(join_worlds([scene(device, precision, seed, storage) for seed in SEEDS]), step_control))
     soils = [DemSoil(worlds.world(w), 1e-4, surface_height=0.02) for w in range(len(SEEDS))]
     together: dict = {}
 
@@ -118,6 +140,8 @@ def test_each_world_steps_bit_for_bit_as_its_scene_alone(device, precision, stor
         rows, rebuilds, x, v, saved = together[w]
         rows_alone, rebuilds_alone, x_alone, v_alone, saved_alone = alone[w]
         assert np.array_equal(rows, rows_alone), f"world {w}: wrenches differ from its scene alone"
+        steps, steps_alone = [r[1:] for r in rebuilds], [r[1:] for r in rebuilds_alone]
+        assert steps == steps_alone, f"world {w}: substeps (taken, rejected) differ from its scene alone"
         assert np.array_equal(x, x_alone) and np.array_equal(v, v_alone), f"world {w}: grains differ"
         for key, value in saved_alone.items():
             if key.startswith(("state/", "control/")) and key.split("/")[1] not in LIST_ALIGNED:
@@ -125,29 +149,38 @@ def test_each_world_steps_bit_for_bit_as_its_scene_alone(device, precision, stor
                 if key.split("/")[1].startswith("rigid_") and ours.ndim > 1:  # the batch's storage may be wider
                     ours, value = ours[:, : value.shape[1]], value[:, : ours.shape[1]]
                 assert np.array_equal(ours, value), f"world {w}: checkpoint {key} differs"
+            if key.startswith("step_control/"):  # the world's own controller, its settings and state
+                same = np.array_equal(saved[key], value, equal_nan=np.asarray(value).dtype.kind == "f")
+                assert same, f"world {w}: checkpoint {key} differs"
         for ours, theirs in zip(contacts(saved), contacts(saved_alone)):
             assert np.array_equal(ours, theirs), f"world {w}: the checkpoint's contacts differ"
-        batch_rebuilds.append(rebuilds)
+        batch_rebuilds.append([r[0] for r in rebuilds])
         assert saved["capacity"] > 2, "the storage grew"
     # a world's checkpoint continues alone as its scene alone does
-    resumed = DemSoil(Simulation(*scene(device, precision, SEEDS[0], storage)), 1e-4, surface_height=0.02)
-    resumed.sim.load_state_dict(together[0][4])
+    resumed = DemSoil(simulation(scene(device, precision, SEEDS[0], storage), "fixed"), 1e-4, surface_height=0.02)
+    resumed.sim.load_state_dict(together[0][4])  # with the world's step control, if it had one
     assert np.array_equal(drive(resumed, 0, 4, start=STEPS)[0], continued)
     # the standing wheel's world was rebuilt when it did not need it: the case the design is for
-    assert any(b > 0 and a == 0 for b, a in zip(batch_rebuilds[1], alone[1][1]))
+    assert any(b > 0 and a[0] == 0 for b, a in zip(batch_rebuilds[1], alone[1][1]))
     assert worlds.rounds == STEPS
+    if step_control == "pid":  # the worlds' controllers chose apart: what the test is for
+        per_world = [[r[1:] for r in a[1]] for a in alone]
+        assert any(len({per_world[w][k] for w in range(2)}) > 1 for k in range(STEPS)), (
+            "the worlds took the same substeps"
+        )
+        assert sum(r[2] for a in alone for r in a[1]) > 0, "no substep was rejected"
 
 
-def test_the_worlds_of_a_batch_are_copies_of_one_scene_at_a_fixed_step(device):
+def test_the_worlds_of_a_batch_are_copies_of_one_scene(device):
     one = scene(device, "double", 1)
     other = SoilBuilder(gravity=9.81)
     other.add_particles(np.array([[0.0, 0.0, 0.01]]), 0.003)
     with pytest.raises(ValueError, match="world 1 differs"):
         join_worlds([one, other.finalize(device, "double")])
+    # the host-side PID loop decides for one world: worlds take theirs on the device, each its own
     sim = Simulation(*join_worlds([scene(device, "double", 1), scene(device, "double", 2)]))
-    sim.enable_step_control()
-    with pytest.raises(ArgumentError, match="fixed step"):
-        Worlds(sim)
+    with pytest.raises(SoilInputError, match="run_adaptive decides on the host for one world"):
+        sim.run_adaptive(1e-3)
 
 
 def test_a_world_that_diverges_stops_the_batch_and_each_world_keeps_its_last_good_state(device):
