@@ -32,7 +32,8 @@ def test_both_storage_orders_give_the_same_run_to_the_last_bit(device, precision
         runs[storage] = (soil, rows, rebuilds)
     (grain, rows_g, rebuilds_g), (slot, rows_s, rebuilds_s) = runs["grain"], runs["slot"]
     assert rebuilds_s == rebuilds_g
-    assert sum(r[0] for r in rebuilds_g) > 0 and grain.sim.state.capacity > 2  # the lists were rebuilt, the storage grew
+    # the lists were rebuilt, the storage grew
+    assert sum(r[0] for r in rebuilds_g) > 0 and grain.sim.state.capacity > 2
     n = slot.sim.particle_count
     layout = slot.sim.state.layout
     assert layout.neighbours.shape[2] == n and slot.sim.state.pair_tangential.shape[1] == n  # stored per slot
