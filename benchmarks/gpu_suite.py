@@ -448,7 +448,8 @@ class Suite:
             timed = slice(WARMUP_STEPS, len(marks))
             seconds = float(marks[-1] - marks[WARMUP_STEPS - 1]) if len(marks) > WARMUP_STEPS else 0.0
             grains = float(series["soil_particle_count"][0])
-            steps = float(series["soil_dem_steps"][timed].sum())
+            # every world's own steps (under the PID step control each world takes its own)
+            steps = float(sum(s["soil_dem_steps"][timed].sum() for s in (every or [series] * worlds)))
             counts = series["contact_count"][:, 0]
             dem = None if dem_seconds is None else float(np.sum(dem_seconds[timed]))
             return dict(
@@ -456,7 +457,7 @@ class Suite:
                 grains_per_world=grains,
                 macro_steps=len(marks),
                 timed_seconds=seconds,
-                particle_steps_per_second=worlds * grains * steps / seconds if seconds > 0 else 0.0,
+                particle_steps_per_second=grains * steps / seconds if seconds > 0 else 0.0,
                 dem_share_of_wall=dem / seconds if dem is not None and seconds > 0 else None,
                 host_ms_per_world_step=None
                 if dem is None
@@ -466,7 +467,7 @@ class Suite:
                 else 1e3 * serve_seconds / max(worlds * len(marks), 1),
                 wheel_contacts_min=int(counts[len(counts) // 2 :].min()),
                 wheel_contacts_mean=float(counts.mean()),
-                substeps_per_macro_step=float(series["soil_dem_steps"].mean()),
+                substeps_per_macro_step=float(np.mean([s["soil_dem_steps"].mean() for s in every or [series]])),
                 loop_padding=padding(every or [series]),
                 failed=failed,
             )

@@ -85,7 +85,8 @@ def substep(sim, current: SoilState, trial: SoilState, path: bool, weights: dict
         integrator.step(sim.model, current, trial, sim.control, sim._step_length, sim.contacts)
         integrator.reduce_error(trial, sim.status, weights["position_weight"], scale_floor, weights["use_speed"])
         control.decide(summary, sim.status, capacity, rigid_capacity)
-        wp.capture_if(control.any_restore, on_true=restore)
+        if control.worlds > 1:  # alone a world keeps its trial or nothing changes: no restore
+            wp.capture_if(control.any_restore, on_true=restore)
         wp.capture_if(control.any_accepted, on_true=accept)
 
     return one_substep
