@@ -17,17 +17,25 @@ its state back into the trial before the trial becomes current.
 
 import functools
 import math
+import warnings
 
 import numpy as np
 import warp as wp
 
 from . import status as status_columns
 from . import step_control
-from .errors import InternalError, SoilInputError
+from .errors import InternalError, RegolithWarning, SoilInputError
 from .integrator import JoltBeeman, StepController, VelocityVerlet
 from .macro import MacroStepReport, grain_box
 from .state import SoilState
 from .step_control import DeviceStepControl
+
+
+class HistoryLostWarning(RegolithWarning):
+    """A world of a batch took its state back onto a neighbour list, built by a substep it threw away,
+    that lacked one of its contacts (a grain had moved more than the list's skin in that substep):
+    the contact's tangential and rolling history restarts, and the world no longer steps bit for bit
+    as its scene alone."""
 
 
 def use_jolt_beeman(sim, purpose: str) -> None:
@@ -71,7 +79,7 @@ def substep(sim, current: SoilState, trial: SoilState, path: bool, weights: dict
 
     def restore():
         trial.copy_worlds(current, control.restore, sim.model)
-        sim.neighbour_list.remap_worlds(current, trial, control.restore)
+        sim.neighbour_list.remap_worlds(current, trial, control.restore, sim.status)
 
     def accept():
         sim._accumulate_wrench(trial, weighted=True, worlds=control.accepted)
@@ -147,6 +155,14 @@ def macro_step_adaptive(sim, span: float, path: bool) -> MacroStepReport:
     rebuilds = int(values[status_columns.REBUILDS])
     sim._rebuilds_since_reorder += rebuilds
     sim._bounds = grain_box(values)
+    if values[status_columns.LOST_HISTORY] > 0:
+        warnings.warn(
+            f"a world of the batch lost a contact's history in the macro step to t = {sim.state.time:.6g} s: a grain "
+            "moved more than the neighbour list's skin in a substep that world threw away; from here it is no longer "
+            "bit for bit its run alone (a larger skin, NeighbourSettings, or the runs one by one avoid it)",
+            HistoryLostWarning,
+            stacklevel=4,
+        )
     if (steps[:, step_control.DIVERGED] > 0).any() or values[status_columns.NONFINITE] > 0:
         sim.monitor.fail(
             sim,

@@ -348,9 +348,11 @@ def neighbour_kernels(hi, mid, lo, law: ContactLaw, slot_major: bool = False):
         touching_old: wp.array2d(dtype=wp.uint32),
         worlds: wp.array(dtype=wp.int32),
         world_size: int,
+        count_lost: int,
         touching_out: wp.array2d(dtype=wp.uint32),
         tangential_out: wp.array2d(dtype=vec_mid),
         rolling_out: wp.array2d(dtype=vec_spin),
+        status_out: wp.array(dtype=wp.int32),
     ):
         """Carry each pair's history from its entry in the old row to its entry in the new one
         (both rows ascend in model index: one merge pass).
@@ -358,7 +360,9 @@ def neighbour_kernels(hi, mid, lo, law: ContactLaw, slot_major: bool = False):
         Entries out of contact hold zero in every buffer (their bit is clear), so the history
         arrays are a function of the contacts alone: entries the output held before
         (touching_old) and that carry nothing now are cleared. Only the grains of the worlds
-        flagged in `worlds` (soil.worlds) are remapped."""
+        flagged in `worlds` (soil.worlds) are remapped. count_lost != 0: a contact of the old row
+        that the new one lacks is flagged (status LOST_HISTORY): the new list was built at other
+        positions than the contacts' (a world's restore, soil.step_control)."""
         i = wp.tid()
         if worlds[i // world_size] == 0:
             return
@@ -368,6 +372,7 @@ def neighbour_kernels(hi, mid, lo, law: ContactLaw, slot_major: bool = False):
         new_count = neighbour_count[new, i]
         capacity = list_capacity(neighbours)
         kk = int(0)  # noqa: UP018 (a Warp variable the kernel changes: not a constant)
+        carried = int(0)  # noqa: UP018
         for word in range(slots(touching_out)):
             bits = wp.uint32(0)
             for k in range(word * 32, wp.min(word * 32 + 32, new_count)):
@@ -381,6 +386,7 @@ def neighbour_kernels(hi, mid, lo, law: ContactLaw, slot_major: bool = False):
                     if entry(neighbours, old, i, kk) == entry(neighbours, new, i, k):
                         if (at(touching_in, i, kk >> 5) >> wp.uint32(kk & 31)) & wp.uint32(1) != wp.uint32(0):
                             bits = bits | (wp.uint32(1) << wp.uint32(k & 31))
+                            carried += 1
                             if wp.static(FRICTION):
                                 put(tangential_out, i, k, at(tangential_in, i, kk))
                             if wp.static(SPIN):
@@ -394,6 +400,13 @@ def neighbour_kernels(hi, mid, lo, law: ContactLaw, slot_major: bool = False):
                         if wp.static(SPIN):
                             put(rolling_out, i, k, vec_spin())
             put(touching_out, i, word, bits)
+        if count_lost != 0:
+            touching = int(0)  # noqa: UP018
+            for k in range(old_count):
+                if (at(touching_in, i, k >> 5) >> wp.uint32(k & 31)) & wp.uint32(1) != wp.uint32(0):
+                    touching += 1
+            if carried < touching:
+                status_out[status_columns.LOST_HISTORY] = 1
 
     @kernel
     def finish_build(
@@ -661,8 +674,9 @@ class NeighbourList:
                 touching,
                 self._every_world,
                 self.model.world_size,
+                0,
             ],
-            outputs=[state.pair_touching, state.pair_tangential, state.pair_rolling],
+            outputs=[state.pair_touching, state.pair_tangential, state.pair_rolling, status],
             device=device,
         )
         wp.launch(
@@ -722,8 +736,9 @@ class NeighbourList:
                 state_out.pair_touching,
                 self._every_world,
                 self.model.world_size,
+                0,
             ],
-            outputs=[state_out.pair_touching, state_out.pair_tangential, state_out.pair_rolling],
+            outputs=[state_out.pair_touching, state_out.pair_tangential, state_out.pair_rolling, status],
             device=device,
         )
         wp.launch(
@@ -734,12 +749,13 @@ class NeighbourList:
             device=device,
         )
 
-    def remap_worlds(self, source: SoilState, target: SoilState, worlds: wp.array) -> None:
+    def remap_worlds(self, source: SoilState, target: SoilState, worlds: wp.array, status: wp.array) -> None:
         """Carry the pair history of `source` (aligned with its list) into `target` (aligned with
         target's list, the same one or one built since) for the grains of the worlds flagged in
         `worlds` (int32 (world_count,)): those worlds' entries then hold source's contacts in
         target's rows (soil.step_control: a world that keeps nothing of a substep another world
-        kept). On the device; capturable."""
+        kept). A contact of source that target's list lacks (built where a grain had moved more
+        than the skin) is flagged in `status` (LOST_HISTORY). On the device; capturable."""
         wp.launch(
             self.kernels.remap_history,
             dim=self.model.particle_count,
@@ -755,8 +771,9 @@ class NeighbourList:
                 target.pair_touching,
                 worlds,
                 self.model.world_size,
+                1,
             ],
-            outputs=[target.pair_touching, target.pair_tangential, target.pair_rolling],
+            outputs=[target.pair_touching, target.pair_tangential, target.pair_rolling, status],
             device=self.model.device,
         )
 

@@ -15,7 +15,10 @@ WORST = 3
 """Model index of a grain with a non-finite state (the largest such index), -1 if none."""
 REBUILDS = 4
 """Neighbour-list builds since the status was cleared [-]."""
-COLUMNS = 5
+LOST_HISTORY = 5
+"""1 if a world of a batch that took its state back (soil.step_control) had a contact that the
+neighbour list then in use did not hold: that contact's history restarts."""
+COLUMNS = 6
 
 
 @wp.kernel(enable_backward=False)

@@ -86,10 +86,18 @@ def step_control_kernels(hi):
     kernel = soil_kernel(kernel_module("step_control", hi))
 
     @kernel
-    def begin(span: wp.float64, control: wp.array2d(dtype=wp.float64), running_out: wp.array(dtype=wp.int32)):
-        """Start a macro step of `span` [s]: clear the world's per-macro-step columns."""
+    def begin(
+        span: wp.float64,
+        stepping: wp.array(dtype=wp.int32),
+        control: wp.array2d(dtype=wp.float64),
+        running_out: wp.array(dtype=wp.int32),
+    ):
+        """Start a macro step of `span` [s]: clear the world's per-macro-step columns (a world that does
+        not step, stepping[w] == 0, has no span: it keeps its state)."""
         w = wp.tid()
         control[w, REMAINING] = span
+        if stepping[w] == 0:
+            control[w, REMAINING] = wp.float64(0.0)
         control[w, ELAPSED] = wp.float64(0.0)
         control[w, STEP] = wp.float64(0.0)
         for column in range(ACCEPTED, COLUMNS):
@@ -303,6 +311,8 @@ class DeviceStepControl:
         (worlds,)."""
         self.any_restore = wp.zeros(1, dtype=wp.int32, device=device)
         """1 when some world takes its state back (restore)."""
+        self.stepping = wp.ones(self.worlds, dtype=wp.int32, device=device)
+        """1 where a world takes the next macro step (set_stepping; a world that left a batch keeps its state)."""
         self.tau = wp.zeros(self.worlds, dtype=precision.hi, device=device)
         """End of each world's trial substep since the macro step's start [s] (where its wheels are posed),
         shape (worlds,)."""
@@ -322,11 +332,17 @@ class DeviceStepControl:
         wp.launch(
             self.kernels.begin,
             dim=self.worlds,
-            inputs=[float(span), self.rows],
+            inputs=[float(span), self.stepping, self.rows],
             outputs=[self.running],
             device=device,
         )
         wp.copy(self.control_start, self.control)
+
+    def set_stepping(self, worlds) -> None:
+        """The worlds (indices) that take the following macro steps; the others keep their state."""
+        flags = np.zeros(self.worlds, dtype=np.int32)
+        flags[list(worlds)] = 1
+        self.stepping.assign(flags)
 
     def redo(self) -> None:
         """Back to the control block of the macro step's start (the macro step is redone)."""
@@ -392,7 +408,10 @@ class DeviceStepControl:
         return data
 
     def load_state_dict(self, data: dict) -> None:
-        carried = np.asarray(data["device"], dtype=np.float64).reshape(-1, CARRIED)
+        carried = np.asarray(data["device"], dtype=np.float64)
+        if carried.size % CARRIED:
+            raise SoilInputError(f"step_control/device: {carried.size} values, not rows of {CARRIED}")
+        carried = carried.reshape(-1, CARRIED)
         if carried.shape[0] not in (1, self.worlds):
             raise SoilInputError(
                 f"step_control/device: the saved control of {carried.shape[0]} worlds does not fit a simulation of "

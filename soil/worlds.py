@@ -254,6 +254,10 @@ class Worlds:
         self._checked = -1  # the round the divergence monitor last checked
         self._view_round = -1  # the round whose walls `view` read
         self._view: tuple = ()
+        counters = ("steps", "accepted_steps", "rejected_steps", "forced_steps")
+        self._own_steps = np.tile([getattr(sim, name) for name in counters], (self.count, 1)).astype(np.int64)
+        """Each world's own step counters (Simulation's steps, accepted, rejected, forced), shape (worlds, 4):
+        under the PID step control each world takes its own substeps (World.state_dict gives them)."""
         self.step_seconds = 0.0
         """Host clock spent in those macro steps [s] (each ends with its report's read: the device's time);
         the rest of a batch's wall is the worlds' own host work (rovers, records, writers)."""
@@ -270,6 +274,13 @@ class Worlds:
     def wall_rows(self, world: int) -> slice:
         per = self.model.walls_per_world
         return slice(world * per, (world + 1) * per)
+
+    def step_counts(self, world: int) -> dict:
+        """World `world`'s own step counters in Simulation.state_dict's keys (steps, accepted_steps,
+        rejected_steps, forced_steps) [-]: under the PID step control each world counts its own."""
+        names = ("steps", "accepted_steps", "rejected_steps", "forced_steps")
+        with self.lock:
+            return {name: np.int64(value) for name, value in zip(names, self._own_steps[world])}
 
     def grain_rows(self, world: int) -> slice:
         n = self.model.world_size
@@ -444,6 +455,8 @@ class Worlds:
                 for column, values in zip(end, body_path[4] if towards else body_path[:4]):
                     column[rows] = values
             sim.set_body_path(span, *start, end=end if towards else None)
+        if sim.step_control is not None:  # a world that left keeps its state (no span of its own)
+            sim.step_control.set_stepping(requests)
         started = time.perf_counter()
         report = sim.advance_to(end_time, dt, path=path)
         self._last_step_seconds = time.perf_counter() - started
@@ -451,6 +464,8 @@ class Worlds:
         for w in requests:
             bodies, walls = self.body_rows(w), self.wall_rows(w)
             own = report.world_steps[w] if report.world_steps else {}  # the step control's figures of world w
+            counted = own.get("steps", report.steps)
+            self._own_steps[w] += (counted, counted if own else 0, own.get("rejected", 0), own.get("forced", 0))
             self._reports[w] = replace(
                 report,
                 **own,
@@ -599,10 +614,14 @@ class World:
         self.worlds.check_divergence(self.index)
 
     def state_dict(self) -> dict:
-        """This world's state in its scene's own format (world_state_dict): `cosim resume` continues it alone."""
+        """This world's state in its scene's own format (world_state_dict), with its own step counters:
+        `cosim resume` continues it alone."""
         with self.worlds.lock:
             self.worlds.ensure_forces()
-            return world_state_dict(self._sim.state_dict(), self.index, self.worlds.model)
+            data = world_state_dict(self._sim.state_dict(), self.index, self.worlds.model)
+            if self._sim.step_control is not None:
+                data.update(self.worlds.step_counts(self.index))
+            return data
 
     def load_state_dict(self, data: dict) -> None:
         raise ArgumentError("a world of a batch is not loaded from a checkpoint: resume its run on its own")

@@ -13,6 +13,7 @@ import warnings
 
 import numpy as np
 import pytest
+import warp as wp
 
 from cosim.contract import WheelKinematics
 from cosim.dem_soil import DemSoil, WallProximityWarning
@@ -149,6 +150,8 @@ def test_each_world_steps_bit_for_bit_as_its_scene_alone(device, precision, stor
                 if key.split("/")[1].startswith("rigid_") and ours.ndim > 1:  # the batch's storage may be wider
                     ours, value = ours[:, : value.shape[1]], value[:, : ours.shape[1]]
                 assert np.array_equal(ours, value), f"world {w}: checkpoint {key} differs"
+            if key in ("steps", "accepted_steps", "rejected_steps", "forced_steps"):  # the world's own counts
+                assert saved[key] == value, f"world {w}: checkpoint {key} differs"
             if key.startswith("step_control/"):  # the world's own controller, its settings and state
                 same = np.array_equal(saved[key], value, equal_nan=np.asarray(value).dtype.kind == "f")
                 assert same, f"world {w}: checkpoint {key} differs"
@@ -164,6 +167,8 @@ def test_each_world_steps_bit_for_bit_as_its_scene_alone(device, precision, stor
     assert any(b > 0 and a[0] == 0 for b, a in zip(batch_rebuilds[1], alone[1][1]))
     assert worlds.rounds == STEPS
     if step_control == "pid":  # the worlds' controllers chose apart: what the test is for
+        # the world that left kept its state (under the PID step control it has no span of its own)
+        assert np.array_equal(worlds.world(2).positions(), together[2][2])
         per_world = [[r[1:] for r in a[1]] for a in alone]
         assert any(len({per_world[w][k] for w in range(2)}) > 1 for k in range(STEPS)), (
             "the worlds took the same substeps"
@@ -220,3 +225,31 @@ def test_a_world_that_diverges_stops_the_batch_and_each_world_keeps_its_last_goo
         assert isinstance(outcome[w], SimulationDiverged), outcome[w]
         assert outcome[w].last_good is not None and outcome[w].last_good["position"].shape == (n, 3)
     assert not np.array_equal(outcome[0].last_good["position"], outcome[1].last_good["position"])
+
+
+def test_a_restore_onto_a_list_without_one_of_its_contacts_is_flagged(device):
+    """A world that takes its state back onto a list built at the positions of the substep it threw
+    away keeps its contacts' history if the list holds them; a contact the list lacks (a grain moved
+    more than the skin in that substep) is flagged (status LOST_HISTORY, HistoryLostWarning on the host)."""
+    from soil import status as status_columns
+    from soil.state import SoilState
+
+    builder = SoilBuilder(gravity=0.0)
+    mat = builder.add_material(Material(youngs_modulus=1e6))
+    builder.add_particles(np.array([[0.0, 0.0, 0.0], [0.0059, 0.0, 0.0]]), 0.003, mat)  # 0.1 mm overlap
+    sim = Simulation(*builder.finalize(device, "double"))
+    sim.advance_to(1e-6, 1e-7)
+    assert sim.state.pair_touching.numpy().any(), "the two grains touch"
+    every_world = wp.ones(1, dtype=wp.int32, device=device)
+    skin = sim.neighbour_list.skin
+    for shift, lost in ((0.5 * skin, 0), (3.0 * skin, 1)):
+        trial = SoilState.for_model(sim.model, sim.state.capacity, layout=sim.state.layout)
+        trial.assign(sim.state)
+        x = sim.state.position.numpy()
+        x[1, 0] += shift  # the second grain's position in the thrown-away substep
+        trial.position.assign(x)
+        status = status_columns.make_status(device)
+        sim.neighbour_list.build(trial, status)  # the list that substep built, at its positions
+        sim.neighbour_list.remap_worlds(sim.state, trial, every_world, status)
+        assert status.numpy()[status_columns.LOST_HISTORY] == lost, shift
+        assert trial.pair_touching.numpy().any() == (not lost)  # the contact's history carried, or not
