@@ -7,7 +7,7 @@
     cosim plot OUT
     cosim view RUN [--out movie.mp4|movie.gif|picture.png|frames/] [--color speed|displacement]
     cosim export vtkhdf RUN [--out FILE]
-    cosim study precision SCENE.toml --replicas N [--precisions single,mixed,double] [--out DIR] ...
+    cosim study precision SCENE.toml --replicas N [--precisions single,mixed,double] [--batched] [--out DIR] ...
     cosim study timestep SCENE.toml [--out DIR] [--duration S] [--max-tries N]
     cosim study slip SCENE.toml --slips 0.1,0.2,0.4 [--replicas K] [--batched] [--out DIR] [--from-runs STUDY ...] ...
     cosim sweep SCENE.toml --param wheel.radius=0.03,0.04 --param wheel.grouser_count=0,12 [--out DIR] ...
@@ -325,7 +325,13 @@ def cmd_study(args) -> int:
         out = args.out or os.path.join("runs", f"{plan.name}_precision")
         precisions = [p.strip() for p in args.precisions.split(",") if p.strip()]
         report = study.precision_study(
-            plan, out, replicas=args.replicas, precisions=precisions, overwrite=args.overwrite, **_executor(args)
+            plan,
+            out,
+            replicas=args.replicas,
+            precisions=precisions,
+            overwrite=args.overwrite,
+            batched=args.batched,
+            **_executor(args),
         )
         failed = sum(1 for r in report["replicas"] if not r.get("ok"))
         print(f"study written to {out} ({failed} failed replica(s))")
@@ -739,7 +745,8 @@ def build_parser() -> argparse.ArgumentParser:
         "--batched",
         action=argparse.BooleanOptionalAction,
         default=None,
-        help="slip: every run as a world of one simulation on one device (default: on a GPU, when the scene allows)",
+        help="precision, slip: the runs as worlds of one simulation on one device (precision: one per "
+        "precision; default: on a GPU, when the scene allows)",
     )
     p.add_argument("--duration", type=float, default=0.05, help="timestep: simulated time of each try [s]")
     p.add_argument("--max-tries", type=int, default=8, help="timestep: most runs of the search")

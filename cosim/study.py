@@ -13,9 +13,10 @@
 - sweep: a grid over scene keys (--param wheel.radius=0.03,0.04 ...), one run per point.
 
 Warp's CPU kernels are single-threaded, so the cluster uses processes with one thread
-each. On a GPU, replicas and slip studies run as worlds of one simulation instead (cosim.batch,
-`--batched`; each run bit for bit as alone). A replica that fails is reported; the others still
-finish. Tasks carry the scene as TOML text plus overrides, and each worker resolves its own plan.
+each. On a GPU, replicas, slip studies and each precision of a precision study run as worlds of
+one simulation instead (cosim.batch, `--batched`; each run bit for bit as alone). A replica that
+fails is reported; the others still finish. Tasks carry the scene as TOML text plus overrides,
+and each worker resolves its own plan.
 """
 
 from __future__ import annotations
@@ -393,17 +394,23 @@ def precision_study(
     workers: int | None = None,
     overwrite: bool = False,
     plot: bool = True,
+    batched: bool | None = None,
 ) -> dict:
-    """The paper's replica experiment per precision; returns {'rows', 'replicas', ...}."""
+    """The paper's replica experiment per precision; returns {'rows', 'replicas', ...}.
+
+    batched: each precision's replicas as worlds of one simulation (cosim.batch; a simulation has one
+    precision, so one batch per precision; each replica bit for bit its run alone, its wall_time its
+    time within the batch, about the batch's); None: when the device is a GPU and the scene can be batched."""
     for p in precisions:
         if p not in PRECISION_ORDER:
             raise SceneError([f"--precisions: unknown precision {p!r}; allowed: {', '.join(PRECISION_ORDER)}"])
     if replicas < 1:
         raise SceneError([f"--replicas: must be >= 1, got {replicas}"])
+    batched = _batching(plan, batched)
     out_dir = os.path.abspath(out_dir)
     prepare_study(out_dir, overwrite)
     text = plan.scene.to_toml()
-    with Executor(executor, scheduler, workers) as ex:
+    with Executor("serial" if batched else executor, scheduler, workers) as ex:
         bed = _shared_bed(plan, out_dir, ex)
         tasks = [
             {
@@ -418,7 +425,10 @@ def precision_study(
             for k in range(replicas)
         ]
         started = time.perf_counter()
-        results = ex.map(run_task, tasks)
+        if batched:  # one batch per precision, in the tasks' order
+            results = [r for p in precisions for r in _run_tasks(ex, [t for t in tasks if t["precision"] == p], True)]
+        else:
+            results = ex.map(run_task, tasks)
         wall = time.perf_counter() - started
     rows = []
     for precision in precisions:
@@ -438,6 +448,7 @@ def precision_study(
         result.update(precision=task["precision"], replica=task["replica"])
     report = {
         "kind": "precision",
+        "batched": bool(batched),
         "replicas": results,
         "rows": rows,
         "wall_time": wall,

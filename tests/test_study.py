@@ -241,19 +241,25 @@ def test_overwrite_with_a_bad_scene_keeps_the_old_run(
     assert {p.name: p.stat().st_mtime_ns for p in old.iterdir()} == before
 
 
-def test_dask_ensemble_matches_serial_runs(scene_path, tiny_bed, tmp_path):
+def test_dask_and_batched_ensembles_match_serial_runs(scene_path, tiny_bed, tmp_path):
+    """A precision study gives the same replicas run one by one, on a dask cluster, and batched (each
+    precision's replicas as worlds of one simulation: one batch per precision)."""
     from cosim.study import precision_study
 
     plan = _plan(scene_path, tiny_bed)
     kwargs = dict(replicas=2, precisions=("single", "mixed"), plot=False)
-    serial = precision_study(plan, str(tmp_path / "serial"), executor="serial", **kwargs)
-    ensemble = precision_study(plan, str(tmp_path / "dask"), executor="dask", workers=2, **kwargs)
+    serial = precision_study(plan, str(tmp_path / "serial"), executor="serial", batched=False, **kwargs)
+    ensemble = precision_study(plan, str(tmp_path / "dask"), executor="dask", workers=2, batched=False, **kwargs)
+    batched = precision_study(plan, str(tmp_path / "batched"), batched=True, **kwargs)
+    assert batched["batched"] and not serial["batched"]
+    assert [r["batch"]["worlds"] for r in batched["replicas"]] == [2] * 4
     keys = ("travel", "slip", "sinkage", "drawbar_pull", "simulated_time", "steady_state")
-    assert len(serial["replicas"]) == len(ensemble["replicas"]) == 4
-    for a, b in zip(serial["replicas"], ensemble["replicas"]):
-        assert a["ok"] and b["ok"], (a.get("error"), b.get("error"))
-        assert (a["precision"], a["replica"]) == (b["precision"], b["replica"])
+    assert len(serial["replicas"]) == len(ensemble["replicas"]) == len(batched["replicas"]) == 4
+    for a, b, c in zip(serial["replicas"], ensemble["replicas"], batched["replicas"]):
+        assert a["ok"] and b["ok"] and c["ok"], (a.get("error"), b.get("error"), c.get("error"))
+        assert (a["precision"], a["replica"]) == (b["precision"], b["replica"]) == (c["precision"], c["replica"])
         assert {k: a["summary"].get(k) for k in keys} == {k: b["summary"].get(k) for k in keys}
+        assert {k: a["summary"].get(k) for k in keys} == {k: c["summary"].get(k) for k in keys}
     # replicas differ only in the summation order (order_seed = replica index), on one shared bed
     for r in serial["replicas"]:
         with open_results(os.path.join(r["out_dir"], "results.h5")) as f:
