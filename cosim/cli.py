@@ -66,6 +66,9 @@ def _setup_output(verbose: bool) -> None:
     root.setLevel(logging.DEBUG if verbose else logging.INFO)
     logging.captureWarnings(True)
     warnings.simplefilter("default")
+    # Warp leaves its compiler's precompiled-header folders to the interpreter's exit, which says so
+    # after every first compile of a module: nothing of ours, and the folders are removed all the same
+    warnings.filterwarnings("ignore", r"Implicitly cleaning up <TemporaryDirectory '.*wp_pch_", ResourceWarning)
 
 
 def _init_silently(wp) -> None:

@@ -123,6 +123,36 @@ def test_no_library_chatter_on_the_output():
         assert not chatter, (args, chatter)
 
 
+COLD_COMPILE = """
+import tempfile, warnings
+from cosim.cli import _setup_output
+_setup_output(False)
+import warp as wp
+wp.config.kernel_cache_dir = tempfile.mkdtemp()  # a first compile, as on a new machine
+
+@wp.kernel
+def twice(a: wp.array(dtype=float)):
+    a[wp.tid()] = 2.0 * a[wp.tid()]
+
+x = wp.ones(4, dtype=float, device="cpu")
+wp.launch(twice, dim=4, inputs=[x], device="cpu")
+print(x.numpy().sum())
+warnings.warn("a file of ours left open", ResourceWarning)
+"""
+
+
+def test_a_first_compile_leaves_no_warning_of_warps_at_exit(tmp_path):
+    """Warp's compiler folders, left to the interpreter's exit after a first compile, say nothing on a
+    newcomer's first run; other resource warnings still show."""
+    script = tmp_path / "cold_compile.py"  # a file: Warp reads a kernel's source
+    script.write_text(COLD_COMPILE)
+    done = subprocess.run([sys.executable, str(script)], capture_output=True, text=True, timeout=300)
+    assert done.returncode == 0, done.stderr
+    assert done.stdout.strip() == "8.0"
+    assert "wp_pch_" not in done.stderr and "Implicitly cleaning up" not in done.stderr, done.stderr
+    assert "a file of ours left open" in done.stderr
+
+
 def test_no_warp_lines_during_a_run(tmp_path, tiny_bed):
     scene = write_tiny(tmp_path)
     done = subprocess.run(
