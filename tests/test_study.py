@@ -260,6 +260,8 @@ def test_dask_and_batched_ensembles_match_serial_runs(scene_path, tiny_bed, tmp_
         assert (a["precision"], a["replica"]) == (b["precision"], b["replica"]) == (c["precision"], c["replica"])
         assert {k: a["summary"].get(k) for k in keys} == {k: b["summary"].get(k) for k in keys}
         assert {k: a["summary"].get(k) for k in keys} == {k: c["summary"].get(k) for k in keys}
+    # the precisions give different runs: a batch run in the wrong precision would show
+    assert serial["replicas"][0]["summary"]["drawbar_pull"] != serial["replicas"][2]["summary"]["drawbar_pull"]
     # replicas differ only in the summation order (order_seed = replica index), on one shared bed
     for r in serial["replicas"]:
         with open_results(os.path.join(r["out_dir"], "results.h5")) as f:
