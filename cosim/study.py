@@ -21,6 +21,7 @@ and each worker resolves its own plan.
 
 from __future__ import annotations
 
+import collections
 import itertools
 import logging
 import math
@@ -240,6 +241,11 @@ def _run_tasks(ex: Executor, tasks: list[dict], batched: bool) -> list[dict]:
     return [{**r, "label": t.get("label"), "overrides": t.get("overrides", {})} for r, t in zip(results, tasks)]
 
 
+def _repeated(values) -> list:
+    """The values that occur more than once, in order of their first occurrence."""
+    return [value for value, count in collections.Counter(values).items() if count > 1]
+
+
 def _bed_override(bed: str | None) -> dict:
     """A task's override that starts it from the shared bed (none without one)."""
     return {} if bed is None else {"bed.bed_file": bed}
@@ -401,11 +407,19 @@ def precision_study(
     batched: each precision's replicas as worlds of one simulation (cosim.batch; a simulation has one
     precision, so one batch per precision; each replica bit for bit its run alone, its wall_time its
     time within the batch, about the batch's); None: when the device is a GPU and the scene can be batched."""
-    for p in precisions:
-        if p not in PRECISION_ORDER:
-            raise SceneError([f"--precisions: unknown precision {p!r}; allowed: {', '.join(PRECISION_ORDER)}"])
+    precisions = list(precisions)
+    problems = [
+        f"--precisions: unknown precision {p!r}; allowed: {', '.join(PRECISION_ORDER)}"
+        for p in precisions
+        if p not in PRECISION_ORDER
+    ]
+    problems += [f"--precisions: {p} given twice (its runs would share folders)" for p in _repeated(precisions)]
+    if not precisions:
+        problems.append(f"--precisions: give at least one of {', '.join(PRECISION_ORDER)}")
     if replicas < 1:
-        raise SceneError([f"--replicas: must be >= 1, got {replicas}"])
+        problems.append(f"--replicas: must be >= 1, got {replicas}")
+    if problems:
+        raise SceneError(problems)
     batched = _batching(plan, batched)
     out_dir = os.path.abspath(out_dir)
     prepare_study(out_dir, overwrite)
@@ -495,6 +509,10 @@ def slip_study(
     except (TypeError, ValueError):
         raise SceneError([f"--slips: {list(slips)!r} must be numbers in (-1, 1)"]) from None
     problems = [f"--slips: {s} must be in (-1, 1)" for s in slips if not -1 < s < 1]
+    problems += [
+        f"--slips: {s} given twice (to 3 decimals: its runs would share a folder)"
+        for s in _repeated(f"{s:+.3f}" for s in slips)
+    ]
     if not slips:
         problems.append("--slips: give at least one slip")
     if replicas < 1:

@@ -3,6 +3,7 @@ replacing a run only after the new one is built, divergence, and dask ensembles 
 
 import json
 import os
+import re
 import signal
 import subprocess
 import sys
@@ -269,6 +270,31 @@ def test_dask_and_batched_ensembles_match_serial_runs(scene_path, tiny_bed, tmp_
             assert json.loads(f.attrs["bed"])["path"] == serial["bed_file"]
     header = (tmp_path / "serial" / "study.csv").read_text().splitlines()[0]
     assert "slip_mean [1]" in header and "sinkage_std [m]" in header
+
+
+@pytest.mark.parametrize(
+    "study, values, words",
+    [
+        ("precision", ["single", "half"], "--precisions: unknown precision 'half'; allowed: single, mixed, double"),
+        ("precision", ["double", "single", "double"], "--precisions: double given twice"),
+        ("precision", [], "--precisions: give at least one"),
+        ("slip", [0.1, 0.3, 0.1001], "--slips: +0.100 given twice (to 3 decimals"),
+        ("slip", [0.1, 1.2], "--slips: 1.2 must be in (-1, 1)"),
+    ],
+)
+def test_a_study_refuses_bad_or_repeated_points_before_it_writes(scene_path, tiny_bed, tmp_path, study, values, words):
+    """Two points of a study that would share a folder, or one that no run can make, are refused by
+    name before the study's folder exists."""
+    from cosim.scene import SceneError
+    from cosim.study import precision_study, slip_study
+
+    plan, out = _plan(scene_path, tiny_bed), tmp_path / "study"
+    with pytest.raises(SceneError, match=re.escape(words)):
+        if study == "precision":
+            precision_study(plan, str(out), precisions=values, executor="serial")
+        else:
+            slip_study(plan, str(out), values, executor="serial")
+    assert not out.exists()
 
 
 def test_timestep_study_ends_with_an_answer_in_bounded_tries(scene_path, tiny_bed, tmp_path):
