@@ -3,6 +3,7 @@
     python3 benchmarks/gpu_carry.py pack          # here, with network: .gpu_carry/1, .gpu_carry/2, ...
     python3 benchmarks/gpu_carry.py check         # there: which parts have arrived
     python3 benchmarks/gpu_carry.py install       # there, once every part is in: into .gpu_site
+                                                  # and the suite's kernels into .gpu_kernels
 
 The lent machine (one H200; Python 3.12; numpy, h5py, scipy, matplotlib, pytest there) reaches no
 package index and lacks Warp, MuJoCo and pydantic, so they travel with the working tree, which may
@@ -13,6 +14,13 @@ tar and cuts it into parts that each fit a call beside the working tree. One cal
 it (`carry: [".gpu_carry/K"]`); an ignored folder a call brought stays on the machine while it is
 held (it goes back 30 s after a call), so the calls follow one another at once, and the last one
 installs and runs (BENCHMARKS.md, "Running the GPU suite on a lent machine").
+
+The parts also carry the suite's CUDA kernels, compiled here for the machine's architecture (sm_90)
+without a GPU: `gpu_suite.py --small --device cpu --compile-for-arch 90` loads every Warp module the
+suite's code paths use, then compiles each to machine code into a kernel cache (NVRTC needs no GPU;
+the cache key is a module's hash, the same on every device). Warp's cache starts empty on a fresh
+machine and compiles each module on its first use there, device time spent compiling; with
+WARP_CACHE_PATH at the installed kernels it loads them instead.
 
 Pinned to the versions installed here, so the machine runs what the tests passed on.
 """
@@ -36,6 +44,10 @@ import zipfile
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 CARRY = os.path.join(ROOT, ".gpu_carry")
 SITE = os.path.join(ROOT, ".gpu_site")
+KERNELS = os.path.join(ROOT, ".gpu_kernels")
+"""Where `install` puts the carried kernel cache (WARP_CACHE_PATH there)."""
+ARCH = 90
+"""The lent machine's CUDA architecture (H100 and H200: sm_90)."""
 MANIFEST = "manifest.json"
 CALL_LIMIT = 64 * 2**20
 """What one call may carry, the working tree included [bytes]."""
@@ -93,12 +105,49 @@ def xz(data: bytes) -> bytes:
     return lzma.compress(data, preset=9)
 
 
-def pack(python_version: str, out: str = CARRY, wheels: list[str] | None = None, limit: int | None = None) -> dict:
-    """Write the parts into `out`/1, `out`/2, ... (each with the manifest); returns the manifest."""
+def compile_kernels(arch: int, into: str) -> str:
+    """A Warp kernel cache at `into` holding the GPU suite's modules compiled for CUDA architecture
+    `arch` (the suite run small on this CPU, then every module it loaded compiled for `arch`)."""
+    suite = os.path.join(ROOT, "benchmarks", "gpu_suite.py")
+    subprocess.run(
+        [sys.executable, suite, "--small", "--device", "cpu", "--out", os.path.join(into, "suite"),
+         "--compile-for-arch", str(arch)],
+        cwd=ROOT, env={**os.environ, "WARP_CACHE_PATH": into}, check=True, stdout=subprocess.DEVNULL,
+    )  # fmt: skip
+    return into
+
+
+def kernel_files(cache: str, arch: int) -> list[str]:
+    """The files of a Warp kernel cache a CUDA device of architecture `arch` loads: each module's
+    machine code and its metadata (paths relative to the cache's root)."""
+    found = []
+    for folder, _, files in os.walk(cache):
+        cubins = [f for f in files if f.endswith(f".sm{arch}.cubin")]
+        for name in cubins + ([f for f in files if f.endswith(".meta")] if cubins else []):
+            found.append(os.path.relpath(os.path.join(folder, name), cache))
+    return sorted(found)
+
+
+def pack(
+    python_version: str,
+    out: str = CARRY,
+    wheels: list[str] | None = None,
+    limit: int | None = None,
+    kernels: str | None = None,
+    arch: int = ARCH,
+) -> dict:
+    """Write the parts into `out`/1, `out`/2, ... (each with the manifest); returns the manifest.
+    `kernels`: a Warp kernel cache whose modules for `arch` travel too (compile_kernels)."""
     with tempfile.TemporaryDirectory() as scratch:
         wheels = wheels or download(python_version, scratch)
         blob = os.path.join(scratch, "carry.tar")
         with tarfile.open(blob, "w") as tar:
+            if kernels:  # xz: machine code compresses about 7-fold
+                bundle = io.BytesIO()
+                with tarfile.open(fileobj=bundle, mode="w") as cache:
+                    for name in kernel_files(kernels, arch):
+                        cache.add(os.path.join(kernels, name), arcname=name)
+                _add(tar, "kernels.tar.xz", xz(bundle.getvalue()))
             for wheel in wheels:
                 name = os.path.basename(wheel)
                 if not name.startswith("warp_lang-"):
@@ -119,7 +168,12 @@ def pack(python_version: str, out: str = CARRY, wheels: list[str] | None = None,
         count = -(-size // limit)
         if os.path.isdir(out):
             shutil.rmtree(out)
-        manifest = {"python_version": python_version, "bytes": size, "parts": []}
+        manifest = {
+            "python_version": python_version,
+            "bytes": size,
+            "kernels_arch": arch if kernels else None,
+            "parts": [],
+        }
         with open(blob, "rb") as f:
             for k in range(1, count + 1):
                 piece = f.read(-(-size // count))
@@ -166,8 +220,9 @@ def check(out: str = CARRY) -> dict:
     return manifest
 
 
-def install(out: str = CARRY, target: str = SITE) -> list[str]:
-    """Unpack the parts into `target` (a folder for PYTHONPATH); returns what was installed."""
+def install(out: str = CARRY, target: str = SITE, kernels: str = KERNELS) -> list[str]:
+    """Unpack the parts into `target` (a folder for PYTHONPATH), and the kernel cache they carry into
+    `kernels` (a folder for WARP_CACHE_PATH); returns what was installed."""
     manifest = check(out)
     if manifest["python_version"] != f"{sys.version_info[0]}.{sys.version_info[1]}":
         raise CarryError(f"packed for Python {manifest['python_version']}, this is {sys.version.split()[0]}")
@@ -176,11 +231,19 @@ def install(out: str = CARRY, target: str = SITE) -> list[str]:
         with open(os.path.join(out, str(k), "carry.tar.part"), "rb") as f:
             blob.write(f.read())
     blob.seek(0)
-    if os.path.isdir(target):
-        shutil.rmtree(target)
+    for folder in (target, kernels):
+        if os.path.isdir(folder):
+            shutil.rmtree(folder)
     os.makedirs(target)
     with tempfile.TemporaryDirectory() as scratch, tarfile.open(fileobj=blob) as tar:
         tar.extractall(scratch, filter="data")
+        modules = 0
+        if manifest.get("kernels_arch"):
+            with open(os.path.join(scratch, "kernels.tar.xz"), "rb") as f:
+                bundle = io.BytesIO(lzma.decompress(f.read()))
+            with tarfile.open(fileobj=bundle) as cache:
+                cache.extractall(kernels, filter="data")
+            modules = len(kernel_files(kernels, manifest["kernels_arch"])) // 2
         wheels = sorted(os.path.join(scratch, "wheels", w) for w in os.listdir(os.path.join(scratch, "wheels")))
         pip = [sys.executable, "-m", "pip", "install", "-q", "--no-index", "--no-deps", "--no-compile"]
         subprocess.run([*pip, "--target", target, *wheels], check=True)
@@ -192,7 +255,8 @@ def install(out: str = CARRY, target: str = SITE) -> list[str]:
             os.makedirs(os.path.dirname(os.path.join(target, native)), exist_ok=True)
             with open(os.path.join(target, native), "wb") as f:
                 f.write(data)
-    return [os.path.basename(w) for w in wheels] + ["warp-lang (" + ", ".join(NATIVE) + " from xz)"]
+    done = [os.path.basename(w) for w in wheels] + ["warp-lang (" + ", ".join(NATIVE) + " from xz)"]
+    return done + ([f"{modules} Warp modules for sm_{manifest['kernels_arch']} into {kernels}"] if modules else [])
 
 
 def main(argv=None) -> int:
@@ -201,10 +265,17 @@ def main(argv=None) -> int:
     parser.add_argument("--python-version", default="3.12", help="pack: the lent machine's Python (major.minor)")
     parser.add_argument("--carry", default=CARRY, help="the parts' folder")
     parser.add_argument("--target", default=SITE, help="install: the folder to put on PYTHONPATH")
+    parser.add_argument("--kernels", default=KERNELS, help="install: the folder to put in WARP_CACHE_PATH")
+    parser.add_argument(
+        "--arch", type=int, default=ARCH, help="pack: the CUDA architecture to compile the suite's kernels for"
+    )
+    parser.add_argument("--no-kernels", action="store_true", help="pack: no compiled kernels (the machine compiles)")
     args = parser.parse_args(argv)
     try:
         if args.action == "pack":
-            manifest = pack(args.python_version, args.carry)
+            with tempfile.TemporaryDirectory() as scratch:
+                kernels = None if args.no_kernels else compile_kernels(args.arch, scratch)
+                manifest = pack(args.python_version, args.carry, kernels=kernels, arch=args.arch)
             sizes = ", ".join(f"{p['bytes'] / 2**20:.1f} MiB" for p in manifest["parts"])
             tree = tree_bytes() / 2**20
             print(f"{len(manifest['parts'])} parts in {args.carry} ({sizes}), each beside {tree:.1f} MiB of tree")
@@ -212,9 +283,9 @@ def main(argv=None) -> int:
             manifest = check(args.carry)
             print(f"all {len(manifest['parts'])} parts present and intact")
         else:
-            for name in install(args.carry, args.target):
+            for name in install(args.carry, args.target, args.kernels):
                 print(f"installed {name}")
-            print(f"export PYTHONPATH={args.target}")
+            print(f"export PYTHONPATH={args.target} WARP_CACHE_PATH={args.kernels}")
     except CarryError as error:
         print(f"gpu_carry: {error}", file=sys.stderr)
         return 2

@@ -193,8 +193,11 @@ ROVER_OVERRIDES = (
 """Scene overrides of the rover section (full, small; small adds to full)."""
 BATCH_OVERRIDES = (
     {"landing.enabled": False, "run.duration": 1.5},  # the wheel touches down within 0.2 s
-    {  # a coarse Earth-gravity bed: fractions of a second do
-        "scene.gravity": "earth",
+    {  # a coarse bed at lunar gravity, stiffened to stay valid there (tests/helpers.py's tiny scene):
+        # fractions of a second do
+        "scene.gravity": "moon",
+        "soil.youngs_modulus": 1.0e6,
+        "run.dt_factor": 0.25,  # 10 steps per contact time
         "bed.length": 0.12,
         "bed.width": 0.06,
         "bed.depth": 0.03,
@@ -895,6 +898,13 @@ def main(argv=None) -> int:
     parser.add_argument("--sections", nargs="+", default=list(SECTIONS), choices=SECTIONS)
     parser.add_argument("--worlds", nargs="+", type=int, help="the batched section's world counts (default 1 4 20)")
     parser.add_argument(
+        "--compile-for-arch",
+        type=int,
+        metavar="SM",
+        help="after the sections, compile every Warp module they loaded for CUDA architecture SM (90: H100/H200) "
+        "into Warp's kernel cache, no GPU needed (benchmarks/gpu_carry.py carries them to a lent machine)",
+    )
+    parser.add_argument(
         "--step-control",
         choices=("fixed", "pid"),
         default="fixed",
@@ -913,7 +923,25 @@ def main(argv=None) -> int:
     for name in args.sections:
         suite.section(name, getattr(suite, name))
     print(suite.markdown())
+    if args.compile_for_arch:
+        compiled = compile_loaded_modules(args.compile_for_arch)
+        print(f"compiled {len(compiled)} Warp modules for sm_{args.compile_for_arch} into {wp.config.kernel_cache_dir}")
     return 0 if all(result["ok"] for result in suite.results["sections"].values()) else 1
+
+
+def compile_loaded_modules(arch: int) -> list[str]:
+    """Compile every Warp module this process has loaded (with the kernel overloads its launches made)
+    for CUDA architecture `arch`, to machine code (cubin), into Warp's kernel cache; returns their names.
+    A fresh GPU machine then loads them from the cache instead of compiling each on first use (NVRTC
+    runs without a GPU; the cache key is the module's hash, the same on every device)."""
+    from warp._src.context import user_modules  # Warp's registry of modules; no public accessor
+
+    names = []
+    for module in list(user_modules.values()):
+        if module.execs:
+            wp.compile_aot_module(module, arch=arch, use_ptx=False)
+            names.append(module.name)
+    return names
 
 
 if __name__ == "__main__":

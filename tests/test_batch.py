@@ -116,12 +116,15 @@ def assert_same_run(a: str, b: str) -> None:
             np.testing.assert_array_equal(state_a[key], state_b[key], err_msg=key)
 
 
-def when_checkpointed(folder, action) -> threading.Thread:
-    """Call action() once folder/checkpoint.npz exists (the run is past its first checkpoint)."""
+def when_checkpointed(folders, action) -> threading.Thread:
+    """Call action() once every folder's checkpoint.npz exists (each run is past its first checkpoint:
+    the runs' processes take turns, so one may be well behind another)."""
 
     def watch():
         deadline = time.monotonic() + 300
-        while not os.path.exists(os.path.join(folder, "checkpoint.npz")) and time.monotonic() < deadline:
+        while time.monotonic() < deadline:
+            if all(os.path.exists(os.path.join(folder, "checkpoint.npz")) for folder in folders):
+                break
             time.sleep(0.02)
         action()
 
@@ -153,7 +156,7 @@ def test_a_stop_signal_stops_every_run_of_a_batch_with_a_checkpoint_each_resumed
     `cosim resume` of each folder then ends as its run alone does, bit for bit."""
     plans = [seed_plan(tmp_path, tiny_bed, seed) for seed in SEEDS]
     out = [str(tmp_path / f"replica_{k}") for k in range(len(plans))]
-    when_checkpointed(out[1], lambda: os.kill(os.getpid(), signal.SIGTERM))
+    when_checkpointed(out, lambda: os.kill(os.getpid(), signal.SIGTERM))
     results = run_batched(plans, out)
     for result in results:
         assert not result["ok"] and "RunInterrupted" in result["error"], result
@@ -176,7 +179,7 @@ def test_a_run_whose_process_dies_leaves_the_batch_and_the_others_finish_as_alon
         killed.append(pids[0])
         os.kill(pids[0], signal.SIGKILL)
 
-    when_checkpointed(out[1], kill_one)
+    when_checkpointed(out, kill_one)  # whichever run dies can resume
     results = run_batched(plans, out)
     assert killed
     dead = [k for k, r in enumerate(results) if not r["ok"]]

@@ -87,19 +87,35 @@ def _wheel(folder, name, version, files):
 
 
 def test_the_packages_carried_to_a_gpu_machine_arrive_whole(tmp_path):
-    """benchmarks/gpu_carry.py: Warp's wheel cut into parts that each fit a call, put back together
-    into the very bytes it was; a missing or damaged part is named, with the call that brings it."""
+    """benchmarks/gpu_carry.py: Warp's wheel and the suite's compiled kernels cut into parts that each fit
+    a call, put back together into the very bytes they were; a missing or damaged part is named, with the
+    call that brings it."""
     rng = np.random.default_rng(0)
     native = {path: rng.integers(0, 4, 300_000, dtype=np.uint8).tobytes() for path in gpu_carry.NATIVE}
     wheels = [
         _wheel(tmp_path, "warp_lang", "1.0", {**native, "warp/__init__.py": b"ok = True\n"}),
         _wheel(tmp_path, "tomli_w", "1.0", {"tomli_w/__init__.py": b"ok = True\n"}),
     ]
-    carry, site = str(tmp_path / "carry"), str(tmp_path / "site")
+    # a kernel cache as Warp writes it: per module its CPU object, its cubin for sm_90 and its metadata
+    cache = tmp_path / "cache" / "1.0"
+    for module in ("wp_soil_a_1234567", "wp_soil_b_89abcde"):
+        (cache / module).mkdir(parents=True)
+        for suffix in (".o", ".sm90.cubin", ".sm80.cubin", ".meta"):
+            (cache / module / (module + suffix)).write_bytes(module.encode() + suffix.encode())
+    carry, site, kernels = str(tmp_path / "carry"), str(tmp_path / "site"), str(tmp_path / "kernels")
     version = f"{sys.version_info[0]}.{sys.version_info[1]}"
-    manifest = gpu_carry.pack(version, carry, wheels=wheels, limit=100_000)
+    manifest = gpu_carry.pack(version, carry, wheels=wheels, limit=100_000, kernels=str(tmp_path / "cache"))
     assert len(manifest["parts"]) >= 2 and all(p["bytes"] <= 100_000 for p in manifest["parts"])
-    gpu_carry.install(carry, site)
+    installed = gpu_carry.install(carry, site, kernels)
+    assert installed[-1].startswith("2 Warp modules for sm_90")
+    # only what an sm_90 device loads travels, at the path Warp's cache looks for it
+    arrived = sorted(str(p.relative_to(kernels)) for p in (tmp_path / "kernels").rglob("*") if p.is_file())
+    assert arrived == [
+        f"1.0/{m}/{m}{s}" for m in ("wp_soil_a_1234567", "wp_soil_b_89abcde") for s in (".meta", ".sm90.cubin")
+    ]
+    assert (tmp_path / "kernels" / "1.0" / "wp_soil_a_1234567" / "wp_soil_a_1234567.sm90.cubin").read_bytes() == (
+        b"wp_soil_a_1234567.sm90.cubin"
+    )
     for path, data in native.items():
         assert (tmp_path / "site" / path).read_bytes() == data
     assert (tmp_path / "site" / "warp" / "__init__.py").read_bytes() == b"ok = True\n"
