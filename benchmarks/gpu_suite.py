@@ -16,9 +16,11 @@ Sections, each timed, in this order (the tests last, within what is left of --bu
 - repeat: a short coupled run (a grousered wheel resting pressed into a standing bed, driven
   through it by cosim.DemSoil) twice on the device: every wheel wrench and every grain bit for
   bit the same, with the wheel touching grains.
-- agreement: the same short settling run on the CPU and on the device, replicas differing
-  only in summation order (order_seed): the device's bed statistics lie within the CPU
-  replicas' scatter.
+- agreement: the same short settling run on the CPU and on the device, as replicas whose
+  grains start displaced by 1e-6 of a radius at random (and summed in another order): the
+  device's bed statistics lie within the replicas' scatter. (Replicas differing in summation
+  order alone scatter less than a GPU and a CPU differ in rounding in the first 0.1 s: on
+  2026-12-04 the kinetic energy's replicas agreed to 8e-9 while the devices differed by 2e-7.)
   The single and mixed rows again with the lists and contact history stored per slot (slot-major,
   `SoilBuilder.finalize(storage="slot")`, what neighbouring GPU threads read at once): their
   particle-steps/s against the per-grain rows (no target: the measurement decides the default).
@@ -41,11 +43,11 @@ Sections, each timed, in this order (the tests last, within what is left of --bu
   (grains touching it) at every macro step, min / mean / max, fails the section if it drops to
   0 while driving; 60 s projected (target: at most 5 minutes).
 - rover: a short segment of the full-size rover scene (examples/phobos_rover_gpu.toml: the
-  MMX-like rover on a 1.1 m moving patch of about a million grains, mixed): it lands, then
-  drives 3 s; particle-steps/s and wall time per simulated second of the drive (and the
-  landing's particle-steps/s). Its [bed] (the tile the patch is copied from) is made 15 cm
-  square so that it settles in seconds, and the landing's rest criterion is held for 1 s
-  instead of sqrt(r / g) = 4.4 s.
+  MMX-like rover on a 1.1 m moving patch of about 770,000 grains, mixed): it drives 4 s from
+  its placement, touching down as it goes (no landing phase: at Phobos gravity the rover is
+  not at rest within the seconds a suite can spend); particle-steps/s and wall time per
+  simulated second. Its [bed] (the tile the patch is copied from) is made 15 cm square so that
+  it settles in seconds.
 - tests: the CUDA variants of the soil tests (pytest -k cuda).
 
 The paper and rover runs stop at their section's wall-clock allowance (SIZES) and report what
@@ -127,6 +129,8 @@ SOIL_LAYOUTS = (
 )
 """(precision, storage order) of the throughput rows: every precision stored per grain, and the two that
 GPU runs use stored per slot (soil.state: the lists and history as neighbouring threads read them)."""
+AGREEMENT_JITTER = 1e-6
+"""The agreement section's replicas: their grains' start displaced by this fraction of a radius (rms, per axis)."""
 TESTS_RESERVE = 60.0
 """Seconds of --budget the paper and rover runs leave for the sections after them [s]."""
 WARMUP_STEPS = 10
@@ -168,9 +172,10 @@ ROVER_OVERRIDES = (
         "bed.length": 0.15,  # the tile the patch is copied from: settles in seconds, not minutes
         "bed.width": 0.15,
         "bed.settle_max_time": 15.0,
-        "landing.hold_time": 1.0,
-        "landing.max_time": 8.0,
-        "run.duration": 3.0,
+        # no landing phase: at Phobos gravity the rover was still not at rest (1 s held) after 8 s of it
+        # (2026-12-04), and the scene's own allows 120 s; it drives as it touches down
+        "landing.enabled": False,
+        "run.duration": 4.0,
     },
     {  # the full-size rover (its 25 kg: lighter wheels would make the coupling stiff) at 0.2 m/s^2
         # (it touches down sooner than at Phobos gravity, the soil still holding it) on 1.5 cm
@@ -186,7 +191,6 @@ ROVER_OVERRIDES = (
         "patch.band": 0.06,
         "patch.clearance": 0.06,
         "patch.tile_margin": 0.0,
-        "landing.enabled": False,  # on grains this coarse the wheels rock on a few: it drives as it touches down
         "run.duration": 0.7,  # (its wheels touch down after 0.2-0.55 s)
     },
 )
@@ -391,14 +395,19 @@ class Suite:
         return {"bitwise_equal": same, "wheel_contacts_max": touching, "ok": same and touching > 0}
 
     def settle_statistics(self, device: str, n: int, replicas: int, duration: float) -> list[dict]:
+        """Bed statistics of `replicas` settling runs: replica k's grains start displaced at random by
+        AGREEMENT_JITTER of their radius (seed k; the same displacements on every device) and are summed
+        in order k. Such a displacement is macroscopically nothing, and its effect outgrows any rounding
+        difference between devices: the replicas' scatter is what 'the same run' can mean."""
         positions, radii, box_hi = beds.random_fill(n, 0.1 if not self.small else 0.03, seed=3)
         dt = 0.2 * rayleigh_time_step(beds.YOUNGS, beds.POISSON, beds.DENSITY, radii.min())
         stats = []
         for seed in range(replicas):
+            jitter = np.random.default_rng(seed).normal(0.0, AGREEMENT_JITTER, positions.shape) * radii[:, None]
             builder = SoilBuilder(gravity=9.81)
             mat = builder.add_material(beds.material())
             builder.add_container((0, 0, 0), box_hi, mat)
-            builder.add_particles(positions, radii, mat)
+            builder.add_particles(positions + jitter, radii, mat)
             with warnings.catch_warnings():
                 warnings.simplefilter("ignore")
                 sim = Simulation(*builder.finalize(device, "double", order_seed=seed))
