@@ -12,7 +12,10 @@ Sections, each timed, in this order (the tests last, within what is left of --bu
   1,000,000 grains; particle-steps/s in single, mixed and double, and next to them the mixed
   layout: each precision's device bytes per grain, measured (Simulation.bytes_per_grain) and
   estimated (soil.memory). Targets at 1M: single >= 6e8 particle-steps/s, mixed >= 0.85 x and
-  double >= 0.5 x single, mixed bytes per grain <= 0.75 x double's.
+  double >= 0.5 x single, mixed bytes per grain <= 0.75 x double's. The single and mixed rows
+  again with the lists and contact history stored per slot (slot-major,
+  `SoilBuilder.finalize(storage="slot")`, what neighbouring GPU threads read at once): their
+  particle-steps/s against the per-grain rows (no target).
 - repeat: a short coupled run (a grousered wheel resting pressed into a standing bed, driven
   through it by cosim.DemSoil) twice on the device: every wheel wrench and every grain bit for
   bit the same, with the wheel touching grains.
@@ -21,9 +24,6 @@ Sections, each timed, in this order (the tests last, within what is left of --bu
   device's bed statistics lie within the replicas' scatter. (Replicas differing in summation
   order alone scatter less than a GPU and a CPU differ in rounding in the first 0.1 s: on
   2026-12-04 the kinetic energy's replicas agreed to 8e-9 while the devices differed by 2e-7.)
-  The single and mixed rows again with the lists and contact history stored per slot (slot-major,
-  `SoilBuilder.finalize(storage="slot")`, what neighbouring GPU threads read at once): their
-  particle-steps/s against the per-grain rows (no target: the measurement decides the default).
 - batched: replicas of the main job (examples/phobos_single_wheel.toml, mixed, landing off, a
   short drive) as K = 1, 4, 20 worlds of one simulation (cosim.batch.run_batched, the path of
   `cosim run --replicas K` on a GPU); the total particle-steps/s of the drive per K (target: 20

@@ -131,3 +131,47 @@ def test_the_packages_carried_to_a_gpu_machine_arrive_whole(tmp_path):
     shutil.rmtree(tmp_path / "carry" / "1")
     with pytest.raises(gpu_carry.CarryError, match=r"part 1 is missing .*carry \['.gpu_carry/1'\]"):
         gpu_carry.install(carry, site)
+
+
+KERNEL_SCRIPT = """
+import os, sys
+sys.path.insert(0, sys.argv[1])
+import warp as wp
+from benchmarks.gpu_suite import compile_loaded_modules
+
+wp.config.log_level = wp.LOG_WARNING
+
+
+@wp.kernel
+def twice(a: wp.array(dtype=float)):
+    a[wp.tid()] = 2.0 * a[wp.tid()]
+
+
+values = wp.ones(4, dtype=float, device="cpu")
+wp.launch(twice, dim=4, inputs=[values], device="cpu")
+assert values.numpy().tolist() == [2.0] * 4
+names = compile_loaded_modules(90)
+module = twice.module
+identifier = module.get_module_identifier(module.options["block_dim"])
+print(module.name in names, os.path.join(wp.config.kernel_cache_dir, identifier, identifier + ".sm90.cubin"))
+"""
+
+
+def test_the_suites_kernels_compile_for_a_gpu_here(tmp_path):
+    """gpu_suite --compile-for-arch: a module launched on this CPU is compiled for sm_90 without a GPU,
+    to the path of Warp's kernel cache that a CUDA device of that architecture loads it from."""
+    script = tmp_path / "compile.py"
+    script.write_text(KERNEL_SCRIPT)
+    done = subprocess.run(
+        [sys.executable, str(script), ROOT],
+        env={**os.environ, "WARP_CACHE_PATH": str(tmp_path / "cache")},
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
+    assert done.returncode == 0, done.stdout[-2000:] + done.stderr[-2000:]
+    listed, cubin = done.stdout.strip().splitlines()[-1].split(" ", 1)
+    assert listed == "True"
+    assert os.path.getsize(cubin) > 0 and cubin.startswith(str(tmp_path / "cache"))
+    with open(cubin, "rb") as f:
+        assert f.read(4) == b"\x7fELF"  # CUDA machine code is an ELF image
