@@ -7,7 +7,7 @@ import math
 import numpy as np
 import pytest
 
-from cosim import advice
+from cosim import advice, metrics
 from cosim.cli import main
 from cosim.plan import load_plan
 from cosim.scene import scene_from_text
@@ -175,14 +175,19 @@ def test_the_gravity_twin_scales_every_derived_quantity_exactly(tmp_path):
 def test_the_gravity_twin_gives_the_same_dimensionless_results(tmp_path):
     """The moon scene and its Earth twin, 3 summation orders each, at an imposed slip of 0.3 (as
     in the replica test): sinkage, sinkage of the grouser tips (lengths are not scaled) and
-    DP/W agree within the replica scatter (their 95 % intervals overlap), as the similarity
-    says. Each side needs two steady replicas for an interval."""
+    DP/W, each averaged over the second half of the drive (the same stretch of dimensionless
+    time on both sides), agree within the replica scatter (their 95 % intervals overlap), as the
+    similarity says. The similarity holds along the whole drive, so every replica counts, whether
+    or not its run found a steady-state window in 0.8 s (measured on one machine: 3 of 4 moon and
+    2 of 4 Earth replicas did; a test needing two steady ones per side failed there)."""
+    from cosim.output import read_series
     from cosim.similarity import write_gravity_twin
+    from cosim.single_wheel import PHASE_DRIVING
     from cosim.study import replica_run
 
     scene = write_tiny(tmp_path)
     twin, s = write_gravity_twin(scene, "earth", str(tmp_path / "twin.toml"))
-    stats = []
+    sides = []
     for path, out, time_scale in ((scene, "moon", 1.0), (twin, "earth", 1.0 / math.sqrt(s))):
         settings = [
             f"run.duration={0.8 * time_scale!r}",
@@ -190,9 +195,21 @@ def test_the_gravity_twin_gives_the_same_dimensionless_results(tmp_path):
             "testbed.slip=0.3",
             f"testbed.omega={2.0 / time_scale!r}",
         ]
-        stats.append(replica_run(load_plan(path, settings), str(tmp_path / out), 3, executor="serial")["stats"])
-    moon, earth = (side["metrics"] for side in stats)
+        plan = load_plan(path, settings)
+        results = replica_run(plan, str(tmp_path / out), 3, executor="serial")["results"]
+        replicas = {"sinkage": [], "sinkage_tips": [], "dp_over_w": []}
+        for result in results:
+            assert result["ok"], result.get("error")
+            series = read_series(f"{result['out_dir']}/results.h5")
+            driving = series["time"][series["phase"] == PHASE_DRIVING]
+            half = (series["phase"] == PHASE_DRIVING) & (series["time"] >= 0.5 * (driving[0] + driving[-1]))
+            assert half.sum() > 20
+            replicas["sinkage"].append(series["sinkage"][half, 0].mean())
+            replicas["sinkage_tips"].append(series["sinkage_tips"][half, 0].mean())
+            replicas["dp_over_w"].append(series["drawbar_pull"][half, 0].mean() / plan.wheel_load)
+        sides.append({name: metrics.ensemble(values) for name, values in replicas.items()})
+    moon, earth = sides
     for name in ("sinkage", "sinkage_tips", "dp_over_w"):
         a, b = moon[name], earth[name]
-        assert a["n"] >= 2 and b["n"] >= 2, (name, a, b)
+        assert a["n"] == b["n"] == 3, (name, a, b)
         assert abs(a["mean"] - b["mean"]) <= a["ci95"] + b["ci95"], (name, a, b)
