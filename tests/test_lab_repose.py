@@ -79,7 +79,7 @@ def test_calibration_reaches_a_target_repose_angle(tmp_path):
     of repose of 20.5 deg with Brent's method, two replicas per evaluation. Measured on this
     scene, two heaps each: 17.4 deg at mu_r = 0.02 and 24.3 deg at 0.2 on one machine, 18.5 deg
     at 0 and 22.7 deg at 0.2 on another (one heap scattering by 1.2-1.7 deg): the target lies
-    midway, so the search has a root to find on any machine. The calibration stops within its
+    midway, so the search has a root inside its bracket on both. The calibration stops within its
     1 deg tolerance (at an end of the bracket too, when that end's heaps already lie within it:
     a draw the noise allows); four fresh heaps (new fills and summation orders) at the
     calibrated value then average within that tolerance plus their own 95 % interval of the
