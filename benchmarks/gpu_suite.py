@@ -16,6 +16,12 @@ Sections, each timed, in this order (the tests last, within what is left of --bu
   again with the lists and contact history stored per slot (slot-major,
   `SoilBuilder.finalize(storage="slot")`, what neighbouring GPU threads read at once): their
   particle-steps/s against the per-grain rows (no target).
+- profile: where a step's time goes, kernel by kernel, on the device (Warp's CUDA activity timing,
+  `wp.timing_begin`): the steps of a 5,600-grain cut of the settled bed (the main job's size) and of
+  the 100k and 1M beds in single (1M in mixed too) launched one by one, not replayed from a graph;
+  per bed the wall per step, the kernels' sum per step and each kernel's share. A small scene's
+  fixed cost per step and mixed's arithmetic show here. On the CPU it reports the wall per step
+  only (the timing covers CUDA activity).
 - repeat: a short coupled run (a grousered wheel resting pressed into a standing bed, driven
   through it by cosim.DemSoil) twice on the device: every wheel wrench and every grain bit for
   bit the same, with the wheel touching grains.
@@ -70,6 +76,7 @@ import json
 import math
 import os
 import platform
+import re
 import subprocess
 import sys
 import time
@@ -112,6 +119,11 @@ SIZES = {
     "base": (20000, 300),  # grains of the settled bed the throughput beds are tiled from
     "tiles": ({"100k": (5, 1), "1M": (10, 5)}, {"100k": (2, 1), "1M": (2, 2)}),
     "throughput_steps": (200, 10),
+    "profile_beds": (
+        {"5.6k": 5642, "100k": (5, 1), "1M": (10, 5)},
+        {"5.6k": 150, "100k": (2, 1), "1M": (2, 2)},
+    ),  # a cut of the base bed (grains), or its tiles (nx, ny)
+    "profile_steps": (20, 3),
     "repeat_macro_steps": (20, 3),
     "agreement": ((2000, 4, 0.1), (300, 2, 0.01)),  # grains, replicas, simulated seconds
     "paper_tiles": ((2, 2), (2, 1)),  # the scene's bed as nx x ny copies of one settled tile (202k grains)
@@ -135,7 +147,9 @@ TESTS_RESERVE = 60.0
 """Seconds of --budget the paper and rover runs leave for the sections after them [s]."""
 WARMUP_STEPS = 10
 """Macro steps at the start of a scene run left out of its rates: the build, kernel loads, graph captures."""
-SECTIONS = ("throughput", "repeat", "agreement", "batched", "paper", "rover", "tests")
+PROFILE_ROWS = (("5.6k", "single"), ("100k", "single"), ("1M", "single"), ("1M", "mixed"))
+"""(bed, precision) of the profile section."""
+SECTIONS = ("throughput", "profile", "repeat", "agreement", "batched", "paper", "rover", "tests")
 MAIN_SCENE = os.path.join(ROOT, "examples", "phobos_single_wheel.toml")
 PAPER_SCENE = os.path.join(ROOT, "examples", "phobos_single_wheel_gpu.toml")
 ROVER_SCENE = os.path.join(ROOT, "examples", "phobos_rover_gpu.toml")
@@ -235,6 +249,14 @@ def resting_height(sim, wheel: GrouserWheel, x: float, y: float) -> float:
     dx = p[:, 0] - x
     under = (np.abs(dx) < reach) & (np.abs(p[:, 1] - y) < 0.5 * wheel.width + radius)
     return float(np.max(p[under, 2] + np.sqrt(reach[under] ** 2 - dx[under] ** 2)))
+
+
+def kernel_name(timed: str) -> str:
+    """A kernel's own name from Warp's timing name ('forward kernel soil__solver__contact_kernels__locals__
+    contact_forces_1a2b3c4d' -> 'contact_forces'); builtin kernels keep theirs."""
+    if not timed.startswith("forward kernel "):
+        return timed
+    return re.sub(r"_[0-9a-f]{8}$", "", timed.removeprefix("forward kernel ")).split("__")[-1]
 
 
 class OutOfTime(Exception):
@@ -357,6 +379,57 @@ class Suite:
             "mixed layout: bytes per grain <= 0.75 x double at 1M": layout["mixed"]["x_double"] <= 0.75,
         }
         return {"rows": rows, "slot_rows": slot_rows, "layout": layout, "targets": targets, "ok": True}
+
+    def profile_bed(self, label: str):
+        """The profile section's bed: a cut of the base bed holding `grains` (its first grains along x,
+        the box shortened to them) or the base bed tiled."""
+        positions, radii, box_hi, dt = self.base_bed()
+        spec = size("profile_beds", self.small)[label]
+        if isinstance(spec, tuple):
+            return (*beds.tile(positions, radii, box_hi, *spec), dt)
+        keep = np.argsort(positions[:, 0], kind="stable")[:spec]
+        box = box_hi.copy()
+        box[0] = float(np.max(positions[keep, 0] + radii[keep]))
+        return positions[keep], radii[keep], box, dt
+
+    def profile(self):
+        steps = size("profile_steps", self.small)
+        cuda = self.device.startswith("cuda")
+        rows = []
+        for label, precision in PROFILE_ROWS:
+            positions, radii, box_hi, dt = self.profile_bed(label)
+            sim = beds.build(positions, radii, box_hi, self.device, precision, capture=False)
+            sim.macro_step(5, dt)  # kernels loaded, scratch sized
+            wp.synchronize_device(self.device)
+            if cuda:
+                wp.timing_begin(cuda_filter=wp.TIMING_KERNEL | wp.TIMING_KERNEL_BUILTIN)
+            start = time.perf_counter()
+            sim.macro_step(steps, dt)
+            wp.synchronize_device(self.device)
+            wall = time.perf_counter() - start
+            timings = wp.timing_end() if cuda else []
+            kernels: dict[str, float] = {}
+            for timing in timings:
+                name = kernel_name(timing.name)
+                kernels[name] = kernels.get(name, 0.0) + timing.elapsed * 1e3 / steps  # [us per step]
+            kernel_sum = sum(kernels.values())
+            rows.append(
+                dict(
+                    bed=label,
+                    grains=len(radii),
+                    precision=precision,
+                    steps=steps,
+                    wall_us_per_step=wall * 1e6 / steps,
+                    kernel_us_per_step=kernel_sum if cuda else None,
+                    kernels=[
+                        dict(name=name, us_per_step=us, share=us / kernel_sum)
+                        for name, us in sorted(kernels.items(), key=lambda item: -item[1])
+                    ],
+                )
+            )
+            self.log(json.dumps({k: v for k, v in rows[-1].items() if k != "kernels"}))
+            del sim
+        return {"rows": rows, "timed": "CUDA kernels" if cuda else "wall only (Warp times CUDA activity)"}
 
     def coupled_run(self):
         """A grousered wheel (radius 2 cm) resting on a standing bed (a pressed lattice: no
@@ -810,6 +883,26 @@ class Suite:
                     f"{row['bytes_per_grain']:.0f} ({row['bytes_per_grain_estimate']:.0f}) | "
                     f"{row['bytes_per_grain'] / memory[(bed, 'double')]:.2f} | {row['captured']} |"
                 )
+        profile = r["sections"].get("profile", {})
+        if profile.get("rows"):
+            lines += [
+                "",
+                f"Profile: steps launched one by one (no graph); timed: {profile['timed']}. Per bed the wall per "
+                "step, the kernels' sum and the five largest kernels [us per step] (share of the sum):",
+                "",
+                "| bed | grains | precision | wall [us/step] | kernels [us/step] | largest kernels |",
+                "|---|---|---|---|---|---|",
+            ]
+            lines += [
+                f"| {row['bed']} | {row['grains']} | {row['precision']} | {row['wall_us_per_step']:.0f} | "
+                f"{_figure(row['kernel_us_per_step'])} | "
+                + (
+                    ", ".join(f"{k['name']} {k['us_per_step']:.1f} ({k['share']:.0%})" for k in row["kernels"][:5])
+                    or "-"
+                )
+                + " |"
+                for row in profile["rows"]
+            ]
         batched = r["sections"].get("batched", {})
         if batched.get("rows"):
             lines += [

@@ -26,11 +26,9 @@ from .control import SoilControl
 from .errors import SoilInputError
 from .model import SoilModel
 from .precision import kernel_factory, kernel_module, soil_kernel
+from .reduction import LEAF, WorldTree
 from .solver import ContactSolver
 from .state import SoilState
-
-CHUNK = 256
-"""Grains per partial sum of the error norm (fixed: the reduction is deterministic)."""
 
 # Columns of the per-step summary of JoltBeeman (shape (SUMMARY_COLUMNS,), dtype hi).
 SUMMARY_POSITION_GAP = 0
@@ -271,23 +269,22 @@ def integrator_kernels(hi, mid, lo, law: ContactLaw):
         summary: wp.array2d(dtype=hi),
         position_weight: hi,
         pass_index: int,
-        chunk: int,
         world_size: int,
-        chunks_per_world: int,
+        rows_per_world: int,
         partial_out: wp.array2d(dtype=hi),
     ):
-        """Per chunk of a world's model indices (a fixed order, each world's chunks from its first
-        grain): pass 0 the maxima of the gaps and of the speed, and whether a grain is non-finite;
-        pass 1 the sum of e_i^2 and max e_i with the world's scale found by pass 0."""
+        """The tree's leaves (soil.reduction): per LEAF model indices of one world, pass 0 the maxima
+        of the gaps and of the speed, and whether a grain is non-finite; pass 1 the sum of e_i^2 and
+        max e_i with the world's scale found by pass 0."""
         c = wp.tid()
-        world = c // chunks_per_world
-        begin = world * world_size + (c - world * chunks_per_world) * chunk
+        world = c // rows_per_world
+        begin = world * world_size + (c - world * rows_per_world) * LEAF
         first = hi(0.0)
         second = hi(0.0)
         third = hi(0.0)
         fourth = hi(0.0)
         scale = summary[world, SUMMARY_RMS]  # pass 1: the scale, parked there by norm_total's pass 0
-        for p in range(begin, wp.min(begin + chunk, (world + 1) * world_size)):
+        for p in range(begin, wp.min(begin + LEAF, (world + 1) * world_size)):
             i = slot[p]
             if pass_index == 0:
                 first = wp.max(first, gaps[i, 0])
@@ -312,17 +309,17 @@ def integrator_kernels(hi, mid, lo, law: ContactLaw):
         use_speed: int,
         pass_index: int,
         world_size: int,
-        chunks_per_world: int,
+        rows_per_world: int,
         summary_out: wp.array2d(dtype=hi),
     ):
-        """Fold world w's chunks in order into its summary row (pass 0: maxima, and the velocity scale
+        """Fold world w's last rows of the tree in order into its summary row (pass 0: maxima, and the velocity scale
         V = max(scale_floor, speed) parked in SUMMARY_RMS; pass 1: the RMS and the maximum)."""
         w = wp.tid()
         first = hi(0.0)
         second = hi(0.0)
         third = hi(0.0)
         fourth = hi(0.0)
-        for c in range(w * chunks_per_world, (w + 1) * chunks_per_world):
+        for c in range(w * rows_per_world, (w + 1) * rows_per_world):
             if pass_index == 0:
                 first = wp.max(first, partial[c, 0])
                 second = wp.max(second, partial[c, 1])
@@ -463,7 +460,7 @@ class JoltBeeman:
         self.summary = None
         """Reductions of the last step's error per world (columns SUMMARY_*), shape (worlds, SUMMARY_COLUMNS),
         dtype hi (soil.worlds: one row for a scene alone)."""
-        self._partial = None
+        self._norms = None
         self._model = None
         self.scale_floor = None
         """The velocity scale's floor V of each world's error norm [m/s], shape (worlds,), dtype hi (read_summary
@@ -486,8 +483,7 @@ class JoltBeeman:
         self.summary = wp.zeros((worlds, SUMMARY_COLUMNS), dtype=model.precision.hi, device=model.device)
         self.scale_floor = wp.zeros(worlds, dtype=model.precision.hi, device=model.device)
         self.gaps = wp.zeros((n, 2), dtype=model.precision.hi, device=model.device)
-        self._chunks_per_world = max(1, (model.world_size + CHUNK - 1) // CHUNK)
-        self._partial = wp.zeros((worlds * self._chunks_per_world, 4), dtype=model.precision.hi, device=model.device)
+        self._norms = WorldTree(worlds, model.world_size, 4, model.precision.hi, model.device)
 
     def step(
         self,
@@ -572,10 +568,11 @@ class JoltBeeman:
         prec = model.precision
         kernels = integrator_kernels(prec.hi, prec.mid, prec.lo, model.law)
         layout = state.layout
+        norms = self._norms
         for pass_index in (0, 1):
             wp.launch(
                 kernels.norm_partial,
-                dim=self._partial.shape[0],
+                dim=norms.leaves.shape[0],
                 inputs=[
                     self.gaps,
                     state.position,
@@ -586,24 +583,24 @@ class JoltBeeman:
                     self.summary,
                     prec.hi(position_weight),
                     pass_index,
-                    CHUNK,
                     model.world_size,
-                    self._chunks_per_world,
+                    norms.rows[0],
                 ],
-                outputs=[self._partial],
+                outputs=[norms.leaves],
                 device=model.device,
             )
+            norms.fold(summed_columns=pass_index)  # pass 0: maxima only; pass 1: the sum of e_i^2, then maxima
             wp.launch(
                 kernels.norm_total,
                 dim=model.world_count,
                 inputs=[
-                    self._partial,
+                    norms.last,
                     status,
                     scale_floor,
                     int(use_speed),
                     pass_index,
                     model.world_size,
-                    self._chunks_per_world,
+                    norms.last_rows,
                 ],
                 outputs=[self.summary],
                 device=model.device,

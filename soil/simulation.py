@@ -39,6 +39,7 @@ from .macro import (  # noqa: F401 (CaptureWarning and the report's columns re-e
 )
 from .model import SoilModel
 from .neighbours import NeighbourList, NeighbourSettings
+from .reduction import reduction_kernels
 from .sdf import displaced_geometry
 from .snapshot import SimulationSnapshot
 from .solver import ContactSolver
@@ -419,6 +420,7 @@ class Simulation:
                 self.contacts.kernels,
                 self.neighbour_list.kernels,
                 SimpleNamespace(copy_world_words=copy_world_words),  # the worlds' restore (soil.step_control)
+                *(reduction_kernels(dtype) for dtype in (prec.hi, prec.vec_hi, wp.int32)),  # the sums' trees
             ]
         )
         self._spares()

@@ -9,8 +9,8 @@ order (the row, then the rigid partners by index), so runs repeat bit for bit on
 device, whatever the storage order.
 
 The reaction of each rigid contact is written beside its slot and summed per wall and
-wheel in chunks of model indices, then over the chunks (`wrench_partial`, `wrench_total`):
-deterministic, no atomics.
+wheel over a fixed tree of model indices (soil.reduction: `wrench_partial` the leaves,
+`wrench_total` the last rows): deterministic, no atomics.
 """
 
 import numpy as np
@@ -23,11 +23,9 @@ from .control import SoilControl
 from .model import SoilModel
 from .neighbours import NeighbourList
 from .precision import kernel_factory, kernel_module, soil_kernel
+from .reduction import LEAF, WorldTree
 from .sdf import BODY_WHEEL, sdf_functions
 from .state import SoilState, storage_functions
-
-CHUNK = 256
-"""Grains per partial sum of a wall's or wheel's wrench (fixed: the sums are deterministic)."""
 
 
 @kernel_factory
@@ -368,41 +366,45 @@ def contact_kernels(hi, mid, lo, law: ContactLaw, slot_major: bool = False):
         rigid_count: wp.array(dtype=wp.int32),
         reaction_force: wp.array2d(dtype=vec_hi),
         reaction_torque: wp.array2d(dtype=vec_hi),
-        chunk: int,
         world_size: int,
-        world_chunks: int,
+        rows_per_world: int,
+        walls_per_world: int,
+        bodies_per_world: int,
+        wall_count: int,
         # outputs
-        force_out: wp.array2d(dtype=vec_hi),
-        torque_out: wp.array2d(dtype=vec_hi),
-        contact_out: wp.array2d(dtype=wp.int32),
+        moments_out: wp.array2d(dtype=vec_hi),
+        contacts_out: wp.array2d(dtype=wp.int32),
     ):
-        """Per chunk of model indices, the reactions on each rigid partner, summed in model-index
-        order: the sums depend neither on thread scheduling nor on the storage order. Each world's
-        chunks start at its first grain (world_chunks per world), as they would alone."""
+        """The tree's leaves (soil.reduction): per LEAF model indices of one world, the reactions on
+        each of the world's partners (column k: its walls, then its wheels), summed in model-index
+        order. moments_out[c, k]: force [N]; moments_out[c, partners + k]: torque [N m]."""
         c = wp.tid()
-        for key in range(force_out.shape[1]):
-            force_out[c, key] = vec_hi()
-            torque_out[c, key] = vec_hi()
-            contact_out[c, key] = 0
-        world = c // world_chunks
-        start = world * world_size + (c - world * world_chunks) * chunk
-        for p in range(start, wp.min(start + chunk, world * world_size + world_size)):
+        world = c // rows_per_world
+        partners = walls_per_world + bodies_per_world
+        for k in range(partners):
+            moments_out[c, k] = vec_hi()
+            moments_out[c, partners + k] = vec_hi()
+            contacts_out[c, k] = 0
+        begin = world * world_size + (c - world * rows_per_world) * LEAF
+        for p in range(begin, wp.min(begin + LEAF, (world + 1) * world_size)):
             i = slot[p]
             for s in range(wp.min(rigid_count[i], slots(rigid_key))):
                 key = at(rigid_key, i, s)
-                force_out[c, key] = force_out[c, key] + at(reaction_force, i, s)
-                torque_out[c, key] = torque_out[c, key] + at(reaction_torque, i, s)
-                contact_out[c, key] = contact_out[c, key] + 1
+                k = key - world * walls_per_world
+                if key >= wall_count:
+                    k = walls_per_world + key - wall_count - world * bodies_per_world
+                moments_out[c, k] = moments_out[c, k] + at(reaction_force, i, s)
+                moments_out[c, partners + k] = moments_out[c, partners + k] + at(reaction_torque, i, s)
+                contacts_out[c, k] = contacts_out[c, k] + 1
 
     @kernel
     def wrench_total(
-        force_in: wp.array2d(dtype=vec_hi),
-        torque_in: wp.array2d(dtype=vec_hi),
-        contact_in: wp.array2d(dtype=wp.int32),
+        moments_in: wp.array2d(dtype=vec_hi),
+        contacts_in: wp.array2d(dtype=wp.int32),
+        rows_per_world: int,
         wall_reported: wp.array(dtype=wp.int32),
         walls_per_world: int,
         bodies_per_world: int,
-        world_chunks: int,
         # outputs
         wall_force_out: wp.array(dtype=vec_hi),
         wall_torque_out: wp.array(dtype=vec_hi),
@@ -411,25 +413,27 @@ def contact_kernels(hi, mid, lo, law: ContactLaw, slot_major: bool = False):
         body_torque_out: wp.array(dtype=vec_hi),
         body_contact_out: wp.array(dtype=wp.int32),
     ):
-        """Total of the chunk sums of rigid partner `key` (walls first, then wheels) over its world's
-        chunks; walls built with report=False read zero."""
+        """Total of rigid partner `key` (walls first, then wheels) over its world's last rows of the
+        tree, in order; walls built with report=False read zero."""
         key = wp.tid()
         wall_count = wall_reported.shape[0]
+        partners = walls_per_world + bodies_per_world
+        summed = True
+        world = key // wp.max(walls_per_world, 1)
+        k = key - world * walls_per_world
+        if key < wall_count:
+            summed = wall_reported[key] >= 0
+        else:
+            world = (key - wall_count) // wp.max(bodies_per_world, 1)
+            k = walls_per_world + key - wall_count - world * bodies_per_world
         total_force = vec_hi()
         total_torque = vec_hi()
         contacts = int(0)  # noqa: UP018 (a Warp variable the kernel changes: not a constant)
-        summed = True
-        world = int(0)  # noqa: UP018 (a Warp variable the kernel changes: not a constant)
-        if key < wall_count:
-            summed = wall_reported[key] >= 0
-            world = key // wp.max(walls_per_world, 1)
-        else:
-            world = (key - wall_count) // wp.max(bodies_per_world, 1)
         if summed:
-            for c in range(world * world_chunks, world * world_chunks + world_chunks):
-                total_force = total_force + force_in[c, key]
-                total_torque = total_torque + torque_in[c, key]
-                contacts += contact_in[c, key]
+            for r in range(world * rows_per_world, world * rows_per_world + rows_per_world):
+                total_force = total_force + moments_in[r, k]
+                total_torque = total_torque + moments_in[r, partners + k]
+                contacts += contacts_in[r, k]
         if key < wall_count:
             wall_force_out[key] = total_force
             wall_torque_out[key] = total_torque
@@ -467,13 +471,11 @@ class ContactSolver:
         """The step status array (soil.status), shared with the Simulation."""
         device = model.device
         self._partners = model.boundary_count + model.body_count
-        self._world_chunks = (model.world_size + CHUNK - 1) // CHUNK
-        """Wrench chunks per world: each world's start at its first grain (soil.worlds)."""
-        self._chunks = model.world_count * self._world_chunks
-        width = max(self._partners, 1)
-        self._partial_force = wp.zeros((self._chunks, width), dtype=prec.vec_hi, device=device)
-        self._partial_torque = wp.zeros((self._chunks, width), dtype=prec.vec_hi, device=device)
-        self._partial_contacts = wp.zeros((self._chunks, width), dtype=wp.int32, device=device)
+        width = model.walls_per_world + model.bodies_per_world
+        self._moments = WorldTree(model.world_count, model.world_size, 2 * width, prec.vec_hi, device)
+        """Force [N] (columns 0 .. width - 1) and torque [N m] on each of a world's partners."""
+        self._contacts = WorldTree(model.world_count, model.world_size, width, wp.int32, device)
+        """Grains touching each of a world's partners."""
         self._reaction_force = self._reaction_torque = None
         self._wall_reported = (
             model.boundary_column
@@ -495,15 +497,21 @@ class ContactSolver:
 
     def device_arrays(self) -> list:
         """The scratch arrays a captured step uses (a graph stays valid while they do)."""
-        return [self._reaction_force, self._reaction_torque, self._partial_force, *self.neighbours.device_arrays()]
+        return [
+            self._reaction_force,
+            self._reaction_torque,
+            *self._moments.levels,
+            *self._contacts.levels,
+            *self.neighbours.device_arrays(),
+        ]
 
     def bytes_per_grain(self) -> float:
         """Device memory of the solver's scratch per grain [B]."""
         n = max(self.model.particle_count, 1)
-        arrays = [self._partial_force, self._partial_torque, self._partial_contacts]
+        scratch = self._moments.capacity + self._contacts.capacity
         if self._reaction_force is not None:
-            arrays += [self._reaction_force, self._reaction_torque]
-        return sum(a.capacity for a in arrays) / n
+            scratch += self._reaction_force.capacity + self._reaction_torque.capacity
+        return scratch / n
 
     # -- argument bundles ------------------------------------------------------------------
     def grains(self, state: SoilState):
@@ -606,35 +614,39 @@ class ContactSolver:
         self.evaluations += 1
 
     def _sum(self, state: SoilState, reaction_force, reaction_torque) -> None:
-        """Wall and wheel totals: chunk sums in model-index order, then the chunks in order."""
-        device = self.model.device
+        """Wall and wheel totals: a fixed tree over each world's grains (soil.reduction)."""
+        model = self.model
+        moments, contacts = self._moments, self._contacts
         wp.launch(
             self.kernels.wrench_partial,
-            dim=self._chunks,
+            dim=moments.leaves.shape[0],
             inputs=[
                 state.layout.slot,
                 state.rigid_key,
                 state.rigid_count,
                 reaction_force,
                 reaction_torque,
-                CHUNK,
-                self.model.world_size,
-                self._world_chunks,
+                model.world_size,
+                moments.rows[0],
+                model.walls_per_world,
+                model.bodies_per_world,
+                model.boundary_count,
             ],
-            outputs=[self._partial_force, self._partial_torque, self._partial_contacts],
-            device=device,
+            outputs=[moments.leaves, contacts.leaves],
+            device=model.device,
         )
+        moments.fold(summed_columns=moments.leaves.shape[1])
+        contacts.fold(summed_columns=contacts.leaves.shape[1])
         wp.launch(
             self.kernels.wrench_total,
             dim=self._partners,
             inputs=[
-                self._partial_force,
-                self._partial_torque,
-                self._partial_contacts,
+                moments.last,
+                contacts.last,
+                moments.last_rows,
                 self._wall_reported,
-                self.model.walls_per_world,
-                self.model.bodies_per_world,
-                self._world_chunks,
+                model.walls_per_world,
+                model.bodies_per_world,
             ],
             outputs=[
                 state.boundary_force,
@@ -644,7 +656,7 @@ class ContactSolver:
                 state.body_torque,
                 state.body_contacts,
             ],
-            device=device,
+            device=model.device,
         )
 
     def current_list(self, state: SoilState) -> int:

@@ -15,7 +15,7 @@ import pytest
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 sys.path.insert(0, ROOT)
 
-from benchmarks import gpu_carry  # noqa: E402
+from benchmarks import gpu_carry, gpu_suite  # noqa: E402
 
 
 def test_the_gpu_suite_runs_small_on_the_cpu(tmp_path):
@@ -41,7 +41,7 @@ def test_the_gpu_suite_runs_small_on_the_cpu(tmp_path):
     # what a lent machine's $OUT gets back (--results): the same figures
     assert json.loads((tmp_path / "returned" / "results.json").read_text())["sections"] == results["sections"]
     sections = results["sections"]
-    assert set(sections) == {"throughput", "repeat", "agreement", "batched", "paper", "rover", "tests"}
+    assert set(sections) == {"throughput", "profile", "repeat", "agreement", "batched", "paper", "rover", "tests"}
     assert all(section["ok"] for section in sections.values()), sections
     assert sections["repeat"]["bitwise_equal"] and sections["repeat"]["wheel_contacts_max"] > 0
     rows = sections["throughput"]["rows"]
@@ -55,6 +55,13 @@ def test_the_gpu_suite_runs_small_on_the_cpu(tmp_path):
     assert all(r["x_grain_storage"] > 0 for r in slot)
     layout = sections["throughput"]["layout"]
     assert layout["double"]["x_double"] == 1.0 and 0 < layout["mixed"]["x_double"] < 1
+    # the profile: every bed stepped; on the CPU the wall only (Warp's timing covers CUDA activity)
+    profile = sections["profile"]["rows"]
+    assert [(r["bed"], r["precision"]) for r in profile] == list(gpu_suite.PROFILE_ROWS)
+    assert all(r["wall_us_per_step"] > 0 and r["kernel_us_per_step"] is None for r in profile)
+    assert gpu_suite.kernel_name("forward kernel soil__solver__contact_kernels__locals__wrench_total_0a1b2c3d") == (
+        "wrench_total"
+    )
     # the paper case drives with its wheel in the grains: it touches them at every macro step
     paper = sections["paper"]
     assert paper["drive_steps"] > 0 and paper["wheel_contacts"]["drive_min"] > 0
@@ -67,7 +74,7 @@ def test_the_gpu_suite_runs_small_on_the_cpu(tmp_path):
     assert all(r["host_ms_per_world_step"] > 0 and 0 < r["dem_share_of_wall"] < 1 for r in batched["rows"][1:])
     assert all(0 < r["serve_ms_per_world_step"] < 1e3 for r in batched["rows"][1:])
     text = (tmp_path / "results.md").read_text()
-    assert "| target | met |" in text and "Paper case" in text and "Rover" in text and "Batched replicas" in text
+    assert all(title in text for title in ("| target | met |", "Profile", "Paper case", "Rover", "Batched replicas"))
 
 
 def _wheel(folder, name, version, files):
