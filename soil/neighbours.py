@@ -31,12 +31,11 @@ from . import status as status_columns
 from .contact import ContactLaw, spin_history_type
 from .errors import SoilInputError
 from .precision import kernel_factory, kernel_module, soil_kernel
+from .reduction import LEAF, WorldTree
 from .state import GrainLayout, SoilState, storage_functions
 
 REORDER_FROM = 4096
 """Grains from which the storage is reordered by default (below it all of them fit in cache)."""
-CHUNK = 256
-"""Grains per partial sum of the bounding box (fixed: the reduction is deterministic)."""
 MAX_CELLS_PER_AXIS = 1024
 """Cells per axis at most (10 bits of the Morton key each)."""
 MORTON_BITS = 30
@@ -167,41 +166,38 @@ def neighbour_kernels(hi, mid, lo, law: ContactLaw, slot_major: bool = False):
             rebuild_out[0] = 1
 
     @kernel
-    def bounds_partial(
-        position: wp.array(dtype=vec_hi),
-        chunk: int,
-        lower_out: wp.array(dtype=vec_hi),
-        upper_out: wp.array(dtype=vec_hi),
-    ):
-        """Bounding box of the finite positions of each chunk of grains."""
+    def bounds_partial(position: wp.array(dtype=vec_hi), bounds_out: wp.array2d(dtype=vec_hi)):
+        """The tree's leaves (soil.reduction, maxima only): per LEAF grains in storage order, the
+        largest finite coordinates (column 0) and the largest negated ones (column 1: minus the
+        lower corner). Maxima do not depend on the order."""
         c = wp.tid()
         big = hi(1.0e30)
-        lower = vec_hi(big, big, big)
         upper = vec_hi(-big, -big, -big)
-        for i in range(c * chunk, wp.min(c * chunk + chunk, position.shape[0])):
+        lower_negated = vec_hi(-big, -big, -big)
+        for i in range(c * LEAF, wp.min(c * LEAF + LEAF, position.shape[0])):
             x = position[i]
             if wp.isfinite(x):
-                lower = wp.min(lower, x)
                 upper = wp.max(upper, x)
-        lower_out[c] = lower
-        upper_out[c] = upper
+                lower_negated = wp.max(lower_negated, -x)
+        bounds_out[c, 0] = upper
+        bounds_out[c, 1] = lower_negated
 
     @kernel
     def bounds_total(
-        lower_in: wp.array(dtype=vec_hi),
-        upper_in: wp.array(dtype=vec_hi),
+        bounds_in: wp.array2d(dtype=vec_hi),
         cell_min: hi,
         dims: wp.vec3i,
         grid_out: wp.array(dtype=hi),
     ):
-        """The grid: origin [m] (3), cell size [m] per axis (3), at least cell_min, covering the box,
-        and the box's upper corner [m] (3)."""
+        """The grid from the tree's last rows: origin [m] (3), cell size [m] per axis (3), at least
+        cell_min, covering the box, and the box's upper corner [m] (3)."""
         big = hi(1.0e30)
-        lower = vec_hi(big, big, big)
         upper = vec_hi(-big, -big, -big)
-        for c in range(lower_in.shape[0]):
-            lower = wp.min(lower, lower_in[c])
-            upper = wp.max(upper, upper_in[c])
+        lower_negated = vec_hi(-big, -big, -big)
+        for c in range(bounds_in.shape[0]):
+            upper = wp.max(upper, bounds_in[c, 0])
+            lower_negated = wp.max(lower_negated, bounds_in[c, 1])
+        lower = -lower_negated
         for axis in range(3):
             origin = lower[axis]
             extent = upper[axis] - lower[axis]
@@ -551,9 +547,8 @@ class NeighbourList:
         self.reorder_enabled = bool(self.settings.reorder if self.settings.reorder is not None else n >= REORDER_FROM)
         """Whether the storage follows the space-filling curve (reordered between macro steps)."""
         device = model.device
-        self._chunks = (n + CHUNK - 1) // CHUNK
-        self._lower = wp.zeros(self._chunks, dtype=prec.vec_hi, device=device)
-        self._upper = wp.zeros(self._chunks, dtype=prec.vec_hi, device=device)
+        self._bounds = WorldTree(1, n, 2, prec.vec_hi, device)
+        """The grains' box over a tree (soil.reduction): upper corner, minus the lower corner [m]."""
         self.grid = wp.zeros(9, dtype=prec.hi, device=device)
         """Of the last build: the grid origin = the grains' lower corner [m] (3), the cell size per
         axis [m] (3) and the grains' upper corner [m] (3)."""
@@ -614,10 +609,8 @@ class NeighbourList:
             self._new_slot,
             self._cell_start,
             self._cell_end,
-            self._lower,
-            self._upper,
         )
-        return sum(a.capacity for a in arrays) / n
+        return (sum(a.capacity for a in arrays) + self._bounds.capacity) / n
 
     # -- steps ------------------------------------------------------------------------
     def update(self, state_in: SoilState, state_out: SoilState, status: wp.array) -> None:
@@ -784,17 +777,15 @@ class NeighbourList:
         n = self.model.particle_count
         hi = self.model.precision.hi
         dims = wp.vec3i(*self.dims)
+        bounds = self._bounds
         wp.launch(
-            k.bounds_partial,
-            dim=self._chunks,
-            inputs=[position, CHUNK],
-            outputs=[self._lower, self._upper],
-            device=device,
+            k.bounds_partial, dim=bounds.leaves.shape[0], inputs=[position], outputs=[bounds.leaves], device=device
         )
+        bounds.fold(summed_columns=0)
         wp.launch(
             k.bounds_total,
             dim=1,
-            inputs=[self._lower, self._upper, hi(self.cell_min), dims],
+            inputs=[bounds.last, hi(self.cell_min), dims],
             outputs=[self.grid],
             device=device,
         )

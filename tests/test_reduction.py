@@ -98,3 +98,19 @@ def test_pid_steps_whose_sums_pass_a_fold_replay_from_their_graph_as_launched(de
     for captured, launched in zip(*runs):
         np.testing.assert_array_equal(captured, launched)
     assert runs[0][3][0] > 0  # grains on the floor
+
+
+def test_the_neighbour_grid_spans_the_grains_box_found_over_the_tree(device):
+    """2,000 grains at random (63 leaves: the box's maxima pass a fold): the grid of the list's build
+    starts at the grains' lower corner and records their upper corner, exactly (maxima are exact)."""
+    rng = np.random.default_rng(3)
+    positions = rng.uniform(0.01, 0.3, size=(2000, 3)) * [1.0, 0.5, 0.2]
+    builder = SoilBuilder(gravity=9.81)
+    mat = builder.add_material(Material(youngs_modulus=1e6))
+    builder.add_particles(positions, 1e-4, mat)
+    assert level_rows(len(positions)) == [63, 2]
+    model, state, control = builder.finalize(device, "double")
+    sim = Simulation(model, state, control)
+    grid = sim.neighbour_list.grid.numpy()
+    np.testing.assert_array_equal(grid[:3], positions.min(axis=0))
+    np.testing.assert_array_equal(grid[6:], positions.max(axis=0))
