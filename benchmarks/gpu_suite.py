@@ -526,10 +526,11 @@ class Suite:
             tried = np.array([s["soil_dem_steps"] + s["soil_dem_steps_rejected"] for s in every], dtype=float)
             return float(tried.max(axis=0).sum() / tried.mean(axis=0).sum()) if tried.sum() > 0 else 1.0
 
-        def row(worlds, series, marks, dem_seconds, failed, serve_seconds=None, every=None) -> dict:
+        def row(worlds, series, marks, dem_seconds, failed, serve_marks=None, every=None) -> dict:
             """The figures of a drive whose macro steps ended at host clock `marks` [s] (the DEM steps'
-            own host clock per macro step `dem_seconds`, and the serving process's own host work over the
-            whole batch `serve_seconds` [s], None when not measured; `every`: every world's series)."""
+            own host clock per macro step `dem_seconds`, and the serving process's own host work so far
+            at the end of each macro step `serve_marks` [s], None when not measured; `every`: every
+            world's series)."""
             timed = slice(WARMUP_STEPS, len(marks))
             seconds = float(marks[-1] - marks[WARMUP_STEPS - 1]) if len(marks) > WARMUP_STEPS else 0.0
             grains = float(series["soil_particle_count"][0])
@@ -548,8 +549,10 @@ class Suite:
                 if dem is None
                 else 1e3 * (seconds - dem) / max(worlds * (len(marks) - WARMUP_STEPS), 1),
                 serve_ms_per_world_step=None
-                if serve_seconds is None
-                else 1e3 * serve_seconds / max(worlds * len(marks), 1),
+                if serve_marks is None or len(serve_marks) <= WARMUP_STEPS
+                else 1e3
+                * (serve_marks[-1] - serve_marks[WARMUP_STEPS - 1])
+                / (worlds * (len(serve_marks) - WARMUP_STEPS)),
                 wheel_contacts_min=int(counts[len(counts) // 2 :].min()),
                 wheel_contacts_mean=float(counts.mean()),
                 substeps_per_macro_step=float(np.mean([s["soil_dem_steps"].mean() for s in every or [series]])),
@@ -584,7 +587,7 @@ class Suite:
                     batch["round_ends"],
                     np.asarray(batch["round_steps"]),
                     failed,
-                    batch["serve_seconds"],
+                    batch["serve_marks"],
                     every,
                 )
             )

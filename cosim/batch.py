@@ -105,7 +105,8 @@ def run_batched(plans: list[RunPlan], out_dirs: list[str], overwrite: bool = Fal
     status, summary, wall_time, error), each with the batch's figures ('batch': worlds, wall_seconds,
     rounds, step_seconds: the host clock of the macro steps themselves, round_ends: the host clock
     [s] at the end of each, round_steps: each one's step_seconds, serve_seconds: the serving process's
-    own host work, its loop's wall less its waits for the runs and the macro steps)."""
+    own host work, its loop's wall less its waits for the runs and the macro steps, and serve_marks:
+    that work so far [s] as each macro step's reports have gone out, one per round)."""
     first = plans[0]
     problem = batch_problem(first)
     if problem is not None:
@@ -141,7 +142,7 @@ def run_batched(plans: list[RunPlan], out_dirs: list[str], overwrite: bool = Fal
         for k, (plan, out) in enumerate(zip(plans, out_dirs)):
             world = worlds.world(k)
             hosts.append(_Host.start(k, world, (plan, out, overwrite, _description(world), bed.surface_height)))
-        results, serve_seconds = _serve(worlds, hosts)
+        results, serve_seconds, serve_marks = _serve(worlds, hosts)
     finally:
         for host in hosts:
             host.close()
@@ -155,6 +156,7 @@ def run_batched(plans: list[RunPlan], out_dirs: list[str], overwrite: bool = Fal
         "round_ends": list(worlds.round_ends),
         "round_steps": list(worlds.round_steps),
         "serve_seconds": serve_seconds,
+        "serve_marks": serve_marks,
     }
     return [{**r, "label": f"replica_{k:03d}", "wall_time": wall, "batch": batch} for k, r in enumerate(results)]
 
@@ -253,12 +255,19 @@ def _sendable(error: BaseException) -> BaseException:
         return RuntimeError(f"{type(error).__name__}: {error}")
 
 
-def _serve(worlds: Worlds, hosts: list[_Host]) -> tuple[list[dict], float]:
-    """Answer the runs' requests until every run is done; returns their results in order and this
-    process's own host work [s] (the loop's wall less its waits for messages and the macro steps)."""
+def _serve(worlds: Worlds, hosts: list[_Host]) -> tuple[list[dict], float, list[float]]:
+    """Answer the runs' requests until every run is done; returns their results in order, this
+    process's own host work [s] (the loop's wall less its waits for messages and the macro steps) and
+    that work so far at the end of each round (once its reports have gone out)."""
     previous = _forward_stop_signals(hosts)
     started = False
     begun, waited, stepped = time.perf_counter(), 0.0, worlds.step_seconds
+    marks: list[float] = []
+    rounds = worlds.rounds
+
+    def busy() -> float:
+        return time.perf_counter() - begun - waited - (worlds.step_seconds - stepped)
+
     try:
         while True:
             open_hosts = {h.connection: h for h in hosts if h.result is None}
@@ -286,11 +295,13 @@ def _serve(worlds: Worlds, hosts: list[_Host]) -> tuple[list[dict], float]:
                     if report is not None:
                         host.waiting = False
                         _send(host, ("report", report, worlds.view(host.index)))
+            if worlds.rounds != rounds:
+                rounds = worlds.rounds
+                marks.append(busy())
     finally:
         for number, handler in previous.items():
             signal.signal(number, handler)
-    busy = time.perf_counter() - begun - waited - (worlds.step_seconds - stepped)
-    return [h.result or {} for h in hosts], busy
+    return [h.result or {} for h in hosts], busy(), marks
 
 
 def _answer(worlds: Worlds, host: _Host) -> None:
