@@ -1,7 +1,7 @@
 """Deterministic per-world reductions over the grains: a fixed tree of short serial folds.
 
-A reduction over a world's grains (the wrench on a wall or wheel, the step-error norms) runs in
-three stages, each a launch with no atomics:
+A reduction over a world's grains (the wrench on a wall or wheel, the step-error norms, the
+grains' bounding box) runs in three stages of launches, with no atomics:
 
 1. leaves: the caller's kernel folds LEAF consecutive model indices of one world per thread;
 2. `fold_rows`: groups of FAN consecutive rows of a world fold into one row, level after level,
@@ -15,7 +15,7 @@ tree depends on model indices only, never on thread scheduling or the storage or
 Why a tree: a GPU runs a serial loop at the latency of its dependent loads, whatever the number
 of grains, so the longest serial run sets a reduction's time. Chunks of 256 grains (the earlier
 sums) made every step pay for 256 dependent loads in a row; LEAF and FAN keep the longest run at
-32, at one or two more launches per step (docs/performance.md section 2).
+32, at one or two more launches per step (docs/performance.md section 7).
 """
 
 import warp as wp
@@ -87,7 +87,8 @@ class WorldTree:
         self.rows = level_rows(world_size)
         """Rows per world at each level (leaves first)."""
         self.levels = [wp.zeros((world_count * rows, max(width, 1)), dtype=dtype, device=device) for rows in self.rows]
-        """Per level, an array of shape (world_count * rows, width): world w's rows in one block."""
+        """Per level, an array of shape (world_count * rows, width) in the caller's units: world w's rows
+        in one block."""
 
     @property
     def leaves(self) -> wp.array:
