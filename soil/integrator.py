@@ -26,7 +26,7 @@ from .control import SoilControl
 from .errors import SoilInputError
 from .model import SoilModel
 from .precision import kernel_factory, kernel_module, soil_kernel
-from .reduction import LEAF, WorldTree
+from .reduction import WorldTree, leaf_span
 from .solver import ContactSolver
 from .state import SoilState
 
@@ -278,13 +278,13 @@ def integrator_kernels(hi, mid, lo, law: ContactLaw):
         max e_i with the world's scale found by pass 0."""
         c = wp.tid()
         world = c // rows_per_world
-        begin = world * world_size + (c - world * rows_per_world) * LEAF
+        span = leaf_span(c, rows_per_world, world_size)
         first = hi(0.0)
         second = hi(0.0)
         third = hi(0.0)
         fourth = hi(0.0)
         scale = summary[world, SUMMARY_RMS]  # pass 1: the scale, parked there by norm_total's pass 0
-        for p in range(begin, wp.min(begin + LEAF, (world + 1) * world_size)):
+        for p in range(span[0], span[1]):
             i = slot[p]
             if pass_index == 0:
                 first = wp.max(first, gaps[i, 0])

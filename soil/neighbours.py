@@ -31,7 +31,7 @@ from . import status as status_columns
 from .contact import ContactLaw, spin_history_type
 from .errors import SoilInputError
 from .precision import kernel_factory, kernel_module, soil_kernel
-from .reduction import LEAF, WorldTree
+from .reduction import WorldTree, leaf_span
 from .state import GrainLayout, SoilState, storage_functions
 
 REORDER_FROM = 4096
@@ -174,7 +174,8 @@ def neighbour_kernels(hi, mid, lo, law: ContactLaw, slot_major: bool = False):
         big = hi(1.0e30)
         upper = vec_hi(-big, -big, -big)
         lower_negated = vec_hi(-big, -big, -big)
-        for i in range(c * LEAF, wp.min(c * LEAF + LEAF, position.shape[0])):
+        span = leaf_span(c, bounds_out.shape[0], position.shape[0])  # one world: every grain
+        for i in range(span[0], span[1]):
             x = position[i]
             if wp.isfinite(x):
                 upper = wp.max(upper, x)

@@ -28,21 +28,26 @@ FAN = wp.constant(32)
 """Rows folded into one at each level of the tree (and by a total kernel, at most)."""
 
 
-def ceil_div(a: int, b: int) -> int:
-    return (a + b - 1) // b
-
-
 def leaf_rows(world_size: int) -> int:
     """Leaf rows per world (at least 1: a world without grains still has its zero row)."""
-    return max(1, ceil_div(world_size, LEAF))
+    return max(1, -(-world_size // LEAF))
 
 
 def level_rows(world_size: int) -> list[int]:
     """Rows per world at each level: the leaves first, then each fold's, the last at most FAN."""
     rows = [leaf_rows(world_size)]
     while rows[-1] > FAN:
-        rows.append(ceil_div(rows[-1], FAN))
+        rows.append(-(-rows[-1] // FAN))
     return rows
+
+
+@wp.func
+def leaf_span(leaf: int, rows_per_world: int, world_size: int):
+    """Model indices [begin, end) that leaf row `leaf` folds: LEAF consecutive ones of its world,
+    counted from the world's first grain (world = leaf // rows_per_world)."""
+    world = leaf // rows_per_world
+    begin = world * world_size + (leaf - world * rows_per_world) * LEAF
+    return wp.vec2i(begin, wp.min(begin + LEAF, (world + 1) * world_size))
 
 
 @kernel_factory
@@ -83,7 +88,6 @@ class WorldTree:
     def __init__(self, world_count: int, world_size: int, width: int, dtype, device):
         self.kernels = reduction_kernels(dtype)
         """The fold's kernel for these rows' type (for StepGraphs.load_modules)."""
-        self.world_count = world_count
         self.rows = level_rows(world_size)
         """Rows per world at each level (leaves first)."""
         self.levels = [wp.zeros((world_count * rows, max(width, 1)), dtype=dtype, device=device) for rows in self.rows]

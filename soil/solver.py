@@ -23,7 +23,7 @@ from .control import SoilControl
 from .model import SoilModel
 from .neighbours import NeighbourList
 from .precision import kernel_factory, kernel_module, soil_kernel
-from .reduction import LEAF, WorldTree
+from .reduction import WorldTree, leaf_span
 from .sdf import BODY_WHEEL, sdf_functions
 from .state import SoilState, storage_functions
 
@@ -359,6 +359,17 @@ def contact_kernels(hi, mid, lo, law: ContactLaw, slot_major: bool = False):
                 total += hi(8.0 / 15.0) * e_star * wp.sqrt(hi(ri)) * wp.pow(overlap, hi(2.5))
         energy_out[i] = total
 
+    @wp.func
+    def partner_column(key: int, wall_count: int, walls_per_world: int, bodies_per_world: int):
+        """(world, column) of rigid partner `key` (every world's walls, then every world's wheels):
+        its world and its place among that world's walls, then wheels."""
+        world = key // wp.max(walls_per_world, 1)
+        column = key - world * walls_per_world
+        if key >= wall_count:
+            world = (key - wall_count) // wp.max(bodies_per_world, 1)
+            column = walls_per_world + key - wall_count - world * bodies_per_world
+        return wp.vec2i(world, column)
+
     @kernel
     def wrench_partial(
         slot: wp.array(dtype=wp.int32),
@@ -379,20 +390,16 @@ def contact_kernels(hi, mid, lo, law: ContactLaw, slot_major: bool = False):
         each of the world's partners (column k: its walls, then its wheels), summed in model-index
         order. moments_out[c, k]: force [N]; moments_out[c, partners + k]: torque [N m]."""
         c = wp.tid()
-        world = c // rows_per_world
         partners = walls_per_world + bodies_per_world
         for k in range(partners):
             moments_out[c, k] = vec_hi()
             moments_out[c, partners + k] = vec_hi()
             contacts_out[c, k] = 0
-        begin = world * world_size + (c - world * rows_per_world) * LEAF
-        for p in range(begin, wp.min(begin + LEAF, (world + 1) * world_size)):
+        span = leaf_span(c, rows_per_world, world_size)
+        for p in range(span[0], span[1]):
             i = slot[p]
             for s in range(wp.min(rigid_count[i], slots(rigid_key))):
-                key = at(rigid_key, i, s)
-                k = key - world * walls_per_world
-                if key >= wall_count:
-                    k = walls_per_world + key - wall_count - world * bodies_per_world
+                k = partner_column(at(rigid_key, i, s), wall_count, walls_per_world, bodies_per_world)[1]
                 moments_out[c, k] = moments_out[c, k] + at(reaction_force, i, s)
                 moments_out[c, partners + k] = moments_out[c, partners + k] + at(reaction_torque, i, s)
                 contacts_out[c, k] = contacts_out[c, k] + 1
@@ -418,14 +425,12 @@ def contact_kernels(hi, mid, lo, law: ContactLaw, slot_major: bool = False):
         key = wp.tid()
         wall_count = wall_reported.shape[0]
         partners = walls_per_world + bodies_per_world
+        place = partner_column(key, wall_count, walls_per_world, bodies_per_world)
+        world = place[0]
+        k = place[1]
         summed = True
-        world = key // wp.max(walls_per_world, 1)
-        k = key - world * walls_per_world
         if key < wall_count:
             summed = wall_reported[key] >= 0
-        else:
-            world = (key - wall_count) // wp.max(bodies_per_world, 1)
-            k = walls_per_world + key - wall_count - world * bodies_per_world
         total_force = vec_hi()
         total_torque = vec_hi()
         contacts = int(0)  # noqa: UP018 (a Warp variable the kernel changes: not a constant)
