@@ -37,6 +37,7 @@ import subprocess
 import sys
 import time
 import traceback
+from collections.abc import Callable
 from dataclasses import replace
 from multiprocessing.connection import Connection, wait
 
@@ -446,9 +447,11 @@ class RemoteWorld:
         self._view: dict | None = None
         self.monitor = _RemoteMonitor(self)
 
-    def _exchange(self, message: tuple):
+    def _exchange(self, message: tuple, meanwhile: Callable[[], None] | None = None):
         try:
             self._connection.send(message)
+            if meanwhile is not None:
+                meanwhile()
             answer = self._connection.recv()
         except (EOFError, OSError) as error:
             raise BatchServerGone(
@@ -527,10 +530,16 @@ class RemoteWorld:
     def set_body_path(self, span: float, position, orientation, velocity, angular_velocity, end=None) -> None:
         self._path = (position, orientation, velocity, angular_velocity, end)
 
-    def advance_to(self, end_time: float, dt: float, path: bool = False) -> MacroStepReport:
+    def advance_to(
+        self, end_time: float, dt: float, path: bool = False, meanwhile: Callable[[], None] | None = None
+    ) -> MacroStepReport:
+        """The macro step: the request goes out, `meanwhile` (the run's own host work of the step before:
+        its records and writer) runs while the batch steps, then the answer is read."""
         body_path, self._path = self._path, None
         self._view = None
-        _, report, view = self._exchange(("advance", float(end_time), float(dt), bool(path), body_path))
+        _, report, view = self._exchange(
+            ("advance", float(end_time), float(dt), bool(path), body_path), meanwhile=meanwhile
+        )
         self._view = view
         self.time = float(view["time"])
         return report

@@ -196,6 +196,12 @@ class SoilSide(Protocol):
         The wheels move from `start` (kinematics at self.time) to `end` (kinematics at
         t_end) by interpolation; with `end` None the motion is extrapolated from `start`
         at constant velocity. Returns one WheelWrench per wheel.
+
+        Optional keyword `meanwhile` (a callable without arguments, or None): the caller's own
+        host work, which a soil that computes on a device calls once after it has launched the
+        step and before it waits for the result, so that the two overlap (cosim.DemSoil). The
+        callable neither touches the soil nor raises. A soil whose `advance` has no such
+        keyword is driven as well: the coupler then does that work after `advance`.
         """
 
     def place_wheels(self, kinematics: Sequence[WheelKinematics]) -> None:

@@ -22,6 +22,7 @@ exceeds `energy_atol + energy_rtol * sum |W_rover|` a CouplingEnergyWarning is i
 
 from __future__ import annotations
 
+import inspect
 import warnings
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
@@ -135,6 +136,7 @@ class Coupler:
         self.energy_warmup = int(energy_warmup)
         self.time_tol = float(time_tol)
         self.wheel_count = n
+        self._soil_overlaps = "meanwhile" in inspect.signature(soil.advance).parameters
 
         soil.set_gravity(self.gravity)
         rover.set_gravity(self.gravity)
@@ -156,23 +158,33 @@ class Coupler:
         if abs(t_soil - t_rover) > self.time_tol:
             raise CouplingTimeError(f"{where}: soil at t={t_soil!r} s, rover at t={t_rover!r} s")
 
-    def step(self) -> MacroStepRecord:
-        """Advance both sides by one macro step; returns what the step produced."""
+    def step(self, meanwhile: Callable[[], None] | None = None) -> MacroStepRecord:
+        """Advance both sides by one macro step; returns what the step produced.
+
+        meanwhile: the caller's own work that needs neither side (the records of the step
+        before), done once while the soil computes when the soil offers that (SoilSide.advance),
+        else after the soil's advance. It must not raise."""
         t0 = self.time
         t1 = t0 + self.macro_step
         rover, soil = self.rover, self.soil
         k0 = rover.wheel_kinematics()
         if self.controller is not None:
             apply_command(rover, self.controller(t0, k0, self._last))
-        if self.scheme == "gauss-seidel":
+        if self.scheme == "jacobi":
+            held = self._lagged
+            rover.apply_wheel_wrenches(held)
+        if meanwhile is None:
             wrenches = soil.advance(t1, k0, None)
+        elif self._soil_overlaps:
+            wrenches = soil.advance(t1, k0, None, meanwhile=meanwhile)  # type: ignore[call-arg]
+        else:
+            wrenches = soil.advance(t1, k0, None)
+            meanwhile()
+        if self.scheme == "gauss-seidel":
             held = wrenches
             rover.apply_wheel_wrenches(held)
             rover.advance(t1)
         else:
-            held = self._lagged
-            rover.apply_wheel_wrenches(held)
-            wrenches = soil.advance(t1, k0, None)
             rover.advance(t1)
             self._lagged = wrenches
         self._check_times(soil.time, rover.time, f"macro step {self.step_count}")

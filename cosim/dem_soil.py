@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import warnings
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 
 import numpy as np
 from numpy.typing import ArrayLike
@@ -121,14 +121,19 @@ class DemSoil:
         self.sim.refresh_forces()
 
     def advance(
-        self, t_end: float, start: Sequence[WheelKinematics], end: Sequence[WheelKinematics] | None = None
+        self,
+        t_end: float,
+        start: Sequence[WheelKinematics],
+        end: Sequence[WheelKinematics] | None = None,
+        meanwhile: Callable[[], None] | None = None,
     ) -> list[WheelWrench]:
         """Advance the soil to t_end [s] in whole DEM steps, the wheels moving from `start` with
         constant velocities (end None) or towards `end`; returns each wheel's wrench.
 
         The DEM steps run on the device as one macro step that lands on t_end
         (soil.Simulation.advance_to): the wheels are posed there at each step and their wrenches
-        summed there; the host reads the result once.
+        summed there; the host reads the result once. meanwhile (SoilSide.advance): called once
+        the steps are launched, before that read.
         """
         if len(start) != self.wheel_count:
             raise ArgumentError(f"expected kinematics of {self.wheel_count} wheels, got {len(start)}")
@@ -152,7 +157,7 @@ class DemSoil:
 
         sim.set_body_path(span, *stack(start), end=None if end is None else stack(end))
         # whole DEM steps of about dt, or PID substeps with a step control; the soil's clock is t_end
-        report = sim.advance_to(t_end, self.dt, path=True)
+        report = sim.advance_to(t_end, self.dt, path=True, meanwhile=meanwhile)
         self.last_report = report
         self._check_walls(sim.body_positions(), report.boundary_displacement)
         return [

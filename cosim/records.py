@@ -1,6 +1,7 @@
 """What a run writes about itself: each macro step's row, the results file's attributes, the summary.
 
-    row = step_row(system, record, phase, rover_state, drive_start, previous_body, body_travel)
+    facts = step_facts(system)       # at the step's end: what the row reads of the two sides
+    row = step_row(system, record, phase, rover_state, drive_start, previous_body, body_travel, facts)
     attrs = attributes(plan, system, source, findings)
     summary = run_summary(plan, system, results_path, landed, wall, session_wall, steps_done)
 
@@ -26,6 +27,22 @@ from .plan import RunPlan
 from .system import CoupledSystem, validity
 
 
+def step_facts(system: CoupledSystem) -> dict:
+    """What a step's row reads of the two sides, read at the step's end (the row itself may be made
+    later, while the next step runs): the rover's 'command' (speed [rad/s] (W,), torque [N m] (W,))
+    and 'body' kinematics, the soil's 'books', inner-step 'statistics' and 'wall_loads' (None
+    without walls)."""
+    rover, soil = system.rover, system.soil
+    speed, torque = (np.array(v, dtype=np.float64) for v in rover.command_row())
+    return {
+        "command": (speed, torque),
+        "body": rover.body_kinematics(),
+        "books": soil.books(),
+        "statistics": soil.step_statistics(),
+        "wall_loads": soil.wall_loads(),
+    }
+
+
 def step_row(
     system: CoupledSystem,
     record: MacroStepRecord,
@@ -34,6 +51,7 @@ def step_row(
     drive_start: np.ndarray | None,
     previous_body: np.ndarray | None,
     body_travel: float,
+    facts: dict | None = None,
 ) -> dict:
     """One macro step's row for ResultsWriter.append_step.
 
@@ -41,9 +59,10 @@ def step_row(
     rover_state: its state row (K,) at the end of the step; drive_start: the hub positions [m] (3,)
     where the drive started (None: it has not, travel stays 0); previous_body: the rover body's
     position [m] (3,) at the previous row while driving (None before); body_travel: its path so far
-    [m]. The row's 'rover_position' and 'rover_travel' are what the next row takes as
-    previous_body and body_travel."""
-    rover = system.rover
+    [m]; facts: step_facts(system) as read at the step's end (None: read now). The row's
+    'rover_position' and 'rover_travel' are what the next row takes as previous_body and
+    body_travel."""
+    facts = step_facts(system) if facts is None else facts
     row: dict[str, Any] = {"time": record.time, "phase": phase, "rover_state": rover_state}
     per_wheel = [
         metrics.wheel_quantities(k, w, g, drive_start)
@@ -51,8 +70,8 @@ def step_row(
     ]
     for name in metrics.WHEEL_UNITS:
         row[name] = np.array([q[name] for q in per_wheel])
-    row["speed_command"], row["torque_command"] = rover.command_row()
-    body = rover.body_kinematics()
+    row["speed_command"], row["torque_command"] = facts["command"]
+    body = facts["body"]
     spins = [
         float(k.angular_velocity @ wheel_frame(k.orientation, g.axis_local)[0])
         for k, g in zip(record.kinematics, system.geometries)
@@ -67,15 +86,14 @@ def step_row(
         *quantities.items(),
     ):
         row[f"rover_{name}"] = value
-    soil = system.soil
-    books = soil.books()
+    books = facts["books"]
     soil_row = {
         "particle_count": books.element_count,
         "mass": books.mass,
         "mass_added": books.mass_added,
         "mass_removed": books.mass_removed,
         "moves": books.moves,
-        **step_statistics(soil.step_statistics(), system.plan.macro_step),
+        **step_statistics(facts["statistics"], system.plan.macro_step),
     }
     for name, value in soil_row.items():
         row[f"soil_{name}"] = value
@@ -88,7 +106,7 @@ def step_row(
     row["contact_count"] = np.array([w.contact_count for w in record.wrenches])
     row["work_on_rover"] = record.work_on_rover
     row["work_on_soil"] = record.work_on_soil
-    loads = soil.wall_loads()
+    loads = facts["wall_loads"]
     if loads is not None:
         row.update({f"boundary_{name}": value for name, value in loads.items()})
     return row

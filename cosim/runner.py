@@ -5,8 +5,11 @@
 `Runner` steps the system (cosim.system): a landing phase until the wheel rests on the soil,
 then the drive; each step's row (cosim.records) goes to results.h5 (cosim.output); snapshots
 and checkpoints follow the scene's intervals, and the soil's health is checked every
-CHECK_EVERY macro steps and at each checkpoint. At the end the summary is computed from what
-was written (cosim.records.run_summary). A first Ctrl-C (or SIGTERM) finishes the macro step,
+CHECK_EVERY macro steps and at each checkpoint. A step's row is made and written while the soil
+computes the next step (Coupler.step's `meanwhile`: on a GPU the host's records overlap the
+device's steps), except where the file must hold it first: before a snapshot, a checkpoint, a stop
+and at the end. At the end the summary is computed from what was written
+(cosim.records.run_summary). A first Ctrl-C (or SIGTERM) finishes the macro step,
 writes a checkpoint and stops cleanly; a second one stops at once. The runner reads the soil
 only through the SoilSide contract (cosim.contract).
 """
@@ -17,6 +20,7 @@ import logging
 import os
 import signal
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -96,6 +100,8 @@ class Runner:
         self.progress = progress
         self.hooks = hooks or {}
         self.stop_requested = False
+        self._pending: _Deferred | None = None
+        """The last step's row, made and written while the soil computes the next step (or sooner)."""
         self.stop_signal = "SIGINT"
         """The signal that asked for the stop (SIGINT: Ctrl-C, SIGTERM: a scheduler or container)."""
         self.mesh = system.wheel_mesh()
@@ -139,18 +145,28 @@ class Runner:
             if self.writer.snapshots == 0:
                 self._snapshot()
             while not self.done:
-                record = coupler.step()
+                pending, self._pending = self._pending, None
+                try:
+                    record = coupler.step(meanwhile=pending)
+                except BaseException:
+                    self._pending = pending  # the row is still written (below), whatever the step met
+                    raise
+                if pending is not None:  # done while the soil computed (or now); what its writing met is raised
+                    pending.settle()
                 self._after_step(record)
                 if "step" in self.hooks:
                     self.hooks["step"](self)
                 if coupler.step_count % CHECK_EVERY == 0:
                     system.soil.check_health()
                 last = self.done
-                if plan.output.snapshot_interval > 0 and coupler.time >= self.next_snapshot - 1e-9 * plan.macro_step:
-                    self._snapshot()
-                elif last:
-                    self._snapshot()
+                snapshot = last or (
+                    plan.output.snapshot_interval > 0 and coupler.time >= self.next_snapshot - 1e-9 * plan.macro_step
+                )
                 scheduled = last or coupler.time >= self.next_checkpoint - 1e-9 * plan.macro_step
+                if snapshot or scheduled or self.stop_requested:
+                    self._settle_row()  # the file holds this step's row before its snapshot or checkpoint
+                if snapshot:
+                    self._snapshot()
                 if scheduled or self.stop_requested:
                     if scheduled:  # a stop on request checks nothing extra: the check times stay those
                         system.soil.check_health()  # of an uninterrupted run (the bounds track them)
@@ -199,6 +215,11 @@ class Runner:
             if bar is not None:
                 bar.close()
             wall = self.wall_before + time.perf_counter() - started
+            if self._pending is not None:  # a run stopped by an error still writes its last step's row
+                pending, self._pending = self._pending, None
+                pending()
+                if pending.error is not None:
+                    log.warning("%s: the last step's row was not written: %s", self.folder.path, pending.error)
             self.writer.close()
             try:
                 summary = self.summary(wall, time.perf_counter() - started)
@@ -228,22 +249,38 @@ class Runner:
             log.warning("%s not written (`cosim export vtkhdf %s` retries): %s", VTKHDF_FILE, self.folder.path, error)
 
     def _after_step(self, record: MacroStepRecord) -> None:
-        rover = self.system.rover
+        """The landing's decision now (it sets the next step's command); what the step's row reads of
+        the two sides now; the row itself made and written later (_pending), in step order."""
+        system = self.system
+        rover = system.rover
         phase, state = rover.phase, rover.state_row()  # over the step: the landing below may end it
         driving = self.drive_start_step >= 0  # the step that ends the landing still belongs to it
         if phase == PHASE_LANDING:
             self._landing(record)
-        row = records.step_row(
-            self.system,
-            record,
-            phase,
-            state,
-            self.drive_start_position if self.drive_start_step >= 0 else None,
-            self.body_position if driving else None,
-            self.body_travel,
-        )
-        self.body_position, self.body_travel = row["rover_position"].copy(), row["rover_travel"]
-        self.writer.append_step(row)
+        drive_start = self.drive_start_position if self.drive_start_step >= 0 else None
+        facts = records.step_facts(system)
+
+        def write_row() -> None:
+            row = records.step_row(
+                system,
+                record,
+                phase,
+                state,
+                drive_start,
+                self.body_position if driving else None,
+                self.body_travel,
+                facts,
+            )
+            self.body_position, self.body_travel = row["rover_position"].copy(), row["rover_travel"]
+            self.writer.append_step(row)
+
+        self._pending = _Deferred(write_row)
+
+    def _settle_row(self) -> None:
+        """Make and write the last step's row now (raising what its writing met)."""
+        pending, self._pending = self._pending, None
+        if pending is not None:
+            pending.settle()
 
     def _landing(self, record: MacroStepRecord) -> None:
         """The wheel has landed when, over the last `hold_steps` macro steps, it touched the soil at
@@ -361,6 +398,30 @@ class Runner:
             session_wall=session_wall,
             steps_done=self.system.coupler.step_count - self.steps_at_start,
         )
+
+
+class _Deferred:
+    """Work done once, when called (Coupler.step calls it while the soil computes) or at `settle`; an
+    error it meets is kept (the soil's step goes on) and raised by `settle`."""
+
+    def __init__(self, work: Callable[[], None]):
+        self.work = work
+        self.done = False
+        self.error: BaseException | None = None
+
+    def __call__(self) -> None:
+        if self.done:
+            return
+        self.done = True
+        try:
+            self.work()
+        except BaseException as error:  # noqa: BLE001 - raised by settle, after the soil's step
+            self.error = error
+
+    def settle(self) -> None:
+        self()
+        if self.error is not None:
+            raise self.error
 
 
 STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM)

@@ -18,6 +18,7 @@ its state back into the trial before the trial becomes current.
 import functools
 import math
 import warnings
+from collections.abc import Callable
 
 import numpy as np
 import warp as wp
@@ -100,7 +101,7 @@ def substep(sim, current: SoilState, trial: SoilState, path: bool, weights: dict
     return one_substep
 
 
-def macro_step_adaptive(sim, span: float, path: bool) -> MacroStepReport:
+def macro_step_adaptive(sim, span: float, path: bool, meanwhile: Callable[[], None] | None = None) -> MacroStepReport:
     """Simulation.macro_step_adaptive (its docstring); span [s] already checked."""
     control = sim.step_control
     if control is None:
@@ -130,6 +131,9 @@ def macro_step_adaptive(sim, span: float, path: bool) -> MacroStepReport:
         per_substep = sim.graphs.replay(key, loop, sim.contacts)
         if per_substep is None:
             loop()  # launched (the host reads the condition at every substep)
+        if meanwhile is not None:  # while the device steps; once (a redo below does not repeat it)
+            work, meanwhile = meanwhile, None
+            work()
         values = sim.sums.read(sim.status, sim.neighbour_list.grid, current, control)
         steps = values[sim.sums.steps_column :].reshape(control.worlds, step_control.COLUMNS)
         if per_substep is not None:  # the loop ran as long as the world that tried most substeps

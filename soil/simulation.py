@@ -14,6 +14,7 @@ soil.adaptive, snapshots in soil.snapshot; Simulation is the surface over them.
 """
 
 import math
+from collections.abc import Callable
 from types import SimpleNamespace
 
 import numpy as np
@@ -442,11 +443,16 @@ class Simulation:
         self.state = spare
         self._rebuilds_since_reorder = 0
 
-    def macro_step(self, steps: int, dt: float, path: bool = False) -> MacroStepReport:
+    def macro_step(
+        self, steps: int, dt: float, path: bool = False, meanwhile: Callable[[], None] | None = None
+    ) -> MacroStepReport:
         """Advance by `steps` fixed steps of dt [s], on the device, with one read at the end.
 
         path: the bodies follow the path set by control.set_body_path (posed on the device
-        at each step); otherwise they keep the motion the control holds. Raises
+        at each step); otherwise they keep the motion the control holds. meanwhile: the
+        caller's own host work, called once after the steps are launched and before the read
+        (on a GPU it runs while the device steps; it must neither touch this simulation nor
+        raise: an error of its own is the caller's to keep and raise after the step). Raises
         SimulationDiverged if a grain's state became non-finite (the state is then the last
         step's, for the report).
         """
@@ -473,6 +479,9 @@ class Simulation:
                 target = spares[k % 2]
                 self._run_step(dt, current, target, path)
                 current = target
+            if meanwhile is not None:  # while the device steps; once (a redo below does not repeat it)
+                work, meanwhile = meanwhile, None
+                work()
             values = self.sums.read(self.status, self.neighbour_list.grid, current)
             growth = self._needs_growth(values)
             if growth is None:
@@ -501,7 +510,9 @@ class Simulation:
             evaluations=evaluations,
         )
 
-    def advance_to(self, end_time: float, dt: float, path: bool = False) -> MacroStepReport:
+    def advance_to(
+        self, end_time: float, dt: float, path: bool = False, meanwhile: Callable[[], None] | None = None
+    ) -> MacroStepReport:
         """Advance to `end_time` [s] in one macro step that lands on it exactly: the state's time is
         then float(end_time) itself, not the sum of the steps (which differs from it by rounding), so
         a caller's clock and the soil's agree to the last bit.
@@ -510,8 +521,8 @@ class Simulation:
         rounding of 1e-9 steps), of dt itself when the span is a whole number of dt up to the clock's
         rounding (a length that changed in its last bits from one macro step to the next would be a
         new captured graph). With a step control (enable_step_control): PID substeps over the span
-        (macro_step_adaptive). path: as macro_step. Raises SoilInputError unless end_time is after
-        the current time.
+        (macro_step_adaptive). path, meanwhile: as macro_step. Raises SoilInputError unless end_time
+        is after the current time.
         """
         dt = _check_step(dt)
         t0 = self.time
@@ -519,13 +530,13 @@ class Simulation:
         if not span > 0:
             raise SoilInputError(f"end_time {end_time!r} s must be after the soil's time {t0!r} s")
         if self.step_control is not None:
-            report = self.macro_step_adaptive(span, path=path)
+            report = self.macro_step_adaptive(span, path=path, meanwhile=meanwhile)
         else:
             steps = max(1, int(np.ceil(span / dt - 1e-9)))
             h = span / steps
             if abs(steps * dt - span) <= 64 * np.spacing(max(abs(float(end_time)), span)):
                 h = dt
-            report = self.macro_step(steps, h, path=path)
+            report = self.macro_step(steps, h, path=path, meanwhile=meanwhile)
         self.state.time = float(end_time)
         return report
 
@@ -537,7 +548,9 @@ class Simulation:
         predictor/corrector gap is the error estimate."""
         return adaptive.enable_step_control(self, controller)
 
-    def macro_step_adaptive(self, span: float, path: bool = False) -> MacroStepReport:
+    def macro_step_adaptive(
+        self, span: float, path: bool = False, meanwhile: Callable[[], None] | None = None
+    ) -> MacroStepReport:
         """Advance by `span` [s] in as many jolt-Beeman substeps as the PID step control needs,
         landing exactly on the span's end, on the device with one read at the end.
 
@@ -550,7 +563,7 @@ class Simulation:
         enable_step_control() first. Raises SimulationDiverged if a substep at dt_min is
         still non-finite. (soil.adaptive)
         """
-        return adaptive.macro_step_adaptive(self, _check_step(span), path)
+        return adaptive.macro_step_adaptive(self, _check_step(span), path, meanwhile)
 
     def step(self, dt: float) -> None:
         """Advance by dt [s]."""

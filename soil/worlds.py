@@ -29,7 +29,7 @@ from __future__ import annotations
 
 import threading
 import time
-from collections.abc import Iterable, Sequence
+from collections.abc import Callable, Iterable, Sequence
 from dataclasses import replace
 
 import numpy as np
@@ -321,12 +321,23 @@ class Worlds:
             self._maybe_step()
             self._changed.notify_all()
 
-    def advance_to(self, world: int, end_time: float, dt: float, path: bool, body_path: tuple | None):
+    def advance_to(
+        self,
+        world: int,
+        end_time: float,
+        dt: float,
+        path: bool,
+        body_path: tuple | None,
+        meanwhile: Callable[[], None] | None = None,
+    ):
         """World `world`'s macro step to end_time [s] (its bodies along body_path: set_body_path's
         arguments for its bodies, or None); returns its part of the report once every active world
-        has asked for the same step (the worlds' threads wait here for one another)."""
+        has asked for the same step (the worlds' threads wait here for one another). meanwhile: the
+        caller's own host work (Simulation.macro_step's), done after asking, without the lock."""
+        self.submit(world, end_time, dt, path, body_path)
+        if meanwhile is not None:
+            meanwhile()
         with self._changed:
-            self.submit(world, end_time, dt, path, body_path)
             while (report := self.take(world)) is None:
                 self._changed.wait()
             return report
@@ -581,9 +592,11 @@ class World:
     def set_body_path(self, span: float, position, orientation, velocity, angular_velocity, end=None) -> None:
         self._path = (position, orientation, velocity, angular_velocity, end)
 
-    def advance_to(self, end_time: float, dt: float, path: bool = False) -> MacroStepReport:
+    def advance_to(
+        self, end_time: float, dt: float, path: bool = False, meanwhile: Callable[[], None] | None = None
+    ) -> MacroStepReport:
         body_path, self._path = self._path, None
-        return self.worlds.advance_to(self.index, end_time, dt, path, body_path)
+        return self.worlds.advance_to(self.index, end_time, dt, path, body_path, meanwhile)
 
     def leave(self) -> None:
         self.worlds.leave(self.index)

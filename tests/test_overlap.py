@@ -1,0 +1,136 @@
+"""A step's row is made and written while the soil computes the next step (cosim.runner).
+
+On a GPU the host's records then overlap the device's DEM steps; on the CPU the order of the calls
+is what can be checked: the row of macro step k is written after step k + 1's DEM steps were
+launched and before their result is read, it holds what step k left (bit for bit the rows written at
+once), and no row is lost when a later step fails.
+"""
+
+from __future__ import annotations
+
+import h5py
+import numpy as np
+import pytest
+
+from cosim import runner as runner_module
+from cosim.dem_soil import DemSoil
+from cosim.launch import run_plan
+from cosim.output import ResultsWriter
+from cosim.plan import load_plan
+from helpers import write_tiny
+from soil.macro import MacroSums
+from soil.simulation import Simulation
+
+SHORT = ["run.duration=0.03", "landing.max_time=0.1"]
+"""The tiny scene cut short: its landing does not end in 0.1 s (59 macro steps): landing rows, then the end."""
+
+
+@pytest.fixture(scope="module")
+def plan(tmp_path_factory, tiny_bed):
+    scene = write_tiny(tmp_path_factory.mktemp("overlap"))
+    return load_plan(scene, [f'bed.bed_file="{tiny_bed}"', *SHORT])
+
+
+def _events(monkeypatch) -> list:
+    """Log the DEM steps launched, the macro steps' reads and the rows written, in their order."""
+    events: list = []
+    run_step, read, append = Simulation._run_step, MacroSums.read, ResultsWriter.append_step
+
+    def launched(self, *args, **kwargs):
+        events.append("launch")
+        return run_step(self, *args, **kwargs)
+
+    def reading(self, *args, **kwargs):
+        events.append("read")
+        return read(self, *args, **kwargs)
+
+    def writing(self, row):
+        events.append(("row", row["time"]))
+        return append(self, row)
+
+    monkeypatch.setattr(Simulation, "_run_step", launched)
+    monkeypatch.setattr(MacroSums, "read", reading)
+    monkeypatch.setattr(ResultsWriter, "append_step", writing)
+    return events
+
+
+@pytest.fixture(scope="module")
+def overlapped(plan, tmp_path_factory):
+    """The run as the runner makes it, with its calls' order."""
+    with pytest.MonkeyPatch.context() as monkeypatch:
+        events = _events(monkeypatch)
+        out = tmp_path_factory.mktemp("overlapped") / "run"
+        result = run_plan(plan, str(out))
+    return out, result, events
+
+
+def _rows(folder) -> dict:
+    with h5py.File(folder / "results.h5", "r") as f:
+        return {
+            f"{group}/{name}": f[group][name][()]
+            for group in ("wheels", "rover", "soil", "boundaries", "particles")
+            if group in f
+            for name in f[group]
+            if isinstance(f[group][name], h5py.Dataset)
+        }
+
+
+def test_a_row_is_written_while_the_next_step_computes(overlapped, plan):
+    out, result, events = overlapped
+    rows = [e for e in events if isinstance(e, tuple)]
+    reads = events.count("read")
+    assert len(rows) == reads == int(round(0.1 / plan.macro_step))  # a row per macro step, none lost
+    assert [t for _, t in rows] == sorted(t for _, t in rows)  # in step order
+    # a row written while the soil computes comes right after the next step's DEM steps were launched,
+    # and before their read; the others (before a snapshot, a checkpoint, the end) right after their read
+    during = [i for i, e in enumerate(events) if isinstance(e, tuple) and events[i - 1] == "launch"]
+    at_once = [i for i, e in enumerate(events) if isinstance(e, tuple) and events[i - 1] == "read"]
+    assert len(during) + len(at_once) == len(rows)
+    interval = min(plan.output.snapshot_interval, plan.output.checkpoint_interval)
+    occasions = 2 * (1 + len(rows) * plan.macro_step / interval) + 1  # snapshots, checkpoints, the end
+    assert len(at_once) <= occasions and len(during) >= len(rows) - occasions, (len(during), len(at_once))
+    assert len(during) > 0.8 * len(rows)
+    for i in during:  # the row of the step before the one launched: its read came before these launches
+        behind = events[:i]
+        assert behind.count("read") == sum(1 for e in behind if isinstance(e, tuple)) + 1
+    assert isinstance(events[-1], tuple)  # the last step's row is written before the run ends
+
+
+def test_rows_written_meanwhile_are_the_rows_written_at_once(overlapped, plan, tmp_path, monkeypatch):
+    """What a row reads of the two sides is read when its step ends, not when the row is made."""
+    out, _, _ = overlapped
+    after_step = runner_module.Runner._after_step
+
+    def at_once(self, record):
+        after_step(self, record)
+        self._settle_row()
+
+    monkeypatch.setattr(runner_module.Runner, "_after_step", at_once)
+    run_plan(plan, str(tmp_path / "at_once"))
+    ours, theirs = _rows(out), _rows(tmp_path / "at_once")
+    assert set(ours) == set(theirs) and "wheels/force" in ours and "particles/position" in ours
+    for name in ours:
+        np.testing.assert_array_equal(ours[name], theirs[name], err_msg=name)  # bit for bit
+
+
+@pytest.mark.parametrize("fail_at, after_meanwhile", [(7, False), (12, True)])
+def test_a_step_that_fails_leaves_every_row_before_it(plan, tmp_path, monkeypatch, fail_at, after_meanwhile):
+    """A failure in the soil's step, before or after the row was written meanwhile, loses no row."""
+    advance = DemSoil.advance
+    calls = [0]
+
+    def failing(self, t_end, start, end=None, meanwhile=None):
+        calls[0] += 1
+        if calls[0] == fail_at:
+            if after_meanwhile and meanwhile is not None:
+                meanwhile()
+            raise RuntimeError("the soil's step failed")
+        return advance(self, t_end, start, end, meanwhile=meanwhile)
+
+    monkeypatch.setattr(DemSoil, "advance", failing)
+    out = tmp_path / "failed"
+    with pytest.raises(RuntimeError, match="the soil's step failed"):
+        run_plan(plan, str(out))
+    times = _rows(out)["wheels/time"]
+    assert len(times) == fail_at - 1  # every step that ended has its row
+    np.testing.assert_allclose(np.diff(times), plan.macro_step, rtol=1e-9)
