@@ -14,7 +14,8 @@ gives them all, so a terrain without walls or particles writes only what it has.
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+import inspect
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from typing import Protocol, runtime_checkable
 
@@ -247,6 +248,24 @@ class SoilSide(Protocol):
 
     def particles(self) -> Particles | None:
         """The particles now (results.h5 snapshots); None for a soil without particles (a continuum)."""
+
+
+def advance_soil(
+    soil: SoilSide,
+    t_end: float,
+    start: Sequence[WheelKinematics],
+    end: Sequence[WheelKinematics] | None = None,
+    meanwhile: Callable[[], None] | None = None,
+) -> list[WheelWrench]:
+    """`soil.advance(t_end, start, end)` with the caller's `meanwhile` (a callable, or None) done while
+    the soil computes when its `advance` takes that keyword (SoilSide.advance), else after it."""
+    if meanwhile is None:
+        return soil.advance(t_end, start, end)
+    if "meanwhile" in inspect.signature(soil.advance).parameters:
+        return soil.advance(t_end, start, end, meanwhile=meanwhile)  # type: ignore[call-arg]
+    wrenches = soil.advance(t_end, start, end)
+    meanwhile()
+    return wrenches
 
 
 class SoilSideDefaults:

@@ -22,7 +22,6 @@ exceeds `energy_atol + energy_rtol * sum |W_rover|` a CouplingEnergyWarning is i
 
 from __future__ import annotations
 
-import inspect
 import warnings
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
@@ -33,7 +32,7 @@ import numpy as np
 from soil.control import quaternion_integrate, quaternion_multiply
 from soil.errors import ArgumentError, RegolithError, RegolithWarning
 
-from .contract import RoverSide, SoilSide, WheelKinematics, WheelWrench
+from .contract import RoverSide, SoilSide, WheelKinematics, WheelWrench, advance_soil
 from .controllers import apply_command
 
 
@@ -136,7 +135,6 @@ class Coupler:
         self.energy_warmup = int(energy_warmup)
         self.time_tol = float(time_tol)
         self.wheel_count = n
-        self._soil_overlaps = "meanwhile" in inspect.signature(soil.advance).parameters
 
         soil.set_gravity(self.gravity)
         rover.set_gravity(self.gravity)
@@ -173,13 +171,7 @@ class Coupler:
         if self.scheme == "jacobi":
             held = self._lagged
             rover.apply_wheel_wrenches(held)
-        if meanwhile is None:
-            wrenches = soil.advance(t1, k0, None)
-        elif self._soil_overlaps:
-            wrenches = soil.advance(t1, k0, None, meanwhile=meanwhile)  # type: ignore[call-arg]
-        else:
-            wrenches = soil.advance(t1, k0, None)
-            meanwhile()
+        wrenches = advance_soil(soil, t1, k0, None, meanwhile)
         if self.scheme == "gauss-seidel":
             held = wrenches
             rover.apply_wheel_wrenches(held)

@@ -13,7 +13,7 @@ ends the macro step exactly where the rover says it is, as it does on the DEM.
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -32,6 +32,7 @@ from .contract import (
     StepStatistics,
     WheelKinematics,
     WheelWrench,
+    advance_soil,
 )
 
 
@@ -238,10 +239,15 @@ class ScmSoil(SoilSideDefaults):
         self._position, self._orientation = position, orientation / np.linalg.norm(orientation, axis=1)[:, None]
 
     def advance(
-        self, t_end: float, start: Sequence[WheelKinematics], end: Sequence[WheelKinematics] | None = None
+        self,
+        t_end: float,
+        start: Sequence[WheelKinematics],
+        end: Sequence[WheelKinematics] | None = None,
+        meanwhile: Callable[[], None] | None = None,
     ) -> list[WheelWrench]:
         """SoilSide: SCM steps of at most time_step to t_end [s], the wheels on the chord from `start`
-        to `end` (or on `start`'s constant velocities); the mean wrench over the steps and the last."""
+        to `end` (or on `start`'s constant velocities); the mean wrench over the steps and the last.
+        meanwhile (SoilSide.advance): called once the steps are launched, before their wrench is read."""
         if len(start) != self.wheel_count or (end is not None and len(end) != self.wheel_count):
             raise ArgumentError(f"expected kinematics of {self.wheel_count} wheels")
         span = float(t_end) - self.time
@@ -257,6 +263,8 @@ class ScmSoil(SoilSideDefaults):
         self._steps, self._step = steps, span / steps
         self._position = position + velocity * span
         self._orientation = np.array([quaternion_integrate(q, w, span) for q, w in zip(orientation, spin)])
+        if meanwhile is not None:
+            meanwhile()
         mean = self.terrain.wheel_contact(mean=True)
         last = self.terrain.wheel_contact(mean=False)
         # the work the wheels did on the soil: the mean wrench against the path's (constant) velocities
@@ -395,12 +403,20 @@ class CompositeSoil(SoilSideDefaults):
             soil.place_wheels([kinematics[i] for i in wheels])
 
     def advance(
-        self, t_end: float, start: Sequence[WheelKinematics], end: Sequence[WheelKinematics] | None = None
+        self,
+        t_end: float,
+        start: Sequence[WheelKinematics],
+        end: Sequence[WheelKinematics] | None = None,
+        meanwhile: Callable[[], None] | None = None,
     ) -> list[WheelWrench]:
         out: list[WheelWrench | None] = [None] * self.wheel_count
-        for soil, wheels in self.parts:
-            wrenches = soil.advance(
-                t_end, [start[i] for i in wheels], None if end is None else [end[i] for i in wheels]
+        for k, (soil, wheels) in enumerate(self.parts):
+            wrenches = advance_soil(  # the caller's work while the first part computes
+                soil,
+                t_end,
+                [start[i] for i in wheels],
+                None if end is None else [end[i] for i in wheels],
+                meanwhile if k == 0 else None,
             )
             for i, wrench in zip(wheels, wrenches):
                 out[i] = wrench

@@ -3,7 +3,8 @@
 On a GPU the host's records then overlap the device's DEM steps; on the CPU the order of the calls
 is what can be checked: the row of macro step k is written after step k + 1's DEM steps were
 launched and before their result is read, it holds what step k left (bit for bit the rows written at
-once), and no row is lost when a later step fails.
+once), and no row is lost when a later step fails. The SCM terrain, whose grid steps run on the
+device too, does the same.
 """
 
 from __future__ import annotations
@@ -19,9 +20,21 @@ from cosim.output import ResultsWriter
 from cosim.plan import load_plan
 from helpers import write_tiny
 from soil.macro import MacroSums
+from soil.scm import ScmTerrain
 from soil.simulation import Simulation
 
 SHORT = ["run.duration=0.03", "landing.max_time=0.1"]
+SCM = """
+[terrain]
+model = "scm"
+k_c = 2.0e3
+k_phi = 8.0e5
+n = 1.1
+cohesion = 50.0
+friction_angle_deg = 30.0
+janosi_k = 0.002
+elastic_stiffness = 2.0e7
+"""
 """The tiny scene cut short: its landing does not end in 0.1 s (59 macro steps): landing rows, then the end."""
 
 
@@ -31,27 +44,34 @@ def plan(tmp_path_factory, tiny_bed):
     return load_plan(scene, [f'bed.bed_file="{tiny_bed}"', *SHORT])
 
 
-def _events(monkeypatch) -> list:
-    """Log the DEM steps launched, the macro steps' reads and the rows written, in their order."""
+def _events(monkeypatch, launches=(Simulation, "_run_step"), reads=(MacroSums, "read")) -> list:
+    """Log the soil's steps launched, its reads after a macro step and the rows written, in their order."""
     events: list = []
-    run_step, read, append = Simulation._run_step, MacroSums.read, ResultsWriter.append_step
+    append = ResultsWriter.append_step
 
-    def launched(self, *args, **kwargs):
-        events.append("launch")
-        return run_step(self, *args, **kwargs)
+    def logged(owner, name, event):
+        function = getattr(owner, name)
 
-    def reading(self, *args, **kwargs):
-        events.append("read")
-        return read(self, *args, **kwargs)
+        def call(*args, **kwargs):
+            events.append(event)
+            return function(*args, **kwargs)
+
+        monkeypatch.setattr(owner, name, call)
 
     def writing(self, row):
         events.append(("row", row["time"]))
         return append(self, row)
 
-    monkeypatch.setattr(Simulation, "_run_step", launched)
-    monkeypatch.setattr(MacroSums, "read", reading)
+    logged(*launches, "launch")
+    logged(*reads, "read")
     monkeypatch.setattr(ResultsWriter, "append_step", writing)
     return events
+
+
+def _order(events) -> tuple[list, list]:
+    """The rows written right after the next step's launches (during it) and right after a read (at once)."""
+    rows = [i for i, e in enumerate(events) if isinstance(e, tuple)]
+    return [i for i in rows if events[i - 1] == "launch"], [i for i in rows if events[i - 1] == "read"]
 
 
 @pytest.fixture(scope="module")
@@ -83,8 +103,7 @@ def test_a_row_is_written_while_the_next_step_computes(overlapped, plan):
     assert [t for _, t in rows] == sorted(t for _, t in rows)  # in step order
     # a row written while the soil computes comes right after the next step's DEM steps were launched,
     # and before their read; the others (before a snapshot, a checkpoint, the end) right after their read
-    during = [i for i, e in enumerate(events) if isinstance(e, tuple) and events[i - 1] == "launch"]
-    at_once = [i for i, e in enumerate(events) if isinstance(e, tuple) and events[i - 1] == "read"]
+    during, at_once = _order(events)
     assert len(during) + len(at_once) == len(rows)
     interval = min(plan.output.snapshot_interval, plan.output.checkpoint_interval)
     occasions = 2 * (1 + len(rows) * plan.macro_step / interval) + 1  # snapshots, checkpoints, the end
@@ -134,3 +153,24 @@ def test_a_step_that_fails_leaves_every_row_before_it(plan, tmp_path, monkeypatc
     times = _rows(out)["wheels/time"]
     assert len(times) == fail_at - 1  # every step that ended has its row
     np.testing.assert_allclose(np.diff(times), plan.macro_step, rtol=1e-9)
+
+
+def test_an_scm_run_writes_its_rows_while_the_grid_steps_and_the_same_rows(tmp_path, monkeypatch):
+    plan = load_plan(write_tiny(tmp_path, SCM), ["wheel.grouser_count=0", *SHORT])
+    after_step = runner_module.Runner._after_step
+    with pytest.MonkeyPatch.context() as patch:  # the SCM steps launched by `advance`, read by `wheel_contact`
+        events = _events(patch, launches=(ScmTerrain, "_pose"), reads=(ScmTerrain, "wheel_contact"))
+        run_plan(plan, str(tmp_path / "meanwhile"))
+    during, at_once = _order(events)
+    assert len(during) + len(at_once) == int(round(0.1 / plan.macro_step)) and len(during) > 0.8 * len(at_once + during)
+
+    def at_once_row(self, record):
+        after_step(self, record)
+        self._settle_row()
+
+    monkeypatch.setattr(runner_module.Runner, "_after_step", at_once_row)
+    run_plan(plan, str(tmp_path / "at_once"))
+    ours, theirs = _rows(tmp_path / "meanwhile"), _rows(tmp_path / "at_once")
+    assert set(ours) == set(theirs) and "wheels/sinkage" in ours
+    for name in ours:
+        np.testing.assert_array_equal(ours[name], theirs[name], err_msg=name)
