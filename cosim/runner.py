@@ -81,7 +81,9 @@ class Runner:
         folder: the run folder.
         loop: the loop's own state from a checkpoint (None: a new run).
         progress: show a tqdm bar.
-        hooks: {'step': f(runner), 'checkpoint': f(runner)} called after each macro step / checkpoint.
+        hooks: {'step': f(runner), 'checkpoint': f(runner)} called after each macro step / checkpoint
+            (at a 'step' call that step's row may still be unwritten: it is written while the next
+            step computes, or before a snapshot or checkpoint).
     """
 
     def __init__(

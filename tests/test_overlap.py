@@ -174,3 +174,25 @@ def test_an_scm_run_writes_its_rows_while_the_grid_steps_and_the_same_rows(tmp_p
     assert set(ours) == set(theirs) and "wheels/sinkage" in ours
     for name in ours:
         np.testing.assert_array_equal(ours[name], theirs[name], err_msg=name)
+
+
+def test_a_batched_run_does_its_work_between_its_request_and_the_answer():
+    """A world of a batch served by another process (cosim.batch.RemoteWorld): the run's request goes
+    out, its own work is done while the batch steps, then the answer is read."""
+    from cosim.batch import RemoteWorld
+
+    calls: list = []
+
+    class Pipe:
+        def send(self, message):
+            calls.append(("send", message[0]))
+
+        def recv(self):
+            calls.append("recv")
+            return ("report", "the report", {"time": 0.01})
+
+    description = dict.fromkeys(("boundary_kinds", "boundary_reports", "initial_boundary_geometry", "body_shapes"))
+    description.update(index=0, time=0.0, gravity=(0, 0, -1), particle_count=1, body_count=1, boundary_count=0)
+    world = RemoteWorld(Pipe(), description)
+    report = world.advance_to(0.01, 0.001, path=True, meanwhile=lambda: calls.append("meanwhile"))
+    assert calls == [("send", "advance"), "meanwhile", "recv"] and report == "the report" and world.time == 0.01
