@@ -450,17 +450,25 @@ class RemoteWorld:
     def _exchange(self, message: tuple, meanwhile: Callable[[], None] | None = None):
         try:
             self._connection.send(message)
-            if meanwhile is not None:
-                meanwhile()
-            answer = self._connection.recv()
         except (EOFError, OSError) as error:
-            raise BatchServerGone(
-                f"the process serving world {self.index}'s batch ended ({type(error).__name__}); this run's last "
-                "checkpoint continues it alone (cosim resume)"
-            ) from None
+            raise self._gone(error) from None
+        try:
+            if meanwhile is not None:  # the run's own work while the batch steps
+                meanwhile()
+        finally:  # the answer is read whatever that work met: the next exchange stays in step
+            try:
+                answer = self._connection.recv()
+            except (EOFError, OSError) as error:
+                raise self._gone(error) from None
         if answer[0] == "error":
             raise answer[1]
         return answer
+
+    def _gone(self, error: BaseException) -> BatchServerGone:
+        return BatchServerGone(
+            f"the process serving world {self.index}'s batch ended ({type(error).__name__}); this run's last "
+            "checkpoint continues it alone (cosim resume)"
+        )
 
     def _call(self, name: str, *args, **kwargs):
         return self._exchange(("call", name, args, kwargs))[1]

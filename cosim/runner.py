@@ -7,8 +7,8 @@ then the drive; each step's row (cosim.records) goes to results.h5 (cosim.output
 and checkpoints follow the scene's intervals, and the soil's health is checked every
 CHECK_EVERY macro steps and at each checkpoint. A step's row is made and written while the soil
 computes the next step (Coupler.step's `meanwhile`: on a GPU the host's records overlap the
-device's steps), except where the file must hold it first: before a snapshot, a checkpoint, a stop
-and at the end. At the end the summary is computed from what was written
+device's steps), except where the file must hold it first: before a snapshot or a checkpoint (so
+also at a stop and at the end, which write both). At the end the summary is computed from what was written
 (cosim.records.run_summary). A first Ctrl-C (or SIGTERM) finishes the macro step,
 writes a checkpoint and stops cleanly; a second one stops at once. The runner reads the soil
 only through the SoilSide contract (cosim.contract).
@@ -161,14 +161,11 @@ class Runner:
                 if coupler.step_count % CHECK_EVERY == 0:
                     system.soil.check_health()
                 last = self.done
-                snapshot = last or (
-                    plan.output.snapshot_interval > 0 and coupler.time >= self.next_snapshot - 1e-9 * plan.macro_step
-                )
-                scheduled = last or coupler.time >= self.next_checkpoint - 1e-9 * plan.macro_step
-                if snapshot or scheduled or self.stop_requested:
-                    self._settle_row()  # the file holds this step's row before its snapshot or checkpoint
-                if snapshot:
+                if plan.output.snapshot_interval > 0 and coupler.time >= self.next_snapshot - 1e-9 * plan.macro_step:
                     self._snapshot()
+                elif last:
+                    self._snapshot()
+                scheduled = last or coupler.time >= self.next_checkpoint - 1e-9 * plan.macro_step
                 if scheduled or self.stop_requested:
                     if scheduled:  # a stop on request checks nothing extra: the check times stay those
                         system.soil.check_health()  # of an uninterrupted run (the bounds track them)
@@ -313,6 +310,7 @@ class Runner:
             )
 
     def _snapshot(self) -> None:
+        self._settle_row()  # the file holds the step's row before its snapshot
         system = self.system
         vertices, _, owner = self.mesh
         posed = system.posed_wheel_vertices(vertices, owner)
@@ -350,6 +348,7 @@ class Runner:
         }
 
     def _checkpoint(self, wall: float) -> None:
+        self._settle_row()  # the checkpoint's loop state (rows, travel) counts the step's row
         self.writer.flush()
         data = self.system.state_dict()
         data.update({f"loop/{k}": np.asarray(v) for k, v in self.loop_state(wall).items()})
@@ -404,7 +403,8 @@ class Runner:
 
 class _Deferred:
     """Work done once, when called (Coupler.step calls it while the soil computes) or at `settle`; an
-    error it meets is kept (the soil's step goes on) and raised by `settle`."""
+    error it meets is kept (the soil's step goes on) and raised by `settle`. A KeyboardInterrupt (a
+    second Ctrl-C: stop at once) is not kept: it stops the step too."""
 
     def __init__(self, work: Callable[[], None]):
         self.work = work
@@ -417,7 +417,7 @@ class _Deferred:
         self.done = True
         try:
             self.work()
-        except BaseException as error:  # noqa: BLE001 - raised by settle, after the soil's step
+        except Exception as error:  # noqa: BLE001 - raised by settle, after the soil's step
             self.error = error
 
     def settle(self) -> None:

@@ -335,12 +335,14 @@ class Worlds:
         has asked for the same step (the worlds' threads wait here for one another). meanwhile: the
         caller's own host work (Simulation.macro_step's), done after asking, without the lock."""
         self.submit(world, end_time, dt, path, body_path)
-        if meanwhile is not None:
-            meanwhile()
-        with self._changed:
-            while (report := self.take(world)) is None:
-                self._changed.wait()
-            return report
+        try:
+            if meanwhile is not None:
+                meanwhile()
+        finally:  # the report is taken whatever that work met: no stale report is left for the next step
+            with self._changed:
+                while (report := self.take(world)) is None:
+                    self._changed.wait()
+        return report
 
     def submit(self, world: int, end_time: float, dt: float, path: bool, body_path: tuple | None) -> None:
         """World `world` asks for its macro step (advance_to's arguments) without waiting: the step runs
