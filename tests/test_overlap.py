@@ -28,9 +28,8 @@ pytestmark = pytest.mark.filterwarnings("ignore::cosim.coupler.CouplingEnergyWar
 SHORT = ["run.duration=0.03", "landing.max_time=0.1"]
 """The tiny scene cut short: its landing does not end in 0.1 s (59 macro steps): landing rows, then the end."""
 VARIANTS = {
-    "landing": SHORT,
-    "drive": ["landing.enabled=false", "run.duration=0.1"],  # driving from the start: travel, drive start
-    "pid": [*SHORT, 'run.step_control="pid"'],  # the PID substeps: one captured loop a macro step
+    "drive": ["landing.enabled=false", "run.duration=0.1"],  # fixed steps, driving from the start: travel
+    "pid": [*SHORT, 'run.step_control="pid"'],  # landing rows under the PID substeps: one captured loop a step
 }
 """The tiny scene's runs whose rows are checked, each 59 macro steps."""
 SCM = """
