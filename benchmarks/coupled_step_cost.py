@@ -17,8 +17,6 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import statistics
-import subprocess
 import sys
 import time
 import warnings
@@ -107,22 +105,10 @@ def main(argv=None) -> None:
     args = parser.parse_args(argv)
     sizes = ["--grains", str(args.grains), "--macro-steps", str(args.macro_steps), "--substeps", str(args.substeps)]
     if args.compare:
-        sources = {"other": os.path.abspath(args.compare), "this": ROOT}
-        runs: dict = {name: [] for name in sources}
-        for _ in range(args.repeats):
-            for name, source in sources.items():
-                done = subprocess.run(
-                    [sys.executable, os.path.abspath(__file__), "--source", source, "--json", *sizes],
-                    capture_output=True,
-                    text=True,
-                    check=True,
-                )
-                runs[name].append(json.loads(done.stdout.strip().splitlines()[-1]))
-                print(name, json.dumps(runs[name][-1]), flush=True)
+        from checkouts import in_turn
+
         keys = ("no_wheel_us_per_grain_step", "wheel_us_per_grain_step", "wheel_rebuilds_per_step", "wheel_contacts")
-        median = {name: {key: statistics.median(r[key] for r in rows) for key in keys} for name, rows in runs.items()}
-        for name, source in sources.items():
-            print(f"{name} ({source}): median of {args.repeats}: {json.dumps(median[name])}")
+        median = in_turn(__file__, args.compare, sizes, args.repeats, keys)
         ratio = {name: m["wheel_us_per_grain_step"] / m["no_wheel_us_per_grain_step"] for name, m in median.items()}
         print(
             f"wheel / no wheel: other {ratio['other']:.2f}, this {ratio['this']:.2f}; other / this with the wheel: "

@@ -22,8 +22,6 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import statistics
-import subprocess
 import sys
 import tempfile
 import time
@@ -116,23 +114,10 @@ def main(argv=None) -> None:
     parser.add_argument("--json", action="store_true", help="print the result as one JSON line")
     args = parser.parse_args(argv)
     if args.compare:
-        sources = {"other": os.path.abspath(args.compare), "this": ROOT}
-        runs: dict = {name: [] for name in sources}
-        for _ in range(args.repeats):
-            for name, source in sources.items():
-                done = subprocess.run(
-                    [sys.executable, os.path.abspath(__file__), "--source", source, "--json"]
-                    + ["--duration", str(args.duration)],
-                    capture_output=True,
-                    text=True,
-                    check=True,
-                )
-                runs[name].append(json.loads(done.stdout.strip().splitlines()[-1]))
-                print(name, json.dumps(runs[name][-1]), flush=True)
+        from checkouts import in_turn
+
         keys = ("wall_ms_per_macro_step", "dem_ms_per_macro_step", "host_ms_per_macro_step", "rows_ms_per_macro_step")
-        median = {name: {key: statistics.median(r[key] for r in rows) for key in keys} for name, rows in runs.items()}
-        for name, source in sources.items():
-            print(f"{name} ({source}): median of {args.repeats}: {json.dumps(median[name])}")
+        median = in_turn(__file__, args.compare, ["--duration", str(args.duration)], args.repeats, keys)
         print(
             f"host work per macro step, other / this: "
             f"{median['other']['host_ms_per_macro_step'] / median['this']['host_ms_per_macro_step']:.2f}"

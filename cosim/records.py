@@ -51,7 +51,7 @@ def step_row(
     drive_start: np.ndarray | None,
     previous_body: np.ndarray | None,
     body_travel: float,
-    facts: dict | None = None,
+    facts: dict,
 ) -> dict:
     """One macro step's row for ResultsWriter.append_step.
 
@@ -59,10 +59,9 @@ def step_row(
     rover_state: its state row (K,) at the end of the step; drive_start: the hub positions [m] (3,)
     where the drive started (None: it has not, travel stays 0); previous_body: the rover body's
     position [m] (3,) at the previous row while driving (None before); body_travel: its path so far
-    [m]; facts: step_facts(system) as read at the step's end (None: read now). The row's
+    [m]; facts: step_facts(system) as read at the step's end. The row's
     'rover_position' and 'rover_travel' are what the next row takes as previous_body and
     body_travel."""
-    facts = step_facts(system) if facts is None else facts
     row: dict[str, Any] = {"time": record.time, "phase": phase, "rover_state": rover_state}
     per_wheel = [
         metrics.wheel_quantities(k, w, g, drive_start)

@@ -91,6 +91,17 @@ def overlapped(plan, tmp_path_factory):
     return out, result, events
 
 
+def _write_rows_at_once(monkeypatch) -> None:
+    """Make the runner write each step's row right after its step, as it did before the overlap."""
+    after_step = runner_module.Runner._after_step
+
+    def at_once(self, record):
+        after_step(self, record)
+        self._settle_row()
+
+    monkeypatch.setattr(runner_module.Runner, "_after_step", at_once)
+
+
 def _rows(folder) -> dict:
     with h5py.File(folder / "results.h5", "r") as f:
         return {
@@ -125,13 +136,7 @@ def test_a_row_is_written_while_the_next_step_computes(overlapped, plan):
 def test_rows_written_meanwhile_are_the_rows_written_at_once(overlapped, plan, tmp_path, monkeypatch):
     """What a row reads of the two sides is read when its step ends, not when the row is made."""
     out, _, _ = overlapped
-    after_step = runner_module.Runner._after_step
-
-    def at_once(self, record):
-        after_step(self, record)
-        self._settle_row()
-
-    monkeypatch.setattr(runner_module.Runner, "_after_step", at_once)
+    _write_rows_at_once(monkeypatch)
     run_plan(plan, str(tmp_path / "at_once"))
     ours, theirs = _rows(out), _rows(tmp_path / "at_once")
     assert set(ours) == set(theirs) and "wheels/force" in ours and "particles/position" in ours
@@ -164,18 +169,13 @@ def test_a_step_that_fails_leaves_every_row_before_it(plan, tmp_path, monkeypatc
 
 def test_an_scm_run_writes_its_rows_while_the_grid_steps_and_the_same_rows(tmp_path, monkeypatch):
     plan = load_plan(write_tiny(tmp_path, SCM), ["wheel.grouser_count=0", *SHORT])
-    after_step = runner_module.Runner._after_step
     with pytest.MonkeyPatch.context() as patch:  # the SCM steps launched by `advance`, read by `wheel_contact`
         events = _events(patch, launches=(ScmTerrain, "_pose"), reads=(ScmTerrain, "wheel_contact"))
         run_plan(plan, str(tmp_path / "meanwhile"))
     during, at_once = _order(events)
     assert len(during) + len(at_once) == int(round(0.1 / plan.macro_step)) and len(during) > 0.8 * len(at_once + during)
 
-    def at_once_row(self, record):
-        after_step(self, record)
-        self._settle_row()
-
-    monkeypatch.setattr(runner_module.Runner, "_after_step", at_once_row)
+    _write_rows_at_once(monkeypatch)
     run_plan(plan, str(tmp_path / "at_once"))
     ours, theirs = _rows(tmp_path / "meanwhile"), _rows(tmp_path / "at_once")
     assert set(ours) == set(theirs) and "wheels/sinkage" in ours
