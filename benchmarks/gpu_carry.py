@@ -1,7 +1,8 @@
 """The Python packages the GPU suite needs on a lent GPU machine, packed to travel there.
 
     python3 benchmarks/gpu_carry.py pack          # here, with network: .gpu_carry/1, .gpu_carry/2, ...
-    python3 benchmarks/gpu_carry.py check         # there: which parts have arrived
+    python3 benchmarks/gpu_carry.py check         # which parts have arrived, and whether their kernels
+                                                  # are this tree's (soil/ unchanged since the pack)
     python3 benchmarks/gpu_carry.py install       # there, once every part is in: into .gpu_site
                                                   # and the suite's kernels into .gpu_kernels
 
@@ -71,6 +72,9 @@ NATIVE = ("warp/bin/warp.so", "warp/bin/warp-clang.so")
 """Warp's native libraries, travelling xz-compressed (the rest of its wheel as a zip)."""
 LEFT_BEHIND = ("warp/examples/", "warp/tests/")
 """Parts of Warp's wheel nothing here imports (4 MiB)."""
+KERNEL_SOURCES = "soil"
+"""The folder whose Python files define every Warp kernel the suite loads: a carried kernel is looked
+up by its module's hash, so kernels packed from other sources than the tree's are not found there."""
 DEVICE_PLATFORMS = ("manylinux_2_28_x86_64", "manylinux_2_27_x86_64", "manylinux_2_17_x86_64", "manylinux2014_x86_64")
 
 
@@ -128,6 +132,39 @@ def kernel_files(cache: str, arch: int) -> list[str]:
     return sorted(found)
 
 
+def sources_digest(root: str = ROOT) -> str:
+    """sha256 over the Python files under `root`/KERNEL_SOURCES (paths and contents, in sorted order)."""
+    digest = hashlib.sha256()
+    base = os.path.join(root, KERNEL_SOURCES)
+    files = sorted(
+        os.path.relpath(os.path.join(folder, name), base)
+        for folder, _, names in os.walk(base)
+        for name in names
+        if name.endswith(".py")
+    )
+    for name in files:
+        digest.update(name.encode() + b"\0")
+        with open(os.path.join(base, name), "rb") as f:
+            digest.update(f.read() + b"\0")
+    return digest.hexdigest()
+
+
+def stale_kernels(manifest: dict, root: str = ROOT) -> str | None:
+    """Why the carried kernels will not serve the tree at `root` (packed from other kernel sources), or
+    None when they will (or when none were packed)."""
+    packed = manifest.get("kernel_sources")
+    if not manifest.get("kernels_arch") or packed is None:
+        return None
+    here = sources_digest(root)
+    if packed == here:
+        return None
+    return (
+        f"the kernels were packed from other sources than {os.path.join(root, KERNEL_SOURCES)}/ (sha256 "
+        f"{packed[:12]} packed, {here[:12]} here): Warp compiles every changed module on its first use, on "
+        "the device's time; pack again to carry them compiled"
+    )
+
+
 def pack(
     python_version: str,
     out: str = CARRY,
@@ -135,9 +172,12 @@ def pack(
     limit: int | None = None,
     kernels: str | None = None,
     arch: int = ARCH,
+    kernel_sources: str | None = None,
 ) -> dict:
     """Write the parts into `out`/1, `out`/2, ... (each with the manifest); returns the manifest.
-    `kernels`: a Warp kernel cache whose modules for `arch` travel too (compile_kernels)."""
+    `kernels`: a Warp kernel cache whose modules for `arch` travel too (compile_kernels);
+    `kernel_sources`: the sources_digest of the tree they were compiled from (taken before compiling;
+    None: this tree's now)."""
     with tempfile.TemporaryDirectory() as scratch:
         wheels = wheels or download(python_version, scratch)
         blob = os.path.join(scratch, "carry.tar")
@@ -172,6 +212,7 @@ def pack(
             "python_version": python_version,
             "bytes": size,
             "kernels_arch": arch if kernels else None,
+            "kernel_sources": (kernel_sources or sources_digest()) if kernels else None,
             "parts": [],
         }
         with open(blob, "rb") as f:
@@ -273,18 +314,25 @@ def main(argv=None) -> int:
     args = parser.parse_args(argv)
     try:
         if args.action == "pack":
+            sources = sources_digest()  # before compiling: a source edited meanwhile then reads as stale
             with tempfile.TemporaryDirectory() as scratch:
                 kernels = None if args.no_kernels else compile_kernels(args.arch, scratch)
-                manifest = pack(args.python_version, args.carry, kernels=kernels, arch=args.arch)
+                manifest = pack(
+                    args.python_version, args.carry, kernels=kernels, arch=args.arch, kernel_sources=sources
+                )
             sizes = ", ".join(f"{p['bytes'] / 2**20:.1f} MiB" for p in manifest["parts"])
             tree = tree_bytes() / 2**20
             print(f"{len(manifest['parts'])} parts in {args.carry} ({sizes}), each beside {tree:.1f} MiB of tree")
         elif args.action == "check":
             manifest = check(args.carry)
-            print(f"all {len(manifest['parts'])} parts present and intact")
+            stale = stale_kernels(manifest)
+            print(f"all {len(manifest['parts'])} parts present and intact" + (f"; {stale}" if stale else ""))
         else:
             for name in install(args.carry, args.target, args.kernels):
                 print(f"installed {name}")
+            stale = stale_kernels(check(args.carry))
+            if stale:
+                print(f"gpu_carry: {stale}", file=sys.stderr)
             print(f"export PYTHONPATH={args.target} WARP_CACHE_PATH={args.kernels}")
     except CarryError as error:
         print(f"gpu_carry: {error}", file=sys.stderr)

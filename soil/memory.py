@@ -3,7 +3,8 @@
 The device bytes per grain are those of `Simulation.bytes_per_grain()` (state buffers, layout,
 contact and list scratch, the divergence monitor's last good state), measured once per
 precision on an 11,368-grain bed (mixed; 25,440 for single and double) with rolling friction
-on (its largest layout) at two contact capacities (docs/performance.md section 5). They are
+on (its largest layout) at two contact capacities (docs/performance.md section 5), plus the
+contact kernels' torque sums (12 B single, 24 B mixed and double) added since. They are
 linear in the contact slots per grain (mixed keeps its contact history in float32, as single
 does):
 
@@ -22,7 +23,7 @@ from dataclasses import dataclass
 
 from .errors import InputError
 
-BASE_BYTES = {"single": 1080, "mixed": 1416, "double": 1977}
+BASE_BYTES = {"single": 1092, "mixed": 1440, "double": 2001}
 """Device bytes per grain besides the pair contact slots (4 wall/wheel slots included) [B]."""
 PER_SLOT_BYTES = {"single": 112, "mixed": 112, "double": 208}
 """Device bytes per pair contact slot of a grain (three state buffers and the monitor's copy) [B]."""

@@ -14,7 +14,7 @@ rolling and twist angles). It is read into `hi`, updated there, and rounded when
 
 One generic source serves every precision: a module's kernels are made by a factory
 function of (hi, mid, lo, switches) decorated with `kernel_factory`, which builds them once
-per combination and returns them as attributes (`kernels.contact_forces`). Where mid is hi
+per combination and returns them as attributes (`kernels.grain_contacts`). Where mid is hi
 (single, double) its conversions are the identity: those precisions compute exactly as
 they did before mid existed.
 """

@@ -11,6 +11,12 @@ device, whatever the storage order.
 The reaction of each rigid contact is written beside its slot and summed per wall and
 wheel over a fixed tree of model indices (soil.reduction: `wrench_partial` the leaves,
 `wrench_total` the last rows): deterministic, no atomics.
+
+A grain's sums take two kernels, in the order one would add them (the same bits):
+`grain_contacts` (the external load, then its row of grain contacts) and `rigid_contacts` (its
+walls and wheels). The rigid distances (a wheel's grousers, a mesh's query) need about twice the
+registers of a grain pair, and in one kernel they set the occupancy of every pair loop on a GPU
+(docs/performance.md section 7).
 """
 
 import numpy as np
@@ -26,6 +32,12 @@ from .precision import kernel_factory, kernel_module, soil_kernel
 from .reduction import WorldTree, leaf_span
 from .sdf import BODY_WHEEL, sdf_functions
 from .state import SoilState, storage_functions
+
+CONTACT_BLOCK_DIM = 128
+"""Threads per block of the contact kernels' launches on a GPU (the CPU ignores it). Their registers
+per thread on sm_90 (benchmarks/kernel_resources.py: grain_contacts 76-160, rigid_contacts 162-255)
+fit one block of 256 threads per SM above 128 registers, 8 warps; in blocks of 128 an SM keeps 12
+warps of them resident there, and never fewer than blocks of 256 do."""
 
 
 @kernel_factory
@@ -113,13 +125,11 @@ def contact_kernels(hi, mid, lo, law: ContactLaw, slot_major: bool = False):
         return -1
 
     @kernel
-    def contact_forces(
+    def grain_contacts(
         position: wp.array(dtype=vec_hi),
         velocity: wp.array(dtype=vec_hi),
         angular_velocity: wp.array(dtype=vec_mid),
         grains: Grains,
-        walls: Walls,
-        bodies: Bodies,
         neighbours: wp.array3d(dtype=wp.int32),
         neighbour_count: wp.array2d(dtype=wp.int32),
         list_index: wp.array(dtype=wp.int32),
@@ -131,16 +141,13 @@ def contact_kernels(hi, mid, lo, law: ContactLaw, slot_major: bool = False):
         world_size: int,
         # outputs
         force_out: wp.array(dtype=vec_hi),
-        torque_out: wp.array(dtype=vec_mid),
+        torque_sum_out: wp.array(dtype=vec_hi),
         contact_count_out: wp.array(dtype=wp.int32),
         history_out: History,
-        reaction_force_out: wp.array2d(dtype=vec_hi),
-        reaction_torque_out: wp.array2d(dtype=vec_hi),
-        status_out: wp.array(dtype=wp.int32),
     ):
-        """Force and torque on grain i at the state's positions and velocities, its new history,
-        and the reactions of its rigid contacts. After a rebuild the pair history was remapped
-        into history_out, and is read from there."""
+        """Force and torque on grain i from the external load and its grain contacts (the first
+        terms of its sums, which rigid_contacts finishes), and its new pair history. After a
+        rebuild the pair history was remapped into history_out, and is read from there."""
         i = wp.tid()
         dt = step_length[i // world_size]  # each world's step (soil.worlds: a world is one block of storage)
         xi = position[i]
@@ -230,6 +237,46 @@ def contact_kernels(hi, mid, lo, law: ContactLaw, slot_major: bool = False):
                         if wp.static(SPIN):
                             put(history_out.rolling, i, k, vec_spin_mid())
             put(history_out.touching, i, word, now)
+        force_out[i] = total_force
+        torque_sum_out[i] = total_torque
+        contact_count_out[i] = contacts
+
+    @kernel
+    def rigid_contacts(
+        position: wp.array(dtype=vec_hi),
+        velocity: wp.array(dtype=vec_hi),
+        angular_velocity: wp.array(dtype=vec_mid),
+        grains: Grains,
+        walls: Walls,
+        bodies: Bodies,
+        history_in: History,
+        step_length: wp.array(dtype=hi),
+        world_size: int,
+        torque_sum: wp.array(dtype=vec_hi),
+        # outputs (force_out and contact_count_out also read: grain_contacts' terms)
+        force_out: wp.array(dtype=vec_hi),
+        torque_out: wp.array(dtype=vec_mid),
+        contact_count_out: wp.array(dtype=wp.int32),
+        history_out: History,
+        reaction_force_out: wp.array2d(dtype=vec_hi),
+        reaction_torque_out: wp.array2d(dtype=vec_hi),
+        status_out: wp.array(dtype=wp.int32),
+    ):
+        """Grain i's contacts with rigid partners added to the sums grain_contacts began (in the
+        same order as one kernel would add them: the same bits), their history, and their
+        reactions. A kernel of its own because the walls' and wheels' distances (a wheel's
+        grousers, a mesh's query) need many more registers than a grain pair: in one kernel they
+        set the register count, and so the occupancy, of every grain's pair loop too."""
+        i = wp.tid()
+        dt = step_length[i // world_size]
+        xi = position[i]
+        vi = velocity[i]
+        wi = vec_hi(angular_velocity[i])
+        ri = grains.radius[i]
+        inv_mass_i = grains.inv_mass[i]
+        total_force = force_out[i]
+        total_torque = torque_sum[i]
+        contacts = contact_count_out[i]
 
         # rigid partners of the grain's world: walls (fixed grains do not touch them), then wheels
         # (every grain); a partner's key is its index among all walls, then all wheels
@@ -453,7 +500,8 @@ def contact_kernels(hi, mid, lo, law: ContactLaw, slot_major: bool = False):
         Walls=Walls,
         Bodies=Bodies,
         History=History,
-        contact_forces=contact_forces,
+        grain_contacts=grain_contacts,
+        rigid_contacts=rigid_contacts,
         elastic_energy=elastic_energy,
         wrench_partial=wrench_partial,
         wrench_total=wrench_total,
@@ -482,6 +530,9 @@ class ContactSolver:
         self._contacts = WorldTree(model.world_count, model.world_size, width, wp.int32, device)
         """Grains touching each of a world's partners."""
         self._reaction_force = self._reaction_torque = None
+        self._torque_sum = wp.zeros(model.particle_count, dtype=prec.vec_hi, device=device)
+        """Each grain's torque from its grain contacts [N m], shape (particle_count,), in `hi`:
+        grain_contacts' partial sum, which rigid_contacts finishes (stored rounded to `mid`)."""
         self._wall_reported = (
             model.boundary_column
             if model.boundary_column is not None
@@ -505,6 +556,7 @@ class ContactSolver:
         return [
             self._reaction_force,
             self._reaction_torque,
+            self._torque_sum,
             *self._moments.levels,
             *self._contacts.levels,
             *self.neighbours.device_arrays(),
@@ -513,7 +565,7 @@ class ContactSolver:
     def bytes_per_grain(self) -> float:
         """Device memory of the solver's scratch per grain [B]."""
         n = max(self.model.particle_count, 1)
-        scratch = self._moments.capacity + self._contacts.capacity
+        scratch = self._moments.capacity + self._contacts.capacity + self._torque_sum.capacity
         if self._reaction_force is not None:
             scratch += self._reaction_force.capacity + self._reaction_torque.capacity
         return scratch / n
@@ -581,36 +633,55 @@ class ContactSolver:
         self.neighbours.update(state_in, state_out, self.status)
         reaction_force, reaction_torque = self.reserve(state_out.rigid_capacity)
         layout = state_out.layout
+        grains, history_in, history_out = self.grains(state_out), self.history(state_in), self.history(state_out)
         wp.launch(
-            self.kernels.contact_forces,
+            self.kernels.grain_contacts,
             dim=model.particle_count,
             inputs=[
                 state_out.position,
                 state_out.velocity,
                 state_out.angular_velocity,
-                self.grains(state_out),
-                self.walls(state_out),
-                self.bodies(state_out),
+                grains,
                 layout.neighbours,
                 layout.neighbour_count,
                 state_out.list_index,
                 self.neighbours.rebuilt,
-                self.history(state_in),
+                history_in,
                 control.external_force,
                 int(control.external_force_used),
                 dt,
                 model.world_size,
             ],
+            outputs=[state_out.force, self._torque_sum, state_out.contact_count, history_out],
+            device=model.device,
+            block_dim=CONTACT_BLOCK_DIM,
+        )
+        wp.launch(
+            self.kernels.rigid_contacts,
+            dim=model.particle_count,
+            inputs=[
+                state_out.position,
+                state_out.velocity,
+                state_out.angular_velocity,
+                grains,
+                self.walls(state_out),
+                self.bodies(state_out),
+                history_in,
+                dt,
+                model.world_size,
+                self._torque_sum,
+            ],
             outputs=[
                 state_out.force,
                 state_out.torque,
                 state_out.contact_count,
-                self.history(state_out),
+                history_out,
                 reaction_force,
                 reaction_torque,
                 self.status,
             ],
             device=model.device,
+            block_dim=CONTACT_BLOCK_DIM,
         )
         if self._partners:
             self._sum(state_out, reaction_force, reaction_torque)

@@ -95,8 +95,8 @@ def _wheel(folder, name, version, files):
 
 def test_the_packages_carried_to_a_gpu_machine_arrive_whole(tmp_path):
     """benchmarks/gpu_carry.py: Warp's wheel and the suite's compiled kernels cut into parts that each fit
-    a call, put back together into the very bytes they were; a missing or damaged part is named, with the
-    call that brings it."""
+    a call, put back together into the very bytes they were; kernels packed from other sources than the
+    tree's are named stale; a missing or damaged part is named, with the call that brings it."""
     rng = np.random.default_rng(0)
     native = {path: rng.integers(0, 4, 300_000, dtype=np.uint8).tobytes() for path in gpu_carry.NATIVE}
     wheels = [
@@ -111,8 +111,22 @@ def test_the_packages_carried_to_a_gpu_machine_arrive_whole(tmp_path):
             (cache / module / (module + suffix)).write_bytes(module.encode() + suffix.encode())
     carry, site, kernels = str(tmp_path / "carry"), str(tmp_path / "site"), str(tmp_path / "kernels")
     version = f"{sys.version_info[0]}.{sys.version_info[1]}"
-    manifest = gpu_carry.pack(version, carry, wheels=wheels, limit=100_000, kernels=str(tmp_path / "cache"))
+    tree = tmp_path / "tree"  # the kernels' sources they were compiled from
+    (tree / "soil" / "scm").mkdir(parents=True)
+    (tree / "soil" / "solver.py").write_text("kernel = 1\n")
+    (tree / "soil" / "scm" / "kernels.py").write_text("kernel = 2\n")
+    manifest = gpu_carry.pack(
+        version,
+        carry,
+        wheels=wheels,
+        limit=100_000,
+        kernels=str(tmp_path / "cache"),
+        kernel_sources=gpu_carry.sources_digest(str(tree)),
+    )
     assert len(manifest["parts"]) >= 2 and all(p["bytes"] <= 100_000 for p in manifest["parts"])
+    assert gpu_carry.stale_kernels(gpu_carry.check(carry), str(tree)) is None
+    (tree / "soil" / "scm" / "kernels.py").write_text("kernel = 3\n")  # a kernel changed after the pack
+    assert "pack again" in gpu_carry.stale_kernels(gpu_carry.check(carry), str(tree))
     installed = gpu_carry.install(carry, site, kernels)
     assert installed[-1].startswith("2 Warp modules for sm_90")
     # only what an sm_90 device loads travels, at the path Warp's cache looks for it
@@ -182,3 +196,56 @@ def test_the_suites_kernels_compile_for_a_gpu_here(tmp_path):
     assert os.path.getsize(cubin) > 0 and cubin.startswith(str(tmp_path / "cache"))
     with open(cubin, "rb") as f:
         assert f.read(4) == b"\x7fELF"  # CUDA machine code is an ELF image
+
+
+def test_occupancy_follows_cudas_rules():
+    """benchmarks/kernel_resources.resident_warps against CUDA's occupancy rules for compute capability 9.0
+    (65,536 registers per SM allocated per warp in units of 256, 64 warps, 32 blocks, 228 KiB of shared
+    memory less 1 KiB per block), worked by hand."""
+    from benchmarks.kernel_resources import resident_warps
+
+    assert resident_warps(32) == 64  # 8 blocks of 8 warps: the warp limit
+    assert resident_warps(64) == 32  # 64 x 32 x 8 = 16,384 registers a block: 4 blocks
+    assert resident_warps(76) == 24  # 80 a thread once allocated: 20,480 a block, 3 blocks
+    assert resident_warps(168) == 8 and resident_warps(255) == 8  # one block of 256 threads
+    assert resident_warps(168, block_dim=128) == 12  # 21,504 registers a block: 3 blocks of 4 warps
+    assert resident_warps(255, block_dim=128) == 8  # 32,768 a block: 2 blocks
+    assert resident_warps(32, shared=48 * 1024) == 32  # 233,472 // 50,176 = 4 blocks
+    assert resident_warps(16, block_dim=32) == 32  # 32 blocks of one warp: the block limit
+
+
+REGISTER_SCRIPT = """
+import sys
+sys.path.insert(0, sys.argv[1])
+import warp as wp
+wp.config.quiet = True
+from benchmarks.kernel_resources import cubin_kernels
+
+def hungry(x: wp.array(dtype=wp.float64), y: wp.array(dtype=wp.float64)):
+    i = wp.tid()
+    a = wp.mat44d(x[i], x[i + 1], x[i + 2], x[i + 3], x[i + 4], x[i + 5], x[i + 6], x[i + 7],
+                  x[i + 8], x[i + 9], x[i + 10], x[i + 11], x[i + 12], x[i + 13], x[i + 14], x[i + 15])
+    b = wp.inverse(a) * a * wp.inverse(wp.transpose(a))
+    y[i] = wp.determinant(b) + wp.trace(a * b)
+
+for name, options in (("free", {}), ("capped", {"cuda_max_registers": 32})):
+    kernel = wp.kernel(hungry, module=f"register_check_{name}", enable_backward=False, **options)
+    (path,) = wp.compile_aot_module(kernel.module, arch=90, module_dir=sys.argv[2] + "/" + name, use_ptx=False)
+    (figures,) = cubin_kernels(str(path)).values()
+    print(name, figures["registers"], figures["stack_bytes"])
+"""
+
+
+def test_the_registers_read_from_a_cubin_are_the_compilers(tmp_path):
+    """benchmarks/kernel_resources.cubin_kernels reads what NVRTC recorded for sm_90 (no GPU): a kernel held
+    to 32 registers per thread (CUDA's __maxnreg__) reads at most 32 and spills to a stack, the same kernel
+    free reads more than 32 and no stack."""
+    script = tmp_path / "registers.py"
+    script.write_text(REGISTER_SCRIPT)
+    done = subprocess.run(
+        [sys.executable, str(script), ROOT, str(tmp_path)], capture_output=True, text=True, timeout=300
+    )
+    assert done.returncode == 0, done.stdout[-2000:] + done.stderr[-2000:]
+    read = {line.split()[0]: tuple(map(int, line.split()[1:])) for line in done.stdout.splitlines()[-2:]}
+    assert read["capped"][0] <= 32 and read["capped"][1] > 0, read
+    assert read["free"][0] > 32 and read["free"][1] == 0, read
