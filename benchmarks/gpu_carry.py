@@ -152,9 +152,11 @@ def sources_digest(root: str = ROOT) -> str:
 def stale_kernels(manifest: dict, root: str = ROOT) -> str | None:
     """Why the carried kernels will not serve the tree at `root` (packed from other kernel sources), or
     None when they will (or when none were packed)."""
-    packed = manifest.get("kernel_sources")
-    if not manifest.get("kernels_arch") or packed is None:
+    if not manifest.get("kernels_arch"):
         return None
+    packed = manifest.get("kernel_sources")
+    if packed is None:
+        return "the pack does not say which sources its kernels were compiled from (packed before it did): pack again"
     here = sources_digest(root)
     if packed == here:
         return None

@@ -253,7 +253,7 @@ def resting_height(sim, wheel: GrouserWheel, x: float, y: float) -> float:
 
 def kernel_name(timed: str) -> str:
     """A kernel's own name from Warp's timing name ('forward kernel soil__solver__contact_kernels__locals__
-    contact_forces_1a2b3c4d' -> 'contact_forces'); builtin kernels keep theirs."""
+    grain_contacts_1a2b3c4d' -> 'grain_contacts'); builtin kernels keep theirs."""
     if not timed.startswith("forward kernel "):
         return timed
     return re.sub(r"_[0-9a-f]{8}$", "", timed.removeprefix("forward kernel ")).split("__")[-1]

@@ -9,7 +9,8 @@ precision, with and without rolling resistance) is compiled by Warp's NVRTC for 
 (`wp.compile_aot_module`: a cubin), and the compiler's own record of each kernel is read from it:
 its registers per thread (the EIATTR_REGCOUNT attribute of the cubin's .nv.info section) and the
 stack it needs (EIATTR_MIN_STACK_SIZE: spills and local arrays, in local memory). From the registers,
-the block size Warp launches with (256) and the static shared memory, CUDA's occupancy rules give
+the block size Warp launches with (its module's: 256, the contact module's 128) and the static shared
+memory, CUDA's occupancy rules (at block sizes that are multiples of 128) give
 the warps one SM keeps resident, which is what hides the latency of the grains' neighbour gathers
 in a memory-bound step. These are the compiler's figures, not a timing: what they change in
 particle-steps/s only a GPU measures (benchmarks/gpu_suite.py).
@@ -28,13 +29,12 @@ import tempfile
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 ARCH = 90
 BLOCK_DIM = 256
-"""Threads per block of Warp's launches (wp.launch's default block_dim), unless the soil says otherwise."""
-CONTACT_KERNELS = ("grain_contacts", "rigid_contacts", "contact_forces")
-"""Kernels launched with soil.solver.CONTACT_BLOCK_DIM threads per block, where a checkout has it."""
+"""Threads per block of Warp's launches (a module's default block_dim), unless its module says otherwise."""
 EIATTR_REGCOUNT = 0x2F
 EIATTR_MIN_STACK_SIZE = 0x12
 EIFMT_SVAL = 0x04
-EIFMT_HVAL = 0x03
+"""A record with a 2-byte size and that many bytes of value; the others (EIFMT_NVAL 0x01, EIFMT_BVAL
+0x02, EIFMT_HVAL 0x03) take 4 bytes in all."""
 
 
 class SM:
@@ -85,10 +85,8 @@ def _nv_info(data: bytes) -> dict[int, list[tuple[int, int]]]:
             p += 4 + size
             if size == 8:
                 attributes.setdefault(attribute, []).append(struct.unpack("<II", value))
-        elif form == EIFMT_HVAL:
-            p += 4
         else:
-            p += 2
+            p += 4
     return attributes
 
 
@@ -121,7 +119,8 @@ def _short(name: str) -> str:
     """A Warp kernel's name in its cubin, without the factory's prefix, the hash and the suffix."""
     name = name.removesuffix("_cuda_kernel_forward").split("__locals__")[-1]
     stem, _, tail = name.rpartition("_")
-    return stem if len(tail) == 8 else name
+    is_hash = len(tail) == 8 and all(c in "0123456789abcdef" for c in tail)
+    return stem if is_hash else name
 
 
 def measure(source: str, arch: int) -> list[dict]:
@@ -131,14 +130,11 @@ def measure(source: str, arch: int) -> list[dict]:
 
     wp.config.quiet = True
     wp.config.log_level = max(wp.config.log_level, wp.LOG_WARNING)
-    from soil import solver
     from soil.contact import ContactLaw
     from soil.integrator import integrator_kernels
     from soil.neighbours import neighbour_kernels
     from soil.precision import PRECISIONS, get_precision
     from soil.solver import contact_kernels
-
-    contact_block = getattr(solver, "CONTACT_BLOCK_DIM", BLOCK_DIM)
 
     rows = []
     with tempfile.TemporaryDirectory() as folder:
@@ -148,16 +144,15 @@ def measure(source: str, arch: int) -> list[dict]:
                 for factory in (contact_kernels, integrator_kernels, neighbour_kernels):
                     kernels = factory(p.hi, p.mid, p.lo, law)
                     module = next(v.module for v in vars(kernels).values() if isinstance(v, wp.Kernel))
+                    block = module.options["block_dim"]  # the module's block size: its launches' (soil.solver)
                     target = os.path.join(folder, module.name)
                     paths = wp.compile_aot_module(module, arch=arch, module_dir=target, use_ptx=False)
                     for path in (str(q) for q in paths):
                         for name, figures in cubin_kernels(path).items():
-                            kernel = _short(name)
-                            block = contact_block if kernel in CONTACT_KERNELS else BLOCK_DIM
                             warps = resident_warps(figures["registers"], figures["shared_bytes"], block)
                             rows.append(
                                 {
-                                    "kernel": kernel,
+                                    "kernel": _short(name),
                                     "law": law_name,
                                     "precision": precision,
                                     **figures,

@@ -34,10 +34,11 @@ from .sdf import BODY_WHEEL, sdf_functions
 from .state import SoilState, storage_functions
 
 CONTACT_BLOCK_DIM = 128
-"""Threads per block of the contact kernels' launches on a GPU (the CPU ignores it). Their registers
-per thread on sm_90 (benchmarks/kernel_resources.py: grain_contacts 76-160, rigid_contacts 162-255)
-fit one block of 256 threads per SM above 128 registers, 8 warps; in blocks of 128 an SM keeps 12
-warps of them resident there, and never fewer than blocks of 256 do."""
+"""Threads per block of the contact module's launches on a GPU (its Warp module option `block_dim`:
+Warp compiles a module once per block size, so the module holds it, not each launch). Registers per
+thread on sm_90 (benchmarks/kernel_resources.py: grain_contacts 76-160, rigid_contacts 162-255): from
+129 to 168 an SM keeps one block of 256 threads resident, 8 warps, but 3 blocks of 128, 12 warps;
+at other counts blocks of 128 keep as many warps as blocks of 256, never fewer."""
 
 
 @kernel_factory
@@ -47,6 +48,7 @@ def contact_kernels(hi, mid, lo, law: ContactLaw, slot_major: bool = False):
 
     Spins and history are stored in `mid` (soil.precision): read into `hi`, rounded when stored."""
     module = kernel_module("contact", hi, mid, lo, law, *(("slot",) if slot_major else ()))
+    wp.set_module_options({"block_dim": CONTACT_BLOCK_DIM}, module)
     kernel = soil_kernel(module)
     storage = storage_functions(module, slot_major)
     entry, list_capacity, at, put, slots = storage.entry, storage.list_capacity, storage.at, storage.put, storage.slots
@@ -654,7 +656,6 @@ class ContactSolver:
             ],
             outputs=[state_out.force, self._torque_sum, state_out.contact_count, history_out],
             device=model.device,
-            block_dim=CONTACT_BLOCK_DIM,
         )
         wp.launch(
             self.kernels.rigid_contacts,
@@ -681,7 +682,6 @@ class ContactSolver:
                 self.status,
             ],
             device=model.device,
-            block_dim=CONTACT_BLOCK_DIM,
         )
         if self._partners:
             self._sum(state_out, reaction_force, reaction_torque)

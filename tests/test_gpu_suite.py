@@ -127,6 +127,8 @@ def test_the_packages_carried_to_a_gpu_machine_arrive_whole(tmp_path):
     assert gpu_carry.stale_kernels(gpu_carry.check(carry), str(tree)) is None
     (tree / "soil" / "scm" / "kernels.py").write_text("kernel = 3\n")  # a kernel changed after the pack
     assert "pack again" in gpu_carry.stale_kernels(gpu_carry.check(carry), str(tree))
+    unsaid = {k: v for k, v in manifest.items() if k != "kernel_sources"}  # a pack from before the digest
+    assert "pack again" in gpu_carry.stale_kernels(unsaid, str(tree))
     installed = gpu_carry.install(carry, site, kernels)
     assert installed[-1].startswith("2 Warp modules for sm_90")
     # only what an sm_90 device loads travels, at the path Warp's cache looks for it
