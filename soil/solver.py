@@ -34,8 +34,9 @@ from .sdf import BODY_WHEEL, sdf_functions
 from .state import SoilState, storage_functions
 
 CONTACT_BLOCK_DIM = 128
-"""Threads per block of the contact module's launches on a GPU (its Warp module option `block_dim`:
-Warp compiles a module once per block size, so the module holds it, not each launch). Registers per
+"""Threads per block of the contact module's launches on a GPU. Warp compiles a module once per block
+size, so it is both the module's option `block_dim` (the copy a preload before capture and an
+ahead-of-time compile build) and every launch's (wp.launch takes 256 on a GPU unless told). Registers per
 thread on sm_90 (benchmarks/kernel_resources.py: grain_contacts 76-160, rigid_contacts 162-255): from
 129 to 168 an SM keeps one block of 256 threads resident, 8 warps, but 3 blocks of 128, 12 warps;
 at other counts blocks of 128 keep as many warps as blocks of 256, never fewer."""
@@ -656,6 +657,7 @@ class ContactSolver:
             ],
             outputs=[state_out.force, self._torque_sum, state_out.contact_count, history_out],
             device=model.device,
+            block_dim=CONTACT_BLOCK_DIM,
         )
         wp.launch(
             self.kernels.rigid_contacts,
@@ -682,6 +684,7 @@ class ContactSolver:
                 self.status,
             ],
             device=model.device,
+            block_dim=CONTACT_BLOCK_DIM,
         )
         if self._partners:
             self._sum(state_out, reaction_force, reaction_torque)
@@ -710,6 +713,7 @@ class ContactSolver:
             ],
             outputs=[moments.leaves, contacts.leaves],
             device=model.device,
+            block_dim=CONTACT_BLOCK_DIM,
         )
         moments.fold(summed_columns=moments.leaves.shape[1])
         contacts.fold(summed_columns=contacts.leaves.shape[1])
@@ -733,6 +737,7 @@ class ContactSolver:
                 state.body_contacts,
             ],
             device=model.device,
+            block_dim=CONTACT_BLOCK_DIM,
         )
 
     def current_list(self, state: SoilState) -> int:
@@ -763,6 +768,7 @@ class ContactSolver:
             ],
             outputs=[energy],
             device=model.device,
+            block_dim=CONTACT_BLOCK_DIM,
         )
         per_grain = np.empty(model.particle_count)
         per_grain[layout.order.numpy()] = energy.numpy()

@@ -251,3 +251,35 @@ def test_the_registers_read_from_a_cubin_are_the_compilers(tmp_path):
     read = {line.split()[0]: tuple(map(int, line.split()[1:])) for line in done.stdout.splitlines()[-2:]}
     assert read["capped"][0] <= 32 and read["capped"][1] > 0, read
     assert read["free"][0] > 32 and read["free"][1] == 0, read
+
+
+def test_every_step_kernel_launches_at_its_modules_block_size(monkeypatch):
+    """Warp compiles a module once per block size, and on a GPU a launch without one takes 256. A kernel
+    launched at another block size than its module's option would run a copy that neither the preload
+    before a graph's capture (soil.macro.StepGraphs.load_modules) nor the kernels compiled ahead for a
+    lent GPU (gpu_suite --compile-for-arch) built. Every launch of a macro step and of the elastic energy
+    (the contact module at soil.solver.CONTACT_BLOCK_DIM) passes its module's block size."""
+    import warp as wp
+
+    from soil import Simulation
+    from soil.bed import BedSpec, build_bed
+
+    launched = []
+    launch = wp.launch
+
+    def recorded(kernel, *args, **kwargs):
+        block = kwargs.get("block_dim") or 256  # wp.launch's own default on a GPU
+        launched.append((kernel.key, kernel.module.name, block, kernel.module.options["block_dim"]))
+        return launch(kernel, *args, **kwargs)
+
+    monkeypatch.setattr(wp, "launch", recorded)
+    spec = BedSpec(length=0.04, width=0.03, depth=0.02, radius_mean=0.002)
+    model, state, control = build_bed(spec, "moon").finalize(device="cpu", precision="mixed")
+    simulation = Simulation(model, state, control)
+    simulation.graphs.enabled = False  # every step's launches seen, not a replay
+    simulation.macro_step(3, 1e-5)
+    simulation.elastic_energy()
+    contact = {module for _, module, _, option in launched if option != 256}
+    assert any(key.endswith("grain_contacts") for key, *_ in launched) and contact, launched
+    wrong = [(key, block, option) for key, _, block, option in launched if block != option]
+    assert not wrong, wrong
