@@ -213,12 +213,16 @@ def test_slip_controller_holds_target_slip_on_a_bed(tmp_path_factory):
     1 - travel / (r x wheel rotation), is s* within 0.01, and the slip measured from the
     kinematics at every macro step, 1 - v / (omega r), deviates from s* by 0.02 rms at most.
 
-    The run is chaotic (the bed): over 8 replicas (order_seed None, 0..5 with mujoco 4.0.0,
-    None with 3.17.0; CPU, double) the slip over the distance was s* within 3.3e-4, the
-    rms deviation 0.0024 to 0.0030 (largest single deviation 0.0135), and the hub
-    ended at x = 0.131 to 0.172 m: the limits are 30x and 6.7x the worst measured."""
+    The run is chaotic (the bed): over 29 replicas (order_seed None, 0..27; CPU, double,
+    mujoco 4.0.1) the slip over the distance was s* within 3.5e-4, the rms deviation 0.0017 to
+    0.0040 (largest single deviation 0.029), and the hub ended at x = 0.145 to 0.235 m (the
+    bed's end, less the wheel: 0.367 m): the limits are 29x and 5x the worst measured.
+    The wheel starts touching the surface. Pressed 1 mm into it, its first contact threw it up
+    (11 N against its 3 N weight), and in 2 to 3 replicas of 29 it then rolled back: its slip
+    above 1, the controller held it at omega_min through the window (slip over the distance
+    0.34-0.58); a 0.3 m bed also left too little room for the faster replicas."""
     gravity, target = 9.81, 0.3
-    bed, surface, dt = settled_bed(tmp_path_factory, gravity, 0.3, 0.06)
+    bed, surface, dt = settled_bed(tmp_path_factory, gravity, 0.4, 0.06)
     soil = DemSoil.from_bed(bed, [WHEEL], soil_material(gravity), dt, surface, device="cpu", precision="double")
     xml = single_wheel_rig_xml(
         wheel_radius=WHEEL.radius,
@@ -227,7 +231,7 @@ def test_slip_controller_holds_target_slip_on_a_bed(tmp_path_factory):
         carriage_mass=0.1,
         ballast_mass=0.15,
         motor_kv=0.5,
-        hub_height=surface + WHEEL.outer_radius - 0.001,
+        hub_height=surface + WHEEL.outer_radius,
         gravity=(0, 0, -gravity),
     )
     # the rig runs along y = 0; put it on the bed's centre line (the bed spans y in [0, 0.06])
@@ -242,7 +246,7 @@ def test_slip_controller_holds_target_slip_on_a_bed(tmp_path_factory):
     angle = []
     rec = stack_records(coupler.run(0.6, callback=lambda c: angle.append(rover.data.qpos[hinge])))
     angle = np.array(angle)
-    assert rover.wheel_kinematics()[0].position[0] < 0.3 - WHEEL.outer_radius, "stayed on the bed"
+    assert rover.wheel_kinematics()[0].position[0] < 0.4 - WHEEL.outer_radius, "stayed on the bed"
 
     window = np.nonzero(rec["time"] > 0.3)[0]
     first, last = window[0] - 1, window[-1]
