@@ -5,6 +5,7 @@ on a standing bed at Phobos gravity, beside the same bed stepped without a wheel
     python benchmarks/coupled_step_cost.py                          # this checkout
     python benchmarks/coupled_step_cost.py --compare /path/to/old   # the other checkout and this one,
                                                                     # alternating, in one run
+    python benchmarks/coupled_step_cost.py --precision mixed        # single | mixed | double (default)
 
 The bed is a pressed lattice (benchmarks/beds.py lattice_bed, shallow): it stands still from
 the first step, so what the wheel stirs is all that moves. The wheel is made with the model,
@@ -24,7 +25,7 @@ import warnings
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
 
-def measure(grains: int, macro_steps: int, substeps: int) -> dict:
+def measure(grains: int, macro_steps: int, substeps: int, precision: str = "double") -> dict:
     import numpy as np
     import warp as wp
 
@@ -48,10 +49,10 @@ def measure(grains: int, macro_steps: int, substeps: int) -> dict:
             builder.add_wheel(wheel, mat)
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")  # the lattice starts pressed: on purpose
-            return Simulation(*builder.finalize("cpu", "double"))
+            return Simulation(*builder.finalize("cpu", precision))
 
     n = len(radii)
-    result = {"grains": n, "dt": dt, "substeps": substeps, "timed_macro_steps": macro_steps}
+    result = {"grains": n, "dt": dt, "substeps": substeps, "timed_macro_steps": macro_steps, "precision": precision}
 
     plain = simulation(False)
     plain.macro_step(substeps, dt)  # kernels loaded, graphs captured
@@ -101,9 +102,11 @@ def main(argv=None) -> None:
     parser.add_argument("--grains", type=int, default=8000)
     parser.add_argument("--macro-steps", type=int, default=20)
     parser.add_argument("--substeps", type=int, default=10, help="DEM steps per macro step")
+    parser.add_argument("--precision", default="double", choices=("single", "mixed", "double"))
     parser.add_argument("--json", action="store_true", help="print the result as one JSON line")
     args = parser.parse_args(argv)
     sizes = ["--grains", str(args.grains), "--macro-steps", str(args.macro_steps), "--substeps", str(args.substeps)]
+    sizes += ["--precision", args.precision]
     if args.compare:
         from checkouts import in_turn
 
@@ -116,7 +119,7 @@ def main(argv=None) -> None:
         )
         return
     sys.path.insert(0, os.path.abspath(args.source))
-    result = measure(args.grains, args.macro_steps, args.substeps)
+    result = measure(args.grains, args.macro_steps, args.substeps, args.precision)
     result["source"] = os.path.dirname(os.path.dirname(os.path.abspath(sys.modules["soil"].__file__)))
     print(json.dumps(result) if args.json else json.dumps(result, indent=1))
 

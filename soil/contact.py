@@ -3,8 +3,10 @@
 `contact_functions(hi, lo, law).contact_law` is a @wp.func that turns one contact (overlap,
 normal, relative motion, history) into the force and rolling torque on the particle.
 Terms that the ContactLaw switches off are removed at compile time (wp.static), so
-they cost nothing. Geometry and history use `hi`; the force law itself uses `lo`. The callers
-store the history in `mid` (soil.precision) and convert it on the way in and out.
+they cost nothing. Geometry and history use the first type, the force law's scalars the second:
+a wall's or wheel's contact calls it with (hi, lo), a grain pair with (lo, lo) once it has taken
+its differences in hi (soil.solver). The callers store the history in `mid` (soil.precision) and
+convert it on the way in and out.
 """
 
 import math

@@ -1,12 +1,15 @@
 """Floating-point precision modes (docs/physics.md section 3) and the one kernel factory cache.
 
 `hi` is the type of everything where rounding accumulates against a small physical
-scale: absolute positions and their updates, velocities, forces, wheel and wall wrenches,
-the neighbour list's build positions. Arithmetic is done in `hi`.
+scale: absolute positions and their updates, velocities, forces and their sums, wheel and
+wall wrenches, the neighbour list's build positions, and the differences a contact starts
+from (two positions, two velocities). Arithmetic is done in `hi` unless said otherwise.
 `mid` is the stored type of what the error analysis allows in 7 digits (docs/physics.md
 section 3): angular velocities, torques, and the contact history (tangential springs,
 rolling and twist angles). It is read into `hi`, updated there, and rounded when stored.
-`lo` is the type of the contact-law evaluation and the per-particle constants.
+`lo` is the type of the per-particle constants, of the contact law, and of the whole of a
+grain pair's contact once its differences are taken in `hi`: every value it computes is
+then relative to those differences, and 7 digits of each suffice.
 
 - single: hi = mid = lo = float32
 - double: hi = mid = lo = float64

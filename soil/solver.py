@@ -57,6 +57,10 @@ def contact_kernels(hi, mid, lo, law: ContactLaw, slot_major: bool = False):
     vec_mid = wp.types.vector(3, mid)
     mat_hi = wp.types.matrix((3, 3), hi)
     contact_law = contact_functions(hi, lo, law).contact_law
+    # A grain pair is evaluated in `lo` once its differences are taken in `hi` (docs/physics.md section 3)
+    pair_law = contact_functions(lo, lo, law).contact_law
+    vec_lo = wp.types.vector(3, lo)
+    vec_spin_lo = spin_history_type(lo, law)
     sdf = sdf_functions(hi)
     boundary_contact, boundary_reference = sdf.boundary_contact, sdf.boundary_reference
     wheel_distance, mesh_distance = sdf.wheel_distance, sdf.mesh_distance
@@ -155,7 +159,7 @@ def contact_kernels(hi, mid, lo, law: ContactLaw, slot_major: bool = False):
         dt = step_length[i // world_size]  # each world's step (soil.worlds: a world is one block of storage)
         xi = position[i]
         vi = velocity[i]
-        wi = vec_hi(angular_velocity[i])
+        wi = vec_lo(angular_velocity[i])
         ri = grains.radius[i]
         inv_mass_i = grains.inv_mass[i]
         total_force = vec_hi()
@@ -188,30 +192,33 @@ def contact_kernels(hi, mid, lo, law: ContactLaw, slot_major: bool = False):
                     inv_sum = inv_mass_i + grains.inv_mass[j]
                 overlap = reach - distance
                 if overlap > hi(0.0) and distance > hi(0.0) and inv_sum > lo(0.0):
-                    n = gap / distance
-                    lever_i = hi(ri) - hi(0.5) * overlap
-                    lever_j = hi(rj) - hi(0.5) * overlap
-                    w_j = vec_hi(angular_velocity[j])
-                    v_j = velocity[j] - wp.cross(w_j, lever_j * n)  # partner's contact point
-                    v_rel = (vi + wp.cross(wi, lever_i * n)) - v_j
+                    # The milli-g scales live in the differences (an overlap of nm between positions of
+                    # m, a relative velocity between grains that move together), taken above in hi;
+                    # what follows is relative to them and needs no more than lo's 7 digits.
+                    n = vec_lo(gap / distance)
+                    ov = lo(overlap)
+                    lever_i = ri - lo(0.5) * ov
+                    lever_j = rj - lo(0.5) * ov
+                    w_j = vec_lo(angular_velocity[j])
+                    v_rel = vec_lo(vi - velocity[j]) + wp.cross(wi, lever_i * n) + wp.cross(w_j, lever_j * n)
                     bit = wp.uint32(1) << wp.uint32(k & 31)
-                    t_hist = vec_hi()
-                    r_hist = vec_spin()
+                    t_hist = vec_lo()
+                    r_hist = vec_spin_lo()
                     if (was & bit) != wp.uint32(0):
                         if wp.static(FRICTION):
                             if remapped:
-                                t_hist = vec_hi(at(history_out.tangential, i, k))
+                                t_hist = vec_lo(at(history_out.tangential, i, k))
                             else:
-                                t_hist = vec_hi(at(history_in.tangential, i, k))
+                                t_hist = vec_lo(at(history_in.tangential, i, k))
                         if wp.static(SPIN):
                             if remapped:
-                                r_hist = vec_spin(at(history_out.rolling, i, k))
+                                r_hist = vec_spin_lo(at(history_out.rolling, i, k))
                             else:
-                                r_hist = vec_spin(at(history_in.rolling, i, k))
+                                r_hist = vec_spin_lo(at(history_in.rolling, i, k))
                     pair_row = grains.material[i] * grains.material_count + grains.material[j]
-                    f, m_roll, t_new, r_new = contact_law(
+                    f, m_roll, t_new, r_new = pair_law(
                         n,
-                        overlap,
+                        ov,
                         v_rel,
                         wi - w_j,
                         ri * rj / (ri + rj),
@@ -220,10 +227,10 @@ def contact_kernels(hi, mid, lo, law: ContactLaw, slot_major: bool = False):
                         pair_row,
                         t_hist,
                         r_hist,
-                        dt,
+                        lo(dt),
                     )
-                    total_force = total_force + f
-                    total_torque = total_torque + wp.cross(lever_i * n, f) + m_roll
+                    total_force = total_force + vec_hi(f)
+                    total_torque = total_torque + vec_hi(wp.cross(lever_i * n, f) + m_roll)
                     if wp.static(FRICTION):
                         put(history_out.tangential, i, k, vec_mid(t_new))
                     if wp.static(SPIN):

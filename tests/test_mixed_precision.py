@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 from test_stick_slip import PHOBOS, SQUEEZE, squeezed_sphere, tilt, tilted_block
 
-from soil import ContactLaw, Simulation
+from soil import ContactLaw, Material, Simulation, SoilBuilder
 from soil.bed import BedSpec, build_bed
 
 HI = ("position", "velocity", "force", "force_previous", "body_force", "body_torque", "boundary_force")
@@ -117,3 +117,55 @@ def test_the_stiff_block_at_phobos_sticks_and_slides_in_mixed_as_in_double():
     theta = math.radians(32.0)
     expected = PHOBOS * (math.sin(theta) - math.tan(math.radians(20)) * math.cos(theta))
     assert acceleration == pytest.approx(expected, rel=0.01)
+
+
+def block_on_grain(precision, youngs_modulus, theta_deg):
+    """tilted_block's block resting on a fixed grain instead of a plane, both half a metre from the
+    origin (where float32 positions are 6e-8 m apart): (simulation, block's mass, step)."""
+    theta, radius = math.radians(theta_deg), 5e-3
+    mass = 2600 * 4 / 3 * math.pi * radius**3
+    e_star = 1 / (2 * (1 - 0.3**2) / youngs_modulus)
+    overlap = (3 * mass * PHOBOS * math.cos(theta) / (4 * e_star * math.sqrt(radius / 2))) ** (2 / 3)
+    material = Material(
+        youngs_modulus=youngs_modulus,
+        restitution=0.1,
+        stick_angle=math.radians(30),
+        slip_angle=math.radians(20),
+        stick_speed=1e-4,
+    )
+    builder = SoilBuilder(gravity=(0.0, 0.0, -PHOBOS * math.cos(theta)))
+    soil = builder.add_material(material)
+    base = np.array([0.5, 0.0, 0.5])
+    builder.add_particle(base, radius, soil, fixed=True)
+    builder.add_particle(base + (0.0, 0.0, 2 * radius - overlap), radius, soil, lock_rotation=True)
+    model, state, control = builder.finalize(device="cpu", precision=precision)
+    step = 1.6e-5 * (9.81 / PHOBOS) ** (1 / 3) * (1e7 / youngs_modulus) ** (1 / 3)  # tilted_block's, R* halved
+    return Simulation(model, state, control), mass, step
+
+
+def test_a_stiff_grain_pair_at_phobos_sticks_in_mixed_as_in_double():
+    """The stiff block of the test above on a grain: mixed evaluates a grain pair in float32 once its
+    differences are taken in float64 (docs/physics.md section 3). Half a metre from the origin, with a
+    Hertz overlap of nanometres, its spring must hold the block at 28 deg as double's does, and equal
+    double's to float32 rounding."""
+    stiff, theta = 1e8, 28.0
+    duration = 0.05 * math.sqrt(9.81 / PHOBOS)
+    springs = {}
+    for precision in ("double", "mixed"):
+        sim, mass, dt = block_on_grain(precision, stiff, theta)
+        pull = mass * PHOBOS * math.sin(math.radians(theta))
+        for k in range(1, 101):  # tilted slowly, as tilt() does
+            sim.control.set_external_force(np.array([[0.0, 0.0, 0.0], [pull * k / 100, 0.0, 0.0]]))
+            sim.run(duration / 100, dt)
+        sim.run(duration, dt)
+        velocity = sim.velocities()[1]
+        assert np.linalg.norm(velocity) < 1e-3 * 1e-4, (precision, velocity)
+        overlap = 2 * 5e-3 - float(np.linalg.norm(sim.positions()[1] - sim.positions()[0]))
+        assert 0 < overlap < np.spacing(np.float32(0.5)), "the pair rests below float32 resolution at 0.5 m"
+        rows = sim.state.to_numpy()["pair_tangential"].reshape(-1, 3).astype(np.float64)
+        rows = rows[np.linalg.norm(rows, axis=1) > 0]
+        springs[precision] = rows[np.argsort(rows[:, 0])]
+    spring = np.linalg.norm(springs["double"][-1])
+    assert springs["double"].shape == springs["mixed"].shape == (2, 3)
+    assert 0 < spring < 1e-8
+    np.testing.assert_allclose(springs["mixed"], springs["double"], rtol=0, atol=1e-5 * spring)
