@@ -262,18 +262,26 @@ def advance_soil(
     the soil computes when its `advance` takes that keyword (SoilSide.advance), else after it."""
     if meanwhile is None:
         return soil.advance(t_end, start, end)
-    if _takes_meanwhile(getattr(soil.advance, "__func__", soil.advance)):
+    if _takes_meanwhile(soil.advance):
         return soil.advance(t_end, start, end, meanwhile=meanwhile)  # type: ignore[call-arg]
     wrenches = soil.advance(t_end, start, end)
     meanwhile()
     return wrenches
 
 
-@functools.cache
 def _takes_meanwhile(advance: Callable) -> bool:
-    """Whether a soil's `advance` (its class's function) takes `meanwhile`: asked once per class, not
-    once per macro step (inspect.signature costs tens of microseconds of the host's step)."""
-    return "meanwhile" in inspect.signature(advance).parameters
+    """Whether a soil's `advance` takes `meanwhile`: asked once per class's function, not once per
+    macro step (inspect.signature costs tens of microseconds of the host's step)."""
+    function = getattr(advance, "__func__", advance)  # a bound method: its class's function
+    try:
+        return _accepts_meanwhile(function)
+    except TypeError:  # an unhashable callable: asked each time
+        return _accepts_meanwhile.__wrapped__(function)
+
+
+@functools.cache
+def _accepts_meanwhile(function: Callable) -> bool:
+    return "meanwhile" in inspect.signature(function).parameters
 
 
 class SoilSideDefaults:

@@ -203,3 +203,41 @@ def test_a_batched_run_does_its_work_between_its_request_and_the_answer():
     world = RemoteWorld(Pipe(), description)
     report = world.advance_to(0.01, 0.001, path=True, meanwhile=lambda: calls.append("meanwhile"))
     assert calls == [("send", "advance"), "meanwhile", "recv"] and report == "the report" and world.time == 0.01
+
+
+def test_a_soil_gets_the_meanwhile_work_when_its_advance_takes_it():
+    """cosim.contract.advance_soil hands `meanwhile` to an advance that takes it (a method, a callable
+    that cannot be hashed, asked once per class) and does the work after an advance that does not."""
+    from cosim.contract import advance_soil
+
+    calls: list = []
+
+    class Taking:
+        def advance(self, t_end, start, end=None, meanwhile=None):
+            calls.append("step launched")
+            meanwhile()
+            calls.append("step read")
+            return []
+
+    class Without:
+        def advance(self, t_end, start, end=None):
+            calls.append("step")
+            return []
+
+    class Unhashable:
+        __hash__ = None  # type: ignore[assignment]
+
+        def __call__(self, t_end, start, end=None, meanwhile=None):
+            return Taking.advance(None, t_end, start, end, meanwhile)
+
+    unhashable = Without()
+    unhashable.advance = Unhashable()  # type: ignore[method-assign]
+    for soil, expected in (
+        (Taking(), ["step launched", "row", "step read"]),
+        (Taking(), ["step launched", "row", "step read"]),  # the class asked before: the same answer
+        (Without(), ["step", "row"]),
+        (unhashable, ["step launched", "row", "step read"]),
+    ):
+        calls.clear()
+        assert advance_soil(soil, 1.0, [], meanwhile=lambda: calls.append("row")) == []
+        assert calls == expected
