@@ -270,17 +270,17 @@ def advance_soil(
 
 
 def _takes_meanwhile(advance: Callable) -> bool:
-    """Whether a soil's `advance` takes `meanwhile`: asked once per class's function, not once per
-    macro step (inspect.signature costs tens of microseconds of the host's step)."""
-    function = getattr(advance, "__func__", advance)  # a bound method: its class's function
-    try:
-        return _accepts_meanwhile(function)
-    except TypeError:  # an unhashable callable: asked each time
-        return _accepts_meanwhile.__wrapped__(function)
+    """Whether a soil's `advance` takes `meanwhile`. A method is asked once per class's function, not
+    once per macro step (inspect.signature costs tens of microseconds of the host's step); any other
+    callable is asked each time."""
+    function = getattr(advance, "__func__", None)
+    if function is None:
+        return "meanwhile" in inspect.signature(advance).parameters
+    return _function_takes_meanwhile(function)
 
 
 @functools.cache
-def _accepts_meanwhile(function: Callable) -> bool:
+def _function_takes_meanwhile(function: Callable) -> bool:
     return "meanwhile" in inspect.signature(function).parameters
 
 
