@@ -1,7 +1,7 @@
 """The `cosim` command line (also `python -m cosim`).
 
     cosim run SCENE.toml [--out DIR] [--device D] [--precision P] [--set key=value ...] [--overwrite]
-                         [--replicas K [--workers N | --scheduler ADDRESS | --serial | --batched]]
+                         [--replicas K [--vary-bed] [--workers N | --scheduler ADDRESS | --serial | --batched]]
     cosim resume OUT
     cosim advise SCENE.toml [--set key=value ...]
     cosim plot OUT
@@ -9,7 +9,8 @@
     cosim export vtkhdf RUN [--out FILE]
     cosim study precision SCENE.toml --replicas N [--precisions single,mixed,double] [--batched] [--out DIR] ...
     cosim study timestep SCENE.toml [--out DIR] [--duration S] [--max-tries N]
-    cosim study slip SCENE.toml --slips 0.1,0.2,0.4 [--replicas K] [--batched] [--out DIR] [--from-runs STUDY ...] ...
+    cosim study slip SCENE.toml --slips 0.1,0.2,0.4 [--replicas K] [--vary-bed] [--batched] [--out DIR]
+                     [--from-runs STUDY ...] ...
     cosim sweep SCENE.toml --param wheel.radius=0.03,0.04 --param wheel.grouser_count=0,12 [--out DIR] ...
     cosim scale SCENE.toml --gravity G --out TWIN.toml
     cosim lab repose|shear|plate SCENE.toml [--out DIR] [--replicas K] [--set key=value ...] [--workers N | --serial]
@@ -108,11 +109,16 @@ def cmd_run(args) -> int:
     if args.replicas > 1:
         from .study import replica_run
 
+        vary = "bed" if args.vary_bed else "order"
         report = replica_run(
-            plan, out, args.replicas, overwrite=args.overwrite, batched=args.batched, **_executor(args)
+            plan, out, args.replicas, overwrite=args.overwrite, batched=args.batched, vary=vary, **_executor(args)
         )
         print(report["text"])
         return EXIT_OK if report["ok"] else EXIT_UNSTEADY
+    if args.vary_bed:
+        from .scene import SceneError
+
+        raise SceneError(["--vary-bed: varies the beds of replicas; give --replicas K (K >= 2)"])
     with open(args.scene) as f:
         source = f.read()
     result = run_plan(plan, out, overwrite=args.overwrite, progress=not args.no_progress, source=source)
@@ -186,7 +192,7 @@ def _print_summary(result) -> None:
         if not finding["ok"]:
             print(f"  ! {finding['message']}")
     if s.get("steady_state") == "steady":
-        print("  error bars over summation-order replicas: cosim run SCENE --replicas 5")
+        print("  error bars: cosim run SCENE --replicas 5 (summation orders on one bed; --vary-bed: a bed each)")
 
 
 def cmd_plot(args) -> int:
@@ -315,6 +321,14 @@ def cmd_study(args) -> int:
     from . import study
 
     plan = _plan(args)
+    if args.vary_bed and (args.kind != "slip" or args.from_runs):
+        from .scene import SceneError
+
+        why = {
+            "precision": "compares the summation orders of each precision on one bed (the paper's experiment)",
+            "timestep": "searches the largest stable step of one run",
+        }.get(args.kind, "with --from-runs tabulates runs already made")
+        raise SceneError([f"--vary-bed: for `cosim study slip` runs; `cosim study {args.kind}` {why}"])
     if plan.rover is not None and args.kind in ("slip", "timestep"):
         from .scene import SceneError
 
@@ -351,7 +365,14 @@ def cmd_study(args) -> int:
             return EXIT_OK if report["ok"] else EXIT_UNSTEADY
         slips = [parse_value(s) for s in args.slips.split(",") if s.strip()]
         report = study.slip_study(
-            plan, out, slips, replicas=args.replicas, overwrite=args.overwrite, batched=args.batched, **_executor(args)
+            plan,
+            out,
+            slips,
+            replicas=args.replicas,
+            overwrite=args.overwrite,
+            batched=args.batched,
+            vary="bed" if args.vary_bed else "order",
+            **_executor(args),
         )
         print(report["text"])
         return EXIT_OK if report["ok"] else EXIT_UNSTEADY
@@ -685,6 +706,12 @@ def build_parser() -> argparse.ArgumentParser:
         help="K > 1: run K replicas differing only in summation order and report error bars",
     )
     p.add_argument(
+        "--vary-bed",
+        action="store_true",
+        help="with --replicas: each replica on a bed of its own too (replica k settles bed.seed + k): the "
+        "scatter between beds, not only the summation order's on one bed",
+    )
+    p.add_argument(
         "--batched",
         action=argparse.BooleanOptionalAction,
         default=None,
@@ -750,6 +777,11 @@ def build_parser() -> argparse.ArgumentParser:
         default=None,
         help="precision, slip: the runs as worlds of one simulation on one device (precision: one per "
         "precision; default: on a GPU, when the scene allows)",
+    )
+    p.add_argument(
+        "--vary-bed",
+        action="store_true",
+        help="slip: replica k on a bed of its own (bed.seed + k) at every slip, not all on one bed",
     )
     p.add_argument("--duration", type=float, default=0.05, help="timestep: simulated time of each try [s]")
     p.add_argument("--max-tries", type=int, default=8, help="timestep: most runs of the search")

@@ -3,7 +3,9 @@
 - replicas (`cosim run --replicas K`): K runs that differ only in the summation order
   (run.order_seed = replica index: a permutation of the grain indices) on one settled
   bed; mean, standard deviation and 95 % interval of each steady-state metric, and
-  whether the result is macroscopically deterministic (cosim.metrics.ensemble).
+  whether the result is macroscopically deterministic (cosim.metrics.ensemble). With
+  `--vary-bed` (vary='bed') replica k also settles a bed of its own from bed.seed + k:
+  the scatter between beds of one soil, which the summation order's on one bed understates.
 - precision: the paper's experiment (its figures 3, 4): replicas per precision; the
   scatter and wall time per precision, as a table (study.csv, study.json) and plots.
 - slip: the drawbar-pull/slip curve: replicas at each imposed slip, after landing;
@@ -14,7 +16,8 @@
 
 Warp's CPU kernels are single-threaded, so the cluster uses processes with one thread
 each. On a GPU, replicas, slip studies and each precision of a precision study run as worlds of
-one simulation instead (cosim.batch, `--batched`; each run bit for bit as alone). A replica that
+one simulation instead (cosim.batch, `--batched`; each run bit for bit as alone; the worlds of a
+simulation share its bed, so replicas over beds make one simulation per bed). A replica that
 fails is reported; the others still finish. Tasks carry the scene as TOML text plus overrides,
 and each worker resolves its own plan.
 """
@@ -203,6 +206,32 @@ def prepare_study(out_dir: str, overwrite: bool) -> None:
         shutil.rmtree(path) if os.path.isdir(path) else os.remove(path)
 
 
+VARIATIONS = ("order", "bed")
+"""What replicas differ in: 'order', the summation order on one settled bed (run.order_seed = k);
+'bed' (--vary-bed), the bed too: replica k settles its own from bed.seed + k (as the lab's specimens)."""
+
+
+def _settle(ex: Executor, plans: list[RunPlan], folders: list[str]) -> list[str]:
+    """The beds of `plans`, settled (or found cached) in `folders` on the executor, in parallel; a bed
+    that fails raises, naming its folder (nothing has run yet)."""
+    tasks = [
+        {
+            "scene_toml": p.scene.to_toml(),
+            "folder": f,
+            "label": f"bed {os.path.basename(f)}",
+            "base_dir": p.scene.base_dir,
+        }
+        for p, f in zip(plans, folders)
+    ]
+    paths = []
+    for task, result in zip(tasks, ex.map(settle_task, tasks)):
+        if not isinstance(result, dict) or "path" not in result:
+            error = result.get("error") if isinstance(result, dict) else result
+            raise InternalError(f"settling the bed in {task['folder']} failed: {error}")
+        paths.append(result["path"])
+    return paths
+
+
 def _shared_bed(plan: RunPlan, out_dir: str, ex: Executor) -> str | None:
     """The settled bed every run of a study starts from (None: the terrain model needs none)."""
     from .system import needs_bed
@@ -212,10 +241,41 @@ def _shared_bed(plan: RunPlan, out_dir: str, ex: Executor) -> str | None:
     if plan.bed.bed_file:
         return plan.bed.bed_file
     log.info("settling the shared bed ...")
-    result = ex.map(settle_task, [{"scene_toml": plan.scene.to_toml(), "folder": out_dir, "label": "bed"}])[0]
-    if not isinstance(result, dict) or "path" not in result:
-        raise InternalError(f"settling the bed failed: {result}")
-    return result["path"]
+    return _settle(ex, [plan], [out_dir])[0]
+
+
+def _check_variation(plan: RunPlan, vary: str) -> None:
+    """Refuse, naming the option, what replicas cannot vary in for this scene."""
+    from .system import needs_bed
+
+    if vary not in VARIATIONS:
+        raise SceneError([f"vary: {vary!r} is not a variation; allowed: {', '.join(VARIATIONS)}"])
+    if vary == "bed" and not needs_bed(plan):
+        raise SceneError([f"--vary-bed: terrain.model {plan.terrain.model!r} settles no bed of grains to vary"])
+    if vary == "bed" and plan.bed.bed_file:
+        raise SceneError(
+            [
+                f"--vary-bed: bed.bed_file = {plan.bed.bed_file!r} fixes one bed, and each replica settles its own "
+                "(bed.seed + k): remove bed.bed_file, or leave out --vary-bed (replicas on that one bed)"
+            ]
+        )
+
+
+def _replica_beds(plan: RunPlan, out_dir: str, ex: Executor, replicas: int, vary: str) -> list[str | None]:
+    """Replica k's bed file: the shared bed (vary 'order'), or its own (vary 'bed'), settled from
+    bed.seed + k into out_dir/beds/seed_S (the K beds in parallel on the executor)."""
+    if vary == "order":
+        return [_shared_bed(plan, out_dir, ex)] * replicas
+    seeds = [plan.bed.spec.seed + k for k in range(replicas)]
+    log.info("settling %d beds, bed.seed %d to %d ...", replicas, seeds[0], seeds[-1])
+    folders = [os.path.join(out_dir, "beds", f"seed_{s}") for s in seeds]
+    return list(_settle(ex, [plan.with_changes(**{"bed.seed": s}) for s in seeds], folders))
+
+
+def _replica_overrides(k: int, bed: str | None, vary: str, plan: RunPlan) -> dict:
+    """Replica k's overrides: its summation order, its bed (and that bed's seed when beds vary)."""
+    seed = {"bed.seed": plan.bed.spec.seed + k} if vary == "bed" else {}
+    return {"run.order_seed": k, **seed, **_bed_override(bed)}
 
 
 def _batching(plan: RunPlan, batched: bool | None) -> bool:
@@ -235,10 +295,20 @@ def _run_tasks(ex: Executor, tasks: list[dict], batched: bool) -> list[dict]:
         return ex.map(run_task, tasks)
     from .batch import run_batched
 
-    log.info("%d runs as worlds of one simulation", len(tasks))
-    plans = [task_plan(t) for t in tasks]
-    results = run_batched(plans, [str(t["out_dir"]) for t in tasks], overwrite=bool(tasks[0].get("overwrite")))
-    return [{**r, "label": t.get("label"), "overrides": t.get("overrides", {})} for r, t in zip(results, tasks)]
+    # the worlds of one simulation share a bed: one batch per bed (replicas over beds: --vary-bed)
+    groups: dict[Any, list[int]] = {}
+    for i, task in enumerate(tasks):
+        groups.setdefault(task.get("overrides", {}).get("bed.bed_file"), []).append(i)
+    results: list[dict] = [{}] * len(tasks)
+    for members in groups.values():
+        log.info("%d runs as worlds of one simulation", len(members))
+        group = [tasks[i] for i in members]
+        ran = run_batched(
+            [task_plan(t) for t in group], [str(t["out_dir"]) for t in group], overwrite=bool(group[0].get("overwrite"))
+        )
+        for i, r, t in zip(members, ran, group):
+            results[i] = {**r, "label": t.get("label"), "overrides": t.get("overrides", {})}
+    return results
 
 
 def _repeated(values) -> list:
@@ -284,12 +354,12 @@ def ensemble_table(results: list[dict], plan: RunPlan, states=(metrics.STEADY,))
     return {"replicas": len(results), "steady": len(steady), "averaged": len(averaged), "metrics": table}
 
 
-def _ensemble_text(stats: dict, title: str) -> str:
+def _ensemble_text(stats: dict, title: str, judged: str = "deterministic") -> str:
+    """The table of an ensemble; `judged`: what the last column's criterion means for these replicas."""
     lines = [
         title,
         f"  {stats['steady']} of {stats['replicas']} replicas reached a steady state",
-        f"  {'metric':16s} {'mean':>11s} {'std':>10s} {'95% CI +-':>10s} {'min':>11s} {'max':>11s}  unit  "
-        "deterministic",
+        f"  {'metric':16s} {'mean':>11s} {'std':>10s} {'95% CI +-':>10s} {'min':>11s} {'max':>11s}  unit  " + judged,
     ]
     for name, row in stats["metrics"].items():
         if row.get("n", 0) == 0:
@@ -338,25 +408,30 @@ def replica_run(
     scheduler: str | None = None,
     workers: int | None = None,
     batched: bool | None = None,
+    vary: str = "order",
 ) -> dict:
-    """K replicas of a scene that differ only in summation order, with error bars (module docstring).
+    """K replicas of a scene with error bars (module docstring): vary 'order', they differ only in
+    summation order on one settled bed (that bed's scatter); 'bed', each on a bed of its own too,
+    settled from bed.seed + k (the scatter between beds, which a wheel's sizing needs).
 
     batched: run the replicas as worlds of one simulation on one device (cosim.batch; each replica
-    bit for bit its run alone); None: when the device is a GPU and the scene can be batched.
+    bit for bit its run alone; over beds, one simulation per bed); None: when the device is a GPU and
+    the scene can be batched.
     Returns {'ok' (every replica steady and the statistics exist), 'stats', 'results', 'text'}."""
     if replicas < 2:
         raise SceneError([f"--replicas: must be >= 2 for error bars, got {replicas}"])
+    _check_variation(plan, vary)
     batched = _batching(plan, batched)
     out_dir = os.path.abspath(out_dir)
     prepare_study(out_dir, overwrite)
+    text = plan.scene.to_toml()
     with Executor("serial" if batched else executor, scheduler, workers) as ex:
-        bed = _shared_bed(plan, out_dir, ex)
-        text = plan.scene.to_toml()
+        beds = _replica_beds(plan, out_dir, ex, replicas, vary)
         tasks = [
             {
                 "scene_toml": text,
                 "out_dir": os.path.join(out_dir, f"replica_{k:03d}"),
-                "overrides": {"run.order_seed": k, **_bed_override(bed)},
+                "overrides": _replica_overrides(k, beds[k], vary, plan),
                 "label": f"replica_{k:03d}",
                 "base_dir": plan.scene.base_dir,
             }
@@ -366,13 +441,15 @@ def replica_run(
     stats = ensemble_table(results, plan)
     report = {
         "kind": "replicas",
+        "vary": vary,
         "batched": bool(batched),
         "scene_toml": text,
-        "bed_file": bed,
+        "bed_file": beds[0] if vary == "order" else None,
+        "bed_files": beds,
         "stats": stats,
         "results": results,
-        "criterion": "a metric is macroscopically deterministic when its replica std is <= max(5 % of its "
-        "mean, its absolute floor) (cosim.study._tolerances)",
+        "criterion": "a metric is macroscopically deterministic (vary 'order'; over beds: the same on any bed) "
+        "when its replica std is <= max(5 % of its mean, its absolute floor) (cosim.study._tolerances)",
     }
     write_json(os.path.join(out_dir, "ensemble.json"), report)
     _write_csv(
@@ -381,7 +458,9 @@ def replica_run(
         ["metric", "unit", "n", "mean", "std", "ci95", "min", "max", "tolerance", "deterministic"],
         {},
     )  # one metric per row: its unit is a column (mean, std, ci95, min, max, tolerance are in it)
-    report["text"] = _ensemble_text(stats, f"{plan.name}: {replicas} replicas (summation order), {out_dir}")
+    varied = "summation order, one bed" if vary == "order" else f"a bed each, bed.seed {plan.bed.spec.seed}+k"
+    judged = "deterministic" if vary == "order" else "same on any bed"
+    report["text"] = _ensemble_text(stats, f"{plan.name}: {replicas} replicas ({varied}), {out_dir}", judged)
     report["ok"] = stats["steady"] == replicas and stats["steady"] >= 2
     return report
 
@@ -434,6 +513,7 @@ def precision_study(
                 "label": f"{precision}/replica_{k:03d}",
                 "precision": precision,
                 "replica": k,
+                "base_dir": plan.scene.base_dir,
             }
             for precision in precisions
             for k in range(replicas)
@@ -499,11 +579,15 @@ def slip_study(
     overwrite: bool = False,
     plot: bool = True,
     batched: bool | None = None,
+    vary: str = "order",
 ) -> dict:
     """Imposed slips after landing: DP, DP/W, torque and sinkage against slip, with error bars.
 
+    vary: what the replicas at each slip differ in (replica_run): 'order' on one bed, or 'bed', replica
+    k on bed.seed + k at every slip (the slips compared on the same K beds).
     batched: every slip's replicas as worlds of one simulation (cosim.batch; each run bit for bit as
-    alone); None: when the device is a GPU and the scene can be batched."""
+    alone; over beds, one simulation per bed, its worlds the slips); None: when the device is a GPU
+    and the scene can be batched."""
     try:
         slips = [float(s) for s in slips]
     except (TypeError, ValueError):
@@ -521,25 +605,30 @@ def slip_study(
         raise SceneError(problems)
     for s in slips:  # every point must be a valid scene before anything runs
         plan.with_changes(**{"testbed.mode": "slip", "testbed.slip": s})
+    _check_variation(plan, vary)
     batched = _batching(plan, batched)
     out_dir = os.path.abspath(out_dir)
     prepare_study(out_dir, overwrite)
     text = plan.scene.to_toml()
     with Executor("serial" if batched else executor, scheduler, workers) as ex:
-        bed = _shared_bed(plan, out_dir, ex)
+        beds = _replica_beds(plan, out_dir, ex, replicas, vary)
         tasks = [
             {
                 "scene_toml": text,
                 "out_dir": os.path.join(out_dir, f"slip_{s:+.3f}", f"replica_{k:03d}"),
-                "overrides": {"testbed.mode": "slip", "testbed.slip": s, "run.order_seed": k, **_bed_override(bed)},
+                "overrides": {"testbed.mode": "slip", "testbed.slip": s, **_replica_overrides(k, beds[k], vary, plan)},
                 "label": f"slip {s:+.3f} replica {k}",
                 "slip": s,
+                "base_dir": plan.scene.base_dir,
             }
             for s in slips
             for k in range(replicas)
         ]
         results = _run_tasks(ex, tasks, batched)
-    return _slip_report(plan, out_dir, slips, [t["slip"] for t in tasks], results, text, bed, plot)
+    shared = beds[0] if vary == "order" else None
+    return _slip_report(
+        plan, out_dir, slips, [t["slip"] for t in tasks], results, text, shared, plot, vary=vary, beds=beds
+    )
 
 
 def slip_study_from_runs(
@@ -581,10 +670,14 @@ def slip_study_from_runs(
     slips = sorted({slip for slip, _, _ in found})
     prepare_study(out_dir, overwrite)
     states = (metrics.STEADY, metrics.SINKING) if include_sinking else (metrics.STEADY,)
-    return _slip_report(plan, out_dir, slips, [s for s, _, _ in found], results, text, None, plot, states)
+    beds = [record.get("bed", {}).get("path") for _, _, record in found]
+    vary = "bed" if len(set(beds)) > 1 else "order"  # the runs' own beds say what their replicas varied in
+    return _slip_report(plan, out_dir, slips, [s for s, _, _ in found], results, text, None, plot, states, vary, beds)
 
 
-def _slip_report(plan, out_dir, slips, run_slips, results, text, bed, plot, states=(metrics.STEADY,)) -> dict:
+def _slip_report(
+    plan, out_dir, slips, run_slips, results, text, bed, plot, states=(metrics.STEADY,), vary="order", beds=None
+) -> dict:
     """Tabulate, write (study.json, study.csv, plots) and describe a slip study's runs."""
     rows = []
     for s in slips:
@@ -602,6 +695,8 @@ def _slip_report(plan, out_dir, slips, run_slips, results, text, bed, plot, stat
         )
     report = {
         "kind": "slip",
+        "vary": vary,
+        "bed_files": beds,
         "averaged_states": list(states),
         "rows": rows,
         "runs": results,
@@ -617,7 +712,8 @@ def _slip_report(plan, out_dir, slips, run_slips, results, text, bed, plot, stat
     ]
     _write_csv(os.path.join(out_dir, "study.csv"), rows, keys, {**METRIC_UNITS, "slip_set": "1"})
     lines = [
-        f"{plan.name}: drawbar pull against imposed slip (W = {plan.wheel_load:.4g} N), {out_dir}",
+        f"{plan.name}: drawbar pull against imposed slip (W = {plan.wheel_load:.4g} N; replicas: "
+        f"{'summation order, one bed' if vary == 'order' else 'a bed each'}), {out_dir}",
         f"  {'slip':>6s} {'steady':>7s} {'DP [N]':>12s} {'DP/W':>14s} {'torque [N m]':>14s} {'sinkage [mm]':>13s}",
     ]
 
@@ -698,19 +794,8 @@ def sweep(
         for p in plans:
             if not p.bed.bed_file and needs_bed(p):
                 beds.setdefault(p.bed.key, p)
-        settled = ex.map(
-            settle_task,
-            [
-                {
-                    "scene_toml": p.scene.to_toml(),
-                    "folder": os.path.join(out_dir, "beds", key),
-                    "label": f"bed {key}",
-                    "base_dir": plan.scene.base_dir,
-                }
-                for key, p in beds.items()
-            ],
-        )
-        bed_paths = {key: r.get("path") for key, r in zip(beds, settled)}
+        folders = [os.path.join(out_dir, "beds", key) for key in beds]
+        bed_paths = dict(zip(beds, _settle(ex, list(beds.values()), folders)))
         tasks: list[dict[str, Any]] = []
         for i, (point, p) in enumerate(zip(points, plans)):
             overrides = dict(point)

@@ -2,6 +2,7 @@
 of the same replica run alone, a stop signal or a dead run's process loses nothing of any run, and the
 batch refuses what it cannot run."""
 
+import json
 import os
 import signal
 import threading
@@ -18,6 +19,7 @@ from cosim.plan import load_plan
 from cosim.scene import SceneError
 from cosim.study import replica_run, slip_study
 from helpers import write_tiny
+from soil.bed import read_bed, read_bed_header
 from soil.memory import SoilTooLargeError
 
 REPLICAS = 3
@@ -62,6 +64,31 @@ def test_a_batched_slip_study_gives_the_study_run_one_by_one(tmp_path, tiny_bed)
     assert together["runs"][0]["summary"]["slip"] != together["runs"][1]["summary"]["slip"]
 
 
+def test_replicas_over_beds_pair_the_slips_on_a_bed_each_and_batch_one_simulation_per_bed(tmp_path):
+    """--vary-bed: replica k settles its own bed (bed.seed + k) and runs every slip on it; batched, the
+    worlds of a simulation share a bed, so each bed is one simulation, its runs bit for bit alone."""
+    plan = load_plan(write_tiny(tmp_path), ["bed.seed=3"])  # beds the wheel lands on quickly: a short test
+    study = slip_study(plan, str(tmp_path / "study"), [0.1, 0.5], replicas=2, batched=True, plot=False, vary="bed")
+    beds = study["bed_files"]
+    assert study["vary"] == "bed" and len(set(beds)) == 2
+    headers = [read_bed_header(path) for path in beds]
+    assert [h["spec"]["seed"] for h in headers] == [3, 4]
+    assert headers[0]["particle_count"] == headers[1]["particle_count"]  # one geometry, two fills
+    assert not np.array_equal(*(np.sort(read_bed(path).radius) for path in beds))  # other fills: other grains
+    for run in study["runs"]:
+        assert run["ok"], run.get("error")
+        k = int(run["label"].rsplit(" ", 1)[1])
+        with open(f"{run['out_dir']}/run.json") as f:
+            assert json.load(f)["bed"]["path"] == beds[k]  # replica k on bed k at every slip
+        assert run["batch"]["worlds"] == 2  # one simulation per bed, its worlds the slips
+    # a world is the scene with that bed's seed and file, its replica's order, its slip, run alone
+    last = study["runs"][-1]
+    alone = str(tmp_path / "alone")
+    run_plan(load_plan(write_tiny(tmp_path), [f"{k}={json.dumps(v)}" for k, v in last["overrides"].items()]), alone)
+    forces = [read_series(f"{folder}/results.h5")["force"] for folder in (last["out_dir"], alone)]
+    assert last["overrides"]["bed.seed"] == 4 and np.array_equal(*forces)
+
+
 def fixed_plan(tmp_path, tiny_bed):
     return load_plan(write_tiny(tmp_path), [f'bed.bed_file="{tiny_bed}"'])
 
@@ -71,6 +98,13 @@ def test_what_a_batch_cannot_run_is_refused_by_name(tmp_path, tiny_bed):
     assert batch_problem(analytic).startswith("terrain.model")
     with pytest.raises(SceneError, match="--batched: terrain.model"):
         replica_run(analytic, str(tmp_path / "analytic"), 2, batched=True)
+    # replicas over beds need a bed of grains each, settled from its own seed
+    with pytest.raises(SceneError, match="--vary-bed: terrain.model 'analytic' settles no bed"):
+        replica_run(analytic, str(tmp_path / "analytic"), 2, vary="bed")
+    with pytest.raises(SceneError, match="--vary-bed: bed.bed_file = .* fixes one bed"):
+        replica_run(fixed_plan(tmp_path, tiny_bed), str(tmp_path / "fixed"), 2, vary="bed")
+    with pytest.raises(SceneError, match="vary: 'grains' is not a variation; allowed: order, bed"):
+        slip_study(fixed_plan(tmp_path, tiny_bed), str(tmp_path / "fixed"), [0.1], vary="grains")
     # the worlds share one soil: runs that differ in it are refused by name
     other = load_plan(write_tiny(tmp_path), [f'bed.bed_file="{tiny_bed}"', "scene.precision='double'"])
     with pytest.raises(ValueError, match="its precision is 'double', run 0's 'mixed'"):

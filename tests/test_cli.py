@@ -237,6 +237,23 @@ def test_a_bad_scene_field_is_exit_2_naming_it(tmp_path, capsys):
     assert not (tmp_path / "run").exists()
 
 
+@pytest.mark.parametrize(
+    "command, named",
+    [
+        (["run"], "give --replicas K"),
+        (["study", "precision", "--replicas", "2"], "study precision` compares the summation orders"),
+        (["study", "slip", "--replicas", "2", "--set", "terrain.model='analytic'"], "settles no bed of grains"),
+    ],
+)
+def test_vary_bed_where_no_beds_can_vary_is_exit_2_naming_why(tmp_path, capsys, command, named):
+    scene = write_tiny(tmp_path)
+    args = command[:2] + [scene] + command[2:] if command[0] == "study" else command + [scene]
+    assert main([*args, "--vary-bed", "--out", str(tmp_path / "o"), "--serial"]) == 2
+    err = capsys.readouterr().err
+    assert "--vary" in err and named in err and "Traceback" not in err
+    assert not (tmp_path / "o").exists()
+
+
 def test_a_missing_cuda_device_is_exit_2(tmp_path, capsys):
     import warp as wp
 
