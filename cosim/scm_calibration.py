@@ -24,7 +24,7 @@ except ImportError:  # Python 3.10
 
 import tomli_w
 
-from soil.errors import RegolithWarning
+from soil.errors import InputError, RegolithWarning
 
 FORMAT_VERSION = 1
 """The calibration file's format version."""
@@ -41,8 +41,8 @@ class CalibrationGravityWarning(RegolithWarning):
     pressure-sinkage and shear depend on gravity (a reduced-gravity soil is not the Earth soil)."""
 
 
-class CalibrationError(ValueError):
-    """A calibration file is unreadable or incomplete (the message names the file and the key)."""
+class CalibrationError(InputError, ValueError):
+    """A calibration file is unreadable or incomplete (the message names the file and the key): bad input."""
 
 
 @dataclass

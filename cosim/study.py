@@ -34,7 +34,7 @@ import time
 import traceback
 from typing import TYPE_CHECKING, Any
 
-from soil.errors import ArgumentError, InternalError
+from soil.errors import ArgumentError, InternalError, RegolithError
 
 from . import metrics
 from .beds import BED_FILE, BED_INFO_FILE, settled_bed, write_json
@@ -151,8 +151,9 @@ class Executor:
             self.cluster.close()
         return False
 
-    def map(self, function, tasks: list[dict]) -> list[dict]:
-        """Results in task order; a task whose worker died becomes {'ok': False, 'error': ...}."""
+    def map(self, function, tasks: list[dict], reraise: tuple[type[BaseException], ...] = ()) -> list[dict]:
+        """Results in task order; a task whose worker died becomes {'ok': False, 'error': ...}, except that
+        an error of a type in `reraise` propagates as itself, as it does from a serial task."""
         if self.kind == "serial":
             results: list = []
             for task in tasks:
@@ -169,6 +170,8 @@ class Executor:
             i = index[future.key]
             try:
                 results[i] = future.result()
+            except reraise:
+                raise
             except Exception as error:  # the worker itself failed
                 results[i] = {
                     "label": tasks[i].get("label"),
@@ -213,7 +216,8 @@ VARIATIONS = ("order", "bed")
 
 def _settle(ex: Executor, plans: list[RunPlan], folders: list[str]) -> list[str]:
     """The beds of `plans`, settled (or found cached) in `folders` on the executor, in parallel; a bed
-    that fails raises, naming its folder (nothing has run yet)."""
+    that fails raises (nothing has run yet): the project's own error as itself (SettlingDiverged: exit 4),
+    any other naming its folder."""
     tasks = [
         {
             "scene_toml": p.scene.to_toml(),
@@ -224,7 +228,7 @@ def _settle(ex: Executor, plans: list[RunPlan], folders: list[str]) -> list[str]
         for p, f in zip(plans, folders)
     ]
     paths = []
-    for task, result in zip(tasks, ex.map(settle_task, tasks)):
+    for task, result in zip(tasks, ex.map(settle_task, tasks, reraise=(RegolithError,))):
         if not isinstance(result, dict) or "path" not in result:
             error = result.get("error") if isinstance(result, dict) else result
             raise InternalError(f"settling the bed in {task['folder']} failed: {error}")

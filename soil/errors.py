@@ -19,6 +19,22 @@ and `except InputError` exactly what the user can fix by changing the input.
 class RegolithError(Exception):
     """Base class of every regolith-cosim error."""
 
+    def __reduce__(self):
+        # Rebuilt from its arguments and attributes, not through __init__, whose signature may differ
+        # (SceneError's list of problems, SettlingDiverged's cause and plan): so an error crosses a
+        # process (a dask worker, a batch's pipe) as itself, with its type, message and attributes.
+        # An OSError keeps OSError's own way (its filename is not among its args).
+        if isinstance(self, OSError):
+            return OSError.__reduce__(self)
+        return (_rebuild_error, (type(self), self.args, self.__dict__))
+
+
+def _rebuild_error(cls: type[RegolithError], args: tuple, state: dict) -> RegolithError:
+    error = cls.__new__(cls, *args)
+    error.args = args
+    error.__dict__.update(state)
+    return error
+
 
 class RegolithWarning(UserWarning):
     """Base class of every regolith-cosim warning (filter them all with this class)."""

@@ -297,6 +297,16 @@ def test_row11_a_divergence_while_settling_is_exit_4_with_the_phase_and_the_key(
     assert set(os.listdir(tmp_path / "boom")) <= {".lock"}  # nothing of a run was written
 
 
+def test_row11_on_dask_workers_the_divergence_crosses_as_itself_exit_4(scene, tmp_path, capsys):
+    # replicas over beds settle their beds on dask workers: the error reaches the command as itself
+    args = ["--set", "scene.gravity=1000", "--set", "bed.settle_dt_factor=1", "--no-progress"]
+    out = tmp_path / "boom"
+    assert main(["run", scene, "--out", str(out), "--replicas", "2", "--vary-bed", "--workers", "2", *args]) == 4
+    line = first_error_line(capsys)
+    assert line.startswith("cosim: error: the bed diverged while settling, at t = ") and "grain " in line, line
+    assert not [f for _, _, files in os.walk(out) for f in files if f != ".lock"]  # nothing was written
+
+
 # -- row 12: a scene name that is a path ---------------------------------------------------------
 def test_row12_a_scene_name_is_a_name_not_a_path(scene, tmp_path, capsys, monkeypatch):
     work = tmp_path / "a" / "b"

@@ -289,7 +289,7 @@ def test_wheel_targets_read_a_slip_study_and_refuse_other_files(tmp_path):
 def test_calibrate_scm_from_wheel_writes_the_fit_and_refuses_misplaced_options(tmp_path, monkeypatch, capsys):
     """The command's plumbing (the fit itself: the test above): --from-wheel --lab --wheel-runs reads
     the lab file and the slip study, writes the fitted values with the lab's held ones and the
-    wheel runs' record; --lab without --from-wheel is bad input (exit 2) naming it."""
+    wheel runs' record; --lab without --from-wheel, or a damaged --lab file, is bad input (exit 2) naming it."""
     import json
     import os
 
@@ -331,6 +331,13 @@ def test_calibrate_scm_from_wheel_writes_the_fit_and_refuses_misplaced_options(t
     assert "--lab" in capsys.readouterr().err
     assert main(["calibrate-scm", scene, "--out", str(tmp_path / "x.toml"), *args, "--max-runs", "-1"]) == 2
     assert "--max-runs" in capsys.readouterr().err
+    damaged = tmp_path / "damaged.toml"
+    damaged.write_text(lab_path.read_text()[:-40])  # a calibration file cut short: bad input, not a bug
+    bad = ["--from-wheel", "--lab", str(damaged), "--wheel-runs", str(tmp_path / "study")]
+    assert main(["calibrate-scm", scene, "--out", str(tmp_path / "y.toml"), *bad]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith(f"cosim: error: {damaged}: ") and "unexpected" not in err, err
+    assert not (tmp_path / "y.toml").exists()
 
 
 def test_the_plate_unloads_quasi_statically_and_its_stiffness_scales_with_the_gravity_twin(tmp_path):
