@@ -242,6 +242,7 @@ def test_every_project_error_crosses_a_process_as_itself(tmp_path):
     import rover_models
     import soil
     from cosim.beds import SettlingDiverged
+    from cosim.folders import OutputExistsError
     from cosim.plan import load_plan
     from cosim.runner import RunInterrupted
     from cosim.scene import SceneError
@@ -276,8 +277,6 @@ def test_every_project_error_crosses_a_process_as_itself(tmp_path):
         back = pickle.loads(pickle.dumps(error))
         assert type(back) is cls and str(back) == str(error) and vars(back) == vars(error), cls
     assert pickle.loads(pickle.dumps(examples[SceneError])).problems == examples[SceneError].problems
-    from cosim.folders import OutputExistsError
-
     back = pickle.loads(pickle.dumps(OutputExistsError(errno.EEXIST, "File exists", "/runs/a")))
     assert (back.errno, back.filename) == (errno.EEXIST, "/runs/a")
 
