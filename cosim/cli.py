@@ -643,7 +643,9 @@ def _fit_to_wheel(args, lab, work: str):
         plan, wheel_targets(folder), lab.parameters, runs=runs, max_runs=args.max_runs
     )
     standard_errors = {k: (errors[k] if k in FITTED else lab.standard_errors.get(k, errors[k])) for k in errors}
-    source = {**lab.source, "wheel": {"runs": os.path.abspath(folder), **report}}
+    # the file the fit started from: the root lab file stays source['lab'] when a wheel fit is refitted
+    started = {"start_file": os.path.abspath(args.lab)} if args.lab else {}
+    source = {**lab.source, "wheel": {"runs": os.path.abspath(folder), **started, **report}}
     print(
         f"calibrate-scm --from-wheel: fitted {', '.join(FITTED)} to {len(report['slips'])} slips (rms residual "
         f"{report['rms_residual']:.3g} tolerances; {report['evaluations']} held-wheel evaluations, "

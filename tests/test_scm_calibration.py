@@ -326,6 +326,7 @@ def test_calibrate_scm_from_wheel_writes_the_fit_and_refuses_misplaced_options(t
     assert written.parameters["k_phi"] == 2.5 and written.parameters["n"] == 1.0
     assert written.standard_errors["k_phi"] == 0.2 and written.standard_errors["k_c"] == 0.1  # held: the lab's
     assert written.source["wheel"]["runs"] == str(tmp_path / "study") and written.source["lab"] == str(lab_path)
+    assert written.source["wheel"]["start_file"] == str(lab_path)
     capsys.readouterr()
     assert main(["calibrate-scm", scene, "--out", str(tmp_path / "x.toml"), "--lab", str(lab_path)]) == 2
     assert "--lab" in capsys.readouterr().err
