@@ -171,6 +171,7 @@ class Executor:
             try:
                 results[i] = future.result()
             except reraise:
+                self.client.cancel(futures)  # the study stops here: its other tasks are not wanted
                 raise
             except Exception as error:  # the worker itself failed
                 results[i] = {

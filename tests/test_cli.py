@@ -229,56 +229,66 @@ def test_an_internal_error_is_exit_1_not_bad_input(tmp_path, tiny_bed, capsys, m
         assert err.count("\n") == 1
 
 
+ROUND_TRIP = """
+import errno, importlib, pickle, pkgutil, sys
+
+import cosim, rover_models, soil
+from cosim.beds import SettlingDiverged
+from cosim.folders import OutputExistsError
+from cosim.plan import load_plan
+from cosim.runner import RunInterrupted
+from cosim.scene import SceneError
+from soil.errors import RegolithError
+from soil.stability import SimulationDiverged
+
+for package in (soil, cosim, rover_models):
+    for module in pkgutil.walk_packages(package.__path__, package.__name__ + "."):
+        if not module.name.endswith("__main__"):
+            importlib.import_module(module.name)
+# dask's import installs its own pickling of every exception (tblib): the errors' own must hold alone
+assert "distributed" not in sys.modules
+
+
+def subclasses(cls):
+    for sub in cls.__subclasses__():
+        yield sub
+        yield from subclasses(sub)
+
+
+cause = SimulationDiverged(
+    "blew up", {"step": 7}, time=1.5, step=7, particle=3, position=(0.1, 0.2, 0.3), reason="non-finite"
+)
+examples = {  # the errors whose __init__ is their own
+    SimulationDiverged: cause,
+    SettlingDiverged: SettlingDiverged(cause, load_plan(sys.argv[1])),
+    SceneError: SceneError(["soil.density: must be > 0", "run.duration: must be > 0"], source="a.toml"),
+    RunInterrupted: RunInterrupted("stopped after a checkpoint", signal="SIGTERM"),
+}
+errors = sorted(set(subclasses(RegolithError)), key=lambda c: (c.__module__, c.__name__))
+assert len(errors) >= 20, errors
+for cls in errors:
+    own_init = any("__init__" in vars(c) for c in cls.__mro__[: cls.__mro__.index(RegolithError)])
+    assert cls in examples or not own_init, f"{cls.__name__} has its own __init__: add an example"
+    error = examples.get(cls) or cls(f"a {cls.__name__} message")
+    back = pickle.loads(pickle.dumps(error))
+    assert type(back) is cls and str(back) == str(error) and vars(back) == vars(error), cls
+assert pickle.loads(pickle.dumps(examples[SceneError])).problems == examples[SceneError].problems
+back = pickle.loads(pickle.dumps(OutputExistsError(errno.EEXIST, "File exists", "/runs/a")))
+assert (back.errno, back.filename) == (errno.EEXIST, "/runs/a")
+print(len(errors), "errors round-trip")
+"""
+
+
 def test_every_project_error_crosses_a_process_as_itself(tmp_path):
     """The exit status follows the error's type, and errors are raised on other processes (a study's
     beds on dask workers, a batch's worlds behind a pipe): each of the project's errors pickles back to
     its own type, message and attributes (a scene's problems, a divergence's place, an interrupt's
-    signal), whatever its __init__ takes."""
-    import importlib
-    import pickle
-    import pkgutil
-
-    import cosim
-    import rover_models
-    import soil
-    from cosim.beds import SettlingDiverged
-    from cosim.folders import OutputExistsError
-    from cosim.plan import load_plan
-    from cosim.runner import RunInterrupted
-    from cosim.scene import SceneError
-    from soil.errors import RegolithError
-    from soil.stability import SimulationDiverged
-
-    for package in (soil, cosim, rover_models):
-        for module in pkgutil.walk_packages(package.__path__, package.__name__ + "."):
-            if not module.name.endswith("__main__"):
-                importlib.import_module(module.name)
-
-    def subclasses(cls):
-        for sub in cls.__subclasses__():
-            yield sub
-            yield from subclasses(sub)
-
-    cause = SimulationDiverged(
-        "blew up", {"step": 7}, time=1.5, step=7, particle=3, position=(0.1, 0.2, 0.3), reason="non-finite"
+    signal), whatever its __init__ takes. In a fresh interpreter: once dask is imported (as other
+    tests do), its exception pickling stands in for the errors' own."""
+    done = subprocess.run(
+        [sys.executable, "-c", ROUND_TRIP, write_tiny(tmp_path)], capture_output=True, text=True, timeout=120
     )
-    examples = {  # the errors whose __init__ is their own
-        SimulationDiverged: cause,
-        SettlingDiverged: SettlingDiverged(cause, load_plan(write_tiny(tmp_path))),
-        SceneError: SceneError(["soil.density: must be > 0", "run.duration: must be > 0"], source="a.toml"),
-        RunInterrupted: RunInterrupted("stopped after a checkpoint", signal="SIGTERM"),
-    }
-    errors = sorted(set(subclasses(RegolithError)), key=lambda c: (c.__module__, c.__name__))
-    assert len(errors) >= 20
-    for cls in errors:
-        own_init = any("__init__" in vars(c) for c in cls.__mro__[: cls.__mro__.index(RegolithError)])
-        assert cls in examples or not own_init, f"{cls.__name__} has its own __init__: add an example"
-        error = examples.get(cls) or cls(f"a {cls.__name__} message")
-        back = pickle.loads(pickle.dumps(error))
-        assert type(back) is cls and str(back) == str(error) and vars(back) == vars(error), cls
-    assert pickle.loads(pickle.dumps(examples[SceneError])).problems == examples[SceneError].problems
-    back = pickle.loads(pickle.dumps(OutputExistsError(errno.EEXIST, "File exists", "/runs/a")))
-    assert (back.errno, back.filename) == (errno.EEXIST, "/runs/a")
+    assert done.returncode == 0 and "errors round-trip" in done.stdout, done.stderr[-3000:]
 
 
 def test_a_bad_scene_field_is_exit_2_naming_it(tmp_path, capsys):
