@@ -116,9 +116,9 @@ def cmd_run(args) -> int:
         print(report["text"])
         return EXIT_OK if report["ok"] else EXIT_UNSTEADY
     if args.vary_bed:
-        from .scene import SceneError
+        from soil.errors import ArgumentError
 
-        raise SceneError(["--vary-bed: varies the beds of replicas; give --replicas K (K >= 2)"])
+        raise ArgumentError("--vary-bed: varies the beds of replicas; give --replicas K (K >= 2)")
     with open(args.scene) as f:
         source = f.read()
     result = run_plan(plan, out, overwrite=args.overwrite, progress=not args.no_progress, source=source)
@@ -322,13 +322,13 @@ def cmd_study(args) -> int:
 
     plan = _plan(args)
     if args.vary_bed and (args.kind != "slip" or args.from_runs):
-        from .scene import SceneError
+        from soil.errors import ArgumentError
 
         why = {
             "precision": "compares the summation orders of each precision on one bed (the paper's experiment)",
             "timestep": "searches the largest stable step of one run",
         }.get(args.kind, "with --from-runs tabulates runs already made")
-        raise SceneError([f"--vary-bed: for `cosim study slip` runs; `cosim study {args.kind}` {why}"])
+        raise ArgumentError(f"--vary-bed: for `cosim study slip` runs; `cosim study {args.kind}` {why}")
     if plan.rover is not None and args.kind in ("slip", "timestep"):
         from .scene import SceneError
 
