@@ -4,10 +4,13 @@ A bed settled for a plan is written to FOLDER/bed.h5 with FOLDER/bed.json beside
 (its cache key, settling report and metrics). A later run whose plan has the same bed
 key (bed geometry, grains, soil material, gravity, device kind) reuses it. Within one
 process the bed stays in memory (Bed.saved): the file is the cache between processes.
+A bed that explodes while settling leaves its last good state in FOLDER/bed_diverged.npz
+(a soil checkpoint, soil.stability.read_checkpoint), removed when a bed settles there.
 """
 
 from __future__ import annotations
 
+import contextlib
 import functools
 import json
 import logging
@@ -18,13 +21,14 @@ from dataclasses import dataclass, field
 from soil.bed import SavedBed, read_bed
 from soil.errors import RegolithError
 from soil.files import atomic_write_text
-from soil.stability import SimulationDiverged
+from soil.stability import SimulationDiverged, write_checkpoint
 
 from .plan import RunPlan
 from .scene import SceneError
 
 BED_FILE = "bed.h5"
 BED_INFO_FILE = "bed.json"
+BED_DIVERGED_FILE = "bed_diverged.npz"
 
 log = logging.getLogger(__name__)
 
@@ -33,7 +37,8 @@ class SettlingDiverged(RegolithError, RuntimeError):
     """The bed exploded while it settled (before any run): the message names the phase, the time, the
     grain and the scene keys to change (exit 4 on the command line, like any divergence)."""
 
-    def __init__(self, error: SimulationDiverged, plan: RunPlan):
+    def __init__(self, error: SimulationDiverged, plan: RunPlan, kept: str | None = None):
+        """kept: the file holding the settling's last good state (None: there was none to keep)."""
         where = f", grain {error.particle}" if error.particle is not None else ""
         if error.position is not None:
             where += " at ({:.4g}, {:.4g}, {:.4g}) m".format(*error.position)
@@ -42,8 +47,31 @@ class SettlingDiverged(RegolithError, RuntimeError):
             f"the bed diverged while settling, at {time} of the settling{where}: {error.reason or error}. "
             f"Lower bed.settle_dt_factor (the settling step is {plan.bed.settle_dt:.3g} s), check scene.gravity "
             f"(|g| = {plan.g:.4g} m/s^2) and the friction angles (soil.stick_angle_deg, soil.slip_angle_deg); "
-            "nothing was written"
+            + (
+                "no bed was written"
+                if kept is None
+                else f"no bed was written; the settling's last good state (t = {_good_time(error):.6g} s) is {kept}"
+            )
         )
+
+
+def _good_time(error: SimulationDiverged) -> float:
+    """The simulated time of a divergence's last good state [s]."""
+    assert error.last_good is not None
+    return float(error.last_good["time"])
+
+
+def _keep_last_good(error: SimulationDiverged, folder: str) -> str | None:
+    """Write the settling's last good state to folder/bed_diverged.npz (atomically); its path, or None when
+    the divergence kept no state (before the monitor's first check) or the file cannot be written (logged)."""
+    if error.last_good is None:
+        return None
+    path = os.path.join(folder, BED_DIVERGED_FILE)
+    try:
+        return write_checkpoint(path, error.last_good)
+    except OSError as problem:  # the divergence is the error to report; this one is logged beside it
+        log.error("the settling's last good state could not be saved to %s: %s", path, problem)
+        return None
 
 
 @dataclass(frozen=True)
@@ -209,7 +237,7 @@ def _settle(plan: RunPlan, path: str, info_path: str, progress: bool) -> Bed:
             step_control=_settle_step_control(plan),
         )
     except SimulationDiverged as error:
-        raise SettlingDiverged(error, plan) from None
+        raise SettlingDiverged(error, plan, _keep_last_good(error, os.path.dirname(path))) from None
     finally:
         bar.close()
     wall = time.perf_counter() - start
@@ -233,6 +261,8 @@ def _settle(plan: RunPlan, path: str, info_path: str, progress: bool) -> Bed:
         "particle_count": sim.particle_count,
     }
     write_json(info_path, info)
+    with contextlib.suppress(FileNotFoundError):  # an earlier explosion's state describes no bed here now
+        os.remove(os.path.join(os.path.dirname(path), BED_DIVERGED_FILE))
     log.info(
         "settled %d grains in %.1f s wall (%.3g s simulated); surface at z = %.4g m, packing %.3f",
         sim.particle_count,

@@ -3,6 +3,7 @@
     scene.toml        the scene as run (overrides applied)
     run.json          status, summary, validity findings, wall time
     bed.h5, bed.json  the settled bed (a cache kept across --overwrite)
+    bed_diverged.npz  the last good state of a bed that exploded while settling (until one settles)
     results.h5        time series and particle snapshots (cosim.output)
     results.xdmf      the snapshots for ParaView, VTK and meshio (XDMF 3)
     results.xdmf.h5   its data: each snapshot as plain datasets

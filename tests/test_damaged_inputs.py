@@ -8,12 +8,14 @@ One complete and one interrupted tiny run are shared by the module; each case wo
 import hashlib
 import json
 import os
+import re
 import shutil
 import signal
 import subprocess
 import sys
 import textwrap
 import time
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -294,7 +296,20 @@ def test_row11_a_divergence_while_settling_is_exit_4_with_the_phase_and_the_key(
     line = first_error_line(capsys)
     assert line.startswith("cosim: error: the bed diverged while settling, at t = ") and "grain " in line, line
     assert "bed.settle_dt_factor" in line and "scene.gravity" in line and "last_good" not in line
-    assert set(os.listdir(tmp_path / "boom")) <= {".lock"}  # nothing of a run was written
+    assert set(os.listdir(tmp_path / "boom")) <= {".lock", "bed_diverged.npz"}  # no bed, nothing of a run
+    assert_last_good_kept(line, tmp_path / "boom")
+
+
+def assert_last_good_kept(line: str, folder) -> None:
+    """The error names the settling's last good state; the file holds finite grains from before the divergence."""
+    from soil.stability import read_checkpoint
+
+    path = folder / "bed_diverged.npz"
+    assert "the settling's last good state (t = " in line and line.rstrip().endswith(str(path)), line
+    good = read_checkpoint(path)  # its checksum verified
+    diverged_at = float(line.split("at t = ")[1].split(" s")[0])
+    assert 0.0 <= float(good["time"]) < diverged_at
+    assert good["position"].ndim == 2 and good["position"].shape[1] == 3 and np.isfinite(good["position"]).all()
 
 
 def test_row11_on_dask_workers_the_divergence_crosses_as_itself_exit_4(scene, tmp_path, capsys):
@@ -304,7 +319,12 @@ def test_row11_on_dask_workers_the_divergence_crosses_as_itself_exit_4(scene, tm
     assert main(["run", scene, "--out", str(out), "--replicas", "2", "--vary-bed", "--workers", "2", *args]) == 4
     line = first_error_line(capsys)
     assert line.startswith("cosim: error: the bed diverged while settling, at t = ") and "grain " in line, line
-    assert not [f for _, _, files in os.walk(out) for f in files if f != ".lock"]  # nothing was written
+    # no bed was written: a bed's folder holds at most its settling's last good state, and the error names one
+    kept = [os.path.join(d, f) for d, _, files in os.walk(out) for f in files if f != ".lock"]
+    assert kept and all(re.fullmatch(r"beds/seed_\d+/bed_diverged\.npz", os.path.relpath(f, out)) for f in kept), kept
+    named = line.rstrip().rsplit(" is ", 1)[1]
+    assert named in kept, (named, kept)
+    assert_last_good_kept(line, Path(named).parent)
 
 
 # -- row 12: a scene name that is a path ---------------------------------------------------------
