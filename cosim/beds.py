@@ -22,6 +22,7 @@ from soil.bed import SavedBed, read_bed
 from soil.errors import RegolithError
 from soil.files import atomic_write_text
 from soil.stability import SimulationDiverged, write_checkpoint
+from soil.state import STATE_UNITS
 
 from .plan import RunPlan
 from .scene import SceneError
@@ -68,7 +69,7 @@ def _keep_last_good(error: SimulationDiverged, folder: str) -> str | None:
         return None
     path = os.path.join(folder, BED_DIVERGED_FILE)
     try:
-        return write_checkpoint(path, error.last_good)
+        return write_checkpoint(path, error.last_good, STATE_UNITS)
     except OSError as problem:  # the divergence is the error to report; this one is logged beside it
         log.error("the settling's last good state could not be saved to %s: %s", path, problem)
         return None

@@ -29,6 +29,7 @@ from soil import SimulationDiverged
 from soil.control import quaternion_to_matrix
 from soil.errors import RegolithError
 from soil.stability import write_checkpoint
+from soil.state import STATE_UNITS
 
 from . import metrics, records
 from .beds import write_json
@@ -195,7 +196,7 @@ class Runner:
                 )
             )
             if error.last_good is not None:
-                write_checkpoint(self.folder.file(DIVERGED_FILE), error.last_good)
+                write_checkpoint(self.folder.file(DIVERGED_FILE), error.last_good, STATE_UNITS)
                 message += f"; the last good soil state is {self.folder.file(DIVERGED_FILE)}"
             raise RunDiverged(message) from error
         except (KeyboardInterrupt, RunInterrupted) as error:

@@ -15,6 +15,7 @@ from .builder import SoilBuilder
 from .errors import DamagedFileError, SoilInputError
 from .files import atomic_path
 from .materials import Material
+from .state import STATE_UNITS
 
 if TYPE_CHECKING:
     from .simulation import Simulation
@@ -201,6 +202,23 @@ def bed_metrics(sim, spec: BedSpec, margin: float | None = None) -> dict:
 
 # -- save / load ----------------------------------------------------------------
 BED_FORMAT = "regolith-cosim bed 1"
+PARTICLE_UNITS = {
+    "radius": ("m", "grain radius"),
+    "material": ("1", "material index of the grain (the file's `materials` table)"),
+    "mass": ("kg", "grain mass"),
+    "inv_mass": ("1/kg", "inverse mass; 0: a fixed grain"),
+    "inv_inertia": ("1/(kg m^2)", "inverse moment of inertia; 0: a fixed or rotation-locked grain"),
+}
+"""A bed file's particles/ datasets (bed order): (units, description)."""
+BOUNDARY_UNITS = {
+    "kind": ("1", "0 plane (point, unit normal), 1 box (lower corner, upper corner)"),
+    "geometry": ("m", "geometry row of each wall where it was when saved (plane: point, normal; box: corners)"),
+    "material": ("1", "material index of the wall"),
+    "report": ("1", "1: the wall's force is summed; 0: it reads zero"),
+}
+"""A bed file's boundaries/ datasets: (units, description)."""
+METRIC_UNITS = {"height": "m", "packing_fraction": "1", "particle_count": "count"}
+"""The units of bed_metrics()'s values (a bed file's metric_* attributes)."""
 
 
 @dataclass(eq=False)
@@ -338,17 +356,20 @@ class SavedBed:
                     f.attrs["spec"] = json.dumps(self.spec)
                 for name, value in self.metrics.items():
                     f.attrs[f"metric_{name}"] = value
-                particles = f.create_group("particles")
-                for name in ("radius", "material", "mass", "inv_mass", "inv_inertia"):
-                    particles[name] = getattr(self, name)
-                boundaries = f.create_group("boundaries")
-                boundaries["kind"] = self.boundary_kind
-                boundaries["geometry"] = self.boundary_geometry
-                boundaries["material"] = self.boundary_material
-                boundaries["report"] = self.boundary_report
-                state = f.create_group("state")
+                f.attrs["units"] = json.dumps(
+                    {"gravity": "m/s^2", **{f"metric_{name}": METRIC_UNITS[name] for name in self.metrics}}
+                )
+                for group, arrays in (
+                    ("particles", {name: getattr(self, name) for name in PARTICLE_UNITS}),
+                    ("boundaries", {name: getattr(self, f"boundary_{name}") for name in BOUNDARY_UNITS}),
+                ):
+                    for name, value in arrays.items():
+                        f[f"{group}/{name}"] = value
+                        units, description = (PARTICLE_UNITS if group == "particles" else BOUNDARY_UNITS)[name]
+                        f[f"{group}/{name}"].attrs.update(units=units, description=description)
                 for name, value in self.state.items():
-                    state[name] = value
+                    f[f"state/{name}"] = value
+                    f[f"state/{name}"].attrs.update(units=STATE_UNITS[name], description=f"SoilState.{name}, bed order")
 
 
 def _spec_fields(spec: BedSpec) -> dict:

@@ -22,6 +22,7 @@ the step, the worst particle and its position, carries the snapshot as numpy arr
 `last_good`, and, if the Simulation has a checkpoint_path, writes it there atomically.
 """
 
+import json
 import math
 import os
 from dataclasses import dataclass, field
@@ -34,7 +35,7 @@ from .errors import RegolithError
 from .files import atomic_path
 from .precision import kernel_factory, kernel_module, soil_kernel
 from .sdf import sdf_functions
-from .state import SoilState, storage_functions
+from .state import STATE_UNITS, SoilState, storage_functions
 
 # Columns of the divergence-check summary (shape (CHECK_COLUMNS,), dtype hi).
 CHECK_SPEED = 0
@@ -145,6 +146,8 @@ class SimulationDiverged(RegolithError, RuntimeError):
 
 CHECKSUM_KEY = "integrity/sha256"
 """The key of a checkpoint's checksum: SHA-256 over every other array (name, dtype, shape, bytes)."""
+UNITS_KEY = "units"
+"""The key of a saved state's units (write_checkpoint's `units`): a JSON object {array name: unit}."""
 
 
 def checkpoint_digest(data: dict) -> str:
@@ -159,11 +162,16 @@ def checkpoint_digest(data: dict) -> str:
     return digest.hexdigest()
 
 
-def write_checkpoint(path, data: dict) -> str:
+def write_checkpoint(path, data: dict, units: dict[str, str] | None = None) -> str:
     """Write a state dict (numpy arrays) to `path` as .npz atomically (soil.files.atomic_path),
-    so a crash never leaves half a checkpoint; its checksum goes with it (read_checkpoint verifies it)."""
+    so a crash never leaves half a checkpoint; its checksum goes with it (read_checkpoint verifies it).
+    units: {name: unit} of the arrays (every one of them): stored under UNITS_KEY as JSON."""
     path = os.fspath(path)
-    arrays: dict = {key: np.asarray(value) for key, value in data.items() if key != CHECKSUM_KEY}
+    arrays: dict = {key: np.asarray(value) for key, value in data.items() if key not in (CHECKSUM_KEY, UNITS_KEY)}
+    if units is not None:
+        missing = sorted(set(arrays) - set(units))
+        assert not missing, f"no unit for {missing}"  # a state array added without its unit: a bug here
+        arrays[UNITS_KEY] = np.array(json.dumps({key: units[key] for key in arrays}))
     arrays[CHECKSUM_KEY] = np.array(checkpoint_digest(arrays))
     with atomic_path(path, ".npz.tmp") as temporary:  # an OSError names `path`
         with open(temporary, "wb") as f:
@@ -191,6 +199,7 @@ def read_checkpoint(path) -> dict:
         raise DamagedFileError(
             f"{path}: the checkpoint is damaged (its arrays do not match their SHA-256 checksum); it was left as it is"
         )
+    data.pop(UNITS_KEY, None)  # the arrays' units are the writer's (STATE_UNITS for a soil state)
     return data
 
 
@@ -445,7 +454,7 @@ class DivergenceMonitor:
         if good is not None:
             saved = f"; the last good state (t = {float(good['time']):.9g} s, step {int(good['step'])}) is kept"
             if getattr(sim, "checkpoint_path", None):
-                checkpoint = write_checkpoint(sim.checkpoint_path, good)
+                checkpoint = write_checkpoint(sim.checkpoint_path, good, STATE_UNITS)
                 saved += f" and {checkpoint}"
         message = f"simulation diverged at t = {state.time:.9g} s (step {sim.steps}): {reason}{where}{saved}"
         raise SimulationDiverged(

@@ -26,6 +26,48 @@ far from there and rebuilds the list."""
 PAIR_HISTORY = ("pair_touching", "pair_tangential", "pair_rolling")
 """State arrays aligned with the neighbour list's rows (remapped, not copied, across lists)."""
 
+STATE_UNITS: dict[str, str] = {
+    "position": "m",
+    "velocity": "m/s",
+    "angular_velocity": "rad/s",
+    "force": "N",
+    "torque": "N m",
+    "force_previous": "N",
+    "torque_previous": "N m",
+    "contact_count": "count",
+    "pair_touching": "1",  # bits: entry k of the grain's neighbour row in contact
+    "pair_tangential": "m",
+    "pair_rolling": "rad",
+    "rigid_key": "1",  # an index: the wall, or boundary_count + the body
+    "rigid_count": "count",
+    "rigid_tangential": "m",
+    "rigid_rolling": "rad",
+    "step_previous": "s",
+    "body_force": "N",
+    "body_torque": "N m",
+    "body_contacts": "count",
+    "body_position": "m",
+    "body_rotation": "1",
+    "body_velocity": "m/s",
+    "body_angular_velocity": "rad/s",
+    "body_posed": "1",
+    "boundary_displacement": "m",
+    "boundary_velocity": "m/s",
+    "boundary_acceleration": "m/s^2",
+    "boundary_acceleration_previous": "m/s^2",
+    "boundary_force": "N",
+    "boundary_torque": "N m",
+    "boundary_contacts": "count",
+    "neighbours": "1",  # model indices, -1 past neighbour_count
+    "neighbour_count": "count",
+    "build_position": "m",
+    "time": "s",
+    "step": "count",  # the DEM steps taken (a divergence monitor's last good state)
+}
+"""The unit of each array of a soil state as it leaves the state (SoilState.to_numpy, a bed file's
+state group, a last good state's file): SI, "1" for dimensionless values, indices and flags, "count"
+for counts; what each array is: SoilState's attributes of the same names."""
+
 
 @wp.kernel(enable_backward=False)
 def copy_world_words(

@@ -310,6 +310,7 @@ def assert_last_good_kept(line: str, folder) -> None:
     diverged_at = float(line.split("at t = ")[1].split(" s")[0])
     assert 0.0 <= float(good["time"]) < diverged_at
     assert good["position"].ndim == 2 and good["position"].shape[1] == 3 and np.isfinite(good["position"]).all()
+    assert json.loads(str(np.load(path)["units"]))["position"] == "m"  # its arrays carry their units
 
 
 def test_row11_on_dask_workers_the_divergence_crosses_as_itself_exit_4(scene, tmp_path, capsys):

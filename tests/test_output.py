@@ -98,6 +98,61 @@ def test_every_dataset_carries_its_unit(tiny_run):
     assert not missing, missing
 
 
+def test_a_bed_file_carries_the_units_its_arrays_are_documented_in(tiny_bed):
+    """Every dataset of a bed file has the unit SoilState (state/), SavedBed (particles/, boundaries/)
+    documents for it; the file's numeric attributes (gravity, metrics) are named in its `units`."""
+    import h5py
+
+    from soil.state import STATE_UNITS
+
+    documented = _documented_units()
+    with h5py.File(tiny_bed, "r") as f:
+        units: dict = {}
+        f.visititems(
+            lambda name, obj: units.update({name: obj.attrs.get("units")}) if isinstance(obj, h5py.Dataset) else None
+        )
+        attributes = json.loads(f.attrs["units"])
+        numeric = {k for k in f.attrs if k == "gravity" or k.startswith("metric_")}
+    assert None not in units.values() and "" not in units.values(), units
+    assert set(attributes) == numeric and attributes["gravity"] == "m/s^2" and attributes["metric_height"] == "m"
+    particles = {"radius": "m", "mass": "kg", "inv_mass": "1/kg", "inv_inertia": "1/(kg m^2)", "material": "1"}
+    assert {k: units[f"particles/{k}"] for k in particles} == particles
+    assert units["boundaries/geometry"] == "m"
+    for name in (n.split("/", 1)[1] for n in units if n.startswith("state/")):
+        assert units[f"state/{name}"] == STATE_UNITS[name]
+    for name, unit in STATE_UNITS.items():  # the table says what SoilState's attributes say
+        if name in documented:
+            assert unit in documented[name], (name, unit, documented[name])
+
+
+def _documented_units() -> dict[str, tuple[str, ...]]:
+    """The unit in brackets that opens each SoilState attribute's docstring ("[-]": "1" or "count")."""
+    import ast
+    import re
+
+    import soil.state
+
+    tree = ast.parse(open(soil.state.__file__).read())
+    init = next(
+        n
+        for c in tree.body
+        if isinstance(c, ast.ClassDef) and c.name == "SoilState"
+        for n in c.body
+        if isinstance(n, ast.FunctionDef) and n.name == "__init__"
+    )
+    found = {}
+    for statement, following in zip(init.body, init.body[1:]):
+        if (
+            isinstance(statement, ast.Assign)
+            and isinstance(target := statement.targets[0], ast.Attribute)
+            and isinstance(following, ast.Expr)
+            and isinstance(following.value, ast.Constant)
+            and (unit := re.search(r"\[([^\]]+)\]", following.value.value))
+        ):
+            found[target.attr] = ("1", "count") if unit.group(1) == "-" else (unit.group(1),)
+    return found
+
+
 def test_xdmf_references_existing_datasets(tiny_run):
     """results.xdmf: three temporal collections (the grains last, for meshio), each DataItem a whole dataset
     of results.xdmf.h5 of the declared shape, and the snapshots' times and grains those of results.h5."""

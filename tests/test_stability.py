@@ -1,12 +1,14 @@
 """Stability at the extremes, divergence detection and gravity invariance of the step control."""
 
+import json
 import math
 
 import numpy as np
 import pytest
 
 from soil import JoltBeeman, Material, Simulation, SimulationDiverged, SoilBuilder, StepController, advisor
-from soil.stability import CHECKSUM_KEY
+from soil.stability import CHECKSUM_KEY, UNITS_KEY
+from soil.state import STATE_UNITS
 
 R = 5e-3
 
@@ -134,7 +136,9 @@ def test_divergence_names_time_step_and_particle_and_saves_last_good(device, tmp
     assert np.max(np.linalg.norm(good["velocity"], axis=1)) <= sim.monitor.speed_bound
     saved = np.load(path)
     assert error.checkpoint == str(path)
-    assert set(saved.files) - {CHECKSUM_KEY} == set(good)  # the arrays and their checksum
+    assert set(saved.files) - {CHECKSUM_KEY, UNITS_KEY} == set(good)  # the arrays, their checksum and units
+    assert json.loads(str(saved[UNITS_KEY])) == {name: STATE_UNITS[name] for name in good}
+    assert STATE_UNITS["position"] == "m" and STATE_UNITS["velocity"] == "m/s" and STATE_UNITS["time"] == "s"
     for name in good:
         np.testing.assert_array_equal(saved[name], good[name])
     assert not list(tmp_path.glob("*.tmp"))  # no temporary file left behind

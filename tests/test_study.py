@@ -152,6 +152,8 @@ def test_divergence_names_time_grain_position_and_setting(scene_path, tiny_bed, 
     assert json.loads((out / "run.json").read_text())["status"] == "diverged"
     good = np.load(out / "diverged_state.npz")
     assert np.all(np.isfinite(good["velocity"])) and np.max(np.linalg.norm(good["velocity"], axis=1)) < 1.0
+    units = json.loads(str(good["units"]))  # every array's unit
+    assert set(units) == set(good.files) - {"units", "integrity/sha256"} and units["velocity"] == "m/s"
 
 
 def test_a_folder_in_use_is_refused_and_left_alone(scene_path, tiny_bed, baseline, tmp_path):
