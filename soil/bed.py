@@ -359,17 +359,18 @@ class SavedBed:
                 f.attrs["units"] = json.dumps(
                     {"gravity": "m/s^2", **{f"metric_{name}": METRIC_UNITS[name] for name in self.metrics}}
                 )
-                for group, arrays in (
-                    ("particles", {name: getattr(self, name) for name in PARTICLE_UNITS}),
-                    ("boundaries", {name: getattr(self, f"boundary_{name}") for name in BOUNDARY_UNITS}),
+                for group, table, prefix in (
+                    ("particles", PARTICLE_UNITS, ""),
+                    ("boundaries", BOUNDARY_UNITS, "boundary_"),
                 ):
-                    for name, value in arrays.items():
-                        f[f"{group}/{name}"] = value
-                        units, description = (PARTICLE_UNITS if group == "particles" else BOUNDARY_UNITS)[name]
+                    for name, (units, description) in table.items():
+                        f[f"{group}/{name}"] = getattr(self, prefix + name)
                         f[f"{group}/{name}"].attrs.update(units=units, description=description)
                 for name, value in self.state.items():
                     f[f"state/{name}"] = value
-                    f[f"state/{name}"].attrs.update(units=STATE_UNITS[name], description=f"SoilState.{name}, bed order")
+                    f[f"state/{name}"].attrs.update(
+                        units=STATE_UNITS[name], description=f"SoilState.{name} (rows in model order)"
+                    )
 
 
 def _spec_fields(spec: BedSpec) -> dict:
