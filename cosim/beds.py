@@ -18,7 +18,7 @@ import os
 import time
 from dataclasses import dataclass, field
 
-from soil.bed import SavedBed, read_bed
+from soil.bed import METRIC_UNITS, SavedBed, read_bed
 from soil.errors import RegolithError
 from soil.files import atomic_write_text
 from soil.stability import SimulationDiverged, write_checkpoint
@@ -260,6 +260,15 @@ def _settle(plan: RunPlan, path: str, info_path: str, progress: bool) -> Bed:
         "dt": bed.settle_dt,
         "wall_time": wall,
         "particle_count": sim.particle_count,
+        "units": {
+            "report.time": "s",
+            "report.kinetic_energy": "J",
+            "report.threshold": "J",
+            **{f"metrics.{name}": unit for name, unit in METRIC_UNITS.items()},
+            "dt": "s",
+            "wall_time": "s",
+            "particle_count": "count",
+        },
     }
     write_json(info_path, info)
     with contextlib.suppress(FileNotFoundError):  # an earlier explosion's state describes no bed here now

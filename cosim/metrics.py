@@ -276,6 +276,66 @@ ROVER_UNITS = {"forward_speed": "m/s", "slip": "1", "net_traction": "N", "power"
 """Units of the rover quantities (per macro step)."""
 
 
+SUMMARY_UNITS = {
+    **WHEEL_UNITS,
+    **ROVER_UNITS,
+    "window": "s",
+    "landing_time": "s",
+    "landing_sinkage": "m",
+    "sinkage_rate": "m/s",
+    "dp_over_w": "1",
+    "contact_fraction": "1",
+    "displacement": "m",
+    "energy": "J",
+    "energy_per_metre": "J/m",
+    "net_traction_over_weight": "1",
+    "stuck": "1",
+    "time_immobile": "s",
+    "wheel_slip": "1",
+    "wheel_sinkage": "m",
+    "wheel_sinkage_tips": "m",
+    "wheel_drawbar_pull": "N",
+    "wheel_driving_torque": "N m",
+    "wheel_normal_force": "N",
+    "wheel_power": "W",
+    "patch_moves": "count",
+    "soil_mass": "kg",
+    "soil_mass_initial": "kg",
+    "soil_mass_added": "kg",
+    "soil_mass_removed": "kg",
+    "particle_count_max": "count",
+    "simulated_time": "s",
+    "macro_steps": "count",
+    "wall_time": "s",
+    "particle_count": "count",
+    "dt": "s",
+    "dem_steps": "count",
+    "dem_steps_rejected": "count",
+    "force_evaluations": "count",
+    "dt_min": "s",
+    "dt_mean": "s",
+    "dt_max": "s",
+    "macro_step": "s",
+    "froude_number": "1",
+    "coupling_energy_created": "J",
+    "particle_steps_per_second": "1/s",
+}
+"""The unit of each number a run's summary may hold (a `_sem` value: its quantity's; "1": dimensionless,
+"count"); its words (steady_state, validity, step_control, stuck_criterion, findings) have none."""
+
+
+def summary_units(summary: dict) -> dict[str, str]:
+    """The unit of each number (or list of numbers) in `summary`: what run.json and results.h5 write beside it."""
+    units = {}
+    for key, value in summary.items():
+        if isinstance(value, (str, dict)) or (isinstance(value, list) and value and isinstance(value[0], dict)):
+            continue  # words and findings
+        base = key.removesuffix("_sem")
+        if base in SUMMARY_UNITS:
+            units[key] = SUMMARY_UNITS[base]
+    return units
+
+
 def rover_forward(orientation: np.ndarray) -> np.ndarray:
     """The rover's forward direction: its body +x axis in the horizontal plane, unit [-], shape (3,)."""
     x_axis = np.asarray(quaternion_to_matrix(orientation))[:, 0]

@@ -9,7 +9,9 @@ and a `description`; every time series grows along its first axis.
         format          "regolith-cosim results 2"
         status          "running" | "complete" | "interrupted" | "diverged" | "failed"
         message         why the run stopped ("" when complete)
-        summary         JSON: the run's summary (cosim.metrics.summarize), written at the end
+        summary         JSON: the run's summary (cosim.metrics.summarize), written at the end; its
+                        `units` the unit of each number in it (cosim.metrics.SUMMARY_UNITS)
+        units           JSON: the unit of each numeric attribute below (cosim.records.ATTRIBUTE_UNITS)
         name, scene_toml (the scene as run), scene_source (the scene file's text), versions (JSON),
         created, precision, device, scheme, integrator, order_seed (-1: none), dt [s], macro_step [s], substeps,
         duration [s], gravity [m/s^2] (3,), surface_height [m], start_position [m] (3,), omega [rad/s],

@@ -193,7 +193,31 @@ def attributes(plan: RunPlan, system: CoupledSystem, source: str, findings) -> d
             stuck_slip=rover.stuck_slip,
             slope=plan.slope,
         )
+    out["units"] = json.dumps({key: ATTRIBUTE_UNITS[key] for key in out if key in ATTRIBUTE_UNITS})
     return out
+
+
+ATTRIBUTE_UNITS = {
+    "order_seed": "1",
+    "dt": "s",
+    "macro_step": "s",
+    "substeps": "count",
+    "duration": "s",
+    "gravity": "m/s^2",
+    "surface_height": "m",
+    "start_position": "m",
+    "omega": "rad/s",
+    "rim_radius": "m",
+    "outer_radius": "m",
+    "wheel_load": "N",
+    "particle_count": "count",
+    "rim_radii": "m",
+    "outer_radii": "m",
+    "rover_mass": "kg",
+    "stuck_slip": "1",
+    "slope": "rad",
+}
+"""The units of results.h5's numeric root attributes (its `units` attribute, JSON)."""
 
 
 def run_summary(
@@ -266,4 +290,5 @@ def run_summary(
             else plan.substeps * steps_done
         )
         out["particle_steps_per_second"] = float(books.element_count * steps / session_wall)
+    out["units"] = metrics.summary_units(out)  # run.json and results.h5 carry each number's unit
     return out

@@ -36,6 +36,7 @@ import json
 import math
 import os
 import re
+import typing
 from typing import Any, Literal
 
 try:
@@ -63,8 +64,11 @@ class SceneError(InputError, ValueError):
 
 
 class _Section(BaseModel):
-    # no inf / nan anywhere: a scene number is a physical quantity
-    model_config = ConfigDict(extra="forbid", validate_assignment=True, allow_inf_nan=False)
+    # no inf / nan anywhere: a scene number is a physical quantity; a key's docstring is its description
+    # (its unit in brackets: key_unit)
+    model_config = ConfigDict(
+        extra="forbid", validate_assignment=True, allow_inf_nan=False, use_attribute_docstrings=True
+    )
 
 
 class SceneSection(_Section):
@@ -121,6 +125,7 @@ class MaterialSection(_Section):
     youngs_modulus: float = Field(2.0e5, gt=0)
     """Macroscopic Young's modulus [Pa] (paper eq. 10; `cosim advise` computes the bound)."""
     poisson_ratio: float = Field(0.15, gt=-1, lt=0.5)
+    """[-]"""
     density: float = Field(2600.0, gt=0)
     """[kg/m^3]"""
     restitution: float | None = Field(None, gt=0, le=1)
@@ -134,6 +139,7 @@ class MaterialSection(_Section):
     fraction of the grains' own speed scale at every gravity (1e-4 m/s for 2 mm grains at Phobos;
     docs/physics.md section 1.3). A wheel's material defaults to the soil's."""
     rolling_friction: float = Field(0.1, ge=0)
+    """Rolling resistance coefficient mu_r [-]."""
     cohesion: float = Field(0.0, ge=0)
     """[Pa]"""
 
@@ -166,11 +172,13 @@ class SoilSection(MaterialSection):
 
 class WheelMaterialSection(MaterialSection):
     youngs_modulus: float | None = Field(None, gt=0)  # type: ignore[assignment]
-    """None: the soil's Young's modulus."""
+    """[Pa]; None: the soil's Young's modulus."""
     poisson_ratio: float = Field(0.3, gt=-1, lt=0.5)
+    """[-]"""
     stick_angle_deg: float = Field(30.0, ge=0, lt=90)
     slip_angle_deg: float = Field(25.0, ge=0, lt=90)
     rolling_friction: float = Field(0.0, ge=0)
+    """Rolling resistance coefficient mu_r [-]."""
 
 
 class BedSection(_Section):
@@ -185,7 +193,7 @@ class BedSection(_Section):
     radius_spread: float = Field(0.2, ge=0, lt=1)
     """Relative half-width of the uniform radius distribution [-]."""
     seed: int = Field(1, ge=0)
-    """Random seed of the grain insertion (>= 0)."""
+    """Random seed of the grain insertion [-] (>= 0)."""
     settle_ke_ratio: float = Field(1e-3, gt=0)
     """Settled when kinetic energy < ratio * N m g r (gravity-scaled) [-]."""
     settle_max_time: float = Field(10.0, gt=0)
@@ -224,6 +232,7 @@ class WheelSection(_Section):
     width: float | None = Field(None, gt=0)
     """Wheel width [m] (grouser wheel; default 0.03)."""
     grouser_count: int | None = Field(None, ge=0, le=360)
+    """[count]"""
     grouser_height: float | None = Field(None, ge=0)
     """[m]"""
     grouser_thickness: float | None = Field(None, ge=0)
@@ -231,7 +240,7 @@ class WheelSection(_Section):
     file: str | None = None
     """OBJ or STL file (mesh wheel), relative to the scene file; axle along the file's Y axis."""
     scale: float | None = Field(None, gt=0)
-    """Mesh units -> metres (mesh wheel; default 1)."""
+    """Mesh units -> metres [m] per mesh unit (mesh wheel; default 1)."""
     material: WheelMaterialSection = WheelMaterialSection()
 
     @model_validator(mode="after")
@@ -421,7 +430,7 @@ class RoverSection(_Section):
     """MJCF: the wheel body names (their order is the wheel order everywhere); default for 'mmx':
     wheel_fl, wheel_fr, wheel_rl, wheel_rr."""
     wheel_count: int | None = Field(None, ge=1)
-    """FMU: how many wheels (<prefix>0 .. <prefix>n-1); default: as many as the FMU has."""
+    """FMU: how many wheels [count] (<prefix>0 .. <prefix>n-1); default: as many as the FMU has."""
     wheel_prefix: str = Field("wheel_", min_length=1)
     """FMU: the wheels' variable prefix (wheel_0.force.x, ...)."""
     body: str | None = None
@@ -569,7 +578,7 @@ class TerrainSection(_Section):
     erosion_angle_deg: float | None = Field(None, gt=0, lt=90)
     """scm: steepest slope the moved soil keeps [deg] (default 30)."""
     erosion_iterations: int | None = Field(None, ge=0)
-    """scm: slope-limiting passes per step (default 2)."""
+    """scm: slope-limiting passes per step [count] (default 2)."""
     window_length: float | None = Field(None, gt=0)
     """scm: the node window's size along x [m] (default: the wheels' span along x + 6 outer radii)."""
     window_width: float | None = Field(None, gt=0)
@@ -634,14 +643,14 @@ class RunSection(_Section):
     macro_step: float | None = Field(None, gt=0)
     """Coupling step H [s]: a whole number of DEM steps."""
     substeps: int | None = Field(None, ge=1)
-    """DEM steps per macro step (instead of macro_step; default 10)."""
+    """DEM steps per macro step [count] (instead of macro_step; default 10)."""
     scheme: Literal["gauss-seidel", "jacobi"] = "gauss-seidel"
     integrator: Literal["velocity-verlet", "jolt-beeman"] = "velocity-verlet"
     """The DEM integrator at the fixed step dt: velocity-verlet, or the paper's jolt-beeman
     predictor-corrector (its damped modes need gamma dt <= 0.6: docs/physics.md section 2).
     With step_control = "pid" the substeps are always jolt-beeman (its error estimate)."""
     order_seed: int | None = Field(None, ge=0)
-    """Permute particle indices (summation order only), for replica studies (>= 0)."""
+    """Permute particle indices (summation order only), for replica studies [-] (>= 0)."""
     step_control: Literal["fixed", "pid"] = "fixed"
     """The DEM step inside each macro step (settling, landing and drive): fixed at dt, or the
     paper's PID step control (jolt-beeman substeps, as many as the error tolerance needs,
@@ -679,7 +688,7 @@ class OutputSection(_Section):
     checkpoint_interval: float = Field(0.5, gt=0)
     """Checkpoints every this much simulated time [s]."""
     flush_every: int = Field(50, ge=1)
-    """Write buffered time-series records to results.h5 every N macro steps."""
+    """Write buffered time-series records to results.h5 every N macro steps [count]."""
 
 
 class Scene(_Section):
@@ -769,6 +778,27 @@ _PHRASES = (
 
 _UNION_MEMBERS = ("str", "DriveSection", "float", "list[float]", "int")
 """Type names pydantic puts into an error's location for union fields."""
+
+
+def key_unit(key: str) -> str | None:
+    """The unit of a dotted scene key (e.g. 'wheel.radius': 'm') as its documentation gives it: the first
+    bracket of its docstring that names no section ('[-]': '1'), 'deg' for a '_deg' key; None where it
+    gives none (a word, a flag) or the key names no field of a section."""
+    model: Any = Scene
+    *sections, name = key.split(".")
+    for section in sections:
+        field = model.model_fields.get(section)
+        kinds = () if field is None else (field.annotation, *typing.get_args(field.annotation))
+        model = next((t for t in kinds if isinstance(t, type) and issubclass(t, BaseModel)), None)
+        if model is None:
+            return None
+    field = model.model_fields.get(name)
+    if field is None or not {float, int} & {field.annotation, *typing.get_args(field.annotation)}:
+        return None  # not a key, or not a number
+    if name.endswith("_deg"):
+        return "deg"
+    brackets = [b for b in re.findall(r"\[([^\]]+)\]", field.description or "") if b not in Scene.model_fields]
+    return None if not brackets else ("1" if brackets[0] == "-" else brackets[0])  # ([bed]: a section, not a unit)
 
 
 def _format_errors(error: ValidationError) -> list[str]:

@@ -31,6 +31,16 @@ FORMAT_VERSION = 1
 
 SOIL_KEYS = ("k_c", "k_phi", "n", "cohesion", "friction_angle_deg", "janosi_k", "elastic_stiffness")
 """The SCM soil parameters a calibration gives (scene keys of [terrain] model = "scm")."""
+SOIL_UNITS = {
+    "k_c": "Pa m^(1-n)",
+    "k_phi": "Pa m^(-n)",
+    "n": "1",
+    "cohesion": "Pa",
+    "friction_angle_deg": "deg",
+    "janosi_k": "m",
+    "elastic_stiffness": "Pa/m",
+}
+"""The unit of each SOIL_KEYS parameter (and of its standard error): a calibration file's [units]."""
 
 GRAVITY_TOLERANCE = 1e-3
 """Relative difference of |g| below which a calibration's gravity is the scene's [-]."""
@@ -66,6 +76,7 @@ def write_calibration(path: str, calibration: ScmCalibration) -> None:
         "gravity": float(calibration.gravity),
         "scm": {k: float(calibration.parameters[k]) for k in SOIL_KEYS},
         "standard_error": {k: float(calibration.standard_errors.get(k, math.nan)) for k in SOIL_KEYS},
+        "units": {"gravity": "m/s^2", **SOIL_UNITS},  # [scm]'s and [standard_error]'s; [source] keys name theirs
         "source": _plain(calibration.source),
     }
     with open(path, "wb") as f:

@@ -43,7 +43,7 @@ from .plan import RunPlan, resolve
 
 if TYPE_CHECKING:  # dask is imported when a study runs on it
     from dask.distributed import Client, LocalCluster
-from .scene import SceneError, scene_from_text
+from .scene import SceneError, key_unit, scene_from_text
 
 log = logging.getLogger(__name__)
 
@@ -377,13 +377,24 @@ def _ensemble_text(stats: dict, title: str, judged: str = "deterministic") -> st
     return "\n".join(lines)
 
 
+def _column_units(keys: list[str], units: dict[str, str]) -> dict[str, str]:
+    """The unit of each column of `keys` that has one: its metric's (a '_mean', '_std', '_ci95', '_min' or
+    '_max' column: the metric's); what a study's CSV header and its JSON's `units` say."""
+    found = {}
+    for key in keys:
+        base = key.rsplit("_", 1)[0] if key.rsplit("_", 1)[-1] in ("mean", "std", "ci95", "min", "max") else key
+        unit = units.get(key, units.get(base))
+        if unit is not None:
+            found[key] = unit
+    return found
+
+
 def _write_csv(path: str, rows: list[dict], keys: list[str], units: dict[str, str]) -> None:
     """A CSV whose header names each column with its unit, e.g. 'slip_mean [1]'."""
+    known = _column_units(keys, units)
 
     def header(key):
-        base = key.rsplit("_", 1)[0] if key.rsplit("_", 1)[-1] in ("mean", "std", "ci95", "min", "max") else key
-        unit = units.get(base)
-        return f"{key} [{unit}]" if unit else key
+        return f"{key} [{known[key]}]" if key in known else key
 
     with open(path, "w") as f:
         f.write(",".join(header(k) for k in keys) + "\n")
@@ -455,6 +466,7 @@ def replica_run(
         "results": results,
         "criterion": "a metric is macroscopically deterministic (vary 'order'; over beds: the same on any bed) "
         "when its replica std is <= max(5 % of its mean, its absolute floor) (cosim.study._tolerances)",
+        "units": _column_units(list(stats["metrics"]), METRIC_UNITS),  # stats' mean, std, ... of each metric
     }
     write_json(os.path.join(out_dir, "ensemble.json"), report)
     _write_csv(
@@ -554,10 +566,11 @@ def precision_study(
         "bed_file": bed,
         "scene_toml": text,
     }
-    write_json(os.path.join(out_dir, "study.json"), report)
     keys = ["precision", "replicas", "steady", "failed"] + [
         f"{m}_{k}" for m in ("wall_time",) + metrics.REPLICA_METRICS for k in ("mean", "std", "ci95", "min", "max")
     ]
+    report["units"] = {**_column_units(keys, METRIC_UNITS), "wall_time": "s"}  # the rows' columns
+    write_json(os.path.join(out_dir, "study.json"), report)
     _write_csv(os.path.join(out_dir, "study.csv"), rows, keys, METRIC_UNITS)
     for row in rows:
         log.info("%s", _ensemble_text(row["stats"], f"precision {row['precision']}"))
@@ -709,12 +722,13 @@ def _slip_report(
         "bed_file": bed,
         "wheel_load": plan.wheel_load,
     }
-    write_json(os.path.join(out_dir, "study.json"), report)
     keys = ["slip_set", "replicas", "steady"] + [
         f"{m}_{k}"
         for m in ("slip", "drawbar_pull", "dp_over_w", "driving_torque", "sinkage", "sinkage_tips")
         for k in ("mean", "std", "ci95")
     ]
+    report["units"] = {**_column_units(keys, {**METRIC_UNITS, "slip_set": "1"}), "wheel_load": "N"}
+    write_json(os.path.join(out_dir, "study.json"), report)
     _write_csv(os.path.join(out_dir, "study.csv"), rows, keys, {**METRIC_UNITS, "slip_set": "1"})
     lines = [
         f"{plan.name}: drawbar pull against imposed slip (W = {plan.wheel_load:.4g} N; replicas: "
@@ -849,11 +863,13 @@ def sweep(
         if not result.get("ok"):
             row["error"] = result.get("error")
         rows.append(row)
-    report = {"kind": "sweep", "grid": grid, "rows": rows, "runs": results, "scene_toml": text}
-    write_json(os.path.join(out_dir, "study.json"), report)
     keys = list(grid) + ["ok", "status", *columns]
+    swept = {key: unit for key in grid if (unit := key_unit(key)) is not None}  # as cosim/scene.py documents them
+    units = _column_units(keys, {**METRIC_UNITS, **swept})
+    report = {"kind": "sweep", "grid": grid, "rows": rows, "runs": results, "scene_toml": text, "units": units}
+    write_json(os.path.join(out_dir, "study.json"), report)
     log.info("%s", plot_table(rows, keys))
-    _write_csv(os.path.join(out_dir, "study.csv"), rows, keys, METRIC_UNITS)
+    _write_csv(os.path.join(out_dir, "study.csv"), rows, keys, {**METRIC_UNITS, **swept})
     for r in rows:
         if r.get("error"):
             log.warning("failed: %s", r["error"])
@@ -949,6 +965,9 @@ def timestep_study(
             "critical_step": advice.critical_step,
             "contact_time": advice.contact_time,
         },
+        "units": dict.fromkeys(  # every number above is a time
+            ("scene_dt", "duration", "largest_stable", "first_unstable", "recommended", "tried.dt", "advisor"), "s"
+        ),
     }
     write_json(os.path.join(out_dir, "study.json"), report)
     if largest is None:

@@ -14,7 +14,7 @@ import numpy as np
 from .builder import SoilBuilder
 from .errors import DamagedFileError, SoilInputError
 from .files import atomic_path
-from .materials import Material
+from .materials import MATERIAL_UNITS, Material
 from .state import STATE_UNITS
 
 if TYPE_CHECKING:
@@ -219,6 +219,8 @@ BOUNDARY_UNITS = {
 """A bed file's boundaries/ datasets: (units, description)."""
 METRIC_UNITS = {"height": "m", "packing_fraction": "1", "particle_count": "count"}
 """The units of bed_metrics()'s values (a bed file's metric_* attributes)."""
+SPEC_UNITS = {"length": "m", "width": "m", "depth": "m", "radius_mean": "m", "radius_spread": "1", "seed": "1"}
+"""The units of a bed file's `spec` (BedSpec's fields but its materials)."""
 
 
 @dataclass(eq=False)
@@ -357,7 +359,12 @@ class SavedBed:
                 for name, value in self.metrics.items():
                     f.attrs[f"metric_{name}"] = value
                 f.attrs["units"] = json.dumps(
-                    {"gravity": "m/s^2", **{f"metric_{name}": METRIC_UNITS[name] for name in self.metrics}}
+                    {
+                        "gravity": "m/s^2",
+                        "materials": MATERIAL_UNITS,  # each entry's fields (angles in radians)
+                        "spec": SPEC_UNITS,
+                        **{f"metric_{name}": METRIC_UNITS[name] for name in self.metrics},
+                    }
                 )
                 for group, table, prefix in (
                     ("particles", PARTICLE_UNITS, ""),

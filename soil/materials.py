@@ -60,6 +60,21 @@ def damping_ratio_for_restitution(restitution: float) -> float:
     return float(brentq(lambda d: restitution_of_damping_ratio(d) - restitution, 0.0, high, xtol=1e-10))
 
 
+MATERIAL_UNITS = {
+    "youngs_modulus": "Pa",
+    "poisson_ratio": "1",
+    "density": "kg/m^3",
+    "restitution": "1",
+    "damping_ratio": "1",
+    "stick_angle": "rad",
+    "slip_angle": "rad",
+    "stick_speed": "m/s",
+    "rolling_friction": "1",
+    "cohesion": "Pa",
+}
+"""The unit of each Material field (what a bed file's material table writes beside it)."""
+
+
 @dataclass(frozen=True)
 class Material:
     """A contact material. Angles in radians, all other quantities SI."""

@@ -130,3 +130,15 @@ def write_tiny(folder, extra: str = "", name: str = "tiny.toml") -> str:
     path = folder / name
     path.write_text(TINY_SCENE + extra)
     return str(path)
+
+
+def assert_every_number_has_its_unit(summary: dict) -> None:
+    """Every number (or list of numbers) of a run's summary has its unit in the summary's `units`."""
+    numbers = [
+        key
+        for key, value in summary.items()
+        if key != "units"
+        and (isinstance(value, (int, float)) or (isinstance(value, list) and value and not isinstance(value[0], dict)))
+    ]
+    missing = [key for key in numbers if key not in summary["units"]]
+    assert numbers and not missing, missing

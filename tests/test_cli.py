@@ -379,6 +379,8 @@ def test_study_precision_on_a_local_cluster(tmp_path, tiny_bed):
     )
     report = json.loads((out / "study.json").read_text())
     assert [r["precision"] for r in report["rows"]] == ["single", "double"]
+    assert report["units"]["sinkage_mean"] == "m" and report["units"]["drawbar_pull_ci95"] == "N"
+    assert set(report["units"]) >= {k for k in report["rows"][0] if k.endswith(("_mean", "_ci95"))}
     assert all(r["replicas"] == 2 and r["failed"] == 0 for r in report["rows"])
     assert (out / "plots" / "scatter.png").is_file() and (out / "plots" / "travel_sinkage.png").is_file()
     assert (out / "study.csv").read_text().startswith("precision,")
@@ -411,7 +413,10 @@ def test_sweep_validates_every_point_first(tmp_path, tiny_bed, capsys):
     assert code == 0
     report = json.loads((out / "study.json").read_text())
     assert [r["ok"] for r in report["rows"]] == [True, True]
-    assert (out / "study.csv").read_text().splitlines()[0].startswith("testbed.omega,ok,status,steady_state")
+    assert report["units"]["sinkage"] == "m" and report["units"]["drawbar_pull"] == "N"
+    header = (out / "study.csv").read_text().splitlines()[0]
+    assert header.startswith("testbed.omega [rad/s],ok,status,steady_state,slip [1]"), header  # the swept key's too
+    assert report["units"]["testbed.omega"] == "rad/s"
 
 
 def test_a_failed_task_is_reported_and_the_others_finish(tmp_path, tiny_bed):

@@ -6,6 +6,7 @@ outcome is chaotic the assertions are bounds far outside the scatter measured ov
 replicas (numbers in each docstring). Wall forces adding up to the weight and the load are
 tests/test_boundaries.py's."""
 
+import json
 import math
 
 import numpy as np
@@ -265,6 +266,9 @@ def test_plate_bekker_fit_reproduces_its_curves(tmp_path):
             assert bekker_pressure(fit, width, z[part]).mean() == pytest.approx(p[part].mean(), rel=0.25)
         assert means[2] > 1.1 * means[0]  # deeper is harder (pooled thirds measured 1.19-1.6 x)
     assert (tmp_path / "plate" / "plate.png").is_file() and (tmp_path / "plate" / "summary.json").is_file()
+    units = json.loads((tmp_path / "plate" / "summary.json").read_text())["units"]
+    assert {f"bekker.{k}" for k in fit if k != "per_width"} <= set(units) and units["bekker.rms_pa"] == "Pa"
+    assert units["gravity"] == "m/s^2" and units["bekker.k_phi"] == "N/m^(n+2)"  # p = (k_c / b + k_phi) z^n
     # a saved bed is reused only for the soil and gravity it was settled with
     bed = tmp_path / "plate" / "beds" / "replica_0.h5"
     other = lab_scene_from_text(PLATE, overrides={"bed.bed_file": str(bed), "soil.rolling_friction": 0.2})
@@ -289,6 +293,7 @@ def test_cosim_lab_repose_writes_its_report(tmp_path, capsys):
     assert "hit lab.max_time_factor" in printed
     for name in ("scene.toml", "summary.json", "repose.csv", "repose_grains.csv", "repose_history.csv", "repose.png"):
         assert (out / name).is_file(), name
+    assert json.loads((out / "summary.json").read_text())["units"] == {"gravity": "m/s^2"}
     assert (out / "repose.csv").read_text().splitlines()[0] == (
         "replica [1],radius [m],surface_height [m],sectors_filled [1]"
     )

@@ -99,6 +99,9 @@ def test_calibration_reaches_a_target_repose_angle(tmp_path):
     rolling = summary["best"]["values"]["soil.rolling_friction"]
     assert 0.0 <= rolling <= 0.2
     assert (tmp_path / "calibrate" / "calibrated.toml").is_file()
+    assert summary["units"] == {"repose": "deg", "soil.rolling_friction": "1"}  # the target's, the parameter's
+    header = (tmp_path / "calibrate" / "history.csv").read_text().splitlines()[0]
+    assert header.startswith("evaluation [1],soil.rolling_friction [1],repose_measured [deg]"), header
     fresh = resolve_lab(
         lab_scene_from_text(
             (tmp_path / "calibrate" / "calibrated.toml").read_text(), overrides={"lab.replicas": 4, "bed.seed": 101}

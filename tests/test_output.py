@@ -6,6 +6,7 @@ import signal
 import subprocess
 import sys
 import textwrap
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -98,14 +99,35 @@ def test_every_dataset_carries_its_unit(tiny_run):
     assert not missing, missing
 
 
+def test_the_summary_and_the_root_attributes_carry_their_units(tiny_run):
+    """run.json's summary and results.h5's (the same) name each number's SI unit; so do the root attributes."""
+    from helpers import assert_every_number_has_its_unit
+
+    summary = json.loads((tiny_run / "run.json").read_text())["summary"]
+    assert_every_number_has_its_unit(summary)
+    units = summary["units"]
+    expected = {"sinkage": "m", "sinkage_sem": "m", "drawbar_pull": "N", "driving_torque": "N m", "window": "s"}
+    expected.update(dt="s", slip="1", particle_count="count", coupling_energy_created="J")
+    assert {key: units[key] for key in expected} == expected
+    with open_results(tiny_run / "results.h5") as f:
+        assert json.loads(f.attrs["summary"])["units"] == units
+        attributes = json.loads(f.attrs["units"])
+        numeric = {k for k, v in f.attrs.items() if isinstance(v, (np.number, np.ndarray)) and k != "order_seed"}
+    assert numeric <= set(attributes), numeric - set(attributes)
+    assert (attributes["gravity"], attributes["wheel_load"], attributes["omega"]) == ("m/s^2", "N", "rad/s")
+
+
 def test_a_bed_file_carries_the_units_its_arrays_are_documented_in(tiny_bed):
     """Every dataset of a bed file has the unit SoilState (state/), SavedBed (particles/, boundaries/)
-    documents for it; the file's numeric attributes (gravity, metrics) are named in its `units`."""
+    documents for it; the file's root `units` names those of gravity, the metrics, the material table's
+    fields (as soil.Material documents them: its angles in radians) and the bed's spec."""
+    from dataclasses import fields
+
     import h5py
 
-    from soil.state import STATE_UNITS
+    import soil.materials
+    import soil.state
 
-    documented = _documented_units()
     with h5py.File(tiny_bed, "r") as f:
         units: dict = {}
         f.visititems(
@@ -113,43 +135,56 @@ def test_a_bed_file_carries_the_units_its_arrays_are_documented_in(tiny_bed):
         )
         attributes = json.loads(f.attrs["units"])
         numeric = {k for k in f.attrs if k == "gravity" or k.startswith("metric_")}
+        materials, spec = json.loads(f.attrs["materials"]), json.loads(f.attrs["spec"])
     assert None not in units.values() and "" not in units.values(), units
-    assert set(attributes) == numeric and attributes["gravity"] == "m/s^2" and attributes["metric_height"] == "m"
+    assert numeric | {"materials", "spec"} == set(attributes)
+    assert attributes["gravity"] == "m/s^2" and attributes["metric_height"] == "m"
+    assert set(attributes["materials"]) == {f.name for f in fields(soil.Material)} == set(materials[0])
+    assert attributes["materials"]["stick_angle"] == "rad" and set(attributes["spec"]) == set(spec)
     particles = {"radius": "m", "mass": "kg", "inv_mass": "1/kg", "inv_inertia": "1/(kg m^2)", "material": "1"}
     assert {k: units[f"particles/{k}"] for k in particles} == particles
     assert units["boundaries/geometry"] == "m"
+    info = json.loads((Path(tiny_bed).parent / "bed.json").read_text())  # the settling's record beside it
+    assert info["units"]["report.kinetic_energy"] == "J" and info["units"]["metrics.height"] == "m"
+    assert {f"metrics.{k}" for k in info["metrics"]} | {"dt", "wall_time", "report.time"} <= set(info["units"])
     for name in (n.split("/", 1)[1] for n in units if n.startswith("state/")):
-        assert units[f"state/{name}"] == STATE_UNITS[name]
-    for name, unit in STATE_UNITS.items():  # the table says what SoilState's attributes say
-        if name in documented:
-            assert unit in documented[name], (name, unit, documented[name])
+        assert units[f"state/{name}"] == soil.state.STATE_UNITS[name]
+    # the tables say what the attributes' documentation says
+    for table, documented in (
+        (soil.state.STATE_UNITS, _documented_units(soil.state, "SoilState", "__init__")),
+        (attributes["materials"], _documented_units(soil.materials, "Material")),
+    ):
+        assert len(documented) >= 10
+        for name, unit in table.items():
+            if name in documented:
+                assert unit in documented[name], (name, unit, documented[name])
 
 
-def _documented_units() -> dict[str, tuple[str, ...]]:
-    """The unit in brackets that opens each SoilState attribute's docstring ("[-]": "1" or "count")."""
+def _documented_units(module, name: str, method: str | None = None) -> dict[str, tuple[str, ...]]:
+    """The unit in brackets that opens the docstring of each attribute of class `name` of `module` (its
+    fields, or what its `method` assigns to self); "[-]": "1" or "count"."""
     import ast
     import re
 
-    import soil.state
-
-    tree = ast.parse(open(soil.state.__file__).read())
-    init = next(
-        n
-        for c in tree.body
-        if isinstance(c, ast.ClassDef) and c.name == "SoilState"
-        for n in c.body
-        if isinstance(n, ast.FunctionDef) and n.name == "__init__"
+    tree = ast.parse(open(module.__file__).read())
+    cls = next(c for c in tree.body if isinstance(c, ast.ClassDef) and c.name == name)
+    body = (
+        cls.body
+        if method is None
+        else next(n for n in cls.body if isinstance(n, ast.FunctionDef) and n.name == method).body
     )
     found = {}
-    for statement, following in zip(init.body, init.body[1:]):
+    for statement, following in zip(body, body[1:]):
+        target = statement.targets[0] if isinstance(statement, ast.Assign) else getattr(statement, "target", None)
         if (
-            isinstance(statement, ast.Assign)
-            and isinstance(target := statement.targets[0], ast.Attribute)
+            isinstance(target, (ast.Attribute, ast.Name))
             and isinstance(following, ast.Expr)
             and isinstance(following.value, ast.Constant)
-            and (unit := re.search(r"\[([^\]]+)\]", following.value.value))
+            and (unit := re.search(r"\[([^\]]+)\]", str(following.value.value)))
         ):
-            found[target.attr] = ("1", "count") if unit.group(1) == "-" else (unit.group(1),)
+            found[target.attr if isinstance(target, ast.Attribute) else target.id] = (
+                ("1", "count") if unit.group(1) == "-" else (unit.group(1),)
+            )
     return found
 
 

@@ -14,6 +14,7 @@ from cosim.launch import run_plan
 from cosim.output import read_series
 from cosim.plan import load_plan
 from cosim.single_wheel import PHASE_DRIVING
+from helpers import assert_every_number_has_its_unit
 from rover_helpers import MOON, RIG_BALLAST, RIG_WHEEL, write_rig
 
 pytest.importorskip("mujoco")
@@ -143,6 +144,7 @@ def test_a_rover_drives_five_patch_lengths_on_a_bounded_patch(folder, coarse_til
     first = count[0]
     assert count.max() <= 1.25 * first and count.min() >= 0.75 * first
     assert summary["soil_mass_added"] > 4 * summary["soil_mass_initial"]
+    assert_every_number_has_its_unit(summary)  # a rover's and a moving patch's numbers too
     assert summary["patch_moves"] >= 5 * plan.patch.length / plan.patch.recentre_distance
     booked = summary["soil_mass_initial"] + s["soil_mass_added"] - s["soil_mass_removed"]
     np.testing.assert_allclose(s["soil_mass"], booked, rtol=1e-12)

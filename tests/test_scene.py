@@ -197,3 +197,30 @@ def test_a_missing_cuda_device_is_a_scene_error(tmp_path):
         pytest.skip("this machine has a GPU")
     with pytest.raises(SceneError, match=r"scene.device: 'cuda' asked for.*it has: cpu"):
         load_plan(write_tiny(tmp_path), ['scene.device="cuda"'])
+
+
+def test_every_numeric_scene_key_documents_its_unit():
+    """key_unit reads each number's unit from its key's documentation (what a sweep's and a calibration's
+    tables write beside it): every numeric key of every section has one, as documented."""
+    import typing
+
+    from pydantic import BaseModel
+
+    from cosim.scene import Scene, key_unit
+
+    def numbers(model, prefix=""):
+        for name, field in model.model_fields.items():
+            kinds = (field.annotation, *typing.get_args(field.annotation))
+            section = next((t for t in kinds if isinstance(t, type) and issubclass(t, BaseModel)), None)
+            if section is not None:
+                yield from numbers(section, f"{prefix}{name}.")
+            elif float in kinds or int in kinds:
+                yield prefix + name
+
+    keys = list(numbers(Scene))
+    assert len(keys) > 90 and not [key for key in keys if key_unit(key) is None]
+    expected = {"wheel.radius": "m", "soil.youngs_modulus": "Pa", "soil.stick_angle_deg": "deg", "testbed.slip": "1"}
+    expected.update({"testbed.omega": "rad/s", "patch.tile_margin": "m", "run.substeps": "count"})
+    expected["scene.gravity"] = "m/s^2"
+    assert {key: key_unit(key) for key in expected} == expected
+    assert key_unit("wheel.nope") is None and key_unit("nope.radius") is None and key_unit("landing.enabled") is None

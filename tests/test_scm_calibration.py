@@ -13,9 +13,11 @@ from cosim.plan import load_plan
 from cosim.scene import SceneError
 from cosim.scm_calibration import (
     SOIL_KEYS,
+    SOIL_UNITS,
     CalibrationGravityWarning,
     ScmCalibration,
     read_calibration,
+    tomllib,  # tomli before Python 3.11
     write_calibration,
 )
 from cosim.system import CoupledSystem
@@ -188,6 +190,7 @@ def test_the_wheel_fit_recovers_known_parameters_from_held_wheel_forces():
     start = {**truth, "k_phi": 0.7 * truth["k_phi"], "n": 0.47, "friction_angle_deg": 23.0, "janosi_k": 1.6e-3}
     parameters, errors, report = fit_to_wheel(plan, targets, start)
     assert report["rms_residual"] < 0.02
+    assert {f"slips.{key}" for key in report["slips"][0]} - {"slips.run_steady_state"} <= set(report["units"])
     for key in FITTED:
         assert parameters[key] == pytest.approx(truth[key], rel=0.05), key
         assert math.isfinite(errors[key])
@@ -327,6 +330,9 @@ def test_calibrate_scm_from_wheel_writes_the_fit_and_refuses_misplaced_options(t
     assert written.standard_errors["k_phi"] == 0.2 and written.standard_errors["k_c"] == 0.1  # held: the lab's
     assert written.source["wheel"]["runs"] == str(tmp_path / "study") and written.source["lab"] == str(lab_path)
     assert written.source["wheel"]["start_file"] == str(lab_path)
+    with open(out, "rb") as f:  # the file names the unit of every parameter (and of its standard error)
+        assert tomllib.load(f)["units"] == {"gravity": "m/s^2", **{k: SOIL_UNITS[k] for k in SOIL_KEYS}}
+    assert SOIL_UNITS["k_phi"] == "Pa m^(-n)" and SOIL_UNITS["friction_angle_deg"] == "deg"
     capsys.readouterr()
     assert main(["calibrate-scm", scene, "--out", str(tmp_path / "x.toml"), "--lab", str(lab_path)]) == 2
     assert "--lab" in capsys.readouterr().err

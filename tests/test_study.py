@@ -357,6 +357,7 @@ def test_a_timestep_search_that_finds_no_stable_step_ends_with_a_clear_failure(s
     assert "try 1/2" in text and "try 2/2" in text and "UNSTABLE" in text and "no stable step found in 2 tries" in text
     report = json.loads((tmp_path / "ts" / "study.json").read_text())
     assert report["largest_stable"] is None and len(report["tried"]) == 2
+    assert report["units"]["scene_dt"] == report["units"]["tried.dt"] == "s"
 
 
 def test_a_slip_study_is_tabulated_from_the_runs_it_holds(tmp_path):

@@ -11,6 +11,7 @@ from cosim import advice, metrics
 from cosim.cli import main
 from cosim.plan import load_plan
 from cosim.scene import scene_from_text
+from cosim.study import METRIC_UNITS
 from helpers import write_tiny
 
 # The single-wheel scene that was once the main job: 4 cm wheel at 0.25 rad/s on Phobos on a
@@ -84,6 +85,7 @@ def test_replicas_give_error_bars_on_a_real_run(tmp_path, tiny_bed, capsys):
     )
     text = capsys.readouterr().out
     report = json.loads((out / "ensemble.json").read_text())
+    assert report["units"] == {name: METRIC_UNITS[name] for name in report["stats"]["metrics"]}  # each metric's
     steady = [r["summary"] for r in report["results"] if r["summary"]["steady_state"] == "steady"]
     assert len(steady) >= 2, [r["summary"]["steady_state"] for r in report["results"]]
     assert code == 0 or len(steady) < 3, text  # a replica that is not steady makes the run unsteady
@@ -130,6 +132,7 @@ def test_drawbar_pull_rises_with_slip(tmp_path, tiny_bed, capsys):
     )
     report = json.loads((out / "study.json").read_text())
     low, high = (r["summary"] for r in report["runs"])
+    assert report["units"]["drawbar_pull_mean"] == "N" and report["units"]["wheel_load"] == "N"
     assert low["slip"] == pytest.approx(0.05, abs=1e-9) and high["slip"] == pytest.approx(0.6, abs=1e-9)
     rise = high["drawbar_pull"] - low["drawbar_pull"]
     assert rise > 3 * math.hypot(low["drawbar_pull_sem"], high["drawbar_pull_sem"]), (low, high)

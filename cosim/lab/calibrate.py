@@ -36,7 +36,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..scene import SceneError, parse_value
+from ..scene import SceneError, key_unit, parse_value
 from ..study import Executor
 from . import common
 from .scene import LabPlan
@@ -317,10 +317,14 @@ def _calibrate(
         "evaluations": [
             {k: row[k] for k in ("evaluation", "values", "measured", "misfit", "cost", "within")} for row in history
         ],
+        "units": {  # of targets, tolerances, measured and misfit by target; of values and limits by parameter
+            **{name: TARGETS[name].unit for name in targets},
+            **{p.name: key_unit(p.keys[0]) or "1" for p in parameters},
+        },
     }
     columns = [("evaluation", "1", [row["evaluation"] for row in history])]
     for i, p in enumerate(parameters):
-        columns.append((p.name, "scene units", [row["values"][i] for row in history]))
+        columns.append((p.name, key_unit(p.keys[0]) or "1", [row["values"][i] for row in history]))
     for name in targets:
         unit = TARGETS[name].unit
         columns.append((f"{name}_measured", unit, [row["measured"][name] for row in history]))

@@ -275,6 +275,22 @@ def run_replica(
     return _press(plan, replica, bed, surface, width, centre, top, unload)
 
 
+BEKKER_UNITS = {
+    "k_c": "N/m^(n+1)",
+    "k_c_se": "N/m^(n+1)",
+    "k_phi": "N/m^(n+2)",
+    "k_phi_se": "N/m^(n+2)",
+    "k": "N/m^(n+2)",
+    "n": "1",
+    "n_se": "1",
+    "r_squared": "1",
+    "rms_pa": "Pa",
+    "points": "count",
+    "per_width": "keys: plate width [m]; each k [N/m^(n+2)], n [1]",
+}
+"""The units of bekker_fit's values (a plate test's summary.json)."""
+
+
 def bekker_fit(curves: list[tuple[float, np.ndarray, np.ndarray]], fit_from: float) -> dict:
     """Bekker's p = (k_c / b + k_phi) z^n fitted to pressure-sinkage curves (b [m], z [m], p [Pa]).
 
@@ -471,6 +487,12 @@ def plate_test(
         "test": "plate",
         "name": plan.name,
         "gravity": plan.g,
+        "units": {  # the other numbers: counts, or a unit in their key
+            "gravity": "m/s^2",
+            **{f"bekker.{k}": u for k, u in BEKKER_UNITS.items()},
+            "beds.surface": "m",
+            "beds.settle_time": "s",
+        },
         "soil": common.soil_summary(plan),
         "bekker": fit,
         "curves": [

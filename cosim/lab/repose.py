@@ -362,6 +362,7 @@ def repose_test(
         "test": "repose",
         "name": plan.name,
         "gravity": plan.g,
+        "units": {"gravity": "m/s^2"},  # the other numbers: counts, or a unit in their key
         "soil": common.soil_summary(plan),
         "repose_angle_deg": common.statistics(angles),
         "repose_angle_profile_deg": common.statistics([r["angle_profile"] for r in done]),

@@ -22,7 +22,7 @@ import math
 import numpy as np
 
 from ..scene import SceneError
-from ..scm_calibration import SOIL_KEYS
+from ..scm_calibration import SOIL_KEYS, SOIL_UNITS
 from .common import LabFailed
 
 
@@ -262,6 +262,7 @@ def calibrate_scm(plan, out_dir: str, overwrite: bool = False, executor="serial"
     source = {
         "scene": plan.name,
         "gravity_vector": [float(g) for g in plan.gravity],
+        "units": {"gravity_vector": "m/s^2"},  # the other keys end in their unit (_m, _s, _pa) or are counts
         "soil": common.soil_summary(plan),
         "grain": {
             "radius_mean_m": scene.bed.radius_mean,
@@ -293,7 +294,14 @@ def calibrate_scm(plan, out_dir: str, overwrite: bool = False, executor="serial"
     }
     calibration = ScmCalibration(parameters, standard_errors, plan.g, source)
     common.write_summary(
-        out_dir, {"test": "calibrate-scm", "parameters": parameters, "standard_errors": standard_errors, **source}
+        out_dir,
+        {
+            "test": "calibrate-scm",
+            "parameters": parameters,
+            "standard_errors": standard_errors,
+            **source,
+            "units": {**source["units"], "parameters": SOIL_UNITS, "standard_errors": SOIL_UNITS},
+        },
     )
     return calibration
 

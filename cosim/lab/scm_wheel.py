@@ -403,8 +403,36 @@ def fit_to_wheel(
             }
             for t, (w, pull, torque), run in zip(targets, scm, summaries)
         ],
+        "units": {  # held and start: the [units] of the file's [scm]
+            "landing.sinkage": "m",
+            "landing.scm_vertical_force": "N",
+            **{f"slips.{key}": unit for key, unit in SLIP_UNITS.items()},
+        },
     }
     return parameters, errors, report
+
+
+SLIP_UNITS = {
+    "slip": "1",
+    "sinkage": "m",
+    "sinkage_ci95": "m",
+    "drawbar_pull": "N",
+    "drawbar_pull_ci95": "N",
+    "driving_torque": "N m",
+    "driving_torque_ci95": "N m",
+    "replicas": "count",
+    "vertical_force": "N",
+    "landing_sinkage": "m",
+    "landing_sinkage_ci95": "m",
+    "duration": "s",
+    "scm_vertical_force": "N",
+    "scm_drawbar_pull": "N",
+    "scm_driving_torque": "N m",
+    "run_sinkage": "m",
+    "run_drawbar_pull": "N",
+    "run_driving_torque": "N m",
+}
+"""The units of a wheel fit's [[source.wheel.slips]] entries."""
 
 
 def _robust_cost(residuals: np.ndarray) -> float:

@@ -420,6 +420,7 @@ def shear_test(
         "test": "shear",
         "name": plan.name,
         "gravity": plan.g,
+        "units": {"gravity": "m/s^2"},  # the other numbers: counts, or a unit in their key
         "soil": common.soil_summary(plan),
         "peak": peak,
         "residual": residual,
