@@ -101,6 +101,17 @@ def main(argv=None) -> None:
         "rows": rows,
         "onset": onset,
         "machine": f"{platform.machine()}, {os.cpu_count()} cores, {platform.python_version()}",
+        "units": {  # lift and vz_rms are scaled: by the outer radius r, by sqrt(g r)
+            "froude": "1",
+            "onset": "1",
+            "omega": "rad/s",
+            "replica": "1",
+            "airborne": "1",
+            "lift": "1",
+            "vz_rms": "1",
+            "slip": "1",
+            "wall_time": "s",
+        },
     }
     with open(os.path.join(args.out, "froude_hop.json"), "w") as f:
         json.dump(report, f, indent=2)

@@ -231,6 +231,29 @@ BATCH_OVERRIDES = (
 """Scene overrides of the batched section (full, small; small adds to full)."""
 
 
+RESULT_UNITS = {
+    **dict.fromkeys(("dt", "seconds", "simulated_seconds", "wall_seconds", "timed_seconds"), "s"),
+    **dict.fromkeys(("drive_simulated_seconds", "drive_timed_simulated_seconds", "drive_wall_seconds"), "s"),
+    **dict.fromkeys(("landing_simulated_seconds", "projected_60s_seconds", "wall_per_simulated_second"), "s"),
+    **dict.fromkeys(("host_ms_per_world_step", "serve_ms_per_world_step"), "ms"),
+    **dict.fromkeys(("wall_us_per_step", "kernel_us_per_step", "us_per_step"), "us"),
+    "share": "1",
+    **dict.fromkeys(("particle_steps_per_second", "landing_particle_steps_per_second"), "1/s"),
+    **dict.fromkeys(("bytes_per_grain", "bytes_per_grain_estimate"), "B"),
+    **dict.fromkeys(("mean_height", "top"), "m"),  # the agreement's: cpu_mean, device_mean, replica_scatter
+    **dict.fromkeys(("kinetic_energy", "threshold"), "J"),
+    **dict.fromkeys(("slip", "dem_share_of_wall", "loop_padding", "x_double", "x_single", "x_one_world"), "1"),
+    **dict.fromkeys(("particle_steps_x_single", "x_grain_storage", "substeps_per_macro_step"), "1"),
+    **dict.fromkeys(("grains", "grains_max", "grains_min", "grains_per_world", "bed_grains", "tile_grains"), "count"),
+    **dict.fromkeys(("tiles", "worlds", "steps", "substeps", "macro_steps", "drive_steps"), "count"),
+    **dict.fromkeys(("contact_capacity", "contacts_per_grain", "wheel_contacts_min", "wheel_contacts_mean"), "count"),
+    **dict.fromkeys(("wheel_contacts_max", "drive_min", "drive_mean", "drive_max"), "count"),
+    **dict.fromkeys(("landing_min", "landing_mean", "landing_max"), "count"),
+}
+"""The unit of each figure results.json holds, by its name wherever it appears (a scene override: its key's,
+cosim.scene.key_unit); drive_* and landing_*: the grains touching a wheel."""
+
+
 def _figure(value) -> str:
     """A table's figure to 2 decimals, '-' when not measured."""
     return "-" if value is None else f"{value:.2f}"
@@ -848,6 +871,7 @@ class Suite:
     # -- output ---------------------------------------------------------------------------------
     def write(self) -> None:
         self.results["seconds"] = self.elapsed()
+        self.results["units"] = RESULT_UNITS
         for folder in self.results_dirs:
             os.makedirs(folder, exist_ok=True)
             with open(os.path.join(folder, "results.json"), "w") as f:

@@ -31,6 +31,28 @@ ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 sys.path.insert(0, ROOT)
 
 
+EXTRA_UNITS = {
+    "youngs_modulus": "Pa",
+    "dt": "s",
+    "study_wall_time": "s",
+    "landed_sinkage": "m",
+    "final_sinkage": "m",
+    "final_travel": "m",
+    "drive_slip": "1",
+    "replicas": "count",
+    "steady": "count",
+    "failed": "count",
+}
+"""The units of the rows' columns beside the study's metrics (cosim.study.METRIC_UNITS)."""
+
+
+def row_units(rows: list[dict]) -> dict[str, str]:
+    """The unit of each column of the rows that has one (precision_experiment.json's `units`)."""
+    from cosim.study import METRIC_UNITS, column_units
+
+    return column_units(list(rows[0]) if rows else [], {**METRIC_UNITS, **EXTRA_UNITS})
+
+
 def stiff_overrides(plan, modulus: float) -> dict:
     """Scene overrides for the same scene with Young's modulus `modulus` [Pa] (grains and wheel) and a DEM
     step of a tenth of the grain-grain Hertz contact time at the scene's impact speed."""
@@ -167,6 +189,7 @@ def main(argv=None) -> None:
                 "rows": rows,
                 "replicas": args.replicas,
                 "machine": f"{platform.machine()}, {os.cpu_count()} cores, Python {platform.python_version()}",
+                "units": row_units(rows),
             },
             f,
             indent=2,

@@ -284,6 +284,11 @@ def main(argv=None) -> None:
         "machine": f"{platform.machine()}, {os.cpu_count()} cores, {platform.python_version()}",
         "tolerance": TOLERANCE,
         "cases": cases,
+        "units": {  # of each case's comparison rows (the rest: "1"); the wall times' keys end in their unit
+            f"comparison.{key}_{part}": unit
+            for key, _, unit in QUANTITIES
+            for part in ("dem", "dem_ci95", "scm", "difference")
+        },
     }
     if args.timing:
         folder, _, calibration = args.timing.rpartition(":")

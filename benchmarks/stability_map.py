@@ -208,10 +208,27 @@ def figure(rows: list[dict], path: str, axes: dict) -> None:
     fig.savefig(path, dpi=110)
 
 
+COLUMN_UNITS = {
+    "gravity": "m/s^2",
+    "youngs_modulus": "Pa",
+    "radius": "m",
+    "factor": "1",
+    "advised_dt": "s",
+    "critical_dt": "s",
+    "dt": "s",
+    "energy_rise": "1",
+    "evaluations": "count",
+    "rejected": "count",
+    "steps": "count",
+}
+"""The units of a stability CSV's numeric columns (its header names them: 'gravity [m/s^2]'); the
+energy rise is a fraction of KE0 + M g r."""
+
+
 def read_rows(path: str) -> list[dict]:
-    """The rows of a stability CSV written by main(), numbers as numbers."""
+    """The rows of a stability CSV written by main(), keyed by column name without its unit, numbers as numbers."""
     with open(path) as f:
-        rows = list(csv.DictReader(f))
+        rows = [{key.split(" [")[0]: value for key, value in row.items()} for row in csv.DictReader(f)]
     for row in rows:
         for name in ("gravity", "youngs_modulus", "radius", "factor"):
             row[name] = float(row[name])
@@ -244,9 +261,9 @@ def main() -> None:
     label = os.path.splitext(os.path.basename(args.soil))[0]
     csv_path = os.path.join(args.out, f"stability_{label}.csv")
     with open(csv_path, "w", newline="") as f:
-        writer = csv.DictWriter(f, fieldnames=list(rows[0]))
-        writer.writeheader()
-        writer.writerows(rows)
+        writer = csv.writer(f)
+        writer.writerow([f"{key} [{COLUMN_UNITS[key]}]" if key in COLUMN_UNITS else key for key in rows[0]])
+        writer.writerows([list(row.values()) for row in rows])
     figure(rows, os.path.join(args.out, f"stability_{label}.png"), axes)
     print(f"\n{csv_path}\n")
     columns = [(m, f) for m in axes["method"] for f in axes["factor"]]

@@ -377,7 +377,7 @@ def _ensemble_text(stats: dict, title: str, judged: str = "deterministic") -> st
     return "\n".join(lines)
 
 
-def _column_units(keys: list[str], units: dict[str, str]) -> dict[str, str]:
+def column_units(keys: list[str], units: dict[str, str]) -> dict[str, str]:
     """The unit of each column of `keys` that has one: its metric's (a '_mean', '_std', '_ci95', '_min' or
     '_max' column: the metric's); what a study's CSV header and its JSON's `units` say."""
     found = {}
@@ -391,7 +391,7 @@ def _column_units(keys: list[str], units: dict[str, str]) -> dict[str, str]:
 
 def _write_csv(path: str, rows: list[dict], keys: list[str], units: dict[str, str]) -> None:
     """A CSV whose header names each column with its unit, e.g. 'slip_mean [1]'."""
-    known = _column_units(keys, units)
+    known = column_units(keys, units)
 
     def header(key):
         return f"{key} [{known[key]}]" if key in known else key
@@ -466,7 +466,7 @@ def replica_run(
         "results": results,
         "criterion": "a metric is macroscopically deterministic (vary 'order'; over beds: the same on any bed) "
         "when its replica std is <= max(5 % of its mean, its absolute floor) (cosim.study._tolerances)",
-        "units": _column_units(list(stats["metrics"]), METRIC_UNITS),  # stats' mean, std, ... of each metric
+        "units": column_units(list(stats["metrics"]), METRIC_UNITS),  # stats' mean, std, ... of each metric
     }
     write_json(os.path.join(out_dir, "ensemble.json"), report)
     _write_csv(
@@ -569,7 +569,7 @@ def precision_study(
     keys = ["precision", "replicas", "steady", "failed"] + [
         f"{m}_{k}" for m in ("wall_time",) + metrics.REPLICA_METRICS for k in ("mean", "std", "ci95", "min", "max")
     ]
-    report["units"] = {**_column_units(keys, METRIC_UNITS), "wall_time": "s"}  # the rows' columns
+    report["units"] = {**column_units(keys, METRIC_UNITS), "wall_time": "s"}  # the rows' columns
     write_json(os.path.join(out_dir, "study.json"), report)
     _write_csv(os.path.join(out_dir, "study.csv"), rows, keys, METRIC_UNITS)
     for row in rows:
@@ -727,7 +727,7 @@ def _slip_report(
         for m in ("slip", "drawbar_pull", "dp_over_w", "driving_torque", "sinkage", "sinkage_tips")
         for k in ("mean", "std", "ci95")
     ]
-    report["units"] = {**_column_units(keys, {**METRIC_UNITS, "slip_set": "1"}), "wheel_load": "N"}
+    report["units"] = {**column_units(keys, {**METRIC_UNITS, "slip_set": "1"}), "wheel_load": "N"}
     write_json(os.path.join(out_dir, "study.json"), report)
     _write_csv(os.path.join(out_dir, "study.csv"), rows, keys, {**METRIC_UNITS, "slip_set": "1"})
     lines = [
@@ -865,7 +865,7 @@ def sweep(
         rows.append(row)
     keys = list(grid) + ["ok", "status", *columns]
     swept = {key: unit for key in grid if (unit := key_unit(key)) is not None}  # as cosim/scene.py documents them
-    units = _column_units(keys, {**METRIC_UNITS, **swept})
+    units = column_units(keys, {**METRIC_UNITS, **swept})
     report = {"kind": "sweep", "grid": grid, "rows": rows, "runs": results, "scene_toml": text, "units": units}
     write_json(os.path.join(out_dir, "study.json"), report)
     log.info("%s", plot_table(rows, keys))
