@@ -53,13 +53,15 @@ class Finding:
     message: str
     setting: str
     """The scene key(s) to change."""
+    unit: str = "1"
+    """The unit of value and limit ("1": a dimensionless number, as most checks are)."""
 
     def as_dict(self) -> dict:
         return asdict(self)
 
 
-def _finding(check, value, limit, ok, good, bad, setting) -> Finding:
-    return Finding(check, float(value), float(limit), bool(ok), good if ok else bad, setting)
+def _finding(check, value, limit, ok, good, bad, setting, unit: str = "1") -> Finding:
+    return Finding(check, float(value), float(limit), bool(ok), good if ok else bad, setting, unit)
 
 
 def ground_pressure(plan: RunPlan) -> float:
@@ -361,6 +363,7 @@ def scm_check(plan: RunPlan, measured: dict | None = None) -> list[Finding]:
                 f"calibrated at |g| = {calibrated:.4g} m/s^2, the scene's is {plan.g:.4g} m/s^2: the soil's response "
                 "depends on gravity; calibrate at the scene's (cosim calibrate-scm SCENE) or use the DEM",
                 "terrain.calibration",
+                unit="m/s^2",
             )
         )
     # judged on the run's own rim sinkage: Bekker's closed form for a smooth wheel is no estimate of

@@ -93,7 +93,9 @@ def test_a_calibration_file_round_trips_and_warns_at_another_gravity(tmp_path):
     assert dict(plan.terrain.parameters)["k_phi"] == 8.0e5
     with pytest.warns(CalibrationGravityWarning, match=r"9\.81 m/s\^2.*1\.625 m/s\^2"):
         CoupledSystem.build(plan, None)
-    assert any(f.check == "scm_calibration_gravity" and not f.ok for f in _findings(plan))
+    (gravity,) = [f for f in _findings(plan) if f.check == "scm_calibration_gravity"]
+    assert not gravity.ok and gravity.unit == "m/s^2" and (gravity.value, gravity.limit) == pytest.approx((9.81, 1.625))
+    assert {f.unit for f in _findings(plan) if f.check != "scm_calibration_gravity"} == {"1"}  # the others: ratios
     write_calibration(str(path), _calibration(plan.g))
     with warnings.catch_warnings():
         warnings.simplefilter("error", CalibrationGravityWarning)
