@@ -49,23 +49,8 @@ log = logging.getLogger(__name__)
 
 PRECISION_ORDER = ("single", "mixed", "double")
 
-METRIC_UNITS = {
-    "slip": "1",
-    "sinkage": "m",
-    "sinkage_tips": "m",
-    "landing_sinkage": "m",
-    "drawbar_pull": "N",
-    "dp_over_w": "1",
-    "driving_torque": "N m",
-    "travel": "m",
-    "forward_speed": "m/s",
-    "wall_time": "s",
-    "net_traction": "N",
-    "net_traction_over_weight": "1",
-    "power": "W",
-    "energy_per_metre": "J/m",
-    "time_immobile": "s",
-}
+METRIC_UNITS = metrics.SUMMARY_UNITS
+"""The unit of each metric a study tabulates: the run summary's (cosim.metrics)."""
 
 
 # ------------------------------------------------------------------------------------

@@ -363,7 +363,7 @@ class SavedBed:
                         "gravity": "m/s^2",
                         "materials": MATERIAL_UNITS,  # each entry's fields (angles in radians)
                         "spec": SPEC_UNITS,
-                        **{f"metric_{name}": METRIC_UNITS[name] for name in self.metrics},
+                        **{f"metric_{name}": METRIC_UNITS[name] for name in self.metrics if name in METRIC_UNITS},
                     }
                 )
                 for group, table, prefix in (
@@ -373,10 +373,10 @@ class SavedBed:
                     for name, (units, description) in table.items():
                         f[f"{group}/{name}"] = getattr(self, prefix + name)
                         f[f"{group}/{name}"].attrs.update(units=units, description=description)
-                for name, value in self.state.items():
+                for name, value in self.state.items():  # a unit the table lacks must not lose a settled bed
                     f[f"state/{name}"] = value
                     f[f"state/{name}"].attrs.update(
-                        units=STATE_UNITS[name], description=f"SoilState.{name} (rows in model order)"
+                        units=STATE_UNITS.get(name, ""), description=f"SoilState.{name} (rows in model order)"
                     )
 
 
