@@ -227,6 +227,7 @@ CALLS = (
     "monitor_armed",
     "check_divergence",
     "state_dict",
+    "state_dict_units",
 )
 """What a run's process may ask its world for (World's methods of these names)."""
 
@@ -561,6 +562,9 @@ class RemoteWorld:
 
     def state_dict(self) -> dict:
         return self._call("state_dict")
+
+    def state_dict_units(self) -> dict[str, str]:
+        return self._call("state_dict_units")
 
     def load_state_dict(self, data: dict) -> None:
         raise ArgumentError("a world of a batch is not loaded from a checkpoint: resume its run on its own")

@@ -509,12 +509,13 @@ def cmd_calibrate(args) -> int:
     )
     best = summary["best"]
     print(f"calibrate: {out}: {summary['message']} ({len(summary['evaluations'])} evaluations, {summary['method']})")
+    units = summary["units"]
     for key, value in best["values"].items():
-        print(f"  {key:40s} {value:.6g}")
+        print(f"  {key:40s} {value:.6g} {units[key]}")
     for name, value in best["measured"].items():
         print(
-            f"  {name + ' measured':40s} {value:.4g} (target {summary['targets'][name]:g} +- "
-            f"{summary['tolerances'][name]:g})"
+            f"  {name + ' measured':40s} {value:.4g} {units[name]} (target {summary['targets'][name]:g} +- "
+            f"{summary['tolerances'][name]:g} {units[name]})"
         )
     print(f"  calibrated scene: {summary['calibrated_scene']}")
     return EXIT_OK if summary["converged"] else EXIT_UNSTEADY
@@ -588,7 +589,7 @@ def cmd_calibrate_scm(args) -> int:
 
     from .lab.scene import load_lab_plan, load_lab_scene
     from .lab.scm import calibrate_scm, small_tests
-    from .scm_calibration import SOIL_KEYS, read_calibration, write_calibration
+    from .scm_calibration import SOIL_KEYS, SOIL_UNITS, read_calibration, write_calibration
 
     overrides = _overrides(args)
     if args.replicas is not None:
@@ -617,7 +618,7 @@ def cmd_calibrate_scm(args) -> int:
     print(f"calibrate-scm: {args.out} (DEM tests in {work}, |g| = {calibration.gravity:.4g} m/s^2)")
     for key in SOIL_KEYS:
         value, error = calibration.parameters[key], calibration.standard_errors[key]
-        print(f"  {key:20s} {value:12.5g} +- {error:.3g}")
+        print(f"  {key:20s} {value:12.5g} +- {error:.3g} {SOIL_UNITS[key]}")
     return EXIT_OK
 
 

@@ -77,6 +77,18 @@ class WheelWrench:
     """Work done by the wheel on the soil during the macro step [J]."""
 
 
+WRENCH_UNITS = {
+    "force": "N",
+    "torque": "N m",
+    "force_end": "N",
+    "torque_end": "N m",
+    "contact_count": "count",
+    "sinkage": "m",
+    "work_on_soil": "J",
+}
+"""The unit of each field of WheelWrench."""
+
+
 def wheel_frame(orientation: ArrayLike, axis_local: ArrayLike) -> tuple[np.ndarray, np.ndarray]:
     """Spin axis and rolling (forward) direction of a wheel in the world frame.
 
@@ -229,6 +241,11 @@ class SoilSide(Protocol):
 
     # -- optional capabilities: SoilSideDefaults answers "absent" ---------------------------
 
+    def state_dict_units(self) -> dict[str, str]:
+        """{key of state_dict(): its unit} (SI; "1" for flags and indices, "count" for counts, "text"
+        for names), written with a checkpoint; {} where the soil does not say (its entries then go
+        without a unit)."""
+
     def step_statistics(self) -> StepStatistics | None:
         """How the inner steps of the last `advance` went; None before the first one, or for a
         soil without inner steps."""
@@ -290,6 +307,9 @@ class SoilSideDefaults:
 
     def step_statistics(self) -> StepStatistics | None:
         return None
+
+    def state_dict_units(self) -> dict[str, str]:
+        return {}
 
     def start_health_checks(self) -> None:
         return None

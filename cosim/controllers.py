@@ -69,6 +69,9 @@ class ConstantSpeed:
     def state_dict(self) -> dict:
         return {}
 
+    def state_dict_units(self) -> dict[str, str]:
+        return {}
+
     def load_state_dict(self, state: dict) -> None:
         pass
 
@@ -84,6 +87,9 @@ class ConstantTorque:
         return DriveCommand("torque", self.torque)
 
     def state_dict(self) -> dict:
+        return {}
+
+    def state_dict_units(self) -> dict[str, str]:
         return {}
 
     def load_state_dict(self, state: dict) -> None:
@@ -164,6 +170,9 @@ class SlipController:
             "slip": self.slip.copy(),
             "t_prev": np.nan if self._t_prev is None else self._t_prev,
         }
+
+    def state_dict_units(self) -> dict[str, str]:
+        return {"integral": "m", "slip": "1", "t_prev": "s"}
 
     def load_state_dict(self, state: dict) -> None:
         self.integral = np.array(state["integral"], dtype=np.float64)

@@ -32,7 +32,7 @@ import numpy as np
 from soil.control import quaternion_integrate, quaternion_multiply
 from soil.errors import ArgumentError, RegolithError, RegolithWarning
 
-from .contract import RoverSide, SoilSide, WheelKinematics, WheelWrench, advance_soil
+from .contract import WRENCH_UNITS, RoverSide, SoilSide, WheelKinematics, WheelWrench, advance_soil
 from .controllers import apply_command
 
 
@@ -245,6 +245,13 @@ class Coupler:
             for field in _WRENCH_FIELDS:
                 state[f"{name}/{field}"] = np.array([getattr(w, field) for w in wrenches])
         return state
+
+    def state_dict_units(self) -> dict[str, str]:
+        """{key of state_dict(): its unit}."""
+        units = {"time": "s", "step_count": "count", "energy_created": "J", "energy_exchanged": "J", "warned": "1"}
+        for name in ("lagged", "last"):
+            units.update({f"{name}/{field}": WRENCH_UNITS[field] for field in _WRENCH_FIELDS})
+        return units
 
     def load_state_dict(self, state: dict) -> None:
         self.time = float(state["time"])

@@ -206,6 +206,14 @@ class DemSoil:
         data["warned_wall"] = np.bool_(self._warned_wall)
         return data
 
+    def state_dict_units(self) -> dict[str, str]:
+        """SoilSide: {key of state_dict(): its unit}."""
+        units = {f"simulation/{k}": v for k, v in self.sim.state_dict_units().items()}
+        if self.patch is not None:
+            units.update({f"patch/{k}": v for k, v in self.patch.state_dict_units().items()})
+        units["warned_wall"] = "1"
+        return units
+
     def load_state_dict(self, data: dict) -> None:
         """Continue from state_dict() output (into a DemSoil built from the same scene and bed)."""
         if self.patch is not None:  # the patch's grains first: the simulation's state is loaded over them

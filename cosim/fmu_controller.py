@@ -202,6 +202,10 @@ class FmuController(FmuSession):
             return {"time": np.nan, "fmu_state": np.zeros(0, dtype=np.uint8)}
         return {"time": self._time, "fmu_state": self.save_state()}
 
+    def state_dict_units(self) -> dict[str, str]:
+        """{key of state_dict(): its unit}."""
+        return {"time": "s", "fmu_state": "bytes (the FMU's serialized state)"}
+
     def load_state_dict(self, state: dict) -> None:
         t = float(state["time"])
         if np.isnan(t):

@@ -205,6 +205,16 @@ class RoverDriver:
             out.update({f"controller/{k}": v for k, v in self.controller.state_dict().items()})
         return out
 
+    def state_dict_units(self) -> dict[str, str]:
+        """{key of state_dict(): its unit}; the rover model's and the controller's where they say
+        (a `state_dict_units()` method)."""
+        torque = self.last_command.mode == "torque"
+        units = {"phase": "1", "drive_start": "s", "command_torque": "1", "command": "N m" if torque else "rad/s"}
+        for prefix, part in (("model", self.rover), ("controller", self.controller)):
+            if hasattr(part, "state_dict_units"):
+                units.update({f"{prefix}/{k}": v for k, v in part.state_dict_units().items()})
+        return units
+
     def load_state_dict(self, state: dict) -> None:
         self.phase = int(state["phase"])
         self.drive_start = float(state["drive_start"])

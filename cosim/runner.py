@@ -332,6 +332,21 @@ class Runner:
         if self.plan.output.snapshot_interval > 0:
             self.next_snapshot = self.system.coupler.time + self.plan.output.snapshot_interval
 
+    LOOP_UNITS = {
+        "drive_start_step": "count",
+        "drive_start_position": "m",
+        "body_position": "m",
+        "body_travel": "m",
+        "rest_heights": "m",
+        "landing_failed": "1",
+        "next_snapshot": "s",
+        "next_checkpoint": "s",
+        "wall_time": "s",
+        "steps": "count",
+        "snapshots": "count",
+    }
+    """The unit of each entry of loop_state()."""
+
     def loop_state(self, wall: float) -> dict:
         """The loop's own state (what `Runner(..., loop=...)` takes back)."""
         return {
@@ -357,7 +372,10 @@ class Runner:
         data["scene_base_dir"] = np.array(self.plan.scene.base_dir or "")
         data["bed_path"] = np.array("" if self.system.bed is None else self.system.bed.path)
         data["run_id"] = np.array(self.run_id)
-        write_checkpoint(self.folder.checkpoint, data)
+        units = self.system.state_dict_units()
+        units.update({f"loop/{k}": v for k, v in self.LOOP_UNITS.items()})
+        units.update(dict.fromkeys(("scene_toml", "scene_base_dir", "bed_path", "run_id"), "text"))
+        write_checkpoint(self.folder.checkpoint, data, units)
         self.last_checkpoint_time = self.system.coupler.time
 
     # -- progress and summary --------------------------------------------------------------

@@ -350,6 +350,12 @@ class ScmSoil(SoilSideDefaults):
         )
         return data
 
+    def state_dict_units(self) -> dict[str, str]:
+        """SoilSide: {key of state_dict(): its unit}."""
+        units = {f"scm/{k}": v for k, v in self.terrain.state_dict_units().items()}
+        units.update(position="m", orientation="1", gravity="m/s^2", last_steps="count", last_step="s")
+        return units
+
     def load_state_dict(self, data: dict) -> None:
         """SoilSide: continue from state_dict() output (into an ScmSoil built from the same scene)."""
         self.terrain.load_state_dict({k[len("scm/") :]: v for k, v in data.items() if k.startswith("scm/")})
@@ -474,6 +480,11 @@ class CompositeSoil(SoilSideDefaults):
     def state_dict(self) -> dict:
         """Each part's state under 'part{k}/'."""
         return {f"part{k}/{key}": v for k, (soil, _) in enumerate(self.parts) for key, v in soil.state_dict().items()}
+
+    def state_dict_units(self) -> dict[str, str]:
+        """Each part's units under 'part{k}/'."""
+        parts = enumerate(self.parts)
+        return {f"part{k}/{key}": v for k, (soil, _) in parts for key, v in soil.state_dict_units().items()}
 
     def load_state_dict(self, data: dict) -> None:
         for k, (soil, _) in enumerate(self.parts):

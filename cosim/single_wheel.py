@@ -175,6 +175,20 @@ class SingleWheelRig:
             "held_torque": held.torque.copy(),
         }
 
+    def state_dict_units(self) -> dict[str, str]:
+        """{key of state_dict(): its unit}."""
+        return {
+            "position": "m",
+            "velocity": "m/s",
+            "angle": "rad",
+            "omega": "rad/s",
+            "time": "s",
+            "phase": "1",
+            "drive_start": "s",
+            "held_force": "N",
+            "held_torque": "N m",
+        }
+
     def load_state_dict(self, state: dict) -> None:
         self.position = np.array(state["position"], dtype=np.float64)
         self.velocity = np.array(state["velocity"], dtype=np.float64)

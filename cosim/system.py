@@ -150,6 +150,14 @@ class CoupledSystem:
                 out[f"{prefix}/{key}"] = np.asarray(value)
         return out
 
+    def state_dict_units(self) -> dict[str, str]:
+        """{key of state_dict(): its unit}, from each part's `state_dict_units()` where it has one."""
+        out = {}
+        for prefix, part in self._parts():
+            units = part.state_dict_units() if hasattr(part, "state_dict_units") else {}
+            out.update({f"{prefix}/{key}": unit for key, unit in units.items()})
+        return out
+
     def load_state_dict(self, state: dict) -> None:
         for prefix, part in self._parts():
             head = prefix + "/"

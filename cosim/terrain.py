@@ -132,6 +132,9 @@ class SpringDamperTerrain(SoilSideDefaults):
         """The terrain's time [s] and the wheels' poses (its laws hold no other state)."""
         return {"time": self.time, "hub_position": self._hub_position.copy(), "hub_rotation": self._hub_rotation.copy()}
 
+    def state_dict_units(self) -> dict[str, str]:
+        return {"time": "s", "hub_position": "m", "hub_rotation": "1"}
+
     def load_state_dict(self, data: dict) -> None:
         self.time = float(data["time"])
         self._hub_position = np.array(data["hub_position"], dtype=np.float64)

@@ -3,7 +3,8 @@
 A scene names it as "module:function"; the function is called once with wheel_count, wheel_radius
 and the drive's args, and returns the controller: a callable (t, wheel_states, wrenches) ->
 cosim.controllers.DriveCommand. A controller with state keeps it in state_dict / load_state_dict so
-that `cosim resume` continues it exactly.
+that `cosim resume` continues it exactly, and names its entries' units in state_dict_units (the checkpoint
+carries them).
 """
 
 import numpy as np
@@ -29,6 +30,9 @@ class SoftStart:
 
     def state_dict(self) -> dict:
         return {"start": np.nan if self.start is None else self.start}
+
+    def state_dict_units(self) -> dict[str, str]:
+        return {"start": "s"}
 
     def load_state_dict(self, state: dict) -> None:
         start = float(state["start"])

@@ -273,6 +273,10 @@ class FmuRover(FmuSession):
         saved = self.save_state() if self.can_save_state else np.zeros(0, dtype=np.uint8)
         return {"fmu_state": saved, "time": self._time, "torque_mode": self.drive_mode == "torque"}
 
+    def state_dict_units(self) -> dict[str, str]:
+        """{key of state_dict(): its unit}."""
+        return {"fmu_state": "bytes (the FMU's serialized state)", "time": "s", "torque_mode": "1"}
+
     def load_state_dict(self, state: dict) -> None:
         self.load_state(state["fmu_state"])
         self._time = float(state["time"])

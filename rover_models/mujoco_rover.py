@@ -324,6 +324,15 @@ class MujocoRover:
             "hub_wrenches": self.hub_wrenches.copy(),
         }
 
+    def state_dict_units(self) -> dict[str, str]:
+        """{key of state_dict(): its unit}."""
+        return {
+            "mujoco_state": "MuJoCo's mjSTATE_INTEGRATION vector: time [s], qpos, qvel, act, ctrl, ... in SI",
+            "torque_mode": "1",
+            "wheel_torques": "N m",
+            "hub_wrenches": "by column: N (3), N m (3)",
+        }
+
     def load_state_dict(self, state: dict) -> None:
         if bool(state["torque_mode"]):
             self.set_wheel_torques(np.asarray(state["wheel_torques"]))

@@ -516,6 +516,27 @@ class SoilControl:
         "boundary_damping",
     )
 
+    STATE_UNITS = {
+        "body_position": "m",
+        "body_rotation": "1",
+        "body_velocity": "m/s",
+        "body_angular_velocity": "rad/s",
+        "boundary_mode": "1",  # MOTION_PRESCRIBED or MOTION_LOADED
+        "boundary_velocity": "m/s",
+        "boundary_direction": "1",
+        "boundary_mass": "kg",
+        "boundary_load": "N",
+        "boundary_damping": "N s/m",
+        "external_force": "N",
+        "external_force_used": "1",
+        "body_posed": "1",
+    }
+    """The unit of each entry of state_dict() (the attributes of the same names, without _host)."""
+
+    def state_dict_units(self) -> dict[str, str]:
+        """{key of state_dict(): its unit}."""
+        return dict(self.STATE_UNITS)
+
     def state_dict(self) -> dict:
         """The control as numpy arrays: the host copies of body and boundary motion (names
         without _host), external_force [N] (particle_count, 3) and body_posed [-] (body_count,)."""

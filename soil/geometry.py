@@ -16,6 +16,15 @@ import numpy as np
 
 from .errors import DamagedFileError, RegolithWarning, SoilInputError
 
+GROUSER_WHEEL_UNITS = {
+    "radius": "m",
+    "width": "m",
+    "grouser_count": "count",
+    "grouser_height": "m",
+    "grouser_thickness": "m",
+}
+"""The unit of each GrouserWheel field."""
+
 
 @dataclass(frozen=True)
 class GrouserWheel:

@@ -734,6 +734,16 @@ class StepController:
 
     _OPTIONAL = ("dt_max", "dt_min", "dt_initial", "dt")
 
+    def state_dict_units(self) -> dict[str, str]:
+        """{key of state_dict(): its unit} (the fields' documented units; the tolerance is in m/s only
+        when normalise is False)."""
+        seconds = {"dt_max", "dt_min", "dt_initial", "dt"}
+        speeds = {"velocity_scale", "speed_seen"}
+        units = {f.name: "s" if f.name in seconds else "m/s" if f.name in speeds else "1" for f in fields(self)}
+        units["tolerance"] = "1" if self.normalise else "m/s"
+        units["norm"] = "text"
+        return units
+
     def state_dict(self) -> dict:
         """Settings and control state as numpy scalars/arrays (None stored as NaN)."""
         data = {}

@@ -456,6 +456,30 @@ class SoilPatch:
         return sim
 
     # -- checkpoints -----------------------------------------------------------------------------
+    STATE_UNITS = {
+        "centre": "m",
+        "origin": "m",
+        "moves": "count",
+        "mass_initial": "kg",
+        "mass_added": "kg",
+        "mass_removed": "kg",
+        "grains_added": "count",
+        "grains_removed": "count",
+        "next_id": "1",
+        "ids": "1",
+        "radius": "m",
+        "material": "1",  # an index into the materials table
+        "mass": "kg",
+        "free_inv_mass": "1/kg",
+        "free_inv_inertia": "1/(kg m^2)",
+        "frozen": "1",
+    }
+    """The unit of each entry of state_dict()."""
+
+    def state_dict_units(self) -> dict[str, str]:
+        """{key of state_dict(): its unit}."""
+        return dict(self.STATE_UNITS)
+
     def state_dict(self) -> dict:
         """The window, the books and the patch's grains (ids, constants, band, positions)."""
         return {

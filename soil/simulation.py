@@ -45,7 +45,7 @@ from .sdf import displaced_geometry
 from .snapshot import SimulationSnapshot
 from .solver import ContactSolver
 from .stability import DivergenceMonitor, SimulationDiverged  # noqa: F401 (SimulationDiverged re-exported)
-from .state import GrainLayout, SoilState, copy_world_words
+from .state import STATE_UNITS, GrainLayout, SoilState, copy_world_words
 from .step_control import DeviceStepControl
 
 
@@ -667,6 +667,21 @@ class Simulation:
             data.update({f"step_control/{k}": v for k, v in self.step_control.state_dict().items()})
         data.update({f"monitor/{k}": v for k, v in self.monitor.state_dict().items()})
         return data
+
+    def state_dict_units(self) -> dict[str, str]:
+        """{key of state_dict(): its unit} (SI; "1" for flags and indices, "count" for counts, "text" for
+        names)."""
+        units = {f"state/{k}": v for k, v in STATE_UNITS.items()}
+        units.update({f"control/{k}": v for k, v in self.control.state_dict_units().items()})
+        counters = ("steps", "accepted_steps", "rejected_steps", "forced_steps", "evaluations")
+        units.update(dict.fromkeys(counters, "count"))
+        units.update(capacity="count", rigid_capacity="count", integrator="text", precision="text")
+        if self._controller is not None:
+            units.update({f"controller/{k}": v for k, v in self._controller.state_dict_units().items()})
+        if self.step_control is not None:
+            units.update({f"step_control/{k}": v for k, v in self.step_control.state_dict_units().items()})
+        units.update({f"monitor/{k}": v for k, v in self.monitor.state_dict_units().items()})
+        return units
 
     def load_state_dict(self, data: dict) -> None:
         """Continue from state_dict() output (e.g. loaded from an .npz): the next step is

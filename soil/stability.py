@@ -331,6 +331,30 @@ class DivergenceMonitor:
                 value = np.asarray(data[name[1:]], dtype=np.float64)
                 setattr(self, name, value.copy() if name == "_body_reach" else float(value))
 
+    STATE_UNITS = {
+        "speed_factor": "1",
+        "energy_factor": "1",
+        "max_overlap_ratio": "1",
+        "height": "m",
+        "speed_floor": "m/s",
+        "enabled": "1",
+        "armed": "1",
+        "speed_bound": "m/s",
+        "energy_bound": "J",
+        "g": "m/s^2",
+        "mass_total": "kg",
+        "v0": "m/s",
+        "v_elastic": "m/s",
+        "energy0": "J",
+        "v_body": "m/s",
+        "body_reach": "m",
+    }
+    """The unit of each entry of state_dict() (flags: "1")."""
+
+    def state_dict_units(self) -> dict[str, str]:
+        """{key of state_dict(): its unit}."""
+        return dict(self.STATE_UNITS)
+
     # -- the last good state -------------------------------------------------------
     def snapshot(self, sim) -> None:
         """Copy the current state into the last-good buffer (device to device)."""

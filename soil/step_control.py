@@ -407,6 +407,12 @@ class DeviceStepControl:
         data["device"] = values[0] if self.worlds == 1 else values
         return data
 
+    def state_dict_units(self) -> dict[str, str]:
+        """{key of state_dict(): its unit}; 'device' holds columns of different units."""
+        units = self.controller.state_dict_units()
+        units["device"] = "by column: s, 1, 1, count, m/s (NEXT_STEP, C_PREVIOUS, C_BEFORE, HISTORY, SPEED_SEEN)"
+        return units
+
     def load_state_dict(self, data: dict) -> None:
         carried = np.asarray(data["device"], dtype=np.float64)
         if carried.size % CARRIED:

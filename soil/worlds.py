@@ -638,5 +638,9 @@ class World:
                 data.update(self.worlds.step_counts(self.index))
             return data
 
+    def state_dict_units(self) -> dict[str, str]:
+        """{key of state_dict(): its unit}: a world's state has its scene's keys."""
+        return self._sim.state_dict_units()
+
     def load_state_dict(self, data: dict) -> None:
         raise ArgumentError("a world of a batch is not loaded from a checkpoint: resume its run on its own")

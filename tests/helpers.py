@@ -142,3 +142,19 @@ def assert_every_number_has_its_unit(summary: dict) -> None:
     ]
     missing = [key for key in numbers if key not in summary["units"]]
     assert numbers and not missing, missing
+
+
+def assert_checkpoint_units(path) -> dict:
+    """Every array of a checkpoint has a unit in its units table (soil.stability.UNITS_KEY); returns
+    the table."""
+    import json
+
+    from soil.stability import CHECKSUM_KEY, UNITS_KEY
+
+    with np.load(path) as data:
+        names = set(data.files) - {CHECKSUM_KEY, UNITS_KEY}
+        units = json.loads(str(data[UNITS_KEY]))
+    missing = sorted(names - set(units))
+    assert names and not missing, missing
+    assert all(isinstance(units[name], str) and units[name] for name in names)
+    return units

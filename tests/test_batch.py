@@ -18,7 +18,7 @@ from cosim.output import read_series
 from cosim.plan import load_plan
 from cosim.scene import SceneError
 from cosim.study import replica_run, slip_study
-from helpers import write_tiny
+from helpers import assert_checkpoint_units, write_tiny
 from soil.bed import read_bed, read_bed_header
 from soil.memory import SoilTooLargeError
 
@@ -194,6 +194,8 @@ def test_a_stop_signal_stops_every_run_of_a_batch_with_a_checkpoint_each_resumed
     results = run_batched(plans, out)
     for result in results:
         assert not result["ok"] and "RunInterrupted" in result["error"], result
+    for folder in out:  # a world's checkpoint is its scene's alone, units included
+        assert assert_checkpoint_units(os.path.join(folder, "checkpoint.npz"))["soil/simulation/state/position"] == "m"
     for folder, alone in zip(out, runs_alone):
         assert resume(folder).status in ("complete", "unsteady")
         assert_same_run(alone, folder)

@@ -298,3 +298,35 @@ def test_cosim_lab_repose_writes_its_report(tmp_path, capsys):
         "replica [1],radius [m],surface_height [m],sectors_filled [1]"
     )
     assert main(["lab", "repose", str(scene), "--serial", "--out", str(out)]) == 3  # nothing is overwritten
+
+
+def test_calibrate_prints_each_value_with_its_unit(tmp_path, capsys, monkeypatch):
+    """`cosim calibrate` prints the best values and the measured targets with the units of the summary
+    (cosim.lab.calibrate: a parameter's from the scene key's documentation, a target's from TARGETS)."""
+    import importlib
+
+    lab_calibrate = importlib.import_module("cosim.lab.calibrate")  # the module (cosim.lab.calibrate: its function)
+
+    def calibrated(plan, out, targets, parameters, tolerances, **kwargs):
+        names = [p.name for p in parameters]
+        return {
+            "method": "brentq",
+            "message": "every target is within its tolerance",
+            "converged": True,
+            "targets": targets,
+            "tolerances": tolerances,
+            "best": {"values": dict.fromkeys(names, 0.1), "measured": {"repose": 30.4}},
+            "evaluations": [{}],
+            "calibrated_scene": str(tmp_path / "calibrated.toml"),
+            "units": {**{name: lab_calibrate.TARGETS[name].unit for name in targets}, **dict.fromkeys(names, "1")},
+        }
+
+    monkeypatch.setattr(lab_calibrate, "calibrate", calibrated)
+    scene = tmp_path / "lab.toml"
+    scene.write_text("[scene]\ndevice = 'cpu'\ngravity = [0.0, 0.0, -1.625]\n")
+    args = ["--serial", "--out", str(tmp_path / "out"), "--target", "repose=30"]
+    args += ["--vary", "soil.rolling_friction=0:0.3"]
+    assert main(["calibrate", str(scene), *args]) == 0
+    printed = capsys.readouterr().out
+    assert "soil.rolling_friction" in printed and "0.1 1\n" in printed
+    assert "repose measured" in printed and "30.4 deg (target 30 +- 1 deg)" in printed

@@ -160,6 +160,39 @@ def test_a_bed_file_carries_the_units_its_arrays_are_documented_in(tiny_bed):
                 assert unit in documented[name], (name, unit, documented[name])
 
 
+def test_the_checkpoint_unit_tables_say_what_the_attributes_documentation_says():
+    """The units a checkpoint carries (state_dict_units) for the wheels' wrenches, the soil's control, its
+    step controller, its divergence monitor and a moving patch, and those of a soil FMU's wheel and SCM
+    parameters, are those their attributes document."""
+    import cosim.contract
+    import soil.control
+    import soil.geometry
+    import soil.integrator
+    import soil.patch
+    import soil.scm.terrain
+    import soil.stability
+
+    control = {f"{k}_host": v for k, v in soil.control.SoilControl.STATE_UNITS.items()}
+    control.update(external_force=soil.control.SoilControl.STATE_UNITS["external_force"])
+    controller = soil.integrator.StepController(tolerance=1e-3).state_dict_units()
+    # the tolerance is an error in m/s where the error is not normalised (the field `normalise` says so)
+    assert soil.integrator.StepController(tolerance=1e-3, normalise=False).state_dict_units()["tolerance"] == "m/s"
+    for table, documented, least in (
+        (cosim.contract.WRENCH_UNITS, _documented_units(cosim.contract, "WheelWrench"), 7),
+        (control, _documented_units(soil.control, "SoilControl", "__init__"), 11),
+        (controller, _documented_units(soil.integrator, "StepController"), 14),
+        (soil.stability.DivergenceMonitor.STATE_UNITS, _documented_units(soil.stability, "DivergenceMonitor"), 7),
+        (soil.patch.SoilPatch.STATE_UNITS, _documented_units(soil.patch, "SoilPatch", "__init__"), 4),
+        # and a soil FMU's soil.json (its wheel, its SCM parameters)
+        (soil.geometry.GROUSER_WHEEL_UNITS, _documented_units(soil.geometry, "GrouserWheel"), 5),
+        (soil.scm.terrain.SCM_PARAMETER_UNITS, _documented_units(soil.scm.terrain, "ScmParameters"), 10),
+    ):
+        checked = [name for name in table if name in documented]
+        assert len(checked) >= least, (checked, documented)
+        for name in checked:
+            assert table[name] in documented[name], (name, table[name], documented[name])
+
+
 def _documented_units(module, name: str, method: str | None = None) -> dict[str, tuple[str, ...]]:
     """The unit in brackets that opens the docstring of each attribute of class `name` of `module` (its
     fields, or what its `method` assigns to self); "[-]": "1" or "count"."""

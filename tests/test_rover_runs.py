@@ -16,6 +16,7 @@ from cosim.launch import final_state, resume, run_plan
 from cosim.output import documented_layout, open_results, read_series, xdmf_references
 from cosim.plan import load_plan
 from cosim.single_wheel import PHASE_DRIVING
+from helpers import assert_checkpoint_units
 from rover_helpers import MOON, RIG_BALLAST, RIG_CARRIAGE, RIG_WHEEL, write_rig, write_small_rover
 
 pytest.importorskip("mujoco")
@@ -212,6 +213,7 @@ def _interrupted(plan, out, after=2):
 
     with pytest.raises(KeyboardInterrupt):
         run_plan(plan, str(out), hooks={"checkpoint": stop})
+    assert_checkpoint_units(out / "checkpoint.npz")
     with np.load(out / "checkpoint.npz") as data:
         stopped_at = {key: data[key] for key in data.files}
     resume(str(out))

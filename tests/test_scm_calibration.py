@@ -137,7 +137,7 @@ def _findings(plan):
     return validity(plan, 0.0)
 
 
-def test_calibrate_scm_runs_the_dem_tests_and_writes_a_usable_file(tmp_path):
+def test_calibrate_scm_runs_the_dem_tests_and_writes_a_usable_file(tmp_path, capsys):
     """The command end to end on the tiny soil with tiny tests (its numbers are no soil's: plates of
     three grains; the file's provenance and its use are what is checked)."""
     from cosim.cli import main
@@ -148,6 +148,8 @@ def test_calibrate_scm_runs_the_dem_tests_and_writes_a_usable_file(tmp_path):
     tiny += ["shear.length=0.028", "shear.width=0.028", "shear.height=0.028", "shear.displacement=0.005"]
     code = main(["calibrate-scm", scene, "--out", str(out), "--serial", *[a for s in tiny for a in ("--set", s)]])
     assert code == 0
+    printed = capsys.readouterr().out  # each parameter with its unit
+    assert "m/s^2" in printed and all(f"{SOIL_UNITS[key]}\n" in printed for key in SOIL_KEYS)
     calibration = read_calibration(str(out))
     assert set(calibration.parameters) == set(SOIL_KEYS) and all(
         math.isfinite(v) for v in calibration.parameters.values()

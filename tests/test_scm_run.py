@@ -20,7 +20,7 @@ from cosim.scene import SceneError, validate_scene
 from cosim.scm_soil import CompositeSoil, ScmSoil, chord_angular_velocity
 from cosim.single_wheel import PHASE_DRIVING, PHASE_LANDING
 from cosim.system import CoupledSystem
-from helpers import write_tiny
+from helpers import assert_checkpoint_units, write_tiny
 from soil.control import quaternion_integrate
 
 K_C, K_PHI, N = 2.0e3, 8.0e5, 1.1
@@ -113,6 +113,8 @@ def test_an_scm_run_resumes_bit_for_bit(scm_run, tmp_path):
 
     with pytest.raises(RunInterrupted):
         run_scene(write_tiny(tmp_path, SCM), str(tmp_path / "run"), hooks={"step": stop}, overrides=SMOOTH)
+    units = assert_checkpoint_units(tmp_path / "run" / "checkpoint.npz")
+    assert units["soil/scm/plastic"] == "m" and units["rover/angle"] == "rad"
     resume(str(tmp_path / "run"))
     first, second = read_series(run / "results.h5"), read_series(tmp_path / "run" / "results.h5")
     for name in ("time", "position", "force", "torque", "sinkage", "rover_state", "contact_count"):
@@ -184,6 +186,8 @@ def test_a_heterogeneous_rover_run_resumes_bit_for_bit(tmp_path):
 
     with pytest.raises(RunInterrupted):
         run_plan(plan, str(tmp_path / "resumed"), hooks={"step": stop})
+    units = assert_checkpoint_units(tmp_path / "resumed" / "checkpoint.npz")
+    assert units["soil/part0/simulation/state/position"] == "m" and units["soil/part1/scm/shear"] == "m"
     stopped = read_series(tmp_path / "resumed" / "results.h5")
     assert 0 < len(stopped["time"]) < len(read_series(tmp_path / "whole" / "results.h5")["time"])
     resume(str(tmp_path / "resumed"))

@@ -447,7 +447,22 @@ def test_export_fmu_command_from_a_run_folder(tmp_path):
     assert config["dem_step"] == dt and config["wheel_count"] == 2
     assert config["surface_height"] == pytest.approx(run_info["metrics"]["height"], rel=1e-12)
     assert config["wheel"]["radius"] == loaded.scene.wheel.radius == SMALL_WHEEL.radius
+    assert_every_number_has_a_unit(config, config["units"])
+    assert config["units"]["wheel_material"]["stick_angle"] == "rad" and config["units"]["dem_step"] == "s"
     assert float(description.defaultExperiment.stepSize) == pytest.approx(macro_step, rel=1e-12)
+
+
+def assert_every_number_has_a_unit(data: dict, units: dict, where: str = "soil.json") -> None:
+    """Every number (or list of numbers) of `data` has a unit in the same place of `units`: a string, or
+    for a nested object an object of the same keys."""
+    for key, value in data.items():
+        if key == "units" or isinstance(value, str) or value is None or key == "extra":
+            continue
+        if isinstance(value, dict):
+            assert isinstance(units.get(key), dict), f"{where}.{key}"
+            assert_every_number_has_a_unit(value, units[key], f"{where}.{key}")
+        else:
+            assert isinstance(units.get(key), str) and units[key], f"{where}.{key} has no unit"
 
 
 def test_a_rover_scene_is_refused_before_a_bed_is_settled(tmp_path):
@@ -704,7 +719,10 @@ def test_scm_soil_server_puts_a_failed_step_back_and_spreads_several_wheels(scm,
     with zipfile.ZipFile(fmu) as z:
         z.extractall(tmp_path / "two")
         assert "resources/bed.h5" not in z.namelist()
-    window = json.loads((tmp_path / "two" / "resources" / "soil.json").read_text())["scm"]["window"]
+    config = json.loads((tmp_path / "two" / "resources" / "soil.json").read_text())
+    assert_every_number_has_a_unit(config, config["units"])
+    assert config["units"]["scm"]["parameters"]["k_phi"] == "Pa m^(-n)"
+    window = config["scm"]["window"]
     assert window[0] == pytest.approx(scm["config"].scm.window[0] + SCM_WHEEL_SPACING * outer)
 
     settings = {

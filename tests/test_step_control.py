@@ -102,6 +102,9 @@ def test_a_pid_run_resumes_bit_for_bit(device):
     first.sim.enable_step_control(StepController(tolerance=1e-2))
     _advance(first, 0, 3)
     saved = first.state_dict()
+    units = first.state_dict_units()  # what the checkpoint carries: a unit for every entry
+    assert set(saved) <= set(units)
+    assert units["simulation/step_control/dt_max"] == "s" and units["simulation/step_control/tolerance"] == "1"
     resumed = soil(device)
     resumed.load_state_dict(saved)
     assert resumed.sim.step_control is not None

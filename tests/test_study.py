@@ -16,7 +16,7 @@ from cosim.launch import final_state, resume, run_plan
 from cosim.output import open_results
 from cosim.plan import load_plan
 from cosim.runner import RunDiverged, RunInterrupted
-from helpers import write_tiny
+from helpers import assert_checkpoint_units, write_tiny
 
 
 @pytest.fixture(scope="module")
@@ -72,6 +72,8 @@ def test_resume_after_a_hard_interrupt_is_bitwise_identical(scene_path, tiny_bed
         )
     info = json.loads((broken / "run.json").read_text())
     assert info["status"] == "interrupted"
+    units = assert_checkpoint_units(broken / "checkpoint.npz")
+    assert units["soil/simulation/state/angular_velocity"] == "rad/s" and units["loop/rest_heights"] == "m"
     with open_results(broken / "results.h5") as f:
         assert f.attrs["status"] == "interrupted"
         assert f["wheels/time"].shape[0] > checkpoints[-1]  # records past the checkpoint exist; resume cuts them

@@ -14,7 +14,7 @@ from cosim.scene import SceneError
 from cosim.single_wheel import PHASE_DRIVING
 from cosim.system import CoupledSystem
 from cosim.terrain import SpringDamperTerrain
-from helpers import write_tiny
+from helpers import assert_checkpoint_units, write_tiny
 
 STIFFNESS = 500.0
 """[N/m]: the tiny wheel (0.3 kg on the moon, 0.486 N) sinks about 1 mm."""
@@ -109,6 +109,8 @@ def test_an_analytic_run_resumes_to_the_uninterrupted_result(analytic_run, tmp_p
     with pytest.raises(RunInterrupted):
         run_scene(write_tiny(tmp_path, ANALYTIC), str(tmp_path / "run"), hooks={"step": stop}, overrides=LONGER)
     assert stopped
+    units = assert_checkpoint_units(tmp_path / "run" / "checkpoint.npz")
+    assert units["soil/hub_position"] == "m" and units["coupler/lagged/force"] == "N"
     resume(str(tmp_path / "run"))
     first, second = read_series(run / "results.h5"), read_series(tmp_path / "run" / "results.h5")
     for name in ("time", "position", "force", "sinkage", "rover_state"):

@@ -221,8 +221,20 @@ def config_to_json(config: SoilFmuConfig, wheel_count: int) -> dict:
             "vertices": shape.vertices.tolist(),
             "triangles": shape.triangles.tolist(),
         }
+    from soil.geometry import GROUSER_WHEEL_UNITS
+    from soil.materials import MATERIAL_UNITS
+    from soil.scm.terrain import SCM_PARAMETER_UNITS
+
+    units: dict = {
+        "wheel_count": "count",
+        "wheel": GROUSER_WHEEL_UNITS if isinstance(shape, GrouserWheel) else {"vertices": "m", "triangles": "1"},
+        "dem_step": "s",
+        "surface_height": "m",
+        "gravity": "m/s^2",
+    }
     data = {
         "format": CONFIG_FORMAT,
+        "units": units,  # of every number below (SI; "1": flags and indices); readers pass it over
         "terrain": config.terrain,
         "name": config.name,
         "wheel_count": int(wheel_count),
@@ -244,6 +256,7 @@ def config_to_json(config: SoilFmuConfig, wheel_count: int) -> dict:
             rim_radius=rim_radius(shape),
             gravity=[float(g) for g in config.gravity],
         )
+        units.update(scm={"parameters": SCM_PARAMETER_UNITS, "window": "m"}, rim_radius="m")
         return data
     data.update(
         wheel_material=asdict(config.wheel_material) if config.wheel_material else None,
@@ -251,6 +264,12 @@ def config_to_json(config: SoilFmuConfig, wheel_count: int) -> dict:
         order_seed=config.order_seed,
         gravity=_bed_gravity(config.bed_file),
         step_control=config.step_control,
+    )
+    units.update(
+        wheel_material=MATERIAL_UNITS,
+        law=dict.fromkeys(asdict(config.law) if config.law else (), "1"),  # switches
+        order_seed="1",
+        step_control={"tolerance": "1", "dt_min": "s", "dt_max": "s"},
     )
     return data
 

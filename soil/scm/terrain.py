@@ -26,6 +26,24 @@ NO_BOX = -(2**30)
 STATE_VERSION = 2
 
 
+SCM_PARAMETER_UNITS = {
+    "k_c": "Pa m^(1-n)",
+    "k_phi": "Pa m^(-n)",
+    "n": "1",
+    "cohesion": "Pa",
+    "friction_angle": "deg",
+    "janosi_k": "m",
+    "elastic_stiffness": "Pa/m",
+    "node_spacing": "m",
+    "damping": "Pa s/m",
+    "bulldozing": "1",
+    "bulldozing_fraction": "1",
+    "erosion_angle": "deg",
+    "erosion_iterations": "count",
+}
+"""The unit of each ScmParameters field."""
+
+
 @dataclass(frozen=True)
 class ScmParameters:
     """The soil's SCM parameters (SI units). Wong's dry sand (Theory of Ground Vehicles) is
@@ -610,6 +628,33 @@ class ScmTerrain:
             width=self._width.numpy().copy(),
         )
         return data
+
+    STATE_UNITS = {
+        "key_i": "1",  # grid indices of the node a slot holds
+        "key_j": "1",
+        "reference": "m",  # the node's undisturbed height
+        "plastic": "m",  # its plastic sinkage
+        "shear": "m",  # the Janosi-Hanamoto shear displacement j
+        "version": "1",
+        "shape": "count",
+        "precision": "text",
+        "time": "s",
+        "steps": "count",
+        "summed_steps": "count",
+        "path": "by column: m (3), 1 (4, quaternion), m/s (3), rad/s (3) (PATH_COLUMNS)",
+        "path_start": "s",
+        "clock": "s",
+        "origin": "1",
+        "boxes": "1",
+        "totals": "by column: N (3), N m (3), count, m (force, torque, contact nodes, sinkage)",
+        "sums": "by column: N (3), N m (3), count, m, each summed over summed_steps steps",
+        "width": "m",
+    }
+    """The unit of each entry of state_dict()."""
+
+    def state_dict_units(self) -> dict[str, str]:
+        """{key of state_dict(): its unit}."""
+        return dict(self.STATE_UNITS)
 
     def load_state_dict(self, data: dict) -> None:
         """Restore a state_dict of a terrain built alike (same parameters, wheels, window, precision)."""
