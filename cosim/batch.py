@@ -437,6 +437,7 @@ class RemoteWorld:
         self.index = int(description["index"])
         self.time = float(description["time"])
         self.gravity = np.asarray(description["gravity"])
+        """The world's gravity vector [m/s^2], shape (3,)."""
         self.particle_count = int(description["particle_count"])
         self.body_count = int(description["body_count"])
         self.boundary_count = int(description["boundary_count"])

@@ -162,7 +162,7 @@ class Particles:
     radius: np.ndarray
     """Radii [m], shape (N,)."""
     ids: np.ndarray | None = None
-    """Particle ids unique over the run, shape (N,), when particles come and go (a moving patch;
+    """Particle ids unique over the run [-], shape (N,), when particles come and go (a moving patch;
     the file's ragged layout); None when the particles are the same all run (the fixed layout)."""
 
 

@@ -112,11 +112,13 @@ class Runner:
         rover = system.rover
         self.drive_start_step = int(loop.get("drive_start_step", -1 if rover.phase == PHASE_LANDING else 0))
         self.drive_start_position = np.array(loop.get("drive_start_position", rover.position.copy()), dtype=float)
+        """The rover's position when the drive started (or now, before it) [m], shape (3,)."""
         self.body_position = np.array(loop.get("body_position", rover.body_kinematics().position), dtype=float)
         """The rover body's position at the last record [m], shape (3,)."""
         self.body_travel = float(loop.get("body_travel", 0.0))
         """The body's horizontal path since the drive started [m]."""
         self.rest_heights = [float(z) for z in np.atleast_1d(loop.get("rest_heights", []))]
+        """The hub's height at each landing record [m] (a list: the landing's test of rest reads them)."""
         self.landing_failed = bool(loop.get("landing_failed", False))
         self.next_snapshot = float(loop.get("next_snapshot", system.coupler.time))
         self.next_checkpoint = float(

@@ -192,7 +192,9 @@ class ScmSoil(SoilSideDefaults):
         self.time_step = float(time_step)
         self.wheel_count = terrain.wheel_count
         self.rim_radii = np.asarray(rim_radii, dtype=np.float64)
+        """Each wheel's rim radius, the reference of its sinkage [m], shape (wheel_count,)."""
         self.gravity = np.zeros(3)
+        """The scene's gravity vector [m/s^2], shape (3,) (set_gravity)."""
         self._steps = 0
         self._step = 0.0
         count = self.wheel_count

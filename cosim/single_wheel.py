@@ -80,6 +80,7 @@ class SingleWheelRig:
         self.drawbar_load = float(drawbar_load)
         self.drawbar_ramp = float(drawbar_ramp)
         self.gravity = np.asarray(gravity, dtype=np.float64).reshape(3)
+        """The scene's gravity vector [m/s^2], shape (3,)."""
         self.position = np.asarray(hub, dtype=np.float64).reshape(3).copy()
         """Hub position [m], shape (3,)."""
         self.velocity = np.zeros(3)

@@ -31,24 +31,25 @@ class Snapshot:
     """One particle snapshot (n grains, V wheel-mesh vertices), world frame, SI units."""
 
     index: int
+    """Its index among the file's snapshots [-]."""
     time: float
     """[s]"""
     position: np.ndarray
-    """(n, 3) grain centres [m]"""
+    """Grain centres [m], shape (n, 3)."""
     velocity: np.ndarray
-    """(n, 3) grain velocities [m/s]"""
+    """Grain velocities [m/s], shape (n, 3)."""
     radius: np.ndarray
-    """(n,) grain radii [m]"""
+    """Grain radii [m], shape (n,)."""
     ids: np.ndarray
-    """(n,) grain ids, unique over the run (fixed layout: the model index)"""
+    """Grain ids, unique over the run (fixed layout: the model index) [-], shape (n,)."""
     wheel_vertices: np.ndarray
-    """(V, 3) the wheel meshes posed [m]"""
+    """The wheel meshes posed [m], shape (V, 3)."""
     rover_position: np.ndarray
-    """(3,) the rover body's frame origin (testbed: the hub) [m]"""
+    """The rover body's frame origin (testbed: the hub) [m], shape (3,)."""
     rover_forward: np.ndarray
-    """(3,) its x axis [1]"""
+    """Its x axis, a unit vector [-], shape (3,)."""
     rover_up: np.ndarray
-    """(3,) its z axis [1]"""
+    """Its z axis, a unit vector [-], shape (3,)."""
 
 
 def snapshot_count(f) -> int:

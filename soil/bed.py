@@ -244,7 +244,7 @@ class SavedBed:
     radius: np.ndarray
     """Grain radii [m], shape (n,), the saved model's lo dtype."""
     material: np.ndarray
-    """Material index per grain, shape (n,), int32."""
+    """Material index per grain [-], shape (n,), int32."""
     mass: np.ndarray
     """Grain masses [kg], shape (n,)."""
     inv_mass: np.ndarray
@@ -252,13 +252,13 @@ class SavedBed:
     inv_inertia: np.ndarray
     """Inverse moments of inertia [1/(kg m^2)], shape (n,); 0: a fixed or rotation-locked grain."""
     boundary_kind: np.ndarray
-    """Boundary kinds (soil.sdf.BOUNDARY_*), shape (B,), int32."""
+    """Boundary kinds (soil.sdf.BOUNDARY_*) [-], shape (B,), int32."""
     boundary_geometry: np.ndarray
     """Boundary rows where the walls were when saved [m], shape (B, 6) (SoilBuilder.add_boundary)."""
     boundary_material: np.ndarray
-    """Material index per boundary, shape (B,), int32."""
+    """Material index per boundary [-], shape (B,), int32."""
     boundary_report: np.ndarray
-    """Whether the grains' force on each boundary is summed, shape (B,), bool."""
+    """Whether the grains' force on each boundary is summed [-], shape (B,), bool."""
     state: dict
     """SoilState.to_numpy() arrays in bed order, body arrays left out, boundary displacements zero
     (the displacement is in boundary_geometry)."""

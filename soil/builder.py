@@ -35,6 +35,7 @@ class SoilBuilder:
 
     def __init__(self, gravity="earth") -> None:
         self.gravity = gravity_vector(gravity)
+        """The scene's gravity vector [m/s^2], shape (3,)."""
         self.materials = MaterialTable()
         self._positions: list[np.ndarray] = []
         self._radii: list[np.ndarray] = []

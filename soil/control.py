@@ -8,8 +8,8 @@ from .errors import SoilInputError
 from .precision import kernel_factory, kernel_module, soil_kernel
 
 PATH_COLUMNS = 28
-"""Columns of a body path row: start position (3), orientation (w, x, y, z) (4), velocity (3),
-angular velocity (3), the same at the end (13), span [s] (1), 1 if the end is given (1)."""
+"""Columns of a body path row: start position [m] (3), orientation (w, x, y, z) [-] (4), velocity [m/s]
+(3), angular velocity [rad/s] (3), the same at the end (13), span [s] (1), 1 if the end is given [-] (1)."""
 
 
 def quaternion_multiply(a, b) -> np.ndarray:
@@ -215,9 +215,10 @@ class SoilControl:
             if boundary_reports is None
             else np.asarray(boundary_reports, dtype=bool).reshape(nb)
         )
-        """Whether each boundary's grain force is summed (model.boundary_reports), shape (boundary_count,)."""
+        """Whether each boundary's grain force is summed (model.boundary_reports) [-], shape (boundary_count,)."""
         self.boundary_mode_host = np.zeros(nb, dtype=np.int32)
-        """MOTION_PRESCRIBED or MOTION_LOADED per boundary (soil.boundaries), shape (boundary_count,) (host copy)."""
+        """MOTION_PRESCRIBED or MOTION_LOADED per boundary (soil.boundaries) [-], shape (boundary_count,) (host
+        copy)."""
         self.boundary_velocity_host = np.zeros((nb, 3))
         """Prescribed translation velocity of each boundary [m/s], shape (boundary_count, 3) (host copy);
         a loaded boundary takes only its part across the free direction."""
@@ -230,7 +231,7 @@ class SoilControl:
         self.boundary_damping_host = np.zeros(nb)
         """Linear damper of each loaded boundary along its direction [N s/m], shape (boundary_count,) (host copy)."""
         self.boundary_mode = wp.zeros(nb, dtype=wp.int32, device=device)
-        """Device copy of boundary_mode_host, shape (boundary_count,), int32."""
+        """Device copy of boundary_mode_host [-], shape (boundary_count,), int32."""
         self.boundary_velocity = wp.zeros(nb, dtype=vec_hi, device=device)
         """Device copy of boundary_velocity_host [m/s], shape (boundary_count,)."""
         self.boundary_direction = wp.zeros(nb, dtype=vec_hi, device=device)
@@ -244,7 +245,8 @@ class SoilControl:
         self.external_force_used = False
         """Whether external_force is applied (set_external_force); when False the kernels skip it."""
         self.body_path = wp.zeros((body_count, PATH_COLUMNS), dtype=scalar, device=device)
-        """The bodies' path over a macro step (set_body_path), shape (body_count, PATH_COLUMNS), on the device."""
+        """The bodies' path over a macro step (set_body_path), each column in its unit (PATH_COLUMNS), shape
+        (body_count, PATH_COLUMNS), on the device."""
         self.path_step = wp.zeros(1, dtype=wp.int32, device=device)
         """Steps taken along the path so far [-], shape (1,), int32 (counted on the device)."""
         self.path_active = False

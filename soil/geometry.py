@@ -154,7 +154,7 @@ class MeshWheel:
     vertices: np.ndarray
     """Vertex positions in the wheel frame [m], shape (v, 3)."""
     triangles: np.ndarray
-    """Vertex indices of each triangle (outward counter-clockwise), shape (t, 3), int."""
+    """Vertex indices of each triangle (outward counter-clockwise) [-], shape (t, 3), int."""
     name: str = "mesh"
 
     def __post_init__(self):

@@ -38,15 +38,15 @@ SUMMARY_VELOCITY_GAP = 1
 SUMMARY_SPEED = 2
 """max_i max(|v_i|, r_i |w_i|) after the step [m/s]."""
 SUMMARY_NONFINITE = 3
-"""1 if any position, velocity or spin is NaN/inf after the step, else 0."""
+"""1 if any position, velocity or spin is NaN/inf after the step, else 0 [-]."""
 SUMMARY_WORST = 4
-"""Model index of a particle with a non-finite state (when flagged), else -1."""
+"""Model index of a particle with a non-finite state (when flagged), else -1 [-]."""
 SUMMARY_RMS = 5
 """sqrt(mean_i e_i^2) of the per-grain error e_i (StepController) [-]."""
 SUMMARY_MAX = 6
 """max_i e_i [-]."""
 SUMMARY_STATUS = 7
-"""First of the columns holding the step status (soil.status) after the step."""
+"""First of the columns holding the step status (soil.status: flags and counts [-]) after the step."""
 SUMMARY_COLUMNS = SUMMARY_STATUS + status_columns.COLUMNS
 
 
@@ -458,8 +458,9 @@ class JoltBeeman:
         """Per-grain gaps of the last step, storage order: [position gap / r, velocity gap m/s],
         shape (particle_count, 2), dtype hi."""
         self.summary = None
-        """Reductions of the last step's error per world (columns SUMMARY_*), shape (worlds, SUMMARY_COLUMNS),
-        dtype hi (soil.worlds: one row for a scene alone)."""
+        """Reductions of the last step's error per world, each column in its unit (SUMMARY_*: gaps [-] and
+        [m/s], speed [m/s], flags, index, errors [-]), shape (worlds, SUMMARY_COLUMNS), dtype hi (soil.worlds:
+        one row for a scene alone)."""
         self._norms = None
         self._model = None
         self.scale_floor = None

@@ -249,13 +249,14 @@ class MacroSums:
         self.work = wp.zeros(bodies, dtype=wp.float64, device=device)
         """Work done on the soil by each body [J], shape (bodies,)."""
         self.every_world = wp.ones(model.world_count, dtype=wp.int32, device=device)
-        """accumulate's `active` when every world's step counts, shape (worlds,)."""
+        """accumulate's `active` when every world's step counts (all 1) [-], shape (worlds,)."""
         self.steps_column = REPORT_BODIES + BODY_COLUMNS * model.body_count + 3 * model.boundary_count
         """First report column of the step control's block (soil.step_control columns)."""
         self.values = wp.zeros(
             self.steps_column + step_control.COLUMNS * model.world_count, dtype=wp.float64, device=device
         )
-        """The report array on the device, shape (steps_column + soil.step_control.COLUMNS x worlds,)."""
+        """The report array on the device, each column in its unit (REPORT_*, BODY_COLUMNS' and the step
+        control's columns), shape (steps_column + soil.step_control.COLUMNS x worlds,)."""
 
     def clear(self) -> None:
         """Zero the sums (at a macro step's start)."""

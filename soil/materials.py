@@ -173,6 +173,7 @@ def _finite(x) -> bool:
 PAIR_SHEAR_ROOT = 8
 """sqrt(k_T / k_N) = sqrt(4 G* / E*) [-]: the tangential damper is this times the normal one."""
 PAIR_COLUMNS = 9
+"""Columns of a pair row: PairProperties.row()'s eight (units as there) and PAIR_SHEAR_ROOT."""
 
 
 @dataclass(frozen=True)

@@ -36,41 +36,43 @@ class SoilModel:
     inv_inertia: wp.array
     """Inverse moments of inertia [1/(kg m^2)], shape (particle_count,), dtype lo; 0 when rotation is locked."""
     material: wp.array
-    """Material index per particle, shape (particle_count,), int32."""
+    """Material index per particle [-], shape (particle_count,), int32."""
     pair: wp.array
-    """Pair contact parameters, shape (material_count**2, PAIR_COLUMNS), dtype lo (soil.materials)."""
+    """Pair contact parameters, shape (material_count**2, PAIR_COLUMNS), dtype lo; each column in its own
+    unit (soil.materials.PAIR_*: E* and G* [Pa], damping ratio [-], tangents of the friction angles [-],
+    stick speed [m/s], rolling friction [-], cohesion [Pa], shear root [-])."""
     boundary_kind: wp.array
-    """Boundary type per boundary (BOUNDARY_PLANE or BOUNDARY_BOX), shape (boundary_count,), int32."""
+    """Boundary type per boundary (BOUNDARY_PLANE or BOUNDARY_BOX) [-], shape (boundary_count,), int32."""
     boundary_geometry: wp.array
     """Initial boundary geometry rows [m], shape (boundary_count, 6), dtype hi (see soil.sdf);
     a boundary that moves is there displaced by state.boundary_displacement."""
     boundary_material: wp.array
-    """Material index per boundary, shape (boundary_count,), int32."""
+    """Material index per boundary [-], shape (boundary_count,), int32."""
     max_radius: float
     """Largest particle radius [m]."""
     boundary_column: wp.array | None = None
-    """Column of each boundary in the per-particle force scratch, shape (boundary_count,), int32;
+    """Column of each boundary in the per-particle force scratch [-], shape (boundary_count,), int32;
     -1 for boundaries built with report=False (their force and torque are not summed)."""
     particle_order: np.ndarray | None = field(default=None)
-    """Builder index of each model particle, shape (particle_count,), int64 (identity unless permuted)."""
+    """Builder index of each model particle [-], shape (particle_count,), int64 (identity unless permuted)."""
     bodies: list = field(default_factory=list)
     """Wheel geometries (GrouserWheel or MeshWheel), one per body."""
     body_kind: wp.array | None = None
-    """BODY_WHEEL or BODY_MESH per body, shape (body_count,), int32."""
+    """BODY_WHEEL or BODY_MESH per body [-], shape (body_count,), int32."""
     body_shape: wp.array | None = None
     """Geometry row per body [m], shape (body_count, 6), dtype hi (see soil.sdf)."""
     body_mesh: wp.array | None = None
-    """Warp mesh id per body (0 for parametric wheels), shape (body_count,), uint64."""
+    """Warp mesh id per body (0 for parametric wheels) [-], shape (body_count,), uint64."""
     body_material: wp.array | None = None
-    """Material index per body, shape (body_count,), int32."""
+    """Material index per body [-], shape (body_count,), int32."""
     mesh_points: wp.array | None = None
     """All mesh vertices in their wheel frames [m], shape (vertex_count,), vec3 hi."""
     mesh_indices: wp.array | None = None
-    """All mesh triangles' vertex indices, flattened, shape (3 * triangle_count,), int32."""
+    """All mesh triangles' vertex indices, flattened [-], shape (3 * triangle_count,), int32."""
     body_point_offset: wp.array | None = None
-    """First vertex of each body's mesh in mesh_points, shape (body_count,), int32."""
+    """First vertex of each body's mesh in mesh_points [-], shape (body_count,), int32."""
     body_index_offset: wp.array | None = None
-    """First index of each body's mesh in mesh_indices, shape (body_count,), int32."""
+    """First index of each body's mesh in mesh_indices [-], shape (body_count,), int32."""
     meshes: list = field(default_factory=list)
     """The wp.Mesh objects (kept alive here), one per mesh body."""
     slot_major: bool = False

@@ -552,7 +552,7 @@ class NeighbourList:
         """The grains' box over a tree (soil.reduction): upper corner, minus the lower corner [m]."""
         self.grid = wp.zeros(9, dtype=prec.hi, device=device)
         """Of the last build: the grid origin = the grains' lower corner [m] (3), the cell size per
-        axis [m] (3) and the grains' upper corner [m] (3)."""
+        axis [m] (3) and the grains' upper corner [m] (3); shape (9,)."""
         self._keys = wp.zeros(2 * n, dtype=wp.int64, device=device)
         self._values = wp.zeros(2 * n, dtype=wp.int32, device=device)
         self._cell_slot = wp.zeros(n, dtype=wp.int32, device=device)
@@ -560,7 +560,8 @@ class NeighbourList:
         self._rebuild = wp.zeros(1, dtype=wp.int32, device=device)
         self._every_world = wp.ones(model.world_count, dtype=wp.int32, device=device)
         self.rebuilt = wp.zeros(1, dtype=wp.int32, device=device)
-        """1 when the last check rebuilt the list (the output state's history is then remapped)."""
+        """1 when the last check rebuilt the list (the output state's history is then remapped) [-], shape (1,),
+        int32."""
         self._origin = wp.zeros(n, dtype=wp.int32, device=device)
         self._new_slot = wp.zeros(n, dtype=wp.int32, device=device)
         self._zero = wp.zeros(1, dtype=wp.int32, device=device)

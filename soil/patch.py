@@ -63,7 +63,7 @@ class Tile:
     radius: np.ndarray
     """Grain radii [m], shape (n,)."""
     material: np.ndarray
-    """Material index per grain, shape (n,), int32."""
+    """Material index per grain [-], shape (n,), int32."""
     mass: np.ndarray
     """Masses [kg], shape (n,)."""
     inv_mass: np.ndarray
@@ -202,6 +202,7 @@ class SoilPatch:
         """[m]"""
         self.wheels = list(wheels)
         self.gravity = np.asarray(gravity, dtype=np.float64).reshape(3)
+        """The scene's gravity vector [m/s^2], shape (3,)."""
         self.device, self.precision, self.law, self.order_seed = device, precision, law, order_seed
         self.centre = np.zeros(2)
         """Window centre [m], shape (2,)."""
@@ -220,14 +221,19 @@ class SoilPatch:
         self.next_id = 0
         # per grain, model order: identity, constants, frozen flag
         self.ids = np.zeros(0, dtype=np.int64)
-        """Grain id (unique over the run) per model particle, shape (N,)."""
+        """Grain id (unique over the run) per model particle [-], shape (N,)."""
         self.radius = np.zeros(0)
+        """Grain radii [m], shape (N,)."""
         self.material = np.zeros(0, dtype=np.int32)
+        """Material index per grain [-], shape (N,), int32."""
         self.mass = np.zeros(0)
+        """Grain masses [kg], shape (N,)."""
         self.free_inv_mass = np.zeros(0)
+        """Inverse mass of each grain when free (a frozen grain's is 0 in the model) [1/kg], shape (N,)."""
         self.free_inv_inertia = np.zeros(0)
+        """Inverse moment of inertia of each grain when free [1/(kg m^2)], shape (N,)."""
         self.frozen = np.zeros(0, dtype=bool)
-        """Whether each grain is in the frozen band, shape (N,)."""
+        """Whether each grain is in the frozen band [-], shape (N,)."""
 
     # -- the window ---------------------------------------------------------------------
     def window(self, centre=None) -> tuple[np.ndarray, np.ndarray]:

@@ -110,7 +110,8 @@ class Simulation:
             state.layout = GrainLayout(model, state.capacity)
         state.layout.gather_constants(model)
         self.status = status_columns.make_status(model.device)
-        """Step status on the device (soil.status), cleared at each macro step."""
+        """Step status on the device (soil.status's columns: flags and counts) [-], shape (soil.status.COLUMNS,),
+        int32; cleared at each macro step."""
         self.neighbour_list = NeighbourList(model, neighbours, positions=state.position.numpy())
         self.contacts = ContactSolver(model, self.neighbour_list, self.status)
         self.state = state

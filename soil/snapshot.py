@@ -37,7 +37,8 @@ class SimulationSnapshot:
     controller: dict | None
     """The host StepController's state_dict() (run_adaptive), or None."""
     step_control: wp.array | None
-    """A device copy of the device step control's block (macro_step_adaptive), or None."""
+    """A device copy of the device step control's block (macro_step_adaptive), each column in its unit
+    (soil.step_control's columns), shape (worlds * COLUMNS,), float64; or None."""
     reorder: tuple
     """The storage-order bookkeeping between macro steps (list builds since the last reorder, the
     grains' box at the last build)."""

@@ -70,7 +70,8 @@ def contact_kernels(hi, mid, lo, law: ContactLaw, slot_major: bool = False):
 
     @wp.struct
     class Grains:
-        """The grains' constants in storage order (GrainLayout)."""
+        """The grains' constants in storage order (GrainLayout), shape (grains,): order and material [-],
+        radius [m], mass [kg], inv_mass [1/kg]; pair: SoilModel.pair (its columns' units there)."""
 
         order: wp.array(dtype=wp.int32)
         radius: wp.array(dtype=lo)
@@ -83,7 +84,8 @@ def contact_kernels(hi, mid, lo, law: ContactLaw, slot_major: bool = False):
 
     @wp.struct
     class Walls:
-        """Boundaries: model geometry and the state's displacement and velocity."""
+        """Boundaries: model geometry and the state's displacement and velocity, shape (boundaries,): kind and
+        material [-], geometry rows [m] (boundaries, 6), displacement [m], velocity [m/s]."""
 
         kind: wp.array(dtype=wp.int32)
         geometry: wp.array2d(dtype=hi)
@@ -94,7 +96,10 @@ def contact_kernels(hi, mid, lo, law: ContactLaw, slot_major: bool = False):
 
     @wp.struct
     class Bodies:
-        """Wheels: model geometry and the state's poses and velocities."""
+        """Wheels: model geometry and the state's poses and velocities, shape (bodies,) (SoilModel's and
+        SoilState's body_* of the same names): kind, mesh, material, posed and the mesh indices and offsets
+        [-]; shape rows [m] (bodies, 6); mesh_points [m]; position [m], rotation body -> world [-],
+        velocity [m/s], angular_velocity [rad/s]."""
 
         kind: wp.array(dtype=wp.int32)
         shape: wp.array2d(dtype=hi)
@@ -113,7 +118,8 @@ def contact_kernels(hi, mid, lo, law: ContactLaw, slot_major: bool = False):
 
     @wp.struct
     class History:
-        """A state's contact history (SoilState pair_* and rigid_*)."""
+        """A state's contact history (SoilState pair_* and rigid_*, their shapes): tangential [m] and rolling
+        [rad] springs; touching bits, rigid_key and rigid_count [-]."""
 
         touching: wp.array2d(dtype=wp.uint32)
         tangential: wp.array2d(dtype=vec_mid)

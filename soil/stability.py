@@ -140,6 +140,7 @@ class SimulationDiverged(RegolithError, RuntimeError):
         self.step = step
         self.particle = particle
         self.position = position
+        """Position of that particle [m], shape (3,), or None."""
         self.reason = reason
         self.checkpoint = checkpoint
 

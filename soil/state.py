@@ -291,7 +291,7 @@ class SoilState:
         self.body_torque = wp.zeros(body_count, dtype=vec_hi, device=device)
         """Soil torque on each body about its hub, world [N m], shape (body_count,)."""
         self.body_contacts = wp.zeros(body_count, dtype=wp.int32, device=device)
-        """Number of particles touching each body, shape (body_count,)."""
+        """Number of particles touching each body [-], shape (body_count,)."""
         self.body_position = wp.zeros(body_count, dtype=vec_hi, device=device)
         """Hub position of each body at the state's time, world [m], shape (body_count,)."""
         self.body_rotation = wp.zeros(body_count, dtype=wp.types.matrix((3, 3), scalar), device=device)
@@ -322,7 +322,7 @@ class SoilState:
         centre, both displaced with the boundary), world [N m], shape (boundary_count,); rolling
         resistance torques included."""
         self.boundary_contacts = wp.zeros(nb, dtype=wp.int32, device=device)
-        """Number of particles touching each boundary, shape (boundary_count,)."""
+        """Number of particles touching each boundary [-], shape (boundary_count,)."""
         self.list_index = wp.zeros(1, dtype=wp.int32, device=device)
         """Which of the layout's two neighbour lists the pair history is aligned with [-], shape (1,), int32."""
         self.time = 0.0

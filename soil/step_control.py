@@ -294,25 +294,29 @@ class DeviceStepControl:
         self.kernels = step_control_kernels(precision.hi)
         size = self.worlds * COLUMNS
         self.control = wp.zeros(size, dtype=wp.float64, device=device)
-        """The control block: per world a row of the columns of soil.step_control, float64, shape
-        (worlds * COLUMNS,)."""
+        """The control block: per world a row of the columns of soil.step_control, each in its unit (NEXT_STEP
+        [s], ...), float64, shape (worlds * COLUMNS,)."""
         self.rows = self.control.reshape((self.worlds, COLUMNS))
-        """`control` seen as a row per world, shape (worlds, COLUMNS) (the same memory: what the kernels index)."""
+        """`control` seen as a row per world (units by column), shape (worlds, COLUMNS) (the same memory: what
+        the kernels index)."""
         self.control_start = wp.zeros(size, dtype=wp.float64, device=device)
-        """The control block at the macro step's start (restored when the macro step is redone)."""
+        """The control block at the macro step's start (restored when the macro step is redone), units by
+        column, shape (worlds * COLUMNS,), float64."""
         self.running = wp.zeros(1, dtype=wp.int32, device=device)
-        """The substep loop's condition: 1 while the macro step goes on."""
+        """The substep loop's condition: 1 while the macro step goes on [-], shape (1,), int32."""
         self.accepted = wp.zeros(self.worlds, dtype=wp.int32, device=device)
-        """1 where a world kept its last substep, shape (worlds,)."""
+        """1 where a world kept its last substep [-], shape (worlds,)."""
         self.any_accepted = wp.zeros(1, dtype=wp.int32, device=device)
-        """1 when some world kept its last substep (the trial is then copied over the current state)."""
+        """1 when some world kept its last substep (the trial is then copied over the current state) [-], shape
+        (1,)."""
         self.restore = wp.zeros(self.worlds, dtype=wp.int32, device=device)
-        """1 where a world takes its current state back into the trial first (others kept theirs), shape
+        """1 where a world takes its current state back into the trial first (others kept theirs) [-], shape
         (worlds,)."""
         self.any_restore = wp.zeros(1, dtype=wp.int32, device=device)
-        """1 when some world takes its state back (restore)."""
+        """1 when some world takes its state back (restore) [-], shape (1,)."""
         self.stepping = wp.ones(self.worlds, dtype=wp.int32, device=device)
-        """1 where a world takes the next macro step (set_stepping; a world that left a batch keeps its state)."""
+        """1 where a world takes the next macro step (set_stepping; a world that left a batch keeps its state)
+        [-], shape (worlds,)."""
         self.tau = wp.zeros(self.worlds, dtype=precision.hi, device=device)
         """End of each world's trial substep since the macro step's start [s] (where its wheels are posed),
         shape (worlds,)."""

@@ -445,11 +445,11 @@ def test_a_disk_that_turns_read_only_mid_run_loses_nothing_written(tmp_path, tin
     real = runner.write_checkpoint
     calls = []
 
-    def read_only_after_first(path, data):
+    def read_only_after_first(path, data, units=None):
         calls.append(path)
         if len(calls) >= 2:
             raise OSError(errno.EROFS, "Read-only file system", str(path))
-        return real(path, data)
+        return real(path, data, units)
 
     monkeypatch.setattr(runner, "write_checkpoint", read_only_after_first)
     scene = write_tiny(tmp_path)

@@ -47,8 +47,10 @@ def scm_kernels(hi):
 
     @wp.struct
     class Wheels:
-        """Shapes (soil.sdf's rows), meshes, the cylinder about each axle that holds the wheel (radius,
-        half width) and the current poses and velocities."""
+        """Shapes (soil.sdf's rows) [m], meshes, the cylinder about each axle that holds the wheel (radius,
+        half width) [m] and the current poses and velocities, shape (wheels,): kind, mesh and the mesh indices
+        and offsets [-]; mesh_points [m]; position [m], rotation body -> world [-], velocity [m/s],
+        angular_velocity [rad/s]."""
 
         kind: wp.array(dtype=wp.int32)
         shape: wp.array2d(dtype=hi)
@@ -67,7 +69,9 @@ def scm_kernels(hi):
     class Nodes:
         """Per-node state (kept) and the step's contact: `wheel` at every node (-1: none; written in the
         wheels' boxes, cleared where a box left), the other arrays rewritten, and valid, at the contact
-        nodes only."""
+        nodes only. Shape (node_count,): key_i, key_j, wheel, rim [-]; reference (undisturbed height),
+        plastic (sinkage), shear (Janosi-Hanamoto displacement), hit (point), flow [m]; normal [-];
+        pressure [Pa]; force [N]; torque about the hub [N m]."""
 
         key_i: wp.array(dtype=wp.int32)
         key_j: wp.array(dtype=wp.int32)
