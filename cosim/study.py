@@ -113,12 +113,21 @@ class Executor:
         self.workers = workers or os.cpu_count() or 1
         self.client: Client | None = None
         self.cluster: LocalCluster | None = None
+        self._levels: dict[str, int] = {}  # the dask loggers' levels before __enter__
+
+    _DASK_LOGGERS = ("distributed", "tornado")
+    """The loggers of dask.distributed and its network layer: their INFO lines (workers registered,
+    streams closed) are the cluster's business, shown with --verbose (cosim's DEBUG) only."""
 
     def __enter__(self):
         if self.kind == "serial":
             return self
         from dask.distributed import Client, LocalCluster
 
+        self._levels = {name: logging.getLogger(name).level for name in self._DASK_LOGGERS}
+        if not log.isEnabledFor(logging.DEBUG):
+            for name in self._DASK_LOGGERS:
+                logging.getLogger(name).setLevel(logging.WARNING)
         if self.scheduler:
             self.client = Client(self.scheduler)
         else:
@@ -130,10 +139,21 @@ class Executor:
         return self
 
     def __exit__(self, *exc):
-        if self.client is not None:
-            self.client.close()
-        if self.cluster is not None:
-            self.cluster.close()
+        # Closing while tasks still run (a study stopped by an error) makes the scheduler log the
+        # workers' closed streams with tracebacks: noise after the error that ended the study, so the
+        # teardown is quiet unless --verbose.
+        quiet = not log.isEnabledFor(logging.DEBUG)
+        if quiet:
+            for name in self._DASK_LOGGERS:
+                logging.getLogger(name).setLevel(logging.CRITICAL + 1)
+        try:
+            if self.client is not None:
+                self.client.close()
+            if self.cluster is not None:
+                self.cluster.close()
+        finally:
+            for name, level in self._levels.items():
+                logging.getLogger(name).setLevel(level)
         return False
 
     def map(self, function, tasks: list[dict], reraise: tuple[type[BaseException], ...] = ()) -> list[dict]:
