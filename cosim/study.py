@@ -732,9 +732,10 @@ def _slip_report(
         for m in ("slip", "drawbar_pull", "dp_over_w", "driving_torque", "sinkage", "sinkage_tips")
         for k in ("mean", "std", "ci95")
     ]
-    report["units"] = {**column_units(keys, {**METRIC_UNITS, "slip_set": "1"}), "wheel_load": "N"}
+    units = {**METRIC_UNITS, "slip_set": "1"}
+    report["units"] = {**column_units(keys, units), "wheel_load": "N"}
     write_json(os.path.join(out_dir, "study.json"), report)
-    _write_csv(os.path.join(out_dir, "study.csv"), rows, keys, {**METRIC_UNITS, "slip_set": "1"})
+    _write_csv(os.path.join(out_dir, "study.csv"), rows, keys, units)
     lines = [
         f"{plan.name}: drawbar pull against imposed slip (W = {plan.wheel_load:.4g} N; replicas: "
         f"{'summation order, one bed' if vary == 'order' else 'a bed each'}), {out_dir}",
@@ -870,11 +871,12 @@ def sweep(
         rows.append(row)
     keys = list(grid) + ["ok", "status", *columns]
     swept = {key: unit for key in grid if (unit := key_unit(key)) is not None}  # as cosim/scene.py documents them
-    units = column_units(keys, {**METRIC_UNITS, **swept})
-    report = {"kind": "sweep", "grid": grid, "rows": rows, "runs": results, "scene_toml": text, "units": units}
+    units = {**METRIC_UNITS, **swept}
+    report = {"kind": "sweep", "grid": grid, "rows": rows, "runs": results, "scene_toml": text}
+    report["units"] = column_units(keys, units)
     write_json(os.path.join(out_dir, "study.json"), report)
     log.info("%s", plot_table(rows, keys))
-    _write_csv(os.path.join(out_dir, "study.csv"), rows, keys, {**METRIC_UNITS, **swept})
+    _write_csv(os.path.join(out_dir, "study.csv"), rows, keys, units)
     for r in rows:
         if r.get("error"):
             log.warning("failed: %s", r["error"])

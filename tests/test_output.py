@@ -191,6 +191,11 @@ def test_the_checkpoint_unit_tables_say_what_the_attributes_documentation_says()
         assert len(checked) >= least, (checked, documented)
         for name in checked:
             assert table[name] in documented[name], (name, table[name], documented[name])
+    # a calibration file's [units] (scene keys) say what ScmParameters' fields say
+    from cosim.scm_calibration import SOIL_UNITS
+
+    for key, unit in SOIL_UNITS.items():
+        assert unit == soil.scm.terrain.SCM_PARAMETER_UNITS[key.removesuffix("_deg")], key
 
 
 def _documented_units(module, name: str, method: str | None = None) -> dict[str, tuple[str, ...]]:
