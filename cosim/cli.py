@@ -619,6 +619,12 @@ def cmd_calibrate_scm(args) -> int:
     for key in SOIL_KEYS:
         value, error = calibration.parameters[key], calibration.standard_errors[key]
         print(f"  {key:20s} {value:12.5g} +- {error:.3g} {SOIL_UNITS[key]}")
+    if not args.from_wheel and calibration.source.get("dem", {}).get("replicas") == 1:
+        # a second draw of the same soil moved k_c, k_phi, phi and K by 2-8 of these errors (BENCHMARKS.md)
+        print(
+            "  (+-: the fits' standard errors on one bed and one specimen, without the scatter between beds "
+            "and specimens, which can be larger; --replicas 3 pools three of each into the fits)"
+        )
     return EXIT_OK
 
 
