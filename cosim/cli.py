@@ -619,11 +619,12 @@ def cmd_calibrate_scm(args) -> int:
     for key in SOIL_KEYS:
         value, error = calibration.parameters[key], calibration.standard_errors[key]
         print(f"  {key:20s} {value:12.5g} +- {error:.3g} {SOIL_UNITS[key]}")
-    if not args.from_wheel and calibration.source.get("dem", {}).get("replicas") == 1:
-        # a second draw of the same soil moved k_c, k_phi, phi and K by 2-8 of these errors (BENCHMARKS.md)
+    if not args.from_wheel:
+        # two one-bed draws of the main job's soil differed by up to 7.6 of these errors, and three pooled
+        # beds narrowed most of them further (BENCHMARKS.md, "The lab calibrations")
         print(
-            "  (+-: the fits' standard errors on one bed and one specimen, without the scatter between beds "
-            "and specimens, which can be larger; --replicas 3 pools three of each into the fits)"
+            "  (+-: each fit's standard error over its points; the scatter between beds and specimens is not in "
+            "it and can be several times larger: compare calibrations on other beds, --set bed.seed=...)"
         )
     return EXIT_OK
 

@@ -150,7 +150,7 @@ def test_calibrate_scm_runs_the_dem_tests_and_writes_a_usable_file(tmp_path, cap
     assert code == 0
     printed = capsys.readouterr().out  # each parameter with its unit
     assert "m/s^2" in printed and all(f"{SOIL_UNITS[key]}\n" in printed for key in SOIL_KEYS)
-    assert "on one bed and one specimen" in printed  # lab.replicas = 1: its errors leave the draws' scatter out
+    assert "the scatter between beds and specimens is not in" in printed  # what its +- leaves out
     calibration = read_calibration(str(out))
     assert set(calibration.parameters) == set(SOIL_KEYS) and all(
         math.isfinite(v) for v in calibration.parameters.values()
