@@ -560,7 +560,11 @@ def add_lab_commands(sub, scene_options, cluster_options) -> None:
     cluster_options(p, out=False)
     p.add_argument("--out", required=True, help="the calibration file to write (TOML; [terrain] calibration = ...)")
     p.add_argument("--work", help="folder of the DEM tests (default: the file's name without .toml + _runs)")
-    p.add_argument("--replicas", type=int, help="beds and specimens per test (overrides lab.replicas)")
+    p.add_argument(
+        "--replicas",
+        type=int,
+        help="beds and specimens per test (overrides lab.replicas); 2 or more: each +- holds their scatter",
+    )
     p.add_argument(
         "--lab-sizes",
         action="store_true",
@@ -606,7 +610,7 @@ def cmd_calibrate_scm(args) -> int:
     started = time.perf_counter()
     if args.lab:
         calibration = read_calibration(args.lab)
-        calibration.source = {"lab": os.path.abspath(args.lab), **calibration.source}
+        calibration.source = {"lab": _relative_to_file(args.out, args.lab), **calibration.source}
     else:
         plan = load_lab_plan(args.scene, overrides, needs_gravity=True, test="plate")
         calibration = calibrate_scm(plan, work, overwrite=args.overwrite, **_executor(args))
@@ -620,13 +624,36 @@ def cmd_calibrate_scm(args) -> int:
         value, error = calibration.parameters[key], calibration.standard_errors[key]
         print(f"  {key:20s} {value:12.5g} +- {error:.3g} {SOIL_UNITS[key]}")
     if not args.from_wheel:
-        # two one-bed draws of the main job's soil differed by up to 7.6 of these errors, and three pooled
-        # beds narrowed most of them further (BENCHMARKS.md, "The lab calibrations")
-        print(
-            "  (+-: each fit's standard error over its points; the scatter between beds and specimens is not in "
-            "it and can be several times larger: compare calibrations on other beds, --set bed.seed=...)"
-        )
+        print(_error_bar_note(calibration.source.get("replica_fits", {})))
     return EXIT_OK
+
+
+def _relative_to_file(out: str, path: str) -> str:
+    """`path` as the calibration file `out` records it: relative to the file's folder (the file and its
+    runs move together, as a scene's [terrain] calibration is relative to the scene)."""
+    return os.path.relpath(os.path.abspath(path), os.path.dirname(os.path.abspath(out)))
+
+
+def _error_bar_note(replica_fits: dict) -> str:
+    """calibrate-scm's line under its values: what its +- holds (cosim.lab.scm.combine_errors)."""
+    from scipy.stats import t
+
+    from .scm_calibration import SOIL_KEYS
+
+    if not replica_fits:
+        # two one-bed draws of the main job's soil differed by up to 7.6 of these errors (BENCHMARKS.md)
+        return (
+            "  (+-: each fit's standard error over its points, on one bed and one specimen; the scatter between "
+            "beds and specimens is not in it and can be several times larger: --replicas 3 puts it in)"
+        )
+    counts = sorted({sum(math.isfinite(v) for v in values) for values in replica_fits.values()})
+    left_out = [k for k in SOIL_KEYS if k not in replica_fits]
+    one_bed = f"; {', '.join(left_out)}: the pooled fit's alone (one bed)" if left_out else ""
+    return (
+        "  (+-: the larger of the pooled fit's standard error and the replicas' own fits' scatter / sqrt(R), "
+        f"R = {'/'.join(map(str, counts))} ([source] replica_fits){one_bed}; with R - 1 degrees of freedom "
+        f"a 95 % interval is +- {t.ppf(0.975, max(min(counts) - 1, 1)):.3g} of these)"
+    )
 
 
 def _fit_to_wheel(args, lab, work: str):
@@ -652,8 +679,8 @@ def _fit_to_wheel(args, lab, work: str):
     )
     standard_errors = {k: (errors[k] if k in FITTED else lab.standard_errors.get(k, errors[k])) for k in errors}
     # the file the fit started from: the root lab file stays source['lab'] when a wheel fit is refitted
-    started = {"start_file": os.path.abspath(args.lab)} if args.lab else {}
-    source = {**lab.source, "wheel": {"runs": os.path.abspath(folder), **started, **report}}
+    started = {"start_file": _relative_to_file(args.out, args.lab)} if args.lab else {}
+    source = {**lab.source, "wheel": {"runs": _relative_to_file(args.out, folder), **started, **report}}
     print(
         f"calibrate-scm --from-wheel: fitted {', '.join(FITTED)} to {len(report['slips'])} slips (rms residual "
         f"{report['rms_residual']:.3g} tolerances; {report['evaluations']} held-wheel evaluations, "

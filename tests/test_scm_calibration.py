@@ -8,7 +8,16 @@ import warnings
 import numpy as np
 import pytest
 
-from cosim.lab.scm import fit_bekker, fit_janosi, fit_mohr_coulomb, fit_unloading
+from cosim.lab.scm import (
+    combine_errors,
+    fit_bekker,
+    fit_janosi,
+    fit_mohr_coulomb,
+    fit_plates,
+    fit_shear,
+    fit_unloading,
+    replica_fits,
+)
 from cosim.plan import load_plan
 from cosim.scene import SceneError
 from cosim.scm_calibration import (
@@ -75,6 +84,63 @@ def test_a_cohesionless_soil_is_fitted_through_the_origin():
     assert strength["cohesion"] == 0 and 24 < strength["friction_angle_deg"] < 27
 
 
+def _replica_records(k_phi, phi, rng):
+    """calibrate_scm's plate and shear records of beds and specimens that differ: replica r's soil has
+    k_phi[r] [Pa m^(-n)] and phi[r] [deg] (k_c 3e3 Pa m^(1-n), n 1.2, K_e 4e6 Pa/m, c 0, K 1.5 mm),
+    each measured with 1 % noise."""
+    plates, sheared = [], []
+    for replica, (k_phi_r, phi_r) in enumerate(zip(k_phi, phi)):
+        for b in (0.03, 0.06):
+            z = np.linspace(1e-3, 0.015, 40)
+            p = (3.0e3 / b + k_phi_r) * z**1.2 * (1 + 0.01 * rng.standard_normal(len(z)))
+            unload_z = np.linspace(0.015, 0.0145, 20)
+            unload_p = p[-1] + 4.0e6 * (unload_z - 0.015) * (1 + 0.01 * rng.standard_normal(len(unload_z)))
+            plates.append(
+                dict(replica=replica, width=b, sinkage=z, pressure=p, unload_sinkage=unload_z, unload_pressure=unload_p)
+            )
+        for sigma in (25.0, 50.0, 100.0):
+            peak = sigma * math.tan(math.radians(phi_r)) * (1 + 0.01 * rng.standard_normal())
+            j = np.linspace(0, 0.006, 120)
+            tau = peak * (1 - np.exp(-j / 1.5e-3)) * (1 + 0.01 * rng.standard_normal(len(j)))
+            sheared.append(dict(replica=replica, peak_sigma=sigma, peak_tau=float(tau.max()), displacement=j, tau=tau))
+    return plates, sheared
+
+
+def test_the_replicas_own_fits_carry_the_scatter_between_beds_into_the_error_bar():
+    """Beds and specimens whose soils differ (k_phi by 10 %, phi by 2 deg between replicas, each
+    measured with 1 % noise): over many draws of 4 replicas the replicas' own fits scatter by the
+    soils' spread (their variance's mean within 3.5 of its sampling errors); the combined error bar
+    covers the soils' mean at the t interval's 95 %, and the pooled fit's own (at 2 of them) less often."""
+    rng = np.random.default_rng(11)
+    replicas, draws = 4, 40
+    truth, spread = {"k_phi": 6.0e5, "friction_angle_deg": 30.0}, {"k_phi": 6.0e4, "friction_angle_deg": 2.0}
+    variances: dict = {key: [] for key in truth}
+    covered, covered_by_fit = dict.fromkeys(truth, 0), dict.fromkeys(truth, 0)
+    t95 = 3.182  # Student's t, 3 degrees of freedom, 97.5 %
+    for _ in range(draws):
+        soils = {key: truth[key] + spread[key] * rng.standard_normal(replicas) for key in truth}
+        plates, sheared = _replica_records(soils["k_phi"], soils["friction_angle_deg"], rng)
+        fits = {**fit_plates(plates, 0.0)[0], **fit_shear(sheared)}
+        own = replica_fits(plates, sheared, 0.0)
+        errors = combine_errors({k: fits[f"{k}_se"] for k in SOIL_KEYS}, own)
+        assert set(own) == set(SOIL_KEYS) and all(len(v) == replicas for v in own.values())
+        assert all(errors[k] >= fits[f"{k}_se"] for k in SOIL_KEYS if math.isfinite(fits[f"{k}_se"]))
+        for key in truth:
+            variances[key].append(np.var(own[key], ddof=1))
+            covered[key] += abs(fits[key] - truth[key]) <= t95 * errors[key]
+            covered_by_fit[key] += abs(fits[key] - truth[key]) <= 2.0 * fits[f"{key}_se"]
+    sampling = math.sqrt(2 / (replicas - 1) / draws)  # relative standard error of a mean of sample variances
+    for key in truth:
+        assert abs(np.mean(variances[key]) / spread[key] ** 2 - 1) <= 3.5 * sampling, key
+        assert covered[key] / draws >= 0.85, key  # 95 % expected; 0.85 is 3 binomial errors below
+    assert covered_by_fit["friction_angle_deg"] < covered["friction_angle_deg"]
+    # one bed for every plate (a scene's bed.bed_file): the plates' keys keep the pooled fit's error
+    one_bed = [r for r in plates if r["replica"] == 0]
+    own = replica_fits(one_bed, sheared, 0.0)
+    assert set(own) == {"cohesion", "friction_angle_deg", "janosi_k"}
+    assert combine_errors({k: fits[f"{k}_se"] for k in SOIL_KEYS}, own)["k_phi"] == fits["k_phi_se"]
+
+
 def _calibration(gravity):
     values = dict(k_c=2.0e3, k_phi=8.0e5, n=1.1, cohesion=50.0, friction_angle_deg=30.0)
     values.update(janosi_k=0.002, elastic_stiffness=2.0e7)
@@ -138,19 +204,22 @@ def _findings(plan):
 
 
 def test_calibrate_scm_runs_the_dem_tests_and_writes_a_usable_file(tmp_path, capsys):
-    """The command end to end on the tiny soil with tiny tests (its numbers are no soil's: plates of
-    three grains; the file's provenance and its use are what is checked)."""
-    from cosim.cli import main
+    """The command end to end on the tiny soil with tiny tests, two beds and specimens (its numbers are
+    no soil's: plates of three grains, 4.5 mm deep; the file's provenance, its error bars and its use
+    are what is checked)."""
+    from cosim.cli import _error_bar_note, main
 
     scene = write_tiny(tmp_path)
     out = tmp_path / "terrain.toml"
     tiny = ["plate.widths=[0.0225,0.03]", "shear.normal_stresses=[25.0,50.0]", "shear.inertial_number=0.01"]
     tiny += ["shear.length=0.028", "shear.width=0.028", "shear.height=0.028", "shear.displacement=0.005"]
-    code = main(["calibrate-scm", scene, "--out", str(out), "--serial", *[a for s in tiny for a in ("--set", s)]])
-    assert code == 0
+    tiny += ["plate.max_sinkage=0.0045"]
+    options = ["--serial", "--replicas", "2", *[a for s in tiny for a in ("--set", s)]]
+    assert main(["calibrate-scm", scene, "--out", str(out), *options]) == 0
     printed = capsys.readouterr().out  # each parameter with its unit
     assert "m/s^2" in printed and all(f"{SOIL_UNITS[key]}\n" in printed for key in SOIL_KEYS)
-    assert "the scatter between beds and specimens is not in" in printed  # what its +- leaves out
+    assert "replicas' own fits' scatter / sqrt(R), R = 2" in printed  # what its +- holds
+    assert "is not in it" in _error_bar_note({})  # and on one bed, what it leaves out
     calibration = read_calibration(str(out))
     assert set(calibration.parameters) == set(SOIL_KEYS) and all(
         math.isfinite(v) for v in calibration.parameters.values()
@@ -160,6 +229,10 @@ def test_calibrate_scm_runs_the_dem_tests_and_writes_a_usable_file(tmp_path, cap
     source = calibration.source
     assert source["grain"]["radius_mean_m"] == 0.0035 and source["plate"]["widths_m"] == [0.0225, 0.03]
     assert source["shear"]["normal_stresses_pa"] == [25.0, 50.0] and source["dem"]["dt_s"] > 0
+    assert source["dem"]["replicas"] == 2 and all(len(source["replica_fits"][k]) == 2 for k in SOIL_KEYS)
+    for key in SOIL_KEYS:  # the error bar holds the pooled fit's error
+        fitted = source["standard_error_of_fit"][key]
+        assert not math.isfinite(fitted) or calibration.standard_errors[key] >= fitted
     plan = load_plan(write_tiny(tmp_path, f'\n[terrain]\nmodel = "scm"\ncalibration = "{out.name}"\n', "scm.toml"))
     assert plan.terrain.calibration_gravity == pytest.approx(1.625)
 
@@ -325,16 +398,21 @@ def test_calibrate_scm_from_wheel_writes_the_fit_and_refuses_misplaced_options(t
         return {**start, "k_phi": 2.5}, {k: 0.2 for k in SOIL_KEYS}, report
 
     monkeypatch.setattr(scm_wheel, "fit_to_wheel", fit)
-    out = tmp_path / "wheel.toml"
+    (tmp_path / "terrain").mkdir()
+    out = tmp_path / "terrain" / "wheel.toml"
     args = ["--from-wheel", "--lab", str(lab_path), "--wheel-runs", str(tmp_path / "study")]
     assert main(["calibrate-scm", scene, "--out", str(out), *args]) == 0
     written = read_calibration(str(out))
     assert seen["slips"] == [0.1, 0.4] and seen["start"] == lab
-    assert seen["max_runs"] == 30 and seen["runs"] == str(tmp_path / "wheel_runs" / "wheel_scm")  # the default
+    default_runs = tmp_path / "terrain" / "wheel_runs" / "wheel_scm"  # next to the file
+    assert seen["max_runs"] == 30 and seen["runs"] == str(default_runs)
     assert written.parameters["k_phi"] == 2.5 and written.parameters["n"] == 1.0
     assert written.standard_errors["k_phi"] == 0.2 and written.standard_errors["k_c"] == 0.1  # held: the lab's
-    assert written.source["wheel"]["runs"] == str(tmp_path / "study") and written.source["lab"] == str(lab_path)
-    assert written.source["wheel"]["start_file"] == str(lab_path)
+    # the record's paths are relative to the file's folder: the file and its runs move together
+    assert written.source["wheel"]["runs"] == os.path.join("..", "study") and written.source["lab"] == os.path.join(
+        "..", "lab.toml"
+    )
+    assert written.source["wheel"]["start_file"] == os.path.join("..", "lab.toml")
     with open(out, "rb") as f:  # the file names the unit of every parameter (and of its standard error)
         assert tomllib.load(f)["units"] == {"gravity": "m/s^2", **{k: SOIL_UNITS[k] for k in SOIL_KEYS}}
     assert SOIL_UNITS["k_phi"] == "Pa m^(-n)" and SOIL_UNITS["friction_angle_deg"] == "deg"

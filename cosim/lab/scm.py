@@ -13,6 +13,11 @@ diagonal of its covariance):
 - direct shear tau = c + sigma tan(phi) at the peaks: c, phi (c held >= 0);
 - each shear curve tau(j) = tau_peak (1 - exp(-j / K)) up to its peak: Janosi-Hanamoto's K (one K
   for all curves, each curve scaled by its own peak).
+
+The fits pool every replica's points. With two or more replicas (beds and specimens, lab.replicas)
+each replica is also fitted alone, and a parameter's error is the larger of the pooled fit's and
+the replicas' standard error of the mean (combine_errors): the scatter between beds can be several
+times a pooled fit's error.
 """
 
 from __future__ import annotations
@@ -127,10 +132,80 @@ def fit_janosi(curves) -> dict:
     return {"janosi_k": float(values[0]), "janosi_k_se": float(math.sqrt(covariance[0, 0]))}
 
 
-def assemble(bekker: dict, unloading: dict, strength: dict, janosi: dict) -> tuple[dict, dict]:
-    """(parameters, standard errors) over SOIL_KEYS from the four fits."""
-    fits = {**bekker, **unloading, **strength, **janosi}
-    return {k: float(fits[k]) for k in SOIL_KEYS}, {k: float(fits.get(f"{k}_se", math.nan)) for k in SOIL_KEYS}
+def fit_plates(plates, fit_from: float) -> tuple[dict, list[dict]]:
+    """The plates' fits (k_c, k_phi, n, the elastic stiffness and their standard errors; the
+    unloading fit of each plate) from calibrate_scm's plate records (width [m], sinkage [m] and
+    pressure [Pa] of the loading; the unloading branch), pooled. The elastic stiffness is the
+    plates' mean; its error the scatter between plates, or the fits' own where there is one plate."""
+    bekker = fit_bekker([(r["width"], r["sinkage"], r["pressure"]) for r in plates], fit_from)
+    unloads = [
+        fit_unloading(r["unload_sinkage"], r["unload_pressure"]) for r in plates if len(r["unload_sinkage"]) >= 3
+    ]
+    if not unloads:
+        raise LabFailed("no plate's unloading curve has three points: the elastic stiffness cannot be fitted")
+    stiffness = np.array([u["elastic_stiffness"] for u in unloads])
+    errors = np.array([u["elastic_stiffness_se"] for u in unloads])
+    spread = float(stiffness.std(ddof=1) / math.sqrt(len(stiffness))) if len(stiffness) > 1 else 0.0
+    unloading = {
+        "elastic_stiffness": float(stiffness.mean()),
+        "elastic_stiffness_se": max(spread, float(np.sqrt(np.sum(errors**2))) / len(errors)),
+    }
+    return {**bekker, **unloading}, unloads
+
+
+def fit_shear(sheared) -> dict:
+    """The shear box's fits (c, phi, Janosi's K and their standard errors) from calibrate_scm's shear
+    records (peak sigma and tau [Pa]; the curve: displacement [m], tau [Pa]), pooled."""
+    strength = fit_mohr_coulomb([r["peak_sigma"] for r in sheared], [r["peak_tau"] for r in sheared])
+    return {**strength, **fit_janosi([(r["displacement"], r["tau"]) for r in sheared])}
+
+
+PLATE_KEYS = ("k_c", "k_phi", "n", "elastic_stiffness")
+"""The SOIL_KEYS the plates give (the rest: the shear box's)."""
+
+
+def replica_fits(plates, sheared, fit_from: float) -> dict[str, list[float]]:
+    """SOIL_KEYS -> each replica's own fit (its bed's plates for PLATE_KEYS, its specimen's shear for
+    the rest; nan where that replica's fit failed), for the keys two or more replicas measured."""
+    import warnings
+
+    from scipy.optimize import OptimizeWarning
+
+    out: dict[str, list[float]] = {}
+    groups = (
+        (PLATE_KEYS, plates, lambda own: fit_plates(own, fit_from)[0]),
+        (tuple(k for k in SOIL_KEYS if k not in PLATE_KEYS), sheared, fit_shear),
+    )
+    for keys, records, fit in groups:
+        replicas = sorted({int(r["replica"]) for r in records})
+        if len(replicas) < 2:
+            continue
+        for k in keys:
+            out[k] = []
+        for replica in replicas:
+            try:
+                with warnings.catch_warnings():  # a replica's own covariance is not used (two stresses: none)
+                    warnings.simplefilter("ignore", OptimizeWarning)
+                    values = fit([r for r in records if int(r["replica"]) == replica])
+            except (LabFailed, RuntimeError, ValueError):  # curve_fit's: no fit on this replica alone
+                values = {k: math.nan for k in keys}
+            for k in keys:
+                out[k].append(float(values[k]))
+    return out
+
+
+def combine_errors(fit_errors: dict, per_replica: dict) -> dict:
+    """SOIL_KEYS -> the larger of the pooled fit's standard error and the replicas' standard error
+    of the mean (their fits' scatter / sqrt(R), over the R that converged): a pooled fit's error
+    counts its points' scatter, not the scatter between beds and specimens, which can be larger."""
+    out = {}
+    for k in SOIL_KEYS:
+        values = np.array([v for v in per_replica.get(k, []) if math.isfinite(v)])
+        between = float(values.std(ddof=1) / math.sqrt(len(values))) if len(values) >= 2 else math.nan
+        # no spread at all: every replica held at the same bound (k_c or c at 0), which says nothing
+        known = [e for e in (fit_errors.get(k, math.nan), between) if math.isfinite(e) and e > 0]
+        out[k] = max(known) if known else math.nan
+    return out
 
 
 # -- the DEM tests -------------------------------------------------------------------------------
@@ -184,20 +259,7 @@ def calibrate_scm(plan, out_dir: str, overwrite: bool = False, executor="serial"
     replicas = plan.scene.lab.replicas if plan.scene.bed.bed_file is None else 1
     ready, plates, _ = plate.press_plates(plan, out_dir, sides, replicas, executor, scheduler, workers, unload=True)
     fit_from = plan.scene.plate.fit_from if plan.scene.plate.fit_from is not None else 0.25 * plan.diameter
-    bekker = fit_bekker([(r["width"], r["sinkage"], r["pressure"]) for r in plates], fit_from)
-    unloads = [
-        fit_unloading(r["unload_sinkage"], r["unload_pressure"]) for r in plates if len(r["unload_sinkage"]) >= 3
-    ]
-    if not unloads:
-        raise LabFailed("no plate's unloading curve has three points: the elastic stiffness cannot be fitted")
-    stiffness = np.array([u["elastic_stiffness"] for u in unloads])
-    errors = np.array([u["elastic_stiffness_se"] for u in unloads])
-    # the plates' mean; its error: the scatter between plates, or the fits' own where one plate
-    spread = float(stiffness.std(ddof=1) / math.sqrt(len(stiffness))) if len(stiffness) > 1 else 0.0
-    unloading = {
-        "elastic_stiffness": float(stiffness.mean()),
-        "elastic_stiffness_se": max(spread, float(np.sqrt(np.sum(errors**2))) / len(errors)),
-    }
+    plate_fits, unloads = fit_plates(plates, fit_from)  # before the shear tests: a failed fit stops here
 
     geometry = shear.box(plan)
     specimens_folder = os.path.join(out_dir, "specimens")
@@ -232,9 +294,11 @@ def calibrate_scm(plan, out_dir: str, overwrite: bool = False, executor="serial"
         ),
         "shear",
     )
-    strength = fit_mohr_coulomb([r["peak_sigma"] for r in sheared], [r["peak_tau"] for r in sheared])
-    janosi = fit_janosi([(r["displacement"], r["tau"]) for r in sheared])
-    parameters, standard_errors = assemble(bekker, unloading, strength, janosi)
+    fits = {**plate_fits, **fit_shear(sheared)}
+    parameters = {k: float(fits[k]) for k in SOIL_KEYS}
+    fit_errors = {k: float(fits.get(f"{k}_se", math.nan)) for k in SOIL_KEYS}
+    per_replica = replica_fits(plates, sheared, fit_from)
+    standard_errors = combine_errors(fit_errors, per_replica)
 
     common.write_csv(
         os.path.join(out_dir, "plate.csv"),
@@ -262,7 +326,8 @@ def calibrate_scm(plan, out_dir: str, overwrite: bool = False, executor="serial"
     source = {
         "scene": plan.name,
         "gravity_vector": [float(g) for g in plan.gravity],
-        "units": {"gravity_vector": "m/s^2"},  # the other keys end in their unit (_m, _s, _pa) or are counts
+        # the other keys end in their unit (_m, _s, _pa) or are counts
+        "units": {"gravity_vector": "m/s^2", "replica_fits": SOIL_UNITS, "standard_error_of_fit": SOIL_UNITS},
         "soil": common.soil_summary(plan),
         "grain": {
             "radius_mean_m": scene.bed.radius_mean,
@@ -270,6 +335,10 @@ def calibrate_scm(plan, out_dir: str, overwrite: bool = False, executor="serial"
             "diameter_m": plan.diameter,
         },
         "dem": {"precision": plan.precision, "dt_s": plan.dt, "replicas": replicas},
+        # each bed's and specimen's own fit, and the pooled fit's own errors: [standard_error] is the
+        # larger of those and the replicas' scatter / sqrt(R) (combine_errors)
+        "replica_fits": per_replica,
+        "standard_error_of_fit": fit_errors,
         "plate": {
             "widths_m": list(sides),
             "speed_m_s": plate.plate_speed(plan),
@@ -278,7 +347,7 @@ def calibrate_scm(plan, out_dir: str, overwrite: bool = False, executor="serial"
             "bed_m": [scene.bed.length, scene.bed.width, scene.bed.depth],
             "surface_m": [b["surface"] for b in ready],
             "steps": [r["steps"] for r in plates],
-            "bekker_r_squared": bekker.get("r_squared", math.nan),
+            "bekker_r_squared": plate_fits.get("r_squared", math.nan),
             "unloading_stiffness_pa_m": [u["elastic_stiffness"] for u in unloads],
         },
         "shear": {
