@@ -593,7 +593,7 @@ def cmd_calibrate_scm(args) -> int:
 
     from .lab.scene import load_lab_plan, load_lab_scene
     from .lab.scm import calibrate_scm, small_tests
-    from .scm_calibration import SOIL_KEYS, SOIL_UNITS, read_calibration, write_calibration
+    from .scm_calibration import SOIL_KEYS, SOIL_UNITS, out_of_range, read_calibration, write_calibration
 
     overrides = _overrides(args)
     if args.replicas is not None:
@@ -625,6 +625,13 @@ def cmd_calibrate_scm(args) -> int:
         print(f"  {key:20s} {value:12.5g} +- {error:.3g} {SOIL_UNITS[key]}")
     if not args.from_wheel:
         print(_error_bar_note(calibration.source.get("replica_fits", {})))
+    for key, problem in out_of_range(calibration.parameters).items():
+        print(
+            f"calibrate-scm: warning: {problem}: outside what SCM takes, so a scene on {args.out} fails unless it "
+            f"sets terrain.{key} itself; the tests are too small or noisy for this soil (wider and deeper plates, "
+            "a larger shear box: --lab-sizes or --set plate.widths=..., shear.length=...; --replicas 3)",
+            file=sys.stderr,
+        )
     return EXIT_OK
 
 

@@ -644,7 +644,7 @@ def _terrain(scene: Scene, wheel_count: int, problems: list[str]) -> TerrainPlan
         return TerrainPlan(section.model, tuple(sorted(given.items())))
     gravity = depth = None
     if section.calibration is not None:
-        from .scm_calibration import CalibrationError, read_calibration, tested_sinkage
+        from .scm_calibration import CalibrationError, out_of_range, read_calibration, tested_sinkage
 
         try:
             calibration = read_calibration(section.calibration)
@@ -655,6 +655,12 @@ def _terrain(scene: Scene, wheel_count: int, problems: list[str]) -> TerrainPlan
             gravity = calibration.gravity
             for key, value in calibration.parameters.items():
                 given.setdefault(key, value)
+            for key, problem in out_of_range(given).items():  # the scene's own keys were checked with the scene
+                if key not in section.model_fields_set:
+                    problems.append(
+                        f"terrain.calibration: {section.calibration}: [scm] {problem}, outside what SCM takes "
+                        f"(terrain.{key} in the scene wins over the file's)"
+                    )
     model = "scm"
     models: tuple[str, ...] = ()
     if section.wheels is not None:

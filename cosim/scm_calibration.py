@@ -121,6 +121,29 @@ def tested_sinkage(calibration: ScmCalibration, path: str = "") -> float | None:
     return max(depths) if depths else None
 
 
+def out_of_range(parameters: dict[str, float]) -> dict[str, str]:
+    """SOIL_KEYS -> what is wrong, for the parameters outside what [terrain] model = "scm" takes
+    (cosim.scene.TerrainSection's bounds, and k_c + k_phi > 0): a fit of tests too small or noisy for
+    the soil can give them (a negative n or friction angle)."""
+    from pydantic import ValidationError
+
+    from .scene import TerrainSection
+
+    given = {k: parameters[k] for k in SOIL_KEYS if k in parameters}
+    problems: dict[str, str] = {}
+    try:
+        TerrainSection.model_validate({"model": "scm", "calibration": "-", **given})
+    except ValidationError as error:
+        for item in error.errors():
+            if item["loc"] and item["loc"][0] in given:
+                key = str(item["loc"][0])
+                unit = f" {SOIL_UNITS[key]}" if SOIL_UNITS[key] != "1" else ""
+                problems[key] = f"{key} = {given[key]:.6g}{unit}: {item['msg'].lower()}"
+    if not problems and given.get("k_c", 1.0) + given.get("k_phi", 1.0) <= 0:
+        problems["k_phi"] = "k_c + k_phi = 0: the Bekker moduli carry no load"
+    return problems
+
+
 def same_gravity(a: float, b: float) -> bool:
     """Whether two |g| [m/s^2] are one gravity (within GRAVITY_TOLERANCE)."""
     return abs(a - b) <= GRAVITY_TOLERANCE * max(abs(a), abs(b), 1e-12)

@@ -168,6 +168,32 @@ def test_a_calibration_file_round_trips_and_warns_at_another_gravity(tmp_path):
         CoupledSystem.build(load_plan(scene), None)
 
 
+def test_a_calibration_outside_scms_range_is_refused_naming_the_file_unless_the_scene_overrides_it(tmp_path):
+    """A fit of tests too small for the soil can give a negative n or friction angle: a scene on that
+    file is bad input naming the file, the key, its value and SCM's bound (before anything runs); the
+    scene's own key wins over the file's, and with it the scene loads."""
+    from cosim.scm_calibration import out_of_range
+
+    calibration = _calibration(1.625)
+    calibration.parameters.update(n=-1.49, friction_angle_deg=-7.0)
+    path = tmp_path / "terrain.toml"
+    write_calibration(str(path), calibration)
+    assert set(out_of_range(calibration.parameters)) == {"n", "friction_angle_deg"}
+    assert out_of_range(_calibration(1.625).parameters) == {}
+    assert set(out_of_range({**_calibration(1.625).parameters, "k_c": 0.0, "k_phi": 0.0})) == {"k_phi"}
+    scm = f'\n[terrain]\nmodel = "scm"\ncalibration = "{path.name}"\n'
+    with pytest.raises(SceneError) as refused:
+        load_plan(write_tiny(tmp_path, scm))
+    message = str(refused.value)
+    assert "terrain.toml: [scm] n = -1.49: input should be greater than 0" in message
+    assert "friction_angle_deg = -7 deg" in message and "terrain.n in the scene wins" in message
+    with pytest.raises(SceneError, match="friction_angle_deg = -7 deg") as refused:
+        load_plan(write_tiny(tmp_path, scm + "n = 0.8\n"))
+    assert "[scm] n" not in str(refused.value)
+    plan = load_plan(write_tiny(tmp_path, scm + "n = 0.8\nfriction_angle_deg = 30.0\n"))
+    assert dict(plan.terrain.parameters)["n"] == 0.8 and dict(plan.terrain.parameters)["k_phi"] == 8.0e5
+
+
 def test_a_run_deeper_than_the_calibrations_tests_is_flagged(tmp_path):
     """scm_calibration_depth: a run's measured rim sinkage against the deepest sinkage the
     calibration's DEM tests reached (its plates' and its wheel runs' upper 95 % ends, whichever is
@@ -216,7 +242,8 @@ def test_calibrate_scm_runs_the_dem_tests_and_writes_a_usable_file(tmp_path, cap
     tiny += ["plate.max_sinkage=0.0045"]
     options = ["--serial", "--replicas", "2", *[a for s in tiny for a in ("--set", s)]]
     assert main(["calibrate-scm", scene, "--out", str(out), *options]) == 0
-    printed = capsys.readouterr().out  # each parameter with its unit
+    captured = capsys.readouterr()
+    printed, printed_err = captured.out, captured.err  # each parameter with its unit
     assert "m/s^2" in printed and all(f"{SOIL_UNITS[key]}\n" in printed for key in SOIL_KEYS)
     assert "replicas' own fits' scatter / sqrt(R), R = 2" in printed  # what its +- holds
     assert "is not in it" in _error_bar_note({})  # and on one bed, what it leaves out
@@ -233,7 +260,17 @@ def test_calibrate_scm_runs_the_dem_tests_and_writes_a_usable_file(tmp_path, cap
     for key in SOIL_KEYS:  # the error bar holds the pooled fit's error
         fitted = source["standard_error_of_fit"][key]
         assert not math.isfinite(fitted) or calibration.standard_errors[key] >= fitted
-    plan = load_plan(write_tiny(tmp_path, f'\n[terrain]\nmodel = "scm"\ncalibration = "{out.name}"\n', "scm.toml"))
+    # the tiny tests' fits may fall outside SCM's range (a negative n): the command warns naming each, and
+    # the scene's own keys for those make the file usable
+    from cosim.scm_calibration import out_of_range
+
+    outside = out_of_range(calibration.parameters)
+    assert all(f"warning: {problem}" in printed_err for problem in outside.values())
+    assert printed_err.count("calibrate-scm: warning:") == len(outside)
+    fixed = dict(k_c=1.0, k_phi=1e3, n=0.8, cohesion=1.0, friction_angle_deg=30.0, janosi_k=1e-3, elastic_stiffness=1e5)
+    keys = "".join(f"{key} = {fixed[key]!r}\n" for key in outside)
+    scm = f'\n[terrain]\nmodel = "scm"\ncalibration = "{out.name}"\n{keys}'
+    plan = load_plan(write_tiny(tmp_path, scm, "scm.toml"))
     assert plan.terrain.calibration_gravity == pytest.approx(1.625)
 
 
