@@ -132,6 +132,7 @@ def out_of_range(parameters: dict[str, float]) -> dict[str, str]:
     given = {k: parameters[k] for k in SOIL_KEYS if k in parameters}
     problems: dict[str, str] = {}
     try:
+        # a calibration named: the keys not given are not missing, only the given ones are judged
         TerrainSection.model_validate({"model": "scm", "calibration": "-", **given})
     except ValidationError as error:
         for item in error.errors():
