@@ -198,10 +198,12 @@ def combine_errors(fit_errors: dict, per_replica: dict) -> dict:
     """SOIL_KEYS -> the larger of the pooled fit's standard error and the replicas' standard error
     of the mean (their fits' scatter / sqrt(R), over the R that converged): a pooled fit's error
     counts its points' scatter, not the scatter between beds and specimens, which can be larger."""
+    from ..metrics import ensemble
+
     out = {}
     for k in SOIL_KEYS:
-        values = np.array([v for v in per_replica.get(k, []) if math.isfinite(v)])
-        between = float(values.std(ddof=1) / math.sqrt(len(values))) if len(values) >= 2 else math.nan
+        replicas = ensemble(per_replica.get(k, []))  # over the finite values
+        between = replicas["std"] / math.sqrt(replicas["n"]) if replicas["n"] >= 2 else math.nan
         # no spread at all: every replica held at the same bound (k_c or c at 0), which says nothing
         known = [e for e in (fit_errors.get(k, math.nan), between) if math.isfinite(e) and e > 0]
         out[k] = max(known) if known else math.nan
