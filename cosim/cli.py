@@ -122,7 +122,7 @@ def cmd_run(args) -> int:
     with open(args.scene) as f:
         source = f.read()
     result = run_plan(plan, out, overwrite=args.overwrite, progress=not args.no_progress, source=source)
-    _print_summary(result)
+    _print_summary(result, scm_only=plan.terrain.model == "scm")
     return EXIT_OK if result.status == "complete" else EXIT_UNSTEADY
 
 
@@ -173,7 +173,7 @@ SUMMARY_KEYS = (
 )
 
 
-def _print_summary(result) -> None:
+def _print_summary(result, scm_only: bool = False) -> None:
     s = result.summary
     print(f"{result.status}: {result.out_dir}")
     for key, unit, scale in SUMMARY_KEYS:
@@ -191,7 +191,12 @@ def _print_summary(result) -> None:
     for finding in s.get("findings", []):
         if not finding["ok"]:
             print(f"  ! {finding['message']}")
-    if s.get("steady_state") == "steady":
+    if s.get("steady_state") == "steady" and scm_only:
+        print(
+            "  error bars: cosim run SCENE --replicas 3 --vary-bed (each replica on the soil its calibration fitted "
+            "on one bed: calibrate-scm --replicas 3)"
+        )
+    elif s.get("steady_state") == "steady":
         print("  error bars: cosim run SCENE --replicas 5 (summation orders on one bed; --vary-bed: a bed each)")
 
 
@@ -752,8 +757,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument(
         "--vary-bed",
         action="store_true",
-        help="with --replicas: each replica on a bed of its own too (replica k settles bed.seed + k): the "
-        "scatter between beds, not only the summation order's on one bed",
+        help="with --replicas: each replica on a bed of its own too (replica k settles bed.seed + k; its SCM "
+        "wheels on the soil its calibration fitted on bed k): the scatter between beds, not only the summation "
+        "order's on one bed",
     )
     p.add_argument(
         "--batched",

@@ -121,6 +121,39 @@ def tested_sinkage(calibration: ScmCalibration, path: str = "") -> float | None:
     return max(depths) if depths else None
 
 
+def bed_soils(calibration: ScmCalibration, path: str = "") -> list[dict[str, float]]:
+    """Each calibration bed's SCM soil (SOIL_KEYS -> value), in bed order: the file's [scm] with the keys
+    each bed was fitted on alone ([source] replica_fits, `calibrate-scm --replicas R`) taken from that
+    bed's own fit. A bed whose fit of a key failed (nan) keeps the file's value of it, and so do the keys
+    fitted over all beds together ([source.wheel] fitted: the DEM wheel runs'). [] when the file holds
+    no beds' own fits. The beds' fits keep what one soil's parameters share (k_phi and n move together
+    between beds), which the per-key standard errors do not. CalibrationError names a malformed entry."""
+    fits = calibration.source.get("replica_fits", {})
+    wheel = calibration.source.get("wheel", {})
+    held = set(wheel.get("fitted", [])) if isinstance(wheel, dict) else set()
+    where = f"{path}: " if path else ""
+    if not isinstance(fits, dict):
+        raise CalibrationError(f"{where}[source] replica_fits must be a table of SCM keys, got {fits!r}")
+    varied = {k: v for k, v in fits.items() if k not in held}
+    beds = 0
+    for key, values in varied.items():
+        if key not in SOIL_KEYS:
+            raise CalibrationError(
+                f"{where}[source.replica_fits] {key}: not an SCM key; allowed: {', '.join(SOIL_KEYS)}"
+            )
+        if not isinstance(values, list) or not all(isinstance(v, (int, float)) for v in values):
+            raise CalibrationError(f"{where}[source.replica_fits] {key}: must be a list of numbers, got {values!r}")
+        beds = max(beds, len(values))
+    soils = []
+    for bed in range(beds if beds >= 2 else 0):
+        soil = dict(calibration.parameters)
+        for key, values in varied.items():
+            if bed < len(values) and math.isfinite(values[bed]):
+                soil[key] = float(values[bed])
+        soils.append(soil)
+    return soils
+
+
 def out_of_range(parameters: dict[str, float]) -> dict[str, str]:
     """SOIL_KEYS -> what is wrong, for the parameters outside what [terrain] model = "scm" takes
     (cosim.scene.TerrainSection's bounds, and k_c + k_phi > 0): a fit of tests too small or noisy for

@@ -6,6 +6,8 @@
   whether the result is macroscopically deterministic (cosim.metrics.ensemble). With
   `--vary-bed` (vary='bed') replica k also settles a bed of its own from bed.seed + k:
   the scatter between beds of one soil, which the summation order's on one bed understates.
+  Wheels on SCM take replica k's soil from the calibration's bed k (`calibrate-scm --replicas R`:
+  [source] replica_fits), so an SCM run's error bar is its calibration's scatter between beds.
 - precision: the paper's experiment (its figures 3, 4): replicas per precision; the
   scatter and wall time per precision, as a table (study.csv, study.json) and plots.
 - slip: the drawbar-pull/slip curve: replicas at each imposed slip, after landing;
@@ -217,7 +219,8 @@ def prepare_study(out_dir: str, overwrite: bool) -> None:
 
 VARIATIONS = ("order", "bed")
 """What replicas differ in: 'order', the summation order on one settled bed (run.order_seed = k);
-'bed' (--vary-bed), the bed too: replica k settles its own from bed.seed + k (as the lab's specimens)."""
+'bed' (--vary-bed), the bed too: replica k settles its own from bed.seed + k (as the lab's specimens), and
+its SCM wheels run on the soil fitted on the calibration's bed k."""
 
 
 def _settle(ex: Executor, plans: list[RunPlan], folders: list[str]) -> list[str]:
@@ -254,38 +257,110 @@ def _shared_bed(plan: RunPlan, out_dir: str, ex: Executor) -> str | None:
     return _settle(ex, [plan], [out_dir])[0]
 
 
-def _check_variation(plan: RunPlan, vary: str) -> None:
-    """Refuse, naming the option, what replicas cannot vary in for this scene."""
+def calibration_beds(plan: RunPlan) -> tuple[str, list[dict[str, float]]] | None:
+    """The scene's SCM calibration file and, for each bed it was calibrated on ([source] replica_fits,
+    cosim.scm_calibration.bed_soils), that bed's soil keys the scene does not set itself; None without
+    SCM wheels or a calibration file, (file, []) when the file holds no beds' own fits."""
+    section = plan.scene.terrain
+    if plan.terrain.model not in ("scm", "mixed") or section is None or section.calibration is None:
+        return None
+    from .scm_calibration import SOIL_KEYS, bed_soils, read_calibration
+
+    path = section.calibration
+    own = section.model_fields_set
+    soils = bed_soils(read_calibration(path), path)
+    return path, [{k: soil[k] for k in SOIL_KEYS if k not in own} for soil in soils]
+
+
+def _check_variation(plan: RunPlan, vary: str, replicas: int = 0) -> list[dict[str, float]]:
+    """Refuse, naming the option, what replicas cannot vary in for this scene; for 'bed', the SCM soil
+    of each replica's calibration bed ([] when the SCM wheels, if any, keep one soil): replica k's SCM
+    wheels run on the soil fitted on calibration bed k, as its DEM wheels on the grains of bed.seed + k."""
+    from .scm_calibration import out_of_range
     from .system import needs_bed
 
     if vary not in VARIATIONS:
         raise SceneError([f"vary: {vary!r} is not a variation; allowed: {', '.join(VARIATIONS)}"])
-    if vary == "bed" and not needs_bed(plan):
-        raise SceneError([f"--vary-bed: terrain.model {plan.terrain.model!r} settles no bed of grains to vary"])
-    if vary == "bed" and plan.bed.bed_file:
+    if vary != "bed":
+        return []
+    grains = needs_bed(plan)
+    found = calibration_beds(plan)
+    path, soils = found if found is not None else ("", [])
+    if not grains and not soils:
+        why = (
+            f"its calibration {path} holds no beds' own fits ([source] replica_fits): calibrate over beds, "
+            "`cosim calibrate-scm SCENE --out FILE --replicas 3`"
+            if path
+            else "and no calibration file of beds' own fits ([terrain] calibration)"
+        )
+        raise SceneError([f"--vary-bed: terrain.model {plan.terrain.model!r} settles no bed of grains to vary, {why}"])
+    if grains and plan.bed.bed_file:
         raise SceneError(
             [
                 f"--vary-bed: bed.bed_file = {plan.bed.bed_file!r} fixes one bed, and each replica settles its own "
                 "(bed.seed + k): remove bed.bed_file, or leave out --vary-bed (replicas on that one bed)"
             ]
         )
+    if soils and replicas > len(soils):
+        raise SceneError(
+            [
+                f"--vary-bed --replicas {replicas}: the SCM calibration {path} was fitted on {len(soils)} beds "
+                f"([source] replica_fits): at most {len(soils)} replicas, or calibrate over more beds (--replicas)"
+            ]
+        )
+    problems = [
+        f"--vary-bed: {path}: calibration bed {bed}'s [source.replica_fits] {problem}, outside what SCM takes "
+        f"(terrain.{key} in the scene wins over the file's)"
+        for bed, soil in enumerate(soils[:replicas])
+        for key, problem in out_of_range(soil).items()
+    ]
+    if problems:
+        raise SceneError(problems)
+    return soils
 
 
 def _replica_beds(plan: RunPlan, out_dir: str, ex: Executor, replicas: int, vary: str) -> list[str | None]:
     """Replica k's bed file: the shared bed (vary 'order'), or its own (vary 'bed'), settled from
     bed.seed + k into out_dir/beds/seed_S (the K beds in parallel on the executor)."""
+    from .system import needs_bed
+
     if vary == "order":
         return [_shared_bed(plan, out_dir, ex)] * replicas
+    if not needs_bed(plan):  # SCM alone: its replicas vary in the calibration's beds (_check_variation)
+        return [None] * replicas
     seeds = [plan.bed.spec.seed + k for k in range(replicas)]
     log.info("settling %d beds, bed.seed %d to %d ...", replicas, seeds[0], seeds[-1])
     folders = [os.path.join(out_dir, "beds", f"seed_{s}") for s in seeds]
     return list(_settle(ex, [plan.with_changes(**{"bed.seed": s}) for s in seeds], folders))
 
 
-def _replica_overrides(k: int, bed: str | None, vary: str, plan: RunPlan) -> dict:
-    """Replica k's overrides: its summation order, its bed (and that bed's seed when beds vary)."""
-    seed = {"bed.seed": plan.bed.spec.seed + k} if vary == "bed" else {}
-    return {"run.order_seed": k, **seed, **_bed_override(bed)}
+def _replica_overrides(k: int, bed: str | None, vary: str, plan: RunPlan, soils: list[dict] | None = None) -> dict:
+    """Replica k's overrides: its summation order, its bed (and that bed's seed when beds vary), and
+    its SCM wheels' soil when beds vary and the calibration was fitted on beds (`soils`, _check_variation)."""
+    from .system import needs_bed
+
+    seed = {"bed.seed": plan.bed.spec.seed + k} if vary == "bed" and needs_bed(plan) else {}
+    soil = {f"terrain.{key}": value for key, value in soils[k].items()} if soils else {}
+    return {"run.order_seed": k, **seed, **_bed_override(bed), **soil}
+
+
+def _variation(plan: RunPlan, vary: str, soils: list[dict] | None) -> tuple[str, dict]:
+    """What the replicas varied in, for a report's title, and the SCM calibration beds' soils they ran on
+    (for the report's 'calibration_beds'; {} when the SCM wheels, if any, kept one soil)."""
+    from .scm_calibration import SOIL_UNITS
+    from .system import needs_bed
+
+    if vary == "order":
+        return "summation order, one bed", {}
+    parts = [f"a bed each, bed.seed {plan.bed.spec.seed}+k"] if needs_bed(plan) else []
+    if not soils:
+        return "; ".join(parts) or "a bed each", {}
+    section = plan.scene.terrain
+    path = str(section.calibration) if section is not None else ""
+    parts.append(f"SCM on calibration bed k's soil, {os.path.basename(path)}")
+    keys = sorted(soils[0])
+    beds = {"file": path, "soils": soils, "units": {k: SOIL_UNITS[k] for k in keys}}
+    return "; ".join(parts), beds
 
 
 def _batching(plan: RunPlan, batched: bool | None) -> bool:
@@ -433,7 +508,8 @@ def replica_run(
 ) -> dict:
     """K replicas of a scene with error bars (module docstring): vary 'order', they differ only in
     summation order on one settled bed (that bed's scatter); 'bed', each on a bed of its own too,
-    settled from bed.seed + k (the scatter between beds, which a wheel's sizing needs).
+    settled from bed.seed + k (the scatter between beds, which a wheel's sizing needs), its SCM wheels
+    on the soil fitted on the calibration's bed k (at most as many replicas as the file has beds).
 
     batched: run the replicas as worlds of one simulation on one device (cosim.batch; each replica
     bit for bit its run alone; over beds, one simulation per bed); None: when the device is a GPU and
@@ -441,7 +517,7 @@ def replica_run(
     Returns {'ok' (every replica steady and the statistics exist), 'stats', 'results', 'text'}."""
     if replicas < 2:
         raise SceneError([f"--replicas: must be >= 2 for error bars, got {replicas}"])
-    _check_variation(plan, vary)
+    soils = _check_variation(plan, vary, replicas)
     batched = _batching(plan, batched)
     out_dir = os.path.abspath(out_dir)
     prepare_study(out_dir, overwrite)
@@ -452,7 +528,7 @@ def replica_run(
             {
                 "scene_toml": text,
                 "out_dir": os.path.join(out_dir, f"replica_{k:03d}"),
-                "overrides": _replica_overrides(k, beds[k], vary, plan),
+                "overrides": _replica_overrides(k, beds[k], vary, plan, soils),
                 "label": f"replica_{k:03d}",
                 "base_dir": plan.scene.base_dir,
             }
@@ -460,9 +536,11 @@ def replica_run(
         ]
         results = _run_tasks(ex, tasks, batched)
     stats = ensemble_table(results, plan)
+    varied, calibration = _variation(plan, vary, soils[:replicas])
     report = {
         "kind": "replicas",
         "vary": vary,
+        "calibration_beds": calibration,  # SCM wheels over beds: each replica's soil keys (file, soils, units)
         "batched": bool(batched),
         "scene_toml": text,
         "bed_file": beds[0] if vary == "order" else None,
@@ -480,7 +558,6 @@ def replica_run(
         ["metric", "unit", "n", "mean", "std", "ci95", "min", "max", "tolerance", "deterministic"],
         {},
     )  # one metric per row: its unit is a column (mean, std, ci95, min, max, tolerance are in it)
-    varied = "summation order, one bed" if vary == "order" else f"a bed each, bed.seed {plan.bed.spec.seed}+k"
     judged = "deterministic" if vary == "order" else "same on any bed"
     report["text"] = _ensemble_text(stats, f"{plan.name}: {replicas} replicas ({varied}), {out_dir}", judged)
     report["ok"] = stats["steady"] == replicas and stats["steady"] >= 2
@@ -628,7 +705,7 @@ def slip_study(
         raise SceneError(problems)
     for s in slips:  # every point must be a valid scene before anything runs
         plan.with_changes(**{"testbed.mode": "slip", "testbed.slip": s})
-    _check_variation(plan, vary)
+    soils = _check_variation(plan, vary, replicas)
     batched = _batching(plan, batched)
     out_dir = os.path.abspath(out_dir)
     prepare_study(out_dir, overwrite)
@@ -639,7 +716,11 @@ def slip_study(
             {
                 "scene_toml": text,
                 "out_dir": os.path.join(out_dir, f"slip_{s:+.3f}", f"replica_{k:03d}"),
-                "overrides": {"testbed.mode": "slip", "testbed.slip": s, **_replica_overrides(k, beds[k], vary, plan)},
+                "overrides": {
+                    "testbed.mode": "slip",
+                    "testbed.slip": s,
+                    **_replica_overrides(k, beds[k], vary, plan, soils),
+                },
                 "label": f"slip {s:+.3f} replica {k}",
                 "slip": s,
                 "base_dir": plan.scene.base_dir,
@@ -650,7 +731,17 @@ def slip_study(
         results = _run_tasks(ex, tasks, batched)
     shared = beds[0] if vary == "order" else None
     return _slip_report(
-        plan, out_dir, slips, [t["slip"] for t in tasks], results, text, shared, plot, vary=vary, beds=beds
+        plan,
+        out_dir,
+        slips,
+        [t["slip"] for t in tasks],
+        results,
+        text,
+        shared,
+        plot,
+        vary=vary,
+        beds=beds,
+        soils=soils[:replicas],
     )
 
 
@@ -699,7 +790,18 @@ def slip_study_from_runs(
 
 
 def _slip_report(
-    plan, out_dir, slips, run_slips, results, text, bed, plot, states=(metrics.STEADY,), vary="order", beds=None
+    plan,
+    out_dir,
+    slips,
+    run_slips,
+    results,
+    text,
+    bed,
+    plot,
+    states=(metrics.STEADY,),
+    vary="order",
+    beds=None,
+    soils=None,
 ) -> dict:
     """Tabulate, write (study.json, study.csv, plots) and describe a slip study's runs."""
     rows = []
@@ -716,9 +818,11 @@ def _slip_report(
                 "stats": stats,
             }
         )
+    varied, calibration = _variation(plan, vary, soils)
     report = {
         "kind": "slip",
         "vary": vary,
+        "calibration_beds": calibration,
         "bed_files": beds,
         "averaged_states": list(states),
         "rows": rows,
@@ -737,8 +841,7 @@ def _slip_report(
     write_json(os.path.join(out_dir, "study.json"), report)
     _write_csv(os.path.join(out_dir, "study.csv"), rows, keys, units)
     lines = [
-        f"{plan.name}: drawbar pull against imposed slip (W = {plan.wheel_load:.4g} N; replicas: "
-        f"{'summation order, one bed' if vary == 'order' else 'a bed each'}), {out_dir}",
+        f"{plan.name}: drawbar pull against imposed slip (W = {plan.wheel_load:.4g} N; replicas: {varied}), {out_dir}",
         f"  {'slip':>6s} {'steady':>7s} {'DP [N]':>12s} {'DP/W':>14s} {'torque [N m]':>14s} {'sinkage [mm]':>13s}",
     ]
 

@@ -71,7 +71,7 @@ def test_a_testbed_scene_on_scm_writes_the_analytic_runs_datasets(scm_run, tmp_p
     assert set(_datasets(run / "results.h5")) == set(_datasets(analytic / "run" / "results.h5"))
 
 
-def _static_sinkage(load, radius, width, spacing):
+def _static_sinkage(load, radius, width, spacing, k_phi=K_PHI):
     """The rim bottom's sinkage [m] of a rigid cylinder at rest on Bekker soil: load = integral over its
     contact (both halves) of (k_c / b + k_phi) z(x)^n, z(x) = z0 - (R - sqrt(R^2 - x^2)), b the patch's
     smaller extent (its length 2 x0 or the width, plus one node spacing: soil.scm's patch width)."""
@@ -79,7 +79,7 @@ def _static_sinkage(load, radius, width, spacing):
     def carried(z0):
         x0 = math.sqrt(max(0.0, 2 * radius * z0 - z0 * z0))
         b = min(width, 2 * x0) + spacing
-        line, _ = quad(lambda x: (K_C / b + K_PHI) * max(0.0, z0 - radius + math.sqrt(radius**2 - x**2)) ** N, -x0, x0)
+        line, _ = quad(lambda x: (K_C / b + k_phi) * max(0.0, z0 - radius + math.sqrt(radius**2 - x**2)) ** N, -x0, x0)
         return width * line - load
 
     return brentq(carried, 1e-7, 0.5 * radius)

@@ -1,0 +1,152 @@
+"""An SCM run's error bar over its calibration's beds (`cosim run SCENE --replicas K --vary-bed` on
+[terrain] model = "scm"): replica k runs on the soil the calibration fitted on bed k ([source]
+replica_fits), each replica carries its load at Bekker's sinkage for its own bed's soil, the
+ensemble's scatter is the beds', and what cannot vary is refused, naming the file, before anything
+is written."""
+
+import json
+import math
+
+import numpy as np
+import pytest
+from test_scm_run import K_C, K_PHI, SMOOTH, N, _static_sinkage
+
+from cosim.cli import main
+from cosim.output import read_series
+from cosim.plan import load_plan
+from cosim.scene import SceneError
+from cosim.scm_calibration import (
+    SOIL_KEYS,
+    CalibrationError,
+    ScmCalibration,
+    bed_soils,
+    read_calibration,
+    write_calibration,
+)
+from cosim.single_wheel import PHASE_LANDING
+from cosim.study import replica_run
+from helpers import write_tiny
+
+SOIL = {
+    "k_c": K_C,
+    "k_phi": K_PHI,
+    "n": N,
+    "cohesion": 50.0,
+    "friction_angle_deg": 30.0,
+    "janosi_k": 0.002,
+    "elastic_stiffness": 2.0e7,
+}
+BED_K_PHI = [0.5 * K_PHI, K_PHI, 2.0 * K_PHI]
+"""Three beds' own k_phi: the beds' scatter a calibration over beds records."""
+AT_REST = [*SMOOTH, "landing.speed_ratio=0.002"]
+"""The smooth wheel, landed until it sinks at 1/10 of the default rest speed: on the softest bed the
+default leaves it creeping 8 % short of Bekker's sinkage."""
+
+
+def _calibration(fits: dict, gravity: float, wheel: dict | None = None) -> ScmCalibration:
+    source = {"replica_fits": fits, **({"wheel": wheel} if wheel else {})}
+    return ScmCalibration(dict(SOIL), {k: 0.0 for k in SOIL_KEYS}, gravity, source)
+
+
+def _scene_on(tmp_path, fits: dict, extra: str = "") -> str:
+    """The tiny scene on SCM from a calibration file (at the scene's gravity) holding `fits`."""
+    g = load_plan(write_tiny(tmp_path, name="probe.toml")).g
+    write_calibration(str(tmp_path / "cal.toml"), _calibration(fits, g))
+    return write_tiny(tmp_path, f'\n[terrain]\nmodel = "scm"\ncalibration = "cal.toml"\n{extra}')
+
+
+def test_each_bed_takes_its_own_fit_and_keeps_the_files_value_where_it_has_none():
+    fits = {"k_phi": [1.0, 2.0, math.nan], "n": [0.9, 1.2, 1.0], "janosi_k": [0.001, 0.003, 0.004]}
+    soils = bed_soils(_calibration(fits, 9.81, wheel={"fitted": ["janosi_k"]}))
+    assert [s["k_phi"] for s in soils] == [1.0, 2.0, K_PHI]  # bed 2's fit failed: the file's value
+    assert [s["n"] for s in soils] == [0.9, 1.2, 1.0]
+    assert {s["janosi_k"] for s in soils} == {SOIL["janosi_k"]}  # fitted to the wheel over all beds
+    assert all(s["k_c"] == K_C for s in soils)
+    assert bed_soils(_calibration({}, 9.81)) == [] and bed_soils(_calibration({"n": [1.0]}, 9.81)) == []
+    with pytest.raises(CalibrationError, match=r"c.toml: \[source.replica_fits\] n: must be a list of numbers"):
+        bed_soils(_calibration({"n": ["a", 1.0]}, 9.81), "c.toml")
+    with pytest.raises(CalibrationError, match=r"\[source.replica_fits\] k_x: not an SCM key"):
+        bed_soils(_calibration({"k_x": [1.0, 2.0]}, 9.81))
+
+
+def test_replicas_over_the_calibrations_beds_carry_the_load_at_each_beds_bekker_sinkage(tmp_path):
+    """Each replica is the wheel at rest on its own bed's soil: Bekker's sinkage for that bed's k_phi
+    (theory, within the 6 % of the single-soil test), so the ensemble's scatter is the beds' own."""
+    scene = _scene_on(tmp_path, {"k_phi": BED_K_PHI})
+    plan = load_plan(scene, AT_REST)
+    report = replica_run(plan, str(tmp_path / "beds"), 3, vary="bed", executor="serial")
+    beds = report["calibration_beds"]
+    assert [s["k_phi"] for s in beds["soils"]] == BED_K_PHI and beds["units"]["k_phi"] == "Pa m^(-n)"
+    assert "SCM on calibration bed k's soil, cal.toml" in report["text"]
+    json.loads((tmp_path / "beds" / "ensemble.json").read_text())  # written and readable
+    rest = []
+    for k, k_phi in enumerate(BED_K_PHI):
+        run = tmp_path / "beds" / f"replica_{k:03d}"
+        assert dict(load_plan(run / "scene.toml").terrain.parameters)["k_phi"] == k_phi
+        series = read_series(run / "results.h5")
+        landing = np.flatnonzero(series["phase"] == PHASE_LANDING)
+        load = float(series["attrs"]["wheel_load"])
+        expected = _static_sinkage(load, plan.wheel.rim_radius, plan.wheel.width, plan.wheel.width / 12, k_phi)
+        rest.append(series["sinkage"][landing[-5:], 0].mean())
+        np.testing.assert_allclose(rest[-1], expected, rtol=6e-2, err_msg=f"bed {k}")
+    assert rest[0] > rest[1] > rest[2]  # the softer bed sinks deeper
+    sinkage = report["stats"]["metrics"]["sinkage"]
+    assert sinkage["n"] == 3 and sinkage["std"] > 0
+
+
+def test_a_scene_key_wins_over_every_beds_fit(tmp_path):
+    scene = _scene_on(tmp_path, {"k_phi": BED_K_PHI, "n": [0.9, 1.0, 1.1]}, extra=f"k_phi = {K_PHI}\n")
+    report = replica_run(load_plan(scene, AT_REST), str(tmp_path / "beds"), 2, vary="bed", executor="serial")
+    assert [sorted(s) for s in report["calibration_beds"]["soils"]] == [sorted(set(SOIL_KEYS) - {"k_phi"})] * 2
+    for k, n in enumerate([0.9, 1.0]):
+        parameters = dict(load_plan(tmp_path / "beds" / f"replica_{k:03d}" / "scene.toml").terrain.parameters)
+        assert parameters["k_phi"] == K_PHI and parameters["n"] == n
+
+
+@pytest.mark.parametrize(
+    "fits, replicas, named",
+    [
+        ({}, 2, "holds no beds' own fits ([source] replica_fits): calibrate over beds"),
+        ({"k_phi": BED_K_PHI}, 4, "was fitted on 3 beds ([source] replica_fits): at most 3 replicas"),
+        ({"n": [1.0, -0.5]}, 2, "calibration bed 1's [source.replica_fits] n = -0.5: "),
+    ],
+)
+def test_what_the_beds_cannot_give_is_refused_naming_the_file_before_anything_is_written(
+    tmp_path, fits, replicas, named
+):
+    plan = load_plan(_scene_on(tmp_path, fits), SMOOTH)
+    with pytest.raises(SceneError) as error:
+        replica_run(plan, str(tmp_path / "beds"), replicas, vary="bed", executor="serial")
+    assert any(named in p and "cal.toml" in p for p in error.value.problems), error.value.problems
+    assert not (tmp_path / "beds").exists()
+
+
+def test_the_cli_runs_an_scm_scene_over_its_calibrations_beds(tmp_path, capsys):
+    scene = _scene_on(tmp_path, {"k_phi": BED_K_PHI[:2]})
+    out = tmp_path / "cli"
+    code = main(["run", scene, "--replicas", "2", "--vary-bed", "--serial", "--out", str(out), *_sets(SMOOTH)])
+    printed = capsys.readouterr().out
+    assert code in (0, 4) and "SCM on calibration bed k's soil" in printed and "sinkage" in printed
+    assert read_calibration(str(tmp_path / "cal.toml")).source["replica_fits"]["k_phi"] == BED_K_PHI[:2]
+
+
+def _sets(overrides: list[str]) -> list[str]:
+    return [item for o in overrides for item in ("--set", o)]
+
+
+def test_a_mixed_rovers_replica_k_takes_bed_k_of_the_grains_and_of_the_calibration(tmp_path):
+    """A rover with a wheel on the DEM and the others on SCM: replica k settles bed.seed + k for the
+    DEM wheel and puts the SCM wheels on the soil calibration bed k gave (the plan of each replica)."""
+    from cosim.study import _check_variation, _replica_overrides
+    from rover_helpers import write_small_rover
+
+    pytest.importorskip("mujoco")
+    g = load_plan(write_small_rover(tmp_path, duration=0.02)).g
+    write_calibration(str(tmp_path / "cal.toml"), _calibration({"k_phi": BED_K_PHI}, g))
+    mixed = '\n[terrain]\nmodel = "scm"\ncalibration = "cal.toml"\nwheels = ["dem", "scm", "scm", "scm"]\n'
+    plan = load_plan(write_small_rover(tmp_path, duration=0.02, extra=mixed))
+    soils = _check_variation(plan, "bed", 2)
+    for k in range(2):
+        replica = plan.with_changes(**_replica_overrides(k, None, "bed", plan, soils))
+        assert replica.terrain.model == "mixed" and replica.bed.spec.seed == plan.bed.spec.seed + k
+        assert dict(replica.terrain.parameters)["k_phi"] == BED_K_PHI[k]
