@@ -36,6 +36,11 @@ import time
 import traceback
 from typing import TYPE_CHECKING, Any
 
+try:
+    import tomllib
+except ImportError:  # Python 3.10
+    import tomli as tomllib
+
 from soil.errors import ArgumentError, InternalError, RegolithError
 
 from . import metrics
@@ -785,8 +790,31 @@ def slip_study_from_runs(
     prepare_study(out_dir, overwrite)
     states = (metrics.STEADY, metrics.SINKING) if include_sinking else (metrics.STEADY,)
     beds = [record.get("bed", {}).get("path") for _, _, record in found]
-    vary = "bed" if len(set(beds)) > 1 else "order"  # the runs' own beds say what their replicas varied in
-    return _slip_report(plan, out_dir, slips, [s for s, _, _ in found], results, text, None, plot, states, vary, beds)
+    soils = _run_soils([path for _, path, _ in found])
+    # the runs' own beds (and their SCM wheels' soils) say what their replicas varied in
+    vary = "bed" if len(set(beds)) > 1 or soils else "order"
+    return _slip_report(
+        plan, out_dir, slips, [s for s, _, _ in found], results, text, None, plot, states, vary, beds, soils
+    )
+
+
+def _run_soils(paths: list[str]) -> list[dict[str, float]]:
+    """The SCM soil keys of replica 0, 1, ... of runs made over calibration beds (each run folder's
+    scene.toml [terrain]; --vary-bed on SCM), [] when the runs share one soil or have no SCM wheels."""
+    from .scm_calibration import SOIL_KEYS
+
+    by_replica: dict[int, dict[str, float]] = {}
+    for path in paths:
+        try:
+            with open(os.path.join(path, "scene.toml"), "rb") as f:
+                terrain = tomllib.load(f).get("terrain", {})
+            replica = int(os.path.basename(path)[len("replica_") :])
+        except (OSError, ValueError, tomllib.TOMLDecodeError) as error:
+            raise ArgumentError(f"{path}: not a slip run's folder ({error})") from None
+        by_replica.setdefault(replica, {k: terrain[k] for k in SOIL_KEYS if k in terrain})
+    soils = [by_replica[k] for k in sorted(by_replica)]
+    varied = len(soils) > 1 and any(soil != soils[0] for soil in soils)
+    return soils if varied and all(soils) else []
 
 
 def _slip_report(

@@ -150,3 +150,20 @@ def test_a_mixed_rovers_replica_k_takes_bed_k_of_the_grains_and_of_the_calibrati
         replica = plan.with_changes(**_replica_overrides(k, None, "bed", plan, soils))
         assert replica.terrain.model == "mixed" and replica.bed.spec.seed == plan.bed.spec.seed + k
         assert dict(replica.terrain.parameters)["k_phi"] == BED_K_PHI[k]
+
+
+def test_a_slip_study_over_the_calibrations_beds_and_its_table_from_the_runs_say_so(tmp_path):
+    """`cosim study slip --vary-bed` on SCM: replica k on bed k's soil at every slip; the table made
+    again from the runs' folders (--from-runs) knows their soils from the runs' scenes alone."""
+    from cosim.study import slip_study, slip_study_from_runs
+
+    plan = load_plan(_scene_on(tmp_path, {"k_phi": BED_K_PHI[:2]}), SMOOTH)
+    study = slip_study(plan, str(tmp_path / "slip"), [0.1, 0.3], replicas=2, vary="bed", executor="serial", plot=False)
+    again = slip_study_from_runs([str(tmp_path / "slip")], str(tmp_path / "table"), plot=False)
+    for report in (study, again):
+        assert report["vary"] == "bed"
+        assert [s["k_phi"] for s in report["calibration_beds"]["soils"]] == BED_K_PHI[:2]
+    for k, k_phi in enumerate(BED_K_PHI[:2]):
+        for slip in ("+0.100", "+0.300"):
+            scene = tmp_path / "slip" / f"slip_{slip}" / f"replica_{k:03d}" / "scene.toml"
+            assert dict(load_plan(scene).terrain.parameters)["k_phi"] == k_phi
