@@ -286,6 +286,14 @@ def _check_variation(plan: RunPlan, vary: str, replicas: int = 0) -> list[dict[s
 
     if vary not in VARIATIONS:
         raise SceneError([f"vary: {vary!r} is not a variation; allowed: {', '.join(VARIATIONS)}"])
+    if vary != "bed" and replicas >= 2 and plan.terrain.model == "scm":
+        raise SceneError(
+            [
+                f"--replicas {replicas}: terrain.model 'scm' sums in a fixed order, so replicas over summation "
+                "orders are one run K times (an error bar of 0); an SCM run's error bar is its calibration's: "
+                "add --vary-bed (replica k on the soil its calibration fitted on bed k; docs/scm.md)"
+            ]
+        )
     if vary != "bed":
         return []
     grains = needs_bed(plan)

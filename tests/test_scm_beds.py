@@ -121,6 +121,21 @@ def test_what_the_beds_cannot_give_is_refused_naming_the_file_before_anything_is
     assert not (tmp_path / "beds").exists()
 
 
+def test_replicas_over_summation_orders_alone_are_refused_on_scm_naming_vary_bed(tmp_path, capsys):
+    """SCM sums in a fixed order: K replicas over summation orders would be one run K times, an
+    error bar of 0. Refused (exit 2) before anything is written, naming --vary-bed."""
+    from cosim.study import slip_study
+
+    plan = load_plan(_scene_on(tmp_path, {"k_phi": BED_K_PHI}), SMOOTH)
+    with pytest.raises(SceneError, match="sums in a fixed order.*add --vary-bed"):
+        replica_run(plan, str(tmp_path / "order"), 2, executor="serial")
+    with pytest.raises(SceneError, match="sums in a fixed order"):
+        slip_study(plan, str(tmp_path / "order"), [0.1], replicas=2, executor="serial", plot=False)
+    scene = write_tiny(tmp_path, '\n[terrain]\nmodel = "scm"\ncalibration = "cal.toml"\n', name="cli.toml")
+    assert main(["run", scene, "--replicas", "2", "--serial", "--out", str(tmp_path / "order")]) == 2
+    assert "--vary-bed" in capsys.readouterr().err and not (tmp_path / "order").exists()
+
+
 def test_the_cli_runs_an_scm_scene_over_its_calibrations_beds(tmp_path, capsys):
     scene = _scene_on(tmp_path, {"k_phi": BED_K_PHI[:2]})
     out = tmp_path / "cli"
