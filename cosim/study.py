@@ -278,7 +278,8 @@ def calibration_beds(plan: RunPlan) -> tuple[str, list[dict[str, float]]] | None
 
 
 def _check_variation(plan: RunPlan, vary: str, replicas: int = 0) -> list[dict[str, float]]:
-    """Refuse, naming the option, what replicas cannot vary in for this scene; for 'bed', the SCM soil
+    """Refuse, naming the option, what replicas cannot vary in for this scene (on SCM alone, which sums
+    in a fixed order, the summation order); for 'bed', the SCM soil
     of each replica's calibration bed ([] when the SCM wheels, if any, keep one soil): replica k's SCM
     wheels run on the soil fitted on calibration bed k, as its DEM wheels on the grains of bed.seed + k."""
     from .scm_calibration import out_of_range
