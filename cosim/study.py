@@ -265,7 +265,8 @@ def _shared_bed(plan: RunPlan, out_dir: str, ex: Executor) -> str | None:
 def calibration_beds(plan: RunPlan) -> tuple[str, list[dict[str, float]]] | None:
     """The scene's SCM calibration file and, for each bed it was calibrated on ([source] replica_fits,
     cosim.scm_calibration.bed_soils), that bed's soil keys the scene does not set itself; None without
-    SCM wheels or a calibration file, (file, []) when the file holds no beds' own fits."""
+    SCM wheels or a calibration file, (file, []) when the file holds no beds' own fits of a key the
+    scene leaves to it (every bed's soil would be the same)."""
     section = plan.scene.terrain
     if plan.terrain.model not in ("scm", "mixed") or section is None or section.calibration is None:
         return None
@@ -274,7 +275,8 @@ def calibration_beds(plan: RunPlan) -> tuple[str, list[dict[str, float]]] | None
     path = section.calibration
     own = section.model_fields_set
     soils = bed_soils(read_calibration(path), path)
-    return path, [{k: soil[k] for k in SOIL_KEYS if k not in own} for soil in soils]
+    soils = [{k: soil[k] for k in SOIL_KEYS if k not in own} for soil in soils]
+    return path, soils if any(soil != soils[0] for soil in soils) else []
 
 
 def _check_variation(plan: RunPlan, vary: str, replicas: int = 0) -> list[dict[str, float]]:
@@ -303,7 +305,7 @@ def _check_variation(plan: RunPlan, vary: str, replicas: int = 0) -> list[dict[s
     if not grains and not soils:
         why = (
             f"its calibration {path} holds no beds' own fits ([source] replica_fits): calibrate over beds, "
-            "`cosim calibrate-scm SCENE --out FILE --replicas 3`"
+            "`cosim calibrate-scm SCENE --out FILE --replicas 3` (fits of keys the scene sets itself do not count)"
             if path
             else "and no calibration file of beds' own fits ([terrain] calibration)"
         )

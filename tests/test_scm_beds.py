@@ -115,6 +115,17 @@ def test_what_the_beds_cannot_give_is_refused_naming_the_file_before_anything_is
     tmp_path, fits, replicas, named
 ):
     plan = load_plan(_scene_on(tmp_path, fits), SMOOTH)
+    _assert_refused(tmp_path, plan, replicas, named)
+
+
+def test_beds_that_differ_only_in_keys_the_scene_sets_itself_are_no_variation(tmp_path):
+    """The scene's own k_phi wins over every bed's: beds whose fits differ only in k_phi would run one
+    soil K times (an error bar of 0), so that is refused as a file without beds' own fits."""
+    scene = _scene_on(tmp_path, {"k_phi": BED_K_PHI}, extra=f"k_phi = {K_PHI}\n")
+    _assert_refused(tmp_path, load_plan(scene, SMOOTH), 2, "holds no beds' own fits ([source] replica_fits)")
+
+
+def _assert_refused(tmp_path, plan, replicas: int, named: str) -> None:
     with pytest.raises(SceneError) as error:
         replica_run(plan, str(tmp_path / "beds"), replicas, vary="bed", executor="serial")
     assert any(named in p and "cal.toml" in p for p in error.value.problems), error.value.problems
