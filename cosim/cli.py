@@ -584,6 +584,11 @@ def add_lab_commands(sub, scene_options, cluster_options) -> None:
     p.add_argument("--wheel-runs", help="--from-wheel: fit to this slip study's folder (cosim study slip), no new runs")
     p.add_argument("--lab", help="--from-wheel: start from this calibration file, no plate and shear tests")
     p.add_argument(
+        "--start",
+        help="--from-wheel: start k_phi, n, phi and K from this calibration file (a former wheel fit), "
+        "the held keys from --lab's",
+    )
+    p.add_argument(
         "--max-runs",
         type=int,
         default=30,
@@ -606,12 +611,14 @@ def cmd_calibrate_scm(args) -> int:
     if not args.lab_sizes:  # the small default tests where the scene sizes none
         overrides = small_tests(load_lab_scene(args.scene, overrides)) + overrides
     work = args.work or os.path.splitext(args.out)[0] + "_runs"
-    wheel_only = ("--wheel-runs", args.wheel_runs), ("--lab", args.lab)
+    wheel_only = ("--wheel-runs", args.wheel_runs), ("--lab", args.lab), ("--start", args.start)
     misplaced = [name for name, value in wheel_only if value and not args.from_wheel]
     if misplaced:
         raise ArgumentError(f"{', '.join(misplaced)}: only with --from-wheel")
     if args.max_runs < 0:  # before the lab's tests, not an hour into them
         raise ArgumentError(f"--max-runs: must be >= 0, got {args.max_runs}")
+    if args.start:
+        read_calibration(args.start)  # a damaged file named now, not after the lab's tests
     started = time.perf_counter()
     if args.lab:
         calibration = read_calibration(args.lab)
@@ -670,9 +677,10 @@ def _error_bar_note(replica_fits: dict) -> str:
 
 def _fit_to_wheel(args, lab, work: str):
     """The lab calibration `lab` refitted to the DEM wheel runs (cosim calibrate-scm --from-wheel)."""
+    from .lab.scm import combine_errors
     from .lab.scm_wheel import FITTED, fit_to_wheel, run_wheel_tests, wheel_targets
     from .scene import SceneError, parse_value
-    from .scm_calibration import ScmCalibration, same_gravity
+    from .scm_calibration import SOIL_UNITS, ScmCalibration, read_calibration, same_gravity
 
     plan = _plan(args)
     if plan.rover is not None:
@@ -686,13 +694,15 @@ def _fit_to_wheel(args, lab, work: str):
         replicas = args.replicas if args.replicas is not None else 3
         folder = run_wheel_tests(plan, os.path.join(work, "wheel"), slips, replicas, **_executor(args))
     runs = os.path.join(work, "wheel_scm") if args.max_runs else None
-    parameters, errors, report = fit_to_wheel(
-        plan, wheel_targets(folder), lab.parameters, runs=runs, max_runs=args.max_runs
-    )
-    standard_errors = {k: (errors[k] if k in FITTED else lab.standard_errors.get(k, errors[k])) for k in errors}
-    # the file the fit started from: the root lab file stays source['lab'] when a wheel fit is refitted
-    started = {"start_file": _relative_to_file(args.out, args.lab)} if args.lab else {}
-    source = {**lab.source, "wheel": {"runs": _relative_to_file(args.out, folder), **started, **report}}
+    start = dict(lab.parameters)
+    if args.start:  # the fitted keys' start from another file (a former wheel fit), the held keys the lab's
+        other = read_calibration(args.start)
+        if not same_gravity(other.gravity, plan.g):
+            raise SceneError(
+                [f"--start: calibrated at |g| = {other.gravity:.4g} m/s^2, the scene's is {plan.g:.4g} m/s^2"]
+            )
+        start.update({k: other.parameters[k] for k in FITTED})
+    parameters, errors, report = fit_to_wheel(plan, wheel_targets(folder), start, runs=runs, max_runs=args.max_runs)
     print(
         f"calibrate-scm --from-wheel: fitted {', '.join(FITTED)} to {len(report['slips'])} slips (rms residual "
         f"{report['rms_residual']:.3g} tolerances; {report['evaluations']} held-wheel evaluations, "
@@ -711,7 +721,64 @@ def _fit_to_wheel(args, lab, work: str):
             f"DP/W {row[run + 'drawbar_pull'] / load:+7.3f} (DEM {row['drawbar_pull'] / load:+7.3f}), "
             f"T {row[run + 'driving_torque']:.3g} (DEM {row['driving_torque']:.3g}) N m"
         )
+    standard_errors = {k: (errors[k] if k in FITTED else lab.standard_errors.get(k, errors[k])) for k in errors}
+    beds = _fit_beds(args, plan, lab, folder, parameters, work)
+    if beds:
+        report["standard_error_of_fit"] = {k: errors[k] for k in FITTED}
+        report["units"] = {
+            **report.get("units", {}),
+            **{f"{name}.{k}": SOIL_UNITS[k] for name in ("replica_fits", "standard_error_of_fit") for k in FITTED},
+            "replica_rms_residual": "1 (tolerances: residual_unit)",
+        }
+        standard_errors.update({k: v for k, v in combine_errors(errors, beds["replica_fits"]).items() if k in FITTED})
+        fits = beds["replica_fits"]
+        print(
+            f"  each bed alone ({len(fits['k_phi'])} beds; rms residual "
+            f"{', '.join(f'{r:.3g}' for r in beds['replica_rms_residual'])}): "
+            + "; ".join(f"{k} {', '.join(f'{v:.4g}' for v in fits[k])}" for k in FITTED)
+        )
+    # the file the fit started from: the root lab file stays source['lab'] when a wheel fit is refitted
+    start_file = args.start or args.lab
+    started = {"start_file": _relative_to_file(args.out, start_file)} if start_file else {}
+    source = {**lab.source, "wheel": {"runs": _relative_to_file(args.out, folder), **started, **report, **beds}}
     return ScmCalibration(parameters, standard_errors, plan.g, source)
+
+
+def _fit_beds(args, plan, lab, folder: str, parameters: dict, work: str) -> dict:
+    """The wheel fit repeated on each bed of a slip study over beds (cosim.lab.scm_wheel.fit_beds), bed k
+    holding bed k's own lab values where the lab fitted its beds alone (cosim.scm_calibration.bed_soils;
+    the beds paired by index: both are bed.seed + k); {} when the study's replicas shared one bed.
+    Returns [source.wheel]'s replica_fits (FITTED -> a value per bed, nan where a bed's fit failed),
+    replica_rms_residual and, with the lab's beds, lab_beds (how many were paired)."""
+    from .lab.scm_wheel import FITTED, bed_wheel_targets, fit_beds
+    from .scm_calibration import bed_soils
+
+    bed_targets = bed_wheel_targets(folder)
+    if len(bed_targets) < 2:
+        return {}
+    lab_beds = bed_soils(lab, args.lab or "")
+    if lab_beds:  # a bed of the wheel runs is paired with the lab's bed of the same seed
+        bed_targets = bed_targets[: len(lab_beds)]
+    starts = [
+        {**parameters, **{k: v for k, v in (lab_beds[b] if lab_beds else {}).items() if k not in FITTED}}
+        for b in range(len(bed_targets))
+    ]
+    runs = os.path.join(work, "wheel_scm_beds") if args.max_runs else None
+    print(f"calibrate-scm --from-wheel: fitting each of {len(bed_targets)} beds alone ({folder})")
+    results = fit_beds(plan, bed_targets, starts, runs, args.max_runs, **_executor(args))
+    for b, result in enumerate(results):
+        if not result.get("ok"):
+            print(f"calibrate-scm: warning: the wheel fit on bed {b} failed: {result.get('error')}", file=sys.stderr)
+    if sum(bool(r.get("ok")) for r in results) < 2:
+        print("calibrate-scm: warning: fewer than two beds fitted: no scatter between beds", file=sys.stderr)
+        return {}
+    out: dict = {
+        "replica_fits": {k: [float(r["parameters"][k]) if r.get("ok") else math.nan for r in results] for k in FITTED},
+        "replica_rms_residual": [float(r["rms_residual"]) if r.get("ok") else math.nan for r in results],
+    }
+    if lab_beds:
+        out["lab_beds"] = len(bed_targets)
+    return out
 
 
 def build_parser() -> argparse.ArgumentParser:

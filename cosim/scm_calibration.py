@@ -25,6 +25,7 @@ except ImportError:  # Python 3.10
 import tomli_w
 
 from soil.errors import InputError, RegolithWarning
+from soil.files import atomic_path
 
 FORMAT_VERSION = 1
 """The calibration file's format version."""
@@ -70,7 +71,8 @@ class ScmCalibration:
 
 
 def write_calibration(path: str, calibration: ScmCalibration) -> None:
-    """Write a calibration file (TOML)."""
+    """Write a calibration file (TOML), atomically (soil.files.atomic_path: a crash leaves the former file
+    whole; its folder is made)."""
     data = {
         "format": FORMAT_VERSION,
         "gravity": float(calibration.gravity),
@@ -79,7 +81,7 @@ def write_calibration(path: str, calibration: ScmCalibration) -> None:
         "units": {"gravity": "m/s^2", **SOIL_UNITS},  # [scm]'s and [standard_error]'s; [source] keys name theirs
         "source": _plain(calibration.source),
     }
-    with open(path, "wb") as f:
+    with atomic_path(path) as temporary, open(temporary, "wb") as f:
         tomli_w.dump(data, f)
 
 
@@ -124,26 +126,20 @@ def tested_sinkage(calibration: ScmCalibration, path: str = "") -> float | None:
 def bed_soils(calibration: ScmCalibration, path: str = "") -> list[dict[str, float]]:
     """Each calibration bed's SCM soil (SOIL_KEYS -> value), in bed order: the file's [scm] with the keys
     each bed was fitted on alone ([source] replica_fits, `calibrate-scm --replicas R`) taken from that
-    bed's own fit. A bed whose fit of a key failed (nan) keeps the file's value of it, and so do the keys
-    fitted over all beds together ([source.wheel] fitted: the DEM wheel runs'). [] when the file holds
-    no beds' own fits. The beds' fits keep what one soil's parameters share (k_phi and n move together
-    between beds), which the per-key standard errors do not. CalibrationError names a malformed entry."""
-    fits = calibration.source.get("replica_fits", {})
-    wheel = calibration.source.get("wheel", {})
-    held = set(wheel.get("fitted", [])) if isinstance(wheel, dict) else set()
+    bed's own fit. A bed whose fit of a key failed (nan) keeps the file's value of it. The keys a wheel
+    fit moved ([source.wheel] fitted) take bed k's own wheel fit ([source.wheel] replica_fits: the fit
+    repeated on each bed of a slip study over beds; the wheel's beds then set the count) or, without
+    it, keep the file's value. [] when the file holds no beds' own fits. The beds' fits keep what one
+    soil's parameters share (k_phi and n move together between beds), which the per-key standard
+    errors do not. CalibrationError names a malformed entry."""
     where = f"{path}: " if path else ""
-    if not isinstance(fits, dict):
-        raise CalibrationError(f"{where}[source] replica_fits must be a table of SCM keys, got {fits!r}")
-    varied = {k: v for k, v in fits.items() if k not in held}
-    beds = 0
-    for key, values in varied.items():
-        if key not in SOIL_KEYS:
-            raise CalibrationError(
-                f"{where}[source.replica_fits] {key}: not an SCM key; allowed: {', '.join(SOIL_KEYS)}"
-            )
-        if not isinstance(values, list) or not all(isinstance(v, (int, float)) for v in values):
-            raise CalibrationError(f"{where}[source.replica_fits] {key}: must be a list of numbers, got {values!r}")
-        beds = max(beds, len(values))
+    fits = _bed_fits(calibration.source.get("replica_fits", {}), f"{where}[source.replica_fits]")
+    wheel = calibration.source.get("wheel", {})
+    wheel = wheel if isinstance(wheel, dict) else {}
+    wheel_fits = _bed_fits(wheel.get("replica_fits", {}), f"{where}[source.wheel.replica_fits]")
+    varied = {k: v for k, v in fits.items() if k not in set(wheel.get("fitted", []))}
+    varied.update(wheel_fits)
+    beds = max((len(v) for v in (wheel_fits or varied).values()), default=0)
     soils = []
     for bed in range(beds if beds >= 2 else 0):
         soil = dict(calibration.parameters)
@@ -152,6 +148,18 @@ def bed_soils(calibration: ScmCalibration, path: str = "") -> list[dict[str, flo
                 soil[key] = float(values[bed])
         soils.append(soil)
     return soils
+
+
+def _bed_fits(fits, where: str) -> dict[str, list]:
+    """A replica_fits table (SCM key -> a value per bed) checked; CalibrationError names what is wrong."""
+    if not isinstance(fits, dict):
+        raise CalibrationError(f"{where} must be a table of SCM keys, got {fits!r}")
+    for key, values in fits.items():
+        if key not in SOIL_KEYS:
+            raise CalibrationError(f"{where} {key}: not an SCM key; allowed: {', '.join(SOIL_KEYS)}")
+        if not isinstance(values, list) or not all(isinstance(v, (int, float)) for v in values):
+            raise CalibrationError(f"{where} {key}: must be a list of numbers, got {values!r}")
+    return fits
 
 
 def out_of_range(parameters: dict[str, float]) -> dict[str, str]:

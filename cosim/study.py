@@ -41,6 +41,7 @@ try:
 except ImportError:  # Python 3.10
     import tomli as tomllib
 
+from soil import quiet_warp
 from soil.errors import ArgumentError, InternalError, RegolithError
 
 from . import metrics
@@ -64,12 +65,6 @@ METRIC_UNITS = metrics.SUMMARY_UNITS
 # tasks (module-level functions: picklable for dask workers)
 
 
-def _quiet():
-    import warp as wp
-
-    wp.config.log_level = wp.LOG_ERROR
-
-
 def task_plan(task: dict) -> RunPlan:
     """The plan of a task: its scene text with its overrides (relative to the scene's folder `base_dir`)."""
     return resolve(scene_from_text(task["scene_toml"], base_dir=task.get("base_dir"), overrides=task.get("overrides")))
@@ -79,7 +74,7 @@ def run_task(task: dict) -> dict:
     """Run one scene (task: scene_toml, overrides, out_dir, label, overwrite); never raises."""
     from .launch import run_plan
 
-    _quiet()
+    quiet_warp()
     started = time.perf_counter()
     out = {"label": task.get("label"), "out_dir": task["out_dir"], "overrides": task.get("overrides", {})}
     try:
@@ -97,7 +92,7 @@ def run_task(task: dict) -> dict:
 
 def settle_task(task: dict) -> dict:
     """Settle the bed of a scene into task['folder'] (cached there)."""
-    _quiet()
+    quiet_warp()
     os.makedirs(task["folder"], exist_ok=True)
     bed = settled_bed(task_plan(task), task["folder"])
     return {"path": bed.path, "info": bed.info}
@@ -263,10 +258,10 @@ def _shared_bed(plan: RunPlan, out_dir: str, ex: Executor) -> str | None:
 
 
 def calibration_beds(plan: RunPlan) -> tuple[str, list[dict[str, float]]] | None:
-    """The scene's SCM calibration file and, for each bed it was calibrated on ([source] replica_fits,
-    cosim.scm_calibration.bed_soils), that bed's soil keys the scene does not set itself; None without
-    SCM wheels or a calibration file, (file, []) when the file holds no beds' own fits of a key the
-    scene leaves to it (every bed's soil would be the same)."""
+    """The scene's SCM calibration file and, for each bed it was calibrated on ([source] replica_fits and
+    [source.wheel] replica_fits, cosim.scm_calibration.bed_soils), that bed's soil keys the scene does
+    not set itself; None without SCM wheels or a calibration file, (file, []) when the file holds no
+    beds' own fits of a key the scene leaves to it (every bed's soil would be the same)."""
     section = plan.scene.terrain
     if plan.terrain.model not in ("scm", "mixed") or section is None or section.calibration is None:
         return None
@@ -305,7 +300,8 @@ def _check_variation(plan: RunPlan, vary: str, replicas: int = 0) -> list[dict[s
     if not grains and not soils:
         why = (
             f"its calibration {path} holds no beds' own fits ([source] replica_fits): calibrate over beds, "
-            "`cosim calibrate-scm SCENE --out FILE --replicas 3` (fits of keys the scene sets itself do not count)"
+            "`cosim calibrate-scm SCENE --out FILE --replicas 3` (a wheel fit: `--from-wheel --wheel-runs` a slip "
+            "study made with --vary-bed; fits of keys the scene sets itself do not count)"
             if path
             else "and no calibration file of beds' own fits ([terrain] calibration)"
         )

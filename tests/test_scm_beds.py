@@ -69,6 +69,20 @@ def test_each_bed_takes_its_own_fit_and_keeps_the_files_value_where_it_has_none(
         bed_soils(_calibration({"k_x": [1.0, 2.0]}, 9.81))
 
 
+def test_a_wheel_fit_over_beds_gives_each_bed_its_own_wheel_fit_and_its_labs_held_keys():
+    """A --from-wheel file over beds: bed k takes the wheel's fit on bed k ([source.wheel] replica_fits)
+    for the keys the wheel fitted and the lab's fit of bed k for the others; the wheel's beds set the
+    count (the lab's fourth bed had no wheel runs)."""
+    lab = {"k_c": [10.0, 20.0, 30.0, 40.0], "k_phi": [1.0, 2.0, 3.0, 4.0]}
+    wheel = {"fitted": ["k_phi", "n"], "replica_fits": {"k_phi": [5.0, 6.0, 7.0], "n": [0.3, math.nan, 0.5]}}
+    soils = bed_soils(_calibration(lab, 9.81, wheel=wheel))
+    assert [s["k_phi"] for s in soils] == [5.0, 6.0, 7.0] and [s["k_c"] for s in soils] == [10.0, 20.0, 30.0]
+    assert [s["n"] for s in soils] == [0.3, N, 0.5]  # bed 1's wheel fit of n failed: the file's value
+    bad = {**wheel, "replica_fits": {"n": "0.3"}}
+    with pytest.raises(CalibrationError, match=r"w.toml: \[source.wheel.replica_fits\] n: must be a list"):
+        bed_soils(_calibration(lab, 9.81, wheel=bad), "w.toml")
+
+
 def test_replicas_over_the_calibrations_beds_carry_the_load_at_each_beds_bekker_sinkage(tmp_path):
     """Each replica is the wheel at rest on its own bed's soil: Bekker's sinkage for that bed's k_phi
     (theory, within the 6 % of the single-soil test), so the ensemble's scatter is the beds' own."""

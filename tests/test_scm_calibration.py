@@ -4,6 +4,7 @@ round-trips; a calibration used at another gravity warns naming both gravities."
 
 import math
 import warnings
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -312,6 +313,33 @@ def test_the_wheel_fit_recovers_known_parameters_from_held_wheel_forces():
     assert parameters["k_c"] == truth["k_c"] and parameters["elastic_stiffness"] == truth["elastic_stiffness"]
 
 
+WHEEL_TRUTH = dict(
+    k_c=0.1, k_phi=8.0, n=0.5, cohesion=0.0, friction_angle_deg=40.0, janosi_k=5.0e-3, elastic_stiffness=6.0e4
+)
+"""A soil the closed-form runs below are made at."""
+
+
+def _closed_form_runs(plan, soil, targets) -> list[dict]:
+    """Stand-ins for the SCM runs of the DEM's protocol (scm_free_runs, seconds each: the SCM scenes' own
+    tests run them): a smooth closed form in which each fitted parameter shows (sinkage from k_phi and
+    n, DP and T from phi and K, as in Bekker and Janosi)."""
+    load, rim = plan.wheel_load, plan.wheel.rim_radius
+    out = []
+    for t in targets:
+        sinkage = 0.004 * (soil["k_phi"] / 8.0) ** -0.5 * (1.0 + 2.0 * t.slip * (soil["n"] - 0.3))
+        thrust = math.tan(math.radians(soil["friction_angle_deg"])) * (
+            1.0 - math.exp(-0.03 * t.slip / soil["janosi_k"])
+        )
+        out.append(
+            {
+                "sinkage": sinkage,
+                "drawbar_pull": load * (thrust - 0.3),
+                "driving_torque": load * rim * (thrust + 25.0 * sinkage),
+            }
+        )
+    return out
+
+
 def test_the_fit_to_the_runs_recovers_known_parameters_and_keeps_to_its_budget(tmp_path, monkeypatch):
     """The runs' stage on its own (the held-wheel stage left at its start: one evaluation), with the
     runs (scm_free_runs, seconds each: the SCM scenes' own tests run them) replaced by a smooth
@@ -326,28 +354,13 @@ def test_the_fit_to_the_runs_recovers_known_parameters_and_keeps_to_its_budget(t
     from cosim.lab.scm_wheel import FITTED, WheelTarget, fit_to_wheel
 
     plan = _wheel_plan()
-    load, rim = plan.wheel_load, plan.wheel.rim_radius
-    truth = dict(
-        k_c=0.1, k_phi=8.0, n=0.5, cohesion=0.0, friction_angle_deg=40.0, janosi_k=5.0e-3, elastic_stiffness=6.0e4
-    )
+    load = plan.wheel_load
+    truth = dict(WHEEL_TRUTH)
     calls = []
 
     def closed_form(plan, soil, targets, folder):
         calls.append(folder)
-        out = []
-        for t in targets:
-            sinkage = 0.004 * (soil["k_phi"] / 8.0) ** -0.5 * (1.0 + 2.0 * t.slip * (soil["n"] - 0.3))
-            thrust = math.tan(math.radians(soil["friction_angle_deg"])) * (
-                1.0 - math.exp(-0.03 * t.slip / soil["janosi_k"])
-            )
-            out.append(
-                {
-                    "sinkage": sinkage,
-                    "drawbar_pull": load * (thrust - 0.3),
-                    "driving_torque": load * rim * (thrust + 25.0 * sinkage),
-                }
-            )
-        return out
+        return _closed_form_runs(plan, soil, targets)
 
     monkeypatch.setattr(scm_wheel, "scm_free_runs", closed_form)
     blank = WheelTarget(0.0, 0.0, 1e-4, 0.0, 1e-5, 0.0, 1e-7, 3, vertical_force=load)
@@ -465,6 +478,156 @@ def test_calibrate_scm_from_wheel_writes_the_fit_and_refuses_misplaced_options(t
     err = capsys.readouterr().err
     assert err.startswith(f"cosim: error: {damaged}: ") and "unexpected" not in err, err
     assert not (tmp_path / "y.toml").exists()
+
+
+BED_TRUTHS = [
+    {**WHEEL_TRUTH, "k_phi": 6.0, "n": 0.45, "friction_angle_deg": 37.0, "janosi_k": 4.0e-3},
+    {**WHEEL_TRUTH, "k_phi": 8.0, "n": 0.50, "friction_angle_deg": 40.0, "janosi_k": 5.0e-3},
+    {**WHEEL_TRUTH, "k_phi": 11.0, "n": 0.56, "friction_angle_deg": 44.0, "janosi_k": 6.5e-3},
+]
+"""Three beds' soils, as far apart as the DEM's beds' wheel fits (k_phi and n moving together)."""
+
+
+def _study_over_beds(folder, plan, truths, sinking: tuple = ()) -> None:
+    """A slip study over beds (`cosim study slip --vary-bed`'s study.json) whose bed k's runs are the
+    closed-form runs of truths[k]; the runs in `sinking` ((slip, bed) pairs) still sinking."""
+    import json
+    import os
+
+    from cosim.lab.scm_wheel import WheelTarget
+
+    slips = (0.1, 0.3, 0.5)
+    blank = WheelTarget(0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1, vertical_force=plan.wheel_load)
+    made = [_closed_form_runs(plan, soil, [replace(blank, slip=s) for s in slips]) for soil in truths]
+    runs, rows = [], []
+    for i, slip in enumerate(slips):
+        for k, bed in enumerate(made):
+            state = "still sinking" if (slip, k) in sinking else "steady"
+            out_dir = os.path.join(str(folder), f"slip_{slip:+.3f}", f"replica_{k:03d}")
+            runs.append({"out_dir": out_dir, "ok": True, "summary": {**bed[i], "steady_state": state}})
+        steady = [bed[i] for k, bed in enumerate(made) if (slip, k) not in sinking]
+        row = {"slip_set": slip, "steady": len(steady), "slip_mean": slip}
+        for key in ("sinkage", "drawbar_pull", "driving_torque"):
+            values = [r[key] for r in steady]
+            row[f"{key}_mean"] = float(np.mean(values))
+            row[f"{key}_ci95"] = 1e-3 * abs(float(np.mean(values)))  # tight: the closed form has no noise
+        rows.append(row)
+    study = {"kind": "slip", "vary": "bed", "wheel_load": plan.wheel_load, "rows": rows, "runs": runs}
+    os.makedirs(str(folder), exist_ok=True)
+    with open(os.path.join(str(folder), "study.json"), "w") as f:
+        json.dump({**study, "averaged_states": ["steady"]}, f)
+
+
+def test_each_beds_wheel_targets_are_its_own_runs_judged_by_the_studys_intervals(tmp_path):
+    """bed_wheel_targets: bed k's targets are replica k's runs at each slip (a run still sinking left out
+    of a table that averages steady runs only), with the study's 95 % half-intervals over the beds; a
+    study whose replicas shared one bed gives none."""
+    import json
+
+    from cosim.lab.scm_wheel import bed_wheel_targets, wheel_targets
+
+    plan = _wheel_plan()
+    _study_over_beds(tmp_path / "study", plan, BED_TRUTHS, sinking={(0.3, 2)})
+    pooled = wheel_targets(str(tmp_path / "study"))
+    beds = bed_wheel_targets(str(tmp_path / "study"))
+    assert [len(b) for b in beds] == [3, 3, 2]
+    with open(tmp_path / "study" / "study.json") as f:
+        runs = json.load(f)["runs"]
+    assert beds[1][2].sinkage == runs[2 * 3 + 1]["summary"]["sinkage"]  # slip 0.5, replica 1
+    assert beds[2][1].slip == pooled[2].slip and beds[2][1].drawbar_pull == runs[2 * 3 + 2]["summary"]["drawbar_pull"]
+    assert beds[0][0].drawbar_pull_ci95 == pooled[0].drawbar_pull_ci95 and beds[0][0].replicas == 1
+    assert np.mean([b[0].sinkage for b in beds]) == pytest.approx(pooled[0].sinkage, rel=1e-12)
+    study = json.loads((tmp_path / "study" / "study.json").read_text())
+    (tmp_path / "study" / "study.json").write_text(json.dumps({**study, "vary": "order"}))
+    assert bed_wheel_targets(str(tmp_path / "study")) == []
+
+
+def test_a_wheel_fit_over_beds_fits_each_bed_to_its_own_soil_and_its_error_holds_their_scatter(
+    tmp_path, monkeypatch, capsys
+):
+    """calibrate-scm --from-wheel on a slip study over three beds whose runs are closed-form SCM runs of
+    three known soils: the fit is repeated on each bed, which returns that bed's own soil within 2 %;
+    each bed starts from the lab's own fit of that bed (its held keys); the file records the beds' fits
+    with their units, gives each fitted key the larger of the fit's error and the beds' standard error
+    of the mean, and bed_soils (what `cosim run --replicas 3 --vary-bed` runs on) gives bed k the wheel's
+    fit on bed k and the lab's held keys of bed k. --start takes the fitted keys' start from another
+    file (recorded); it is bad input without --from-wheel."""
+    import os
+
+    import cosim.lab.scm_wheel as scm_wheel
+    from cosim.cli import main
+    from cosim.lab.scm_wheel import FITTED
+    from cosim.scm_calibration import bed_soils
+
+    plan = _wheel_plan()
+    started_from: dict[str, float] = {}
+
+    def closed_form(plan, soil, targets, folder):
+        started_from.setdefault(os.path.basename(folder), soil["k_c"])
+        return _closed_form_runs(plan, soil, targets)
+
+    monkeypatch.setattr(scm_wheel, "scm_free_runs", closed_form)
+    # the held wheel's stage (real SCM, seconds per evaluation) gives nothing to fit: the runs' stage fits
+    monkeypatch.setattr(scm_wheel, "scm_wheel_forces", lambda plan, soil, sinkage, slip: (plan.wheel_load, 0.0, 0.0))
+    _study_over_beds(tmp_path / "study", plan, BED_TRUTHS)
+    lab_k_c = [0.08, 0.1, 0.12]
+    start = {**WHEEL_TRUTH, "k_phi": 9.0, "n": 0.48, "friction_angle_deg": 41.0, "janosi_k": 5.5e-3}
+    lab = ScmCalibration(
+        start,
+        {k: 0.01 for k in SOIL_KEYS},
+        plan.g,
+        {"scene": "x", "replica_fits": {"k_c": lab_k_c, "k_phi": [1, 2, 3]}},
+    )
+    write_calibration(str(tmp_path / "lab.toml"), lab)
+    out = tmp_path / "wheel.toml"
+    args = ["--from-wheel", "--lab", str(tmp_path / "lab.toml"), "--wheel-runs", str(tmp_path / "study")]
+    assert (
+        main(
+            [
+                "calibrate-scm",
+                os.path.join(os.path.dirname(__file__), "..", "examples", "phobos_single_wheel.toml"),
+                "--out",
+                str(out),
+                *args,
+                "--serial",
+                "--max-runs",
+                "40",
+            ]
+        )
+        == 0
+    )
+    assert "each bed alone (3 beds" in capsys.readouterr().out
+    written = read_calibration(str(out))
+    wheel = written.source["wheel"]
+    for k, truth in enumerate(BED_TRUTHS):
+        for key in FITTED:
+            assert wheel["replica_fits"][key][k] == pytest.approx(truth[key], rel=0.02), (k, key)
+    assert [started_from[f"bed_{k}"] for k in range(3)] == lab_k_c  # each bed held its own lab k_c
+    for key in FITTED:
+        between = np.std([t[key] for t in BED_TRUTHS], ddof=1) / math.sqrt(3)
+        assert written.standard_errors[key] >= 0.9 * between, key
+        assert written.standard_errors[key] >= wheel["standard_error_of_fit"][key]
+    with open(out, "rb") as f:
+        units = tomllib.load(f)["source"]["wheel"]["units"]
+    assert units["replica_fits.k_phi"] == SOIL_UNITS["k_phi"] and units["standard_error_of_fit.n"] == "1"
+    soils = bed_soils(written)
+    assert len(soils) == 3
+    for k, soil in enumerate(soils):
+        assert soil["k_phi"] == wheel["replica_fits"]["k_phi"][k] and soil["k_c"] == lab_k_c[k]
+    # --start: the fitted keys start from another file, the held ones stay the lab's
+    other = ScmCalibration({**start, "k_phi": 7.0, "k_c": 5.0}, {k: 0.01 for k in SOIL_KEYS}, plan.g, {"scene": "y"})
+    write_calibration(str(tmp_path / "former.toml"), other)
+    scene = os.path.join(os.path.dirname(__file__), "..", "examples", "phobos_single_wheel.toml")
+    again = ["--out", str(tmp_path / "w2.toml"), *args, "--serial", "--max-runs", "2", "--start"]
+    assert main(["calibrate-scm", scene, *again, str(tmp_path / "former.toml")]) == 0
+    refit = read_calibration(str(tmp_path / "w2.toml"))
+    assert refit.source["wheel"]["start"]["k_phi"] == 7.0 and refit.parameters["k_c"] == start["k_c"]
+    assert refit.source["wheel"]["start_file"] == "former.toml"
+    capsys.readouterr()
+    assert (
+        main(["calibrate-scm", scene, "--out", str(tmp_path / "x.toml"), "--start", str(tmp_path / "former.toml")]) == 2
+    )
+    assert "--start" in capsys.readouterr().err
 
 
 def test_the_plate_unloads_quasi_statically_and_its_stiffness_scales_with_the_gravity_twin(tmp_path):

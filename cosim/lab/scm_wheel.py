@@ -1,7 +1,8 @@
 """SCM parameters fitted to the DEM's own single-wheel runs (`cosim calibrate-scm --from-wheel`).
 
-    targets = wheel_targets(run_wheel_tests(plan, folder, slips=(0.05, 0.1, 0.2, 0.4, 0.6), replicas=3))
-    parameters, errors, report = fit_to_wheel(plan, targets, start=lab_calibration.parameters, runs=folder_scm)
+    folder = run_wheel_tests(plan, folder, slips=(0.05, 0.1, 0.2, 0.4, 0.6), replicas=3)  # over 3 beds
+    parameters, errors, report = fit_to_wheel(plan, wheel_targets(folder), start=lab_calibration.parameters, runs=runs)
+    beds = fit_beds(plan, bed_wheel_targets(folder), [{**parameters, **held_k} ...], runs)  # each bed alone
 
 The DEM gives, at each imposed slip s, the steady-state sinkage z(s), drawbar pull DP(s) and
 driving torque T(s) of the scene's wheel under its load W, and the sinkage z_L of the landed wheel
@@ -25,6 +26,12 @@ DEM's 95 % half-interval and RELATIVE_TOLERANCE of the DEM's value (the held whe
 RELATIVE_TOLERANCE of W), so a residual under one is a slip where SCM agrees. The standard errors
 are the square roots of the diagonal of (J^T J)^-1 times the residuals' variance (J in the fitted
 coordinates) of the last stage.
+
+Over beds (a study made with `--vary-bed`, as run_wheel_tests makes it), the fit to the beds' means
+is then repeated on each bed's own runs (fit_beds, from the means' fit, bed k holding its own lab
+values where the lab file fitted each bed): the beds' fits give the fitted keys the scatter between
+beds, kept whole per bed (k_phi and n move together), so `cosim run --replicas K --vary-bed` gives
+a wheel-fitted SCM scene its error bar as it does a lab-fitted one.
 """
 
 from __future__ import annotations
@@ -33,7 +40,7 @@ import json
 import logging
 import math
 import os
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 
 import numpy as np
 
@@ -82,38 +89,52 @@ class WheelTarget:
 
 
 def run_wheel_tests(plan, out_dir: str, slips, replicas: int, executor="serial", scheduler=None, workers=None) -> str:
-    """The DEM single-wheel runs of a testbed plan at each slip (cosim.study.slip_study) into out_dir;
-    returns out_dir (its study.json holds the results)."""
+    """The DEM single-wheel runs of a testbed plan at each slip (cosim.study.slip_study) into out_dir,
+    replica k on a bed of its own (bed.seed + k; one bed's summation orders miss the scatter between
+    beds); returns out_dir (its study.json holds the results)."""
     from ..study import slip_study
 
-    slip_study(plan, out_dir, slips, replicas, executor, scheduler, workers, overwrite=True, plot=False)
+    vary = "bed" if replicas >= 2 else "order"
+    slip_study(plan, out_dir, slips, replicas, executor, scheduler, workers, overwrite=True, plot=False, vary=vary)
     return out_dir
 
 
-def wheel_targets(study_folder: str) -> list[WheelTarget]:
-    """The WheelTargets of a slip study's folder (its study.json; cosim study slip), slips with at
-    least one steady replica; LabFailed names the file when there are none."""
+def _read_study(study_folder: str) -> tuple[str, dict]:
+    """(path, content) of a slip study's study.json; LabFailed names the file when it is not one."""
     path = os.path.join(study_folder, "study.json")
     try:
         with open(path) as f:
             study = json.load(f)
     except (OSError, json.JSONDecodeError) as error:
         raise LabFailed(f"{path}: not a readable slip study ({error})") from error
-    if study.get("kind") != "slip":
-        raise LabFailed(f"{path}: a {study.get('kind')!r} study, --wheel-runs needs a slip study (cosim study slip)")
+    if not isinstance(study, dict) or study.get("kind") != "slip":
+        kind = study.get("kind") if isinstance(study, dict) else None
+        raise LabFailed(f"{path}: a {kind!r} study, --wheel-runs needs a slip study (cosim study slip)")
     load = study.get("wheel_load")
     if not (isinstance(load, (int, float)) and load > 0):
         raise LabFailed(f"{path}: no wheel_load > 0 [N]; the wheel fit needs the wheel's load")
+    return path, study
+
+
+def _averaged_rows(study: dict) -> list[dict]:
+    """The rows of a slip study with at least one run averaged (steady, or still sinking in a table
+    made with --include-sinking)."""
+    return [row for row in study.get("rows", []) if int(row.get("averaged", row.get("steady", 0)))]
+
+
+def wheel_targets(study_folder: str) -> list[WheelTarget]:
+    """The WheelTargets of a slip study's folder (its study.json; cosim study slip), slips with at
+    least one steady replica; LabFailed names the file when there are none."""
+    path, study = _read_study(study_folder)
+    load = study["wheel_load"]
     duration = math.nan
     if isinstance(study.get("scene_toml"), str):
         from ..scene import scene_from_text
 
         duration = float(scene_from_text(study["scene_toml"]).run.duration)
     targets = []
-    for row in study.get("rows", []):
+    for row in _averaged_rows(study):
         averaged = int(row.get("averaged", row.get("steady", 0)))  # a table --include-sinking averaged
-        if not averaged:
-            continue
 
         def value(name: str, key: str = "mean", row=row) -> float:
             number = row.get(f"{name}_{key}")
@@ -138,6 +159,65 @@ def wheel_targets(study_folder: str) -> list[WheelTarget]:
     if len(targets) < 2:
         raise LabFailed(f"{path}: {len(targets)} slips reached a steady state; the wheel fit needs two or more")
     return targets
+
+
+def bed_wheel_targets(study_folder: str) -> list[list[WheelTarget]]:
+    """Each bed's own WheelTargets of a slip study over beds (`cosim study slip --vary-bed`: replica k on
+    bed k at every slip), in bed order: at each slip of wheel_targets, the one run on that bed, with
+    the study's 95 % half-intervals over the beds as its residual units (a bed's fit is judged by the
+    same yardstick as the fit to the beds' means). [] when the study's replicas did not vary beds or
+    it has fewer than two beds; a bed with fewer than two slips averaged gets [] (its fit is left out).
+    """
+    path, study = _read_study(study_folder)
+    pooled = wheel_targets(study_folder)
+    if study.get("vary") != "bed":
+        return []
+    states = set(study.get("averaged_states") or ["steady"])
+    runs: dict[tuple[str, int], dict] = {}  # (slip folder, replica) -> the run's summary
+    for run in study.get("runs", []):
+        summary = run.get("summary") if isinstance(run, dict) else None
+        folder = str(run.get("out_dir", "")) if isinstance(run, dict) else ""
+        name = os.path.basename(os.path.normpath(folder))
+        if not (isinstance(summary, dict) and name.startswith("replica_") and run.get("ok")):
+            continue
+        if summary.get("steady_state") not in states:
+            continue
+        try:
+            replica = int(name[len("replica_") :])
+        except ValueError:
+            raise LabFailed(f"{path}: run folder {folder!r} is not slip_S/replica_K") from None
+        runs[(os.path.basename(os.path.dirname(os.path.normpath(folder))), replica)] = summary
+    beds = sorted({replica for _, replica in runs})
+    if len(beds) < 2:
+        return []
+    rows = _averaged_rows(study)
+
+    def number(summary: dict, key: str) -> float:
+        value = summary.get(key)
+        return float(value) if isinstance(value, (int, float)) and math.isfinite(value) else math.nan
+
+    out = []
+    for bed in range(max(beds) + 1):
+        targets = []
+        for row, target in zip(rows, pooled):
+            summary = runs.get((f"slip_{float(row['slip_set']):+.3f}", bed))
+            if summary is None:
+                continue
+            values = {k: number(summary, k) for k in ("sinkage", "drawbar_pull", "driving_torque", "landing_sinkage")}
+            if not all(math.isfinite(values[k]) for k in ("sinkage", "drawbar_pull", "driving_torque")):
+                continue
+            targets.append(
+                replace(
+                    target,
+                    sinkage=values["sinkage"],
+                    drawbar_pull=values["drawbar_pull"],
+                    driving_torque=values["driving_torque"],
+                    landing_sinkage=values["landing_sinkage"],
+                    replicas=1,
+                )
+            )
+        out.append(targets if len(targets) >= 2 else [])
+    return out
 
 
 def _wheel_terrain(plan, soil: dict):
@@ -410,6 +490,64 @@ def fit_to_wheel(
         },
     }
     return parameters, errors, report
+
+
+def fit_beds(
+    plan,
+    bed_targets: list[list[WheelTarget]],
+    starts: list[dict],
+    runs: str | None,
+    max_runs: int = 30,
+    executor="serial",
+    scheduler=None,
+    workers=None,
+) -> list[dict]:
+    """fit_to_wheel on each bed's own targets (bed_wheel_targets) from starts[k] (the fit to the beds'
+    means, with bed k's own lab values of the held keys), bed k's SCM runs in runs/bed_K: the beds'
+    scatter of the fitted keys, which the fit to their means does not see. One task per bed (a dask
+    worker each with executor 'dask'). Returns per bed {ok, parameters, errors, rms_residual,
+    run_evaluations} or {ok: False, error} (a bed without two averaged slips: not fitted)."""
+    from ..study import Executor
+
+    tasks = [
+        {
+            "scene_toml": plan.scene.to_toml(),
+            "base_dir": plan.scene.base_dir,
+            "targets": targets,
+            "start": start,
+            "runs": os.path.join(runs, f"bed_{k}") if runs else None,
+            "max_runs": max_runs,
+            "label": f"wheel fit on bed {k}",
+        }
+        for k, (targets, start) in enumerate(zip(bed_targets, starts))
+    ]
+    with Executor(executor, scheduler, workers) as ex:
+        return ex.map(_bed_fit_task, tasks)
+
+
+def _bed_fit_task(task: dict) -> dict:
+    """One bed's wheel fit (fit_beds' task: module level, for dask workers); never raises."""
+    from soil import quiet_warp
+
+    from ..study import task_plan
+
+    quiet_warp()  # Warp's banner and module lines: once per worker, not the user's business
+    if not task["targets"]:
+        return {"label": task["label"], "ok": False, "error": "fewer than two slips averaged on this bed"}
+    try:
+        parameters, errors, report = fit_to_wheel(
+            task_plan(task), task["targets"], task["start"], runs=task["runs"], max_runs=task["max_runs"]
+        )
+    except LabFailed as error:
+        return {"label": task["label"], "ok": False, "error": str(error)}
+    return {
+        "label": task["label"],
+        "ok": True,
+        "parameters": parameters,
+        "errors": errors,
+        "rms_residual": report["rms_residual"],
+        "run_evaluations": report["run_evaluations"],
+    }
 
 
 SLIP_UNITS = {
