@@ -622,7 +622,11 @@ def cmd_calibrate_scm(args) -> int:
     started = time.perf_counter()
     if args.lab:
         calibration = read_calibration(args.lab)
-        calibration.source = {"lab": _relative_to_file(args.out, args.lab), **calibration.source}
+        # a refitted wheel fit keeps its root lab file, its path made relative to the new file's folder
+        root = calibration.source.get("lab")
+        root = os.path.join(os.path.dirname(os.path.abspath(args.lab)), root) if isinstance(root, str) else args.lab
+        others = {k: v for k, v in calibration.source.items() if k != "lab"}
+        calibration.source = {"lab": _relative_to_file(args.out, root), **others}
     else:
         plan = load_lab_plan(args.scene, overrides, needs_gravity=True, test="plate")
         calibration = calibrate_scm(plan, work, overwrite=args.overwrite, **_executor(args))

@@ -463,6 +463,15 @@ def test_calibrate_scm_from_wheel_writes_the_fit_and_refuses_misplaced_options(t
         "..", "lab.toml"
     )
     assert written.source["wheel"]["start_file"] == os.path.join("..", "lab.toml")
+    # refitted into another folder, the wheel fit keeps its root lab file, its path made relative again
+    assert (
+        main(["calibrate-scm", scene, "--out", str(tmp_path / "refit.toml"), *args[:1], "--lab", str(out), *args[3:]])
+        == 0
+    )
+    refit = read_calibration(str(tmp_path / "refit.toml"))
+    assert refit.source["lab"] == "lab.toml" and refit.source["wheel"]["start_file"] == os.path.join(
+        "terrain", "wheel.toml"
+    )
     with open(out, "rb") as f:  # the file names the unit of every parameter (and of its standard error)
         assert tomllib.load(f)["units"] == {"gravity": "m/s^2", **{k: SOIL_UNITS[k] for k in SOIL_KEYS}}
     assert SOIL_UNITS["k_phi"] == "Pa m^(-n)" and SOIL_UNITS["friction_angle_deg"] == "deg"
