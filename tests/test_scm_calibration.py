@@ -589,22 +589,9 @@ def test_a_wheel_fit_over_beds_fits_each_bed_to_its_own_soil_and_its_error_holds
     )
     write_calibration(str(tmp_path / "lab.toml"), lab)
     out = tmp_path / "wheel.toml"
+    scene = os.path.join(os.path.dirname(__file__), "..", "examples", "phobos_single_wheel.toml")
     args = ["--from-wheel", "--lab", str(tmp_path / "lab.toml"), "--wheel-runs", str(tmp_path / "study")]
-    assert (
-        main(
-            [
-                "calibrate-scm",
-                os.path.join(os.path.dirname(__file__), "..", "examples", "phobos_single_wheel.toml"),
-                "--out",
-                str(out),
-                *args,
-                "--serial",
-                "--max-runs",
-                "40",
-            ]
-        )
-        == 0
-    )
+    assert main(["calibrate-scm", scene, "--out", str(out), *args, "--serial", "--max-runs", "40"]) == 0
     assert "each bed alone (3 beds" in capsys.readouterr().out
     written = read_calibration(str(out))
     wheel = written.source["wheel"]
@@ -626,7 +613,6 @@ def test_a_wheel_fit_over_beds_fits_each_bed_to_its_own_soil_and_its_error_holds
     # --start: the fitted keys start from another file, the held ones stay the lab's
     other = ScmCalibration({**start, "k_phi": 7.0, "k_c": 5.0}, {k: 0.01 for k in SOIL_KEYS}, plan.g, {"scene": "y"})
     write_calibration(str(tmp_path / "former.toml"), other)
-    scene = os.path.join(os.path.dirname(__file__), "..", "examples", "phobos_single_wheel.toml")
     again = ["--out", str(tmp_path / "w2.toml"), *args, "--serial", "--max-runs", "2", "--start"]
     assert main(["calibrate-scm", scene, *again, str(tmp_path / "former.toml")]) == 0
     refit = read_calibration(str(tmp_path / "w2.toml"))

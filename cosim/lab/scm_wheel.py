@@ -91,10 +91,10 @@ class WheelTarget:
 def run_wheel_tests(plan, out_dir: str, slips, replicas: int, executor="serial", scheduler=None, workers=None) -> str:
     """The DEM single-wheel runs of a testbed plan at each slip (cosim.study.slip_study) into out_dir,
     replica k on a bed of its own (bed.seed + k; one bed's summation orders miss the scatter between
-    beds); returns out_dir (its study.json holds the results)."""
+    beds; a scene on a bed file has one bed); returns out_dir (its study.json holds the results)."""
     from ..study import slip_study
 
-    vary = "bed" if replicas >= 2 else "order"
+    vary = "bed" if replicas >= 2 and not plan.bed.bed_file else "order"
     slip_study(plan, out_dir, slips, replicas, executor, scheduler, workers, overwrite=True, plot=False, vary=vary)
     return out_dir
 
