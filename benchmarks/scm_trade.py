@@ -8,7 +8,7 @@ time per simulated second of both comes from the runs' summaries (a loaded machi
 the DEM's; --timing measures both side by side on a quiet one).
 
     python benchmarks/scm_trade.py --out runs/scm_trade \
-        --case "Phobos, lab-calibrated=runs/dem_phobos:examples/terrain/phobos_regolith_scm.toml" \
+        --case "Phobos, lab-calibrated=runs/dem_phobos:examples/terrain/phobos_regolith_scm_beds.toml" \
         --case "Phobos, wheel-calibrated=runs/dem_phobos:wheel_phobos.toml" ... [--timing]
 
 A case is NAME=DEM_STUDY:CALIBRATION[:SCENE]: SCENE (e.g. the DEM scene's gravity twin, `cosim
