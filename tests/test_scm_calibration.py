@@ -489,6 +489,28 @@ def test_calibrate_scm_from_wheel_writes_the_fit_and_refuses_misplaced_options(t
     assert not (tmp_path / "y.toml").exists()
 
 
+def test_a_calibration_file_is_written_whole_or_not_at_all(tmp_path, monkeypatch):
+    """write_calibration makes its folder, and a write that fails half-way (a full disk, a kill) leaves
+    the file that was there whole and no temporary beside it."""
+    import cosim.scm_calibration as scm_calibration
+
+    calibration = ScmCalibration({k: 1.0 for k in SOIL_KEYS}, {k: 0.1 for k in SOIL_KEYS}, 5.7e-3, {"scene": "x"})
+    path = tmp_path / "new" / "folder" / "cal.toml"
+    write_calibration(str(path), calibration)
+    before = path.read_bytes()
+    assert read_calibration(str(path)).parameters["k_phi"] == 1.0
+
+    def dies_half_way(data, f):
+        f.write(b"format = 1\n[scm]\nk_c = ")
+        raise OSError(28, "No space left on device")
+
+    monkeypatch.setattr(scm_calibration.tomli_w, "dump", dies_half_way)
+    changed = ScmCalibration({k: 2.0 for k in SOIL_KEYS}, {k: 0.1 for k in SOIL_KEYS}, 5.7e-3, {"scene": "x"})
+    with pytest.raises(OSError, match="cal.toml"):
+        write_calibration(str(path), changed)
+    assert path.read_bytes() == before and [p.name for p in path.parent.iterdir()] == ["cal.toml"]
+
+
 BED_TRUTHS = [
     {**WHEEL_TRUTH, "k_phi": 6.0, "n": 0.45, "friction_angle_deg": 37.0, "janosi_k": 4.0e-3},
     {**WHEEL_TRUTH, "k_phi": 8.0, "n": 0.50, "friction_angle_deg": 40.0, "janosi_k": 5.0e-3},

@@ -125,7 +125,11 @@ def _averaged_rows(study: dict) -> list[dict]:
 def wheel_targets(study_folder: str) -> list[WheelTarget]:
     """The WheelTargets of a slip study's folder (its study.json; cosim study slip), slips with at
     least one steady replica; LabFailed names the file when there are none."""
-    path, study = _read_study(study_folder)
+    return _study_targets(*_read_study(study_folder))
+
+
+def _study_targets(path: str, study: dict) -> list[WheelTarget]:
+    """wheel_targets of a study already read (path: its study.json, for the errors)."""
     load = study["wheel_load"]
     duration = math.nan
     if isinstance(study.get("scene_toml"), str):
@@ -169,7 +173,7 @@ def bed_wheel_targets(study_folder: str) -> list[list[WheelTarget]]:
     it has fewer than two beds; a bed with fewer than two slips averaged gets [] (its fit is left out).
     """
     path, study = _read_study(study_folder)
-    pooled = wheel_targets(study_folder)
+    pooled = _study_targets(path, study)
     if study.get("vary") != "bed":
         return []
     states = set(study.get("averaged_states") or ["steady"])
@@ -505,8 +509,8 @@ def fit_beds(
     """fit_to_wheel on each bed's own targets (bed_wheel_targets) from starts[k] (the fit to the beds'
     means, with bed k's own lab values of the held keys), bed k's SCM runs in runs/bed_K: the beds'
     scatter of the fitted keys, which the fit to their means does not see. One task per bed (a dask
-    worker each with executor 'dask'). Returns per bed {ok, parameters, errors, rms_residual,
-    run_evaluations} or {ok: False, error} (a bed without two averaged slips: not fitted)."""
+    worker each with executor 'dask'). Returns per bed {ok, parameters, rms_residual, run_evaluations}
+    or {ok: False, error} (a bed without two averaged slips: not fitted)."""
     from ..study import Executor
 
     tasks = [
@@ -535,7 +539,7 @@ def _bed_fit_task(task: dict) -> dict:
     if not task["targets"]:
         return {"label": task["label"], "ok": False, "error": "fewer than two slips averaged on this bed"}
     try:
-        parameters, errors, report = fit_to_wheel(
+        parameters, _, report = fit_to_wheel(
             task_plan(task), task["targets"], task["start"], runs=task["runs"], max_runs=task["max_runs"]
         )
     except Exception as error:  # noqa: BLE001 - a bed whose fit fails is a result: the others' stand
@@ -544,7 +548,6 @@ def _bed_fit_task(task: dict) -> dict:
         "label": task["label"],
         "ok": True,
         "parameters": parameters,
-        "errors": errors,
         "rms_residual": report["rms_residual"],
         "run_evaluations": report["run_evaluations"],
     }
