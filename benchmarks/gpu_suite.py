@@ -851,7 +851,9 @@ class Suite:
         if self.small or not self.device.startswith("cuda"):
             return {"skipped": "the CUDA tests need a CUDA device", "ok": True}
         left = max(60.0, self.budget - self.elapsed() - 20.0)
-        command = [sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider", "-k", "cuda", *TEST_FILES]
+        # in one process: the lent machine's pytest has no xdist for the project's parallel default
+        command = [sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider", "-o", "addopts=", "-k", "cuda"]
+        command += TEST_FILES
         try:
             done = subprocess.run(command, cwd=ROOT, capture_output=True, text=True, timeout=left)
         except subprocess.TimeoutExpired as error:

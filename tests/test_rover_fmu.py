@@ -184,8 +184,9 @@ def test_speed_command_drives_the_wheel(fmus):
 @pytest.mark.parametrize(
     "case", ["not_a_zip", "no_model_description", "truncated_model_description", "no_wheels", "broken_binary"]
 )
-def test_a_file_that_is_not_a_rover_fmu_is_a_clear_error(tmp_path, fmus, case):
-    """Each names the file and what is wrong; nothing is left unpacked in the temp folder."""
+def test_a_file_that_is_not_a_rover_fmu_is_a_clear_error(tmp_path, fmus, case, monkeypatch):
+    """Each names the file and what is wrong; nothing is left unpacked in the temp folder (a
+    folder of this test's own, so another test's files, made in parallel, cannot show there)."""
     import tempfile
     import zipfile
 
@@ -227,6 +228,8 @@ def test_a_file_that_is_not_a_rover_fmu_is_a_clear_error(tmp_path, fmus, case):
         )
         path = FmuBuilder.build_FMU(script, dest=tmp_path)
         words = "needs wheel_<i>"
+    (tmp_path / "tmp").mkdir()
+    monkeypatch.setattr(tempfile, "tempdir", str(tmp_path / "tmp"))
     before = set(os.listdir(tempfile.gettempdir()))
     with pytest.raises(FmuError) as info:
         FmuRover(path)
