@@ -20,6 +20,25 @@ def _devices():
 DEVICES = _devices()
 
 
+def pytest_xdist_auto_num_workers(config):
+    """`-n auto` (pyproject's default): one worker per core this process may use, counting a
+    container's CPU quota (cgroup v2 cpu.max, v1 cfs_quota_us), which os.cpu_count() ignores."""
+    from pathlib import Path
+
+    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
+    v1 = Path("/sys/fs/cgroup/cpu")
+    try:
+        quota, period = Path("/sys/fs/cgroup/cpu.max").read_text().split()[:2]
+    except (OSError, ValueError):
+        try:
+            quota, period = ((v1 / name).read_text().strip() for name in ("cpu.cfs_quota_us", "cpu.cfs_period_us"))
+        except OSError:
+            quota, period = "max", "1"
+    if quota not in ("max", "-1"):
+        cores = min(cores, max(1, -(-int(quota) // int(period))))
+    return cores
+
+
 @pytest.fixture(params=DEVICES)
 def device(request):
     """Each test that takes `device` runs on the CPU and, when present, on CUDA."""
