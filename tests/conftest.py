@@ -1,6 +1,7 @@
 """Shared test setup: every soil test runs once per available Warp device (CPU always)."""
 
 import os
+from pathlib import Path
 
 import pytest
 import warp as wp
@@ -20,23 +21,27 @@ def _devices():
 DEVICES = _devices()
 
 
-def pytest_xdist_auto_num_workers(config):
-    """`-n auto` (pyproject's default): one worker per core this process may use, counting a
-    container's CPU quota (cgroup v2 cpu.max, v1 cfs_quota_us), which os.cpu_count() ignores."""
-    from pathlib import Path
-
-    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
-    v1 = Path("/sys/fs/cgroup/cpu")
+def cpu_quota_cores(cgroup: Path = Path("/sys/fs/cgroup")) -> int | None:
+    """The cores a container's CPU quota allows, rounded up (cgroup v2 `cpu.max`, else v1
+    `cpu/cpu.cfs_quota_us` over `cpu.cfs_period_us`); None without a quota."""
     try:
-        quota, period = Path("/sys/fs/cgroup/cpu.max").read_text().split()[:2]
+        quota, period = (cgroup / "cpu.max").read_text().split()[:2]
     except (OSError, ValueError):
         try:
+            v1 = cgroup / "cpu"
             quota, period = ((v1 / name).read_text().strip() for name in ("cpu.cfs_quota_us", "cpu.cfs_period_us"))
         except OSError:
-            quota, period = "max", "1"
-    if quota not in ("max", "-1"):
-        cores = min(cores, max(1, -(-int(quota) // int(period))))
-    return cores
+            return None
+    if quota in ("max", "-1"):
+        return None
+    return max(1, -(-int(quota) // int(period)))
+
+
+def pytest_xdist_auto_num_workers(config):
+    """`-n auto` (pyproject's default): one worker per core this process may use, counting a
+    container's CPU quota, which os.cpu_count() ignores."""
+    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
+    return min(cores, cpu_quota_cores() or cores)
 
 
 @pytest.fixture(params=DEVICES)
