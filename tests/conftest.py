@@ -37,6 +37,7 @@ def cpu_quota_cores(cgroup: Path = Path("/sys/fs/cgroup")) -> int | None:
     return max(1, -(-int(quota) // int(period)))
 
 
+@pytest.hookimpl(optionalhook=True)  # a hook of pytest-xdist: pytest without it (the lent GPU machine) runs too
 def pytest_xdist_auto_num_workers(config):
     """`-n auto` (pyproject's default): one worker per core this process may use, counting a
     container's CPU quota, which os.cpu_count() ignores."""
