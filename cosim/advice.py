@@ -268,15 +268,18 @@ def _drive_slip(plan: RunPlan) -> tuple[float | None, str]:
 
 
 def scm_check(plan: RunPlan, measured: dict | None = None) -> list[Finding]:
-    """Where the SCM tier cannot represent the run (each failed finding says to use the DEM):
-    grouser-dominated traction (grouser height > SCM_GROUSER_RATIO x sinkage), a sinkage below
+    """Where the SCM tier cannot represent the run (each failed finding says what to do: use the DEM,
+    or refine the grid, calibrate again): grouser-dominated traction (grouser height >
+    SCM_GROUSER_RATIO x sinkage), a grid that samples the grousers instead of resolving them (node
+    spacing > the thinnest grouser / NODES_ACROSS_GROUSER: `scm_grouser_grid`), a sinkage below
     SCM_SINKAGE_GRAINS grain diameters, a slip above SCM_SLIP_LIMIT, a Froude number above
-    FROUDE_LIMIT, a calibration made at another gravity, and after a run a rim sinkage deeper than
-    the calibration's DEM tests reached (`scm_calibration_depth`). `measured`: a run summary's
+    FROUDE_LIMIT, a calibration made at another gravity, a wheel fit made on another grid
+    (`scm_calibration_grid`), and after a run a rim sinkage deeper than the calibration's DEM tests
+    reached (`scm_calibration_depth`). `measured`: a run summary's
     'sinkage_tips', 'sinkage' [m] and 'slip' [-]; before a run the sinkage is Bekker's closed form
     for the wheel's load and the slip the drive's imposed or target slip."""
     from .scm_calibration import same_gravity
-    from .scm_soil import bekker_wheel_sinkage, scm_settings
+    from .scm_soil import NODES_ACROSS_GROUSER, bekker_wheel_sinkage, grouser_thickness, scm_settings
 
     wheels = _scm_wheels(plan)
     if not wheels:
@@ -305,6 +308,23 @@ def scm_check(plan: RunPlan, measured: dict | None = None) -> list[Finding]:
                 f"grouser height {grouser:.3g} m > {SCM_GROUSER_RATIO} x sinkage {sinkage:.3g} m ({how}): the "
                 f"grousers carry the traction, which SCM does not represent; {USE_DEM}",
                 "wheel.grouser_height, terrain.model",
+            )
+        )
+    thickness = grouser_thickness(wheels)
+    if math.isfinite(thickness):
+        spacing, finest = parameters.node_spacing, thickness / NODES_ACROSS_GROUSER
+        findings.append(
+            _finding(
+                "scm_grouser_grid",
+                spacing / thickness,
+                1.0 / NODES_ACROSS_GROUSER,
+                spacing <= finest * (1.0 + 1e-9),
+                f"node spacing {spacing:.3g} m <= grouser thickness {thickness:.3g} m / {NODES_ACROSS_GROUSER}: "
+                "the grid resolves the grousers",
+                f"node spacing {spacing:.3g} m > grouser thickness {thickness:.3g} m / {NODES_ACROSS_GROUSER}: "
+                "the nodes sample the grousers, which fall between them at some phases, and the wheel's forces beat "
+                f"with the grid (docs/scm.md); set terrain.node_spacing <= {finest:.3g} m",
+                "terrain.node_spacing",
             )
         )
     diameter = 2.0 * plan.bed.spec.radius_mean
@@ -364,6 +384,23 @@ def scm_check(plan: RunPlan, measured: dict | None = None) -> list[Finding]:
                 "depends on gravity; calibrate at the scene's (cosim calibrate-scm SCENE) or use the DEM",
                 "terrain.calibration",
                 unit="m/s^2",
+            )
+        )
+    fitted_grid = plan.terrain.calibration_node_spacing
+    if fitted_grid is not None:
+        spacing = parameters.node_spacing
+        findings.append(
+            _finding(
+                "scm_calibration_grid",
+                spacing,
+                fitted_grid,
+                abs(spacing - fitted_grid) <= 1e-6 * fitted_grid,
+                f"on the grid the wheel fit ran on (node spacing {fitted_grid:.3g} m)",
+                f"node spacing {spacing:.3g} m, the wheel fit ran on {fitted_grid:.3g} m: its fitted keys carry that "
+                f"grid's wheel forces; set terrain.node_spacing = {fitted_grid!r} or fit on this grid (cosim "
+                "calibrate-scm SCENE --from-wheel)",
+                "terrain.node_spacing, terrain.calibration",
+                unit="m",
             )
         )
     # judged on the run's own rim sinkage: Bekker's closed form for a smooth wheel is no estimate of

@@ -213,6 +213,9 @@ class TerrainPlan:
     """SCM from a calibration file: the |g| its DEM tests ran at [m/s^2]."""
     calibration_sinkage: float | None = None
     """SCM from a calibration file: the deepest sinkage its DEM tests reached [m] (None: not recorded)."""
+    calibration_node_spacing: float | None = None
+    """SCM from a wheel fit (`calibrate-scm --from-wheel`): the node spacing its SCM wheel ran on [m]
+    (None: a lab calibration, or a fit that did not record it)."""
 
 
 @dataclass(frozen=True)
@@ -642,13 +645,20 @@ def _terrain(scene: Scene, wheel_count: int, problems: list[str]) -> TerrainPlan
     given = section.model_dump(exclude={"model", "wheels", "calibration"}, exclude_none=True)
     if section.model != "scm":
         return TerrainPlan(section.model, tuple(sorted(given.items())))
-    gravity = depth = None
+    gravity = depth = grid = None
     if section.calibration is not None:
-        from .scm_calibration import CalibrationError, out_of_range, read_calibration, tested_sinkage
+        from .scm_calibration import (
+            CalibrationError,
+            fitted_node_spacing,
+            out_of_range,
+            read_calibration,
+            tested_sinkage,
+        )
 
         try:
             calibration = read_calibration(section.calibration)
             depth = tested_sinkage(calibration, section.calibration)
+            grid = fitted_node_spacing(calibration, section.calibration)
         except CalibrationError as error:
             problems.append(f"terrain.calibration: {error}")
         else:
@@ -672,7 +682,7 @@ def _terrain(scene: Scene, wheel_count: int, problems: list[str]) -> TerrainPlan
             model = "dem"
         elif "dem" in section.wheels:
             model, models = "mixed", tuple(section.wheels)
-    return TerrainPlan(model, tuple(sorted(given.items())), models, gravity, depth)
+    return TerrainPlan(model, tuple(sorted(given.items())), models, gravity, depth, grid)
 
 
 def _scm_macro_step(terrain: TerrainPlan, wheels, testbed, rover, g: float, gravity) -> float:

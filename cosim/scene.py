@@ -570,7 +570,8 @@ class TerrainSection(_Section):
     """scm: normal damping R [Pa s/m] on the wheel surface's speed into the soil (default: the
     critical damping of a wheel's elastic bounce, cosim.scm_soil.scm_settings)."""
     node_spacing: float | None = Field(None, gt=0)
-    """scm: grid node spacing [m] (default: the narrowest wheel's width / 12)."""
+    """scm: grid node spacing [m] (default: the narrowest wheel's width / 12, or its thinnest grouser / 1.5
+    where that is finer: cosim.scm_soil.node_spacing)."""
     bulldozing: bool | None = None
     """scm: move the soil a wheel displaces to its rut's rims (default false)."""
     bulldozing_fraction: float | None = Field(None, ge=0, le=1)

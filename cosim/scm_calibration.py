@@ -123,6 +123,19 @@ def tested_sinkage(calibration: ScmCalibration, path: str = "") -> float | None:
     return max(depths) if depths else None
 
 
+def fitted_node_spacing(calibration: ScmCalibration, path: str = "") -> float | None:
+    """The node spacing [m] a wheel fit's SCM wheel ran on ([source.wheel] node_spacing_m); None when the
+    file does not say (a lab calibration, a fit made before it was recorded). CalibrationError names an
+    entry that is not a positive number."""
+    value = calibration.source.get("wheel", {}).get("node_spacing_m")
+    if value is None:
+        return None
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not value > 0:
+        where = f"{path}: " if path else ""
+        raise CalibrationError(f"{where}[source.wheel] node_spacing_m must be a node spacing > 0 [m], got {value!r}")
+    return float(value)
+
+
 def bed_soils(calibration: ScmCalibration, path: str = "") -> list[dict[str, float]]:
     """Each calibration bed's SCM soil (SOIL_KEYS -> value), in bed order: the file's [scm] with the keys
     each bed was fitted on alone ([source] replica_fits, `calibrate-scm --replicas R`) taken from that

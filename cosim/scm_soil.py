@@ -67,6 +67,14 @@ DAMPING_RATIO = 0.2
 """Default pressure damping as a fraction of a wheel's critical elastic damping [-]."""
 NODES_ACROSS = 12
 """Default nodes across the narrowest wheel's width [-]."""
+NODES_ACROSS_GROUSER = 1.5
+"""Default node spacings across the thinnest grouser (its thickness / the spacing) [-]. Each node samples
+the wheel with one ray, so a grouser thinner than a spacing falls between nodes at some phases of its
+travel and the forces beat at T_g / dist(p / h, nearest integer) (p the grousers' pitch on the ground,
+T_g their passage period): on the main job's wheel (2 mm grousers) at h = 1.33 t, DP/W swings by
+0.07-0.13 W in beats of 14-31 s and their sidebands, and the sinkage at slips 0.4-0.6 falls 0.5-1 mm
+short of a fine grid's; at h = t / 1.5, 0.04 W and 0.1-0.3 mm (BENCHMARKS.md, "SCM's grid against the
+grousers"). Mesh wheels are not judged: their grousers, if any, are not known as such."""
 BOUNCE_PHASE = 0.2
 """Default coupling step of a scene on SCM alone, as the phase of a wheel's elastic bounce on the
 soil it spans, omega_e H [rad]: the main job on its wheel-fitted soil (slip 0.2) gives DP/W within
@@ -88,9 +96,20 @@ def bekker_wheel_sinkage(parameters: ScmParameters, load: float, radius: float, 
     return base ** (2.0 / (2.0 * p.n + 1.0))
 
 
+def grouser_thickness(wheels) -> float:
+    """The thinnest grouser of `wheels` (WheelPlans) [m]; inf without grousers (smooth or mesh wheels)."""
+    thicknesses = [
+        w.shape.grouser_thickness for w in wheels if isinstance(w.shape, GrouserWheel) and w.shape.grouser_count > 0
+    ]
+    return min(thicknesses, default=math.inf)
+
+
 def node_spacing(values: dict, wheels) -> float:
-    """[terrain] node_spacing, or the narrowest of `wheels` (WheelPlans)' widths / NODES_ACROSS [m]."""
-    return values.get("node_spacing", min(w.width for w in wheels) / NODES_ACROSS)
+    """[terrain] node_spacing, or the smaller of the narrowest of `wheels` (WheelPlans)' widths / NODES_ACROSS
+    and their thinnest grouser / NODES_ACROSS_GROUSER [m]."""
+    if "node_spacing" in values:
+        return values["node_spacing"]
+    return min(min(w.width for w in wheels) / NODES_ACROSS, grouser_thickness(wheels) / NODES_ACROSS_GROUSER)
 
 
 def elastic_bounce(parameters: ScmParameters, wheel, load: float, g: float) -> tuple[float, float]:
@@ -142,7 +161,8 @@ def scm_settings(plan, wheels: Sequence[int], surface_height: float, soil: dict 
     keys (`soil`: SOIL_KEYS values that replace the plan's, as a calibration trying parameters does),
     with the defaults of the keys not given:
 
-    - node_spacing: the narrowest wheel's width / NODES_ACROSS;
+    - node_spacing: the narrowest wheel's width / NODES_ACROSS, or the thinnest grouser / NODES_ACROSS_GROUSER
+      where that is finer;
     - window: the wheels' hub span (a rover's hubs at any heading: twice their largest distance from
       the rover's centre) plus 8 outer radii along x and 4 outer radii and a wheel width along y;
     - time_step: the macro step;

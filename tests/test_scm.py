@@ -225,6 +225,26 @@ def test_runs_repeat_and_resume_bit_for_bit(device):
             assert np.array_equal(mine, theirs)
 
 
+def test_a_state_is_refused_by_a_terrain_of_another_grid_naming_the_spacing():
+    """A checkpoint continues only on the grid it was stepped on: another node spacing is refused with
+    both spacings and the key that sets it (a run begun under another default grid, say), before
+    anything is restored; a state of the same grid loads."""
+    from dataclasses import replace
+
+    from soil.errors import SoilInputError
+
+    state = grousered_run(5, 0, resume=False).state_dict()
+    assert state["node_spacing"] == SPACING
+    wheel = GrouserWheel(radius=0.08, width=0.04, grouser_count=12, grouser_height=0.006, grouser_thickness=0.003)
+    other = ScmTerrain(replace(parameters(bulldozing=True), node_spacing=0.8 * SPACING), [wheel], window=(0.3, 0.1))
+    before = other.state_dict()
+    with pytest.raises(
+        SoilInputError, match=r"node spacing 0\.002 m, this terrain's is 0\.0016 m.*terrain\.node_spacing"
+    ):
+        other.load_state_dict(state)
+    assert all(np.array_equal(other.state_dict()[k], v) for k, v in before.items())
+
+
 def test_bulldozing_moves_the_ruts_volume_to_its_rims():
     """The raised rims hold the rut's plastic volume (fraction 1; the slope limiting moves soil, keeps it)."""
     terrain = grousered_run(40, 0, resume=False)

@@ -224,6 +224,39 @@ def test_a_run_deeper_than_the_calibrations_tests_is_flagged(tmp_path):
         load_plan(scene)
 
 
+def test_a_wheel_fit_used_on_another_grid_is_flagged(tmp_path):
+    """scm_calibration_grid: a wheel fit's keys carry the forces of the grid its SCM wheel ran on
+    ([source.wheel] node_spacing_m); a scene on that grid passes, one on another fails naming the
+    spacing to set; a file that records none (a lab calibration) is not judged; a spacing that is not
+    a positive number is refused naming the file and the entry."""
+    from cosim.scm_calibration import fitted_node_spacing
+
+    path = tmp_path / "terrain.toml"
+    scene = write_tiny(tmp_path, f'\n[terrain]\nmodel = "scm"\ncalibration = "{path.name}"\n')
+
+    def written(spacing) -> None:
+        source = {"wheel": {"node_spacing_m": spacing}}
+        write_calibration(str(path), ScmCalibration(_calibration(1.625).parameters, {}, 1.625, source))
+
+    write_calibration(str(path), _calibration(1.625))  # a lab calibration: no grid recorded, none judged
+    default = load_plan(scene)
+    assert default.terrain.calibration_node_spacing is None
+    assert not any(f.check == "scm_calibration_grid" for f in _findings(default))
+    grid = [f for f in _findings(default) if f.check == "scm_grouser_grid"]
+    spacing = grid[0].value * default.wheel.shape.grouser_thickness  # the scene's own (default) grid
+    written(spacing)
+    plan = load_plan(scene)
+    assert plan.terrain.calibration_node_spacing == fitted_node_spacing(read_calibration(str(path))) == spacing
+    (finding,) = [f for f in _findings(plan) if f.check == "scm_calibration_grid"]
+    assert finding.ok and finding.unit == "m"
+    written(2.0 * spacing)
+    (finding,) = [f for f in _findings(load_plan(scene)) if f.check == "scm_calibration_grid"]
+    assert not finding.ok and f"terrain.node_spacing = {2.0 * spacing!r}" in finding.message
+    written(-0.001)
+    with pytest.raises(SceneError, match=r"terrain.toml: \[source.wheel\] node_spacing_m must be a node spacing"):
+        load_plan(scene)
+
+
 def _findings(plan):
     from cosim.system import validity
 
@@ -306,6 +339,7 @@ def test_the_wheel_fit_recovers_known_parameters_from_held_wheel_forces():
     start = {**truth, "k_phi": 0.7 * truth["k_phi"], "n": 0.47, "friction_angle_deg": 23.0, "janosi_k": 1.6e-3}
     parameters, errors, report = fit_to_wheel(plan, targets, start)
     assert report["rms_residual"] < 0.02
+    assert report["node_spacing_m"] == truth["node_spacing"]  # the grid the fit's wheel ran on, recorded
     assert {f"slips.{key}" for key in report["slips"][0]} - {"slips.run_steady_state"} <= set(report["units"])
     for key in FITTED:
         assert parameters[key] == pytest.approx(truth[key], rel=0.05), key
@@ -376,6 +410,8 @@ def test_the_fit_to_the_runs_recovers_known_parameters_and_keeps_to_its_budget(t
     for key in FITTED:
         assert parameters[key] == pytest.approx(truth[key], rel=0.02), key
     assert report["rms_residual"] < 0.05 and report["run_evaluations"] <= 60
+    # no grid in the start: the runs ran on the scene's default, the main job's grousers / 1.5
+    assert report["node_spacing_m"] == pytest.approx(plan.wheel.shape.grouser_thickness / 1.5, rel=1e-12)
     for row in report["slips"]:
         assert row["run_sinkage"] == pytest.approx(row["sinkage"], rel=0.15)
     _, _, first = fit_to_wheel(plan, targets, start, max_evaluations=1, runs=str(tmp_path), max_runs=1)

@@ -466,11 +466,15 @@ def fit_to_wheel(
         free["cap"] += 1  # the folder is left with the fitted soil's runs (one more when the best was not last)
         free_residuals(x)
         summaries = free["last"][2]
+    from ..scm_soil import scm_settings
+
     report = {
         "fitted": list(FITTED),
         "held": held,
         "start": {k: float(v) for k, v in floor.items()},
         "wheel_load_n": load,
+        # the grid of the fit's SCM wheel: its forces (a grousered wheel's above all) depend on it
+        "node_spacing_m": float(scm_settings(plan, [0], 0.0, parameters).parameters.node_spacing),
         "evaluations": int(held_result.nfev),
         "run_evaluations": spent,
         "rms_residual": math.sqrt(float(np.mean(fun**2))),

@@ -614,6 +614,7 @@ class ScmTerrain:
         data.update(
             version=np.int64(STATE_VERSION),
             shape=np.array(self.shape, dtype=np.int64),
+            node_spacing=np.float64(self.parameters.node_spacing),
             precision=np.array(self.precision.name),
             time=np.float64(self.time),
             steps=np.int64(self.steps),
@@ -637,6 +638,7 @@ class ScmTerrain:
         "shear": "m",  # the Janosi-Hanamoto shear displacement j
         "version": "1",
         "shape": "count",
+        "node_spacing": "m",
         "precision": "text",
         "time": "s",
         "steps": "count",
@@ -660,10 +662,18 @@ class ScmTerrain:
         """Restore a state_dict of a terrain built alike (same parameters, wheels, window, precision)."""
         if int(data.get("version", -1)) != STATE_VERSION:
             raise SoilInputError(f"SCM state version {data.get('version')!r} is not {STATE_VERSION}")
+        # a state written before it was kept (None) is judged by its window's shape alone
+        spacing = float(data["node_spacing"]) if "node_spacing" in data else None
+        if spacing is not None and spacing != self.parameters.node_spacing:
+            raise SoilInputError(
+                f"SCM state is of a grid of node spacing {spacing:.6g} m, this terrain's is "
+                f"{self.parameters.node_spacing:.6g} m (set terrain.node_spacing = {spacing!r} to continue it)"
+            )
         if tuple(int(s) for s in data["shape"]) != self.shape or str(data["precision"]) != self.precision.name:
             raise SoilInputError(
                 f"SCM state is of a {tuple(data['shape'])} window in {data['precision']} precision, this terrain's "
-                f"is {self.shape} in {self.precision.name}"
+                f"is {self.shape} in {self.precision.name} (a window of another shape: another terrain.node_spacing "
+                "or window size)"
             )
         if np.asarray(data["path"]).shape != (self.wheel_count, PATH_COLUMNS):
             raise SoilInputError(f"SCM state has {len(data['path'])} wheels, this terrain has {self.wheel_count}")
