@@ -43,13 +43,14 @@ from multiprocessing.connection import Connection, wait
 
 import numpy as np
 
+from soil.bed import read_bed_header
 from soil.errors import ArgumentError, RegolithError
 from soil.integrator import make_integrator
 from soil.macro import MacroStepReport
 from soil.sdf import displaced_geometry
 from soil.worlds import World, Worlds, open_bed_worlds
 
-from .beds import check_memory, settled_bed
+from .beds import Bed, check_memory, settled_bed
 from .dem_soil import DemSoil
 from .launch import open_run
 from .plan import RunPlan, enable_step_control
@@ -70,7 +71,6 @@ def batch_problem(plan: RunPlan) -> str | None:
 
 
 SOIL_FIELDS = (
-    "bed",
     "wheels",
     "device",
     "precision",
@@ -81,13 +81,13 @@ SOIL_FIELDS = (
     "macro step",
     "step control",
 )
-"""What the worlds of one batch share (their plans must agree on it)."""
+"""What the worlds of one batch share (their plans must agree on it; their beds, each its own or one
+shared, must hold as many grains of the same materials: _beds)."""
 
 
 def _soil_of(plan: RunPlan) -> tuple:
     wheels = plan.wheels if plan.rover else [plan.wheel]
     return (
-        plan.bed.bed_file or plan.bed.key,
         repr([(w.shape, w.material) for w in wheels]),
         plan.device,
         plan.precision,
@@ -101,8 +101,9 @@ def _soil_of(plan: RunPlan) -> tuple:
 
 
 def run_batched(plans: list[RunPlan], out_dirs: list[str], overwrite: bool = False) -> list[dict]:
-    """Run `plans` (replicas of one scene: the same bed, any order seeds) as worlds of one simulation
-    into `out_dirs`; returns one result per run as cosim.study.run_task does (label, out_dir, ok,
+    """Run `plans` (replicas of one scene: any order seeds, any rigs, each on its bed: the same bed
+    or beds of one shape, as replicas over beds have) as worlds of one simulation into `out_dirs`;
+    returns one result per run as cosim.study.run_task does (label, out_dir, ok,
     status, summary, wall_time, error), each with the batch's figures ('batch': worlds, wall_seconds,
     rounds, step_seconds: the host clock of the macro steps themselves, round_ends: the host clock
     [s] at the end of each, round_steps: each one's step_seconds, serve_seconds: the serving process's
@@ -120,12 +121,13 @@ def run_batched(plans: list[RunPlan], out_dirs: list[str], overwrite: bool = Fal
                     "(batched runs differ only in their order seed and their rig or rover)"
                 )
     started = time.perf_counter()
-    bed = settled_bed(first, out_dirs[0])
-    on_bed = replace(first, bed=replace(first.bed, bed_file=os.path.abspath(bed.path)))
-    check_memory(on_bed, len(plans))  # the K worlds must fit: checked before they are allocated
+    beds = _beds(plans, out_dirs)
+    # a run opens its bed's file, not a bed settled on its own
+    plans = [replace(p, bed=replace(p.bed, bed_file=os.path.abspath(b.path))) for p, b in zip(plans, beds)]
+    check_memory(plans[0], len(plans))  # the K worlds must fit: checked before they are allocated
     wheels = [(w.shape, w.material) for w in (first.wheels if first.rover else [first.wheel])]
     worlds = open_bed_worlds(
-        bed.saved,
+        [bed.saved for bed in beds],
         wheels,
         [p.order_seed for p in plans],
         device=first.device,
@@ -136,11 +138,9 @@ def run_batched(plans: list[RunPlan], out_dirs: list[str], overwrite: bool = Fal
         storage=first.storage,
     )
     enable_step_control(first, worlds.sim)  # PID substeps: a controller per world
-    # a run opens the shared bed, not one of its own
-    plans = [p if p.bed.bed_file else replace(p, bed=replace(p.bed, bed_file=on_bed.bed.bed_file)) for p in plans]
     hosts: list[_Host] = []
     try:
-        for k, (plan, out) in enumerate(zip(plans, out_dirs)):
+        for k, (plan, out, bed) in enumerate(zip(plans, out_dirs, beds)):
             world = worlds.world(k)
             hosts.append(_Host.start(k, world, (plan, out, overwrite, _description(world), bed.surface_height)))
         results, serve_seconds, serve_marks = _serve(worlds, hosts)
@@ -160,6 +160,29 @@ def run_batched(plans: list[RunPlan], out_dirs: list[str], overwrite: bool = Fal
         "serve_marks": serve_marks,
     }
     return [{**r, "label": f"replica_{k:03d}", "wall_time": wall, "batch": batch} for k, r in enumerate(results)]
+
+
+def _beds(plans: list[RunPlan], out_dirs: list[str]) -> list[Bed]:
+    """Each run's bed (cosim.beds.settled_bed: a bed that several runs share is read, or settled in the
+    first one's folder, once), refused unless each holds as many grains of the same materials as run
+    0's: the worlds of a batch are copies of one scene's shape."""
+    found: dict[str, Bed] = {}
+    beds = []
+    for plan, folder in zip(plans, out_dirs):
+        key = plan.bed.bed_file or plan.bed.key
+        if key not in found:
+            found[key] = settled_bed(plan, folder)
+        beds.append(found[key])
+    headers = [read_bed_header(bed.path) for bed in beds]
+    for k, (bed, header) in enumerate(zip(beds, headers)):
+        for name, what in (("particle_count", "grain count"), ("materials", "materials")):
+            if header[name] != headers[0][name]:
+                raise ArgumentError(
+                    f"run {k} cannot share a simulation with run 0: its bed {bed.path} differs from run 0's "
+                    f"{beds[0].path} in its {what} ({header[name]!r} against {headers[0][name]!r}); the worlds "
+                    "of a batch hold beds of one scene, settled from any seed"
+                )
+    return beds
 
 
 # -- the serving side: this process, which owns the simulation ----------------------------------------

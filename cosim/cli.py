@@ -102,8 +102,12 @@ def _plan(args):
 
 
 def cmd_run(args) -> int:
+    from soil.errors import ArgumentError
+
     from .launch import run_plan
 
+    if args.replicas < 1:
+        raise ArgumentError(f"--replicas must be >= 1 (1: one run; >= 2: error bars), got {args.replicas}")
     plan = _plan(args)
     out = args.out or os.path.join("runs", plan.name)
     if args.replicas > 1:
@@ -209,7 +213,13 @@ def cmd_plot(args) -> int:
 
 
 def cmd_view(args) -> int:
+    from soil.errors import ArgumentError
+
     from .view import render, summary_line
+
+    for option, value in (("--fps", args.fps), ("--dpi", args.dpi)):
+        if value < 1:
+            raise ArgumentError(f"{option} must be >= 1, got {value}")
 
     print(summary_line(render(args.run, args.out, colour=args.color, fps=args.fps, dpi=args.dpi, frame=args.frame)))
     return EXIT_OK
@@ -225,9 +235,27 @@ def cmd_export(args) -> int:
     results = os.path.join(args.run, RESULTS_FILE) if os.path.isdir(args.run) else args.run
     if not os.path.isfile(results):
         raise ArgumentError(f"{args.run!r} is not a run folder: no {RESULTS_FILE} in it")
+    if args.out is not None:  # the default, RUN/results.vtkhdf, is the run's own export: made again
+        _free_output_file(args.out, (".vtkhdf", ".hdf"), args.overwrite)
     path = write_vtkhdf(results, args.out)
     print(f"{path}: {os.path.getsize(path) / 1024:.0f} kB (open it in ParaView or with VTK's vtkHDFReader)")
     return EXIT_OK
+
+
+def _free_output_file(path: str, suffixes: tuple[str, ...], overwrite: bool) -> None:
+    """Refuse `--out` PATH before anything is written: a name without one of `suffixes` (ArgumentError:
+    a run's results.h5 or a checkpoint is never taken for an export's file) or, without --overwrite, a
+    file that exists (OutputExistsError)."""
+    from soil.errors import ArgumentError
+
+    from .folders import OutputExistsError
+
+    if not path.lower().endswith(suffixes):
+        raise ArgumentError(f"--out {path!r}: the file must end in {' or '.join(suffixes)}")
+    if os.path.isdir(path):
+        raise ArgumentError(f"--out {path!r} is a folder; name the file to write")
+    if os.path.lexists(path) and not overwrite:
+        raise OutputExistsError(f"--out {path!r} exists; pass --overwrite to replace it")
 
 
 def cmd_advise(args) -> int:
@@ -413,6 +441,7 @@ def cmd_export_fmu(args) -> int:
 
     from .soil_fmu import export_soil_fmu, soil_config_from
 
+    _free_output_file(args.out, (".fmu",), args.overwrite)
     with tempfile.TemporaryDirectory(prefix="soil_fmu_bed_") as scratch:
         config = soil_config_from(args.source, bed_folder=args.bed_folder or scratch)
         if args.device:
@@ -871,7 +900,8 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("export", help="export a run's snapshots to another format (vtkhdf: ParaView, VTK)")
     p.add_argument("format", choices=["vtkhdf"])
     p.add_argument("run", help="a run folder (or its results.h5)")
-    p.add_argument("--out", help="the file to write (default RUN/results.vtkhdf)")
+    p.add_argument("--out", help="the .vtkhdf (or .hdf) file to write (default RUN/results.vtkhdf, made again)")
+    p.add_argument("--overwrite", action="store_true", help="replace an existing --out file")
     p.set_defaults(func=cmd_export)
 
     p = sub.add_parser("study", help="precision (replica scatter), time-step or drawbar-pull/slip studies")
@@ -929,6 +959,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--device", help="the soil server's default Warp device (default: the scene's)")
     p.add_argument("--python", help="the soil server's default Python (default: this one)")
     p.add_argument("--bed-folder", help="where a scene's bed is settled and cached (default: a temporary folder)")
+    p.add_argument("--overwrite", action="store_true", help="replace an existing --out file")
     p.set_defaults(func=cmd_export_fmu)
 
     add_lab_commands(sub, scene_options, cluster_options)

@@ -146,9 +146,10 @@ class RunFolder:
 
 
 def read_json(path: str) -> dict:
-    """A run folder's JSON file (run.json) as a dict; {} when it is missing or unreadable."""
+    """A run folder's JSON file (run.json) as a dict; {} when it is missing, unreadable or not a table."""
     try:
         with open(path) as f:
-            return json.load(f)
+            data = json.load(f)
     except (OSError, ValueError):
         return {}
+    return data if isinstance(data, dict) else {}

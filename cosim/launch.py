@@ -161,9 +161,13 @@ def resume(out_dir: str, progress: bool = False, hooks: dict | None = None) -> R
         checkpoint, info = _checked_inputs(folder)
         base_dir = str(checkpoint["scene_base_dir"]) if "scene_base_dir" in checkpoint else ""
         scene = scene_from_text(str(checkpoint["scene_toml"]), base_dir=base_dir or None)
-        with open(folder.file(SCENE_FILE)) as f:
-            if f.read() != scene.to_toml():
-                log.warning("scene.toml was edited after the run started; the checkpoint's copy of the scene is used")
+        try:  # only a note: the checkpoint's copy of the scene is the one resumed
+            with open(folder.file(SCENE_FILE), encoding="utf-8") as f:
+                edited = f.read() != scene.to_toml()
+        except (OSError, UnicodeDecodeError):
+            edited = True
+        if edited:
+            log.warning("scene.toml was edited after the run started; the checkpoint's copy of the scene is used")
         plan = resolve(scene)
         _check_macro_step(checkpoint, plan)
         steps = int(checkpoint["loop/steps"])

@@ -696,11 +696,47 @@ def check_results(path) -> dict:
                 )
             for dataset in _datasets(f):
                 dataset[()]  # every byte read once: a damaged chunk fails here, not in the middle of a resume
+            problem = _structure_problem(f)
+            if problem:
+                raise DamagedFileError(f"{path}: the results file is damaged ({problem})")
+            json.loads(attrs.get("summary", "{}"))
     except (DamagedFileError, FileNotFoundError):
         raise
     except Exception as error:  # h5py reports damaged files as OSError, RuntimeError, KeyError, ...
         raise DamagedFileError(f"{path}: the results file is damaged ({error})") from None
     return attrs
+
+
+def _structure_problem(f) -> str:
+    """What a results file lacks of what ResultsWriter.create makes (a dataset gone, series of unequal
+    lengths), or "": a resume appends to every one of them, a reader reads them."""
+    step = (
+        ["wheels/time", "wheels/phase", "rover/time", "rover/state"]
+        + [f"wheels/{name}" for name in WHEEL_SERIES]
+        + [f"rover/{name}" for name in ROVER_SERIES]
+        + [f"soil/{name}" for name in SOIL_SERIES]
+        + ([f"boundaries/{name}" for name in BOUNDARY_SERIES] if "boundaries" in f else [])
+    )
+    ragged = "particles" in f and f["particles"].attrs.get("layout") == "ragged"
+    snapshot = ["particles/time", "particles/wheel_vertices", "particles/rover_position", "particles/rover_forward"]
+    snapshot += ["particles/rover_up"] + (
+        ["particles/first", "particles/count"] if ragged else ["particles/position", "particles/velocity"]
+    )
+    fixed = ["wheels/mesh/vertices", "wheels/mesh/triangles", "wheels/mesh/wheel"]
+    fixed += (
+        ["particles/id", "particles/radius", "particles/position", "particles/velocity"]
+        if ragged
+        else ["particles/radius"]
+    )
+    missing = [name for name in step + snapshot + fixed if name not in f]
+    if missing:
+        return f"missing {', '.join(missing[:4])}{' ...' if len(missing) > 4 else ''}"
+    for names, length in ((step, "wheels/time"), (snapshot, "particles/time")):
+        rows = len(f[length])
+        uneven = [name for name in names if f[name].shape[0] != rows]
+        if uneven:
+            return f"{uneven[0]} has {f[uneven[0]].shape[0]} rows where {length} has {rows}"
+    return ""
 
 
 def _datasets(f) -> list:
@@ -734,7 +770,32 @@ def _read_series(path) -> dict:
         out["rover_columns"] = json.loads(f["rover/state"].attrs["columns"])
         out["snapshot_time"] = f["particles/time"][()]
         out["attrs"] = {k: (v.decode() if isinstance(v, bytes) else v) for k, v in f.attrs.items()}
+    _check_series(out)
     return out
+
+
+PLOTTED_SERIES = ("travel", "sinkage", "sinkage_tips", "slip", "drawbar_pull", "driving_torque")
+"""The wheel series every results file has had and `cosim plot` draws."""
+
+
+def _check_series(out: dict) -> None:
+    """ValueError (read_series: DamagedFileError naming the file) when read_series' result lacks a series
+    a reader draws, holds series of unequal lengths, or a summary that is not a JSON table. A file
+    still being written (status 'running') may hold steps of some series not yet in others: those
+    are cut to the shortest instead."""
+    missing = [f"wheels/{name}" for name in ("time", "phase", *PLOTTED_SERIES) if name not in out]
+    if missing:
+        raise ValueError(f"missing {', '.join(missing)}")
+    if not isinstance(json.loads(out["attrs"].get("summary", "{}")), dict):
+        raise ValueError("its summary attribute is not a JSON table")
+    steps = [n for n in out if n in WHEEL_SERIES or n in ("time", "phase") or n.startswith(("rover_", "soil_"))]
+    steps = [n for n in steps if n != "rover_columns"]
+    rows = min(len(out[n]) for n in steps)
+    uneven = [n for n in steps if len(out[n]) != rows]
+    if uneven and out["attrs"].get("status") != "running":
+        raise ValueError(f"its series have unequal lengths ({uneven[0]}: {len(out[uneven[0]])} rows, others {rows})")
+    for name in uneven:
+        out[name] = out[name][:rows]
 
 
 # ------------------------------------------------------------------------------------

@@ -802,6 +802,10 @@ def key_unit(key: str) -> str | None:
     return None if not brackets else ("1" if brackets[0] == "-" else brackets[0])  # ([bed]: a section, not a unit)
 
 
+_LAB_SECTIONS = ("lab", "repose", "shear", "plate")
+"""The soil lab's sections (cosim.lab.scene.LabScene), which a run's scene does not take."""
+
+
 def _format_errors(error: ValidationError) -> list[str]:
     problems = []
     for item in error.errors():
@@ -819,7 +823,10 @@ def _format_errors(error: ValidationError) -> list[str]:
         for old, new in _PHRASES:
             message = message.replace(old, new)
         if item["type"] == "extra_forbidden":
-            problems.append(f"{loc}: unknown key (not a scene setting; check the spelling)")
+            if loc in _LAB_SECTIONS:  # a lab file given where a run's scene is read
+                problems.append(f"{loc}: a soil-lab section: this is a lab file, for `cosim lab` and `cosim calibrate`")
+            else:
+                problems.append(f"{loc}: unknown key (not a scene setting; check the spelling)")
             continue
         got = item.get("input")
         shown = "" if isinstance(got, dict) else f" (got {got!r})"

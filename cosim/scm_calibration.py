@@ -90,19 +90,37 @@ def read_calibration(path: str) -> ScmCalibration:
     try:
         with open(path, "rb") as f:
             data = tomllib.load(f)
-    except (OSError, tomllib.TOMLDecodeError) as error:
-        raise CalibrationError(f"{path}: not a readable calibration file ({error})") from error
+    except (OSError, UnicodeDecodeError, tomllib.TOMLDecodeError) as error:
+        raise CalibrationError(f"{path}: not a readable calibration file ({error})") from None
     if data.get("format") != FORMAT_VERSION:
         raise CalibrationError(f"{path}: format {data.get('format')!r}, this version reads format {FORMAT_VERSION}")
+    for table in ("scm", "standard_error", "source"):
+        if not isinstance(data.get(table, {}), dict):
+            raise CalibrationError(f"{path}: [{table}] must be a table of keys, got {data[table]!r}")
     scm = data.get("scm", {})
-    missing = [k for k in SOIL_KEYS if not isinstance(scm.get(k), (int, float)) or not math.isfinite(scm[k])]
+    missing = [k for k in SOIL_KEYS if not _finite_number(scm.get(k))]
     if missing:
         raise CalibrationError(f"{path}: [scm] lacks a finite {', '.join(missing)}")
     gravity = data.get("gravity")
-    if not isinstance(gravity, (int, float)) or not gravity >= 0:
-        raise CalibrationError(f"{path}: gravity must be |g| >= 0 [m/s^2], got {gravity!r}")
-    errors = {k: float(v) for k, v in data.get("standard_error", {}).items()}
-    return ScmCalibration({k: float(scm[k]) for k in SOIL_KEYS}, errors, float(gravity), data.get("source", {}))
+    if not _finite_number(gravity) or not gravity >= 0:
+        raise CalibrationError(f"{path}: gravity must be a finite |g| >= 0 [m/s^2], got {gravity!r}")
+    errors = data.get("standard_error", {})
+    wrong = [k for k, v in errors.items() if not (_finite_number(v) or (isinstance(v, float) and math.isnan(v)))]
+    if wrong:
+        raise CalibrationError(
+            f"{path}: [standard_error] {wrong[0]} must be a number (nan: not estimated), got {errors[wrong[0]]!r}"
+        )
+    return ScmCalibration(
+        {k: float(scm[k]) for k in SOIL_KEYS},
+        {k: float(v) for k, v in errors.items()},
+        float(gravity),
+        data.get("source", {}),
+    )
+
+
+def _finite_number(value) -> bool:
+    """A TOML number (not a boolean), finite."""
+    return isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
 
 
 def tested_sinkage(calibration: ScmCalibration, path: str = "") -> float | None:

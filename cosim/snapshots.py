@@ -53,8 +53,29 @@ class Snapshot:
 
 
 def snapshot_count(f) -> int:
-    """Snapshots in an open results file."""
-    return int(f["particles/time"].shape[0])
+    """Snapshots in an open results file, after checking that every snapshot dataset is there with a
+    row per snapshot: DamagedFileError naming the file otherwise (a reader then stops before it writes)."""
+    from soil.errors import DamagedFileError
+
+    if "particles" not in f:
+        raise DamagedFileError(f"{f.filename}: the results file is damaged (missing particles)")
+    p = f["particles"]
+    ragged = p.attrs.get("layout") == "ragged"
+    per_snapshot = ["time", "wheel_vertices", "rover_position", "rover_forward", "rover_up"]
+    per_snapshot += ["first", "count"] if ragged else ["position", "velocity"]
+    fixed = ["id", "radius", "position", "velocity"] if ragged else ["radius"]
+    missing = [f"particles/{name}" for name in per_snapshot + fixed if name not in p]
+    problem = f"missing {', '.join(missing)}" if missing else ""
+    if not problem:
+        count = int(p["time"].shape[0])
+        uneven = [name for name in per_snapshot if p[name].shape[0] != count]
+        if uneven:
+            problem = f"particles/{uneven[0]} has {p[uneven[0]].shape[0]} rows for {count} snapshots"
+        elif not ragged and p["position"].shape[1:] != (len(p["radius"]), 3):
+            problem = f"particles/position has shape {p['position'].shape}, not (snapshots, {len(p['radius'])}, 3)"
+    if problem:
+        raise DamagedFileError(f"{f.filename}: the results file is damaged ({problem})")
+    return count
 
 
 def read_snapshot(f, k: int) -> Snapshot:

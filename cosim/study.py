@@ -18,8 +18,8 @@
 
 Warp's CPU kernels are single-threaded, so the cluster uses processes with one thread
 each. On a GPU, replicas, slip studies and each precision of a precision study run as worlds of
-one simulation instead (cosim.batch, `--batched`; each run bit for bit as alone; the worlds of a
-simulation share its bed, so replicas over beds make one simulation per bed). A replica that
+one simulation instead (cosim.batch, `--batched`; each run bit for bit as alone; replicas over beds
+too, each world on its own bed). A replica that
 fails is reported; the others still finish. Tasks carry the scene as TOML text plus overrides,
 and each worker resolves its own plan.
 """
@@ -392,20 +392,12 @@ def _run_tasks(ex: Executor, tasks: list[dict], batched: bool) -> list[dict]:
         return ex.map(run_task, tasks)
     from .batch import run_batched
 
-    # the worlds of one simulation share a bed: one batch per bed (replicas over beds: --vary-bed)
-    groups: dict[Any, list[int]] = {}
-    for i, task in enumerate(tasks):
-        groups.setdefault(task.get("overrides", {}).get("bed.bed_file"), []).append(i)
-    results: list[dict] = [{}] * len(tasks)
-    for members in groups.values():
-        log.info("%d runs as worlds of one simulation", len(members))
-        group = [tasks[i] for i in members]
-        ran = run_batched(
-            [task_plan(t) for t in group], [str(t["out_dir"]) for t in group], overwrite=bool(group[0].get("overwrite"))
-        )
-        for i, r, t in zip(members, ran, group):
-            results[i] = {**r, "label": t.get("label"), "overrides": t.get("overrides", {})}
-    return results
+    # one simulation, each world on its task's bed (replicas over beds: a bed each, of one shape)
+    log.info("%d runs as worlds of one simulation", len(tasks))
+    ran = run_batched(
+        [task_plan(t) for t in tasks], [str(t["out_dir"]) for t in tasks], overwrite=bool(tasks[0].get("overwrite"))
+    )
+    return [{**r, "label": t.get("label"), "overrides": t.get("overrides", {})} for r, t in zip(ran, tasks)]
 
 
 def _repeated(values) -> list:
@@ -524,8 +516,8 @@ def replica_run(
     on the soil fitted on the calibration's bed k (at most as many replicas as the file has beds).
 
     batched: run the replicas as worlds of one simulation on one device (cosim.batch; each replica
-    bit for bit its run alone; over beds, one simulation per bed); None: when the device is a GPU and
-    the scene can be batched.
+    bit for bit its run alone; over beds too, each world on its own bed); None: when the device is a
+    GPU and the scene can be batched.
     Returns {'ok' (every replica steady and the statistics exist), 'stats', 'results', 'text'}."""
     if replicas < 2:
         raise SceneError([f"--replicas: must be >= 2 for error bars, got {replicas}"])
@@ -698,8 +690,8 @@ def slip_study(
     vary: what the replicas at each slip differ in (replica_run): 'order' on one bed, or 'bed', replica
     k on bed.seed + k at every slip (the slips compared on the same K beds).
     batched: every slip's replicas as worlds of one simulation (cosim.batch; each run bit for bit as
-    alone; over beds, one simulation per bed, its worlds the slips); None: when the device is a GPU
-    and the scene can be batched."""
+    alone; over beds too, world k of each slip on bed k); None: when the device is a GPU and the
+    scene can be batched."""
     try:
         slips = [float(s) for s in slips]
     except (TypeError, ValueError):

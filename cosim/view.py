@@ -20,7 +20,7 @@ import shutil
 
 import numpy as np
 
-from soil.errors import InputError
+from soil.errors import DamagedFileError, InputError
 
 from .folders import PLOTS_DIR, RESULTS_FILE
 from .output import open_results
@@ -79,6 +79,11 @@ class _Scene:
         self.rover = attrs.get("kind") == "rover"
         self.follow = self.rover or f["particles"].attrs.get("layout") == "ragged"
         self.colour = colour
+        slip = "rover/slip" if self.rover else "wheels/slip"
+        names = ("wheels/mesh/triangles", "wheels/mesh/wheel", "wheels/time", "wheels/phase", slip, "wheels/sinkage")
+        missing = [name for name in names if name not in f]
+        if missing:
+            raise DamagedFileError(f"{f.filename}: the results file is damaged (missing {', '.join(missing)})")
         self.triangles = f["wheels/mesh/triangles"][()]
         self.vertex_wheel = f["wheels/mesh/wheel"][()]
         self.step_time = f["wheels/time"][()]

@@ -3,6 +3,7 @@ read them back (HDF5, value for value), and open one as a ready simulation with 
 
 from __future__ import annotations
 
+import hashlib
 import json
 import math
 import os
@@ -378,6 +379,68 @@ class SavedBed:
                     f[f"state/{name}"].attrs.update(
                         units=STATE_UNITS.get(name, ""), description=f"SoilState.{name} (rows in model order)"
                     )
+            with h5py.File(temporary, "a") as f:  # the digest of what a reader reads back
+                f.attrs[DIGEST_ATTRIBUTE] = bed_digest(f)
+
+
+DIGEST_ATTRIBUTE = "sha256"
+"""The bed file's root attribute holding bed_digest() of the rest (a file written before it has none)."""
+
+
+def bed_digest(f) -> str:
+    """SHA-256 (hex) of an open bed file's datasets (name, dtype, shape, values) and root attributes but
+    DIGEST_ATTRIBUTE, in name order: a flipped bit anywhere in what a bed is read from changes it."""
+    digest = hashlib.sha256()
+    names: list[str] = []
+    f.visititems(lambda name, item: names.append(name) if hasattr(item, "dtype") else None)
+    for name in sorted(names):
+        values = np.ascontiguousarray(f[name][()])
+        digest.update(f"{name}|{values.dtype.str}|{values.shape}|".encode())
+        digest.update(values.tobytes())
+    for name in sorted(k for k in f.attrs if k != DIGEST_ATTRIBUTE):
+        value = f.attrs[name]
+        digest.update(f"@{name}|".encode())
+        digest.update(value.encode() if isinstance(value, str) else np.ascontiguousarray(value).tobytes())
+    return digest.hexdigest()
+
+
+def check_bed_grains(radius: np.ndarray, material: np.ndarray, materials: int, state: dict) -> None:
+    """Refuse (ValueError naming the field and what is allowed) grains a bed cannot hold: radii not
+    finite and > 0, a material index outside the table, positions not (n, 3) and finite."""
+    n = len(radius)
+    if radius.ndim != 1 or not np.all(np.isfinite(radius) & (radius > 0)):
+        raise ValueError(f"particles/radius must be one finite radius > 0 [m] per grain, shape ({n},)")
+    if material.shape != (n,) or material.min(initial=0) < 0 or material.max(initial=0) >= materials:
+        raise ValueError(f"particles/material must be one index 0..{materials - 1} of the material table per grain")
+    position = np.asarray(state.get("position", np.zeros((n, 3))))
+    if position.shape != (n, 3) or not np.all(np.isfinite(position)):
+        raise ValueError(f"state/position must be finite grain centres [m], shape ({n}, 3), got shape {position.shape}")
+
+
+def check_bed_rows(state: dict, particle_count: int, boundary_count: int) -> None:
+    """Refuse (ValueError naming the field and what is allowed) a saved state whose neighbour-list or
+    contact rows point outside the bed: a kernel would read or write past its arrays."""
+    count, neighbours = np.asarray(state["neighbour_count"]), np.asarray(state["neighbours"])
+    width = neighbours.shape[1] if neighbours.ndim == 2 else -1
+    if count.shape != (particle_count,) or neighbours.shape[0] != particle_count or width < 1:
+        raise ValueError(
+            f"state/neighbours and state/neighbour_count must have one row per grain ({particle_count}), "
+            f"got shapes {neighbours.shape} and {count.shape}"
+        )
+    if count.min(initial=0) < 0 or count.max(initial=0) > width:
+        raise ValueError(
+            f"state/neighbour_count must be in 0..{width} (the list's width), got {count.min()}..{count.max()}"
+        )
+    if neighbours.min(initial=-1) < -1 or neighbours.max(initial=-1) >= particle_count:
+        raise ValueError(f"state/neighbours must be grain indices 0..{particle_count - 1} or -1")
+    keys, rigid = np.asarray(state["rigid_key"]), np.asarray(state["rigid_count"])
+    rigid_width = keys.shape[1] if keys.ndim == 2 else -1
+    if rigid.shape != (particle_count,) or keys.shape[0] != particle_count or rigid_width < 1:
+        raise ValueError(f"state/rigid_key and state/rigid_count must have one row per grain ({particle_count})")
+    if rigid.min(initial=0) < 0 or rigid.max(initial=0) > rigid_width:
+        raise ValueError(f"state/rigid_count must be in 0..{rigid_width}, got {rigid.min()}..{rigid.max()}")
+    if keys.min(initial=-1) < -1 or keys.max(initial=-1) >= boundary_count:
+        raise ValueError(f"state/rigid_key must be wall indices 0..{boundary_count - 1} or -1 (a bed has no wheels)")
 
 
 def _spec_fields(spec: BedSpec) -> dict:
@@ -461,9 +524,25 @@ def read_bed(path) -> SavedBed:
 
 
 def _read(f) -> SavedBed:
+    saved_digest = f.attrs.get(DIGEST_ATTRIBUTE)
+    if saved_digest is not None and saved_digest != bed_digest(f):
+        raise DamagedFileError(
+            f"{f.filename!r}: the bed file is damaged (its content does not match its SHA-256 digest: "
+            "a bit changed on disk or in a copy); settle the bed again or use an intact copy"
+        )
     header = _header(f)
     particles, boundaries = f["particles"], f["boundaries"]
     kinds = boundaries["kind"][()]
+    state = {name: f["state"][name][()] for name in f["state"]}
+    check_bed_grains(particles["radius"][()], particles["material"][()], len(header["materials"]), state)
+    if "neighbours" in state:  # (a bed of the keyed-history format is converted as it opens)
+        missing = [name for name in STATE_UNITS if name not in state and not name.startswith(("body_", "boundary_"))]
+        missing = [name for name in missing if name != "step"]
+        if missing:
+            raise ValueError(
+                f"state/{missing[0]} is missing{f' (and {len(missing) - 1} more)' if len(missing) > 1 else ''}"
+            )
+        check_bed_rows(state, header["particle_count"], len(kinds))
     return SavedBed(
         gravity=header["gravity"],
         materials=header["materials"],
@@ -478,7 +557,7 @@ def _read(f) -> SavedBed:
         boundary_geometry=boundaries["geometry"][()],
         boundary_material=boundaries["material"][()],
         boundary_report=boundaries["report"][()] if "report" in boundaries else np.ones(len(kinds), dtype=bool),
-        state={name: f["state"][name][()] for name in f["state"]},
+        state=state,
         spec=header["spec"],
         metrics=header["metrics"],
         key=header["key"],

@@ -13,6 +13,7 @@ from .contact import ContactLaw
 from .control import SoilControl
 from .errors import OverlapWarning, SoilInputError
 from .geometry import GrouserWheel, MeshWheel
+from .grains import rows_in_partner_order
 from .gravity import gravity_vector
 from .materials import Material, MaterialTable
 from .model import SoilModel
@@ -518,6 +519,7 @@ def _load_saved_state(model: SoilModel, state: SoilState, saved: dict, time: flo
             data[name] = np.asarray(data[name])[order]
     neighbours = data["neighbours"]
     data["neighbours"] = np.where(neighbours >= 0, inverse[np.maximum(neighbours, 0)], -1).astype(np.int32)
+    data = rows_in_partner_order(data)  # renumbered partners, listed as a build lists them
     current = state.to_numpy()
     for name, values in current.items():
         if name.startswith("body_") or name not in data:  # fields added after the state was saved

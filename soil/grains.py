@@ -115,6 +115,29 @@ def append_grains(blocks: list[dict]) -> dict:
     return out
 
 
+def rows_in_partner_order(rows: dict) -> dict:
+    """Per-grain rows (model order) whose neighbour-list rows list their partners by model index, their
+    history along: the order a build gives (soil.neighbours), which a list whose grains were renumbered
+    (a bed opened under another order seed) has lost. A grain sums its contacts in its row's order, so
+    a list in this order sums as a list rebuilt from it, whenever that happens (soil.worlds). Returns
+    new arrays (rows is not changed)."""
+    rows = dict(rows)
+    neighbours = rows["neighbours"]
+    width = neighbours.shape[1]
+    listed = (np.arange(width)[None, :] < rows["neighbour_count"][:, None]) & (neighbours >= 0)
+    order = np.argsort(np.where(listed, neighbours, np.iinfo(np.int32).max), axis=1, kind="stable")
+
+    def moved(values: np.ndarray) -> np.ndarray:
+        if values.shape[1] == 0:  # history the contact law does not use (zero width)
+            return values.copy()
+        return np.take_along_axis(values, order.reshape(order.shape + (1,) * (values.ndim - 2)), axis=1)
+
+    rows["neighbours"] = moved(neighbours)
+    rows["pair_touching"] = pack_touching(moved(unpack_touching(rows["pair_touching"], width)))
+    rows["pair_tangential"], rows["pair_rolling"] = moved(rows["pair_tangential"]), moved(rows["pair_rolling"])
+    return rows
+
+
 def unpack_touching(words: np.ndarray, width: int) -> np.ndarray:
     """The `pair_touching` bits as booleans: bit k of word k // 32 of each row, shape (rows, width)."""
     k = np.arange(width)

@@ -525,7 +525,7 @@ class SoilState:
                 if name.startswith(("boundary_", "body_")):  # bodies: posed by the control before a step
                     array.zero_()
                     continue
-                raise KeyError(f"state data has no {name!r} array")
+                raise SoilInputError(f"the saved state has no {name!r} array (state/{name})")
             values = np.asarray(data[name])
             rows = (len(order),) if per_grain(name) else tuple(array.shape[:1])
             if values.shape[:1] != rows:

@@ -1,9 +1,12 @@
 """Worlds: K copies of one soil scene stepped by the same launches, each exactly as it runs alone.
 
     worlds = open_bed_worlds(bed, wheels, order_seeds=range(20), device="cuda:0")
+    worlds = open_bed_worlds([bed_0, bed_1], wheels, order_seeds=[0, 1])   # a bed each (replicas over beds)
     sim = worlds.world(3)           # world 3 as a Simulation-like object (what cosim.DemSoil drives)
 
-Replicas of a small scene leave most of a GPU idle; K of them in one simulation fill it. World w
+Replicas of a small scene leave most of a GPU idle; K of them in one simulation fill it. The worlds
+are copies of one scene's shape (grain, wall and wheel counts, materials, gravity, precision); their
+grains may differ (beds settled from other seeds). World w
 holds grains w * n .. (w + 1) * n - 1 (model order), and its walls and wheels likewise
 (SoilModel.world_count). A grain's neighbour search covers only its world's cells (the world's
 bits above the Morton code of the sort key, soil.neighbours), its rigid partners are its world's
@@ -27,6 +30,7 @@ one loop that answers them (submit, take, view: cosim.batch, each run in a proce
 
 from __future__ import annotations
 
+import os
 import threading
 import time
 from collections.abc import Callable, Iterable, Sequence
@@ -40,7 +44,7 @@ from .errors import ArgumentError, SoilInputError
 from .macro import MacroStepReport
 from .model import SoilModel
 from .stability import SimulationDiverged
-from .state import SoilState, per_grain
+from .state import UNBUILT, SoilState, per_grain
 
 _PER_GRAIN_MODEL = ("radius", "mass", "inv_mass", "inv_inertia", "material")
 _PER_BODY_MODEL = ("body_kind", "body_shape", "body_mesh", "body_material")
@@ -49,7 +53,8 @@ _PER_WALL_MODEL = ("boundary_kind", "boundary_geometry", "boundary_material")
 
 def join_worlds(parts: Sequence[tuple[SoilModel, SoilState, SoilControl]]):
     """One (model, state, control) holding the worlds `parts` (each a finalized scene of one world,
-    all of the same shape: grains, walls, wheels, precision, law, device) side by side."""
+    all of the same shape: grain, wall and wheel counts, materials, gravity, precision, law, device)
+    side by side. Their grains, walls' places and wheels may differ: each world keeps its own."""
     if not parts:
         raise ArgumentError("join_worlds needs at least one world")
     models = [p[0] for p in parts]
@@ -68,6 +73,12 @@ def join_worlds(parts: Sequence[tuple[SoilModel, SoilState, SoilControl]]):
             raise SoilInputError(
                 f"world {w} differs from world 0 (grains, walls, wheels, precision, storage, law, device: {shape} vs "
                 f"{expected + (first.law, first.device)}): the worlds of a batch are copies of one scene"
+            )
+        # one pair table and one gravity serve every world
+        if m.materials != first.materials or not np.array_equal(m.gravity, first.gravity):
+            raise SoilInputError(
+                f"world {w} differs from world 0 in its materials or gravity: "
+                "the worlds of a batch are copies of one scene"
             )
     n, walls, bodies = first.particle_count, first.boundary_count, first.body_count
     device, prec = first.device, first.precision
@@ -132,6 +143,10 @@ def join_worlds(parts: Sequence[tuple[SoilModel, SoilState, SoilControl]]):
                 v = np.where(v >= 0, v + w * n, -1).astype(np.int32)
             elif name == "rigid_key":
                 v = _rigid_keys_to_batch(v, w, walls, bodies, count)
+            elif name == "build_position" and models[w].max_radius < model.max_radius:
+                # its list was built with its own skin (0.3 x its largest grain), narrower than the one the
+                # batch's rebuild test assumes: built again at the first step (its history carried over)
+                v = np.full_like(v, UNBUILT)
             rows.append(v)
         state_data[name] = np.concatenate(rows)
     state = SoilState.for_model(model, capacity, rigid_capacity)
@@ -211,15 +226,26 @@ def open_bed_worlds(
     gravity=None,
     storage: str = "grain",
 ) -> Worlds:
-    """Worlds of one settled bed (soil.bed.open_bed's arguments), one per order seed: world w is the
-    simulation open_bed(..., order_seed=order_seeds[w]) gives."""
+    """Worlds of settled beds (soil.bed.open_bed's arguments), one per order seed: world w is the
+    simulation open_bed(beds[w], ..., order_seed=order_seeds[w]) gives. `bed`: one bed (a path or a
+    SavedBed) for every world, or a sequence of them, one per order seed (beds of one shape: the same
+    grain count, walls and materials, as beds of one scene settled from other seeds are)."""
     from .bed import SavedBed, read_bed
     from .simulation import Simulation
 
-    saved = bed if isinstance(bed, SavedBed) else read_bed(bed)
+    seeds = list(order_seeds)
+    beds = list(bed) if isinstance(bed, (list, tuple)) else [bed] * len(seeds)
+    if len(beds) != len(seeds):
+        raise ArgumentError(f"open_bed_worlds: {len(beds)} beds for {len(seeds)} order seeds (one bed per world)")
+    read: dict[str, SavedBed] = {}  # a bed file given for several worlds is read once
     parts = []
-    for seed in order_seeds:
-        builder = saved.builder(gravity)
+    for one, seed in zip(beds, seeds):
+        if not isinstance(one, SavedBed):
+            path = os.fspath(one)
+            if path not in read:
+                read[path] = read_bed(path)
+            one = read[path]
+        builder = one.builder(gravity)
         for shape, material in wheels:
             builder.add_wheel(shape, material)
         parts.append(builder.finalize(device=device, precision=precision, law=law, order_seed=seed, storage=storage))

@@ -64,9 +64,9 @@ def test_a_batched_slip_study_gives_the_study_run_one_by_one(tmp_path, tiny_bed)
     assert together["runs"][0]["summary"]["slip"] != together["runs"][1]["summary"]["slip"]
 
 
-def test_replicas_over_beds_pair_the_slips_on_a_bed_each_and_batch_one_simulation_per_bed(tmp_path):
-    """--vary-bed: replica k settles its own bed (bed.seed + k) and runs every slip on it; batched, the
-    worlds of a simulation share a bed, so each bed is one simulation, its runs bit for bit alone."""
+def test_replicas_over_beds_pair_the_slips_on_a_bed_each_in_one_simulation(tmp_path):
+    """--vary-bed: replica k settles its own bed (bed.seed + k) and runs every slip on it; batched, every
+    slip on every bed is a world of one simulation, each world on its own bed, bit for bit its run alone."""
     plan = load_plan(write_tiny(tmp_path), ["bed.seed=3"])  # beds the wheel lands on quickly: a short test
     study = slip_study(plan, str(tmp_path / "study"), [0.1, 0.5], replicas=2, batched=True, plot=False, vary="bed")
     beds = study["bed_files"]
@@ -80,13 +80,17 @@ def test_replicas_over_beds_pair_the_slips_on_a_bed_each_and_batch_one_simulatio
         k = int(run["label"].rsplit(" ", 1)[1])
         with open(f"{run['out_dir']}/run.json") as f:
             assert json.load(f)["bed"]["path"] == beds[k]  # replica k on bed k at every slip
-        assert run["batch"]["worlds"] == 2  # one simulation per bed, its worlds the slips
-    # a world is the scene with that bed's seed and file, its replica's order, its slip, run alone
-    last = study["runs"][-1]
-    alone = str(tmp_path / "alone")
-    run_plan(load_plan(write_tiny(tmp_path), [f"{k}={json.dumps(v)}" for k, v in last["overrides"].items()]), alone)
-    forces = [read_series(f"{folder}/results.h5")["force"] for folder in (last["out_dir"], alone)]
-    assert last["overrides"]["bed.seed"] == 4 and np.array_equal(*forces)
+        assert run["batch"]["worlds"] == 4  # one simulation: 2 slips x 2 beds
+    # a world is the scene with that bed's seed and file, its replica's order, its slip, run alone: on
+    # either bed (the worlds' grains differ, their largest grain too, and so the batch's neighbour cells)
+    both = study["runs"][1:3]  # slip 0.1 on bed 4, slip 0.5 on bed 3
+    assert {run["overrides"]["bed.seed"] for run in both} == {3, 4}
+    for run in both:
+        alone = str(tmp_path / f"alone_{run['label'].replace(' ', '_')}")
+        run_plan(load_plan(write_tiny(tmp_path), [f"{k}={json.dumps(v)}" for k, v in run["overrides"].items()]), alone)
+        series = [read_series(f"{folder}/results.h5") for folder in (run["out_dir"], alone)]
+        for name in ("force", "torque", "sinkage"):
+            assert np.array_equal(series[0][name], series[1][name]), (run["label"], name)
 
 
 def fixed_plan(tmp_path, tiny_bed):
@@ -109,6 +113,10 @@ def test_what_a_batch_cannot_run_is_refused_by_name(tmp_path, tiny_bed):
     other = load_plan(write_tiny(tmp_path), [f'bed.bed_file="{tiny_bed}"', "scene.precision='double'"])
     with pytest.raises(ValueError, match="its precision is 'double', run 0's 'mixed'"):
         run_batched([fixed_plan(tmp_path, tiny_bed), other], [str(tmp_path / "a"), str(tmp_path / "b")])
+    # worlds of other beds must hold beds of one shape: a shorter box's bed is refused, naming both files
+    shorter = load_plan(write_tiny(tmp_path), ["bed.length=0.1", "bed.settle_max_time=0.005"])
+    with pytest.raises(ValueError, match=r"run 1 .* its bed .*bed.h5 differs from run 0's .* in its grain count"):
+        run_batched([fixed_plan(tmp_path, tiny_bed), shorter], [str(tmp_path / "c"), str(tmp_path / "d")])
     # K copies must fit: checked before anything is allocated (a million tiny beds: about a terabyte)
     fixed = load_plan(write_tiny(tmp_path), [f'bed.bed_file="{tiny_bed}"'])
     with pytest.raises(SoilTooLargeError, match="as 1000000 batched replicas does not fit"):

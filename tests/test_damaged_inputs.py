@@ -145,6 +145,46 @@ def test_row03_resume_of_an_interrupted_run_with_a_cut_results_file(interrupted,
     assert digests(folder) == before
 
 
+@pytest.mark.parametrize("damage", ["a series gone", "a series cut short", "a snapshot dataset gone", "a bad summary"])
+def test_row03b_a_results_file_missing_a_part_is_refused_before_anything_changes(
+    interrupted, complete, tmp_path, capsys, damage
+):
+    """A readable HDF5 results.h5 that lacks what a run writes (a dataset deleted, a series shorter than
+    the others, a summary that is not JSON): resume refuses it before it rewrites the file or removes
+    the XDMF data, and plot, view and export name the file; exit 2 each, nothing changed."""
+    import h5py
+
+    readers = {  # the commands that read the damaged part
+        "a series gone": [["plot"], ["view"]],
+        "a series cut short": [["plot"]],
+        "a snapshot dataset gone": [["view"], ["export", "vtkhdf"]],
+        "a bad summary": [["plot"]],
+    }
+    for kind, source, commands in (
+        ("interrupted", interrupted, [["resume"]]),
+        ("complete", complete, readers[damage]),
+    ):
+        folder = copy(source, tmp_path, name=kind)
+        with h5py.File(folder / "results.h5", "a") as f:
+            if damage == "a series gone":
+                del f["wheels/sinkage"]
+            elif damage == "a series cut short":
+                f["wheels/drawbar_pull"].resize(3, axis=0)
+            elif damage == "a snapshot dataset gone":
+                del f["particles/position"]
+            else:
+                f.attrs["summary"] = "{bad"
+        before = digests(folder)
+        for command in commands:
+            args = [*command, str(folder)] + (["--no-progress"] if command == ["resume"] else [])
+            if command == ["view"]:
+                args += ["--out", str(tmp_path / "frame.png")]
+            assert main(args) == 2, (damage, command)
+            line = first_error_line(capsys)
+            assert "results.h5" in line and "damaged" in line, line
+            assert digests(folder) == before, (damage, command)
+
+
 def test_row04_plot_of_a_cut_results_file_writes_no_empty_figures(interrupted, tmp_path, capsys):
     folder = copy(interrupted, tmp_path)
     cut(folder / "results.h5", 0.5)
@@ -222,6 +262,47 @@ def test_row08_a_replaced_cached_bed_is_refused(scene, tmp_path, capsys):
     line = first_error_line(capsys)
     assert "bed.h5: the cached bed was made for another scene" in line, line
     assert digests(own) == before
+
+
+# -- row 8b: a bed file changed on disk -----------------------------------------------------------
+def test_row08b_a_bed_with_a_flipped_bit_or_rows_past_its_list_is_refused_naming_it(tiny_bed, tmp_path, capsys):
+    """A bed carries the SHA-256 of what it is read from: one flipped bit of a grain's radius fails it.
+    A bed without one (written before it) is checked for rows that point past its arrays: a neighbour
+    count beyond the list's width would have a kernel write past them (a crash, or silently wrong)."""
+    import h5py
+
+    from soil.bed import DIGEST_ATTRIBUTE
+
+    with h5py.File(tiny_bed, "r") as f:
+        assert DIGEST_ATTRIBUTE in f.attrs
+    scene = write_tiny(tmp_path)
+    short = ["--set", "run.duration=0.0017", "--set", "landing.enabled=false", "--no-progress"]
+    for damage in ("bit", "count", "partner", "position"):
+        bed = tmp_path / f"{damage}.h5"
+        shutil.copy(tiny_bed, bed)
+        with h5py.File(bed, "a") as f:
+            if damage == "bit":
+                radius = f["particles/radius"][()]
+                radius.view(np.uint32 if radius.dtype.itemsize == 4 else np.uint64)[7] ^= 1
+                f["particles/radius"][...] = radius
+            else:
+                del f.attrs[DIGEST_ATTRIBUTE]  # a bed of before the digest
+                name, value = {"count": ("neighbour_count", 1000), "partner": ("neighbours", 10**8)}.get(
+                    damage, ("position", np.nan)
+                )
+                rows = f[f"state/{name}"][()]
+                rows[5] = value
+                f[f"state/{name}"][...] = rows
+        out = tmp_path / f"run_{damage}"
+        assert main(["run", scene, "--out", str(out), "--set", f'bed.bed_file="{bed}"', *short]) == 2
+        line = first_error_line(capsys)
+        expected = {
+            "bit": "does not match its SHA-256",
+            "count": "state/neighbour_count must be in 0..",
+            "partner": "state/neighbours must be grain indices",
+            "position": "state/position must be finite",
+        }
+        assert str(bed) in line and expected[damage] in line, line
 
 
 # -- row 9: a mesh wheel wound inside out, and unreadable meshes ----------------------------------

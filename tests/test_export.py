@@ -222,6 +222,16 @@ def test_a_run_ends_with_its_vtkhdf_and_the_cli_exports_it(tiny_run, tmp_path, c
     out = tmp_path / "again.vtkhdf"
     assert main(["export", "vtkhdf", str(tiny_run), "--out", str(out)]) == 0
     assert out.stat().st_size > 0 and str(out) in capsys.readouterr().out
+    # an existing file is replaced only when asked; a name that is not an export's is never written
+    before = out.read_bytes()
+    assert main(["export", "vtkhdf", str(tiny_run), "--out", str(out)]) == 3
+    assert "pass --overwrite" in capsys.readouterr().err and out.read_bytes() == before
+    assert main(["export", "vtkhdf", str(tiny_run), "--out", str(out), "--overwrite"]) == 0
+    results = (tiny_run / "results.h5").read_bytes()
+    for name in ("results.h5", "checkpoint.npz"):
+        assert main(["export", "vtkhdf", str(tiny_run), "--out", str(tiny_run / name), "--overwrite"]) == 2
+        assert "must end in .vtkhdf or .hdf" in capsys.readouterr().err
+    assert (tiny_run / "results.h5").read_bytes() == results
 
 
 def test_view_draws_the_run_and_the_frames_differ_where_the_wheel_moved(tiny_run, tmp_path, capsys):
@@ -279,6 +289,9 @@ def test_view_refuses_bad_arguments_with_one_line(tiny_run, tmp_path, capsys):
         (["view", str(empty)], "results.h5"),
         (["view", str(tiny_run), "--out", str(tmp_path / "one.png"), "--frame", "999"], "--frame"),
         (["export", "vtkhdf", str(empty)], "results.h5"),
+        (["view", str(tiny_run), "--out", str(tmp_path / "f.png"), "--fps", "0"], "--fps must be >= 1"),
+        (["view", str(tiny_run), "--out", str(tmp_path / "f.png"), "--dpi", "-5"], "--dpi must be >= 1"),
+        (["run", str(tiny_run / "scene.toml"), "--replicas", "0"], "--replicas must be >= 1"),
     ):
         assert main(argv) == 2, argv
         error = capsys.readouterr().err.strip()

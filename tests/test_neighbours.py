@@ -199,3 +199,35 @@ def test_a_parked_or_resting_wheel_rebuilds_the_list_no_more_often_than_no_wheel
     # the grains stand: none moved more than the skin's half (the list's own criterion)
     moved = np.linalg.norm(wheeled.positions() - plain.positions(), axis=1)
     assert moved.max() < 0.5 * wheeled.neighbour_list.skin
+
+
+@pytest.mark.parametrize("order_seed", [None, 5])
+def test_a_bed_opened_under_an_order_seed_keeps_every_contact_history_through_its_rebuild(device, order_seed):
+    """A build lists a grain's partners in model-index order and carries the history of the old list
+    into the new one in one merge pass over both rows. A bed opened under an order seed renumbers
+    its grains, so the opened list must list them in that order too: else the first rebuild drops
+    the tangential springs of the contacts its merge passes over (the settled bed then loses its
+    static friction at that instant and slides). Rebuilt at once, every contact keeps its history."""
+    from soil.bed import SavedBed, open_bed
+    from soil.state import UNBUILT
+
+    settling = rain(device, n_side=5)
+    settling.run(0.3, 1e-4)
+    sim = open_bed(SavedBed.from_simulation(settling), device=device, order_seed=order_seed)
+    before, data = listed_contacts(sim)
+    assert len(before) > 50
+    springs = {}
+    for i in range(sim.model.particle_count):
+        for k in range(int(data["neighbour_count"][i])):
+            springs[(i, int(data["neighbours"][i, k]))] = data["pair_tangential"][i, k]
+    saved = sim.state_dict()
+    saved["state/build_position"] = np.full_like(saved["state/build_position"], UNBUILT)
+    sim.load_state_dict(saved)  # the list to be built again at the next step
+    sim.step(1e-12)
+    after, data = listed_contacts(sim)
+    assert after == before
+    for i in range(sim.model.particle_count):
+        for k in range(int(data["neighbour_count"][i])):
+            pair = (i, int(data["neighbours"][i, k]))
+            if min(pair) == pair[0] and pair in before:
+                np.testing.assert_allclose(data["pair_tangential"][i, k], springs[pair], rtol=0.01)

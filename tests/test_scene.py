@@ -59,6 +59,7 @@ BAD_SCENES = [
     ("negative order seed", "[run]\norder_seed = -3\n", "run.order_seed", ">= 0"),
     ("omega zero", "[testbed]\nomega = 0.0\n", "testbed.omega", "> 0"),
     ("landing without gravity", "[scene]\ngravity = 0.0\n", "landing.enabled", "gravity"),
+    ("a lab file's section", "[shear]\nnormal_stresses = [1.0]\n", "shear", "this is a lab file, for `cosim lab`"),
 ]
 
 

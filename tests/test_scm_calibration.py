@@ -24,6 +24,7 @@ from cosim.scene import SceneError
 from cosim.scm_calibration import (
     SOIL_KEYS,
     SOIL_UNITS,
+    CalibrationError,
     CalibrationGravityWarning,
     ScmCalibration,
     read_calibration,
@@ -167,6 +168,33 @@ def test_a_calibration_file_round_trips_and_warns_at_another_gravity(tmp_path):
     with warnings.catch_warnings():
         warnings.simplefilter("error", CalibrationGravityWarning)
         CoupledSystem.build(load_plan(scene), None)
+
+
+@pytest.mark.parametrize(
+    "damage, named",
+    [
+        ({"standard_error": {"k_c": "abc"}}, "[standard_error] k_c must be a number"),
+        ({"standard_error": [1, 2]}, "[standard_error] must be a table"),
+        ({"scm": [1]}, "[scm] must be a table"),
+        ({"gravity": math.inf}, "gravity must be a finite"),
+        ({"gravity": True}, "gravity must be a finite"),
+        ("utf-16", "not a readable calibration file"),
+    ],
+)
+def test_a_calibration_file_of_the_wrong_types_is_refused_naming_the_file_and_key(tmp_path, damage, named):
+    import tomli_w
+
+    path = tmp_path / "terrain.toml"
+    write_calibration(str(path), _calibration(9.81))
+    if damage == "utf-16":
+        path.write_bytes(path.read_text().encode("utf-16"))
+    else:
+        with open(path, "rb") as f:
+            data = tomllib.load(f)
+        path.write_text(tomli_w.dumps({**data, **damage}))
+    with pytest.raises(CalibrationError) as error:
+        read_calibration(str(path))
+    assert str(path) in str(error.value) and named in str(error.value), str(error.value)
 
 
 def test_a_calibration_outside_scms_range_is_refused_naming_the_file_unless_the_scene_overrides_it(tmp_path):

@@ -432,7 +432,14 @@ def test_export_fmu_command_from_a_run_folder(tmp_path):
         ]
     ) in (0, 6)  # 6: too short for a steady state
     out = tmp_path / "soil.fmu"
-    assert main(["export-fmu", str(run), "--out", str(out), "--fmi", "3", "--wheels", "2"]) == 0
+    # the run's own files are never an FMU's name, and nothing is written for them
+    results = (run / "results.h5").read_bytes()
+    assert main(["export-fmu", str(run), "--out", str(run / "results.h5"), "--overwrite"]) == 2
+    assert (run / "results.h5").read_bytes() == results
+    out.write_bytes(b"an older FMU")
+    assert main(["export-fmu", str(run), "--out", str(out), "--fmi", "3", "--wheels", "2"]) == 3  # exists
+    assert out.read_bytes() == b"an older FMU"
+    assert main(["export-fmu", str(run), "--out", str(out), "--fmi", "3", "--wheels", "2", "--overwrite"]) == 0
     assert validate_fmu(str(out)) == []
     description = fmpy.read_model_description(str(out))
     names = {v.name for v in description.modelVariables}

@@ -176,11 +176,14 @@ def test_the_gravity_twin_scales_every_derived_quantity_exactly(tmp_path):
 
 @pytest.mark.slow
 def test_the_gravity_twin_gives_the_same_dimensionless_results(tmp_path):
-    """The moon scene and its Earth twin, 3 summation orders each, at an imposed slip of 0.3 (as
+    """The moon scene and its Earth twin, 3 beds each (bed.seed + k), at an imposed slip of 0.3 (as
     in the replica test): sinkage, sinkage of the grouser tips (lengths are not scaled) and
     DP/W, each averaged over the second half of the drive (the same stretch of dimensionless
-    time on both sides), agree within the replica scatter (their 95 % intervals overlap), as the
-    similarity says. The similarity holds along the whole drive, so every replica counts, whether
+    time on both sides), agree within the scatter between beds (their 95 % intervals overlap), as
+    the similarity says. Each side settles its own beds, the same in exact arithmetic, other
+    packings in floating point: the scatter to compare with is the beds', which summation orders
+    on one bed do not sample over a drive this short (their sinkages agree to 0.02 mm). The similarity
+    holds along the whole drive, so every replica counts, whether
     or not its run found a steady-state window in 0.8 s (measured on one machine: 3 of 4 moon and
     2 of 4 Earth replicas did; a test needing two steady ones per side failed there)."""
     from cosim.output import read_series
@@ -197,9 +200,10 @@ def test_the_gravity_twin_gives_the_same_dimensionless_results(tmp_path):
             'testbed.mode="slip"',
             "testbed.slip=0.3",
             f"testbed.omega={2.0 / time_scale!r}",
+            "bed.seed=3",  # beds 3-5: the wheel lands on each within landing.max_time (on bed 2 it does not)
         ]
         plan = load_plan(path, settings)
-        results = replica_run(plan, str(tmp_path / out), 3, executor="serial")["results"]
+        results = replica_run(plan, str(tmp_path / out), 3, executor="serial", vary="bed")["results"]
         replicas = {"sinkage": [], "sinkage_tips": [], "dp_over_w": []}
         for result in results:
             assert result["ok"], result.get("error")

@@ -18,8 +18,9 @@ import warp as wp
 from cosim.contract import WheelKinematics
 from cosim.dem_soil import DemSoil, WallProximityWarning
 from soil import GrouserWheel, Material, Simulation, SoilBuilder, StepController
+from soil.bed import SavedBed
 from soil.errors import SoilInputError
-from soil.worlds import Worlds, join_worlds
+from soil.worlds import Worlds, join_worlds, open_bed_worlds
 
 WHEEL = GrouserWheel(radius=0.02, width=0.012, grouser_count=8, grouser_height=0.002, grouser_thickness=0.0015)
 SPEEDS = (0.05, 0.0, 0.08)
@@ -31,15 +32,18 @@ LEAVES = {2: 12}
 """World 2 is done after 12 macro steps."""
 
 
-def scene(device, precision, seed, storage="grain"):
-    """Grains in a small box, a grousered wheel above them (finalize's arguments: one world)."""
+def scene(device, precision, seed, storage="grain", fill=None, youngs_modulus=1e6, wheel=True):
+    """Grains in a small box, a grousered wheel above them (finalize's arguments: one world); `fill`
+    (a seed): another fill of the same box, its grains of radii 2.7-3.3 mm placed elsewhere."""
     builder = SoilBuilder(gravity=9.81)
-    mat = builder.add_material(Material(youngs_modulus=1e6, restitution=0.3, rolling_friction=0.05))
+    mat = builder.add_material(Material(youngs_modulus=youngs_modulus, restitution=0.3, rolling_friction=0.05))
     builder.add_container((0, 0, 0), (0.07, 0.03, 0.1), mat)
-    rng = np.random.default_rng(2)
+    rng = np.random.default_rng(2 if fill is None else fill)
     grid = np.stack(np.meshgrid(np.arange(10), np.arange(4), np.arange(3), indexing="ij"), -1).reshape(-1, 3)
-    builder.add_particles(0.0035 + grid * 0.0068 + rng.uniform(-2e-4, 2e-4, grid.shape), 0.003, mat)
-    builder.add_wheel(WHEEL, mat)
+    radii = 0.003 if fill is None else rng.uniform(0.0027, 0.0033, len(grid))
+    builder.add_particles(0.0035 + grid * 0.0068 + rng.uniform(-2e-4, 2e-4, grid.shape), radii, mat)
+    if wheel:
+        builder.add_wheel(WHEEL, mat)
     return builder.finalize(device, precision, contact_capacity=2, rigid_capacity=1, order_seed=seed, storage=storage)
 
 
@@ -176,12 +180,98 @@ def test_each_world_steps_bit_for_bit_as_its_scene_alone(device, precision, stor
         assert sum(r[2] for a in alone for r in a[1]) > 0, "no substep was rejected"
 
 
+def settled_fill(device, fill):
+    """A bed of another fill (scene's `fill`), fallen 40 ms: its list and contact history saved."""
+    sim = Simulation(*scene(device, "double", None, fill=fill, wheel=False))
+    sim.run(0.04, 1e-4)
+    return SavedBed.from_simulation(sim)
+
+
+def test_worlds_on_beds_of_their_own_step_bit_for_bit_as_each_alone(device):
+    """Replicas over beds: each world opens a bed of its own (other grains, other radii, so another
+    largest grain than the batch's, whose skin and cells the batch uses), under an order seed other
+    than the bed's, so the saved list's partners are renumbered; each world steps bit for bit as its
+    bed alone. A grain sums its contacts in its row's order, so the opened list must list them in the
+    order a build does (the batch rebuilds a world's list when another world needs it), and a list
+    built with a narrower skin than the batch's is built again at once (else the batch's rebuild test
+    would let a contact go unlisted)."""
+    warnings.simplefilter("ignore", WallProximityWarning)
+    beds = [settled_fill(device, fill) for fill in (11, 12)]
+    assert beds[0].radius.max() != beds[1].radius.max()
+    wheels = [(WHEEL, beds[0].materials[0])]
+    alone = []
+    for w, bed in enumerate(beds):
+        soil = DemSoil(open_bed_worlds(bed, wheels, [SEEDS[w]], device=device, precision="mixed").world(0), 1e-4, 0.02)
+        opened = soil.sim.state_dict()
+        neighbours, count = opened["state/neighbours"], opened["state/neighbour_count"]
+        for row, n in zip(neighbours, count):  # the opened list lists partners as a build does
+            assert np.all(np.diff(row[:n]) > 0)
+        assert sum(len(c) for c in contacts(opened)) > 0, "the bed's contact history came along"
+        rows, rebuilds = drive(soil, w, STEPS)
+        alone.append((rows, rebuilds, soil.sim.positions(), soil.sim.velocities()))
+    worlds = open_bed_worlds(beds, wheels, list(SEEDS[:2]), device=device, precision="mixed")
+    soils = [DemSoil(worlds.world(w), 1e-4, surface_height=0.02) for w in range(len(beds))]
+    together: dict = {}
+
+    def run(w):
+        try:
+            rows, rebuilds = drive(soils[w], w, STEPS)
+            together[w] = (rows, rebuilds, soils[w].sim.positions(), soils[w].sim.velocities())
+        except BaseException as error:  # noqa: BLE001 - reported below
+            together[w] = error
+
+    threads = [threading.Thread(target=run, args=(w,)) for w in range(len(beds))]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join(timeout=600)
+    for w in range(len(beds)):
+        assert not isinstance(together[w], BaseException), together[w]
+        rows, rebuilds, x, v = together[w]
+        assert rows[:, 12].max() > 0, f"world {w}: the wheel touched no grain"  # its contact count
+        assert np.array_equal(rows, alone[w][0]), f"world {w}: wrenches differ from its bed alone"
+        assert np.array_equal(x, alone[w][2]) and np.array_equal(v, alone[w][3]), f"world {w}: grains differ"
+
+
+def two_grains(device, radius, gap, speed):
+    """A saved bed of two grains `gap` [m] apart closing at 2 x `speed` [m/s], no gravity, its list built
+    once (its skin 0.3 x `radius`)."""
+    builder = SoilBuilder(gravity=0.0)
+    mat = builder.add_material(Material(youngs_modulus=1e6, restitution=0.3))
+    builder.add_container((0, 0, 0), (0.05, 0.05, 0.05), mat)
+    x = np.array([[0.025 - radius - gap / 2, 0.025, 0.025], [0.025 + radius + gap / 2, 0.025, 0.025]])
+    builder.add_particles(x, radius, mat, velocities=np.array([[speed, 0, 0], [-speed, 0, 0]]))
+    sim = Simulation(*builder.finalize(device, "double"))
+    sim.run(1e-5, 1e-5)
+    return SavedBed.from_simulation(sim)
+
+
+def test_a_world_whose_list_was_built_with_a_narrower_skin_than_the_batch_is_built_again(device):
+    """A saved list holds every contact only while its grains move less than half the skin it was built
+    with; the batch's rebuild test uses half its own (0.3 x the batch's largest grain). Two 1 mm grains
+    0.5 mm apart (their list's skin 0.3 mm: not listed) closing at 20 mm/s, batched with a world of 3 mm
+    grains (skin 0.9 mm): alone their list is built again after 0.15 mm each and they collide; in the
+    batch the same, bit for bit, where a test against the batch's half skin (0.45 mm) alone would let
+    them pass through each other."""
+    small, large = two_grains(device, 0.001, 0.0005, 0.01), two_grains(device, 0.003, 0.01, 0.0)
+    alone = open_bed_worlds(small, device=device).sim
+    alone.run(0.04, 1e-5)
+    assert alone.velocities()[0, 0] < 0 < alone.velocities()[1, 0], "alone, the grains bounced"
+    batch = open_bed_worlds([large, small], order_seeds=[None, None], device=device)
+    batch.sim.run(0.04, 1e-5)
+    assert np.array_equal(batch.world(1).velocities(), alone.velocities())
+    assert np.array_equal(batch.world(1).positions(), alone.positions())
+
+
 def test_the_worlds_of_a_batch_are_copies_of_one_scene(device):
     one = scene(device, "double", 1)
     other = SoilBuilder(gravity=9.81)
     other.add_particles(np.array([[0.0, 0.0, 0.01]]), 0.003)
     with pytest.raises(ValueError, match="world 1 differs"):
         join_worlds([one, other.finalize(device, "double")])
+    # one pair table serves every world: a world of other materials is refused
+    with pytest.raises(ValueError, match="world 1 differs from world 0 in its materials"):
+        join_worlds([one, scene(device, "double", 1, youngs_modulus=2e6)])
     # the host-side PID loop decides for one world: worlds take theirs on the device, each its own
     sim = Simulation(*join_worlds([scene(device, "double", 1), scene(device, "double", 2)]))
     with pytest.raises(SoilInputError, match="run_adaptive decides on the host for one world"):
