@@ -2,17 +2,17 @@
 
     results = run_batched(plans, out_dirs)        # cosim.study.replica_run(..., batched=True)
 
-Each replica is a world of one soil.worlds.Worlds (the same bed, its own order seed, wheel, rig
-or rover, results folder, checkpoints). The simulation lives in this process, which serves it;
-each run (its rig or rover, coupler, records and results writer: cosim.runner.Runner, the path of
-a run alone) runs in a process of its own, whose soil side is a `RemoteWorld`: the Simulation
-interface cosim.DemSoil drives, over a pipe. So the K runs' host work goes on K cores at once
-instead of one after the other under one interpreter lock (docs/performance.md section 6): per
-macro step a run sends its wheels' path and gets its report and what it reads after the step
-(`Worlds.view`: its wheels' poses and its walls' loads, read from the device once for all
-worlds); the DEM steps every world in the same launches once every run has asked. A world's
-results are bit for bit those of its run alone (tests/test_batch.py), and each folder is an
-ordinary run folder: `cosim resume FOLDER` continues it alone.
+Each replica is a world of one soil.worlds.Worlds (the same bed, or with `--vary-bed` a bed of its
+own of the same shape; its own order seed, wheel, rig or rover, results folder, checkpoints). The
+simulation lives in this process, which serves it; each run (its rig or rover, coupler, records and
+results writer: cosim.runner.Runner, the path of a run alone) runs in a process of its own, whose
+soil side is a `RemoteWorld`: the Simulation interface cosim.DemSoil drives, over a pipe. So the K
+runs' host work goes on K cores at once instead of one after the other under one interpreter lock
+(docs/performance.md section 6): per macro step a run sends its wheels' path and gets its report and
+what it reads after the step (`Worlds.view`: its wheels' poses and its walls' loads, read from the
+device once for all worlds); the DEM steps every world in the same launches once every run has
+asked. A world's results are bit for bit those of its run alone (tests/test_batch.py), and each
+folder is an ordinary run folder: `cosim resume FOLDER` continues it alone.
 
 What a batch cannot run (`batch_problem` says why, and the replicas then run one by one): a
 terrain other than the DEM, a moving soil patch, an FMU rover (its replicas run one by one).

@@ -229,13 +229,14 @@ def cmd_export(args) -> int:
     """cosim export vtkhdf RUN [--out FILE]: results.vtkhdf from what results.h5 holds."""
     from soil.errors import ArgumentError
 
-    from .folders import RESULTS_FILE
+    from .folders import RESULTS_FILE, VTKHDF_FILE
     from .vtkhdf import write_vtkhdf
 
     results = os.path.join(args.run, RESULTS_FILE) if os.path.isdir(args.run) else args.run
     if not os.path.isfile(results):
         raise ArgumentError(f"{args.run!r} is not a run folder: no {RESULTS_FILE} in it")
-    if args.out is not None:  # the default, RUN/results.vtkhdf, is the run's own export: made again
+    own = os.path.join(os.path.dirname(os.path.abspath(results)), VTKHDF_FILE)
+    if args.out is not None and os.path.abspath(args.out) != own:  # RUN/results.vtkhdf is the run's own: made again
         _free_output_file(args.out, (".vtkhdf", ".hdf"), args.overwrite)
     path = write_vtkhdf(results, args.out)
     print(f"{path}: {os.path.getsize(path) / 1024:.0f} kB (open it in ParaView or with VTK's vtkHDFReader)")

@@ -163,11 +163,11 @@ def resume(out_dir: str, progress: bool = False, hooks: dict | None = None) -> R
         scene = scene_from_text(str(checkpoint["scene_toml"]), base_dir=base_dir or None)
         try:  # only a note: the checkpoint's copy of the scene is the one resumed
             with open(folder.file(SCENE_FILE), encoding="utf-8") as f:
-                edited = f.read() != scene.to_toml()
-        except (OSError, UnicodeDecodeError):
-            edited = True
-        if edited:
-            log.warning("scene.toml was edited after the run started; the checkpoint's copy of the scene is used")
+                note = "was edited after the run started" if f.read() != scene.to_toml() else ""
+        except (OSError, UnicodeDecodeError) as error:
+            note = f"cannot be read ({error})"
+        if note:
+            log.warning("scene.toml %s; the checkpoint's copy of the scene is used", note)
         plan = resolve(scene)
         _check_macro_step(checkpoint, plan)
         steps = int(checkpoint["loop/steps"])

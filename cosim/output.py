@@ -708,8 +708,10 @@ def check_results(path) -> dict:
 
 
 def _structure_problem(f) -> str:
-    """What a results file lacks of what ResultsWriter.create makes (a dataset gone, series of unequal
-    lengths), or "": a resume appends to every one of them, a reader reads them."""
+    """What a results file lacks of what ResultsWriter.create makes (a dataset gone, or, in a file that
+    was closed, series of unequal lengths), or "": a resume appends to every one of them, a reader
+    reads them. A file left 'running' (its writer killed, perhaps inside a flush) may hold more rows
+    of some series than of others: a resume cuts them all to its checkpoint's count."""
     step = (
         ["wheels/time", "wheels/phase", "rover/time", "rover/state"]
         + [f"wheels/{name}" for name in WHEEL_SERIES]
@@ -731,6 +733,8 @@ def _structure_problem(f) -> str:
     missing = [name for name in step + snapshot + fixed if name not in f]
     if missing:
         return f"missing {', '.join(missing[:4])}{' ...' if len(missing) > 4 else ''}"
+    if f.attrs.get("status") == "running":  # a writer killed inside a flush: resume cuts every series
+        return ""
     for names, length in ((step, "wheels/time"), (snapshot, "particles/time")):
         rows = len(f[length])
         uneven = [name for name in names if f[name].shape[0] != rows]
@@ -793,7 +797,9 @@ def _check_series(out: dict) -> None:
     rows = min(len(out[n]) for n in steps)
     uneven = [n for n in steps if len(out[n]) != rows]
     if uneven and out["attrs"].get("status") != "running":
-        raise ValueError(f"its series have unequal lengths ({uneven[0]}: {len(out[uneven[0]])} rows, others {rows})")
+        raise ValueError(
+            f"its series have unequal lengths ({uneven[0]}: {len(out[uneven[0]])} rows, the shortest {rows})"
+        )
     for name in uneven:
         out[name] = out[name][:rows]
 

@@ -54,7 +54,8 @@ class Snapshot:
 
 def snapshot_count(f) -> int:
     """Snapshots in an open results file, after checking that every snapshot dataset is there with a
-    row per snapshot: DamagedFileError naming the file otherwise (a reader then stops before it writes)."""
+    row per snapshot: DamagedFileError naming the file otherwise (a reader then stops before it writes).
+    A file still 'running' (being written, or its writer killed) counts the snapshots every dataset holds."""
     from soil.errors import DamagedFileError
 
     if "particles" not in f:
@@ -68,8 +69,10 @@ def snapshot_count(f) -> int:
     problem = f"missing {', '.join(missing)}" if missing else ""
     if not problem:
         count = int(p["time"].shape[0])
+        if f.attrs.get("status") == "running":  # being written, or its writer killed inside a flush
+            count = min(int(p[name].shape[0]) for name in per_snapshot)
         uneven = [name for name in per_snapshot if p[name].shape[0] != count]
-        if uneven:
+        if uneven and f.attrs.get("status") != "running":
             problem = f"particles/{uneven[0]} has {p[uneven[0]].shape[0]} rows for {count} snapshots"
         elif not ragged and p["position"].shape[1:] != (len(p["radius"]), 3):
             problem = f"particles/position has shape {p['position'].shape}, not (snapshots, {len(p['radius'])}, 3)"

@@ -390,14 +390,33 @@ def _run_tasks(ex: Executor, tasks: list[dict], batched: bool) -> list[dict]:
     """The tasks' runs (run_task's results, in task order): on the executor, or as worlds of one simulation."""
     if not batched:
         return ex.map(run_task, tasks)
-    from .batch import run_batched
+    from soil.memory import SoilTooLargeError
 
-    # one simulation, each world on its task's bed (replicas over beds: a bed each, of one shape)
-    log.info("%d runs as worlds of one simulation", len(tasks))
-    ran = run_batched(
-        [task_plan(t) for t in tasks], [str(t["out_dir"]) for t in tasks], overwrite=bool(tasks[0].get("overwrite"))
-    )
-    return [{**r, "label": t.get("label"), "overrides": t.get("overrides", {})} for r, t in zip(ran, tasks)]
+    from .batch import run_batched
+    from .beds import check_memory
+
+    # one simulation, each world on its task's bed (replicas over beds: a bed each, of one shape); where
+    # they do not fit one device together, a simulation per bed
+    plans = [task_plan(t) for t in tasks]
+    groups: list[list[int]] = [list(range(len(tasks)))]
+    try:
+        check_memory(plans[0], len(tasks))
+    except SoilTooLargeError:
+        by_bed: dict[Any, list[int]] = {}
+        for i, task in enumerate(tasks):
+            by_bed.setdefault(task.get("overrides", {}).get("bed.bed_file"), []).append(i)
+        groups = list(by_bed.values())
+    results: list[dict] = [{}] * len(tasks)
+    for members in groups:
+        log.info("%d runs as worlds of one simulation", len(members))
+        ran = run_batched(
+            [plans[i] for i in members],
+            [str(tasks[i]["out_dir"]) for i in members],
+            overwrite=bool(tasks[0].get("overwrite")),
+        )
+        for i, r in zip(members, ran):
+            results[i] = {**r, "label": tasks[i].get("label"), "overrides": tasks[i].get("overrides", {})}
+    return results
 
 
 def _repeated(values) -> list:

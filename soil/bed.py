@@ -380,25 +380,31 @@ class SavedBed:
                         units=STATE_UNITS.get(name, ""), description=f"SoilState.{name} (rows in model order)"
                     )
             with h5py.File(temporary, "a") as f:  # the digest of what a reader reads back
-                f.attrs[DIGEST_ATTRIBUTE] = bed_digest(f)
+                f.attrs[DIGEST_ATTRIBUTE] = bed_digest(bed_datasets(f), f.attrs)
 
 
 DIGEST_ATTRIBUTE = "sha256"
 """The bed file's root attribute holding bed_digest() of the rest (a file written before it has none)."""
 
 
-def bed_digest(f) -> str:
-    """SHA-256 (hex) of an open bed file's datasets (name, dtype, shape, values) and root attributes but
-    DIGEST_ATTRIBUTE, in name order: a flipped bit anywhere in what a bed is read from changes it."""
+def bed_datasets(f) -> dict[str, np.ndarray]:
+    """Every dataset of an open bed file by its path ('particles/radius', 'state/neighbours', ...), read once."""
+    found: dict[str, np.ndarray] = {}
+    f.visititems(lambda name, item: found.__setitem__(name, item[()]) if hasattr(item, "dtype") else None)
+    return found
+
+
+def bed_digest(datasets: dict[str, np.ndarray], attrs) -> str:
+    """SHA-256 (hex) of a bed file's datasets (bed_datasets: name, dtype, shape, values) and root
+    attributes but DIGEST_ATTRIBUTE, in name order: a flipped bit anywhere in what a bed is read from
+    changes it."""
     digest = hashlib.sha256()
-    names: list[str] = []
-    f.visititems(lambda name, item: names.append(name) if hasattr(item, "dtype") else None)
-    for name in sorted(names):
-        values = np.ascontiguousarray(f[name][()])
+    for name in sorted(datasets):
+        values = np.ascontiguousarray(datasets[name])
         digest.update(f"{name}|{values.dtype.str}|{values.shape}|".encode())
-        digest.update(values.tobytes())
-    for name in sorted(k for k in f.attrs if k != DIGEST_ATTRIBUTE):
-        value = f.attrs[name]
+        digest.update(values.reshape(-1).view(np.uint8).data)  # the array's own bytes, not a copy
+    for name in sorted(k for k in attrs if k != DIGEST_ATTRIBUTE):
+        value = attrs[name]
         digest.update(f"@{name}|".encode())
         digest.update(value.encode() if isinstance(value, str) else np.ascontiguousarray(value).tobytes())
     return digest.hexdigest()
@@ -441,6 +447,17 @@ def check_bed_rows(state: dict, particle_count: int, boundary_count: int) -> Non
         raise ValueError(f"state/rigid_count must be in 0..{rigid_width}, got {rigid.min()}..{rigid.max()}")
     if keys.min(initial=-1) < -1 or keys.max(initial=-1) >= boundary_count:
         raise ValueError(f"state/rigid_key must be wall indices 0..{boundary_count - 1} or -1 (a bed has no wheels)")
+    for name, row_width in (("pair_tangential", width), ("pair_rolling", width), ("rigid_tangential", rigid_width)):
+        values = np.asarray(state.get(name, np.zeros((particle_count, 0))))
+        if values.shape[0] != particle_count or values.shape[1] not in (0, row_width):
+            raise ValueError(
+                f"state/{name} must have one row per grain of {row_width} entries (or none), got shape {values.shape}"
+            )
+    touching = np.asarray(state.get("pair_touching", np.zeros((particle_count, (width + 31) // 32))))
+    if touching.shape != (particle_count, (width + 31) // 32):
+        raise ValueError(
+            f"state/pair_touching must have shape ({particle_count}, {(width + 31) // 32}), got {touching.shape}"
+        )
 
 
 def _spec_fields(spec: BedSpec) -> dict:
@@ -524,17 +541,19 @@ def read_bed(path) -> SavedBed:
 
 
 def _read(f) -> SavedBed:
+    data = bed_datasets(f)  # each read once: checked against the digest, then kept
     saved_digest = f.attrs.get(DIGEST_ATTRIBUTE)
-    if saved_digest is not None and saved_digest != bed_digest(f):
+    if isinstance(saved_digest, bytes):
+        saved_digest = saved_digest.decode("ascii", "replace")
+    if saved_digest is not None and saved_digest != bed_digest(data, f.attrs):
         raise DamagedFileError(
             f"{f.filename!r}: the bed file is damaged (its content does not match its SHA-256 digest: "
             "a bit changed on disk or in a copy); settle the bed again or use an intact copy"
         )
     header = _header(f)
-    particles, boundaries = f["particles"], f["boundaries"]
-    kinds = boundaries["kind"][()]
-    state = {name: f["state"][name][()] for name in f["state"]}
-    check_bed_grains(particles["radius"][()], particles["material"][()], len(header["materials"]), state)
+    kinds = data["boundaries/kind"]
+    state = {name[len("state/") :]: values for name, values in data.items() if name.startswith("state/")}
+    check_bed_grains(data["particles/radius"], data["particles/material"], len(header["materials"]), state)
     if "neighbours" in state:  # (a bed of the keyed-history format is converted as it opens)
         missing = [name for name in STATE_UNITS if name not in state and not name.startswith(("body_", "boundary_"))]
         missing = [name for name in missing if name != "step"]
@@ -548,15 +567,15 @@ def _read(f) -> SavedBed:
         materials=header["materials"],
         pair_overrides={(i, j): values for (i, j), values in json.loads(f.attrs["pair_overrides"])},
         precision=str(f.attrs["precision"]),
-        radius=particles["radius"][()],
-        material=particles["material"][()],
-        mass=particles["mass"][()],
-        inv_mass=particles["inv_mass"][()],
-        inv_inertia=particles["inv_inertia"][()],
+        radius=data["particles/radius"],
+        material=data["particles/material"],
+        mass=data["particles/mass"],
+        inv_mass=data["particles/inv_mass"],
+        inv_inertia=data["particles/inv_inertia"],
         boundary_kind=kinds,
-        boundary_geometry=boundaries["geometry"][()],
-        boundary_material=boundaries["material"][()],
-        boundary_report=boundaries["report"][()] if "report" in boundaries else np.ones(len(kinds), dtype=bool),
+        boundary_geometry=data["boundaries/geometry"],
+        boundary_material=data["boundaries/material"],
+        boundary_report=data.get("boundaries/report", np.ones(len(kinds), dtype=bool)),
         state=state,
         spec=header["spec"],
         metrics=header["metrics"],

@@ -119,22 +119,37 @@ def rows_in_partner_order(rows: dict) -> dict:
     """Per-grain rows (model order) whose neighbour-list rows list their partners by model index, their
     history along: the order a build gives (soil.neighbours), which a list whose grains were renumbered
     (a bed opened under another order seed) has lost. A grain sums its contacts in its row's order, so
-    a list in this order sums as a list rebuilt from it, whenever that happens (soil.worlds). Returns
-    new arrays (rows is not changed)."""
-    rows = dict(rows)
-    neighbours = rows["neighbours"]
+    a list in this order sums as a list rebuilt from it, whenever that happens (soil.worlds). History
+    arrays the rows lack are left out (a start state of positions alone); ValueError names one whose
+    width is not the list's. Returns new arrays (rows is not changed), or rows itself when every row
+    already ascends."""
+    neighbours = np.asarray(rows["neighbours"])
     width = neighbours.shape[1]
-    listed = (np.arange(width)[None, :] < rows["neighbour_count"][:, None]) & (neighbours >= 0)
-    order = np.argsort(np.where(listed, neighbours, np.iinfo(np.int32).max), axis=1, kind="stable")
+    counts = rows.get("neighbour_count")
+    counts = (neighbours >= 0).sum(axis=1) if counts is None else np.asarray(counts)
+    listed = (np.arange(width)[None, :] < counts[:, None]) & (neighbours >= 0)
+    keys = np.where(listed, neighbours, np.iinfo(np.int32).max)
+    if width < 2 or np.all(keys[:, 1:] >= keys[:, :-1]):
+        return rows
+    for name in ("pair_tangential", "pair_rolling"):
+        if name in rows and np.shape(rows[name])[1] not in (0, width):
+            raise ValueError(f"state/{name} has {np.shape(rows[name])[1]} entries per grain, its list {width}")
+    if "pair_touching" in rows and np.shape(rows["pair_touching"])[1] < (width + 31) // 32:
+        raise ValueError(f"state/pair_touching has too few words per grain for a list {width} wide")
+    order = np.argsort(keys, axis=1, kind="stable")
 
     def moved(values: np.ndarray) -> np.ndarray:
         if values.shape[1] == 0:  # history the contact law does not use (zero width)
             return values.copy()
         return np.take_along_axis(values, order.reshape(order.shape + (1,) * (values.ndim - 2)), axis=1)
 
+    rows = dict(rows)
     rows["neighbours"] = moved(neighbours)
-    rows["pair_touching"] = pack_touching(moved(unpack_touching(rows["pair_touching"], width)))
-    rows["pair_tangential"], rows["pair_rolling"] = moved(rows["pair_tangential"]), moved(rows["pair_rolling"])
+    if "pair_touching" in rows:
+        rows["pair_touching"] = pack_touching(moved(unpack_touching(np.asarray(rows["pair_touching"]), width)))
+    for name in ("pair_tangential", "pair_rolling"):
+        if name in rows:
+            rows[name] = moved(np.asarray(rows[name]))
     return rows
 
 

@@ -93,6 +93,37 @@ def test_replicas_over_beds_pair_the_slips_on_a_bed_each_in_one_simulation(tmp_p
             assert np.array_equal(series[0][name], series[1][name]), (run["label"], name)
 
 
+def test_replicas_over_beds_too_large_for_one_simulation_run_as_one_per_bed(tmp_path, tiny_bed, monkeypatch):
+    """Where the worlds of every bed do not fit the device together, each bed's worlds are a simulation."""
+    import cosim.batch
+    import cosim.beds
+    from cosim.study import _run_tasks
+    from soil.memory import SoilTooLargeError
+
+    def fits(plan, worlds=1):
+        if worlds > 2:
+            raise SoilTooLargeError(f"{worlds} worlds do not fit")
+
+    batches = []
+    monkeypatch.setattr(cosim.beds, "check_memory", fits)
+    monkeypatch.setattr(
+        cosim.batch,
+        "run_batched",
+        lambda plans, out_dirs, overwrite=False: batches.append(out_dirs) or [{"ok": True} for _ in plans],
+    )
+    text = load_plan(write_tiny(tmp_path)).scene.to_toml()
+    tasks = [
+        {"scene_toml": text, "out_dir": f"{bed}_{slip}", "overrides": {"bed.bed_file": f"{tiny_bed}" if bed else None}}
+        for slip in (0.1, 0.5)
+        for bed in (0, 1)
+    ]
+    for task in tasks:  # two beds: the tiny bed, and none (each task's own)
+        task["overrides"] = {k: v for k, v in task["overrides"].items() if v}
+    results = _run_tasks(None, tasks, batched=True)
+    assert sorted(batches) == [["0_0.1", "0_0.5"], ["1_0.1", "1_0.5"]]
+    assert [r["ok"] for r in results] == [True] * 4 and results[0]["overrides"] == {}
+
+
 def fixed_plan(tmp_path, tiny_bed):
     return load_plan(write_tiny(tmp_path), [f'bed.bed_file="{tiny_bed}"'])
 

@@ -185,6 +185,22 @@ def test_row03b_a_results_file_missing_a_part_is_refused_before_anything_changes
             assert digests(folder) == before, (damage, command)
 
 
+def test_row03c_a_file_whose_writer_was_killed_inside_a_flush_still_resumes(interrupted, tmp_path, capsys):
+    """A writer killed between two datasets of one flush leaves some series a row longer than others,
+    its status 'running': not damage. Resume cuts every series to its checkpoint; view reads the
+    snapshots every dataset holds."""
+    import h5py
+
+    folder = copy(interrupted, tmp_path)
+    with h5py.File(folder / "results.h5", "a") as f:
+        f.attrs["status"] = "running"
+        for name in ("wheels/sinkage", "particles/position"):
+            dataset = f[name]
+            dataset.resize(dataset.shape[0] + 1, axis=0)
+    assert main(["view", str(folder), "--out", str(tmp_path / "frame.png"), "--dpi", "40"]) == 0
+    assert main(["resume", str(folder), "--no-progress"]) in (0, 6)
+
+
 def test_row04_plot_of_a_cut_results_file_writes_no_empty_figures(interrupted, tmp_path, capsys):
     folder = copy(interrupted, tmp_path)
     cut(folder / "results.h5", 0.5)

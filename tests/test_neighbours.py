@@ -231,3 +231,17 @@ def test_a_bed_opened_under_an_order_seed_keeps_every_contact_history_through_it
             pair = (i, int(data["neighbours"][i, k]))
             if min(pair) == pair[0] and pair in before:
                 np.testing.assert_allclose(data["pair_tangential"][i, k], springs[pair], rtol=0.01)
+
+
+def test_a_start_state_of_positions_and_an_empty_list_opens_under_an_order_seed(device):
+    """SoilBuilder.start_from takes a state of positions and a neighbour list alone (the rest starts
+    fresh): its rows are put in partner order without the history it does not have."""
+    builder = SoilBuilder(gravity=0.0)
+    mat = builder.add_material(Material(youngs_modulus=1e6))
+    positions = np.array([[0.0, 0.0, 0.0], [0.01, 0.0, 0.0], [0.02, 0.0, 0.0]])
+    builder.add_particles(positions, 0.004, mat)
+    neighbours = np.array([[1, -1], [2, 0], [1, -1]], dtype=np.int32)  # row 1 descends
+    builder.start_from({"position": positions, "neighbours": neighbours})
+    sim = Simulation(*builder.finalize(device, "double", order_seed=3))
+    sim.step(1e-6)
+    assert np.isfinite(sim.positions()).all()
