@@ -205,7 +205,7 @@ class MeshWheel:
         kind = "STL (binary or ASCII)" if extension == ".stl" else "Wavefront OBJ"
         try:
             # force="mesh": a Trimesh whatever the file holds
-            mesh = cast("trimesh.Trimesh", trimesh.load(path, force="mesh", process=True))
+            mesh = cast("trimesh.Trimesh", trimesh.load(path, force="mesh", process=False))
         except Exception:
             # trimesh's own message names what failed inside it (a text decoder, a struct), not the file
             raise DamagedFileError(
@@ -213,6 +213,10 @@ class MeshWheel:
             ) from None
         if len(getattr(mesh, "faces", ())) == 0:
             raise DamagedFileError(f"wheel mesh {path!r} has no triangles: not a readable {kind} file")
+        bad = int(np.sum(~np.isfinite(np.asarray(mesh.vertices)).all(axis=1)))
+        if bad:  # (processed, trimesh would drop them and their triangles: the mesh would only look open)
+            raise DamagedFileError(f"wheel mesh {path!r}: {bad} vertices are not finite numbers (nan or inf)")
+        mesh.process()  # duplicate vertices merged, degenerate triangles dropped: what trimesh does on load
         if not mesh.is_watertight:
             raise SoilInputError(
                 f"wheel mesh {path!r} is not closed (watertight): inside and outside of the wheel need a closed "

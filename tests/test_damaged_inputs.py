@@ -335,6 +335,13 @@ def test_row09_an_inverted_mesh_is_turned_over_and_open_meshes_are_refused(tmp_p
     trimesh.Trimesh(vertices, triangles[:-2], process=False).export(tmp_path / "open.stl")
     with pytest.raises(ValueError, match="open.stl' is not closed"):
         MeshWheel.load(tmp_path / "open.stl")
+    # a vertex that is not a number is named as such, not taken for a hole
+    lines = trimesh.exchange.obj.export_obj(trimesh.Trimesh(vertices, triangles, process=False)).splitlines()
+    first = next(k for k, line in enumerate(lines) if line.startswith("v "))
+    lines[first + 3] = "v nan 0.0 0.01"
+    (tmp_path / "nan.obj").write_text("\n".join(lines) + "\n")
+    with pytest.raises(ValueError, match="nan.obj': 1 vertices are not finite"):
+        MeshWheel.load(tmp_path / "nan.obj")
 
 
 @pytest.mark.parametrize("name", ["garbage.stl", "cut.stl", "garbage.obj"])
