@@ -107,7 +107,7 @@ from soil.errors import DamagedFileError
 from soil.files import atomic_path, atomic_write_text, with_path
 
 from .folders import XDMF_DATA_FILE, XDMF_FILE
-from .snapshots import ARRAY_NAMES, read_snapshot
+from .snapshots import ARRAY_NAMES, read_snapshot, snapshot_datasets
 
 RESULTS_FORMAT = "regolith-cosim results 2"
 
@@ -719,17 +719,10 @@ def _structure_problem(f) -> str:
         + [f"soil/{name}" for name in SOIL_SERIES]
         + ([f"boundaries/{name}" for name in BOUNDARY_SERIES] if "boundaries" in f else [])
     )
-    ragged = "particles" in f and f["particles"].attrs.get("layout") == "ragged"
-    snapshot = ["particles/time", "particles/wheel_vertices", "particles/rover_position", "particles/rover_forward"]
-    snapshot += ["particles/rover_up"] + (
-        ["particles/first", "particles/count"] if ragged else ["particles/position", "particles/velocity"]
-    )
+    per_snapshot, whole_run = snapshot_datasets("particles" in f and f["particles"].attrs.get("layout") == "ragged")
+    snapshot = [f"particles/{name}" for name in per_snapshot]
     fixed = ["wheels/mesh/vertices", "wheels/mesh/triangles", "wheels/mesh/wheel"]
-    fixed += (
-        ["particles/id", "particles/radius", "particles/position", "particles/velocity"]
-        if ragged
-        else ["particles/radius"]
-    )
+    fixed += [f"particles/{name}" for name in whole_run]
     missing = [name for name in step + snapshot + fixed if name not in f]
     if missing:
         return f"missing {', '.join(missing[:4])}{' ...' if len(missing) > 4 else ''}"

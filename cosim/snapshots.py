@@ -52,6 +52,14 @@ class Snapshot:
     """Its z axis, a unit vector [-], shape (3,)."""
 
 
+def snapshot_datasets(ragged: bool) -> tuple[list[str], list[str]]:
+    """The particles group's datasets ResultsWriter.create makes: (those with a row per snapshot, those
+    of the whole run), for the fixed layout or the ragged one (a moving patch)."""
+    per_snapshot = ["time", "wheel_vertices", "rover_position", "rover_forward", "rover_up"]
+    per_snapshot += ["first", "count"] if ragged else ["position", "velocity"]
+    return per_snapshot, (["id", "radius", "position", "velocity"] if ragged else ["radius"])
+
+
 def snapshot_count(f) -> int:
     """Snapshots in an open results file, after checking that every snapshot dataset is there with a
     row per snapshot: DamagedFileError naming the file otherwise (a reader then stops before it writes).
@@ -62,9 +70,7 @@ def snapshot_count(f) -> int:
         raise DamagedFileError(f"{f.filename}: the results file is damaged (missing particles)")
     p = f["particles"]
     ragged = p.attrs.get("layout") == "ragged"
-    per_snapshot = ["time", "wheel_vertices", "rover_position", "rover_forward", "rover_up"]
-    per_snapshot += ["first", "count"] if ragged else ["position", "velocity"]
-    fixed = ["id", "radius", "position", "velocity"] if ragged else ["radius"]
+    per_snapshot, fixed = snapshot_datasets(ragged)
     missing = [f"particles/{name}" for name in per_snapshot + fixed if name not in p]
     problem = f"missing {', '.join(missing)}" if missing else ""
     if not problem:
