@@ -267,6 +267,30 @@ def _drive_slip(plan: RunPlan) -> tuple[float | None, str]:
     return float(target), key
 
 
+def judged_after_the_run(plan: RunPlan) -> list[tuple[str, str]]:
+    """(check, what it will compare) for each SCM check that only the run's own measurements can judge,
+    so that advice before a run names it instead of passing over it: the calibration depth
+    (`scm_calibration_depth`), on the run's rim sinkage. Bekker's closed form for a smooth wheel is
+    given beside it; on a grousered wheel it overstates SCM's own sinkage (the main job: 2.5x)."""
+    from .scm_soil import bekker_wheel_sinkage, scm_settings
+
+    tested = plan.terrain.calibration_sinkage
+    wheels = _scm_wheels(plan)
+    if tested is None or not wheels:
+        return []
+    parameters = scm_settings(plan, [plan.wheels.index(w) for w in wheels], 0.0).parameters
+    wheel = min(wheels, key=lambda w: w.width)
+    closed_form = bekker_wheel_sinkage(parameters, plan.wheel_load, wheel.outer_radius, wheel.width)
+    side = "beyond" if closed_form > tested else "within"
+    return [
+        (
+            "scm_calibration_depth",
+            f"the run's rim sinkage against the {tested:.3g} m the calibration's DEM tests reached (Bekker's "
+            f"closed form for a smooth wheel: {closed_form:.3g} m, {side} it)",
+        )
+    ]
+
+
 def scm_check(plan: RunPlan, measured: dict | None = None) -> list[Finding]:
     """Where the SCM tier cannot represent the run (each failed finding says what to do: use the DEM,
     or refine the grid, calibrate again): grouser-dominated traction (grouser height >

@@ -59,7 +59,9 @@ def _setup_output(verbose: bool) -> None:
 
     wp.config.log_level = wp.LOG_INFO if verbose else wp.LOG_ERROR
     if not verbose:
-        _init_silently(wp)
+        from soil import quiet_warp
+
+        quiet_warp()
     handler = logging.StreamHandler(sys.stderr)
     handler.setFormatter(logging.Formatter("%(levelname)s: %(message)s" if verbose else "%(message)s"))
     root = logging.getLogger()
@@ -70,20 +72,6 @@ def _setup_output(verbose: bool) -> None:
     # Warp leaves its compiler's precompiled-header folders to the interpreter's exit, which says so
     # after every first compile of a module: nothing of ours, and the folders are removed all the same
     warnings.filterwarnings("ignore", r"Implicitly cleaning up <TemporaryDirectory '.*wp_pch_", ResourceWarning)
-
-
-def _init_silently(wp) -> None:
-    """wp.init() with the C stderr muted: the native library prints a CUDA-driver warning on
-    machines without a GPU, whatever the log level."""
-    sys.stderr.flush()
-    saved = os.dup(2)
-    try:
-        with open(os.devnull, "w") as null:
-            os.dup2(null.fileno(), 2)
-            wp.init()
-    finally:
-        os.dup2(saved, 2)
-        os.close(saved)
 
 
 def _overrides(args) -> list[str]:
@@ -280,7 +268,11 @@ def advise_lines(plan) -> list[str]:
     findings = TERRAIN_MODELS[plan.terrain.model].validity(plan)
     for finding in findings:
         lines.append(f"  [{'ok' if finding.ok else 'OUT OF RANGE'}] {finding.check}: {finding.message}")
-    lines.append(f"verdict: {advice.verdict(findings)}")
+    pending = advice.judged_after_the_run(plan)
+    for check, what in pending:
+        lines.append(f"  [after the run] {check}: {what}")
+    waiting = f" (before the run; {', '.join(c for c, _ in pending)} waiting for the run's sinkage)" if pending else ""
+    lines.append(f"verdict: {advice.verdict(findings)}{waiting}")
     if plan.terrain.model != "scm":
         lines.append("largest stable step by trial: cosim study timestep SCENE")
     return lines

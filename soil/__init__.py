@@ -71,5 +71,27 @@ __all__ = [
 
 
 def quiet_warp() -> None:
-    """Silence Warp's per-module load messages (warnings and errors still show)."""
+    """Silence Warp's banner and per-module load messages (warnings and errors still show), and start
+    Warp with the C stderr muted: its native library prints a CUDA-driver warning on every process of a
+    machine without a GPU (each dask worker's too), whatever the log level. A scene that asks for a GPU
+    there is refused by name when it is planned."""
+    global _warp_started
     _wp.config.log_level = max(_wp.config.log_level, _wp.LOG_WARNING)
+    if _warp_started:
+        return
+    import os
+    import sys
+
+    sys.stderr.flush()
+    saved = os.dup(2)
+    try:
+        with open(os.devnull, "w") as null:
+            os.dup2(null.fileno(), 2)
+            _wp.init()
+    finally:
+        os.dup2(saved, 2)
+        os.close(saved)
+    _warp_started = True
+
+
+_warp_started = False

@@ -123,6 +123,17 @@ def test_no_library_chatter_on_the_output():
         assert not chatter, (args, chatter)
 
 
+def test_a_worker_process_starts_warp_without_chatter():
+    """A dask worker's task starts with soil.quiet_warp (cosim.study); on a machine without a GPU Warp's
+    native library used to print its CUDA-driver warning once per worker, into the user's output."""
+    code = "from soil import quiet_warp; quiet_warp(); import warp as wp; print(wp.get_device())"
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert done.returncode == 0, done.stderr
+    assert done.stdout.strip() in ("cpu", "cuda:0"), done.stdout
+    chatter = [line for line in done.stderr.splitlines() if line.startswith(("Warp ", "Module ")) or "CUDA" in line]
+    assert not chatter, chatter
+
+
 COLD_COMPILE = """
 import tempfile, warnings
 from cosim.cli import _setup_output

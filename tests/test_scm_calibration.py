@@ -228,6 +228,7 @@ def test_a_run_deeper_than_the_calibrations_tests_is_flagged(tmp_path):
     calibration's DEM tests reached (its plates' and its wheel runs' upper 95 % ends, whichever is
     deeper); not judged before a run, nor with a file that records none; a [source] that is not a
     number is refused naming the file."""
+    from cosim.cli import advise_lines
     from cosim.scm_calibration import tested_sinkage
     from cosim.system import validity
 
@@ -240,12 +241,18 @@ def test_a_run_deeper_than_the_calibrations_tests_is_flagged(tmp_path):
         assert plan.terrain.calibration_sinkage == pytest.approx(deepest, rel=1e-12)
         assert tested_sinkage(read_calibration(str(path))) == plan.terrain.calibration_sinkage
         assert not any(f.check == "scm_calibration_depth" for f in _findings(plan))  # before a run
+        advice = advise_lines(plan)  # ... where `cosim advise` names it as waiting for the run
+        (waiting,) = [line for line in advice if line.startswith("  [after the run] scm_calibration_depth: ")]
+        assert f" {deepest:.3g} m the calibration's DEM tests reached" in waiting, waiting
+        (verdict,) = [line for line in advice if line.startswith("verdict:")]
+        assert verdict.endswith("(before the run; scm_calibration_depth waiting for the run's sinkage)"), verdict
         for rim, ok in ((0.9 * deepest, True), (1.1 * deepest, False)):
             (finding,) = [f for f in validity(plan, 0.0, {"sinkage": rim}) if f.check == "scm_calibration_depth"]
             assert finding.ok == ok and ("extrapolated" in finding.message) != ok
     write_calibration(str(path), _calibration(1.625))
     plan = load_plan(scene)
     assert not any(f.check == "scm_calibration_depth" for f in validity(plan, 0.0, {"sinkage": 1.0}))
+    assert not any("[after the run]" in line or "waiting" in line for line in advise_lines(plan))
     source = {"plate": {"max_sinkage_m": "deep"}}
     write_calibration(str(path), ScmCalibration(_calibration(1.625).parameters, {}, 1.625, source))
     with pytest.raises(SceneError, match="terrain.toml: \\[source.plate\\] max_sinkage_m"):

@@ -14,7 +14,7 @@ from typing import Any
 
 import numpy as np
 
-from soil import Simulation, SimulationDiverged
+from soil import Simulation, SimulationDiverged, quiet_warp
 from soil.errors import RegolithError
 
 from ..beds import write_json
@@ -145,6 +145,7 @@ def lab_task(task: dict) -> dict:
     import warp as wp
 
     wp.config.log_level = wp.LOG_ERROR
+    quiet_warp()
     started = time.perf_counter()
     out = {"label": task.get("label"), "replica": task.get("replica")}
     try:
