@@ -248,8 +248,9 @@ USE_DEM = 'use the DEM there (terrain.model = "dem", or "dem" for that wheel in 
 
 def _scm_wheels(plan: RunPlan) -> list:
     """The plan's wheels on SCM."""
-    models = plan.terrain.wheel_models
-    return [w for i, w in enumerate(plan.wheels) if not models or models[i] == "scm"]
+    from .scm_soil import scm_wheel_indices
+
+    return [plan.wheels[i] for i in scm_wheel_indices(plan)]
 
 
 def _drive_slip(plan: RunPlan) -> tuple[float | None, str]:

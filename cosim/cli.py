@@ -280,6 +280,8 @@ def advise_lines(plan) -> list[str]:
 
 def _scm_advice(plan) -> list[str]:
     """An SCM scene's grid, its wheels' Bekker sinkage and elastic bounce, and its coupling step."""
+    from soil.scm import grid_memory, grid_shape
+
     from .scm_soil import bekker_wheel_sinkage, elastic_bounce, scm_settings
 
     indices = [i for i, m in enumerate(plan.terrain.wheel_models or ["scm"] * max(1, len(plan.wheels))) if m == "scm"]
@@ -291,14 +293,18 @@ def _scm_advice(plan) -> list[str]:
     omega = max(elastic_bounce(p, w, plan.wheel_load, plan.g)[0] for w in wheels) if plan.g > 0 else math.nan
     given = plan.scene.run.macro_step is not None
     source = "run.macro_step" if given else ("the DEM's step" if plan.terrain.model == "mixed" else "SCM's own step")
-    nodes = math.ceil(settings.window[0] / p.node_spacing) * math.ceil(settings.window[1] / p.node_spacing)
+    shape = grid_shape(settings.window, p.node_spacing)
+    nodes = shape[0] * shape[1]
+    device_bytes, host_bytes = grid_memory(nodes, plan.precision, plan.device)
+    memory = f"{device_bytes / 1e6:,.0f} MB on {plan.device}, " if plan.device.startswith("cuda") else ""
+    memory += f"{host_bytes / 1e6:,.0f} MB of host memory"
     return [
         f"scene {plan.name}: |g| = {plan.g:.4g} m/s^2 on SCM (no grains), wheel load {plan.wheel_load:.4g} N",
         f"  Bekker k_c, k_phi, n       {p.k_c:.4g} Pa m^(1-n), {p.k_phi:.4g} Pa m^-n, {p.n:.4g}; "
         f"c = {p.cohesion:.4g} Pa, phi = {p.friction_angle:.4g} deg, K = {p.janosi_k:.4g} m, K_e = "
         f"{p.elastic_stiffness:.4g} Pa/m",
         f"  grid                       node spacing {p.node_spacing:.4g} m, window {settings.window[0]:.3g} x "
-        f"{settings.window[1]:.3g} m ({nodes:,} nodes, following the wheels)",
+        f"{settings.window[1]:.3g} m ({nodes:,} nodes, following the wheels; about {memory})",
         f"  static sinkage (Bekker)    {sinkage:.4g} m; elastic bounce omega_e = {omega:.4g} rad/s",
         f"  the scene couples at H = {plan.macro_step:.4g} s (omega_e H = {omega * plan.macro_step:.3g} rad; "
         f"set by {source}), "

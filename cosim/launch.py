@@ -31,6 +31,7 @@ from .output import ResultsWriter, read_series
 from .plan import RunPlan, load_plan, resolve
 from .runner import Runner, RunResult
 from .scene import Scene, SceneError, scene_from_text
+from .scm_soil import check_scm_grid
 from .system import CoupledSystem, needs_bed, validity
 
 log = logging.getLogger(__name__)
@@ -64,6 +65,8 @@ def open_run(
     bedded = needs_bed(plan)
     if bedded and soil is None:
         check_memory(plan)  # before anything is allocated or written
+    if soil is None:
+        check_scm_grid(plan)
     folder = RunFolder(out_dir)
     with folder.locked():
         folder.check_free(overwrite)

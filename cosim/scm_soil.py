@@ -22,7 +22,7 @@ from numpy.typing import ArrayLike
 from soil.control import quaternion_integrate, quaternion_multiply, quaternion_to_matrix
 from soil.errors import ArgumentError
 from soil.geometry import GrouserWheel
-from soil.scm import ScmParameters, ScmTerrain
+from soil.scm import ScmParameters, ScmTerrain, check_grid, grid_shape
 
 from .contract import (
     Particles,
@@ -190,6 +190,33 @@ def scm_settings(plan, wheels: Sequence[int], surface_height: float, soil: dict 
             values["pressure_damping"] = 2.0 * DAMPING_RATIO * math.sqrt(parameters.elastic_stiffness * mass / area)
     values.pop("surface_height", None)
     return ScmSettings(scm_parameters(values), (float(window[0]), float(window[1])), float(time_step), surface_height)
+
+
+def scm_wheel_indices(plan) -> list[int]:
+    """The indices of the plan's wheels on SCM (every wheel on an SCM terrain, terrain.wheels' "scm"
+    ones on a mixed one; none on another terrain)."""
+    if plan.terrain.model not in ("scm", "mixed"):
+        return []
+    models = plan.terrain.wheel_models
+    return [i for i in range(len(plan.wheels)) if not models or models[i] == "scm"]
+
+
+def check_scm_grid(plan) -> None:
+    """Refuse, before anything is allocated or written, the SCM grid of a plan's SCM wheels when Warp
+    cannot index it or this machine cannot hold it (soil.scm.check_grid), naming the keys that size it."""
+    indices = scm_wheel_indices(plan)
+    if not indices:
+        return
+    settings = scm_settings(plan, indices, 0.0)
+    spacing, (length, width) = settings.parameters.node_spacing, settings.window
+    check_grid(
+        grid_shape(settings.window, spacing),
+        plan.precision,
+        plan.device,
+        f"scene {plan.name!r}: the SCM grid of window {length:.4g} x {width:.4g} m at node spacing {spacing:.3g} m",
+        "set a larger terrain.node_spacing (its default resolves the thinnest grouser) or a smaller window "
+        "(terrain.window_length, terrain.window_width)",
+    )
 
 
 class ScmSoil(SoilSideDefaults):

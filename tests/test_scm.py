@@ -282,6 +282,35 @@ def test_the_window_scrolls_with_the_wheel_in_fixed_memory():
     assert terrain.surface_height_at(hub - 0.5, 0.0) == 0.0  # out of the window: forgotten
 
 
+@pytest.mark.parametrize("precision", ["single", "double"])
+def test_a_grids_memory_is_known_before_it_is_allocated(precision):
+    """grid_memory's device bytes are what a terrain's node arrays take, to the byte per node (two
+    grids' terrains differ by exactly the estimate's difference, up to the per-chunk sums); a grid
+    Warp cannot index, or one larger than this machine's memory, is refused before any allocation,
+    naming the grid and the remedy."""
+    from soil.memory import SoilTooLargeError, free_host_memory
+    from soil.scm import check_grid, grid_memory
+    from soil.scm.terrain import MAX_NODES
+
+    wheel = GrouserWheel(radius=0.1, width=0.04)
+    small = ScmTerrain(parameters(), [wheel], window=(0.1, 0.1), precision=precision)
+    large = ScmTerrain(parameters(), [wheel], window=(0.4, 0.3), precision=precision)
+    estimated = grid_memory(large.node_count, precision, "cpu")[0] - grid_memory(small.node_count, precision, "cpu")[0]
+    measured = large.memory_bytes() - small.memory_bytes()
+    per_node = estimated / (large.node_count - small.node_count)
+    assert per_node == (88 if precision == "single" else 160)  # 13 node arrays and the next reference heights
+    assert abs(measured - estimated) <= 0.01 * estimated
+    device, host = grid_memory(1000, precision, "cuda:0")
+    assert device == 1000 * per_node and host < device  # on a GPU the host keeps only a checkpoint's copy
+    with pytest.raises(SoilInputError, match=r"75,000 x 60,000 = 4,500,000,000 nodes, more than Warp indexes"):
+        ScmTerrain(parameters(node_spacing=2e-5), [wheel], window=(1.5, 1.2), precision=precision)
+    free = free_host_memory()
+    if free is not None and 2 * free / per_node < MAX_NODES:  # a grid Warp indexes, twice the free memory
+        side = int(math.sqrt(2 * free / per_node)) + 2
+        with pytest.raises(SoilTooLargeError, match=r"the grid: .* GB of host memory \(.* GB free\); smaller"):
+            check_grid((side, side), precision, "cpu", "the grid", "smaller")
+
+
 @pytest.mark.parametrize(
     "field, value",
     [

@@ -121,6 +121,18 @@ def test_an_scm_run_resumes_bit_for_bit(scm_run, tmp_path):
         np.testing.assert_array_equal(first[name], second[name], err_msg=name)
 
 
+def test_an_scm_grid_too_large_is_refused_before_the_run_folder(tmp_path):
+    """A node spacing that makes a grid Warp cannot index is refused by scene key before the run's
+    folder is made, so a run already there is left as it was."""
+    from soil.errors import InputError
+
+    scene = write_tiny(tmp_path, SCM + "node_spacing = 1.0e-6\n")
+    out = tmp_path / "run"
+    with pytest.raises(InputError, match=r"more than Warp indexes .*terrain\.node_spacing.*terrain\.window_length"):
+        run_scene(scene, str(out))
+    assert not out.exists()
+
+
 def test_a_rover_scene_runs_on_scm(tmp_path):
     from rover_helpers import write_small_rover
 

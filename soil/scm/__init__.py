@@ -49,6 +49,6 @@ step (a step is graph-capturable), so runs repeat and resume bit for bit.
 """
 
 from .kernels import scm_kernels
-from .terrain import ScmParameters, ScmTerrain, WheelContact
+from .terrain import ScmParameters, ScmTerrain, WheelContact, check_grid, grid_memory, grid_shape
 
-__all__ = ["ScmParameters", "ScmTerrain", "WheelContact", "scm_kernels"]
+__all__ = ["ScmParameters", "ScmTerrain", "WheelContact", "check_grid", "grid_memory", "grid_shape", "scm_kernels"]

@@ -11,6 +11,7 @@ import warp as wp
 from ..control import quaternion_integrate, quaternion_to_matrix
 from ..errors import SoilInputError
 from ..geometry import GrouserWheel, MeshWheel
+from ..memory import SoilTooLargeError, free_device_memory, free_host_memory
 from ..precision import get_precision
 from .kernels import GROUSER_WHEEL, MESH_WHEEL, scm_kernels
 
@@ -132,6 +133,51 @@ PATH_COLUMNS = 13
 _NODE_STATE = ("key_i", "key_j", "reference", "plastic", "shear")
 """The per-node arrays a run carries from step to step (the rest is rewritten where a step reads it)."""
 
+MAX_NODES = 2**31 - 1
+"""The most nodes a grid may have: Warp indexes an array with a signed 32-bit integer."""
+
+
+def grid_shape(window: Sequence[float], node_spacing: float) -> tuple[int, int]:
+    """Nodes along x and y of a grid window (length, width) [m] at `node_spacing` [m] (whole nodes, at least 2)."""
+    return max(2, int(round(window[0] / node_spacing))), max(2, int(round(window[1] / node_spacing)))
+
+
+def grid_memory(node_count: int, precision: str, device: str) -> tuple[int, int]:
+    """(device, host) bytes an ScmTerrain of `node_count` nodes needs for what grows with its grid [B]:
+    on the device the Nodes arrays and the next step's reference heights; on the host the copy of the
+    node state that a checkpoint or a height field takes (with its slot index), plus the device's bytes
+    when the device is the CPU. The per-wheel and per-chunk arrays (a few kB) are left out."""
+    prec = get_precision(precision)
+    nodes = scm_kernels(prec.hi).Nodes.vars
+    size = wp.types.type_size_in_bytes
+    on_device = sum(size(var.type.dtype) for var in nodes.values()) + size(prec.hi)
+    copied = sum(size(nodes[name].type.dtype) for name in (*_NODE_STATE, "wheel")) + 8
+    device_bytes, host_bytes = int(node_count) * on_device, int(node_count) * copied
+    if not str(device).startswith("cuda"):
+        host_bytes += device_bytes
+    return device_bytes, host_bytes
+
+
+def check_grid(shape: tuple[int, int], precision: str, device: str, what: str, remedy: str) -> None:
+    """Refuse a grid of `shape` nodes that Warp cannot index (more than MAX_NODES: SoilInputError) or
+    that does not fit this machine's free memory (soil.memory.SoilTooLargeError), before anything is
+    allocated; `what` names the grid and `remedy` says what to change."""
+    count = shape[0] * shape[1]
+    if count > MAX_NODES:
+        raise SoilInputError(
+            f"{what}: {shape[0]:,} x {shape[1]:,} = {count:,} nodes, more than Warp indexes ({MAX_NODES:,}); {remedy}"
+        )
+    device_bytes, host_bytes = grid_memory(count, precision, device)
+    cuda = str(device).startswith("cuda")
+    device_free = free_device_memory(device) if cuda else None
+    host_free = free_host_memory()
+    if (device_free is not None and device_bytes > device_free) or (host_free is not None and host_bytes > host_free):
+        on = f"{device_bytes / 1e9:.3g} GB on {device} ({(device_free or 0) / 1e9:.3g} GB free) and " if cuda else ""
+        raise SoilTooLargeError(
+            f"{what}: {count:,} nodes need about {on}{host_bytes / 1e9:.3g} GB of host memory "
+            f"({(host_free or 0) / 1e9:.3g} GB free); {remedy}"
+        )
+
 
 class ScmTerrain:
     """An SCM terrain: a flat soil surface at height `surface_height` (world z up) under a window of
@@ -183,7 +229,14 @@ class ScmTerrain:
         self.precision = get_precision(precision)
         self.surface_height = float(surface_height)
         spacing = parameters.node_spacing
-        self.shape = (max(2, int(round(window[0] / spacing))), max(2, int(round(window[1] / spacing))))
+        self.shape = grid_shape(window, spacing)
+        check_grid(
+            self.shape,
+            self.precision.name,
+            str(self.device),
+            f"the SCM grid of window {window[0]:.4g} x {window[1]:.4g} m at node spacing {spacing:.3g} m",
+            "a larger parameters.node_spacing or a smaller window",
+        )
         self.node_count = self.shape[0] * self.shape[1]
         self._chunks = (self.node_count + CHUNK - 1) // CHUNK
         reach = max(math.hypot(*_cylinder_of(wheel)) for wheel in wheels)
