@@ -246,11 +246,12 @@ steady-state Bekker/Janosi model is outside the measured range."""
 USE_DEM = 'use the DEM there (terrain.model = "dem", or "dem" for that wheel in terrain.wheels)'
 
 
-def _scm_wheels(plan: RunPlan) -> list:
-    """The plan's wheels on SCM."""
+def _scm_wheels(plan: RunPlan) -> tuple[list[int], list]:
+    """The indices of the plan's wheels on SCM, and those wheels."""
     from .scm_soil import scm_wheel_indices
 
-    return [plan.wheels[i] for i in scm_wheel_indices(plan)]
+    indices = scm_wheel_indices(plan)
+    return indices, [plan.wheels[i] for i in indices]
 
 
 def _drive_slip(plan: RunPlan) -> tuple[float | None, str]:
@@ -276,10 +277,10 @@ def judged_after_the_run(plan: RunPlan) -> list[tuple[str, str]]:
     from .scm_soil import bekker_wheel_sinkage, scm_settings
 
     tested = plan.terrain.calibration_sinkage
-    wheels = _scm_wheels(plan)
+    indices, wheels = _scm_wheels(plan)
     if tested is None or not wheels:
         return []
-    parameters = scm_settings(plan, [plan.wheels.index(w) for w in wheels], 0.0).parameters
+    parameters = scm_settings(plan, indices, 0.0).parameters
     wheel = min(wheels, key=lambda w: w.width)
     closed_form = bekker_wheel_sinkage(parameters, plan.wheel_load, wheel.outer_radius, wheel.width)
     side = "beyond" if closed_form > tested else "within"
@@ -306,10 +307,9 @@ def scm_check(plan: RunPlan, measured: dict | None = None) -> list[Finding]:
     from .scm_calibration import same_gravity
     from .scm_soil import NODES_ACROSS_GROUSER, bekker_wheel_sinkage, grouser_thickness, scm_settings
 
-    wheels = _scm_wheels(plan)
+    indices, wheels = _scm_wheels(plan)
     if not wheels:
         return []
-    indices = [plan.wheels.index(w) for w in wheels]
     parameters = scm_settings(plan, indices, 0.0).parameters
     wheel = min(wheels, key=lambda w: w.width)
     measured = measured or {}

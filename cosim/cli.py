@@ -282,12 +282,12 @@ def _scm_advice(plan) -> list[str]:
     """An SCM scene's grid, its wheels' Bekker sinkage and elastic bounce, and its coupling step."""
     from soil.scm import grid_memory, grid_shape
 
-    from .scm_soil import bekker_wheel_sinkage, elastic_bounce, scm_settings
+    from .scm_soil import bekker_wheel_sinkage, elastic_bounce, scm_settings, scm_wheel_indices
 
-    indices = [i for i, m in enumerate(plan.terrain.wheel_models or ["scm"] * max(1, len(plan.wheels))) if m == "scm"]
+    indices = scm_wheel_indices(plan)
     settings = scm_settings(plan, indices, 0.0)
     p = settings.parameters
-    wheels = [plan.wheels[i] for i in indices] if plan.wheels else [plan.wheel]
+    wheels = [plan.wheels[i] for i in indices]
     wheel = min(wheels, key=lambda w: w.width)
     sinkage = bekker_wheel_sinkage(p, plan.wheel_load, wheel.outer_radius, wheel.width)
     omega = max(elastic_bounce(p, w, plan.wheel_load, plan.g)[0] for w in wheels) if plan.g > 0 else math.nan

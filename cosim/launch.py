@@ -24,7 +24,7 @@ import numpy as np
 from soil.stability import read_checkpoint
 
 from . import records
-from .beds import Bed, bed_from_file, check_memory, settled_bed, write_json
+from .beds import Bed, bed_from_file, check_memory, memory_estimate, settled_bed, write_json
 from .contract import SoilSide
 from .folders import RUN_FILE, SCENE_FILE, RunFolder, read_json
 from .output import ResultsWriter, read_series
@@ -63,10 +63,13 @@ def open_run(
     block ends. `soil`: the soil side to couple (a world of a batch, cosim.batch); None: the plan's own,
     on its settled bed."""
     bedded = needs_bed(plan)
-    if bedded and soil is None:
-        check_memory(plan)  # before anything is allocated or written
-    if soil is None:
-        check_scm_grid(plan)
+    if soil is None:  # before anything is allocated or written
+        grains = (0, 0)
+        if bedded:
+            check_memory(plan)
+            estimate = memory_estimate(plan)
+            grains = (estimate.device_bytes, estimate.host_bytes)
+        check_scm_grid(plan, reserved=grains)  # a mixed terrain's SCM wheels beside its grains
     folder = RunFolder(out_dir)
     with folder.locked():
         folder.check_free(overwrite)

@@ -22,7 +22,7 @@ from numpy.typing import ArrayLike
 from soil.control import quaternion_integrate, quaternion_multiply, quaternion_to_matrix
 from soil.errors import ArgumentError
 from soil.geometry import GrouserWheel
-from soil.scm import ScmParameters, ScmTerrain, check_grid, grid_shape
+from soil.scm import ScmParameters, ScmTerrain, check_grid
 
 from .contract import (
     Particles,
@@ -201,21 +201,25 @@ def scm_wheel_indices(plan) -> list[int]:
     return [i for i in range(len(plan.wheels)) if not models or models[i] == "scm"]
 
 
-def check_scm_grid(plan) -> None:
+def check_scm_grid(plan, reserved: tuple[int, int] = (0, 0), memory: bool = True) -> None:
     """Refuse, before anything is allocated or written, the SCM grid of a plan's SCM wheels when Warp
-    cannot index it or this machine cannot hold it (soil.scm.check_grid), naming the keys that size it."""
+    cannot index it or (with `memory`) this machine cannot hold it beside `reserved` (device, host)
+    bytes [B] the run's grains take, if any (soil.scm.check_grid), naming the keys that size it.
+    Without `memory`: the grid is allocated elsewhere (an exported FMU's server checks it there)."""
     indices = scm_wheel_indices(plan)
     if not indices:
         return
     settings = scm_settings(plan, indices, 0.0)
     spacing, (length, width) = settings.parameters.node_spacing, settings.window
     check_grid(
-        grid_shape(settings.window, spacing),
+        settings.window,
+        spacing,
         plan.precision,
         plan.device,
-        f"scene {plan.name!r}: the SCM grid of window {length:.4g} x {width:.4g} m at node spacing {spacing:.3g} m",
-        "set a larger terrain.node_spacing (its default resolves the thinnest grouser) or a smaller window "
-        "(terrain.window_length, terrain.window_width)",
+        what=f"scene {plan.name!r}: the SCM grid of window {length:.4g} x {width:.4g} m at spacing {spacing:.3g} m",
+        keys=("terrain.node_spacing", "terrain.window_length, terrain.window_width"),
+        reserved=reserved,
+        memory=memory,
     )
 
 

@@ -74,10 +74,10 @@ def run_task(task: dict) -> dict:
     """Run one scene (task: scene_toml, overrides, out_dir, label, overwrite); never raises."""
     from .launch import run_plan
 
-    quiet_warp()
     started = time.perf_counter()
     out = {"label": task.get("label"), "out_dir": task["out_dir"], "overrides": task.get("overrides", {})}
     try:
+        quiet_warp()
         result = run_plan(task_plan(task), task["out_dir"], overwrite=task.get("overwrite", False))
         out.update(ok=True, status=result.status, summary=result.summary)
     except BaseException as error:  # noqa: BLE001 - a failed replica is a result, not a crash

@@ -11,6 +11,8 @@ sim.run(duration=1.0, dt=1e-4)
 force, torque, contacts = sim.boundary_wrenches()   # the grains' push on each wall
 """
 
+import threading
+
 import warp as _wp
 
 from . import advisor
@@ -72,26 +74,35 @@ __all__ = [
 
 def quiet_warp() -> None:
     """Silence Warp's banner and per-module load messages (warnings and errors still show), and start
-    Warp with the C stderr muted: its native library prints a CUDA-driver warning on every process of a
-    machine without a GPU (each dask worker's too), whatever the log level. A scene that asks for a GPU
-    there is refused by name when it is planned."""
+    Warp with the C stderr held back: its native library prints a CUDA-driver warning on every process
+    of a machine without a GPU (each dask worker's too), whatever the log level. What Warp printed is
+    shown after all if it fails to start. A scene that asks for a GPU there is refused by name when it
+    is planned. Safe from several threads (a dask worker's): one starts Warp, the others wait."""
     global _warp_started
     _wp.config.log_level = max(_wp.config.log_level, _wp.LOG_WARNING)
-    if _warp_started:
-        return
-    import os
-    import sys
+    with _warp_start_lock:
+        if _warp_started:
+            return
+        import os
+        import sys
+        import tempfile
 
-    sys.stderr.flush()
-    saved = os.dup(2)
-    try:
-        with open(os.devnull, "w") as null:
-            os.dup2(null.fileno(), 2)
-            _wp.init()
-    finally:
-        os.dup2(saved, 2)
-        os.close(saved)
-    _warp_started = True
+        sys.stderr.flush()
+        saved = os.dup(2)
+        with tempfile.TemporaryFile() as held:
+            try:
+                os.dup2(held.fileno(), 2)
+                _wp.init()
+            except BaseException:
+                os.dup2(saved, 2)
+                held.seek(0)
+                sys.stderr.write(held.read().decode(errors="replace"))
+                raise
+            finally:
+                os.dup2(saved, 2)
+                os.close(saved)
+        _warp_started = True
 
 
 _warp_started = False
+_warp_start_lock = threading.Lock()

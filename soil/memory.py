@@ -63,11 +63,7 @@ class MemoryEstimate:
         return host_ok and device_ok
 
     def text(self) -> str:
-        def size(value):
-            if value is None:
-                return "unknown"
-            return f"{value / 1e9:.3g} GB" if value >= 1e9 else f"{value / 1e6:.3g} MB"
-
+        size = format_bytes
         if self.device.startswith("cuda"):
             return (
                 f"{self.grains:,} grains in {self.precision}: about {size(self.device_bytes)} on {self.device} "
@@ -78,6 +74,13 @@ class MemoryEstimate:
             f"{self.grains:,} grains in {self.precision}: about {size(self.host_bytes)} of host memory "
             f"({size(self.host_free)} free)"
         )
+
+
+def format_bytes(value: int | None) -> str:
+    """A byte count as GB or MB, for messages ("unknown" for None)."""
+    if value is None:
+        return "unknown"
+    return f"{value / 1e9:.3g} GB" if value >= 1e9 else f"{value / 1e6:.3g} MB"
 
 
 def free_host_memory() -> int | None:

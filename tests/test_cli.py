@@ -134,6 +134,27 @@ def test_a_worker_process_starts_warp_without_chatter():
     assert not chatter, chatter
 
 
+BROKEN_START = """
+import os, warp as wp, soil
+def broken():
+    os.write(2, b"native: no device library\\n")
+    raise RuntimeError("Warp failed to start")
+wp.init = broken
+try:
+    soil.quiet_warp()
+except RuntimeError as error:
+    print("raised:", error)
+os.write(2, b"stderr back\\n")
+"""
+
+
+def test_warp_failing_to_start_still_says_why():
+    """quiet_warp holds back what Warp prints while it starts, and shows it when the start fails."""
+    done = subprocess.run([sys.executable, "-c", BROKEN_START], capture_output=True, text=True, timeout=120)
+    assert done.stdout.strip() == "raised: Warp failed to start", done
+    assert done.stderr.splitlines() == ["native: no device library", "stderr back"], done.stderr
+
+
 COLD_COMPILE = """
 import tempfile, warnings
 from cosim.cli import _setup_output

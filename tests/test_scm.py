@@ -283,14 +283,14 @@ def test_the_window_scrolls_with_the_wheel_in_fixed_memory():
 
 
 @pytest.mark.parametrize("precision", ["single", "double"])
-def test_a_grids_memory_is_known_before_it_is_allocated(precision):
+def test_a_grids_memory_is_known_before_it_is_allocated(precision, monkeypatch):
     """grid_memory's device bytes are what a terrain's node arrays take, to the byte per node (two
-    grids' terrains differ by exactly the estimate's difference, up to the per-chunk sums); a grid
-    Warp cannot index, or one larger than this machine's memory, is refused before any allocation,
-    naming the grid and the remedy."""
-    from soil.memory import SoilTooLargeError, free_host_memory
+    grids' terrains differ by the estimate's difference, up to the per-chunk sums); a grid Warp cannot
+    index, or one larger than the free memory left beside what else the run holds, is refused before
+    any allocation, naming the grid and the smallest node spacing that fits."""
+    import soil.scm.terrain as terrain_module
+    from soil.memory import SoilTooLargeError
     from soil.scm import check_grid, grid_memory
-    from soil.scm.terrain import MAX_NODES
 
     wheel = GrouserWheel(radius=0.1, width=0.04)
     small = ScmTerrain(parameters(), [wheel], window=(0.1, 0.1), precision=precision)
@@ -304,11 +304,28 @@ def test_a_grids_memory_is_known_before_it_is_allocated(precision):
     assert device == 1000 * per_node and host < device  # on a GPU the host keeps only a checkpoint's copy
     with pytest.raises(SoilInputError, match=r"75,000 x 60,000 = 4,500,000,000 nodes, more than Warp indexes"):
         ScmTerrain(parameters(node_spacing=2e-5), [wheel], window=(1.5, 1.2), precision=precision)
-    free = free_host_memory()
-    if free is not None and 2 * free / per_node < MAX_NODES:  # a grid Warp indexes, twice the free memory
-        side = int(math.sqrt(2 * free / per_node)) + 2
-        with pytest.raises(SoilTooLargeError, match=r"the grid: .* GB of host memory \(.* GB free\); smaller"):
-            check_grid((side, side), precision, "cpu", "the grid", "smaller")
+    # the free memory as a machine reports it: 1 GB on the host, 2 GB on the GPU
+    monkeypatch.setattr(terrain_module, "free_host_memory", lambda: 10**9)
+    monkeypatch.setattr(terrain_module, "free_device_memory", lambda device: 2 * 10**9)
+    names = dict(what="the grid", keys=("grid.h", "grid.size"))
+    fits_host = 10**9 / grid_memory(1, precision, "cpu")[1]  # nodes
+    side = math.sqrt(fits_host) * 0.01  # [m] at 0.01 m a node
+    check_grid((0.95 * side, 0.95 * side), 0.01, precision, "cpu", **names)  # fits
+    with pytest.raises(
+        SoilTooLargeError, match=r"the grid: .* of host memory \(1 GB free for it\); grid.h must be"
+    ) as refused:
+        check_grid((1.05 * side, 1.05 * side), 0.01, precision, "cpu", **names)
+    least = float(str(refused.value).split("must be at least about ")[1].split(" m")[0])
+    assert 0.0105 <= least <= 0.0111  # the spacing at which the same window fits
+    with pytest.raises(SoilTooLargeError, match=r"\(500 MB free for it\)"):  # beside grains that take half
+        check_grid((0.8 * side, 0.8 * side), 0.01, precision, "cpu", reserved=(0, 5 * 10**8), **names)
+    fits_device = 2 * 10**9 / per_node
+    side = math.sqrt(fits_device) * 0.01
+    with pytest.raises(SoilTooLargeError, match=r"on cuda:0 \(2 GB free for it\)"):
+        check_grid((1.05 * side, 1.05 * side), 0.01, precision, "cuda:0", **names)
+    check_grid((1.05 * side, 1.05 * side), 0.01, precision, "cuda:0", memory=False, **names)  # the index only
+    monkeypatch.setattr(terrain_module, "free_host_memory", lambda: None)
+    check_grid((10.0, 10.0), 0.01, precision, "cpu", **names)  # free memory not reported: not judged
 
 
 @pytest.mark.parametrize(

@@ -633,6 +633,17 @@ def _bekker_static_sinkage(load: float, radius: float, width: float, spacing: fl
     return brentq(carried, 1e-7, 0.5 * radius)
 
 
+def test_an_scm_grid_warp_cannot_index_is_refused_at_export(tmp_path):
+    """Refused by scene key before an FMU is written (the server would refuse it only when instantiated);
+    the grid's memory is the machine's that runs the FMU, and not judged here."""
+    from helpers import write_tiny
+    from soil.errors import InputError
+
+    scene = write_tiny(tmp_path, SCM_TERRAIN + "node_spacing = 1.0e-6\n")
+    with pytest.raises(InputError, match=r"more than Warp indexes.*terrain\.node_spacing must be at least"):
+        soil_config_from(scene)
+
+
 def test_scm_fmu_steps_bitwise_like_the_runs_scm_soil_and_carries_the_load_at_bekkers_sinkage(scm, importer):
     """Two instances of the SCM soil FMU in fmpy (FMI 2.0). One wheel is held still at Bekker's static
     sinkage under the scene's wheel load: the soil carries that load (to the grid's discretisation, 2 %),

@@ -145,10 +145,10 @@ def lab_task(task: dict) -> dict:
     import warp as wp
 
     wp.config.log_level = wp.LOG_ERROR
-    quiet_warp()
     started = time.perf_counter()
     out = {"label": task.get("label"), "replica": task.get("replica")}
     try:
+        quiet_warp()
         plan = resolve_lab(lab_scene_from_text(task["scene_toml"], task.get("base_dir"), task.get("overrides")))
         result = task["runner"](plan, **task.get("arguments", {}))
         out.update(ok=True, result=result)

@@ -539,10 +539,10 @@ def _bed_fit_task(task: dict) -> dict:
 
     from ..study import task_plan
 
-    quiet_warp()  # Warp's banner and module lines: once per worker, not the user's business
     if not task["targets"]:
         return {"label": task["label"], "ok": False, "error": "fewer than two slips averaged on this bed"}
     try:
+        quiet_warp()  # Warp's banner and module lines: once per worker, not the user's business
         parameters, _, report = fit_to_wheel(
             task_plan(task), task["targets"], task["start"], runs=task["runs"], max_runs=task["max_runs"]
         )

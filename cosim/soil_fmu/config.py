@@ -124,6 +124,9 @@ def soil_config_from(path, bed_folder=None) -> SoilFmuConfig:
     _require_fmu_scene(plan, path)  # before a bed is settled
     assert plan.testbed is not None
     if plan.terrain.model == "scm":
+        from cosim.scm_soil import check_scm_grid
+
+        check_scm_grid(plan, memory=False)  # the server allocates it, on its own machine
         return _scm_config(plan)
     if run_folder:
         bed_path = os.path.join(path, "bed.h5")

@@ -11,7 +11,7 @@ import warp as wp
 from ..control import quaternion_integrate, quaternion_to_matrix
 from ..errors import SoilInputError
 from ..geometry import GrouserWheel, MeshWheel
-from ..memory import SoilTooLargeError, free_device_memory, free_host_memory
+from ..memory import SoilTooLargeError, format_bytes, free_device_memory, free_host_memory
 from ..precision import get_precision
 from .kernels import GROUSER_WHEEL, MESH_WHEEL, scm_kernels
 
@@ -158,25 +158,53 @@ def grid_memory(node_count: int, precision: str, device: str) -> tuple[int, int]
     return device_bytes, host_bytes
 
 
-def check_grid(shape: tuple[int, int], precision: str, device: str, what: str, remedy: str) -> None:
-    """Refuse a grid of `shape` nodes that Warp cannot index (more than MAX_NODES: SoilInputError) or
-    that does not fit this machine's free memory (soil.memory.SoilTooLargeError), before anything is
-    allocated; `what` names the grid and `remedy` says what to change."""
+def check_grid(
+    window: Sequence[float],
+    node_spacing: float,
+    precision: str,
+    device: str,
+    *,
+    what: str,
+    keys: tuple[str, str],
+    reserved: tuple[int, int] = (0, 0),
+    memory: bool = True,
+) -> None:
+    """Refuse, before anything is allocated, a grid of `window` (length, width) [m] at `node_spacing` [m]
+    that Warp cannot index (more than MAX_NODES nodes: SoilInputError) or, with `memory`, that does not
+    fit this machine's free memory less `reserved` (device, host) bytes [B] that something else of the
+    same run takes (soil.memory.SoilTooLargeError). `what` names the grid; `keys` are the names of the
+    node spacing and of the window's sizes, for the smallest spacing the message says is allowed."""
+    shape = grid_shape(window, node_spacing)
     count = shape[0] * shape[1]
+    spacing_key, window_keys = keys
+    fix = f"or a smaller window ({window_keys})"
     if count > MAX_NODES:
+        least = node_spacing * math.sqrt(count / MAX_NODES)
         raise SoilInputError(
-            f"{what}: {shape[0]:,} x {shape[1]:,} = {count:,} nodes, more than Warp indexes ({MAX_NODES:,}); {remedy}"
+            f"{what}: {shape[0]:,} x {shape[1]:,} = {count:,} nodes, more than Warp indexes ({MAX_NODES:,}); "
+            f"{spacing_key} must be at least about {least:.3g} m on this window, {fix}"
         )
+    if not memory:
+        return
     device_bytes, host_bytes = grid_memory(count, precision, device)
     cuda = str(device).startswith("cuda")
-    device_free = free_device_memory(device) if cuda else None
-    host_free = free_host_memory()
-    if (device_free is not None and device_bytes > device_free) or (host_free is not None and host_bytes > host_free):
-        on = f"{device_bytes / 1e9:.3g} GB on {device} ({(device_free or 0) / 1e9:.3g} GB free) and " if cuda else ""
-        raise SoilTooLargeError(
-            f"{what}: {count:,} nodes need about {on}{host_bytes / 1e9:.3g} GB of host memory "
-            f"({(host_free or 0) / 1e9:.3g} GB free); {remedy}"
-        )
+    need = {"device": device_bytes, "host": host_bytes}
+    free = {"device": free_device_memory(device) if cuda else None, "host": free_host_memory()}
+    left = {w: max(0, f - r) for (w, f), r in zip(free.items(), reserved) if f is not None}
+    if all(need[w] <= left[w] for w in left):  # free memory not reported: nothing to judge
+        return
+    fits = min(left[w] / need[w] for w in left) * count
+    least = node_spacing * math.sqrt(count / max(fits, 1.0))
+    on = (
+        f"{format_bytes(device_bytes)} on {device} ({format_bytes(left.get('device'))} free for it) and "
+        if cuda
+        else ""
+    )
+    raise SoilTooLargeError(
+        f"{what}: {count:,} nodes need about {on}{format_bytes(host_bytes)} of host memory "
+        f"({format_bytes(left.get('host'))} free for it); {spacing_key} must be at least about {least:.3g} m on this "
+        f"window, {fix}, or use a machine with more memory"
+    )
 
 
 class ScmTerrain:
@@ -231,11 +259,12 @@ class ScmTerrain:
         spacing = parameters.node_spacing
         self.shape = grid_shape(window, spacing)
         check_grid(
-            self.shape,
+            window,
+            spacing,
             self.precision.name,
             str(self.device),
-            f"the SCM grid of window {window[0]:.4g} x {window[1]:.4g} m at node spacing {spacing:.3g} m",
-            "a larger parameters.node_spacing or a smaller window",
+            what=f"the SCM grid of window {window[0]:.4g} x {window[1]:.4g} m at node spacing {spacing:.3g} m",
+            keys=("parameters.node_spacing", "window"),
         )
         self.node_count = self.shape[0] * self.shape[1]
         self._chunks = (self.node_count + CHUNK - 1) // CHUNK
