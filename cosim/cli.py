@@ -256,7 +256,10 @@ def cmd_advise(args) -> int:
 def advise_lines(plan) -> list[str]:
     """Stiffness, time-step and validity advice for a plan (soil.advisor, cosim.advice); on SCM the
     grid, the static sinkage and the coupling step instead of the grains' scales."""
+    from soil.errors import InputError
+
     from . import advice
+    from .scm_soil import check_scm_grid
     from .system import TERRAIN_MODELS
 
     lines = _scm_advice(plan) if plan.terrain.model == "scm" else _dem_advice(plan)
@@ -266,6 +269,12 @@ def advise_lines(plan) -> list[str]:
         f"validity checks ({plan.terrain.model} terrain):" if plan.terrain.model != "dem" else "validity checks:"
     )
     findings = TERRAIN_MODELS[plan.terrain.model].validity(plan)
+    try:
+        check_scm_grid(plan)  # what a run refuses before it starts
+    except InputError as refused:
+        findings.append(
+            advice.Finding("scm_grid_size", math.nan, math.nan, False, str(refused), "terrain.node_spacing")
+        )
     for finding in findings:
         lines.append(f"  [{'ok' if finding.ok else 'OUT OF RANGE'}] {finding.check}: {finding.message}")
     pending = advice.judged_after_the_run(plan)
@@ -438,9 +447,18 @@ def cmd_export_fmu(args) -> int:
     """cosim export-fmu SCENE_OR_RUN_DIR --out soil.fmu [--fmi 2|3] [--wheels N] (docs/fmu.md)."""
     import tempfile
 
+    from soil.errors import ArgumentError
+
+    from .scene import is_device_name
     from .soil_fmu import export_soil_fmu, soil_config_from
 
     _free_output_file(args.out, (".fmu",), args.overwrite)
+    if args.device and not is_device_name(args.device):
+        raise ArgumentError(f"--device {args.device!r}: must be 'default', 'cpu', 'cuda' or 'cuda:N'")
+    if args.bed_folder and os.path.exists(args.bed_folder) and not os.path.isdir(args.bed_folder):
+        raise ArgumentError(f"--bed-folder {args.bed_folder!r} is a file; name a folder (made if missing)")
+    if args.bed_folder:
+        os.makedirs(args.bed_folder, exist_ok=True)
     with tempfile.TemporaryDirectory(prefix="soil_fmu_bed_") as scratch:
         config = soil_config_from(args.source, bed_folder=args.bed_folder or scratch)
         if args.device:

@@ -18,7 +18,7 @@ import os
 
 import numpy as np
 
-from soil.errors import DamagedFileError
+from soil.errors import ArgumentError, DamagedFileError
 
 from .folders import PLOTS_DIR, RESULTS_FILE
 from .output import read_series
@@ -59,7 +59,7 @@ def plot_output(out_dir: str, plot_dir: str | None = None, dpi: int = 120) -> li
     plt = _pyplot()
     paths = find_results(out_dir)
     if not paths:
-        raise FileNotFoundError(f"no {RESULTS_FILE} under {out_dir!r}: run `cosim run SCENE --out {out_dir}` first")
+        raise ArgumentError(f"no {RESULTS_FILE} under {out_dir!r}: run `cosim run SCENE --out {out_dir}` first")
     plot_dir = plot_dir or os.path.join(out_dir, PLOTS_DIR)
     runs = []
     damaged = []

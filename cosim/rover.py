@@ -83,7 +83,15 @@ def make_controller(plan: RunPlan):
         return FmuController(r.drive.file, n, mode=section.mode, start_values=section.start_values)
     assert section.function is not None
     factory = import_callable(section.function, plan.scene.base_dir)
-    controller = factory(wheel_count=n, wheel_radius=radii, **(section.args or {}))
+    try:
+        controller = factory(wheel_count=n, wheel_radius=radii, **(section.args or {}))
+    except Exception as error:  # the user's factory: its arguments or its own failure, named
+        raise SceneError(
+            [
+                f"rover.drive.function: {section.function}(wheel_count, wheel_radius, **args) with args "
+                f"{dict(section.args or {})!r} raised {type(error).__name__}: {error}"
+            ]
+        ) from error
     if not callable(controller):
         raise SceneError(
             [

@@ -71,6 +71,11 @@ class _Section(BaseModel):
     )
 
 
+def is_device_name(value: str) -> bool:
+    """Whether `value` names a Warp device as a scene may: 'default', 'cpu', 'cuda' or 'cuda:N'."""
+    return value in ("default", "cpu", "cuda") or (value.startswith("cuda:") and value[5:].isdigit())
+
+
 class SceneSection(_Section):
     name: str = Field("scene", min_length=1)
     """A label for the run (plots, HDF5 attributes)."""
@@ -114,7 +119,7 @@ class SceneSection(_Section):
     @field_validator("device")
     @classmethod
     def _device(cls, value):
-        if value not in ("default", "cpu", "cuda") and not (value.startswith("cuda:") and value[5:].isdigit()):
+        if not is_device_name(value):
             raise ValueError("must be 'default', 'cpu', 'cuda' or 'cuda:N'")
         return value
 
@@ -556,8 +561,8 @@ class TerrainSection(_Section):
     """scm: Bekker cohesive modulus k_c [Pa m^(1-n)]."""
     k_phi: float | None = Field(None, ge=0)
     """scm: Bekker frictional modulus k_phi [Pa m^(-n)]."""
-    n: float | None = Field(None, gt=0)
-    """scm: Bekker sinkage exponent [-]."""
+    n: float | None = Field(None, gt=0, lt=3)
+    """scm: Bekker sinkage exponent [-] (below 3: the wheel's closed-form sinkage has 3 - n)."""
     cohesion: float | None = Field(None, ge=0)
     """scm: Mohr-Coulomb cohesion [Pa]."""
     friction_angle_deg: float | None = Field(None, ge=0, lt=90)

@@ -190,6 +190,10 @@ def _bed_fits(fits, where: str) -> dict[str, list]:
             raise CalibrationError(f"{where} {key}: not an SCM key; allowed: {', '.join(SOIL_KEYS)}")
         if not isinstance(values, list) or not all(isinstance(v, (int, float)) for v in values):
             raise CalibrationError(f"{where} {key}: must be a list of numbers, got {values!r}")
+    counts = {key: len(values) for key, values in fits.items()}
+    if len(set(counts.values())) > 1:  # a value per bed, in bed order: lists of unequal length misalign the beds
+        listed = ", ".join(f"{key} {count}" for key, count in counts.items())
+        raise CalibrationError(f"{where}: every key must hold one value per bed (the same count); got {listed}")
     return fits
 
 

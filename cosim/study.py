@@ -682,8 +682,11 @@ def precision_study(
     if plot:
         from .plots import plot_output, plot_scatter
 
-        written = plot_output(out_dir) + [plot_scatter(out_dir, rows, "precision")]
-        log.info("plots: %s", ", ".join(written))
+        try:
+            written = plot_output(out_dir) + [plot_scatter(out_dir, rows, "precision")]
+            log.info("plots: %s", ", ".join(written))
+        except ArgumentError as error:  # no results.h5 under out_dir: every run failed
+            log.warning("%s", error)
     return report
 
 
@@ -1034,7 +1037,7 @@ def sweep(
 
         try:
             log.info("plots: %s", ", ".join(plot_output(out_dir)))
-        except FileNotFoundError as error:
+        except ArgumentError as error:  # no results.h5 under out_dir: every run failed
             log.warning("%s", error)
     return report
 

@@ -20,7 +20,7 @@ import shutil
 
 import numpy as np
 
-from soil.errors import DamagedFileError, InputError
+from soil.errors import ArgumentError, DamagedFileError, InputError
 
 from .folders import PLOTS_DIR, RESULTS_FILE
 from .output import open_results
@@ -92,6 +92,11 @@ class _Scene:
         self.slip = self.slip if self.slip.ndim == 1 else self.slip[:, 0]
         self.sinkage = f["wheels/sinkage"][()][:, 0] if len(self.step_time) else np.zeros(0)
         count = snapshot_count(f)
+        if count == 0 or not len(read_snapshot(f, 0).ids):
+            raise ArgumentError(
+                f"{f.filename}: no grains to draw (a run on SCM or the analytic terrain, or one without snapshots): "
+                "`cosim view` draws the grains; `cosim plot RUN` draws the run's series"
+            )
         # one pass for the colour range: the largest per-snapshot 99th percentile (a few fast grains do not wash
         # it out) over the drive (the landing's impact would), or over every snapshot without a drive
         displacements = Displacements()

@@ -496,3 +496,14 @@ def test_a_disk_that_turns_read_only_mid_run_loses_nothing_written(tmp_path, tin
     with open_results(out / "results.h5") as f:
         time = f["wheels/time"][()]
     assert np.all(np.diff(time) > 0)  # no lost or duplicated rows
+
+
+def test_plot_and_export_fmu_of_a_folder_that_is_not_a_run_are_bad_input(tmp_path, capsys):
+    """A folder named as a run that holds none is the argument's fault: exit 2, naming the folder."""
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    assert main(["plot", str(empty)]) == 2
+    assert f"no results.h5 under {str(empty)!r}" in capsys.readouterr().err
+    assert main(["export-fmu", str(empty), "--out", str(tmp_path / "soil.fmu")]) == 2
+    assert "is not a run folder: it has no scene.toml" in capsys.readouterr().err
+    assert os.listdir(empty) == [] and not (tmp_path / "soil.fmu").exists()

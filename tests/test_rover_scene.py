@@ -83,6 +83,20 @@ def test_bad_rover_input_is_rejected_with_exit_code_2(tmp_path, capsys, what, ch
     assert not out.exists() or not os.listdir(out), "nothing may be written before the scene is valid"
 
 
+def test_a_controller_factory_that_fails_is_named(tmp_path, capsys):
+    """A python drive whose factory refuses its arguments (or fails otherwise): exit code 2 naming the
+    function, its args and the error (it was an 'unexpected error'), and no run files written."""
+    scene = _rig(tmp_path)
+    out = tmp_path / "out"
+    drive = 'rover.drive={kind="python", function="os:getcwd", args={bogus=1}}'
+    assert main(["run", scene, "--out", str(out), "--no-progress", "--set", drive]) == 2
+    message = capsys.readouterr().err
+    assert "rover.drive.function: os:getcwd" in message and "{'bogus': 1}" in message and "TypeError" in message
+    from cosim.folders import RunFolder
+
+    assert RunFolder(str(out)).run_files() == [], "no run files before the controller is built (its bed may be)"
+
+
 def test_fmu_rover_input_errors_name_the_field(tmp_path, fmus, capsys):
     """An FMU without the rover variables, a wheel count the FMU does not have, an FMU controller for
     another wheel count: exit code 2, the field named, the FMU's variables listed."""

@@ -67,6 +67,10 @@ def test_each_bed_takes_its_own_fit_and_keeps_the_files_value_where_it_has_none(
         bed_soils(_calibration({"n": ["a", 1.0]}, 9.81), "c.toml")
     with pytest.raises(CalibrationError, match=r"\[source.replica_fits\] k_x: not an SCM key"):
         bed_soils(_calibration({"k_x": [1.0, 2.0]}, 9.81))
+    with pytest.raises(
+        CalibrationError, match=r"c.toml: \[source.replica_fits\]: every key must hold one value per bed"
+    ):
+        bed_soils(_calibration({"k_phi": [1.0, 2.0], "n": [0.9, 1.2, 1.0]}, 9.81), "c.toml")  # would misalign
 
 
 def test_a_wheel_fit_over_beds_gives_each_bed_its_own_wheel_fit_and_its_labs_held_keys():

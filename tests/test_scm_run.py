@@ -85,6 +85,18 @@ def _static_sinkage(load, radius, width, spacing, k_phi=K_PHI):
     return brentq(carried, 1e-7, 0.5 * radius)
 
 
+def test_view_of_an_scm_run_says_it_has_no_grains(scm_run, tmp_path):
+    """An SCM run has no grains for `cosim view` to draw: a clear input error naming the file (it was a
+    numpy error on an empty array), and nothing written."""
+    from cosim.view import render
+    from soil.errors import InputError
+
+    run, _ = scm_run
+    with pytest.raises(InputError, match=r"results.h5: no grains to draw .*cosim plot RUN"):
+        render(str(run), str(tmp_path / "view.mp4"))
+    assert not (tmp_path / "view.mp4").exists()
+
+
 def test_the_wheel_carries_its_load_at_bekkers_sinkage(scm_run):
     run, _ = scm_run
     series = read_series(run / "results.h5")
@@ -131,6 +143,11 @@ def test_an_scm_grid_too_large_is_refused_before_the_run_folder(tmp_path):
     with pytest.raises(InputError, match=r"more than Warp indexes .*terrain\.node_spacing.*terrain\.window_length"):
         run_scene(scene, str(out))
     assert not out.exists()
+    from cosim.cli import advise_lines
+
+    advice = advise_lines(load_plan(scene))  # advice before a run says what the run refuses
+    assert any(line.startswith("  [OUT OF RANGE] scm_grid_size: ") for line in advice)
+    assert "scm_grid_size" in next(line for line in advice if line.startswith("verdict: out of range"))
 
 
 def test_a_rover_scene_runs_on_scm(tmp_path):

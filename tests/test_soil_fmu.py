@@ -439,6 +439,9 @@ def test_export_fmu_command_from_a_run_folder(tmp_path):
     out.write_bytes(b"an older FMU")
     assert main(["export-fmu", str(run), "--out", str(out), "--fmi", "3", "--wheels", "2"]) == 3  # exists
     assert out.read_bytes() == b"an older FMU"
+    for bad in (["--device", "banana"], ["--bed-folder", str(run / "results.h5")]):  # refused, nothing written
+        assert main(["export-fmu", str(run), "--out", str(out), "--overwrite", *bad]) == 2, bad
+        assert out.read_bytes() == b"an older FMU"
     assert main(["export-fmu", str(run), "--out", str(out), "--fmi", "3", "--wheels", "2", "--overwrite"]) == 0
     assert validate_fmu(str(out)) == []
     description = fmpy.read_model_description(str(out))

@@ -119,7 +119,7 @@ def soil_config_from(path, bed_folder=None) -> SoilFmuConfig:
     run_folder = os.path.isdir(path)
     scene_file = os.path.join(path, "scene.toml") if run_folder else path
     if run_folder and not os.path.isfile(scene_file):
-        raise FileNotFoundError(f"{path!r} is not a run folder: it has no scene.toml")
+        raise ArgumentError(f"{path!r} is not a run folder: it has no scene.toml")
     plan = load_plan(scene_file)
     _require_fmu_scene(plan, path)  # before a bed is settled
     assert plan.testbed is not None

@@ -98,6 +98,7 @@ class ScmParameters:
         check("k_phi", self.k_c + self.k_phi > 0, "> 0 when k_c is 0 (k_c + k_phi > 0)")
         for name in ("n", "janosi_k", "elastic_stiffness", "node_spacing"):
             check(name, number(name) > 0, "> 0")
+        check("n", number("n") < 3, "< 3 (a wheel's Bekker sinkage has 3 - n; soils measure 0.2-1.5)")
         check("friction_angle", 0 <= number("friction_angle") < 90, "in [0, 90) [deg]")
         check("bulldozing", isinstance(self.bulldozing, bool), "True or False")
         check("bulldozing_fraction", 0 <= number("bulldozing_fraction") <= 1, "in [0, 1]")
