@@ -381,7 +381,9 @@ def cmd_study(args) -> int:
         )
     if args.kind == "precision":
         out = args.out or os.path.join("runs", f"{plan.name}_precision")
-        precisions = [p.strip() for p in args.precisions.split(",") if p.strip()]
+        from .scene import parse_list
+
+        precisions = [str(p) for p in parse_list(args.precisions, "--precisions")]
         report = study.precision_study(
             plan,
             out,
@@ -395,7 +397,7 @@ def cmd_study(args) -> int:
         print(f"study written to {out} ({failed} failed replica(s))")
         return EXIT_OK if failed == 0 else EXIT_ERROR
     if args.kind == "slip":
-        from .scene import parse_value
+        from .scene import parse_list
 
         out = args.out or os.path.join("runs", f"{plan.name}_slip")
         if args.from_runs:  # tabulate runs already made: a study stopped before its end, or run in parts
@@ -404,7 +406,7 @@ def cmd_study(args) -> int:
             )
             print(report["text"])
             return EXIT_OK if report["ok"] else EXIT_UNSTEADY
-        slips = [parse_value(s) for s in args.slips.split(",") if s.strip()]
+        slips = parse_list(args.slips, "--slips")
         report = study.slip_study(
             plan,
             out,
@@ -436,6 +438,7 @@ def cmd_sweep(args) -> int:
 def cmd_scale(args) -> int:
     from .similarity import write_gravity_twin
 
+    _free_output_file(args.out, (".toml",), args.overwrite)
     path, factor = write_gravity_twin(
         args.scene, args.gravity, args.out, overwrite=args.overwrite, overrides=_overrides(args)
     )
@@ -729,7 +732,7 @@ def _fit_to_wheel(args, lab, work: str):
     """The lab calibration `lab` refitted to the DEM wheel runs (cosim calibrate-scm --from-wheel)."""
     from .lab.scm import combine_errors
     from .lab.scm_wheel import FITTED, fit_to_wheel, run_wheel_tests, wheel_targets
-    from .scene import SceneError, parse_value
+    from .scene import SceneError, parse_list
     from .scm_calibration import SOIL_UNITS, ScmCalibration, read_calibration, same_gravity
 
     plan = _plan(args)
@@ -740,7 +743,7 @@ def _fit_to_wheel(args, lab, work: str):
     if args.wheel_runs:
         folder = args.wheel_runs
     else:
-        slips = [parse_value(s) for s in args.slips.split(",") if s.strip()]
+        slips = parse_list(args.slips, "--slips")
         replicas = args.replicas if args.replicas is not None else 3
         folder = run_wheel_tests(plan, os.path.join(work, "wheel"), slips, replicas, **_executor(args))
     runs = os.path.join(work, "wheel_scm") if args.max_runs else None

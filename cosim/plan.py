@@ -43,6 +43,12 @@ WALL_GRAINS = 4
 rover's wheels and a patch's frozen band [-]."""
 
 
+MAX_PHASE_STEPS = 1e10
+"""Most steps a run's soil or coupling may take in one phase (settling, landing, driving) [count]: a day
+even at 10 us a step, quicker than a GPU steps the smallest bed; beyond it a run never ends in practice
+(a stiffness or a step far from the scene's scale)."""
+
+
 @dataclass(frozen=True)
 class WheelPlan:
     """The wheel's shape, material and extents."""
@@ -522,13 +528,13 @@ def resolve(scene: Scene) -> RunPlan:
             _wheel(scene, soil_material.youngs_modulus, shapes[n], f"rover.wheel_shape.{n}") if n in shapes else wheel
             for n in (names or [])
         )
-        if g > 0 and -gravity[2] < 0.5 * g:
-            problems.append(
-                f"scene.gravity: a rover's soil rests on the floor z = 0, so gravity must point down (-z) "
-                f"within 60 deg (a slope); got {list(gravity)} m/s^2"
-            )
     else:
         wheels = (wheel,)
+    if g > 0 and -gravity[2] < 0.5 * g:  # upwards the grains leave the open box; sideways they pile on a wall
+        problems.append(
+            f"scene.gravity: the soil rests on the floor z = 0, so gravity must point down (-z) "
+            f"within 60 deg (a slope); got {list(gravity)} m/s^2"
+        )
     section = scene.soil.law
     materials = (soil_material, *(w.material for w in wheels or (wheel,)))
     law = ContactLaw(
@@ -590,6 +596,7 @@ def resolve(scene: Scene) -> RunPlan:
             f"macro step {macro_step:.4g} s"
         )
     land = scene.landing
+    problems += _step_count_problems(scene, dt, dt_key, macro_step, substeps, settle_dt, bed_file is None)
     if land.enabled and g == 0:
         problems.append("landing.enabled: a wheel cannot land without gravity; set landing.enabled = false")
     outer = max([w.outer_radius for w in wheels] or [wheel.outer_radius])
@@ -707,6 +714,39 @@ def _scm_macro_step(terrain: TerrainPlan, wheels, testbed, rover, g: float, grav
     else:
         return math.nan
     return scm_macro_step(dict(terrain.parameters), wheels, load, g, speed)
+
+
+def _step_count_problems(
+    scene: Scene, dt: float, dt_key: str, macro_step: float, substeps: int, settle_dt: float, settles: bool
+) -> list[str]:
+    """The phase with the most steps, where they exceed MAX_PHASE_STEPS, named by the keys that set its
+    step: settling (grains settled here), landing and driving (the macro steps, the DEM's substeps on
+    grains, SCM's own steps where terrain.time_step is finer)."""
+    on_grains = _on_grains(scene)
+    terrain = scene.terrain
+    scm_step = terrain.time_step if terrain is not None and terrain.model == "scm" else None
+    rayleigh = "the Rayleigh step of the smallest grain: soil.youngs_modulus, soil.density, bed.radius_mean"
+    dem_keys = f"run.dt_factor x {rayleigh}" if dt_key == "run.dt_factor" else dt_key
+    macro_keys = "run.macro_step" if scene.run.macro_step is not None else f"run.substeps x {dem_keys}"
+    steps = []  # (count, what, the key that sets its step and what it comes from)
+    if settles and on_grains:
+        steps.append((scene.bed.settle_max_time / settle_dt, "settling", f"bed.settle_dt_factor x {rayleigh}"))
+    for phase, duration in (
+        ("landing", scene.landing.max_time if scene.landing.enabled else 0.0),
+        ("driving", scene.run.duration),
+    ):
+        steps.append((duration / macro_step, f"{phase} (macro steps)", macro_keys))
+        if on_grains:
+            steps.append((duration / dt, f"{phase} (DEM steps)", dem_keys))
+        if scm_step is not None:
+            steps.append((duration / scm_step, f"{phase} (SCM steps)", "terrain.time_step"))
+    count, what, keys = max(steps)
+    if count <= MAX_PHASE_STEPS:
+        return []
+    return [
+        f"{keys.split(' ')[0]}: {count:.3g} steps of {what}, more than {MAX_PHASE_STEPS:.0e} (a day even at 10 us "
+        f"a step): the step {'(' + keys + ') ' if ' ' in keys else ''}is far below the scene's scale"
+    ]
 
 
 def _on_grains(scene: Scene) -> bool:

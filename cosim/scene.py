@@ -23,11 +23,11 @@
                step_control (fixed | pid), tolerance, dt_min, dt_max
     [output]   snapshot_interval, checkpoint_interval, flush_every
 
-This module only validates: every number must be finite and in its range, unknown keys
-are errors, and `SceneError` names each bad field and what it allows. Quantities derived
-from several fields (time steps, wheel extents, start pose) and the checks between
-sections are made once, by `cosim.plan.resolve`. All units SI; angles in degrees where the
-key says `_deg`.
+This module only validates: every number must be a number (not true / false), finite, 0 or of
+magnitude SCENE_NUMBER_RANGE, and in its range, unknown keys are errors, and `SceneError` names
+each bad field and what it allows. Quantities derived from several fields (time steps, wheel
+extents, start pose) and the checks between sections are made once, by `cosim.plan.resolve`.
+All units SI; angles in degrees where the key says `_deg`.
 """
 
 from __future__ import annotations
@@ -63,17 +63,76 @@ class SceneError(InputError, ValueError):
         super().__init__(f"invalid scene{where}:\n" + "\n".join(f"  - {p}" for p in self.problems))
 
 
+SCENE_NUMBER_RANGE = (1e-30, 1e30)
+"""The magnitudes a scene number may have besides 0 (SI): far beyond any rover scene's quantities, and
+narrow enough that what a run derives from them (powers up to the tenth) neither over- nor underflows."""
+
+_INT64_MAX = 2**63 - 1
+"""The largest integer a scene may give (counts and seeds are written as 64-bit integers)."""
+
+
+def _numbers(value) -> list:
+    """The numbers in a field's value: itself, or the items of a list or a table's values."""
+    if isinstance(value, dict):
+        return list(value.values())
+    return list(value) if isinstance(value, (list, tuple)) else [value]
+
+
+def _annotation_types(annotation) -> set:
+    """The types a field's annotation names, its unions' and containers' members included."""
+    return {annotation}.union(*(_annotation_types(a) for a in typing.get_args(annotation)))
+
+
+def reject_bool_for_number(model: type[BaseModel], name: str, value):
+    """A before-validator's test: true / false where a field takes a number and no boolean is refused
+    (pydantic would read it as 1 or 0: `gravity = true` as 1 m/s^2)."""
+    field = model.model_fields.get(name)
+    kinds = set() if field is None else _annotation_types(field.annotation)
+    if kinds & {float, int} and bool not in kinds and any(isinstance(v, bool) for v in _numbers(value)):
+        raise ValueError("must be a number, not true or false")
+    return value
+
+
+def check_magnitude(value):
+    """An after-validator's test: every float is 0 or within SCENE_NUMBER_RANGE, every integer a 64-bit one."""
+    low, high = SCENE_NUMBER_RANGE
+    for v in _numbers(value):
+        if isinstance(v, float) and v != 0 and not low <= abs(v) <= high:
+            raise ValueError(
+                f"must be 0 or of magnitude {low:g} .. {high:g} (SI): beyond, what the run derives from it "
+                "overflows or underflows"
+            )
+        if isinstance(v, int) and not isinstance(v, bool) and abs(v) > _INT64_MAX:
+            raise ValueError(f"must be an integer of magnitude <= {_INT64_MAX} (a 64-bit integer)")
+    return value
+
+
 class _Section(BaseModel):
-    # no inf / nan anywhere: a scene number is a physical quantity; a key's docstring is its description
-    # (its unit in brackets: key_unit)
+    # no inf / nan anywhere, and no number out of SCENE_NUMBER_RANGE: a scene number is a physical
+    # quantity; a key's docstring is its description (its unit in brackets: key_unit)
     model_config = ConfigDict(
         extra="forbid", validate_assignment=True, allow_inf_nan=False, use_attribute_docstrings=True
     )
+
+    @field_validator("*", mode="before")
+    @classmethod
+    def _no_bool_for_number(cls, value, info):
+        return reject_bool_for_number(cls, info.field_name, value)
+
+    @field_validator("*")
+    @classmethod
+    def _magnitude(cls, value):
+        return check_magnitude(value)
 
 
 def is_device_name(value: str) -> bool:
     """Whether `value` names a Warp device as a scene may: 'default', 'cpu', 'cuda' or 'cuda:N'."""
     return value in ("default", "cpu", "cuda") or (value.startswith("cuda:") and value[5:].isdigit())
+
+
+SCENE_NAME_BYTES = 128
+"""The longest scene name, in UTF-8 bytes: folders named after it (runs/NAME_precision/double_r0) stay
+under the 255 bytes a file name may have."""
 
 
 class SceneSection(_Section):
@@ -97,6 +156,11 @@ class SceneSection(_Section):
             raise ValueError(
                 "must be a plain name, not a path (no '/', '\\', no leading '.'): the run goes to runs/NAME; "
                 "choose another folder with --out"
+            )
+        if len(value.encode()) > SCENE_NAME_BYTES:
+            raise ValueError(
+                f"must be at most {SCENE_NAME_BYTES} bytes (got {len(value.encode())}): it names the run's folder "
+                "and the studies' (NAME_slip/..., NAME_precision), which a file system caps at 255"
             )
         return value
 
@@ -333,8 +397,9 @@ class DriveSection(_Section):
     """kind 'slip': proportional gain on the hub velocity error [-] (default 1)."""
     ki: float | None = Field(None, ge=0)
     """kind 'slip': integral gain [1/s] (default 20)."""
-    omega_min: float | None = None
-    """kind 'slip': lowest commanded speed [rad/s] (default: 0.1 x omega_max)."""
+    omega_min: float | None = Field(None, ge=0)
+    """kind 'slip': lowest commanded speed [rad/s] (default: 0.1 x omega_max; >= 0: the wheels never turn
+    backwards to hold a slip)."""
     omega_max: float | None = Field(None, gt=0)
     """kind 'slip': highest commanded speed [rad/s] (required)."""
     file: str | None = None
@@ -856,6 +921,15 @@ def parse_value(text: str) -> Any:
         return tomllib.loads(f"v = {text.strip()}")["v"]
     except tomllib.TOMLDecodeError:
         return text.strip()
+
+
+def parse_list(text: str, option: str) -> list[Any]:
+    """'0.1,0.2' -> [0.1, 0.2], each entry read as parse_value does; SceneError names `option` (e.g.
+    '--slips') when an entry is empty ('0.1,,0.2', a trailing comma): a value lost to a typo."""
+    entries = [entry.strip() for entry in text.split(",")]
+    if not all(entries):
+        raise SceneError([f"{option} {text!r}: an empty entry; expected comma-separated values, e.g. 0.1,0.2"])
+    return [parse_value(entry) for entry in entries]
 
 
 def apply_overrides(data: dict, overrides: list[str] | dict | None) -> dict:

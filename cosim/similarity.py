@@ -123,6 +123,8 @@ def write_gravity_twin(path: str, gravity, out: str, overwrite: bool = False, ov
     """Write the twin of the scene file `path` at `gravity` (preset or magnitude) to `out`."""
     import tomli_w
 
+    from soil.files import atomic_path
+
     from .plan import resolve
     from .scene import parse_value, validate_scene
 
@@ -138,6 +140,6 @@ def write_gravity_twin(path: str, gravity, out: str, overwrite: bool = False, ov
         f"# The DEM-similar twin of {os.path.basename(path)} at |g| x {s:.9g} (cosim scale; "
         "cosim/similarity.py): stiffnesses and forces x s, speeds x sqrt(s), times / sqrt(s).\n"
     )
-    with open(out, "w") as f:
+    with atomic_path(out) as temporary, open(temporary, "w") as f:  # a crash leaves the former file whole
         f.write(header + tomli_w.dumps(twin.to_dict()))
     return out, s

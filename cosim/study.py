@@ -925,14 +925,14 @@ def _slip_report(
 
 def parse_params(params: list[str]) -> dict[str, list]:
     """['wheel.radius=0.03,0.04', ...] -> {'wheel.radius': [0.03, 0.04], ...} (values read as TOML)."""
-    from .scene import parse_value
+    from .scene import parse_list
 
     grid = {}
     for text in params:
         if "=" not in text:
             raise SceneError([f"--param {text!r}: expected key=v1,v2,..."])
         key, values = text.split("=", 1)
-        grid[key.strip()] = [parse_value(v) for v in values.split(",")]
+        grid[key.strip()] = parse_list(values, f"--param {key.strip()}")
     return grid
 
 

@@ -10,6 +10,10 @@ from __future__ import annotations
 
 import os
 import shutil
+import signal
+import subprocess
+import sys
+import tempfile
 import xml.etree.ElementTree as ET
 import zipfile
 from typing import Any
@@ -77,14 +81,60 @@ def check_binaries(path: str | os.PathLike, md) -> None:
         raise FmuError(f"{path}: the FMU has no binary for this platform ({here}; binaries for: {others}).{sources}")
 
 
+CHILD_TIMEOUT = 120.0
+"""Longest wait for a child process to instantiate an FMU [s] (check_instantiates)."""
+
+_INSTANTIATED: set[tuple[str, int, int]] = set()
+"""The FMU files (real path, size [bytes], modification time [ns]) a child process of this one has
+instantiated without dying."""
+
+
+def check_instantiates(path: str | os.PathLike) -> None:
+    """FmuError naming the file when instantiating the FMU kills a process: a damaged binary or missing
+    resources can crash the FMU's own code (a segmentation fault), which no Python error catches and
+    which would end a run without a word. Tried in a child process once per file and process."""
+    path = os.fspath(path)
+    info = os.stat(path)
+    key = (os.path.realpath(path), info.st_size, info.st_mtime_ns)
+    if key in _INSTANTIATED:
+        return
+    try:
+        with tempfile.TemporaryDirectory(prefix="fmu_check_") as scratch:  # what a dying child leaves unpacked
+            child = subprocess.run(
+                [sys.executable, "-m", "rover_models.fmu_session", path],
+                capture_output=True,
+                text=True,
+                timeout=CHILD_TIMEOUT,
+                env={**os.environ, "TMPDIR": scratch},
+            )
+    except subprocess.TimeoutExpired:
+        raise FmuError(
+            f"{path}: the FMU did not instantiate within {CHILD_TIMEOUT:g} s in a child process (its code hangs)"
+        ) from None
+    if child.returncode < 0:
+        said = (child.stderr or child.stdout).strip()[-500:]
+        raise FmuError(
+            f"{path}: instantiating the FMU killed the process ({signal.Signals(-child.returncode).name}): its "
+            "binary or its resources are damaged or missing; build or export it again"
+            + (f". It printed: {said}" if said else "")
+        )
+    _INSTANTIATED.add(key)  # a Python-level failure is reported where it is instantiated in this process
+
+
 def instantiate_cosim(path: str | os.PathLike, md, instance_name: str, start_time: float):
     """Unpack and instantiate a co-simulation FMU (model description `md`) and enter
-    initialization mode at start_time [s]; a failure removes the unpacked files again.
+    initialization mode at start_time [s]; a failure removes the unpacked files again. An FMU
+    that crashes the process instantiating it is refused first (check_instantiates).
 
     Returns (slave, unzip directory, set_real, get_real): the fmpy FMU2Slave/FMU3Slave and
     its Real (2.0) / Float64 (3.0) setter and getter.
     """
     check_binaries(path, md)
+    check_instantiates(path)
+    return _instantiate(path, md, instance_name, start_time)
+
+
+def _instantiate(path: str | os.PathLike, md, instance_name: str, start_time: float):
     unzipdir = extract(os.fspath(path))
     kwargs = dict(
         guid=md.guid,
@@ -241,3 +291,19 @@ class FmuSession:
 
     def __exit__(self, *exc):
         self.close()
+
+
+def _instantiate_and_free(path: str) -> None:
+    """check_instantiates' child: instantiate the FMU, enter and leave initialization, free it."""
+    md = read_cosim_description(path)
+    fmu, unzipdir, _, _ = _instantiate(path, md, "check", 0.0)
+    try:
+        fmu.exitInitializationMode()
+        fmu.terminate()
+    finally:
+        fmu.freeInstance()
+        shutil.rmtree(unzipdir, ignore_errors=True)
+
+
+if __name__ == "__main__":
+    _instantiate_and_free(sys.argv[1])

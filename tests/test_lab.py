@@ -44,6 +44,8 @@ def test_a_wheel_scene_is_a_lab_scene_and_measures_its_own_soil():
         ("[shear]\ninertial_number = nan", "shear.inertial_number"),
         ("[plate]\nwidths = [0.02, 0.02]", "plate.widths: each width once"),
         ("[lab]\nreplicas = 0", "lab.replicas"),
+        ("[repose]\nfill_height = true", "repose.fill_height: must be a number, not true or false"),
+        ("[shear]\nnormal_stresses = [100.0, 1e300]", "shear.normal_stresses: must be 0 or of magnitude"),
     ],
 )
 def test_bad_lab_keys_are_named(text, named):
@@ -60,6 +62,14 @@ def test_gravity_must_point_down(gravity, named):
     scene = lab_scene_from_text(f"[scene]\ngravity = {gravity}\ndevice = 'cpu'")
     with pytest.raises(SceneError, match=named):
         resolve_lab(scene, needs_gravity=True, test="repose")
+
+
+def test_a_step_far_below_the_scenes_scale_is_refused():
+    """A stiffness of 1e29 Pa makes the Rayleigh step 4e-16 s: a repose phase of 410 s would never end."""
+    scene = lab_scene_from_text("[scene]\ngravity = 'phobos'\ndevice = 'cpu'\n[soil]\nyoungs_modulus = 1e29")
+    with pytest.raises(SceneError, match=r"run.dt_factor: .* DEM steps .*soil.youngs_modulus"):
+        resolve_lab(scene, needs_gravity=True, test="repose")
+    resolve_lab(lab_scene_from_text("[scene]\ngravity = 'phobos'\ndevice = 'cpu'"), needs_gravity=True)
 
 
 def test_lab_commands_fail_cleanly_on_bad_input(tmp_path, capsys):

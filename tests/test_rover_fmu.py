@@ -182,7 +182,16 @@ def test_speed_command_drives_the_wheel(fmus):
 
 
 @pytest.mark.parametrize(
-    "case", ["not_a_zip", "no_model_description", "truncated_model_description", "no_wheels", "broken_binary"]
+    "case",
+    [
+        "not_a_zip",
+        "no_model_description",
+        "truncated_model_description",
+        "no_wheels",
+        "broken_binary",
+        "no_resources",
+        "truncated_binary",
+    ],
 )
 def test_a_file_that_is_not_a_rover_fmu_is_a_clear_error(tmp_path, fmus, case, monkeypatch):
     """Each names the file and what is wrong; nothing is left unpacked in the temp folder (a
@@ -212,6 +221,17 @@ def test_a_file_that_is_not_a_rover_fmu_is_a_clear_error(tmp_path, fmus, case, m
                 data = src.read(item)
                 z.writestr(item, b"\0" * 64 if item.startswith("binaries/") and item.endswith(".so") else data)
         words = "could not be instantiated"
+    elif case in ("no_resources", "truncated_binary"):  # the FMU's own code crashes: a child process dies
+        with zipfile.ZipFile(fmus["fmi2"]) as src, zipfile.ZipFile(path, "w") as z:
+            for item in src.namelist():
+                data = src.read(item)
+                if case == "truncated_binary" and item.startswith("binaries/") and item.endswith(".so"):
+                    z.writestr(item, data[:1000])
+                elif case == "truncated_binary" or not item.startswith("resources/"):
+                    z.writestr(item, data)
+        # the shim without its resources dereferences null; dlopen of a cut ELF dies of SIGBUS or SIGSEGV
+        # on the glibc seen, or refuses it (then fmpy's error names it)
+        words = "instantiating the FMU killed the process (SIG"
     else:  # a valid FMU without the wheel_<i>.* convention
         from pythonfmu.builder import FmuBuilder
 
@@ -233,5 +253,7 @@ def test_a_file_that_is_not_a_rover_fmu_is_a_clear_error(tmp_path, fmus, case, m
     before = set(os.listdir(tempfile.gettempdir()))
     with pytest.raises(FmuError) as info:
         FmuRover(path)
+    if case == "truncated_binary" and "could not be instantiated" in str(info.value):
+        words = "Failed to load shared library"
     assert str(path) in str(info.value) and words in str(info.value), str(info.value)
     assert set(os.listdir(tempfile.gettempdir())) - before == set()

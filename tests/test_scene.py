@@ -12,6 +12,18 @@ from helpers import TINY_SCENE, write_tiny
 
 EXAMPLES = os.path.join(os.path.dirname(__file__), "..", "examples")
 
+SCM_TERRAIN = """
+[terrain]
+model = "scm"
+k_c = 2.0e3
+k_phi = 8.0e5
+n = 1.1
+cohesion = 50.0
+friction_angle_deg = 30.0
+janosi_k = 0.002
+elastic_stiffness = 2.0e7
+"""
+
 BAD_SCENES = [
     # (what is wrong, TOML added to / replacing the tiny scene, field named, words of the allowed values)
     ("unknown key", "[bed]\nlenght = 0.2\n", "bed.lenght", "unknown key"),
@@ -60,6 +72,26 @@ BAD_SCENES = [
     ("omega zero", "[testbed]\nomega = 0.0\n", "testbed.omega", "> 0"),
     ("landing without gravity", "[scene]\ngravity = 0.0\n", "landing.enabled", "gravity"),
     ("a lab file's section", "[shear]\nnormal_stresses = [1.0]\n", "shear", "this is a lab file, for `cosim lab`"),
+    ("scene name of 300 bytes", f"[scene]\nname = '{'n' * 300}'\n", "scene.name", "at most 128 bytes"),
+    ("gravity pointing up", "[scene]\ngravity = [0.0, 0.0, 1.6]\n", "scene.gravity", "must point down"),
+    ("gravity along the bed", "[scene]\ngravity = [1.6, 0.0, 0.0]\n", "scene.gravity", "within 60 deg"),
+    # a boolean is no number (pydantic would read true as 1: gravity = true as 1 m/s^2)
+    ("boolean gravity", "[scene]\ngravity = true\n", "scene.gravity", "not true or false"),
+    ("boolean in a gravity vector", "[scene]\ngravity = [0.0, 0.0, true]\n", "scene.gravity", "not true or false"),
+    ("boolean density", "[soil]\ndensity = false\n", "soil.density", "not true or false"),
+    ("boolean substeps", "[run]\nmacro_step = true\n", "run.macro_step", "not true or false"),
+    # a finite number beyond SCENE_NUMBER_RANGE overflows what the run derives from it (the grain count,
+    # the eq. 10 bound), or took a path that failed later under another key's name
+    ("bed length of 1e300 m", "[bed]\nlength = 1e300\n", "bed.length", "1e+30"),
+    ("load of 1e300 kg", "[testbed]\nmass = 1e300\n", "testbed.mass", "1e+30"),
+    ("gravity of 1e300 m/s^2", "[scene]\ngravity = 1e300\n", "scene.gravity", "1e+30"),
+    ("grain radius of 1e-300 m", "[bed]\nradius_mean = 1e-300\n", "bed.radius_mean", "1e-30"),
+    ("seed beyond 64 bits", "[bed]\nseed = 99999999999999999999999\n", "bed.seed", "64-bit"),
+    # a step far below the scene's scale: more than MAX_PHASE_STEPS steps in a phase, which never ends
+    ("stiffness of 1e29 Pa", "[soil]\nyoungs_modulus = 1e29\n", "soil.youngs_modulus", "steps of landing (DEM"),
+    ("DEM step of 1e-12 s", "[run]\ndt = 1e-12\nmacro_step = 1e-3\n", "run.dt", "steps of landing (DEM steps)"),
+    ("macro step of 1e-12 s", "[run]\nmacro_step = 1e-12\n", "run.macro_step", "steps of landing (macro steps)"),
+    ("SCM step of 1e-12 s", SCM_TERRAIN + "time_step = 1e-12\n", "terrain.time_step", "steps of landing (SCM"),
 ]
 
 
@@ -225,3 +257,31 @@ def test_every_numeric_scene_key_documents_its_unit():
     expected["scene.gravity"] = "m/s^2"
     assert {key: key_unit(key) for key in expected} == expected
     assert key_unit("wheel.nope") is None and key_unit("nope.radius") is None and key_unit("landing.enabled") is None
+
+
+@pytest.mark.parametrize(
+    "args, option",
+    [
+        (["study", "slip", "--slips", "0.1,,0.2"], "--slips '0.1,,0.2'"),
+        (["study", "precision", "--precisions", "single,"], "--precisions 'single,'"),
+        (["sweep", "--param", "testbed.slip=0.1,"], "--param testbed.slip '0.1,'"),
+    ],
+)
+def test_a_comma_list_with_an_empty_entry_is_refused(tmp_path, capsys, args, option):
+    """'0.1,,0.2' is a value lost to a typo, not the list 0.1, 0.2: refused by name, nothing written."""
+    command, *rest = args
+    scene = str(write_tiny(tmp_path))
+    line = [command, *rest[:1], scene, *rest[1:]] if command == "study" else [command, scene, *rest]
+    assert main([*line, "--out", str(tmp_path / "out"), "--serial"]) == 2
+    assert f"{option}: an empty entry" in capsys.readouterr().err
+    assert not (tmp_path / "out").exists()
+
+
+def test_a_slip_controller_never_commands_a_backward_speed():
+    from pydantic import ValidationError
+
+    from cosim.scene import DriveSection
+
+    DriveSection(kind="slip", target_slip=0.2, omega_max=1.0, omega_min=0.0)
+    with pytest.raises(ValidationError, match="omega_min"):
+        DriveSection(kind="slip", target_slip=0.2, omega_max=1.0, omega_min=-1.0)

@@ -174,6 +174,22 @@ def test_the_gravity_twin_scales_every_derived_quantity_exactly(tmp_path):
         write_gravity_twin(scene, "earth", twin_path)
 
 
+def test_cosim_scale_refuses_an_out_that_is_no_scene_file_before_writing(tmp_path, capsys):
+    """--out a folder or a name without .toml: exit 2 naming --out (a folder was an 'Is a directory'
+    OSError, exit 5, after the scene was read); an existing file: exit 3 unless --overwrite."""
+    from cosim.cli import main
+
+    scene = str(write_tiny(tmp_path))
+    for out in (str(tmp_path), str(tmp_path / "twin.txt")):
+        assert main(["scale", scene, "--gravity", "earth", "--out", out, "--overwrite"]) == 2
+        assert f"--out {out!r}" in capsys.readouterr().err
+    assert not (tmp_path / "twin.txt").exists()
+    twin = tmp_path / "new" / "twin.toml"
+    assert main(["scale", scene, "--gravity", "earth", "--out", str(twin)]) == 0 and twin.is_file()
+    assert main(["scale", scene, "--gravity", "earth", "--out", str(twin)]) == 3
+    assert [p.name for p in twin.parent.iterdir()] == ["twin.toml"]  # no temporary left beside it
+
+
 @pytest.mark.slow
 def test_the_gravity_twin_gives_the_same_dimensionless_results(tmp_path):
     """The moon scene and its Earth twin, 3 beds each (bed.seed + k), at an imposed slip of 0.3 (as

@@ -29,22 +29,41 @@ from dataclasses import dataclass
 from typing import Literal
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field, model_validator
+from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
 from soil import ContactLaw, Material, gravity_vector
 from soil.bed import radius_range
 
-from ..plan import default_stick_speed, dem_time_step, to_material
+from ..plan import MAX_PHASE_STEPS, default_stick_speed, dem_time_step, to_material
 from ..probe import resolve_device
-from ..scene import Scene, SceneError, apply_overrides, load_scene, scene_from_text, validate_scene
+from ..scene import (
+    Scene,
+    SceneError,
+    apply_overrides,
+    check_magnitude,
+    load_scene,
+    reject_bool_for_number,
+    scene_from_text,
+    validate_scene,
+)
 
 PACKING_FRACTION = 0.6
 """Solid fraction assumed when a fill height is turned into a grain count [-] (random packing of spheres)."""
 
 
 class _LabSection(BaseModel):
-    # as cosim.scene: no inf / nan, unknown keys refused
+    # as cosim.scene: no inf / nan, no number out of its range, no boolean for a number, unknown keys refused
     model_config = ConfigDict(extra="forbid", validate_assignment=True, allow_inf_nan=False)
+
+    @field_validator("*", mode="before")
+    @classmethod
+    def _no_bool_for_number(cls, value, info):
+        return reject_bool_for_number(cls, info.field_name, value)
+
+    @field_validator("*")
+    @classmethod
+    def _magnitude(cls, value):
+        return check_magnitude(value)
 
 
 def _exclusive(section, absolute: str, relative: str):
@@ -283,7 +302,15 @@ def resolve_lab(scene: LabScene, needs_gravity: bool = False, test: str = "lab")
         twisting=law_section.twisting,
     )
     bed = scene.bed
-    dt, _ = dem_time_step(scene, soil)
+    dt, dt_key = dem_time_step(scene, soil)
+    longest = scene.lab.max_time_factor * math.sqrt(2.0 * bed.radius_mean / g) if g > 0 else 0.0
+    if longest / dt > MAX_PHASE_STEPS:  # a step far below the scene's scale: a test that never ends
+        step = "run.dt_factor x the Rayleigh step (soil.youngs_modulus, soil.density, bed.radius_mean)"
+        problems.append(
+            f"{dt_key}: a phase of up to {longest:.3g} s (lab.max_time_factor sqrt(d / |g|)) is {longest / dt:.3g} "
+            f"DEM steps of {dt:.3g} s, more than {MAX_PHASE_STEPS:.0e} (a day even at 10 us a step): the step "
+            f"{'(' + step + ') ' if dt_key == 'run.dt_factor' else ''}is far below the scene's scale"
+        )
     if problems:
         raise SceneError(problems)
     return LabPlan(
