@@ -25,8 +25,8 @@ Exit status:
     0    done (a run: a steady-state result)
     1    an unexpected error (a bug: please report it with the traceback --verbose prints), or a failure
          that is not the input's (a model refused a step, a tool is missing: the message names it)
-    2    bad input, and only that: a scene, an argument, a bed file, a mesh, an FMU or a run to view or
-         export (the message names it)
+    2    bad input, and only that: a scene, an argument, a bed file, a mesh, an FMU or a run to view,
+         export or resume (the message names it)
     3    the output folder holds a run (pass --overwrite) or is in use by another process
     4    the simulation diverged (the message says where and what to change)
     5    an operating-system error: a path that cannot be written or read, a full disk

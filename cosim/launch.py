@@ -21,6 +21,7 @@ from collections.abc import Iterator
 
 import numpy as np
 
+from soil.errors import ArgumentError
 from soil.stability import read_checkpoint
 
 from . import records
@@ -153,13 +154,13 @@ def resume(out_dir: str, progress: bool = False, hooks: dict | None = None) -> R
     """
     folder = RunFolder(out_dir)
     if not os.path.isdir(folder.path):
-        raise FileNotFoundError(f"{folder.path!r} is not a folder: nothing to resume")
+        raise ArgumentError(f"{folder.path!r} is not a folder: nothing to resume")
     needed = (SCENE_FILE, RUN_FILE, os.path.basename(folder.checkpoint), os.path.basename(folder.results))
 
     def check_files() -> None:
         for name in needed:
             if not os.path.isfile(folder.file(name)):
-                raise FileNotFoundError(f"{folder.path!r} has no {name}: not a run folder that can be resumed")
+                raise ArgumentError(f"{folder.path!r} has no {name}: not a run folder that can be resumed")
 
     check_files()  # before the lock: a folder that is not a run gets no .lock either
     with folder.locked():

@@ -27,11 +27,14 @@ and each worker resolves its own plan.
 from __future__ import annotations
 
 import collections
+import contextlib
 import itertools
 import logging
 import math
 import os
 import shutil
+import signal
+import threading
 import time
 import traceback
 from typing import TYPE_CHECKING, Any
@@ -130,13 +133,17 @@ class Executor:
         if not log.isEnabledFor(logging.DEBUG):
             for name in self._DASK_LOGGERS:
                 logging.getLogger(name).setLevel(logging.WARNING)
-        if self.scheduler:
-            self.client = Client(self.scheduler)
-        else:
-            self.cluster = LocalCluster(
-                n_workers=self.workers, threads_per_worker=1, processes=True, dashboard_address=None
-            )
-            self.client = Client(self.cluster)
+        with _signals_held() as held:  # a cluster stopped half-built fails dask's own cleanup at exit
+            if self.scheduler:
+                self.client = Client(self.scheduler)
+            else:
+                self.cluster = LocalCluster(
+                    n_workers=self.workers, threads_per_worker=1, processes=True, dashboard_address=None
+                )
+                self.client = Client(self.cluster)
+        if held:  # Ctrl-C or SIGTERM while it started: close it whole, then stop as the signal asks
+            self.__exit__(None, None, None)
+            signal.raise_signal(held[0])
         log.info("dask: %s", self.client)
         return self
 
@@ -190,6 +197,23 @@ class Executor:
                 }
             _report(results[i], tasks[i].get("label"), done, len(tasks))
         return results
+
+
+@contextlib.contextmanager
+def _signals_held():
+    """Hold SIGINT and SIGTERM back while the block runs (in the main thread): yields the list of those
+    that arrived, in order; the former handlers are back when it ends."""
+    held: list[int] = []
+    if threading.current_thread() is not threading.main_thread():
+        yield held
+        return
+    kinds = (signal.SIGINT, signal.SIGTERM)
+    former = {kind: signal.signal(kind, lambda signum, frame: held.append(signum)) for kind in kinds}
+    try:
+        yield held
+    finally:
+        for kind, handler in former.items():
+            signal.signal(kind, handler)
 
 
 def _report(result, label, done, total):

@@ -507,3 +507,43 @@ def test_plot_and_export_fmu_of_a_folder_that_is_not_a_run_are_bad_input(tmp_pat
     assert main(["export-fmu", str(empty), "--out", str(tmp_path / "soil.fmu")]) == 2
     assert "is not a run folder: it has no scene.toml" in capsys.readouterr().err
     assert os.listdir(empty) == [] and not (tmp_path / "soil.fmu").exists()
+
+
+def test_sigterm_while_the_dask_cluster_starts_closes_it_whole_then_stops(monkeypatch, capsys):
+    """A SIGTERM that lands inside LocalCluster's start used to leave it half-built, and dask's own
+    exit hook then printed a traceback. It is held until the cluster is whole, which is then closed,
+    and the command stops with the signal's exit status (143)."""
+    import os
+    import signal
+
+    import dask.distributed
+
+    from cosim.cli import _stop_on_sigterm
+    from cosim.study import Executor
+
+    closed = []
+
+    class StartingCluster:  # the signal arrives while the cluster starts
+        def __init__(self, **kwargs):
+            os.kill(os.getpid(), signal.SIGTERM)
+            self.whole = True
+
+        def close(self):
+            closed.append("cluster" if self.whole else "half")
+
+    class FakeClient:
+        def __init__(self, cluster):
+            self.cluster = cluster
+
+        def close(self):
+            closed.append("client")
+
+    monkeypatch.setattr(dask.distributed, "LocalCluster", StartingCluster)
+    monkeypatch.setattr(dask.distributed, "Client", FakeClient)
+    previous = _stop_on_sigterm()
+    try:
+        with pytest.raises(KeyboardInterrupt, match="SIGTERM"), Executor("dask", workers=1):
+            raise AssertionError("the block must not run after a SIGTERM")
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+    assert closed == ["client", "cluster"]

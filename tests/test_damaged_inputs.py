@@ -495,11 +495,14 @@ def test_a_full_disk_during_the_run_names_the_file(scene, tiny_bed, tmp_path, ca
 
 
 def test_resume_of_an_empty_folder_leaves_nothing_behind(tmp_path, capsys):
+    """A folder that holds no run is bad input (exit 2, as plot and export-fmu of one), not an OS error."""
     empty = tmp_path / "empty"
     empty.mkdir()
-    assert main(["resume", str(empty), "--no-progress"]) == 5
+    assert main(["resume", str(empty), "--no-progress"]) == 2
     assert "not a run folder that can be resumed" in first_error_line(capsys)
     assert os.listdir(empty) == []
+    assert main(["resume", str(tmp_path / "nowhere"), "--no-progress"]) == 2
+    assert "is not a folder: nothing to resume" in first_error_line(capsys)
 
 
 def test_a_lab_test_whose_every_replica_diverged_is_exit_4(tmp_path, capsys, monkeypatch):
