@@ -532,7 +532,8 @@ def resolve(scene: Scene) -> RunPlan:
         wheels = (wheel,)
     if g > 0 and -gravity[2] < 0.5 * g:  # upwards the grains leave the open box; sideways they pile on a wall
         problems.append(
-            f"scene.gravity: the soil rests on the floor z = 0, so gravity must point down (-z) "
+            f"scene.gravity: the soil lies on the plane z = 0 (the bed's floor, the terrain's datum), so gravity "
+            "must point down (-z) "
             f"within 60 deg (a slope); got {list(gravity)} m/s^2"
         )
     section = scene.soil.law
@@ -582,10 +583,17 @@ def resolve(scene: Scene) -> RunPlan:
 
     terrain = _terrain(scene, len(wheels), problems)
     dt, macro_step, substeps, dt_key = _time_steps(scene, soil_material)
-    if terrain.model == "scm" and scene.run.macro_step is None and not problems:
-        own = _scm_macro_step(terrain, list(wheels) or [wheel], testbed, rover_plan, g, gravity)
-        if math.isfinite(own):
+    macro_key: str | None = None  # the keys of the macro step: its own key, or dt's with run.substeps
+    if terrain.model == "scm" and scene.run.macro_step is None:
+        own = _scm_macro_step(terrain, list(wheels) or [wheel], testbed, rover_plan, g, gravity) if not problems else 0
+        if math.isfinite(own) and own > 0:
             dt, macro_step, substeps, dt_key = own, own, 1, "run.macro_step"
+            macro_key = (
+                "run.macro_step, unset: SCM's own coupling step from terrain.elastic_stiffness, "
+                "terrain.node_spacing and the wheels' load and speed"
+            )
+        else:  # not known (another problem, no load): the grains' step does not apply to SCM alone
+            macro_key = ""
     if macro_step > scene.run.duration:
         problems.append(
             f"run.macro_step: the macro step ({macro_step:.4g} s) is longer than run.duration ({scene.run.duration} s)"
@@ -596,7 +604,7 @@ def resolve(scene: Scene) -> RunPlan:
             f"macro step {macro_step:.4g} s"
         )
     land = scene.landing
-    problems += _step_count_problems(scene, dt, dt_key, macro_step, substeps, settle_dt, bed_file is None)
+    problems += _step_count_problems(scene, dt, dt_key, macro_step, macro_key, settle_dt, bed_file is None)
     if land.enabled and g == 0:
         problems.append("landing.enabled: a wheel cannot land without gravity; set landing.enabled = false")
     outer = max([w.outer_radius for w in wheels] or [wheel.outer_radius])
@@ -717,35 +725,48 @@ def _scm_macro_step(terrain: TerrainPlan, wheels, testbed, rover, g: float, grav
 
 
 def _step_count_problems(
-    scene: Scene, dt: float, dt_key: str, macro_step: float, substeps: int, settle_dt: float, settles: bool
+    scene: Scene,
+    dt: float,
+    dt_key: str,
+    macro_step: float,
+    macro_key: str | None,
+    settle_dt: float,
+    settles: bool,
 ) -> list[str]:
     """The phase with the most steps, where they exceed MAX_PHASE_STEPS, named by the keys that set its
-    step: settling (grains settled here), landing and driving (the macro steps, the DEM's substeps on
-    grains, SCM's own steps where terrain.time_step is finer)."""
+    step: settling (grains settled here), landing and driving (the DEM's steps on grains, SCM's own
+    where terrain.time_step is finer, the macro steps). `macro_key`: the keys of the macro step (None:
+    run.macro_step or run.substeps x dt's; '': not known, not counted)."""
     on_grains = _on_grains(scene)
     terrain = scene.terrain
     scm_step = terrain.time_step if terrain is not None and terrain.model == "scm" else None
     rayleigh = "the Rayleigh step of the smallest grain: soil.youngs_modulus, soil.density, bed.radius_mean"
     dem_keys = f"run.dt_factor x {rayleigh}" if dt_key == "run.dt_factor" else dt_key
-    macro_keys = "run.macro_step" if scene.run.macro_step is not None else f"run.substeps x {dem_keys}"
-    steps = []  # (count, what, the key that sets its step and what it comes from)
+    if macro_key is None:
+        macro_key = "run.macro_step" if scene.run.macro_step is not None else f"run.substeps x {dem_keys}"
+    steps = []  # (count, rank on a tie: the finest step first, what, the keys that set the step)
     if settles and on_grains:
-        steps.append((scene.bed.settle_max_time / settle_dt, "settling", f"bed.settle_dt_factor x {rayleigh}"))
+        steps.append((scene.bed.settle_max_time / settle_dt, 2, "settling", f"bed.settle_dt_factor x {rayleigh}"))
     for phase, duration in (
         ("landing", scene.landing.max_time if scene.landing.enabled else 0.0),
         ("driving", scene.run.duration),
     ):
-        steps.append((duration / macro_step, f"{phase} (macro steps)", macro_keys))
         if on_grains:
-            steps.append((duration / dt, f"{phase} (DEM steps)", dem_keys))
+            steps.append((duration / dt, 2, f"{phase} (DEM steps)", dem_keys))
         if scm_step is not None:
-            steps.append((duration / scm_step, f"{phase} (SCM steps)", "terrain.time_step"))
-    count, what, keys = max(steps)
+            steps.append((duration / scm_step, 1, f"{phase} (SCM steps)", "terrain.time_step"))
+        if macro_key:  # as many as the finer steps only with one substep: a macro step given caps dt then
+            rank = 3 if scene.run.macro_step is not None else 0
+            steps.append((duration / macro_step, rank, f"{phase} (macro steps)", macro_key))
+    if not steps:
+        return []
+    count, _, what, keys = max(steps, key=lambda step: step[:2])
     if count <= MAX_PHASE_STEPS:
         return []
+    key, _, origin = keys.partition(" ")
     return [
-        f"{keys.split(' ')[0]}: {count:.3g} steps of {what}, more than {MAX_PHASE_STEPS:.0e} (a day even at 10 us "
-        f"a step): the step {'(' + keys + ') ' if ' ' in keys else ''}is far below the scene's scale"
+        f"{key.rstrip(',')}: {count:.3g} steps of {what}, more than {MAX_PHASE_STEPS:.0e} (a day even at 10 us "
+        f"a step): the step {'(' + keys + ') ' if origin else ''}is far below the scene's scale"
     ]
 
 

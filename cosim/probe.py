@@ -162,9 +162,14 @@ def probe_drive(scene: Scene, section: DriveSection, key: str, wheel_count: int,
         file = scene.resolve(section.file)
         assert file is not None  # the validator requires an FMU drive's file
         try:
+            from rover_models.fmu_session import check_binaries, check_instantiates
+
             from .fmu_controller import FmuController
 
-            return FmuController(file, wheel_count, mode=section.mode, start_values=section.start_values).mode
+            controller = FmuController(file, wheel_count, mode=section.mode, start_values=section.start_values)
+            check_binaries(file, controller.md)  # it instantiates at its first command, after settling and landing:
+            check_instantiates(file)  # what would fail then is found now
+            return controller.mode
         except ImportError as error:
             problems.append(f"{key}.kind: an FMU controller needs fmpy ({error})")
         except ArgumentError as error:  # the mode asked for, or the FMU's outputs leave it open

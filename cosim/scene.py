@@ -71,11 +71,18 @@ _INT64_MAX = 2**63 - 1
 """The largest integer a scene may give (counts and seeds are written as 64-bit integers)."""
 
 
-def _numbers(value) -> list:
-    """The numbers in a field's value: itself, or the items of a list or a table's values."""
+PASSED_THROUGH = ("start_values",)
+"""Fields whose numbers go to a model as they are (an FMU's parameters: Modelica writes infinity as
+1e60), which the run derives nothing from: finite, with no magnitude bound."""
+
+
+def _entries(value) -> list[tuple[str, Any]]:
+    """A field's numbers with where they sit: ('', itself), or each list item's or table value's place."""
     if isinstance(value, dict):
-        return list(value.values())
-    return list(value) if isinstance(value, (list, tuple)) else [value]
+        return [(f"[{k!r}]", v) for k, v in value.items()]
+    if isinstance(value, (list, tuple)):
+        return [(f"[{i}]", v) for i, v in enumerate(value)]
+    return [("", value)]
 
 
 def _annotation_types(annotation) -> set:
@@ -83,27 +90,37 @@ def _annotation_types(annotation) -> set:
     return {annotation}.union(*(_annotation_types(a) for a in typing.get_args(annotation)))
 
 
+def _number_kinds(model: type[BaseModel], name: str) -> set:
+    field = model.model_fields.get(name)
+    return set() if field is None else _annotation_types(field.annotation)
+
+
 def reject_bool_for_number(model: type[BaseModel], name: str, value):
     """A before-validator's test: true / false where a field takes a number and no boolean is refused
     (pydantic would read it as 1 or 0: `gravity = true` as 1 m/s^2)."""
-    field = model.model_fields.get(name)
-    kinds = set() if field is None else _annotation_types(field.annotation)
-    if kinds & {float, int} and bool not in kinds and any(isinstance(v, bool) for v in _numbers(value)):
-        raise ValueError("must be a number, not true or false")
+    kinds = _number_kinds(model, name)
+    if kinds & {float, int} and bool not in kinds:
+        for where, v in _entries(value):
+            if isinstance(v, bool):
+                raise ValueError(f"{where + ': ' if where else ''}must be a number, not true or false")
     return value
 
 
-def check_magnitude(value):
-    """An after-validator's test: every float is 0 or within SCENE_NUMBER_RANGE, every integer a 64-bit one."""
+def check_magnitude(model: type[BaseModel], name: str, value):
+    """An after-validator's test on a field that takes numbers (not one of PASSED_THROUGH): every float
+    is 0 or within SCENE_NUMBER_RANGE, every integer a 64-bit one."""
+    if not _number_kinds(model, name) & {float, int} or name in PASSED_THROUGH:
+        return value
     low, high = SCENE_NUMBER_RANGE
-    for v in _numbers(value):
+    for where, v in _entries(value):
+        at = f"{where}: " if where else ""
         if isinstance(v, float) and v != 0 and not low <= abs(v) <= high:
             raise ValueError(
-                f"must be 0 or of magnitude {low:g} .. {high:g} (SI): beyond, what the run derives from it "
+                f"{at}must be 0 or of magnitude {low:g} .. {high:g} (SI): beyond, what the run derives from it "
                 "overflows or underflows"
             )
         if isinstance(v, int) and not isinstance(v, bool) and abs(v) > _INT64_MAX:
-            raise ValueError(f"must be an integer of magnitude <= {_INT64_MAX} (a 64-bit integer)")
+            raise ValueError(f"{at}must be an integer of magnitude <= {_INT64_MAX} (a 64-bit integer)")
     return value
 
 
@@ -121,8 +138,8 @@ class _Section(BaseModel):
 
     @field_validator("*")
     @classmethod
-    def _magnitude(cls, value):
-        return check_magnitude(value)
+    def _magnitude(cls, value, info):
+        return check_magnitude(cls, info.field_name, value)
 
 
 def is_device_name(value: str) -> bool:

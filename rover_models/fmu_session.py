@@ -84,41 +84,69 @@ def check_binaries(path: str | os.PathLike, md) -> None:
 CHILD_TIMEOUT = 120.0
 """Longest wait for a child process to instantiate an FMU [s] (check_instantiates)."""
 
+CRASH_SIGNALS = ("SIGSEGV", "SIGBUS", "SIGILL", "SIGFPE", "SIGABRT", "SIGSYS")
+"""The signals by which a process's own code dies (not those sent from outside: SIGKILL, SIGTERM)."""
+
 _INSTANTIATED: set[tuple[str, int, int]] = set()
 """The FMU files (real path, size [bytes], modification time [ns]) a child process of this one has
 instantiated without dying."""
+
+_CHILD_DONE = "fmu instantiated, initialized and freed"
+"""What the child prints last: its FMU did not crash it (a crash after it, at exit, is not the FMU's use)."""
+
+_PACKAGES = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+"""The folder holding rover_models: the child imports the same copy, whatever the working folder."""
 
 
 def check_instantiates(path: str | os.PathLike) -> None:
     """FmuError naming the file when instantiating the FMU kills a process: a damaged binary or missing
     resources can crash the FMU's own code (a segmentation fault), which no Python error catches and
-    which would end a run without a word. Tried in a child process once per file and process."""
+    which would end a run without a word. Tried in a child process once per file and process, with the
+    FMU's own start values (a run's may differ); an error the child raises is left to the instantiation
+    in this process, which names it."""
     path = os.fspath(path)
     info = os.stat(path)
     key = (os.path.realpath(path), info.st_size, info.st_mtime_ns)
     if key in _INSTANTIATED:
         return
-    try:
-        with tempfile.TemporaryDirectory(prefix="fmu_check_") as scratch:  # what a dying child leaves unpacked
-            child = subprocess.run(
-                [sys.executable, "-m", "rover_models.fmu_session", path],
-                capture_output=True,
-                text=True,
-                timeout=CHILD_TIMEOUT,
-                env={**os.environ, "TMPDIR": scratch},
-            )
-    except subprocess.TimeoutExpired:
-        raise FmuError(
-            f"{path}: the FMU did not instantiate within {CHILD_TIMEOUT:g} s in a child process (its code hangs)"
-        ) from None
-    if child.returncode < 0:
-        said = (child.stderr or child.stdout).strip()[-500:]
-        raise FmuError(
-            f"{path}: instantiating the FMU killed the process ({signal.Signals(-child.returncode).name}): its "
-            "binary or its resources are damaged or missing; build or export it again"
-            + (f". It printed: {said}" if said else "")
+    search = os.pathsep.join(filter(None, [_PACKAGES, os.environ.get("PYTHONPATH")]))
+    with tempfile.TemporaryDirectory(prefix="fmu_check_") as scratch:  # what a dying child leaves unpacked
+        said_file = os.path.join(scratch, "said.txt")
+        with open(said_file, "w") as said:  # a file, not a pipe: a helper process the FMU starts may keep it
+            try:
+                code = subprocess.run(
+                    [sys.executable, "-m", "rover_models.fmu_session", path],
+                    stdout=said,
+                    stderr=subprocess.STDOUT,
+                    timeout=CHILD_TIMEOUT,
+                    env={**os.environ, "TMPDIR": scratch, "PYTHONPATH": search},
+                    start_new_session=True,  # a Ctrl-C for this process group is not the FMU's crash
+                ).returncode
+            except subprocess.TimeoutExpired:
+                raise FmuError(
+                    f"{path}: the FMU did not instantiate within {CHILD_TIMEOUT:g} s in a child process "
+                    "(its code hangs)"
+                ) from None
+        with open(said_file, errors="replace") as said:
+            text = said.read()
+    finished = _CHILD_DONE in text
+    if code < 0 and not finished:
+        try:
+            name = signal.Signals(-code).name
+        except ValueError:
+            name = f"signal {-code}"
+        tail = text.strip()[-500:]
+        cause = (
+            "its binary or its resources are damaged or missing; build or export it again"
+            if name in CRASH_SIGNALS
+            else "stopped from outside (out of memory?)"
         )
-    _INSTANTIATED.add(key)  # a Python-level failure is reported where it is instantiated in this process
+        raise FmuError(
+            f"{path}: instantiating the FMU killed the process ({name}): {cause}"
+            + (f". It printed: {tail}" if tail else "")
+        )
+    if code == 0 or finished:
+        _INSTANTIATED.add(key)
 
 
 def instantiate_cosim(path: str | os.PathLike, md, instance_name: str, start_time: float):
@@ -303,6 +331,7 @@ def _instantiate_and_free(path: str) -> None:
     finally:
         fmu.freeInstance()
         shutil.rmtree(unzipdir, ignore_errors=True)
+    print(_CHILD_DONE, flush=True)
 
 
 if __name__ == "__main__":

@@ -6,12 +6,13 @@ from pathlib import Path
 import pytest
 import warp as wp
 
-wp.config.log_level = max(wp.config.log_level, wp.LOG_WARNING)  # no per-module load lines
+from soil import quiet_warp
+
 os.environ.setdefault("MPLBACKEND", "Agg")
 
 
 def _devices():
-    wp.init()
+    quiet_warp()  # no per-module load lines, no CUDA-driver warning on a machine without a GPU
     devices = ["cpu"]
     if wp.is_cuda_available():
         devices.append("cuda:0")

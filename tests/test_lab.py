@@ -45,7 +45,7 @@ def test_a_wheel_scene_is_a_lab_scene_and_measures_its_own_soil():
         ("[plate]\nwidths = [0.02, 0.02]", "plate.widths: each width once"),
         ("[lab]\nreplicas = 0", "lab.replicas"),
         ("[repose]\nfill_height = true", "repose.fill_height: must be a number, not true or false"),
-        ("[shear]\nnormal_stresses = [100.0, 1e300]", "shear.normal_stresses: must be 0 or of magnitude"),
+        ("[shear]\nnormal_stresses = [100.0, 1e300]", "shear.normal_stresses: [1]: must be 0 or of magnitude"),
     ],
 )
 def test_bad_lab_keys_are_named(text, named):

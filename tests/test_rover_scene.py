@@ -124,6 +124,26 @@ def test_fmu_rover_input_errors_name_the_field(tmp_path, fmus, capsys):
         assert field in message and words in message, message
 
 
+def test_a_controller_fmu_that_kills_its_process_is_refused_before_the_run(tmp_path, fmus, capsys):
+    """A controller FMU instantiates at its first command, after settling and landing: one whose code
+    crashes (here its resources are missing, and the FMU's C code dereferences null) is found when the
+    scene is planned, in a child process, and named with the signal (exit 2, nothing written)."""
+    import zipfile
+
+    damaged = tmp_path / "no_resources.fmu"
+    with zipfile.ZipFile(fmus["controller4"]) as src, zipfile.ZipFile(damaged, "w") as z:
+        for item in src.namelist():
+            if not item.startswith("resources/"):
+                z.writestr(item, src.read(item))
+    scene = write_small_rover(tmp_path)
+    out = tmp_path / "out"
+    drive = f'rover.drive={{kind="fmu", file="{damaged}"}}'
+    assert main(["run", scene, "--out", str(out), "--no-progress", "--set", drive]) == 2
+    message = capsys.readouterr().err
+    assert f"rover.drive.file: {damaged}: instantiating the FMU killed the process (SIG" in message, message
+    assert not out.exists() or not os.listdir(out)
+
+
 def test_a_good_rover_scene_resolves_with_its_wheels_footprint_and_mass(tmp_path, fmus):
     """The plan reads the rover's wheels, mass and footprint from the model itself: the MJCF and the FMU of
     the same rover agree (their masses to rounding, their hubs exactly: the same geometry)."""

@@ -285,3 +285,37 @@ def test_a_slip_controller_never_commands_a_backward_speed():
     DriveSection(kind="slip", target_slip=0.2, omega_max=1.0, omega_min=0.0)
     with pytest.raises(ValidationError, match="omega_min"):
         DriveSection(kind="slip", target_slip=0.2, omega_max=1.0, omega_min=-1.0)
+
+
+def test_numbers_passed_to_a_model_as_they_are_keep_any_finite_magnitude():
+    """An FMU's parameters (Modelica's infinity is 1e60) and a python drive's arguments go to the model
+    unchanged: no magnitude bound, which holds for what a run derives numbers from. A boolean where a
+    parameter's number is asked is named by its entry."""
+    from pydantic import ValidationError
+
+    from cosim.scene import DriveSection
+
+    assert DriveSection(kind="fmu", file="c.fmu", start_values={"limit": 1e60}).start_values == {"limit": 1e60}
+    assert DriveSection(kind="python", function="m:f", args={"tol": 1e-40, "seed": 2**64}).args["tol"] == 1e-40
+    with pytest.raises(ValidationError, match=r"\['gain'\]: must be a number, not true or false"):
+        DriveSection(kind="fmu", file="c.fmu", start_values={"gain": True})
+    with pytest.raises(ValidationError, match="finite"):
+        DriveSection(kind="fmu", file="c.fmu", start_values={"limit": float("inf")})
+
+
+def test_scms_own_coupling_step_far_too_fine_names_the_keys_it_comes_from(tmp_path):
+    """Without run.macro_step a scene on SCM alone couples at SCM's own step (the wheel's bounce on the
+    elastic stiffness): a stiffness of 1e29 Pa makes it 1e-15 s, and the refusal says where it comes from."""
+    import tomli_w
+    import tomllib
+
+    data = tomllib.loads(_merge(SCM_TERRAIN))
+    del data["run"]["macro_step"]
+    data["terrain"]["elastic_stiffness"] = 1e29
+    path = tmp_path / "scm.toml"
+    path.write_text(tomli_w.dumps(data))
+    with pytest.raises(SceneError, match=r"run.macro_step: .* steps of landing \(macro steps\).*SCM's own coupling"):
+        load_plan(path)
+    data["terrain"]["elastic_stiffness"] = 2.0e7
+    path.write_text(tomli_w.dumps(data))
+    assert load_plan(path).substeps == 1

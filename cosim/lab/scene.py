@@ -62,8 +62,8 @@ class _LabSection(BaseModel):
 
     @field_validator("*")
     @classmethod
-    def _magnitude(cls, value):
-        return check_magnitude(value)
+    def _magnitude(cls, value, info):
+        return check_magnitude(cls, info.field_name, value)
 
 
 def _exclusive(section, absolute: str, relative: str):
