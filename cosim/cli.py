@@ -355,6 +355,9 @@ def _dem_advice(plan) -> list[str]:
 
 
 def _executor(args) -> dict:
+    from .study import check_workers
+
+    check_workers(args.workers)  # before any folder is made
     return dict(executor="serial" if args.serial else "dask", scheduler=args.scheduler, workers=args.workers)
 
 
@@ -654,6 +657,7 @@ def cmd_calibrate_scm(args) -> int:
     from .lab.scm import calibrate_scm, small_tests
     from .scm_calibration import SOIL_KEYS, SOIL_UNITS, out_of_range, read_calibration, write_calibration
 
+    _free_output_file(args.out, (".toml",), args.overwrite)  # before an hour of DEM tests, not after them
     overrides = _overrides(args)
     if args.replicas is not None:
         overrides.append(f"lab.replicas={args.replicas}")

@@ -23,7 +23,7 @@ from typing import Protocol, runtime_checkable
 import numpy as np
 from numpy.typing import ArrayLike
 
-from soil.errors import ArgumentError
+from soil.errors import ArgumentError, RegolithError
 
 
 def _vec(value, size: int, name: str) -> np.ndarray:
@@ -325,6 +325,11 @@ class SoilSideDefaults:
 
     def particles(self) -> Particles | None:
         return None
+
+
+class RoverDiverged(RegolithError, RuntimeError):
+    """The rover model became unstable (its accelerations not finite or huge): the run stops as when the
+    soil diverges (exit 4), with its last checkpoint to resume from once the scene is changed."""
 
 
 @runtime_checkable

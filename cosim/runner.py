@@ -33,7 +33,7 @@ from soil.state import STATE_UNITS
 
 from . import metrics, records
 from .beds import write_json
-from .contract import Particles
+from .contract import Particles, RoverDiverged
 from .coupler import MacroStepRecord
 from .folders import DIVERGED_FILE, RUN_FILE, VTKHDF_FILE, RunFolder, read_json
 from .output import ResultsWriter
@@ -200,6 +200,16 @@ class Runner:
             if error.last_good is not None:
                 write_checkpoint(self.folder.file(DIVERGED_FILE), error.last_good, STATE_UNITS)
                 message += f"; the last good soil state is {self.folder.file(DIVERGED_FILE)}"
+            raise RunDiverged(message) from error
+        except RoverDiverged as error:
+            status = "diverged"
+            phase = "landing" if self.drive_start_step < 0 else "drive"
+            checkpoint = (
+                f"The last checkpoint is {self.folder.checkpoint} (t = {self.last_checkpoint_time:.6g} s)"
+                if os.path.isfile(self.folder.checkpoint)
+                else "It diverged before the first checkpoint: there is none to resume from"
+            )
+            message = f"the rover diverged during the {phase}: {error}. {checkpoint}"
             raise RunDiverged(message) from error
         except (KeyboardInterrupt, RunInterrupted) as error:
             status = "interrupted"

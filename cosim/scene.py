@@ -535,6 +535,18 @@ class RoverSection(_Section):
     stuck_slip: float = Field(0.9, gt=0, lt=1)
     """Stuck criterion: the rover is immobile while its slip over one radian of wheel turn is at least this [-]."""
 
+    @field_validator("controllers")
+    @classmethod
+    def _controller_names(cls, value):
+        # a drive's name becomes a folder of a sweep over drives (runs/NAME/<drive>)
+        for name in value or {}:
+            if not re.fullmatch(r"[A-Za-z0-9_][A-Za-z0-9_.+-]{0,63}", name):
+                raise ValueError(
+                    f"[{name!r}]: a controller's name must be a plain name of 1 .. 64 letters, digits, '_', '.', "
+                    "'+' or '-' (not starting with '.'): a sweep over drives names its run folders after it"
+                )
+        return value
+
     @model_validator(mode="after")
     def _by_model(self):
         if self.model in ("mjcf", "fmu") and not self.file:
@@ -916,9 +928,14 @@ def _format_errors(error: ValidationError) -> list[str]:
                 problems.append(f"{loc}: unknown key (not a scene setting; check the spelling)")
             continue
         got = item.get("input")
-        shown = "" if isinstance(got, dict) else f" (got {got!r})"
+        shown = "" if isinstance(got, dict) else f" (got {_shortened(repr(got))})"
         problems.append(f"{loc or 'scene'}: {message}{shown}")
     return problems
+
+
+def _shortened(text: str, most: int = 200) -> str:
+    """`text`, or its start and end around '...' when longer than `most` characters (a list of millions)."""
+    return text if len(text) <= most else f"{text[: most // 2]} ... {text[-most // 2 :]}"
 
 
 def parse_override(text: str) -> tuple[list[str], Any]:
@@ -949,9 +966,36 @@ def parse_list(text: str, option: str) -> list[Any]:
     return [parse_value(entry) for entry in entries]
 
 
+def _plain_copy(data: dict) -> dict:
+    """A copy of a scene dictionary; SceneError names a value that is no number, string, boolean, list or
+    table (a TOML date or time) and nesting too deep to be a scene."""
+    try:
+        return json.loads(json.dumps(data))
+    except RecursionError:
+        raise SceneError(["tables or lists nested too deep to be a scene"]) from None
+    except TypeError:
+        raise SceneError(
+            [
+                f"{_first_date(data) or 'scene'}: a date or time; scene values are numbers, strings, booleans, lists "
+                "and tables"
+            ]
+        ) from None
+
+
+def _first_date(value, where: str = "") -> str:
+    """The dotted key of the first value in `value` that JSON cannot hold ('' when none is found)."""
+    if isinstance(value, dict):
+        items = [(f"{where}.{k}" if where else str(k), v) for k, v in value.items()]
+    elif isinstance(value, list):
+        items = [(f"{where}[{i}]", v) for i, v in enumerate(value)]
+    else:
+        return "" if isinstance(value, (str, int, float, bool, type(None))) else where or "scene"
+    return next((found for key, item in items if (found := _first_date(item, key))), "")
+
+
 def apply_overrides(data: dict, overrides: list[str] | dict | None) -> dict:
     """Set dotted keys in a scene dictionary (a copy); overrides: ['a.b=1', ...] or {'a.b': 1}."""
-    data = json.loads(json.dumps(data))
+    data = _plain_copy(data)
     if not overrides:
         return data
     items = (
@@ -993,9 +1037,14 @@ def load_scene(
             data = tomllib.load(f)
     except tomllib.TOMLDecodeError as error:
         raise SceneError([f"not valid TOML: {error}"], path) from None
+    except RecursionError:
+        raise SceneError(["tables or lists nested too deep to be a scene"], path) from None
     except (OSError, UnicodeDecodeError) as error:
         raise SceneError([f"cannot read the scene file: {error}"], path) from None
-    data = apply_overrides(data, overrides)
+    try:
+        data = apply_overrides(data, overrides)
+    except SceneError as error:
+        raise SceneError(error.problems, error.source or path) from None
     return validate_scene(data, base_dir=os.path.dirname(os.path.abspath(path)), source=path, model=model)
 
 
@@ -1005,4 +1054,6 @@ def scene_from_text(text: str, base_dir: str | None = None, overrides=None, mode
         data = tomllib.loads(text)
     except tomllib.TOMLDecodeError as error:
         raise SceneError([f"not valid TOML: {error}"]) from None
+    except RecursionError:
+        raise SceneError(["tables or lists nested too deep to be a scene"]) from None
     return validate_scene(apply_overrides(data, overrides), base_dir=base_dir, model=model)

@@ -11,6 +11,7 @@ gravity, the soil (its material and grain size) and the DEM tests it came from w
 from __future__ import annotations
 
 import math
+import os
 import warnings
 from dataclasses import dataclass, field
 from typing import Any
@@ -87,6 +88,8 @@ def write_calibration(path: str, calibration: ScmCalibration) -> None:
 
 def read_calibration(path: str) -> ScmCalibration:
     """Read a calibration file; CalibrationError names what is wrong with it."""
+    if not os.path.isfile(path):  # a folder, a missing path, a FIFO or a device (read forever)
+        raise CalibrationError(f"{path}: not a calibration file (no such regular file)")
     try:
         with open(path, "rb") as f:
             data = tomllib.load(f)

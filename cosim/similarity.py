@@ -79,6 +79,8 @@ def gravity_twin(scene: Scene, gravity) -> tuple[dict, float]:
             ]
         )
     old = gravity_vector(scene.scene.gravity)
+    if isinstance(gravity, bool):  # read as 1 m/s^2 otherwise
+        raise SceneError([f"--gravity: a preset name or a magnitude [m/s^2], not {str(gravity).lower()}"])
     try:
         target = gravity_vector(gravity)
     except ValueError as error:

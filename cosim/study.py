@@ -76,6 +76,7 @@ def task_plan(task: dict) -> RunPlan:
 def run_task(task: dict) -> dict:
     """Run one scene (task: scene_toml, overrides, out_dir, label, overwrite); never raises."""
     from .launch import run_plan
+    from .runner import RunInterrupted
 
     started = time.perf_counter()
     out = {"label": task.get("label"), "out_dir": task["out_dir"], "overrides": task.get("overrides", {})}
@@ -87,7 +88,7 @@ def run_task(task: dict) -> dict:
         out.update(
             ok=False, status="failed", error=f"{type(error).__name__}: {error}", traceback=traceback.format_exc(limit=5)
         )
-        if isinstance(error, KeyboardInterrupt):
+        if isinstance(error, (KeyboardInterrupt, RunInterrupted)):  # a stop asked for stops the study (serial)
             raise
     out["wall_time"] = time.perf_counter() - started
     return out
@@ -105,14 +106,27 @@ def settle_task(task: dict) -> dict:
 # execution
 
 
+MAX_WORKERS_PER_CORE = 4
+"""Most LocalCluster workers a CPU core may have (--workers): more only wait, each a process to start."""
+
+
+def check_workers(workers: int | None) -> None:
+    """ArgumentError unless `workers` (--workers) is None or 1 .. MAX_WORKERS_PER_CORE a CPU core."""
+    most = MAX_WORKERS_PER_CORE * (os.cpu_count() or 1)
+    if workers is not None and not 1 <= workers <= most:
+        raise ArgumentError(
+            f"--workers must be 1 .. {most} ({MAX_WORKERS_PER_CORE} a CPU core: each is a process with its "
+            f"own Warp and soil), got {workers}"
+        )
+
+
 class Executor:
     """Maps tasks over a dask cluster (or serially). Use as a context manager."""
 
     def __init__(self, kind: str = "dask", scheduler: str | None = None, workers: int | None = None):
         if kind not in ("dask", "serial"):
             raise ArgumentError(f"executor must be 'dask' or 'serial', got {kind!r}")
-        if workers is not None and workers < 1:
-            raise ArgumentError(f"--workers must be >= 1, got {workers}")
+        check_workers(workers)
         self.kind = kind
         self.scheduler = scheduler
         self.workers = workers or os.cpu_count() or 1
@@ -135,7 +149,11 @@ class Executor:
                 logging.getLogger(name).setLevel(logging.WARNING)
         with _signals_held() as held:  # a cluster stopped half-built fails dask's own cleanup at exit
             if self.scheduler:
-                self.client = Client(self.scheduler)
+                try:
+                    self.client = Client(self.scheduler)
+                except (ValueError, TypeError) as error:  # a malformed address (a refused one: OSError)
+                    where = f"--scheduler {self.scheduler!r}"
+                    raise ArgumentError(f"{where}: not a dask scheduler address ({error})") from None
             else:
                 self.cluster = LocalCluster(
                     n_workers=self.workers, threads_per_worker=1, processes=True, dashboard_address=None
@@ -202,13 +220,20 @@ class Executor:
 @contextlib.contextmanager
 def _signals_held():
     """Hold SIGINT and SIGTERM back while the block runs (in the main thread): yields the list of those
-    that arrived, in order; the former handlers are back when it ends."""
+    that arrived, in order (a second one raises KeyboardInterrupt at once); the former handlers are back
+    when it ends."""
     held: list[int] = []
     if threading.current_thread() is not threading.main_thread():
         yield held
         return
+
+    def hold(signum, frame):
+        if held:  # asked twice: stop at once, as a second Ctrl-C does in a run
+            raise KeyboardInterrupt(signal.Signals(signum).name)
+        held.append(signum)
+
     kinds = (signal.SIGINT, signal.SIGTERM)
-    former = {kind: signal.signal(kind, lambda signum, frame: held.append(signum)) for kind in kinds}
+    former = {kind: signal.signal(kind, hold) for kind in kinds}
     try:
         yield held
     finally:
@@ -807,6 +832,9 @@ def slip_study_from_runs(
     import json
 
     out_dir = os.path.abspath(out_dir)
+    repeated = [f for f in set(map(os.path.realpath, folders)) if list(map(os.path.realpath, folders)).count(f) > 1]
+    if repeated:  # its runs would be counted twice
+        raise ArgumentError(f"--from-runs: {repeated[0]} given twice")
     for folder in folders:
         source = os.path.abspath(folder)
         if os.path.commonpath([out_dir, source]) == out_dir:
@@ -956,6 +984,8 @@ def parse_params(params: list[str]) -> dict[str, list]:
         if "=" not in text:
             raise SceneError([f"--param {text!r}: expected key=v1,v2,..."])
         key, values = text.split("=", 1)
+        if key.strip() in grid:  # the later one would replace the first without a word
+            raise SceneError([f"--param {key.strip()}: given twice; give its values once, comma-separated"])
         grid[key.strip()] = parse_list(values, f"--param {key.strip()}")
     return grid
 
@@ -1070,6 +1100,10 @@ def sweep(
 # time-step study
 
 
+MAX_TRY_DURATION = 60.0
+"""Longest try of the stable-step search [s]: an explosion shows within a few contact times."""
+
+
 def timestep_study(
     plan: RunPlan,
     out_dir: str,
@@ -1088,9 +1122,16 @@ def timestep_study(
     from .dem_soil import DemSoil
     from .system import CoupledSystem
 
-    if not (duration > 0 and growth > 1 and max_tries >= 1):
+    if not (0 < duration <= MAX_TRY_DURATION and growth > 1 and max_tries >= 1):
         raise SceneError(
-            [f"--duration, growth, --max-tries: need > 0, > 1, >= 1 (got {duration}, {growth}, {max_tries})"]
+            [
+                f"--duration, growth, --max-tries: need 0 < duration <= {MAX_TRY_DURATION:g} s, > 1, >= 1 "
+                f"(got {duration}, {growth}, {max_tries})"
+            ]
+        )
+    if plan.terrain.model != "dem":  # checked before the study's folder is touched
+        raise SceneError(
+            [f"terrain.model: the stable-step search is of the DEM step; this scene runs on {plan.terrain.model}"]
         )
     out_dir = os.path.abspath(out_dir)
     prepare_study(out_dir, overwrite)

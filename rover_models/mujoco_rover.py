@@ -31,7 +31,7 @@ import mujoco
 import numpy as np
 from numpy.typing import ArrayLike
 
-from cosim.contract import WheelKinematics, WheelWrench
+from cosim.contract import RoverDiverged, WheelKinematics, WheelWrench
 from soil.errors import ArgumentError
 
 
@@ -203,6 +203,7 @@ class MujocoRover:
                 if t_end - self.data.time - dt <= eps:
                     dt = t_end - self.data.time  # land on t_end, not one rounding error short
                 self.model.opt.timestep = dt
+                before = self.data.time
                 if split:
                     mujoco.mj_step1(self.model, self.data)  # positions/velocities -> xpos, xipos
                     self._write_xfrc()
@@ -210,6 +211,12 @@ class MujocoRover:
                 else:
                     self._write_xfrc()
                     mujoco.mj_step(self.model, self.data)
+                if not self.data.time > before:  # MuJoCo resets an unstable model to its start, time 0 too
+                    raise RoverDiverged(
+                        f"the MuJoCo model became unstable at t = {before:.6g} s (accelerations not finite or "
+                        f"huge: MuJoCo reset it); its step {self.timestep:g} s, or the commands or wrenches on it, "
+                        "are too large for it"
+                    )
         finally:
             self.model.opt.timestep = self.timestep
         self.data.time = t_end

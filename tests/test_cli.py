@@ -547,3 +547,23 @@ def test_sigterm_while_the_dask_cluster_starts_closes_it_whole_then_stops(monkey
     finally:
         signal.signal(signal.SIGTERM, previous)
     assert closed == ["client", "cluster"]
+
+
+@pytest.mark.parametrize(
+    "option, words",
+    [
+        (["--workers", "0"], "--workers must be 1 .. "),
+        (["--workers", "100000"], "--workers must be 1 .. "),
+        (["--scheduler", "nonsense"], "--scheduler 'nonsense': not a dask scheduler address"),
+        (["--scheduler", "tcp://[::1"], "--scheduler 'tcp://[::1': not a dask scheduler address"),
+    ],
+)
+def test_a_cluster_option_out_of_range_is_named(tmp_path, capsys, option, words):
+    """--workers beyond 4 a core started processes for 10 minutes (signals held while they start), a
+    malformed --scheduler was an unexpected error: both are bad arguments (exit 2)."""
+    scene = str(write_tiny(tmp_path))
+    out = tmp_path / "out"
+    assert main(["run", scene, "--replicas", "2", "--out", str(out), "--no-progress", *option]) == 2
+    assert words in capsys.readouterr().err
+    if option[0] == "--workers":
+        assert not out.exists(), "nothing made before the arguments are checked"

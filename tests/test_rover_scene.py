@@ -67,6 +67,12 @@ BAD = [
     ),
     ("a rover wider than its bed", ["bed.width=0.02", "bed.radius_mean=0.002"], "bed.width", "rover"),
     ("gravity pointing up", ["scene.gravity=[0.0, 0.0, 1.6]"], "scene.gravity", "down"),
+    (
+        "a controller named as a path (a sweep's folder)",
+        ['rover.controllers={"../../escaped"={kind="speed", speed=1.0}}'],
+        "rover.controllers",
+        "plain name",
+    ),
 ]
 
 

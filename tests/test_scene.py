@@ -75,6 +75,8 @@ BAD_SCENES = [
     ("scene name of 300 bytes", f"[scene]\nname = '{'n' * 300}'\n", "scene.name", "at most 128 bytes"),
     ("gravity pointing up", "[scene]\ngravity = [0.0, 0.0, 1.6]\n", "scene.gravity", "must point down"),
     ("gravity along the bed", "[scene]\ngravity = [1.6, 0.0, 0.0]\n", "scene.gravity", "within 60 deg"),
+    ("a TOML date as the name", "[scene]\nname = 1979-05-27T07:32:00Z\n", "scene.name", "a date or time"),
+    ("a TOML date in a list", "[scene]\ngravity = [0.0, 0.0, 1979-05-27]\n", "scene.gravity[2]", "a date or time"),
     # a boolean is no number (pydantic would read true as 1: gravity = true as 1 m/s^2)
     ("boolean gravity", "[scene]\ngravity = true\n", "scene.gravity", "not true or false"),
     ("boolean in a gravity vector", "[scene]\ngravity = [0.0, 0.0, true]\n", "scene.gravity", "not true or false"),
@@ -319,3 +321,29 @@ def test_scms_own_coupling_step_far_too_fine_names_the_keys_it_comes_from(tmp_pa
     data["terrain"]["elastic_stiffness"] = 2.0e7
     path.write_text(tomli_w.dumps(data))
     assert load_plan(path).substeps == 1
+
+
+def test_a_scene_nested_too_deep_is_refused(tmp_path):
+    """5,000 nested lists ran Python out of recursion ('unexpected error', exit 1)."""
+    path = tmp_path / "deep.toml"
+    path.write_text("a = " + "[" * 5000 + "]" * 5000 + "\n")
+    with pytest.raises(SceneError, match="nested too deep"):
+        load_scene(path)
+
+
+def test_a_sweep_key_given_twice_and_a_huge_list_are_named_briefly(tmp_path, capsys):
+    """A repeated --param key replaced the first without a word; a refused list of ten million entries
+    was echoed whole (30 MB on stderr)."""
+    from cosim.study import parse_params
+
+    with pytest.raises(SceneError, match="--param wheel.radius: given twice"):
+        parse_params(["wheel.radius=0.03", "wheel.radius=0.04"])
+    with pytest.raises(SceneError) as info:
+        scene_from_text(_merge("[output]\nflush_every = [" + "1," * 100_000 + "1]\n"))
+    assert "output.flush_every" in str(info.value) and " ... " in str(info.value) and len(str(info.value)) < 1000
+
+
+def test_cosim_scale_to_a_boolean_gravity_is_refused(tmp_path, capsys):
+    assert main(["scale", str(write_tiny(tmp_path)), "--gravity", "true", "--out", str(tmp_path / "t.toml")]) == 2
+    assert "--gravity: a preset name or a magnitude [m/s^2], not true" in capsys.readouterr().err
+    assert not (tmp_path / "t.toml").exists()

@@ -3,6 +3,7 @@ synthetic test curves with noise, within a few of their own standard errors; the
 round-trips; a calibration used at another gravity warns naming both gravities."""
 
 import math
+import os
 import warnings
 from dataclasses import replace
 
@@ -195,6 +196,16 @@ def test_a_calibration_file_of_the_wrong_types_is_refused_naming_the_file_and_ke
     with pytest.raises(CalibrationError) as error:
         read_calibration(str(path))
     assert str(path) in str(error.value) and named in str(error.value), str(error.value)
+
+
+def test_a_calibration_path_that_is_no_regular_file_is_refused_without_reading_it(tmp_path):
+    """A FIFO waited forever for a writer and /dev/zero was read until memory ran out; a folder and a
+    missing path are named the same way."""
+    fifo = tmp_path / "fifo"
+    os.mkfifo(fifo)
+    for path in (str(fifo), "/dev/zero", str(tmp_path), str(tmp_path / "missing.toml")):
+        with pytest.raises(CalibrationError, match="not a calibration file"):
+            read_calibration(path)
 
 
 def test_a_calibration_outside_scms_range_is_refused_naming_the_file_unless_the_scene_overrides_it(tmp_path):
@@ -547,6 +558,10 @@ def test_calibrate_scm_from_wheel_writes_the_fit_and_refuses_misplaced_options(t
         assert tomllib.load(f)["units"] == {"gravity": "m/s^2", **{k: SOIL_UNITS[k] for k in SOIL_KEYS}}
     assert SOIL_UNITS["k_phi"] == "Pa m^(-n)" and SOIL_UNITS["friction_angle_deg"] == "deg"
     capsys.readouterr()
+    before = lab_path.read_bytes()  # --out checked before the tests, not replaced at their end unasked
+    assert main(["calibrate-scm", scene, "--out", str(lab_path)]) == 3 and lab_path.read_bytes() == before
+    assert main(["calibrate-scm", scene, "--out", str(tmp_path)]) == 2
+    assert "--out" in capsys.readouterr().err
     assert main(["calibrate-scm", scene, "--out", str(tmp_path / "x.toml"), "--lab", str(lab_path)]) == 2
     assert "--lab" in capsys.readouterr().err
     assert main(["calibrate-scm", scene, "--out", str(tmp_path / "x.toml"), *args, "--max-runs", "-1"]) == 2

@@ -406,3 +406,50 @@ def test_a_slip_study_is_tabulated_from_the_runs_it_holds(tmp_path):
     assert row[0.2]["drawbar_pull_mean"] == pytest.approx((values.sum() + 5.0) / 4, rel=1e-12)
     with pytest.raises(ArgumentError, match="holds the runs"):
         slip_study_from_runs([tmp_path / "a"], str(tmp_path))
+
+
+def test_a_stop_asked_for_during_serial_replicas_stops_them_all(tmp_path, monkeypatch):
+    """Ctrl-C or SIGTERM in a run of `--serial` replicas (the runner checkpoints and raises
+    RunInterrupted) stops the study, as it stops one run: it used to mark that replica failed and run
+    the others to their end."""
+    from cosim import launch
+    from cosim.study import Executor, run_task
+    from helpers import TINY_SCENE
+
+    started = []
+
+    def stopped_run(plan, out_dir, **kwargs):
+        started.append(out_dir)
+        raise RunInterrupted("SIGTERM: stopped after a checkpoint", signal="SIGTERM")
+
+    monkeypatch.setattr(launch, "run_plan", stopped_run)
+    tasks = [{"scene_toml": TINY_SCENE, "out_dir": str(tmp_path / f"replica_{k}"), "label": str(k)} for k in range(3)]
+    with pytest.raises(RunInterrupted), Executor("serial") as ex:
+        ex.map(run_task, tasks)
+    assert started == [str(tmp_path / "replica_0")]
+
+
+def test_a_timestep_search_of_no_dem_step_or_of_endless_tries_is_refused_before_its_folder(tmp_path, capsys):
+    """On the analytic terrain it settled a bed and then failed an assertion (exit 1); --duration 1e300
+    ran without end. Both are bad input (exit 2), named before the study's folder is made."""
+    from cosim.cli import main
+
+    analytic = write_tiny(tmp_path, '\n[terrain]\nmodel = "analytic"\nstiffness = 500.0\n')
+    out = tmp_path / "study"
+    assert main(["study", "timestep", analytic, "--out", str(out)]) == 2
+    assert "stable-step search is of the DEM step; this scene runs on analytic" in capsys.readouterr().err
+    assert main(["study", "timestep", write_tiny(tmp_path), "--out", str(out), "--duration", "1e300"]) == 2
+    assert "--duration" in capsys.readouterr().err
+    assert not out.exists()
+
+
+def test_a_slip_study_from_the_same_runs_twice_is_refused(tmp_path):
+    """`--from-runs A A` counted each run twice (its table's counts doubled)."""
+    from cosim.study import slip_study_from_runs
+    from soil.errors import ArgumentError
+
+    runs = tmp_path / "runs"
+    runs.mkdir()
+    with pytest.raises(ArgumentError, match="given twice"):
+        slip_study_from_runs([str(runs), str(runs) + "/"], str(tmp_path / "table"))
+    assert not (tmp_path / "table").exists()

@@ -134,6 +134,22 @@ def test_a_rover_scene_runs_on_the_analytic_terrain(tmp_path):
     np.testing.assert_allclose(2000.0 * series["sinkage"][driving].sum(axis=1).mean(), weight, rtol=2e-2)
 
 
+def test_a_mujoco_rover_that_becomes_unstable_stops_the_run_as_diverged(tmp_path, capsys):
+    """A wheel torque of 1e6 N m on the small rover: MuJoCo finds its accelerations huge and resets the
+    model to its start (time 0 too), where the run stepped on without end. It is a divergence (exit 4)
+    naming the rover, the time and what to change."""
+    from cosim.cli import main
+    from rover_helpers import write_small_rover
+
+    pytest.importorskip("mujoco")
+    terrain = '\n[terrain]\nmodel = "analytic"\nstiffness = 2000.0\ndamping = 40.0\n'
+    scene = write_small_rover(tmp_path, duration=0.15, extra=terrain)
+    drive = 'rover.drive={kind="torque", torque=1e6}'
+    assert main(["run", scene, "--out", str(tmp_path / "run"), "--no-progress", "--set", drive]) == 4
+    message = capsys.readouterr().err
+    assert "the rover diverged during the drive: the MuJoCo model became unstable at t = " in message, message
+
+
 def test_terrain_keys_are_checked():
     from cosim.scene import validate_scene
 
