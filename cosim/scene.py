@@ -124,12 +124,9 @@ def check_magnitude(model: type[BaseModel], name: str, value):
     return value
 
 
-class _Section(BaseModel):
-    # no inf / nan anywhere, and no number out of SCENE_NUMBER_RANGE: a scene number is a physical
-    # quantity; a key's docstring is its description (its unit in brackets: key_unit)
-    model_config = ConfigDict(
-        extra="forbid", validate_assignment=True, allow_inf_nan=False, use_attribute_docstrings=True
-    )
+class NumbersChecked(BaseModel):
+    """A section whose numbers are numbers (reject_bool_for_number) of bounded magnitude (check_magnitude):
+    the scene's and the soil lab's."""
 
     @field_validator("*", mode="before")
     @classmethod
@@ -140,6 +137,14 @@ class _Section(BaseModel):
     @classmethod
     def _magnitude(cls, value, info):
         return check_magnitude(cls, info.field_name, value)
+
+
+class _Section(NumbersChecked):
+    # no inf / nan anywhere, and no number out of SCENE_NUMBER_RANGE: a scene number is a physical
+    # quantity; a key's docstring is its description (its unit in brackets: key_unit)
+    model_config = ConfigDict(
+        extra="forbid", validate_assignment=True, allow_inf_nan=False, use_attribute_docstrings=True
+    )
 
 
 def is_device_name(value: str) -> bool:

@@ -158,3 +158,17 @@ def assert_checkpoint_units(path) -> dict:
     assert names and not missing, missing
     assert all(isinstance(units[name], str) and units[name] for name in names)
     return units
+
+
+SCM_TERRAIN = """
+[terrain]
+model = "scm"
+k_c = 2.0e3
+k_phi = 8.0e5
+n = 1.1
+cohesion = 50.0
+friction_angle_deg = 30.0
+janosi_k = 0.002
+elastic_stiffness = 2.0e7
+"""
+"""A [terrain] on SCM with every soil key given (no calibration file): the tiny scene's SCM twin."""

@@ -18,7 +18,7 @@ from cosim.dem_soil import DemSoil
 from cosim.launch import run_plan
 from cosim.output import ResultsWriter
 from cosim.plan import load_plan
-from helpers import write_tiny
+from helpers import SCM_TERRAIN, write_tiny
 from soil.macro import MacroSums, StepGraphs
 from soil.scm import ScmTerrain
 
@@ -32,17 +32,6 @@ VARIANTS = {
     "pid": [*SHORT, 'run.step_control="pid"'],  # landing rows under the PID substeps: one captured loop a step
 }
 """The tiny scene's runs whose rows are checked, each 59 macro steps."""
-SCM = """
-[terrain]
-model = "scm"
-k_c = 2.0e3
-k_phi = 8.0e5
-n = 1.1
-cohesion = 50.0
-friction_angle_deg = 30.0
-janosi_k = 0.002
-elastic_stiffness = 2.0e7
-"""
 
 
 @pytest.fixture(scope="module", params=sorted(VARIANTS))
@@ -168,7 +157,7 @@ def test_a_step_that_fails_leaves_every_row_before_it(plan, tmp_path, monkeypatc
 
 
 def test_an_scm_run_writes_its_rows_while_the_grid_steps_and_the_same_rows(tmp_path, monkeypatch):
-    plan = load_plan(write_tiny(tmp_path, SCM), ["wheel.grouser_count=0", *SHORT])
+    plan = load_plan(write_tiny(tmp_path, SCM_TERRAIN), ["wheel.grouser_count=0", *SHORT])
     with pytest.MonkeyPatch.context() as patch:  # the SCM steps launched by `advance`, read by `wheel_contact`
         events = _events(patch, launches=(ScmTerrain, "_pose"), reads=(ScmTerrain, "wheel_contact"))
         run_plan(plan, str(tmp_path / "meanwhile"))

@@ -8,21 +8,9 @@ import pytest
 from cosim.cli import main
 from cosim.plan import load_plan
 from cosim.scene import SceneError, load_scene, scene_from_text
-from helpers import TINY_SCENE, write_tiny
+from helpers import SCM_TERRAIN, TINY_SCENE, write_tiny
 
 EXAMPLES = os.path.join(os.path.dirname(__file__), "..", "examples")
-
-SCM_TERRAIN = """
-[terrain]
-model = "scm"
-k_c = 2.0e3
-k_phi = 8.0e5
-n = 1.1
-cohesion = 50.0
-friction_angle_deg = 30.0
-janosi_k = 0.002
-elastic_stiffness = 2.0e7
-"""
 
 BAD_SCENES = [
     # (what is wrong, TOML added to / replacing the tiny scene, field named, words of the allowed values)

@@ -29,7 +29,7 @@ from dataclasses import dataclass
 from typing import Literal
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
+from pydantic import ConfigDict, Field, model_validator
 
 from soil import ContactLaw, Material, gravity_vector
 from soil.bed import radius_range
@@ -37,12 +37,11 @@ from soil.bed import radius_range
 from ..plan import MAX_PHASE_STEPS, default_stick_speed, dem_time_step, to_material
 from ..probe import resolve_device
 from ..scene import (
+    NumbersChecked,
     Scene,
     SceneError,
     apply_overrides,
-    check_magnitude,
     load_scene,
-    reject_bool_for_number,
     scene_from_text,
     validate_scene,
 )
@@ -51,19 +50,9 @@ PACKING_FRACTION = 0.6
 """Solid fraction assumed when a fill height is turned into a grain count [-] (random packing of spheres)."""
 
 
-class _LabSection(BaseModel):
+class _LabSection(NumbersChecked):
     # as cosim.scene: no inf / nan, no number out of its range, no boolean for a number, unknown keys refused
     model_config = ConfigDict(extra="forbid", validate_assignment=True, allow_inf_nan=False)
-
-    @field_validator("*", mode="before")
-    @classmethod
-    def _no_bool_for_number(cls, value, info):
-        return reject_bool_for_number(cls, info.field_name, value)
-
-    @field_validator("*")
-    @classmethod
-    def _magnitude(cls, value, info):
-        return check_magnitude(cls, info.field_name, value)
 
 
 def _exclusive(section, absolute: str, relative: str):
