@@ -532,9 +532,8 @@ def resolve(scene: Scene) -> RunPlan:
         wheels = (wheel,)
     if g > 0 and -gravity[2] < 0.5 * g:  # upwards the grains leave the open box; sideways they pile on a wall
         problems.append(
-            f"scene.gravity: the soil lies on the plane z = 0 (the bed's floor, the terrain's datum), so gravity "
-            "must point down (-z) "
-            f"within 60 deg (a slope); got {list(gravity)} m/s^2"
+            "scene.gravity: the soil lies on the plane z = 0 (the bed's floor, the terrain's datum), so gravity "
+            f"must point down (-z) within 60 deg (a slope); got {list(gravity)} m/s^2"
         )
     section = scene.soil.law
     materials = (soil_material, *(w.material for w in wheels or (wheel,)))
