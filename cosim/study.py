@@ -832,7 +832,8 @@ def slip_study_from_runs(
     import json
 
     out_dir = os.path.abspath(out_dir)
-    repeated = [f for f in set(map(os.path.realpath, folders)) if list(map(os.path.realpath, folders)).count(f) > 1]
+    real = [os.path.realpath(folder) for folder in folders]
+    repeated = sorted({folder for folder in real if real.count(folder) > 1})
     if repeated:  # its runs would be counted twice
         raise ArgumentError(f"--from-runs: {repeated[0]} given twice")
     for folder in folders:
