@@ -98,6 +98,11 @@ def test_lab_commands_fail_cleanly_on_bad_input(tmp_path, capsys):
         == 2
     )
     assert "slip_angle_deg" in capsys.readouterr().err
+    # a Bekker fit from below the deepest sinkage has no point to fit (it ended with k and n nan, exit 0)
+    plate = ["--set", "plate.fit_from=0.05", "--set", "plate.max_sinkage=0.01", "--out", str(tmp_path / "plate")]
+    assert main(["lab", "plate", str(scene), "--serial", *plate]) == 2
+    assert "plate.fit_from: (0.05 m) must be below the deepest sinkage plate.max_sinkage" in capsys.readouterr().err
+    assert not (tmp_path / "plate").exists()
 
 
 # -- measurements on known shapes -------------------------------------------------------------

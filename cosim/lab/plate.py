@@ -97,6 +97,17 @@ def check(plan: LabPlan) -> None:
             f"plate.max_sinkage: ({sinkage:.4g} m) must leave two grain diameters of the bed "
             f"(bed.depth = {bed.depth:.4g} m) under the plate"
         )
+    fit_from = plan.scene.plate.fit_from
+    deepest = sinkage if sinkage is not None else 0.4 * bed.depth  # the default: 0.4 x the settled depth, less
+    if fit_from is not None and fit_from >= deepest:  # no point to fit: Bekker's k and n were nan, exit 0
+        problems.append(
+            f"plate.fit_from: ({fit_from:.4g} m) must be below the deepest sinkage "
+            + (
+                f"plate.max_sinkage ({sinkage:.4g} m)"
+                if sinkage is not None
+                else f"(below 0.4 x bed.depth, {deepest:.4g} m)"
+            )
+        )
     path = plan.scene.resolve(bed.bed_file)
     if path is not None:
         try:
