@@ -43,6 +43,9 @@ WALL_GRAINS = 4
 rover's wheels and a patch's frozen band [-]."""
 
 
+RAYLEIGH_KEYS = "the Rayleigh step of the smallest grain: soil.youngs_modulus, soil.density, bed.radius_mean"
+"""What sets the DEM step with run.dt_factor, for the messages that name it."""
+
 MAX_PHASE_STEPS = 1e10
 """Most steps a run's soil or coupling may take in one phase (settling, landing, driving) [count]: a day
 even at 10 us a step, quicker than a GPU steps the smallest bed; beyond it a run never ends in practice
@@ -739,13 +742,12 @@ def _step_count_problems(
     on_grains = _on_grains(scene)
     terrain = scene.terrain
     scm_step = terrain.time_step if terrain is not None and terrain.model == "scm" else None
-    rayleigh = "the Rayleigh step of the smallest grain: soil.youngs_modulus, soil.density, bed.radius_mean"
-    dem_keys = f"run.dt_factor x {rayleigh}" if dt_key == "run.dt_factor" else dt_key
+    dem_keys = f"run.dt_factor x {RAYLEIGH_KEYS}" if dt_key == "run.dt_factor" else dt_key
     if macro_key is None:
         macro_key = "run.macro_step" if scene.run.macro_step is not None else f"run.substeps x {dem_keys}"
     steps = []  # (count, rank on a tie: the finest step first, what, the keys that set the step)
     if settles and on_grains:
-        steps.append((scene.bed.settle_max_time / settle_dt, 2, "settling", f"bed.settle_dt_factor x {rayleigh}"))
+        steps.append((scene.bed.settle_max_time / settle_dt, 2, "settling", f"bed.settle_dt_factor x {RAYLEIGH_KEYS}"))
     for phase, duration in (
         ("landing", scene.landing.max_time if scene.landing.enabled else 0.0),
         ("driving", scene.run.duration),

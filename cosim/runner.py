@@ -52,8 +52,8 @@ NO_PARTICLES = Particles(np.zeros((0, 3)), np.zeros((0, 3), np.float32), np.zero
 
 
 class RunDiverged(RegolithError, RuntimeError):
-    """The soil diverged (soil.SimulationDiverged); the message names where and what to change, the last good
-    state is saved."""
+    """The soil (soil.SimulationDiverged) or the rover (cosim.contract.RoverDiverged) diverged; the message
+    names where and what to change, and the last checkpoint (a diverged soil's last good state is saved)."""
 
 
 class RunInterrupted(RegolithError):
@@ -187,15 +187,10 @@ class Runner:
             status = "complete"
         except SimulationDiverged as error:
             status = "diverged"
-            phase = "landing" if self.drive_start_step < 0 else "drive"
             message = (
-                f"the run diverged during the {phase}: {error}. Change {plan.dt_setting} (the DEM step is now "
-                f"{plan.dt:.3g} s), soften or stiffen the soil as `cosim advise` says, or shorten run.macro_step. "
-                + (
-                    f"The last checkpoint is {self.folder.checkpoint} (t = {self.last_checkpoint_time:.6g} s)"
-                    if os.path.isfile(self.folder.checkpoint)
-                    else "It diverged before the first checkpoint: there is none to resume from"
-                )
+                f"the run diverged during the {self._phase()}: {error}. Change {plan.dt_setting} (the DEM step is "
+                f"now {plan.dt:.3g} s), soften or stiffen the soil as `cosim advise` says, or shorten "
+                f"run.macro_step. {self._last_checkpoint()}"
             )
             if error.last_good is not None:
                 write_checkpoint(self.folder.file(DIVERGED_FILE), error.last_good, STATE_UNITS)
@@ -203,13 +198,7 @@ class Runner:
             raise RunDiverged(message) from error
         except RoverDiverged as error:
             status = "diverged"
-            phase = "landing" if self.drive_start_step < 0 else "drive"
-            checkpoint = (
-                f"The last checkpoint is {self.folder.checkpoint} (t = {self.last_checkpoint_time:.6g} s)"
-                if os.path.isfile(self.folder.checkpoint)
-                else "It diverged before the first checkpoint: there is none to resume from"
-            )
-            message = f"the rover diverged during the {phase}: {error}. {checkpoint}"
+            message = f"the rover diverged during the {self._phase()}: {error}. {self._last_checkpoint()}"
             raise RunDiverged(message) from error
         except (KeyboardInterrupt, RunInterrupted) as error:
             status = "interrupted"
@@ -374,6 +363,16 @@ class Runner:
             "steps": self.writer.steps,
             "snapshots": self.writer.snapshots,
         }
+
+    def _phase(self) -> str:
+        """'landing' or 'drive': the phase the run is in (for its messages)."""
+        return "landing" if self.drive_start_step < 0 else "drive"
+
+    def _last_checkpoint(self) -> str:
+        """Where a stopped run can be resumed from, as a sentence."""
+        if os.path.isfile(self.folder.checkpoint):
+            return f"The last checkpoint is {self.folder.checkpoint} (t = {self.last_checkpoint_time:.6g} s)"
+        return "It diverged before the first checkpoint: there is none to resume from"
 
     def _checkpoint(self, wall: float) -> None:
         self._settle_row()  # the checkpoint's loop state (rows, travel) counts the step's row

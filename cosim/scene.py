@@ -971,13 +971,17 @@ def parse_list(text: str, option: str) -> list[Any]:
     return [parse_value(entry) for entry in entries]
 
 
+NESTED_TOO_DEEP = "tables or lists nested too deep to be a scene"
+"""What a scene whose nesting runs Python out of recursion is told."""
+
+
 def _plain_copy(data: dict) -> dict:
     """A copy of a scene dictionary; SceneError names a value that is no number, string, boolean, list or
     table (a TOML date or time) and nesting too deep to be a scene."""
     try:
         return json.loads(json.dumps(data))
     except RecursionError:
-        raise SceneError(["tables or lists nested too deep to be a scene"]) from None
+        raise SceneError([NESTED_TOO_DEEP]) from None
     except TypeError:
         raise SceneError(
             [
@@ -1043,7 +1047,7 @@ def load_scene(
     except tomllib.TOMLDecodeError as error:
         raise SceneError([f"not valid TOML: {error}"], path) from None
     except RecursionError:
-        raise SceneError(["tables or lists nested too deep to be a scene"], path) from None
+        raise SceneError([NESTED_TOO_DEEP], path) from None
     except (OSError, UnicodeDecodeError) as error:
         raise SceneError([f"cannot read the scene file: {error}"], path) from None
     try:
@@ -1060,5 +1064,5 @@ def scene_from_text(text: str, base_dir: str | None = None, overrides=None, mode
     except tomllib.TOMLDecodeError as error:
         raise SceneError([f"not valid TOML: {error}"]) from None
     except RecursionError:
-        raise SceneError(["tables or lists nested too deep to be a scene"]) from None
+        raise SceneError([NESTED_TOO_DEEP]) from None
     return validate_scene(apply_overrides(data, overrides), base_dir=base_dir, model=model)

@@ -34,7 +34,7 @@ from pydantic import ConfigDict, Field, model_validator
 from soil import ContactLaw, Material, gravity_vector
 from soil.bed import radius_range
 
-from ..plan import MAX_PHASE_STEPS, default_stick_speed, dem_time_step, to_material
+from ..plan import MAX_PHASE_STEPS, RAYLEIGH_KEYS, default_stick_speed, dem_time_step, to_material
 from ..probe import resolve_device
 from ..scene import (
     NumbersChecked,
@@ -294,7 +294,7 @@ def resolve_lab(scene: LabScene, needs_gravity: bool = False, test: str = "lab")
     dt, dt_key = dem_time_step(scene, soil)
     longest = scene.lab.max_time_factor * math.sqrt(2.0 * bed.radius_mean / g) if g > 0 else 0.0
     if longest / dt > MAX_PHASE_STEPS:  # a step far below the scene's scale: a test that never ends
-        step = "run.dt_factor x the Rayleigh step (soil.youngs_modulus, soil.density, bed.radius_mean)"
+        step = f"run.dt_factor x {RAYLEIGH_KEYS}"
         problems.append(
             f"{dt_key}: a phase of up to {longest:.3g} s (lab.max_time_factor sqrt(d / |g|)) is {longest / dt:.3g} "
             f"DEM steps of {dt:.3g} s, more than {MAX_PHASE_STEPS:.0e} (a day even at 10 us a step): the step "
