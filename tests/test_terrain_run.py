@@ -134,7 +134,7 @@ def test_a_rover_scene_runs_on_the_analytic_terrain(tmp_path):
     np.testing.assert_allclose(2000.0 * series["sinkage"][driving].sum(axis=1).mean(), weight, rtol=2e-2)
 
 
-def test_a_mujoco_rover_that_becomes_unstable_stops_the_run_as_diverged(tmp_path, capsys):
+def test_a_mujoco_rover_that_becomes_unstable_stops_the_run_as_diverged(tmp_path, capsys, monkeypatch):
     """A wheel torque of 1e6 N m on the small rover: MuJoCo finds its accelerations huge and resets the
     model to its start (time 0 too), where the run stepped on without end. It is a divergence (exit 4)
     naming the rover, the time and what to change."""
@@ -142,6 +142,7 @@ def test_a_mujoco_rover_that_becomes_unstable_stops_the_run_as_diverged(tmp_path
     from rover_helpers import write_small_rover
 
     pytest.importorskip("mujoco")
+    monkeypatch.chdir(tmp_path)  # MuJoCo writes its warning to MUJOCO_LOG.TXT in the working folder
     terrain = '\n[terrain]\nmodel = "analytic"\nstiffness = 2000.0\ndamping = 40.0\n'
     scene = write_small_rover(tmp_path, duration=0.15, extra=terrain)
     drive = 'rover.drive={kind="torque", torque=1e6}'
