@@ -14,6 +14,7 @@ import contextlib
 import functools
 import json
 import logging
+import math
 import os
 import time
 from dataclasses import dataclass, field
@@ -141,7 +142,8 @@ def _plain(value):
 def memory_estimate(plan: RunPlan, worlds: int = 1):
     """soil.memory.MemoryEstimate of the plan's largest soil: the settling (double precision) unless a bed
     file is given, else the run in its precision (`worlds` copies of it: replicas batched, cosim.batch);
-    grains counted without allocating them."""
+    grains counted without allocating them. A [patch] runs on its window of the bed's packing, as many
+    grains as the window's area holds at the bed's grains per area (soil.patch)."""
     from soil.bed import grain_count, read_bed_header
     from soil.memory import estimate
 
@@ -150,11 +152,20 @@ def memory_estimate(plan: RunPlan, worlds: int = 1):
             grains = read_bed_header(plan.bed.bed_file)["particle_count"]
         except (OSError, ValueError):
             grains = 0  # an unreadable bed file is reported where it is read
-        return estimate(worlds * grains, plan.precision, plan.device)
-    grains = grain_count(plan.bed.spec)
+    else:
+        grains = grain_count(plan.bed.spec)
+    running = worlds * (patch_grain_count(plan, grains) if plan.patch is not None else grains)
+    run = estimate(running, plan.precision, plan.device)
+    if plan.bed.bed_file:
+        return run
     double = estimate(grains, "double", plan.device)
-    run = estimate(grains, plan.precision, plan.device)
     return double if double.device_bytes >= run.device_bytes else run
+
+
+def patch_grain_count(plan: RunPlan, bed_grains: int) -> int:
+    """Grains in the plan's patch window [-]: the bed's `bed_grains` per bed area times the window's area."""
+    spec, patch = plan.bed.spec, plan.patch
+    return math.ceil(bed_grains * (patch.length * patch.width) / (spec.length * spec.width))
 
 
 def check_memory(plan: RunPlan, worlds: int = 1) -> None:

@@ -201,15 +201,12 @@ def cmd_plot(args) -> int:
 
 
 def cmd_view(args) -> int:
-    from soil.errors import ArgumentError
-
     from .view import render, summary_line
 
-    for option, value in (("--fps", args.fps), ("--dpi", args.dpi)):
-        if value < 1:
-            raise ArgumentError(f"{option} must be >= 1, got {value}")
-
-    print(summary_line(render(args.run, args.out, colour=args.color, fps=args.fps, dpi=args.dpi, frame=args.frame)))
+    picture = render(
+        args.run, args.out, colour=args.color, fps=args.fps, dpi=args.dpi, frame=args.frame, overwrite=args.overwrite
+    )
+    print(summary_line(picture))
     return EXIT_OK
 
 
@@ -917,8 +914,13 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument("--color", choices=["speed", "displacement"], default="speed", help="what colours the grains")
     p.add_argument("--frame", type=int, help="with a .png: the snapshot to draw (default the last; -1 counts back)")
-    p.add_argument("--fps", type=int, default=5, help="movie frames per second (one frame per snapshot; default 5)")
-    p.add_argument("--dpi", type=int, default=100, help="pixels per inch of the frames (10 in wide; default 100)")
+    p.add_argument(
+        "--fps", type=int, default=5, help="movie frames per second, 1 to 120 (one frame per snapshot; default 5)"
+    )
+    p.add_argument(
+        "--dpi", type=int, default=100, help="pixels per inch of the frames, 10 to 600 (10 in wide; default 100)"
+    )
+    p.add_argument("--overwrite", action="store_true", help="replace an existing --out picture or folder of frames")
     p.set_defaults(func=cmd_view)
 
     p = sub.add_parser("export", help="export a run's snapshots to another format (vtkhdf: ParaView, VTK)")

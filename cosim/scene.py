@@ -67,7 +67,7 @@ SCENE_NUMBER_RANGE = (1e-30, 1e30)
 """The magnitudes a scene number may have besides 0 (SI): far beyond any rover scene's quantities, and
 narrow enough that what a run derives from them (powers up to the tenth) neither over- nor underflows."""
 
-_INT64_MAX = 2**63 - 1
+INT64_MAX = 2**63 - 1
 """The largest integer a scene may give (counts and seeds are written as 64-bit integers)."""
 
 
@@ -106,6 +106,15 @@ def reject_bool_for_number(model: type[BaseModel], name: str, value):
     return value
 
 
+def reject_non_bool_for_switch(model: type[BaseModel], name: str, value):
+    """A before-validator's test: where a field takes true or false and no number or text, anything else
+    is refused (pydantic would read "no" as false and 1 as true: a typo that silently switches)."""
+    kinds = _number_kinds(model, name)
+    if bool in kinds and not kinds & {float, int, str} and value is not None and not isinstance(value, bool):
+        raise ValueError("must be true or false")
+    return value
+
+
 def check_magnitude(model: type[BaseModel], name: str, value):
     """An after-validator's test on a field that takes numbers (not one of PASSED_THROUGH): every float
     is 0 or within SCENE_NUMBER_RANGE, every integer a 64-bit one."""
@@ -119,19 +128,19 @@ def check_magnitude(model: type[BaseModel], name: str, value):
                 f"{at}must be 0 or of magnitude {low:g} .. {high:g} (SI): beyond, what the run derives from it "
                 "overflows or underflows"
             )
-        if isinstance(v, int) and not isinstance(v, bool) and abs(v) > _INT64_MAX:
-            raise ValueError(f"{at}must be an integer of magnitude <= {_INT64_MAX} (a 64-bit integer)")
+        if isinstance(v, int) and not isinstance(v, bool) and abs(v) > INT64_MAX:
+            raise ValueError(f"{at}must be an integer of magnitude <= {INT64_MAX} (a 64-bit integer)")
     return value
 
 
 class NumbersChecked(BaseModel):
-    """A section whose numbers are numbers (reject_bool_for_number) of bounded magnitude (check_magnitude):
-    the scene's and the soil lab's."""
+    """A section whose numbers are numbers (reject_bool_for_number) of bounded magnitude (check_magnitude)
+    and whose switches are true or false (reject_non_bool_for_switch): the scene's and the soil lab's."""
 
     @field_validator("*", mode="before")
     @classmethod
     def _no_bool_for_number(cls, value, info):
-        return reject_bool_for_number(cls, info.field_name, value)
+        return reject_non_bool_for_switch(cls, info.field_name, reject_bool_for_number(cls, info.field_name, value))
 
     @field_validator("*")
     @classmethod

@@ -54,7 +54,7 @@ from .plan import RunPlan, resolve
 
 if TYPE_CHECKING:  # dask is imported when a study runs on it
     from dask.distributed import Client, LocalCluster
-from .scene import SceneError, key_unit, scene_from_text
+from .scene import INT64_MAX, SceneError, key_unit, scene_from_text
 
 log = logging.getLogger(__name__)
 
@@ -360,6 +360,15 @@ def _check_variation(plan: RunPlan, vary: str, replicas: int = 0) -> list[dict[s
             [
                 f"--vary-bed: bed.bed_file = {plan.bed.bed_file!r} fixes one bed, and each replica settles its own "
                 "(bed.seed + k): remove bed.bed_file, or leave out --vary-bed (replicas on that one bed)"
+            ]
+        )
+    last_seed = plan.bed.spec.seed + max(replicas, 1) - 1
+    if grains and last_seed > INT64_MAX:
+        raise SceneError(
+            [
+                f"--vary-bed --replicas {replicas}: replica k settles its bed from bed.seed + k, and bed.seed = "
+                f"{plan.bed.spec.seed} takes the last past the largest seed (2^63 - 1); allowed: bed.seed <= "
+                f"{INT64_MAX - max(replicas, 1) + 1}"
             ]
         )
     if soils and replicas > len(soils):
@@ -847,6 +856,7 @@ def slip_study_from_runs(
                 with open(run_json) as f:
                     record = json.load(f)
                 slip = float(os.path.basename(os.path.dirname(os.path.dirname(run_json)))[len("slip_") :])
+                _check_run_record(record)
             except (OSError, ValueError) as error:
                 raise ArgumentError(f"{run_json}: not a slip run's record ({error})") from None
             found.append((slip, os.path.dirname(run_json), record))
@@ -870,6 +880,28 @@ def slip_study_from_runs(
     return _slip_report(
         plan, out_dir, slips, [s for s, _, _ in found], results, text, None, plot, states, vary, beds, soils
     )
+
+
+def _check_run_record(record) -> None:
+    """ValueError naming what of a run.json the slip table cannot read: an object whose summary (if any)
+    is an object of numbers or nulls for the averaged metrics and a steady_state name, whose bed (if any)
+    is an object with a path."""
+
+    def plain(value, kinds) -> bool:
+        return isinstance(value, kinds) and not isinstance(value, bool)
+
+    if not isinstance(record, dict):
+        raise ValueError(f"a JSON object expected, got {type(record).__name__}")
+    summary, bed = record.get("summary", {}), record.get("bed", {})
+    if not isinstance(summary, dict):
+        raise ValueError(f"summary must be an object, got {summary!r:.60}")
+    for name in (*metrics.REPLICA_METRICS, "wall_time"):
+        if summary.get(name) is not None and not plain(summary[name], (int, float)):
+            raise ValueError(f"summary.{name} must be a number or null, got {summary[name]!r:.60}")
+    if summary.get("steady_state") is not None and not isinstance(summary["steady_state"], str):
+        raise ValueError(f"summary.steady_state must be a name, got {summary['steady_state']!r:.60}")
+    if not isinstance(bed, dict) or not isinstance(bed.get("path", ""), (str, type(None))):
+        raise ValueError(f"bed must be an object with a path, got {bed!r:.60}")
 
 
 def _run_soils(paths: list[str]) -> list[dict[str, float]]:

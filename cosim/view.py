@@ -15,7 +15,9 @@ draws with matplotlib's Agg backend: no display and no GPU needed.
 
 from __future__ import annotations
 
+import contextlib
 import os
+import re
 import shutil
 
 import numpy as np
@@ -242,6 +244,14 @@ def _plane_section(vertices: np.ndarray, triangles: np.ndarray, y: float) -> np.
     return np.array(picked).reshape(-1, 2, 3) if picked else np.zeros((0, 2, 3))
 
 
+FPS_RANGE = (1, 120)
+"""Movie frames per second a view takes [1/s]: players handle these."""
+DPI_RANGE = (10, 600)
+"""Pixels per inch of a 10 inch wide frame [-]: up to 6000 pixels wide (a frame of about 0.3 GB in memory)."""
+FRAME_NAME = re.compile(r"frame_\d{4,}(\.partial-\d+)?\.png")
+"""The name of one PNG of a folder of frames."""
+
+
 def render(
     run_dir: str,
     out: str | None = None,
@@ -249,13 +259,21 @@ def render(
     fps: int = 5,
     dpi: int = 100,
     frame: int | None = None,
+    overwrite: bool = False,
 ) -> str:
-    """Write the picture of a run (module docstring); returns the path written."""
+    """Write the picture of a run (module docstring); returns the path written. An `out` that exists is
+    replaced only with `overwrite` (the run's own default picture is made again); a file is written whole
+    or not at all (under a temporary name, then renamed)."""
     if colour not in COLOURS:
         raise ViewError(f"--color {colour!r}: choose one of {', '.join(COLOURS)}")
+    for option, value, (low, high) in (("--fps", fps, FPS_RANGE), ("--dpi", dpi, DPI_RANGE)):
+        if isinstance(value, bool) or not low <= value <= high:
+            raise ViewError(f"{option} {value}: allowed {low} to {high}")
     path = _results(run_dir)
-    out = out or default_output(os.path.dirname(os.path.abspath(path)))
+    own = default_output(os.path.dirname(os.path.abspath(path)))
+    out = out or own
     kind = _output_kind(out)
+    old_frames = _free_output(out, kind, overwrite or os.path.abspath(out) == own)
     with open_results(path) as f:
         count = snapshot_count(f)
         if count == 0:
@@ -273,7 +291,10 @@ def render(
         fig = plt.figure(figsize=(10, float(np.clip(2 * 8.3 * aspect + 1.4, 3.0, 14.0))), layout="constrained")
         view = _Frame(fig, scene)
         displacements = Displacements()
+        writer = _movie_writer(kind, out, fps) if kind in MOVIE_SUFFIXES else None
         os.makedirs(out if kind == "frames" else os.path.dirname(os.path.abspath(out)), exist_ok=True)
+        for name in old_frames:  # a shorter run's view must not keep the longer one's last frames
+            os.remove(os.path.join(out, name))
         try:
             if kind == ".png":
                 chosen = (frame if frame is not None else -1) % count
@@ -281,15 +302,16 @@ def render(
                     s = read_snapshot(f, k)
                     values = scene.values(s, displacements)
                 view.draw(s, values)
-                fig.savefig(out, dpi=dpi)
+                with _written_whole(out) as partial:
+                    fig.savefig(partial, dpi=dpi)
             elif kind == "frames":
                 for k in range(count):
                     s = read_snapshot(f, k)
                     view.draw(s, scene.values(s, displacements))
-                    fig.savefig(os.path.join(out, f"frame_{k:04d}.png"), dpi=dpi)
+                    with _written_whole(os.path.join(out, f"frame_{k:04d}.png")) as partial:
+                        fig.savefig(partial, dpi=dpi)
             else:
-                writer = _movie_writer(kind, out, fps)
-                with writer.saving(fig, out, dpi):
+                with _written_whole(out) as partial, writer.saving(fig, partial, dpi):
                     for k in range(count):
                         s = read_snapshot(f, k)
                         view.draw(s, scene.values(s, displacements))
@@ -297,6 +319,48 @@ def render(
         finally:
             plt.close(fig)
     return out
+
+
+def _free_output(out: str, kind: str, replace: bool) -> list[str]:
+    """Refuse an `out` that view must not write (before anything is drawn): a folder where a file goes, a
+    file where a folder of frames goes, a folder that holds other files than frames, and without `replace`
+    one that exists (OutputExistsError). Returns the old frames of a folder of frames to remove."""
+    from .folders import OutputExistsError
+
+    if not os.path.lexists(out):
+        return []
+    if kind != "frames":
+        if os.path.isdir(out):
+            raise ViewError(f"--out {out!r} is a folder; a {kind} picture is a file: give a file name")
+        if not replace:
+            raise OutputExistsError(f"--out {out!r} exists; pass --overwrite to replace it")
+        return []
+    if not os.path.isdir(out):
+        raise ViewError(f"--out {out!r} is a file; frames go into a folder: give a new or empty folder")
+    names = sorted(os.listdir(out))
+    foreign = [n for n in names if not FRAME_NAME.fullmatch(n)]
+    if foreign:
+        raise ViewError(
+            f"--out {out!r} holds files that are not a view's frames ({', '.join(foreign[:4])}"
+            f"{', ...' if len(foreign) > 4 else ''}): give a new or empty folder"
+        )
+    if names and not replace:
+        raise OutputExistsError(f"--out {out!r} holds {len(names)} frames; pass --overwrite to replace them")
+    return names
+
+
+@contextlib.contextmanager
+def _written_whole(path: str):
+    """A temporary name beside `path` (same suffix: the writers choose the format by it), renamed to
+    `path` when the block ends without an error, removed when it raises."""
+    stem, suffix = os.path.splitext(path)
+    partial = f"{stem}.partial-{os.getpid()}{suffix}"
+    try:
+        yield partial
+        os.replace(partial, path)
+    finally:
+        if os.path.exists(partial):
+            os.remove(partial)
 
 
 def _movie_writer(kind: str, out: str, fps: int):

@@ -117,6 +117,19 @@ def test_row02_a_huge_scene_is_refused_with_the_estimate(scene, tmp_path, capsys
     assert not (tmp_path / "huge").exists()
 
 
+def test_row02_a_huge_patch_is_refused_with_the_estimate(tmp_path, capsys):
+    """A [patch] runs on its window's grains, not the tile's: a kilometre-wide window of 2 cm grains
+    (about 4e9 grains) is refused before the tile is settled."""
+    huge = ["--set", "patch.length=1000", "--set", "patch.width=1000"]
+    rover = os.path.join(os.path.dirname(__file__), "..", "examples", "phobos_rover_patch.toml")
+    assert main(["advise", rover, *huge]) == 0
+    assert "DOES NOT FIT" in capsys.readouterr().out
+    assert main(["run", rover, "--out", str(tmp_path / "huge"), "--no-progress", *huge]) == 2
+    line = first_error_line(capsys)
+    assert "does not fit this machine" in line and "GB of host memory" in line, line
+    assert not (tmp_path / "huge").exists()
+
+
 @pytest.mark.parametrize("precision", ["single", "mixed", "double"])
 def test_the_memory_estimate_matches_the_measured_bytes_per_grain(precision):
     """soil.memory's formula against Simulation.bytes_per_grain() of a small bed (monitor armed)."""
@@ -534,3 +547,63 @@ def test_a_full_disk_while_a_checkpoint_is_written_names_the_checkpoint(tmp_path
         write_checkpoint(tmp_path / "checkpoint.npz", {"a": np.zeros(3)})
     assert info.value.filename == str(tmp_path / "checkpoint.npz") and info.value.errno == errno.ENOSPC
     assert os.listdir(tmp_path) == []  # no temporary file left behind
+
+
+# -- a refused command leaves an --overwrite folder as it was -------------------------------------
+LAB = os.path.join(os.path.dirname(__file__), "..", "examples", "phobos_lab.toml")
+LAST_SEED = ["--set", f"bed.seed={2**63 - 1}"]
+
+
+@pytest.mark.parametrize(
+    "command, named",
+    [
+        (["lab", "repose", LAB, "--set", "repose.tube_width=1e-6"], "repose.tube_width"),
+        (["lab", "shear", LAB, "--set", "shear.length=1e-6"], "shear.length"),
+        (["lab", "repose", LAB, "--replicas", "2", *LAST_SEED], "bed.seed: replica k is filled with bed.seed + k"),
+        (
+            [
+                "calibrate",
+                LAB,
+                "--target",
+                "repose=30",
+                "--vary",
+                "soil.rolling_friction=0:0.3",
+                "--set",
+                "repose.tube_width=1e-6",
+            ],
+            "repose.tube_width",
+        ),
+        (
+            ["calibrate", LAB, "--target", "repose=30", "--vary", "repose.tube_width=1e-6:0.05"],
+            "repose.tube_width",  # the range's lower end is a valid scene whose tube cannot be built
+        ),
+        (["calibrate-scm", LAB, "--set", "shear.length=1e-6"], "shear.length"),
+        (["study", "slip", "SCENE", "--vary-bed", "--replicas", "2", "--slips", "0.2", *LAST_SEED], "--vary-bed"),
+    ],
+    ids=[
+        "repose tube",
+        "shear box",
+        "lab seeds",
+        "calibrate tube",
+        "calibrate range",
+        "calibrate-scm box",
+        "study seeds",
+    ],
+)
+def test_a_refused_command_leaves_the_overwrite_folder_as_it_was(scene, tmp_path, capsys, command, named):
+    """Each check runs before the folder it would replace is cleared: a geometry that cannot be built,
+    a range end that cannot, replicas' seeds past 2^63 - 1. Exit 2, the folder's files unchanged."""
+    folder = tmp_path / "out"
+    folder.mkdir()
+    (folder / "summary.json").write_text('{"earlier": "result"}')
+    before = digests(folder)
+    command = [scene if part == "SCENE" else part for part in command]
+    where = (
+        ["--work", str(folder), "--out", str(tmp_path / "soil.toml")]
+        if command[0] == "calibrate-scm"
+        else ["--out", str(folder)]
+    )
+    assert main([*command, *where, "--overwrite", "--serial"]) == 2
+    err = capsys.readouterr().err
+    assert "Traceback" not in err and err.startswith("cosim: error:") and named in err, err
+    assert digests(folder) == before

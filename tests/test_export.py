@@ -266,6 +266,19 @@ def test_view_writes_a_movie_and_frames_of_a_moving_patch(tmp_path, capsys):
     assert main(["view", str(folder), "--out", f"{frames}{os.sep}", "--dpi", "30"]) == 0
     assert sorted(os.listdir(frames)) == [f"frame_{k:04d}.png" for k in range(4)]
     assert str(movie) in capsys.readouterr().out
+    # what exists is replaced only with --overwrite; a shorter run's frames replace all the old ones
+    before = {p.name: p.read_bytes() for p in [movie, *frames.iterdir()]}
+    shorter = tmp_path / "shorter"
+    made_up_results(shorter, 300, 2, ragged=True)
+    for out in (str(movie), str(frames)):
+        assert main(["view", str(shorter), "--out", out, "--dpi", "30"]) == 3
+        assert "pass --overwrite" in capsys.readouterr().err
+    assert before == {p.name: p.read_bytes() for p in [movie, *frames.iterdir()]}
+    assert main(["view", str(shorter), "--out", str(frames), "--dpi", "30", "--overwrite"]) == 0
+    assert sorted(os.listdir(frames)) == ["frame_0000.png", "frame_0001.png"]
+    assert main(["view", str(shorter), "--out", str(movie), "--dpi", "30", "--overwrite"]) == 0
+    assert movie.read_bytes() != before[movie.name]
+    assert not [p for p in tmp_path.iterdir() if ".partial" in p.name]
 
 
 def test_view_without_ffmpeg_writes_a_gif_and_says_what_an_mp4_needs(tmp_path, monkeypatch, capsys):
@@ -281,6 +294,7 @@ def test_view_without_ffmpeg_writes_a_gif_and_says_what_an_mp4_needs(tmp_path, m
 
 
 def test_view_refuses_bad_arguments_with_one_line(tiny_run, tmp_path, capsys):
+    (tmp_path / "notes").write_text("a user's file, not a folder of frames")
     empty = tmp_path / "empty"
     made_up_results(empty, 10, 0)
     for argv, named in (
@@ -289,8 +303,12 @@ def test_view_refuses_bad_arguments_with_one_line(tiny_run, tmp_path, capsys):
         (["view", str(empty)], "results.h5"),
         (["view", str(tiny_run), "--out", str(tmp_path / "one.png"), "--frame", "999"], "--frame"),
         (["export", "vtkhdf", str(empty)], "results.h5"),
-        (["view", str(tiny_run), "--out", str(tmp_path / "f.png"), "--fps", "0"], "--fps must be >= 1"),
-        (["view", str(tiny_run), "--out", str(tmp_path / "f.png"), "--dpi", "-5"], "--dpi must be >= 1"),
+        (["view", str(tiny_run), "--out", str(tmp_path / "f.png"), "--fps", "0"], "--fps 0: allowed 1 to 120"),
+        (["view", str(tiny_run), "--out", str(tmp_path / "f.mp4"), "--fps", "1000000"], "--fps 1000000: allowed"),
+        (["view", str(tiny_run), "--out", str(tmp_path / "f.png"), "--dpi", "-5"], "--dpi -5: allowed 10 to 600"),
+        (["view", str(tiny_run), "--out", str(tmp_path / "f.png"), "--dpi", "7000"], "--dpi 7000: allowed"),
+        (["view", str(tiny_run), "--out", str(tmp_path)], "holds files that are not a view's frames"),
+        (["view", str(tiny_run), "--out", str(tmp_path / "notes")], "notes' is a file; frames go into a folder"),
         (["run", str(tiny_run / "scene.toml"), "--replicas", "0"], "--replicas must be >= 1"),
     ):
         assert main(argv) == 2, argv

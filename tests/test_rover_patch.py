@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 from scipy.spatial import cKDTree
 
-from cosim.beds import settled_bed
+from cosim.beds import patch_grain_count, settled_bed
 from cosim.launch import run_plan
 from cosim.output import read_series
 from cosim.plan import load_plan
@@ -143,6 +143,11 @@ def test_a_rover_drives_five_patch_lengths_on_a_bounded_patch(folder, coarse_til
     count = s["soil_particle_count"]
     first = count[0]
     assert count.max() <= 1.25 * first and count.min() >= 0.75 * first
+    # the memory check counts the window's grains at the bed's grains per area (cosim.beds)
+    from soil.bed import read_bed_header
+
+    estimated = patch_grain_count(plan, read_bed_header(bed.path)["particle_count"])
+    assert 0.8 * count.max() <= estimated <= 1.25 * count.max(), (estimated, count.max())
     assert summary["soil_mass_added"] > 4 * summary["soil_mass_initial"]
     assert_every_number_has_its_unit(summary)  # a rover's and a moving patch's numbers too
     assert summary["patch_moves"] >= 5 * plan.patch.length / plan.patch.recentre_distance

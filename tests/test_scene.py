@@ -70,6 +70,9 @@ BAD_SCENES = [
     ("boolean in a gravity vector", "[scene]\ngravity = [0.0, 0.0, true]\n", "scene.gravity", "not true or false"),
     ("boolean density", "[soil]\ndensity = false\n", "soil.density", "not true or false"),
     ("boolean substeps", "[run]\nmacro_step = true\n", "run.macro_step", "not true or false"),
+    # and a switch takes true or false only (pydantic would read "no" as false, 1 as true)
+    ("a switch as text", "[landing]\nenabled = 'no'\n", "landing.enabled", "must be true or false"),
+    ("a switch as a number", "[soil.law]\nrolling = 1\n", "soil.law.rolling", "must be true or false"),
     # a finite number beyond SCENE_NUMBER_RANGE overflows what the run derives from it (the grain count,
     # the eq. 10 bound), or took a path that failed later under another key's name
     ("bed length of 1e300 m", "[bed]\nlength = 1e300\n", "bed.length", "1e+30"),

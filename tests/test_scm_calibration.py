@@ -756,3 +756,36 @@ def test_the_plate_unloads_quasi_statically_and_its_stiffness_scales_with_the_gr
         assert np.all(np.diff(z) < 0), name  # the plate only rises
         stiffness.append(fit_unloading(z, p)["elastic_stiffness"] / plan.g)
     assert stiffness[0] > 0 and stiffness[1] == pytest.approx(stiffness[0], rel=0.35), (stiffness, s)
+
+
+@pytest.mark.parametrize(
+    "damage, named",
+    [
+        ({"rows": {"slip_set": 0.1}}, "'rows' must be a list of objects"),
+        ({"rows": [[0.1, 2]]}, "'rows' must be a list of objects"),
+        ({"rows": [{"slip_set": "0.1", "steady": 2}]}, "rows[0].slip_set must be a number"),
+        ({"rows": [{"slip_set": 0.1, "steady": "two"}]}, "rows[0].steady must be a count"),
+        ({"runs": "none"}, "'runs' must be a list of objects"),
+        ({"averaged_states": "steady"}, "'averaged_states' must be a list of names"),
+    ],
+)
+def test_a_slip_study_of_the_wrong_shape_is_named_for_the_wheel_fit(tmp_path, capsys, damage, named):
+    """--wheel-runs of a study.json that is JSON of another shape (an edited or foreign file): exit 2 naming
+    the file and the field, before any wheel test runs and nothing written (it was exit 1, a TypeError)."""
+    import json
+    import os
+
+    from cosim.cli import main
+
+    scene = os.path.join(os.path.dirname(__file__), "..", "examples", "phobos_single_wheel.toml")
+    lab_path = tmp_path / "lab.toml"
+    write_calibration(str(lab_path), ScmCalibration({k: 1.0 for k in SOIL_KEYS}, {}, 5.7e-3, {"scene": "x"}))
+    rows = [{"slip_set": s, "steady": 2, "slip_mean": s, "sinkage_mean": 0.008} for s in (0.1, 0.4)]
+    (tmp_path / "study").mkdir()
+    study = {"kind": "slip", "wheel_load": 1.7e-3, "rows": rows, **damage}
+    (tmp_path / "study" / "study.json").write_text(json.dumps(study))
+    args = ["--from-wheel", "--lab", str(lab_path), "--wheel-runs", str(tmp_path / "study")]
+    assert main(["calibrate-scm", scene, "--out", str(tmp_path / "wheel.toml"), *args]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("cosim: error:") and "study.json" in err and named in err, err
+    assert not (tmp_path / "wheel.toml").exists()

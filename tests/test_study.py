@@ -453,3 +453,28 @@ def test_a_slip_study_from_the_same_runs_twice_is_refused(tmp_path):
     with pytest.raises(ArgumentError, match="given twice"):
         slip_study_from_runs([str(runs), str(runs) + "/"], str(tmp_path / "table"))
     assert not (tmp_path / "table").exists()
+
+
+@pytest.mark.parametrize(
+    "record, named",
+    [
+        ([1, 2], "a JSON object expected, got list"),
+        ({"summary": "done"}, "summary must be an object"),
+        ({"summary": {"sinkage": "8 mm"}}, "summary.sinkage must be a number or null"),
+        ({"summary": {"steady_state": 1}}, "summary.steady_state must be a name"),
+        ({"bed": "bed.h5"}, "bed must be an object with a path"),
+    ],
+)
+def test_a_slip_run_record_of_the_wrong_shape_is_named(tmp_path, capsys, record, named):
+    """--from-runs over a run.json that is JSON of another shape: exit 2 naming the file and the field,
+    the table's folder not made (it was exit 1, a TypeError or AttributeError)."""
+    from cosim.cli import main
+
+    runs = tmp_path / "runs" / "slip_+0.200" / "replica_0"
+    runs.mkdir(parents=True)
+    (runs / "run.json").write_text(json.dumps(record))
+    out = tmp_path / "table"
+    assert main(["study", "slip", write_tiny(tmp_path), "--from-runs", str(tmp_path / "runs"), "--out", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("cosim: error:") and "run.json: not a slip run's record" in err and named in err, err
+    assert not out.exists()

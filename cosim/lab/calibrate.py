@@ -146,6 +146,17 @@ def _overrides(parameters: list[Parameter], values) -> dict:
     return {key: float(v) for p, v in zip(parameters, values) for key in p.keys}
 
 
+def check_geometry(plan: LabPlan, tests: set[str]) -> None:
+    """SceneError naming what cannot be built in the lab tests `tests` of a plan (the repose tube and
+    base, the shear box)."""
+    from .repose import geometry
+    from .shear import box
+
+    builders = {"repose": lambda: geometry(plan, 0), "shear": lambda: box(plan)}
+    for test in sorted(tests):
+        builders[test]()
+
+
 def measure(plan: LabPlan, tests: set[str], out_dir: str, executor: dict) -> dict[str, float]:
     """Run the lab tests `tests` on a plan into out_dir/<test>; the measured value of every target
     those tests give."""
@@ -181,11 +192,13 @@ def calibrate(
     if max_evaluations < 2:
         raise SceneError([f"--max-evaluations: must be >= 2 (got {max_evaluations})"])
     tolerances = tolerances or {name: default_tolerance(name, value) for name, value in targets.items()}
-    for p in parameters:  # both ends must be valid scenes (a slip angle above the stick angle, ...)
-        for value in (p.low, p.high):
-            plan.with_changes(_overrides([p], [value]))
-    common.prepare_folder(plan, out_dir, overwrite)
     tests = {TARGETS[name].test for name in targets}
+    # the scene and both ends of every range must be valid scenes (a slip angle above the stick angle, ...)
+    # whose tests can be built (a tube that holds its grains, ...), before the folder is touched
+    ends = [plan.with_changes(_overrides([p], [value])) for p in parameters for value in (p.low, p.high)]
+    for each in [plan, *ends]:
+        check_geometry(each, tests)
+    common.prepare_folder(plan, out_dir, overwrite)
     with Executor(executor, scheduler, workers) as cluster:  # one cluster for every evaluation
         return _calibrate(plan, out_dir, targets, parameters, tolerances, max_evaluations, tests, {"executor": cluster})
 

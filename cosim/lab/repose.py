@@ -334,9 +334,9 @@ def repose_test(
     """Run lab.replicas heaps (through cosim.study.Executor), write the report into out_dir
     (repose.csv: the surface profiles; repose_grains.csv: the heaps' grains, to measure again;
     repose_history.csv; summary.json; repose.png) and return the summary."""
+    geo = geometry(plan, 0)  # a geometry that cannot work is refused before the folder is touched
     common.prepare_folder(plan, out_dir, overwrite)
     replicas = plan.scene.lab.replicas
-    geo = geometry(plan, 0)
     log.info(
         "repose: %d grains in a %.3g m tube on a %.3g m base, lifted at %.3g m/s; %d replica(s)",
         len(geo.fill_radii),

@@ -37,6 +37,7 @@ from soil.bed import radius_range
 from ..plan import MAX_PHASE_STEPS, RAYLEIGH_KEYS, default_stick_speed, dem_time_step, to_material
 from ..probe import resolve_device
 from ..scene import (
+    INT64_MAX,
     NumbersChecked,
     Scene,
     SceneError,
@@ -299,6 +300,11 @@ def resolve_lab(scene: LabScene, needs_gravity: bool = False, test: str = "lab")
             f"{dt_key}: a phase of up to {longest:.3g} s (lab.max_time_factor sqrt(d / |g|)) is {longest / dt:.3g} "
             f"DEM steps of {dt:.3g} s, more than {MAX_PHASE_STEPS:.0e} (a day even at 10 us a step): the step "
             f"{'(' + step + ') ' if dt_key == 'run.dt_factor' else ''}is far below the scene's scale"
+        )
+    if bed.seed + scene.lab.replicas - 1 > INT64_MAX:
+        problems.append(
+            f"bed.seed: replica k is filled with bed.seed + k, and {bed.seed} + {scene.lab.replicas - 1} (lab.replicas "
+            f"- 1) passes the largest seed (2^63 - 1); allowed: bed.seed <= {INT64_MAX - scene.lab.replicas + 1}"
         )
     if problems:
         raise SceneError(problems)

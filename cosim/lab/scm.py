@@ -253,17 +253,17 @@ def calibrate_scm(plan, out_dir: str, overwrite: bool = False, executor="serial"
     from ..scm_calibration import ScmCalibration
     from . import common, plate, shear
 
-    common.prepare_folder(plan, out_dir, overwrite)
     plate.check(plan)
     sides = plate.widths(plan)
     if len(sides) < 2:
         raise SceneError([f"plate.widths: k_c and k_phi need two or more plate widths, got {list(sides)}"])
+    geometry = shear.box(plan)  # every test's geometry is checked before the folder is touched
+    common.prepare_folder(plan, out_dir, overwrite)
     replicas = plan.scene.lab.replicas if plan.scene.bed.bed_file is None else 1
     ready, plates, _ = plate.press_plates(plan, out_dir, sides, replicas, executor, scheduler, workers, unload=True)
     fit_from = plan.scene.plate.fit_from if plan.scene.plate.fit_from is not None else 0.25 * plan.diameter
     plate_fits, unloads = fit_plates(plates, fit_from)  # before the shear tests: a failed fit stops here
 
-    geometry = shear.box(plan)
     specimens_folder = os.path.join(out_dir, "specimens")
     os.makedirs(specimens_folder, exist_ok=True)
     paths = [os.path.join(specimens_folder, f"replica_{k}.h5") for k in range(plan.scene.lab.replicas)]

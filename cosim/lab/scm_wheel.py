@@ -44,6 +44,8 @@ from dataclasses import asdict, dataclass, replace
 
 import numpy as np
 
+from soil.errors import DamagedFileError
+
 from ..scm_calibration import SOIL_KEYS
 from .common import LabFailed
 
@@ -100,20 +102,45 @@ def run_wheel_tests(plan, out_dir: str, slips, replicas: int, executor="serial",
 
 
 def _read_study(study_folder: str) -> tuple[str, dict]:
-    """(path, content) of a slip study's study.json; LabFailed names the file when it is not one."""
+    """(path, content) of a slip study's study.json; DamagedFileError names the file when it is not one."""
     path = os.path.join(study_folder, "study.json")
     try:
         with open(path) as f:
             study = json.load(f)
     except (OSError, json.JSONDecodeError) as error:
-        raise LabFailed(f"{path}: not a readable slip study ({error})") from error
+        raise DamagedFileError(f"{path}: not a readable slip study ({error})") from error
     if not isinstance(study, dict) or study.get("kind") != "slip":
         kind = study.get("kind") if isinstance(study, dict) else None
-        raise LabFailed(f"{path}: a {kind!r} study, --wheel-runs needs a slip study (cosim study slip)")
+        raise DamagedFileError(f"{path}: a {kind!r} study, --wheel-runs needs a slip study (cosim study slip)")
     load = study.get("wheel_load")
     if not (isinstance(load, (int, float)) and load > 0):
-        raise LabFailed(f"{path}: no wheel_load > 0 [N]; the wheel fit needs the wheel's load")
+        raise DamagedFileError(f"{path}: no wheel_load > 0 [N]; the wheel fit needs the wheel's load")
+    problem = _study_shape_problem(study)
+    if problem:
+        raise DamagedFileError(f"{path}: not a slip study's table: {problem} (cosim study slip writes it)")
     return path, study
+
+
+def _study_shape_problem(study: dict) -> str | None:
+    """What in a slip study's content the wheel fit cannot read (None: it reads it): rows and runs lists
+    of objects, the rows' slip_set numbers and averaged / steady counts, averaged_states a list of names."""
+
+    def number(value) -> bool:
+        return isinstance(value, (int, float)) and not isinstance(value, bool)
+
+    for key in ("rows", "runs"):
+        if not isinstance(study.get(key, []), list) or not all(isinstance(r, dict) for r in study.get(key, [])):
+            return f"{key!r} must be a list of objects"
+    for k, row in enumerate(study.get("rows", [])):
+        if not number(row.get("slip_set")):
+            return f"rows[{k}].slip_set must be a number, got {row.get('slip_set')!r:.60}"
+        for count in ("averaged", "steady"):
+            if count in row and not (isinstance(row[count], int) and not isinstance(row[count], bool)):
+                return f"rows[{k}].{count} must be a count, got {row[count]!r:.60}"
+    states = study.get("averaged_states")
+    if states is not None and not (isinstance(states, list) and all(isinstance(x, str) for x in states)):
+        return f"'averaged_states' must be a list of names, got {states!r:.60}"
+    return None
 
 
 def _averaged_rows(study: dict) -> list[dict]:
@@ -189,7 +216,7 @@ def bed_wheel_targets(study_folder: str) -> list[list[WheelTarget]]:
         try:
             replica = int(name[len("replica_") :])
         except ValueError:
-            raise LabFailed(f"{path}: run folder {folder!r} is not slip_S/replica_K") from None
+            raise DamagedFileError(f"{path}: run folder {folder!r} is not slip_S/replica_K") from None
         runs[(os.path.basename(os.path.dirname(os.path.normpath(folder))), replica)] = summary
     beds = sorted({replica for _, replica in runs})
     if len(beds) < 2:

@@ -360,8 +360,8 @@ def shear_test(
     """Settle lab.replicas specimens, shear each at every normal stress (through
     cosim.study.Executor), fit Mohr-Coulomb and write the report into out_dir (shear.csv,
     shear_points.csv, summary.json, shear.png). Returns the summary."""
+    geometry = box(plan)  # a box that cannot work is refused before the folder is touched
     common.prepare_folder(plan, out_dir, overwrite)
-    geometry = box(plan)
     replicas = plan.scene.lab.replicas
     log.info(
         "shear: %d grains in a %.3g x %.3g m box, %.3g m high; normal stresses %s Pa; shear at %.3g m/s "
