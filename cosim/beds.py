@@ -165,6 +165,7 @@ def memory_estimate(plan: RunPlan, worlds: int = 1):
 def patch_grain_count(plan: RunPlan, bed_grains: int) -> int:
     """Grains in the plan's patch window [-]: the bed's `bed_grains` per bed area times the window's area."""
     spec, patch = plan.bed.spec, plan.patch
+    assert patch is not None
     return math.ceil(bed_grains * (patch.length * patch.width) / (spec.length * spec.width))
 
 

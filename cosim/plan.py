@@ -584,6 +584,7 @@ def resolve(scene: Scene) -> RunPlan:
         rover_plan, patch = _rover(scene, names, wheels, gravity, problems, walls)
 
     terrain = _terrain(scene, len(wheels), problems)
+    problems += _drawbar_problems(scene, wheel, terrain)
     dt, macro_step, substeps, dt_key = _time_steps(scene, soil_material)
     macro_key: str | None = None  # the keys of the macro step: its own key, or dt's with run.substeps
     if terrain.model == "scm" and scene.run.macro_step is None:
@@ -604,6 +605,12 @@ def resolve(scene: Scene) -> RunPlan:
         problems.append(
             f"output.checkpoint_interval: {scene.output.checkpoint_interval} s is shorter than the "
             f"macro step {macro_step:.4g} s"
+        )
+    if 0 < scene.output.snapshot_interval < macro_step * (1 - 1e-9):
+        problems.append(
+            f"output.snapshot_interval: {scene.output.snapshot_interval} s is shorter than the macro step "
+            f"{macro_step:.4g} s, and a snapshot is taken at most once a macro step; allowed: 0 (first and last "
+            f"only) or >= {macro_step:.4g} s"
         )
     land = scene.landing
     problems += _step_count_problems(scene, dt, dt_key, macro_step, macro_key, settle_dt, bed_file is None)
@@ -778,6 +785,31 @@ def _on_grains(scene: Scene) -> bool:
     if section is None or section.model == "dem":
         return True
     return section.model == "scm" and section.wheels is not None and "dem" in section.wheels
+
+
+DRAWBAR_LOAD_FACTOR = 10.0
+"""How far a testbed's constant drawbar load may exceed the largest traction W + c A (a friction
+coefficient of 1 and the cohesion c over the wheel's projected side A) [-]: a wide margin, since W
+tan(phi) + c A bounds what any soil gives."""
+
+
+def _drawbar_problems(scene: Scene, wheel: WheelPlan, terrain: TerrainPlan) -> list[str]:
+    """A testbed's constant drawbar load beyond DRAWBAR_LOAD_FACTOR x the largest traction W + c A: the
+    carriage would be dragged backwards from the first step, with nothing to measure."""
+    t = scene.testbed
+    if t is None or t.mode != "free":
+        return []
+    weight = t.mass * float(np.linalg.norm(gravity_vector(scene.scene.gravity)))
+    cohesion = max(scene.soil.cohesion, float(dict(terrain.parameters).get("cohesion", 0.0)))
+    largest = DRAWBAR_LOAD_FACTOR * (weight + cohesion * 2 * wheel.outer_radius * wheel.width)
+    if t.drawbar_load <= largest:
+        return []
+    return [
+        f"testbed.drawbar_load: {t.drawbar_load:.4g} N is more than {DRAWBAR_LOAD_FACTOR:g} x (W + c A) = "
+        f"{largest:.4g} N (W = testbed.mass |g|, c the soil's cohesion, A = 2 outer radius x width), beyond any "
+        "traction the soil gives: the carriage would be dragged backwards from the start (testbed.drawbar_ramp "
+        f"finds the largest pull); allowed: <= {largest:.4g} N"
+    ]
 
 
 def _testbed(scene: Scene, wheel: WheelPlan, problems: list[str], walls: bool = True) -> TestbedPlan:

@@ -49,6 +49,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_valida
 
 from soil.bed import radius_range
 from soil.errors import InputError
+from soil.scm.terrain import MAX_EROSION_ITERATIONS
 
 GRAVITY_PRESET_NAMES = ("earth", "mars", "moon", "phobos", "phobos_min", "phobos_max", "deimos")
 
@@ -691,8 +692,8 @@ class TerrainSection(_Section):
     """scm: fraction of the displaced volume moved to the rims [-] (default 1)."""
     erosion_angle_deg: float | None = Field(None, gt=0, lt=90)
     """scm: steepest slope the moved soil keeps [deg] (default 30)."""
-    erosion_iterations: int | None = Field(None, ge=0)
-    """scm: slope-limiting passes per step [count] (default 2)."""
+    erosion_iterations: int | None = Field(None, ge=0, le=MAX_EROSION_ITERATIONS)
+    """scm: slope-limiting passes per step [count] (default 2; at most soil.scm.terrain.MAX_EROSION_ITERATIONS)."""
     window_length: float | None = Field(None, gt=0)
     """scm: the node window's size along x [m] (default: the wheels' span along x + 6 outer radii)."""
     window_width: float | None = Field(None, gt=0)
@@ -894,19 +895,26 @@ _UNION_MEMBERS = ("str", "DriveSection", "float", "list[float]", "int")
 """Type names pydantic puts into an error's location for union fields."""
 
 
+def key_field(key: str, model: type[BaseModel] | None = None):
+    """The pydantic FieldInfo of a dotted key (e.g. 'wheel.radius') of `model` (default Scene), None where
+    the key names no field of a section."""
+    current: Any = model or Scene
+    *sections, name = key.split(".")
+    for section in sections:
+        field = current.model_fields.get(section)
+        kinds = () if field is None else (field.annotation, *typing.get_args(field.annotation))
+        current = next((t for t in kinds if isinstance(t, type) and issubclass(t, BaseModel)), None)
+        if current is None:
+            return None
+    return current.model_fields.get(name)
+
+
 def key_unit(key: str) -> str | None:
     """The unit of a dotted scene key (e.g. 'wheel.radius': 'm') as its documentation gives it: the first
     bracket of its docstring that names no section ('[-]': '1'), 'deg' for a '_deg' key; None where it
     gives none (a word, a flag) or the key names no field of a section."""
-    model: Any = Scene
-    *sections, name = key.split(".")
-    for section in sections:
-        field = model.model_fields.get(section)
-        kinds = () if field is None else (field.annotation, *typing.get_args(field.annotation))
-        model = next((t for t in kinds if isinstance(t, type) and issubclass(t, BaseModel)), None)
-        if model is None:
-            return None
-    field = model.model_fields.get(name)
+    field = key_field(key)
+    name = key.rsplit(".", 1)[-1]
     if field is None or not {float, int} & {field.annotation, *typing.get_args(field.annotation)}:
         return None  # not a key, or not a number
     if name.endswith("_deg"):
@@ -1048,11 +1056,14 @@ def load_scene(
 ) -> Scene:
     """Read, override (--set key=value) and validate a TOML scene file (as `model`: see validate_scene)."""
     path = os.fspath(path)
+    if os.path.isdir(path):
+        raise SceneError([f"{path!r} is a folder; give a scene file (TOML)"])
     if not os.path.isfile(path):
         raise SceneError([f"scene file not found: {path!r}"])
     try:
         with open(path, "rb") as f:
-            data = tomllib.load(f)
+            # utf-8-sig: a byte-order mark (some Windows editors write one) is no TOML statement
+            data = tomllib.loads(f.read().decode("utf-8-sig"))
     except tomllib.TOMLDecodeError as error:
         raise SceneError([f"not valid TOML: {error}"], path) from None
     except RecursionError:

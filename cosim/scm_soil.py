@@ -201,6 +201,37 @@ def scm_wheel_indices(plan) -> list[int]:
     return [i for i in range(len(plan.wheels)) if not models or models[i] == "scm"]
 
 
+def _check_window_holds_wheels(plan, indices: list[int], settings: ScmSettings) -> None:
+    """SceneError naming terrain.window_length or window_width when the node window, centred on the wheels
+    (to a node), cannot hold their footprints: a rover's hubs' span at any heading plus each footprint's
+    reach at any heading (hypot(outer radius, half width)); the testbed's outer radius along x, half its
+    width along y (its axle stays along y)."""
+    from soil.scm.terrain import grid_shape
+
+    from .scene import SceneError
+
+    spacing = settings.parameters.node_spacing
+    if plan.rover is not None:
+        wheels = [plan.wheels[i] for i in indices]
+        span = 2.0 * float(np.max(np.hypot(*plan.rover.hub_offsets[list(indices), :2].T)))
+        bound = max(math.hypot(w.outer_radius, 0.5 * w.width) for w in wheels)
+        reaches = (bound, bound)
+    else:
+        span, reaches = 0.0, (plan.wheel.outer_radius, 0.5 * plan.wheel.width)
+    problems = []
+    shape = grid_shape(settings.window, spacing)
+    for key, size, nodes, reach in zip(("window_length", "window_width"), settings.window, shape, reaches):
+        held = min(nodes // 2, nodes - 2 - nodes // 2) * spacing  # from the centre's node to the nearer edge
+        if held < 0.5 * span + reach:
+            least = span + 2 * reach + 3 * spacing
+            problems.append(
+                f"terrain.{key}: the SCM window ({size:.4g} m, {nodes} nodes of {spacing:.3g} m) must hold the "
+                f"wheels' footprints (hub span {span:.4g} m, reach {reach:.4g} m each side); allowed: >= {least:.4g} m"
+            )
+    if problems:
+        raise SceneError(problems)
+
+
 def check_scm_grid(plan, reserved: tuple[int, int] = (0, 0), memory: bool = True) -> None:
     """Refuse, before anything is allocated or written, the SCM grid of a plan's SCM wheels when Warp
     cannot index it or (with `memory`) this machine cannot hold it beside `reserved` (device, host)
@@ -211,6 +242,7 @@ def check_scm_grid(plan, reserved: tuple[int, int] = (0, 0), memory: bool = True
         return
     settings = scm_settings(plan, indices, 0.0)
     spacing, (length, width) = settings.parameters.node_spacing, settings.window
+    _check_window_holds_wheels(plan, indices, settings)
     check_grid(
         settings.window,
         spacing,

@@ -311,6 +311,7 @@ def render(
                     with _written_whole(os.path.join(out, f"frame_{k:04d}.png")) as partial:
                         fig.savefig(partial, dpi=dpi)
             else:
+                assert writer is not None  # a movie's kind
                 with _written_whole(out) as partial, writer.saving(fig, partial, dpi):
                     for k in range(count):
                         s = read_snapshot(f, k)

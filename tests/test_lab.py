@@ -80,6 +80,23 @@ def test_lab_commands_fail_cleanly_on_bad_input(tmp_path, capsys):
     assert "unknown target 'angle'" in capsys.readouterr().err
     assert main(["calibrate", str(scene), "--target", "repose=30", "--vary", "soil.rolling_friction=0.3:0"]) == 2
     assert "LOW < HIGH" in capsys.readouterr().err
+    # targets and keys the loop cannot use are named before anything runs (true was read as 1 deg, a count
+    # failed at the optimiser's first fractional value, a wheel key was varied without effect)
+    rolling = ["--vary", "soil.rolling_friction=0:0.3"]
+    for argv, named in (
+        (["--target", "repose=true", *rolling], "must be a finite number"),
+        (["--target", "cohesion=-5", *rolling], "a cohesion is >= 0 Pa"),
+        (["--target", "repose=30", "--target", "repose=31", *rolling], "repose is given twice"),
+        (["--target", "repose=30", *rolling, "--tolerance", "repose=1", "--tolerance", "repose=2"], "given twice"),
+        (["--target", "repose=30", *rolling, "--vary", "soil.rolling_friction,soil.cohesion=0:1"], "varied twice"),
+        (["--target", "repose=30", "--vary", "wheel.radius=0.01:0.1"], "not a key the repose test reads"),
+        (["--target", "friction=25", "--vary", "repose.lift_ratio=0.1:1"], "not a key the shear test reads"),
+        (["--target", "repose=30", "--vary", "lab.replicas=1:5"], "lab.replicas: takes no real number"),
+    ):
+        out = tmp_path / "refused"
+        assert main(["calibrate", str(scene), "--serial", "--out", str(out), *argv]) == 2, argv
+        assert named in capsys.readouterr().err, argv
+        assert not out.exists()
     # a range whose end is no valid scene is refused before anything runs
     assert (
         main(

@@ -54,7 +54,20 @@ BAD_SCENES = [
     ("nan omega", "[testbed]\nomega = nan\n", "testbed.omega", "finite"),
     ("nan start position", "[testbed]\nstart_x = nan\n", "testbed.start_x", "finite"),
     ("infinite drawbar load", "[testbed]\ndrawbar_load = inf\n", "testbed.drawbar_load", "finite"),
+    ("a drawbar load of 1e20 N", "[testbed]\ndrawbar_load = 1e20\n", "testbed.drawbar_load", "dragged backwards"),
     ("infinite snapshot interval", "[output]\nsnapshot_interval = inf\n", "output.snapshot_interval", "finite"),
+    (
+        "a billion erosion passes a step",
+        "[terrain]\nmodel = 'scm'\nerosion_iterations = 1000000000\n",
+        "terrain.erosion_iterations",
+        "<= 100",
+    ),
+    (
+        "snapshots within a macro step",
+        "[output]\nsnapshot_interval = 1e-6\n",
+        "output.snapshot_interval",
+        "once a macro",
+    ),
     ("negative seed", "[bed]\nseed = -1\n", "bed.seed", ">= 0"),
     ("negative order seed", "[run]\norder_seed = -3\n", "run.order_seed", ">= 0"),
     ("omega zero", "[testbed]\nomega = 0.0\n", "testbed.omega", "> 0"),
@@ -147,6 +160,17 @@ def test_set_overrides_and_toml_round_trip(tmp_path):
     assert again.to_dict() == scene.to_dict()
     with pytest.raises(SceneError, match="wheel.radiu"):
         load_scene(path, ["wheel.radiu=0.02"])
+
+
+def test_a_scene_saved_with_a_byte_order_mark_reads_as_without_and_a_folder_is_named(tmp_path):
+    """Some Windows editors start a UTF-8 file with a byte-order mark, which tomllib takes for a statement
+    ("Invalid statement (line 1, col 1)"): the scene reads as the same file without it."""
+    path = write_tiny(tmp_path)
+    marked = tmp_path / "marked.toml"
+    marked.write_bytes(b"\xef\xbb\xbf" + open(path, "rb").read())
+    assert load_scene(marked).to_dict() == load_scene(path).to_dict()
+    with pytest.raises(SceneError, match="is a folder; give a scene file"):
+        load_scene(tmp_path)
 
 
 def test_time_steps_make_whole_macro_steps(tmp_path):

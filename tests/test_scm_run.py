@@ -150,6 +150,23 @@ def test_an_scm_grid_too_large_is_refused_before_the_run_folder(tmp_path):
     assert "scm_grid_size" in next(line for line in advice if line.startswith("verdict: out of range"))
 
 
+@pytest.mark.parametrize("key", ["window_length", "window_width"])
+def test_an_scm_window_smaller_than_the_wheel_is_named_by_its_key(tmp_path, key):
+    """A window that cannot hold the wheel's footprint (its outer radius along x, half its width along y,
+    each side of the centre's node) is refused by key before the folder is made, and advise says so
+    (the run refused it at its first step, naming a `window` no scene has)."""
+    from cosim.cli import advise_lines
+    from cosim.scene import SceneError
+
+    scene = write_tiny(tmp_path, SCM + f"{key} = 1.0e-3\n")
+    out = tmp_path / "run"
+    with pytest.raises(SceneError, match=rf"terrain\.{key}: the SCM window .* must hold the wheels' footprints"):
+        run_scene(scene, str(out))
+    assert not out.exists()
+    advice = advise_lines(load_plan(scene))
+    assert any(line.startswith("  [OUT OF RANGE] scm_grid_size: ") and key in line for line in advice)
+
+
 def test_a_rover_scene_runs_on_scm(tmp_path):
     from rover_helpers import write_small_rover
 

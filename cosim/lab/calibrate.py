@@ -32,11 +32,12 @@ from __future__ import annotations
 import logging
 import math
 import os
+import typing
 from dataclasses import dataclass
 
 import numpy as np
 
-from ..scene import SceneError, key_unit, parse_value
+from ..scene import SceneError, key_field, key_unit, parse_value
 from ..study import Executor
 from . import common
 from .scene import LabPlan
@@ -86,6 +87,32 @@ class _OutOfEvaluations(Exception):
     """--max-evaluations evaluations were made: the optimiser stops here."""
 
 
+def _is_number(value) -> bool:
+    return isinstance(value, (int, float)) and not isinstance(value, bool)  # true is no 1
+
+
+VARIED_KEYS = ("soil.*", "lab.*", "bed.radius_mean", "bed.radius_spread", "run.dt", "run.dt_factor")
+"""The keys a calibration may vary besides the tests' own sections (repose.*, shear.*): what the repose
+and shear tests read (a wheel scene's [wheel], [testbed] or the bed's size they do not)."""
+
+
+def check_parameters(parameters: list[Parameter], tests: set[str]) -> None:
+    """SceneError naming a --vary key the tests `tests` do not read (VARIED_KEYS and their own sections) or
+    one that takes no real number (a count, a switch: the optimiser's values are real numbers)."""
+    from .scene import LabScene
+
+    allowed = (*VARIED_KEYS, *(f"{test}.*" for test in sorted(tests)))
+    for p in parameters:
+        for key in p.keys:
+            read = any(key == a or (a.endswith(".*") and key.startswith(a[:-1])) for a in allowed)
+            field = key_field(key, LabScene)
+            if not read or field is None:
+                what = " and ".join(sorted(tests))
+                raise SceneError([f"--vary {key}: not a key the {what} test reads; allowed: {', '.join(allowed)}"])
+            if float not in {field.annotation, *typing.get_args(field.annotation)}:
+                raise SceneError([f"--vary {key}: takes no real number (a count, a switch or a name)"])
+
+
 def parse_targets(texts: list[str]) -> dict[str, float]:
     """['repose=30', ...] -> {'repose': 30.0}; SceneError names a bad one."""
     targets = {}
@@ -95,10 +122,14 @@ def parse_targets(texts: list[str]) -> dict[str, float]:
         if name not in TARGETS:
             raise SceneError([f"--target {text!r}: unknown target {name!r}; allowed: {', '.join(TARGETS)}"])
         number = parse_value(value)
-        if not isinstance(number, (int, float)) or not math.isfinite(number):
+        if not _is_number(number) or not math.isfinite(number):
             raise SceneError([f"--target {text!r}: the value must be a finite number ({TARGETS[name].unit})"])
         if TARGETS[name].unit == "deg" and not 0 < number < 90:
             raise SceneError([f"--target {text!r}: an angle must be in (0, 90) deg"])
+        if number < 0:
+            raise SceneError([f"--target {text!r}: a cohesion is >= 0 Pa"])
+        if name in targets:
+            raise SceneError([f"--target {text!r}: {name} is given twice; give each target once"])
         targets[name] = float(number)
     if not targets:
         raise SceneError(["--target: give at least one target, e.g. --target repose=30"])
@@ -107,16 +138,20 @@ def parse_targets(texts: list[str]) -> dict[str, float]:
 
 def parse_parameters(texts: list[str]) -> list[Parameter]:
     """['soil.rolling_friction=0:0.3', 'soil.stick_angle_deg,soil.slip_angle_deg=10:40'] -> Parameters."""
-    parameters = []
+    parameters: list[Parameter] = []
     for text in texts or []:
         keys, _, bounds = text.partition("=")
         low, _, high = bounds.partition(":")
         low, high = parse_value(low), parse_value(high)
         names = tuple(k.strip() for k in keys.split(",") if k.strip())
-        if not names or not all(isinstance(v, (int, float)) and math.isfinite(v) for v in (low, high)) or low >= high:
+        if not names or not all(_is_number(v) and math.isfinite(v) for v in (low, high)) or low >= high:
             raise SceneError(
                 [f"--vary {text!r}: expected KEY[,KEY...]=LOW:HIGH with LOW < HIGH, e.g. soil.rolling_friction=0:0.3"]
             )
+        taken = [key for p in parameters for key in p.keys] + list(names)
+        twice = sorted({key for key in taken if taken.count(key) > 1})
+        if twice:
+            raise SceneError([f"--vary {text!r}: {twice[0]} is varied twice; give each key once"])
         parameters.append(Parameter(names, float(low), float(high)))
     if not parameters:
         raise SceneError(["--vary: give at least one scene key to vary, e.g. --vary soil.rolling_friction=0:0.3"])
@@ -131,13 +166,17 @@ def default_tolerance(name: str, target: float) -> float:
 def parse_tolerances(texts: list[str], targets: dict[str, float]) -> dict[str, float]:
     """Tolerances per target: --tolerance NAME=VALUE, else default_tolerance."""
     tolerances = {name: default_tolerance(name, value) for name, value in targets.items()}
+    given: set[str] = set()
     for text in texts or []:
         name, _, value = text.partition("=")
         number = parse_value(value)
-        if name not in targets or not isinstance(number, (int, float)) or not number > 0:
+        if name not in targets or not _is_number(number) or not 0 < number < math.inf:
             raise SceneError(
                 [f"--tolerance {text!r}: expected NAME=VALUE > 0 for one of the targets ({', '.join(targets)})"]
             )
+        if name in given:
+            raise SceneError([f"--tolerance {text!r}: {name} is given twice; give each tolerance once"])
+        given.add(name)
         tolerances[name] = float(number)
     return tolerances
 
@@ -193,6 +232,7 @@ def calibrate(
         raise SceneError([f"--max-evaluations: must be >= 2 (got {max_evaluations})"])
     tolerances = tolerances or {name: default_tolerance(name, value) for name, value in targets.items()}
     tests = {TARGETS[name].test for name in targets}
+    check_parameters(parameters, tests)
     # the scene and both ends of every range must be valid scenes (a slip angle above the stick angle, ...)
     # whose tests can be built (a tube that holds its grains, ...), before the folder is touched
     ends = [plan.with_changes(_overrides([p], [value])) for p in parameters for value in (p.low, p.high)]

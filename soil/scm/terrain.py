@@ -26,6 +26,11 @@ NO_BOX = -(2**30)
 
 STATE_VERSION = 2
 
+MAX_EROSION_ITERATIONS = 100
+"""Most slope-limiting passes a step takes [count]: each moves soil one node further down a slope, a few
+a step suffice (2 here, 3 in common SCM implementations); a step of many more costs as many grid passes
+and is better bought as a shorter step."""
+
 
 SCM_PARAMETER_UNITS = {
     "k_c": "Pa m^(1-n)",
@@ -78,7 +83,7 @@ class ScmParameters:
     erosion_angle: float = 30.0
     """Steepest slope the moved soil keeps between free nodes [deg] (in (0, 90))."""
     erosion_iterations: int = 2
-    """Slope-limiting passes per step over the nodes out of contact (>= 0)."""
+    """Slope-limiting passes per step over the nodes out of contact (0 .. MAX_EROSION_ITERATIONS)."""
 
     def __post_init__(self):
         def number(name: str) -> float:
@@ -106,8 +111,10 @@ class ScmParameters:
         iterations = self.erosion_iterations
         check(
             "erosion_iterations",
-            isinstance(iterations, (int, np.integer)) and not isinstance(iterations, bool) and iterations >= 0,
-            "an integer >= 0",
+            isinstance(iterations, (int, np.integer))
+            and not isinstance(iterations, bool)
+            and 0 <= iterations <= MAX_EROSION_ITERATIONS,
+            f"an integer in [0, {MAX_EROSION_ITERATIONS}]",
         )
 
     def bekker_pressure(self, sinkage, width):
