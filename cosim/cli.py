@@ -111,6 +111,7 @@ def cmd_run(args) -> int:
         from soil.errors import ArgumentError
 
         raise ArgumentError("--vary-bed: varies the beds of replicas; give --replicas K (K >= 2)")
+    _refuse_unused(args, ("--batched", *CLUSTER_OPTIONS), "one run runs in this process (give --replicas K for K)")
     with open(args.scene) as f:
         source = f.read()
     result = run_plan(plan, out, overwrite=args.overwrite, progress=not args.no_progress, source=source)
@@ -352,10 +353,43 @@ def _dem_advice(plan) -> list[str]:
 
 
 def _executor(args) -> dict:
+    from soil.errors import ArgumentError
+
     from .study import check_workers
 
     check_workers(args.workers)  # before any folder is made
+    if args.serial and args.scheduler:
+        raise ArgumentError("--serial and --scheduler: the tasks run in this process or on the scheduler; choose one")
+    if args.workers is not None and (args.serial or args.scheduler):
+        raise ArgumentError(
+            f"--workers: sizes the LocalCluster started here; {'--serial' if args.serial else '--scheduler'} uses none"
+        )
     return dict(executor="serial" if args.serial else "dask", scheduler=args.scheduler, workers=args.workers)
+
+
+CLUSTER_OPTIONS = ("--workers", "--scheduler", "--serial")
+"""The options that say where a command's tasks run (cluster_options)."""
+
+
+def _refuse_unused(args, options, why: str) -> None:
+    """ArgumentError naming the first of `options` given that this command ignores: `why` says what it
+    does instead (an option silently ignored looks as if it had acted)."""
+    from soil.errors import ArgumentError
+
+    for option in options:
+        value = getattr(args, option.lstrip("-").replace("-", "_"))
+        if value is not None and value is not False:
+            raise ArgumentError(f"{option}: does not apply here: {why}")
+
+
+STUDY_DEFAULTS = {
+    "replicas": 3,
+    "precisions": "single,mixed,double",
+    "slips": "0.1,0.2,0.3,0.5",
+    "duration": 0.05,
+    "max_tries": 8,
+}
+"""`cosim study`'s defaults of the options that only some kinds take (None in the parser: given or not)."""
 
 
 def cmd_study(args) -> int:
@@ -379,6 +413,22 @@ def cmd_study(args) -> int:
                 "with `cosim sweep SCENE --param rover.drive=NAME1,NAME2` ([rover.controllers])"
             ]
         )
+    # the options of the other kinds: refused rather than ignored; then their defaults
+    study_options = ("--replicas", "--precisions", "--slips", "--from-runs", "--include-sinking", "--batched")
+    applies = {
+        "precision": ("--replicas", "--precisions", "--batched", *CLUSTER_OPTIONS),
+        "slip": ("--replicas", "--slips", "--batched", "--from-runs", *CLUSTER_OPTIONS),
+        "timestep": ("--duration", "--max-tries"),
+    }[args.kind]
+    if args.kind == "slip" and args.from_runs:
+        applies = ("--from-runs", "--include-sinking")
+    unused = [o for o in (*study_options, "--duration", "--max-tries", *CLUSTER_OPTIONS) if o not in applies]
+    _refuse_unused(
+        args, unused, f"`cosim study {args.kind}{' --from-runs' if args.from_runs else ''}` takes {', '.join(applies)}"
+    )
+    for name, default in STUDY_DEFAULTS.items():
+        if getattr(args, name) is None:
+            setattr(args, name, default)
     if args.kind == "precision":
         out = args.out or os.path.join("runs", f"{plan.name}_precision")
         from .scene import parse_list
@@ -934,9 +984,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("kind", choices=["precision", "timestep", "slip"])
     scene_options(p)
     cluster_options(p)
-    p.add_argument("--replicas", type=int, default=3, help="replicas per precision or slip")
-    p.add_argument("--precisions", default="single,mixed,double")
-    p.add_argument("--slips", default="0.1,0.2,0.3,0.5", help="slip: imposed slips, comma-separated")
+    p.add_argument("--replicas", type=int, help="precision, slip: replicas per precision or slip (default 3)")
+    p.add_argument("--precisions", help="precision: the precisions compared (default single,mixed,double)")
+    p.add_argument("--slips", help="slip: imposed slips, comma-separated (default 0.1,0.2,0.3,0.5)")
     p.add_argument(
         "--from-runs",
         nargs="+",
@@ -960,8 +1010,8 @@ def build_parser() -> argparse.ArgumentParser:
         action="store_true",
         help="slip: replica k on a bed of its own (bed.seed + k) at every slip, not all on one bed",
     )
-    p.add_argument("--duration", type=float, default=0.05, help="timestep: simulated time of each try [s]")
-    p.add_argument("--max-tries", type=int, default=8, help="timestep: most runs of the search")
+    p.add_argument("--duration", type=float, help="timestep: simulated time of each try [s] (default 0.05)")
+    p.add_argument("--max-tries", type=int, help="timestep: most runs of the search (default 8)")
     p.set_defaults(func=cmd_study)
 
     p = sub.add_parser("sweep", help="runs over a grid of scene values")

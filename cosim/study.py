@@ -50,7 +50,7 @@ from soil.errors import ArgumentError, InternalError, RegolithError
 from . import metrics
 from .beds import BED_FILE, BED_INFO_FILE, settled_bed, write_json
 from .folders import RunFolder
-from .plan import RunPlan, resolve
+from .plan import MAX_PHASE_STEPS, RunPlan, resolve
 
 if TYPE_CHECKING:  # dask is imported when a study runs on it
     from dask.distributed import Client, LocalCluster
@@ -1136,6 +1136,9 @@ def sweep(
 MAX_TRY_DURATION = 60.0
 """Longest try of the stable-step search [s]: an explosion shows within a few contact times."""
 
+MAX_TRIES = 40
+"""Most tries of the stable-step search [-]: 1.5^40 (about 1e7) times the scene's step either way."""
+
 
 def timestep_study(
     plan: RunPlan,
@@ -1160,6 +1163,18 @@ def timestep_study(
             [
                 f"--duration, growth, --max-tries: need 0 < duration <= {MAX_TRY_DURATION:g} s, > 1, >= 1 "
                 f"(got {duration}, {growth}, {max_tries})"
+            ]
+        )
+    # a scene whose own step explodes is searched downwards: its last try takes growth^(tries - 1) x the
+    # steps of the first, which must stay a run that ends
+    most_steps = duration / plan.dt * growth ** (max_tries - 1)
+    if max_tries > MAX_TRIES or most_steps > MAX_PHASE_STEPS:
+        raise SceneError(
+            [
+                f"--max-tries {max_tries}, --duration {duration:g} s: at most {MAX_TRIES} tries, and a search that "
+                f"shrinks the step {max_tries - 1} times ends with a try of {most_steps:.3g} DEM steps of "
+                f"{plan.dt / growth ** (max_tries - 1):.3g} s, more than {MAX_PHASE_STEPS:.0e}: fewer tries or a "
+                "shorter duration"
             ]
         )
     if plan.terrain.model != "dem":  # checked before the study's folder is touched

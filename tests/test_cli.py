@@ -550,6 +550,36 @@ def test_sigterm_while_the_dask_cluster_starts_closes_it_whole_then_stops(monkey
 
 
 @pytest.mark.parametrize(
+    "command, named",
+    [
+        (["run", "--batched"], "--batched: does not apply here: one run runs in this process"),
+        (["run", "--workers", "2"], "--workers: does not apply here: one run"),
+        (["study", "timestep", "--slips", "0.1"], "--slips: does not apply here: `cosim study timestep` takes"),
+        (["study", "timestep", "--serial"], "--serial: does not apply here"),
+        (["study", "precision", "--duration", "0.1"], "--duration: does not apply here"),
+        (["study", "slip", "--precisions", "double"], "--precisions: does not apply here"),
+        (["study", "slip", "--include-sinking"], "--include-sinking: does not apply here"),
+        (["study", "slip", "--from-runs", "RUNS", "--replicas", "5"], "--replicas: does not apply here"),
+        (["study", "slip", "--serial", "--scheduler", "tcp://127.0.0.1:8786"], "--serial and --scheduler"),
+        (["study", "slip", "--serial", "--workers", "2"], "--workers: sizes the LocalCluster started here"),
+    ],
+)
+def test_an_option_the_command_ignores_is_refused(tmp_path, capsys, command, named):
+    """An option silently ignored looks as if it had acted (`--slips` on a time-step study, `--workers`
+    with `--serial`): exit 2 naming it, nothing made."""
+    scene = str(write_tiny(tmp_path))
+    runs = tmp_path / "runs"
+    runs.mkdir()
+    command = [str(runs) if part == "RUNS" else part for part in command]
+    line = [*command[:2], scene, *command[2:]] if command[0] == "study" else [command[0], scene, *command[1:]]
+    out = tmp_path / "out"
+    assert main([*line, "--out", str(out), "--no-progress"] if command[0] == "run" else [*line, "--out", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("cosim: error:") and named in err, err
+    assert not out.exists()
+
+
+@pytest.mark.parametrize(
     "option, words",
     [
         (["--workers", "0"], "--workers must be 1 .. "),

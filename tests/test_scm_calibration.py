@@ -789,3 +789,28 @@ def test_a_slip_study_of_the_wrong_shape_is_named_for_the_wheel_fit(tmp_path, ca
     err = capsys.readouterr().err
     assert err.startswith("cosim: error:") and "study.json" in err and named in err, err
     assert not (tmp_path / "wheel.toml").exists()
+
+
+def test_a_stop_asked_for_during_one_beds_wheel_fit_stops_every_bed(monkeypatch):
+    """A bed whose fit fails is a result (the others' fits stand), but Ctrl-C or SIGTERM in a serial fit's
+    SCM runs is a stop of the whole calibration, not a failed bed followed by the next bed's fit."""
+    import os
+
+    import cosim.lab.scm_wheel as scm_wheel
+    from cosim.plan import load_plan
+    from cosim.runner import RunInterrupted
+
+    plan = load_plan(os.path.join(os.path.dirname(__file__), "..", "examples", "phobos_single_wheel.toml"))
+    fits = []
+
+    def fit(plan, targets, start, runs=None, max_runs=0):
+        fits.append(start["k"])
+        raise RunInterrupted("stopped by SIGTERM", "SIGTERM") if start["k"] == 0 else ValueError("no bracket")
+
+    monkeypatch.setattr(scm_wheel, "fit_to_wheel", fit)
+    targets = [[object()], [object()]]
+    with pytest.raises(RunInterrupted):
+        scm_wheel.fit_beds(plan, targets, [{"k": 0}, {"k": 1}], runs=None)
+    assert fits == [0]  # bed 1 not fitted after the stop
+    failed = scm_wheel.fit_beds(plan, targets[1:], [{"k": 1}], runs=None)
+    assert failed[0]["ok"] is False and "ValueError: no bracket" in failed[0]["error"]

@@ -440,6 +440,15 @@ def test_a_timestep_search_of_no_dem_step_or_of_endless_tries_is_refused_before_
     assert "stable-step search is of the DEM step; this scene runs on analytic" in capsys.readouterr().err
     assert main(["study", "timestep", write_tiny(tmp_path), "--out", str(out), "--duration", "1e300"]) == 2
     assert "--duration" in capsys.readouterr().err
+    # a search shrinking the step 49 times (the scene's own step exploding) would take 1.5^49 x its steps
+    for tries in ("41", "35"):  # beyond MAX_TRIES; within it, but its last try beyond MAX_PHASE_STEPS steps
+        assert (
+            main(
+                ["study", "timestep", write_tiny(tmp_path), "--out", str(out), "--duration", "60", "--max-tries", tries]
+            )
+            == 2
+        )
+        assert f"--max-tries {tries}, --duration 60 s: at most 40 tries" in capsys.readouterr().err
     assert not out.exists()
 
 

@@ -561,9 +561,10 @@ def fit_beds(
 
 
 def _bed_fit_task(task: dict) -> dict:
-    """One bed's wheel fit (fit_beds' task: module level, for dask workers); never raises."""
+    """One bed's wheel fit (fit_beds' task: module level, for dask workers); raises only a stop asked for."""
     from soil import quiet_warp
 
+    from ..runner import RunInterrupted
     from ..study import task_plan
 
     if not task["targets"]:
@@ -573,6 +574,8 @@ def _bed_fit_task(task: dict) -> dict:
         parameters, _, report = fit_to_wheel(
             task_plan(task), task["targets"], task["start"], runs=task["runs"], max_runs=task["max_runs"]
         )
+    except RunInterrupted:  # a stop asked for (Ctrl-C, SIGTERM in a serial fit's runs) stops every bed's fit
+        raise
     except Exception as error:  # noqa: BLE001 - a bed whose fit fails is a result: the others' stand
         return {"label": task["label"], "ok": False, "error": f"{type(error).__name__}: {error}"}
     return {
