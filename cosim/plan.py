@@ -609,8 +609,8 @@ def resolve(scene: Scene) -> RunPlan:
     if 0 < scene.output.snapshot_interval < macro_step * (1 - 1e-9):
         problems.append(
             f"output.snapshot_interval: {scene.output.snapshot_interval} s is shorter than the macro step "
-            f"{macro_step:.4g} s, and a snapshot is taken at most once a macro step; allowed: 0 (first and last "
-            f"only) or >= {macro_step:.4g} s"
+            f"{macro_step:.4g} s ({macro_key or 'run.macro_step, run.substeps'}), and a snapshot is taken at "
+            f"most once a macro step; allowed: 0 (first and last only) or >= {macro_step:.4g} s"
         )
     land = scene.landing
     problems += _step_count_problems(scene, dt, dt_key, macro_step, macro_key, settle_dt, bed_file is None)

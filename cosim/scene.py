@@ -96,6 +96,11 @@ def _number_kinds(model: type[BaseModel], name: str) -> set:
     return set() if field is None else _annotation_types(field.annotation)
 
 
+def is_number(value) -> bool:
+    """A real number and not a boolean (Python counts true as the integer 1)."""
+    return isinstance(value, (int, float)) and not isinstance(value, bool)
+
+
 def reject_bool_for_number(model: type[BaseModel], name: str, value):
     """A before-validator's test: true / false where a field takes a number and no boolean is refused
     (pydantic would read it as 1 or 0: `gravity = true` as 1 m/s^2)."""
@@ -112,7 +117,7 @@ def reject_non_bool_for_switch(model: type[BaseModel], name: str, value):
     is refused (pydantic would read "no" as false and 1 as true: a typo that silently switches)."""
     kinds = _number_kinds(model, name)
     if bool in kinds and not kinds & {float, int, str} and value is not None and not isinstance(value, bool):
-        raise ValueError("must be true or false")
+        raise ValueError("must be true or false (TOML's, lower-case)")
     return value
 
 
@@ -695,9 +700,10 @@ class TerrainSection(_Section):
     erosion_iterations: int | None = Field(None, ge=0, le=MAX_EROSION_ITERATIONS)
     """scm: slope-limiting passes per step [count] (default 2; at most soil.scm.terrain.MAX_EROSION_ITERATIONS)."""
     window_length: float | None = Field(None, gt=0)
-    """scm: the node window's size along x [m] (default: the wheels' span along x + 6 outer radii)."""
+    """scm: the node window's size along x [m] (default: the hubs' span + 8 outer radii; it must hold the
+    wheels' footprints, a rover's at any heading)."""
     window_width: float | None = Field(None, gt=0)
-    """scm: the node window's size along y [m] (default: the wheels' span along y + 4 outer radii)."""
+    """scm: the node window's size along y [m] (default: the hubs' span + the wheel width + 4 outer radii)."""
     time_step: float | None = Field(None, gt=0)
     """scm: the SCM step [s] (default: the macro step; each macro step is split into steps of at most this)."""
     calibration: str | None = Field(None, min_length=1)

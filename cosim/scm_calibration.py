@@ -92,7 +92,7 @@ def read_calibration(path: str) -> ScmCalibration:
         raise CalibrationError(f"{path}: not a calibration file (no such regular file)")
     try:
         with open(path, "rb") as f:
-            data = tomllib.load(f)
+            data = tomllib.loads(f.read().decode("utf-8-sig"))  # a byte-order mark is no TOML statement
     except (OSError, UnicodeDecodeError, tomllib.TOMLDecodeError) as error:
         raise CalibrationError(f"{path}: not a readable calibration file ({error})") from None
     if data.get("format") != FORMAT_VERSION:

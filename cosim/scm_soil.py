@@ -175,10 +175,7 @@ def scm_settings(plan, wheels: Sequence[int], surface_height: float, soil: dict 
     values["node_spacing"] = node_spacing(values, chosen)
     outer = max(w.outer_radius for w in chosen)
     width = max(w.width for w in chosen)
-    if plan.rover is not None:
-        span = 2.0 * float(np.max(np.hypot(*plan.rover.hub_offsets[list(wheels), :2].T)))
-    else:
-        span = 0.0
+    span = hub_span(plan, wheels)
     window = (values.pop("window_length", span + 8 * outer), values.pop("window_width", span + width + 4 * outer))
     time_step = values.pop("time_step", plan.macro_step)
     if "pressure_damping" not in values:
@@ -201,32 +198,41 @@ def scm_wheel_indices(plan) -> list[int]:
     return [i for i in range(len(plan.wheels)) if not models or models[i] == "scm"]
 
 
+def hub_span(plan, indices) -> float:
+    """Twice the largest distance of the wheels `indices`' hubs from a rover's centre [m] (their span at
+    any heading); 0 for the testbed's one wheel."""
+    if plan.rover is None:
+        return 0.0
+    return 2.0 * float(np.max(np.hypot(*plan.rover.hub_offsets[list(indices), :2].T)))
+
+
 def _check_window_holds_wheels(plan, indices: list[int], settings: ScmSettings) -> None:
     """SceneError naming terrain.window_length or window_width when the node window, centred on the wheels
-    (to a node), cannot hold their footprints: a rover's hubs' span at any heading plus each footprint's
-    reach at any heading (hypot(outer radius, half width)); the testbed's outer radius along x, half its
-    width along y (its axle stays along y)."""
-    from soil.scm.terrain import grid_shape
+    (to a node), cannot hold their footprints as ScmTerrain checks them at each step: a rover's at any
+    heading (its hubs' span plus each footprint's largest reach, soil.scm.terrain.cylinder_of), the
+    testbed's wheel with its axle along y (its outer radius along x, its half width along y)."""
+    from soil.scm.terrain import cylinder_of, grid_shape
 
     from .scene import SceneError
 
     spacing = settings.parameters.node_spacing
+    span = hub_span(plan, indices)
     if plan.rover is not None:
-        wheels = [plan.wheels[i] for i in indices]
-        span = 2.0 * float(np.max(np.hypot(*plan.rover.hub_offsets[list(indices), :2].T)))
-        bound = max(math.hypot(w.outer_radius, 0.5 * w.width) for w in wheels)
-        reaches = (bound, bound)
+        reach = max(math.hypot(*cylinder_of(plan.wheels[i].shape)) for i in indices)
+        reaches, heading = (reach, reach), " at any heading"
     else:
-        span, reaches = 0.0, (plan.wheel.outer_radius, 0.5 * plan.wheel.width)
+        reaches, heading = cylinder_of(plan.wheel.shape), ""
     problems = []
     shape = grid_shape(settings.window, spacing)
     for key, size, nodes, reach in zip(("window_length", "window_width"), settings.window, shape, reaches):
-        held = min(nodes // 2, nodes - 2 - nodes // 2) * spacing  # from the centre's node to the nearer edge
+        # from the centre's node to the nearer edge, wherever in its node the centre falls (ScmTerrain)
+        held = min(nodes // 2, nodes - 2 - nodes // 2) * spacing
         if held < 0.5 * span + reach:
-            least = span + 2 * reach + 3 * spacing
+            least = (2 * math.ceil((0.5 * span + reach) / spacing) + 4) * spacing  # an even count holds it
             problems.append(
                 f"terrain.{key}: the SCM window ({size:.4g} m, {nodes} nodes of {spacing:.3g} m) must hold the "
-                f"wheels' footprints (hub span {span:.4g} m, reach {reach:.4g} m each side); allowed: >= {least:.4g} m"
+                f"wheels' footprints{heading} (hub span {span:.4g} m, reach {reach:.4g} m each side); "
+                f"allowed: >= {least:.4g} m"
             )
     if problems:
         raise SceneError(problems)

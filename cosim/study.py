@@ -54,7 +54,7 @@ from .plan import MAX_PHASE_STEPS, RunPlan, resolve
 
 if TYPE_CHECKING:  # dask is imported when a study runs on it
     from dask.distributed import Client, LocalCluster
-from .scene import INT64_MAX, SceneError, key_unit, scene_from_text
+from .scene import INT64_MAX, SceneError, is_number, key_unit, scene_from_text
 
 log = logging.getLogger(__name__)
 
@@ -887,16 +887,13 @@ def _check_run_record(record) -> None:
     is an object of numbers or nulls for the averaged metrics and a steady_state name, whose bed (if any)
     is an object with a path."""
 
-    def plain(value, kinds) -> bool:
-        return isinstance(value, kinds) and not isinstance(value, bool)
-
     if not isinstance(record, dict):
         raise ValueError(f"a JSON object expected, got {type(record).__name__}")
     summary, bed = record.get("summary", {}), record.get("bed", {})
     if not isinstance(summary, dict):
         raise ValueError(f"summary must be an object, got {summary!r:.60}")
     for name in (*metrics.REPLICA_METRICS, "wall_time"):
-        if summary.get(name) is not None and not plain(summary[name], (int, float)):
+        if summary.get(name) is not None and not is_number(summary[name]):
             raise ValueError(f"summary.{name} must be a number or null, got {summary[name]!r:.60}")
     if summary.get("steady_state") is not None and not isinstance(summary["steady_state"], str):
         raise ValueError(f"summary.steady_state must be a name, got {summary['steady_state']!r:.60}")

@@ -165,6 +165,14 @@ def test_an_scm_window_smaller_than_the_wheel_is_named_by_its_key(tmp_path, key)
     assert not out.exists()
     advice = advise_lines(load_plan(scene))
     assert any(line.startswith("  [OUT OF RANGE] scm_grid_size: ") and key in line for line in advice)
+    # the size the message allows is a window the run takes
+    from cosim.scm_soil import check_scm_grid
+
+    with pytest.raises(SceneError) as refused:
+        check_scm_grid(load_plan(scene))
+    least = float(str(refused.value).rsplit(">= ", 1)[1].split(" m")[0])
+    check_scm_grid(load_plan(scene, [f"terrain.{key}={least}"]))
+    run_scene(scene, str(out), overrides=[*SMOOTH, f"terrain.{key}={least}", "run.duration=0.02"])
 
 
 def test_a_rover_scene_runs_on_scm(tmp_path):

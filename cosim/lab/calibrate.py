@@ -37,7 +37,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..scene import SceneError, key_field, key_unit, parse_value
+from ..scene import SceneError, is_number, key_field, key_unit, parse_value
 from ..study import Executor
 from . import common
 from .scene import LabPlan
@@ -87,10 +87,6 @@ class _OutOfEvaluations(Exception):
     """--max-evaluations evaluations were made: the optimiser stops here."""
 
 
-def _is_number(value) -> bool:
-    return isinstance(value, (int, float)) and not isinstance(value, bool)  # true is no 1
-
-
 VARIED_KEYS = ("soil.*", "lab.*", "bed.radius_mean", "bed.radius_spread", "run.dt", "run.dt_factor")
 """The keys a calibration may vary besides the tests' own sections (repose.*, shear.*): what the repose
 and shear tests read (a wheel scene's [wheel], [testbed] or the bed's size they do not)."""
@@ -104,9 +100,10 @@ def check_parameters(parameters: list[Parameter], tests: set[str]) -> None:
     allowed = (*VARIED_KEYS, *(f"{test}.*" for test in sorted(tests)))
     for p in parameters:
         for key in p.keys:
-            read = any(key == a or (a.endswith(".*") and key.startswith(a[:-1])) for a in allowed)
             field = key_field(key, LabScene)
-            if not read or field is None:
+            if field is None:
+                raise SceneError([f"--vary {key}: no such scene key"])
+            if not any(key == a or (a.endswith(".*") and key.startswith(a[:-1])) for a in allowed):
                 what = " and ".join(sorted(tests))
                 raise SceneError([f"--vary {key}: not a key the {what} test reads; allowed: {', '.join(allowed)}"])
             if float not in {field.annotation, *typing.get_args(field.annotation)}:
@@ -122,7 +119,7 @@ def parse_targets(texts: list[str]) -> dict[str, float]:
         if name not in TARGETS:
             raise SceneError([f"--target {text!r}: unknown target {name!r}; allowed: {', '.join(TARGETS)}"])
         number = parse_value(value)
-        if not _is_number(number) or not math.isfinite(number):
+        if not is_number(number) or not math.isfinite(number):
             raise SceneError([f"--target {text!r}: the value must be a finite number ({TARGETS[name].unit})"])
         if TARGETS[name].unit == "deg" and not 0 < number < 90:
             raise SceneError([f"--target {text!r}: an angle must be in (0, 90) deg"])
@@ -144,7 +141,7 @@ def parse_parameters(texts: list[str]) -> list[Parameter]:
         low, _, high = bounds.partition(":")
         low, high = parse_value(low), parse_value(high)
         names = tuple(k.strip() for k in keys.split(",") if k.strip())
-        if not names or not all(_is_number(v) and math.isfinite(v) for v in (low, high)) or low >= high:
+        if not names or not all(is_number(v) and math.isfinite(v) for v in (low, high)) or low >= high:
             raise SceneError(
                 [f"--vary {text!r}: expected KEY[,KEY...]=LOW:HIGH with LOW < HIGH, e.g. soil.rolling_friction=0:0.3"]
             )
@@ -170,7 +167,7 @@ def parse_tolerances(texts: list[str], targets: dict[str, float]) -> dict[str, f
     for text in texts or []:
         name, _, value = text.partition("=")
         number = parse_value(value)
-        if name not in targets or not _is_number(number) or not 0 < number < math.inf:
+        if name not in targets or not is_number(number) or not 0 < number < math.inf:
             raise SceneError(
                 [f"--tolerance {text!r}: expected NAME=VALUE > 0 for one of the targets ({', '.join(targets)})"]
             )

@@ -125,14 +125,13 @@ def _study_shape_problem(study: dict) -> str | None:
     """What in a slip study's content the wheel fit cannot read (None: it reads it): rows and runs lists
     of objects, the rows' slip_set numbers and averaged / steady counts, averaged_states a list of names."""
 
-    def number(value) -> bool:
-        return isinstance(value, (int, float)) and not isinstance(value, bool)
+    from ..scene import is_number
 
     for key in ("rows", "runs"):
         if not isinstance(study.get(key, []), list) or not all(isinstance(r, dict) for r in study.get(key, [])):
             return f"{key!r} must be a list of objects"
     for k, row in enumerate(study.get("rows", [])):
-        if not number(row.get("slip_set")):
+        if not is_number(row.get("slip_set")):
             return f"rows[{k}].slip_set must be a number, got {row.get('slip_set')!r:.60}"
         for count in ("averaged", "steady"):
             if count in row and not (isinstance(row[count], int) and not isinstance(row[count], bool)):

@@ -276,7 +276,7 @@ class ScmTerrain:
         )
         self.node_count = self.shape[0] * self.shape[1]
         self._chunks = (self.node_count + CHUNK - 1) // CHUNK
-        reach = max(math.hypot(*_cylinder_of(wheel)) for wheel in wheels)
+        reach = max(math.hypot(*cylinder_of(wheel)) for wheel in wheels)
         self.box_size = int(math.floor(2 * reach / spacing)) + 5
         """The most nodes along x or y of a wheel's box (kernels.place_window: the nodes under the footprint
         of the cylinder that holds the wheel, plus one spacing round it, at any orientation; the
@@ -284,7 +284,7 @@ class ScmTerrain:
         boxes' nodes only: its cost is that of the wheels' footprints, not of the window."""
         self.kernels = scm_kernels(self.precision.hi)
         self._follow = centre is None
-        self._footprint_bound = np.array([math.hypot(*_cylinder_of(wheel)) for wheel in wheels])
+        self._footprint_bound = np.array([math.hypot(*cylinder_of(wheel)) for wheel in wheels])
         """Per wheel: the largest reach of its footprint along x or y at any orientation [m]."""
         self.time = 0.0
         self.steps = 0
@@ -334,7 +334,7 @@ class ScmTerrain:
         bundle.point_offset = wp.array(np.array(point_offsets, dtype=np.int32), dtype=wp.int32, device=device)
         bundle.index_offset = wp.array(np.array(index_offsets, dtype=np.int32), dtype=wp.int32, device=device)
         bundle.cylinder = wp.array(
-            np.array([_cylinder_of(wheel) for wheel in self.wheels], dtype=np_hi), dtype=hi, device=device
+            np.array([cylinder_of(wheel) for wheel in self.wheels], dtype=np_hi), dtype=hi, device=device
         )
         bundle.position = zeros(count, prec.vec_hi)
         bundle.rotation = wp.array(np.tile(np.eye(3, dtype=np_hi), (count, 1, 1)), dtype=prec.mat_hi, device=device)
@@ -448,7 +448,7 @@ class ScmTerrain:
         for index, (hub, wheel) in enumerate(zip(hubs, self.wheels)):
             orientation = quaternion_integrate(path[index, 3:7], path[index, 10:13], tau)
             axle = quaternion_to_matrix(orientation)[:2, 1]  # its world x and y parts
-            radius, half_width = _cylinder_of(wheel)
+            radius, half_width = cylinder_of(wheel)
             reach = radius * np.sqrt(np.clip(1 - axle**2, 0, 1)) + half_width * np.abs(axle)
             if np.any(hub[:2] - reach < low) or np.any(hub[:2] + reach > high):
                 raise SoilInputError(
@@ -788,7 +788,7 @@ class ScmTerrain:
         self._pose(0.0)
 
 
-def _cylinder_of(wheel: GrouserWheel | MeshWheel) -> tuple[float, float]:
+def cylinder_of(wheel: GrouserWheel | MeshWheel) -> tuple[float, float]:
     """Radius and half width [m] of the cylinder about the axle (local Y) that holds the wheel."""
     if isinstance(wheel, GrouserWheel):
         return wheel.outer_radius, 0.5 * wheel.width
