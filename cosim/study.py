@@ -886,7 +886,6 @@ def _check_run_record(record) -> None:
     """ValueError naming what of a run.json the slip table cannot read: an object whose summary (if any)
     is an object of numbers or nulls for the averaged metrics and a steady_state name, whose bed (if any)
     is an object with a path."""
-
     if not isinstance(record, dict):
         raise ValueError(f"a JSON object expected, got {type(record).__name__}")
     summary, bed = record.get("summary", {}), record.get("bed", {})
@@ -1164,14 +1163,13 @@ def timestep_study(
         )
     # a scene whose own step explodes is searched downwards: its last try takes growth^(tries - 1) x the
     # steps of the first, which must stay a run that ends
-    most_steps = duration / plan.dt * growth ** (max_tries - 1)
+    most_steps = duration / plan.dt * growth ** (min(max_tries, MAX_TRIES + 1) - 1)  # no float overflow
     if max_tries > MAX_TRIES or most_steps > MAX_PHASE_STEPS:
         raise SceneError(
             [
                 f"--max-tries {max_tries}, --duration {duration:g} s: at most {MAX_TRIES} tries, and a search that "
-                f"shrinks the step {max_tries - 1} times ends with a try of {most_steps:.3g} DEM steps of "
-                f"{plan.dt / growth ** (max_tries - 1):.3g} s, more than {MAX_PHASE_STEPS:.0e}: fewer tries or a "
-                "shorter duration"
+                f"shrinks the step at every try must end with a try of at most {MAX_PHASE_STEPS:.0e} DEM steps "
+                f"(here {most_steps:.3g} or more): fewer tries or a shorter duration"
             ]
         )
     if plan.terrain.model != "dem":  # checked before the study's folder is touched

@@ -441,7 +441,7 @@ def test_a_timestep_search_of_no_dem_step_or_of_endless_tries_is_refused_before_
     assert main(["study", "timestep", write_tiny(tmp_path), "--out", str(out), "--duration", "1e300"]) == 2
     assert "--duration" in capsys.readouterr().err
     # a search shrinking the step 49 times (the scene's own step exploding) would take 1.5^49 x its steps
-    for tries in ("41", "35"):  # beyond MAX_TRIES; within it, but its last try beyond MAX_PHASE_STEPS steps
+    for tries in ("1000000000", "41", "35"):  # beyond MAX_TRIES; within it, its last try beyond MAX_PHASE_STEPS
         assert (
             main(
                 ["study", "timestep", write_tiny(tmp_path), "--out", str(out), "--duration", "60", "--max-tries", tries]

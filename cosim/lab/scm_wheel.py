@@ -124,7 +124,6 @@ def _read_study(study_folder: str) -> tuple[str, dict]:
 def _study_shape_problem(study: dict) -> str | None:
     """What in a slip study's content the wheel fit cannot read (None: it reads it): rows and runs lists
     of objects, the rows' slip_set numbers and averaged / steady counts, averaged_states a list of names."""
-
     from ..scene import is_number
 
     for key in ("rows", "runs"):
