@@ -475,8 +475,14 @@ def cmd_study(args) -> int:
 
 
 def cmd_sweep(args) -> int:
+    from soil.errors import ArgumentError
+
     from . import study
 
+    fixed = {text.split("=", 1)[0].strip() for text in args.set or []}
+    swept = {text.split("=", 1)[0].strip() for text in args.param}
+    if fixed & swept:  # the sweep's values would replace the --set one without a word
+        raise ArgumentError(f"--set {sorted(fixed & swept)[0]}: also swept by --param; give it in one of them")
     plan = _plan(args)
     out = args.out or os.path.join("runs", f"{plan.name}_sweep")
     report = study.sweep(plan, out, args.param, overwrite=args.overwrite, **_executor(args))

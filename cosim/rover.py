@@ -18,7 +18,7 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from soil.errors import ArgumentError
+from soil.errors import InputError, RegolithError
 
 from .contract import WheelKinematics, WheelWrench
 from .controllers import ConstantSpeed, ConstantTorque, DriveCommand, SlipController
@@ -48,6 +48,11 @@ def open_rover(plan: RunPlan, start_z: float | None = None):
     origin = rover.body_kinematics(rover.body_id()).position
     rover.move_base(np.array([x - origin[0], y - origin[1], 0.0]), heading)
     return rover
+
+
+class ControllerError(InputError, ValueError):
+    """The drive's controller failed while driving, or commanded what no wheel takes (not a DriveCommand,
+    another wheel count, a value that is not finite): the message names it and the time."""
 
 
 def make_controller(plan: RunPlan):
@@ -118,9 +123,19 @@ class RoverDriver:
     """Columns of `state_row()`: body position [m], body velocity [m/s], heading about +z [rad]."""
     state_units = ["m", "m", "m", "m/s", "m/s", "m/s", "rad"]
 
-    def __init__(self, rover, controller, takes_speed: bool = True, body: int | None = None, landed: bool = False):
+    def __init__(
+        self,
+        rover,
+        controller,
+        takes_speed: bool = True,
+        body: int | None = None,
+        landed: bool = False,
+        label: str = "the drive's controller",
+    ):
         self.rover = rover
         self.controller = controller
+        self.label = label
+        """What names the controller in an error (its scene key and name)."""
         self.wheel_names = list(rover.wheel_names)
         self.brake = "speed" if takes_speed else "torque"
         self._body = body
@@ -161,13 +176,29 @@ class RoverDriver:
         if self.phase == PHASE_LANDING:
             command = DriveCommand(self.brake, np.zeros(len(self.wheel_names)))
         else:
-            command = self.controller(t, wheel_states, wrenches)
-            if len(command.values) != len(self.wheel_names):
-                raise ArgumentError(
-                    f"the controller commanded {len(command.values)} wheels, the rover has {len(self.wheel_names)}"
-                )
+            try:
+                command = self.controller(t, wheel_states, wrenches)
+            except RegolithError:  # the project's own (an FMU controller's step refused, a stop): as they are
+                raise
+            except Exception as error:  # a user's controller: its failure named, not taken for a bug of ours
+                raise ControllerError(
+                    f"{self.label} raised {type(error).__name__}: {error} at t = {t:.6g} s"
+                ) from error
+            problem = self._command_problem(command)
+            if problem:
+                raise ControllerError(f"{self.label} {problem} at t = {t:.6g} s")
         self.last_command = command
         return command
+
+    def _command_problem(self, command) -> str | None:
+        """What makes a controller's answer no command for this rover's wheels (None: it is one)."""
+        if not isinstance(command, DriveCommand):
+            return f"returned {type(command).__name__}, not a cosim.controllers.DriveCommand"
+        if len(command.values) != len(self.wheel_names):
+            return f"commanded {len(command.values)} wheels, the rover has {len(self.wheel_names)}"
+        if not np.all(np.isfinite(command.values)):
+            return f"commanded {command.mode}s {command.values.tolist()}: every value must be finite"
+        return None
 
     def start_drive(self) -> None:
         """End the landing: from the next macro step on the controller drives."""

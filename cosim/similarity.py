@@ -35,7 +35,7 @@ import numpy as np
 
 from soil import gravity_vector
 
-from .scene import Scene, SceneError, load_scene
+from .scene import SCENE_NUMBER_RANGE, Scene, SceneError, load_scene
 
 TIME_KEYS = [
     ("run", "duration"),
@@ -69,6 +69,11 @@ def _section(data: dict, dotted: str) -> dict:
     return node
 
 
+MAX_GRAVITY_RATIO = 1e8
+"""The largest ratio of a twin's gravity to its scene's, either way [-]: a micro-g asteroid's to the
+Earth's is 1e6; far beyond, the twin's scaled keys leave what a scene takes."""
+
+
 def gravity_twin(scene: Scene, gravity) -> tuple[dict, float]:
     """(the twin scene as a dictionary, the factor s = |g_new| / |g_old|)."""
     if scene.rover is not None:
@@ -85,9 +90,19 @@ def gravity_twin(scene: Scene, gravity) -> tuple[dict, float]:
         target = gravity_vector(gravity)
     except ValueError as error:
         raise SceneError([f"--gravity: {error}"]) from None
+    if np.max(np.abs(target)) > SCENE_NUMBER_RANGE[1]:  # its norm would overflow
+        raise SceneError([f"--gravity: {gravity} m/s^2: a scene number is of magnitude <= {SCENE_NUMBER_RANGE[1]:g}"])
     g_old, g_new = float(np.linalg.norm(old)), float(np.linalg.norm(target))
     if g_old <= 0 or g_new <= 0:
         raise SceneError([f"--gravity: both gravities must be > 0 (scene {g_old:g}, target {g_new:g} m/s^2)"])
+    if not 1 / MAX_GRAVITY_RATIO <= g_new / g_old <= MAX_GRAVITY_RATIO:
+        raise SceneError(
+            [
+                f"--gravity: {g_new:g} m/s^2 is {g_new / g_old:.3g} x the scene's {g_old:g} m/s^2; allowed: "
+                f"{1 / MAX_GRAVITY_RATIO:g} .. {MAX_GRAVITY_RATIO:g} x (the twin's stiffnesses scale by that "
+                "ratio, its times by one over its root)"
+            ]
+        )
     s = g_new / g_old
     data = scene.to_dict()
     data.setdefault("scene", {})["gravity"] = [float(v) for v in old * s]

@@ -32,6 +32,7 @@ import itertools
 import logging
 import math
 import os
+import re
 import shutil
 import signal
 import threading
@@ -1015,8 +1016,25 @@ def parse_params(params: list[str]) -> dict[str, list]:
         key, values = text.split("=", 1)
         if key.strip() in grid:  # the later one would replace the first without a word
             raise SceneError([f"--param {key.strip()}: given twice; give its values once, comma-separated"])
-        grid[key.strip()] = parse_list(values, f"--param {key.strip()}")
+        entries = parse_list(values, f"--param {key.strip()}")
+        twice = [v for i, v in enumerate(entries) if v in entries[:i]]
+        if twice:  # the same run twice, counted as two points
+            raise SceneError([f"--param {key.strip()}: the value {twice[0]!r} is given twice"])
+        grid[key.strip()] = entries
+    points = math.prod(len(v) for v in grid.values())
+    if points > MAX_SWEEP_POINTS:
+        raise SceneError([f"--param: {points} points (the product of the value counts), more than {MAX_SWEEP_POINTS}"])
     return grid
+
+
+MAX_SWEEP_POINTS = 1000
+"""Most runs a sweep's grid may hold [-]: each is checked as a scene before any runs."""
+
+
+def _folder_label(value) -> str:
+    """A sweep value as part of a folder name: letters, digits and . + - only (a path value's separators
+    and '..' must not lead out of the sweep's folder), at most 40 characters."""
+    return re.sub(r"[^A-Za-z0-9.+-]", "_", str(value)).lstrip(".")[:40] or "_"
 
 
 def sweep(
@@ -1061,7 +1079,7 @@ def sweep(
             overrides = dict(point)
             if not p.bed.bed_file and needs_bed(p):
                 overrides["bed.bed_file"] = bed_paths[p.bed.key]
-            name = f"{i:03d}_" + "_".join(f"{k.split('.')[-1]}={v}" for k, v in point.items())
+            name = f"{i:03d}_" + "_".join(f"{k.split('.')[-1]}={_folder_label(v)}" for k, v in point.items())
             tasks.append(
                 {
                     "scene_toml": text,

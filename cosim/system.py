@@ -119,8 +119,14 @@ class CoupledSystem:
         else:
             rover.move_base(np.array([0.0, 0.0, lift]))
         body = rover.body_id(r.body) if r.model != "fmu" else None
+        drive = r.drive
         driver = RoverDriver(
-            rover, make_controller(plan), takes_speed=r.takes_speed, body=body, landed=not plan.landing.enabled
+            rover,
+            make_controller(plan),
+            takes_speed=r.takes_speed,
+            body=body,
+            landed=not plan.landing.enabled,
+            label=f"the drive {drive.name!r} ({drive.section.function or drive.kind})",
         )
         soil.place_wheels(driver.wheel_kinematics())
         coupler = Coupler(

@@ -58,8 +58,8 @@ def read_cosim_description(path: str | os.PathLike):
         md = read_model_description(path)
     except FmuError:
         raise
-    except (zipfile.BadZipFile, ET.ParseError, OSError, ValueError, KeyError, AttributeError, TypeError) as error:
-        raise FmuError(f"{path}: modelDescription.xml cannot be read: {error}") from None
+    except Exception as error:  # noqa: BLE001 - fmpy's own (a schema ValidationError, an FMI version it does not know)
+        raise FmuError(f"{path}: modelDescription.xml cannot be read: {type(error).__name__}: {error}") from None
     if md.coSimulation is None:
         raise FmuError(f"{path} is not a co-simulation FMU")
     if md.fmiVersion not in ("2.0", "3.0"):

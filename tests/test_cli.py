@@ -449,6 +449,17 @@ def test_sweep_validates_every_point_first(tmp_path, tiny_bed, capsys):
     header = (out / "study.csv").read_text().splitlines()[0]
     assert header.startswith("testbed.omega [rad/s],ok,status,steady_state,slip [1]"), header  # the swept key's too
     assert report["units"]["testbed.omega"] == "rad/s"
+    # a path value names its point's folder without leading out of the sweep's (it was joined as a path);
+    # a key both fixed by --set and swept is refused (the sweep's values replaced the fixed one)
+    again = tmp_path / "paths"
+    common = ["--set", "run.duration=0.01", "--out", str(again), "--serial"]
+    relative = os.path.relpath(tiny_bed, os.path.dirname(scene))  # ../../<its folder>/bed.h5
+    assert relative.startswith("..")
+    assert main(["sweep", scene, "--param", f'bed.bed_file="{relative}"', *common]) == 0
+    (point,) = [p for p in again.iterdir() if p.name.startswith("000_")]
+    assert (point / "results.h5").is_file() and (point / "run.json").is_file()
+    assert main(["sweep", scene, "--param", "testbed.omega=0.5", "--set", "testbed.omega=0.7", *common]) == 2
+    assert "--set testbed.omega: also swept by --param" in capsys.readouterr().err
 
 
 def test_a_failed_task_is_reported_and_the_others_finish(tmp_path, tiny_bed):

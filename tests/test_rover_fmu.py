@@ -187,6 +187,8 @@ def test_speed_command_drives_the_wheel(fmus):
         "not_a_zip",
         "no_model_description",
         "truncated_model_description",
+        "schema_invalid_model_description",
+        "unknown_fmi_version",
         "no_wheels",
         "broken_binary",
         "no_resources",
@@ -214,6 +216,16 @@ def test_a_file_that_is_not_a_rover_fmu_is_a_clear_error(tmp_path, fmus, case, m
             for item in src.namelist():
                 data = src.read(item)
                 z.writestr(item, data[: len(data) // 2] if item == "modelDescription.xml" else data)
+        words = "modelDescription.xml cannot be read"
+    elif case in ("schema_invalid_model_description", "unknown_fmi_version"):  # fmpy's own errors: were exit 1
+        with zipfile.ZipFile(fmus["fmi2"]) as src, zipfile.ZipFile(path, "w") as z:
+            for item in src.namelist():
+                data = src.read(item)
+                if item == "modelDescription.xml":
+                    old = b'fmiVersion="2.0"'
+                    assert old in data
+                    data = data.replace(old, old + b' bogus="1"' if case.startswith("schema") else b'fmiVersion="9.0"')
+                z.writestr(item, data)
         words = "modelDescription.xml cannot be read"
     elif case == "broken_binary":  # instantiation fails: the unpacked folder must go again
         with zipfile.ZipFile(fmus["fmi2"]) as src, zipfile.ZipFile(path, "w") as z:

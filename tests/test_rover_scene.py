@@ -3,6 +3,7 @@ before anything runs (no bed is settled, no run folder written)."""
 
 import os
 
+import numpy as np
 import pytest
 
 from cosim.cli import main
@@ -201,3 +202,43 @@ def test_a_run_opens_its_rover_model_once(tmp_path, monkeypatch):
     scene = write_rig(tmp_path, duration=0.015, length=0.1, width=0.1, radius=0.005, checkpoints=0.015)
     run_scene(scene, str(tmp_path / "run"), overrides=["landing.enabled=false"])
     assert len(probes) == 1
+
+
+class _TwoWheels:
+    """The least a RoverDriver asks of its rover model: its wheels' names."""
+
+    wheel_names = ("wheel_l", "wheel_r")
+    time = 0.0
+
+
+def _speeds(values):
+    from cosim.controllers import DriveCommand
+
+    return lambda t, states, wrenches: DriveCommand("speed", values)
+
+
+def _raises(t, states, wrenches):
+    raise RuntimeError("boom in controller")
+
+
+@pytest.mark.parametrize(
+    "controller, words",
+    [
+        (_raises, "raised RuntimeError: boom in controller at t = 2.5 s"),
+        (lambda t, states, wrenches: "fast", "returned str, not a cosim.controllers.DriveCommand"),
+        (_speeds([0.1, float("nan")]), "commanded speeds [0.1, nan]: every value must be finite"),
+        (_speeds([0.1, float("inf")]), "every value must be finite"),
+        (_speeds([0.1, 0.1, 0.1]), "commanded 3 wheels, the rover has 2"),
+    ],
+)
+def test_a_controller_that_fails_while_driving_is_named_with_the_time(controller, words):
+    """A user's controller that raises, returns no DriveCommand or commands nan while driving: a
+    ControllerError (bad input, exit 2) naming the drive and the time; it was an unexpected error (exit 1)
+    or, for nan, MuJoCo's warning and a run that went on to an 'airborne' result."""
+    from cosim.rover import ControllerError, RoverDriver
+
+    driver = RoverDriver(_TwoWheels(), controller, landed=True, label="the drive 'gentle' (ctl:make)")
+    with pytest.raises(ControllerError) as refused:
+        driver.command(2.5, [], [])
+    assert str(refused.value).startswith("the drive 'gentle' (ctl:make) ") and words in str(refused.value)
+    np.testing.assert_array_equal(driver.last_command.values, [0.0, 0.0])  # the records keep the last good one

@@ -353,6 +353,15 @@ def test_a_sweep_key_given_twice_and_a_huge_list_are_named_briefly(tmp_path, cap
 
     with pytest.raises(SceneError, match="--param wheel.radius: given twice"):
         parse_params(["wheel.radius=0.03", "wheel.radius=0.04"])
+    with pytest.raises(SceneError, match="--param wheel.radius: the value 0.1 is given twice"):
+        parse_params(["wheel.radius=0.1,0.10"])  # one run twice, counted as two points
+    with pytest.raises(SceneError, match="--param: 1100 points .* more than 1000"):  # each point is planned first
+        parse_params(
+            [
+                "wheel.radius=" + ",".join(str(0.01 + k * 1e-4) for k in range(110)),
+                "testbed.slip=" + ",".join(str(k / 20) for k in range(10)),
+            ]
+        )
     with pytest.raises(SceneError) as info:
         scene_from_text(_merge("[output]\nflush_every = [" + "1," * 100_000 + "1]\n"))
     assert "output.flush_every" in str(info.value) and " ... " in str(info.value) and len(str(info.value)) < 1000
@@ -361,4 +370,11 @@ def test_a_sweep_key_given_twice_and_a_huge_list_are_named_briefly(tmp_path, cap
 def test_cosim_scale_to_a_boolean_gravity_is_refused(tmp_path, capsys):
     assert main(["scale", str(write_tiny(tmp_path)), "--gravity", "true", "--out", str(tmp_path / "t.toml")]) == 2
     assert "--gravity: a preset name or a magnitude [m/s^2], not true" in capsys.readouterr().err
+    assert not (tmp_path / "t.toml").exists()
+    # a gravity whose twin leaves what a scene takes: one line naming --gravity (was numpy's overflow
+    # warnings and 17 lines about the twin's derived keys)
+    for gravity, words in (("1e300", "magnitude <= 1e+30"), ("1e12", "allowed: 1e-08 .. 1e+08 x")):
+        assert main(["scale", str(write_tiny(tmp_path)), "--gravity", gravity, "--out", str(tmp_path / "t.toml")]) == 2
+        err = capsys.readouterr().err
+        assert err.count("\n  - ") == 1 and "--gravity: " in err and words in err, err
     assert not (tmp_path / "t.toml").exists()
