@@ -190,7 +190,8 @@ def resume(out_dir: str, progress: bool = False, hooks: dict | None = None) -> R
                 folder.results, steps, int(checkpoint["loop/snapshots"]), flush_every=plan.output.flush_every
             )
             loop = {k[len("loop/") :]: v for k, v in checkpoint.items() if k.startswith("loop/")}
-            return Runner(system, writer, folder, loop=loop, progress=progress, hooks=hooks).run()
+            run_id = str(checkpoint["run_id"]) if "run_id" in checkpoint else None
+            return Runner(system, writer, folder, loop=loop, progress=progress, hooks=hooks, run_id=run_id).run()
         finally:
             system.close()
 
@@ -226,6 +227,8 @@ def _checked_inputs(folder: RunFolder) -> tuple[dict, dict]:
             "start the run again with `cosim run SCENE --out FOLDER --overwrite`"
         ) from None
     info = read_json(folder.file(RUN_FILE))
+    if not info:  # emptied or garbled: the resumed run writes it again from the checkpoint and the results
+        log.warning("%s cannot be read as a run's record: it is written again as the run goes on", RUN_FILE)
     run_id = str(checkpoint["run_id"]) if "run_id" in checkpoint else None
     expected = info.get("run_id") or attrs.get("run_id")
     if run_id is not None and expected is not None:

@@ -939,7 +939,8 @@ def _rover(
         if slack <= 0:
             least = 2 * (footprint + band + clearance) + 2 * diameter
             problems.append(
-                f"patch.length: the window ({p.length} x {p.width} m) must hold the rover (footprint "
+                f"patch.{'length' if p.length <= p.width else 'width'}: the window ({p.length} x {p.width} m) "
+                "must hold the rover (footprint "
                 f"radius {footprint:.4g} m, any heading), the clearance {clearance:.4g} m and the frozen "
                 f"band {band:.4g} m on every side; allowed: patch.length and patch.width > {least:.4g} m"
             )

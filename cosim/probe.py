@@ -210,6 +210,12 @@ def _inspect_mjcf(
         except KeyError as error:
             problems.append(f"rover.body: {error.args[0]}")
             return None
+    if rover.fixed_to_world:
+        problems.append(
+            f"{field}: no joint lies between the world and the wheels' bodies: the rover is fixed where it stands "
+            "(give its base a <freejoint/>)"
+        )
+        return None
     rover.move_base(np.zeros(3), heading)
     origin = rover.body_kinematics(rover.body_id()).position
     hubs = np.array([k.position for k in rover.wheel_kinematics()]) - origin

@@ -95,6 +95,7 @@ class Runner:
         loop: dict | None = None,
         progress: bool = False,
         hooks: dict | None = None,
+        run_id: str | None = None,
     ):
         self.system = system
         self.plan: RunPlan = system.plan
@@ -127,8 +128,9 @@ class Runner:
         self.wall_before = float(loop.get("wall_time", 0.0))
         self.steps_at_start = system.coupler.step_count
         self.last_checkpoint_time = system.coupler.time
-        self.run_id = str(read_json(folder.file(RUN_FILE)).get("run_id", ""))
-        """Ties every checkpoint to this run (run.json, results.h5 and checkpoint.npz carry it)."""
+        self.run_id = run_id or str(read_json(folder.file(RUN_FILE)).get("run_id", ""))
+        """Ties every checkpoint to this run (run.json, results.h5 and checkpoint.npz carry it); a resumed
+        run's is its checkpoint's (a damaged run.json loses none)."""
 
     # -- the loop ------------------------------------------------------------------------
     @property
@@ -236,6 +238,13 @@ class Runner:
             if status in ("complete", "unsteady"):  # a stopped run: `cosim export vtkhdf` when wanted
                 self._export_vtkhdf()
             info = read_json(self.folder.file(RUN_FILE))
+            # what a garbled run.json lost, written again from the run itself (its findings are in results.h5)
+            for key, value in (
+                ("run_id", self.run_id),
+                ("device", self.plan.device),
+                ("precision", self.plan.precision),
+            ):
+                info.setdefault(key, value)
             info.update(status=status, message=message, summary=summary, wall_time=wall)
             write_json(self.folder.file(RUN_FILE), info)
         return RunResult(self.folder.path, status, summary)

@@ -132,6 +132,8 @@ class MujocoRover:
                 for a in range(self.model.nu)
                 if self.model.actuator_trntype[a] == mujoco.mjtTrn.mjTRN_JOINT
                 and self.model.actuator_trnid[a, 0] in joints
+                # a wheel turns about its hinge: an actuator on a slide joint of the wheel body drives no wheel
+                and self.model.jnt_type[self.model.actuator_trnid[a, 0]] == mujoco.mjtJoint.mjJNT_HINGE
             ]
             out.append(found[0] if found else None)
         return out
@@ -277,6 +279,17 @@ class MujocoRover:
         while self.model.body_parentid[body] != 0:
             body = int(self.model.body_parentid[body])
         return body
+
+    @property
+    def fixed_to_world(self) -> bool:
+        """Whether no joint lies between the world and the first wheel's body (its own excepted): the
+        wheels could only spin in place, the rover never drive."""
+        body = int(self.model.body_parentid[int(self.wheel_body_ids[0])])
+        while body != 0:
+            if self.model.body_jntnum[body] > 0:
+                return False
+            body = int(self.model.body_parentid[body])
+        return True
 
     def body_kinematics(self, body: int) -> WheelKinematics:
         """Pose and velocity of body `body` (an id) at its frame origin, world frame (as wheel_kinematics)."""

@@ -147,6 +147,12 @@ def extrude_profile(profile: np.ndarray, width: float) -> tuple[np.ndarray, np.n
     return vertices.astype(np.float64), faces
 
 
+MESH_OFF_AXLE = 0.25
+"""How far a wheel mesh's bounding-box centre may lie from the axle, in outer radii [-]: a wheel's
+grousers and treads move it a little; a mesh far off its axle (another origin, another unit) would sweep
+a circle its own size away and size every grid and bed check by it."""
+
+
 @dataclass(frozen=True)
 class MeshWheel:
     """A wheel given as a closed triangle mesh in the wheel frame."""
@@ -174,6 +180,16 @@ class MeshWheel:
             raise SoilInputError(
                 f"mesh {self.name!r} is not closed (watertight): {int(np.sum(counts != 2))} edges are not "
                 "shared by exactly two triangles; inside/outside needs a closed surface"
+            )
+        low, high = vertices.min(axis=0), vertices.max(axis=0)
+        centre = 0.5 * (low + high)
+        off_axle = float(np.hypot(centre[0], centre[2]))
+        outer = float(np.hypot(vertices[:, 0], vertices[:, 2]).max())
+        if off_axle > MESH_OFF_AXLE * outer:
+            raise SoilInputError(
+                f"mesh {self.name!r}: its centre lies {off_axle:.4g} m from the axle (the wheel frame's y axis), "
+                f"more than {MESH_OFF_AXLE:g} of its outer radius {outer:.4g} m: a wheel turns about its axle; "
+                "centre the mesh on it (or check its units: the file's coordinates times the mesh scale)"
             )
         object.__setattr__(self, "vertices", vertices)
         object.__setattr__(self, "triangles", triangles.astype(np.int32))

@@ -278,6 +278,23 @@ def test_row07_another_runs_checkpoint_is_refused(interrupted, complete, tmp_pat
     assert main(["resume", str(folder), "--no-progress"]) in (0, 6)
 
 
+def test_row07b_a_garbled_run_json_keeps_the_runs_id_through_resume(interrupted, complete, tmp_path, capsys):
+    """run.json emptied or garbled (an editor, a full disk): resume says so and goes on from the intact
+    checkpoint, whose owner is still checked against results.h5; the run.json it writes carries the run's
+    id again (it was lost, and with it the check of every later checkpoint's owner)."""
+    folder = copy(interrupted, tmp_path)
+    run_id = json.loads((folder / "run.json").read_text())["run_id"]
+    (folder / "run.json").write_text("not json {")
+    shutil.copy(complete / "checkpoint.npz", folder / "checkpoint.npz")  # another run's: still found
+    assert main(["resume", str(folder), "--no-progress"]) == 2
+    shutil.copy(interrupted / "checkpoint.npz", folder / "checkpoint.npz")
+    capsys.readouterr()
+    assert main(["resume", str(folder), "--no-progress"]) in (0, 6)
+    assert "run.json cannot be read as a run's record" in capsys.readouterr().err
+    info = json.loads((folder / "run.json").read_text())
+    assert info["run_id"] == run_id and info["status"] in ("complete", "unsteady")
+
+
 # -- row 8: a cached bed replaced by another scene's ----------------------------------------------
 def test_row08_a_replaced_cached_bed_is_refused(scene, tmp_path, capsys):
     short = ["--set", "run.duration=0.0017", "--set", "landing.enabled=false", "--no-progress"]

@@ -66,6 +66,7 @@ BAD = [
         "patch.length",
         "must hold the rover",
     ),
+    ("a patch too narrow for the rover", ["patch.length=1.0", "patch.width=0.04"], "patch.width", "must hold"),
     ("a rover wider than its bed", ["bed.width=0.02", "bed.radius_mean=0.002"], "bed.width", "rover"),
     ("gravity pointing up", ["scene.gravity=[0.0, 0.0, 1.6]"], "scene.gravity", "down"),
     (
@@ -88,6 +89,29 @@ def test_bad_rover_input_is_rejected_with_exit_code_2(tmp_path, capsys, what, ch
     message = capsys.readouterr().err
     assert field in message and words in message, message
     assert not out.exists() or not os.listdir(out), "nothing may be written before the scene is valid"
+
+
+@pytest.mark.parametrize(
+    "change, words",
+    [
+        # the carriage and ballast joints gone: the wheel can only spin in place (it ran to "never touched")
+        ((r'<joint name="(carriage_x|ballast_z)" type="slide" axis="[0-9 ]+"/>', ""), "no joint lies between"),
+        # the wheel on a slide joint: its velocity motor pushes it sideways, it never turns
+        (('type="hinge"', 'type="slide"'), "rover.drive"),
+    ],
+    ids=["fixed to the world", "a wheel on a slide joint"],
+)
+def test_an_mjcf_rover_that_cannot_drive_is_refused(tmp_path, capsys, change, words):
+    import re
+
+    scene = _rig(tmp_path)
+    xml = tmp_path / "rig.xml"
+    xml.write_text(re.sub(change[0], change[1], xml.read_text()))
+    out = tmp_path / "out"
+    assert main(["run", scene, "--out", str(out), "--no-progress"]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("cosim: error:") and words in err, err
+    assert not out.exists() or not os.listdir(out)
 
 
 def test_a_controller_factory_that_fails_is_named(tmp_path, capsys):

@@ -462,6 +462,14 @@ def test_export_fmu_command_from_a_run_folder(tmp_path):
     assert float(description.defaultExperiment.stepSize) == pytest.approx(macro_step, rel=1e-12)
 
 
+def test_export_fmu_warns_of_a_server_python_that_is_no_executable_here(tiny, frontends, tmp_path, caplog):
+    """--python may name a Python of the machine that will run the FMU, so it is not refused; one that is
+    no executable file here (/etc/passwd, a typo) is said at export, not found at the FMU's first start."""
+    with caplog.at_level("WARNING", logger="cosim.soil_fmu"):
+        export_soil_fmu(tiny["config"], tmp_path / "a.fmu", python="/etc/passwd", library=frontends[2])
+    assert any("'/etc/passwd' is no executable file on this machine" in r.getMessage() for r in caplog.records)
+
+
 def assert_every_number_has_a_unit(data: dict, units: dict, where: str = "soil.json") -> None:
     """Every number (or list of numbers) of `data` has a unit in the same place of `units`: a string, or
     for a nested object an object of the same keys."""

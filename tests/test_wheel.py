@@ -89,6 +89,9 @@ def test_mesh_file_round_trip_and_bad_meshes(tmp_path):
         assert loaded.outer_radius == pytest.approx(WHEEL.outer_radius, rel=1e-6)
     with pytest.raises(ValueError, match="not closed"):
         MeshWheel(vertices, triangles[:-1])
+    # a mesh 5 m off its axle (another origin or unit) swept a 10 m circle: every grid and bed sized by it
+    with pytest.raises(ValueError, match=r"its centre lies 5 m from the axle .* centre the mesh on it"):
+        MeshWheel(vertices + [5.0, 0.0, 0.0], triangles)
     with pytest.raises(FileNotFoundError, match="not found"):
         MeshWheel.load(tmp_path / "missing.obj")
     with pytest.raises(ValueError, match=".obj or .stl"):

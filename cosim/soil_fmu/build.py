@@ -14,6 +14,8 @@ Nothing is downloaded. The FMU holds:
 
 from __future__ import annotations
 
+import logging
+import os
 import shutil
 import subprocess
 import sys
@@ -27,6 +29,8 @@ from xml.sax.saxutils import quoteattr
 import numpy as np
 
 from soil.errors import ArgumentError, SetupError
+
+log = logging.getLogger("cosim.soil_fmu")
 
 HERE = Path(__file__).resolve().parent
 MODEL_IDENTIFIER = "RegolithSoil"
@@ -500,6 +504,12 @@ def export_soil_fmu(
     if not (isinstance(wheel_count, (int, np.integer)) and 1 <= wheel_count <= 10000):
         raise ArgumentError(f"wheel_count must be an integer in [1, 10000], got {wheel_count!r}")
     python = python or config.python or sys.executable
+    if not (os.path.isfile(python) and os.access(python, os.X_OK)):  # it may be one of the machine that runs the FMU
+        log.warning(
+            "the soil server's Python %r is no executable file on this machine: the FMU starts it where it runs "
+            "(its `python` parameter or REGOLITH_SOIL_PYTHON overrides it there)",
+            python,
+        )
     data = config_to_json(config, wheel_count)
     starts = np.zeros((wheel_count, 13))
     starts[:, 0:3] = wheel_start_positions(config, wheel_count)
