@@ -14,11 +14,12 @@ the controller's (a controller without state_dict is taken to be stateless).
 from __future__ import annotations
 
 import math
+import os
 from collections.abc import Sequence
 
 import numpy as np
 
-from soil.errors import InputError, RegolithError
+from soil.errors import InputError
 
 from .contract import WheelKinematics, WheelWrench
 from .controllers import ConstantSpeed, ConstantTorque, DriveCommand, SlipController
@@ -53,6 +54,16 @@ def open_rover(plan: RunPlan, start_z: float | None = None):
 class ControllerError(InputError, ValueError):
     """The drive's controller failed while driving, or commanded what no wheel takes (not a DriveCommand,
     another wheel count, a value that is not finite): the message names it and the time."""
+
+
+def drive_label(plan: RunPlan) -> str:
+    """How an error names the plan's drive: its scene key and what it runs (a function, an FMU, a kind)."""
+    assert plan.rover is not None and plan.scene.rover is not None
+    drive = plan.rover.drive
+    key = f"rover.controllers.{drive.name}" if isinstance(plan.scene.rover.drive, str) else "rover.drive"
+    if drive.kind == "python":
+        return f"{key} ({drive.section.function})"
+    return f"{key} ({drive.kind} {os.path.basename(drive.file)})" if drive.file else f"{key} ({drive.kind})"
 
 
 def make_controller(plan: RunPlan):
@@ -131,11 +142,14 @@ class RoverDriver:
         body: int | None = None,
         landed: bool = False,
         label: str = "the drive's controller",
+        user_code: bool = False,
     ):
         self.rover = rover
         self.controller = controller
         self.label = label
         """What names the controller in an error (its scene key and name)."""
+        self.user_code = user_code
+        """Whether the controller is a user's Python (a python drive): any error of it is named as its own."""
         self.wheel_names = list(rover.wheel_names)
         self.brake = "speed" if takes_speed else "torque"
         self._body = body
@@ -178,9 +192,10 @@ class RoverDriver:
         else:
             try:
                 command = self.controller(t, wheel_states, wrenches)
-            except RegolithError:  # the project's own (an FMU controller's step refused, a stop): as they are
-                raise
-            except Exception as error:  # a user's controller: its failure named, not taken for a bug of ours
+            except Exception as error:
+                if not self.user_code:  # the project's own controllers and FMU sessions: their errors as they are
+                    raise
+                # a user's controller: its failure (a DriveCommand it built wrongly too) named, not a bug of ours
                 raise ControllerError(
                     f"{self.label} raised {type(error).__name__}: {error} at t = {t:.6g} s"
                 ) from error

@@ -1017,7 +1017,7 @@ def parse_params(params: list[str]) -> dict[str, list]:
         if key.strip() in grid:  # the later one would replace the first without a word
             raise SceneError([f"--param {key.strip()}: given twice; give its values once, comma-separated"])
         entries = parse_list(values, f"--param {key.strip()}")
-        twice = [v for i, v in enumerate(entries) if v in entries[:i]]
+        twice = [v for i, v in enumerate(entries) if any(type(v) is type(w) and v == w for w in entries[:i])]
         if twice:  # the same run twice, counted as two points
             raise SceneError([f"--param {key.strip()}: the value {twice[0]!r} is given twice"])
         grid[key.strip()] = entries
@@ -1079,7 +1079,9 @@ def sweep(
             overrides = dict(point)
             if not p.bed.bed_file and needs_bed(p):
                 overrides["bed.bed_file"] = bed_paths[p.bed.key]
-            name = f"{i:03d}_" + "_".join(f"{k.split('.')[-1]}={_folder_label(v)}" for k, v in point.items())
+            name = f"{i:03d}_" + "_".join(
+                f"{_folder_label(k.split('.')[-1])}={_folder_label(v)}" for k, v in point.items()
+            )
             tasks.append(
                 {
                     "scene_toml": text,

@@ -35,7 +35,7 @@ from .coupler import Coupler
 from .dem_soil import DemSoil
 from .metrics import WheelGeometry
 from .plan import RunPlan, SceneError, enable_step_control
-from .rover import RoverDriver, make_controller, open_rover
+from .rover import RoverDriver, drive_label, make_controller, open_rover
 from .scm_calibration import warn_gravity
 from .scm_soil import CompositeSoil, ScmSoil, scm_settings
 from .single_wheel import SingleWheelRig
@@ -126,7 +126,8 @@ class CoupledSystem:
             takes_speed=r.takes_speed,
             body=body,
             landed=not plan.landing.enabled,
-            label=f"the drive {drive.name!r} ({drive.section.function or drive.kind})",
+            label=drive_label(plan),
+            user_code=drive.kind == "python",
         )
         soil.place_wheels(driver.wheel_kinematics())
         coupler = Coupler(

@@ -282,14 +282,22 @@ class MujocoRover:
 
     @property
     def fixed_to_world(self) -> bool:
-        """Whether no joint lies between the world and the first wheel's body (its own excepted): the
-        wheels could only spin in place, the rover never drive."""
-        body = int(self.model.body_parentid[int(self.wheel_body_ids[0])])
-        while body != 0:
-            if self.model.body_jntnum[body] > 0:
-                return False
-            body = int(self.model.body_parentid[body])
-        return True
+        """Whether some wheel hangs from the world with no joint to move it but its spin: none on the bodies
+        between it and the world, and none on its own body besides hinges. Such a wheel could only spin in
+        place, and the rover never drive."""
+
+        def moves(wheel: int) -> bool:
+            own = range(self.model.body_jntadr[wheel], self.model.body_jntadr[wheel] + self.model.body_jntnum[wheel])
+            if any(self.model.jnt_type[j] != mujoco.mjtJoint.mjJNT_HINGE for j in own):
+                return True  # a slide or free joint of the wheel body itself (a compact rig)
+            body = int(self.model.body_parentid[wheel])
+            while body != 0:
+                if self.model.body_jntnum[body] > 0:
+                    return True
+                body = int(self.model.body_parentid[body])
+            return False
+
+        return not all(moves(int(wheel)) for wheel in self.wheel_body_ids)
 
     def body_kinematics(self, body: int) -> WheelKinematics:
         """Pose and velocity of body `body` (an id) at its frame origin, world frame (as wheel_kinematics)."""

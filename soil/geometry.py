@@ -149,8 +149,8 @@ def extrude_profile(profile: np.ndarray, width: float) -> tuple[np.ndarray, np.n
 
 MESH_OFF_AXLE = 0.25
 """How far a wheel mesh's bounding-box centre may lie from the axle, in outer radii [-]: a wheel's
-grousers and treads move it a little; a mesh far off its axle (another origin, another unit) would sweep
-a circle its own size away and size every grid and bed check by it."""
+grousers and treads move it a little; a mesh far off its axle (exported about another origin) would
+sweep a circle its own size away and size every grid and bed check by it."""
 
 
 @dataclass(frozen=True)
@@ -189,7 +189,7 @@ class MeshWheel:
             raise SoilInputError(
                 f"mesh {self.name!r}: its centre lies {off_axle:.4g} m from the axle (the wheel frame's y axis), "
                 f"more than {MESH_OFF_AXLE:g} of its outer radius {outer:.4g} m: a wheel turns about its axle; "
-                "centre the mesh on it (or check its units: the file's coordinates times the mesh scale)"
+                "centre the mesh on it (its file's origin must be the hub)"
             )
         object.__setattr__(self, "vertices", vertices)
         object.__setattr__(self, "triangles", triangles.astype(np.int32))

@@ -114,6 +114,20 @@ def test_an_mjcf_rover_that_cannot_drive_is_refused(tmp_path, capsys, change, wo
     assert not out.exists() or not os.listdir(out)
 
 
+def test_a_compact_rig_whose_wheel_body_carries_its_own_slides_is_a_rover_that_drives(tmp_path, capsys):
+    """The rule above counts the wheel body's own joints besides its spin hinge: a rig whose wheel hangs
+    from the world on its own slide joints moves (the review found it refused)."""
+    import re
+
+    scene = _rig(tmp_path)
+    xml = tmp_path / "rig.xml"
+    text = re.sub(r'<joint name="(carriage_x|ballast_z)" type="slide" axis="[0-9 ]+"/>', "", xml.read_text())
+    hinge = '<joint name="wheel_hinge" type="hinge" axis="0 1 0"/>'
+    own = '<joint name="x" type="slide" axis="1 0 0"/><joint name="z" type="slide" axis="0 0 1"/>'
+    xml.write_text(text.replace(hinge, own + hinge))
+    assert main(["advise", scene]) == 0, capsys.readouterr().err
+
+
 def test_a_controller_factory_that_fails_is_named(tmp_path, capsys):
     """A python drive whose factory refuses its arguments (or fails otherwise): exit code 2 naming the
     function, its args and the error (it was an 'unexpected error'), and no run files written."""
@@ -241,6 +255,12 @@ def _speeds(values):
     return lambda t, states, wrenches: DriveCommand("speed", values)
 
 
+def _speeds_of_mode(mode):
+    from cosim.controllers import DriveCommand
+
+    return DriveCommand(mode, [0.1, 0.1])
+
+
 def _raises(t, states, wrenches):
     raise RuntimeError("boom in controller")
 
@@ -249,6 +269,7 @@ def _raises(t, states, wrenches):
     "controller, words",
     [
         (_raises, "raised RuntimeError: boom in controller at t = 2.5 s"),
+        (lambda t, states, wrenches: _speeds_of_mode("velocity"), "raised ArgumentError: DriveCommand mode must be"),
         (lambda t, states, wrenches: "fast", "returned str, not a cosim.controllers.DriveCommand"),
         (_speeds([0.1, float("nan")]), "commanded speeds [0.1, nan]: every value must be finite"),
         (_speeds([0.1, float("inf")]), "every value must be finite"),
@@ -261,8 +282,9 @@ def test_a_controller_that_fails_while_driving_is_named_with_the_time(controller
     or, for nan, MuJoCo's warning and a run that went on to an 'airborne' result."""
     from cosim.rover import ControllerError, RoverDriver
 
-    driver = RoverDriver(_TwoWheels(), controller, landed=True, label="the drive 'gentle' (ctl:make)")
+    label = "rover.controllers.gentle (ctl:make)"
+    driver = RoverDriver(_TwoWheels(), controller, landed=True, label=label, user_code=True)
     with pytest.raises(ControllerError) as refused:
         driver.command(2.5, [], [])
-    assert str(refused.value).startswith("the drive 'gentle' (ctl:make) ") and words in str(refused.value)
+    assert str(refused.value).startswith(f"{label} ") and words in str(refused.value)
     np.testing.assert_array_equal(driver.last_command.values, [0.0, 0.0])  # the records keep the last good one

@@ -467,7 +467,7 @@ def test_export_fmu_warns_of_a_server_python_that_is_no_executable_here(tiny, fr
     no executable file here (/etc/passwd, a typo) is said at export, not found at the FMU's first start."""
     with caplog.at_level("WARNING", logger="cosim.soil_fmu"):
         export_soil_fmu(tiny["config"], tmp_path / "a.fmu", python="/etc/passwd", library=frontends[2])
-    assert any("'/etc/passwd' is no executable file on this machine" in r.getMessage() for r in caplog.records)
+    assert any("'/etc/passwd' is no executable on this machine" in r.getMessage() for r in caplog.records)
 
 
 def assert_every_number_has_a_unit(data: dict, units: dict, where: str = "soil.json") -> None:

@@ -15,7 +15,6 @@ Nothing is downloaded. The FMU holds:
 from __future__ import annotations
 
 import logging
-import os
 import shutil
 import subprocess
 import sys
@@ -504,9 +503,9 @@ def export_soil_fmu(
     if not (isinstance(wheel_count, (int, np.integer)) and 1 <= wheel_count <= 10000):
         raise ArgumentError(f"wheel_count must be an integer in [1, 10000], got {wheel_count!r}")
     python = python or config.python or sys.executable
-    if not (os.path.isfile(python) and os.access(python, os.X_OK)):  # it may be one of the machine that runs the FMU
+    if shutil.which(python) is None:  # a path or a name on PATH (the front end spawns it so); maybe another machine's
         log.warning(
-            "the soil server's Python %r is no executable file on this machine: the FMU starts it where it runs "
+            "the soil server's Python %r is no executable on this machine: the FMU starts it where it runs "
             "(its `python` parameter or REGOLITH_SOIL_PYTHON overrides it there)",
             python,
         )
