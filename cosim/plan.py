@@ -894,6 +894,27 @@ def _check_drive(
     return DrivePlan(name, section, file)
 
 
+def _overlapping_wheels(hubs: np.ndarray, wheels, names: list[str], heading: float) -> list[str]:
+    """Wheels whose cylinders (outer radius, width, axle along the rover's y at its start heading) overlap:
+    they would press on the same soil from inside each other (a track or wheelbase smaller than the
+    wheels). hubs: [m], shape (W, 3), world frame at the start heading."""
+    turn = np.array([[math.cos(heading), math.sin(heading)], [-math.sin(heading), math.cos(heading)]])
+    problems = []
+    for i in range(len(wheels)):
+        for j in range(i + 1, len(wheels)):
+            dx, dy = turn @ (hubs[j, :2] - hubs[i, :2])
+            apart = math.hypot(dx, hubs[j, 2] - hubs[i, 2])
+            side = abs(dy) < 0.5 * (wheels[i].width + wheels[j].width)
+            if side and apart < wheels[i].outer_radius + wheels[j].outer_radius:
+                problems.append(
+                    f"rover: wheels {names[i]!r} and {names[j]!r} overlap (hubs {dy:.4g} m apart along the axle, "
+                    f"{apart:.4g} m across it; outer radii {wheels[i].outer_radius:.4g}, {wheels[j].outer_radius:.4g} "
+                    f"m, widths {wheels[i].width:.4g}, {wheels[j].width:.4g} m): set the rover's track or wheelbase "
+                    "(rover.mmx.track, wheelbase) or its wheels apart"
+                )
+    return problems
+
+
 def _rover(
     scene: Scene,
     names: list[str],
@@ -913,6 +934,9 @@ def _rover(
     else:
         source = scene.resolve(rover.file)
         assert source is not None  # the validator requires an MJCF's or an FMU's file
+        if rover.model == "mjcf" and os.path.isdir(source):
+            problems.append(f"rover.file: {source!r} is a folder; give the MJCF file")
+            return None, None
         if rover.model == "mjcf" and not os.path.isfile(source):
             problems.append(f"rover.file: MJCF file not found: {source!r} (paths are relative to the scene file)")
             return None, None
@@ -921,6 +945,7 @@ def _rover(
     if layout is None:
         return None, None
     hubs = layout.hub_offsets
+    problems += _overlapping_wheels(hubs, wheels, names, heading)
     outer = np.array([w.outer_radius for w in wheels])
     centre = hubs[:, :2].mean(axis=0)
     footprint = float(

@@ -114,6 +114,29 @@ def test_an_mjcf_rover_that_cannot_drive_is_refused(tmp_path, capsys, change, wo
     assert not out.exists() or not os.listdir(out)
 
 
+@pytest.mark.parametrize(
+    "change, pair", [("track", "'wheel_fl' and 'wheel_fr'"), ("wheelbase", "'wheel_fl' and 'wheel_rl'")]
+)
+def test_wheels_that_overlap_are_refused_naming_them(tmp_path, capsys, change, pair):
+    """A track narrower than the wheels' width, a wheelbase shorter than their diameter: the wheels would
+    sit inside each other (advise passed, the run ended unsteady)."""
+    from rover_helpers import write_small_rover
+
+    pytest.importorskip("mujoco")
+    scene = write_small_rover(tmp_path)
+    assert main(["advise", scene, "--set", f"rover.mmx.{change}=0.01"]) == 2
+    err = capsys.readouterr().err
+    assert f"rover: wheels {pair} overlap" in err, err
+    assert main(["advise", scene]) == 0  # the rover as built: its wheels apart
+
+
+def test_a_folder_named_as_the_mjcf_file_is_named_a_folder(tmp_path, capsys):
+    scene = _rig(tmp_path)
+    (tmp_path / "models.xml").mkdir()
+    assert main(["advise", scene, "--set", 'rover.file="models.xml"']) == 2
+    assert "rover.file: " in (err := capsys.readouterr().err) and "models.xml' is a folder; give the MJCF file" in err
+
+
 def test_a_compact_rig_whose_wheel_body_carries_its_own_slides_is_a_rover_that_drives(tmp_path, capsys):
     """The rule above counts the wheel body's own joints besides its spin hinge: a rig whose wheel hangs
     from the world on its own slide joints moves (the review found it refused)."""
