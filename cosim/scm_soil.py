@@ -211,7 +211,7 @@ def _check_window_holds_wheels(plan, indices: list[int], settings: ScmSettings) 
     (to a node), cannot hold their footprints as ScmTerrain checks them at each step: a rover's at any
     heading (its hubs' span plus each footprint's largest reach, soil.scm.terrain.cylinder_of), the
     testbed's wheel with its axle along y (its outer radius along x, its half width along y)."""
-    from soil.scm.terrain import cylinder_of, grid_shape
+    from soil.scm.terrain import cylinder_of, grid_shape, window_reach
 
     from .scene import SceneError
 
@@ -225,9 +225,7 @@ def _check_window_holds_wheels(plan, indices: list[int], settings: ScmSettings) 
     problems = []
     shape = grid_shape(settings.window, spacing)
     for key, size, nodes, reach in zip(("window_length", "window_width"), settings.window, shape, reaches):
-        # from the centre's node to the nearer edge, wherever in its node the centre falls (ScmTerrain)
-        held = min(nodes // 2, nodes - 2 - nodes // 2) * spacing
-        if held < 0.5 * span + reach:
+        if window_reach(nodes, spacing) < 0.5 * span + reach:
             least = (2 * math.ceil((0.5 * span + reach) / spacing) + 4) * spacing  # an even count holds it
             problems.append(
                 f"terrain.{key}: the SCM window ({size:.4g} m, {nodes} nodes of {spacing:.3g} m) must hold the "

@@ -15,7 +15,6 @@ draws with matplotlib's Agg backend: no display and no GPU needed.
 
 from __future__ import annotations
 
-import contextlib
 import os
 import re
 import shutil
@@ -23,6 +22,7 @@ import shutil
 import numpy as np
 
 from soil.errors import ArgumentError, DamagedFileError, InputError
+from soil.files import atomic_path
 
 from .folders import PLOTS_DIR, RESULTS_FILE
 from .output import open_results
@@ -248,8 +248,8 @@ FPS_RANGE = (1, 120)
 """Movie frames per second a view takes [1/s]: players handle these."""
 DPI_RANGE = (10, 600)
 """Pixels per inch of a 10 inch wide frame [-]: up to 6000 pixels wide (a frame of about 0.3 GB in memory)."""
-FRAME_NAME = re.compile(r"frame_\d{4,}(\.partial-\d+)?\.png")
-"""The name of one PNG of a folder of frames."""
+FRAME_NAME = re.compile(r"frame_\d{4,}\.png|tmp\w+\.png")
+"""The name of one PNG of a folder of frames (or of one a killed view left half-written: soil.files.atomic_path)."""
 
 
 def render(
@@ -302,17 +302,17 @@ def render(
                     s = read_snapshot(f, k)
                     values = scene.values(s, displacements)
                 view.draw(s, values)
-                with _written_whole(out) as partial:
+                with atomic_path(out, suffix=os.path.splitext(out)[1]) as partial:
                     fig.savefig(partial, dpi=dpi)
             elif kind == "frames":
                 for k in range(count):
                     s = read_snapshot(f, k)
                     view.draw(s, scene.values(s, displacements))
-                    with _written_whole(os.path.join(out, f"frame_{k:04d}.png")) as partial:
+                    with atomic_path(os.path.join(out, f"frame_{k:04d}.png"), suffix=".png") as partial:
                         fig.savefig(partial, dpi=dpi)
             else:
                 assert writer is not None  # a movie's kind
-                with _written_whole(out) as partial, writer.saving(fig, partial, dpi):
+                with atomic_path(out, suffix=kind) as partial, writer.saving(fig, partial, dpi):
                     for k in range(count):
                         s = read_snapshot(f, k)
                         view.draw(s, scene.values(s, displacements))
@@ -348,20 +348,6 @@ def _free_output(out: str, kind: str, replace: bool) -> list[str]:
     if names and not replace:
         raise OutputExistsError(f"--out {out!r} holds {len(names)} frames; pass --overwrite to replace them")
     return names
-
-
-@contextlib.contextmanager
-def _written_whole(path: str):
-    """A temporary name beside `path` (same suffix: the writers choose the format by it), renamed to
-    `path` when the block ends without an error, removed when it raises."""
-    stem, suffix = os.path.splitext(path)
-    partial = f"{stem}.partial-{os.getpid()}{suffix}"
-    try:
-        yield partial
-        os.replace(partial, path)
-    finally:
-        if os.path.exists(partial):
-            os.remove(partial)
 
 
 def _movie_writer(kind: str, out: str, fps: int):

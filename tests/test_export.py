@@ -278,7 +278,7 @@ def test_view_writes_a_movie_and_frames_of_a_moving_patch(tmp_path, capsys):
     assert sorted(os.listdir(frames)) == ["frame_0000.png", "frame_0001.png"]
     assert main(["view", str(shorter), "--out", str(movie), "--dpi", "30", "--overwrite"]) == 0
     assert movie.read_bytes() != before[movie.name]
-    assert not [p for p in tmp_path.iterdir() if ".partial" in p.name]
+    assert not [p for p in [*tmp_path.iterdir(), *frames.iterdir()] if p.name.startswith("tmp")]  # no temporaries
 
 
 def test_view_without_ffmpeg_writes_a_gif_and_says_what_an_mp4_needs(tmp_path, monkeypatch, capsys):

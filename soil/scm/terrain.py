@@ -150,6 +150,13 @@ def grid_shape(window: Sequence[float], node_spacing: float) -> tuple[int, int]:
     return max(2, int(round(window[0] / node_spacing))), max(2, int(round(window[1] / node_spacing)))
 
 
+def window_reach(nodes: int, node_spacing: float) -> float:
+    """The least distance [m] from a following window's centre to its edge along an axis of `nodes` nodes,
+    wherever in its node the centre falls (the window starts nodes // 2 nodes below the centre's node and
+    spans nodes - 1 spacings, as ScmTerrain places it): a footprint reaching no further stays inside."""
+    return min(nodes // 2, nodes - 2 - nodes // 2) * node_spacing
+
+
 def grid_memory(node_count: int, precision: str, device: str) -> tuple[int, int]:
     """(device, host) bytes an ScmTerrain of `node_count` nodes needs for what grows with its grid [B]:
     on the device the Nodes arrays and the next step's reference heights; on the host the copy of the
