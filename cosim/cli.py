@@ -957,7 +957,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(func=cmd_advise)
 
     p = sub.add_parser("plot", help="PNGs of a run or a study folder")
-    p.add_argument("out", help="a run folder or a study folder")
+    p.add_argument("out", help="a run folder or a study folder (runs up to 4 folders below it are plotted)")
     p.add_argument("--plot-dir", help="where to write the PNGs (default OUT/plots)")
     p.set_defaults(func=cmd_plot)
 
@@ -1023,7 +1023,13 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("sweep", help="runs over a grid of scene values")
     scene_options(p)
     cluster_options(p)
-    p.add_argument("--param", action="append", required=True, metavar="KEY=V1,V2,...")
+    p.add_argument(
+        "--param",
+        action="append",
+        required=True,
+        metavar="KEY=V1,V2,...",
+        help="a key and its values; list values as one TOML array of them: KEY=[[1.0, 2.0], [1.5, 2.5]]",
+    )
     p.set_defaults(func=cmd_sweep)
 
     p = sub.add_parser("scale", help="write the DEM-similar scene at another gravity (the gravity twin)")

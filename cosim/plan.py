@@ -894,25 +894,55 @@ def _check_drive(
     return DrivePlan(name, section, file)
 
 
-def _overlapping_wheels(hubs: np.ndarray, wheels, names: list[str], heading: float) -> list[str]:
-    """Wheels whose cylinders (outer radius, width, axle along the rover's y at its start heading) overlap:
-    they would press on the same soil from inside each other (a track or wheelbase smaller than the
-    wheels). hubs: [m], shape (W, 3), world frame at the start heading."""
-    turn = np.array([[math.cos(heading), math.sin(heading)], [-math.sin(heading), math.cos(heading)]])
+def _overlapping_wheels(hubs: np.ndarray, axles: np.ndarray, wheels, names: list[str]) -> list[str]:
+    """Wheels whose cylinders (outer radius, width, about each wheel's own axle) overlap: they would press
+    on the same soil from inside each other (a track or wheelbase smaller than the wheels, wheels steered
+    into each other). hubs: [m], shape (W, 3); axles: unit [-], shape (W, 3); world frame at the start."""
     problems = []
     for i in range(len(wheels)):
         for j in range(i + 1, len(wheels)):
-            dx, dy = turn @ (hubs[j, :2] - hubs[i, :2])
-            apart = math.hypot(dx, hubs[j, 2] - hubs[i, 2])
-            side = abs(dy) < 0.5 * (wheels[i].width + wheels[j].width)
-            if side and apart < wheels[i].outer_radius + wheels[j].outer_radius:
+            a, b = wheels[i], wheels[j]
+            offset = hubs[j] - hubs[i]
+            if abs(float(axles[i] @ axles[j])) > 1.0 - 1e-9:  # axles parallel: side by side or in line
+                along = float(offset @ axles[i])
+                across = float(np.linalg.norm(offset - along * axles[i]))
+                meet = abs(along) < 0.5 * (a.width + b.width) and across < a.outer_radius + b.outer_radius
+                where, verb = f"hubs {abs(along):.4g} m apart along the axle, {across:.4g} m across it", "move"
+            else:
+                meet = _cylinder_points_inside(hubs[j], axles[j], b, hubs[i], axles[i], a) or _cylinder_points_inside(
+                    hubs[i], axles[i], a, hubs[j], axles[j], b
+                )
+                angle = math.degrees(math.acos(min(1.0, abs(float(axles[i] @ axles[j])))))
+                where, verb = f"steered: axles {angle:.3g} deg apart", "steer"
+            if meet:
                 problems.append(
-                    f"rover: wheels {names[i]!r} and {names[j]!r} overlap (hubs {dy:.4g} m apart along the axle, "
-                    f"{apart:.4g} m across it; outer radii {wheels[i].outer_radius:.4g}, {wheels[j].outer_radius:.4g} "
-                    f"m, widths {wheels[i].width:.4g}, {wheels[j].width:.4g} m): set the rover's track or wheelbase "
-                    "(rover.mmx.track, wheelbase) or its wheels apart"
+                    f"rover: wheels {names[i]!r} and {names[j]!r} overlap ({where}; outer radii "
+                    f"{a.outer_radius:.4g}, {b.outer_radius:.4g} m, widths {a.width:.4g}, {b.width:.4g} m): set the "
+                    f"rover's track or wheelbase (rover.mmx.track, wheelbase) or {verb} its wheels apart"
                 )
     return problems
+
+
+def _cylinder_points_inside(hub, axle, wheel, other_hub, other_axle, other) -> bool:
+    """Whether points spread through one wheel's cylinder (rings, spokes and slices) lie inside another's:
+    two cylinders at an angle have no short closed-form test, and an overlap that no such point sees is a
+    sliver under a tenth of the radius deep. hub [m], axle unit [-]: shape (3,) each."""
+    spoke = np.cross(axle, [0.0, 0.0, 1.0] if abs(axle[2]) < 0.9 else [1.0, 0.0, 0.0])
+    spoke /= np.linalg.norm(spoke)
+    normal = np.cross(axle, spoke)
+    angle, radius, offset = (
+        g.ravel()[:, None]
+        for g in np.meshgrid(
+            np.linspace(0.0, 2.0 * math.pi, 48, endpoint=False),
+            np.linspace(0.0, wheel.outer_radius, 6),
+            np.linspace(-0.5 * wheel.width, 0.5 * wheel.width, 7),
+            indexing="ij",
+        )
+    )
+    points = hub + radius * np.cos(angle) * spoke + radius * np.sin(angle) * normal + offset * axle - other_hub
+    along = points @ other_axle
+    across = np.linalg.norm(points - along[:, None] * other_axle, axis=1)
+    return bool(np.any((np.abs(along) < 0.5 * other.width) & (across < other.outer_radius)))
 
 
 def _rover(
@@ -945,7 +975,7 @@ def _rover(
     if layout is None:
         return None, None
     hubs = layout.hub_offsets
-    problems += _overlapping_wheels(hubs, wheels, names, heading)
+    problems += _overlapping_wheels(hubs, layout.axles, wheels, names)
     outer = np.array([w.outer_radius for w in wheels])
     centre = hubs[:, :2].mean(axis=0)
     footprint = float(

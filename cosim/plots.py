@@ -27,11 +27,20 @@ from .single_wheel import PHASE_DRIVING
 log = logging.getLogger(__name__)
 
 
+SEARCH_DEPTH = 4
+"""How many folders below OUT `cosim plot` looks for runs [count]: the deepest the project writes is a
+study's FOLDER/slip_x/replica_k (2), kept in a folder of studies (3) and one more level; a folder
+such as / or /tmp is not walked to its bottom."""
+
+
 def find_results(out_dir: str) -> list[str]:
-    """All results.h5 files under out_dir (itself included), sorted."""
+    """The results.h5 files in out_dir and up to SEARCH_DEPTH folders below it, sorted; hidden folders
+    and plots/ folders are not entered."""
     found = []
+    top = os.path.normpath(out_dir).count(os.sep)
     for root, dirs, files in os.walk(out_dir):
-        dirs.sort()
+        depth = os.path.normpath(root).count(os.sep) - top
+        dirs[:] = [] if depth >= SEARCH_DEPTH else sorted(d for d in dirs if not d.startswith(".") and d != PLOTS_DIR)
         if RESULTS_FILE in files:
             found.append(os.path.join(root, RESULTS_FILE))
     return sorted(found)
@@ -59,7 +68,10 @@ def plot_output(out_dir: str, plot_dir: str | None = None, dpi: int = 120) -> li
     plt = _pyplot()
     paths = find_results(out_dir)
     if not paths:
-        raise ArgumentError(f"no {RESULTS_FILE} under {out_dir!r}: run `cosim run SCENE --out {out_dir}` first")
+        raise ArgumentError(
+            f"no {RESULTS_FILE} under {out_dir!r} (looked {SEARCH_DEPTH} folders deep): run `cosim run SCENE "
+            f"--out {out_dir}` first, or name the run's or study's folder"
+        )
     plot_dir = plot_dir or os.path.join(out_dir, PLOTS_DIR)
     runs = []
     damaged = []

@@ -128,6 +128,8 @@ class RoverLayout:
 
     hub_offsets: np.ndarray
     """Hub positions relative to the base's frame origin at the start pose [m], shape (W, 3)."""
+    axles: np.ndarray
+    """Each wheel's axle (its body's local y) in the world frame at the start pose, unit [-], shape (W, 3)."""
     mass: float
     """Total mass [kg] (nan when an FMU does not say)."""
     takes_speed: bool
@@ -218,9 +220,17 @@ def _inspect_mjcf(
         return None
     rover.move_base(np.zeros(3), heading)
     origin = rover.body_kinematics(rover.body_id()).position
-    hubs = np.array([k.position for k in rover.wheel_kinematics()]) - origin
+    wheels = rover.wheel_kinematics()
+    hubs = np.array([k.position for k in wheels]) - origin
     drives = rover.drives
-    return RoverLayout(hubs, rover.total_mass, bool(drives["speed"]), bool(drives["torque"]), True)
+    return RoverLayout(hubs, _axles(wheels), rover.total_mass, bool(drives["speed"]), bool(drives["torque"]), True)
+
+
+def _axles(wheels) -> np.ndarray:
+    """Each wheel's axle (its body's local y, soil.geometry's wheel frame) in the world frame [-], shape (W, 3)."""
+    from soil.control import quaternion_to_matrix
+
+    return np.array([quaternion_to_matrix(k.orientation)[:, 1] for k in wheels])
 
 
 def _inspect_fmu(scene: Scene, path: str, count: int, gravity, problems: list[str]) -> RoverLayout | None:
@@ -250,10 +260,16 @@ def _inspect_fmu(scene: Scene, path: str, count: int, gravity, problems: list[st
         return None
     try:
         body = fmu.body_kinematics()
-        hubs = np.array([k.position for k in fmu.wheel_kinematics()]) - (body.position if found["start"] else 0.0)
+        wheels = fmu.wheel_kinematics()
+        hubs = np.array([k.position for k in wheels]) - (body.position if found["start"] else 0.0)
         mass = fmu.total_mass
     finally:
         fmu.close()
     return RoverLayout(
-        hubs, math.nan if mass is None else mass, bool(found["speed"]), bool(found["torque"]), bool(found["start"])
+        hubs,
+        _axles(wheels),
+        math.nan if mass is None else mass,
+        bool(found["speed"]),
+        bool(found["torque"]),
+        bool(found["start"]),
     )

@@ -28,7 +28,10 @@ from __future__ import annotations
 
 import collections
 import contextlib
+import csv
+import io
 import itertools
+import json
 import logging
 import math
 import os
@@ -47,6 +50,7 @@ except ImportError:  # Python 3.10
 
 from soil import quiet_warp
 from soil.errors import ArgumentError, InternalError, RegolithError
+from soil.files import atomic_write_text
 
 from . import metrics
 from .beds import BED_FILE, BED_INFO_FILE, settled_bed, write_json
@@ -558,10 +562,14 @@ def _write_csv(path: str, rows: list[dict], keys: list[str], units: dict[str, st
     def header(key):
         return f"{key} [{known[key]}]" if key in known else key
 
-    with open(path, "w") as f:
-        f.write(",".join(header(k) for k in keys) + "\n")
-        for r in rows:
-            f.write(",".join("" if r.get(k) is None else str(r.get(k)) for k in keys) + "\n")
+    def cell(value):  # a list value (a swept body size) as JSON in one quoted cell
+        return "" if value is None else json.dumps(value) if isinstance(value, (list, dict)) else value
+
+    text = io.StringIO()
+    writer = csv.writer(text, lineterminator="\n")  # quotes a value holding a comma (a list, a path)
+    writer.writerow([header(k) for k in keys])
+    writer.writerows([cell(r.get(k)) for k in keys] for r in rows)
+    atomic_write_text(path, text.getvalue())
 
 
 def _flat(stats: dict) -> dict:
@@ -1006,8 +1014,10 @@ def _slip_report(
 
 
 def parse_params(params: list[str]) -> dict[str, list]:
-    """['wheel.radius=0.03,0.04', ...] -> {'wheel.radius': [0.03, 0.04], ...} (values read as TOML)."""
-    from .scene import parse_list
+    """['wheel.radius=0.03,0.04', ...] -> {'wheel.radius': [0.03, 0.04], ...} (values read as TOML). Values
+    that are lists themselves are given as one TOML array of them: 'rover.mmx.body_size=[[0.1, 0.08, 0.04],
+    [0.2, 0.1, 0.05]]' (a text that starts with '[' is that array, so '[0.03, 0.04]' is two values too)."""
+    from .scene import parse_list, parse_value
 
     grid = {}
     for text in params:
@@ -1016,7 +1026,17 @@ def parse_params(params: list[str]) -> dict[str, list]:
         key, values = text.split("=", 1)
         if key.strip() in grid:  # the later one would replace the first without a word
             raise SceneError([f"--param {key.strip()}: given twice; give its values once, comma-separated"])
-        entries = parse_list(values, f"--param {key.strip()}")
+        if values.strip().startswith("["):  # one TOML array of the values: the way to sweep list values
+            entries = parse_value(values)
+            if not isinstance(entries, list) or not entries:
+                raise SceneError(
+                    [
+                        f"--param {key.strip()}: {values.strip()!r} is no TOML array of values, "
+                        "e.g. [[0.1, 0.2], [0.3, 0.4]]"
+                    ]
+                )
+        else:
+            entries = parse_list(values, f"--param {key.strip()}")
         twice = [v for i, v in enumerate(entries) if any(type(v) is type(w) and v == w for w in entries[:i])]
         if twice:  # the same run twice, counted as two points
             raise SceneError([f"--param {key.strip()}: the value {twice[0]!r} is given twice"])

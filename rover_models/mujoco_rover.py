@@ -40,11 +40,16 @@ def load_model(model: str | os.PathLike | mujoco.MjModel) -> mujoco.MjModel:
     if isinstance(model, mujoco.MjModel):
         return model
     text = os.fspath(model)
-    if text.lstrip().startswith("<"):
-        return mujoco.MjModel.from_xml_string(text)
-    if not os.path.exists(text):
+    inline = text.lstrip().startswith("<")
+    if not inline and not os.path.exists(text):
         raise FileNotFoundError(f"MJCF file not found: {text}")
-    return mujoco.MjModel.from_xml_path(text)
+    try:
+        return mujoco.MjModel.from_xml_string(text) if inline else mujoco.MjModel.from_xml_path(text)
+    except ValueError as error:  # MuJoCo's message spans lines (error, element, line): one line, the file named
+        where = "the MJCF text" if inline else text
+        raise ArgumentError(
+            f"{where}: {'; '.join(filter(None, (line.strip() for line in str(error).splitlines())))}"
+        ) from error
 
 
 class MujocoRover:

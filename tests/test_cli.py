@@ -88,6 +88,29 @@ def test_plot_writes_pngs(cli_run):
         assert data[:8] == b"\x89PNG\r\n\x1a\n" and len(data) > 5000
 
 
+def test_plot_looks_for_runs_a_few_folders_deep_only(cli_run, tmp_path, capsys):
+    """`cosim plot /` must not walk the whole disk: runs up to SEARCH_DEPTH folders below the folder named
+    are found (a folder of studies' replicas), deeper ones and those in hidden folders are not."""
+    import shutil
+
+    from cosim.plots import SEARCH_DEPTH
+
+    _, out, _ = cli_run
+    levels = [f"level_{k}" for k in range(SEARCH_DEPTH)]
+    shutil.copytree(
+        out, tmp_path / "shallow" / os.path.join(*levels[:-1]) / "run", ignore=shutil.ignore_patterns("plots")
+    )
+    shutil.copytree(out, tmp_path / "deep" / os.path.join(*levels) / "run", ignore=shutil.ignore_patterns("plots"))
+    shutil.copytree(out, tmp_path / "hidden" / ".cache" / "run", ignore=shutil.ignore_patterns("plots"))
+    assert main(["plot", str(tmp_path / "shallow")]) == 0
+    assert (tmp_path / "shallow" / "plots" / "travel_sinkage.png").is_file()
+    capsys.readouterr()
+    for name in ("deep", "hidden"):
+        assert main(["plot", str(tmp_path / name)]) == 2
+        assert f"(looked {SEARCH_DEPTH} folders deep)" in capsys.readouterr().err
+        assert not (tmp_path / name / "plots").exists()
+
+
 def test_advise_prints_the_bounds_and_the_validity_checks(cli_run, capsys):
     scene, _, _ = cli_run
     assert main(["advise", scene]) == 0

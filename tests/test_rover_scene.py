@@ -130,11 +130,69 @@ def test_wheels_that_overlap_are_refused_naming_them(tmp_path, capsys, change, p
     assert main(["advise", scene]) == 0  # the rover as built: its wheels apart
 
 
+def _steered_rover(tmp_path, turns: dict[str, float], **mmx) -> str:
+    """The small rover as an MJCF file whose wheel bodies are turned about +z by `turns` [rad] (steered at
+    the start); returns the scene's path."""
+    from rover_helpers import SMALL_MMX, write_small_rover
+    from rover_models.mjcf import mmx_rover_xml
+
+    params = {**SMALL_MMX, "body_size": tuple(SMALL_MMX["body_size"]), **mmx}
+    xml = mmx_rover_xml(wheel_radius=0.025, wheel_width=0.02, **params)
+    for wheel, turn in turns.items():
+        xml = xml.replace(f'<body name="{wheel}" ', f'<body name="{wheel}" euler="0 0 {turn}" ')
+    (tmp_path / "steered.xml").write_text(xml)
+    scene = write_small_rover(tmp_path)
+    text = open(scene).read().split("[rover.mmx]")[0].replace('model = "mmx"', 'model = "mjcf"\nfile = "steered.xml"')
+    wheels = 'wheels = ["wheel_fl", "wheel_fr", "wheel_rl", "wheel_rr"]'
+    tail = open(scene).read().split("[rover.controllers.cruise]")[1]
+    (tmp_path / "steered.toml").write_text(f"{text}{wheels}\n[rover.controllers.cruise]{tail}")
+    return str(tmp_path / "steered.toml")
+
+
+@pytest.mark.parametrize(
+    "turns, mmx, refused",
+    [
+        ({}, {"track": 0.025}, None),  # side by side, 5 mm apart
+        ({"wheel_fl": -0.7854, "wheel_fr": 0.7854}, {"track": 0.025}, "'wheel_fl' and 'wheel_fr' overlap (steered"),
+        ({"wheel_fl": 0.7854, "wheel_fr": 0.7854}, {"track": 0.025}, "'wheel_fl' and 'wheel_fr' overlap (hubs"),
+        ({"wheel_fl": -0.035, "wheel_fr": 0.035}, {"track": 0.025}, None),  # 2 deg of toe-in: 1 mm still apart
+        ({w: 1.5708 for w in ("wheel_fl", "wheel_fr", "wheel_rl", "wheel_rr")}, {"wheelbase": 0.03}, None),
+        ({}, {"wheelbase": 0.03}, "'wheel_fl' and 'wheel_rl' overlap"),
+    ],
+    ids=["apart", "toe-in 45 deg", "both turned 45 deg", "toe-in 2 deg", "crab 90 deg", "wheelbase under 2R"],
+)
+def test_wheels_steered_at_the_start_are_checked_about_their_own_axles(tmp_path, capsys, turns, mmx, refused):
+    """Each wheel's cylinder about its own axle (its body's y): wheels turned into each other overlap though
+    their hubs are apart, and a short wheelbase is no overlap when the wheels are turned 90 deg (crab):
+    their axles then run along the wheelbase, 30 mm apart against 20 mm wide wheels."""
+    pytest.importorskip("mujoco")
+    scene = _steered_rover(tmp_path, turns, **mmx)
+    code = main(["advise", scene])
+    err = capsys.readouterr().err
+    if refused is None:
+        assert "overlap" not in err and code == 0, err
+    else:
+        assert code == 2 and f"rover: wheels {refused}" in err, err
+
+
 def test_a_folder_named_as_the_mjcf_file_is_named_a_folder(tmp_path, capsys):
     scene = _rig(tmp_path)
     (tmp_path / "models.xml").mkdir()
     assert main(["advise", scene, "--set", 'rover.file="models.xml"']) == 2
     assert "rover.file: " in (err := capsys.readouterr().err) and "models.xml' is a folder; give the MJCF file" in err
+
+
+def test_a_badly_formed_mjcf_is_named_in_one_line(tmp_path, capsys):
+    """MuJoCo's parse error spans lines (the error, the element, its line): the scene's error gives it on
+    one line after the file's name, so the message reads as one problem of rover.file."""
+    scene = _rig(tmp_path)
+    xml = tmp_path / "rig.xml"
+    xml.write_text(xml.read_text().replace('size="', 'size="x', 1))
+    assert main(["advise", scene]) == 2
+    err = capsys.readouterr().err
+    problem = next(line for line in err.splitlines() if "rover.file:" in line)
+    assert "rig.xml: XML Error: bad format in attribute 'size'; Element " in problem, err
+    assert err.count("Element ") == 1 and not any(line.startswith("Element") for line in err.splitlines()), err
 
 
 def test_a_compact_rig_whose_wheel_body_carries_its_own_slides_is_a_rover_that_drives(tmp_path, capsys):

@@ -367,6 +367,32 @@ def test_a_sweep_key_given_twice_and_a_huge_list_are_named_briefly(tmp_path, cap
     assert "output.flush_every" in str(info.value) and " ... " in str(info.value) and len(str(info.value)) < 1000
 
 
+def test_list_values_are_swept_as_one_toml_array_and_tabulated_in_one_cell(tmp_path, capsys):
+    """A list value (a per-wheel speed, a body size) was split at its commas; it is given as one TOML array
+    of the values, reaches each point's scene as a list, and study.csv quotes it in one cell (the CSV was
+    joined by hand: a value holding a comma shifted every column after it)."""
+    import csv
+
+    from cosim.study import _write_csv, parse_params
+
+    grid = parse_params(["rover.mmx.body_size=[[0.1, 0.08, 0.04], [0.2, 0.1, 0.05]]", "wheel.radius=[0.03, 0.04]"])
+    assert grid == {"rover.mmx.body_size": [[0.1, 0.08, 0.04], [0.2, 0.1, 0.05]], "wheel.radius": [0.03, 0.04]}
+    with pytest.raises(SceneError, match=r"--param x: '\[1, 2' is no TOML array of values"):
+        parse_params(["x=[1, 2"])
+    rows = [{"rover.mmx.body_size": [0.1, 0.08, 0.04], "rover.file": "a,b.xml", "sinkage": 0.01, "slip": None}]
+    keys = ["rover.mmx.body_size", "rover.file", "sinkage", "slip"]
+    _write_csv(str(tmp_path / "study.csv"), rows, keys, {"sinkage": "m", "rover.mmx.body_size": "m"})
+    header, row = list(csv.reader(open(tmp_path / "study.csv", newline="")))
+    assert header == ["rover.mmx.body_size [m]", "rover.file", "sinkage [m]", "slip"]
+    assert row == ["[0.1, 0.08, 0.04]", "a,b.xml", "0.01", ""]
+    # a sweep's points take the lists whole: a gravity vector of two components is refused as that
+    # point's scene (before any run), its list named as one value
+    scene = write_tiny(tmp_path)
+    out = tmp_path / "sweep"
+    assert main(["sweep", scene, "--param", "scene.gravity=[[0.0, 0.0, -1.62], [0.0, -1.62]]", "--out", str(out)]) == 2
+    assert "point {'scene.gravity': [0.0, -1.62]}" in capsys.readouterr().err and not out.exists()
+
+
 def test_cosim_scale_to_a_boolean_gravity_is_refused(tmp_path, capsys):
     assert main(["scale", str(write_tiny(tmp_path)), "--gravity", "true", "--out", str(tmp_path / "t.toml")]) == 2
     assert "--gravity: a preset name or a magnitude [m/s^2], not true" in capsys.readouterr().err
