@@ -220,10 +220,10 @@ def _inspect_mjcf(
         return None
     rover.move_base(np.zeros(3), heading)
     origin = rover.body_kinematics(rover.body_id()).position
-    wheels = rover.wheel_kinematics()
-    hubs = np.array([k.position for k in wheels]) - origin
+    kinematics = rover.wheel_kinematics()
+    hubs = np.array([k.position for k in kinematics]) - origin
     drives = rover.drives
-    return RoverLayout(hubs, _axles(wheels), rover.total_mass, bool(drives["speed"]), bool(drives["torque"]), True)
+    return RoverLayout(hubs, _axles(kinematics), rover.total_mass, bool(drives["speed"]), bool(drives["torque"]), True)
 
 
 def _axles(wheels) -> np.ndarray:
