@@ -173,6 +173,19 @@ def test_a_scene_saved_with_a_byte_order_mark_reads_as_without_and_a_folder_is_n
         load_scene(tmp_path)
 
 
+@pytest.mark.parametrize("text", ["", "\n  \n", "# the rover's scene\n"], ids=["empty", "blank", "comments only"])
+def test_a_scene_file_without_keys_is_refused_not_run_as_the_defaults(tmp_path, capsys, text):
+    """A scene file cut to nothing was a valid scene of every default (a Phobos testbed named 'scene'):
+    the run, lab, scale and export-fmu commands that read it refuse it by name."""
+    path = tmp_path / "cut.toml"
+    path.write_text(text)
+    with pytest.raises(SceneError, match="the file holds no keys"):
+        load_scene(path)
+    out = tmp_path / "out"
+    assert main(["run", str(path), "--out", str(out)]) == 2
+    assert f"invalid scene in {path}" in capsys.readouterr().err and not out.exists()
+
+
 def test_time_steps_make_whole_macro_steps(tmp_path):
     from soil.advisor import rayleigh_time_step
 
