@@ -242,6 +242,13 @@ def _checked_inputs(folder: RunFolder) -> tuple[dict, dict]:
             f"this folder's run is {expected}){unchanged}. Put back this run's checkpoint, or start it again "
             "with `cosim run SCENE --out FOLDER --overwrite`"
         )
+    owner = attrs.get("run_id")
+    if run_id is not None and owner is not None and str(owner) != run_id:  # another run's results copied in
+        raise DamagedFileError(
+            f"{folder.results}: the results file belongs to another run (run id {owner}; the checkpoint's and this "
+            f"folder's run is {run_id}){unchanged}. Put back this run's results.h5, or start it again with "
+            "`cosim run SCENE --out FOLDER --overwrite`"
+        )
     return checkpoint, info
 
 

@@ -278,6 +278,18 @@ def test_row07_another_runs_checkpoint_is_refused(interrupted, complete, tmp_pat
     assert main(["resume", str(folder), "--no-progress"]) in (0, 6)
 
 
+def test_row07c_another_runs_results_file_is_refused(interrupted, complete, tmp_path, capsys):
+    """Another run's results.h5 copied into the folder was cut to the checkpoint's rows and continued:
+    a finished file of two runs' rows under the other's run id, exit 0 and a mixed summary."""
+    folder = copy(interrupted, tmp_path)
+    shutil.copy(complete / "results.h5", folder / "results.h5")
+    before = digests(folder)
+    assert main(["resume", str(folder), "--no-progress"]) == 2
+    line = first_error_line(capsys)
+    assert "results.h5: the results file belongs to another run" in line, line
+    assert digests(folder) == before
+
+
 def test_row07b_a_garbled_run_json_keeps_the_runs_id_through_resume(interrupted, complete, tmp_path, capsys):
     """run.json emptied or garbled (an editor, a full disk): resume says so and goes on from the intact
     checkpoint, whose owner is still checked against results.h5; the run.json it writes carries the run's
