@@ -69,7 +69,10 @@ class DemSoil:
         law: soil.ContactLaw switches; None: rolling and cohesion on when a material uses them.
         """
         from soil.bed import SavedBed, open_bed, read_bed
+        from soil.geometry import GrouserWheel, MeshWheel
 
+        if isinstance(wheels, (GrouserWheel, MeshWheel)):  # one shape given where a list of them goes
+            raise ArgumentError(f"wheels must be a list of wheel shapes, one per wheel: [{type(wheels).__name__}(...)]")
         saved = bed if isinstance(bed, SavedBed) else read_bed(bed)
         if surface_height is None:
             if "height" not in saved.metrics:
@@ -93,8 +96,8 @@ class DemSoil:
         asked = np.asarray(gravity, dtype=np.float64).reshape(3)
         if not np.allclose(asked, self.sim.gravity, rtol=1e-12, atol=0):
             raise ArgumentError(
-                f"the soil was settled under gravity {self.sim.gravity} m/s^2, the scene asks "
-                f"for {asked}: settle the bed under the scene's gravity"
+                f"the soil was settled under gravity {np.asarray(self.sim.gravity).tolist()} m/s^2, the scene asks "
+                f"for {asked.tolist()}: settle the bed under the scene's gravity"
             )
 
     def highest_grain_under(self, wheel: int, hub: ArrayLike, axle: ArrayLike = (0.0, 1.0, 0.0)) -> float:

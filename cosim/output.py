@@ -694,8 +694,8 @@ def check_results(path) -> dict:
                     f"{path}: not a regolith-cosim results file (format {attrs.get('format')!r}, "
                     f"expected {RESULTS_FORMAT!r})"
                 )
-            for dataset in _datasets(f):
-                dataset[()]  # every byte read once: a damaged chunk fails here, not in the middle of a resume
+            for dataset in _datasets(f):  # every byte read once: a damaged chunk fails here, not midway
+                _read_through(dataset)
             problem = _structure_problem(f)
             if problem:
                 raise DamagedFileError(f"{path}: the results file is damaged ({problem})")
@@ -734,6 +734,21 @@ def _structure_problem(f) -> str:
         if uneven:
             return f"{uneven[0]} has {f[uneven[0]].shape[0]} rows where {length} has {rows}"
     return ""
+
+
+READ_BLOCK_BYTES = 64 * 2**20
+"""Most bytes check_results holds of one dataset at a time [B]: a run's snapshots can outgrow memory."""
+
+
+def _read_through(dataset) -> None:
+    """Read every row of `dataset` once, in blocks of at most READ_BLOCK_BYTES."""
+    if dataset.ndim == 0 or dataset.shape[0] == 0:
+        dataset[()]
+        return
+    row = max(1, dataset.dtype.itemsize * int(np.prod(dataset.shape[1:])))
+    rows = max(1, READ_BLOCK_BYTES // row)
+    for start in range(0, dataset.shape[0], rows):
+        dataset[start : start + rows]
 
 
 def _datasets(f) -> list:

@@ -26,14 +26,16 @@ def resolve_device(name: str) -> str:
     """A Warp device name for a scene's device ('default' -> the first GPU, else 'cpu'); SceneError if absent."""
     import warp as wp  # Warp starts itself on the first device query
 
+    from soil.devices import device_names
+
     if name == "default":
         return str(wp.get_device())
     if name == "cpu":
         return "cpu"
-    count = wp.get_cuda_device_count() if wp.is_cuda_available() else 0
+    names = device_names()
     index = 0 if name == "cuda" else int(name[5:])
-    if index >= count:
-        have = ", ".join(["cpu"] + [f"cuda:{i}" for i in range(count)])
+    if index >= len(names) - 1:
+        have = ", ".join(names)
         raise SceneError(
             [
                 f"scene.device: {name!r} asked for, but this machine has no such CUDA device "

@@ -25,7 +25,7 @@ from soil.errors import ArgumentError, DamagedFileError, InputError
 from soil.files import atomic_path
 
 from .folders import PLOTS_DIR, RESULTS_FILE
-from .output import open_results
+from .output import check_results, open_results
 from .single_wheel import PHASE_DRIVING
 from .snapshots import Displacements, Snapshot, read_snapshot, snapshot_count
 
@@ -270,6 +270,7 @@ def render(
         if isinstance(value, bool) or not low <= value <= high:
             raise ViewError(f"{option} {value}: allowed {low} to {high}")
     path = _results(run_dir)
+    check_results(path)  # damaged bytes named (DamagedFileError) before an old picture or frame is touched
     own = default_output(os.path.dirname(os.path.abspath(path)))
     out = out or own
     kind = _output_kind(out)

@@ -28,7 +28,7 @@ from soil.errors import ArgumentError
 from soil.files import atomic_path
 
 from .folders import RESULTS_FILE, VTKHDF_FILE
-from .output import open_results
+from .output import check_results, open_results
 from .snapshots import ARRAY_NAMES, Displacements, read_snapshot, snapshot_count
 
 VTKHDF_VERSION = (2, 2)
@@ -213,6 +213,7 @@ def write_vtkhdf(results_path, vtkhdf_path=None) -> str:
     if os.path.isdir(results_path):
         results_path = os.path.join(results_path, RESULTS_FILE)
     target = os.fspath(vtkhdf_path) if vtkhdf_path else os.path.join(os.path.dirname(results_path), VTKHDF_FILE)
+    check_results(results_path)  # damaged bytes named (DamagedFileError), not h5py's KeyError halfway
     with open_results(results_path) as f, atomic_path(target, ".vtkhdf.tmp") as temporary:
         count = snapshot_count(f)
         if count == 0:

@@ -37,6 +37,11 @@ def rayleigh_time_step(youngs_modulus: float, poisson_ratio: float, density: flo
     """Rayleigh time step dt_R = pi R sqrt(rho / G) / (0.1631 nu + 0.8766) [s], G = E / (2 (1 + nu)).
 
     E [Pa], nu [-], rho [kg/m^3], R [m] (use the smallest grain)."""
+    if not (youngs_modulus > 0 and density > 0 and radius > 0 and -1.0 < poisson_ratio < 0.5):
+        raise SoilInputError(
+            f"rayleigh_time_step needs E > 0, rho > 0, R > 0 and -1 < nu < 0.5, got E = {youngs_modulus!r} Pa, "
+            f"nu = {poisson_ratio!r}, rho = {density!r} kg/m^3, R = {radius!r} m"
+        )
     shear = youngs_modulus / (2.0 * (1.0 + poisson_ratio))
     return math.pi * radius * math.sqrt(density / shear) / (0.1631 * poisson_ratio + 0.8766)
 

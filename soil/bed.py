@@ -482,6 +482,10 @@ def _open_bed(path):
     from .files import check_hdf5
 
     path = os.fspath(path)
+    if os.path.isdir(path):  # a run's or a bed's folder: its bed.h5 is meant
+        inside = os.path.join(path, "bed.h5")
+        hint = f"; its bed is {inside!r}" if os.path.isfile(inside) else ""
+        raise IsADirectoryError(f"{path!r} is a folder, not a bed file{hint}")
     if not os.path.isfile(path):
         raise FileNotFoundError(f"bed file not found: {path!r}")
     check_hdf5(path, "bed file")
@@ -514,7 +518,7 @@ def _reading(path, read):
         with _open_bed(path) as f:
             return read(f)
     except (KeyError, TypeError, ValueError, OSError) as error:
-        if isinstance(error, (FileNotFoundError, DamagedFileError)):
+        if isinstance(error, (FileNotFoundError, IsADirectoryError, DamagedFileError)):
             raise
         raise DamagedFileError(f"{os.fspath(path)!r}: the bed file is damaged ({error})") from None
 

@@ -11,6 +11,7 @@ import warp as wp
 
 from .contact import ContactLaw
 from .control import SoilControl
+from .devices import warp_device
 from .errors import OverlapWarning, SoilInputError
 from .geometry import GrouserWheel, MeshWheel
 from .grains import rows_in_partner_order
@@ -188,8 +189,9 @@ class SoilBuilder:
 
         Returns its boundary index; report as in add_plane. Its torque is reported about its centre.
         """
-        lower = np.asarray(lower, dtype=np.float64).reshape(3)
-        upper = np.asarray(upper, dtype=np.float64).reshape(3)
+        lower, upper = (np.asarray(corner, dtype=np.float64) for corner in (lower, upper))
+        if lower.shape != (3,) or upper.shape != (3,):
+            raise SoilInputError(f"container corners must be 3-vectors (x, y, z) [m], got {lower} .. {upper}")
         if not np.all(upper > lower):
             raise SoilInputError(f"box upper corner must exceed lower corner on every axis, got {lower} .. {upper}")
         return self._add_boundary(BOUNDARY_BOX, [*lower, *upper], self._material_index(material), report)
@@ -226,8 +228,9 @@ class SoilBuilder:
     def add_container(self, lower, upper, material=0, open_top=True, report: bool = True) -> list[int]:
         """Walls of a box-shaped container from `lower` to `upper` [m] (Z up): planes in the order
         floor, -x, +x, -y, +y (, lid); returns their boundary indices. report as in add_plane."""
-        lower = np.asarray(lower, dtype=np.float64).reshape(3)
-        upper = np.asarray(upper, dtype=np.float64).reshape(3)
+        lower, upper = (np.asarray(corner, dtype=np.float64) for corner in (lower, upper))
+        if lower.shape != (3,) or upper.shape != (3,):
+            raise SoilInputError(f"container corners must be 3-vectors (x, y, z) [m], got {lower} .. {upper}")
         if not np.all(upper > lower):
             raise SoilInputError(
                 f"container upper corner must exceed lower corner on every axis, got {lower} .. {upper}"
@@ -294,7 +297,11 @@ class SoilBuilder:
         if storage not in STORAGE_ORDERS:
             raise SoilInputError(f"storage must be one of {', '.join(STORAGE_ORDERS)}, got {storage!r}")
         prec = get_precision(precision)
-        device = str(wp.get_device(device))
+        device = warp_device(device)
+        if order_seed is not None and (
+            isinstance(order_seed, bool) or not isinstance(order_seed, (int, np.integer)) or order_seed < 0
+        ):
+            raise SoilInputError(f"order_seed must be None or an integer >= 0, got {order_seed!r}")
         if self.particle_count == 0:
             raise SoilInputError("the scene has no particles")
         if not self.materials.materials:

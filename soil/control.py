@@ -54,6 +54,19 @@ def quaternion_slerp(q0, q1, a: float) -> np.ndarray:
     return (np.sin((1 - a) * theta) * q0 + np.sin(a * theta) * q1) / np.sin(theta)
 
 
+def _finite(value, shape: tuple[int, ...], what: str) -> np.ndarray:
+    """`value` as a float64 array of `shape`; SoilInputError naming `what` when it has another shape or a
+    value that is not a finite real number."""
+    try:
+        raw = np.asarray(value)
+    except ValueError:  # ragged
+        raw = np.asarray(None)
+    array = raw.astype(np.float64) if raw.dtype.kind in "iuf" else None  # no complex, boolean or text
+    if array is None or array.shape != shape or not np.all(np.isfinite(array)):
+        raise SoilInputError(f"{what} must be finite real numbers of shape {shape}, got {value!r}")
+    return array
+
+
 def quaternion_to_matrix(q) -> np.ndarray:
     """Rotation matrix (body -> world), shape (3, 3), of a unit quaternion (w, x, y, z)."""
     w, x, y, z = np.asarray(q, dtype=np.float64) / np.linalg.norm(q)
@@ -373,11 +386,33 @@ class SoilControl:
         next force evaluation: call Simulation.refresh_forces() after placing a body by hand."""
         if not 0 <= body < self.body_count:
             raise IndexError(f"body index must be in [0, {self.body_count}), got {body}")
+        # every argument checked before any is kept: a NaN pose or a zero quaternion left the body out of
+        # reach of every grain (no force, no error) and its rotation NaN
+        position, velocity, angular_velocity = (
+            None if value is None else _finite(value, (3,), f"body {body}'s {name}")
+            for value, name in (
+                (position, "position [m]"),
+                (velocity, "velocity [m/s]"),
+                (angular_velocity, "angular velocity [rad/s]"),
+            )
+        )
+        if orientation is not None:
+            quaternion = _finite(orientation, (4,), f"body {body}'s orientation quaternion (w, x, y, z)")
+            if not 0.5 < np.linalg.norm(quaternion) < 2.0:
+                raise SoilInputError(
+                    f"body {body}'s orientation must be a unit quaternion (w, x, y, z), got {orientation!r}"
+                )
+            rotation = quaternion_to_matrix(quaternion)
+        elif rotation is not None:
+            rotation = _finite(rotation, (3, 3), f"body {body}'s rotation matrix")
+            if np.abs(rotation.T @ rotation - np.eye(3)).max() > 1e-5 or np.linalg.det(rotation) < 0:
+                raise SoilInputError(
+                    f"body {body}'s rotation must be a proper rotation matrix (orthonormal, det +1), "
+                    f"got {rotation.tolist()}"
+                )
         if position is not None:
             self.body_position_host[body] = position
             self.body_posed_host[body] = 1
-        if orientation is not None:
-            self.body_rotation_host[body] = quaternion_to_matrix(orientation)
         if rotation is not None:
             self.body_rotation_host[body] = rotation
         if velocity is not None:

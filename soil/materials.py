@@ -23,7 +23,9 @@ def restitution_of_damping_ratio(damping_ratio: float) -> float:
     """
     from scipy.integrate import solve_ivp
 
-    if damping_ratio <= 0.0:
+    if not damping_ratio >= 0.0:  # negative (or nan): a contact that adds energy has no restitution below 1
+        raise SoilInputError(f"damping_ratio must be >= 0, got {damping_ratio!r}")
+    if damping_ratio == 0.0:
         return 1.0
     beta = 2.0 * math.sqrt(1.5) * damping_ratio
 

@@ -26,7 +26,7 @@ from . import status as status_columns
 from .boundaries import boundary_kernels
 from .control import SoilControl, path_kernels
 from .errors import SoilInputError
-from .integrator import JoltBeeman, StepController, VelocityVerlet, integrator_kernels
+from .integrator import JoltBeeman, StepController, VelocityVerlet, integrator_kernels, make_integrator
 from .macro import (  # noqa: F401 (CaptureWarning and the report's columns re-exported)
     BODY_COLUMNS,
     REPORT_BODIES,
@@ -103,7 +103,8 @@ class Simulation:
         self.forced_steps = 0
         """Steps accepted at dt_min although their error exceeded the tolerance."""
         self.control = control or SoilControl.for_model(model)
-        self.integrator = integrator or VelocityVerlet()
+        # a scene's name ('jolt-beeman') is taken as the integrator it names
+        self.integrator = make_integrator(integrator) if isinstance(integrator, str) else integrator or VelocityVerlet()
         self.graphs = StepGraphs(model.device, capture)
         """The captured steps (soil.macro.StepGraphs)."""
         if state.layout is None:

@@ -14,6 +14,10 @@ Job (JSON):
                 "save_state": true takes an FMU state before the step (fmi2GetFMUstate / fmi3GetFMUState);
                 "restore_state": true restores it before the step (after a Discard: a master's retry).
                 "t_offset": a step from t + t_offset instead of t (a master that goes on after a Discard).
+    go_on_after_error   (optional) true: the steps go on after a step's Error (the master corrects its
+                inputs and tries again); the default stops at the first Error
+                An input the FMU refuses (setReal / setFloat64 Error) is listed in result["set_errors"]
+                as [step index, variable] and the step is still taken.
     master "simulate": fmpy.simulate_fmu on the first instance's FMU with its start values until
                 stop_time (output_interval h of the first step); the result holds its last time, or what
                 it raised.
@@ -93,7 +97,7 @@ class FmpySoil:
             self.fmu = FMU3Slave(**kwargs)
             self.fmu.instantiate(loggingOn=spec.get("logging", False), logMessage=self._log3)
             self.fmu.enterInitializationMode(startTime=0.0)
-        self.set(spec.get("start", {}))
+        self.start_status = self.set(spec.get("start", {}))
 
     def _log2(self, env, name, status, category, message):
         messages.append([STATUS[status], category.decode(), message.decode()])
@@ -104,14 +108,17 @@ class FmpySoil:
         print(f"[{STATUS[status]}] {message.decode()}")
 
     def set(self, values):
+        """Set the values; 'ok', or the status of the first call the FMU refused."""
         for name, value in values.items():
             v = self.variables[name]
             if v.type == "String":
-                self.fmu.setString([v.valueReference], [value])
-            elif self.version == 2:
-                self.fmu.setReal([v.valueReference], [value])
+                setter = self.fmu.setString
             else:
-                self.fmu.setFloat64([v.valueReference], [value])
+                setter = self.fmu.setReal if self.version == 2 else self.fmu.setFloat64
+            status = self._call(lambda setter=setter, v=v, value=value: setter([v.valueReference], [value]))
+            if status != "ok":
+                return status
+        return "ok"
 
     def outputs(self):
         out = {}
@@ -268,7 +275,8 @@ def run():
             json.dump(result["server_pids"], f)
         time.sleep(job.get("linger", 0))
     t = 0.0
-    for step in job["steps"]:
+    result["set_errors"] = [[-1, "start values"] for soil in soils if soil.start_status != "ok"]
+    for index, step in enumerate(job["steps"]):
         if step.get("before") in ("kill", "stop"):
             os.kill(result["server_pids"][0], signal.SIGKILL if step["before"] == "kill" else signal.SIGSTOP)
         for soil, values in zip(soils, step["inputs"]):
@@ -276,7 +284,9 @@ def run():
                 soil.restore_state()
             if step.get("save_state"):
                 soil.save_state()
-            soil.set(values)
+            for name, value in values.items():
+                if soil.set({name: value}) != "ok":
+                    result["set_errors"].append([index, name])
         started = time.perf_counter()
         statuses = [soil.step(t + step.get("t_offset", 0.0), step["h"]) for soil in soils]
         result["elapsed"].append(time.perf_counter() - started)
@@ -284,7 +294,7 @@ def run():
         result["outputs"].append([soil.outputs() for soil in soils])
         if all(s == "ok" for s in statuses):
             t += step["h"]
-        if "error" in statuses:
+        if "error" in statuses and not job.get("go_on_after_error"):
             break
     for soil in soils:
         soil.close()

@@ -235,6 +235,30 @@ def test_row05_plot_of_a_complete_run_cut_to_30_percent_fails_at_once(complete, 
     assert digests(folder) == before
 
 
+def test_row05b_view_and_export_of_a_results_file_with_a_damaged_header_say_so(complete, tmp_path, capsys):
+    """Flipped bits in an HDF5 object header (its checksum fails): `cosim view` and `cosim export` were an
+    unexpected error (exit 1, h5py's KeyError); they are exit 2 naming the file, the earlier picture kept."""
+    folder = copy(complete, tmp_path)
+    picture = tmp_path / "frame.png"
+    assert main(["view", str(folder), "--out", str(picture), "--dpi", "40"]) == 0
+    data = bytearray((folder / "results.h5").read_bytes())
+    headers = [m.start() for m in re.finditer(b"OHDR", bytes(data))]
+    assert len(headers) > 3
+    data[headers[len(headers) // 2] + 12] ^= 0xFF  # inside a dataset's object header, not its signature
+    (folder / "results.h5").write_bytes(bytes(data))
+    before = digests(folder)
+    before_picture = picture.read_bytes()
+    for command in (
+        ["view", str(folder), "--out", str(picture), "--dpi", "40", "--overwrite"],
+        ["export", "vtkhdf", str(folder), "--out", str(tmp_path / "x.vtkhdf")],
+    ):
+        capsys.readouterr()
+        assert main(command) == 2, command
+        assert "results.h5: the results file is damaged" in first_error_line(capsys)
+    assert digests(folder) == before and picture.read_bytes() == before_picture
+    assert not (tmp_path / "x.vtkhdf").exists()
+
+
 # -- rows 6, 7: a damaged or foreign checkpoint ---------------------------------------------------
 @pytest.mark.parametrize("damage", ["cut", "flipped"])
 def test_row06_resume_with_a_damaged_checkpoint(interrupted, tmp_path, capsys, damage):

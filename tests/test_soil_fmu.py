@@ -297,6 +297,104 @@ def test_diverging_step_is_discarded_and_the_soil_kept_at_its_start(tiny, import
     assert got == expected
 
 
+@pytest.mark.parametrize("version", [2, 3])
+def test_a_refused_input_or_step_leaves_the_instance_to_go_on_bitwise(tiny, importer, version):
+    """A NaN communication point was stepped from (the soil's clock turned NaN, then any time was taken), a
+    step of 1e300 s ran until the step timeout, and a NaN input or a zero quaternion reached the server,
+    whose error ended the instance. Each is refused by the front end with a message naming it, and the
+    master that corrects it goes on: its steps give bitwise the in-process soil's wrenches."""
+    job, motion = _job(tiny["fmus"][version], 3)
+    second = _inputs(motion[1])
+    zero = dict(second, **{f"wheel_0.orientation.{a}": 0.0 for a in "wxyz"})
+    job["go_on_after_error"] = True
+    job["steps"][1:2] = [
+        {"h": H, "inputs": [second], "t_offset": math.nan},
+        {"h": 1e300, "inputs": [second]},
+        {"h": H, "inputs": [zero]},
+        {"h": H, "inputs": [dict(second, **{"wheel_0.velocity.x": math.inf, "wheel_0.position.z": math.nan})]},
+    ]
+    result = importer(job)
+    statuses = [s[0] for s in result["status"]]
+    assert statuses == ["ok", "ok", "error", "error", "error", "ok", "ok"], result["messages"]
+    assert result["set_errors"] == [[4, "wheel_0.position.z"], [4, "wheel_0.velocity.x"]], result["set_errors"]
+    errors = " | ".join(m[2] for m in result["messages"] if m[0] == "error")
+    for words in (
+        "currentCommunicationPoint must be finite [s], got nan",
+        "more than 1e+10: it would not end",
+        "input wheel_0.orientation must be a unit quaternion (w, x, y, z), got (0, 0, 0, 0)",
+        "input wheel_0.velocity.x must be finite, got inf",
+        "input wheel_0.position.z must be finite, got nan",
+    ):
+        assert words in errors, errors
+    assert "soil server error" not in errors and "failed before" not in errors, errors
+
+    soil = _in_process_soil(tiny)
+    soil.place_wheels([motion[0]])
+    expected = [_as_outputs(soil.advance(soil.time + H, [k])[0]) for k in motion]
+    assert [result["outputs"][i][0] for i in (1, 5, 6)] == expected
+    assert result["servers_after_free"] == []
+
+
+@pytest.mark.parametrize(
+    "line, words",
+    [
+        ("real 1 abc", "line 5 is not one of"),  # was read as dem_step 0: "dem_step must be > 0, got 0.0"
+        ("real 99999 1.0", "line 5 is not one of"),  # a variable the FMU has not: was ignored
+        ("wheels 1000000000", "line 5 is not one of"),  # was "is incomplete (wheels, python)"
+    ],
+    ids=["not a number", "unknown variable", "too many wheels"],
+)
+def test_an_edited_frontend_file_is_refused_at_instantiation_naming_its_line(tiny, tmp_path, line, words):
+    """resources/frontend.txt holds the start values the front end reads: a line it cannot read whole is
+    named, with the file, instead of being skipped or read as 0."""
+    from fmpy import extract, read_model_description
+    from fmpy.fmi3 import FMU3Slave
+
+    fmu = tiny["fmus"][3]
+    unzip = Path(extract(str(fmu), unzipdir=str(tmp_path / "unzipped")))
+    frontend = unzip / "resources" / "frontend.txt"
+    lines = frontend.read_text().splitlines()
+    lines.insert(4, line)
+    frontend.write_text("\n".join(lines) + "\n")
+    description = read_model_description(str(fmu))
+    logged = []
+    slave = FMU3Slave(
+        guid=description.guid,
+        unzipDirectory=str(unzip),
+        modelIdentifier=description.coSimulation.modelIdentifier,
+        instanceName="edited",
+    )
+    with pytest.raises(Exception, match="Failed to instantiate"):
+        slave.instantiate(logMessage=lambda env, status, category, message: logged.append(message.decode()))
+    assert any(f"frontend.txt {words}" in m and line in m for m in logged), logged
+
+
+def test_a_cut_soil_json_and_a_gravity_a_hair_off_are_named(tiny, tmp_path):
+    """The soil server, in-process: a cut resources/soil.json was json's bare "Unterminated string"; a
+    gravity parameter 1e-10 m/s^2 off the bed's printed both vectors alike ([0 0 -1.625] twice)."""
+    from cosim.soil_fmu.server import PROTOCOL_VERSION, SoilSession
+    from soil.errors import ArgumentError, DamagedFileError
+
+    with zipfile.ZipFile(tiny["fmus"][2]) as z:
+        z.extractall(tmp_path / "fmu")
+    resources = tmp_path / "fmu" / "resources"
+    gravity = tiny["config"].gravity if tiny["config"].gravity is not None else tiny["plan"].gravity
+    settings = {
+        "protocol": str(PROTOCOL_VERSION),
+        "resources": str(resources),
+        "wheels": "1",
+        "dem_step": repr(tiny["config"].dem_step),
+        "gravity": " ".join(repr(float(g)) for g in gravity[:2]) + f" {float(gravity[2]) - 1e-10!r}",
+        "device": "cpu",
+    }
+    with pytest.raises(ArgumentError, match=rf"asks for \[.*{float(gravity[2]) - 1e-10!r}\]"):
+        SoilSession(settings)
+    text = (resources / "soil.json").read_text()
+    (resources / "soil.json").write_text(text[: len(text) // 2])
+    with pytest.raises(DamagedFileError, match=r"soil.json is not the JSON the export wrote"):
+        SoilSession(settings)
+
+
 def test_killed_server_gives_an_error_at_the_next_step_and_the_importer_survives(tiny, importer):
     job, _ = _job(tiny["fmus"][2], 3, start={"server_step_timeout": 30.0})
     job["steps"][1]["before"] = "kill"

@@ -116,3 +116,59 @@ def test_a_boundary_row_a_material_per_grain_and_a_saved_state_are_checked():
     builder.start_from({"position": np.zeros((3, 3)), "neighbours": np.full((3, 1), -1)})
     with pytest.raises(SoilInputError, match=r"the saved 'position' has 3 rows, the builder 2 grains"):
         builder.finalize("cpu", "double")
+
+
+@pytest.mark.parametrize(
+    "call, words",
+    [
+        (lambda b: b.finalize(device="gpu"), r"device 'gpu': this machine has cpu"),
+        (lambda b: b.finalize(device="CPU"), r"device 'CPU': this machine has cpu"),
+        (lambda b: b.finalize(device="cuda:99"), r"device 'cuda:99': this machine has cpu"),
+        (lambda b: b.finalize(order_seed=-1), r"order_seed must be None or an integer >= 0, got -1"),
+        (lambda b: b.finalize(order_seed=1.5), r"order_seed must be None or an integer >= 0, got 1.5"),
+        (lambda b: b.add_container((0, 0), (1, 1)), r"container corners must be 3-vectors"),
+    ],
+    ids=["gpu", "upper-case CPU", "no such GPU", "negative seed", "fractional seed", "2-d container"],
+)
+def test_a_device_seed_or_container_that_is_none_is_named(call, words):
+    """Warp's own 'Invalid device identifier' named no allowed device, numpy's seed errors no argument,
+    and a 2-d container corner was a reshape error."""
+    builder = builder_with_box()
+    builder.add_particle((0.05, 0.05, 0.05), 0.01)
+    with pytest.raises(SoilInputError, match=words):
+        call(builder)
+
+
+def test_a_simulation_takes_an_integrator_by_its_scene_name_and_helpers_refuse_what_has_no_answer():
+    """Simulation(..., integrator='jolt-beeman') failed at the first step ('str' has no 'bind'); a negative
+    radius gave 'math domain error' and a negative damping ratio a restitution of 1."""
+    from soil import JoltBeeman, rayleigh_time_step, restitution_of_damping_ratio
+
+    builder = builder_with_box()
+    builder.add_particle((0.05, 0.05, 0.05), 0.01)
+    sim = Simulation(*builder.finalize(device="cpu"), integrator="jolt-beeman")
+    assert isinstance(sim.integrator, JoltBeeman)
+    sim.run(1e-4, 1e-5)
+    assert sim.state.position.numpy()[0, 2] < 0.05  # falling under gravity
+    with pytest.raises(SoilInputError, match="integrator must be one of"):
+        Simulation(*builder.finalize(device="cpu"), integrator="rk4")
+    with pytest.raises(SoilInputError, match="rayleigh_time_step needs E > 0, rho > 0, R > 0"):
+        rayleigh_time_step(1e6, 0.3, 2500.0, -0.001)
+    with pytest.raises(SoilInputError, match="damping_ratio must be >= 0, got -1"):
+        restitution_of_damping_ratio(-1)
+    assert restitution_of_damping_ratio(0.0) == 1.0
+
+
+def test_a_bed_folder_or_one_wheel_shape_given_to_from_bed_is_named(tmp_path):
+    """DemSoil.from_bed on a run's folder said 'bed file not found'; one GrouserWheel where the list of
+    wheels goes was "'GrouserWheel' object is not iterable"."""
+    from cosim.dem_soil import DemSoil
+    from soil import GrouserWheel
+
+    wheel = GrouserWheel(radius=0.03, width=0.02, grouser_count=0, grouser_height=0.0, grouser_thickness=0.0)
+    (tmp_path / "run").mkdir()
+    (tmp_path / "run" / "bed.h5").write_bytes(b"")
+    with pytest.raises(IsADirectoryError, match=r"is a folder, not a bed file; its bed is '.*run/bed.h5'"):
+        DemSoil.from_bed(str(tmp_path / "run"), [wheel], Material(), 1e-4, surface_height=0.0)
+    with pytest.raises(ValueError, match=r"wheels must be a list of wheel shapes, one per wheel: \[GrouserWheel"):
+        DemSoil.from_bed(str(tmp_path / "run" / "bed.h5"), wheel, Material(), 1e-4, surface_height=0.0)

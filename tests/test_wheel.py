@@ -51,6 +51,41 @@ def probe_points(wheel, depth=1e-4, grain=GRAIN):
     return [rim, face, tip, side]
 
 
+@pytest.mark.parametrize(
+    "bad",
+    [
+        {"position": (np.nan, 0.0, 0.0)},
+        {"orientation": (0.0, 0.0, 0.0, 0.0)},
+        {"orientation": (np.nan, 0.0, 0.0, 0.0)},
+        {"rotation": np.zeros((3, 3))},
+        {"rotation": 3 * np.eye(3)},
+        {"rotation": np.diag([1.0, 1.0, -1.0])},
+        {"velocity": (0.0, 0.0)},
+        {"angular_velocity": (0.0, 1j, 0.0)},
+    ],
+    ids=["nan position", "zero quaternion", "nan quaternion", "zero matrix", "scaled", "mirror", "2-vector", "complex"],
+)
+def test_a_body_pose_that_is_no_pose_is_refused_and_the_last_one_kept(device, bad):
+    """A NaN position or a zero quaternion was kept: the wheel reached no grain (zero force, no error)
+    and its rotation turned NaN. Refused naming the body and the argument, before any of them is kept."""
+    from soil.errors import SoilInputError
+
+    builder = SoilBuilder(gravity=0.0)
+    builder.add_material(Material(youngs_modulus=1e7))
+    builder.add_particle(probe_points(WHEEL)[0], GRAIN)
+    builder.add_wheel(WHEEL)
+    model, state, control = builder.finalize(device, "double")
+    control.set_body_motion(0, (0, 0, 0), (1, 0, 0, 0), (0, 0, 0), (0, 0, 0))
+    sim = Simulation(model, state, control)
+    pressed = sim.state.body_force.numpy()[0].copy()
+    assert np.linalg.norm(pressed) > 0
+    with pytest.raises(SoilInputError, match="body 0's"):
+        control.set_body_motion(0, **{"position": (0.0, 0.0, 0.0), **bad})
+    sim.refresh_forces()
+    np.testing.assert_array_equal(sim.state.body_force.numpy()[0], pressed)
+    assert np.all(np.isfinite(control.body_rotation_host))
+
+
 def test_mesh_wheel_and_parametric_wheel_give_the_same_contact_forces(device):
     points = probe_points(WHEEL)
     vertices, triangles = WHEEL.to_mesh(arc_segments=3600)

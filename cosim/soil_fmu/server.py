@@ -46,7 +46,7 @@ import warnings
 
 import numpy as np
 
-from soil.errors import ArgumentError, InternalError
+from soil.errors import ArgumentError, DamagedFileError, InternalError
 
 PROTOCOL_VERSION = 2
 INIT, PLACE, STEP, BYE, SAVE, RESTORE, FREE = 1, 2, 3, 4, 5, 6, 7
@@ -143,8 +143,14 @@ class SoilSession:
                 "export the FMU again with the regolith-cosim this Python has"
             )
         resources = settings["resources"]
-        with open(os.path.join(resources, CONFIG_FILE)) as f:
-            config = json.load(f)
+        path = os.path.join(resources, CONFIG_FILE)
+        try:
+            with open(path) as f:
+                config = json.load(f)
+        except (json.JSONDecodeError, UnicodeDecodeError) as error:  # an edited or cut resource file
+            raise DamagedFileError(f"{path} is not the JSON the export wrote ({error}): export the FMU again") from None
+        if not isinstance(config, dict):
+            raise DamagedFileError(f"{path} holds no table of settings: export the FMU again")
         self.wheel_count = int(settings["wheels"])
         if self.wheel_count != int(config["wheel_count"]):
             raise ArgumentError(f"the front end has {self.wheel_count} wheels, {CONFIG_FILE} {config['wheel_count']}")

@@ -43,6 +43,7 @@ enum { MSG_INIT = 1, MSG_PLACE = 2, MSG_STEP = 3, MSG_BYE = 4, MSG_SAVE = 5, MSG
 #define SERVER_CODE "import runpy, sys; sys.path.remove(''); runpy.run_module('" SERVER_MODULE "', " \
                     "run_name='__main__', alter_sys=True)"
 #define STOP_WAIT 5.0 /* [s] a stopping server gets this long before it is killed */
+#define MAX_STEP_COUNT 1e10 /* most DEM (or SCM) steps in one doStep: beyond, the step never ends */
 
 /* ---------------------------------------------------------------------------- logging */
 
@@ -76,14 +77,19 @@ static int read_frontend(Soil *s, const char *token) {
                  strerror(errno));
         return -1;
     }
-    while (fgets(line, sizeof line, file)) {
-        unsigned vr;
-        double value;
-        int count;
+    for (int number = 1; fgets(line, sizeof line, file); number++) {
+        unsigned vr = 0;
+        double value = 0.0;
+        int count = 0, end = -1, real = 0;
         line[strcspn(line, "\r\n")] = 0;
+        if (strncmp(line, "real ", 5) == 0) /* the whole line a value reference and a finite number */
+            real = sscanf(line, "real %u %lf%n", &vr, &value, &end) == 2 && line[end] == 0 && isfinite(value);
+        else if (strncmp(line, "wheels ", 7) == 0
+                 && !(sscanf(line, "wheels %d%n", &count, &end) == 1 && line[end] == 0))
+            count = 0;
         if (strncmp(line, "token ", 6) == 0) {
             token_ok = token == NULL || strcmp(line + 6, token) == 0;
-        } else if (sscanf(line, "wheels %d", &count) == 1 && count > 0 && count <= 10000 && !s->wheel) {
+        } else if (count > 0 && count <= 10000 && !s->wheel) {
             s->wheel_count = count;
             s->wheel = calloc((size_t)count * W_SIZE, sizeof(double));
             s->wheel_start = calloc((size_t)count * W_SIZE, sizeof(double));
@@ -91,13 +97,18 @@ static int read_frontend(Soil *s, const char *token) {
         } else if (strncmp(line, "python ", 7) == 0) {
             free(s->default_python);
             s->default_python = copy_text(line + 7);
-        } else if (sscanf(line, "real %u %lf", &vr, &value) == 2) {
-            if (vr < VR_REAL_PARAMETERS) {
-                s->real_start[vr] = value;
-            } else if (s->wheel && vr >= VR_WHEEL && vr / VR_WHEEL <= (unsigned)s->wheel_count
-                       && vr % VR_WHEEL < W_SIZE) {
-                s->wheel_start[(vr / VR_WHEEL - 1) * W_SIZE + vr % VR_WHEEL] = value;
-            }
+        } else if (real && vr < VR_REAL_PARAMETERS) {
+            s->real_start[vr] = value;
+        } else if (real && s->wheel && vr >= VR_WHEEL && vr / VR_WHEEL <= (unsigned)s->wheel_count
+                   && vr % VR_WHEEL < W_SIZE) {
+            s->wheel_start[(vr / VR_WHEEL - 1) * W_SIZE + vr % VR_WHEEL] = value;
+        } else if (line[0] && line[0] != '#') { /* an edited or damaged file: a value read as 0 would be blamed
+                                                     on a parameter */
+            soil_log(s, SOIL_ERROR, "logStatusError", "%s line %d is not one of '# comment', 'token T', "
+                     "'wheels N' (once, 1 .. 10000), 'python P', 'real VR VALUE' (a finite value of a known "
+                     "variable): %.200s", path, number, line);
+            fclose(file);
+            return -1;
         }
     }
     fclose(file);
@@ -562,6 +573,26 @@ SoilStatus soil_step(Soil *s, double time, double step) {
         soil_log(s, SOIL_ERROR, "logStatusError", "communicationStepSize must be > 0 [s], got %g", step);
         return SOIL_ERROR;
     }
+    if (!isfinite(time)) {
+        soil_log(s, SOIL_ERROR, "logStatusError", "currentCommunicationPoint must be finite [s], got %g; the soil "
+                 "is at t = %.17g s", time, s->real[VR_TIME]);
+        return SOIL_ERROR;
+    }
+    if (step / s->real[VR_DEM_STEP] > MAX_STEP_COUNT) {
+        soil_log(s, SOIL_ERROR, "logStatusError", "communicationStepSize %g s is %.3g DEM steps of dem_step %g s, "
+                 "more than %.0e: it would not end; give a shorter step", step, step / s->real[VR_DEM_STEP],
+                 s->real[VR_DEM_STEP], MAX_STEP_COUNT);
+        return SOIL_ERROR;
+    }
+    for (int i = 0; i < s->wheel_count; i++) {
+        const double *q = s->wheel + i * W_SIZE + W_ORIENTATION;
+        double norm = sqrt(q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3]);
+        if (!(norm > 0.5 && norm < 2.0)) {
+            soil_log(s, SOIL_ERROR, "logStatusError", "input wheel_%d.orientation must be a unit quaternion "
+                     "(w, x, y, z), got (%g, %g, %g, %g): set it and step again", i, q[0], q[1], q[2], q[3]);
+            return SOIL_ERROR;
+        }
+    }
     if (time > s->real[VR_TIME] + tolerance) {
         soil_log(s, SOIL_ERROR, "logStatusError", "doStep from t = %.17g s, but the soil is at t = %.17g s, "
                  "earlier: %s", time, s->real[VR_TIME],
@@ -735,11 +766,26 @@ SoilStatus soil_get_real(Soil *s, unsigned vr, double *value) {
     return SOIL_OK;
 }
 
+static const char *const PARAMETER_NAMES[VR_REAL_PARAMETERS] = {
+    "time", "dem_step", "gravity.x", "gravity.y", "gravity.z", "server_start_timeout", "server_step_timeout"};
+static const char *const INPUT_NAMES[W_INPUTS] = {
+    "position.x", "position.y", "position.z", "orientation.w", "orientation.x", "orientation.y", "orientation.z",
+    "velocity.x", "velocity.y", "velocity.z", "angular_velocity.x", "angular_velocity.y", "angular_velocity.z"};
+
+/* A value is refused here, with the instance left as it was, rather than by the server, whose error
+   ends the instance: the master can set a right value and go on. */
 SoilStatus soil_set_real(Soil *s, unsigned vr, double value) {
     double *w = vr >= VR_WHEEL ? wheel_value(s, vr) : NULL;
     if (vr >= VR_DEM_STEP && vr < VR_REAL_PARAMETERS) {
+        int positive = vr == VR_DEM_STEP || vr == VR_START_TIMEOUT || vr == VR_STEP_TIMEOUT;
         if (s->initialized) {
-            soil_log(s, SOIL_ERROR, "logStatusError", "parameter %u is fixed: set it before initialization ends", vr);
+            soil_log(s, SOIL_ERROR, "logStatusError", "parameter %s is fixed: set it before initialization ends",
+                     PARAMETER_NAMES[vr]);
+            return SOIL_ERROR;
+        }
+        if (!isfinite(value) || (positive && !(value > 0))) {
+            soil_log(s, SOIL_ERROR, "logStatusError", "parameter %s must be a finite number%s, got %.17g",
+                     PARAMETER_NAMES[vr], positive ? " > 0 [s]" : " [m/s2]", value);
             return SOIL_ERROR;
         }
         s->real[vr] = value;
@@ -748,6 +794,11 @@ SoilStatus soil_set_real(Soil *s, unsigned vr, double value) {
     if (!w || vr % VR_WHEEL >= W_INPUTS) {
         soil_log(s, SOIL_ERROR, "logStatusError", "value reference %u is not a settable Float64/Real variable "
                  "(wheel inputs and parameters are)", vr);
+        return SOIL_ERROR;
+    }
+    if (!isfinite(value)) {
+        soil_log(s, SOIL_ERROR, "logStatusError", "input wheel_%u.%s must be finite, got %g; it keeps %.17g",
+                 vr / VR_WHEEL - 1, INPUT_NAMES[vr % VR_WHEEL], value, *w);
         return SOIL_ERROR;
     }
     *w = value;

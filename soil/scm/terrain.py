@@ -9,6 +9,7 @@ import numpy as np
 import warp as wp
 
 from ..control import quaternion_integrate, quaternion_to_matrix
+from ..devices import warp_device
 from ..errors import SoilInputError
 from ..geometry import GrouserWheel, MeshWheel
 from ..memory import SoilTooLargeError, format_bytes, free_device_memory, free_host_memory
@@ -268,7 +269,7 @@ class ScmTerrain:
             raise SoilInputError(f"centre must be None or two finite numbers (x, y) [m], got {centre!r}")
         self.parameters = parameters
         self.wheels = wheels
-        self.device = wp.get_device(device)
+        self.device = wp.get_device(warp_device(device))
         self.precision = get_precision(precision)
         self.surface_height = float(surface_height)
         spacing = parameters.node_spacing
