@@ -235,6 +235,13 @@ def _checked_inputs(folder: RunFolder) -> tuple[dict, dict]:
         same = run_id == expected
     else:  # a run written before run ids: its scene must be the checkpoint's
         same = str(checkpoint["scene_toml"]) == attrs.get("scene_toml", str(checkpoint["scene_toml"]))
+    owner = attrs.get("run_id")
+    if not same and not info.get("run_id") and owner is not None:  # run.json cannot say which is this run's
+        raise DamagedFileError(
+            f"{folder.checkpoint} (run id {run_id}) and {folder.results} (run id {owner}) belong to different "
+            f"runs, and {RUN_FILE} cannot be read to tell which is this folder's{unchanged}. Put back the "
+            "other file of the same run, or start the run again with `cosim run SCENE --out FOLDER --overwrite`"
+        )
     if not same:
         name = scene_from_text(str(checkpoint["scene_toml"])).scene.name
         raise DamagedFileError(
@@ -242,7 +249,6 @@ def _checked_inputs(folder: RunFolder) -> tuple[dict, dict]:
             f"this folder's run is {expected}){unchanged}. Put back this run's checkpoint, or start it again "
             "with `cosim run SCENE --out FOLDER --overwrite`"
         )
-    owner = attrs.get("run_id")
     if run_id is not None and owner is not None and str(owner) != run_id:  # another run's results copied in
         raise DamagedFileError(
             f"{folder.results}: the results file belongs to another run (run id {owner}; the checkpoint's and this "

@@ -681,9 +681,11 @@ def _copy_truncated(old, new, counts: dict, rows: dict | None = None) -> None:
     old.visititems(visit)
 
 
-def check_results(path) -> dict:
+def check_results(path, data: bool = True) -> dict:
     """The root attributes of a results.h5 after checking that it is one and can be read to its end:
-    DamagedFileError naming the file otherwise (FileNotFoundError when it is absent)."""
+    DamagedFileError naming the file otherwise (FileNotFoundError when it is absent). data False: every
+    object's header and attributes only (a reader that reads the data itself: view, export), not the
+    data, so a picture of one snapshot of a large file stays cheap."""
 
     path = os.fspath(path)
     try:
@@ -694,8 +696,11 @@ def check_results(path) -> dict:
                     f"{path}: not a regolith-cosim results file (format {attrs.get('format')!r}, "
                     f"expected {RESULTS_FORMAT!r})"
                 )
-            for dataset in _datasets(f):  # every byte read once: a damaged chunk fails here, not midway
-                _read_through(dataset)
+            for dataset in _datasets(f):  # a damaged header or chunk fails here, not midway
+                if data:
+                    _read_through(dataset)
+                else:
+                    dataset.shape, dataset.dtype, dict(dataset.attrs)
             problem = _structure_problem(f)
             if problem:
                 raise DamagedFileError(f"{path}: the results file is damaged ({problem})")
@@ -741,7 +746,8 @@ READ_BLOCK_BYTES = 64 * 2**20
 
 
 def _read_through(dataset) -> None:
-    """Read every row of `dataset` once, in blocks of at most READ_BLOCK_BYTES."""
+    """Read every row of `dataset` once, in blocks of at most READ_BLOCK_BYTES (or one row, when a row
+    is larger)."""
     if dataset.ndim == 0 or dataset.shape[0] == 0:
         dataset[()]
         return

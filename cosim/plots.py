@@ -37,9 +37,9 @@ def find_results(out_dir: str) -> list[str]:
     """The results.h5 files in out_dir and up to SEARCH_DEPTH folders below it, sorted; hidden folders
     and plots/ folders are not entered."""
     found = []
-    top = os.path.normpath(out_dir).count(os.sep)
     for root, dirs, files in os.walk(out_dir):
-        depth = os.path.normpath(root).count(os.sep) - top
+        relative = os.path.relpath(root, out_dir)
+        depth = 0 if relative == os.curdir else relative.count(os.sep) + 1
         dirs[:] = [] if depth >= SEARCH_DEPTH else sorted(d for d in dirs if not d.startswith(".") and d != PLOTS_DIR)
         if RESULTS_FILE in files:
             found.append(os.path.join(root, RESULTS_FILE))

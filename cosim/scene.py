@@ -1076,8 +1076,10 @@ def load_scene(
         raise SceneError([NESTED_TOO_DEEP], path) from None
     except (OSError, UnicodeDecodeError) as error:
         raise SceneError([f"cannot read the scene file: {error}"], path) from None
-    if not data:  # a file cut to nothing (an editor's crash) would run every default without a word
-        raise SceneError(["the file holds no keys (empty or only comments); a scene sets at least [scene] name"], path)
+    if not data and not overrides:  # a file cut to nothing (an editor's crash) would run every default silently
+        raise SceneError(
+            ["the file holds no keys (empty or only comments); a scene sets its keys, e.g. [scene] name"], path
+        )
     try:
         data = apply_overrides(data, overrides)
     except SceneError as error:

@@ -88,7 +88,17 @@ def snapshot_count(f) -> int:
 
 
 def read_snapshot(f, k: int) -> Snapshot:
-    """Snapshot k of an open results file (h5py.File, cosim.output.open_results)."""
+    """Snapshot k of an open results file (h5py.File, cosim.output.open_results); DamagedFileError naming
+    the file and the snapshot when h5py cannot read it (a damaged chunk)."""
+    from soil.errors import DamagedFileError
+
+    try:
+        return _read_snapshot(f, k)
+    except (KeyError, OSError, RuntimeError) as error:  # how h5py reports damaged bytes
+        raise DamagedFileError(f"{f.filename}: the results file is damaged (snapshot {k}: {error})") from None
+
+
+def _read_snapshot(f, k: int) -> Snapshot:
     p = f["particles"]
     if p.attrs.get("layout") == "ragged":
         rows = slice(int(p["first"][k]), int(p["first"][k] + p["count"][k]))

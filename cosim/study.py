@@ -1039,7 +1039,12 @@ def parse_params(params: list[str]) -> dict[str, list]:
             entries = parse_list(values, f"--param {key.strip()}")
         twice = [v for i, v in enumerate(entries) if any(type(v) is type(w) and v == w for w in entries[:i])]
         if twice:  # the same run twice, counted as two points
-            raise SceneError([f"--param {key.strip()}: the value {twice[0]!r} is given twice"])
+            hint = (
+                f" (one list value is given as an array of it: {key.strip()}=[{values.strip()}])"
+                if values.strip().startswith("[") and not isinstance(twice[0], list)
+                else ""
+            )
+            raise SceneError([f"--param {key.strip()}: the value {twice[0]!r} is given twice{hint}"])
         grid[key.strip()] = entries
     points = math.prod(len(v) for v in grid.values())
     if points > MAX_SWEEP_POINTS:

@@ -270,11 +270,11 @@ def render(
         if isinstance(value, bool) or not low <= value <= high:
             raise ViewError(f"{option} {value}: allowed {low} to {high}")
     path = _results(run_dir)
-    check_results(path)  # damaged bytes named (DamagedFileError) before an old picture or frame is touched
     own = default_output(os.path.dirname(os.path.abspath(path)))
     out = out or own
     kind = _output_kind(out)
     old_frames = _free_output(out, kind, overwrite or os.path.abspath(out) == own)
+    check_results(path, data=False)  # a damaged header named before an old picture or frame is touched
     with open_results(path) as f:
         count = snapshot_count(f)
         if count == 0:

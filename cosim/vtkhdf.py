@@ -213,7 +213,7 @@ def write_vtkhdf(results_path, vtkhdf_path=None) -> str:
     if os.path.isdir(results_path):
         results_path = os.path.join(results_path, RESULTS_FILE)
     target = os.fspath(vtkhdf_path) if vtkhdf_path else os.path.join(os.path.dirname(results_path), VTKHDF_FILE)
-    check_results(results_path)  # damaged bytes named (DamagedFileError), not h5py's KeyError halfway
+    check_results(results_path, data=False)  # a damaged header named (DamagedFileError), not h5py's KeyError
     with open_results(results_path) as f, atomic_path(target, ".vtkhdf.tmp") as temporary:
         count = snapshot_count(f)
         if count == 0:

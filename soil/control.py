@@ -312,15 +312,26 @@ class SoilControl:
         (body_*_host) are set to the path's end. Ends with set_body_motion or clear_body_path.
         """
         count = self.body_count
+        names = ("position [m]", "orientation quaternion (w, x, y, z)", "velocity [m/s]", "angular velocity [rad/s]")
         start = [
-            np.asarray(a, dtype=np.float64).reshape(count, width)
-            for a, width in zip((position, orientation, velocity, angular_velocity), (3, 4, 3, 3))
+            _finite(a, (count, width), f"the path's start {name}")
+            for a, width, name in zip((position, orientation, velocity, angular_velocity), (3, 4, 3, 3), names)
         ]
         finish = (
             start
             if end is None
-            else [np.asarray(a, dtype=np.float64).reshape(count, width) for a, width in zip(end, (3, 4, 3, 3))]
+            else [
+                _finite(a, (count, width), f"the path's end {name}") for a, width, name in zip(end, (3, 4, 3, 3), names)
+            ]
         )
+        for which, quaternions in (("start", start[1]), ("end", finish[1])):
+            norms = np.linalg.norm(quaternions, axis=1)
+            if not np.all((norms > 0.5) & (norms < 2.0)):
+                body = int(np.argmax(~((norms > 0.5) & (norms < 2.0))))
+                raise SoilInputError(
+                    f"body {body}'s orientation at the path's {which} must be a unit quaternion (w, x, y, z), "
+                    f"got {quaternions[body].tolist()}"
+                )
         rows = np.zeros((count, PATH_COLUMNS))
         rows[:, :13] = np.hstack(start)
         rows[:, 13:26] = np.hstack(finish)
@@ -396,6 +407,8 @@ class SoilControl:
                 (angular_velocity, "angular velocity [rad/s]"),
             )
         )
+        if orientation is not None and rotation is not None:
+            raise SoilInputError(f"body {body}: give its orientation as a quaternion or a rotation matrix, not both")
         if orientation is not None:
             quaternion = _finite(orientation, (4,), f"body {body}'s orientation quaternion (w, x, y, z)")
             if not 0.5 < np.linalg.norm(quaternion) < 2.0:

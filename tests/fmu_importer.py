@@ -14,8 +14,9 @@ Job (JSON):
                 "save_state": true takes an FMU state before the step (fmi2GetFMUstate / fmi3GetFMUState);
                 "restore_state": true restores it before the step (after a Discard: a master's retry).
                 "t_offset": a step from t + t_offset instead of t (a master that goes on after a Discard).
-    go_on_after_error   (optional) true: the steps go on after a step's Error (the master corrects its
-                inputs and tries again); the default stops at the first Error
+    go_on_after_error   (optional) true: the steps go on after a step's Error (the master restores an
+                FMU state, as FMI allows after an Error, sets right inputs and steps again); the default
+                stops at the first Error
                 An input the FMU refuses (setReal / setFloat64 Error) is listed in result["set_errors"]
                 as [step index, variable] and the step is still taken.
     master "simulate": fmpy.simulate_fmu on the first instance's FMU with its start values until

@@ -88,7 +88,7 @@ def test_plot_writes_pngs(cli_run):
         assert data[:8] == b"\x89PNG\r\n\x1a\n" and len(data) > 5000
 
 
-def test_plot_looks_for_runs_a_few_folders_deep_only(cli_run, tmp_path, capsys):
+def test_plot_looks_for_runs_a_few_folders_deep_only(cli_run, tmp_path, capsys, monkeypatch):
     """`cosim plot /` must not walk the whole disk: runs up to SEARCH_DEPTH folders below the folder named
     are found (a folder of studies' replicas), deeper ones and those in hidden folders are not."""
     import shutil
@@ -105,10 +105,11 @@ def test_plot_looks_for_runs_a_few_folders_deep_only(cli_run, tmp_path, capsys):
     assert main(["plot", str(tmp_path / "shallow")]) == 0
     assert (tmp_path / "shallow" / "plots" / "travel_sinkage.png").is_file()
     capsys.readouterr()
-    for name in ("deep", "hidden"):
-        assert main(["plot", str(tmp_path / name)]) == 2
+    monkeypatch.chdir(tmp_path / "deep")  # a relative folder counts its depth the same ('.' and 'a' were one)
+    for name in (str(tmp_path / "deep"), str(tmp_path / "hidden"), ".", os.path.join("..", "deep")):
+        assert main(["plot", name]) == 2, name
         assert f"(looked {SEARCH_DEPTH} folders deep)" in capsys.readouterr().err
-        assert not (tmp_path / name / "plots").exists()
+    assert not (tmp_path / "deep" / "plots").exists() and not (tmp_path / "hidden" / "plots").exists()
 
 
 def test_advise_prints_the_bounds_and_the_validity_checks(cli_run, capsys):

@@ -312,6 +312,14 @@ def test_row07c_another_runs_results_file_is_refused(interrupted, complete, tmp_
     line = first_error_line(capsys)
     assert "results.h5: the results file belongs to another run" in line, line
     assert digests(folder) == before
+    # run.json garbled too: it cannot tell which of the two is this folder's, and says so (it blamed
+    # the intact checkpoint)
+    (folder / "run.json").write_text("not json {")
+    before = digests(folder)
+    assert main(["resume", str(folder), "--no-progress"]) == 2
+    line = first_error_line(capsys)
+    assert "belong to different runs, and run.json cannot be read to tell which" in line, line
+    assert digests(folder) == before
 
 
 def test_row07b_a_garbled_run_json_keeps_the_runs_id_through_resume(interrupted, complete, tmp_path, capsys):

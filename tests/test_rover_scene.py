@@ -155,7 +155,7 @@ def _steered_rover(tmp_path, turns: dict[str, float], **mmx) -> str:
         ({}, {"track": 0.025}, None),  # side by side, 5 mm apart
         ({"wheel_fl": -0.7854, "wheel_fr": 0.7854}, {"track": 0.025}, "'wheel_fl' and 'wheel_fr' overlap (steered"),
         ({"wheel_fl": 0.7854, "wheel_fr": 0.7854}, {"track": 0.025}, "'wheel_fl' and 'wheel_fr' overlap (hubs"),
-        ({"wheel_fl": -0.035, "wheel_fr": 0.035}, {"track": 0.025}, None),  # 2 deg of toe-in: 1 mm still apart
+        ({"wheel_fl": -0.035, "wheel_fr": 0.035}, {"track": 0.025}, None),  # 2 deg of toe-in: still apart
         ({w: 1.5708 for w in ("wheel_fl", "wheel_fr", "wheel_rl", "wheel_rr")}, {"wheelbase": 0.03}, None),
         ({}, {"wheelbase": 0.03}, "'wheel_fl' and 'wheel_rl' overlap"),
     ],

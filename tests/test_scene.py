@@ -181,6 +181,7 @@ def test_a_scene_file_without_keys_is_refused_not_run_as_the_defaults(tmp_path, 
     path.write_text(text)
     with pytest.raises(SceneError, match="the file holds no keys"):
         load_scene(path)
+    assert load_scene(path, ['scene.name="given"']).scene.name == "given"  # keys given by --set instead
     out = tmp_path / "out"
     assert main(["run", str(path), "--out", str(out)]) == 2
     assert f"invalid scene in {path}" in capsys.readouterr().err and not out.exists()

@@ -84,6 +84,17 @@ def test_a_body_pose_that_is_no_pose_is_refused_and_the_last_one_kept(device, ba
     sim.refresh_forces()
     np.testing.assert_array_equal(sim.state.body_force.numpy()[0], pressed)
     assert np.all(np.isfinite(control.body_rotation_host))
+    # the path a coupled run sets each macro step: the same checks on its start and end
+    pose = {"position": (0.0, 0.0, 0.0), "orientation": (1.0, 0.0, 0.0, 0.0), "velocity": (0.0, 0.0, 0.0)}
+    pose.update(angular_velocity=(0.0, 0.0, 0.0))
+    if "rotation" not in bad:
+        path = [np.array([{**pose, **bad}[name]]) for name in pose]
+        with pytest.raises(SoilInputError, match="the path's start|body 0's orientation at the path's start"):
+            control.set_body_path(1e-3, *path)
+        with pytest.raises(SoilInputError, match="the path's end|body 0's orientation at the path's end"):
+            control.set_body_path(1e-3, *[np.array([pose[name]]) for name in pose], end=path)
+    with pytest.raises(SoilInputError, match="as a quaternion or a rotation matrix, not both"):
+        control.set_body_motion(0, orientation=(1.0, 0.0, 0.0, 0.0), rotation=np.eye(3))
 
 
 def test_mesh_wheel_and_parametric_wheel_give_the_same_contact_forces(device):

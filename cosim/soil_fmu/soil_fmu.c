@@ -7,8 +7,10 @@
 #define _GNU_SOURCE
 #include "soil_fmu.h"
 
+#include <ctype.h>
 #include <errno.h>
 #include <fcntl.h>
+#include <locale.h>
 #include <math.h>
 #include <poll.h>
 #include <signal.h>
@@ -22,6 +24,9 @@
 #include <sys/wait.h>
 #include <time.h>
 #include <unistd.h>
+#ifdef __APPLE__
+#include <xlocale.h>
+#endif
 
 #if defined(__BYTE_ORDER__) && __BYTE_ORDER__ != __ORDER_LITTLE_ENDIAN__
 #error "the soil server protocol is little-endian"
@@ -65,32 +70,62 @@ static char *copy_text(const char *text) {
 
 /* ---------------------------------------------------------------------------- start values */
 
-/* resources/frontend.txt, written at export: "token T", "wheels N", "python P", "real VR VALUE". */
+/* A whole number of digits at `text` (no sign, no overflow, at most `limit`), then a space or the line's
+   end: its end, or NULL. sscanf's %u would wrap 4294967396 to 100. */
+static const char *parse_whole(const char *text, unsigned long limit, unsigned long *value) {
+    char *end;
+    if (!isdigit((unsigned char)*text)) return NULL;
+    errno = 0;
+    *value = strtoul(text, &end, 10);
+    if (errno == ERANGE || *value > limit || (*end && *end != ' ')) return NULL;
+    return end;
+}
+
+/* "real VR VALUE": a value reference and a finite number filling the rest of the line. */
+static int parse_real(const char *line, unsigned *vr, double *value) {
+    unsigned long reference;
+    char *end;
+    const char *rest = parse_whole(line + 5, 0xFFFFFFFFul, &reference);
+    if (!rest || *rest != ' ' || rest[1] == 0 || isspace((unsigned char)rest[1])) return 0;
+    errno = 0;
+    *value = strtod(rest + 1, &end);
+    *vr = (unsigned)reference;
+    return *end == 0 && errno != ERANGE && isfinite(*value);
+}
+
+/* resources/frontend.txt, written at export: "token T", "wheels N", "python P", "real VR VALUE". Numbers
+   are read in the C locale: a host program's decimal comma must not turn 0.001 into 0. */
 static int read_frontend(Soil *s, const char *token) {
     char path[4096], line[4096];
     FILE *file;
-    int token_ok = 0;
+    int token_ok = 0, failed = 0;
+    locale_t numbers = newlocale(LC_NUMERIC_MASK, "C", (locale_t)0), previous;
     snprintf(path, sizeof path, "%sfrontend.txt", s->resources);
     file = fopen(path, "r");
-    if (!file) {
+    if (!file || !numbers) {
         soil_log(s, SOIL_ERROR, "logStatusError", "cannot read %s: %s (is the resource folder right?)", path,
                  strerror(errno));
+        if (file) fclose(file);
+        if (numbers) freelocale(numbers);
         return -1;
     }
+    previous = uselocale(numbers);
     for (int number = 1; fgets(line, sizeof line, file); number++) {
         unsigned vr = 0;
+        unsigned long count = 0;
         double value = 0.0;
-        int count = 0, end = -1, real = 0;
-        line[strcspn(line, "\r\n")] = 0;
-        if (strncmp(line, "real ", 5) == 0) /* the whole line a value reference and a finite number */
-            real = sscanf(line, "real %u %lf%n", &vr, &value, &end) == 2 && line[end] == 0 && isfinite(value);
-        else if (strncmp(line, "wheels ", 7) == 0
-                 && !(sscanf(line, "wheels %d%n", &count, &end) == 1 && line[end] == 0))
-            count = 0;
+        size_t length = strcspn(line, "\r\n");
+        while (length > 0 && isspace((unsigned char)line[length - 1])) length--; /* an editor's trailing blanks */
+        line[length] = 0;
+        int real = strncmp(line, "real ", 5) == 0 && parse_real(line, &vr, &value);
+        if (strncmp(line, "wheels ", 7) == 0) {
+            const char *end = parse_whole(line + 7, 10000, &count);
+            if (!end || *end) count = 0;
+        }
         if (strncmp(line, "token ", 6) == 0) {
             token_ok = token == NULL || strcmp(line + 6, token) == 0;
-        } else if (count > 0 && count <= 10000 && !s->wheel) {
-            s->wheel_count = count;
+        } else if (count > 0 && !s->wheel) {
+            s->wheel_count = (int)count;
             s->wheel = calloc((size_t)count * W_SIZE, sizeof(double));
             s->wheel_start = calloc((size_t)count * W_SIZE, sizeof(double));
             if (!s->wheel || !s->wheel_start) break;
@@ -102,16 +137,19 @@ static int read_frontend(Soil *s, const char *token) {
         } else if (real && s->wheel && vr >= VR_WHEEL && vr / VR_WHEEL <= (unsigned)s->wheel_count
                    && vr % VR_WHEEL < W_SIZE) {
             s->wheel_start[(vr / VR_WHEEL - 1) * W_SIZE + vr % VR_WHEEL] = value;
-        } else if (line[0] && line[0] != '#') { /* an edited or damaged file: a value read as 0 would be blamed
-                                                     on a parameter */
+        } else if (line[0] && line[0] != '#') { /* an edited or damaged file: a value read as 0 would be
+                                                   blamed on a parameter */
             soil_log(s, SOIL_ERROR, "logStatusError", "%s line %d is not one of '# comment', 'token T', "
                      "'wheels N' (once, 1 .. 10000), 'python P', 'real VR VALUE' (a finite value of a known "
                      "variable): %.200s", path, number, line);
-            fclose(file);
-            return -1;
+            failed = 1;
+            break;
         }
     }
+    uselocale(previous);
+    freelocale(numbers);
     fclose(file);
+    if (failed) return -1;
     if (!s->wheel || !s->wheel_start || !s->default_python) {
         soil_log(s, SOIL_ERROR, "logStatusError", "%s is incomplete (wheels, python)", path);
         return -1;
@@ -520,8 +558,24 @@ static double *inputs(const Soil *s) {
 
 /* ---------------------------------------------------------------------------- life cycle */
 
+/* Each wheel's orientation input must be a unit quaternion: refused here, the instance left as it was,
+   rather than by the server, whose error ends the instance. */
+static SoilStatus check_orientations(Soil *s) {
+    for (int i = 0; i < s->wheel_count; i++) {
+        const double *q = s->wheel + i * W_SIZE + W_ORIENTATION;
+        double norm = sqrt(q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3]);
+        if (!(norm > 0.5 && norm < 2.0)) {
+            soil_log(s, SOIL_ERROR, "logStatusError", "input wheel_%d.orientation must be a unit quaternion "
+                     "(w, x, y, z), got (%g, %g, %g, %g): set it and step again", i, q[0], q[1], q[2], q[3]);
+            return SOIL_ERROR;
+        }
+    }
+    return SOIL_OK;
+}
+
 SoilStatus soil_start(Soil *s) {
     char init[8192];
+    locale_t numbers, previous;
     const char *device = getenv("REGOLITH_SOIL_DEVICE");
     double *values;
     uint32_t size = (uint32_t)((size_t)s->wheel_count * W_INPUTS * sizeof(double));
@@ -535,12 +589,19 @@ SoilStatus soil_start(Soil *s) {
     if (!device) device = "";
     if (strchr(device, '\n') || strchr(s->resources, '\n'))
         return server_failed(s, "the device name and the resource path must not contain a line break");
+    if (check_orientations(s) != SOIL_OK) return SOIL_ERROR;
     if (spawn_server(s) != SOIL_OK) return SOIL_ERROR;
+    numbers = newlocale(LC_NUMERIC_MASK, "C", (locale_t)0); /* the server reads 0.001, not a host's 0,001 */
+    previous = numbers ? uselocale(numbers) : (locale_t)0;
     snprintf(init, sizeof init,
              "protocol %d\ninstance %s\nresources %s\nwheels %d\ndem_step %.17g\ngravity %.17g %.17g %.17g\n"
              "device %s\n",
              PROTOCOL_VERSION, s->instance_name, s->resources, s->wheel_count, s->real[VR_DEM_STEP],
              s->real[VR_GRAVITY], s->real[VR_GRAVITY + 1], s->real[VR_GRAVITY + 2], device);
+    if (numbers) {
+        uselocale(previous);
+        freelocale(numbers);
+    }
     status = request(s, MSG_INIT, init, (uint32_t)strlen(init), s->real[VR_START_TIMEOUT], "server_start_timeout",
                      "starting (loading the bed and compiling or loading its kernels)");
     if (status != SOIL_OK) return SOIL_ERROR;
@@ -584,15 +645,7 @@ SoilStatus soil_step(Soil *s, double time, double step) {
                  s->real[VR_DEM_STEP], MAX_STEP_COUNT);
         return SOIL_ERROR;
     }
-    for (int i = 0; i < s->wheel_count; i++) {
-        const double *q = s->wheel + i * W_SIZE + W_ORIENTATION;
-        double norm = sqrt(q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3]);
-        if (!(norm > 0.5 && norm < 2.0)) {
-            soil_log(s, SOIL_ERROR, "logStatusError", "input wheel_%d.orientation must be a unit quaternion "
-                     "(w, x, y, z), got (%g, %g, %g, %g): set it and step again", i, q[0], q[1], q[2], q[3]);
-            return SOIL_ERROR;
-        }
-    }
+    if (check_orientations(s) != SOIL_OK) return SOIL_ERROR;
     if (time > s->real[VR_TIME] + tolerance) {
         soil_log(s, SOIL_ERROR, "logStatusError", "doStep from t = %.17g s, but the soil is at t = %.17g s, "
                  "earlier: %s", time, s->real[VR_TIME],
