@@ -273,6 +273,21 @@ def advise_lines(plan) -> list[str]:
         findings.append(
             advice.Finding("scm_grid_size", math.nan, math.nan, False, str(refused), "terrain.node_spacing")
         )
+    if plan.terrain.model != "scm":  # the grains' memory, which a run also refuses before it starts
+        from .beds import memory_estimate
+
+        memory = memory_estimate(plan)
+        if not memory.fits:
+            findings.append(
+                advice.Finding(
+                    "memory",
+                    math.nan,
+                    math.nan,
+                    False,
+                    f"{memory.text()}: does not fit; fewer or larger grains (a smaller bed, a [patch])",
+                    "bed.length, bed.width, bed.depth, bed.radius_mean",
+                )
+            )
     for finding in findings:
         lines.append(f"  [{'ok' if finding.ok else 'OUT OF RANGE'}] {finding.check}: {finding.message}")
     pending = advice.judged_after_the_run(plan)
@@ -344,6 +359,10 @@ def _dem_advice(plan) -> list[str]:
         f"{steps.critical_step:.4g} s)",
         f"  the scene uses dt = {plan.dt:.4g} s, macro step H = {plan.macro_step:.4g} s ({plan.substeps} substeps); "
         + ("dt is within the advised limit" if plan.dt <= steps.dt_max else "dt is ABOVE the advised limit"),
+        # what a stiffer soil costs: a step ~ 1/sqrt(E), so E far above the eq. 10 bound is paid here
+        f"  the drive's {plan.scene.run.duration:.4g} s take {plan.scene.run.duration / plan.dt:.3g} DEM steps "
+        f"(E = {material.youngs_modulus / e_min if e_min > 0 else math.nan:.3g} x the eq. 10 bound; the step "
+        "scales as 1/sqrt(E))",
     ]
     from .beds import memory_estimate
 
@@ -494,6 +513,7 @@ def cmd_sweep(args) -> int:
 def cmd_scale(args) -> int:
     from .similarity import write_gravity_twin
 
+    _refuse_an_input_as_out(args.out, {"the scene": args.scene})
     _free_output_file(args.out, (".toml",), args.overwrite)
     path, factor = write_gravity_twin(
         args.scene, args.gravity, args.out, overwrite=args.overwrite, overrides=_overrides(args)
@@ -710,6 +730,7 @@ def cmd_calibrate_scm(args) -> int:
     from .lab.scm import calibrate_scm, small_tests
     from .scm_calibration import SOIL_KEYS, SOIL_UNITS, out_of_range, read_calibration, write_calibration
 
+    _refuse_an_input_as_out(args.out, {"the scene": args.scene, "--lab": args.lab, "--start": args.start})
     _free_output_file(args.out, (".toml",), args.overwrite)  # before an hour of DEM tests, not after them
     overrides = _overrides(args)
     if args.replicas is not None:
@@ -725,6 +746,8 @@ def cmd_calibrate_scm(args) -> int:
         raise ArgumentError(f"--max-runs: must be >= 0, got {args.max_runs}")
     if args.start:
         read_calibration(args.start)  # a damaged file named now, not after the lab's tests
+    if args.from_wheel:
+        _check_from_wheel(args)
     started = time.perf_counter()
     if args.lab:
         calibration = read_calibration(args.lab)
@@ -741,7 +764,8 @@ def cmd_calibrate_scm(args) -> int:
         calibration = _fit_to_wheel(args, calibration, work)
     calibration.source["wall_time_s"] = time.perf_counter() - started
     write_calibration(args.out, calibration)
-    print(f"calibrate-scm: {args.out} (DEM tests in {work}, |g| = {calibration.gravity:.4g} m/s^2)")
+    tests = f"DEM tests in {work}, " if os.path.isdir(work) else ""  # --lab with --wheel-runs ran none
+    print(f"calibrate-scm: {args.out} ({tests}|g| = {calibration.gravity:.4g} m/s^2)")
     for key in SOIL_KEYS:
         value, error = calibration.parameters[key], calibration.standard_errors[key]
         print(f"  {key:20s} {value:12.5g} +- {error:.3g} {SOIL_UNITS[key]}")
@@ -755,6 +779,41 @@ def cmd_calibrate_scm(args) -> int:
             file=sys.stderr,
         )
     return EXIT_OK
+
+
+def _refuse_an_input_as_out(out: str, inputs: dict[str, str | None]) -> None:
+    """Refuse an --out that is one of the files the command reads (even with --overwrite: the scene or
+    the calibration it starts from would be lost to what it writes)."""
+    from soil.errors import ArgumentError
+
+    for name, path in inputs.items():
+        if path and os.path.exists(out) and os.path.exists(path) and os.path.samefile(out, path):
+            raise ArgumentError(f"--out {out!r} is {name} the command reads; write to another file")
+
+
+def _check_from_wheel(args) -> None:
+    """What --from-wheel needs, checked before the lab's DEM tests (an hour) rather than after them: a
+    single-wheel scene, --lab and --start calibrated at its gravity, --wheel-runs a slip study of this
+    wheel with two or more steady slips, or --slips two or more slips."""
+    from soil.errors import ArgumentError
+
+    from .lab.scm_wheel import check_study_scene, wheel_targets
+    from .scene import SceneError, parse_list
+    from .scm_calibration import read_calibration, same_gravity
+
+    plan = _plan(args)
+    if plan.rover is not None:
+        raise SceneError(["calibrate-scm --from-wheel: fits to the single-wheel [testbed]; the scene has a [rover]"])
+    for option, path in (("--lab", args.lab), ("--start", args.start)):
+        if path and not same_gravity(gravity := read_calibration(path).gravity, plan.g):
+            raise SceneError([f"{option}: calibrated at |g| = {gravity:.4g} m/s^2, the scene's is {plan.g:.4g} m/s^2"])
+    if args.wheel_runs:
+        check_study_scene(args.wheel_runs, plan)
+        wheel_targets(args.wheel_runs)  # two or more steady slips
+    elif len(slips := parse_list(args.slips, "--slips")) < 2 or not all(
+        isinstance(s, (int, float)) and not isinstance(s, bool) for s in slips
+    ):
+        raise ArgumentError(f"--slips {args.slips!r}: two or more slips (numbers) for the wheel fit, e.g. 0.1,0.3,0.5")
 
 
 def _relative_to_file(out: str, path: str) -> str:

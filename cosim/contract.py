@@ -76,6 +76,17 @@ class WheelWrench:
     work_on_soil: float = 0.0
     """Work done by the wheel on the soil during the macro step [J]."""
 
+    def __post_init__(self):
+        # shapes and types only: a soil's non-finite wrench is a divergence, judged where it is made
+        for name in ("force", "torque", "force_end", "torque_end"):
+            try:
+                vector = np.asarray(getattr(self, name), dtype=np.float64).reshape(-1)
+            except (TypeError, ValueError):
+                vector = np.zeros(0)
+            if vector.shape != (3,):
+                raise ArgumentError(f"WheelWrench.{name} must be 3 numbers, got {getattr(self, name)!r}")
+            setattr(self, name, vector)
+
 
 WRENCH_UNITS = {
     "force": "N",

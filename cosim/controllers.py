@@ -50,6 +50,10 @@ class Controller(Protocol):
 
 def apply_command(rover, command: DriveCommand) -> None:
     """Send a DriveCommand to a rover (needs set_wheel_speeds / set_wheel_torques)."""
+    if not isinstance(command, DriveCommand):  # a controller's wrong return, named rather than an AttributeError
+        raise ArgumentError(
+            f"a drive controller must return a DriveCommand, got {type(command).__name__}: {command!r:.80}"
+        )
     method = "set_wheel_speeds" if command.mode == "speed" else "set_wheel_torques"
     if not hasattr(rover, method):
         raise TypeError(f"{type(rover).__name__} has no {method}(); it cannot take {command.mode} commands")

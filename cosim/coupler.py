@@ -22,6 +22,8 @@ exceeds `energy_atol + energy_rtol * sum |W_rover|` a CouplingEnergyWarning is i
 
 from __future__ import annotations
 
+import math
+import numbers
 import warnings
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
@@ -42,6 +44,11 @@ class CouplingEnergyWarning(RegolithWarning, RuntimeWarning):
 
 class CouplingTimeError(RegolithError, RuntimeError):
     """The soil and rover sides did not reach the same time."""
+
+
+def _real(value) -> bool:
+    """A real number (numpy's too), not a boolean or a text."""
+    return isinstance(value, numbers.Real) and not isinstance(value, bool)
 
 
 @dataclass
@@ -114,11 +121,11 @@ class Coupler:
         energy_warmup: int = 10,
         time_tol: float = 1e-12,
     ):
-        scheme = scheme.lower().replace("_", "-")
-        if scheme not in ("gauss-seidel", "jacobi"):
+        if not isinstance(scheme, str) or scheme.lower().replace("_", "-") not in ("gauss-seidel", "jacobi"):
             raise ArgumentError(f"scheme must be 'gauss-seidel' or 'jacobi', got {scheme!r}")
-        if not macro_step > 0.0:
-            raise ArgumentError(f"macro_step must be > 0, got {macro_step}")
+        scheme = scheme.lower().replace("_", "-")
+        if not (_real(macro_step) and math.isfinite(macro_step) and macro_step > 0.0):  # inf never ended
+            raise ArgumentError(f"macro_step must be a finite number > 0 [s], got {macro_step!r}")
         n = len(rover.wheel_names)
         if soil.wheel_count != n:
             raise ArgumentError(f"the soil has {soil.wheel_count} wheels, the rover {n} ({rover.wheel_names})")
@@ -223,6 +230,10 @@ class Coupler:
 
         callback(coupler) is called after every macro step.
         """
+        if not (_real(t_end) and math.isfinite(t_end) and t_end >= self.time - 0.5 * self.macro_step):
+            raise ArgumentError(
+                f"t_end must be a finite time [s] not before the coupler's {self.time!r} s, got {t_end!r}"
+            )
         steps = int(round((float(t_end) - self.time) / self.macro_step))
         records = []
         for _ in range(steps):

@@ -478,8 +478,9 @@ def _check_bed_file(path: str, material: Material, gravity: np.ndarray, bed) -> 
     problems = []
     if not np.allclose(header["gravity"], gravity, rtol=1e-12, atol=0):
         problems.append(
-            f"bed.bed_file: the bed was settled under gravity {list(header['gravity'])} m/s^2, the scene "
-            f"asks for {list(gravity)}: settle a bed under the scene's gravity (remove bed.bed_file)"
+            f"bed.bed_file: the bed was settled under gravity {np.asarray(header['gravity']).tolist()} m/s^2, the "
+            f"scene asks for {np.asarray(gravity).tolist()}: settle a bed under the scene's gravity (remove "
+            "bed.bed_file)"
         )
     saved = header["spec"] or {}
     for key in ("length", "width", "depth", "radius_mean", "radius_spread", "seed"):
@@ -536,7 +537,7 @@ def resolve(scene: Scene) -> RunPlan:
     if g > 0 and -gravity[2] < 0.5 * g:  # upwards the grains leave the open box; sideways they pile on a wall
         problems.append(
             "scene.gravity: the soil lies on the plane z = 0 (the bed's floor, the terrain's datum), so gravity "
-            f"must point down (-z) within 60 deg (a slope); got {list(gravity)} m/s^2"
+            f"must point down (-z) within 60 deg (a slope); got {gravity.tolist()} m/s^2"
         )
     section = scene.soil.law
     materials = (soil_material, *(w.material for w in wheels or (wheel,)))
@@ -673,6 +674,7 @@ def _terrain(scene: Scene, wheel_count: int, problems: list[str]) -> TerrainPlan
     if section.calibration is not None:
         from .scm_calibration import (
             CalibrationError,
+            bed_soils,
             fitted_node_spacing,
             out_of_range,
             read_calibration,
@@ -683,6 +685,7 @@ def _terrain(scene: Scene, wheel_count: int, problems: list[str]) -> TerrainPlan
             calibration = read_calibration(section.calibration)
             depth = tested_sinkage(calibration, section.calibration)
             grid = fitted_node_spacing(calibration, section.calibration)
+            bed_soils(calibration, section.calibration)  # its beds' record read now, not at a --vary-bed run
         except CalibrationError as error:
             problems.append(f"terrain.calibration: {error}")
         else:
@@ -695,6 +698,11 @@ def _terrain(scene: Scene, wheel_count: int, problems: list[str]) -> TerrainPlan
                         f"terrain.calibration: {section.calibration}: [scm] {problem}, outside what SCM takes "
                         f"(terrain.{key} in the scene wins over the file's)"
                     )
+    if {"k_c", "k_phi"} & section.model_fields_set:  # named here, not as soil.ScmParameters at the run's start
+        if "k_c" in given and "k_phi" in given and given["k_c"] + given["k_phi"] <= 0:
+            problems.append(
+                "terrain.k_c, terrain.k_phi: k_c + k_phi = 0: the Bekker moduli carry no load; set one of them > 0"
+            )
     model = "scm"
     models: tuple[str, ...] = ()
     if section.wheels is not None:

@@ -95,6 +95,10 @@ def read_calibration(path: str) -> ScmCalibration:
             data = tomllib.loads(f.read().decode("utf-8-sig"))  # a byte-order mark is no TOML statement
     except (OSError, UnicodeDecodeError, tomllib.TOMLDecodeError) as error:
         raise CalibrationError(f"{path}: not a readable calibration file ({error})") from None
+    if "format" not in data:  # a scene or another TOML file given where a calibration goes
+        raise CalibrationError(
+            f"{path}: not an SCM calibration file (no `format` key; `cosim calibrate-scm` writes one)"
+        )
     if data.get("format") != FORMAT_VERSION:
         raise CalibrationError(f"{path}: format {data.get('format')!r}, this version reads format {FORMAT_VERSION}")
     for table in ("scm", "standard_error", "source"):
@@ -121,9 +125,14 @@ def read_calibration(path: str) -> ScmCalibration:
     )
 
 
+def _number(value) -> bool:
+    """A TOML number, not a boolean (Python counts true as 1)."""
+    return isinstance(value, (int, float)) and not isinstance(value, bool)
+
+
 def _finite_number(value) -> bool:
     """A TOML number (not a boolean), finite."""
-    return isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
+    return _number(value) and math.isfinite(value)
 
 
 def tested_sinkage(calibration: ScmCalibration, path: str = "") -> float | None:
@@ -131,13 +140,16 @@ def tested_sinkage(calibration: ScmCalibration, path: str = "") -> float | None:
     the wheel runs' rim sinkages (the upper ends of their 95 % intervals); None when the file does
     not say. CalibrationError names a [source] entry that is not a number."""
     source = calibration.source
+    where = f"{path}: " if path else ""
+    for name in ("plate", "wheel"):
+        if not isinstance(source.get(name, {}), dict):
+            raise CalibrationError(f"{where}[source] {name} must be a table, got {source[name]!r:.60}")
     try:
         depths = [float(source.get("plate", {}).get("max_sinkage_m", math.nan))]
         for run in source.get("wheel", {}).get("slips", []):
             spread = float(run.get("sinkage_ci95", 0.0))
             depths.append(float(run.get("sinkage", math.nan)) + (spread if math.isfinite(spread) else 0.0))
     except (AttributeError, TypeError, ValueError) as error:
-        where = f"{path}: " if path else ""
         keys = "[source.plate] max_sinkage_m or [source.wheel] slips' sinkage"
         raise CalibrationError(f"{where}{keys}: {error}") from None
     depths = [d for d in depths if math.isfinite(d) and d > 0]
@@ -148,7 +160,10 @@ def fitted_node_spacing(calibration: ScmCalibration, path: str = "") -> float | 
     """The node spacing [m] a wheel fit's SCM wheel ran on ([source.wheel] node_spacing_m); None when the
     file does not say (a lab calibration, a fit made before it was recorded). CalibrationError names an
     entry that is not a positive number."""
-    value = calibration.source.get("wheel", {}).get("node_spacing_m")
+    wheel = calibration.source.get("wheel", {})
+    if not isinstance(wheel, dict):
+        raise CalibrationError(f"{path + ': ' if path else ''}[source] wheel must be a table, got {wheel!r:.60}")
+    value = wheel.get("node_spacing_m")
     if value is None:
         return None
     if isinstance(value, bool) or not isinstance(value, (int, float)) or not value > 0:
@@ -169,9 +184,13 @@ def bed_soils(calibration: ScmCalibration, path: str = "") -> list[dict[str, flo
     where = f"{path}: " if path else ""
     fits = _bed_fits(calibration.source.get("replica_fits", {}), f"{where}[source.replica_fits]")
     wheel = calibration.source.get("wheel", {})
-    wheel = wheel if isinstance(wheel, dict) else {}
+    if not isinstance(wheel, dict):
+        raise CalibrationError(f"{where}[source] wheel must be a table (the wheel fit's record), got {wheel!r:.60}")
     wheel_fits = _bed_fits(wheel.get("replica_fits", {}), f"{where}[source.wheel.replica_fits]")
-    varied = {k: v for k, v in fits.items() if k not in set(wheel.get("fitted", []))}
+    fitted = wheel.get("fitted", [])
+    if not isinstance(fitted, list) or not all(isinstance(k, str) for k in fitted):
+        raise CalibrationError(f"{where}[source.wheel] fitted must be a list of SCM keys, got {fitted!r:.60}")
+    varied = {k: v for k, v in fits.items() if k not in set(fitted)}
     varied.update(wheel_fits)
     beds = max((len(v) for v in (wheel_fits or varied).values()), default=0)
     soils = []
@@ -191,8 +210,10 @@ def _bed_fits(fits, where: str) -> dict[str, list]:
     for key, values in fits.items():
         if key not in SOIL_KEYS:
             raise CalibrationError(f"{where} {key}: not an SCM key; allowed: {', '.join(SOIL_KEYS)}")
-        if not isinstance(values, list) or not all(isinstance(v, (int, float)) for v in values):
-            raise CalibrationError(f"{where} {key}: must be a list of numbers, got {values!r}")
+        if not isinstance(values, list) or not all(_number(v) for v in values):  # true was read as 1.0
+            raise CalibrationError(
+                f"{where} {key}: must be a list of numbers (nan: a bed's failed fit), got {values!r}"
+            )
     counts = {key: len(values) for key, values in fits.items()}
     if len(set(counts.values())) > 1:  # a value per bed, in bed order: lists of unequal length misalign the beds
         listed = ", ".join(f"{key} {count}" for key, count in counts.items())

@@ -271,10 +271,14 @@ class ScmSoil(SoilSideDefaults):
     """
 
     def __init__(self, terrain: ScmTerrain, time_step: float, rim_radii: Sequence[float]):
+        if isinstance(time_step, bool) or not isinstance(time_step, (int, float, np.floating)):
+            raise ArgumentError(f"time_step must be a number > 0 [s], got {time_step!r}")
         if not (math.isfinite(time_step) and time_step > 0):
             raise ArgumentError(f"time_step must be > 0 [s], got {time_step!r}")
         if len(rim_radii) != terrain.wheel_count:
             raise ArgumentError(f"rim_radii: {len(rim_radii)} radii for {terrain.wheel_count} wheels")
+        if not all(isinstance(r, (int, float, np.floating)) and math.isfinite(r) and r > 0 for r in rim_radii):
+            raise ArgumentError(f"rim_radii must be rim radii > 0 [m], got {list(rim_radii)!r}")  # sinkage's datum
         self.terrain = terrain
         self.time_step = float(time_step)
         self.wheel_count = terrain.wheel_count
@@ -404,6 +408,8 @@ class ScmSoil(SoilSideDefaults):
     def highest_point_under(self, wheel: int, hub: ArrayLike, axle: ArrayLike = (0.0, 1.0, 0.0)) -> float:
         """SoilSide: the highest node of the height field inside the wheel's footprint (its outer
         radius along the ground, its width along the axle); the undisturbed surface outside the window."""
+        if not 0 <= wheel < self.terrain.wheel_count:
+            raise ArgumentError(f"wheel must be in [0, {self.terrain.wheel_count}), got {wheel!r}")
         shape = self.terrain.wheels[wheel]
         reach = shape.outer_radius
         half_width = 0.5 * shape.width if isinstance(shape, GrouserWheel) else float(np.abs(shape.vertices[:, 1]).max())

@@ -75,6 +75,21 @@ class SpringDamperTerrain(SoilSideDefaults):
     ):
         if traction not in ("coulomb", "slip"):
             raise ArgumentError(f"traction must be 'coulomb' or 'slip', got {traction!r}")
+        # a negative stiffness let the rover fall through the ground, a negative friction pushed it on
+        for name, value, strict, unit in (
+            ("stiffness", stiffness, True, "N/m"),
+            ("damping", damping, False, "N s/m"),
+            ("friction", friction, False, "-"),
+            ("slip_scale", slip_scale, True, "-"),
+            ("slip_velocity", slip_velocity, True, "m/s"),
+        ):
+            number = value if isinstance(value, (int, float, np.floating)) and not isinstance(value, bool) else None
+            if number is None or not np.isfinite(number) or number < 0 or (strict and number == 0):
+                raise ArgumentError(
+                    f"{name} must be a finite number {'>' if strict else '>='} 0 [{unit}], got {value!r}"
+                )
+        if isinstance(substeps, bool) or not isinstance(substeps, (int, np.integer)) or substeps < 1:
+            raise ArgumentError(f"substeps must be a whole number >= 1, got {substeps!r}")
         self.wheel_count = int(wheel_count)
         self.wheel_radius = np.broadcast_to(np.asarray(wheel_radius, dtype=np.float64), (self.wheel_count,)).copy()
         """Wheel radii [m], shape (wheel_count,)."""

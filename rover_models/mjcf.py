@@ -12,6 +12,9 @@ Conventions shared by every model here (and expected by MujocoRover / the terrai
 
 from __future__ import annotations
 
+import math
+import numbers
+
 
 def _cylinder_inertia(mass: float, radius: float, width: float) -> tuple[float, float, float]:
     """Principal inertia [kg m^2] of a solid cylinder whose axis is y: (Ixx, Iyy, Izz)."""
@@ -88,6 +91,28 @@ MMX_WHEELS = ("wheel_fl", "wheel_fr", "wheel_rl", "wheel_rr")
 """Wheel body names of the MMX-like rover, front-left, front-right, rear-left, rear-right."""
 
 
+def _check_mmx(values: dict) -> None:
+    """mmx_rover_xml's arguments as [rover.mmx] takes them (cosim.scene.MmxSection): a negative mass
+    compiled and ran as another rover, a nan timestep froze it. ArgumentError naming the argument."""
+    from soil.errors import ArgumentError
+
+    def real(value) -> bool:
+        return isinstance(value, numbers.Real) and not isinstance(value, bool) and math.isfinite(value)
+
+    positive = ("wheel_radius", "wheel_width", "body_mass", "leg_mass", "wheel_mass", "wheelbase", "track")
+    for name in (*positive, "motor_kv", "timestep", "leg_drop", "clearance"):
+        value = values[name]
+        at_least = 0.0 if name in ("leg_drop", "clearance") else None
+        if not real(value) or (value < at_least if at_least is not None else value <= 0):
+            allowed = ">= 0" if at_least is not None else "> 0"
+            raise ArgumentError(f"mmx_rover_xml: {name} must be a finite number {allowed}, got {value!r}")
+    for name, count in (("body_size", 3), ("gravity", 3)):
+        vector = tuple(values[name])
+        if len(vector) != count or not all(real(v) and (name == "gravity" or v > 0) for v in vector):
+            what = "three sizes > 0 [m]" if name == "body_size" else "three finite numbers [m/s^2]"
+            raise ArgumentError(f"mmx_rover_xml: {name} must be {what}, got {values[name]!r}")
+
+
 def mmx_rover_xml(
     wheel_radius: float = 0.1,
     wheel_width: float = 0.06,
@@ -110,6 +135,7 @@ def mmx_rover_xml(
     (+-wheelbase/2, +-track/2, -leg_drop) from the body centre [m]. With clearance 0 the
     wheels start touching z = 0. Masses [kg]: total = body + 4 (leg + wheel).
     """
+    _check_mmx(locals())
     sx, sy, sz = body_size
     z_body = wheel_radius + leg_drop + clearance
     ibx = _box_inertia(body_mass, sx, sy, sz)

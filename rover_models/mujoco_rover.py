@@ -24,6 +24,7 @@ its implicit damping, so a stiff motor then needs a smaller timestep.
 
 from __future__ import annotations
 
+import math
 import os
 from collections.abc import Sequence
 
@@ -77,10 +78,17 @@ class MujocoRover:
     ):
         self.model = load_model(model)
         self.data = mujoco.MjData(self.model)
+        if isinstance(wheel_bodies, str):  # a name where the list goes would be read letter by letter
+            raise ArgumentError(f"wheel_bodies must be a list of body names: [{wheel_bodies!r}]")
         self.wheel_names = list(wheel_bodies)
         """Wheel body names, in wheel order."""
         if not self.wheel_names:
             raise ArgumentError("wheel_bodies is empty: name at least one wheel body")
+        twice = sorted({n for n in self.wheel_names if self.wheel_names.count(n) > 1})
+        if twice:  # one body's wrench would be written once per name, the last one kept
+            raise ArgumentError(f"wheel_bodies names {twice} more than once; each wheel body once")
+        if not (math.isfinite(self.model.opt.timestep) and self.model.opt.timestep > 0):
+            raise ArgumentError(f"the MJCF's option timestep must be > 0 [s], got {self.model.opt.timestep}")
         bodies = [self.model.body(i).name for i in range(self.model.nbody)]
         missing = [n for n in self.wheel_names if n not in bodies]
         if missing:
@@ -151,7 +159,10 @@ class MujocoRover:
         return float(self.data.time)
 
     def set_gravity(self, gravity: Sequence[float]) -> None:
-        self.model.opt.gravity[:] = np.asarray(gravity, dtype=np.float64).reshape(3)
+        vector = np.asarray(gravity, dtype=np.float64).reshape(-1)
+        if vector.shape != (3,) or not np.all(np.isfinite(vector)):  # nan read later as "became unstable"
+            raise ArgumentError(f"gravity must be 3 finite numbers [m/s^2], got {gravity!r}")
+        self.model.opt.gravity[:] = vector
 
     def wheel_kinematics(self) -> list[WheelKinematics]:
         out = []
@@ -199,6 +210,8 @@ class MujocoRover:
     def advance(self, t_end: float) -> None:
         """Step MuJoCo with its own timestep until exactly t_end [s] (the last step shortened)."""
         t_end = float(t_end)
+        if not math.isfinite(t_end):  # nan set the time to nan, inf stepped for ever
+            raise ArgumentError(f"t_end must be a finite time [s], got {t_end}")
         if t_end < self.data.time - 1e-12:
             raise ArgumentError(f"cannot advance backwards: rover time {self.data.time}, t_end {t_end}")
         # A remainder below this is rounding, not a step worth taking.

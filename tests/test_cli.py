@@ -124,8 +124,15 @@ def test_advise_prints_the_bounds_and_the_validity_checks(cli_run, capsys):
         "grains_across",
         "floor_clearance",
         "verdict: out of range",
+        "DEM steps (E = ",  # what the stiffness costs: a soil 1e8 x the bound was "valid" at 1e8 steps unsaid
     ):
         assert words in text, words
+    # a soil too large for the machine is in the verdict, as a run refuses it (it was a line apart)
+    assert main(["advise", scene, "--set", "bed.radius_mean=1e-5"]) == 0
+    text = capsys.readouterr().out
+    assert "[OUT OF RANGE] memory:" in text and "memory" in text.split("verdict:")[1].split("\n")[0], text
+    assert main(["advise", scene]) == 0
+    assert "memory" not in capsys.readouterr().out.split("verdict:")[1]  # the tiny scene fits
 
 
 def test_resume_of_a_complete_run_does_nothing(cli_run, capsys):

@@ -201,6 +201,57 @@ def test_wheel_count_mismatch_and_bad_arguments():
         DriveCommand("power", [1.0])
 
 
+@pytest.mark.parametrize(
+    "make, words",
+    [
+        (lambda: Coupler(SpringDamperTerrain(0.1, 1), _rig(), float("inf")), "macro_step must be a finite number"),
+        (lambda: Coupler(SpringDamperTerrain(0.1, 1), _rig(), "0.01"), "macro_step must be a finite number"),
+        (lambda: Coupler(SpringDamperTerrain(0.1, 1), _rig(), 1e-3, scheme=None), "scheme must be"),
+        (lambda: Coupler(SpringDamperTerrain(0.1, 1), _rig(), 1e-3).run(float("nan")), "t_end must be a finite"),
+        (lambda: Coupler(SpringDamperTerrain(0.1, 1), _rig(), 1e-3).run(-1.0), "not before the coupler's"),
+        (lambda: SpringDamperTerrain(0.1, 1, stiffness=-2e4), "stiffness must be a finite number > 0"),
+        (lambda: SpringDamperTerrain(0.1, 1, friction=-1.0), "friction must be a finite number >= 0"),
+        (lambda: SpringDamperTerrain(0.1, 1, substeps=0), "substeps must be a whole number >= 1"),
+        (lambda: _rig().advance(float("nan")), "t_end must be a finite time"),
+        (lambda: _rig().advance(float("inf")), "t_end must be a finite time"),
+        (lambda: MujocoRover(mmx_rover_xml(), ["wheel_fl", "wheel_fl"]), r"names \['wheel_fl'\] more than once"),
+        (lambda: MujocoRover(mmx_rover_xml(), "wheel_fl"), r"must be a list of body names: \['wheel_fl'\]"),
+        (lambda: mmx_rover_xml(body_mass=-17.0), "body_mass must be a finite number > 0"),
+        (lambda: mmx_rover_xml(timestep=float("nan")), "timestep must be a finite number > 0"),
+    ],
+    ids=[
+        "infinite macro step",
+        "macro step as text",
+        "no scheme",
+        "run to nan",
+        "run backwards",
+        "negative stiffness",
+        "negative friction",
+        "no substeps",
+        "rover to nan",
+        "rover to inf",
+        "a wheel twice",
+        "a name for the list",
+        "negative mass",
+        "nan timestep",
+    ],
+)
+def test_the_coupling_apis_refuse_what_would_hang_or_run_wrong(make, words):
+    """An infinite macro step or rover time looped for ever; nan times turned the clocks nan; run(-1) gave
+    no records silently; a negative ground stiffness let the rover fall through it and a negative friction
+    pushed it on; a wheel named twice dropped one wrench; a negative mass or a nan timestep compiled into
+    another rover. Each is an ArgumentError naming the argument."""
+    with pytest.raises(ValueError, match=words):
+        make()
+
+
+def test_a_controller_that_returns_no_drive_command_is_named():
+    from cosim.controllers import apply_command
+
+    with pytest.raises(ValueError, match="a drive controller must return a DriveCommand, got str"):
+        apply_command(_rig(), "fast")
+
+
 def test_records_and_schemes():
     """Records have documented shapes; Jacobi's first step holds a zero wrench (lag)
     while Gauss-Seidel's already holds the soil's answer for that step."""

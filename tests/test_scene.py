@@ -98,6 +98,13 @@ BAD_SCENES = [
     ("DEM step of 1e-12 s", "[run]\ndt = 1e-12\nmacro_step = 1e-3\n", "run.dt", "steps of landing (DEM steps)"),
     ("macro step of 1e-12 s", "[run]\nmacro_step = 1e-12\n", "run.macro_step", "steps of landing (macro steps)"),
     ("SCM step of 1e-12 s", SCM_TERRAIN + "time_step = 1e-12\n", "terrain.time_step", "steps of landing (SCM"),
+    # named as soil.ScmParameters at the run's start before
+    (
+        "Bekker moduli both 0",
+        SCM_TERRAIN.replace("2.0e3", "0.0").replace("8.0e5", "0.0"),
+        "terrain.k_c, terrain.k_phi",
+        "carry no load",
+    ),
 ]
 
 

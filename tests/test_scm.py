@@ -363,3 +363,25 @@ def test_bad_terrain_inputs_are_refused():
     wide = ScmTerrain(parameters(), [GrouserWheel(0.1, 0.04)], window=(0.5, 0.2), centre=(0.0, 0.0))
     with pytest.raises(SoilInputError, match="leaves the SCM window"):  # driven out of a fixed window
         wide.advance(10.0, 0.01, [[0, 0, 0.09]], UPRIGHT, [[0.1, 0, 0]])
+
+
+def test_a_single_step_is_checked_as_advance_is():
+    """step(dt) took a negative or nan dt (the terrain's time turned nan) and drove a wheel out of a fixed
+    window to a force of 0 without a word; numpy's float32 steps and sizes were refused as not numbers;
+    one wheel shape where the list goes was "'GrouserWheel' object is not iterable"."""
+    wide = ScmTerrain(parameters(), [GrouserWheel(0.1, 0.04)], window=(0.5, 0.2), centre=(0.0, 0.0))
+    wide.set_wheels([[0, 0, 0.09]], UPRIGHT, [[0.1, 0, 0]])
+    for dt in (-0.01, math.nan, math.inf):
+        with pytest.raises(SoilInputError, match="dt must be >= 0"):
+            wide.step(dt)
+    assert wide.time == 0.0
+    wide.step(np.float32(0.01))  # a numpy step is a step
+    with pytest.raises(SoilInputError, match="leaves the SCM window"):
+        for _ in range(2000):  # 0.1 m/s out of a window 0.5 m long: out within 1.5 s
+            wide.step(0.01)
+    assert wide.time < 1.6
+    ScmTerrain(
+        parameters(), [GrouserWheel(0.1, 0.04)], window=(np.float32(0.5), np.int64(1)), surface_height=np.float32(0)
+    )
+    with pytest.raises(SoilInputError, match=r"wheels must be a list of wheel shapes: \[GrouserWheel"):
+        ScmTerrain(parameters(), GrouserWheel(0.1, 0.04), window=(0.5, 0.2))

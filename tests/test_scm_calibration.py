@@ -198,6 +198,29 @@ def test_a_calibration_file_of_the_wrong_types_is_refused_naming_the_file_and_ke
     assert str(path) in str(error.value) and named in str(error.value), str(error.value)
 
 
+@pytest.mark.parametrize(
+    "source, named",
+    [
+        ({"replica_fits": {"k_c": [True, False]}}, "[source.replica_fits] k_c: must be a list of numbers"),
+        ({"wheel": {"fitted": 5}}, "[source.wheel] fitted must be a list of SCM keys, got 5"),
+        ({"wheel": 5}, "[source] wheel must be a table"),
+        ({"plate": "deep"}, "[source] plate must be a table"),
+    ],
+    ids=["booleans per bed", "fitted a number", "wheel a number", "plate a text"],
+)
+def test_a_calibrations_record_of_the_wrong_types_is_refused_when_the_scene_is_planned(tmp_path, source, named):
+    """true / false in a bed's fits were read as 1.0 and 0.0 (a replica ran with k_c = 0); `fitted = 5`
+    was a TypeError (exit 1) at a --vary-bed run, after advise had called the scene valid."""
+    path = tmp_path / "terrain.toml"
+    calibration = _calibration(1.625)
+    calibration.source.update(source)
+    write_calibration(str(path), calibration)
+    scene = write_tiny(tmp_path, f'\n[terrain]\nmodel = "scm"\ncalibration = "{path.name}"\n')
+    with pytest.raises(SceneError) as error:
+        load_plan(scene)
+    assert f"terrain.calibration: {path}: {named}" in str(error.value), str(error.value)
+
+
 def test_a_calibration_path_that_is_no_regular_file_is_refused_without_reading_it(tmp_path):
     """A FIFO waited forever for a writer and /dev/zero was read until memory ran out; a folder and a
     missing path are named the same way."""
@@ -508,6 +531,7 @@ def test_calibrate_scm_from_wheel_writes_the_fit_and_refuses_misplaced_options(t
 
     import cosim.lab.scm_wheel as scm_wheel
     from cosim.cli import main
+    from cosim.plan import load_plan
 
     scene = os.path.join(os.path.dirname(__file__), "..", "examples", "phobos_single_wheel.toml")
     lab_path = tmp_path / "lab.toml"
@@ -515,7 +539,8 @@ def test_calibrate_scm_from_wheel_writes_the_fit_and_refuses_misplaced_options(t
     write_calibration(str(lab_path), ScmCalibration(lab, {k: 0.1 for k in SOIL_KEYS}, 5.7e-3, {"scene": "x"}))
     rows = [{"slip_set": s, "steady": 2, "slip_mean": s, "sinkage_mean": 0.008} for s in (0.1, 0.4)]
     (tmp_path / "study").mkdir()
-    (tmp_path / "study" / "study.json").write_text(json.dumps({"kind": "slip", "wheel_load": 1.7e-3, "rows": rows}))
+    load = load_plan(scene).wheel_load
+    (tmp_path / "study" / "study.json").write_text(json.dumps({"kind": "slip", "wheel_load": load, "rows": rows}))
     seen = {}
 
     def fit(plan, targets, start, runs=None, max_runs=0):
@@ -573,6 +598,36 @@ def test_calibrate_scm_from_wheel_writes_the_fit_and_refuses_misplaced_options(t
     err = capsys.readouterr().err
     assert err.startswith(f"cosim: error: {damaged}: ") and "unexpected" not in err, err
     assert not (tmp_path / "y.toml").exists()
+
+    # a slip study of another wheel load, gravity or wheel: its drawbar pulls were divided by this
+    # scene's load and the fit written without a word (exit 0, rms residual 762 tolerances)
+    moon = open(scene).read().replace('gravity = "phobos"', 'gravity = "moon"')
+    for foreign, named in (
+        ({"wheel_load": 2 * load}, "a wheel load of"),
+        ({"wheel_load": load, "scene_toml": moon}, "gravity [0.0, 0.0, -1.62"),
+        (
+            {"wheel_load": load, "scene_toml": open(scene).read().replace("radius = 0.03", "radius = 0.05")},
+            "wheel.radius",
+        ),
+    ):
+        assert "phobos" in open(scene).read() and "radius = 0.03" in open(scene).read()
+        (tmp_path / "study" / "study.json").write_text(json.dumps({"kind": "slip", "rows": rows, **foreign}))
+        assert main(["calibrate-scm", scene, "--out", str(tmp_path / "z.toml"), *args]) == 2
+        err = capsys.readouterr().err
+        assert "--wheel-runs" in err and "its runs are not this scene's wheel" in err and named in err, err
+    assert not (tmp_path / "z.toml").exists()
+    # --out the file it reads (the scene, the lab file) is refused even with --overwrite: it was replaced
+    for path in (scene_copy := tmp_path / "scene.toml", lab_path):
+        scene_copy.write_text(open(scene).read())
+        before = path.read_bytes()
+        assert main(["calibrate-scm", str(scene_copy), "--out", str(path), "--overwrite", *args]) == 2
+        assert "the command reads; write to another file" in capsys.readouterr().err
+        assert path.read_bytes() == before
+    # what --from-wheel needs is checked before the lab's DEM tests (an hour), not after them
+    work = tmp_path / "w_runs"
+    for extra, named in ((["--slips", "0.1"], "--slips"), (["--slips", "abc,0.2"], "--slips")):
+        assert main(["calibrate-scm", scene, "--out", str(tmp_path / "w.toml"), "--from-wheel", *extra]) == 2
+        assert named in capsys.readouterr().err and not work.exists()
 
 
 def test_a_calibration_file_is_written_whole_or_not_at_all(tmp_path, monkeypatch):
@@ -776,13 +831,14 @@ def test_a_slip_study_of_the_wrong_shape_is_named_for_the_wheel_fit(tmp_path, ca
     import os
 
     from cosim.cli import main
+    from cosim.plan import load_plan
 
     scene = os.path.join(os.path.dirname(__file__), "..", "examples", "phobos_single_wheel.toml")
     lab_path = tmp_path / "lab.toml"
     write_calibration(str(lab_path), ScmCalibration({k: 1.0 for k in SOIL_KEYS}, {}, 5.7e-3, {"scene": "x"}))
     rows = [{"slip_set": s, "steady": 2, "slip_mean": s, "sinkage_mean": 0.008} for s in (0.1, 0.4)]
     (tmp_path / "study").mkdir()
-    study = {"kind": "slip", "wheel_load": 1.7e-3, "rows": rows, **damage}
+    study = {"kind": "slip", "wheel_load": load_plan(scene).wheel_load, "rows": rows, **damage}
     (tmp_path / "study" / "study.json").write_text(json.dumps(study))
     args = ["--from-wheel", "--lab", str(lab_path), "--wheel-runs", str(tmp_path / "study")]
     assert main(["calibrate-scm", scene, "--out", str(tmp_path / "wheel.toml"), *args]) == 2
@@ -814,3 +870,10 @@ def test_a_stop_asked_for_during_one_beds_wheel_fit_stops_every_bed(monkeypatch)
     assert fits == [0]  # bed 1 not fitted after the stop
     failed = scm_wheel.fit_beds(plan, targets[1:], [{"k": 1}], runs=None)
     assert failed[0]["ok"] is False and "ValueError: no bracket" in failed[0]["error"]
+
+
+def test_a_scene_given_as_a_calibration_is_named_as_none(tmp_path):
+    """A scene given as --lab or terrain.calibration said "format None, this version reads format 1"."""
+    scene = write_tiny(tmp_path)
+    with pytest.raises(CalibrationError, match=r"not an SCM calibration file \(no `format` key"):
+        read_calibration(scene)

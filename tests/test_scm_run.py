@@ -445,3 +445,19 @@ def test_the_traverse_example_lands_and_drives_its_rover_forward(tmp_path):
     driving = series["phase"] == PHASE_DRIVING
     assert driving.sum() == 30 and np.all(series["contact_count"][driving] > 0)
     assert series["rover_travel"][-1] > 0.005  # [m] it moves off from rest in 3 s at 6 mm/s
+
+
+def test_an_scm_soil_names_a_step_a_rim_or_a_wheel_it_cannot_take():
+    """ScmSoil(time_step="0.001") was a TypeError, a negative rim radius gave that sinkage without a word,
+    and highest_point_under(5) an IndexError."""
+    from soil import GrouserWheel
+    from soil.errors import ArgumentError
+    from soil.scm import ScmParameters, ScmTerrain
+
+    parameters = ScmParameters(2.0e3, 8.0e5, 1.1, 50.0, math.radians(30.0), 0.002, 2.0e7, 0.005)
+    terrain = ScmTerrain(parameters, [GrouserWheel(0.05, 0.02)], window=(0.3, 0.2))
+    for time_step, rims, words in (("0.001", [0.05], "time_step must be a number"), (1e-3, [-0.05], "rim_radii")):
+        with pytest.raises(ArgumentError, match=words):
+            ScmSoil(terrain, time_step, rims)
+    with pytest.raises(ArgumentError, match=r"wheel must be in \[0, 1\), got 5"):
+        ScmSoil(terrain, 1e-3, [0.05]).highest_point_under(5, (0.0, 0.0, 0.05))

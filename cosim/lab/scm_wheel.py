@@ -121,6 +121,39 @@ def _read_study(study_folder: str) -> tuple[str, dict]:
     return path, study
 
 
+def check_study_scene(study_folder: str, plan) -> None:
+    """Refuse a slip study whose runs were another wheel, wheel load or gravity than the RunPlan `plan`'s
+    (ArgumentError naming --wheel-runs and its study.json): its targets would be fitted as this wheel's,
+    the fit then quietly far off (a drawbar pull divided by another load)."""
+    from soil.errors import ArgumentError
+    from soil.gravity import gravity_vector
+
+    from ..scene import SceneError, scene_from_text
+
+    path, study = _read_study(study_folder)
+    differ = []
+    if not math.isclose(float(study["wheel_load"]), plan.wheel_load, rel_tol=1e-9):
+        differ.append(f"a wheel load of {study['wheel_load']:.6g} N (the scene's {plan.wheel_load:.6g} N)")
+    text = study.get("scene_toml")
+    if isinstance(text, str):
+        try:
+            scene = scene_from_text(text)
+        except SceneError as error:
+            raise DamagedFileError(f"{path}: its scene_toml is no scene this version reads ({error})") from None
+        gravity = gravity_vector(scene.scene.gravity)
+        if not np.allclose(gravity, plan.gravity, rtol=1e-9, atol=0):
+            differ.append(f"gravity {gravity.tolist()} m/s^2 (the scene's {np.asarray(plan.gravity).tolist()})")
+        wheel, own = (s.wheel.model_dump(exclude={"file"}) for s in (scene, plan.scene))
+        changed = sorted(k for k in own if wheel.get(k) != own[k])
+        if changed:
+            differ.append(f"another wheel (wheel.{', wheel.'.join(changed)})")
+    if differ:
+        raise ArgumentError(
+            f"--wheel-runs {path}: the slip study ran {'; '.join(differ)}: its runs are not this scene's wheel; "
+            "run `cosim study slip SCENE` on this scene, or give the scene the study ran"
+        )
+
+
 def _study_shape_problem(study: dict) -> str | None:
     """What in a slip study's content the wheel fit cannot read (None: it reads it): rows and runs lists
     of objects, the rows' slip_set numbers and averaged / steady counts, averaged_states a list of names."""

@@ -1,6 +1,7 @@
 """The SCM terrain's host side: its parameters, state and stepping (soil.scm explains the model)."""
 
 import math
+import numbers
 from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import NamedTuple
@@ -49,6 +50,11 @@ SCM_PARAMETER_UNITS = {
     "erosion_iterations": "count",
 }
 """The unit of each ScmParameters field."""
+
+
+def _real(value) -> bool:
+    """A real number, numpy's included (np.float32(1e-3) is a step), not a boolean."""
+    return isinstance(value, numbers.Real) and not isinstance(value, bool)
 
 
 @dataclass(frozen=True)
@@ -253,19 +259,19 @@ class ScmTerrain:
         """
         if not isinstance(parameters, ScmParameters):
             raise SoilInputError(f"parameters must be ScmParameters, got {type(parameters).__name__}")
+        if isinstance(wheels, (GrouserWheel, MeshWheel)):  # one shape where the list of them goes
+            raise SoilInputError(f"wheels must be a list of wheel shapes: [{type(wheels).__name__}(...)]")
         wheels = list(wheels)
         if not wheels:
             raise SoilInputError("wheels must name at least one wheel (GrouserWheel or MeshWheel)")
         for index, wheel in enumerate(wheels):
             if not isinstance(wheel, (GrouserWheel, MeshWheel)):
                 raise SoilInputError(f"wheels[{index}] must be a GrouserWheel or MeshWheel, got {type(wheel).__name__}")
-        if len(window) != 2 or not all(isinstance(s, (int, float)) and math.isfinite(s) and s > 0 for s in window):
+        if len(window) != 2 or not all(_real(s) and math.isfinite(s) and s > 0 for s in window):
             raise SoilInputError(f"window must be two sizes > 0 [m], got {window!r}")
-        if not (isinstance(surface_height, (int, float)) and math.isfinite(surface_height)):
+        if not (_real(surface_height) and math.isfinite(surface_height)):
             raise SoilInputError(f"surface_height must be a finite number [m], got {surface_height!r}")
-        if centre is not None and (
-            len(centre) != 2 or not all(isinstance(c, (int, float)) and math.isfinite(c) for c in centre)
-        ):
+        if centre is not None and (len(centre) != 2 or not all(_real(c) and math.isfinite(c) for c in centre)):
             raise SoilInputError(f"centre must be None or two finite numbers (x, y) [m], got {centre!r}")
         self.parameters = parameters
         self.wheels = wheels
@@ -550,7 +556,10 @@ class ScmTerrain:
     def step(self, dt: float) -> None:
         """One step of dt [s] with the wheels at their pose at the current time; then the time moves on and
         the wheels follow their path (its clock is on the device). No host read: the launches of a step
-        can be captured in a CUDA graph and replayed for a fixed dt."""
+        can be captured in a CUDA graph and replayed for a fixed dt (the checks below are on the host)."""
+        if not (_real(dt) and math.isfinite(dt) and dt >= 0):  # 0: the wrench where the wheels stand
+            raise SoilInputError(f"dt must be >= 0 [s], got {dt!r}")
+        self._check_window(self.time + dt - self._path_start)  # as advance: a wheel out of it pressed nothing
         self._evaluate(dt)
         self._pose(dt)
         self.time += dt
@@ -589,7 +598,7 @@ class ScmTerrain:
         """Run from the current time to `end_time` [s] in equal steps of at most dt [s]; the wheels start
         from the given kinematics (see set_wheels; None: they go on along their current path). Returns
         the number of steps. `wheel_contact(mean=True)` then gives the means over these steps."""
-        if not (isinstance(dt, (int, float)) and math.isfinite(dt) and dt > 0):
+        if not (_real(dt) and math.isfinite(dt) and dt > 0):
             raise SoilInputError(f"dt must be > 0 [s], got {dt!r}")
         span = float(end_time) - self.time
         if not math.isfinite(span) or span <= 0:
