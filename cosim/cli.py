@@ -258,7 +258,7 @@ def advise_lines(plan) -> list[str]:
 
     from . import advice
     from .scm_soil import check_scm_grid
-    from .system import TERRAIN_MODELS
+    from .system import TERRAIN_MODELS, needs_bed
 
     lines = _scm_advice(plan) if plan.terrain.model == "scm" else _dem_advice(plan)
     if plan.terrain.model == "mixed":
@@ -273,7 +273,7 @@ def advise_lines(plan) -> list[str]:
         findings.append(
             advice.Finding("scm_grid_size", math.nan, math.nan, False, str(refused), "terrain.node_spacing")
         )
-    if plan.terrain.model != "scm":  # the grains' memory, which a run also refuses before it starts
+    if needs_bed(plan):  # the grains' memory, which a run also refuses before it starts
         from .beds import memory_estimate
 
         memory = memory_estimate(plan)
@@ -339,6 +339,7 @@ def _dem_advice(plan) -> list[str]:
     from soil import advisor
 
     from . import advice
+    from .system import needs_bed
 
     spec = plan.bed.spec
     material = plan.soil_material
@@ -359,11 +360,13 @@ def _dem_advice(plan) -> list[str]:
         f"{steps.critical_step:.4g} s)",
         f"  the scene uses dt = {plan.dt:.4g} s, macro step H = {plan.macro_step:.4g} s ({plan.substeps} substeps); "
         + ("dt is within the advised limit" if plan.dt <= steps.dt_max else "dt is ABOVE the advised limit"),
-        # what a stiffer soil costs: a step ~ 1/sqrt(E), so E far above the eq. 10 bound is paid here
-        f"  the drive's {plan.scene.run.duration:.4g} s take {plan.scene.run.duration / plan.dt:.3g} DEM steps "
-        f"(E = {material.youngs_modulus / e_min if e_min > 0 else math.nan:.3g} x the eq. 10 bound; the step "
-        "scales as 1/sqrt(E))",
     ]
+    if needs_bed(plan):  # what a stiffer soil costs: a step ~ 1/sqrt(E), so E far above the eq. 10 bound is paid
+        lines.append(
+            f"  the drive's {plan.scene.run.duration:.4g} s take {plan.scene.run.duration / plan.dt:.3g} DEM steps "
+            f"(E = {material.youngs_modulus / e_min if e_min > 0 else math.nan:.3g} x the eq. 10 bound; the step "
+            "scales as 1/sqrt(E))"
+        )
     from .beds import memory_estimate
 
     memory = memory_estimate(plan)
@@ -795,11 +798,11 @@ def _check_from_wheel(args) -> None:
     """What --from-wheel needs, checked before the lab's DEM tests (an hour) rather than after them: a
     single-wheel scene, --lab and --start calibrated at its gravity, --wheel-runs a slip study of this
     wheel with two or more steady slips, or --slips two or more slips."""
-    from soil.errors import ArgumentError
 
     from .lab.scm_wheel import check_study_scene, wheel_targets
     from .scene import SceneError, parse_list
     from .scm_calibration import read_calibration, same_gravity
+    from .study import check_slips
 
     plan = _plan(args)
     if plan.rover is not None:
@@ -810,10 +813,8 @@ def _check_from_wheel(args) -> None:
     if args.wheel_runs:
         check_study_scene(args.wheel_runs, plan)
         wheel_targets(args.wheel_runs)  # two or more steady slips
-    elif len(slips := parse_list(args.slips, "--slips")) < 2 or not all(
-        isinstance(s, (int, float)) and not isinstance(s, bool) for s in slips
-    ):
-        raise ArgumentError(f"--slips {args.slips!r}: two or more slips (numbers) for the wheel fit, e.g. 0.1,0.3,0.5")
+    else:  # the slip study's own checks, two slips at least: a fit to one is no fit
+        check_slips(plan, parse_list(args.slips, "--slips"), least=2)
 
 
 def _relative_to_file(out: str, path: str) -> str:

@@ -761,6 +761,29 @@ def precision_study(
 # drawbar pull / slip
 
 
+def check_slips(plan: RunPlan, slips, least: int = 1) -> list[float]:
+    """The slips of a slip study as numbers, each in (-1, 1), none twice to 3 decimals, at least `least`
+    of them, each a valid scene (SceneError naming --slips otherwise): checked before anything runs."""
+    try:
+        if any(isinstance(s, bool) for s in slips):  # true is no slip of 1
+            raise TypeError
+        slips = [float(s) for s in slips]
+    except (TypeError, ValueError):
+        raise SceneError([f"--slips: {list(slips)!r} must be numbers in (-1, 1)"]) from None
+    problems = [f"--slips: {s} must be in (-1, 1)" for s in slips if not -1 < s < 1]
+    problems += [
+        f"--slips: {s} given twice (to 3 decimals: its runs would share a folder)"
+        for s in _repeated(f"{s:+.3f}" for s in slips)
+    ]
+    if len(slips) < least:
+        problems.append(f"--slips: give at least {least} slip{'s' if least > 1 else ''}")
+    if problems:
+        raise SceneError(problems)
+    for s in slips:  # every point must be a valid scene before anything runs
+        plan.with_changes(**{"testbed.mode": "slip", "testbed.slip": s})
+    return slips
+
+
 def slip_study(
     plan: RunPlan,
     out_dir: str,
@@ -781,23 +804,9 @@ def slip_study(
     batched: every slip's replicas as worlds of one simulation (cosim.batch; each run bit for bit as
     alone; over beds too, world k of each slip on bed k); None: when the device is a GPU and the
     scene can be batched."""
-    try:
-        slips = [float(s) for s in slips]
-    except (TypeError, ValueError):
-        raise SceneError([f"--slips: {list(slips)!r} must be numbers in (-1, 1)"]) from None
-    problems = [f"--slips: {s} must be in (-1, 1)" for s in slips if not -1 < s < 1]
-    problems += [
-        f"--slips: {s} given twice (to 3 decimals: its runs would share a folder)"
-        for s in _repeated(f"{s:+.3f}" for s in slips)
-    ]
-    if not slips:
-        problems.append("--slips: give at least one slip")
     if replicas < 1:
-        problems.append(f"--replicas: must be >= 1, got {replicas}")
-    if problems:
-        raise SceneError(problems)
-    for s in slips:  # every point must be a valid scene before anything runs
-        plan.with_changes(**{"testbed.mode": "slip", "testbed.slip": s})
+        raise SceneError([f"--replicas: must be >= 1, got {replicas}"])
+    slips = check_slips(plan, slips)
     soils = _check_variation(plan, vary, replicas)
     batched = _batching(plan, batched)
     out_dir = os.path.abspath(out_dir)

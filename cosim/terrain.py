@@ -19,6 +19,7 @@ fed the same states get the same wrenches (used to compare MuJoCo with FMU rover
 
 from __future__ import annotations
 
+import numbers
 from collections.abc import Sequence
 
 import numpy as np
@@ -83,7 +84,7 @@ class SpringDamperTerrain(SoilSideDefaults):
             ("slip_scale", slip_scale, True, "-"),
             ("slip_velocity", slip_velocity, True, "m/s"),
         ):
-            number = value if isinstance(value, (int, float, np.floating)) and not isinstance(value, bool) else None
+            number = value if isinstance(value, numbers.Real) and not isinstance(value, bool) else None
             if number is None or not np.isfinite(number) or number < 0 or (strict and number == 0):
                 raise ArgumentError(
                     f"{name} must be a finite number {'>' if strict else '>='} 0 [{unit}], got {value!r}"

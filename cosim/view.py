@@ -274,7 +274,9 @@ def render(
     out = out or own
     kind = _output_kind(out)
     old_frames = _free_output(out, kind, overwrite or os.path.abspath(out) == own)
-    check_results(path, data=False)  # a damaged header named before an old picture or frame is touched
+    # damage named before anything is touched: a picture or movie is written whole at the end, so the
+    # headers suffice; a folder of frames loses its old frames as the new ones come, so every byte is read
+    check_results(path, data=kind == "frames")
     with open_results(path) as f:
         count = snapshot_count(f)
         if count == 0:

@@ -133,6 +133,10 @@ def test_advise_prints_the_bounds_and_the_validity_checks(cli_run, capsys):
     assert "[OUT OF RANGE] memory:" in text and "memory" in text.split("verdict:")[1].split("\n")[0], text
     assert main(["advise", scene]) == 0
     assert "memory" not in capsys.readouterr().out.split("verdict:")[1]  # the tiny scene fits
+    # an analytic ground steps no grains: neither their memory nor their step count is judged
+    assert main(["advise", scene, "--set", 'terrain.model="analytic"', "--set", "bed.radius_mean=1e-5"]) == 0
+    text = capsys.readouterr().out
+    assert "memory" not in text.split("verdict:")[1] and "DEM steps (E = " not in text, text
 
 
 def test_resume_of_a_complete_run_does_nothing(cli_run, capsys):

@@ -9,7 +9,7 @@ import pytest
 
 pytest.importorskip("mujoco")
 
-from cosim.contract import SoilSide, WheelKinematics  # noqa: E402
+from cosim.contract import SoilSide, WheelKinematics, WheelWrench  # noqa: E402
 from cosim.controllers import ConstantSpeed, DriveCommand, SlipController  # noqa: E402
 from cosim.coupler import Coupler, CouplingEnergyWarning, CouplingTimeError, stack_records  # noqa: E402
 from cosim.terrain import SpringDamperTerrain  # noqa: E402
@@ -218,6 +218,13 @@ def test_wheel_count_mismatch_and_bad_arguments():
         (lambda: MujocoRover(mmx_rover_xml(), "wheel_fl"), r"must be a list of body names: \['wheel_fl'\]"),
         (lambda: mmx_rover_xml(body_mass=-17.0), "body_mass must be a finite number > 0"),
         (lambda: mmx_rover_xml(timestep=float("nan")), "timestep must be a finite number > 0"),
+        (
+            lambda: MujocoRover(mmx_rover_xml().replace('timestep="0.001"', 'timestep="0"'), list(MMX_WHEELS)),
+            "the MJCF's option timestep must be > 0",
+        ),
+        (lambda: _rig().set_gravity([0.0, 0.0, float("nan")]), "gravity must be 3 finite numbers"),
+        (lambda: WheelWrench(force="abc"), "WheelWrench.force must be 3 numbers"),
+        (lambda: WheelWrench(torque=(1.0, 2.0)), "WheelWrench.torque must be 3 numbers"),
     ],
     ids=[
         "infinite macro step",
@@ -234,6 +241,10 @@ def test_wheel_count_mismatch_and_bad_arguments():
         "a name for the list",
         "negative mass",
         "nan timestep",
+        "an MJCF's zero timestep",
+        "nan gravity",
+        "a text force",
+        "a 2-vector torque",
     ],
 )
 def test_the_coupling_apis_refuse_what_would_hang_or_run_wrong(make, words):

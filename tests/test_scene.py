@@ -425,3 +425,8 @@ def test_cosim_scale_to_a_boolean_gravity_is_refused(tmp_path, capsys):
         err = capsys.readouterr().err
         assert err.count("\n  - ") == 1 and "--gravity: " in err and words in err, err
     assert not (tmp_path / "t.toml").exists()
+    # the twin written over its own scene, even with --overwrite: the scene was lost to its twin
+    scene = write_tiny(tmp_path)
+    before = open(scene, "rb").read()
+    assert main(["scale", scene, "--gravity", "earth", "--out", scene, "--overwrite"]) == 2
+    assert "is the scene the command reads" in capsys.readouterr().err and open(scene, "rb").read() == before

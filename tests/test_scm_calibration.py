@@ -609,8 +609,16 @@ def test_calibrate_scm_from_wheel_writes_the_fit_and_refuses_misplaced_options(t
             {"wheel_load": load, "scene_toml": open(scene).read().replace("radius = 0.03", "radius = 0.05")},
             "wheel.radius",
         ),
+        (
+            {"wheel_load": load, "scene_toml": open(scene).read().replace("restitution = 0.3", "restitution = 0.9")},
+            "soil.restitution",
+        ),
+        (
+            {"wheel_load": load, "scene_toml": open(scene).read().replace("omega = 0.12", "omega = 0.24")},
+            "testbed.omega = 0.24",
+        ),
     ):
-        assert "phobos" in open(scene).read() and "radius = 0.03" in open(scene).read()
+        assert all(w in open(scene).read() for w in ('"phobos"', "radius = 0.03", "restitution = 0.3", "omega = 0.12"))
         (tmp_path / "study" / "study.json").write_text(json.dumps({"kind": "slip", "rows": rows, **foreign}))
         assert main(["calibrate-scm", scene, "--out", str(tmp_path / "z.toml"), *args]) == 2
         err = capsys.readouterr().err
@@ -625,7 +633,12 @@ def test_calibrate_scm_from_wheel_writes_the_fit_and_refuses_misplaced_options(t
         assert path.read_bytes() == before
     # what --from-wheel needs is checked before the lab's DEM tests (an hour), not after them
     work = tmp_path / "w_runs"
-    for extra, named in ((["--slips", "0.1"], "--slips"), (["--slips", "abc,0.2"], "--slips")):
+    for extra, named in (
+        (["--slips", "0.1"], "--slips: give at least 2 slips"),
+        (["--slips", "abc,0.2"], "--slips"),
+        (["--slips", "0.1,1.5"], "--slips: 1.5 must be in (-1, 1)"),
+        (["--slips", "0.1,0.1"], "given twice"),
+    ):
         assert main(["calibrate-scm", scene, "--out", str(tmp_path / "w.toml"), "--from-wheel", *extra]) == 2
         assert named in capsys.readouterr().err and not work.exists()
 

@@ -143,10 +143,19 @@ def check_study_scene(study_folder: str, plan) -> None:
         gravity = gravity_vector(scene.scene.gravity)
         if not np.allclose(gravity, plan.gravity, rtol=1e-9, atol=0):
             differ.append(f"gravity {gravity.tolist()} m/s^2 (the scene's {np.asarray(plan.gravity).tolist()})")
-        wheel, own = (s.wheel.model_dump(exclude={"file"}) for s in (scene, plan.scene))
-        changed = sorted(k for k in own if wheel.get(k) != own[k])
-        if changed:
-            differ.append(f"another wheel (wheel.{', wheel.'.join(changed)})")
+        # the wheel (a mesh's file aside: its path is relative to a folder the study does not record), its
+        # spin (the fit drives the scene's), and the soil's grains
+        for section in ("wheel", "soil"):
+            theirs, own = (getattr(s, section).model_dump(exclude={"file"}) for s in (scene, plan.scene))
+            changed = sorted(k for k in own if theirs.get(k) != own[k])
+            if changed:
+                differ.append(f"another {section} ({section}.{f', {section}.'.join(changed)})")
+        if (
+            scene.testbed is not None
+            and plan.scene.testbed is not None
+            and scene.testbed.omega != plan.scene.testbed.omega
+        ):
+            differ.append(f"testbed.omega = {scene.testbed.omega!r} rad/s (the scene's {plan.scene.testbed.omega!r})")
     if differ:
         raise ArgumentError(
             f"--wheel-runs {path}: the slip study ran {'; '.join(differ)}: its runs are not this scene's wheel; "

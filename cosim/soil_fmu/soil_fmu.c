@@ -103,8 +103,12 @@ static int read_frontend(Soil *s, const char *token) {
     snprintf(path, sizeof path, "%sfrontend.txt", s->resources);
     file = fopen(path, "r");
     if (!file || !numbers) {
-        soil_log(s, SOIL_ERROR, "logStatusError", "cannot read %s: %s (is the resource folder right?)", path,
-                 strerror(errno));
+        if (!file)
+            soil_log(s, SOIL_ERROR, "logStatusError", "cannot read %s: %s (is the resource folder right?)", path,
+                     strerror(errno));
+        else
+            soil_log(s, SOIL_ERROR, "logStatusError", "cannot make the C locale to read %s: %s", path,
+                     strerror(errno));
         if (file) fclose(file);
         if (numbers) freelocale(numbers);
         return -1;

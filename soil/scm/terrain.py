@@ -373,6 +373,8 @@ class ScmTerrain:
         soil.box = self.box_size
         self._soil = soil
         self._centre = wp.zeros(2, dtype=hi, device=device)
+        # the host's copy of a fixed centre, as the device holds it: the window check reads no device array
+        self._centre_host = np.zeros(2) if centre is None else np.array(centre, dtype=np_hi).astype(np.float64)
         if centre is not None:
             self._centre.assign(np.array(centre, dtype=np_hi))
         self._origin = wp.zeros(2, dtype=wp.int32, device=device)
@@ -453,7 +455,7 @@ class ScmTerrain:
         path = self._host_path
         hubs = path[:, 0:3] + path[:, 7:10] * tau
         h, (nx, ny) = self.parameters.node_spacing, self.shape
-        centre = hubs[:, :2].mean(axis=0) if self._follow else self._centre.numpy().astype(np.float64)
+        centre = hubs[:, :2].mean(axis=0) if self._follow else self._centre_host
         low = (np.floor(centre / h) - np.array([nx // 2, ny // 2])) * h
         high = low + (np.array([nx, ny]) - 1) * h
         bound = self._footprint_bound[:, None]  # no axle turns a footprint beyond it (Cauchy-Schwarz)
