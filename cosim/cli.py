@@ -798,7 +798,6 @@ def _check_from_wheel(args) -> None:
     """What --from-wheel needs, checked before the lab's DEM tests (an hour) rather than after them: a
     single-wheel scene, --lab and --start calibrated at its gravity, --wheel-runs a slip study of this
     wheel with two or more steady slips, or --slips two or more slips."""
-
     from .lab.scm_wheel import check_study_scene, wheel_targets
     from .scene import SceneError, parse_list
     from .scm_calibration import read_calibration, same_gravity
@@ -849,14 +848,10 @@ def _fit_to_wheel(args, lab, work: str):
     """The lab calibration `lab` refitted to the DEM wheel runs (cosim calibrate-scm --from-wheel)."""
     from .lab.scm import combine_errors
     from .lab.scm_wheel import FITTED, fit_to_wheel, run_wheel_tests, wheel_targets
-    from .scene import SceneError, parse_list
-    from .scm_calibration import SOIL_UNITS, ScmCalibration, read_calibration, same_gravity
+    from .scene import parse_list
+    from .scm_calibration import SOIL_UNITS, ScmCalibration, read_calibration
 
-    plan = _plan(args)
-    if plan.rover is not None:
-        raise SceneError(["calibrate-scm --from-wheel: fits to the single-wheel [testbed]; the scene has a [rover]"])
-    if not same_gravity(lab.gravity, plan.g):
-        raise SceneError([f"--lab: calibrated at |g| = {lab.gravity:.4g} m/s^2, the scene's is {plan.g:.4g} m/s^2"])
+    plan = _plan(args)  # the scene, --lab, --start and --slips were checked before the lab (_check_from_wheel)
     if args.wheel_runs:
         folder = args.wheel_runs
     else:
@@ -866,12 +861,7 @@ def _fit_to_wheel(args, lab, work: str):
     runs = os.path.join(work, "wheel_scm") if args.max_runs else None
     start = dict(lab.parameters)
     if args.start:  # the fitted keys' start from another file (a former wheel fit), the held keys the lab's
-        other = read_calibration(args.start)
-        if not same_gravity(other.gravity, plan.g):
-            raise SceneError(
-                [f"--start: calibrated at |g| = {other.gravity:.4g} m/s^2, the scene's is {plan.g:.4g} m/s^2"]
-            )
-        start.update({k: other.parameters[k] for k in FITTED})
+        start.update({k: read_calibration(args.start).parameters[k] for k in FITTED})
     parameters, errors, report = fit_to_wheel(plan, wheel_targets(folder), start, runs=runs, max_runs=args.max_runs)
     print(
         f"calibrate-scm --from-wheel: fitted {', '.join(FITTED)} to {len(report['slips'])} slips (rms residual "

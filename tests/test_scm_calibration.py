@@ -641,6 +641,16 @@ def test_calibrate_scm_from_wheel_writes_the_fit_and_refuses_misplaced_options(t
     ):
         assert main(["calibrate-scm", scene, "--out", str(tmp_path / "w.toml"), "--from-wheel", *extra]) == 2
         assert named in capsys.readouterr().err and not work.exists()
+    earth = tmp_path / "earth_lab.toml"
+    write_calibration(str(earth), ScmCalibration(lab, {k: 0.1 for k in SOIL_KEYS}, 9.81, {"scene": "x"}))
+    rover = os.path.join(os.path.dirname(scene), "phobos_rover_patch.toml")
+    for command, named in (
+        ([scene, "--from-wheel", "--start", str(earth)], "--start: calibrated at |g| = 9.81"),
+        ([scene, "--from-wheel", "--lab", str(earth), "--wheel-runs", str(tmp_path / "study")], "--lab: calibrated"),
+        ([rover, "--from-wheel"], "the scene has a [rover]"),
+    ):
+        assert main(["calibrate-scm", *command, "--out", str(tmp_path / "w.toml")]) == 2
+        assert named in capsys.readouterr().err and not work.exists()
 
 
 def test_a_calibration_file_is_written_whole_or_not_at_all(tmp_path, monkeypatch):
