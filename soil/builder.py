@@ -96,6 +96,9 @@ class SoilBuilder:
 
         Returns the builder indices of the new particles, shape (n,).
         """
+        for name, value in (("positions", positions), ("radii", radii)):
+            if np.iscomplexobj(value):  # numpy would drop the imaginary part with only a warning
+                raise SoilInputError(f"{name} must be real numbers [m], got complex values")
         positions = np.asarray(positions, dtype=np.float64)
         if positions.ndim != 2 or positions.shape[1] != 3:
             raise SoilInputError(
@@ -158,6 +161,8 @@ class SoilBuilder:
         self, position, radius, material=0, velocity=None, angular_velocity=None, fixed=False, lock_rotation=False
     ) -> int:
         """Add one sphere: position [m] (3,), radius [m]; returns its builder index."""
+        if np.iscomplexobj(position):
+            raise SoilInputError("position must be real numbers [m], got complex values")
         position = np.asarray(position, dtype=np.float64)
         if position.shape != (3,):
             raise SoilInputError(f"position must be 3 numbers (x, y, z) [m], got shape {position.shape}")

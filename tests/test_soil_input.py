@@ -23,6 +23,13 @@ def test_positions_must_be_n_by_3():
         builder_with_box().add_particle((0.05, 0.05), 0.01)
 
 
+def test_complex_positions_are_refused_not_cut_to_their_real_part():
+    with pytest.raises(SoilInputError, match="positions must be real numbers"):
+        builder_with_box().add_particles(np.full((2, 3), 0.05 + 0.01j), 0.01)
+    with pytest.raises(SoilInputError, match="position must be real numbers"):
+        builder_with_box().add_particle((0.05, 0.05, 0.05j), 0.01)
+
+
 def test_radii_must_match_positions():
     with pytest.raises(SoilInputError, match=r"radii must be one radius or shape \(n,\) = \(3,\).*\(2,\)"):
         builder_with_box().add_particles(np.full((3, 3), 0.05), [0.01, 0.01])
