@@ -23,7 +23,6 @@ exceeds `energy_atol + energy_rtol * sum |W_rover|` a CouplingEnergyWarning is i
 from __future__ import annotations
 
 import math
-import numbers
 import warnings
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
@@ -32,7 +31,7 @@ from typing import Any
 import numpy as np
 
 from soil.control import quaternion_integrate, quaternion_multiply
-from soil.errors import ArgumentError, RegolithError, RegolithWarning
+from soil.errors import ArgumentError, RegolithError, RegolithWarning, is_real
 
 from .contract import WRENCH_UNITS, RoverSide, SoilSide, WheelKinematics, WheelWrench, advance_soil
 from .controllers import apply_command
@@ -44,11 +43,6 @@ class CouplingEnergyWarning(RegolithWarning, RuntimeWarning):
 
 class CouplingTimeError(RegolithError, RuntimeError):
     """The soil and rover sides did not reach the same time."""
-
-
-def _real(value) -> bool:
-    """A real number (numpy's too), not a boolean or a text."""
-    return isinstance(value, numbers.Real) and not isinstance(value, bool)
 
 
 @dataclass
@@ -124,7 +118,7 @@ class Coupler:
         if not isinstance(scheme, str) or scheme.lower().replace("_", "-") not in ("gauss-seidel", "jacobi"):
             raise ArgumentError(f"scheme must be 'gauss-seidel' or 'jacobi', got {scheme!r}")
         scheme = scheme.lower().replace("_", "-")
-        if not (_real(macro_step) and math.isfinite(macro_step) and macro_step > 0.0):  # inf never ended
+        if not (is_real(macro_step) and math.isfinite(macro_step) and macro_step > 0.0):  # inf never ended
             raise ArgumentError(f"macro_step must be a finite number > 0 [s], got {macro_step!r}")
         n = len(rover.wheel_names)
         if soil.wheel_count != n:
@@ -230,7 +224,7 @@ class Coupler:
 
         callback(coupler) is called after every macro step.
         """
-        if not (_real(t_end) and math.isfinite(t_end) and t_end >= self.time - 0.5 * self.macro_step):
+        if not (is_real(t_end) and math.isfinite(t_end) and t_end >= self.time - 0.5 * self.macro_step):
             raise ArgumentError(
                 f"t_end must be a finite time [s] not before the coupler's {self.time!r} s, got {t_end!r}"
             )

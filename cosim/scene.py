@@ -48,7 +48,7 @@ import tomli_w
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
 from soil.bed import radius_range
-from soil.errors import InputError
+from soil.errors import InputError, is_real
 from soil.scm.terrain import MAX_EROSION_ITERATIONS
 
 GRAVITY_PRESET_NAMES = ("earth", "mars", "moon", "phobos", "phobos_min", "phobos_max", "deimos")
@@ -97,8 +97,8 @@ def _number_kinds(model: type[BaseModel], name: str) -> set:
 
 
 def is_number(value) -> bool:
-    """A real number and not a boolean (Python counts true as the integer 1)."""
-    return isinstance(value, (int, float)) and not isinstance(value, bool)
+    """A real number and not a boolean (Python counts true as the integer 1): soil.errors.is_real."""
+    return is_real(value)
 
 
 def reject_bool_for_number(model: type[BaseModel], name: str, value):

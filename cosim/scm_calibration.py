@@ -25,7 +25,7 @@ except ImportError:  # Python 3.10
 
 import tomli_w
 
-from soil.errors import InputError, RegolithWarning
+from soil.errors import InputError, RegolithWarning, is_real
 from soil.files import atomic_path
 
 FORMAT_VERSION = 1
@@ -125,14 +125,9 @@ def read_calibration(path: str) -> ScmCalibration:
     )
 
 
-def _number(value) -> bool:
-    """A TOML number, not a boolean (Python counts true as 1)."""
-    return isinstance(value, (int, float)) and not isinstance(value, bool)
-
-
 def _finite_number(value) -> bool:
     """A TOML number (not a boolean), finite."""
-    return _number(value) and math.isfinite(value)
+    return is_real(value) and math.isfinite(value)
 
 
 def tested_sinkage(calibration: ScmCalibration, path: str = "") -> float | None:
@@ -210,7 +205,7 @@ def _bed_fits(fits, where: str) -> dict[str, list]:
     for key, values in fits.items():
         if key not in SOIL_KEYS:
             raise CalibrationError(f"{where} {key}: not an SCM key; allowed: {', '.join(SOIL_KEYS)}")
-        if not isinstance(values, list) or not all(_number(v) for v in values):  # true was read as 1.0
+        if not isinstance(values, list) or not all(is_real(v) for v in values):  # true was read as 1.0
             raise CalibrationError(
                 f"{where} {key}: must be a list of numbers (nan: a bed's failed fit), got {values!r}"
             )

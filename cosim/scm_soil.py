@@ -20,7 +20,7 @@ import numpy as np
 from numpy.typing import ArrayLike
 
 from soil.control import quaternion_integrate, quaternion_multiply, quaternion_to_matrix
-from soil.errors import ArgumentError
+from soil.errors import ArgumentError, is_real
 from soil.geometry import GrouserWheel
 from soil.scm import ScmParameters, ScmTerrain, check_grid
 
@@ -271,14 +271,13 @@ class ScmSoil(SoilSideDefaults):
     """
 
     def __init__(self, terrain: ScmTerrain, time_step: float, rim_radii: Sequence[float]):
-        if isinstance(time_step, bool) or not isinstance(time_step, (int, float, np.integer, np.floating)):
+        if not is_real(time_step):
             raise ArgumentError(f"time_step must be a number > 0 [s], got {time_step!r}")
         if not (math.isfinite(time_step) and time_step > 0):
             raise ArgumentError(f"time_step must be > 0 [s], got {time_step!r}")
         if len(rim_radii) != terrain.wheel_count:
             raise ArgumentError(f"rim_radii: {len(rim_radii)} radii for {terrain.wheel_count} wheels")
-        real = [isinstance(r, (int, float, np.integer, np.floating)) and not isinstance(r, bool) for r in rim_radii]
-        if not all(real) or not all(math.isfinite(r) and r > 0 for r in rim_radii):
+        if not all(is_real(r) and math.isfinite(r) and r > 0 for r in rim_radii):
             raise ArgumentError(f"rim_radii must be rim radii > 0 [m], got {list(rim_radii)!r}")  # sinkage's datum
         self.terrain = terrain
         self.time_step = float(time_step)

@@ -19,14 +19,13 @@ fed the same states get the same wrenches (used to compare MuJoCo with FMU rover
 
 from __future__ import annotations
 
-import numbers
 from collections.abc import Sequence
 
 import numpy as np
 from numpy.typing import ArrayLike
 
 from soil.control import quaternion_integrate, quaternion_slerp, quaternion_to_matrix
-from soil.errors import ArgumentError
+from soil.errors import ArgumentError, is_real
 
 from .contract import SoilBooks, SoilSideDefaults, WheelKinematics, WheelWrench, wheel_frame
 
@@ -84,8 +83,7 @@ class SpringDamperTerrain(SoilSideDefaults):
             ("slip_scale", slip_scale, True, "-"),
             ("slip_velocity", slip_velocity, True, "m/s"),
         ):
-            number = value if isinstance(value, numbers.Real) and not isinstance(value, bool) else None
-            if number is None or not np.isfinite(number) or number < 0 or (strict and number == 0):
+            if not is_real(value) or not np.isfinite(value) or value < 0 or (strict and value == 0):
                 raise ArgumentError(
                     f"{name} must be a finite number {'>' if strict else '>='} 0 [{unit}], got {value!r}"
                 )

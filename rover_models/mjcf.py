@@ -13,7 +13,6 @@ Conventions shared by every model here (and expected by MujocoRover / the terrai
 from __future__ import annotations
 
 import math
-import numbers
 
 
 def _cylinder_inertia(mass: float, radius: float, width: float) -> tuple[float, float, float]:
@@ -94,10 +93,10 @@ MMX_WHEELS = ("wheel_fl", "wheel_fr", "wheel_rl", "wheel_rr")
 def _check_mmx(values: dict) -> None:
     """mmx_rover_xml's arguments as [rover.mmx] takes them (cosim.scene.MmxSection): a negative mass
     compiled and ran as another rover, a nan timestep froze it. ArgumentError naming the argument."""
-    from soil.errors import ArgumentError
+    from soil.errors import ArgumentError, is_real
 
     def real(value) -> bool:
-        return isinstance(value, numbers.Real) and not isinstance(value, bool) and math.isfinite(value)
+        return is_real(value) and math.isfinite(value)
 
     positive = ("wheel_radius", "wheel_width", "body_mass", "leg_mass", "wheel_mass", "wheelbase", "track")
     for name in (*positive, "motor_kv", "timestep", "leg_drop", "clearance"):

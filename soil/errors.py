@@ -72,3 +72,11 @@ class SetupError(RegolithError, RuntimeError):
 
 class OverlapWarning(RegolithWarning):
     """Grains were created deep inside each other: their first contact throws them apart."""
+
+
+def is_real(value) -> bool:
+    """Whether an argument that takes a number got one: a real number, numpy's included, and not a
+    boolean (Python counts true as 1) nor a text. The InputError that names the argument is the caller's."""
+    import numbers
+
+    return isinstance(value, numbers.Real) and not isinstance(value, bool)

@@ -47,6 +47,16 @@ def first_error_line(capsys) -> str:
     return lines[0]
 
 
+def resume_refused(folder, capsys) -> str:
+    """`cosim resume FOLDER`, which must be refused (exit 2) with every file of the folder as it was; the
+    first line of its error."""
+    before = digests(folder)
+    assert main(["resume", str(folder), "--no-progress"]) == 2
+    line = first_error_line(capsys)
+    assert digests(folder) == before
+    return line
+
+
 @pytest.fixture(scope="module")
 def scene(tmp_path_factory):
     return write_tiny(tmp_path_factory.mktemp("damaged"))
@@ -150,12 +160,9 @@ def test_the_memory_estimate_matches_the_measured_bytes_per_grain(precision):
 def test_row03_resume_of_an_interrupted_run_with_a_cut_results_file(interrupted, tmp_path, capsys):
     folder = copy(interrupted, tmp_path)
     cut(folder / "results.h5", 0.5)
-    before = digests(folder)
-    assert main(["resume", str(folder), "--no-progress"]) == 2
-    line = first_error_line(capsys)
+    line = resume_refused(folder, capsys)
     assert "results.h5: the results file is truncated" in line and "nothing was changed" in line, line
     assert "checkpoint" in line and "--overwrite" in line
-    assert digests(folder) == before
 
 
 @pytest.mark.parametrize("damage", ["a series gone", "a series cut short", "a snapshot dataset gone", "a bad summary"])
@@ -270,12 +277,9 @@ def test_row06_resume_with_a_damaged_checkpoint(interrupted, tmp_path, capsys, d
         data = bytearray(path.read_bytes())
         data[len(data) // 2] ^= 0xFF
         path.write_bytes(bytes(data))
-    before = digests(folder)
-    assert main(["resume", str(folder), "--no-progress"]) == 2
-    line = first_error_line(capsys)
+    line = resume_refused(folder, capsys)
     assert "checkpoint.npz: the checkpoint is damaged" in line and "nothing was changed" in line, line
     assert "results.h5 is readable: it holds" in line  # what can still be recovered
-    assert digests(folder) == before
 
 
 def test_row06_a_checkpoint_whose_arrays_were_changed_fails_its_checksum(interrupted, tmp_path):
@@ -292,11 +296,8 @@ def test_row06_a_checkpoint_whose_arrays_were_changed_fails_its_checksum(interru
 def test_row07_another_runs_checkpoint_is_refused(interrupted, complete, tmp_path, capsys):
     folder = copy(interrupted, tmp_path)
     shutil.copy(complete / "checkpoint.npz", folder / "checkpoint.npz")
-    before = digests(folder)
-    assert main(["resume", str(folder), "--no-progress"]) == 2
-    line = first_error_line(capsys)
+    line = resume_refused(folder, capsys)
     assert "checkpoint.npz: the checkpoint belongs to another run" in line, line
-    assert digests(folder) == before
     assert json.loads((folder / "run.json").read_text())["status"] == "interrupted"  # still resumable
     shutil.copy(interrupted / "checkpoint.npz", folder / "checkpoint.npz")
     assert main(["resume", str(folder), "--no-progress"]) in (0, 6)
@@ -307,19 +308,13 @@ def test_row07c_another_runs_results_file_is_refused(interrupted, complete, tmp_
     a finished file of two runs' rows under the other's run id, exit 0 and a mixed summary."""
     folder = copy(interrupted, tmp_path)
     shutil.copy(complete / "results.h5", folder / "results.h5")
-    before = digests(folder)
-    assert main(["resume", str(folder), "--no-progress"]) == 2
-    line = first_error_line(capsys)
+    line = resume_refused(folder, capsys)
     assert "results.h5: the results file belongs to another run" in line, line
-    assert digests(folder) == before
     # run.json garbled too: it cannot tell which of the two is this folder's, and says so (it blamed
     # the intact checkpoint)
     (folder / "run.json").write_text("not json {")
-    before = digests(folder)
-    assert main(["resume", str(folder), "--no-progress"]) == 2
-    line = first_error_line(capsys)
+    line = resume_refused(folder, capsys)
     assert "belong to different runs, and run.json cannot be read to tell which" in line, line
-    assert digests(folder) == before
 
 
 def test_row07b_a_garbled_run_json_keeps_the_runs_id_through_resume(interrupted, complete, tmp_path, capsys):

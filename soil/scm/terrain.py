@@ -1,7 +1,6 @@
 """The SCM terrain's host side: its parameters, state and stepping (soil.scm explains the model)."""
 
 import math
-import numbers
 from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import NamedTuple
@@ -11,7 +10,7 @@ import warp as wp
 
 from ..control import quaternion_integrate, quaternion_to_matrix
 from ..devices import warp_device
-from ..errors import SoilInputError
+from ..errors import SoilInputError, is_real
 from ..geometry import GrouserWheel, MeshWheel
 from ..memory import SoilTooLargeError, format_bytes, free_device_memory, free_host_memory
 from ..precision import get_precision
@@ -50,11 +49,6 @@ SCM_PARAMETER_UNITS = {
     "erosion_iterations": "count",
 }
 """The unit of each ScmParameters field."""
-
-
-def _real(value) -> bool:
-    """A real number, numpy's included (np.float32(1e-3) is a step), not a boolean."""
-    return isinstance(value, numbers.Real) and not isinstance(value, bool)
 
 
 @dataclass(frozen=True)
@@ -267,11 +261,11 @@ class ScmTerrain:
         for index, wheel in enumerate(wheels):
             if not isinstance(wheel, (GrouserWheel, MeshWheel)):
                 raise SoilInputError(f"wheels[{index}] must be a GrouserWheel or MeshWheel, got {type(wheel).__name__}")
-        if len(window) != 2 or not all(_real(s) and math.isfinite(s) and s > 0 for s in window):
+        if len(window) != 2 or not all(is_real(s) and math.isfinite(s) and s > 0 for s in window):
             raise SoilInputError(f"window must be two sizes > 0 [m], got {window!r}")
-        if not (_real(surface_height) and math.isfinite(surface_height)):
+        if not (is_real(surface_height) and math.isfinite(surface_height)):
             raise SoilInputError(f"surface_height must be a finite number [m], got {surface_height!r}")
-        if centre is not None and (len(centre) != 2 or not all(_real(c) and math.isfinite(c) for c in centre)):
+        if centre is not None and (len(centre) != 2 or not all(is_real(c) and math.isfinite(c) for c in centre)):
             raise SoilInputError(f"centre must be None or two finite numbers (x, y) [m], got {centre!r}")
         self.parameters = parameters
         self.wheels = wheels
@@ -559,7 +553,7 @@ class ScmTerrain:
         """One step of dt [s] with the wheels at their pose at the current time; then the time moves on and
         the wheels follow their path (its clock is on the device). No host read: the launches of a step
         can be captured in a CUDA graph and replayed for a fixed dt (the checks below are on the host)."""
-        if not (_real(dt) and math.isfinite(dt) and dt >= 0):  # 0: the wrench where the wheels stand
+        if not (is_real(dt) and math.isfinite(dt) and dt >= 0):  # 0: the wrench where the wheels stand
             raise SoilInputError(f"dt must be >= 0 [s], got {dt!r}")
         self._check_window(self.time + dt - self._path_start)  # as advance: a wheel out of it pressed nothing
         self._evaluate(dt)
@@ -600,7 +594,7 @@ class ScmTerrain:
         """Run from the current time to `end_time` [s] in equal steps of at most dt [s]; the wheels start
         from the given kinematics (see set_wheels; None: they go on along their current path). Returns
         the number of steps. `wheel_contact(mean=True)` then gives the means over these steps."""
-        if not (_real(dt) and math.isfinite(dt) and dt > 0):
+        if not (is_real(dt) and math.isfinite(dt) and dt > 0):
             raise SoilInputError(f"dt must be > 0 [s], got {dt!r}")
         span = float(end_time) - self.time
         if not math.isfinite(span) or span <= 0:
