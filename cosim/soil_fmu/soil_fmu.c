@@ -52,9 +52,19 @@ enum { MSG_INIT = 1, MSG_PLACE = 2, MSG_STEP = 3, MSG_BYE = 4, MSG_SAVE = 5, MSG
 
 /* ---------------------------------------------------------------------------- logging */
 
+/* After an Error FMI lets a master restore an FMU state taken before it, reset or free the instance, and
+   nothing else: a master that set a refused input and stepped on would step on the input's old value. */
+static int refused_after_error(Soil *s, const char *call) {
+    if (!s->in_error) return 0;
+    soil_log(s, SOIL_ERROR, "logStatusError", "%s after an Error: restore an FMU state taken before it "
+             "(fmi2SetFMUstate / fmi3SetFMUState), or reset or free the instance", call);
+    return 1;
+}
+
 void soil_log(Soil *s, SoilStatus status, const char *category, const char *format, ...) {
     char message[4096];
     va_list args;
+    if (status == SOIL_ERROR) s->in_error = 1; /* every Error is logged, so this marks each one */
     if (!s->logger || (status == SOIL_OK && !s->debug)) return;
     va_start(args, format);
     vsnprintf(message, sizeof message, format, args);
@@ -589,6 +599,7 @@ SoilStatus soil_start(Soil *s) {
         soil_log(s, SOIL_ERROR, "logStatusError", "the soil server failed before; reset or free the instance");
         return SOIL_ERROR;
     }
+    if (refused_after_error(s, "the end of initialization")) return SOIL_ERROR;
     if (s->device && *s->device) device = s->device;
     if (!device) device = "";
     if (strchr(device, '\n') || strchr(s->resources, '\n'))
@@ -630,6 +641,7 @@ SoilStatus soil_step(Soil *s, double time, double step) {
         soil_log(s, SOIL_ERROR, "logStatusError", "the soil server failed before; reset or free the instance");
         return SOIL_ERROR;
     }
+    if (refused_after_error(s, "doStep")) return SOIL_ERROR;
     if (!s->initialized) {
         soil_log(s, SOIL_ERROR, "logStatusError", "doStep before the end of initialization");
         return SOIL_ERROR;
@@ -702,6 +714,7 @@ static SoilStatus state_request(Soil *s, uint32_t kind, unsigned id, const char 
 SoilStatus soil_get_state(Soil *s, SoilSnapshot **state) {
     SoilSnapshot *snapshot = *state;
     size_t size = (size_t)s->wheel_count * W_SIZE * sizeof(double);
+    if (refused_after_error(s, "taking an FMU state")) return SOIL_ERROR;
     if (s->failed || !s->initialized) {
         soil_log(s, SOIL_ERROR, "logStatusError", "an FMU state can be taken after initialization, while the "
                  "soil server runs");
@@ -748,6 +761,7 @@ SoilStatus soil_set_state(Soil *s, const SoilSnapshot *snapshot) {
     s->discards = snapshot->discards;
     s->terminated = snapshot->terminated;
     s->discarded_step = snapshot->discarded_step;
+    s->in_error = 0;
     return SOIL_OK;
 }
 
@@ -782,7 +796,7 @@ void soil_stop(Soil *s) {
 
 void soil_reset(Soil *s) {
     soil_stop(s);
-    s->failed = 0;
+    s->failed = s->in_error = 0;
     s->tail[0] = 0;
     restore_start_values(s);
 }
@@ -830,9 +844,10 @@ static const char *const INPUT_NAMES[W_INPUTS] = {
     "velocity.x", "velocity.y", "velocity.z", "angular_velocity.x", "angular_velocity.y", "angular_velocity.z"};
 
 /* A value is refused here, with the instance left as it was, rather than by the server, whose error
-   ends the instance: the master can set a right value and go on. */
+   ends the instance: the master can restore an FMU state and go on. */
 SoilStatus soil_set_real(Soil *s, unsigned vr, double value) {
     double *w = vr >= VR_WHEEL ? wheel_value(s, vr) : NULL;
+    if (refused_after_error(s, "setting a value")) return SOIL_ERROR;
     if (vr >= VR_DEM_STEP && vr < VR_REAL_PARAMETERS) {
         int positive = vr == VR_DEM_STEP || vr == VR_START_TIMEOUT || vr == VR_STEP_TIMEOUT;
         if (s->initialized) {
@@ -885,6 +900,7 @@ SoilStatus soil_get_string(Soil *s, unsigned vr, const char **value) {
 SoilStatus soil_set_string(Soil *s, unsigned vr, const char *value) {
     char **target = vr == VR_PYTHON ? &s->python : vr == VR_DEVICE ? &s->device : NULL;
     char *copy;
+    if (refused_after_error(s, "setting a value")) return SOIL_ERROR;
     if (!target) {
         soil_log(s, SOIL_ERROR, "logStatusError", "no String variable has value reference %u", vr);
         return SOIL_ERROR;

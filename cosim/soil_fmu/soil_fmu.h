@@ -63,6 +63,7 @@ typedef struct {
 
     int initialized;       /* the server runs and holds the soil */
     int failed;            /* the server failed: every call until reset is an error */
+    int in_error;          /* an Error was returned: FMI then allows an FMU state restored, reset or free only */
     pid_t pid;             /* the server process, 0 when none */
     int socket;            /* our end of the socket pair, -1 when none */
     int errors;            /* read end of the server's stderr pipe, -1 when none */
