@@ -1,6 +1,7 @@
 """A run's output folder: its files, its lock, and the rules for replacing a run.
 
     scene.toml        the scene as run (overrides applied)
+    scene.edited.toml a scene.toml edited after the run started, kept aside by `cosim resume`
     run.json          status, summary, validity findings, wall time
     bed.h5, bed.json  the settled bed (a cache kept across --overwrite)
     bed_diverged.npz  the last good state of a bed that exploded while settling (until one settles)
@@ -36,6 +37,7 @@ VTKHDF_FILE = "results.vtkhdf"
 CHECKPOINT_FILE = "checkpoint.npz"
 RUN_FILE = "run.json"
 SCENE_FILE = "scene.toml"
+EDITED_SCENE_FILE = "scene.edited.toml"
 DIVERGED_FILE = "diverged_state.npz"
 PLOTS_DIR = "plots"
 LOCK_FILE = ".lock"
@@ -47,6 +49,7 @@ RUN_OUTPUTS = (
     CHECKPOINT_FILE,
     RUN_FILE,
     SCENE_FILE,
+    EDITED_SCENE_FILE,
     DIVERGED_FILE,
     PLOTS_DIR,
 )

@@ -22,12 +22,13 @@ from collections.abc import Iterator
 import numpy as np
 
 from soil.errors import ArgumentError
+from soil.files import atomic_write_text
 from soil.stability import read_checkpoint
 
 from . import records
 from .beds import Bed, bed_from_file, check_memory, memory_estimate, settled_bed, write_json
 from .contract import SoilSide
-from .folders import RUN_FILE, SCENE_FILE, RunFolder, read_json
+from .folders import EDITED_SCENE_FILE, RUN_FILE, SCENE_FILE, RunFolder, read_json
 from .output import ResultsWriter, read_series
 from .plan import RunPlan, load_plan, resolve
 from .runner import Runner, RunResult
@@ -83,8 +84,7 @@ def open_run(
         # everything is built: only now the previous run goes
         folder.clear_run()
         run_id = uuid.uuid4().hex
-        with open(folder.file(SCENE_FILE), "w") as f:
-            f.write(plan.scene.to_toml())
+        atomic_write_text(folder.file(SCENE_FILE), plan.scene.to_toml())
         write_json(
             folder.file(RUN_FILE),
             {
@@ -168,19 +168,13 @@ def resume(out_dir: str, progress: bool = False, hooks: dict | None = None) -> R
         checkpoint, info = _checked_inputs(folder)
         base_dir = str(checkpoint["scene_base_dir"]) if "scene_base_dir" in checkpoint else ""
         scene = scene_from_text(str(checkpoint["scene_toml"]), base_dir=base_dir or None)
-        try:  # only a note: the checkpoint's copy of the scene is the one resumed
-            with open(folder.file(SCENE_FILE), encoding="utf-8") as f:
-                note = "was edited after the run started" if f.read() != scene.to_toml() else ""
-        except (OSError, UnicodeDecodeError) as error:
-            note = f"cannot be read ({error})"
-        if note:
-            log.warning("scene.toml %s; the checkpoint's copy of the scene is used", note)
         plan = resolve(scene)
         _check_macro_step(checkpoint, plan)
         steps = int(checkpoint["loop/steps"])
         if checkpoint["coupler/step_count"] and _finished(checkpoint, plan):
             if info.get("status") in FINISHED and _results_status(folder.results) == info["status"]:
                 log.info("%s: the run is already complete", folder.path)
+                _put_back_scene(folder, scene.to_toml())
                 return RunResult(folder.path, info["status"], info.get("summary", {}))
             log.info("%s: the drive is complete in the checkpoint; finishing the results", folder.path)
         system = CoupledSystem.build(plan, _run_bed(str(checkpoint["bed_path"]), info) if needs_bed(plan) else None)
@@ -189,11 +183,40 @@ def resume(out_dir: str, progress: bool = False, hooks: dict | None = None) -> R
             writer = ResultsWriter.resume(
                 folder.results, steps, int(checkpoint["loop/snapshots"]), flush_every=plan.output.flush_every
             )
+            _put_back_scene(folder, scene.to_toml())  # every check passed: now the folder may change
             loop = {k[len("loop/") :]: v for k, v in checkpoint.items() if k.startswith("loop/")}
             run_id = str(checkpoint["run_id"]) if "run_id" in checkpoint else None
             return Runner(system, writer, folder, loop=loop, progress=progress, hooks=hooks, run_id=run_id).run()
         finally:
             system.close()
+
+
+def _put_back_scene(folder: RunFolder, scene_toml: str) -> None:
+    """The checkpoint's copy of the scene is the one resumed: a scene.toml edited (or damaged) since the run
+    started is kept as scene.edited.toml and scene.toml written again, so the folder's scene is its results'."""
+    path = folder.file(SCENE_FILE)
+    try:
+        with open(path, encoding="utf-8") as f:
+            if f.read() == scene_toml:
+                return
+        note = "was edited after the run started"
+    except (OSError, UnicodeDecodeError) as error:
+        note = f"cannot be read ({error})"
+    kept = folder.file(EDITED_SCENE_FILE)
+    try:
+        if os.path.exists(kept):
+            os.remove(kept)
+        os.link(path, kept)  # the edit is kept whole even if the rewrite below is cut short
+        atomic_write_text(path, scene_toml)
+    except OSError as error:
+        log.warning("scene.toml %s; the checkpoint's copy of the scene is used (%s)", note, error)
+        return
+    log.warning(
+        "scene.toml %s; the checkpoint's copy of the scene is used and written back to scene.toml, "
+        "the edited file kept as %s",
+        note,
+        EDITED_SCENE_FILE,
+    )
 
 
 def _run_bed(bed_path: str, info: dict) -> Bed:

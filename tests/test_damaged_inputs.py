@@ -574,6 +574,29 @@ def test_resume_of_an_empty_folder_leaves_nothing_behind(tmp_path, capsys):
     assert "is not a folder: nothing to resume" in first_error_line(capsys)
 
 
+@pytest.mark.parametrize("edit", [b"# an edit by hand\n", b"\xff\xfe not UTF-8\n"], ids=["edited", "unreadable"])
+def test_a_resumed_runs_edited_scene_is_kept_aside_and_its_scene_written_back(complete, tmp_path, capsys, edit):
+    """Resume runs the checkpoint's copy of the scene; a scene.toml edited since (or damaged) was left as
+    edited, a folder whose scene.toml was not its results' scene. It is kept whole as scene.edited.toml
+    and scene.toml written back: the scene the results were made with (results.h5's own copy)."""
+    import h5py
+
+    folder = copy(complete, tmp_path)
+    with h5py.File(folder / "results.h5", "r") as f:
+        ran = f.attrs["scene_toml"]
+    assert (folder / "scene.toml").read_text() == ran  # the scene the results hold
+    edited = (ran.encode() if edit.startswith(b"#") else b"") + edit
+    (folder / "scene.toml").write_bytes(edited)
+    capsys.readouterr()
+    assert main(["resume", str(folder), "--no-progress"]) == 0
+    assert "edited file kept as scene.edited.toml" in capsys.readouterr().err
+    assert (folder / "scene.toml").read_text() == ran
+    assert (folder / "scene.edited.toml").read_bytes() == edited
+    assert main(["resume", str(folder), "--no-progress"]) == 0  # nothing left to put back
+    assert "scene.toml" not in capsys.readouterr().err
+    assert (folder / "scene.edited.toml").read_bytes() == edited
+
+
 def test_a_lab_test_whose_every_replica_diverged_is_exit_4(tmp_path, capsys, monkeypatch):
     import cosim.lab
     from cosim.lab.common import successful
