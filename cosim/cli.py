@@ -377,15 +377,16 @@ def _dem_advice(plan) -> list[str]:
 def _executor(args) -> dict:
     from soil.errors import ArgumentError
 
-    from .study import check_workers
+    from .study import check_executor, check_workers
 
     check_workers(args.workers)  # before any folder is made
-    if args.serial and args.scheduler:
+    if args.serial and args.scheduler is not None:
         raise ArgumentError("--serial and --scheduler: the tasks run in this process or on the scheduler; choose one")
-    if args.workers is not None and (args.serial or args.scheduler):
+    if args.workers is not None and (args.serial or args.scheduler is not None):
         raise ArgumentError(
             f"--workers: sizes the LocalCluster started here; {'--serial' if args.serial else '--scheduler'} uses none"
         )
+    check_executor("serial" if args.serial else "dask", args.scheduler)
     return dict(executor="serial" if args.serial else "dask", scheduler=args.scheduler, workers=args.workers)
 
 

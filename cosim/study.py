@@ -30,6 +30,7 @@ import collections
 import contextlib
 import csv
 import io
+import ipaddress
 import itertools
 import json
 import logging
@@ -125,12 +126,45 @@ def check_workers(workers: int | None) -> None:
         )
 
 
+def check_executor(kind: str, scheduler: str | None) -> None:
+    """ArgumentError unless the tasks can run where asked: 'serial', or 'dask' with dask.distributed
+    installed and, if given, a scheduler address of a form dask connects to (a malformed one was tried
+    for dask's 30 s connect timeout, then an OS error)."""
+    if kind not in ("dask", "serial"):
+        raise ArgumentError(f"executor must be 'dask' or 'serial', got {kind!r}")
+    if kind == "serial":
+        return
+    try:
+        from distributed.comm.addressing import parse_address, parse_host_port
+    except ImportError as error:
+        raise ArgumentError(
+            f"running the tasks on dask needs dask.distributed ({error}): pip install 'regolith-cosim[study]', "
+            "or run them here with --serial"
+        ) from None
+    if scheduler is None:
+        return
+    where = f"--scheduler {scheduler!r}"
+    if not isinstance(scheduler, str) or not scheduler.strip():
+        raise ArgumentError(
+            f"{where}: give the dask scheduler's address, e.g. tcp://HOST:8786 (without it a LocalCluster starts here)"
+        )
+    try:
+        scheme, location = parse_address(scheduler)
+        if scheme in ("tcp", "tls", "ws", "wss"):
+            host, port = parse_host_port(location)
+            if not 0 < int(port) < 65536:
+                raise ValueError(f"port {port} is not in 1..65535")
+            if re.fullmatch(r"[0-9.]+", str(host)):
+                ipaddress.ip_address(host)  # 256.1.1.1
+    except ValueError as error:
+        raise ArgumentError(f"{where}: not a dask scheduler address ({error}), e.g. tcp://HOST:8786") from None
+
+
 class Executor:
     """Maps tasks over a dask cluster (or serially). Use as a context manager."""
 
     def __init__(self, kind: str = "dask", scheduler: str | None = None, workers: int | None = None):
-        if kind not in ("dask", "serial"):
-            raise ArgumentError(f"executor must be 'dask' or 'serial', got {kind!r}")
+        check_executor(kind, scheduler)
         check_workers(workers)
         self.kind = kind
         self.scheduler = scheduler
@@ -254,21 +288,35 @@ def _report(result, label, done, total):
     log.info("[%d/%d] %s: %s%s", done, total, label, state, f" ({wall:.1f} s)" if wall else "")
 
 
-def prepare_study(out_dir: str, overwrite: bool) -> None:
-    """Make the study folder; refuse a non-empty one unless overwrite (a settled bed is kept)."""
-    RunFolder(out_dir).create()
-    keep = (BED_FILE, BED_INFO_FILE, "beds", ".lock")
-    present = [n for n in os.listdir(out_dir) if n not in keep]
-    if present and not overwrite:
-        from .folders import OutputExistsError
+STUDY_MARK = ".cosim-study"
+"""An empty file in each folder a study, sweep, set of replicas or lab test writes: --overwrite empties
+only a folder that holds it (or a single run's), never one of other files, an input scene among them."""
 
+
+def prepare_study(out_dir: str, overwrite: bool) -> None:
+    """Make the study folder; refuse a non-empty one unless overwrite, and even then one that neither a
+    study nor a run wrote (a settled bed is kept)."""
+    from .folders import RUN_OUTPUTS, OutputExistsError
+
+    RunFolder(out_dir).create()
+    keep = (BED_FILE, BED_INFO_FILE, "beds", ".lock", STUDY_MARK)
+    present = sorted(n for n in os.listdir(out_dir) if n not in keep)
+    if present and not overwrite:
         raise OutputExistsError(
-            f"study folder {out_dir!r} is not empty ({', '.join(sorted(present)[:6])}); nothing "
+            f"study folder {out_dir!r} is not empty ({', '.join(present[:6])}); nothing "
             "is overwritten: choose another --out or pass --overwrite (the settled bed is kept)"
+        )
+    foreign = [n for n in present if n not in RUN_OUTPUTS]
+    if foreign and not os.path.exists(os.path.join(out_dir, STUDY_MARK)):
+        raise OutputExistsError(
+            f"study folder {out_dir!r} holds files no study or run wrote ({', '.join(foreign[:6])}); "
+            "--overwrite empties only a study's or a run's folder, so nothing was removed: choose another --out"
         )
     for name in present:
         path = os.path.join(out_dir, name)
         shutil.rmtree(path) if os.path.isdir(path) else os.remove(path)
+    with open(os.path.join(out_dir, STUDY_MARK), "w"):
+        pass
 
 
 VARIATIONS = ("order", "bed")

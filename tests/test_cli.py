@@ -632,14 +632,33 @@ def test_an_option_the_command_ignores_is_refused(tmp_path, capsys, command, nam
         (["--workers", "100000"], "--workers must be 1 .. "),
         (["--scheduler", "nonsense"], "--scheduler 'nonsense': not a dask scheduler address"),
         (["--scheduler", "tcp://[::1"], "--scheduler 'tcp://[::1': not a dask scheduler address"),
+        (["--scheduler", "tcp://127.0.0.1:99999"], "port 99999 is not in 1..65535"),
+        (["--scheduler", "tcp://256.1.1.1:1"], "--scheduler 'tcp://256.1.1.1:1': not a dask scheduler address"),
+        (["--scheduler", ""], "--scheduler '': give the dask scheduler's address"),
     ],
 )
 def test_a_cluster_option_out_of_range_is_named(tmp_path, capsys, option, words):
     """--workers beyond 4 a core started processes for 10 minutes (signals held while they start), a
-    malformed --scheduler was an unexpected error: both are bad arguments (exit 2)."""
+    malformed --scheduler was an unexpected error, a port or an address out of range was tried for
+    dask's 30 s connect timeout (exit 5), an empty one ignored: all are bad arguments (exit 2), refused
+    before the folder is made (it held the scene, and the same command again was refused: not empty)."""
     scene = str(write_tiny(tmp_path))
     out = tmp_path / "out"
     assert main(["run", scene, "--replicas", "2", "--out", str(out), "--no-progress", *option]) == 2
     assert words in capsys.readouterr().err
-    if option[0] == "--workers":
-        assert not out.exists(), "nothing made before the arguments are checked"
+    assert not out.exists(), "nothing made before the arguments are checked"
+
+
+def test_without_dask_a_command_on_dask_says_what_to_install(tmp_path, capsys, monkeypatch):
+    """dask is an extra ([study]): without it a replica run or a lab test was an unexpected error
+    (ModuleNotFoundError, exit 1) after the folder was made; now exit 2 naming the extra and --serial."""
+    import sys
+
+    monkeypatch.setitem(sys.modules, "distributed", None)
+    monkeypatch.setitem(sys.modules, "distributed.comm.addressing", None)
+    scene = str(write_tiny(tmp_path))
+    out = tmp_path / "out"
+    assert main(["run", scene, "--replicas", "2", "--out", str(out), "--no-progress"]) == 2
+    err = capsys.readouterr().err
+    assert "pip install 'regolith-cosim[study]'" in err and "--serial" in err, err
+    assert not out.exists()

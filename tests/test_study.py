@@ -487,3 +487,38 @@ def test_a_slip_run_record_of_the_wrong_shape_is_named(tmp_path, capsys, record,
     err = capsys.readouterr().err
     assert err.startswith("cosim: error:") and "run.json: not a slip run's record" in err and named in err, err
     assert not out.exists()
+
+
+def test_overwrite_empties_only_a_folder_a_study_or_a_run_wrote(scene_path, tmp_path, capsys):
+    """--overwrite on an ensemble (replicas, sweep, study, lab test) emptied the whole --out folder: the
+    scene it was reading, a user's notes and data went with the old results. It now empties only a folder
+    that a study marked or a single run's; a folder of other files is refused (exit 3), nothing removed."""
+    import shutil
+
+    from cosim.cli import main
+    from cosim.study import STUDY_MARK, prepare_study
+
+    folder = tmp_path / "mine"
+    folder.mkdir()
+    shutil.copy(scene_path, folder / "scene_in.toml")
+    (folder / "notes.txt").write_text("precious")
+    args = ["run", str(folder / "scene_in.toml"), "--out", str(folder), "--replicas", "2", "--serial"]
+    assert main([*args, "--overwrite", "--no-progress"]) == 3
+    err = capsys.readouterr().err
+    assert "holds files no study or run wrote (notes.txt, scene_in.toml)" in err and "nothing was removed" in err
+    assert sorted(os.listdir(folder)) == ["notes.txt", "scene_in.toml"]
+
+    study = tmp_path / "study"  # a study's folder: emptied, its settled bed kept
+    prepare_study(str(study), overwrite=False)
+    (study / "r000").mkdir()
+    (study / "study.csv").write_text("old")
+    (study / "bed.h5").write_text("bed")
+    prepare_study(str(study), overwrite=True)
+    assert sorted(os.listdir(study)) == [STUDY_MARK, "bed.h5"]
+
+    run = tmp_path / "run"  # a single run's folder is replaced, as `cosim run --overwrite` replaces it
+    run.mkdir()
+    for name in ("results.h5", "run.json", "scene.toml"):
+        (run / name).write_text("old")
+    prepare_study(str(run), overwrite=True)
+    assert os.listdir(run) == [STUDY_MARK]
