@@ -30,6 +30,7 @@ import numpy as np
 from soil import ContactLaw, GrouserWheel, Material, MeshWheel, gravity_vector
 from soil.advisor import rayleigh_time_step
 from soil.bed import BedSpec
+from soil.builder import grain_range_problem
 from soil.contact import LAW_VERSION
 from soil.materials import stick_speed_for
 
@@ -568,6 +569,9 @@ def resolve(scene: Scene) -> RunPlan:
         soil_material.density,
         b.radius_min,
     )
+    grains = grain_range_problem(b.radius_min, soil_material.density, scene.scene.precision)
+    if grains:
+        problems.append(f"bed.radius_mean: {grains}")
     bed = BedPlan(
         spec,
         settle_dt,

@@ -31,6 +31,24 @@ STORAGE_ORDERS = ("grain", "slot")
 """Orders of the neighbour lists and contact history in memory (SoilBuilder.finalize's storage)."""
 
 
+def grain_range_problem(radius: float, density: float, precision) -> str | None:
+    """Why grains of `radius` [m] and `density` [kg/m^3] cannot be stepped in `precision` (None: they can):
+    the smallest grain's inverse mass or inverse inertia beyond the float type its constants are stored in
+    (nanometre grains in single or mixed precision: inf, then a NaN state in the first steps)."""
+    prec = get_precision(precision)
+    mass = density * (4.0 / 3.0) * math.pi * radius**3
+    if not (mass > 0 and math.isfinite(mass)):
+        return None  # no grains (inf radius) or a density refused elsewhere
+    limit = float(np.finfo(prec.np_lo).max)
+    for name, value in (("inverse mass", 1.0 / mass), ("inverse inertia", 1.0 / (0.4 * mass * radius**2))):
+        if not value < limit:
+            return (
+                f"grains of radius {radius:.3g} m have an {name} of {value:.3g} (SI units), beyond {prec.name} "
+                f"precision's range ({limit:.3g}): larger grains (bed.radius_mean), or precision 'double'"
+            )
+    return None
+
+
 class SoilBuilder:
     """Collects particles, materials and boundaries; `finalize()` makes model, state, control (at
     rest, or in a saved state given with `start_from`, e.g. a settled bed: soil.bed.SavedBed.builder)."""
@@ -351,6 +369,13 @@ class SoilBuilder:
             )
 
         lo, hi = prec.np_lo, prec.np_hi
+        if len(radii):
+            movable = ~(fixed | locked)
+            problem = grain_range_problem(
+                float(radii[movable].min()) if movable.any() else math.inf, float(density.max()), prec
+            )
+            if problem:
+                raise SoilInputError(problem)
         kinds = np.array([b[0] for b in self._boundaries], dtype=np.int32)
         geometry = np.array([b[1] for b in self._boundaries], dtype=hi).reshape(-1, 6)
         bmat = np.array([b[2] for b in self._boundaries], dtype=np.int32)

@@ -129,10 +129,14 @@ def estimate(
     )
 
 
-def check_fits(found: MemoryEstimate, what: str) -> None:
-    """SoilTooLargeError with the estimate and the free memory when `found` does not fit."""
+BED_KEYS = "bed.length, bed.width, bed.depth, bed.radius_mean"
+
+
+def check_fits(found: MemoryEstimate, what: str, keys: str = BED_KEYS) -> None:
+    """SoilTooLargeError with the estimate and the free memory when `found` does not fit; `keys` are the
+    scene keys that size the soil."""
     if not found.fits:
         raise SoilTooLargeError(
-            f"{what} does not fit this machine: {found.text()}; make the bed smaller or the grains larger "
-            "(bed.length, bed.width, bed.depth, bed.radius_mean), or use a machine with more memory"
+            f"{what} does not fit this machine: {found.text()}; make the soil smaller or the grains larger "
+            f"({keys}), or use a machine with more memory"
         )

@@ -122,6 +122,60 @@ def test_lab_commands_fail_cleanly_on_bad_input(tmp_path, capsys):
     assert not (tmp_path / "plate").exists()
 
 
+@pytest.mark.parametrize(
+    "test, key, value, named",
+    [
+        ("repose", "repose.fill_height", "1e4", "repose.tube_width, repose.fill_height, bed.radius_mean"),
+        ("shear", "shear.length", "1e4", "shear.length, shear.width, shear.height, bed.radius_mean"),
+        ("plate", "bed.length", "1e4", "bed.length, bed.width, bed.depth, bed.radius_mean"),
+    ],
+)
+def test_a_lab_specimen_too_large_for_this_machine_is_refused_by_its_keys(tmp_path, capsys, test, key, value, named):
+    """A lab specimen had no memory check, where `cosim run` has one: 69 million grains in the repose
+    tube were allocated until a MemoryError (exit 1, each replica in turn), nanometre grains asked
+    numpy for 2.6 PiB (exit 1). Refused with the estimate and the keys that size it (exit 2), before
+    the folder is made."""
+    scene = tmp_path / "lab.toml"
+    scene.write_text("[scene]\ndevice = 'cpu'\n")
+    out = tmp_path / "out"
+    assert main(["lab", test, str(scene), "--serial", "--out", str(out), "--set", f"{key}={value}"]) == 2
+    err = capsys.readouterr().err
+    assert "a lab specimen of" in err and "does not fit this machine" in err and named in err, err
+    assert not out.exists()
+
+
+@pytest.mark.parametrize("command", ["lab shear", "run", "advise"])
+def test_grains_whose_constants_overflow_the_precision_are_named(tmp_path, capsys, command):
+    """Nanometre grains: their inverse inertia (7e41 SI) overflowed float32 to inf, the first steps made
+    a NaN state, and the run or every lab replica "diverged" (numpy's overflow warning the only hint).
+    Named by key, with what to change, before anything is made; in double they can be stepped."""
+    from soil import Material, SoilBuilder
+    from soil.builder import grain_range_problem
+    from soil.errors import SoilInputError
+
+    scene = tmp_path / "lab.toml"
+    scene.write_text("[scene]\ndevice = 'cpu'\n")
+    out = tmp_path / "out"
+    tiny = ["--set", "bed.radius_mean=1e-9"]
+    argv = command.split() + [str(scene)] + (["--out", str(out)] if command != "advise" else []) + tiny
+    assert main(argv + (["--serial"] if command.startswith("lab") else [])) == 2
+    err = capsys.readouterr().err
+    assert "bed.radius_mean: grains of radius 8e-10 m have an inverse inertia of 7.01e+41" in err, err
+    assert "beyond mixed precision's range (3.4e+38)" in err and "precision 'double'" in err, err
+    assert not out.exists()
+    # the bound itself: 1/I = 1 / (0.4 m r^2) against float32's largest number, float64 far above
+    for radius, single in ((1e-9, False), (1e-7, True)):
+        inertia = 0.4 * 2650 * 4 / 3 * np.pi * radius**3 * radius**2
+        assert (1 / inertia < float(np.finfo(np.float32).max)) == single
+        assert (grain_range_problem(radius, 2650, "single") is None) == single
+        assert grain_range_problem(radius, 2650, "double") is None
+    builder = SoilBuilder()
+    builder.add_material(Material(density=2650.0))
+    builder.add_particles(np.zeros((1, 3)), 1e-9)
+    with pytest.raises(SoilInputError, match="inverse inertia"):
+        builder.finalize(device="cpu", precision="single")
+
+
 # -- measurements on known shapes -------------------------------------------------------------
 
 

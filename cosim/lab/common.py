@@ -16,6 +16,7 @@ import numpy as np
 
 from soil import Simulation, SimulationDiverged, quiet_warp
 from soil.errors import RegolithError
+from soil.memory import check_fits, estimate
 
 from ..beds import write_json
 from ..metrics import ensemble
@@ -68,12 +69,21 @@ def lattice_fill(plan: LabPlan, lower, upper_xy, count: int, seed: int) -> tuple
     return offset + grid * pitch + jitter, radii
 
 
-def grains_for(plan: LabPlan, volume: float) -> int:
-    """Grains of the mean size that fill `volume` [m^3] at the packing fraction of a random packing [-]."""
+def grains_for(plan: LabPlan, volume: float, keys: str) -> int:
+    """Grains of the mean size that fill `volume` [m^3] at the packing fraction of a random packing [-];
+    SoilTooLargeError naming `keys` (the scene keys that size the specimen) when one specimen cannot fit
+    this machine's free memory (its arrays were allocated until a MemoryError, or for hours)."""
     from .scene import PACKING_FRACTION
 
     mean_volume = 4.0 / 3.0 * math.pi * plan.radius_mean**3 * (1 + plan.radius_spread**2)  # E[r^3] of a uniform r
-    return max(1, int(round(PACKING_FRACTION * volume / mean_volume)))
+    count = max(1, int(round(PACKING_FRACTION * volume / mean_volume)))
+    check_specimen_fits(plan, count, f"{keys}, bed.radius_mean")
+    return count
+
+
+def check_specimen_fits(plan: LabPlan, grains: int, keys: str) -> None:
+    """SoilTooLargeError when one lab specimen of `grains` grains cannot fit this machine's free memory."""
+    check_fits(estimate(grains, plan.precision, plan.device), f"a lab specimen of {grains:.3g} grains", keys)
 
 
 def finalize(plan: LabPlan, builder, order_seed: int | None) -> Simulation:

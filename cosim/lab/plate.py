@@ -24,7 +24,8 @@ from typing import Any
 
 import numpy as np
 
-from soil.bed import BedSpec, bed_metrics, build_bed, read_bed, read_bed_header, save_bed
+from soil.bed import BedSpec, bed_metrics, build_bed, grain_count, read_bed, read_bed_header, save_bed
+from soil.memory import BED_KEYS
 
 from . import common
 from .scene import LabPlan, SceneError
@@ -109,6 +110,8 @@ def check(plan: LabPlan) -> None:
             )
         )
     path = plan.scene.resolve(bed.bed_file)
+    if path is None:
+        common.check_specimen_fits(plan, grain_count(bed_spec(plan, 0)), BED_KEYS)
     if path is not None:
         try:
             header = read_bed_header(path)

@@ -101,7 +101,7 @@ def geometry(plan: LabPlan, replica: int = 0) -> ReposeGeometry:
         problems.append(
             f"repose.tube_width: ({width:.4g} m) must hold two of the largest grains (>= {4.2 * r_max:.4g} m)"
         )
-    count = common.grains_for(plan, width * width * height)
+    count = common.grains_for(plan, width * width * height, "repose.tube_width, repose.fill_height")
     volume = width * width * height  # the heap keeps the column's bulk volume
     footprint = (3 * volume / (math.pi * math.tan(math.radians(SMALLEST_ANGLE_DEG)))) ** (1 / 3)
     base_width = section.base_width if section.base_width is not None else 2 * (footprint + 3 * d)

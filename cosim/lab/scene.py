@@ -33,6 +33,7 @@ from pydantic import ConfigDict, Field, model_validator
 
 from soil import ContactLaw, Material, gravity_vector
 from soil.bed import radius_range
+from soil.builder import grain_range_problem
 
 from ..plan import MAX_PHASE_STEPS, RAYLEIGH_KEYS, default_stick_speed, dem_time_step, to_material
 from ..probe import resolve_device
@@ -301,6 +302,9 @@ def resolve_lab(scene: LabScene, needs_gravity: bool = False, test: str = "lab")
             f"DEM steps of {dt:.3g} s, more than {MAX_PHASE_STEPS:.0e} (a day even at 10 us a step): the step "
             f"{'(' + step + ') ' if dt_key == 'run.dt_factor' else ''}is far below the scene's scale"
         )
+    grains = grain_range_problem(bed.radius_min, soil.density, scene.scene.precision)
+    if grains:
+        problems.append(f"bed.radius_mean: {grains}")
     if bed.seed + scene.lab.replicas - 1 > INT64_MAX:
         problems.append(
             f"bed.seed: replica k is filled with bed.seed + k, and {bed.seed} + {scene.lab.replicas - 1} (lab.replicas "

@@ -143,7 +143,7 @@ def box(plan: LabPlan) -> ShearBox:
     if problems:
         raise SceneError(problems)
     stresses = normal_stresses(plan)
-    count = common.grains_for(plan, length * width * height)
+    count = common.grains_for(plan, length * width * height, "shear.length, shear.width, shear.height")
     # the loose lattice stands about twice as high as the settled sample: frames high enough to hold it
     r_max = plan.radius_max
     nx, ny = (int((s - 2 * r_max) // (2.04 * r_max)) + 1 for s in (length, width))
