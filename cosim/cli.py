@@ -618,6 +618,9 @@ def lab_lines(summary: dict) -> list[str]:
         flag = "ok" if number["ok"] else "OUT OF RANGE"
         lines.append(f"[{flag}] {number['name']} = {number['value']:.3g} (limit {number['limit']:.3g})")
     lines += [f"! {note}" for note in summary.get("notes", [])]
+    for failed in summary.get("failed", []):  # the values above are over the others only
+        error = str(failed.get("error") or "").strip().splitlines()
+        lines.append(f"! {failed.get('label')} failed, left out of the values above: {error[-1] if error else '?'}")
     if summary.get("figure"):
         lines.append(f"figure: {summary['figure']}")
     return lines
@@ -651,7 +654,7 @@ def cmd_calibrate(args) -> int:
             f"  {name + ' measured':40s} {value:.4g} {units[name]} (target {summary['targets'][name]:g} +- "
             f"{summary['tolerances'][name]:g} {units[name]})"
         )
-    print(f"  calibrated scene: {summary['calibrated_scene']}")
+    print(f"  calibrated scene: {summary['calibrated_scene'] or 'none written'}")
     return EXIT_OK if summary["converged"] else EXIT_UNSTEADY
 
 

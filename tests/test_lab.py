@@ -43,6 +43,7 @@ def test_a_wheel_scene_is_a_lab_scene_and_measures_its_own_soil():
         ("[shear]\nnormal_stresses = [100.0, -5.0]", "shear.normal_stresses"),
         ("[shear]\ninertial_number = nan", "shear.inertial_number"),
         ("[plate]\nwidths = [0.02, 0.02]", "plate.widths: each width once"),
+        ("[shear]\nnormal_stresses = [1000.0, 1000.0]", "shear.normal_stresses: each stress once"),
         ("[lab]\nreplicas = 0", "lab.replicas"),
         ("[repose]\nfill_height = true", "repose.fill_height: must be a number, not true or false"),
         ("[shear]\nnormal_stresses = [100.0, 1e300]", "shear.normal_stresses: [1]: must be 0 or of magnitude"),
@@ -92,6 +93,7 @@ def test_lab_commands_fail_cleanly_on_bad_input(tmp_path, capsys):
         (["--target", "repose=30", "--vary", "wheel.radius=0.01:0.1"], "not a key the repose test reads"),
         (["--target", "friction=25", "--vary", "repose.lift_ratio=0.1:1"], "not a key the shear test reads"),
         (["--target", "repose=30", "--vary", "lab.replicas=1:5"], "lab.replicas: takes no real number"),
+        (["--target", "cohesion=5", "--vary", "soil.rolling_friction,soil.cohesion=0:1"], "must share a unit"),
     ):
         out = tmp_path / "refused"
         assert main(["calibrate", str(scene), "--serial", "--out", str(out), *argv]) == 2, argv
@@ -196,6 +198,28 @@ def test_heap_angle_of_a_cone(angle):
     assert heap["angle"] == pytest.approx(angle, abs=0.5)
     assert heap["angle_profile"] == pytest.approx(angle, abs=0.5)
     assert heap["height"] == pytest.approx(0.02, abs=2 * r) and heap["toe"] == pytest.approx(2 * r, abs=0.1 * r)
+
+
+def test_a_failed_replica_is_printed_with_the_values_it_is_left_out_of():
+    """A lab test whose replica diverged printed "2 replicas" and no note: the failure was a log line
+    and summary.json's "failed" only. Each failed replica is now a "!" line of the printed summary."""
+    from cosim.cli import lab_lines
+
+    stats = {"n": 2, "mean": 31.0, "ci95": 1.5, "min": 30.0, "max": 32.0}
+    summary = {
+        "test": "repose",
+        "repose_angle_deg": stats,
+        "notes": [],
+        "failed": [
+            {"label": "replica 2", "error": "Traceback ...\nSimulationDiverged: simulation diverged at t = 1 s"}
+        ],
+    }
+    lines = lab_lines(summary)
+    assert "2 replicas" in lines[0]
+    assert (
+        lines[-1]
+        == "! replica 2 failed, left out of the values above: SimulationDiverged: simulation diverged at t = 1 s"
+    )
 
 
 def test_mohr_coulomb_fit_recovers_a_known_line():
@@ -384,6 +408,33 @@ def test_cosim_lab_repose_writes_its_report(tmp_path, capsys):
         "replica [1],radius [m],surface_height [m],sectors_filled [1]"
     )
     assert main(["lab", "repose", str(scene), "--serial", "--out", str(out)]) == 3  # nothing is overwritten
+
+
+def test_calibrate_that_measured_nothing_writes_no_calibrated_scene(tmp_path, capsys, monkeypatch):
+    """Every evaluation measured nan (heaps too small to measure): the "best" was the first by the
+    order nan compares in, and its values were written as calibrated.toml. Now no calibrated scene,
+    the message says why, exit 6 (no result), and the evaluations' table is kept."""
+    import importlib
+
+    lab_calibrate = importlib.import_module("cosim.lab.calibrate")
+    calls = []
+
+    def nothing(plan, tests, folder, run_on):
+        calls.append(folder)
+        return {"repose": math.nan}
+
+    monkeypatch.setattr(lab_calibrate, "measure", nothing)
+    scene = tmp_path / "lab.toml"
+    scene.write_text("[scene]\ndevice = 'cpu'\n")
+    out = tmp_path / "out"
+    args = ["--serial", "--out", str(out), "--target", "repose=30", "--vary", "soil.rolling_friction=0:0.3"]
+    assert main(["calibrate", str(scene), *args, "--max-evaluations", "3"]) == 6
+    printed = capsys.readouterr().out
+    assert "no evaluation measured repose" in printed and "calibrated scene: none written" in printed, printed
+    assert len(calls) == 2 and not (out / "calibrated.toml").exists()  # brentq's two ends, both nan
+    summary = json.loads((out / "summary.json").read_text(), parse_constant=lambda c: math.nan)
+    assert summary["calibrated_scene"] is None and not summary["converged"]
+    assert (out / "history.csv").is_file()
 
 
 def test_calibrate_prints_each_value_with_its_unit(tmp_path, capsys, monkeypatch):

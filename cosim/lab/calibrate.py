@@ -37,6 +37,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from soil.files import atomic_write_text
+
 from ..scene import SceneError, is_number, key_field, key_unit, parse_value
 from ..study import Executor
 from . import common
@@ -149,6 +151,15 @@ def parse_parameters(texts: list[str]) -> list[Parameter]:
         twice = sorted({key for key in taken if taken.count(key) > 1})
         if twice:
             raise SceneError([f"--vary {text!r}: {twice[0]} is varied twice; give each key once"])
+        units = {key: key_unit(key) or "1" for key in names}
+        if len(set(units.values())) > 1:  # one value cannot be a number and a pressure
+            raise SceneError(
+                [
+                    f"--vary {text!r}: keys that take one value together must share a unit; "
+                    + ", ".join(f"{key} [{unit}]" for key, unit in units.items())
+                    + ": vary each with its own --vary"
+                ]
+            )
         parameters.append(Parameter(names, float(low), float(high)))
     if not parameters:
         raise SceneError(["--vary: give at least one scene key to vary, e.g. --vary soil.rolling_friction=0:0.3"])
@@ -299,7 +310,13 @@ def _calibrate(
             (name,) = targets
             p = parameters[0]
             at_low, at_high = evaluate([p.low]), evaluate([p.high])
-            if np.sign(at_low["misfit"][name]) == np.sign(at_high["misfit"][name]):
+            unmeasured = [v for v, row in ((p.low, at_low), (p.high, at_high)) if not math.isfinite(row["cost"])]
+            if unmeasured:  # brentq cannot start from nan
+                message = (
+                    f"{name} was not measured (nan) at {p.name} = {', '.join(f'{v:g}' for v in unmeasured)}, an end of "
+                    "its range: the root search needs both ends"
+                )
+            elif np.sign(at_low["misfit"][name]) == np.sign(at_high["misfit"][name]):
                 message = (
                     f"the target {name} = {targets[name]:g} is not between what the ends of {p.name} measure "
                     f"({at_low['measured'][name]:.4g} at {p.low:g}, {at_high['measured'][name]:.4g} at "
@@ -339,15 +356,19 @@ def _calibrate(
         message = f"stopped after --max-evaluations {max_evaluations} evaluations"
     except RuntimeError as error:  # brentq without convergence
         message = f"the optimiser stopped: {error}"
-    best = min(history, key=lambda row: row["cost"])
+    best = min(history, key=lambda row: row["cost"] if math.isfinite(row["cost"]) else math.inf)
     converged = best["within"]
+    path: str | None = os.path.join(out_dir, "calibrated.toml")
+    if not math.isfinite(best["cost"]):  # nan measured every time: no value is better than another
+        message = (
+            f"no evaluation measured {', '.join(targets)} (each gave nan; their summary.json notes say why): "
+            "no calibrated scene"
+        )
+        path = None
     if not message:
         message = "every target is within its tolerance" if converged else "the optimiser ended outside the tolerance"
-    best_overrides = _overrides(parameters, best["values"])
-    calibrated = plan.with_changes(best_overrides)
-    path = os.path.join(out_dir, "calibrated.toml")
-    with open(path, "w") as f:
-        f.write(calibrated.scene.to_toml())
+    if path is not None:
+        atomic_write_text(path, plan.with_changes(_overrides(parameters, best["values"])).scene.to_toml())
     summary = {
         "test": "calibrate",
         "name": plan.name,

@@ -139,6 +139,8 @@ class ShearSection(_LabSection):
                     f"normal_stresses: must be a non-empty list of finite stresses > 0 [Pa] "
                     f"(got {self.normal_stresses})"
                 )
+            if len(set(self.normal_stresses)) != len(self.normal_stresses):  # the same test twice, one point
+                raise ValueError(f"normal_stresses: each stress once (got {self.normal_stresses})")
         return self
 
 

@@ -416,6 +416,11 @@ def shear_test(
         for r in done
         if not r["consolidated"]
     ]
+    if len({r["stress"] for r in done}) < 2:
+        notes.append(
+            "one normal stress sheared: no Mohr-Coulomb line (its friction angle and cohesion need two or more "
+            "shear.normal_stresses); the angle with c = 0 assumes a cohesionless soil"
+        )
     summary = {
         "test": "shear",
         "name": plan.name,
