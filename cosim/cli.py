@@ -509,9 +509,13 @@ def cmd_sweep(args) -> int:
     plan = _plan(args)
     out = args.out or os.path.join("runs", f"{plan.name}_sweep")
     report = study.sweep(plan, out, args.param, overwrite=args.overwrite, **_executor(args))
-    failed = sum(1 for r in report["rows"] if not r.get("ok"))
-    print(f"sweep written to {out} ({failed} failed point(s))")
-    return EXIT_OK if failed == 0 else EXIT_ERROR
+    rows = report["rows"]
+    failed = sum(1 for r in rows if not r.get("ok"))
+    steady = sum(1 for r in rows if r.get("status") == "complete")
+    print(f"sweep written to {out} ({failed} failed, {len(rows) - failed - steady} not steady of {len(rows)} points)")
+    if failed:
+        return EXIT_ERROR
+    return EXIT_OK if steady else EXIT_UNSTEADY  # as a slip study: no steady point, no result to trust
 
 
 def cmd_scale(args) -> int:
