@@ -97,18 +97,27 @@ class Bed:
 
 
 def write_json(path: str, data: dict) -> None:
-    """Write a JSON file atomically (numpy scalars and arrays allowed)."""
-    atomic_write_text(path, json.dumps(data, indent=2, default=_json_default) + "\n")
+    """Write a JSON file atomically (numpy scalars and arrays allowed). A number that is not finite (nan:
+    not measured) is written as null: Python's NaN is no JSON, and jq, JavaScript and strict parsers refuse
+    the whole file."""
+    atomic_write_text(path, json.dumps(finite_or_null(data), indent=2, allow_nan=False) + "\n")
 
 
-def _json_default(value):
+def finite_or_null(value):
+    """`value` with numpy scalars and arrays as Python numbers and lists, and every non-finite number None."""
     import numpy as np
 
-    if isinstance(value, np.generic):
-        return value.item()
     if isinstance(value, np.ndarray):
-        return value.tolist()
-    raise TypeError(type(value).__name__)
+        value = value.tolist()
+    elif isinstance(value, np.generic):
+        value = value.item()
+    if isinstance(value, float):
+        return value if math.isfinite(value) else None
+    if isinstance(value, dict):
+        return {key: finite_or_null(item) for key, item in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [finite_or_null(item) for item in value]
+    return value
 
 
 def bed_from_file(path: str, setting: str = "bed.bed_file") -> Bed:

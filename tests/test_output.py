@@ -375,3 +375,21 @@ def test_xdmf_kept_by_the_writer_equals_one_written_afresh(tmp_path, monkeypatch
     text = (tmp_path / "results.xdmf").read_text()
     assert text == afresh(path)
     assert 'Value="1.5625"' in text and 'Value="1.5"' not in text  # the resumed snapshot 12, not the cut one
+
+
+def test_every_json_file_of_a_run_is_strict_json(tiny_run, tmp_path):
+    """run.json (and summary.json, study.json, ensemble.json, bed.json: one writer) held Python's NaN
+    for what was not measured: no JSON, so jq, JavaScript's JSON.parse and strict parsers refused the
+    whole file. A non-finite number is now null; numpy numbers and arrays are plain JSON."""
+    import math
+
+    from cosim.beds import write_json
+
+    def strict(text):
+        return json.loads(text, parse_constant=lambda name: pytest.fail(f"{name} is no JSON"))
+
+    info = strict((tiny_run / "run.json").read_text())
+    assert isinstance(info["summary"], dict)
+    path = tmp_path / "summary.json"
+    write_json(str(path), {"k": math.nan, "n": np.float32(np.inf), "rows": [np.array([1.0, np.nan])], "i": np.int64(3)})
+    assert strict(path.read_text()) == {"k": None, "n": None, "rows": [[1.0, None]], "i": 3}
