@@ -22,7 +22,10 @@ step at fixed steps, the divergence monitor (a world that diverges stops the bat
 reports it with its own last good state). Ctrl-C or SIGTERM to this process reaches every run,
 which stops after its macro step with a checkpoint (a second one: at once); a run whose process
 dies leaves the batch (its result says so), the others go on; if this process dies, every run
-stops with the error.
+stops with the error. The runs' folders (one per plan, each its own, none holding a run unless
+overwrite, none in use) are checked before anything is settled or run; a run that still fails before
+its wheels are placed leaves the batch with them lifted clear of its grains (Worlds.leave(park=True)),
+so the others run on, as alone.
 """
 
 from __future__ import annotations
@@ -52,6 +55,7 @@ from soil.worlds import World, Worlds, open_bed_worlds
 
 from .beds import Bed, check_memory, settled_bed
 from .dem_soil import DemSoil
+from .folders import LOCK_FILE, RunFolder
 from .launch import open_run
 from .plan import RunPlan, enable_step_control
 from .runner import STOP_SIGNALS, Runner
@@ -109,6 +113,8 @@ def run_batched(plans: list[RunPlan], out_dirs: list[str], overwrite: bool = Fal
     [s] at the end of each, round_steps: each one's step_seconds, serve_seconds: the serving process's
     own host work, its loop's wall less its waits for the runs and the macro steps, and serve_marks:
     that work so far [s] as each macro step's reports have gone out, one per round)."""
+    plans, out_dirs = list(plans), list(out_dirs)
+    _check_folders(plans, out_dirs, overwrite)  # before any bed is settled or any run starts
     first = plans[0]
     problem = batch_problem(first)
     if problem is not None:
@@ -160,6 +166,39 @@ def run_batched(plans: list[RunPlan], out_dirs: list[str], overwrite: bool = Fal
         "serve_marks": serve_marks,
     }
     return [{**r, "label": f"replica_{k:03d}", "wall_time": wall, "batch": batch} for k, r in enumerate(results)]
+
+
+def _check_folders(plans: list[RunPlan], out_dirs: list[str], overwrite: bool) -> None:
+    """A folder per run, distinct and free (none holding a run unless `overwrite`, none in use by
+    another process): refused before anything is settled, written or run (a run that could not start
+    would leave the batch, the others run on without it)."""
+    if not plans:
+        raise ArgumentError("run_batched: no plans given: a batch runs one world per plan (at least one)")
+    if len(plans) != len(out_dirs):
+        raise ArgumentError(
+            f"run_batched: {len(plans)} plans for {len(out_dirs)} out_dirs: give one output folder per plan"
+        )
+    seen: dict[str, int] = {}
+    for k, out in enumerate(out_dirs):
+        try:
+            path = os.path.normcase(os.path.realpath(os.fspath(out)))
+        except TypeError:
+            raise ArgumentError(f"run_batched: out_dirs[{k}] is {out!r}: an output folder is a path") from None
+        if path in seen:
+            raise ArgumentError(
+                f"run_batched: runs {seen[path]} and {k} have the same output folder {os.fspath(out)!r}: "
+                "each run of a batch writes a folder of its own"
+            )
+        seen[path] = k
+    for out in out_dirs:
+        folder = RunFolder(out)
+        if os.path.lexists(folder.path) and not os.path.isdir(folder.path):
+            folder.create()  # names the file in the way
+        if os.path.isdir(folder.path):
+            folder.check_free(overwrite)
+            if os.path.exists(folder.file(LOCK_FILE)):
+                with folder.locked():  # FolderInUseError while another process runs in it
+                    pass
 
 
 def _beds(plans: list[RunPlan], out_dirs: list[str]) -> list[Bed]:
@@ -373,7 +412,9 @@ def _answer(worlds: Worlds, host: _Host) -> None:
 def _finish(worlds: Worlds, host: _Host, result: dict) -> None:
     host.result = result
     host.waiting = False
-    worlds.leave(host.index)
+    # a run that ended before it was set up (its folder refused, its rig failed to build) has not placed
+    # its wheels: they are lifted clear of its grains, which then lie still, as settled, beside the others
+    worlds.leave(host.index, park=not host.ready)
 
 
 def _send(host: _Host, message: tuple) -> None:

@@ -30,6 +30,8 @@ one loop that answers them (submit, take, view: cosim.batch, each run in a proce
 
 from __future__ import annotations
 
+import math
+import numbers
 import os
 import threading
 import time
@@ -40,7 +42,7 @@ import numpy as np
 import warp as wp
 
 from .control import SoilControl
-from .errors import ArgumentError, SoilInputError
+from .errors import ArgumentError, DamagedFileError, SoilInputError, is_real
 from .macro import MacroStepReport
 from .model import SoilModel
 from .stability import SimulationDiverged
@@ -239,11 +241,19 @@ def open_bed_worlds(
         raise ArgumentError(f"open_bed_worlds: {len(beds)} beds for {len(seeds)} order seeds (one bed per world)")
     read: dict[str, SavedBed] = {}  # a bed file given for several worlds is read once
     parts = []
-    for one, seed in zip(beds, seeds):
+    for k, (one, seed) in enumerate(zip(beds, seeds)):
         if not isinstance(one, SavedBed):
-            path = os.fspath(one)
+            path = _bed_path(one, k)
             if path not in read:
-                read[path] = read_bed(path)
+                try:
+                    read[path] = read_bed(path)
+                except DamagedFileError:
+                    raise
+                except OSError as error:  # missing, a folder: named, as the project's error
+                    raise SoilInputError(
+                        f"open_bed_worlds: world {k}'s bed {path!r} cannot be read ({error}); a bed is a bed file "
+                        "(soil.bed.save_bed, a run's bed.h5) or a SavedBed"
+                    ) from None
             one = read[path]
         builder = one.builder(gravity)
         for shape, material in wheels:
@@ -251,6 +261,17 @@ def open_bed_worlds(
         parts.append(builder.finalize(device=device, precision=precision, law=law, order_seed=seed, storage=storage))
     model, state, control = join_worlds(parts)
     return Worlds(Simulation(model, state, control, integrator=integrator))
+
+
+def _bed_path(bed, world: int) -> str:
+    """A bed given by its path, as a str; SoilInputError naming the world when it is no path."""
+    try:
+        return os.fspath(bed)
+    except TypeError:
+        raise SoilInputError(
+            f"open_bed_worlds: world {world}'s bed is {type(bed).__name__} {bed!r}: a bed is a bed file's path "
+            "(soil.bed.save_bed, a run's bed.h5) or a SavedBed"
+        ) from None
 
 
 class Worlds:
@@ -289,9 +310,16 @@ class Worlds:
         the rest of a batch's wall is the worlds' own host work (rovers, records, writers)."""
 
     def world(self, index: int) -> World:
-        if not 0 <= index < self.count:
-            raise ArgumentError(f"world index must be in 0 .. {self.count - 1}, got {index}")
-        return World(self, index)
+        return World(self, self._index(index))
+
+    def _index(self, world) -> int:
+        """A world's index as an int; ArgumentError naming it and the range allowed unless it is one."""
+        if isinstance(world, bool) or not isinstance(world, numbers.Integral) or not 0 <= world < self.count:
+            raise ArgumentError(
+                f"world index must be an integer in 0 .. {self.count - 1} (the batch has {self.count} worlds), "
+                f"got {world!r}"
+            )
+        return int(world)
 
     def body_rows(self, world: int) -> slice:
         per = self.model.bodies_per_world
@@ -304,6 +332,7 @@ class Worlds:
     def step_counts(self, world: int) -> dict:
         """World `world`'s own step counters in Simulation.state_dict's keys (steps, accepted_steps,
         rejected_steps, forced_steps) [-]: under the PID step control each world counts its own."""
+        world = self._index(world)
         names = ("steps", "accepted_steps", "rejected_steps", "forced_steps")
         with self.lock:
             return {name: np.int64(value) for name, value in zip(names, self._own_steps[world])}
@@ -328,6 +357,7 @@ class Worlds:
     def check_divergence(self, world: int) -> None:
         """The divergence monitor's full check of the whole batch, once per macro step whichever world asks
         first (it reads every grain); a divergence it finds reaches every world (with its own last good state)."""
+        world = self._index(world)
         with self.lock:
             if self._failure is None and self._checked != self.rounds:
                 self._checked = self.rounds
@@ -339,13 +369,39 @@ class Worlds:
                 raise self._world_failure(world)
 
     # -- stepping together --------------------------------------------------------------
-    def leave(self, world: int) -> None:
-        """World `world` steps no more: its wheels hold still; the others step without waiting for it."""
+    def leave(self, world: int, park: bool = False) -> None:
+        """World `world` steps no more: its wheels hold still; the others step without waiting for it.
+        park: its wheels are first lifted clear of its grains, at rest (a world that leaves before its
+        run placed them: where they were built they may lie inside its bed, whose grains, still stepped
+        at fixed steps, would be thrown out by them and stop every world as a divergence)."""
+        world = self._index(world)
         with self._changed:
+            if park and world in self.active:
+                self._park(world)
             self.active.discard(world)
             self._requests.pop(world, None)
             self._maybe_step()
             self._changed.notify_all()
+
+    def _park(self, world: int) -> None:
+        """World `world`'s wheels at rest above its grains (against gravity; +z without), each its own
+        reach and a grain apart from them and from one another, out of contact (holding the lock)."""
+        rows = self.body_rows(world)
+        if rows.start == rows.stop:
+            return
+        x = self.sim.positions()[self.grain_rows(world)]
+        x = x[np.isfinite(x).all(axis=1)]
+        low, high = (x.min(axis=0), x.max(axis=0)) if len(x) else (np.zeros(3), np.zeros(3))
+        g = np.asarray(self.model.gravity, dtype=np.float64)
+        up = -g / np.linalg.norm(g) if np.linalg.norm(g) > 0 else np.array([0.0, 0.0, 1.0])
+        side = np.cross(up, [1.0, 0.0, 0.0] if abs(up[0]) < 0.9 else [0.0, 1.0, 0.0])
+        side /= np.linalg.norm(side)
+        reach = float(np.max(self.model.body_shape.numpy()[rows, 5]))
+        gap = 2.0 * reach + 4.0 * self.model.max_radius
+        above = (low + high) / 2.0 + up * (float(np.linalg.norm(high - low)) + gap)
+        for k, body in enumerate(range(rows.start, rows.stop)):
+            self.sim.set_body_motion(body, above + side * k * gap, [1.0, 0.0, 0.0, 0.0], np.zeros(3), np.zeros(3))
+        self.refresh_later()
 
     def advance_to(
         self,
@@ -373,17 +429,63 @@ class Worlds:
     def submit(self, world: int, end_time: float, dt: float, path: bool, body_path: tuple | None) -> None:
         """World `world` asks for its macro step (advance_to's arguments) without waiting: the step runs
         as soon as every active world has asked; `take` then gives its report."""
+        world = self._index(world)
         with self._changed:
             if world not in self.active:
                 raise ArgumentError(f"world {world} has left the batch")
             if self._failure is not None:
                 raise self._world_failure(world)
+            # checked before it is asked: a refused request leaves the batch as it was (one that failed in
+            # the step would stop every world)
+            if not (is_real(dt) and math.isfinite(dt) and dt > 0):
+                raise SoilInputError(f"world {world}'s macro step: dt must be finite and > 0 [s], got {dt!r}")
+            if not (is_real(end_time) and math.isfinite(end_time) and end_time > self.sim.time):
+                raise SoilInputError(
+                    f"world {world}'s macro step: end_time must be a finite time after the soil's time "
+                    f"{self.sim.time!r} s, got {end_time!r}"
+                )
+            if body_path is not None:
+                body_path = self._checked_path(world, body_path)
             self._requests[world] = (float(end_time), float(dt), bool(path), body_path)
             self._maybe_step()
+
+    def _checked_path(self, world: int, body_path) -> tuple:
+        """A world's wheel path (set_body_path's position, orientation, velocity, angular velocity and end:
+        None or those four at the span's end) as float arrays of its wheels' count; SoilInputError unless
+        each holds finite numbers of the shape its wheels need."""
+        bodies = self.model.bodies_per_world
+        widths = (3, 4, 3, 3)
+        names = ("position", "orientation", "velocity", "angular velocity")
+        what = f"world {world}'s wheel path"
+        if not isinstance(body_path, (tuple, list)) or len(body_path) != 5:
+            raise SoilInputError(
+                f"{what} is (position, orientation, velocity, angular velocity, end), got {type(body_path).__name__}"
+            )
+
+        def arrays(values, where: str) -> tuple:
+            out = []
+            for name, width, value in zip(names, widths, values):
+                try:
+                    array = np.array(value, dtype=np.float64).reshape(bodies, width)
+                except (TypeError, ValueError):
+                    raise SoilInputError(
+                        f"{what}: its {where}{name} must be ({bodies}, {width}) numbers (one row per wheel), "
+                        f"got {np.shape(value)}"
+                    ) from None
+                if not np.isfinite(array).all():
+                    raise SoilInputError(f"{what}: its {where}{name} is not finite")
+                out.append(array)
+            return tuple(out)
+
+        end = body_path[4]
+        if end is not None and (not isinstance(end, (tuple, list)) or len(end) != 4):
+            raise SoilInputError(f"{what}: its end is None or (position, orientation, velocity, angular velocity)")
+        return (*arrays(body_path[:4], ""), None if end is None else arrays(end, "end "))
 
     def take(self, world: int) -> MacroStepReport | None:
         """World `world`'s part of the report of the step it asked for (submit); None while other worlds
         have still to ask. Raises the batch's failure as this world sees it."""
+        world = self._index(world)
         with self._changed:
             if world in self._reports:
                 return self._reports.pop(world)
@@ -398,6 +500,7 @@ class Worlds:
         all worlds: 'time' [s]; its wheels' 'body_positions' [m] (bodies, 3) and 'body_rotations' (bodies, 3,
         3) as posed; its walls' 'boundary_displacements' [m] (walls, 3) and 'boundary_wrenches' (force [N]
         (walls, 3), torque [N m] (walls, 3), contacts [-] (walls,)), as World's methods of those names give."""
+        world = self._index(world)
         with self.lock:
             if self._view_round != self.rounds:
                 self.ensure_forces()

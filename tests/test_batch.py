@@ -264,3 +264,56 @@ def test_a_run_whose_process_dies_leaves_the_batch_and_the_others_finish_as_alon
     assert_same_run(runs_alone[alive], out[alive])
     assert resume(out[dead[0]]).status in ("complete", "unsteady")
     assert_same_run(runs_alone[dead[0]], out[dead[0]])
+
+
+# -- a run that cannot start: refused before the batch, or leaving it without harm -----------------------
+
+
+def test_a_batch_refuses_missing_plans_unequal_counts_and_taken_folders_before_anything_runs(
+    tmp_path, tiny_bed, runs_alone
+):
+    from filelock import FileLock
+
+    from cosim.folders import FolderInUseError, OutputExistsError
+    from soil.errors import ArgumentError
+
+    plan = fixed_plan(tmp_path, tiny_bed)
+    fresh = tmp_path / "fresh"
+    with pytest.raises(ArgumentError, match="no plans given"):
+        run_batched([], [])
+    with pytest.raises(ArgumentError, match="2 plans for 1 out_dirs: give one output folder per plan"):
+        run_batched([plan, plan], [str(fresh)])
+    # one folder twice, however spelled: two runs would write one folder
+    with pytest.raises(ArgumentError, match="runs 0 and 1 have the same output folder"):
+        run_batched([plan, plan], [str(fresh), str(tmp_path / "other" / ".." / "fresh")])
+    # a folder that holds a run, or that another process runs in: refused before any run starts
+    with pytest.raises(OutputExistsError, match="already holds a run"):
+        run_batched([plan, plan], [str(fresh), runs_alone[0]])
+    busy = tmp_path / "busy"
+    busy.mkdir()
+    with FileLock(str(busy / ".lock")):
+        with pytest.raises(FolderInUseError, match="is in use by another run"):
+            run_batched([plan, plan], [str(fresh), str(busy)])
+    assert not fresh.exists(), "nothing was written for the run that would have started"
+
+
+def test_a_run_that_fails_at_its_start_leaves_the_batch_and_the_others_run_as_alone(
+    tmp_path, tiny_bed, runs_alone, monkeypatch
+):
+    """A run whose process fails before it places its wheels (its folder taken after the batch's check:
+    the check is skipped here) leaves the batch: its wheels, where they were built, are lifted clear of
+    its grains (they lay inside its bed and threw its grains out, which stopped every world as a
+    divergence), and the other run gives its results alone, bit for bit, in either order."""
+    import cosim.batch
+
+    monkeypatch.setattr(cosim.batch, "_check_folders", lambda *args: None, raising=False)
+    for order in ((0, 1), (1, 0)):
+        plans = [seed_plan(tmp_path, tiny_bed, SEEDS[k]) for k in order]
+        fresh = str(tmp_path / f"fresh_{order[0]}")
+        # the world of seed 0 goes to its run alone's folder, which holds a run: it cannot start
+        folders = [runs_alone[0] if k == 0 else fresh for k in order]
+        results = run_batched(plans, folders)
+        failed, ran = (results[0], results[1]) if order[0] == 0 else (results[1], results[0])
+        assert not failed["ok"] and failed["error"].startswith("OutputExistsError"), failed.get("error")
+        assert ran["ok"], ran.get("error")
+        assert_same_run(runs_alone[1], fresh)

@@ -343,3 +343,50 @@ def test_a_restore_onto_a_list_without_one_of_its_contacts_is_flagged(device):
         sim.neighbour_list.remap_worlds(sim.state, trial, every_world, status)
         assert status.numpy()[status_columns.LOST_HISTORY] == lost, shift
         assert trial.pair_touching.numpy().any() == (not lost)  # the contact's history carried, or not
+
+
+def test_the_worlds_api_names_a_bad_index_or_step_and_a_refused_step_changes_nothing(device, tmp_path):
+    """A world's index is an integer of the batch's range; a macro step that is refused (a time that is
+    no time, a wheel path of the wrong shape) leaves the batch as it was: the next, valid, step runs."""
+    from soil.errors import ArgumentError, InputError
+
+    worlds = Worlds(Simulation(*join_worlds([scene(device, "double", seed, wheel=False) for seed in SEEDS[:2]])))
+    for call in (worlds.leave, worlds.world, worlds.take, worlds.view):
+        for bad in (5, -1, 1.0, True, "0"):
+            with pytest.raises(ArgumentError, match=rf"world index must be an integer in 0 \.\. 1 .*got {bad!r}"):
+                call(bad)
+    assert worlds.active == {0, 1}
+    for end, dt in ((float("nan"), 1e-4), (0.0, 1e-4), (MACRO, float("inf")), (MACRO, -1.0)):
+        with pytest.raises(SoilInputError, match="world 0's macro step"):
+            worlds.submit(0, end, dt, False, None)
+    with pytest.raises(SoilInputError, match=r"world 0's wheel path: its position must be \(0, 3\)"):
+        worlds.submit(0, MACRO, 1e-4, True, (np.zeros((1, 3)), np.zeros((0, 4)), [], [], None))
+    # the refused steps left nothing behind: the batch steps as asked
+    worlds.submit(0, MACRO, 1e-4, False, None)
+    worlds.submit(1, MACRO, 1e-4, False, None)
+    reports = [worlds.take(w) for w in range(2)]
+    assert all(r is not None and r.steps == 10 for r in reports) and worlds.sim.time == MACRO
+    # a bed that is no file: the project's input error, naming the path
+    missing = tmp_path / "no_bed.h5"
+    with pytest.raises(InputError, match=f"world 0's bed '{missing}' cannot be read .*bed file not found"):
+        open_bed_worlds(missing, order_seeds=[0, 1], device=device)
+    with pytest.raises(SoilInputError, match="world 0's bed is int 12: a bed is a bed file's path"):
+        open_bed_worlds(12, device=device)
+
+
+def test_a_world_that_leaves_before_placing_its_wheels_lifts_them_clear_of_its_grains(device):
+    """Built, a world's wheel lies where it was added (here in its box, among its grains): a world that
+    leaves parked takes it out of reach, at rest, and its grains lie still while the other world steps."""
+    worlds = Worlds(Simulation(*join_worlds([scene(device, "double", seed) for seed in SEEDS[:2]])))
+    worlds.leave(0, park=True)
+    parked = worlds.world(0)
+    x, r = parked.positions(), parked.radii()
+    reach = float(worlds.model.body_shape.numpy()[0, 5])
+    hub = parked.body_positions()[0]
+    assert hub[2] > x[:, 2].max() + reach and np.all(np.linalg.norm(x - hub, axis=1) > reach + r)
+    assert not worlds.sim.control.body_velocity_host[0].any()
+    before = parked.positions()
+    for k in range(5):
+        worlds.advance_to(1, (k + 1) * MACRO, 1e-4, False, None)
+    assert np.abs(parked.positions() - before).max() < 1e-3  # settling a little, no wheel among them
+    assert np.abs(parked.velocities()).max() < 0.5
