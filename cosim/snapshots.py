@@ -62,7 +62,8 @@ def snapshot_datasets(ragged: bool) -> tuple[list[str], list[str]]:
 
 def snapshot_count(f) -> int:
     """Snapshots in an open results file, after checking that every snapshot dataset is there with a
-    row per snapshot: DamagedFileError naming the file otherwise (a reader then stops before it writes).
+    row per snapshot and that every dataset a reader uses holds numbers of its shape (reader_problem):
+    DamagedFileError naming the file otherwise (a reader then stops before it writes).
     A file still 'running' (being written, or its writer killed) counts the snapshots every dataset holds."""
     from soil.errors import DamagedFileError
 
@@ -73,6 +74,7 @@ def snapshot_count(f) -> int:
     per_snapshot, fixed = snapshot_datasets(ragged)
     missing = [f"particles/{name}" for name in per_snapshot + fixed if name not in p]
     problem = f"missing {', '.join(missing)}" if missing else ""
+    count = 0
     if not problem:
         count = int(p["time"].shape[0])
         if f.attrs.get("status") == "running":  # being written, or its writer killed inside a flush
@@ -82,20 +84,150 @@ def snapshot_count(f) -> int:
             problem = f"particles/{uneven[0]} has {p[uneven[0]].shape[0]} rows for {count} snapshots"
         elif not ragged and p["position"].shape[1:] != (len(p["radius"]), 3):
             problem = f"particles/position has shape {p['position'].shape}, not (snapshots, {len(p['radius'])}, 3)"
+        else:
+            problem = reader_problem(f, count)
     if problem:
         raise DamagedFileError(f"{f.filename}: the results file is damaged ({problem})")
     return count
 
 
-def read_snapshot(f, k: int) -> Snapshot:
+REAL, INTEGER = "fiu", "iu"
+"""numpy dtype kinds of a dataset of real numbers and of one of integers (no text, no complex numbers)."""
+
+
+def reader_datasets(f) -> dict[str, tuple[str, tuple]]:
+    """The datasets of a results file that the readers (the exports, `cosim view`) use, each with its dtype
+    kinds and its shape: a number is a size, a letter a size that must be the same in every dataset it
+    appears in (V wheel-mesh vertices, N grains, F triangles, W wheels, B walls), None a row count checked
+    elsewhere (snapshot_count, check_results: a file being written may hold more rows of some)."""
+    ragged = f["particles"].attrs.get("layout") == "ragged"
+    grains = (None,) if ragged else ("N",)
+    per_grain = (None,) if ragged else (None, "N")
+    shapes = {
+        "particles/time": (REAL, (None,)),
+        "particles/wheel_vertices": (REAL, (None, "V", 3)),
+        "particles/rover_position": (REAL, (None, 3)),
+        "particles/rover_forward": (REAL, (None, 3)),
+        "particles/rover_up": (REAL, (None, 3)),
+        "particles/radius": (REAL, grains),
+        "particles/position": (REAL, (*per_grain, 3)),
+        "particles/velocity": (REAL, (*per_grain, 3)),
+        "wheels/mesh/vertices": (REAL, ("V", 3)),
+        "wheels/mesh/triangles": (INTEGER, ("F", 3)),
+        "wheels/mesh/wheel": (INTEGER, ("V",)),
+        "wheels/time": (REAL, (None,)),
+        "wheels/phase": (INTEGER, (None,)),
+        "wheels/slip": (REAL, (None, "W")),
+        "wheels/sinkage": (REAL, (None, "W")),
+        "rover/slip": (REAL, (None,)),
+    }
+    if ragged:
+        shapes.update({"particles/first": (INTEGER, (None,)), "particles/count": (INTEGER, (None,))})
+        shapes["particles/id"] = (INTEGER, (None,))
+    if "boundaries" in f:
+        shapes.update(
+            {
+                "boundaries/kind": (INTEGER, ("B",)),
+                "boundaries/geometry": (REAL, ("B", 6)),
+                "boundaries/force": (REAL, (None, "B", 3)),
+                "boundaries/displacement": (REAL, (None, "B", 3)),
+            }
+        )
+    return shapes
+
+
+def reader_problem(f, count: int) -> str:
+    """What is wrong with the datasets the readers use (reader_datasets: missing, of another dtype or shape;
+    a value no run writes in the small ones read whole: a time that is not finite, a triangle's vertex past
+    the mesh, a wall of no known kind, not finite or moved by a displacement that is not, a snapshot's rows
+    past the grains), or "". The
+    snapshots' grains are checked as they are read (read_snapshot): a file may hold more than memory."""
+    import h5py
+
+    sizes: dict[str, int] = {}
+    for name, (kinds, shape) in reader_datasets(f).items():
+        if name not in f or not isinstance(f[name], h5py.Dataset):
+            return f"missing {name}"
+        dataset = f[name]
+        if dataset.dtype.kind not in kinds:
+            what = "integers" if kinds == INTEGER else "numbers"
+            return f"{name} holds {dataset.dtype} values, not {what}"
+        if len(dataset.shape) != len(shape):
+            return f"{name} has shape {dataset.shape}, not ({_sizes(shape, sizes)})"
+        for size, actual in zip(shape, dataset.shape):
+            if isinstance(size, str):
+                size = sizes.setdefault(size, int(actual))
+            if size is not None and size != actual:
+                return f"{name} has shape {dataset.shape}, not ({_sizes(shape, sizes)})"
+    for name in ("particles/time", "wheels/time", "boundaries/geometry", "boundaries/displacement"):
+        if name in f and not np.all(np.isfinite(f[name][()])):
+            return _not_finite(name, f[name][()])
+    triangles = f["wheels/mesh/triangles"][()]
+    if triangles.size and (triangles.min() < 0 or triangles.max() >= sizes["V"]):
+        return f"wheels/mesh/triangles points past the {sizes['V']} vertices of wheels/mesh/vertices"
+    if "boundaries" in f:
+        kinds, geometry = f["boundaries/kind"][()], f["boundaries/geometry"][()]
+        unknown = ~np.isin(kinds, (0, 1))
+        if unknown.any():
+            return f"boundaries/kind {kinds[unknown][0]} is neither 0 (a plane) nor 1 (a box)"
+        planes = np.flatnonzero((kinds == 0) & (np.linalg.norm(geometry[:, 3:], axis=1) == 0))
+        if len(planes):
+            return f"boundaries/geometry row {planes[0]}: a plane with a zero normal"
+    if f["particles"].attrs.get("layout") == "ragged":
+        p = f["particles"]
+        first, rows = p["first"][:count], p["count"][:count]
+        held = min(int(p[name].shape[0]) for name in ("id", "radius", "position", "velocity"))
+        bad = np.flatnonzero((first < 0) | (rows < 0) | (first + rows > held))
+        if len(bad):
+            k = int(bad[0])
+            return f"particles/first, count of snapshot {k} ({first[k]}, {rows[k]}) point past the {held} grain rows"
+    return ""
+
+
+def _sizes(shape: tuple, sizes: dict) -> str:
+    return ", ".join("rows" if size is None else str(sizes.get(size, size)) for size in shape)
+
+
+def _not_finite(name: str, values, where: str = "") -> str:
+    values = np.asarray(values)
+    bad = values[~np.isfinite(values)].ravel()
+    values_ = "1 value that is" if len(bad) == 1 else f"{len(bad)} values that are"
+    return f"{name}{where} holds {values_} not finite ({bad[0]}): a run that diverges stops before it writes one"
+
+
+def read_snapshot(f, k: int, check: bool = True) -> Snapshot:
     """Snapshot k of an open results file (h5py.File, cosim.output.open_results); DamagedFileError naming
-    the file and the snapshot when h5py cannot read it (a damaged chunk)."""
+    the file and the snapshot when h5py cannot read it (a damaged chunk) or (check) a grain or the wheels
+    are where no run puts them: a position, velocity or radius that is not finite, a radius not above 0
+    (a run that diverges stops before it writes a snapshot). Check snapshot_count first: it checks the
+    datasets' dtypes and shapes."""
     from soil.errors import DamagedFileError
 
     try:
-        return _read_snapshot(f, k)
+        snapshot = _read_snapshot(f, k)
     except (KeyError, OSError, RuntimeError) as error:  # how h5py reports damaged bytes
         raise DamagedFileError(f"{f.filename}: the results file is damaged (snapshot {k}: {error})") from None
+    problem = _snapshot_problem(snapshot) if check else ""
+    if problem:
+        raise DamagedFileError(f"{f.filename}: the results file is damaged ({problem})")
+    return snapshot
+
+
+def _snapshot_problem(s: Snapshot) -> str:
+    where = f" of snapshot {s.index}"
+    for name, values in (
+        ("particles/position", s.position),
+        ("particles/velocity", s.velocity),
+        ("particles/radius", s.radius),
+        ("particles/wheel_vertices", s.wheel_vertices),
+    ):
+        if not np.all(np.isfinite(values)):
+            return _not_finite(name, values, where)
+    if len(s.radius) and s.radius.min() <= 0:
+        return f"particles/radius{where} holds a radius of {s.radius.min()} m: a grain's is above 0"
+    if not np.isfinite(s.time):
+        return _not_finite("particles/time", [s.time], where)
+    return ""
 
 
 def _read_snapshot(f, k: int) -> Snapshot:

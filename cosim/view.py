@@ -22,7 +22,7 @@ import shutil
 import numpy as np
 
 from soil.errors import ArgumentError, DamagedFileError, InputError
-from soil.files import atomic_path
+from soil.files import atomic_path, make_folders, remove_empty_folders
 
 from .folders import PLOTS_DIR, RESULTS_FILE
 from .output import check_results, open_results
@@ -273,6 +273,8 @@ def render(
     own = default_output(os.path.dirname(os.path.abspath(path)))
     out = out or own
     kind = _output_kind(out)
+    if frame is not None and kind != ".png":  # a movie or a folder of frames draws every snapshot
+        raise ViewError(f"--frame {frame}: picks the snapshot of a .png picture; --out {out!r} draws every one")
     old_frames = _free_output(out, kind, overwrite or os.path.abspath(out) == own)
     # damage named before anything is touched: a picture or movie is written whole at the end, so the
     # headers suffice; a folder of frames loses its old frames as the new ones come, so every byte is read
@@ -295,7 +297,8 @@ def render(
         view = _Frame(fig, scene)
         displacements = Displacements()
         writer = _movie_writer(kind, out, fps) if kind in MOVIE_SUFFIXES else None
-        os.makedirs(out if kind == "frames" else os.path.dirname(os.path.abspath(out)), exist_ok=True)
+        # a picture's or movie's folder is made by atomic_path (and removed again when it fails)
+        made = make_folders(out) if kind == "frames" else []
         for name in old_frames:  # a shorter run's view must not keep the longer one's last frames
             os.remove(os.path.join(out, name))
         try:
@@ -320,6 +323,9 @@ def render(
                         s = read_snapshot(f, k)
                         view.draw(s, scene.values(s, displacements))
                         writer.grab_frame()
+        except BaseException:
+            remove_empty_folders(made)  # a folder of frames this view made and wrote nothing into
+            raise
         finally:
             plt.close(fig)
     return out

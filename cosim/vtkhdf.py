@@ -207,121 +207,128 @@ def write_vtkhdf(results_path, vtkhdf_path=None) -> str:
 
     Written to a temporary file and renamed: a reader never sees half a file, and a failed export
     leaves the previous one."""
-    import h5py
-
     results_path = os.fspath(results_path)
     if os.path.isdir(results_path):
         results_path = os.path.join(results_path, RESULTS_FILE)
     target = os.fspath(vtkhdf_path) if vtkhdf_path else os.path.join(os.path.dirname(results_path), VTKHDF_FILE)
     check_results(results_path, data=False)  # a damaged header named (DamagedFileError), not h5py's KeyError
-    with open_results(results_path) as f, atomic_path(target, ".vtkhdf.tmp") as temporary:
+    with open_results(results_path) as f:
+        # every dataset read below of its dtype and shape (DamagedFileError) before anything is made
         count = snapshot_count(f)
         if count == 0:
             raise ArgumentError(f"{results_path} holds no particle snapshots: nothing to export")
-        fixed = f["particles"].attrs.get("layout") != "ragged"
-        with h5py.File(temporary, "w", track_order=True) as out:
-            root = out.create_group("VTKHDF", track_order=True)
-            root.attrs["Version"] = np.array(VTKHDF_VERSION, dtype=np.int64)
-            root.attrs.create("Type", np.bytes_("PartitionedDataSetCollection"))
-            f32, f64, i64 = np.float32, np.float64, np.int64
-            grains = PolyBlock(
+        with atomic_path(target, ".vtkhdf.tmp") as temporary:
+            _write(f, count, temporary)
+    return target
+
+
+def _write(f, count: int, temporary: str) -> None:
+    """Write the VTKHDF file of the open results file `f` (checked: snapshot_count) to `temporary`."""
+    import h5py
+
+    fixed = f["particles"].attrs.get("layout") != "ragged"
+    with h5py.File(temporary, "w", track_order=True) as out:
+        root = out.create_group("VTKHDF", track_order=True)
+        root.attrs["Version"] = np.array(VTKHDF_VERSION, dtype=np.int64)
+        root.attrs.create("Type", np.bytes_("PartitionedDataSetCollection"))
+        f32, f64, i64 = np.float32, np.float64, np.int64
+        grains = PolyBlock(
+            root,
+            "grains",
+            0,
+            "Vertices",
+            static_cells=fixed,
+            point_data={
+                "radius": ((), f64, "m", "grain radius"),
+                "velocity": ((3,), f32, "m/s", "grain velocity"),
+                "displacement": ((3,), f32, "m", "displacement from where the grain was first seen"),
+                "id": ((), i64, "1", "grain id, unique over the run"),
+            },
+            cell_data={},
+            static_data=("radius", "id") if fixed else (),
+        )
+        wheels = PolyBlock(
+            root,
+            "wheels",
+            1,
+            "Polygons",
+            static_cells=True,
+            point_data={"wheel": ((), i64, "1", "wheel index of each vertex")},
+            cell_data={},
+            static_data=("wheel",),
+        )
+        rover = PolyBlock(
+            root,
+            "rover",
+            2,
+            "Vertices",
+            static_cells=True,
+            point_data={
+                "forward": ((3,), f64, "1", "rover body x axis, world frame"),
+                "up": ((3,), f64, "1", "rover body z axis, world frame"),
+            },
+            cell_data={},
+        )
+        blocks = {"grains": grains, "wheels": wheels, "rover": rover}
+        walls = None
+        if "boundaries" in f:
+            walls = PolyBlock(
                 root,
-                "grains",
-                0,
-                "Vertices",
-                static_cells=fixed,
-                point_data={
-                    "radius": ((), f64, "m", "grain radius"),
-                    "velocity": ((3,), f32, "m/s", "grain velocity"),
-                    "displacement": ((3,), f32, "m", "displacement from where the grain was first seen"),
-                    "id": ((), i64, "1", "grain id, unique over the run"),
-                },
-                cell_data={},
-                static_data=("radius", "id") if fixed else (),
-            )
-            wheels = PolyBlock(
-                root,
-                "wheels",
-                1,
+                "boundaries",
+                3,
                 "Polygons",
                 static_cells=True,
-                point_data={"wheel": ((), i64, "1", "wheel index of each vertex")},
-                cell_data={},
-                static_data=("wheel",),
-            )
-            rover = PolyBlock(
-                root,
-                "rover",
-                2,
-                "Vertices",
-                static_cells=True,
-                point_data={
-                    "forward": ((3,), f64, "1", "rover body x axis, world frame"),
-                    "up": ((3,), f64, "1", "rover body z axis, world frame"),
+                point_data={},
+                cell_data={
+                    "wall": ((), i64, "1", "wall index (results.h5 /boundaries)"),
+                    "force": (
+                        (3,),
+                        f64,
+                        "N",
+                        "force of the grains on the wall at the snapshot (the end of its macro step)",
+                    ),
                 },
-                cell_data={},
+                static_data=("wall",),
             )
-            blocks = {"grains": grains, "wheels": wheels, "rover": rover}
-            walls = None
-            if "boundaries" in f:
-                walls = PolyBlock(
-                    root,
-                    "boundaries",
-                    3,
-                    "Polygons",
-                    static_cells=True,
-                    point_data={},
-                    cell_data={
-                        "wall": ((), i64, "1", "wall index (results.h5 /boundaries)"),
-                        "force": (
-                            (3,),
-                            f64,
-                            "N",
-                            "force of the grains on the wall at the snapshot (the end of its macro step)",
-                        ),
-                    },
-                    static_data=("wall",),
-                )
-                blocks["boundaries"] = walls
-            assembly = root.create_group("Assembly", track_order=True)
-            for name in blocks:
-                assembly[name] = h5py.SoftLink(f"/VTKHDF/{name}")
+            blocks["boundaries"] = walls
+        assembly = root.create_group("Assembly", track_order=True)
+        for name in blocks:
+            assembly[name] = h5py.SoftLink(f"/VTKHDF/{name}")
 
-            triangles = f["wheels/mesh/triangles"][()]
-            vertex_wheel = f["wheels/mesh/wheel"][()]
+        triangles = f["wheels/mesh/triangles"][()]
+        vertex_wheel = f["wheels/mesh/wheel"][()]
+        if walls is not None:
+            wall_faces, wall_index = _walls(f)
+            step_times = f["wheels/time"][()]
+            force = f["boundaries/force"][()]
+            displacement = f["boundaries/displacement"][()]
+        displacements = Displacements()
+        for k in range(count):
+            s = read_snapshot(f, k)
+            grains.add_step(
+                s.time,
+                s.position,
+                np.arange(len(s.ids))[:, None],
+                {
+                    "radius": s.radius,
+                    "velocity": s.velocity,
+                    "displacement": displacements.of(s),
+                    "id": s.ids,
+                },
+                {},
+            )
+            wheels.add_step(s.time, s.wheel_vertices, triangles, {"wheel": vertex_wheel}, {})
+            rover.add_step(s.time, s.rover_position, [[0]], {"forward": s.rover_forward, "up": s.rover_up}, {})
             if walls is not None:
-                wall_faces, wall_index = _walls(f)
-                step_times = f["wheels/time"][()]
-                force = f["boundaries/force"][()]
-                displacement = f["boundaries/displacement"][()]
-            displacements = Displacements()
-            for k in range(count):
-                s = read_snapshot(f, k)
-                grains.add_step(
-                    s.time,
-                    s.position,
-                    np.arange(len(s.ids))[:, None],
-                    {
-                        "radius": s.radius,
-                        "velocity": s.velocity,
-                        "displacement": displacements.of(s),
-                        "id": s.ids,
-                    },
-                    {},
-                )
-                wheels.add_step(s.time, s.wheel_vertices, triangles, {"wheel": vertex_wheel}, {})
-                rover.add_step(s.time, s.rover_position, [[0]], {"forward": s.rover_forward, "up": s.rover_up}, {})
-                if walls is not None:
-                    # the last macro step at or before the snapshot (none yet: the walls at rest, no force)
-                    row = int(np.searchsorted(step_times, s.time + 1e-9)) - 1
-                    if row < 0:
-                        moved, on_wall = np.zeros((len(wall_index), 3)), np.zeros((len(wall_index), 3))
-                    else:
-                        moved, on_wall = displacement[row][wall_index], force[row][wall_index]
-                    points = (wall_faces + moved[:, None, :]).reshape(-1, 3)
-                    cells = np.arange(len(points)).reshape(-1, 4)
-                    walls.add_step(s.time, points, cells, {}, {"wall": wall_index, "force": on_wall})
-    return target
+                # the last macro step at or before the snapshot (none yet: the walls at rest, no force)
+                row = int(np.searchsorted(step_times, s.time + 1e-9)) - 1
+                if row < 0:
+                    moved, on_wall = np.zeros((len(wall_index), 3)), np.zeros((len(wall_index), 3))
+                else:
+                    moved, on_wall = displacement[row][wall_index], force[row][wall_index]
+                points = (wall_faces + moved[:, None, :]).reshape(-1, 3)
+                cells = np.arange(len(points)).reshape(-1, 4)
+                walls.add_step(s.time, points, cells, {}, {"wall": wall_index, "force": on_wall})
 
 
 def _walls(f):

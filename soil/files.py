@@ -10,17 +10,31 @@ from contextlib import contextmanager
 @contextmanager
 def atomic_path(path, suffix: str = ".tmp"):
     """Yield a temporary path beside `path` to write to; on success it is fsynced and renamed
-    onto `path` (os.replace, atomic), on any error it is removed and `path` is left untouched (an
-    OSError that names no file, e.g. a full disk during a write, is raised naming `path`).
+    onto `path` (os.replace, atomic), on any error it is removed and `path` is left untouched.
+
+    A missing folder of `path` is made (a command's output goes where it was told), and removed
+    again, with every folder above it that this call made, when the write fails: a failed write
+    leaves no empty folders. `path` an existing folder is refused before anything is made. An
+    OSError is raised naming `path`, never the temporary file (the user knows only `path`), also one
+    that names no file (e.g. a full disk during a write).
 
     The file gets the permissions of a normally created one (mkstemp's 0600 would hide it).
     """
+    import errno
+
     path = os.fspath(path)
-    folder = os.path.dirname(os.path.abspath(path))
-    os.makedirs(folder, exist_ok=True)
-    handle, temporary = tempfile.mkstemp(suffix=suffix, dir=folder)
-    os.close(handle)
+    if os.path.isdir(path):
+        raise IsADirectoryError(errno.EISDIR, "Is a directory: a file cannot be written there", path)
+    created: list[str] = []
+    temporary = None
     try:
+        folder = os.path.dirname(os.path.abspath(path))
+        created = make_folders(folder)
+        try:
+            handle, temporary = tempfile.mkstemp(suffix=suffix, dir=folder)
+        except OSError as error:  # it names the temporary file it tried to make
+            raise with_path(error, path, replace=error.filename) from error
+        os.close(handle)
         mask = os.umask(0)
         os.umask(mask)
         os.chmod(temporary, 0o666 & ~mask)
@@ -32,19 +46,68 @@ def atomic_path(path, suffix: str = ".tmp"):
             os.close(descriptor)
         os.replace(temporary, path)
     except BaseException as error:
-        if os.path.exists(temporary):
+        if temporary is not None and os.path.lexists(temporary):
             os.remove(temporary)
-        if isinstance(error, OSError) and not error.filename:  # a full disk while writing: name the file
-            raise with_path(error, path) from error
+        remove_empty_folders(created)
+        if isinstance(error, OSError) and (not error.filename or error.filename == temporary):
+            raise with_path(error, path, replace=temporary) from error  # a full disk while writing: name the file
         raise
 
 
-def with_path(error: OSError, path) -> OSError:
-    """`error` naming `path` when it names no file (a write into an open file, HDF5's own errors): the user
-    must learn which file a full disk or a read-only mount stopped."""
-    if error.filename:
+def make_folders(folder) -> list[str]:
+    """Make `folder` and the folders above it that are missing (os.makedirs); returns those made, the
+    topmost first, for remove_empty_folders. A folder another process makes meanwhile is not among them,
+    and one it removes meanwhile (its failed write, remove_empty_folders) is made again."""
+    for attempt in range(3):
+        try:
+            return _make_folders(os.path.abspath(os.fspath(folder)))
+        except FileNotFoundError:  # a folder above was removed between the look and the mkdir
+            if attempt == 2:
+                raise
+    raise AssertionError("unreachable")
+
+
+def _make_folders(folder: str) -> list[str]:
+    missing = []
+    while not os.path.isdir(folder) and os.path.dirname(folder) != folder:
+        missing.append(folder)
+        folder = os.path.dirname(folder)
+    made: list[str] = []
+    try:
+        for name in reversed(missing):
+            try:
+                os.mkdir(name)
+            except FileExistsError:
+                if os.path.isdir(name):  # made meanwhile by another process: not ours to remove
+                    continue
+                raise
+            made.append(name)
+    except BaseException:
+        remove_empty_folders(made)
+        raise
+    return made
+
+
+def remove_empty_folders(made: list[str]) -> None:
+    """Remove the folders make_folders made, the deepest first, as long as they are empty (what was written
+    into them since stays, and so do the folders that hold it)."""
+    for name in reversed(made):
+        try:
+            os.rmdir(name)
+        except OSError:
+            return
+
+
+def with_path(error: OSError, path, replace=None) -> OSError:
+    """`error` naming `path` when it names no file (a write into an open file, HDF5's own errors) or names
+    `replace` (a temporary file the user never heard of): the user must learn which file a full disk or a
+    read-only mount stopped."""
+    if error.filename and (replace is None or error.filename != replace):
         return error
-    named = OSError(error.errno, error.strerror or str(error), os.fspath(path))
+    strerror = error.strerror or str(error)
+    if replace is not None:
+        strerror = strerror.replace(os.fspath(replace), os.fspath(path))
+    named = OSError(error.errno, strerror, os.fspath(path))  # the subclass of its errno (IsADirectoryError, ...)
     named.__cause__ = error
     return named
 

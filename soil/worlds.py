@@ -314,7 +314,7 @@ class Worlds:
 
     def _index(self, world) -> int:
         """A world's index as an int; ArgumentError naming it and the range allowed unless it is one."""
-        if isinstance(world, bool) or not isinstance(world, numbers.Integral) or not 0 <= world < self.count:
+        if isinstance(world, bool) or not isinstance(world, numbers.Integral) or not 0 <= int(world) < self.count:
             raise ArgumentError(
                 f"world index must be an integer in 0 .. {self.count - 1} (the batch has {self.count} worlds), "
                 f"got {world!r}"
@@ -396,7 +396,9 @@ class Worlds:
         up = -g / np.linalg.norm(g) if np.linalg.norm(g) > 0 else np.array([0.0, 0.0, 1.0])
         side = np.cross(up, [1.0, 0.0, 0.0] if abs(up[0]) < 0.9 else [0.0, 1.0, 0.0])
         side /= np.linalg.norm(side)
-        reach = float(np.max(self.model.body_shape.numpy()[rows, 5]))
+        shapes = self.model.body_shape
+        assert shapes is not None, "a world with body rows has body shapes"
+        reach = float(np.max(shapes.numpy()[rows, 5]))
         gap = 2.0 * reach + 4.0 * self.model.max_radius
         above = (low + high) / 2.0 + up * (float(np.linalg.norm(high - low)) + gap)
         for k, body in enumerate(range(rows.start, rows.stop)):

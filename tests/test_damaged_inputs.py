@@ -23,6 +23,7 @@ import pytest
 from cosim.cli import main
 from cosim.launch import run_plan
 from cosim.plan import load_plan
+from cosim.study import STUDY_MARK
 from helpers import write_tiny
 
 
@@ -495,7 +496,7 @@ def test_row11_on_dask_workers_the_divergence_crosses_as_itself_exit_4(scene, tm
     line = first_error_line(capsys)
     assert line.startswith("cosim: error: the bed diverged while settling, at t = ") and "grain " in line, line
     # no bed was written: a bed's folder holds at most its settling's last good state, and the error names one
-    kept = [os.path.join(d, f) for d, _, files in os.walk(out) for f in files if f != ".lock"]
+    kept = [os.path.join(d, f) for d, _, files in os.walk(out) for f in files if f not in (".lock", STUDY_MARK)]
     assert kept and all(re.fullmatch(r"beds/seed_\d+/bed_diverged\.npz", os.path.relpath(f, out)) for f in kept), kept
     named = line.rstrip().rsplit(" is ", 1)[1]
     assert named in kept, (named, kept)
@@ -686,3 +687,74 @@ def test_a_refused_command_leaves_the_overwrite_folder_as_it_was(scene, tmp_path
     err = capsys.readouterr().err
     assert "Traceback" not in err and err.startswith("cosim: error:") and named in err, err
     assert digests(folder) == before
+
+
+# -- export and view of a results file whose datasets hold what no run writes -------------------------
+def _replace_dataset(f, name, data):
+    attrs = dict(f[name].attrs)
+    del f[name]
+    f[name] = data
+    f[name].attrs.update(attrs)
+
+
+def _geometry_cut_to_3_columns(f):
+    _replace_dataset(f, "boundaries/geometry", f["boundaries/geometry"][()][:, :3])
+
+
+def _times_as_text(f):
+    _replace_dataset(f, "particles/time", np.array([f"t={t}" for t in f["particles/time"][()]], dtype="S"))
+
+
+def _one_position_nan(f):
+    f["particles/position"][0, 3, 1] = np.nan  # the first snapshot: the one view sizes its figure by
+
+
+def _a_triangle_past_the_mesh(f):
+    triangles = f["wheels/mesh/triangles"][()]
+    triangles[0, 0] = len(f["wheels/mesh/vertices"]) + 5
+    f["wheels/mesh/triangles"][...] = triangles
+
+
+def _a_wall_displacement_inf(f):
+    f["boundaries/displacement"][2, 0, 0] = np.inf
+
+
+@pytest.mark.parametrize(
+    "damage, named",
+    [
+        (_geometry_cut_to_3_columns, "boundaries/geometry has shape (5, 3), not (5, 6)"),
+        (_times_as_text, "particles/time holds |S"),
+        (_one_position_nan, "particles/position of snapshot 0 holds 1 value that is not finite (nan)"),
+        (_a_triangle_past_the_mesh, "wheels/mesh/triangles points past the"),
+        (_a_wall_displacement_inf, "boundaries/displacement holds 1 value that is not finite (inf)"),
+    ],
+    ids=["geometry 3 columns", "times as text", "a position nan", "a triangle past the mesh", "a wall moved inf"],
+)
+def test_export_and_view_of_results_holding_what_no_run_writes_name_the_dataset(
+    complete, tmp_path, capsys, damage, named
+):
+    """A dataset the readers use of another dtype or shape, or holding a value no run writes (a non-finite
+    grain position: a run that diverges stops before its snapshot), was an unexpected error (exit 1:
+    IndexError, ValueError) or an export with nan in its points (exit 0). It is exit 2 naming the file and
+    the dataset; the run's own results.vtkhdf and an earlier picture stay as they were."""
+    import h5py
+
+    folder = copy(complete, tmp_path)
+    picture = tmp_path / "frame.png"
+    assert main(["view", str(folder), "--out", str(picture), "--dpi", "20"]) == 0
+    with h5py.File(folder / "results.h5", "r+") as f:
+        assert len(f["boundaries/kind"]) == 5
+        damage(f)
+    before, before_picture = digests(folder), picture.read_bytes()
+    for command in (
+        ["export", "vtkhdf", str(folder)],  # the run's own results.vtkhdf, made again
+        ["export", "vtkhdf", str(folder), "--out", str(tmp_path / "new" / "x.vtkhdf")],
+        ["view", str(folder), "--out", str(picture), "--dpi", "20", "--overwrite"],
+        ["view", str(folder), "--out", str(tmp_path / "frames"), "--dpi", "20"],
+    ):
+        assert main(command) == 2, command
+        line = first_error_line(capsys)
+        assert line.startswith(f"cosim: error: {folder / 'results.h5'}: the results file is damaged ("), line
+        assert named in line, line
+    assert digests(folder) == before and picture.read_bytes() == before_picture
+    assert sorted(os.listdir(tmp_path)) == ["copy", "frame.png"]  # no folder made, no temporary left

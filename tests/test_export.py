@@ -302,6 +302,8 @@ def test_view_refuses_bad_arguments_with_one_line(tiny_run, tmp_path, capsys):
         (["view", str(tiny_run), "--out", str(tmp_path / "movie.avi")], "movie.avi"),
         (["view", str(empty)], "results.h5"),
         (["view", str(tiny_run), "--out", str(tmp_path / "one.png"), "--frame", "999"], "--frame"),
+        (["view", str(tiny_run), "--out", str(tmp_path / "m.mp4"), "--frame", "3"], "--frame 3: picks the snapshot"),
+        (["view", str(tiny_run), "--out", str(tmp_path / "frames"), "--frame", "2"], "draws every one"),
         (["export", "vtkhdf", str(empty)], "results.h5"),
         (["view", str(tiny_run), "--out", str(tmp_path / "f.png"), "--fps", "0"], "--fps 0: allowed 1 to 120"),
         (["view", str(tiny_run), "--out", str(tmp_path / "f.mp4"), "--fps", "1000000"], "--fps 1000000: allowed"),
@@ -314,3 +316,59 @@ def test_view_refuses_bad_arguments_with_one_line(tiny_run, tmp_path, capsys):
         assert main(argv) == 2, argv
         error = capsys.readouterr().err.strip()
         assert named in error and "\n" not in error, error
+
+
+def _files(folder) -> dict:
+    return {str(path.relative_to(folder)): path.read_bytes() for path in folder.rglob("*") if path.is_file()}
+
+
+def test_an_export_that_cannot_be_written_names_the_target_and_leaves_no_folder(tmp_path, capsys, monkeypatch):
+    """The error named the temporary file (`DIR/tmpXXXX.vtkhdf.tmp: Is a directory`), which the user never
+    gave; a missing folder of `--out` is made, but a failed export removes again what it made."""
+    import errno
+
+    from cosim import vtkhdf
+
+    folder = tmp_path / "run"
+    made_up_results(folder, 20, 2)
+    (folder / "results.vtkhdf").mkdir()  # the run's own export, in the way
+    (folder / "results.vtkhdf" / "notes.txt").write_text("a user's file")
+    before = _files(tmp_path)
+    assert main(["export", "vtkhdf", str(folder)]) == 5
+    err = capsys.readouterr().err
+    assert err.startswith(f"cosim: error: {folder / 'results.vtkhdf'}: Is a directory") and ".tmp" not in err, err
+    if os.path.isdir("/proc/self"):  # a folder no file can be made in
+        assert main(["export", "vtkhdf", str(folder), "--out", "/proc/x.vtkhdf"]) == 5
+        err = capsys.readouterr().err
+        assert err.startswith("cosim: error: /proc/x.vtkhdf: ") and ".tmp" not in err, err
+
+    def full(f, count, temporary):
+        raise OSError(errno.ENOSPC, "No space left on device")  # as h5py reports it: no file name
+
+    out = tmp_path / "new" / "deeper" / "x.vtkhdf"
+    with monkeypatch.context() as patch:
+        patch.setattr(vtkhdf, "_write", full)
+        assert main(["export", "vtkhdf", str(folder), "--out", str(out)]) == 5
+    assert capsys.readouterr().err == f"cosim: error: {out}: No space left on device\n"
+    assert sorted(os.listdir(tmp_path)) == ["run"] and _files(tmp_path) == before  # no folder, no temporary
+    assert main(["export", "vtkhdf", str(folder), "--out", str(out)]) == 0  # its folders made
+    assert out.stat().st_size > 0 and os.listdir(out.parent) == ["x.vtkhdf"]
+
+
+def test_atomic_path_removes_only_the_folders_it_made(tmp_path):
+    from pathlib import Path
+
+    from soil.files import atomic_path
+
+    (tmp_path / "kept").mkdir()
+    target = tmp_path / "kept" / "a" / "b" / "file.txt"
+    with pytest.raises(RuntimeError), atomic_path(target) as temporary:
+        assert os.path.dirname(temporary) == str(target.parent)
+        raise RuntimeError("the writer failed")
+    assert os.listdir(tmp_path) == ["kept"] and os.listdir(tmp_path / "kept") == []
+    with pytest.raises(IsADirectoryError) as info, atomic_path(tmp_path / "kept"):
+        pass
+    assert info.value.filename == str(tmp_path / "kept") and os.listdir(tmp_path / "kept") == []
+    with atomic_path(target) as temporary:
+        Path(temporary).write_text("whole")
+    assert target.read_text() == "whole" and os.listdir(target.parent) == ["file.txt"]
