@@ -31,6 +31,7 @@ import time
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 sys.path.insert(0, ROOT)
 
+from cosim.beds import read_json_numbers, write_json  # noqa: E402 (after the path)
 from cosim.lab.scm_wheel import RELATIVE_TOLERANCE as TOLERANCE  # noqa: E402 (after the path)
 
 QUANTITIES = (
@@ -42,8 +43,7 @@ QUANTITIES = (
 
 def dem_rows(study_folder: str) -> tuple[dict, list[dict]]:
     """The DEM slip study's report and, per slip, mean and 95 % half-interval of each QUANTITY."""
-    with open(os.path.join(study_folder, "study.json")) as f:
-        study = json.load(f)
+    study = read_json_numbers(os.path.join(study_folder, "study.json"))  # not measured: nan
     load = study["wheel_load"]
     from cosim.scene import scene_from_text
 
@@ -199,8 +199,7 @@ def timing(study_folder: str, calibration: str, out_dir: str, duration: float | 
     from cosim.plan import resolve
     from cosim.scene import scene_from_text
 
-    with open(os.path.join(study_folder, "study.json")) as f:
-        study = json.load(f)
+    study = read_json_numbers(os.path.join(study_folder, "study.json"))  # not measured: nan
     base = {"testbed.mode": "slip", "testbed.slip": study["rows"][0]["slip_set"]}
     if duration is not None:
         base["run.duration"] = duration
@@ -293,8 +292,7 @@ def main(argv=None) -> None:
     if args.timing:
         folder, _, calibration = args.timing.rpartition(":")
         result["timing"] = timing(folder, calibration, args.out, args.timing_duration)
-    with open(os.path.join(args.out, "trade.json"), "w") as f:
-        json.dump(result, f, indent=1)
+    write_json(os.path.join(args.out, "trade.json"), result)
     if cases:
         write_csv(os.path.join(args.out, "trade.csv"), cases)
         figure(os.path.join(args.out, "trade.png"), dem_sets, cases)

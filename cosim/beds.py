@@ -103,6 +103,24 @@ def write_json(path: str, data: dict) -> None:
     atomic_write_text(path, json.dumps(finite_or_null(data), indent=2, allow_nan=False) + "\n")
 
 
+def read_json_numbers(path: str):
+    """A JSON file write_json wrote, each null as nan (a number that was not measured): what its numbers'
+    readers compute with (None * 1 is an error, nan * 1 is nan)."""
+    with open(path) as f:
+        return null_as_nan(json.load(f))
+
+
+def null_as_nan(value):
+    """`value` with every None, also in lists and dicts, as nan (the inverse of finite_or_null)."""
+    if value is None:
+        return math.nan
+    if isinstance(value, dict):
+        return {key: null_as_nan(item) for key, item in value.items()}
+    if isinstance(value, list):
+        return [null_as_nan(item) for item in value]
+    return value
+
+
 def finite_or_null(value):
     """`value` with numpy scalars and arrays as Python numbers and lists, and every non-finite number None."""
     import numpy as np

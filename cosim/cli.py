@@ -172,12 +172,14 @@ def _print_summary(result, scm_only: bool = False) -> None:
     for key, unit, scale in SUMMARY_KEYS:
         if key not in s:
             continue
-        value = s[key]
+        value = math.nan if s[key] is None else s[key]  # run.json's null (a finished run resumed): not measured
         if isinstance(value, float):
             sem = s.get(f"{key}_sem")
             text = f"{value * scale:.4g}" + (f" +- {sem * scale:.2g} (within-run s.e.)" if sem and sem == sem else "")
         elif isinstance(value, list):
-            text = (" .. " if key == "window" else ", ").join(f"{v * scale:.4g}" for v in value)
+            text = (" .. " if key == "window" else ", ").join(
+                f"{(math.nan if v is None else v) * scale:.4g}" for v in value
+            )
         else:
             text = str(value)
         print(f"  {key:26s} {text} {unit}".rstrip())
@@ -377,7 +379,7 @@ def _dem_advice(plan) -> list[str]:
 def _executor(args) -> dict:
     from soil.errors import ArgumentError
 
-    from .study import check_executor, check_workers
+    from .study import check_scheduler, check_workers
 
     check_workers(args.workers)  # before any folder is made
     if args.serial and args.scheduler is not None:
@@ -386,7 +388,7 @@ def _executor(args) -> dict:
         raise ArgumentError(
             f"--workers: sizes the LocalCluster started here; {'--serial' if args.serial else '--scheduler'} uses none"
         )
-    check_executor("serial" if args.serial else "dask", args.scheduler)
+    check_scheduler(args.scheduler)  # dask itself is checked where the tasks' executor is known (batched: none)
     return dict(executor="serial" if args.serial else "dask", scheduler=args.scheduler, workers=args.workers)
 
 

@@ -16,6 +16,7 @@ from __future__ import annotations
 import contextlib
 import logging
 import os
+import shutil
 import uuid
 from collections.abc import Iterator
 
@@ -193,7 +194,8 @@ def resume(out_dir: str, progress: bool = False, hooks: dict | None = None) -> R
 
 def _put_back_scene(folder: RunFolder, scene_toml: str) -> None:
     """The checkpoint's copy of the scene is the one resumed: a scene.toml edited (or damaged) since the run
-    started is kept as scene.edited.toml and scene.toml written again, so the folder's scene is its results'."""
+    started is kept as scene.edited.toml (scene.edited.2.toml, ... when that is taken: an earlier edit is
+    kept too) and scene.toml written again, so the folder's scene is its results'."""
     path = folder.file(SCENE_FILE)
     try:
         with open(path, encoding="utf-8") as f:
@@ -202,20 +204,27 @@ def _put_back_scene(folder: RunFolder, scene_toml: str) -> None:
         note = "was edited after the run started"
     except (OSError, UnicodeDecodeError) as error:
         note = f"cannot be read ({error})"
-    kept = folder.file(EDITED_SCENE_FILE)
+    stem, suffix = os.path.splitext(EDITED_SCENE_FILE)
+    names = (EDITED_SCENE_FILE, *(f"{stem}.{k}{suffix}" for k in range(2, 1000)))
+    kept = next((folder.file(n) for n in names if not os.path.lexists(folder.file(n))), folder.file(names[-1]))
     try:
-        if os.path.exists(kept):
-            os.remove(kept)
-        os.link(path, kept)  # the edit is kept whole even if the rewrite below is cut short
+        try:
+            os.link(path, kept)  # the edit kept whole, even if the rewrite below is cut short
+        except OSError:  # a file system without hard links (FAT, some network mounts)
+            shutil.copy2(path, kept)
         atomic_write_text(path, scene_toml)
     except OSError as error:
-        log.warning("scene.toml %s; the checkpoint's copy of the scene is used (%s)", note, error)
+        log.warning(
+            "scene.toml %s; the checkpoint's copy of the scene is used, but scene.toml was NOT written back (%s)",
+            note,
+            error,
+        )
         return
     log.warning(
         "scene.toml %s; the checkpoint's copy of the scene is used and written back to scene.toml, "
         "the edited file kept as %s",
         note,
-        EDITED_SCENE_FILE,
+        os.path.basename(kept),
     )
 
 

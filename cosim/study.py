@@ -128,12 +128,16 @@ def check_workers(workers: int | None) -> None:
 
 def check_executor(kind: str, scheduler: str | None) -> None:
     """ArgumentError unless the tasks can run where asked: 'serial', or 'dask' with dask.distributed
-    installed and, if given, a scheduler address of a form dask connects to (a malformed one was tried
-    for dask's 30 s connect timeout, then an OS error)."""
+    installed; and a scheduler address, if given, of a form dask connects to (check_scheduler)."""
     if kind not in ("dask", "serial"):
         raise ArgumentError(f"executor must be 'dask' or 'serial', got {kind!r}")
-    if kind == "serial":
-        return
+    if kind == "dask":
+        _addressing()
+    check_scheduler(scheduler)
+
+
+def _addressing():
+    """dask.distributed's address parsers; ArgumentError naming the extra to install when it is missing."""
     try:
         from distributed.comm.addressing import parse_address, parse_host_port
     except ImportError as error:
@@ -141,6 +145,12 @@ def check_executor(kind: str, scheduler: str | None) -> None:
             f"running the tasks on dask needs dask.distributed ({error}): pip install 'regolith-cosim[study]', "
             "or run them here with --serial"
         ) from None
+    return parse_address, parse_host_port
+
+
+def check_scheduler(scheduler: str | None) -> None:
+    """ArgumentError for a --scheduler that is empty or no address dask connects to: a malformed one, a port
+    or an IPv4 address out of range was tried for dask's 30 s connect timeout, then an OS error."""
     if scheduler is None:
         return
     where = f"--scheduler {scheduler!r}"
@@ -148,10 +158,12 @@ def check_executor(kind: str, scheduler: str | None) -> None:
         raise ArgumentError(
             f"{where}: give the dask scheduler's address, e.g. tcp://HOST:8786 (without it a LocalCluster starts here)"
         )
+    parse_address, parse_host_port = _addressing()
     try:
         scheme, location = parse_address(scheduler)
         if scheme in ("tcp", "tls", "ws", "wss"):
-            host, port = parse_host_port(location)
+            web_port = {"ws": 80, "wss": 443}.get(scheme)  # a websocket address may leave its port out
+            host, port = parse_host_port(location, default_port=web_port) if web_port else parse_host_port(location)
             if not 0 < int(port) < 65536:
                 raise ValueError(f"port {port} is not in 1..65535")
             if re.fullmatch(r"[0-9.]+", str(host)):
@@ -295,22 +307,26 @@ only a folder that holds it (or a single run's), never one of other files, an in
 
 def prepare_study(out_dir: str, overwrite: bool) -> None:
     """Make the study folder; refuse a non-empty one unless overwrite, and even then one that neither a
-    study nor a run wrote (a settled bed is kept)."""
-    from .folders import RUN_OUTPUTS, OutputExistsError
+    study marked nor a single run wrote (a settled bed is kept)."""
+    from .beds import BED_DIVERGED_FILE
+    from .folders import LOCK_FILE, RESULTS_FILE, RUN_FILE, RUN_OUTPUTS, OutputExistsError
 
     RunFolder(out_dir).create()
-    keep = (BED_FILE, BED_INFO_FILE, "beds", ".lock", STUDY_MARK)
+    keep = (BED_FILE, BED_INFO_FILE, BED_DIVERGED_FILE, "beds", LOCK_FILE, STUDY_MARK)
     present = sorted(n for n in os.listdir(out_dir) if n not in keep)
     if present and not overwrite:
         raise OutputExistsError(
             f"study folder {out_dir!r} is not empty ({', '.join(present[:6])}); nothing "
             "is overwritten: choose another --out or pass --overwrite (the settled bed is kept)"
         )
-    foreign = [n for n in present if n not in RUN_OUTPUTS]
-    if foreign and not os.path.exists(os.path.join(out_dir, STUDY_MARK)):
+    # a run's folder holds its record or results and nothing else: a lone scene.toml is the user's input
+    a_run = (RUN_FILE in present or RESULTS_FILE in present) and all(n in RUN_OUTPUTS for n in present)
+    if present and not a_run and not os.path.exists(os.path.join(out_dir, STUDY_MARK)):
         raise OutputExistsError(
-            f"study folder {out_dir!r} holds files no study or run wrote ({', '.join(foreign[:6])}); "
-            "--overwrite empties only a study's or a run's folder, so nothing was removed: choose another --out"
+            f"study folder {out_dir!r} holds files that no study marked as its own ({', '.join(present[:6])}): "
+            f"--overwrite empties only a folder a study, sweep, lab test or set of replicas wrote (it leaves a "
+            f"{STUDY_MARK} file; one written before 2026-12-06 has none) or a single run's, so nothing was "
+            "removed: choose another --out, or empty it yourself"
         )
     for name in present:
         path = os.path.join(out_dir, name)
@@ -658,9 +674,10 @@ def replica_run(
     soils = _check_variation(plan, vary, replicas)
     batched = _batching(plan, batched)
     out_dir = os.path.abspath(out_dir)
+    tasks_run = Executor("serial" if batched else executor, scheduler, workers)  # refused before the folder is made
     prepare_study(out_dir, overwrite)
     text = plan.scene.to_toml()
-    with Executor("serial" if batched else executor, scheduler, workers) as ex:
+    with tasks_run as ex:
         beds = _replica_beds(plan, out_dir, ex, replicas, vary)
         tasks = [
             {
@@ -738,9 +755,10 @@ def precision_study(
         raise SceneError(problems)
     batched = _batching(plan, batched)
     out_dir = os.path.abspath(out_dir)
+    tasks_run = Executor("serial" if batched else executor, scheduler, workers)  # refused before the folder is made
     prepare_study(out_dir, overwrite)
     text = plan.scene.to_toml()
-    with Executor("serial" if batched else executor, scheduler, workers) as ex:
+    with tasks_run as ex:
         bed = _shared_bed(plan, out_dir, ex)
         tasks = [
             {
@@ -858,9 +876,10 @@ def slip_study(
     soils = _check_variation(plan, vary, replicas)
     batched = _batching(plan, batched)
     out_dir = os.path.abspath(out_dir)
+    tasks_run = Executor("serial" if batched else executor, scheduler, workers)  # refused before the folder is made
     prepare_study(out_dir, overwrite)
     text = plan.scene.to_toml()
-    with Executor("serial" if batched else executor, scheduler, workers) as ex:
+    with tasks_run as ex:
         beds = _replica_beds(plan, out_dir, ex, replicas, vary)
         tasks = [
             {
@@ -1148,8 +1167,9 @@ def sweep(
     if problems:
         raise SceneError(problems)
     out_dir = os.path.abspath(out_dir)
+    tasks_run = Executor(executor, scheduler, workers)  # refused before the folder is made
     prepare_study(out_dir, overwrite)
-    with Executor(executor, scheduler, workers) as ex:
+    with tasks_run as ex:
         beds: dict[str, RunPlan] = {}
         for p in plans:
             if not p.bed.bed_file and needs_bed(p):

@@ -369,13 +369,15 @@ class SoilBuilder:
             )
 
         lo, hi = prec.np_lo, prec.np_hi
-        if len(radii):
-            movable = ~(fixed | locked)
-            problem = grain_range_problem(
-                float(radii[movable].min()) if movable.any() else math.inf, float(density.max()), prec
-            )
-            if problem:
-                raise SoilInputError(problem)
+        limit = float(np.finfo(lo).max)
+        for name, values in (("inverse mass", inv_mass), ("inverse inertia", inv_inertia)):
+            values = np.abs(np.asarray(values, dtype=np.float64))
+            if len(values) and not values.max() < limit:  # nanometre grains in float32: inf, then a NaN state
+                k = int(np.argmax(np.where(np.isnan(values), np.inf, values)))
+                raise SoilInputError(
+                    f"a grain of radius {radii[k]:.3g} m has an {name} of {values[k]:.3g} (SI units), beyond "
+                    f"{prec.name} precision's range ({limit:.3g}): larger grains, or precision 'double'"
+                )
         kinds = np.array([b[0] for b in self._boundaries], dtype=np.int32)
         geometry = np.array([b[1] for b in self._boundaries], dtype=hi).reshape(-1, 6)
         bmat = np.array([b[2] for b in self._boundaries], dtype=np.int32)

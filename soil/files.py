@@ -30,10 +30,17 @@ def atomic_path(path, suffix: str = ".tmp"):
     try:
         folder = os.path.dirname(os.path.abspath(path))
         created = make_folders(folder)
-        try:
-            handle, temporary = tempfile.mkstemp(suffix=suffix, dir=folder)
-        except OSError as error:  # it names the temporary file it tried to make
-            raise with_path(error, path, replace=error.filename) from error
+        for attempt in range(2):
+            try:
+                handle, temporary = tempfile.mkstemp(suffix=suffix, dir=folder)
+                break
+            except FileNotFoundError as error:  # another process's failed write removed the folder it made
+                if attempt:
+                    raise with_path(error, path, replace=error.filename) from error
+                created += make_folders(folder)
+            except OSError as error:  # it names the temporary file it tried to make
+                raise with_path(error, path, replace=error.filename) from error
+        assert temporary is not None, "made in the loop above, or raised"
         os.close(handle)
         mask = os.umask(0)
         os.umask(mask)

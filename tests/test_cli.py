@@ -4,6 +4,7 @@ and no library chatter on the user's output."""
 import errno
 import json
 import os
+import re
 import subprocess
 import sys
 
@@ -143,6 +144,22 @@ def test_resume_of_a_complete_run_does_nothing(cli_run, capsys):
     _, out, code = cli_run
     assert main(["resume", str(out), "--no-progress"]) == code
     assert "already complete" in capsys.readouterr().err
+
+
+def test_resume_of_a_finished_run_prints_what_was_not_measured_as_nan(cli_run, capsys, tmp_path):
+    """run.json holds null for what was not measured (strict JSON): a finished run resumed prints its summary
+    from there, and a run that never touched the soil (window [null, null]) was a TypeError, exit 1."""
+    import shutil
+
+    _, out, code = cli_run
+    folder = tmp_path / "run"
+    shutil.copytree(out, folder, ignore=shutil.ignore_patterns(".lock"))
+    info = json.loads((folder / "run.json").read_text())
+    info["summary"].update(window=[None, None], slip=None)
+    (folder / "run.json").write_text(json.dumps(info))
+    assert main(["resume", str(folder), "--no-progress"]) == code
+    printed = capsys.readouterr().out
+    assert re.search(r"window +nan \.\. nan s", printed) and re.search(r"slip +nan", printed), printed
 
 
 def test_no_library_chatter_on_the_output():
@@ -653,7 +670,19 @@ def test_a_cluster_option_out_of_range_is_named(tmp_path, capsys, option, words)
     assert not out.exists(), "nothing made before the arguments are checked"
 
 
-def test_without_dask_a_command_on_dask_says_what_to_install(tmp_path, capsys, monkeypatch):
+@pytest.mark.parametrize(
+    "address",
+    ["tcp://127.0.0.1:8786", "127.0.0.1:8786", "tcp://[::1]:8786", "tls://host.example:8786", "ws://host", "wss://h:9"],
+)
+def test_a_scheduler_address_dask_connects_to_is_taken(address):
+    """The address check refuses only what dask cannot connect to: hostnames, IPv6, TLS and websocket
+    addresses (these may leave their port out) pass."""
+    from cosim.study import check_executor
+
+    check_executor("dask", address)
+
+
+def test_without_dask_a_command_on_dask_says_what_to_install(tmp_path, tiny_bed, capsys, monkeypatch):
     """dask is an extra ([study]): without it a replica run or a lab test was an unexpected error
     (ModuleNotFoundError, exit 1) after the folder was made; now exit 2 naming the extra and --serial."""
     import sys
@@ -666,3 +695,8 @@ def test_without_dask_a_command_on_dask_says_what_to_install(tmp_path, capsys, m
     err = capsys.readouterr().err
     assert "pip install 'regolith-cosim[study]'" in err and "--serial" in err, err
     assert not out.exists()
+    # batched replicas run in this process (automatic on a GPU): no dask needed, none asked for
+    bed = [f"bed.bed_file={tiny_bed}", "run.duration=0.02"]
+    args = ["run", scene, "--replicas", "2", "--batched", "--out", str(out), "--no-progress"]
+    assert main([*args, *(x for key in bed for x in ("--set", key))]) in (0, 6), capsys.readouterr().err
+    assert (out / "replica_001" / "results.h5").is_file()

@@ -596,6 +596,29 @@ def test_a_resumed_runs_edited_scene_is_kept_aside_and_its_scene_written_back(co
     assert main(["resume", str(folder), "--no-progress"]) == 0  # nothing left to put back
     assert "scene.toml" not in capsys.readouterr().err
     assert (folder / "scene.edited.toml").read_bytes() == edited
+    (folder / "scene.toml").write_bytes(b"second = 2\n")  # a second edit is kept beside the first
+    assert main(["resume", str(folder), "--no-progress"]) == 0
+    assert "kept as scene.edited.2.toml" in capsys.readouterr().err
+    assert (folder / "scene.edited.toml").read_bytes() == edited
+    assert (folder / "scene.edited.2.toml").read_bytes() == b"second = 2\n"
+    assert (folder / "scene.toml").read_text() == ran
+
+
+def test_an_edited_scene_is_kept_on_a_file_system_without_hard_links(complete, tmp_path, capsys, monkeypatch):
+    """Where a hard link cannot be made (FAT, some network mounts) the edited scene.toml is copied aside,
+    not left as edited with a warning that did not say scene.toml stayed so."""
+    folder = copy(complete, tmp_path)
+    ran = (folder / "scene.toml").read_text()
+    (folder / "scene.toml").write_text(ran + "# edited\n")
+
+    def no_links(source, target):
+        raise PermissionError(1, "Operation not permitted", source)
+
+    monkeypatch.setattr(os, "link", no_links)
+    assert main(["resume", str(folder), "--no-progress"]) == 0
+    assert "kept as scene.edited.toml" in capsys.readouterr().err
+    assert (folder / "scene.toml").read_text() == ran
+    assert (folder / "scene.edited.toml").read_text() == ran + "# edited\n"
 
 
 def test_a_lab_test_whose_every_replica_diverged_is_exit_4(tmp_path, capsys, monkeypatch):

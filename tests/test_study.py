@@ -496,6 +496,7 @@ def test_overwrite_empties_only_a_folder_a_study_or_a_run_wrote(scene_path, tmp_
     import shutil
 
     from cosim.cli import main
+    from cosim.folders import OutputExistsError
     from cosim.study import STUDY_MARK, prepare_study
 
     folder = tmp_path / "mine"
@@ -505,8 +506,21 @@ def test_overwrite_empties_only_a_folder_a_study_or_a_run_wrote(scene_path, tmp_
     args = ["run", str(folder / "scene_in.toml"), "--out", str(folder), "--replicas", "2", "--serial"]
     assert main([*args, "--overwrite", "--no-progress"]) == 3
     err = capsys.readouterr().err
-    assert "holds files no study or run wrote (notes.txt, scene_in.toml)" in err and "nothing was removed" in err
+    assert "holds files that no study marked as its own (notes.txt, scene_in.toml)" in err, err
+    assert "nothing was removed" in err
     assert sorted(os.listdir(folder)) == ["notes.txt", "scene_in.toml"]
+    # a folder of the user's scene alone is no run's (its scene.toml was taken for a run's output)
+    lone = tmp_path / "lone"
+    lone.mkdir()
+    shutil.copy(scene_path, lone / "scene.toml")
+    with pytest.raises(OutputExistsError, match="no study marked"):
+        prepare_study(str(lone), overwrite=True)
+    assert os.listdir(lone) == ["scene.toml"]
+    unmarked = tmp_path / "unmarked"  # a study written before the mark: refused, saying so
+    (unmarked / "replica_000").mkdir(parents=True)
+    (unmarked / "ensemble.json").write_text("{}")
+    with pytest.raises(OutputExistsError, match="one written before 2026-12-06 has none"):
+        prepare_study(str(unmarked), overwrite=True)
 
     study = tmp_path / "study"  # a study's folder: emptied, its settled bed kept
     prepare_study(str(study), overwrite=False)
@@ -518,7 +532,7 @@ def test_overwrite_empties_only_a_folder_a_study_or_a_run_wrote(scene_path, tmp_
 
     run = tmp_path / "run"  # a single run's folder is replaced, as `cosim run --overwrite` replaces it
     run.mkdir()
-    for name in ("results.h5", "run.json", "scene.toml"):
+    for name in ("results.h5", "run.json", "scene.toml", "bed_diverged.npz"):
         (run / name).write_text("old")
     prepare_study(str(run), overwrite=True)
-    assert os.listdir(run) == [STUDY_MARK]
+    assert sorted(os.listdir(run)) == [STUDY_MARK, "bed_diverged.npz"]  # a bed's last good state is kept

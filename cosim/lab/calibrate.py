@@ -199,7 +199,7 @@ def check_geometry(plan: LabPlan, tests: set[str]) -> None:
     from .repose import geometry
     from .shear import box
 
-    builders = {"repose": lambda: geometry(plan, 0), "shear": lambda: box(plan)}
+    builders = {"repose": lambda: geometry(plan, 0, check_memory=True), "shear": lambda: box(plan, check_memory=True)}
     for test in sorted(tests):
         builders[test]()
 
@@ -246,7 +246,7 @@ def calibrate(
     ends = [plan.with_changes(_overrides([p], [value])) for p in parameters for value in (p.low, p.high)]
     for each in [plan, *ends]:
         check_geometry(each, tests)
-    common.prepare_folder(plan, out_dir, overwrite)
+    common.prepare_folder(plan, out_dir, overwrite, executor, scheduler)
     with Executor(executor, scheduler, workers) as cluster:  # one cluster for every evaluation
         return _calibrate(plan, out_dir, targets, parameters, tolerances, max_evaluations, tests, {"executor": cluster})
 

@@ -21,7 +21,7 @@ from soil.memory import check_fits, estimate
 from ..beds import write_json
 from ..metrics import ensemble
 from ..scene import SceneError
-from ..study import Executor, prepare_study
+from ..study import Executor, check_executor, prepare_study
 from .scene import LabPlan, lab_scene_from_text, resolve_lab
 
 log = logging.getLogger("cosim.lab")
@@ -69,15 +69,17 @@ def lattice_fill(plan: LabPlan, lower, upper_xy, count: int, seed: int) -> tuple
     return offset + grid * pitch + jitter, radii
 
 
-def grains_for(plan: LabPlan, volume: float, keys: str) -> int:
-    """Grains of the mean size that fill `volume` [m^3] at the packing fraction of a random packing [-];
-    SoilTooLargeError naming `keys` (the scene keys that size the specimen) when one specimen cannot fit
+def grains_for(plan: LabPlan, volume: float, keys: str | None = None) -> int:
+    """Grains of the mean size that fill `volume` [m^3] at the packing fraction of a random packing [-].
+    Given `keys` (the scene keys that size the specimen: the check before the folder is made, not in each
+    replica, where the others' memory is in use), SoilTooLargeError names them when one specimen cannot fit
     this machine's free memory (its arrays were allocated until a MemoryError, or for hours)."""
     from .scene import PACKING_FRACTION
 
     mean_volume = 4.0 / 3.0 * math.pi * plan.radius_mean**3 * (1 + plan.radius_spread**2)  # E[r^3] of a uniform r
     count = max(1, int(round(PACKING_FRACTION * volume / mean_volume)))
-    check_specimen_fits(plan, count, f"{keys}, bed.radius_mean")
+    if keys is not None:
+        check_specimen_fits(plan, count, f"{keys}, bed.radius_mean")
     return count
 
 
@@ -236,8 +238,13 @@ def statistics(values) -> dict:
 # -- report files -----------------------------------------------------------------------------
 
 
-def prepare_folder(plan: LabPlan, out_dir: str, overwrite: bool) -> None:
-    """Create the output folder (a non-empty one only with overwrite) and write the scene as run."""
+def prepare_folder(
+    plan: LabPlan, out_dir: str, overwrite: bool, executor: str | Executor = "serial", scheduler: str | None = None
+) -> None:
+    """Create the output folder (a non-empty one only with overwrite) and write the scene as run, once the
+    tasks can run where asked (an executor kind without dask.distributed installed is refused first)."""
+    if not isinstance(executor, Executor):
+        check_executor(executor, scheduler)
     prepare_study(out_dir, overwrite)
     with open(os.path.join(out_dir, SCENE_FILE), "w") as f:
         f.write(plan.scene.to_toml())

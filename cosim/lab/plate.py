@@ -469,7 +469,7 @@ def plate_test(
     """Settle lab.replicas beds, push every plate into each (through cosim.study.Executor), fit
     Bekker and write the report into out_dir (plate.csv, summary.json, plate.png)."""
     check(plan)
-    common.prepare_folder(plan, out_dir, overwrite)
+    common.prepare_folder(plan, out_dir, overwrite, executor, scheduler)
     sides = widths(plan)
     replicas = plan.scene.lab.replicas if plan.scene.bed.bed_file is None else 1
     speed = plate_speed(plan)

@@ -89,8 +89,9 @@ def lift_speed(plan: LabPlan) -> float:
     return (section.lift_ratio if section.lift_ratio is not None else 0.1) * math.sqrt(plan.g * plan.diameter)
 
 
-def geometry(plan: LabPlan, replica: int = 0) -> ReposeGeometry:
-    """The heap test's geometry and its fill for replica k (fill seed bed.seed + k)."""
+def geometry(plan: LabPlan, replica: int = 0, check_memory: bool = False) -> ReposeGeometry:
+    """The heap test's geometry and its fill for replica k (fill seed bed.seed + k); with check_memory, one
+    whose grains cannot fit this machine's free memory is refused before they are made."""
     section = plan.scene.repose
     d = plan.diameter
     r_max = plan.radius_max
@@ -101,7 +102,9 @@ def geometry(plan: LabPlan, replica: int = 0) -> ReposeGeometry:
         problems.append(
             f"repose.tube_width: ({width:.4g} m) must hold two of the largest grains (>= {4.2 * r_max:.4g} m)"
         )
-    count = common.grains_for(plan, width * width * height, "repose.tube_width, repose.fill_height")
+    count = common.grains_for(
+        plan, width * width * height, "repose.tube_width, repose.fill_height" if check_memory else None
+    )
     volume = width * width * height  # the heap keeps the column's bulk volume
     footprint = (3 * volume / (math.pi * math.tan(math.radians(SMALLEST_ANGLE_DEG)))) ** (1 / 3)
     base_width = section.base_width if section.base_width is not None else 2 * (footprint + 3 * d)
@@ -334,8 +337,8 @@ def repose_test(
     """Run lab.replicas heaps (through cosim.study.Executor), write the report into out_dir
     (repose.csv: the surface profiles; repose_grains.csv: the heaps' grains, to measure again;
     repose_history.csv; summary.json; repose.png) and return the summary."""
-    geo = geometry(plan, 0)  # a geometry that cannot work is refused before the folder is touched
-    common.prepare_folder(plan, out_dir, overwrite)
+    geo = geometry(plan, 0, check_memory=True)  # a geometry that cannot work is refused before the folder is touched
+    common.prepare_folder(plan, out_dir, overwrite, executor, scheduler)
     replicas = plan.scene.lab.replicas
     log.info(
         "repose: %d grains in a %.3g m tube on a %.3g m base, lifted at %.3g m/s; %d replica(s)",

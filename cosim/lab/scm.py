@@ -257,8 +257,8 @@ def calibrate_scm(plan, out_dir: str, overwrite: bool = False, executor="serial"
     sides = plate.widths(plan)
     if len(sides) < 2:
         raise SceneError([f"plate.widths: k_c and k_phi need two or more plate widths, got {list(sides)}"])
-    geometry = shear.box(plan)  # every test's geometry is checked before the folder is touched
-    common.prepare_folder(plan, out_dir, overwrite)
+    geometry = shear.box(plan, check_memory=True)  # every test's geometry is checked before the folder is touched
+    common.prepare_folder(plan, out_dir, overwrite, executor, scheduler)
     replicas = plan.scene.lab.replicas if plan.scene.bed.bed_file is None else 1
     ready, plates, _ = plate.press_plates(plan, out_dir, sides, replicas, executor, scheduler, workers, unload=True)
     fit_from = plan.scene.plate.fit_from if plan.scene.plate.fit_from is not None else 0.25 * plan.diameter

@@ -117,8 +117,9 @@ def inertial_number(plan: LabPlan, speed: float, stress: float) -> float:
     return speed / BAND_DIAMETERS / math.sqrt(stress / plan.soil.density)
 
 
-def box(plan: LabPlan) -> ShearBox:
-    """The shear box of a plan; SceneError names a box that cannot work."""
+def box(plan: LabPlan, check_memory: bool = False) -> ShearBox:
+    """The shear box of a plan; SceneError names a box that cannot work (and, with check_memory, one whose
+    grains cannot fit this machine's free memory, before they are made)."""
     section = plan.scene.shear
     d = plan.diameter
     r_min = plan.radius_min
@@ -143,7 +144,8 @@ def box(plan: LabPlan) -> ShearBox:
     if problems:
         raise SceneError(problems)
     stresses = normal_stresses(plan)
-    count = common.grains_for(plan, length * width * height, "shear.length, shear.width, shear.height")
+    keys = "shear.length, shear.width, shear.height" if check_memory else None  # before the folder, not per replica
+    count = common.grains_for(plan, length * width * height, keys)
     # the loose lattice stands about twice as high as the settled sample: frames high enough to hold it
     r_max = plan.radius_max
     nx, ny = (int((s - 2 * r_max) // (2.04 * r_max)) + 1 for s in (length, width))
@@ -360,8 +362,8 @@ def shear_test(
     """Settle lab.replicas specimens, shear each at every normal stress (through
     cosim.study.Executor), fit Mohr-Coulomb and write the report into out_dir (shear.csv,
     shear_points.csv, summary.json, shear.png). Returns the summary."""
-    geometry = box(plan)  # a box that cannot work is refused before the folder is touched
-    common.prepare_folder(plan, out_dir, overwrite)
+    geometry = box(plan, check_memory=True)  # a box that cannot work is refused before the folder is touched
+    common.prepare_folder(plan, out_dir, overwrite, executor, scheduler)
     replicas = plan.scene.lab.replicas
     log.info(
         "shear: %d grains in a %.3g x %.3g m box, %.3g m high; normal stresses %s Pa; shear at %.3g m/s "

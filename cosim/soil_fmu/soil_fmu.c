@@ -580,7 +580,8 @@ static SoilStatus check_orientations(Soil *s) {
         double norm = sqrt(q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3]);
         if (!(norm > 0.5 && norm < 2.0)) {
             soil_log(s, SOIL_ERROR, "logStatusError", "input wheel_%d.orientation must be a unit quaternion "
-                     "(w, x, y, z), got (%g, %g, %g, %g): set it and step again", i, q[0], q[1], q[2], q[3]);
+                     "(w, x, y, z), got (%g, %g, %g, %g): restore an FMU state taken before (or reset), set a "
+                     "rotation and step again", i, q[0], q[1], q[2], q[3]);
             return SOIL_ERROR;
         }
     }
@@ -657,8 +658,8 @@ SoilStatus soil_step(Soil *s, double time, double step) {
     }
     if (step / s->real[VR_DEM_STEP] > MAX_STEP_COUNT) {
         soil_log(s, SOIL_ERROR, "logStatusError", "communicationStepSize %g s is %.3g DEM steps of dem_step %g s, "
-                 "more than %.0e: it would not end; give a shorter step", step, step / s->real[VR_DEM_STEP],
-                 s->real[VR_DEM_STEP], MAX_STEP_COUNT);
+                 "more than %.0e: it would not end; restore an FMU state taken before and give a shorter step",
+                 step, step / s->real[VR_DEM_STEP], s->real[VR_DEM_STEP], MAX_STEP_COUNT);
         return SOIL_ERROR;
     }
     if (check_orientations(s) != SOIL_OK) return SOIL_ERROR;
