@@ -236,19 +236,29 @@ class Executor:
 
     def map(self, function, tasks: list[dict], reraise: tuple[type[BaseException], ...] = ()) -> list[dict]:
         """Results in task order; a task whose worker died becomes {'ok': False, 'error': ...}, except that
-        an error of a type in `reraise` propagates as itself, as it does from a serial task."""
+        an error of a type in `reraise` propagates as itself, as it does from a serial task. Ctrl-C or
+        SIGTERM (KeyboardInterrupt) propagates with the results so far as its `finished` attribute (a
+        result per task, None for those not finished), so a caller can report the tasks that ran."""
+        results: list = [None] * len(tasks)
+        try:
+            self._map(function, tasks, reraise, results)
+        except KeyboardInterrupt as stop:
+            stop.finished = results  # type: ignore[attr-defined]
+            raise
+        return results
+
+    def _map(self, function, tasks: list[dict], reraise: tuple[type[BaseException], ...], results: list) -> None:
+        """Executor.map into `results` (a result per task, as each finishes)."""
         if self.kind == "serial":
-            results: list = []
-            for task in tasks:
-                results.append(function(task))
-                _report(results[-1], task.get("label"), len(results), len(tasks))
-            return results
+            for i, task in enumerate(tasks):
+                results[i] = function(task)
+                _report(results[i], task.get("label"), i + 1, len(tasks))
+            return
         from dask.distributed import as_completed
 
         assert self.client is not None  # __enter__ connected it
         futures = self.client.map(function, tasks, pure=False)
         index = {f.key: i for i, f in enumerate(futures)}
-        results = [None] * len(tasks)
         for done, future in enumerate(as_completed(futures), 1):
             i = index[future.key]
             try:
@@ -265,7 +275,6 @@ class Executor:
                     "out_dir": tasks[i].get("out_dir"),
                 }
             _report(results[i], tasks[i].get("label"), done, len(tasks))
-        return results
 
 
 @contextlib.contextmanager

@@ -410,6 +410,34 @@ def test_cosim_lab_repose_writes_its_report(tmp_path, capsys):
     assert main(["lab", "repose", str(scene), "--serial", "--out", str(out)]) == 3  # nothing is overwritten
 
 
+def test_an_interrupted_lab_test_reports_the_replicas_that_finished(tmp_path, capsys, monkeypatch):
+    """Ctrl-C (or SIGTERM) after some replicas had finished left only scene.toml: hours of heaps lost.
+    The finished replicas' report is written, its note saying over how many, then the command stops as
+    asked (exit 130)."""
+    import cosim.lab.repose as repose
+
+    run_replica = repose.run_replica
+
+    def stopped_at_the_third(plan, replica=0):
+        if replica == 2:
+            raise KeyboardInterrupt
+        return run_replica(plan, replica)
+
+    monkeypatch.setattr(repose, "run_replica", stopped_at_the_third)
+    scene = tmp_path / "heap.toml"
+    scene.write_text(
+        "[scene]\ngravity = 'earth'\nprecision = 'double'\ndevice = 'cpu'\n[soil]\nyoungs_modulus = 1e5\n"
+        "[bed]\nradius_mean = 0.002\n[lab]\nmax_time_factor = 2.0\nreplicas = 4\n"
+        "[repose]\ntube_width = 0.02\nfill_height = 0.01\nlift_ratio = 0.3\nbase_width = 0.04\n"
+    )
+    out = tmp_path / "out"
+    assert main(["lab", "repose", str(scene), "--serial", "--out", str(out)]) == 130
+    summary = json.loads((out / "summary.json").read_text())
+    assert [r["replica"] for r in summary["replicas"]] == [0, 1]  # the two heaps that finished, measured
+    assert "interrupted after 2 of 4 replicas: the values are over these only" in summary["notes"]
+    assert {int(line.split(",")[0]) for line in (out / "repose.csv").read_text().splitlines()[1:]} == {0, 1}
+
+
 def test_calibrate_that_measured_nothing_writes_no_calibrated_scene(tmp_path, capsys, monkeypatch):
     """Every evaluation measured nan (heaps too small to measure): the "best" was the first by the
     order nan compares in, and its values were written as calibrated.toml. Now no calibrated scene,

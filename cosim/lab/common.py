@@ -203,6 +203,39 @@ def map_tasks(
         return ex.map(lab_task, tasks)
 
 
+def map_until_stopped(
+    plan: LabPlan,
+    runner,
+    arguments: list[dict],
+    labels: list[str],
+    executor="serial",
+    scheduler: str | None = None,
+    workers: int | None = None,
+) -> tuple[list[dict], KeyboardInterrupt | None]:
+    """map_tasks, but Ctrl-C or SIGTERM while the tasks run returns the results of those that finished
+    and the interrupt itself: the caller writes their report, then raises it (exit 130 or 143), so the
+    replicas that ran are not lost. With none finished the interrupt propagates at once."""
+    try:
+        return map_tasks(plan, runner, arguments, labels, executor, scheduler, workers), None
+    except KeyboardInterrupt as stop:
+        finished = [r for r in getattr(stop, "finished", None) or [] if r is not None]
+        if not any(r.get("ok") for r in finished):
+            raise
+        log.warning(
+            "interrupted after %d of %d tasks: their report is written, then the test stops",
+            len(finished),
+            len(arguments),
+        )
+        return finished, stop
+
+
+def interrupted_notes(stopped: KeyboardInterrupt | None, finished: int, total: int, what: str) -> list[str]:
+    """The report's note of a test interrupted after `finished` of `total` tasks (map_until_stopped)."""
+    if stopped is None:
+        return []
+    return [f"interrupted after {finished} of {total} {what}: the values are over these only"]
+
+
 def successful(results: list[dict], test: str) -> list[dict]:
     """The results of the replicas that ran; LabFailed when none did (the first error is named)."""
     good = [r["result"] for r in results if r.get("ok")]

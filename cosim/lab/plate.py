@@ -423,10 +423,11 @@ def press_plates(
     scheduler: str | None = None,
     workers: int | None = None,
     unload: bool = False,
-) -> tuple[list[dict], list[dict], list[dict]]:
+) -> tuple[list[dict], list[dict], list[dict], KeyboardInterrupt | None]:
     """Settle `replicas` beds (into out_dir/beds) and push every plate width of `sides` [m] into each
     (through cosim.study.Executor); with `unload`, each plate is then held and raised (the unloading
-    branch). Returns (the settled beds, the plates' results, the failed tasks of either stage)."""
+    branch). Returns (the settled beds, the plates' results, the failed tasks of either stage, and the
+    Ctrl-C or SIGTERM that stopped the plates after some had finished: raise it once they are reported)."""
     folder = os.path.join(out_dir, "beds")
     os.makedirs(folder, exist_ok=True)
     beds = common.map_tasks(
@@ -454,8 +455,9 @@ def press_plates(
         for b in sides
     ]
     labels = [f"replica {j['replica']}, plate {j['width']:.3g} m" for j in jobs]
-    results = common.map_tasks(plan, run_replica, jobs, labels, executor, scheduler, workers)
-    return ready, common.successful(results, "plate"), [r for r in beds + results if not r.get("ok")]
+    results, stopped = common.map_until_stopped(plan, run_replica, jobs, labels, executor, scheduler, workers)
+    failed = [r for r in beds + results if not r.get("ok")]
+    return ready, common.successful(results, "plate"), failed, stopped
 
 
 def plate_test(
@@ -481,7 +483,7 @@ def plate_test(
         plan.scene.bed.width,
         replicas,
     )
-    ready, done, failed = press_plates(plan, out_dir, sides, replicas, executor, scheduler, workers)
+    ready, done, failed, stopped = press_plates(plan, out_dir, sides, replicas, executor, scheduler, workers)
     fit_from = plan.scene.plate.fit_from if plan.scene.plate.fit_from is not None else 0.25 * plan.diameter
     fit = bekker_fit([(r["width"], r["sinkage"], r["pressure"]) for r in done], fit_from)
     largest = max(float(np.max(r["pressure"])) for r in done)
@@ -495,6 +497,7 @@ def plate_test(
         for b in sides
         if (side - b) / 2 < b
     ]
+    notes += common.interrupted_notes(stopped, len(done), replicas * len(sides), "plate tests")
     if surface - max_sinkage(plan, surface) < 3 * plan.diameter:
         notes.append("the plate ends less than three grain diameters above the floor: the floor stiffens the curve")
     summary = {
@@ -553,6 +556,8 @@ def plate_test(
     )
     summary["figure"] = _figure(out_dir, done, fit, fit_from)
     common.write_summary(out_dir, summary)
+    if stopped is not None:  # the finished tests' report is written: now stop as asked
+        raise stopped
     return summary
 
 

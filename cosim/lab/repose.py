@@ -348,7 +348,7 @@ def repose_test(
         geo.lift_speed,
         replicas,
     )
-    results = common.map_tasks(
+    results, stopped = common.map_until_stopped(
         plan,
         run_replica,
         [{"replica": k} for k in range(replicas)],
@@ -360,7 +360,7 @@ def repose_test(
     done = common.successful(results, "repose")
     angles = [r["angle"] for r in done]
     numbers = quasi_static_numbers(plan, max(r["column_height"] for r in done), geo.lift_speed)
-    notes = _notes(plan, done)
+    notes = _notes(plan, done) + common.interrupted_notes(stopped, len(results), replicas, "replicas")
     summary = {
         "test": "repose",
         "name": plan.name,
@@ -435,6 +435,8 @@ def repose_test(
     )
     summary["figure"] = _figure(out_dir, done, summary)
     common.write_summary(out_dir, summary)
+    if stopped is not None:  # the finished replicas' report is written: now stop as asked
+        raise stopped
     return summary
 
 

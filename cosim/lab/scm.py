@@ -260,7 +260,11 @@ def calibrate_scm(plan, out_dir: str, overwrite: bool = False, executor="serial"
     geometry = shear.box(plan, check_memory=True)  # every test's geometry is checked before the folder is touched
     common.prepare_folder(plan, out_dir, overwrite, executor, scheduler)
     replicas = plan.scene.lab.replicas if plan.scene.bed.bed_file is None else 1
-    ready, plates, _ = plate.press_plates(plan, out_dir, sides, replicas, executor, scheduler, workers, unload=True)
+    ready, plates, _, stopped = plate.press_plates(
+        plan, out_dir, sides, replicas, executor, scheduler, workers, unload=True
+    )
+    if stopped is not None:  # a calibration needs every plate: no partial fit
+        raise stopped
     fit_from = plan.scene.plate.fit_from if plan.scene.plate.fit_from is not None else 0.25 * plan.diameter
     plate_fits, unloads = fit_plates(plates, fit_from)  # before the shear tests: a failed fit stops here
 

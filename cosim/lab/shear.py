@@ -395,7 +395,7 @@ def shear_test(
         for s in ready
         for sigma in geometry.stresses
     ]
-    results = common.map_tasks(
+    results, stopped = common.map_until_stopped(
         plan,
         run_replica,
         jobs,
@@ -418,6 +418,7 @@ def shear_test(
         for r in done
         if not r["consolidated"]
     ]
+    notes += common.interrupted_notes(stopped, len(results), len(jobs), "shear tests")
     if len({r["stress"] for r in done}) < 2:
         notes.append(
             "one normal stress sheared: no Mohr-Coulomb line (its friction angle and cohesion need two or more "
@@ -493,6 +494,8 @@ def shear_test(
     )
     summary["figure"] = _figure(out_dir, done, summary)
     common.write_summary(out_dir, summary)
+    if stopped is not None:  # the finished tests' report is written: now stop as asked
+        raise stopped
     return summary
 
 
