@@ -827,7 +827,7 @@ def test_the_plate_unloads_quasi_statically_and_its_stiffness_scales_with_the_gr
     stiffness = []
     for name, path in (("phobos", phobos), ("earth", earth)):
         plan = load_lab_plan(path, {"plate.widths": [0.0225, 0.03], "plate.speed_ratio": 0.1})
-        _, (result,), _ = plate.press_plates(plan, str(tmp_path / name), [0.0225], 1, unload=True)
+        _, (result,), _, _ = plate.press_plates(plan, str(tmp_path / name), [0.0225], 1, unload=True)
         z, p = result["unload_sinkage"], result["unload_pressure"]
         assert 0 < 1 - p[1] / p[0] < 0.05, (name, p[:3])
         assert (p >= 0.5 * p[0]).sum() >= 100, name
