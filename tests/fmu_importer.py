@@ -13,6 +13,8 @@ Job (JSON):
                 A discarded step is not counted: the next step starts at the same time.
                 "save_state": true takes an FMU state before the step (fmi2GetFMUstate / fmi3GetFMUState);
                 "restore_state": true restores it before the step (after a Discard: a master's retry).
+                "reset": true resets every instance before the step (fmi2Reset / fmi3Reset) and sets it
+                up again from its start values; the steps start over at t = 0.
                 "t_offset": a step from t + t_offset instead of t (a master that goes on after a Discard).
     go_on_after_error   (optional) true: the steps go on after a step's Error (the master restores an
                 FMU state, as FMI allows after an Error, sets right inputs and steps again); the default
@@ -65,6 +67,8 @@ def children():
 class FmpySoil:
     def __init__(self, spec):
         from fmpy import extract, read_model_description
+
+        self.spec = spec
 
         self.md = read_model_description(spec["fmu"])
         self.variables = {v.name: v for v in self.md.modelVariables}
@@ -134,6 +138,19 @@ class FmpySoil:
 
     def initialize(self):
         return self._call(self.fmu.exitInitializationMode)
+
+    def reset(self):
+        """fmi2Reset / fmi3Reset, then the instance set up again from its start values, as at the start."""
+        if getattr(self, "state", None) is not None:
+            self.free_state()
+        self.fmu.reset()
+        if self.version == 2:
+            self.fmu.setupExperiment(startTime=0.0)
+            self.fmu.enterInitializationMode()
+        else:
+            self.fmu.enterInitializationMode(startTime=0.0)
+        self.set(self.spec.get("start", {}))
+        return self.initialize()
 
     def step(self, t, h):
         return self._call(lambda: self.fmu.doStep(t, h))
@@ -280,6 +297,9 @@ def run():
     for index, step in enumerate(job["steps"]):
         if step.get("before") in ("kill", "stop"):
             os.kill(result["server_pids"][0], signal.SIGKILL if step["before"] == "kill" else signal.SIGSTOP)
+        if step.get("reset"):  # every instance reset and initialized again: the steps start over at 0
+            result["reset_status"] = [soil.reset() for soil in soils]
+            t = 0.0
         for soil, values in zip(soils, step["inputs"]):
             if step.get("restore_state"):
                 soil.restore_state()

@@ -344,6 +344,35 @@ def test_a_refused_input_or_step_leaves_the_instance_to_go_on_bitwise(tiny, impo
     assert result["servers_after_free"] == []
 
 
+@pytest.mark.parametrize("version", [2, 3])
+def test_a_reset_after_an_error_starts_the_soil_again_bitwise(tiny, importer, version):
+    """After an Error the instance refuses to step until a state is restored or it is reset: a reset
+    clears the Error, and the soil starts again from its start values, its first step bitwise the first
+    step of a fresh instance."""
+    job, motion = _job(tiny["fmus"][version], 2)
+    first = job["steps"][0]
+    job["go_on_after_error"] = True
+    job["steps"] = [
+        first,
+        {"h": H, "inputs": first["inputs"], "t_offset": math.nan},  # an Error
+        {"h": H, "inputs": first["inputs"]},  # refused: the instance is in the Error state
+        {**first, "reset": True},
+        job["steps"][1],
+    ]
+    result = importer(job)
+    statuses = [s[0] for s in result["status"]]
+    assert statuses == ["ok", "ok", "error", "error", "ok", "ok"], result["messages"]
+    assert result["reset_status"] == ["ok"], result["messages"]
+    errors = " | ".join(m[2] for m in result["messages"] if m[0] == "error")
+    assert "doStep after an Error: restore an FMU state taken before it" in errors, errors
+    assert result["outputs"][4] == result["outputs"][1]  # the first step again, bit for bit
+    soil = _in_process_soil(tiny)
+    soil.place_wheels([motion[0]])
+    expected = [_as_outputs(soil.advance(soil.time + H, [k])[0]) for k in motion]
+    assert [result["outputs"][i][0] for i in (4, 5)] == expected
+    assert result["servers_after_free"] == []
+
+
 @pytest.mark.parametrize(
     "line, refused",
     [
