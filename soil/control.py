@@ -67,6 +67,40 @@ def _finite(value, shape: tuple[int, ...], what: str) -> np.ndarray:
     return array
 
 
+PATH_NAMES = ("position [m]", "orientation quaternion (w, x, y, z)", "velocity [m/s]", "angular velocity [rad/s]")
+PATH_WIDTHS = (3, 4, 3, 3)
+
+
+def checked_body_path(count: int, position, orientation, velocity, angular_velocity, end=None, what: str = "the path"):
+    """set_body_path's arrays for `count` bodies as float64 arrays: (start, finish), finish None when `end`
+    is; SoilInputError naming the array when one has another shape, a value that is not a finite real
+    number, or an orientation that is no unit quaternion."""
+    start = [
+        _finite(a, (count, width), f"{what}'s start {name}")
+        for a, width, name in zip((position, orientation, velocity, angular_velocity), PATH_WIDTHS, PATH_NAMES)
+    ]
+    if end is not None and (not isinstance(end, (tuple, list)) or len(end) != 4):
+        raise SoilInputError(f"{what}'s end is None or (position, orientation, velocity, angular velocity)")
+    finish = (
+        None
+        if end is None
+        else [
+            _finite(a, (count, width), f"{what}'s end {name}") for a, width, name in zip(end, PATH_WIDTHS, PATH_NAMES)
+        ]
+    )
+    for which, arrays in (("start", start), ("end", finish)):
+        if arrays is None:
+            continue
+        norms = np.linalg.norm(arrays[1], axis=1)
+        if not np.all((norms > 0.5) & (norms < 2.0)):
+            body = int(np.argmax(~((norms > 0.5) & (norms < 2.0))))
+            raise SoilInputError(
+                f"body {body}'s orientation at {what}'s {which} must be a unit quaternion (w, x, y, z), "
+                f"got {arrays[1][body].tolist()}"
+            )
+    return start, finish
+
+
 def quaternion_to_matrix(q) -> np.ndarray:
     """Rotation matrix (body -> world), shape (3, 3), of a unit quaternion (w, x, y, z)."""
     w, x, y, z = np.asarray(q, dtype=np.float64) / np.linalg.norm(q)
@@ -312,26 +346,9 @@ class SoilControl:
         (body_*_host) are set to the path's end. Ends with set_body_motion or clear_body_path.
         """
         count = self.body_count
-        names = ("position [m]", "orientation quaternion (w, x, y, z)", "velocity [m/s]", "angular velocity [rad/s]")
-        start = [
-            _finite(a, (count, width), f"the path's start {name}")
-            for a, width, name in zip((position, orientation, velocity, angular_velocity), (3, 4, 3, 3), names)
-        ]
-        finish = (
-            start
-            if end is None
-            else [
-                _finite(a, (count, width), f"the path's end {name}") for a, width, name in zip(end, (3, 4, 3, 3), names)
-            ]
-        )
-        for which, quaternions in (("start", start[1]), ("end", finish[1])):
-            norms = np.linalg.norm(quaternions, axis=1)
-            if not np.all((norms > 0.5) & (norms < 2.0)):
-                body = int(np.argmax(~((norms > 0.5) & (norms < 2.0))))
-                raise SoilInputError(
-                    f"body {body}'s orientation at the path's {which} must be a unit quaternion (w, x, y, z), "
-                    f"got {quaternions[body].tolist()}"
-                )
+        start, finish = checked_body_path(count, position, orientation, velocity, angular_velocity, end)
+        if finish is None:
+            finish = start
         rows = np.zeros((count, PATH_COLUMNS))
         rows[:, :13] = np.hstack(start)
         rows[:, 13:26] = np.hstack(finish)

@@ -41,7 +41,7 @@ from dataclasses import replace
 import numpy as np
 import warp as wp
 
-from .control import SoilControl
+from .control import SoilControl, checked_body_path
 from .errors import ArgumentError, DamagedFileError, SoilInputError, is_real
 from .macro import MacroStepReport
 from .model import SoilModel
@@ -452,37 +452,19 @@ class Worlds:
             self._maybe_step()
 
     def _checked_path(self, world: int, body_path) -> tuple:
-        """A world's wheel path (set_body_path's position, orientation, velocity, angular velocity and end:
-        None or those four at the span's end) as float arrays of its wheels' count; SoilInputError unless
-        each holds finite numbers of the shape its wheels need."""
-        bodies = self.model.bodies_per_world
-        widths = (3, 4, 3, 3)
-        names = ("position", "orientation", "velocity", "angular velocity")
+        """A world's wheel path (set_body_path's position, orientation, velocity, angular velocity and end)
+        as float arrays of its wheels' count (soil.control.checked_body_path); SoilInputError unless each
+        holds finite numbers of the shape its wheels need."""
         what = f"world {world}'s wheel path"
         if not isinstance(body_path, (tuple, list)) or len(body_path) != 5:
             raise SoilInputError(
                 f"{what} is (position, orientation, velocity, angular velocity, end), got {type(body_path).__name__}"
             )
-
-        def arrays(values, where: str) -> tuple:
-            out = []
-            for name, width, value in zip(names, widths, values):
-                try:
-                    array = np.array(value, dtype=np.float64).reshape(bodies, width)
-                except (TypeError, ValueError):
-                    raise SoilInputError(
-                        f"{what}: its {where}{name} must be ({bodies}, {width}) numbers (one row per wheel), "
-                        f"got {np.shape(value)}"
-                    ) from None
-                if not np.isfinite(array).all():
-                    raise SoilInputError(f"{what}: its {where}{name} is not finite")
-                out.append(array)
-            return tuple(out)
-
-        end = body_path[4]
-        if end is not None and (not isinstance(end, (tuple, list)) or len(end) != 4):
-            raise SoilInputError(f"{what}: its end is None or (position, orientation, velocity, angular velocity)")
-        return (*arrays(body_path[:4], ""), None if end is None else arrays(end, "end "))
+        position, orientation, velocity, angular_velocity, end = body_path
+        start, finish = checked_body_path(
+            self.model.bodies_per_world, position, orientation, velocity, angular_velocity, end, what
+        )
+        return (*start, None if finish is None else tuple(finish))
 
     def take(self, world: int) -> MacroStepReport | None:
         """World `world`'s part of the report of the step it asked for (submit); None while other worlds

@@ -387,15 +387,19 @@ def test_plate_bekker_fit_reproduces_its_curves(tmp_path):
     plate_check(resolve_lab(lab_scene_from_text(PLATE, overrides={"bed.bed_file": str(bed)})))
 
 
+SMALL_HEAP = (
+    "[scene]\ngravity = 'earth'\nprecision = 'double'\ndevice = 'cpu'\n[soil]\nyoungs_modulus = 1e5\n"
+    "[bed]\nradius_mean = 0.002\n[lab]\nmax_time_factor = 2.0\n"
+    "[repose]\ntube_width = 0.02\nfill_height = 0.01\nlift_ratio = 0.3\nbase_width = 0.04\n"
+)
+"""A heap too small to measure (its phases cut short): seconds a replica."""
+
+
 def test_cosim_lab_repose_writes_its_report(tmp_path, capsys):
     """The command end to end on a heap too small to measure (phases cut short): exit 0, every
     file written, the CSV headers with units, the notes saying what was cut short."""
     scene = tmp_path / "heap.toml"
-    scene.write_text(
-        "[scene]\ngravity = 'earth'\nprecision = 'double'\ndevice = 'cpu'\n[soil]\nyoungs_modulus = 1e5\n"
-        "[bed]\nradius_mean = 0.002\n[lab]\nmax_time_factor = 2.0\n"
-        "[repose]\ntube_width = 0.02\nfill_height = 0.01\nlift_ratio = 0.3\nbase_width = 0.04\n"
-    )
+    scene.write_text(SMALL_HEAP)
     out = tmp_path / "out"
     assert main(["lab", "repose", str(scene), "--serial", "--out", str(out)]) == 0
     printed = capsys.readouterr().out
@@ -425,11 +429,7 @@ def test_an_interrupted_lab_test_reports_the_replicas_that_finished(tmp_path, ca
 
     monkeypatch.setattr(repose, "run_replica", stopped_at_the_third)
     scene = tmp_path / "heap.toml"
-    scene.write_text(
-        "[scene]\ngravity = 'earth'\nprecision = 'double'\ndevice = 'cpu'\n[soil]\nyoungs_modulus = 1e5\n"
-        "[bed]\nradius_mean = 0.002\n[lab]\nmax_time_factor = 2.0\nreplicas = 4\n"
-        "[repose]\ntube_width = 0.02\nfill_height = 0.01\nlift_ratio = 0.3\nbase_width = 0.04\n"
-    )
+    scene.write_text(SMALL_HEAP.replace("[lab]\n", "[lab]\nreplicas = 4\n"))
     out = tmp_path / "out"
     assert main(["lab", "repose", str(scene), "--serial", "--out", str(out)]) == 130
     summary = json.loads((out / "summary.json").read_text())
