@@ -5,6 +5,7 @@ sys.path holds only fmpy, libcosimpy and their dependencies (tests/fmu_importer.
 The peer of every comparison is the in-process DemSoil built from the scene's own objects.
 """
 
+import ctypes
 import dataclasses
 import json
 import math
@@ -417,6 +418,79 @@ def test_an_edited_frontend_file_is_refused_at_instantiation_naming_its_line(tin
     with pytest.raises(Exception, match="Failed to instantiate"):
         slave.instantiate(logMessage=lambda env, status, category, message: logged.append(message.decode()))
     assert any("frontend.txt line 5 is not one of" in m and line in m for m in logged), logged
+
+
+@pytest.mark.parametrize("version", [2, 3])
+def test_a_call_the_fmu_does_not_offer_is_a_logged_error_that_holds_until_a_reset(tiny, tmp_path, version):
+    """A call the FMU does not offer (serialized FMU states, a Boolean variable, FMI 3.0 values of a wrong
+    count) returned Error silently and left the instance as if nothing happened. FMI says an Error leaves
+    an instance that may only be restored, reset or freed: each is logged naming the call and why, a value
+    set afterwards is refused, and a reset clears it (no server is started: all before initialization)."""
+    from fmpy import extract, read_model_description
+    from fmpy.fmi1 import FMICallException
+    from fmpy.fmi2 import FMU2Slave, defaultCallbacks, fmi2CallbackFunctions, fmi2CallbackLoggerTYPE
+    from fmpy.fmi3 import FMU3Slave
+
+    fmu = tiny["fmus"][version]
+    description = read_model_description(str(fmu))
+    slave = (FMU2Slave if version == 2 else FMU3Slave)(
+        guid=description.guid,
+        unzipDirectory=extract(str(fmu), unzipdir=str(tmp_path / "unzipped")),
+        modelIdentifier=description.coSimulation.modelIdentifier,
+        instanceName="refusing",
+    )
+    logged = []
+    one = (ctypes.c_uint * 1)(1)  # value reference 1: the parameter dem_step
+    if version == 2:
+        callbacks = fmi2CallbackFunctions()
+        callbacks.logger = fmi2CallbackLoggerTYPE(
+            lambda env, name, status, category, message: logged.append((status, message.decode()))
+        )
+        callbacks.allocateMemory, callbacks.freeMemory = defaultCallbacks.allocateMemory, defaultCallbacks.freeMemory
+        slave.instantiate(callbacks=callbacks)
+        set_dem_step = lambda: slave.fmi2SetReal(slave.component, one, 1, (ctypes.c_double * 1)(1e-4))  # noqa: E731
+        refusals = {
+            "fmi2SerializedFMUstateSize: FMU states are not serializable": lambda: slave.fmi2SerializedFMUstateSize(
+                slave.component, None, ctypes.byref(ctypes.c_size_t())
+            ),
+            "fmi2GetBoolean: this FMU has no Boolean variable": lambda: slave.fmi2GetBoolean(
+                slave.component, one, 1, (ctypes.c_int * 1)()
+            ),
+        }
+    else:
+        slave.instantiate(logMessage=lambda env, status, category, message: logged.append((status, message.decode())))
+        set_dem_step = lambda: slave.fmi3SetFloat64(slave.component, one, 1, (ctypes.c_double * 1)(1e-4), 1)  # noqa: E731
+        refusals = {
+            "fmi3SerializedFMUStateSize: FMU states are not serializable": lambda: slave.fmi3SerializedFMUStateSize(
+                slave.component, None, ctypes.byref(ctypes.c_size_t())
+            ),
+            "fmi3GetBoolean: this FMU has no Boolean variable": lambda: slave.fmi3GetBoolean(
+                slave.component, one, 1, (ctypes.c_bool * 1)(), 1
+            ),
+            "fmi3GetFloat64: every variable is a scalar: nValues must equal nValueReferences": lambda: (
+                slave.fmi3GetFloat64(slave.component, one, 1, (ctypes.c_double * 2)(), 2)
+            ),
+        }
+
+    def status(call) -> int:
+        try:
+            return call()
+        except FMICallException as error:  # fmpy raises on Error
+            return error.status
+
+    try:
+        assert status(set_dem_step) == 0  # OK
+        for words, refuse in refusals.items():
+            logged.clear()
+            assert status(refuse) == 3  # Error
+            assert status(set_dem_step) == 3, "an Error holds: a value set after it is refused"
+            errors = [message for level, message in logged if level == 3]
+            assert any(words in m for m in errors), errors
+            assert any("setting a value after an Error: restore an FMU state taken before it" in m for m in errors)
+            slave.reset()
+            assert status(set_dem_step) == 0, "a reset clears the Error"
+    finally:
+        slave.freeInstance()
 
 
 def test_a_cut_soil_json_and_a_gravity_a_hair_off_are_named(tiny, tmp_path):

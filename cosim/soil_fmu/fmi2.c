@@ -57,6 +57,8 @@ static char *path_of_uri(const char *uri) {
 }
 
 #define SOIL(c) (((Fmu *)(c))->soil)
+/* a call this FMU does not offer: an Error, logged, like every other */
+#define REFUSE(c, call, why) STATUS[soil_refuse((c) ? SOIL(c) : NULL, call, why)]
 
 FMI2_Export const char *fmi2GetTypesPlatform(void) { return fmi2TypesPlatform; }
 FMI2_Export const char *fmi2GetVersion(void) { return fmi2Version; }
@@ -158,11 +160,17 @@ FMI2_Export fmi2Status fmi2SetString(fmi2Component c, const fmi2ValueReference v
 
 /* No Boolean variables, no settable Integer variables. */
 FMI2_Export fmi2Status fmi2SetInteger(fmi2Component c, const fmi2ValueReference vr[], size_t nvr,
-                                      const fmi2Integer value[]) { return nvr ? fmi2Error : fmi2OK; }
+                                      const fmi2Integer value[]) {
+    return nvr ? REFUSE(c, "fmi2SetInteger", "no Integer variable is settable (the contact counts are outputs)") : fmi2OK;
+}
 FMI2_Export fmi2Status fmi2GetBoolean(fmi2Component c, const fmi2ValueReference vr[], size_t nvr,
-                                      fmi2Boolean value[]) { return nvr ? fmi2Error : fmi2OK; }
+                                      fmi2Boolean value[]) {
+    return nvr ? REFUSE(c, "fmi2GetBoolean", "this FMU has no Boolean variable") : fmi2OK;
+}
 FMI2_Export fmi2Status fmi2SetBoolean(fmi2Component c, const fmi2ValueReference vr[], size_t nvr,
-                                      const fmi2Boolean value[]) { return nvr ? fmi2Error : fmi2OK; }
+                                      const fmi2Boolean value[]) {
+    return nvr ? REFUSE(c, "fmi2SetBoolean", "this FMU has no Boolean variable") : fmi2OK;
+}
 
 FMI2_Export fmi2Status fmi2DoStep(fmi2Component c, fmi2Real currentCommunicationPoint,
                                   fmi2Real communicationStepSize, fmi2Boolean noSetFMUStatePriorToCurrentPoint) {
@@ -171,7 +179,8 @@ FMI2_Export fmi2Status fmi2DoStep(fmi2Component c, fmi2Real currentCommunication
 
 /* A refused (Discard) step leaves the soil at the step's start: the last successful time. */
 FMI2_Export fmi2Status fmi2GetRealStatus(fmi2Component c, const fmi2StatusKind s, fmi2Real *value) {
-    if (s != fmi2LastSuccessfulTime) return fmi2Error;
+    if (s != fmi2LastSuccessfulTime)
+        return REFUSE(c, "fmi2GetRealStatus", "the only Real status offered is fmi2LastSuccessfulTime");
     *value = SOIL(c)->real[VR_TIME];
     return fmi2OK;
 }
@@ -179,7 +188,8 @@ FMI2_Export fmi2Status fmi2GetRealStatus(fmi2Component c, const fmi2StatusKind s
 /* After a Discard: false while a shorter retry can succeed; true once the same step was retried unchanged
  * and refused again (the soil is deterministic: the master should stop at the last successful time). */
 FMI2_Export fmi2Status fmi2GetBooleanStatus(fmi2Component c, const fmi2StatusKind s, fmi2Boolean *value) {
-    if (s != fmi2Terminated) return fmi2Error;
+    if (s != fmi2Terminated)
+        return REFUSE(c, "fmi2GetBooleanStatus", "the only Boolean status offered is fmi2Terminated");
     *value = SOIL(c)->terminated ? fmi2True : fmi2False;
     return fmi2OK;
 }
@@ -195,14 +205,34 @@ FMI2_Export fmi2Status fmi2FreeFMUstate(fmi2Component c, fmi2FMUstate *state) {
     return STATUS[soil_free_state(SOIL(c), (SoilSnapshot **)state)];
 }
 
-/* Not supported: asynchronous steps, serialized FMU states, derivatives. */
-FMI2_Export fmi2Status fmi2CancelStep(fmi2Component c) { return fmi2Error; }
-FMI2_Export fmi2Status fmi2GetStatus(fmi2Component c, const fmi2StatusKind s, fmi2Status *value) { return fmi2Error; }
-FMI2_Export fmi2Status fmi2GetIntegerStatus(fmi2Component c, const fmi2StatusKind s, fmi2Integer *value) { return fmi2Error; }
-FMI2_Export fmi2Status fmi2GetStringStatus(fmi2Component c, const fmi2StatusKind s, fmi2String *value) { return fmi2Error; }
-FMI2_Export fmi2Status fmi2SerializedFMUstateSize(fmi2Component c, fmi2FMUstate state, size_t *size) { return fmi2Error; }
-FMI2_Export fmi2Status fmi2SerializeFMUstate(fmi2Component c, fmi2FMUstate state, fmi2Byte serialized[], size_t size) { return fmi2Error; }
-FMI2_Export fmi2Status fmi2DeSerializeFMUstate(fmi2Component c, const fmi2Byte serialized[], size_t size, fmi2FMUstate *state) { return fmi2Error; }
-FMI2_Export fmi2Status fmi2GetDirectionalDerivative(fmi2Component c, const fmi2ValueReference unknowns[], size_t nUnknown, const fmi2ValueReference knowns[], size_t nKnown, const fmi2Real dvKnown[], fmi2Real dvUnknown[]) { return fmi2Error; }
-FMI2_Export fmi2Status fmi2SetRealInputDerivatives(fmi2Component c, const fmi2ValueReference vr[], size_t nvr, const fmi2Integer order[], const fmi2Real value[]) { return fmi2Error; }
-FMI2_Export fmi2Status fmi2GetRealOutputDerivatives(fmi2Component c, const fmi2ValueReference vr[], size_t nvr, const fmi2Integer order[], fmi2Real value[]) { return fmi2Error; }
+/* Not offered: asynchronous steps, serialized FMU states, derivatives (modelDescription.xml says so). */
+FMI2_Export fmi2Status fmi2CancelStep(fmi2Component c) {
+    return REFUSE(c, "fmi2CancelStep", "steps are never asynchronous (canRunAsynchronuously is false)");
+}
+FMI2_Export fmi2Status fmi2GetStatus(fmi2Component c, const fmi2StatusKind s, fmi2Status *value) {
+    return REFUSE(c, "fmi2GetStatus", "steps are never asynchronous: no fmi2Status to ask for");
+}
+FMI2_Export fmi2Status fmi2GetIntegerStatus(fmi2Component c, const fmi2StatusKind s, fmi2Integer *value) {
+    return REFUSE(c, "fmi2GetIntegerStatus", "no Integer status is offered");
+}
+FMI2_Export fmi2Status fmi2GetStringStatus(fmi2Component c, const fmi2StatusKind s, fmi2String *value) {
+    return REFUSE(c, "fmi2GetStringStatus", "no String status is offered (fmi2PendingStatus: steps are never asynchronous)");
+}
+FMI2_Export fmi2Status fmi2SerializedFMUstateSize(fmi2Component c, fmi2FMUstate state, size_t *size) {
+    return REFUSE(c, "fmi2SerializedFMUstateSize", "FMU states are not serializable (canSerializeFMUstate is false)");
+}
+FMI2_Export fmi2Status fmi2SerializeFMUstate(fmi2Component c, fmi2FMUstate state, fmi2Byte serialized[], size_t size) {
+    return REFUSE(c, "fmi2SerializeFMUstate", "FMU states are not serializable (canSerializeFMUstate is false)");
+}
+FMI2_Export fmi2Status fmi2DeSerializeFMUstate(fmi2Component c, const fmi2Byte serialized[], size_t size, fmi2FMUstate *state) {
+    return REFUSE(c, "fmi2DeSerializeFMUstate", "FMU states are not serializable (canSerializeFMUstate is false)");
+}
+FMI2_Export fmi2Status fmi2GetDirectionalDerivative(fmi2Component c, const fmi2ValueReference unknowns[], size_t nUnknown, const fmi2ValueReference knowns[], size_t nKnown, const fmi2Real dvKnown[], fmi2Real dvUnknown[]) {
+    return REFUSE(c, "fmi2GetDirectionalDerivative", "no directional derivatives (providesDirectionalDerivative is false)");
+}
+FMI2_Export fmi2Status fmi2SetRealInputDerivatives(fmi2Component c, const fmi2ValueReference vr[], size_t nvr, const fmi2Integer order[], const fmi2Real value[]) {
+    return REFUSE(c, "fmi2SetRealInputDerivatives", "inputs are not interpolated (canInterpolateInputs is false)");
+}
+FMI2_Export fmi2Status fmi2GetRealOutputDerivatives(fmi2Component c, const fmi2ValueReference vr[], size_t nvr, const fmi2Integer order[], fmi2Real value[]) {
+    return REFUSE(c, "fmi2GetRealOutputDerivatives", "no output derivatives (maxOutputDerivativeOrder is 0)");
+}

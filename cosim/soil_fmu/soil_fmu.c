@@ -72,6 +72,11 @@ void soil_log(Soil *s, SoilStatus status, const char *category, const char *form
     s->logger(s->log_environment, status, category, message);
 }
 
+SoilStatus soil_refuse(Soil *s, const char *call, const char *why) {
+    if (s) soil_log(s, SOIL_ERROR, "logStatusError", "%s: %s", call, why);
+    return SOIL_ERROR;
+}
+
 static char *copy_text(const char *text) {
     char *copy = malloc(strlen(text) + 1);
     if (copy) strcpy(copy, text);

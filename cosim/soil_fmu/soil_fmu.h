@@ -110,5 +110,8 @@ SoilStatus soil_set_state(Soil *soil, const SoilSnapshot *state);
 SoilStatus soil_free_state(Soil *soil, SoilSnapshot **state);
 
 void soil_log(Soil *soil, SoilStatus status, const char *category, const char *format, ...);
+/* A call the FMU does not offer, or whose arguments it cannot take: logged as an Error naming the call
+   (the instance then is in FMI's Error state, like after any other Error). */
+SoilStatus soil_refuse(Soil *soil, const char *call, const char *why);
 
 #endif
