@@ -167,8 +167,11 @@ SUMMARY_KEYS = (
 
 
 def _print_summary(result, scm_only: bool = False) -> None:
+    from .metrics import MIN_CORRELATION_TIMES, short_window
+
     s = result.summary
     print(f"{result.status}: {result.out_dir}")
+    short = []  # (key, the window in its correlation times) where its s.e. is too small
     for key, unit, scale in SUMMARY_KEYS:
         if key not in s:
             continue
@@ -176,6 +179,8 @@ def _print_summary(result, scm_only: bool = False) -> None:
         if isinstance(value, float):
             sem = s.get(f"{key}_sem")
             text = f"{value * scale:.4g}" + (f" +- {sem * scale:.2g} (within-run s.e.)" if sem and sem == sem else "")
+            if sem and sem == sem and short_window(s, key) is not None:
+                short.append(f"{short_window(s, key):.0f} of {key}")
         elif isinstance(value, list):
             text = (" .. " if key == "window" else ", ").join(
                 f"{(math.nan if v is None else v) * scale:.4g}" for v in value
@@ -183,6 +188,11 @@ def _print_summary(result, scm_only: bool = False) -> None:
         else:
             text = str(value)
         print(f"  {key:26s} {text} {unit}".rstrip())
+    if short:
+        print(
+            f"  ! the window spans only {', '.join(short)} correlation times (< {MIN_CORRELATION_TIMES}): "
+            "their within-run s.e. are too small; replicas give the error bar"
+        )
     for finding in s.get("findings", []):
         if not finding["ok"]:
             print(f"  ! {finding['message']}")
@@ -847,10 +857,16 @@ def _error_bar_note(replica_fits: dict) -> str:
     counts = sorted({sum(math.isfinite(v) for v in values) for values in replica_fits.values()})
     left_out = [k for k in SOIL_KEYS if k not in replica_fits]
     one_bed = f"; {', '.join(left_out)}: the pooled fit's alone (one bed)" if left_out else ""
+    # R < 2 leaves no scatter between replicas: the pooled fit's error alone, whose degrees of freedom
+    # are its points' (not R - 1)
+    multipliers = [f"R = {r}: +- {t.ppf(0.975, r - 1):.3g}" for r in counts if r >= 2]
+    alone = "; R < 2: the pooled fit's error alone, no interval between replicas" if min(counts) < 2 else ""
+    intervals = ""
+    if multipliers:
+        intervals = f"; with R - 1 degrees of freedom a 95 % interval is {', '.join(multipliers)} of these"
     return (
         "  (+-: the larger of the pooled fit's standard error and the replicas' own fits' scatter / sqrt(R), "
-        f"R = {'/'.join(map(str, counts))} ([source] replica_fits){one_bed}; with R - 1 degrees of freedom "
-        f"a 95 % interval is +- {t.ppf(0.975, max(min(counts) - 1, 1)):.3g} of these)"
+        f"R = {'/'.join(map(str, counts))} ([source] replica_fits){one_bed}{intervals}{alone})"
     )
 
 

@@ -276,8 +276,12 @@ def plot_slip_curve(out_dir: str, rows: list[dict], dpi: int = 120) -> str:
     ):
         slip = np.array([r.get("slip_mean", r["slip_set"]) for r in rows])
         mean = np.array([r.get(f"{name}_mean", np.nan) for r in rows]) * scale
-        ci = np.nan_to_num(np.array([r.get(f"{name}_ci95", np.nan) for r in rows]) * scale)
-        ax.errorbar(slip, mean, yerr=ci, fmt="o-", capsize=4)
+        ci = np.array([r.get(f"{name}_ci95", np.nan) for r in rows]) * scale
+        ax.errorbar(slip, mean, yerr=np.nan_to_num(ci), fmt="o-", capsize=4)
+        alone = ~np.isfinite(ci) & np.isfinite(mean)  # one steady replica: no interval, not an exact value
+        if alone.any():
+            ax.plot(slip[alone], mean[alone], "o", mfc="white", mec="C3", ms=9, label="one replica: no interval")
+            ax.legend(fontsize=8)
         ax.set_xlabel("slip [-]")
         ax.set_ylabel(label)
         ax.grid(True, alpha=0.3)

@@ -603,15 +603,21 @@ def _ensemble_text(stats: dict, title: str, judged: str = "deterministic") -> st
     lines = [
         title,
         f"  {stats['steady']} of {stats['replicas']} replicas reached a steady state",
-        f"  {'metric':16s} {'mean':>11s} {'std':>10s} {'95% CI +-':>10s} {'min':>11s} {'max':>11s}  unit  " + judged,
+        f"  {'metric':16s} {'n':>3s} {'mean':>11s} {'std':>10s} {'95% CI +-':>10s} {'min':>11s} {'max':>11s}  unit  "
+        + judged,
     ]
     for name, row in stats["metrics"].items():
         if row.get("n", 0) == 0:
             continue
-        det = "" if name == "wall_time" else ("yes" if row["deterministic"] else f"NO (std > {row['tolerance']:.3g})")
+        if name == "wall_time":
+            det = ""
+        elif row["n"] < 2:  # no scatter to judge: neither yes nor NO
+            det = "n/a (one replica)"
+        else:
+            det = "yes" if row["deterministic"] else f"NO (std > {row['tolerance']:.3g})"
         lines.append(
-            f"  {name:16s} {row['mean']:11.5g} {row['std']:10.3g} {row['ci95']:10.3g} {row['min']:11.5g} "
-            f"{row['max']:11.5g}  {METRIC_UNITS.get(name, ''):4s}  {det}"
+            f"  {name:16s} {row['n']:3d} {row['mean']:11.5g} {row['std']:10.3g} {row['ci95']:10.3g} "
+            f"{row['min']:11.5g} {row['max']:11.5g}  {METRIC_UNITS.get(name, ''):4s}  {det}"
         )
     return "\n".join(lines)
 

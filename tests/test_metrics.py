@@ -147,3 +147,88 @@ def test_deterministic_means_the_scatter_is_within_the_tolerance():
     assert tight["deterministic"] and not loose["deterministic"] and floor["deterministic"]
     assert metrics.ensemble([2.0])["deterministic"] is False  # one run says nothing about scatter
     assert metrics.ensemble([np.nan, None])["n"] == 0
+
+
+def _ar1(phi: float, n: int, count: int, seed: int) -> np.ndarray:
+    """`count` stationary AR(1) series x_k = phi x_(k-1) + e_k, e ~ N(0, 1), of n samples each, mean 0:
+    integrated correlation time (1 + phi) / (1 - phi) samples."""
+    from scipy.signal import lfilter
+
+    rng = np.random.default_rng(seed)
+    noise = rng.standard_normal((count, n + 2000))  # 2000 samples of burn-in: stationary from the start
+    return lfilter([1.0], [1.0, -phi], noise, axis=1)[:, 2000:]
+
+
+def test_a_nan_or_an_inf_is_no_steady_state():
+    """A non-finite sample made every MSER score nan, and the series counted as steady from its start."""
+    x = _transient(600, tau=40.0, amplitude=5.0, sigma=0.5, seed=0)
+    x[500] = math.nan
+    assert metrics.mser_truncation(x) is None and metrics.steady_window({"v": x}) == (600, False)
+    x[500] = math.inf
+    assert metrics.mser_truncation(x) is None
+    assert metrics.mser_truncation(np.full(100, math.nan)) is None
+
+
+def test_batch_means_count_every_sample():
+    """15 samples in 8 batches (2 x 7 and 1): the last 7 samples were left out (a standard error of 0 for
+    a window whose mean is 46.7); batch means 0, 0, 0, 0, 100, 100, 100, 100: s = 53.45, / sqrt(8)."""
+    values = np.r_[np.zeros(8), np.full(7, 100.0)]
+    assert metrics.batch_standard_error(values) == pytest.approx(math.sqrt(8 * 50.0**2 / 7) / math.sqrt(8))
+
+
+def test_correlation_time_and_the_coverage_of_the_batch_means_interval_on_ar1_series():
+    """AR(1) with phi = 0.9: correlation time (1 + phi) / (1 - phi) = 19 samples. Over 800 windows of
+    2000 samples (105 correlation times) the batch-means 95 % interval (t with 7 degrees of freedom)
+    covers the true mean 0 in 95 % of them (binomial 3-sigma band +-2.3 %), and few windows are flagged
+    short (2 % measured: the estimate of the correlation time scatters). Over windows of 100 samples
+    (5 correlation times) the interval covers far less (82 % measured) and `short_window` flags nearly
+    every one (its estimate of the correlation time is low there too, but well under 50 windows)."""
+    from scipy import stats
+
+    t7 = stats.t.ppf(0.975, 7)
+    long = _ar1(0.9, 2000, 800, seed=3)
+    assert metrics.correlation_time(_ar1(0.9, 40000, 1, seed=4)[0]) == pytest.approx(19.0, rel=0.15)
+    covered = flagged = 0
+    for x in long:
+        sem = metrics.batch_standard_error(x)
+        covered += abs(x.mean()) <= t7 * sem
+        summary = {"window": [0.0, (len(x) - 1) * 0.1], "v_correlation_time": metrics.correlation_time(x) * 0.1}
+        flagged += metrics.short_window(summary, "v") is not None
+    assert covered / len(long) == pytest.approx(0.95, abs=0.023) and flagged / len(long) < 0.05
+    short = _ar1(0.9, 100, 800, seed=5)
+    covered = flagged = 0
+    for x in short:
+        covered += abs(x.mean()) <= t7 * metrics.batch_standard_error(x)
+        summary = {"window": [0.0, (len(x) - 1) * 0.1], "v_correlation_time": metrics.correlation_time(x) * 0.1}
+        flagged += metrics.short_window(summary, "v") is not None
+    assert covered / len(short) < 0.9 and flagged / len(short) > 0.95
+    assert math.isnan(metrics.correlation_time(np.ones(50)))  # constant: no correlation time, nothing flagged
+    assert metrics.short_window({"window": [0.0, 1.0], "v_correlation_time": math.nan}, "v") is None
+
+
+def test_a_run_summary_prints_a_window_too_short_for_its_error_bar(capsys):
+    """The summary of a run whose steady window spans few correlation times of the drawbar pull says its
+    within-run standard error is too small (a slowly wandering pull: AR(1) with phi = 0.99)."""
+    from types import SimpleNamespace
+
+    from cosim.cli import _print_summary
+
+    s = _series()
+    s["drawbar_pull"][:, 0] = 0.5 + 0.01 * _ar1(0.99, len(s["time"]), 1, seed=6)[0]
+    out = metrics.summarize(s, rim_radius=0.04, wheel_load=10.0)
+    spans = (out["window"][1] - out["window"][0]) / out["drawbar_pull_correlation_time"]
+    assert spans < metrics.MIN_CORRELATION_TIMES
+    assert metrics.summary_units(out)["drawbar_pull_correlation_time"] == "s"
+    _print_summary(SimpleNamespace(summary=out, status="done", out_dir="run"))
+    printed = capsys.readouterr().out
+    assert f"! the window spans only {spans:.0f} of drawbar_pull correlation times (< 50)" in printed, printed
+    assert "their within-run s.e. are too small" in printed and "of sinkage" not in printed, printed
+
+
+def test_an_ensemble_of_one_replica_is_not_judged():
+    """One steady replica has no scatter: its row said "NO (std > tol)" beside a nan std."""
+    from cosim.study import _ensemble_text
+
+    stats = {"steady": 1, "replicas": 3, "metrics": {"slip": metrics.ensemble([0.21, None, math.nan])}}
+    row = _ensemble_text(stats, "replicas").splitlines()[-1]
+    assert "n/a (one replica)" in row and "NO" not in row and row.split()[1] == "1"

@@ -900,3 +900,14 @@ def test_a_scene_given_as_a_calibration_is_named_as_none(tmp_path):
     scene = write_tiny(tmp_path)
     with pytest.raises(CalibrationError, match=r"not an SCM calibration file \(no `format` key"):
         read_calibration(scene)
+
+
+def test_the_error_bar_note_gives_each_replica_count_its_own_t_multiplier():
+    """Keys fitted over 3 replicas: t(0.975, 2) = 4.303. A key with one converged replica has no interval
+    between replicas (the note printed t with 1 degree of freedom, 12.7, for every key)."""
+    from cosim.cli import _error_bar_note
+
+    note = _error_bar_note({"n": [1.0, 1.1, 0.9], "k_phi": [5.0, 5.5, 4.0], "k_c": [5.0, math.nan, math.nan]})
+    assert "R = 1/3" in note and "R = 3: +- 4.3 of these" in note and "12.7" not in note, note
+    assert "R < 2: the pooled fit's error alone, no interval between replicas" in note, note
+    assert "R < 2" not in _error_bar_note({"n": [1.0, 1.1], "k_phi": [5.0, 5.5]})
