@@ -14,6 +14,7 @@ No `from __future__ import annotations` here: Warp reads the kernels' annotation
 """
 
 import math
+import numbers
 from dataclasses import dataclass, field, fields
 
 import numpy as np
@@ -731,6 +732,39 @@ class StepController:
             raise SoilInputError(
                 "need 0 < rho_min < reject_below <= 1 < rho_max, got "
                 f"{self.rho_min}, {self.reject_below}, {self.rho_max}"
+            )
+        for name in ("dt_max", "dt_min", "dt_initial"):  # an infinite dt_max ended a run at once, untimed
+            value = getattr(self, name)
+            if value is not None and not (isinstance(value, numbers.Real) and math.isfinite(value) and value > 0):
+                raise SoilInputError(f"{name} must be a finite number > 0 [s] or None, got {value!r}")
+        if self.dt_min is not None and self.dt_max is not None and not self.dt_min <= self.dt_max:
+            raise SoilInputError(f"dt_min must be <= dt_max, got {self.dt_min!r} s and {self.dt_max!r} s")
+        if not (math.isfinite(self.order) and self.order > 0):  # 0 divided by zero, < 0 turned the control over
+            raise SoilInputError(f"order must be a finite number > 0 (3 for jolt-Beeman), got {self.order!r}")
+        if not (math.isfinite(self.velocity_scale) and self.velocity_scale >= 0):
+            raise SoilInputError(f"velocity_scale must be a finite number >= 0 [m/s], got {self.velocity_scale!r}")
+        self._check_gains()
+
+    def _check_gains(self) -> None:
+        """The gains must make a closed loop that settles: on a log-linear error model the step's
+        log obeys z^3 + (b1 - 1) z^2 + b2 z + b3 (the class docstring), whose roots must lie inside the
+        unit circle; and k_i > 0, without which the error never returns to the tolerance (k_i = -1 held
+        the step at dt_min for a million steps, k_i = k_p = k_d = 0 froze it at its first value)."""
+        gains = {"k_i": self.k_i, "k_p": self.k_p, "k_d": self.k_d}
+        bad = [f"{k} = {v!r}" for k, v in gains.items() if not math.isfinite(v)]
+        if bad:
+            raise SoilInputError(f"the PID gains must be finite numbers, got {', '.join(bad)}")
+        if not self.k_i > 0:
+            raise SoilInputError(
+                f"k_i must be > 0 (the integral gain brings the error to the tolerance), got {self.k_i!r}"
+            )
+        b1, b2, b3 = self.k_i + self.k_p + self.k_d, -(self.k_p + 2 * self.k_d), self.k_d
+        largest = float(np.max(np.abs(np.roots([1.0, b1 - 1.0, b2, b3]))))
+        if not largest < 1.0:
+            raise SoilInputError(
+                f"the PID gains k_i = {self.k_i!r}, k_p = {self.k_p!r}, k_d = {self.k_d!r} make a step control that "
+                f"does not settle (a root of z^3 + (b1 - 1) z^2 + b2 z + b3 at |z| = {largest:.3g} >= 1); the "
+                "defaults (0.4, 0.3, 0.05) and Gustafsson's PI (0.3, 0.4, 0) settle"
             )
 
     _OPTIONAL = ("dt_max", "dt_min", "dt_initial", "dt")

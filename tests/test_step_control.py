@@ -3,6 +3,7 @@ against Hertz theory, bitwise rejection and resume, one read per macro step, and
 whose fixed step diverges."""
 
 import json
+import re
 import warnings
 
 import numpy as np
@@ -154,10 +155,62 @@ def test_a_scene_whose_fixed_step_diverges_completes_under_pid(tmp_path, tiny_be
     assert summary["step_control"] == "pid"
     assert summary["dt_max"] <= 0.0017 and summary["dt_mean"] < 0.0017 / 2
     assert summary["force_evaluations"] >= summary["dem_steps"] + summary["dem_steps_rejected"]
+    assert summary["dem_steps_forced"] == 0 and summary["units"]["dem_steps_forced"] == "count"
     with h5py.File(tmp_path / "pid" / "results.h5") as f:
         assert f["soil/dt_mean"].attrs["units"] == "s" and f["soil/dem_steps"].attrs["units"] == "count"
         steps = f["soil/dem_steps"][()]
         assert (steps[1:] >= 1).all() and int(steps.sum()) == summary["dem_steps"]
+
+
+def test_a_tolerance_the_shortest_step_cannot_meet_is_warned_of_and_counted(tmp_path, tiny_bed, caplog):
+    """A tolerance of 1e-12 with run.dt_min half of dt_max: every substep is kept at dt_min over the
+    tolerance. That ran without a word (with the default dt_min, 1e4 x the steps: a run that seemed
+    to hang); now the first is warned of, naming the keys, and the summary counts them."""
+    import logging
+
+    from cosim.launch import run_scene
+    from helpers import write_tiny
+
+    scene = write_tiny(tmp_path, "")
+    settings = ["run.duration=0.0085", "landing.max_time=0.05", "landing.hold_time=0.02", "run.step_control=pid"]
+    settings += [f'bed.bed_file="{tiny_bed}"']
+    settings += ["run.dt_max=0.00034", "run.dt_min=0.00017", "run.tolerance=1e-12"]
+    with caplog.at_level(logging.WARNING, logger="cosim"):
+        run_scene(scene, str(tmp_path / "tight"), overrides=settings)
+    summary = json.loads((tmp_path / "tight" / "run.json").read_text())["summary"]
+    assert summary["dem_steps_forced"] > 0 and summary["dem_steps_forced"] <= summary["dem_steps"]
+    warned = [r.getMessage() for r in caplog.records if "kept" in r.getMessage()]
+    assert len(warned) == 1, warned  # the first, once
+    assert "shortest step (run.dt_min: 0.00017 s) with an error over run.tolerance (1e-12)" in warned[0], warned
+
+
+@pytest.mark.parametrize(
+    "settings, words",
+    [
+        ({"k_i": -1.0}, "k_i must be > 0"),  # held the step at dt_min: a million steps
+        ({"k_i": float("nan")}, "the PID gains must be finite numbers, got k_i = nan"),  # never returned
+        ({"k_i": 0.0, "k_p": 0.0, "k_d": 0.0}, "k_i must be > 0"),  # froze the step at its first value
+        ({"k_p": -5.0}, "does not settle"),
+        ({"k_i": 2.1, "k_p": 0.0, "k_d": 0.0}, "|z| = 1.1 >= 1"),  # z^2 (z + 1.1): a root at -1.1
+        ({"order": 0.0}, "order must be a finite number > 0"),  # a bare ZeroDivisionError
+        ({"order": -3.0}, "order must be a finite number > 0"),  # never returned
+        ({"dt_max": float("inf")}, "dt_max must be a finite number > 0"),  # returned at once, 0 steps
+        ({"dt_initial": -1.0}, "dt_initial must be a finite number > 0"),  # silently clipped
+        ({"velocity_scale": float("nan")}, "velocity_scale must be a finite number >= 0"),  # silently ignored
+        ({"dt_min": 1e-3, "dt_max": 1e-4}, "dt_min must be <= dt_max"),
+    ],
+)
+def test_step_controller_settings_that_cannot_control_are_refused_by_name(settings, words):
+    """The closed loop of the gains (the class docstring's z^3 + (b1 - 1) z^2 + b2 z + b3) must settle:
+    the defaults put its roots at |z| <= 0.72, Gustafsson's PI (0.3, 0.4, 0) at 0.8; k_i = 2.1 alone
+    leaves z^2 (z - (1 - 2.1)), a root at -1.1, outside."""
+    from soil.errors import SoilInputError
+
+    with pytest.raises(SoilInputError, match=re.escape(words)):
+        StepController(**settings)
+    StepController(k_i=0.3, k_p=0.4, k_d=0.0)  # Gustafsson's PI
+    StepController(dt_min=1e-5, dt_max=1e-4, dt_initial=np.float32(2e-5))
+    StepController(dt_min=1e-4, dt_max=1e-4)  # a fixed substep under the PID's error check: the scene allows it
 
 
 def test_the_soil_fmu_carries_the_step_control(tiny_bed):
