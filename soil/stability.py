@@ -119,7 +119,8 @@ class SimulationDiverged(RegolithError, RuntimeError):
 
     Attributes: time [s] and step of the failure, particle (model index, or None), position [m]
     of that particle (3,), reason (str), last_good (dict of numpy arrays, SoilState.to_numpy()
-    plus 'step'), checkpoint (path written, or None).
+    plus 'step'), checkpoint (path written, or None), elsewhere (True: found in another world of
+    a batch, soil.worlds; this world's own state is sound).
     """
 
     def __init__(
@@ -133,8 +134,10 @@ class SimulationDiverged(RegolithError, RuntimeError):
         position=None,
         reason: str = "",
         checkpoint: str | None = None,
+        elsewhere: bool = False,
     ):
         super().__init__(message)
+        self.elsewhere = elsewhere
         self.last_good = last_good
         self.time = time
         self.step = step

@@ -437,6 +437,10 @@ class Worlds:
                 raise ArgumentError(f"world {world} has left the batch")
             if self._failure is not None:
                 raise self._world_failure(world)
+            if world in self._requests or world in self._reports:  # it replaced the first, unsaid
+                raise ArgumentError(
+                    f"world {world} has asked for a macro step already: take its report before asking again"
+                )
             # checked before it is asked: a refused request leaves the batch as it was (one that failed in
             # the step would stop every world)
             if not (is_real(dt) and math.isfinite(dt) and dt > 0):
@@ -522,6 +526,7 @@ class Worlds:
                 position=failure.position,
                 reason=failure.reason,
                 checkpoint=failure.checkpoint,
+                elsewhere=failure.particle is not None and failure.particle // n != world,
             )
         return failure
 

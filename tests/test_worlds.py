@@ -280,7 +280,8 @@ def test_the_worlds_of_a_batch_are_copies_of_one_scene(device):
 
 def test_a_world_that_diverges_stops_the_batch_and_each_world_keeps_its_last_good_state(device):
     """World 1's wheel is rammed into its grains at 30 m/s: the monitor finds it (in the step or in a
-    health check), and both worlds' runs get SimulationDiverged with a last good state of their own grains."""
+    health check), and both worlds' runs get SimulationDiverged with a last good state of their own grains,
+    world 0's marked as found elsewhere."""
     from soil import SimulationDiverged
 
     warnings.simplefilter("ignore", WallProximityWarning)
@@ -315,6 +316,8 @@ def test_a_world_that_diverges_stops_the_batch_and_each_world_keeps_its_last_goo
         assert isinstance(outcome[w], SimulationDiverged), outcome[w]
         assert outcome[w].last_good is not None and outcome[w].last_good["position"].shape == (n, 3)
     assert not np.array_equal(outcome[0].last_good["position"], outcome[1].last_good["position"])
+    # world 0's own grains are sound: its run may be resumed alone (world 1's would diverge again)
+    assert outcome[0].elsewhere and not outcome[1].elsewhere
 
 
 def test_a_restore_onto_a_list_without_one_of_its_contacts_is_flagged(device):
@@ -347,7 +350,8 @@ def test_a_restore_onto_a_list_without_one_of_its_contacts_is_flagged(device):
 
 def test_the_worlds_api_names_a_bad_index_or_step_and_a_refused_step_changes_nothing(device, tmp_path):
     """A world's index is an integer of the batch's range; a macro step that is refused (a time that is
-    no time, a wheel path of the wrong shape) leaves the batch as it was: the next, valid, step runs."""
+    no time, a wheel path of the wrong shape, a second request before the first's report is taken) leaves
+    the batch as it was: the next, valid, step runs."""
     from soil.errors import ArgumentError, InputError
 
     worlds = Worlds(Simulation(*join_worlds([scene(device, "double", seed, wheel=False) for seed in SEEDS[:2]])))
@@ -363,7 +367,12 @@ def test_the_worlds_api_names_a_bad_index_or_step_and_a_refused_step_changes_not
         worlds.submit(0, MACRO, 1e-4, True, (np.zeros((1, 3)), np.zeros((0, 4)), [], [], None))
     # the refused steps left nothing behind: the batch steps as asked
     worlds.submit(0, MACRO, 1e-4, False, None)
+    # a second request before the first's report is taken (it replaced the first without a word)
+    with pytest.raises(ArgumentError, match="world 0 has asked for a macro step already: take its report"):
+        worlds.submit(0, 2 * MACRO, 1e-4, False, None)
     worlds.submit(1, MACRO, 1e-4, False, None)
+    with pytest.raises(ArgumentError, match="world 1 has asked for a macro step already"):  # stepped, not taken
+        worlds.submit(1, 2 * MACRO, 1e-4, False, None)
     reports = [worlds.take(w) for w in range(2)]
     assert all(r is not None and r.steps == 10 for r in reports) and worlds.sim.time == MACRO
     # a bed that is no file: the project's input error, naming the path
