@@ -45,15 +45,19 @@ class SettlingDiverged(RegolithError, RuntimeError):
         if error.position is not None:
             where += " at ({:.4g}, {:.4g}, {:.4g}) m".format(*error.position)
         time = f"t = {error.time:.6g} s" if error.time is not None else "the start"
+        if plan.step_control == "pid":  # the PID settles the bed too: its keys set the settling's substeps
+            step = f"Lower {plan.step_keys}"
+        else:
+            step = f"Lower bed.settle_dt_factor (the settling step is {plan.bed.settle_dt:.3g} s)"
+        kept_text = (
+            "no bed was written"
+            if kept is None
+            else f"no bed was written; the settling's last good state (t = {_good_time(error):.6g} s) is {kept}"
+        )
         super().__init__(
-            f"the bed diverged while settling, at {time} of the settling{where}: {error.reason or error}. "
-            f"Lower bed.settle_dt_factor (the settling step is {plan.bed.settle_dt:.3g} s), check scene.gravity "
-            f"(|g| = {plan.g:.4g} m/s^2) and the friction angles (soil.stick_angle_deg, soil.slip_angle_deg); "
-            + (
-                "no bed was written"
-                if kept is None
-                else f"no bed was written; the settling's last good state (t = {_good_time(error):.6g} s) is {kept}"
-            )
+            f"the bed diverged while settling, at {time} of the settling{where}: {error.reason or error}. {step}, "
+            f"check scene.gravity (|g| = {plan.g:.4g} m/s^2) and the friction angles (soil.stick_angle_deg, "
+            f"soil.slip_angle_deg); {kept_text}"
         )
 
 

@@ -373,6 +373,21 @@ def _dem_advice(plan) -> list[str]:
         f"  the scene uses dt = {plan.dt:.4g} s, macro step H = {plan.macro_step:.4g} s ({plan.substeps} substeps); "
         + ("dt is within the advised limit" if plan.dt <= steps.dt_max else "dt is ABOVE the advised limit"),
     ]
+    if plan.step_control == "pid":  # the PID's substeps, not dt, are what the soil takes
+        longest = plan.dt_max if plan.dt_max is not None else steps.dt_max
+        shortest = plan.dt_min if plan.dt_min is not None else longest * 1e-4
+        ratio = longest / steps.critical_step
+        lines.append(
+            f"  the PID substeps between   {shortest:.4g} .. {longest:.4g} s at run.tolerance {plan.tolerance:g} "
+            f"(run.dt_max{' unset: the advised limit,' if plan.dt_max is None else ':'} "
+            f"{ratio:.3g} x the critical step)"
+            + (
+                ""
+                if ratio <= 1
+                else "; above the critical step only the error estimate keeps a substep stable, and a fast event "
+                "(an impact, a bed settling at this gravity) can diverge first: lower run.dt_max if it does"
+            )
+        )
     if needs_bed(plan):  # what a stiffer soil costs: a step ~ 1/sqrt(E), so E far above the eq. 10 bound is paid
         lines.append(
             f"  the drive's {plan.scene.run.duration:.4g} s take {plan.scene.run.duration / plan.dt:.3g} DEM steps "

@@ -139,6 +139,9 @@ class StepStatistics:
     """Longest inner step [s]."""
     evaluations: int
     """Force evaluations, rejected steps included [count]."""
+    forced: int = 0
+    """Inner steps kept at the shortest step allowed although their error exceeded the tolerance (PID
+    step control) [count]."""
 
 
 @dataclass(frozen=True)

@@ -286,7 +286,9 @@ class DemSoil:
         report = self.last_report
         if report is None:
             return None
-        return StepStatistics(report.steps, report.rejected, report.dt_min, report.dt_max, report.evaluations)
+        return StepStatistics(
+            report.steps, report.rejected, report.dt_min, report.dt_max, report.evaluations, report.forced
+        )
 
     def start_health_checks(self) -> None:
         """SoilSide: arm the simulation's divergence monitor (soil.DivergenceMonitor) unless a

@@ -14,6 +14,7 @@ checkpoint.npz and continues to the result an uninterrupted run gives (bitwise o
 from __future__ import annotations
 
 import contextlib
+import json
 import logging
 import os
 import shutil
@@ -152,6 +153,7 @@ def resume(out_dir: str, progress: bool = False, hooks: dict | None = None) -> R
     checkpoint of another run, is refused (DamagedFileError naming the file and what is left) and the
     folder stays as it was. A run whose drive is complete in the checkpoint but whose results were not
     finished (killed after its final checkpoint) gets its results finished: status, summary, run.json.
+    A run that diverged is refused (ArgumentError): its resume would repeat the same steps.
     """
     folder = RunFolder(out_dir)
     if not os.path.isdir(folder.path):
@@ -167,6 +169,13 @@ def resume(out_dir: str, progress: bool = False, hooks: dict | None = None) -> R
     with folder.locked():
         check_files()
         checkpoint, info = _checked_inputs(folder)
+        if _diverged_here(folder.results):  # the same steps from the same state: again
+            raise ArgumentError(
+                f"{folder.path!r} diverged ({info.get('message') or 'run.json has no message'}); a resume repeats "
+                f"the same steps from its checkpoint (t = {float(checkpoint['coupler/time']):.6g} s) and diverges "
+                f"again: run its scene again with the change that message names (cosim run "
+                f"{folder.file(SCENE_FILE)} --set KEY=VALUE --out NEW_FOLDER); nothing was changed"
+            )
         base_dir = str(checkpoint["scene_base_dir"]) if "scene_base_dir" in checkpoint else ""
         scene = scene_from_text(str(checkpoint["scene_toml"]), base_dir=base_dir or None)
         plan = resolve(scene)
@@ -310,6 +319,21 @@ def _recoverable(results: str) -> str:
         f"{results} is readable: it holds {count} macro steps{last}, the results up to its last flush "
         "(cosim plot FOLDER shows them); to finish the run start it again with --overwrite"
     )
+
+
+def _diverged_here(path: str) -> bool:
+    """The run of results.h5 at `path` diverged itself: a resume would repeat it (a run that stopped as
+    another world of its batch diverged did not: its summary says so, diverged_elsewhere)."""
+    from .output import open_results
+
+    with open_results(path) as f:  # a file a killed writer left open for writing opens too
+        status, summary = f.attrs.get("status", ""), f.attrs.get("summary", "{}")
+    status = status.decode() if isinstance(status, bytes) else str(status)
+    try:
+        elsewhere = bool(json.loads(summary).get("diverged_elsewhere", False))
+    except (ValueError, AttributeError):  # a summary that is no JSON table: check_results refused it before
+        elsewhere = False
+    return status == "diverged" and not elsewhere
 
 
 def _results_status(path: str) -> str:

@@ -796,6 +796,18 @@ PLOTTED_SERIES = ("travel", "sinkage", "sinkage_tips", "slip", "drawbar_pull", "
 """The wheel series every results file has had and `cosim plot` draws."""
 
 
+def _step_series(series: dict) -> list[str]:
+    """The names of read_series' per-macro-step series (a row each)."""
+    names = [n for n in series if n in WHEEL_SERIES or n in ("time", "phase") or n.startswith(("rover_", "soil_"))]
+    return [n for n in names if n != "rover_columns"]
+
+
+def series_until(series: dict, last_time: float) -> dict:
+    """read_series' result with the rows after `last_time` [s] left out of every per-step series."""
+    kept = np.asarray(series["time"]) <= last_time
+    return {name: value[kept] if name in _step_series(series) else value for name, value in series.items()}
+
+
 def _check_series(out: dict) -> None:
     """ValueError (read_series: DamagedFileError naming the file) when read_series' result lacks a series
     a reader draws, holds series of unequal lengths, or a summary that is not a JSON table. A file
@@ -806,8 +818,7 @@ def _check_series(out: dict) -> None:
         raise ValueError(f"missing {', '.join(missing)}")
     if not isinstance(json.loads(out["attrs"].get("summary", "{}")), dict):
         raise ValueError("its summary attribute is not a JSON table")
-    steps = [n for n in out if n in WHEEL_SERIES or n in ("time", "phase") or n.startswith(("rover_", "soil_"))]
-    steps = [n for n in steps if n != "rover_columns"]
+    steps = _step_series(out)
     rows = min(len(out[n]) for n in steps)
     uneven = [n for n in steps if len(out[n]) != rows]
     if uneven and out["attrs"].get("status") != "running":

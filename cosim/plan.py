@@ -295,6 +295,15 @@ class RunPlan:
         return self.gravity if self.rover is None else (0.0, 0.0, -self.g)
 
     @property
+    def step_keys(self) -> str:
+        """The scene keys that set the DEM step, with their values, for divergence messages: the PID's
+        tolerance and longest substep, or the fixed step's key."""
+        if self.step_control == "pid":
+            longest = f"{self.dt_max:.3g} s" if self.dt_max is not None else "the advised limit"
+            return f"run.tolerance (now {self.tolerance:g}) or run.dt_max (now {longest})"
+        return f"{self.dt_setting} (the DEM step is now {self.dt:.3g} s)"
+
+    @property
     def slope(self) -> float:
         """Angle between gravity and -z [rad] (the slope a tilted gravity vector makes)."""
         return math.acos(min(1.0, -self.gravity[2] / self.g)) if self.g > 0 else 0.0
@@ -630,6 +639,13 @@ def resolve(scene: Scene) -> RunPlan:
         land.speed_ratio * math.sqrt(g * outer),
         max(1, int(math.ceil(hold / macro_step))),
     )
+    if land.enabled and g > 0 and landing.hold_steps >= landing.max_steps:  # it would end "no landing", always
+        held = "landing.hold_time" if land.hold_time is not None else "sqrt(r / |g|), landing.hold_time unset"
+        problems.append(
+            f"landing.max_time: a wheel has landed once it rested for {hold:.4g} s ({held}), which the landing's "
+            f"{land.max_time:g} s cannot hold: every run would end 'no landing'; raise landing.max_time above "
+            f"{hold + macro_step:.4g} s or shorten landing.hold_time"
+        )
     if problems:
         raise SceneError(problems)
     return RunPlan(

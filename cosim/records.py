@@ -22,7 +22,7 @@ import numpy as np
 from . import advice, metrics
 from .contract import StepStatistics, wheel_frame
 from .coupler import MacroStepRecord
-from .output import read_series
+from .output import read_series, series_until
 from .plan import RunPlan
 from .system import CoupledSystem, validity
 
@@ -228,12 +228,19 @@ def run_summary(
     wall: float,
     session_wall: float,
     steps_done: int,
+    last_good_time: float | None = None,
+    forced_steps: int = 0,
+    diverged_elsewhere: bool = False,
 ) -> dict:
     """The run's summary, computed from results.h5 at `results` (cosim.metrics.summarize or
     summarize_rover) plus run facts: landed: the landing ended at rest; wall [s]: the run's wall
     time over all its sessions; session_wall [s] and steps_done: this session's wall time and
-    macro steps (its throughput)."""
-    series = read_series(results)
+    macro steps (its throughput); last_good_time [s]: a diverged run's last good state, the rows
+    after it left out of the metrics (they stay in the file) and the time in the summary;
+    forced_steps: the PID's substeps kept at run.dt_min over the tolerance (dem_steps_forced);
+    diverged_elsewhere: the run stopped as another world of its batch diverged (its own soil sound)."""
+    written = read_series(results)
+    series = written if last_good_time is None else series_until(written, last_good_time + 1e-9 * plan.macro_step)
     out: dict[str, Any]
     if not len(series["time"]):
         out = {"steady_state": metrics.TOO_SHORT}
@@ -283,12 +290,18 @@ def run_summary(
     )
     if session_wall > 0 and steps_done:
         # DEM steps of this session's macro steps: the PID's vary (the last `steps_done` rows of the series)
-        taken = series.get("soil_dem_steps")
+        taken = written.get("soil_dem_steps")  # every row of this session, a diverged run's last ones too
         steps = (
             float(np.sum(taken[-steps_done:]))
             if taken is not None and len(taken) >= steps_done
             else plan.substeps * steps_done
         )
         out["particle_steps_per_second"] = float(books.element_count * steps / session_wall)
+    if last_good_time is not None:
+        out["last_good_time"] = float(last_good_time)
+    if diverged_elsewhere:
+        out["diverged_elsewhere"] = True
+    if plan.step_control == "pid":
+        out["dem_steps_forced"] = int(forced_steps)
     out["units"] = metrics.summary_units(out)  # run.json and results.h5 carry each number's unit
     return out

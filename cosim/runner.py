@@ -128,6 +128,14 @@ class Runner:
         self.wall_before = float(loop.get("wall_time", 0.0))
         self.steps_at_start = system.coupler.step_count
         self.last_checkpoint_time = system.coupler.time
+        self.session_start_time = system.coupler.time
+        """When this session started [s] (a resumed run: its checkpoint's time)."""
+        self.forced_steps = int(loop.get("forced_steps", 0))
+        """PID substeps kept at run.dt_min over the tolerance, over every session [count]."""
+        self.last_good_time: float | None = None
+        """A diverged run's last good soil state's time [s]; None while the run has not diverged."""
+        self.diverged_elsewhere = False
+        """The run stopped because another world of its batch diverged (it may be resumed alone)."""
         self.run_id = run_id or str(read_json(folder.file(RUN_FILE)).get("run_id", ""))
         """Ties every checkpoint to this run (run.json, results.h5 and checkpoint.npz carry it); a resumed
         run's is its checkpoint's (a damaged run.json loses none)."""
@@ -161,19 +169,22 @@ class Runner:
                 if pending is not None:  # done while the soil computed (or now); what its writing met is raised
                     pending.settle()
                 self._after_step(record)
+                self._count_forced(system.soil.step_statistics())
                 if "step" in self.hooks:
                     self.hooks["step"](self)
-                if coupler.step_count % CHECK_EVERY == 0:
-                    system.soil.check_health()
                 last = self.done
-                if plan.output.snapshot_interval > 0 and coupler.time >= self.next_snapshot - 1e-9 * plan.macro_step:
-                    self._snapshot()
-                elif last:
-                    self._snapshot()
+                snapshot = last or (
+                    plan.output.snapshot_interval > 0 and coupler.time >= self.next_snapshot - 1e-9 * plan.macro_step
+                )
                 scheduled = last or coupler.time >= self.next_checkpoint - 1e-9 * plan.macro_step
+                # a snapshot and a checkpoint read the state anyway: checked first, none holds a diverging soil
+                if coupler.step_count % CHECK_EVERY == 0 or snapshot or scheduled:
+                    system.soil.check_health()
+                if snapshot:
+                    self._snapshot()
                 if scheduled or self.stop_requested:
                     if scheduled:  # a stop on request checks nothing extra: the check times stay those
-                        system.soil.check_health()  # of an uninterrupted run (the bounds track them)
+                        # of an uninterrupted run (the bounds track them)
                         self.next_checkpoint = coupler.time + plan.output.checkpoint_interval  # saved with it
                     self._checkpoint(time.perf_counter() - started)
                     if "checkpoint" in self.hooks:
@@ -189,10 +200,22 @@ class Runner:
             status = "complete"
         except SimulationDiverged as error:
             status = "diverged"
+            if error.elsewhere:  # another world of the batch: this run's soil is sound, its rows too
+                self.diverged_elsewhere = True
+                message = f"the run stopped during the {self._phase()}: {error}; this run's own soil is sound. " + (
+                    f"Its last checkpoint (t = {self.last_checkpoint_time:.6g} s) continues it alone: "
+                    f"cosim resume {self.folder.path}"
+                    if os.path.isfile(self.folder.checkpoint)
+                    else "It has no checkpoint yet: run it again"
+                )
+                raise RunDiverged(message) from error
+            # the rows after the last good state are the diverging steps': the summary stops before them
+            good = error.last_good
+            self.last_good_time = float(good["time"]) if good is not None else self.session_start_time
             message = (
-                f"the run diverged during the {self._phase()}: {error}. Change {plan.dt_setting} (the DEM step is "
-                f"now {plan.dt:.3g} s), soften or stiffen the soil as `cosim advise` says, or shorten "
-                f"run.macro_step. {self._last_checkpoint()}"
+                f"the run diverged during the {self._phase()}: {error}. Lower {plan.step_keys}, soften or stiffen "
+                f"the soil as `cosim advise` says, or shorten run.macro_step, and run the scene again (a resume "
+                f"would repeat the same steps)"
             )
             if error.last_good is not None:
                 write_checkpoint(self.folder.file(DIVERGED_FILE), error.last_good, STATE_UNITS)
@@ -200,7 +223,10 @@ class Runner:
             raise RunDiverged(message) from error
         except RoverDiverged as error:
             status = "diverged"
-            message = f"the rover diverged during the {self._phase()}: {error}. {self._last_checkpoint()}"
+            message = (
+                f"the rover diverged during the {self._phase()}: {error}. Run the scene again with a shorter "
+                "run.macro_step or a gentler drive (a resume would repeat the same steps)"
+            )
             raise RunDiverged(message) from error
         except (KeyboardInterrupt, RunInterrupted) as error:
             status = "interrupted"
@@ -286,6 +312,26 @@ class Runner:
 
         self._pending = _Deferred(write_row)
 
+    def _count_forced(self, statistics) -> None:
+        """Count the PID's substeps kept at run.dt_min over the tolerance; the first is warned of (the run
+        then does not meet its tolerance, and may take very many substeps)."""
+        if statistics is None or not statistics.forced:
+            return
+        if not self.forced_steps:
+            plan = self.plan
+            shortest = f"{plan.dt_min:.3g} s" if plan.dt_min is not None else "run.dt_max x 1e-4"
+            log.warning(
+                "%s: at t = %.6g s the PID kept %d substeps at its shortest step (run.dt_min: %s) with an error "
+                "over run.tolerance (%g): the tolerance is not met there; loosen run.tolerance or lower "
+                "run.dt_min (the summary counts them: dem_steps_forced)",
+                self.folder.path,
+                self.system.coupler.time,
+                statistics.forced,
+                shortest,
+                plan.tolerance,
+            )
+        self.forced_steps += statistics.forced
+
     def _settle_row(self) -> None:
         """Make and write the last step's row now (raising what its writing met)."""
         pending, self._pending = self._pending, None
@@ -354,6 +400,7 @@ class Runner:
         "wall_time": "s",
         "steps": "count",
         "snapshots": "count",
+        "forced_steps": "count",
     }
     """The unit of each entry of loop_state()."""
 
@@ -371,17 +418,12 @@ class Runner:
             "wall_time": self.wall_before + wall,
             "steps": self.writer.steps,
             "snapshots": self.writer.snapshots,
+            "forced_steps": self.forced_steps,
         }
 
     def _phase(self) -> str:
         """'landing' or 'drive': the phase the run is in (for its messages)."""
         return "landing" if self.drive_start_step < 0 else "drive"
-
-    def _last_checkpoint(self) -> str:
-        """Where a stopped run can be resumed from, as a sentence."""
-        if os.path.isfile(self.folder.checkpoint):
-            return f"The last checkpoint is {self.folder.checkpoint} (t = {self.last_checkpoint_time:.6g} s)"
-        return "It diverged before the first checkpoint: there is none to resume from"
 
     def _checkpoint(self, wall: float) -> None:
         self._settle_row()  # the checkpoint's loop state (rows, travel) counts the step's row
@@ -437,6 +479,9 @@ class Runner:
             wall=wall,
             session_wall=session_wall,
             steps_done=self.system.coupler.step_count - self.steps_at_start,
+            last_good_time=self.last_good_time,
+            forced_steps=self.forced_steps,
+            diverged_elsewhere=self.diverged_elsewhere,
         )
 
 

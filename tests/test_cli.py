@@ -138,6 +138,19 @@ def test_advise_prints_the_bounds_and_the_validity_checks(cli_run, capsys):
     assert main(["advise", scene, "--set", 'terrain.model="analytic"', "--set", "bed.radius_mean=1e-5"]) == 0
     text = capsys.readouterr().out
     assert "memory" not in text.split("verdict:")[1] and "DEM steps (E = " not in text, text
+    # the PID's substeps are judged against the critical step (advise spoke of the fixed dt alone, and a
+    # run.dt_max of 1e30 s went unsaid until the bed diverged while settling)
+    assert main(["advise", scene, "--set", "run.step_control=pid"]) == 0
+    text = capsys.readouterr().out
+    line = next(s for s in text.splitlines() if "the PID substeps" in s)
+    assert "run.dt_max unset: the advised limit" in line and "above the critical step" not in line, line
+    assert main(["advise", scene, "--set", "run.step_control=pid", "--set", "run.dt_max=1e30"]) == 0
+    text = capsys.readouterr().out
+    critical = float(re.search(r"critical step (\S+) s", text).group(1))
+    line = next(s for s in text.splitlines() if "the PID substeps" in s)
+    ratio = float(re.search(r"run.dt_max: (\S+) x the critical step", line).group(1))
+    assert ratio == pytest.approx(1e30 / critical, rel=1e-2), line
+    assert "above the critical step only the error estimate keeps a substep stable" in line, line
 
 
 def test_resume_of_a_complete_run_does_nothing(cli_run, capsys):

@@ -25,8 +25,9 @@ from soil.scm import ScmTerrain
 pytestmark = pytest.mark.filterwarnings("ignore::cosim.coupler.CouplingEnergyWarning")  # the tiny scene's
 # coarse coupling warns while it drives: not what these tests check
 
-SHORT = ["run.duration=0.03", "landing.max_time=0.1"]
-"""The tiny scene cut short: its landing does not end in 0.1 s (59 macro steps): landing rows, then the end."""
+SHORT = ["run.duration=0.03", "landing.max_time=0.1", "landing.hold_time=0.05", "landing.speed_ratio=1e-9"]
+"""The tiny scene cut short: its landing does not end in 0.1 s (59 macro steps; no hub is that still, and
+a landing's max_time must exceed its hold_time): landing rows, then the end."""
 VARIANTS = {
     "drive": ["landing.enabled=false", "run.duration=0.1"],  # fixed steps, driving from the start: travel
     "pid": [*SHORT, 'run.step_control="pid"'],  # landing rows under the PID substeps: one captured loop a step

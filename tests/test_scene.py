@@ -72,6 +72,14 @@ BAD_SCENES = [
     ("negative order seed", "[run]\norder_seed = -3\n", "run.order_seed", ">= 0"),
     ("omega zero", "[testbed]\nomega = 0.0\n", "testbed.omega", "> 0"),
     ("landing without gravity", "[scene]\ngravity = 0.0\n", "landing.enabled", "gravity"),
+    # at rest for sqrt(r / |g|) = 1.3e3 s at 1e-8 m/s^2 (or a hold_time given) within max_time: never
+    (
+        "a landing too short to hold",
+        "[scene]\ngravity = 1e-8\n",
+        "landing.max_time",
+        "every run would end 'no landing'",
+    ),
+    ("a hold longer than the landing", "[landing]\nhold_time = 2.0\n", "landing.max_time", "above 2.002 s"),
     ("a lab file's section", "[shear]\nnormal_stresses = [1.0]\n", "shear", "this is a lab file, for `cosim lab`"),
     ("scene name of 300 bytes", f"[scene]\nname = '{'n' * 300}'\n", "scene.name", "at most 128 bytes"),
     ("gravity pointing up", "[scene]\ngravity = [0.0, 0.0, 1.6]\n", "scene.gravity", "must point down"),

@@ -142,9 +142,9 @@ def test_divergence_names_time_grain_position_and_setting(scene_path, tiny_bed, 
         "particle 3",
         "position (",
         "m/s exceeds",
-        "Change run.dt ",
+        "Lower run.dt ",
         "during the landing",
-        "before the first checkpoint",  # step 9 comes before the first: no checkpoint.npz is cited
+        "run the scene again (a resume would repeat the same steps)",
         "diverged_state.npz",
     ):
         assert words in message, (words, message)
@@ -156,6 +156,63 @@ def test_divergence_names_time_grain_position_and_setting(scene_path, tiny_bed, 
     assert np.all(np.isfinite(good["velocity"])) and np.max(np.linalg.norm(good["velocity"], axis=1)) < 1.0
     units = json.loads(str(good["units"]))  # every array's unit
     assert set(units) == set(good.files) - {"units", "integrity/sha256"} and units["velocity"] == "m/s"
+
+
+def test_a_diverging_soil_is_checked_before_its_snapshot_and_left_out_of_the_summary(scene_path, tiny_bed, tmp_path):
+    """A grain flung at step 36, where a snapshot and a checkpoint are due (every 0.03 s, the first at step
+    18): the snapshot was written before the check, holding the exploding grain. Now the check comes first:
+    no snapshot holds it; the rows after the last good state (the check at step 30) stay in results.h5 as
+    the record of the divergence, but the summary leaves them out and names that time. A resume would
+    repeat the same steps from the checkpoint of step 18 and diverge again: it is refused, nothing changed."""
+    from cosim.launch import resume
+    from soil.errors import ArgumentError
+
+    out = tmp_path / "boom"
+    macro_step = 0.0017
+
+    def explode(runner):
+        if runner.system.coupler.step_count == 36:
+            v = runner.system.soil.sim.state.velocity.numpy()
+            v[3] = (0.0, 0.0, 1e3)
+            runner.system.soil.sim.state.velocity.assign(v)
+
+    with pytest.raises(RunDiverged, match="m/s exceeds"):
+        run_plan(_plan(scene_path, tiny_bed, "run.dt=1.7e-4"), str(out), hooks={"step": explode})
+    with open_results(out / "results.h5") as f:
+        snapshots = [f["particles/velocity"][k] for k in range(len(f["particles/time"]))]
+        row_times = f["wheels/time"][()]
+    assert all(np.max(np.linalg.norm(v, axis=1)) < 1.0 for v in snapshots)  # none holds the flung grain
+    run = json.loads((out / "run.json").read_text())
+    assert run["summary"]["last_good_time"] == pytest.approx(30 * macro_step)
+    assert run["summary"]["units"]["last_good_time"] == "s"
+    assert row_times[-1] == pytest.approx(36 * macro_step)  # the diverging steps' rows are kept
+    before = {p.name: p.stat().st_mtime_ns for p in out.iterdir()}
+    with pytest.raises(ArgumentError, match=r"diverged .*a resume repeats the same steps .*nothing was changed"):
+        resume(str(out))
+    assert {p.name: p.stat().st_mtime_ns for p in out.iterdir()} == before
+
+
+def test_a_run_stopped_by_another_worlds_divergence_keeps_its_rows_and_resumes(
+    scene_path, tiny_bed, baseline, tmp_path
+):
+    """A run of a batch stops when another world diverges (soil.worlds marks the error `elsewhere`): its own
+    soil is sound, so its summary keeps every row and says so, and `cosim resume` continues it alone to
+    the uninterrupted run's result, bit for bit."""
+    from cosim.launch import resume
+    from soil import SimulationDiverged
+
+    out = tmp_path / "neighbour"
+
+    def neighbour_diverges(runner):
+        if runner.system.coupler.step_count == 20:  # after the checkpoint of step 18
+            raise SimulationDiverged("world 1 diverged [a batch of 2 worlds]", None, elsewhere=True)
+
+    with pytest.raises(RunDiverged, match=r"this run's own soil is sound. Its last checkpoint .* continues it alone"):
+        run_plan(_plan(scene_path, tiny_bed), str(out), hooks={"step": neighbour_diverges})
+    summary = json.loads((out / "run.json").read_text())["summary"]
+    assert summary["diverged_elsewhere"] is True and "last_good_time" not in summary
+    assert resume(str(out)).status in ("complete", "unsteady")
+    _assert_same_run(baseline, out)
 
 
 def test_a_folder_in_use_is_refused_and_left_alone(scene_path, tiny_bed, baseline, tmp_path):
