@@ -180,7 +180,7 @@ def _print_summary(result, scm_only: bool = False) -> None:
             sem = s.get(f"{key}_sem")
             text = f"{value * scale:.4g}" + (f" +- {sem * scale:.2g} (within-run s.e.)" if sem and sem == sem else "")
             if sem and sem == sem and short_window(s, key) is not None:
-                short.append(f"{short_window(s, key):.0f} of {key}")
+                short.append(f"{short_window(s, key):.0f}{' correlation times' if not short else ''} of {key}")
         elif isinstance(value, list):
             text = (" .. " if key == "window" else ", ").join(
                 f"{(math.nan if v is None else v) * scale:.4g}" for v in value
@@ -190,7 +190,7 @@ def _print_summary(result, scm_only: bool = False) -> None:
         print(f"  {key:26s} {text} {unit}".rstrip())
     if short:
         print(
-            f"  ! the window spans only {', '.join(short)} correlation times (< {MIN_CORRELATION_TIMES}): "
+            f"  ! the window spans only {', '.join(short)} (< {MIN_CORRELATION_TIMES}): "
             "their within-run s.e. are too small; replicas give the error bar"
         )
     for finding in s.get("findings", []):

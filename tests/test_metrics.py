@@ -221,7 +221,7 @@ def test_a_run_summary_prints_a_window_too_short_for_its_error_bar(capsys):
     assert metrics.summary_units(out)["drawbar_pull_correlation_time"] == "s"
     _print_summary(SimpleNamespace(summary=out, status="done", out_dir="run"))
     printed = capsys.readouterr().out
-    assert f"! the window spans only {spans:.0f} of drawbar_pull correlation times (< 50)" in printed, printed
+    assert f"! the window spans only {spans:.0f} correlation times of drawbar_pull (< 50)" in printed, printed
     assert "their within-run s.e. are too small" in printed and "of sinkage" not in printed, printed
 
 
