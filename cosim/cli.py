@@ -171,7 +171,7 @@ def _print_summary(result, scm_only: bool = False) -> None:
 
     s = result.summary
     print(f"{result.status}: {result.out_dir}")
-    short = []  # (key, the window in its correlation times) where its s.e. is too small
+    short: list[str] = []  # "N of key": the window in correlation times of each key whose s.e. is too small
     for key, unit, scale in SUMMARY_KEYS:
         if key not in s:
             continue
@@ -1131,7 +1131,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(func=cmd_scale)
 
     p = sub.add_parser("export-fmu", help="the soil as an FMI 2.0/3.0 co-simulation FMU (docs/fmu.md)")
-    p.add_argument("source", help="a scene file (TOML) or a run folder")
+    p.add_argument("source", metavar="SCENE_OR_RUN_DIR", help="a scene file (TOML) or a run folder")
     p.add_argument("--out", required=True, help="the .fmu file to write")
     p.add_argument("--fmi", type=int, choices=[2, 3], default=2, help="FMI version (default 2)")
     p.add_argument("--wheels", type=int, default=1, help="wheels in one FMU instance, on one bed (default 1)")

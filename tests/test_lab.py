@@ -465,6 +465,34 @@ def test_calibrate_that_measured_nothing_writes_no_calibrated_scene(tmp_path, ca
     assert (out / "history.csv").is_file()
 
 
+def test_an_interrupted_calibrate_reports_its_finished_evaluations(tmp_path, capsys, monkeypatch):
+    """SIGTERM during the third evaluation: the two finished ones were lost with the report (only each
+    evaluation's own folder kept its tests). Now summary.json and history.csv hold them, no calibrated
+    scene is written (an unfinished search's best is no calibration), and the command exits 143."""
+    import importlib
+
+    lab_calibrate = importlib.import_module("cosim.lab.calibrate")
+    calls = []
+
+    def measured(plan, tests, folder, run_on):
+        calls.append(folder)
+        if len(calls) == 3:
+            raise KeyboardInterrupt("SIGTERM")
+        return {"repose": 20.0 + 10.0 * len(calls)}  # 30 at the first end, 40 at the second: 32 lies between
+
+    monkeypatch.setattr(lab_calibrate, "measure", measured)
+    scene = tmp_path / "lab.toml"
+    scene.write_text("[scene]\ndevice = 'cpu'\n")
+    out = tmp_path / "out"
+    args = ["--serial", "--out", str(out), "--target", "repose=32", "--vary", "soil.rolling_friction=0:0.3"]
+    assert main(["calibrate", str(scene), *args]) == 143
+    assert len(calls) == 3 and not (out / "calibrated.toml").exists()
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["message"].startswith("interrupted after 2 finished evaluations") and not summary["converged"]
+    assert [row["evaluation"] for row in summary["evaluations"]] == [1, 2] and summary["calibrated_scene"] is None
+    assert len((out / "history.csv").read_text().splitlines()) == 1 + 2  # its header and the two rows
+
+
 def test_calibrate_prints_each_value_with_its_unit(tmp_path, capsys, monkeypatch):
     """`cosim calibrate` prints the best values and the measured targets with the units of the summary
     (cosim.lab.calibrate: a parameter's from the scene key's documentation, a target's from TARGETS)."""

@@ -305,6 +305,7 @@ def _calibrate(
 
     method = "brentq" if len(parameters) == 1 and len(targets) == 1 else "nelder-mead"
     message = ""
+    stopped: KeyboardInterrupt | None = None
     try:
         if method == "brentq":
             (name,) = targets
@@ -356,6 +357,14 @@ def _calibrate(
         message = f"stopped after --max-evaluations {max_evaluations} evaluations"
     except RuntimeError as error:  # brentq without convergence
         message = f"the optimiser stopped: {error}"
+    except KeyboardInterrupt as stop:  # Ctrl-C or SIGTERM: the finished evaluations' report, then stop
+        if not history:
+            raise
+        stopped = stop
+        message = (
+            f"interrupted after {len(history)} finished evaluation{'s' if len(history) > 1 else ''} (each one's "
+            "folder keeps its tests): no calibrated scene"
+        )
     best = min(history, key=lambda row: row["cost"] if math.isfinite(row["cost"]) else math.inf)
     converged = best["within"]
     path: str | None = os.path.join(out_dir, "calibrated.toml")
@@ -364,6 +373,8 @@ def _calibrate(
             f"no evaluation measured {', '.join(targets)} (each gave nan; their summary.json notes say why): "
             "no calibrated scene"
         )
+        path = None
+    if stopped is not None:  # an unfinished search: its best so far is no calibration
         path = None
     if not message:
         message = "every target is within its tolerance" if converged else "the optimiser ended outside the tolerance"
@@ -410,6 +421,8 @@ def _calibrate(
         best["evaluation"],
         ", ".join(f"{p.name} = {v:.6g}" for p, v in zip(parameters, best["values"])),
     )
+    if stopped is not None:  # the report is written: now stop as asked
+        raise stopped
     return summary
 
 
