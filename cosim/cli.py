@@ -394,6 +394,13 @@ def _dem_advice(plan) -> list[str]:
             f"(E = {material.youngs_modulus / e_min if e_min > 0 else math.nan:.3g} x the eq. 10 bound; the step "
             "scales as 1/sqrt(E))"
         )
+        # the phases before it, at their longest (a soil of tiny grains settled an hour without a word)
+        landing = plan.scene.landing.max_time / plan.dt if plan.scene.landing.enabled else 0.0
+        settling = plan.bed.settle_max_time / plan.bed.settle_dt
+        lines.append(
+            f"  before it, at most         {settling:.3g} DEM steps settle the bed (bed.settle_max_time at "
+            f"{plan.bed.settle_dt:.3g} s; a saved bed: none) and {landing:.3g} land the wheel (landing.max_time)"
+        )
     from .beds import memory_estimate
 
     memory = memory_estimate(plan)

@@ -138,6 +138,15 @@ def test_advise_prints_the_bounds_and_the_validity_checks(cli_run, capsys):
     assert main(["advise", scene, "--set", 'terrain.model="analytic"', "--set", "bed.radius_mean=1e-5"]) == 0
     text = capsys.readouterr().out
     assert "memory" not in text.split("verdict:")[1] and "DEM steps (E = " not in text, text
+    # the phases before the drive at their longest (a soil of tiny grains settled an hour unsaid)
+    from cosim.plan import load_plan
+
+    plan = load_plan(scene)
+    assert main(["advise", scene]) == 0
+    line = next(s for s in capsys.readouterr().out.splitlines() if "before it, at most" in s)
+    settling = plan.bed.settle_max_time / plan.bed.settle_dt
+    assert f"{settling:.3g} DEM steps settle the bed" in line, line
+    assert f"{plan.scene.landing.max_time / plan.dt:.3g} land the wheel" in line, line
     # the PID's substeps are judged against the critical step (advise spoke of the fixed dt alone, and a
     # run.dt_max of 1e30 s went unsaid until the bed diverged while settling)
     assert main(["advise", scene, "--set", "run.step_control=pid"]) == 0
