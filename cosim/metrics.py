@@ -103,6 +103,37 @@ def slip_of(forward_speed, spin, rim_radius: float):
         return np.where(np.abs(rim) > 0, 1.0 - np.asarray(forward_speed, dtype=float) / rim, np.nan)
 
 
+TURNING_IN_PLACE = 0.5
+"""The wheels' mean rim speed below this fraction of their mean rim speed's magnitude: they turn
+against each other (a turn in place, skid steering), and the rover has no slip along its forward
+direction (1 - v / mean(omega r) divides by nearly nothing) nor a drive to be stuck in."""
+
+
+def rover_slip(forward_speed: float, spins, rim_radii) -> float:
+    """The rover's slip 1 - v / mean(omega r) [-] (module docstring); nan where the wheels do not turn or
+    turn against each other (TURNING_IN_PLACE)."""
+    rim = np.asarray(spins, dtype=float) * np.asarray(rim_radii, dtype=float)
+    mean, magnitude = float(np.mean(rim)), float(np.mean(np.abs(rim)))
+    if not abs(mean) >= TURNING_IN_PLACE * magnitude:
+        return math.nan
+    return float(slip_of(forward_speed, mean, 1.0))
+
+
+def sinkage_steady(
+    sinkage: np.ndarray, time: np.ndarray, min_fraction: float, grain_radius: float | None
+) -> tuple[bool, float]:
+    """(steady, rate [m/s]) of a sinkage series [m] over a window at times [s]: stationary by MSER-5, or
+    drifting by less than half of `grain_radius` [m] across it (the grain-scale roughness of the surface
+    it is measured from); rate is its fitted slope."""
+    sinkage, time = np.asarray(sinkage, dtype=float), np.asarray(time, dtype=float)
+    rate = float(np.polyfit(time - time[0], sinkage, 1)[0]) if len(time) > 1 and np.all(np.isfinite(sinkage)) else 0.0
+    cut = mser_truncation(sinkage)
+    steady = (cut is not None and len(sinkage) - cut >= max(min_fraction * len(sinkage), 4)) or (
+        grain_radius is not None and abs(rate) * (time[-1] - time[0]) < 0.5 * grain_radius
+    )
+    return bool(steady), rate
+
+
 def wheel_quantities(
     kinematics: WheelKinematics, wrench: WheelWrench, geometry: WheelGeometry, drive_start_position: np.ndarray | None
 ) -> dict[str, float]:
@@ -262,15 +293,9 @@ def summarize(
     start, found = steady_window({"driving": key}, min_fraction)
     window = index[start:] if found else index[len(index) // 2 :]
     out["window"] = [float(time[window[0]]), float(time[window[-1]])]
-    # the sinkage over the traction's window: stationary by MSER-5, or drifting by less than
-    # half a grain radius over it (the grain-scale roughness of the surface it is measured from)
-    window_sinkage, window_time = sinkage[window - index[0]], time[window]
-    rate = float(np.polyfit(window_time - window_time[0], window_sinkage, 1)[0]) if len(window) > 1 else 0.0
-    out["sinkage_rate"] = rate
-    cut = mser_truncation(window_sinkage)
-    sinkage_steady = (cut is not None and len(window_sinkage) - cut >= max(min_fraction * len(window_sinkage), 4)) or (
-        grain_radius is not None and abs(rate) * (window_time[-1] - window_time[0]) < 0.5 * grain_radius
-    )
+    # the sinkage over the traction's window: stationary, or drifting by less than half a grain radius
+    window_time = time[window]
+    settled, out["sinkage_rate"] = sinkage_steady(sinkage[window - index[0]], window_time, min_fraction, grain_radius)
     quantities = {
         "forward_speed": forward[window - index[0]],
         "sinkage": sinkage[window - index[0]],
@@ -292,7 +317,7 @@ def summarize(
         out["steady_state"] = STUCK
     elif not found:
         out["steady_state"] = TOO_SHORT
-    elif not sinkage_steady:
+    elif not settled:
         out["steady_state"] = SINKING
     return out
 
@@ -336,6 +361,7 @@ SUMMARY_UNITS = {
     "wheel_driving_torque": "N m",
     "wheel_normal_force": "N",
     "wheel_power": "W",
+    "wheel_contact_fraction": "1",
     "patch_moves": "count",
     "soil_mass": "kg",
     "soil_mass_initial": "kg",
@@ -404,14 +430,13 @@ def rover_quantities(
     started, travel stays 0); previous_travel [m]."""
     forward = rover_forward(body.orientation)
     speed = float(body.linear_velocity @ forward)
-    rim = float(np.mean(np.asarray(spins) * np.asarray(rim_radii)))
     travel = previous_travel
     if previous_position is not None:
         step = body.position - previous_position
         travel += float(np.hypot(step[0], step[1]))
     return {
         "forward_speed": speed,
-        "slip": float(slip_of(speed, rim, 1.0)),
+        "slip": rover_slip(speed, spins, rim_radii),
         "net_traction": float(sum(w.force @ forward for w in wrenches)),
         "power": float(sum(q["power"] for q in wheels)),
         "travel": travel,
@@ -437,22 +462,34 @@ def immobile_steps(
     out = np.zeros(n, dtype=bool)
     if n < 2:
         return out
-    spin = np.abs(np.asarray(spin, dtype=float))
-    rim_speed = np.mean(spin * np.asarray(rim_radius, dtype=float), axis=1)
+    spin = np.nan_to_num(np.asarray(spin, dtype=float), nan=0.0)  # a nan spin (a lost wheel): not turning
+    rim = spin * np.asarray(rim_radius, dtype=float)
     dt = np.diff(time, prepend=time[0])
-    rim_travel = np.cumsum(rim_speed * dt)
-    turned = np.cumsum(np.mean(spin, axis=1) * dt)  # mean wheel turn since the first record [rad]
+    rim_travel = np.cumsum(np.mean(rim, axis=1) * dt)  # signed: a drive in reverse travels backwards
+    rim_path = np.cumsum(np.mean(np.abs(rim), axis=1) * dt)
+    turned = np.cumsum(np.mean(np.abs(spin), axis=1) * dt)  # mean wheel turn since the first record [rad]
     for k in range(1, n):
         if turned[k] < 1.0:  # not yet a radian of turn to judge over
             continue
         start = min(int(np.searchsorted(turned, turned[k] - 1.0, side="right")) - 1, k - 1)
+        travel, path = rim_travel[k] - rim_travel[start], rim_path[k] - rim_path[start]
+        if not abs(travel) >= TURNING_IN_PLACE * path:  # the wheels turned against each other: no drive to judge
+            continue
         advance = float((np.asarray(position[k]) - np.asarray(position[start])) @ rover_forward(orientation[k]))
-        out[k] = advance <= (1.0 - stuck_slip) * (rim_travel[k] - rim_travel[start])
+        # along the wheels' travel (backwards in reverse); a body position that is not finite: not judged
+        out[k] = bool(advance * math.copysign(1.0, travel) <= (1.0 - stuck_slip) * abs(travel))
     return out
 
 
 def summarize_rover(
-    series: dict, *, rim_radii, weight: float, stuck_slip: float = 0.9, landed: bool = True, min_fraction: float = 0.25
+    series: dict,
+    *,
+    rim_radii,
+    weight: float,
+    stuck_slip: float = 0.9,
+    landed: bool = True,
+    min_fraction: float = 0.25,
+    grain_radius: float | None = None,
 ) -> dict:
     """Metrics of a rover run from its written series (cosim.output.read_series: the wheel series (S, W),
     'rover/...' series (S, ...)); over the driving phase only.
@@ -462,8 +499,14 @@ def summarize_rover(
     'sinkage_tips' [m] (mean over the wheels), 'drawbar_pull' [N] (= net_traction), 'dp_over_w' [-],
     'driving_torque' [N m] (summed), 'normal_force' [N] (summed), 'contact_fraction' [-], and per wheel
     lists 'wheel_slip', 'wheel_sinkage', 'wheel_drawbar_pull', 'wheel_driving_torque', 'wheel_normal_force',
-    'wheel_power'; over the drive: 'travel' [m] (path), 'displacement' [m], 'energy' [J],
-    'energy_per_metre' [J/m], 'time_immobile' [s], 'stuck' (bool), 'stuck_criterion' (text)}."""
+    'wheel_power', 'wheel_contact_fraction'; over the drive: 'travel' [m] (path), 'displacement' [m],
+    'energy' [J], 'energy_per_metre' [J/m], 'time_immobile' [s], 'stuck' (bool), 'stuck_criterion' (text)}.
+
+    Statuses as `summarize`'s, for the rover: 'stuck' (immobile at the end, or a slip of at least
+    stuck_slip over the window), 'airborne' (at least min(3, wheels) wheels touch the soil in fewer than
+    90 % of the window's macro steps: the stance lost, not one wheel lifted), 'too short', 'still
+    sinking' (a wheel's sinkage neither stationary nor drifting by less than half of `grain_radius` [m]
+    over the window)."""
     time = np.asarray(series["time"], dtype=float)
     phase = np.asarray(series["phase"])
     contacts = np.asarray(series["contact_count"])
@@ -497,9 +540,14 @@ def summarize_rover(
     times = time[index]
     dt = np.diff(np.r_[time[index[0] - 1] if index[0] > 0 else times[0], times])
     out["travel"] = float(np.asarray(series["rover_travel"])[index[-1]])
-    out["displacement"] = float(np.linalg.norm((position[-1] - position[0])[:2]))
+    # from where the drive started: the last landing record (the travel counts the first step too)
+    origin = np.asarray(series["rover_position"])[index[0] - 1] if index[0] > 0 else position[0]
+    out["displacement"] = float(np.linalg.norm((position[-1] - origin)[:2]))
     out["energy"] = float(np.sum(power * dt))
-    out["energy_per_metre"] = out["energy"] / out["travel"] if out["travel"] > 0 else math.inf
+    if out["travel"] > 0:
+        out["energy_per_metre"] = out["energy"] / out["travel"]
+    else:  # no travel: the energy's sign, or nothing spent
+        out["energy_per_metre"] = math.copysign(math.inf, out["energy"]) if out["energy"] != 0 else math.nan
     immobile = immobile_steps(times, position, orientation, spins, rim_radii, stuck_slip)
     out["time_immobile"] = float(np.sum(dt[immobile]))
     out["stuck"] = bool(immobile[-1])
@@ -507,10 +555,9 @@ def summarize_rover(
     window = np.arange(start, len(index)) if found else np.arange(len(index) // 2, len(index))
     rows = index[window]
     out["window"] = [float(time[rows[0]]), float(time[rows[-1]])]
-    rim = float(np.mean(np.mean(spins[window] * rim_radii, axis=1)))
     spacing = float(np.mean(np.diff(time[rows]))) if len(rows) > 1 else math.nan
     window_mean(out, "forward_speed", speed[window], spacing)
-    out["slip"] = float(slip_of(out["forward_speed"], rim, 1.0))
+    out["slip"] = rover_slip(out["forward_speed"], np.mean(spins[window], axis=0), rim_radii)
     traction = np.asarray(series["rover_net_traction"])[rows]
     window_mean(out, "net_traction", traction, spacing)
     out["net_traction_over_weight"] = out["net_traction"] / weight if weight > 0 else math.nan
@@ -534,13 +581,25 @@ def summarize_rover(
     out["dp_over_w"] = out["net_traction_over_weight"]
     out["driving_torque"] = float(np.sum(out["wheel_driving_torque"]))
     out["normal_force"] = float(np.sum(out["wheel_normal_force"]))
-    out["contact_fraction"] = float(np.mean(np.all(contacts[rows] > 0, axis=1)))
+    touching = contacts[rows] > 0
+    out["wheel_contact_fraction"] = [float(v) for v in np.mean(touching, axis=0)]
+    stance = min(3, touching.shape[1])  # three wheels hold a rover up; one lifted wheel is no flight
+    out["contact_fraction"] = float(np.mean(np.sum(touching, axis=1) >= stance))
+    # a slip of stuck_slip or more over the window is the stuck criterion's own (wheels that slowed after
+    # the rover stopped made its last radian of turn reach back to when it moved)
+    out["stuck"] = out["stuck"] or bool(out["slip"] >= stuck_slip)
+    settled = [
+        sinkage_steady(sinkage[window, w], times[window], min_fraction, grain_radius)[0]
+        for w in range(sinkage.shape[1])
+    ]
     if out["stuck"]:
         out["steady_state"] = STUCK
     elif out["contact_fraction"] < 0.9:
         out["steady_state"] = AIRBORNE
     elif not found:
         out["steady_state"] = TOO_SHORT
+    elif not all(settled):
+        out["steady_state"] = SINKING
     return out
 
 

@@ -261,6 +261,7 @@ def run_summary(
             weight=plan.rover.mass * plan.g,
             stuck_slip=plan.rover.stuck_slip,
             landed=landed,
+            grain_radius=plan.bed.spec.radius_mean,
         )
     soil = system.soil
     books = soil.books()

@@ -232,3 +232,119 @@ def test_an_ensemble_of_one_replica_is_not_judged():
     stats = {"steady": 1, "replicas": 3, "metrics": {"slip": metrics.ensemble([0.21, None, math.nan])}}
     row = _ensemble_text(stats, "replicas").splitlines()[-1]
     assert "n/a (one replica)" in row and "NO" not in row and row.split()[1] == "1"
+
+
+def _rover(velocity, spins, *, yaw=0.0, sinkage=None, contacts=None, power=0.0, n_land=40, n_drive=400, seed=0):
+    """Records of a 4-wheel rover (rim radii 0.1 m, macro step 0.05 s): it lands, then drives with body velocity
+    `velocity` [m/s] ((3,) or (S, 3), world frame) and wheel spins `spins` [rad/s] (W,) or (S, W) about its axles,
+    heading `yaw` [rad] ((S,) or scalar); the rover series made by metrics.rover_quantities as a run makes them."""
+    from soil.control import quaternion_to_matrix
+
+    rng = np.random.default_rng(seed)
+    n, wheels, dt = n_land + n_drive, 4, 0.05
+    radii = np.full(wheels, 0.1)
+    time = dt * np.arange(1, n + 1)
+    phase = np.r_[np.zeros(n_land, int), np.ones(n_drive, int)]
+    velocity = np.array(np.broadcast_to(velocity, (n, 3)), dtype=float)
+    spins = np.array(np.broadcast_to(spins, (n, wheels)), dtype=float)
+    velocity[:n_land], spins[:n_land] = 0.0, 0.0
+    yaw = np.broadcast_to(yaw, (n,))
+    orientation = np.array([[math.cos(a / 2), 0.0, 0.0, math.sin(a / 2)] for a in yaw])
+    position = np.zeros((n, 3))
+    position[:, 2] = 0.3
+    for k in range(1, n):
+        position[k] = position[k - 1] + velocity[k] * dt
+    axle = np.array([np.asarray(quaternion_to_matrix(q))[:, 1] for q in orientation])  # the body's +y in the world
+    angular = spins[:, :, None] * axle[:, None, :]
+    linear = np.repeat(velocity[:, None, :], wheels, axis=1)
+    sinkage = 0.01 + 1e-4 * rng.standard_normal((n, wheels)) if sinkage is None else sinkage
+    contacts = np.full((n, wheels), 5) if contacts is None else contacts
+    rows, previous, travel = [], None, 0.0
+    for k in range(n):
+        body = WheelKinematics(position[k], orientation[k], velocity[k], np.zeros(3))
+        wrenches = [WheelWrench(force=[0.0, 0.0, 50.0], torque=[0.0, 0.0, 0.0])] * wheels
+        row = metrics.rover_quantities(
+            body, [{"power": power}] * wheels, wrenches, radii, spins[k], previous if phase[k] else None, travel
+        )
+        previous, travel = position[k], row["travel"]
+        rows.append(row)
+    series = {
+        "time": time,
+        "phase": phase,
+        "contact_count": contacts,
+        "rover_position": position,
+        "rover_orientation": orientation,
+        "sinkage": sinkage,
+        "sinkage_tips": sinkage + 0.005,
+        "drawbar_pull": np.zeros((n, wheels)),
+        "driving_torque": np.zeros((n, wheels)),
+        "normal_force": np.full((n, wheels), 50.0),
+        "power": np.full((n, wheels), power),
+        "orientation": np.repeat(orientation[:, None, :], wheels, axis=1),
+        "angular_velocity": angular,
+        "linear_velocity": linear,
+    }
+    series.update({f"rover_{name}": np.array([row[name] for row in rows]) for name in rows[0]})
+    return series, radii
+
+
+def _rover_summary(series, radii, **options):
+    return metrics.summarize_rover(series, rim_radii=radii, weight=200.0, grain_radius=0.001, **options)
+
+
+def test_a_rover_in_reverse_or_turning_in_place_is_not_stuck():
+    """Backwards at 0.06 m/s on wheels turning backwards at rim speed 0.1 m/s: slip 0.4 as forwards, but it
+    was judged immobile all the drive ('stuck', 19 s of 20) as its advance was taken along +x only. A turn
+    in place (wheels against each other) has no rover slip and no drive to be stuck in."""
+    out = _rover_summary(*_rover([-0.06, 0.0, 0.0], -1.0))
+    assert out["steady_state"] == metrics.STEADY and not out["stuck"] and out["time_immobile"] == 0.0
+    assert out["slip"] == pytest.approx(0.4) and out["wheel_slip"] == pytest.approx([0.4] * 4)
+    forward = _rover_summary(*_rover([0.06, 0.0, 0.0], 1.0))
+    assert forward["slip"] == pytest.approx(0.4) and forward["steady_state"] == metrics.STEADY
+    turning = _rover_summary(*_rover([0.0, 0.0, 0.0], [-1.0, 1.0, -1.0, 1.0], yaw=0.5 * 0.05 * np.arange(440)))
+    assert not turning["stuck"] and math.isnan(turning["slip"]), turning
+
+
+def test_a_rover_that_stopped_is_stuck_whatever_its_wheels_do_after():
+    """The body stops after 5 s of drive while the wheels keep turning (stuck), or slow to 0.02 rad/s: the
+    last radian of wheel turn then reached back 15 s to when it moved, and the rover was 'steady' at a slip
+    of 1. A nan spin (a lost wheel) switched the check off."""
+    k = np.arange(440) - 40
+    moving = (k < 100)[:, None]
+    stopped = _rover_summary(*_rover(0.06 * moving * [1.0, 0.0, 0.0], 1.0))
+    assert stopped["stuck"] and stopped["steady_state"] == metrics.STUCK
+    slowed = _rover_summary(*_rover(0.06 * moving * [1.0, 0.0, 0.0], np.where(moving, 1.0, 0.02) * np.ones(4)))
+    assert slowed["slip"] == pytest.approx(1.0) and slowed["stuck"] and slowed["steady_state"] == metrics.STUCK
+    series, radii = _rover(0.06 * (k < 300)[:, None] * [1.0, 0.0, 0.0], 1.0)
+    series["angular_velocity"][100, 2] = math.nan
+    assert _rover_summary(series, radii)["stuck"]
+
+
+def test_a_rover_with_one_wheel_sinking_or_lifted():
+    """One wheel digging in 20 mm over the drive while the others rest: the mean sinkage's MSER said 'too
+    short'; with another wheel rising as much the mean was flat and the rover 'steady'. Each wheel's
+    sinkage is now judged: 'still sinking'. One wheel in the air the whole drive made the rover
+    'airborne' (every wheel had to touch); three wheels hold it up."""
+    rng = np.random.default_rng(3)
+    sinkage = 0.01 + 1e-4 * rng.standard_normal((440, 4))
+    sinkage[40:, 3] += np.linspace(0.0, 0.02, 400)
+    sinkage[40:, 2] -= np.linspace(0.0, 0.02, 400)
+    assert _rover_summary(*_rover([0.06, 0.0, 0.0], 1.0, sinkage=sinkage))["steady_state"] == metrics.SINKING
+    contacts = np.full((440, 4), 5)
+    contacts[40:, 3] = 0
+    lifted = _rover_summary(*_rover([0.06, 0.0, 0.0], 1.0, contacts=contacts))
+    assert lifted["steady_state"] == metrics.STEADY and lifted["contact_fraction"] == 1.0
+    assert lifted["wheel_contact_fraction"] == [1.0, 1.0, 1.0, 0.0]
+    contacts[40::2, :2] = 0  # two wheels off every other step: half the time on two wheels
+    assert _rover_summary(*_rover([0.06, 0.0, 0.0], 1.0, contacts=contacts))["steady_state"] == metrics.AIRBORNE
+
+
+def test_a_rovers_displacement_and_energy_per_metre():
+    """A straight drive of 400 steps of 3 mm: displacement = travel = 1.2 m (it missed the first step). A
+    parked rover spending energy: -inf or +inf J/m by the energy's sign, nan when it spends none (both were
+    +inf)."""
+    out = _rover_summary(*_rover([0.06, 0.0, 0.0], 1.0, power=10.0))
+    assert out["displacement"] == pytest.approx(1.2) and out["travel"] == pytest.approx(1.2)
+    assert out["energy_per_metre"] == pytest.approx(4 * 10.0 * 20.0 / 1.2)
+    assert _rover_summary(*_rover([0.0, 0.0, 0.0], 0.0, power=-5.0))["energy_per_metre"] == -math.inf
+    assert math.isnan(_rover_summary(*_rover([0.0, 0.0, 0.0], 0.0))["energy_per_metre"])
