@@ -27,7 +27,8 @@ For a rover (`rover_quantities` per macro step, `summarize_rover` over a run), i
 frame (forward = its body's +x axis turned into the horizontal plane, up = +z):
 
     forward_speed   body velocity along forward [m/s]
-    slip            1 - forward_speed / (mean over the wheels of spin x rim radius) [-]
+    slip            1 - forward_speed / (mean over the wheels of spin x rim radius) [-] (nan
+                    while the wheels turn against each other: TURNING_IN_PLACE)
     net_traction    sum over the wheels of the soil force along forward [N] (what a drawbar
                     would feel; on a slope it carries the weight's downhill part)
     power           sum of the wheels' power [W]
@@ -35,13 +36,15 @@ frame (forward = its body's +x axis turned into the horizontal plane, up = +z):
 
 and over the driving phase: energy = integral of the power [J], energy_per_metre = energy /
 travel [J/m], and the time immobile [s] under the stuck criterion: the rover is immobile at a
-macro step when, over the last radian of (mean) wheel turn before it, its body advanced no
-more than (1 - stuck_slip) of its wheels' rim travel (with the default stuck_slip 0.9: its
-slip over the window is at least 0.9, or it went backwards); it is stuck when it is immobile at
-the end of the drive. Steps before the wheels have turned one radian are not judged. The
-steady-state window is found as for a wheel (MSER-5 on
-the forward speed and the mean sinkage); slip, sinkage, drawbar pull, torque, normal force and
-power per wheel and the rover's slip, net traction and power are means over it.
+macro step when, over the last radian of (mean) wheel turn before it, its body advanced along
+its wheels' rim travel no more than (1 - stuck_slip) of it (with the default stuck_slip 0.9: its
+slip over the window is at least 0.9, or it moved against its wheels); it is stuck when it is
+immobile at the end of the drive or its slip over the steady window is at least stuck_slip.
+Steps before the wheels have turned one radian are not judged, nor steps while they turn against
+each other. The steady-state window is found as for a wheel (MSER-5 on the forward speed and the
+mean sinkage; each wheel's sinkage steady over it, else 'still sinking'); slip, sinkage, drawbar
+pull, torque, normal force and power per wheel and the rover's slip, net traction and power are
+means over it.
 
 Across replicas (`ensemble`): mean, standard deviation, a 95 % Student-t interval, and
 whether the metric is macroscopically deterministic (replica std within its tolerance).
@@ -126,7 +129,9 @@ def sinkage_steady(
     drifting by less than half of `grain_radius` [m] across it (the grain-scale roughness of the surface
     it is measured from); rate is its fitted slope."""
     sinkage, time = np.asarray(sinkage, dtype=float), np.asarray(time, dtype=float)
-    rate = float(np.polyfit(time - time[0], sinkage, 1)[0]) if len(time) > 1 and np.all(np.isfinite(sinkage)) else 0.0
+    if not np.all(np.isfinite(sinkage)):  # no steady state, and no rate, from a nan or an inf
+        return False, math.nan
+    rate = float(np.polyfit(time - time[0], sinkage, 1)[0]) if len(time) > 1 else 0.0
     cut = mser_truncation(sinkage)
     steady = (cut is not None and len(sinkage) - cut >= max(min_fraction * len(sinkage), 4)) or (
         grain_radius is not None and abs(rate) * (time[-1] - time[0]) < 0.5 * grain_radius
@@ -515,7 +520,8 @@ def summarize_rover(
         "steady_state": STEADY,
         "window": [math.nan, math.nan],
         "stuck_criterion": f"immobile while the body advances less than {1 - stuck_slip:.3g} x the wheels' "
-        "rim travel over the last radian of wheel turn; stuck when immobile at the end",
+        "rim travel over the last radian of wheel turn; stuck when immobile at the end or when the slip over "
+        f"the steady window is at least {stuck_slip:.3g}",
     }
     out["landing_time"] = float(time[np.argmax(driving)] - time[0]) if driving.any() else math.nan
     if len(time) == 0 or not np.any(contacts > 0):

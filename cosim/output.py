@@ -153,7 +153,7 @@ ROVER_SERIES = {
     "linear_velocity": (3, "m/s", "velocity of the body frame origin, world frame"),
     "angular_velocity": (3, "rad/s", "body angular velocity, world frame"),
     "forward_speed": (None, "m/s", "body velocity along its forward direction"),
-    "slip": (None, "1", "1 - forward speed / mean rim speed of the wheels"),
+    "slip": (None, "1", "1 - forward speed / mean rim speed of the wheels (nan: they turn against each other)"),
     "net_traction": (None, "N", "sum of the wheels' soil forces along the rover's forward direction"),
     "power": (None, "W", "sum of the wheels' drive power against the soil"),
     "travel": (None, "m", "horizontal path length of the body since the drive started"),

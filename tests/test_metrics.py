@@ -167,6 +167,11 @@ def test_a_nan_or_an_inf_is_no_steady_state():
     x[500] = math.inf
     assert metrics.mser_truncation(x) is None
     assert metrics.mser_truncation(np.full(100, math.nan)) is None
+    # nor is a wheel's sinkage with one: its drift is not known (a rate of 0 read it as settled)
+    s = _series()
+    s["sinkage"][400, 0] = math.nan
+    out = metrics.summarize(s, rim_radius=0.04, wheel_load=10.0, grain_radius=0.001)
+    assert out["steady_state"] == metrics.SINKING and math.isnan(out["sinkage_rate"])
 
 
 def test_batch_means_count_every_sample():
