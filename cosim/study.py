@@ -1019,6 +1019,43 @@ def _run_soils(paths: list[str]) -> list[dict[str, float]]:
     return soils if varied and all(soils) else []
 
 
+def zero_pull_slip(rows: list[dict]) -> dict:
+    """The slip where the mean DP/W crosses zero (the wheel pulls its own load: self-propelled), from a
+    slip study's rows: linear between the two measured slips around the first crossing (none is
+    extrapolated), with the 95 % half-width of the delta method over the two means' standard errors
+    (t at the smaller replica count less one). Returns {'slip' [-] or None, 'ci95' [-] (nan: an
+    interval needs two replicas at both points), 'between' [slip, slip] [-], 'crossings' [count], 'note'}."""
+    from scipy import stats as scipy_stats
+
+    points = []
+    for row in rows:
+        stat = row.get("stats", {}).get("metrics", {})
+        pull, slip = stat.get("dp_over_w", {}), stat.get("slip", {})
+        if pull.get("n", 0) == 0:
+            continue
+        x = slip.get("mean") if slip.get("n", 0) and math.isfinite(slip.get("mean", math.nan)) else row["slip_set"]
+        error = pull["std"] / math.sqrt(pull["n"]) if pull["n"] > 1 else math.nan
+        points.append((x, pull["mean"], error, pull["n"]))
+    points.sort()
+    crossings = [k for k in range(len(points) - 1) if (points[k][1] < 0) != (points[k + 1][1] < 0)]
+    out: dict = {"slip": None, "ci95": math.nan, "between": None, "crossings": len(crossings)}
+    if not crossings:
+        span = f"{min(p[1] for p in points):.3g} .. {max(p[1] for p in points):.3g}" if points else "none measured"
+        out["note"] = f"DP/W does not cross zero within the measured slips (DP/W {span}): none is extrapolated"
+        return out
+    (s1, d1, e1, n1), (s2, d2, e2, n2) = points[crossings[0]], points[crossings[0] + 1]
+    out["slip"] = s1 + (s2 - s1) * d1 / (d1 - d2)
+    out["between"] = [s1, s2]
+    # d slip / d d1 = -(s2 - s1) d2 / (d1 - d2)^2, d slip / d d2 = (s2 - s1) d1 / (d1 - d2)^2
+    error = abs(s2 - s1) / (d1 - d2) ** 2 * math.hypot(d2 * e1, d1 * e2)
+    if math.isfinite(error):
+        out["ci95"] = float(scipy_stats.t.ppf(0.975, min(n1, n2) - 1) * error)
+    out["note"] = f"linear between the measured slips {s1:.3g} and {s2:.3g}" + (
+        f"; DP/W crosses zero {len(crossings)} times, the first is given" if len(crossings) > 1 else ""
+    )
+    return out
+
+
 def _slip_report(
     plan,
     out_dir,
@@ -1035,7 +1072,7 @@ def _slip_report(
 ) -> dict:
     """Tabulate, write (study.json, study.csv, plots) and describe a slip study's runs."""
     rows = []
-    for s in slips:
+    for s in sorted(slips):  # in the order of the curve (the plot joins its points in row order)
         members = [r for slip, r in zip(run_slips, results) if slip == s]
         stats = ensemble_table(members, plan, states)
         rows.append(
@@ -1061,13 +1098,22 @@ def _slip_report(
         "bed_file": bed,
         "wheel_load": plan.wheel_load,
     }
-    keys = ["slip_set", "replicas", "steady"] + [
+    crossing = zero_pull_slip(rows)
+    report["zero_pull_slip"], report["zero_pull_slip_ci95"] = crossing["slip"], crossing["ci95"]
+    report["zero_pull_slip_between"], report["zero_pull_slip_note"] = crossing["between"], crossing["note"]
+    keys = ["slip_set", "replicas", "steady", "averaged"] + [
         f"{m}_{k}"
         for m in ("slip", "drawbar_pull", "dp_over_w", "driving_torque", "sinkage", "sinkage_tips")
         for k in ("mean", "std", "ci95")
     ]
-    units = {**METRIC_UNITS, "slip_set": "1"}
-    report["units"] = {**column_units(keys, units), "wheel_load": "N"}
+    units = {**METRIC_UNITS, "slip_set": "1", "replicas": "count", "steady": "count", "averaged": "count"}
+    report["units"] = {
+        **column_units(keys, units),
+        "wheel_load": "N",
+        "zero_pull_slip": "1",
+        "zero_pull_slip_ci95": "1",
+        "zero_pull_slip_between": "1",
+    }
     write_json(os.path.join(out_dir, "study.json"), report)
     _write_csv(os.path.join(out_dir, "study.csv"), rows, keys, units)
     lines = [
@@ -1091,6 +1137,13 @@ def _slip_report(
             f"{cell('drawbar_pull'):>12s} "
             f"{cell('dp_over_w'):>14s} {cell('driving_torque'):>14s} {cell('sinkage', 1e3):>13s}"
         )
+    if crossing["slip"] is None:
+        lines.append(f"  {crossing['note']}")
+    else:
+        interval = " (no interval: one replica)"
+        if math.isfinite(crossing["ci95"]):
+            interval = f" +- {crossing['ci95']:.2g} (95 %)"
+        lines.append(f"  DP/W = 0 (self-propelled) at slip {crossing['slip']:.3g}{interval}, {crossing['note']}")
     report["text"] = "\n".join(lines)
     report["ok"] = all(row["steady"] == row["replicas"] for row in rows)
     if plot:

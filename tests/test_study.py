@@ -2,6 +2,7 @@
 replacing a run only after the new one is built, divergence, and dask ensembles against serial runs."""
 
 import json
+import math
 import os
 import re
 import signal
@@ -463,6 +464,45 @@ def test_a_slip_study_is_tabulated_from_the_runs_it_holds(tmp_path):
     assert row[0.2]["drawbar_pull_mean"] == pytest.approx((values.sum() + 5.0) / 4, rel=1e-12)
     with pytest.raises(ArgumentError, match="holds the runs"):
         slip_study_from_runs([tmp_path / "a"], str(tmp_path))
+    # the CSV says over how many runs each mean is (steady 3, averaged 4), and counts carry their unit
+    header, line = (tmp_path / "t2" / "study.csv").read_text().splitlines()[:2]
+    assert header.startswith("slip_set [1],replicas [count],steady [count],averaged [count],"), header
+    assert line.startswith("0.2,4,3,4,"), line
+    # one slip point (0.4 has no steady run): no crossing, and none extrapolated
+    assert sinking["zero_pull_slip"] is None and "does not cross zero" in sinking["zero_pull_slip_note"]
+
+
+def _slip_row(slip: float, pulls: list[float]) -> dict:
+    """A slip study's row at imposed `slip` whose replicas measured DP/W `pulls` [-] at that slip."""
+    from cosim import metrics
+
+    stats = {"metrics": {"dp_over_w": metrics.ensemble(pulls), "slip": metrics.ensemble([slip] * len(pulls))}}
+    return {"slip_set": slip, "stats": stats}
+
+
+def test_the_self_propelled_slip_is_interpolated_with_its_interval():
+    """`cosim study slip` was said to find the slip where DP/W crosses zero, and did not. Rows at slips
+    0.1, 0.2, 0.4 (given out of order) with DP/W -0.10, -0.03, +0.05: the zero lies at 0.2 + 0.2 x 0.03 /
+    0.08 = 0.275. Its 95 % half-width (delta method, t with 2 degrees of freedom) matches the spread of
+    the same interpolation over 20,000 draws of the two means from their standard errors; a curve
+    that never crosses gives none (nothing extrapolated), and one replica no interval."""
+    from scipy import stats
+
+    from cosim.study import zero_pull_slip
+
+    low, high = [-0.04, -0.03, -0.02], [0.04, 0.05, 0.06]
+    rows = [_slip_row(0.4, high), _slip_row(0.1, [-0.11, -0.10, -0.09]), _slip_row(0.2, low)]
+    crossing = zero_pull_slip(rows)
+    assert crossing["slip"] == pytest.approx(0.275) and crossing["between"] == pytest.approx([0.2, 0.4])
+    assert crossing["crossings"] == 1
+    rng = np.random.default_rng(7)
+    error = 0.01 / math.sqrt(3)  # each point's standard error of its mean
+    d1, d2 = rng.normal(-0.03, error, 20000), rng.normal(0.05, error, 20000)
+    spread = np.std(0.2 + 0.2 * d1 / (d1 - d2))
+    assert crossing["ci95"] == pytest.approx(stats.t.ppf(0.975, 2) * spread, rel=0.03)
+    assert zero_pull_slip([_slip_row(0.1, low), _slip_row(0.2, low)])["slip"] is None
+    alone = zero_pull_slip([_slip_row(0.2, [-0.03]), _slip_row(0.4, [0.05])])
+    assert alone["slip"] == pytest.approx(0.275) and math.isnan(alone["ci95"])
 
 
 def test_a_stop_asked_for_during_serial_replicas_stops_them_all(tmp_path, monkeypatch):
