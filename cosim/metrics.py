@@ -631,7 +631,7 @@ def ensemble(values, relative_tolerance: float = 0.05, absolute_tolerance: float
     """Replica statistics of one metric: n, mean, std (ddof 1), ci95 (half-width of the 95 %
     Student-t interval of the mean), min, max, and 'deterministic': the replica std is within
     max(relative_tolerance |mean|, absolute_tolerance), i.e. the summation order does not
-    change the macroscopic result by more than that."""
+    change the macroscopic result by more than that (None for one replica: no scatter to judge)."""
     from scipy import stats
 
     values = np.asarray([v for v in values if v is not None and np.isfinite(v)], dtype=float)
@@ -650,5 +650,5 @@ def ensemble(values, relative_tolerance: float = 0.05, absolute_tolerance: float
         "min": float(values.min()),
         "max": float(values.max()),
         "tolerance": tolerance,
-        "deterministic": bool(n > 1 and std <= tolerance),
+        "deterministic": bool(std <= tolerance) if n > 1 else None,  # one replica: no scatter to judge
     }

@@ -145,7 +145,8 @@ def test_deterministic_means_the_scatter_is_within_the_tolerance():
     loose = metrics.ensemble([1.0, 1.3, 0.7, 1.1], relative_tolerance=0.05)
     floor = metrics.ensemble([0.001, -0.002, 0.0], relative_tolerance=0.05, absolute_tolerance=0.02)
     assert tight["deterministic"] and not loose["deterministic"] and floor["deterministic"]
-    assert metrics.ensemble([2.0])["deterministic"] is False  # one run says nothing about scatter
+    # one run says nothing about scatter: neither yes nor no (ensemble.csv wrote False, read as "NO")
+    assert metrics.ensemble([2.0])["deterministic"] is None
     assert metrics.ensemble([np.nan, None])["n"] == 0
 
 
