@@ -411,7 +411,7 @@ def _dem_advice(plan) -> list[str]:
 def _executor(args) -> dict:
     from soil.errors import ArgumentError
 
-    from .study import check_scheduler, check_workers
+    from .study import check_workers, reach_scheduler
 
     check_workers(args.workers)  # before any folder is made
     if args.serial and args.scheduler is not None:
@@ -420,7 +420,9 @@ def _executor(args) -> dict:
         raise ArgumentError(
             f"--workers: sizes the LocalCluster started here; {'--serial' if args.serial else '--scheduler'} uses none"
         )
-    check_scheduler(args.scheduler)  # dask itself is checked where the tasks' executor is known (batched: none)
+    # dask itself is checked where the tasks' executor is known (batched: none); the address is tried here,
+    # before any folder is made (dask waits 30 s and fails after it)
+    reach_scheduler(args.scheduler)
     return dict(executor="serial" if args.serial else "dask", scheduler=args.scheduler, workers=args.workers)
 
 

@@ -148,11 +148,12 @@ def _addressing():
     return parse_address, parse_host_port
 
 
-def check_scheduler(scheduler: str | None) -> None:
+def check_scheduler(scheduler: str | None) -> tuple[str, int] | None:
     """ArgumentError for a --scheduler that is empty or no address dask connects to: a malformed one, a port
-    or an IPv4 address out of range was tried for dask's 30 s connect timeout, then an OS error."""
+    or an IPv4 address out of range was tried for dask's 30 s connect timeout, then an OS error.
+    Returns the (host, port) a TCP connection goes to (tcp, tls, ws, wss), None for none or another scheme."""
     if scheduler is None:
-        return
+        return None
     where = f"--scheduler {scheduler!r}"
     if not isinstance(scheduler, str) or not scheduler.strip():
         raise ArgumentError(
@@ -168,8 +169,44 @@ def check_scheduler(scheduler: str | None) -> None:
                 raise ValueError(f"port {port} is not in 1..65535")
             if re.fullmatch(r"[0-9.]+", str(host)):
                 ipaddress.ip_address(host)  # 256.1.1.1
+            return str(host), int(port)
     except ValueError as error:
         raise ArgumentError(f"{where}: not a dask scheduler address ({error}), e.g. tcp://HOST:8786") from None
+    return None
+
+
+SCHEDULER_REACH_TIMEOUT = 10.0
+"""How long [s] a command waits for a --scheduler's host to take a connection before it refuses the address."""
+
+
+def reach_scheduler(scheduler: str | None, timeout: float = SCHEDULER_REACH_TIMEOUT) -> None:
+    """ArgumentError unless something takes a TCP connection at the --scheduler's address within `timeout` [s].
+
+    Called by the command line before it makes a folder: dask itself waits its 30 s connect timeout and then
+    fails with an OS error, after the run folder was made (the same command again was refused: not empty).
+    Whether it is a dask scheduler is dask's to find when the tasks start; a scheme other than tcp, tls, ws
+    and wss is not tried here."""
+    import socket
+
+    place = check_scheduler(scheduler)
+    if place is None:
+        return
+    host, port = place
+    try:
+        with socket.create_connection((host, port), timeout=timeout):
+            pass
+    except TimeoutError:
+        why = f"nothing answered within {timeout:g} s"
+    except socket.gaierror as error:
+        why = f"the host {host!r} is not known here ({error.strerror or error})"
+    except OSError as error:
+        why = f"nothing takes a connection at {host}:{port} ({error.strerror or error})"
+    else:
+        return
+    raise ArgumentError(
+        f"--scheduler {scheduler!r}: {why}; start the scheduler first (`dask scheduler`), or leave --scheduler "
+        "out to start a LocalCluster here"
+    )
 
 
 class Executor:

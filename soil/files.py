@@ -19,16 +19,19 @@ def atomic_path(path, suffix: str = ".tmp"):
     that names no file (e.g. a full disk during a write).
 
     The file gets the permissions of a normally created one (mkstemp's 0600 would hide it).
+    `path` a symbolic link: the file it points to is written (beside that file) and the link stays, as
+    open(path, "w") does (replacing the link left its file stale and the link gone).
     """
     import errno
 
     path = os.fspath(path)
     if os.path.isdir(path):
         raise IsADirectoryError(errno.EISDIR, "Is a directory: a file cannot be written there", path)
+    written = os.path.realpath(path) if os.path.islink(path) else path
     created: list[str] = []
     temporary = None
     try:
-        folder = os.path.dirname(os.path.abspath(path))
+        folder = os.path.dirname(os.path.abspath(written))
         created = make_folders(folder)
         for attempt in range(2):
             try:
@@ -51,7 +54,7 @@ def atomic_path(path, suffix: str = ".tmp"):
             os.fsync(descriptor)
         finally:
             os.close(descriptor)
-        os.replace(temporary, path)
+        os.replace(temporary, written)
     except BaseException as error:
         if temporary is not None and os.path.lexists(temporary):
             os.remove(temporary)

@@ -24,6 +24,9 @@ Job (JSON):
     master "simulate": fmpy.simulate_fmu on the first instance's FMU with its start values until
                 stop_time (output_interval h of the first step); the result holds its last time, or what
                 it raised.
+    locale      (optional) the host's locale: setlocale(LC_ALL, locale) before anything loads, as a C or
+                Python host that honours its user's locale does ("" takes LC_ALL / LANG); the result's
+                "decimal_point" is the C library's then
     pid_file    (optional) write the server pids here after initialization, then sleep
                 `linger` seconds before stepping (for killing this importer from outside)
 Result (JSON): status per step and instance ("ok", "discard", "error"), outputs per step and
@@ -242,7 +245,12 @@ class LibcosimSoils:
 
 
 def run():
+    if "locale" in job:
+        import locale
+
+        locale.setlocale(locale.LC_ALL, job["locale"])
     result = {
+        "decimal_point": __import__("locale").localeconv()["decimal_point"],
         "regolith_importable": REGOLITH_IMPORTABLE,
         "status": [],
         "outputs": [],

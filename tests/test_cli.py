@@ -14,6 +14,7 @@ import pytest
 from cosim.cli import main
 from cosim.output import open_results
 from helpers import write_tiny
+from soil.errors import ArgumentError
 
 
 @pytest.fixture(scope="module")
@@ -702,6 +703,51 @@ def test_a_scheduler_address_dask_connects_to_is_taken(address):
     from cosim.study import check_executor
 
     check_executor("dask", address)
+
+
+def test_a_scheduler_nothing_answers_at_is_refused_before_the_folder_is_made(tmp_path, capsys):
+    """dask waited its 30 s connect timeout for a --scheduler where nothing listens, then exit 5 (an OS
+    error) with the run folder made: now the address is tried first, exit 2 naming it, nothing made."""
+    import socket
+
+    with socket.socket() as closed:  # a port that was free a moment ago: the connection is refused
+        closed.bind(("127.0.0.1", 0))
+        port = closed.getsockname()[1]
+    scene = str(write_tiny(tmp_path))
+    out = tmp_path / "out"
+    address = f"tcp://127.0.0.1:{port}"
+    assert main(["run", scene, "--replicas", "2", "--scheduler", address, "--out", str(out), "--no-progress"]) == 2
+    err = capsys.readouterr().err
+    assert f"--scheduler {address!r}: nothing takes a connection at 127.0.0.1:{port}" in err, err
+    assert "dask scheduler" in err and "LocalCluster" in err, err
+    assert not out.exists()
+
+
+def test_a_scheduler_address_is_reached_or_named_within_its_timeout(monkeypatch):
+    """A host that takes the connection passes (dask finds later whether a scheduler listens); an unknown host
+    is named; an address no packet reaches is refused when the timeout ends, not after dask's 30 s (played by
+    a connect that times out: networks differ in how they drop a packet, some sandboxes take every one)."""
+    import socket
+
+    from cosim.study import reach_scheduler
+
+    with socket.socket() as server:
+        server.bind(("127.0.0.1", 0))
+        server.listen(1)
+        reach_scheduler(f"tcp://127.0.0.1:{server.getsockname()[1]}", timeout=5.0)
+    with pytest.raises(ArgumentError, match=r"the host 'no-such-host.invalid' is not known here"):
+        reach_scheduler("tcp://no-such-host.invalid:8786", timeout=1.0)  # .invalid never resolves (RFC 2606)
+    reach_scheduler(None)
+    waited = []
+
+    def silent(address, timeout):
+        waited.append((address, timeout))
+        raise TimeoutError("timed out")
+
+    monkeypatch.setattr(socket, "create_connection", silent)
+    with pytest.raises(ArgumentError, match=r"--scheduler 'tls://sched.example:8786': nothing answered within 0.2 s"):
+        reach_scheduler("tls://sched.example:8786", timeout=0.2)
+    assert waited == [(("sched.example", 8786), 0.2)]
 
 
 def test_without_dask_a_command_on_dask_says_what_to_install(tmp_path, tiny_bed, capsys, monkeypatch):

@@ -355,6 +355,33 @@ def test_an_export_that_cannot_be_written_names_the_target_and_leaves_no_folder(
     assert out.stat().st_size > 0 and os.listdir(out.parent) == ["x.vtkhdf"]
 
 
+def test_atomic_path_writes_the_file_a_symbolic_link_points_to(tmp_path):
+    """A results or calibration path that is a link (current.toml -> v3.toml) was replaced by a regular file:
+    the link gone, the file it named left stale. Now the named file is written atomically, the link kept,
+    as open(path, "w") would; a failed write leaves both as they were."""
+    from pathlib import Path
+
+    from soil.files import atomic_path, atomic_write_text
+
+    (tmp_path / "store").mkdir()
+    named = tmp_path / "store" / "v3.toml"
+    named.write_text("old")
+    link = tmp_path / "current.toml"
+    link.symlink_to(os.path.relpath(named, tmp_path))
+    with pytest.raises(RuntimeError), atomic_path(link) as temporary:
+        assert os.path.dirname(temporary) == str(named.parent)  # beside the file: one filesystem, atomic
+        Path(temporary).write_text("half")
+        raise RuntimeError("the writer failed")
+    assert link.is_symlink() and named.read_text() == "old" and os.listdir(named.parent) == ["v3.toml"]
+    atomic_write_text(link, "new")
+    assert link.is_symlink() and os.readlink(link) == os.path.join("store", "v3.toml")
+    assert named.read_text() == "new" and os.listdir(named.parent) == ["v3.toml"]
+    dangling = tmp_path / "next.toml"
+    dangling.symlink_to(tmp_path / "store" / "v4.toml")
+    atomic_write_text(dangling, "made")  # a link to a file not yet made: the file is made, as open() does
+    assert dangling.is_symlink() and (tmp_path / "store" / "v4.toml").read_text() == "made"
+
+
 def test_atomic_path_removes_only_the_folders_it_made(tmp_path):
     from pathlib import Path
 

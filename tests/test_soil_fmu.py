@@ -281,6 +281,41 @@ def test_fmu_steps_bitwise_like_the_in_process_soil(tiny, importer, master, vers
     assert "Warp" not in result["stdout"] and "Module" not in result["stdout"], result["stdout"]
 
 
+@pytest.fixture(scope="session")
+def decimal_comma_locale(tmp_path_factory) -> dict:
+    """The environment of a host whose numbers are written 0,001 (de_DE.UTF-8, compiled here with glibc's
+    localedef into a folder of its own: LOCPATH); skipped where localedef or its sources are missing."""
+    if shutil.which("localedef") is None or not Path("/usr/share/i18n/locales/de_DE").exists():
+        pytest.skip("glibc's localedef and its de_DE source are needed to make a decimal-comma locale")
+    folder = tmp_path_factory.mktemp("locales")
+    made = subprocess.run(
+        ["localedef", "-i", "de_DE", "-f", "UTF-8", str(folder / "de_DE.UTF-8")], capture_output=True, text=True
+    )
+    if not (folder / "de_DE.UTF-8" / "LC_NUMERIC").exists():
+        pytest.skip(f"localedef could not make de_DE.UTF-8: {made.stderr.strip()[:200]}")
+    return {"LOCPATH": str(folder), "LC_ALL": "de_DE.UTF-8", "LANG": "de_DE.UTF-8"}
+
+
+@pytest.mark.parametrize("version", [2, 3])
+def test_a_host_with_a_decimal_comma_locale_steps_the_fmu_bitwise_like_the_in_process_soil(
+    tiny, importer, decimal_comma_locale, version
+):
+    """A master whose C library writes and reads numbers as 0,001 (setlocale from its user's environment): the
+    front end reads its resources' numbers and writes the server's start line in the C locale, so the FMU
+    starts and steps as the in-process soil does, bit for bit (read in the host's locale, the gravity's
+    -0.0057 stopped at its comma: the front end refused its own file, and a step of 0,0001 reached the server)."""
+    steps = 2
+    job, motion = _job(tiny["fmus"][version], steps)
+    job["locale"] = ""
+    result = importer(job, env_extra=decimal_comma_locale)
+    assert result["decimal_point"] == ",", "the host runs in the decimal-comma locale"
+    assert all(s == ["ok"] for s in result["status"]), (result["status"], result["messages"])
+    soil = _in_process_soil(tiny)
+    soil.place_wheels([motion[0]])
+    expected = [_as_outputs(soil.advance(soil.time + H, [k])[0]) for k in motion]
+    assert [got[0] for got in result["outputs"][1:]] == expected
+
+
 def test_diverging_step_is_discarded_and_the_soil_kept_at_its_start(tiny, importer):
     """A wheel rammed 2 cm into the bed in one step makes the DEM diverge: the FMU answers Discard,
     stays at the step's start, and the retried step gives bitwise the in-process soil's wrenches."""
