@@ -195,7 +195,8 @@ class SoilBuilder:
         """Add a half-space wall through `point` [m]; particles stay on the side `normal` points to.
 
         Returns its boundary index. report: sum the grains' force and torque on it
-        (state.boundary_force); False saves 52 bytes per particle (double) on large beds.
+        (state.boundary_force); False reads zero there and refuses a load (set_boundary_load). It saves
+        no memory and no launch: the walls' sums are one tree over every wall (soil.solver).
         Its torque is reported about `point`.
         """
         point = np.asarray(point, dtype=np.float64).reshape(3)

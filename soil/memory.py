@@ -4,7 +4,11 @@ The device bytes per grain are those of `Simulation.bytes_per_grain()` (state bu
 contact and list scratch, the divergence monitor's last good state), measured once per
 precision on an 11,368-grain bed (mixed; 25,440 for single and double) with rolling friction
 on (its largest layout) at two contact capacities (docs/performance.md section 5), plus the
-contact kernels' torque sums (12 B single, 24 B mixed and double) added since. They are
+contact kernels' torque sums (12 B single, 24 B mixed and double) added since, and the grains'
+constants and the control's external force, which that measure left out (32 B single, 44 B mixed,
+60 B double: four reals and a material index in the storage type, a 3-vector in the accumulation
+type), and the neighbour list saved at each macro step's start, left out too (4 B a slot, and a
+count and a build position: 16 B single, 28 B mixed and double). They are
 linear in the contact slots per grain (mixed keeps its contact history in float32, as single
 does):
 
@@ -23,10 +27,10 @@ from dataclasses import dataclass
 
 from .errors import InputError
 
-BASE_BYTES = {"single": 1092, "mixed": 1440, "double": 2001}
+BASE_BYTES = {"single": 1092 + 32 + 16, "mixed": 1440 + 44 + 28, "double": 2001 + 60 + 28}
 """Device bytes per grain besides the pair contact slots (4 wall/wheel slots included) [B]."""
-PER_SLOT_BYTES = {"single": 112, "mixed": 112, "double": 208}
-"""Device bytes per pair contact slot of a grain (three state buffers and the monitor's copy) [B]."""
+PER_SLOT_BYTES = {"single": 112 + 4, "mixed": 112 + 4, "double": 208 + 4}
+"""Device bytes per pair contact slot of a grain (three state buffers, the monitor's copy, the saved list) [B]."""
 HOST_BYTES_PER_GRAIN = 400
 """Host bytes per grain while a bed is inserted and its model built (measured peak about 370 B) [B]."""
 DEFAULT_CONTACT_CAPACITY = 16

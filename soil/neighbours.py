@@ -601,7 +601,7 @@ class NeighbourList:
         return [self._keys, self._values, self._cell_slot, self._cell_start, self._cell_end, self.grid]
 
     def bytes_per_grain(self) -> float:
-        """Device memory of the build's scratch per grain [B]."""
+        """Device memory of the build's scratch and of the list saved at a macro step's start per grain [B]."""
         n = max(self.model.particle_count, 1)
         arrays = (
             self._keys,
@@ -612,7 +612,8 @@ class NeighbourList:
             self._cell_start,
             self._cell_end,
         )
-        return (sum(a.capacity for a in arrays) + self._bounds.capacity) / n
+        saved = sum(a.capacity for a in self._saved) if self._saved is not None else 0  # every macro step's start
+        return (sum(a.capacity for a in arrays) + self._bounds.capacity + saved) / n
 
     # -- steps ------------------------------------------------------------------------
     def update(self, state_in: SoilState, state_out: SoilState, status: wp.array) -> None:

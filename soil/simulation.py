@@ -324,14 +324,20 @@ class Simulation:
 
     def bytes_per_grain(self) -> dict:
         """Device memory per grain [B]: each state buffer, the layout (order, constants, two
-        neighbour lists), the contact solver's and the list build's scratch, the integrator's,
-        the monitor's last good state, and the total."""
+        neighbour lists), the grains' constants (radius, mass, inverse mass and inertia, material)
+        and the control's external force, the contact solver's and the list build's scratch, the
+        integrator's, the monitor's last good state, and the total."""
         n = max(self.model.particle_count, 1)
         layout = self.state.layout
         assert layout is not None  # every state of a Simulation has its layout
         gaps = getattr(self.integrator, "gaps", None)
+        constants = [getattr(self.model, name) for name in ("radius", "mass", "inv_mass", "inv_inertia", "material")]
         parts = {
             "state buffers (3)": sum(b.bytes_per_grain() for b in self._buffers),
+            "grain constants and external force": (
+                sum(a.capacity for a in constants) + self.control.external_force.capacity
+            )
+            / n,
             "layout": layout.bytes_per_grain(),
             "contact scratch": self.contacts.bytes_per_grain(),
             "list build scratch": self.neighbour_list.bytes_per_grain(),
