@@ -1,13 +1,17 @@
 """Is a scene a valid wheel test? Its dimensionless numbers against what the physics needs.
 
-`check(plan, surface_height=None, result=None)` returns one Finding per check; each names
-the scene setting that changes it. `cosim advise` prints them, every run logs them at its
-start and stores them in results.h5 and run.json, and after a run the measured sinkage
-is checked against the floor.
+`check(plan, surface_height=None, sinkage_tips=None, wheel_spins=None)` returns one Finding per
+check; each names the scene setting that changes it. `cosim advise` prints them, every run logs
+them at its start and stores them in results.h5 and run.json, and after a run the measured
+sinkage is checked against the floor (and a drive whose speeds its controller sets, Froude's
+number on the measured speeds). A rover is judged on its worst wheel for each check: the
+fastest (omega^2 r) for Froude, the narrowest for the grains across, the largest for the bed
+depth, the deepest for the floor, the highest ground pressure for the overlaps.
 
     froude          Fr = omega^2 r_outer / |g| <= FROUDE_LIMIT: above it the result depends on the
                     wheel's speed, and further up the wheel hops (measured: docs/validity.md)
-    contact_steps   Hertz contact time of two grains at the impact speed / dt >= CONTACT_STEPS
+    contact_steps   Hertz contact time of two grains at the impact speed / the longest DEM step
+                    (the fixed dt, or the PID's longest substep) >= CONTACT_STEPS
     grains_across   wheel width / grain diameter >= GRAINS_ACROSS
     bed_depth       settled bed depth / wheel outer radius >= DEPTH_RADII (the stress bulb under
                     a wheel reaches about one wheel radius into the soil)
@@ -66,66 +70,117 @@ def _finding(check, value, limit, ok, good, bad, setting, unit: str = "1") -> Fi
 
 def ground_pressure(plan: RunPlan) -> float:
     """Wheel ground pressure [Pa]: the load over the width times a contact length 2 sqrt(2 R s)
-    at a sinkage s of one mean grain radius."""
-    w = plan.wheel
-    length = 2.0 * math.sqrt(2.0 * w.outer_radius * plan.bed.spec.radius_mean)
-    return plan.wheel_load / (w.width * length)
+    at a sinkage s of one mean grain radius; a rover's highest (its narrowest, smallest wheel)."""
+
+    def pressure(w) -> float:
+        length = 2.0 * math.sqrt(2.0 * w.outer_radius * plan.bed.spec.radius_mean)
+        return plan.wheel_load / (w.width * length)
+
+    return max(pressure(w) for w in plan.wheels or (plan.wheel,))
 
 
-def check(plan: RunPlan, surface_height: float | None = None, sinkage_tips: float | None = None) -> list[Finding]:
-    """The validity findings of a plan; the settled surface height [m] and the measured tip
-    sinkage [m] sharpen the depth and floor checks when known."""
-    spec, t = plan.bed.spec, plan.testbed
-    # a rover: judge its narrowest wheel with the largest outer radius
-    wheel = min(plan.wheels or (plan.wheel,), key=lambda w: w.width)
-    diameter = 2.0 * spec.radius_mean
+def _omega_key(plan: RunPlan) -> str:
+    """The scene key of the drive's wheel speeds."""
+    if plan.testbed is not None:
+        return "testbed.omega"
+    assert plan.rover is not None and plan.scene.rover is not None  # a plan has a testbed or a rover
+    named = isinstance(plan.scene.rover.drive, str)
+    key = "omega_max" if plan.rover.drive.kind == "slip" else "speed"
+    return f"rover.controllers.{plan.rover.drive.name}.{key}" if named else f"rover.drive.{key}"
+
+
+def _froude_finding(plan: RunPlan, spins, how: str, check: str = "froude", advice: str = "") -> Finding | None:
+    """Froude's number of the fastest wheel (omega^2 r / |g|, each wheel at its |omega| in `spins` [rad/s]),
+    or None when no speed is known."""
+    wheels = plan.wheels or (plan.wheel,)
+    if spins is None or len(spins) != len(wheels) or not all(math.isfinite(float(v)) for v in spins):
+        return None
     g = plan.g
+    numbers = [float(v) ** 2 * w.outer_radius / g if g > 0 else math.inf for v, w in zip(spins, wheels)]
+    k = max(range(len(wheels)), key=lambda i: numbers[i])
+    fr, radius = numbers[k], wheels[k].outer_radius
+    notes = ([f"wheel {k}, the fastest"] if len(wheels) > 1 else []) + ([how] if how else [])
+    which = f" ({'; '.join(notes)})" if notes else ""
+    key = _omega_key(plan)
+    return _finding(
+        check,
+        fr,
+        FROUDE_LIMIT,
+        fr <= FROUDE_LIMIT,
+        f"Froude number omega^2 r / g = {fr:.3g}{which} <= {FROUDE_LIMIT}: quasi-static"
+        + (", as SCM's laws are" if check == "scm_froude" else ""),
+        f"Froude number omega^2 r / g = {fr:.3g}{which} > {FROUDE_LIMIT}: "
+        + (
+            advice
+            or "not quasi-static at this speed and gravity (the slip depends on the speed; faster, the wheel hops); "
+            f"lower {key} to <= {math.sqrt(FROUDE_LIMIT * g / radius):.3g} rad/s"
+        ),
+        key,
+    )
+
+
+def _is_slip(plan: RunPlan) -> bool:
+    return plan.rover is not None and plan.rover.drive.kind == "slip"
+
+
+def check(
+    plan: RunPlan,
+    surface_height: float | None = None,
+    sinkage_tips: float | None = None,
+    wheel_spins=None,
+    longest_substep: float | None = None,
+) -> list[Finding]:
+    """The validity findings of a plan; the settled surface height [m], the measured tip sinkage [m] (a
+    rover's deepest wheel's), the measured wheel speeds [rad/s] (W,) and under the PID step control the
+    longest substep it took [s] sharpen the depth, floor, Froude and contact checks when known (the PID's
+    contact resolution is judged on the substeps it took only: its error control, not run.dt_max, sets
+    them)."""
+    spec, t = plan.bed.spec, plan.testbed
+    wheels = plan.wheels or (plan.wheel,)
+    narrowest = min(wheels, key=lambda w: w.width)  # the fewest grains across
+    largest = max(wheels, key=lambda w: w.outer_radius)  # the deepest stress bulb
+    diameter = 2.0 * spec.radius_mean
     findings = []
-    omega = plan.drive_omega
-    if t is not None:
-        omega_key = "testbed.omega"
-    else:
-        assert plan.rover is not None and plan.scene.rover is not None  # a plan has a testbed or a rover
-        named = isinstance(plan.scene.rover.drive, str)
-        omega_key = f"rover.controllers.{plan.rover.drive.name}.speed" if named else "rover.drive.speed"
+    drive = plan.wheel_speeds
+    speeds = [float(v) for v in drive] if drive is not None else None
+    how = "" if plan.testbed is not None else "at the slip controller's omega_max" if _is_slip(plan) else ""
+    froude = _froude_finding(plan, speeds, how)
+    if froude is None and wheel_spins is not None:
+        speeds = [abs(float(v)) for v in wheel_spins]
+        froude = _froude_finding(plan, speeds, "at the measured wheel speeds")
+    if froude is not None:
+        findings.append(froude)
+    rims = [float(v) * w.outer_radius for v, w in zip(speeds, wheels)] if speeds is not None else []
+    rim_speed = max((v for v in rims if math.isfinite(v)), default=0.0)
 
-    fr = plan.froude_number
-    if math.isfinite(omega):
-        findings.append(
-            _finding(
-                "froude",
-                fr,
-                FROUDE_LIMIT,
-                fr <= FROUDE_LIMIT,
-                f"Froude number omega^2 r / g = {fr:.3g} <= {FROUDE_LIMIT}: quasi-static",
-                f"Froude number omega^2 r / g = {fr:.3g} > {FROUDE_LIMIT}: not quasi-static at this speed and gravity "
-                "(the slip depends on the speed; faster, the wheel hops); "
-                f"lower {omega_key} to <= {math.sqrt(FROUDE_LIMIT * g / wheel.outer_radius):.3g} rad/s",
-                omega_key,
-            )
-        )
-
+    g = plan.g
     material = plan.soil_material
     smallest = spec.radius_min
     depth_now = surface_height if surface_height is not None else spec.depth
-    speed = math.sqrt(2 * g * max(depth_now, smallest)) + (omega if math.isfinite(omega) else 0.0) * wheel.outer_radius
+    speed = math.sqrt(2 * g * max(depth_now, smallest)) + rim_speed
     contact = advisor.hertz_contact_time(
         material.youngs_modulus, material.poisson_ratio, material.density, smallest, max(speed, 1e-12)
     )
-    steps = contact / plan.dt
-    findings.append(
-        _finding(
-            "contact_steps",
-            steps,
-            CONTACT_STEPS,
-            steps >= CONTACT_STEPS,
-            f"{steps:.3g} DEM steps per contact time ({contact:.3g} s at {speed:.3g} m/s)",
-            f"only {steps:.3g} DEM steps per contact time ({contact:.3g} s): contacts are under-resolved; lower "
-            f"{plan.dt_setting} so dt <= {contact / CONTACT_STEPS:.3g} s",
-            plan.dt_setting,
+    pid = plan.step_control == "pid"
+    measured_step = longest_substep is not None and math.isfinite(longest_substep) and longest_substep > 0
+    if not pid or measured_step:
+        dt, dt_key = (float(longest_substep or 0.0), "run.dt_max, run.tolerance") if pid else (plan.dt, plan.dt_setting)
+        steps = contact / dt
+        step_name = f"of the PID's longest substeps ({dt:.3g} s, taken)" if pid else "DEM steps"
+        findings.append(
+            _finding(
+                "contact_steps",
+                steps,
+                CONTACT_STEPS,
+                steps >= CONTACT_STEPS,
+                f"{steps:.3g} {step_name} per contact time ({contact:.3g} s at {speed:.3g} m/s)",
+                f"only {steps:.3g} {step_name} per contact time ({contact:.3g} s): contacts are under-resolved; "
+                f"lower {dt_key} so the step is <= {contact / CONTACT_STEPS:.3g} s",
+                dt_key,
+            )
         )
-    )
 
+    wheel = narrowest
     across = wheel.width / diameter
     findings.append(
         _finding(
@@ -141,6 +196,7 @@ def check(plan: RunPlan, surface_height: float | None = None, sinkage_tips: floa
         )
     )
 
+    wheel = largest
     depth = surface_height if surface_height is not None else spec.depth
     estimated = "" if surface_height is not None else " (fill height; the settled bed is lower)"
     radii = depth / wheel.outer_radius
@@ -225,8 +281,14 @@ def check(plan: RunPlan, surface_height: float | None = None, sinkage_tips: floa
     return findings
 
 
+NOT_CHECKED = "not checked (the terrain model has no validity checks)"
+"""The verdict of a run with no findings (the analytic terrain): nothing was found valid."""
+
+
 def verdict(findings: list[Finding]) -> str:
-    """'valid' or the failed checks, comma-separated."""
+    """'valid', 'out of range: ' and the failed checks, comma-separated, or NOT_CHECKED without findings."""
+    if not findings:
+        return NOT_CHECKED
     failed = [f.check for f in findings if not f.ok]
     return "valid" if not failed else "out of range: " + ", ".join(failed)
 
@@ -270,27 +332,72 @@ def _drive_slip(plan: RunPlan) -> tuple[float | None, str]:
 
 
 def judged_after_the_run(plan: RunPlan) -> list[tuple[str, str]]:
-    """(check, what it will compare) for each SCM check that only the run's own measurements can judge,
-    so that advice before a run names it instead of passing over it: the calibration depth
+    """(check, what it will compare) for each check that only the run's own measurements can judge,
+    so that advice before a run names it instead of passing over it: Froude's number when the drive's
+    controller sets the wheel speeds as it goes (torque, FMU, Python drives), SCM's slip limit when the
+    drive sets no slip (a free wheel, a speed or torque drive), the calibration depth
     (`scm_calibration_depth`), on the run's rim sinkage. Bekker's closed form for a smooth wheel is
     given beside it; on a grousered wheel it overstates SCM's own sinkage (the main job: 2.5x)."""
     from .scm_soil import bekker_wheel_sinkage, scm_settings
 
-    tested = plan.terrain.calibration_sinkage
+    pending = []
     indices, wheels = _scm_wheels(plan)
+    if plan.step_control == "pid" and plan.terrain.model in ("dem", "mixed"):
+        pending.append(
+            (
+                "contact_steps",
+                "the contact time against the longest substep the PID takes (its error control sets them)",
+            )
+        )
+    if plan.wheel_speeds is None:
+        on = [
+            c
+            for c, there in (("froude", plan.terrain.model in ("dem", "mixed")), ("scm_froude", bool(wheels)))
+            if there
+        ]
+        pending += [
+            (c, "Froude's number at the run's measured wheel speeds (the drive sets them as it goes)") for c in on
+        ]
+    if wheels and _drive_slip(plan)[0] is None:
+        pending.append(("scm_slip", f"the run's measured slip against |slip| <= {SCM_SLIP_LIMIT}"))
+    tested = plan.terrain.calibration_sinkage
     if tested is None or not wheels:
-        return []
+        return pending
     parameters = scm_settings(plan, indices, 0.0).parameters
     wheel = min(wheels, key=lambda w: w.width)
     closed_form = bekker_wheel_sinkage(parameters, plan.wheel_load, wheel.outer_radius, wheel.width)
     side = "beyond" if closed_form > tested else "within"
-    return [
+    return pending + [
         (
             "scm_calibration_depth",
             f"the run's rim sinkage against the {tested:.3g} m the calibration's DEM tests reached (Bekker's "
             f"closed form for a smooth wheel: {closed_form:.3g} m, {side} it)",
         )
     ]
+
+
+def _per_wheel(measured: dict, name: str, indices: list[int], count: int) -> list[float] | None:
+    """The measured `name` of the wheels `indices` ([m]): a rover summary's wheel_<name> per wheel, else the
+    summary's `name` for each (a single wheel); None when the run measured none."""
+    each = measured.get(f"wheel_{name}")
+    if each is not None and len(each) == count:
+        values = [float(each[i]) for i in indices]
+    elif measured.get(name) is not None:
+        values = [float(measured[name])] * len(indices)
+    else:
+        return None
+    finite = [v for v in values if math.isfinite(v)]
+    return finite or None
+
+
+def deepest(measured: dict | None, name: str, indices: list[int] | None = None) -> float | None:
+    """The largest measured `name` ('sinkage', 'sinkage_tips' [m]) over the wheels `indices` (None: all) of a
+    run summary (a rover's wheel_<name>, a single wheel's own); None when the run measured none."""
+    measured = measured or {}
+    each = measured.get(f"wheel_{name}")
+    count = len(each) if each is not None else 1
+    values = _per_wheel(measured, name, list(range(count)) if indices is None else indices, count)
+    return max(values) if values else None
 
 
 def scm_check(plan: RunPlan, measured: dict | None = None) -> list[Finding]:
@@ -301,9 +408,12 @@ def scm_check(plan: RunPlan, measured: dict | None = None) -> list[Finding]:
     SCM_SINKAGE_GRAINS grain diameters, a slip above SCM_SLIP_LIMIT, a Froude number above
     FROUDE_LIMIT, a calibration made at another gravity, a wheel fit made on another grid
     (`scm_calibration_grid`), and after a run a rim sinkage deeper than the calibration's DEM tests
-    reached (`scm_calibration_depth`). `measured`: a run summary's
-    'sinkage_tips', 'sinkage' [m] and 'slip' [-]; before a run the sinkage is Bekker's closed form
-    for the wheel's load and the slip the drive's imposed or target slip."""
+    reached (`scm_calibration_depth`), and a slip outside those a wheel fit was fitted on
+    (`scm_calibration_slips`). `measured`: a run summary's 'sinkage_tips', 'sinkage' [m] (a rover's
+    per wheel: 'wheel_sinkage_tips', 'wheel_sinkage') and 'slip' [-]; before a run the sinkage is
+    Bekker's closed form for each wheel's load and the slip the drive's imposed or target slip. A
+    rover is judged on its worst SCM wheel: the shallowest for the grains under it, the one whose
+    grousers are tallest for its sinkage, the deepest for the calibration's depth."""
     from .scm_calibration import same_gravity
     from .scm_soil import NODES_ACROSS_GROUSER, bekker_wheel_sinkage, grouser_thickness, scm_settings
 
@@ -311,26 +421,34 @@ def scm_check(plan: RunPlan, measured: dict | None = None) -> list[Finding]:
     if not wheels:
         return []
     parameters = scm_settings(plan, indices, 0.0).parameters
-    wheel = min(wheels, key=lambda w: w.width)
     measured = measured or {}
-    sinkage_tips, slip = measured.get("sinkage_tips"), measured.get("slip")
-    if sinkage_tips is not None:
-        sinkage, how = float(sinkage_tips), "measured"
+    slip = measured.get("slip")
+    # each SCM wheel's sinkage at its tips: measured (a rover's per wheel), or Bekker's closed form for its load
+    tips = _per_wheel(measured, "sinkage_tips", indices, len(plan.wheels or (plan.wheel,)))
+    if tips is not None:
+        sinkages, how = tips, "measured"
     else:
-        sinkage = bekker_wheel_sinkage(parameters, plan.wheel_load, wheel.outer_radius, wheel.width)
+        sinkages = [bekker_wheel_sinkage(parameters, plan.wheel_load, w.outer_radius, w.width) for w in wheels]
         how = "Bekker's closed form"
     findings = []
-    grouser = float(getattr(wheel.shape, "grouser_height", 0.0)) if getattr(wheel.shape, "grouser_count", 0) else 0.0
-    if grouser > 0:
+
+    def grouser_of(w) -> float:
+        return float(getattr(w.shape, "grouser_height", 0.0)) if getattr(w.shape, "grouser_count", 0) else 0.0
+
+    ratios = [grouser_of(w) / max(z, 1e-12) for w, z in zip(wheels, sinkages)]
+    if any(grouser_of(w) > 0 for w in wheels):
+        k = max(range(len(wheels)), key=lambda i: ratios[i])  # the wheel whose grousers carry the most
+        grouser, sinkage = grouser_of(wheels[k]), sinkages[k]
+        which = f"wheel {indices[k]}: " if len(plan.wheels) > 1 else ""
         findings.append(
             _finding(
                 "scm_grousers",
-                grouser / max(sinkage, 1e-12),
+                ratios[k],
                 SCM_GROUSER_RATIO,
                 grouser <= SCM_GROUSER_RATIO * sinkage,
-                f"grouser height {grouser:.3g} m <= {SCM_GROUSER_RATIO} x sinkage {sinkage:.3g} m ({how}): SCM's "
-                "surface shear carries the traction",
-                f"grouser height {grouser:.3g} m > {SCM_GROUSER_RATIO} x sinkage {sinkage:.3g} m ({how}): the "
+                f"{which}grouser height {grouser:.3g} m <= {SCM_GROUSER_RATIO} x sinkage {sinkage:.3g} m ({how}): "
+                "SCM's surface shear carries the traction",
+                f"{which}grouser height {grouser:.3g} m > {SCM_GROUSER_RATIO} x sinkage {sinkage:.3g} m ({how}): the "
                 f"grousers carry the traction, which SCM does not represent; {USE_DEM}",
                 "wheel.grouser_height, terrain.model",
             )
@@ -353,6 +471,7 @@ def scm_check(plan: RunPlan, measured: dict | None = None) -> list[Finding]:
             )
         )
     diameter = 2.0 * plan.bed.spec.radius_mean
+    sinkage = min(sinkages)  # the shallowest wheel rides on the fewest grains
     findings.append(
         _finding(
             "scm_sinkage_grains",
@@ -375,27 +494,37 @@ def scm_check(plan: RunPlan, measured: dict | None = None) -> list[Finding]:
                 slip,
                 SCM_SLIP_LIMIT,
                 abs(slip) <= SCM_SLIP_LIMIT,
-                f"slip {slip:.3g} ({slip_how}) <= {SCM_SLIP_LIMIT}",
-                f"slip {slip:.3g} ({slip_how}) > {SCM_SLIP_LIMIT}: the wheel digs in (slip sinkage, soil flowing "
-                "round it), "
+                f"slip {slip:.3g} ({slip_how}): |slip| <= {SCM_SLIP_LIMIT}",
+                f"slip {slip:.3g} ({slip_how}): |slip| > {SCM_SLIP_LIMIT}: the wheel digs in (slip sinkage, soil "
+                "flowing round it), "
                 f"outside SCM's steady Bekker-Janosi model; {USE_DEM}",
-                key,
+                key or "testbed.slip, rover.controllers",
             )
         )
-    fr = plan.froude_number
-    if math.isfinite(fr):
-        findings.append(
-            _finding(
-                "scm_froude",
-                fr,
-                FROUDE_LIMIT,
-                fr <= FROUDE_LIMIT,
-                f"Froude number {fr:.3g} <= {FROUDE_LIMIT}: quasi-static, as SCM's laws are",
-                f"Froude number {fr:.3g} > {FROUDE_LIMIT}: a dynamic regime (soil inertia, the wheel hops) that "
-                f"SCM's quasi-static laws do not hold; {USE_DEM}",
-                "testbed.omega, rover.controllers",
+        fitted = plan.terrain.calibration_slips
+        if fitted is not None:
+            low, high = fitted
+            findings.append(
+                _finding(
+                    "scm_calibration_slips",
+                    slip,
+                    high if slip > high else low,
+                    low - 1e-9 <= slip <= high + 1e-9,
+                    f"slip {slip:.3g} ({slip_how}) within the slips the wheel fit was fitted on ({low:.3g} .. "
+                    f"{high:.3g})",
+                    f"slip {slip:.3g} ({slip_how}) outside the slips the wheel fit was fitted on ({low:.3g} .. "
+                    f"{high:.3g}): its fitted keys are extrapolated there; fit over slips that include it (cosim "
+                    "calibrate-scm SCENE --from-wheel on a slip study over them) or use the DEM",
+                    "terrain.calibration, " + (key or "testbed.slip, rover.controllers"),
+                )
             )
-        )
+    dynamic = "a dynamic regime (soil inertia, the wheel hops) that SCM's quasi-static laws do not hold; " + USE_DEM
+    froude = _froude_finding(plan, plan.wheel_speeds, "", "scm_froude", dynamic)
+    if froude is None and measured.get("wheel_spin") is not None:
+        spins = [abs(float(v)) for v in measured["wheel_spin"]]
+        froude = _froude_finding(plan, spins, "at the measured wheel speeds", "scm_froude", dynamic)
+    if froude is not None:
+        findings.append(froude)
     calibrated = plan.terrain.calibration_gravity
     if calibrated is not None:
         findings.append(
@@ -430,7 +559,8 @@ def scm_check(plan: RunPlan, measured: dict | None = None) -> list[Finding]:
         )
     # judged on the run's own rim sinkage: Bekker's closed form for a smooth wheel is no estimate of
     # a grousered wheel's on SCM (the main job: 2.5x SCM's own)
-    tested, rim = plan.terrain.calibration_sinkage, measured.get("sinkage")
+    rims = _per_wheel(measured, "sinkage", indices, len(plan.wheels or (plan.wheel,)))
+    tested, rim = plan.terrain.calibration_sinkage, max(rims) if rims is not None else None  # the deepest wheel
     if tested is not None and rim is not None and math.isfinite(rim):
         findings.append(
             _finding(

@@ -305,7 +305,9 @@ def advise_lines(plan) -> list[str]:
     pending = advice.judged_after_the_run(plan)
     for check, what in pending:
         lines.append(f"  [after the run] {check}: {what}")
-    waiting = f" (before the run; {', '.join(c for c, _ in pending)} waiting for the run's sinkage)" if pending else ""
+    waiting = (
+        f" (before the run; {', '.join(c for c, _ in pending)} waiting for the run's measurements)" if pending else ""
+    )
     lines.append(f"verdict: {advice.verdict(findings)}{waiting}")
     if plan.terrain.model != "scm":
         lines.append("largest stable step by trial: cosim study timestep SCENE")

@@ -367,6 +367,7 @@ SUMMARY_UNITS = {
     "wheel_normal_force": "N",
     "wheel_power": "W",
     "wheel_contact_fraction": "1",
+    "wheel_spin": "rad/s",
     "patch_moves": "count",
     "soil_mass": "kg",
     "soil_mass_initial": "kg",
@@ -504,7 +505,8 @@ def summarize_rover(
     'sinkage_tips' [m] (mean over the wheels), 'drawbar_pull' [N] (= net_traction), 'dp_over_w' [-],
     'driving_torque' [N m] (summed), 'normal_force' [N] (summed), 'contact_fraction' [-], and per wheel
     lists 'wheel_slip', 'wheel_sinkage', 'wheel_drawbar_pull', 'wheel_driving_torque', 'wheel_normal_force',
-    'wheel_power', 'wheel_contact_fraction'; over the drive: 'travel' [m] (path), 'displacement' [m],
+    'wheel_power', 'wheel_contact_fraction', 'wheel_spin' [rad/s] (|omega| about the axle: the validity's
+    Froude number where the drive sets the speeds as it goes); over the drive: 'travel' [m] (path), 'displacement' [m],
     'energy' [J], 'energy_per_metre' [J/m], 'time_immobile' [s], 'stuck' (bool), 'stuck_criterion' (text)}.
 
     Statuses as `summarize`'s, for the rover: 'stuck' (immobile at the end, or a slip of at least
@@ -581,6 +583,7 @@ def summarize_rover(
         float(slip_of(np.mean(wheel_speed[:, i]), np.mean(spins[window, i]), rim_radii[i]))
         for i in range(len(rim_radii))
     ]
+    out["wheel_spin"] = [float(np.mean(np.abs(spins[window, i]))) for i in range(len(rim_radii))]
     window_mean(out, "sinkage", np.asarray(series["sinkage"])[rows].mean(axis=1), spacing)
     out["sinkage_tips"] = float(np.mean(out["wheel_sinkage_tips"]))
     out["drawbar_pull"] = out["net_traction"]

@@ -226,6 +226,9 @@ class TerrainPlan:
     calibration_node_spacing: float | None = None
     """SCM from a wheel fit (`calibrate-scm --from-wheel`): the node spacing its SCM wheel ran on [m]
     (None: a lab calibration, or a fit that did not record it)."""
+    calibration_slips: tuple[float, float] | None = None
+    """SCM from a wheel fit: the lowest and highest slip of the DEM runs it was fitted on [-] (None: a lab
+    calibration)."""
 
 
 @dataclass(frozen=True)
@@ -325,9 +328,29 @@ class RunPlan:
         return self.testbed.omega
 
     @property
+    def wheel_speeds(self) -> np.ndarray | None:
+        """The drive's highest |omega| of each wheel [rad/s], shape (W,): the testbed's, a rover's constant
+        speeds, a slip controller's omega_max; None when the controller sets them as it goes (torque, FMU,
+        Python drives: the run measures them)."""
+        if self.rover is None:
+            assert self.testbed is not None
+            return np.array([abs(self.testbed.omega)])
+        section = self.rover.drive.section
+        if section.kind == "slip" and section.omega_max is not None:
+            return np.full(len(self.wheels), float(section.omega_max))
+        return _wheel_speeds(section, len(self.wheels))
+
+    @property
     def froude_number(self) -> float:
-        """omega^2 r / |g| of the drive [-] (inf without gravity; nan when the drive speed is not set)."""
-        return self.drive_omega**2 * self.wheel.outer_radius / self.g if self.g > 0 else math.inf
+        """omega^2 r / |g| of the fastest wheel at the drive's speeds (wheel_speeds) [-] (inf without gravity;
+        nan when the controller sets the speeds as it goes)."""
+        speeds = self.wheel_speeds
+        if not self.g > 0:
+            return math.inf
+        if speeds is None:
+            return math.nan
+        radii = np.array([w.outer_radius for w in self.wheels or (self.wheel,)])
+        return float(np.max(speeds**2 * radii)) / self.g
 
     @property
     def outer_radius(self) -> float:
@@ -690,12 +713,13 @@ def _terrain(scene: Scene, wheel_count: int, problems: list[str]) -> TerrainPlan
     given = section.model_dump(exclude={"model", "wheels", "calibration"}, exclude_none=True)
     if section.model != "scm":
         return TerrainPlan(section.model, tuple(sorted(given.items())))
-    gravity = depth = grid = None
+    gravity = depth = grid = slips = None
     if section.calibration is not None:
         from .scm_calibration import (
             CalibrationError,
             bed_soils,
             fitted_node_spacing,
+            fitted_slips,
             out_of_range,
             read_calibration,
             tested_sinkage,
@@ -705,6 +729,7 @@ def _terrain(scene: Scene, wheel_count: int, problems: list[str]) -> TerrainPlan
             calibration = read_calibration(section.calibration)
             depth = tested_sinkage(calibration, section.calibration)
             grid = fitted_node_spacing(calibration, section.calibration)
+            slips = fitted_slips(calibration, section.calibration)
             bed_soils(calibration, section.calibration)  # its beds' record read now, not at a --vary-bed run
         except CalibrationError as error:
             problems.append(f"terrain.calibration: {error}")
@@ -734,7 +759,7 @@ def _terrain(scene: Scene, wheel_count: int, problems: list[str]) -> TerrainPlan
             model = "dem"
         elif "dem" in section.wheels:
             model, models = "mixed", tuple(section.wheels)
-    return TerrainPlan(model, tuple(sorted(given.items())), models, gravity, depth, grid)
+    return TerrainPlan(model, tuple(sorted(given.items())), models, gravity, depth, grid, slips)
 
 
 def _scm_macro_step(terrain: TerrainPlan, wheels, testbed, rover, g: float, gravity) -> float:

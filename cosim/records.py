@@ -220,6 +220,15 @@ ATTRIBUTE_UNITS = {
 """The units of results.h5's numeric root attributes (its `units` attribute, JSON)."""
 
 
+def _froude_number(plan: RunPlan, findings) -> float:
+    """The run's Froude number [-]: at the drive's speeds (RunPlan.froude_number), or, where its controller
+    sets them as it goes, the validity check's at the measured wheel speeds (nan without one)."""
+    if np.isfinite(plan.froude_number):
+        return plan.froude_number
+    measured = [f.value for f in findings if f.check in ("froude", "scm_froude")]
+    return float(measured[0]) if measured else float("nan")
+
+
 def run_summary(
     plan: RunPlan,
     system: CoupledSystem,
@@ -274,7 +283,8 @@ def run_summary(
             soil_mass_initial=books.mass_initial,
             particle_count_max=int(np.max(series["soil_particle_count"])) if len(series["time"]) else 0,
         )
-    findings = validity(plan, soil.surface_height, out)
+    stepped = step_summary(series)  # the PID's longest substep judges its contact resolution (cosim.advice.check)
+    findings = validity(plan, soil.surface_height, {**out, **stepped})
     out.update(
         simulated_time=float(system.coupler.time),
         macro_steps=int(system.coupler.step_count),
@@ -282,9 +292,9 @@ def run_summary(
         particle_count=int(books.element_count),
         dt=plan.dt,
         step_control=plan.step_control,
-        **step_summary(series),
+        **stepped,
         macro_step=plan.macro_step,
-        froude_number=plan.froude_number,
+        froude_number=_froude_number(plan, findings),
         coupling_energy_created=float(system.coupler.energy_created),
         validity=advice.verdict(findings),
         findings=[f.as_dict() for f in findings],

@@ -167,6 +167,25 @@ def fitted_node_spacing(calibration: ScmCalibration, path: str = "") -> float | 
     return float(value)
 
 
+def fitted_slips(calibration: ScmCalibration, path: str = "") -> tuple[float, float] | None:
+    """The lowest and highest slip [-] of the DEM wheel runs a wheel fit was fitted on ([source.wheel] slips'
+    `slip`); None when the file records none (a lab calibration). CalibrationError names an entry that is
+    not a finite number."""
+    wheel = calibration.source.get("wheel", {})
+    where = f"{path}: " if path else ""
+    if not isinstance(wheel, dict):
+        raise CalibrationError(f"{where}[source] wheel must be a table, got {wheel!r:.60}")
+    runs = wheel.get("slips", [])
+    if not isinstance(runs, list) or not all(isinstance(run, dict) for run in runs):
+        raise CalibrationError(f"{where}[source.wheel] slips must be an array of tables, got {runs!r:.60}")
+    slips = [run["slip"] for run in runs if "slip" in run]  # a run that records none says nothing of the range
+    if not all(_finite_number(slip) for slip in slips):
+        raise CalibrationError(
+            f"{where}[source.wheel] slips: each run's slip must be a finite number, got {slips!r:.80}"
+        )
+    return (float(min(slips)), float(max(slips))) if slips else None
+
+
 def bed_soils(calibration: ScmCalibration, path: str = "") -> list[dict[str, float]]:
     """Each calibration bed's SCM soil (SOIL_KEYS -> value), in bed order: the file's [scm] with the keys
     each bed was fitted on alone ([source] replica_fits, `calibrate-scm --replicas R`) taken from that

@@ -314,18 +314,23 @@ def _scm_validity(plan: RunPlan, surface_height=None, measured=None) -> list:
 
 
 def _mixed_validity(plan: RunPlan, surface_height=None, measured=None) -> list:
-    """The DEM's checks and SCM's."""
-    tips = (measured or {}).get("sinkage_tips")
-    return advice.check(plan, surface_height, tips) + advice.scm_check(plan, measured)
+    """The DEM's checks (on the DEM wheels' deepest tips) and SCM's."""
+    dem = [i for i, m in enumerate(plan.terrain.wheel_models) if m == "dem"]
+    tips = advice.deepest(measured, "sinkage_tips", dem)
+    spins, longest = (measured or {}).get("wheel_spin"), (measured or {}).get("dt_max")
+    return advice.check(plan, surface_height, tips, spins, longest) + advice.scm_check(plan, measured)
 
 
 def _dem_validity(plan: RunPlan, surface_height=None, measured=None) -> list:
-    """cosim.advice.check: the DEM's grain scales against the wheel, the bed and the sinkage."""
-    return advice.check(plan, surface_height, (measured or {}).get("sinkage_tips"))
+    """cosim.advice.check: the DEM's grain scales against the wheel, the bed and the (deepest wheel's) sinkage."""
+    tips = advice.deepest(measured, "sinkage_tips")
+    spins, longest = (measured or {}).get("wheel_spin"), (measured or {}).get("dt_max")
+    return advice.check(plan, surface_height, tips, spins, longest)
 
 
 def _no_findings(plan: RunPlan, surface_height=None, measured=None) -> list:
-    """A terrain whose results hold whatever its resolution: nothing to check."""
+    """A terrain with no validity checks of its own (the analytic spring-damper: a test terrain, no soil
+    model to be out of range of): nothing checked, and its verdict says so (cosim.advice.verdict)."""
     return []
 
 

@@ -321,7 +321,7 @@ def test_an_internal_error_is_exit_1_not_bad_input(tmp_path, tiny_bed, capsys, m
     (its traceback under --verbose), never the exit 2 of a bad scene."""
     from cosim import advice
 
-    def broken(plan, surface_height, sinkage_tips=None):
+    def broken(plan, *measured):
         raise ValueError("an internal check broke")
 
     monkeypatch.setattr(advice, "check", broken)

@@ -279,14 +279,14 @@ def test_a_run_deeper_than_the_calibrations_tests_is_flagged(tmp_path):
         (waiting,) = [line for line in advice if line.startswith("  [after the run] scm_calibration_depth: ")]
         assert f" {deepest:.3g} m the calibration's DEM tests reached" in waiting, waiting
         (verdict,) = [line for line in advice if line.startswith("verdict:")]
-        assert verdict.endswith("(before the run; scm_calibration_depth waiting for the run's sinkage)"), verdict
+        assert verdict.endswith("scm_calibration_depth waiting for the run's measurements)"), verdict
         for rim, ok in ((0.9 * deepest, True), (1.1 * deepest, False)):
             (finding,) = [f for f in validity(plan, 0.0, {"sinkage": rim}) if f.check == "scm_calibration_depth"]
             assert finding.ok == ok and ("extrapolated" in finding.message) != ok
     write_calibration(str(path), _calibration(1.625))
     plan = load_plan(scene)
     assert not any(f.check == "scm_calibration_depth" for f in validity(plan, 0.0, {"sinkage": 1.0}))
-    assert not any("[after the run]" in line or "waiting" in line for line in advise_lines(plan))
+    assert not any("scm_calibration_depth" in line for line in advise_lines(plan))
     source = {"plate": {"max_sinkage_m": "deep"}}
     write_calibration(str(path), ScmCalibration(_calibration(1.625).parameters, {}, 1.625, source))
     with pytest.raises(SceneError, match="terrain.toml: \\[source.plate\\] max_sinkage_m"):

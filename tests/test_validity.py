@@ -1,0 +1,130 @@
+"""A scene's validity (cosim.advice) judged on the wheel that fails first: a rover's fastest, largest,
+narrowest or deepest wheel, the speeds its drive can reach, the substeps the PID step control takes, the
+slips a wheel fit was fitted on; and a terrain with no checks is "not checked", never "valid"."""
+
+import math
+from pathlib import Path
+
+import pytest
+
+from cosim import advice
+from cosim.cli import advise_lines
+from cosim.plan import load_plan
+from cosim.system import validity
+
+EXAMPLES = Path(__file__).resolve().parent.parent / "examples"
+PATCH = EXAMPLES / "phobos_rover_patch.toml"  # an MMX-like rover, four wheels, a speed drive of 0.07 rad/s
+WHEEL_SHAPE = "{radius=0.12, width=0.06, grouser_count=12, grouser_height=0.006, grouser_thickness=0.004}"
+
+
+def _found(findings) -> dict:
+    return {f.check: f for f in findings}
+
+
+def test_a_rover_is_judged_on_its_fastest_and_its_largest_wheel():
+    """One larger wheel (12 cm instead of 5 cm): the bed depth counts in its radius, not the narrowest
+    wheel's. Two faster wheels: Froude's number is the fastest wheel's omega^2 r / g, not the mean
+    speed's (both passed: 1.25 radii, Fr 0.089)."""
+    plan = load_plan(PATCH, [f"rover.wheel_shape.wheel_rl={WHEEL_SHAPE}", "patch.length=1.0", "patch.width=1.0"])
+    radii = [w.outer_radius for w in plan.wheels]
+    assert max(radii) > 2 * min(radii)
+    depth = _found(advice.check(plan))["bed_depth"]
+    assert depth.value == pytest.approx(plan.bed.spec.depth / max(radii), rel=1e-12)
+    assert not depth.ok, depth.message
+
+    speeds = [0.02, 0.02, 0.17, 0.17]
+    plan = load_plan(PATCH, [f"rover.controllers.cruise.speed={speeds}"])
+    froude = _found(advice.check(plan))["froude"]
+    expected = max(v**2 * w.outer_radius for v, w in zip(speeds, plan.wheels)) / plan.g
+    assert froude.value == pytest.approx(expected, rel=1e-12) and expected > advice.FROUDE_LIMIT
+    assert not froude.ok and "rover.controllers.cruise.speed" in froude.message
+    assert plan.froude_number == pytest.approx(expected, rel=1e-12)  # the summary's too
+
+
+def test_a_slip_drive_is_judged_at_its_highest_speed_and_a_torque_drive_on_the_run_s_speeds():
+    """A slip controller may command up to omega_max: its Froude number there (the check was silently
+    left out, and the summary's froude_number nan). A torque drive's speeds are the run's: named as
+    waiting for the run before it, judged on the measured wheel speeds after it."""
+    plan = load_plan(PATCH, ["rover.drive=slip", "rover.controllers.slip.omega_max=1.0"])
+    froude = _found(advice.check(plan))["froude"]
+    assert froude.value == pytest.approx(max(w.outer_radius for w in plan.wheels) / plan.g, rel=1e-12)
+    assert not froude.ok and "rover.controllers.slip.omega_max" in froude.message
+
+    plan = load_plan(PATCH, ['rover.controllers.cruise={kind="torque", torque=0.001}'])
+    assert math.isnan(plan.froude_number)
+    assert "froude" not in _found(advice.check(plan))
+    assert any(line.startswith("  [after the run] froude:") for line in advise_lines(plan))
+    spins = [0.05, 0.05, 0.3, -0.3]  # measured [rad/s]: a wheel turning backwards counts at its |omega|
+    froude = _found(advice.check(plan, wheel_spins=spins))["froude"]
+    expected = max(v**2 * w.outer_radius for v, w in zip(spins, plan.wheels)) / plan.g
+    assert froude.value == pytest.approx(expected, rel=1e-12) and "measured" in froude.message
+
+
+def test_the_floor_is_judged_under_the_deepest_wheel():
+    """After a run the floor clearance is taken at the deepest wheel's tips (the mean of four wheels, one
+    of them dug in, hid it)."""
+    plan = load_plan(PATCH)
+    tips = [0.001, 0.001, 0.001, 0.03]
+    found = _found(validity(plan, 0.07, {"sinkage_tips": sum(tips) / 4, "wheel_sinkage_tips": tips}))
+    diameter = 2 * plan.bed.spec.radius_mean
+    assert found["floor_clearance"].value == pytest.approx((0.07 - max(tips)) / diameter, rel=1e-12)
+
+
+def test_the_pid_s_contact_resolution_is_judged_on_the_substeps_it_takes():
+    """Under the PID step control the fixed dt is not what the soil takes: contact_steps was judged on it
+    (10.1 steps, valid, with run.dt_max at 9 x the critical step). Before the run it waits for the substeps
+    the error control chooses; after, the contact time over the longest substep taken."""
+    plan = load_plan(EXAMPLES / "phobos_single_wheel.toml", ['run.step_control="pid"', "run.dt_max=0.003"])
+    assert "contact_steps" not in _found(advice.check(plan))
+    lines = advise_lines(plan)
+    assert any(line.startswith("  [after the run] contact_steps:") for line in lines), lines
+    fixed_plan = load_plan(EXAMPLES / "phobos_single_wheel.toml")
+    contact = _found(validity(fixed_plan, 0.05))["contact_steps"].value * fixed_plan.dt  # the contact time [s]
+    for longest, ok in ((contact / 20, True), (0.003, False)):
+        found = _found(validity(plan, 0.05, {"dt_max": longest}))["contact_steps"]
+        assert found.value == pytest.approx(contact / longest, rel=1e-9) and found.ok == ok, found.message
+
+
+def test_a_slip_outside_the_wheel_fit_s_slips_is_flagged():
+    """The wheel fit (examples/terrain/phobos_regolith_scm_wheel.toml) was fitted on DEM runs at slips
+    0.05 .. 0.6 ([source.wheel] slips): a towed wheel (slip 0) or a braked one was "ok" under |slip| <= 0.6.
+    A lab calibration records no slips and is not judged."""
+    scm = EXAMPLES / "phobos_single_wheel_scm.toml"
+    fit = "terrain.calibration='terrain/phobos_regolith_scm_wheel.toml'"
+    runs = [r["slip"] for r in _wheel_runs(EXAMPLES / "terrain" / "phobos_regolith_scm_wheel.toml")]
+    assert load_plan(scm, [fit]).terrain.calibration_slips == (min(runs), max(runs))
+    for slip, ok in ((0.0, False), (-0.5, False), (0.3, True)):
+        found = _found(advice.scm_check(load_plan(scm, [fit, f"testbed.slip={slip}"])))["scm_calibration_slips"]
+        assert found.ok == ok and found.value == slip, found.message
+    braked = _found(advice.scm_check(load_plan(scm, [fit, "testbed.slip=-0.7"])))["scm_slip"]
+    assert not braked.ok and "|slip| > 0.6" in braked.message  # it said "slip -0.7 > 0.6"
+    assert "scm_calibration_slips" not in _found(advice.scm_check(load_plan(scm)))
+
+
+def _wheel_runs(path: Path) -> list:
+    import tomllib
+
+    return tomllib.loads(path.read_text())["source"]["wheel"]["slips"]
+
+
+def test_a_rover_on_scm_is_judged_on_its_deepest_wheel_against_the_calibration():
+    """The traverse on SCM: two wheels at 20 mm and two at 55 mm (mean 38 mm) against a calibration tested
+    to 45 mm was "valid"; the deepest wheel is beyond it."""
+    plan = load_plan(EXAMPLES / "phobos_rover_scm_traverse.toml")
+    tested = plan.terrain.calibration_sinkage
+    assert tested is not None
+    rims = [0.4 * tested, 0.4 * tested, 1.2 * tested, 1.2 * tested]
+    measured = {"sinkage": sum(rims) / 4, "wheel_sinkage": rims, "slip": 0.1}
+    depth = _found(validity(plan, 0.0, measured))["scm_calibration_depth"]
+    assert not depth.ok and depth.value == pytest.approx(1.2, rel=1e-12)
+
+
+def test_a_terrain_without_checks_is_not_called_valid(tmp_path):
+    """The analytic terrain has no validity checks: its verdict said "valid" where the same scene on the
+    DEM fails four."""
+    from helpers import write_tiny
+
+    plan = load_plan(write_tiny(tmp_path, '\n[terrain]\nmodel = "analytic"\n'))
+    assert validity(plan, 0.0) == []
+    assert advice.verdict(validity(plan, 0.0)) == advice.NOT_CHECKED
+    assert any(line.startswith(f"verdict: {advice.NOT_CHECKED}") for line in advise_lines(plan))
