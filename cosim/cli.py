@@ -550,7 +550,13 @@ def cmd_sweep(args) -> int:
     rows = report["rows"]
     failed = sum(1 for r in rows if not r.get("ok"))
     steady = sum(1 for r in rows if r.get("status") == "complete")
+    invalid = [r for r in rows if study.out_of_range(r.get("validity"))]
     print(f"sweep written to {out} ({failed} failed, {len(rows) - failed - steady} not steady of {len(rows)} points)")
+    if invalid:
+        print(f"  {len(invalid)} of {len(rows)} points out of range (each run.json says why):")
+    for row in invalid:  # a result printed says whether its scene was valid
+        point = ", ".join(f"{key}={row.get(key)}" for key in report["grid"])
+        print(f"  ! {point}: {row['validity']}")
     if failed:
         return EXIT_ERROR
     return EXIT_OK if steady else EXIT_UNSTEADY  # as a slip study: no steady point, no result to trust

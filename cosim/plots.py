@@ -263,8 +263,10 @@ def plot_scatter(out_dir: str, rows: list[dict], key: str, dpi: int = 120) -> st
 
 
 def plot_slip_curve(out_dir: str, rows: list[dict], dpi: int = 120) -> str:
-    """DP/W, driving torque and sinkage against slip with 95 % intervals (a slip study's rows)."""
+    """DP/W, driving torque and sinkage against slip with 95 % intervals (a slip study's rows); a row whose
+    runs failed a validity check (its `validity` out of range) is circled by a hollow square."""
     plt = _pyplot()
+    invalid = np.array([str(r.get("validity") or "").startswith("out of range") for r in rows], dtype=bool)
     fig, axes = plt.subplots(1, 3, figsize=(14, 4))
     for ax, (name, label, scale) in zip(
         axes,
@@ -281,6 +283,12 @@ def plot_slip_curve(out_dir: str, rows: list[dict], dpi: int = 120) -> str:
         alone = ~np.isfinite(ci) & np.isfinite(mean)  # one steady replica: no interval, not an exact value
         if alone.any():
             ax.plot(slip[alone], mean[alone], "o", mfc="white", mec="C3", ms=9, label="one replica: no interval")
+        outside = invalid & np.isfinite(mean)
+        if outside.any():  # the scene was no valid test there (study.csv's validity names the checks)
+            ax.plot(
+                slip[outside], mean[outside], "s", mfc="none", mec="C1", mew=1.5, ms=13, label="out of range (validity)"
+            )
+        if alone.any() or outside.any():
             ax.legend(fontsize=8)
         ax.set_xlabel("slip [-]")
         ax.set_ylabel(label)

@@ -20,8 +20,9 @@ Warp's CPU kernels are single-threaded, so the cluster uses processes with one t
 each. On a GPU, replicas, slip studies and each precision of a precision study run as worlds of
 one simulation instead (cosim.batch, `--batched`; each run bit for bit as alone; replicas over beds
 too, each world on its own bed). A replica that
-fails is reported; the others still finish. Tasks carry the scene as TOML text plus overrides,
-and each worker resolves its own plan.
+fails is reported; the others still finish. Each row, point and set of replicas carries its runs'
+validity verdict (`validity`: ensemble_validity, run_validity), as their run.json findings give it.
+Tasks carry the scene as TOML text plus overrides, and each worker resolves its own plan.
 """
 
 from __future__ import annotations
@@ -621,9 +622,61 @@ def _tolerances(plan: RunPlan) -> dict[str, float]:
     }
 
 
+VALID = "valid"
+"""The verdict of a run, row or ensemble whose runs passed every validity check (cosim.advice.verdict)."""
+OUT_OF_RANGE = "out of range: "
+"""How the verdict of a run, row or ensemble that failed a validity check starts (cosim.advice.verdict)."""
+
+
+def failed_checks(result: dict) -> list[str] | None:
+    """The validity checks a run failed, as its summary's findings say ([] for a valid run; the summary's
+    `validity` text where it holds no findings); None for a run that gives none (failed, or a record of
+    neither)."""
+    summary = result.get("summary") if result.get("ok") else None
+    if not isinstance(summary, dict):
+        return None
+    findings = summary.get("findings")
+    if isinstance(findings, list) and all(isinstance(f, dict) and "check" in f for f in findings):
+        return list(dict.fromkeys(str(f["check"]) for f in findings if not f.get("ok")))
+    verdict = summary.get("validity")
+    if verdict == VALID:
+        return []
+    if isinstance(verdict, str) and verdict.startswith(OUT_OF_RANGE):
+        return [c.strip() for c in verdict[len(OUT_OF_RANGE) :].split(",") if c.strip()]
+    return None
+
+
+def run_validity(result: dict) -> str | None:
+    """A run's verdict as its run.json gives it: 'valid' or 'out of range: CHECK, ...'; None for a run that
+    gives none (failed_checks)."""
+    checks = failed_checks(result)
+    if checks is None:
+        return None
+    return OUT_OF_RANGE + ", ".join(checks) if checks else VALID
+
+
+def ensemble_validity(results: list[dict]) -> str | None:
+    """The verdict of the runs behind a row or an ensemble: 'valid' when every run that gives one is
+    valid, else 'out of range: CHECK (k/n), ...', each failed check with how many of the n runs that
+    give a verdict failed it (a failed run gives none); None when no run gives one."""
+    judged = [checks for r in results if (checks := failed_checks(r)) is not None]
+    if not judged:
+        return None
+    counts = collections.Counter(check for checks in judged for check in checks)
+    if not counts:
+        return VALID
+    return OUT_OF_RANGE + ", ".join(f"{check} ({k}/{len(judged)})" for check, k in counts.items())
+
+
+def out_of_range(validity: str | None) -> bool:
+    """Whether a verdict (run_validity, ensemble_validity) says some run failed a validity check."""
+    return isinstance(validity, str) and validity.startswith(OUT_OF_RANGE)
+
+
 def ensemble_table(results: list[dict], plan: RunPlan, states=(metrics.STEADY,)) -> dict:
     """metrics.ensemble of every REPLICA_METRIC over the runs whose steady_state is in `states` (the
-    steady ones; with metrics.SINKING too, the runs whose traction is steady and sinkage still drifts)."""
+    steady ones; with metrics.SINKING too, the runs whose traction is steady and sinkage still drifts),
+    and the runs' validity (ensemble_validity: over every run that gives a verdict)."""
     averaged = [r for r in results if r.get("ok") and r.get("summary", {}).get("steady_state") in states]
     steady = [r for r in results if r.get("ok") and r.get("summary", {}).get("steady_state") == metrics.STEADY]
     floors = _tolerances(plan)
@@ -632,7 +685,13 @@ def ensemble_table(results: list[dict], plan: RunPlan, states=(metrics.STEADY,))
         for name in metrics.REPLICA_METRICS
     }
     table["wall_time"] = metrics.ensemble([r["summary"].get("wall_time") for r in results if r.get("ok")])
-    return {"replicas": len(results), "steady": len(steady), "averaged": len(averaged), "metrics": table}
+    return {
+        "replicas": len(results),
+        "steady": len(steady),
+        "averaged": len(averaged),
+        "validity": ensemble_validity(results),
+        "metrics": table,
+    }
 
 
 def _ensemble_text(stats: dict, title: str, judged: str = "deterministic") -> str:
@@ -640,6 +699,7 @@ def _ensemble_text(stats: dict, title: str, judged: str = "deterministic") -> st
     lines = [
         title,
         f"  {stats['steady']} of {stats['replicas']} replicas reached a steady state",
+        _validity_line(stats.get("validity")),
         f"  {'metric':16s} {'n':>3s} {'mean':>11s} {'std':>10s} {'95% CI +-':>10s} {'min':>11s} {'max':>11s}  unit  "
         + judged,
     ]
@@ -657,6 +717,15 @@ def _ensemble_text(stats: dict, title: str, judged: str = "deterministic") -> st
             f"{row['min']:11.5g} {row['max']:11.5g}  {METRIC_UNITS.get(name, ''):4s}  {det}"
         )
     return "\n".join(lines)
+
+
+def _validity_line(validity: str | None) -> str:
+    """An ensemble's verdict as its printed table gives it (a ! line when out of range)."""
+    if validity is None:
+        return "  validity: none (no replica finished)"
+    if out_of_range(validity):
+        return f"  ! {validity}: of the replicas that finished, how many failed each check (run.json says why)"
+    return f"  validity: {validity}"
 
 
 def column_units(keys: list[str], units: dict[str, str]) -> dict[str, str]:
@@ -753,6 +822,7 @@ def replica_run(
         "bed_file": beds[0] if vary == "order" else None,
         "bed_files": beds,
         "stats": stats,
+        "validity": stats["validity"],  # the replicas' (ensemble_validity)
         "results": results,
         "criterion": "a metric is macroscopically deterministic (vary 'order'; over beds: the same on any bed) "
         "when its replica std is <= max(5 % of its mean, its absolute floor) (cosim.study._tolerances)",
@@ -761,10 +831,14 @@ def replica_run(
     write_json(os.path.join(out_dir, "ensemble.json"), report)
     _write_csv(
         os.path.join(out_dir, "ensemble.csv"),
-        [{"metric": k, **v, "unit": METRIC_UNITS.get(k, "")} for k, v in stats["metrics"].items()],
-        ["metric", "unit", "n", "mean", "std", "ci95", "min", "max", "tolerance", "deterministic"],
+        [
+            {"metric": k, **v, "unit": METRIC_UNITS.get(k, ""), "validity": stats["validity"]}
+            for k, v in stats["metrics"].items()
+        ],
+        ["metric", "unit", "n", "mean", "std", "ci95", "min", "max", "tolerance", "deterministic", "validity"],
         {},
-    )  # one metric per row: its unit is a column (mean, std, ci95, min, max, tolerance are in it)
+    )  # one metric per row: its unit is a column (mean, std, ci95, min, max, tolerance are in it); validity: the
+    # replicas' verdict, the same on every row
     judged = "deterministic" if vary == "order" else "same on any bed"
     report["text"] = _ensemble_text(stats, f"{plan.name}: {replicas} replicas ({varied}), {out_dir}", judged)
     report["ok"] = stats["steady"] == replicas and stats["steady"] >= 2
@@ -841,6 +915,7 @@ def precision_study(
                 "replicas": stats["replicas"],
                 "steady": stats["steady"],
                 "failed": sum(1 for r in members if not r.get("ok")),
+                "validity": stats["validity"],
                 **_flat(stats),
                 "stats": stats,
             }
@@ -856,7 +931,7 @@ def precision_study(
         "bed_file": bed,
         "scene_toml": text,
     }
-    keys = ["precision", "replicas", "steady", "failed"] + [
+    keys = ["precision", "replicas", "steady", "failed", "validity"] + [
         f"{m}_{k}" for m in ("wall_time",) + metrics.REPLICA_METRICS for k in ("mean", "std", "ci95", "min", "max")
     ]
     report["units"] = {**column_units(keys, METRIC_UNITS), "wall_time": "s"}  # the rows' columns
@@ -1061,7 +1136,9 @@ def zero_pull_slip(rows: list[dict]) -> dict:
     slip study's rows: linear between the two measured slips around the first crossing (none is
     extrapolated), with the 95 % half-width of the delta method over the two means' standard errors
     (t at the smaller replica count less one). Returns {'slip' [-] or None, 'ci95' [-] (nan: an
-    interval needs two replicas at both points), 'between' [slip, slip] [-], 'crossings' [count], 'note'}."""
+    interval needs two replicas at both points), 'between' [slip, slip] [-], 'crossings' [count], 'note',
+    'validity': 'valid' when both rows it uses are valid, 'out of range: slip S: CHECK (k/n), ...' naming
+    each of them that is not (their rows' `validity`), None without a crossing or a verdict of either}."""
     from scipy import stats as scipy_stats
 
     points = []
@@ -1072,15 +1149,15 @@ def zero_pull_slip(rows: list[dict]) -> dict:
             continue
         x = slip.get("mean") if slip.get("n", 0) and math.isfinite(slip.get("mean", math.nan)) else row["slip_set"]
         error = pull["std"] / math.sqrt(pull["n"]) if pull["n"] > 1 else math.nan
-        points.append((x, pull["mean"], error, pull["n"]))
-    points.sort()
+        points.append((x, pull["mean"], error, pull["n"], row))
+    points.sort(key=lambda point: point[:4])
     crossings = [k for k in range(len(points) - 1) if (points[k][1] < 0) != (points[k + 1][1] < 0)]
-    out: dict = {"slip": None, "ci95": math.nan, "between": None, "crossings": len(crossings)}
+    out: dict = {"slip": None, "ci95": math.nan, "between": None, "crossings": len(crossings), "validity": None}
     if not crossings:
         span = f"{min(p[1] for p in points):.3g} .. {max(p[1] for p in points):.3g}" if points else "none measured"
         out["note"] = f"DP/W does not cross zero within the measured slips (DP/W {span}): none is extrapolated"
         return out
-    (s1, d1, e1, n1), (s2, d2, e2, n2) = points[crossings[0]], points[crossings[0] + 1]
+    (s1, d1, e1, n1, row1), (s2, d2, e2, n2, row2) = points[crossings[0]], points[crossings[0] + 1]
     out["slip"] = s1 + (s2 - s1) * d1 / (d1 - d2)
     out["between"] = [s1, s2]
     # d slip / d d1 = -(s2 - s1) d2 / (d1 - d2)^2, d slip / d d2 = (s2 - s1) d1 / (d1 - d2)^2
@@ -1090,6 +1167,17 @@ def zero_pull_slip(rows: list[dict]) -> dict:
     out["note"] = f"linear between the measured slips {s1:.3g} and {s2:.3g}" + (
         f"; DP/W crosses zero {len(crossings)} times, the first is given" if len(crossings) > 1 else ""
     )
+    verdicts = [row1.get("validity"), row2.get("validity")]
+    failed = [
+        f"slip {row.get('slip_set', x):.3g}: {row['validity'][len(OUT_OF_RANGE) :]}"
+        for row, x in ((row1, s1), (row2, s2))
+        if out_of_range(row.get("validity"))
+    ]
+    if failed:
+        out["validity"] = OUT_OF_RANGE + "; ".join(failed)
+        out["note"] += "; a row it is interpolated from is out of range"
+    elif all(v == VALID for v in verdicts):
+        out["validity"] = VALID
     return out
 
 
@@ -1118,6 +1206,7 @@ def _slip_report(
                 "replicas": stats["replicas"],
                 "steady": stats["steady"],
                 "averaged": stats["averaged"],
+                "validity": stats["validity"],
                 **_flat(stats),
                 "stats": stats,
             }
@@ -1138,7 +1227,8 @@ def _slip_report(
     crossing = zero_pull_slip(rows)
     report["zero_pull_slip"], report["zero_pull_slip_ci95"] = crossing["slip"], crossing["ci95"]
     report["zero_pull_slip_between"], report["zero_pull_slip_note"] = crossing["between"], crossing["note"]
-    keys = ["slip_set", "replicas", "steady", "averaged"] + [
+    report["zero_pull_slip_validity"] = crossing["validity"]
+    keys = ["slip_set", "replicas", "steady", "averaged", "validity"] + [
         f"{m}_{k}"
         for m in ("slip", "drawbar_pull", "dp_over_w", "driving_torque", "sinkage", "sinkage_tips")
         for k in ("mean", "std", "ci95")
@@ -1155,8 +1245,16 @@ def _slip_report(
     _write_csv(os.path.join(out_dir, "study.csv"), rows, keys, units)
     lines = [
         f"{plan.name}: drawbar pull against imposed slip (W = {plan.wheel_load:.4g} N; replicas: {varied}), {out_dir}",
-        f"  {'slip':>6s} {'steady':>7s} {'DP [N]':>12s} {'DP/W':>14s} {'torque [N m]':>14s} {'sinkage [mm]':>13s}",
+        f"  {'slip':>6s} {'steady':>7s} {'DP [N]':>12s} {'DP/W':>14s} {'torque [N m]':>14s} {'sinkage [mm]':>13s}"
+        "  validity",
     ]
+    notes: dict[str, int] = {}  # each out-of-range verdict's footnote number
+
+    def validity(row) -> str:
+        verdict = row.get("validity")
+        if not out_of_range(verdict):
+            return verdict or "- (no run finished)"
+        return f"out of range [{notes.setdefault(verdict, len(notes) + 1)}]"
 
     def averaged(row) -> str:
         return "" if row["averaged"] == row["steady"] else f" ({row['averaged']} averaged)"
@@ -1172,8 +1270,12 @@ def _slip_report(
         lines.append(
             f"  {row['slip_set']:6.3f} {row['steady']:3d}/{row['replicas']:<3d}{averaged(row)} "
             f"{cell('drawbar_pull'):>12s} "
-            f"{cell('dp_over_w'):>14s} {cell('driving_torque'):>14s} {cell('sinkage', 1e3):>13s}"
+            f"{cell('dp_over_w'):>14s} {cell('driving_torque'):>14s} {cell('sinkage', 1e3):>13s}  {validity(row)}"
         )
+    for verdict, number in notes.items():
+        lines.append(f"  [{number}] {verdict}")
+    if notes:
+        lines.append("      (k/n): failed by k of the n replicas that finished; each one's run.json says why")
     if crossing["slip"] is None:
         lines.append(f"  {crossing['note']}")
     else:
@@ -1181,6 +1283,8 @@ def _slip_report(
         if math.isfinite(crossing["ci95"]):
             interval = f" +- {crossing['ci95']:.2g} (95 %)"
         lines.append(f"  DP/W = 0 (self-propelled) at slip {crossing['slip']:.3g}{interval}, {crossing['note']}")
+        if out_of_range(crossing["validity"]):
+            lines.append(f"  ! the self-propelled slip is {crossing['validity']}")
     report["text"] = "\n".join(lines)
     report["ok"] = all(row["steady"] == row["replicas"] for row in rows)
     if plot:
@@ -1326,12 +1430,17 @@ def sweep(
         )
     rows = []
     for task, result in zip(tasks, results):
-        row = {**task["point"], "ok": result.get("ok"), "status": result.get("status")}
+        row = {
+            **task["point"],
+            "ok": result.get("ok"),
+            "status": result.get("status"),
+            "validity": run_validity(result),
+        }
         row.update({k: result.get("summary", {}).get(k) for k in columns})
         if not result.get("ok"):
             row["error"] = result.get("error")
         rows.append(row)
-    keys = list(grid) + ["ok", "status", *columns]
+    keys = list(grid) + ["ok", "status", "validity", *columns]
     swept = {key: unit for key in grid if (unit := key_unit(key)) is not None}  # as cosim/scene.py documents them
     units = {**METRIC_UNITS, **swept}
     report = {"kind": "sweep", "grid": grid, "rows": rows, "runs": results, "scene_toml": text}

@@ -526,7 +526,8 @@ def test_sweep_validates_every_point_first(tmp_path, tiny_bed, capsys):
     assert all(r["status"] != "complete" for r in report["rows"])
     assert report["units"]["sinkage"] == "m" and report["units"]["drawbar_pull"] == "N"
     header = (out / "study.csv").read_text().splitlines()[0]
-    assert header.startswith("testbed.omega [rad/s],ok,status,steady_state,slip [1]"), header  # the swept key's too
+    # the swept key's unit too; validity: each point's run's verdict
+    assert header.startswith("testbed.omega [rad/s],ok,status,validity,steady_state,slip [1]"), header
     assert report["units"]["testbed.omega"] == "rad/s"
     # a path value names its point's folder without leading out of the sweep's (it was joined as a path);
     # a key both fixed by --set and swept is refused (the sweep's values replaced the fixed one)

@@ -370,7 +370,7 @@ speed = 2.5
         == 0
     )
     header, *rows = (out / "study.csv").read_text().splitlines()
-    assert header.startswith("rover.drive,ok,status,steady_state,slip [1],travel [m]")
+    assert header.startswith("rover.drive,ok,status,validity,steady_state,slip [1],travel [m]")
     assert "energy_per_metre [J/m]" in header and "time_immobile [s]" in header
     table = json.loads((out / "study.json").read_text())["rows"]
     assert [r["rover.drive"] for r in table] == ["slow", "fast"]

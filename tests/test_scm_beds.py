@@ -211,3 +211,28 @@ def test_a_slip_study_over_the_calibrations_beds_and_its_table_from_the_runs_say
         for slip in ("+0.100", "+0.300"):
             scene = tmp_path / "slip" / f"slip_{slip}" / f"replica_{k:03d}" / "scene.toml"
             assert dict(load_plan(scene).terrain.parameters)["k_phi"] == k_phi
+
+
+def test_replicas_over_beds_give_how_many_of_them_were_out_of_range(tmp_path, capsys):
+    """Replicas on the calibration's three beds, grains of 1.4 mm: the stiffest two beds' wheels sink
+    under SCM's 3 grain diameters, the softest's not. The ensemble gives the failed check with how many
+    of the replicas failed it, as their run.json say, in ensemble.json, ensemble.csv and the printed
+    table (`cosim run --replicas` never read the runs' validity)."""
+    import csv
+
+    scene = _scene_on(tmp_path, {"k_phi": BED_K_PHI})
+    out = tmp_path / "beds"
+    args = ["run", scene, "--replicas", "3", "--vary-bed", "--serial", "--out", str(out)]
+    assert main([*args, *_sets([*SMOOTH, "bed.radius_mean=0.0007"])]) in (0, 6)  # 6: the softest bed still sinks
+    printed = capsys.readouterr().out
+    failed = []
+    for k in range(3):
+        summary = json.loads((out / f"replica_{k:03d}" / "run.json").read_text())["summary"]
+        failed.append([f["check"] for f in summary["findings"] if not f["ok"]])
+    assert failed[0] == [] and failed[1] == failed[2] == ["scm_sinkage_grains"], failed  # the scene as meant
+    expected = "out of range: scm_sinkage_grains (2/3)"
+    ensemble = json.loads((out / "ensemble.json").read_text())
+    assert ensemble["validity"] == ensemble["stats"]["validity"] == expected
+    with open(out / "ensemble.csv", newline="") as f:
+        assert {r["validity"] for r in csv.DictReader(f)} == {expected}
+    assert any(line.startswith(f"  ! {expected}:") for line in printed.splitlines()), printed

@@ -633,3 +633,186 @@ def test_overwrite_empties_only_a_folder_a_study_or_a_run_wrote(scene_path, tmp_
         (run / name).write_text("old")
     prepare_study(str(run), overwrite=True)
     assert sorted(os.listdir(run)) == [STUDY_MARK, "bed_diverged.npz"]  # a bed's last good state is kept
+
+
+# ------------------------------------------------------------------------------------
+# the validity of the runs behind each row, point and ensemble
+
+SCM_EXAMPLE = os.path.join(os.path.dirname(__file__), "..", "examples", "phobos_single_wheel_scm.toml")
+FINE_SCM = ["bed.radius_mean=1.0e-3", "run.duration=4.0"]
+"""The SCM main job on grains half as large (its sinkage is then over SCM's 3 grain diameters) and
+driven 4 s: at slip 0.3 a valid scene, at slip 0.8 over SCM's slip limit 0.6 (scm_slip)."""
+
+
+def _run_checks(folder) -> list[str] | None:
+    """The checks a run failed, as its own run.json's summary findings say (None: it has no summary)."""
+    record = json.loads((folder / "run.json").read_text())
+    if "summary" not in record:
+        return None
+    return [f["check"] for f in record["summary"]["findings"] if not f["ok"]]
+
+
+def _expected_validity(folders) -> str | None:
+    """What a row over the runs in `folders` must say: 'valid', or each failed check (in the order the
+    runs fail them) with how many of the runs that give a verdict failed it."""
+    judged = [checks for checks in map(_run_checks, folders) if checks is not None]
+    if not judged:
+        return None
+    counts: dict[str, int] = {}
+    for checks in judged:
+        for check in checks:
+            counts[check] = counts.get(check, 0) + 1
+    if not counts:
+        return "valid"
+    return "out of range: " + ", ".join(f"{c} ({k}/{len(judged)})" for c, k in counts.items())
+
+
+def test_a_slip_studys_rows_carry_the_validity_of_their_runs(tmp_path, capsys, monkeypatch):
+    """A user sizes a wheel from the DP/W-slip curve, and the study dropped what each run knew: whether
+    its scene was a valid test. On SCM at slips 0.3 (valid) and 0.8 (over SCM's slip limit), each row
+    carries its runs' verdict, as their run.json findings give it, in the printed table (a marker and a
+    footnote naming the checks), study.csv (a `validity` column), study.json and the plot (a hollow
+    marker with its legend entry)."""
+    import csv
+
+    import matplotlib.pyplot as plt
+
+    from cosim.cli import main
+
+    figures = []
+    monkeypatch.setattr(plt, "close", figures.append)  # keep the plot's figure to read its legend
+    out = tmp_path / "slip"
+    sets = [item for key in FINE_SCM for item in ("--set", key)]
+    args = ["study", "slip", SCM_EXAMPLE, "--slips", "0.3,0.8", "--replicas", "1", "--serial", *sets]
+    assert main([*args, "--out", str(out), "--device", "cpu"]) == 0
+    printed = capsys.readouterr().out
+    expected = {s: _expected_validity([out / f"slip_{s:+.3f}" / "replica_000"]) for s in (0.3, 0.8)}
+    assert expected[0.3] == "valid" and "scm_slip (1/1)" in expected[0.8], expected  # the scene as meant
+    report = json.loads((out / "study.json").read_text())
+    assert {row["slip_set"]: row["validity"] for row in report["rows"]} == expected
+    with open(out / "study.csv", newline="") as f:
+        table = list(csv.DictReader(f))
+    assert {float(row["slip_set [1]"]): row["validity"] for row in table} == expected
+    lines = printed.splitlines()
+    assert "validity" in next(line for line in lines if "DP/W" in line and "slip" in line)
+    row_03 = next(line for line in lines if line.strip().startswith("0.300"))
+    row_08 = next(line for line in lines if line.strip().startswith("0.800"))
+    assert row_03.rstrip().endswith("valid") and row_08.rstrip().endswith("out of range [1]"), printed
+    assert f"  [1] {expected[0.8]}" in lines, printed
+    axes = figures[-1].axes
+    assert all("out of range (validity)" in [t.get_text() for t in ax.get_legend().get_texts()] for ax in axes)
+
+
+def test_a_sweeps_points_carry_the_validity_of_their_runs(tmp_path, capsys):
+    """`cosim sweep` printed `ok True, steady` for a point whose run was out of range: each point now
+    gives its run's verdict (its run.json's) in the printed table and lines, study.csv and study.json."""
+    import csv
+
+    from cosim.cli import main
+
+    out = tmp_path / "sweep"
+    sets = [item for key in FINE_SCM for item in ("--set", key)]
+    args = ["sweep", SCM_EXAMPLE, "--param", "testbed.slip=0.3,0.8", "--serial", "--out", str(out), *sets]
+    assert main([*args, "--device", "cpu"]) == 0
+    captured = capsys.readouterr()
+    folders = {0.3: out / "000_slip=0.3", 0.8: out / "001_slip=0.8"}
+    expected = {}
+    for slip, folder in folders.items():
+        checks = _run_checks(folder)
+        expected[slip] = json.loads((folder / "run.json").read_text())["summary"]["validity"]
+        assert expected[slip] == ("out of range: " + ", ".join(checks) if checks else "valid")
+    assert expected[0.3] == "valid" and "scm_slip" in expected[0.8], expected
+    report = json.loads((out / "study.json").read_text())
+    assert {row["testbed.slip"]: row["validity"] for row in report["rows"]} == expected
+    with open(out / "study.csv", newline="") as f:
+        assert {float(r["testbed.slip [1]"]): r["validity"] for r in csv.DictReader(f)} == expected
+    table = captured.out + captured.err  # the table is logged, the closing lines printed
+    assert re.search(r"^0\.3 .* valid ", table, re.M) and re.search(
+        rf"^0\.8 .* {re.escape(expected[0.8])} ", table, re.M
+    )
+    assert "  1 of 2 points out of range (each run.json says why):" in captured.out.splitlines()
+    assert f"  ! testbed.slip=0.8: {expected[0.8]}" in captured.out.splitlines()
+    assert "testbed.slip=0.3:" not in captured.out
+
+
+def test_a_rows_validity_counts_its_runs_and_the_self_propelled_slip_names_an_out_of_range_row(tmp_path):
+    """A row over replicas gives each failed check with how many of its runs failed it (a run without a
+    summary gives none); the self-propelled slip interpolated from a row out of range says so, naming it."""
+    from cosim.study import slip_study_from_runs
+
+    with open(write_tiny(tmp_path)) as f:
+        text = f.read()
+
+    def finding(check, ok):
+        return {"check": check, "ok": ok, "value": 1.0, "limit": 1.0, "message": check, "setting": "x"}
+
+    runs = {  # slip, replica: DP/W, the checks it failed (None: still running, no summary)
+        (0.2, 0): (-0.05, []),
+        (0.2, 1): (-0.04, ["scm_sinkage_grains"]),
+        (0.4, 0): (0.03, ["scm_slip", "scm_sinkage_grains"]),
+        (0.4, 1): (0.05, ["scm_slip"]),
+        (0.4, 2): (0.04, []),
+        (0.4, 3): (0.0, None),
+    }
+    for (slip, k), (pull, failed) in runs.items():
+        run = tmp_path / "runs" / f"slip_{slip:+.3f}" / f"replica_{k:03d}"
+        run.mkdir(parents=True)
+        (run / "scene.toml").write_text(text)
+        record: dict = {"status": "running"}
+        if failed is not None:
+            checks = ["scm_slip", "scm_sinkage_grains", "scm_froude"]
+            findings = [finding(c, c not in failed) for c in checks]
+            summary = {"steady_state": "steady", "dp_over_w": pull, "slip": slip, "findings": findings}
+            summary["validity"] = "out of range: " + ", ".join(failed) if failed else "valid"
+            record = {"status": "complete", "summary": summary}
+        (run / "run.json").write_text(json.dumps(record))
+    report = slip_study_from_runs([str(tmp_path / "runs")], str(tmp_path / "table"), plot=False)
+    for row in report["rows"]:
+        folders = sorted((tmp_path / "runs" / f"slip_{row['slip_set']:+.3f}").iterdir())
+        assert row["validity"] == _expected_validity(folders)
+    rows = {row["slip_set"]: row["validity"] for row in report["rows"]}
+    assert rows[0.2] == "out of range: scm_sinkage_grains (1/2)"
+    assert rows[0.4] == "out of range: scm_slip (2/3), scm_sinkage_grains (1/3)"
+    assert report["zero_pull_slip"] is not None
+    assert report["zero_pull_slip_validity"] == f"out of range: slip 0.2: {rows[0.2][14:]}; slip 0.4: {rows[0.4][14:]}"
+    assert "a row it is interpolated from is out of range" in report["zero_pull_slip_note"]
+    assert f"! the self-propelled slip is {report['zero_pull_slip_validity']}" in report["text"]
+
+
+def test_the_self_propelled_slip_between_valid_rows_is_valid():
+    """Interpolated between two valid rows the crossing is valid; one row out of range is named alone."""
+    from cosim.study import zero_pull_slip
+
+    low, high = _slip_row(0.2, [-0.03]), _slip_row(0.4, [0.05])
+    assert zero_pull_slip([{**low, "validity": "valid"}, {**high, "validity": "valid"}])["validity"] == "valid"
+    bad = {**high, "validity": "out of range: scm_slip (1/1)"}
+    assert zero_pull_slip([{**low, "validity": "valid"}, bad])["validity"] == "out of range: slip 0.4: scm_slip (1/1)"
+    assert zero_pull_slip([low, high])["validity"] is None  # rows that give no verdict
+
+
+def test_replicas_and_a_precision_study_on_a_valid_scene_say_valid(tmp_path, capsys):
+    """On the analytic terrain (nothing to check: every run valid) `cosim run --replicas 2` writes its
+    replicas' verdict to ensemble.json, ensemble.csv and its printed table, and a precision study to its
+    rows, study.csv and study.json: what the runs' run.json say."""
+    import csv
+
+    from cosim.cli import main
+    from cosim.study import precision_study
+
+    scene = write_tiny(tmp_path, '\n[terrain]\nmodel = "analytic"\nstiffness = 500.0\n')
+    out = tmp_path / "replicas"
+    assert main(["run", scene, "--replicas", "2", "--serial", "--out", str(out)]) in (0, 4)
+    expected = _expected_validity([out / "replica_000", out / "replica_001"])
+    assert expected == "valid"
+    ensemble = json.loads((out / "ensemble.json").read_text())
+    assert ensemble["validity"] == ensemble["stats"]["validity"] == expected
+    with open(out / "ensemble.csv", newline="") as f:
+        assert {r["validity"] for r in csv.DictReader(f)} == {expected}
+    assert "  validity: valid" in capsys.readouterr().out.splitlines()
+    study = precision_study(
+        load_plan(scene), str(tmp_path / "precision"), replicas=1, precisions=("single",), executor="serial", plot=False
+    )
+    assert study["rows"][0]["validity"] == _expected_validity([tmp_path / "precision" / "single" / "replica_000"])
+    assert json.loads((tmp_path / "precision" / "study.json").read_text())["rows"][0]["validity"] == "valid"
+    with open(tmp_path / "precision" / "study.csv", newline="") as f:
+        assert next(csv.DictReader(f))["validity"] == "valid"
