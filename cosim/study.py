@@ -54,7 +54,7 @@ from soil import quiet_warp
 from soil.errors import ArgumentError, InternalError, RegolithError
 from soil.files import atomic_write_text
 
-from . import metrics
+from . import advice, metrics
 from .beds import BED_FILE, BED_INFO_FILE, settled_bed, write_json
 from .folders import RunFolder
 from .plan import MAX_PHASE_STEPS, RunPlan, resolve
@@ -636,7 +636,7 @@ def failed_checks(result: dict) -> list[str] | None:
     if not isinstance(summary, dict):
         return None
     findings = summary.get("findings")
-    if isinstance(findings, list) and all(isinstance(f, dict) and "check" in f for f in findings):
+    if isinstance(findings, list) and findings and all(isinstance(f, dict) and "check" in f for f in findings):
         return list(dict.fromkeys(str(f["check"]) for f in findings if not f.get("ok")))
     verdict = summary.get("validity")
     if verdict == VALID:
@@ -646,22 +646,29 @@ def failed_checks(result: dict) -> list[str] | None:
     return None
 
 
+def _not_checked(result: dict) -> bool:
+    """Whether a finished run's terrain had no validity checks (cosim.advice.NOT_CHECKED: the analytic one)."""
+    summary = result.get("summary") if result.get("ok") else None
+    return isinstance(summary, dict) and summary.get("validity") == advice.NOT_CHECKED
+
+
 def run_validity(result: dict) -> str | None:
-    """A run's verdict as its run.json gives it: 'valid' or 'out of range: CHECK, ...'; None for a run that
-    gives none (failed_checks)."""
+    """A run's verdict as its run.json gives it: 'valid', 'out of range: CHECK, ...' or advice.NOT_CHECKED;
+    None for a run that gives none (failed_checks)."""
     checks = failed_checks(result)
     if checks is None:
-        return None
+        return advice.NOT_CHECKED if _not_checked(result) else None
     return OUT_OF_RANGE + ", ".join(checks) if checks else VALID
 
 
 def ensemble_validity(results: list[dict]) -> str | None:
     """The verdict of the runs behind a row or an ensemble: 'valid' when every run that gives one is
     valid, else 'out of range: CHECK (k/n), ...', each failed check with how many of the n runs that
-    give a verdict failed it (a failed run gives none); None when no run gives one."""
+    give a verdict failed it (a failed run gives none); advice.NOT_CHECKED when the runs' terrain has no
+    checks; None when no run gives one."""
     judged = [checks for r in results if (checks := failed_checks(r)) is not None]
     if not judged:
-        return None
+        return advice.NOT_CHECKED if any(map(_not_checked, results)) else None
     counts = collections.Counter(check for checks in judged for check in checks)
     if not counts:
         return VALID

@@ -790,29 +790,31 @@ def test_the_self_propelled_slip_between_valid_rows_is_valid():
     assert zero_pull_slip([low, high])["validity"] is None  # rows that give no verdict
 
 
-def test_replicas_and_a_precision_study_on_a_valid_scene_say_valid(tmp_path, capsys):
-    """On the analytic terrain (nothing to check: every run valid) `cosim run --replicas 2` writes its
-    replicas' verdict to ensemble.json, ensemble.csv and its printed table, and a precision study to its
-    rows, study.csv and study.json: what the runs' run.json say."""
+def test_replicas_and_a_precision_study_on_a_terrain_without_checks_say_not_checked(tmp_path, capsys):
+    """On the analytic terrain (no validity checks: each run.json says "not checked") `cosim run --replicas 2`
+    writes its replicas' verdict to ensemble.json, ensemble.csv and its printed table, and a precision study
+    to its rows, study.csv and study.json: what the runs' run.json say, never "valid"."""
     import csv
 
+    from cosim.advice import NOT_CHECKED
     from cosim.cli import main
     from cosim.study import precision_study
 
     scene = write_tiny(tmp_path, '\n[terrain]\nmodel = "analytic"\nstiffness = 500.0\n')
     out = tmp_path / "replicas"
     assert main(["run", scene, "--replicas", "2", "--serial", "--out", str(out)]) in (0, 4)
-    expected = _expected_validity([out / "replica_000", out / "replica_001"])
-    assert expected == "valid"
+    for replica in ("replica_000", "replica_001"):
+        assert json.loads((out / replica / "run.json").read_text())["summary"]["validity"] == NOT_CHECKED
+    expected = NOT_CHECKED
     ensemble = json.loads((out / "ensemble.json").read_text())
     assert ensemble["validity"] == ensemble["stats"]["validity"] == expected
     with open(out / "ensemble.csv", newline="") as f:
         assert {r["validity"] for r in csv.DictReader(f)} == {expected}
-    assert "  validity: valid" in capsys.readouterr().out.splitlines()
+    assert f"  validity: {NOT_CHECKED}" in capsys.readouterr().out.splitlines()
     study = precision_study(
         load_plan(scene), str(tmp_path / "precision"), replicas=1, precisions=("single",), executor="serial", plot=False
     )
-    assert study["rows"][0]["validity"] == _expected_validity([tmp_path / "precision" / "single" / "replica_000"])
-    assert json.loads((tmp_path / "precision" / "study.json").read_text())["rows"][0]["validity"] == "valid"
+    assert study["rows"][0]["validity"] == NOT_CHECKED
+    assert json.loads((tmp_path / "precision" / "study.json").read_text())["rows"][0]["validity"] == NOT_CHECKED
     with open(tmp_path / "precision" / "study.csv", newline="") as f:
-        assert next(csv.DictReader(f))["validity"] == "valid"
+        assert next(csv.DictReader(f))["validity"] == NOT_CHECKED
