@@ -582,6 +582,7 @@ def cmd_export_fmu(args) -> int:
 
     from .scene import is_device_name
     from .soil_fmu import export_soil_fmu, soil_config_from
+    from .soil_fmu.config import verdict
 
     _free_output_file(args.out, (".fmu",), args.overwrite)
     if args.device and not is_device_name(args.device):
@@ -598,7 +599,8 @@ def cmd_export_fmu(args) -> int:
     print(
         f"wrote {path}: FMI {args.fmi}.0 co-simulation, {args.wheels} wheel(s), "
         f"{config.terrain.upper()} step {config.dem_step:.4g} s, "
-        f"surface z = {config.surface_height:.4g} m; the soil server runs on {config.device}"
+        f"surface z = {config.surface_height:.4g} m; the soil server runs on {config.device}; "
+        f"validity: {verdict(config.findings)}"
     )
     return EXIT_OK
 

@@ -699,6 +699,10 @@ def test_export_fmu_command_from_a_run_folder(tmp_path):
     for bad in (["--device", "banana"], ["--bed-folder", str(run / "results.h5")]):  # refused, nothing written
         assert main(["export-fmu", str(run), "--out", str(out), "--overwrite", *bad]) == 2, bad
         assert out.read_bytes() == b"an older FMU"
+    # the run's own findings travel (run.json's, what the run started with), not the scene judged again
+    run_json = json.loads((run / "run.json").read_text())
+    run_json["findings"][0]["message"] = "as the run judged it"
+    (run / "run.json").write_text(json.dumps(run_json))
     assert main(["export-fmu", str(run), "--out", str(out), "--fmi", "3", "--wheels", "2", "--overwrite"]) == 0
     assert validate_fmu(str(out)) == []
     description = fmpy.read_model_description(str(out))
@@ -712,6 +716,10 @@ def test_export_fmu_command_from_a_run_folder(tmp_path):
     dt, macro_step = loaded.dt, loaded.macro_step
     run_info = json.loads((run / "bed.json").read_text())
     assert config["dem_step"] == dt and config["wheel_count"] == 2
+    assert config["findings"] == run_json["findings"] and config["findings"][0]["message"] == "as the run judged it"
+    from cosim import advice
+
+    assert config["validity"] == advice.verdict([advice.Finding(**f) for f in run_json["findings"]])
     assert config["surface_height"] == pytest.approx(run_info["metrics"]["height"], rel=1e-12)
     assert config["wheel"]["radius"] == loaded.scene.wheel.radius == SMALL_WHEEL.radius
     assert_every_number_has_a_unit(config, config["units"])
@@ -875,7 +883,7 @@ def scm(tmp_path_factory, frontends):
         for version in (2, 3)
     }
     assert not any(folder.rglob("*.h5")), "no bed is settled for an SCM soil"
-    return {"folder": folder, "plan": load_plan(scene), "config": config, "fmus": fmus}
+    return {"folder": folder, "scene": scene, "plan": load_plan(scene), "config": config, "fmus": fmus}
 
 
 def _runs_scm_soil(plan):
@@ -1040,3 +1048,112 @@ def test_scm_soil_server_puts_a_failed_step_back_and_spreads_several_wheels(scm,
     with pytest.raises(SceneError, match=r"terrain\.wheels: a soil FMU steps one terrain model for all its wheels"):
         soil_config_from(write_small_rover(tmp_path, duration=0.02, extra=mixed), bed_folder=tmp_path / "bed")
     assert not (tmp_path / "bed").exists()
+
+
+# -- the scene's validity travels with the FMU ---------------------------------------------------------------
+
+
+def _soil_json(fmu) -> dict:
+    with zipfile.ZipFile(fmu) as z:
+        return json.loads(z.read("resources/soil.json"))
+
+
+def _server_of_this_checkout(folder: Path) -> dict:
+    """The importer's env_extra for a soil server that imports the cosim these tests import. The front
+    end starts `python -E`, which ignores PYTHONPATH: where the tests import a checkout through it (a
+    git worktree) beside another installed one, the server would run the installed cosim."""
+    import shlex
+
+    import cosim
+
+    root = Path(cosim.__file__).resolve().parent.parent
+    found = subprocess.run(
+        [sys.executable, "-E", "-c", "import cosim; print(cosim.__file__)"],
+        cwd=folder,
+        capture_output=True,
+        text=True,
+        check=False,
+    )
+    if found.returncode == 0 and Path(found.stdout.strip()).resolve().parent.parent == root:
+        return {}
+    wrapper = folder / "python_of_this_checkout"
+    wrapper.write_text(
+        f'#!/bin/sh\n[ "$1" = "-E" ] && shift\nPYTHONPATH={shlex.quote(str(root))} exec '
+        f'{shlex.quote(sys.executable)} "$@"\n'
+    )
+    wrapper.chmod(0o755)
+    return {"REGOLITH_SOIL_PYTHON": str(wrapper)}
+
+
+def test_an_out_of_range_scm_scene_warns_at_export_and_its_fmu_carries_and_logs_the_findings(
+    scm, importer, tmp_path, capsys
+):
+    """`cosim export-fmu` of a scene out of range (the SCM fixture: its sinkage is below 3 grain
+    diameters) warns naming each failed check with its message (what to change); soil.json holds
+    cosim.advice.scm_check's findings and their verdict, the modelDescription's description the
+    verdict (fmpy's validation passes); an FMI master sees the verdict and each failed check as
+    warnings when an instance is initialized (FMI 2.0 and 3.0)."""
+    from cosim import advice
+    from cosim.cli import main
+
+    expected = advice.scm_check(scm["plan"])
+    failed = [f for f in expected if not f.ok]
+    assert failed, "the SCM fixture is out of range"
+    out = scm["folder"] / "warned.fmu"
+    assert main(["export-fmu", str(scm["scene"]), "--out", str(out), "--overwrite"]) == 0
+    said = capsys.readouterr()
+    for finding in failed:
+        assert f"validity: {finding.check}: {finding.message}" in said.err, said.err
+    assert f"validity: {advice.verdict(expected)}" in said.out and "out of range: " in said.out
+    assert validate_fmu(str(out)) == []
+    assert (
+        f"validity: {advice.verdict(expected)} (resources/soil.json)"
+        in fmpy.read_model_description(str(out)).description
+    )
+    for fmu in (out, scm["fmus"][3]):
+        data = _soil_json(fmu)
+        assert data["findings"] == [f.as_dict() for f in expected]
+        assert data["validity"] == advice.verdict(expected)
+
+    job = {"master": "fmpy", "instances": [], "steps": [{"h": H, "inputs": []}]}
+    for fmu in (out, scm["fmus"][3]):
+        start = _inputs(WheelKinematics(_start_hub(fmu), (1, 0, 0, 0), (0, 0, 0), (0, 0, 0)))
+        job["instances"].append({"fmu": str(fmu), "start": start})
+        job["steps"][0]["inputs"].append(start)
+    result = importer(job, env_extra=_server_of_this_checkout(tmp_path))
+    assert all(s == ["ok", "ok"] for s in result["status"]), result["messages"]
+    warnings = [m[2] for m in result["messages"] if m[0] == "warning" and m[1] == "logServer"]
+    head = f"validity: {advice.verdict(expected)} (see resources/soil.json: findings)"
+    assert sum(head in w for w in warnings) == 2, result["messages"]  # once per instance
+    for finding in failed:
+        assert sum(f"validity: {finding.check}: {finding.message}" in w for w in warnings) == 2, warnings
+
+
+def test_the_dem_soil_fmu_carries_the_findings_a_run_starts_with(tiny):
+    """The DEM soil FMU's soil.json holds cosim.advice.check's findings on its settled bed's surface (what a
+    run of the scene starts with and stores in run.json) and their verdict."""
+    from cosim import advice
+
+    expected = advice.check(tiny["plan"], tiny["config"].surface_height)
+    for fmu in tiny["fmus"].values():
+        data = _soil_json(fmu)
+        assert data["findings"] == [f.as_dict() for f in expected]
+        assert data["validity"] == advice.verdict(expected)
+
+
+def test_a_valid_scene_exports_quietly_and_its_fmu_says_valid(scm, tmp_path, capsys):
+    """The SCM fixture's scene with grains fine enough for a continuum passes every check: the export
+    warns of nothing, says "validity: valid", and soil.json's findings are all ok, its validity "valid"."""
+    from cosim import advice
+    from cosim.cli import main
+
+    scene = tmp_path / "valid.toml"
+    scene.write_text(Path(scm["scene"]).read_text().replace("radius_mean = 0.0035", "radius_mean = 0.0005"))
+    expected = advice.scm_check(load_plan(scene))
+    assert advice.verdict(expected) == "valid"
+    out = tmp_path / "valid.fmu"
+    assert main(["export-fmu", str(scene), "--out", str(out)]) == 0
+    said = capsys.readouterr()
+    assert "validity: valid" in said.out and "validity" not in said.err, said
+    data = _soil_json(out)
+    assert data["findings"] == [f.as_dict() for f in expected] and data["validity"] == "valid"

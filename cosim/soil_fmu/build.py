@@ -474,6 +474,27 @@ def wheel_start_positions(config, wheel_count: int) -> np.ndarray:
 # -- the FMU ----------------------------------------------------------------------------------------
 
 
+def failed_findings(data: dict) -> list[dict]:
+    """The findings out of range of a soil.json configuration (none where it holds no findings)."""
+    findings = data.get("findings")
+    return [f for f in findings if isinstance(f, dict) and not f.get("ok", True)] if isinstance(findings, list) else []
+
+
+def warn_validity(data: dict, destination) -> None:
+    """Log a warning for each finding of the configuration out of range, naming the check and what to
+    change (the finding's own text), then the verdict: the FMU's user never runs `cosim advise`."""
+    failed = failed_findings(data)
+    for finding in failed:
+        log.warning("validity: %s: %s", finding.get("check"), finding.get("message"))
+    if failed:
+        log.warning(
+            "validity: %s: %s carries these findings (resources/soil.json: findings, validity) and warns of "
+            "them when an instance is initialized",
+            data.get("validity"),
+            destination,
+        )
+
+
 def export_soil_fmu(
     config,
     destination,
@@ -510,6 +531,7 @@ def export_soil_fmu(
             python,
         )
     data = config_to_json(config, wheel_count)
+    warn_validity(data, destination)
     starts = np.zeros((wheel_count, 13))
     starts[:, 0:3] = wheel_start_positions(config, wheel_count)
     starts[:, 3] = 1.0  # orientation (1, 0, 0, 0): axle along the world's y axis
@@ -521,6 +543,8 @@ def export_soil_fmu(
         f"{soil} '{config.name}' (regolith-cosim): wheel kinematics in, wheel wrenches out; "
         f"{wheel_count} wheel(s); needs the soil server's Python (docs/fmu.md)"
     )
+    if data.get("validity"):
+        description += f"; validity: {data['validity']} (resources/soil.json)"
     platform, suffix = _platform(fmi_version)
     destination = Path(destination)
     destination.parent.mkdir(parents=True, exist_ok=True)

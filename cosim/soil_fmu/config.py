@@ -81,6 +81,11 @@ class SoilFmuConfig:
     gravity: tuple[float, ...] | None = None
     """terrain 'scm': the scene's gravity vector [m/s^2], at which the SCM parameters hold (the DEM's
     gravity is its bed's)."""
+    findings: list[dict] | None = None
+    """The scene's validity findings (cosim.advice.Finding.as_dict, as run.json stores them): those a
+    run of the scene starts with (cosim.system.validity: the DEM's grain scales, SCM's checks), or a
+    run folder's own; None: not judged (a configuration made by hand). soil.json carries them and
+    their verdict, the export warns of those out of range and the FMU at its initialization."""
 
     def __post_init__(self):
         if not (isinstance(self.dem_step, (int, float)) and math.isfinite(self.dem_step) and self.dem_step > 0):
@@ -111,6 +116,8 @@ def soil_config_from(path, bed_folder=None) -> SoilFmuConfig:
     bed is the run's (a run folder: the bed its run.json names, else its bed.h5) or the plan's
     (its bed.bed_file, or a bed settled now in `bed_folder`, cached there by the bed key); on SCM
     ([terrain] model = "scm") there is no bed: the plan's SCM terrain goes into the configuration.
+    The configuration's findings are the scene's validity checks at the start of a run (a run
+    folder's: those its run.json holds).
     """
     from cosim.beds import bed_from_file, settled_bed
     from cosim.plan import load_plan
@@ -127,7 +134,9 @@ def soil_config_from(path, bed_folder=None) -> SoilFmuConfig:
         from cosim.scm_soil import check_scm_grid
 
         check_scm_grid(plan, memory=False)  # the server allocates it, on its own machine
-        return _scm_config(plan)
+        config = _scm_config(plan)
+        config.findings = _findings(plan, config.surface_height, path if run_folder else None)
+        return config
     if run_folder:
         bed_path = os.path.join(path, "bed.h5")
         run_file = os.path.join(path, "run.json")
@@ -142,6 +151,7 @@ def soil_config_from(path, bed_folder=None) -> SoilFmuConfig:
             raise ArgumentError("a scene without bed.bed_file needs a bed_folder to settle its bed in")
         bed = settled_bed(plan, os.fspath(bed_folder) if bed_folder else "")
     return SoilFmuConfig(
+        findings=_findings(plan, bed.surface_height, path if run_folder else None),
         bed_file=os.path.abspath(bed.path),
         wheel=plan.wheel.shape,
         wheel_material=plan.wheel.material,
@@ -161,6 +171,34 @@ def soil_config_from(path, bed_folder=None) -> SoilFmuConfig:
             else None
         ),
     )
+
+
+def _findings(plan, surface_height: float, run_folder: str | None) -> list[dict]:
+    """The validity findings (dicts) of a run of `plan` at its start, on a bed whose surface is at
+    `surface_height` [m] (cosim.system.validity, as cosim.launch judges a run); a run folder's
+    run.json findings where it holds them (those the run started with)."""
+    from cosim.advice import Finding
+    from cosim.system import validity
+
+    if run_folder is not None:
+        try:
+            with open(os.path.join(run_folder, "run.json")) as f:
+                stored = json.load(f).get("findings")
+            if isinstance(stored, list):
+                return [Finding(**finding).as_dict() for finding in stored]  # a garbled entry: judged again
+        except (OSError, ValueError, TypeError, AttributeError):
+            pass  # no run.json, or not the one a run wrote: judge the scene again
+    return [finding.as_dict() for finding in validity(plan, surface_height)]
+
+
+def verdict(findings: list[dict] | None) -> str | None:
+    """'valid', 'out of range: CHECK, ...' (cosim.advice.verdict) of findings as dicts; None for None."""
+    if findings is None:
+        return None
+    from cosim.advice import Finding
+    from cosim.advice import verdict as judged
+
+    return judged([Finding(**finding) for finding in findings])
 
 
 def _scm_config(plan) -> SoilFmuConfig:
@@ -248,6 +286,12 @@ def config_to_json(config: SoilFmuConfig, wheel_count: int) -> dict:
         "device": config.device,
         "extra": config.extra,
     }
+    if config.findings is not None:  # what `cosim advise` says of the scene, for the FMU's user
+        from cosim.beds import finite_or_null
+
+        # a number that is not finite as null, as run.json writes it (strict JSON readers refuse NaN)
+        data.update(findings=finite_or_null(config.findings), validity=verdict(config.findings))
+        units["findings"] = "each finding's own unit (of its value and limit)"
     if config.terrain == "scm":
         assert config.scm is not None and config.gravity is not None  # SoilFmuConfig checks them
         length, width = config.scm.window

@@ -166,6 +166,7 @@ class SoilSession:
                 f"gravity: the SCM soil's parameters hold at the scene's gravity {config['gravity']} m/s^2, "
                 f"the FMU's gravity parameter asks for {gravity}: export the FMU from a scene at that gravity"
             )
+        validity_warnings(config)  # before the slow part: a master shows it even if the start fails
         quiet_warp()
         self.soil = soil_from_config(config, os.path.join(resources, BED_FILE), dem_step, device)
         self.soil.set_gravity(gravity)
@@ -238,6 +239,28 @@ class SoilSession:
     def free(self, ident: int) -> bytes:
         self.states.pop(ident, None)
         return f"FMU state {ident} freed".encode()
+
+
+WARNING_LINE = 500
+"""Longest stderr warning line [characters]: the front end reads lines of up to 511 bytes and logs
+the rest of a longer one as another line, not as a warning."""
+
+
+def validity_warnings(config: dict) -> None:
+    """Warn (stderr "warning: " lines: FMI warnings in the master, category logServer) of the scene's
+    validity out of range, as soil.json holds it: its verdict, then each failed check's message."""
+    from .build import failed_findings
+
+    failed = failed_findings(config)
+    if not failed:
+        return
+    lines = [f"validity: {config.get('validity')} (see resources/{CONFIG_FILE}: findings)"]
+    lines += [f"validity: {f.get('check')}: {f.get('message')}" for f in failed]
+    for line in lines:
+        text = " ".join(str(line).split()).encode("utf-8")
+        if len(text) > WARNING_LINE:
+            text = text[: WARNING_LINE - 3] + b"..."
+        print(f"warning: {text.decode('utf-8', 'ignore')}", file=sys.stderr, flush=True)
 
 
 def outputs(wrenches) -> bytes:
