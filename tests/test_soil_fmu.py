@@ -1058,36 +1058,7 @@ def _soil_json(fmu) -> dict:
         return json.loads(z.read("resources/soil.json"))
 
 
-def _server_of_this_checkout(folder: Path) -> dict:
-    """The importer's env_extra for a soil server that imports the cosim these tests import. The front
-    end starts `python -E`, which ignores PYTHONPATH: where the tests import a checkout through it (a
-    git worktree) beside another installed one, the server would run the installed cosim."""
-    import shlex
-
-    import cosim
-
-    root = Path(cosim.__file__).resolve().parent.parent
-    found = subprocess.run(
-        [sys.executable, "-E", "-c", "import cosim; print(cosim.__file__)"],
-        cwd=folder,
-        capture_output=True,
-        text=True,
-        check=False,
-    )
-    if found.returncode == 0 and Path(found.stdout.strip()).resolve().parent.parent == root:
-        return {}
-    wrapper = folder / "python_of_this_checkout"
-    wrapper.write_text(
-        f'#!/bin/sh\n[ "$1" = "-E" ] && shift\nPYTHONPATH={shlex.quote(str(root))} exec '
-        f'{shlex.quote(sys.executable)} "$@"\n'
-    )
-    wrapper.chmod(0o755)
-    return {"REGOLITH_SOIL_PYTHON": str(wrapper)}
-
-
-def test_an_out_of_range_scm_scene_warns_at_export_and_its_fmu_carries_and_logs_the_findings(
-    scm, importer, tmp_path, capsys
-):
+def test_an_out_of_range_scm_scene_warns_at_export_and_its_fmu_carries_and_logs_the_findings(scm, importer, capsys):
     """`cosim export-fmu` of a scene out of range (the SCM fixture: its sinkage is below 3 grain
     diameters) warns naming each failed check with its message (what to change); soil.json holds
     cosim.advice.scm_check's findings and their verdict, the modelDescription's description the
@@ -1120,7 +1091,7 @@ def test_an_out_of_range_scm_scene_warns_at_export_and_its_fmu_carries_and_logs_
         start = _inputs(WheelKinematics(_start_hub(fmu), (1, 0, 0, 0), (0, 0, 0), (0, 0, 0)))
         job["instances"].append({"fmu": str(fmu), "start": start})
         job["steps"][0]["inputs"].append(start)
-    result = importer(job, env_extra=_server_of_this_checkout(tmp_path))
+    result = importer(job)
     assert all(s == ["ok", "ok"] for s in result["status"]), result["messages"]
     warnings = [m[2] for m in result["messages"] if m[0] == "warning" and m[1] == "logServer"]
     head = f"validity: {advice.verdict(expected)} (see resources/soil.json: findings)"
