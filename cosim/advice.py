@@ -68,40 +68,61 @@ def _finding(check, value, limit, ok, good, bad, setting, unit: str = "1") -> Fi
     return Finding(check, float(value), float(limit), bool(ok), good if ok else bad, setting, unit)
 
 
-def ground_pressure(plan: RunPlan) -> float:
+def _judged(plan: RunPlan, indices=None) -> list[int]:
+    """The indices of the wheels a check judges: `indices` (a mixed terrain's wheels of one model), or all."""
+    count = len(plan.wheels or (plan.wheel,))
+    return list(range(count)) if indices is None else [int(i) for i in indices]
+
+
+def ground_pressure(plan: RunPlan, indices=None) -> float:
     """Wheel ground pressure [Pa]: the load over the width times a contact length 2 sqrt(2 R s)
-    at a sinkage s of one mean grain radius; a rover's highest (its narrowest, smallest wheel)."""
+    at a sinkage s of one mean grain radius; a rover's highest (its narrowest, smallest wheel) among
+    the wheels `indices` (None: all)."""
+    wheels = plan.wheels or (plan.wheel,)
 
     def pressure(w) -> float:
         length = 2.0 * math.sqrt(2.0 * w.outer_radius * plan.bed.spec.radius_mean)
         return plan.wheel_load / (w.width * length)
 
-    return max(pressure(w) for w in plan.wheels or (plan.wheel,))
+    return max(pressure(wheels[i]) for i in _judged(plan, indices))
 
 
 def _omega_key(plan: RunPlan) -> str:
-    """The scene key of the drive's wheel speeds."""
+    """The scene key that sets the drive's wheel speeds: the testbed's omega, a speed drive's speed, a slip
+    controller's omega_max, a torque drive's torque, or the controller itself (an FMU or Python drive)."""
     if plan.testbed is not None:
         return "testbed.omega"
     assert plan.rover is not None and plan.scene.rover is not None  # a plan has a testbed or a rover
     named = isinstance(plan.scene.rover.drive, str)
-    key = "omega_max" if plan.rover.drive.kind == "slip" else "speed"
-    return f"rover.controllers.{plan.rover.drive.name}.{key}" if named else f"rover.drive.{key}"
+    base = f"rover.controllers.{plan.rover.drive.name}" if named else "rover.drive"
+    key = {"slip": "omega_max", "speed": "speed", "torque": "torque"}.get(plan.rover.drive.kind)
+    return f"{base}.{key}" if key else base
 
 
-def _froude_finding(plan: RunPlan, spins, how: str, check: str = "froude", advice: str = "") -> Finding | None:
-    """Froude's number of the fastest wheel (omega^2 r / |g|, each wheel at its |omega| in `spins` [rad/s]),
-    or None when no speed is known."""
+def _froude_finding(
+    plan: RunPlan, spins, how: str, check: str = "froude", advice: str = "", indices=None
+) -> Finding | None:
+    """Froude's number of the fastest of the wheels `indices` (None: all; omega^2 r / |g|, each wheel at its
+    |omega| in `spins` [rad/s], one per wheel of the plan; a nan speed is not known), or None when no speed
+    of them is known."""
     wheels = plan.wheels or (plan.wheel,)
-    if spins is None or len(spins) != len(wheels) or not all(math.isfinite(float(v)) for v in spins):
+    if spins is None or len(spins) != len(wheels):
+        return None
+    known = [i for i in _judged(plan, indices) if math.isfinite(float(spins[i]))]
+    if not known:
         return None
     g = plan.g
-    numbers = [float(v) ** 2 * w.outer_radius / g if g > 0 else math.inf for v, w in zip(spins, wheels)]
-    k = max(range(len(wheels)), key=lambda i: numbers[i])
+    numbers = {i: float(spins[i]) ** 2 * wheels[i].outer_radius / g if g > 0 else math.inf for i in known}
+    k = max(known, key=lambda i: numbers[i])
     fr, radius = numbers[k], wheels[k].outer_radius
     notes = ([f"wheel {k}, the fastest"] if len(wheels) > 1 else []) + ([how] if how else [])
     which = f" ({'; '.join(notes)})" if notes else ""
     key = _omega_key(plan)
+    slower = (
+        f"lower {key} to <= {math.sqrt(FROUDE_LIMIT * g / radius):.3g} rad/s"
+        if key.endswith(("omega", "speed", "omega_max"))
+        else f"slow the drive ({key}) to <= {math.sqrt(FROUDE_LIMIT * g / radius):.3g} rad/s"
+    )
     return _finding(
         check,
         fr,
@@ -113,7 +134,7 @@ def _froude_finding(plan: RunPlan, spins, how: str, check: str = "froude", advic
         + (
             advice
             or "not quasi-static at this speed and gravity (the slip depends on the speed; faster, the wheel hops); "
-            f"lower {key} to <= {math.sqrt(FROUDE_LIMIT * g / radius):.3g} rad/s"
+            + slower
         ),
         key,
     )
@@ -123,20 +144,44 @@ def _is_slip(plan: RunPlan) -> bool:
     return plan.rover is not None and plan.rover.drive.kind == "slip"
 
 
+def pid_step_bound(plan: RunPlan) -> float:
+    """The longest substep the PID step control may take [s]: run.dt_max, or unset the advisor's limit it
+    defaults to (cosim.plan.enable_step_control)."""
+    if plan.dt_max is not None:
+        return plan.dt_max
+    spec = plan.bed.spec
+    return advisor.recommended_time_step(
+        plan.soil_material, radius=spec.radius_min, gravity=plan.g, height=spec.depth, pressure=ground_pressure(plan)
+    ).dt_max
+
+
+def _contact_steps_waits(plan: RunPlan, surface_height: float | None = None) -> bool:
+    """Whether contact_steps waits for the run: under the PID step control, when its longest substep allowed
+    resolves a contact by fewer than CONTACT_STEPS (it may take shorter ones: its error control decides)."""
+    if plan.step_control != "pid":
+        return False
+    found = [f for f in check(plan, surface_height) if f.check == "contact_steps"]
+    return not found
+
+
 def check(
     plan: RunPlan,
     surface_height: float | None = None,
     sinkage_tips: float | None = None,
     wheel_spins=None,
     longest_substep: float | None = None,
+    indices=None,
 ) -> list[Finding]:
-    """The validity findings of a plan; the settled surface height [m], the measured tip sinkage [m] (a
-    rover's deepest wheel's), the measured wheel speeds [rad/s] (W,) and under the PID step control the
-    longest substep it took [s] sharpen the depth, floor, Froude and contact checks when known (the PID's
-    contact resolution is judged on the substeps it took only: its error control, not run.dt_max, sets
-    them)."""
+    """The validity findings of a plan on the DEM, judging the wheels `indices` (None: all; a mixed
+    terrain's DEM wheels); the settled surface height [m], the measured tip sinkage [m] (the deepest judged
+    wheel's), the measured wheel speeds [rad/s] (W,) and under the PID step control the longest substep it
+    took [s] sharpen the depth, floor, Froude and contact checks when known. Under the PID, contact_steps
+    is judged before the run at its longest substep allowed (run.dt_max, or the advisor's limit) when the
+    contact passes there; else it waits for the substeps taken (its error control, not the bound, sets them)."""
     spec, t = plan.bed.spec, plan.testbed
-    wheels = plan.wheels or (plan.wheel,)
+    every = plan.wheels or (plan.wheel,)
+    chosen = _judged(plan, indices)
+    wheels = [every[i] for i in chosen]
     narrowest = min(wheels, key=lambda w: w.width)  # the fewest grains across
     largest = max(wheels, key=lambda w: w.outer_radius)  # the deepest stress bulb
     diameter = 2.0 * spec.radius_mean
@@ -144,13 +189,13 @@ def check(
     drive = plan.wheel_speeds
     speeds = [float(v) for v in drive] if drive is not None else None
     how = "" if plan.testbed is not None else "at the slip controller's omega_max" if _is_slip(plan) else ""
-    froude = _froude_finding(plan, speeds, how)
-    if froude is None and wheel_spins is not None:
-        speeds = [abs(float(v)) for v in wheel_spins]
-        froude = _froude_finding(plan, speeds, "at the measured wheel speeds")
+    froude = _froude_finding(plan, speeds, how, indices=chosen)
+    if froude is None and wheel_spins is not None and len(wheel_spins) == len(every):
+        speeds = [abs(_number(v)) for v in wheel_spins]
+        froude = _froude_finding(plan, speeds, "at the measured wheel speeds", indices=chosen)
     if froude is not None:
         findings.append(froude)
-    rims = [float(v) * w.outer_radius for v, w in zip(speeds, wheels)] if speeds is not None else []
+    rims = [float(speeds[i]) * every[i].outer_radius for i in chosen] if speeds is not None else []
     rim_speed = max((v for v in rims if math.isfinite(v)), default=0.0)
 
     g = plan.g
@@ -161,12 +206,18 @@ def check(
     contact = advisor.hertz_contact_time(
         material.youngs_modulus, material.poisson_ratio, material.density, smallest, max(speed, 1e-12)
     )
-    pid = plan.step_control == "pid"
-    measured_step = longest_substep is not None and math.isfinite(longest_substep) and longest_substep > 0
-    if not pid or measured_step:
-        dt, dt_key = (float(longest_substep or 0.0), "run.dt_max, run.tolerance") if pid else (plan.dt, plan.dt_setting)
+    if plan.step_control != "pid":
+        dt, dt_key, step_name = plan.dt, plan.dt_setting, "DEM steps"
+    elif longest_substep is not None and math.isfinite(longest_substep) and longest_substep > 0:
+        dt, dt_key = float(longest_substep), "run.dt_max, run.tolerance"
+        step_name = f"of the PID's longest substeps ({dt:.3g} s, taken)"
+    else:  # before the run: the bound, judged only when it passes (the PID may take shorter substeps)
+        dt, dt_key = pid_step_bound(plan), "run.dt_max"
+        step_name = f"of the PID's longest substeps allowed ({dt:.3g} s)"
+        if contact / dt < CONTACT_STEPS:
+            dt = math.nan
+    if math.isfinite(dt):
         steps = contact / dt
-        step_name = f"of the PID's longest substeps ({dt:.3g} s, taken)" if pid else "DEM steps"
         findings.append(
             _finding(
                 "contact_steps",
@@ -262,7 +313,7 @@ def check(
             )
         )
 
-    pressure = ground_pressure(plan)
+    pressure = ground_pressure(plan, chosen)
     bound = advisor.macroscopic_stiffness(depth, pressure, OVERLAP_RATIO, spec.radius_mean, material.density, g)
     ratio = material.youngs_modulus / bound if bound > 0 else math.inf
     findings.append(
@@ -335,18 +386,20 @@ def judged_after_the_run(plan: RunPlan) -> list[tuple[str, str]]:
     """(check, what it will compare) for each check that only the run's own measurements can judge,
     so that advice before a run names it instead of passing over it: Froude's number when the drive's
     controller sets the wheel speeds as it goes (torque, FMU, Python drives), SCM's slip limit when the
-    drive sets no slip (a free wheel, a speed or torque drive), the calibration depth
+    drive sets no slip (a free wheel, a speed or torque drive) and a wheel fit's slips, the PID's contact
+    resolution when its longest substep allowed does not resolve a contact, the calibration depth
     (`scm_calibration_depth`), on the run's rim sinkage. Bekker's closed form for a smooth wheel is
     given beside it; on a grousered wheel it overstates SCM's own sinkage (the main job: 2.5x)."""
     from .scm_soil import bekker_wheel_sinkage, scm_settings
 
     pending = []
     indices, wheels = _scm_wheels(plan)
-    if plan.step_control == "pid" and plan.terrain.model in ("dem", "mixed"):
+    if plan.terrain.model in ("dem", "mixed") and _contact_steps_waits(plan):
         pending.append(
             (
                 "contact_steps",
-                "the contact time against the longest substep the PID takes (its error control sets them)",
+                "the contact time against the longest substep the PID takes (its error control sets them below "
+                "run.dt_max, which alone resolves a contact by too few)",
             )
         )
     if plan.wheel_speeds is None:
@@ -360,6 +413,11 @@ def judged_after_the_run(plan: RunPlan) -> list[tuple[str, str]]:
         ]
     if wheels and _drive_slip(plan)[0] is None:
         pending.append(("scm_slip", f"the run's measured slip against |slip| <= {SCM_SLIP_LIMIT}"))
+        if plan.terrain.calibration_slips is not None:
+            low, high = plan.terrain.calibration_slips
+            pending.append(
+                ("scm_calibration_slips", f"the run's measured slip against the fit's {low:.3g} .. {high:.3g}")
+            )
     tested = plan.terrain.calibration_sinkage
     if tested is None or not wheels:
         return pending
@@ -377,17 +435,28 @@ def judged_after_the_run(plan: RunPlan) -> list[tuple[str, str]]:
 
 
 def _per_wheel(measured: dict, name: str, indices: list[int], count: int) -> list[float] | None:
-    """The measured `name` of the wheels `indices` ([m]): a rover summary's wheel_<name> per wheel, else the
-    summary's `name` for each (a single wheel); None when the run measured none."""
+    """The measured `name` of the wheels `indices`, in their order: a rover summary's wheel_<name> per wheel,
+    else the summary's `name` for each (a single wheel); a value not measured is nan in its place; None
+    when the run measured none of them."""
     each = measured.get(f"wheel_{name}")
     if each is not None and len(each) == count:
-        values = [float(each[i]) for i in indices]
+        values = [_number(each[i]) for i in indices]
     elif measured.get(name) is not None:
-        values = [float(measured[name])] * len(indices)
+        values = [_number(measured[name])] * len(indices)
     else:
         return None
-    finite = [v for v in values if math.isfinite(v)]
-    return finite or None
+    return values if any(math.isfinite(v) for v in values) else None
+
+
+def _number(value) -> float:
+    try:
+        return float(value)
+    except (TypeError, ValueError):  # a null of a JSON summary
+        return math.nan
+
+
+def _finite(values) -> list[float]:
+    return [v for v in values if math.isfinite(v)]
 
 
 def deepest(measured: dict | None, name: str, indices: list[int] | None = None) -> float | None:
@@ -397,7 +466,7 @@ def deepest(measured: dict | None, name: str, indices: list[int] | None = None) 
     each = measured.get(f"wheel_{name}")
     count = len(each) if each is not None else 1
     values = _per_wheel(measured, name, list(range(count)) if indices is None else indices, count)
-    return max(values) if values else None
+    return max(_finite(values)) if values else None
 
 
 def scm_check(plan: RunPlan, measured: dict | None = None) -> list[Finding]:
@@ -422,9 +491,10 @@ def scm_check(plan: RunPlan, measured: dict | None = None) -> list[Finding]:
         return []
     parameters = scm_settings(plan, indices, 0.0).parameters
     measured = measured or {}
-    slip = measured.get("slip")
-    # each SCM wheel's sinkage at its tips: measured (a rover's per wheel), or Bekker's closed form for its load
-    tips = _per_wheel(measured, "sinkage_tips", indices, len(plan.wheels or (plan.wheel,)))
+    count = len(plan.wheels or (plan.wheel,))
+    # each SCM wheel's sinkage at its tips: measured (a rover's per wheel, nan where not measured), or
+    # Bekker's closed form for its load
+    tips = _per_wheel(measured, "sinkage_tips", indices, count)
     if tips is not None:
         sinkages, how = tips, "measured"
     else:
@@ -435,9 +505,10 @@ def scm_check(plan: RunPlan, measured: dict | None = None) -> list[Finding]:
     def grouser_of(w) -> float:
         return float(getattr(w.shape, "grouser_height", 0.0)) if getattr(w.shape, "grouser_count", 0) else 0.0
 
-    ratios = [grouser_of(w) / max(z, 1e-12) for w, z in zip(wheels, sinkages)]
-    if any(grouser_of(w) > 0 for w in wheels):
-        k = max(range(len(wheels)), key=lambda i: ratios[i])  # the wheel whose grousers carry the most
+    ratios = [grouser_of(w) / max(z, 1e-12) if math.isfinite(z) else math.nan for w, z in zip(wheels, sinkages)]
+    known = [i for i in range(len(wheels)) if math.isfinite(ratios[i])]
+    if known and any(grouser_of(w) > 0 for w in wheels):
+        k = max(known, key=lambda i: ratios[i])  # the wheel whose grousers carry the most
         grouser, sinkage = grouser_of(wheels[k]), sinkages[k]
         which = f"wheel {indices[k]}: " if len(plan.wheels) > 1 else ""
         findings.append(
@@ -471,7 +542,7 @@ def scm_check(plan: RunPlan, measured: dict | None = None) -> list[Finding]:
             )
         )
     diameter = 2.0 * plan.bed.spec.radius_mean
-    sinkage = min(sinkages)  # the shallowest wheel rides on the fewest grains
+    sinkage = min(_finite(sinkages), default=math.nan)  # the shallowest wheel rides on the fewest grains
     findings.append(
         _finding(
             "scm_sinkage_grains",
@@ -485,44 +556,56 @@ def scm_check(plan: RunPlan, measured: dict | None = None) -> list[Finding]:
         )
     )
     target, key = _drive_slip(plan)
-    slip_how = "measured" if slip is not None and math.isfinite(slip) else "set"
-    slip = slip if slip_how == "measured" else target
-    if slip is not None:
+    key = key or "testbed.slip, rover.controllers"
+    found = _per_wheel(measured, "slip", indices, count)  # each SCM wheel's own (a rover's wheel_slip)
+    if found is not None:
+        slips, slip_how = [(indices[k], v) for k, v in enumerate(found) if math.isfinite(v)], "measured"
+    else:
+        slips, slip_how = ([(i, float(target)) for i in indices] if target is not None else []), "set"
+    if slips:
+        wheel, slip = max(slips, key=lambda pair: abs(pair[1]))  # the wheel that slips or skids the most
+        which = f" of wheel {wheel}" if count > 1 and slip_how == "measured" else ""
         findings.append(
             _finding(
                 "scm_slip",
                 slip,
                 SCM_SLIP_LIMIT,
                 abs(slip) <= SCM_SLIP_LIMIT,
-                f"slip {slip:.3g} ({slip_how}): |slip| <= {SCM_SLIP_LIMIT}",
-                f"slip {slip:.3g} ({slip_how}): |slip| > {SCM_SLIP_LIMIT}: the wheel digs in (slip sinkage, soil "
-                "flowing round it), "
+                f"slip{which} {slip:.3g} ({slip_how}): |slip| <= {SCM_SLIP_LIMIT}",
+                f"slip{which} {slip:.3g} ({slip_how}): |slip| > {SCM_SLIP_LIMIT}: the wheel digs in (slip sinkage, "
+                "soil flowing round it), "
                 f"outside SCM's steady Bekker-Janosi model; {USE_DEM}",
-                key or "testbed.slip, rover.controllers",
+                key,
             )
         )
         fitted = plan.terrain.calibration_slips
         if fitted is not None:
             low, high = fitted
+
+            def beyond(pair) -> float:
+                return max(low - pair[1], pair[1] - high)  # > 0 outside the fitted slips
+
+            wheel, slip = max(slips, key=beyond)
+            which = f" of wheel {wheel}" if count > 1 and slip_how == "measured" else ""
             findings.append(
                 _finding(
                     "scm_calibration_slips",
                     slip,
                     high if slip > high else low,
-                    low - 1e-9 <= slip <= high + 1e-9,
-                    f"slip {slip:.3g} ({slip_how}) within the slips the wheel fit was fitted on ({low:.3g} .. "
+                    beyond((wheel, slip)) <= 1e-9,
+                    f"slip{which} {slip:.3g} ({slip_how}) within the slips the wheel fit was fitted on ({low:.3g} .. "
                     f"{high:.3g})",
-                    f"slip {slip:.3g} ({slip_how}) outside the slips the wheel fit was fitted on ({low:.3g} .. "
+                    f"slip{which} {slip:.3g} ({slip_how}) outside the slips the wheel fit was fitted on ({low:.3g} .. "
                     f"{high:.3g}): its fitted keys are extrapolated there; fit over slips that include it (cosim "
                     "calibrate-scm SCENE --from-wheel on a slip study over them) or use the DEM",
-                    "terrain.calibration, " + (key or "testbed.slip, rover.controllers"),
+                    "terrain.calibration, " + key,
                 )
             )
     dynamic = "a dynamic regime (soil inertia, the wheel hops) that SCM's quasi-static laws do not hold; " + USE_DEM
-    froude = _froude_finding(plan, plan.wheel_speeds, "", "scm_froude", dynamic)
+    froude = _froude_finding(plan, plan.wheel_speeds, "", "scm_froude", dynamic, indices)
     if froude is None and measured.get("wheel_spin") is not None:
-        spins = [abs(float(v)) for v in measured["wheel_spin"]]
-        froude = _froude_finding(plan, spins, "at the measured wheel speeds", "scm_froude", dynamic)
+        spins = [abs(_number(v)) for v in measured["wheel_spin"]]
+        froude = _froude_finding(plan, spins, "at the measured wheel speeds", "scm_froude", dynamic, indices)
     if froude is not None:
         findings.append(froude)
     calibrated = plan.terrain.calibration_gravity

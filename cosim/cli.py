@@ -600,7 +600,7 @@ def cmd_export_fmu(args) -> int:
         f"wrote {path}: FMI {args.fmi}.0 co-simulation, {args.wheels} wheel(s), "
         f"{config.terrain.upper()} step {config.dem_step:.4g} s, "
         f"surface z = {config.surface_height:.4g} m; the soil server runs on {config.device}; "
-        f"validity: {verdict(config.findings)}"
+        f"validity: {verdict(config.findings, config.unjudged)}"
     )
     return EXIT_OK
 

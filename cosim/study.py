@@ -638,6 +638,8 @@ def failed_checks(result: dict) -> list[str] | None:
     findings = summary.get("findings")
     if isinstance(findings, list) and findings and all(isinstance(f, dict) and "check" in f for f in findings):
         return list(dict.fromkeys(str(f["check"]) for f in findings if not f.get("ok")))
+    if findings == []:  # nothing checked (an analytic run's, whatever verdict an older one wrote)
+        return None
     verdict = summary.get("validity")
     if verdict == VALID:
         return []
@@ -647,9 +649,12 @@ def failed_checks(result: dict) -> list[str] | None:
 
 
 def _not_checked(result: dict) -> bool:
-    """Whether a finished run's terrain had no validity checks (cosim.advice.NOT_CHECKED: the analytic one)."""
+    """Whether a finished run's terrain had no validity checks (cosim.advice.NOT_CHECKED: the analytic one;
+    its summary holds no findings, and one written before the verdict said so reads 'valid')."""
     summary = result.get("summary") if result.get("ok") else None
-    return isinstance(summary, dict) and summary.get("validity") == advice.NOT_CHECKED
+    if not isinstance(summary, dict):
+        return False
+    return summary.get("validity") == advice.NOT_CHECKED or summary.get("findings") == []
 
 
 def run_validity(result: dict) -> str | None:

@@ -318,7 +318,7 @@ def _mixed_validity(plan: RunPlan, surface_height=None, measured=None) -> list:
     dem = [i for i, m in enumerate(plan.terrain.wheel_models) if m == "dem"]
     tips = advice.deepest(measured, "sinkage_tips", dem)
     spins, longest = (measured or {}).get("wheel_spin"), (measured or {}).get("dt_max")
-    return advice.check(plan, surface_height, tips, spins, longest) + advice.scm_check(plan, measured)
+    return advice.check(plan, surface_height, tips, spins, longest, dem) + advice.scm_check(plan, measured)
 
 
 def _dem_validity(plan: RunPlan, surface_height=None, measured=None) -> list:

@@ -1066,25 +1066,27 @@ def test_an_out_of_range_scm_scene_warns_at_export_and_its_fmu_carries_and_logs_
     warnings when an instance is initialized (FMI 2.0 and 3.0)."""
     from cosim import advice
     from cosim.cli import main
+    from cosim.soil_fmu.config import verdict
 
     expected = advice.scm_check(scm["plan"])
     failed = [f for f in expected if not f.ok]
     assert failed, "the SCM fixture is out of range"
+    unjudged = [check for check, _ in advice.judged_after_the_run(scm["plan"])]
+    assert unjudged == ["scm_slip"], "its drive sets no slip: only a run could measure it"
+    said_verdict = verdict([f.as_dict() for f in expected], unjudged)
+    assert said_verdict == f"{advice.verdict(expected)} (not judged without a run's measurements: scm_slip)"
     out = scm["folder"] / "warned.fmu"
     assert main(["export-fmu", str(scm["scene"]), "--out", str(out), "--overwrite"]) == 0
     said = capsys.readouterr()
     for finding in failed:
         assert f"validity: {finding.check}: {finding.message}" in said.err, said.err
-    assert f"validity: {advice.verdict(expected)}" in said.out and "out of range: " in said.out
+    assert f"validity: {said_verdict}" in said.out and "out of range: " in said.out
     assert validate_fmu(str(out)) == []
-    assert (
-        f"validity: {advice.verdict(expected)} (resources/soil.json)"
-        in fmpy.read_model_description(str(out)).description
-    )
+    assert f"validity: {said_verdict} (resources/soil.json)" in fmpy.read_model_description(str(out)).description
     for fmu in (out, scm["fmus"][3]):
         data = _soil_json(fmu)
         assert data["findings"] == [f.as_dict() for f in expected]
-        assert data["validity"] == advice.verdict(expected)
+        assert data["validity"] == said_verdict
 
     job = {"master": "fmpy", "instances": [], "steps": [{"h": H, "inputs": []}]}
     for fmu in (out, scm["fmus"][3]):
@@ -1094,7 +1096,7 @@ def test_an_out_of_range_scm_scene_warns_at_export_and_its_fmu_carries_and_logs_
     result = importer(job)
     assert all(s == ["ok", "ok"] for s in result["status"]), result["messages"]
     warnings = [m[2] for m in result["messages"] if m[0] == "warning" and m[1] == "logServer"]
-    head = f"validity: {advice.verdict(expected)} (see resources/soil.json: findings)"
+    head = f"validity: {said_verdict} (see resources/soil.json: findings)"
     assert sum(head in w for w in warnings) == 2, result["messages"]  # once per instance
     for finding in failed:
         assert sum(f"validity: {finding.check}: {finding.message}" in w for w in warnings) == 2, warnings
@@ -1127,4 +1129,5 @@ def test_a_valid_scene_exports_quietly_and_its_fmu_says_valid(scm, tmp_path, cap
     said = capsys.readouterr()
     assert "validity: valid" in said.out and "validity" not in said.err, said
     data = _soil_json(out)
-    assert data["findings"] == [f.as_dict() for f in expected] and data["validity"] == "valid"
+    assert data["findings"] == [f.as_dict() for f in expected] and data["unjudged"] == ["scm_slip"]
+    assert data["validity"] == "valid (not judged without a run's measurements: scm_slip)"

@@ -83,6 +83,11 @@ def test_the_pid_s_contact_resolution_is_judged_on_the_substeps_it_takes():
     for longest, ok in ((contact / 20, True), (0.003, False)):
         found = _found(validity(plan, 0.05, {"dt_max": longest}))["contact_steps"]
         assert found.value == pytest.approx(contact / longest, rel=1e-9) and found.ok == ok, found.message
+    # a bound that resolves the contact passes before the run: the PID takes no longer substep
+    bounded = load_plan(EXAMPLES / "phobos_single_wheel.toml", ['run.step_control="pid"', f"run.dt_max={contact / 20}"])
+    found = _found(validity(bounded, 0.05))["contact_steps"]
+    assert found.ok and found.value == pytest.approx(20.0, rel=1e-9) and "allowed" in found.message
+    assert not any("contact_steps" in line for line in advise_lines(bounded) if "[after the run]" in line)
 
 
 def test_a_slip_outside_the_wheel_fit_s_slips_is_flagged():
@@ -128,3 +133,45 @@ def test_a_terrain_without_checks_is_not_called_valid(tmp_path):
     assert validity(plan, 0.0) == []
     assert advice.verdict(validity(plan, 0.0)) == advice.NOT_CHECKED
     assert any(line.startswith(f"verdict: {advice.NOT_CHECKED}") for line in advise_lines(plan))
+
+
+def test_a_mixed_terrain_judges_each_model_on_its_own_wheels():
+    """Wheels 0, 1 on the DEM and 2, 3 on SCM, the SCM wheels fast: the DEM's Froude check failed on wheel 2
+    (an SCM wheel), and the SCM's would fail on a DEM wheel telling it to "use the DEM there"."""
+    mixed = [
+        'terrain.model="scm"',
+        'terrain.calibration="terrain/phobos_regolith_scm_beds.toml"',
+        'terrain.wheels=["dem", "dem", "scm", "scm"]',
+    ]
+    for speeds, dem_fast in (([0.02, 0.02, 0.3, 0.3], False), ([0.3, 0.3, 0.02, 0.02], True)):
+        plan = load_plan(PATCH, [*mixed, f"rover.controllers.cruise.speed={speeds}"])
+        found = _found(validity(plan, 0.07))
+        for check, wheels in (("froude", (0, 1)), ("scm_froude", (2, 3))):
+            expected = max(speeds[i] ** 2 * plan.wheels[i].outer_radius for i in wheels) / plan.g
+            assert found[check].value == pytest.approx(expected, rel=1e-12), found[check].message
+            assert f"wheel {wheels[0]}" in found[check].message
+        assert found["froude"].ok != dem_fast and found["scm_froude"].ok == dem_fast
+
+
+def test_a_rover_on_scm_is_judged_on_each_wheel_s_slip_and_a_nan_speed_is_not_a_pass():
+    """One SCM wheel at slip 0.9 among three at 0.1 (the rover's slip 0.3): scm_slip judged the rover's
+    slip and passed. A wheel speed not measured (nan) dropped Froude's check, so the verdict said valid."""
+    plan = load_plan(EXAMPLES / "phobos_rover_scm_traverse.toml")
+    measured = {"slip": 0.3, "wheel_slip": [0.1, 0.1, 0.9, 0.1], "sinkage": 0.01, "sinkage_tips": 0.005}
+    slip = _found(validity(plan, 0.0, measured))["scm_slip"]
+    assert not slip.ok and slip.value == 0.9 and "wheel 2" in slip.message
+
+    plan = load_plan(PATCH, ['rover.controllers.cruise={kind="torque", torque=0.001}'])
+    froude = _found(advice.check(plan, wheel_spins=[math.nan, 0.05, 0.3, 0.3]))["froude"]
+    assert not froude.ok and "wheel 2" in froude.message
+    assert "the drive (rover.controllers.cruise.torque)" in froude.message  # a torque drive has no speed key
+
+
+def test_an_older_analytic_run_in_a_study_is_not_checked():
+    """A run on the analytic terrain written before its verdict said so (findings [], validity "valid"):
+    a study over it read "valid"."""
+    from cosim.study import ensemble_validity, failed_checks, run_validity
+
+    older = {"ok": True, "summary": {"findings": [], "validity": "valid"}}
+    assert failed_checks(older) is None
+    assert run_validity(older) == ensemble_validity([older, older]) == advice.NOT_CHECKED

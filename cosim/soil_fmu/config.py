@@ -86,6 +86,10 @@ class SoilFmuConfig:
     run of the scene starts with (cosim.system.validity: the DEM's grain scales, SCM's checks), or a
     run folder's own; None: not judged (a configuration made by hand). soil.json carries them and
     their verdict, the export warns of those out of range and the FMU at its initialization."""
+    unjudged: list[str] | None = None
+    """The checks a run judges on its own measurements only (cosim.advice.judged_after_the_run: e.g. the PID
+    step control's contact resolution, SCM's calibration depth), which no one judges for the FMU: its
+    verdict names them, so that "valid" is never said of them."""
 
     def __post_init__(self):
         if not (isinstance(self.dem_step, (int, float)) and math.isfinite(self.dem_step) and self.dem_step > 0):
@@ -136,6 +140,7 @@ def soil_config_from(path, bed_folder=None) -> SoilFmuConfig:
         check_scm_grid(plan, memory=False)  # the server allocates it, on its own machine
         config = _scm_config(plan)
         config.findings = _findings(plan, config.surface_height, path if run_folder else None)
+        config.unjudged = _unjudged(plan, run_folder)
         return config
     if run_folder:
         bed_path = os.path.join(path, "bed.h5")
@@ -152,6 +157,7 @@ def soil_config_from(path, bed_folder=None) -> SoilFmuConfig:
         bed = settled_bed(plan, os.fspath(bed_folder) if bed_folder else "")
     return SoilFmuConfig(
         findings=_findings(plan, bed.surface_height, path if run_folder else None),
+        unjudged=_unjudged(plan, run_folder),
         bed_file=os.path.abspath(bed.path),
         wheel=plan.wheel.shape,
         wheel_material=plan.wheel.material,
@@ -191,14 +197,23 @@ def _findings(plan, surface_height: float, run_folder: str | None) -> list[dict]
     return [finding.as_dict() for finding in validity(plan, surface_height)]
 
 
-def verdict(findings: list[dict] | None) -> str | None:
-    """'valid', 'out of range: CHECK, ...' (cosim.advice.verdict) of findings as dicts; None for None."""
+def _unjudged(plan, run_folder: bool) -> list[str]:
+    """The checks only a run's measurements judge (none for a run folder: its run judged them)."""
+    from cosim.advice import judged_after_the_run
+
+    return [] if run_folder else [check for check, _ in judged_after_the_run(plan)]
+
+
+def verdict(findings: list[dict] | None, unjudged: list[str] | None = None) -> str | None:
+    """'valid', 'out of range: CHECK, ...' (cosim.advice.verdict) of findings as dicts, followed by the
+    checks not judged without a run's measurements (`unjudged`); None for None."""
     if findings is None:
         return None
     from cosim.advice import Finding
     from cosim.advice import verdict as judged
 
-    return judged([Finding(**finding) for finding in findings])
+    text = judged([Finding(**finding) for finding in findings])
+    return f"{text} (not judged without a run's measurements: {', '.join(unjudged)})" if unjudged else text
 
 
 def _scm_config(plan) -> SoilFmuConfig:
@@ -290,8 +305,13 @@ def config_to_json(config: SoilFmuConfig, wheel_count: int) -> dict:
         from cosim.beds import finite_or_null
 
         # a number that is not finite as null, as run.json writes it (strict JSON readers refuse NaN)
-        data.update(findings=finite_or_null(config.findings), validity=verdict(config.findings))
+        data.update(
+            findings=finite_or_null(config.findings),
+            unjudged=list(config.unjudged or []),
+            validity=verdict(config.findings, config.unjudged),
+        )
         units["findings"] = "each finding's own unit (of its value and limit)"
+        units["unjudged"] = "none: names of validity checks"
     if config.terrain == "scm":
         assert config.scm is not None and config.gravity is not None  # SoilFmuConfig checks them
         length, width = config.scm.window

@@ -252,7 +252,7 @@ def validity_warnings(config: dict) -> None:
     from .build import failed_findings
 
     failed = failed_findings(config)
-    if not failed:
+    if not failed and not config.get("unjudged"):
         return
     lines = [f"validity: {config.get('validity')} (see resources/{CONFIG_FILE}: findings)"]
     lines += [f"validity: {f.get('check')}: {f.get('message')}" for f in failed]
