@@ -144,26 +144,6 @@ def _is_slip(plan: RunPlan) -> bool:
     return plan.rover is not None and plan.rover.drive.kind == "slip"
 
 
-def pid_step_bound(plan: RunPlan) -> float:
-    """The longest substep the PID step control may take [s]: run.dt_max, or unset the advisor's limit it
-    defaults to (cosim.plan.enable_step_control)."""
-    if plan.dt_max is not None:
-        return plan.dt_max
-    spec = plan.bed.spec
-    return advisor.recommended_time_step(
-        plan.soil_material, radius=spec.radius_min, gravity=plan.g, height=spec.depth, pressure=ground_pressure(plan)
-    ).dt_max
-
-
-def _contact_steps_waits(plan: RunPlan, surface_height: float | None = None) -> bool:
-    """Whether contact_steps waits for the run: under the PID step control, when its longest substep allowed
-    resolves a contact by fewer than CONTACT_STEPS (it may take shorter ones: its error control decides)."""
-    if plan.step_control != "pid":
-        return False
-    found = [f for f in check(plan, surface_height) if f.check == "contact_steps"]
-    return not found
-
-
 def check(
     plan: RunPlan,
     surface_height: float | None = None,
@@ -176,8 +156,8 @@ def check(
     terrain's DEM wheels); the settled surface height [m], the measured tip sinkage [m] (the deepest judged
     wheel's), the measured wheel speeds [rad/s] (W,) and under the PID step control the longest substep it
     took [s] sharpen the depth, floor, Froude and contact checks when known. Under the PID, contact_steps
-    is judged before the run at its longest substep allowed (run.dt_max, or the advisor's limit) when the
-    contact passes there; else it waits for the substeps taken (its error control, not the bound, sets them)."""
+    is judged before the run at its longest substep allowed (run.dt_max) when the contact passes there;
+    else it waits for the substeps taken (its error control, not the bound, sets them)."""
     spec, t = plan.bed.spec, plan.testbed
     every = plan.wheels or (plan.wheel,)
     chosen = _judged(plan, indices)
@@ -211,10 +191,10 @@ def check(
     elif longest_substep is not None and math.isfinite(longest_substep) and longest_substep > 0:
         dt, dt_key = float(longest_substep), "run.dt_max, run.tolerance"
         step_name = f"of the PID's longest substeps ({dt:.3g} s, taken)"
-    else:  # before the run: the bound, judged only when it passes (the PID may take shorter substeps)
-        dt, dt_key = pid_step_bound(plan), "run.dt_max"
+    else:  # before the run: run.dt_max, judged only when it resolves a contact (shorter substeps may)
+        dt, dt_key = plan.dt_max if plan.dt_max is not None else math.nan, "run.dt_max"
         step_name = f"of the PID's longest substeps allowed ({dt:.3g} s)"
-        if contact / dt < CONTACT_STEPS:
+        if not contact / dt >= CONTACT_STEPS:  # unset (the advisor's limit, from the bed's own grains) too
             dt = math.nan
     if math.isfinite(dt):
         steps = contact / dt
@@ -382,24 +362,26 @@ def _drive_slip(plan: RunPlan) -> tuple[float | None, str]:
     return float(target), key
 
 
-def judged_after_the_run(plan: RunPlan) -> list[tuple[str, str]]:
+def judged_after_the_run(plan: RunPlan, findings: list[Finding]) -> list[tuple[str, str]]:
     """(check, what it will compare) for each check that only the run's own measurements can judge,
     so that advice before a run names it instead of passing over it: Froude's number when the drive's
     controller sets the wheel speeds as it goes (torque, FMU, Python drives), SCM's slip limit when the
     drive sets no slip (a free wheel, a speed or torque drive) and a wheel fit's slips, the PID's contact
     resolution when its longest substep allowed does not resolve a contact, the calibration depth
     (`scm_calibration_depth`), on the run's rim sinkage. Bekker's closed form for a smooth wheel is
-    given beside it; on a grousered wheel it overstates SCM's own sinkage (the main job: 2.5x)."""
+    given beside it; on a grousered wheel it overstates SCM's own sinkage (the main job: 2.5x).
+    `findings`: those made before the run (cosim.system.validity's); a check among them is not listed."""
     from .scm_soil import bekker_wheel_sinkage, scm_settings
 
+    made = {f.check for f in findings}
     pending = []
     indices, wheels = _scm_wheels(plan)
-    if plan.terrain.model in ("dem", "mixed") and _contact_steps_waits(plan):
+    if plan.terrain.model in ("dem", "mixed") and plan.step_control == "pid":
         pending.append(
             (
                 "contact_steps",
-                "the contact time against the longest substep the PID takes (its error control sets them below "
-                "run.dt_max, which alone resolves a contact by too few)",
+                "the contact time against the longest substep the PID takes (its error control sets them; "
+                "run.dt_max, unset or too long, does not resolve a contact by itself)",
             )
         )
     if plan.wheel_speeds is None:
@@ -419,19 +401,19 @@ def judged_after_the_run(plan: RunPlan) -> list[tuple[str, str]]:
                 ("scm_calibration_slips", f"the run's measured slip against the fit's {low:.3g} .. {high:.3g}")
             )
     tested = plan.terrain.calibration_sinkage
-    if tested is None or not wheels:
-        return pending
-    parameters = scm_settings(plan, indices, 0.0).parameters
-    wheel = min(wheels, key=lambda w: w.width)
-    closed_form = bekker_wheel_sinkage(parameters, plan.wheel_load, wheel.outer_radius, wheel.width)
-    side = "beyond" if closed_form > tested else "within"
-    return pending + [
-        (
-            "scm_calibration_depth",
-            f"the run's rim sinkage against the {tested:.3g} m the calibration's DEM tests reached (Bekker's "
-            f"closed form for a smooth wheel: {closed_form:.3g} m, {side} it)",
+    if tested is not None and wheels:
+        parameters = scm_settings(plan, indices, 0.0).parameters
+        wheel = min(wheels, key=lambda w: w.width)
+        closed_form = bekker_wheel_sinkage(parameters, plan.wheel_load, wheel.outer_radius, wheel.width)
+        side = "beyond" if closed_form > tested else "within"
+        pending.append(
+            (
+                "scm_calibration_depth",
+                f"the run's rim sinkage against the {tested:.3g} m the calibration's DEM tests reached (Bekker's "
+                f"closed form for a smooth wheel: {closed_form:.3g} m, {side} it)",
+            )
         )
-    ]
+    return [(check, what) for check, what in pending if check not in made]
 
 
 def _per_wheel(measured: dict, name: str, indices: list[int], count: int) -> list[float] | None:
@@ -643,7 +625,7 @@ def scm_check(plan: RunPlan, measured: dict | None = None) -> list[Finding]:
     # judged on the run's own rim sinkage: Bekker's closed form for a smooth wheel is no estimate of
     # a grousered wheel's on SCM (the main job: 2.5x SCM's own)
     rims = _per_wheel(measured, "sinkage", indices, len(plan.wheels or (plan.wheel,)))
-    tested, rim = plan.terrain.calibration_sinkage, max(rims) if rims is not None else None  # the deepest wheel
+    tested, rim = plan.terrain.calibration_sinkage, max(_finite(rims)) if rims is not None else None  # the deepest
     if tested is not None and rim is not None and math.isfinite(rim):
         findings.append(
             _finding(

@@ -302,7 +302,7 @@ def advise_lines(plan) -> list[str]:
             )
     for finding in findings:
         lines.append(f"  [{'ok' if finding.ok else 'OUT OF RANGE'}] {finding.check}: {finding.message}")
-    pending = advice.judged_after_the_run(plan)
+    pending = advice.judged_after_the_run(plan, findings)
     for check, what in pending:
         lines.append(f"  [after the run] {check}: {what}")
     waiting = (

@@ -225,8 +225,8 @@ def _froude_number(plan: RunPlan, findings) -> float:
     sets them as it goes, the validity check's at the measured wheel speeds (nan without one)."""
     if np.isfinite(plan.froude_number):
         return plan.froude_number
-    measured = [f.value for f in findings if f.check in ("froude", "scm_froude")]
-    return float(measured[0]) if measured else float("nan")
+    measured = [f.value for f in findings if f.check in ("froude", "scm_froude")]  # a mixed terrain's: both
+    return float(max(measured)) if measured else float("nan")
 
 
 def run_summary(

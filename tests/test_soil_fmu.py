@@ -701,7 +701,7 @@ def test_export_fmu_command_from_a_run_folder(tmp_path):
         assert out.read_bytes() == b"an older FMU"
     # the run's own findings travel (run.json's, what the run started with), not the scene judged again
     run_json = json.loads((run / "run.json").read_text())
-    run_json["findings"][0]["message"] = "as the run judged it"
+    run_json["summary"]["findings"][0]["message"] = "as the run judged it"  # after the run: what it measured
     (run / "run.json").write_text(json.dumps(run_json))
     assert main(["export-fmu", str(run), "--out", str(out), "--fmi", "3", "--wheels", "2", "--overwrite"]) == 0
     assert validate_fmu(str(out)) == []
@@ -716,10 +716,12 @@ def test_export_fmu_command_from_a_run_folder(tmp_path):
     dt, macro_step = loaded.dt, loaded.macro_step
     run_info = json.loads((run / "bed.json").read_text())
     assert config["dem_step"] == dt and config["wheel_count"] == 2
-    assert config["findings"] == run_json["findings"] and config["findings"][0]["message"] == "as the run judged it"
+    judged = run_json["summary"]["findings"]
+    assert config["findings"] == judged and config["findings"][0]["message"] == "as the run judged it"
+    assert config["unjudged"] == []  # the run judged what only a run can
     from cosim import advice
 
-    assert config["validity"] == advice.verdict([advice.Finding(**f) for f in run_json["findings"]])
+    assert config["validity"] == advice.verdict([advice.Finding(**f) for f in judged])
     assert config["surface_height"] == pytest.approx(run_info["metrics"]["height"], rel=1e-12)
     assert config["wheel"]["radius"] == loaded.scene.wheel.radius == SMALL_WHEEL.radius
     assert_every_number_has_a_unit(config, config["units"])
@@ -1071,7 +1073,7 @@ def test_an_out_of_range_scm_scene_warns_at_export_and_its_fmu_carries_and_logs_
     expected = advice.scm_check(scm["plan"])
     failed = [f for f in expected if not f.ok]
     assert failed, "the SCM fixture is out of range"
-    unjudged = [check for check, _ in advice.judged_after_the_run(scm["plan"])]
+    unjudged = [check for check, _ in advice.judged_after_the_run(scm["plan"], expected)]
     assert unjudged == ["scm_slip"], "its drive sets no slip: only a run could measure it"
     said_verdict = verdict([f.as_dict() for f in expected], unjudged)
     assert said_verdict == f"{advice.verdict(expected)} (not judged without a run's measurements: scm_slip)"

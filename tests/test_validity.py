@@ -10,6 +10,7 @@ import pytest
 from cosim import advice
 from cosim.cli import advise_lines
 from cosim.plan import load_plan
+from cosim.records import _froude_number
 from cosim.system import validity
 
 EXAMPLES = Path(__file__).resolve().parent.parent / "examples"
@@ -122,6 +123,9 @@ def test_a_rover_on_scm_is_judged_on_its_deepest_wheel_against_the_calibration()
     measured = {"sinkage": sum(rims) / 4, "wheel_sinkage": rims, "slip": 0.1}
     depth = _found(validity(plan, 0.0, measured))["scm_calibration_depth"]
     assert not depth.ok and depth.value == pytest.approx(1.2, rel=1e-12)
+    measured["wheel_sinkage"] = [None, *rims[1:]]  # a wheel not measured (a JSON null) hides no other
+    depth = _found(validity(plan, 0.0, measured))["scm_calibration_depth"]
+    assert not depth.ok and depth.value == pytest.approx(1.2, rel=1e-12)
 
 
 def test_a_terrain_without_checks_is_not_called_valid(tmp_path):
@@ -151,6 +155,27 @@ def test_a_mixed_terrain_judges_each_model_on_its_own_wheels():
             assert found[check].value == pytest.approx(expected, rel=1e-12), found[check].message
             assert f"wheel {wheels[0]}" in found[check].message
         assert found["froude"].ok != dem_fast and found["scm_froude"].ok == dem_fast
+    # under the PID the DEM's contact check is the DEM wheels' too: a bound that resolves their contacts
+    # passes before the run and is not also listed as waiting for it (the SCM wheels are faster)
+    slow_dem = load_plan(PATCH, [*mixed, "rover.controllers.cruise.speed=[0.02, 0.02, 0.3, 0.3]"])
+    contact = _found(validity(slow_dem, 0.07))["contact_steps"].value * slow_dem.dt  # the contact time [s]
+    pid = load_plan(
+        PATCH,
+        [
+            *mixed,
+            "rover.controllers.cruise.speed=[0.02, 0.02, 0.3, 0.3]",
+            'run.step_control="pid"',
+            f"run.dt_max={contact / 12}",
+        ],
+    )
+    lines = advise_lines(pid)
+    assert any(line.startswith("  [ok] contact_steps:") for line in lines), lines
+    assert not any(line.startswith("  [after the run] contact_steps") for line in lines), lines
+    torque = load_plan(PATCH, [*mixed, 'rover.controllers.cruise={kind="torque", torque=0.001}'])
+    spins = [0.02, 0.02, 0.3, 0.3]
+    found = validity(torque, 0.07, {"wheel_spin": spins})
+    expected = max(v**2 * w.outer_radius for v, w in zip(spins, torque.wheels)) / torque.g
+    assert _froude_number(torque, found) == pytest.approx(expected, rel=1e-12)  # the summary's: the SCM wheels'
 
 
 def test_a_rover_on_scm_is_judged_on_each_wheel_s_slip_and_a_nan_speed_is_not_a_pass():

@@ -140,7 +140,7 @@ def soil_config_from(path, bed_folder=None) -> SoilFmuConfig:
         check_scm_grid(plan, memory=False)  # the server allocates it, on its own machine
         config = _scm_config(plan)
         config.findings = _findings(plan, config.surface_height, path if run_folder else None)
-        config.unjudged = _unjudged(plan, run_folder)
+        config.unjudged = _unjudged(plan, config.findings)
         return config
     if run_folder:
         bed_path = os.path.join(path, "bed.h5")
@@ -155,9 +155,10 @@ def soil_config_from(path, bed_folder=None) -> SoilFmuConfig:
         if bed_folder is None and not plan.bed.bed_file:
             raise ArgumentError("a scene without bed.bed_file needs a bed_folder to settle its bed in")
         bed = settled_bed(plan, os.fspath(bed_folder) if bed_folder else "")
+    findings = _findings(plan, bed.surface_height, path if run_folder else None)
     return SoilFmuConfig(
-        findings=_findings(plan, bed.surface_height, path if run_folder else None),
-        unjudged=_unjudged(plan, run_folder),
+        findings=findings,
+        unjudged=_unjudged(plan, findings),
         bed_file=os.path.abspath(bed.path),
         wheel=plan.wheel.shape,
         wheel_material=plan.wheel.material,
@@ -181,15 +182,19 @@ def soil_config_from(path, bed_folder=None) -> SoilFmuConfig:
 
 def _findings(plan, surface_height: float, run_folder: str | None) -> list[dict]:
     """The validity findings (dicts) of a run of `plan` at its start, on a bed whose surface is at
-    `surface_height` [m] (cosim.system.validity, as cosim.launch judges a run); a run folder's
-    run.json findings where it holds them (those the run started with)."""
+    `surface_height` [m] (cosim.system.validity, as cosim.launch judges a run); a run folder's own from
+    its run.json: its summary's (judged on what the run measured) or, for a run that did not finish, those
+    it started with."""
     from cosim.advice import Finding
     from cosim.system import validity
 
     if run_folder is not None:
         try:
             with open(os.path.join(run_folder, "run.json")) as f:
-                stored = json.load(f).get("findings")
+                record = json.load(f)
+            summary = record.get("summary")
+            stored = summary.get("findings") if isinstance(summary, dict) else None
+            stored = stored if isinstance(stored, list) and stored else record.get("findings")
             if isinstance(stored, list):
                 return [Finding(**finding).as_dict() for finding in stored]  # a garbled entry: judged again
         except (OSError, ValueError, TypeError, AttributeError):
@@ -197,11 +202,11 @@ def _findings(plan, surface_height: float, run_folder: str | None) -> list[dict]
     return [finding.as_dict() for finding in validity(plan, surface_height)]
 
 
-def _unjudged(plan, run_folder: bool) -> list[str]:
-    """The checks only a run's measurements judge (none for a run folder: its run judged them)."""
-    from cosim.advice import judged_after_the_run
+def _unjudged(plan, findings: list[dict]) -> list[str]:
+    """The checks only a run's measurements judge that `findings` do not hold (a finished run's hold them)."""
+    from cosim.advice import Finding, judged_after_the_run
 
-    return [] if run_folder else [check for check, _ in judged_after_the_run(plan)]
+    return [check for check, _ in judged_after_the_run(plan, [Finding(**f) for f in findings])]
 
 
 def verdict(findings: list[dict] | None, unjudged: list[str] | None = None) -> str | None:
