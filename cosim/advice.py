@@ -605,6 +605,22 @@ def scm_check(plan: RunPlan, measured: dict | None = None) -> list[Finding]:
                 unit="m/s^2",
             )
         )
+    lab = plan.terrain.calibration_lab_failed
+    if lab is not None:
+        findings.append(
+            _finding(
+                "scm_calibration_lab",
+                len(lab),
+                0,
+                not lab,
+                "the calibration's DEM lab tests were quasi-static (every number it records within its limit)",
+                f"the calibration's DEM lab tests were out of range ({'; '.join(lab)}): its parameters carry their "
+                "error; calibrate again with slower or larger tests (plate.speed_ratio, shear.inertial_number, "
+                "plate.widths) or use the DEM",
+                "terrain.calibration",
+                unit="count",
+            )
+        )
     fitted_grid = plan.terrain.calibration_node_spacing
     if fitted_grid is not None:
         spacing = parameters.node_spacing

@@ -229,6 +229,9 @@ class TerrainPlan:
     calibration_slips: tuple[float, float] | None = None
     """SCM from a wheel fit: the lowest and highest slip of the DEM runs it was fitted on [-] (None: a lab
     calibration)."""
+    calibration_lab_failed: tuple[str, ...] | None = None
+    """SCM from a calibration file: its DEM lab tests' quasi-static numbers out of range, each as 'plate
+    inertial number I = 0.0036 > 0.001' (None: the file does not record them)."""
 
 
 @dataclass(frozen=True)
@@ -713,11 +716,12 @@ def _terrain(scene: Scene, wheel_count: int, problems: list[str]) -> TerrainPlan
     given = section.model_dump(exclude={"model", "wheels", "calibration"}, exclude_none=True)
     if section.model != "scm":
         return TerrainPlan(section.model, tuple(sorted(given.items())))
-    gravity = depth = grid = slips = None
+    gravity = depth = grid = slips = lab = None
     if section.calibration is not None:
         from .scm_calibration import (
             CalibrationError,
             bed_soils,
+            failed_lab_checks,
             fitted_node_spacing,
             fitted_slips,
             out_of_range,
@@ -730,6 +734,7 @@ def _terrain(scene: Scene, wheel_count: int, problems: list[str]) -> TerrainPlan
             depth = tested_sinkage(calibration, section.calibration)
             grid = fitted_node_spacing(calibration, section.calibration)
             slips = fitted_slips(calibration, section.calibration)
+            lab = failed_lab_checks(calibration, section.calibration)
             bed_soils(calibration, section.calibration)  # its beds' record read now, not at a --vary-bed run
         except CalibrationError as error:
             problems.append(f"terrain.calibration: {error}")
@@ -759,7 +764,7 @@ def _terrain(scene: Scene, wheel_count: int, problems: list[str]) -> TerrainPlan
             model = "dem"
         elif "dem" in section.wheels:
             model, models = "mixed", tuple(section.wheels)
-    return TerrainPlan(model, tuple(sorted(given.items())), models, gravity, depth, grid, slips)
+    return TerrainPlan(model, tuple(sorted(given.items())), models, gravity, depth, grid, slips, lab)
 
 
 def _scm_macro_step(terrain: TerrainPlan, wheels, testbed, rover, g: float, gravity) -> float:

@@ -186,6 +186,31 @@ def fitted_slips(calibration: ScmCalibration, path: str = "") -> tuple[float, fl
     return (float(min(slips)), float(max(slips))) if slips else None
 
 
+def failed_lab_checks(calibration: ScmCalibration, path: str = "") -> tuple[str, ...] | None:
+    """The DEM lab tests' quasi-static numbers out of range ([source] lab_checks, written by calibrate-scm:
+    each test's, name, value, limit, ok), as 'plate inertial number I = 0.0036 > 0.001'; None when the
+    file does not record them (a calibration made before they were). CalibrationError names a record of
+    the wrong shape."""
+    checks = calibration.source.get("lab_checks")
+    if checks is None:
+        return None
+    where = f"{path}: " if path else ""
+    if not isinstance(checks, list) or not all(
+        isinstance(c, dict)
+        and isinstance(c.get("test"), str)
+        and isinstance(c.get("name"), str)
+        and isinstance(c.get("ok"), bool)
+        and _finite_number(c.get("value"))
+        and _finite_number(c.get("limit"))
+        for c in checks
+    ):
+        raise CalibrationError(
+            f"{where}[source] lab_checks must be tables of test, name, value, limit (numbers) and ok, got "
+            f"{checks!r:.80}"
+        )
+    return tuple(f"{c['test']} {c['name']} = {c['value']:.3g} > {c['limit']:.3g}" for c in checks if not c["ok"])
+
+
 def bed_soils(calibration: ScmCalibration, path: str = "") -> list[dict[str, float]]:
     """Each calibration bed's SCM soil (SOIL_KEYS -> value), in bed order: the file's [scm] with the keys
     each bed was fitted on alone ([source] replica_fits, `calibrate-scm --replicas R`) taken from that

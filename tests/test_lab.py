@@ -34,6 +34,29 @@ def test_a_wheel_scene_is_a_lab_scene_and_measures_its_own_soil():
     assert lab.dt == pytest.approx(wheel.dt)
 
 
+def test_the_plate_inertial_number_is_taken_where_the_fitted_pressure_is_lowest():
+    """I = (v / b) d / sqrt(p / rho) is largest at the lowest pressure: it was taken at the largest pressure
+    measured, and passed tests too fast at the start of the fitted range. Now at the fitted Bekker pressure
+    of each plate at z = fit_from, the largest over the plates; a failed fit falls back to the largest
+    pressure and says so."""
+    from cosim.lab.plate import quasi_static_numbers
+
+    plan = load_lab_plan("examples/phobos_lab.toml", ['scene.device="cpu"'], needs_gravity=True)
+    fit = {"k": math.nan, "k_c": 0.05, "k_phi": 6.0, "n": 0.5}
+    sides, fit_from, speed, largest = [0.02, 0.03], 1e-3, 1e-4, 5.0
+    numbers = {n["name"]: n for n in quasi_static_numbers(plan, speed, sides, largest, fit, fit_from)}
+    start = [(fit["k_c"] / b + fit["k_phi"]) * fit_from ** fit["n"] for b in sides]
+    expected = max(speed / b * plan.diameter / math.sqrt(p / plan.soil.density) for b, p in zip(sides, start))
+    assert numbers["inertial number I"]["value"] == pytest.approx(expected, rel=1e-12)
+    at_largest = speed / min(sides) * plan.diameter / math.sqrt(largest / plan.soil.density)
+    assert expected > 2 * at_largest  # what the old number understated (4.3 x here)
+    failed = {"k": math.nan, "k_c": math.nan, "k_phi": math.nan, "n": math.nan}
+    (inertial,) = [
+        n for n in quasi_static_numbers(plan, speed, sides, largest, failed, fit_from) if "inertial" in n["name"]
+    ]
+    assert inertial["value"] == pytest.approx(at_largest, rel=1e-12) and "the fit failed" in inertial["meaning"]
+
+
 @pytest.mark.parametrize(
     "text, named",
     [

@@ -293,6 +293,34 @@ def test_a_run_deeper_than_the_calibrations_tests_is_flagged(tmp_path):
         load_plan(scene)
 
 
+def test_a_calibration_whose_lab_tests_were_out_of_range_flags_the_scenes_on_it(tmp_path):
+    """scm_calibration_lab: calibrate-scm records its plate and shear tests' quasi-static numbers
+    ([source] lab_checks); a scene on a calibration whose tests were too fast carried its parameters as
+    valid (the shipped beds' plate test: an inertial number above 1e-3). A file that records none is not
+    judged; a record of the wrong shape is refused naming the file."""
+    from cosim.advice import scm_check
+
+    path = tmp_path / "terrain.toml"
+    scene = write_tiny(tmp_path, f'\n[terrain]\nmodel = "scm"\ncalibration = "{path.name}"\n')
+    fast = {"test": "plate", "name": "inertial number I", "value": 0.0036, "limit": 0.001, "ok": False}
+    slow = {"test": "shear", "name": "inertial number I", "value": 0.0009, "limit": 0.001, "ok": True}
+    for checks, failed in (([fast, slow], ("plate inertial number I = 0.0036 > 0.001",)), ([slow], ())):
+        write_calibration(str(path), ScmCalibration(_calibration(1.625).parameters, {}, 1.625, {"lab_checks": checks}))
+        plan = load_plan(scene)
+        assert plan.terrain.calibration_lab_failed == failed
+        (finding,) = [f for f in scm_check(plan) if f.check == "scm_calibration_lab"]
+        assert finding.ok == (not failed) and finding.value == len(failed)
+        assert all(text in finding.message for text in failed) and finding.setting == "terrain.calibration"
+    write_calibration(str(path), _calibration(1.625))
+    assert not any(f.check == "scm_calibration_lab" for f in scm_check(load_plan(scene)))
+    write_calibration(
+        str(path),
+        ScmCalibration(_calibration(1.625).parameters, {}, 1.625, {"lab_checks": [{**fast, "value": "fast"}]}),
+    )
+    with pytest.raises(SceneError, match=r"terrain.toml: \[source\] lab_checks must be tables"):
+        load_plan(scene)
+
+
 def test_a_wheel_fit_used_on_another_grid_is_flagged(tmp_path):
     """scm_calibration_grid: a wheel fit's keys carry the forces of the grid its SCM wheel ran on
     ([source.wheel] node_spacing_m); a scene on that grid passes, one on another fails naming the
@@ -360,6 +388,16 @@ def test_calibrate_scm_runs_the_dem_tests_and_writes_a_usable_file(tmp_path, cap
     assert source["grain"]["radius_mean_m"] == 0.0035 and source["plate"]["widths_m"] == [0.0225, 0.03]
     assert source["shear"]["normal_stresses_pa"] == [25.0, 50.0] and source["dem"]["dt_s"] > 0
     assert source["dem"]["replicas"] == 2 and all(len(source["replica_fits"][k]) == 2 for k in SOIL_KEYS)
+    # the tests' own quasi-static numbers, as `cosim lab plate` and `lab shear` judge them: each against its limit
+    checks = source["lab_checks"]
+    assert [(c["test"], c["name"]) for c in checks] == [
+        ("plate", "plate speed v / sqrt(g d)"),
+        ("plate", "inertial number I"),
+        ("plate", "stiffness p / E*"),
+        ("shear", "inertial number I"),
+        ("shear", "stiffness p / E*"),
+    ]
+    assert all(c["ok"] == (c["value"] <= c["limit"] * (1 + 1e-9)) for c in checks)
     for key in SOIL_KEYS:  # the error bar holds the pooled fit's error
         fitted = source["standard_error_of_fit"][key]
         assert not math.isfinite(fitted) or calibration.standard_errors[key] >= fitted

@@ -394,9 +394,24 @@ def bekker_pressure(fit: dict, width: float, sinkage) -> np.ndarray:
     return k * np.maximum(np.asarray(sinkage, dtype=float), 0.0) ** fit["n"]
 
 
-def quasi_static_numbers(plan: LabPlan, speed: float, narrowest: float, largest_pressure: float) -> list[dict]:
-    """The dimensionless numbers of a plate test (docs/lab.md)."""
-    pressure = max(largest_pressure, 1e-300)
+def quasi_static_numbers(
+    plan: LabPlan, speed: float, sides: Sequence[float], largest_pressure: float, fit: dict, fit_from: float
+) -> list[dict]:
+    """The dimensionless numbers of a plate test (docs/lab.md). The inertial number (v / b) d / sqrt(p / rho)
+    is largest where the pressure is lowest: it is taken at the start of the fitted range (the fitted
+    Bekker pressure of each plate at z = fit_from), the largest over the plates; the fit failed, at the
+    largest pressure measured (a lower bound, said so)."""
+    starts = [float(bekker_pressure(fit, b, fit_from)) for b in sides]
+    fitted = all(math.isfinite(p) and p > 0 for p in starts)
+    pressures = starts if fitted else [largest_pressure] * len(sides)
+    inertial = max(
+        speed / b * plan.diameter / math.sqrt(max(p, 1e-300) / plan.soil.density) for b, p in zip(sides, pressures)
+    )
+    where = (
+        f"at the start of the fitted range (z = {fit_from:.3g} m, the fitted pressure: the lowest the fit uses)"
+        if fitted
+        else "at the largest pressure (the fit failed: a lower bound)"
+    )
     return [
         common.quasi_static(
             "plate speed v / sqrt(g d)",
@@ -406,9 +421,9 @@ def quasi_static_numbers(plan: LabPlan, speed: float, narrowest: float, largest_
         ),
         common.quasi_static(
             "inertial number I",
-            speed / narrowest * plan.diameter / math.sqrt(pressure / plan.soil.density),
+            inertial,
             1e-3,
-            "(v / b) d / sqrt(p / rho) at the largest pressure: quasi-static flow under the plate",
+            f"(v / b) d / sqrt(p / rho) {where}: quasi-static flow under the plate",
         ),
         common.stiffness_number(plan, largest_pressure),
     ]
@@ -487,7 +502,7 @@ def plate_test(
     fit_from = plan.scene.plate.fit_from if plan.scene.plate.fit_from is not None else 0.25 * plan.diameter
     fit = bekker_fit([(r["width"], r["sinkage"], r["pressure"]) for r in done], fit_from)
     largest = max(float(np.max(r["pressure"])) for r in done)
-    numbers = quasi_static_numbers(plan, speed, min(sides), largest)
+    numbers = quasi_static_numbers(plan, speed, sides, largest, fit, fit_from)
     surface = float(np.mean([bed["surface"] for bed in ready]))
     notes = [f"bed {bed['replica']}: not settled within the time limit" for bed in ready if not bed["settled"]]
     side = min(plan.scene.bed.length, plan.scene.bed.width)
