@@ -336,6 +336,15 @@ SCM_SLIP_LIMIT = 0.6
 """Highest slip for SCM [-]: beyond it the wheel digs in (soil flows round it, sinkage by slip) and the
 steady-state Bekker/Janosi model is outside the measured range."""
 
+LAB_CHECK_KEYS = {
+    "plate plate speed": "plate.speed_ratio",
+    "plate inertial number": "plate.speed_ratio",
+    "plate stiffness": "plate.max_sinkage",
+    "shear inertial number": "shear.inertial_number",
+    "shear stiffness": "shear.normal_stresses",
+}
+"""The lab scene key that changes each quasi-static number calibrate-scm records (cosim.lab: plate, shear)."""
+
 USE_DEM = 'use the DEM there (terrain.model = "dem", or "dem" for that wheel in terrain.wheels)'
 
 
@@ -607,6 +616,12 @@ def scm_check(plan: RunPlan, measured: dict | None = None) -> list[Finding]:
         )
     lab = plan.terrain.calibration_lab_failed
     if lab is not None:
+        keys = sorted({key for failed in lab for name, key in LAB_CHECK_KEYS.items() if failed.startswith(name)})
+        carried = (
+            "the keys the wheel fit kept from them (k_c, cohesion, elastic_stiffness) carry their error"
+            if plan.terrain.calibration_slips is not None
+            else "its parameters carry their error"
+        )
         findings.append(
             _finding(
                 "scm_calibration_lab",
@@ -614,9 +629,8 @@ def scm_check(plan: RunPlan, measured: dict | None = None) -> list[Finding]:
                 0,
                 not lab,
                 "the calibration's DEM lab tests were quasi-static (every number it records within its limit)",
-                f"the calibration's DEM lab tests were out of range ({'; '.join(lab)}): its parameters carry their "
-                "error; calibrate again with slower or larger tests (plate.speed_ratio, shear.inertial_number, "
-                "plate.widths) or use the DEM",
+                f"the calibration's DEM lab tests were out of range ({'; '.join(lab)}): {carried}; calibrate again "
+                f"with {', '.join(keys) or 'other tests'} changed (cosim calibrate-scm) or use the DEM",
                 "terrain.calibration",
                 unit="count",
             )

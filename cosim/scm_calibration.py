@@ -200,7 +200,7 @@ def failed_lab_checks(calibration: ScmCalibration, path: str = "") -> tuple[str,
         and isinstance(c.get("test"), str)
         and isinstance(c.get("name"), str)
         and isinstance(c.get("ok"), bool)
-        and _finite_number(c.get("value"))
+        and (_finite_number(c.get("value")) or (is_real(c.get("value")) and c.get("ok") is False))
         and _finite_number(c.get("limit"))
         for c in checks
     ):

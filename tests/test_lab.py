@@ -36,25 +36,37 @@ def test_a_wheel_scene_is_a_lab_scene_and_measures_its_own_soil():
 
 def test_the_plate_inertial_number_is_taken_where_the_fitted_pressure_is_lowest():
     """I = (v / b) d / sqrt(p / rho) is largest at the lowest pressure: it was taken at the largest pressure
-    measured, and passed tests too fast at the start of the fitted range. Now at the fitted Bekker pressure
-    of each plate at z = fit_from, the largest over the plates; a failed fit falls back to the largest
-    pressure and says so."""
-    from cosim.lab.plate import quasi_static_numbers
+    measured, and passed tests too fast at the start of the fitted range. Now at the lowest fitted Bekker
+    pressure over the points the fit uses (z >= fit_from, p > 0: the shallowest, or with n < 0 the deepest),
+    the largest over the plates; where the fit gives none above 0 (a failed fit), the lowest measured there."""
+    from cosim.lab.plate import bekker_pressure, quasi_static_numbers
 
     plan = load_lab_plan("examples/phobos_lab.toml", ['scene.device="cpu"'], needs_gravity=True)
+    speed, fit_from, largest = 1e-4, 1e-3, 5.0
+    z = np.linspace(0.0, 0.01, 41)  # 0.25 mm apart: fit_from is a point
+
+    def inertial(fit, curves) -> dict:
+        (number,) = [
+            n for n in quasi_static_numbers(plan, speed, curves, largest, fit, fit_from) if "inertial" in n["name"]
+        ]
+        return number
+
+    def at(width, pressure) -> float:
+        return speed / width * plan.diameter / math.sqrt(pressure / plan.soil.density)
+
     fit = {"k": math.nan, "k_c": 0.05, "k_phi": 6.0, "n": 0.5}
-    sides, fit_from, speed, largest = [0.02, 0.03], 1e-3, 1e-4, 5.0
-    numbers = {n["name"]: n for n in quasi_static_numbers(plan, speed, sides, largest, fit, fit_from)}
-    start = [(fit["k_c"] / b + fit["k_phi"]) * fit_from ** fit["n"] for b in sides]
-    expected = max(speed / b * plan.diameter / math.sqrt(p / plan.soil.density) for b, p in zip(sides, start))
-    assert numbers["inertial number I"]["value"] == pytest.approx(expected, rel=1e-12)
-    at_largest = speed / min(sides) * plan.diameter / math.sqrt(largest / plan.soil.density)
-    assert expected > 2 * at_largest  # what the old number understated (4.3 x here)
+    curves = [(b, z, bekker_pressure(fit, b, z)) for b in (0.02, 0.03)]
+    expected = max(at(b, float(bekker_pressure(fit, b, fit_from))) for b in (0.02, 0.03))
+    number = inertial(fit, curves)
+    assert number["value"] == pytest.approx(expected, rel=1e-12) and "fitted" in number["meaning"]
+    assert expected > 2 * at(0.02, largest)  # what the old number understated (4.3 x here)
+    falling = {**fit, "n": -0.5}  # a pressure falling with depth: lowest at the deepest point
+    expected = max(at(b, float(bekker_pressure(falling, b, z.max()))) for b in (0.02, 0.03))
+    assert inertial(falling, curves)["value"] == pytest.approx(expected, rel=1e-12)
     failed = {"k": math.nan, "k_c": math.nan, "k_phi": math.nan, "n": math.nan}
-    (inertial,) = [
-        n for n in quasi_static_numbers(plan, speed, sides, largest, failed, fit_from) if "inertial" in n["name"]
-    ]
-    assert inertial["value"] == pytest.approx(at_largest, rel=1e-12) and "the fit failed" in inertial["meaning"]
+    lowest = min(float(p[(z >= fit_from) & (p > 0)].min()) for _, _, p in curves[:1])
+    number = inertial(failed, curves[:1])
+    assert number["value"] == pytest.approx(at(0.02, lowest), rel=1e-12) and "measured" in number["meaning"]
 
 
 @pytest.mark.parametrize(

@@ -311,6 +311,10 @@ def test_a_calibration_whose_lab_tests_were_out_of_range_flags_the_scenes_on_it(
         (finding,) = [f for f in scm_check(plan) if f.check == "scm_calibration_lab"]
         assert finding.ok == (not failed) and finding.value == len(failed)
         assert all(text in finding.message for text in failed) and finding.setting == "terrain.calibration"
+        assert ("plate.speed_ratio" in finding.message) == bool(failed)  # the key that slows the plate
+    diverged = {**fast, "value": math.nan}  # a plate whose pressures were nan: a failed check, still a file
+    write_calibration(str(path), ScmCalibration(_calibration(1.625).parameters, {}, 1.625, {"lab_checks": [diverged]}))
+    assert load_plan(scene).terrain.calibration_lab_failed == ("plate inertial number I = nan > 0.001",)
     write_calibration(str(path), _calibration(1.625))
     assert not any(f.check == "scm_calibration_lab" for f in scm_check(load_plan(scene)))
     write_calibration(

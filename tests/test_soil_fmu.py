@@ -719,6 +719,12 @@ def test_export_fmu_command_from_a_run_folder(tmp_path):
     judged = run_json["summary"]["findings"]
     assert config["findings"] == judged and config["findings"][0]["message"] == "as the run judged it"
     assert config["unjudged"] == []  # the run judged what only a run can
+    # a run that did not finish judged part of a run: the findings it started with, and what waits named
+    stopped = {**run_json, "status": "interrupted"}
+    (run / "run.json").write_text(json.dumps(stopped))
+    partial = soil_config_from(run)
+    assert partial.findings == stopped["findings"] and partial.unjudged is not None
+    (run / "run.json").write_text(json.dumps(run_json))
     from cosim import advice
 
     assert config["validity"] == advice.verdict([advice.Finding(**f) for f in judged])

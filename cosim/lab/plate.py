@@ -395,22 +395,34 @@ def bekker_pressure(fit: dict, width: float, sinkage) -> np.ndarray:
 
 
 def quasi_static_numbers(
-    plan: LabPlan, speed: float, sides: Sequence[float], largest_pressure: float, fit: dict, fit_from: float
+    plan: LabPlan,
+    speed: float,
+    curves: Sequence[tuple[float, np.ndarray, np.ndarray]],
+    largest_pressure: float,
+    fit: dict,
+    fit_from: float,
 ) -> list[dict]:
     """The dimensionless numbers of a plate test (docs/lab.md). The inertial number (v / b) d / sqrt(p / rho)
-    is largest where the pressure is lowest: it is taken at the start of the fitted range (the fitted
-    Bekker pressure of each plate at z = fit_from), the largest over the plates; the fit failed, at the
-    largest pressure measured (a lower bound, said so)."""
-    starts = [float(bekker_pressure(fit, b, fit_from)) for b in sides]
-    fitted = all(math.isfinite(p) and p > 0 for p in starts)
-    pressures = starts if fitted else [largest_pressure] * len(sides)
-    inertial = max(
-        speed / b * plan.diameter / math.sqrt(max(p, 1e-300) / plan.soil.density) for b, p in zip(sides, pressures)
-    )
+    is largest where the pressure is lowest over the points the fit uses (z >= fit_from, p > 0: each
+    plate's `curves` (width [m], sinkage [m], pressure [Pa])): the fitted Bekker pressure at the
+    shallowest and the deepest of them (the lower of the two: n < 0 turns it round), or, where the fit
+    gives none above 0 there, the lowest pressure measured among them; the largest over the plates. A
+    failed fit (k or n nan) takes the lowest pressure measured there too."""
+    inertial, how = 0.0, "fitted"
+    for width, sinkage, pressure in curves:
+        z, p = np.asarray(sinkage, dtype=float), np.asarray(pressure, dtype=float)
+        used = (z >= fit_from) & (p > 0)
+        if not used.any():
+            continue
+        ends = [float(bekker_pressure(fit, width, z[used].min())), float(bekker_pressure(fit, width, z[used].max()))]
+        lowest = min(ends)
+        if not (math.isfinite(lowest) and lowest > 0):
+            lowest, how = float(p[used].min()), "measured"
+        inertial = max(inertial, speed / width * plan.diameter / math.sqrt(lowest / plan.soil.density))
     where = (
-        f"at the start of the fitted range (z = {fit_from:.3g} m, the fitted pressure: the lowest the fit uses)"
-        if fitted
-        else "at the largest pressure (the fit failed: a lower bound)"
+        "at the lowest pressure the fit uses (the fitted Bekker pressure at its shallowest or deepest point)"
+        if how == "fitted"
+        else "at the lowest pressure measured among the points the fit uses (the fit gives none there)"
     )
     return [
         common.quasi_static(
@@ -502,7 +514,8 @@ def plate_test(
     fit_from = plan.scene.plate.fit_from if plan.scene.plate.fit_from is not None else 0.25 * plan.diameter
     fit = bekker_fit([(r["width"], r["sinkage"], r["pressure"]) for r in done], fit_from)
     largest = max(float(np.max(r["pressure"])) for r in done)
-    numbers = quasi_static_numbers(plan, speed, sides, largest, fit, fit_from)
+    curves = [(r["width"], r["sinkage"], r["pressure"]) for r in done]
+    numbers = quasi_static_numbers(plan, speed, curves, largest, fit, fit_from)
     surface = float(np.mean([bed["surface"] for bed in ready]))
     notes = [f"bed {bed['replica']}: not settled within the time limit" for bed in ready if not bed["settled"]]
     side = min(plan.scene.bed.length, plan.scene.bed.width)

@@ -338,7 +338,12 @@ def calibrate_scm(plan, out_dir: str, overwrite: bool = False, executor="serial"
             (
                 "plate",
                 plate.quasi_static_numbers(
-                    plan, plate.plate_speed(plan), sides, largest, {"k": math.nan, **plate_fits}, fit_from
+                    plan,
+                    plate.plate_speed(plan),
+                    [(r["width"], r["sinkage"], r["pressure"]) for r in plates],
+                    largest,
+                    {"k": math.nan, **plate_fits},
+                    fit_from,
                 ),
             ),
             ("shear", shear.quasi_static_numbers(plan, geometry)),

@@ -183,8 +183,8 @@ def soil_config_from(path, bed_folder=None) -> SoilFmuConfig:
 def _findings(plan, surface_height: float, run_folder: str | None) -> list[dict]:
     """The validity findings (dicts) of a run of `plan` at its start, on a bed whose surface is at
     `surface_height` [m] (cosim.system.validity, as cosim.launch judges a run); a run folder's own from
-    its run.json: its summary's (judged on what the run measured) or, for a run that did not finish, those
-    it started with."""
+    its run.json: a finished run's summary's (judged on what it measured) or, for a run that did not
+    finish (diverged, interrupted: its summary judged part of a run), those it started with."""
     from cosim.advice import Finding
     from cosim.system import validity
 
@@ -192,7 +192,9 @@ def _findings(plan, surface_height: float, run_folder: str | None) -> list[dict]
         try:
             with open(os.path.join(run_folder, "run.json")) as f:
                 record = json.load(f)
-            summary = record.get("summary")
+            from cosim.launch import FINISHED
+
+            summary = record.get("summary") if record.get("status") in FINISHED else None  # judged on a whole run
             stored = summary.get("findings") if isinstance(summary, dict) else None
             stored = stored if isinstance(stored, list) and stored else record.get("findings")
             if isinstance(stored, list):
