@@ -411,6 +411,11 @@ def test_plate_bekker_fit_reproduces_its_curves(tmp_path):
             assert bekker_pressure(fit, width, z[part]).mean() == pytest.approx(p[part].mean(), rel=0.25)
         assert means[2] > 1.1 * means[0]  # deeper is harder (pooled thirds measured 1.19-1.6 x)
     assert (tmp_path / "plate" / "plate.png").is_file() and (tmp_path / "plate" / "summary.json").is_file()
+    # the report says its plates are only 3 and 4 grains wide: the jumps above are theirs
+    for width, across in ((0.012, 3), (0.016, 4)):
+        assert any(
+            note.startswith(f"plate {width:.3g} m is {across:.3g} grain diameters wide") for note in summary["notes"]
+        )
     units = json.loads((tmp_path / "plate" / "summary.json").read_text())["units"]
     assert {f"bekker.{k}" for k in fit if k != "per_width"} <= set(units) and units["bekker.rms_pa"] == "Pa"
     assert units["gravity"] == "m/s^2" and units["bekker.k_phi"] == "N/m^(n+2)"  # p = (k_c / b + k_phi) z^n

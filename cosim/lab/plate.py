@@ -54,6 +54,10 @@ def widths(plan: LabPlan) -> tuple[float, ...]:
     return (0.25 * side, 0.4 * side)
 
 
+PLATE_GRAINS_ACROSS = 8
+"""Fewest grain diameters across a plate without a note (as across a wheel: cosim.advice.GRAINS_ACROSS) [-]."""
+
+
 def plate_speed(plan: LabPlan) -> float:
     """plate.speed, or plate.speed_ratio (default 0.05) x sqrt(|g| d) [m/s]."""
     section = plan.scene.plate
@@ -524,6 +528,13 @@ def plate_test(
         "may carry part of the load (a wider bed)"
         for b in sides
         if (side - b) / 2 < b
+    ]
+    notes += [  # measured: plates of 3 and 4 diameters fit with R^2 0.29-0.76 (tests/test_lab.py)
+        f"plate {b:.3g} m is {b / plan.diameter:.3g} grain diameters wide, under {PLATE_GRAINS_ACROSS}: its "
+        "curve jumps as single grains under it give way, and the fit follows their trend (wider plates, or "
+        "replicas, average over more grains)"
+        for b in sides
+        if b < PLATE_GRAINS_ACROSS * plan.diameter
     ]
     notes += common.interrupted_notes(stopped, len(done), replicas * len(sides), "plate tests")
     if surface - max_sinkage(plan, surface) < 3 * plan.diameter:
