@@ -149,6 +149,7 @@ SUMMARY_KEYS = (
     ("energy_per_metre", "J/m", 1),
     ("time_immobile", "s", 1),
     ("stuck", "", 1),
+    ("stalled", "", 1),
     ("wheel_slip", "", 1),
     ("wheel_sinkage", "mm", 1e3),
     ("wheel_normal_force", "N", 1),

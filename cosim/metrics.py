@@ -39,7 +39,13 @@ travel [J/m], and the time immobile [s] under the stuck criterion: the rover is 
 macro step when, over the last radian of (mean) wheel turn before it, its body advanced along
 its wheels' rim travel no more than (1 - stuck_slip) of it (with the default stuck_slip 0.9: its
 slip over the window is at least 0.9, or it moved against its wheels); it is stuck when it is
-immobile at the end of the drive or its slip over the steady window is at least stuck_slip.
+immobile at the end of the drive, its slip over the steady window is at least stuck_slip, or its
+drive stalled: the drive commands the wheels (a speed or a torque) while over the window they do
+not turn with it (still, jittering about their axles, or turned backwards), and their rims and the
+body (along the drive) advance less than one grain diameter (a
+torque too weak to turn them, a motor at its limit, or a torque holding the rover still; its slip
+would be a ratio of noise, nan when they stop entirely). A stall adds no time immobile; a parked
+rover (zero commands, or zero speeds: a brake) is not judged.
 Steps before the wheels have turned one radian are not judged, nor steps while they turn against
 each other. The steady-state window is found as for a wheel (MSER-5 on the forward speed and the
 mean sinkage; each wheel's sinkage steady over it, else 'still sinking'); slip, sinkage, drawbar
@@ -105,6 +111,9 @@ def slip_of(forward_speed, spin, rim_radius: float):
     with np.errstate(divide="ignore", invalid="ignore"):
         return np.where(np.abs(rim) > 0, 1.0 - np.asarray(forward_speed, dtype=float) / rim, np.nan)
 
+
+DRIVE_COMMANDS = ("speed_command", "torque_command")
+"""The series of the drive's commands per wheel (cosim.output): a stall is judged against them."""
 
 TURNING_IN_PLACE = 0.5
 """The wheels' mean rim speed below this fraction of their mean rim speed's magnitude: they turn
@@ -358,6 +367,7 @@ SUMMARY_UNITS = {
     "energy_per_metre": "J/m",
     "net_traction_over_weight": "1",
     "stuck": "1",
+    "stalled": "1",
     "time_immobile": "s",
     "wheel_slip": "1",
     "wheel_sinkage": "m",
@@ -487,6 +497,47 @@ def immobile_steps(
     return out
 
 
+def drive_stalled(commands, spins, rim_radii, dt, displacement, forward, grain_radius: float | None) -> bool:
+    """Whether a drive stalled over a window (module docstring): it commands the wheels (a speed or a
+    torque whose mean magnitude over the window is not 0 on some wheel: the driven wheels), yet they do
+    not turn with it (their mean turn along their commands' sense, taken step by step, is under half
+    their mean gross turn while commanded: still, jittering about their axles, or turned backwards; a
+    free wheel rolling along is no sign of a stall), their rims advanced (each its turn along its commands
+    times its rim radius, the mean over the driven wheels) less than one grain diameter (2
+    `grain_radius` [m]), and the body advanced less than that along the drive (its forward direction in
+    the commands' overall sense; horizontally either way when they cancel, as in a turn in place): the
+    wheels sheared no grain's width of soil, so a slip over the window would be a ratio of noise. Wheels
+    that turn with their commands, however slowly (a short window), or reverse as they do, have not
+    stalled.
+
+    commands: the speed [rad/s] and torque [N m] commands over the window, each (S, W), nan where the
+    other kind was commanded (or None: not recorded, not judged); spins [rad/s] (S, W); rim_radii [m]
+    (W,); dt [s] (S,); displacement: the body's over the window [m] (3,); forward: the rover's forward
+    direction, unit (3,). Not judged without a grain radius, over no elapsed time, or where a spin or the
+    displacement is not finite (a lost wheel or body)."""
+    spins = np.asarray(spins, dtype=float)
+    moved = np.asarray(displacement, dtype=float)
+    dt = np.asarray(dt, dtype=float)
+    if grain_radius is None or any(c is None for c in commands) or not np.sum(dt) > 0:  # nothing seen
+        return False
+    if not (np.all(np.isfinite(spins)) and np.all(np.isfinite(moved))):
+        return False
+    speed, torque = (np.nan_to_num(np.asarray(c, dtype=float), nan=0.0) for c in commands)
+    driven = (np.mean(np.abs(speed), axis=0) > 0) | (np.mean(np.abs(torque), axis=0) > 0)  # (W,)
+    if not np.any(driven):
+        return False
+    sense = np.sign(speed + torque)  # each step's command sense per wheel (one kind is 0 there)
+    # over the driven wheels, at the steps they are commanded: a free wheel rolls along, no sign of a stall
+    along = ((spins * sense).T @ dt)[driven]  # each wheel's turn along its commands [rad]
+    gross = ((np.abs(spins) * (sense != 0)).T @ dt)[driven]
+    turning = bool(np.mean(gross) > 0 and np.mean(along) >= 0.5 * np.mean(gross))
+    diameter = 2.0 * grain_radius
+    rim_advance = float(np.mean(np.clip(along, 0.0, None) * np.asarray(rim_radii, dtype=float)[driven]))
+    drive = np.sign(np.sum(sense.T @ dt))  # the commands' overall sense: forwards, backwards, or a turn in place
+    advance = drive * float(moved @ np.asarray(forward, dtype=float)) if drive else float(np.linalg.norm(moved[:2]))
+    return bool(not turning and rim_advance < diameter and advance < diameter)
+
+
 def summarize_rover(
     series: dict,
     *,
@@ -507,11 +558,12 @@ def summarize_rover(
     lists 'wheel_slip', 'wheel_sinkage', 'wheel_drawbar_pull', 'wheel_driving_torque', 'wheel_normal_force',
     'wheel_power', 'wheel_contact_fraction', 'wheel_spin' [rad/s] (|omega| about the axle: the validity's
     Froude number where the drive sets the speeds as it goes); over the drive: 'travel' [m] (path), 'displacement' [m],
-    'energy' [J], 'energy_per_metre' [J/m], 'time_immobile' [s], 'stuck' (bool), 'stuck_criterion' (text)}.
+    'energy' [J], 'energy_per_metre' [J/m], 'time_immobile' [s], 'stuck' (bool), 'stalled' (bool: the
+    drive stalled, drive_stalled), 'stuck_criterion' (text)}.
 
-    Statuses as `summarize`'s, for the rover: 'stuck' (immobile at the end, or a slip of at least
-    stuck_slip over the window), 'airborne' (at least min(3, wheels) wheels touch the soil in fewer than
-    90 % of the window's macro steps: the stance lost, not one wheel lifted), 'too short', 'still
+    Statuses as `summarize`'s, for the rover: 'stuck' (immobile at the end, a slip of at least
+    stuck_slip over the window, or a stalled drive), 'airborne' (at least min(3, wheels) wheels touch
+    the soil in fewer than 90 % of the window's macro steps: the stance lost, not one wheel lifted), 'too short', 'still
     sinking' (a wheel's sinkage neither stationary nor drifting by less than half of `grain_radius` [m]
     over the window)."""
     time = np.asarray(series["time"], dtype=float)
@@ -522,8 +574,10 @@ def summarize_rover(
         "steady_state": STEADY,
         "window": [math.nan, math.nan],
         "stuck_criterion": f"immobile while the body advances less than {1 - stuck_slip:.3g} x the wheels' "
-        "rim travel over the last radian of wheel turn; stuck when immobile at the end or when the slip over "
-        f"the steady window is at least {stuck_slip:.3g}",
+        "rim travel over the last radian of wheel turn; stuck when immobile at the end, when the slip over "
+        f"the steady window is at least {stuck_slip:.3g}, or when the drive stalled: commanded, its "
+        "wheels did not turn with it, and they and its body advanced less than one grain diameter over the "
+        "window",
     }
     out["landing_time"] = float(time[np.argmax(driving)] - time[0]) if driving.any() else math.nan
     if len(time) == 0 or not np.any(contacts > 0):
@@ -597,6 +651,18 @@ def summarize_rover(
     # a slip of stuck_slip or more over the window is the stuck criterion's own (wheels that slowed after
     # the rover stopped made its last radian of turn reach back to when it moved)
     out["stuck"] = out["stuck"] or bool(out["slip"] >= stuck_slip)
+    commands = tuple(np.asarray(series[key])[rows] if key in series else None for key in DRIVE_COMMANDS)
+    before = position[window[0] - 1] if window[0] > 0 else origin  # where the window's first step started
+    out["stalled"] = drive_stalled(
+        commands,
+        spins[window],
+        rim_radii,
+        dt[window],
+        position[window[-1]] - before,
+        rover_forward(orientation[window[-1]]),
+        grain_radius,
+    )
+    out["stuck"] = out["stuck"] or out["stalled"]
     settled = [
         sinkage_steady(sinkage[window, w], times[window], min_fraction, grain_radius)[0]
         for w in range(sinkage.shape[1])

@@ -1438,6 +1438,7 @@ def sweep(
             "energy_per_metre",
             "time_immobile",
             "stuck",
+            "stalled",
             "wall_time",
         )
     rows = []

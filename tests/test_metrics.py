@@ -240,10 +240,13 @@ def test_an_ensemble_of_one_replica_is_not_judged():
     assert "n/a (one replica)" in row and "NO" not in row and row.split()[1] == "1"
 
 
-def _rover(velocity, spins, *, yaw=0.0, sinkage=None, contacts=None, power=0.0, n_land=40, n_drive=400, seed=0):
+def _rover(
+    velocity, spins, *, yaw=0.0, sinkage=None, contacts=None, power=0.0, torque=None, n_land=40, n_drive=400, seed=0
+):
     """Records of a 4-wheel rover (rim radii 0.1 m, macro step 0.05 s): it lands, then drives with body velocity
     `velocity` [m/s] ((3,) or (S, 3), world frame) and wheel spins `spins` [rad/s] (W,) or (S, W) about its axles,
-    heading `yaw` [rad] ((S,) or scalar); the rover series made by metrics.rover_quantities as a run makes them."""
+    heading `yaw` [rad] ((S,) or scalar); the rover series made by metrics.rover_quantities as a run makes them.
+    The drive commands the spins as speeds, or `torque` [N m] ((W,) or (S, W)) when given."""
     from soil.control import quaternion_to_matrix
 
     rng = np.random.default_rng(seed)
@@ -289,6 +292,8 @@ def _rover(velocity, spins, *, yaw=0.0, sinkage=None, contacts=None, power=0.0, 
         "orientation": np.repeat(orientation[:, None, :], wheels, axis=1),
         "angular_velocity": angular,
         "linear_velocity": linear,
+        "speed_command": spins.copy() if torque is None else np.full((n, wheels), np.nan),
+        "torque_command": np.full((n, wheels), np.nan) if torque is None else np.broadcast_to(torque, (n, wheels)),
     }
     series.update({f"rover_{name}": np.array([row[name] for row in rows]) for name in rows[0]})
     return series, radii
@@ -324,6 +329,76 @@ def test_a_rover_that_stopped_is_stuck_whatever_its_wheels_do_after():
     series, radii = _rover(0.06 * (k < 300)[:, None] * [1.0, 0.0, 0.0], 1.0)
     series["angular_velocity"][100, 2] = math.nan
     assert _rover_summary(series, radii)["stuck"]
+
+
+def test_a_stalled_drive_is_stuck_not_steady():
+    """A torque drive too weak to turn the wheels: they jitter at 0.02 rad/s about their axles, creep back
+    and forth at 1e-4 rad/s of noise (rims about 10 um/s) or stop entirely, and the body stays within a
+    grain diameter (2 mm) or slides back: the rover was 'steady' at a slip of noise (or nan), not stuck, as
+    the stuck criterion waits for a radian of wheel turn. The SCM rover (examples/phobos_rover_scm_traverse
+    .toml) on 1e-4 N m a wheel jittered at 0.02 rad/s, its rims 1.3-2.3 mm on and its body 1 mm over its
+    100 s window, and was 'too short'. Wheels driven backwards, the rover with them, were 'steady' at slip
+    0.4. A drive whose wheels do not turn with it, and that advances under a grain diameter, has stalled:
+    stuck. Not stalled: a parked rover (zero commands), wheels turning with their commands however slowly
+    (a short window, on a torque or at a fraction of the speed asked), speeds or torques that reverse and
+    are followed, locked wheels the body slides forward on, a run whose file holds no commands."""
+    rng = np.random.default_rng(5)
+    creep = 1e-4 * rng.standard_normal((440, 4))
+    jitter = 0.02 * np.sin(2.0 * np.pi * 0.05 * np.arange(440))[:, None] * np.ones(4)  # 1 Hz about the axles
+    stalls = {
+        "jitter": _rover([0.0, 0.0, 0.0], jitter, torque=1e-4),
+        "creep": _rover(np.c_[0.1 * creep.mean(axis=1), np.zeros((440, 2))], creep, torque=0.5),
+        "stopped": _rover([0.0, 0.0, 0.0], 0.0, torque=[0.5, 0.5, -0.2, 0.0]),
+        "sliding back": _rover([-0.01, 0.0, 0.0], 0.0, torque=0.5),  # 0.2 m back, downhill
+        "driven backwards": _rover([-0.006, 0.0, 0.0], -0.1, torque=0.5),
+        "jitter asked 0.06 rad/s": _rover([0.0, 0.0, 0.0], jitter),
+        "jitter asked 0.012 rad/s": _rover([0.0, 0.0, 0.0], jitter),
+        "jitter asked -0.012 rad/s": _rover([0.0, 0.0, 0.0], jitter),
+    }
+    for name, speed in (("jitter asked 0.06 rad/s", 0.06), ("jitter asked 0.012 rad/s", 0.012)):
+        stalls[name][0]["speed_command"][:] = speed
+    stalls["jitter asked -0.012 rad/s"][0]["speed_command"][:] = -0.012
+    for name, (series, radii) in stalls.items():
+        out = _rover_summary(series, radii)
+        assert out["stalled"] and out["stuck"] and out["steady_state"] == metrics.STUCK, (name, out)
+    parked = _rover_summary(*_rover([0.0, 0.0, 0.0], 0.0))
+    assert not parked["stalled"] and not parked["stuck"] and parked["steady_state"] == metrics.STEADY
+    unheld = _rover_summary(*_rover([0.0, 0.0, 0.0], 0.0, torque=0.0))
+    assert not unheld["stalled"] and unheld["steady_state"] == metrics.STEADY
+    slow = _rover_summary(*_rover([0.0006, 0.0, 0.0], 0.01, torque=0.5))  # rims 1 mm/s: 10 mm over the window
+    assert not slow["stalled"] and slow["steady_state"] == metrics.STEADY and slow["slip"] == pytest.approx(0.4)
+    slower = _rover_summary(*_rover([3e-5, 0.0, 0.0], 5e-4, torque=0.5))  # rims 0.05 mm/s: under 1 mm
+    assert not slower["stalled"] and slower["slip"] == pytest.approx(0.4)
+    series, radii = _rover([0.0, 0.0, 0.0], 1e-3)
+    series["speed_command"][:] = 0.06  # turning on at 1/60 of the speed asked: slow, not stalled
+    assert not _rover_summary(series, radii)["stalled"]
+    reversing = np.sign(np.sin(2.0 * np.pi * np.arange(440) / 20.0 + 0.1))[:, None] * np.ones(4)
+    assert not _rover_summary(*_rover([0.0, 0.0, 0.0], 0.05 * reversing))["stalled"]  # speeds asked and followed
+    assert not _rover_summary(*_rover([0.0, 0.0, 0.0], 0.5 * reversing, torque=0.5 * reversing))["stalled"]
+    sliding = _rover_summary(*_rover([0.01, 0.0, 0.0], 0.0, torque=0.5))  # locked wheels, the body slides on
+    assert not sliding["stalled"] and sliding["steady_state"] == metrics.STEADY
+    series, radii = stalls["stopped"]
+    del series["speed_command"], series["torque_command"]
+    assert not _rover_summary(series, radii)["stalled"]
+    held, still, x = np.full((3, 4), 0.5), np.zeros((3, 4)), np.array([1.0, 0.0, 0.0])
+    no_speed = np.full((3, 4), np.nan)
+    for moved, stalled in ((0.001, True), (0.003, False), (-0.003, True), (np.nan, False)):
+        assert metrics.drive_stalled((no_speed, held), still, radii, np.ones(3), moved * x, x, 0.001) == stalled
+    ratchet = np.array([0.3, 0.3, -0.2, -0.2])[:, None] * np.ones(4)  # 0.2 rad on of 1 rad turned: 20 mm of rim
+    assert not metrics.drive_stalled(
+        (no_speed[:1].repeat(4, 0), held[:1].repeat(4, 0)), ratchet, radii, np.ones(4), 0 * x, x, 0.001
+    )
+    assert not metrics.drive_stalled((no_speed, None), still, radii, np.ones(3), 0 * x, x, 0.001)
+    assert not metrics.drive_stalled((no_speed, held), still, radii, np.zeros(3), 0 * x, x, 0.001)  # no time
+    rolling = np.full((3, 4), 0.01)  # one wheel driven, three free, all rolling on at 1 mm/s of rim
+    one = np.where([True, False, False, False], 0.5, 0.0) * np.ones((3, 1))
+    assert not metrics.drive_stalled((no_speed, one), rolling, radii, np.ones(3), 0.0018 * x, x, 0.001)
+    pulsed = np.where(np.arange(3)[:, None] == 0, 0.5, 0.0) * np.ones(4)  # a torque one step in three
+    assert not metrics.drive_stalled((no_speed, pulsed), rolling, radii, np.ones(3), 0.0018 * x, x, 0.001)
+    assert not metrics.drive_stalled((no_speed, held), still, radii, np.ones(3), 0 * x, x, None)
+    lost = still.copy()
+    lost[1, 2] = np.nan  # a lost wheel: not judged
+    assert not metrics.drive_stalled((no_speed, held), lost, radii, np.ones(3), 0 * x, x, 0.001)
 
 
 def test_a_rover_with_one_wheel_sinking_or_lifted():
