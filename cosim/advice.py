@@ -460,6 +460,85 @@ def deepest(measured: dict | None, name: str, indices: list[int] | None = None) 
     return max(_finite(values)) if values else None
 
 
+def _wheel_fit_finding(plan: RunPlan, fit, indices: list[int], wheels: list) -> Finding:
+    """`scm_calibration_wheel`: the SCM wheels against the wheel and load a wheel fit was fitted on
+    (cosim.scm_calibration.FittedWheel), each wheel at the plan's load per wheel (a rover's: its weight over
+    its wheels); the worst relative difference against WHEEL_FIT_TOLERANCE (inf for a wheel of another
+    kind, another mesh, or grousers where it had none). A rover's message lists its worst wheel's."""
+    from .scm_calibration import WHEEL_FIT_TOLERANCE, wheel_record
+
+    limit = WHEEL_FIT_TOLERANCE * (1.0 + 1e-9)  # 10 % itself is within
+
+    def differences(wheel) -> list[tuple[float, str]]:
+        record = wheel_record(wheel)
+        if record["type"] != fit.type:
+            return [(math.inf, f"a {record['type']} wheel, the fit's a {fit.type} wheel")]
+        out = []
+        if fit.type == "mesh" and record["mesh_sha256"] != fit.mesh_sha256:
+            out.append((math.inf, "another mesh or scale (its vertices differ from the fit's)"))
+        for name, value, fitted, unit in (
+            ("rim radius", record["rim_radius_m"], fit.rim_radius, " m"),
+            ("width", record["width_m"], fit.width, " m"),
+            ("grouser count", record["grouser_count"], fit.grouser_count, ""),
+            ("grouser height", record["grouser_height_m"], fit.grouser_height, " m"),
+            ("load", plan.wheel_load, fit.load, " N"),
+        ):
+            if value == fitted:
+                continue
+            relative = abs(value - fitted) / fitted if fitted > 0 else math.inf
+            percent = f"{100.0 * relative:.4g}"
+            if relative > limit and float(percent) <= 100.0 * WHEEL_FIT_TOLERANCE:  # never "10%" on a failure
+                percent = f"{100.0 * relative:.12g}"
+            off = f"{percent}% off" if math.isfinite(relative) else "none in the fit"
+            out.append((relative, f"{name} {value:.4g}{unit} (the fit's {fitted:.4g}{unit}: {off})"))
+        return out
+
+    each = [(k, differences(w)) for k, w in zip(indices, wheels)]
+    k, worst = max(each, key=lambda pair: max((d for d, _ in pair[1]), default=0.0))
+    largest = max((d for d, _ in worst), default=0.0)
+    beyond = [text for d, text in worst if d > limit]
+    which = f"wheel {k}: " if len(plan.wheels) > 1 else ""
+    if fit.type == "mesh":
+        fitted = f"mesh wheel of outer radius {fit.rim_radius:.4g} m, width {fit.width:.4g} m"
+    elif fit.grouser_count:
+        grousers = f"{fit.grouser_count} grouser{'s' if fit.grouser_count > 1 else ''}"
+        fitted = (
+            f"wheel of rim radius {fit.rim_radius:.4g} m, width {fit.width:.4g} m, {grousers} "
+            f"{fit.grouser_height:.4g} m tall"
+        )
+    else:
+        fitted = f"smooth wheel of rim radius {fit.rim_radius:.4g} m, width {fit.width:.4g} m"
+    if plan.rover is None:
+        setting = "terrain.calibration, wheel, testbed.mass, scene.gravity"
+    else:
+        setting = "terrain.calibration, wheel, rover.wheel_shape, rover, scene.gravity"
+    if not plan.g > 0:  # a wheel fit, and a lab calibration, need a load
+        remedy = "a wheel fit needs a loaded wheel (gravity > 0): use the DEM"
+    elif plan.rover is None:
+        remedy = (
+            "fit this one (cosim calibrate-scm SCENE --from-wheel on its slip study), use a lab calibration (cosim "
+            "calibrate-scm SCENE) or the DEM"
+        )
+    else:
+        remedy = (
+            "fit this wheel on a single-wheel scene at this rover's load per wheel "
+            f"({plan.wheel_load:.4g} N: testbed.mass = {plan.wheel_load / plan.g:.4g} kg) with cosim calibrate-scm "
+            "--from-wheel, use a lab calibration (cosim calibrate-scm SCENE) or the DEM"
+        )
+    return _finding(
+        "scm_calibration_wheel",
+        largest,
+        WHEEL_FIT_TOLERANCE,
+        largest <= limit,
+        f"{which}the wheel and load the wheel fit was fitted on, within {WHEEL_FIT_TOLERANCE:.0%} (a {fitted} at "
+        f"{fit.load:.4g} N)",
+        f"{which}{'; '.join(beyond)}: not the wheel and load the wheel fit was fitted on (a {fitted} at "
+        f"{fit.load:.4g} N; {WHEEL_FIT_TOLERANCE:.0%} either way is taken for it): its fitted keys compensate SCM's "
+        f"errors for that wheel; {remedy}",
+        setting,
+    )
+
+
 def scm_check(plan: RunPlan, measured: dict | None = None) -> list[Finding]:
     """Where the SCM tier cannot represent the run (each failed finding says what to do: use the DEM,
     or refine the grid, calibrate again): grouser-dominated traction (grouser height >
@@ -467,8 +546,9 @@ def scm_check(plan: RunPlan, measured: dict | None = None) -> list[Finding]:
     spacing > the thinnest grouser / NODES_ACROSS_GROUSER: `scm_grouser_grid`), a sinkage below
     SCM_SINKAGE_GRAINS grain diameters, a slip above SCM_SLIP_LIMIT, a Froude number above
     FROUDE_LIMIT, a calibration made at another gravity, a wheel fit made on another grid
-    (`scm_calibration_grid`), and after a run a rim sinkage deeper than the calibration's DEM tests
-    reached (`scm_calibration_depth`), and a slip outside those a wheel fit was fitted on
+    (`scm_calibration_grid`) or for another wheel or load (`scm_calibration_wheel`), and after a run a
+    rim sinkage deeper than the calibration's DEM tests reached (`scm_calibration_depth`), and a slip
+    outside those a wheel fit was fitted on
     (`scm_calibration_slips`). `measured`: a run summary's 'sinkage_tips', 'sinkage' [m] (a rover's
     per wheel: 'wheel_sinkage_tips', 'wheel_sinkage') and 'slip' [-]; before a run the sinkage is
     Bekker's closed form for each wheel's load and the slip the drive's imposed or target slip. A
@@ -652,6 +732,9 @@ def scm_check(plan: RunPlan, measured: dict | None = None) -> list[Finding]:
                 unit="m",
             )
         )
+    fit = plan.terrain.calibration_wheel
+    if fit is not None:
+        findings.append(_wheel_fit_finding(plan, fit, indices, wheels))
     # judged on the run's own rim sinkage: Bekker's closed form for a smooth wheel is no estimate of
     # a grousered wheel's on SCM (the main job: 2.5x SCM's own)
     rims = _per_wheel(measured, "sinkage", indices, len(plan.wheels or (plan.wheel,)))

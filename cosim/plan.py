@@ -23,7 +23,7 @@ import logging
 import math
 import os
 from dataclasses import dataclass, field
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -36,6 +36,9 @@ from soil.materials import stick_speed_for
 
 from . import probe
 from .scene import DriveSection, MaterialSection, OutputSection, Scene, SceneError, WheelSection
+
+if TYPE_CHECKING:
+    from .scm_calibration import FittedWheel
 
 log = logging.getLogger(__name__)
 
@@ -232,6 +235,9 @@ class TerrainPlan:
     calibration_lab_failed: tuple[str, ...] | None = None
     """SCM from a calibration file: its DEM lab tests' quasi-static numbers out of range, each as 'plate
     inertial number I = 0.0036 > 0.001' (None: the file does not record them)."""
+    calibration_wheel: FittedWheel | None = None
+    """SCM from a wheel fit: the wheel and load it was fitted on (cosim.scm_calibration.FittedWheel; None: a
+    lab calibration, or a fit that did not record them)."""
 
 
 @dataclass(frozen=True)
@@ -716,7 +722,7 @@ def _terrain(scene: Scene, wheel_count: int, problems: list[str]) -> TerrainPlan
     given = section.model_dump(exclude={"model", "wheels", "calibration"}, exclude_none=True)
     if section.model != "scm":
         return TerrainPlan(section.model, tuple(sorted(given.items())))
-    gravity = depth = grid = slips = lab = None
+    gravity = depth = grid = slips = lab = fitted = None
     if section.calibration is not None:
         from .scm_calibration import (
             CalibrationError,
@@ -724,6 +730,7 @@ def _terrain(scene: Scene, wheel_count: int, problems: list[str]) -> TerrainPlan
             failed_lab_checks,
             fitted_node_spacing,
             fitted_slips,
+            fitted_wheel,
             out_of_range,
             read_calibration,
             tested_sinkage,
@@ -735,6 +742,7 @@ def _terrain(scene: Scene, wheel_count: int, problems: list[str]) -> TerrainPlan
             grid = fitted_node_spacing(calibration, section.calibration)
             slips = fitted_slips(calibration, section.calibration)
             lab = failed_lab_checks(calibration, section.calibration)
+            fitted = fitted_wheel(calibration, section.calibration)
             bed_soils(calibration, section.calibration)  # its beds' record read now, not at a --vary-bed run
         except CalibrationError as error:
             problems.append(f"terrain.calibration: {error}")
@@ -764,7 +772,7 @@ def _terrain(scene: Scene, wheel_count: int, problems: list[str]) -> TerrainPlan
             model = "dem"
         elif "dem" in section.wheels:
             model, models = "mixed", tuple(section.wheels)
-    return TerrainPlan(model, tuple(sorted(given.items())), models, gravity, depth, grid, slips, lab)
+    return TerrainPlan(model, tuple(sorted(given.items())), models, gravity, depth, grid, slips, lab, fitted)
 
 
 def _scm_macro_step(terrain: TerrainPlan, wheels, testbed, rover, g: float, gravity) -> float:

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import math
 import os
+import re
 import warnings
 from dataclasses import dataclass, field
 from typing import Any
@@ -184,6 +185,132 @@ def fitted_slips(calibration: ScmCalibration, path: str = "") -> tuple[float, fl
             f"{where}[source.wheel] slips: each run's slip must be a finite number, got {slips!r:.80}"
         )
     return (float(min(slips)), float(max(slips))) if slips else None
+
+
+WHEEL_FIT_TOLERANCE = 0.1
+"""A wheel within this relative difference of a wheel fit's own in rim radius, width, grouser count and
+height, and load, is taken for that wheel (`scm_calibration_wheel`) [-]: a convention, not a measured
+bound; the fit's keys compensate SCM's errors for the wheel and load it was fitted on."""
+
+
+@dataclass(frozen=True)
+class FittedWheel:
+    """The wheel a wheel fit (`calibrate-scm --from-wheel`) was fitted on, at its load ([source.wheel]
+    geometry and wheel_load_n)."""
+
+    type: str
+    """'grouser' or 'mesh'."""
+    rim_radius: float
+    """Rim radius [m] (a mesh: its outer radius)."""
+    width: float
+    """Width along the axle [m]."""
+    grouser_count: int
+    """Grousers [-] (0: smooth, or a mesh)."""
+    grouser_height: float
+    """Grouser height [m] (0 without grousers)."""
+    load: float
+    """The wheel's load in the fitted runs [N]."""
+    mesh_sha256: str = ""
+    """A mesh wheel's digest of its scaled vertices and triangles (mesh_digest); '' for a grouser wheel."""
+
+
+def mesh_digest(mesh) -> str:
+    """SHA-256 of a mesh wheel's scaled vertices [m] and triangles, whatever the order of its vertices
+    and triangles (a file saved again may list them otherwise): the vertices sorted, the triangles in
+    those vertices' ranks, each turned to start at its lowest (its winding kept), sorted. Another shape,
+    another scale, or the same mesh in a format that rounds its numbers otherwise (STL holds float32)
+    gives another digest."""
+    import hashlib
+
+    vertices = np.asarray(mesh.vertices, dtype=np.float64) + 0.0  # -0.0 and 0.0 hash alike
+    _, rank = np.unique(vertices, axis=0, return_inverse=True)  # equal vertices share one rank
+    triangles = rank.reshape(-1)[np.asarray(mesh.triangles, dtype=np.int64)]
+    turns = np.stack([np.roll(triangles, -k, axis=1) for k in range(3)], axis=1)  # each triangle's 3 rotations
+    flat = turns.reshape(-1, 3)
+    order = np.empty(len(flat), dtype=np.int64)
+    order[np.lexsort(flat.T[::-1])] = np.arange(len(flat))
+    triangles = turns[np.arange(len(triangles)), order.reshape(-1, 3).argmin(axis=1)]  # the least rotation
+    triangles = triangles[np.lexsort(triangles.T[::-1])]
+    digest = hashlib.sha256(np.ascontiguousarray(vertices[np.lexsort(vertices.T[::-1])]).tobytes())
+    digest.update(np.ascontiguousarray(triangles).tobytes())
+    return digest.hexdigest()
+
+
+def wheel_record(wheel) -> dict:
+    """A wheel plan's (cosim.plan.WheelPlan) shape as a wheel fit records it ([source.wheel] geometry),
+    SI units in each key's suffix; a mesh wheel's with its digest (mesh_digest)."""
+    shape = wheel.shape
+    grousers = int(getattr(shape, "grouser_count", 0))
+    mesh = not hasattr(shape, "grouser_count")
+    return {
+        "type": "mesh" if mesh else "grouser",
+        "rim_radius_m": float(wheel.rim_radius),
+        "width_m": float(wheel.width),
+        "grouser_count": grousers,
+        "grouser_height_m": float(getattr(shape, "grouser_height", 0.0)) if grousers else 0.0,
+        **({"mesh_sha256": mesh_digest(shape)} if mesh else {}),
+    }
+
+
+def fitted_wheel(calibration: ScmCalibration, path: str = "") -> FittedWheel | None:
+    """The wheel and load a wheel fit was fitted on ([source.wheel] geometry, wheel_load_n); None when the
+    file records no geometry (a lab calibration, a fit made before it was recorded). CalibrationError names
+    an entry of the wrong kind, or entries that contradict each other (grousers without a height, a mesh
+    with grousers, a geometry without its load)."""
+    wheel = calibration.source.get("wheel", {})
+    where = f"{path}: " if path else ""
+    if not isinstance(wheel, dict):
+        raise CalibrationError(f"{where}[source] wheel must be a table, got {wheel!r:.60}")
+    geometry, load = wheel.get("geometry"), wheel.get("wheel_load_n")
+    if geometry is None:
+        return None
+    if not isinstance(geometry, dict):
+        raise CalibrationError(f"{where}[source.wheel] geometry must be a table, got {geometry!r:.60}")
+    problems = []
+    kind = geometry.get("type")
+    if kind not in ("grouser", "mesh"):
+        problems.append(f"geometry.type must be 'grouser' or 'mesh', got {kind!r:.40}")
+    numbers = {}
+    for key, positive in (("rim_radius_m", True), ("width_m", True), ("grouser_height_m", False)):
+        value: Any = geometry.get(key)
+        numbers[key] = float(value) if _finite_number(value) else math.nan  # nan fails both comparisons
+        if not (numbers[key] > 0 or (numbers[key] == 0 and not positive)):
+            problems.append(
+                f"geometry.{key} must be a finite number {'> 0' if positive else '>= 0'} [m], got {value!r:.40}"
+            )
+    count = geometry.get("grouser_count")
+    if isinstance(count, bool) or not isinstance(count, int) or count < 0:
+        problems.append(f"geometry.grouser_count must be a whole number >= 0, got {count!r:.40}")
+        count = None  # no contradiction judged on it
+    height = numbers["grouser_height_m"]
+    if count is not None and math.isfinite(height) and (count > 0) != (height > 0):
+        problems.append(
+            f"geometry.grouser_count {count} and grouser_height_m {height!r} contradict each other: grousers have "
+            "a height > 0, a smooth wheel none"
+        )
+    digest = geometry.get("mesh_sha256", "")
+    hexadecimal = isinstance(digest, str) and re.fullmatch(r"[0-9a-f]{64}", digest) is not None
+    if kind == "mesh" and (count not in (0, None) or not hexadecimal):
+        problems.append(
+            "a mesh's geometry has grouser_count 0 and its mesh_sha256 (64 lower-case hexadecimal digits), got "
+            f"{count!r} and {digest!r:.70}"
+        )
+    if kind == "grouser" and "mesh_sha256" in geometry:
+        problems.append(f"geometry.mesh_sha256 belongs to a mesh, not to a {kind} wheel")
+    load_value = float(load) if isinstance(load, (int, float)) and _finite_number(load) else math.nan
+    if not load_value > 0:
+        problems.append(f"wheel_load_n must be a finite number > 0 [N] beside the geometry, got {load!r:.40}")
+    if problems:
+        raise CalibrationError(f"{where}[source.wheel] " + "; ".join(problems))
+    return FittedWheel(
+        str(kind),
+        numbers["rim_radius_m"],
+        numbers["width_m"],
+        int(count or 0),
+        height,
+        load_value,
+        str(digest),
+    )
 
 
 def failed_lab_checks(calibration: ScmCalibration, path: str = "") -> tuple[str, ...] | None:

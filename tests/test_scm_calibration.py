@@ -358,6 +358,119 @@ def test_a_wheel_fit_used_on_another_grid_is_flagged(tmp_path):
         load_plan(scene)
 
 
+def test_a_wheel_fit_used_on_another_wheel_or_load_is_flagged(tmp_path):
+    """scm_calibration_wheel: a wheel fit's keys compensate SCM's errors for the wheel and load it was
+    fitted on ([source.wheel] geometry and wheel_load_n); used on the full-size rover's 0.1 m wheels at 20x
+    the load, or at 1.67x the load, it was not judged. The shipped fit on its own wheel passes, and within
+    10 % (10 % itself included); another radius, smooth rims, a load 1.67x, a rover of other wheels fail,
+    naming what differs and, for a rover, the single-wheel load to fit at; on a mixed terrain only the SCM
+    wheel is judged. A mesh fit knows its mesh by a digest of its scaled vertices and triangles, in any
+    order: another mesh of the same radius and width fails, as do another scale and a grouser wheel. A lab
+    calibration, or a fit that does not record its wheel, is not judged; a record of the wrong kind or
+    contradicting itself is refused naming the file and the entry."""
+    from types import SimpleNamespace
+
+    from cosim.scm_calibration import FittedWheel, mesh_digest, wheel_record
+    from soil import GrouserWheel, MeshWheel
+
+    examples = os.path.join(os.path.dirname(__file__), "..", "examples")
+    scm = os.path.join(examples, "phobos_single_wheel_scm.toml")
+    fit = 'terrain.calibration="terrain/phobos_regolith_scm_wheel.toml"'
+
+    def judged(scene, *overrides, calibration=fit):
+        plan = load_plan(scene, [calibration, *overrides] if calibration else list(overrides))
+        found = [f for f in _findings(plan) if f.check == "scm_calibration_wheel"]
+        return found[0] if found else None
+
+    plan = load_plan(scm, [fit])
+    assert plan.terrain.calibration_wheel == FittedWheel("grouser", 0.03, 0.032, 10, 0.003, 0.00171)
+    assert wheel_record(plan.wheel) == {
+        "type": "grouser",
+        "rim_radius_m": 0.03,
+        "width_m": 0.032,
+        "grouser_count": 10,
+        "grouser_height_m": 0.003,
+    }
+    own = judged(scm)
+    assert own.ok and own.value == pytest.approx(0.0, abs=1e-9) and own.limit == 0.1
+    assert judged(scm, "testbed.mass=0.33").ok and judged(scm, "testbed.mass=0.27").ok  # 10 % either way
+    heavier = judged(scm, "testbed.mass=0.5")
+    assert not heavier.ok and heavier.value == pytest.approx(0.5 / 0.3 - 1.0, rel=1e-9)
+    assert heavier.message.startswith("load 0.00285 N (the fit's 0.00171 N: 66.67% off): not the wheel")
+    assert heavier.setting == "terrain.calibration, wheel, testbed.mass, scene.gravity"
+    larger = judged(scm, "wheel.radius=0.05")
+    assert not larger.ok and "rim radius 0.05 m (the fit's 0.03 m: 66.67% off)" in larger.message
+    smooth = judged(scm, "wheel.grouser_count=0")
+    assert not smooth.ok and "grouser count 0 (the fit's 10: 100% off)" in smooth.message
+    rover = judged(os.path.join(examples, "phobos_rover_scm_traverse.toml"))
+    assert not rover.ok and rover.message.startswith("wheel 0: rim radius 0.1 m") and "rover" in rover.setting
+    assert "at this rover's load per wheel (0.03563 N: testbed.mass = 6.25 kg)" in rover.message
+    boundary = judged(scm, "testbed.mass=0.3301")
+    assert not boundary.ok and "10.03% off" in boundary.message  # not "10% off" beside a failed 10 %
+    patch = os.path.join(examples, "phobos_rover_patch.toml")
+    mixed = judged(patch, 'terrain.model="scm"', 'terrain.wheels=["dem", "dem", "dem", "scm"]')
+    assert not mixed.ok and mixed.message.startswith("wheel 3: ")  # the DEM wheels, alike, are not judged
+    assert judged(scm, 'terrain.calibration="terrain/phobos_regolith_scm_beds.toml"') is None  # a lab calibration
+
+    path = tmp_path / "terrain.toml"
+    grousered = GrouserWheel(radius=0.025, width=0.02, grouser_count=8, grouser_height=0.003, grouser_thickness=0.002)
+    MeshWheel(*grousered.to_mesh(arc_segments=64)).save(tmp_path / "grousered.obj")
+    MeshWheel(*GrouserWheel(radius=0.028, width=0.02).to_mesh(arc_segments=64)).save(tmp_path / "smooth.obj")
+    scene = write_tiny(tmp_path, f'\n[terrain]\nmodel = "scm"\ncalibration = "{path.name}"\n')
+
+    def written(wheel: dict) -> None:
+        write_calibration(str(path), ScmCalibration(_calibration(1.625).parameters, {}, 1.625, {"wheel": wheel}))
+
+    written({})  # a lab calibration first: the plan that gives the mesh's record reads the file
+    meshed = load_plan(scene, ['wheel={type = "mesh", file = "grousered.obj"}'])
+    record = wheel_record(meshed.wheel)
+    assert record["type"] == "mesh" and len(record["mesh_sha256"]) == 64
+    # the same mesh with its vertices and triangles listed in another order: the same digest
+    shape = meshed.wheel.shape
+    shuffle = np.random.default_rng(0).permutation(len(shape.vertices))
+    rank = np.argsort(shuffle)
+    turned = np.roll(rank[shape.triangles], 1, axis=1)[::-1]  # each triangle from another corner, reversed order
+    assert mesh_digest(MeshWheel(shape.vertices[shuffle], turned)) == record["mesh_sha256"]
+    assert mesh_digest(MeshWheel(shape.vertices, shape.triangles[:, ::-1])) != record["mesh_sha256"]  # inside out
+    n = len(shape.vertices)  # vertex 0 twice (n its copy), one of its triangles on the copy: the copies swapped
+    corners = shape.triangles.copy()
+    first = np.flatnonzero((corners == 0).any(axis=1))[0]
+    corners[first][corners[first] == 0] = n
+    doubled = np.vstack([shape.vertices, shape.vertices[:1]])
+    swapped = doubled[[n, *range(1, n), 0]]
+    assert mesh_digest(SimpleNamespace(vertices=doubled, triangles=corners)) == mesh_digest(
+        SimpleNamespace(vertices=swapped, triangles=corners)
+    )
+    written({"wheel_load_n": meshed.wheel_load, "geometry": record})
+    assert judged(scene, 'wheel={type = "mesh", file = "grousered.obj"}', calibration=None).ok
+    larger = judged(scene, 'wheel={type = "mesh", file = "grousered.obj", scale = 1.05}', calibration=None)
+    assert not larger.ok and larger.message.startswith("another mesh or scale (its vertices differ")
+    other = judged(scene, 'wheel={type = "mesh", file = "smooth.obj"}', calibration=None)
+    assert not other.ok and other.message.startswith("another mesh or scale")
+    kind = judged(scene, calibration=None)  # the tiny scene's own grouser wheel
+    assert not kind.ok and kind.value == math.inf and "a grouser wheel, the fit's a mesh wheel" in kind.message
+    smooth = {"type": "grouser", "rim_radius_m": 0.03, "width_m": 0.03, "grouser_count": 0, "grouser_height_m": 0.0}
+    written({"wheel_load_n": 0.1})  # a fit made before its wheel was recorded
+    assert load_plan(scene).terrain.calibration_wheel is None
+    assert not any(f.check == "scm_calibration_wheel" for f in _findings(load_plan(scene)))
+    for wheel, problem in (
+        ({"wheel_load_n": 0.1, "geometry": {**smooth, "width_m": -1.0}}, r"geometry.width_m must be a finite"),
+        ({"wheel_load_n": 0.1, "geometry": {**smooth, "grouser_count": 1.5}}, r"geometry.grouser_count must be"),
+        ({"wheel_load_n": 0.1, "geometry": {**smooth, "grouser_count": -1, "grouser_height_m": 0.01}}, r"got -1$"),
+        ({"wheel_load_n": "heavy", "geometry": smooth}, r"wheel_load_n must be a finite number > 0 \[N\]"),
+        ({"geometry": smooth}, r"wheel_load_n must be a finite number > 0 \[N\] beside the geometry, got None"),
+        ({"wheel_load_n": 0.1, "geometry": {**smooth, "type": "cone"}}, r"geometry.type must be 'grouser' or"),
+        ({"wheel_load_n": 0.1, "geometry": {**smooth, "grouser_height_m": 0.003}}, r"contradict each other"),
+        ({"wheel_load_n": 0.1, "geometry": {**smooth, "type": "mesh"}}, r"a mesh's geometry has grouser_count 0"),
+        ({"wheel_load_n": 0.1, "geometry": {**record, "grouser_count": 4}}, r"a mesh's geometry has grouser_count"),
+        ({"wheel_load_n": 0.1, "geometry": {**record, "type": "grouser"}}, r"mesh_sha256 belongs to a mesh"),
+        ({"wheel_load_n": 0.1, "geometry": {**record, "mesh_sha256": "x" * 64}}, r"64 lower-case hexadecimal"),
+    ):
+        written(wheel)
+        with pytest.raises(SceneError, match=r"terrain.toml: \[source.wheel\] .*" + problem):
+            load_plan(scene)
+
+
 def _findings(plan):
     from cosim.system import validity
 
@@ -523,6 +636,7 @@ def test_the_fit_to_the_runs_recovers_known_parameters_and_keeps_to_its_budget(t
     assert report["rms_residual"] < 0.05 and report["run_evaluations"] <= 60
     # no grid in the start: the runs ran on the scene's default, the main job's grousers / 1.5
     assert report["node_spacing_m"] == pytest.approx(plan.wheel.shape.grouser_thickness / 1.5, rel=1e-12)
+    assert report["geometry"]["rim_radius_m"] == plan.wheel.rim_radius and report["wheel_load_n"] == plan.wheel_load
     for row in report["slips"]:
         assert row["run_sinkage"] == pytest.approx(row["sinkage"], rel=0.15)
     _, _, first = fit_to_wheel(plan, targets, start, max_evaluations=1, runs=str(tmp_path), max_runs=1)

@@ -533,6 +533,7 @@ def fit_to_wheel(
         free["cap"] += 1  # the folder is left with the fitted soil's runs (one more when the best was not last)
         free_residuals(x)
         summaries = free["last"][2]
+    from ..scm_calibration import wheel_record
     from ..scm_soil import scm_settings
 
     report = {
@@ -540,6 +541,7 @@ def fit_to_wheel(
         "held": held,
         "start": {k: float(v) for k, v in floor.items()},
         "wheel_load_n": load,
+        "geometry": wheel_record(plan.wheel),  # the wheel the keys were fitted on (scm_calibration_wheel)
         # the grid of the fit's SCM wheel: its forces (a grousered wheel's above all) depend on it
         "node_spacing_m": float(scm_settings(plan, [0], 0.0, parameters).parameters.node_spacing),
         "evaluations": int(held_result.nfev),
