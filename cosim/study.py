@@ -1223,6 +1223,8 @@ def _slip_report(
                 "stats": stats,
             }
         )
+    from .scm_calibration import wheel_record
+
     varied, calibration = _variation(plan, vary, soils)
     report = {
         "kind": "slip",
@@ -1235,6 +1237,7 @@ def _slip_report(
         "scene_toml": text,
         "bed_file": bed,
         "wheel_load": plan.wheel_load,
+        "wheel": wheel_record(plan.wheel),  # a mesh's digest too: the wheel fit checks its runs drove this one
     }
     crossing = zero_pull_slip(rows)
     report["zero_pull_slip"], report["zero_pull_slip_ci95"] = crossing["slip"], crossing["ci95"]

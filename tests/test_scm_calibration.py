@@ -471,6 +471,41 @@ def test_a_wheel_fit_used_on_another_wheel_or_load_is_flagged(tmp_path):
             load_plan(scene)
 
 
+def test_a_wheel_fit_refuses_the_runs_of_another_mesh(tmp_path):
+    """--wheel-runs of a slip study whose mesh wheel was another mesh than the scene's: the wheel
+    comparison leaves the mesh's file out (a path says where a mesh was, not what it held), so any mesh
+    passed as this scene's wheel and the fit was recorded for it. The study records its wheel (a mesh's
+    digest): another mesh is refused naming wheel.file; the same one passes; a study written before the
+    wheel was recorded is not judged on it; a wheel record that is none is a damaged study."""
+    import json
+
+    from cosim.lab.scm_wheel import check_study_scene
+    from cosim.scm_calibration import wheel_record
+    from soil import GrouserWheel, MeshWheel
+    from soil.errors import ArgumentError, DamagedFileError
+
+    grousered = GrouserWheel(radius=0.025, width=0.02, grouser_count=8, grouser_height=0.003, grouser_thickness=0.002)
+    MeshWheel(*grousered.to_mesh(arc_segments=64)).save(tmp_path / "grousered.obj")
+    MeshWheel(*GrouserWheel(radius=0.028, width=0.02).to_mesh(arc_segments=64)).save(tmp_path / "smooth.obj")
+    scene = write_tiny(tmp_path)
+    plan = load_plan(scene, ['wheel={type = "mesh", file = "grousered.obj"}'])
+    other = load_plan(scene, ['wheel={type = "mesh", file = "smooth.obj"}'])
+    study = tmp_path / "study"
+    study.mkdir()
+    base = {"kind": "slip", "rows": [], "wheel_load": plan.wheel_load, "scene_toml": plan.scene.to_toml()}
+    for wheel, refused in ((wheel_record(other.wheel), True), (wheel_record(plan.wheel), False), (None, False)):
+        (study / "study.json").write_text(json.dumps({**base, **({"wheel": wheel} if wheel else {})}))
+        if refused:
+            with pytest.raises(ArgumentError, match=r"another mesh \(wheel.file: its scaled vertices"):
+                check_study_scene(str(study), plan)
+        else:
+            check_study_scene(str(study), plan)
+    for damaged in ({**wheel_record(plan.wheel), "mesh_sha256": None}, "mesh"):
+        (study / "study.json").write_text(json.dumps({**base, "wheel": damaged}))
+        with pytest.raises(DamagedFileError, match=r"study.json: its wheel is no wheel record"):
+            check_study_scene(str(study), plan)
+
+
 def _findings(plan):
     from cosim.system import validity
 

@@ -690,6 +690,7 @@ def test_a_slip_studys_rows_carry_the_validity_of_their_runs(tmp_path, capsys, m
     assert expected[0.3] == "valid" and "scm_slip (1/1)" in expected[0.8], expected  # the scene as meant
     report = json.loads((out / "study.json").read_text())
     assert {row["slip_set"]: row["validity"] for row in report["rows"]} == expected
+    assert report["wheel"]["rim_radius_m"] == load_plan(SCM_EXAMPLE).wheel.rim_radius  # what a wheel fit checks
     with open(out / "study.csv", newline="") as f:
         table = list(csv.DictReader(f))
     assert {float(row["slip_set [1]"]): row["validity"] for row in table} == expected

@@ -40,6 +40,7 @@ import json
 import logging
 import math
 import os
+import re
 from dataclasses import asdict, dataclass, replace
 
 import numpy as np
@@ -132,6 +133,7 @@ def check_study_scene(study_folder: str, plan) -> None:
 
     path, study = _read_study(study_folder)
     differ = []
+    wheel_named = False  # the scene's [wheel] keys already differ (a mesh's scale among them)
     if not math.isclose(float(study["wheel_load"]), plan.wheel_load, rel_tol=1e-9):
         differ.append(f"a wheel load of {study['wheel_load']:.6g} N (the scene's {plan.wheel_load:.6g} N)")
     text = study.get("scene_toml")
@@ -143,19 +145,36 @@ def check_study_scene(study_folder: str, plan) -> None:
         gravity = gravity_vector(scene.scene.gravity)
         if not np.allclose(gravity, plan.gravity, rtol=1e-9, atol=0):
             differ.append(f"gravity {gravity.tolist()} m/s^2 (the scene's {np.asarray(plan.gravity).tolist()})")
-        # the wheel (a mesh's file aside: its path is relative to a folder the study does not record), its
-        # spin (the fit drives the scene's), and the soil's grains
+        # the wheel (a mesh's file aside: its digest is compared below, the path may have moved or been
+        # overwritten), its spin (the fit drives the scene's), and the soil's grains
         for section in ("wheel", "soil"):
             theirs, own = (getattr(s, section).model_dump(exclude={"file"}) for s in (scene, plan.scene))
             changed = sorted(k for k in own if theirs.get(k) != own[k])
             if changed:
                 differ.append(f"another {section} ({section}.{f', {section}.'.join(changed)})")
+                wheel_named = wheel_named or section == "wheel"
         if (
             scene.testbed is not None
             and plan.scene.testbed is not None
             and scene.testbed.omega != plan.scene.testbed.omega
         ):
             differ.append(f"testbed.omega = {scene.testbed.omega!r} rad/s (the scene's {plan.scene.testbed.omega!r})")
+    from ..scm_calibration import wheel_record
+
+    theirs_wheel, own_wheel = study.get("wheel"), wheel_record(plan.wheel)
+    # a mesh by its digest: its file's path names where it was, not what it held; a study written before
+    # the wheel was recorded is not judged on it
+    if theirs_wheel is not None and not (
+        isinstance(theirs_wheel, dict)
+        and (theirs_wheel.get("type") != "mesh" or re.fullmatch(r"[0-9a-f]{64}", str(theirs_wheel.get("mesh_sha256"))))
+    ):
+        raise DamagedFileError(
+            f"{path}: its wheel is no wheel record (a mesh's with its mesh_sha256): {theirs_wheel!r:.80}"
+        )
+    recorded = theirs_wheel or {}
+    mesh = own_wheel["type"] == "mesh" == recorded.get("type")
+    if mesh and recorded["mesh_sha256"] != own_wheel["mesh_sha256"] and not wheel_named:
+        differ.append("another mesh (wheel.file: its scaled vertices and triangles differ from the scene's)")
     if differ:
         raise ArgumentError(
             f"--wheel-runs {path}: the slip study ran {'; '.join(differ)}: its runs are not this scene's wheel; "
