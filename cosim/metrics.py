@@ -42,10 +42,10 @@ slip over the window is at least 0.9, or it moved against its wheels); it is stu
 immobile at the end of the drive, its slip over the steady window is at least stuck_slip, or its
 drive stalled: the drive commands the wheels (a speed or a torque) while over the window they do
 not turn with it (still, jittering about their axles, or turned backwards), and their rims and the
-body (along the drive) advance less than one grain diameter (a
-torque too weak to turn them, a motor at its limit, or a torque holding the rover still; its slip
-would be a ratio of noise, nan when they stop entirely). A stall adds no time immobile; a parked
-rover (zero commands, or zero speeds: a brake) is not judged.
+body (along the drive) advance less than one grain diameter (a torque too weak to turn them, a
+motor at its limit, or a torque holding the rover still; its slip would be a ratio of noise, nan
+when they stop entirely). A stall adds no time immobile; a parked rover (zero commands, or zero
+speeds: a brake) is not judged.
 Steps before the wheels have turned one radian are not judged, nor steps while they turn against
 each other. The steady-state window is found as for a wheel (MSER-5 on the forward speed and the
 mean sinkage; each wheel's sinkage steady over it, else 'still sinking'); slip, sinkage, drawbar
@@ -563,9 +563,9 @@ def summarize_rover(
 
     Statuses as `summarize`'s, for the rover: 'stuck' (immobile at the end, a slip of at least
     stuck_slip over the window, or a stalled drive), 'airborne' (at least min(3, wheels) wheels touch
-    the soil in fewer than 90 % of the window's macro steps: the stance lost, not one wheel lifted), 'too short', 'still
-    sinking' (a wheel's sinkage neither stationary nor drifting by less than half of `grain_radius` [m]
-    over the window)."""
+    the soil in fewer than 90 % of the window's macro steps: the stance lost, not one wheel lifted),
+    'too short', 'still sinking' (a wheel's sinkage neither stationary nor drifting by less than half of
+    `grain_radius` [m] over the window)."""
     time = np.asarray(series["time"], dtype=float)
     phase = np.asarray(series["phase"])
     contacts = np.asarray(series["contact_count"])

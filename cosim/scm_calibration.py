@@ -217,9 +217,9 @@ class FittedWheel:
 def mesh_digest(mesh) -> str:
     """SHA-256 of a mesh wheel's scaled vertices [m] and triangles, whatever the order of its vertices
     and triangles (a file saved again may list them otherwise): the vertices sorted, the triangles in
-    those vertices' ranks, each turned to start at its lowest (its winding kept), sorted. Another shape,
-    another scale, or the same mesh in a format that rounds its numbers otherwise (STL holds float32)
-    gives another digest."""
+    those vertices' ranks (equal vertices share one), each turned to its least rotation (its winding
+    kept), sorted. Another shape, another scale, or the same mesh in a format that rounds its numbers
+    otherwise (STL holds float32) gives another digest."""
     import hashlib
 
     vertices = np.asarray(mesh.vertices, dtype=np.float64) + 0.0  # -0.0 and 0.0 hash alike
@@ -234,6 +234,11 @@ def mesh_digest(mesh) -> str:
     digest = hashlib.sha256(np.ascontiguousarray(vertices[np.lexsort(vertices.T[::-1])]).tobytes())
     digest.update(np.ascontiguousarray(triangles).tobytes())
     return digest.hexdigest()
+
+
+def is_mesh_digest(value) -> bool:
+    """Whether a record's mesh_sha256 is one mesh_digest writes: 64 lower-case hexadecimal digits."""
+    return isinstance(value, str) and re.fullmatch(r"[0-9a-f]{64}", value) is not None
 
 
 def wheel_record(wheel) -> dict:
@@ -289,8 +294,7 @@ def fitted_wheel(calibration: ScmCalibration, path: str = "") -> FittedWheel | N
             "a height > 0, a smooth wheel none"
         )
     digest = geometry.get("mesh_sha256", "")
-    hexadecimal = isinstance(digest, str) and re.fullmatch(r"[0-9a-f]{64}", digest) is not None
-    if kind == "mesh" and (count not in (0, None) or not hexadecimal):
+    if kind == "mesh" and (count not in (0, None) or not is_mesh_digest(digest)):
         problems.append(
             "a mesh's geometry has grouser_count 0 and its mesh_sha256 (64 lower-case hexadecimal digits), got "
             f"{count!r} and {digest!r:.70}"

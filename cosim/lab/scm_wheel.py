@@ -40,7 +40,6 @@ import json
 import logging
 import math
 import os
-import re
 from dataclasses import asdict, dataclass, replace
 
 import numpy as np
@@ -159,14 +158,14 @@ def check_study_scene(study_folder: str, plan) -> None:
             and scene.testbed.omega != plan.scene.testbed.omega
         ):
             differ.append(f"testbed.omega = {scene.testbed.omega!r} rad/s (the scene's {plan.scene.testbed.omega!r})")
-    from ..scm_calibration import wheel_record
+    from ..scm_calibration import is_mesh_digest, wheel_record
 
     theirs_wheel, own_wheel = study.get("wheel"), wheel_record(plan.wheel)
     # a mesh by its digest: its file's path names where it was, not what it held; a study written before
     # the wheel was recorded is not judged on it
     if theirs_wheel is not None and not (
         isinstance(theirs_wheel, dict)
-        and (theirs_wheel.get("type") != "mesh" or re.fullmatch(r"[0-9a-f]{64}", str(theirs_wheel.get("mesh_sha256"))))
+        and (theirs_wheel.get("type") != "mesh" or is_mesh_digest(theirs_wheel.get("mesh_sha256")))
     ):
         raise DamagedFileError(
             f"{path}: its wheel is no wheel record (a mesh's with its mesh_sha256): {theirs_wheel!r:.80}"
