@@ -251,6 +251,18 @@ def check_cached_bed(path: str, key: str, info: dict) -> None:
         )
 
 
+def settling_cost(plan: RunPlan) -> str:
+    """What settling the plan's bed costs, said before it starts (a soil of tiny grains settled for an
+    hour without a word under --no-progress): its DEM steps, bed.settle_max_time over its step (fixed
+    steps: up to about that, the last check interval may pass it; the PID: at its first step only)."""
+    bed = plan.bed
+    steps = bed.settle_max_time / bed.settle_dt
+    where = f"bed.settle_max_time = {bed.settle_max_time:g} s at {bed.settle_dt:.3g} s"
+    if plan.step_control == "pid":
+        return f"about {steps:.3g} DEM steps at the PID's first step ({where}; it takes others as it goes)"
+    return f"up to about {steps:.3g} DEM steps ({where})"
+
+
 def _settle_step_control(plan: RunPlan):
     """The PID controller that settles the bed (run.step_control = 'pid'), or None: fixed steps."""
     if plan.step_control != "pid":
@@ -266,6 +278,8 @@ def _settle(plan: RunPlan, path: str, info_path: str, progress: bool) -> Bed:
     from soil.bed import bed_metrics, make_settled_bed
 
     bed = plan.bed
+    control = _settle_step_control(plan)
+    log.info("settling the bed: %s", settling_cost(plan))
     bar = _SettleBar(bed.settle_max_time, progress)
     start = time.perf_counter()
     try:
@@ -278,7 +292,7 @@ def _settle(plan: RunPlan, path: str, info_path: str, progress: bool) -> Bed:
             ke_ratio=bed.settle_ke_ratio,
             max_time=bed.settle_max_time,
             progress=bar.update,
-            step_control=_settle_step_control(plan),
+            step_control=control,
         )
     except SimulationDiverged as error:
         raise SettlingDiverged(error, plan, _keep_last_good(error, os.path.dirname(path))) from None

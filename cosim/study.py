@@ -55,7 +55,7 @@ from soil.errors import ArgumentError, InternalError, RegolithError
 from soil.files import atomic_write_text
 
 from . import advice, metrics
-from .beds import BED_FILE, BED_INFO_FILE, settled_bed, write_json
+from .beds import BED_FILE, BED_INFO_FILE, settled_bed, settling_cost, write_json
 from .folders import RunFolder
 from .plan import MAX_PHASE_STEPS, RunPlan, resolve
 
@@ -418,7 +418,7 @@ def _shared_bed(plan: RunPlan, out_dir: str, ex: Executor) -> str | None:
         return None
     if plan.bed.bed_file:
         return plan.bed.bed_file
-    log.info("settling the shared bed ...")
+    log.info("settling the shared bed: %s ...", settling_cost(plan))  # its worker's own log is not shown
     return _settle(ex, [plan], [out_dir])[0]
 
 
@@ -515,7 +515,7 @@ def _replica_beds(plan: RunPlan, out_dir: str, ex: Executor, replicas: int, vary
     if not needs_bed(plan):  # SCM alone: its replicas vary in the calibration's beds (_check_variation)
         return [None] * replicas
     seeds = [plan.bed.spec.seed + k for k in range(replicas)]
-    log.info("settling %d beds, bed.seed %d to %d ...", replicas, seeds[0], seeds[-1])
+    log.info("settling %d beds, bed.seed %d to %d, each %s ...", replicas, seeds[0], seeds[-1], settling_cost(plan))
     folders = [os.path.join(out_dir, "beds", f"seed_{s}") for s in seeds]
     return list(_settle(ex, [plan.with_changes(**{"bed.seed": s}) for s in seeds], folders))
 

@@ -163,6 +163,53 @@ def test_advise_prints_the_bounds_and_the_validity_checks(cli_run, capsys):
     assert "above the critical step only the error estimate keeps a substep stable" in line, line
 
 
+def test_a_run_says_what_settling_its_bed_costs_before_it_starts(tmp_path, monkeypatch, capsys):
+    """A soil of tiny grains (soil.density = 1e-3) settled at 1.2e-7 s steps, 1.25e8 of them, for an hour
+    without a word under --no-progress: the run now says the settling's DEM steps at most (its time over
+    its step) before the first one. The settling itself is stopped at once here."""
+    import soil.bed
+    from cosim.plan import load_plan
+    from helpers import write_tiny
+
+    def stop(*args, **kwargs):
+        raise KeyboardInterrupt  # the run stops as on Ctrl-C, before any step
+
+    monkeypatch.setattr(soil.bed, "make_settled_bed", stop)
+    scene = write_tiny(tmp_path)
+    for overrides, words in (([], "up to about"), (['run.step_control="pid"'], "about")):
+        plan = load_plan(scene, overrides)
+        sets = [item for o in overrides for item in ("--set", o)]
+        assert main(["run", scene, "--out", str(tmp_path / "run"), "--no-progress", "--overwrite", *sets]) != 0
+        err = capsys.readouterr().err
+        steps = plan.bed.settle_max_time / plan.bed.settle_dt
+        assert f"settling the bed: {words} {steps:.3g} DEM steps" in err, err
+        assert ("at the PID's first step" in err) == bool(overrides), err
+
+
+def test_a_study_says_what_settling_its_beds_costs(tmp_path, monkeypatch, caplog):
+    """A study settles its beds on dask workers, whose own log is not shown: the parent says what each
+    bed's settling costs before it hands them out (the settling stopped at once here)."""
+    import logging
+
+    import soil.bed
+    from cosim.plan import load_plan
+    from cosim.study import Executor, _replica_beds
+    from helpers import write_tiny
+
+    def stop(*args, **kwargs):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(soil.bed, "make_settled_bed", stop)
+    plan = load_plan(write_tiny(tmp_path))
+    steps = plan.bed.settle_max_time / plan.bed.settle_dt
+    for vary, words in (("bed", f"2 beds, bed.seed 1 to 2, each up to about {steps:.3g}"), ("order", "shared bed")):
+        caplog.clear()
+        with caplog.at_level(logging.INFO, logger="cosim.study"), Executor("serial") as ex:
+            with pytest.raises(KeyboardInterrupt):
+                _replica_beds(plan, str(tmp_path / vary), ex, 2, vary)
+        assert words in caplog.text and f"up to about {steps:.3g} DEM steps" in caplog.text, caplog.text
+
+
 def test_resume_of_a_complete_run_does_nothing(cli_run, capsys):
     _, out, code = cli_run
     assert main(["resume", str(out), "--no-progress"]) == code
