@@ -3,7 +3,11 @@
 HDF5 layout of ``results.h5`` (S = macro steps recorded, W = wheels, T = particle
 snapshots, N = particles, V = wheel-mesh vertices, F = wheel-mesh triangles, K = rover
 state columns). Every dataset carries a `units` attribute ("1": dimensionless, "count")
-and a `description`; every time series grows along its first axis.
+and a `description`; every time series grows along its first axis. Every dataset but a scalar is
+chunked with HDF5's Fletcher-32 checksum on each chunk (CHECKSUMMED), so that bytes changed on disk
+fail the read (cosim.snapshots.read_results_data names the file and the dataset; a file still being
+written is read again first, as its writer rewrites a chunk in place) instead of being read as
+numbers; a file written before 2026-12-07 has none and is read as it is.
 
     /                               attributes:
         format          "regolith-cosim results 2"
@@ -99,6 +103,7 @@ import json
 import os
 import xml.etree.ElementTree as ET
 from datetime import datetime, timezone
+from functools import partial
 from typing import Any
 
 import numpy as np
@@ -107,7 +112,7 @@ from soil.errors import DamagedFileError
 from soil.files import atomic_path, atomic_write_text, with_path
 
 from .folders import XDMF_DATA_FILE, XDMF_FILE
-from .snapshots import ARRAY_NAMES, read_snapshot, snapshot_datasets
+from .snapshots import ARRAY_NAMES, read_results_data, read_snapshot, read_whole, snapshot_datasets
 
 RESULTS_FORMAT = "regolith-cosim results 2"
 
@@ -319,6 +324,16 @@ def open_results(path, mode="r"):
         return h5py.File(path, "r", libver="latest", swmr=True, locking=False)
 
 
+CHECKSUMMED = {"fletcher32": True}
+"""The create_dataset options of every results dataset (a Fletcher-32 checksum per chunk, which HDF5
+verifies on each read; a filter needs chunks, which h5py picks where none are given)."""
+
+
+def _fixed(group, name: str, data) -> None:
+    """A dataset written once, whole, with its checksum."""
+    group.create_dataset(name, data=data, **CHECKSUMMED)
+
+
 def _units(dataset, units: str, description: str) -> None:
     dataset.attrs["units"] = units
     dataset.attrs["description"] = description
@@ -389,7 +404,7 @@ class ResultsWriter:
 
             def series(group, name, shape, dtype, units, description):
                 dataset = group.create_dataset(
-                    name, shape, dtype, maxshape=(None,) + shape[1:], chunks=(rows,) + shape[1:]
+                    name, shape, dtype, maxshape=(None,) + shape[1:], chunks=(rows,) + shape[1:], **CHECKSUMMED
                 )
                 _units(dataset, units, description)
 
@@ -399,22 +414,22 @@ class ResultsWriter:
             for name, (tail, dtype, units, description) in WHEEL_SERIES.items():
                 series(g, name, (0, w) if tail is None else (0, w, tail), dtype, units, description)
             m = g.create_group("mesh")
-            m["vertices"] = np.asarray(vertices, dtype=np.float64).reshape(-1, 3)
+            _fixed(m, "vertices", np.asarray(vertices, dtype=np.float64).reshape(-1, 3))
             _units(m["vertices"], "m", "wheel mesh vertices in their wheel frames")
-            m["triangles"] = np.asarray(triangles, dtype=np.int32).reshape(-1, 3)
+            _fixed(m, "triangles", np.asarray(triangles, dtype=np.int32).reshape(-1, 3))
             _units(m["triangles"], "1", "vertex indices of each triangle")
-            m["wheel"] = np.asarray(vertex_wheel, dtype=np.int32)
+            _fixed(m, "wheel", np.asarray(vertex_wheel, dtype=np.int32))
             _units(m["wheel"], "1", "wheel index of each vertex")
             if boundaries is not None and len(boundaries["kind"]):
                 nb = len(boundaries["kind"])
                 b = f.create_group("boundaries")
                 for name, (tail, dtype, units, description) in BOUNDARY_SERIES.items():
                     series(b, name, (0, nb) if tail is None else (0, nb, tail), dtype, units, description)
-                b["kind"] = np.asarray(boundaries["kind"], dtype=np.int32)
+                _fixed(b, "kind", np.asarray(boundaries["kind"], dtype=np.int32))
                 _units(b["kind"], "1", "0 plane (point, unit normal), 1 box (lower corner, upper corner)")
-                b["geometry"] = np.asarray(boundaries["geometry"], dtype=np.float64).reshape(nb, 6)
+                _fixed(b, "geometry", np.asarray(boundaries["geometry"], dtype=np.float64).reshape(nb, 6))
                 _units(b["geometry"], "m", "geometry row of each wall as built (plane: point, normal; box: corners)")
-                b["report"] = np.asarray(boundaries["report"], dtype=np.int8)
+                _fixed(b, "report", np.asarray(boundaries["report"], dtype=np.int8))
                 _units(b["report"], "1", "1: the wall's force is summed; 0: it reads zero")
             r = f.create_group("rover")
             series(r, "time", (0,), np.float64, *STEP_SERIES["rover/time"])
@@ -428,7 +443,7 @@ class ResultsWriter:
                 series(g, name, (0,), dtype, units, description)
             p = f.create_group("particles")
             p.attrs["layout"] = "ragged" if ragged else "fixed"
-            p.create_dataset("time", (0,), np.float64, maxshape=(None,), chunks=(64,))
+            p.create_dataset("time", (0,), np.float64, maxshape=(None,), chunks=(64,), **CHECKSUMMED)
             _units(p["time"], "s", "snapshot times")
             if ragged:
                 chunk = max(1024, min(65536, len(radius)))
@@ -436,7 +451,7 @@ class ResultsWriter:
                     ("first", np.int64, "count", "first row of each snapshot"),
                     ("count", np.int64, "count", "rows of each snapshot"),
                 ):
-                    p.create_dataset(name, (0,), dtype, maxshape=(None,), chunks=(64,))
+                    p.create_dataset(name, (0,), dtype, maxshape=(None,), chunks=(64,), **CHECKSUMMED)
                     _units(p[name], units, description)
                 for name, row, dtype, units, description in (
                     ("id", (), np.int64, "1", "grain id, unique over the run"),
@@ -444,24 +459,30 @@ class ResultsWriter:
                     ("position", (3,), np.float64, "m", "grain centres"),
                     ("velocity", (3,), np.float32, "m/s", "grain velocities"),
                 ):
-                    p.create_dataset(name, (0, *row), dtype, maxshape=(None, *row), chunks=(chunk, *row))
+                    p.create_dataset(name, (0, *row), dtype, maxshape=(None, *row), chunks=(chunk, *row), **CHECKSUMMED)
                     _units(p[name], units, description)
             else:
-                p["radius"] = np.asarray(radius, dtype=np.float64)
+                _fixed(p, "radius", np.asarray(radius, dtype=np.float64))
                 _units(p["radius"], "m", "grain radii (model order)")
                 # HDF5 chunks are not empty: a soil without grains (N = 0) gets an open grain axis for its chunk
                 grains, grain_chunk = (n, (1, n, 3)) if n else (None, (1, 1, 3))
-                p.create_dataset("position", (0, n, 3), np.float64, maxshape=(None, grains, 3), chunks=grain_chunk)
+                p.create_dataset(
+                    "position", (0, n, 3), np.float64, maxshape=(None, grains, 3), chunks=grain_chunk, **CHECKSUMMED
+                )
                 _units(p["position"], "m", "grain centres")
-                p.create_dataset("velocity", (0, n, 3), np.float32, maxshape=(None, grains, 3), chunks=grain_chunk)
+                p.create_dataset(
+                    "velocity", (0, n, 3), np.float32, maxshape=(None, grains, 3), chunks=grain_chunk, **CHECKSUMMED
+                )
                 _units(p["velocity"], "m/s", "grain velocities")
             nv = len(m["vertices"])
-            p.create_dataset("wheel_vertices", (0, nv, 3), np.float32, maxshape=(None, nv, 3), chunks=(1, nv, 3))
+            p.create_dataset(
+                "wheel_vertices", (0, nv, 3), np.float32, maxshape=(None, nv, 3), chunks=(1, nv, 3), **CHECKSUMMED
+            )
             _units(p["wheel_vertices"], "m", "wheel meshes posed at each snapshot, world frame")
-            p.create_dataset("rover_position", (0, 3), np.float64, maxshape=(None, 3), chunks=(64, 3))
+            p.create_dataset("rover_position", (0, 3), np.float64, maxshape=(None, 3), chunks=(64, 3), **CHECKSUMMED)
             _units(p["rover_position"], "m", "rover body frame origin at each snapshot")
             for name, axis in (("rover_forward", "x"), ("rover_up", "z")):
-                p.create_dataset(name, (0, 3), np.float64, maxshape=(None, 3), chunks=(64, 3))
+                p.create_dataset(name, (0, 3), np.float64, maxshape=(None, 3), chunks=(64, 3), **CHECKSUMMED)
                 _units(p[name], "1", f"rover body {axis} axis at each snapshot, world frame")
             f.swmr_mode = True
         except BaseException:
@@ -674,18 +695,27 @@ def _copy_truncated(old, new, counts: dict, rows: dict | None = None) -> None:
                 "the file is older than the checkpoint"
             )
         data = obj[:count] if growing else obj[()]
-        dataset = new.create_dataset(name, data=data, maxshape=obj.maxshape, chunks=obj.chunks)
+        if growing:
+            dataset = new.create_dataset(name, data=data, maxshape=obj.maxshape, chunks=obj.chunks, **CHECKSUMMED)
+        else:  # written once: chunks h5py picked for an empty one can exceed its fixed shape, so it picks anew
+            dataset = new.create_dataset(name, data=data, **(CHECKSUMMED if np.ndim(data) else {}))
         for key, value in obj.attrs.items():
             dataset.attrs[key] = value
 
     old.visititems(visit)
 
 
+GRAIN_DATASETS = frozenset(f"/particles/{name}" for name in ("position", "velocity", "radius", "id"))
+"""The datasets of a results file that grow with its grains (h5py names): what check_results(data=False)
+leaves to the snapshot reader."""
+
+
 def check_results(path, data: bool = True) -> dict:
     """The root attributes of a results.h5 after checking that it is one and can be read to its end:
-    DamagedFileError naming the file otherwise (FileNotFoundError when it is absent). data False: every
-    object's header and attributes only (a reader that reads the data itself: view, export), not the
-    data, so a picture of one snapshot of a large file stays cheap."""
+    DamagedFileError naming the file otherwise (FileNotFoundError when it is absent). data False: the
+    grains' datasets (GRAIN_DATASETS) by their headers and attributes only, so a picture of one snapshot
+    of a large file stays cheap (cosim.snapshots.read_snapshot reads and checks them a snapshot at a
+    time); every other dataset, the series, meshes and walls a reader takes whole, is read through."""
 
     path = os.fspath(path)
     try:
@@ -697,8 +727,8 @@ def check_results(path, data: bool = True) -> dict:
                     f"expected {RESULTS_FORMAT!r})"
                 )
             for dataset in _datasets(f):  # a damaged header or chunk fails here, not midway
-                if data:
-                    _read_through(dataset)
+                if data or dataset.name not in GRAIN_DATASETS:
+                    read_results_data(f, partial(_read_through, dataset), dataset.name.lstrip("/"))
                 else:
                     dataset.shape, dataset.dtype, dict(dataset.attrs)
             problem = _structure_problem(f)
@@ -780,13 +810,15 @@ def read_series(path) -> dict:
 
 def _read_series(path) -> dict:
     with open_results(path) as f:
-        out = {name: f["wheels"][name][()] for name in ["time", "phase", *WHEEL_SERIES] if name in f["wheels"]}
-        out["rover_state"] = f["rover/state"][()]
-        out.update({f"rover_{name}": f["rover"][name][()] for name in ROVER_SERIES if name in f["rover"]})
+        out = {
+            name: read_whole(f, f"wheels/{name}") for name in ["time", "phase", *WHEEL_SERIES] if name in f["wheels"]
+        }
+        out["rover_state"] = read_whole(f, "rover/state")
+        out.update({f"rover_{name}": read_whole(f, f"rover/{name}") for name in ROVER_SERIES if name in f["rover"]})
         if "soil" in f:
-            out.update({f"soil_{name}": f["soil"][name][()] for name in SOIL_SERIES if name in f["soil"]})
+            out.update({f"soil_{name}": read_whole(f, f"soil/{name}") for name in SOIL_SERIES if name in f["soil"]})
         out["rover_columns"] = json.loads(f["rover/state"].attrs["columns"])
-        out["snapshot_time"] = f["particles/time"][()]
+        out["snapshot_time"] = read_whole(f, "particles/time")
         out["attrs"] = {k: (v.decode() if isinstance(v, bytes) else v) for k, v in f.attrs.items()}
     _check_series(out)
     return out

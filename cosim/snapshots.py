@@ -6,6 +6,7 @@ so the two layouts of /particles (cosim.output) are unpacked in one place.
 
 from __future__ import annotations
 
+import time
 from dataclasses import dataclass
 
 import numpy as np
@@ -24,6 +25,44 @@ ARRAY_NAMES = {
 }
 """The names results.xdmf and results.vtkhdf give their arrays: viewers show names, not HDF5 attributes,
 so each name carries its unit (written without '/', which VTKHDF array names cannot hold)."""
+
+
+TORN_READ_TRIES = 5
+"""How often a read of a results file still being written is tried before the file is called damaged."""
+TORN_READ_PAUSE = 0.1
+"""The pause between those tries [s]."""
+_pause = time.sleep  # how read_results_data waits (a test takes its place)
+
+
+def read_results_data(f, read, what: str):
+    """read() of the open results file `f`; DamagedFileError naming the file and `what` when h5py cannot
+    read it (a chunk's bytes changed: its Fletcher-32 checksum fails). A file still being written (status
+    'running') is read while its writer rewrites a chunk in place, and a read that meets the chunk half
+    written fails its checksum as well (a few reads in a thousand of a file flushed without pause): such
+    a read is tried again, TORN_READ_TRIES times in all, TORN_READ_PAUSE apart."""
+    from soil.errors import DamagedFileError
+
+    for attempt in range(TORN_READ_TRIES):
+        try:
+            return read()
+        except (KeyError, OSError, RuntimeError) as error:  # how h5py reports damaged bytes
+            if isinstance(error, KeyError) or attempt + 1 == TORN_READ_TRIES or not _being_written(f):
+                raise DamagedFileError(f"{f.filename}: the results file is damaged ({what}: {error})") from None
+            _pause(TORN_READ_PAUSE)
+    raise AssertionError("unreachable")
+
+
+def read_whole(f, name: str):
+    """Dataset `name` of an open results file, whole, through read_results_data."""
+    return read_results_data(f, lambda: f[name][()], name)
+
+
+def _being_written(f) -> bool:
+    try:
+        status = f.attrs.get("status")
+    except (KeyError, OSError, RuntimeError):
+        return False
+    return (status.decode() if isinstance(status, bytes) else status) == "running"
 
 
 @dataclass(frozen=True)
@@ -160,13 +199,14 @@ def reader_problem(f, count: int) -> str:
             if size is not None and size != actual:
                 return f"{name} has shape {dataset.shape}, not ({_sizes(shape, sizes)})"
     for name in ("particles/time", "wheels/time", "boundaries/geometry", "boundaries/displacement"):
-        if name in f and not np.all(np.isfinite(f[name][()])):
-            return _not_finite(name, f[name][()])
-    triangles = f["wheels/mesh/triangles"][()]
+        values = read_whole(f, name) if name in f else np.zeros(0)
+        if not np.all(np.isfinite(values)):
+            return _not_finite(name, values)
+    triangles = read_whole(f, "wheels/mesh/triangles")
     if triangles.size and (triangles.min() < 0 or triangles.max() >= sizes["V"]):
         return f"wheels/mesh/triangles points past the {sizes['V']} vertices of wheels/mesh/vertices"
     if "boundaries" in f:
-        kinds, geometry = f["boundaries/kind"][()], f["boundaries/geometry"][()]
+        kinds, geometry = read_whole(f, "boundaries/kind"), read_whole(f, "boundaries/geometry")
         unknown = ~np.isin(kinds, (0, 1))
         if unknown.any():
             return f"boundaries/kind {kinds[unknown][0]} is neither 0 (a plane) nor 1 (a box)"
@@ -175,7 +215,8 @@ def reader_problem(f, count: int) -> str:
             return f"boundaries/geometry row {planes[0]}: a plane with a zero normal"
     if f["particles"].attrs.get("layout") == "ragged":
         p = f["particles"]
-        first, rows = p["first"][:count], p["count"][:count]
+        first = read_results_data(f, lambda: p["first"][:count], "particles/first")
+        rows = read_results_data(f, lambda: p["count"][:count], "particles/count")
         held = min(int(p[name].shape[0]) for name in ("id", "radius", "position", "velocity"))
         bad = np.flatnonzero((first < 0) | (rows < 0) | (first + rows > held))
         if len(bad):
@@ -203,10 +244,7 @@ def read_snapshot(f, k: int, check: bool = True) -> Snapshot:
     datasets' dtypes and shapes."""
     from soil.errors import DamagedFileError
 
-    try:
-        snapshot = _read_snapshot(f, k)
-    except (KeyError, OSError, RuntimeError) as error:  # how h5py reports damaged bytes
-        raise DamagedFileError(f"{f.filename}: the results file is damaged (snapshot {k}: {error})") from None
+    snapshot = read_results_data(f, lambda: _read_snapshot(f, k), f"particles of snapshot {k}")
     problem = _snapshot_problem(snapshot) if check else ""
     if problem:
         raise DamagedFileError(f"{f.filename}: the results file is damaged ({problem})")

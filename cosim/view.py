@@ -27,7 +27,7 @@ from soil.files import atomic_path, make_folders, remove_empty_folders
 from .folders import PLOTS_DIR, RESULTS_FILE
 from .output import check_results, open_results
 from .single_wheel import PHASE_DRIVING
-from .snapshots import Displacements, Snapshot, read_snapshot, snapshot_count
+from .snapshots import Displacements, Snapshot, read_snapshot, read_whole, snapshot_count
 
 COLOURS = ("speed", "displacement")
 """What the grains can be coloured by."""
@@ -86,13 +86,13 @@ class _Scene:
         missing = [name for name in names if name not in f]
         if missing:
             raise DamagedFileError(f"{f.filename}: the results file is damaged (missing {', '.join(missing)})")
-        self.triangles = f["wheels/mesh/triangles"][()]
-        self.vertex_wheel = f["wheels/mesh/wheel"][()]
-        self.step_time = f["wheels/time"][()]
-        self.phase = f["wheels/phase"][()]
-        self.slip = (f["rover/slip"] if self.rover else f["wheels/slip"])[()]
+        self.triangles = read_whole(f, "wheels/mesh/triangles")
+        self.vertex_wheel = read_whole(f, "wheels/mesh/wheel")
+        self.step_time = read_whole(f, "wheels/time")
+        self.phase = read_whole(f, "wheels/phase")
+        self.slip = read_whole(f, slip)
         self.slip = self.slip if self.slip.ndim == 1 else self.slip[:, 0]
-        self.sinkage = f["wheels/sinkage"][()][:, 0] if len(self.step_time) else np.zeros(0)
+        self.sinkage = read_whole(f, "wheels/sinkage")[:, 0] if len(self.step_time) else np.zeros(0)
         count = snapshot_count(f)
         if count == 0 or not len(read_snapshot(f, 0).ids):
             raise ArgumentError(
@@ -111,7 +111,7 @@ class _Scene:
         peaks_arr = np.asarray(peaks)[driving] if any(driving) else np.asarray(peaks)
         self.vmax = max(float(np.max(peaks_arr)), 1e-9)
         first = read_snapshot(f, 0)
-        wheels = f["particles/wheel_vertices"][()]
+        wheels = read_whole(f, "particles/wheel_vertices")
         low = np.min(first.position - first.radius[:, None], axis=0)
         high = np.max(first.position + first.radius[:, None], axis=0)
         self.z_range = (low[2], max(high[2], float(np.nanmax(wheels[..., 2]))))
@@ -276,8 +276,9 @@ def render(
     if frame is not None and kind != ".png":  # a movie or a folder of frames draws every snapshot
         raise ViewError(f"--frame {frame}: picks the snapshot of a .png picture; --out {out!r} draws every one")
     old_frames = _free_output(out, kind, overwrite or os.path.abspath(out) == own)
-    # damage named before anything is touched: a picture or movie is written whole at the end, so the
-    # headers suffice; a folder of frames loses its old frames as the new ones come, so every byte is read
+    # damage named before anything is touched: a picture or movie is written whole at the end, so the grains'
+    # datasets are left to read_snapshot (everything else is read through); a folder of frames loses its old
+    # frames as the new ones come, so every byte is read
     check_results(path, data=kind == "frames")
     with open_results(path) as f:
         count = snapshot_count(f)

@@ -29,7 +29,7 @@ from soil.files import atomic_path
 
 from .folders import RESULTS_FILE, VTKHDF_FILE
 from .output import check_results, open_results
-from .snapshots import ARRAY_NAMES, Displacements, read_snapshot, snapshot_count
+from .snapshots import ARRAY_NAMES, Displacements, read_snapshot, read_whole, snapshot_count
 
 VTKHDF_VERSION = (2, 2)
 """The VTKHDF version written (2.1 added composite data, 2.2 made temporal blocks official)."""
@@ -211,7 +211,8 @@ def write_vtkhdf(results_path, vtkhdf_path=None) -> str:
     if os.path.isdir(results_path):
         results_path = os.path.join(results_path, RESULTS_FILE)
     target = os.fspath(vtkhdf_path) if vtkhdf_path else os.path.join(os.path.dirname(results_path), VTKHDF_FILE)
-    check_results(results_path, data=False)  # a damaged header named (DamagedFileError), not h5py's KeyError
+    # a damaged header, series, mesh or wall named (DamagedFileError), not h5py's KeyError or OSError
+    check_results(results_path, data=False)
     with open_results(results_path) as f:
         # every dataset read below of its dtype and shape (DamagedFileError) before anything is made
         count = snapshot_count(f)
@@ -295,13 +296,13 @@ def _write(f, count: int, temporary: str) -> None:
         for name in blocks:
             assembly[name] = h5py.SoftLink(f"/VTKHDF/{name}")
 
-        triangles = f["wheels/mesh/triangles"][()]
-        vertex_wheel = f["wheels/mesh/wheel"][()]
+        triangles = read_whole(f, "wheels/mesh/triangles")
+        vertex_wheel = read_whole(f, "wheels/mesh/wheel")
         if walls is not None:
             wall_faces, wall_index = _walls(f)
-            step_times = f["wheels/time"][()]
-            force = f["boundaries/force"][()]
-            displacement = f["boundaries/displacement"][()]
+            step_times = read_whole(f, "wheels/time")
+            force = read_whole(f, "boundaries/force")
+            displacement = read_whole(f, "boundaries/displacement")
         displacements = Displacements()
         for k in range(count):
             s = read_snapshot(f, k)
@@ -334,10 +335,10 @@ def _write(f, count: int, temporary: str) -> None:
 def _walls(f):
     """The walls' quads (Q, 4, 3) [m] and the wall index of each quad; planes are drawn over the extent of
     the grains of the first snapshot, the wheels over the run and the walls' own points."""
-    kinds = f["boundaries/kind"][()]
-    geometry = f["boundaries/geometry"][()]
+    kinds = read_whole(f, "boundaries/kind")
+    geometry = read_whole(f, "boundaries/geometry")
     first = read_snapshot(f, 0)
-    wheel = f["particles/wheel_vertices"][()].reshape(-1, 3)
+    wheel = read_whole(f, "particles/wheel_vertices").reshape(-1, 3)
     anchors = [first.position - first.radius[:, None], first.position + first.radius[:, None], wheel]
     anchors += [geometry[kinds == 0, :3], geometry[kinds == 1, :3], geometry[kinds == 1, 3:]]
     points = np.concatenate([a.reshape(-1, 3) for a in anchors if a.size])

@@ -825,3 +825,124 @@ def test_export_and_view_of_results_holding_what_no_run_writes_name_the_dataset(
         assert named in line, line
     assert digests(folder) == before and picture.read_bytes() == before_picture
     assert sorted(os.listdir(tmp_path)) == ["copy", "frame.png"]  # no folder made, no temporary left
+
+
+# -- changed bytes in a results dataset's data (not its header) ------------------------------------
+def _chunk_middle(path, name: str) -> int:
+    """The file offset of a byte in the middle of the first stored chunk of dataset `name` (its data)."""
+    import h5py
+
+    with h5py.File(path, "r") as f:
+        chunk = f[name].id.get_chunk_info(0)
+    return chunk.byte_offset + chunk.size // 2
+
+
+def _flip(path, offset: int) -> None:
+    """Flip every bit of the byte at `offset` in place (twice: the byte as it was)."""
+    with open(path, "r+b") as out:
+        out.seek(offset)
+        byte = out.read(1)[0]
+        out.seek(offset)
+        out.write(bytes([byte ^ 0xFF]))
+
+
+def _flip_in_chunk(path, name: str) -> None:
+    _flip(path, _chunk_middle(path, name))
+
+
+PLOT = ["plot", "{folder}"]
+VIEW = ["view", "{folder}", "--out", "{tmp}/frame.png", "--dpi", "20"]
+EXPORT = ["export", "vtkhdf", "{folder}"]
+
+
+@pytest.mark.parametrize(
+    "name, commands",
+    [
+        ("wheels/sinkage", [PLOT, VIEW]),
+        ("wheels/time", [PLOT, VIEW, EXPORT]),
+        ("wheels/mesh/triangles", [VIEW, EXPORT]),
+        ("boundaries/force", [EXPORT]),
+        ("particles/position", [VIEW, EXPORT]),
+    ],
+    ids=["a sinkage", "a step time", "a triangle", "a wall force", "a grain position"],
+)
+def test_a_results_file_with_changed_data_bytes_is_named_not_read_as_numbers(
+    complete, tmp_path, capsys, name, commands
+):
+    """Every results dataset carries a Fletcher-32 checksum per chunk: a byte changed on disk in a series'
+    data was read as a number (a plot of a wrong sinkage, exit 0). It is exit 2 naming the file, nothing
+    written."""
+    folder = copy(complete, tmp_path)
+    _flip_in_chunk(folder / "results.h5", name)
+    before = digests(folder)
+    for command in commands:
+        command = [part.format(folder=folder, tmp=tmp_path) for part in command]
+        assert main(command) == 2, command
+        line = first_error_line(capsys)
+        assert line.startswith(f"cosim: error: {folder / 'results.h5'}: the results file is damaged ("), line
+        assert ("(particles of snapshot 0: " if name.startswith("particles/") else f"({name}: ") in line, line
+    assert digests(folder) == before
+    assert sorted(os.listdir(tmp_path)) == ["copy"]
+
+
+def test_resume_of_a_results_file_with_changed_data_bytes_is_refused(interrupted, tmp_path, capsys):
+    """A resume copies the results up to its checkpoint into a fresh file: a changed byte in them was copied
+    as a number. It is refused naming the file, the folder as it was; a resumed file keeps its checksums."""
+    import h5py
+
+    folder = copy(interrupted, tmp_path)
+    with h5py.File(folder / "results.h5", "r") as f:
+        assert all(f[name].fletcher32 for name in ("wheels/slip", "rover/state", "particles/radius"))
+    _flip_in_chunk(folder / "results.h5", "wheels/slip")
+    assert "results.h5: the results file is damaged" in resume_refused(folder, capsys)
+
+    intact = copy(interrupted, tmp_path, "intact")
+    assert main(["resume", str(intact), "--no-progress"]) == 0
+    with h5py.File(intact / "results.h5", "r") as f:
+        assert f["wheels/slip"].fletcher32 and f["particles/position"].fletcher32
+
+
+def test_a_chunk_torn_for_a_moment_in_a_file_being_written_is_read_again(interrupted, tmp_path, monkeypatch):
+    """A reader of a file its writer still writes (status 'running') may meet a chunk the writer is
+    rewriting in place: its checksum fails for that moment (a few reads in a thousand of a file flushed
+    without pause, measured). The read is tried again and gets the chunk whole; a chunk that stays
+    damaged is named after the tries, as is one of a file no one writes (at once)."""
+    import h5py
+
+    import cosim.snapshots
+    from cosim.output import read_series
+    from soil.errors import DamagedFileError
+
+    path = copy(interrupted, tmp_path) / "results.h5"
+    with h5py.File(path, "r+") as f:
+        f.attrs["status"] = "running"  # as a live writer's (or a killed one's) file
+    whole = read_series(path)["sinkage"]
+    offset = _chunk_middle(path, "wheels/sinkage")
+    pauses: list[float] = []
+    writing = [False]
+
+    def pause(seconds):
+        pauses.append(seconds)
+        if writing[0]:  # the writer finishes its chunk while the reader waits
+            _flip(path, offset)
+            writing[0] = False
+
+    monkeypatch.setattr(cosim.snapshots, "_pause", pause)
+    tries, wait = cosim.snapshots.TORN_READ_TRIES, cosim.snapshots.TORN_READ_PAUSE
+    _flip(path, offset)
+    writing[0] = True
+    assert np.array_equal(read_series(path)["sinkage"], whole)
+    assert pauses == [wait]
+
+    pauses.clear()
+    _flip(path, offset)  # damaged for good
+    with pytest.raises(DamagedFileError, match=r"results\.h5: the results file is damaged \(wheels/sinkage: "):
+        read_series(path)
+    assert pauses == [wait] * (tries - 1)
+
+    pauses.clear()
+    with h5py.File(path, "r+") as f:
+        f.attrs["status"] = "interrupted"
+    with pytest.raises(DamagedFileError, match="wheels/sinkage"):
+        read_series(path)
+    assert pauses == []
