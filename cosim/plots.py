@@ -19,6 +19,7 @@ import os
 import numpy as np
 
 from soil.errors import ArgumentError, DamagedFileError
+from soil.files import atomic_path
 
 from .folders import PLOTS_DIR, RESULTS_FILE
 from .output import read_series
@@ -31,6 +32,17 @@ SEARCH_DEPTH = 4
 """How many folders below OUT `cosim plot` looks for runs [count]: the deepest the project writes is a
 study's FOLDER/slip_x/replica_k (2), kept in a folder of studies (3) and one more level; a folder
 such as / or /tmp is not walked to its bottom."""
+
+
+def save_figure(fig, path: str, dpi: float) -> None:
+    """Save a matplotlib figure to `path` whole or not at all, in the format its extension names: written
+    beside it under a temporary name, then renamed (soil.files.atomic_path), so a crash, a signal or a full
+    disk never leaves half a picture, nor spoils the one already there; a missing folder is made."""
+    kind = os.path.splitext(path)[1][1:].lower()
+    if not kind:
+        raise ArgumentError(f"{path}: a picture's name ends in its format (.png, .pdf, .svg)")
+    with atomic_path(path, suffix=f".{kind}") as temporary, open(temporary, "wb") as out:
+        fig.savefig(out, format=kind, dpi=dpi)
 
 
 def find_results(out_dir: str) -> list[str]:
@@ -121,7 +133,7 @@ def plot_output(out_dir: str, plot_dir: str | None = None, dpi: int = 120) -> li
         fig.suptitle(_title(runs))
         fig.tight_layout()
         path = os.path.join(plot_dir, name)
-        fig.savefig(path, dpi=dpi)
+        save_figure(fig, path, dpi)
         plt.close(fig)
         written.append(path)
 
@@ -158,7 +170,7 @@ def plot_output(out_dir: str, plot_dir: str | None = None, dpi: int = 120) -> li
         ax.legend(fontsize=8)
         fig.tight_layout()
         path = os.path.join(plot_dir, "drawbar_slip.png")
-        fig.savefig(path, dpi=dpi)
+        save_figure(fig, path, dpi)
         plt.close(fig)
         written.append(path)
     return written
@@ -191,7 +203,7 @@ def _rover_plots(plt, runs, colours, plot_dir: str, dpi: int) -> list[str]:
     fig.suptitle(_title(runs))
     fig.tight_layout()
     path = os.path.join(plot_dir, "trajectory.png")
-    fig.savefig(path, dpi=dpi)
+    save_figure(fig, path, dpi)
     plt.close(fig)
     written.append(path)
 
@@ -221,7 +233,7 @@ def _rover_plots(plt, runs, colours, plot_dir: str, dpi: int) -> list[str]:
     fig.suptitle(_title(runs) + ("" if len(runs) == 1 else ": mean over the wheels"))
     fig.tight_layout()
     path = os.path.join(plot_dir, "wheels.png")
-    fig.savefig(path, dpi=dpi)
+    save_figure(fig, path, dpi)
     plt.close(fig)
     written.append(path)
     return written
@@ -256,8 +268,7 @@ def plot_scatter(out_dir: str, rows: list[dict], key: str, dpi: int = 120) -> st
     fig.suptitle(f"scatter over replicas ({rows[0].get('replicas')} per {key})" if rows else "")
     fig.tight_layout()
     path = os.path.join(out_dir, PLOTS_DIR, "scatter.png")
-    os.makedirs(os.path.dirname(path), exist_ok=True)
-    fig.savefig(path, dpi=dpi)
+    save_figure(fig, path, dpi)
     plt.close(fig)
     return path
 
@@ -296,8 +307,7 @@ def plot_slip_curve(out_dir: str, rows: list[dict], dpi: int = 120) -> str:
     fig.suptitle("drawbar pull / slip (error bars: 95 % interval over replicas)")
     fig.tight_layout()
     path = os.path.join(out_dir, PLOTS_DIR, "dbp_slip.png")
-    os.makedirs(os.path.dirname(path), exist_ok=True)
-    fig.savefig(path, dpi=dpi)
+    save_figure(fig, path, dpi)
     plt.close(fig)
     return path
 

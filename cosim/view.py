@@ -26,6 +26,7 @@ from soil.files import atomic_path, make_folders, remove_empty_folders
 
 from .folders import PLOTS_DIR, RESULTS_FILE
 from .output import check_results, open_results
+from .plots import save_figure
 from .single_wheel import PHASE_DRIVING
 from .snapshots import Displacements, Snapshot, read_snapshot, read_whole, snapshot_count
 
@@ -309,14 +310,12 @@ def render(
                     s = read_snapshot(f, k)
                     values = scene.values(s, displacements)
                 view.draw(s, values)
-                with atomic_path(out, suffix=os.path.splitext(out)[1]) as partial:
-                    fig.savefig(partial, dpi=dpi)
+                save_figure(fig, out, dpi)
             elif kind == "frames":
                 for k in range(count):
                     s = read_snapshot(f, k)
                     view.draw(s, scene.values(s, displacements))
-                    with atomic_path(os.path.join(out, f"frame_{k:04d}.png"), suffix=".png") as partial:
-                        fig.savefig(partial, dpi=dpi)
+                    save_figure(fig, os.path.join(out, f"frame_{k:04d}.png"), dpi)
             else:
                 assert writer is not None  # a movie's kind
                 with atomic_path(out, suffix=kind) as partial, writer.saving(fig, partial, dpi):

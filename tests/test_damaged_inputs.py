@@ -946,3 +946,70 @@ def test_a_chunk_torn_for_a_moment_in_a_file_being_written_is_read_again(interru
     with pytest.raises(DamagedFileError, match="wheels/sinkage"):
         read_series(path)
     assert pauses == []
+
+
+# -- a picture or a table whose write fails midway ----------------------------------------------------
+def test_a_plot_whose_write_fails_midway_leaves_the_earlier_pictures_whole(complete, tmp_path, capsys, monkeypatch):
+    """`cosim plot` wrote its pictures in place: a full disk (or a crash) while one was written left half a
+    picture where a whole one had been. Each is written beside it and renamed (cosim.plots.save_figure):
+    the error names the picture, and the pictures there are as they were, with no temporary file left."""
+    import errno
+
+    import matplotlib.figure
+
+    folder = copy(complete, tmp_path)
+    assert main(["plot", str(folder)]) == 0
+    plots = folder / "plots"
+    before = digests(plots)
+    assert before
+    real_savefig = matplotlib.figure.Figure.savefig
+
+    def disk_full_midway(figure, target, **options):
+        real_savefig(figure, target, **options)
+        if hasattr(target, "truncate"):  # the disk filled while the picture was written
+            target.truncate(100)
+        else:
+            os.truncate(target, 100)
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    monkeypatch.setattr(matplotlib.figure.Figure, "savefig", disk_full_midway)
+    assert main(["plot", str(folder)]) == 5
+    line = first_error_line(capsys)
+    assert "No space left on device" in line and any(str(plots / name) in line for name in before), line
+    assert digests(plots) == before
+
+
+def test_a_lab_table_whose_write_fails_midway_leaves_the_earlier_one_whole(tmp_path):
+    """A lab test's CSV tables were written row by row in place: a failure midway left the table cut short
+    (a full disk, a signal). It is written whole or not at all."""
+    import errno
+
+    from cosim.lab import common
+
+    class Unwritable:
+        def __str__(self):
+            raise OSError(errno.ENOSPC, "No space left on device")
+
+    path = tmp_path / "plate.csv"
+    common.write_csv(str(path), [("width", "m", [0.01, 0.02]), ("pressure", "Pa", [1.5, 2.5])])
+    before = path.read_bytes()
+    assert before.splitlines() == [b"width [m],pressure [Pa]", b"0.01,1.5", b"0.02,2.5"]
+    rows = np.array([0.01] * 5000 + [Unwritable()], dtype=object)
+    with pytest.raises(OSError, match="No space left"):
+        common.write_csv(str(path), [("width", "m", rows)])
+    assert path.read_bytes() == before and os.listdir(tmp_path) == ["plate.csv"]
+
+
+def test_a_picture_name_without_its_format_is_refused_before_anything_is_written(tmp_path):
+    """save_figure takes the format from the name's extension: a name without one was an empty file where
+    the picture should be and the picture under a stray temporary name beside it."""
+    import matplotlib.figure
+
+    from cosim.plots import save_figure
+    from soil.errors import ArgumentError
+
+    with pytest.raises(ArgumentError, match="a picture's name ends in its format"):
+        save_figure(matplotlib.figure.Figure(), str(tmp_path / "picture"), 20)
+    save_figure(matplotlib.figure.Figure(), str(tmp_path / "picture.PNG"), 20)
+    assert os.listdir(tmp_path) == ["picture.PNG"]
+    assert (tmp_path / "picture.PNG").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"

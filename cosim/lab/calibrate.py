@@ -39,6 +39,7 @@ import numpy as np
 
 from soil.files import atomic_write_text
 
+from ..plots import save_figure
 from ..scene import SceneError, is_number, key_field, key_unit, parse_value
 from ..study import Executor
 from . import common
@@ -468,6 +469,6 @@ def _figure(out_dir: str, history: list[dict], parameters: list[Parameter], targ
     ax.legend(fontsize=8)
     fig.tight_layout()
     path = os.path.join(out_dir, "calibrate.png")
-    fig.savefig(path, dpi=120)
+    save_figure(fig, path, 120)
     plt.close(fig)
     return path

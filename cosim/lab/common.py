@@ -4,6 +4,7 @@ cosim.study.Executor, and the report files (CSV with units, summary JSON, figure
 from __future__ import annotations
 
 import csv
+import io
 import logging
 import math
 import os
@@ -16,6 +17,7 @@ import numpy as np
 
 from soil import Simulation, SimulationDiverged, quiet_warp
 from soil.errors import RegolithError
+from soil.files import atomic_write_text
 from soil.memory import check_fits, estimate
 
 from ..beds import write_json
@@ -279,19 +281,20 @@ def prepare_folder(
     if not isinstance(executor, Executor):
         check_executor(executor, scheduler)
     prepare_study(out_dir, overwrite)
-    with open(os.path.join(out_dir, SCENE_FILE), "w") as f:
-        f.write(plan.scene.to_toml())
+    atomic_write_text(os.path.join(out_dir, SCENE_FILE), plan.scene.to_toml())  # a cut one would read as whole
 
 
 def write_csv(path: str, columns: Sequence[tuple[str, str, Any]]) -> None:
-    """A CSV file whose header names each column with its unit, 'name [unit]'."""
+    """A CSV file whose header names each column with its unit, 'name [unit]'; written whole or not at all
+    (soil.files.atomic_write_text: a crash never leaves a table cut short, nor spoils the one there)."""
     arrays = [np.asarray(values).reshape(-1) for _, _, values in columns]
     length = max((len(a) for a in arrays), default=0)
-    with open(path, "w", newline="") as f:
-        writer = csv.writer(f)
-        writer.writerow([f"{name} [{unit}]" for name, unit, _ in columns])
-        for i in range(length):
-            writer.writerow([_cell(a[i]) if i < len(a) else "" for a in arrays])
+    text = io.StringIO()
+    writer = csv.writer(text, lineterminator="\n")
+    writer.writerow([f"{name} [{unit}]" for name, unit, _ in columns])
+    for i in range(length):
+        writer.writerow([_cell(a[i]) if i < len(a) else "" for a in arrays])
+    atomic_write_text(path, text.getvalue())
 
 
 def _cell(value):

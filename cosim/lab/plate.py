@@ -27,6 +27,7 @@ import numpy as np
 from soil.bed import BedSpec, bed_metrics, build_bed, grain_count, read_bed, read_bed_header, save_bed
 from soil.memory import BED_KEYS
 
+from ..plots import save_figure
 from . import common
 from .scene import LabPlan, SceneError
 
@@ -630,6 +631,6 @@ def _figure(out_dir: str, done: list[dict], fit: dict, fit_from: float) -> str |
     linear.legend(fontsize=8)
     fig.tight_layout()
     path = os.path.join(out_dir, "plate.png")
-    fig.savefig(path, dpi=120)
+    save_figure(fig, path, 120)
     plt.close(fig)
     return path

@@ -24,6 +24,7 @@ import numpy as np
 
 from soil import SoilBuilder
 
+from ..plots import save_figure
 from . import common
 from .scene import PACKING_FRACTION, LabPlan, SceneError
 
@@ -503,6 +504,6 @@ def _figure(out_dir: str, done: list[dict], summary: dict) -> str | None:
     prof.legend(fontsize=8)
     fig.tight_layout()
     path = os.path.join(out_dir, "repose.png")
-    fig.savefig(path, dpi=120)
+    save_figure(fig, path, 120)
     plt.close(fig)
     return path

@@ -34,6 +34,7 @@ import numpy as np
 from soil import SoilBuilder
 from soil.bed import read_bed, save_bed
 
+from ..plots import save_figure
 from . import common
 from .scene import LabPlan, SceneError
 
@@ -537,6 +538,6 @@ def _figure(out_dir: str, done: list[dict], summary: dict) -> str | None:
     mohr.legend(fontsize=8)
     fig.tight_layout()
     path = os.path.join(out_dir, "shear.png")
-    fig.savefig(path, dpi=120)
+    save_figure(fig, path, 120)
     plt.close(fig)
     return path
