@@ -316,12 +316,17 @@ NOT_CHECKED = "not checked (the terrain model has no validity checks)"
 """The verdict of a run with no findings (the analytic terrain): nothing was found valid."""
 
 
-def verdict(findings: list[Finding]) -> str:
-    """'valid', 'out of range: ' and the failed checks, comma-separated, or NOT_CHECKED without findings."""
+def verdict(findings: list[Finding], not_judged: list[str] | tuple = ()) -> str:
+    """'valid', 'out of range: ' and the failed checks, comma-separated, or NOT_CHECKED without findings;
+    `not_judged`: the checks a run could not judge (judged_after_the_run's left after it: it measured
+    nothing to judge them on, a wheel that never landed), named after it."""
     if not findings:
         return NOT_CHECKED
     failed = [f.check for f in findings if not f.ok]
-    return "valid" if not failed else "out of range: " + ", ".join(failed)
+    said = "valid" if not failed else "out of range: " + ", ".join(failed)
+    if not_judged:
+        said += f"; not judged: {', '.join(not_judged)} (the run measured nothing to judge them on)"
+    return said
 
 
 # -- the SCM tier ------------------------------------------------------------------------------
@@ -737,7 +742,11 @@ def scm_check(plan: RunPlan, measured: dict | None = None) -> list[Finding]:
         findings.append(_wheel_fit_finding(plan, fit, indices, wheels))
     # judged on the run's own rim sinkage: Bekker's closed form for a smooth wheel is no estimate of
     # a grousered wheel's on SCM (the main job: 2.5x SCM's own)
-    rims = _per_wheel(measured, "sinkage", indices, len(plan.wheels or (plan.wheel,)))
+    # a run without a drive (no landing: a wheel sinking on) is judged on the deepest its rims reached
+    count = len(plan.wheels or (plan.wheel,))
+    rims, what = _per_wheel(measured, "sinkage", indices, count), "rim sinkage"
+    if rims is None:
+        rims, what = _per_wheel(measured, "deepest_sinkage", indices, count), "deepest rim sinkage (no landing)"
     tested, rim = plan.terrain.calibration_sinkage, max(_finite(rims)) if rims is not None else None  # the deepest
     if tested is not None and rim is not None and math.isfinite(rim):
         findings.append(
@@ -746,8 +755,8 @@ def scm_check(plan: RunPlan, measured: dict | None = None) -> list[Finding]:
                 rim / tested,
                 1.0,
                 rim <= tested,
-                f"rim sinkage {rim:.3g} m within the {tested:.3g} m the calibration's DEM tests reached",
-                f"rim sinkage {rim:.3g} m is beyond the {tested:.3g} m the calibration's DEM tests reached: "
+                f"{what} {rim:.3g} m within the {tested:.3g} m the calibration's DEM tests reached",
+                f"{what} {rim:.3g} m is beyond the {tested:.3g} m the calibration's DEM tests reached: "
                 "Bekker's law is extrapolated; calibrate deeper (cosim calibrate-scm SCENE --set "
                 "plate.max_sinkage=..., --from-wheel) or use the DEM",
                 "terrain.calibration",

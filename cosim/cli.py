@@ -132,7 +132,9 @@ SUMMARY_KEYS = (
     ("validity", "", 1),
     ("landing_time", "s", 1),
     ("landing_sinkage", "mm", 1e3),
+    ("deepest_sinkage", "mm", 1e3),
     ("window", "s", 1),
+    ("grouser_passages", "", 1),
     ("slip", "", 1),
     ("travel", "mm", 1e3),
     ("forward_speed", "mm/s", 1e3),
@@ -821,7 +823,7 @@ def cmd_calibrate_scm(args) -> int:
     if args.from_wheel:
         calibration = _fit_to_wheel(args, calibration, work)
     calibration.source["wall_time_s"] = time.perf_counter() - started
-    write_calibration(args.out, calibration)
+    write_calibration(args.out, calibration, replace=args.overwrite)  # --out was free an hour ago; still?
     tests = f"DEM tests in {work}, " if os.path.isdir(work) else ""  # --lab with --wheel-runs ran none
     print(f"calibrate-scm: {args.out} ({tests}|g| = {calibration.gravity:.4g} m/s^2)")
     for key in SOIL_KEYS:

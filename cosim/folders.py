@@ -108,8 +108,8 @@ class RunFolder:
             lock.acquire(timeout=0)
         except Timeout:
             raise FolderInUseError(
-                f"output folder {self.path!r} is in use by another run (it holds "
-                f"{LOCK_FILE}); wait for it to finish, stop it, or choose another --out"
+                f"output folder {self.path!r} is in use by another process (a run, a study or a lab test holds "
+                f"its {LOCK_FILE}); wait for it to finish, stop it, or choose another --out"
             ) from None
         self._lock = lock
         return self

@@ -20,8 +20,10 @@ remains) applied to the forward speed (or, at imposed slip, the drawbar pull), t
 steady over that window too (MSER-5, or a drift under half a grain radius); over it
 slip = 1 - mean(v) / (mean(omega) r) from mean speeds, and sinkage, drawbar pull, DP/W and
 torque are means. A run with no steady state gets a status saying
-why: 'never touched the soil', 'no landing', 'airborne', 'stuck', 'too short' or 'still
-sinking'.
+why: 'never touched the soil', 'no landing', 'airborne', 'stuck', 'too short' (also a grousered
+wheel's window over which its rim turned less than one grouser pitch, 2 pi / grouser count: a mean over
+part of a grouser's passage depends on where in it the window starts), 'still sinking' or 'still
+rising' (the sinkage drifts downwards or upwards across the window).
 
 For a rover (`rover_quantities` per macro step, `summarize_rover` over a run), in the rover's
 frame (forward = its body's +x axis turned into the horizontal plane, up = +z):
@@ -75,6 +77,8 @@ AIRBORNE = "airborne"
 STUCK = "stuck"
 TOO_SHORT = "too short"
 SINKING = "still sinking"
+RISING = "still rising"
+"""The sinkage drifts (as SINKING) but upwards: the wheel climbs out of a rut deeper than its steady one."""
 
 WHEEL_UNITS = {
     "travel": "m",
@@ -266,6 +270,7 @@ def summarize(
     landed: bool = True,
     min_fraction: float = 0.25,
     grain_radius: float | None = None,
+    grouser_count: int = 0,
 ) -> dict:
     """Steady-state metrics of one wheel from written series (cosim.output.read_series keys:
     time, phase, linear_velocity, angular_velocity, slip, sinkage, sinkage_tips, drawbar_pull,
@@ -275,13 +280,17 @@ def summarize(
     'sinkage', 'sinkage_tips' [m], 'drawbar_pull' [N], 'dp_over_w' [-], 'driving_torque' [N m],
     'normal_force' [N], 'forward_speed' [m/s], 'contact_fraction' [-], with '<name>_sem'
     (batch-means standard error within the window) and '<name>_correlation_time' [s] (a window of
-    fewer than MIN_CORRELATION_TIMES of them makes the _sem too small); 'sinkage_rate' [m/s] (slope of the
-    sinkage over the window); 'travel' [m] over the drive, 'landing_time' [s], 'landing_sinkage' [m]
-    (the rim's sinkage as the drive starts: the wheel's static sinkage under its load)}.
+    fewer than MIN_CORRELATION_TIMES of them makes the _sem too small); 'dp_over_w_sem'; 'sinkage_rate'
+    [m/s] (slope of the sinkage over the window); 'grouser_passages' [-] (grousers that passed over the
+    window: the rim's turn x grouser_count / 2 pi); 'travel' [m] over the drive, 'landing_time' [s],
+    'landing_sinkage' [m] (the rim's sinkage as the drive starts: the wheel's static sinkage under its
+    load), 'deepest_sinkage' [m] (the rim's deepest over the landing and the drive: what a run without a
+    window reached)}.
 
     The window is the steady state of the traction (forward speed, or drawbar pull at an
     imposed slip). The sinkage must be steady over it as well: stationary by MSER-5, or
-    drifting by less than half of `grain_radius` [m] over the window; else 'still sinking'.
+    drifting by less than half of `grain_radius` [m] over the window; else 'still sinking' (or 'still
+    rising'). A grousered wheel (grouser_count > 0) must pass at least one grouser over it; else 'too short'.
     """
     time = np.asarray(series["time"], dtype=float)
     phase = np.asarray(series["phase"])
@@ -292,6 +301,7 @@ def summarize(
     if len(time) == 0 or not np.any(contacts > 0):
         out["steady_state"] = NEVER_TOUCHED
         return out
+    out["deepest_sinkage"] = _deepest(np.asarray(series["sinkage"])[:, 0])
     if not landed or not driving.any():
         out["steady_state"] = NO_LANDING
         return out
@@ -324,16 +334,34 @@ def summarize(
     mean_spin = float(np.mean(spin[window - index[0]]))
     out["slip"] = float(slip_of(out["forward_speed"], mean_spin, rim_radius))
     out["dp_over_w"] = out["drawbar_pull"] / wheel_load if wheel_load > 0 else math.nan
+    out["dp_over_w_sem"] = out["drawbar_pull_sem"] / wheel_load if wheel_load > 0 else math.nan
+    # over the window's own steps, its first one's too (as a rover's)
+    span = time[window[-1]] - (time[window[0] - 1] if window[0] > 0 else time[window[0]])
+    passed = grouser_passages(abs(mean_spin) * span, grouser_count)
+    if grouser_count > 0:
+        out["grouser_passages"] = passed
     out["contact_fraction"] = float(np.mean(contacts[window] > 0))
     if out["contact_fraction"] < 0.9:
         out["steady_state"] = AIRBORNE
     elif mode == "free" and abs(mean_spin) * rim_radius > 0 and out["forward_speed"] < 0.01 * mean_spin * rim_radius:
         out["steady_state"] = STUCK
-    elif not found:
+    elif not found or passed < 1.0:
         out["steady_state"] = TOO_SHORT
     elif not settled:
-        out["steady_state"] = SINKING
+        out["steady_state"] = RISING if out["sinkage_rate"] < 0 else SINKING
     return out
+
+
+def grouser_passages(turn: float, grouser_count: int) -> float:
+    """Grousers that pass a point of the soil as the rim turns by `turn` [rad] (inf for a wheel without
+    grousers: nothing periodic to average over)."""
+    return turn * grouser_count / (2.0 * math.pi) if grouser_count > 0 else math.inf
+
+
+def _deepest(sinkage: np.ndarray) -> float:
+    """The deepest finite value of a sinkage series [m] (nan when none is finite)."""
+    finite = sinkage[np.isfinite(sinkage)]
+    return float(finite.max()) if len(finite) else math.nan
 
 
 def forward_speed(series: dict) -> np.ndarray:
@@ -360,6 +388,9 @@ SUMMARY_UNITS = {
     "landing_time": "s",
     "landing_sinkage": "m",
     "sinkage_rate": "m/s",
+    "deepest_sinkage": "m",
+    "wheel_deepest_sinkage": "m",
+    "grouser_passages": "1",
     "dp_over_w": "1",
     "contact_fraction": "1",
     "displacement": "m",
@@ -547,6 +578,7 @@ def summarize_rover(
     landed: bool = True,
     min_fraction: float = 0.25,
     grain_radius: float | None = None,
+    grouser_counts=None,
 ) -> dict:
     """Metrics of a rover run from its written series (cosim.output.read_series: the wheel series (S, W),
     'rover/...' series (S, ...)); over the driving phase only.
@@ -559,13 +591,18 @@ def summarize_rover(
     'wheel_power', 'wheel_contact_fraction', 'wheel_spin' [rad/s] (|omega| about the axle: the validity's
     Froude number where the drive sets the speeds as it goes); over the drive: 'travel' [m] (path), 'displacement' [m],
     'energy' [J], 'energy_per_metre' [J/m], 'time_immobile' [s], 'stuck' (bool), 'stalled' (bool: the
-    drive stalled, drive_stalled), 'stuck_criterion' (text)}.
+    drive stalled, drive_stalled), 'stuck_criterion' (text), 'grouser_passages' [-] (the fewest grousers a
+    grousered wheel passed over the window, among the wheels that turned a tenth of the most-turned one's
+    turn at least: `grouser_counts`, one per wheel, 0 for a smooth one),
+    'wheel_deepest_sinkage' [m] (each rim's deepest over the landing and the drive), and the `_sem` of
+    'net_traction_over_weight' and 'dp_over_w'}.
 
     Statuses as `summarize`'s, for the rover: 'stuck' (immobile at the end, a slip of at least
     stuck_slip over the window, or a stalled drive), 'airborne' (at least min(3, wheels) wheels touch
     the soil in fewer than 90 % of the window's macro steps: the stance lost, not one wheel lifted),
-    'too short', 'still sinking' (a wheel's sinkage neither stationary nor drifting by less than half of
-    `grain_radius` [m] over the window)."""
+    'too short' (also fewer than one grouser passage over the window), 'still sinking' (a wheel's sinkage
+    neither stationary nor drifting by less than half of `grain_radius` [m] over the window; 'still rising'
+    when every such wheel drifts upwards)."""
     time = np.asarray(series["time"], dtype=float)
     phase = np.asarray(series["phase"])
     contacts = np.asarray(series["contact_count"])
@@ -583,6 +620,7 @@ def summarize_rover(
     if len(time) == 0 or not np.any(contacts > 0):
         out["steady_state"] = NEVER_TOUCHED
         return out
+    out["wheel_deepest_sinkage"] = [_deepest(column) for column in np.asarray(series["sinkage"]).T]
     if not landed or not driving.any():
         out["steady_state"] = NO_LANDING
         return out
@@ -623,6 +661,7 @@ def summarize_rover(
     traction = np.asarray(series["rover_net_traction"])[rows]
     window_mean(out, "net_traction", traction, spacing)
     out["net_traction_over_weight"] = out["net_traction"] / weight if weight > 0 else math.nan
+    out["net_traction_over_weight_sem"] = out["net_traction_sem"] / weight if weight > 0 else math.nan
     out["power"] = float(np.mean(power[window]))
     for name in ("sinkage", "sinkage_tips", "drawbar_pull", "driving_torque", "normal_force", "power"):
         values = np.asarray(series[name])[rows]
@@ -642,6 +681,16 @@ def summarize_rover(
     out["sinkage_tips"] = float(np.mean(out["wheel_sinkage_tips"]))
     out["drawbar_pull"] = out["net_traction"]
     out["dp_over_w"] = out["net_traction_over_weight"]
+    out["dp_over_w_sem"] = out["net_traction_over_weight_sem"]
+    counts = [0] * len(rim_radii) if grouser_counts is None else [int(c) for c in grouser_counts]
+    if len(counts) != len(rim_radii):
+        raise ValueError(f"grouser_counts: one per wheel ({len(rim_radii)}), got {len(counts)}")
+    turns = np.abs(np.sum(spins[window] * dt[window, None], axis=0))  # each rim's turn over the window [rad]
+    # a wheel held still (a brake, one side stopped) passes no grousers and forces nothing periodic
+    turning = turns >= 0.1 * np.max(turns) if len(turns) and np.max(turns) > 0 else np.zeros(len(turns), bool)
+    passed = min((grouser_passages(float(t), c) for t, c, on in zip(turns, counts, turning) if on), default=math.inf)
+    if any(counts):
+        out["grouser_passages"] = passed
     out["driving_torque"] = float(np.sum(out["wheel_driving_torque"]))
     out["normal_force"] = float(np.sum(out["wheel_normal_force"]))
     touching = contacts[rows] > 0
@@ -663,18 +712,19 @@ def summarize_rover(
         grain_radius,
     )
     out["stuck"] = out["stuck"] or out["stalled"]
-    settled = [
-        sinkage_steady(sinkage[window, w], times[window], min_fraction, grain_radius)[0]
-        for w in range(sinkage.shape[1])
+    drifts = [
+        sinkage_steady(sinkage[window, w], times[window], min_fraction, grain_radius) for w in range(sinkage.shape[1])
     ]
+    settled = [steady for steady, _ in drifts]
+    rising = all(rate < 0 for steady, rate in drifts if not steady)
     if out["stuck"]:
         out["steady_state"] = STUCK
     elif out["contact_fraction"] < 0.9:
         out["steady_state"] = AIRBORNE
-    elif not found:
+    elif not found or passed < 1.0:
         out["steady_state"] = TOO_SHORT
     elif not all(settled):
-        out["steady_state"] = SINKING
+        out["steady_state"] = RISING if rising else SINKING
     return out
 
 

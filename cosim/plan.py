@@ -69,6 +69,11 @@ class WheelPlan:
     width: float
     """Width along the axle [m]."""
 
+    @property
+    def grouser_count(self) -> int:
+        """Grousers round the rim (0: a smooth wheel, or a mesh, whose grousers are not known)."""
+        return int(getattr(self.shape, "grouser_count", 0))
+
 
 @dataclass(frozen=True)
 class BedPlan:

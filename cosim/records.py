@@ -262,6 +262,7 @@ def run_summary(
             mode=plan.testbed.mode,
             landed=landed,
             grain_radius=plan.bed.spec.radius_mean,
+            grouser_count=plan.wheel.grouser_count,
         )
     else:
         out = metrics.summarize_rover(
@@ -271,6 +272,7 @@ def run_summary(
             stuck_slip=plan.rover.stuck_slip,
             landed=landed,
             grain_radius=plan.bed.spec.radius_mean,
+            grouser_counts=[w.grouser_count for w in plan.wheels],
         )
     soil = system.soil
     books = soil.books()
@@ -285,6 +287,9 @@ def run_summary(
         )
     stepped = step_summary(series)  # the PID's longest substep judges its contact resolution (cosim.advice.check)
     findings = validity(plan, soil.surface_height, {**out, **stepped})
+    not_judged = [check for check, _ in advice.judged_after_the_run(plan, findings)]  # nothing measured for them
+    if not_judged:
+        out["not_judged"] = not_judged
     out.update(
         simulated_time=float(system.coupler.time),
         macro_steps=int(system.coupler.step_count),
@@ -296,7 +301,7 @@ def run_summary(
         macro_step=plan.macro_step,
         froude_number=_froude_number(plan, findings),
         coupling_energy_created=float(system.coupler.energy_created),
-        validity=advice.verdict(findings),
+        validity=advice.verdict(findings, not_judged),
         findings=[f.as_dict() for f in findings],
     )
     if session_wall > 0 and steps_done:

@@ -72,9 +72,10 @@ class ScmCalibration:
     """The soil (material, grain size) and the DEM tests (their settings and summaries)."""
 
 
-def write_calibration(path: str, calibration: ScmCalibration) -> None:
+def write_calibration(path: str, calibration: ScmCalibration, replace: bool = True) -> None:
     """Write a calibration file (TOML), atomically (soil.files.atomic_path: a crash leaves the former file
-    whole; its folder is made)."""
+    whole; its folder is made); replace False: a file that appeared at `path` while the calibration ran is
+    kept, the calibration written beside it (FileExistsError naming both)."""
     data = {
         "format": FORMAT_VERSION,
         "gravity": float(calibration.gravity),
@@ -83,7 +84,7 @@ def write_calibration(path: str, calibration: ScmCalibration) -> None:
         "units": {"gravity": "m/s^2", **SOIL_UNITS},  # [scm]'s and [standard_error]'s; [source] keys name theirs
         "source": _plain(calibration.source),
     }
-    with atomic_path(path) as temporary, open(temporary, "wb") as f:
+    with atomic_path(path, replace=replace) as temporary, open(temporary, "wb") as f:
         tomli_w.dump(data, f)
 
 

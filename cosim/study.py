@@ -43,6 +43,7 @@ import signal
 import threading
 import time
 import traceback
+from collections.abc import Iterator
 from typing import TYPE_CHECKING, Any
 
 try:
@@ -352,13 +353,33 @@ STUDY_MARK = ".cosim-study"
 only a folder that holds it (or a single run's), never one of other files, an input scene among them."""
 
 
-def prepare_study(out_dir: str, overwrite: bool) -> None:
-    """Make the study folder; refuse a non-empty one unless overwrite, and even then one that neither a
-    study marked nor a single run wrote (a settled bed is kept)."""
+@contextlib.contextmanager
+def prepare_study(out_dir: str, overwrite: bool) -> Iterator[None]:
+    """Hold the study folder while the study runs in it (`with prepare_study(...)`): make it and take its
+    lock (FolderInUseError while another process holds it: a second study, lab test or set of replicas
+    writing there, or a run; it had emptied their folders under them), then refuse a non-empty folder
+    unless overwrite, and even then one that neither a study marked nor a single run wrote (a settled bed
+    is kept)."""
+    from .folders import LOCK_FILE
+
+    folder = RunFolder(out_dir)
+    folder.create()
+    if not os.path.exists(folder.file(LOCK_FILE)):  # one there may be held: that is said first
+        _study_folder_files(out_dir, overwrite)  # a refused folder is left as it was, without a lock file
+    with folder.locked():
+        for name in _study_folder_files(out_dir, overwrite):  # again: another process may have written since
+            path = os.path.join(out_dir, name)
+            shutil.rmtree(path) if os.path.isdir(path) else os.remove(path)
+        with open(os.path.join(out_dir, STUDY_MARK), "w"):
+            pass
+        yield
+
+
+def _study_folder_files(out_dir: str, overwrite: bool) -> list[str]:
+    """The files a study in `out_dir` replaces (OutputExistsError when it may not)."""
     from .beds import BED_DIVERGED_FILE
     from .folders import LOCK_FILE, RESULTS_FILE, RUN_FILE, RUN_OUTPUTS, OutputExistsError
 
-    RunFolder(out_dir).create()
     keep = (BED_FILE, BED_INFO_FILE, BED_DIVERGED_FILE, "beds", LOCK_FILE, STUDY_MARK)
     present = sorted(n for n in os.listdir(out_dir) if n not in keep)
     if present and not overwrite:
@@ -375,11 +396,7 @@ def prepare_study(out_dir: str, overwrite: bool) -> None:
             f"{STUDY_MARK} file; one written before 2026-12-06 has none) or a single run's, so nothing was "
             "removed: choose another --out, or empty it yourself"
         )
-    for name in present:
-        path = os.path.join(out_dir, name)
-        shutil.rmtree(path) if os.path.isdir(path) else os.remove(path)
-    with open(os.path.join(out_dir, STUDY_MARK), "w"):
-        pass
+    return present
 
 
 VARIATIONS = ("order", "bed")
@@ -687,7 +704,8 @@ def out_of_range(validity: str | None) -> bool:
 
 def ensemble_table(results: list[dict], plan: RunPlan, states=(metrics.STEADY,)) -> dict:
     """metrics.ensemble of every REPLICA_METRIC over the runs whose steady_state is in `states` (the
-    steady ones; with metrics.SINKING too, the runs whose traction is steady and sinkage still drifts),
+    steady ones; with metrics.SINKING and RISING too, the runs whose traction is steady and sinkage still
+    drifts, down or up),
     and the runs' validity (ensemble_validity: over every run that gives a verdict)."""
     averaged = [r for r in results if r.get("ok") and r.get("summary", {}).get("steady_state") in states]
     steady = [r for r in results if r.get("ok") and r.get("summary", {}).get("steady_state") == metrics.STEADY]
@@ -808,53 +826,53 @@ def replica_run(
     batched = _batching(plan, batched)
     out_dir = os.path.abspath(out_dir)
     tasks_run = Executor("serial" if batched else executor, scheduler, workers)  # refused before the folder is made
-    prepare_study(out_dir, overwrite)
-    text = plan.scene.to_toml()
-    with tasks_run as ex:
-        beds = _replica_beds(plan, out_dir, ex, replicas, vary)
-        tasks = [
-            {
-                "scene_toml": text,
-                "out_dir": os.path.join(out_dir, f"replica_{k:03d}"),
-                "overrides": _replica_overrides(k, beds[k], vary, plan, soils),
-                "label": f"replica_{k:03d}",
-                "base_dir": plan.scene.base_dir,
-            }
-            for k in range(replicas)
-        ]
-        results = _run_tasks(ex, tasks, batched)
-    stats = ensemble_table(results, plan)
-    varied, calibration = _variation(plan, vary, soils[:replicas])
-    report = {
-        "kind": "replicas",
-        "vary": vary,
-        "calibration_beds": calibration,  # SCM wheels over beds: each replica's soil keys (file, soils, units)
-        "batched": bool(batched),
-        "scene_toml": text,
-        "bed_file": beds[0] if vary == "order" else None,
-        "bed_files": beds,
-        "stats": stats,
-        "validity": stats["validity"],  # the replicas' (ensemble_validity)
-        "results": results,
-        "criterion": "a metric is macroscopically deterministic (vary 'order'; over beds: the same on any bed) "
-        "when its replica std is <= max(5 % of its mean, its absolute floor) (cosim.study._tolerances)",
-        "units": column_units(list(stats["metrics"]), METRIC_UNITS),  # stats' mean, std, ... of each metric
-    }
-    write_json(os.path.join(out_dir, "ensemble.json"), report)
-    _write_csv(
-        os.path.join(out_dir, "ensemble.csv"),
-        [
-            {"metric": k, **v, "unit": METRIC_UNITS.get(k, ""), "validity": stats["validity"]}
-            for k, v in stats["metrics"].items()
-        ],
-        ["metric", "unit", "n", "mean", "std", "ci95", "min", "max", "tolerance", "deterministic", "validity"],
-        {},
-    )  # one metric per row: its unit is a column (mean, std, ci95, min, max, tolerance are in it); validity: the
-    # replicas' verdict, the same on every row
-    judged = "deterministic" if vary == "order" else "same on any bed"
-    report["text"] = _ensemble_text(stats, f"{plan.name}: {replicas} replicas ({varied}), {out_dir}", judged)
-    report["ok"] = stats["steady"] == replicas and stats["steady"] >= 2
-    return report
+    with prepare_study(out_dir, overwrite):
+        text = plan.scene.to_toml()
+        with tasks_run as ex:
+            beds = _replica_beds(plan, out_dir, ex, replicas, vary)
+            tasks = [
+                {
+                    "scene_toml": text,
+                    "out_dir": os.path.join(out_dir, f"replica_{k:03d}"),
+                    "overrides": _replica_overrides(k, beds[k], vary, plan, soils),
+                    "label": f"replica_{k:03d}",
+                    "base_dir": plan.scene.base_dir,
+                }
+                for k in range(replicas)
+            ]
+            results = _run_tasks(ex, tasks, batched)
+        stats = ensemble_table(results, plan)
+        varied, calibration = _variation(plan, vary, soils[:replicas])
+        report = {
+            "kind": "replicas",
+            "vary": vary,
+            "calibration_beds": calibration,  # SCM wheels over beds: each replica's soil keys (file, soils, units)
+            "batched": bool(batched),
+            "scene_toml": text,
+            "bed_file": beds[0] if vary == "order" else None,
+            "bed_files": beds,
+            "stats": stats,
+            "validity": stats["validity"],  # the replicas' (ensemble_validity)
+            "results": results,
+            "criterion": "a metric is macroscopically deterministic (vary 'order'; over beds: the same on any bed) "
+            "when its replica std is <= max(5 % of its mean, its absolute floor) (cosim.study._tolerances)",
+            "units": column_units(list(stats["metrics"]), METRIC_UNITS),  # stats' mean, std, ... of each metric
+        }
+        write_json(os.path.join(out_dir, "ensemble.json"), report)
+        _write_csv(
+            os.path.join(out_dir, "ensemble.csv"),
+            [
+                {"metric": k, **v, "unit": METRIC_UNITS.get(k, ""), "validity": stats["validity"]}
+                for k, v in stats["metrics"].items()
+            ],
+            ["metric", "unit", "n", "mean", "std", "ci95", "min", "max", "tolerance", "deterministic", "validity"],
+            {},
+        )  # one metric per row: its unit is a column (mean, std, ci95, min, max, tolerance are in it); validity: the
+        # replicas' verdict, the same on every row
+        judged = "deterministic" if vary == "order" else "same on any bed"
+        report["text"] = _ensemble_text(stats, f"{plan.name}: {replicas} replicas ({varied}), {out_dir}", judged)
+        report["ok"] = stats["steady"] == replicas and stats["steady"] >= 2
+        return report
 
 
 # ------------------------------------------------------------------------------------
@@ -894,72 +912,74 @@ def precision_study(
     batched = _batching(plan, batched)
     out_dir = os.path.abspath(out_dir)
     tasks_run = Executor("serial" if batched else executor, scheduler, workers)  # refused before the folder is made
-    prepare_study(out_dir, overwrite)
-    text = plan.scene.to_toml()
-    with tasks_run as ex:
-        bed = _shared_bed(plan, out_dir, ex)
-        tasks = [
-            {
-                "scene_toml": text,
-                "out_dir": os.path.join(out_dir, precision, f"replica_{k:03d}"),
-                "overrides": {"scene.precision": precision, "run.order_seed": k, **_bed_override(bed)},
-                "label": f"{precision}/replica_{k:03d}",
-                "precision": precision,
-                "replica": k,
-                "base_dir": plan.scene.base_dir,
-            }
-            for precision in precisions
-            for k in range(replicas)
+    with prepare_study(out_dir, overwrite):
+        text = plan.scene.to_toml()
+        with tasks_run as ex:
+            bed = _shared_bed(plan, out_dir, ex)
+            tasks = [
+                {
+                    "scene_toml": text,
+                    "out_dir": os.path.join(out_dir, precision, f"replica_{k:03d}"),
+                    "overrides": {"scene.precision": precision, "run.order_seed": k, **_bed_override(bed)},
+                    "label": f"{precision}/replica_{k:03d}",
+                    "precision": precision,
+                    "replica": k,
+                    "base_dir": plan.scene.base_dir,
+                }
+                for precision in precisions
+                for k in range(replicas)
+            ]
+            started = time.perf_counter()
+            if batched:  # one batch per precision, in the tasks' order
+                results = [
+                    r for p in precisions for r in _run_tasks(ex, [t for t in tasks if t["precision"] == p], True)
+                ]
+            else:
+                results = ex.map(run_task, tasks)
+            wall = time.perf_counter() - started
+        rows = []
+        for precision in precisions:
+            members = [r for t, r in zip(tasks, results) if t["precision"] == precision]
+            stats = ensemble_table(members, plan)
+            rows.append(
+                {
+                    "precision": precision,
+                    "replicas": stats["replicas"],
+                    "steady": stats["steady"],
+                    "failed": sum(1 for r in members if not r.get("ok")),
+                    "validity": stats["validity"],
+                    **_flat(stats),
+                    "stats": stats,
+                }
+            )
+        for task, result in zip(tasks, results):
+            result.update(precision=task["precision"], replica=task["replica"])
+        report = {
+            "kind": "precision",
+            "batched": bool(batched),
+            "replicas": results,
+            "rows": rows,
+            "wall_time": wall,
+            "bed_file": bed,
+            "scene_toml": text,
+        }
+        keys = ["precision", "replicas", "steady", "failed", "validity"] + [
+            f"{m}_{k}" for m in ("wall_time",) + metrics.REPLICA_METRICS for k in ("mean", "std", "ci95", "min", "max")
         ]
-        started = time.perf_counter()
-        if batched:  # one batch per precision, in the tasks' order
-            results = [r for p in precisions for r in _run_tasks(ex, [t for t in tasks if t["precision"] == p], True)]
-        else:
-            results = ex.map(run_task, tasks)
-        wall = time.perf_counter() - started
-    rows = []
-    for precision in precisions:
-        members = [r for t, r in zip(tasks, results) if t["precision"] == precision]
-        stats = ensemble_table(members, plan)
-        rows.append(
-            {
-                "precision": precision,
-                "replicas": stats["replicas"],
-                "steady": stats["steady"],
-                "failed": sum(1 for r in members if not r.get("ok")),
-                "validity": stats["validity"],
-                **_flat(stats),
-                "stats": stats,
-            }
-        )
-    for task, result in zip(tasks, results):
-        result.update(precision=task["precision"], replica=task["replica"])
-    report = {
-        "kind": "precision",
-        "batched": bool(batched),
-        "replicas": results,
-        "rows": rows,
-        "wall_time": wall,
-        "bed_file": bed,
-        "scene_toml": text,
-    }
-    keys = ["precision", "replicas", "steady", "failed", "validity"] + [
-        f"{m}_{k}" for m in ("wall_time",) + metrics.REPLICA_METRICS for k in ("mean", "std", "ci95", "min", "max")
-    ]
-    report["units"] = {**column_units(keys, METRIC_UNITS), "wall_time": "s"}  # the rows' columns
-    write_json(os.path.join(out_dir, "study.json"), report)
-    _write_csv(os.path.join(out_dir, "study.csv"), rows, keys, METRIC_UNITS)
-    for row in rows:
-        log.info("%s", _ensemble_text(row["stats"], f"precision {row['precision']}"))
-    if plot:
-        from .plots import plot_output, plot_scatter
+        report["units"] = {**column_units(keys, METRIC_UNITS), "wall_time": "s"}  # the rows' columns
+        write_json(os.path.join(out_dir, "study.json"), report)
+        _write_csv(os.path.join(out_dir, "study.csv"), rows, keys, METRIC_UNITS)
+        for row in rows:
+            log.info("%s", _ensemble_text(row["stats"], f"precision {row['precision']}"))
+        if plot:
+            from .plots import plot_output, plot_scatter
 
-        try:
-            written = plot_output(out_dir) + [plot_scatter(out_dir, rows, "precision")]
-            log.info("plots: %s", ", ".join(written))
-        except ArgumentError as error:  # no results.h5 under out_dir: every run failed
-            log.warning("%s", error)
-    return report
+            try:
+                written = plot_output(out_dir) + [plot_scatter(out_dir, rows, "precision")]
+                log.info("plots: %s", ", ".join(written))
+            except ArgumentError as error:  # no results.h5 under out_dir: every run failed
+                log.warning("%s", error)
+        return report
 
 
 # ------------------------------------------------------------------------------------
@@ -1016,41 +1036,41 @@ def slip_study(
     batched = _batching(plan, batched)
     out_dir = os.path.abspath(out_dir)
     tasks_run = Executor("serial" if batched else executor, scheduler, workers)  # refused before the folder is made
-    prepare_study(out_dir, overwrite)
-    text = plan.scene.to_toml()
-    with tasks_run as ex:
-        beds = _replica_beds(plan, out_dir, ex, replicas, vary)
-        tasks = [
-            {
-                "scene_toml": text,
-                "out_dir": os.path.join(out_dir, f"slip_{s:+.3f}", f"replica_{k:03d}"),
-                "overrides": {
-                    "testbed.mode": "slip",
-                    "testbed.slip": s,
-                    **_replica_overrides(k, beds[k], vary, plan, soils),
-                },
-                "label": f"slip {s:+.3f} replica {k}",
-                "slip": s,
-                "base_dir": plan.scene.base_dir,
-            }
-            for s in slips
-            for k in range(replicas)
-        ]
-        results = _run_tasks(ex, tasks, batched)
-    shared = beds[0] if vary == "order" else None
-    return _slip_report(
-        plan,
-        out_dir,
-        slips,
-        [t["slip"] for t in tasks],
-        results,
-        text,
-        shared,
-        plot,
-        vary=vary,
-        beds=beds,
-        soils=soils[:replicas],
-    )
+    with prepare_study(out_dir, overwrite):
+        text = plan.scene.to_toml()
+        with tasks_run as ex:
+            beds = _replica_beds(plan, out_dir, ex, replicas, vary)
+            tasks = [
+                {
+                    "scene_toml": text,
+                    "out_dir": os.path.join(out_dir, f"slip_{s:+.3f}", f"replica_{k:03d}"),
+                    "overrides": {
+                        "testbed.mode": "slip",
+                        "testbed.slip": s,
+                        **_replica_overrides(k, beds[k], vary, plan, soils),
+                    },
+                    "label": f"slip {s:+.3f} replica {k}",
+                    "slip": s,
+                    "base_dir": plan.scene.base_dir,
+                }
+                for s in slips
+                for k in range(replicas)
+            ]
+            results = _run_tasks(ex, tasks, batched)
+        shared = beds[0] if vary == "order" else None
+        return _slip_report(
+            plan,
+            out_dir,
+            slips,
+            [t["slip"] for t in tasks],
+            results,
+            text,
+            shared,
+            plot,
+            vary=vary,
+            beds=beds,
+            soils=soils[:replicas],
+        )
 
 
 def slip_study_from_runs(
@@ -1095,15 +1115,15 @@ def slip_study_from_runs(
         for _, path, record in found
     ]
     slips = sorted({slip for slip, _, _ in found})
-    prepare_study(out_dir, overwrite)
-    states = (metrics.STEADY, metrics.SINKING) if include_sinking else (metrics.STEADY,)
-    beds = [record.get("bed", {}).get("path") for _, _, record in found]
-    soils = _run_soils([path for _, path, _ in found])
-    # the runs' own beds (and their SCM wheels' soils) say what their replicas varied in
-    vary = "bed" if len(set(beds)) > 1 or soils else "order"
-    return _slip_report(
-        plan, out_dir, slips, [s for s, _, _ in found], results, text, None, plot, states, vary, beds, soils
-    )
+    with prepare_study(out_dir, overwrite):
+        states = (metrics.STEADY, metrics.SINKING, metrics.RISING) if include_sinking else (metrics.STEADY,)
+        beds = [record.get("bed", {}).get("path") for _, _, record in found]
+        soils = _run_soils([path for _, path, _ in found])
+        # the runs' own beds (and their SCM wheels' soils) say what their replicas varied in
+        vary = "bed" if len(set(beds)) > 1 or soils else "order"
+        return _slip_report(
+            plan, out_dir, slips, [s for s, _, _ in found], results, text, None, plot, states, vary, beds, soils
+        )
 
 
 def _check_run_record(record) -> None:
@@ -1392,89 +1412,89 @@ def sweep(
         raise SceneError(problems)
     out_dir = os.path.abspath(out_dir)
     tasks_run = Executor(executor, scheduler, workers)  # refused before the folder is made
-    prepare_study(out_dir, overwrite)
-    with tasks_run as ex:
-        beds: dict[str, RunPlan] = {}
-        for p in plans:
-            if not p.bed.bed_file and needs_bed(p):
-                beds.setdefault(p.bed.key, p)
-        folders = [os.path.join(out_dir, "beds", key) for key in beds]
-        bed_paths = dict(zip(beds, _settle(ex, list(beds.values()), folders)))
-        tasks: list[dict[str, Any]] = []
-        for i, (point, p) in enumerate(zip(points, plans)):
-            overrides = dict(point)
-            if not p.bed.bed_file and needs_bed(p):
-                overrides["bed.bed_file"] = bed_paths[p.bed.key]
-            name = f"{i:03d}_" + "_".join(
-                f"{_folder_label(k.split('.')[-1])}={_folder_label(v)}" for k, v in point.items()
-            )
-            tasks.append(
-                {
-                    "scene_toml": text,
-                    "overrides": overrides,
-                    "out_dir": os.path.join(out_dir, name),
-                    "label": name,
-                    "point": point,
-                    "base_dir": plan.scene.base_dir,
-                }
-            )
-        results = ex.map(run_task, tasks)
-    columns: tuple[str, ...] = (
-        "steady_state",
-        "slip",
-        "travel",
-        "sinkage",
-        "drawbar_pull",
-        "driving_torque",
-        "wall_time",
-    )
-    if plan.rover is not None:  # drive controllers side by side
-        columns = (
+    with prepare_study(out_dir, overwrite):
+        with tasks_run as ex:
+            beds: dict[str, RunPlan] = {}
+            for p in plans:
+                if not p.bed.bed_file and needs_bed(p):
+                    beds.setdefault(p.bed.key, p)
+            folders = [os.path.join(out_dir, "beds", key) for key in beds]
+            bed_paths = dict(zip(beds, _settle(ex, list(beds.values()), folders)))
+            tasks: list[dict[str, Any]] = []
+            for i, (point, p) in enumerate(zip(points, plans)):
+                overrides = dict(point)
+                if not p.bed.bed_file and needs_bed(p):
+                    overrides["bed.bed_file"] = bed_paths[p.bed.key]
+                name = f"{i:03d}_" + "_".join(
+                    f"{_folder_label(k.split('.')[-1])}={_folder_label(v)}" for k, v in point.items()
+                )
+                tasks.append(
+                    {
+                        "scene_toml": text,
+                        "overrides": overrides,
+                        "out_dir": os.path.join(out_dir, name),
+                        "label": name,
+                        "point": point,
+                        "base_dir": plan.scene.base_dir,
+                    }
+                )
+            results = ex.map(run_task, tasks)
+        columns: tuple[str, ...] = (
             "steady_state",
             "slip",
             "travel",
-            "forward_speed",
             "sinkage",
-            "net_traction",
-            "net_traction_over_weight",
-            "power",
-            "energy_per_metre",
-            "time_immobile",
-            "stuck",
-            "stalled",
+            "drawbar_pull",
+            "driving_torque",
             "wall_time",
         )
-    rows = []
-    for task, result in zip(tasks, results):
-        row = {
-            **task["point"],
-            "ok": result.get("ok"),
-            "status": result.get("status"),
-            "validity": run_validity(result),
-        }
-        row.update({k: result.get("summary", {}).get(k) for k in columns})
-        if not result.get("ok"):
-            row["error"] = result.get("error")
-        rows.append(row)
-    keys = list(grid) + ["ok", "status", "validity", *columns]
-    swept = {key: unit for key in grid if (unit := key_unit(key)) is not None}  # as cosim/scene.py documents them
-    units = {**METRIC_UNITS, **swept}
-    report = {"kind": "sweep", "grid": grid, "rows": rows, "runs": results, "scene_toml": text}
-    report["units"] = column_units(keys, units)
-    write_json(os.path.join(out_dir, "study.json"), report)
-    log.info("%s", plot_table(rows, keys))
-    _write_csv(os.path.join(out_dir, "study.csv"), rows, keys, units)
-    for r in rows:
-        if r.get("error"):
-            log.warning("failed: %s", r["error"])
-    if plot:
-        from .plots import plot_output
+        if plan.rover is not None:  # drive controllers side by side
+            columns = (
+                "steady_state",
+                "slip",
+                "travel",
+                "forward_speed",
+                "sinkage",
+                "net_traction",
+                "net_traction_over_weight",
+                "power",
+                "energy_per_metre",
+                "time_immobile",
+                "stuck",
+                "stalled",
+                "wall_time",
+            )
+        rows = []
+        for task, result in zip(tasks, results):
+            row = {
+                **task["point"],
+                "ok": result.get("ok"),
+                "status": result.get("status"),
+                "validity": run_validity(result),
+            }
+            row.update({k: result.get("summary", {}).get(k) for k in columns})
+            if not result.get("ok"):
+                row["error"] = result.get("error")
+            rows.append(row)
+        keys = list(grid) + ["ok", "status", "validity", *columns]
+        swept = {key: unit for key in grid if (unit := key_unit(key)) is not None}  # as cosim/scene.py documents them
+        units = {**METRIC_UNITS, **swept}
+        report = {"kind": "sweep", "grid": grid, "rows": rows, "runs": results, "scene_toml": text}
+        report["units"] = column_units(keys, units)
+        write_json(os.path.join(out_dir, "study.json"), report)
+        log.info("%s", plot_table(rows, keys))
+        _write_csv(os.path.join(out_dir, "study.csv"), rows, keys, units)
+        for r in rows:
+            if r.get("error"):
+                log.warning("failed: %s", r["error"])
+        if plot:
+            from .plots import plot_output
 
-        try:
-            log.info("plots: %s", ", ".join(plot_output(out_dir)))
-        except ArgumentError as error:  # no results.h5 under out_dir: every run failed
-            log.warning("%s", error)
-    return report
+            try:
+                log.info("plots: %s", ", ".join(plot_output(out_dir)))
+            except ArgumentError as error:  # no results.h5 under out_dir: every run failed
+                log.warning("%s", error)
+        return report
 
 
 # ------------------------------------------------------------------------------------
@@ -1529,85 +1549,85 @@ def timestep_study(
             [f"terrain.model: the stable-step search is of the DEM step; this scene runs on {plan.terrain.model}"]
         )
     out_dir = os.path.abspath(out_dir)
-    prepare_study(out_dir, overwrite)
-    bed = settled_bed(plan, out_dir)
-    assert plan.testbed is not None, "the stable-step search turns the single-wheel testbed's wheel"
-    omega = plan.testbed.omega
-    rim = omega * plan.wheel.outer_radius
+    with prepare_study(out_dir, overwrite):
+        bed = settled_bed(plan, out_dir)
+        assert plan.testbed is not None, "the stable-step search turns the single-wheel testbed's wheel"
+        omega = plan.testbed.omega
+        rim = omega * plan.wheel.outer_radius
 
-    def make_simulation():
-        system = CoupledSystem.build(plan, bed)
-        assert isinstance(system.soil, DemSoil), "the stable-step search is of the DEM step"
-        sim = system.soil.sim
-        hub = system.rover.position
-        sim.set_body_motion(0, hub, [1, 0, 0, 0], [rim, 0, 0], [0, omega, 0])
-        sim.refresh_forces()
-        return sim
+        def make_simulation():
+            system = CoupledSystem.build(plan, bed)
+            assert isinstance(system.soil, DemSoil), "the stable-step search is of the DEM step"
+            sim = system.soil.sim
+            hub = system.rover.position
+            sim.set_body_motion(0, hub, [1, 0, 0, 0], [rim, 0, 0], [0, omega, 0])
+            sim.refresh_forces()
+            return sim
 
-    ended = [time.perf_counter()]  # when each try ended (the first entry: the search's start)
+        ended = [time.perf_counter()]  # when each try ended (the first entry: the search's start)
 
-    def log_try(dt, ok, message):
-        ended.append(time.perf_counter())
-        log.info(
-            "try %d/%d: dt = %.4g s (%.3g x the scene's): %s (%.1f s wall)",
-            len(ended) - 1,
-            max_tries,
-            dt,
-            dt / plan.dt,
-            "stable" if ok else "UNSTABLE",
-            ended[-1] - ended[-2],
+        def log_try(dt, ok, message):
+            ended.append(time.perf_counter())
+            log.info(
+                "try %d/%d: dt = %.4g s (%.3g x the scene's): %s (%.1f s wall)",
+                len(ended) - 1,
+                max_tries,
+                dt,
+                dt / plan.dt,
+                "stable" if ok else "UNSTABLE",
+                ended[-1] - ended[-2],
+            )
+
+        search = advisor.largest_stable_step(
+            make_simulation,
+            duration,
+            dt_start=plan.dt,
+            growth=growth,
+            safety=0.5,
+            max_runs=max_tries,
+            check_every=20,
+            progress=log_try,
         )
-
-    search = advisor.largest_stable_step(
-        make_simulation,
-        duration,
-        dt_start=plan.dt,
-        growth=growth,
-        safety=0.5,
-        max_runs=max_tries,
-        check_every=20,
-        progress=log_try,
-    )
-    largest, first_bad, tries = search.largest_stable, search.first_unstable, search.tried
-    advice = advisor.recommended_time_step(make_simulation())
-    report = {
-        "kind": "timestep",
-        "scene_dt": plan.dt,
-        "duration": duration,
-        "largest_stable": largest,
-        "first_unstable": first_bad,
-        "recommended": search.recommended,
-        "tried": [{"dt": d, "stable": ok, "message": m} for d, ok, m in tries],
-        "advisor": {
-            "dt_min": advice.dt_min,
-            "dt_max": advice.dt_max,
-            "critical_step": advice.critical_step,
-            "contact_time": advice.contact_time,
-        },
-        "units": dict.fromkeys(  # every number above is a time
-            ("scene_dt", "duration", "largest_stable", "first_unstable", "recommended", "tried.dt", "advisor"), "s"
-        ),
-    }
-    write_json(os.path.join(out_dir, "study.json"), report)
-    if largest is None:
-        log.error(
-            "no stable step found in %d tries down to %.4g s: the scene is unstable at any step tried; check "
-            "`cosim advise` (stiffness, overlaps)",
-            len(tries),
-            tries[-1][0],
-        )
-    else:
-        log.info(
-            "largest stable step %s s, first unstable %s s, recommended %s s; the advisor says %.4g .. %.4g s; "
-            "the scene uses %.4g s",
-            _s(largest),
-            _s(first_bad),
-            _s(report["recommended"]),
-            advice.dt_min,
-            advice.dt_max,
-            plan.dt,
-        )
-    return report
+        largest, first_bad, tries = search.largest_stable, search.first_unstable, search.tried
+        advice = advisor.recommended_time_step(make_simulation())
+        report = {
+            "kind": "timestep",
+            "scene_dt": plan.dt,
+            "duration": duration,
+            "largest_stable": largest,
+            "first_unstable": first_bad,
+            "recommended": search.recommended,
+            "tried": [{"dt": d, "stable": ok, "message": m} for d, ok, m in tries],
+            "advisor": {
+                "dt_min": advice.dt_min,
+                "dt_max": advice.dt_max,
+                "critical_step": advice.critical_step,
+                "contact_time": advice.contact_time,
+            },
+            "units": dict.fromkeys(  # every number above is a time
+                ("scene_dt", "duration", "largest_stable", "first_unstable", "recommended", "tried.dt", "advisor"), "s"
+            ),
+        }
+        write_json(os.path.join(out_dir, "study.json"), report)
+        if largest is None:
+            log.error(
+                "no stable step found in %d tries down to %.4g s: the scene is unstable at any step tried; check "
+                "`cosim advise` (stiffness, overlaps)",
+                len(tries),
+                tries[-1][0],
+            )
+        else:
+            log.info(
+                "largest stable step %s s, first unstable %s s, recommended %s s; the advisor says %.4g .. %.4g s; "
+                "the scene uses %.4g s",
+                _s(largest),
+                _s(first_bad),
+                _s(report["recommended"]),
+                advice.dt_min,
+                advice.dt_max,
+                plan.dt,
+            )
+        return report
 
 
 def _s(value) -> str:

@@ -2,13 +2,14 @@
 
 from __future__ import annotations
 
+import errno
 import os
 import tempfile
 from contextlib import contextmanager
 
 
 @contextmanager
-def atomic_path(path, suffix: str = ".tmp"):
+def atomic_path(path, suffix: str = ".tmp", replace: bool = True):
     """Yield a temporary path beside `path` to write to; on success it is fsynced and renamed
     onto `path` (os.replace, atomic), on any error it is removed and `path` is left untouched.
 
@@ -18,11 +19,14 @@ def atomic_path(path, suffix: str = ".tmp"):
     OSError is raised naming `path`, never the temporary file (the user knows only `path`), also one
     that names no file (e.g. a full disk during a write).
 
+    replace False: a file that appeared at `path` meanwhile (another process's: its name was free when the
+    caller looked, an hour of work before) is left as it is, and what was made is kept beside it
+    (place_new: FileExistsError naming both).
+
     The file gets the permissions of a normally created one (mkstemp's 0600 would hide it).
     `path` a symbolic link: the file it points to is written (beside that file) and the link stays, as
     open(path, "w") does (replacing the link left its file stale and the link gone).
     """
-    import errno
 
     path = os.fspath(path)
     if os.path.isdir(path):
@@ -54,7 +58,10 @@ def atomic_path(path, suffix: str = ".tmp"):
             os.fsync(descriptor)
         finally:
             os.close(descriptor)
-        os.replace(temporary, written)
+        if replace:
+            os.replace(temporary, written)
+        else:
+            place_new(temporary, written)
     except BaseException as error:
         if temporary is not None and os.path.lexists(temporary):
             os.remove(temporary)
@@ -62,6 +69,47 @@ def atomic_path(path, suffix: str = ".tmp"):
         if isinstance(error, OSError) and (not error.filename or error.filename == temporary):
             raise with_path(error, path, replace=temporary) from error  # a full disk while writing: name the file
         raise
+
+
+NO_HARD_LINKS = {errno.EPERM, errno.EOPNOTSUPP, errno.ENOTSUP, errno.ENOSYS, errno.EXDEV, errno.EMLINK}
+"""The errors of os.link on a file system without hard links (FAT, some network mounts)."""
+
+
+def place_new(temporary: str, path: str) -> None:
+    """Move the finished file `temporary` to `path` only if no file is there (os.link refuses an existing
+    name, atomically; a file system without hard links is looked at first, then written); else keep it
+    as PATH-STEM.new[-k]SUFFIX beside it, placed the same way, and raise FileExistsError naming `path` and
+    the kept file."""
+    if _placed(temporary, path):
+        return
+    stem, extension = os.path.splitext(path)
+    for k in range(1, 10**6):
+        kept = f"{stem}.new{'' if k == 1 else f'-{k}'}{extension}"
+        if _placed(temporary, kept):
+            raise FileExistsError(
+                errno.EEXIST,
+                "appeared while it was being made (another process wrote it) and was left as it is; what was "
+                f"made is {kept}",
+                path,
+            )
+    raise FileExistsError(errno.EEXIST, f"appeared while it was being made; what was made is {temporary}", path)
+
+
+def _placed(temporary: str, path: str) -> bool:
+    """Whether `temporary` now is `path` (False, `temporary` kept, when a file is there already)."""
+    try:
+        os.link(temporary, path)
+    except FileExistsError:
+        return False
+    except OSError as error:
+        if error.errno not in NO_HARD_LINKS:
+            raise
+        if os.path.lexists(path):  # no hard links here: look, then move (a process could still come between)
+            return False
+        os.replace(temporary, path)
+        return True
+    os.remove(temporary)
+    return True
 
 
 def make_folders(folder) -> list[str]:

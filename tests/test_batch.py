@@ -292,7 +292,7 @@ def test_a_batch_refuses_missing_plans_unequal_counts_and_taken_folders_before_a
     busy = tmp_path / "busy"
     busy.mkdir()
     with FileLock(str(busy / ".lock")):
-        with pytest.raises(FolderInUseError, match="is in use by another run"):
+        with pytest.raises(FolderInUseError, match="is in use by another process"):
             run_batched([plan, plan], [str(fresh), str(busy)])
     assert not fresh.exists(), "nothing was written for the run that would have started"
 

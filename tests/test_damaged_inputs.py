@@ -633,15 +633,15 @@ def test_a_resumed_runs_edited_scene_is_kept_aside_and_its_scene_written_back(co
     edited = (ran.encode() if edit.startswith(b"#") else b"") + edit
     (folder / "scene.toml").write_bytes(edited)
     capsys.readouterr()
-    assert main(["resume", str(folder), "--no-progress"]) == 0
+    assert main(["resume", str(folder), "--no-progress"]) == 6  # the tiny run: too short (under one grouser passage)
     assert "edited file kept as scene.edited.toml" in capsys.readouterr().err
     assert (folder / "scene.toml").read_text() == ran
     assert (folder / "scene.edited.toml").read_bytes() == edited
-    assert main(["resume", str(folder), "--no-progress"]) == 0  # nothing left to put back
+    assert main(["resume", str(folder), "--no-progress"]) == 6  # nothing left to put back
     assert "scene.toml" not in capsys.readouterr().err
     assert (folder / "scene.edited.toml").read_bytes() == edited
     (folder / "scene.toml").write_bytes(b"second = 2\n")  # a second edit is kept beside the first
-    assert main(["resume", str(folder), "--no-progress"]) == 0
+    assert main(["resume", str(folder), "--no-progress"]) == 6  # the tiny run: too short (under one grouser passage)
     assert "kept as scene.edited.2.toml" in capsys.readouterr().err
     assert (folder / "scene.edited.toml").read_bytes() == edited
     assert (folder / "scene.edited.2.toml").read_bytes() == b"second = 2\n"
@@ -659,7 +659,7 @@ def test_an_edited_scene_is_kept_on_a_file_system_without_hard_links(complete, t
         raise PermissionError(1, "Operation not permitted", source)
 
     monkeypatch.setattr(os, "link", no_links)
-    assert main(["resume", str(folder), "--no-progress"]) == 0
+    assert main(["resume", str(folder), "--no-progress"]) == 6  # the tiny run: too short (under one grouser passage)
     assert "kept as scene.edited.toml" in capsys.readouterr().err
     assert (folder / "scene.toml").read_text() == ran
     assert (folder / "scene.edited.toml").read_text() == ran + "# edited\n"
@@ -897,7 +897,7 @@ def test_resume_of_a_results_file_with_changed_data_bytes_is_refused(interrupted
     assert "results.h5: the results file is damaged" in resume_refused(folder, capsys)
 
     intact = copy(interrupted, tmp_path, "intact")
-    assert main(["resume", str(intact), "--no-progress"]) == 0
+    assert main(["resume", str(intact), "--no-progress"]) == 6  # too short: the tiny run passes under one grouser
     with h5py.File(intact / "results.h5", "r") as f:
         assert f["wheels/slip"].fletcher32 and f["particles/position"].fletcher32
 
@@ -1013,3 +1013,49 @@ def test_a_picture_name_without_its_format_is_refused_before_anything_is_written
     save_figure(matplotlib.figure.Figure(), str(tmp_path / "picture.PNG"), 20)
     assert os.listdir(tmp_path) == ["picture.PNG"]
     assert (tmp_path / "picture.PNG").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+@pytest.mark.parametrize("hard_links", [True, False], ids=["hard links", "no hard links"])
+def test_an_output_that_appeared_while_it_was_made_is_kept_and_so_is_the_work(tmp_path, monkeypatch, hard_links):
+    """`calibrate-scm --out FILE` looks that FILE is free, runs its DEM tests (minutes to an hour), then
+    wrote FILE over whatever another process had put there meanwhile (a `cosim scale` twin: gone). Without
+    --overwrite the file that appeared is left as it is and the calibration kept beside it, both named
+    (soil.files.atomic_path(replace=False): os.link, or a look first where the file system has no hard
+    links); a free name is written as before."""
+    import errno
+
+    from soil.files import atomic_path
+
+    if not hard_links:
+
+        def no_links(source, target):
+            raise OSError(errno.EPERM, "Operation not permitted")
+
+        monkeypatch.setattr(os, "link", no_links)
+    target = tmp_path / "terrain.toml"
+    with pytest.raises(FileExistsError) as info:
+        with atomic_path(target, replace=False) as temporary:
+            Path(temporary).write_text("calibrated")
+            target.write_text("twin scene")  # another process, while the DEM tests ran
+    assert target.read_text() == "twin scene"
+    kept = tmp_path / "terrain.new.toml"
+    assert kept.read_text() == "calibrated" and str(kept) in str(info.value) and info.value.filename == str(target)
+    with pytest.raises(FileExistsError, match="terrain.new-2.toml"):  # a second time: the first kept file stays
+        with atomic_path(target, replace=False) as temporary:
+            Path(temporary).write_text("again")
+    assert sorted(os.listdir(tmp_path)) == ["terrain.new-2.toml", "terrain.new.toml", "terrain.toml"]
+    free = tmp_path / "free.toml"
+    with atomic_path(free, replace=False) as temporary:
+        Path(temporary).write_text("calibrated")
+    assert free.read_text() == "calibrated" and "free.toml" in os.listdir(tmp_path)
+    assert not [name for name in os.listdir(tmp_path) if name.startswith("tmp")]
+    # calibrate-scm's own writer, as it writes --out without --overwrite
+    from cosim.scm_calibration import read_calibration, write_calibration
+
+    shipped = Path(__file__).parent.parent / "examples" / "terrain" / "phobos_regolith_scm_beds.toml"
+    with pytest.raises(FileExistsError, match="terrain.new-3.toml"):
+        write_calibration(str(target), read_calibration(str(shipped)), replace=False)
+    assert target.read_text() == "twin scene"
+    assert (
+        read_calibration(str(tmp_path / "terrain.new-3.toml")).parameters == read_calibration(str(shipped)).parameters
+    )

@@ -429,3 +429,79 @@ def test_a_rovers_displacement_and_energy_per_metre():
     assert out["energy_per_metre"] == pytest.approx(4 * 10.0 * 20.0 / 1.2)
     assert _rover_summary(*_rover([0.0, 0.0, 0.0], 0.0, power=-5.0))["energy_per_metre"] == -math.inf
     assert math.isnan(_rover_summary(*_rover([0.0, 0.0, 0.0], 0.0))["energy_per_metre"])
+
+
+def test_a_window_shorter_than_one_grouser_passage_is_too_short():
+    """A mean over part of a grouser's passage depends on where in it the window starts (a 1 s SCM run
+    printed DP/W 0.25 'steady' where the wheel settles at 0.37, its rim having turned a fifth of a grouser
+    pitch over the window). A grousered wheel's window must pass one grouser at least: the rim's turn
+    over it (0.25 rad/s here) times the grouser count over 2 pi; a smooth wheel has nothing periodic."""
+    s = _series()
+    smooth = metrics.summarize(s, rim_radius=0.04, wheel_load=10.0)
+    assert smooth["steady_state"] == metrics.STEADY and "grouser_passages" not in smooth
+    turn = 0.25 * (smooth["window"][1] - smooth["window"][0] + 0.05)  # over the window's steps, its first too
+    enough = math.ceil(2 * math.pi / turn)  # the fewest grousers of which one passes over the window
+    grousered = metrics.summarize(s, rim_radius=0.04, wheel_load=10.0, grouser_count=enough)
+    assert grousered["steady_state"] == metrics.STEADY
+    assert grousered["grouser_passages"] == pytest.approx(turn * enough / (2 * math.pi))
+    assert 1 <= grousered["grouser_passages"] < 1 + turn / (2 * math.pi)
+    short = metrics.summarize(s, rim_radius=0.04, wheel_load=10.0, grouser_count=enough - 1)
+    assert short["steady_state"] == metrics.TOO_SHORT and short["grouser_passages"] < 1
+    assert short["slip"] == pytest.approx(grousered["slip"])  # the numbers stay, labelled
+    # dp_over_w carries its error bar: the pull's over the load
+    assert grousered["dp_over_w_sem"] == pytest.approx(grousered["drawbar_pull_sem"] / 10.0)
+
+
+def test_a_rising_wheel_is_still_rising_and_a_wheel_that_never_landed_has_its_deepest_sinkage():
+    """A wheel climbing out of a rut deeper than its steady one (a landing's) drifts upwards: it was
+    labelled 'still sinking'. A run without a landing (a wheel sinking on under its load) reports the
+    deepest its rim reached, which the calibration-depth check then judges."""
+    rising = _series()
+    rising["sinkage"][60:, 0] = np.linspace(0.03, 0.004, 400)
+    out = metrics.summarize(rising, rim_radius=0.04, wheel_load=10.0, grain_radius=0.002)
+    assert out["steady_state"] == metrics.RISING and out["sinkage_rate"] < 0
+    sinking = _series()
+    sinking["sinkage"][60:, 0] = np.linspace(0.004, 0.03, 400)
+    assert metrics.summarize(sinking, rim_radius=0.04, wheel_load=10.0, grain_radius=0.002)["steady_state"] == (
+        metrics.SINKING
+    )
+    deep = _series()
+    deep["sinkage"][:, 0] = np.linspace(0.0, 0.3, 460)
+    deep["sinkage"][5, 0] = np.nan
+    unlanded = metrics.summarize(deep, rim_radius=0.04, wheel_load=10.0, landed=False)
+    assert unlanded["steady_state"] == metrics.NO_LANDING and unlanded["deepest_sinkage"] == pytest.approx(0.3)
+
+
+def test_a_rover_window_shorter_than_one_grouser_passage_is_too_short():
+    """As for a wheel, on the fewest passages among a rover's grousered wheels (the rims turn 0.05 rad/s
+    here); smooth wheels are not counted; its net traction over its weight carries its error bar."""
+    series, radii = _rover([0.003, 0.0, 0.0], 0.05)
+    smooth = _rover_summary(series, radii)
+    assert smooth["steady_state"] == metrics.STEADY and "grouser_passages" not in smooth
+    turn = 0.05 * (smooth["window"][1] - smooth["window"][0] + 0.05)  # over the window's steps, its first too
+    enough = math.ceil(2 * math.pi / turn)
+    assert enough > 2
+    grousered = _rover_summary(series, radii, grouser_counts=[0, enough, enough + 3, 0])
+    assert grousered["steady_state"] == metrics.STEADY
+    assert grousered["grouser_passages"] == pytest.approx(turn * enough / (2 * math.pi))
+    short = _rover_summary(series, radii, grouser_counts=[0, enough - 1, enough + 3, 0])
+    assert short["steady_state"] == metrics.TOO_SHORT and short["grouser_passages"] < 1
+    braked, radii = _rover([0.003, 0.0, 0.0], [0.05, 0.0, 0.05, 0.05])  # a grousered wheel held still
+    held = _rover_summary(braked, radii, grouser_counts=[enough, enough, enough, enough])
+    assert held["grouser_passages"] == pytest.approx(turn * enough / (2 * math.pi)), held
+    with pytest.raises(ValueError, match="one per wheel"):
+        _rover_summary(series, radii, grouser_counts=[enough])
+    assert grousered["net_traction_over_weight_sem"] == pytest.approx(grousered["net_traction_sem"] / 200.0)
+    assert grousered["dp_over_w_sem"] == grousered["net_traction_over_weight_sem"]
+    # one wheel climbs 1.5 mm out of its landing rut while the others settle 0.5 mm (under half the 1 mm grain
+    # radius: steady), the mean flat
+    rising = 0.01 + 1e-4 * np.random.default_rng(4).standard_normal((440, 4))
+    rising[40:, 2] -= np.linspace(0.0, 0.0015, 400)
+    rising[40:, [0, 1, 3]] += np.linspace(0.0, 0.0005, 400)[:, None]
+    assert _rover_summary(*_rover([0.06, 0.0, 0.0], 1.0, sinkage=rising))["steady_state"] == metrics.RISING
+    rising[40:, 0] += np.linspace(0.0, 0.0015, 400)  # and another digs in
+    rising[40:, 1] -= np.linspace(0.0, 0.0015, 400)  # (the mean flat)
+    assert _rover_summary(*_rover([0.06, 0.0, 0.0], 1.0, sinkage=rising))["steady_state"] == metrics.SINKING
+    landing = _rover_summary(*_rover([0.06, 0.0, 0.0], 1.0, sinkage=rising), landed=False)
+    assert landing["steady_state"] == metrics.NO_LANDING
+    assert landing["wheel_deepest_sinkage"] == pytest.approx(np.max(rising, axis=0).tolist())

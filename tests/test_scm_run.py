@@ -461,3 +461,24 @@ def test_an_scm_soil_names_a_step_a_rim_or_a_wheel_it_cannot_take():
             ScmSoil(terrain, time_step, rims)
     with pytest.raises(ArgumentError, match=r"wheel must be in \[0, 1\), got 5"):
         ScmSoil(terrain, 1e-3, [0.05]).highest_point_under(5, (0.0, 0.0, 0.05))
+
+
+def test_a_wheel_sinking_past_its_calibration_without_a_landing_is_out_of_range(tmp_path):
+    """The main job's SCM wheel at 10 x its load (3 kg) sinks on past its 30 mm radius and never comes to
+    rest: no landing, so no window and no measured sinkage, and the run said 'valid' (the calibration-depth
+    check waits for the run's sinkage, the slip check of a free wheel for its slip). It is judged on the
+    deepest its rim reached (the results' own sinkage series), beyond the 16.5 mm the calibration's DEM
+    tests reached, and the slip check it could not make is named 'not judged'."""
+    from pathlib import Path
+
+    scene = Path(__file__).parent.parent / "examples" / "phobos_single_wheel_scm.toml"
+    out = tmp_path / "heavy"
+    result = run_scene(str(scene), str(out), overrides=["testbed.mass=3.0", 'testbed.mode="free"'])
+    summary = result.summary
+    assert summary["steady_state"] == "no landing"
+    deepest = float(np.nanmax(read_series(out / "results.h5")["sinkage"][:, 0]))
+    assert summary["deepest_sinkage"] == pytest.approx(deepest) and deepest > 0.0165
+    depth = next(f for f in summary["findings"] if f["check"] == "scm_calibration_depth")
+    assert not depth["ok"] and "deepest rim sinkage (no landing)" in depth["message"], depth
+    assert summary["not_judged"] == ["scm_slip"]
+    assert summary["validity"].startswith("out of range: scm_calibration_depth; not judged: scm_slip")

@@ -423,8 +423,8 @@ def test_a_timestep_search_that_finds_no_stable_step_ends_with_a_clear_failure(s
 def test_a_slip_study_is_tabulated_from_the_runs_it_holds(tmp_path):
     """A slip study stopped before its end (or run in parts): `slip_study_from_runs` tabulates the
     runs two folders hold, steady ones only, with the Student-t interval of their mean; a running
-    run (no summary yet) and an unsteady one are counted but not averaged (include_sinking: the
-    still-sinking one is); the output folder may not hold the runs it reads."""
+    run (no summary yet) and unsteady ones are counted but not averaged (include_sinking: the
+    still-sinking and the still-rising one are); the output folder may not hold the runs it reads."""
     from scipy import stats
 
     from cosim.study import slip_study_from_runs
@@ -444,6 +444,11 @@ def test_a_slip_study_is_tabulated_from_the_runs_it_holds(tmp_path):
     (unsteady / "scene.toml").write_text(text)
     summary = {"steady_state": "still sinking", "drawbar_pull": 5.0, "slip": 0.2}
     (unsteady / "run.json").write_text(json.dumps({"status": "unsteady", "summary": summary}))
+    rising = tmp_path / "b" / "slip_+0.200" / "replica_002"  # its sinkage drifts upwards: averaged the same way
+    rising.mkdir()
+    (rising / "scene.toml").write_text(text)
+    summary = {"steady_state": "still rising", "drawbar_pull": 7.0, "slip": 0.2}
+    (rising / "run.json").write_text(json.dumps({"status": "unsteady", "summary": summary}))
     running = tmp_path / "b" / "slip_+0.400" / "replica_000"
     running.mkdir(parents=True)
     (running / "scene.toml").write_text(text)
@@ -451,7 +456,7 @@ def test_a_slip_study_is_tabulated_from_the_runs_it_holds(tmp_path):
 
     report = slip_study_from_runs([tmp_path / "a", tmp_path / "b"], str(tmp_path / "table"), plot=False)
     row = {r["slip_set"]: r for r in report["rows"]}
-    assert row[0.2]["replicas"] == 4 and row[0.2]["steady"] == 3 and row[0.4]["steady"] == 0
+    assert row[0.2]["replicas"] == 5 and row[0.2]["steady"] == 3 and row[0.4]["steady"] == 0
     values = np.array(list(pulls.values()))
     assert row[0.2]["drawbar_pull_mean"] == pytest.approx(values.mean(), rel=1e-12)
     interval = stats.t.ppf(0.975, 2) * values.std(ddof=1) / np.sqrt(3)
@@ -460,14 +465,14 @@ def test_a_slip_study_is_tabulated_from_the_runs_it_holds(tmp_path):
     # --include-sinking: the run whose traction is steady and sinkage drifts is averaged too
     sinking = slip_study_from_runs([tmp_path / "a", tmp_path / "b"], str(tmp_path / "t2"), include_sinking=True)
     row = {r["slip_set"]: r for r in sinking["rows"]}
-    assert row[0.2]["steady"] == 3 and row[0.2]["averaged"] == 4
-    assert row[0.2]["drawbar_pull_mean"] == pytest.approx((values.sum() + 5.0) / 4, rel=1e-12)
+    assert row[0.2]["steady"] == 3 and row[0.2]["averaged"] == 5
+    assert row[0.2]["drawbar_pull_mean"] == pytest.approx((values.sum() + 5.0 + 7.0) / 5, rel=1e-12)
     with pytest.raises(ArgumentError, match="holds the runs"):
         slip_study_from_runs([tmp_path / "a"], str(tmp_path))
     # the CSV says over how many runs each mean is (steady 3, averaged 4), and counts carry their unit
     header, line = (tmp_path / "t2" / "study.csv").read_text().splitlines()[:2]
     assert header.startswith("slip_set [1],replicas [count],steady [count],averaged [count],"), header
-    assert line.startswith("0.2,4,3,4,"), line
+    assert line.startswith("0.2,5,3,5,"), line
     # one slip point (0.4 has no steady run): no crossing, and none extrapolated
     assert sinking["zero_pull_slip"] is None and "does not cross zero" in sinking["zero_pull_slip_note"]
 
@@ -611,37 +616,78 @@ def test_overwrite_empties_only_a_folder_a_study_or_a_run_wrote(scene_path, tmp_
     lone.mkdir()
     shutil.copy(scene_path, lone / "scene.toml")
     with pytest.raises(OutputExistsError, match="no study marked"):
-        prepare_study(str(lone), overwrite=True)
+        with prepare_study(str(lone), overwrite=True):
+            pass
     assert os.listdir(lone) == ["scene.toml"]
     unmarked = tmp_path / "unmarked"  # a study written before the mark: refused, saying so
     (unmarked / "replica_000").mkdir(parents=True)
     (unmarked / "ensemble.json").write_text("{}")
     with pytest.raises(OutputExistsError, match="one written before 2026-12-06 has none"):
-        prepare_study(str(unmarked), overwrite=True)
+        with prepare_study(str(unmarked), overwrite=True):
+            pass
 
     study = tmp_path / "study"  # a study's folder: emptied, its settled bed kept
-    prepare_study(str(study), overwrite=False)
+    with prepare_study(str(study), overwrite=False):
+        pass
     (study / "r000").mkdir()
     (study / "study.csv").write_text("old")
     (study / "bed.h5").write_text("bed")
-    prepare_study(str(study), overwrite=True)
-    assert sorted(os.listdir(study)) == [STUDY_MARK, "bed.h5"]
+    with prepare_study(str(study), overwrite=True):
+        pass
+    assert sorted(os.listdir(study)) == sorted([".lock", STUDY_MARK, "bed.h5"])
 
     run = tmp_path / "run"  # a single run's folder is replaced, as `cosim run --overwrite` replaces it
     run.mkdir()
     for name in ("results.h5", "run.json", "scene.toml", "bed_diverged.npz"):
         (run / name).write_text("old")
-    prepare_study(str(run), overwrite=True)
-    assert sorted(os.listdir(run)) == [STUDY_MARK, "bed_diverged.npz"]  # a bed's last good state is kept
+    with prepare_study(str(run), overwrite=True):
+        pass
+    assert sorted(os.listdir(run)) == sorted(
+        [".lock", STUDY_MARK, "bed_diverged.npz"]
+    )  # a bed's last good state is kept
+
+
+def test_a_study_folder_in_use_is_refused_by_a_second_ensemble_or_lab_test(scene_path, tmp_path, capsys):
+    """An ensemble's folder was not locked: a second `--replicas ... --overwrite` (or a lab test) on it while
+    the first still ran emptied it under the first (its replicas' results gone, their locks too), and two
+    lab tests on one folder left one's results under the other's scene.toml. A study, sweep, set of
+    replicas or lab test now holds its folder's lock while it runs: a second one is refused (exit 3),
+    nothing touched."""
+    from cosim.cli import main
+    from cosim.study import prepare_study
+
+    study = tmp_path / "study"
+    with prepare_study(str(study), overwrite=False):
+        (study / "replica_000").mkdir()
+        (study / "replica_000" / "results.h5").write_text("being written")
+        for command in (
+            ["run", scene_path, "--replicas", "2", "--serial", "--out", str(study), "--overwrite", "--no-progress"],
+            [
+                "lab",
+                "plate",
+                os.path.join(os.path.dirname(__file__), "..", "examples", "phobos_lab.toml"),
+                "--serial",
+                "--out",
+                str(study),
+                "--overwrite",
+            ],
+        ):
+            assert main(command) == 3, command
+            err = capsys.readouterr().err
+            assert "is in use by another process" in err and str(study) in err, err
+            assert (study / "replica_000" / "results.h5").read_text() == "being written"
+    with prepare_study(str(study), overwrite=True):  # released at the end: a later study empties it
+        assert not (study / "replica_000").exists()
 
 
 # ------------------------------------------------------------------------------------
 # the validity of the runs behind each row, point and ensemble
 
 SCM_EXAMPLE = os.path.join(os.path.dirname(__file__), "..", "examples", "phobos_single_wheel_scm.toml")
-FINE_SCM = ["bed.radius_mean=1.0e-3", "run.duration=4.0"]
-"""The SCM main job on grains half as large (its sinkage is then over SCM's 3 grain diameters) and
-driven 4 s: at slip 0.3 a valid scene, at slip 0.8 over SCM's slip limit 0.6 (scm_slip)."""
+FINE_SCM = ["bed.radius_mean=1.0e-3"]
+"""The SCM main job on grains half as large (its sinkage is then over SCM's 3 grain diameters), driven
+its 14 s (2.5 grouser passages over the window; 4 s were too short): at slip 0.3 a valid scene, at slip
+0.8 over SCM's slip limit 0.6 (scm_slip)."""
 
 
 def _run_checks(folder) -> list[str] | None:
@@ -803,7 +849,7 @@ def test_replicas_and_a_precision_study_on_a_terrain_without_checks_say_not_chec
 
     scene = write_tiny(tmp_path, '\n[terrain]\nmodel = "analytic"\nstiffness = 500.0\n')
     out = tmp_path / "replicas"
-    assert main(["run", scene, "--replicas", "2", "--serial", "--out", str(out)]) in (0, 4)
+    assert main(["run", scene, "--replicas", "2", "--serial", "--out", str(out)]) in (0, 4, 6)
     for replica in ("replica_000", "replica_001"):
         assert json.loads((out / replica / "run.json").read_text())["summary"]["validity"] == NOT_CHECKED
     expected = NOT_CHECKED

@@ -247,9 +247,11 @@ def calibrate(
     ends = [plan.with_changes(_overrides([p], [value])) for p in parameters for value in (p.low, p.high)]
     for each in [plan, *ends]:
         check_geometry(each, tests)
-    common.prepare_folder(plan, out_dir, overwrite, executor, scheduler)
-    with Executor(executor, scheduler, workers) as cluster:  # one cluster for every evaluation
-        return _calibrate(plan, out_dir, targets, parameters, tolerances, max_evaluations, tests, {"executor": cluster})
+    with common.prepare_folder(plan, out_dir, overwrite, executor, scheduler):
+        with Executor(executor, scheduler, workers) as cluster:  # one cluster for every evaluation
+            return _calibrate(
+                plan, out_dir, targets, parameters, tolerances, max_evaluations, tests, {"executor": cluster}
+            )
 
 
 def _calibrate(

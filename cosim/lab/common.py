@@ -3,6 +3,7 @@ cosim.study.Executor, and the report files (CSV with units, summary JSON, figure
 
 from __future__ import annotations
 
+import contextlib
 import csv
 import io
 import logging
@@ -10,7 +11,7 @@ import math
 import os
 import time
 import traceback
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
 from typing import Any
 
 import numpy as np
@@ -273,15 +274,18 @@ def statistics(values) -> dict:
 # -- report files -----------------------------------------------------------------------------
 
 
+@contextlib.contextmanager
 def prepare_folder(
     plan: LabPlan, out_dir: str, overwrite: bool, executor: str | Executor = "serial", scheduler: str | None = None
-) -> None:
-    """Create the output folder (a non-empty one only with overwrite) and write the scene as run, once the
-    tasks can run where asked (an executor kind without dask.distributed installed is refused first)."""
+) -> Iterator[None]:
+    """Hold the output folder while the test runs in it (`with prepare_folder(...)`: cosim.study.prepare_study,
+    its lock and its rules for a non-empty folder) and write the scene as run, once the tasks can run where
+    asked (an executor kind without dask.distributed installed is refused first)."""
     if not isinstance(executor, Executor):
         check_executor(executor, scheduler)
-    prepare_study(out_dir, overwrite)
-    atomic_write_text(os.path.join(out_dir, SCENE_FILE), plan.scene.to_toml())  # a cut one would read as whole
+    with prepare_study(out_dir, overwrite):
+        atomic_write_text(os.path.join(out_dir, SCENE_FILE), plan.scene.to_toml())  # a cut one would read as whole
+        yield
 
 
 def write_csv(path: str, columns: Sequence[tuple[str, str, Any]]) -> None:

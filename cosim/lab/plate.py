@@ -503,102 +503,103 @@ def plate_test(
     """Settle lab.replicas beds, push every plate into each (through cosim.study.Executor), fit
     Bekker and write the report into out_dir (plate.csv, summary.json, plate.png)."""
     check(plan)
-    common.prepare_folder(plan, out_dir, overwrite, executor, scheduler)
-    sides = widths(plan)
-    replicas = plan.scene.lab.replicas if plan.scene.bed.bed_file is None else 1
-    speed = plate_speed(plan)
-    log.info(
-        "plate: widths %s m at %.3g m/s into a %.3g x %.3g m bed; %d replica(s)",
-        ", ".join(f"{b:.3g}" for b in sides),
-        speed,
-        plan.scene.bed.length,
-        plan.scene.bed.width,
-        replicas,
-    )
-    ready, done, failed, stopped = press_plates(plan, out_dir, sides, replicas, executor, scheduler, workers)
-    fit_from = plan.scene.plate.fit_from if plan.scene.plate.fit_from is not None else 0.25 * plan.diameter
-    fit = bekker_fit([(r["width"], r["sinkage"], r["pressure"]) for r in done], fit_from)
-    largest = max(float(np.max(r["pressure"])) for r in done)
-    curves = [(r["width"], r["sinkage"], r["pressure"]) for r in done]
-    numbers = quasi_static_numbers(plan, speed, curves, largest, fit, fit_from)
-    surface = float(np.mean([bed["surface"] for bed in ready]))
-    notes = [f"bed {bed['replica']}: not settled within the time limit" for bed in ready if not bed["settled"]]
-    side = min(plan.scene.bed.length, plan.scene.bed.width)
-    notes += [
-        f"plate {b:.3g} m: the walls are {(side - b) / 2:.3g} m from its edge, less than its width; the walls "
-        "may carry part of the load (a wider bed)"
-        for b in sides
-        if (side - b) / 2 < b
-    ]
-    notes += [  # measured: plates of 3 and 4 diameters fit with R^2 0.29-0.76 (tests/test_lab.py)
-        f"plate {b:.3g} m is {b / plan.diameter:.3g} grain diameters wide, under {PLATE_GRAINS_ACROSS}: its "
-        "curve jumps as single grains under it give way, and the fit follows their trend (wider plates, or "
-        "replicas, average over more grains)"
-        for b in sides
-        if b < PLATE_GRAINS_ACROSS * plan.diameter
-    ]
-    notes += common.interrupted_notes(stopped, len(done), replicas * len(sides), "plate tests")
-    if surface - max_sinkage(plan, surface) < 3 * plan.diameter:
-        notes.append("the plate ends less than three grain diameters above the floor: the floor stiffens the curve")
-    summary = {
-        "test": "plate",
-        "name": plan.name,
-        "gravity": plan.g,
-        "units": {  # the other numbers: counts, or a unit in their key
-            "gravity": "m/s^2",
-            **{f"bekker.{k}": u for k, u in BEKKER_UNITS.items()},
-            "beds.surface": "m",
-            "beds.settle_time": "s",
-        },
-        "soil": common.soil_summary(plan),
-        "bekker": fit,
-        "curves": [
-            {
-                "replica": r["replica"],
-                "width_m": r["width"],
-                "max_sinkage_m": float(r["sinkage"].max()),
-                "max_pressure_pa": float(r["pressure"].max()),
-                "steps": r["steps"],
-            }
+    with common.prepare_folder(plan, out_dir, overwrite, executor, scheduler):
+        sides = widths(plan)
+        replicas = plan.scene.lab.replicas if plan.scene.bed.bed_file is None else 1
+        speed = plate_speed(plan)
+        log.info(
+            "plate: widths %s m at %.3g m/s into a %.3g x %.3g m bed; %d replica(s)",
+            ", ".join(f"{b:.3g}" for b in sides),
+            speed,
+            plan.scene.bed.length,
+            plan.scene.bed.width,
+            replicas,
+        )
+        ready, done, failed, stopped = press_plates(plan, out_dir, sides, replicas, executor, scheduler, workers)
+        fit_from = plan.scene.plate.fit_from if plan.scene.plate.fit_from is not None else 0.25 * plan.diameter
+        fit = bekker_fit([(r["width"], r["sinkage"], r["pressure"]) for r in done], fit_from)
+        largest = max(float(np.max(r["pressure"])) for r in done)
+        curves = [(r["width"], r["sinkage"], r["pressure"]) for r in done]
+        numbers = quasi_static_numbers(plan, speed, curves, largest, fit, fit_from)
+        surface = float(np.mean([bed["surface"] for bed in ready]))
+        notes = [f"bed {bed['replica']}: not settled within the time limit" for bed in ready if not bed["settled"]]
+        side = min(plan.scene.bed.length, plan.scene.bed.width)
+        notes += [
+            f"plate {b:.3g} m: the walls are {(side - b) / 2:.3g} m from its edge, less than its width; the walls "
+            "may carry part of the load (a wider bed)"
+            for b in sides
+            if (side - b) / 2 < b
+        ]
+        notes += [  # measured: plates of 3 and 4 diameters fit with R^2 0.29-0.76 (tests/test_lab.py)
+            f"plate {b:.3g} m is {b / plan.diameter:.3g} grain diameters wide, under {PLATE_GRAINS_ACROSS}: its "
+            "curve jumps as single grains under it give way, and the fit follows their trend (wider plates, or "
+            "replicas, average over more grains)"
+            for b in sides
+            if b < PLATE_GRAINS_ACROSS * plan.diameter
+        ]
+        notes += common.interrupted_notes(stopped, len(done), replicas * len(sides), "plate tests")
+        if surface - max_sinkage(plan, surface) < 3 * plan.diameter:
+            notes.append("the plate ends less than three grain diameters above the floor: the floor stiffens the curve")
+        summary = {
+            "test": "plate",
+            "name": plan.name,
+            "gravity": plan.g,
+            "units": {  # the other numbers: counts, or a unit in their key
+                "gravity": "m/s^2",
+                **{f"bekker.{k}": u for k, u in BEKKER_UNITS.items()},
+                "beds.surface": "m",
+                "beds.settle_time": "s",
+            },
+            "soil": common.soil_summary(plan),
+            "bekker": fit,
+            "curves": [
+                {
+                    "replica": r["replica"],
+                    "width_m": r["width"],
+                    "max_sinkage_m": float(r["sinkage"].max()),
+                    "max_pressure_pa": float(r["pressure"].max()),
+                    "steps": r["steps"],
+                }
+                for r in done
+            ],
+            "beds": [{k: bed[k] for k in ("replica", "surface", "settled", "settle_time", "source")} for bed in ready],
+            "failed": [{"label": r.get("label"), "error": r.get("error")} for r in failed],
+            "geometry": {
+                "widths_m": list(sides),
+                "speed_m_s": speed,
+                "max_sinkage_m": max_sinkage(plan, surface),
+                "surface_m": surface,
+                "bed_length_m": plan.scene.bed.length,
+                "bed_width_m": plan.scene.bed.width,
+                "fit_from_m": fit_from,
+                "grain_diameter_m": plan.diameter,
+                "dt_s": plan.dt,
+            },
+            "quasi_static": numbers,
+            "notes": notes,
+        }
+        rows = [
+            (r["replica"], r["width"], t, z, p, f)
             for r in done
-        ],
-        "beds": [{k: bed[k] for k in ("replica", "surface", "settled", "settle_time", "source")} for bed in ready],
-        "failed": [{"label": r.get("label"), "error": r.get("error")} for r in failed],
-        "geometry": {
-            "widths_m": list(sides),
-            "speed_m_s": speed,
-            "max_sinkage_m": max_sinkage(plan, surface),
-            "surface_m": surface,
-            "bed_length_m": plan.scene.bed.length,
-            "bed_width_m": plan.scene.bed.width,
-            "fit_from_m": fit_from,
-            "grain_diameter_m": plan.diameter,
-            "dt_s": plan.dt,
-        },
-        "quasi_static": numbers,
-        "notes": notes,
-    }
-    rows = [
-        (r["replica"], r["width"], t, z, p, f)
-        for r in done
-        for t, z, p, f in zip(r["time"], r["sinkage"], r["pressure"], r["side_force"])
-    ]
-    names = [
-        ("replica", "1"),
-        ("plate_width", "m"),
-        ("time", "s"),
-        ("sinkage", "m"),
-        ("pressure", "Pa"),
-        ("side_force", "N"),
-    ]
-    common.write_csv(
-        os.path.join(out_dir, "plate.csv"), [(n, unit, [row[i] for row in rows]) for i, (n, unit) in enumerate(names)]
-    )
-    summary["figure"] = _figure(out_dir, done, fit, fit_from)
-    common.write_summary(out_dir, summary)
-    if stopped is not None:  # the finished tests' report is written: now stop as asked
-        raise stopped
-    return summary
+            for t, z, p, f in zip(r["time"], r["sinkage"], r["pressure"], r["side_force"])
+        ]
+        names = [
+            ("replica", "1"),
+            ("plate_width", "m"),
+            ("time", "s"),
+            ("sinkage", "m"),
+            ("pressure", "Pa"),
+            ("side_force", "N"),
+        ]
+        common.write_csv(
+            os.path.join(out_dir, "plate.csv"),
+            [(n, unit, [row[i] for row in rows]) for i, (n, unit) in enumerate(names)],
+        )
+        summary["figure"] = _figure(out_dir, done, fit, fit_from)
+        common.write_summary(out_dir, summary)
+        if stopped is not None:  # the finished tests' report is written: now stop as asked
+            raise stopped
+        return summary
 
 
 def _figure(out_dir: str, done: list[dict], fit: dict, fit_from: float) -> str | None:

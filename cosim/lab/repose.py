@@ -339,106 +339,108 @@ def repose_test(
     (repose.csv: the surface profiles; repose_grains.csv: the heaps' grains, to measure again;
     repose_history.csv; summary.json; repose.png) and return the summary."""
     geo = geometry(plan, 0, check_memory=True)  # a geometry that cannot work is refused before the folder is touched
-    common.prepare_folder(plan, out_dir, overwrite, executor, scheduler)
-    replicas = plan.scene.lab.replicas
-    log.info(
-        "repose: %d grains in a %.3g m tube on a %.3g m base, lifted at %.3g m/s; %d replica(s)",
-        len(geo.fill_radii),
-        geo.tube_width,
-        geo.base_width,
-        geo.lift_speed,
-        replicas,
-    )
-    results, stopped = common.map_until_stopped(
-        plan,
-        run_replica,
-        [{"replica": k} for k in range(replicas)],
-        [f"replica {k}" for k in range(replicas)],
-        executor,
-        scheduler,
-        workers,
-    )
-    done = common.successful(results, "repose")
-    angles = [r["angle"] for r in done]
-    numbers = quasi_static_numbers(plan, max(r["column_height"] for r in done), geo.lift_speed)
-    notes = _notes(plan, done) + common.interrupted_notes(stopped, len(results), replicas, "replicas")
-    summary = {
-        "test": "repose",
-        "name": plan.name,
-        "gravity": plan.g,
-        "units": {"gravity": "m/s^2"},  # the other numbers: counts, or a unit in their key
-        "soil": common.soil_summary(plan),
-        "repose_angle_deg": common.statistics(angles),
-        "repose_angle_profile_deg": common.statistics([r["angle_profile"] for r in done]),
-        "replicas": [
-            {
-                "replica": r["replica"],
-                "angle_deg": r["angle"],
-                "angle_sem_deg": r["angle_sem"],
-                "angle_profile_deg": r["angle_profile"],
-                "height_m": r["height"],
-                "toe_m": r["toe"],
-                "footprint_m": r["footprint"],
-                "grains": r["grains"],
-                "settled": r["settled"],
-                "lifted": r["lifted"],
-                "rested": r["rested"],
-                "settle_time_s": r["settle_time"],
-                "lift_time_s": r["lift_time"],
-                "rest_time_s": r["rest_time"],
-                "grains_at_walls": r["at_walls"],
-                "steps": r["steps"],
-            }
-            for r in done
-        ],
-        "failed": [{"label": r.get("label"), "error": r.get("error")} for r in results if not r.get("ok")],
-        "geometry": {
-            "tube_width_m": geo.tube_width,
-            "column_height_m": float(np.mean([r["column_height"] for r in done])),
-            "base": plan.scene.repose.base,
-            "base_width_m": geo.base_width,
-            "grains": len(geo.fill_radii),
-            "base_grains": len(geo.base_positions),
-            "lift_speed_m_s": geo.lift_speed,
-            "grain_diameter_m": plan.diameter,
-            "dt_s": plan.dt,
-        },
-        "quasi_static": numbers,
-        "notes": notes,
-    }
-    rows = [(r["replica"], c, p, f) for r in done for c, p, f in zip(r["radius"], r["profile"], r["filled"])]
-    common.write_csv(
-        os.path.join(out_dir, "repose.csv"),
-        [
-            ("replica", "1", [row[0] for row in rows]),
-            ("radius", "m", [row[1] for row in rows]),
-            ("surface_height", "m", [row[2] for row in rows]),
-            ("sectors_filled", "1", [row[3] for row in rows]),
-        ],
-    )
-    grains = [(r["replica"], *x, radius) for r in done for x, radius in zip(r["positions"], r["radii"])]
-    common.write_csv(
-        os.path.join(out_dir, "repose_grains.csv"),
-        [
-            (name, unit, [g[i] for g in grains])
-            for i, (name, unit) in enumerate((("replica", "1"), ("x", "m"), ("y", "m"), ("z", "m"), ("radius", "m")))
-        ],
-    )
-    history = [(r["replica"], *h) for r in done for h in r["history"]]
-    common.write_csv(
-        os.path.join(out_dir, "repose_history.csv"),
-        [
-            ("replica", "1", [h[0] for h in history]),
-            ("time", "s", [h[1] for h in history]),
-            ("translational_kinetic_energy", "J", [h[2] for h in history]),
-            ("tube_lift", "m", [h[3] for h in history]),
-        ],
-    )
-    summary["figure"] = _figure(out_dir, done, summary)
-    common.write_summary(out_dir, summary)
-    if stopped is not None:  # the finished replicas' report is written: now stop as asked
-        raise stopped
-    return summary
+    with common.prepare_folder(plan, out_dir, overwrite, executor, scheduler):
+        replicas = plan.scene.lab.replicas
+        log.info(
+            "repose: %d grains in a %.3g m tube on a %.3g m base, lifted at %.3g m/s; %d replica(s)",
+            len(geo.fill_radii),
+            geo.tube_width,
+            geo.base_width,
+            geo.lift_speed,
+            replicas,
+        )
+        results, stopped = common.map_until_stopped(
+            plan,
+            run_replica,
+            [{"replica": k} for k in range(replicas)],
+            [f"replica {k}" for k in range(replicas)],
+            executor,
+            scheduler,
+            workers,
+        )
+        done = common.successful(results, "repose")
+        angles = [r["angle"] for r in done]
+        numbers = quasi_static_numbers(plan, max(r["column_height"] for r in done), geo.lift_speed)
+        notes = _notes(plan, done) + common.interrupted_notes(stopped, len(results), replicas, "replicas")
+        summary = {
+            "test": "repose",
+            "name": plan.name,
+            "gravity": plan.g,
+            "units": {"gravity": "m/s^2"},  # the other numbers: counts, or a unit in their key
+            "soil": common.soil_summary(plan),
+            "repose_angle_deg": common.statistics(angles),
+            "repose_angle_profile_deg": common.statistics([r["angle_profile"] for r in done]),
+            "replicas": [
+                {
+                    "replica": r["replica"],
+                    "angle_deg": r["angle"],
+                    "angle_sem_deg": r["angle_sem"],
+                    "angle_profile_deg": r["angle_profile"],
+                    "height_m": r["height"],
+                    "toe_m": r["toe"],
+                    "footprint_m": r["footprint"],
+                    "grains": r["grains"],
+                    "settled": r["settled"],
+                    "lifted": r["lifted"],
+                    "rested": r["rested"],
+                    "settle_time_s": r["settle_time"],
+                    "lift_time_s": r["lift_time"],
+                    "rest_time_s": r["rest_time"],
+                    "grains_at_walls": r["at_walls"],
+                    "steps": r["steps"],
+                }
+                for r in done
+            ],
+            "failed": [{"label": r.get("label"), "error": r.get("error")} for r in results if not r.get("ok")],
+            "geometry": {
+                "tube_width_m": geo.tube_width,
+                "column_height_m": float(np.mean([r["column_height"] for r in done])),
+                "base": plan.scene.repose.base,
+                "base_width_m": geo.base_width,
+                "grains": len(geo.fill_radii),
+                "base_grains": len(geo.base_positions),
+                "lift_speed_m_s": geo.lift_speed,
+                "grain_diameter_m": plan.diameter,
+                "dt_s": plan.dt,
+            },
+            "quasi_static": numbers,
+            "notes": notes,
+        }
+        rows = [(r["replica"], c, p, f) for r in done for c, p, f in zip(r["radius"], r["profile"], r["filled"])]
+        common.write_csv(
+            os.path.join(out_dir, "repose.csv"),
+            [
+                ("replica", "1", [row[0] for row in rows]),
+                ("radius", "m", [row[1] for row in rows]),
+                ("surface_height", "m", [row[2] for row in rows]),
+                ("sectors_filled", "1", [row[3] for row in rows]),
+            ],
+        )
+        grains = [(r["replica"], *x, radius) for r in done for x, radius in zip(r["positions"], r["radii"])]
+        common.write_csv(
+            os.path.join(out_dir, "repose_grains.csv"),
+            [
+                (name, unit, [g[i] for g in grains])
+                for i, (name, unit) in enumerate(
+                    (("replica", "1"), ("x", "m"), ("y", "m"), ("z", "m"), ("radius", "m"))
+                )
+            ],
+        )
+        history = [(r["replica"], *h) for r in done for h in r["history"]]
+        common.write_csv(
+            os.path.join(out_dir, "repose_history.csv"),
+            [
+                ("replica", "1", [h[0] for h in history]),
+                ("time", "s", [h[1] for h in history]),
+                ("translational_kinetic_energy", "J", [h[2] for h in history]),
+                ("tube_lift", "m", [h[3] for h in history]),
+            ],
+        )
+        summary["figure"] = _figure(out_dir, done, summary)
+        common.write_summary(out_dir, summary)
+        if stopped is not None:  # the finished replicas' report is written: now stop as asked
+            raise stopped
+        return summary
 
 
 def _notes(plan: LabPlan, done: list[dict]) -> list[str]:

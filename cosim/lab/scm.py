@@ -258,154 +258,154 @@ def calibrate_scm(plan, out_dir: str, overwrite: bool = False, executor="serial"
     if len(sides) < 2:
         raise SceneError([f"plate.widths: k_c and k_phi need two or more plate widths, got {list(sides)}"])
     geometry = shear.box(plan, check_memory=True)  # every test's geometry is checked before the folder is touched
-    common.prepare_folder(plan, out_dir, overwrite, executor, scheduler)
-    replicas = plan.scene.lab.replicas if plan.scene.bed.bed_file is None else 1
-    ready, plates, _, stopped = plate.press_plates(
-        plan, out_dir, sides, replicas, executor, scheduler, workers, unload=True
-    )
-    if stopped is not None:  # a calibration needs every plate: no partial fit
-        raise stopped
-    fit_from = plan.scene.plate.fit_from if plan.scene.plate.fit_from is not None else 0.25 * plan.diameter
-    plate_fits, unloads = fit_plates(plates, fit_from)  # before the shear tests: a failed fit stops here
-
-    specimens_folder = os.path.join(out_dir, "specimens")
-    os.makedirs(specimens_folder, exist_ok=True)
-    paths = [os.path.join(specimens_folder, f"replica_{k}.h5") for k in range(plan.scene.lab.replicas)]
-    specimens = common.successful(
-        common.map_tasks(
-            plan,
-            shear.run_replica,
-            [{"replica": k, "stage": "specimen", "specimen": p} for k, p in enumerate(paths)],
-            [f"specimen {k}" for k in range(len(paths))],
-            executor,
-            scheduler,
-            workers,
-        ),
-        "shear specimen",
-    )
-    shear_jobs = [
-        {"replica": s["replica"], "stage": "shear", "specimen": s["path"], "stress": sigma, "top": s["top"]}
-        for s in specimens
-        for sigma in geometry.stresses
-    ]
-    sheared = common.successful(
-        common.map_tasks(
-            plan,
-            shear.run_replica,
-            shear_jobs,
-            [f"replica {j['replica']}, sigma {j['stress']:.4g} Pa" for j in shear_jobs],
-            executor,
-            scheduler,
-            workers,
-        ),
-        "shear",
-    )
-    fits = {**plate_fits, **fit_shear(sheared)}
-    parameters = {k: float(fits[k]) for k in SOIL_KEYS}
-    fit_errors = {k: float(fits.get(f"{k}_se", math.nan)) for k in SOIL_KEYS}
-    per_replica = replica_fits(plates, sheared, fit_from)
-    standard_errors = combine_errors(fit_errors, per_replica)
-
-    common.write_csv(
-        os.path.join(out_dir, "plate.csv"),
-        _columns(
-            [
-                ("replica", "1", [r["replica"] for r in plates for _ in r["sinkage"]]),
-                ("plate_width", "m", [r["width"] for r in plates for _ in r["sinkage"]]),
-                ("sinkage", "m", [z for r in plates for z in r["sinkage"]]),
-                ("pressure", "Pa", [p for r in plates for p in r["pressure"]]),
-            ]
-        ),
-    )
-    common.write_csv(
-        os.path.join(out_dir, "shear.csv"),
-        _columns(
-            [
-                ("replica", "1", [r["replica"] for r in sheared for _ in r["tau"]]),
-                ("normal_stress_nominal", "Pa", [r["stress"] for r in sheared for _ in r["tau"]]),
-                ("displacement", "m", [u for r in sheared for u in r["displacement"]]),
-                ("shear_stress", "Pa", [t for r in sheared for t in r["tau"]]),
-            ]
-        ),
-    )
-    scene = plan.scene
-    # the tests' own quasi-static numbers (as `cosim lab plate` and `lab shear` judge them): a scene on this
-    # calibration is told when they were out of range (cosim.advice.scm_check: scm_calibration_lab)
-    largest = max(float(np.max(r["pressure"])) for r in plates)
-    lab_checks = [
-        {"test": test, **{k: number[k] for k in ("name", "value", "limit", "ok")}}
-        for test, numbers in (
-            (
-                "plate",
-                plate.quasi_static_numbers(
-                    plan,
-                    plate.plate_speed(plan),
-                    [(r["width"], r["sinkage"], r["pressure"]) for r in plates],
-                    largest,
-                    {"k": math.nan, **plate_fits},
-                    fit_from,
-                ),
-            ),
-            ("shear", shear.quasi_static_numbers(plan, geometry)),
+    with common.prepare_folder(plan, out_dir, overwrite, executor, scheduler):
+        replicas = plan.scene.lab.replicas if plan.scene.bed.bed_file is None else 1
+        ready, plates, _, stopped = plate.press_plates(
+            plan, out_dir, sides, replicas, executor, scheduler, workers, unload=True
         )
-        for number in numbers
-    ]
-    source = {
-        "scene": plan.name,
-        "gravity_vector": [float(g) for g in plan.gravity],
-        # the other keys end in their unit (_m, _s, _pa) or are counts
-        "units": {
-            "gravity_vector": "m/s^2",
-            "replica_fits": SOIL_UNITS,
-            "standard_error_of_fit": SOIL_UNITS,
-            "lab_checks": {"value": "1", "limit": "1"},
-        },
-        "lab_checks": lab_checks,
-        "soil": common.soil_summary(plan),
-        "grain": {
-            "radius_mean_m": scene.bed.radius_mean,
-            "radius_spread": scene.bed.radius_spread,
-            "diameter_m": plan.diameter,
-        },
-        "dem": {"precision": plan.precision, "dt_s": plan.dt, "replicas": replicas},
-        # each bed's and specimen's own fit, and the pooled fit's own errors: [standard_error] is the
-        # larger of those and the replicas' scatter / sqrt(R) (combine_errors)
-        "replica_fits": per_replica,
-        "standard_error_of_fit": fit_errors,
-        "plate": {
-            "widths_m": list(sides),
-            "speed_m_s": plate.plate_speed(plan),
-            "max_sinkage_m": plate.max_sinkage(plan, float(np.mean([b["surface"] for b in ready]))),
-            "fit_from_m": fit_from,
-            "bed_m": [scene.bed.length, scene.bed.width, scene.bed.depth],
-            "surface_m": [b["surface"] for b in ready],
-            "steps": [r["steps"] for r in plates],
-            "bekker_r_squared": plate_fits.get("r_squared", math.nan),
-            "unloading_stiffness_pa_m": [u["elastic_stiffness"] for u in unloads],
-        },
-        "shear": {
-            "box_m": [geometry.length, geometry.width, geometry.height],
-            "grains": geometry.count,
-            "normal_stresses_pa": list(geometry.stresses),
-            "speed_m_s": geometry.speed,
-            "displacement_m": geometry.displacement,
-            "peak_sigma_pa": [r["peak_sigma"] for r in sheared],
-            "peak_tau_pa": [r["peak_tau"] for r in sheared],
-            "steps": [r["steps"] for r in sheared],
-        },
-    }
-    calibration = ScmCalibration(parameters, standard_errors, plan.g, source)
-    common.write_summary(
-        out_dir,
-        {
-            "test": "calibrate-scm",
-            "parameters": parameters,
-            "standard_errors": standard_errors,
-            **source,
-            "units": {**source["units"], "parameters": SOIL_UNITS, "standard_errors": SOIL_UNITS},
-        },
-    )
-    return calibration
+        if stopped is not None:  # a calibration needs every plate: no partial fit
+            raise stopped
+        fit_from = plan.scene.plate.fit_from if plan.scene.plate.fit_from is not None else 0.25 * plan.diameter
+        plate_fits, unloads = fit_plates(plates, fit_from)  # before the shear tests: a failed fit stops here
+
+        specimens_folder = os.path.join(out_dir, "specimens")
+        os.makedirs(specimens_folder, exist_ok=True)
+        paths = [os.path.join(specimens_folder, f"replica_{k}.h5") for k in range(plan.scene.lab.replicas)]
+        specimens = common.successful(
+            common.map_tasks(
+                plan,
+                shear.run_replica,
+                [{"replica": k, "stage": "specimen", "specimen": p} for k, p in enumerate(paths)],
+                [f"specimen {k}" for k in range(len(paths))],
+                executor,
+                scheduler,
+                workers,
+            ),
+            "shear specimen",
+        )
+        shear_jobs = [
+            {"replica": s["replica"], "stage": "shear", "specimen": s["path"], "stress": sigma, "top": s["top"]}
+            for s in specimens
+            for sigma in geometry.stresses
+        ]
+        sheared = common.successful(
+            common.map_tasks(
+                plan,
+                shear.run_replica,
+                shear_jobs,
+                [f"replica {j['replica']}, sigma {j['stress']:.4g} Pa" for j in shear_jobs],
+                executor,
+                scheduler,
+                workers,
+            ),
+            "shear",
+        )
+        fits = {**plate_fits, **fit_shear(sheared)}
+        parameters = {k: float(fits[k]) for k in SOIL_KEYS}
+        fit_errors = {k: float(fits.get(f"{k}_se", math.nan)) for k in SOIL_KEYS}
+        per_replica = replica_fits(plates, sheared, fit_from)
+        standard_errors = combine_errors(fit_errors, per_replica)
+
+        common.write_csv(
+            os.path.join(out_dir, "plate.csv"),
+            _columns(
+                [
+                    ("replica", "1", [r["replica"] for r in plates for _ in r["sinkage"]]),
+                    ("plate_width", "m", [r["width"] for r in plates for _ in r["sinkage"]]),
+                    ("sinkage", "m", [z for r in plates for z in r["sinkage"]]),
+                    ("pressure", "Pa", [p for r in plates for p in r["pressure"]]),
+                ]
+            ),
+        )
+        common.write_csv(
+            os.path.join(out_dir, "shear.csv"),
+            _columns(
+                [
+                    ("replica", "1", [r["replica"] for r in sheared for _ in r["tau"]]),
+                    ("normal_stress_nominal", "Pa", [r["stress"] for r in sheared for _ in r["tau"]]),
+                    ("displacement", "m", [u for r in sheared for u in r["displacement"]]),
+                    ("shear_stress", "Pa", [t for r in sheared for t in r["tau"]]),
+                ]
+            ),
+        )
+        scene = plan.scene
+        # the tests' own quasi-static numbers (as `cosim lab plate` and `lab shear` judge them): a scene on this
+        # calibration is told when they were out of range (cosim.advice.scm_check: scm_calibration_lab)
+        largest = max(float(np.max(r["pressure"])) for r in plates)
+        lab_checks = [
+            {"test": test, **{k: number[k] for k in ("name", "value", "limit", "ok")}}
+            for test, numbers in (
+                (
+                    "plate",
+                    plate.quasi_static_numbers(
+                        plan,
+                        plate.plate_speed(plan),
+                        [(r["width"], r["sinkage"], r["pressure"]) for r in plates],
+                        largest,
+                        {"k": math.nan, **plate_fits},
+                        fit_from,
+                    ),
+                ),
+                ("shear", shear.quasi_static_numbers(plan, geometry)),
+            )
+            for number in numbers
+        ]
+        source = {
+            "scene": plan.name,
+            "gravity_vector": [float(g) for g in plan.gravity],
+            # the other keys end in their unit (_m, _s, _pa) or are counts
+            "units": {
+                "gravity_vector": "m/s^2",
+                "replica_fits": SOIL_UNITS,
+                "standard_error_of_fit": SOIL_UNITS,
+                "lab_checks": {"value": "1", "limit": "1"},
+            },
+            "lab_checks": lab_checks,
+            "soil": common.soil_summary(plan),
+            "grain": {
+                "radius_mean_m": scene.bed.radius_mean,
+                "radius_spread": scene.bed.radius_spread,
+                "diameter_m": plan.diameter,
+            },
+            "dem": {"precision": plan.precision, "dt_s": plan.dt, "replicas": replicas},
+            # each bed's and specimen's own fit, and the pooled fit's own errors: [standard_error] is the
+            # larger of those and the replicas' scatter / sqrt(R) (combine_errors)
+            "replica_fits": per_replica,
+            "standard_error_of_fit": fit_errors,
+            "plate": {
+                "widths_m": list(sides),
+                "speed_m_s": plate.plate_speed(plan),
+                "max_sinkage_m": plate.max_sinkage(plan, float(np.mean([b["surface"] for b in ready]))),
+                "fit_from_m": fit_from,
+                "bed_m": [scene.bed.length, scene.bed.width, scene.bed.depth],
+                "surface_m": [b["surface"] for b in ready],
+                "steps": [r["steps"] for r in plates],
+                "bekker_r_squared": plate_fits.get("r_squared", math.nan),
+                "unloading_stiffness_pa_m": [u["elastic_stiffness"] for u in unloads],
+            },
+            "shear": {
+                "box_m": [geometry.length, geometry.width, geometry.height],
+                "grains": geometry.count,
+                "normal_stresses_pa": list(geometry.stresses),
+                "speed_m_s": geometry.speed,
+                "displacement_m": geometry.displacement,
+                "peak_sigma_pa": [r["peak_sigma"] for r in sheared],
+                "peak_tau_pa": [r["peak_tau"] for r in sheared],
+                "steps": [r["steps"] for r in sheared],
+            },
+        }
+        calibration = ScmCalibration(parameters, standard_errors, plan.g, source)
+        common.write_summary(
+            out_dir,
+            {
+                "test": "calibrate-scm",
+                "parameters": parameters,
+                "standard_errors": standard_errors,
+                **source,
+                "units": {**source["units"], "parameters": SOIL_UNITS, "standard_errors": SOIL_UNITS},
+            },
+        )
+        return calibration
 
 
 def _columns(columns):

@@ -202,8 +202,8 @@ def _study_shape_problem(study: dict) -> str | None:
 
 
 def _averaged_rows(study: dict) -> list[dict]:
-    """The rows of a slip study with at least one run averaged (steady, or still sinking in a table
-    made with --include-sinking)."""
+    """The rows of a slip study with at least one run averaged (steady, or still sinking or rising in a
+    table made with --include-sinking)."""
     return [row for row in study.get("rows", []) if int(row.get("averaged", row.get("steady", 0)))]
 
 

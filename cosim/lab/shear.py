@@ -364,140 +364,142 @@ def shear_test(
     cosim.study.Executor), fit Mohr-Coulomb and write the report into out_dir (shear.csv,
     shear_points.csv, summary.json, shear.png). Returns the summary."""
     geometry = box(plan, check_memory=True)  # a box that cannot work is refused before the folder is touched
-    common.prepare_folder(plan, out_dir, overwrite, executor, scheduler)
-    replicas = plan.scene.lab.replicas
-    log.info(
-        "shear: %d grains in a %.3g x %.3g m box, %.3g m high; normal stresses %s Pa; shear at %.3g m/s "
-        "to %.3g m; %d replica(s)",
-        geometry.count,
-        geometry.length,
-        geometry.width,
-        geometry.height,
-        ", ".join(f"{s:.4g}" for s in geometry.stresses),
-        geometry.speed,
-        geometry.displacement,
-        replicas,
-    )
-    folder = os.path.join(out_dir, "specimens")
-    os.makedirs(folder, exist_ok=True)
-    paths = [os.path.join(folder, f"replica_{k}.h5") for k in range(replicas)]
-    specimens = common.map_tasks(
-        plan,
-        run_replica,
-        [{"replica": k, "stage": "specimen", "specimen": p} for k, p in enumerate(paths)],
-        [f"specimen {k}" for k in range(replicas)],
-        executor,
-        scheduler,
-        workers,
-    )
-    ready = common.successful(specimens, "shear specimen")
-    jobs = [
-        {"replica": s["replica"], "stage": "shear", "specimen": s["path"], "stress": sigma, "top": s["top"]}
-        for s in ready
-        for sigma in geometry.stresses
-    ]
-    results, stopped = common.map_until_stopped(
-        plan,
-        run_replica,
-        jobs,
-        [f"replica {j['replica']}, sigma {j['stress']:.4g} Pa" for j in jobs],
-        executor,
-        scheduler,
-        workers,
-    )
-    done = common.successful(results, "shear")
-    peak = mohr_coulomb([r["peak_sigma"] for r in done], [r["peak_tau"] for r in done])
-    residual = mohr_coulomb([r["residual_sigma"] for r in done], [r["residual_tau"] for r in done])
-    numbers = quasi_static_numbers(plan, geometry)
-    notes = [
-        f"replica {s['replica']}: the specimen had not settled within lab.max_time_factor"
-        for s in ready
-        if not s["settled"]
-    ]
-    notes += [
-        f"replica {r['replica']}, sigma {r['stress']:.4g} Pa: the lid was still moving after consolidation"
-        for r in done
-        if not r["consolidated"]
-    ]
-    notes += common.interrupted_notes(stopped, len(results), len(jobs), "shear tests")
-    if len({r["stress"] for r in done}) < 2:
-        notes.append(
-            "one normal stress sheared: no Mohr-Coulomb line (its friction angle and cohesion need two or more "
-            "shear.normal_stresses); the angle with c = 0 assumes a cohesionless soil"
+    with common.prepare_folder(plan, out_dir, overwrite, executor, scheduler):
+        replicas = plan.scene.lab.replicas
+        log.info(
+            "shear: %d grains in a %.3g x %.3g m box, %.3g m high; normal stresses %s Pa; shear at %.3g m/s "
+            "to %.3g m; %d replica(s)",
+            geometry.count,
+            geometry.length,
+            geometry.width,
+            geometry.height,
+            ", ".join(f"{s:.4g}" for s in geometry.stresses),
+            geometry.speed,
+            geometry.displacement,
+            replicas,
         )
-    summary = {
-        "test": "shear",
-        "name": plan.name,
-        "gravity": plan.g,
-        "units": {"gravity": "m/s^2"},  # the other numbers: counts, or a unit in their key
-        "soil": common.soil_summary(plan),
-        "peak": peak,
-        "residual": residual,
-        "points": [
-            {
-                "replica": r["replica"],
-                "normal_stress_nominal_pa": r["stress"],
-                "peak_sigma_pa": r["peak_sigma"],
-                "peak_tau_pa": r["peak_tau"],
-                "peak_displacement_m": r["peak_displacement"],
-                "residual_sigma_pa": r["residual_sigma"],
-                "residual_tau_pa": r["residual_tau"],
-                "consolidated": r["consolidated"],
-                "steps": r["steps"],
-            }
+        folder = os.path.join(out_dir, "specimens")
+        os.makedirs(folder, exist_ok=True)
+        paths = [os.path.join(folder, f"replica_{k}.h5") for k in range(replicas)]
+        specimens = common.map_tasks(
+            plan,
+            run_replica,
+            [{"replica": k, "stage": "specimen", "specimen": p} for k, p in enumerate(paths)],
+            [f"specimen {k}" for k in range(replicas)],
+            executor,
+            scheduler,
+            workers,
+        )
+        ready = common.successful(specimens, "shear specimen")
+        jobs = [
+            {"replica": s["replica"], "stage": "shear", "specimen": s["path"], "stress": sigma, "top": s["top"]}
+            for s in ready
+            for sigma in geometry.stresses
+        ]
+        results, stopped = common.map_until_stopped(
+            plan,
+            run_replica,
+            jobs,
+            [f"replica {j['replica']}, sigma {j['stress']:.4g} Pa" for j in jobs],
+            executor,
+            scheduler,
+            workers,
+        )
+        done = common.successful(results, "shear")
+        peak = mohr_coulomb([r["peak_sigma"] for r in done], [r["peak_tau"] for r in done])
+        residual = mohr_coulomb([r["residual_sigma"] for r in done], [r["residual_tau"] for r in done])
+        numbers = quasi_static_numbers(plan, geometry)
+        notes = [
+            f"replica {s['replica']}: the specimen had not settled within lab.max_time_factor"
+            for s in ready
+            if not s["settled"]
+        ]
+        notes += [
+            f"replica {r['replica']}, sigma {r['stress']:.4g} Pa: the lid was still moving after consolidation"
             for r in done
-        ],
-        "failed": [{"label": r.get("label"), "error": r.get("error")} for r in specimens + results if not r.get("ok")],
-        "geometry": {
-            "length_m": geometry.length,
-            "width_m": geometry.width,
-            "height_m": geometry.height,
-            "gap_m": geometry.gap,
-            "grains": geometry.count,
-            "displacement_m": geometry.displacement,
-            "speed_m_s": geometry.speed,
-            "normal_stresses_pa": list(geometry.stresses),
-            "grain_diameter_m": plan.diameter,
-            "dt_s": plan.dt,
-        },
-        "quasi_static": numbers,
-        "notes": notes,
-    }
-    curves = [
-        (r["replica"], r["stress"], *row)
-        for r in done
-        for row in zip(r["displacement"], r["tau"], r["sigma"], r["tau_lower"], r["rise"])
-    ]
-    names = [
-        ("replica", "1"),
-        ("normal_stress_nominal", "Pa"),
-        ("displacement", "m"),
-        ("shear_stress", "Pa"),
-        ("normal_stress", "Pa"),
-        ("shear_stress_lower_half", "Pa"),
-        ("lid_rise", "m"),
-    ]
-    columns = list(zip(*curves)) if curves else [() for _ in names]
-    common.write_csv(
-        os.path.join(out_dir, "shear.csv"), [(n, unit, column) for (n, unit), column in zip(names, columns)]
-    )
-    points: list[dict] = summary["points"]  # type: ignore[assignment]
-    common.write_csv(
-        os.path.join(out_dir, "shear_points.csv"),
-        [
-            ("replica", "1", [p["replica"] for p in points]),
-            ("normal_stress_nominal", "Pa", [p["normal_stress_nominal_pa"] for p in points]),
-            ("peak_normal_stress", "Pa", [p["peak_sigma_pa"] for p in points]),
-            ("peak_shear_stress", "Pa", [p["peak_tau_pa"] for p in points]),
-            ("residual_normal_stress", "Pa", [p["residual_sigma_pa"] for p in points]),
-            ("residual_shear_stress", "Pa", [p["residual_tau_pa"] for p in points]),
-        ],
-    )
-    summary["figure"] = _figure(out_dir, done, summary)
-    common.write_summary(out_dir, summary)
-    if stopped is not None:  # the finished tests' report is written: now stop as asked
-        raise stopped
-    return summary
+            if not r["consolidated"]
+        ]
+        notes += common.interrupted_notes(stopped, len(results), len(jobs), "shear tests")
+        if len({r["stress"] for r in done}) < 2:
+            notes.append(
+                "one normal stress sheared: no Mohr-Coulomb line (its friction angle and cohesion need two or more "
+                "shear.normal_stresses); the angle with c = 0 assumes a cohesionless soil"
+            )
+        summary = {
+            "test": "shear",
+            "name": plan.name,
+            "gravity": plan.g,
+            "units": {"gravity": "m/s^2"},  # the other numbers: counts, or a unit in their key
+            "soil": common.soil_summary(plan),
+            "peak": peak,
+            "residual": residual,
+            "points": [
+                {
+                    "replica": r["replica"],
+                    "normal_stress_nominal_pa": r["stress"],
+                    "peak_sigma_pa": r["peak_sigma"],
+                    "peak_tau_pa": r["peak_tau"],
+                    "peak_displacement_m": r["peak_displacement"],
+                    "residual_sigma_pa": r["residual_sigma"],
+                    "residual_tau_pa": r["residual_tau"],
+                    "consolidated": r["consolidated"],
+                    "steps": r["steps"],
+                }
+                for r in done
+            ],
+            "failed": [
+                {"label": r.get("label"), "error": r.get("error")} for r in specimens + results if not r.get("ok")
+            ],
+            "geometry": {
+                "length_m": geometry.length,
+                "width_m": geometry.width,
+                "height_m": geometry.height,
+                "gap_m": geometry.gap,
+                "grains": geometry.count,
+                "displacement_m": geometry.displacement,
+                "speed_m_s": geometry.speed,
+                "normal_stresses_pa": list(geometry.stresses),
+                "grain_diameter_m": plan.diameter,
+                "dt_s": plan.dt,
+            },
+            "quasi_static": numbers,
+            "notes": notes,
+        }
+        curves = [
+            (r["replica"], r["stress"], *row)
+            for r in done
+            for row in zip(r["displacement"], r["tau"], r["sigma"], r["tau_lower"], r["rise"])
+        ]
+        names = [
+            ("replica", "1"),
+            ("normal_stress_nominal", "Pa"),
+            ("displacement", "m"),
+            ("shear_stress", "Pa"),
+            ("normal_stress", "Pa"),
+            ("shear_stress_lower_half", "Pa"),
+            ("lid_rise", "m"),
+        ]
+        columns = list(zip(*curves)) if curves else [() for _ in names]
+        common.write_csv(
+            os.path.join(out_dir, "shear.csv"), [(n, unit, column) for (n, unit), column in zip(names, columns)]
+        )
+        points: list[dict] = summary["points"]  # type: ignore[assignment]
+        common.write_csv(
+            os.path.join(out_dir, "shear_points.csv"),
+            [
+                ("replica", "1", [p["replica"] for p in points]),
+                ("normal_stress_nominal", "Pa", [p["normal_stress_nominal_pa"] for p in points]),
+                ("peak_normal_stress", "Pa", [p["peak_sigma_pa"] for p in points]),
+                ("peak_shear_stress", "Pa", [p["peak_tau_pa"] for p in points]),
+                ("residual_normal_stress", "Pa", [p["residual_sigma_pa"] for p in points]),
+                ("residual_shear_stress", "Pa", [p["residual_tau_pa"] for p in points]),
+            ],
+        )
+        summary["figure"] = _figure(out_dir, done, summary)
+        common.write_summary(out_dir, summary)
+        if stopped is not None:  # the finished tests' report is written: now stop as asked
+            raise stopped
+        return summary
 
 
 def _figure(out_dir: str, done: list[dict], summary: dict) -> str | None:
