@@ -320,7 +320,7 @@ def verdict(findings: list[Finding], not_judged: list[str] | tuple = ()) -> str:
     """'valid', 'out of range: ' and the failed checks, comma-separated, or NOT_CHECKED without findings;
     `not_judged`: the checks a run could not judge (judged_after_the_run's left after it: it measured
     nothing to judge them on, a wheel that never landed), named after it."""
-    if not findings:
+    if not findings and not not_judged:
         return NOT_CHECKED
     failed = [f.check for f in findings if not f.ok]
     said = "valid" if not failed else "out of range: " + ", ".join(failed)
@@ -742,11 +742,14 @@ def scm_check(plan: RunPlan, measured: dict | None = None) -> list[Finding]:
         findings.append(_wheel_fit_finding(plan, fit, indices, wheels))
     # judged on the run's own rim sinkage: Bekker's closed form for a smooth wheel is no estimate of
     # a grousered wheel's on SCM (the main job: 2.5x SCM's own)
-    # a run without a drive (no landing: a wheel sinking on) is judged on the deepest its rims reached
+    # a run without a window's sinkage (no landing: a wheel sinking on) is judged on the deepest its rims reached
     count = len(plan.wheels or (plan.wheel,))
     rims, what = _per_wheel(measured, "sinkage", indices, count), "rim sinkage"
     if rims is None:
-        rims, what = _per_wheel(measured, "deepest_sinkage", indices, count), "deepest rim sinkage (no landing)"
+        rims, what = (
+            _per_wheel(measured, "deepest_sinkage", indices, count),
+            "deepest rim sinkage (no window's sinkage)",
+        )
     tested, rim = plan.terrain.calibration_sinkage, max(_finite(rims)) if rims is not None else None  # the deepest
     if tested is not None and rim is not None and math.isfinite(rim):
         findings.append(

@@ -50,7 +50,8 @@ when they stop entirely). A stall adds no time immobile; a parked rover (zero co
 speeds: a brake) is not judged.
 Steps before the wheels have turned one radian are not judged, nor steps while they turn against
 each other. The steady-state window is found as for a wheel (MSER-5 on the forward speed and the
-mean sinkage; each wheel's sinkage steady over it, else 'still sinking'); slip, sinkage, drawbar
+mean sinkage; each wheel's sinkage steady over it, else 'still sinking' or 'still rising'; one grouser
+passage at least over it for the grousered wheels that turn, else 'too short'); slip, sinkage, drawbar
 pull, torque, normal force and power per wheel and the rover's slip, net traction and power are
 means over it.
 
@@ -345,7 +346,7 @@ def summarize(
         out["steady_state"] = AIRBORNE
     elif mode == "free" and abs(mean_spin) * rim_radius > 0 and out["forward_speed"] < 0.01 * mean_spin * rim_radius:
         out["steady_state"] = STUCK
-    elif not found or passed < 1.0:
+    elif not found or not passed >= 1.0:  # a nan spin passes no judged grouser either
         out["steady_state"] = TOO_SHORT
     elif not settled:
         out["steady_state"] = RISING if out["sinkage_rate"] < 0 else SINKING
@@ -687,8 +688,13 @@ def summarize_rover(
         raise ValueError(f"grouser_counts: one per wheel ({len(rim_radii)}), got {len(counts)}")
     turns = np.abs(np.sum(spins[window] * dt[window, None], axis=0))  # each rim's turn over the window [rad]
     # a wheel held still (a brake, one side stopped) passes no grousers and forces nothing periodic
-    turning = turns >= 0.1 * np.max(turns) if len(turns) and np.max(turns) > 0 else np.zeros(len(turns), bool)
-    passed = min((grouser_passages(float(t), c) for t, c, on in zip(turns, counts, turning) if on), default=math.inf)
+    most = float(np.max(turns)) if len(turns) else 0.0  # nan when a spin is (a lost wheel): judged too short
+    turning = turns >= 0.1 * most if most > 0 else np.zeros(len(turns), bool)
+    passed = (
+        min((grouser_passages(float(t), c) for t, c, on in zip(turns, counts, turning) if on), default=math.inf)
+        if math.isfinite(most) or not any(counts)
+        else math.nan
+    )
     if any(counts):
         out["grouser_passages"] = passed
     out["driving_torque"] = float(np.sum(out["wheel_driving_torque"]))
@@ -721,7 +727,7 @@ def summarize_rover(
         out["steady_state"] = STUCK
     elif out["contact_fraction"] < 0.9:
         out["steady_state"] = AIRBORNE
-    elif not found or passed < 1.0:
+    elif not found or not passed >= 1.0:
         out["steady_state"] = TOO_SHORT
     elif not all(settled):
         out["steady_state"] = RISING if rising else SINKING

@@ -367,12 +367,37 @@ def prepare_study(out_dir: str, overwrite: bool) -> Iterator[None]:
     if not os.path.exists(folder.file(LOCK_FILE)):  # one there may be held: that is said first
         _study_folder_files(out_dir, overwrite)  # a refused folder is left as it was, without a lock file
     with folder.locked():
-        for name in _study_folder_files(out_dir, overwrite):  # again: another process may have written since
+        present = _study_folder_files(out_dir, overwrite)  # again: another process may have written since
+        _refuse_held_locks(out_dir, present)
+        for name in present:
             path = os.path.join(out_dir, name)
             shutil.rmtree(path) if os.path.isdir(path) else os.remove(path)
         with open(os.path.join(out_dir, STUDY_MARK), "w"):
             pass
         yield
+
+
+def _refuse_held_locks(out_dir: str, names: list[str]) -> None:
+    """FolderInUseError when a run folder among `names` (or below them) is in use: its lock held by another
+    process (a `cosim run --out STUDY/replica_000`), whose files the study would remove under it."""
+    from filelock import FileLock, Timeout
+
+    from .folders import LOCK_FILE, FolderInUseError
+
+    for name in names:
+        top = os.path.join(out_dir, name)
+        for root, _, files in os.walk(top) if os.path.isdir(top) else ():
+            if LOCK_FILE in files:
+                lock = FileLock(os.path.join(root, LOCK_FILE))
+                try:
+                    lock.acquire(timeout=0)
+                except Timeout:
+                    raise FolderInUseError(
+                        f"output folder {root!r} is in use by another process (a run holds its {LOCK_FILE}); "
+                        f"--overwrite of {out_dir!r} would remove it: wait for it to finish, stop it, or choose "
+                        "another --out"
+                    ) from None
+                lock.release()
 
 
 def _study_folder_files(out_dir: str, overwrite: bool) -> list[str]:

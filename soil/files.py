@@ -31,7 +31,8 @@ def atomic_path(path, suffix: str = ".tmp", replace: bool = True):
     path = os.fspath(path)
     if os.path.isdir(path):
         raise IsADirectoryError(errno.EISDIR, "Is a directory: a file cannot be written there", path)
-    written = os.path.realpath(path) if os.path.islink(path) else path
+    # a link's file is written beside that file; a new name only where the caller looked (replace False)
+    written = os.path.realpath(path) if os.path.islink(path) and replace else path
     created: list[str] = []
     temporary = None
     try:

@@ -445,6 +445,11 @@ def test_a_window_shorter_than_one_grouser_passage_is_too_short():
     assert grousered["steady_state"] == metrics.STEADY
     assert grousered["grouser_passages"] == pytest.approx(turn * enough / (2 * math.pi))
     assert 1 <= grousered["grouser_passages"] < 1 + turn / (2 * math.pi)
+    lost = _series()
+    lost["angular_velocity"][-3, 0, 1] = np.nan  # a spin that is not a number turns no judged grouser
+    assert metrics.summarize(lost, rim_radius=0.04, wheel_load=10.0, grouser_count=enough)["steady_state"] == (
+        metrics.TOO_SHORT
+    )
     short = metrics.summarize(s, rim_radius=0.04, wheel_load=10.0, grouser_count=enough - 1)
     assert short["steady_state"] == metrics.TOO_SHORT and short["grouser_passages"] < 1
     assert short["slip"] == pytest.approx(grousered["slip"])  # the numbers stay, labelled

@@ -479,6 +479,6 @@ def test_a_wheel_sinking_past_its_calibration_without_a_landing_is_out_of_range(
     deepest = float(np.nanmax(read_series(out / "results.h5")["sinkage"][:, 0]))
     assert summary["deepest_sinkage"] == pytest.approx(deepest) and deepest > 0.0165
     depth = next(f for f in summary["findings"] if f["check"] == "scm_calibration_depth")
-    assert not depth["ok"] and "deepest rim sinkage (no landing)" in depth["message"], depth
+    assert not depth["ok"] and "deepest rim sinkage (no window's sinkage)" in depth["message"], depth
     assert summary["not_judged"] == ["scm_slip"]
     assert summary["validity"].startswith("out of range: scm_calibration_depth; not judged: scm_slip")

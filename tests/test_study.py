@@ -676,6 +676,13 @@ def test_a_study_folder_in_use_is_refused_by_a_second_ensemble_or_lab_test(scene
             err = capsys.readouterr().err
             assert "is in use by another process" in err and str(study) in err, err
             assert (study / "replica_000" / "results.h5").read_text() == "being written"
+    from cosim.folders import FolderInUseError, RunFolder
+
+    with RunFolder(study / "replica_000").locked():  # a run another process started in a replica's folder
+        with pytest.raises(FolderInUseError, match="replica_000"):
+            with prepare_study(str(study), overwrite=True):
+                pass
+        assert (study / "replica_000" / "results.h5").read_text() == "being written"
     with prepare_study(str(study), overwrite=True):  # released at the end: a later study empties it
         assert not (study / "replica_000").exists()
 
