@@ -120,10 +120,18 @@ def cmd_run(args) -> int:
 
 
 def cmd_resume(args) -> int:
+    from soil.errors import RegolithError
+
+    from .folders import SCENE_FILE
     from .launch import resume
+    from .scene import load_scene
 
     result = resume(args.out, progress=not args.no_progress)
-    _print_summary(result)
+    try:  # the run's scene as it ran (resume read it): SCM alone takes its error bars over beds
+        terrain = load_scene(os.path.join(args.out, SCENE_FILE)).terrain
+    except (RegolithError, OSError):  # changed since: the summary still printed, without a hint
+        terrain = None
+    _print_summary(result, scm_only=terrain is not None and terrain.model == "scm" and not terrain.dem_wheels)
     return EXIT_OK if result.status == "complete" else EXIT_UNSTEADY
 
 
@@ -237,9 +245,10 @@ def cmd_export(args) -> int:
     if not os.path.isfile(results):
         raise ArgumentError(f"{args.run!r} is not a run folder: no {RESULTS_FILE} in it")
     own = os.path.join(os.path.dirname(os.path.abspath(results)), VTKHDF_FILE)
-    if args.out is not None and os.path.abspath(args.out) != own:  # RUN/results.vtkhdf is the run's own: made again
+    replace = args.out is None or os.path.abspath(args.out) == own  # RUN/results.vtkhdf is the run's own: made again
+    if not replace:
         _free_output_file(args.out, (".vtkhdf", ".hdf"), args.overwrite)
-    path = write_vtkhdf(results, args.out)
+    path = write_vtkhdf(results, args.out, replace=replace or args.overwrite)  # a file that appeared meanwhile: kept
     print(f"{path}: {os.path.getsize(path) / 1024:.0f} kB (open it in ParaView or with VTK's vtkHDFReader)")
     return EXIT_OK
 
@@ -598,7 +607,9 @@ def cmd_export_fmu(args) -> int:
         config = soil_config_from(args.source, bed_folder=args.bed_folder or scratch)
         if args.device:
             config.device = args.device
-        path = export_soil_fmu(config, args.out, fmi_version=args.fmi, wheel_count=args.wheels, python=args.python)
+        path = export_soil_fmu(
+            config, args.out, fmi_version=args.fmi, wheel_count=args.wheels, python=args.python, replace=args.overwrite
+        )  # without --overwrite, a file that appeared at --out while the FMU was made is kept
     print(
         f"wrote {path}: FMI {args.fmi}.0 co-simulation, {args.wheels} wheel(s), "
         f"{config.terrain.upper()} step {config.dem_step:.4g} s, "

@@ -17,7 +17,8 @@ numbers; a file written before 2026-12-07 has none and is read as it is.
                         `units` the unit of each number in it (cosim.metrics.SUMMARY_UNITS)
         units           JSON: the unit of each numeric attribute below (cosim.records.ATTRIBUTE_UNITS)
         name, scene_toml (the scene as run), scene_source (the scene file's text), versions (JSON),
-        created, precision, device, scheme, integrator, order_seed (-1: none), dt [s], macro_step [s], substeps,
+        created, precision, device, scheme, integrator, order_seed (-1: none), dt [s] and substeps (the soil's
+        step and steps per macro step: the DEM's, SCM's on SCM alone: cosim.records.soil_step), macro_step [s],
         duration [s], gravity [m/s^2] (3,), surface_height [m], start_position [m] (3,), omega [rad/s],
         rim_radius [m], outer_radius [m], wheel_load [N], mode, particle_count, wheel_names (JSON),
         bed (JSON: source, settle report, metrics), findings (JSON: the validity checks at the start)
@@ -32,7 +33,7 @@ numbers; a file written before 2026-12-07 has none and is read as it is.
         torque            (S, W, 3)  soil torque about the hub held over the step [N m]
         force_end         (S, W, 3)  soil force at the end of the step [N]
         torque_end        (S, W, 3)  soil torque about the hub at the end of the step [N m]
-        contact_count     (S, W)     grains touching the wheel [count]
+        contact_count     (S, W)     grains touching the wheel (SCM: grid nodes in contact; analytic: 1 or 0) [count]
         work_on_rover     (S, W)     [J]
         work_on_soil      (S, W)     [J]
         travel, slip, sinkage, sinkage_tips, drawbar_pull, driving_torque, normal_force, power
@@ -111,6 +112,7 @@ import numpy as np
 from soil.errors import DamagedFileError
 from soil.files import atomic_path, atomic_write_text, with_path
 
+from .beds import finite_or_null, null_as_nan
 from .folders import XDMF_DATA_FILE, XDMF_FILE
 from .snapshots import ARRAY_NAMES, read_results_data, read_snapshot, read_whole, snapshot_datasets
 
@@ -126,7 +128,12 @@ WHEEL_SERIES = {
     "torque": (3, np.float64, "N m", "soil torque about the hub held over the macro step, world frame"),
     "force_end": (3, np.float64, "N", "soil force on the wheel at the end of the macro step"),
     "torque_end": (3, np.float64, "N m", "soil torque about the hub at the end of the macro step"),
-    "contact_count": (None, np.int64, "count", "grains touching the wheel at the end of the step"),
+    "contact_count": (
+        None,
+        np.int64,
+        "count",
+        "grains touching the wheel at the end of the step (SCM: grid nodes in contact; analytic terrain: 1 in contact)",
+    ),
     "work_on_rover": (None, np.float64, "J", "work of the held wrench on the rover"),
     "work_on_soil": (None, np.float64, "J", "work done on the soil"),
     "travel": (None, np.float64, "m", "hub travel forward since the drive started"),
@@ -648,8 +655,8 @@ class ResultsWriter:
         with h5py.File(self.path, "r+", libver="latest") as f:
             f.attrs["status"] = status
             f.attrs["message"] = message
-            if summary is not None:
-                f.attrs["summary"] = json.dumps(summary, default=float)
+            if summary is not None:  # a nan (not measured) as null, as run.json: strict JSON readers take it
+                f.attrs["summary"] = json.dumps(finite_or_null(summary), allow_nan=False)
         self._write_xdmf()
 
     def __enter__(self):
@@ -960,7 +967,8 @@ def _data_item(parent, h5name: str, path: str, dataset) -> ET.Element:
 
 
 XDMF_COLLECTIONS = ("wheels", "rover", "particles")
-"""results.xdmf's temporal collections, in file order (meshio's reader takes the last: the grains)."""
+"""results.xdmf's temporal collections, in file order (meshio's reader takes the last: the grains; a run
+without grains has no grain collection, and meshio takes the rover's pose)."""
 
 
 def _snapshot_grids(data, name: str) -> tuple[str, ...]:
@@ -1002,13 +1010,20 @@ def _snapshot_grids(data, name: str) -> tuple[str, ...]:
     )
 
 
+def stored_summary(attrs) -> dict:
+    """The run summary a results file's attributes hold (`attrs`: read_series's 'attrs', or the file's),
+    with nan where it holds null (not measured: strict JSON, as run.json); {} before the run ends."""
+    return null_as_nan(json.loads(attrs.get("summary", "{}")))
+
+
 def write_xdmf(f, xdmf_path: str, known: dict | None = None) -> None:
     """Write results.xdmf (XDMF 3) and its data file results.xdmf.h5 (`sync_xdmf_data`) for an open
     results file: three temporal collections, the wheel meshes (Triangle), the rover body (a point with
     its forward and up axes) and, last, the grains (Polyvertex, with radius, velocity and position as
-    point data: meshio's time series reader takes the last collection, holds its first mesh fixed and
-    gives per step only the point data). Every DataItem names a whole dataset of the data file, so
-    the readers need no hyperslabs and the file stays readable while results.h5 is being written.
+    point data; a run without grains has none: meshio's time series reader takes the last collection,
+    holds its first mesh fixed and gives per step only the point data). Every DataItem names a whole
+    dataset of the data file, so the readers need no hyperslabs and the file stays readable while
+    results.h5 is being written.
 
     known: a dict the caller keeps between calls (ResultsWriter does): each snapshot's time and grids'
     XML, made once, so a write costs per new snapshot and the XML's length, not a read of every
@@ -1029,14 +1044,19 @@ def write_xdmf(f, xdmf_path: str, known: dict | None = None) -> None:
                 known[name] = (time, _snapshot_grids(data, name))
     root = ET.Element("Xdmf", Version="3.0")
     domain = ET.SubElement(root, "Domain")
-    for collection in XDMF_COLLECTIONS:
+    particles = f["particles"]
+    # a run without grains (SCM, the analytic terrain): no grain collection, whose empty grids VTK's XDMF
+    # reader refuses ("Error in Update() of Topology") and meshio's would take as the last (0 points)
+    grains = particles.attrs.get("layout") == "ragged" or particles["radius"].shape[0] > 0
+    collections = XDMF_COLLECTIONS if grains else tuple(c for c in XDMF_COLLECTIONS if c != "particles")
+    for collection in collections:
         grid = ET.SubElement(domain, "Grid", Name=collection, GridType="Collection", CollectionType="Temporal")
         if names:
             grid.text = f"@{collection}@"  # the snapshots' grids go here, as made once
     ET.indent(root)
     text = '<?xml version="1.0" ?>\n' + ET.tostring(root, encoding="unicode")
     for c, collection in enumerate(XDMF_COLLECTIONS):
-        if names:
+        if collection in collections and names:
             grids = "\n      ".join(known[name][1][c] for name in names)
             text = text.replace(f"@{collection}@", f"\n      {grids}\n    ", 1)
     atomic_write_text(xdmf_path, text + "\n")

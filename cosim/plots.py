@@ -22,7 +22,7 @@ from soil.errors import ArgumentError, DamagedFileError
 from soil.files import atomic_path
 
 from .folders import PLOTS_DIR, RESULTS_FILE
-from .output import read_series
+from .output import read_series, stored_summary
 from .single_wheel import PHASE_DRIVING
 
 log = logging.getLogger(__name__)
@@ -123,7 +123,7 @@ def plot_output(out_dir: str, plot_dir: str | None = None, dpi: int = 120) -> li
                     label=None if group in seen else f"{group} ({counts[group]})" if counts[group] > 1 else group,
                 )
                 seen.add(group)
-                window = json.loads(s["attrs"].get("summary", "{}")).get("window")
+                window = stored_summary(s["attrs"]).get("window")
                 if window and len(runs) == 1 and np.all(np.isfinite(window)):
                     ax.axvspan(window[0], window[1], color="0.85", zorder=0, label="steady-state window")
             ax.set_xlabel("time [s]")
@@ -159,7 +159,7 @@ def plot_output(out_dir: str, plot_dir: str | None = None, dpi: int = 120) -> li
     if len(runs) >= 2:
         fig, ax = plt.subplots(figsize=(6, 4.2))
         for _, group, s in runs:
-            summary = json.loads(s["attrs"].get("summary", "{}"))
+            summary = stored_summary(s["attrs"])
             if summary.get("steady_state") == "steady":
                 ax.scatter(summary["slip"], summary["drawbar_pull"], color=colours[group], s=18)
         for g in groups:

@@ -56,16 +56,16 @@ def step_row(
     """One macro step's row for ResultsWriter.append_step.
 
     phase: the rover's phase over the step (cosim.single_wheel.PHASE_LANDING / PHASE_DRIVING);
-    rover_state: its state row (K,) at the end of the step; drive_start: the hub positions [m] (3,)
-    where the drive started (None: it has not, travel stays 0); previous_body: the rover body's
+    rover_state: its state row (K,) at the end of the step; drive_start: each wheel's hub position [m]
+    (W, 3) where the drive started (None: it has not, travel stays 0); previous_body: the rover body's
     position [m] (3,) at the previous row while driving (None before); body_travel: its path so far
     [m]; facts: step_facts(system) as read at the step's end. The row's
     'rover_position' and 'rover_travel' are what the next row takes as previous_body and
     body_travel."""
     row: dict[str, Any] = {"time": record.time, "phase": phase, "rover_state": rover_state}
     per_wheel = [
-        metrics.wheel_quantities(k, w, g, drive_start)
-        for k, w, g in zip(record.kinematics, record.wrenches, system.geometries)
+        metrics.wheel_quantities(k, w, g, None if drive_start is None else drive_start[i])
+        for i, (k, w, g) in enumerate(zip(record.kinematics, record.wrenches, system.geometries))
     ]
     for name in metrics.WHEEL_UNITS:
         row[name] = np.array([q[name] for q in per_wheel])
@@ -165,9 +165,9 @@ def attributes(plan: RunPlan, system: CoupledSystem, source: str, findings) -> d
         "scheme": plan.scheme,
         "integrator": plan.integrator,
         "order_seed": -1 if plan.order_seed is None else plan.order_seed,
-        "dt": plan.dt,
+        "dt": soil_step(plan)[0],
         "macro_step": plan.macro_step,
-        "substeps": plan.substeps,
+        "substeps": soil_step(plan)[1],
         "duration": plan.scene.run.duration,
         "gravity": np.asarray(plan.gravity),
         "surface_height": system.soil.surface_height,
@@ -195,6 +195,21 @@ def attributes(plan: RunPlan, system: CoupledSystem, source: str, findings) -> d
         )
     out["units"] = json.dumps({key: ATTRIBUTE_UNITS[key] for key in out if key in ATTRIBUTE_UNITS})
     return out
+
+
+def soil_step(plan: RunPlan) -> tuple[float, int]:
+    """(dt [s], steps per macro step) of the soil a run steps: the DEM's (plan.dt, plan.substeps; the PID
+    varies them), on SCM alone SCM's own (cosim.scm_soil.scm_steps), on the analytic terrain its wrench
+    samples (cosim.terrain.WRENCH_SAMPLES): neither simulates the bed's grains, whose step the plan holds."""
+    if plan.terrain.model == "scm":
+        from .scm_soil import scm_steps
+
+        return scm_steps(plan)
+    if plan.terrain.model == "analytic":
+        from .terrain import WRENCH_SAMPLES
+
+        return plan.macro_step / WRENCH_SAMPLES, WRENCH_SAMPLES
+    return plan.dt, plan.substeps
 
 
 ATTRIBUTE_UNITS = {
@@ -295,7 +310,7 @@ def run_summary(
         macro_steps=int(system.coupler.step_count),
         wall_time=float(wall),
         particle_count=int(books.element_count),
-        dt=plan.dt,
+        dt=soil_step(plan)[0],
         step_control=plan.step_control,
         **stepped,
         macro_step=plan.macro_step,
@@ -310,7 +325,7 @@ def run_summary(
         steps = (
             float(np.sum(taken[-steps_done:]))
             if taken is not None and len(taken) >= steps_done
-            else plan.substeps * steps_done
+            else soil_step(plan)[1] * steps_done
         )
         out["particle_steps_per_second"] = float(books.element_count * steps / session_wall)
     if last_good_time is not None:

@@ -112,8 +112,12 @@ class Runner:
         loop = loop or {}
         rover = system.rover
         self.drive_start_step = int(loop.get("drive_start_step", -1 if rover.phase == PHASE_LANDING else 0))
-        self.drive_start_position = np.array(loop.get("drive_start_position", rover.position.copy()), dtype=float)
-        """The rover's position when the drive started (or now, before it) [m], shape (3,)."""
+        hubs = np.array([k.position for k in rover.wheel_kinematics()], dtype=float)
+        # a checkpoint written before the hubs were kept holds the body's position, (3,): what its rows used
+        self.drive_start_position = np.broadcast_to(
+            np.array(loop.get("drive_start_position", hubs), dtype=float), hubs.shape
+        ).copy()
+        """Each wheel's hub position when the drive started (or now, before it) [m], shape (W, 3)."""
         self.body_position = np.array(loop.get("body_position", rover.body_kinematics().position), dtype=float)
         """The rover body's position at the last record [m], shape (3,)."""
         self.body_travel = float(loop.get("body_travel", 0.0))
@@ -355,7 +359,7 @@ class Runner:
             rover = self.system.rover
             rover.start_drive()
             self.drive_start_step = self.system.coupler.step_count
-            self.drive_start_position = rover.position.copy()
+            self.drive_start_position = np.array([k.position for k in record.kinematics], dtype=float)
             log.info("landed at t = %.4g s; driving for %.4g s", record.time, self.plan.scene.run.duration)
         elif self.system.coupler.step_count >= landing.max_steps:
             self.landing_failed = True
@@ -446,9 +450,10 @@ class Runner:
             return None
         from tqdm import tqdm
 
+        landing = self.drive_start_step < 0
         return tqdm(
-            total=self.plan.drive_steps,
-            desc="landing",
+            total=self.plan.landing.max_steps if landing else self.plan.drive_steps,
+            desc="landing (ends at rest)" if landing else "driving",
             unit="step",
             leave=True,
             bar_format="{desc}: {n}/{total} macro steps [{elapsed}<{remaining}, {postfix}]",
@@ -460,13 +465,16 @@ class Runner:
         coupler = self.system.coupler
         if self.drive_start_step >= 0:
             bar.set_description_str("driving", refresh=False)
-            bar.n = coupler.step_count - self.drive_start_step
+            bar.total, bar.n = self.plan.drive_steps, coupler.step_count - self.drive_start_step
+        else:  # the landing's steps so far, of the most it may take (it ends when the wheels rest)
+            bar.set_description_str("landing (ends at rest)", refresh=False)
+            bar.total, bar.n = self.plan.landing.max_steps, coupler.step_count
         wall = time.perf_counter() - started
         done = coupler.step_count - self.steps_at_start
-        rate = self.system.soil.books().element_count * self.plan.substeps * done / max(wall, 1e-9)
-        bar.set_postfix_str(
-            f"t = {coupler.time:.4g} s sim, dt {self.plan.dt:.3g} s, {rate:.3g} particle-steps/s", refresh=False
-        )
+        dt, steps = records.soil_step(self.plan)
+        rate = self.system.soil.books().element_count * steps * done / max(wall, 1e-9)
+        said = f", {rate:.3g} particle-steps/s" if self.system.soil.books().element_count else ""  # SCM: no grains
+        bar.set_postfix_str(f"t = {coupler.time:.4g} s sim, dt {dt:.3g} s{said}", refresh=False)
         bar.refresh()
 
     def summary(self, wall: float, session_wall: float) -> dict:

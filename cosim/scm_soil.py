@@ -156,6 +156,14 @@ def scm_parameters(values: dict) -> ScmParameters:
     )
 
 
+def scm_steps(plan) -> tuple[float, int]:
+    """(step [s], steps per macro step) of SCM in a run plan: each macro step in equal steps of at most
+    [terrain] time_step (default: the macro step), as soil.scm.ScmTerrain.advance splits it."""
+    longest = float(dict(plan.terrain.parameters).get("time_step", plan.macro_step))
+    steps = max(1, math.ceil(plan.macro_step / longest - 1e-9))
+    return plan.macro_step / steps, steps
+
+
 def scm_settings(plan, wheels: Sequence[int], surface_height: float, soil: dict | None = None) -> ScmSettings:
     """The SCM terrain of a run plan's wheels `wheels` (indices; cosim.plan.RunPlan) from its [terrain]
     keys (`soil`: SOIL_KEYS values that replace the plan's, as a calibration trying parameters does),

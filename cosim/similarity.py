@@ -137,7 +137,9 @@ def gravity_twin(scene: Scene, gravity) -> tuple[dict, float]:
 
 
 def write_gravity_twin(path: str, gravity, out: str, overwrite: bool = False, overrides=None) -> tuple[str, float]:
-    """Write the twin of the scene file `path` at `gravity` (preset or magnitude) to `out`."""
+    """Write the twin of the scene file `path` at `gravity` (preset or magnitude) to `out`: without
+    `overwrite`, an `out` that exists is refused (OutputExistsError) and one that appears while the twin is
+    made is kept, the twin written beside it (FileExistsError naming both: soil.files.place_new)."""
     import tomli_w
 
     from soil.files import atomic_path
@@ -157,6 +159,7 @@ def write_gravity_twin(path: str, gravity, out: str, overwrite: bool = False, ov
         f"# The DEM-similar twin of {os.path.basename(path)} at |g| x {s:.9g} (cosim scale; "
         "cosim/similarity.py): stiffnesses and forces x s, speeds x sqrt(s), times / sqrt(s).\n"
     )
-    with atomic_path(out) as temporary, open(temporary, "w") as f:  # a crash leaves the former file whole
+    # a crash leaves the former file whole; without overwrite, a file that appeared meanwhile is kept
+    with atomic_path(out, replace=overwrite) as temporary, open(temporary, "w") as f:
         f.write(header + tomli_w.dumps(twin.to_dict()))
     return out, s

@@ -668,6 +668,9 @@ VALID = "valid"
 """The verdict of a run, row or ensemble whose runs passed every validity check (cosim.advice.verdict)."""
 OUT_OF_RANGE = "out of range: "
 """How the verdict of a run, row or ensemble that failed a validity check starts (cosim.advice.verdict)."""
+NOT_JUDGED = "; not judged: "
+"""What follows a verdict when some run could not judge a check (cosim.advice.verdict): the checks, each
+with how many of the runs that give a verdict could not judge it in a row's or an ensemble's."""
 
 
 def failed_checks(result: dict) -> list[str] | None:
@@ -683,11 +686,20 @@ def failed_checks(result: dict) -> list[str] | None:
     if findings == []:  # nothing checked (an analytic run's, whatever verdict an older one wrote)
         return None
     verdict = summary.get("validity")
+    verdict = verdict.split(NOT_JUDGED)[0] if isinstance(verdict, str) else verdict  # judged checks only
     if verdict == VALID:
         return []
     if isinstance(verdict, str) and verdict.startswith(OUT_OF_RANGE):
         return [c.strip() for c in verdict[len(OUT_OF_RANGE) :].split(",") if c.strip()]
     return None
+
+
+def unjudged_checks(result: dict) -> list[str]:
+    """The validity checks a finished run could not judge (its summary's `not_judged`: it measured nothing
+    to judge them on, cosim.advice.verdict); [] for a run that judged every check or gives no verdict."""
+    summary = result.get("summary") if result.get("ok") else None
+    named = summary.get("not_judged") if isinstance(summary, dict) else None
+    return [str(check) for check in named] if isinstance(named, list) else []
 
 
 def _not_checked(result: dict) -> bool:
@@ -700,26 +712,31 @@ def _not_checked(result: dict) -> bool:
 
 
 def run_validity(result: dict) -> str | None:
-    """A run's verdict as its run.json gives it: 'valid', 'out of range: CHECK, ...' or advice.NOT_CHECKED;
-    None for a run that gives none (failed_checks)."""
+    """A run's verdict as its run.json gives it: 'valid', 'out of range: CHECK, ...' or advice.NOT_CHECKED,
+    followed by '; not judged: CHECK, ...' when it could not judge some (unjudged_checks); None for a run
+    that gives none (failed_checks)."""
     checks = failed_checks(result)
     if checks is None:
         return advice.NOT_CHECKED if _not_checked(result) else None
-    return OUT_OF_RANGE + ", ".join(checks) if checks else VALID
+    unjudged = unjudged_checks(result)
+    said = OUT_OF_RANGE + ", ".join(checks) if checks else VALID
+    return said + (NOT_JUDGED + ", ".join(unjudged) if unjudged else "")
 
 
 def ensemble_validity(results: list[dict]) -> str | None:
     """The verdict of the runs behind a row or an ensemble: 'valid' when every run that gives one is
     valid, else 'out of range: CHECK (k/n), ...', each failed check with how many of the n runs that
-    give a verdict failed it (a failed run gives none); advice.NOT_CHECKED when the runs' terrain has no
-    checks; None when no run gives one."""
-    judged = [checks for r in results if (checks := failed_checks(r)) is not None]
-    if not judged:
+    give a verdict failed it (a failed run gives none), then '; not judged: CHECK (k/n), ...' when some
+    run could not judge a check; advice.NOT_CHECKED when the runs' terrain has no checks; None when no
+    run gives one."""
+    giving = [r for r in results if failed_checks(r) is not None]
+    if not giving:
         return advice.NOT_CHECKED if any(map(_not_checked, results)) else None
-    counts = collections.Counter(check for checks in judged for check in checks)
-    if not counts:
-        return VALID
-    return OUT_OF_RANGE + ", ".join(f"{check} ({k}/{len(judged)})" for check, k in counts.items())
+    n = len(giving)
+    counts = collections.Counter(check for r in giving for check in failed_checks(r) or [])
+    unjudged = collections.Counter(check for r in giving for check in unjudged_checks(r))
+    said = OUT_OF_RANGE + ", ".join(f"{check} ({k}/{n})" for check, k in counts.items()) if counts else VALID
+    return said + (NOT_JUDGED + ", ".join(f"{check} ({k}/{n})" for check, k in unjudged.items()) if unjudged else "")
 
 
 def out_of_range(validity: str | None) -> bool:
@@ -1226,15 +1243,21 @@ def zero_pull_slip(rows: list[dict]) -> dict:
     )
     verdicts = [row1.get("validity"), row2.get("validity")]
     failed = [
-        f"slip {row.get('slip_set', x):.3g}: {row['validity'][len(OUT_OF_RANGE) :]}"
+        f"slip {row.get('slip_set', x):.3g}: {row['validity'].split(NOT_JUDGED)[0][len(OUT_OF_RANGE) :]}"
         for row, x in ((row1, s1), (row2, s2))
         if out_of_range(row.get("validity"))
     ]
+    unjudged = [
+        f"slip {row.get('slip_set', x):.3g}: {row['validity'].split(NOT_JUDGED)[1]}"
+        for row, x in ((row1, s1), (row2, s2))
+        if isinstance(row.get("validity"), str) and NOT_JUDGED in row["validity"]
+    ]
+    said = NOT_JUDGED + "; ".join(unjudged) if unjudged else ""  # after every failed row: never read as one
     if failed:
-        out["validity"] = OUT_OF_RANGE + "; ".join(failed)
+        out["validity"] = OUT_OF_RANGE + "; ".join(failed) + said
         out["note"] += "; a row it is interpolated from is out of range"
-    elif all(v == VALID for v in verdicts):
-        out["validity"] = VALID
+    elif all(isinstance(v, str) and v.split(NOT_JUDGED)[0] == VALID for v in verdicts):
+        out["validity"] = VALID + said
     return out
 
 
@@ -1312,9 +1335,10 @@ def _slip_report(
 
     def validity(row) -> str:
         verdict = row.get("validity")
-        if not out_of_range(verdict):
+        if not out_of_range(verdict) and NOT_JUDGED not in (verdict or ""):
             return verdict or "- (no run finished)"
-        return f"out of range [{notes.setdefault(verdict, len(notes) + 1)}]"
+        said = "out of range" if out_of_range(verdict) else verdict.split(NOT_JUDGED)[0]
+        return f"{said} [{notes.setdefault(verdict, len(notes) + 1)}]"
 
     def averaged(row) -> str:
         return "" if row["averaged"] == row["steady"] else f" ({row['averaged']} averaged)"
@@ -1335,7 +1359,9 @@ def _slip_report(
     for verdict, number in notes.items():
         lines.append(f"  [{number}] {verdict}")
     if notes:
-        lines.append("      (k/n): failed by k of the n replicas that finished; each one's run.json says why")
+        lines.append(
+            "      (k/n): failed (or not judged) by k of the n replicas that finished; each one's run.json says why"
+        )
     if crossing["slip"] is None:
         lines.append(f"  {crossing['note']}")
     else:
@@ -1345,6 +1371,8 @@ def _slip_report(
         lines.append(f"  DP/W = 0 (self-propelled) at slip {crossing['slip']:.3g}{interval}, {crossing['note']}")
         if out_of_range(crossing["validity"]):
             lines.append(f"  ! the self-propelled slip is {crossing['validity']}")
+        elif NOT_JUDGED in (crossing["validity"] or ""):
+            lines.append(f"  the self-propelled slip is {crossing['validity']}")
     report["text"] = "\n".join(lines)
     report["ok"] = all(row["steady"] == row["replicas"] for row in rows)
     if plot:

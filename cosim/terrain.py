@@ -45,6 +45,10 @@ def slip_ratio(v_forward: float, rim_speed: float, v_eps: float) -> float:
 # --- the terrain --------------------------------------------------------------------
 
 
+WRENCH_SAMPLES = 8
+"""The analytic terrain's default wrench samples per macro step (its `substeps`) [-]."""
+
+
 class SpringDamperTerrain(SoilSideDefaults):
     """Flat analytic ground with a spring-damper normal law and a friction/traction law.
 
@@ -70,7 +74,7 @@ class SpringDamperTerrain(SoilSideDefaults):
         slip_velocity: float = 1.0e-3,
         z0: float = 0.0,
         axis_local: Sequence[float] = (0.0, 1.0, 0.0),
-        substeps: int = 8,
+        substeps: int = WRENCH_SAMPLES,
         time: float = 0.0,
     ):
         if traction not in ("coulomb", "slip"):

@@ -10,14 +10,19 @@ is centred on the rover body.
 
 Output by the suffix of `out`: .mp4 (ffmpeg: the one imageio-ffmpeg ships, else one on PATH),
 .gif (Pillow), .png (one frame: the last, or `frame`), or a folder (one PNG per snapshot). It
-draws with matplotlib's Agg backend: no display and no GPU needed.
+draws with matplotlib's Agg backend: no display and no GPU needed. Every output is whole or absent: a
+file is drawn under a temporary name and renamed, a folder of frames is drawn in FOLDER.drawing-* beside
+it and then takes its place (a view stopped midway leaves the former frames as they were).
 """
 
 from __future__ import annotations
 
+import logging
 import os
 import re
 import shutil
+import tempfile
+from contextlib import contextmanager
 
 import numpy as np
 
@@ -29,6 +34,8 @@ from .output import check_results, open_results
 from .plots import save_figure
 from .single_wheel import PHASE_DRIVING
 from .snapshots import Displacements, Snapshot, read_snapshot, read_whole, snapshot_count
+
+log = logging.getLogger(__name__)
 
 COLOURS = ("speed", "displacement")
 """What the grains can be coloured by."""
@@ -276,11 +283,10 @@ def render(
     kind = _output_kind(out)
     if frame is not None and kind != ".png":  # a movie or a folder of frames draws every snapshot
         raise ViewError(f"--frame {frame}: picks the snapshot of a .png picture; --out {out!r} draws every one")
-    old_frames = _free_output(out, kind, overwrite or os.path.abspath(out) == own)
-    # damage named before anything is touched: a picture or movie is written whole at the end, so the grains'
-    # datasets are left to read_snapshot (everything else is read through); a folder of frames loses its old
-    # frames as the new ones come, so every byte is read
-    check_results(path, data=kind == "frames")
+    _free_output(out, kind, overwrite or os.path.abspath(out) == own)
+    # damage named before anything is drawn; every output is written whole at the end, so the grains'
+    # datasets are left to read_snapshot (everything else is read through)
+    check_results(path, data=False)
     with open_results(path) as f:
         count = snapshot_count(f)
         if count == 0:
@@ -299,10 +305,8 @@ def render(
         view = _Frame(fig, scene)
         displacements = Displacements()
         writer = _movie_writer(kind, out, fps) if kind in MOVIE_SUFFIXES else None
-        # a picture's or movie's folder is made by atomic_path (and removed again when it fails)
-        made = make_folders(out) if kind == "frames" else []
-        for name in old_frames:  # a shorter run's view must not keep the longer one's last frames
-            os.remove(os.path.join(out, name))
+        # a picture's or movie's folder is made by atomic_path, a folder of frames' by _whole_folder (each
+        # removed again when the view fails)
         try:
             if kind == ".png":
                 chosen = (frame if frame is not None else -1) % count
@@ -311,11 +315,12 @@ def render(
                     values = scene.values(s, displacements)
                 view.draw(s, values)
                 save_figure(fig, out, dpi)
-            elif kind == "frames":
-                for k in range(count):
-                    s = read_snapshot(f, k)
-                    view.draw(s, scene.values(s, displacements))
-                    save_figure(fig, os.path.join(out, f"frame_{k:04d}.png"), dpi)
+            elif kind == "frames":  # a shorter run's view keeps none of a longer one's last frames
+                with _whole_folder(out) as drawing:
+                    for k in range(count):
+                        s = read_snapshot(f, k)
+                        view.draw(s, scene.values(s, displacements))
+                        save_figure(fig, os.path.join(drawing, f"frame_{k:04d}.png"), dpi)
             else:
                 assert writer is not None  # a movie's kind
                 with atomic_path(out, suffix=kind) as partial, writer.saving(fig, partial, dpi):
@@ -323,30 +328,72 @@ def render(
                         s = read_snapshot(f, k)
                         view.draw(s, scene.values(s, displacements))
                         writer.grab_frame()
-        except BaseException:
-            remove_empty_folders(made)  # a folder of frames this view made and wrote nothing into
-            raise
         finally:
             plt.close(fig)
     return out
 
 
-def _free_output(out: str, kind: str, replace: bool) -> list[str]:
+@contextmanager
+def _whole_folder(out: str):
+    """Yield a new folder beside `out` (OUT.drawing-*) to draw a set of frames into; on success it takes
+    `out`'s place (the former folder moved aside first, then its frames removed), on any error it is
+    removed and `out` is left as it was (a view killed midway leaves the former set whole, and at most its
+    OUT.drawing-* folder beside it). `out` a link to a folder: that folder is replaced, the link stays."""
+    target = os.path.realpath(out)
+    parent, name = os.path.split(target)
+    made = make_folders(parent)
+    drawing = former = None
+    try:
+        try:
+            drawing = tempfile.mkdtemp(prefix=f"{name}.drawing-", dir=parent)
+        except OSError as error:
+            raise OSError(
+                error.errno, f"the frames are drawn beside it first, and its folder {parent} refuses a new one", out
+            ) from error
+        mask = os.umask(0)
+        os.umask(mask)
+        os.chmod(drawing, 0o777 & ~mask)  # a normally made folder's permissions (mkdtemp's 0700 would hide it)
+        yield drawing
+        if os.path.lexists(target):  # moved aside, not removed first: no moment without a whole set
+            former = tempfile.mkdtemp(prefix=f"{name}.former-", dir=parent)
+            os.rename(target, former)  # onto an empty folder: allowed
+        os.rename(drawing, target)
+    except BaseException:
+        if former is not None and not os.path.lexists(target):  # stopped between the two renames
+            os.rename(former, target)
+        if drawing is not None:
+            shutil.rmtree(drawing, ignore_errors=True)
+        remove_empty_folders(made)
+        raise
+    if former is not None:  # the former frames; a file put there while the view drew is kept, and said
+        for entry in os.listdir(former):
+            if FRAME_NAME.fullmatch(entry):
+                os.remove(os.path.join(former, entry))
+        try:
+            os.rmdir(former)
+        except OSError:
+            log.warning("%s: files put there while the view drew were kept in %s", out, former)
+
+
+def _free_output(out: str, kind: str, replace: bool) -> None:
     """Refuse an `out` that view must not write (before anything is drawn): a folder where a file goes, a
     file where a folder of frames goes, a folder that holds other files than frames, and without `replace`
-    one that exists (OutputExistsError). Returns the old frames of a folder of frames to remove."""
+    one that exists (OutputExistsError)."""
     from .folders import OutputExistsError
 
     if not os.path.lexists(out):
-        return []
+        return
     if kind != "frames":
         if os.path.isdir(out):
             raise ViewError(f"--out {out!r} is a folder; a {kind} picture is a file: give a file name")
         if not replace:
             raise OutputExistsError(f"--out {out!r} exists; pass --overwrite to replace it")
-        return []
+        return
     if not os.path.isdir(out):
         raise ViewError(f"--out {out!r} is a file; frames go into a folder: give a new or empty folder")
+    here, target = os.path.realpath(os.getcwd()), os.path.realpath(out)
+    if os.path.commonpath([here, target]) == target:  # the set takes the folder's place: not the one we stand in
+        raise ViewError(f"--out {out!r} is the working folder or holds it; give a folder of frames of its own")
     names = sorted(os.listdir(out))
     foreign = [n for n in names if not FRAME_NAME.fullmatch(n)]
     if foreign:
@@ -356,7 +403,6 @@ def _free_output(out: str, kind: str, replace: bool) -> list[str]:
         )
     if names and not replace:
         raise OutputExistsError(f"--out {out!r} holds {len(names)} frames; pass --overwrite to replace them")
-    return names
 
 
 def _movie_writer(kind: str, out: str, fps: int):

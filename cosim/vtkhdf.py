@@ -202,11 +202,12 @@ def _wall_faces(kind: int, geometry: np.ndarray, lower: np.ndarray, upper: np.nd
     return np.array([[centre + a * u + b * v for a, b in quad]])
 
 
-def write_vtkhdf(results_path, vtkhdf_path=None) -> str:
+def write_vtkhdf(results_path, vtkhdf_path=None, replace: bool = True) -> str:
     """Write the VTKHDF file of a results.h5 (default: results.vtkhdf beside it); returns its path.
 
     Written to a temporary file and renamed: a reader never sees half a file, and a failed export
-    leaves the previous one."""
+    leaves the previous one. replace False: a file at `vtkhdf_path` (one that appeared while the export
+    ran) is kept, the export written beside it (FileExistsError naming both: soil.files.place_new)."""
     results_path = os.fspath(results_path)
     if os.path.isdir(results_path):
         results_path = os.path.join(results_path, RESULTS_FILE)
@@ -218,7 +219,7 @@ def write_vtkhdf(results_path, vtkhdf_path=None) -> str:
         count = snapshot_count(f)
         if count == 0:
             raise ArgumentError(f"{results_path} holds no particle snapshots: nothing to export")
-        with atomic_path(target, ".vtkhdf.tmp") as temporary:
+        with atomic_path(target, ".vtkhdf.tmp", replace=replace) as temporary:
             _write(f, count, temporary)
     return target
 

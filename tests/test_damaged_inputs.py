@@ -1059,3 +1059,25 @@ def test_an_output_that_appeared_while_it_was_made_is_kept_and_so_is_the_work(tm
     assert (
         read_calibration(str(tmp_path / "terrain.new-3.toml")).parameters == read_calibration(str(shipped)).parameters
     )
+
+
+def test_a_scale_twin_keeps_a_file_that_appeared_while_it_was_made(tmp_path, monkeypatch, capsys):
+    """`cosim scale --out FILE` looked that FILE was free, then replaced whatever appeared there before its
+    write (another process's twin, gone). Without --overwrite the file that appeared is kept and the twin
+    written beside it, both named (exit 5); with --overwrite it is replaced, as asked."""
+    import tomli_w
+
+    scene, out = write_tiny(tmp_path), tmp_path / "twin.toml"
+    dumps = tomli_w.dumps
+
+    def another_process_writes_first(data, **kwargs):
+        out.write_text("another twin")
+        return dumps(data, **kwargs)
+
+    monkeypatch.setattr(tomli_w, "dumps", another_process_writes_first)
+    assert main(["scale", scene, "--gravity", "earth", "--out", str(out)]) == 5
+    err = capsys.readouterr().err
+    assert out.read_text() == "another twin" and "twin.new.toml" in err and str(out) in err
+    assert "|g| x" in (tmp_path / "twin.new.toml").read_text()  # the twin, kept
+    assert main(["scale", scene, "--gravity", "earth", "--out", str(out), "--overwrite"]) == 0
+    assert "|g| x" in out.read_text()

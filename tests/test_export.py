@@ -181,6 +181,58 @@ def test_vtk_xdmf_reader_reads_every_step_without_messages(run, vtk_messages):
     assert vtk_messages() == ""
 
 
+def test_the_xdmf_of_a_run_without_grains_opens_in_vtk_and_meshio(tmp_path, vtk_messages, capfd):
+    """An SCM or analytic run has no grains: its results.xdmf held an empty grain collection, which VTK's
+    XDMF reader refused ("Error in Update() of Topology") and meshio's time series reader took for the run
+    (0 points). It holds the wheels and the rover only: VTK reads both without a message, meshio the
+    rover's pose over time (the last collection)."""
+    meshio = pytest.importorskip("meshio")
+    run = tmp_path / "scm"
+    made_up_results(run, 0, 3)
+    snapshots = _snapshots(run)
+    reader = vtk.vtkXdmfReader()
+    reader.SetFileName(str(run / "results.xdmf"))
+    reader.UpdateInformation()
+    times = reader.GetOutputInformation(0).Get(vtk.vtkStreamingDemandDrivenPipeline.TIME_STEPS())
+    assert len(times) == len(snapshots) == 3
+    reader.UpdateTimeStep(times[-1])
+    blocks = _blocks(reader.GetOutputDataObject(0))
+    assert set(blocks) == {"wheels", "rover"}
+    assert blocks["wheels"].GetNumberOfPoints() == len(snapshots[-1].wheel_vertices)
+    assert vtk_messages() == ""
+    with meshio.xdmf.TimeSeriesReader(str(run / "results.xdmf")) as series:
+        points, _ = series.read_points_cells()
+        assert series.num_steps == 3 and points.shape == (1, 3)
+        _, point_data, _ = series.read_data(2)
+        assert set(point_data) == {"forward [1]", "up [1]"}
+    assert capfd.readouterr().err == ""
+
+
+def test_an_export_keeps_a_file_that_appeared_while_it_was_written(tmp_path, monkeypatch):
+    """`cosim export vtkhdf RUN --out FILE` without --overwrite looked that FILE was free, then replaced
+    what appeared there while it wrote; now that file is kept and the export written beside it, both
+    named (FileExistsError); the run's own results.vtkhdf is made again as before."""
+    import h5py
+
+    import cosim.vtkhdf
+
+    run, out = tmp_path / "run", tmp_path / "export.vtkhdf"
+    made_up_results(run, 300, 2)
+    write = cosim.vtkhdf._write
+
+    def another_process_writes_first(f, count, temporary):
+        out.write_bytes(b"another export")
+        write(f, count, temporary)
+
+    monkeypatch.setattr(cosim.vtkhdf, "_write", another_process_writes_first)
+    with pytest.raises(FileExistsError, match="export.new.vtkhdf") as info:
+        write_vtkhdf(run / "results.h5", out, replace=False)
+    assert info.value.filename == str(out) and out.read_bytes() == b"another export"
+    with h5py.File(tmp_path / "export.new.vtkhdf", "r") as f:
+        assert "VTKHDF" in f
+    assert write_vtkhdf(run / "results.h5", out) == str(out) and out.read_bytes() != b"another export"
+
+
 def test_vtkhdf_round_trip(run, vtk_messages):
     """vtkHDFReader reads every snapshot of results.vtkhdf: grains, wheels, rover and walls, the positions,
     velocities and radii those of results.h5."""
@@ -279,6 +331,84 @@ def test_view_writes_a_movie_and_frames_of_a_moving_patch(tmp_path, capsys):
     assert main(["view", str(shorter), "--out", str(movie), "--dpi", "30", "--overwrite"]) == 0
     assert movie.read_bytes() != before[movie.name]
     assert not [p for p in [*tmp_path.iterdir(), *frames.iterdir()] if p.name.startswith("tmp")]  # no temporaries
+
+
+def test_view_stopped_midway_leaves_the_former_frames_whole(tmp_path, monkeypatch, capsys):
+    """`cosim view RUN --out FRAMES --overwrite` removed the former frames first and drew the new ones in
+    their place: stopped midway (Ctrl-C, kill -9) it left part of a set with nothing saying so. The new
+    set is drawn beside (FRAMES.drawing-*) and takes the folder's place once whole: at every moment of
+    the drawing FRAMES holds the former set, and a view stopped midway leaves it and nothing else."""
+    from cosim import view
+
+    longer, shorter, frames = tmp_path / "longer", tmp_path / "shorter", tmp_path / "frames"
+    made_up_results(longer, 300, 4, ragged=True)
+    made_up_results(shorter, 300, 3, ragged=True)
+    assert main(["view", str(longer), "--out", str(frames), "--dpi", "20"]) == 0
+    former = {p.name: p.read_bytes() for p in frames.iterdir()}
+    assert len(former) == 4
+    save = view.save_figure
+    drawn = []
+
+    def stopped_at_the_third(fig, path, dpi):
+        assert {p.name: p.read_bytes() for p in frames.iterdir()} == former  # a kill here: the former set
+        if len(drawn) == 2:
+            raise KeyboardInterrupt
+        save(fig, path, dpi)
+        drawn.append(path)
+
+    monkeypatch.setattr(view, "save_figure", stopped_at_the_third)
+    assert main(["view", str(shorter), "--out", str(frames), "--dpi", "20", "--overwrite"]) == 130
+    assert all(os.path.dirname(p) != str(frames) for p in drawn)  # drawn elsewhere
+    assert {p.name: p.read_bytes() for p in frames.iterdir()} == former
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["frames", "longer", "shorter"]  # no drawing left
+    monkeypatch.setattr(view, "save_figure", save)
+    assert main(["view", str(shorter), "--out", str(frames), "--dpi", "20", "--overwrite"]) == 0
+    assert sorted(os.listdir(frames)) == [f"frame_{k:04d}.png" for k in range(3)]
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["frames", "longer", "shorter"]
+    assert oct(frames.stat().st_mode & 0o777) == oct(0o777 & ~_umask())  # a folder as any other
+    # a link to a folder of frames: the folder it names is drawn again, the link stays
+    link = tmp_path / "link"
+    link.symlink_to(frames, target_is_directory=True)
+    assert main(["view", str(longer), "--out", str(link), "--dpi", "20", "--overwrite"]) == 0
+    assert link.is_symlink() and len(os.listdir(frames)) == 4
+    link.unlink()
+    former = {p.name: p.read_bytes() for p in frames.iterdir()}
+    # stopped between moving the former set aside and putting the new one in its place: the former is put back
+    rename = os.rename
+
+    def stopped_between(source, target):
+        rename(source, target)
+        if ".former-" in str(target):
+            raise KeyboardInterrupt
+
+    monkeypatch.setattr(os, "rename", stopped_between)
+    assert main(["view", str(shorter), "--out", str(frames), "--dpi", "20", "--overwrite"]) == 130
+    monkeypatch.setattr(os, "rename", rename)
+    assert {p.name: p.read_bytes() for p in frames.iterdir()} == former
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["frames", "longer", "shorter"]
+    # a file put into the folder while the view drew is not removed with the former frames: kept, and said
+
+    def a_note_arrives(fig, path, dpi):
+        (frames / "notes.txt").write_text("mine")
+        save(fig, path, dpi)
+
+    monkeypatch.setattr(view, "save_figure", a_note_arrives)
+    assert main(["view", str(shorter), "--out", str(frames), "--dpi", "20", "--overwrite"]) == 0
+    kept = [p for p in tmp_path.iterdir() if ".former-" in p.name]
+    assert len(kept) == 1 and os.listdir(kept[0]) == ["notes.txt"] and kept[0].name in capsys.readouterr().err
+    assert sorted(os.listdir(frames)) == [f"frame_{k:04d}.png" for k in range(3)]
+    # the working folder (or one above it) is never taken for a folder of frames: it would be moved away
+    monkeypatch.chdir(frames)
+    for out in (".", str(tmp_path)):
+        assert main(["view", str(shorter), "--out", out, "--dpi", "20", "--overwrite"]) == 2
+        assert "is the working folder or holds it" in capsys.readouterr().err
+    assert os.getcwd() == str(frames) and len(os.listdir(frames)) == 3
+
+
+def _umask() -> int:
+    mask = os.umask(0)
+    os.umask(mask)
+    return mask
 
 
 def test_view_without_ffmpeg_writes_a_gif_and_says_what_an_mp4_needs(tmp_path, monkeypatch, capsys):

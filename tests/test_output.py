@@ -380,7 +380,8 @@ def test_xdmf_kept_by_the_writer_equals_one_written_afresh(tmp_path, monkeypatch
 def test_every_json_file_of_a_run_is_strict_json(tiny_run, tmp_path):
     """run.json (and summary.json, study.json, ensemble.json, bed.json: one writer) held Python's NaN
     for what was not measured: no JSON, so jq, JavaScript's JSON.parse and strict parsers refused the
-    whole file. A non-finite number is now null; numpy numbers and arrays are plain JSON."""
+    whole file. A non-finite number is now null; numpy numbers and arrays are plain JSON. The summary
+    results.h5 holds is strict JSON too (it held NaN where run.json holds null)."""
     import math
 
     from cosim.beds import write_json
@@ -389,13 +390,33 @@ def test_every_json_file_of_a_run_is_strict_json(tiny_run, tmp_path):
         return json.loads(text, parse_constant=lambda name: pytest.fail(f"{name} is no JSON"))
 
     info = strict((tiny_run / "run.json").read_text())
-    with open_results(tiny_run / "results.h5") as f:  # the same summary, as the results file holds it
-        held = json.loads(f.attrs["summary"])
-    for key, value in held.items():  # null exactly where the summary is not finite (a short run's s.e.)
-        if isinstance(value, float) and not math.isfinite(value):
-            assert info["summary"][key] is None, key
-        elif isinstance(value, (int, float)):
+    with open_results(tiny_run / "results.h5") as f:  # the same summary, as the results file holds it: strict too
+        held = strict(f.attrs["summary"])
+    for key, value in held.items():  # null exactly where run.json's is
+        if value is None or isinstance(value, (int, float)):
             assert info["summary"][key] == value, key
+    import shutil
+
+    from cosim.output import ResultsWriter
+
+    copy = tmp_path / "results.h5"  # a summary with what a run does not measure (a constant speed's correlation)
+    shutil.copy(tiny_run / "results.h5", copy)
+    ResultsWriter(copy, xdmf=False).mark("complete", summary={"slip": 0.1, "forward_speed_correlation_time": math.nan})
+    with open_results(copy) as f:
+        assert strict(f.attrs["summary"]) == {"slip": 0.1, "forward_speed_correlation_time": None}
+    # and what reads it takes null as not measured: `cosim plot` of a run without a window (its [nan, nan])
+    # and of a steady one whose slip was not measured (a TypeError, exit 1, once they were null)
+    from cosim.plots import plot_output
+
+    for name, summary in (
+        ("no_window", {"steady_state": "no landing", "window": [math.nan, math.nan]}),
+        ("no_slip", {"steady_state": "steady", "window": [0.1, 0.2], "slip": math.nan, "drawbar_pull": 0.0}),
+    ):
+        (tmp_path / "runs" / name).mkdir(parents=True)
+        shutil.copy(copy, tmp_path / "runs" / name / "results.h5")
+        ResultsWriter(tmp_path / "runs" / name / "results.h5", xdmf=False).mark("complete", summary=summary)
+        assert plot_output(str(tmp_path / "runs" / name))
+    assert plot_output(str(tmp_path / "runs"))  # both: the slip against drawbar pull scatter too
     path = tmp_path / "summary.json"
     write_json(str(path), {"k": math.nan, "n": np.float32(np.inf), "rows": [np.array([1.0, np.nan])], "i": np.int64(3)})
     assert strict(path.read_text()) == {"k": None, "n": None, "rows": [[1.0, None]], "i": 3}

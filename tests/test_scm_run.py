@@ -4,6 +4,7 @@ carries its load at Bekker's sinkage, a resume bit for bit, a heterogeneous rove
 DEM, the others on SCM) and its resume bit for bit, and bad [terrain] keys refused by name."""
 
 import math
+import re
 
 import h5py
 import numpy as np
@@ -95,6 +96,62 @@ def test_view_of_an_scm_run_says_it_has_no_grains(scm_run, tmp_path):
     with pytest.raises(InputError, match=r"results.h5: no grains to draw .*cosim plot RUN"):
         render(str(run), str(tmp_path / "view.mp4"))
     assert not (tmp_path / "view.mp4").exists()
+
+
+def test_an_scm_run_records_the_steps_it_took_not_its_beds_grains(scm_run, tmp_path):
+    """An SCM run's `dt` and `substeps` (results.h5's attributes, the summary, the progress bar) were the
+    DEM step its bed's grains would take (here 1.4e-4 s, 12 a macro step) next to SCM's own steps in
+    /soil (one a macro step): the file contradicted itself. They are SCM's: each macro step in equal
+    steps of at most terrain.time_step, as /soil counts them."""
+    import json
+
+    def recorded(run):
+        with h5py.File(run / "results.h5", "r") as f:
+            attrs = dict(f.attrs)
+            steps, dt_mean = f["soil/dem_steps"][()], f["soil/dt_mean"][()]
+        summary = json.loads(attrs["summary"])
+        assert np.all(steps == attrs["substeps"]), (set(steps), attrs["substeps"])
+        np.testing.assert_allclose(dt_mean, attrs["dt"], rtol=1e-9)
+        assert summary["dt"] == attrs["dt"] and attrs["dt"] * attrs["substeps"] == pytest.approx(attrs["macro_step"])
+        return attrs
+
+    run, _ = scm_run
+    assert recorded(run)["substeps"] == 1  # time_step unset: the macro step
+    finer = tmp_path / "finer"
+    plan = load_plan(write_tiny(tmp_path, SCM), SMOOTH)
+    time_step = plan.macro_step / 2.5  # three equal steps a macro step
+    run_scene(write_tiny(tmp_path, SCM), str(finer), overrides=["run.duration=0.05", f"terrain.time_step={time_step}"])
+    attrs = recorded(finer)
+    assert attrs["substeps"] == 3 and attrs["dt"] == pytest.approx(plan.macro_step / 3)
+    assert plan.dt != pytest.approx(attrs["dt"])  # the bed's grains' step, which no SCM run takes
+
+
+def test_resume_of_an_scm_run_points_to_error_bars_over_beds(scm_run, tmp_path, capsys):
+    """`cosim resume` of a finished SCM run pointed to `--replicas 5` over summation orders, which
+    `cosim run` refuses for SCM (it sums in one order: an error bar of 0); it says what `cosim run` says."""
+    import shutil
+
+    from cosim.cli import main
+
+    run = shutil.copytree(scm_run[0], tmp_path / "run")
+    summary = read_series(run / "results.h5")["attrs"]["summary"]
+    assert '"steady_state": "steady"' in summary  # the hint is given for a steady run
+    assert main(["resume", str(run), "--no-progress"]) == 0
+    out = capsys.readouterr().out
+    assert "error bars: cosim run SCENE --replicas 3 --vary-bed" in out and "--replicas 5" not in out
+
+
+def test_the_progress_bar_counts_the_landing_and_gives_scms_step(tmp_path, capsys):
+    """The bar read 'landing: 0/N macro steps' through the whole landing (N the drive's steps) and gave
+    the bed's DEM step and '0 particle-steps/s' for SCM: it counts the landing's steps against the most
+    it may take, then the drive's, with the step SCM takes."""
+    plan = load_plan(write_tiny(tmp_path, SCM), SMOOTH)
+    run_scene(write_tiny(tmp_path, SCM), str(tmp_path / "run"), progress=True, overrides=SMOOTH)
+    bar = capsys.readouterr().err.replace("\r", "\n")
+    landed = [int(n) for n in re.findall(rf"landing \(ends at rest\): (\d+)/{plan.landing.max_steps} macro", bar)]
+    driven = [int(n) for n in re.findall(rf"driving: (\d+)/{plan.drive_steps} macro", bar)]
+    assert max(landed) > 0 and max(driven) == plan.drive_steps, (landed[-3:], driven[-3:])
+    assert f"dt {plan.macro_step:.3g} s" in bar and "particle-steps" not in bar
 
 
 def test_the_wheel_carries_its_load_at_bekkers_sinkage(scm_run):

@@ -735,6 +735,26 @@ def test_export_fmu_command_from_a_run_folder(tmp_path):
     assert float(description.defaultExperiment.stepSize) == pytest.approx(macro_step, rel=1e-12)
 
 
+def test_an_fmu_export_keeps_a_file_that_appeared_while_it_was_made(tiny, frontends, tmp_path, monkeypatch):
+    """`cosim export-fmu --out FILE` without --overwrite (replace=False) looked that FILE was free, then
+    replaced what appeared there while the FMU was made; now that file is kept and the FMU written beside
+    it, both named (FileExistsError)."""
+    from cosim.soil_fmu import build
+
+    out = tmp_path / "soil.fmu"
+    describe = build.model_description
+
+    def another_process_writes_first(*args, **kwargs):
+        out.write_bytes(b"another FMU")
+        return describe(*args, **kwargs)
+
+    monkeypatch.setattr(build, "model_description", another_process_writes_first)
+    with pytest.raises(FileExistsError, match="soil.new.fmu") as info:
+        export_soil_fmu(tiny["config"], out, library=frontends[2], replace=False)
+    assert info.value.filename == str(out) and out.read_bytes() == b"another FMU"
+    assert validate_fmu(str(tmp_path / "soil.new.fmu")) == []
+
+
 def test_export_fmu_warns_of_a_server_python_that_is_no_executable_here(tiny, frontends, tmp_path, caplog):
     """--python may name a Python of the machine that will run the FMU, so it is not refused; one that is
     no executable file here (/etc/passwd, a typo) is said at export, not found at the FMU's first start."""

@@ -844,6 +844,65 @@ def test_the_self_propelled_slip_between_valid_rows_is_valid():
     assert zero_pull_slip([low, high])["validity"] is None  # rows that give no verdict
 
 
+def test_a_check_a_run_could_not_judge_is_named_in_its_row_and_the_self_propelled_slip(tmp_path):
+    """A run that measured nothing to judge a check on (a wheel that never landed: summary `not_judged`,
+    its verdict 'valid; not judged: ...') read plain 'valid' in a study's rows, table and crossing: the
+    study claimed a check its run never made. Each row names such checks with how many runs could not
+    judge them, beside its failed ones."""
+    import csv
+
+    from cosim.study import ensemble_validity, run_validity, slip_study_from_runs, zero_pull_slip
+
+    with open(write_tiny(tmp_path)) as f:
+        text = f.read()
+
+    def record(pull, slip, failed, unjudged):
+        findings = [
+            {"check": c, "ok": c not in failed, "value": 1.0, "limit": 1.0, "message": c, "setting": "x"}
+            for c in ("scm_slip", "scm_froude")
+        ]
+        summary = {"steady_state": "steady", "dp_over_w": pull, "slip": slip, "findings": findings}
+        if unjudged:
+            summary["not_judged"] = unjudged
+        return {"status": "complete", "summary": summary}
+
+    runs = {  # slip, replica: DP/W, failed checks, checks not judged
+        (0.2, 0): (-0.05, [], ["scm_sinkage_grains"]),
+        (0.2, 1): (-0.04, [], []),
+        (0.4, 0): (0.03, ["scm_slip"], ["scm_sinkage_grains", "scm_grousers"]),
+        (0.4, 1): (0.05, [], []),
+    }
+    for (slip, k), (pull, failed, unjudged) in runs.items():
+        run = tmp_path / "runs" / f"slip_{slip:+.3f}" / f"replica_{k:03d}"
+        run.mkdir(parents=True)
+        (run / "scene.toml").write_text(text)
+        (run / "run.json").write_text(json.dumps(record(pull, slip, failed, unjudged)))
+    report = slip_study_from_runs([str(tmp_path / "runs")], str(tmp_path / "table"), plot=False)
+    rows = {row["slip_set"]: row["validity"] for row in report["rows"]}
+    assert rows[0.2] == "valid; not judged: scm_sinkage_grains (1/2)"
+    assert rows[0.4] == "out of range: scm_slip (1/2); not judged: scm_sinkage_grains (1/2), scm_grousers (1/2)"
+    assert report["zero_pull_slip_validity"] == (
+        "out of range: slip 0.4: scm_slip (1/2); not judged: slip 0.2: scm_sinkage_grains (1/2); "
+        "slip 0.4: scm_sinkage_grains (1/2), scm_grousers (1/2)"
+    )
+    assert "valid [1]" in report["text"] and f"[1] {rows[0.2]}" in report["text"]
+    with open(tmp_path / "table" / "study.csv", newline="") as f:
+        assert {r["validity"] for r in csv.DictReader(f)} == set(rows.values())
+    # one run alone, and a crossing between rows that failed nothing but could not judge a check
+    one = {"ok": True, "summary": record(-0.05, 0.2, [], ["scm_sinkage_grains"])["summary"]}
+    assert run_validity(one) == "valid; not judged: scm_sinkage_grains"
+    assert ensemble_validity([one, {**one, "summary": {**one["summary"], "not_judged": []}}]) == rows[0.2]
+    low, high = _slip_row(0.2, [-0.03]), _slip_row(0.4, [0.05])
+    crossing = zero_pull_slip([{**low, "validity": rows[0.2]}, {**high, "validity": "valid"}])
+    assert crossing["validity"] == "valid; not judged: slip 0.2: scm_sinkage_grains (1/2)"
+    # both rows failed a check, one could not judge another: each failure named, then what was not judged
+    failed_low = {**low, "validity": "out of range: scm_froude (1/1); not judged: scm_grousers (1/1)"}
+    crossing = zero_pull_slip([failed_low, {**high, "validity": "out of range: scm_slip (1/1)"}])
+    assert crossing["validity"] == (
+        "out of range: slip 0.2: scm_froude (1/1); slip 0.4: scm_slip (1/1); not judged: slip 0.2: scm_grousers (1/1)"
+    )
+
+
 def test_replicas_and_a_precision_study_on_a_terrain_without_checks_say_not_checked(tmp_path, capsys):
     """On the analytic terrain (no validity checks: each run.json says "not checked") `cosim run --replicas 2`
     writes its replicas' verdict to ensemble.json, ensemble.csv and its printed table, and a precision study

@@ -13,7 +13,7 @@ from cosim.plan import load_plan
 from cosim.scene import SceneError
 from cosim.single_wheel import PHASE_DRIVING
 from cosim.system import CoupledSystem
-from cosim.terrain import SpringDamperTerrain
+from cosim.terrain import WRENCH_SAMPLES, SpringDamperTerrain
 from helpers import assert_checkpoint_units, write_tiny
 
 STIFFNESS = 500.0
@@ -93,6 +93,10 @@ def test_the_wheel_rests_on_the_analytic_terrain_as_its_closed_form_says(analyti
     assert np.all(series["contact_count"][driving, 0] == 1)
     assert np.all(series["soil_particle_count"] == 0) and np.all(series["soil_dem_steps"] == 0)
     assert len(series["snapshot_time"]) >= 2
+    # its step is its wrench samples' (each macro step in WRENCH_SAMPLES), not the bed's grains' DEM step
+    plan = load_plan(run / "scene.toml")
+    assert attrs["substeps"] == WRENCH_SAMPLES and attrs["dt"] == pytest.approx(plan.macro_step / WRENCH_SAMPLES)
+    assert attrs["dt"] != pytest.approx(plan.dt)
 
 
 def test_an_analytic_run_resumes_to_the_uninterrupted_result(analytic_run, tmp_path):
@@ -132,6 +136,12 @@ def test_a_rover_scene_runs_on_the_analytic_terrain(tmp_path):
     # (the body still rocks on its four springs: each wheel's share moves, their sum does not)
     np.testing.assert_allclose(series["normal_force"][driving].sum(axis=1), weight, rtol=2e-2)
     np.testing.assert_allclose(2000.0 * series["sinkage"][driving].sum(axis=1).mean(), weight, rtol=2e-2)
+    # each wheel's travel is its own hub's advance since the drive started (it was measured from the body's
+    # centre: the front wheels started 0.2 m ahead, the rear ones 0.2 m behind)
+    with h5py.File(tmp_path / "run" / "results.h5", "r") as f:
+        travel, hubs = f["wheels/travel"][()], f["wheels/position"][()]
+    start = np.argmax(driving) - 1  # the last landing row: where the drive started
+    np.testing.assert_allclose(travel[driving], hubs[driving, :, 0] - hubs[start, :, 0], atol=1e-5)
 
 
 def test_a_mujoco_rover_that_becomes_unstable_stops_the_run_as_diverged(tmp_path, capsys, monkeypatch):

@@ -503,6 +503,7 @@ def export_soil_fmu(
     python: str | None = None,
     library=None,
     compiler: str = "gcc",
+    replace: bool = True,
 ) -> Path:
     """Write the soil FMU of `config` (a cosim.soil_fmu.SoilFmuConfig) to `destination` (.fmu).
 
@@ -511,6 +512,8 @@ def export_soil_fmu(
     default Python (default config.python, else this Python; an FMU user overrides it with the
     `python` parameter or REGOLITH_SOIL_PYTHON).
     library: a front end already compiled by build_frontend for this FMI version (else compiled now).
+    replace False: a file at `destination` (one that appeared while the FMU was made) is kept, the FMU
+    written beside it (FileExistsError naming both: soil.files.place_new).
     Returns the FMU's path.
     """
     import json
@@ -551,7 +554,7 @@ def export_soil_fmu(
     with tempfile.TemporaryDirectory(prefix="soil_fmu_") as folder:
         if library is None:
             library = build_frontend(fmi_version, folder, compiler)
-        with atomic_path(destination, ".fmu.tmp") as temporary:
+        with atomic_path(destination, ".fmu.tmp", replace=replace) as temporary:
             with zipfile.ZipFile(temporary, "w", zipfile.ZIP_DEFLATED) as fmu:
                 fmu.writestr(
                     "modelDescription.xml",
