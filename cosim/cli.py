@@ -24,13 +24,15 @@ Warp's own messages only with --verbose.
 Exit status:
     0    done (a run: a steady-state result)
     1    an unexpected error (a bug: please report it with the traceback --verbose prints), or a failure
-         that is not the input's (a model refused a step, a tool is missing: the message names it)
+         that is not the input's (a model refused a step, a tool is missing: the message names it; a run
+         of replicas, a sweep or a study one of whose runs failed or diverged: its table says which)
     2    bad input, and only that: a scene, an argument, a bed file, a mesh, an FMU or a run to view,
          export or resume (the message names it)
     3    the output folder holds a run (pass --overwrite) or is in use by another process
     4    the simulation diverged (the message says where and what to change)
     5    an operating-system error: a path that cannot be written or read, a full disk
-    6    the run finished without a steady-state result (the summary says why: airborne, stuck, ...)
+    6    the run finished without a steady-state result (the summary says why: airborne, stuck, ...);
+         replicas, a sweep or a study, when one of its runs did (or had not finished: --from-runs)
     130  interrupted by Ctrl-C (`cosim resume OUT` continues)
     143  stopped by SIGTERM (a batch scheduler, `docker stop`): checkpointed, `cosim resume OUT` continues
 """
@@ -106,7 +108,7 @@ def cmd_run(args) -> int:
             plan, out, args.replicas, overwrite=args.overwrite, batched=args.batched, vary=vary, **_executor(args)
         )
         print(report["text"])
-        return EXIT_OK if report["ok"] else EXIT_UNSTEADY
+        return _study_exit(report["results"])
     if args.vary_bed:
         from soil.errors import ArgumentError
 
@@ -518,7 +520,7 @@ def cmd_study(args) -> int:
         )
         failed = sum(1 for r in report["replicas"] if not r.get("ok"))
         print(f"study written to {out} ({failed} failed replica(s))")
-        return EXIT_OK if failed == 0 else EXIT_ERROR
+        return _study_exit(report["replicas"])
     if args.kind == "slip":
         from .scene import parse_list
 
@@ -528,7 +530,7 @@ def cmd_study(args) -> int:
                 args.from_runs, out, overwrite=args.overwrite, include_sinking=args.include_sinking
             )
             print(report["text"])
-            return EXIT_OK if report["ok"] else EXIT_UNSTEADY
+            return _study_exit(report["runs"])
         slips = parse_list(args.slips, "--slips")
         report = study.slip_study(
             plan,
@@ -541,7 +543,7 @@ def cmd_study(args) -> int:
             **_executor(args),
         )
         print(report["text"])
-        return EXIT_OK if report["ok"] else EXIT_UNSTEADY
+        return _study_exit(report["runs"])
     out = args.out or os.path.join("runs", f"{plan.name}_timestep")
     report = study.timestep_study(plan, out, duration=args.duration, max_tries=args.max_tries, overwrite=args.overwrite)
     return EXIT_OK if report.get("largest_stable") else EXIT_ERROR
@@ -563,15 +565,29 @@ def cmd_sweep(args) -> int:
     failed = sum(1 for r in rows if not r.get("ok"))
     steady = sum(1 for r in rows if r.get("status") == "complete")
     invalid = [r for r in rows if study.out_of_range(r.get("validity"))]
+    unjudged = [
+        r for r in rows if not study.out_of_range(r.get("validity")) and study.NOT_JUDGED in (r["validity"] or "")
+    ]
     print(f"sweep written to {out} ({failed} failed, {len(rows) - failed - steady} not steady of {len(rows)} points)")
-    if invalid:
-        print(f"  {len(invalid)} of {len(rows)} points out of range (each run.json says why):")
-    for row in invalid:  # a result printed says whether its scene was valid
-        point = ", ".join(f"{key}={row.get(key)}" for key in report["grid"])
-        print(f"  ! {point}: {row['validity']}")
-    if failed:
+    for marked, said, mark in ((invalid, "out of range", "!"), (unjudged, "not judged on every check", "-")):
+        if marked:
+            print(f"  {len(marked)} of {len(rows)} points {said} (each run.json says why):")
+        for row in marked:  # a result printed says whether its scene was valid
+            point = ", ".join(f"{key}={row.get(key)}" for key in report["grid"])
+            print(f"  {mark} {point}: {row['validity']}")
+    return _study_exit(report["runs"])
+
+
+def _study_exit(results: list[dict]) -> int:
+    """The exit status of a study's or an ensemble's runs: 1 when one failed (diverged or raised: it gives
+    no result), else 6 when one finished without a steady state or did not finish (a slip study's runs
+    tabulated while some still run; its table says which), else 0."""
+    from .study import failed_run
+
+    if any(map(failed_run, results)):
         return EXIT_ERROR
-    return EXIT_OK if steady else EXIT_UNSTEADY  # as a slip study: no steady point, no result to trust
+    steady = all((r.get("summary") or {}).get("steady_state") == "steady" for r in results)
+    return EXIT_OK if steady else EXIT_UNSTEADY
 
 
 def cmd_scale(args) -> int:
@@ -1019,8 +1035,8 @@ def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="cosim",
         description="regolith-cosim: DEM soil co-simulated with rovers",
-        epilog="exit status: 0 ok, 1 unexpected error, 2 bad input, 3 output folder "
-        "not free, 4 diverged, 5 OS error, 6 no steady-state result, "
+        epilog="exit status: 0 ok, 1 unexpected error (or a study's run failed), 2 bad input, 3 output folder "
+        "not free, 4 diverged, 5 OS error, 6 no steady-state result (of a run, or of one of a study's), "
         "130 interrupted, 143 stopped by SIGTERM",
     )
     parser.add_argument("--verbose", "-v", action="store_true", help="debug log lines, Warp's messages, tracebacks")

@@ -794,7 +794,8 @@ def _scm_macro_step(terrain: TerrainPlan, wheels, testbed, rover, g: float, grav
     omega = math.sqrt(0.1 * g / outer) if g > 0 else math.nan
     if testbed is not None:
         load = testbed.mass * g
-        speed = abs(testbed.omega) * max(outer, wheels[0].rim_radius * (1.0 - testbed.slip))
+        slip = testbed.slip if testbed.mode == "slip" else 0.0  # a free carriage's slip emerges: not read
+        speed = abs(testbed.omega) * max(outer, wheels[0].rim_radius * (1.0 - slip))
     elif rover is not None:
         load = rover.mass * g * (-gravity[2] / g if g > 0 else 1.0) / len(wheels)
         fixed = _wheel_speeds(rover.drive.section, len(wheels))

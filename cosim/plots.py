@@ -312,10 +312,12 @@ def plot_slip_curve(out_dir: str, rows: list[dict], dpi: int = 120) -> str:
     return path
 
 
-def plot_table(rows: list[dict], keys: list[str]) -> str:
-    """A plain-text table (studies print it)."""
-    widths = [max(len(k), *(len(_fmt(r.get(k))) for r in rows)) for k in keys]
-    lines = ["  ".join(k.ljust(w) for k, w in zip(keys, widths)), "  ".join("-" * w for w in widths)]
+def plot_table(rows: list[dict], keys: list[str], units: dict[str, str] | None = None) -> str:
+    """A plain-text table (studies print it); `units`: each column's unit, named in its header as the
+    study's CSV names it ('slip [1]')."""
+    names = [f"{k} [{units[k]}]" if units and k in units else k for k in keys]
+    widths = [max(len(n), *(len(_fmt(r.get(k))) for r in rows)) for n, k in zip(names, keys)]
+    lines = ["  ".join(n.ljust(w) for n, w in zip(names, widths)), "  ".join("-" * w for w in widths)]
     for r in rows:
         lines.append("  ".join(_fmt(r.get(k)).ljust(w) for k, w in zip(keys, widths)))
     return "\n".join(lines)

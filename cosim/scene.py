@@ -417,6 +417,14 @@ class TestbedSection(_Section):
     start_x: float | None = None
     """Initial hub x [m]; default: wheel outer radius + 6 grain radii from the x = 0 wall."""
 
+    def unused_keys(self) -> dict[str, str]:
+        """{key: why it changes nothing} of the keys this mode does not read (a sweep over one of them
+        runs the same scene at every point)."""
+        if self.mode == "free":
+            return {"testbed.slip": "testbed.mode is 'free': the slip emerges (set testbed.mode = \"slip\")"}
+        why = "testbed.mode is 'slip': the carriage is driven at the set slip, no force resists it"
+        return {"testbed.drawbar_load": why, "testbed.drawbar_ramp": why}
+
 
 class DriveSection(_Section):
     """How the wheels are driven after the landing (cosim.controllers, cosim.fmu_controller)."""

@@ -58,6 +58,7 @@ from soil.files import atomic_write_text
 from . import advice, metrics
 from .beds import BED_FILE, BED_INFO_FILE, settled_bed, settling_cost, write_json
 from .folders import RunFolder
+from .launch import FINISHED
 from .plan import MAX_PHASE_STEPS, RunPlan, resolve
 
 if TYPE_CHECKING:  # dask is imported when a study runs on it
@@ -664,6 +665,16 @@ def _tolerances(plan: RunPlan) -> dict[str, float]:
     }
 
 
+COUNT_UNITS = {"replicas": "count", "steady": "count", "averaged": "count", "failed": "count"}
+"""The unit of a study row's counts of runs."""
+
+
+def failed_run(result: dict) -> bool:
+    """Whether a study's run failed: it raised (run_task's 'failed') or diverged (a run.json's status),
+    and gives no result; a run still running or interrupted has not failed (it has not finished)."""
+    return not result.get("ok") and result.get("status") in ("failed", "diverged")
+
+
 VALID = "valid"
 """The verdict of a run, row or ensemble whose runs passed every validity check (cosim.advice.verdict)."""
 OUT_OF_RANGE = "out of range: "
@@ -991,6 +1002,11 @@ def precision_study(
                     "failed": sum(1 for r in members if not r.get("ok")),
                     "validity": stats["validity"],
                     **_flat(stats),
+                    **{  # the paper's question, as the printed table answers it (None: under two replicas)
+                        f"{m}_deterministic": row.get("deterministic") if row.get("n", 0) >= 2 else None
+                        for m, row in stats["metrics"].items()
+                        if m != "wall_time"
+                    },
                     "stats": stats,
                 }
             )
@@ -1008,9 +1024,11 @@ def precision_study(
         keys = ["precision", "replicas", "steady", "failed", "validity"] + [
             f"{m}_{k}" for m in ("wall_time",) + metrics.REPLICA_METRICS for k in ("mean", "std", "ci95", "min", "max")
         ]
-        report["units"] = {**column_units(keys, METRIC_UNITS), "wall_time": "s"}  # the rows' columns
+        keys += [f"{m}_deterministic" for m in metrics.REPLICA_METRICS]
+        units = {**METRIC_UNITS, **COUNT_UNITS}
+        report["units"] = {**column_units(keys, units), "wall_time": "s"}  # the rows' columns
         write_json(os.path.join(out_dir, "study.json"), report)
-        _write_csv(os.path.join(out_dir, "study.csv"), rows, keys, METRIC_UNITS)
+        _write_csv(os.path.join(out_dir, "study.csv"), rows, keys, units)
         for row in rows:
             log.info("%s", _ensemble_text(row["stats"], f"precision {row['precision']}"))
         if plot:
@@ -1153,7 +1171,9 @@ def slip_study_from_runs(
         text = f.read()
     plan = resolve(scene_from_text(text, base_dir=os.path.dirname(first)))
     results = [
-        {"label": os.path.relpath(path, out_dir), "out_dir": path, "ok": "summary" in record, **record}
+        # a run that did not finish (running, interrupted: its summary is of part of the drive) or diverged
+        # gives no result; a diverged or failed one is counted as failed
+        {"label": os.path.relpath(path, out_dir), "out_dir": path, **record, "ok": record.get("status") in FINISHED}
         for _, path, record in found
     ]
     slips = sorted({slip for slip, _, _ in found})
@@ -1286,6 +1306,7 @@ def _slip_report(
                 "replicas": stats["replicas"],
                 "steady": stats["steady"],
                 "averaged": stats["averaged"],
+                "failed": sum(1 for r in members if failed_run(r)),
                 "validity": stats["validity"],
                 **_flat(stats),
                 "stats": stats,
@@ -1311,14 +1332,15 @@ def _slip_report(
     report["zero_pull_slip"], report["zero_pull_slip_ci95"] = crossing["slip"], crossing["ci95"]
     report["zero_pull_slip_between"], report["zero_pull_slip_note"] = crossing["between"], crossing["note"]
     report["zero_pull_slip_validity"] = crossing["validity"]
-    keys = ["slip_set", "replicas", "steady", "averaged", "validity"] + [
+    keys = ["slip_set", "replicas", "steady", "averaged", "failed", "validity"] + [
         f"{m}_{k}"
         for m in ("slip", "drawbar_pull", "dp_over_w", "driving_torque", "sinkage", "sinkage_tips")
         for k in ("mean", "std", "ci95")
     ]
-    units = {**METRIC_UNITS, "slip_set": "1", "replicas": "count", "steady": "count", "averaged": "count"}
+    units = {**METRIC_UNITS, **COUNT_UNITS, "slip_set": "1"}
+    columns = list(dict.fromkeys(key for row in rows for key in row if key != "stats"))  # study.json's, all
     report["units"] = {
-        **column_units(keys, units),
+        **column_units(columns, units),
         "wheel_load": "N",
         "zero_pull_slip": "1",
         "zero_pull_slip_ci95": "1",
@@ -1341,7 +1363,8 @@ def _slip_report(
         return f"{said} [{notes.setdefault(verdict, len(notes) + 1)}]"
 
     def averaged(row) -> str:
-        return "" if row["averaged"] == row["steady"] else f" ({row['averaged']} averaged)"
+        said = "" if row["averaged"] == row["steady"] else f" ({row['averaged']} averaged)"
+        return said + (f" ({row['failed']} failed)" if row.get("failed") else "")  # a row of another kind's: none
 
     for row in rows:
 
@@ -1463,6 +1486,12 @@ def sweep(
             problems += [f"point {point}: {p}" for p in error.problems]
     if problems:
         raise SceneError(problems)
+    for key in grid:  # a key no point reads: every run the same scene (the sweep's rows told no difference)
+        unused = [p.scene.testbed.unused_keys().get(key) if p.scene.testbed is not None else None for p in plans]
+        if all(unused):
+            problems.append(f"--param {key}: no point of the sweep reads it ({unused[0]})")
+    if problems:
+        raise SceneError(problems)
     out_dir = os.path.abspath(out_dir)
     tasks_run = Executor(executor, scheduler, workers)  # refused before the folder is made
     with prepare_study(out_dir, overwrite):
@@ -1535,7 +1564,7 @@ def sweep(
         report = {"kind": "sweep", "grid": grid, "rows": rows, "runs": results, "scene_toml": text}
         report["units"] = column_units(keys, units)
         write_json(os.path.join(out_dir, "study.json"), report)
-        log.info("%s", plot_table(rows, keys))
+        log.info("%s", plot_table(rows, keys, report["units"]))
         _write_csv(os.path.join(out_dir, "study.csv"), rows, keys, units)
         for r in rows:
             if r.get("error"):
@@ -1661,7 +1690,14 @@ def timestep_study(
                 ("scene_dt", "duration", "largest_stable", "first_unstable", "recommended", "tried.dt", "advisor"), "s"
             ),
         }
+        if largest is not None and first_bad is None:  # the tries ended before one exploded
+            report["note"] = (
+                f"no try was unstable ({len(tries)} of --max-tries): the largest stable step is at least "
+                f"{largest:.4g} s (not found), and the recommended one is half of that bound; --max-tries for more"
+            )
         write_json(os.path.join(out_dir, "study.json"), report)
+        if "note" in report:
+            log.warning("%s", report["note"])
         if largest is None:
             log.error(
                 "no stable step found in %d tries down to %.4g s: the scene is unstable at any step tried; check "

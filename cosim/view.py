@@ -338,7 +338,8 @@ def _whole_folder(out: str):
     """Yield a new folder beside `out` (OUT.drawing-*) to draw a set of frames into; on success it takes
     `out`'s place (the former folder moved aside first, then its frames removed), on any error it is
     removed and `out` is left as it was (a view killed midway leaves the former set whole, and at most its
-    OUT.drawing-* folder beside it). `out` a link to a folder: that folder is replaced, the link stays."""
+    OUT.drawing-* folder beside it; killed in the instant between the two renames, the former set is
+    whole in OUT.former-*). `out` a link to a folder: that folder is replaced, the link stays."""
     target = os.path.realpath(out)
     parent, name = os.path.split(target)
     made = make_folders(parent)
@@ -361,6 +362,8 @@ def _whole_folder(out: str):
     except BaseException:
         if former is not None and not os.path.lexists(target):  # stopped between the two renames
             os.rename(former, target)
+        elif former is not None and os.path.isdir(former) and not os.listdir(former):  # the first one failed
+            os.rmdir(former)
         if drawing is not None:
             shutil.rmtree(drawing, ignore_errors=True)
         remove_empty_folders(made)

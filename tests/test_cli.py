@@ -529,10 +529,11 @@ def test_study_precision_on_a_local_cluster(tmp_path, tiny_bed):
                 "run.duration=0.03",
             ]
         )
-        == 0
+        == 6  # 0.03 s of driving: no replica steady (it was exit 0)
     )
     report = json.loads((out / "study.json").read_text())
     assert [r["precision"] for r in report["rows"]] == ["single", "double"]
+    assert all(r["steady"] < r["replicas"] for r in report["rows"])
     assert report["units"]["sinkage_mean"] == "m" and report["units"]["drawbar_pull_ci95"] == "N"
     assert set(report["units"]) >= {k for k in report["rows"][0] if k.endswith(("_mean", "_ci95"))}
     assert all(r["replicas"] == 2 and r["failed"] == 0 for r in report["rows"])
@@ -564,8 +565,8 @@ def test_sweep_validates_every_point_first(tmp_path, tiny_bed, capsys):
             "--serial",
         ]
     )
-    # 0.01 s runs are not steady: the table is written, and exit 6 (no steady-state result, as a slip
-    # study's) says that none of its values is a result to trust (it was exit 0)
+    # 0.01 s runs are not steady: the table is written, and exit 6 (a run without a steady-state result,
+    # as a slip study's) says that not every value is a result to trust (it was exit 0)
     assert code == 6
     assert "(0 failed, 2 not steady of 2 points)" in capsys.readouterr().out
     report = json.loads((out / "study.json").read_text())
@@ -587,6 +588,19 @@ def test_sweep_validates_every_point_first(tmp_path, tiny_bed, capsys):
     assert (point / "results.h5").is_file() and (point / "run.json").is_file()
     assert main(["sweep", scene, "--param", "testbed.omega=0.5", "--set", "testbed.omega=0.7", *common]) == 2
     assert "--set testbed.omega: also swept by --param" in capsys.readouterr().err
+    # a key no point reads is refused: the imposed slip of a free carriage (the two points ran bit for bit
+    # the same scene, two identical rows), the drawbar load of a driven one; read where the mode uses it
+    unused = tmp_path / "unused"
+    common = ["--set", "run.duration=0.01", "--out", str(unused), "--serial"]
+    for param, mode, why in (
+        ("testbed.slip=0.1,0.3", "free", "testbed.mode is 'free': the slip emerges"),
+        ("testbed.drawbar_load=0.0,0.1", "slip", "testbed.mode is 'slip'"),
+        ("testbed.drawbar_ramp=0.0,0.1", "slip", "testbed.mode is 'slip'"),
+    ):
+        assert main(["sweep", scene, "--param", param, "--set", f'testbed.mode="{mode}"', *common]) == 2, param
+        assert f"--param {param.split('=')[0]}: no point of the sweep reads it ({why}" in capsys.readouterr().err
+        assert not unused.exists()
+    assert main(["sweep", scene, "--param", "testbed.mode=free,slip", "--set", "testbed.slip=0.2", *common]) == 6
 
 
 def test_a_failed_task_is_reported_and_the_others_finish(tmp_path, tiny_bed):

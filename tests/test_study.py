@@ -332,6 +332,11 @@ def test_dask_and_batched_ensembles_match_serial_runs(scene_path, tiny_bed, tmp_
             assert json.loads(f.attrs["bed"])["path"] == serial["bed_file"]
     header = (tmp_path / "serial" / "study.csv").read_text().splitlines()[0]
     assert "slip_mean [1]" in header and "sinkage_std [m]" in header
+    # the counts carry theirs, and the paper's question per metric is a column as in the printed table
+    assert "replicas [count],steady [count],failed [count]" in header and "sinkage_deterministic" in header
+    for row in serial["rows"]:
+        sinkage = row["stats"]["metrics"]["sinkage"]
+        assert row["sinkage_deterministic"] == (sinkage["deterministic"] if sinkage["n"] >= 2 else None)
 
 
 @pytest.mark.parametrize(
@@ -370,6 +375,10 @@ def test_timestep_study_ends_with_an_answer_in_bounded_tries(scene_path, tiny_be
         assert report["largest_stable"] < report["first_unstable"]
         assert report["tried"][-1]["stable"] is False
     assert json.loads((tmp_path / "ts" / "study.json").read_text())["kind"] == "timestep"
+    # tries that end before one explodes found a lower bound, not the largest stable step: said so
+    bound = timestep_study(_plan(scene_path, tiny_bed), str(tmp_path / "one"), duration=0.02, max_tries=1)
+    assert bound["first_unstable"] is None and bound["largest_stable"] == pytest.approx(bound["scene_dt"])
+    assert "no try was unstable (1 of --max-tries): the largest stable step is at least" in bound["note"]
 
 
 def test_a_jolt_beeman_scene_carries_the_wheel_and_resumes_bitwise(scene_path, tiny_bed, baseline, tmp_path):
@@ -781,6 +790,7 @@ def test_a_sweeps_points_carry_the_validity_of_their_runs(tmp_path, capsys):
     with open(out / "study.csv", newline="") as f:
         assert {float(r["testbed.slip [1]"]): r["validity"] for r in csv.DictReader(f)} == expected
     table = captured.out + captured.err  # the table is logged, the closing lines printed
+    assert re.search(r"^testbed\.slip \[1\] +ok +status +validity +steady_state +slip \[1\]", table, re.M), table
     assert re.search(r"^0\.3 .* valid ", table, re.M) and re.search(
         rf"^0\.8 .* {re.escape(expected[0.8])} ", table, re.M
     )
@@ -901,6 +911,90 @@ def test_a_check_a_run_could_not_judge_is_named_in_its_row_and_the_self_propelle
     assert crossing["validity"] == (
         "out of range: slip 0.2: scm_froude (1/1); slip 0.4: scm_slip (1/1); not judged: slip 0.2: scm_grousers (1/1)"
     )
+
+
+def test_a_slip_studys_json_gives_every_numbers_unit_and_its_table_the_failed_runs(tmp_path):
+    """study.json's rows held 32 numbers without a unit (each metric's min and max, the landing's, the
+    travel's, the wall time's), and a slip whose runs all failed read as one whose runs were unsteady
+    (no `failed` column); tabulated from run folders, a diverged or interrupted run's summary (of part of
+    its drive) was averaged as a result. Every number of a row has its unit, the failed runs are
+    counted, and only finished runs are averaged."""
+    import csv
+
+    from cosim.study import slip_study_from_runs
+
+    with open(write_tiny(tmp_path)) as f:
+        text = f.read()
+    summary = {
+        "steady_state": "steady",
+        "dp_over_w": -0.05,
+        "slip": 0.2,
+        "sinkage": 0.004,
+        "wall_time": 3.0,
+        "travel": 0.01,
+        "landing_sinkage": 0.003,
+        "forward_speed": 0.001,
+        "findings": [],
+    }
+    for slip, k, record in (
+        (0.2, 0, {"status": "complete", "summary": summary}),
+        (0.2, 1, {"status": "complete", "summary": {**summary, "dp_over_w": -0.04}}),
+        # a diverged run's and an interrupted one's summaries are of part of a drive: no result; the first failed
+        (0.4, 0, {"status": "diverged", "summary": {**summary, "slip": 0.4}}),
+        (0.4, 1, {"status": "interrupted", "summary": {**summary, "slip": 0.4}}),
+    ):
+        run = tmp_path / "runs" / f"slip_{slip:+.3f}" / f"replica_{k:03d}"
+        run.mkdir(parents=True)
+        (run / "scene.toml").write_text(text)
+        (run / "run.json").write_text(json.dumps(record))
+    report = slip_study_from_runs([str(tmp_path / "runs")], str(tmp_path / "table"), plot=False)
+    numbers = {key for row in report["rows"] for key, value in row.items() if isinstance(value, (int, float))}
+    assert {"sinkage_min", "travel_max", "landing_sinkage_mean", "wall_time_std"} <= numbers
+    assert numbers <= set(report["units"]), sorted(numbers - set(report["units"]))
+    assert [row["failed"] for row in report["rows"]] == [0, 1] and report["units"]["failed"] == "count"
+    assert [row["steady"] for row in report["rows"]] == [2, 0]  # the part-drive summaries were averaged
+    with open(tmp_path / "table" / "study.csv", newline="") as f:
+        assert [r["failed [count]"] for r in csv.DictReader(f)] == ["0", "1"]
+    assert "0/2   (1 failed)" in report["text"]
+
+
+def test_a_study_exits_1_when_a_run_failed_and_6_when_one_was_not_steady(tmp_path, monkeypatch, capsys):
+    """A sweep said 0 with one of its points unsteady (6 only when none was steady) and a precision study
+    said 0 with no steady replica at all; replicas and a slip study said 6 for a failed run. Each now says
+    1 when a run failed (no result), else 6 when a run finished unsteady (its table says which), else 0."""
+    from cosim import study
+    from cosim.cli import main
+
+    steady = {"ok": True, "status": "complete", "summary": {"steady_state": "steady"}}
+    short = {"ok": True, "status": "unsteady", "summary": {"steady_state": "too short"}}
+    failed = {"ok": False, "status": "failed", "error": "RunDiverged"}
+    scene = write_tiny(tmp_path)
+    for runs, expected in (([steady, steady], 0), ([steady, short], 6), ([short, failed], 1)):
+        rows = [{"ok": r["ok"], "status": r["status"], "validity": None} for r in runs]
+        monkeypatch.setattr(
+            study, "sweep", lambda *a, runs=runs, rows=rows, **k: {"rows": rows, "runs": runs, "grid": {}}
+        )
+        assert main(["sweep", scene, "--param", "testbed.omega=0.5,0.7", "--out", str(tmp_path / "s")]) == expected
+        monkeypatch.setattr(study, "precision_study", lambda *a, runs=runs, **k: {"replicas": runs})
+        assert main(["study", "precision", scene, "--out", str(tmp_path / "p")]) == expected
+        monkeypatch.setattr(study, "slip_study", lambda *a, runs=runs, **k: {"runs": runs, "text": ""})
+        assert main(["study", "slip", scene, "--slips", "0.1,0.2", "--out", str(tmp_path / "l")]) == expected
+        monkeypatch.setattr(study, "replica_run", lambda *a, runs=runs, **k: {"results": runs, "text": ""})
+        assert main(["run", scene, "--replicas", "2", "--out", str(tmp_path / "r")]) == expected
+    capsys.readouterr()
+    # a sweep's point that could not judge a check is listed, as one out of range is
+    rows = [
+        {"ok": True, "status": "complete", "validity": "valid; not judged: scm_grousers", "testbed.omega": 0.5},
+        {"ok": True, "status": "complete", "validity": "out of range: froude", "testbed.omega": 0.7},
+    ]
+    grid = {"testbed.omega": [0.5, 0.7]}
+    monkeypatch.setattr(study, "sweep", lambda *a, **k: {"rows": rows, "runs": [steady, steady], "grid": grid})
+    assert main(["sweep", scene, "--param", "testbed.omega=0.5,0.7", "--out", str(tmp_path / "s")]) == 0
+    lines = capsys.readouterr().out.splitlines()
+    assert "  1 of 2 points out of range (each run.json says why):" in lines
+    assert "  ! testbed.omega=0.7: out of range: froude" in lines
+    assert "  1 of 2 points not judged on every check (each run.json says why):" in lines
+    assert "  - testbed.omega=0.5: valid; not judged: scm_grousers" in lines
 
 
 def test_replicas_and_a_precision_study_on_a_terrain_without_checks_say_not_checked(tmp_path, capsys):
