@@ -183,6 +183,11 @@ def check(
     smallest = spec.radius_min
     depth_now = surface_height if surface_height is not None else spec.depth
     speed = math.sqrt(2 * g * max(depth_now, smallest)) + rim_speed
+    # a grain's fall through the bed plus the rims' speed; before settling, through the fill height (higher)
+    fall = (
+        f": a fall through {'the settled bed' if surface_height is not None else 'the fill height'} "
+        f"{depth_now:.3g} m plus the rims' {rim_speed:.3g} m/s"
+    )
     contact = advisor.hertz_contact_time(
         material.youngs_modulus, material.poisson_ratio, material.density, smallest, max(speed, 1e-12)
     )
@@ -204,8 +209,9 @@ def check(
                 steps,
                 CONTACT_STEPS,
                 steps >= CONTACT_STEPS,
-                f"{steps:.3g} {step_name} per contact time ({contact:.3g} s at {speed:.3g} m/s)",
-                f"only {steps:.3g} {step_name} per contact time ({contact:.3g} s): contacts are under-resolved; "
+                f"{steps:.3g} {step_name} per contact time ({contact:.3g} s at {speed:.3g} m/s{fall})",
+                f"only {steps:.3g} {step_name} per contact time ({contact:.3g} s at {speed:.3g} m/s{fall}): contacts "
+                "are under-resolved; "
                 f"lower {dt_key} so the step is <= {contact / CONTACT_STEPS:.3g} s",
                 dt_key,
             )
@@ -230,6 +236,16 @@ def check(
     wheel = largest
     depth = surface_height if surface_height is not None else spec.depth
     estimated = "" if surface_height is not None else " (fill height; the settled bed is lower)"
+    # bed.depth is the fill height: the settled bed is the measured fraction of it (before settling, unknown:
+    # the fill is judged as it is, and named as such)
+    settled_fraction = surface_height / spec.depth if surface_height is not None and spec.depth > 0 else 1.0
+    settled = settled_fraction > 0 and surface_height is not None  # a bed settled to nothing: no fraction to take
+    settled_fraction = settled_fraction if settled else 1.0
+    fill = (
+        f"bed.depth (the fill height: the bed settles to {settled_fraction:.2g} x it here)"
+        if settled
+        else "bed.depth (the fill height; the bed settles lower, which the run judges)"
+    )
     radii = depth / wheel.outer_radius
     findings.append(
         _finding(
@@ -239,14 +255,14 @@ def check(
             radii >= DEPTH_RADII,
             f"bed depth {depth:.3g} m = {radii:.3g} wheel radii{estimated}",
             f"the bed is {depth:.3g} m deep{estimated}, {radii:.3g} wheel radii: the floor carries part of the "
-            f"wheel's load; deepen bed.depth to >= {DEPTH_RADII * wheel.outer_radius / 0.85:.3g} m",
+            f"wheel's load; deepen {fill} to >= {DEPTH_RADII * wheel.outer_radius / settled_fraction:.3g} m",
             "bed.depth",
         )
     )
 
     sink = max(sinkage_tips or 0.0, 0.0)
     clearance = (depth - sink) / diameter
-    when = f"at the measured tip sinkage {sink:.3g} m" if sinkage_tips is not None else "at the start"
+    when = f"at the measured tip sinkage {sink:.3g} m" if sinkage_tips is not None else f"at the start{estimated}"
     findings.append(
         _finding(
             "floor_clearance",
@@ -255,7 +271,7 @@ def check(
             clearance >= FLOOR_GRAINS,
             f"{clearance:.3g} grain diameters between the grouser tips and the floor {when}",
             f"only {clearance:.3g} grain diameters between the grouser tips and the floor {when}: the wheel feels the "
-            "floor; deepen bed.depth",
+            f"floor; deepen {fill} to >= {(FLOOR_GRAINS * diameter + sink) / settled_fraction:.3g} m",
             "bed.depth",
         )
     )
@@ -303,7 +319,8 @@ def check(
             1.0,
             ratio >= 1.0,
             f"E = {material.youngs_modulus:.3g} Pa is {ratio:.3g} x the eq. 10 bound {bound:.3g} Pa (overlaps <= "
-            f"{OVERLAP_RATIO} r under the wheel's {pressure:.3g} Pa)",
+            f"{OVERLAP_RATIO} r under the wheel's {pressure:.3g} Pa; z_h = {depth:.3g} m"
+            + (", the fill height: the settled bed is lower)" if estimated else ", the settled bed)"),
             f"E = {material.youngs_modulus:.3g} Pa is below the eq. 10 bound {bound:.3g} Pa: overlaps exceed "
             f"{OVERLAP_RATIO} r under the wheel; raise soil.youngs_modulus",
             "soil.youngs_modulus",

@@ -387,7 +387,16 @@ def _dem_advice(plan) -> list[str]:
         f"  recommended dt range       {steps.dt_min:.4g} .. {steps.dt_max:.4g} s  (critical step "
         f"{steps.critical_step:.4g} s)",
         f"  the scene uses dt = {plan.dt:.4g} s, macro step H = {plan.macro_step:.4g} s ({plan.substeps} substeps); "
-        + ("dt is within the advised limit" if plan.dt <= steps.dt_max else "dt is ABOVE the advised limit"),
+        + (
+            "dt is within the advised stability limit"
+            if plan.dt <= steps.dt_max
+            else "dt is ABOVE the advised stability limit"
+        )
+        + (
+            " (the check contact_steps below judges how finely it resolves an impact, the rims' speed included)"
+            if plan.step_control != "pid"
+            else " (the PID's substeps, not dt, are what the soil takes: the next line)"
+        ),
     ]
     if plan.step_control == "pid":  # the PID's substeps, not dt, are what the soil takes
         longest = plan.dt_max if plan.dt_max is not None else steps.dt_max

@@ -568,7 +568,16 @@ def resolve(scene: Scene) -> RunPlan:
     wheel = _wheel(scene, soil_material.youngs_modulus)
     rover = scene.rover
     if rover is not None:
-        names = probe.rover_wheel_names(scene)
+        names: list[str] | None
+        try:
+            names = probe.rover_wheel_names(scene)
+        except SceneError as error:  # an FMU rover that cannot be read: its drive is checked and named with it
+            problems += error.problems
+            names = None
+            if rover.wheel_count:
+                _check_drive(scene, (wheel,) * rover.wheel_count, None, problems)
+            else:  # the wheels are the FMU's to say: the controller opened for any count
+                probe.probe_drive(scene, rover.drive_section, _drive_key(scene), None, problems)
         shapes = rover.wheel_shape or {}
         unknown = sorted(set(shapes) - set(names or []))
         if names is not None and unknown:
@@ -928,6 +937,13 @@ def _testbed(scene: Scene, wheel: WheelPlan, problems: list[str], walls: bool = 
 # rovers
 
 
+def _drive_key(scene: Scene) -> str:
+    """The scene key of the rover's drive: its named controller's section, or [rover.drive]."""
+    assert scene.rover is not None
+    drive = scene.rover.drive
+    return f"rover.controllers.{drive}" if isinstance(drive, str) else "rover.drive"
+
+
 def _check_drive(
     scene: Scene, wheels: tuple[WheelPlan, ...], layout: probe.RoverLayout | None, problems: list[str]
 ) -> DrivePlan:
@@ -936,7 +952,7 @@ def _check_drive(
     assert rover is not None
     section = rover.drive_section
     name = rover.drive if isinstance(rover.drive, str) else section.kind
-    key = f"rover.controllers.{name}" if isinstance(rover.drive, str) else "rover.drive"
+    key = _drive_key(scene)
     n = len(wheels)
     file = None
     for value_key in ("speed", "torque"):

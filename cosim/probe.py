@@ -158,7 +158,9 @@ def probe_rover(scene: Scene, source: str, names: list[str], gravity, problems: 
     return _inspect_mjcf(source, names, rover.body, heading, gravity, "rover.file", problems)
 
 
-def probe_drive(scene: Scene, section: DriveSection, key: str, wheel_count: int, problems: list[str]) -> str | None:
+def probe_drive(
+    scene: Scene, section: DriveSection, key: str, wheel_count: int | None, problems: list[str]
+) -> str | None:
     """Open a drive's controller as a run would (an FMU instantiated, a Python callable imported), problems
     named under the scene key `key` appended to `problems`; the wheel command kind an FMU controller gives
     ('speed' or 'torque'; None for other drives or when it cannot be opened)."""

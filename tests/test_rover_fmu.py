@@ -269,3 +269,28 @@ def test_a_file_that_is_not_a_rover_fmu_is_a_clear_error(tmp_path, fmus, case, m
         words = "Failed to load shared library"
     assert str(path) in str(info.value) and words in str(info.value), str(info.value)
     assert set(os.listdir(tempfile.gettempdir())) - before == set()
+
+
+def test_a_missing_rover_fmu_and_a_missing_controller_fmu_are_named_together(tmp_path):
+    """The FMU example's scene without its FMUs built named only the rover's file; the run then failed again
+    on the slip controller's. Every missing file is named at once."""
+    from pathlib import Path
+
+    from cosim.plan import load_plan
+    from cosim.scene import SceneError
+
+    example = Path(__file__).resolve().parent.parent / "examples" / "fmu_rover.toml"
+    rover, controller = tmp_path / "rover.fmu", tmp_path / "controller.fmu"
+    overrides = [f'rover.file="{rover}"', f'rover.controllers.fmu_slip.file="{controller}"']
+    with pytest.raises(SceneError) as error:
+        load_plan(example, overrides)
+    said = "\n".join(error.value.problems)
+    assert f"rover.file: {rover}: FMU file not found" in said
+    assert f"rover.controllers.fmu_slip.file: {controller}: FMU file not found" in said
+    # a rover whose FMU names its wheels (no rover.wheel_count): the controller is opened for any count
+    text = example.read_text().replace("wheel_count = 4\n", "")
+    scene = tmp_path / "no_count.toml"
+    scene.write_text(text)
+    with pytest.raises(SceneError) as error:
+        load_plan(scene, overrides)
+    assert f"rover.controllers.fmu_slip.file: {controller}: FMU file not found" in "\n".join(error.value.problems)

@@ -71,6 +71,37 @@ def test_the_floor_is_judged_under_the_deepest_wheel():
     assert found["floor_clearance"].value == pytest.approx((0.07 - max(tips)) / diameter, rel=1e-12)
 
 
+def test_a_shallow_settled_bed_is_told_the_fill_height_that_makes_it_deep_enough():
+    """The rover example fills its bed to 0.07 m, which settles to 0.044 m here: 0.785 wheel radii after
+    the run, and the run said "deepen bed.depth to >= 0.0659 m", less than the 0.07 m it already had
+    (bed.depth is the fill height; the advice assumed a bed settles to 0.85 of it). The advice takes the
+    measured settled fraction: the fill whose settled bed holds DEPTH_RADII wheel radii, and the floor
+    clearance's likewise; before the run (advise) the fill height is judged and named as such."""
+    plan = load_plan(PATCH)
+    fill, settled = plan.bed.spec.depth, 0.044
+    outer = max(w.outer_radius for w in plan.wheels)
+    found = _found(advice.check(plan, surface_height=settled, sinkage_tips=0.02))
+    depth, floor = found["bed_depth"], found["floor_clearance"]
+    assert not depth.ok and depth.value == pytest.approx(settled / outer, rel=1e-12)
+    needed = advice.DEPTH_RADII * outer * fill / settled  # settles to DEPTH_RADII * outer
+    assert needed > fill and f"to >= {needed:.3g} m" in depth.message, depth.message
+    assert f"settles to {settled / fill:.2g} x it here" in depth.message
+    diameter = 2 * plan.bed.spec.radius_mean
+    assert not floor.ok and f"to >= {(advice.FLOOR_GRAINS * diameter + 0.02) * fill / settled:.3g} m" in floor.message
+    before = _found(advice.check(plan))
+    assert before["bed_depth"].ok and "(fill height; the settled bed is lower)" in before["bed_depth"].message
+    assert "a fall through the fill height 0.07 m plus the rims' " in before["contact_steps"].message
+    assert "z_h = 0.07 m, the fill height: the settled bed is lower)" in before["overlap"].message
+    after = _found(advice.check(plan, surface_height=settled))
+    assert "a fall through the settled bed 0.044 m plus the rims' " in after["contact_steps"].message
+    assert "z_h = 0.044 m, the settled bed)" in after["overlap"].message
+    # before settling the fill is judged as it is, and a failed check names a fill judged the same way
+    shallow = load_plan(PATCH, [f"bed.depth={0.9 * outer}"])
+    depth = _found(advice.check(shallow))["bed_depth"]
+    assert not depth.ok and f"to >= {advice.DEPTH_RADII * outer:.3g} m" in depth.message
+    assert "the fill height; the bed settles lower, which the run judges" in depth.message
+
+
 def test_the_pid_s_contact_resolution_is_judged_on_the_substeps_it_takes():
     """Under the PID step control the fixed dt is not what the soil takes: contact_steps was judged on it
     (10.1 steps, valid, with run.dt_max at 9 x the critical step). Before the run it waits for the substeps
