@@ -359,7 +359,7 @@ SCM_SLIP_LIMIT = 0.6
 steady-state Bekker/Janosi model is outside the measured range."""
 
 LAB_CHECK_KEYS = {
-    "plate plate speed": "plate.speed_ratio",
+    "plate speed": "plate.speed_ratio",
     "plate inertial number": "plate.speed_ratio",
     "plate stiffness": "plate.max_sinkage",
     "shear inertial number": "shear.inertial_number",

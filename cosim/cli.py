@@ -666,7 +666,25 @@ def cmd_lab(args) -> int:
     print(f"{args.test}: {out}")
     for line in lab_lines(summary):
         print(f"  {line}")
+    missing = lab_result_missing(summary)
+    if missing:  # every replica ran, none measured it: no result (it said "ok" and exited 0)
+        print(f"  ! no replica measured the {missing}: the test gives no result (the notes above say why)")
+        return EXIT_UNSTEADY
     return EXIT_OK
+
+
+def lab_result_missing(summary: dict) -> str | None:
+    """What a lab test is for when none of its replicas measured it (an angle of repose of a heap cut
+    short, a friction angle or Bekker's n not fitted), else None."""
+    import math
+
+    if summary["test"] == "repose":
+        return None if summary["repose_angle_deg"].get("n", 0) > 0 else "angle of repose"
+    if summary["test"] == "shear":  # one normal stress: no Mohr-Coulomb line, its angle through the origin
+        peak = summary["peak"]
+        angles = (peak.get("friction_angle_deg", math.nan), peak.get("friction_angle_origin_deg", math.nan))
+        return None if any(math.isfinite(a) for a in angles) else "peak friction angle"
+    return None if math.isfinite(summary["bekker"].get("n", math.nan)) else "Bekker exponent n"
 
 
 def lab_lines(summary: dict) -> list[str]:
@@ -822,9 +840,17 @@ def add_lab_commands(sub, scene_options, cluster_options) -> None:
 def cmd_calibrate_scm(args) -> int:
     from soil.errors import ArgumentError
 
+    from .advice import LAB_CHECK_KEYS
     from .lab.scene import load_lab_plan, load_lab_scene
     from .lab.scm import calibrate_scm, small_tests
-    from .scm_calibration import SOIL_KEYS, SOIL_UNITS, out_of_range, read_calibration, write_calibration
+    from .scm_calibration import (
+        SOIL_KEYS,
+        SOIL_UNITS,
+        failed_lab_checks,
+        out_of_range,
+        read_calibration,
+        write_calibration,
+    )
 
     _refuse_an_input_as_out(args.out, {"the scene": args.scene, "--lab": args.lab, "--start": args.start})
     _free_output_file(args.out, (".toml",), args.overwrite)  # before an hour of DEM tests, not after them
@@ -867,6 +893,14 @@ def cmd_calibrate_scm(args) -> int:
         print(f"  {key:20s} {value:12.5g} +- {error:.3g} {SOIL_UNITS[key]}")
     if not args.from_wheel:
         print(_error_bar_note(calibration.source.get("replica_fits", {})))
+    for problem in failed_lab_checks(calibration) or ():  # said now, not first by a scene's advise
+        keys = [key for name, key in LAB_CHECK_KEYS.items() if problem.startswith(name)]
+        print(
+            f"calibrate-scm: warning: a DEM lab test out of its quasi-static range: {problem}; a scene on "
+            f"{args.out} is flagged (scm_calibration_lab): calibrate again with {' or '.join(keys) or 'other tests'} "
+            "changed (docs/lab.md)",
+            file=sys.stderr,
+        )
     for key, problem in out_of_range(calibration.parameters).items():
         print(
             f"calibrate-scm: warning: {problem}: outside what SCM takes, so a scene on {args.out} fails unless it "

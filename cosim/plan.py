@@ -764,12 +764,21 @@ def _terrain(scene: Scene, wheel_count: int, problems: list[str]) -> TerrainPlan
             gravity = calibration.gravity
             for key, value in calibration.parameters.items():
                 given.setdefault(key, value)
+            # k_c [Pa m^(1-n)] and k_phi [Pa m^-n] hold only with the n they were fitted with
+            together = "terrain.n, terrain.k_c and terrain.k_phi together: they were fitted together"
             for key, problem in out_of_range(given).items():  # the scene's own keys were checked with the scene
                 if key not in section.model_fields_set:
+                    wins = f"set {together}" if key == "n" else f"terrain.{key} in the scene wins over the file's"
                     problems.append(
-                        f"terrain.calibration: {section.calibration}: [scm] {problem}, outside what SCM takes "
-                        f"(terrain.{key} in the scene wins over the file's)"
+                        f"terrain.calibration: {section.calibration}: [scm] {problem}, outside what SCM takes ({wins})"
                     )
+            kept = sorted({"k_c", "k_phi"} - section.model_fields_set)
+            if "n" in section.model_fields_set and kept:
+                problems.append(
+                    f"terrain.n: replaces the calibration's n ({calibration.parameters.get('n', math.nan):.4g}) while "
+                    f"its {' and '.join(kept)}, fitted with that n, are kept from {section.calibration} (their "
+                    f"units hold only with it); set {together}, or none"
+                )
     if {"k_c", "k_phi"} & section.model_fields_set:  # named here, not as soil.ScmParameters at the run's start
         if "k_c" in given and "k_phi" in given and given["k_c"] + given["k_phi"] <= 0:
             problems.append(

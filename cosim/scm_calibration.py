@@ -340,7 +340,12 @@ def failed_lab_checks(calibration: ScmCalibration, path: str = "") -> tuple[str,
             f"{where}[source] lab_checks must be tables of test, name, value, limit (numbers) and ok, got "
             f"{checks!r:.80}"
         )
-    return tuple(f"{c['test']} {c['name']} = {c['value']:.3g} > {c['limit']:.3g}" for c in checks if not c["ok"])
+    return tuple(
+        f"{c['name'] if c['name'].startswith(c['test']) else c['test'] + ' ' + c['name']} = {c['value']:.3g} > "
+        f"{c['limit']:.3g}"  # "plate speed ...", not "plate plate speed ..."
+        for c in checks
+        if not c["ok"]
+    )
 
 
 def bed_soils(calibration: ScmCalibration, path: str = "") -> list[dict[str, float]]:

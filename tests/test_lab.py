@@ -436,15 +436,28 @@ SMALL_HEAP = (
 
 
 def test_cosim_lab_repose_writes_its_report(tmp_path, capsys):
-    """The command end to end on a heap too small to measure (phases cut short): exit 0, every
-    file written, the CSV headers with units, the notes saying what was cut short."""
+    """The command end to end on a heap too small to measure (phases cut short): every file written,
+    the CSV headers with units, the notes saying what was cut short, and what its phases may cost said
+    before they ran. No replica measured an angle: exit 6 and a line saying there is no result (it
+    printed "angle of repose nan deg" and exited 0)."""
     scene = tmp_path / "heap.toml"
     scene.write_text(SMALL_HEAP)
     out = tmp_path / "out"
-    assert main(["lab", "repose", str(scene), "--serial", "--out", str(out)]) == 0
-    printed = capsys.readouterr().out
+    assert main(["lab", "repose", str(scene), "--serial", "--out", str(out)]) == 6
+    captured = capsys.readouterr()
+    printed = captured.out
     assert "angle of repose" in printed and "lift speed v / sqrt(g d) = 0.3" in printed
     assert "hit lab.max_time_factor" in printed
+    assert json.loads((out / "summary.json").read_text())["repose_angle_deg"]["n"] == 0
+    assert "! no replica measured the angle of repose: the test gives no result" in printed
+    # what its phases may cost was said before they ran (a lab test settled without a word on it)
+    from cosim.lab.common import phase_cost
+    from cosim.lab.scene import load_lab_plan
+
+    plan = load_lab_plan(str(scene), [], needs_gravity=True, test="repose")
+    longest = plan.scene.lab.max_time_factor * math.sqrt(plan.diameter / plan.g)
+    assert f"at most {longest:.3g} s" in phase_cost(plan) and f"{longest / plan.dt:.3g} DEM steps" in phase_cost(plan)
+    assert f"{out}: {phase_cost(plan)}" in captured.err
     for name in ("scene.toml", "summary.json", "repose.csv", "repose_grains.csv", "repose_history.csv", "repose.png"):
         assert (out / name).is_file(), name
     assert json.loads((out / "summary.json").read_text())["units"] == {"gravity": "m/s^2"}
@@ -452,6 +465,22 @@ def test_cosim_lab_repose_writes_its_report(tmp_path, capsys):
         "replica [1],radius [m],surface_height [m],sectors_filled [1]"
     )
     assert main(["lab", "repose", str(scene), "--serial", "--out", str(out)]) == 3  # nothing is overwritten
+
+
+def test_a_lab_test_without_its_value_says_so_and_one_normal_stress_still_measures():
+    """What makes a lab test a result: a repose angle from some replica, a peak friction angle (one normal
+    stress gives no Mohr-Coulomb line but its angle through the origin, docs/lab.md), Bekker's n."""
+    from cosim.cli import lab_result_missing
+
+    nan = math.nan
+    assert lab_result_missing({"test": "repose", "repose_angle_deg": {"n": 0}}) == "angle of repose"
+    assert lab_result_missing({"test": "repose", "repose_angle_deg": {"n": 2, "mean": 31.0}}) is None
+    one_stress = {"friction_angle_deg": nan, "friction_angle_origin_deg": 33.0}
+    assert lab_result_missing({"test": "shear", "peak": one_stress}) is None
+    none = {"friction_angle_deg": nan, "friction_angle_origin_deg": nan}
+    assert lab_result_missing({"test": "shear", "peak": none}) == "peak friction angle"
+    assert lab_result_missing({"test": "plate", "bekker": {"n": nan}}) == "Bekker exponent n"
+    assert lab_result_missing({"test": "plate", "bekker": {"n": 1.1}}) is None
 
 
 def test_an_interrupted_lab_test_reports_the_replicas_that_finished(tmp_path, capsys, monkeypatch):

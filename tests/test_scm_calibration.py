@@ -249,12 +249,21 @@ def test_a_calibration_outside_scms_range_is_refused_naming_the_file_unless_the_
         load_plan(write_tiny(tmp_path, scm))
     message = str(refused.value)
     assert "terrain.toml: [scm] n = -1.49: input should be greater than 0" in message
-    assert "friction_angle_deg = -7 deg" in message and "terrain.n in the scene wins" in message
+    assert "friction_angle_deg = -7 deg" in message and "terrain.friction_angle_deg in the scene wins" in message
+    assert "(set terrain.n, terrain.k_c and terrain.k_phi together: they were fitted together)" in message
+    bekker = "n = 0.8\nk_c = 2.0e3\nk_phi = 8.0e5\n"
     with pytest.raises(SceneError, match="friction_angle_deg = -7 deg") as refused:
-        load_plan(write_tiny(tmp_path, scm + "n = 0.8\n"))
+        load_plan(write_tiny(tmp_path, scm + bekker))
     assert "[scm] n" not in str(refused.value)
-    plan = load_plan(write_tiny(tmp_path, scm + "n = 0.8\nfriction_angle_deg = 30.0\n"))
+    plan = load_plan(write_tiny(tmp_path, scm + bekker + "friction_angle_deg = 30.0\n"))
     assert dict(plan.terrain.parameters)["n"] == 0.8 and dict(plan.terrain.parameters)["k_phi"] == 8.0e5
+    # n alone over the file's k_c and k_phi: refused (they were fitted with the file's n; the units of k_c and
+    # k_phi hold only with it: a probe's n = 1 over k_c 1e22 fitted at n = 8.6 sank a wheel 1e-17 m, "valid")
+    with pytest.raises(SceneError) as refused:
+        load_plan(write_tiny(tmp_path, scm + "n = 0.8\nfriction_angle_deg = 30.0\n"))
+    assert "terrain.n: replaces the calibration's n (-1.49) while its k_c and k_phi, fitted with that n" in str(
+        refused.value
+    )
 
 
 def test_a_run_deeper_than_the_calibrations_tests_is_flagged(tmp_path):
@@ -312,6 +321,12 @@ def test_a_calibration_whose_lab_tests_were_out_of_range_flags_the_scenes_on_it(
         assert finding.ok == (not failed) and finding.value == len(failed)
         assert all(text in finding.message for text in failed) and finding.setting == "terrain.calibration"
         assert ("plate.speed_ratio" in finding.message) == bool(failed)  # the key that slows the plate
+    # a check named after its test is not named twice ("plate plate speed ..."), as calibrate-scm records it
+    speed = {"test": "plate", "name": "plate speed v / sqrt(g d)", "value": 0.3, "limit": 0.1, "ok": False}
+    write_calibration(str(path), ScmCalibration(_calibration(1.625).parameters, {}, 1.625, {"lab_checks": [speed]}))
+    assert load_plan(scene).terrain.calibration_lab_failed == ("plate speed v / sqrt(g d) = 0.3 > 0.1",)
+    (finding,) = [f for f in scm_check(load_plan(scene)) if f.check == "scm_calibration_lab"]
+    assert "plate.speed_ratio" in finding.message  # the key that slows the plate, named for this check too
     diverged = {**fast, "value": math.nan}  # a plate whose pressures were nan: a failed check, still a file
     write_calibration(str(path), ScmCalibration(_calibration(1.625).parameters, {}, 1.625, {"lab_checks": [diverged]}))
     assert load_plan(scene).terrain.calibration_lab_failed == ("plate inertial number I = nan > 0.001",)
@@ -559,9 +574,14 @@ def test_calibrate_scm_runs_the_dem_tests_and_writes_a_usable_file(tmp_path, cap
 
     outside = out_of_range(calibration.parameters)
     assert all(f"warning: {problem}" in printed_err for problem in outside.values())
-    assert printed_err.count("calibrate-scm: warning:") == len(outside)
+    # and its lab tests out of their quasi-static range, named now (a scene's advise said them first)
+    failed = [c for c in checks if not c["ok"]]
+    named = [c["name"] if c["name"].startswith(c["test"]) else f"{c['test']} {c['name']}" for c in failed]
+    assert all(f"quasi-static range: {n} = {c['value']:.3g}" in printed_err for n, c in zip(named, failed))
+    assert printed_err.count("calibrate-scm: warning:") == len(outside) + len(failed)
     fixed = dict(k_c=1.0, k_phi=1e3, n=0.8, cohesion=1.0, friction_angle_deg=30.0, janosi_k=1e-3, elastic_stiffness=1e5)
-    keys = "".join(f"{key} = {fixed[key]!r}\n" for key in outside)
+    bekker = {"k_c", "k_phi"} if "n" in outside else set()  # n is set with the k_c and k_phi fitted with it
+    keys = "".join(f"{key} = {fixed[key]!r}\n" for key in sorted(set(outside) | bekker))
     scm = f'\n[terrain]\nmodel = "scm"\ncalibration = "{out.name}"\n{keys}'
     plan = load_plan(write_tiny(tmp_path, scm, "scm.toml"))
     assert plan.terrain.calibration_gravity == pytest.approx(1.625)

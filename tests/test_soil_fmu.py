@@ -1159,3 +1159,44 @@ def test_a_valid_scene_exports_quietly_and_its_fmu_says_valid(scm, tmp_path, cap
     data = _soil_json(out)
     assert data["findings"] == [f.as_dict() for f in expected] and data["unjudged"] == ["scm_slip"]
     assert data["validity"] == "valid (not judged without a run's measurements: scm_slip)"
+
+
+def test_a_step_after_terminate_says_so_not_that_initialization_is_missing(scm, tmp_path):
+    """doStep after fmi2Terminate was refused with "doStep before the end of initialization", which
+    points the master at the wrong mistake: it says the instance is terminated and what to do."""
+    from fmpy import extract, read_model_description
+    from fmpy.fmi1 import FMICallException
+    from fmpy.fmi2 import FMU2Slave, defaultCallbacks, fmi2CallbackFunctions, fmi2CallbackLoggerTYPE
+
+    fmu = scm["fmus"][2]
+    description = read_model_description(str(fmu))
+    slave = FMU2Slave(
+        guid=description.guid,
+        unzipDirectory=extract(str(fmu), unzipdir=str(tmp_path / "unzipped")),
+        modelIdentifier=description.coSimulation.modelIdentifier,
+        instanceName="terminated",
+    )
+    logged = []
+    callbacks = fmi2CallbackFunctions()
+    callbacks.logger = fmi2CallbackLoggerTYPE(lambda env, name, status, category, message: logged.append(message))
+    callbacks.allocateMemory, callbacks.freeMemory = defaultCallbacks.allocateMemory, defaultCallbacks.freeMemory
+    slave.instantiate(callbacks=callbacks)
+
+    def refused_step(t: float) -> str:
+        logged.clear()
+        with pytest.raises(FMICallException):
+            slave.doStep(currentCommunicationPoint=t, communicationStepSize=H)
+        return b"\n".join(logged).decode()
+
+    try:
+        assert "doStep before the end of initialization" in refused_step(0.0)
+        slave.reset()
+        slave.setupExperiment(startTime=0.0)
+        slave.enterInitializationMode()
+        slave.exitInitializationMode()
+        slave.doStep(currentCommunicationPoint=0.0, communicationStepSize=H)
+        slave.terminate()
+        said = refused_step(H)
+        assert "doStep after terminate: the instance is terminated; reset it" in said, said
+    finally:
+        slave.freeInstance()

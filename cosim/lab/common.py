@@ -285,7 +285,25 @@ def prepare_folder(
         check_executor(executor, scheduler)
     with prepare_study(out_dir, overwrite):
         atomic_write_text(os.path.join(out_dir, SCENE_FILE), plan.scene.to_toml())  # a cut one would read as whole
+        log.info("%s: %s", out_dir, phase_cost(plan))
         yield
+
+
+def phase_cost(plan: LabPlan) -> str:
+    """What a specimen's settling and resting phases may cost, said before they start (a soil of tiny
+    grains settled for an hour without a word): each ends at its criterion or after lab.max_time_factor
+    sqrt(d / |g|) (a plate's settling: bed.settle_max_time if longer), in DEM steps. A plate's press and
+    a shear last their travel over their speed, which the test's own keys set."""
+    longest = plan.max_phase_time(1.0)
+    settling = max(longest, plan.scene.bed.settle_max_time)
+    at = "the PID's first step" if plan.scene.run.step_control == "pid" else "the DEM step"
+    return (
+        f"{plan.scene.lab.replicas} replica(s); each settling or resting phase runs until its criterion, at most "
+        f"{longest:.3g} s (lab.max_time_factor sqrt(d / |g|); a plate's settling up to {settling:.3g} s, "
+        f"bed.settle_max_time if longer): up to about {longest / plan.dt:.3g} DEM steps a phase at {at} "
+        f"{plan.dt:.3g} s; a press or a shear lasts its travel over its speed (plate.speed_ratio, "
+        "shear.inertial_number)"
+    )
 
 
 def write_csv(path: str, columns: Sequence[tuple[str, str, Any]]) -> None:

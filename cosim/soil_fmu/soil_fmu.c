@@ -624,7 +624,7 @@ SoilStatus soil_start(Soil *s) {
         freelocale(numbers);
     }
     status = request(s, MSG_INIT, init, (uint32_t)strlen(init), s->real[VR_START_TIMEOUT], "server_start_timeout",
-                     "starting (loading the bed and compiling or loading its kernels)");
+                     "starting (loading the soil: a DEM bed and its kernels, or an SCM grid)");
     if (status != SOIL_OK) return SOIL_ERROR;
     values = inputs(s);
     if (!values) return server_failed(s, "out of memory");
@@ -633,6 +633,7 @@ SoilStatus soil_start(Soil *s) {
     free(values);
     if (status != SOIL_OK) return SOIL_ERROR;
     s->initialized = 1;
+    s->stopped = 0;
     s->generation++;
     s->discards = s->terminated = 0;
     return SOIL_OK;
@@ -649,7 +650,9 @@ SoilStatus soil_step(Soil *s, double time, double step) {
     }
     if (refused_after_error(s, "doStep")) return SOIL_ERROR;
     if (!s->initialized) {
-        soil_log(s, SOIL_ERROR, "logStatusError", "doStep before the end of initialization");
+        soil_log(s, SOIL_ERROR, "logStatusError",
+                 s->stopped ? "doStep after terminate: the instance is terminated; reset it (a new run) or free it"
+                            : "doStep before the end of initialization");
         return SOIL_ERROR;
     }
     if (!(step > 0) || !isfinite(step)) {
@@ -797,12 +800,13 @@ void soil_stop(Soil *s) {
         free(text);
     }
     kill_server(s); /* also when it did not stop: never leave a process behind */
+    s->stopped = s->stopped || s->initialized;
     s->initialized = 0;
 }
 
 void soil_reset(Soil *s) {
     soil_stop(s);
-    s->failed = s->in_error = 0;
+    s->failed = s->in_error = s->stopped = 0;
     s->tail[0] = 0;
     restore_start_values(s);
 }

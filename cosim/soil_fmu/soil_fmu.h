@@ -62,6 +62,7 @@ typedef struct {
     double *wheel, *wheel_start;     /* wheel_count * W_SIZE values */
 
     int initialized;       /* the server runs and holds the soil */
+    int stopped;           /* terminated by the master (soil_stop after a start): a step needs a reset first */
     int failed;            /* the server failed: every call until reset is an error */
     int in_error;          /* an Error was returned: FMI then allows an FMU state restored, reset or free only */
     pid_t pid;             /* the server process, 0 when none */
