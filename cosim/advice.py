@@ -367,6 +367,13 @@ LAB_CHECK_KEYS = {
 }
 """The lab scene key that changes each quasi-static number calibrate-scm records (cosim.lab: plate, shear)."""
 
+
+def lab_check_keys(failed) -> list[str]:
+    """The lab scene keys that change the failed checks `failed` (cosim.scm_calibration.failed_lab_checks'
+    texts), sorted; [] for a check no key is known for."""
+    return sorted({key for text in failed for name, key in LAB_CHECK_KEYS.items() if text.startswith(name)})
+
+
 USE_DEM = 'use the DEM there (terrain.model = "dem", or "dem" for that wheel in terrain.wheels)'
 
 
@@ -718,7 +725,7 @@ def scm_check(plan: RunPlan, measured: dict | None = None) -> list[Finding]:
         )
     lab = plan.terrain.calibration_lab_failed
     if lab is not None:
-        keys = sorted({key for failed in lab for name, key in LAB_CHECK_KEYS.items() if failed.startswith(name)})
+        keys = lab_check_keys(lab)
         carried = (
             "the keys the wheel fit kept from them (k_c, cohesion, elastic_stiffness) carry their error"
             if plan.terrain.calibration_slips is not None

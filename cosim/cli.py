@@ -676,8 +676,6 @@ def cmd_lab(args) -> int:
 def lab_result_missing(summary: dict) -> str | None:
     """What a lab test is for when none of its replicas measured it (an angle of repose of a heap cut
     short, a friction angle or Bekker's n not fitted), else None."""
-    import math
-
     if summary["test"] == "repose":
         return None if summary["repose_angle_deg"].get("n", 0) > 0 else "angle of repose"
     if summary["test"] == "shear":  # one normal stress: no Mohr-Coulomb line, its angle through the origin
@@ -840,7 +838,7 @@ def add_lab_commands(sub, scene_options, cluster_options) -> None:
 def cmd_calibrate_scm(args) -> int:
     from soil.errors import ArgumentError
 
-    from .advice import LAB_CHECK_KEYS
+    from .advice import lab_check_keys
     from .lab.scene import load_lab_plan, load_lab_scene
     from .lab.scm import calibrate_scm, small_tests
     from .scm_calibration import (
@@ -894,7 +892,7 @@ def cmd_calibrate_scm(args) -> int:
     if not args.from_wheel:
         print(_error_bar_note(calibration.source.get("replica_fits", {})))
     for problem in failed_lab_checks(calibration) or ():  # said now, not first by a scene's advise
-        keys = [key for name, key in LAB_CHECK_KEYS.items() if problem.startswith(name)]
+        keys = lab_check_keys([problem])
         print(
             f"calibrate-scm: warning: a DEM lab test out of its quasi-static range: {problem}; a scene on "
             f"{args.out} is flagged (scm_calibration_lab): calibrate again with {' or '.join(keys) or 'other tests'} "

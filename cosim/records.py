@@ -156,6 +156,7 @@ def attributes(plan: RunPlan, system: CoupledSystem, source: str, findings) -> d
         mode = plan.testbed.mode
     else:
         mode = rover.drive.kind
+    dt, substeps = soil_step(plan)
     out = {
         "name": plan.name,
         "scene_toml": plan.scene.to_toml(),
@@ -165,9 +166,9 @@ def attributes(plan: RunPlan, system: CoupledSystem, source: str, findings) -> d
         "scheme": plan.scheme,
         "integrator": plan.integrator,
         "order_seed": -1 if plan.order_seed is None else plan.order_seed,
-        "dt": soil_step(plan)[0],
+        "dt": dt,
         "macro_step": plan.macro_step,
-        "substeps": soil_step(plan)[1],
+        "substeps": substeps,
         "duration": plan.scene.run.duration,
         "gravity": np.asarray(plan.gravity),
         "surface_height": system.soil.surface_height,

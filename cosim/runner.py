@@ -472,8 +472,8 @@ class Runner:
         wall = time.perf_counter() - started
         done = coupler.step_count - self.steps_at_start
         dt, steps = records.soil_step(self.plan)
-        rate = self.system.soil.books().element_count * steps * done / max(wall, 1e-9)
-        said = f", {rate:.3g} particle-steps/s" if self.system.soil.books().element_count else ""  # SCM: no grains
+        elements = self.system.soil.books().element_count
+        said = f", {elements * steps * done / max(wall, 1e-9):.3g} particle-steps/s" if elements else ""  # SCM: none
         bar.set_postfix_str(f"t = {coupler.time:.4g} s sim, dt {dt:.3g} s{said}", refresh=False)
         bar.refresh()
 
