@@ -357,6 +357,11 @@ the continuum's pressure-sinkage curve does not hold."""
 SCM_SLIP_LIMIT = 0.6
 """Highest slip for SCM [-]: beyond it the wheel digs in (soil flows round it, sinkage by slip) and the
 steady-state Bekker/Janosi model is outside the measured range."""
+SCM_BOUNCE_LIMIT = 2.0
+"""Largest coupling step for SCM as the phase of a wheel's elastic bounce on the soil, omega_e H [rad]:
+the main job's forces are within 0.3 % of a fine step's up to 1 rad and 2-3 % off at 2 rad
+(BENCHMARKS.md, "SCM's own coupling step"); 2 rad is also where an explicit exchange of a mass on a
+spring (the wheel on K_e) stops being stable."""
 
 LAB_CHECK_KEYS = {
     "plate speed": "plate.speed_ratio",
@@ -568,13 +573,46 @@ def _wheel_fit_finding(plan: RunPlan, fit, indices: list[int], wheels: list) -> 
     )
 
 
+def _three_digits_down(value: float) -> float:
+    """`value` > 0 rounded down to three significant digits (a bound to print that its own text meets)."""
+    scale = 10.0 ** (math.floor(math.log10(value)) - 2)
+    return math.floor(value / scale) * scale
+
+
+def _bounce_finding(plan: RunPlan, parameters, wheels) -> Finding | None:
+    """scm_coupling_step: the macro step H against the SCM wheels' elastic bounce on the soil, omega_e H
+    <= SCM_BOUNCE_LIMIT (cosim.scm_soil.elastic_bounce; the stiffest wheel); None without gravity or load."""
+    from .scm_soil import BOUNCE_PHASE, elastic_bounce
+
+    if not (plan.g > 0 and plan.wheel_load > 0):
+        return None
+    omega = max(elastic_bounce(parameters, w, plan.wheel_load, plan.g)[0] for w in wheels)
+    phase, step = omega * plan.macro_step, plan.macro_step
+    return _finding(
+        "scm_coupling_step",
+        phase,
+        SCM_BOUNCE_LIMIT,
+        phase <= SCM_BOUNCE_LIMIT,
+        f"the macro step {step:.3g} s is omega_e H = {phase:.3g} rad of the wheel's elastic bounce on the soil "
+        f"(omega_e {omega:.3g} rad/s): <= {SCM_BOUNCE_LIMIT:g} rad",
+        f"the macro step {step:.3g} s is omega_e H = {phase:.3g} rad of the wheel's elastic bounce on the soil "
+        f"(omega_e {omega:.3g} rad/s), above {SCM_BOUNCE_LIMIT:g} rad: the exchange does not resolve the bounce "
+        f"(forces 2-3 % off a fine step's at 2 rad already, and an explicit exchange of a stiff contact can go "
+        f"unstable); set run.macro_step <= {_three_digits_down(SCM_BOUNCE_LIMIT / omega):.3g} s, or leave it "
+        f"unset on SCM alone (SCM's own step, {BOUNCE_PHASE:g} rad)",
+        "run.macro_step",
+        "rad",
+    )
+
+
 def scm_check(plan: RunPlan, measured: dict | None = None) -> list[Finding]:
     """Where the SCM tier cannot represent the run (each failed finding says what to do: use the DEM,
     or refine the grid, calibrate again): grouser-dominated traction (grouser height >
     SCM_GROUSER_RATIO x sinkage), a grid that samples the grousers instead of resolving them (node
     spacing > the thinnest grouser / NODES_ACROSS_GROUSER: `scm_grouser_grid`), a sinkage below
     SCM_SINKAGE_GRAINS grain diameters, a slip above SCM_SLIP_LIMIT, a Froude number above
-    FROUDE_LIMIT, a calibration made at another gravity, a wheel fit made on another grid
+    FROUDE_LIMIT, a macro step above SCM_BOUNCE_LIMIT of the wheel's elastic bounce
+    (`scm_coupling_step`), a calibration made at another gravity, a wheel fit made on another grid
     (`scm_calibration_grid`) or for another wheel or load (`scm_calibration_wheel`), and after a run a
     rim sinkage deeper than the calibration's DEM tests reached (`scm_calibration_depth`), and a slip
     outside those a wheel fit was fitted on
@@ -708,6 +746,9 @@ def scm_check(plan: RunPlan, measured: dict | None = None) -> list[Finding]:
         froude = _froude_finding(plan, spins, "at the measured wheel speeds", "scm_froude", dynamic, indices)
     if froude is not None:
         findings.append(froude)
+    bounce = _bounce_finding(plan, parameters, wheels)
+    if bounce is not None:
+        findings.append(bounce)
     calibrated = plan.terrain.calibration_gravity
     if calibrated is not None:
         findings.append(

@@ -58,7 +58,7 @@ from .dem_soil import DemSoil
 from .folders import LOCK_FILE, RunFolder
 from .launch import open_run
 from .plan import RunPlan, enable_step_control
-from .runner import STOP_SIGNALS, Runner
+from .runner import STOP_SIGNALS, RunInterrupted, Runner
 
 log = logging.getLogger(__name__)
 
@@ -470,9 +470,15 @@ def _run_world(connection: Connection, plan: RunPlan, out_dir: str, overwrite: b
             result = runner.run()
         out.update(ok=True, status=result.status, summary=result.summary)
     except BaseException as error:  # noqa: BLE001 - a failed replica is a result
+        stopped = isinstance(error, (KeyboardInterrupt, RunInterrupted))  # after its checkpoint, as asked
         out.update(
-            ok=False, status="failed", error=f"{type(error).__name__}: {error}", traceback=traceback.format_exc(5)
+            ok=False,
+            status="interrupted" if stopped else "failed",
+            error=f"{type(error).__name__}: {error}",
+            traceback=traceback.format_exc(5),
         )
+        if stopped:
+            out["signal"] = getattr(error, "signal", None) or "SIGINT"
     with contextlib.suppress(BrokenPipeError, OSError):
         connection.send(("done", out))
     connection.close()

@@ -95,9 +95,12 @@ def cmd_run(args) -> int:
     from soil.errors import ArgumentError
 
     from .launch import run_plan
+    from .study import MAX_REPLICAS
 
-    if args.replicas < 1:
-        raise ArgumentError(f"--replicas must be >= 1 (1: one run; >= 2: error bars), got {args.replicas}")
+    if not 1 <= args.replicas <= MAX_REPLICAS:  # before the scene is even read
+        raise ArgumentError(
+            f"--replicas must be 1 to {MAX_REPLICAS} (1: one run; >= 2: error bars), got {args.replicas}"
+        )
     plan = _plan(args)
     out = args.out or os.path.join("runs", plan.name)
     if args.replicas > 1:
@@ -127,7 +130,13 @@ def cmd_resume(args) -> int:
     from .folders import SCENE_FILE
     from .launch import resume
     from .scene import load_scene
+    from .study import REPLICAS_FILE, resume_replicas
 
+    if os.path.isfile(os.path.join(args.out, REPLICAS_FILE)):  # a set of replicas (cosim run --replicas K)
+        report = resume_replicas(args.out)
+        print(report["text"])
+        return _study_exit(report["results"])
+    _refuse_replicas_without_recipe(args.out)
     result = resume(args.out, progress=not args.no_progress)
     try:  # the run's scene as it ran (resume read it): SCM alone takes its error bars over beds
         terrain = load_scene(os.path.join(args.out, SCENE_FILE)).terrain
@@ -135,6 +144,25 @@ def cmd_resume(args) -> int:
         terrain = None
     _print_summary(result, scm_only=terrain is not None and terrain.model == "scm" and not terrain.dem_wheels)
     return EXIT_OK if result.status == "complete" else EXIT_UNSTEADY
+
+
+def _refuse_replicas_without_recipe(out: str) -> None:
+    """A set of replicas made before they kept their recipe (REPLICAS_FILE) has no scene of its own to resume:
+    ArgumentError naming its replicas' folders, each of which resumes alone."""
+    import glob
+
+    from soil.errors import ArgumentError
+
+    from .folders import SCENE_FILE
+
+    replicas = sorted(glob.glob(os.path.join(out, "replica_*", SCENE_FILE)))
+    if replicas and not os.path.isfile(os.path.join(out, SCENE_FILE)):
+        folders = [os.path.dirname(path) for path in replicas]
+        raise ArgumentError(
+            f"{out!r} holds replicas ({', '.join(os.path.basename(f) for f in folders)}) without the recipe that "
+            f"resumes them together (it predates it): resume each (cosim resume {folders[0]}), or run the replicas "
+            "again"
+        )
 
 
 SUMMARY_KEYS = (
@@ -620,8 +648,11 @@ def cmd_export_fmu(args) -> int:
     from .scene import is_device_name
     from .soil_fmu import export_soil_fmu, soil_config_from
     from .soil_fmu.config import verdict
+    from .soil_fmu.server import DEVICE_VARIABLE
 
     _free_output_file(args.out, (".fmu",), args.overwrite)
+    if not 1 <= args.wheels <= 10000:  # before a bed is settled for it
+        raise ArgumentError(f"--wheels: must be a whole number from 1 to 10000, got {args.wheels}")
     if args.device and not is_device_name(args.device):
         raise ArgumentError(f"--device {args.device!r}: must be 'default', 'cpu', 'cuda' or 'cuda:N'")
     if args.bed_folder and os.path.exists(args.bed_folder) and not os.path.isdir(args.bed_folder):
@@ -638,7 +669,9 @@ def cmd_export_fmu(args) -> int:
     print(
         f"wrote {path}: FMI {args.fmi}.0 co-simulation, {args.wheels} wheel(s), "
         f"{config.terrain.upper()} step {config.dem_step:.4g} s, "
-        f"surface z = {config.surface_height:.4g} m; the soil server runs on {config.device}; "
+        f"surface z = {config.surface_height:.4g} m; the soil server runs on {config.device}"
+        f"{' (a GPU on the machine that runs it, if it has one, else the CPU)' if config.device == 'default' else ''}"
+        f" unless the FMU's device parameter or ${DEVICE_VARIABLE} says otherwise; "
         f"validity: {verdict(config.findings, config.unjudged)}"
     )
     return EXIT_OK
@@ -886,9 +919,14 @@ def cmd_calibrate_scm(args) -> int:
     write_calibration(args.out, calibration, replace=args.overwrite)  # --out was free an hour ago; still?
     tests = f"DEM tests in {work}, " if os.path.isdir(work) else ""  # --lab with --wheel-runs ran none
     print(f"calibrate-scm: {args.out} ({tests}|g| = {calibration.gravity:.4g} m/s^2)")
+    why = calibration.source.get("error_not_estimated", {})
     for key in SOIL_KEYS:
         value, error = calibration.parameters[key], calibration.standard_errors[key]
-        print(f"  {key:20s} {value:12.5g} +- {error:.3g} {SOIL_UNITS[key]}")
+        if math.isfinite(error):
+            print(f"  {key:20s} {value:12.5g} +- {error:.3g} {SOIL_UNITS[key]}")
+        else:
+            reason = why.get(key, "not estimated")
+            print(f"  {key:20s} {value:12.5g} {SOIL_UNITS[key]}, no error bar: {reason}")
     if not args.from_wheel:
         print(_error_bar_note(calibration.source.get("replica_fits", {})))
     for problem in failed_lab_checks(calibration) or ():  # said now, not first by a scene's advise
@@ -1128,7 +1166,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--no-progress", action="store_true")
     p.set_defaults(func=cmd_run)
 
-    p = sub.add_parser("resume", help="continue an interrupted run from its checkpoint")
+    p = sub.add_parser("resume", help="continue an interrupted run, or set of replicas, from its checkpoints")
     p.add_argument("out", help="the run's output folder")
     p.add_argument("--no-progress", action="store_true")
     p.set_defaults(func=cmd_resume)

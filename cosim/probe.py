@@ -22,12 +22,19 @@ from soil.errors import ArgumentError, RegolithError
 from .scene import DriveSection, MmxSection, Scene, SceneError
 
 
-def resolve_device(name: str) -> str:
-    """A Warp device name for a scene's device ('default' -> the first GPU, else 'cpu'); SceneError if absent."""
+def resolve_device(name: str, field: str = "scene.device") -> str:
+    """A Warp device name for a scene's device ('default' -> the first GPU, else 'cpu'); SceneError naming
+    `field` (where the name came from) if it is no device name or this machine has no such device."""
     import warp as wp  # Warp starts itself on the first device query
 
     from soil.devices import device_names
 
+    from .scene import is_device_name
+
+    if not is_device_name(name):
+        raise SceneError(
+            [f"{field}: {name!r} is no device: 'default' (a GPU when present, else the CPU), 'cpu', 'cuda' or 'cuda:N'"]
+        )
     if name == "default":
         return str(wp.get_device())
     if name == "cpu":
@@ -38,7 +45,7 @@ def resolve_device(name: str) -> str:
         have = ", ".join(names)
         raise SceneError(
             [
-                f"scene.device: {name!r} asked for, but this machine has no such CUDA device "
+                f"{field}: {name!r} asked for, but this machine has no such CUDA device "
                 f"(it has: {have}); use 'default' (a GPU when present, else the CPU) or 'cpu'"
             ]
         )

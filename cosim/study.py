@@ -1,7 +1,8 @@
 """Ensembles of runs, on dask.distributed (a LocalCluster, or --scheduler ADDRESS), or serially.
 
 - replicas (`cosim run --replicas K`): K runs that differ only in the summation order
-  (run.order_seed = replica index: a permutation of the grain indices) on one settled
+  (run.order_seed = the scene's run.order_seed (0 when unset) + replica index: a permutation of the
+  grain indices) on one settled
   bed; mean, standard deviation and 95 % interval of each steady-state metric, and
   whether the result is macroscopically deterministic (cosim.metrics.ensemble). With
   `--vary-bed` (vary='bed') replica k also settles a bed of its own from bed.seed + k:
@@ -52,7 +53,7 @@ except ImportError:  # Python 3.10
     import tomli as tomllib
 
 from soil import quiet_warp
-from soil.errors import ArgumentError, InternalError, RegolithError
+from soil.errors import ArgumentError, DamagedFileError, InternalError, RegolithError
 from soil.files import atomic_write_text
 
 from . import advice, metrics
@@ -60,6 +61,7 @@ from .beds import BED_FILE, BED_INFO_FILE, settled_bed, settling_cost, write_jso
 from .folders import RunFolder
 from .launch import FINISHED
 from .plan import MAX_PHASE_STEPS, RunPlan, resolve
+from .runner import RunInterrupted
 
 if TYPE_CHECKING:  # dask is imported when a study runs on it
     from dask.distributed import Client, LocalCluster
@@ -85,7 +87,6 @@ def task_plan(task: dict) -> RunPlan:
 def run_task(task: dict) -> dict:
     """Run one scene (task: scene_toml, overrides, out_dir, label, overwrite); never raises."""
     from .launch import run_plan
-    from .runner import RunInterrupted
 
     started = time.perf_counter()
     out = {"label": task.get("label"), "out_dir": task["out_dir"], "overrides": task.get("overrides", {})}
@@ -94,10 +95,14 @@ def run_task(task: dict) -> dict:
         result = run_plan(task_plan(task), task["out_dir"], overwrite=task.get("overwrite", False))
         out.update(ok=True, status=result.status, summary=result.summary)
     except BaseException as error:  # noqa: BLE001 - a failed replica is a result, not a crash
+        stopped = isinstance(error, (KeyboardInterrupt, RunInterrupted))
         out.update(
-            ok=False, status="failed", error=f"{type(error).__name__}: {error}", traceback=traceback.format_exc(limit=5)
+            ok=False,
+            status="interrupted" if stopped else "failed",
+            error=f"{type(error).__name__}: {error}",
+            traceback=traceback.format_exc(limit=5),
         )
-        if isinstance(error, (KeyboardInterrupt, RunInterrupted)):  # a stop asked for stops the study (serial)
+        if stopped:  # a stop asked for stops the study (serial)
             raise
     out["wall_time"] = time.perf_counter() - started
     return out
@@ -563,14 +568,40 @@ def _replica_beds(plan: RunPlan, out_dir: str, ex: Executor, replicas: int, vary
     return list(_settle(ex, [plan.with_changes(**{"bed.seed": s}) for s in seeds], folders))
 
 
+MAX_REPLICAS = 10_000
+"""Most replicas a study takes (--replicas): each is a run folder and a task; a count beyond it is a slip
+of the keyboard (10^9 filled 23 GB of memory with tasks before a run started)."""
+
+
+def check_replicas(plan: RunPlan, replicas: int, least: int, why: str = "") -> None:
+    """SceneError naming --replicas unless least <= replicas <= MAX_REPLICAS and every replica's order seed
+    (run.order_seed + k, replica_order_seed) is a seed."""
+    if not least <= replicas <= MAX_REPLICAS:
+        raise SceneError([f"--replicas: must be {least} to {MAX_REPLICAS}{why}, got {replicas}"])
+    base = plan.order_seed or 0
+    if base + replicas - 1 > INT64_MAX:
+        raise SceneError(
+            [
+                f"--replicas {replicas}: replica k sums in order run.order_seed + k, and run.order_seed = {base} takes "
+                f"the last past the largest seed (2^63 - 1); allowed: run.order_seed <= {INT64_MAX - replicas + 1}"
+            ]
+        )
+
+
+def replica_order_seed(plan: RunPlan, k: int) -> int:
+    """Replica k's summation order: the scene's run.order_seed (0 when it sets none) + k."""
+    return (plan.order_seed or 0) + k
+
+
 def _replica_overrides(k: int, bed: str | None, vary: str, plan: RunPlan, soils: list[dict] | None = None) -> dict:
-    """Replica k's overrides: its summation order, its bed (and that bed's seed when beds vary), and
-    its SCM wheels' soil when beds vary and the calibration was fitted on beds (`soils`, _check_variation)."""
+    """Replica k's overrides: its summation order (replica_order_seed), its bed (and that bed's seed when
+    beds vary), and its SCM wheels' soil when beds vary and the calibration was fitted on beds (`soils`,
+    _check_variation)."""
     from .system import needs_bed
 
     seed = {"bed.seed": plan.bed.spec.seed + k} if vary == "bed" and needs_bed(plan) else {}
     soil = {f"terrain.{key}": value for key, value in soils[k].items()} if soils else {}
-    return {"run.order_seed": k, **seed, **_bed_override(bed), **soil}
+    return {"run.order_seed": replica_order_seed(plan, k), **seed, **_bed_override(bed), **soil}
 
 
 def _variation(plan: RunPlan, vary: str, soils: list[dict] | None) -> tuple[str, dict]:
@@ -592,15 +623,31 @@ def _variation(plan: RunPlan, vary: str, soils: list[dict] | None) -> tuple[str,
     return "; ".join(parts), beds
 
 
-def _batching(plan: RunPlan, batched: bool | None) -> bool:
+def _batching(
+    plan: RunPlan,
+    batched: bool | None,
+    executor: str = "dask",
+    scheduler: str | None = None,
+    workers: int | None = None,
+) -> bool:
     """Whether a study's runs go as worlds of one simulation (cosim.batch): as asked (refused, naming why,
-    when the scene cannot be batched), or, None, when the device is a GPU and the scene can be."""
+    when the scene cannot be batched), or, None, when the device is a GPU and the scene can be and no
+    executor was asked for (--serial, --scheduler, --workers: the runs go there). Batched runs use no
+    executor: one asked for together with --batched is refused (ArgumentError)."""
     from .batch import batch_problem
 
     problem = batch_problem(plan)
     if batched and problem is not None:
         raise SceneError([f"--batched: {problem}"])
-    return problem is None and plan.device.startswith("cuda") if batched is None else bool(batched)
+    asked = "--serial" if executor == "serial" else "--scheduler" if scheduler is not None else "--workers"
+    if executor != "serial" and scheduler is None and workers is None:
+        asked = ""
+    if batched and asked:
+        raise ArgumentError(
+            f"{asked}: batched runs are worlds of one simulation in this process, on no executor; leave out "
+            f"--batched to run them as separate runs there, or {asked} to batch them"
+        )
+    return problem is None and plan.device.startswith("cuda") and not asked if batched is None else bool(batched)
 
 
 def _run_tasks(ex: Executor, tasks: list[dict], batched: bool) -> list[dict]:
@@ -873,10 +920,9 @@ def replica_run(
     bit for bit its run alone; over beds too, each world on its own bed); None: when the device is a
     GPU and the scene can be batched.
     Returns {'ok' (every replica steady and the statistics exist), 'stats', 'results', 'text'}."""
-    if replicas < 2:
-        raise SceneError([f"--replicas: must be >= 2 for error bars, got {replicas}"])
+    check_replicas(plan, replicas, 2, " for error bars")
     soils = _check_variation(plan, vary, replicas)
-    batched = _batching(plan, batched)
+    batched = _batching(plan, batched, executor, scheduler, workers)
     out_dir = os.path.abspath(out_dir)
     tasks_run = Executor("serial" if batched else executor, scheduler, workers)  # refused before the folder is made
     with prepare_study(out_dir, overwrite):
@@ -893,39 +939,127 @@ def replica_run(
                 }
                 for k in range(replicas)
             ]
-            results = _run_tasks(ex, tasks, batched)
-        stats = ensemble_table(results, plan)
-        varied, calibration = _variation(plan, vary, soils[:replicas])
-        report = {
-            "kind": "replicas",
-            "vary": vary,
-            "calibration_beds": calibration,  # SCM wheels over beds: each replica's soil keys (file, soils, units)
-            "batched": bool(batched),
-            "scene_toml": text,
-            "bed_file": beds[0] if vary == "order" else None,
-            "bed_files": beds,
-            "stats": stats,
-            "validity": stats["validity"],  # the replicas' (ensemble_validity)
-            "results": results,
-            "criterion": "a metric is macroscopically deterministic (vary 'order'; over beds: the same on any bed) "
-            "when its replica std is <= max(5 % of its mean, its absolute floor) (cosim.study._tolerances)",
-            "units": column_units(list(stats["metrics"]), METRIC_UNITS),  # stats' mean, std, ... of each metric
-        }
-        write_json(os.path.join(out_dir, "ensemble.json"), report)
-        _write_csv(
-            os.path.join(out_dir, "ensemble.csv"),
-            [
-                {"metric": k, **v, "unit": METRIC_UNITS.get(k, ""), "validity": stats["validity"]}
-                for k, v in stats["metrics"].items()
-            ],
-            ["metric", "unit", "n", "mean", "std", "ci95", "min", "max", "tolerance", "deterministic", "validity"],
-            {},
-        )  # one metric per row: its unit is a column (mean, std, ci95, min, max, tolerance are in it); validity: the
-        # replicas' verdict, the same on every row
-        judged = "deterministic" if vary == "order" else "same on any bed"
-        report["text"] = _ensemble_text(stats, f"{plan.name}: {replicas} replicas ({varied}), {out_dir}", judged)
-        report["ok"] = stats["steady"] == replicas and stats["steady"] >= 2
-        return report
+            recipe = {"kind": "replicas", "vary": vary, "batched": bool(batched), "beds": beds, "tasks": tasks}
+            write_json(os.path.join(out_dir, REPLICAS_FILE), recipe)  # what `cosim resume` needs to finish them
+            try:
+                results = _run_tasks(ex, tasks, batched)
+            except (KeyboardInterrupt, RunInterrupted) as stop:
+                raise _replicas_stopped(stop, out_dir) from None
+        stopped = [r for r in results if r.get("status") == "interrupted"]  # batched: each world stopped
+        if stopped:
+            raise _replicas_stopped(KeyboardInterrupt(stopped[0].get("signal", "SIGINT")), out_dir)
+        return _ensemble_report(plan, out_dir, results, vary, soils, beds, bool(batched))
+
+
+REPLICAS_FILE = "replicas.json"
+"""A set of replicas' recipe (its tasks, beds, variation), written before its runs start: `cosim resume OUT`
+finishes the runs an interruption left and writes the ensemble (resume_replicas)."""
+
+
+def _replicas_stopped(stop: BaseException, out_dir: str) -> KeyboardInterrupt:
+    """The stop of a set of replicas (Ctrl-C, SIGTERM), saying how to finish them; its `signal` is the name."""
+    name = stop.signal if isinstance(stop, RunInterrupted) else getattr(stop, "signal", None)
+    name = name or ("SIGTERM" if str(stop).startswith("SIGTERM") else "SIGINT")
+    error = KeyboardInterrupt(
+        f"{name}: the replicas stopped (each run that began keeps its checkpoint); `cosim resume {out_dir}` "
+        "finishes them and writes the ensemble"
+    )
+    error.signal = name  # type: ignore[attr-defined]
+    return error
+
+
+def _ensemble_report(
+    plan: RunPlan, out_dir: str, results: list[dict], vary: str, soils: list[dict], beds: list, batched: bool
+) -> dict:
+    """The replicas' statistics written as ensemble.json and ensemble.csv; replica_run's report."""
+    replicas = len(results)
+    stats = ensemble_table(results, plan)
+    varied, calibration = _variation(plan, vary, soils[:replicas])
+    text = plan.scene.to_toml()
+    report = {
+        "kind": "replicas",
+        "vary": vary,
+        "calibration_beds": calibration,  # SCM wheels over beds: each replica's soil keys (file, soils, units)
+        "batched": batched,
+        "scene_toml": text,
+        "bed_file": beds[0] if vary == "order" else None,
+        "bed_files": beds,
+        "stats": stats,
+        "validity": stats["validity"],  # the replicas' (ensemble_validity)
+        "results": results,
+        "criterion": "a metric is macroscopically deterministic (vary 'order'; over beds: the same on any bed) "
+        "when its replica std is <= max(5 % of its mean, its absolute floor) (cosim.study._tolerances)",
+        "units": column_units(list(stats["metrics"]), METRIC_UNITS),  # stats' mean, std, ... of each metric
+    }
+    write_json(os.path.join(out_dir, "ensemble.json"), report)
+    _write_csv(
+        os.path.join(out_dir, "ensemble.csv"),
+        [
+            {"metric": k, **v, "unit": METRIC_UNITS.get(k, ""), "validity": stats["validity"]}
+            for k, v in stats["metrics"].items()
+        ],
+        ["metric", "unit", "n", "mean", "std", "ci95", "min", "max", "tolerance", "deterministic", "validity"],
+        {},
+    )  # one metric per row: its unit is a column (mean, std, ci95, min, max, tolerance are in it); validity: the
+    # replicas' verdict, the same on every row
+    judged = "deterministic" if vary == "order" else "same on any bed"
+    report["text"] = _ensemble_text(stats, f"{plan.name}: {replicas} replicas ({varied}), {out_dir}", judged)
+    report["ok"] = stats["steady"] == replicas and stats["steady"] >= 2
+    return report
+
+
+def resume_replicas(out_dir: str) -> dict:
+    """Finish a set of replicas an interruption (or a kill) left (its REPLICAS_FILE): each run that
+    finished or diverged is taken as it is, each with a checkpoint resumed (cosim.launch.resume: to the
+    result an uninterrupted run gives), each that never began run; then the ensemble is written as
+    replica_run writes it. One run at a time, in this process."""
+    from .folders import RunFolder
+    from .launch import resume
+
+    out_dir = os.path.abspath(out_dir)
+    path = os.path.join(out_dir, REPLICAS_FILE)
+    try:
+        with open(path) as f:
+            recipe = json.load(f)
+        tasks, vary, beds = recipe["tasks"], recipe["vary"], recipe["beds"]
+        plan = task_plan({**tasks[0], "overrides": {}})
+    except (OSError, ValueError, KeyError, TypeError, IndexError) as error:
+        raise DamagedFileError(f"{path}: not the replicas' recipe a replica run wrote ({error})") from None
+    soils = _check_variation(plan, vary, len(tasks))
+    results = []
+    with RunFolder(out_dir).locked():
+        for task in tasks:
+            record = _read_run_record(task["out_dir"])
+            status = record.get("status")
+            kept = os.path.isfile(RunFolder(task["out_dir"]).checkpoint)
+            base = {"label": task.get("label"), "out_dir": task["out_dir"], "overrides": task.get("overrides", {})}
+            try:
+                if status == "diverged" or (status in FINISHED and not kept):  # a result as it is
+                    results.append({**base, "ok": status in FINISHED, "status": status, "summary": record["summary"]})
+                elif kept:  # a finished run's resume returns its result; another's continues it
+                    log.info("%s: resuming its checkpoint", task["label"])
+                    done = resume(task["out_dir"])
+                    results.append({**base, "ok": True, "status": done.status, "summary": done.summary})
+                else:  # it never began, or was stopped before its first checkpoint: it runs now
+                    log.info("%s: running (no checkpoint to resume)", task["label"])
+                    results.append(run_task({**task, "overwrite": True}))
+            except (KeyboardInterrupt, RunInterrupted) as stop:
+                raise _replicas_stopped(stop, out_dir) from None
+            except (RegolithError, KeyError) as error:  # diverged again, or damaged: said; the others go on
+                results.append({**base, "ok": False, "status": "failed", "error": f"{type(error).__name__}: {error}"})
+        return _ensemble_report(plan, out_dir, results, vary, soils, beds, bool(recipe.get("batched")))
+
+
+def _read_run_record(folder: str) -> dict:
+    """A run folder's run.json ({} when it has none or it cannot be read: the run has not finished)."""
+    from .folders import RUN_FILE
+
+    try:
+        with open(os.path.join(folder, RUN_FILE)) as f:
+            record = json.load(f)
+    except (OSError, ValueError):
+        return {}
+    return record if isinstance(record, dict) else {}
 
 
 # ------------------------------------------------------------------------------------
@@ -958,11 +1092,10 @@ def precision_study(
     problems += [f"--precisions: {p} given twice (its runs would share folders)" for p in _repeated(precisions)]
     if not precisions:
         problems.append(f"--precisions: give at least one of {', '.join(PRECISION_ORDER)}")
-    if replicas < 1:
-        problems.append(f"--replicas: must be >= 1, got {replicas}")
     if problems:
         raise SceneError(problems)
-    batched = _batching(plan, batched)
+    check_replicas(plan, replicas, 1)
+    batched = _batching(plan, batched, executor, scheduler, workers)
     out_dir = os.path.abspath(out_dir)
     tasks_run = Executor("serial" if batched else executor, scheduler, workers)  # refused before the folder is made
     with prepare_study(out_dir, overwrite):
@@ -973,7 +1106,11 @@ def precision_study(
                 {
                     "scene_toml": text,
                     "out_dir": os.path.join(out_dir, precision, f"replica_{k:03d}"),
-                    "overrides": {"scene.precision": precision, "run.order_seed": k, **_bed_override(bed)},
+                    "overrides": {
+                        "scene.precision": precision,
+                        "run.order_seed": replica_order_seed(plan, k),
+                        **_bed_override(bed),
+                    },
                     "label": f"{precision}/replica_{k:03d}",
                     "precision": precision,
                     "replica": k,
@@ -1089,11 +1226,10 @@ def slip_study(
     batched: every slip's replicas as worlds of one simulation (cosim.batch; each run bit for bit as
     alone; over beds too, world k of each slip on bed k); None: when the device is a GPU and the
     scene can be batched."""
-    if replicas < 1:
-        raise SceneError([f"--replicas: must be >= 1, got {replicas}"])
+    check_replicas(plan, replicas, 1)
     slips = check_slips(plan, slips)
     soils = _check_variation(plan, vary, replicas)
-    batched = _batching(plan, batched)
+    batched = _batching(plan, batched, executor, scheduler, workers)
     out_dir = os.path.abspath(out_dir)
     tasks_run = Executor("serial" if batched else executor, scheduler, workers)  # refused before the folder is made
     with prepare_study(out_dir, overwrite):

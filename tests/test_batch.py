@@ -224,20 +224,28 @@ def world_processes() -> list[int]:
     return pids
 
 
-def test_a_stop_signal_stops_every_run_of_a_batch_with_a_checkpoint_each_resumed_alone(tmp_path, tiny_bed, runs_alone):
-    """SIGTERM to the batch (what a scheduler sends): every run stops after its macro step with a checkpoint;
-    `cosim resume` of each folder then ends as its run alone does, bit for bit."""
-    plans = [seed_plan(tmp_path, tiny_bed, seed) for seed in SEEDS]
-    out = [str(tmp_path / f"replica_{k}") for k in range(len(plans))]
-    when_checkpointed(out, lambda: os.kill(os.getpid(), signal.SIGTERM))
-    results = run_batched(plans, out)
-    for result in results:
-        assert not result["ok"] and "RunInterrupted" in result["error"], result
-    for folder in out:  # a world's checkpoint is its scene's alone, units included
+def test_a_stop_signal_stops_every_replica_of_a_batch_and_one_resume_finishes_them(tmp_path, tiny_bed, runs_alone):
+    """SIGTERM to batched replicas (what a scheduler sends): every run stops after its macro step with a
+    checkpoint. They were recorded as failed (ensemble.json: 0 of 2 steady, exit 1) and `cosim resume OUT`
+    refused the folder. Now the stop says how to finish them (exit 143), and `cosim resume OUT` resumes each
+    to the end its run alone reaches, bit for bit, and writes the ensemble."""
+    from cosim.cli import main
+    from cosim.study import REPLICAS_FILE
+
+    out = tmp_path / "replicas"
+    folders = [str(out / f"replica_{k:03d}") for k in range(len(SEEDS))]
+    when_checkpointed(folders, lambda: os.kill(os.getpid(), signal.SIGTERM))
+    with pytest.raises(KeyboardInterrupt, match=f"SIGTERM: the replicas stopped .*cosim resume {out}") as stop:
+        replica_run(seed_plan(tmp_path, tiny_bed, SEEDS[0]), str(out), len(SEEDS), batched=True)
+    assert stop.value.signal == "SIGTERM" and (out / REPLICAS_FILE).is_file() and not (out / "ensemble.json").exists()
+    for folder in folders:  # a world's checkpoint is its scene's alone, units included
         assert assert_checkpoint_units(os.path.join(folder, "checkpoint.npz"))["soil/simulation/state/position"] == "m"
-    for folder, alone in zip(out, runs_alone):
-        assert resume(folder).status in ("complete", "unsteady")
+    assert main(["resume", str(out)]) == 6  # each ends unsteady, as alone (the tiny drive is too short to judge)
+    for folder, alone in zip(folders, runs_alone):
         assert_same_run(alone, folder)
+    report = json.loads((out / "ensemble.json").read_text())
+    assert [(r["ok"], r["status"]) for r in report["results"]] == [(True, "unsteady")] * len(SEEDS)
+    assert report["stats"]["replicas"] == len(SEEDS) and report["stats"]["steady"] == 0
 
 
 @pytest.mark.skipif(not os.path.isdir("/proc"), reason="finds the batch's processes in /proc")

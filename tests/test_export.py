@@ -441,7 +441,7 @@ def test_view_refuses_bad_arguments_with_one_line(tiny_run, tmp_path, capsys):
         (["view", str(tiny_run), "--out", str(tmp_path / "f.png"), "--dpi", "7000"], "--dpi 7000: allowed"),
         (["view", str(tiny_run), "--out", str(tmp_path)], "holds files that are not a view's frames"),
         (["view", str(tiny_run), "--out", str(tmp_path / "notes")], "notes' is a file; frames go into a folder"),
-        (["run", str(tiny_run / "scene.toml"), "--replicas", "0"], "--replicas must be >= 1"),
+        (["run", str(tiny_run / "scene.toml"), "--replicas", "0"], "--replicas must be 1 to 10000"),
     ):
         assert main(argv) == 2, argv
         error = capsys.readouterr().err.strip()

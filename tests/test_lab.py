@@ -534,6 +534,30 @@ def test_calibrate_that_measured_nothing_writes_no_calibrated_scene(tmp_path, ca
     assert (out / "history.csv").is_file()
 
 
+def test_a_calibrated_scene_says_whether_it_met_its_targets(tmp_path, capsys, monkeypatch):
+    """The target lies outside what the range measures (35 and 40 deg at its ends, target 30): the best
+    evaluation was written as calibrated.toml with nothing in it saying that it missed, and the progress
+    lines gave the values without units. The file's header says it missed, by what; it still loads."""
+    import importlib
+
+    import tomllib
+
+    lab_calibrate = importlib.import_module("cosim.lab.calibrate")
+    measured = iter([35.0, 40.0])
+    monkeypatch.setattr(lab_calibrate, "measure", lambda plan, tests, folder, run_on: {"repose": next(measured)})
+    scene = tmp_path / "lab.toml"
+    scene.write_text("[scene]\ndevice = 'cpu'\n")
+    out = tmp_path / "out"
+    args = ["--serial", "--out", str(out), "--target", "repose=30", "--vary", "soil.rolling_friction=0:0.3"]
+    assert main(["calibrate", str(scene), *args]) == 6
+    text = (out / "calibrated.toml").read_text()
+    assert text.startswith("# cosim calibrate: evaluation 1 of 2, NOT within its targets: the target repose = 30 ")
+    assert "# repose measured 35 deg, target 30 +- 1 deg\n" in text
+    assert tomllib.loads(text)["soil"]["rolling_friction"] == 0.0  # the best end, a scene as before
+    logged = capsys.readouterr().err  # the progress lines
+    assert "soil.rolling_friction = 0.3 1" in logged and "repose 40 deg (target 30 deg)" in logged, logged
+
+
 def test_an_interrupted_calibrate_reports_its_finished_evaluations(tmp_path, capsys, monkeypatch):
     """SIGTERM during the third evaluation: the two finished ones were lost with the report (only each
     evaluation's own folder kept its tests). Now summary.json and history.csv hold them, no calibrated

@@ -87,6 +87,23 @@ def test_a_cohesionless_soil_is_fitted_through_the_origin():
     assert strength["cohesion"] == 0 and 24 < strength["friction_angle_deg"] < 27
 
 
+def test_a_shear_fit_without_scatter_says_why_it_has_no_error(recwarn):
+    """Two shear points fit their line exactly (tau = 10 + sigma tan 35 deg) and a cohesion held at 0 has
+    no error: each error is nan with its reason, and no raw SciPy warning ("Covariance ... could not be
+    estimated") reaches the user."""
+    from scipy.optimize import OptimizeWarning
+
+    sigma = np.array([100.0, 200.0])
+    two = fit_mohr_coulomb(sigma, 10.0 + sigma * math.tan(math.radians(35.0)))
+    assert two["cohesion"] == pytest.approx(10.0) and two["friction_angle_deg"] == pytest.approx(35.0)
+    assert math.isnan(two["cohesion_se"]) and math.isnan(two["friction_angle_deg_se"])
+    assert "two shear points for two parameters" in two["cohesion_note"] == two["friction_angle_deg_note"]
+    held = fit_mohr_coulomb(sigma, sigma * 0.75 - 25.0)  # the line meets the stress axis above 0: c < 0
+    assert held["cohesion"] == 0 and math.isnan(held["cohesion_se"]) and "bound 0" in held["cohesion_note"]
+    assert math.isfinite(held["friction_angle_deg_se"]) and "friction_angle_deg_note" not in held
+    assert not [w for w in recwarn if issubclass(w.category, OptimizeWarning)]
+
+
 def _replica_records(k_phi, phi, rng):
     """calibrate_scm's plate and shear records of beds and specimens that differ: replica r's soil has
     k_phi[r] [Pa m^(-n)] and phi[r] [deg] (k_c 3e3 Pa m^(1-n), n 1.2, K_e 4e6 Pa/m, c 0, K 1.5 mm),
@@ -164,7 +181,8 @@ def test_a_calibration_file_round_trips_and_warns_at_another_gravity(tmp_path):
         CoupledSystem.build(plan, None)
     (gravity,) = [f for f in _findings(plan) if f.check == "scm_calibration_gravity"]
     assert not gravity.ok and gravity.unit == "m/s^2" and (gravity.value, gravity.limit) == pytest.approx((9.81, 1.625))
-    assert {f.unit for f in _findings(plan) if f.check != "scm_calibration_gravity"} == {"1"}  # the others: ratios
+    units = {f.check: f.unit for f in _findings(plan) if f.check != "scm_calibration_gravity"}
+    assert units.pop("scm_coupling_step") == "rad" and set(units.values()) == {"1"}  # the others: ratios
     write_calibration(str(path), _calibration(plan.g))
     with warnings.catch_warnings():
         warnings.simplefilter("error", CalibrationGravityWarning)
@@ -542,7 +560,15 @@ def test_calibrate_scm_runs_the_dem_tests_and_writes_a_usable_file(tmp_path, cap
     assert main(["calibrate-scm", scene, "--out", str(out), *options]) == 0
     captured = capsys.readouterr()
     printed, printed_err = captured.out, captured.err  # each parameter with its unit
-    assert "m/s^2" in printed and all(f"{SOIL_UNITS[key]}\n" in printed for key in SOIL_KEYS)
+    assert "m/s^2" in printed
+    reasons = read_calibration(str(out)).source["error_not_estimated"]
+    for key in SOIL_KEYS:  # with its unit, and its error or the reason it has none
+        line = next(line for line in printed.splitlines() if line.split()[:1] == [key])
+        assert (
+            line.endswith(f" +- {line.split(' +- ')[-1]}")
+            and line.endswith(f" {SOIL_UNITS[key]}")
+            or (line.endswith(f" {SOIL_UNITS[key]}, no error bar: {reasons.get(key, 'not estimated')}"))
+        ), line
     assert "replicas' own fits' scatter / sqrt(R), R = 2" in printed  # what its +- holds
     assert "is not in it" in _error_bar_note({})  # and on one bed, what it leaves out
     calibration = read_calibration(str(out))

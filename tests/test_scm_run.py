@@ -372,6 +372,32 @@ def test_a_scene_on_scm_alone_steps_at_its_own_bounce_and_travel_limits(tmp_path
         _check_macro_step({"coupler/step_count": 7, "coupler/time": 7 * 0.0017}, plan)
 
 
+def test_a_macro_step_that_does_not_resolve_the_wheel_s_bounce_on_scm_is_flagged(tmp_path):
+    """scm_coupling_step: omega_e H of the wheel's elastic bounce (omega_e = sqrt(K_e A g / W) with Bekker's
+    closed-form sinkage, computed here) against 2 rad; the run.macro_step it names passes. `cosim advise`
+    printed omega_e H (29.5 rad in a user's scene) and judged nothing."""
+    from cosim.advice import SCM_BOUNCE_LIMIT
+    from cosim.system import validity
+
+    scene = write_tiny(tmp_path, SCM)
+    plan = load_plan(scene)
+    load, r, b = plan.wheel_load, plan.wheel.outer_radius, plan.wheel.width
+    z0 = (3 * load / ((3 - N) * (K_C + b * K_PHI) * math.sqrt(2 * r))) ** (2 / (2 * N + 1))
+    bounce = math.sqrt(2.0e7 * b * 2 * math.sqrt(2 * r * z0) * plan.g / load)
+
+    def judged(step):
+        findings = validity(load_plan(scene, {"run.macro_step": step}), 0.0)
+        return next(f for f in findings if f.check == "scm_coupling_step")
+
+    slow = 3.0 / bounce  # 3 rad a step
+    finding = judged(slow)
+    assert not finding.ok and finding.value == pytest.approx(3.0, rel=1e-9) and finding.unit == "rad"
+    named = float(finding.message.split("set run.macro_step <= ")[1].split(" s")[0])
+    assert named == pytest.approx(SCM_BOUNCE_LIMIT / bounce, rel=1e-3) and judged(named).ok
+    own = judged(None)
+    assert own.ok and own.value <= 0.2 * (1 + 1e-9)  # SCM's own step: 0.2 rad, or the tips' travel
+
+
 def test_advise_on_an_scm_scene_gives_the_grid_and_the_step_not_the_grains(tmp_path, capsys):
     """`cosim advise` on SCM: the soil's parameters, the grid, Bekker's static sinkage (computed here
     from the closed form) and the coupling step with its bounce phase; no Rayleigh step or grain

@@ -1161,26 +1161,39 @@ def test_a_valid_scene_exports_quietly_and_its_fmu_says_valid(scm, tmp_path, cap
     assert data["validity"] == "valid (not judged without a run's measurements: scm_slip)"
 
 
-def test_a_step_after_terminate_says_so_not_that_initialization_is_missing(scm, tmp_path):
-    """doStep after fmi2Terminate was refused with "doStep before the end of initialization", which
-    points the master at the wrong mistake: it says the instance is terminated and what to do."""
+def _fmi2_slave(fmu, folder: Path, name: str):
+    """An fmpy FMI 2.0 slave of `fmu` in this process, instantiated, and the list its logger fills."""
     from fmpy import extract, read_model_description
-    from fmpy.fmi1 import FMICallException
     from fmpy.fmi2 import FMU2Slave, defaultCallbacks, fmi2CallbackFunctions, fmi2CallbackLoggerTYPE
 
-    fmu = scm["fmus"][2]
     description = read_model_description(str(fmu))
     slave = FMU2Slave(
         guid=description.guid,
-        unzipDirectory=extract(str(fmu), unzipdir=str(tmp_path / "unzipped")),
+        unzipDirectory=extract(str(fmu), unzipdir=str(folder / f"unzipped_{name}")),
         modelIdentifier=description.coSimulation.modelIdentifier,
-        instanceName="terminated",
+        instanceName=name,
     )
-    logged = []
+    logged: list[bytes] = []
     callbacks = fmi2CallbackFunctions()
     callbacks.logger = fmi2CallbackLoggerTYPE(lambda env, name, status, category, message: logged.append(message))
     callbacks.allocateMemory, callbacks.freeMemory = defaultCallbacks.allocateMemory, defaultCallbacks.freeMemory
     slave.instantiate(callbacks=callbacks)
+    slave._callbacks_kept = callbacks  # the C side keeps pointers into it
+    return slave, logged
+
+
+def _initialized(slave) -> None:
+    slave.setupExperiment(startTime=0.0)
+    slave.enterInitializationMode()
+    slave.exitInitializationMode()
+
+
+def test_a_step_after_terminate_says_so_not_that_initialization_is_missing(scm, tmp_path):
+    """doStep after fmi2Terminate was refused with "doStep before the end of initialization", which
+    points the master at the wrong mistake: it says the instance is terminated and what to do."""
+    from fmpy.fmi1 import FMICallException
+
+    slave, logged = _fmi2_slave(scm["fmus"][2], tmp_path, "terminated")
 
     def refused_step(t: float) -> str:
         logged.clear()
@@ -1191,12 +1204,117 @@ def test_a_step_after_terminate_says_so_not_that_initialization_is_missing(scm, 
     try:
         assert "doStep before the end of initialization" in refused_step(0.0)
         slave.reset()
-        slave.setupExperiment(startTime=0.0)
-        slave.enterInitializationMode()
-        slave.exitInitializationMode()
+        _initialized(slave)
         slave.doStep(currentCommunicationPoint=0.0, communicationStepSize=H)
         slave.terminate()
         said = refused_step(H)
         assert "doStep after terminate: the instance is terminated; reset it" in said, said
     finally:
         slave.freeInstance()
+
+
+def test_an_fmu_state_belongs_to_its_instance(scm, tmp_path):
+    """Two instances of one FMU each number their FMU states from 1: instance B took A's state, restored its
+    own state 1 under it and stepped on a mix of two soils (fmi2OK). A state is refused by every other
+    instance (restore, overwrite, free), naming why, and stays A's; FMI 2.0 declares no variable 0 (the
+    soil's time is FMI 3.0's independent variable), and a fixed string parameter is named."""
+    from fmpy.fmi1 import FMICallException
+
+    a, logged_a = _fmi2_slave(scm["fmus"][2], tmp_path, "A")
+    b, logged_b = _fmi2_slave(scm["fmus"][2], tmp_path, "B")
+    try:
+        for slave in (a, b):
+            _initialized(slave)
+        a.doStep(currentCommunicationPoint=0.0, communicationStepSize=H)
+        state = a.getFMUstate()
+        own = b.getFMUstate()
+        for call in (lambda: b.setFMUstate(state), lambda: b.freeFMUstate(state)):
+            logged_b.clear()
+            with pytest.raises(FMICallException):
+                call()
+            assert b"belongs to another instance of the FMU" in b"\n".join(logged_b), logged_b
+        a.doStep(currentCommunicationPoint=H, communicationStepSize=H)
+        a.setFMUstate(state)  # still A's, whole
+        assert a.getRealStatus(2) == H  # fmi2LastSuccessfulTime: back at the state's time
+        a.freeFMUstate(state)
+        b.reset()
+        _initialized(b)
+        logged_b.clear()
+        with pytest.raises(FMICallException):
+            b.getReal([0])
+        assert b"no Real variable has value reference 0" in b"\n".join(logged_b), logged_b
+        b.reset()
+        _initialized(b)
+        logged_b.clear()
+        with pytest.raises(FMICallException):
+            b.setString([7], ["python3"])
+        assert b"parameter python is fixed" in b"\n".join(logged_b), logged_b
+        del own  # B's own state went with its reset
+    finally:
+        for slave in (a, b):
+            slave.terminate()
+            slave.freeInstance()
+
+
+def test_a_soil_fmu_runs_on_the_device_its_scene_names_or_says_which_setting_is_bad(scm, tmp_path, monkeypatch):
+    """`--device default` (a scene's default) exported an FMU whose server refused 'default' at every start.
+    The export keeps the scene's name; the server resolves 'default' where it runs; a bad name is refused
+    naming where it came from (the parameter, $REGOLITH_SOIL_DEVICE) and what is allowed."""
+    import warp as wp
+
+    from cosim.soil_fmu.server import DEVICE_VARIABLE, SoilSession
+    from soil.errors import ArgumentError
+
+    scene = tmp_path / "default.toml"
+    scene.write_text(scm["scene"].read_text().replace('device = "cpu"\n', ""))
+    assert soil_config_from(scene).device == "default" and scm["config"].device == "cpu"
+    monkeypatch.delenv(DEVICE_VARIABLE, raising=False)
+    assert SoilSession.device("", "default") == str(wp.get_device())  # a GPU if this machine has one
+    assert SoilSession.device("cpu", "default") == "cpu"
+    with pytest.raises(ArgumentError, match="the FMU's device parameter: 'gpu' is no device: 'default' "):
+        SoilSession.device("gpu", "cpu")
+    with pytest.raises(ArgumentError, match="the FMU's device parameter: 'cuda:99' asked for, but this machine"):
+        SoilSession.device("cuda:99", "cpu")
+    monkeypatch.setenv(DEVICE_VARIABLE, " cpu")
+    with pytest.raises(ArgumentError, match=r"\$REGOLITH_SOIL_DEVICE: ' cpu' is no device"):
+        SoilSession.device("", "cpu")
+    monkeypatch.delenv(DEVICE_VARIABLE)
+    # end to end: an FMU told 'default' starts and steps
+    slave, logged = _fmi2_slave(scm["fmus"][2], tmp_path, "default")
+    try:
+        slave.setString([8], ["default"])
+        _initialized(slave)
+        slave.doStep(currentCommunicationPoint=0.0, communicationStepSize=H)
+    finally:
+        slave.terminate()
+        slave.freeInstance()
+
+
+def test_a_discarded_step_retried_with_other_inputs_is_not_called_unchanged(tiny, importer):
+    """After a Discard the master retried the same step with other wheel motion: the FMU compared only
+    the step's length, said "retried unchanged" and reported fmi2Terminated, so a master that checks it
+    stopped. Only the same step with the same inputs is."""
+    job, motion = _job(tiny["fmus"][2], 2)
+    other = _inputs(WheelKinematics(motion[1].position, motion[1].orientation, (0.02, 0.0, -12.0), (0, SPIN, 0)))
+    job["steps"] = [
+        {"h": H, "inputs": [_inputs(motion[0])]},
+        {"h": H, "inputs": [_rammed(motion, 1)]},
+        {"h": H, "inputs": [other]},  # the same step from t = H, other motion: refused too
+        {"h": H, "inputs": [other]},  # and again, unchanged
+    ]
+    result = importer(job)
+    assert [s[0] for s in result["status"]] == ["ok", "ok", "discard", "discard", "discard"], result["messages"]
+    discards = [m[2] for m in result["messages"] if m[0] == "discard" and "retry" in m[2]]
+    unchanged = [i for i, text in enumerate(discards) if "retried unchanged" in text]
+    assert unchanged == [len(discards) - 1], discards  # only the last one
+    # with several wheels the refusal names the wheel whose hub is nearest the grain that diverged
+    from types import SimpleNamespace
+
+    from cosim.soil_fmu.server import SoilSession
+    from soil import SimulationDiverged
+
+    hubs = [WheelKinematics((x, 0.0, 0.05), (1, 0, 0, 0), (0, 0, 0), (0, 0, 0)) for x in (0.0, 0.3, 0.6)]
+    error = SimulationDiverged("overlap", position=np.array([0.31, 0.02, 0.03]))
+    said = SoilSession.nearest_wheel(SimpleNamespace(wheel_count=3), error, hubs)
+    assert said == f" of wheel_1 (its hub {math.hypot(0.01, 0.02, 0.02):.3g} m from the grain that diverged)"
+    assert SoilSession.nearest_wheel(SimpleNamespace(wheel_count=1), error, hubs[:1]) == ""

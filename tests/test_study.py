@@ -1,6 +1,7 @@
 """Runs end to end: checkpoints and resume (bitwise on the CPU, also after kill -9), the folder lock,
 replacing a run only after the new one is built, divergence, and dask ensembles against serial runs."""
 
+import dataclasses
 import json
 import math
 import os
@@ -362,6 +363,51 @@ def test_a_study_refuses_bad_or_repeated_points_before_it_writes(scene_path, tin
         else:
             slip_study(plan, str(out), values, executor="serial")
     assert not out.exists()
+
+
+def test_replicas_refuse_a_count_and_options_they_cannot_take_before_anything_runs(
+    scene_path, tiny_bed, tmp_path, capsys
+):
+    """--replicas 10^9 settled a bed and filled 23 GB with tasks before a run; --batched with --workers or
+    --serial ran on, ignoring them; replicas of a scene with run.order_seed = 5 ran seeds 0 and 1. Now: the
+    count is refused by name before the scene is read, an executor with --batched is refused, an executor
+    asked for without --batched runs separate runs (no batch on a GPU), and replica k sums in order
+    run.order_seed + k (as far as the largest seed)."""
+    from cosim.cli import main
+    from cosim.scene import INT64_MAX, SceneError
+    from cosim.study import MAX_REPLICAS, _batching, _replica_overrides, check_replicas, replica_run
+    from soil.errors import ArgumentError
+
+    out = tmp_path / "replicas"
+    assert main(["run", str(scene_path), "--out", str(out), "--replicas", str(10**9)]) == 2
+    assert f"--replicas must be 1 to {MAX_REPLICAS}" in capsys.readouterr().err and not out.exists()
+    plan = _plan(scene_path, tiny_bed)
+    for option in ({"workers": 2}, {"executor": "serial"}):
+        with pytest.raises(ArgumentError, match="batched runs are worlds of one simulation in this process"):
+            replica_run(plan, str(out), 2, batched=True, **option)
+        assert not out.exists()
+    gpu = dataclasses.replace(plan, device="cuda:0")  # what a GPU would batch by itself
+    assert _batching(gpu, None) and not _batching(gpu, None, executor="serial") and not _batching(gpu, None, workers=2)
+    seeded = _plan(scene_path, tiny_bed, "run.order_seed=5")
+    assert [_replica_overrides(k, None, "order", seeded)["run.order_seed"] for k in range(3)] == [5, 6, 7]
+    assert [_replica_overrides(k, None, "order", plan)["run.order_seed"] for k in range(2)] == [0, 1]
+    check_replicas(_plan(scene_path, tiny_bed, f"run.order_seed={INT64_MAX - 2}"), 3, 2)
+    with pytest.raises(SceneError, match=r"allowed: run.order_seed <= 9223372036854775805"):
+        check_replicas(_plan(scene_path, tiny_bed, f"run.order_seed={INT64_MAX - 1}"), 3, 2)
+
+
+def test_a_replicas_folder_without_its_recipe_names_the_replicas_to_resume(tmp_path, capsys):
+    """Replicas interrupted before they kept their recipe: `cosim resume OUT` said "no scene.toml: not a run
+    folder"; it names the replica folders, each of which resumes alone."""
+    from cosim.cli import main
+
+    for k in range(2):
+        (tmp_path / f"replica_{k:03d}").mkdir()
+        (tmp_path / f"replica_{k:03d}" / "scene.toml").write_text("")
+    assert main(["resume", str(tmp_path)]) == 2
+    said = capsys.readouterr().err
+    assert "holds replicas (replica_000, replica_001) without the recipe" in said, said
+    assert f"cosim resume {tmp_path / 'replica_000'}" in said
 
 
 def test_timestep_study_ends_with_an_answer_in_bounded_tries(scene_path, tiny_bed, tmp_path):

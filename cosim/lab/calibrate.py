@@ -268,6 +268,7 @@ def _calibrate(
     from scipy import optimize
 
     history: list[dict] = []
+    unit_of = {p.name: key_unit(p.keys[0]) or "1" for p in parameters} | {n: TARGETS[n].unit for n in targets}
     scale = np.array([p.high - p.low for p in parameters])
     low = np.array([p.low for p in parameters])
 
@@ -279,7 +280,9 @@ def _calibrate(
         number = len(history) + 1
         folder = os.path.join(out_dir, "evaluations", f"{number:03d}")
         log.info(
-            "calibrate: evaluation %d: %s", number, ", ".join(f"{p.name} = {v:.6g}" for p, v in zip(parameters, values))
+            "calibrate: evaluation %d: %s",
+            number,
+            ", ".join(f"{p.name} = {v:.6g} {unit_of[p.name]}" for p, v in zip(parameters, values)),
         )
         measured = measure(plan.with_changes(_overrides(parameters, values)), tests, folder, run_on)
         misfit = {name: measured[name] - targets[name] for name in targets}
@@ -298,7 +301,7 @@ def _calibrate(
         log.info(
             "calibrate: evaluation %d measured %s",
             number,
-            ", ".join(f"{n} {measured[n]:.4g} (target {targets[n]:.4g})" for n in targets),
+            ", ".join(f"{n} {measured[n]:.4g} {unit_of[n]} (target {targets[n]:.4g} {unit_of[n]})" for n in targets),
         )
         if within:
             raise _Converged
@@ -381,8 +384,19 @@ def _calibrate(
         path = None
     if not message:
         message = "every target is within its tolerance" if converged else "the optimiser ended outside the tolerance"
-    if path is not None:
-        atomic_write_text(path, plan.with_changes(_overrides(parameters, best["values"])).scene.to_toml())
+    if path is not None:  # the scene says what it is, and whether it met its targets, to whoever opens it
+        said = "; ".join(
+            f"{n} measured {best['measured'][n]:.4g} {unit_of[n]}, target {targets[n]:g} +- {tolerances[n]:g} "
+            f"{unit_of[n]}"
+            for n in targets
+        )
+        header = (
+            f"# cosim calibrate: evaluation {best['evaluation']} of {len(history)}, "
+            f"{'within every target' if converged else 'NOT within its targets'}: {message}\n# {said}\n"
+            f"# (summary.json and history.csv beside this file)\n"
+        )
+        scene_text = plan.with_changes(_overrides(parameters, best["values"])).scene.to_toml()
+        atomic_write_text(path, header + scene_text)
     summary = {
         "test": "calibrate",
         "name": plan.name,

@@ -305,7 +305,10 @@ BEKKER_UNITS = {
     "r_squared": "1",
     "rms_pa": "Pa",
     "points": "count",
-    "per_width": "keys: plate width [m]; each k [N/m^(n+2)], n [1]",
+    "per_width": (
+        "keys: plate width [m]; each that width's own log-log line, k [N/m^(n+2)] and n [1]: the fit's start "
+        "guess, not the fit"
+    ),
 }
 """The units of bekker_fit's values (a plate test's summary.json)."""
 

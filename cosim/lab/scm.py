@@ -58,6 +58,10 @@ def fit_bekker(curves, fit_from: float = 0.0) -> dict:
         se = np.sqrt(np.diag(covariance))
         kept, dropped = ("k_phi", "k_c") if frictional else ("k_c", "k_phi")
         out.update({kept: float(k), f"{kept}_se": float(se[0]), dropped: 0.0, f"{dropped}_se": math.nan})
+        out[f"{dropped}_note"] = (
+            f"held at its bound 0 (the fit over both widths gave a negative {dropped}: the widths' difference is "
+            "within the scatter), so it has no error"
+        )
         out.update(n=float(n), n_se=float(se[1]))
     return out
 
@@ -85,20 +89,48 @@ def fit_mohr_coulomb(sigma, tau) -> dict:
     """Cohesion c [Pa], friction angle phi [deg] and their standard errors from (sigma_n, tau) [Pa]
     points (a line tau = c + sigma tan(phi), scipy curve_fit); c is held >= 0 (a negative intercept
     of a cohesionless soil's scatter is no cohesion: then c = 0 and phi through the origin)."""
-    from scipy.optimize import curve_fit
+    import warnings
+
+    from scipy.optimize import OptimizeWarning, curve_fit
 
     sigma, tau = np.asarray(sigma, dtype=float), np.asarray(tau, dtype=float)
+    notes = {}
     if len(np.unique(sigma)) >= 2:
-        (c, tan_phi), covariance = curve_fit(lambda s, c, t: c + s * t, sigma, tau, p0=(0.0, 0.5))
+        with warnings.catch_warnings():  # two points: no covariance, said in the notes below instead
+            warnings.simplefilter("ignore", OptimizeWarning)
+            (c, tan_phi), covariance = curve_fit(lambda s, c, t: c + s * t, sigma, tau, p0=(0.0, 0.5))
         c_se, tan_se = math.sqrt(covariance[0, 0]), math.sqrt(covariance[1, 1])
+        if len(sigma) <= 2:  # a line through two points leaves no scatter to estimate its errors from
+            c_se = tan_se = math.nan
+            notes = dict.fromkeys(
+                ("cohesion_note", "friction_angle_deg_note"),
+                "two shear points for two parameters: the line passes through both, so no error is left to "
+                "estimate (three or more shear.normal_stresses, or --replicas 2 or more, give one)",
+            )
     else:
         c = -1.0
     if c < 0:
-        (tan_phi,), covariance = curve_fit(lambda s, t: s * t, sigma, tau, p0=(0.5,))
+        with warnings.catch_warnings():  # one point: no covariance, said in the notes below instead
+            warnings.simplefilter("ignore", OptimizeWarning)
+            (tan_phi,), covariance = curve_fit(lambda s, t: s * t, sigma, tau, p0=(0.5,))
         c, c_se, tan_se = 0.0, math.nan, math.sqrt(covariance[0, 0])
+        tan_se = tan_se if len(sigma) > 1 else math.nan
+        notes = {
+            "cohesion_note": "held at its bound 0 (the shear points' line met the stress axis below the origin, "
+            "a cohesionless soil's scatter, or one normal stress): phi is fitted through the origin and c has "
+            "no error"
+        }
+        if len(sigma) <= 1:
+            notes["friction_angle_deg_note"] = "one shear point: no scatter to estimate its error from"
     phi = math.degrees(math.atan(tan_phi))
     phi_se = math.degrees(tan_se / (1 + tan_phi**2))
-    return {"cohesion": float(c), "cohesion_se": c_se, "friction_angle_deg": phi, "friction_angle_deg_se": phi_se}
+    return {
+        "cohesion": float(c),
+        "cohesion_se": c_se,
+        "friction_angle_deg": phi,
+        "friction_angle_deg_se": phi_se,
+        **notes,
+    }
 
 
 def fit_janosi(curves) -> dict:
@@ -305,6 +337,10 @@ def calibrate_scm(plan, out_dir: str, overwrite: bool = False, executor="serial"
         fit_errors = {k: float(fits.get(f"{k}_se", math.nan)) for k in SOIL_KEYS}
         per_replica = replica_fits(plates, sheared, fit_from)
         standard_errors = combine_errors(fit_errors, per_replica)
+        # why an error is nan, said beside it rather than left a bare "+- nan"
+        not_estimated = {
+            k: fits[f"{k}_note"] for k in SOIL_KEYS if math.isnan(standard_errors[k]) and f"{k}_note" in fits
+        }
 
         common.write_csv(
             os.path.join(out_dir, "plate.csv"),
@@ -372,6 +408,7 @@ def calibrate_scm(plan, out_dir: str, overwrite: bool = False, executor="serial"
             # larger of those and the replicas' scatter / sqrt(R) (combine_errors)
             "replica_fits": per_replica,
             "standard_error_of_fit": fit_errors,
+            "error_not_estimated": not_estimated,
             "plate": {
                 "widths_m": list(sides),
                 "speed_m_s": plate.plate_speed(plan),

@@ -153,7 +153,8 @@ def variables(wheel_count: int, dem_step: float, gravity, starts: np.ndarray, te
             8,
             "String",
             *fixed,
-            "the soil server's Warp device (cpu, cuda, cuda:N); empty: $REGOLITH_SOIL_DEVICE, else the scene's device",
+            "the soil server's Warp device (default: a GPU if the machine has one, else the CPU; cpu, cuda, "
+            "cuda:N); empty: $REGOLITH_SOIL_DEVICE, else the scene's device",
             start="",
         ),
     ]

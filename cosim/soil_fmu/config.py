@@ -54,7 +54,8 @@ class SoilFmuConfig:
     precision: str = "mixed"
     """Floating-point mode of the DEM: single, double or mixed."""
     device: str = "cpu"
-    """Warp device of the soil server by default: cpu, cuda or cuda:N."""
+    """Warp device of the soil server by default: 'default' (a GPU on the machine that runs the soil, if it
+    has one, else the CPU), 'cpu', 'cuda' or 'cuda:N'."""
     order_seed: int | None = None
     """Permutation of the grain order (summation order only), as in the scene."""
     macro_step: float | None = None
@@ -166,7 +167,7 @@ def soil_config_from(path, bed_folder=None) -> SoilFmuConfig:
         surface_height=bed.surface_height,
         law=plan.law,
         precision=plan.precision,
-        device=plan.device,
+        device=plan.scene.scene.device,  # resolved where the soil runs ('default': a GPU there if any)
         order_seed=plan.order_seed,
         macro_step=plan.macro_step,
         duration=plan.scene.run.duration,
@@ -245,7 +246,7 @@ def _scm_config(plan) -> SoilFmuConfig:
         dem_step=settings.time_step,
         surface_height=settings.surface_height,
         precision=plan.precision,
-        device=plan.device,
+        device=plan.scene.scene.device,  # resolved where the soil runs ('default': a GPU there if any)
         macro_step=plan.macro_step,
         duration=plan.scene.run.duration,
         start_x=plan.testbed.start_x,

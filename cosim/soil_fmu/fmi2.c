@@ -125,8 +125,12 @@ FMI2_Export fmi2Status fmi2Reset(fmi2Component c) {
 }
 
 FMI2_Export fmi2Status fmi2GetReal(fmi2Component c, const fmi2ValueReference vr[], size_t nvr, fmi2Real value[]) {
-    for (size_t i = 0; i < nvr; i++)
+    for (size_t i = 0; i < nvr; i++) {
+        if (vr[i] == VR_TIME) /* FMI 3.0's independent variable; FMI 2.0 declares none */
+            return REFUSE(c, "fmi2GetReal", "no Real variable has value reference 0 (the soil's time: "
+                          "fmi2GetRealStatus(fmi2LastSuccessfulTime))");
         if (soil_get_real(SOIL(c), vr[i], &value[i]) != SOIL_OK) return fmi2Error;
+    }
     return fmi2OK;
 }
 

@@ -157,7 +157,7 @@ class SoilSession:
         dem_step = float(settings["dem_step"])
         if not dem_step > 0:
             raise ArgumentError(f"dem_step must be > 0 [s], got {dem_step!r}")
-        device = settings.get("device") or os.environ.get(DEVICE_VARIABLE) or config["device"]
+        device = self.device(settings.get("device"), config["device"])
         gravity = [float(g) for g in settings["gravity"].split()]
         self.terrain = config.get("terrain", "dem")
         if self.terrain == "scm" and not np.allclose(gravity, config["gravity"], rtol=1e-12, atol=0):
@@ -188,6 +188,26 @@ class SoilSession:
                 f"precision {sim.precision_name}, DEM step {dem_step:.6g} s"
             )
 
+    @staticmethod
+    def device(parameter: str | None, configured: str) -> str:
+        """The Warp device to step on: the FMU's `device` parameter, else $REGOLITH_SOIL_DEVICE, else the
+        scene's device the export kept (`configured`; 'default' is resolved here, on the machine that runs
+        the soil); ArgumentError naming where a bad name came from and what is allowed."""
+        from cosim.probe import resolve_device
+        from cosim.scene import SceneError
+
+        for name, field in (
+            (parameter, "the FMU's device parameter"),
+            (os.environ.get(DEVICE_VARIABLE), f"${DEVICE_VARIABLE}"),
+            (configured, "the exported scene's device (resources/soil.json)"),
+        ):
+            if name:
+                try:
+                    return resolve_device(name, field)
+                except SceneError as error:
+                    raise ArgumentError("; ".join(error.problems)) from None
+        return resolve_device("default", "the default device")
+
     def kinematics(self, values: np.ndarray):
         from cosim.contract import WheelKinematics
 
@@ -217,12 +237,24 @@ class SoilSession:
             self.start.restore()
             raise StepRefused(
                 f"the soil refused the step from t = {soil.time:.9g} s by {step:.6g} s and is back at "
-                f"its start; retry a shorter step or gentler wheel motion: {error}"
+                f"its start; retry a shorter step or gentler wheel motion{self.nearest_wheel(error, kinematics)}: "
+                f"{error}"
             ) from error
         except BaseException:
             self.start.restore()
             raise
         return data
+
+    def nearest_wheel(self, error, kinematics) -> str:
+        """With several wheels, the refusal's words on the wheel whose motion the master should change, the
+        one whose hub is nearest the grain that diverged ("of wheel_i (its hub D m from ...)"); "" with one
+        wheel or no position."""
+        if self.wheel_count < 2 or getattr(error, "position", None) is None:
+            return ""
+        position = np.asarray(error.position, dtype=float)
+        distances = [float(np.linalg.norm(position - np.asarray(k.position, dtype=float))) for k in kinematics]
+        wheel = int(np.argmin(distances))
+        return f" of wheel_{wheel} (its hub {distances[wheel]:.3g} m from the grain that diverged)"
 
     def save(self, ident: int) -> bytes:
         kept = self.states.get(ident) or self.step_start(self.soil)

@@ -194,7 +194,9 @@ Soil *soil_new(const char *instance_name, const char *resources, const char *tok
                void *log_environment, int logging_on) {
     Soil *s = calloc(1, sizeof(Soil));
     size_t length;
+    static unsigned long long instances = 0; /* instances made by this copy of the library */
     if (!s) return NULL;
+    s->serial = __atomic_add_fetch(&instances, 1, __ATOMIC_RELAXED);
     s->logger = logger;
     s->log_environment = log_environment;
     s->debug = logging_on;
@@ -350,6 +352,13 @@ static SoilStatus server_failed(Soil *s, const char *format, ...) {
     return SOIL_ERROR;
 }
 
+static const char *python_of(const Soil *s) {
+    const char *python = getenv("REGOLITH_SOIL_PYTHON");
+    if (s->python && *s->python) return s->python;
+    if (python && *python) return python;
+    return s->default_python;
+}
+
 /* The socket reached end of file: the server ended; say how. */
 static SoilStatus server_gone(Soil *s, const char *doing) {
     char how[128];
@@ -357,6 +366,10 @@ static SoilStatus server_gone(Soil *s, const char *doing) {
     close_channel(s);
     reap(s, 1.0, how, sizeof how);
     drain_errors(s);
+    if (!s->initialized && !s->tail[0]) /* it said nothing: the Python itself is the likely cause */
+        return server_failed(s, "the soil server (pid %d) %s while %s, saying nothing: is %s (the python "
+                             "parameter, else $REGOLITH_SOIL_PYTHON, else the exporting Python) a Python with "
+                             "regolith-cosim?", pid, how, doing, python_of(s));
     return server_failed(s, "the soil server (pid %d) %s while %s", pid, how, doing);
 }
 
@@ -369,12 +382,6 @@ static int high_descriptor(int fd) {
     return high;
 }
 
-static const char *python_of(const Soil *s) {
-    const char *python = getenv("REGOLITH_SOIL_PYTHON");
-    if (s->python && *s->python) return s->python;
-    if (python && *python) return python;
-    return s->default_python;
-}
 
 static SoilStatus spawn_server(Soil *s) {
     int pair[2], err[2];
@@ -567,6 +574,14 @@ static SoilStatus request(Soil *s, uint32_t kind, const void *payload, uint32_t 
     return status;
 }
 
+/* FNV-1a over the step's wheel inputs (values[1..]): whether a retried step changed them. */
+static unsigned long long inputs_hash(const double *values, size_t count) {
+    const unsigned char *bytes = (const unsigned char *)(values + 1);
+    unsigned long long hash = 1469598103934665603ULL;
+    for (size_t i = 0; i < count * sizeof(double); i++) hash = (hash ^ bytes[i]) * 1099511628211ULL;
+    return hash;
+}
+
 static double *inputs(const Soil *s) {
     double *values = malloc((size_t)s->wheel_count * W_INPUTS * sizeof(double) + sizeof(double));
     if (!values) return NULL;
@@ -585,8 +600,9 @@ static SoilStatus check_orientations(Soil *s) {
         double norm = sqrt(q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3]);
         if (!(norm > 0.5 && norm < 2.0)) {
             soil_log(s, SOIL_ERROR, "logStatusError", "input wheel_%d.orientation must be a unit quaternion "
-                     "(w, x, y, z), got (%g, %g, %g, %g): restore an FMU state taken before (or reset), set a "
-                     "rotation and step again", i, q[0], q[1], q[2], q[3]);
+                     "(w, x, y, z), got (%g, %g, %g, %g): %s", i, q[0], q[1], q[2], q[3],
+                     s->initialized ? "restore an FMU state taken before (or reset), set a rotation and step again"
+                                    : "reset the instance, set a rotation and end the initialization again");
             return SOIL_ERROR;
         }
     }
@@ -596,7 +612,7 @@ static SoilStatus check_orientations(Soil *s) {
 SoilStatus soil_start(Soil *s) {
     char init[8192];
     locale_t numbers, previous;
-    const char *device = getenv("REGOLITH_SOIL_DEVICE");
+    const char *device = s->device ? s->device : ""; /* empty: the server's $REGOLITH_SOIL_DEVICE, else the scene's */
     double *values;
     uint32_t size = (uint32_t)((size_t)s->wheel_count * W_INPUTS * sizeof(double));
     SoilStatus status;
@@ -606,8 +622,6 @@ SoilStatus soil_start(Soil *s) {
         return SOIL_ERROR;
     }
     if (refused_after_error(s, "the end of initialization")) return SOIL_ERROR;
-    if (s->device && *s->device) device = s->device;
-    if (!device) device = "";
     if (strchr(device, '\n') || strchr(s->resources, '\n'))
         return server_failed(s, "the device name and the resource path must not contain a line break");
     if (check_orientations(s) != SOIL_OK) return SOIL_ERROR;
@@ -642,6 +656,7 @@ SoilStatus soil_start(Soil *s) {
 SoilStatus soil_step(Soil *s, double time, double step) {
     double *values;
     double tolerance = 1e-9 * fabs(time) + 1e-6 * step;
+    unsigned long long hash;
     SoilStatus status;
     char doing[128];
     if (s->failed) {
@@ -688,6 +703,7 @@ SoilStatus soil_step(Soil *s, double time, double step) {
     values = inputs(s);
     if (!values) return server_failed(s, "out of memory");
     values[0] = step;
+    hash = inputs_hash(values, (size_t)s->wheel_count * W_INPUTS);
     snprintf(doing, sizeof doing, "stepping from t = %.9g s by %.9g s", time, step);
     status = request(s, MSG_STEP, values, (uint32_t)((size_t)(s->wheel_count * W_INPUTS + 1) * sizeof(double)),
                      s->real[VR_STEP_TIMEOUT], "server_step_timeout", doing);
@@ -697,23 +713,29 @@ SoilStatus soil_step(Soil *s, double time, double step) {
         s->discards = 0;
         s->terminated = 0;
     } else if (status == SOIL_DISCARD) {
-        /* the soil is deterministic: the same step from the same state is refused again */
-        if (s->discards > 0 && step >= s->discarded_step * (1 - 1e-12)) {
+        /* the soil is deterministic: the same step with the same inputs from the same state is refused again */
+        if (s->discards > 0 && step >= s->discarded_step * (1 - 1e-12) && hash == s->discarded_inputs) {
             s->terminated = 1;
             soil_log(s, SOIL_DISCARD, "logStatusDiscard", "the step from t = %.9g s was retried unchanged after "
-                     "its Discard and was refused again: terminating (fmi2Terminated); retry with a shorter step "
-                     "instead", time);
+                     "its Discard (as long, with the same wheel inputs) and was refused again: terminating "
+                     "(fmi2Terminated); retry with a shorter step or other wheel motion instead", time);
         } else {
             soil_log(s, SOIL_DISCARD, "logStatusDiscard", "the soil stays at t = %.9g s, the last successful time: "
                      "retry from there with a shorter step (or restore an FMU state)", time);
         }
         s->discards++;
         s->discarded_step = step;
+        s->discarded_inputs = hash;
     }
     return status;
 }
 
 /* ---------------------------------------------------------------------------- FMU states */
+
+/* Whether `snapshot` was taken by `s` (and not by another instance, which numbers its states alike). */
+static int owned(const Soil *s, const SoilSnapshot *snapshot) {
+    return snapshot->owner == (const void *)s && snapshot->serial == s->serial;
+}
 
 static SoilStatus state_request(Soil *s, uint32_t kind, unsigned id, const char *doing) {
     uint32_t payload = (uint32_t)id;
@@ -729,6 +751,11 @@ SoilStatus soil_get_state(Soil *s, SoilSnapshot **state) {
                  "soil server runs");
         return SOIL_ERROR;
     }
+    if (snapshot && !owned(s, snapshot)) {
+        soil_log(s, SOIL_ERROR, "logStatusError", "the FMU state belongs to another instance of the FMU: take "
+                 "this instance's own (an FMU state is its instance's soil)");
+        return SOIL_ERROR;
+    }
     if (snapshot && snapshot->generation != s->generation) {
         soil_log(s, SOIL_ERROR, "logStatusError", "the FMU state belongs to a soil that was reset or stopped");
         return SOIL_ERROR;
@@ -741,6 +768,8 @@ SoilStatus soil_get_state(Soil *s, SoilSnapshot **state) {
         }
         snapshot->id = ++s->next_state;
         snapshot->generation = s->generation;
+        snapshot->owner = s;
+        snapshot->serial = s->serial;
     }
     if (state_request(s, MSG_SAVE, snapshot->id, "saving an FMU state") != SOIL_OK) {
         if (!*state) {
@@ -754,14 +783,18 @@ SoilStatus soil_get_state(Soil *s, SoilSnapshot **state) {
     snapshot->discards = s->discards;
     snapshot->terminated = s->terminated;
     snapshot->discarded_step = s->discarded_step;
+    snapshot->discarded_inputs = s->discarded_inputs;
     *state = snapshot;
     return SOIL_OK;
 }
 
 SoilStatus soil_set_state(Soil *s, const SoilSnapshot *snapshot) {
-    if (!snapshot || s->failed || !s->initialized || snapshot->generation != s->generation) {
+    if (!snapshot || !owned(s, snapshot) || s->failed || !s->initialized ||
+        snapshot->generation != s->generation) {
         soil_log(s, SOIL_ERROR, "logStatusError", "the FMU state cannot be restored: %s",
-                 !snapshot ? "none given" : "it belongs to a soil that was reset or stopped, or the server failed");
+                 !snapshot             ? "none given"
+                 : !owned(s, snapshot) ? "it belongs to another instance of the FMU (an FMU state is its instance's soil)"
+                                       : "it belongs to a soil that was reset or stopped, or the server failed");
         return SOIL_ERROR;
     }
     if (state_request(s, MSG_RESTORE, snapshot->id, "restoring an FMU state") != SOIL_OK) return SOIL_ERROR;
@@ -770,6 +803,7 @@ SoilStatus soil_set_state(Soil *s, const SoilSnapshot *snapshot) {
     s->discards = snapshot->discards;
     s->terminated = snapshot->terminated;
     s->discarded_step = snapshot->discarded_step;
+    s->discarded_inputs = snapshot->discarded_inputs;
     s->in_error = 0;
     return SOIL_OK;
 }
@@ -777,6 +811,11 @@ SoilStatus soil_set_state(Soil *s, const SoilSnapshot *snapshot) {
 SoilStatus soil_free_state(Soil *s, SoilSnapshot **state) {
     SoilStatus status = SOIL_OK;
     if (!*state) return SOIL_OK;
+    if (!owned(s, *state)) { /* not ours to free: its own instance's server keeps its soil */
+        soil_log(s, SOIL_ERROR, "logStatusError", "the FMU state belongs to another instance of the FMU: free it "
+                 "with that instance");
+        return SOIL_ERROR;
+    }
     if (s->initialized && !s->failed && (*state)->generation == s->generation)
         status = state_request(s, MSG_FREE, (*state)->id, "freeing an FMU state");
     free((*state)->wheel);
@@ -916,7 +955,8 @@ SoilStatus soil_set_string(Soil *s, unsigned vr, const char *value) {
         return SOIL_ERROR;
     }
     if (s->initialized) {
-        soil_log(s, SOIL_ERROR, "logStatusError", "parameter %u is fixed: set it before initialization ends", vr);
+        soil_log(s, SOIL_ERROR, "logStatusError", "parameter %s is fixed: set it before initialization ends",
+                 vr == VR_PYTHON ? "python" : "device");
         return SOIL_ERROR;
     }
     copy = copy_text(value ? value : "");

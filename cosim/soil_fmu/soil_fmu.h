@@ -74,6 +74,8 @@ typedef struct {
 
     int discards;          /* Discards in a row from the same time (0 after a successful step) */
     double discarded_step; /* the size of the last discarded step [s] */
+    unsigned long long discarded_inputs; /* a hash of the wheel inputs of the last discarded step */
+    unsigned long long serial; /* this instance's own number: an FMU state belongs to one instance (see owner) */
     int terminated;        /* a step was retried unchanged after its Discard: it cannot succeed (fmi2Terminated) */
     unsigned generation;   /* counts the servers started: an FMU state belongs to one */
     unsigned next_state;   /* the id of the next FMU state the server keeps */
@@ -83,10 +85,13 @@ typedef struct {
  * the front end's own values (time, parameters, wheel inputs and outputs) at that moment. */
 typedef struct {
     unsigned id, generation;
+    const void *owner;     /* the instance that took it: its address (unique among live instances, whatever */
+    unsigned long long serial; /* copy of the library each was loaded from) and its serial (an address reused) */
     double real[VR_REAL_PARAMETERS];
     double *wheel;
     int discards, terminated;
     double discarded_step;
+    unsigned long long discarded_inputs;
 } SoilSnapshot;
 
 /* Read resources/frontend.txt; NULL (and a logged error) if it is missing or belongs to another FMU. */
