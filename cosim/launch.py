@@ -169,7 +169,7 @@ def resume(out_dir: str, progress: bool = False, hooks: dict | None = None) -> R
     with folder.locked():
         check_files()
         checkpoint, info = _checked_inputs(folder)
-        if _diverged_here(folder.results):  # the same steps from the same state: again
+        if diverged_here(folder.results):  # the same steps from the same state: again
             raise ArgumentError(
                 f"{folder.path!r} diverged ({info.get('message') or 'run.json has no message'}); a resume repeats "
                 f"the same steps from its checkpoint (t = {float(checkpoint['coupler/time']):.6g} s) and diverges "
@@ -321,7 +321,7 @@ def _recoverable(results: str) -> str:
     )
 
 
-def _diverged_here(path: str) -> bool:
+def diverged_here(path: str) -> bool:
     """The run of results.h5 at `path` diverged itself: a resume would repeat it (a run that stopped as
     another world of its batch diverged did not: its summary says so, diverged_elsewhere)."""
     from .output import open_results

@@ -647,7 +647,15 @@ def _batching(
             f"{asked}: batched runs are worlds of one simulation in this process, on no executor; leave out "
             f"--batched to run them as separate runs there, or {asked} to batch them"
         )
-    return problem is None and plan.device.startswith("cuda") and not asked if batched is None else bool(batched)
+    return batched_by_default(plan) and not asked if batched is None else bool(batched)
+
+
+def batched_by_default(plan: RunPlan) -> bool:
+    """Whether a study of this plan's runs goes as worlds of one simulation when nothing is asked: on a GPU,
+    when the scene can be batched (cosim.batch.batch_problem)."""
+    from .batch import batch_problem
+
+    return plan.device.startswith("cuda") and batch_problem(plan) is None
 
 
 def _run_tasks(ex: Executor, tasks: list[dict], batched: bool) -> list[dict]:
@@ -680,6 +688,12 @@ def _run_tasks(ex: Executor, tasks: list[dict], batched: bool) -> list[dict]:
         )
         for i, r in zip(members, ran):
             results[i] = {**r, "label": tasks[i].get("label"), "overrides": tasks[i].get("overrides", {})}
+        stopped = [r for r in ran if r.get("status") == "interrupted"]
+        if stopped:  # Ctrl-C or SIGTERM stopped the batch's runs (each with a checkpoint): no further batch starts
+            name = stopped[0].get("signal") or "SIGINT"
+            stop = KeyboardInterrupt(f"{name}: the batched runs stopped, each with its checkpoint")
+            stop.signal = name  # type: ignore[attr-defined]
+            raise stop
     return results
 
 
@@ -926,34 +940,45 @@ def replica_run(
     out_dir = os.path.abspath(out_dir)
     tasks_run = Executor("serial" if batched else executor, scheduler, workers)  # refused before the folder is made
     with prepare_study(out_dir, overwrite):
-        text = plan.scene.to_toml()
+        recipe = {
+            "kind": "replicas",
+            "out_dir": out_dir,
+            "scene_toml": plan.scene.to_toml(),
+            "base_dir": plan.scene.base_dir,
+            "replicas": replicas,
+            "vary": vary,
+            "batched": bool(batched),
+        }
+        recipe["digest"] = _recipe_digest(recipe)
+        write_json(os.path.join(out_dir, REPLICAS_FILE), recipe)  # before the beds: `cosim resume` finishes them
         with tasks_run as ex:
-            beds = _replica_beds(plan, out_dir, ex, replicas, vary)
-            tasks = [
-                {
-                    "scene_toml": text,
-                    "out_dir": os.path.join(out_dir, f"replica_{k:03d}"),
-                    "overrides": _replica_overrides(k, beds[k], vary, plan, soils),
-                    "label": f"replica_{k:03d}",
-                    "base_dir": plan.scene.base_dir,
-                }
-                for k in range(replicas)
-            ]
-            recipe = {"kind": "replicas", "vary": vary, "batched": bool(batched), "beds": beds, "tasks": tasks}
-            write_json(os.path.join(out_dir, REPLICAS_FILE), recipe)  # what `cosim resume` needs to finish them
             try:
+                beds = _replica_beds(plan, out_dir, ex, replicas, vary)
+                tasks = _replica_tasks(plan, out_dir, beds, vary, soils)
                 results = _run_tasks(ex, tasks, batched)
             except (KeyboardInterrupt, RunInterrupted) as stop:
                 raise _replicas_stopped(stop, out_dir) from None
-        stopped = [r for r in results if r.get("status") == "interrupted"]  # batched: each world stopped
-        if stopped:
-            raise _replicas_stopped(KeyboardInterrupt(stopped[0].get("signal", "SIGINT")), out_dir)
         return _ensemble_report(plan, out_dir, results, vary, soils, beds, bool(batched))
 
 
 REPLICAS_FILE = "replicas.json"
-"""A set of replicas' recipe (its tasks, beds, variation), written before its runs start: `cosim resume OUT`
-finishes the runs an interruption left and writes the ensemble (resume_replicas)."""
+"""A set of replicas' recipe (its scene as run, base folder, count, variation), written before its beds
+settle: `cosim resume OUT` finishes what an interruption left and writes the ensemble (resume_replicas)."""
+
+
+def _replica_tasks(plan: RunPlan, out_dir: str, beds: list, vary: str, soils: list[dict]) -> list[dict]:
+    """The replicas' tasks (run_task's), replica k into out_dir/replica_k on bed k."""
+    text = plan.scene.to_toml()
+    return [
+        {
+            "scene_toml": text,
+            "out_dir": os.path.join(out_dir, f"replica_{k:03d}"),
+            "overrides": _replica_overrides(k, bed, vary, plan, soils),
+            "label": f"replica_{k:03d}",
+            "base_dir": plan.scene.base_dir,
+        }
+        for k, bed in enumerate(beds)
+    ]
 
 
 def _replicas_stopped(stop: BaseException, out_dir: str) -> KeyboardInterrupt:
@@ -969,9 +994,17 @@ def _replicas_stopped(stop: BaseException, out_dir: str) -> KeyboardInterrupt:
 
 
 def _ensemble_report(
-    plan: RunPlan, out_dir: str, results: list[dict], vary: str, soils: list[dict], beds: list, batched: bool
+    plan: RunPlan,
+    out_dir: str,
+    results: list[dict],
+    vary: str,
+    soils: list[dict],
+    beds: list,
+    batched: bool,
+    resumed: bool = False,
 ) -> dict:
-    """The replicas' statistics written as ensemble.json and ensemble.csv; replica_run's report."""
+    """The replicas' statistics written as ensemble.json and ensemble.csv; replica_run's report (`resumed`:
+    resume_replicas finished them)."""
     replicas = len(results)
     stats = ensemble_table(results, plan)
     varied, calibration = _variation(plan, vary, soils[:replicas])
@@ -981,6 +1014,7 @@ def _ensemble_report(
         "vary": vary,
         "calibration_beds": calibration,  # SCM wheels over beds: each replica's soil keys (file, soils, units)
         "batched": batched,
+        "resumed": resumed,
         "scene_toml": text,
         "bed_file": beds[0] if vary == "order" else None,
         "bed_files": beds,
@@ -1008,46 +1042,95 @@ def _ensemble_report(
     return report
 
 
-def resume_replicas(out_dir: str) -> dict:
-    """Finish a set of replicas an interruption (or a kill) left (its REPLICAS_FILE): each run that
-    finished or diverged is taken as it is, each with a checkpoint resumed (cosim.launch.resume: to the
-    result an uninterrupted run gives), each that never began run; then the ensemble is written as
-    replica_run writes it. One run at a time, in this process."""
-    from .folders import RunFolder
-    from .launch import resume
+def _recipe_digest(recipe: dict) -> str:
+    """SHA-256 of a replicas recipe's content (its 'digest' left out): an edit is seen before a resume acts."""
+    import hashlib
 
-    out_dir = os.path.abspath(out_dir)
+    content = {k: v for k, v in recipe.items() if k != "digest"}
+    return hashlib.sha256(json.dumps(content, sort_keys=True).encode()).hexdigest()
+
+
+def _read_recipe(out_dir: str) -> tuple[RunPlan, str, int, bool]:
+    """(plan, vary, replicas, batched) of the set of replicas in out_dir, from its REPLICAS_FILE: checked
+    whole (its digest), where it was made, and its scene; DamagedFileError or ArgumentError naming the file."""
     path = os.path.join(out_dir, REPLICAS_FILE)
     try:
         with open(path) as f:
             recipe = json.load(f)
-        tasks, vary, beds = recipe["tasks"], recipe["vary"], recipe["beds"]
-        plan = task_plan({**tasks[0], "overrides": {}})
-    except (OSError, ValueError, KeyError, TypeError, IndexError) as error:
-        raise DamagedFileError(f"{path}: not the replicas' recipe a replica run wrote ({error})") from None
-    soils = _check_variation(plan, vary, len(tasks))
+        if not isinstance(recipe, dict) or recipe.get("kind") != "replicas":
+            raise ValueError("no table of kind 'replicas'")
+        if recipe.get("digest") != _recipe_digest(recipe):
+            raise ValueError("its content no longer matches its digest: edited or damaged since the set began")
+        vary, replicas = recipe["vary"], recipe["replicas"]
+        if not isinstance(replicas, int) or isinstance(replicas, bool):
+            raise ValueError(f"replicas must be a whole number, got {replicas!r}")
+        plan = resolve(scene_from_text(str(recipe["scene_toml"]), base_dir=recipe.get("base_dir")))
+        check_replicas(plan, replicas, 2)
+        _check_variation(plan, vary, replicas)
+    except (OSError, ValueError, KeyError, TypeError, AttributeError, SceneError) as error:
+        raise DamagedFileError(
+            f"{path}: not the recipe its set of replicas wrote ({error}); its replicas' folders each resume alone "
+            "(cosim resume OUT/replica_000 ...)"
+        ) from None
+    if os.path.realpath(recipe["out_dir"]) != os.path.realpath(out_dir):
+        raise ArgumentError(
+            f"{out_dir}: the set of replicas was made in {recipe['out_dir']}, and its runs name their beds there by "
+            "path: resume it there (move the folder back)"
+        )
+    return plan, vary, replicas, bool(recipe.get("batched"))
+
+
+def resume_replicas(out_dir: str) -> dict:
+    """Finish a set of replicas an interruption (or a kill) left (its REPLICAS_FILE): its beds settled
+    where they are not (a stop during the settling), each run that finished, or diverged there, taken as
+    it is, each other one with a checkpoint resumed (cosim.launch.resume: to the result an uninterrupted
+    run gives; a batched world that stopped because another diverged, too), each that never began run;
+    then the ensemble is written as replica_run writes it. One run at a time, in this process."""
+    from .folders import RunFolder
+    from .launch import diverged_here, resume
+
+    out_dir = os.path.abspath(out_dir)
+    plan, vary, replicas, batched = _read_recipe(out_dir)
+    soils = _check_variation(plan, vary, replicas)
     results = []
     with RunFolder(out_dir).locked():
-        for task in tasks:
-            record = _read_run_record(task["out_dir"])
-            status = record.get("status")
-            kept = os.path.isfile(RunFolder(task["out_dir"]).checkpoint)
-            base = {"label": task.get("label"), "out_dir": task["out_dir"], "overrides": task.get("overrides", {})}
-            try:
-                if status == "diverged" or (status in FINISHED and not kept):  # a result as it is
-                    results.append({**base, "ok": status in FINISHED, "status": status, "summary": record["summary"]})
-                elif kept:  # a finished run's resume returns its result; another's continues it
-                    log.info("%s: resuming its checkpoint", task["label"])
-                    done = resume(task["out_dir"])
-                    results.append({**base, "ok": True, "status": done.status, "summary": done.summary})
-                else:  # it never began, or was stopped before its first checkpoint: it runs now
-                    log.info("%s: running (no checkpoint to resume)", task["label"])
-                    results.append(run_task({**task, "overwrite": True}))
-            except (KeyboardInterrupt, RunInterrupted) as stop:
-                raise _replicas_stopped(stop, out_dir) from None
-            except (RegolithError, KeyError) as error:  # diverged again, or damaged: said; the others go on
-                results.append({**base, "ok": False, "status": "failed", "error": f"{type(error).__name__}: {error}"})
-        return _ensemble_report(plan, out_dir, results, vary, soils, beds, bool(recipe.get("batched")))
+        try:
+            with Executor("serial") as ex:
+                beds = _replica_beds(plan, out_dir, ex, replicas, vary)  # settled ones are read, not settled again
+            for task in _replica_tasks(plan, out_dir, beds, vary, soils):
+                results.append(_finish_replica(task, resume, diverged_here))
+        except (KeyboardInterrupt, RunInterrupted) as stop:
+            raise _replicas_stopped(stop, out_dir) from None
+        # its runs went on one at a time here, alone (each bit for bit as in a batch): 'resumed'
+        return _ensemble_report(plan, out_dir, results, vary, soils, beds, batched, resumed=True)
+
+
+def _finish_replica(task: dict, resume, diverged_here) -> dict:
+    """resume_replicas' result of one replica (run_task's form): taken as it is, resumed, or run."""
+    from .folders import RunFolder
+
+    started = time.perf_counter()
+    folder = RunFolder(task["out_dir"])
+    record = _read_run_record(folder.path)
+    status, kept = record.get("status"), os.path.isfile(folder.checkpoint)
+    base = {"label": task["label"], "out_dir": folder.path, "overrides": task["overrides"]}
+    if (status == "diverged" and diverged_here(folder.results)) or (status in FINISHED and not kept):
+        result = {**base, "ok": status in FINISHED, "status": status, "summary": record.get("summary", {})}
+        if status not in FINISHED:  # a diverged run's resume would diverge again
+            result["error"] = record.get("message", "")
+    elif kept:  # a finished run's resume returns its result; another's continues it
+        log.info("%s: resuming its checkpoint", task["label"])
+        try:
+            done = resume(folder.path)
+            result = {**base, "ok": True, "status": done.status, "summary": done.summary}
+        except RegolithError as error:  # diverged, or damaged: said here and in the report; the others go on
+            result = {**base, "ok": False, "status": "failed", "error": f"{type(error).__name__}: {error}"}
+    else:  # it never began, or was stopped before its first checkpoint
+        log.info("%s: running from its start (no checkpoint to resume; any partial results replaced)", task["label"])
+        result = run_task({**task, "overwrite": True})
+    if not result.get("ok") and result.get("error"):
+        log.error("%s: %s", task["label"], result["error"])
+    return {**result, "wall_time": time.perf_counter() - started}
 
 
 def _read_run_record(folder: str) -> dict:
@@ -1484,8 +1567,10 @@ def _slip_report(
     }
     write_json(os.path.join(out_dir, "study.json"), report)
     _write_csv(os.path.join(out_dir, "study.csv"), rows, keys, units)
+    # one run a slip varies in nothing (an SCM run sums in one order): no replicas to describe
+    runs_each = f"replicas: {varied}" if max((row["replicas"] for row in rows), default=0) > 1 else "one run a slip"
     lines = [
-        f"{plan.name}: drawbar pull against imposed slip (W = {plan.wheel_load:.4g} N; replicas: {varied}), {out_dir}",
+        f"{plan.name}: drawbar pull against imposed slip (W = {plan.wheel_load:.4g} N; {runs_each}), {out_dir}",
         f"  {'slip':>6s} {'steady':>7s} {'DP [N]':>12s} {'DP/W':>14s} {'torque [N m]':>14s} {'sinkage [mm]':>13s}"
         "  validity",
     ]

@@ -124,6 +124,38 @@ def test_replicas_over_beds_too_large_for_one_simulation_run_as_one_per_bed(tmp_
     assert [r["ok"] for r in results] == [True] * 4 and results[0]["overrides"] == {}
 
 
+def test_a_batch_stopped_by_a_signal_stops_its_study(tmp_path, tiny_bed, monkeypatch):
+    """A batch whose runs a SIGTERM stopped (each with a checkpoint) returned their results as failed, and a
+    slip or precision study tabulated them, exit 1, and started its next batch. The stop now ends the study
+    there as SIGTERM (exit 143), no further batch started."""
+    import cosim.batch
+    import cosim.beds
+    from cosim.study import _run_tasks
+    from soil.memory import SoilTooLargeError
+
+    def fits(plan, worlds=1):
+        if worlds > 2:
+            raise SoilTooLargeError(f"{worlds} worlds do not fit")
+
+    batches = []
+
+    def stopped(plans, out_dirs, overwrite=False):
+        batches.append(out_dirs)
+        return [{"ok": False, "status": "interrupted", "signal": "SIGTERM"} for _ in plans]
+
+    monkeypatch.setattr(cosim.beds, "check_memory", fits)
+    monkeypatch.setattr(cosim.batch, "run_batched", stopped)
+    text = load_plan(write_tiny(tmp_path)).scene.to_toml()
+    tasks = [
+        {"scene_toml": text, "out_dir": f"{bed}_{slip}", "overrides": {"bed.bed_file": f"{tiny_bed}"} if bed else {}}
+        for slip in (0.1, 0.5)
+        for bed in (0, 1)
+    ]
+    with pytest.raises(KeyboardInterrupt, match="SIGTERM: the batched runs stopped") as stop:
+        _run_tasks(None, tasks, batched=True)
+    assert stop.value.signal == "SIGTERM" and len(batches) == 1  # the second bed's batch never started
+
+
 def fixed_plan(tmp_path, tiny_bed):
     return load_plan(write_tiny(tmp_path), [f'bed.bed_file="{tiny_bed}"'])
 
@@ -246,6 +278,37 @@ def test_a_stop_signal_stops_every_replica_of_a_batch_and_one_resume_finishes_th
     report = json.loads((out / "ensemble.json").read_text())
     assert [(r["ok"], r["status"]) for r in report["results"]] == [(True, "unsteady")] * len(SEEDS)
     assert report["stats"]["replicas"] == len(SEEDS) and report["stats"]["steady"] == 0
+
+
+def test_replicas_stopped_one_by_one_resume_as_a_set_each_as_its_run_alone(tmp_path, tiny_bed, runs_alone, monkeypatch):
+    """Replicas run one by one, stopped (a stop requested, then a checkpoint) in the first: the second never
+    began. `cosim resume OUT` resumes the first and runs the second, each bit for bit its run alone, and
+    writes the ensemble; a second resume takes both as they are and writes it again."""
+    import cosim.launch
+    from cosim.cli import main
+
+    run_alone = cosim.launch.run_plan
+
+    def stopped_in_the_first(plan, out_dir, **kwargs):
+        def stop(runner):
+            if runner.system.coupler.step_count == 60:
+                runner.stop_requested = True
+
+        hooks = {"step": stop} if out_dir.endswith("replica_000") else None
+        return run_alone(plan, out_dir, hooks=hooks, **kwargs)
+
+    monkeypatch.setattr(cosim.launch, "run_plan", stopped_in_the_first)
+    out = tmp_path / "replicas"
+    with pytest.raises(KeyboardInterrupt, match=f"SIGINT: the replicas stopped .*cosim resume {out}"):
+        replica_run(seed_plan(tmp_path, tiny_bed, SEEDS[0]), str(out), len(SEEDS), executor="serial", batched=False)
+    assert (out / "replica_000" / "checkpoint.npz").is_file() and not (out / "replica_001").exists()
+    monkeypatch.setattr(cosim.launch, "run_plan", run_alone)
+    for _ in range(2):
+        assert main(["resume", str(out)]) == 6  # unsteady, as alone: the tiny drive is too short to judge
+        for k, alone in enumerate(runs_alone):
+            assert_same_run(alone, str(out / f"replica_{k:03d}"))
+        report = json.loads((out / "ensemble.json").read_text())
+        assert report["resumed"] and [r["status"] for r in report["results"]] == ["unsteady"] * len(SEEDS)
 
 
 @pytest.mark.skipif(not os.path.isdir("/proc"), reason="finds the batch's processes in /proc")

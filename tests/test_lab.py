@@ -467,6 +467,22 @@ def test_cosim_lab_repose_writes_its_report(tmp_path, capsys):
     assert main(["lab", "repose", str(scene), "--serial", "--out", str(out)]) == 3  # nothing is overwritten
 
 
+def test_a_shear_curve_still_rising_at_the_end_of_its_travel_is_told_from_one_that_peaked():
+    """A curve still rising at the end of the box's travel gave its last value as the peak, unflagged: the
+    friction angle from it is a lower bound and its second half no residual. Janosi-Hanamoto curves
+    tau = tau_max (1 - exp(-u / K)) with a drop after a peak at 40 % of the travel, and without one."""
+    from cosim.lab.shear import strength
+
+    u = np.linspace(0.0, 0.005, 400)
+    sigma = np.full_like(u, 100.0)
+    rising = 60.0 * (1 - np.exp(-u / 0.004))  # K near the travel: still climbing at its end
+    peaked = np.where(u < 0.002, 60.0 * (1 - np.exp(-u / 0.0003)), 0.0)
+    peaked = np.where(u < 0.002, peaked, 60.0 * (1 - np.exp(-0.002 / 0.0003)) - 4000.0 * (u - 0.002))
+    assert strength(u, rising, sigma)["rising_at_end"]
+    fit = strength(u, peaked, sigma)
+    assert not fit["rising_at_end"] and fit["peak_displacement"] == pytest.approx(0.002, abs=2e-4)
+
+
 def test_a_lab_test_without_its_value_says_so_and_one_normal_stress_still_measures():
     """What makes a lab test a result: a repose angle from some replica, a peak friction angle (one normal
     stress gives no Mohr-Coulomb line but its angle through the origin, docs/lab.md), Bekker's n."""

@@ -1228,7 +1228,13 @@ def test_an_fmu_state_belongs_to_its_instance(scm, tmp_path):
         a.doStep(currentCommunicationPoint=0.0, communicationStepSize=H)
         state = a.getFMUstate()
         own = b.getFMUstate()
-        for call in (lambda: b.setFMUstate(state), lambda: b.freeFMUstate(state)):
+        b.freeFMUstate(own)
+        overwrite = ctypes.byref(state)  # fmi2GetFMUstate into A's state: B would overwrite it with its soil
+        for call in (  # the overwrite first: after an Error, FMI allows B no new state, but a restore or a free
+            lambda: b.fmi2GetFMUstate(b.component, overwrite),
+            lambda: b.setFMUstate(state),
+            lambda: b.freeFMUstate(state),
+        ):
             logged_b.clear()
             with pytest.raises(FMICallException):
                 call()
@@ -1249,7 +1255,6 @@ def test_an_fmu_state_belongs_to_its_instance(scm, tmp_path):
         with pytest.raises(FMICallException):
             b.setString([7], ["python3"])
         assert b"parameter python is fixed" in b"\n".join(logged_b), logged_b
-        del own  # B's own state went with its reset
     finally:
         for slave in (a, b):
             slave.terminate()
@@ -1287,6 +1292,18 @@ def test_a_soil_fmu_runs_on_the_device_its_scene_names_or_says_which_setting_is_
         slave.doStep(currentCommunicationPoint=0.0, communicationStepSize=H)
     finally:
         slave.terminate()
+        slave.freeInstance()
+    # a Python that exits without a word at the start: the error names it and where it came from
+    from fmpy.fmi1 import FMICallException
+
+    slave, logged = _fmi2_slave(scm["fmus"][2], tmp_path, "silent")
+    try:
+        slave.setString([7], ["/bin/false"])
+        with pytest.raises(FMICallException):
+            _initialized(slave)
+        said = b"\n".join(logged).decode()
+        assert "exited with status 1 while starting" in said and "saying nothing: is /bin/false (the python" in said
+    finally:
         slave.freeInstance()
 
 

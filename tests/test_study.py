@@ -410,6 +410,41 @@ def test_a_replicas_folder_without_its_recipe_names_the_replicas_to_resume(tmp_p
     assert f"cosim resume {tmp_path / 'replica_000'}" in said
 
 
+def test_a_set_of_replicas_is_resumed_only_from_its_own_recipe_where_it_was_made(
+    scene_path, tiny_bed, tmp_path, capsys, monkeypatch
+):
+    """An edited replicas.json (the wheel's omega 1 -> 2 rad/s) was resumed: the ensemble's scene said 2 over
+    runs made at 1. A moved set failed each replica on its old bed path, said only in ensemble.json. Both are refused
+    before anything is touched, naming the file or the folder it was made in."""
+    import shutil
+
+    import cosim.study
+    from cosim.cli import main
+    from cosim.study import REPLICAS_FILE, replica_run
+
+    def stopped(ex, tasks, batched):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(cosim.study, "_run_tasks", stopped)
+    out = tmp_path / "set"
+    with pytest.raises(KeyboardInterrupt, match="cosim resume"):
+        replica_run(_plan(scene_path, tiny_bed), str(out), 2, executor="serial", batched=False)
+    recipe = out / REPLICAS_FILE
+    text = recipe.read_text()
+    recipe.write_text(text.replace("omega = 1.0", "omega = 2.0"))
+    assert text != recipe.read_text()
+    before = {p: p.stat().st_mtime_ns for p in out.rglob("*")}
+    assert main(["resume", str(out)]) == 2
+    said = capsys.readouterr().err
+    assert f"{recipe}: not the recipe its set of replicas wrote" in said and "digest" in said, said
+    assert {p: p.stat().st_mtime_ns for p in out.rglob("*")} == before
+    recipe.write_text(text)
+    moved = tmp_path / "moved"
+    shutil.move(out, moved)
+    assert main(["resume", str(moved)]) == 2
+    assert f"the set of replicas was made in {out}" in capsys.readouterr().err
+
+
 def test_timestep_study_ends_with_an_answer_in_bounded_tries(scene_path, tiny_bed, tmp_path):
     from cosim.study import timestep_study
 
@@ -794,6 +829,7 @@ def test_a_slip_studys_rows_carry_the_validity_of_their_runs(tmp_path, capsys, m
     args = ["study", "slip", SCM_EXAMPLE, "--slips", "0.3,0.8", "--replicas", "1", "--serial", *sets]
     assert main([*args, "--out", str(out), "--device", "cpu"]) == 0
     printed = capsys.readouterr().out
+    assert "N; one run a slip)" in printed and "summation order" not in printed  # SCM sums in one order
     expected = {s: _expected_validity([out / f"slip_{s:+.3f}" / "replica_000"]) for s in (0.3, 0.8)}
     assert expected[0.3] == "valid" and "scm_slip (1/1)" in expected[0.8], expected  # the scene as meant
     report = json.loads((out / "study.json").read_text())

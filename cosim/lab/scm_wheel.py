@@ -90,11 +90,15 @@ class WheelTarget:
     """The DEM runs' driving time after landing [s] (their run.duration; nan: not recorded)."""
 
 
-def run_wheel_tests(plan, out_dir: str, slips, replicas: int, executor="serial", scheduler=None, workers=None) -> str:
+def run_wheel_tests(plan, out_dir: str, slips, replicas: int, executor=None, scheduler=None, workers=None) -> str:
     """The DEM single-wheel runs of a testbed plan at each slip (cosim.study.slip_study) into out_dir,
     replica k on a bed of its own (bed.seed + k; one bed's summation orders miss the scatter between
-    beds; a scene on a bed file has one bed); returns out_dir (its study.json holds the results)."""
-    from ..study import slip_study
+    beds; a scene on a bed file has one bed); returns out_dir (its study.json holds the results).
+    executor None: as worlds of one simulation where the study batches by itself (a GPU), else serially."""
+    from ..study import batched_by_default, slip_study
+
+    if executor is None:
+        executor = "dask" if batched_by_default(plan) else "serial"  # "dask" is no executor asked for
 
     vary = "bed" if replicas >= 2 and not plan.bed.bed_file else "order"
     slip_study(plan, out_dir, slips, replicas, executor, scheduler, workers, overwrite=True, plot=False, vary=vary)

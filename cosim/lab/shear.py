@@ -276,10 +276,16 @@ def _shear(plan: LabPlan, geometry: ShearBox, replica: int, path: str, stress: f
     }
 
 
+RISING_END = 0.1
+"""The end of a shear's travel, as a fraction of it, where a peak is taken for a curve still rising."""
+
+
 def strength(u, tau, sigma) -> dict:
     """Peak and residual of a shear curve (displacement u [m], tau and sigma_n [Pa] per record):
     the peak is the largest tau smoothed over 1/20 of the records, with the mean sigma_n around
-    it; the residual the means over the second half of the displacement."""
+    it; the residual the means over the second half of the displacement. `rising_at_end`: the peak
+    lies in the last RISING_END of the travel, where a curve still rising cannot be told from one
+    that has peaked (the peak may lie beyond the travel, and the residual is no residual)."""
     u, tau, sigma = (np.asarray(c, dtype=float) for c in (u, tau, sigma))
     window = max(1, len(u) // 20)
     smooth = np.convolve(tau, np.ones(window) / window, mode="same")
@@ -294,6 +300,7 @@ def strength(u, tau, sigma) -> dict:
         "peak_displacement": float(u[peak]),
         "residual_tau": float(tau[residual].mean()),
         "residual_sigma": float(sigma[residual].mean()),
+        "rising_at_end": bool(u[peak] >= (1.0 - RISING_END) * u[-1]),
     }
 
 
@@ -418,6 +425,13 @@ def shear_test(
             f"replica {r['replica']}, sigma {r['stress']:.4g} Pa: the lid was still moving after consolidation"
             for r in done
             if not r["consolidated"]
+        ]
+        notes += [
+            f"replica {r['replica']}, sigma {r['stress']:.4g} Pa: tau was still rising at the end of the travel (its "
+            f"largest at {r['peak_displacement'] / r['displacement'][-1]:.0%} of it): the peak may lie beyond, and the "
+            "second half is no residual; lengthen shear.displacement"
+            for r in done
+            if r["rising_at_end"]
         ]
         notes += common.interrupted_notes(stopped, len(results), len(jobs), "shear tests")
         if len({r["stress"] for r in done}) < 2:

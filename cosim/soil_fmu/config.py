@@ -392,10 +392,14 @@ def soil_from_config(data: dict, bed_file, dem_step: float | None = None, device
         raise DamagedFileError(
             f"the soil FMU configuration names terrain {terrain!r}, this regolith-cosim steps {', '.join(TERRAINS)}"
         )
+    from cosim.probe import resolve_device
+
     step = dem_step if dem_step is not None else float(data["dem_step"])
     shape = _wheel_shape(data["wheel"])
+    device = resolve_device(device or data["device"], "device")  # the configuration's may be 'default'
+
     if terrain == "scm":
-        return _scm_soil(data, shape, step, device or data["device"])
+        return _scm_soil(data, shape, step, device)
     from cosim.dem_soil import DemSoil
     from soil import ContactLaw, Material
 
@@ -406,7 +410,7 @@ def soil_from_config(data: dict, bed_file, dem_step: float | None = None, device
         Material(**data["wheel_material"]),
         step,
         surface_height=float(data["surface_height"]),
-        device=device or data["device"],
+        device=device,
         precision=data["precision"],
         order_seed=data.get("order_seed"),
         law=law,

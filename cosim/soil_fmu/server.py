@@ -35,6 +35,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import os
 import socket
 import struct
@@ -253,6 +254,8 @@ class SoilSession:
             return ""
         position = np.asarray(error.position, dtype=float)
         distances = [float(np.linalg.norm(position - np.asarray(k.position, dtype=float))) for k in kinematics]
+        if not all(map(math.isfinite, distances)):  # a grain gone non-finite is near no wheel
+            return ""
         wheel = int(np.argmin(distances))
         return f" of wheel_{wheel} (its hub {distances[wheel]:.3g} m from the grain that diverged)"
 
