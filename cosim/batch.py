@@ -149,7 +149,7 @@ def run_batched(plans: list[RunPlan], out_dirs: list[str], overwrite: bool = Fal
         for k, (plan, out, bed) in enumerate(zip(plans, out_dirs, beds)):
             world = worlds.world(k)
             hosts.append(_Host.start(k, world, (plan, out, overwrite, _description(world), bed.surface_height)))
-        results, serve_seconds, serve_marks = _serve(worlds, hosts)
+        results, serve_seconds, serve_marks, received = _serve(worlds, hosts)
     finally:
         for host in hosts:
             host.close()
@@ -165,7 +165,11 @@ def run_batched(plans: list[RunPlan], out_dirs: list[str], overwrite: bool = Fal
         "serve_seconds": serve_seconds,
         "serve_marks": serve_marks,
     }
-    return [{**r, "label": f"replica_{k:03d}", "wall_time": wall, "batch": batch} for k, r in enumerate(results)]
+    # a stop that arrived, even once every run had ended, is said with every result: the caller stops too
+    stop = {"stop_received": received[0]} if received else {}
+    return [
+        {**r, "label": f"replica_{k:03d}", "wall_time": wall, "batch": batch, **stop} for k, r in enumerate(results)
+    ]
 
 
 def _check_folders(plans: list[RunPlan], out_dirs: list[str], overwrite: bool) -> None:
@@ -319,11 +323,13 @@ def _sendable(error: BaseException) -> BaseException:
         return RuntimeError(f"{type(error).__name__}: {error}")
 
 
-def _serve(worlds: Worlds, hosts: list[_Host]) -> tuple[list[dict], float, list[float]]:
+def _serve(worlds: Worlds, hosts: list[_Host]) -> tuple[list[dict], float, list[float], list[str]]:
     """Answer the runs' requests until every run is done; returns their results in order, this
-    process's own host work [s] (the loop's wall less its waits for messages and the macro steps) and
-    that work so far at the end of each round (once its reports have gone out)."""
-    previous = _forward_stop_signals(hosts)
+    process's own host work [s] (the loop's wall less its waits for messages and the macro steps),
+    that work so far at the end of each round (once its reports have gone out), and the names of the
+    stop signals that arrived."""
+    received: list[str] = []
+    previous = _forward_stop_signals(hosts, received)
     started = False
     begun, waited, stepped = time.perf_counter(), 0.0, worlds.step_seconds
     marks: list[float] = []
@@ -365,7 +371,7 @@ def _serve(worlds: Worlds, hosts: list[_Host]) -> tuple[list[dict], float, list[
     finally:
         for number, handler in previous.items():
             signal.signal(number, handler)
-    return [h.result or {} for h in hosts], busy(), marks
+    return [h.result or {} for h in hosts], busy(), marks, received
 
 
 def _answer(worlds: Worlds, host: _Host) -> None:
@@ -424,10 +430,10 @@ def _send(host: _Host, message: tuple) -> None:
         pass
 
 
-def _forward_stop_signals(hosts: list[_Host]) -> dict:
+def _forward_stop_signals(hosts: list[_Host], received: list[str]) -> dict:
     """Ctrl-C or SIGTERM here reaches every run's process (each has a process group of its own, so a
     terminal's Ctrl-C arrives once): each stops after its macro step with a checkpoint, or at once on
-    a second one. Returns the handlers it replaced."""
+    a second one; each signal's name is appended to `received`. Returns the handlers it replaced."""
     import threading
 
     if threading.current_thread() is not threading.main_thread():
@@ -435,6 +441,7 @@ def _forward_stop_signals(hosts: list[_Host]) -> dict:
 
     def handler(signum, frame):
         name = signal.Signals(signum).name
+        received.append(name)
         log.warning("%s: every run of the batch stops after its macro step with a checkpoint", name)
         for host in hosts:
             if host.result is None:

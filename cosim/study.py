@@ -57,7 +57,7 @@ from soil.errors import ArgumentError, DamagedFileError, InternalError, Regolith
 from soil.files import atomic_write_text
 
 from . import advice, metrics
-from .beds import BED_FILE, BED_INFO_FILE, settled_bed, settling_cost, write_json
+from .beds import BED_FILE, BED_INFO_FILE, finite_or_null, settled_bed, settling_cost, write_json
 from .folders import RunFolder
 from .launch import FINISHED
 from .plan import MAX_PHASE_STEPS, RunPlan, resolve
@@ -688,9 +688,9 @@ def _run_tasks(ex: Executor, tasks: list[dict], batched: bool) -> list[dict]:
         )
         for i, r in zip(members, ran):
             results[i] = {**r, "label": tasks[i].get("label"), "overrides": tasks[i].get("overrides", {})}
-        stopped = [r for r in ran if r.get("status") == "interrupted"]
+        stopped = [r for r in ran if r.get("status") == "interrupted" or r.get("stop_received")]
         if stopped:  # Ctrl-C or SIGTERM stopped the batch's runs (each with a checkpoint): no further batch starts
-            name = stopped[0].get("signal") or "SIGINT"
+            name = stopped[0].get("signal") or stopped[0].get("stop_received") or "SIGINT"
             stop = KeyboardInterrupt(f"{name}: the batched runs stopped, each with its checkpoint")
             stop.signal = name  # type: ignore[attr-defined]
             raise stop
@@ -948,12 +948,13 @@ def replica_run(
             "replicas": replicas,
             "vary": vary,
             "batched": bool(batched),
+            "soils": soils,  # each replica's SCM soil keys (--vary-bed over a calibration's beds), kept as run
         }
-        recipe["digest"] = _recipe_digest(recipe)
-        write_json(os.path.join(out_dir, REPLICAS_FILE), recipe)  # before the beds: `cosim resume` finishes them
+        _write_recipe(out_dir, recipe)  # before the beds: `cosim resume` finishes them
         with tasks_run as ex:
             try:
                 beds = _replica_beds(plan, out_dir, ex, replicas, vary)
+                _write_recipe(out_dir, {**recipe, "beds": beds})  # the beds the runs use, never settled again
                 tasks = _replica_tasks(plan, out_dir, beds, vary, soils)
                 results = _run_tasks(ex, tasks, batched)
             except (KeyboardInterrupt, RunInterrupted) as stop:
@@ -1043,16 +1044,22 @@ def _ensemble_report(
 
 
 def _recipe_digest(recipe: dict) -> str:
-    """SHA-256 of a replicas recipe's content (its 'digest' left out): an edit is seen before a resume acts."""
+    """SHA-256 of a replicas recipe's content as written (its 'digest' left out): an edit is seen before a
+    resume acts."""
     import hashlib
 
-    content = {k: v for k, v in recipe.items() if k != "digest"}
+    content = finite_or_null({k: v for k, v in recipe.items() if k != "digest"})
     return hashlib.sha256(json.dumps(content, sort_keys=True).encode()).hexdigest()
 
 
-def _read_recipe(out_dir: str) -> tuple[RunPlan, str, int, bool]:
-    """(plan, vary, replicas, batched) of the set of replicas in out_dir, from its REPLICAS_FILE: checked
-    whole (its digest), where it was made, and its scene; DamagedFileError or ArgumentError naming the file."""
+def _write_recipe(out_dir: str, recipe: dict) -> None:
+    """A set of replicas' REPLICAS_FILE, with its digest (written whole: atomically)."""
+    write_json(os.path.join(out_dir, REPLICAS_FILE), {**recipe, "digest": _recipe_digest(recipe)})
+
+
+def _read_recipe(out_dir: str) -> dict:
+    """The REPLICAS_FILE of the set of replicas in out_dir, checked whole (its digest) and where it was
+    made; DamagedFileError or ArgumentError naming the file or the folder."""
     path = os.path.join(out_dir, REPLICAS_FILE)
     try:
         with open(path) as f:
@@ -1061,13 +1068,12 @@ def _read_recipe(out_dir: str) -> tuple[RunPlan, str, int, bool]:
             raise ValueError("no table of kind 'replicas'")
         if recipe.get("digest") != _recipe_digest(recipe):
             raise ValueError("its content no longer matches its digest: edited or damaged since the set began")
-        vary, replicas = recipe["vary"], recipe["replicas"]
-        if not isinstance(replicas, int) or isinstance(replicas, bool):
-            raise ValueError(f"replicas must be a whole number, got {replicas!r}")
-        plan = resolve(scene_from_text(str(recipe["scene_toml"]), base_dir=recipe.get("base_dir")))
-        check_replicas(plan, replicas, 2)
-        _check_variation(plan, vary, replicas)
-    except (OSError, ValueError, KeyError, TypeError, AttributeError, SceneError) as error:
+        absent = [
+            k for k in ("out_dir", "scene_toml", "base_dir", "replicas", "vary", "batched", "soils") if k not in recipe
+        ]
+        if absent:
+            raise ValueError(f"it has no {', '.join(absent)}")
+    except (OSError, ValueError) as error:
         raise DamagedFileError(
             f"{path}: not the recipe its set of replicas wrote ({error}); its replicas' folders each resume alone "
             "(cosim resume OUT/replica_000 ...)"
@@ -1077,57 +1083,66 @@ def _read_recipe(out_dir: str) -> tuple[RunPlan, str, int, bool]:
             f"{out_dir}: the set of replicas was made in {recipe['out_dir']}, and its runs name their beds there by "
             "path: resume it there (move the folder back)"
         )
-    return plan, vary, replicas, bool(recipe.get("batched"))
+    return recipe
 
 
 def resume_replicas(out_dir: str) -> dict:
     """Finish a set of replicas an interruption (or a kill) left (its REPLICAS_FILE): its beds settled
-    where they are not (a stop during the settling), each run that finished, or diverged there, taken as
-    it is, each other one with a checkpoint resumed (cosim.launch.resume: to the result an uninterrupted
-    run gives; a batched world that stopped because another diverged, too), each that never began run;
-    then the ensemble is written as replica_run writes it. One run at a time, in this process."""
+    if the stop came while they settled (no run had begun), else the recipe's own, never settled again;
+    each run that finished, or diverged there, taken as it is, each other one with a checkpoint resumed
+    (cosim.launch.resume: to the result an uninterrupted run gives; a batched world that stopped because
+    another diverged, too), each that never began run; then the ensemble is written as replica_run
+    writes it. One run at a time, in this process."""
     from .folders import RunFolder
-    from .launch import diverged_here, resume
 
     out_dir = os.path.abspath(out_dir)
-    plan, vary, replicas, batched = _read_recipe(out_dir)
-    soils = _check_variation(plan, vary, replicas)
+    recipe = _read_recipe(out_dir)
+    vary, replicas, soils = recipe["vary"], int(recipe["replicas"]), recipe["soils"]
+    plan = resolve(scene_from_text(recipe["scene_toml"], base_dir=recipe["base_dir"]))  # its errors name the key
     results = []
     with RunFolder(out_dir).locked():
         try:
-            with Executor("serial") as ex:
-                beds = _replica_beds(plan, out_dir, ex, replicas, vary)  # settled ones are read, not settled again
+            beds = recipe.get("beds")
+            if beds is None:  # stopped while the beds settled, before any run: settled (the rest) now
+                with Executor("serial") as ex:
+                    beds = _replica_beds(plan, out_dir, ex, replicas, vary)
+                _write_recipe(out_dir, {**{k: v for k, v in recipe.items() if k != "digest"}, "beds": beds})
+            missing = [bed for bed in beds if bed is not None and not os.path.isfile(bed)]
+            if missing:
+                raise DamagedFileError(f"{missing[0]}: the bed the replicas ran on is gone; run the set again")
             for task in _replica_tasks(plan, out_dir, beds, vary, soils):
-                results.append(_finish_replica(task, resume, diverged_here))
+                results.append(_finish_replica(task))
         except (KeyboardInterrupt, RunInterrupted) as stop:
             raise _replicas_stopped(stop, out_dir) from None
         # its runs went on one at a time here, alone (each bit for bit as in a batch): 'resumed'
-        return _ensemble_report(plan, out_dir, results, vary, soils, beds, batched, resumed=True)
+        return _ensemble_report(plan, out_dir, results, vary, soils, beds, bool(recipe["batched"]), resumed=True)
 
 
-def _finish_replica(task: dict, resume, diverged_here) -> dict:
-    """resume_replicas' result of one replica (run_task's form): taken as it is, resumed, or run."""
+def _finish_replica(task: dict) -> dict:
+    """resume_replicas' result of one replica (run_task's form): taken as it is, resumed, or run; a replica
+    that fails here (damaged files, a divergence) is a failed result, named, and the others go on."""
     from .folders import RunFolder
+    from .launch import diverged_here, resume
 
     started = time.perf_counter()
     folder = RunFolder(task["out_dir"])
     record = _read_run_record(folder.path)
     status, kept = record.get("status"), os.path.isfile(folder.checkpoint)
     base = {"label": task["label"], "out_dir": folder.path, "overrides": task["overrides"]}
-    if (status == "diverged" and diverged_here(folder.results)) or (status in FINISHED and not kept):
-        result = {**base, "ok": status in FINISHED, "status": status, "summary": record.get("summary", {})}
-        if status not in FINISHED:  # a diverged run's resume would diverge again
-            result["error"] = record.get("message", "")
-    elif kept:  # a finished run's resume returns its result; another's continues it
-        log.info("%s: resuming its checkpoint", task["label"])
-        try:
+    try:
+        if (status == "diverged" and diverged_here(folder.results)) or (status in FINISHED and not kept):
+            result = {**base, "ok": status in FINISHED, "status": status, "summary": record.get("summary", {})}
+            if status not in FINISHED:  # a diverged run's resume would diverge again
+                result["error"] = record.get("message", "")
+        elif kept:  # a finished run's resume returns its result; another's continues it
+            log.info("%s: resuming its checkpoint", task["label"])
             done = resume(folder.path)
             result = {**base, "ok": True, "status": done.status, "summary": done.summary}
-        except RegolithError as error:  # diverged, or damaged: said here and in the report; the others go on
-            result = {**base, "ok": False, "status": "failed", "error": f"{type(error).__name__}: {error}"}
-    else:  # it never began, or was stopped before its first checkpoint
-        log.info("%s: running from its start (no checkpoint to resume; any partial results replaced)", task["label"])
-        result = run_task({**task, "overwrite": True})
+        else:  # it never began, or was stopped before its first checkpoint
+            log.info("%s: running from its start (no checkpoint to resume; partial results replaced)", task["label"])
+            result = run_task({**task, "overwrite": True})
+    except (RegolithError, OSError, ValueError, KeyError) as error:  # damaged, or diverged again
+        result = {**base, "ok": False, "status": "failed", "error": f"{type(error).__name__}: {error}"}
     if not result.get("ok") and result.get("error"):
         log.error("%s: %s", task["label"], result["error"])
     return {**result, "wall_time": time.perf_counter() - started}

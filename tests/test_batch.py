@@ -127,7 +127,8 @@ def test_replicas_over_beds_too_large_for_one_simulation_run_as_one_per_bed(tmp_
 def test_a_batch_stopped_by_a_signal_stops_its_study(tmp_path, tiny_bed, monkeypatch):
     """A batch whose runs a SIGTERM stopped (each with a checkpoint) returned their results as failed, and a
     slip or precision study tabulated them, exit 1, and started its next batch. The stop now ends the study
-    there as SIGTERM (exit 143), no further batch started."""
+    there as a KeyboardInterrupt named SIGTERM (what the command line exits 143 on), no further batch
+    started; so does a stop that came when every run of the batch had ended."""
     import cosim.batch
     import cosim.beds
     from cosim.study import _run_tasks
@@ -154,6 +155,15 @@ def test_a_batch_stopped_by_a_signal_stops_its_study(tmp_path, tiny_bed, monkeyp
     with pytest.raises(KeyboardInterrupt, match="SIGTERM: the batched runs stopped") as stop:
         _run_tasks(None, tasks, batched=True)
     assert stop.value.signal == "SIGTERM" and len(batches) == 1  # the second bed's batch never started
+
+    def ended_before_the_stop(plans, out_dirs, overwrite=False):
+        batches.append(out_dirs)
+        return [{"ok": True, "status": "complete", "stop_received": "SIGINT"} for _ in plans]
+
+    monkeypatch.setattr(cosim.batch, "run_batched", ended_before_the_stop)
+    with pytest.raises(KeyboardInterrupt, match="SIGINT") as stop:
+        _run_tasks(None, tasks, batched=True)
+    assert stop.value.signal == "SIGINT" and len(batches) == 2
 
 
 def fixed_plan(tmp_path, tiny_bed):
@@ -309,6 +319,13 @@ def test_replicas_stopped_one_by_one_resume_as_a_set_each_as_its_run_alone(tmp_p
             assert_same_run(alone, str(out / f"replica_{k:03d}"))
         report = json.loads((out / "ensemble.json").read_text())
         assert report["resumed"] and [r["status"] for r in report["results"]] == ["unsteady"] * len(SEEDS)
+    # a replica that fails on resume (its checkpoint cut short) is named; the other is still taken
+    checkpoint = out / "replica_000" / "checkpoint.npz"
+    checkpoint.write_bytes(checkpoint.read_bytes()[:5000])
+    assert main(["resume", str(out)]) == 1  # a run failed
+    report = json.loads((out / "ensemble.json").read_text())
+    assert [r["status"] for r in report["results"]] == ["failed", "unsteady"]
+    assert str(checkpoint) in report["results"][0]["error"]
 
 
 @pytest.mark.skipif(not os.path.isdir("/proc"), reason="finds the batch's processes in /proc")

@@ -414,21 +414,24 @@ def test_a_set_of_replicas_is_resumed_only_from_its_own_recipe_where_it_was_made
     scene_path, tiny_bed, tmp_path, capsys, monkeypatch
 ):
     """An edited replicas.json (the wheel's omega 1 -> 2 rad/s) was resumed: the ensemble's scene said 2 over
-    runs made at 1. A moved set failed each replica on its old bed path, said only in ensemble.json. Both are refused
-    before anything is touched, naming the file or the folder it was made in."""
+    runs made at 1. A moved set failed each replica on its old bed path, said only in ensemble.json. Both are
+    refused before anything is touched, naming the file or the folder it was made in; the set, stopped while
+    its beds settled, then resumes where it was made."""
     import shutil
 
     import cosim.study
     from cosim.cli import main
     from cosim.study import REPLICAS_FILE, replica_run
 
-    def stopped(ex, tasks, batched):
+    def stopped(plan, out_dir, ex, replicas, vary):  # while the beds settle: before any run
         raise KeyboardInterrupt
 
-    monkeypatch.setattr(cosim.study, "_run_tasks", stopped)
+    settle = cosim.study._replica_beds
+    monkeypatch.setattr(cosim.study, "_replica_beds", stopped)
     out = tmp_path / "set"
     with pytest.raises(KeyboardInterrupt, match="cosim resume"):
         replica_run(_plan(scene_path, tiny_bed), str(out), 2, executor="serial", batched=False)
+    monkeypatch.setattr(cosim.study, "_replica_beds", settle)
     recipe = out / REPLICAS_FILE
     text = recipe.read_text()
     recipe.write_text(text.replace("omega = 1.0", "omega = 2.0"))
@@ -441,8 +444,16 @@ def test_a_set_of_replicas_is_resumed_only_from_its_own_recipe_where_it_was_made
     recipe.write_text(text)
     moved = tmp_path / "moved"
     shutil.move(out, moved)
+    before = {p.relative_to(moved): p.stat().st_mtime_ns for p in moved.rglob("*")}
     assert main(["resume", str(moved)]) == 2
     assert f"the set of replicas was made in {out}" in capsys.readouterr().err
+    assert {p.relative_to(moved): p.stat().st_mtime_ns for p in moved.rglob("*")} == before
+    # where it was made, the set stopped while its beds settled resumes: its bed, then both runs, then its table
+    shutil.move(moved, out)
+    assert main(["resume", str(out)]) == 6  # the tiny drive ends unsteady
+    report = json.loads((out / "ensemble.json").read_text())
+    assert report["resumed"] and [r["status"] for r in report["results"]] == ["unsteady", "unsteady"]
+    assert json.loads(recipe.read_text())["beds"] == [tiny_bed, tiny_bed]  # kept for any later resume
 
 
 def test_timestep_study_ends_with_an_answer_in_bounded_tries(scene_path, tiny_bed, tmp_path):

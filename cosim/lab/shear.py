@@ -277,15 +277,18 @@ def _shear(plan: LabPlan, geometry: ShearBox, replica: int, path: str, stress: f
 
 
 RISING_END = 0.1
-"""The end of a shear's travel, as a fraction of it, where a peak is taken for a curve still rising."""
+"""The end of a shear's travel, as a fraction of it, where a peak may be a curve still rising."""
+RISING_GAIN = 0.02
+"""What a curve still rising gains over that end, as a fraction of its peak (a plateau's creep: less)."""
 
 
 def strength(u, tau, sigma) -> dict:
     """Peak and residual of a shear curve (displacement u [m], tau and sigma_n [Pa] per record):
     the peak is the largest tau smoothed over 1/20 of the records, with the mean sigma_n around
     it; the residual the means over the second half of the displacement. `rising_at_end`: the peak
-    lies in the last RISING_END of the travel, where a curve still rising cannot be told from one
-    that has peaked (the peak may lie beyond the travel, and the residual is no residual)."""
+    lies in the last RISING_END of the travel and the smoothed tau still gains more than RISING_GAIN of
+    it there: a curve still rising (its peak may lie beyond the travel, and the residual is no
+    residual), not one that has levelled off (a loose soil's, which creeps up to its plateau)."""
     u, tau, sigma = (np.asarray(c, dtype=float) for c in (u, tau, sigma))
     window = max(1, len(u) // 20)
     smooth = np.convolve(tau, np.ones(window) / window, mode="same")
@@ -300,7 +303,11 @@ def strength(u, tau, sigma) -> dict:
         "peak_displacement": float(u[peak]),
         "residual_tau": float(tau[residual].mean()),
         "residual_sigma": float(sigma[residual].mean()),
-        "rising_at_end": bool(u[peak] >= (1.0 - RISING_END) * u[-1]),
+        "rising_at_end": bool(
+            u[peak] >= (1.0 - RISING_END) * u[-1]
+            and smooth[peak] - smooth[min(np.searchsorted(u, (1.0 - RISING_END) * u[-1]), peak)]
+            > RISING_GAIN * abs(smooth[peak])
+        ),
     }
 
 
