@@ -165,7 +165,8 @@ def run_batched(plans: list[RunPlan], out_dirs: list[str], overwrite: bool = Fal
         "serve_seconds": serve_seconds,
         "serve_marks": serve_marks,
     }
-    # a stop that arrived, even once every run had ended, is said with every result: the caller stops too
+    # a stop that arrived, even once every run had ended, is said with every result: a caller that checks
+    # it (cosim.study._run_tasks) stops too
     stop = {"stop_received": received[0]} if received else {}
     return [
         {**r, "label": f"replica_{k:03d}", "wall_time": wall, "batch": batch, **stop} for k, r in enumerate(results)

@@ -1141,7 +1141,9 @@ def _finish_replica(task: dict) -> dict:
         else:  # it never began, or was stopped before its first checkpoint
             log.info("%s: running from its start (no checkpoint to resume; partial results replaced)", task["label"])
             result = run_task({**task, "overwrite": True})
-    except (RegolithError, OSError, ValueError, KeyError) as error:  # damaged, or diverged again
+    except (KeyboardInterrupt, RunInterrupted):  # a stop asked for (a RegolithError too): the resume stops
+        raise
+    except (RegolithError, OSError) as error:  # damaged, or diverged again: this replica's failure
         result = {**base, "ok": False, "status": "failed", "error": f"{type(error).__name__}: {error}"}
     if not result.get("ok") and result.get("error"):
         log.error("%s: %s", task["label"], result["error"])

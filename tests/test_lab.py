@@ -470,9 +470,9 @@ def test_cosim_lab_repose_writes_its_report(tmp_path, capsys):
 def test_a_shear_curve_still_rising_at_the_end_of_its_travel_is_told_from_one_that_peaked():
     """A curve still rising at the end of the box's travel gave its last value as the peak, unflagged: the
     friction angle from it is a lower bound and its second half no residual. Janosi-Hanamoto curves
-    tau = tau_max (1 - exp(-u / K)) with a drop after a peak at 40 % of the travel, without one and still
-    rising at the end (K near the travel), and levelled off (K = travel / 25: its largest value is at the
-    end, but it gains nothing there)."""
+    tau = tau_max (1 - exp(-u / K)) with a drop after a peak at 40 % of the travel; without one and still
+    rising at the end (K near the travel, K = travel / 3), or a smooth peak just beyond the travel; and
+    levelled off (K = travel / 25, noisy or not: its largest value is at the end, its second half at it)."""
     from cosim.lab.shear import strength
 
     u = np.linspace(0.0, 0.005, 400)
@@ -481,8 +481,14 @@ def test_a_shear_curve_still_rising_at_the_end_of_its_travel_is_told_from_one_th
     peaked = np.where(u < 0.002, 60.0 * (1 - np.exp(-u / 0.0003)), 0.0)
     peaked = np.where(u < 0.002, peaked, 60.0 * (1 - np.exp(-0.002 / 0.0003)) - 4000.0 * (u - 0.002))
     assert strength(u, rising, sigma)["rising_at_end"]
+    assert strength(u, 60.0 * (1 - np.exp(-u / (0.005 / 3))), sigma)["rising_at_end"]  # 95 % of its plateau
+    beyond = 60.0 * (1 - ((u - 0.0055) / 0.0055) ** 2)  # a smooth peak at 1.1 x the travel: flat at its end
+    assert strength(u, beyond, sigma)["rising_at_end"]
     levelled = 60.0 * (1 - np.exp(-u / 0.0002))  # a loose soil's plateau, still creeping up: no peak to miss
-    assert not strength(u, levelled, sigma)["rising_at_end"]
+    noise = np.random.default_rng(7).normal(0.0, 0.6, u.size)  # 1 % of the plateau
+    assert (
+        not strength(u, levelled, sigma)["rising_at_end"] and not strength(u, levelled + noise, sigma)["rising_at_end"]
+    )
     fit = strength(u, peaked, sigma)
     assert not fit["rising_at_end"] and fit["peak_displacement"] == pytest.approx(0.002, abs=2e-4)
 

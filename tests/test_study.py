@@ -448,8 +448,17 @@ def test_a_set_of_replicas_is_resumed_only_from_its_own_recipe_where_it_was_made
     assert main(["resume", str(moved)]) == 2
     assert f"the set of replicas was made in {out}" in capsys.readouterr().err
     assert {p.relative_to(moved): p.stat().st_mtime_ns for p in moved.rglob("*")} == before
-    # where it was made, the set stopped while its beds settled resumes: its bed, then both runs, then its table
+    # where it was made, the set stopped while its beds settled resumes: its bed, then both runs, then its
+    # table; a stop during that resume stops it (it was taken for the replica's failure, the next one run)
     shutil.move(moved, out)
+
+    def stopped_run(task):
+        raise RunInterrupted("stopped after a checkpoint", signal="SIGTERM")
+
+    run_task = cosim.study.run_task
+    monkeypatch.setattr(cosim.study, "run_task", stopped_run)
+    assert main(["resume", str(out)]) == 143 and not (out / "ensemble.json").exists()
+    monkeypatch.setattr(cosim.study, "run_task", run_task)
     assert main(["resume", str(out)]) == 6  # the tiny drive ends unsteady
     report = json.loads((out / "ensemble.json").read_text())
     assert report["resumed"] and [r["status"] for r in report["results"]] == ["unsteady", "unsteady"]

@@ -278,17 +278,19 @@ def _shear(plan: LabPlan, geometry: ShearBox, replica: int, path: str, stress: f
 
 RISING_END = 0.1
 """The end of a shear's travel, as a fraction of it, where a peak may be a curve still rising."""
-RISING_GAIN = 0.02
-"""What a curve still rising gains over that end, as a fraction of its peak (a plateau's creep: less)."""
+RISING_SHORTFALL = 0.05
+"""How far below such a peak the second half's mean tau lies on a curve still rising, as a fraction of
+the peak (a plateau's second half lies within a few percent of it)."""
 
 
 def strength(u, tau, sigma) -> dict:
     """Peak and residual of a shear curve (displacement u [m], tau and sigma_n [Pa] per record):
     the peak is the largest tau smoothed over 1/20 of the records, with the mean sigma_n around
     it; the residual the means over the second half of the displacement. `rising_at_end`: the peak
-    lies in the last RISING_END of the travel and the smoothed tau still gains more than RISING_GAIN of
-    it there: a curve still rising (its peak may lie beyond the travel, and the residual is no
-    residual), not one that has levelled off (a loose soil's, which creeps up to its plateau)."""
+    lies in the last RISING_END of the travel and the second half's mean tau is more than
+    RISING_SHORTFALL below it: a curve still rising (its peak may lie at or beyond the travel's end, and
+    the second half is no residual), not one that has levelled off at its plateau (a loose soil's,
+    whose largest value, creeping up, is at the end too)."""
     u, tau, sigma = (np.asarray(c, dtype=float) for c in (u, tau, sigma))
     window = max(1, len(u) // 20)
     smooth = np.convolve(tau, np.ones(window) / window, mode="same")
@@ -304,9 +306,7 @@ def strength(u, tau, sigma) -> dict:
         "residual_tau": float(tau[residual].mean()),
         "residual_sigma": float(sigma[residual].mean()),
         "rising_at_end": bool(
-            u[peak] >= (1.0 - RISING_END) * u[-1]
-            and smooth[peak] - smooth[min(np.searchsorted(u, (1.0 - RISING_END) * u[-1]), peak)]
-            > RISING_GAIN * abs(smooth[peak])
+            u[peak] >= (1.0 - RISING_END) * u[-1] and tau[residual].mean() < (1.0 - RISING_SHORTFALL) * smooth[peak]
         ),
     }
 
