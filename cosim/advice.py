@@ -593,13 +593,13 @@ def _bounce_finding(plan: RunPlan, parameters, wheels) -> Finding | None:
         phase,
         SCM_BOUNCE_LIMIT,
         phase <= SCM_BOUNCE_LIMIT,
-        f"the macro step {step:.3g} s is omega_e H = {phase:.3g} rad of the wheel's elastic bounce on the soil "
-        f"(omega_e {omega:.3g} rad/s): <= {SCM_BOUNCE_LIMIT:g} rad",
-        f"the macro step {step:.3g} s is omega_e H = {phase:.3g} rad of the wheel's elastic bounce on the soil "
-        f"(omega_e {omega:.3g} rad/s), above {SCM_BOUNCE_LIMIT:g} rad: the exchange does not resolve the bounce "
+        f"the macro step {step:.4g} s is omega_e H = {phase:.4g} rad of the wheel's elastic bounce on the soil "
+        f"(omega_e {omega:.4g} rad/s): <= {SCM_BOUNCE_LIMIT:g} rad",
+        f"the macro step {step:.4g} s is omega_e H = {phase:.4g} rad of the wheel's elastic bounce on the soil "
+        f"(omega_e {omega:.4g} rad/s), above {SCM_BOUNCE_LIMIT:g} rad: the exchange does not resolve the bounce "
         f"(forces 2-3 % off a fine step's at 2 rad already, and an explicit exchange of a stiff contact can go "
-        f"unstable); set run.macro_step <= {_three_digits_down(SCM_BOUNCE_LIMIT / omega):.3g} s, or leave it "
-        f"unset on SCM alone (SCM's own step, {BOUNCE_PHASE:g} rad)",
+        f"unstable); set run.macro_step <= {_three_digits_down(SCM_BOUNCE_LIMIT / omega):.3g} s"
+        + ("" if plan.terrain.model == "mixed" else f", or leave it unset (SCM's own step, {BOUNCE_PHASE:g} rad)"),
         "run.macro_step",
         "rad",
     )

@@ -929,6 +929,15 @@ def cmd_calibrate_scm(args) -> int:
             print(f"  {key:20s} {value:12.5g} {SOIL_UNITS[key]}, no error bar: {reason}")
     if not args.from_wheel:
         print(_error_bar_note(calibration.source.get("replica_fits", {})))
+    rising = calibration.source.get("shear", {}).get("still_rising", [])
+    if rising:  # their peaks (c, phi) and their climbs (Janosi's K) are of curves that had not peaked
+        curves = ", ".join(f"replica {replica}, sigma {stress:.4g} Pa" for replica, stress in rising)
+        print(
+            f"calibrate-scm: warning: shear curves still rising at the end of their travel ({curves}): their peaks "
+            "(c, phi) and Janosi's K come from curves that had not peaked; lengthen shear.displacement "
+            "(docs/lab.md)",
+            file=sys.stderr,
+        )
     for problem in failed_lab_checks(calibration) or ():  # said now, not first by a scene's advise
         keys = lab_check_keys([problem])
         print(
@@ -1002,11 +1011,11 @@ def _error_bar_note(replica_fits: dict) -> str:
     one_bed = f"; {', '.join(left_out)}: the pooled fit's alone (one bed)" if left_out else ""
     # R < 2 leaves no scatter between replicas: the pooled fit's error alone, whose degrees of freedom
     # are its points' (not R - 1)
-    multipliers = [f"R = {r}: +- {t.ppf(0.975, r - 1):.3g}" for r in counts if r >= 2]
+    multipliers = [f"+- {t.ppf(0.975, r - 1):.3g} of these at R = {r}" for r in counts if r >= 2]
     alone = "; R < 2: the pooled fit's error alone, no interval between replicas" if min(counts) < 2 else ""
     intervals = ""
     if multipliers:
-        intervals = f"; with R - 1 degrees of freedom a 95 % interval is {', '.join(multipliers)} of these"
+        intervals = f"; with R - 1 degrees of freedom a 95 % interval is {', '.join(multipliers)}"
     return (
         "  (+-: the larger of the pooled fit's standard error and the replicas' own fits' scatter / sqrt(R), "
         f"R = {'/'.join(map(str, counts))} ([source] replica_fits){one_bed}{intervals}{alone})"

@@ -963,8 +963,9 @@ def replica_run(
 
 
 REPLICAS_FILE = "replicas.json"
-"""A set of replicas' recipe (its scene as run, base folder, count, variation), written before its beds
-settle: `cosim resume OUT` finishes what an interruption left and writes the ensemble (resume_replicas)."""
+"""A set of replicas' recipe (its folder, scene as run, base folder, count, variation, SCM soils, then its
+beds once settled, and a digest of it all), written before its beds settle: `cosim resume OUT` finishes
+what an interruption left and writes the ensemble (resume_replicas)."""
 
 
 def _replica_tasks(plan: RunPlan, out_dir: str, beds: list, vary: str, soils: list[dict]) -> list[dict]:
@@ -1093,8 +1094,6 @@ def resume_replicas(out_dir: str) -> dict:
     (cosim.launch.resume: to the result an uninterrupted run gives; a batched world that stopped because
     another diverged, too), each that never began run; then the ensemble is written as replica_run
     writes it. One run at a time, in this process."""
-    from .folders import RunFolder
-
     out_dir = os.path.abspath(out_dir)
     recipe = _read_recipe(out_dir)
     vary, replicas, soils = recipe["vary"], int(recipe["replicas"]), recipe["soils"]
@@ -1121,7 +1120,6 @@ def resume_replicas(out_dir: str) -> dict:
 def _finish_replica(task: dict) -> dict:
     """resume_replicas' result of one replica (run_task's form): taken as it is, resumed, or run; a replica
     that fails here (damaged files, a divergence) is a failed result, named, and the others go on."""
-    from .folders import RunFolder
     from .launch import diverged_here, resume
 
     started = time.perf_counter()

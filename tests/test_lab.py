@@ -489,6 +489,18 @@ def test_a_shear_curve_still_rising_at_the_end_of_its_travel_is_told_from_one_th
     assert (
         not strength(u, levelled, sigma)["rising_at_end"] and not strength(u, levelled + noise, sigma)["rising_at_end"]
     )
+
+    # the shapes of DEM boxes' curves (their means over each tenth of the travel [Pa], 40 samples a tenth): the
+    # main job's lab example at 20 Pa, a plateau whose largest value fell at 92 % of the travel (the first
+    # rule's false alarm); a short travel's climb whose last tenth dips below the one before; a curve that
+    # peaked at 14 % and recovers a little
+    def shaped(tenths):
+        return np.repeat(tenths, 40) + np.random.default_rng(3).normal(0.0, 0.02 * max(tenths), 400)
+
+    plateau = shaped([5.47, 10.4, 11.6, 9.97, 11.0, 12.4, 12.4, 12.0, 11.8, 12.1])
+    climb = shaped([27.8, 25.6, 36.4, 39.2, 45.4, 53.0, 61.8, 69.4, 80.0, 77.9])
+    recovering = shaped([37.3, 67.5, 67.8, 38.7, 24.1, 12.7, 16.8, 17.5, 17.9, 18.8])
+    assert [strength(u, c, sigma)["rising_at_end"] for c in (plateau, climb, recovering)] == [False, True, False]
     fit = strength(u, peaked, sigma)
     assert not fit["rising_at_end"] and fit["peak_displacement"] == pytest.approx(0.002, abs=2e-4)
 

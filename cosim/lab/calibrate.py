@@ -392,7 +392,8 @@ def _calibrate(
         )
         header = (
             f"# cosim calibrate: evaluation {best['evaluation']} of {len(history)}, "
-            f"{'within every target' if converged else 'NOT within its targets'}: {message}\n# {said}\n"
+            f"{'within every target' if converged else 'NOT within its targets'}: {' '.join(message.split())}\n"
+            f"# {said}\n"
             f"# (summary.json and history.csv beside this file)\n"
         )
         scene_text = plan.with_changes(_overrides(parameters, best["values"])).scene.to_toml()

@@ -395,6 +395,7 @@ def calibrate_scm(plan, out_dir: str, overwrite: bool = False, executor="serial"
                 "replica_fits": SOIL_UNITS,
                 "standard_error_of_fit": SOIL_UNITS,
                 "lab_checks": {"value": "1", "limit": "1"},
+                "shear.still_rising": "each [replica [1], normal stress [Pa]]",
             },
             "lab_checks": lab_checks,
             "soil": common.soil_summary(plan),
@@ -428,6 +429,8 @@ def calibrate_scm(plan, out_dir: str, overwrite: bool = False, executor="serial"
                 "displacement_m": geometry.displacement,
                 "peak_sigma_pa": [r["peak_sigma"] for r in sheared],
                 "peak_tau_pa": [r["peak_tau"] for r in sheared],
+                # (replica, sigma_n [Pa]) of each curve still climbing at the end of its travel (shear.strength)
+                "still_rising": [[int(r["replica"]), float(r["stress"])] for r in sheared if r.get("rising_at_end")],
                 "steps": [r["steps"] for r in sheared],
             },
         }

@@ -276,21 +276,20 @@ def _shear(plan: LabPlan, geometry: ShearBox, replica: int, path: str, stress: f
     }
 
 
-RISING_END = 0.1
-"""The end of a shear's travel, as a fraction of it, where a peak may be a curve still rising."""
-RISING_SHORTFALL = 0.05
-"""How far below such a peak the second half's mean tau lies on a curve still rising, as a fraction of
-the peak (a plateau's second half lies within a few percent of it)."""
+RISING_BLOCKS = 5
+"""Blocks of equal travel over the second half of a shear, whose means tell a curve still rising from a
+plateau."""
+RISING_GAIN = 0.05
+"""What a curve still rising gains over the second half, as a fraction of its peak (a plateau: nothing)."""
 
 
 def strength(u, tau, sigma) -> dict:
     """Peak and residual of a shear curve (displacement u [m], tau and sigma_n [Pa] per record):
     the peak is the largest tau smoothed over 1/20 of the records, with the mean sigma_n around
-    it; the residual the means over the second half of the displacement. `rising_at_end`: the peak
-    lies in the last RISING_END of the travel and the second half's mean tau is more than
-    RISING_SHORTFALL below it: a curve still rising (its peak may lie at or beyond the travel's end, and
-    the second half is no residual), not one that has levelled off at its plateau (a loose soil's,
-    whose largest value, creeping up, is at the end too)."""
+    it; the residual the means over the second half of the displacement. `rising_at_end`: tau still
+    climbs at the end (_still_rising): a curve still rising (its peak may lie beyond the travel, and the
+    second half is no residual), not one levelled off at a plateau that wobbles (a small box's, whose
+    largest value may fall anywhere in it)."""
     u, tau, sigma = (np.asarray(c, dtype=float) for c in (u, tau, sigma))
     window = max(1, len(u) // 20)
     smooth = np.convolve(tau, np.ones(window) / window, mode="same")
@@ -305,10 +304,28 @@ def strength(u, tau, sigma) -> dict:
         "peak_displacement": float(u[peak]),
         "residual_tau": float(tau[residual].mean()),
         "residual_sigma": float(sigma[residual].mean()),
-        "rising_at_end": bool(
-            u[peak] >= (1.0 - RISING_END) * u[-1] and tau[residual].mean() < (1.0 - RISING_SHORTFALL) * smooth[peak]
-        ),
+        "rising_at_end": _still_rising(u, tau, float(smooth[peak])),
     }
+
+
+def _still_rising(u, tau, peak: float) -> bool:
+    """Whether tau still climbs at the end of the travel u (strength's `rising_at_end`): over the second
+    half in RISING_BLOCKS blocks of equal travel, the last block's mean is the highest (within the
+    blocks' scatter) and near the curve's peak (within twice RISING_GAIN of it: a curve that peaked
+    earlier and recovers a little is not still rising to its peak), and above the first block's by more
+    than RISING_GAIN of the peak and by more than twice the blocks' scatter (the spread of their
+    successive differences: a steady climb has little, a wobbling plateau much)."""
+    edges = np.linspace(0.5 * u[-1], u[-1], RISING_BLOCKS + 1)
+    means = []
+    for low, high in zip(edges[:-1], edges[1:]):
+        inside = (u >= low) & (u <= high)
+        if not inside.any():
+            return False
+        means.append(float(tau[inside].mean()))
+    climb = means[-1] - means[0]
+    scatter = float(np.std(np.diff(means), ddof=1))
+    highest = means[-1] >= max(means) - scatter and means[-1] >= (1.0 - 2.0 * RISING_GAIN) * peak
+    return bool(highest and climb > RISING_GAIN * abs(peak) and climb > 2.0 * scatter)
 
 
 def run_replica(

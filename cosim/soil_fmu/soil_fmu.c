@@ -382,7 +382,6 @@ static int high_descriptor(int fd) {
     return high;
 }
 
-
 static SoilStatus spawn_server(Soil *s) {
     int pair[2], err[2];
     posix_spawn_file_actions_t actions;
