@@ -58,7 +58,7 @@ from soil.files import atomic_write_text
 
 from . import advice, metrics
 from .beds import BED_FILE, BED_INFO_FILE, finite_or_null, settled_bed, settling_cost, write_json
-from .folders import RunFolder
+from .folders import RUN_FILE, RunFolder, read_json
 from .launch import FINISHED
 from .plan import MAX_PHASE_STEPS, RunPlan, resolve
 from .runner import RunInterrupted
@@ -409,7 +409,7 @@ def _refuse_held_locks(out_dir: str, names: list[str]) -> None:
 def _study_folder_files(out_dir: str, overwrite: bool) -> list[str]:
     """The files a study in `out_dir` replaces (OutputExistsError when it may not)."""
     from .beds import BED_DIVERGED_FILE
-    from .folders import LOCK_FILE, RESULTS_FILE, RUN_FILE, RUN_OUTPUTS, OutputExistsError
+    from .folders import LOCK_FILE, RESULTS_FILE, RUN_OUTPUTS, OutputExistsError
 
     keep = (BED_FILE, BED_INFO_FILE, BED_DIVERGED_FILE, "beds", LOCK_FILE, STUDY_MARK)
     present = sorted(n for n in os.listdir(out_dir) if n not in keep)
@@ -1124,7 +1124,7 @@ def _finish_replica(task: dict) -> dict:
 
     started = time.perf_counter()
     folder = RunFolder(task["out_dir"])
-    record = _read_run_record(folder.path)
+    record = read_json(folder.file(RUN_FILE))  # {} where none, or unreadable: the run has not finished
     status, kept = record.get("status"), os.path.isfile(folder.checkpoint)
     base = {"label": task["label"], "out_dir": folder.path, "overrides": task["overrides"]}
     try:
@@ -1146,18 +1146,6 @@ def _finish_replica(task: dict) -> dict:
     if not result.get("ok") and result.get("error"):
         log.error("%s: %s", task["label"], result["error"])
     return {**result, "wall_time": time.perf_counter() - started}
-
-
-def _read_run_record(folder: str) -> dict:
-    """A run folder's run.json ({} when it has none or it cannot be read: the run has not finished)."""
-    from .folders import RUN_FILE
-
-    try:
-        with open(os.path.join(folder, RUN_FILE)) as f:
-            record = json.load(f)
-    except (OSError, ValueError):
-        return {}
-    return record if isinstance(record, dict) else {}
 
 
 # ------------------------------------------------------------------------------------
