@@ -98,9 +98,11 @@ from cosim.folders import RunFolder  # noqa: E402
 from cosim.launch import run_plan  # noqa: E402
 from cosim.output import read_series  # noqa: E402
 from cosim.plan import RunPlan, load_plan  # noqa: E402
+from cosim.runner import RunInterrupted  # noqa: E402
 from soil import GrouserWheel, Simulation, SoilBuilder, quiet_warp  # noqa: E402
 from soil.advisor import rayleigh_time_step  # noqa: E402
 from soil.bed import bed_metrics, build_bed, kinetic_energy_threshold, save_bed  # noqa: E402
+from soil.files import atomic_write_text  # noqa: E402
 from soil.memory import device_bytes_per_grain  # noqa: E402
 
 TEST_FILES = [
@@ -318,9 +320,12 @@ class Suite:
     def section(self, name, function):
         start = time.perf_counter()
         self.log(f"{name} ...")
+        stop = None
         try:
             result = function()
             result["ok"] = bool(result.get("ok", True))
+        except (KeyboardInterrupt, RunInterrupted) as error:  # Ctrl-C or SIGTERM: the suite ends here
+            result, stop = {"ok": False, "error": f"stopped: {error}"}, error
         except Exception as error:  # the suite reports a failed section and goes on
             result = {"ok": False, "error": f"{type(error).__name__}: {error}"}
         result["seconds"] = time.perf_counter() - start
@@ -329,7 +334,9 @@ class Suite:
             f"{name}: {'ok' if result['ok'] else 'FAILED'} ({result['seconds']:.1f} s) "
             f"{json.dumps({k: v for k, v in result.items() if not isinstance(v, (list, dict))})}"
         )
-        self.write()
+        self.write()  # what the suite measured so far is kept, stopped or not
+        if stop is not None:
+            raise KeyboardInterrupt(str(stop))
 
     # -- sections -------------------------------------------------------------------------
     def base_bed(self):
@@ -599,6 +606,9 @@ class Suite:
             plans = [load_plan(MAIN_SCENE, {**overrides, "run.order_seed": k}) for k in range(worlds)]
             out_dirs = [os.path.join(folder, f"worlds_{worlds}", f"replica_{k:03d}") for k in range(worlds)]
             results = run_batched(plans, out_dirs, overwrite=True)
+            stopped = [r for r in results if r.get("status") == "interrupted" or r.get("stop_received")]
+            if stopped:  # a stop the batch received ends the suite, as it ends a study (cosim.study._run_tasks)
+                raise KeyboardInterrupt(stopped[0].get("stop_received") or "SIGINT: the batched runs stopped")
             batch = results[0]["batch"]
             failed = [r.get("error") for r in results if not r.get("ok")]
             every = [read_series(RunFolder(d).results) for d, r in zip(out_dirs, results) if r.get("ok")]
@@ -876,10 +886,9 @@ class Suite:
         self.results["units"] = RESULT_UNITS
         for folder in self.results_dirs:
             os.makedirs(folder, exist_ok=True)
-            with open(os.path.join(folder, "results.json"), "w") as f:
-                json.dump(self.results, f, indent=1, default=str)
-            with open(os.path.join(folder, "results.md"), "w") as f:
-                f.write(self.markdown())
+            # whole or the previous one: a suite killed while writing keeps the sections written before
+            atomic_write_text(os.path.join(folder, "results.json"), json.dumps(self.results, indent=1, default=str))
+            atomic_write_text(os.path.join(folder, "results.md"), self.markdown())
 
     def markdown(self) -> str:
         r = self.results
@@ -1051,8 +1060,13 @@ def main(argv=None) -> int:
         print("no CUDA device here: run with --small --device cpu for the CPU check", file=sys.stderr)
         return 2
     suite = Suite(device, args.small, args.budget, args.out, args.results, args.step_control)
-    for name in args.sections:
-        suite.section(name, getattr(suite, name))
+    try:
+        for name in args.sections:
+            suite.section(name, getattr(suite, name))
+    except KeyboardInterrupt as stop:  # the sections so far are written (Suite.section); the rest are not run
+        print(suite.markdown())
+        print(f"stopped ({stop}): the sections after it were not run", file=sys.stderr)
+        return 130
     print(suite.markdown())
     if args.compile_for_arch:
         compiled = compile_loaded_modules(args.compile_for_arch)

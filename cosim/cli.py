@@ -267,27 +267,35 @@ def cmd_view(args) -> int:
 def cmd_export(args) -> int:
     """cosim export vtkhdf RUN [--out FILE]: results.vtkhdf from what results.h5 holds."""
     from soil.errors import ArgumentError
+    from soil.files import output_target
 
-    from .folders import RESULTS_FILE, VTKHDF_FILE
-    from .vtkhdf import write_vtkhdf
+    from .folders import CHECKPOINT_FILE, RESULTS_FILE, VTKHDF_FILE
+    from .vtkhdf import VTKHDF_SUFFIXES, write_vtkhdf
 
     results = os.path.join(args.run, RESULTS_FILE) if os.path.isdir(args.run) else args.run
     if not os.path.isfile(results):
         raise ArgumentError(f"{args.run!r} is not a run folder: no {RESULTS_FILE} in it")
     own = os.path.join(os.path.dirname(os.path.abspath(results)), VTKHDF_FILE)
     replace = args.out is None or os.path.abspath(args.out) == own  # RUN/results.vtkhdf is the run's own: made again
+    # never through a link to the run's results.h5, its checkpoint or a file that is not an export's
+    inputs = (results, os.path.join(os.path.dirname(os.path.abspath(results)), CHECKPOINT_FILE))
     if not replace:
-        _free_output_file(args.out, (".vtkhdf", ".hdf"), args.overwrite)
+        _free_output_file(args.out, VTKHDF_SUFFIXES, args.overwrite, inputs)
+    else:
+        output_target(args.out or own, VTKHDF_SUFFIXES, inputs, what="--out" if args.out else "the run's export")
     path = write_vtkhdf(results, args.out, replace=replace or args.overwrite)  # a file that appeared meanwhile: kept
     print(f"{path}: {os.path.getsize(path) / 1024:.0f} kB (open it in ParaView or with VTK's vtkHDFReader)")
     return EXIT_OK
 
 
-def _free_output_file(path: str, suffixes: tuple[str, ...], overwrite: bool) -> None:
+def _free_output_file(path: str, suffixes: tuple[str, ...], overwrite: bool, inputs=()) -> None:
     """Refuse `--out` PATH before anything is written: a name without one of `suffixes` (ArgumentError:
-    a run's results.h5 or a checkpoint is never taken for an export's file) or, without --overwrite, a
-    file that exists (OutputExistsError)."""
+    a run's results.h5 or a checkpoint is never taken for an export's file), a PATH that is or leads to
+    one of `inputs` (the files the command reads), a symbolic link whose target does not end in one of
+    `suffixes` (a link is written through, its target replaced, only when that is an export's file:
+    soil.files.output_target) or, without --overwrite, a file that exists (OutputExistsError)."""
     from soil.errors import ArgumentError
+    from soil.files import output_target
 
     from .folders import OutputExistsError
 
@@ -295,6 +303,7 @@ def _free_output_file(path: str, suffixes: tuple[str, ...], overwrite: bool) -> 
         raise ArgumentError(f"--out {path!r}: the file must end in {' or '.join(suffixes)}")
     if os.path.isdir(path):
         raise ArgumentError(f"--out {path!r} is a folder; name the file to write")
+    output_target(path, suffixes, inputs)
     if os.path.lexists(path) and not overwrite:
         raise OutputExistsError(f"--out {path!r} exists; pass --overwrite to replace it")
 
@@ -564,7 +573,7 @@ def cmd_study(args) -> int:
         out = args.out or os.path.join("runs", f"{plan.name}_slip")
         if args.from_runs:  # tabulate runs already made: a study stopped before its end, or run in parts
             report = study.slip_study_from_runs(
-                args.from_runs, out, overwrite=args.overwrite, include_sinking=args.include_sinking
+                args.from_runs, out, overwrite=args.overwrite, include_sinking=args.include_sinking, scene=plan.scene
             )
             print(report["text"])
             return _study_exit(report["runs"])
@@ -623,7 +632,8 @@ def _study_exit(results: list[dict]) -> int:
 
     if any(map(failed_run, results)):
         return EXIT_ERROR
-    steady = all((r.get("summary") or {}).get("steady_state") == "steady" for r in results)
+    # a run that did not finish (interrupted, running) is no result, whatever its partial summary says
+    steady = all(r.get("ok", True) and (r.get("summary") or {}).get("steady_state") == "steady" for r in results)
     return EXIT_OK if steady else EXIT_UNSTEADY
 
 
@@ -647,7 +657,7 @@ def cmd_export_fmu(args) -> int:
 
     from .scene import is_device_name
     from .soil_fmu import export_soil_fmu, soil_config_from
-    from .soil_fmu.config import verdict
+    from .soil_fmu.config import scm_server_grid, verdict
     from .soil_fmu.server import DEVICE_VARIABLE
 
     _free_output_file(args.out, (".fmu",), args.overwrite)
@@ -666,12 +676,23 @@ def cmd_export_fmu(args) -> int:
         path = export_soil_fmu(
             config, args.out, fmi_version=args.fmi, wheel_count=args.wheels, python=args.python, replace=args.overwrite
         )  # without --overwrite, a file that appeared at --out while the FMU was made is kept
+    grid = ""
+    if config.terrain == "scm":  # what the server will allocate, said now: it may run on a smaller machine
+        server = scm_server_grid(config, args.wheels)
+        on_cpu = f"{server['cpu_bytes'] / 1e6:,.0f} MB of host memory on the CPU"
+        on_gpu = (
+            f"{server['gpu_bytes'] / 1e6:,.0f} MB on a GPU and {server['gpu_host_bytes'] / 1e6:,.0f} MB of host memory"
+        )
+        grid = (
+            f"; the server's SCM grid: {server['window'][0]:.4g} x {server['window'][1]:.4g} m, "
+            f"{server['nodes']:,} nodes, about {on_cpu if config.device == 'cpu' else on_gpu + ' (' + on_cpu + ')'}"
+        )
     print(
         f"wrote {path}: FMI {args.fmi}.0 co-simulation, {args.wheels} wheel(s), "
         f"{config.terrain.upper()} step {config.dem_step:.4g} s, "
         f"surface z = {config.surface_height:.4g} m; the soil server runs on {config.device}"
         f"{' (a GPU on the machine that runs it, if it has one, else the CPU)' if config.device == 'default' else ''}"
-        f" unless the FMU's device parameter or ${DEVICE_VARIABLE} says otherwise; "
+        f" unless the FMU's device parameter or ${DEVICE_VARIABLE} says otherwise{grid}; "
         f"validity: {verdict(config.findings, config.unjudged)}"
     )
     return EXIT_OK
@@ -1323,19 +1344,29 @@ def main(argv=None) -> int:
 def _dispatch(args) -> int:
     """Run the command; the project's own errors become their exit status and a one-line message
     (bad input: 2, only soil.errors.InputError; a failure the project reports that is not the
-    input's: 1); anything else propagates to `main` as unexpected."""
-    from soil.errors import InputError, RegolithError
-    from soil.stability import SimulationDiverged
-
-    from .beds import SettlingDiverged
-    from .folders import OutputFolderError
-    from .lab.common import LabDiverged
-    from .runner import RunDiverged, RunInterrupted
-    from .scene import SceneError
+    input's: 1); anything else propagates to `main` as unexpected. Ctrl-C (or SIGTERM) exits 130 (143)
+    with one line, also while the modules below load (seconds: warp's)."""
 
     def fail(code: int, error) -> int:
         print(f"cosim: error: {error}", file=sys.stderr)
         return code
+
+    def interrupted(error) -> int:
+        print(f"\ncosim: interrupted. {error}".rstrip(), file=sys.stderr)
+        terminated = getattr(error, "signal", None) == "SIGTERM" or str(error).startswith("SIGTERM")
+        return EXIT_TERMINATED if terminated else EXIT_INTERRUPTED
+
+    try:
+        from soil.errors import InputError, RegolithError
+        from soil.stability import SimulationDiverged
+
+        from .beds import SettlingDiverged
+        from .folders import OutputFolderError
+        from .lab.common import LabDiverged
+        from .runner import RunDiverged, RunInterrupted
+        from .scene import SceneError
+    except KeyboardInterrupt as error:
+        return interrupted(error)
 
     try:
         return args.func(args)
@@ -1346,9 +1377,7 @@ def _dispatch(args) -> int:
     except (RunDiverged, SettlingDiverged, SimulationDiverged, LabDiverged) as error:
         return fail(EXIT_DIVERGED, error)
     except (KeyboardInterrupt, RunInterrupted) as error:
-        print(f"\ncosim: interrupted. {error}".rstrip(), file=sys.stderr)
-        terminated = getattr(error, "signal", None) == "SIGTERM" or str(error).startswith("SIGTERM")
-        return EXIT_TERMINATED if terminated else EXIT_INTERRUPTED
+        return interrupted(error)
     except InputError as error:  # an FMU, a mesh, a bed, an argument: bad input the project recognised
         return fail(EXIT_INPUT, error)
     except RegolithError as error:  # a failure the project reports (a model refused a step, a tool is missing)

@@ -38,7 +38,10 @@ class DriveCommand:
     def __post_init__(self):
         if self.mode not in ("speed", "torque"):
             raise ArgumentError(f"DriveCommand mode must be 'speed' or 'torque', got {self.mode!r}")
-        self.values = np.asarray(self.values, dtype=np.float64).reshape(-1)
+        values = np.asarray(self.values, dtype=np.float64)
+        if values.ndim > 1:  # a matrix is no list of wheels, even when its size is the wheel count
+            raise ArgumentError(f"DriveCommand values must be one per wheel, shape (wheel_count,), got {values.shape}")
+        self.values = values.reshape(-1)
 
 
 @runtime_checkable

@@ -53,7 +53,10 @@ each other. The steady-state window is found as for a wheel (MSER-5 on the forwa
 mean sinkage; each wheel's sinkage steady over it, else 'still sinking' or 'still rising'; one grouser
 passage at least over it for the grousered wheels that turn, else 'too short'); slip, sinkage, drawbar
 pull, torque, normal force and power per wheel and the rover's slip, net traction and power are
-means over it.
+means over it. A wheel's slip over the window is nan where the drive held it still (speed 0 at every
+step: parked or braked) or where its mean spin lies within two batch-means standard errors of zero (a
+hinge jittering about its axle: the ratio would divide by noise); the rover's, where every wheel was
+held or the wheels' mean rim speed is so lost in its scatter.
 
 Across replicas (`ensemble`): mean, standard deviation, a 95 % Student-t interval, and
 whether the metric is macroscopically deterministic (replica std within its tolerance).
@@ -134,6 +137,24 @@ def rover_slip(forward_speed: float, spins, rim_radii) -> float:
     if not abs(mean) >= TURNING_IN_PLACE * magnitude:
         return math.nan
     return float(slip_of(forward_speed, mean, 1.0))
+
+
+def wheels_held(speed_commands) -> np.ndarray:
+    """Per wheel, whether a drive held it still over a window: its speed command 0 at every step (a parked
+    or braked wheel; its slip is no traction's). speed_commands [rad/s] (S, W), nan where a torque was
+    commanded. Returns bool (W,)."""
+    return np.all(np.asarray(speed_commands, dtype=float) == 0.0, axis=0)
+
+
+def spin_unresolved(spins) -> np.ndarray:
+    """Per column of `spins` over a window (S, W) [rad/s, or any speed]: whether its mean lies within
+    two batch-means standard errors of zero, so that 1 - v / (omega r) would divide by noise (a hinge
+    jittering about its axle). A constant series has no scatter: resolved unless exactly 0 (slip_of's nan).
+    Returns bool (W,)."""
+    spins = np.asarray(spins, dtype=float)
+    means = spins.mean(axis=0)
+    errors = np.array([batch_standard_error(column) for column in spins.T])
+    return np.abs(means) <= 2.0 * np.nan_to_num(errors, nan=0.0)
 
 
 def sinkage_steady(
@@ -584,7 +605,9 @@ def summarize_rover(
     """Metrics of a rover run from its written series (cosim.output.read_series: the wheel series (S, W),
     'rover/...' series (S, ...)); over the driving phase only.
 
-    Returns {'steady_state', 'window' [s], 'landing_time' [s]; over the window: 'slip' [-] (the rover's),
+    Returns {'steady_state', 'window' [s], 'landing_time' [s]; over the window: 'slip' [-] (the rover's;
+    nan, as each 'wheel_slip', where the drive held the wheels still or their mean spin is lost in its
+    scatter: wheels_held, spin_unresolved),
     'forward_speed' [m/s], 'net_traction' [N], 'net_traction_over_weight' [-], 'power' [W], 'sinkage',
     'sinkage_tips' [m] (mean over the wheels), 'drawbar_pull' [N] (= net_traction), 'dp_over_w' [-],
     'driving_torque' [N m] (summed), 'normal_force' [N] (summed), 'contact_fraction' [-], and per wheel
@@ -658,7 +681,13 @@ def summarize_rover(
     out["window"] = [float(time[rows[0]]), float(time[rows[-1]])]
     spacing = float(np.mean(np.diff(time[rows]))) if len(rows) > 1 else math.nan
     window_mean(out, "forward_speed", speed[window], spacing)
-    out["slip"] = rover_slip(out["forward_speed"], np.mean(spins[window], axis=0), rim_radii)
+    mean_spins = np.mean(spins[window], axis=0)
+    out["slip"] = rover_slip(out["forward_speed"], mean_spins, rim_radii)
+    # a file without the commands (written before they were recorded): no wheel is taken as held
+    held = wheels_held(series["speed_command"][rows]) if "speed_command" in series else np.zeros(len(rim_radii), bool)
+    noise = spin_unresolved(spins[window])  # (W,)
+    if np.all(held) or spin_unresolved((spins[window] * rim_radii).mean(axis=1, keepdims=True))[0]:
+        out["slip"] = math.nan  # parked, braked, or the wheels' mean rim speed lost in its own scatter
     traction = np.asarray(series["rover_net_traction"])[rows]
     window_mean(out, "net_traction", traction, spacing)
     out["net_traction_over_weight"] = out["net_traction"] / weight if weight > 0 else math.nan
@@ -674,7 +703,7 @@ def summarize_rover(
         ]
     )
     out["wheel_slip"] = [
-        float(slip_of(np.mean(wheel_speed[:, i]), np.mean(spins[window, i]), rim_radii[i]))
+        math.nan if held[i] or noise[i] else float(slip_of(np.mean(wheel_speed[:, i]), mean_spins[i], rim_radii[i]))
         for i in range(len(rim_radii))
     ]
     out["wheel_spin"] = [float(np.mean(np.abs(spins[window, i]))) for i in range(len(rim_radii))]

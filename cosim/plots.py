@@ -19,10 +19,10 @@ import os
 import numpy as np
 
 from soil.errors import ArgumentError, DamagedFileError
-from soil.files import atomic_path
+from soil.files import atomic_path, output_target
 
 from .folders import PLOTS_DIR, RESULTS_FILE
-from .output import read_series, stored_summary
+from .output import check_results, read_series, stored_summary
 from .single_wheel import PHASE_DRIVING
 
 log = logging.getLogger(__name__)
@@ -34,14 +34,20 @@ study's FOLDER/slip_x/replica_k (2), kept in a folder of studies (3) and one mor
 such as / or /tmp is not walked to its bottom."""
 
 
-def save_figure(fig, path: str, dpi: float) -> None:
+def save_figure(fig, path: str, dpi: float, replace: bool = True) -> None:
     """Save a matplotlib figure to `path` whole or not at all, in the format its extension names: written
     beside it under a temporary name, then renamed (soil.files.atomic_path), so a crash, a signal or a full
-    disk never leaves half a picture, nor spoils the one already there; a missing folder is made."""
+    disk never leaves half a picture, nor spoils the one already there; a missing folder is made.
+
+    replace False: a file that appeared at `path` while the figure was drawn is kept, the picture written
+    beside it (FileExistsError naming both: soil.files.place_new). `path` a symbolic link is written through
+    (its file replaced, the link kept) only when that file's name ends in the same format: a link
+    travel_sinkage.png -> results.h5 is refused (ArgumentError naming both), not written through."""
     kind = os.path.splitext(path)[1][1:].lower()
     if not kind:
         raise ArgumentError(f"{path}: a picture's name ends in its format (.png, .pdf, .svg)")
-    with atomic_path(path, suffix=f".{kind}") as temporary, open(temporary, "wb") as out:
+    output_target(path, (f".{kind}",), what="the picture")
+    with atomic_path(path, suffix=f".{kind}", replace=replace) as temporary, open(temporary, "wb") as out:
         fig.savefig(out, format=kind, dpi=dpi)
 
 
@@ -89,6 +95,7 @@ def plot_output(out_dir: str, plot_dir: str | None = None, dpi: int = 120) -> li
     damaged = []
     for path in paths:
         try:
+            check_results(path, data=False)  # a file not ours named as such (as `cosim view` and `export` do)
             series = read_series(path)
         except DamagedFileError as error:  # a broken file must not stop the plots of the others
             damaged.append(error)

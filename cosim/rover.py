@@ -193,7 +193,11 @@ class RoverDriver:
             try:
                 command = self.controller(t, wheel_states, wrenches)
             except Exception as error:
-                if not self.user_code:  # the project's own controllers and FMU sessions: their errors as they are
+                from rover_models.fmu_session import FmuStepError
+
+                if isinstance(error, FmuStepError):  # a controller FMU that failed: named with the drive's key
+                    raise ControllerError(f"{self.label}: {error} at t = {t:.6g} s") from error
+                if not self.user_code:  # the project's own controllers: their errors as they are
                     raise
                 # a user's controller: its failure (a DriveCommand it built wrongly too) named, not a bug of ours
                 raise ControllerError(

@@ -585,9 +585,15 @@ class RoverSection(_Section):
             raise ValueError('wheels: name the MJCF\'s wheel bodies, e.g. wheels = ["wheel_fl", "wheel_fr"]')
         if self.model == "fmu" and self.wheels:
             raise ValueError("wheels: an FMU's wheels are numbered; give wheel_count and wheel_prefix instead")
-        if self.model != "fmu" and (self.wheel_count is not None or self.start_values):
-            wrong = "wheel_count" if self.wheel_count is not None else "start_values"
-            raise ValueError(f"{wrong}: belongs to model = 'fmu'")
+        if self.model != "fmu":  # given but unused: refused, not silently ignored (a saved scene holds the defaults)
+            given = {
+                "wheel_count": self.wheel_count is not None,
+                "start_values": bool(self.start_values),
+                "wheel_prefix": self.wheel_prefix != type(self).model_fields["wheel_prefix"].default,
+            }
+            wrong = [key for key, set_ in given.items() if set_]
+            if wrong:
+                raise ValueError(f"{wrong[0]}: belongs to model = 'fmu'")
         if self.model != "mmx" and self.mmx is not None:
             raise ValueError("mmx: [rover.mmx] belongs to model = 'mmx'")
         if self.model == "fmu" and self.body is not None:

@@ -697,6 +697,16 @@ def _run_tasks(ex: Executor, tasks: list[dict], batched: bool) -> list[dict]:
     return results
 
 
+def _same_value(a, b) -> bool:
+    """Whether two values of a --param give the same scene: numbers by value (1 and 1.0 alike: the scene
+    coerces them), lists item by item, anything else (a name, a flag: true is not 1) by type and value."""
+    if is_number(a) and is_number(b):
+        return bool(a == b)
+    if isinstance(a, list) and isinstance(b, list):
+        return len(a) == len(b) and all(_same_value(x, y) for x, y in zip(a, b))
+    return type(a) is type(b) and a == b
+
+
 def _repeated(values) -> list:
     """The values that occur more than once, in order of their first occurrence."""
     return [value for value, count in collections.Counter(values).items() if count > 1]
@@ -1356,13 +1366,26 @@ def slip_study(
 
 
 def slip_study_from_runs(
-    folders, out_dir: str, overwrite: bool = False, plot: bool = True, include_sinking: bool = False
+    folders,
+    out_dir: str,
+    overwrite: bool = False,
+    plot: bool = True,
+    include_sinking: bool = False,
+    scene=None,
 ) -> dict:
     """The slip study's table from runs already made (FOLDER/slip_*/replica_*/run.json under each of
     `folders`: a study stopped before its end, or run in parts), written to out_dir like slip_study's
-    (a new folder: never one of `folders` or a folder holding one). include_sinking: average the
-    runs whose traction is steady and whose sinkage still drifts too (a wheel digging in at high
-    slip), each row's `averaged` counting them; the sinkage is then its mean over the window."""
+    (a new folder: never one of `folders`, a folder holding one, or a folder inside one). include_sinking:
+    average the runs whose traction is steady and whose sinkage still drifts too (a wheel digging in at
+    high slip), each row's `averaged` counting them; the sinkage is then its mean over the window.
+    scene: the cosim.scene.Scene the table is said to be of (`cosim study slip SCENE`), compared with the
+    runs' own (None: not compared).
+
+    Every run is read and checked before out_dir is touched: the runs must be of one scene (their
+    scene.toml alike but for what a slip study's runs differ in: testbed.slip, run.order_seed, the bed's
+    seed and file, and the SCM soil over calibration beds), and no run may be counted twice (a copy: the
+    same run_id; a part run again: the same slip, order seed and bed, which repeats a replica bit for bit
+    instead of adding one); ArgumentError naming the folders and keys."""
     import glob
     import json
 
@@ -1371,10 +1394,15 @@ def slip_study_from_runs(
     repeated = sorted({folder for folder in real if real.count(folder) > 1})
     if repeated:  # its runs would be counted twice
         raise ArgumentError(f"--from-runs: {repeated[0]} given twice")
-    for folder in folders:
-        source = os.path.abspath(folder)
-        if os.path.commonpath([out_dir, source]) == out_dir:
+    out_real = os.path.realpath(out_dir)
+    for source in real:
+        common = os.path.commonpath([out_real, source])
+        if common == out_real:
             raise ArgumentError(f"--out {out_dir}: holds the runs of {source}; tabulate into another folder")
+        if common == source:  # --overwrite would empty a run the table reads
+            raise ArgumentError(
+                f"--out {out_dir}: lies inside {source}, whose runs it reads; tabulate into a folder outside it"
+            )
     found = []
     for folder in folders:
         for run_json in sorted(glob.glob(os.path.join(os.path.abspath(folder), "slip_*", "replica_*", "run.json"))):
@@ -1388,10 +1416,9 @@ def slip_study_from_runs(
             found.append((slip, os.path.dirname(run_json), record))
     if not found:
         raise ArgumentError(f"no slip runs (slip_*/replica_*/run.json) under {', '.join(map(str, folders))}")
-    first = os.path.join(found[0][1], "scene.toml")
-    with open(first) as f:
-        text = f.read()
-    plan = resolve(scene_from_text(text, base_dir=os.path.dirname(first)))
+    texts, scenes = _run_scenes([path for _, path, _ in found])
+    _check_one_study(found, scenes, scene)
+    plan = resolve(scenes[0])
     results = [
         # a run that did not finish (running, interrupted: its summary is of part of the drive) or diverged
         # gives no result; a diverged or failed one is counted as failed
@@ -1399,15 +1426,120 @@ def slip_study_from_runs(
         for _, path, record in found
     ]
     slips = sorted({slip for slip, _, _ in found})
+    states = (metrics.STEADY, metrics.SINKING, metrics.RISING) if include_sinking else (metrics.STEADY,)
+    beds = [record.get("bed", {}).get("path") for _, _, record in found]
+    soils = _run_soils([path for _, path, _ in found])
+    # the runs' own beds (by what they were settled from, not where they lie: a part of a study settles its
+    # own copy of the same bed) and their SCM wheels' soils say what their replicas varied in
+    vary = "bed" if len({_bed_identity(bed) for bed in beds}) > 1 or soils else "order"
     with prepare_study(out_dir, overwrite):
-        states = (metrics.STEADY, metrics.SINKING, metrics.RISING) if include_sinking else (metrics.STEADY,)
-        beds = [record.get("bed", {}).get("path") for _, _, record in found]
-        soils = _run_soils([path for _, path, _ in found])
-        # the runs' own beds (and their SCM wheels' soils) say what their replicas varied in
-        vary = "bed" if len(set(beds)) > 1 or soils else "order"
         return _slip_report(
-            plan, out_dir, slips, [s for s, _, _ in found], results, text, None, plot, states, vary, beds, soils
+            plan, out_dir, slips, [s for s, _, _ in found], results, texts[0], None, plot, states, vary, beds, soils
         )
+
+
+STUDY_RUN_KEYS = ("testbed.slip", "run.order_seed", "bed.seed", "bed.bed_file")
+"""The scene keys a slip study's runs differ in (besides the SCM soil over calibration beds): a table from
+runs (slip_study_from_runs) compares the rest."""
+
+
+def _run_scenes(paths: list[str]) -> tuple[list[str], list]:
+    """(texts, cosim.scene.Scene) of the runs' scene.toml; ArgumentError naming the folder that has none
+    this version reads."""
+    texts, scenes = [], []
+    for path in paths:
+        file = os.path.join(path, "scene.toml")
+        try:
+            with open(file) as f:
+                text = f.read()
+            scenes.append(scene_from_text(text, base_dir=path))
+        except (OSError, UnicodeDecodeError, SceneError) as error:
+            raise ArgumentError(f"{path}: not a slip run's folder ({file}: {error})") from None
+        texts.append(text)
+    return texts, scenes
+
+
+def _flat_scene(scene, skip_files: bool = False) -> dict:
+    """A scene's keys (dotted) and values, less STUDY_RUN_KEYS and the SCM soil's keys; skip_files: less
+    the keys that name files too (a scene given beside its runs names them from elsewhere)."""
+    from .scm_calibration import SOIL_KEYS
+
+    flat: dict = {}
+
+    def walk(value, prefix):
+        if isinstance(value, dict):
+            for key, item in value.items():
+                walk(item, f"{prefix}.{key}" if prefix else key)
+        else:
+            flat[prefix] = value
+
+    walk(scene.to_dict(), "")
+    skipped = {*STUDY_RUN_KEYS, *(f"terrain.{key}" for key in SOIL_KEYS)}
+    return {
+        k: v for k, v in flat.items() if k not in skipped and not (skip_files and k.rsplit(".", 1)[-1].endswith("file"))
+    }
+
+
+def _check_one_study(found: list, scenes: list, given) -> None:
+    """Refuse runs of other scenes, and runs counted twice (slip_study_from_runs's docstring)."""
+    paths = [path for _, path, _ in found]
+    first = _flat_scene(scenes[0])
+    for path, scene in zip(paths[1:], scenes[1:]):
+        theirs = _flat_scene(scene)
+        keys = sorted(k for k in first.keys() | theirs.keys() if first.get(k) != theirs.get(k))
+        if keys:
+            raise ArgumentError(
+                f"--from-runs: {path} ran another scene than {paths[0]} ({', '.join(keys[:6])}"
+                f"{', ...' if len(keys) > 6 else ''} differ): a slip table averages the replicas of one scene"
+            )
+    if given is not None:
+        own, theirs = _flat_scene(given, skip_files=True), _flat_scene(scenes[0], skip_files=True)
+        keys = sorted(k for k in own.keys() | theirs.keys() if own.get(k) != theirs.get(k))
+        if keys:
+            raise ArgumentError(
+                f"--from-runs: the runs ({paths[0]} ...) are not of the scene given ({', '.join(keys[:6])}"
+                f"{', ...' if len(keys) > 6 else ''} differ): give the scene the study ran"
+            )
+    seen: dict = {}
+    for (slip, path, record), scene in zip(found, scenes):
+        run_id = record.get("run_id")
+        if run_id is not None:
+            if ("id", run_id) in seen:
+                raise ArgumentError(
+                    f"--from-runs: {path} is a copy of {seen['id', run_id]} (run_id {run_id}): counted once only"
+                )
+            seen["id", run_id] = path
+        bed, seed = _bed_identity(record.get("bed", {}).get("path")), scene.run.order_seed or 0
+        replica = ("replica", slip, seed, bed, _scm_soil(scene))
+        if replica in seen:
+            raise ArgumentError(
+                f"--from-runs: {path} repeats {seen[replica]} (slip {slip:g}, run.order_seed {seed}, the same bed): "
+                "the same replica run again, not another one; run a further part with --set run.order_seed=N "
+                "past the seeds already run"
+            )
+        seen[replica] = path
+
+
+def _scm_soil(scene) -> tuple:
+    """The SCM soil keys a run's [terrain] sets (runs over calibration beds differ in them), as a tuple."""
+    from .scm_calibration import SOIL_KEYS
+
+    terrain = scene.to_dict().get("terrain", {})
+    return tuple((key, terrain.get(key)) for key in SOIL_KEYS)
+
+
+def _bed_identity(path) -> str | None:
+    """What a run's bed was settled from: its file's key (soil.bed.save_bed: the bed's keys and seed), else
+    its path (a file unread: none, or not a bed's)."""
+    from soil.bed import read_bed_header
+    from soil.errors import InputError
+
+    if not path:
+        return None
+    try:
+        return read_bed_header(path)["key"] or os.path.realpath(path)
+    except (InputError, OSError):
+        return os.path.realpath(path)
 
 
 def _check_run_record(record) -> None:
@@ -1588,6 +1720,7 @@ def _slip_report(
 
     def averaged(row) -> str:
         said = "" if row["averaged"] == row["steady"] else f" ({row['averaged']} averaged)"
+        said += " (one run: no error bar)" if row["averaged"] == 1 else ""  # its numbers stand alone
         return said + (f" ({row['failed']} failed)" if row.get("failed") else "")  # a row of another kind's: none
 
     for row in rows:
@@ -1657,7 +1790,7 @@ def parse_params(params: list[str]) -> dict[str, list]:
                 )
         else:
             entries = parse_list(values, f"--param {key.strip()}")
-        twice = [v for i, v in enumerate(entries) if any(type(v) is type(w) and v == w for w in entries[:i])]
+        twice = [v for i, v in enumerate(entries) if any(_same_value(v, w) for w in entries[:i])]
         if twice:  # the same run twice, counted as two points
             hint = (
                 f" (one list value is given as an array of it: {key.strip()}=[{values.strip()}])"
@@ -1813,6 +1946,10 @@ MAX_TRY_DURATION = 60.0
 MAX_TRIES = 40
 """Most tries of the stable-step search [-]: 1.5^40 (about 1e7) times the scene's step either way."""
 
+MIN_TRY_STEPS = 100
+"""Fewest DEM steps of the search's first try (the scene's own step): an unstable step needs steps to
+grow into an explosion; a try of one step explodes at no step, and its 'largest stable step' means nothing."""
+
 
 def timestep_study(
     plan: RunPlan,
@@ -1837,6 +1974,14 @@ def timestep_study(
             [
                 f"--duration, growth, --max-tries: need 0 < duration <= {MAX_TRY_DURATION:g} s, > 1, >= 1 "
                 f"(got {duration}, {growth}, {max_tries})"
+            ]
+        )
+    if duration < MIN_TRY_STEPS * plan.dt:
+        raise SceneError(
+            [
+                f"--duration {duration:g} s: a try of {duration / plan.dt:.3g} DEM steps of the scene's "
+                f"{plan.dt:.3g} s cannot show an instability; at least {MIN_TRY_STEPS} steps: "
+                f"--duration >= {MIN_TRY_STEPS * plan.dt:.3g} s"
             ]
         )
     # a scene whose own step explodes is searched downwards: its last try takes growth^(tries - 1) x the

@@ -12,11 +12,18 @@ Output by the suffix of `out`: .mp4 (ffmpeg: the one imageio-ffmpeg ships, else 
 .gif (Pillow), .png (one frame: the last, or `frame`), or a folder (one PNG per snapshot). It
 draws with matplotlib's Agg backend: no display and no GPU needed. Every output is whole or absent: a
 file is drawn under a temporary name and renamed, a folder of frames is drawn in FOLDER.drawing-* beside
-it and then takes its place (a view stopped midway leaves the former frames as they were).
+it and then takes its place (a view stopped midway leaves the former frames as they were). Without
+`overwrite`, an output that appeared while the view drew (another process's) is kept, and the view is
+written beside it, as OUT-STEM.new.SUFFIX or OUT.new (FileExistsError naming both, as `cosim export`).
+
+An `out` that is a symbolic link to a file is written through (the file replaced, the link kept) only
+when that file's name ends in the picture's suffix and it is not the run's results.h5 or checkpoint; a
+link to any other file (view.png -> results.h5) is refused before anything is drawn.
 """
 
 from __future__ import annotations
 
+import errno
 import logging
 import os
 import re
@@ -27,9 +34,9 @@ from contextlib import contextmanager
 import numpy as np
 
 from soil.errors import ArgumentError, DamagedFileError, InputError
-from soil.files import atomic_path, make_folders, remove_empty_folders
+from soil.files import atomic_path, make_folders, output_target, remove_empty_folders
 
-from .folders import PLOTS_DIR, RESULTS_FILE
+from .folders import CHECKPOINT_FILE, PLOTS_DIR, RESULTS_FILE
 from .output import check_results, open_results
 from .plots import save_figure
 from .single_wheel import PHASE_DRIVING
@@ -256,8 +263,9 @@ FPS_RANGE = (1, 120)
 """Movie frames per second a view takes [1/s]: players handle these."""
 DPI_RANGE = (10, 600)
 """Pixels per inch of a 10 inch wide frame [-]: up to 6000 pixels wide (a frame of about 0.3 GB in memory)."""
-FRAME_NAME = re.compile(r"frame_\d{4,}\.png|tmp\w+\.png")
-"""The name of one PNG of a folder of frames (or of one a killed view left half-written: soil.files.atomic_path)."""
+FRAME_NAME = re.compile(r"frame_\d{4,}\.png|tmp\w+\.png|\.frame_\d{4,}\.png\.[\w-]+-\d+\.[a-z0-9_]{8}\.png")
+"""The name of one PNG of a folder of frames (or of one a killed view left half-written: soil.files.atomic_path's
+.frame_NNNN.png.HOST-PID.XXXXXXXX.png, or tmpXXXXXXXX.png of an older version)."""
 
 
 def render(
@@ -270,8 +278,10 @@ def render(
     overwrite: bool = False,
 ) -> str:
     """Write the picture of a run (module docstring); returns the path written. An `out` that exists is
-    replaced only with `overwrite` (the run's own default picture is made again); a file is written whole
-    or not at all (under a temporary name, then renamed)."""
+    replaced only with `overwrite` (the run's own default picture is made again), also one that appeared
+    while the view drew (kept; the view written beside it: FileExistsError naming both); a file is written
+    whole or not at all (under a temporary name, then renamed); a link to the run's results.h5 or to a
+    file of another suffix is refused (ViewError)."""
     if colour not in COLOURS:
         raise ViewError(f"--color {colour!r}: choose one of {', '.join(COLOURS)}")
     for option, value, (low, high) in (("--fps", fps, FPS_RANGE), ("--dpi", dpi, DPI_RANGE)):
@@ -283,7 +293,9 @@ def render(
     kind = _output_kind(out)
     if frame is not None and kind != ".png":  # a movie or a folder of frames draws every snapshot
         raise ViewError(f"--frame {frame}: picks the snapshot of a .png picture; --out {out!r} draws every one")
-    _free_output(out, kind, overwrite or os.path.abspath(out) == own)
+    replace = overwrite or os.path.abspath(out) == own
+    inputs = (path, os.path.join(os.path.dirname(os.path.abspath(path)), CHECKPOINT_FILE))
+    _free_output(out, kind, replace, inputs)
     # damage named before anything is drawn; every output is written whole at the end, so the grains'
     # datasets are left to read_snapshot (everything else is read through)
     check_results(path, data=False)
@@ -314,16 +326,16 @@ def render(
                     s = read_snapshot(f, k)
                     values = scene.values(s, displacements)
                 view.draw(s, values)
-                save_figure(fig, out, dpi)
+                save_figure(fig, out, dpi, replace=replace)
             elif kind == "frames":  # a shorter run's view keeps none of a longer one's last frames
-                with _whole_folder(out) as drawing:
+                with _whole_folder(out, replace) as drawing:
                     for k in range(count):
                         s = read_snapshot(f, k)
                         view.draw(s, scene.values(s, displacements))
                         save_figure(fig, os.path.join(drawing, f"frame_{k:04d}.png"), dpi)
             else:
                 assert writer is not None  # a movie's kind
-                with atomic_path(out, suffix=kind) as partial, writer.saving(fig, partial, dpi):
+                with atomic_path(out, suffix=kind, replace=replace) as partial, writer.saving(fig, partial, dpi):
                     for k in range(count):
                         s = read_snapshot(f, k)
                         view.draw(s, scene.values(s, displacements))
@@ -334,12 +346,16 @@ def render(
 
 
 @contextmanager
-def _whole_folder(out: str):
+def _whole_folder(out: str, replace: bool = True):
     """Yield a new folder beside `out` (OUT.drawing-*) to draw a set of frames into; on success it takes
     `out`'s place (the former folder moved aside first, then its frames removed), on any error it is
     removed and `out` is left as it was (a view killed midway leaves the former set whole, and at most its
     OUT.drawing-* folder beside it; killed in the instant between the two renames, the former set is
-    whole in OUT.former-*). `out` a link to a folder: that folder is replaced, the link stays."""
+    whole in OUT.former-*). `out` a link to a folder: that folder is replaced, the link stays.
+
+    replace False: `out` must still be absent or an empty folder when the frames are done; a file or a
+    folder of files that appeared there meanwhile (another process's) is left as it is and the frames are
+    kept beside it as OUT.new (OUT.new-2, ...): FileExistsError naming both."""
     target = os.path.realpath(out)
     parent, name = os.path.split(target)
     made = make_folders(parent)
@@ -355,6 +371,9 @@ def _whole_folder(out: str):
         os.umask(mask)
         os.chmod(drawing, 0o777 & ~mask)  # a normally made folder's permissions (mkdtemp's 0700 would hide it)
         yield drawing
+        if not replace:  # onto nothing or an empty folder only: the rename refuses anything else
+            _place_new_folder(drawing, target, out)
+            return
         if os.path.lexists(target):  # moved aside, not removed first: no moment without a whole set
             former = tempfile.mkdtemp(prefix=f"{name}.former-", dir=parent)
             os.rename(target, former)  # onto an empty folder: allowed
@@ -378,13 +397,54 @@ def _whole_folder(out: str):
             log.warning("%s: files put there while the view drew were kept in %s", out, former)
 
 
-def _free_output(out: str, kind: str, replace: bool) -> None:
+FOLDER_TAKEN = {errno.ENOTEMPTY, errno.EEXIST, errno.ENOTDIR, errno.EISDIR}
+"""The errors of os.rename(folder, name) where a file or a folder of files is at name."""
+
+
+def _place_new_folder(drawing: str, target: str, out: str) -> None:
+    """Rename the finished folder `drawing` to `target` where that is absent or an empty folder (os.rename
+    refuses anything else, atomically); else to TARGET-STEM.new[-k]SUFFIX beside it, and raise
+    FileExistsError naming `out` and that folder (soil.files.place_new's rule for files)."""
+    try:
+        os.rename(drawing, target)
+        return
+    except OSError as error:
+        if error.errno not in FOLDER_TAKEN:
+            raise
+    stem, extension = os.path.splitext(target)
+    for k in range(1, 10**6):
+        kept = f"{stem}.new{'' if k == 1 else f'-{k}'}{extension}"
+        if os.path.lexists(kept):
+            continue
+        try:
+            os.rename(drawing, kept)
+        except OSError as error:  # taken meanwhile
+            if error.errno in FOLDER_TAKEN:
+                continue
+            raise
+        raise FileExistsError(
+            errno.EEXIST,
+            f"appeared while the frames were drawn (another process wrote it) and was left as it is; the frames "
+            f"are in {kept}",
+            out,
+        )
+    raise FileExistsError(errno.EEXIST, f"appeared while the frames were drawn; they are in {drawing}", out)
+
+
+def _free_output(out: str, kind: str, replace: bool, inputs=()) -> None:
     """Refuse an `out` that view must not write (before anything is drawn): a folder where a file goes, a
-    file where a folder of frames goes, a folder that holds other files than frames, and without `replace`
-    one that exists (OutputExistsError)."""
+    file where a folder of frames goes (also written `picture.png/`), a folder that holds other files than
+    frames, a link that leads to one of `inputs` (the run's results.h5 and checkpoint) or to a file whose
+    name does not end in the picture's suffix (soil.files.output_target: such a link is never written
+    through), and without `replace` one that exists (OutputExistsError)."""
     from .folders import OutputExistsError
 
-    if not os.path.lexists(out):
+    if kind != "frames":
+        try:
+            output_target(out, (kind,), inputs)
+        except ArgumentError as error:
+            raise ViewError(str(error)) from None
+    if not os.path.lexists(out.rstrip(os.sep) or out):  # lexists('picture.png/') is False for a file
         return
     if kind != "frames":
         if os.path.isdir(out):

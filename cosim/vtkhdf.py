@@ -25,14 +25,17 @@ from typing import Any
 import numpy as np
 
 from soil.errors import ArgumentError
-from soil.files import atomic_path
+from soil.files import atomic_path, output_target
 
-from .folders import RESULTS_FILE, VTKHDF_FILE
+from .folders import CHECKPOINT_FILE, RESULTS_FILE, VTKHDF_FILE
 from .output import check_results, open_results
 from .snapshots import ARRAY_NAMES, Displacements, read_snapshot, read_whole, snapshot_count
 
 VTKHDF_VERSION = (2, 2)
 """The VTKHDF version written (2.1 added composite data, 2.2 made temporal blocks official)."""
+
+VTKHDF_SUFFIXES = (".vtkhdf", ".hdf")
+"""The names an export is written to: a file of another name (a run's results.h5, a checkpoint) never is."""
 
 TOPOLOGIES = ("Vertices", "Lines", "Polygons", "Strips")
 """A PolyData block's four cell arrays, in the order of the Steps offsets."""
@@ -207,11 +210,18 @@ def write_vtkhdf(results_path, vtkhdf_path=None, replace: bool = True) -> str:
 
     Written to a temporary file and renamed: a reader never sees half a file, and a failed export
     leaves the previous one. replace False: a file at `vtkhdf_path` (one that appeared while the export
-    ran) is kept, the export written beside it (FileExistsError naming both: soil.files.place_new)."""
+    ran) is kept, the export written beside it (FileExistsError naming both: soil.files.place_new).
+
+    `vtkhdf_path` a symbolic link is written through (its target replaced, the link kept) only when the
+    target's name ends in .vtkhdf or .hdf and it is not the results file or the run's checkpoint: any
+    other (a results.vtkhdf that links to results.h5) is refused, ArgumentError naming both, before
+    anything is written (soil.files.output_target)."""
     results_path = os.fspath(results_path)
     if os.path.isdir(results_path):
         results_path = os.path.join(results_path, RESULTS_FILE)
     target = os.fspath(vtkhdf_path) if vtkhdf_path else os.path.join(os.path.dirname(results_path), VTKHDF_FILE)
+    checkpoint = os.path.join(os.path.dirname(os.path.abspath(results_path)), CHECKPOINT_FILE)
+    output_target(target, VTKHDF_SUFFIXES, (results_path, checkpoint), what="the export")
     # a damaged header, series, mesh or wall named (DamagedFileError), not h5py's KeyError or OSError
     check_results(results_path, data=False)
     with open_results(results_path) as f:

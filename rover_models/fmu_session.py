@@ -8,6 +8,7 @@ cosim.fmu_controller build on FmuSession.
 
 from __future__ import annotations
 
+import contextlib
 import os
 import shutil
 import signal
@@ -39,7 +40,28 @@ class FmuVariableError(InputError, KeyError):
 
 
 class FmuStepError(RegolithError, RuntimeError):
-    """The FMU refused a step and it could not be retried."""
+    """The FMU refused a step and it could not be retried, or a call to it failed (fmi*Error or
+    fmi*Fatal: the FMU's own failure, named with its file, not a bug of the project's)."""
+
+
+@contextlib.contextmanager
+def fmu_call(path: str, what: str):
+    """Turn fmpy's FMICallException of the calls inside into an FmuStepError naming the FMU's file and
+    `what` was asked of it (fmpy's message names the FMI function and the status it returned)."""
+    try:
+        yield
+    except FMICallException as error:
+        raise FmuStepError(f"{path}: {what}: {error}") from error
+
+
+def _guarded(path: str, what: str, function):
+    """`function` (an fmpy setter or getter) with its FMI failures named (fmu_call)."""
+
+    def call(*args, **kwargs):
+        with fmu_call(path, what):
+            return function(*args, **kwargs)
+
+    return call
 
 
 def read_cosim_description(path: str | os.PathLike):
@@ -179,13 +201,25 @@ def _instantiate(path: str | os.PathLike, md, instance_name: str, start_time: fl
             fmu.instantiate()
             fmu.setupExperiment(startTime=start_time)
             fmu.enterInitializationMode()
-            return fmu, unzipdir, fmu.setReal, fmu.getReal
+            where = os.fspath(path)
+            return (
+                fmu,
+                unzipdir,
+                _guarded(where, "setting Reals", fmu.setReal),
+                _guarded(where, "reading Reals", fmu.getReal),
+            )
         from fmpy.fmi3 import FMU3Slave
 
         fmu = FMU3Slave(**kwargs)
         fmu.instantiate()
         fmu.enterInitializationMode(startTime=start_time)
-        return fmu, unzipdir, fmu.setFloat64, fmu.getFloat64
+        where = os.fspath(path)
+        return (
+            fmu,
+            unzipdir,
+            _guarded(where, "setting Float64s", fmu.setFloat64),
+            _guarded(where, "reading Float64s", fmu.getFloat64),
+        )
     except Exception as error:
         os.chdir(cwd)  # never stay in the folder that is removed next
         shutil.rmtree(unzipdir, ignore_errors=True)
@@ -238,7 +272,8 @@ class FmuSession:
     def _ready(self) -> None:
         """Leave initialization mode on first use (parameters can be set until then)."""
         if self._initializing:
-            self.fmu.exitInitializationMode()
+            with fmu_call(self.path, "leaving initialization mode"):
+                self.fmu.exitInitializationMode()
             self._initializing = False
 
     def _step(self, t: float, h: float, depth: int) -> None:
@@ -246,8 +281,8 @@ class FmuSession:
             result = self.fmu.doStep(currentCommunicationPoint=t, communicationStepSize=h)
         except FMICallException as err:
             retryable = err.status == _DISCARD or (self.retry_on_error and err.status == _ERROR)
-            if not retryable:
-                raise
+            if not retryable:  # Error (not retried) or Fatal: the FMU failed; a smaller step would not help
+                raise FmuStepError(f"{self.path}: at t={t:g} s (H={h:g} s): {err}") from err
             if not self.can_vary_step:
                 raise FmuStepError(
                     f"{self.path}: doStep(t={t:g} s, H={h:g} s) refused (status {err.status}) and the FMU "
@@ -282,11 +317,12 @@ class FmuSession:
                 "and canSerializeFMUstate), so a run with it cannot be continued from a checkpoint"
             )
         self._ready()
-        state = self.fmu.getFMUState()
-        try:
-            return np.frombuffer(self.fmu.serializeFMUState(state), dtype=np.uint8).copy()
-        finally:
-            self.fmu.freeFMUState(state)
+        with fmu_call(self.path, "saving its state"):
+            state = self.fmu.getFMUState()
+            try:
+                return np.frombuffer(self.fmu.serializeFMUState(state), dtype=np.uint8).copy()
+            finally:
+                self.fmu.freeFMUState(state)
 
     def load_state(self, data: np.ndarray) -> None:
         """Put a state from `save_state` back into the (instantiated) FMU."""
@@ -296,11 +332,12 @@ class FmuSession:
                 "canGetAndSetFMUstate and canSerializeFMUstate): this run cannot be resumed"
             )
         self._ready()
-        state = self.fmu.deserializeFMUState(np.asarray(data, dtype=np.uint8).tobytes())
-        try:
-            self.fmu.setFMUState(state)
-        finally:
-            self.fmu.freeFMUState(state)
+        with fmu_call(self.path, "restoring a saved state"):
+            state = self.fmu.deserializeFMUState(np.asarray(data, dtype=np.uint8).tobytes())
+            try:
+                self.fmu.setFMUState(state)
+            finally:
+                self.fmu.freeFMUState(state)
 
     def close(self) -> None:
         """Terminate and free the FMU instance, remove the unpacked files."""

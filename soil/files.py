@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import errno
 import os
+import re
+import socket
 import tempfile
 from contextlib import contextmanager
 
@@ -25,7 +27,12 @@ def atomic_path(path, suffix: str = ".tmp", replace: bool = True):
 
     The file gets the permissions of a normally created one (mkstemp's 0600 would hide it).
     `path` a symbolic link: the file it points to is written (beside that file) and the link stays, as
-    open(path, "w") does (replacing the link left its file stale and the link gone).
+    open(path, "w") does (replacing the link left its file stale and the link gone). A caller that writes
+    a file of one kind (an export, a picture) checks first what that file is: output_target.
+
+    The temporary is .NAME.HOST-PID.XXXXXXXX`suffix` beside the file NAME (temporary_pattern): a write
+    killed with SIGKILL, which no handler sees, leaves it; the next write to NAME removes those that a
+    process of this host that has ended made (remove_stale_temporaries).
     """
 
     path = os.fspath(path)
@@ -38,9 +45,11 @@ def atomic_path(path, suffix: str = ".tmp", replace: bool = True):
     try:
         folder = os.path.dirname(os.path.abspath(written))
         created = make_folders(folder)
+        name = os.path.basename(written)
+        remove_stale_temporaries(folder, name, suffix)
         for attempt in range(2):
             try:
-                handle, temporary = tempfile.mkstemp(suffix=suffix, dir=folder)
+                handle, temporary = tempfile.mkstemp(suffix=suffix, prefix=_temporary_prefix(name), dir=folder)
                 break
             except FileNotFoundError as error:  # another process's failed write removed the folder it made
                 if attempt:
@@ -70,6 +79,103 @@ def atomic_path(path, suffix: str = ".tmp", replace: bool = True):
         if isinstance(error, OSError) and (not error.filename or error.filename == temporary):
             raise with_path(error, path, replace=temporary) from error  # a full disk while writing: name the file
         raise
+
+
+def _host() -> str:
+    """This machine's name as a temporary's name holds it (letters, digits, '_' and '-'; at most 32)."""
+    return re.sub(r"[^\w-]", "_", socket.gethostname() or "host")[:32]
+
+
+def _temporary_prefix(name: str) -> str:
+    """.NAME.HOST-PID. (NAME cut to 100 characters: the whole name stays within a file system's 255)."""
+    return f".{name[:100]}.{_host()}-{os.getpid()}."
+
+
+def temporary_pattern(name: str, suffix: str) -> re.Pattern:
+    """The names atomic_path gives the temporaries of the file NAME (written with `suffix`): the host and
+    the process that made one are its groups 'host' and 'pid'."""
+    return re.compile(rf"\.{re.escape(name[:100])}\.(?P<host>[\w-]+)-(?P<pid>\d+)\.[a-z0-9_]{{8}}{re.escape(suffix)}")
+
+
+def remove_stale_temporaries(folder: str, name: str, suffix: str) -> list[str]:
+    """Remove the temporaries of the file NAME in `folder` (temporary_pattern) that a process of this host
+    that no longer runs made (killed midway: SIGKILL, a power cut); returns those removed. A temporary of a
+    process that still runs, of another host (a shared file system: its process cannot be seen from here)
+    or of a process id this host gave again since, is left: removed is only what no live writer holds."""
+    pattern = temporary_pattern(name, suffix)
+    try:
+        entries = os.listdir(folder)
+    except OSError:
+        return []
+    host, removed = _host(), []
+    for entry in entries:
+        match = pattern.fullmatch(entry)
+        if match is None or match["host"] != host or _running(int(match["pid"])):
+            continue
+        try:
+            os.remove(os.path.join(folder, entry))
+        except OSError:  # removed meanwhile by another write, or not ours to remove after all
+            continue
+        removed.append(entry)
+    return removed
+
+
+def _running(pid: int) -> bool:
+    """Whether a process `pid` runs on this host (one of another user's too; pid 0 or ours: True)."""
+    if pid <= 0 or pid == os.getpid():
+        return True
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except OSError:  # PermissionError: it runs, as another user
+        return True
+    return True
+
+
+def output_target(path, suffixes: tuple[str, ...], inputs=(), what: str = "--out") -> str:
+    """The file a write of `path` makes (atomic_path: the file a symbolic link names, the link kept), after
+    refusing, before anything is written, a `path` that would replace what is not the writer's own to
+    replace (ArgumentError naming `path`, the file it reaches and what is allowed):
+
+    - one that reaches one of `inputs` (the files of the run being read: its results.h5, its checkpoint), also
+      through a link, a hard link or a folder that is a link;
+    - one whose file, the link's target for a link, does not end in one of `suffixes` (lower case): a link
+      named view.png that names results.h5 is refused, not written through.
+
+    A link whose target ends in an allowed suffix is written through (its target replaced, the link kept);
+    a link to a folder is left to the caller (a folder of frames)."""
+    from .errors import ArgumentError
+
+    path = os.fspath(path)
+    target = os.path.realpath(path)
+    for given in inputs:
+        if given is None:
+            continue
+        given = os.fspath(given)
+        same = target == os.path.realpath(given)
+        if not same and os.path.exists(target) and os.path.exists(given):
+            try:
+                same = os.path.samefile(target, given)
+            except OSError:
+                same = False
+        if same:
+            direct = target == os.path.abspath(path)
+            reached = "is" if direct else f"leads to {target}, which is"
+            raise ArgumentError(
+                f"{what} {path!r} {reached} a file of the run it reads ({given}): it is never written; "
+                f"{'' if direct else 'remove the link or '}name another {' or '.join(suffixes)} file"
+            )
+    if os.path.isdir(target):
+        return target
+    if not target.lower().endswith(tuple(s.lower() for s in suffixes)):
+        if os.path.basename(target) == os.path.basename(os.path.abspath(path)):
+            raise ArgumentError(f"{what} {path!r}: the file must end in {' or '.join(suffixes)}")
+        raise ArgumentError(
+            f"{what} {path!r} is a link to {target}, which is not a {' or '.join(suffixes)} file: it is not "
+            "written through; name a new file, or remove the link"
+        )
+    return target
 
 
 NO_HARD_LINKS = {errno.EPERM, errno.EOPNOTSUPP, errno.ENOTSUP, errno.ENOSYS, errno.EXDEV, errno.EMLINK}

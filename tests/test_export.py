@@ -529,3 +529,196 @@ def test_atomic_path_removes_only_the_folders_it_made(tmp_path):
     with atomic_path(target) as temporary:
         Path(temporary).write_text("whole")
     assert target.read_text() == "whole" and os.listdir(target.parent) == ["file.txt"]
+
+
+def test_an_export_or_a_view_never_writes_through_a_link_to_the_run_or_to_a_file_not_its_own(tmp_path, capsys):
+    """A symbolic link at the export's or the view's output was written through: RUN/results.vtkhdf linked to
+    results.h5 (or a --out link to it, to the checkpoint, or to any file) turned the run's results.h5 into the
+    export or a PNG. Such an output is refused before anything is written (exit 2, naming the link and what
+    is allowed), every file left byte for byte; a link to a file of the export's own suffix is written through,
+    the link kept."""
+    import h5py
+
+    run = tmp_path / "run"
+    made_up_results(run, 60, 2)
+    (run / "checkpoint.npz").write_bytes(b"the run's checkpoint")
+    (tmp_path / "notes.txt").write_text("a user's file")
+    (run / "plots").mkdir()
+
+    def regular() -> dict:  # the files, not the links
+        return {path: path.read_bytes() for path in tmp_path.rglob("*") if path.is_file() and not path.is_symlink()}
+
+    before = regular()
+
+    def link(name, target):
+        path = tmp_path / name if os.sep not in name else run / name.split(os.sep, 1)[1]
+        path.symlink_to(target)
+        return str(path)
+
+    own = link(f"run{os.sep}results.vtkhdf", "results.h5")  # the run's own export, made at the end of a run
+    export, view = ["export", "vtkhdf", str(run), "--overwrite", "--out"], ["view", str(run), "--dpi", "20"]
+    cases = [
+        (export[:3], own, "a file of the run it reads"),
+        ([*export, own], own, "a file of the run it reads"),
+        ([*export, link("a.vtkhdf", run / "results.h5")], "a.vtkhdf", "a file of the run it reads"),
+        ([*export, link("c.vtkhdf", run / "checkpoint.npz")], "c.vtkhdf", "a file of the run it reads"),
+        ([*export, link("n.hdf", tmp_path / "notes.txt")], "n.hdf", "not a .vtkhdf or .hdf file"),
+        ([*view, "--overwrite", "--out", link("p.png", run / "results.h5")], "p.png", "a file of the run it reads"),
+        ([*view, "--overwrite", "--out", link("m.gif", tmp_path / "notes.txt")], "m.gif", "not a .gif file"),
+    ]
+    for name in ("view.mp4", "view.gif"):  # the run's own picture, whichever view makes here
+        link(f"run{os.sep}plots{os.sep}{name}", os.path.join("..", "results.h5"))
+    cases.append((view, "view.", "a file of the run it reads"))
+    link(f"run{os.sep}plots{os.sep}travel_sinkage.png", os.path.join("..", "results.h5"))
+    cases.append((["plot", str(run)], "travel_sinkage.png", "not a .png file"))
+    for argv, named, allowed in cases:
+        assert main(argv) == 2, argv
+        error = capsys.readouterr().err.strip()
+        assert named in error and allowed in error and "\n" not in error, (argv, error)
+        assert regular() == before, argv  # results.h5, the checkpoint and the user's file untouched
+    assert (run / "results.vtkhdf").is_symlink() and (tmp_path / "a.vtkhdf").is_symlink()
+    # a link to an export is written through: its file replaced, the link kept
+    (tmp_path / "store").mkdir()
+    (tmp_path / "store" / "old.vtkhdf").write_bytes(b"an older export")
+    good = link("good.vtkhdf", os.path.join("store", "old.vtkhdf"))
+    assert main(["export", "vtkhdf", str(run), "--out", good, "--overwrite"]) == 0
+    assert os.path.islink(good) and os.readlink(good) == os.path.join("store", "old.vtkhdf")
+    with h5py.File(tmp_path / "store" / "old.vtkhdf", "r") as f:
+        assert "VTKHDF" in f
+
+
+@pytest.mark.parametrize("kind", ["picture.png", "movie.gif", "frames"])
+def test_view_keeps_an_output_that_appeared_while_it_drew(tmp_path, monkeypatch, capsys, kind):
+    """`cosim view RUN --out OUT` without --overwrite looked that OUT was free, then replaced what appeared
+    there while it drew. Now, as `cosim export`, what appeared is kept and the view is written beside it
+    (OUT-STEM.new.SUFFIX, a folder OUT.new), both named, exit 5; with --overwrite it is replaced."""
+    from cosim import view
+
+    run, out = tmp_path / "run", tmp_path / kind
+    made_up_results(run, 60, 2)
+    draw = view._Frame.draw
+
+    def another_process_writes_first(frame, s, values):
+        if not os.path.lexists(out):
+            if kind == "frames":
+                out.mkdir()
+                (out / "notes.txt").write_text("another process's")
+            else:
+                out.write_bytes(b"another process's")
+        draw(frame, s, values)
+
+    monkeypatch.setattr(view._Frame, "draw", another_process_writes_first)
+    assert main(["view", str(run), "--out", str(out), "--dpi", "20"]) == 5
+    error = capsys.readouterr().err
+    stem, suffix = os.path.splitext(kind)
+    kept = tmp_path / f"{stem}.new{suffix}"
+    assert str(out) in error and str(kept) in error, error
+    if kind == "frames":
+        assert os.listdir(out) == ["notes.txt"] and (out / "notes.txt").read_text() == "another process's"
+        assert sorted(os.listdir(kept)) == ["frame_0000.png", "frame_0001.png"]
+    else:
+        assert out.read_bytes() == b"another process's" and kept.stat().st_size > 100
+    assert sorted(os.listdir(tmp_path)) == sorted(["run", kind, kept.name])  # nothing else left
+    if kind != "frames":
+        assert main(["view", str(run), "--out", str(out), "--dpi", "20", "--overwrite"]) == 0
+        assert out.read_bytes() != b"another process's"
+
+
+def test_view_refuses_a_file_written_as_a_folder_before_it_draws(tmp_path, monkeypatch, capsys):
+    """`--out picture.png/` where picture.png is a file drew every frame and then failed ("Not a directory"):
+    it is refused at once, with the message a file given for a folder of frames gets."""
+    from cosim import view
+
+    run, picture = tmp_path / "run", tmp_path / "picture.png"
+    made_up_results(run, 60, 2)
+    picture.write_bytes(b"a picture")
+
+    def never(*args):
+        raise AssertionError("drawn before the output was checked")
+
+    monkeypatch.setattr(view._Frame, "draw", never)
+    for overwrite in ([], ["--overwrite"]):
+        assert main(["view", str(run), "--out", f"{picture}{os.sep}", "--dpi", "20", *overwrite]) == 2
+        error = capsys.readouterr().err.strip()
+        assert "picture.png" in error and "is a file; frames go into a folder" in error, error
+        assert picture.read_bytes() == b"a picture" and sorted(os.listdir(tmp_path)) == ["picture.png", "run"]
+
+
+def test_a_killed_write_leaves_a_temporary_of_its_own_name_that_the_next_write_removes(tmp_path):
+    """A write killed with SIGKILL (no handler runs) left `tmpXXXX.vtkhdf.tmp` beside the export, for good.
+    Its temporary is now named after the file, the host and the process (.NAME.HOST-PID.XXXXXXXX.SUFFIX),
+    and the next write to NAME removes those of ended processes of this host; the temporary of a process
+    that still runs, of another host or of another file, and any other file, are left."""
+    import signal
+    import subprocess
+    import sys
+
+    from soil.files import atomic_path, temporary_pattern
+
+    target = tmp_path / "x.vtkhdf"
+    killed = subprocess.Popen(
+        [
+            sys.executable,
+            "-c",
+            "import os, signal, sys\n"
+            "from soil.files import atomic_path\n"
+            "with atomic_path(sys.argv[1], '.vtkhdf.tmp') as temporary:\n"
+            "    open(temporary, 'w').write('half an export')\n"
+            "    os.kill(os.getpid(), signal.SIGKILL)\n",
+            str(target),
+        ],
+        cwd=os.path.dirname(os.path.dirname(os.path.abspath(__file__))),
+    )
+    assert killed.wait() == -signal.SIGKILL
+    (stale,) = os.listdir(tmp_path)
+    pattern = temporary_pattern("x.vtkhdf", ".vtkhdf.tmp")
+    match = pattern.fullmatch(stale)
+    assert stale.startswith(".x.vtkhdf.") and match and match["pid"] == str(killed.pid), stale
+    host, dead = match["host"], killed.pid
+    kept = [
+        f".x.vtkhdf.{host}-{os.getpid()}.abcdefgh.vtkhdf.tmp",  # a process that runs: this one
+        f".x.vtkhdf.{host}x-{dead}.abcdefgh.vtkhdf.tmp",  # another host's
+        f".y.vtkhdf.{host}-{dead}.abcdefgh.vtkhdf.tmp",  # another file's
+        "tmpabcdefgh.vtkhdf.tmp",  # not recognisably ours
+    ]
+    for name in kept:
+        (tmp_path / name).write_text("someone's")
+    with atomic_path(target, ".vtkhdf.tmp") as temporary:
+        open(temporary, "w").write("whole")
+    assert target.read_text() == "whole"
+    assert sorted(os.listdir(tmp_path)) == sorted(["x.vtkhdf", *kept])
+
+
+def test_plot_of_an_hdf5_file_that_is_not_a_results_file_says_so(tmp_path, capsys):
+    """`cosim plot` of an HDF5 results.h5 that another program wrote said "the results file is damaged
+    (... object 'wheels' doesn't exist)"; it says what `cosim view` and `cosim export` say."""
+    import h5py
+
+    folder = tmp_path / "other"
+    folder.mkdir()
+    with h5py.File(folder / "results.h5", "w") as f:
+        f["x"] = np.arange(3)
+    before = _files(tmp_path)
+    for command in (["plot"], ["view"], ["export", "vtkhdf"]):
+        assert main([*command, str(folder)]) == 2, command
+        error = capsys.readouterr().err
+        assert f"{folder / 'results.h5'}: not a regolith-cosim results file (format None" in error, (command, error)
+    assert _files(tmp_path) == before
+
+
+def test_ctrl_c_while_a_command_starts_exits_130_without_a_traceback(tmp_path, monkeypatch, capsys):
+    """Ctrl-C while `cosim` loaded its modules (before its handlers were in place) printed a traceback."""
+    import sys
+    import types
+
+    class Loading(types.ModuleType):
+        def __getattr__(self, name):
+            raise KeyboardInterrupt
+
+    monkeypatch.setitem(sys.modules, "cosim.lab.common", Loading("cosim.lab.common"))
+    try:
+        code = main(["plot", str(tmp_path)])
+    except KeyboardInterrupt:
+        code = "a KeyboardInterrupt traceback"
+    assert code == 130
+    assert "cosim: interrupted" in capsys.readouterr().err

@@ -283,3 +283,35 @@ def test_every_step_kernel_launches_at_its_modules_block_size(monkeypatch):
     assert any(key.endswith("grain_contacts") for key, *_ in launched) and contact, launched
     wrong = [(key, block, option) for key, _, block, option in launched if block != option]
     assert not wrong, wrong
+
+
+def test_a_stop_ends_the_suite_with_the_sections_so_far_written(tmp_path, monkeypatch):
+    """Ctrl-C or SIGTERM in a section (a run's RunInterrupted, or a stop its batch received) ends the
+    suite with exit 130: the sections before it and the stopped one are in results.json, none after it
+    runs (a lent machine's time is not spent on sections nobody waits for)."""
+    from cosim.runner import RunInterrupted
+
+    ran = []
+
+    def fine(self):
+        ran.append("throughput")
+        return {"ok": True}
+
+    def stopped(self):
+        ran.append("profile")
+        raise RunInterrupted("SIGTERM: stopped after its checkpoint", "SIGTERM")
+
+    def never(self):
+        ran.append("repeat")
+        return {"ok": True}
+
+    monkeypatch.setattr(gpu_suite.Suite, "throughput", fine)
+    monkeypatch.setattr(gpu_suite.Suite, "profile", stopped)
+    monkeypatch.setattr(gpu_suite.Suite, "repeat", never)
+    argv = ["--small", "--device", "cpu", "--out", str(tmp_path), "--sections", "throughput", "profile", "repeat"]
+    assert gpu_suite.main(argv) == 130
+    assert ran == ["throughput", "profile"]
+    sections = json.loads((tmp_path / "results.json").read_text())["sections"]
+    assert list(sections) == ["throughput", "profile"]
+    assert sections["throughput"]["ok"] and not sections["profile"]["ok"]
+    assert "SIGTERM" in sections["profile"]["error"]

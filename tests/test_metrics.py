@@ -316,6 +316,29 @@ def test_a_rover_in_reverse_or_turning_in_place_is_not_stuck():
     assert not turning["stuck"] and math.isnan(turning["slip"]), turning
 
 
+def test_a_parked_rover_has_no_slip_only_a_driven_one_has():
+    """A rover parked on its speed servos (speed commands 0) whose hinges jitter about their axles (1 Hz,
+    0.02 rad/s, with a small mean left over from the jitter's noise) while its body creeps 1 mm/s: it
+    reported slips of noise (the probe's MMX rover: rover -6.37, wheels 2.58 to -14.1), as 1 - v / (omega r)
+    divides by the jitter's mean. Slip is undefined there: nan for the rover and each wheel. Unheld
+    wheels (a zero-torque drive) that only jitter: nan too (a mean spin within two standard errors of 0).
+    One wheel held and three driving: that wheel's slip nan, the others' and the rover's measured."""
+    rng = np.random.default_rng(3)
+    jitter = 0.02 * np.sin(2.0 * np.pi * 0.05 * np.arange(440))[:, None] + 1e-4 * rng.standard_normal((440, 4))
+    jittering = _rover_summary(*_rover([0.001, 0.0, 0.0], jitter))  # speeds asked as they came: not held
+    assert math.isnan(jittering["slip"]) and all(math.isnan(v) for v in jittering["wheel_slip"]), jittering
+    series, radii = _rover([0.001, 0.0, 0.0], jitter)
+    series["speed_command"][:] = 0.0  # held at 0: the jitter was the servo's
+    held = _rover_summary(series, radii)
+    assert math.isnan(held["slip"]) and all(math.isnan(v) for v in held["wheel_slip"]), held
+    unheld = _rover_summary(*_rover([0.001, 0.0, 0.0], jitter, torque=0.0))
+    assert math.isnan(unheld["slip"]) and all(math.isnan(v) for v in unheld["wheel_slip"]), unheld
+    series, radii = _rover([0.045, 0.0, 0.0], [0.0, 0.5, 0.5, 0.5])
+    one_held = _rover_summary(series, radii)  # rims 0.05 m/s on three wheels, the mean 0.0375: slip 0.4 of it
+    assert math.isnan(one_held["wheel_slip"][0]) and one_held["wheel_slip"][1:] == pytest.approx([0.1] * 3)
+    assert one_held["slip"] == pytest.approx(1.0 - 0.045 / 0.0375)
+
+
 def test_a_rover_that_stopped_is_stuck_whatever_its_wheels_do_after():
     """The body stops after 5 s of drive while the wheels keep turning (stuck), or slow to 0.02 rad/s: the
     last radian of wheel turn then reached back 15 s to when it moved, and the rover was 'steady' at a slip

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+import re
 import shutil
 import zipfile
 
@@ -16,6 +17,7 @@ from cosim.contract import RoverSide, WheelWrench  # noqa: E402
 from cosim.controllers import ConstantSpeed  # noqa: E402
 from cosim.coupler import Coupler, stack_records  # noqa: E402
 from cosim.terrain import SpringDamperTerrain  # noqa: E402
+from rover_models import fmu_session  # noqa: E402
 from rover_models.fmu_rover import FmuRover, FmuStepError, FmuVariableError  # noqa: E402
 from rover_models.fmu_src.build_fmus import build_rig_fmu2, build_rig_fmu3  # noqa: E402
 
@@ -114,6 +116,49 @@ def test_discarded_step_is_retried_in_halves(fmus, version):
         stubborn.advance(4e-3)
     for rover in (retried, direct, stubborn):
         rover.close()
+
+
+def test_an_fmu_that_fails_is_named_not_taken_for_a_bug(fmus, monkeypatch):
+    """An FMU answering fmi2Error (not retried) or fmi2Fatal in doStep, or failing a get or a set: an
+    FmuStepError (the project's error, exit 1 with its message) naming the file, the call, the time and
+    the status; a controller FMU's failure is a ControllerError naming the drive's scene key."""
+    from fmpy.fmi1 import FMICallException
+
+    from cosim.controllers import DriveCommand
+    from cosim.rover import ControllerError, RoverDriver
+
+    rover = FmuRover(fmus["fmi2"], 1, start_values={"hub_height": 1.0})
+    rover.advance(1e-3)
+
+    def fails(status):
+        def call(*args, **kwargs):
+            raise FMICallException(function="fmi2DoStep", status=status)
+
+        return call
+
+    for status, label in ((3, "error"), (4, "fatal")):
+        monkeypatch.setattr(rover.fmu, "doStep", fails(status))
+        with pytest.raises(
+            FmuStepError, match=rf"{re.escape(str(fmus['fmi2']))}: at t=0.001 s .*status {status} \({label}\)"
+        ):
+            rover.advance(2e-3)
+    monkeypatch.setattr(rover.fmu, "getReal", fails(3))
+    rover._get = fmu_session._guarded(rover.path, "reading Reals", rover.fmu.getReal)
+    with pytest.raises(FmuStepError, match="reading Reals: fmi2DoStep failed with status 3"):
+        rover.wheel_kinematics()
+    rover.close()
+
+    class Failing:
+        def __call__(self, t, states, wrenches):
+            raise FmuStepError("ctl.fmu: at t=0.5 s (H=0.004 s): fmi2DoStep failed with status 4 (fatal).")
+
+    class Still:
+        wheel_names, time = ["wheel_0"], 0.5
+
+    driver = RoverDriver(Still(), Failing(), takes_speed=True, landed=True, label="rover.drive (fmu ctl.fmu)")
+    with pytest.raises(ControllerError, match=r"rover.drive \(fmu ctl.fmu\): ctl.fmu: .*fatal.* at t = 0.5 s"):
+        driver.command(0.5, [], [])
+    assert isinstance(driver.last_command, DriveCommand)
 
 
 def test_discard_without_variable_steps_is_a_clear_error(fmus):

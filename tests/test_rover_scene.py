@@ -60,6 +60,7 @@ BAD = [
     ),
     ("keys of another drive kind", ["rover.drive.target_slip=0.2"], "rover.drive.target_slip", "kind = 'speed'"),
     ("a rover and a testbed", ["testbed.mass=1.0"], "rover", "not both"),
+    ("an FMU's wheel prefix on an MJCF rover", ['rover.wheel_prefix="axle_"'], "wheel_prefix", "model = 'fmu'"),
     (
         "a patch too small for the rover",
         ["patch.length=0.04", "patch.width=0.04"],
@@ -355,6 +356,7 @@ def _raises(t, states, wrenches):
         (_speeds([0.1, float("nan")]), "commanded speeds [0.1, nan]: every value must be finite"),
         (_speeds([0.1, float("inf")]), "every value must be finite"),
         (_speeds([0.1, 0.1, 0.1]), "commanded 3 wheels, the rover has 2"),
+        (_speeds([[0.1], [0.1]]), "values must be one per wheel, shape (wheel_count,), got (2, 1)"),
     ],
 )
 def test_a_controller_that_fails_while_driving_is_named_with_the_time(controller, words):

@@ -384,6 +384,12 @@ def test_a_sweep_key_given_twice_and_a_huge_list_are_named_briefly(tmp_path, cap
         parse_params(["wheel.radius=0.03", "wheel.radius=0.04"])
     with pytest.raises(SceneError, match="--param wheel.radius: the value 0.1 is given twice"):
         parse_params(["wheel.radius=0.1,0.10"])  # one run twice, counted as two points
+    # the scene coerces an integer to the float it takes: 1 and 1.0 were two points of one run (probe)
+    with pytest.raises(SceneError, match="--param testbed.omega: the value 1.0 is given twice"):
+        parse_params(["testbed.omega=1,1.0"])
+    with pytest.raises(SceneError, match=r"the value \[1.0, 2\] is given twice"):
+        parse_params(["rover.drive.speed=[[1, 2], [1.0, 2]]"])
+    assert parse_params(["scene.precision=single,double"]) == {"scene.precision": ["single", "double"]}
     with pytest.raises(SceneError, match="--param: 1100 points .* more than 1000"):  # each point is planned first
         parse_params(
             [

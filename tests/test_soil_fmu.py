@@ -1018,6 +1018,43 @@ def test_scm_fmu_refuses_another_gravity_and_a_bad_quaternion_naming_them(scm, i
     assert result["servers_after_free"] == []
 
 
+def test_the_grid_of_an_scm_fmu_with_many_wheels_is_judged_and_said_at_export(scm, tmp_path, capsys):
+    """The server's SCM window holds every wheel of an instance side by side: with --wheels N its grid
+    grows N-fold along x. Refused at export when Warp cannot index it (naming --wheels); otherwise
+    `cosim export-fmu` says its nodes and memory, soil.scm's count of the lengthened window (the server
+    allocates it on its own machine: not judged against this one's memory)."""
+    from cosim.cli import main
+    from cosim.soil_fmu.config import SCM_WHEEL_SPACING, scm_server_grid
+    from soil.errors import InputError
+    from soil.scm import grid_memory, grid_shape
+    from soil.scm.terrain import MAX_NODES
+
+    config = scm["config"]
+    outer, (length, width) = scm["plan"].wheel.outer_radius, config.scm.window
+    spacing = config.scm.parameters.node_spacing
+    grid = scm_server_grid(config, 3)
+    window = (length + 2 * SCM_WHEEL_SPACING * outer, width)
+    nodes = int(np.prod(grid_shape(window, spacing)))
+    assert grid["window"] == pytest.approx(window) and grid["nodes"] == nodes
+    assert grid["cpu_bytes"] == grid_memory(nodes, config.precision, "cpu")[1] > grid["gpu_host_bytes"]
+    fine = dataclasses.replace(
+        config,
+        scm=dataclasses.replace(config.scm, parameters=dataclasses.replace(config.scm.parameters, node_spacing=2e-5)),
+    )
+    assert (
+        scm_server_grid(fine, 1)["nodes"]
+        < MAX_NODES
+        < np.prod(grid_shape((length + 9999 * SCM_WHEEL_SPACING * outer, width), 2e-5))
+    )
+    with pytest.raises(InputError, match=r"10000 wheel.*more than Warp indexes.*or fewer --wheels"):
+        export_soil_fmu(fine, tmp_path / "many.fmu", wheel_count=10000, library=b"never built")
+    assert not any(tmp_path.iterdir()), "nothing is written for a refused grid"
+
+    assert main(["export-fmu", str(scm["scene"]), "--out", str(tmp_path / "three.fmu"), "--wheels", "3"]) == 0
+    said = capsys.readouterr().out
+    assert f"{nodes:,} nodes" in said and f"{grid['cpu_bytes'] / 1e6:,.0f} MB of host memory on the CPU" in said
+
+
 def test_scm_soil_server_puts_a_failed_step_back_and_spreads_several_wheels(scm, frontends, tmp_path):
     """A two-wheel SCM FMU's soil server, in-process: the wheels start SCM_WHEEL_SPACING outer radii apart
     on the surface inside a window lengthened to hold both; a step that drives wheel 1 out of the window

@@ -519,7 +519,8 @@ def test_a_timestep_search_that_finds_no_stable_step_ends_with_a_clear_failure(s
     logs one line per try, says that no stable step was found, and the CLI exits 1."""
     from cosim.cli import main
 
-    args = ["study", "timestep", scene_path, "--out", str(tmp_path / "ts"), "--max-tries", "2"]
+    # tries of 100 DEM steps of the scene's 6 ms at least (study.MIN_TRY_STEPS)
+    args = ["study", "timestep", scene_path, "--out", str(tmp_path / "ts"), "--max-tries", "2", "--duration", "0.6"]
     for setting in (f'bed.bed_file="{tiny_bed}"', "run.dt=0.006", "run.macro_step=0.006"):
         args += ["--set", setting]
     assert main(args) == 1
@@ -542,21 +543,25 @@ def test_a_slip_study_is_tabulated_from_the_runs_it_holds(tmp_path):
 
     with open(write_tiny(tmp_path)) as f:
         text = f.read()
+
+    def seeded(seed):  # a replica's scene: its order seed (part b run with --set run.order_seed=10)
+        return text.replace("[run]\n", f"[run]\norder_seed = {seed}\n", 1)
+
     pulls = {("a", 0): -1.0e-4, ("a", 1): -3.0e-4, ("b", 0): -2.0e-4}
     for (part, k), pull in pulls.items():
         run = tmp_path / part / "slip_+0.200" / f"replica_{k:03d}"
         run.mkdir(parents=True)
-        (run / "scene.toml").write_text(text)
+        (run / "scene.toml").write_text(seeded(k + (10 if part == "b" else 0)))
         summary = {"steady_state": "steady", "drawbar_pull": pull, "slip": 0.2, "sinkage": 1e-3}
         (run / "run.json").write_text(json.dumps({"status": "complete", "summary": summary}))
     unsteady = tmp_path / "b" / "slip_+0.200" / "replica_001"
     unsteady.mkdir()
-    (unsteady / "scene.toml").write_text(text)
+    (unsteady / "scene.toml").write_text(seeded(11))
     summary = {"steady_state": "still sinking", "drawbar_pull": 5.0, "slip": 0.2}
     (unsteady / "run.json").write_text(json.dumps({"status": "unsteady", "summary": summary}))
     rising = tmp_path / "b" / "slip_+0.200" / "replica_002"  # its sinkage drifts upwards: averaged the same way
     rising.mkdir()
-    (rising / "scene.toml").write_text(text)
+    (rising / "scene.toml").write_text(seeded(12))
     summary = {"steady_state": "still rising", "drawbar_pull": 7.0, "slip": 0.2}
     (rising / "run.json").write_text(json.dumps({"status": "unsteady", "summary": summary}))
     running = tmp_path / "b" / "slip_+0.400" / "replica_000"
@@ -652,6 +657,9 @@ def test_a_timestep_search_of_no_dem_step_or_of_endless_tries_is_refused_before_
     assert "stable-step search is of the DEM step; this scene runs on analytic" in capsys.readouterr().err
     assert main(["study", "timestep", write_tiny(tmp_path), "--out", str(out), "--duration", "1e300"]) == 2
     assert "--duration" in capsys.readouterr().err
+    # a try of one DEM step explodes at no step: it recommended 4 x the advisor's largest step, exit 0 (probe)
+    assert main(["study", "timestep", write_tiny(tmp_path), "--out", str(out), "--duration", "1e-9"]) == 2
+    assert "cannot show an instability; at least 100 steps: --duration >=" in capsys.readouterr().err
     # a search shrinking the step 49 times (the scene's own step exploding) would take 1.5^49 x its steps
     for tries in ("1000000000", "41", "35"):  # beyond MAX_TRIES; within it, its last try beyond MAX_PHASE_STEPS
         assert (
@@ -923,7 +931,7 @@ def test_a_rows_validity_counts_its_runs_and_the_self_propelled_slip_names_an_ou
     for (slip, k), (pull, failed) in runs.items():
         run = tmp_path / "runs" / f"slip_{slip:+.3f}" / f"replica_{k:03d}"
         run.mkdir(parents=True)
-        (run / "scene.toml").write_text(text)
+        (run / "scene.toml").write_text(text.replace("[run]\n", f"[run]\norder_seed = {k}\n", 1))
         record: dict = {"status": "running"}
         if failed is not None:
             checks = ["scm_slip", "scm_sinkage_grains", "scm_froude"]
@@ -987,7 +995,7 @@ def test_a_check_a_run_could_not_judge_is_named_in_its_row_and_the_self_propelle
     for (slip, k), (pull, failed, unjudged) in runs.items():
         run = tmp_path / "runs" / f"slip_{slip:+.3f}" / f"replica_{k:03d}"
         run.mkdir(parents=True)
-        (run / "scene.toml").write_text(text)
+        (run / "scene.toml").write_text(text.replace("[run]\n", f"[run]\norder_seed = {k}\n", 1))
         (run / "run.json").write_text(json.dumps(record(pull, slip, failed, unjudged)))
     report = slip_study_from_runs([str(tmp_path / "runs")], str(tmp_path / "table"), plot=False)
     rows = {row["slip_set"]: row["validity"] for row in report["rows"]}
@@ -1047,7 +1055,7 @@ def test_a_slip_studys_json_gives_every_numbers_unit_and_its_table_the_failed_ru
     ):
         run = tmp_path / "runs" / f"slip_{slip:+.3f}" / f"replica_{k:03d}"
         run.mkdir(parents=True)
-        (run / "scene.toml").write_text(text)
+        (run / "scene.toml").write_text(text.replace("[run]\n", f"[run]\norder_seed = {k}\n", 1))
         (run / "run.json").write_text(json.dumps(record))
     report = slip_study_from_runs([str(tmp_path / "runs")], str(tmp_path / "table"), plot=False)
     numbers = {key for row in report["rows"] for key, value in row.items() if isinstance(value, (int, float))}
@@ -1127,3 +1135,68 @@ def test_replicas_and_a_precision_study_on_a_terrain_without_checks_say_not_chec
     assert json.loads((tmp_path / "precision" / "study.json").read_text())["rows"][0]["validity"] == NOT_CHECKED
     with open(tmp_path / "precision" / "study.csv", newline="") as f:
         assert next(csv.DictReader(f))["validity"] == NOT_CHECKED
+
+
+def test_a_table_from_runs_reads_every_run_first_and_counts_each_replica_once(tmp_path, tiny_bed, capsys):
+    """`study slip --from-runs` (probe of 2026-12-07): an --out inside a folder it read was emptied with
+    --overwrite (a replica's results gone); a run it could not read was found after --overwrite had emptied
+    the old table; a copied folder (the same run_id) or a part run again (the same slip, order seed and bed)
+    was counted again, the interval narrowed as if by new replicas (7 x in the probe); runs of another scene
+    (testbed.mass) were averaged into one row; a partial summary of an interrupted run made the exit 0; and
+    two parts on copies of one bed were labelled 'a bed each'. Now every run is read and judged first."""
+    import shutil
+
+    from cosim.cli import main
+    from cosim.study import slip_study_from_runs
+    from soil.errors import ArgumentError
+
+    scene = write_tiny(tmp_path)
+    text = open(scene).read()
+    copy = tmp_path / "bed_copy.h5"  # a part settles its own copy of the same bed (the same key)
+    shutil.copy(tiny_bed, copy)
+
+    def part(name, seeds, bed=tiny_bed, extra="", status="complete"):
+        for k, seed in enumerate(seeds):
+            run = tmp_path / name / "slip_+0.200" / f"replica_{k:03d}"
+            run.mkdir(parents=True)
+            (run / "scene.toml").write_text(text.replace("[run]\n", f"[run]\norder_seed = {seed}\n", 1) + extra)
+            summary = {"steady_state": "steady", "dp_over_w": -0.05 + 0.01 * seed, "slip": 0.2}
+            record = {"status": status, "run_id": f"{name}{k}", "bed": {"path": str(bed)}, "summary": summary}
+            (run / "run.json").write_text(json.dumps(record))
+
+    part("a", [0, 1])
+    part("b", [2, 3], bed=copy)
+    table = slip_study_from_runs([str(tmp_path / "a"), str(tmp_path / "b")], str(tmp_path / "t"), plot=False)
+    assert table["rows"][0]["averaged"] == 4 and "a bed each" not in table["text"], table["text"]
+    before = {p: p.read_bytes() for p in (tmp_path / "t").rglob("*") if p.is_file()}
+
+    def refused(folders, words, out="t", **options):
+        with pytest.raises(ArgumentError, match=words):
+            slip_study_from_runs([str(tmp_path / f) for f in folders], str(tmp_path / out), overwrite=True, **options)
+        # nothing touched: the old table whole, every run's files there
+        assert {p: p.read_bytes() for p in (tmp_path / "t").rglob("*") if p.is_file()} == before
+        assert (tmp_path / "a" / "slip_+0.200" / "replica_000" / "run.json").is_file()
+
+    refused(["a"], "lies inside", out="a/slip_+0.200/replica_000")
+    shutil.copytree(tmp_path / "a", tmp_path / "a_copy")
+    refused(["a", "a_copy"], "is a copy of")
+    part("again", [1])  # replica 1 of part a run again (another run_id): the same computation
+    refused(["a", "again"], r"repeats .*order_seed 1, the same bed")
+    part("heavy", [5], extra="")
+    heavy = tmp_path / "heavy" / "slip_+0.200" / "replica_000" / "scene.toml"
+    heavy.write_text(heavy.read_text().replace("mass = 0.3\n", "mass = 0.36\n", 1))
+    refused(["a", "heavy"], r"ran another scene .*testbed.mass")
+    from cosim.scene import scene_from_text
+
+    other = scene_from_text(text.replace("mass = 0.3\n", "mass = 0.36\n", 1))
+    refused(["a"], r"not of the scene given \(testbed.mass", scene=other)
+    (tmp_path / "b" / "slip_+0.200" / "replica_001" / "scene.toml").write_text("this is = = not toml")
+    refused(["a", "b"], r"replica_001: not a slip run's folder")
+
+    part("stopped", [7], status="interrupted")  # its summary of part of the drive says 'steady'
+    out = tmp_path / "t2"
+    assert (
+        main(["study", "slip", scene, "--from-runs", str(tmp_path / "a"), str(tmp_path / "stopped"), "--out", str(out)])
+        == 6
+    )
+    assert "0.200   2/3" in capsys.readouterr().out

@@ -521,7 +521,7 @@ def export_soil_fmu(
 
     from soil.files import atomic_path
 
-    from .config import config_to_json
+    from .config import config_to_json, scm_server_grid
 
     if fmi_version not in SOURCES:
         raise ArgumentError(f"fmi_version must be 2 or 3, got {fmi_version!r}")
@@ -534,6 +534,8 @@ def export_soil_fmu(
             "(its `python` parameter or REGOLITH_SOIL_PYTHON overrides it there)",
             python,
         )
+    if config.terrain == "scm":
+        scm_server_grid(config, wheel_count)  # refused here if Warp cannot index it, not when the FMU starts
     data = config_to_json(config, wheel_count)
     warn_validity(data, destination)
     starts = np.zeros((wheel_count, 13))

@@ -357,6 +357,41 @@ def rim_radius(shape) -> float:
     return float(shape.radius if isinstance(shape, GrouserWheel) else shape.outer_radius)
 
 
+def scm_server_grid(config, wheel_count: int) -> dict:
+    """The SCM grid an exported FMU's server allocates for `wheel_count` wheels (its window holds them
+    side by side, scm_wheels_span): refused here when Warp cannot index it (soil.scm.check_grid; its
+    memory is judged where the server runs). Returns nodes [-], window [m] (length, width),
+    gpu_bytes and gpu_host_bytes [B] (a server on a GPU: device memory and the host's copies) and
+    cpu_bytes [B] (a server on the CPU: all of it in host memory), as soil.scm.grid_memory counts them."""
+    from soil.scm import check_grid, grid_memory, grid_shape
+
+    assert config.scm is not None
+    length, width = config.scm.window
+    window = (float(length + scm_wheels_span(config.wheel, wheel_count)), float(width))
+    spacing = float(config.scm.parameters.node_spacing)
+    check_grid(
+        window,
+        spacing,
+        config.precision,
+        config.device,
+        what=f"the FMU's SCM grid for {wheel_count} wheel(s) (window {window[0]:.4g} x {window[1]:.4g} m at "
+        f"spacing {spacing:.3g} m)",
+        keys=("terrain.node_spacing", "terrain.window_length, terrain.window_width, or fewer --wheels"),
+        memory=False,
+    )
+    rows, columns = grid_shape(window, spacing)
+    nodes = rows * columns
+    gpu_bytes, gpu_host_bytes = grid_memory(nodes, config.precision, "cuda")
+    cpu_bytes = grid_memory(nodes, config.precision, "cpu")[1]
+    return {
+        "nodes": nodes,
+        "window": window,
+        "gpu_bytes": gpu_bytes,
+        "gpu_host_bytes": gpu_host_bytes,
+        "cpu_bytes": cpu_bytes,
+    }
+
+
 def scm_wheels_span(shape, wheel_count: int) -> float:
     """The distance along x [m] from the first to the last wheel's hub at the start on one SCM terrain."""
     return (wheel_count - 1) * SCM_WHEEL_SPACING * float(shape.outer_radius)
