@@ -335,8 +335,9 @@ class Suite:
             f"{json.dumps({k: v for k, v in result.items() if not isinstance(v, (list, dict))})}"
         )
         self.write()  # what the suite measured so far is kept, stopped or not
-        if stop is not None:
-            raise KeyboardInterrupt(str(stop))
+        if stop is not None:  # named by its signal: main's exit status says which (130 SIGINT, 143 SIGTERM)
+            name = getattr(stop, "signal", None) or ("SIGTERM" if "SIGTERM" in str(stop) else "SIGINT")
+            raise KeyboardInterrupt(f"{name}: {stop}")
 
     # -- sections -------------------------------------------------------------------------
     def base_bed(self):
@@ -1066,7 +1067,7 @@ def main(argv=None) -> int:
     except KeyboardInterrupt as stop:  # the sections so far are written (Suite.section); the rest are not run
         print(suite.markdown())
         print(f"stopped ({stop}): the sections after it were not run", file=sys.stderr)
-        return 130
+        return 143 if str(stop).startswith("SIGTERM") else 130  # as cosim's commands exit
     print(suite.markdown())
     if args.compile_for_arch:
         compiled = compile_loaded_modules(args.compile_for_arch)

@@ -130,12 +130,18 @@ def cmd_resume(args) -> int:
     from .folders import SCENE_FILE
     from .launch import resume
     from .scene import load_scene
-    from .study import REPLICAS_FILE, resume_replicas
+    from .study import REPLICAS_FILE, SLIP_FILE, SWEEP_FILE, resume_replicas, resume_slip_study, resume_sweep
 
     if os.path.isfile(os.path.join(args.out, REPLICAS_FILE)):  # a set of replicas (cosim run --replicas K)
         report = resume_replicas(args.out)
         print(report["text"])
         return _study_exit(report["results"])
+    if os.path.isfile(os.path.join(args.out, SWEEP_FILE)):  # a sweep (cosim sweep)
+        return _print_sweep(resume_sweep(args.out), args.out)
+    if os.path.isfile(os.path.join(args.out, SLIP_FILE)):  # a slip study (cosim study slip)
+        report = resume_slip_study(args.out)
+        print(report["text"])
+        return _study_exit(report["runs"])
     _refuse_replicas_without_recipe(args.out)
     result = resume(args.out, progress=not args.no_progress)
     try:  # the run's scene as it ran (resume read it): SCM alone takes its error bars over beds
@@ -607,6 +613,14 @@ def cmd_sweep(args) -> int:
     plan = _plan(args)
     out = args.out or os.path.join("runs", f"{plan.name}_sweep")
     report = study.sweep(plan, out, args.param, overwrite=args.overwrite, **_executor(args))
+    return _print_sweep(report, out)
+
+
+def _print_sweep(report: dict, out: str) -> int:
+    """A sweep's outcome said (how many points failed or are not steady, and which are out of range or not
+    judged); returns its exit status."""
+    from . import study
+
     rows = report["rows"]
     failed = sum(1 for r in rows if not r.get("ok"))
     steady = sum(1 for r in rows if r.get("status") == "complete")
@@ -1196,7 +1210,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--no-progress", action="store_true")
     p.set_defaults(func=cmd_run)
 
-    p = sub.add_parser("resume", help="continue an interrupted run, or set of replicas, from its checkpoints")
+    p = sub.add_parser(
+        "resume", help="continue an interrupted run, set of replicas, sweep or slip study from its checkpoints"
+    )
     p.add_argument("out", help="the run's output folder")
     p.add_argument("--no-progress", action="store_true")
     p.set_defaults(func=cmd_resume)

@@ -196,7 +196,7 @@ class RoverDriver:
                 from rover_models.fmu_session import FmuStepError
 
                 if isinstance(error, FmuStepError):  # a controller FMU that failed: named with the drive's key
-                    raise ControllerError(f"{self.label}: {error} at t = {t:.6g} s") from error
+                    raise ControllerError(f"{self.label} at t = {t:.6g} s: {error}") from error
                 if not self.user_code:  # the project's own controllers: their errors as they are
                     raise
                 # a user's controller: its failure (a DriveCommand it built wrongly too) named, not a bug of ours

@@ -972,7 +972,7 @@ def replica_run(
         return _ensemble_report(plan, out_dir, results, vary, soils, beds, bool(batched))
 
 
-REPLICAS_FILE = "replicas.json"
+REPLICAS_FILE = "replicas.json"  # RECIPES["replicas"]
 """A set of replicas' recipe (its folder, scene as run, base folder, count, variation, SCM soils, then its
 beds once settled, and a digest of it all), written before its beds settle: `cosim resume OUT` finishes
 what an interruption left and writes the ensemble (resume_replicas)."""
@@ -993,13 +993,15 @@ def _replica_tasks(plan: RunPlan, out_dir: str, beds: list, vary: str, soils: li
     ]
 
 
-def _replicas_stopped(stop: BaseException, out_dir: str) -> KeyboardInterrupt:
-    """The stop of a set of replicas (Ctrl-C, SIGTERM), saying how to finish them; its `signal` is the name."""
+def _replicas_stopped(
+    stop: BaseException, out_dir: str, what: str = "the replicas", writes: str = "the ensemble"
+) -> KeyboardInterrupt:
+    """The stop of a set of runs (Ctrl-C, SIGTERM), saying how to finish them; its `signal` is the name."""
     name = stop.signal if isinstance(stop, RunInterrupted) else getattr(stop, "signal", None)
     name = name or ("SIGTERM" if str(stop).startswith("SIGTERM") else "SIGINT")
     error = KeyboardInterrupt(
-        f"{name}: the replicas stopped (each run that began keeps its checkpoint); `cosim resume {out_dir}` "
-        "finishes them and writes the ensemble"
+        f"{name}: {what} stopped (each run that began keeps its checkpoint); `cosim resume {out_dir}` "
+        f"finishes them and writes {writes}"
     )
     error.signal = name  # type: ignore[attr-defined]
     return error
@@ -1063,35 +1065,46 @@ def _recipe_digest(recipe: dict) -> str:
     return hashlib.sha256(json.dumps(content, sort_keys=True).encode()).hexdigest()
 
 
+RECIPES = {
+    "replicas": ("replicas.json", ("out_dir", "scene_toml", "base_dir", "replicas", "vary", "batched", "soils")),
+    "sweep": ("sweep.json", ("out_dir", "scene_toml", "base_dir", "params", "plot")),
+    "slip": (
+        "slip_study.json",
+        ("out_dir", "scene_toml", "base_dir", "slips", "replicas", "vary", "batched", "soils", "plot"),
+    ),
+}
+"""Each kind of set of runs `cosim resume OUT` finishes: its recipe's file in OUT and the keys it holds."""
+
+
 def _write_recipe(out_dir: str, recipe: dict) -> None:
-    """A set of replicas' REPLICAS_FILE, with its digest (written whole: atomically)."""
-    write_json(os.path.join(out_dir, REPLICAS_FILE), {**recipe, "digest": _recipe_digest(recipe)})
+    """A set of runs' recipe (RECIPES, by its 'kind'), with its digest (written whole: atomically)."""
+    write_json(os.path.join(out_dir, RECIPES[recipe["kind"]][0]), {**recipe, "digest": _recipe_digest(recipe)})
 
 
-def _read_recipe(out_dir: str) -> dict:
-    """The REPLICAS_FILE of the set of replicas in out_dir, checked whole (its digest) and where it was
+def _read_recipe(out_dir: str, kind: str = "replicas") -> dict:
+    """The recipe (RECIPES[kind]) of the set of runs in out_dir, checked whole (its digest) and where it was
     made; DamagedFileError or ArgumentError naming the file or the folder."""
-    path = os.path.join(out_dir, REPLICAS_FILE)
+    name, keys = RECIPES[kind]
+    path = os.path.join(out_dir, name)
+    what = {"replicas": "set of replicas", "sweep": "sweep", "slip": "slip study"}[kind]
     try:
         with open(path) as f:
             recipe = json.load(f)
-        if not isinstance(recipe, dict) or recipe.get("kind") != "replicas":
-            raise ValueError("no table of kind 'replicas'")
+        if not isinstance(recipe, dict) or recipe.get("kind") != kind:
+            raise ValueError(f"no table of kind {kind!r}")
         if recipe.get("digest") != _recipe_digest(recipe):
-            raise ValueError("its content no longer matches its digest: edited or damaged since the set began")
-        absent = [
-            k for k in ("out_dir", "scene_toml", "base_dir", "replicas", "vary", "batched", "soils") if k not in recipe
-        ]
+            raise ValueError(f"its content no longer matches its digest: edited or damaged since the {what} began")
+        absent = [k for k in keys if k not in recipe]
         if absent:
             raise ValueError(f"it has no {', '.join(absent)}")
     except (OSError, ValueError) as error:
         raise DamagedFileError(
-            f"{path}: not the recipe its set of replicas wrote ({error}); its replicas' folders each resume alone "
-            "(cosim resume OUT/replica_000 ...)"
+            f"{path}: not the recipe its {what} wrote ({error}); its runs' folders each resume alone "
+            "(cosim resume OUT/RUN)"
         ) from None
     if os.path.realpath(recipe["out_dir"]) != os.path.realpath(out_dir):
         raise ArgumentError(
-            f"{out_dir}: the set of replicas was made in {recipe['out_dir']}, and its runs name their beds there by "
+            f"{out_dir}: the {what} was made in {recipe['out_dir']}, and its runs name their beds there by "
             "path: resume it there (move the folder back)"
         )
     return recipe
@@ -1105,7 +1118,7 @@ def resume_replicas(out_dir: str) -> dict:
     another diverged, too), each that never began run; then the ensemble is written as replica_run
     writes it. One run at a time, in this process."""
     out_dir = os.path.abspath(out_dir)
-    recipe = _read_recipe(out_dir)
+    recipe = _read_recipe(out_dir, "replicas")
     vary, replicas, soils = recipe["vary"], int(recipe["replicas"]), recipe["soils"]
     plan = resolve(scene_from_text(recipe["scene_toml"], base_dir=recipe["base_dir"]))  # its errors name the key
     results = []
@@ -1330,38 +1343,94 @@ def slip_study(
     tasks_run = Executor("serial" if batched else executor, scheduler, workers)  # refused before the folder is made
     with prepare_study(out_dir, overwrite):
         text = plan.scene.to_toml()
+        recipe = {
+            "kind": "slip",
+            "out_dir": out_dir,
+            "scene_toml": text,
+            "base_dir": plan.scene.base_dir,
+            "slips": slips,
+            "replicas": replicas,
+            "vary": vary,
+            "batched": bool(batched),
+            "soils": soils,
+            "plot": bool(plot),
+        }
+        _write_recipe(out_dir, recipe)  # before the beds: `cosim resume` finishes the study
         with tasks_run as ex:
-            beds = _replica_beds(plan, out_dir, ex, replicas, vary)
-            tasks = [
-                {
-                    "scene_toml": text,
-                    "out_dir": os.path.join(out_dir, f"slip_{s:+.3f}", f"replica_{k:03d}"),
-                    "overrides": {
-                        "testbed.mode": "slip",
-                        "testbed.slip": s,
-                        **_replica_overrides(k, beds[k], vary, plan, soils),
-                    },
-                    "label": f"slip {s:+.3f} replica {k}",
-                    "slip": s,
-                    "base_dir": plan.scene.base_dir,
-                }
-                for s in slips
-                for k in range(replicas)
-            ]
-            results = _run_tasks(ex, tasks, batched)
-        shared = beds[0] if vary == "order" else None
-        return _slip_report(
-            plan,
-            out_dir,
-            slips,
-            [t["slip"] for t in tasks],
-            results,
-            text,
-            shared,
-            plot,
-            vary=vary,
-            beds=beds,
-            soils=soils[:replicas],
+            try:
+                beds = _replica_beds(plan, out_dir, ex, replicas, vary)
+                _write_recipe(out_dir, {**recipe, "beds": beds})  # the beds the runs use, never settled again
+                tasks = _slip_tasks(plan, text, out_dir, slips, replicas, beds, vary, soils)
+                results = _run_tasks(ex, tasks, batched)
+            except (KeyboardInterrupt, RunInterrupted) as stop:
+                raise _replicas_stopped(stop, out_dir, "the slip study", "its table") from None
+        return _slip_study_report(plan, out_dir, slips, tasks, results, text, plot, vary, beds, soils[:replicas])
+
+
+SLIP_FILE = RECIPES["slip"][0]
+"""A slip study's recipe (its folder, scene as run, base folder, slips, replicas, variation, batching, SCM
+soils, plotting, then its beds once settled, and a digest of it all), written before its beds settle:
+`cosim resume OUT` finishes what an interruption left and writes the table (resume_slip_study)."""
+
+
+def _slip_tasks(
+    plan: RunPlan, text: str, out_dir: str, slips, replicas: int, beds: list, vary: str, soils: list
+) -> list[dict]:
+    """A run task per slip and replica (run_task's form, with its 'slip')."""
+    return [
+        {
+            "scene_toml": text,
+            "out_dir": os.path.join(out_dir, f"slip_{s:+.3f}", f"replica_{k:03d}"),
+            "overrides": {
+                "testbed.mode": "slip",
+                "testbed.slip": s,
+                **_replica_overrides(k, beds[k], vary, plan, soils),
+            },
+            "label": f"slip {s:+.3f} replica {k}",
+            "slip": s,
+            "base_dir": plan.scene.base_dir,
+        }
+        for s in slips
+        for k in range(replicas)
+    ]
+
+
+def _slip_study_report(plan, out_dir, slips, tasks, results, text, plot, vary, beds, soils) -> dict:
+    """The slip study's table of its tasks' results (_slip_report), its bed named when the replicas share one."""
+    shared = beds[0] if vary == "order" else None
+    return _slip_report(
+        plan, out_dir, slips, [t["slip"] for t in tasks], results, text, shared, plot, vary=vary, beds=beds, soils=soils
+    )
+
+
+def resume_slip_study(out_dir: str) -> dict:
+    """Finish a slip study an interruption (or a kill) left (its SLIP_FILE), as resume_replicas finishes a
+    set of replicas (its beds settled if it stopped while they settled; each run taken, resumed or run, one
+    at a time in this process), then its table written as slip_study writes it."""
+    out_dir = os.path.abspath(out_dir)
+    recipe = _read_recipe(out_dir, "slip")
+    text, vary, soils = recipe["scene_toml"], recipe["vary"], recipe["soils"]
+    slips, replicas = [float(s) for s in recipe["slips"]], int(recipe["replicas"])
+    plan = resolve(scene_from_text(text, base_dir=recipe["base_dir"]))  # its errors name the key
+    results = []
+    with RunFolder(out_dir).locked():
+        try:
+            beds = recipe.get("beds")
+            if beds is None:  # stopped while the beds settled, before any run: settled (the rest) now
+                with Executor("serial") as ex:
+                    beds = _replica_beds(plan, out_dir, ex, replicas, vary)
+                _write_recipe(out_dir, {**{k: v for k, v in recipe.items() if k != "digest"}, "beds": beds})
+            missing = [bed for bed in beds if bed is not None and not os.path.isfile(bed)]
+            if missing:
+                raise DamagedFileError(f"{missing[0]}: a bed the slip study's runs ran on is gone; run it again")
+            tasks = _slip_tasks(plan, text, out_dir, slips, replicas, beds, vary, soils)
+            for done, task in enumerate(tasks, 1):
+                results.append(_finish_replica(task))
+                _report(results[-1], task["label"], done, len(tasks))
+        except (KeyboardInterrupt, RunInterrupted) as stop:
+            raise _replicas_stopped(stop, out_dir, "the slip study", "its table") from None
+        return _slip_study_report(
+            plan, out_dir, slips, tasks, results, text, bool(recipe["plot"]), vary, beds, soils[:replicas]
         )
 
 
@@ -1438,9 +1507,10 @@ def slip_study_from_runs(
         )
 
 
-STUDY_RUN_KEYS = ("testbed.slip", "run.order_seed", "bed.seed", "bed.bed_file")
-"""The scene keys a slip study's runs differ in (besides the SCM soil over calibration beds): a table from
-runs (slip_study_from_runs) compares the rest."""
+STUDY_RUN_KEYS = ("testbed.mode", "testbed.slip", "run.order_seed", "bed.seed", "bed.bed_file", "scene.device")
+"""The scene keys a slip study's runs differ in, or may (its overrides; the device of a part run on another
+machine), besides the SCM soil over calibration beds and the paths of files: a table from runs
+(slip_study_from_runs) compares the rest."""
 
 
 def _run_scenes(paths: list[str]) -> tuple[list[str], list]:
@@ -1459,9 +1529,10 @@ def _run_scenes(paths: list[str]) -> tuple[list[str], list]:
     return texts, scenes
 
 
-def _flat_scene(scene, skip_files: bool = False) -> dict:
-    """A scene's keys (dotted) and values, less STUDY_RUN_KEYS and the SCM soil's keys; skip_files: less
-    the keys that name files too (a scene given beside its runs names them from elsewhere)."""
+def _flat_scene(scene) -> dict:
+    """A scene's keys (dotted) and values, less STUDY_RUN_KEYS, the SCM soil's keys and the keys naming a
+    file by its path (a part of a study run on another machine, or a scene given beside its runs, names
+    them from elsewhere; an absolute path is how a scene keeps them)."""
     from .scm_calibration import SOIL_KEYS
 
     flat: dict = {}
@@ -1475,9 +1546,7 @@ def _flat_scene(scene, skip_files: bool = False) -> dict:
 
     walk(scene.to_dict(), "")
     skipped = {*STUDY_RUN_KEYS, *(f"terrain.{key}" for key in SOIL_KEYS)}
-    return {
-        k: v for k, v in flat.items() if k not in skipped and not (skip_files and k.rsplit(".", 1)[-1].endswith("file"))
-    }
+    return {k: v for k, v in flat.items() if k not in skipped and not (isinstance(v, str) and os.path.isabs(v))}
 
 
 def _check_one_study(found: list, scenes: list, given) -> None:
@@ -1493,7 +1562,7 @@ def _check_one_study(found: list, scenes: list, given) -> None:
                 f"{', ...' if len(keys) > 6 else ''} differ): a slip table averages the replicas of one scene"
             )
     if given is not None:
-        own, theirs = _flat_scene(given, skip_files=True), _flat_scene(scenes[0], skip_files=True)
+        own, theirs = _flat_scene(given), _flat_scene(scenes[0])
         keys = sorted(k for k in own.keys() | theirs.keys() if own.get(k) != theirs.get(k))
         if keys:
             raise ArgumentError(
@@ -1815,6 +1884,73 @@ def _folder_label(value) -> str:
     return re.sub(r"[^A-Za-z0-9.+-]", "_", str(value)).lstrip(".")[:40] or "_"
 
 
+SWEEP_FILE = RECIPES["sweep"][0]
+"""A sweep's recipe (its folder, scene as run, base folder, --param texts, whether it plots, then its beds once
+settled, and a digest of it all), written before its beds settle: `cosim resume OUT` finishes what an
+interruption left and writes the table (resume_sweep)."""
+
+
+def _sweep_points(text: str, base_dir: str | None, params: list[str]) -> tuple[dict, list[dict], list[RunPlan]]:
+    """(grid, points, their plans) of a sweep of the scene `text` over `params`; SceneError naming every point
+    that is no scene, and every key no point reads."""
+    grid = parse_params(params)
+    if not grid:
+        raise SceneError(["--param: give at least one key=v1,v2,..."])
+    points = [dict(zip(grid, values)) for values in itertools.product(*grid.values())]
+    plans, problems = [], []
+    for point in points:  # validate every point before running any
+        try:
+            plans.append(resolve(scene_from_text(text, base_dir=base_dir, overrides=point)))
+        except SceneError as error:
+            problems += [f"point {point}: {p}" for p in error.problems]
+    if problems:
+        raise SceneError(problems)
+    for key in grid:  # a key no point reads: every run the same scene (the sweep's rows told no difference)
+        unused = [p.scene.testbed.unused_keys().get(key) if p.scene.testbed is not None else None for p in plans]
+        if all(unused):
+            problems.append(f"--param {key}: no point of the sweep reads it ({unused[0]})")
+    if problems:
+        raise SceneError(problems)
+    return grid, points, plans
+
+
+def _sweep_beds(plans: list[RunPlan], out_dir: str, ex: Executor) -> dict[str, str]:
+    """The settled bed of each bed key the points need (out_dir/beds/KEY), by key."""
+    from .system import needs_bed
+
+    beds: dict[str, RunPlan] = {}
+    for p in plans:
+        if not p.bed.bed_file and needs_bed(p):
+            beds.setdefault(p.bed.key, p)
+    folders = [os.path.join(out_dir, "beds", key) for key in beds]
+    return dict(zip(beds, _settle(ex, list(beds.values()), folders)))
+
+
+def _sweep_tasks(
+    text: str, base_dir: str | None, points: list[dict], plans: list[RunPlan], out_dir: str, beds: dict[str, str]
+) -> list[dict]:
+    """A run task per point (run_task's form, with its 'point'), each on its key's settled bed."""
+    from .system import needs_bed
+
+    tasks: list[dict[str, Any]] = []
+    for i, (point, p) in enumerate(zip(points, plans)):
+        overrides = dict(point)
+        if not p.bed.bed_file and needs_bed(p):
+            overrides["bed.bed_file"] = beds[p.bed.key]
+        name = f"{i:03d}_" + "_".join(f"{_folder_label(k.split('.')[-1])}={_folder_label(v)}" for k, v in point.items())
+        tasks.append(
+            {
+                "scene_toml": text,
+                "overrides": overrides,
+                "out_dir": os.path.join(out_dir, name),
+                "label": name,
+                "point": point,
+                "base_dir": base_dir,
+            }
+        )
+    return tasks
+
+
 def sweep(
     plan: RunPlan,
     out_dir: str,
@@ -1826,114 +1962,125 @@ def sweep(
     plot: bool = True,
 ) -> dict:
     """One run per point of the grid; points that share a bed share one settled bed (a point on a
-    terrain without grains, SCM or the analytic one, settles none)."""
-    from .plots import plot_table
-    from .system import needs_bed
-
-    grid = parse_params(params)
-    if not grid:
-        raise SceneError(["--param: give at least one key=v1,v2,..."])
+    terrain without grains, SCM or the analytic one, settles none). Stopped (Ctrl-C, SIGTERM, a kill), it
+    is finished by `cosim resume OUT` (resume_sweep: its SWEEP_FILE recipe)."""
     text = plan.scene.to_toml()
-    points = [dict(zip(grid, values)) for values in itertools.product(*grid.values())]
-    plans, problems = [], []
-    for point in points:  # validate every point before running any
-        try:
-            plans.append(resolve(scene_from_text(text, base_dir=plan.scene.base_dir, overrides=point)))
-        except SceneError as error:
-            problems += [f"point {point}: {p}" for p in error.problems]
-    if problems:
-        raise SceneError(problems)
-    for key in grid:  # a key no point reads: every run the same scene (the sweep's rows told no difference)
-        unused = [p.scene.testbed.unused_keys().get(key) if p.scene.testbed is not None else None for p in plans]
-        if all(unused):
-            problems.append(f"--param {key}: no point of the sweep reads it ({unused[0]})")
-    if problems:
-        raise SceneError(problems)
+    grid, points, plans = _sweep_points(text, plan.scene.base_dir, params)
     out_dir = os.path.abspath(out_dir)
     tasks_run = Executor(executor, scheduler, workers)  # refused before the folder is made
     with prepare_study(out_dir, overwrite):
+        recipe = {
+            "kind": "sweep",
+            "out_dir": out_dir,
+            "scene_toml": text,
+            "base_dir": plan.scene.base_dir,
+            "params": list(params),
+            "plot": bool(plot),
+        }
+        _write_recipe(out_dir, recipe)  # before the beds: `cosim resume` finishes them
         with tasks_run as ex:
-            beds: dict[str, RunPlan] = {}
-            for p in plans:
-                if not p.bed.bed_file and needs_bed(p):
-                    beds.setdefault(p.bed.key, p)
-            folders = [os.path.join(out_dir, "beds", key) for key in beds]
-            bed_paths = dict(zip(beds, _settle(ex, list(beds.values()), folders)))
-            tasks: list[dict[str, Any]] = []
-            for i, (point, p) in enumerate(zip(points, plans)):
-                overrides = dict(point)
-                if not p.bed.bed_file and needs_bed(p):
-                    overrides["bed.bed_file"] = bed_paths[p.bed.key]
-                name = f"{i:03d}_" + "_".join(
-                    f"{_folder_label(k.split('.')[-1])}={_folder_label(v)}" for k, v in point.items()
-                )
-                tasks.append(
-                    {
-                        "scene_toml": text,
-                        "overrides": overrides,
-                        "out_dir": os.path.join(out_dir, name),
-                        "label": name,
-                        "point": point,
-                        "base_dir": plan.scene.base_dir,
-                    }
-                )
-            results = ex.map(run_task, tasks)
-        columns: tuple[str, ...] = (
+            try:
+                beds = _sweep_beds(plans, out_dir, ex)
+                _write_recipe(out_dir, {**recipe, "beds": beds})  # the beds the runs use, never settled again
+                tasks = _sweep_tasks(text, plan.scene.base_dir, points, plans, out_dir, beds)
+                results = ex.map(run_task, tasks)
+            except (KeyboardInterrupt, RunInterrupted) as stop:
+                raise _replicas_stopped(stop, out_dir, "the sweep", "its table") from None
+        return _sweep_report(plan, out_dir, grid, tasks, results, text, plot)
+
+
+def resume_sweep(out_dir: str) -> dict:
+    """Finish a sweep an interruption (or a kill) left (its SWEEP_FILE), as resume_replicas finishes a set
+    of replicas: its beds settled if it stopped while they settled, else its own; each point's run that
+    finished taken as it is, each with a checkpoint resumed, each that never began run; then its table
+    written as sweep writes it. One run at a time, in this process."""
+    out_dir = os.path.abspath(out_dir)
+    recipe = _read_recipe(out_dir, "sweep")
+    text, base_dir = recipe["scene_toml"], recipe["base_dir"]
+    plan = resolve(scene_from_text(text, base_dir=base_dir))  # its errors name the key
+    grid, points, plans = _sweep_points(text, base_dir, recipe["params"])
+    results = []
+    with RunFolder(out_dir).locked():
+        try:
+            beds = recipe.get("beds")
+            if beds is None:  # stopped while the beds settled, before any run: settled (the rest) now
+                with Executor("serial") as ex:
+                    beds = _sweep_beds(plans, out_dir, ex)
+                _write_recipe(out_dir, {**{k: v for k, v in recipe.items() if k != "digest"}, "beds": beds})
+            missing = [bed for bed in beds.values() if not os.path.isfile(bed)]
+            if missing:
+                raise DamagedFileError(f"{missing[0]}: a bed the sweep's runs ran on is gone; run the sweep again")
+            tasks = _sweep_tasks(text, base_dir, points, plans, out_dir, beds)
+            for done, task in enumerate(tasks, 1):
+                results.append(_finish_replica(task))
+                _report(results[-1], task["label"], done, len(tasks))
+        except (KeyboardInterrupt, RunInterrupted) as stop:
+            raise _replicas_stopped(stop, out_dir, "the sweep", "its table") from None
+        return _sweep_report(plan, out_dir, grid, tasks, results, text, bool(recipe["plot"]))
+
+
+def _sweep_report(
+    plan: RunPlan, out_dir: str, grid: dict, tasks: list[dict], results: list[dict], text: str, plot: bool
+) -> dict:
+    """A sweep's table of its runs' results, written as study.json, study.csv and plots; its report."""
+    from .plots import plot_table
+
+    columns: tuple[str, ...] = (
+        "steady_state",
+        "slip",
+        "travel",
+        "sinkage",
+        "drawbar_pull",
+        "driving_torque",
+        "wall_time",
+    )
+    if plan.rover is not None:  # drive controllers side by side
+        columns = (
             "steady_state",
             "slip",
             "travel",
+            "forward_speed",
             "sinkage",
-            "drawbar_pull",
-            "driving_torque",
+            "net_traction",
+            "net_traction_over_weight",
+            "power",
+            "energy_per_metre",
+            "time_immobile",
+            "stuck",
+            "stalled",
             "wall_time",
         )
-        if plan.rover is not None:  # drive controllers side by side
-            columns = (
-                "steady_state",
-                "slip",
-                "travel",
-                "forward_speed",
-                "sinkage",
-                "net_traction",
-                "net_traction_over_weight",
-                "power",
-                "energy_per_metre",
-                "time_immobile",
-                "stuck",
-                "stalled",
-                "wall_time",
-            )
-        rows = []
-        for task, result in zip(tasks, results):
-            row = {
-                **task["point"],
-                "ok": result.get("ok"),
-                "status": result.get("status"),
-                "validity": run_validity(result),
-            }
-            row.update({k: result.get("summary", {}).get(k) for k in columns})
-            if not result.get("ok"):
-                row["error"] = result.get("error")
-            rows.append(row)
-        keys = list(grid) + ["ok", "status", "validity", *columns]
-        swept = {key: unit for key in grid if (unit := key_unit(key)) is not None}  # as cosim/scene.py documents them
-        units = {**METRIC_UNITS, **swept}
-        report = {"kind": "sweep", "grid": grid, "rows": rows, "runs": results, "scene_toml": text}
-        report["units"] = column_units(keys, units)
-        write_json(os.path.join(out_dir, "study.json"), report)
-        log.info("%s", plot_table(rows, keys, report["units"]))
-        _write_csv(os.path.join(out_dir, "study.csv"), rows, keys, units)
-        for r in rows:
-            if r.get("error"):
-                log.warning("failed: %s", r["error"])
-        if plot:
-            from .plots import plot_output
+    rows = []
+    for task, result in zip(tasks, results):
+        row = {
+            **task["point"],
+            "ok": result.get("ok"),
+            "status": result.get("status"),
+            "validity": run_validity(result),
+        }
+        row.update({k: result.get("summary", {}).get(k) for k in columns})
+        if not result.get("ok"):
+            row["error"] = result.get("error")
+        rows.append(row)
+    keys = list(grid) + ["ok", "status", "validity", *columns]
+    swept = {key: unit for key in grid if (unit := key_unit(key)) is not None}  # as cosim/scene.py documents them
+    units = {**METRIC_UNITS, **swept}
+    table_units = column_units(keys, units)
+    report = {"kind": "sweep", "grid": grid, "rows": rows, "runs": results, "scene_toml": text, "units": table_units}
+    write_json(os.path.join(out_dir, "study.json"), report)
+    log.info("%s", plot_table(rows, keys, table_units))
+    _write_csv(os.path.join(out_dir, "study.csv"), rows, keys, units)
+    for r in rows:
+        if r.get("error"):
+            log.warning("failed: %s", r["error"])
+    if plot:
+        from .plots import plot_output
 
-            try:
-                log.info("plots: %s", ", ".join(plot_output(out_dir)))
-            except ArgumentError as error:  # no results.h5 under out_dir: every run failed
-                log.warning("%s", error)
-        return report
+        try:
+            log.info("plots: %s", ", ".join(plot_output(out_dir)))
+        except ArgumentError as error:  # no results.h5 under out_dir: every run failed
+            log.warning("%s", error)
+    return report
 
 
 # ------------------------------------------------------------------------------------

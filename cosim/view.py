@@ -263,9 +263,8 @@ FPS_RANGE = (1, 120)
 """Movie frames per second a view takes [1/s]: players handle these."""
 DPI_RANGE = (10, 600)
 """Pixels per inch of a 10 inch wide frame [-]: up to 6000 pixels wide (a frame of about 0.3 GB in memory)."""
-FRAME_NAME = re.compile(r"frame_\d{4,}\.png|tmp\w+\.png|\.frame_\d{4,}\.png\.[\w-]+-\d+\.[a-z0-9_]{8}\.png")
-"""The name of one PNG of a folder of frames (or of one a killed view left half-written: soil.files.atomic_path's
-.frame_NNNN.png.HOST-PID.XXXXXXXX.png, or tmpXXXXXXXX.png of an older version)."""
+FRAME_NAME = re.compile(r"frame_\d{4,}\.png|tmp\w+\.png")
+"""The name of one PNG of a folder of frames (or of one a killed view left half-written: soil.files.atomic_path)."""
 
 
 def render(

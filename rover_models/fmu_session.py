@@ -9,6 +9,7 @@ cosim.fmu_controller build on FmuSession.
 from __future__ import annotations
 
 import contextlib
+import logging
 import os
 import shutil
 import signal
@@ -26,6 +27,8 @@ from fmpy.fmi1 import FMICallException
 from soil.errors import InputError, RegolithError
 
 _DISCARD, _ERROR = 2, 3
+
+log = logging.getLogger(__name__)
 
 
 class FmuError(InputError, ValueError):
@@ -249,6 +252,8 @@ class FmuSession:
         """The fmpy slave (an FMU2Slave or FMU3Slave); None before instantiation and after close()."""
         self._unzipdir: str | None = None
         self._initializing = False
+        self.failed = False
+        """Whether the FMU answered Error or Fatal (FmuStepError): close() then frees it without terminating."""
 
     def _listing(self) -> str:
         return "; ".join(f"{v.name} ({v.causality}, {v.type})" for v in self.md.modelVariables)
@@ -282,6 +287,7 @@ class FmuSession:
         except FMICallException as err:
             retryable = err.status == _DISCARD or (self.retry_on_error and err.status == _ERROR)
             if not retryable:  # Error (not retried) or Fatal: the FMU failed; a smaller step would not help
+                self.failed = True
                 raise FmuStepError(f"{self.path}: at t={t:g} s (H={h:g} s): {err}") from err
             if not self.can_vary_step:
                 raise FmuStepError(
@@ -340,11 +346,17 @@ class FmuSession:
                 self.fmu.freeFMUState(state)
 
     def close(self) -> None:
-        """Terminate and free the FMU instance, remove the unpacked files."""
+        """Terminate and free the FMU instance, remove the unpacked files. An FMU that failed (answered Error
+        or Fatal) is only freed: FMI allows no terminate after Error, no call but free after Fatal, and
+        what it answered would hide why it stopped."""
         if self.fmu is not None:
             try:
-                self._ready()
-                self.fmu.terminate()
+                if not self.failed:
+                    with fmu_call(self.path, "terminating"):
+                        self._ready()
+                        self.fmu.terminate()
+            except FmuStepError as error:  # said, not raised: the run's own end, or its error, is what matters
+                log.warning("%s", error)
             finally:
                 self.fmu.freeInstance()
                 self.fmu = None

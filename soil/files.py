@@ -4,8 +4,6 @@ from __future__ import annotations
 
 import errno
 import os
-import re
-import socket
 import tempfile
 from contextlib import contextmanager
 
@@ -30,9 +28,8 @@ def atomic_path(path, suffix: str = ".tmp", replace: bool = True):
     open(path, "w") does (replacing the link left its file stale and the link gone). A caller that writes
     a file of one kind (an export, a picture) checks first what that file is: output_target.
 
-    The temporary is .NAME.HOST-PID.XXXXXXXX`suffix` beside the file NAME (temporary_pattern): a write
-    killed with SIGKILL, which no handler sees, leaves it; the next write to NAME removes those that a
-    process of this host that has ended made (remove_stale_temporaries).
+    A write killed with SIGKILL (which no handler sees) leaves its temporary, tmpXXXXXXXX`suffix`, beside
+    the file; nothing removes it, as nothing can tell it from a live writer's on a shared file system.
     """
 
     path = os.fspath(path)
@@ -45,11 +42,9 @@ def atomic_path(path, suffix: str = ".tmp", replace: bool = True):
     try:
         folder = os.path.dirname(os.path.abspath(written))
         created = make_folders(folder)
-        name = os.path.basename(written)
-        remove_stale_temporaries(folder, name, suffix)
         for attempt in range(2):
             try:
-                handle, temporary = tempfile.mkstemp(suffix=suffix, prefix=_temporary_prefix(name), dir=folder)
+                handle, temporary = tempfile.mkstemp(suffix=suffix, dir=folder)
                 break
             except FileNotFoundError as error:  # another process's failed write removed the folder it made
                 if attempt:
@@ -79,58 +74,6 @@ def atomic_path(path, suffix: str = ".tmp", replace: bool = True):
         if isinstance(error, OSError) and (not error.filename or error.filename == temporary):
             raise with_path(error, path, replace=temporary) from error  # a full disk while writing: name the file
         raise
-
-
-def _host() -> str:
-    """This machine's name as a temporary's name holds it (letters, digits, '_' and '-'; at most 32)."""
-    return re.sub(r"[^\w-]", "_", socket.gethostname() or "host")[:32]
-
-
-def _temporary_prefix(name: str) -> str:
-    """.NAME.HOST-PID. (NAME cut to 100 characters: the whole name stays within a file system's 255)."""
-    return f".{name[:100]}.{_host()}-{os.getpid()}."
-
-
-def temporary_pattern(name: str, suffix: str) -> re.Pattern:
-    """The names atomic_path gives the temporaries of the file NAME (written with `suffix`): the host and
-    the process that made one are its groups 'host' and 'pid'."""
-    return re.compile(rf"\.{re.escape(name[:100])}\.(?P<host>[\w-]+)-(?P<pid>\d+)\.[a-z0-9_]{{8}}{re.escape(suffix)}")
-
-
-def remove_stale_temporaries(folder: str, name: str, suffix: str) -> list[str]:
-    """Remove the temporaries of the file NAME in `folder` (temporary_pattern) that a process of this host
-    that no longer runs made (killed midway: SIGKILL, a power cut); returns those removed. A temporary of a
-    process that still runs, of another host (a shared file system: its process cannot be seen from here)
-    or of a process id this host gave again since, is left: removed is only what no live writer holds."""
-    pattern = temporary_pattern(name, suffix)
-    try:
-        entries = os.listdir(folder)
-    except OSError:
-        return []
-    host, removed = _host(), []
-    for entry in entries:
-        match = pattern.fullmatch(entry)
-        if match is None or match["host"] != host or _running(int(match["pid"])):
-            continue
-        try:
-            os.remove(os.path.join(folder, entry))
-        except OSError:  # removed meanwhile by another write, or not ours to remove after all
-            continue
-        removed.append(entry)
-    return removed
-
-
-def _running(pid: int) -> bool:
-    """Whether a process `pid` runs on this host (one of another user's too; pid 0 or ours: True)."""
-    if pid <= 0 or pid == os.getpid():
-        return True
-    try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
-        return False
-    except OSError:  # PermissionError: it runs, as another user
-        return True
-    return True
 
 
 def output_target(path, suffixes: tuple[str, ...], inputs=(), what: str = "--out") -> str:

@@ -405,3 +405,81 @@ def test_a_run_that_fails_at_its_start_leaves_the_batch_and_the_others_run_as_al
         assert not failed["ok"] and failed["error"].startswith("OutputExistsError"), failed.get("error")
         assert ran["ok"], ran.get("error")
         assert_same_run(runs_alone[1], fresh)
+
+
+def test_a_sweep_stopped_in_its_first_point_is_finished_by_one_resume(tmp_path, tiny_bed, runs_alone, monkeypatch):
+    """A sweep (over run.order_seed, one run per point) stopped in its first point's run: the second never
+    began, and nothing finished the sweep but running it all again (`cosim resume OUT`: 'not a run folder').
+    Now the stop says how to finish it, and `cosim resume OUT` resumes the first, runs the second, each bit
+    for bit its run alone, and writes the sweep's table; an edited recipe is refused, nothing touched."""
+    import cosim.launch
+    from cosim.cli import main
+    from cosim.study import SWEEP_FILE, sweep
+    from soil.errors import DamagedFileError
+
+    run_alone = cosim.launch.run_plan
+
+    def stopped_in_the_first(plan, out_dir, **kwargs):
+        def stop(runner):
+            if runner.system.coupler.step_count == 60:
+                runner.stop_requested = True
+
+        hooks = {"step": stop} if os.path.basename(out_dir).startswith("000_") else None
+        return run_alone(plan, out_dir, hooks=hooks, **kwargs)
+
+    monkeypatch.setattr(cosim.launch, "run_plan", stopped_in_the_first)
+    out = tmp_path / "sweep"
+    params = ["run.order_seed=" + ",".join(map(str, SEEDS))]
+    with pytest.raises(KeyboardInterrupt, match=f"SIGINT: the sweep stopped .*cosim resume {out}"):
+        sweep(seed_plan(tmp_path, tiny_bed, SEEDS[0]), str(out), params, executor="serial", plot=False)
+    points = [out / f"{k:03d}_order_seed={seed}" for k, seed in enumerate(SEEDS)]
+    assert (points[0] / "checkpoint.npz").is_file() and not points[1].exists() and not (out / "study.json").exists()
+    monkeypatch.setattr(cosim.launch, "run_plan", run_alone)
+    assert main(["resume", str(out)]) == 6  # unsteady, as alone: the tiny drive is too short to judge
+    for point, alone in zip(points, runs_alone):
+        assert_same_run(alone, str(point))
+    table = json.loads((out / "study.json").read_text())
+    assert [row["run.order_seed"] for row in table["rows"]] == list(SEEDS)
+    assert [row["status"] for row in table["rows"]] == ["unsteady"] * len(SEEDS)
+    recipe = out / SWEEP_FILE
+    recipe.write_text(recipe.read_text().replace('"plot": false', '"plot": true'))
+    before = (out / "study.json").read_bytes()
+    with pytest.raises(DamagedFileError, match="no longer matches its digest"):
+        cosim.study.resume_sweep(str(out))
+    assert (out / "study.json").read_bytes() == before
+
+
+def test_a_slip_study_stopped_in_a_run_is_finished_by_one_resume(tmp_path, tiny_bed, monkeypatch):
+    """A slip study (one slip, two replicas, one by one) stopped in its first run: its table was never
+    written, and only `--from-runs` over the runs that had finished, or the whole study again, followed.
+    Now `cosim resume OUT` resumes the stopped run (bit for bit its run uninterrupted), runs the replica
+    that never began, and writes the table as the uninterrupted study writes it."""
+    import cosim.launch
+    from cosim.cli import main
+    from cosim.study import SLIP_FILE, slip_study
+
+    run_alone = cosim.launch.run_plan
+
+    def stopped_in_the_first(plan, out_dir, **kwargs):
+        def stop(runner):
+            if runner.system.coupler.step_count == 60:
+                runner.stop_requested = True
+
+        hooks = {"step": stop} if out_dir.endswith("replica_000") else None
+        return run_alone(plan, out_dir, hooks=hooks, **kwargs)
+
+    monkeypatch.setattr(cosim.launch, "run_plan", stopped_in_the_first)
+    out = tmp_path / "slip"
+    with pytest.raises(KeyboardInterrupt, match=f"SIGINT: the slip study stopped .*cosim resume {out}"):
+        slip_study(seed_plan(tmp_path, tiny_bed, 0), str(out), [0.2], replicas=2, executor="serial", plot=False)
+    runs = [out / "slip_+0.200" / f"replica_{k:03d}" for k in range(2)]
+    assert (runs[0] / "checkpoint.npz").is_file() and not runs[1].exists() and (out / SLIP_FILE).is_file()
+    monkeypatch.setattr(cosim.launch, "run_plan", run_alone)
+    assert main(["resume", str(out)]) in (0, 6)  # the tiny drive may be too short to judge steady
+    reference = tmp_path / "reference"  # replica 0 run alone, uninterrupted: order seed 0 at slip 0.2
+    alone = [f'bed.bed_file="{tiny_bed}"', "run.order_seed=0", 'testbed.mode="slip"', "testbed.slip=0.2"]
+    run_alone(load_plan(write_tiny(tmp_path), alone), str(reference))
+    assert_same_run(str(reference), str(runs[0]))
+    table = json.loads((out / "study.json").read_text())
+    assert [row["replicas"] for row in table["rows"]] == [2] and table["rows"][0]["failed"] == 0
+    assert {r["status"] for r in table["runs"]} <= {"complete", "unsteady"}

@@ -644,51 +644,6 @@ def test_view_refuses_a_file_written_as_a_folder_before_it_draws(tmp_path, monke
         assert picture.read_bytes() == b"a picture" and sorted(os.listdir(tmp_path)) == ["picture.png", "run"]
 
 
-def test_a_killed_write_leaves_a_temporary_of_its_own_name_that_the_next_write_removes(tmp_path):
-    """A write killed with SIGKILL (no handler runs) left `tmpXXXX.vtkhdf.tmp` beside the export, for good.
-    Its temporary is now named after the file, the host and the process (.NAME.HOST-PID.XXXXXXXX.SUFFIX),
-    and the next write to NAME removes those of ended processes of this host; the temporary of a process
-    that still runs, of another host or of another file, and any other file, are left."""
-    import signal
-    import subprocess
-    import sys
-
-    from soil.files import atomic_path, temporary_pattern
-
-    target = tmp_path / "x.vtkhdf"
-    killed = subprocess.Popen(
-        [
-            sys.executable,
-            "-c",
-            "import os, signal, sys\n"
-            "from soil.files import atomic_path\n"
-            "with atomic_path(sys.argv[1], '.vtkhdf.tmp') as temporary:\n"
-            "    open(temporary, 'w').write('half an export')\n"
-            "    os.kill(os.getpid(), signal.SIGKILL)\n",
-            str(target),
-        ],
-        cwd=os.path.dirname(os.path.dirname(os.path.abspath(__file__))),
-    )
-    assert killed.wait() == -signal.SIGKILL
-    (stale,) = os.listdir(tmp_path)
-    pattern = temporary_pattern("x.vtkhdf", ".vtkhdf.tmp")
-    match = pattern.fullmatch(stale)
-    assert stale.startswith(".x.vtkhdf.") and match and match["pid"] == str(killed.pid), stale
-    host, dead = match["host"], killed.pid
-    kept = [
-        f".x.vtkhdf.{host}-{os.getpid()}.abcdefgh.vtkhdf.tmp",  # a process that runs: this one
-        f".x.vtkhdf.{host}x-{dead}.abcdefgh.vtkhdf.tmp",  # another host's
-        f".y.vtkhdf.{host}-{dead}.abcdefgh.vtkhdf.tmp",  # another file's
-        "tmpabcdefgh.vtkhdf.tmp",  # not recognisably ours
-    ]
-    for name in kept:
-        (tmp_path / name).write_text("someone's")
-    with atomic_path(target, ".vtkhdf.tmp") as temporary:
-        open(temporary, "w").write("whole")
-    assert target.read_text() == "whole"
-    assert sorted(os.listdir(tmp_path)) == sorted(["x.vtkhdf", *kept])
-
-
 def test_plot_of_an_hdf5_file_that_is_not_a_results_file_says_so(tmp_path, capsys):
     """`cosim plot` of an HDF5 results.h5 that another program wrote said "the results file is damaged
     (... object 'wheels' doesn't exist)"; it says what `cosim view` and `cosim export` say."""

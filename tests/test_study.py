@@ -1159,7 +1159,11 @@ def test_a_table_from_runs_reads_every_run_first_and_counts_each_replica_once(tm
         for k, seed in enumerate(seeds):
             run = tmp_path / name / "slip_+0.200" / f"replica_{k:03d}"
             run.mkdir(parents=True)
-            (run / "scene.toml").write_text(text.replace("[run]\n", f"[run]\norder_seed = {seed}\n", 1) + extra)
+            # as the study writes it: its overrides (slip mode, slip, order seed) in the runs' scene.toml
+            ran = text.replace("[run]\n", f"[run]\norder_seed = {seed}\n", 1).replace(
+                "[testbed]\n", '[testbed]\nmode = "slip"\nslip = 0.2\n', 1
+            )
+            (run / "scene.toml").write_text(ran + extra)
             summary = {"steady_state": "steady", "dp_over_w": -0.05 + 0.01 * seed, "slip": 0.2}
             record = {"status": status, "run_id": f"{name}{k}", "bed": {"path": str(bed)}, "summary": summary}
             (run / "run.json").write_text(json.dumps(record))
@@ -1194,7 +1198,7 @@ def test_a_table_from_runs_reads_every_run_first_and_counts_each_replica_once(tm
     refused(["a", "b"], r"replica_001: not a slip run's folder")
 
     part("stopped", [7], status="interrupted")  # its summary of part of the drive says 'steady'
-    out = tmp_path / "t2"
+    out = tmp_path / "t2"  # the scene given: the study's, a free carriage (its runs' slip mode is the study's)
     assert (
         main(["study", "slip", scene, "--from-runs", str(tmp_path / "a"), str(tmp_path / "stopped"), "--out", str(out)])
         == 6
