@@ -130,7 +130,16 @@ def cmd_resume(args) -> int:
     from .folders import SCENE_FILE
     from .launch import resume
     from .scene import load_scene
-    from .study import REPLICAS_FILE, SLIP_FILE, SWEEP_FILE, resume_replicas, resume_slip_study, resume_sweep
+    from .study import (
+        PRECISION_FILE,
+        REPLICAS_FILE,
+        SLIP_FILE,
+        SWEEP_FILE,
+        resume_precision_study,
+        resume_replicas,
+        resume_slip_study,
+        resume_sweep,
+    )
 
     if os.path.isfile(os.path.join(args.out, REPLICAS_FILE)):  # a set of replicas (cosim run --replicas K)
         report = resume_replicas(args.out)
@@ -142,6 +151,11 @@ def cmd_resume(args) -> int:
         report = resume_slip_study(args.out)
         print(report["text"])
         return _study_exit(report["runs"])
+    if os.path.isfile(os.path.join(args.out, PRECISION_FILE)):  # a precision study (cosim study precision)
+        report = resume_precision_study(args.out)
+        failed = sum(1 for r in report["replicas"] if not r.get("ok"))
+        print(f"study written to {args.out} ({failed} failed replica(s); resumed: each run's wall time its own)")
+        return _study_exit(report["replicas"])
     _refuse_replicas_without_recipe(args.out)
     result = resume(args.out, progress=not args.no_progress)
     try:  # the run's scene as it ran (resume read it): SCM alone takes its error bars over beds
@@ -153,22 +167,31 @@ def cmd_resume(args) -> int:
 
 
 def _refuse_replicas_without_recipe(out: str) -> None:
-    """A set of replicas made before they kept their recipe (REPLICAS_FILE) has no scene of its own to resume:
-    ArgumentError naming its replicas' folders, each of which resumes alone."""
+    """A set of replicas, a sweep or a slip study made before it kept its recipe (cosim.study.RECIPES: its
+    file missing) has no scene of its own to resume: ArgumentError naming its runs' folders, each of which
+    resumes alone."""
     import glob
 
     from soil.errors import ArgumentError
 
     from .folders import SCENE_FILE
 
-    replicas = sorted(glob.glob(os.path.join(out, "replica_*", SCENE_FILE)))
-    if replicas and not os.path.isfile(os.path.join(out, SCENE_FILE)):
-        folders = [os.path.dirname(path) for path in replicas]
-        raise ArgumentError(
-            f"{out!r} holds replicas ({', '.join(os.path.basename(f) for f in folders)}) without the recipe that "
-            f"resumes them together (it predates it): resume each (cosim resume {folders[0]}), or run the replicas "
-            "again"
-        )
+    if os.path.isfile(os.path.join(out, SCENE_FILE)):  # a run's own folder
+        return
+    for what, pattern in (
+        ("replicas", os.path.join("replica_*", SCENE_FILE)),
+        ("a sweep's runs", os.path.join("[0-9][0-9][0-9]_*", SCENE_FILE)),
+        ("a slip study's runs", os.path.join("slip_*", "replica_*", SCENE_FILE)),
+        ("a precision study's runs", os.path.join("*", "replica_*", SCENE_FILE)),
+    ):
+        runs = sorted(glob.glob(os.path.join(out, pattern)))
+        if runs:
+            folders = [os.path.relpath(os.path.dirname(path), out) for path in runs]
+            shown = ", ".join(folders[:4]) + (", ..." if len(folders) > 4 else "")
+            raise ArgumentError(
+                f"{out!r} holds {what} ({shown}) without the recipe that resumes them together (it predates it, "
+                f"or was removed): resume each (cosim resume {os.path.join(out, folders[0])}), or run them again"
+            )
 
 
 SUMMARY_KEYS = (
@@ -1211,7 +1234,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(func=cmd_run)
 
     p = sub.add_parser(
-        "resume", help="continue an interrupted run, set of replicas, sweep or slip study from its checkpoints"
+        "resume", help="continue an interrupted run, set of replicas, sweep or study from its checkpoints"
     )
     p.add_argument("out", help="the run's output folder")
     p.add_argument("--no-progress", action="store_true")

@@ -969,7 +969,8 @@ def replica_run(
                 results = _run_tasks(ex, tasks, batched)
             except (KeyboardInterrupt, RunInterrupted) as stop:
                 raise _replicas_stopped(stop, out_dir) from None
-        return _ensemble_report(plan, out_dir, results, vary, soils, beds, bool(batched))
+        with _said_stopped(out_dir):  # a stop while the ensemble is written: a resume writes it
+            return _ensemble_report(plan, out_dir, results, vary, soils, beds, bool(batched))
 
 
 REPLICAS_FILE = "replicas.json"  # RECIPES["replicas"]
@@ -1005,6 +1006,15 @@ def _replicas_stopped(
     )
     error.signal = name  # type: ignore[attr-defined]
     return error
+
+
+@contextlib.contextmanager
+def _said_stopped(out_dir: str, what: str = "the replicas", writes: str = "the ensemble") -> Iterator[None]:
+    """A stop (Ctrl-C, SIGTERM) in the block raised as _replicas_stopped says it: how to finish the set."""
+    try:
+        yield
+    except (KeyboardInterrupt, RunInterrupted) as stop:
+        raise _replicas_stopped(stop, out_dir, what, writes) from None
 
 
 def _ensemble_report(
@@ -1068,6 +1078,10 @@ def _recipe_digest(recipe: dict) -> str:
 RECIPES = {
     "replicas": ("replicas.json", ("out_dir", "scene_toml", "base_dir", "replicas", "vary", "batched", "soils")),
     "sweep": ("sweep.json", ("out_dir", "scene_toml", "base_dir", "params", "plot")),
+    "precision": (
+        "precision_study.json",
+        ("out_dir", "scene_toml", "base_dir", "replicas", "precisions", "batched", "plot"),
+    ),
     "slip": (
         "slip_study.json",
         ("out_dir", "scene_toml", "base_dir", "slips", "replicas", "vary", "batched", "soils", "plot"),
@@ -1086,7 +1100,7 @@ def _read_recipe(out_dir: str, kind: str = "replicas") -> dict:
     made; DamagedFileError or ArgumentError naming the file or the folder."""
     name, keys = RECIPES[kind]
     path = os.path.join(out_dir, name)
-    what = {"replicas": "set of replicas", "sweep": "sweep", "slip": "slip study"}[kind]
+    what = {"replicas": "set of replicas", "sweep": "sweep", "slip": "slip study", "precision": "precision study"}[kind]
     try:
         with open(path) as f:
             recipe = json.load(f)
@@ -1137,7 +1151,8 @@ def resume_replicas(out_dir: str) -> dict:
         except (KeyboardInterrupt, RunInterrupted) as stop:
             raise _replicas_stopped(stop, out_dir) from None
         # its runs went on one at a time here, alone (each bit for bit as in a batch): 'resumed'
-        return _ensemble_report(plan, out_dir, results, vary, soils, beds, bool(recipe["batched"]), resumed=True)
+        with _said_stopped(out_dir):
+            return _ensemble_report(plan, out_dir, results, vary, soils, beds, bool(recipe["batched"]), resumed=True)
 
 
 def _finish_replica(task: dict) -> dict:
@@ -1209,83 +1224,153 @@ def precision_study(
     tasks_run = Executor("serial" if batched else executor, scheduler, workers)  # refused before the folder is made
     with prepare_study(out_dir, overwrite):
         text = plan.scene.to_toml()
-        with tasks_run as ex:
-            bed = _shared_bed(plan, out_dir, ex)
-            tasks = [
-                {
-                    "scene_toml": text,
-                    "out_dir": os.path.join(out_dir, precision, f"replica_{k:03d}"),
-                    "overrides": {
-                        "scene.precision": precision,
-                        "run.order_seed": replica_order_seed(plan, k),
-                        **_bed_override(bed),
-                    },
-                    "label": f"{precision}/replica_{k:03d}",
-                    "precision": precision,
-                    "replica": k,
-                    "base_dir": plan.scene.base_dir,
-                }
-                for precision in precisions
-                for k in range(replicas)
-            ]
-            started = time.perf_counter()
-            if batched:  # one batch per precision, in the tasks' order
-                results = [
-                    r for p in precisions for r in _run_tasks(ex, [t for t in tasks if t["precision"] == p], True)
-                ]
-            else:
-                results = ex.map(run_task, tasks)
-            wall = time.perf_counter() - started
-        rows = []
-        for precision in precisions:
-            members = [r for t, r in zip(tasks, results) if t["precision"] == precision]
-            stats = ensemble_table(members, plan)
-            rows.append(
-                {
-                    "precision": precision,
-                    "replicas": stats["replicas"],
-                    "steady": stats["steady"],
-                    "failed": sum(1 for r in members if not r.get("ok")),
-                    "validity": stats["validity"],
-                    **_flat(stats),
-                    **{  # the paper's question, as the printed table answers it (None: under two replicas)
-                        f"{m}_deterministic": row.get("deterministic") if row.get("n", 0) >= 2 else None
-                        for m, row in stats["metrics"].items()
-                        if m != "wall_time"
-                    },
-                    "stats": stats,
-                }
-            )
-        for task, result in zip(tasks, results):
-            result.update(precision=task["precision"], replica=task["replica"])
-        report = {
+        recipe = {
             "kind": "precision",
-            "batched": bool(batched),
-            "replicas": results,
-            "rows": rows,
-            "wall_time": wall,
-            "bed_file": bed,
+            "out_dir": out_dir,
             "scene_toml": text,
+            "base_dir": plan.scene.base_dir,
+            "replicas": replicas,
+            "precisions": precisions,
+            "batched": bool(batched),
+            "plot": bool(plot),
         }
-        keys = ["precision", "replicas", "steady", "failed", "validity"] + [
-            f"{m}_{k}" for m in ("wall_time",) + metrics.REPLICA_METRICS for k in ("mean", "std", "ci95", "min", "max")
-        ]
-        keys += [f"{m}_deterministic" for m in metrics.REPLICA_METRICS]
-        units = {**METRIC_UNITS, **COUNT_UNITS}
-        report["units"] = {**column_units(keys, units), "wall_time": "s"}  # the rows' columns
-        write_json(os.path.join(out_dir, "study.json"), report)
-        _write_csv(os.path.join(out_dir, "study.csv"), rows, keys, units)
-        for row in rows:
-            log.info("%s", _ensemble_text(row["stats"], f"precision {row['precision']}"))
-        if plot:
-            from .plots import plot_output, plot_scatter
-
+        _write_recipe(out_dir, recipe)  # before the bed: `cosim resume` finishes the study
+        with tasks_run as ex:
             try:
-                written = plot_output(out_dir) + [plot_scatter(out_dir, rows, "precision")]
-                log.info("plots: %s", ", ".join(written))
-            except ArgumentError as error:  # no results.h5 under out_dir: every run failed
-                log.warning("%s", error)
-        return report
+                bed = _shared_bed(plan, out_dir, ex)
+                _write_recipe(out_dir, {**recipe, "bed": bed})  # the bed the runs use, never settled again
+                tasks = _precision_tasks(plan, text, out_dir, precisions, replicas, bed)
+                started = time.perf_counter()
+                if batched:  # one batch per precision, in the tasks' order
+                    results = [
+                        r for p in precisions for r in _run_tasks(ex, [t for t in tasks if t["precision"] == p], True)
+                    ]
+                else:
+                    results = ex.map(run_task, tasks)
+                wall = time.perf_counter() - started
+            except (KeyboardInterrupt, RunInterrupted) as stop:
+                raise _replicas_stopped(stop, out_dir, "the precision study", "its table") from None
+        with _said_stopped(out_dir, "the precision study", "its table"):
+            return _precision_report(plan, out_dir, precisions, tasks, results, wall, bed, text, plot, bool(batched))
+
+
+PRECISION_FILE = RECIPES["precision"][0]
+"""A precision study's recipe (its folder, scene as run, base folder, replicas, precisions, batching,
+plotting, then its bed once settled, and a digest of it all), written before its bed settles: `cosim resume
+OUT` finishes what an interruption left and writes the table (resume_precision_study)."""
+
+
+def _precision_tasks(plan: RunPlan, text: str, out_dir: str, precisions: list[str], replicas: int, bed) -> list[dict]:
+    """A run task per precision and replica (run_task's form, with its 'precision' and 'replica')."""
+    return [
+        {
+            "scene_toml": text,
+            "out_dir": os.path.join(out_dir, precision, f"replica_{k:03d}"),
+            "overrides": {
+                "scene.precision": precision,
+                "run.order_seed": replica_order_seed(plan, k),
+                **_bed_override(bed),
+            },
+            "label": f"{precision}/replica_{k:03d}",
+            "precision": precision,
+            "replica": k,
+            "base_dir": plan.scene.base_dir,
+        }
+        for precision in precisions
+        for k in range(replicas)
+    ]
+
+
+def resume_precision_study(out_dir: str) -> dict:
+    """Finish a precision study an interruption (or a kill) left (its PRECISION_FILE), as resume_replicas
+    finishes a set of replicas (its bed settled if it stopped while it settled; each run taken, resumed or
+    run, one at a time in this process), then its table written as precision_study writes it, marked
+    `resumed`: each run's wall time is its own (a resumed run's over its sessions), no longer a batch's,
+    and the study's wall time is the resume's."""
+    out_dir = os.path.abspath(out_dir)
+    recipe = _read_recipe(out_dir, "precision")
+    text, replicas, precisions = recipe["scene_toml"], int(recipe["replicas"]), [str(p) for p in recipe["precisions"]]
+    plan = resolve(scene_from_text(text, base_dir=recipe["base_dir"]))  # its errors name the key
+    results = []
+    with RunFolder(out_dir).locked():
+        try:
+            if "bed" not in recipe:  # stopped while the bed settled, before any run: settled now
+                with Executor("serial") as ex:
+                    bed = _shared_bed(plan, out_dir, ex)
+                _write_recipe(out_dir, {**{k: v for k, v in recipe.items() if k != "digest"}, "bed": bed})
+            else:
+                bed = recipe["bed"]
+            if bed is not None and not os.path.isfile(bed):
+                raise DamagedFileError(f"{bed}: the bed the precision study's runs ran on is gone; run it again")
+            tasks = _precision_tasks(plan, text, out_dir, precisions, replicas, bed)
+            started = time.perf_counter()
+            for done, task in enumerate(tasks, 1):
+                results.append(_finish_replica(task))
+                _report(results[-1], task["label"], done, len(tasks))
+            wall = time.perf_counter() - started
+        except (KeyboardInterrupt, RunInterrupted) as stop:
+            raise _replicas_stopped(stop, out_dir, "the precision study", "its table") from None
+        with _said_stopped(out_dir, "the precision study", "its table"):
+            return _precision_report(
+                plan, out_dir, precisions, tasks, results, wall, bed, text, bool(recipe["plot"]), False, resumed=True
+            )
+
+
+def _precision_report(
+    plan, out_dir, precisions, tasks, results, wall, bed, text, plot, batched, resumed: bool = False
+) -> dict:
+    """A precision study's table (study.json, study.csv, plots) of its tasks' results; its report."""
+    rows = []
+    for precision in precisions:
+        members = [r for t, r in zip(tasks, results) if t["precision"] == precision]
+        stats = ensemble_table(members, plan)
+        rows.append(
+            {
+                "precision": precision,
+                "replicas": stats["replicas"],
+                "steady": stats["steady"],
+                "failed": sum(1 for r in members if not r.get("ok")),
+                "validity": stats["validity"],
+                **_flat(stats),
+                **{  # the paper's question, as the printed table answers it (None: under two replicas)
+                    f"{m}_deterministic": row.get("deterministic") if row.get("n", 0) >= 2 else None
+                    for m, row in stats["metrics"].items()
+                    if m != "wall_time"
+                },
+                "stats": stats,
+            }
+        )
+    for task, result in zip(tasks, results):
+        result.update(precision=task["precision"], replica=task["replica"])
+    report = {
+        "kind": "precision",
+        "batched": bool(batched),
+        "resumed": resumed,
+        "replicas": results,
+        "rows": rows,
+        "wall_time": wall,
+        "bed_file": bed,
+        "scene_toml": text,
+    }
+    keys = ["precision", "replicas", "steady", "failed", "validity"] + [
+        f"{m}_{k}" for m in ("wall_time",) + metrics.REPLICA_METRICS for k in ("mean", "std", "ci95", "min", "max")
+    ]
+    keys += [f"{m}_deterministic" for m in metrics.REPLICA_METRICS]
+    units = {**METRIC_UNITS, **COUNT_UNITS}
+    report["units"] = {**column_units(keys, units), "wall_time": "s"}  # the rows' columns
+    write_json(os.path.join(out_dir, "study.json"), report)
+    _write_csv(os.path.join(out_dir, "study.csv"), rows, keys, units)
+    for row in rows:
+        log.info("%s", _ensemble_text(row["stats"], f"precision {row['precision']}"))
+    if plot:
+        from .plots import plot_output, plot_scatter
+
+        try:
+            written = plot_output(out_dir) + [plot_scatter(out_dir, rows, "precision")]
+            log.info("plots: %s", ", ".join(written))
+        except ArgumentError as error:  # no results.h5 under out_dir: every run failed
+            log.warning("%s", error)
+    return report
 
 
 # ------------------------------------------------------------------------------------
@@ -1364,7 +1449,8 @@ def slip_study(
                 results = _run_tasks(ex, tasks, batched)
             except (KeyboardInterrupt, RunInterrupted) as stop:
                 raise _replicas_stopped(stop, out_dir, "the slip study", "its table") from None
-        return _slip_study_report(plan, out_dir, slips, tasks, results, text, plot, vary, beds, soils[:replicas])
+        with _said_stopped(out_dir, "the slip study", "its table"):
+            return _slip_study_report(plan, out_dir, slips, tasks, results, text, plot, vary, beds, soils[:replicas])
 
 
 SLIP_FILE = RECIPES["slip"][0]
@@ -1429,9 +1515,10 @@ def resume_slip_study(out_dir: str) -> dict:
                 _report(results[-1], task["label"], done, len(tasks))
         except (KeyboardInterrupt, RunInterrupted) as stop:
             raise _replicas_stopped(stop, out_dir, "the slip study", "its table") from None
-        return _slip_study_report(
-            plan, out_dir, slips, tasks, results, text, bool(recipe["plot"]), vary, beds, soils[:replicas]
-        )
+        with _said_stopped(out_dir, "the slip study", "its table"):
+            return _slip_study_report(
+                plan, out_dir, slips, tasks, results, text, bool(recipe["plot"]), vary, beds, soils[:replicas]
+            )
 
 
 def slip_study_from_runs(
@@ -1986,7 +2073,8 @@ def sweep(
                 results = ex.map(run_task, tasks)
             except (KeyboardInterrupt, RunInterrupted) as stop:
                 raise _replicas_stopped(stop, out_dir, "the sweep", "its table") from None
-        return _sweep_report(plan, out_dir, grid, tasks, results, text, plot)
+        with _said_stopped(out_dir, "the sweep", "its table"):
+            return _sweep_report(plan, out_dir, grid, tasks, results, text, plot)
 
 
 def resume_sweep(out_dir: str) -> dict:
@@ -2016,7 +2104,8 @@ def resume_sweep(out_dir: str) -> dict:
                 _report(results[-1], task["label"], done, len(tasks))
         except (KeyboardInterrupt, RunInterrupted) as stop:
             raise _replicas_stopped(stop, out_dir, "the sweep", "its table") from None
-        return _sweep_report(plan, out_dir, grid, tasks, results, text, bool(recipe["plot"]))
+        with _said_stopped(out_dir, "the sweep", "its table"):
+            return _sweep_report(plan, out_dir, grid, tasks, results, text, bool(recipe["plot"]))
 
 
 def _sweep_report(

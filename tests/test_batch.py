@@ -407,7 +407,9 @@ def test_a_run_that_fails_at_its_start_leaves_the_batch_and_the_others_run_as_al
         assert_same_run(runs_alone[1], fresh)
 
 
-def test_a_sweep_stopped_in_its_first_point_is_finished_by_one_resume(tmp_path, tiny_bed, runs_alone, monkeypatch):
+def test_a_sweep_stopped_in_its_first_point_is_finished_by_one_resume(
+    tmp_path, tiny_bed, runs_alone, monkeypatch, capsys
+):
     """A sweep (over run.order_seed, one run per point) stopped in its first point's run: the second never
     began, and nothing finished the sweep but running it all again (`cosim resume OUT`: 'not a run folder').
     Now the stop says how to finish it, and `cosim resume OUT` resumes the first, runs the second, each bit
@@ -447,6 +449,20 @@ def test_a_sweep_stopped_in_its_first_point_is_finished_by_one_resume(tmp_path, 
     with pytest.raises(DamagedFileError, match="no longer matches its digest"):
         cosim.study.resume_sweep(str(out))
     assert (out / "study.json").read_bytes() == before
+    recipe.write_text(recipe.read_text().replace('"plot": true', '"plot": false'))  # whole again
+
+    def stopped_while_tabulating(*args, **kwargs):
+        raise KeyboardInterrupt
+
+    # a stop while the table is written says how to finish it (it said only "interrupted")
+    monkeypatch.setattr(cosim.study, "_sweep_report", stopped_while_tabulating)
+    with pytest.raises(KeyboardInterrupt, match=f"the sweep stopped .*cosim resume {out}.* writes its table"):
+        cosim.study.resume_sweep(str(out))
+    # a sweep without its recipe (made before it had one) names its runs, each resumable alone
+    recipe.unlink()
+    assert main(["resume", str(out)]) == 2
+    said = capsys.readouterr().err
+    assert f"holds a sweep's runs ({points[0].name}, {points[1].name}) without the recipe" in said, said
 
 
 def test_a_slip_study_stopped_in_a_run_is_finished_by_one_resume(tmp_path, tiny_bed, monkeypatch):
@@ -483,3 +499,35 @@ def test_a_slip_study_stopped_in_a_run_is_finished_by_one_resume(tmp_path, tiny_
     table = json.loads((out / "study.json").read_text())
     assert [row["replicas"] for row in table["rows"]] == [2] and table["rows"][0]["failed"] == 0
     assert {r["status"] for r in table["runs"]} <= {"complete", "unsteady"}
+
+
+def test_a_precision_study_stopped_in_a_run_is_finished_by_one_resume(tmp_path, tiny_bed, runs_alone, monkeypatch):
+    """A precision study (mixed, two replicas, one by one) stopped in its first run: `cosim resume OUT`
+    resumes it and runs the second, each bit for bit its run alone, and writes the table, marked resumed."""
+    import cosim.launch
+    from cosim.cli import main
+    from cosim.study import PRECISION_FILE, precision_study
+
+    run_alone = cosim.launch.run_plan
+
+    def stopped_in_the_first(plan, out_dir, **kwargs):
+        def stop(runner):
+            if runner.system.coupler.step_count == 60:
+                runner.stop_requested = True
+
+        hooks = {"step": stop} if out_dir.endswith("replica_000") else None
+        return run_alone(plan, out_dir, hooks=hooks, **kwargs)
+
+    monkeypatch.setattr(cosim.launch, "run_plan", stopped_in_the_first)
+    out = tmp_path / "precision"
+    plan = seed_plan(tmp_path, tiny_bed, SEEDS[0])
+    with pytest.raises(KeyboardInterrupt, match=f"SIGINT: the precision study stopped .*cosim resume {out}"):
+        precision_study(plan, str(out), replicas=2, precisions=["mixed"], executor="serial", plot=False, batched=False)
+    runs = [out / "mixed" / f"replica_{k:03d}" for k in range(2)]
+    assert (runs[0] / "checkpoint.npz").is_file() and not runs[1].exists() and (out / PRECISION_FILE).is_file()
+    monkeypatch.setattr(cosim.launch, "run_plan", run_alone)
+    assert main(["resume", str(out)]) == 6  # unsteady, as alone: the tiny drive is too short to judge
+    for run, alone in zip(runs, runs_alone):
+        assert_same_run(alone, str(run))
+    table = json.loads((out / "study.json").read_text())
+    assert table["resumed"] and [row["replicas"] for row in table["rows"]] == [2]
