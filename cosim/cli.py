@@ -154,7 +154,10 @@ def cmd_resume(args) -> int:
     if os.path.isfile(os.path.join(args.out, PRECISION_FILE)):  # a precision study (cosim study precision)
         report = resume_precision_study(args.out)
         failed = sum(1 for r in report["replicas"] if not r.get("ok"))
-        print(f"study written to {args.out} ({failed} failed replica(s); resumed: each run's wall time its own)")
+        print(
+            f"study written to {args.out} ({failed} failed replica(s); resumed: its runs' wall times mix sessions "
+            "and batches, compare precisions' wall times on a study run whole)"
+        )
         return _study_exit(report["replicas"])
     _refuse_replicas_without_recipe(args.out)
     result = resume(args.out, progress=not args.no_progress)
@@ -178,13 +181,16 @@ def _refuse_replicas_without_recipe(out: str) -> None:
 
     if os.path.isfile(os.path.join(out, SCENE_FILE)):  # a run's own folder
         return
-    for what, pattern in (
-        ("replicas", os.path.join("replica_*", SCENE_FILE)),
-        ("a sweep's runs", os.path.join("[0-9][0-9][0-9]_*", SCENE_FILE)),
-        ("a slip study's runs", os.path.join("slip_*", "replica_*", SCENE_FILE)),
-        ("a precision study's runs", os.path.join("*", "replica_*", SCENE_FILE)),
+    from .study import PRECISION_ORDER
+
+    precision = [os.path.join(name, "replica_*", SCENE_FILE) for name in PRECISION_ORDER]
+    for what, patterns in (
+        ("replicas", [os.path.join("replica_*", SCENE_FILE)]),
+        ("a sweep's runs", [os.path.join("[0-9][0-9][0-9]_*", SCENE_FILE)]),
+        ("a slip study's runs", [os.path.join("slip_*", "replica_*", SCENE_FILE)]),
+        ("a precision study's runs", precision),
     ):
-        runs = sorted(glob.glob(os.path.join(out, pattern)))
+        runs = sorted(path for pattern in patterns for path in glob.glob(os.path.join(out, pattern)))
         if runs:
             folders = [os.path.relpath(os.path.dirname(path), out) for path in runs]
             shown = ", ".join(folders[:4]) + (", ..." if len(folders) > 4 else "")
@@ -791,17 +797,27 @@ def lab_lines(summary: dict) -> list[str]:
     if summary["test"] == "repose":
         lines.append(stats("angle of repose", summary["repose_angle_deg"], "deg"))
     elif summary["test"] == "shear":
+
+        def with_error(value) -> str:  # a standard error where the fit has one (nan or null: none)
+            return f" +- {value:.2g} (s.e.)" if isinstance(value, (int, float)) and math.isfinite(value) else ""
+
+        unbarred = False
         for state in ("peak", "residual"):
             fit = summary[state]
             lines.append(
                 f"{state + ' friction angle':26s} {fit['friction_angle_deg']:.4g} deg"
-                + (f" +- {fit['friction_angle_se_deg']:.2g} (s.e.)" if fit.get("points", 0) > 2 else "")
+                + with_error(fit.get("friction_angle_se_deg"))
             )
             lines.append(
-                f"{state + ' cohesion':26s} {fit['cohesion_pa']:.4g} Pa"
-                + (f" +- {fit['cohesion_se_pa']:.2g} (s.e.)" if fit.get("points", 0) > 2 else "")
+                f"{state + ' cohesion':26s} {fit['cohesion_pa']:.4g} Pa" + with_error(fit.get("cohesion_se_pa"))
             )
             lines.append(f"{state + ' angle (c = 0)':26s} {fit['friction_angle_origin_deg']:.4g} deg")
+            unbarred = unbarred or not with_error(fit.get("friction_angle_se_deg"))
+        if unbarred:  # a line through two points fits them exactly: its R^2 of 1 says nothing of the soil
+            lines.append(
+                "! no error bar on the Mohr-Coulomb line: it needs three points or more at two normal stresses or "
+                "more (through two it passes exactly); add normal stresses (shear.normal_stresses) or replicas"
+            )
     elif summary["test"] == "plate":
         fit = summary["bekker"]
         if fit["k_c"] == fit["k_c"]:
@@ -949,6 +965,7 @@ def cmd_calibrate_scm(args) -> int:
     if not args.lab_sizes:  # the small default tests where the scene sizes none
         overrides = small_tests(load_lab_scene(args.scene, overrides)) + overrides
     work = args.work or os.path.splitext(args.out)[0] + "_runs"
+    _refuse_an_input_in_work(work, {"--wheel-runs": args.wheel_runs, "the scene": args.scene, "--lab": args.lab})
     wheel_only = ("--wheel-runs", args.wheel_runs), ("--lab", args.lab), ("--start", args.start)
     misplaced = [name for name, value in wheel_only if value and not args.from_wheel]
     if misplaced:
@@ -1012,6 +1029,26 @@ def cmd_calibrate_scm(args) -> int:
             file=sys.stderr,
         )
     return EXIT_OK
+
+
+def _refuse_an_input_in_work(work: str, inputs: dict[str, str | None]) -> None:
+    """Refuse a --work folder that is, holds, or lies inside one of the paths the command reads (even with
+    --overwrite, which empties --work: `--work STUDY --wheel-runs STUDY --overwrite` removed the slip study
+    it was to fit to)."""
+    from soil.errors import ArgumentError
+
+    folder = os.path.realpath(work)
+    for name, path in inputs.items():
+        if not path or not os.path.exists(path):
+            continue
+        given = os.path.realpath(path)
+        common = os.path.commonpath([folder, given])
+        if common in (folder, given) and (folder != given or os.path.isdir(given)):
+            how = "is" if folder == given else "holds" if common == folder else "lies in"
+            raise ArgumentError(
+                f"--work {work!r} {how} {name} ({path}), which the command reads and --work's tests would "
+                "replace; name another folder"
+            )
 
 
 def _refuse_an_input_as_out(out: str, inputs: dict[str, str | None]) -> None:

@@ -174,8 +174,8 @@ class FmuController(FmuSession):
         if self.fmu is None:
             if self._time is not None:
                 raise InternalError(f"{self.path}: the controller is closed")
-            self.fmu, self._unzipdir, self._set, self._get = instantiate_cosim(
-                self.path, self.md, self.instance_name, t
+            self.fmu, self._unzipdir, self._set, self._get = self._watched(
+                instantiate_cosim(self.path, self.md, self.instance_name, t)
             )
             self._initializing, self._time = True, t
             for vr, value in self._start_values:
@@ -211,8 +211,8 @@ class FmuController(FmuSession):
         if np.isnan(t):
             return
         if self.fmu is None:  # instantiate it as the first call would, then put the saved state in
-            self.fmu, self._unzipdir, self._set, self._get = instantiate_cosim(
-                self.path, self.md, self.instance_name, t
+            self.fmu, self._unzipdir, self._set, self._get = self._watched(
+                instantiate_cosim(self.path, self.md, self.instance_name, t)
             )
             self._initializing = True
             for vr, value in self._start_values:

@@ -23,7 +23,8 @@ torque are means. A run with no steady state gets a status saying
 why: 'never touched the soil', 'no landing', 'airborne', 'stuck', 'too short' (also a grousered
 wheel's window over which its rim turned less than one grouser pitch, 2 pi / grouser count: a mean over
 part of a grouser's passage depends on where in it the window starts), 'still sinking' or 'still
-rising' (the sinkage drifts downwards or upwards across the window).
+rising' (the sinkage drifts downwards or upwards across the window), or 'ramped load' (free mode with a
+drawbar load that grows over the drive: no steady state by design).
 
 For a rover (`rover_quantities` per macro step, `summarize_rover` over a run), in the rover's
 frame (forward = its body's +x axis turned into the horizontal plane, up = +z):
@@ -83,6 +84,9 @@ TOO_SHORT = "too short"
 SINKING = "still sinking"
 RISING = "still rising"
 """The sinkage drifts (as SINKING) but upwards: the wheel climbs out of a rut deeper than its steady one."""
+RAMPED = "ramped load"
+"""Free mode with a drawbar load growing over the drive (testbed.drawbar_ramp): no steady state by design,
+its slip climbing with the load (a drawbar pull-slip curve in one run: read its series)."""
 
 WHEEL_UNITS = {
     "travel": "m",
@@ -293,6 +297,7 @@ def summarize(
     min_fraction: float = 0.25,
     grain_radius: float | None = None,
     grouser_count: int = 0,
+    ramped: bool = False,
 ) -> dict:
     """Steady-state metrics of one wheel from written series (cosim.output.read_series keys:
     time, phase, linear_velocity, angular_velocity, slip, sinkage, sinkage_tips, drawbar_pull,
@@ -313,6 +318,8 @@ def summarize(
     imposed slip). The sinkage must be steady over it as well: stationary by MSER-5, or
     drifting by less than half of `grain_radius` [m] over the window; else 'still sinking' (or 'still
     rising'). A grousered wheel (grouser_count > 0) must pass at least one grouser over it; else 'too short'.
+    ramped: the drawbar load grows over the drive (testbed.drawbar_ramp): 'ramped load' where it would be
+    steady (its window means are of a load and a slip still changing).
     """
     time = np.asarray(series["time"], dtype=float)
     phase = np.asarray(series["phase"])
@@ -371,6 +378,8 @@ def summarize(
         out["steady_state"] = TOO_SHORT
     elif not settled:
         out["steady_state"] = RISING if out["sinkage_rate"] < 0 else SINKING
+    elif ramped:  # MSER found a window in a climb it only cut the start of: a ramp has no steady state
+        out["steady_state"] = RAMPED
     return out
 
 

@@ -279,6 +279,7 @@ def run_summary(
             landed=landed,
             grain_radius=plan.bed.spec.radius_mean,
             grouser_count=plan.wheel.grouser_count,
+            ramped=plan.testbed.mode == "free" and plan.testbed.drawbar_ramp > 0,
         )
     else:
         out = metrics.summarize_rover(

@@ -1285,8 +1285,8 @@ def resume_precision_study(out_dir: str) -> dict:
     """Finish a precision study an interruption (or a kill) left (its PRECISION_FILE), as resume_replicas
     finishes a set of replicas (its bed settled if it stopped while it settled; each run taken, resumed or
     run, one at a time in this process), then its table written as precision_study writes it, marked
-    `resumed`: each run's wall time is its own (a resumed run's over its sessions), no longer a batch's,
-    and the study's wall time is the resume's."""
+    `resumed`, its wall_time null: the runs' wall times mix a batch's (those that had finished in it), a
+    run's alone over its sessions (those resumed) and this process's (those run here)."""
     out_dir = os.path.abspath(out_dir)
     recipe = _read_recipe(out_dir, "precision")
     text, replicas, precisions = recipe["scene_toml"], int(recipe["replicas"]), [str(p) for p in recipe["precisions"]]
@@ -1303,16 +1303,24 @@ def resume_precision_study(out_dir: str) -> dict:
             if bed is not None and not os.path.isfile(bed):
                 raise DamagedFileError(f"{bed}: the bed the precision study's runs ran on is gone; run it again")
             tasks = _precision_tasks(plan, text, out_dir, precisions, replicas, bed)
-            started = time.perf_counter()
             for done, task in enumerate(tasks, 1):
                 results.append(_finish_replica(task))
                 _report(results[-1], task["label"], done, len(tasks))
-            wall = time.perf_counter() - started
         except (KeyboardInterrupt, RunInterrupted) as stop:
             raise _replicas_stopped(stop, out_dir, "the precision study", "its table") from None
         with _said_stopped(out_dir, "the precision study", "its table"):
             return _precision_report(
-                plan, out_dir, precisions, tasks, results, wall, bed, text, bool(recipe["plot"]), False, resumed=True
+                plan,
+                out_dir,
+                precisions,
+                tasks,
+                results,
+                None,
+                bed,
+                text,
+                bool(recipe["plot"]),
+                bool(recipe["batched"]),
+                resumed=True,
             )
 
 
@@ -1616,10 +1624,26 @@ def _run_scenes(paths: list[str]) -> tuple[list[str], list]:
     return texts, scenes
 
 
+UNREADABLE = ("file", None)
+"""A file key's value in _flat_scene when its file cannot be read here (a part run on another machine):
+compared with nothing."""
+
+
+def _file_content(path: str):
+    """('file', SHA-256 of the file's bytes), or UNREADABLE."""
+    import hashlib
+
+    try:
+        with open(path, "rb") as f:
+            return ("file", hashlib.sha256(f.read()).hexdigest())
+    except OSError:
+        return UNREADABLE
+
+
 def _flat_scene(scene) -> dict:
-    """A scene's keys (dotted) and values, less STUDY_RUN_KEYS, the SCM soil's keys and the keys naming a
-    file by its path (a part of a study run on another machine, or a scene given beside its runs, names
-    them from elsewhere; an absolute path is how a scene keeps them)."""
+    """A scene's keys (dotted) and values, less STUDY_RUN_KEYS and the SCM soil's keys; a key naming a file
+    by its path (an absolute path is how a scene keeps one) by the file's content (_file_content: a part run
+    on another machine, or a scene given beside its runs, names the same file from elsewhere)."""
     from .scm_calibration import SOIL_KEYS
 
     flat: dict = {}
@@ -1633,7 +1657,20 @@ def _flat_scene(scene) -> dict:
 
     walk(scene.to_dict(), "")
     skipped = {*STUDY_RUN_KEYS, *(f"terrain.{key}" for key in SOIL_KEYS)}
-    return {k: v for k, v in flat.items() if k not in skipped and not (isinstance(v, str) and os.path.isabs(v))}
+    return {
+        k: _file_content(v) if isinstance(v, str) and os.path.isabs(v) else v
+        for k, v in flat.items()
+        if k not in skipped
+    }
+
+
+def _scenes_differ(ours: dict, theirs: dict) -> list[str]:
+    """The keys in which two _flat_scene differ (a file unreadable on either side: not judged)."""
+    return sorted(
+        k
+        for k in ours.keys() | theirs.keys()
+        if ours.get(k) != theirs.get(k) and UNREADABLE not in (ours.get(k), theirs.get(k))
+    )
 
 
 def _check_one_study(found: list, scenes: list, given) -> None:
@@ -1641,16 +1678,14 @@ def _check_one_study(found: list, scenes: list, given) -> None:
     paths = [path for _, path, _ in found]
     first = _flat_scene(scenes[0])
     for path, scene in zip(paths[1:], scenes[1:]):
-        theirs = _flat_scene(scene)
-        keys = sorted(k for k in first.keys() | theirs.keys() if first.get(k) != theirs.get(k))
+        keys = _scenes_differ(first, _flat_scene(scene))
         if keys:
             raise ArgumentError(
                 f"--from-runs: {path} ran another scene than {paths[0]} ({', '.join(keys[:6])}"
                 f"{', ...' if len(keys) > 6 else ''} differ): a slip table averages the replicas of one scene"
             )
     if given is not None:
-        own, theirs = _flat_scene(given), _flat_scene(scenes[0])
-        keys = sorted(k for k in own.keys() | theirs.keys() if own.get(k) != theirs.get(k))
+        keys = _scenes_differ(_flat_scene(given), first)
         if keys:
             raise ArgumentError(
                 f"--from-runs: the runs ({paths[0]} ...) are not of the scene given ({', '.join(keys[:6])}"
@@ -2001,8 +2036,10 @@ def _sweep_points(text: str, base_dir: str | None, params: list[str]) -> tuple[d
     return grid, points, plans
 
 
-def _sweep_beds(plans: list[RunPlan], out_dir: str, ex: Executor) -> dict[str, str]:
-    """The settled bed of each bed key the points need (out_dir/beds/KEY), by key."""
+def _sweep_beds(plans: list[RunPlan], out_dir: str, ex: Executor) -> list[str | None]:
+    """The settled bed of each point (out_dir/beds/KEY: points with one bed key share it), in point order;
+    None for a point that settles none (its own bed.bed_file, or a terrain without grains). By point, not
+    by key: a resume on another device class, or after the contact law changed, reckons other keys."""
     from .system import needs_bed
 
     beds: dict[str, RunPlan] = {}
@@ -2010,20 +2047,19 @@ def _sweep_beds(plans: list[RunPlan], out_dir: str, ex: Executor) -> dict[str, s
         if not p.bed.bed_file and needs_bed(p):
             beds.setdefault(p.bed.key, p)
     folders = [os.path.join(out_dir, "beds", key) for key in beds]
-    return dict(zip(beds, _settle(ex, list(beds.values()), folders)))
+    settled = dict(zip(beds, _settle(ex, list(beds.values()), folders)))
+    return [settled[p.bed.key] if not p.bed.bed_file and needs_bed(p) else None for p in plans]
 
 
 def _sweep_tasks(
-    text: str, base_dir: str | None, points: list[dict], plans: list[RunPlan], out_dir: str, beds: dict[str, str]
+    text: str, base_dir: str | None, points: list[dict], out_dir: str, beds: list[str | None]
 ) -> list[dict]:
-    """A run task per point (run_task's form, with its 'point'), each on its key's settled bed."""
-    from .system import needs_bed
-
+    """A run task per point (run_task's form, with its 'point'), each on its settled bed (_sweep_beds)."""
     tasks: list[dict[str, Any]] = []
-    for i, (point, p) in enumerate(zip(points, plans)):
+    for i, (point, bed) in enumerate(zip(points, beds)):
         overrides = dict(point)
-        if not p.bed.bed_file and needs_bed(p):
-            overrides["bed.bed_file"] = beds[p.bed.key]
+        if bed is not None:
+            overrides["bed.bed_file"] = bed
         name = f"{i:03d}_" + "_".join(f"{_folder_label(k.split('.')[-1])}={_folder_label(v)}" for k, v in point.items())
         tasks.append(
             {
@@ -2069,7 +2105,7 @@ def sweep(
             try:
                 beds = _sweep_beds(plans, out_dir, ex)
                 _write_recipe(out_dir, {**recipe, "beds": beds})  # the beds the runs use, never settled again
-                tasks = _sweep_tasks(text, plan.scene.base_dir, points, plans, out_dir, beds)
+                tasks = _sweep_tasks(text, plan.scene.base_dir, points, out_dir, beds)
                 results = ex.map(run_task, tasks)
             except (KeyboardInterrupt, RunInterrupted) as stop:
                 raise _replicas_stopped(stop, out_dir, "the sweep", "its table") from None
@@ -2095,10 +2131,15 @@ def resume_sweep(out_dir: str) -> dict:
                 with Executor("serial") as ex:
                     beds = _sweep_beds(plans, out_dir, ex)
                 _write_recipe(out_dir, {**{k: v for k, v in recipe.items() if k != "digest"}, "beds": beds})
-            missing = [bed for bed in beds.values() if not os.path.isfile(bed)]
+            if not (isinstance(beds, list) and len(beds) == len(points)):
+                raise DamagedFileError(
+                    f"{os.path.join(out_dir, SWEEP_FILE)}: its beds are not one per point ({len(points)}); run the "
+                    "sweep again"
+                )
+            missing = [bed for bed in beds if bed is not None and not os.path.isfile(bed)]
             if missing:
                 raise DamagedFileError(f"{missing[0]}: a bed the sweep's runs ran on is gone; run the sweep again")
-            tasks = _sweep_tasks(text, base_dir, points, plans, out_dir, beds)
+            tasks = _sweep_tasks(text, base_dir, points, out_dir, beds)
             for done, task in enumerate(tasks, 1):
                 results.append(_finish_replica(task))
                 _report(results[-1], task["label"], done, len(tasks))

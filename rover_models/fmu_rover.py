@@ -163,8 +163,8 @@ class FmuRover(FmuSession):
         self.drive_mode = "speed"
         """'speed' or 'torque': which command inputs drive the wheels."""
 
-        self.fmu, self._unzipdir, self._set, self._get = instantiate_cosim(
-            self.path, self.md, instance_name, start_time
+        self.fmu, self._unzipdir, self._set, self._get = self._watched(
+            instantiate_cosim(self.path, self.md, instance_name, start_time)
         )
         self._initializing = True
         self._time = float(start_time)

@@ -274,10 +274,37 @@ class FmuSession:
             )
         return v.valueReference
 
+    def _watched(self, instantiated):
+        """instantiate_cosim's (fmu, unzip directory, set, get), the setter and getter marking the session
+        `failed` when the FMU answers them Error or Fatal (FmuStepError)."""
+        fmu, unzipdir, set_value, get_value = instantiated
+        return fmu, unzipdir, self._marking(set_value), self._marking(get_value)
+
+    def _marking(self, function):
+        def call(*args, **kwargs):
+            with self._call(None):
+                return function(*args, **kwargs)
+
+        return call
+
+    @contextlib.contextmanager
+    def _call(self, what: str | None):
+        """fmu_call(path, what) (what None: the call names itself already), the session marked `failed` on an
+        Error or a Fatal answer (close() then only frees the FMU)."""
+        try:
+            if what is None:
+                yield
+            else:
+                with fmu_call(self.path, what):
+                    yield
+        except FmuStepError:
+            self.failed = True
+            raise
+
     def _ready(self) -> None:
         """Leave initialization mode on first use (parameters can be set until then)."""
         if self._initializing:
-            with fmu_call(self.path, "leaving initialization mode"):
+            with self._call("leaving initialization mode"):
                 self.fmu.exitInitializationMode()
             self._initializing = False
 
@@ -289,6 +316,7 @@ class FmuSession:
             if not retryable:  # Error (not retried) or Fatal: the FMU failed; a smaller step would not help
                 self.failed = True
                 raise FmuStepError(f"{self.path}: at t={t:g} s (H={h:g} s): {err}") from err
+            self.failed = self.failed or err.status > _DISCARD  # an Error retried (retry_on_error) is one too
             if not self.can_vary_step:
                 raise FmuStepError(
                     f"{self.path}: doStep(t={t:g} s, H={h:g} s) refused (status {err.status}) and the FMU "
@@ -323,7 +351,7 @@ class FmuSession:
                 "and canSerializeFMUstate), so a run with it cannot be continued from a checkpoint"
             )
         self._ready()
-        with fmu_call(self.path, "saving its state"):
+        with self._call("saving its state"):
             state = self.fmu.getFMUState()
             try:
                 return np.frombuffer(self.fmu.serializeFMUState(state), dtype=np.uint8).copy()
@@ -338,7 +366,7 @@ class FmuSession:
                 "canGetAndSetFMUstate and canSerializeFMUstate): this run cannot be resumed"
             )
         self._ready()
-        with fmu_call(self.path, "restoring a saved state"):
+        with self._call("restoring a saved state"):
             state = self.fmu.deserializeFMUState(np.asarray(data, dtype=np.uint8).tobytes())
             try:
                 self.fmu.setFMUState(state)

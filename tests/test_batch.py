@@ -531,3 +531,36 @@ def test_a_precision_study_stopped_in_a_run_is_finished_by_one_resume(tmp_path, 
         assert_same_run(alone, str(run))
     table = json.loads((out / "study.json").read_text())
     assert table["resumed"] and [row["replicas"] for row in table["rows"]] == [2]
+
+
+def test_a_sweep_resumes_on_the_beds_it_settled_when_their_keys_are_reckoned_otherwise(tmp_path, monkeypatch):
+    """A sweep's recipe named its beds by bed key, and a resume looked each point's up by the key it reckons
+    now: on another device class, or after the contact law's version changed, a KeyError (an unexpected
+    error). The recipe keeps each point's bed; the resume runs on those, never settling again."""
+    import cosim.launch
+    import cosim.plan
+    from cosim.study import SWEEP_FILE, resume_sweep, sweep
+
+    run_alone = cosim.launch.run_plan
+
+    def stopped_at_once(plan, out_dir, **kwargs):
+        def stop(runner):
+            runner.stop_requested = True
+
+        return run_alone(plan, out_dir, hooks={"step": stop}, **kwargs)
+
+    monkeypatch.setattr(cosim.launch, "run_plan", stopped_at_once)
+    out = tmp_path / "sweep"
+    plan = load_plan(write_tiny(tmp_path), ["run.duration=0.02"])
+    with pytest.raises(KeyboardInterrupt, match="the sweep stopped"):
+        sweep(plan, str(out), ["testbed.omega=0.5,1.0"], executor="serial", plot=False)
+    beds = json.loads((out / SWEEP_FILE).read_text())["beds"]
+    assert len(beds) == 2 and beds[0] == beds[1] and os.path.isfile(beds[0])  # one bed key: one bed
+    settled = os.path.getmtime(beds[0])
+    monkeypatch.setattr(cosim.launch, "run_plan", run_alone)
+    monkeypatch.setattr(cosim.plan, "LAW_VERSION", 99)  # every bed key reckoned otherwise now
+    report = resume_sweep(str(out))
+    assert [row["status"] for row in report["rows"]] == ["unsteady", "unsteady"]  # run to their ends
+    assert os.path.getmtime(beds[0]) == settled and sorted(os.listdir(out / "beds")) == [
+        os.path.basename(os.path.dirname(beds[0]))
+    ]

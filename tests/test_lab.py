@@ -8,6 +8,7 @@ tests/test_boundaries.py's."""
 
 import json
 import math
+import os
 
 import numpy as np
 import pytest
@@ -255,6 +256,22 @@ def test_a_failed_replica_is_printed_with_the_values_it_is_left_out_of():
         lines[-1]
         == "! replica 2 failed, left out of the values above: SimulationDiverged: simulation diverged at t = 1 s"
     )
+
+
+def test_a_shear_line_through_two_points_is_printed_without_an_error_bar_and_says_why():
+    """Two normal stresses, one replica: the Mohr-Coulomb line passes through both points (R^2 1), and the
+    summary printed its angle and cohesion bare, as if exact; one stress with three replicas printed
+    "+- nan". Each value carries an error bar only where the fit has one, and a '!' line says why not."""
+    from cosim.cli import lab_lines
+
+    for sigma, tau in (([500.0, 1000.0], [300.0, 480.0]), ([500.0] * 3, [300.0, 310.0, 290.0])):
+        fit = mohr_coulomb(np.array(sigma), np.array(tau))
+        lines = lab_lines({"test": "shear", "peak": fit, "residual": fit, "notes": []})
+        assert not any("nan" in line for line in lines if "+-" in line), lines
+        assert any(line.startswith("! no error bar on the Mohr-Coulomb line") for line in lines), lines
+    fit = mohr_coulomb(np.array([500.0, 1000.0, 1500.0]), np.array([300.0, 480.0, 690.0]))
+    lines = lab_lines({"test": "shear", "peak": fit, "residual": fit, "notes": []})
+    assert "(s.e.)" in lines[0] and not any(line.startswith("! no error bar") for line in lines), lines
 
 
 def test_mohr_coulomb_fit_recovers_a_known_line():
@@ -596,6 +613,39 @@ def test_a_calibrated_scene_says_whether_it_met_its_targets(tmp_path, capsys, mo
     assert "soil.rolling_friction = 0.3 1" in logged and "repose 40 deg (target 30 deg)" in logged, logged
 
 
+def test_calibrate_on_one_shear_value_reports_that_value_only(tmp_path, capsys, monkeypatch):
+    """A shear test gives four values (peak and residual friction and cohesion): calibrating on one of them
+    printed its evaluations, then ended in KeyError 'friction_residual' (exit 1, no calibrated scene named),
+    the others carried into the summary without a target, tolerance or unit. Only the targets are
+    measured, printed and kept; every number of the summary has its unit."""
+    import importlib
+
+    import cosim.lab.shear
+
+    lab_calibrate = importlib.import_module("cosim.lab.calibrate")
+    angles = iter([25.0, 35.0, 30.2])
+
+    def shear(plan, folder, overwrite=False, **kwargs):  # a shear test's summary, as shear_test writes it
+        angle = next(angles, 30.0)
+        return {
+            "peak": {"friction_angle_deg": angle, "cohesion_pa": 80.0},
+            "residual": {"friction_angle_deg": angle - 4.0, "cohesion_pa": 20.0},
+        }
+
+    monkeypatch.setattr(cosim.lab.shear, "shear_test", shear)
+    scene = tmp_path / "lab.toml"
+    scene.write_text("[scene]\ndevice = 'cpu'\n")
+    out = tmp_path / "out"
+    args = ["--serial", "--out", str(out), "--target", "friction=30", "--vary", "soil.rolling_friction=0:0.3"]
+    assert main(["calibrate", str(scene), *args]) == 0
+    printed = capsys.readouterr().out
+    assert "friction measured" in printed and "30.2 deg (target 30 +- 1 deg)" in printed, printed
+    assert "calibrated scene: " in printed and "residual" not in printed
+    summary = json.loads((out / "summary.json").read_text())
+    assert set(summary["best"]["measured"]) == {"friction"} and summary["units"]["friction"] == "deg"
+    assert lab_calibrate.TARGETS["friction_residual"].test == "shear"  # the value the shear test also gives
+
+
 def test_an_interrupted_calibrate_reports_its_finished_evaluations(tmp_path, capsys, monkeypatch):
     """SIGTERM during the third evaluation: the two finished ones were lost with the report (only each
     evaluation's own folder kept its tests). Now summary.json and history.csv hold them, no calibrated
@@ -654,3 +704,22 @@ def test_calibrate_prints_each_value_with_its_unit(tmp_path, capsys, monkeypatch
     printed = capsys.readouterr().out
     assert "soil.rolling_friction" in printed and "0.1 1\n" in printed
     assert "repose measured" in printed and "30.4 deg (target 30 +- 1 deg)" in printed
+
+
+def test_a_plate_test_with_fewer_replicas_leaves_no_bed_of_the_earlier_one(tmp_path, monkeypatch):
+    """`lab plate --replicas 2`, then `--replicas 1 --overwrite`: the second settled bed 0 again and left
+    the first's bed 1 (beds/replica_1.h5) as if it were its own; every bed is settled anew, so the ones
+    past the replicas asked are removed, other files left."""
+    from cosim.lab import common, plate
+
+    folder = tmp_path / "beds"
+    folder.mkdir()
+    for name in ("replica_0.h5", "replica_1.h5", "replica_12.h5", "notes.txt"):
+        (folder / name).write_text("an earlier test's")
+    settled = []
+    monkeypatch.setattr(common, "map_tasks", lambda plan, run, tasks, *a: settled.extend(tasks) or [])
+    monkeypatch.setattr(common, "map_until_stopped", lambda *a: ([], None))
+    with pytest.raises(common.LabFailed):  # no bed settled (none is, here)
+        plate.press_plates(None, str(tmp_path), [0.02], 1)
+    assert sorted(os.listdir(folder)) == ["notes.txt", "replica_0.h5"]
+    assert [task["bed"] for task in settled] == [str(folder / "replica_0.h5")]  # settled again

@@ -118,6 +118,15 @@ def test_runs_without_a_steady_state_say_why():
     creeping["sinkage"][60:, 0] += np.linspace(0.0, 0.0005, 400)
     steady = metrics.summarize(creeping, rim_radius=0.04, wheel_load=10.0, grain_radius=0.002)
     assert steady["steady_state"] == metrics.STEADY and 0 < steady["sinkage_rate"]
+    # a drawbar load ramped over the drive (free mode): MSER cut a noisy climb's start and the run read
+    # "steady" at a slip still climbing (a probe's: 0.44 to 0.80 across its window); no steady state by design
+    ramp = _series(seed=4)
+    ramp["linear_velocity"][60:, 0, 0] = (
+        0.006 - np.linspace(0.0, 0.003, 400) + 1e-3 * np.random.default_rng(4).standard_normal(400)
+    )
+    ramped = metrics.summarize(ramp, rim_radius=0.04, wheel_load=10.0, ramped=True)
+    assert metrics.summarize(_series(), rim_radius=0.04, wheel_load=10.0, ramped=True)["steady_state"] == metrics.RAMPED
+    assert ramped["steady_state"] in (metrics.RAMPED, metrics.TOO_SHORT), ramped["steady_state"]
     unsettled = _series()  # the traction itself never settles: the speed keeps rising
     unsettled["linear_velocity"][60:, 0, 0] = np.linspace(0.001, 0.02, 400)
     assert metrics.summarize(unsettled, rim_radius=0.04, wheel_load=10.0)["steady_state"] == metrics.TOO_SHORT

@@ -142,16 +142,27 @@ def test_an_fmu_that_fails_is_named_not_taken_for_a_bug(fmus, monkeypatch):
             FmuStepError, match=rf"{re.escape(str(fmus['fmi2']))}: at t=0.001 s .*status {status} \({label}\)"
         ):
             rover.advance(2e-3)
-    monkeypatch.setattr(rover.fmu, "getReal", fails(3))
-    rover._get = fmu_session._guarded(rover.path, "reading Reals", rover.fmu.getReal)
-    with pytest.raises(FmuStepError, match="reading Reals: fmi2DoStep failed with status 3"):
-        rover.wheel_kinematics()
-    # FMI allows no terminate after Error: a failed FMU is only freed, and its close raises nothing that
-    # would hide why the run stopped (a run closes its rover in a finally)
-    monkeypatch.setattr(rover.fmu, "terminate", fails(3))
     assert rover.failed
     rover.close()
-    assert rover.fmu is None
+    # a get answered Fatal: named, and the session marked failed by that alone
+    reading = FmuRover(fmus["fmi2"], 1, start_values={"hub_height": 1.0})
+    reading.advance(1e-3)
+    called = []
+    monkeypatch.setattr(reading.fmu, "getReal", fails(4))
+    monkeypatch.setattr(reading.fmu, "terminate", lambda *a: called.append("terminate"))
+    reading._get = reading._marking(fmu_session._guarded(reading.path, "reading Reals", reading.fmu.getReal))
+    assert not reading.failed
+    with pytest.raises(FmuStepError, match="reading Reals: fmi2DoStep failed with status 4"):
+        reading.wheel_kinematics()
+    # FMI allows no call but free after Fatal (no terminate after Error): the failed FMU is only freed
+    assert reading.failed
+    reading.close()
+    assert reading.fmu is None and called == []
+    # a terminate that fails on an FMU that did not fail is said, not raised over how the run ended
+    closing = FmuRover(fmus["fmi2"], 1, start_values={"hub_height": 1.0})
+    monkeypatch.setattr(closing.fmu, "terminate", fails(3))
+    closing.close()
+    assert closing.fmu is None
 
     class Failing:
         def __call__(self, t, states, wrenches):

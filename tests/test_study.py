@@ -408,6 +408,16 @@ def test_a_replicas_folder_without_its_recipe_names_the_replicas_to_resume(tmp_p
     said = capsys.readouterr().err
     assert "holds replicas (replica_000, replica_001) without the recipe" in said, said
     assert f"cosim resume {tmp_path / 'replica_000'}" in said
+    # a precision study's runs by precision; a folder one level above a set of replicas is none of them
+    for precision in ("single", "double"):
+        (tmp_path / "study" / precision / "replica_000").mkdir(parents=True)
+        (tmp_path / "study" / precision / "replica_000" / "scene.toml").write_text("")
+    assert main(["resume", str(tmp_path / "study")]) == 2
+    said = capsys.readouterr().err
+    assert "holds a precision study's runs (double/replica_000, single/replica_000) without the recipe" in said
+    assert main(["resume", str(tmp_path.parent)]) == 2
+    said = capsys.readouterr().err
+    assert "without the recipe" not in said and "not a run folder" in said, said
 
 
 def test_a_set_of_replicas_is_resumed_only_from_its_own_recipe_where_it_was_made(
@@ -1204,3 +1214,37 @@ def test_a_table_from_runs_reads_every_run_first_and_counts_each_replica_once(tm
         == 6
     )
     assert "0.200   2/3" in capsys.readouterr().out
+
+
+def test_a_table_from_runs_tells_input_files_by_their_content_not_their_path(tmp_path):
+    """Runs whose scenes name their files by path (an SCM calibration here): parts on two calibrations
+    were averaged into one row once paths were no longer compared; a part whose calibration lies
+    elsewhere with the same bytes (a copy: another machine's folders) is the same scene."""
+    import shutil
+    from pathlib import Path
+
+    from cosim.plan import load_plan
+    from cosim.study import slip_study_from_runs
+    from soil.errors import ArgumentError
+
+    scm = Path(__file__).resolve().parent.parent / "examples" / "phobos_single_wheel_scm.toml"
+    beds = scm.parent / "terrain" / "phobos_regolith_scm_beds.toml"
+    copy = tmp_path / "elsewhere" / "calibration.toml"
+    copy.parent.mkdir()
+    shutil.copy(beds, copy)
+
+    def part(name, calibration, seed):
+        plan = load_plan(scm, [f'terrain.calibration="{calibration}"', f"run.order_seed={seed}", "testbed.slip=0.2"])
+        run = tmp_path / name / "slip_+0.200" / "replica_000"
+        run.mkdir(parents=True)
+        (run / "scene.toml").write_text(plan.scene.to_toml())
+        summary = {"steady_state": "steady", "dp_over_w": 0.1 + 0.01 * seed, "slip": 0.2}
+        (run / "run.json").write_text(json.dumps({"status": "complete", "summary": summary}))
+
+    part("a", beds, 0)
+    part("copied", copy, 1)
+    part("other", beds.parent / "phobos_regolith_scm_wheel.toml", 2)
+    table = slip_study_from_runs([str(tmp_path / "a"), str(tmp_path / "copied")], str(tmp_path / "t"), plot=False)
+    assert table["rows"][0]["averaged"] == 2
+    with pytest.raises(ArgumentError, match=r"ran another scene .*terrain\.calibration"):
+        slip_study_from_runs([str(tmp_path / "a"), str(tmp_path / "other")], str(tmp_path / "t2"), plot=False)

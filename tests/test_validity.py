@@ -231,3 +231,19 @@ def test_an_older_analytic_run_in_a_study_is_not_checked():
     older = {"ok": True, "summary": {"findings": [], "validity": "valid"}}
     assert failed_checks(older) is None
     assert run_validity(older) == ensemble_validity([older, older]) == advice.NOT_CHECKED
+
+
+def test_the_far_wall_is_judged_at_the_carriages_travel_in_slip_mode():
+    """At an imposed slip the carriage runs at omega r (1 - slip): at slip -0.9 it travels 1.9 x the rim's
+    path, and `advise` judged the far wall at the rim's (10.3 grain diameters, "valid", where the carriage
+    ends 2.9 from it). The clearance is the bed's length less the start, the outer radius and the travel."""
+    base = EXAMPLES / "phobos_single_wheel.toml"
+    for slip in (-0.9, 0.0, 0.5):
+        plan = load_plan(base, ['testbed.mode="slip"', f"testbed.slip={slip}", "run.duration=10.3"])
+        t, spec, outer = plan.scene.testbed, plan.bed.spec, plan.wheel.outer_radius
+        travel = t.omega * outer * (1 - slip) * plan.scene.run.duration
+        expected = (spec.length - (plan.testbed.start_x + outer + travel)) / (2 * spec.radius_mean)
+        found = _found(advice.check(plan))["wall_clearance"]
+        assert f"far end {expected:.3g})" in found.message or f"drive {expected:.3g})" in found.message, found.message
+        if slip == -0.9:
+            assert expected < advice.WALL_GRAINS and not found.ok, found.message

@@ -19,6 +19,7 @@ from __future__ import annotations
 import logging
 import math
 import os
+import re
 from collections.abc import Callable, Sequence
 from typing import Any
 
@@ -465,6 +466,12 @@ def press_plates(
     Ctrl-C or SIGTERM that stopped the plates after some had finished: raise it once they are reported)."""
     folder = os.path.join(out_dir, "beds")
     os.makedirs(folder, exist_ok=True)
+    # every bed is settled again here: one of an earlier test with more replicas (kept by --overwrite, as a
+    # study's cached beds are) would read as this test's
+    for name in os.listdir(folder):
+        match = re.fullmatch(r"replica_(\d+)\.h5", name)
+        if match and int(match[1]) >= replicas:
+            os.remove(os.path.join(folder, name))
     beds = common.map_tasks(
         plan,
         run_replica,
