@@ -965,7 +965,8 @@ def cmd_calibrate_scm(args) -> int:
     if not args.lab_sizes:  # the small default tests where the scene sizes none
         overrides = small_tests(load_lab_scene(args.scene, overrides)) + overrides
     work = args.work or os.path.splitext(args.out)[0] + "_runs"
-    _refuse_an_input_in_work(work, {"--wheel-runs": args.wheel_runs, "the scene": args.scene, "--lab": args.lab})
+    if not args.lab:  # the lab's tests empty --work (with --lab none run there: its wheel runs go in subfolders)
+        _refuse_an_input_in_work(work, {"--wheel-runs": args.wheel_runs, "the scene": args.scene})
     wheel_only = ("--wheel-runs", args.wheel_runs), ("--lab", args.lab), ("--start", args.start)
     misplaced = [name for name, value in wheel_only if value and not args.from_wheel]
     if misplaced:

@@ -318,8 +318,8 @@ def summarize(
     imposed slip). The sinkage must be steady over it as well: stationary by MSER-5, or
     drifting by less than half of `grain_radius` [m] over the window; else 'still sinking' (or 'still
     rising'). A grousered wheel (grouser_count > 0) must pass at least one grouser over it; else 'too short'.
-    ramped: the drawbar load grows over the drive (testbed.drawbar_ramp): 'ramped load' where it would be
-    steady (its window means are of a load and a slip still changing).
+    ramped: the drawbar load grows over the drive (testbed.drawbar_ramp): 'ramped load' unless airborne or
+    stuck (its window means are of a load and a slip still changing, and a longer drive only climbs on).
     """
     time = np.asarray(series["time"], dtype=float)
     phase = np.asarray(series["phase"])
@@ -374,12 +374,12 @@ def summarize(
         out["steady_state"] = AIRBORNE
     elif mode == "free" and abs(mean_spin) * rim_radius > 0 and out["forward_speed"] < 0.01 * mean_spin * rim_radius:
         out["steady_state"] = STUCK
+    elif ramped:  # no steady state by design: neither too short nor still sinking (a longer drive climbs on)
+        out["steady_state"] = RAMPED
     elif not found or not passed >= 1.0:  # a nan spin passes no judged grouser either
         out["steady_state"] = TOO_SHORT
     elif not settled:
         out["steady_state"] = RISING if out["sinkage_rate"] < 0 else SINKING
-    elif ramped:  # MSER found a window in a climb it only cut the start of: a ramp has no steady state
-        out["steady_state"] = RAMPED
     return out
 
 

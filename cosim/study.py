@@ -31,6 +31,7 @@ from __future__ import annotations
 import collections
 import contextlib
 import csv
+import functools
 import io
 import ipaddress
 import itertools
@@ -1629,13 +1630,28 @@ UNREADABLE = ("file", None)
 compared with nothing."""
 
 
-def _file_content(path: str):
-    """('file', SHA-256 of the file's bytes), or UNREADABLE."""
+@functools.lru_cache(maxsize=256)
+def _digest(path: str, size: int, mtime: float) -> str:
+    """SHA-256 of a file's bytes, read in chunks (cached by path, size and time: a study's runs name the same
+    files)."""
     import hashlib
 
+    digest = hashlib.sha256()
+    with open(path, "rb") as f:
+        for chunk in iter(lambda: f.read(1 << 20), b""):
+            digest.update(chunk)
+    return digest.hexdigest()
+
+
+def _file_content(path: str):
+    """('file', SHA-256 of the file's bytes), or UNREADABLE (none here, not a regular file, unreadable)."""
+    import stat
+
     try:
-        with open(path, "rb") as f:
-            return ("file", hashlib.sha256(f.read()).hexdigest())
+        info = os.stat(path)
+        if not stat.S_ISREG(info.st_mode):  # a folder, a FIFO (whose read would block)
+            return UNREADABLE
+        return ("file", _digest(os.path.realpath(path), info.st_size, info.st_mtime))
     except OSError:
         return UNREADABLE
 
@@ -2133,7 +2149,8 @@ def resume_sweep(out_dir: str) -> dict:
                 _write_recipe(out_dir, {**{k: v for k, v in recipe.items() if k != "digest"}, "beds": beds})
             if not (isinstance(beds, list) and len(beds) == len(points)):
                 raise DamagedFileError(
-                    f"{os.path.join(out_dir, SWEEP_FILE)}: its beds are not one per point ({len(points)}); run the "
+                    f"{os.path.join(out_dir, SWEEP_FILE)}: its beds are not one per point ({len(points)}: a recipe "
+                    "of another version); resume each point's run alone (cosim resume OUT/000_...), or run the "
                     "sweep again"
                 )
             missing = [bed for bed in beds if bed is not None and not os.path.isfile(bed)]

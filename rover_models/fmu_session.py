@@ -297,8 +297,10 @@ class FmuSession:
             else:
                 with fmu_call(self.path, what):
                     yield
-        except FmuStepError:
-            self.failed = True
+        except FmuStepError as error:
+            cause = error.__cause__
+            # Error or Fatal (a Discard of a get or set is no failure: FMI allows terminate after it)
+            self.failed = self.failed or getattr(cause, "status", _ERROR) >= _ERROR
             raise
 
     def _ready(self) -> None:
@@ -316,7 +318,6 @@ class FmuSession:
             if not retryable:  # Error (not retried) or Fatal: the FMU failed; a smaller step would not help
                 self.failed = True
                 raise FmuStepError(f"{self.path}: at t={t:g} s (H={h:g} s): {err}") from err
-            self.failed = self.failed or err.status > _DISCARD  # an Error retried (retry_on_error) is one too
             if not self.can_vary_step:
                 raise FmuStepError(
                     f"{self.path}: doStep(t={t:g} s, H={h:g} s) refused (status {err.status}) and the FMU "

@@ -126,7 +126,13 @@ def test_runs_without_a_steady_state_say_why():
     )
     ramped = metrics.summarize(ramp, rim_radius=0.04, wheel_load=10.0, ramped=True)
     assert metrics.summarize(_series(), rim_radius=0.04, wheel_load=10.0, ramped=True)["steady_state"] == metrics.RAMPED
-    assert ramped["steady_state"] in (metrics.RAMPED, metrics.TOO_SHORT), ramped["steady_state"]
+    assert ramped["steady_state"] == metrics.RAMPED, ramped["steady_state"]  # not "too short": drive longer
+    sinking = _series(seed=4)
+    sinking["sinkage"][60:, 0] = np.linspace(0.004, 0.03, 400)  # and digging in as the load grows
+    assert (
+        metrics.summarize(sinking, rim_radius=0.04, wheel_load=10.0, grain_radius=0.002, ramped=True)["steady_state"]
+        == metrics.RAMPED
+    )
     unsettled = _series()  # the traction itself never settles: the speed keeps rising
     unsettled["linear_velocity"][60:, 0, 0] = np.linspace(0.001, 0.02, 400)
     assert metrics.summarize(unsettled, rim_radius=0.04, wheel_load=10.0)["steady_state"] == metrics.TOO_SHORT

@@ -152,6 +152,10 @@ def test_an_fmu_that_fails_is_named_not_taken_for_a_bug(fmus, monkeypatch):
     monkeypatch.setattr(reading.fmu, "terminate", lambda *a: called.append("terminate"))
     reading._get = reading._marking(fmu_session._guarded(reading.path, "reading Reals", reading.fmu.getReal))
     assert not reading.failed
+    discarding = reading._marking(fmu_session._guarded(reading.path, "reading Reals", fails(2)))
+    with pytest.raises(FmuStepError, match="status 2"):
+        discarding([0])
+    assert not reading.failed  # a Discard is no failure: FMI allows terminate after it
     with pytest.raises(FmuStepError, match="reading Reals: fmi2DoStep failed with status 4"):
         reading.wheel_kinematics()
     # FMI allows no call but free after Fatal (no terminate after Error): the failed FMU is only freed

@@ -828,11 +828,13 @@ def test_calibrate_scm_from_wheel_writes_the_fit_and_refuses_misplaced_options(t
     assert "--lab" in capsys.readouterr().err
     assert main(["calibrate-scm", scene, "--out", str(tmp_path / "x.toml"), *args, "--max-runs", "-1"]) == 2
     assert "--max-runs" in capsys.readouterr().err
-    # --work the slip study it reads (or a folder in it): its --overwrite emptied the study (a probe's)
+    # --work the slip study it reads (or a folder in it), where the lab's tests run (no --lab): their
+    # --overwrite emptied the study (a probe's)
     study = tmp_path / "study"
     files = sorted(p.relative_to(study) for p in study.rglob("*"))
     for work in (study, study / "runs"):
-        command = ["calibrate-scm", scene, "--out", str(tmp_path / "x.toml"), *args, "--work", str(work)]
+        command = ["calibrate-scm", scene, "--out", str(tmp_path / "x.toml"), "--from-wheel"]
+        command += ["--wheel-runs", str(study), "--work", str(work)]
         assert main([*command, "--overwrite"]) == 2
         assert f"--work {str(work)!r} " in capsys.readouterr().err
     assert sorted(p.relative_to(study) for p in study.rglob("*")) == files
