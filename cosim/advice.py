@@ -278,8 +278,9 @@ def check(
 
     if t is not None:
         side = (spec.width - wheel.width) / 2 / diameter
-        # the hub's travel over the drive: the rim's speed in free mode (at most), the carriage's in slip mode
-        # (1 - slip of it: a negative slip drives it faster than the rim), as the plan's wall check takes it
+        # the hub's travel over the drive: the rim's speed in free mode (at most on level ground; a downhill
+        # gravity can push the carriage faster, not reckoned here), the carriage's in slip mode (1 - slip of
+        # it: a negative slip drives it faster than the rim), as the plan's wall check takes it
         speed = t.omega * wheel.outer_radius * ((1 - t.slip) if t.mode == "slip" else 1.0)
         end = (spec.length - (t.start_x + wheel.outer_radius + speed * plan.scene.run.duration)) / diameter
         walls = min(side, end)

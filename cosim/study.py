@@ -1136,24 +1136,49 @@ def resume_replicas(out_dir: str) -> dict:
     recipe = _read_recipe(out_dir, "replicas")
     vary, replicas, soils = recipe["vary"], int(recipe["replicas"]), recipe["soils"]
     plan = resolve(scene_from_text(recipe["scene_toml"], base_dir=recipe["base_dir"]))  # its errors name the key
-    results = []
+    # its runs went on one at a time here, alone (each bit for bit as in a batch): 'resumed'
+    return _finish_set(
+        out_dir,
+        recipe,
+        ("the replicas", "the ensemble"),
+        lambda ex: _replica_beds(plan, out_dir, ex, replicas, vary),
+        lambda beds: _replica_tasks(plan, out_dir, beds, vary, soils),
+        lambda tasks, results, beds: _ensemble_report(
+            plan, out_dir, results, vary, soils, beds, bool(recipe["batched"]), resumed=True
+        ),
+    )
+
+
+def _finish_set(out_dir: str, recipe: dict, said: tuple[str, str], settle, make_tasks, report) -> dict:
+    """What every resume of a set of runs does (resume_replicas, resume_sweep, resume_slip_study,
+    resume_precision_study), its folder locked: the recipe's beds (a list; settled now by settle(executor)
+    and kept in the recipe when the set stopped while they settled), each bed still there; each of
+    make_tasks(beds) finished (_finish_replica), one at a time; then report(tasks, results, beds). A stop
+    says how to finish the set: said = (the set, what it writes)."""
+    results: list[dict] = []
     with RunFolder(out_dir).locked():
         try:
             beds = recipe.get("beds")
             if beds is None:  # stopped while the beds settled, before any run: settled (the rest) now
                 with Executor("serial") as ex:
-                    beds = _replica_beds(plan, out_dir, ex, replicas, vary)
+                    beds = settle(ex)
                 _write_recipe(out_dir, {**{k: v for k, v in recipe.items() if k != "digest"}, "beds": beds})
+            if not isinstance(beds, list):
+                raise DamagedFileError(
+                    f"{os.path.join(out_dir, RECIPES[recipe['kind']][0])}: its beds are no list (a recipe of another "
+                    "version); resume each run alone (cosim resume OUT/RUN), or run the set again"
+                )
             missing = [bed for bed in beds if bed is not None and not os.path.isfile(bed)]
             if missing:
-                raise DamagedFileError(f"{missing[0]}: the bed the replicas ran on is gone; run the set again")
-            for task in _replica_tasks(plan, out_dir, beds, vary, soils):
+                raise DamagedFileError(f"{missing[0]}: a bed {said[0]} ran on is gone; run them again")
+            tasks = make_tasks(beds)
+            for done, task in enumerate(tasks, 1):
                 results.append(_finish_replica(task))
+                _report(results[-1], task["label"], done, len(tasks))
         except (KeyboardInterrupt, RunInterrupted) as stop:
-            raise _replicas_stopped(stop, out_dir) from None
-        # its runs went on one at a time here, alone (each bit for bit as in a batch): 'resumed'
-        with _said_stopped(out_dir):
-            return _ensemble_report(plan, out_dir, results, vary, soils, beds, bool(recipe["batched"]), resumed=True)
+            raise _replicas_stopped(stop, out_dir, *said) from None
+        with _said_stopped(out_dir, *said):
+            return report(tasks, results, beds)
 
 
 def _finish_replica(task: dict) -> dict:
@@ -1239,7 +1264,7 @@ def precision_study(
         with tasks_run as ex:
             try:
                 bed = _shared_bed(plan, out_dir, ex)
-                _write_recipe(out_dir, {**recipe, "bed": bed})  # the bed the runs use, never settled again
+                _write_recipe(out_dir, {**recipe, "beds": [bed]})  # the bed the runs use, never settled again
                 tasks = _precision_tasks(plan, text, out_dir, precisions, replicas, bed)
                 started = time.perf_counter()
                 if batched:  # one batch per precision, in the tasks' order
@@ -1284,45 +1309,33 @@ def _precision_tasks(plan: RunPlan, text: str, out_dir: str, precisions: list[st
 
 def resume_precision_study(out_dir: str) -> dict:
     """Finish a precision study an interruption (or a kill) left (its PRECISION_FILE), as resume_replicas
-    finishes a set of replicas (its bed settled if it stopped while it settled; each run taken, resumed or
-    run, one at a time in this process), then its table written as precision_study writes it, marked
+    finishes a set of replicas (_finish_set); then its table written as precision_study writes it, marked
     `resumed`, its wall_time null: the runs' wall times mix a batch's (those that had finished in it), a
     run's alone over its sessions (those resumed) and this process's (those run here)."""
     out_dir = os.path.abspath(out_dir)
     recipe = _read_recipe(out_dir, "precision")
     text, replicas, precisions = recipe["scene_toml"], int(recipe["replicas"]), [str(p) for p in recipe["precisions"]]
     plan = resolve(scene_from_text(text, base_dir=recipe["base_dir"]))  # its errors name the key
-    results = []
-    with RunFolder(out_dir).locked():
-        try:
-            if "bed" not in recipe:  # stopped while the bed settled, before any run: settled now
-                with Executor("serial") as ex:
-                    bed = _shared_bed(plan, out_dir, ex)
-                _write_recipe(out_dir, {**{k: v for k, v in recipe.items() if k != "digest"}, "bed": bed})
-            else:
-                bed = recipe["bed"]
-            if bed is not None and not os.path.isfile(bed):
-                raise DamagedFileError(f"{bed}: the bed the precision study's runs ran on is gone; run it again")
-            tasks = _precision_tasks(plan, text, out_dir, precisions, replicas, bed)
-            for done, task in enumerate(tasks, 1):
-                results.append(_finish_replica(task))
-                _report(results[-1], task["label"], done, len(tasks))
-        except (KeyboardInterrupt, RunInterrupted) as stop:
-            raise _replicas_stopped(stop, out_dir, "the precision study", "its table") from None
-        with _said_stopped(out_dir, "the precision study", "its table"):
-            return _precision_report(
-                plan,
-                out_dir,
-                precisions,
-                tasks,
-                results,
-                None,
-                bed,
-                text,
-                bool(recipe["plot"]),
-                bool(recipe["batched"]),
-                resumed=True,
-            )
+    return _finish_set(
+        out_dir,
+        recipe,
+        ("the precision study", "its table"),
+        lambda ex: [_shared_bed(plan, out_dir, ex)],  # one bed for every run (None: a terrain without grains)
+        lambda beds: _precision_tasks(plan, text, out_dir, precisions, replicas, beds[0]),
+        lambda tasks, results, beds: _precision_report(
+            plan,
+            out_dir,
+            precisions,
+            tasks,
+            results,
+            None,
+            beds[0],
+            text,
+            bool(recipe["plot"]),
+            bool(recipe["batched"]),
+            resumed=True,
+        ),
+    )
 
 
 def _precision_report(
@@ -1500,34 +1513,22 @@ def _slip_study_report(plan, out_dir, slips, tasks, results, text, plot, vary, b
 
 def resume_slip_study(out_dir: str) -> dict:
     """Finish a slip study an interruption (or a kill) left (its SLIP_FILE), as resume_replicas finishes a
-    set of replicas (its beds settled if it stopped while they settled; each run taken, resumed or run, one
-    at a time in this process), then its table written as slip_study writes it."""
+    set of replicas (_finish_set); then its table written as slip_study writes it."""
     out_dir = os.path.abspath(out_dir)
     recipe = _read_recipe(out_dir, "slip")
     text, vary, soils = recipe["scene_toml"], recipe["vary"], recipe["soils"]
     slips, replicas = [float(s) for s in recipe["slips"]], int(recipe["replicas"])
     plan = resolve(scene_from_text(text, base_dir=recipe["base_dir"]))  # its errors name the key
-    results = []
-    with RunFolder(out_dir).locked():
-        try:
-            beds = recipe.get("beds")
-            if beds is None:  # stopped while the beds settled, before any run: settled (the rest) now
-                with Executor("serial") as ex:
-                    beds = _replica_beds(plan, out_dir, ex, replicas, vary)
-                _write_recipe(out_dir, {**{k: v for k, v in recipe.items() if k != "digest"}, "beds": beds})
-            missing = [bed for bed in beds if bed is not None and not os.path.isfile(bed)]
-            if missing:
-                raise DamagedFileError(f"{missing[0]}: a bed the slip study's runs ran on is gone; run it again")
-            tasks = _slip_tasks(plan, text, out_dir, slips, replicas, beds, vary, soils)
-            for done, task in enumerate(tasks, 1):
-                results.append(_finish_replica(task))
-                _report(results[-1], task["label"], done, len(tasks))
-        except (KeyboardInterrupt, RunInterrupted) as stop:
-            raise _replicas_stopped(stop, out_dir, "the slip study", "its table") from None
-        with _said_stopped(out_dir, "the slip study", "its table"):
-            return _slip_study_report(
-                plan, out_dir, slips, tasks, results, text, bool(recipe["plot"]), vary, beds, soils[:replicas]
-            )
+    return _finish_set(
+        out_dir,
+        recipe,
+        ("the slip study", "its table"),
+        lambda ex: _replica_beds(plan, out_dir, ex, replicas, vary),
+        lambda beds: _slip_tasks(plan, text, out_dir, slips, replicas, beds, vary, soils),
+        lambda tasks, results, beds: _slip_study_report(
+            plan, out_dir, slips, tasks, results, text, bool(recipe["plot"]), vary, beds, soils[:replicas]
+        ),
+    )
 
 
 def slip_study_from_runs(
@@ -2131,39 +2132,29 @@ def sweep(
 
 def resume_sweep(out_dir: str) -> dict:
     """Finish a sweep an interruption (or a kill) left (its SWEEP_FILE), as resume_replicas finishes a set
-    of replicas: its beds settled if it stopped while they settled, else its own; each point's run that
-    finished taken as it is, each with a checkpoint resumed, each that never began run; then its table
-    written as sweep writes it. One run at a time, in this process."""
+    of replicas (_finish_set); then its table written as sweep writes it."""
     out_dir = os.path.abspath(out_dir)
     recipe = _read_recipe(out_dir, "sweep")
     text, base_dir = recipe["scene_toml"], recipe["base_dir"]
     plan = resolve(scene_from_text(text, base_dir=base_dir))  # its errors name the key
     grid, points, plans = _sweep_points(text, base_dir, recipe["params"])
-    results = []
-    with RunFolder(out_dir).locked():
-        try:
-            beds = recipe.get("beds")
-            if beds is None:  # stopped while the beds settled, before any run: settled (the rest) now
-                with Executor("serial") as ex:
-                    beds = _sweep_beds(plans, out_dir, ex)
-                _write_recipe(out_dir, {**{k: v for k, v in recipe.items() if k != "digest"}, "beds": beds})
-            if not (isinstance(beds, list) and len(beds) == len(points)):
-                raise DamagedFileError(
-                    f"{os.path.join(out_dir, SWEEP_FILE)}: its beds are not one per point ({len(points)}: a recipe "
-                    "of another version); resume each point's run alone (cosim resume OUT/000_...), or run the "
-                    "sweep again"
-                )
-            missing = [bed for bed in beds if bed is not None and not os.path.isfile(bed)]
-            if missing:
-                raise DamagedFileError(f"{missing[0]}: a bed the sweep's runs ran on is gone; run the sweep again")
-            tasks = _sweep_tasks(text, base_dir, points, out_dir, beds)
-            for done, task in enumerate(tasks, 1):
-                results.append(_finish_replica(task))
-                _report(results[-1], task["label"], done, len(tasks))
-        except (KeyboardInterrupt, RunInterrupted) as stop:
-            raise _replicas_stopped(stop, out_dir, "the sweep", "its table") from None
-        with _said_stopped(out_dir, "the sweep", "its table"):
-            return _sweep_report(plan, out_dir, grid, tasks, results, text, bool(recipe["plot"]))
+
+    def tasks(beds):
+        if len(beds) != len(points):
+            raise DamagedFileError(
+                f"{os.path.join(out_dir, SWEEP_FILE)}: its beds are not one per point ({len(points)}: a recipe of "
+                "another version); resume each point's run alone (cosim resume OUT/000_...), or run the sweep again"
+            )
+        return _sweep_tasks(text, base_dir, points, out_dir, beds)
+
+    return _finish_set(
+        out_dir,
+        recipe,
+        ("the sweep", "its table"),
+        lambda ex: _sweep_beds(plans, out_dir, ex),
+        tasks,
+        lambda tasks, results, beds: _sweep_report(plan, out_dir, grid, tasks, results, text, bool(recipe["plot"])),
+    )
 
 
 def _sweep_report(

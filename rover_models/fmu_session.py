@@ -197,6 +197,7 @@ def _instantiate(path: str | os.PathLike, md, instance_name: str, start_time: fl
     )
     cwd = os.getcwd()  # fmpy enters the library's folder to load it and stays there when loading fails
     try:
+        fmu: Any
         if md.fmiVersion == "2.0":
             from fmpy.fmi2 import FMU2Slave
 
@@ -204,24 +205,20 @@ def _instantiate(path: str | os.PathLike, md, instance_name: str, start_time: fl
             fmu.instantiate()
             fmu.setupExperiment(startTime=start_time)
             fmu.enterInitializationMode()
-            where = os.fspath(path)
-            return (
-                fmu,
-                unzipdir,
-                _guarded(where, "setting Reals", fmu.setReal),
-                _guarded(where, "reading Reals", fmu.getReal),
-            )
-        from fmpy.fmi3 import FMU3Slave
+            kind, set_value, get_value = "Reals", fmu.setReal, fmu.getReal
+        else:
+            from fmpy.fmi3 import FMU3Slave
 
-        fmu = FMU3Slave(**kwargs)
-        fmu.instantiate()
-        fmu.enterInitializationMode(startTime=start_time)
+            fmu = FMU3Slave(**kwargs)
+            fmu.instantiate()
+            fmu.enterInitializationMode(startTime=start_time)
+            kind, set_value, get_value = "Float64s", fmu.setFloat64, fmu.getFloat64
         where = os.fspath(path)
         return (
             fmu,
             unzipdir,
-            _guarded(where, "setting Float64s", fmu.setFloat64),
-            _guarded(where, "reading Float64s", fmu.getFloat64),
+            _guarded(where, f"setting {kind}", set_value),
+            _guarded(where, f"reading {kind}", get_value),
         )
     except Exception as error:
         os.chdir(cwd)  # never stay in the folder that is removed next

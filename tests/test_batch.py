@@ -231,6 +231,24 @@ def assert_same_run(a: str, b: str) -> None:
             np.testing.assert_array_equal(state_a[key], state_b[key], err_msg=key)
 
 
+def stop_the_first_run(monkeypatch, first):
+    """cosim.launch.run_plan made to stop (a stop requested, then its checkpoint) at macro step 60 of the
+    run whose folder first(out_dir) picks; returns the run_plan it replaced (set it back to go on)."""
+    import cosim.launch
+
+    run_alone = cosim.launch.run_plan
+
+    def stopped_in_the_first(plan, out_dir, **kwargs):
+        def stop(runner):
+            if runner.system.coupler.step_count == 60:
+                runner.stop_requested = True
+
+        return run_alone(plan, out_dir, hooks={"step": stop} if first(out_dir) else None, **kwargs)
+
+    monkeypatch.setattr(cosim.launch, "run_plan", stopped_in_the_first)
+    return run_alone
+
+
 def when_checkpointed(folders, action) -> threading.Thread:
     """Call action() once every folder's checkpoint.npz exists (each run is past its first checkpoint:
     the runs' processes take turns, so one may be well behind another)."""
@@ -297,17 +315,7 @@ def test_replicas_stopped_one_by_one_resume_as_a_set_each_as_its_run_alone(tmp_p
     import cosim.launch
     from cosim.cli import main
 
-    run_alone = cosim.launch.run_plan
-
-    def stopped_in_the_first(plan, out_dir, **kwargs):
-        def stop(runner):
-            if runner.system.coupler.step_count == 60:
-                runner.stop_requested = True
-
-        hooks = {"step": stop} if out_dir.endswith("replica_000") else None
-        return run_alone(plan, out_dir, hooks=hooks, **kwargs)
-
-    monkeypatch.setattr(cosim.launch, "run_plan", stopped_in_the_first)
+    run_alone = stop_the_first_run(monkeypatch, lambda folder: folder.endswith("replica_000"))
     out = tmp_path / "replicas"
     with pytest.raises(KeyboardInterrupt, match=f"SIGINT: the replicas stopped .*cosim resume {out}"):
         replica_run(seed_plan(tmp_path, tiny_bed, SEEDS[0]), str(out), len(SEEDS), executor="serial", batched=False)
@@ -419,17 +427,7 @@ def test_a_sweep_stopped_in_its_first_point_is_finished_by_one_resume(
     from cosim.study import SWEEP_FILE, sweep
     from soil.errors import DamagedFileError
 
-    run_alone = cosim.launch.run_plan
-
-    def stopped_in_the_first(plan, out_dir, **kwargs):
-        def stop(runner):
-            if runner.system.coupler.step_count == 60:
-                runner.stop_requested = True
-
-        hooks = {"step": stop} if os.path.basename(out_dir).startswith("000_") else None
-        return run_alone(plan, out_dir, hooks=hooks, **kwargs)
-
-    monkeypatch.setattr(cosim.launch, "run_plan", stopped_in_the_first)
+    run_alone = stop_the_first_run(monkeypatch, lambda folder: os.path.basename(folder).startswith("000_"))
     out = tmp_path / "sweep"
     params = ["run.order_seed=" + ",".join(map(str, SEEDS))]
     with pytest.raises(KeyboardInterrupt, match=f"SIGINT: the sweep stopped .*cosim resume {out}"):
@@ -474,17 +472,7 @@ def test_a_slip_study_stopped_in_a_run_is_finished_by_one_resume(tmp_path, tiny_
     from cosim.cli import main
     from cosim.study import SLIP_FILE, slip_study
 
-    run_alone = cosim.launch.run_plan
-
-    def stopped_in_the_first(plan, out_dir, **kwargs):
-        def stop(runner):
-            if runner.system.coupler.step_count == 60:
-                runner.stop_requested = True
-
-        hooks = {"step": stop} if out_dir.endswith("replica_000") else None
-        return run_alone(plan, out_dir, hooks=hooks, **kwargs)
-
-    monkeypatch.setattr(cosim.launch, "run_plan", stopped_in_the_first)
+    run_alone = stop_the_first_run(monkeypatch, lambda folder: folder.endswith("replica_000"))
     out = tmp_path / "slip"
     with pytest.raises(KeyboardInterrupt, match=f"SIGINT: the slip study stopped .*cosim resume {out}"):
         slip_study(seed_plan(tmp_path, tiny_bed, 0), str(out), [0.2], replicas=2, executor="serial", plot=False)
@@ -508,17 +496,7 @@ def test_a_precision_study_stopped_in_a_run_is_finished_by_one_resume(tmp_path, 
     from cosim.cli import main
     from cosim.study import PRECISION_FILE, precision_study
 
-    run_alone = cosim.launch.run_plan
-
-    def stopped_in_the_first(plan, out_dir, **kwargs):
-        def stop(runner):
-            if runner.system.coupler.step_count == 60:
-                runner.stop_requested = True
-
-        hooks = {"step": stop} if out_dir.endswith("replica_000") else None
-        return run_alone(plan, out_dir, hooks=hooks, **kwargs)
-
-    monkeypatch.setattr(cosim.launch, "run_plan", stopped_in_the_first)
+    run_alone = stop_the_first_run(monkeypatch, lambda folder: folder.endswith("replica_000"))
     out = tmp_path / "precision"
     plan = seed_plan(tmp_path, tiny_bed, SEEDS[0])
     with pytest.raises(KeyboardInterrupt, match=f"SIGINT: the precision study stopped .*cosim resume {out}"):
