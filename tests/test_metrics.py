@@ -548,3 +548,30 @@ def test_a_rover_window_shorter_than_one_grouser_passage_is_too_short():
     landing = _rover_summary(*_rover([0.06, 0.0, 0.0], 1.0, sinkage=rising), landed=False)
     assert landing["steady_state"] == metrics.NO_LANDING
     assert landing["wheel_deepest_sinkage"] == pytest.approx(np.max(rising, axis=0).tolist())
+
+
+def test_a_run_is_summarized_as_ramped_only_under_a_ramped_free_carriage(tiny_run, monkeypatch):
+    """The run's summary (cosim.records.run_summary) tells metrics.summarize that the load ramps exactly
+    when the carriage is free and testbed.drawbar_ramp > 0 (a slip-mode carriage takes no drawbar load)."""
+    from cosim import records
+    from cosim.plan import load_plan
+
+    class Seen(Exception):
+        pass
+
+    seen: dict = {}
+
+    def summarize(series, **kwargs):
+        seen.update(kwargs)
+        raise Seen  # before the system is read: only the call's arguments are looked at
+
+    monkeypatch.setattr(metrics, "summarize", summarize)
+    for changes, ramped in (
+        (["testbed.drawbar_ramp=0.05"], True),
+        (["testbed.drawbar_ramp=0.0"], False),
+        (['testbed.mode="slip"', "testbed.slip=0.2"], False),
+    ):
+        plan = load_plan(str(tiny_run / "scene.toml"), changes)
+        with pytest.raises(Seen):
+            records.run_summary(plan, None, str(tiny_run / "results.h5"), True, 1.0, 1.0, 1)
+        assert seen["ramped"] is ramped, changes
