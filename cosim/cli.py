@@ -170,9 +170,9 @@ def cmd_resume(args) -> int:
 
 
 def _refuse_replicas_without_recipe(out: str) -> None:
-    """A set of replicas, a sweep or a slip study made before it kept its recipe (cosim.study.RECIPES: its
-    file missing) has no scene of its own to resume: ArgumentError naming its runs' folders, each of which
-    resumes alone."""
+    """A set of replicas, a sweep or a slip or precision study made before it kept its recipe
+    (cosim.study.RECIPES: its file missing) has no scene of its own to resume: ArgumentError naming its
+    runs' folders, each of which resumes alone."""
     import glob
 
     from soil.errors import ArgumentError
@@ -302,7 +302,6 @@ def cmd_view(args) -> int:
 def cmd_export(args) -> int:
     """cosim export vtkhdf RUN [--out FILE]: results.vtkhdf from what results.h5 holds."""
     from soil.errors import ArgumentError
-    from soil.files import output_target
 
     from .folders import CHECKPOINT_FILE, RESULTS_FILE, VTKHDF_FILE
     from .vtkhdf import VTKHDF_SUFFIXES, write_vtkhdf
@@ -312,12 +311,10 @@ def cmd_export(args) -> int:
         raise ArgumentError(f"{args.run!r} is not a run folder: no {RESULTS_FILE} in it")
     own = os.path.join(os.path.dirname(os.path.abspath(results)), VTKHDF_FILE)
     replace = args.out is None or os.path.abspath(args.out) == own  # RUN/results.vtkhdf is the run's own: made again
-    # never through a link to the run's results.h5, its checkpoint or a file that is not an export's
-    inputs = (results, os.path.join(os.path.dirname(os.path.abspath(results)), CHECKPOINT_FILE))
-    if not replace:
+    if not replace:  # never through a link to the run's results.h5, its checkpoint or a file not an export's
+        inputs = (results, os.path.join(os.path.dirname(os.path.abspath(results)), CHECKPOINT_FILE))
         _free_output_file(args.out, VTKHDF_SUFFIXES, args.overwrite, inputs)
-    else:
-        output_target(args.out or own, VTKHDF_SUFFIXES, inputs, what="--out" if args.out else "the run's export")
+    # (the run's own export: write_vtkhdf checks the same before it writes)
     path = write_vtkhdf(results, args.out, replace=replace or args.overwrite)  # a file that appeared meanwhile: kept
     print(f"{path}: {os.path.getsize(path) / 1024:.0f} kB (open it in ParaView or with VTK's vtkHDFReader)")
     return EXIT_OK
