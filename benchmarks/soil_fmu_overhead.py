@@ -48,11 +48,11 @@ def main() -> None:
         folder = Path(folder)
         scene_file = args.scene
         if scene_file is None:
-            from cosim_tiny import TINY_SCENE
+            from helpers import TINY_SCENE
 
             scene_file = folder / "tiny.toml"
             scene_file.write_text(TINY_SCENE.replace('precision = "mixed"', 'precision = "mixed"\ndevice = "cpu"'))
-        config = soil_config_from(scene_file, bed_folder=folder, log=lambda *a: None)
+        config = soil_config_from(scene_file, bed_folder=folder)
         path = export_soil_fmu(config, folder / "soil.fmu")
         md = read_model_description(str(path))
         var = {v.name: v for v in md.modelVariables}

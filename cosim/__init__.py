@@ -1,7 +1,8 @@
 """regolith-cosim coupling layer.
 
-Kept light on purpose: importing `cosim` pulls in numpy only. The MuJoCo and FMU
-adapters live in `rover_models` and import their heavy dependencies themselves.
+Kept light on purpose: importing `cosim` pulls in nothing but the standard library; the protocols below
+load (with numpy and the soil package, and so warp) on first use. The MuJoCo and FMU adapters live in
+`rover_models` and import their heavy dependencies themselves.
 
 Modules:
     contract     the soil <-> rover protocols (WheelKinematics, WheelWrench, SoilSide, RoverSide)
@@ -10,6 +11,21 @@ Modules:
     controllers  drive controllers (constant speed, slip/traction control)
 """
 
-from .contract import RoverSide, SoilSide, WheelKinematics, WheelWrench
+from __future__ import annotations
+
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:
+    from .contract import RoverSide, SoilSide, WheelKinematics, WheelWrench
 
 __all__ = ["RoverSide", "SoilSide", "WheelKinematics", "WheelWrench"]
+
+
+def __getattr__(name: str):
+    # the contract's names on first use: `cosim.cli` starts on the standard library alone, so Ctrl-C while
+    # the heavy modules load (warp: about a second) is its own to answer
+    if name in __all__:
+        from . import contract
+
+        return getattr(contract, name)
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

@@ -119,7 +119,9 @@ def _froude_finding(
     which = f" ({'; '.join(notes)})" if notes else ""
     key = _omega_key(plan)
     slower = (
-        f"lower {key} to <= {math.sqrt(FROUDE_LIMIT * g / radius):.3g} rad/s"
+        "without gravity no speed is quasi-static (nothing holds the wheel to the soil): give scene.gravity"
+        if g <= 0
+        else f"lower {key} to <= {math.sqrt(FROUDE_LIMIT * g / radius):.3g} rad/s"
         if key.endswith(("omega", "speed", "omega_max"))
         else f"slow the drive ({key}) to <= {math.sqrt(FROUDE_LIMIT * g / radius):.3g} rad/s"
     )
@@ -157,7 +159,9 @@ def check(
     wheel's), the measured wheel speeds [rad/s] (W,) and under the PID step control the longest substep it
     took [s] sharpen the depth, floor, Froude and contact checks when known. Under the PID, contact_steps
     is judged before the run at its longest substep allowed (run.dt_max) when the contact passes there;
-    else it waits for the substeps taken (its error control, not the bound, sets them)."""
+    else it waits for the substeps taken (its error control, not the bound, sets them). Where the drive
+    sets the wheels' speeds as it goes (torque, FMU, Python) and none were measured, contact_steps is
+    judged only when it fails at still rims (faster rims shorten a contact): a pass waits for the run."""
     spec, t = plan.bed.spec, plan.testbed
     every = plan.wheels or (plan.wheel,)
     chosen = _judged(plan, indices)
@@ -193,13 +197,15 @@ def check(
     )
     if plan.step_control != "pid":
         dt, dt_key, step_name = plan.dt, plan.dt_setting, "DEM steps"
+        if speeds is None and contact / dt >= CONTACT_STEPS:  # faster rims shorten the contact: not passed yet
+            dt = math.nan
     elif longest_substep is not None and math.isfinite(longest_substep) and longest_substep > 0:
         dt, dt_key = float(longest_substep), "run.dt_max, run.tolerance"
         step_name = f"of the PID's longest substeps ({dt:.3g} s, taken)"
     else:  # before the run: run.dt_max, judged only when it resolves a contact (shorter substeps may)
         dt, dt_key = plan.dt_max if plan.dt_max is not None else math.nan, "run.dt_max"
         step_name = f"of the PID's longest substeps allowed ({dt:.3g} s)"
-        if not contact / dt >= CONTACT_STEPS:  # unset (the advisor's limit, from the bed's own grains) too
+        if not contact / dt >= CONTACT_STEPS or speeds is None:  # unset (the advisor's limit) too; rims unknown
             dt = math.nan
     if math.isfinite(dt):
         steps = contact / dt
@@ -438,6 +444,14 @@ def judged_after_the_run(plan: RunPlan, findings: list[Finding]) -> list[tuple[s
         pending += [
             (c, "Froude's number at the run's measured wheel speeds (the drive sets them as it goes)") for c in on
         ]
+        if plan.terrain.model in ("dem", "mixed") and plan.step_control != "pid":  # the PID's: listed above
+            pending.append(
+                (
+                    "contact_steps",
+                    "the contact time at the run's measured rim speeds against the DEM step (the drive sets "
+                    "the speeds as it goes; faster rims make shorter contacts)",
+                )
+            )
     if wheels and _drive_slip(plan)[0] is None:
         pending.append(("scm_slip", f"the run's measured slip against |slip| <= {SCM_SLIP_LIMIT}"))
         if plan.terrain.calibration_slips is not None:

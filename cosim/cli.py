@@ -431,6 +431,9 @@ def _scm_advice(plan) -> list[str]:
     ]
 
 
+NO_GRAVITY_IMPACT = "; no gravity: an impact at the rims' speed"
+
+
 def _dem_advice(plan) -> list[str]:
     """A DEM scene's stiffness, time-step and memory advice (soil.advisor)."""
     from soil import advisor
@@ -446,28 +449,50 @@ def _dem_advice(plan) -> list[str]:
         spec.depth, pressure, advice.OVERLAP_RATIO, spec.radius_mean, material.density, plan.g
     )
     rayleigh = advisor.rayleigh_time_step(material.youngs_modulus, material.poisson_ratio, material.density, r_min)
-    steps = advisor.recommended_time_step(material, radius=r_min, gravity=plan.g, height=spec.depth, pressure=pressure)
+    # an impact's speed: a fall through the bed; without gravity, only the rims' (when the drive sets them)
+    speeds = plan.wheel_speeds if plan.wheel_speeds is not None else []
+    rims = [abs(float(v)) * w.outer_radius for v, w in zip(speeds, plan.wheels or (plan.wheel,))]
+    impact = None if plan.g > 0 else max(rims, default=0.0)
+    steps = None
+    if impact is None or impact > 0:
+        steps = advisor.recommended_time_step(
+            material, radius=r_min, gravity=plan.g, height=spec.depth, pressure=pressure, impact_speed=impact
+        )
     lines = [
         f"scene {plan.name}: |g| = {plan.g:.4g} m/s^2, grains r = {spec.radius_mean:.4g} m (smallest {r_min:.4g} m), "
         f"E = {material.youngs_modulus:.4g} Pa, wheel load {plan.wheel_load:.4g} N",
         f"  wheel ground pressure      {pressure:.4g} Pa",
         f"  eq. 10 stiffness E_mP >=   {e_min:.4g} Pa  (z_h = {spec.depth:.3g} m, u = {advice.OVERLAP_RATIO:g})",
         f"  Rayleigh step              {rayleigh:.4g} s  (0.1..0.3 x: {0.1 * rayleigh:.3g} .. {0.3 * rayleigh:.3g} s)",
-        f"  recommended dt range       {steps.dt_min:.4g} .. {steps.dt_max:.4g} s  (critical step "
-        f"{steps.critical_step:.4g} s)",
-        f"  the scene uses dt = {plan.dt:.4g} s, macro step H = {plan.macro_step:.4g} s ({plan.substeps} substeps); "
-        + (
-            "dt is within the advised stability limit"
-            if plan.dt <= steps.dt_max
-            else "dt is ABOVE the advised stability limit"
-        )
-        + (
-            " (the check contact_steps below judges how finely it resolves an impact, the rims' speed included)"
-            if plan.step_control != "pid"
-            else " (the PID's substeps, not dt, are what the soil takes: the next line)"
-        ),
     ]
-    if plan.step_control == "pid":  # the PID's substeps, not dt, are what the soil takes
+    uses = f"  the scene uses dt = {plan.dt:.4g} s, macro step H = {plan.macro_step:.4g} s ({plan.substeps} substeps)"
+    if steps is None:  # no gravity and no known speed: nothing sets an impact to resolve
+        lines.append(
+            "  recommended dt range       not estimated: no gravity and no wheel speed known (still wheels, or a "
+            "drive that sets them as it goes): no impact speed to resolve; the run's contact check judges the "
+            "speeds it measures"
+        )
+        lines.append(uses)
+    else:
+        lines.append(
+            f"  recommended dt range       {steps.dt_min:.4g} .. {steps.dt_max:.4g} s  (critical step "
+            f"{steps.critical_step:.4g} s{'' if plan.g > 0 else NO_GRAVITY_IMPACT})"
+        )
+        lines.append(
+            f"{uses}; "
+            + (
+                "dt is within the advised stability limit"
+                if plan.dt <= steps.dt_max
+                else "dt is ABOVE the advised stability limit"
+            )
+            + (
+                " (the check contact_steps, below or after the run, judges how finely it resolves an impact, the rims' "
+                "speed included)"
+                if plan.step_control != "pid"
+                else " (the PID's substeps, not dt, are what the soil takes: the next line)"
+            )
+        )
+    if plan.step_control == "pid" and steps is not None:  # the PID's substeps, not dt, are what the soil takes
         longest = plan.dt_max if plan.dt_max is not None else steps.dt_max
         shortest = plan.dt_min if plan.dt_min is not None else longest * 1e-4
         ratio = longest / steps.critical_step
@@ -1395,14 +1420,18 @@ def _stop_on_sigterm():
 def main(argv=None) -> int:
     import signal
 
-    parser = build_parser()
-    args = parser.parse_args(argv)
-    _setup_output(args.verbose)
-    previous = _stop_on_sigterm()
+    previous = _stop_on_sigterm()  # first: warp loads below (about a second), and a stop then is answered too
+    args = None
     try:
+        try:
+            args = build_parser().parse_args(argv)
+            _setup_output(args.verbose)
+        except KeyboardInterrupt as error:
+            print(f"\ncosim: interrupted. {error}".rstrip(), file=sys.stderr)
+            return EXIT_TERMINATED if str(error) == "SIGTERM" else EXIT_INTERRUPTED
         return _dispatch(args)
     except Exception as error:  # noqa: BLE001 - what no rule below expected: a bug, exit 1
-        if args.verbose:
+        if getattr(args, "verbose", False):
             log.exception("cosim: unexpected error (a bug: please report it with this traceback)")
         else:
             print(

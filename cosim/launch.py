@@ -31,12 +31,12 @@ from . import records
 from .beds import Bed, bed_from_file, check_memory, memory_estimate, settled_bed, write_json
 from .contract import SoilSide
 from .folders import EDITED_SCENE_FILE, RUN_FILE, SCENE_FILE, RunFolder, read_json
-from .output import ResultsWriter, read_series
+from .output import ResultsWriter, read_series, stored_wheel_mesh
 from .plan import RunPlan, load_plan, resolve
 from .runner import Runner, RunResult
 from .scene import Scene, SceneError, scene_from_text
 from .scm_soil import check_scm_grid
-from .system import CoupledSystem, needs_bed, validity
+from .system import CoupledSystem, needs_bed, used_mesh, validity, wheel_display_mesh
 
 log = logging.getLogger(__name__)
 
@@ -161,9 +161,35 @@ def resume(out_dir: str, progress: bool = False, hooks: dict | None = None) -> R
     needed = (SCENE_FILE, RUN_FILE, os.path.basename(folder.checkpoint), os.path.basename(folder.results))
 
     def check_files() -> None:
-        for name in needed:
-            if not os.path.isfile(folder.file(name)):
-                raise ArgumentError(f"{folder.path!r} has no {name}: not a run folder that can be resumed")
+        missing = [name for name in needed if not os.path.isfile(folder.file(name))]
+        if missing == [os.path.basename(folder.checkpoint)]:  # a run without a checkpoint: say how it ended
+            info = read_json(folder.file(RUN_FILE))
+            status, message = info.get("status"), info.get("message") or "run.json has no message"
+            summary = info.get("summary")
+            summary = summary if isinstance(summary, dict) else {}
+            if status in FINISHED:
+                raise ArgumentError(
+                    f"{folder.path!r}: the run finished ({status}) and its checkpoint is gone: nothing is left to "
+                    "resume (its results are in results.h5)"
+                )
+            again = f"cosim run {folder.file(SCENE_FILE)} --out {folder.path} --overwrite"
+            if status == "diverged" and not summary.get("diverged_elsewhere"):  # as it was, it diverges again
+                raise ArgumentError(
+                    f"{folder.path!r}: the run diverged before its first checkpoint ({message}); nothing to resume "
+                    f"from: run its scene again with the change that message names (cosim run "
+                    f"{folder.file(SCENE_FILE)} --set KEY=VALUE --out NEW_FOLDER)"
+                )
+            if status in ("diverged", "failed"):
+                raise ArgumentError(
+                    f"{folder.path!r}: the run {status} before its first checkpoint ({message}); nothing to resume "
+                    f"from: run it again: {again}"
+                )
+            raise ArgumentError(
+                f"{folder.path!r}: the run stopped before its first checkpoint (output.checkpoint_interval into "
+                f"it): nothing to resume from; run it again: {again}"
+            )
+        if missing:
+            raise ArgumentError(f"{folder.path!r} has no {missing[0]}: not a run folder that can be resumed")
 
     check_files()  # before the lock: a folder that is not a run gets no .lock either
     with folder.locked():
@@ -187,6 +213,8 @@ def resume(out_dir: str, progress: bool = False, hooks: dict | None = None) -> R
                 _put_back_scene(folder, scene.to_toml())
                 return RunResult(folder.path, info["status"], info.get("summary", {}))
             log.info("%s: the drive is complete in the checkpoint; finishing the results", folder.path)
+        else:  # what is left to drive, on the wheel the run drove
+            _check_wheel_mesh(folder, plan)
         system = CoupledSystem.build(plan, _run_bed(str(checkpoint["bed_path"]), info) if needs_bed(plan) else None)
         try:
             system.load_state_dict(checkpoint)
@@ -196,9 +224,51 @@ def resume(out_dir: str, progress: bool = False, hooks: dict | None = None) -> R
             _put_back_scene(folder, scene.to_toml())  # every check passed: now the folder may change
             loop = {k[len("loop/") :]: v for k, v in checkpoint.items() if k.startswith("loop/")}
             run_id = str(checkpoint["run_id"]) if "run_id" in checkpoint else None
+            _mark_running(folder, info, run_id, float(checkpoint["coupler/time"]))
             return Runner(system, writer, folder, loop=loop, progress=progress, hooks=hooks, run_id=run_id).run()
         finally:
             system.close()
+
+
+def _mark_running(folder: RunFolder, info: dict, run_id: str | None, time: float) -> None:
+    """run.json says the run runs again, as a run's start does (a resume killed later is then not taken for
+    the interruption before it); the partial summary goes, the run writes its own at its end."""
+    info = {k: v for k, v in info.items() if k != "summary"}
+    if run_id is not None:
+        info.setdefault("run_id", run_id)
+    info.update(status="running", message=f"resumed from its checkpoint at t = {time:.6g} s")
+    write_json(folder.file(RUN_FILE), info)
+
+
+def _check_wheel_mesh(folder: RunFolder, plan: RunPlan) -> None:
+    """Refuse to resume onto another wheel than the run drove (ArgumentError naming the mesh file): a mesh
+    file changed since the run started would drive the rest of it on a wheel its results do not hold (their
+    wheels/mesh: the run's own)."""
+    if all(hasattr(w.shape, "to_mesh") for w in plan.wheels):  # grouser wheels: the scene's keys say it all
+        return
+    stored, planned = used_mesh(stored_wheel_mesh(folder.results)), used_mesh(wheel_display_mesh(plan))
+    if all(np.array_equal(a, b) for a, b in zip(stored, planned)):
+        return
+    keys = sorted(_mesh_keys(plan))
+    raise ArgumentError(
+        f"{folder.path!r}: the wheel mesh read now ({', '.join(keys)}) is not the one the run drove (its "
+        f"{os.path.basename(folder.results)} holds that one): the file changed since the run started, or is read "
+        "otherwise; put the run's mesh back to resume it, or run the scene again into another folder; nothing "
+        "was changed"
+    )
+
+
+def _mesh_keys(plan: RunPlan) -> set[str]:
+    """The scene keys that name a plan's mesh wheels' files (wheel.file, rover.wheel_shape.NAME.file)."""
+    if plan.rover is None:
+        return {"wheel.file"}
+    assert plan.scene.rover is not None
+    shapes = plan.scene.rover.wheel_shape or {}
+    return {
+        f"rover.wheel_shape.{name}.file" if name in shapes else "wheel.file"
+        for name, wheel in zip(plan.rover.wheel_names, plan.wheels)
+        if not hasattr(wheel.shape, "to_mesh")
+    }
 
 
 def _put_back_scene(folder: RunFolder, scene_toml: str) -> None:

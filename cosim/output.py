@@ -563,7 +563,14 @@ class ResultsWriter:
         ids: np.ndarray | None = None,
     ) -> None:
         """Write one particle snapshot now (and flush). rover_pose: (position [m] (3,), rotation body -> world
-        (3, 3)) of the rover body; radius [m] and ids: the grains' (a ragged file only)."""
+        (3, 3)) of the rover body; radius [m] and ids: the grains' (a ragged file only). An OSError names the
+        file (as flush's)."""
+        try:
+            self._add_snapshot(time, position, velocity, wheel_vertices, rover_pose, radius, ids)
+        except OSError as error:
+            raise with_path(error, self.path) from error
+
+    def _add_snapshot(self, time, position, velocity, wheel_vertices, rover_pose, radius, ids) -> None:
         self.flush_records()
         p = self._file["particles"]
         k = self.snapshots
@@ -648,8 +655,9 @@ class ResultsWriter:
         if status is not None:
             self.mark(status, message, summary)
 
-    def mark(self, status: str, message: str = "", summary: dict | None = None) -> None:
-        """Record the final status, message and summary in the closed file (SWMR forbids attribute writes)."""
+    def mark(self, status: str, message: str = "", summary: dict | None = None, xdmf: bool = True) -> None:
+        """Record the final status, message and summary in the closed file (SWMR forbids attribute writes),
+        then (xdmf) bring results.xdmf up to date (update_xdmf)."""
         import h5py
 
         with h5py.File(self.path, "r+", libver="latest") as f:
@@ -657,6 +665,11 @@ class ResultsWriter:
             f.attrs["message"] = message
             if summary is not None:  # a nan (not measured) as null, as run.json: strict JSON readers take it
                 f.attrs["summary"] = json.dumps(finite_or_null(summary), allow_nan=False)
+        if xdmf:
+            self.update_xdmf()
+
+    def update_xdmf(self) -> None:
+        """Write results.xdmf (and its results.xdmf.h5) again from the results: a view derived from them."""
         self._write_xdmf()
 
     def __enter__(self):
@@ -747,6 +760,13 @@ def check_results(path, data: bool = True) -> dict:
     except Exception as error:  # h5py reports damaged files as OSError, RuntimeError, KeyError, ...
         raise DamagedFileError(f"{path}: the results file is damaged ({error})") from None
     return attrs
+
+
+def stored_wheel_mesh(path) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The wheels' mesh a results file keeps (wheels/mesh: vertices [m] (V, 3) in wheel frames, triangles
+    (F, 3), owner wheel (V,)): the wheels its run drove; DamagedFileError when it cannot be read."""
+    with open_results(path) as f:
+        return tuple(read_whole(f, f"wheels/mesh/{name}") for name in ("vertices", "triangles", "wheel"))
 
 
 def _structure_problem(f) -> str:

@@ -34,6 +34,12 @@ study's FOLDER/slip_x/replica_k (2), kept in a folder of studies (3) and one mor
 such as / or /tmp is not walked to its bottom."""
 
 
+RUN_PICTURES = ("travel_sinkage.png", "slip_drawbar.png", "drawbar_slip.png")
+"""The pictures `plot_output` may write in its folder for any run (module docstring; the last of two or more)."""
+ROVER_PICTURES = ("trajectory.png", "wheels.png")
+"""... and for rover runs."""
+
+
 def save_figure(fig, path: str, dpi: float, replace: bool = True) -> None:
     """Save a matplotlib figure to `path` whole or not at all, in the format its extension names: written
     beside it under a temporary name, then renamed (soil.files.atomic_path), so a crash, a signal or a full
@@ -106,6 +112,12 @@ def plot_output(out_dir: str, plot_dir: str | None = None, dpi: int = 120) -> li
         raise DamagedFileError(f"{damaged[0]}{extra}; no plot was written")
     for problem in damaged:
         log.warning("skipping %s", problem)
+    rovers = [run for run in runs if run[2]["attrs"].get("kind") == "rover"]
+    pictures = RUN_PICTURES if len(runs) >= 2 else RUN_PICTURES[:2]  # drawbar_slip.png: of two runs or more
+    for name in pictures + (ROVER_PICTURES if rovers else ()):  # before the first picture is replaced:
+        # a link it must not write through, or a folder
+        if os.path.isdir(output_target(os.path.join(plot_dir, name), (".png",), what="the picture")):
+            raise ArgumentError(f"the picture {os.path.join(plot_dir, name)!r} is a folder; a picture is a file")
     os.makedirs(plot_dir, exist_ok=True)
     groups = sorted({g for _, g, _ in runs})
     colours = {g: plt.cm.tab10(i % 10) for i, g in enumerate(groups)}
@@ -144,7 +156,6 @@ def plot_output(out_dir: str, plot_dir: str | None = None, dpi: int = 120) -> li
         plt.close(fig)
         written.append(path)
 
-    rovers = [run for run in runs if run[2]["attrs"].get("kind") == "rover"]
     if rovers:
         written += _rover_plots(plt, rovers, colours, plot_dir, dpi)
     overlay(

@@ -194,10 +194,31 @@ def probe_drive(
     elif section.kind == "python":
         assert section.function is not None  # the validator requires a python drive's function
         try:
-            import_callable(section.function, scene.base_dir)
+            factory = import_callable(section.function, scene.base_dir)
         except SceneError as error:
             problems += [p.replace("rover.drive.function", f"{key}.function") for p in error.problems]
+        else:
+            _check_factory_arguments(factory, section, key, problems)
     return None
+
+
+def _check_factory_arguments(factory, section: DriveSection, key: str, problems: list[str]) -> None:
+    """A python drive's factory that cannot take (wheel_count, wheel_radius, **args) named now, not when the
+    run builds its controller after the bed settled; the call itself, the user's code, waits for the run."""
+    import inspect
+
+    try:
+        signature = inspect.signature(factory)
+    except (TypeError, ValueError):  # a callable without a signature (some builtins): its call will say
+        return
+    args = dict(section.args or {})
+    try:
+        signature.bind(wheel_count=1, wheel_radius=(1.0,), **args)
+    except TypeError as error:
+        problems.append(
+            f"{key}.function: {section.function}(wheel_count, wheel_radius, **args) with args {args!r} "
+            f"cannot be called: TypeError: {error}"
+        )
 
 
 def _inspect_mjcf(

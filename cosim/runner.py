@@ -10,7 +10,8 @@ computes the next step (Coupler.step's `meanwhile`: on a GPU the host's records 
 device's steps), except where the file must hold it first: before a snapshot or a checkpoint (so
 also at a stop and at the end, which write both). At the end the summary is computed from what was written
 (cosim.records.run_summary). A first Ctrl-C (or SIGTERM) finishes the macro step,
-writes a checkpoint and stops cleanly; a second one stops at once. The runner reads the soil
+writes a checkpoint and stops cleanly; a second one stops at once. After the run has ended, a first one
+lets its files be finished (results.h5, run.json, the export), then stops. The runner reads the soil
 only through the SoilSide contract (cosim.contract).
 """
 
@@ -57,7 +58,9 @@ class RunDiverged(RegolithError, RuntimeError):
 
 
 class RunInterrupted(RegolithError):
-    """The run was stopped on request (Ctrl-C, SIGTERM) after a checkpoint; `cosim resume OUT` continues it."""
+    """The run was stopped on request (Ctrl-C, SIGTERM) after a checkpoint; `cosim resume OUT` continues it.
+    A stop asked during the run's last step or while its files were finished (complete, diverged, failed)
+    comes after them: the message says how the run ended and that nothing is left to resume."""
 
     def __init__(self, message: str, signal: str = "SIGINT"):
         super().__init__(message)
@@ -104,6 +107,8 @@ class Runner:
         self.progress = progress
         self.hooks = hooks or {}
         self.stop_requested = False
+        self.closing = False
+        """The run has ended and its files are being finished: a first stop signal lets them be."""
         self._pending: _Deferred | None = None
         """The last step's row, made and written while the soil computes the next step (or sooner)."""
         self.stop_signal = "SIGINT"
@@ -243,41 +248,89 @@ class Runner:
             status, message = "failed", f"{type(error).__name__}: {error}"
             raise
         finally:
-            for number, previous in previous_handlers.items():
-                signal.signal(number, previous)
-            if bar is not None:
-                bar.close()
-            wall = self.wall_before + time.perf_counter() - started
-            if self._pending is not None:  # a run stopped by an error still writes its last step's row
-                pending, self._pending = self._pending, None
-                pending()
-                if pending.error is not None:
-                    log.warning("%s: the last step's row was not written: %s", self.folder.path, pending.error)
-            self.writer.close()
+            self.closing = True  # a first Ctrl-C or SIGTERM from here lets the run's files be finished (seconds)
             try:
-                summary = self.summary(wall, time.perf_counter() - started)
-            except Exception as error:  # a summary must not hide why the run stopped
-                summary = {"error": f"no summary: {type(error).__name__}: {error}"}
-                if status == "complete":
-                    raise
-            if status == "complete" and summary.get("steady_state") != metrics.STEADY:
-                status = "unsteady"
-                message = f"no steady-state result: {summary.get('steady_state')}"
-                log.warning("%s: %s", self.folder.path, message)
-            self.writer.mark(status, message, summary)
-            if status in ("complete", "unsteady"):  # a stopped run: `cosim export vtkhdf` when wanted
-                self._export_vtkhdf()
-            info = read_json(self.folder.file(RUN_FILE))
-            # what a garbled run.json lost, written again from the run itself (its findings are in results.h5)
-            for key, value in (
-                ("run_id", self.run_id),
-                ("device", self.plan.device),
-                ("precision", self.plan.precision),
-            ):
-                info.setdefault(key, value)
-            info.update(status=status, message=message, summary=summary, wall_time=wall)
-            write_json(self.folder.file(RUN_FILE), info)
+                if bar is not None:
+                    bar.close()
+                status, summary = self._close(status, message, started)
+            finally:
+                for number, previous in previous_handlers.items():
+                    signal.signal(number, previous)
+            if self.stop_requested and status != "interrupted":  # asked as the run ended: the caller stops too
+                words = SIGNAL_WORDS.get(self.stop_signal, self.stop_signal)
+                if status in ("complete", "unsteady"):
+                    ended = f"the run had ended ({status}) and its files are finished; nothing to resume"
+                else:  # its own message says what follows (a change to run it again, or a resume)
+                    ended = f"the run had ended ({status}: {message}) and its files are finished"
+                    if status == "failed" and os.path.isfile(self.folder.checkpoint):
+                        ended += f"; cosim resume {self.folder.path} continues it from its last checkpoint"
+                raise RunInterrupted(f"{words}: {ended}", signal=self.stop_signal)
         return RunResult(self.folder.path, status, summary)
+
+    def _close(self, status: str, message: str, started: float) -> tuple[str, dict]:
+        """The run's closing work, whatever ended it: the last step's row, results.h5 closed and marked with
+        the status and the summary, run.json, then (a finished run) the VTKHDF export. Returns (status,
+        summary). A step that fails (a full disk) after the run stopped for another reason is logged, that
+        reason being the one reported; after a finished run it makes the run 'failed', run.json says so,
+        and it is raised once run.json is written."""
+        failure: list[Exception] = []
+
+        def failed(what: str, error: Exception) -> None:
+            nonlocal status, message
+            if status in ("complete", "unsteady"):  # the closing's own failure is the run's
+                status, message = "failed", f"{what}: {type(error).__name__}: {error}"
+                failure.append(error)
+            else:  # the reason the run stopped is reported; this one is said
+                log.warning("%s: %s failed too: %s: %s", self.folder.path, what, type(error).__name__, error)
+
+        def attempt(what: str, action) -> None:
+            try:
+                action()
+            except Exception as error:
+                failed(what, error)
+
+        wall = self.wall_before + time.perf_counter() - started
+        if self._pending is not None:  # a run stopped by an error still writes its last step's row
+            pending, self._pending = self._pending, None
+            pending()
+            if pending.error is not None:
+                log.warning("%s: the last step's row was not written: %s", self.folder.path, pending.error)
+        attempt("closing results.h5", self.writer.close)
+        try:
+            summary = self.summary(wall, time.perf_counter() - started)
+        except Exception as error:  # a summary must not hide why the run stopped
+            summary = {"error": f"no summary: {type(error).__name__}: {error}"}
+            failed("the summary", error)
+        if status == "complete" and summary.get("steady_state") != metrics.STEADY:
+            status = "unsteady"
+            message = f"no steady-state result: {summary.get('steady_state')}"
+            log.warning("%s: %s", self.folder.path, message)
+        attempt("marking results.h5", lambda: self.writer.mark(status, message, summary, xdmf=False))
+        try:  # a view derived from results.h5: a failure is said, the run's status stays its own
+            self.writer.update_xdmf()
+        except Exception as error:
+            log.warning(
+                "%s: results.xdmf not brought up to date (%s: %s); results.h5 holds every record (`cosim export "
+                "vtkhdf` writes a ParaView file from it)",
+                self.folder.path,
+                type(error).__name__,
+                error,
+            )
+        info = read_json(self.folder.file(RUN_FILE))
+        # what a garbled run.json lost, written again from the run itself (its findings are in results.h5)
+        for key, value in (
+            ("run_id", self.run_id),
+            ("device", self.plan.device),
+            ("precision", self.plan.precision),
+        ):
+            info.setdefault(key, value)
+        info.update(status=status, message=message, summary=summary, wall_time=wall)
+        attempt("writing run.json", lambda: write_json(self.folder.file(RUN_FILE), info))
+        if status in ("complete", "unsteady"):  # a stopped run: `cosim export vtkhdf` when wanted
+            self._export_vtkhdf()
+        if failure:
+            raise failure[0]
+        return status, summary
 
     def _export_vtkhdf(self) -> None:
         """results.vtkhdf from the closed results.h5; a failed export is logged, never hides how the run ended."""
@@ -539,6 +592,12 @@ def _install_stop_handlers(runner: Runner) -> dict:
         runner.stop_requested = True
         runner.stop_signal = name
         words = SIGNAL_WORDS.get(name, name)
-        log.warning("%s: finishing the macro step and writing a checkpoint (%s again to stop at once)", words, words)
+        # once the run has ended its files are finished first (results.h5, run.json)
+        doing = (
+            "the run has ended; finishing its files"
+            if runner.closing
+            else "finishing the macro step and writing a checkpoint"
+        )
+        log.warning("%s: %s (%s again to stop at once)", words, doing, words)
 
     return {number: signal.signal(number, handler) for number in STOP_SIGNALS}

@@ -114,10 +114,12 @@ def read_calibration(path: str) -> ScmCalibration:
     if not _finite_number(gravity) or not gravity >= 0:
         raise CalibrationError(f"{path}: gravity must be a finite |g| >= 0 [m/s^2], got {gravity!r}")
     errors = data.get("standard_error", {})
-    wrong = [k for k, v in errors.items() if not (_finite_number(v) or (isinstance(v, float) and math.isnan(v)))]
+    wrong = [
+        k for k, v in errors.items() if not ((_finite_number(v) and v >= 0) or (isinstance(v, float) and math.isnan(v)))
+    ]
     if wrong:
         raise CalibrationError(
-            f"{path}: [standard_error] {wrong[0]} must be a number (nan: not estimated), got {errors[wrong[0]]!r}"
+            f"{path}: [standard_error] {wrong[0]} must be a number >= 0 (nan: not estimated), got {errors[wrong[0]]!r}"
         )
     return ScmCalibration(
         {k: float(scm[k]) for k in SOIL_KEYS},

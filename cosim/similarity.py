@@ -9,8 +9,8 @@ the tangential spring and the cohesion (a pressure). So
 
     |g| x s, E x s (grains and wheel), cohesion x s, forces x s (drawbar load),
     speeds x sqrt(s) (omega, stick speed), times / sqrt(s) (duration, dt, macro step,
-    landing, settling, output intervals), force rates x s^1.5 (drawbar ramp),
-    lengths, masses, densities, angles, restitution, Poisson's ratio, D unchanged,
+    the PID's dt_min and dt_max, landing, settling, output intervals), force rates x s^1.5
+    (drawbar ramp), lengths, masses, densities, angles, restitution, Poisson's ratio, D unchanged,
 
 is an exact similarity of the DEM: the twin's trajectories are the original's, played at
 another speed, and travel / r, slip and sinkage / r are the same (within the summation-
@@ -24,6 +24,16 @@ speed change with gravity when the soil does not change. The twin changes the so
 stiffness with gravity, so it makes no claim about real sand at another gravity; it says
 that a simulation at one gravity stands for the whole family, and it checks a code's
 milli-g numerics against an Earth-g run.
+
+The other terrains follow the same rule, pressures and forces x s at the same lengths: SCM's
+Bekker moduli k_c and k_phi, its cohesion and its unloading stiffness x s, its pressure damping
+[Pa s/m] x sqrt(s), its step / sqrt(s) (n, K, the angles and the grid unchanged: the Bekker
+sinkage is the same); the analytic ground's stiffness x s, damping x sqrt(s) and slip velocity
+x sqrt(s), its defaults made explicit first. A calibration file holds the soil at the gravity it
+was measured at: the twin keeps one calibrated at the twin's gravity and refuses any other
+(`cosim calibrate-scm` of the DEM scene's twin makes one). The twin is named after its file
+unless --set scene.name names it (a run of it without --out goes to runs/TWIN-STEM, not into the
+original's folder).
 """
 
 from __future__ import annotations
@@ -46,6 +56,9 @@ TIME_KEYS = [
     ("bed", "settle_max_time"),
     ("output", "snapshot_interval"),
     ("output", "checkpoint_interval"),
+    ("run", "dt_min"),
+    ("run", "dt_max"),
+    ("terrain", "time_step"),
 ]
 """Scene keys that are times [s]: / sqrt(s)."""
 STIFFNESS_KEYS = [
@@ -54,10 +67,24 @@ STIFFNESS_KEYS = [
     ("wheel.material", "youngs_modulus"),
     ("wheel.material", "cohesion"),
     ("testbed", "drawbar_load"),
+    ("terrain", "k_c"),
+    ("terrain", "k_phi"),
+    ("terrain", "cohesion"),
+    ("terrain", "elastic_stiffness"),
+    ("terrain", "stiffness"),
 ]
-"""Scene keys that scale like a force or a pressure: x s."""
-SPEED_KEYS = [("testbed", "omega"), ("soil", "stick_speed"), ("wheel.material", "stick_speed")]
-"""Scene keys that are speeds or rates [m/s, rad/s]: x sqrt(s)."""
+"""Scene keys that scale like a force or a pressure, at the same lengths: x s (Pa, N, Pa m^(1-n), Pa m^-n,
+Pa/m, N/m)."""
+SPEED_KEYS = [
+    ("testbed", "omega"),
+    ("soil", "stick_speed"),
+    ("wheel.material", "stick_speed"),
+    ("terrain", "slip_velocity"),
+    ("terrain", "damping"),
+    ("terrain", "pressure_damping"),
+]
+"""Scene keys that are speeds or rates [m/s, rad/s], or a force or pressure per speed [N s/m, Pa s/m]
+(s / sqrt(s)): x sqrt(s)."""
 RATE_KEYS = [("testbed", "drawbar_ramp")]
 """Force rates [N/s]: x s^1.5."""
 
@@ -86,6 +113,10 @@ def gravity_twin(scene: Scene, gravity) -> tuple[dict, float]:
     old = gravity_vector(scene.scene.gravity)
     if isinstance(gravity, bool):  # read as 1 m/s^2 otherwise
         raise SceneError([f"--gravity: a preset name or a magnitude [m/s^2], not {str(gravity).lower()}"])
+    if not isinstance(gravity, str) and np.ndim(gravity) != 0:  # its direction would be dropped silently
+        raise SceneError(
+            [f"--gravity: a preset name or a magnitude [m/s^2], not {gravity!r}: the twin keeps the scene's direction"]
+        )
     try:
         target = gravity_vector(gravity)
     except ValueError as error:
@@ -111,6 +142,15 @@ def gravity_twin(scene: Scene, gravity) -> tuple[dict, float]:
     wheel_material.setdefault("youngs_modulus", _section(data, "soil").get("youngs_modulus", 2.0e5))
     soil = _section(data, "soil")
     soil.setdefault("youngs_modulus", 2.0e5)
+    if scene.terrain is not None and scene.terrain.model == "analytic":  # its defaults made explicit, then scaled
+        import inspect
+
+        from .terrain import SpringDamperTerrain
+
+        defaults = inspect.signature(SpringDamperTerrain.__init__).parameters
+        terrain = _section(data, "terrain")
+        for key in ("stiffness", "damping", "slip_velocity"):
+            terrain.setdefault(key, defaults[key].default)
     for keys, factor in (
         (TIME_KEYS, 1 / math.sqrt(s)),
         (STIFFNESS_KEYS, s),
@@ -133,7 +173,45 @@ def gravity_twin(scene: Scene, gravity) -> tuple[dict, float]:
         if key not in node:  # a default of the schema: scale it explicitly
             node[key] = default * (math.sqrt(s) if key == "omega" else 1 / math.sqrt(s))
     data["bed"].pop("bed_file", None)  # a bed settled at the old gravity cannot serve the twin
+    _check_calibration(scene, g_new)
     return data, s
+
+
+def _check_calibration(scene: Scene, g_new: float) -> None:
+    """Refuse a terrain.calibration not calibrated at the twin's gravity `g_new` [m/s^2] (SceneError naming
+    the key, the file and both gravities): a soil's calibration holds at the gravity it was measured at."""
+    from .scm_calibration import read_calibration, same_gravity
+
+    name = scene.terrain.calibration if scene.terrain is not None else None
+    if name is None:
+        return
+    path = scene.resolve(name)
+    assert path is not None
+    gravity = read_calibration(path).gravity
+    if not same_gravity(gravity, g_new):
+        raise SceneError(
+            [
+                f"terrain.calibration: {path} is calibrated at |g| = {gravity:.4g} m/s^2, the twin's is "
+                f"{g_new:.4g} m/s^2: a soil's calibration holds at its gravity; name one calibrated at the twin's "
+                "(--set terrain.calibration='\"FILE\"', relative to the scene's folder), made by `cosim "
+                "calibrate-scm` of the twin of the DEM scene it was calibrated on (the shipped example: "
+                "terrain/earth_twin_regolith_scm_beds.toml, the main job's soil at Earth, beside "
+                "examples/phobos_single_wheel_scm.toml)"
+            ]
+        )
+
+
+def _plain_name(name: str) -> bool:
+    """Whether `name` passes scene.name's own check (a plain folder name under runs/)."""
+    from pydantic import ValidationError
+
+    from .scene import SceneSection
+
+    try:
+        SceneSection(name=name)
+    except ValidationError:
+        return False
+    return True
 
 
 def write_gravity_twin(path: str, gravity, out: str, overwrite: bool = False, overrides=None) -> tuple[str, float]:
@@ -149,6 +227,9 @@ def write_gravity_twin(path: str, gravity, out: str, overwrite: bool = False, ov
 
     scene = load_scene(path, overrides)
     data, s = gravity_twin(scene, parse_value(str(gravity)))
+    if not any(o.split("=", 1)[0].strip() == "scene.name" for o in overrides or []):  # a name given is kept
+        stem = os.path.splitext(os.path.basename(out))[0]
+        data["scene"]["name"] = stem if _plain_name(stem) else f"{scene.scene.name}_twin"
     twin = validate_scene(data, base_dir=scene.base_dir)
     resolve(twin)  # the twin must be a valid scene too
     if os.path.exists(out) and not overwrite:

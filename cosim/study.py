@@ -1708,6 +1708,7 @@ def _check_one_study(found: list, scenes: list, given) -> None:
                 f"--from-runs: the runs ({paths[0]} ...) are not of the scene given ({', '.join(keys[:6])}"
                 f"{', ...' if len(keys) > 6 else ''} differ): give the scene the study ran"
             )
+    _check_one_mesh(paths, scenes[0], given)
     seen: dict = {}
     for (slip, path, record), scene in zip(found, scenes):
         run_id = record.get("run_id")
@@ -1726,6 +1727,48 @@ def _check_one_study(found: list, scenes: list, given) -> None:
                 "past the seeds already run"
             )
         seen[replica] = path
+
+
+def _check_one_mesh(paths: list[str], scene, given) -> None:
+    """Refuse runs of a mesh wheel that drove different meshes (its file changed between them: the scenes
+    name the same path, whose content now says nothing of what each drove), or another mesh than the scene
+    given names now: each run's results.h5 keeps the wheel it drove (wheels/mesh; a file unreadable: not
+    judged)."""
+    if scene.wheel is None or scene.wheel.type != "mesh":
+        return
+    from .output import stored_wheel_mesh
+    from .system import used_mesh, wheel_display_mesh
+
+    def digest(arrays) -> str:  # vertices, triangles, owners in the types results.h5 keeps them
+        import hashlib
+
+        import numpy as np
+
+        sha = hashlib.sha256()
+        for array, kind in zip(used_mesh(arrays), (np.float64, np.int32, np.int32)):
+            sha.update(np.ascontiguousarray(array, dtype=kind).tobytes())
+        return sha.hexdigest()
+
+    driven = {}
+    for path in paths:
+        try:
+            driven[path] = digest(stored_wheel_mesh(os.path.join(path, "results.h5")))
+        except (DamagedFileError, OSError):
+            continue
+    if len(set(driven.values())) > 1:
+        first, *_ = driven
+        other = next(path for path in driven if driven[path] != driven[first])
+        raise ArgumentError(
+            f"--from-runs: {other} drove another wheel mesh than {first} (their results.h5 keep each; "
+            f"wheel.file {scene.wheel.file} changed between them): a slip table averages the replicas of one wheel"
+        )
+    if given is not None and driven:
+        path, mesh = next(iter(driven.items()))
+        if digest(wheel_display_mesh(resolve(given))) != mesh:
+            raise ArgumentError(
+                f"--from-runs: the runs ({path} ...) drove another wheel mesh than the scene given names now "
+                f"(wheel.file {given.wheel.file}): give the scene the study ran, with the mesh it ran"
+            )
 
 
 def _scm_soil(scene) -> tuple:

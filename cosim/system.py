@@ -175,17 +175,8 @@ class CoupledSystem:
         return self.soil.walls()
 
     def wheel_mesh(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Display mesh of the wheels: vertices [m] (V, 3) in wheel frames, triangles (F, 3), owner wheel (V,)."""
-        vertices, triangles, owners = [], [], []
-        count = 0
-        for index, wheel in enumerate(self.plan.wheels):
-            shape = wheel.shape
-            v, t = shape.to_mesh(arc_segments=240) if hasattr(shape, "to_mesh") else (shape.vertices, shape.triangles)
-            vertices.append(np.asarray(v, dtype=np.float64))
-            triangles.append(np.asarray(t) + count)
-            owners.append(np.full(len(v), index, dtype=np.int32))
-            count += len(v)
-        return np.concatenate(vertices), np.concatenate(triangles), np.concatenate(owners)
+        """Display mesh of the wheels (wheel_display_mesh)."""
+        return wheel_display_mesh(self.plan)
 
     def posed_wheel_vertices(self, vertices: np.ndarray, owner: np.ndarray) -> np.ndarray:
         """The display mesh at the wheels' current poses [m], shape (V, 3)."""
@@ -354,6 +345,32 @@ TERRAIN_MODELS: dict[str, TerrainModel] = {
     "mixed": TerrainModel(_mixed_soil, needs_bed=True, validity=_mixed_validity),
 }
 """The terrain models by [terrain] model name."""
+
+
+def wheel_display_mesh(plan: RunPlan) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Display mesh of a plan's wheels, as results.h5 keeps it (wheels/mesh): vertices [m] (V, 3) in wheel
+    frames, triangles (F, 3), owner wheel (V,); a mesh wheel's own scaled vertices and triangles."""
+    vertices, triangles, owners = [], [], []
+    count = 0
+    for index, wheel in enumerate(plan.wheels):
+        shape = wheel.shape
+        v, t = shape.to_mesh(arc_segments=240) if hasattr(shape, "to_mesh") else (shape.vertices, shape.triangles)
+        vertices.append(np.asarray(v, dtype=np.float64))
+        triangles.append(np.asarray(t) + count)
+        owners.append(np.full(len(v), index, dtype=np.int32))
+        count += len(v)
+    return np.concatenate(vertices), np.concatenate(triangles), np.concatenate(owners)
+
+
+def used_mesh(mesh: tuple[np.ndarray, np.ndarray, np.ndarray]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """A display mesh (vertices, triangles, owners: wheel_display_mesh) less the vertices no triangle uses,
+    the triangles renumbered: one wheel whether its reader kept such vertices or not (results.h5 written
+    before MeshWheel.load dropped them holds them)."""
+    vertices, triangles, owners = mesh
+    used = np.unique(triangles)
+    index = np.full(len(vertices), -1, dtype=np.int64)
+    index[used] = np.arange(len(used))
+    return vertices[used], index[triangles], owners[used]
 
 
 def validity(plan: RunPlan, surface_height: float, measured: dict | None = None) -> list[Finding]:

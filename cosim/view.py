@@ -402,17 +402,16 @@ FOLDER_TAKEN = {errno.ENOTEMPTY, errno.EEXIST, errno.ENOTDIR, errno.EISDIR}
 
 def _place_new_folder(drawing: str, target: str, out: str) -> None:
     """Rename the finished folder `drawing` to `target` where that is absent or an empty folder (os.rename
-    refuses anything else, atomically); else to TARGET-STEM.new[-k]SUFFIX beside it, and raise
-    FileExistsError naming `out` and that folder (soil.files.place_new's rule for files)."""
+    refuses anything else, atomically); else to TARGET.new[-k] beside it (a folder's name has no suffix:
+    frames.v2 gives frames.v2.new), and raise FileExistsError naming `out` and that folder."""
     try:
         os.rename(drawing, target)
         return
     except OSError as error:
         if error.errno not in FOLDER_TAKEN:
             raise
-    stem, extension = os.path.splitext(target)
     for k in range(1, 10**6):
-        kept = f"{stem}.new{'' if k == 1 else f'-{k}'}{extension}"
+        kept = f"{target}.new{'' if k == 1 else f'-{k}'}"
         if os.path.lexists(kept):
             continue
         try:

@@ -232,7 +232,11 @@ class MeshWheel:
         bad = int(np.sum(~np.isfinite(np.asarray(mesh.vertices)).all(axis=1)))
         if bad:  # (processed, trimesh would drop them and their triangles: the mesh would only look open)
             raise DamagedFileError(f"wheel mesh {path!r}: {bad} vertices are not finite numbers (nan or inf)")
-        mesh.process()  # duplicate vertices merged, degenerate triangles dropped: what trimesh does on load
+        mesh.process()  # duplicate vertices merged, as trimesh does on load
+        # degenerate and repeated triangles dropped (process() keeps them: a closed surface read as open),
+        # then the vertices no triangle uses (a stray one would size the wheel)
+        mesh.update_faces(mesh.unique_faces() & mesh.nondegenerate_faces())
+        mesh.remove_unreferenced_vertices()
         if not mesh.is_watertight:
             raise SoilInputError(
                 f"wheel mesh {path!r} is not closed (watertight): inside and outside of the wheel need a closed "
@@ -251,7 +255,29 @@ class MeshWheel:
                 stacklevel=2,
             )
             trimesh.repair.fix_inversion(mesh)
-        return cls(np.asarray(mesh.vertices) * scale, np.asarray(mesh.faces), name=os.path.basename(path))
+        wheel = cls(np.asarray(mesh.vertices) * scale, np.asarray(mesh.faces), name=os.path.basename(path))
+        wheel.check_wheel_shape()
+        return wheel
+
+    def check_wheel_shape(self) -> None:
+        """Refuse a mesh read as a wheel that is not one about its hub (SoilInputError naming it): centred
+        along the axle within MESH_OFF_AXLE of its width (the walls' clearance and the hub's track assume
+        it), and round about the axle (its extents along x and z within MESH_OFF_AXLE of each other: a file
+        whose axle is its X axis is a paddle). Other bodies given as meshes (a plate) are not judged."""
+        low, high = self.vertices.min(axis=0), self.vertices.max(axis=0)
+        centre, span = 0.5 * (low + high), high - low
+        if abs(centre[1]) > MESH_OFF_AXLE * span[1]:
+            raise SoilInputError(
+                f"mesh {self.name!r}: its centre lies {abs(centre[1]):.4g} m along the axle from the hub, more than "
+                f"{MESH_OFF_AXLE:g} of its width {span[1]:.4g} m: the wheel would run beside its hub's track and "
+                "nearer one wall than the checks judge; centre the mesh on it (its file's origin must be the hub)"
+            )
+        if abs(span[0] - span[2]) > MESH_OFF_AXLE * max(span[0], span[2]):
+            raise SoilInputError(
+                f"mesh {self.name!r} is not round about the axle (the wheel frame's y axis): it spans "
+                f"{span[0]:.4g} m along x and {span[2]:.4g} m along z (its width along y: {span[1]:.4g} m); "
+                "a wheel's axle must be its file's Y axis: rotate the mesh"
+            )
 
     @property
     def volume(self) -> float:

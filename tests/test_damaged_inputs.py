@@ -610,7 +610,8 @@ def test_a_full_disk_during_the_run_names_the_file(scene, tiny_bed, tmp_path, ca
 
 
 def test_resume_of_an_empty_folder_leaves_nothing_behind(tmp_path, capsys):
-    """A folder that holds no run is bad input (exit 2, as plot and export-fmu of one), not an OS error."""
+    """A folder that holds no run is bad input (exit 2, as plot and export-fmu of one), not an OS error; one
+    whose run stopped before its first checkpoint is said to be that, not "not a run folder"."""
     empty = tmp_path / "empty"
     empty.mkdir()
     assert main(["resume", str(empty), "--no-progress"]) == 2
@@ -618,6 +619,26 @@ def test_resume_of_an_empty_folder_leaves_nothing_behind(tmp_path, capsys):
     assert os.listdir(empty) == []
     assert main(["resume", str(tmp_path / "nowhere"), "--no-progress"]) == 2
     assert "is not a folder: nothing to resume" in first_error_line(capsys)
+    # a run stopped before its first checkpoint: said so, with the command that runs it again
+    for name in ("scene.toml", "run.json", "results.h5"):
+        (empty / name).write_text("")
+    assert main(["resume", str(empty), "--no-progress"]) == 2
+    line = first_error_line(capsys)
+    assert "the run stopped before its first checkpoint" in line and f"cosim run {empty / 'scene.toml'}" in line
+    # one that diverged there: the divergence named, and a rerun with the change it names (as it was, it
+    # diverges again)
+    (empty / "run.json").write_text(json.dumps({"status": "diverged", "message": "grain 7 left the box"}))
+    assert main(["resume", str(empty), "--no-progress"]) == 2
+    line = first_error_line(capsys)
+    assert "the run diverged before its first checkpoint (grain 7 left the box)" in line and "--set KEY=VALUE" in line
+    # one that failed there (a full disk) runs again as it was; a finished one whose checkpoint is gone: nothing
+    (empty / "run.json").write_text(json.dumps({"status": "failed", "message": "OSError: disk full"}))
+    assert main(["resume", str(empty), "--no-progress"]) == 2
+    line = first_error_line(capsys)
+    assert "the run failed before its first checkpoint (OSError: disk full)" in line and "--overwrite" in line
+    (empty / "run.json").write_text(json.dumps({"status": "complete"}))
+    assert main(["resume", str(empty), "--no-progress"]) == 2
+    assert "the run finished (complete) and its checkpoint is gone" in first_error_line(capsys)
 
 
 @pytest.mark.parametrize("edit", [b"# an edit by hand\n", b"\xff\xfe not UTF-8\n"], ids=["edited", "unreadable"])
@@ -978,6 +999,23 @@ def test_a_plot_whose_write_fails_midway_leaves_the_earlier_pictures_whole(compl
     line = first_error_line(capsys)
     assert "No space left on device" in line and any(str(plots / name) in line for name in before), line
     assert digests(plots) == before
+
+
+def test_a_plot_refuses_a_link_at_a_later_picture_before_it_replaces_an_earlier_one(complete, tmp_path, capsys):
+    """A picture link that leads to the run's results.h5 was refused only when its picture came to be saved,
+    after the pictures before it had been replaced: every name is checked before the first is written."""
+    folder = copy(complete, tmp_path)
+    assert main(["plot", str(folder)]) == 0
+    plots = folder / "plots"
+    (plots / "slip_drawbar.png").unlink()  # the second picture written
+    (plots / "slip_drawbar.png").symlink_to(folder / "results.h5")
+    (plots / "travel_sinkage.png").write_bytes(b"the earlier picture")  # the first written: it must stay
+    before = digests(plots)
+    results = (folder / "results.h5").read_bytes()
+    assert main(["plot", str(folder)]) == 2
+    line = first_error_line(capsys)
+    assert "slip_drawbar.png" in line and "results.h5" in line, line
+    assert digests(plots) == before and (folder / "results.h5").read_bytes() == results
 
 
 def test_a_lab_table_whose_write_fails_midway_leaves_the_earlier_one_whole(tmp_path):

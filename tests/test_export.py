@@ -587,39 +587,42 @@ def test_an_export_or_a_view_never_writes_through_a_link_to_the_run_or_to_a_file
         assert "VTKHDF" in f
 
 
-@pytest.mark.parametrize("kind", ["picture.png", "movie.gif", "frames"])
+@pytest.mark.parametrize("kind", ["picture.png", "movie.gif", "frames", "frames.v2"])
 def test_view_keeps_an_output_that_appeared_while_it_drew(tmp_path, monkeypatch, capsys, kind):
     """`cosim view RUN --out OUT` without --overwrite looked that OUT was free, then replaced what appeared
     there while it drew. Now, as `cosim export`, what appeared is kept and the view is written beside it
-    (OUT-STEM.new.SUFFIX, a folder OUT.new), both named, exit 5; with --overwrite it is replaced."""
+    (OUT-STEM.new.SUFFIX, a folder OUT.new: frames.v2.new, not frames.new.v2), both named, exit 5; with
+    --overwrite it is replaced."""
     from cosim import view
 
     run, out = tmp_path / "run", tmp_path / kind
     made_up_results(run, 60, 2)
     draw = view._Frame.draw
 
+    if kind == "frames.v2":  # a dotted name is a folder of frames where that folder exists (empty here)
+        out.mkdir()
+
     def another_process_writes_first(frame, s, values):
-        if not os.path.lexists(out):
-            if kind == "frames":
-                out.mkdir()
-                (out / "notes.txt").write_text("another process's")
-            else:
-                out.write_bytes(b"another process's")
+        if kind.startswith("frames") and not (out / "notes.txt").exists():
+            out.mkdir(exist_ok=True)
+            (out / "notes.txt").write_text("another process's")
+        elif not os.path.lexists(out):
+            out.write_bytes(b"another process's")
         draw(frame, s, values)
 
     monkeypatch.setattr(view._Frame, "draw", another_process_writes_first)
     assert main(["view", str(run), "--out", str(out), "--dpi", "20"]) == 5
     error = capsys.readouterr().err
     stem, suffix = os.path.splitext(kind)
-    kept = tmp_path / f"{stem}.new{suffix}"
+    kept = tmp_path / (f"{kind}.new" if kind.startswith("frames") else f"{stem}.new{suffix}")
     assert str(out) in error and str(kept) in error, error
-    if kind == "frames":
+    if kind.startswith("frames"):
         assert os.listdir(out) == ["notes.txt"] and (out / "notes.txt").read_text() == "another process's"
         assert sorted(os.listdir(kept)) == ["frame_0000.png", "frame_0001.png"]
     else:
         assert out.read_bytes() == b"another process's" and kept.stat().st_size > 100
     assert sorted(os.listdir(tmp_path)) == sorted(["run", kind, kept.name])  # nothing else left
-    if kind != "frames":
+    if not kind.startswith("frames"):
         assert main(["view", str(run), "--out", str(out), "--dpi", "20", "--overwrite"]) == 0
         assert out.read_bytes() != b"another process's"
 
@@ -659,6 +662,32 @@ def test_plot_of_an_hdf5_file_that_is_not_a_results_file_says_so(tmp_path, capsy
         error = capsys.readouterr().err
         assert f"{folder / 'results.h5'}: not a regolith-cosim results file (format None" in error, (command, error)
     assert _files(tmp_path) == before
+
+
+def test_ctrl_c_or_sigterm_while_warp_loads_exits_with_one_line(tmp_path, monkeypatch, capsys):
+    """Ctrl-C in the first second of any command, while `import cosim` loaded warp (through the package's
+    own __init__, before main ran), printed a 29-line traceback, and SIGTERM killed it without a word: the
+    command line now starts on the standard library alone, and main answers a stop while warp loads."""
+    import subprocess
+    import sys
+
+    from cosim import cli
+
+    loaded = subprocess.run(
+        [sys.executable, "-c", "import sys, cosim.cli; print(sorted({'warp', 'numpy'} & set(sys.modules)))"],
+        capture_output=True,
+        text=True,
+        check=True,
+    )
+    assert loaded.stdout.strip() == "[]", loaded.stdout
+    for raised, code in ((KeyboardInterrupt(), 130), (KeyboardInterrupt("SIGTERM"), 143)):
+
+        def loading_warp(verbose, raised=raised):
+            raise raised
+
+        monkeypatch.setattr(cli, "_setup_output", loading_warp)
+        assert main(["plot", str(tmp_path)]) == code
+        assert capsys.readouterr().err.strip().startswith("cosim: interrupted.")
 
 
 def test_ctrl_c_while_a_command_starts_exits_130_without_a_traceback(tmp_path, monkeypatch, capsys):

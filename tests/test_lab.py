@@ -706,6 +706,23 @@ def test_calibrate_prints_each_value_with_its_unit(tmp_path, capsys, monkeypatch
     assert "repose measured" in printed and "30.4 deg (target 30 +- 1 deg)" in printed
 
 
+def test_an_interrupted_plate_test_notes_only_the_plates_that_pushed():
+    """An interrupted plate test's notes named every plate of the scene (3 grains wide, walls near it),
+    also those that never ran: only the plates that pushed are named, and the note says it was interrupted."""
+    from cosim.lab.plate import plate_notes
+
+    plan = resolve_lab(lab_scene_from_text(PLATE, overrides={"lab.replicas": 2}))
+    ready = [{"replica": 0, "settled": True}, {"replica": 1, "settled": True}]
+    surface = 0.03
+    everything = plate_notes(plan, ready, [{"width": 0.012}, {"width": 0.016}] * 2, 4, None, surface)
+    assert any(n.startswith("plate 0.012 m is 3 grain") for n in everything)
+    assert any(n.startswith("plate 0.016 m is 4 grain") for n in everything)
+    cut = plate_notes(plan, ready, [{"width": 0.012}], 4, KeyboardInterrupt(), surface)
+    assert any(n.startswith("plate 0.012 m is 3 grain") for n in cut)
+    assert not [n for n in cut if "0.016" in n], cut
+    assert "interrupted after 1 of 4 plate tests: the values are over these only" in cut
+
+
 def test_a_plate_test_with_fewer_replicas_leaves_no_bed_of_the_earlier_one(tmp_path, monkeypatch):
     """`lab plate --replicas 2`, then `--replicas 1 --overwrite`: the second settled bed 0 again and left
     the first's bed 1 (beds/replica_1.h5) as if it were its own; every bed is settled anew, so the ones

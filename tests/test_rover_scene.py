@@ -224,6 +224,25 @@ def test_a_controller_factory_that_fails_is_named(tmp_path, capsys):
     assert RunFolder(str(out)).run_files() == [], "no run files before the controller is built (its bed may be)"
 
 
+def test_a_controller_factory_that_cannot_take_its_arguments_is_named_before_the_bed(tmp_path, capsys):
+    """A python drive whose factory's signature cannot take (wheel_count, wheel_radius, **args) is named by
+    `advise` and by the plan (exit 2), not by the run once its bed has settled; a factory that takes them
+    through **kwargs passes."""
+    scene = _rig(tmp_path)
+    (tmp_path / "drives.py").write_text(
+        "def needs_gain(wheel_count, wheel_radius, gain):\n    return lambda t, states, wrenches: None\n"
+        "def takes_any(wheel_count, wheel_radius, **kwargs):\n    return lambda t, states, wrenches: None\n"
+    )
+    missing = 'rover.drive={kind="python", function="drives:needs_gain"}'
+    assert main(["advise", scene, "--set", missing]) == 2
+    message = capsys.readouterr().err
+    assert "rover.drive.function: drives:needs_gain" in message and "TypeError" in message and "gain" in message
+    unknown = 'rover.drive={kind="python", function="drives:needs_gain", args={gain=1.0, bogus=2}}'
+    assert main(["advise", scene, "--set", unknown]) == 2
+    assert "bogus" in capsys.readouterr().err
+    assert main(["advise", scene, "--set", 'rover.drive={kind="python", function="drives:takes_any", args={x=1}}']) == 0
+
+
 def test_fmu_rover_input_errors_name_the_field(tmp_path, fmus, capsys):
     """An FMU without the rover variables, a wheel count the FMU does not have, an FMU controller for
     another wheel count: exit code 2, the field named, the FMU's variables listed."""

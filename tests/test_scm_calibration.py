@@ -193,6 +193,7 @@ def test_a_calibration_file_round_trips_and_warns_at_another_gravity(tmp_path):
     "damage, named",
     [
         ({"standard_error": {"k_c": "abc"}}, "[standard_error] k_c must be a number"),
+        ({"standard_error": {"k_phi": -3.0}}, "[standard_error] k_phi must be a number >= 0"),
         ({"standard_error": [1, 2]}, "[standard_error] must be a table"),
         ({"scm": [1]}, "[scm] must be a table"),
         ({"gravity": math.inf}, "gravity must be a finite"),

@@ -190,6 +190,154 @@ def test_an_scm_run_resumes_bit_for_bit(scm_run, tmp_path):
         np.testing.assert_array_equal(first[name], second[name], err_msg=name)
 
 
+def test_a_resume_refuses_a_mesh_wheel_whose_file_changed_since_the_run_started(tmp_path):
+    """A mesh wheel's file changed after the run was interrupted: the resume drove the rest of the run on the
+    new wheel (1.3 x larger: "airborne") while results.h5 kept the old one. It is refused by name, before
+    anything is touched; with the run's mesh put back it resumes."""
+    import hashlib
+
+    from cosim.runner import RunInterrupted
+    from soil import GrouserWheel, MeshWheel
+    from soil.errors import ArgumentError
+
+    shape = GrouserWheel(radius=0.025, width=0.02, grouser_count=8, grouser_height=0.003, grouser_thickness=0.002)
+    wheel = MeshWheel(*shape.to_mesh(arc_segments=72))
+    wheel.save(tmp_path / "wheel.obj")
+    original = (tmp_path / "wheel.obj").read_bytes()
+    scene = write_tiny(tmp_path, SCM)
+    mesh = ['wheel={type = "mesh", file = "wheel.obj"}', "run.duration=0.1"]
+    mesh += ["terrain.node_spacing=0.002", "terrain.window_length=0.3", "terrain.window_width=0.2"]  # any wheel's
+
+    def stop(runner):
+        if runner.system.coupler.step_count == 20:
+            runner.stop_requested = True
+
+    with pytest.raises(RunInterrupted):
+        run_scene(scene, str(tmp_path / "run"), hooks={"step": stop}, overrides=mesh)
+    MeshWheel(wheel.vertices * 1.1, wheel.triangles).save(tmp_path / "wheel.obj")
+
+    def digests():
+        folder = tmp_path / "run"
+        return {p.name: hashlib.sha256(p.read_bytes()).hexdigest() for p in folder.iterdir() if p.is_file()}
+
+    before = digests()
+    with pytest.raises(ArgumentError, match=r"the wheel mesh read now \(wheel.file\) is not the one the run drove"):
+        resume(str(tmp_path / "run"))
+    assert digests() == before
+    (tmp_path / "wheel.obj").write_bytes(original)
+    assert resume(str(tmp_path / "run")).status in ("complete", "unsteady")
+
+
+def test_a_stop_while_the_run_s_files_are_finished_lets_them_be_finished(tmp_path):
+    """One Ctrl-C after the drive's last step, while the summary was made, broke off the closing work:
+    run.json stayed 'running', results.h5 'running' or without its summary, no results.vtkhdf. A first stop
+    signal from there lets the files be finished, as the run would have; then the caller stops (a serial
+    study starts no further run): RunInterrupted, saying nothing is left to resume."""
+    import json
+    import signal
+
+    from cosim.runner import RunInterrupted, Runner
+
+    summary = Runner.summary
+
+    def stopped_while_summarising(runner, *args):
+        signal.raise_signal(signal.SIGINT)  # the runner's own handler: a first Ctrl-C
+        return summary(runner, *args)
+
+    scene = write_tiny(tmp_path, SCM)
+    original = signal.getsignal(signal.SIGINT)
+    try:
+        Runner.summary = stopped_while_summarising
+        with pytest.raises(RunInterrupted, match=r"Ctrl-C: the run had ended \((complete|unsteady)\) and its files"):
+            run_scene(scene, str(tmp_path / "run"), overrides=["run.duration=0.05"])
+    finally:
+        Runner.summary = summary
+    assert signal.getsignal(signal.SIGINT) is original  # the run's handlers are taken back
+    record = json.loads((tmp_path / "run" / "run.json").read_text())
+    assert record["status"] in ("complete", "unsteady")
+    with h5py.File(tmp_path / "run" / "results.h5", "r") as f:
+        assert f.attrs["status"] == record["status"] and json.loads(f.attrs["summary"])["steady_state"]
+    assert (tmp_path / "run" / "results.vtkhdf").is_file()
+    # a run that failed (here: its first checkpoint) and is stopped while closing: the caller stops too (a
+    # serial study ran its next replica), told how the run ended
+    from cosim import runner as runner_module
+
+    def full(path, data, units):
+        raise OSError(28, "No space left on device", str(path))
+
+    write_checkpoint = runner_module.write_checkpoint
+    try:
+        Runner.summary, runner_module.write_checkpoint = stopped_while_summarising, full
+        with pytest.raises(RunInterrupted, match=r"the run had ended \(failed: OSError: .*No space left on device"):
+            run_scene(scene, str(tmp_path / "failed"), overrides=["run.duration=0.05"])
+    finally:
+        Runner.summary, runner_module.write_checkpoint = summary, write_checkpoint
+    assert json.loads((tmp_path / "failed" / "run.json").read_text())["status"] == "failed"
+
+
+def test_a_full_disk_names_the_file_the_run_failed_at_not_the_closing_s_next_failure(tmp_path, monkeypatch, capsys):
+    """The disk filled at a checkpoint; closing the run, rewriting results.xdmf met the full disk again and
+    that error replaced the first: exit 5 named results.xdmf, run.json stayed 'running'. The checkpoint is
+    named, run.json says 'failed' with it, and the closing's own failure is only said."""
+    import errno
+    import json
+
+    from cosim import runner
+    from cosim.cli import main
+    from cosim.output import ResultsWriter
+
+    def full(path):
+        raise OSError(errno.ENOSPC, "No space left on device", str(path))
+
+    monkeypatch.setattr(runner, "write_checkpoint", lambda path, data, units: full(path))
+    monkeypatch.setattr(ResultsWriter, "update_xdmf", lambda writer: full(tmp_path / "run" / "results.xdmf"))
+    scene = write_tiny(tmp_path, SCM)
+    assert main(["run", scene, "--out", str(tmp_path / "run"), "--no-progress", "--set", "run.duration=0.05"]) == 5
+    err = capsys.readouterr().err
+    (line,) = [line for line in err.splitlines() if line.startswith("cosim: error")]
+    assert "checkpoint.npz: No space left on device" in line, err
+    assert "results.xdmf not brought up to date" in err
+    record = json.loads((tmp_path / "run" / "run.json").read_text())
+    assert record["status"] == "failed" and "checkpoint.npz" in record["message"]
+    # a finished run whose closing fails at results.xdmf, a view derived from results.h5: still finished
+    monkeypatch.undo()
+    monkeypatch.setattr(ResultsWriter, "update_xdmf", lambda writer: full(tmp_path / "run2" / "results.xdmf"))
+    assert main(["run", scene, "--out", str(tmp_path / "run2"), "--no-progress", "--set", "run.duration=0.05"]) in (
+        0,
+        6,
+    )
+    assert json.loads((tmp_path / "run2" / "run.json").read_text())["status"] in ("complete", "unsteady")
+
+
+def test_a_resume_says_in_run_json_that_the_run_runs_again(tmp_path):
+    """A resume left run.json 'interrupted' with the old message while it ran (killed, it still said so, its
+    checkpoint past that): it says 'running' as a run's start does, and the run's end says how it ended."""
+    import json
+
+    from cosim.runner import RunInterrupted
+
+    scene = write_tiny(tmp_path, SCM)
+    folder = tmp_path / "run"
+
+    def stop(runner):
+        if runner.system.coupler.step_count == 10:
+            runner.stop_requested = True
+
+    with pytest.raises(RunInterrupted):
+        run_scene(scene, str(folder), hooks={"step": stop}, overrides=["run.duration=0.05"])
+    assert json.loads((folder / "run.json").read_text())["status"] == "interrupted"
+    seen = []
+
+    def look(runner):
+        if not seen:
+            seen.append(json.loads((folder / "run.json").read_text()))
+
+    result = resume(str(folder), hooks={"step": look})
+    assert seen[0]["status"] == "running" and seen[0]["message"].startswith("resumed from its checkpoint at t = ")
+    assert "summary" not in seen[0] and seen[0]["run_id"]
+    assert json.loads((folder / "run.json").read_text())["status"] == result.status
+
+
 def test_an_scm_grid_too_large_is_refused_before_the_run_folder(tmp_path):
     """A node spacing that makes a grid Warp cannot index is refused by scene key before the run's
     folder is made, so a run already there is left as it was."""

@@ -1372,3 +1372,15 @@ def test_a_discarded_step_retried_with_other_inputs_is_not_called_unchanged(tiny
     said = SoilSession.nearest_wheel(SimpleNamespace(wheel_count=3), error, hubs)
     assert said == f" of wheel_1 (its hub {math.hypot(0.01, 0.02, 0.02):.3g} m from the grain that diverged)"
     assert SoilSession.nearest_wheel(SimpleNamespace(wheel_count=1), error, hubs[:1]) == ""
+
+
+def test_the_fmu_overhead_benchmark_runs_and_its_fmu_gives_the_in_process_wrenches_bit_for_bit():
+    """benchmarks/soil_fmu_overhead.py (BENCHMARKS.md's soil FMU section) had rotted: it imported a test
+    module that is gone and passed an argument soil_config_from no longer takes. Its smallest run steps the
+    FMU and the in-process soil side by side on the tests' tiny scene, and their wrenches are equal."""
+    script = Path(__file__).resolve().parent.parent / "benchmarks" / "soil_fmu_overhead.py"
+    done = subprocess.run(
+        [sys.executable, str(script), "--steps", "3", "--substeps", "1"], capture_output=True, text=True, timeout=600
+    )
+    assert done.returncode == 0, done.stderr[-2000:]
+    assert "wrenches bitwise equal: True" in done.stdout, done.stdout[-2000:]

@@ -1216,6 +1216,47 @@ def test_a_table_from_runs_reads_every_run_first_and_counts_each_replica_once(tm
     assert "0.200   2/3" in capsys.readouterr().out
 
 
+def test_a_table_from_runs_refuses_runs_that_drove_two_meshes_of_one_file(tmp_path):
+    """Two parts of a slip study on a mesh wheel whose file was replaced between them (the cylinder, then
+    1.1 x it) name the same path, whose content now is the second's: they were averaged as one wheel. Each
+    run's results.h5 keeps the mesh it drove: runs of two meshes are refused, and so is a scene given whose
+    mesh is not the runs'."""
+    import h5py
+
+    from cosim.plan import load_plan
+    from cosim.study import slip_study_from_runs
+    from cosim.system import wheel_display_mesh
+    from soil import GrouserWheel, MeshWheel
+    from soil.errors import ArgumentError
+
+    wheel = MeshWheel(*GrouserWheel(radius=0.025, width=0.02).to_mesh(arc_segments=72))
+    scene = write_tiny(tmp_path)
+    mesh = ['wheel={type = "mesh", file = "wheel.obj"}', "testbed.slip=0.2"]
+
+    def part(name, scale, seed):
+        MeshWheel(wheel.vertices * scale, wheel.triangles).save(tmp_path / "wheel.obj")
+        plan = load_plan(scene, mesh + [f"run.order_seed={seed}"])
+        run = tmp_path / name / "slip_+0.200" / "replica_000"
+        run.mkdir(parents=True)
+        (run / "scene.toml").write_text(plan.scene.to_toml())
+        summary = {"steady_state": "steady", "dp_over_w": 0.1 + 0.01 * seed, "slip": 0.2}
+        (run / "run.json").write_text(json.dumps({"status": "complete", "summary": summary}))
+        with h5py.File(run / "results.h5", "w") as f:  # what a run keeps of its wheel
+            for key, array in zip(("vertices", "triangles", "wheel"), wheel_display_mesh(plan)):
+                f[f"wheels/mesh/{key}"] = array
+
+    part("a", 1.0, 0)
+    part("b", 1.0, 1)
+    part("c", 1.1, 2)  # the file replaced: wheel.obj now holds the larger wheel
+    with pytest.raises(ArgumentError, match=r"drove another wheel mesh than"):
+        slip_study_from_runs([str(tmp_path / "a"), str(tmp_path / "c")], str(tmp_path / "t1"), plot=False)
+    given = load_plan(scene, mesh).scene  # the file as it is now: c's wheel
+    with pytest.raises(ArgumentError, match=r"drove another wheel mesh than the scene given names now"):
+        slip_study_from_runs([str(tmp_path / "a"), str(tmp_path / "b")], str(tmp_path / "t2"), plot=False, scene=given)
+    table = slip_study_from_runs([str(tmp_path / "a"), str(tmp_path / "b")], str(tmp_path / "t3"), plot=False)
+    assert table["rows"][0]["averaged"] == 2
+
+
 def test_a_table_from_runs_tells_input_files_by_their_content_not_their_path(tmp_path):
     """Runs whose scenes name their files by path (an SCM calibration here): parts on two calibrations
     were averaged into one row once paths were no longer compared; a part whose calibration lies

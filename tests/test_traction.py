@@ -3,6 +3,8 @@ of a real run, a drawbar-pull/slip curve that rises with slip, and the gravity t
 
 import json
 import math
+import warnings
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -13,6 +15,8 @@ from cosim.plan import load_plan
 from cosim.scene import scene_from_text
 from cosim.study import METRIC_UNITS
 from helpers import write_tiny
+
+EXAMPLES = Path(__file__).resolve().parent.parent / "examples"
 
 # The single-wheel scene that was once the main job: 4 cm wheel at 0.25 rad/s on Phobos on a
 # bed of 3 mm grains 14.5 mm deep once settled. Every fault below was found by hand in it.
@@ -172,6 +176,105 @@ def test_the_gravity_twin_scales_every_derived_quantity_exactly(tmp_path):
     assert b.bed.bed_file is None  # a bed settled at the other gravity cannot serve the twin
     with pytest.raises(Exception, match="exists"):
         write_gravity_twin(scene, "earth", twin_path)
+
+
+def test_the_gravity_twin_scales_the_pid_steps_and_the_other_terrains_keys(tmp_path):
+    """The twin left the PID's dt_max and dt_min and every SCM and analytic terrain key as they were: its
+    PID took 44 x the critical step at Earth, and its SCM soil, 1720 x too soft, sank 62 m where the
+    original sinks 11 mm. Times / sqrt(s), pressures and forces x s, damping x sqrt(s): the PID's bound
+    against the critical step, Bekker's closed-form sinkage of the wheel (theory: z0 depends on W / k)
+    and the analytic ground's static sinkage W / k are the original's."""
+    from cosim.scm_soil import bekker_wheel_sinkage, scm_settings
+    from cosim.similarity import write_gravity_twin
+    from cosim.system import validity
+
+    pid = write_tiny(tmp_path, "", "pid.toml")
+    text = open(pid).read().replace("[run]\n", '[run]\nstep_control = "pid"\ndt_max = 2.0e-4\ndt_min = 1.0e-7\n')
+    open(pid, "w").write(text)
+    twin, s = write_gravity_twin(pid, "earth", str(tmp_path / "pid_earth.toml"))
+    a, b = load_plan(pid), load_plan(twin)
+    assert (b.dt_max, b.dt_min) == pytest.approx((a.dt_max / math.sqrt(s), a.dt_min / math.sqrt(s)), rel=1e-12)
+    for fa, fb in zip(advice.check(a), advice.check(b)):
+        assert (fb.check, fb.ok) == (fa.check, fa.ok) and fb.value == pytest.approx(fa.value, rel=1e-9), fa.check
+
+    scm = write_tiny(
+        tmp_path,
+        '\n[terrain]\nmodel = "scm"\nk_c = 2.0e3\nk_phi = 8.0e5\nn = 1.1\ncohesion = 50.0\nfriction_angle_deg = 30.0\n'
+        "janosi_k = 0.002\nelastic_stiffness = 2.0e7\npressure_damping = 40.0\ntime_step = 5.0e-4\n",
+        "scm.toml",
+    )
+    twin, s = write_gravity_twin(scm, "earth", str(tmp_path / "scm_earth.toml"))
+    a, b = load_plan(scm), load_plan(twin)
+    pa, pb = scm_settings(a, [0], 0.0).parameters, scm_settings(b, [0], 0.0).parameters
+    for key in ("k_c", "k_phi", "cohesion", "elastic_stiffness"):
+        assert getattr(pb, key) == pytest.approx(getattr(pa, key) * s, rel=1e-12), key
+    for key in ("n", "friction_angle", "janosi_k", "node_spacing"):
+        assert getattr(pb, key) == getattr(pa, key), key
+    assert pb.damping == pytest.approx(pa.damping * math.sqrt(s), rel=1e-12) and pa.damping == 40.0
+    assert dict(b.terrain.parameters)["time_step"] == pytest.approx(5.0e-4 / math.sqrt(s), rel=1e-12)
+    wheel = a.wheel
+    sunk = [bekker_wheel_sinkage(p, plan.wheel_load, wheel.outer_radius, wheel.width) for p, plan in ((pa, a), (pb, b))]
+    assert sunk[1] == pytest.approx(sunk[0], rel=1e-9) and 0 < sunk[0] < wheel.outer_radius
+    surface = 0.0
+    for fa, fb in zip(validity(a, surface), validity(b, surface)):
+        assert (fb.check, fb.ok) == (fa.check, fa.ok) and fb.value == pytest.approx(fa.value, rel=1e-9), fa.check
+
+    analytic = write_tiny(
+        tmp_path, '\n[terrain]\nmodel = "analytic"\nstiffness = 2.0\ndamping = 0.05\nslip_velocity = 1.0e-4\n', "a.toml"
+    )
+    defaults = write_tiny(tmp_path, '\n[terrain]\nmodel = "analytic"\n', "d.toml")  # the defaults: scaled as given
+    twin, s = write_gravity_twin(defaults, "earth", str(tmp_path / "d_earth.toml"))
+    given = dict(load_plan(twin).terrain.parameters)
+    assert (given["stiffness"], given["damping"], given["slip_velocity"]) == pytest.approx(
+        (2.0e4 * s, 500.0 * math.sqrt(s), 1.0e-3 * math.sqrt(s)), rel=1e-12
+    )
+    twin, s = write_gravity_twin(analytic, "earth", str(tmp_path / "a_earth.toml"))
+    ta, tb = (dict(load_plan(p).terrain.parameters) for p in (analytic, twin))
+    assert (tb["stiffness"], tb["damping"], tb["slip_velocity"]) == pytest.approx(
+        (2.0 * s, 0.05 * math.sqrt(s), 1.0e-4 * math.sqrt(s)), rel=1e-12
+    )
+    loads = [load_plan(p).wheel_load for p in (analytic, twin)]
+    assert loads[1] / tb["stiffness"] == pytest.approx(loads[0] / ta["stiffness"], rel=1e-12)  # W / k, in metres
+
+
+def test_cosim_scale_refuses_a_calibration_of_another_gravity_and_a_gravity_vector(tmp_path, capsys):
+    """A twin kept the original's terrain.calibration, measured at the original's gravity (its soil 1720 x too
+    soft at Earth, found only by a later advise); a vector --gravity lost its direction silently; the twin
+    kept the original's scene.name (its runs went into the original's folder). The calibration is refused
+    unless calibrated at the twin's gravity, a vector is refused, and the twin is named after its file."""
+    from cosim.scm_calibration import ScmCalibration, write_calibration
+    from cosim.similarity import write_gravity_twin
+
+    values = dict(k_c=2.0e3, k_phi=8.0e5, n=1.1, cohesion=50.0, friction_angle_deg=30.0, janosi_k=0.002)
+    for name, g in (("moon.toml", 1.625), ("earth.toml", 9.80665)):
+        write_calibration(str(tmp_path / name), ScmCalibration({**values, "elastic_stiffness": 2e7}, {}, g, {}))
+    scene = write_tiny(tmp_path, '\n[terrain]\nmodel = "scm"\ncalibration = "moon.toml"\n')
+    out = tmp_path / "twin.toml"
+    assert main(["scale", scene, "--gravity", "earth", "--out", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert "terrain.calibration" in err and "moon.toml" in err and "1.625" in err and "9.807" in err, err
+    assert not out.exists()
+    assert (
+        main(["scale", scene, "--gravity", "earth", "--out", str(out), "--set", "terrain.calibration='earth.toml'"])
+        == 0
+    )
+    assert load_plan(str(out)).terrain.calibration_gravity == pytest.approx(9.80665)
+    assert main(["scale", scene, "--gravity", "[9.81, 0, 0]", "--out", str(tmp_path / "v.toml")]) == 2
+    assert "--gravity: a preset name or a magnitude" in capsys.readouterr().err
+    assert not (tmp_path / "v.toml").exists()
+    # the remedy the refusal names: the shipped SCM example with its soil calibrated on the Earth twin
+    shipped = EXAMPLES / "phobos_single_wheel_scm.toml"
+    earth = 'terrain.calibration="terrain/earth_twin_regolith_scm_beds.toml"'
+    twin, s = write_gravity_twin(str(shipped), "earth", str(tmp_path / "scm_twin.toml"), overrides=[earth])
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # no CalibrationGravityWarning: the calibration is the twin's gravity's
+        assert load_plan(twin).terrain.calibration_gravity == pytest.approx(9.80665)
+    twin, _ = write_gravity_twin(write_tiny(tmp_path), "earth", str(tmp_path / "tiny_at_earth.toml"))
+    assert load_plan(twin).name == "tiny_at_earth"
+    named = write_gravity_twin(write_tiny(tmp_path), "earth", str(tmp_path / "n.toml"), overrides=["scene.name='mine'"])
+    assert load_plan(named[0]).name == "mine"
+    twin, _ = write_gravity_twin(write_tiny(tmp_path), "earth", str(tmp_path / ".hidden.toml"))
+    assert load_plan(twin).name == "tiny_twin"  # a name scene.name refuses: the original's, marked
 
 
 def test_cosim_scale_refuses_an_out_that_is_no_scene_file_before_writing(tmp_path, capsys):

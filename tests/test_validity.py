@@ -8,7 +8,7 @@ from pathlib import Path
 import pytest
 
 from cosim import advice
-from cosim.cli import advise_lines
+from cosim.cli import advise_lines, main
 from cosim.plan import load_plan
 from cosim.records import _froude_number
 from cosim.system import validity
@@ -59,6 +59,42 @@ def test_a_slip_drive_is_judged_at_its_highest_speed_and_a_torque_drive_on_the_r
     froude = _found(advice.check(plan, wheel_spins=spins))["froude"]
     expected = max(v**2 * w.outer_radius for v, w in zip(spins, plan.wheels)) / plan.g
     assert froude.value == pytest.approx(expected, rel=1e-12) and "measured" in froude.message
+
+
+def test_a_drive_that_sets_its_speeds_as_it_goes_waits_for_the_run_to_pass_its_contacts():
+    """A torque drive's wheel speeds are unknown before the run: contact_steps was judged at still rims and
+    said ok, then failed after the run at the measured rim speeds (faster rims, shorter contacts). A pass
+    now waits for the run (named "[after the run]"); a fail at still rims, which faster rims only worsen,
+    is said at once; after the run it is judged at the measured speeds."""
+    torque = ['rover.controllers.cruise={kind="torque", torque=0.001}']
+    plan = load_plan(PATCH, torque)
+    assert "contact_steps" not in _found(advice.check(plan))
+    assert any(line.startswith("  [after the run] contact_steps:") for line in advise_lines(plan))
+    spins = [0.07] * 4  # measured [rad/s]
+    found = _found(advice.check(plan, wheel_spins=spins))["contact_steps"]
+    rims = max(0.07 * w.outer_radius for w in plan.wheels)
+    assert f"plus the rims' {rims:.3g} m/s" in found.message, found.message
+    still = _found(advice.check(plan, wheel_spins=[0.0] * 4))["contact_steps"]
+    assert found.value < still.value  # the rims' speed shortens the contact
+    coarse = load_plan(PATCH, torque + ["run.dt_factor=1.5"])  # fails already at still rims
+    failed = _found(advice.check(coarse))["contact_steps"]
+    assert not failed.ok and "plus the rims' 0 m/s" in failed.message
+    assert not any(line.startswith("  [after the run] contact_steps") for line in advise_lines(coarse))
+
+
+def test_advise_at_zero_gravity_gives_its_findings_and_names_what_no_gravity_leaves_open(tmp_path, capsys):
+    """`advise` of a scene without gravity stopped at "no gravity and nothing moving: give impact_speed" (exit
+    2, no scene key named) where the run's own checks judge it. The impact is the rims' speed when the drive
+    sets one; the Froude check is out of range with a remedy that exists (no speed is quasi-static)."""
+    scene = EXAMPLES / "phobos_single_wheel.toml"
+    assert main(["advise", str(scene), "--set", "scene.gravity=0", "--set", "landing.enabled=false"]) == 0
+    out = capsys.readouterr().out
+    assert "no gravity: an impact at the rims' speed" in out
+    (froude,) = [line for line in out.splitlines() if "froude:" in line]
+    assert (
+        "OUT OF RANGE" in froude and "without gravity no speed is quasi-static" in froude and "<= 0 rad" not in froude
+    )
+    assert "verdict: out of range: froude" in out
 
 
 def test_the_floor_is_judged_under_the_deepest_wheel():

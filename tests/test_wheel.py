@@ -138,6 +138,27 @@ def test_mesh_file_round_trip_and_bad_meshes(tmp_path):
     # a mesh 5 m off its axle (another origin or unit) swept a 10 m circle: every grid and bed sized by it
     with pytest.raises(ValueError, match=r"its centre lies 5 m from the axle .* centre the mesh on it"):
         MeshWheel(vertices + [5.0, 0.0, 0.0], triangles)
+    # off its hub along the axle: the wheel ran against a side wall the clearance check placed elsewhere;
+    # the axle along the file's X axis: a paddle, not a wheel (read as a wheel: other bodies are not judged)
+    width = float(np.ptp(vertices[:, 1]))
+    for name, moved, words in (
+        ("off.obj", (vertices + [0.0, 0.3 * width, 0.0], triangles), r"along the axle from the hub, more than 0.25"),
+        ("turned.obj", (vertices[:, [1, 0, 2]], triangles[:, ::-1]), r"not round about the axle .* rotate the mesh"),
+    ):
+        MeshWheel(*moved).save(tmp_path / name)
+        with pytest.raises(ValueError, match=words):
+            MeshWheel.load(tmp_path / name)
+    # a closed mesh with a zero-area triangle and a repeated one, and a stray vertex: read as the wheel it is
+    path = tmp_path / "degenerate.obj"
+    MeshWheel(vertices, triangles).save(path)
+    lines = path.read_text().splitlines()
+    faces = [line for line in lines if line.startswith("f ")]
+    stray = f"v {10 * WHEEL.outer_radius} 0 0"
+    path.write_text("\n".join(lines + ["f 1 1 2", faces[0], stray]) + "\n")
+    loaded = MeshWheel.load(path)
+    assert len(loaded.triangles) == len(triangles) and loaded.outer_radius == pytest.approx(
+        WHEEL.outer_radius, rel=1e-6
+    )
     with pytest.raises(FileNotFoundError, match="not found"):
         MeshWheel.load(tmp_path / "missing.obj")
     with pytest.raises(ValueError, match=".obj or .stl"):
@@ -146,6 +167,22 @@ def test_mesh_file_round_trip_and_bad_meshes(tmp_path):
         GrouserWheel(radius=-0.1, width=0.02)
     with pytest.raises(ValueError, match="grouser_thickness"):
         GrouserWheel(radius=0.03, width=0.02, grouser_count=100, grouser_height=0.003, grouser_thickness=0.002)
+
+
+def test_a_mesh_kept_with_unused_vertices_is_the_same_wheel():
+    """results.h5 written before the reader dropped unused vertices holds them: a resume or a slip table from
+    runs compared it with the mesh read now and called the unchanged file changed. Compared by the vertices
+    the triangles use, the two are one wheel; another wheel is still another."""
+    from cosim.system import used_mesh
+
+    vertices, triangles = WHEEL.to_mesh(arc_segments=36)
+    owners = np.zeros(len(vertices), dtype=np.int32)
+    stray = np.vstack([[[1.0, 2.0, 3.0]], vertices])  # an unused vertex first: every index moves by one
+    kept = used_mesh((stray, triangles + 1, np.zeros(len(stray), dtype=np.int32)))
+    now = used_mesh((vertices, triangles, owners))
+    assert all(np.array_equal(a, b) for a, b in zip(kept, now))
+    larger = used_mesh((vertices * 1.1, triangles, owners))
+    assert not np.array_equal(larger[0], now[0])
 
 
 def test_torque_about_the_hub_moves_with_the_hub(device):

@@ -502,6 +502,34 @@ def press_plates(
     return ready, common.successful(results, "plate"), failed, stopped
 
 
+def plate_notes(
+    plan: LabPlan, ready: list[dict], done: list[dict], total: int, stopped: KeyboardInterrupt | None, surface: float
+) -> list[str]:
+    """The report's notes on what limits a plate test: beds not settled, walls near a plate, plates only a
+    few grains wide, an interruption, a floor near the deepest plate. A plate note names only plates that
+    pushed (`done`, each with its `width` [m]): an interrupted test's other plates never ran."""
+    notes = [f"bed {bed['replica']}: not settled within the time limit" for bed in ready if not bed["settled"]]
+    pushed = sorted({float(r["width"]) for r in done})
+    side = min(plan.scene.bed.length, plan.scene.bed.width)
+    notes += [
+        f"plate {b:.3g} m: the walls are {(side - b) / 2:.3g} m from its edge, less than its width; the walls "
+        "may carry part of the load (a wider bed)"
+        for b in pushed
+        if (side - b) / 2 < b
+    ]
+    notes += [  # measured: plates of 3 and 4 diameters fit with R^2 0.29-0.76 (tests/test_lab.py)
+        f"plate {b:.3g} m is {b / plan.diameter:.3g} grain diameters wide, under {PLATE_GRAINS_ACROSS}: its "
+        "curve jumps as single grains under it give way, and the fit follows their trend (wider plates, or "
+        "replicas, average over more grains)"
+        for b in pushed
+        if b < PLATE_GRAINS_ACROSS * plan.diameter
+    ]
+    notes += common.interrupted_notes(stopped, len(done), total, "plate tests")
+    if surface - max_sinkage(plan, surface) < 3 * plan.diameter:
+        notes.append("the plate ends less than three grain diameters above the floor: the floor stiffens the curve")
+    return notes
+
+
 def plate_test(
     plan: LabPlan,
     out_dir: str,
@@ -532,24 +560,7 @@ def plate_test(
         curves = [(r["width"], r["sinkage"], r["pressure"]) for r in done]
         numbers = quasi_static_numbers(plan, speed, curves, largest, fit, fit_from)
         surface = float(np.mean([bed["surface"] for bed in ready]))
-        notes = [f"bed {bed['replica']}: not settled within the time limit" for bed in ready if not bed["settled"]]
-        side = min(plan.scene.bed.length, plan.scene.bed.width)
-        notes += [
-            f"plate {b:.3g} m: the walls are {(side - b) / 2:.3g} m from its edge, less than its width; the walls "
-            "may carry part of the load (a wider bed)"
-            for b in sides
-            if (side - b) / 2 < b
-        ]
-        notes += [  # measured: plates of 3 and 4 diameters fit with R^2 0.29-0.76 (tests/test_lab.py)
-            f"plate {b:.3g} m is {b / plan.diameter:.3g} grain diameters wide, under {PLATE_GRAINS_ACROSS}: its "
-            "curve jumps as single grains under it give way, and the fit follows their trend (wider plates, or "
-            "replicas, average over more grains)"
-            for b in sides
-            if b < PLATE_GRAINS_ACROSS * plan.diameter
-        ]
-        notes += common.interrupted_notes(stopped, len(done), replicas * len(sides), "plate tests")
-        if surface - max_sinkage(plan, surface) < 3 * plan.diameter:
-            notes.append("the plate ends less than three grain diameters above the floor: the floor stiffens the curve")
+        notes = plate_notes(plan, ready, done, replicas * len(sides), stopped, surface)
         summary = {
             "test": "plate",
             "name": plan.name,
