@@ -60,7 +60,7 @@ class RunDiverged(RegolithError, RuntimeError):
 class RunInterrupted(RegolithError):
     """The run was stopped on request (Ctrl-C, SIGTERM) after a checkpoint; `cosim resume OUT` continues it.
     A stop asked during the run's last step or while its files were finished (complete, diverged, failed)
-    comes after them: the message says how the run ended and that nothing is left to resume."""
+    comes after them: the message says how the run ended (a finished run: nothing is left to resume)."""
 
     def __init__(self, message: str, signal: str = "SIGINT"):
         super().__init__(message)

@@ -59,7 +59,7 @@ from soil.files import atomic_write_text
 
 from . import advice, metrics
 from .beds import BED_FILE, BED_INFO_FILE, finite_or_null, settled_bed, settling_cost, write_json
-from .folders import RUN_FILE, RunFolder, read_json
+from .folders import RESULTS_FILE, RUN_FILE, RunFolder, read_json
 from .launch import FINISHED
 from .plan import MAX_PHASE_STEPS, RunPlan, resolve
 from .runner import RunInterrupted
@@ -410,7 +410,7 @@ def _refuse_held_locks(out_dir: str, names: list[str]) -> None:
 def _study_folder_files(out_dir: str, overwrite: bool) -> list[str]:
     """The files a study in `out_dir` replaces (OutputExistsError when it may not)."""
     from .beds import BED_DIVERGED_FILE
-    from .folders import LOCK_FILE, RESULTS_FILE, RUN_OUTPUTS, OutputExistsError
+    from .folders import LOCK_FILE, RUN_OUTPUTS, OutputExistsError
 
     keep = (BED_FILE, BED_INFO_FILE, BED_DIVERGED_FILE, "beds", LOCK_FILE, STUDY_MARK)
     present = sorted(n for n in os.listdir(out_dir) if n not in keep)
@@ -1752,7 +1752,7 @@ def _check_one_mesh(paths: list[str], scene, given) -> None:
     driven = {}
     for path in paths:
         try:
-            driven[path] = digest(stored_wheel_mesh(os.path.join(path, "results.h5")))
+            driven[path] = digest(stored_wheel_mesh(os.path.join(path, RESULTS_FILE)))
         except (DamagedFileError, OSError):
             continue
     if len(set(driven.values())) > 1:
