@@ -1,4 +1,4 @@
-"""Cost per grain-step of a coupled DEM step: cosim.DemSoil.advance with a grousered wheel rolling
+"""Cost per grain-step of a coupled DEM step: cosim.dem_soil.DemSoil.advance with a grousered wheel rolling
 on a standing bed at Phobos gravity, beside the same bed stepped without a wheel
 (Simulation.macro_step), for this checkout or another one.
 

@@ -23,7 +23,7 @@ Sections, each timed, in this order (the tests last, within what is left of --bu
   fixed cost per step and mixed's arithmetic show here. On the CPU it reports the wall per step
   only (the timing covers CUDA activity).
 - repeat: a short coupled run (a grousered wheel resting pressed into a standing bed, driven
-  through it by cosim.DemSoil) twice on the device: every wheel wrench and every grain bit for
+  through it by cosim.dem_soil.DemSoil) twice on the device: every wheel wrench and every grain bit for
   bit the same, with the wheel touching grains.
 - agreement: the same short settling run on the CPU and on the device, as replicas whose
   grains start displaced by 1e-6 of a radius at random (and summed in another order): the

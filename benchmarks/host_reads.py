@@ -1,4 +1,4 @@
-"""Device<->host transfers per coupled macro step: what cosim.DemSoil.advance asks of the host.
+"""Device<->host transfers per coupled macro step: what cosim.dem_soil.DemSoil.advance asks of the host.
 
 Counts, per macro step of a grousered wheel working in a small bed, the device->host reads
 (wp.array.numpy: a copy from a GPU, the same call on the CPU) and the host->device copies

@@ -191,6 +191,8 @@ def check(
     fall = (
         f": a fall through {'the settled bed' if surface_height is not None else 'the fill height'} "
         f"{depth_now:.3g} m plus the rims' {rim_speed:.3g} m/s"
+        if g > 0
+        else f": the rims' {rim_speed:.3g} m/s (no gravity, no fall)"
     )
     contact = advisor.hertz_contact_time(
         material.youngs_modulus, material.poisson_ratio, material.density, smallest, max(speed, 1e-12)

@@ -6,7 +6,7 @@ Each replica is a world of one soil.worlds.Worlds (the same bed, or with `--vary
 own of the same shape; its own order seed, wheel, rig or rover, results folder, checkpoints). The
 simulation lives in this process, which serves it; each run (its rig or rover, coupler, records and
 results writer: cosim.runner.Runner, the path of a run alone) runs in a process of its own, whose
-soil side is a `RemoteWorld`: the Simulation interface cosim.DemSoil drives, over a pipe. So the K
+soil side is a `RemoteWorld`: the Simulation interface cosim.dem_soil.DemSoil drives, over a pipe. So the K
 runs' host work goes on K cores at once instead of one after the other under one interpreter lock
 (docs/performance.md section 6): per macro step a run sends its wheels' path and gets its report and
 what it reads after the step (`Worlds.view`: its wheels' poses and its walls' loads, read from the
@@ -507,7 +507,7 @@ class _RemoteMonitor:
 
 class RemoteWorld:
     """A world of a batch served by another process (run_batched), with the Simulation interface
-    cosim.DemSoil drives (soil.worlds.World's): what never changes is kept, a macro step is one
+    cosim.dem_soil.DemSoil drives (soil.worlds.World's): what never changes is kept, a macro step is one
     request and its answer brings what the run reads after it (Worlds.view); the rest is asked."""
 
     def __init__(self, connection: Connection, description: dict):

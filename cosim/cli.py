@@ -28,7 +28,8 @@ Exit status:
          of replicas, a sweep or a study one of whose runs failed or diverged: its table says which)
     2    bad input, and only that: a scene, an argument, a bed file, a mesh, an FMU or a run to view,
          export or resume (the message names it)
-    3    the output folder holds a run (pass --overwrite) or is in use by another process
+    3    the output folder holds a run, or an --out file exists (pass --overwrite), or the folder is in use
+         by another process
     4    the simulation diverged (the message says where and what to change)
     5    an operating-system error: a path that cannot be written or read, a full disk
     6    the run finished without a steady-state result (the summary says why: airborne, stuck, ...);
@@ -432,6 +433,7 @@ def _scm_advice(plan) -> list[str]:
 
 
 NO_GRAVITY_IMPACT = "; no gravity: an impact at the rims' speed"
+NO_LOAD_BOUND = "(no eq. 10 bound without gravity: no load; "
 
 
 def _dem_advice(plan) -> list[str]:
@@ -510,8 +512,8 @@ def _dem_advice(plan) -> list[str]:
     if needs_bed(plan):  # what a stiffer soil costs: a step ~ 1/sqrt(E), so E far above the eq. 10 bound is paid
         lines.append(
             f"  the drive's {plan.scene.run.duration:.4g} s take {plan.scene.run.duration / plan.dt:.3g} DEM steps "
-            f"(E = {material.youngs_modulus / e_min if e_min > 0 else math.nan:.3g} x the eq. 10 bound; the step "
-            "scales as 1/sqrt(E))"
+            + (f"(E = {material.youngs_modulus / e_min:.3g} x the eq. 10 bound; " if e_min > 0 else NO_LOAD_BOUND)
+            + "the step scales as 1/sqrt(E))"
         )
         # the phases before it, at their longest (a soil of tiny grains settled an hour without a word)
         landing = plan.scene.landing.max_time / plan.dt if plan.scene.landing.enabled else 0.0
@@ -703,9 +705,12 @@ def _study_exit(results: list[dict]) -> int:
 
 
 def cmd_scale(args) -> int:
+    from .scene import load_scene
     from .similarity import write_gravity_twin
 
-    _refuse_an_input_as_out(args.out, {"the scene": args.scene})
+    scene = load_scene(args.scene, _overrides(args))
+    calibration = scene.resolve(scene.terrain.calibration) if scene.terrain is not None else None
+    _refuse_an_input_as_out(args.out, {"the scene": args.scene, "the calibration (terrain.calibration)": calibration})
     _free_output_file(args.out, (".toml",), args.overwrite)
     path, factor = write_gravity_twin(
         args.scene, args.gravity, args.out, overwrite=args.overwrite, overrides=_overrides(args)
@@ -1242,7 +1247,7 @@ def build_parser() -> argparse.ArgumentParser:
         prog="cosim",
         description="regolith-cosim: DEM soil co-simulated with rovers",
         epilog="exit status: 0 ok, 1 unexpected error (or a study's run failed), 2 bad input, 3 output folder "
-        "not free, 4 diverged, 5 OS error, 6 no steady-state result (of a run, or of one of a study's), "
+        "or file not free, 4 diverged, 5 OS error, 6 no steady-state result (of a run, or of one of a study's), "
         "130 interrupted, 143 stopped by SIGTERM",
     )
     parser.add_argument("--verbose", "-v", action="store_true", help="debug log lines, Warp's messages, tracebacks")

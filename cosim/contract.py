@@ -227,8 +227,8 @@ class SoilSide(Protocol):
 
         Optional keyword `meanwhile` (a callable without arguments, or None): the caller's own
         host work, which a soil that computes on a device calls once after it has launched the
-        step and before it waits for the result, so that the two overlap (cosim.DemSoil, cosim.ScmSoil). The
-        callable neither touches the soil nor raises. A soil whose `advance` has no such
+        step and before it waits for the result, so that the two overlap (cosim.dem_soil.DemSoil,
+        cosim.scm_soil.ScmSoil). The callable neither touches the soil nor raises. A soil whose `advance` has no such
         keyword is driven as well: the coupler then does that work after `advance`.
         """
 

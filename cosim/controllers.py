@@ -63,11 +63,25 @@ def apply_command(rover, command: DriveCommand) -> None:
     getattr(rover, method)(command.values)
 
 
+def _per_wheel(name: str, values, wheel_count: int, unit: str) -> np.ndarray:
+    """`values` (one finite number, or one per wheel) as an array of shape (wheel_count,); ArgumentError
+    naming `name` otherwise."""
+    try:
+        array = np.asarray(values, dtype=np.float64)
+    except (TypeError, ValueError):  # text, ragged lists: not numbers
+        array = np.full(2, np.nan)
+    if array.ndim > 1 or (array.ndim == 1 and len(array) != wheel_count) or not np.all(np.isfinite(array)):
+        raise ArgumentError(
+            f"{name} must be one finite number [{unit}] or one per wheel ({wheel_count}), got {values!r}"
+        )
+    return np.broadcast_to(array, (wheel_count,)).copy()
+
+
 class ConstantSpeed:
     """Every wheel at a constant hinge rate [rad/s] (one value or one per wheel)."""
 
     def __init__(self, speed: float | Sequence[float], wheel_count: int):
-        self.speed = np.broadcast_to(np.asarray(speed, dtype=np.float64), (wheel_count,)).copy()
+        self.speed = _per_wheel("speed", speed, wheel_count, "rad/s")
         """Wheel speeds [rad/s], shape (wheel_count,)."""
 
     def __call__(self, t, wheel_states, wrenches) -> DriveCommand:
@@ -87,7 +101,7 @@ class ConstantTorque:
     """Every wheel at a constant hinge torque [N m] (one value or one per wheel)."""
 
     def __init__(self, torque: float | Sequence[float], wheel_count: int):
-        self.torque = np.broadcast_to(np.asarray(torque, dtype=np.float64), (wheel_count,)).copy()
+        self.torque = _per_wheel("torque", torque, wheel_count, "N m")
         """Wheel torques [N m], shape (wheel_count,)."""
 
     def __call__(self, t, wheel_states, wrenches) -> DriveCommand:

@@ -11,7 +11,8 @@ numbers; a file written before 2026-12-07 has none and is read as it is.
 
     /                               attributes:
         format          "regolith-cosim results 2"
-        status          "running" | "complete" | "interrupted" | "diverged" | "failed"
+        status          "running" | "complete" | "unsteady" | "interrupted" | "diverged" | "failed"
+                        (unsteady: finished, without a steady-state result)
         message         why the run stopped ("" when complete)
         summary         JSON: the run's summary (cosim.metrics.summarize), written at the end; its
                         `units` the unit of each number in it (cosim.metrics.SUMMARY_UNITS)

@@ -230,8 +230,11 @@ def write_gravity_twin(path: str, gravity, out: str, overwrite: bool = False, ov
     if not any(o.split("=", 1)[0].strip() == "scene.name" for o in overrides or []):  # a name given is kept
         stem = os.path.splitext(os.path.basename(out))[0]
         data["scene"]["name"] = stem if _plain_name(stem) else f"{scene.scene.name}_twin"
-    twin = validate_scene(data, base_dir=scene.base_dir)
-    resolve(twin)  # the twin must be a valid scene too
+    try:  # the twin must be a valid scene too: what it refuses is named as the twin's (a scaled key's value)
+        twin = validate_scene(data, base_dir=scene.base_dir)
+        resolve(twin)
+    except SceneError as error:
+        raise SceneError(error.problems, source=f"the twin of {path} at |g| x {s:.6g}") from None
     if os.path.exists(out) and not overwrite:
         from .folders import OutputExistsError
 

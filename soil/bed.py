@@ -587,6 +587,24 @@ def _read(f) -> SavedBed:
     )
 
 
+def wheel_pairs(wheels) -> list:
+    """`wheels` as a list of (shape, material) pairs (GrouserWheel or MeshWheel; a Material or a material
+    index), checked: SoilInputError naming what is not one (one shape, one pair unlisted, shapes alone)."""
+    from .geometry import GrouserWheel, MeshWheel
+
+    shapes = (GrouserWheel, MeshWheel)
+    pairs: list = [wheels] if isinstance(wheels, shapes) else list(wheels)
+    if len(pairs) == 2 and isinstance(pairs[0], shapes) and not isinstance(pairs[1], shapes):  # one pair, unlisted
+        raise SoilInputError("wheels must be a list of (shape, material) pairs: [(GrouserWheel(...), Material(...))]")
+    for index, pair in enumerate(pairs):
+        if not (isinstance(pair, (tuple, list)) and len(pair) == 2 and isinstance(pair[0], shapes)):
+            raise SoilInputError(
+                f"wheels[{index}] must be a (shape, material) pair: (GrouserWheel or MeshWheel, Material or a "
+                f"material index), got {type(pair).__name__}"
+            )
+    return pairs
+
+
 def open_bed(
     bed,
     wheels=(),
@@ -610,9 +628,10 @@ def open_bed(
     """
     from .simulation import Simulation  # the simulation's kernels load on first use, not with soil.bed
 
+    pairs = wheel_pairs(wheels)
     saved = bed if isinstance(bed, SavedBed) else read_bed(bed)
     builder = saved.builder(gravity)
-    for shape, material in wheels:
+    for shape, material in pairs:
         builder.add_wheel(shape, material)
     model, state, control = builder.finalize(
         device=device, precision=precision, law=law, order_seed=order_seed, storage=storage

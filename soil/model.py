@@ -124,7 +124,9 @@ class SoilModel:
         return self.boundary_geometry.numpy().astype(np.float64).reshape(-1, 6)
 
     def radius_numpy(self) -> np.ndarray:
+        """Grain radii [m], shape (particle_count,), float64 (a host copy)."""
         return self.radius.numpy().astype(np.float64)
 
     def mass_numpy(self) -> np.ndarray:
+        """Grain masses [kg], shape (particle_count,), float64 (a host copy)."""
         return self.mass.numpy().astype(np.float64)

@@ -2,7 +2,7 @@
 
     worlds = open_bed_worlds(bed, wheels, order_seeds=range(20), device="cuda:0")
     worlds = open_bed_worlds([bed_0, bed_1], wheels, order_seeds=[0, 1])   # a bed each (replicas over beds)
-    sim = worlds.world(3)           # world 3 as a Simulation-like object (what cosim.DemSoil drives)
+    sim = worlds.world(3)           # world 3 as a Simulation-like object (what cosim.dem_soil.DemSoil drives)
 
 Replicas of a small scene leave most of a GPU idle; K of them in one simulation fill it. The worlds
 are copies of one scene's shape (grain, wall and wheel counts, materials, gravity, precision); their
@@ -232,9 +232,10 @@ def open_bed_worlds(
     simulation open_bed(beds[w], ..., order_seed=order_seeds[w]) gives. `bed`: one bed (a path or a
     SavedBed) for every world, or a sequence of them, one per order seed (beds of one shape: the same
     grain count, walls and materials, as beds of one scene settled from other seeds are)."""
-    from .bed import SavedBed, read_bed
+    from .bed import SavedBed, read_bed, wheel_pairs
     from .simulation import Simulation
 
+    pairs = wheel_pairs(wheels)  # checked once, a generator read once: every world gets them
     seeds = list(order_seeds)
     beds = list(bed) if isinstance(bed, (list, tuple)) else [bed] * len(seeds)
     if len(beds) != len(seeds):
@@ -256,7 +257,7 @@ def open_bed_worlds(
                     ) from None
             one = read[path]
         builder = one.builder(gravity)
-        for shape, material in wheels:
+        for shape, material in pairs:
             builder.add_wheel(shape, material)
         parts.append(builder.finalize(device=device, precision=precision, law=law, order_seed=seed, storage=storage))
     model, state, control = join_worlds(parts)
@@ -620,7 +621,7 @@ def _quaternion(rotation: np.ndarray) -> np.ndarray:
 
 
 class World:
-    """One world of a Worlds batch with the Simulation interface a run layer uses (cosim.DemSoil):
+    """One world of a Worlds batch with the Simulation interface a run layer uses (cosim.dem_soil.DemSoil):
     its grains, walls and wheels by their own indices, its state_dict in its scene's own format."""
 
     def __init__(self, worlds: Worlds, index: int):

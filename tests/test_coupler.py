@@ -284,3 +284,19 @@ def test_records_and_schemes():
         first = np.abs(rec["force"][0]).max()
         assert (first == 0.0) if scheme == "jacobi" else (first > 1.0)
         assert rover.time == coupler.time == soil.time == pytest.approx(0.005, abs=1e-15)
+
+
+def test_constant_drives_name_a_speed_or_torque_that_is_not_one_per_wheel():
+    """ConstantSpeed([0.1, 0.2], 4) was numpy's "operands could not be broadcast" (no argument named); a nan
+    speed was taken. Each names its argument, the wheel count and the unit."""
+    from cosim.controllers import ConstantTorque
+
+    for make, name, values in (
+        (ConstantSpeed, "speed", [0.1, 0.2]),
+        (ConstantSpeed, "speed", float("nan")),
+        (ConstantTorque, "torque", [[1.0]] * 4),
+        (ConstantSpeed, "speed", "fast"),
+    ):
+        with pytest.raises(ValueError, match=rf"{name} must be one finite number \[.*\] or one per wheel \(4\)"):
+            make(values, 4)
+    assert ConstantSpeed(0.5, 3).speed.tolist() == [0.5] * 3 and ConstantTorque([1, 2], 2).torque.tolist() == [1, 2]

@@ -179,3 +179,24 @@ def test_a_bed_folder_or_one_wheel_shape_given_to_from_bed_is_named(tmp_path):
         DemSoil.from_bed(str(tmp_path / "run"), [wheel], Material(), 1e-4, surface_height=0.0)
     with pytest.raises(ValueError, match=r"wheels must be a list of wheel shapes, one per wheel: \[GrouserWheel"):
         DemSoil.from_bed(str(tmp_path / "run" / "bed.h5"), wheel, Material(), 1e-4, surface_height=0.0)
+
+
+def test_open_bed_names_wheels_that_are_not_a_list_of_shape_and_material_pairs():
+    """soil.bed.open_bed took its wheels as (shape, material) pairs without a word on anything else: one
+    shape, one pair unlisted or shapes without materials were numpy and unpacking TypeErrors. Each is named
+    (checked before the bed is read: the bed path here does not exist)."""
+    from soil import GrouserWheel
+    from soil.bed import open_bed
+
+    wheel = GrouserWheel(radius=0.03, width=0.02, grouser_count=0, grouser_height=0.0, grouser_thickness=0.0)
+    for wheels, words in (
+        ((wheel, Material()), r"wheels must be a list of \(shape, material\) pairs"),
+        (wheel, r"wheels\[0\] must be a \(shape, material\) pair: .* got GrouserWheel"),
+        ([wheel], r"wheels\[0\] must be a \(shape, material\) pair: .* got GrouserWheel"),
+    ):
+        with pytest.raises(ValueError, match=words):
+            open_bed("no_such_bed.h5", wheels, device="cpu")
+    from soil.worlds import open_bed_worlds  # the worlds of one batch take the same pairs, checked once
+
+    with pytest.raises(ValueError, match=r"wheels\[0\] must be a \(shape, material\) pair"):
+        open_bed_worlds("no_such_bed.h5", wheel, [0, 1], device="cpu")

@@ -254,11 +254,18 @@ def test_cosim_scale_refuses_a_calibration_of_another_gravity_and_a_gravity_vect
     err = capsys.readouterr().err
     assert "terrain.calibration" in err and "moon.toml" in err and "1.625" in err and "9.807" in err, err
     assert not out.exists()
+    earth = ["--set", "terrain.calibration='earth.toml'"]
+    before = (tmp_path / "earth.toml").read_bytes()  # the calibration it reads is never its --out
     assert (
-        main(["scale", scene, "--gravity", "earth", "--out", str(out), "--set", "terrain.calibration='earth.toml'"])
-        == 0
+        main(["scale", scene, "--gravity", "earth", "--out", str(tmp_path / "earth.toml"), "--overwrite", *earth]) == 2
     )
+    assert "is the calibration (terrain.calibration) the command reads" in capsys.readouterr().err
+    assert (tmp_path / "earth.toml").read_bytes() == before
+    assert main(["scale", scene, "--gravity", "earth", "--out", str(out), *earth]) == 0
     assert load_plan(str(out)).terrain.calibration_gravity == pytest.approx(9.80665)
+    big = ["--set", "soil.cohesion=1e27", "--out", str(tmp_path / "big.toml")]  # in range, its twin's is not
+    assert main(["scale", write_tiny(tmp_path, "", "plain.toml"), "--gravity", "1e5", *big]) == 2
+    assert "invalid scene in the twin of" in capsys.readouterr().err
     assert main(["scale", scene, "--gravity", "[9.81, 0, 0]", "--out", str(tmp_path / "v.toml")]) == 2
     assert "--gravity: a preset name or a magnitude" in capsys.readouterr().err
     assert not (tmp_path / "v.toml").exists()

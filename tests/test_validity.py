@@ -95,6 +95,7 @@ def test_advise_at_zero_gravity_gives_its_findings_and_names_what_no_gravity_lea
         "OUT OF RANGE" in froude and "without gravity no speed is quasi-static" in froude and "<= 0 rad" not in froude
     )
     assert "verdict: out of range: froude" in out
+    assert "(no gravity, no fall)" in out and "(no eq. 10 bound without gravity" in out  # no fall, no load
 
 
 def test_the_floor_is_judged_under_the_deepest_wheel():

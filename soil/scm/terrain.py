@@ -53,7 +53,8 @@ SCM_PARAMETER_UNITS = {
 
 @dataclass(frozen=True)
 class ScmParameters:
-    """The soil's SCM parameters (SI units). Wong's dry sand (Theory of Ground Vehicles) is
+    """The soil's SCM parameters (SI units; the angles, friction_angle and erosion_angle, in degrees as
+    the scene's keys). Wong's dry sand (Theory of Ground Vehicles) is
     ScmParameters(k_c=0.99e3, k_phi=1528.43e3, n=1.1, cohesion=1.04e3, friction_angle=28,
     janosi_k=0.02, elastic_stiffness=4e8, node_spacing=0.005)."""
 
