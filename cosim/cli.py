@@ -270,6 +270,16 @@ def _print_summary(result, scm_only: bool = False) -> None:
             f"  ! the window spans only {', '.join(short)} (< {MIN_CORRELATION_TIMES}): "
             "their within-run s.e. are too small; replicas give the error bar"
         )
+    if s.get("sinkage_settled") is not None and s.get("window") and None not in s["window"]:
+        start, end = s["window"]
+        sem = s.get("sinkage_settled_sem")
+        print(
+            f"  ! the sinkage settles only from {s['sinkage_settled_from']:.4g} s (its own MSER-5), "
+            f"{(s['sinkage_settled_from'] - start) / (end - start):.0%} into the window: the window's mean sinkage "
+            f"mixes the wheel's settling into its plateau, {s['sinkage_settled'] * 1e3:.4g}"
+            + (f" +- {sem * 1e3:.2g} (within-run s.e.)" if sem is not None and sem == sem else "")
+            + " mm from then on"
+        )
     for finding in s.get("findings", []):
         if not finding["ok"]:
             print(f"  ! {finding['message']}")

@@ -287,6 +287,11 @@ def short_window(summary: dict, name: str) -> float | None:
     return spans if spans < MIN_CORRELATION_TIMES else None
 
 
+SETTLING_FRACTION = 0.1
+"""How far into the steady window the sinkage's own MSER-5 start must lie for the summary to give its
+settled part apart (sinkage_settled_from, sinkage_settled) [-]: a few samples' truncation says nothing."""
+
+
 def summarize(
     series: dict,
     *,
@@ -308,7 +313,10 @@ def summarize(
     'normal_force' [N], 'forward_speed' [m/s], 'contact_fraction' [-], with '<name>_sem'
     (batch-means standard error within the window) and '<name>_correlation_time' [s] (a window of
     fewer than MIN_CORRELATION_TIMES of them makes the _sem too small); 'dp_over_w_sem'; 'sinkage_rate'
-    [m/s] (slope of the sinkage over the window); 'grouser_passages' [-] (grousers that passed over the
+    [m/s] (slope of the sinkage over the window); where the sinkage's own MSER-5 start lies SETTLING_FRACTION
+    or more into the window, 'sinkage_settled_from' [s] and 'sinkage_settled' [m] (with its _sem and
+    _correlation_time): the mean from there, the window's mixing the wheel's settling into its plateau;
+    'grouser_passages' [-] (grousers that passed over the
     window: the rim's turn x grouser_count / 2 pi); 'travel' [m] over the drive, 'landing_time' [s],
     'landing_sinkage' [m] (the rim's sinkage as the drive starts: the wheel's static sinkage under its
     load), 'deepest_sinkage' [m] (the rim's deepest over the landing and the drive: what a run without a
@@ -349,6 +357,12 @@ def summarize(
     # the sinkage over the traction's window: stationary, or drifting by less than half a grain radius
     window_time = time[window]
     settled, out["sinkage_rate"] = sinkage_steady(sinkage[window - index[0]], window_time, min_fraction, grain_radius)
+    # the sinkage's own MSER-5 start, when well inside the traction's window: the window's mean sinkage
+    # then mixes the wheel's settling with its plateau, whose mean is given beside it
+    cut = mser_truncation(sinkage[window - index[0]])
+    if cut is not None and cut >= SETTLING_FRACTION * len(window):
+        out["sinkage_settled_from"] = float(time[window[cut]])
+        window_mean(out, "sinkage_settled", sinkage[window[cut:] - index[0]], float(np.mean(np.diff(window_time))))
     quantities = {
         "forward_speed": forward[window - index[0]],
         "sinkage": sinkage[window - index[0]],
@@ -419,6 +433,8 @@ SUMMARY_UNITS = {
     "landing_time": "s",
     "landing_sinkage": "m",
     "sinkage_rate": "m/s",
+    "sinkage_settled": "m",
+    "sinkage_settled_from": "s",
     "deepest_sinkage": "m",
     "wheel_deepest_sinkage": "m",
     "grouser_passages": "1",

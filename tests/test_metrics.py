@@ -99,6 +99,31 @@ def test_landing_then_a_steady_state_window_with_its_metrics():
     assert out["dp_over_w"] == pytest.approx(0.05, abs=0.005) and out["contact_fraction"] == 1.0
 
 
+def test_a_sinkage_still_settling_inside_the_window_is_given_apart_with_its_plateau(capsys):
+    """At an imposed slip the window is the drawbar pull's steady state, which may start with the drive
+    while the wheel still sinks (the main job: the pull steady from 5.7 s, the sinkage from 11.4 s): the
+    window's mean sinkage mixes the settling with the plateau (8.16 against 8.79 mm). The summary gives the
+    plateau apart, from the sinkage's own MSER-5 start, and the printed summary says so; a sinkage steady
+    over the window gives nothing apart."""
+    from cosim.cli import _print_summary
+    from cosim.runner import RunResult
+
+    s = _series()  # the pull steady throughout; the sinkage rises to 7 mm with a time constant of 30 samples
+    out = metrics.summarize(s, rim_radius=0.04, wheel_load=10.0, mode="slip")
+    assert out["window"][0] == pytest.approx(s["time"][60])  # the pull's window: the whole drive
+    drive = s["time"][60:]
+    assert drive[0] + 30 * 0.05 < out["sinkage_settled_from"] < drive[0] + 0.5 * (drive[-1] - drive[0])
+    assert out["sinkage_settled"] == pytest.approx(0.007, abs=1e-4)  # the plateau
+    assert out["sinkage"] < out["sinkage_settled"] - 2e-4  # the window's mean, pulled down by the settling
+    assert out["sinkage_settled_sem"] > 0 and metrics.summary_units(out)["sinkage_settled_from"] == "s"
+    _print_summary(RunResult("run", out["steady_state"], out))
+    printed = capsys.readouterr().out
+    assert f"! the sinkage settles only from {out['sinkage_settled_from']:.4g} s (its own MSER-5)" in printed
+    flat = _series()
+    flat["sinkage"][60:] = 0.007 + 1e-4 * np.random.default_rng(1).standard_normal((400, 1))
+    assert "sinkage_settled" not in metrics.summarize(flat, rim_radius=0.04, wheel_load=10.0, mode="slip")
+
+
 def test_runs_without_a_steady_state_say_why():
     assert (
         metrics.summarize(_series(contacts=0), rim_radius=0.04, wheel_load=10.0)["steady_state"]
