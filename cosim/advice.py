@@ -130,9 +130,9 @@ def _froude_finding(
         fr,
         FROUDE_LIMIT,
         fr <= FROUDE_LIMIT,
-        f"Froude number omega^2 r / g = {fr:.3g}{which} <= {FROUDE_LIMIT}: quasi-static"
+        f"Froude number omega^2 r_outer / g = {fr:.3g}{which} <= {FROUDE_LIMIT}: quasi-static"
         + (", as SCM's laws are" if check == "scm_froude" else ""),
-        f"Froude number omega^2 r / g = {fr:.3g}{which} > {FROUDE_LIMIT}: "
+        f"Froude number omega^2 r_outer / g = {fr:.3g}{which} > {FROUDE_LIMIT}: "
         + (
             advice
             or "not quasi-static at this speed and gravity (the slip depends on the speed; faster, the wheel hops); "

@@ -289,7 +289,9 @@ def short_window(summary: dict, name: str) -> float | None:
 
 SETTLING_FRACTION = 0.1
 """How far into the steady window the sinkage's own MSER-5 start must lie for the summary to give its
-settled part apart (sinkage_settled_from, sinkage_settled) [-]: a few samples' truncation says nothing."""
+settled part apart (sinkage_settled_from, sinkage_settled) [-] ..."""
+SETTLING_SAMPLES = 20
+"""... and in samples at least [count]: a few samples' truncation says nothing."""
 
 
 def summarize(
@@ -313,9 +315,9 @@ def summarize(
     'normal_force' [N], 'forward_speed' [m/s], 'contact_fraction' [-], with '<name>_sem'
     (batch-means standard error within the window) and '<name>_correlation_time' [s] (a window of
     fewer than MIN_CORRELATION_TIMES of them makes the _sem too small); 'dp_over_w_sem'; 'sinkage_rate'
-    [m/s] (slope of the sinkage over the window); where the sinkage's own MSER-5 start lies SETTLING_FRACTION
-    or more into the window, 'sinkage_settled_from' [s] and 'sinkage_settled' [m] (with its _sem and
-    _correlation_time): the mean from there, the window's mixing the wheel's settling into its plateau;
+    [m/s] (slope of the sinkage over the window); in a steady window where the sinkage's own MSER-5 start
+    lies SETTLING_FRACTION or more into it, 'sinkage_settled_from' [s] and 'sinkage_settled' [m] (with its
+    _sem and _correlation_time): the mean from there, the window's mixing the wheel's settling into its plateau;
     'grouser_passages' [-] (grousers that passed over the
     window: the rim's turn x grouser_count / 2 pi); 'travel' [m] over the drive, 'landing_time' [s],
     'landing_sinkage' [m] (the rim's sinkage as the drive starts: the wheel's static sinkage under its
@@ -357,12 +359,6 @@ def summarize(
     # the sinkage over the traction's window: stationary, or drifting by less than half a grain radius
     window_time = time[window]
     settled, out["sinkage_rate"] = sinkage_steady(sinkage[window - index[0]], window_time, min_fraction, grain_radius)
-    # the sinkage's own MSER-5 start, when well inside the traction's window: the window's mean sinkage
-    # then mixes the wheel's settling with its plateau, whose mean is given beside it
-    cut = mser_truncation(sinkage[window - index[0]])
-    if cut is not None and cut >= SETTLING_FRACTION * len(window):
-        out["sinkage_settled_from"] = float(time[window[cut]])
-        window_mean(out, "sinkage_settled", sinkage[window[cut:] - index[0]], float(np.mean(np.diff(window_time))))
     quantities = {
         "forward_speed": forward[window - index[0]],
         "sinkage": sinkage[window - index[0]],
@@ -394,7 +390,21 @@ def summarize(
         out["steady_state"] = TOO_SHORT
     elif not settled:
         out["steady_state"] = RISING if out["sinkage_rate"] < 0 else SINKING
+    if out["steady_state"] == STEADY:  # a steady window whose mean sinkage mixes the settling: the plateau apart
+        _settled_sinkage(out, sinkage[window - index[0]], window_time)
     return out
+
+
+def _settled_sinkage(out: dict, sinkage: np.ndarray, time: np.ndarray) -> None:
+    """Where the sinkage's own MSER-5 start over a steady window (`sinkage` [m] at `time` [s]) lies
+    SETTLING_FRACTION of it in or more (and SETTLING_SAMPLES at least: a few samples say nothing), the
+    window's mean sinkage mixes the wheel's settling with its plateau: out['sinkage_settled_from'] [s] and
+    out['sinkage_settled'] [m] (with its _sem and _correlation_time), the plateau's mean."""
+    cut = mser_truncation(sinkage)
+    if cut is None or cut < max(SETTLING_FRACTION * len(sinkage), SETTLING_SAMPLES):
+        return
+    out["sinkage_settled_from"] = float(time[cut])
+    window_mean(out, "sinkage_settled", sinkage[cut:], float(np.mean(np.diff(time[cut:]))))
 
 
 def grouser_passages(turn: float, grouser_count: int) -> float:

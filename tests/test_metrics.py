@@ -114,11 +114,24 @@ def test_a_sinkage_still_settling_inside_the_window_is_given_apart_with_its_plat
     drive = s["time"][60:]
     assert drive[0] + 30 * 0.05 < out["sinkage_settled_from"] < drive[0] + 0.5 * (drive[-1] - drive[0])
     assert out["sinkage_settled"] == pytest.approx(0.007, abs=1e-4)  # the plateau
-    assert out["sinkage"] < out["sinkage_settled"] - 2e-4  # the window's mean, pulled down by the settling
+    assert out["sinkage"] < out["sinkage_settled"] - 1.5e-4  # the window's mean, pulled down by the settling
     assert out["sinkage_settled_sem"] > 0 and metrics.summary_units(out)["sinkage_settled_from"] == "s"
+    assert 0.05 <= out["sinkage_settled_correlation_time"] < 30 * 0.05  # in seconds, at the 0.05 s spacing
     _print_summary(RunResult("run", out["steady_state"], out))
     printed = capsys.readouterr().out
     assert f"! the sinkage settles only from {out['sinkage_settled_from']:.4g} s (its own MSER-5)" in printed
+    # a window that starts inside the drive (the pull ramps over its first 40 samples): the plateau's start
+    # and mean are taken in the window, not from the drive's start
+    late = _series()
+    late["drawbar_pull"][60:100, 0] = np.linspace(0.0, 0.5, 40)
+    noise = 1e-4 * np.random.default_rng(2).standard_normal(400)
+    late["sinkage"][60:, 0] = 0.004 + 0.003 * (1 - np.exp(-np.arange(400) / 45.0)) + noise  # settles past 100
+    out = metrics.summarize(late, rim_radius=0.04, wheel_load=10.0, mode="slip")
+    first = int(np.searchsorted(late["time"], out["window"][0]))
+    assert first > 60  # the window starts past the pull's ramp
+    cut = metrics.mser_truncation(late["sinkage"][first:, 0])
+    assert out["sinkage_settled_from"] == late["time"][first + cut]
+    assert out["sinkage_settled"] == pytest.approx(late["sinkage"][first + cut :, 0].mean(), rel=1e-12)
     flat = _series()
     flat["sinkage"][60:] = 0.007 + 1e-4 * np.random.default_rng(1).standard_normal((400, 1))
     assert "sinkage_settled" not in metrics.summarize(flat, rim_radius=0.04, wheel_load=10.0, mode="slip")
