@@ -1736,18 +1736,15 @@ def _check_one_mesh(paths: list[str], scene, given) -> None:
     judged)."""
     if scene.wheel is None or scene.wheel.type != "mesh":
         return
+    from types import SimpleNamespace
+
     from .output import stored_wheel_mesh
+    from .scm_calibration import mesh_digest
     from .system import used_mesh, wheel_display_mesh
 
-    def digest(arrays) -> str:  # vertices, triangles, owners in the types results.h5 keeps them
-        import hashlib
-
-        import numpy as np
-
-        sha = hashlib.sha256()
-        for array, kind in zip(used_mesh(arrays), (np.float64, np.int32, np.int32)):
-            sha.update(np.ascontiguousarray(array, dtype=kind).tobytes())
-        return sha.hexdigest()
+    def digest(mesh) -> str:  # the digest a study and a wheel fit record (mesh_digest), of the vertices used
+        vertices, triangles, _ = used_mesh(mesh)  # one wheel: its owners are all 0
+        return mesh_digest(SimpleNamespace(vertices=vertices, triangles=triangles))
 
     driven = {}
     for path in paths:
