@@ -3,6 +3,7 @@ machine code compiled here for a GPU architecture: no GPU needed.
 
     python benchmarks/kernel_resources.py                          # this checkout, sm_90 (H100, H200)
     python benchmarks/kernel_resources.py --compare /path/to/old   # another checkout beside this one
+    python benchmarks/kernel_resources.py --compare /path/to/old --json   # both as [{checkout, rows}, ...]
 
 Each kernel of a DEM step (the contact, integrator and neighbour modules of soil/, for each
 precision, with and without rolling resistance) is compiled by Warp's NVRTC for the architecture
@@ -194,13 +195,22 @@ def main(argv=None) -> None:
     parser.add_argument("--source", default=ROOT, help="checkout whose soil package to compile")
     parser.add_argument("--compare", help="another checkout: its kernels too, before this one's")
     parser.add_argument("--arch", type=int, default=ARCH, help="CUDA architecture (90: H100, H200)")
-    parser.add_argument("--json", action="store_true", help="print the rows as one JSON line")
+    parser.add_argument(
+        "--json", action="store_true", help="print the rows as one JSON line (with --compare: [{checkout, rows}, ...])"
+    )
     args = parser.parse_args(argv)
-    if args.compare:
+    if args.compare:  # each checkout compiled in a process of its own (its own soil package and kernel cache)
+        compared = []
         for source in (os.path.abspath(args.compare), ROOT):
             command = [sys.executable, os.path.abspath(__file__), "--source", source, "--arch", str(args.arch)]
+            if args.json:
+                done = subprocess.run([*command, "--json"], check=True, stdout=subprocess.PIPE, text=True)
+                compared.append({"checkout": source, "rows": json.loads(done.stdout.splitlines()[-1])})
+                continue
             print(f"## {source}\n", flush=True)
             subprocess.run(command, check=True)
+        if args.json:
+            print(json.dumps(compared))  # the compared checkout's rows first, then this one's
         return
     rows = measure(os.path.abspath(args.source), args.arch)
     if args.json:

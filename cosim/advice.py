@@ -26,6 +26,8 @@ from __future__ import annotations
 import math
 from dataclasses import asdict, dataclass
 
+import numpy as np
+
 from soil import advisor
 
 from .plan import WALL_GRAINS, RunPlan
@@ -66,6 +68,176 @@ class Finding:
 
 def _finding(check, value, limit, ok, good, bad, setting, unit: str = "1") -> Finding:
     return Finding(check, float(value), float(limit), bool(ok), good if ok else bad, setting, unit)
+
+
+def _step_map(omega_dt: float, gamma_dt: float, integrator: str) -> np.ndarray:
+    """One fixed step of `integrator` on a damped oscillator a = -omega^2 x - gamma v, as a matrix on the
+    state in units of dt: jolt-Beeman (x, v dt, a dt^2, a(t - dt) dt^2), its damping seen at the predicted
+    velocity (benchmarks/jolt_beeman_damped_stability.py); velocity Verlet (x, v dt, a dt^2), its damping
+    at the half step's velocity (soil/integrator.py)."""
+    w2, g = omega_dt**2, gamma_dt
+    columns = []
+    for unit in np.eye(4 if integrator == "jolt-beeman" else 3):
+        if integrator == "jolt-beeman":
+            x, v, a, a_minus = unit
+            x_new = x + v + (4 * a - a_minus) / 6
+            a_new = -w2 * x_new - g * (v + (3 * a - a_minus) / 2)
+            columns.append([x_new, v + (2 * a_new + 5 * a - a_minus) / 6, a_new, a])
+        else:
+            x, v, a = unit
+            half = v + a / 2
+            x_new = x + half
+            a_new = -w2 * x_new - g * half
+            columns.append([x_new, half + a_new / 2, a_new])
+    return np.array(columns).T
+
+
+def stable_step(omega: float, gamma: float, integrator: str) -> float:
+    """The longest fixed step [s] at which `integrator` keeps a mode of angular frequency `omega` [rad/s]
+    and damping rate `gamma` [1/s] stable (the one-step map's spectral radius <= 1; tests/test_validity.py
+    collides two grains at half and at twice it)."""
+
+    def stable(dt: float) -> bool:
+        return max(abs(np.linalg.eigvals(_step_map(omega * dt, gamma * dt, integrator)))) <= 1.0 + 1e-9
+
+    low, high = 0.0, 4.0 / max(omega, 0.5 * gamma)  # unstable beyond: the undamped bound 2 / omega, or 2 / gamma
+    for _ in range(60):
+        middle = 0.5 * (low + high)
+        low, high = (middle, high) if stable(middle) else (low, middle)
+    return low
+
+
+def _stiff_mode_findings(
+    plan: RunPlan, radius: float, speed: float, fall: str, dt: float, integrator: str, dt_key: str
+) -> list[Finding]:
+    """The damped contact modes and the rolling spring of an impact of the smallest grains at `speed` [m/s],
+    judged at the fixed step `dt` [s] of `integrator` (its key `dt_key`): either outruns the step the
+    normal spring is resolved with once the damping or the rolling resistance is large (an overdamped
+    soil, mu_r of 1e3), which diverged naming other keys (or, short of that, realised another restitution
+    than the scene's, or a stuck grain's spin grew: BENCHMARKS.md). From soil/contact.py, for a grain on a
+    grain (m* = m / 2, R* = r / 2) and on a wall of the soil's stiffness (m* = m, R* = r; a wheel's
+    contacts are not judged): normal, the Lehr dashpot 2 D sqrt(m* k_N), gamma = 2 D omega_N;
+    tangential while a contact sticks (friction on), the Kelvin spring k_T = 8 G* sqrt(R* delta) and its
+    dashpot 2 D sqrt(m* k_T) on the inverse mass 3.5 / m* of the grains' sliding and turning (a wall's too:
+    1 / m + r^2 / I), omega_T = sqrt(3.5 k_T / m*), gamma_T = 7 D sqrt(k_T / m*); rolling, k_r = 2.25
+    mu_r^2 R*^2 k_N and the damper 1.5 sqrt(1.4) mu_r R*^2 times the normal one, on the law's I* = 1.4
+    m* R*^2 between grains (the pair's true 1.6 m* R*^2 gives a 7 % longer step: a bound), the grain's
+    own 0.4 m r^2 on a wall (omega_r = 2.37 mu_r omega_N, gamma_r = 8.87 D mu_r omega_N). The stable
+    step of a mode shrinks as 1 / mu_r for rolling, as 1 / D for a heavily damped one."""
+    material = plan.soil_material
+    nu = material.poisson_ratio
+    mass = material.density * 4.0 / 3.0 * math.pi * radius**3
+    e_star = material.youngs_modulus / (2.0 * (1.0 - nu**2))
+    speed = max(speed, 1e-12)
+    normal = {  # omega_N [rad/s] of the impact: two grains, a grain on a wall
+        "grain on grain": 2.0 / advisor.hertz_impact(e_star, 0.5 * radius, 0.5 * mass, speed).critical_step,
+        "grain on a wall": 2.0 / advisor.hertz_impact(e_star, radius, mass, speed).critical_step,
+    }
+    damping = material.lehr_damping if plan.law.damping else 0.0
+    rolling = material.rolling_friction if plan.law.rolling else 0.0
+    modes: dict[str, dict[str, tuple[float, float]]] = {"damping_step": {}, "rolling_step": {}}  # by check, where
+    for where, omega in normal.items():
+        if damping > 0:
+            modes["damping_step"][where] = (omega, 2.0 * damping * omega)
+        if damping > 0 and plan.law.friction:  # the stuck contact's Kelvin element, the grains turning too
+            shear = 2.0 * (1.0 - nu) / (2.0 - nu)  # k_T / k_N = 4 G* / E*, G* = G / (2 (2 - nu)) (soil.materials)
+            modes["damping_step"][f"{where}, stuck"] = (
+                math.sqrt(3.5 * shear) * omega,
+                7.0 * damping * math.sqrt(shear) * omega,
+            )
+        if rolling > 0 and where == "grain on grain":  # I* = 1.4 m* R*^2: the damper keeps the ratio D
+            omega_r = 1.5 / math.sqrt(1.4) * rolling * omega
+            gamma_r = 2.0 * damping * omega_r
+        elif rolling > 0:  # the grain alone turns (0.4 m r^2) where the law counts 1.4 m r^2: 1.87 D
+            omega_r = math.sqrt(2.25 / 0.4) * rolling * omega
+            gamma_r = 2.0 * damping * 1.5 * math.sqrt(1.4) / 0.4 * rolling * omega
+        if rolling > 0:
+            modes["rolling_step"][where] = (omega_r, gamma_r)
+    at = f"{dt:.3g} s ({dt_key}, {integrator}), an impact of the smallest grains at {speed:.3g} m/s{fall}"
+    findings = []
+    for check, cases in modes.items():
+        if not cases:
+            continue
+        longest = {where: stable_step(omega, gamma, integrator) for where, (omega, gamma) in cases.items()}
+        where = min(longest, key=lambda k: longest[k])
+        share = dt / longest[where]
+        mode = (
+            f"the damped {'tangential' if where.endswith('stuck') else 'normal'} mode (D = {damping:.3g}, {where})"
+            if check == "damping_step"
+            else f"the rolling spring (mu_r = {rolling:g}, D = {damping:.3g}, {where})"
+        )
+        remedy = (
+            "raise soil.restitution (or lower soil.damping_ratio)"
+            if check == "damping_step"
+            else "lower soil.rolling_friction (the stable step grows as 1 / mu_r)"
+        )
+        keys = "soil.restitution, soil.damping_ratio" if check == "damping_step" else "soil.rolling_friction"
+        text = f"the step {at} is {share:.3g} x the longest that keeps {mode} stable ({longest[where]:.3g} s)"
+        findings.append(
+            _finding(check, share, 1.0, share <= 1.0, text, f"{text}: {remedy}, or lower {dt_key}", f"{keys}, {dt_key}")
+        )
+    return findings
+
+
+SINGLE_OVERLAP_SPACINGS = 100
+"""The fewest float32 spacings a wheel's grain contact must overlap by in single precision [count]: a
+spacing's error in the overlap is 1.5 / this of the Hertz force (1.5 %)."""
+
+
+def _single_precision_finding(plan: RunPlan) -> Finding:
+    """Single precision holds positions in float32: the overlap of a grain carrying the wheel's ground
+    pressure (its share on (2r)^2) must span many float32 spacings at the bed's coordinates, or the
+    contact force is rounding (the paper's milli-g trap: docs/physics.md section 3)."""
+    spec, material = plan.bed.spec, plan.soil_material
+    r = spec.radius_mean
+    e_star = material.youngs_modulus / (2.0 * (1.0 - material.poisson_ratio**2))
+    force = ground_pressure(plan) * (2.0 * r) ** 2
+    overlap = (3.0 * force / (4.0 * e_star * math.sqrt(0.5 * r))) ** (2.0 / 3.0)
+    extent = max(spec.length, spec.width, spec.depth)  # the bed's grains lie within it of the origin
+    where = f"{extent:.3g} m from the origin"
+    if plan.patch is not None:  # a patch moves its grains with the rover, in the world's coordinates
+        speeds = plan.wheel_speeds
+        wheels = plan.wheels or (plan.wheel,)
+        rims = [abs(float(v)) * w.outer_radius for v, w in zip(speeds, wheels)] if speeds is not None else []
+        travel = plan.scene.run.duration * max(rims, default=0.0)
+        extent += travel
+        where = f"{extent:.3g} m from the origin after the drive" if rims else f"{where}, at the patch's start"
+    spacing = float(np.spacing(np.float32(extent)))
+    spacings = overlap / spacing
+    what = (
+        f"{spacings:.3g} float32 spacings ({spacing:.2g} m at {where}) in the overlap "
+        f"{overlap:.3g} m of a grain under the wheel's {ground_pressure(plan):.3g} Pa"
+    )
+    return _finding(
+        "single_precision",
+        spacings,
+        SINGLE_OVERLAP_SPACINGS,
+        spacings >= SINGLE_OVERLAP_SPACINGS,
+        what,
+        f"only {what}: single precision rounds the contacts that carry the wheel; set scene.precision = "
+        '"mixed" (float64 positions, float32 contacts) or "double"',
+        "scene.precision",
+    )
+
+
+def stiff_mode_hint(plan: RunPlan, settling: bool = False) -> str:
+    """The damping_step and rolling_step findings that fail for a plan on the grains, for a divergence's
+    message ('' when both pass, or under the PID): the keys the message names otherwise do not cover them.
+    settling: judged at the bed's settling step (bed.settle_dt_factor, velocity Verlet) and a fall through
+    the fill height, else at the run's step as `check` judges them."""
+    if plan.step_control == "pid":
+        return ""
+    if settling:
+        spec = plan.bed.spec
+        speed = math.sqrt(2.0 * plan.g * max(spec.depth, spec.radius_min))
+        fall = f": a fall through the fill height {spec.depth:.3g} m"
+        step, integrator = plan.bed.settle_dt, "velocity-verlet"  # soil.bed.make_settled_bed's fixed steps
+        found = _stiff_mode_findings(plan, spec.radius_min, speed, fall, step, integrator, "bed.settle_dt_factor")
+    else:  # a mixed terrain's DEM wheels only, as its validity judges them
+        wheels = getattr(plan.terrain, "wheel_models", None)
+        dem = [i for i, m in enumerate(wheels) if m == "dem"] if plan.terrain.model == "mixed" and wheels else None
+        found = [f for f in check(plan, indices=dem) if f.check in ("damping_step", "rolling_step")]
+    return "".join(f"; {f.check}: {f.message}" for f in found if not f.ok)
 
 
 def _judged(plan: RunPlan, indices=None) -> list[int]:
@@ -224,6 +396,11 @@ def check(
                 dt_key,
             )
         )
+
+    if plan.step_control != "pid":  # the PID's error control shortens the substeps a stiff mode needs
+        findings += _stiff_mode_findings(plan, smallest, speed, fall, plan.dt, plan.integrator, plan.dt_setting)
+    if plan.precision == "single":
+        findings.append(_single_precision_finding(plan))
 
     wheel = narrowest
     across = wheel.width / diameter

@@ -54,10 +54,12 @@ class SettlingDiverged(RegolithError, RuntimeError):
             if kept is None
             else f"no bed was written; the settling's last good state (t = {_good_time(error):.6g} s) is {kept}"
         )
+        from .advice import stiff_mode_hint
+
         super().__init__(
             f"the bed diverged while settling, at {time} of the settling{where}: {error.reason or error}. {step}, "
             f"check scene.gravity (|g| = {plan.g:.4g} m/s^2) and the friction angles (soil.stick_angle_deg, "
-            f"soil.slip_angle_deg); {kept_text}"
+            f"soil.slip_angle_deg){stiff_mode_hint(plan, settling=True)}; {kept_text}"
         )
 
 
@@ -299,9 +301,16 @@ def _settle(plan: RunPlan, path: str, info_path: str, progress: bool) -> Bed:
     finally:
         bar.close()
     wall = time.perf_counter() - start
-    if not report["settled"]:
+    if not report["settled"] and not report["threshold"] > 0:  # g = 0: no weight, no threshold to fall below
         log.warning(
-            "the bed did not reach the kinetic-energy threshold in bed.settle_max_time = %g s (KE %.3g J > "
+            "without gravity the bed has no kinetic-energy threshold to settle to (it scales with the grains' "
+            "weight); it is used as it lies after bed.settle_max_time = %g s (KE %.3g J)",
+            bed.settle_max_time,
+            report["kinetic_energy"],
+        )
+    elif not report["settled"]:
+        log.warning(
+            "the bed did not reach the kinetic-energy threshold in bed.settle_max_time = %g s (KE %.3g J >= "
             "%.3g J); it is used as it is (raise bed.settle_max_time or bed.settle_ke_ratio)",
             bed.settle_max_time,
             report["kinetic_energy"],

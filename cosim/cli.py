@@ -60,6 +60,8 @@ def _setup_output(verbose: bool) -> None:
 
     import warp as wp
 
+    from soil.errors import RegolithWarning
+
     wp.config.log_level = wp.LOG_INFO if verbose else wp.LOG_ERROR
     if not verbose:
         from soil import quiet_warp
@@ -71,6 +73,18 @@ def _setup_output(verbose: bool) -> None:
     root.handlers[:] = [handler]
     root.setLevel(logging.DEBUG if verbose else logging.INFO)
     logging.captureWarnings(True)
+    captured = getattr(warnings.showwarning, "captured", warnings.showwarning)  # a second call wraps once
+    label = "" if verbose else "warning: "  # verbose lines carry their level already
+
+    def show(message, category, filename, lineno, file=None, line=None):
+        # ours say what to change: the source line that raised one is of no use to its reader
+        if file is None and issubclass(category, RegolithWarning):
+            logging.getLogger("py.warnings").warning("%s%s", label, message)
+        else:
+            captured(message, category, filename, lineno, file, line)
+
+    show.captured = captured  # type: ignore[attr-defined]
+    warnings.showwarning = show
     warnings.simplefilter("default")
     # Warp leaves its compiler's precompiled-header folders to the interpreter's exit, which says so
     # after every first compile of a module: nothing of ours, and the folders are removed all the same
@@ -457,6 +471,7 @@ def _dem_advice(plan) -> list[str]:
     from soil import advisor
 
     from . import advice
+    from .scene import SceneError
     from .system import needs_bed
 
     spec = plan.bed.spec
@@ -513,6 +528,14 @@ def _dem_advice(plan) -> list[str]:
     if plan.step_control == "pid" and steps is not None:  # the PID's substeps, not dt, are what the soil takes
         longest = plan.dt_max if plan.dt_max is not None else steps.dt_max
         shortest = plan.dt_min if plan.dt_min is not None else longest * 1e-4
+        if shortest > longest:  # only run.dt_min given (both are checked when read): the run would refuse it
+            raise SceneError(
+                [
+                    f"run.dt_min: {shortest:.4g} s is longer than the PID's longest substep, run.dt_max unset: the "
+                    f"advised limit {longest:.4g} s (the run takes it from the settled bed, within a few percent); "
+                    "lower run.dt_min or give run.dt_max"
+                ]
+            )
         ratio = longest / steps.critical_step
         lines.append(
             f"  the PID substeps between   {shortest:.4g} .. {longest:.4g} s at run.tolerance {plan.tolerance:g} "

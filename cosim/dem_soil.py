@@ -2,13 +2,14 @@
 
 from __future__ import annotations
 
+import math
 import warnings
 from collections.abc import Callable, Sequence
 
 import numpy as np
 from numpy.typing import ArrayLike
 
-from soil.errors import ArgumentError, RegolithWarning
+from soil.errors import ArgumentError, RegolithWarning, is_real
 from soil.sdf import BOUNDARY_PLANE
 
 from .contract import Particles, SoilBooks, StepStatistics, WheelKinematics, WheelWrench
@@ -33,10 +34,22 @@ class DemSoil:
     """
 
     def __init__(self, sim, dt: float, surface_height: float = 0.0, wall_clearance: float | None = None, patch=None):
+        if not hasattr(sim, "body_count"):  # a soil.Simulation or a world of one (soil.worlds): what steps grains
+            raise ArgumentError(f"sim must be a soil.Simulation with the wheels as bodies, got {type(sim).__name__}")
         if sim.body_count < 1:
             raise ArgumentError("the soil simulation has no wheel bodies (SoilBuilder.add_wheel)")
-        if not dt > 0:
-            raise ArgumentError(f"dt must be > 0 [s], got {dt!r}")
+        # all checked before anything is set: a text or None would reach `>` as a bare TypeError, and an
+        # inf step or a nan surface would pass a bare comparison
+        if not (is_real(dt) and math.isfinite(dt) and dt > 0):
+            raise ArgumentError(f"dt must be a finite number > 0 [s], got {dt!r}")
+        if not (is_real(surface_height) and math.isfinite(surface_height)):
+            raise ArgumentError(f"surface_height must be a finite number [m], got {surface_height!r}")
+        if wall_clearance is not None and not (
+            is_real(wall_clearance) and math.isfinite(wall_clearance) and wall_clearance >= 0
+        ):
+            raise ArgumentError(
+                f"wall_clearance must be None (5 mean grain radii) or a finite number >= 0 [m], got {wall_clearance!r}"
+            )
         self.sim = sim
         self.dt = float(dt)
         self.surface_height = float(surface_height)
@@ -142,15 +155,17 @@ class DemSoil:
             raise ArgumentError(f"expected kinematics of {self.wheel_count} wheels, got {len(start)}")
         if end is not None and len(end) != self.wheel_count:
             raise ArgumentError(f"expected end kinematics of {self.wheel_count} wheels, got {len(end)}")
+        t0 = self.sim.time
+        if not (is_real(t_end) and math.isfinite(t_end)):  # before the patch moves or the wheels' path is set
+            raise ArgumentError(f"t_end must be a finite time [s] after the soil's time {t0!r} s, got {t_end!r}")
+        span = float(t_end) - t0
+        if not span > 0:
+            raise ArgumentError(f"t_end {t_end!r} s must be after the soil's time {t0!r} s")
         if self.patch is not None:  # the patch follows the wheels' centre, between macro steps
             moved = self.patch.follow(self.sim, np.mean([k.position[:2] for k in start], axis=0))
             if moved is not None:
                 self.sim = moved
         sim = self.sim
-        t0 = sim.time
-        span = float(t_end) - t0
-        if not span > 0:
-            raise ArgumentError(f"t_end {t_end!r} s must be after the soil's time {t0!r} s")
 
         def stack(kinematics):
             return tuple(
@@ -242,16 +257,28 @@ class DemSoil:
         for b, hub in enumerate(positions):
             shape = self.sim.body_shapes[b]
             for point, normal in walls:
-                gap = float((hub - point) @ normal) - _extent(shape, rotations[b], normal)
+                inside = float((hub - point) @ normal)  # the hub's distance inside the wall's plane
+                gap = inside - _extent(shape, rotations[b], normal)
                 if gap < self.wall_clearance:
+                    # a negative distance reads as a typo: say where the wheel is instead
+                    hub_at = f"hub at {np.round(hub, 4)}"
+                    if inside < 0:
+                        message = (
+                            f"wheel {b} lies outside the container: its hub is {-inside:.4g} m beyond a container "
+                            f"wall ({hub_at}); place the wheel inside the container, or make the bed larger"
+                        )
+                    elif gap < 0:
+                        message = (
+                            f"wheel {b} reaches {-gap:.4g} m through a container wall ({hub_at}): the wall "
+                            "influences the result; make the bed larger"
+                        )
+                    else:
+                        message = (
+                            f"wheel {b} is {gap:.4g} m from a container wall ({hub_at}), closer than "
+                            f"{self.wall_clearance:.3g} m: the wall influences the result; make the bed larger"
+                        )
                     self._warned_wall = True
-                    warnings.warn(
-                        f"wheel {b} is {gap:.4g} m from a container wall (hub at {np.round(hub, 4)}), "
-                        f"closer than {self.wall_clearance:.3g} m: the wall influences the result; "
-                        "make the bed larger",
-                        WallProximityWarning,
-                        stacklevel=3,
-                    )
+                    warnings.warn(message, WallProximityWarning, stacklevel=3)
                     return
 
     # -- the rest of the SoilSide contract (cosim.contract) ------------------------------

@@ -28,7 +28,7 @@ from soil.files import atomic_write_text
 from soil.stability import read_checkpoint
 
 from . import records
-from .beds import Bed, bed_from_file, check_memory, memory_estimate, settled_bed, write_json
+from .beds import BED_FILE, Bed, bed_from_file, check_memory, memory_estimate, settled_bed, write_json
 from .contract import SoilSide
 from .folders import EDITED_SCENE_FILE, RUN_FILE, SCENE_FILE, RunFolder, read_json
 from .output import ResultsWriter, read_series, stored_wheel_mesh
@@ -215,7 +215,7 @@ def resume(out_dir: str, progress: bool = False, hooks: dict | None = None) -> R
             log.info("%s: the drive is complete in the checkpoint; finishing the results", folder.path)
         else:  # what is left to drive, on the wheel the run drove
             _check_wheel_mesh(folder, plan)
-        system = CoupledSystem.build(plan, _run_bed(str(checkpoint["bed_path"]), info) if needs_bed(plan) else None)
+        system = CoupledSystem.build(plan, _run_bed(folder, checkpoint, info) if needs_bed(plan) else None)
         try:
             system.load_state_dict(checkpoint)
             writer = ResultsWriter.resume(
@@ -224,6 +224,8 @@ def resume(out_dir: str, progress: bool = False, hooks: dict | None = None) -> R
             _put_back_scene(folder, scene.to_toml())  # every check passed: now the folder may change
             loop = {k[len("loop/") :]: v for k, v in checkpoint.items() if k.startswith("loop/")}
             run_id = str(checkpoint["run_id"]) if "run_id" in checkpoint else None
+            if system.bed is not None and "bed" in info:  # where the bed lies now (a folder moved whole)
+                info["bed"] = system.bed.info
             _mark_running(folder, info, run_id, float(checkpoint["coupler/time"]))
             return Runner(system, writer, folder, loop=loop, progress=progress, hooks=hooks, run_id=run_id).run()
         finally:
@@ -307,14 +309,30 @@ def _put_back_scene(folder: RunFolder, scene_toml: str) -> None:
     )
 
 
-def _run_bed(bed_path: str, info: dict) -> Bed:
-    """The bed a run started on (its checkpoint names it), refused when it is missing or was replaced."""
+def _run_bed(folder: RunFolder, checkpoint: dict, info: dict) -> Bed:
+    """The bed a run started on (its checkpoint names it), refused when it is missing or was replaced. A
+    folder moved whole since (to another disk or machine) resumes on the bed it carried along (the
+    checkpoint's path of it from the folder, bed.h5 for a checkpoint written before that was kept),
+    provided run.json's key of the run's bed says it is the same one."""
+    bed_path = str(checkpoint["bed_path"])
+    if not os.path.exists(bed_path):
+        carried = str(checkpoint.get("bed_path_from_folder", "")) or BED_FILE
+        moved = os.path.normpath(os.path.join(folder.path, carried))
+        if info.get("bed", {}).get("key") and os.path.isfile(moved):
+            log.info("%s: the bed %s is gone; resuming on %s, moved with the folder", folder.path, bed_path, moved)
+            bed_path = moved
+        else:
+            raise ArgumentError(
+                f"{folder.path!r}: the run's bed {bed_path!r} is gone (its checkpoint continues the grains settled "
+                f"there): put the bed back at that path to resume the run, or run its scene again (cosim run "
+                f"{folder.file(SCENE_FILE)} --out NEW_FOLDER); nothing was changed"
+            )
     try:
         bed = bed_from_file(bed_path, "checkpoint bed")
     except SceneError as error:
         raise SceneError(error.problems + [f"the run's bed {bed_path!r} is needed to resume"]) from None
     _check_run_bed(bed_path, info.get("bed", {}))
-    return Bed(bed.path, bed.surface_height, info.get("bed", bed.info))
+    return Bed(bed.path, bed.surface_height, {**info["bed"], "path": bed.path} if "bed" in info else bed.info)
 
 
 def _checked_inputs(folder: RunFolder) -> tuple[dict, dict]:

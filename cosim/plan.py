@@ -657,6 +657,13 @@ def resolve(scene: Scene) -> RunPlan:
             )
         else:  # not known (another problem, no load): the grains' step does not apply to SCM alone
             macro_key = ""
+    shortest = scene.run.dt_min if scene.run.step_control == "pid" and _on_grains(scene) else None
+    if shortest is not None and macro_step < shortest * (1 - 1e-9):  # every substep would be cut below it
+        problems.append(
+            f"run.macro_step: the macro step ({macro_step:.4g} s{', ' + macro_key if macro_key else ''}) is shorter "
+            f"than the PID's shortest substep run.dt_min ({shortest:.4g} s), which the substeps landing on its end "
+            "would break at every step: lengthen the macro step or lower run.dt_min"
+        )
     if macro_step > scene.run.duration:
         problems.append(
             f"run.macro_step: the macro step ({macro_step:.4g} s) is longer than run.duration ({scene.run.duration} s)"
@@ -843,6 +850,9 @@ def _step_count_problems(
     if macro_key is None:
         macro_key = "run.macro_step" if scene.run.macro_step is not None else f"run.substeps x {dem_keys}"
     steps = []  # (count, rank on a tie: the finest step first, what, the keys that set the step)
+    # the PID's substeps are at most run.dt_max long, settling included: one far below the scene's scale never
+    # ends, and a macro step's substeps loop on the device, where no stop signal reaches them
+    pid_longest = scene.run.dt_max if scene.run.step_control == "pid" else None
     if settles and on_grains:
         steps.append((scene.bed.settle_max_time / settle_dt, 2, "settling", f"bed.settle_dt_factor x {RAYLEIGH_KEYS}"))
     for phase, duration in (
@@ -856,6 +866,10 @@ def _step_count_problems(
         if macro_key:  # as many as the finer steps only with one substep: a macro step given caps dt then
             rank = 3 if scene.run.macro_step is not None else 0
             steps.append((duration / macro_step, rank, f"{phase} (macro steps)", macro_key))
+        if on_grains and pid_longest is not None:
+            steps.append((duration / pid_longest, 4, f"{phase} (PID substeps)", "run.dt_max"))
+    if settles and on_grains and pid_longest is not None:
+        steps.append((scene.bed.settle_max_time / pid_longest, 4, "settling (PID substeps)", "run.dt_max"))
     if not steps:
         return []
     count, _, what, keys = max(steps, key=lambda step: step[:2])

@@ -40,7 +40,7 @@ from .folders import DIVERGED_FILE, RUN_FILE, VTKHDF_FILE, RunFolder, read_json
 from .output import ResultsWriter
 from .plan import RunPlan
 from .single_wheel import PHASE_LANDING
-from .system import CoupledSystem
+from .system import CoupledSystem, needs_bed
 from .vtkhdf import write_vtkhdf
 
 log = logging.getLogger(__name__)
@@ -50,6 +50,14 @@ CHECK_EVERY = 10
 
 NO_PARTICLES = Particles(np.zeros((0, 3)), np.zeros((0, 3), np.float32), np.zeros(0))
 """The snapshot of a soil without particles (SoilSide.particles() is None)."""
+
+
+def _relative(path: str, start: str) -> str:
+    """`path` relative to `start`, or '' where it has none (another drive)."""
+    try:
+        return os.path.relpath(path, start)
+    except ValueError:
+        return ""
 
 
 class RunDiverged(RegolithError, RuntimeError):
@@ -221,10 +229,13 @@ class Runner:
             # the rows after the last good state are the diverging steps': the summary stops before them
             good = error.last_good
             self.last_good_time = float(good["time"]) if good is not None else self.session_start_time
+            from .advice import stiff_mode_hint
+
+            hint = stiff_mode_hint(plan) if needs_bed(plan) else ""
             message = (
                 f"the run diverged during the {self._phase()}: {error}. Lower {plan.step_keys}, soften or stiffen "
                 f"the soil as `cosim advise` says, or shorten run.macro_step, and run the scene again (a resume "
-                f"would repeat the same steps)"
+                f"would repeat the same steps){hint}"
             )
             if error.last_good is not None:
                 write_checkpoint(self.folder.file(DIVERGED_FILE), error.last_good, STATE_UNITS)
@@ -490,10 +501,15 @@ class Runner:
         data["scene_toml"] = np.array(self.plan.scene.to_toml())
         data["scene_base_dir"] = np.array(self.plan.scene.base_dir or "")
         data["bed_path"] = np.array("" if self.system.bed is None else self.system.bed.path)
+        # the bed seen from the run's folder too: a run folder moved whole resumes on the bed it carries
+        data["bed_path_from_folder"] = np.array(
+            _relative(self.system.bed.path, self.folder.path) if self.system.bed else ""
+        )
         data["run_id"] = np.array(self.run_id)
         units = self.system.state_dict_units()
         units.update({f"loop/{k}": v for k, v in self.LOOP_UNITS.items()})
-        units.update(dict.fromkeys(("scene_toml", "scene_base_dir", "bed_path", "run_id"), "text"))
+        texts = ("scene_toml", "scene_base_dir", "bed_path", "bed_path_from_folder", "run_id")
+        units.update(dict.fromkeys(texts, "text"))
         write_checkpoint(self.folder.checkpoint, data, units)
         self.last_checkpoint_time = self.system.coupler.time
 

@@ -36,6 +36,7 @@ import json
 import math
 import os
 import re
+import types
 import typing
 from typing import Any, Literal
 
@@ -112,6 +113,51 @@ def reject_bool_for_number(model: type[BaseModel], name: str, value):
     return value
 
 
+def _members(annotation) -> list:
+    """The types a value of `annotation` may be, its unions spread out (None's type dropped)."""
+    if typing.get_origin(annotation) in (typing.Union, types.UnionType):
+        return [m for a in typing.get_args(annotation) for m in _members(a)]
+    return [] if annotation is type(None) else [annotation]
+
+
+def _text_for_number(members: list, value, where: str = "") -> str | None:
+    """Where `value` holds a text that only a number may take there (pydantic would read "1e6" as a
+    number), or None: a text is a text where the annotation takes one (a name, a preset, a Literal)."""
+    if isinstance(value, str):
+        numbers = any(m in (int, float) for m in members)
+        text = any(m is str or typing.get_origin(m) is Literal for m in members)
+        return where or "itself" if numbers and not text else None
+    if isinstance(value, (list, tuple, dict)):
+        index = 1 if isinstance(value, dict) else 0  # a dict's values, a list's items
+        inner = [
+            m
+            for c in members
+            if typing.get_origin(c) in ((dict,) if isinstance(value, dict) else (list, tuple))
+            for a in typing.get_args(c)[index : index + 1 if isinstance(value, dict) else None]
+            if a is not Ellipsis
+            for m in _members(a)
+        ]
+        for place, item in _entries(value):
+            found = _text_for_number(inner, item, f"{where}{place}") if inner else None
+            if found:
+                return found
+    return None
+
+
+def reject_text_for_number(model: type[BaseModel], name: str, value):
+    """A before-validator's test: a text where only a number may stand is refused (pydantic would read
+    `youngs_modulus = "1e6"` as 1e6 Pa and `gravity = [0, 0, "-9.81"]` as a vector: a number is written
+    without quotes, as the README says)."""
+    field = model.model_fields.get(name)
+    if field is None:
+        return value
+    where = _text_for_number(_members(field.annotation), value)
+    if where:
+        at = "" if where == "itself" else f"{where}: "
+        raise ValueError(f"{at}must be a number, not a text: write a TOML number, unquoted (0.12, 1e-4)")
+    return value
+
+
 def reject_non_bool_for_switch(model: type[BaseModel], name: str, value):
     """A before-validator's test: where a field takes true or false and no number or text, anything else
     is refused (pydantic would read "no" as false and 1 as true: a typo that silently switches)."""
@@ -146,6 +192,7 @@ class NumbersChecked(BaseModel):
     @field_validator("*", mode="before")
     @classmethod
     def _no_bool_for_number(cls, value, info):
+        value = reject_text_for_number(cls, info.field_name, value)
         return reject_non_bool_for_switch(cls, info.field_name, reject_bool_for_number(cls, info.field_name, value))
 
     @field_validator("*")
@@ -801,6 +848,14 @@ class RunSection(_Section):
 
     @model_validator(mode="after")
     def _exclusive(self):
+        if self.step_control == "fixed":  # a PID key under fixed steps would be ignored: say so instead
+            defaults = {key: type(self).model_fields[key].default for key in ("tolerance", "dt_min", "dt_max")}
+            for key, default in defaults.items():  # by value: a scene written back holds every default
+                if getattr(self, key) != default:
+                    raise ValueError(
+                        f'{key}: only the PID step control uses it (step_control = "pid"); the scene steps at the '
+                        'fixed dt: remove it, or set step_control = "pid"'
+                    )
         if self.dt_min is not None and self.dt_max is not None and self.dt_min > self.dt_max:
             raise ValueError(f"dt_min: ({self.dt_min} s) must not exceed dt_max ({self.dt_max} s)")
         if self.dt is not None and self.dt_factor is not None:

@@ -88,7 +88,20 @@ the main job's held wheel gives forces within 0.2 % of 8 steps per node, 1-3 % a
 def bekker_wheel_sinkage(parameters: ScmParameters, load: float, radius: float, width: float) -> float:
     """Bekker's closed-form sinkage [m] of a rigid smooth wheel of `radius` and `width` [m] rolling
     under `load` [N] (the front half of the rim in contact; Wong, Theory of Ground Vehicles):
-    z0 = (3 W / ((3 - n) (k_c + b k_phi) sqrt(D)))^(2 / (2 n + 1))."""
+    z0 = (3 W / ((3 - n) (k_c + b k_phi) sqrt(D)))^(2 / (2 n + 1)).
+
+    This is the rolling form: with only the front half of the rim carrying the load it sinks
+    2^(2 / (2 n + 1)) times (about 1.5: 1.59 at n = 1, 1.54 at n = 1.1) the static sinkage of the same
+    wheel standing with the whole arc in contact, so it is not a check of a wheel at rest.
+
+    radius and width: finite numbers > 0 [m]; load: a finite number [N] (0 or less: no sinkage).
+    """
+    for name, value in (("radius", radius), ("width", width)):
+        if not (is_real(value) and math.isfinite(value) and value > 0):
+            raise ArgumentError(f"{name} must be a finite number > 0 [m], got {value!r}")
+    # a lifted wheel (load <= 0, e.g. under a gravity tilted past 90 degrees) sinks nothing
+    if not (is_real(load) and math.isfinite(load)):
+        raise ArgumentError(f"load must be a finite number [N] (a load <= 0 sinks nothing), got {load!r}")
     p = parameters
     if load <= 0:
         return 0.0
@@ -279,10 +292,14 @@ class ScmSoil(SoilSideDefaults):
     """
 
     def __init__(self, terrain: ScmTerrain, time_step: float, rim_radii: Sequence[float]):
+        if not isinstance(terrain, ScmTerrain):  # read for its wheel count below: say which argument it is
+            raise ArgumentError(f"terrain must be a soil.scm.ScmTerrain, got {type(terrain).__name__}: {terrain!r}")
         if not is_real(time_step):
             raise ArgumentError(f"time_step must be a number > 0 [s], got {time_step!r}")
         if not (math.isfinite(time_step) and time_step > 0):
             raise ArgumentError(f"time_step must be > 0 [s], got {time_step!r}")
+        if isinstance(rim_radii, (str, bytes)) or not hasattr(rim_radii, "__len__"):
+            raise ArgumentError(f"rim_radii must be a sequence of rim radii > 0 [m], one per wheel, got {rim_radii!r}")
         if len(rim_radii) != terrain.wheel_count:
             raise ArgumentError(f"rim_radii: {len(rim_radii)} radii for {terrain.wheel_count} wheels")
         if not all(is_real(r) and math.isfinite(r) and r > 0 for r in rim_radii):

@@ -189,14 +189,22 @@ def _check_calibration(scene: Scene, g_new: float) -> None:
     assert path is not None
     gravity = read_calibration(path).gravity
     if not same_gravity(gravity, g_new):
+        shipped = "none is shipped at this gravity: examples/terrain holds the main job's soil at Phobos' and Earth's"
+        for place, file in (
+            ("Earth", "earth_twin_regolith_scm_beds.toml"),
+            ("Phobos", "phobos_regolith_scm_beds.toml"),
+        ):
+            if same_gravity(g_new, float(np.linalg.norm(gravity_vector(place.lower())))):
+                shipped = (
+                    f"the shipped example: terrain/{file}, the main job's soil at {place}, beside "
+                    "examples/phobos_single_wheel_scm.toml"
+                )
         raise SceneError(
             [
                 f"terrain.calibration: {path} is calibrated at |g| = {gravity:.4g} m/s^2, the twin's is "
                 f"{g_new:.4g} m/s^2: a soil's calibration holds at its gravity; name one calibrated at the twin's "
                 "(--set terrain.calibration='\"FILE\"', relative to the scene's folder), made by `cosim "
-                "calibrate-scm` of the twin of the DEM scene it was calibrated on (the shipped example: "
-                "terrain/earth_twin_regolith_scm_beds.toml, the main job's soil at Earth, beside "
-                "examples/phobos_single_wheel_scm.toml)"
+                f"calibrate-scm` of the twin of the DEM scene it was calibrated on ({shipped})"
             ]
         )
 

@@ -25,7 +25,7 @@ import warp as wp
 
 from . import status as status_columns
 from . import step_control
-from .errors import InternalError, RegolithWarning, SoilInputError
+from .errors import RegolithWarning, SoilInputError
 from .integrator import JoltBeeman, StepController, VelocityVerlet
 from .macro import MacroStepReport, grain_box
 from .state import SoilState
@@ -46,7 +46,10 @@ def use_jolt_beeman(sim, purpose: str) -> None:
         if isinstance(sim.integrator, VelocityVerlet) and sim.steps == 0:
             sim.integrator = JoltBeeman()
         else:
-            raise TypeError(f"{purpose} needs the JoltBeeman integrator, not {type(sim.integrator).__name__}")
+            raise SoilInputError(
+                f"{purpose} needs the JoltBeeman integrator, not {type(sim.integrator).__name__} (a simulation that "
+                "stepped with another: build it with integrator='jolt-beeman')"
+            )
 
 
 def enable_step_control(sim, controller: StepController | None = None) -> DeviceStepControl:
@@ -105,7 +108,7 @@ def macro_step_adaptive(sim, span: float, path: bool, meanwhile: Callable[[], No
     """Simulation.macro_step_adaptive (its docstring); span [s] already checked."""
     control = sim.step_control
     if control is None:
-        raise InternalError("call enable_step_control() before macro_step_adaptive()")
+        raise SoilInputError("macro_step_adaptive needs a step control: call enable_step_control() first")
     controller = control.controller
     sim._maybe_reorder()
     if not path:

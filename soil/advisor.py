@@ -25,8 +25,27 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .errors import SoilInputError
+from .errors import SoilInputError, is_real
 from .materials import Material
+
+
+def _check_number(name: str, value, allowed: str, ok) -> None:
+    """Refuse `value` unless it is a finite real number for which ok(value) holds; the message names the
+    argument and what is `allowed` (a text or None would reach a comparison as a bare TypeError)."""
+    if not (is_real(value) and math.isfinite(value) and ok(value)):
+        raise SoilInputError(f"{name} must be a finite number {allowed}, got {value!r}")
+
+
+def _finite_array(name: str, value, allowed: str) -> np.ndarray:
+    """`value` (a number or a vector) as a float array of finite numbers, or a SoilInputError naming `name`."""
+    try:
+        array = np.atleast_1d(np.asarray(value))
+        if array.dtype.kind in "iuf" and np.all(np.isfinite(array)):
+            return np.asarray(array, dtype=float)
+    except (TypeError, ValueError):
+        pass
+    raise SoilInputError(f"{name} must be {allowed} of finite numbers, got {value!r}")
+
 
 HERTZ_TIME_FACTOR = 2.0 * math.gamma(1.4) * math.sqrt(math.pi) / math.gamma(0.9)
 """Hertz contact time = HERTZ_TIME_FACTOR * max overlap / closing speed (= 2.9432): twice
@@ -37,11 +56,19 @@ def rayleigh_time_step(youngs_modulus: float, poisson_ratio: float, density: flo
     """Rayleigh time step dt_R = pi R sqrt(rho / G) / (0.1631 nu + 0.8766) [s], G = E / (2 (1 + nu)).
 
     E [Pa], nu [-], rho [kg/m^3], R [m] (use the smallest grain)."""
-    if not (youngs_modulus > 0 and density > 0 and radius > 0 and -1.0 < poisson_ratio < 0.5):
-        raise SoilInputError(
-            f"rayleigh_time_step needs E > 0, rho > 0, R > 0 and -1 < nu < 0.5, got E = {youngs_modulus!r} Pa, "
-            f"nu = {poisson_ratio!r}, rho = {density!r} kg/m^3, R = {radius!r} m"
-        )
+    # finite too: an inf E gave a step of 0, an inf R one of inf; a text gave a bare TypeError
+    for name, value, allowed, ok in (
+        ("youngs_modulus", youngs_modulus, "E > 0 [Pa]", lambda v: v > 0),
+        ("poisson_ratio", poisson_ratio, "-1 < nu < 0.5", lambda v: -1.0 < v < 0.5),
+        ("density", density, "rho > 0 [kg/m^3]", lambda v: v > 0),
+        ("radius", radius, "R > 0 [m]", lambda v: v > 0),
+    ):
+        if not (is_real(value) and math.isfinite(value) and ok(value)):
+            raise SoilInputError(
+                f"rayleigh_time_step needs E > 0, rho > 0, R > 0 and -1 < nu < 0.5: {name} must be a finite number "
+                f"{allowed}, got {value!r} (E = {youngs_modulus!r} Pa, nu = {poisson_ratio!r}, "
+                f"rho = {density!r} kg/m^3, R = {radius!r} m)"
+            )
     shear = youngs_modulus / (2.0 * (1.0 + poisson_ratio))
     return math.pi * radius * math.sqrt(density / shear) / (0.1631 * poisson_ratio + 0.8766)
 
@@ -94,9 +121,13 @@ def macroscopic_stiffness(
     gravity); overlap_factor u [-] (scalar or vector): the allowed overlap relative to the
     radius; radius r [m]; density rho_p [kg/m^3] (particle density); gravity g [m/s^2]
     (scalar or vector). Vectors enter as in the paper: |3 p + z_h rho_p g| and |u|."""
-    p = np.atleast_1d(np.asarray(pressure, dtype=float))
-    g = np.atleast_1d(np.asarray(gravity, dtype=float))
-    u = float(np.linalg.norm(np.atleast_1d(np.asarray(overlap_factor, dtype=float))))
+    # all finite: a nan pressure or an inf radius gave a nan or 0 bound, a negative density a wrong one
+    _check_number("soil_height", soil_height, ">= 0 [m]", lambda v: v >= 0)
+    _check_number("radius", radius, "> 0 [m]", lambda v: v > 0)
+    _check_number("density", density, "> 0 [kg/m^3]", lambda v: v > 0)
+    p = _finite_array("pressure", pressure, "a number or a vector [Pa]")
+    g = _finite_array("gravity", gravity, "a number or a vector [m/s^2]")
+    u = float(np.linalg.norm(_finite_array("overlap_factor", overlap_factor, "a number or a vector [-]")))
     if not (u > 0 and radius > 0 and soil_height >= 0):
         raise SoilInputError("overlap_factor and radius must be > 0 and soil_height >= 0")
     load = float(np.linalg.norm(3.0 * p + soil_height * density * g))
@@ -187,6 +218,22 @@ def recommended_time_step(
     fixed steps stay stable up to about 0.8 x 2/omega and explode from about 1.3 x 2/omega
     (tests/test_stability.py), so half the advised step is safe and five times it is not.
     """
+    # every argument checked before any is used: a radius < 0 reached sqrt as "math domain error", a nan
+    # gravity read as "no gravity", a safety < 0 gave negative steps
+    if not (isinstance(scene, Material) or hasattr(scene, "model") or hasattr(scene, "radius_numpy")):
+        raise SoilInputError(
+            f"scene must be a soil.Simulation, a soil.SoilModel or a soil.Material, got {type(scene).__name__}"
+        )
+    if radius is not None:
+        _check_number("radius", radius, "> 0 [m] (or None)", lambda v: v > 0)
+    if gravity is not None:
+        _finite_array("gravity", gravity, "None, a magnitude or a vector [m/s^2]")
+    if height is not None:
+        _check_number("height", height, ">= 0 [m] (or None)", lambda v: v >= 0)
+    if impact_speed is not None:
+        _check_number("impact_speed", impact_speed, "> 0 [m/s] (or None)", lambda v: v > 0)
+    _check_number("pressure", pressure, "[Pa]", lambda v: True)
+    _check_number("safety", safety, "> 0", lambda v: v > 0)
     r, mass, e_star, g, h, speed0 = _scene_values(scene, radius, gravity, height)
     density = mass / (4.0 / 3.0 * math.pi * r**3)
     if impact_speed is None:

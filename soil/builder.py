@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+import reprlib
 import warnings
 from dataclasses import dataclass
 
@@ -12,7 +13,7 @@ import warp as wp
 from .contact import ContactLaw
 from .control import SoilControl
 from .devices import warp_device
-from .errors import OverlapWarning, SoilInputError
+from .errors import OverlapWarning, SoilInputError, is_real
 from .geometry import GrouserWheel, MeshWheel
 from .grains import rows_in_partner_order
 from .gravity import gravity_vector
@@ -49,6 +50,31 @@ def grain_range_problem(radius: float, density: float, precision) -> str | None:
     return None
 
 
+def _brief(value) -> str:
+    """A short repr of an argument for a message (a long array cut to its ends)."""
+    return reprlib.repr(value.tolist() if isinstance(value, np.ndarray) else value)
+
+
+def _is_complex(value) -> bool:
+    """Whether `value` holds complex numbers (False for a ragged list: _real_array names that)."""
+    try:
+        return bool(np.iscomplexobj(value))
+    except ValueError:
+        return False
+
+
+def _real_array(value, name: str, allowed: str) -> np.ndarray:
+    """`value` as a float64 array, or a SoilInputError naming `name` and what is `allowed`: numpy would read
+    a text of digits as a number and a bool as 0 or 1, and says only "inhomogeneous shape" of a ragged list."""
+    try:
+        kind = np.asarray(value).dtype.kind
+        if kind in "iufO":  # O: Python objects that may convert (large integers, Fractions)
+            return np.asarray(value, dtype=np.float64)
+    except (TypeError, ValueError):
+        pass
+    raise SoilInputError(f"{name} must be real numbers, {allowed}, got {_brief(value)}")
+
+
 class SoilBuilder:
     """Collects particles, materials and boundaries; `finalize()` makes model, state, control (at
     rest, or in a saved state given with `start_from`, e.g. a settled bed: soil.bed.SavedBed.builder)."""
@@ -76,9 +102,12 @@ class SoilBuilder:
     def _material_indices(self, material, n: int) -> np.ndarray:
         """Material index of each of n new grains, int32 shape (n,): one material (a Material or an
         index) for all, or an index per grain."""
-        if np.ndim(material) == 0:
+        try:
+            indices = np.asarray(material)
+        except ValueError:  # a ragged list: numpy says only "inhomogeneous shape"
+            indices = np.asarray([None])
+        if indices.ndim == 0:
             return np.full(n, self._material_index(material), dtype=np.int32)
-        indices = np.asarray(material)
         if indices.shape != (n,) or not np.issubdtype(indices.dtype, np.integer):
             raise SoilInputError(
                 f"material must be one material, one index or an index per grain, shape ({n},), "
@@ -92,11 +121,19 @@ class SoilBuilder:
     def _material_index(self, material) -> int:
         if isinstance(material, Material):
             return self.add_material(material)
+        if isinstance(material, np.ndarray) and material.ndim == 0:
+            material = material[()]
+        # checked before the default material is added: int() would cut 0.7 to index 0
+        count = max(1, len(self.materials.materials))  # index 0 of an empty table: the default Material()
+        if not (is_real(material) and math.isfinite(material) and float(material).is_integer()):
+            raise SoilInputError(
+                f"material must be a soil.Material or a material index (an integer in [0, {count})), got {material!r}"
+            )
+        index = int(material)
+        if not 0 <= index < count:
+            raise SoilInputError(f"material index must be in [0, {count}), got {material!r}")
         if not self.materials.materials:
             self.add_material(Material())
-        index = int(material)
-        if not 0 <= index < len(self.materials.materials):
-            raise SoilInputError(f"material index must be in [0, {len(self.materials.materials)}), got {material!r}")
         return index
 
     # -- particles ---------------------------------------------------------------
@@ -115,15 +152,15 @@ class SoilBuilder:
         Returns the builder indices of the new particles, shape (n,).
         """
         for name, value in (("positions", positions), ("radii", radii)):
-            if np.iscomplexobj(value):  # numpy would drop the imaginary part with only a warning
+            if _is_complex(value):  # numpy would drop the imaginary part with only a warning
                 raise SoilInputError(f"{name} must be real numbers [m], got complex values")
-        positions = np.asarray(positions, dtype=np.float64)
+        positions = _real_array(positions, "positions", "shape (n, 3) [m] (x, y, z per grain)")
         if positions.ndim != 2 or positions.shape[1] != 3:
             raise SoilInputError(
                 f"positions must have shape (n, 3) [m] (x, y, z per grain), got shape {positions.shape}"
             )
         n = len(positions)
-        radii = np.asarray(radii, dtype=np.float64)
+        radii = _real_array(radii, "radii", f"one radius or shape (n,) = ({n},) [m]")
         if radii.ndim == 0:
             radii = np.full(n, float(radii))
         elif radii.shape != (n,):
@@ -147,7 +184,7 @@ class SoilBuilder:
         def vectors(values, name):
             if values is None:
                 return np.zeros((n, 3))
-            values = np.asarray(values, dtype=np.float64)
+            values = _real_array(values, name, f"shape (n, 3) = ({n}, 3) or (3,)")
             if values.shape not in ((3,), (n, 3)):
                 raise SoilInputError(f"{name} must have shape (n, 3) = ({n}, 3) or (3,), got shape {values.shape}")
             values = np.broadcast_to(values, (n, 3)).copy()
@@ -156,9 +193,15 @@ class SoilBuilder:
             return values
 
         def flags(values, name):
-            values = np.asarray(values)
+            try:
+                values = np.asarray(values)
+            except ValueError:  # a ragged list
+                raise SoilInputError(f"{name} must be one flag or shape (n,) = ({n},), got {_brief(values)}") from None
             if values.shape not in ((), (n,)):
                 raise SoilInputError(f"{name} must be one flag or shape (n,) = ({n},), got shape {values.shape}")
+            # a flag is a bool or 0/1: astype(bool) would read any text or other number as true
+            if not (values.dtype.kind == "b" or (values.dtype.kind in "iuf" and np.all((values == 0) | (values == 1)))):
+                raise SoilInputError(f"{name} must be True/False or 0/1 (one, or one per grain), got {_brief(values)}")
             return np.broadcast_to(values.astype(bool), (n,)).copy()
 
         start = self.particle_count
@@ -179,9 +222,9 @@ class SoilBuilder:
         self, position, radius, material=0, velocity=None, angular_velocity=None, fixed=False, lock_rotation=False
     ) -> int:
         """Add one sphere: position [m] (3,), radius [m]; returns its builder index."""
-        if np.iscomplexobj(position):
+        if _is_complex(position):
             raise SoilInputError("position must be real numbers [m], got complex values")
-        position = np.asarray(position, dtype=np.float64)
+        position = _real_array(position, "position", "3 numbers (x, y, z) [m]")
         if position.shape != (3,):
             raise SoilInputError(f"position must be 3 numbers (x, y, z) [m], got shape {position.shape}")
         if np.ndim(radius) != 0:

@@ -822,14 +822,19 @@ class StepController:
     def setup(self, sim) -> None:
         """Resolve the defaults for a Simulation (once; later calls keep the state of the control)."""
         model = sim.model
-        if self.dt_max is None:
+        advised = self.dt_max is None
+        if advised:
             from .advisor import recommended_time_step
 
             self.dt_max = recommended_time_step(sim).dt_max
         if self.dt_min is None:
             self.dt_min = 1e-4 * self.dt_max
         if not 0 < self.dt_min <= self.dt_max:
-            raise SoilInputError(f"need 0 < dt_min <= dt_max, got {self.dt_min!r}, {self.dt_max!r} [s]")
+            unset = ", unset: the advised limit of this simulation (soil.recommended_time_step)" if advised else ""
+            raise SoilInputError(
+                f"need 0 < dt_min <= dt_max, got dt_min = {self.dt_min!r} s and dt_max = {self.dt_max!r} s{unset}; "
+                "lower dt_min or give dt_max"
+            )
         if self.dt is None:
             self.dt = float(np.clip(self.dt_initial or 0.1 * self.dt_max, self.dt_min, self.dt_max))
         self._gravity_speed = math.sqrt(float(np.linalg.norm(model.gravity)) * float(model.radius_numpy().mean()))

@@ -5,13 +5,13 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, field, replace
 from functools import lru_cache
+from typing import TypeGuard
 
 import numpy as np
 
-from .errors import SoilInputError
+from .errors import SoilInputError, is_real
 
 
-@lru_cache(maxsize=256)
 def restitution_of_damping_ratio(damping_ratio: float) -> float:
     """Coefficient of restitution of a Hertz contact with Lehr damping.
 
@@ -20,11 +20,23 @@ def restitution_of_damping_ratio(damping_ratio: float) -> float:
     y'' = -y^1.5 - 2 sqrt(1.5) D y^0.25 y', y(0) = 0, y'(0) = 1, so e depends on D only:
     it is independent of the impact speed. The normal force is never tensile, so once it
     would turn negative the grain flies free until the overlap closes.
+
+    damping_ratio: a finite number >= 0 (0: no damping, e = 1).
     """
+    # checked before the cache, whose key would refuse an array with a bare TypeError; negative: a contact
+    # that adds energy has no restitution below 1; inf: the ODE's force is nan (it gave 0 with warnings)
+    if not (is_real(damping_ratio) and math.isfinite(damping_ratio) and damping_ratio >= 0.0):
+        raise SoilInputError(
+            f"damping_ratio must be >= 0, got {damping_ratio!r}: a finite number [-] (0: no damping, restitution 1)"
+        )
+    return _restitution_of_damping_ratio(damping_ratio)
+
+
+@lru_cache(maxsize=256)
+def _restitution_of_damping_ratio(damping_ratio: float) -> float:
+    """restitution_of_damping_ratio of a checked damping ratio (cached: the ODE solve is slow)."""
     from scipy.integrate import solve_ivp
 
-    if not damping_ratio >= 0.0:  # negative (or nan): a contact that adds energy has no restitution below 1
-        raise SoilInputError(f"damping_ratio must be >= 0, got {damping_ratio!r}")
     if damping_ratio == 0.0:
         return 1.0
     beta = 2.0 * math.sqrt(1.5) * damping_ratio
@@ -45,13 +57,19 @@ def restitution_of_damping_ratio(damping_ratio: float) -> float:
     return float(-sol.y_events[0][0][1]) if sol.t_events[0].size else 0.0
 
 
-@lru_cache(maxsize=256)
 def damping_ratio_for_restitution(restitution: float) -> float:
-    """Lehr damping ratio D that gives a Hertz contact the coefficient of restitution e."""
+    """Lehr damping ratio D that gives a Hertz contact the coefficient of restitution e (a number in (0, 1])."""
+    # checked before the cache, whose key would refuse an array with a bare TypeError
+    if not (is_real(restitution) and 0.0 < restitution <= 1.0):
+        raise SoilInputError(f"restitution must be a number in (0, 1] [-], got {restitution!r}")
+    return _damping_ratio_for_restitution(restitution)
+
+
+@lru_cache(maxsize=256)
+def _damping_ratio_for_restitution(restitution: float) -> float:
+    """damping_ratio_for_restitution of a checked restitution (cached: each try solves an ODE)."""
     from scipy.optimize import brentq
 
-    if not 0.0 < restitution <= 1.0:
-        raise SoilInputError(f"restitution must be in (0, 1], got {restitution!r}")
     if restitution == 1.0:
         return 0.0
     high = 0.5
@@ -105,13 +123,13 @@ class Material:
     def __post_init__(self):
         def check(name, ok, allowed):
             if not ok:
-                raise SoilInputError(f"material.{name} must be {allowed}, got {getattr(self, name)!r}")
+                raise SoilInputError(f"material.{name} must be a finite number {allowed}, got {getattr(self, name)!r}")
 
         check("youngs_modulus", _finite(self.youngs_modulus) and self.youngs_modulus > 0, "> 0 [Pa]")
         check("poisson_ratio", _finite(self.poisson_ratio) and -1.0 < self.poisson_ratio < 0.5, "in (-1, 0.5)")
         check("density", _finite(self.density) and self.density > 0, "> 0 [kg/m^3]")
         if self.damping_ratio is None:
-            check("restitution", self.restitution is not None and 0.0 < self.restitution <= 1.0, "in (0, 1]")
+            check("restitution", _finite(self.restitution) and 0.0 < self.restitution <= 1.0, "in (0, 1]")
         else:
             check("damping_ratio", _finite(self.damping_ratio) and self.damping_ratio >= 0, ">= 0")
         check("stick_angle", _finite(self.stick_angle) and 0.0 <= self.stick_angle < math.pi / 2, "in [0, pi/2) [rad]")
@@ -157,8 +175,9 @@ def stick_speed_for(gravity: float, grain_diameter: float) -> float:
     return STICK_SPEED_RATIO * math.sqrt(gravity * grain_diameter)
 
 
-def _finite(x) -> bool:
-    return x is not None and math.isfinite(x)
+def _finite(x) -> TypeGuard[float]:
+    # a real number first: math.isfinite raises a bare TypeError on a text or a complex, and takes True as 1
+    return is_real(x) and math.isfinite(x)
 
 
 # Columns of the pair-parameter table shared by the kernels.
@@ -230,7 +249,7 @@ class MaterialTable:
 
     def add(self, material: Material) -> int:
         if not isinstance(material, Material):
-            raise TypeError(f"material must be a soil.Material, got {type(material).__name__}")
+            raise SoilInputError(f"material must be a soil.Material, got {type(material).__name__}: {material!r}")
         for index, known in enumerate(self.materials):
             if known == material:
                 return index

@@ -14,7 +14,7 @@ soil.adaptive, snapshots in soil.snapshot; Simulation is the surface over them.
 """
 
 import math
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from types import SimpleNamespace
 
 import numpy as np
@@ -25,7 +25,7 @@ from . import snapshot as snapshot_module
 from . import status as status_columns
 from .boundaries import boundary_kernels
 from .control import SoilControl, path_kernels
-from .errors import SoilInputError
+from .errors import SoilInputError, is_real
 from .integrator import JoltBeeman, StepController, VelocityVerlet, integrator_kernels, make_integrator
 from .macro import (  # noqa: F401 (CaptureWarning and the report's columns re-exported)
     BODY_COLUMNS,
@@ -91,6 +91,16 @@ class Simulation:
         neighbours: NeighbourSettings | None = None,
         capture: bool = True,
     ):
+        if not isinstance(model, SoilModel) or not isinstance(state, SoilState):
+            raise SoilInputError(
+                f"Simulation(model, state, ...) takes a soil.SoilModel and its soil.SoilState (SoilBuilder.finalize "
+                f"returns both), got {type(model).__name__} and {type(state).__name__}"
+            )
+        if not (integrator is None or isinstance(integrator, (str, VelocityVerlet, JoltBeeman))):
+            raise SoilInputError(
+                f"integrator must be None (VelocityVerlet), 'velocity-verlet', 'jolt-beeman' or a soil.VelocityVerlet "
+                f"or soil.JoltBeeman, got {integrator!r}"
+            )
         self.model = model
         self.monitor = monitor or DivergenceMonitor()
         """Divergence checks of run() and run_adaptive() (soil.stability)."""
@@ -286,7 +296,9 @@ class Simulation:
         """Put the simulation back to `snapshot` (from this simulation's snapshot()): the next step
         gives the same bits as if nothing had happened since. Contact storage grown since stays
         grown; the force evaluation count (work done) and captured graphs are kept; the monitor's
-        last good state is not rolled back."""
+        last good state is not rolled back. A snapshot taken before run_adaptive's first call drops
+        the controller made since (the repeat makes a fresh one; one passed to run_adaptive again
+        is used as it is then)."""
         snapshot_module.put_back(self, snapshot)
 
     # -- buffers ---------------------------------------------------------------------
@@ -534,6 +546,8 @@ class Simulation:
         """
         dt = _check_step(dt)
         t0 = self.time
+        if not (is_real(end_time) and math.isfinite(end_time)):
+            raise SoilInputError(f"end_time must be a finite time [s] after the soil's time {t0!r} s, got {end_time!r}")
         span = float(end_time) - t0
         if not span > 0:
             raise SoilInputError(f"end_time {end_time!r} s must be after the soil's time {t0!r} s")
@@ -580,6 +594,10 @@ class Simulation:
     def run(self, duration: float, dt: float, callback=None, check_every: int = 200) -> None:
         """Advance by `duration` [s] with fixed steps dt [s]; callback(sim) after each step.
 
+        The steps are whole: duration / dt rounded to the nearest integer of them (Python's round), so
+        the clock moves by a multiple of dt within dt / 2 of `duration` (advance_to lands on an end
+        time exactly); a duration > 0 shorter than half a step is refused, not run as none.
+
         The steps run as macro steps of `check_every` steps (one host read each; with a
         callback, of one step). Every `check_every` steps and at the end the DivergenceMonitor
         checks the state (NaN, speed, overlap, energy) and raises SimulationDiverged on failure.
@@ -595,6 +613,11 @@ class Simulation:
         if not self.monitor.armed:
             self.monitor.arm(self)
         steps = int(round(duration / dt))
+        if duration > 0 and steps == 0:
+            raise SoilInputError(
+                f"duration {duration!r} s is less than half a step (dt = {dt!r} s): run takes whole steps; shorten dt, "
+                "or use advance_to to land on an end time"
+            )
         if self.step_control is not None:
             chunks = -(-steps // check_every)
             for _ in range(chunks):
@@ -695,6 +718,7 @@ class Simulation:
         """Continue from state_dict() output (e.g. loaded from an .npz): the next step is
         bit-for-bit the step the saved simulation would have taken."""
         model = self.model
+        self._check_saved(data)
         precision = str(data["precision"])
         if precision != model.precision.name:
             raise SoilInputError(
@@ -703,7 +727,10 @@ class Simulation:
         saved = data["state/position"].shape[0]
         if saved != model.particle_count:
             raise SoilInputError(f"the saved simulation has {saved} particles, this model {model.particle_count}")
-        integrators = {VelocityVerlet.name: VelocityVerlet, JoltBeeman.name: JoltBeeman}
+        integrators: dict[str, type[VelocityVerlet] | type[JoltBeeman]] = {
+            VelocityVerlet.name: VelocityVerlet,
+            JoltBeeman.name: JoltBeeman,
+        }
         name = str(data["integrator"])
         if name not in integrators:
             raise SoilInputError(f"saved integrator {name!r} is unknown; known: {sorted(integrators)}")
@@ -732,6 +759,30 @@ class Simulation:
         self.monitor.load_state_dict({k[len("monitor/") :]: v for k, v in data.items() if k.startswith("monitor/")})
         if self.monitor.armed:
             self.monitor.snapshot(self)
+
+    def _check_saved(self, data: Mapping) -> None:
+        """SoilInputError naming what a state_dict to load lacks or holds wrong (a key, a shape, a grain
+        that is not finite), before anything of this simulation changes."""
+        if not isinstance(data, Mapping):  # state_dict()'s dict, or the .npz it was saved to (np.load)
+            raise SoilInputError(f"load_state_dict takes what state_dict() returns, got {type(data).__name__}")
+        needed = ["precision", "integrator", "state/position", "state/time", "steps", "evaluations"]
+        needed += ["accepted_steps", "rejected_steps", "forced_steps"]
+        missing = [key for key in needed if key not in data]
+        if missing:
+            raise SoilInputError(f"the saved simulation lacks {', '.join(missing)}: not a Simulation.state_dict()")
+        for name in ("position", "velocity", "angular_velocity"):
+            values = np.asarray(data.get(f"state/{name}", np.zeros((len(data["state/position"]), 3))))
+            if values.ndim != 2 or values.shape[1] != 3 or values.dtype.kind not in "fiu":
+                raise SoilInputError(
+                    f"state/{name}: the saved grains' {name} has shape {values.shape} ({values.dtype}), "
+                    "expected (particle_count, 3) numbers"
+                )
+            bad = ~np.isfinite(values).all(axis=1)
+            if bad.any():
+                raise SoilInputError(
+                    f"state/{name}: {int(bad.sum())} saved grain(s) not finite (the first: grain "
+                    f"{int(np.argmax(bad))}): a diverged state cannot be continued"
+                )
 
     # -- diagnostics (host side, model order) ---------------------------------------------
     def _model_order(self, array: wp.array) -> np.ndarray:

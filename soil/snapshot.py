@@ -73,6 +73,8 @@ def put_back(sim, snapshot: SimulationSnapshot) -> None:
     """Simulation.restore (its docstring)."""
     from .errors import SoilInputError
 
+    if not isinstance(snapshot, SimulationSnapshot):
+        raise SoilInputError(f"restore takes what Simulation.snapshot() returned, got {type(snapshot).__name__}")
     if snapshot.model is not sim.model:
         raise SoilInputError("the snapshot was taken from another simulation (another model)")
     # storage grown since (the refused step widened the contact history) stays grown: every buffer
@@ -83,7 +85,9 @@ def put_back(sim, snapshot: SimulationSnapshot) -> None:
     for name, value in snapshot.counters.items():
         setattr(sim, name, value)
     sim.monitor.load_state_dict(snapshot.monitor)
-    if snapshot.controller is not None and sim._controller is not None:
+    if snapshot.controller is None:  # run_adaptive made or took one since: it starts afresh again
+        sim._controller = None
+    elif sim._controller is not None:
         sim._controller.load_state_dict(snapshot.controller)
     if snapshot.step_control is not None and sim.step_control is not None:
         wp.copy(sim.step_control.control, snapshot.step_control)

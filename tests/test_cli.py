@@ -830,3 +830,45 @@ def test_without_dask_a_command_on_dask_says_what_to_install(tmp_path, tiny_bed,
     args = ["run", scene, "--replicas", "2", "--batched", "--out", str(out), "--no-progress"]
     assert main([*args, *(x for key in bed for x in ("--set", key))]) in (0, 6), capsys.readouterr().err
     assert (out / "replica_001" / "results.h5").is_file()
+
+
+def test_a_pid_dt_min_above_the_advised_dt_max_is_named_by_advise_and_by_the_soil(tmp_path, capsys):
+    """run.dt_min alone, above the advised limit run.dt_max defaults to: advise printed the range 0.001 ..
+    0.000286 s and passed; the run stopped with 'need 0 < dt_min <= dt_max', naming no default."""
+    from helpers import write_tiny
+    from soil import Material, Simulation, SoilBuilder, SoilInputError, StepController
+
+    scene = write_tiny(tmp_path)
+    assert main(["advise", scene, "--set", "run.step_control=pid", "--set", "run.dt_min=1e-3"]) == 2
+    err = capsys.readouterr().err
+    assert "run.dt_min: 0.001 s is longer than the PID's longest substep, run.dt_max unset: the advised" in err
+    builder = SoilBuilder(gravity=9.81)
+    builder.add_material(Material(youngs_modulus=1e6))
+    builder.add_container((0, 0, 0), (0.1, 0.1, 0.1))
+    builder.add_particle((0.05, 0.05, 0.05), 0.01)
+    sim = Simulation(*builder.finalize(device="cpu"), integrator="jolt-beeman")
+    with pytest.raises(SoilInputError, match=r"dt_min = 1.0 s and dt_max = \S+ s, unset: the advised limit"):
+        sim.enable_step_control(StepController(dt_min=1.0))
+
+
+def test_our_warnings_read_as_one_line_without_the_source_that_raised_them(capsys):
+    """A RegolithWarning (an OverlapWarning while a bed opened at 1e3 m/s^2) printed its file's path, line
+    number and source line."""
+    import logging
+    import warnings
+
+    from cosim.cli import _setup_output
+    from soil import OverlapWarning
+
+    root, handlers = logging.getLogger(), logging.getLogger().handlers[:]
+    shown = warnings.showwarning
+    try:
+        _setup_output(verbose=False)
+        warnings.warn("3 contact(s) were created with an overlap", OverlapWarning, stacklevel=1)
+    finally:
+        logging.captureWarnings(False)
+        warnings.showwarning = shown
+        root.handlers[:] = handlers
+    err = capsys.readouterr().err
+    assert "warning: 3 contact(s) were created with an overlap\n" in err, err
+    assert "OverlapWarning" not in err and "test_cli.py" not in err, err

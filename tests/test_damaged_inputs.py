@@ -584,6 +584,36 @@ def test_row13_sigterm_checkpoints_stops_cleanly_and_resumes(scene, tiny_bed, co
     assert info["summary"]["slip"] == reference["summary"]["slip"]  # bitwise on the CPU
 
 
+# -- row 14: a run folder moved whole -------------------------------------------------------------
+def test_row14_a_run_folder_moved_whole_resumes_on_the_bed_it_carries(scene, tiny_bed, complete, tmp_path, capsys):
+    here = tmp_path / "here" / "run"
+    here.mkdir(parents=True)
+    for name in ("bed.h5", "bed.json"):  # the run's own settled bed, in its folder (the cache of the scene's key)
+        shutil.copy2(Path(tiny_bed).parent / name, here / name)
+    seen = []
+
+    def checkpoint(runner):
+        seen.append(runner.system.coupler.step_count)
+
+    def step(runner):
+        if seen and runner.system.coupler.step_count == seen[0] + 3:
+            raise KeyboardInterrupt("test: stopped")
+
+    with pytest.raises(KeyboardInterrupt):
+        run_plan(load_plan(scene), str(here), hooks={"checkpoint": checkpoint, "step": step})
+    assert json.loads((here / "run.json").read_text())["bed"]["source"] == "cache"
+    there = tmp_path / "there"
+    shutil.move(tmp_path / "here", there)  # to another disk or machine: the checkpoint's absolute bed path is gone
+    gone = copy(there / "run", tmp_path, "without_bed")
+    os.remove(gone / "bed.h5")
+    line = resume_refused(gone, capsys)
+    assert f"the run's bed '{here / 'bed.h5'}' is gone" in line and "invalid scene" not in line, line
+    assert main(["resume", str(there / "run"), "--no-progress"]) in (0, 6)
+    info, reference = (json.loads((f / "run.json").read_text()) for f in (there / "run", complete))
+    assert info["status"] == reference["status"] and info["summary"]["slip"] == reference["summary"]["slip"]
+    assert info["bed"]["path"] == str(there / "run" / "bed.h5")
+
+
 # -- misleading messages ------------------------------------------------------------------------
 def test_a_wheel_larger_than_its_bed_is_named_as_such(scene, capsys):
     assert main(["advise", scene, "--set", "wheel.radius=0.07"]) == 2

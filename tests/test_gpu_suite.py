@@ -315,3 +315,16 @@ def test_a_stop_ends_the_suite_with_the_sections_so_far_written(tmp_path, monkey
     assert list(sections) == ["throughput", "profile"]
     assert sections["throughput"]["ok"] and not sections["profile"]["ok"]
     assert "SIGTERM" in sections["profile"]["error"]
+
+
+def test_a_lammps_cpu_time_too_small_to_measure_is_nan_not_negative(monkeypatch):
+    """benchmarks/throughput.py takes LAMMPS's CPU time as the difference of two runs (steps, 2 x steps):
+    at a few steps the setups' scatter exceeds it and the table showed a negative CPU time per step."""
+    from benchmarks import throughput
+
+    clock = iter([0.0, 1.0, 1.0, 1.9])  # the longer run's setup happened to be faster: -0.1 s "per steps"
+    monkeypatch.setattr(throughput.time, "process_time", lambda: next(clock))
+    monkeypatch.setattr(throughput.lammps_peer, "run_bed", lambda *args, **kw: {"seconds": 0.5})
+    row = throughput.time_lammps(np.zeros((4, 3)), np.full(4, 1e-3), (1, 1, 1), 1e-5, 10)
+    assert np.isnan(row["cpu_seconds"]) and np.isnan(row["us_per_particle_step_cpu"])
+    assert row["particle_steps_per_second"] == pytest.approx(4 * 10 / 0.5)

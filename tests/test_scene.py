@@ -444,3 +444,49 @@ def test_cosim_scale_to_a_boolean_gravity_is_refused(tmp_path, capsys):
     before = open(scene, "rb").read()
     assert main(["scale", scene, "--gravity", "earth", "--out", scene, "--overwrite"]) == 2
     assert "is the scene the command reads" in capsys.readouterr().err and open(scene, "rb").read() == before
+
+
+def test_a_number_written_as_a_text_is_refused_where_only_a_number_may_stand(tmp_path):
+    """`youngs_modulus = "1.0e6"` and `gravity = [0, 0, "-9.81"]` were read as numbers (pydantic's lax mode);
+    a text where a text may stand (a preset, a precision) still is one."""
+    path = tmp_path / "quoted.toml"
+    path.write_text(TINY_SCENE.replace("youngs_modulus = 1.0e6", 'youngs_modulus = "1.0e6"'))
+    assert 'youngs_modulus = "1.0e6"' in path.read_text()
+    with pytest.raises(SceneError, match=r"soil.youngs_modulus: must be a number, not a text: write a TOML number"):
+        load_scene(path)
+    scene = write_tiny(tmp_path)
+    for override, key in (
+        ('run.duration="0.12"', "run.duration"),
+        ('soil.stick_angle_deg="30"', "soil.stick_angle_deg"),
+        ('scene.gravity=[0, 0, "-9.81"]', r"scene.gravity: \[2\]"),
+    ):
+        with pytest.raises(SceneError, match=rf"{key}: must be a number, not a text"):
+            load_scene(scene, [override])
+    assert load_scene(scene, ['scene.gravity="earth"', 'scene.precision="single"']).scene.gravity == "earth"
+
+
+def test_the_pid_keys_are_refused_where_the_scene_steps_at_a_fixed_dt(tmp_path):
+    """run.tolerance = 1e-9 or run.dt_max under step_control = "fixed" were ignored without a word; a scene
+    written back with every default (a run's scene.toml) still reads."""
+    scene = write_tiny(tmp_path)
+    for override in ("run.tolerance=1e-9", "run.dt_max=1e-3", "run.dt_min=1e-6"):
+        key = override.split("=")[0]
+        with pytest.raises(SceneError, match=rf'{key}: only the PID step control uses it \(step_control = "pid"\)'):
+            load_scene(scene, [override])
+    written = load_scene(scene)
+    assert scene_from_text(written.to_toml()).run.tolerance == written.run.tolerance
+    pid = load_scene(scene, ['run.step_control="pid"', "run.tolerance=1e-3", "run.dt_max=1e-3"])
+    assert pid.run.dt_max == 1e-3
+
+
+def test_a_pid_step_far_below_the_scene_or_a_macro_step_below_its_shortest_is_refused(tmp_path):
+    """run.dt_max = 1e-30 under the PID settled forever, deaf to Ctrl-C and SIGTERM (a macro step's
+    substeps loop on the device); a macro step shorter than run.dt_min broke every substep's bound."""
+    scene = write_tiny(tmp_path)
+    pid = ['run.step_control="pid"']
+    with pytest.raises(SceneError, match=r"run.dt_max: \S+ steps of .* \(PID substeps\), more than 1e\+10"):
+        load_plan(scene, [*pid, "run.dt_max=1e-30"])
+    short = [*pid, "run.dt_min=1e-4", "run.dt_max=2e-4", "run.macro_step=1e-5", "output.snapshot_interval=0"]
+    with pytest.raises(SceneError, match=r"run.macro_step: the macro step \(1e-05 s\) is shorter than .* run.dt_min"):
+        load_plan(scene, short)
+    assert load_plan(scene, [*pid, "run.dt_max=1e-4"]).dt_max == 1e-4

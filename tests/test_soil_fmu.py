@@ -554,6 +554,40 @@ def test_a_cut_soil_json_and_a_gravity_a_hair_off_are_named(tiny, tmp_path):
         SoilSession(settings)
 
 
+def test_a_soil_json_mesh_that_is_not_a_wheel_about_its_hub_is_named(tiny, tmp_path):
+    """A mesh wheel in resources/soil.json is judged as a scene's mesh is when read: one whose axle is its
+    X axis (a paddle) is refused by the soil server by name, before any grain moves."""
+    from cosim.soil_fmu.server import PROTOCOL_VERSION, SoilSession
+    from soil.errors import SoilInputError
+
+    with zipfile.ZipFile(tiny["fmus"][2]) as z:
+        z.extractall(tmp_path / "fmu")
+    resources = tmp_path / "fmu" / "resources"
+    data = json.loads((resources / "soil.json").read_text())
+    vertices, triangles = GrouserWheel(**{k: v for k, v in data["wheel"].items() if k != "type"}).to_mesh()
+    gravity = tiny["config"].gravity if tiny["config"].gravity is not None else tiny["plan"].gravity
+    settings = {
+        "protocol": str(PROTOCOL_VERSION),
+        "resources": str(resources),
+        "wheels": "1",
+        "dem_step": repr(tiny["config"].dem_step),
+        "gravity": " ".join(repr(float(g)) for g in gravity),
+        "device": "cpu",
+    }
+    for mesh, words in (
+        ((vertices, triangles), None),  # the wheel itself as a mesh: a soil
+        ((vertices[:, [1, 0, 2]], triangles[:, ::-1]), r"mesh 'paddle' is not round about the axle"),
+    ):
+        data["wheel"] = {"type": "mesh", "name": "paddle", "vertices": mesh[0].tolist(), "triangles": mesh[1].tolist()}
+        data["units"]["wheel"] = {"vertices": "m", "triangles": "1"}
+        (resources / "soil.json").write_text(json.dumps(data))
+        if words is None:
+            SoilSession(settings)
+        else:
+            with pytest.raises(SoilInputError, match=words):
+                SoilSession(settings)
+
+
 def test_killed_server_gives_an_error_at_the_next_step_and_the_importer_survives(tiny, importer):
     job, _ = _job(tiny["fmus"][2], 3, start={"server_step_timeout": 30.0})
     job["steps"][1]["before"] = "kill"

@@ -200,3 +200,75 @@ def test_open_bed_names_wheels_that_are_not_a_list_of_shape_and_material_pairs()
 
     with pytest.raises(ValueError, match=r"wheels\[0\] must be a \(shape, material\) pair"):
         open_bed_worlds("no_such_bed.h5", wheel, [0, 1], device="cpu")
+
+
+def one_grain_simulation(**options):
+    builder = builder_with_box()
+    builder.add_particle((0.05, 0.05, 0.05), 0.01)
+    return Simulation(*builder.finalize(device="cpu", precision="double"), **options)
+
+
+def test_a_simulation_refuses_what_is_not_its_parts_and_run_takes_whole_steps():
+    """Simulation(model, None) and integrator=42 failed at the first step with AttributeErrors, restore({})
+    too; run(1e-4, dt=3e-4) moved the clock by nothing, silently; advance_to(inf) was an OverflowError."""
+    builder = builder_with_box()
+    builder.add_particle((0.05, 0.05, 0.05), 0.01)
+    model, state, control = builder.finalize(device="cpu", precision="double")
+    with pytest.raises(SoilInputError, match=r"takes a soil.SoilModel and its soil.SoilState .* NoneType"):
+        Simulation(model, None)
+    with pytest.raises(SoilInputError, match=r"integrator must be None .* got 42"):
+        Simulation(model, state, control, integrator=42)
+    sim = Simulation(model, state, control)
+    with pytest.raises(SoilInputError, match=r"restore takes what Simulation.snapshot\(\) returned, got dict"):
+        sim.restore({})
+    with pytest.raises(SoilInputError, match=r"duration 0.0001 s is less than half a step \(dt = 0.0003 s\)"):
+        sim.run(1e-4, 3e-4)
+    assert sim.time == 0.0 and sim.steps == 0
+    sim.run(1.4e-3, 1e-3)  # whole steps, the nearest number of them: within dt / 2 of the duration
+    assert sim.steps == 1 and sim.time == pytest.approx(1e-3, rel=1e-12)
+    for end in (math.inf, math.nan, "0.1", True):
+        with pytest.raises(SoilInputError, match=r"end_time must be a finite time \[s\]"):
+            sim.advance_to(end, 1e-4)
+    assert sim.steps == 1
+    with pytest.raises(SoilInputError, match=r"needs a step control: call enable_step_control\(\) first"):
+        sim.macro_step_adaptive(1e-3)
+    with pytest.raises(SoilInputError, match=r"needs the JoltBeeman integrator, not VelocityVerlet"):
+        sim.run_adaptive(1e-3)  # it stepped with Verlet: no jolt-Beeman history to start from
+
+
+def test_a_saved_state_that_is_not_one_is_named_before_anything_changes(tmp_path):
+    """load_state_dict({}) was KeyError 'precision'; positions of shape (n, 2) a Warp RuntimeError; NaN
+    positions were loaded silently (the next step diverged, far from the file that caused it)."""
+    sim = one_grain_simulation()
+    sim.run(1e-3, 1e-4)
+    saved, before = sim.state_dict(), sim.positions()
+    with pytest.raises(SoilInputError, match=r"lacks precision, integrator, state/position, state/time, steps"):
+        sim.load_state_dict({})
+    flat = {**saved, "state/position": saved["state/position"][:, :2]}
+    with pytest.raises(SoilInputError, match=r"state/position: .* shape \(1, 2\) .* expected \(particle_count, 3\)"):
+        sim.load_state_dict(flat)
+    for name in ("position", "velocity"):
+        broken = {**saved, f"state/{name}": np.full_like(saved[f"state/{name}"], np.nan)}
+        with pytest.raises(SoilInputError, match=rf"state/{name}: 1 saved grain\(s\) not finite \(the first: grain 0"):
+            sim.load_state_dict(broken)
+    assert np.array_equal(sim.positions(), before) and sim.time == pytest.approx(1e-3)
+    sim.load_state_dict(saved)  # the state it saved loads, and so does the .npz it was saved to
+    np.savez(tmp_path / "state.npz", **saved)
+    with np.load(tmp_path / "state.npz") as stored:
+        sim.load_state_dict(stored)
+    assert np.array_equal(sim.positions(), before)
+
+
+def test_a_snapshot_from_before_the_first_adaptive_run_repeats_it_bit_for_bit():
+    """The snapshot held no step controller (run_adaptive had made none yet), and restore left the one the
+    run made since in place, mid-way: the repeat took other steps (positions 4e-3 m apart)."""
+    sim = one_grain_simulation(integrator="jolt-beeman")
+    sim.run(2e-3, 1e-4)  # falling: the PID has an error to control
+    kept = sim.snapshot()
+    sim.run_adaptive(5e-3)
+    first = (sim.positions(), sim.velocities(), sim.accepted_steps)
+    sim.restore(kept)
+    sim.run_adaptive(5e-3)
+    assert first[2] > 1
+    assert np.array_equal(first[0], sim.positions()) and np.array_equal(first[1], sim.velocities())
+    assert sim.accepted_steps == first[2]

@@ -253,7 +253,15 @@ def test_cosim_scale_refuses_a_calibration_of_another_gravity_and_a_gravity_vect
     assert main(["scale", scene, "--gravity", "earth", "--out", str(out)]) == 2
     err = capsys.readouterr().err
     assert "terrain.calibration" in err and "moon.toml" in err and "1.625" in err and "9.807" in err, err
-    assert not out.exists()
+    assert "the shipped example: terrain/earth_twin_regolith_scm_beds.toml" in err and not out.exists()
+    # to the Moon's gravity: the shipped Earth calibration is no example (it was named whatever the gravity)
+    at_earth = write_tiny(tmp_path, '\n[terrain]\nmodel = "scm"\ncalibration = "earth.toml"\n', "at_earth.toml")
+    assert main(["scale", at_earth, "--gravity", "moon", "--out", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert "earth.toml is calibrated at |g| = 9.807" in err and "none is shipped at this gravity" in err, err
+    assert "earth_twin" not in err and not out.exists()
+    assert main(["scale", at_earth, "--gravity", "phobos", "--out", str(out)]) == 2  # the one shipped there
+    assert "the shipped example: terrain/phobos_regolith_scm_beds.toml" in capsys.readouterr().err
     earth = ["--set", "terrain.calibration='earth.toml'"]
     before = (tmp_path / "earth.toml").read_bytes()  # the calibration it reads is never its --out
     assert (

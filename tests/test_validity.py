@@ -12,6 +12,7 @@ from cosim.cli import advise_lines, main
 from cosim.plan import load_plan
 from cosim.records import _froude_number
 from cosim.system import validity
+from helpers import write_tiny
 
 EXAMPLES = Path(__file__).resolve().parent.parent / "examples"
 PATCH = EXAMPLES / "phobos_rover_patch.toml"  # an MMX-like rover, four wheels, a speed drive of 0.07 rad/s
@@ -284,3 +285,134 @@ def test_the_far_wall_is_judged_at_the_carriages_travel_in_slip_mode():
         assert f"far end {expected:.3g})" in found.message or f"drive {expected:.3g})" in found.message, found.message
         if slip == -0.9:
             assert expected < advice.WALL_GRAINS and not found.ok, found.message
+
+
+def _collision(damping: float, integrator: str):
+    """Two 5 mm grains closing head-on at 0.1 m/s (no gravity, no friction) with Lehr damping D: a function
+    of a share of the longest stable step (advice.stable_step of their normal mode: omega_N of the impact,
+    gamma = 2 D omega_N) giving the restitution realised at that fixed step (inf where it diverged)."""
+    from soil import Material, Simulation, SimulationDiverged, SoilBuilder, advisor
+
+    radius, speed, modulus = 0.005, 0.1, 1e7
+    material = Material(
+        youngs_modulus=modulus, poisson_ratio=0.3, damping_ratio=damping, stick_angle=0.0, slip_angle=0.0
+    )
+    mass = material.density * 4.0 / 3.0 * math.pi * radius**3
+    impact = advisor.hertz_impact(modulus / (2 * (1 - 0.3**2)), radius / 2, mass / 2, speed)
+    omega = 2.0 / impact.critical_step
+    longest = advice.stable_step(omega, 2.0 * damping * omega, integrator)
+
+    def restitution(share: float) -> float:
+        builder = SoilBuilder(gravity=(0.0, 0.0, 0.0))
+        builder.add_material(material)
+        velocities = [(speed / 2, 0, 0), (-speed / 2, 0, 0)]
+        builder.add_particles([(0.0, 0, 0), (2 * radius + 1e-5, 0, 0)], radius, velocities=velocities)
+        sim = Simulation(*builder.finalize("cpu", "double"), integrator=integrator)
+        try:
+            sim.run(20 * impact.contact_time, share * longest, check_every=10)
+        except SimulationDiverged:
+            return math.inf
+        velocity = sim.velocities()
+        return float((velocity[1, 0] - velocity[0, 0]) / speed)
+
+    return restitution
+
+
+@pytest.mark.parametrize("integrator", ["velocity-verlet", "jolt-beeman"])
+def test_the_stable_step_of_a_damped_mode_is_where_a_collision_stops_giving_its_restitution(integrator):
+    """advice.stable_step (the step map's spectral radius) against the collision itself: an overdamped soil
+    (D = 3, e = 0.020) at half the step realises the Hertz-Lehr restitution (soil's
+    restitution_of_damping_ratio) within 35 %; at twice it, three times that or more, or it diverges.
+    The pure-damping bounds: gamma dt = 2 (velocity Verlet's half-step velocity: |1 - gamma dt| <= 1) and
+    0.6 (jolt-Beeman's predicted velocity, benchmarks/jolt_beeman_damped_stability.py)."""
+    from soil import restitution_of_damping_ratio
+
+    restitution, target = _collision(3.0, integrator), restitution_of_damping_ratio(3.0)
+    assert restitution(0.5) == pytest.approx(target, rel=0.35)
+    assert restitution(2.0) > 3.0 * target
+    pure = {"velocity-verlet": 2.0, "jolt-beeman": 0.6}[integrator]
+    assert advice.stable_step(1e-9, 1.0, integrator) == pytest.approx(pure, rel=1e-3)
+    assert advice.stable_step(1.0, 0.0, integrator) == pytest.approx(2.0, rel=1e-3)  # undamped: omega dt = 2
+
+
+def test_an_overdamped_or_rolling_stiff_soil_is_named_before_and_when_it_diverges(tmp_path, capsys):
+    """soil.damping_ratio = 100 and soil.rolling_friction = 1e3 passed advise, and the bed's divergence named
+    the settling step, the gravity and the friction angles, not them."""
+    scene = write_tiny(tmp_path)
+    lines = "\n".join(advise_lines(load_plan(scene, ["soil.damping_ratio=100", 'run.integrator="jolt-beeman"'])))
+    assert "[OUT OF RANGE] damping_step: the step " in lines and "run.dt_factor, jolt-beeman" in lines, lines
+    assert "x the longest that keeps the damped tangential mode (D = 100, grain on grain, stuck)" in lines
+    lines = "\n".join(advise_lines(load_plan(scene)))
+    assert "[ok] damping_step" in lines and "[ok] rolling_step" in lines  # the tiny scene's own soil
+    out = tmp_path / "rolling"
+    assert main(["run", scene, "--out", str(out), "--no-progress", "--set", "soil.rolling_friction=1e3"]) == 4
+    err = capsys.readouterr().err
+    assert "the bed diverged while settling" in err and "rolling_step: the step " in err, err
+    assert "(bed.settle_dt_factor, velocity-verlet)" in err and "lower soil.rolling_friction" in err
+
+
+def test_single_precision_is_judged_on_the_overlap_under_the_wheel():
+    """At Phobos a soil of E = 1e8 Pa carries the wheel's 2.3 Pa on overlaps of 7e-8 m, about four float32
+    spacings at the bed's 0.16 m: single precision cannot resolve them (docs/physics.md section 3); the
+    main job's E = 2e5 Pa overlaps 4e-6 m."""
+    main_job = str(Path(__file__).parents[1] / "examples" / "phobos_single_wheel.toml")
+    stiff = load_plan(main_job, ['scene.precision="single"', "soil.youngs_modulus=1e8"])
+    (found,) = [f for f in advice.check(stiff) if f.check == "single_precision"]
+    material = stiff.soil_material
+    e_star = material.youngs_modulus / (2 * (1 - material.poisson_ratio**2))
+    r = stiff.bed.spec.radius_mean
+    overlap = float(found.message.split(" in the overlap ")[1].split(" m ")[0])
+    hertz = 4.0 / 3.0 * e_star * math.sqrt(r / 2) * overlap**1.5  # the force that overlap carries
+    assert hertz == pytest.approx(advice.ground_pressure(stiff) * (2 * r) ** 2, rel=1e-2)
+    assert not found.ok and found.value < 10 and found.setting == "scene.precision"
+    (found,) = [
+        f for f in advice.check(load_plan(main_job, ['scene.precision="single"'])) if f.check == "single_precision"
+    ]
+    assert found.ok
+    assert not [f for f in advice.check(load_plan(main_job)) if f.check == "single_precision"]  # mixed: not judged
+
+
+def test_a_bed_without_gravity_is_not_said_to_miss_a_threshold_of_zero(tmp_path, caplog):
+    """At g = 0 the settling's kinetic-energy threshold (a fraction of the grains' weight times a radius) is
+    0 J: the log said 'KE 0 J > 0 J'. It says what a bed without weight does instead."""
+    from cosim.beds import settled_bed
+
+    overrides = ["scene.gravity=0", "landing.enabled=false", "bed.settle_max_time=0.02"]
+    plan = load_plan(write_tiny(tmp_path), overrides)
+    with caplog.at_level("WARNING", logger="cosim.beds"):
+        settled_bed(plan, str(tmp_path))
+    assert "without gravity the bed has no kinetic-energy threshold to settle to" in caplog.text, caplog.text
+    assert "did not reach" not in caplog.text
+
+
+@pytest.mark.parametrize("integrator", ["velocity-verlet", "jolt-beeman"])
+def test_a_stuck_contact_s_spin_decays_below_the_tangential_mode_s_stable_step_and_grows_above(integrator):
+    """The tangential mode damping_step judges (a stuck contact's Kelvin spring k_T = 4 G*/E* k_N and its
+    dashpot on the inverse mass 3.5 / m of a grain sliding and turning on a wall): a 5 mm grain resting on
+    the floor at Earth gravity, given a spin of 1e-3 rad/s, over 400 fixed steps at 0.9 x and 1.5 x
+    advice.stable_step of that mode at its resting overlap: below, the damping takes the spin down; above,
+    it grows past ten times its start (friction caps it short of a divergence: BENCHMARKS.md's grain
+    thrown out of a bed)."""
+    import numpy as np
+
+    from soil import Material, Simulation, SoilBuilder
+
+    radius, modulus, nu, damping, g = 0.005, 1e7, 0.3, 0.454, 9.81
+    material = Material(youngs_modulus=modulus, poisson_ratio=nu, damping_ratio=damping)
+    mass = material.density * 4.0 / 3.0 * math.pi * radius**3
+    e_star = modulus / (2.0 * (1.0 - nu**2))
+    overlap = (3.0 * mass * g / (4.0 * e_star * math.sqrt(radius))) ** (2.0 / 3.0)  # Hertz: resting on the floor
+    omega = math.sqrt(2.0 * e_star * math.sqrt(radius * overlap) / mass)
+    shear = 2.0 * (1.0 - nu) / (2.0 - nu)
+    longest = advice.stable_step(math.sqrt(3.5 * shear) * omega, 7.0 * damping * math.sqrt(shear) * omega, integrator)
+
+    def spin(share: float) -> float:
+        builder = SoilBuilder(gravity=g)
+        builder.add_material(material)
+        builder.add_plane((0, 0, 0), (0, 0, 1))
+        builder.add_particles([(0.0, 0.0, radius - overlap)], radius, angular_velocities=[(0.0, 1e-3, 0.0)])
+        sim = Simulation(*builder.finalize("cpu", "double"), integrator=integrator)
+        sim.run(400 * share * longest, share * longest, check_every=10)
+        return float(np.abs(sim.angular_velocities()).max())
+
+    assert spin(0.9) < 1e-3 < 1e-2 < spin(1.5)

@@ -410,7 +410,9 @@ def _wheel_shape(wheel: dict):
     kind = wheel.pop("type")
     if kind == "grouser":
         return GrouserWheel(**wheel)
-    return MeshWheel(np.asarray(wheel["vertices"]), np.asarray(wheel["triangles"]), name=wheel.get("name", "mesh"))
+    shape = MeshWheel(np.asarray(wheel["vertices"]), np.asarray(wheel["triangles"]), name=wheel.get("name", "mesh"))
+    shape.check_wheel_shape()  # as a scene's mesh is judged when read (an FMU exported before could hold another)
+    return shape
 
 
 def soil_from_config(data: dict, bed_file, dem_step: float | None = None, device: str | None = None):

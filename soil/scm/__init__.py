@@ -42,7 +42,9 @@ step (a step is graph-capturable), so runs repeat and resume bit for bit.
 
     from soil import GrouserWheel
     from soil.scm import ScmParameters, ScmTerrain
-    terrain = ScmTerrain(ScmParameters(...), [GrouserWheel(0.1, 0.05)], window=(1.0, 0.5))
+    dry_sand = ScmParameters(k_c=0.99e3, k_phi=1528.43e3, n=1.1, cohesion=1.04e3, friction_angle=28,  # degrees
+                             janosi_k=0.02, elastic_stiffness=4e8, node_spacing=0.005)  # Wong's dry sand
+    terrain = ScmTerrain(dry_sand, [GrouserWheel(0.1, 0.05)], window=(1.0, 0.5))
     terrain.advance(end_time=0.1, dt=1e-3, position=[[0, 0, 0.08]], orientation=[[1, 0, 0, 0]],
                     velocity=[[0.01, 0, 0]], angular_velocity=[[0, 0.12, 0]])
     contact = terrain.wheel_contact()        # force [N], torque about the hub [N m], nodes, sinkage [m]

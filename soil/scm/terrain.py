@@ -53,8 +53,9 @@ SCM_PARAMETER_UNITS = {
 
 @dataclass(frozen=True)
 class ScmParameters:
-    """The soil's SCM parameters (SI units; the angles, friction_angle and erosion_angle, in degrees as
-    the scene's keys). Wong's dry sand (Theory of Ground Vehicles) is
+    """The soil's SCM parameters (SI units; the angles, friction_angle and erosion_angle, in DEGREES as
+    the scene's keys, unlike soil.Material's angles, which are in radians). Wong's dry sand (Theory of
+    Ground Vehicles) is
     ScmParameters(k_c=0.99e3, k_phi=1528.43e3, n=1.1, cohesion=1.04e3, friction_angle=28,
     janosi_k=0.02, elastic_stiffness=4e8, node_spacing=0.005)."""
 
@@ -67,12 +68,15 @@ class ScmParameters:
     cohesion: float
     """Mohr-Coulomb cohesion c [Pa] (>= 0)."""
     friction_angle: float
-    """Mohr-Coulomb internal friction angle phi [deg] (in [0, 90))."""
+    """Mohr-Coulomb internal friction angle phi in DEGREES [deg] (in [0, 90); soil.Material's angles are
+    in radians)."""
     janosi_k: float
     """Janosi-Hanamoto shear deformation modulus K [m] (> 0)."""
     elastic_stiffness: float
     """Unloading/reloading stiffness K_e [Pa/m] (> 0); larger than the Bekker curve's slope where
-    the soil is loaded, so that unloading is stiffer than loading."""
+    the soil is loaded, so that unloading is stiffer than loading. Only > 0 is checked: that slope,
+    n (k_c / b + k_phi) z^(n - 1), depends on the patch width b and the sinkage z of a run (a smaller
+    K_e leaves the soil elastic up to where K_e z meets the Bekker curve)."""
     node_spacing: float
     """Grid node spacing h [m] (> 0)."""
     damping: float = 0.0
@@ -224,6 +228,16 @@ def check_grid(
     )
 
 
+def _is_pair(value) -> bool:
+    """Whether `value` is a sequence of two items (a tuple, a list, an array), not one number nor a text."""
+    if isinstance(value, (str, bytes)):
+        return False
+    try:
+        return len(value) == 2
+    except TypeError:  # a number, a 0-d array
+        return False
+
+
 class ScmTerrain:
     """An SCM terrain: a flat soil surface at height `surface_height` (world z up) under a window of
     nodes that follows the wheels, and the wheels pressed into it.
@@ -262,11 +276,12 @@ class ScmTerrain:
         for index, wheel in enumerate(wheels):
             if not isinstance(wheel, (GrouserWheel, MeshWheel)):
                 raise SoilInputError(f"wheels[{index}] must be a GrouserWheel or MeshWheel, got {type(wheel).__name__}")
-        if len(window) != 2 or not all(is_real(s) and math.isfinite(s) and s > 0 for s in window):
-            raise SoilInputError(f"window must be two sizes > 0 [m], got {window!r}")
+        # a pair first: len() of one number is a bare TypeError
+        if not (_is_pair(window) and all(is_real(s) and math.isfinite(s) and s > 0 for s in window)):
+            raise SoilInputError(f"window must be two sizes > 0 (length along x, width along y) [m], got {window!r}")
         if not (is_real(surface_height) and math.isfinite(surface_height)):
             raise SoilInputError(f"surface_height must be a finite number [m], got {surface_height!r}")
-        if centre is not None and (len(centre) != 2 or not all(is_real(c) and math.isfinite(c) for c in centre)):
+        if centre is not None and not (_is_pair(centre) and all(is_real(c) and math.isfinite(c) for c in centre)):
             raise SoilInputError(f"centre must be None or two finite numbers (x, y) [m], got {centre!r}")
         self.parameters = parameters
         self.wheels = wheels
@@ -597,6 +612,10 @@ class ScmTerrain:
         the number of steps. `wheel_contact(mean=True)` then gives the means over these steps."""
         if not (is_real(dt) and math.isfinite(dt) and dt > 0):
             raise SoilInputError(f"dt must be > 0 [s], got {dt!r}")
+        if not is_real(end_time):  # float() would read a text of digits as a time
+            raise SoilInputError(
+                f"end_time must be a number [s], after the current time {self.time!r} s, got {end_time!r}"
+            )
         span = float(end_time) - self.time
         if not math.isfinite(span) or span <= 0:
             raise SoilInputError(f"end_time must be after the current time {self.time!r} s, got {end_time!r}")
@@ -673,10 +692,26 @@ class ScmTerrain:
 
     def surface_height_at(self, x, y) -> np.ndarray:
         """The soil surface's height [m] at world points (x, y) [m] (arrays of one shape), bilinear between
-        nodes; the undisturbed height outside the window."""
+        nodes; the undisturbed height outside the window. Non-finite coordinates are refused (a nan became a
+        node index through an invalid cast, with a warning, and read the undisturbed height)."""
+        points = []
+        for name, value in (("x", x), ("y", y)):
+            try:
+                array = np.asarray(value)
+                ok = array.dtype.kind in "iuf" and bool(np.all(np.isfinite(array)))
+            except (TypeError, ValueError):
+                ok = False
+            if not ok:
+                raise SoilInputError(f"{name} must be finite numbers [m] (a number or an array), got {value!r}")
+            points.append(np.asarray(value, dtype=np.float64))
+        try:
+            x, y = np.broadcast_arrays(*points)
+        except ValueError:
+            raise SoilInputError(
+                f"x and y must have one shape (or broadcast to one), got shapes {points[0].shape} and {points[1].shape}"
+            ) from None
         xs, ys, field = self.height_field()
         h = self.parameters.node_spacing
-        x, y = np.broadcast_arrays(np.asarray(x, dtype=np.float64), np.asarray(y, dtype=np.float64))
         u, v = (x - xs[0]) / h, (y - ys[0]) / h
         i, j = np.floor(u).astype(int), np.floor(v).astype(int)
         inside = (i >= 0) & (j >= 0) & (i < len(xs) - 1) & (j < len(ys) - 1)
