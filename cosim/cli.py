@@ -54,6 +54,20 @@ EXIT_TERMINATED = 143
 log = logging.getLogger("cosim")
 
 
+class _StderrHandler(logging.StreamHandler):
+    """A log handler that writes to sys.stderr as it is when a record comes, not as it was when the
+    handler was made: a caller that replaces sys.stderr between two commands in one process (a test's
+    capture) gets the lines, not 'I/O operation on closed file'."""
+
+    @property
+    def stream(self):
+        return sys.stderr
+
+    @stream.setter
+    def stream(self, value) -> None:  # StreamHandler sets it; the property reads sys.stderr instead
+        pass
+
+
 def _setup_output(verbose: bool) -> None:
     """Log lines on stderr; Warp's banner and module-load lines only when verbose."""
     import warnings
@@ -67,7 +81,7 @@ def _setup_output(verbose: bool) -> None:
         from soil import quiet_warp
 
         quiet_warp()
-    handler = logging.StreamHandler(sys.stderr)
+    handler = _StderrHandler()
     handler.setFormatter(logging.Formatter("%(levelname)s: %(message)s" if verbose else "%(message)s"))
     root = logging.getLogger()
     root.handlers[:] = [handler]

@@ -872,3 +872,27 @@ def test_our_warnings_read_as_one_line_without_the_source_that_raised_them(capsy
     err = capsys.readouterr().err
     assert "warning: 3 contact(s) were created with an overlap\n" in err, err
     assert "OverlapWarning" not in err and "test_cli.py" not in err, err
+
+
+def test_the_log_follows_sys_stderr_from_one_command_to_the_next(monkeypatch):
+    """cosim.cli.main bound its log handler to sys.stderr as it was: a caller that replaced sys.stderr
+    between two commands in one process (a test's capture, closed since) got 'I/O operation on closed
+    file' tracebacks instead of the second command's lines."""
+    import io
+    import logging
+
+    from cosim.cli import _setup_output
+
+    root, handlers = logging.getLogger(), logging.getLogger().handlers[:]
+    first, second = io.StringIO(), io.StringIO()
+    try:
+        monkeypatch.setattr(sys, "stderr", first)
+        _setup_output(verbose=False)
+        logging.getLogger("cosim.test").warning("one")
+        first.close()
+        monkeypatch.setattr(sys, "stderr", second)
+        logging.getLogger("cosim.test").warning("two")
+    finally:
+        logging.captureWarnings(False)
+        root.handlers[:] = handlers
+    assert second.getvalue() == "two\n"

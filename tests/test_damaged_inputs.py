@@ -72,10 +72,8 @@ def complete(scene, tiny_bed, tmp_path_factory):
     return out
 
 
-@pytest.fixture(scope="module")
-def interrupted(scene, tiny_bed, tmp_path_factory):
-    """A tiny run stopped hard three macro steps after its first checkpoint (status interrupted)."""
-    out = tmp_path_factory.mktemp("interrupted") / "run"
+def stopped_after_a_checkpoint(plan, out) -> None:
+    """Run `plan` into `out` and stop it hard three macro steps after its first checkpoint."""
     seen = []
 
     def checkpoint(runner):
@@ -86,9 +84,14 @@ def interrupted(scene, tiny_bed, tmp_path_factory):
             raise KeyboardInterrupt("test: stopped")
 
     with pytest.raises(KeyboardInterrupt):
-        run_plan(
-            load_plan(scene, [f'bed.bed_file="{tiny_bed}"']), str(out), hooks={"checkpoint": checkpoint, "step": step}
-        )
+        run_plan(plan, str(out), hooks={"checkpoint": checkpoint, "step": step})
+
+
+@pytest.fixture(scope="module")
+def interrupted(scene, tiny_bed, tmp_path_factory):
+    """A tiny run stopped hard three macro steps after its first checkpoint (status interrupted)."""
+    out = tmp_path_factory.mktemp("interrupted") / "run"
+    stopped_after_a_checkpoint(load_plan(scene, [f'bed.bed_file="{tiny_bed}"']), out)
     assert json.loads((out / "run.json").read_text())["status"] == "interrupted"
     return out
 
@@ -590,17 +593,7 @@ def test_row14_a_run_folder_moved_whole_resumes_on_the_bed_it_carries(scene, tin
     here.mkdir(parents=True)
     for name in ("bed.h5", "bed.json"):  # the run's own settled bed, in its folder (the cache of the scene's key)
         shutil.copy2(Path(tiny_bed).parent / name, here / name)
-    seen = []
-
-    def checkpoint(runner):
-        seen.append(runner.system.coupler.step_count)
-
-    def step(runner):
-        if seen and runner.system.coupler.step_count == seen[0] + 3:
-            raise KeyboardInterrupt("test: stopped")
-
-    with pytest.raises(KeyboardInterrupt):
-        run_plan(load_plan(scene), str(here), hooks={"checkpoint": checkpoint, "step": step})
+    stopped_after_a_checkpoint(load_plan(scene), here)
     assert json.loads((here / "run.json").read_text())["bed"]["source"] == "cache"
     there = tmp_path / "there"
     shutil.move(tmp_path / "here", there)  # to another disk or machine: the checkpoint's absolute bed path is gone

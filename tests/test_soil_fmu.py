@@ -528,24 +528,33 @@ def test_a_call_the_fmu_does_not_offer_is_a_logged_error_that_holds_until_a_rese
         slave.freeInstance()
 
 
-def test_a_cut_soil_json_and_a_gravity_a_hair_off_are_named(tiny, tmp_path):
-    """The soil server, in-process: a cut resources/soil.json was json's bare "Unterminated string"; a
-    gravity parameter 1e-10 m/s^2 off the bed's printed both vectors alike ([0 0 -1.625] twice)."""
-    from cosim.soil_fmu.server import PROTOCOL_VERSION, SoilSession
-    from soil.errors import ArgumentError, DamagedFileError
+def _server_settings(tiny, folder):
+    """The tiny DEM FMU unpacked into folder/fmu: (its resources folder, a soil server's settings for it)."""
+    from cosim.soil_fmu.server import PROTOCOL_VERSION
 
     with zipfile.ZipFile(tiny["fmus"][2]) as z:
-        z.extractall(tmp_path / "fmu")
-    resources = tmp_path / "fmu" / "resources"
+        z.extractall(folder / "fmu")
+    resources = folder / "fmu" / "resources"
     gravity = tiny["config"].gravity if tiny["config"].gravity is not None else tiny["plan"].gravity
-    settings = {
+    return resources, {
         "protocol": str(PROTOCOL_VERSION),
         "resources": str(resources),
         "wheels": "1",
         "dem_step": repr(tiny["config"].dem_step),
-        "gravity": " ".join(repr(float(g)) for g in gravity[:2]) + f" {float(gravity[2]) - 1e-10!r}",
+        "gravity": " ".join(repr(float(g)) for g in gravity),
         "device": "cpu",
     }
+
+
+def test_a_cut_soil_json_and_a_gravity_a_hair_off_are_named(tiny, tmp_path):
+    """The soil server, in-process: a cut resources/soil.json was json's bare "Unterminated string"; a
+    gravity parameter 1e-10 m/s^2 off the bed's printed both vectors alike ([0 0 -1.625] twice)."""
+    from cosim.soil_fmu.server import SoilSession
+    from soil.errors import ArgumentError, DamagedFileError
+
+    resources, settings = _server_settings(tiny, tmp_path)
+    gravity = [float(g) for g in settings["gravity"].split()]
+    settings["gravity"] = " ".join(repr(g) for g in gravity[:2]) + f" {gravity[2] - 1e-10!r}"
     with pytest.raises(ArgumentError, match=rf"asks for \[.*{float(gravity[2]) - 1e-10!r}\]"):
         SoilSession(settings)
     text = (resources / "soil.json").read_text()
@@ -557,23 +566,12 @@ def test_a_cut_soil_json_and_a_gravity_a_hair_off_are_named(tiny, tmp_path):
 def test_a_soil_json_mesh_that_is_not_a_wheel_about_its_hub_is_named(tiny, tmp_path):
     """A mesh wheel in resources/soil.json is judged as a scene's mesh is when read: one whose axle is its
     X axis (a paddle) is refused by the soil server by name, before any grain moves."""
-    from cosim.soil_fmu.server import PROTOCOL_VERSION, SoilSession
+    from cosim.soil_fmu.server import SoilSession
     from soil.errors import SoilInputError
 
-    with zipfile.ZipFile(tiny["fmus"][2]) as z:
-        z.extractall(tmp_path / "fmu")
-    resources = tmp_path / "fmu" / "resources"
+    resources, settings = _server_settings(tiny, tmp_path)
     data = json.loads((resources / "soil.json").read_text())
     vertices, triangles = GrouserWheel(**{k: v for k, v in data["wheel"].items() if k != "type"}).to_mesh()
-    gravity = tiny["config"].gravity if tiny["config"].gravity is not None else tiny["plan"].gravity
-    settings = {
-        "protocol": str(PROTOCOL_VERSION),
-        "resources": str(resources),
-        "wheels": "1",
-        "dem_step": repr(tiny["config"].dem_step),
-        "gravity": " ".join(repr(float(g)) for g in gravity),
-        "device": "cpu",
-    }
     for mesh, words in (
         ((vertices, triangles), None),  # the wheel itself as a mesh: a soil
         ((vertices[:, [1, 0, 2]], triangles[:, ::-1]), r"mesh 'paddle' is not round about the axle"),
