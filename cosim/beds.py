@@ -164,6 +164,10 @@ def bed_from_file(path: str, setting: str = "bed.bed_file") -> Bed:
             "path": path,
             "metrics": {k: _plain(v) for k, v in header["metrics"].items()},
             "particle_count": header["particle_count"],
+            "units": {
+                **{f"metrics.{k}": METRIC_UNITS[k] for k in header["metrics"] if k in METRIC_UNITS},
+                "particle_count": "count",
+            },
         },
     )
 

@@ -436,7 +436,8 @@ class ResultsWriter:
                 _fixed(b, "kind", np.asarray(boundaries["kind"], dtype=np.int32))
                 _units(b["kind"], "1", "0 plane (point, unit normal), 1 box (lower corner, upper corner)")
                 _fixed(b, "geometry", np.asarray(boundaries["geometry"], dtype=np.float64).reshape(nb, 6))
-                _units(b["geometry"], "m", "geometry row of each wall as built (plane: point, normal; box: corners)")
+                described = "each wall's geometry row as built (plane: point [m], normal [1]; box: corners [m])"
+                _units(b["geometry"], "m", described)
                 _fixed(b, "report", np.asarray(boundaries["report"], dtype=np.int8))
                 _units(b["report"], "1", "1: the wall's force is summed; 0: it reads zero")
             r = f.create_group("rover")

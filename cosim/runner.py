@@ -336,6 +336,7 @@ class Runner:
         ):
             info.setdefault(key, value)
         info.update(status=status, message=message, summary=summary, wall_time=wall)
+        info["units"] = {**info.get("units", {}), "wall_time": "s"}  # the summary's own: summary.units
         attempt("writing run.json", lambda: write_json(self.folder.file(RUN_FILE), info))
         if status in ("complete", "unsteady"):  # a stopped run: `cosim export vtkhdf` when wanted
             self._export_vtkhdf()

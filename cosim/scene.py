@@ -248,6 +248,16 @@ class SceneSection(_Section):
             )
         return value
 
+    @field_validator("gravity", mode="before")
+    @classmethod
+    def _gravity_not_finite(cls, value):
+        # before the union's members are tried: each would say its own line of a nan (a text, a list)
+        if isinstance(value, float) and not math.isfinite(value):
+            raise ValueError("a gravity magnitude must be a finite number >= 0 [m/s^2]")
+        if isinstance(value, list) and any(isinstance(v, float) and not math.isfinite(v) for v in value):
+            raise ValueError("a gravity vector must be 3 finite numbers [m/s^2]")
+        return value
+
     @field_validator("gravity")
     @classmethod
     def _gravity(cls, value):

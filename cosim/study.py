@@ -839,7 +839,8 @@ def ensemble_table(results: list[dict], plan: RunPlan, states=(metrics.STEADY,))
         name: metrics.ensemble([r["summary"].get(name) for r in averaged], absolute_tolerance=floors[name])
         for name in metrics.REPLICA_METRICS
     }
-    table["wall_time"] = metrics.ensemble([r["summary"].get("wall_time") for r in results if r.get("ok")])
+    wall = metrics.ensemble([r["summary"].get("wall_time") for r in results if r.get("ok")])
+    table["wall_time"] = {**wall, "deterministic": None}  # a clock's reading: no physics to repeat
     return {
         "replicas": len(results),
         "steady": len(steady),
@@ -893,6 +894,19 @@ def column_units(keys: list[str], units: dict[str, str]) -> dict[str, str]:
         if unit is not None:
             found[key] = unit
     return found
+
+
+def nested_units(rows: list[dict], runs: list[dict]) -> dict:
+    """study.json's units of the numbers its rows and runs nest: each row's `stats` by metric (as
+    ensemble.json's `units`), each run's wall time and the scene keys it ran with (cosim.scene.key_unit;
+    each run's `summary` carries its own `units`)."""
+    names = sorted({m for row in rows for m in (row.get("stats") or {}).get("metrics", {})})
+    keys = sorted({k for run in runs for k in (run.get("overrides") or {})})
+    return {
+        "stats.metrics": column_units(names, METRIC_UNITS),
+        "runs.wall_time": "s",
+        "runs.overrides": {k: unit for k in keys if (unit := key_unit(k)) is not None},
+    }
 
 
 def _write_csv(path: str, rows: list[dict], keys: list[str], units: dict[str, str]) -> None:
@@ -1379,7 +1393,7 @@ def _precision_report(
     ]
     keys += [f"{m}_deterministic" for m in metrics.REPLICA_METRICS]
     units = {**METRIC_UNITS, **COUNT_UNITS}
-    report["units"] = {**column_units(keys, units), "wall_time": "s"}  # the rows' columns
+    report["units"] = {**column_units(keys, units), "wall_time": "s", **nested_units(rows, results)}
     write_json(os.path.join(out_dir, "study.json"), report)
     _write_csv(os.path.join(out_dir, "study.csv"), rows, keys, units)
     for row in rows:
@@ -1943,7 +1957,9 @@ def _slip_report(
     columns = list(dict.fromkeys(key for row in rows for key in row if key != "stats"))  # study.json's, all
     report["units"] = {
         **column_units(columns, units),
+        **nested_units(rows, results),
         "wheel_load": "N",
+        "wheel": {"rim_radius_m": "m", "width_m": "m", "grouser_count": "count", "grouser_height_m": "m"},
         "zero_pull_slip": "1",
         "zero_pull_slip_ci95": "1",
         "zero_pull_slip_between": "1",
@@ -2244,7 +2260,8 @@ def _sweep_report(
     swept = {key: unit for key in grid if (unit := key_unit(key)) is not None}  # as cosim/scene.py documents them
     units = {**METRIC_UNITS, **swept}
     table_units = column_units(keys, units)
-    report = {"kind": "sweep", "grid": grid, "rows": rows, "runs": results, "scene_toml": text, "units": table_units}
+    report = {"kind": "sweep", "grid": grid, "rows": rows, "runs": results, "scene_toml": text}
+    report["units"] = {**table_units, **nested_units(rows, results)}
     write_json(os.path.join(out_dir, "study.json"), report)
     log.info("%s", plot_table(rows, keys, table_units))
     _write_csv(os.path.join(out_dir, "study.csv"), rows, keys, units)

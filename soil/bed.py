@@ -213,7 +213,7 @@ PARTICLE_UNITS = {
 """A bed file's particles/ datasets (bed order): (units, description)."""
 BOUNDARY_UNITS = {
     "kind": ("1", "0 plane (point, unit normal), 1 box (lower corner, upper corner)"),
-    "geometry": ("m", "geometry row of each wall where it was when saved (plane: point, normal; box: corners)"),
+    "geometry": ("m", "each wall's geometry row when saved (plane: point [m], normal [1]; box: corners [m])"),
     "material": ("1", "material index of the wall"),
     "report": ("1", "1: the wall's force is summed; 0: it reads zero"),
 }

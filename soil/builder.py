@@ -520,10 +520,16 @@ class SoilBuilder:
                 k = int(np.argmax(ratio))
                 worst, where = float(ratio[k]), f"particle {k} and boundary {b} by {depth[k]:.3g} m"
         if count:
+            # a saved state (a settled bed) that overlaps this deep was pressed so by its own load
+            remedy = (
+                "the saved grains were pressed this deep by their load: the soil is too soft for it (raise its "
+                "Young's modulus: the paper's eq. 10, `cosim advise`)"
+                if self._start is not None
+                else "their first contact throws the grains apart; space them out"
+            )
             warnings.warn(
                 f"{count} contact(s) were created with an overlap above {DEEP_OVERLAP:g} x the smaller "
-                f"radius (the deepest: {where}, {worst:.3g} x its radius): their first contact throws the "
-                "grains apart; space them out",
+                f"radius (the deepest: {where}, {worst:.3g} x its radius): {remedy}",
                 OverlapWarning,
                 stacklevel=3,
             )

@@ -117,6 +117,38 @@ def test_the_summary_and_the_root_attributes_carry_their_units(tiny_run):
     assert (attributes["gravity"], attributes["wheel_load"], attributes["omega"]) == ("m/s^2", "N", "rad/s")
 
 
+def numbers_without_a_unit(node: dict, units: dict | None, path: str = "") -> list[str]:
+    """The places of the numbers in a JSON object that no units table covers: a dict with its own `units`
+    is judged by it, a list of dicts by each one's `unit`, any other number by the table above it."""
+    found = []
+    for key, value in node.items():
+        here = f"{path}{key}"
+        if key == "units":
+            continue
+        if isinstance(value, dict):
+            own = value.get("units")
+            found += (
+                numbers_without_a_unit(value, own, "")
+                if own is not None
+                else numbers_without_a_unit(value, units, here + ".")
+            )
+        elif isinstance(value, list) and value and all(isinstance(v, dict) for v in value):
+            found += [f"{here}[{i}]" for i, v in enumerate(value) if "unit" not in v]
+        else:
+            numbers = [v for v in (value if isinstance(value, list) else [value]) if isinstance(v, (int, float))]
+            if any(not isinstance(v, bool) for v in numbers) and here not in (units or {}):
+                found.append(here)
+    return found
+
+
+def test_every_number_of_run_json_carries_its_unit(tiny_run):
+    """run.json's own wall_time and a bed given as a file (its metrics, its grain count) had no unit: the
+    probe of the files read every number against a units table."""
+    info = json.loads((tiny_run / "run.json").read_text())
+    assert info["bed"]["source"] == "file" and info["bed"]["metrics"]["height"] > 0
+    assert numbers_without_a_unit(info, info.get("units")) == []
+
+
 def test_a_bed_file_carries_the_units_its_arrays_are_documented_in(tiny_bed):
     """Every dataset of a bed file has the unit SoilState (state/), SavedBed (particles/, boundaries/)
     documents for it; the file's root `units` names those of gravity, the metrics, the material table's

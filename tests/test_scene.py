@@ -490,3 +490,14 @@ def test_a_pid_step_far_below_the_scene_or_a_macro_step_below_its_shortest_is_re
     with pytest.raises(SceneError, match=r"run.macro_step: the macro step \(1e-05 s\) is shorter than .* run.dt_min"):
         load_plan(scene, short)
     assert load_plan(scene, [*pid, "run.dt_max=1e-4"]).dt_max == 1e-4
+
+
+def test_a_gravity_that_is_not_finite_is_one_line(tmp_path):
+    """scene.gravity = nan gave three lines, one per kind the key takes ('must be a valid string', 'must be
+    a valid list'): one line says what a gravity must be."""
+    scene = write_tiny(tmp_path)
+    for value, words in (("nan", "magnitude must be a finite number >= 0"), ("[0, 0, inf]", "vector must be 3")):
+        with pytest.raises(SceneError) as refused:
+            load_scene(scene, [f"scene.gravity={value}"])
+        (problem,) = refused.value.problems
+        assert problem.startswith(f"scene.gravity: a gravity {words}"), problem

@@ -75,6 +75,14 @@ def test_grains_created_inside_each_other_are_reported():
     )  # 0.3 r into the floor
     with pytest.warns(OverlapWarning, match=r"3 contact\(s\).*deepest: particles 0 and 1 by 0.01 m, 1 x its radius"):
         builder.finalize("cpu", "double")
+    # a saved state this deep was pressed so by its load (a bed settled at 1e3 m/s^2): not "space them out"
+    saved = builder_with_box()
+    saved.add_particles([(0.02, 0.05, 0.05), (0.035, 0.05, 0.05)], r)  # 0.5 r
+    with pytest.warns(OverlapWarning, match=r"space them out"):  # built so: spaced out they should be
+        state = saved.finalize("cpu", "double")[1].to_numpy()
+    saved.start_from(state)
+    with pytest.warns(OverlapWarning, match=r"pressed this deep by their load: the soil is too soft for it"):
+        saved.finalize("cpu", "double")
     spaced = builder_with_box()
     spaced.add_particles([(0.02, 0.05, 0.05), (0.0419, 0.05, 0.05)], r)  # 0.05 r: a settled contact, no warning
     import warnings

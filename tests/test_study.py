@@ -1071,6 +1071,17 @@ def test_a_slip_studys_json_gives_every_numbers_unit_and_its_table_the_failed_ru
     numbers = {key for row in report["rows"] for key, value in row.items() if isinstance(value, (int, float))}
     assert {"sinkage_min", "travel_max", "landing_sinkage_mean", "wall_time_std"} <= numbers
     assert numbers <= set(report["units"]), sorted(numbers - set(report["units"]))
+    # and what the rows and runs nest (a probe of the files found them without): each row's stats by
+    # metric, each run's wall time and numeric scene keys, the wheel's geometry
+    units, numeric = report["units"], (lambda v: isinstance(v, (int, float)) and not isinstance(v, bool))
+    nested = {m for row in report["rows"] for m, v in row["stats"]["metrics"].items() if any(map(numeric, v.values()))}
+    assert {"sinkage", "wall_time"} <= nested <= set(units["stats.metrics"]), sorted(
+        nested - set(units["stats.metrics"])
+    )
+    assert units["stats.metrics"]["sinkage"] == "m" and units["runs.wall_time"] == "s"
+    keys = {k for run in report["runs"] for k, v in (run.get("overrides") or {}).items() if numeric(v)}
+    assert keys <= set(units["runs.overrides"]) and units["runs.overrides"].get("testbed.slip", "1") == "1"
+    assert {k for k, v in report["wheel"].items() if numeric(v)} <= set(units["wheel"])
     assert [row["failed"] for row in report["rows"]] == [0, 1] and report["units"]["failed"] == "count"
     assert [row["steady"] for row in report["rows"]] == [2, 0]  # the part-drive summaries were averaged
     with open(tmp_path / "table" / "study.csv", newline="") as f:
@@ -1289,3 +1300,17 @@ def test_a_table_from_runs_tells_input_files_by_their_content_not_their_path(tmp
     assert table["rows"][0]["averaged"] == 2
     with pytest.raises(ArgumentError, match=r"ran another scene .*terrain\.calibration"):
         slip_study_from_runs([str(tmp_path / "a"), str(tmp_path / "other")], str(tmp_path / "t2"), plot=False)
+
+
+def test_a_wall_time_is_never_called_deterministic(tmp_path):
+    """ensemble.json said of the replicas' wall time 'deterministic' True or False by the scatter of a
+    clock's reading (the probe of the files found both in two sets): it is None, as the table leaves it."""
+    from cosim.study import ensemble_table
+
+    plan = load_plan(write_tiny(tmp_path))
+    summary = {"steady_state": "steady", "sinkage": 0.004, "wall_time": 3.0}
+    table = ensemble_table(
+        [{"ok": True, "summary": summary}, {"ok": True, "summary": {**summary, "wall_time": 3.0}}], plan
+    )
+    assert table["metrics"]["wall_time"]["n"] == 2 and table["metrics"]["wall_time"]["deterministic"] is None
+    assert table["metrics"]["sinkage"]["deterministic"] is True  # a metric of the physics still is judged
