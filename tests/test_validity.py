@@ -416,3 +416,43 @@ def test_a_stuck_contact_s_spin_decays_below_the_tangential_mode_s_stable_step_a
         return float(np.abs(sim.angular_velocities()).max())
 
     assert spin(0.9) < 1e-3 < 1e-2 < spin(1.5)
+
+
+@pytest.mark.parametrize("integrator", ["velocity-verlet", "jolt-beeman"])
+def test_a_rolling_spring_on_a_wall_is_stable_to_the_step_rolling_step_names_and_no_further(integrator):
+    """rolling_step's wall case against the physics: a 5 mm grain resting on the floor without friction
+    (only its rolling spring k_r = 2.25 mu_r^2 r^2 k_N and damper hold its spin; the grain alone turns,
+    0.4 m r^2: omega_r = 2.37 mu_r omega_N, gamma_r = 8.87 D mu_r omega_N), mu_r = 2, given a spin of
+    1e-3 rad/s, 400 fixed steps: at 0.9 x advice.stable_step of that mode the spin dies out; at 1.1 x it
+    grows past ten times its start."""
+    import numpy as np
+
+    from soil import ContactLaw, Material, Simulation, SoilBuilder
+
+    radius, modulus, nu, damping, mu, g = 0.005, 1e7, 0.3, 0.454, 2.0, 9.81
+    material = Material(
+        youngs_modulus=modulus,
+        poisson_ratio=nu,
+        damping_ratio=damping,
+        stick_angle=0.0,
+        slip_angle=0.0,
+        rolling_friction=mu,
+    )
+    mass = material.density * 4.0 / 3.0 * math.pi * radius**3
+    e_star = modulus / (2.0 * (1.0 - nu**2))
+    overlap = (3.0 * mass * g / (4.0 * e_star * math.sqrt(radius))) ** (2.0 / 3.0)  # Hertz: resting on the floor
+    omega = math.sqrt(2.0 * e_star * math.sqrt(radius * overlap) / mass)
+    omega_r = math.sqrt(2.25 / 0.4) * mu * omega
+    gamma_r = 2.0 * damping * 1.5 * math.sqrt(1.4) / 0.4 * mu * omega
+    longest = advice.stable_step(omega_r, gamma_r, integrator)
+
+    def spin(share: float) -> float:
+        builder = SoilBuilder(gravity=g)
+        builder.add_material(material)
+        builder.add_plane((0, 0, 0), (0, 0, 1))
+        builder.add_particles([(0.0, 0.0, radius - overlap)], radius, angular_velocities=[(0.0, 1e-3, 0.0)])
+        sim = Simulation(*builder.finalize("cpu", "double", law=ContactLaw(rolling=True)), integrator=integrator)
+        sim.run(400 * share * longest, share * longest, check_every=10)
+        return float(np.abs(sim.angular_velocities()).max())
+
+    assert spin(0.9) < 1e-6 and spin(1.1) > 1e-2
