@@ -99,6 +99,7 @@ from cosim.launch import run_plan  # noqa: E402
 from cosim.output import read_series  # noqa: E402
 from cosim.plan import RunPlan, load_plan  # noqa: E402
 from cosim.runner import RunInterrupted  # noqa: E402
+from cosim.stop_signals import exit_status, stop_name  # noqa: E402
 from soil import GrouserWheel, Simulation, SoilBuilder, quiet_warp  # noqa: E402
 from soil.advisor import rayleigh_time_step  # noqa: E402
 from soil.bed import bed_metrics, build_bed, kinetic_energy_threshold, save_bed  # noqa: E402
@@ -335,8 +336,8 @@ class Suite:
             f"{json.dumps({k: v for k, v in result.items() if not isinstance(v, (list, dict))})}"
         )
         self.write()  # what the suite measured so far is kept, stopped or not
-        if stop is not None:  # named by its signal: main's exit status says which (130 SIGINT, 143 SIGTERM)
-            name = getattr(stop, "signal", None) or ("SIGTERM" if "SIGTERM" in str(stop) else "SIGINT")
+        if stop is not None:  # named by its signal: main's exit status says which (cosim.stop_signals)
+            name = stop_name(stop)
             raise KeyboardInterrupt(f"{name}: {stop}")
 
     # -- sections -------------------------------------------------------------------------
@@ -1067,7 +1068,7 @@ def main(argv=None) -> int:
     except KeyboardInterrupt as stop:  # the sections so far are written (Suite.section); the rest are not run
         print(suite.markdown())
         print(f"stopped ({stop}): the sections after it were not run", file=sys.stderr)
-        return 143 if str(stop).startswith("SIGTERM") else 130  # as cosim's commands exit
+        return exit_status(stop_name(stop))  # as cosim's commands exit: 130 SIGINT, 143 SIGTERM, 129 SIGHUP
     print(suite.markdown())
     if args.compile_for_arch:
         compiled = compile_loaded_modules(args.compile_for_arch)

@@ -31,7 +31,7 @@ import time
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 sys.path.insert(0, ROOT)
 
-from cosim.beds import read_json_numbers, write_json  # noqa: E402 (after the path)
+from cosim.folders import read_json_numbers, write_json  # noqa: E402 (after the path)
 from cosim.lab.scm_wheel import RELATIVE_TOLERANCE as TOLERANCE  # noqa: E402 (after the path)
 
 QUANTITIES = (

@@ -371,7 +371,7 @@ def main(argv=None) -> None:
     print()
     print(tables(rows, header))
     if args.json:
-        from cosim.beds import finite_or_null
+        from cosim.folders import finite_or_null
 
         with open(args.json, "w") as f:  # strict JSON: what was not measured (nan) is null
             json.dump(finite_or_null(rows), f, indent=1, allow_nan=False)

@@ -19,7 +19,7 @@ terrain other than the DEM, a moving soil patch, an FMU rover (its replicas run 
 Under the PID step control (run.step_control = 'pid') each world has its own controller and takes
 the substeps its run takes alone (soil.step_control). Shared by the worlds: the clock, the DEM
 step at fixed steps, the divergence monitor (a world that diverges stops the batch; each run
-reports it with its own last good state). Ctrl-C or SIGTERM to this process reaches every run,
+reports it with its own last good state). Ctrl-C, SIGTERM or SIGHUP to this process reaches every run,
 which stops after its macro step with a checkpoint (a second one: at once); a run whose process
 dies leaves the batch (its result says so), the others go on; if this process dies, every run
 stops with the error. The runs' folders (one per plan, each its own, none holding a run unless
@@ -53,12 +53,13 @@ from soil.macro import MacroStepReport
 from soil.sdf import displaced_geometry
 from soil.worlds import World, Worlds, open_bed_worlds
 
+from . import stop_signals
 from .beds import Bed, check_memory, settled_bed
 from .dem_soil import DemSoil
 from .folders import LOCK_FILE, RunFolder
 from .launch import open_run
 from .plan import RunPlan, enable_step_control
-from .runner import STOP_SIGNALS, RunInterrupted, Runner
+from .runner import RunInterrupted, Runner
 
 log = logging.getLogger(__name__)
 
@@ -370,8 +371,7 @@ def _serve(worlds: Worlds, hosts: list[_Host]) -> tuple[list[dict], float, list[
                 rounds = worlds.rounds
                 marks.append(busy())
     finally:
-        for number, handler in previous.items():
-            signal.signal(number, handler)
+        stop_signals.restore(previous)
     return [h.result or {} for h in hosts], busy(), marks, received
 
 
@@ -432,13 +432,10 @@ def _send(host: _Host, message: tuple) -> None:
 
 
 def _forward_stop_signals(hosts: list[_Host], received: list[str]) -> dict:
-    """Ctrl-C or SIGTERM here reaches every run's process (each has a process group of its own, so a
-    terminal's Ctrl-C arrives once): each stops after its macro step with a checkpoint, or at once on
-    a second one; each signal's name is appended to `received`. Returns the handlers it replaced."""
-    import threading
-
-    if threading.current_thread() is not threading.main_thread():
-        return {}
+    """A stop signal here (Ctrl-C, SIGTERM, SIGHUP: cosim.stop_signals) reaches every run's process (each
+    has a session of its own, so a terminal's Ctrl-C or hangup arrives once): each stops after its macro
+    step with a checkpoint, or at once on a second one; each signal's name is appended to `received`.
+    Returns the handlers it replaced."""
 
     def handler(signum, frame):
         name = signal.Signals(signum).name
@@ -449,7 +446,7 @@ def _forward_stop_signals(hosts: list[_Host], received: list[str]) -> dict:
                 with contextlib.suppress(ProcessLookupError):
                     os.kill(host.process.pid, signum)
 
-    return {number: signal.signal(number, handler) for number in STOP_SIGNALS}
+    return stop_signals.install(handler)
 
 
 # -- a run's side: its own process -----------------------------------------------------------------------
@@ -486,7 +483,7 @@ def _run_world(connection: Connection, plan: RunPlan, out_dir: str, overwrite: b
             traceback=traceback.format_exc(5),
         )
         if stopped:
-            out["signal"] = getattr(error, "signal", None) or "SIGINT"
+            out["signal"] = stop_signals.stop_name(error)
     with contextlib.suppress(BrokenPipeError, OSError):
         connection.send(("done", out))
     connection.close()

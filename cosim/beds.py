@@ -21,10 +21,10 @@ from dataclasses import dataclass, field
 
 from soil.bed import METRIC_UNITS, SavedBed, read_bed
 from soil.errors import RegolithError
-from soil.files import atomic_write_text
 from soil.stability import SimulationDiverged, write_checkpoint
 from soil.state import STATE_UNITS
 
+from .folders import write_json
 from .plan import RunPlan
 from .scene import SceneError
 
@@ -100,48 +100,6 @@ class Bed:
         """The bed in memory (soil.bed.open_bed opens it): the one settled in this process, else the
         file read once (what it holds is what was settled, to the last bit)."""
         return self.settled if self.settled is not None else read_bed(self.path)
-
-
-def write_json(path: str, data: dict) -> None:
-    """Write a JSON file atomically (numpy scalars and arrays allowed). A number that is not finite (nan:
-    not measured) is written as null: Python's NaN is no JSON, and jq, JavaScript and strict parsers refuse
-    the whole file."""
-    atomic_write_text(path, json.dumps(finite_or_null(data), indent=2, allow_nan=False) + "\n")
-
-
-def read_json_numbers(path: str):
-    """A JSON file write_json wrote, each null as nan (a number that was not measured): what its numbers'
-    readers compute with (None * 1 is an error, nan * 1 is nan)."""
-    with open(path) as f:
-        return null_as_nan(json.load(f))
-
-
-def null_as_nan(value):
-    """`value` with every None, also in lists and dicts, as nan (the inverse of finite_or_null)."""
-    if value is None:
-        return math.nan
-    if isinstance(value, dict):
-        return {key: null_as_nan(item) for key, item in value.items()}
-    if isinstance(value, list):
-        return [null_as_nan(item) for item in value]
-    return value
-
-
-def finite_or_null(value):
-    """`value` with numpy scalars and arrays as Python numbers and lists, and every non-finite number None."""
-    import numpy as np
-
-    if isinstance(value, np.ndarray):
-        value = value.tolist()
-    elif isinstance(value, np.generic):
-        value = value.item()
-    if isinstance(value, float):
-        return value if math.isfinite(value) else None
-    if isinstance(value, dict):
-        return {key: finite_or_null(item) for key, item in value.items()}
-    if isinstance(value, (list, tuple)):
-        return [finite_or_null(item) for item in value]
-    return value
 
 
 def bed_from_file(path: str, setting: str = "bed.bed_file") -> Bed:

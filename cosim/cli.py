@@ -36,6 +36,7 @@ Exit status:
          replicas, a sweep or a study, when one of its runs did (or had not finished: --from-runs)
     130  interrupted by Ctrl-C (`cosim resume OUT` continues)
     143  stopped by SIGTERM (a batch scheduler, `docker stop`): checkpointed, `cosim resume OUT` continues
+    129  stopped by SIGHUP (the terminal or ssh session closed; not under `nohup`): checkpointed, as above
 """
 
 from __future__ import annotations
@@ -48,8 +49,6 @@ import sys
 import time
 
 EXIT_OK, EXIT_ERROR, EXIT_INPUT, EXIT_FOLDER, EXIT_DIVERGED, EXIT_OS, EXIT_UNSTEADY = 0, 1, 2, 3, 4, 5, 6
-EXIT_INTERRUPTED = 130
-EXIT_TERMINATED = 143
 
 log = logging.getLogger("cosim")
 
@@ -1301,7 +1300,7 @@ def build_parser() -> argparse.ArgumentParser:
         description="regolith-cosim: DEM soil co-simulated with rovers",
         epilog="exit status: 0 ok, 1 unexpected error (or a study's run failed), 2 bad input, 3 output folder "
         "or file not free, 4 diverged, 5 OS error, 6 no steady-state result (of a run, or of one of a study's), "
-        "130 interrupted, 143 stopped by SIGTERM",
+        "130 interrupted, 143 stopped by SIGTERM, 129 by SIGHUP",
     )
     parser.add_argument("--verbose", "-v", action="store_true", help="debug log lines, Warp's messages, tracebacks")
     sub = parser.add_subparsers(dest="command", required=True)
@@ -1460,62 +1459,90 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
-def _stop_on_sigterm():
-    """SIGTERM (a batch scheduler, `docker stop`) stops like Ctrl-C: a run checkpoints and stops cleanly
-    (cosim.runner installs its own handler while it steps); elsewhere the command unwinds, locks released.
-    Returns the handler it replaced (None outside the main thread)."""
+def _stop_on_signals() -> dict:
+    """SIGTERM (a batch scheduler, `docker stop`) and SIGHUP (the terminal closed) stop like Ctrl-C: a run
+    checkpoints and stops cleanly (cosim.runner installs its own handler while it steps); elsewhere the
+    command unwinds, locks released. Returns the handlers it replaced (cosim.stop_signals.restore)."""
     import signal
-    import threading
 
-    def terminate(signum, frame):
-        raise KeyboardInterrupt("SIGTERM")
+    from .stop_signals import install
 
-    if threading.current_thread() is not threading.main_thread():
-        return None
-    return signal.signal(signal.SIGTERM, terminate)
+    def stop(signum, frame):
+        raise KeyboardInterrupt(signal.Signals(signum).name)
+
+    former = install(stop)
+    if signal.SIGINT in former:  # Ctrl-C keeps Python's own KeyboardInterrupt
+        signal.signal(signal.SIGINT, former.pop(signal.SIGINT))
+    return former
+
+
+def _say(line: str) -> None:
+    """A last line on stderr, which a closed terminal no longer takes (EIO): then it is not said."""
+    try:
+        print(line, file=sys.stderr, flush=True)
+    except (OSError, ValueError):
+        pass
+
+
+def _detach_closed_output() -> None:
+    """Flush stdout and stderr now; one a closed terminal refuses is pointed at /dev/null, so Python's own
+    flush at exit does not fail too (and turn the exit status into 120)."""
+    for stream in (sys.stdout, sys.stderr):
+        if stream is None:  # no console at all (pythonw, some services)
+            continue
+        try:
+            stream.flush()
+        except (OSError, ValueError):
+            try:
+                null = os.open(os.devnull, os.O_WRONLY)
+                os.dup2(null, stream.fileno())
+                os.close(null)
+            except (OSError, ValueError):
+                pass
 
 
 def main(argv=None) -> int:
-    import signal
+    from .stop_signals import restore
 
-    previous = _stop_on_sigterm()  # first: warp loads below (about a second), and a stop then is answered too
+    previous = _stop_on_signals()  # first: warp loads below (about a second), and a stop then is answered too
     args = None
     try:
         try:
             args = build_parser().parse_args(argv)
             _setup_output(args.verbose)
         except KeyboardInterrupt as error:
-            print(f"\ncosim: interrupted. {error}".rstrip(), file=sys.stderr)
-            return EXIT_TERMINATED if str(error) == "SIGTERM" else EXIT_INTERRUPTED
+            return _interrupted(error)
         return _dispatch(args)
     except Exception as error:  # noqa: BLE001 - what no rule below expected: a bug, exit 1
         if getattr(args, "verbose", False):
             log.exception("cosim: unexpected error (a bug: please report it with this traceback)")
         else:
-            print(
-                f"cosim: unexpected error: {type(error).__name__}: {error} (a bug: --verbose shows the traceback)",
-                file=sys.stderr,
-            )
+            _say(f"cosim: unexpected error: {type(error).__name__}: {error} (a bug: --verbose shows the traceback)")
         return EXIT_ERROR
     finally:
-        if previous is not None:
-            signal.signal(signal.SIGTERM, previous)
+        restore(previous)
+        _detach_closed_output()
+
+
+def _interrupted(error: BaseException) -> int:
+    """A stop signal's one line, and its exit status: 128 + the signal's number (130 Ctrl-C, 143 SIGTERM,
+    129 SIGHUP)."""
+    from .stop_signals import exit_status, stop_name
+
+    _say(f"\ncosim: interrupted. {error}".rstrip())
+    return exit_status(stop_name(error))
 
 
 def _dispatch(args) -> int:
     """Run the command; the project's own errors become their exit status and a one-line message
     (bad input: 2, only soil.errors.InputError; a failure the project reports that is not the
-    input's: 1); anything else propagates to `main` as unexpected. Ctrl-C (or SIGTERM) exits 130 (143)
-    with one line, also while the modules below load (seconds: warp's)."""
+    input's: 1); anything else propagates to `main` as unexpected. A stop signal exits 128 + its number
+    (cosim.stop_signals: Ctrl-C 130, SIGTERM 143, SIGHUP 129) with one line, also while the modules below
+    load (seconds: warp's)."""
 
     def fail(code: int, error) -> int:
-        print(f"cosim: error: {error}", file=sys.stderr)
+        _say(f"cosim: error: {error}")
         return code
-
-    def interrupted(error) -> int:
-        print(f"\ncosim: interrupted. {error}".rstrip(), file=sys.stderr)
-        terminated = getattr(error, "signal", None) == "SIGTERM" or str(error).startswith("SIGTERM")
-        return EXIT_TERMINATED if terminated else EXIT_INTERRUPTED
 
     try:
         from soil.errors import InputError, RegolithError
@@ -1527,7 +1554,7 @@ def _dispatch(args) -> int:
         from .runner import RunDiverged, RunInterrupted
         from .scene import SceneError
     except KeyboardInterrupt as error:
-        return interrupted(error)
+        return _interrupted(error)
 
     try:
         return args.func(args)
@@ -1538,7 +1565,7 @@ def _dispatch(args) -> int:
     except (RunDiverged, SettlingDiverged, SimulationDiverged, LabDiverged) as error:
         return fail(EXIT_DIVERGED, error)
     except (KeyboardInterrupt, RunInterrupted) as error:
-        return interrupted(error)
+        return _interrupted(error)
     except InputError as error:  # an FMU, a mesh, a bed, an argument: bad input the project recognised
         return fail(EXIT_INPUT, error)
     except RegolithError as error:  # a failure the project reports (a model refused a step, a tool is missing)

@@ -23,12 +23,14 @@ replaced with overwrite=True, and only after the new run has been validated and 
 from __future__ import annotations
 
 import json
+import math
 import os
 import shutil
 
 from filelock import FileLock, Timeout
 
 from soil.errors import RegolithError
+from soil.files import atomic_write_text
 
 RESULTS_FILE = "results.h5"
 XDMF_FILE = "results.xdmf"
@@ -156,3 +158,45 @@ def read_json(path: str) -> dict:
     except (OSError, ValueError):
         return {}
     return data if isinstance(data, dict) else {}
+
+
+def write_json(path: str, data: dict) -> None:
+    """Write a JSON file atomically (numpy scalars and arrays allowed). A number that is not finite (nan:
+    not measured) is written as null: Python's NaN is no JSON, and jq, JavaScript and strict parsers refuse
+    the whole file."""
+    atomic_write_text(path, json.dumps(finite_or_null(data), indent=2, allow_nan=False) + "\n")
+
+
+def read_json_numbers(path: str):
+    """A JSON file write_json wrote, each null as nan (a number that was not measured): what its numbers'
+    readers compute with (None * 1 is an error, nan * 1 is nan)."""
+    with open(path) as f:
+        return null_as_nan(json.load(f))
+
+
+def null_as_nan(value):
+    """`value` with every None, also in lists and dicts, as nan (the inverse of finite_or_null)."""
+    if value is None:
+        return math.nan
+    if isinstance(value, dict):
+        return {key: null_as_nan(item) for key, item in value.items()}
+    if isinstance(value, list):
+        return [null_as_nan(item) for item in value]
+    return value
+
+
+def finite_or_null(value):
+    """`value` with numpy scalars and arrays as Python numbers and lists, and every non-finite number None."""
+    import numpy as np
+
+    if isinstance(value, np.ndarray):
+        value = value.tolist()
+    elif isinstance(value, np.generic):
+        value = value.item()
+    if isinstance(value, float):
+        return value if math.isfinite(value) else None
+    if isinstance(value, dict):
+        return {key: finite_or_null(item) for key, item in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [finite_or_null(item) for item in value]
+    return value

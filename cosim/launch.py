@@ -28,9 +28,9 @@ from soil.files import atomic_write_text
 from soil.stability import read_checkpoint
 
 from . import records
-from .beds import BED_FILE, Bed, bed_from_file, check_memory, memory_estimate, settled_bed, write_json
+from .beds import BED_FILE, Bed, bed_from_file, check_memory, memory_estimate, settled_bed
 from .contract import SoilSide
-from .folders import EDITED_SCENE_FILE, RUN_FILE, SCENE_FILE, RunFolder, read_json
+from .folders import EDITED_SCENE_FILE, RUN_FILE, SCENE_FILE, RunFolder, read_json, write_json
 from .output import ResultsWriter, read_series, stored_wheel_mesh
 from .plan import RunPlan, load_plan, resolve
 from .runner import Runner, RunResult

@@ -113,8 +113,7 @@ import numpy as np
 from soil.errors import DamagedFileError
 from soil.files import atomic_path, atomic_write_text, with_path
 
-from .beds import finite_or_null, null_as_nan
-from .folders import XDMF_DATA_FILE, XDMF_FILE
+from .folders import XDMF_DATA_FILE, XDMF_FILE, finite_or_null, null_as_nan
 from .snapshots import ARRAY_NAMES, read_results_data, read_snapshot, read_whole, snapshot_datasets
 
 RESULTS_FORMAT = "regolith-cosim results 2"

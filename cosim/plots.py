@@ -266,10 +266,12 @@ def _title(runs) -> str:
 
 
 def plot_scatter(out_dir: str, rows: list[dict], key: str, dpi: int = 120) -> str:
-    """Mean, std and min-max of travel, slip and sinkage per group (a study's rows, cosim.study)."""
+    """Mean, std and min-max of travel, slip and sinkage per group (a study's rows, cosim.study), over each
+    group's steady runs (its `steady` count, in the title); a group with none is marked on every panel."""
     plt = _pyplot()
     fig, axes = plt.subplots(1, 3, figsize=(14, 4))
     x = np.arange(len(rows))
+    steady = [r.get("steady") for r in rows]
     for ax, (name, label, scale) in zip(
         axes, [("travel", "travel [mm]", 1e3), ("slip", "slip [-]", 1.0), ("sinkage", "sinkage [mm]", 1e3)]
     ):
@@ -280,10 +282,15 @@ def plot_scatter(out_dir: str, rows: list[dict], key: str, dpi: int = 120) -> st
         ax.errorbar(x, mean, yerr=[low, high], fmt="o", capsize=6, label="min-max")
         ax.errorbar(x + 0.08, mean, yerr=std, fmt="s", capsize=3, label="std")
         ax.set_xticks(x, [str(r[key]) for r in rows])
+        ax.set_xlim(-0.5, len(rows) - 0.5)
+        for i in np.flatnonzero(~np.isfinite(mean)):  # no steady run: nothing to scatter there, said so
+            ax.text(x[i], 0.5, "no steady run", transform=ax.get_xaxis_transform(), ha="center", color="C3")
         ax.set_ylabel(label)
         ax.grid(True, alpha=0.3)
     axes[0].legend(fontsize=8)
-    fig.suptitle(f"scatter over replicas ({rows[0].get('replicas')} per {key})" if rows else "")
+    counts = ", ".join("?" if n is None else str(n) for n in steady)
+    title = f"scatter over the steady replicas ({rows[0].get('replicas')} per {key}; steady: {counts})" if rows else ""
+    fig.suptitle(title)
     fig.tight_layout()
     path = os.path.join(out_dir, PLOTS_DIR, "scatter.png")
     save_figure(fig, path, dpi)

@@ -24,7 +24,7 @@ from .contract import StepStatistics, wheel_frame
 from .coupler import MacroStepRecord
 from .output import read_series, series_until
 from .plan import RunPlan
-from .system import CoupledSystem, validity
+from .system import TERRAIN_MODELS, CoupledSystem, validity
 
 
 def step_facts(system: CoupledSystem) -> dict:
@@ -199,18 +199,10 @@ def attributes(plan: RunPlan, system: CoupledSystem, source: str, findings) -> d
 
 
 def soil_step(plan: RunPlan) -> tuple[float, int]:
-    """(dt [s], steps per macro step) of the soil a run steps: the DEM's (plan.dt, plan.substeps; the PID
-    varies them), on SCM alone SCM's own (cosim.scm_soil.scm_steps), on the analytic terrain its wrench
-    samples (cosim.terrain.WRENCH_SAMPLES): neither simulates the bed's grains, whose step the plan holds."""
-    if plan.terrain.model == "scm":
-        from .scm_soil import scm_steps
-
-        return scm_steps(plan)
-    if plan.terrain.model == "analytic":
-        from .terrain import WRENCH_SAMPLES
-
-        return plan.macro_step / WRENCH_SAMPLES, WRENCH_SAMPLES
-    return plan.dt, plan.substeps
+    """(dt [s], steps per macro step) of the soil a run steps, as its terrain model says
+    (cosim.system.TerrainModel.steps): the DEM's (plan.dt, plan.substeps; the PID varies them), SCM's own
+    on SCM alone, the analytic terrain's wrench samples."""
+    return TERRAIN_MODELS[plan.terrain.model].steps(plan)
 
 
 ATTRIBUTE_UNITS = {

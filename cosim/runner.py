@@ -9,7 +9,7 @@ CHECK_EVERY macro steps and at each checkpoint. A step's row is made and written
 computes the next step (Coupler.step's `meanwhile`: on a GPU the host's records overlap the
 device's steps), except where the file must hold it first: before a snapshot or a checkpoint (so
 also at a stop and at the end, which write both). At the end the summary is computed from what was written
-(cosim.records.run_summary). A first Ctrl-C (or SIGTERM) finishes the macro step,
+(cosim.records.run_summary). A first Ctrl-C (or SIGTERM, or SIGHUP: cosim.stop_signals) finishes the macro step,
 writes a checkpoint and stops cleanly; a second one stops at once. After the run has ended, a first one
 lets its files be finished (results.h5, run.json, the export), then stops. The runner reads the soil
 only through the SoilSide contract (cosim.contract).
@@ -32,14 +32,14 @@ from soil.errors import RegolithError
 from soil.stability import write_checkpoint
 from soil.state import STATE_UNITS
 
-from . import metrics, records
-from .beds import write_json
+from . import metrics, records, stop_signals
 from .contract import Particles, RoverDiverged
 from .coupler import MacroStepRecord
-from .folders import DIVERGED_FILE, RUN_FILE, VTKHDF_FILE, RunFolder, read_json
+from .folders import DIVERGED_FILE, RUN_FILE, VTKHDF_FILE, RunFolder, read_json, write_json
 from .output import ResultsWriter
 from .plan import RunPlan
 from .single_wheel import PHASE_LANDING
+from .stop_signals import SIGNAL_WORDS
 from .system import CoupledSystem, needs_bed
 from .vtkhdf import write_vtkhdf
 
@@ -66,14 +66,14 @@ class RunDiverged(RegolithError, RuntimeError):
 
 
 class RunInterrupted(RegolithError):
-    """The run was stopped on request (Ctrl-C, SIGTERM) after a checkpoint; `cosim resume OUT` continues it.
+    """The run was stopped on request (Ctrl-C, SIGTERM, SIGHUP) after a checkpoint; `cosim resume OUT` continues it.
     A stop asked during the run's last step or while its files were finished (complete, diverged, failed)
     comes after them: the message says how the run ended (a finished run: nothing is left to resume)."""
 
     def __init__(self, message: str, signal: str = "SIGINT"):
         super().__init__(message)
         self.signal = signal
-        """The signal's name: SIGINT (exit 130) or SIGTERM (exit 143)."""
+        """The signal's name: SIGINT (exit 130), SIGTERM (143) or SIGHUP (129)."""
 
 
 @dataclass
@@ -120,7 +120,8 @@ class Runner:
         self._pending: _Deferred | None = None
         """The last step's row, made and written while the soil computes the next step (or sooner)."""
         self.stop_signal = "SIGINT"
-        """The signal that asked for the stop (SIGINT: Ctrl-C, SIGTERM: a scheduler or container)."""
+        """The signal that asked for the stop (SIGINT: Ctrl-C, SIGTERM: a scheduler or container, SIGHUP: the
+        terminal closed)."""
         self.mesh = system.wheel_mesh()
         loop = loop or {}
         rover = system.rover
@@ -259,14 +260,13 @@ class Runner:
             status, message = "failed", f"{type(error).__name__}: {error}"
             raise
         finally:
-            self.closing = True  # a first Ctrl-C or SIGTERM from here lets the run's files be finished (seconds)
+            self.closing = True  # a first stop signal from here lets the run's files be finished (seconds)
             try:
                 if bar is not None:
                     bar.close()
                 status, summary = self._close(status, message, started)
             finally:
-                for number, previous in previous_handlers.items():
-                    signal.signal(number, previous)
+                stop_signals.restore(previous_handlers)
             if self.stop_requested and status != "interrupted":  # asked as the run ended: the caller stops too
                 words = SIGNAL_WORDS.get(self.stop_signal, self.stop_signal)
                 if status in ("complete", "unsteady"):
@@ -588,19 +588,10 @@ class _Deferred:
             raise self.error
 
 
-STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM)
-"""Ctrl-C, and SIGTERM (what batch schedulers and `docker stop` send): both stop a run cleanly."""
-SIGNAL_WORDS = {"SIGINT": "Ctrl-C"}
-"""How a message names a stop signal."""
-
-
 def _install_stop_handlers(runner: Runner) -> dict:
-    """First Ctrl-C or SIGTERM: stop cleanly after the macro step (with a checkpoint); a second: at once.
-    Returns the handlers it replaced (empty outside the main thread, where Python allows none)."""
-    import threading
-
-    if threading.current_thread() is not threading.main_thread():
-        return {}
+    """First stop signal (Ctrl-C, SIGTERM, SIGHUP: cosim.stop_signals): stop cleanly after the macro step
+    (with a checkpoint); a second: at once. Returns the handlers it replaced (empty outside the main thread,
+    where Python allows none)."""
 
     def handler(signum, frame):
         name = signal.Signals(signum).name
@@ -617,4 +608,4 @@ def _install_stop_handlers(runner: Runner) -> dict:
         )
         log.warning("%s: %s (%s again to stop at once)", words, doing, words)
 
-    return {number: signal.signal(number, handler) for number in STOP_SIGNALS}
+    return stop_signals.install(handler)

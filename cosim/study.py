@@ -42,7 +42,6 @@ import os
 import re
 import shutil
 import signal
-import threading
 import time
 import traceback
 from collections.abc import Iterator
@@ -57,9 +56,9 @@ from soil import quiet_warp
 from soil.errors import ArgumentError, DamagedFileError, InternalError, RegolithError
 from soil.files import atomic_write_text
 
-from . import advice, metrics
-from .beds import BED_FILE, BED_INFO_FILE, finite_or_null, settled_bed, settling_cost, write_json
-from .folders import RESULTS_FILE, RUN_FILE, RunFolder, read_json
+from . import advice, metrics, stop_signals
+from .beds import BED_FILE, BED_INFO_FILE, settled_bed, settling_cost
+from .folders import RESULTS_FILE, RUN_FILE, RunFolder, finite_or_null, read_json, write_json
 from .launch import FINISHED
 from .plan import MAX_PHASE_STEPS, RunPlan, resolve
 from .runner import RunInterrupted
@@ -325,26 +324,21 @@ class Executor:
 
 @contextlib.contextmanager
 def _signals_held():
-    """Hold SIGINT and SIGTERM back while the block runs (in the main thread): yields the list of those
-    that arrived, in order (a second one raises KeyboardInterrupt at once); the former handlers are back
-    when it ends."""
+    """Hold the stop signals (cosim.stop_signals) back while the block runs (in the main thread): yields
+    the list of those that arrived, in order (a second one raises KeyboardInterrupt at once); the former
+    handlers are back when it ends."""
     held: list[int] = []
-    if threading.current_thread() is not threading.main_thread():
-        yield held
-        return
 
     def hold(signum, frame):
         if held:  # asked twice: stop at once, as a second Ctrl-C does in a run
             raise KeyboardInterrupt(signal.Signals(signum).name)
         held.append(signum)
 
-    kinds = (signal.SIGINT, signal.SIGTERM)
-    former = {kind: signal.signal(kind, hold) for kind in kinds}
+    former = stop_signals.install(hold)
     try:
         yield held
     finally:
-        for kind, handler in former.items():
-            signal.signal(kind, handler)
+        stop_signals.restore(former)
 
 
 def _report(result, label, done, total):
@@ -1012,9 +1006,8 @@ def _replica_tasks(plan: RunPlan, out_dir: str, beds: list, vary: str, soils: li
 def _replicas_stopped(
     stop: BaseException, out_dir: str, what: str = "the replicas", writes: str = "the ensemble"
 ) -> KeyboardInterrupt:
-    """The stop of a set of runs (Ctrl-C, SIGTERM), saying how to finish them; its `signal` is the name."""
-    name = stop.signal if isinstance(stop, RunInterrupted) else getattr(stop, "signal", None)
-    name = name or ("SIGTERM" if str(stop).startswith("SIGTERM") else "SIGINT")
+    """The stop of a set of runs (Ctrl-C, SIGTERM, SIGHUP), saying how to finish them; its `signal` is the name."""
+    name = stop_signals.stop_name(stop)
     error = KeyboardInterrupt(
         f"{name}: {what} stopped (each run that began keeps its checkpoint); `cosim resume {out_dir}` "
         f"finishes them and writes {writes}"

@@ -37,9 +37,9 @@ from .metrics import WheelGeometry
 from .plan import RunPlan, SceneError, enable_step_control
 from .rover import RoverDriver, drive_label, make_controller, open_rover
 from .scm_calibration import warn_gravity
-from .scm_soil import CompositeSoil, ScmSoil, scm_settings
+from .scm_soil import CompositeSoil, ScmSoil, scm_settings, scm_steps
 from .single_wheel import SingleWheelRig
-from .terrain import SpringDamperTerrain
+from .terrain import WRENCH_SAMPLES, SpringDamperTerrain
 
 START_GAP = 0.05
 """Gap between the wheel and the highest grain under it at the start, in mean grain radii [-]:
@@ -336,13 +336,25 @@ class TerrainModel:
     validity: Callable[..., list[Finding]]
     """The validity checks of a run on it: (plan, surface_height [m] or None, the run summary's
     measured values or None) -> findings (cosim.advice.check for the DEM's grain scales)."""
+    steps: Callable[[RunPlan], tuple[float, int]]
+    """(dt [s], steps per macro step) of the soil's own stepping (results.h5's dt and substeps)."""
+
+
+def _dem_steps(plan: RunPlan) -> tuple[float, int]:
+    """The DEM's step and substeps (the PID varies them); a mixed terrain's too."""
+    return plan.dt, plan.substeps
+
+
+def _analytic_steps(plan: RunPlan) -> tuple[float, int]:
+    """The analytic terrain's wrench samples per macro step (it simulates no grains)."""
+    return plan.macro_step / WRENCH_SAMPLES, WRENCH_SAMPLES
 
 
 TERRAIN_MODELS: dict[str, TerrainModel] = {
-    "dem": TerrainModel(_dem_soil, needs_bed=True, validity=_dem_validity),
-    "analytic": TerrainModel(_analytic_soil, needs_bed=False, validity=_no_findings),
-    "scm": TerrainModel(_scm_soil, needs_bed=False, validity=_scm_validity),
-    "mixed": TerrainModel(_mixed_soil, needs_bed=True, validity=_mixed_validity),
+    "dem": TerrainModel(_dem_soil, needs_bed=True, validity=_dem_validity, steps=_dem_steps),
+    "analytic": TerrainModel(_analytic_soil, needs_bed=False, validity=_no_findings, steps=_analytic_steps),
+    "scm": TerrainModel(_scm_soil, needs_bed=False, validity=_scm_validity, steps=scm_steps),
+    "mixed": TerrainModel(_mixed_soil, needs_bed=True, validity=_mixed_validity, steps=_dem_steps),
 }
 """The terrain models by [terrain] model name."""
 

@@ -15,6 +15,7 @@ GRAVITY_PRESETS: dict[str, float] = {
     "phobos_max": 6.8e-3,  # upper extreme
     "deimos": 3.0e-3,
 }
+"""The magnitude of each named gravity [m/s^2] (a scene's `gravity = "phobos"`), along -Z."""
 
 
 def gravity_vector(value) -> np.ndarray:

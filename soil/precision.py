@@ -35,6 +35,7 @@ import warp as wp
 from .errors import SoilInputError
 
 PRECISIONS = ("single", "double", "mixed")
+"""The precisions a simulation runs in (module docstring: what each keeps in float32 and float64)."""
 
 
 @dataclass(frozen=True)

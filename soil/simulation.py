@@ -290,7 +290,8 @@ class Simulation:
         motion, external forces), the step counters, the divergence monitor's bounds and the step
         controller's state. Device to device, no host read. `into`: an earlier snapshot of this
         simulation whose device buffers are reused (it is overwritten)."""
-        return snapshot_module.take(self, into)
+        controller = None if self._controller is None else self._controller.state_dict()
+        return snapshot_module.take(self, controller, (self._rebuilds_since_reorder, self._bounds), into)
 
     def restore(self, snapshot: SimulationSnapshot) -> None:
         """Put the simulation back to `snapshot` (from this simulation's snapshot()): the next step
@@ -299,7 +300,12 @@ class Simulation:
         last good state is not rolled back. A snapshot taken before run_adaptive's first call drops
         the controller made since (the repeat makes a fresh one; one passed to run_adaptive again
         is used as it is then)."""
-        snapshot_module.put_back(self, snapshot)
+        snapshot_module.put_back(self, snapshot)  # checks the snapshot before anything is put back
+        if snapshot.controller is None:  # run_adaptive made or took one since: it starts afresh again
+            self._controller = None
+        elif self._controller is not None:
+            self._controller.load_state_dict(snapshot.controller)
+        self._rebuilds_since_reorder, self._bounds = snapshot.reorder
 
     # -- buffers ---------------------------------------------------------------------
     def _spares(self) -> list[SoilState]:

@@ -44,8 +44,9 @@ class SimulationSnapshot:
     grains' box at the last build)."""
 
 
-def take(sim, into: SimulationSnapshot | None = None) -> SimulationSnapshot:
-    """Simulation.snapshot (its docstring)."""
+def take(sim, controller: dict | None, reorder: tuple, into: SimulationSnapshot | None = None) -> SimulationSnapshot:
+    """Simulation.snapshot (its docstring): the simulation's public parts, with its host `controller` state
+    and `reorder` bookkeeping, which it hands over (its own private fields)."""
     state = sim.state
     if into is None or into.model is not sim.model:
         copy = SoilState.for_model(sim.model, state.capacity, state.rigid_capacity)
@@ -63,14 +64,15 @@ def take(sim, into: SimulationSnapshot | None = None) -> SimulationSnapshot:
         control=sim.control.snapshot(),
         counters={name: int(getattr(sim, name)) for name in COUNTERS},
         monitor=sim.monitor.state_dict(),
-        controller=None if sim._controller is None else sim._controller.state_dict(),
+        controller=controller,
         step_control=step_control,
-        reorder=(sim._rebuilds_since_reorder, sim._bounds),
+        reorder=reorder,
     )
 
 
 def put_back(sim, snapshot: SimulationSnapshot) -> None:
-    """Simulation.restore (its docstring)."""
+    """Simulation.restore (its docstring): the public parts; the simulation puts back its controller and
+    reorder bookkeeping (snapshot.controller, snapshot.reorder) itself."""
     from .errors import SoilInputError
 
     if not isinstance(snapshot, SimulationSnapshot):
@@ -85,10 +87,5 @@ def put_back(sim, snapshot: SimulationSnapshot) -> None:
     for name, value in snapshot.counters.items():
         setattr(sim, name, value)
     sim.monitor.load_state_dict(snapshot.monitor)
-    if snapshot.controller is None:  # run_adaptive made or took one since: it starts afresh again
-        sim._controller = None
-    elif sim._controller is not None:
-        sim._controller.load_state_dict(snapshot.controller)
     if snapshot.step_control is not None and sim.step_control is not None:
         wp.copy(sim.step_control.control, snapshot.step_control)
-    sim._rebuilds_since_reorder, sim._bounds = snapshot.reorder

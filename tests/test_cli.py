@@ -7,6 +7,7 @@ import os
 import re
 import subprocess
 import sys
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -608,7 +609,7 @@ def test_a_failed_task_is_reported_and_the_others_finish(tmp_path, tiny_bed):
 
     blocker = tmp_path / "file"
     blocker.write_text("x")
-    text = open(write_tiny(tmp_path)).read()
+    text = Path(write_tiny(tmp_path)).read_text()
     overrides = {"bed.bed_file": str(tiny_bed), "run.duration": 0.01}
     tasks = [
         {"scene_toml": text, "overrides": overrides, "out_dir": str(blocker / "a"), "label": "bad"},
@@ -670,7 +671,8 @@ def test_sigterm_while_the_dask_cluster_starts_closes_it_whole_then_stops(monkey
 
     import dask.distributed
 
-    from cosim.cli import _stop_on_sigterm
+    from cosim.cli import _stop_on_signals
+    from cosim.stop_signals import restore
     from cosim.study import Executor
 
     closed = []
@@ -692,12 +694,12 @@ def test_sigterm_while_the_dask_cluster_starts_closes_it_whole_then_stops(monkey
 
     monkeypatch.setattr(dask.distributed, "LocalCluster", StartingCluster)
     monkeypatch.setattr(dask.distributed, "Client", FakeClient)
-    previous = _stop_on_sigterm()
+    previous = _stop_on_signals()
     try:
         with pytest.raises(KeyboardInterrupt, match="SIGTERM"), Executor("dask", workers=1):
             raise AssertionError("the block must not run after a SIGTERM")
     finally:
-        signal.signal(signal.SIGTERM, previous)
+        restore(previous)
     assert closed == ["client", "cluster"]
 
 

@@ -587,6 +587,84 @@ def test_row13_sigterm_checkpoints_stops_cleanly_and_resumes(scene, tiny_bed, co
     assert info["summary"]["slip"] == reference["summary"]["slip"]  # bitwise on the CPU
 
 
+def test_row13_a_closed_terminal_checkpoints_stops_cleanly_and_resumes(scene, tiny_bed, complete, tmp_path):
+    """A run in a terminal that closes (an ssh session dropped) gets SIGHUP, and every later write to the
+    terminal fails (EIO). It used to die as if killed -9, without a checkpoint of that moment; it stops as
+    on SIGTERM, with a checkpoint, exit 129, and resumes to the uninterrupted run's numbers."""
+    import pty
+
+    out = tmp_path / "hangup"
+    script = textwrap.dedent(f"""
+        import sys, time
+        from cosim import runner
+        from cosim.cli import main
+        original = runner.Runner._after_step
+        def after_step(self, record):
+            original(self, record)
+            if self.system.coupler.step_count == 20:
+                try:
+                    print("STEP 20", flush=True)  # the test closes the terminal now
+                except OSError:  # closed already (EIO): this line is the test's, not the run's
+                    pass
+                waited = time.monotonic()
+                while not self.stop_requested and time.monotonic() - waited < 60:
+                    time.sleep(0.01)
+        runner.Runner._after_step = after_step
+        sys.exit(main(["run", {scene!r}, "--out", {str(out)!r}, "--set", 'bed.bed_file="{tiny_bed}"']))
+    """)
+    pid, terminal = pty.fork()  # the child's session and controlling terminal: its stdin, stdout, stderr
+    if pid == 0:  # the child: progress bars and log lines on the terminal, as a user's run has them
+        try:
+            os.execv(sys.executable, [sys.executable, "-c", script])
+        finally:
+            os._exit(127)
+    said = b""
+    deadline = time.monotonic() + 300
+    while b"STEP 20" not in said and time.monotonic() < deadline:
+        try:
+            said += os.read(terminal, 4096)
+        except OSError:  # the child ended (EIO on Linux)
+            break
+    os.close(terminal)  # the terminal closes: the kernel sends SIGHUP to its session
+    _, status = os.waitpid(pid, 0)
+    assert b"STEP 20" in said, said.decode(errors="replace")[-2000:]
+    assert os.waitstatus_to_exitcode(status) == 129, said.decode(errors="replace")[-2000:]
+    info = json.loads((out / "run.json").read_text())
+    assert info["status"] == "interrupted" and "SIGHUP" in info["message"], info.get("message")
+    assert int(np.load(out / "checkpoint.npz")["coupler/step_count"]) == 20  # a checkpoint of the moment
+    assert main(["resume", str(out), "--no-progress"]) in (0, 6)
+    info, reference = (json.loads((f / "run.json").read_text()) for f in (out, complete))
+    assert info["summary"]["slip"] == reference["summary"]["slip"]  # bitwise on the CPU
+
+
+def test_a_command_started_under_nohup_keeps_ignoring_the_hangup():
+    """`nohup cosim run ...` starts the command with SIGHUP ignored, so that it outlives the terminal: the
+    stop handlers of a command, a run and a batch leave it ignored (they would stop the run otherwise),
+    and handle Ctrl-C and SIGTERM as ever."""
+    from cosim import stop_signals
+    from cosim.cli import _stop_on_signals
+
+    def handler(signum, frame):
+        raise AssertionError("not called")
+
+    for ignored in (True, False):
+        before = signal.signal(signal.SIGHUP, signal.SIG_IGN if ignored else signal.SIG_DFL)
+        try:
+            command = _stop_on_signals()
+            try:
+                run = stop_signals.install(handler)
+                try:
+                    assert (signal.getsignal(signal.SIGHUP) is signal.SIG_IGN) == ignored
+                    assert signal.getsignal(signal.SIGTERM) is handler and signal.getsignal(signal.SIGINT) is handler
+                finally:
+                    stop_signals.restore(run)
+                assert (signal.getsignal(signal.SIGHUP) is signal.SIG_IGN) == ignored
+            finally:
+                stop_signals.restore(command)
+        finally:
+            signal.signal(signal.SIGHUP, before)
+
+
 # -- row 14: a run folder moved whole -------------------------------------------------------------
 def test_row14_a_run_folder_moved_whole_resumes_on_the_bed_it_carries(scene, tiny_bed, complete, tmp_path, capsys):
     here = tmp_path / "here" / "run"

@@ -236,7 +236,7 @@ def _documented_units(module, name: str, method: str | None = None) -> dict[str,
     import ast
     import re
 
-    tree = ast.parse(open(module.__file__).read())
+    tree = ast.parse(Path(module.__file__).read_text())
     cls = next(c for c in tree.body if isinstance(c, ast.ClassDef) and c.name == name)
     body = (
         cls.body
@@ -416,7 +416,7 @@ def test_every_json_file_of_a_run_is_strict_json(tiny_run, tmp_path):
     results.h5 holds is strict JSON too (it held NaN where run.json holds null)."""
     import math
 
-    from cosim.beds import write_json
+    from cosim.folders import write_json
 
     def strict(text):
         return json.loads(text, parse_constant=lambda name: pytest.fail(f"{name} is no JSON"))
@@ -452,3 +452,29 @@ def test_every_json_file_of_a_run_is_strict_json(tiny_run, tmp_path):
     path = tmp_path / "summary.json"
     write_json(str(path), {"k": math.nan, "n": np.float32(np.inf), "rows": [np.array([1.0, np.nan])], "i": np.int64(3)})
     assert strict(path.read_text()) == {"k": None, "n": None, "rows": [[1.0, None]], "i": 3}
+
+
+def test_a_study_scatter_without_steady_runs_says_so(tmp_path, monkeypatch):
+    """A precision study whose runs all ended too short wrote scatter.png as three empty panels, nothing
+    said. The statistics are over steady runs: a group with none is marked on every panel, and the title
+    gives each group's steady count."""
+    import math
+
+    from cosim import plots
+
+    figures = []  # closed after saving, still readable
+    monkeypatch.setattr(plots, "save_figure", lambda fig, path, dpi: figures.append(fig))
+    steady = {"travel_mean": 5e-3, "travel_min": 4e-3, "travel_max": 6e-3, "travel_std": 1e-3}
+    steady |= {"slip_mean": 0.2, "slip_min": 0.1, "slip_max": 0.3, "slip_std": 0.1}
+    steady |= {"sinkage_mean": 3e-3, "sinkage_min": 2e-3, "sinkage_max": 4e-3, "sinkage_std": 1e-3}
+    none = {name: math.nan for name in steady}
+    rows = [
+        {"precision": "single", "replicas": 3, "steady": 0, **none},
+        {"precision": "double", "replicas": 3, "steady": 2, **steady},
+    ]
+    plots.plot_scatter(str(tmp_path), rows, "precision")
+    (figure,) = figures
+    assert "steady: 0, 2" in figure._suptitle.get_text()
+    for axis in figure.axes:
+        marks = [t for t in axis.texts if t.get_text() == "no steady run"]
+        assert len(marks) == 1 and marks[0].get_position()[0] == 0  # at the single group, not at double

@@ -5,6 +5,7 @@ an FMU rover with an FMU controller), the run folder's files and plots, and a sw
 import json
 import math
 import os
+from pathlib import Path
 
 import h5py
 import numpy as np
@@ -349,7 +350,7 @@ kind = "speed"
 speed = 2.5
 """
     scene = write_rig(folder, name="sweep", duration=0.6, extra=extra)
-    text = open(scene).read().replace('[rover.drive]\nkind = "speed"\nspeed = 2.0\n', "")
+    text = Path(scene).read_text().replace('[rover.drive]\nkind = "speed"\nspeed = 2.0\n', "")
     text = text.replace('wheels = ["wheel"]\n', 'wheels = ["wheel"]\ndrive = "slow"\n')
     open(scene, "w").write(text)
     out = folder / "sweep_out"

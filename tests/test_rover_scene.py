@@ -2,6 +2,7 @@
 before anything runs (no bed is settled, no run folder written)."""
 
 import os
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -143,9 +144,10 @@ def _steered_rover(tmp_path, turns: dict[str, float], **mmx) -> str:
         xml = xml.replace(f'<body name="{wheel}" ', f'<body name="{wheel}" euler="0 0 {turn}" ')
     (tmp_path / "steered.xml").write_text(xml)
     scene = write_small_rover(tmp_path)
-    text = open(scene).read().split("[rover.mmx]")[0].replace('model = "mmx"', 'model = "mjcf"\nfile = "steered.xml"')
+    original = Path(scene).read_text()
+    text = original.split("[rover.mmx]")[0].replace('model = "mmx"', 'model = "mjcf"\nfile = "steered.xml"')
     wheels = 'wheels = ["wheel_fl", "wheel_fr", "wheel_rl", "wheel_rr"]'
-    tail = open(scene).read().split("[rover.controllers.cruise]")[1]
+    tail = original.split("[rover.controllers.cruise]")[1]
     (tmp_path / "steered.toml").write_text(f"{text}{wheels}\n[rover.controllers.cruise]{tail}")
     return str(tmp_path / "steered.toml")
 

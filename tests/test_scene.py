@@ -2,6 +2,7 @@
 
 import glob
 import os
+from pathlib import Path
 
 import pytest
 
@@ -182,7 +183,7 @@ def test_a_scene_saved_with_a_byte_order_mark_reads_as_without_and_a_folder_is_n
     ("Invalid statement (line 1, col 1)"): the scene reads as the same file without it."""
     path = write_tiny(tmp_path)
     marked = tmp_path / "marked.toml"
-    marked.write_bytes(b"\xef\xbb\xbf" + open(path, "rb").read())
+    marked.write_bytes(b"\xef\xbb\xbf" + Path(path).read_bytes())
     assert load_scene(marked).to_dict() == load_scene(path).to_dict()
     with pytest.raises(SceneError, match="is a folder; give a scene file"):
         load_scene(tmp_path)
@@ -233,7 +234,7 @@ def test_mesh_wheel_scene(tmp_path):
 @pytest.mark.parametrize("path", sorted(glob.glob(os.path.join(EXAMPLES, "*.toml"))))
 def test_examples_are_valid(path, tmp_path_factory):
     overrides = ['scene.device="cpu"']
-    if "fmus/" in open(path).read():  # the example's FMUs are built from rover_models/fmu_src first
+    if "fmus/" in Path(path).read_text():  # the example's FMUs are built from rover_models/fmu_src first
         pytest.importorskip("pythonfmu")
         from rover_models.fmu_src.build_fmus import build_rover_fmu, build_slip_controller_fmu
 
@@ -242,7 +243,7 @@ def test_examples_are_valid(path, tmp_path_factory):
             f'rover.file="{build_rover_fmu(folder)}"',
             f'rover.controllers.fmu_slip.file="{build_slip_controller_fmu(folder, 4)}"',
         ]
-    if "[repose]" in open(path).read() or "[shear]" in open(path).read():  # a lab scene (cosim lab)
+    if "[repose]" in Path(path).read_text() or "[shear]" in Path(path).read_text():  # a lab scene (cosim lab)
         from cosim.lab.scene import load_lab_plan
 
         load_lab_plan(path, overrides)
@@ -441,9 +442,9 @@ def test_cosim_scale_to_a_boolean_gravity_is_refused(tmp_path, capsys):
     assert not (tmp_path / "t.toml").exists()
     # the twin written over its own scene, even with --overwrite: the scene was lost to its twin
     scene = write_tiny(tmp_path)
-    before = open(scene, "rb").read()
+    before = Path(scene).read_bytes()
     assert main(["scale", scene, "--gravity", "earth", "--out", scene, "--overwrite"]) == 2
-    assert "is the scene the command reads" in capsys.readouterr().err and open(scene, "rb").read() == before
+    assert "is the scene the command reads" in capsys.readouterr().err and Path(scene).read_bytes() == before
 
 
 def test_a_number_written_as_a_text_is_refused_where_only_a_number_may_stand(tmp_path):

@@ -6,6 +6,7 @@ import math
 import os
 import warnings
 from dataclasses import replace
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -849,24 +850,26 @@ def test_calibrate_scm_from_wheel_writes_the_fit_and_refuses_misplaced_options(t
 
     # a slip study of another wheel load, gravity or wheel: its drawbar pulls were divided by this
     # scene's load and the fit written without a word (exit 0, rms residual 762 tolerances)
-    moon = open(scene).read().replace('gravity = "phobos"', 'gravity = "moon"')
+    original = Path(scene).read_text()
+    moon = original.replace('gravity = "phobos"', 'gravity = "moon"')
     for foreign, named in (
         ({"wheel_load": 2 * load}, "a wheel load of"),
         ({"wheel_load": load, "scene_toml": moon}, "gravity [0.0, 0.0, -1.62"),
         (
-            {"wheel_load": load, "scene_toml": open(scene).read().replace("radius = 0.03", "radius = 0.05")},
+            {"wheel_load": load, "scene_toml": original.replace("radius = 0.03", "radius = 0.05")},
             "wheel.radius",
         ),
         (
-            {"wheel_load": load, "scene_toml": open(scene).read().replace("restitution = 0.3", "restitution = 0.9")},
+            {"wheel_load": load, "scene_toml": original.replace("restitution = 0.3", "restitution = 0.9")},
             "soil.restitution",
         ),
         (
-            {"wheel_load": load, "scene_toml": open(scene).read().replace("omega = 0.12", "omega = 0.24")},
+            {"wheel_load": load, "scene_toml": original.replace("omega = 0.12", "omega = 0.24")},
             "testbed.omega = 0.24",
         ),
     ):
-        assert all(w in open(scene).read() for w in ('"phobos"', "radius = 0.03", "restitution = 0.3", "omega = 0.12"))
+        unchanged = Path(scene).read_text()
+        assert all(w in unchanged for w in ('"phobos"', "radius = 0.03", "restitution = 0.3", "omega = 0.12"))
         (tmp_path / "study" / "study.json").write_text(json.dumps({"kind": "slip", "rows": rows, **foreign}))
         assert main(["calibrate-scm", scene, "--out", str(tmp_path / "z.toml"), *args]) == 2
         err = capsys.readouterr().err
@@ -874,7 +877,7 @@ def test_calibrate_scm_from_wheel_writes_the_fit_and_refuses_misplaced_options(t
     assert not (tmp_path / "z.toml").exists()
     # --out the file it reads (the scene, the lab file) is refused even with --overwrite: it was replaced
     for path in (scene_copy := tmp_path / "scene.toml", lab_path):
-        scene_copy.write_text(open(scene).read())
+        scene_copy.write_text(Path(scene).read_text())
         before = path.read_bytes()
         assert main(["calibrate-scm", str(scene_copy), "--out", str(path), "--overwrite", *args]) == 2
         assert "the command reads; write to another file" in capsys.readouterr().err

@@ -10,6 +10,7 @@ import signal
 import subprocess
 import sys
 import textwrap
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -1172,7 +1173,7 @@ def test_a_table_from_runs_reads_every_run_first_and_counts_each_replica_once(tm
     from soil.errors import ArgumentError
 
     scene = write_tiny(tmp_path)
-    text = open(scene).read()
+    text = Path(scene).read_text()
     copy = tmp_path / "bed_copy.h5"  # a part settles its own copy of the same bed (the same key)
     shutil.copy(tiny_bed, copy)
 

@@ -189,7 +189,7 @@ def test_the_gravity_twin_scales_the_pid_steps_and_the_other_terrains_keys(tmp_p
     from cosim.system import validity
 
     pid = write_tiny(tmp_path, "", "pid.toml")
-    text = open(pid).read().replace("[run]\n", '[run]\nstep_control = "pid"\ndt_max = 2.0e-4\ndt_min = 1.0e-7\n')
+    text = Path(pid).read_text().replace("[run]\n", '[run]\nstep_control = "pid"\ndt_max = 2.0e-4\ndt_min = 1.0e-7\n')
     open(pid, "w").write(text)
     twin, s = write_gravity_twin(pid, "earth", str(tmp_path / "pid_earth.toml"))
     a, b = load_plan(pid), load_plan(twin)

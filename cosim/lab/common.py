@@ -21,7 +21,7 @@ from soil.errors import RegolithError
 from soil.files import atomic_write_text
 from soil.memory import check_fits, estimate
 
-from ..beds import write_json
+from ..folders import write_json
 from ..metrics import ensemble
 from ..scene import SceneError
 from ..study import Executor, check_executor, prepare_study

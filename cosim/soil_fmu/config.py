@@ -310,7 +310,7 @@ def config_to_json(config: SoilFmuConfig, wheel_count: int) -> dict:
         "extra": config.extra,
     }
     if config.findings is not None:  # what `cosim advise` says of the scene, for the FMU's user
-        from cosim.beds import finite_or_null
+        from cosim.folders import finite_or_null
 
         # a number that is not finite as null, as run.json writes it (strict JSON readers refuse NaN)
         data.update(
