@@ -798,6 +798,15 @@ class TerrainSection(_Section):
             raise ValueError(
                 'surface_height: the DEM\'s surface is its settled bed\'s; a key of model = "analytic" or "scm"'
             )
+        if not self.bulldozing:  # the rims and their slopes are moved only by bulldozing: the keys would be ignored
+            keys = ("bulldozing_fraction", "erosion_angle_deg", "erosion_iterations")
+            given = [k for k in keys if getattr(self, k) is not None]
+            if given:
+                raise ValueError(
+                    f"{given[0]}: a key of SCM's bulldozing, which is off (bulldozing = "
+                    f"{'false' if self.bulldozing is False else 'unset, default false'}): set bulldozing = true, "
+                    "or remove it"
+                )
         if self.model == "scm" and self.calibration is None:
             missing = [key for key in SCM_SOIL_KEYS if getattr(self, key) is None]
             if missing:

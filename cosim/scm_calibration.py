@@ -101,11 +101,24 @@ def read_calibration(path: str) -> ScmCalibration:
         raise CalibrationError(
             f"{path}: not an SCM calibration file (no `format` key; `cosim calibrate-scm` writes one)"
         )
-    if data.get("format") != FORMAT_VERSION:
+    if isinstance(data.get("format"), bool) or data.get("format") != FORMAT_VERSION:  # true == 1 in Python
         raise CalibrationError(f"{path}: format {data.get('format')!r}, this version reads format {FORMAT_VERSION}")
-    for table in ("scm", "standard_error", "source"):
+    for table in ("scm", "standard_error", "source", "units"):
         if not isinstance(data.get(table, {}), dict):
             raise CalibrationError(f"{path}: [{table}] must be a table of keys, got {data[table]!r}")
+    for table in ("scm", "standard_error"):  # a misspelt key was dropped without a word
+        unknown = [k for k in data.get(table, {}) if k not in SOIL_KEYS]
+        if unknown:
+            raise CalibrationError(
+                f"{path}: [{table}] {unknown[0]}: not an SCM soil key; allowed: {', '.join(SOIL_KEYS)}"
+            )
+    expected_units = {"gravity": "m/s^2", **SOIL_UNITS}
+    for key, unit in data.get("units", {}).items():  # the values are read in these units: another one is not converted
+        if key in expected_units and unit != expected_units[key]:
+            raise CalibrationError(
+                f"{path}: [units] {key} = {unit!r}: this version reads {key} in {expected_units[key]!r} only "
+                "(the values are not converted): write the value in that unit and the unit back"
+            )
     scm = data.get("scm", {})
     missing = [k for k in SOIL_KEYS if not _finite_number(scm.get(k))]
     if missing:

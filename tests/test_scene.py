@@ -58,6 +58,12 @@ BAD_SCENES = [
     ("a drawbar load of 1e20 N", "[testbed]\ndrawbar_load = 1e20\n", "testbed.drawbar_load", "dragged backwards"),
     ("infinite snapshot interval", "[output]\nsnapshot_interval = inf\n", "output.snapshot_interval", "finite"),
     (
+        "erosion without bulldozing",
+        "[terrain]\nmodel = 'scm'\nerosion_angle_deg = 5.0\n",
+        "terrain.erosion_angle_deg",
+        "bulldozing, which is off",
+    ),
+    (
         "a billion erosion passes a step",
         "[terrain]\nmodel = 'scm'\nerosion_iterations = 1000000000\n",
         "terrain.erosion_iterations",

@@ -245,6 +245,41 @@ def test_a_state_is_refused_by_a_terrain_of_another_grid_naming_the_spacing():
     assert all(np.array_equal(other.state_dict()[k], v) for k, v in before.items())
 
 
+def test_a_state_is_refused_by_a_terrain_of_another_soil_naming_the_parameter():
+    """A stopped SCM run whose calibration file was edited before `cosim resume` went on, on the new soil,
+    without a word: its steady window spanned two soils. The state keeps the soil it was stepped on, and
+    a terrain of another soil refuses it before anything is restored, naming what changed."""
+    state = grousered_run(5, 0, resume=False).state_dict()
+    wheel = GrouserWheel(radius=0.08, width=0.04, grouser_count=12, grouser_height=0.006, grouser_thickness=0.003)
+    other = ScmTerrain(parameters(bulldozing=True, k_phi=8.0e5), [wheel], window=(0.3, 0.1))
+    before = other.state_dict()
+    with pytest.raises(SoilInputError, match=r"another soil than this terrain's \(k_phi 500000 -> 800000\)"):
+        other.load_state_dict(state)
+    assert all(np.array_equal(other.state_dict()[k], v) for k, v in before.items())
+    same = ScmTerrain(parameters(bulldozing=True), [wheel], window=(0.3, 0.1))
+    same.load_state_dict(state)  # the soil it was stepped on: continues
+    assert same.time == pytest.approx(0.05)
+
+
+def test_grids_and_spans_past_what_a_number_counts_are_refused_in_words():
+    """A window of 1e300 m (or a spacing of 1e-300 m) raised a bare OverflowError, a zero-size window was a
+    grid of 2 nodes, and advance(1e12 s) at dt = 1e-3 s ran 1e15 steps, deaf to Ctrl-C."""
+    from soil.scm.terrain import grid_shape
+
+    wheel = GrouserWheel(0.1, 0.04)
+    for window, spacing in (((1e300, 1e300), SPACING), ((0.5, 0.2), 1e-300)):
+        with pytest.raises(SoilInputError, match="more than Warp indexes"):
+            ScmTerrain(parameters(node_spacing=spacing), [wheel], window=window)
+    for window, spacing in (((0.0, 1.0), 0.01), ((1.0, 1.0), -0.01), ((math.nan, 1.0), 0.01)):
+        with pytest.raises(SoilInputError, match="window|node_spacing"):
+            grid_shape(window, spacing)
+    assert grid_shape((0.3, 0.1), 0.01) == (30, 10)
+    terrain = ScmTerrain(parameters(), [wheel], window=(0.5, 0.2), centre=(0.0, 0.0))
+    with pytest.raises(SoilInputError, match="more than 1e\\+10"):
+        terrain.advance(1e12, 1e-3, [[0, 0, 0.09]], UPRIGHT)
+    assert terrain.time == 0.0
+
+
 def test_bulldozing_moves_the_ruts_volume_to_its_rims():
     """The raised rims hold the rut's plastic volume (fraction 1; the slope limiting moves soil, keeps it)."""
     terrain = grousered_run(40, 0, resume=False)

@@ -219,6 +219,33 @@ def test_a_calibration_file_of_the_wrong_types_is_refused_naming_the_file_and_ke
 
 
 @pytest.mark.parametrize(
+    "change, named",
+    [
+        (lambda d: d["scm"].update(k_C=5.0), "[scm] k_C: not an SCM soil key; allowed: k_c, "),
+        (lambda d: d["standard_error"].update(bogus=1.0), "[standard_error] bogus: not an SCM soil key"),
+        (lambda d: d["units"].update(k_c="kPa m^(1-n)"), "[units] k_c = 'kPa m^(1-n)': this version reads k_c in"),
+        (lambda d: d["units"].update(friction_angle_deg="rad"), "[units] friction_angle_deg = 'rad'"),
+        (lambda d: d.update(format=True), "format True, this version reads format"),
+    ],
+    ids=["misspelt soil key", "unknown standard error", "k_c in kPa", "an angle in rad", "format true"],
+)
+def test_a_calibration_file_that_would_be_misread_is_refused_naming_the_key(tmp_path, change, named):
+    """A misspelt key in [scm] or [standard_error] was dropped without a word, and [units] was never read:
+    a k_c written in kPa was taken in Pa, an angle in radians as degrees; `format = true` passed as 1."""
+    import tomli_w
+
+    path = tmp_path / "terrain.toml"
+    write_calibration(str(path), _calibration(9.81))
+    with open(path, "rb") as f:
+        data = tomllib.load(f)
+    change(data)
+    path.write_text(tomli_w.dumps(data))
+    with pytest.raises(CalibrationError) as error:
+        read_calibration(str(path))
+    assert str(path) in str(error.value) and named in str(error.value), str(error.value)
+
+
+@pytest.mark.parametrize(
     "source, named",
     [
         ({"replica_fits": {"k_c": [True, False]}}, "[source.replica_fits] k_c: must be a list of numbers"),

@@ -27,6 +27,25 @@ NO_BOX = -(2**30)
 
 STATE_VERSION = 2
 
+_SOIL_STATE = (
+    "k_c",
+    "k_phi",
+    "n",
+    "cohesion",
+    "friction_angle",
+    "janosi_k",
+    "elastic_stiffness",
+    "damping",
+    "bulldozing",
+    "bulldozing_fraction",
+    "erosion_angle",
+    "erosion_iterations",
+)
+"""The ScmParameters a state_dict keeps (as numbers) and load_state_dict requires of its terrain."""
+
+MAX_ADVANCE_STEPS = 1e10
+"""Most steps one ScmTerrain.advance takes (the scene's limit on a phase's steps, cosim.scene)."""
+
 MAX_EROSION_ITERATIONS = 100
 """Most slope-limiting passes a step takes [count]: each moves soil one node further down a slope, a few
 a step suffice (2 here, 3 in common SCM implementations); a step of many more costs as many grid passes
@@ -153,7 +172,25 @@ MAX_NODES = 2**31 - 1
 
 def grid_shape(window: Sequence[float], node_spacing: float) -> tuple[int, int]:
     """Nodes along x and y of a grid window (length, width) [m] at `node_spacing` [m] (whole nodes, at least 2)."""
-    return max(2, int(round(window[0] / node_spacing))), max(2, int(round(window[1] / node_spacing)))
+    if not (is_real(node_spacing) and math.isfinite(node_spacing) and node_spacing > 0):
+        raise SoilInputError(f"node_spacing must be a finite number > 0 [m], got {node_spacing!r}")
+    if not (_is_pair(window) and all(is_real(s) and math.isfinite(s) and s > 0 for s in window)):
+        raise SoilInputError(f"window must be two sizes > 0 (length along x, width along y) [m], got {window!r}")
+    along = (window[0] / node_spacing, window[1] / node_spacing)
+    if not all(math.isfinite(a) for a in along):
+        raise SoilInputError(
+            f"a window of {window[0]:.4g} x {window[1]:.4g} m at node spacing {node_spacing:.3g} m has more nodes than "
+            "a number holds"
+        )
+    return max(2, int(round(along[0]))), max(2, int(round(along[1])))
+
+
+def _count(number: int) -> str:
+    """A node count in words: digits with thousands' commas, or 3 digits and an exponent past 1e15."""
+    if number < 10**15:
+        return f"{number:,}"
+    digits = str(number)  # not float(): a count past 1e308 overflows it
+    return f"{digits[0]}.{digits[1:3]}e+{len(digits) - 1}"
 
 
 def window_reach(nodes: int, node_spacing: float) -> float:
@@ -195,14 +232,22 @@ def check_grid(
     fit this machine's free memory less `reserved` (device, host) bytes [B] that something else of the
     same run takes (soil.memory.SoilTooLargeError). `what` names the grid; `keys` are the names of the
     node spacing and of the window's sizes, for the smallest spacing the message says is allowed."""
-    shape = grid_shape(window, node_spacing)
-    count = shape[0] * shape[1]
     spacing_key, window_keys = keys
     fix = f"or a smaller window ({window_keys})"
-    if count > MAX_NODES:
-        least = node_spacing * math.sqrt(count / MAX_NODES)
+    along = (window[0] / node_spacing, window[1] / node_spacing)
+    if not all(math.isfinite(a) for a in along):  # more nodes than a float counts (1e300 m, 1e-300 m)
+        least = math.sqrt(window[0]) * math.sqrt(window[1]) / math.sqrt(MAX_NODES)
         raise SoilInputError(
-            f"{what}: {shape[0]:,} x {shape[1]:,} = {count:,} nodes, more than Warp indexes ({MAX_NODES:,}); "
+            f"{what}: more nodes than a number holds, more than Warp indexes ({MAX_NODES:,}); "
+            f"{spacing_key} must be at least about {least:.3g} m on this window, {fix}"
+        )
+    shape = grid_shape(window, node_spacing)
+    count = shape[0] * shape[1]
+    if count > MAX_NODES:
+        least = node_spacing * math.sqrt(shape[0] / MAX_NODES) * math.sqrt(shape[1])
+        raise SoilInputError(
+            f"{what}: {_count(shape[0])} x {_count(shape[1])} = {_count(count)} nodes, more than Warp indexes "
+            f"({MAX_NODES:,}); "
             f"{spacing_key} must be at least about {least:.3g} m on this window, {fix}"
         )
     if not memory:
@@ -289,7 +334,6 @@ class ScmTerrain:
         self.precision = get_precision(precision)
         self.surface_height = float(surface_height)
         spacing = parameters.node_spacing
-        self.shape = grid_shape(window, spacing)
         check_grid(
             window,
             spacing,
@@ -298,6 +342,7 @@ class ScmTerrain:
             what=f"the SCM grid of window {window[0]:.4g} x {window[1]:.4g} m at node spacing {spacing:.3g} m",
             keys=("parameters.node_spacing", "window"),
         )
+        self.shape = grid_shape(window, spacing)
         self.node_count = self.shape[0] * self.shape[1]
         self._chunks = (self.node_count + CHUNK - 1) // CHUNK
         reach = max(math.hypot(*cylinder_of(wheel)) for wheel in wheels)
@@ -624,6 +669,11 @@ class ScmTerrain:
                 raise SoilInputError("advance needs both position and orientation (or neither)")
             self.set_wheels(position, orientation, velocity, angular_velocity)
         self._check_window(float(end_time) - self._path_start)
+        if span / dt > MAX_ADVANCE_STEPS:  # a loop on the device that no Ctrl-C ends in a lifetime
+            raise SoilInputError(
+                f"advance to end_time {end_time!r} s in steps of at most dt = {dt!r} s is {span / dt:.3g} steps, "
+                f"more than {MAX_ADVANCE_STEPS:.0e}: a dt far below the span's scale"
+            )
         steps = max(1, math.ceil(span / dt - 1e-9))
         step = span / steps
         start = self.time
@@ -766,6 +816,7 @@ class ScmTerrain:
             totals=self._totals.numpy().copy(),
             sums=self._sums.numpy().copy(),
             width=self._width.numpy().copy(),
+            soil=np.array([float(getattr(self.parameters, name)) for name in _SOIL_STATE], dtype=np.float64),
         )
         return data
 
@@ -790,6 +841,7 @@ class ScmTerrain:
         "totals": "by column: N (3), N m (3), count, m (force, torque, contact nodes, sinkage)",
         "sums": "by column: N (3), N m (3), count, m, each summed over summed_steps steps",
         "width": "m",
+        "soil": "by entry: Pa m^(1-n), Pa m^(-n), 1, Pa, deg, m, Pa/m, Pa s/m, 1, 1, deg, count (_SOIL_STATE)",
     }
     """The unit of each entry of state_dict()."""
 
@@ -810,12 +862,24 @@ class ScmTerrain:
             )
         if tuple(int(s) for s in data["shape"]) != self.shape or str(data["precision"]) != self.precision.name:
             raise SoilInputError(
-                f"SCM state is of a {tuple(data['shape'])} window in {data['precision']} precision, this terrain's "
+                f"SCM state is of a {tuple(int(s) for s in data['shape'])} window in {data['precision']} precision, "
+                "this terrain's "
                 f"is {self.shape} in {self.precision.name} (a window of another shape: another terrain.node_spacing "
                 "or window size)"
             )
         if np.asarray(data["path"]).shape != (self.wheel_count, PATH_COLUMNS):
             raise SoilInputError(f"SCM state has {len(data['path'])} wheels, this terrain has {self.wheel_count}")
+        if "soil" in data:  # a state written before the soil was kept is not judged on it
+            kept = np.asarray(data["soil"], dtype=np.float64)
+            now = [float(getattr(self.parameters, name)) for name in _SOIL_STATE]
+            changed = [f"{name} {old:.6g} -> {new:.6g}" for name, old, new in zip(_SOIL_STATE, kept, now) if old != new]
+            if kept.shape != (len(_SOIL_STATE),) or changed:
+                raise SoilInputError(
+                    "SCM state is of another soil than this terrain's ("
+                    + (", ".join(changed) or f"{kept.shape[0] if kept.ndim else 0} soil values kept")
+                    + "): its parameters (terrain.calibration's file or the [terrain] keys) changed since the state "
+                    "was written; put the run's soil back to continue it"
+                )
         for name in _NODE_STATE:
             getattr(self._nodes, name).assign(np.asarray(data[name]))
         # no contact anywhere, as in a terrain just built: the next step writes its boxes' nodes and
