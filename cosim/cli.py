@@ -271,7 +271,7 @@ SUMMARY_KEYS = (
 
 
 def _print_summary(result, scm_only: bool = False) -> None:
-    from .metrics import MIN_CORRELATION_TIMES, short_window
+    from .metrics import MIN_CORRELATION_TIMES, short_window, within_run_interval
 
     s = result.summary
     print(f"{result.status}: {result.out_dir}")
@@ -282,7 +282,8 @@ def _print_summary(result, scm_only: bool = False) -> None:
         value = math.nan if s[key] is None else s[key]  # run.json's null (a finished run resumed): not measured
         if isinstance(value, float):
             sem = s.get(f"{key}_sem")
-            text = f"{value * scale:.4g}" + (f" +- {sem * scale:.2g} (within-run s.e.)" if sem and sem == sem else "")
+            bar = f" +- {within_run_interval(sem) * scale:.2g} (95 %, within run)" if sem and sem == sem else ""
+            text = f"{value * scale:.4g}{bar}"
             if sem and sem == sem and short_window(s, key) is not None:
                 short.append(f"{short_window(s, key):.0f}{' correlation times' if not short else ''} of {key}")
         elif isinstance(value, list):
@@ -295,7 +296,7 @@ def _print_summary(result, scm_only: bool = False) -> None:
     if short:
         print(
             f"  ! the window spans only {', '.join(short)} (< {MIN_CORRELATION_TIMES}): "
-            "their within-run s.e. are too small; replicas give the error bar"
+            "their within-run intervals are too narrow; replicas give the error bar"
         )
     settled = [s.get(key) for key in ("sinkage_settled", "sinkage_settled_from")]
     if all(isinstance(v, float) and math.isfinite(v) for v in settled) and s.get("window") and None not in s["window"]:
@@ -305,7 +306,7 @@ def _print_summary(result, scm_only: bool = False) -> None:
         if spans < MIN_CORRELATION_TIMES:  # as the line above says of the window: no within-run error bar
             bar = f" mm from then on (over {spans:.0f} of its correlation times: replicas give its error bar)"
         elif isinstance(sem, float) and sem == sem:
-            bar = f" +- {sem * 1e3:.2g} (within-run s.e.) mm from then on"
+            bar = f" +- {within_run_interval(sem) * 1e3:.2g} (95 %, within run) mm from then on"
         else:
             bar = " mm from then on"
         print(

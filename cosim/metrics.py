@@ -240,7 +240,20 @@ def steady_window(series: dict[str, np.ndarray], min_fraction: float = 0.25) -> 
     return start, (n - start) >= max(min_fraction * n, 4)
 
 
-def batch_standard_error(values: np.ndarray, batches: int = 8) -> float:
+BATCHES = 8
+"""Batch means a window's standard error is taken over [count] (`batch_standard_error`)."""
+
+
+def within_run_interval(sem: float) -> float:
+    """The 95 % half-width of a window's mean from its batch-means standard error `sem` [its unit]:
+    Student's t with BATCHES - 1 degrees of freedom (2.36 x sem), what a run's summary prints as its
+    `+-` (one s.e. alone covers the mean about 65 % of the time)."""
+    from scipy import stats
+
+    return float(stats.t.ppf(0.975, BATCHES - 1) * sem)
+
+
+def batch_standard_error(values: np.ndarray, batches: int = BATCHES) -> float:
     """Standard error of the mean of a correlated series from batch means [unit of values]: every
     sample in one of `batches` consecutive batches (sizes differing by one at most). Too small when
     the series spans fewer than MIN_CORRELATION_TIMES of its correlation times (`correlation_time`)."""
@@ -374,6 +387,7 @@ def summarize(
     out["slip"] = float(slip_of(out["forward_speed"], mean_spin, rim_radius))
     out["dp_over_w"] = out["drawbar_pull"] / wheel_load if wheel_load > 0 else math.nan
     out["dp_over_w_sem"] = out["drawbar_pull_sem"] / wheel_load if wheel_load > 0 else math.nan
+    out["dp_over_w_correlation_time"] = out["drawbar_pull_correlation_time"]  # the pull's, over a constant load
     # over the window's own steps, its first one's too (as a rover's)
     span = time[window[-1]] - (time[window[0] - 1] if window[0] > 0 else time[window[0]])
     passed = grouser_passages(abs(mean_spin) * span, grouser_count)
@@ -727,6 +741,7 @@ def summarize_rover(
     window_mean(out, "net_traction", traction, spacing)
     out["net_traction_over_weight"] = out["net_traction"] / weight if weight > 0 else math.nan
     out["net_traction_over_weight_sem"] = out["net_traction_sem"] / weight if weight > 0 else math.nan
+    out["net_traction_over_weight_correlation_time"] = out["net_traction_correlation_time"]
     out["power"] = float(np.mean(power[window]))
     for name in ("sinkage", "sinkage_tips", "drawbar_pull", "driving_torque", "normal_force", "power"):
         values = np.asarray(series[name])[rows]
@@ -747,6 +762,7 @@ def summarize_rover(
     out["drawbar_pull"] = out["net_traction"]
     out["dp_over_w"] = out["net_traction_over_weight"]
     out["dp_over_w_sem"] = out["net_traction_over_weight_sem"]
+    out["dp_over_w_correlation_time"] = out["net_traction_correlation_time"]
     counts = [0] * len(rim_radii) if grouser_counts is None else [int(c) for c in grouser_counts]
     if len(counts) != len(rim_radii):
         raise ValueError(f"grouser_counts: one per wheel ({len(rim_radii)}), got {len(counts)}")

@@ -280,8 +280,12 @@ def test_a_run_summary_prints_a_window_too_short_for_its_error_bar(capsys):
     assert metrics.summary_units(out)["drawbar_pull_correlation_time"] == "s"
     _print_summary(SimpleNamespace(summary=out, status="done", out_dir="run"))
     printed = capsys.readouterr().out
-    assert f"! the window spans only {spans:.0f} correlation times of drawbar_pull (< 50)" in printed, printed
-    assert "their within-run s.e. are too small" in printed and "of sinkage" not in printed, printed
+    named = f"{spans:.0f} correlation times of drawbar_pull, {spans:.0f} of dp_over_w (< 50)"  # the pull's, per weight
+    assert f"! the window spans only {named}" in printed, printed
+    # each +- is the 95 % interval, t with 7 degrees of freedom (one s.e. covers the mean 65 % of the time)
+    half = 2.3646 * out["dp_over_w_sem"]
+    assert f"dp_over_w                  {out['dp_over_w']:.4g} +- {half:.2g} (95 %, within run)" in printed, printed
+    assert "their within-run intervals are too narrow" in printed and "of sinkage" not in printed, printed
 
 
 def test_an_ensemble_of_one_replica_is_not_judged():
