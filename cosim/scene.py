@@ -799,8 +799,8 @@ class TerrainSection(_Section):
                 'surface_height: the DEM\'s surface is its settled bed\'s; a key of model = "analytic" or "scm"'
             )
         if not self.bulldozing:  # the rims and their slopes are moved only by bulldozing: the keys would be ignored
-            keys = ("bulldozing_fraction", "erosion_angle_deg", "erosion_iterations")
-            given = [k for k in keys if getattr(self, k) is not None]
+            rim_keys = ("bulldozing_fraction", "erosion_angle_deg", "erosion_iterations")
+            given = [k for k in rim_keys if getattr(self, k) is not None]
             if given:
                 raise ValueError(
                     f"{given[0]}: a key of SCM's bulldozing, which is off (bulldozing = "
