@@ -173,9 +173,10 @@ def check_memory(plan: RunPlan, worlds: int = 1) -> None:
     check_fits(memory_estimate(plan, worlds), what)
 
 
-def settled_bed(plan: RunPlan, folder: str, progress: bool = False) -> Bed:
+def settled_bed(plan: RunPlan, folder: str, progress: bool = False, save: bool = True) -> Bed:
     """The plan's bed: its bed_file, else a cached bed in `folder` with the same key, else
-    one settled now (double precision, on the plan's device) and saved there."""
+    one settled now (double precision, on the plan's device) and saved there (save False: kept in memory
+    only, for save_bed_cache to write once the folder's previous run, whose bed the cache holds, is gone)."""
     if plan.bed.bed_file:
         return bed_from_file(plan.bed.bed_file)
     path = os.path.join(folder, BED_FILE)
@@ -191,7 +192,7 @@ def settled_bed(plan: RunPlan, folder: str, progress: bool = False) -> Bed:
             log.info("reusing the settled bed %s (key %s)", path, plan.bed.key)
             return Bed(path, float(info["metrics"]["height"]), {**info, "source": "cache", "path": path})
     check_memory(plan)  # studies and sweeps settle here first: refuse before allocating the grains
-    return _settle(plan, path, info_path, progress)
+    return _settle(plan, path, info_path, progress, save)
 
 
 def check_cached_bed(path: str, key: str, info: dict) -> None:
@@ -238,7 +239,7 @@ def _settle_step_control(plan: RunPlan):
     )
 
 
-def _settle(plan: RunPlan, path: str, info_path: str, progress: bool) -> Bed:
+def _settle(plan: RunPlan, path: str, info_path: str, progress: bool, save: bool = True) -> Bed:
     from soil.bed import bed_metrics, make_settled_bed
 
     bed = plan.bed
@@ -280,7 +281,6 @@ def _settle(plan: RunPlan, path: str, info_path: str, progress: bool) -> Bed:
         )
     metrics = bed_metrics(sim, bed.spec)
     saved = SavedBed.from_simulation(sim, bed.spec, metrics, key=bed.key)
-    saved.write(path)
     info = {
         "key": bed.key,
         "report": report,
@@ -298,9 +298,9 @@ def _settle(plan: RunPlan, path: str, info_path: str, progress: bool) -> Bed:
             "particle_count": "count",
         },
     }
-    write_json(info_path, info)
-    with contextlib.suppress(FileNotFoundError):  # an earlier explosion's state describes no bed here now
-        os.remove(os.path.join(os.path.dirname(path), BED_DIVERGED_FILE))
+    settled = Bed(path, float(metrics["height"]), {**info, "source": "settled", "path": path}, saved)
+    if save:
+        save_bed_cache(settled)
     log.info(
         "settled %d grains in %.1f s wall (%.3g s simulated); surface at z = %.4g m, packing %.3f",
         sim.particle_count,
@@ -309,7 +309,22 @@ def _settle(plan: RunPlan, path: str, info_path: str, progress: bool) -> Bed:
         metrics["height"],
         metrics["packing_fraction"],
     )
-    return Bed(path, float(metrics["height"]), {**info, "source": "settled", "path": path}, saved)
+    return settled
+
+
+def save_bed_cache(bed: Bed) -> None:
+    """Write a bed settled in this process to its cache (bed.path, bed.json beside it). The old bed.json is removed
+    first: a kill between the two files leaves a bed.h5 that no bed.json describes (settled again by the next run),
+    never a bed.json of one bed beside another bed's bed.h5 (refused as damaged)."""
+    assert bed.settled is not None, "only a bed settled in this process is written"
+    folder = os.path.dirname(bed.path)
+    info_path = os.path.join(folder, BED_INFO_FILE)
+    with contextlib.suppress(FileNotFoundError):
+        os.remove(info_path)
+    bed.settled.write(bed.path)
+    write_json(info_path, {k: v for k, v in bed.info.items() if k not in ("source", "path")})
+    with contextlib.suppress(FileNotFoundError):  # an earlier explosion's state describes no bed here now
+        os.remove(os.path.join(folder, BED_DIVERGED_FILE))
 
 
 class _SettleBar:

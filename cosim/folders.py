@@ -56,6 +56,9 @@ RUN_OUTPUTS = (
     PLOTS_DIR,
 )
 """What a run writes (the bed cache and foreign files are not among them)."""
+RUN_EVIDENCE = tuple(n for n in RUN_OUTPUTS if n not in (SCENE_FILE, PLOTS_DIR))
+"""The names that make a folder a run's (a run writes run.json first; scene.toml and plots/ alone are a project
+folder's own as well): --overwrite replaces only such a folder."""
 
 
 class OutputFolderError(RegolithError, OSError):
@@ -130,9 +133,21 @@ class RunFolder:
         """The run outputs present (sorted names)."""
         return sorted(n for n in RUN_OUTPUTS if os.path.exists(self.file(n)))
 
+    def holds_run(self) -> bool:
+        """Whether the folder holds a run: its record (run.json), results, checkpoint, ... (RUN_EVIDENCE). A
+        scene.toml and a plots/ alone are no run's: a project folder's own scene and pictures."""
+        return any(os.path.exists(self.file(n)) for n in RUN_EVIDENCE)
+
     def check_free(self, overwrite: bool) -> None:
-        """Refuse a folder holding a run unless overwrite (nothing is removed here)."""
+        """Refuse a folder holding a run unless overwrite, and a folder holding files of a run's names but no
+        run (the user's scene.toml, plots/) even with overwrite (nothing is removed here)."""
         present = self.run_files()
+        if present and not self.holds_run():
+            raise OutputExistsError(
+                f"output folder {self.path!r} holds {', '.join(present)} but no run (no {RUN_FILE}, "
+                f"{RESULTS_FILE} or {CHECKPOINT_FILE}): they are not a run's to replace, so nothing was "
+                "overwritten or removed, even with --overwrite: choose another --out, or move them yourself"
+            )
         if present and not overwrite:
             raise OutputExistsError(
                 f"output folder {self.path!r} already holds a run ({', '.join(present)}); "

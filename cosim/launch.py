@@ -28,7 +28,7 @@ from soil.files import atomic_write_text
 from soil.stability import read_checkpoint
 
 from . import records
-from .beds import BED_FILE, Bed, bed_from_file, check_memory, memory_estimate, settled_bed
+from .beds import BED_FILE, Bed, bed_from_file, check_memory, memory_estimate, save_bed_cache, settled_bed
 from .contract import SoilSide
 from .folders import EDITED_SCENE_FILE, RUN_FILE, SCENE_FILE, RunFolder, read_json, write_json
 from .output import ResultsWriter, read_series, stored_wheel_mesh
@@ -77,7 +77,10 @@ def open_run(
     folder = RunFolder(out_dir)
     with folder.locked():
         folder.check_free(overwrite)
-        bed = settled_bed(plan, folder.path, progress=progress) if bedded else None
+        # a bed settled over the cache of a run still in the folder is written once that run is gone: the run
+        # stays resumable, on its own bed, until the new one is built (a stop or a kill before then)
+        replacing = folder.holds_run()
+        bed = settled_bed(plan, folder.path, progress=progress, save=not replacing) if bedded else None
         system = CoupledSystem.build(plan, bed, soil=soil)
         findings = validity(plan, system.soil.surface_height)
         for finding in findings:
@@ -85,8 +88,10 @@ def open_run(
                 log.warning("validity: %s", finding.message)
         # everything is built: only now the previous run goes
         folder.clear_run()
+        if bed is not None and replacing and bed.settled is not None:  # settled now, not read from a file
+            save_bed_cache(bed)
         run_id = uuid.uuid4().hex
-        atomic_write_text(folder.file(SCENE_FILE), plan.scene.to_toml())
+        # run.json first: a folder with a scene.toml of a run and no run.json is no run's (RunFolder.holds_run)
         write_json(
             folder.file(RUN_FILE),
             {
@@ -98,6 +103,7 @@ def open_run(
                 "findings": [f.as_dict() for f in findings],
             },
         )
+        atomic_write_text(folder.file(SCENE_FILE), plan.scene.to_toml())
         try:
             particles = system.soil.particles()
             writer = ResultsWriter.create(

@@ -1962,8 +1962,9 @@ def _slip_report(
     # one run a slip varies in nothing (an SCM run sums in one order): no replicas to describe
     runs_each = f"replicas: {varied}" if max((row["replicas"] for row in rows), default=0) > 1 else "one run a slip"
     lines = [
-        f"{plan.name}: drawbar pull against imposed slip (W = {plan.wheel_load:.4g} N; {runs_each}; "
-        f"mean +- its 95 % interval over the averaged runs), {out_dir}",
+        f"{plan.name}: drawbar pull against imposed slip (W = {plan.wheel_load:.4g} N; {runs_each}"
+        + ("; mean +- its 95 % interval over the averaged runs" if runs_each != "one run a slip" else "")
+        + f"), {out_dir}",
         f"  {'slip':>6s} {'steady':>7s} {'DP [N]':>12s} {'DP/W':>14s} {'torque [N m]':>14s} {'sinkage [mm]':>13s}"
         "  validity",
     ]

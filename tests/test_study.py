@@ -1225,7 +1225,9 @@ def test_a_table_from_runs_reads_every_run_first_and_counts_each_replica_once(tm
         main(["study", "slip", scene, "--from-runs", str(tmp_path / "a"), str(tmp_path / "stopped"), "--out", str(out)])
         == 6
     )
-    assert "0.200   2/3" in capsys.readouterr().out
+    printed = capsys.readouterr().out
+    assert "0.200   2/3" in printed
+    assert "; mean +- its 95 % interval over the averaged runs)" in printed.splitlines()[0]  # what its +- is
 
 
 def test_a_table_from_runs_refuses_runs_that_drove_two_meshes_of_one_file(tmp_path):
