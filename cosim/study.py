@@ -58,7 +58,7 @@ from soil.files import atomic_write_text
 
 from . import advice, metrics, stop_signals
 from .beds import BED_FILE, BED_INFO_FILE, settled_bed, settling_cost
-from .folders import RESULTS_FILE, RUN_FILE, RunFolder, finite_or_null, read_json, write_json
+from .folders import RESULTS_FILE, RUN_FILE, SCENE_FILE, RunFolder, finite_or_null, read_json, write_json
 from .launch import FINISHED
 from .plan import MAX_PHASE_STEPS, RunPlan, resolve
 from .runner import RunInterrupted
@@ -1188,6 +1188,28 @@ def _finish_set(out_dir: str, recipe: dict, said: tuple[str, str], settle, make_
             return report(tasks, results, beds)
 
 
+def _foreign_run(task: dict, folder: RunFolder) -> str:
+    """'' when the replica's folder holds no scene or the task's own (less the keys a set's runs differ in:
+    _flat_scene); else why the run there is not this replica's (a run of another scene, made there while
+    the set was stopped: its lock covers the set's folder, not each replica's)."""
+    path = folder.file(SCENE_FILE)
+    if not os.path.isfile(path):
+        return ""
+    try:
+        with open(path) as f:
+            theirs = scene_from_text(f.read(), base_dir=folder.path)
+    except (OSError, UnicodeDecodeError, SceneError) as error:
+        return f"{path}: no scene this version reads ({error}): not this set's replica, so not counted"
+    keys = _scenes_differ(_flat_scene(task_plan(task).scene), _flat_scene(theirs))
+    if not keys:
+        return ""
+    return (
+        f"{folder.path} holds a run of another scene than this set's ({', '.join(keys[:6])}"
+        f"{', ...' if len(keys) > 6 else ''} differ): not its replica, so not counted; move it away and "
+        f"resume the set again to run the replica"
+    )
+
+
 def _finish_replica(task: dict) -> dict:
     """resume_replicas' result of one replica (run_task's form): taken as it is, resumed, or run; a replica
     that fails here (damaged files, a divergence) is a failed result, named, and the others go on."""
@@ -1199,7 +1221,10 @@ def _finish_replica(task: dict) -> dict:
     status, kept = record.get("status"), os.path.isfile(folder.checkpoint)
     base = {"label": task["label"], "out_dir": folder.path, "overrides": task["overrides"]}
     try:
-        if (status == "diverged" and diverged_here(folder.results)) or (status in FINISHED and not kept):
+        foreign = _foreign_run(task, folder)
+        if foreign:  # a run put in its folder by hand or by another command: not this set's replica
+            result = {**base, "ok": False, "status": "failed", "error": foreign}
+        elif (status == "diverged" and diverged_here(folder.results)) or (status in FINISHED and not kept):
             result = {**base, "ok": status in FINISHED, "status": status, "summary": record.get("summary", {})}
             if status not in FINISHED:  # a diverged run's resume would diverge again
                 result["error"] = record.get("message", "")

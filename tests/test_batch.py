@@ -334,6 +334,15 @@ def test_replicas_stopped_one_by_one_resume_as_a_set_each_as_its_run_alone(tmp_p
     report = json.loads((out / "ensemble.json").read_text())
     assert [r["status"] for r in report["results"]] == ["failed", "unsteady"]
     assert str(checkpoint) in report["results"][0]["error"]
+    # a run of another scene put in a replica's folder while the set was stopped (the set's lock covers its own
+    # folder, not each replica's) was taken as the replica and pooled into the ensemble without a word
+    foreign = out / "replica_001" / "scene.toml"
+    foreign.write_text(foreign.read_text().replace("duration = 0.12", "duration = 0.06"))
+    assert main(["resume", str(out)]) == 1
+    report = json.loads((out / "ensemble.json").read_text())
+    assert [r["status"] for r in report["results"]] == ["failed", "failed"]
+    assert "holds a run of another scene than this set's (run.duration differ)" in report["results"][1]["error"]
+    assert report["stats"]["replicas"] == len(SEEDS) and report["stats"]["averaged"] == 0
 
 
 @pytest.mark.skipif(not os.path.isdir("/proc"), reason="finds the batch's processes in /proc")
