@@ -267,7 +267,6 @@ def check_scm_grid(plan, reserved: tuple[int, int] = (0, 0), memory: bool = True
         return
     settings = scm_settings(plan, indices, 0.0)
     spacing, (length, width) = settings.parameters.node_spacing, settings.window
-    _check_window_holds_wheels(plan, indices, settings)
     check_grid(
         settings.window,
         spacing,
@@ -278,6 +277,7 @@ def check_scm_grid(plan, reserved: tuple[int, int] = (0, 0), memory: bool = True
         reserved=reserved,
         memory=memory,
     )
+    _check_window_holds_wheels(plan, indices, settings)  # after: a grid past counting is named by its keys there
 
 
 class ScmSoil(SoilSideDefaults):

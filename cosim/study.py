@@ -1189,25 +1189,47 @@ def _finish_set(out_dir: str, recipe: dict, said: tuple[str, str], settle, make_
 
 
 def _foreign_run(task: dict, folder: RunFolder) -> str:
-    """'' when the replica's folder holds no scene or the task's own (less the keys a set's runs differ in:
-    _flat_scene); else why the run there is not this replica's (a run of another scene, made there while
-    the set was stopped: its lock covers the set's folder, not each replica's)."""
-    path = folder.file(SCENE_FILE)
-    if not os.path.isfile(path):
+    """'' when the replica's folder holds no run, or the task's own (its scene with the task's overrides,
+    order seed, bed and soil included; the device aside); else why the run there is not this replica's (a
+    run made there while the set was stopped: the set's lock covers its folder, not each replica's). The
+    run's scene is its results.h5's record (scene.toml may be edited: a resume keeps an edit aside); a
+    folder whose scene cannot be read is not judged here (resuming it says what is wrong)."""
+    text = _recorded_scene(folder)
+    if text is None:
         return ""
     try:
-        with open(path) as f:
-            theirs = scene_from_text(f.read(), base_dir=folder.path)
-    except (OSError, UnicodeDecodeError, SceneError) as error:
-        return f"{path}: no scene this version reads ({error}): not this set's replica, so not counted"
-    keys = _scenes_differ(_flat_scene(task_plan(task).scene), _flat_scene(theirs))
+        theirs = scene_from_text(text, base_dir=folder.path)
+    except SceneError:
+        return ""
+    ours = scene_from_text(task["scene_toml"], base_dir=task.get("base_dir"), overrides=task.get("overrides"))
+    keys = _scenes_differ(_flat_scene(ours, skipped=("scene.device",)), _flat_scene(theirs, skipped=("scene.device",)))
     if not keys:
         return ""
     return (
-        f"{folder.path} holds a run of another scene than this set's ({', '.join(keys[:6])}"
-        f"{', ...' if len(keys) > 6 else ''} differ): not its replica, so not counted; move it away and "
-        f"resume the set again to run the replica"
+        f"{folder.path} holds a run of another scene than this replica's ({', '.join(keys[:6])}"
+        f"{', ...' if len(keys) > 6 else ''} differ): not counted; move it away and resume the set again to "
+        "run the replica"
     )
+
+
+def _recorded_scene(folder: RunFolder) -> str | None:
+    """The scene text a run in `folder` ran: its results.h5's `scene_toml`, else its scene.toml; None
+    when there is neither or it cannot be read."""
+    from .output import open_results
+
+    if os.path.isfile(folder.results):
+        try:
+            with open_results(folder.results) as f:
+                text = f.attrs.get("scene_toml")
+            if text:
+                return text.decode() if isinstance(text, bytes) else str(text)
+        except (OSError, ValueError, KeyError):
+            pass
+    try:
+        with open(folder.file(SCENE_FILE)) as f:
+            return f.read()
+    except (OSError, UnicodeDecodeError):
+        return None
 
 
 def _finish_replica(task: dict) -> dict:
@@ -1689,10 +1711,11 @@ def _file_content(path: str):
         return UNREADABLE
 
 
-def _flat_scene(scene) -> dict:
-    """A scene's keys (dotted) and values, less STUDY_RUN_KEYS and the SCM soil's keys; a key naming a file
-    by its path (an absolute path is how a scene keeps one) by the file's content (_file_content: a part run
-    on another machine, or a scene given beside its runs, names the same file from elsewhere)."""
+def _flat_scene(scene, skipped: tuple[str, ...] | None = None) -> dict:
+    """A scene's keys (dotted) and values, less `skipped` (default: STUDY_RUN_KEYS and the SCM soil's keys);
+    a key naming a file by its path (an absolute path is how a scene keeps one) by the file's content
+    (_file_content: a part run on another machine, or a scene given beside its runs, names the same file from
+    elsewhere)."""
     from .scm_calibration import SOIL_KEYS
 
     flat: dict = {}
@@ -1705,7 +1728,8 @@ def _flat_scene(scene) -> dict:
             flat[prefix] = value
 
     walk(scene.to_dict(), "")
-    skipped = {*STUDY_RUN_KEYS, *(f"terrain.{key}" for key in SOIL_KEYS)}
+    if skipped is None:  # a study's runs: those they differ in
+        skipped = (*STUDY_RUN_KEYS, *(f"terrain.{key}" for key in SOIL_KEYS))
     return {
         k: _file_content(v) if isinstance(v, str) and os.path.isabs(v) else v
         for k, v in flat.items()

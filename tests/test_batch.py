@@ -4,6 +4,7 @@ batch refuses what it cannot run."""
 
 import json
 import os
+import shutil
 import signal
 import threading
 import time
@@ -334,14 +335,19 @@ def test_replicas_stopped_one_by_one_resume_as_a_set_each_as_its_run_alone(tmp_p
     report = json.loads((out / "ensemble.json").read_text())
     assert [r["status"] for r in report["results"]] == ["failed", "unsteady"]
     assert str(checkpoint) in report["results"][0]["error"]
-    # a run of another scene put in a replica's folder while the set was stopped (the set's lock covers its own
-    # folder, not each replica's) was taken as the replica and pooled into the ensemble without a word
-    foreign = out / "replica_001" / "scene.toml"
-    foreign.write_text(foreign.read_text().replace("duration = 0.12", "duration = 0.06"))
+    # its scene.toml edited: still the set's replica (the run's own record is results.h5's), taken as it is
+    edited = out / "replica_001" / "scene.toml"
+    edited.write_text(edited.read_text().replace("duration = 0.12", "duration = 0.06"))
+    assert main(["resume", str(out)]) == 1
+    assert [r["status"] for r in json.loads((out / "ensemble.json").read_text())["results"]] == ["failed", "unsteady"]
+    # a run of another replica put in its folder while the set was stopped (the set's lock covers its own folder,
+    # not each replica's) was taken as the replica and pooled into the ensemble without a word, counted twice
+    shutil.rmtree(out / "replica_001")
+    shutil.copytree(runs_alone[0], out / "replica_001")  # order seed 0: replica_000's run
     assert main(["resume", str(out)]) == 1
     report = json.loads((out / "ensemble.json").read_text())
     assert [r["status"] for r in report["results"]] == ["failed", "failed"]
-    assert "holds a run of another scene than this set's (run.duration differ)" in report["results"][1]["error"]
+    assert "holds a run of another scene than this replica's (run.order_seed differ)" in report["results"][1]["error"]
     assert report["stats"]["replicas"] == len(SEEDS) and report["stats"]["averaged"] == 0
 
 

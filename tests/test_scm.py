@@ -259,6 +259,9 @@ def test_a_state_is_refused_by_a_terrain_of_another_soil_naming_the_parameter():
     same = ScmTerrain(parameters(bulldozing=True), [wheel], window=(0.3, 0.1))
     same.load_state_dict(state)  # the soil it was stepped on: continues
     assert same.time == pytest.approx(0.05)
+    same.load_state_dict({**state, "soil": state["soil"] * (1 + 4e-16)})  # a derived value's last bit, elsewhere
+    with pytest.raises(SoilInputError, match="soil holds 1 values, 12 expected: a damaged checkpoint"):
+        same.load_state_dict({**state, "soil": np.float64(1.0)})  # a 0-d entry was a TypeError
 
 
 def test_grids_and_spans_past_what_a_number_counts_are_refused_in_words():

@@ -872,11 +872,25 @@ class ScmTerrain:
         if "soil" in data:  # a state written before the soil was kept is not judged on it
             kept = np.asarray(data["soil"], dtype=np.float64)
             now = [float(getattr(self.parameters, name)) for name in _SOIL_STATE]
-            changed = [f"{name} {old:.6g} -> {new:.6g}" for name, old, new in zip(_SOIL_STATE, kept, now) if old != new]
-            if kept.shape != (len(_SOIL_STATE),) or changed:
+            if kept.shape != (len(_SOIL_STATE),):
+                raise SoilInputError(
+                    f"SCM state's soil holds {kept.size} values, {len(_SOIL_STATE)} expected: a damaged checkpoint"
+                )
+
+            def said(old, new):  # the digits that tell them apart
+                return f"{old:.6g} -> {new:.6g}" if f"{old:.6g}" != f"{new:.6g}" else f"{old!r} -> {new!r}"
+
+            # derived values (a default damping from the wheel's Bekker sinkage) may differ in the last bit
+            # on another machine's libm: the same soil within 1e-12
+            changed = [
+                f"{name} {said(old, new)}"
+                for name, old, new in zip(_SOIL_STATE, kept, now)
+                if not math.isclose(old, new, rel_tol=1e-12, abs_tol=0.0)
+            ]
+            if changed:
                 raise SoilInputError(
                     "SCM state is of another soil than this terrain's ("
-                    + (", ".join(changed) or f"{kept.shape[0] if kept.ndim else 0} soil values kept")
+                    + ", ".join(changed)
                     + "): its parameters (terrain.calibration's file or the [terrain] keys) changed since the state "
                     "was written; put the run's soil back to continue it"
                 )
