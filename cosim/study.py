@@ -1883,11 +1883,40 @@ def _run_soils(paths: list[str]) -> list[dict[str, float]]:
     return soils if varied and all(soils) else []
 
 
+def _paired_covariance(row1: dict, row2: dict, n1: int, n2: int) -> float:
+    """The covariance of two rows' mean DP/W [-] from their replicas paired by index (replica k of each
+    ran on the same bed under --vary-bed, and in the same summation order): cov_k(d1k, d2k) x m / (n1 n2)
+    over the m replicas averaged in both (n1, n2: each mean's count); 0 with fewer than 2 pairs."""
+    by1, by2 = row1.get("dp_over_w_by_replica") or {}, row2.get("dp_over_w_by_replica") or {}
+    common = sorted(set(by1) & set(by2))
+    if len(common) < 2:
+        return 0.0
+    import numpy as np
+
+    first, second = np.array([by1[k] for k in common]), np.array([by2[k] for k in common])
+    return float(np.cov(first, second, ddof=1)[0, 1]) * len(common) / (n1 * n2)
+
+
+def by_replica(members: list[dict], name: str, states) -> dict[str, float]:
+    """{replica index: the summary's `name`} of the runs averaged (steady_state in `states`), the index read
+    from each run's folder (replica_NNN): what pairs two rows' replicas (zero_pull_slip)."""
+    out = {}
+    for run in members:
+        summary = run.get("summary") or {}
+        found = re.search(r"replica_(\d+)", os.path.basename(str(run.get("out_dir", ""))))
+        value = summary.get(name)
+        if run.get("ok") and summary.get("steady_state") in states and found and value is not None:
+            if math.isfinite(value):
+                out[str(int(found.group(1)))] = float(value)
+    return out
+
+
 def zero_pull_slip(rows: list[dict]) -> dict:
     """The slip where the mean DP/W crosses zero (the wheel pulls its own load: self-propelled), from a
     slip study's rows: linear between the two measured slips around the first crossing (none is
-    extrapolated), with the 95 % half-width of the delta method over the two means' standard errors
-    (t at the smaller replica count less one). Returns {'slip' [-] or None, 'ci95' [-] (nan: an
+    extrapolated), with the 95 % half-width of the delta method over the two means' standard errors and,
+    where their replicas pair by index (a row's `dp_over_w_by_replica`), their covariance (t at the
+    smaller replica count less one). Returns {'slip' [-] or None, 'ci95' [-] (nan: an
     interval needs two replicas at both points), 'between' [slip, slip] [-], 'crossings' [count], 'note',
     'validity': 'valid' when both rows it uses are valid, 'out of range: slip S: CHECK (k/n), ...' naming
     each of them that is not (their rows' `validity`), None without a crossing or a verdict of either}."""
@@ -1912,8 +1941,11 @@ def zero_pull_slip(rows: list[dict]) -> dict:
     (s1, d1, e1, n1, row1), (s2, d2, e2, n2, row2) = points[crossings[0]], points[crossings[0] + 1]
     out["slip"] = s1 + (s2 - s1) * d1 / (d1 - d2)
     out["between"] = [s1, s2]
-    # d slip / d d1 = -(s2 - s1) d2 / (d1 - d2)^2, d slip / d d2 = (s2 - s1) d1 / (d1 - d2)^2
-    error = abs(s2 - s1) / (d1 - d2) ** 2 * math.hypot(d2 * e1, d1 * e2)
+    # d slip / d d1 = -(s2 - s1) d2 / (d1 - d2)^2, d slip / d d2 = (s2 - s1) d1 / (d1 - d2)^2; replica k of
+    # both rows ran on one bed (--vary-bed: bed k), so the two means covary: a bed's offset moves both
+    g1, g2 = -(s2 - s1) * d2 / (d1 - d2) ** 2, (s2 - s1) * d1 / (d1 - d2) ** 2
+    variance = (g1 * e1) ** 2 + (g2 * e2) ** 2 + 2.0 * g1 * g2 * _paired_covariance(row1, row2, n1, n2)
+    error = math.sqrt(max(variance, 0.0)) if math.isfinite(variance) else math.nan
     if math.isfinite(error):
         out["ci95"] = float(scipy_stats.t.ppf(0.975, min(n1, n2) - 1) * error)
     out["note"] = f"linear between the measured slips {s1:.3g} and {s2:.3g}" + (
@@ -1967,6 +1999,7 @@ def _slip_report(
                 "failed": sum(1 for r in members if failed_run(r)),
                 "validity": stats["validity"],
                 **_flat(stats),
+                "dp_over_w_by_replica": by_replica(members, "dp_over_w", states),
                 "stats": stats,
             }
         )
@@ -1995,7 +2028,7 @@ def _slip_report(
         for m in ("slip", "drawbar_pull", "dp_over_w", "driving_torque", "sinkage", "sinkage_tips")
         for k in ("mean", "std", "ci95")
     ]
-    units = {**METRIC_UNITS, **COUNT_UNITS, "slip_set": "1"}
+    units = {**METRIC_UNITS, **COUNT_UNITS, "slip_set": "1", "dp_over_w_by_replica": "1"}
     columns = list(dict.fromkeys(key for row in rows for key in row if key != "stats"))  # study.json's, all
     report["units"] = {
         **column_units(columns, units),

@@ -636,6 +636,36 @@ def test_the_self_propelled_slip_is_interpolated_with_its_interval():
     assert alone["slip"] == pytest.approx(0.275) and math.isnan(alone["ci95"])
 
 
+def test_the_self_propelled_slips_interval_pairs_the_replicas_of_one_bed():
+    """Under --vary-bed replica k ran on bed k at every slip, so a bed's offset moves the mean DP/W at both
+    slips the crossing is interpolated between; the interval treated the two means as independent. On
+    synthetic studies of 10 beds (DP/W = 0.5 (slip - 0.2) + a bed's offset (std 0.03) + a run's scatter
+    (0.01), at slips 0.1 and 0.4) the 95 % interval of the crossing now covers 0.2 in 93-97.5 % of 1000
+    studies, where without the pairing it covered 90 % (measured: 0.959 against 0.904)."""
+    from cosim import metrics
+    from cosim.study import zero_pull_slip
+
+    def row(slip, pulls, paired):
+        stats = {"metrics": {"dp_over_w": metrics.ensemble(list(pulls)), "slip": metrics.ensemble([slip] * 10)}}
+        pairs = {str(k): float(v) for k, v in enumerate(pulls)} if paired else {}
+        return {"slip_set": slip, "stats": stats, "dp_over_w_by_replica": pairs}
+
+    rng = np.random.default_rng(1)
+    covered = {True: 0, False: 0}
+    studies = 0
+    for _ in range(1000):
+        bed = rng.normal(0.0, 0.03, 10)
+        low, high = -0.05 + bed + rng.normal(0.0, 0.01, 10), 0.1 + bed + rng.normal(0.0, 0.01, 10)
+        crossings = {paired: zero_pull_slip([row(0.1, low, paired), row(0.4, high, paired)]) for paired in covered}
+        if crossings[True]["slip"] is None:  # the curve's mean did not cross (2 of 1000)
+            continue
+        studies += 1
+        for paired, crossing in crossings.items():
+            covered[paired] += abs(crossing["slip"] - 0.2) <= crossing["ci95"]
+    assert 0.93 <= covered[True] / studies <= 0.975, covered
+    assert covered[False] / studies < 0.92, covered  # what the pairing corrects
+
+
 def test_a_stop_asked_for_during_serial_replicas_stops_them_all(tmp_path, monkeypatch):
     """Ctrl-C or SIGTERM in a run of `--serial` replicas (the runner checkpoints and raises
     RunInterrupted) stops the study, as it stops one run: it used to mark that replica failed and run
