@@ -721,6 +721,11 @@ TERRAIN_WHEEL_MODELS = ("dem", "scm")
 """The models a wheel of terrain.wheels may name."""
 
 
+MAX_SURFACE_HEIGHT = 1e6
+"""The farthest an analytic or SCM ground may lie from z = 0 [m]: far beyond any terrain's relief, and near
+enough that a sinkage, a difference of heights, keeps its digits (at 1e11 m it did not)."""
+
+
 class TerrainSection(_Section):
     """The terrain the wheels run on: the DEM bed of [bed] (the default), the Soil Contact Model
     (model = "scm": soil.scm, a height field with Bekker pressure-sinkage and Janosi shear; docs/scm.md)
@@ -741,7 +746,8 @@ class TerrainSection(_Section):
     slip_velocity: float | None = Field(None, gt=0)
     """analytic: regularisation velocity of the friction laws [m/s] (default 1e-3)."""
     surface_height: float | None = None
-    """analytic, scm: height z of the undisturbed ground [m] (default 0; scm with DEM wheels: the bed's)."""
+    """analytic, scm: height z of the undisturbed ground [m] (default 0; scm with DEM wheels: the bed's),
+    within +-MAX_SURFACE_HEIGHT."""
     k_c: float | None = Field(None, ge=0)
     """scm: Bekker cohesive modulus k_c [Pa m^(1-n)]."""
     k_phi: float | None = Field(None, ge=0)
@@ -797,6 +803,12 @@ class TerrainSection(_Section):
         if self.model == "dem" and self.surface_height is not None:
             raise ValueError(
                 'surface_height: the DEM\'s surface is its settled bed\'s; a key of model = "analytic" or "scm"'
+            )
+        if self.surface_height is not None and abs(self.surface_height) > MAX_SURFACE_HEIGHT:
+            raise ValueError(
+                f"surface_height: allowed within +-{MAX_SURFACE_HEIGHT:.0e} m, got {self.surface_height:.4g} m (a "
+                "sinkage is a difference of heights, which far from the origin keeps too few digits: at 1e11 m "
+                "the main job's SCM sinkage read 3.60 mm for 3.93): place the ground near z = 0"
             )
         if not self.bulldozing:  # the rims and their slopes are moved only by bulldozing: the keys would be ignored
             rim_keys = ("bulldozing_fraction", "erosion_angle_deg", "erosion_iterations")

@@ -120,9 +120,12 @@ def read_calibration(path: str) -> ScmCalibration:
                 "(the values are not converted): write the value in that unit and the unit back"
             )
     scm = data.get("scm", {})
-    missing = [k for k in SOIL_KEYS if not _finite_number(scm.get(k))]
+    missing = [k for k in SOIL_KEYS if k not in scm]
     if missing:
-        raise CalibrationError(f"{path}: [scm] lacks a finite {', '.join(missing)}")
+        raise CalibrationError(f"{path}: [scm] lacks {', '.join(missing)}")
+    wrong = [k for k in SOIL_KEYS if not _finite_number(scm[k])]
+    if wrong:  # a text ("0.094"), a boolean, an inf or a nan where a number stands
+        raise CalibrationError(f"{path}: [scm] {wrong[0]} must be a finite number, got {scm[wrong[0]]!r}")
     gravity = data.get("gravity")
     if not _finite_number(gravity) or not gravity >= 0:
         raise CalibrationError(f"{path}: gravity must be a finite |g| >= 0 [m/s^2], got {gravity!r}")

@@ -495,9 +495,10 @@ def _check_variation(plan: RunPlan, vary: str, replicas: int = 0) -> list[dict[s
     if vary != "bed" and replicas >= 2 and plan.terrain.model == "scm":
         raise SceneError(
             [
-                f"--replicas {replicas}: terrain.model 'scm' sums in a fixed order, so replicas over summation "
-                "orders are one run K times (an error bar of 0); an SCM run's error bar is its calibration's: "
-                "add --vary-bed (replica k on the soil its calibration fitted on bed k; docs/scm.md)"
+                f"--replicas {replicas} (a study's default is 3): terrain.model 'scm' sums in a fixed order, so "
+                "replicas over summation orders are one run K times (an error bar of 0); an SCM run's error bar "
+                "is its calibration's: add --vary-bed (replica k on the soil its calibration fitted on bed k; "
+                "docs/scm.md), or give --replicas 1 for one run"
             ]
         )
     if vary != "bed":

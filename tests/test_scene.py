@@ -58,6 +58,12 @@ BAD_SCENES = [
     ("a drawbar load of 1e20 N", "[testbed]\ndrawbar_load = 1e20\n", "testbed.drawbar_load", "dragged backwards"),
     ("infinite snapshot interval", "[output]\nsnapshot_interval = inf\n", "output.snapshot_interval", "finite"),
     (
+        "a ground 1e11 m up",
+        "[terrain]\nmodel = 'analytic'\nsurface_height = 1e11\n",
+        "terrain.surface_height",
+        "within +-1e+06 m",
+    ),
+    (
         "erosion without bulldozing",
         "[terrain]\nmodel = 'scm'\nerosion_angle_deg = 5.0\n",
         "terrain.erosion_angle_deg",

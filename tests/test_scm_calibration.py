@@ -226,12 +226,15 @@ def test_a_calibration_file_of_the_wrong_types_is_refused_naming_the_file_and_ke
         (lambda d: d["units"].update(k_c="kPa m^(1-n)"), "[units] k_c = 'kPa m^(1-n)': this version reads k_c in"),
         (lambda d: d["units"].update(friction_angle_deg="rad"), "[units] friction_angle_deg = 'rad'"),
         (lambda d: d.update(format=True), "format True, this version reads format"),
+        (lambda d: d["scm"].update(k_c="0.094"), "[scm] k_c must be a finite number, got '0.094'"),
+        (lambda d: d["scm"].pop("k_phi"), "[scm] lacks k_phi"),
     ],
-    ids=["misspelt soil key", "unknown standard error", "k_c in kPa", "an angle in rad", "format true"],
+    ids=["misspelt soil key", "unknown standard error", "k_c in kPa", "an angle in rad", "format true", "text", "none"],
 )
 def test_a_calibration_file_that_would_be_misread_is_refused_naming_the_key(tmp_path, change, named):
     """A misspelt key in [scm] or [standard_error] was dropped without a word, and [units] was never read:
-    a k_c written in kPa was taken in Pa, an angle in radians as degrees; `format = true` passed as 1."""
+    a k_c written in kPa was taken in Pa, an angle in radians as degrees; `format = true` passed as 1; a
+    k_c written as a text was said to be missing."""
     import tomli_w
 
     path = tmp_path / "terrain.toml"
