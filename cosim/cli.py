@@ -824,12 +824,21 @@ def cmd_export_fmu(args) -> int:
 # -- the soil lab (cosim.lab, docs/lab.md) -------------------------------------------------------
 
 
+def _lab_replicas(args) -> list[str]:
+    """--replicas as the lab's override (lab.replicas), refused by its own name when below 1."""
+    from soil.errors import ArgumentError
+
+    if args.replicas is None:
+        return []
+    if args.replicas < 1:
+        raise ArgumentError(f"--replicas: specimens (and beds) per test, at least 1, got {args.replicas}")
+    return [f"lab.replicas={args.replicas}"]
+
+
 def _lab_plan(args, test: str):
     from .lab.scene import load_lab_plan
 
-    overrides = _overrides(args)
-    if args.replicas is not None:
-        overrides.append(f"lab.replicas={args.replicas}")
+    overrides = _overrides(args) + _lab_replicas(args)
     return load_lab_plan(args.scene, overrides, needs_gravity=test in ("repose", "plate", "calibrate"), test=test)
 
 
@@ -1039,9 +1048,7 @@ def cmd_calibrate_scm(args) -> int:
 
     _refuse_an_input_as_out(args.out, {"the scene": args.scene, "--lab": args.lab, "--start": args.start})
     _free_output_file(args.out, (".toml",), args.overwrite)  # before an hour of DEM tests, not after them
-    overrides = _overrides(args)
-    if args.replicas is not None:
-        overrides.append(f"lab.replicas={args.replicas}")
+    overrides = _overrides(args) + _lab_replicas(args)
     if not args.lab_sizes:  # the small default tests where the scene sizes none
         overrides = small_tests(load_lab_scene(args.scene, overrides)) + overrides
     work = args.work or os.path.splitext(args.out)[0] + "_runs"

@@ -408,6 +408,8 @@ def _bed_fits(fits, where: str) -> dict[str, list]:
             raise CalibrationError(
                 f"{where} {key}: must be a list of numbers (nan: a bed's failed fit), got {values!r}"
             )
+        if any(math.isinf(v) for v in values):  # was taken as a failed fit, that bed silently on the pooled value
+            raise CalibrationError(f"{where} {key}: an infinite value (nan marks a bed's failed fit), got {values!r}")
     counts = {key: len(values) for key, values in fits.items()}
     if len(set(counts.values())) > 1:  # a value per bed, in bed order: lists of unequal length misalign the beds
         listed = ", ".join(f"{key} {count}" for key, count in counts.items())

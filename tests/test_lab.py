@@ -113,6 +113,17 @@ def test_lab_commands_fail_cleanly_on_bad_input(tmp_path, capsys):
     assert main(["lab", "repose", str(tmp_path / "missing.toml")]) == 2
     scene = tmp_path / "lab.toml"
     scene.write_text("[scene]\ndevice = 'cpu'\n")
+    for command in (["lab", "repose"], ["calibrate-scm"]):  # named by the option given, not lab.replicas
+        arguments = [
+            *command,
+            str(scene),
+            "--replicas",
+            "0",
+            *(["--out", str(tmp_path / "x.toml")] * (len(command) == 1)),
+        ]
+        assert main(arguments) == 2
+        err = capsys.readouterr().err
+        assert "--replicas: specimens (and beds) per test, at least 1, got 0" in err and "lab.replicas" not in err, err
     assert main(["calibrate", str(scene), "--target", "angle=30", "--vary", "soil.rolling_friction=0:0.3"]) == 2
     assert "unknown target 'angle'" in capsys.readouterr().err
     assert main(["calibrate", str(scene), "--target", "repose=30", "--vary", "soil.rolling_friction=0.3:0"]) == 2

@@ -252,11 +252,12 @@ def test_a_calibration_file_that_would_be_misread_is_refused_naming_the_key(tmp_
     "source, named",
     [
         ({"replica_fits": {"k_c": [True, False]}}, "[source.replica_fits] k_c: must be a list of numbers"),
+        ({"replica_fits": {"k_c": [0.1, math.inf]}}, "[source.replica_fits] k_c: an infinite value (nan marks"),
         ({"wheel": {"fitted": 5}}, "[source.wheel] fitted must be a list of SCM keys, got 5"),
         ({"wheel": 5}, "[source] wheel must be a table"),
         ({"plate": "deep"}, "[source] plate must be a table"),
     ],
-    ids=["booleans per bed", "fitted a number", "wheel a number", "plate a text"],
+    ids=["booleans per bed", "an inf per bed", "fitted a number", "wheel a number", "plate a text"],
 )
 def test_a_calibrations_record_of_the_wrong_types_is_refused_when_the_scene_is_planned(tmp_path, source, named):
     """true / false in a bed's fits were read as 1.0 and 0.0 (a replica ran with k_c = 0); `fitted = 5`
