@@ -314,6 +314,13 @@ def _print_summary(result, scm_only: bool = False) -> None:
             f"into the window: the window's mean sinkage mixes the wheel's settling into its plateau, "
             f"{plateau * 1e3:.4g}{bar}"
         )
+    if s.get("coupling_energy_over_tolerance"):  # the run's log said it once; the summary keeps it
+        created, exchanged = s.get("coupling_energy_created"), s.get("coupling_energy_exchanged")
+        print(
+            f"  ! the coupling created {created:.3g} J of energy (over its tolerance; {exchanged:.3g} J exchanged "
+            "between soil and rover): the macro step is too long for these contacts; shorten run.macro_step "
+            "and run again"
+        )
     for finding in s.get("findings", []):
         if not finding["ok"]:
             print(f"  ! {finding['message']}")

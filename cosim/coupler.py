@@ -219,6 +219,11 @@ class Coupler:
             )
         return MacroStepRecord(t1, k1, list(held), w_rover, w_soil)
 
+    @property
+    def energy_over_tolerance(self) -> bool:
+        """Whether the coupling created more energy than its tolerance (the CouplingEnergyWarning was issued)."""
+        return self._warned
+
     def run(self, t_end: float, callback: Callable[[Coupler], None] | None = None) -> list[MacroStepRecord]:
         """Macro-step until t_end [s] (rounded to a whole number of steps); returns the records.
 

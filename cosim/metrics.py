@@ -503,6 +503,8 @@ SUMMARY_UNITS = {
     "macro_step": "s",
     "froude_number": "1",
     "coupling_energy_created": "J",
+    "coupling_energy_exchanged": "J",
+    "coupling_energy_over_tolerance": "1",
     "particle_steps_per_second": "1/s",
 }
 """The unit of each number a run's summary may hold (a `_sem` value: its quantity's, a

@@ -310,6 +310,8 @@ def run_summary(
         macro_step=plan.macro_step,
         froude_number=_froude_number(plan, findings),
         coupling_energy_created=float(system.coupler.energy_created),
+        coupling_energy_exchanged=float(system.coupler.energy_exchanged),
+        coupling_energy_over_tolerance=bool(system.coupler.energy_over_tolerance),
         validity=advice.verdict(findings, not_judged),
         findings=[f.as_dict() for f in findings],
     )

@@ -358,7 +358,8 @@ class BedSection(_Section):
     seed: int = Field(1, ge=0)
     """Random seed of the grain insertion [-] (>= 0)."""
     settle_ke_ratio: float = Field(1e-3, gt=0)
-    """Settled when kinetic energy < ratio * N m g r (gravity-scaled) [-]."""
+    """Settled when kinetic energy < ratio * N m g r (gravity-scaled) [-], judged only after 10 x the time a
+    grain released from rest needs in free fall to reach that energy, sqrt(2 ratio r / g) (soil.bed.settle)."""
     settle_max_time: float = Field(10.0, gt=0)
     """Longest settling time [s] (simulated)."""
     settle_dt_factor: float = Field(0.2, gt=0, le=1)

@@ -143,6 +143,24 @@ def test_energy_bookkeeping_matches_the_rover_energy_and_warns_for_jacobi():
     created = np.cumsum((rec["work_on_rover"] + rec["work_on_soil"]).sum(axis=1))[flight]
     assert gained > 0.5  # J: a real gain, about 1.5 J here
     assert created == pytest.approx(gained, rel=0.02)
+    # the warning went to the log once; a run's summary keeps it and prints it as a `!` line
+    import contextlib
+    import io
+    from types import SimpleNamespace
+
+    from cosim.cli import _print_summary
+
+    assert coupler.energy_over_tolerance
+    summary = {"coupling_energy_created": coupler.energy_created, "coupling_energy_exchanged": coupler.energy_exchanged}
+    printed = []
+    for over in (True, False):
+        out = io.StringIO()
+        result = SimpleNamespace(summary={**summary, "coupling_energy_over_tolerance": over}, status="x", out_dir="r")
+        with contextlib.redirect_stdout(out):
+            _print_summary(result)
+        printed.append(out.getvalue())
+    assert f"! the coupling created {coupler.energy_created:.3g} J of energy (over its tolerance" in printed[0]
+    assert "the coupling created" not in printed[1]
 
     # Gauss-Seidel at a smaller H keeps the same bounce within tolerance.
     rover = _rig(hub_height=0.11, timestep=2.5e-4)

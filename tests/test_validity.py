@@ -456,3 +456,24 @@ def test_a_rolling_spring_on_a_wall_is_stable_to_the_step_rolling_step_names_and
         return float(np.abs(sim.angular_velocities()).max())
 
     assert spin(0.9) < 1e-6 and spin(1.1) > 1e-2
+
+
+def test_a_milli_g_fill_is_not_called_settled_before_it_has_fallen(tmp_path):
+    """At 1e-3 m/s^2 the tiny scene's fill was 'settled' at 0.11 s: grains released from rest stay under
+    the gravity-scaled threshold (ratio m g r) for sqrt(2 ratio r / g) of free fall, 0.14 s here, and the
+    check began after 10 intervals, 0.1 s. In 1 s a grain falls 0.5 mm, a quarter of its radius: the bed
+    cannot have settled, and settling says so; at the scene's own gravity it settles as before."""
+    from soil.bed import make_settled_bed, still_time
+
+    plan = load_plan(write_tiny(tmp_path), ["scene.gravity=1e-3", "landing.max_time=8"])
+    bed = plan.bed
+    sim, report, _ = make_settled_bed(
+        bed.spec, plan.gravity, device="cpu", dt=bed.settle_dt, ke_ratio=bed.settle_ke_ratio, max_time=1.0
+    )
+    assert still_time(sim, bed.settle_ke_ratio) > 0.1  # the case: a free fall under the threshold past 10 intervals
+    assert not report["settled"], report
+    own = load_plan(write_tiny(tmp_path))
+    _, report, _ = make_settled_bed(
+        own.bed.spec, own.gravity, device="cpu", dt=own.bed.settle_dt, ke_ratio=own.bed.settle_ke_ratio
+    )
+    assert report["settled"], report
