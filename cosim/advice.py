@@ -455,8 +455,15 @@ def check(
             FLOOR_GRAINS,
             clearance >= FLOOR_GRAINS,
             f"{clearance:.3g} grain diameters between the grouser tips and the floor {when}",
-            f"only {clearance:.3g} grain diameters between the grouser tips and the floor {when}: the wheel feels the "
-            f"floor; deepen {fill} to >= {(FLOOR_GRAINS * diameter + sink) / settled_fraction:.3g} m",
+            (
+                f"only {clearance:.3g} grain diameters between the grouser tips and the floor {when}: the wheel feels "
+                "the floor"
+                if clearance >= 0
+                else f"the grouser tips went {-clearance:.3g} grain diameters below the floor {when}: the wheel "
+                "passed through it (it has no contact with the container, only with the grains), so the run "
+                "measured no soil there"
+            )
+            + f"; deepen {fill} to >= {(FLOOR_GRAINS * diameter + sink) / settled_fraction:.3g} m",
             "bed.depth",
         )
     )

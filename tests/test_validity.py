@@ -107,6 +107,12 @@ def test_the_floor_is_judged_under_the_deepest_wheel():
     found = _found(validity(plan, 0.07, {"sinkage_tips": sum(tips) / 4, "wheel_sinkage_tips": tips}))
     diameter = 2 * plan.bed.spec.radius_mean
     assert found["floor_clearance"].value == pytest.approx((0.07 - max(tips)) / diameter, rel=1e-12)
+    # tips measured below the floor (a probe's frictionless grains): said as a passage through it, not as a
+    # clearance of "-0.242 grain diameters"
+    floor = _found(validity(plan, 0.07, {"sinkage_tips": 0.075, "wheel_sinkage_tips": [0.075] * 4}))["floor_clearance"]
+    assert not floor.ok and floor.value < 0
+    assert f"the grouser tips went {-floor.value:.3g} grain diameters below the floor" in floor.message, floor.message
+    assert "passed through it" in floor.message and "only -" not in floor.message
 
 
 def test_a_shallow_settled_bed_is_told_the_fill_height_that_makes_it_deep_enough():
