@@ -1216,15 +1216,14 @@ def _foreign_run(task: dict, folder: RunFolder) -> str:
 def _recorded_scene(folder: RunFolder) -> str | None:
     """The scene text a run in `folder` ran: its results.h5's `scene_toml`, else its scene.toml; None
     when there is neither or it cannot be read."""
-    from .output import open_results
+    from .output import check_results
 
     if os.path.isfile(folder.results):
         try:
-            with open_results(folder.results) as f:
-                text = f.attrs.get("scene_toml")
+            text = check_results(folder.results, data=False).get("scene_toml")
             if text:
-                return text.decode() if isinstance(text, bytes) else str(text)
-        except (OSError, ValueError, KeyError):
+                return str(text)
+        except (OSError, ValueError):  # damaged (DamagedFileError): resuming it says so
             pass
     try:
         with open(folder.file(SCENE_FILE)) as f:
@@ -1875,7 +1874,9 @@ def _run_soils(paths: list[str]) -> list[dict[str, float]]:
         try:
             with open(os.path.join(path, "scene.toml"), "rb") as f:
                 terrain = tomllib.load(f).get("terrain", {})
-            replica = int(os.path.basename(path)[len("replica_") :])
+            replica = replica_index(path)
+            if replica is None:
+                raise ValueError("its folder is named replica_NNN")
         except (OSError, ValueError, tomllib.TOMLDecodeError) as error:
             raise ArgumentError(f"{path}: not a slip run's folder ({error})") from None
         by_replica.setdefault(replica, {k: terrain[k] for k in SOIL_KEYS if k in terrain})
@@ -1904,12 +1905,17 @@ def by_replica(members: list[dict], name: str, states) -> dict[str, float]:
     out = {}
     for run in members:
         summary = run.get("summary") or {}
-        found = re.search(r"replica_(\d+)", os.path.basename(str(run.get("out_dir", ""))))
-        value = summary.get(name)
-        if run.get("ok") and summary.get("steady_state") in states and found and value is not None:
+        index, value = replica_index(str(run.get("out_dir", ""))), summary.get(name)
+        if run.get("ok") and summary.get("steady_state") in states and index is not None and value is not None:
             if math.isfinite(value):
-                out[str(int(found.group(1)))] = float(value)
+                out[str(index)] = float(value)
     return out
+
+
+def replica_index(path: str) -> int | None:
+    """k of a replica's folder `.../replica_k` (_replica_tasks' naming), None for another name."""
+    found = re.fullmatch(r"replica_(\d+)", os.path.basename(os.path.normpath(path)))
+    return int(found.group(1)) if found else None
 
 
 def zero_pull_slip(rows: list[dict]) -> dict:

@@ -562,29 +562,43 @@ def test_row12_a_scene_name_is_a_name_not_a_path(scene, tmp_path, capsys, monkey
     assert not (tmp_path / "x").exists() and not (work / "runs").exists()
 
 
-# -- row 13: SIGTERM ----------------------------------------------------------------------------
-def test_row13_sigterm_checkpoints_stops_cleanly_and_resumes(scene, tiny_bed, complete, tmp_path):
-    out = tmp_path / "term"
-    script = textwrap.dedent(f"""
-        import os, signal, sys
+# -- row 13: SIGTERM, and a closed terminal (SIGHUP) ------------------------------------------------
+def run_stopped_at_step_20(scene, tiny_bed, out, at_step: str, options: str = "") -> str:
+    """A child script running the tiny scene into `out` that runs `at_step` (Python lines, `self` the runner)
+    after macro step 20."""
+    head = textwrap.dedent("""
+        import os, signal, sys, time
         from cosim import runner
         from cosim.cli import main
         original = runner.Runner._after_step
         def after_step(self, record):
             original(self, record)
             if self.system.coupler.step_count == 20:
-                os.kill(os.getpid(), signal.SIGTERM)  # what a batch scheduler or `docker stop` sends
-        runner.Runner._after_step = after_step
-        sys.exit(main(["run", {scene!r}, "--out", {str(out)!r}, "--no-progress", "--set", 'bed.bed_file="{tiny_bed}"']))
     """)
-    done = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=300)
-    assert done.returncode == 143, done.stderr
-    assert "cosim: interrupted. SIGTERM: stopped at t = " in done.stderr
-    assert json.loads((out / "run.json").read_text())["status"] == "interrupted"
+    tail = textwrap.dedent(f"""
+        runner.Runner._after_step = after_step
+        sys.exit(main(["run", {scene!r}, "--out", {str(out)!r}, {options}"--set", 'bed.bed_file="{tiny_bed}"']))
+    """)
+    return head + textwrap.indent(textwrap.dedent(at_step).strip("\n") + "\n", " " * 8) + tail
+
+
+def assert_checkpointed_at_step_20_and_resumes(out, complete) -> None:
+    """A checkpoint of the moment of the stop, and a resume to the uninterrupted run's slip, bit for bit."""
     assert int(np.load(out / "checkpoint.npz")["coupler/step_count"]) == 20  # a checkpoint of the moment
     assert main(["resume", str(out), "--no-progress"]) in (0, 6)
     info, reference = (json.loads((f / "run.json").read_text()) for f in (out, complete))
     assert info["summary"]["slip"] == reference["summary"]["slip"]  # bitwise on the CPU
+
+
+def test_row13_sigterm_checkpoints_stops_cleanly_and_resumes(scene, tiny_bed, complete, tmp_path):
+    out = tmp_path / "term"
+    sigterm = "os.kill(os.getpid(), signal.SIGTERM)  # what a batch scheduler or `docker stop` sends\n"
+    script = run_stopped_at_step_20(scene, tiny_bed, out, sigterm, options='"--no-progress", ')
+    done = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=300)
+    assert done.returncode == 143, done.stderr
+    assert "cosim: interrupted. SIGTERM: stopped at t = " in done.stderr
+    assert json.loads((out / "run.json").read_text())["status"] == "interrupted"
+    assert_checkpointed_at_step_20_and_resumes(out, complete)
 
 
 def test_row13_a_closed_terminal_checkpoints_stops_cleanly_and_resumes(scene, tiny_bed, complete, tmp_path):
@@ -594,24 +608,16 @@ def test_row13_a_closed_terminal_checkpoints_stops_cleanly_and_resumes(scene, ti
     import pty
 
     out = tmp_path / "hangup"
-    script = textwrap.dedent(f"""
-        import sys, time
-        from cosim import runner
-        from cosim.cli import main
-        original = runner.Runner._after_step
-        def after_step(self, record):
-            original(self, record)
-            if self.system.coupler.step_count == 20:
-                try:
-                    print("STEP 20", flush=True)  # the test closes the terminal now
-                except OSError:  # closed already (EIO): this line is the test's, not the run's
-                    pass
-                waited = time.monotonic()
-                while not self.stop_requested and time.monotonic() - waited < 60:
-                    time.sleep(0.01)
-        runner.Runner._after_step = after_step
-        sys.exit(main(["run", {scene!r}, "--out", {str(out)!r}, "--set", 'bed.bed_file="{tiny_bed}"']))
-    """)
+    wait = """
+        try:
+            print("STEP 20", flush=True)  # the test closes the terminal now
+        except OSError:  # closed already (EIO): this line is the test's, not the run's
+            pass
+        waited = time.monotonic()
+        while not self.stop_requested and time.monotonic() - waited < 60:
+            time.sleep(0.01)
+    """
+    script = run_stopped_at_step_20(scene, tiny_bed, out, wait)  # progress bars on: the terminal shows them
     pid, terminal = pty.fork()  # the child's session and controlling terminal: its stdin, stdout, stderr
     if pid == 0:  # the child: progress bars and log lines on the terminal, as a user's run has them
         try:
@@ -631,10 +637,7 @@ def test_row13_a_closed_terminal_checkpoints_stops_cleanly_and_resumes(scene, ti
     assert os.waitstatus_to_exitcode(status) == 129, said.decode(errors="replace")[-2000:]
     info = json.loads((out / "run.json").read_text())
     assert info["status"] == "interrupted" and "SIGHUP" in info["message"], info.get("message")
-    assert int(np.load(out / "checkpoint.npz")["coupler/step_count"]) == 20  # a checkpoint of the moment
-    assert main(["resume", str(out), "--no-progress"]) in (0, 6)
-    info, reference = (json.loads((f / "run.json").read_text()) for f in (out, complete))
-    assert info["summary"]["slip"] == reference["summary"]["slip"]  # bitwise on the CPU
+    assert_checkpointed_at_step_20_and_resumes(out, complete)
 
 
 def test_a_command_started_under_nohup_keeps_ignoring_the_hangup():
