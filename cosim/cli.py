@@ -298,22 +298,6 @@ def _print_summary(result, scm_only: bool = False) -> None:
             f"  ! the window spans only {', '.join(short)} (< {MIN_CORRELATION_TIMES}): "
             "their within-run intervals are too narrow; replicas give the error bar"
         )
-    settled = [s.get(key) for key in ("sinkage_settled", "sinkage_settled_from")]
-    if all(isinstance(v, float) and math.isfinite(v) for v in settled) and s.get("window") and None not in s["window"]:
-        (plateau, since), (start, end) = settled, s["window"]
-        sem, tau = s.get("sinkage_settled_sem"), s.get("sinkage_settled_correlation_time")
-        spans = (end - since) / tau if isinstance(tau, float) and tau > 0 else math.inf
-        if spans < MIN_CORRELATION_TIMES:  # as the line above says of the window: no within-run error bar
-            bar = f" mm from then on (over {spans:.0f} of its correlation times: replicas give its error bar)"
-        elif isinstance(sem, float) and sem == sem:
-            bar = f" +- {within_run_interval(sem) * 1e3:.2g} (95 %, within run) mm from then on"
-        else:
-            bar = " mm from then on"
-        print(
-            f"  ! the sinkage settles only from {since:.4g} s (its own MSER-5), {(since - start) / (end - start):.0%} "
-            f"into the window: the window's mean sinkage mixes the wheel's settling into its plateau, "
-            f"{plateau * 1e3:.4g}{bar}"
-        )
     if s.get("coupling_energy_over_tolerance"):  # the run's log said it once; the summary keeps it
         created, exchanged = s.get("coupling_energy_created"), s.get("coupling_energy_exchanged")
         print(

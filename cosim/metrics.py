@@ -16,8 +16,9 @@ Per wheel and macro step (`wheel_quantities`), in the wheel's own frame (axle = 
 
 Over a run (`summarize`): a steady-state window is found in the driving phase by the MSER-5
 rule (White 1997: the truncation that minimises the standard error of the mean of what
-remains) applied to the forward speed (or, at imposed slip, the drawbar pull), the sinkage
-steady over that window too (MSER-5, or a drift under half a grain radius); over it
+remains), starting at the later of its starts for the forward speed (or, at imposed slip, the
+drawbar pull) and for the sinkage, the sinkage steady over that window too (MSER-5, or a drift
+under half a grain radius); over it
 slip = 1 - mean(v) / (mean(omega) r) from mean speeds, and sinkage, drawbar pull, DP/W and
 torque are means. A run with no steady state gets a status saying
 why: 'never touched the soil', 'no landing', 'airborne', 'stuck', 'too short' (also a grousered
@@ -50,7 +51,7 @@ motor at its limit, or a torque holding the rover still; its slip would be a rat
 when they stop entirely). A stall adds no time immobile; a parked rover (zero commands, or zero
 speeds: a brake) is not judged.
 Steps before the wheels have turned one radian are not judged, nor steps while they turn against
-each other. The steady-state window is found as for a wheel (MSER-5 on the forward speed and the
+each other. The steady-state window is found as for a wheel (`drive_window` on the forward speed and the
 mean sinkage; each wheel's sinkage steady over it, else 'still sinking' or 'still rising'; one grouser
 passage at least over it for the grousered wheels that turn, else 'too short'); slip, sinkage, drawbar
 pull, torque, normal force and power per wheel and the rover's slip, net traction and power are
@@ -240,6 +241,18 @@ def steady_window(series: dict[str, np.ndarray], min_fraction: float = 0.25) -> 
     return start, (n - start) >= max(min_fraction * n, 4)
 
 
+def drive_window(traction: np.ndarray, sinkage: np.ndarray, min_fraction: float = 0.25) -> tuple[int, bool]:
+    """(first sample of the steady window, found) over a drive: the later of the MSER-5 starts of the
+    traction (forward speed, or drawbar pull at an imposed slip) and of the sinkage (a pull steady from the
+    drive's start while the wheel still sinks would mix the settling into every mean). A sinkage MSER-5
+    finds no start for (a steady drift) leaves the traction's window; its drift is judged over it apart
+    (`sinkage_steady`)."""
+    series = (
+        {"traction": traction, "sinkage": sinkage} if mser_truncation(sinkage) is not None else {"traction": traction}
+    )
+    return steady_window(series, min_fraction)
+
+
 BATCHES = 8
 """Batch means a window's standard error is taken over [count] (`batch_standard_error`)."""
 
@@ -300,13 +313,6 @@ def short_window(summary: dict, name: str) -> float | None:
     return spans if spans < MIN_CORRELATION_TIMES else None
 
 
-SETTLING_FRACTION = 0.1
-"""How far into the steady window the sinkage's own MSER-5 start must lie for the summary to give its
-settled part apart (sinkage_settled_from, sinkage_settled) [-] ..."""
-SETTLING_SAMPLES = 20
-"""... and in samples at least [count]: a few samples' truncation says nothing."""
-
-
 def summarize(
     series: dict,
     *,
@@ -328,18 +334,17 @@ def summarize(
     'normal_force' [N], 'forward_speed' [m/s], 'contact_fraction' [-], with '<name>_sem'
     (batch-means standard error within the window) and '<name>_correlation_time' [s] (a window of
     fewer than MIN_CORRELATION_TIMES of them makes the _sem too small); 'dp_over_w_sem'; 'sinkage_rate'
-    [m/s] (slope of the sinkage over the window); in a steady window where the sinkage's own MSER-5 start
-    lies SETTLING_FRACTION or more into it, 'sinkage_settled_from' [s] and 'sinkage_settled' [m] (with its
-    _sem and _correlation_time): the mean from there, the window's mixing the wheel's settling into its plateau;
-    'grouser_passages' [-] (grousers that passed over the
+    [m/s] (slope of the sinkage over the window); 'grouser_passages' [-] (grousers that passed over the
     window: the rim's turn x grouser_count / 2 pi); 'travel' [m] over the drive, 'landing_time' [s],
     'landing_sinkage' [m] (the rim's sinkage as the drive starts: the wheel's static sinkage under its
     load), 'deepest_sinkage' [m] (the rim's deepest over the landing and the drive: what a run without a
     window reached)}.
 
-    The window is the steady state of the traction (forward speed, or drawbar pull at an
-    imposed slip). The sinkage must be steady over it as well: stationary by MSER-5, or
-    drifting by less than half of `grain_radius` [m] over the window; else 'still sinking' (or 'still
+    The window starts at the later of two MSER-5 starts over the drive, as a rover's: the traction's
+    (forward speed, or drawbar pull at an imposed slip) and the sinkage's (a pull steady from the drive's
+    start while the wheel still sinks would mix the settling into the means; a sinkage MSER-5 finds no
+    start for leaves the traction's). The sinkage must be steady over the window as well: stationary by
+    MSER-5, or drifting by less than half of `grain_radius` [m] over it; else 'still sinking' (or 'still
     rising'). A grousered wheel (grouser_count > 0) must pass at least one grouser over it; else 'too short'.
     ramped: the drawbar load grows over the drive (testbed.drawbar_ramp): 'ramped load' unless airborne or
     stuck (its window means are of a load and a slip still changing, and a longer drive only climbs on).
@@ -366,10 +371,10 @@ def summarize(
     if index[0] > 0:  # the last landing sample; none when the run started landed
         out["landing_sinkage"] = float(np.asarray(series["sinkage"])[index[0] - 1, 0])
     key = pull if mode == "slip" else forward
-    start, found = steady_window({"driving": key}, min_fraction)
+    start, found = drive_window(key, sinkage, min_fraction)
     window = index[start:] if found else index[len(index) // 2 :]
     out["window"] = [float(time[window[0]]), float(time[window[-1]])]
-    # the sinkage over the traction's window: stationary, or drifting by less than half a grain radius
+    # the sinkage over the window: stationary, or drifting by less than half a grain radius
     window_time = time[window]
     settled, out["sinkage_rate"] = sinkage_steady(sinkage[window - index[0]], window_time, min_fraction, grain_radius)
     quantities = {
@@ -404,21 +409,7 @@ def summarize(
         out["steady_state"] = TOO_SHORT
     elif not settled:
         out["steady_state"] = RISING if out["sinkage_rate"] < 0 else SINKING
-    if out["steady_state"] == STEADY:  # a steady window whose mean sinkage mixes the settling: the plateau apart
-        _settled_sinkage(out, sinkage[window - index[0]], window_time)
     return out
-
-
-def _settled_sinkage(out: dict, sinkage: np.ndarray, time: np.ndarray) -> None:
-    """Where the sinkage's own MSER-5 start over a steady window (`sinkage` [m] at `time` [s]) lies
-    SETTLING_FRACTION of it in or more (and SETTLING_SAMPLES at least: a few samples say nothing), the
-    window's mean sinkage mixes the wheel's settling with its plateau: out['sinkage_settled_from'] [s] and
-    out['sinkage_settled'] [m] (with its _sem and _correlation_time), the plateau's mean."""
-    cut = mser_truncation(sinkage)
-    if cut is None or cut < max(SETTLING_FRACTION * len(sinkage), SETTLING_SAMPLES):
-        return
-    out["sinkage_settled_from"] = float(time[cut])
-    window_mean(out, "sinkage_settled", sinkage[cut:], float(np.mean(np.diff(time[cut:]))))
 
 
 def grouser_passages(turn: float, grouser_count: int) -> float:
@@ -457,8 +448,6 @@ SUMMARY_UNITS = {
     "landing_time": "s",
     "landing_sinkage": "m",
     "sinkage_rate": "m/s",
-    "sinkage_settled": "m",
-    "sinkage_settled_from": "s",
     "deepest_sinkage": "m",
     "wheel_deepest_sinkage": "m",
     "grouser_passages": "1",
@@ -726,7 +715,7 @@ def summarize_rover(
     immobile = immobile_steps(times, position, orientation, spins, rim_radii, stuck_slip)
     out["time_immobile"] = float(np.sum(dt[immobile]))
     out["stuck"] = bool(immobile[-1])
-    start, found = steady_window({"driving": speed, "sinkage": sinkage.mean(axis=1)}, min_fraction)
+    start, found = drive_window(speed, sinkage.mean(axis=1), min_fraction)
     window = np.arange(start, len(index)) if found else np.arange(len(index) // 2, len(index))
     rows = index[window]
     out["window"] = [float(time[rows[0]]), float(time[rows[-1]])]

@@ -99,42 +99,39 @@ def test_landing_then_a_steady_state_window_with_its_metrics():
     assert out["dp_over_w"] == pytest.approx(0.05, abs=0.005) and out["contact_fraction"] == 1.0
 
 
-def test_a_sinkage_still_settling_inside_the_window_is_given_apart_with_its_plateau(capsys):
-    """At an imposed slip the window is the drawbar pull's steady state, which may start with the drive
-    while the wheel still sinks (the main job: the pull steady from 5.7 s, the sinkage from 11.4 s): the
-    window's mean sinkage mixes the settling with the plateau (8.16 against 8.79 mm). The summary gives the
-    plateau apart, from the sinkage's own MSER-5 start, and the printed summary says so; a sinkage steady
-    over the window gives nothing apart."""
-    from cosim.cli import _print_summary
-    from cosim.runner import RunResult
-
+def test_the_window_starts_once_the_sinkage_has_settled_too():
+    """At an imposed slip the pull may be steady from the drive's start while the wheel still sinks (the
+    main job: the pull steady from 5.7 s, the sinkage from 11.4 s). A window from the pull's start alone
+    mixes the settling into the mean (8.16 against the plateau's 8.79 mm there): the window starts at the
+    later of the two MSER-5 starts, as a rover's, and its mean sinkage is the plateau's."""
     s = _series()  # the pull steady throughout; the sinkage rises to 7 mm with a time constant of 30 samples
     out = metrics.summarize(s, rim_radius=0.04, wheel_load=10.0, mode="slip")
-    assert out["window"][0] == pytest.approx(s["time"][60])  # the pull's window: the whole drive
     drive = s["time"][60:]
-    assert drive[0] + 30 * 0.05 < out["sinkage_settled_from"] < drive[0] + 0.5 * (drive[-1] - drive[0])
-    assert out["sinkage_settled"] == pytest.approx(0.007, abs=1e-4)  # the plateau
-    assert out["sinkage"] < out["sinkage_settled"] - 1.5e-4  # the window's mean, pulled down by the settling
-    assert out["sinkage_settled_sem"] > 0 and metrics.summary_units(out)["sinkage_settled_from"] == "s"
-    assert 0.05 <= out["sinkage_settled_correlation_time"] < 30 * 0.05  # in seconds, at the 0.05 s spacing
-    _print_summary(RunResult("run", out["steady_state"], out))
-    printed = capsys.readouterr().out
-    assert f"! the sinkage settles only from {out['sinkage_settled_from']:.4g} s (its own MSER-5)" in printed
-    # a window that starts inside the drive (the pull ramps over its first 40 samples): the plateau's start
-    # and mean are taken in the window, not from the drive's start
-    late = _series()
-    late["drawbar_pull"][60:100, 0] = np.linspace(0.0, 0.5, 40)
-    noise = 1e-4 * np.random.default_rng(2).standard_normal(400)
-    late["sinkage"][60:, 0] = 0.004 + 0.003 * (1 - np.exp(-np.arange(400) / 45.0)) + noise  # settles past 100
-    out = metrics.summarize(late, rim_radius=0.04, wheel_load=10.0, mode="slip")
-    first = int(np.searchsorted(late["time"], out["window"][0]))
-    assert first > 60  # the window starts past the pull's ramp
-    cut = metrics.mser_truncation(late["sinkage"][first:, 0])
-    assert out["sinkage_settled_from"] == late["time"][first + cut]
-    assert out["sinkage_settled"] == pytest.approx(late["sinkage"][first + cut :, 0].mean(), rel=1e-12)
-    flat = _series()
-    flat["sinkage"][60:] = 0.007 + 1e-4 * np.random.default_rng(1).standard_normal((400, 1))
-    assert "sinkage_settled" not in metrics.summarize(flat, rim_radius=0.04, wheel_load=10.0, mode="slip")
+    cut = metrics.mser_truncation(s["sinkage"][60:, 0])
+    assert cut is not None and cut >= 30  # the sinkage's own start: past one time constant of its settling
+    assert metrics.mser_truncation(s["drawbar_pull"][60:, 0]) == 0  # the pull's: the drive's start
+    assert out["steady_state"] == metrics.STEADY and out["window"][0] == drive[cut]
+    assert out["sinkage"] == pytest.approx(0.007, abs=1e-4)  # the plateau (the whole drive's mean: 6.8 mm)
+    assert np.mean(s["sinkage"][60:, 0]) < 0.007 - 1.5e-4
+    assert out["dp_over_w"] == pytest.approx(0.05, abs=0.002) and "sinkage_settled" not in out
+    # free mode: the speed's start and the sinkage's, the later one (the speed settles as the sinkage does)
+    free = metrics.summarize(s, rim_radius=0.04, wheel_load=10.0)
+    speed_cut = metrics.mser_truncation(s["linear_velocity"][60:, 0, 0])
+    assert free["window"][0] == drive[max(cut, speed_cut)]
+    # a sinkage that never settles by MSER-5 leaves the traction's window, judged by its drift
+    sinking = _series()
+    sinking["sinkage"][60:, 0] = 0.004 + np.linspace(0.0, 0.003, 400)
+    out = metrics.summarize(sinking, rim_radius=0.04, wheel_load=10.0, mode="slip", grain_radius=1e-3)
+    assert out["window"][0] == drive[0] and out["steady_state"] == metrics.SINKING
+    # a settling that leaves a window too short for its grousers: 'too short' (drive longer), where the
+    # traction's window alone (the whole drive) passes 1.6 grousers of 2 and was called steady
+    slow = _series()
+    slow["sinkage"][60:, 0] = 0.004 + 0.003 * (1 - np.exp(-np.arange(400) / 60.0))
+    slow["sinkage"][60:, 0] += 1e-4 * np.random.default_rng(3).standard_normal(400)
+    out = metrics.summarize(slow, rim_radius=0.04, wheel_load=10.0, mode="slip", grouser_count=2)
+    assert out["window"][0] == drive[metrics.mser_truncation(slow["sinkage"][60:, 0])] > drive[100]
+    assert out["steady_state"] == metrics.TOO_SHORT and out["grouser_passages"] < 1.0
+    assert metrics.grouser_passages(0.25 * (drive[-1] - s["time"][59]), 2) > 1.5
 
 
 def test_runs_without_a_steady_state_say_why():
@@ -358,6 +355,32 @@ def _rover(
 
 def _rover_summary(series, radii, **options):
     return metrics.summarize_rover(series, rim_radii=radii, weight=200.0, grain_radius=0.001, **options)
+
+
+def test_a_rover_s_window_is_found_as_a_wheel_s():
+    """One rule for both (metrics.drive_window): the window starts at the later of the traction's and the
+    sinkage's MSER-5 starts; a sinkage drifting steadily (MSER-5 finds no start) by less than half a grain
+    radius leaves the traction's window and is steady, where a rover's was called 'too short' (drive longer,
+    which only drifts on) and a wheel's steady."""
+    k = np.arange(400)
+    rng = np.random.default_rng(5)
+    drift = np.r_[np.full(40, 0.01), 0.01 + 2e-4 * k / 400][:, None] + 2e-6 * rng.standard_normal((440, 4))
+    series, radii = _rover([0.06, 0.0, 0.0], 1.0, sinkage=drift)
+    assert metrics.mser_truncation(drift[40:].mean(axis=1)) is None  # a steady drift: no start
+    out = _rover_summary(series, radii)
+    speed_cut = metrics.mser_truncation(series["rover_forward_speed"][40:])
+    assert out["steady_state"] == metrics.STEADY and out["window"][0] == pytest.approx(series["time"][40 + speed_cut])
+    wheel = _series()
+    wheel["sinkage"][60:, 0] = 0.004 + 2e-4 * np.arange(400) / 400 + 2e-6 * rng.standard_normal(400)
+    alone = metrics.summarize(wheel, rim_radius=0.04, wheel_load=10.0, mode="slip", grain_radius=0.001)
+    assert alone["steady_state"] == metrics.STEADY and alone["window"][0] == pytest.approx(wheel["time"][60])
+    # a settling: from the sinkage's start, for both
+    settling = np.r_[np.full(40, 0.01), 0.01 + 0.003 * (1 - np.exp(-k / 30.0))][:, None] + 1e-4 * rng.standard_normal(
+        (440, 4)
+    )
+    series, radii = _rover([0.06, 0.0, 0.0], 1.0, sinkage=settling)
+    cut = metrics.mser_truncation(settling[40:].mean(axis=1))
+    assert cut >= 30 and _rover_summary(series, radii)["window"][0] == pytest.approx(series["time"][40 + cut])
 
 
 def test_a_rover_in_reverse_or_turning_in_place_is_not_stuck():
