@@ -16,9 +16,9 @@ Per wheel and macro step (`wheel_quantities`), in the wheel's own frame (axle = 
 
 Over a run (`summarize`): a steady-state window is found in the driving phase by the MSER-5
 rule (White 1997: the truncation that minimises the standard error of the mean of what
-remains), starting at the later of its starts for the forward speed (or, at imposed slip, the
-drawbar pull) and for the sinkage, the sinkage steady over that window too (MSER-5, or a drift
-under half a grain radius); over it
+remains): the traction's start (the forward speed, or at imposed slip the drawbar pull), moved
+on to the sinkage's start over the rest where MSER-5 finds one (`drive_window`), the sinkage
+steady over that window too (MSER-5, or a drift under half a grain radius); over it
 slip = 1 - mean(v) / (mean(omega) r) from mean speeds, and sinkage, drawbar pull, DP/W and
 torque are means. A run with no steady state gets a status saying
 why: 'never touched the soil', 'no landing', 'airborne', 'stuck', 'too short' (also a grousered
@@ -242,15 +242,19 @@ def steady_window(series: dict[str, np.ndarray], min_fraction: float = 0.25) -> 
 
 
 def drive_window(traction: np.ndarray, sinkage: np.ndarray, min_fraction: float = 0.25) -> tuple[int, bool]:
-    """(first sample of the steady window, found) over a drive: the later of the MSER-5 starts of the
-    traction (forward speed, or drawbar pull at an imposed slip) and of the sinkage (a pull steady from the
-    drive's start while the wheel still sinks would mix the settling into every mean). A sinkage MSER-5
-    finds no start for (a steady drift) leaves the traction's window; its drift is judged over it apart
-    (`sinkage_steady`)."""
-    series = (
-        {"traction": traction, "sinkage": sinkage} if mser_truncation(sinkage) is not None else {"traction": traction}
-    )
-    return steady_window(series, min_fraction)
+    """(first sample of the steady window, found) over a drive: the traction's MSER-5 start (forward speed,
+    or drawbar pull at an imposed slip), moved on to the sinkage's MSER-5 start over the rest where it has
+    one (a pull steady from the drive's start while the wheel still sinks would mix the settling into every
+    mean). Where the rest of the sinkage has none (a steady drift, a settling past half of it, a noise-free
+    approach, a nan) the traction's start stands and the sinkage is judged over the window apart
+    (`sinkage_steady`); found is False when the traction has no start or the window would be shorter than
+    min_fraction of the drive."""
+    n = len(traction)
+    start = mser_truncation(traction)
+    if start is None:
+        return n, False
+    start += mser_truncation(np.asarray(sinkage)[start:]) or 0
+    return start, (n - start) >= max(min_fraction * n, 4)
 
 
 BATCHES = 8
@@ -340,12 +344,11 @@ def summarize(
     load), 'deepest_sinkage' [m] (the rim's deepest over the landing and the drive: what a run without a
     window reached)}.
 
-    The window starts at the later of two MSER-5 starts over the drive, as a rover's: the traction's
-    (forward speed, or drawbar pull at an imposed slip) and the sinkage's (a pull steady from the drive's
-    start while the wheel still sinks would mix the settling into the means; a sinkage MSER-5 finds no
-    start for leaves the traction's). The sinkage must be steady over the window as well: stationary by
-    MSER-5, or drifting by less than half of `grain_radius` [m] over it; else 'still sinking' (or 'still
-    rising'). A grousered wheel (grouser_count > 0) must pass at least one grouser over it; else 'too short'.
+    The window is `drive_window`'s, as a rover's: the traction's MSER-5 start (forward speed, or drawbar
+    pull at an imposed slip), moved on to the sinkage's over the rest where it has one. The sinkage must be
+    steady over the window as well: stationary by MSER-5, or drifting by less than half of `grain_radius`
+    [m] over it, and finite over the drive; else 'still sinking' (or 'still rising'). A grousered wheel
+    (grouser_count > 0) must pass at least one grouser over it; else 'too short'.
     ramped: the drawbar load grows over the drive (testbed.drawbar_ramp): 'ramped load' unless airborne or
     stuck (its window means are of a load and a slip still changing, and a longer drive only climbs on).
     """
@@ -377,6 +380,8 @@ def summarize(
     # the sinkage over the window: stationary, or drifting by less than half a grain radius
     window_time = time[window]
     settled, out["sinkage_rate"] = sinkage_steady(sinkage[window - index[0]], window_time, min_fraction, grain_radius)
+    if not np.all(np.isfinite(sinkage)):  # a nan or an inf before the window too: no steady state
+        settled, out["sinkage_rate"] = False, math.nan
     quantities = {
         "forward_speed": forward[window - index[0]],
         "sinkage": sinkage[window - index[0]],
@@ -789,8 +794,11 @@ def summarize_rover(
         grain_radius,
     )
     out["stuck"] = out["stuck"] or out["stalled"]
-    drifts = [
-        sinkage_steady(sinkage[window, w], times[window], min_fraction, grain_radius) for w in range(sinkage.shape[1])
+    drifts = [  # a nan or an inf before the window too: no steady state
+        sinkage_steady(sinkage[window, w], times[window], min_fraction, grain_radius)
+        if np.all(np.isfinite(sinkage[:, w]))
+        else (False, math.nan)
+        for w in range(sinkage.shape[1])
     ]
     settled = [steady for steady, _ in drifts]
     rising = all(rate < 0 for steady, rate in drifts if not steady)

@@ -102,8 +102,9 @@ def test_landing_then_a_steady_state_window_with_its_metrics():
 def test_the_window_starts_once_the_sinkage_has_settled_too():
     """At an imposed slip the pull may be steady from the drive's start while the wheel still sinks (the
     main job: the pull steady from 5.7 s, the sinkage from 11.4 s). A window from the pull's start alone
-    mixes the settling into the mean (8.16 against the plateau's 8.79 mm there): the window starts at the
-    later of the two MSER-5 starts, as a rover's, and its mean sinkage is the plateau's."""
+    mixes the settling into the mean (8.16 against the plateau's 8.79 mm there): the window moves on from
+    the traction's MSER-5 start to the sinkage's over the rest (metrics.drive_window, as a rover's), and its
+    mean sinkage is the plateau's."""
     s = _series()  # the pull steady throughout; the sinkage rises to 7 mm with a time constant of 30 samples
     out = metrics.summarize(s, rim_radius=0.04, wheel_load=10.0, mode="slip")
     drive = s["time"][60:]
@@ -113,11 +114,28 @@ def test_the_window_starts_once_the_sinkage_has_settled_too():
     assert out["steady_state"] == metrics.STEADY and out["window"][0] == drive[cut]
     assert out["sinkage"] == pytest.approx(0.007, abs=1e-4)  # the plateau (the whole drive's mean: 6.8 mm)
     assert np.mean(s["sinkage"][60:, 0]) < 0.007 - 1.5e-4
-    assert out["dp_over_w"] == pytest.approx(0.05, abs=0.002) and "sinkage_settled" not in out
-    # free mode: the speed's start and the sinkage's, the later one (the speed settles as the sinkage does)
-    free = metrics.summarize(s, rim_radius=0.04, wheel_load=10.0)
-    speed_cut = metrics.mser_truncation(s["linear_velocity"][60:, 0, 0])
-    assert free["window"][0] == drive[max(cut, speed_cut)]
+    assert out["dp_over_w"] == pytest.approx(0.05, abs=0.002)
+    # the pull ramps over the first 100 samples and the sinkage settles slowly (80 samples): over the whole
+    # drive MSER-5 finds no start for the sinkage (past half of it), over the rest after the pull's it does
+    late = _series()
+    late["drawbar_pull"][60:160, 0] = np.linspace(0.0, 0.5, 100)
+    late["sinkage"][60:, 0] = 0.004 + 0.003 * (1 - np.exp(-np.arange(400) / 80.0))
+    late["sinkage"][60:, 0] += 1e-4 * np.random.default_rng(3).standard_normal(400)
+    pull_cut = metrics.mser_truncation(late["drawbar_pull"][60:, 0])
+    assert pull_cut >= 100 and metrics.mser_truncation(late["sinkage"][60:, 0]) is None
+    rest_cut = metrics.mser_truncation(late["sinkage"][60 + pull_cut :, 0])
+    assert rest_cut >= 80
+    out = metrics.summarize(late, rim_radius=0.04, wheel_load=10.0, mode="slip", grain_radius=1e-3)
+    assert out["steady_state"] == metrics.STEADY and out["window"][0] == drive[pull_cut + rest_cut]
+    assert out["sinkage"] > np.mean(late["sinkage"][60 + pull_cut :, 0]) + 1e-4  # not the settling's mean
+    # free mode: the speed settles with a time constant of 30 samples, the sinkage with 60
+    free = _series()
+    free["sinkage"][60:, 0] = 0.004 + 0.003 * (1 - np.exp(-np.arange(400) / 60.0))
+    free["sinkage"][60:, 0] += 1e-4 * np.random.default_rng(4).standard_normal(400)
+    speed_cut = metrics.mser_truncation(free["linear_velocity"][60:, 0, 0])
+    rest_cut = metrics.mser_truncation(free["sinkage"][60 + speed_cut :, 0])
+    assert rest_cut > 0
+    assert metrics.summarize(free, rim_radius=0.04, wheel_load=10.0)["window"][0] == drive[speed_cut + rest_cut]
     # a sinkage that never settles by MSER-5 leaves the traction's window, judged by its drift
     sinking = _series()
     sinking["sinkage"][60:, 0] = 0.004 + np.linspace(0.0, 0.003, 400)
@@ -126,7 +144,7 @@ def test_the_window_starts_once_the_sinkage_has_settled_too():
     # a settling that leaves a window too short for its grousers: 'too short' (drive longer), where the
     # traction's window alone (the whole drive) passes 1.6 grousers of 2 and was called steady
     slow = _series()
-    slow["sinkage"][60:, 0] = 0.004 + 0.003 * (1 - np.exp(-np.arange(400) / 60.0))
+    slow["sinkage"][60:, 0] = 0.004 + 0.003 * (1 - np.exp(-np.arange(400) / 50.0))
     slow["sinkage"][60:, 0] += 1e-4 * np.random.default_rng(3).standard_normal(400)
     out = metrics.summarize(slow, rim_radius=0.04, wheel_load=10.0, mode="slip", grouser_count=2)
     assert out["window"][0] == drive[metrics.mser_truncation(slow["sinkage"][60:, 0])] > drive[100]
@@ -223,6 +241,14 @@ def test_a_nan_or_an_inf_is_no_steady_state():
     s["sinkage"][400, 0] = math.nan
     out = metrics.summarize(s, rim_radius=0.04, wheel_load=10.0, grain_radius=0.001)
     assert out["steady_state"] == metrics.SINKING and math.isnan(out["sinkage_rate"])
+    s = _series()  # before the window too (a sinkage with a nan has no MSER-5 start: the speed's window)
+    s["sinkage"][65, 0] = math.nan
+    out = metrics.summarize(s, rim_radius=0.04, wheel_load=10.0, grain_radius=0.001)
+    assert out["window"][0] > s["time"][65] and out["steady_state"] == metrics.SINKING
+    series, radii = _rover([0.06, 0.0, 0.0], 1.0)  # and a rover's
+    series["sinkage"][45, 2] = math.nan
+    out = _rover_summary(series, radii)
+    assert out["window"][0] > series["time"][45] and out["steady_state"] == metrics.SINKING
 
 
 def test_batch_means_count_every_sample():
