@@ -27,7 +27,7 @@ from soil.errors import ArgumentError
 from soil.files import atomic_write_text
 from soil.stability import read_checkpoint
 
-from . import records
+from . import metrics, records
 from .beds import BED_FILE, Bed, bed_from_file, check_memory, memory_estimate, save_bed_cache, settled_bed
 from .contract import SoilSide
 from .folders import EDITED_SCENE_FILE, RUN_FILE, SCENE_FILE, RunFolder, read_json, write_json
@@ -214,11 +214,19 @@ def resume(out_dir: str, progress: bool = False, hooks: dict | None = None) -> R
         _check_macro_step(checkpoint, plan)
         steps = int(checkpoint["loop/steps"])
         if checkpoint["coupler/step_count"] and _finished(checkpoint, plan):
-            if info.get("status") in FINISHED and _results_status(folder.results) == info["status"]:
+            finished = info.get("status") in FINISHED and _results_status(folder.results) == info["status"]
+            if finished and metrics.summary_is_current(info.get("summary")):
                 log.info("%s: the run is already complete", folder.path)
                 _put_back_scene(folder, scene.to_toml())
                 return RunResult(folder.path, info["status"], info.get("summary", {}))
-            log.info("%s: the drive is complete in the checkpoint; finishing the results", folder.path)
+            if finished:
+                log.warning(
+                    "%s: its summary was made under an older steady-window rule (cosim.metrics.SUMMARY_RULE); "
+                    "summarizing its results again",
+                    folder.path,
+                )
+            else:
+                log.info("%s: the drive is complete in the checkpoint; finishing the results", folder.path)
         else:  # what is left to drive, on the wheel the run drove
             _check_wheel_mesh(folder, plan)
         system = CoupledSystem.build(plan, _run_bed(folder, checkpoint, info) if needs_bed(plan) else None)

@@ -241,6 +241,19 @@ def steady_window(series: dict[str, np.ndarray], min_fraction: float = 0.25) -> 
     return start, (n - start) >= max(min_fraction * n, 4)
 
 
+SUMMARY_RULE = 2
+"""The version of the steady-window rule a summary was made under: run.json's summary['summary_rule'], and
+the same key in a table's study.json or ensemble.json. 2 since 2026-12-07 (`drive_window`: the traction's
+start moved on to the sinkage's); 1, or none recorded: the traction's window alone, whose means mixed a
+wheel's settling in (the main job's sinkage 8.16 mm against 8.79 mm). `cosim resume` of a run, or of a set of
+runs, makes a stale summary again from its results and checkpoint; a table, or a wheel fit, refuses one."""
+
+
+def summary_is_current(summary) -> bool:
+    """Whether a run's (or a table's) recorded summary_rule is this code's SUMMARY_RULE."""
+    return isinstance(summary, dict) and summary.get("summary_rule") == SUMMARY_RULE
+
+
 def drive_window(traction: np.ndarray, sinkage: np.ndarray, min_fraction: float = 0.25) -> tuple[int, bool]:
     """(first sample of the steady window, found) over a drive: the traction's MSER-5 start (forward speed,
     or drawbar pull at an imposed slip), moved on to the sinkage's MSER-5 start over the rest where it has
@@ -500,6 +513,7 @@ SUMMARY_UNITS = {
     "coupling_energy_exchanged": "J",
     "coupling_energy_over_tolerance": "1",
     "particle_steps_per_second": "1/s",
+    "summary_rule": "1",
 }
 """The unit of each number a run's summary may hold (a `_sem` value: its quantity's, a
 `_correlation_time`: s; "1": dimensionless, "count"); its words (steady_state, validity, step_control,

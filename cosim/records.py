@@ -330,5 +330,6 @@ def run_summary(
         out["diverged_elsewhere"] = True
     if plan.step_control == "pid":
         out["dem_steps_forced"] = int(forced_steps)
+    out["summary_rule"] = metrics.SUMMARY_RULE  # the steady-window rule it was made under
     out["units"] = metrics.summary_units(out)  # run.json and results.h5 carry each number's unit
     return out

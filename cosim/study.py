@@ -1057,6 +1057,7 @@ def _ensemble_report(
         "criterion": "a metric is macroscopically deterministic (vary 'order'; over beds: the same on any bed) "
         "when its replica std is <= max(5 % of its mean, its absolute floor) (cosim.study._tolerances)",
         "units": column_units(list(stats["metrics"]), METRIC_UNITS),  # stats' mean, std, ... of each metric
+        "summary_rule": metrics.SUMMARY_RULE,  # its runs' summaries' steady-window rule (each one's resume made)
     }
     write_json(os.path.join(out_dir, "ensemble.json"), report)
     _write_csv(
@@ -1246,6 +1247,9 @@ def _finish_replica(task: dict) -> dict:
         foreign = _foreign_run(task, folder)
         if foreign:  # a run put in its folder by hand or by another command: not this set's replica
             result = {**base, "ok": False, "status": "failed", "error": foreign}
+        elif status in FINISHED and not kept and not metrics.summary_is_current(record.get("summary")):
+            error = f"{stale_summary(folder.path)}, and its checkpoint is gone: run it again"
+            result = {**base, "ok": False, "status": "failed", "error": error}
         elif (status == "diverged" and diverged_here(folder.results)) or (status in FINISHED and not kept):
             result = {**base, "ok": status in FINISHED, "status": status, "summary": record.get("summary", {})}
             if status not in FINISHED:  # a diverged run's resume would diverge again
@@ -1427,6 +1431,7 @@ def _precision_report(
         "wall_time": wall,
         "bed_file": bed,
         "scene_toml": text,
+        "summary_rule": metrics.SUMMARY_RULE,
     }
     keys = ["precision", "replicas", "steady", "failed", "validity"] + [
         f"{m}_{k}" for m in ("wall_time",) + metrics.REPLICA_METRICS for k in ("mean", "std", "ci95", "min", "max")
@@ -1633,6 +1638,11 @@ def slip_study_from_runs(
                 _check_run_record(record)
             except (OSError, ValueError) as error:
                 raise ArgumentError(f"{run_json}: not a slip run's record ({error})") from None
+            if record.get("status") in FINISHED and not metrics.summary_is_current(record.get("summary")):
+                raise ArgumentError(
+                    f"{stale_summary(os.path.dirname(run_json))}: `cosim resume` it (or the study that ran it) "
+                    "to make it again from its results, then tabulate"
+                )
             found.append((slip, os.path.dirname(run_json), record))
     if not found:
         raise ArgumentError(f"no slip runs (slip_*/replica_*/run.json) under {', '.join(map(str, folders))}")
@@ -1846,6 +1856,14 @@ def _bed_identity(path) -> str | None:
         return os.path.realpath(path)
 
 
+def stale_summary(run_folder: str) -> str:
+    """What to say of a finished run whose summary was made under an older steady-window rule."""
+    return (
+        f"{run_folder}: its summary was made under an older steady-window rule than this code's "
+        f"(cosim.metrics.SUMMARY_RULE {metrics.SUMMARY_RULE}: the window starts once the sinkage has settled too)"
+    )
+
+
 def _check_run_record(record) -> None:
     """ValueError naming what of a run.json the slip table cannot read: an object whose summary (if any)
     is an object of numbers or nulls for the averaged metrics and a steady_state name, whose bed (if any)
@@ -2025,6 +2043,7 @@ def _slip_report(
         "bed_file": bed,
         "wheel_load": plan.wheel_load,
         "wheel": wheel_record(plan.wheel),  # a mesh's digest too: the wheel fit checks its runs drove this one
+        "summary_rule": metrics.SUMMARY_RULE,  # its runs' steady-window rule: a wheel fit refuses another
     }
     crossing = zero_pull_slip(rows)
     report["zero_pull_slip"], report["zero_pull_slip_ci95"] = crossing["slip"], crossing["ci95"]
@@ -2344,7 +2363,8 @@ def _sweep_report(
     swept = {key: unit for key in grid if (unit := key_unit(key)) is not None}  # as cosim/scene.py documents them
     units = {**METRIC_UNITS, **swept}
     table_units = column_units(keys, units)
-    report = {"kind": "sweep", "grid": grid, "rows": rows, "runs": results, "scene_toml": text}
+    report: dict = {"kind": "sweep", "grid": grid, "rows": rows, "runs": results, "scene_toml": text}
+    report["summary_rule"] = metrics.SUMMARY_RULE
     report["units"] = {**table_units, **nested_units(rows, results)}
     write_json(os.path.join(out_dir, "study.json"), report)
     log.info("%s", plot_table(rows, keys, table_units))

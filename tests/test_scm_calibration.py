@@ -21,6 +21,7 @@ from cosim.lab.scm import (
     fit_unloading,
     replica_fits,
 )
+from cosim.metrics import SUMMARY_RULE
 from cosim.plan import load_plan
 from cosim.scene import SceneError
 from cosim.scm_calibration import (
@@ -558,7 +559,13 @@ def test_a_wheel_fit_refuses_the_runs_of_another_mesh(tmp_path):
     other = load_plan(scene, ['wheel={type = "mesh", file = "smooth.obj"}'])
     study = tmp_path / "study"
     study.mkdir()
-    base = {"kind": "slip", "rows": [], "wheel_load": plan.wheel_load, "scene_toml": plan.scene.to_toml()}
+    base = {
+        "kind": "slip",
+        "summary_rule": SUMMARY_RULE,
+        "rows": [],
+        "wheel_load": plan.wheel_load,
+        "scene_toml": plan.scene.to_toml(),
+    }
     for wheel, refused in ((wheel_record(other.wheel), True), (wheel_record(plan.wheel), False), (None, False)):
         (study / "study.json").write_text(json.dumps({**base, **({"wheel": wheel} if wheel else {})}))
         if refused:
@@ -780,7 +787,12 @@ def test_wheel_targets_read_a_slip_study_and_refuse_other_files(tmp_path):
         }
         for s in (0.1, 0.4)
     ]
-    study = {"kind": "slip", "wheel_load": 1.7e-3, "rows": rows + [{"slip_set": 0.6, "steady": 0}]}
+    study = {
+        "kind": "slip",
+        "summary_rule": SUMMARY_RULE,
+        "wheel_load": 1.7e-3,
+        "rows": rows + [{"slip_set": 0.6, "steady": 0}],
+    }
     (tmp_path / "study.json").write_text(json.dumps(study))
     targets = wheel_targets(str(tmp_path))
     assert [t.slip for t in targets] == [0.1, 0.4] and targets[0].sinkage == 0.008 and targets[1].replicas == 2
@@ -790,6 +802,14 @@ def test_wheel_targets_read_a_slip_study_and_refuse_other_files(tmp_path):
         wheel_targets(str(tmp_path))
     with pytest.raises(DamagedFileError, match="study.json"):
         wheel_targets(str(tmp_path / "nowhere"))
+    # a table of runs summarized before the window rule of 2026-12-07 (no summary_rule): its means are of
+    # another window than the fit's own SCM runs, and the fit would be fitted to them quietly
+    from cosim.lab.common import LabFailed
+
+    for stale in ({k: v for k, v in study.items() if k != "summary_rule"}, {**study, "summary_rule": 1}):
+        (tmp_path / "study.json").write_text(json.dumps(stale))
+        with pytest.raises(LabFailed, match=r"study.json: a table of runs summarized under an older steady-window"):
+            wheel_targets(str(tmp_path))
 
 
 def test_calibrate_scm_from_wheel_writes_the_fit_and_refuses_misplaced_options(tmp_path, monkeypatch, capsys):
@@ -810,7 +830,9 @@ def test_calibrate_scm_from_wheel_writes_the_fit_and_refuses_misplaced_options(t
     rows = [{"slip_set": s, "steady": 2, "slip_mean": s, "sinkage_mean": 0.008} for s in (0.1, 0.4)]
     (tmp_path / "study").mkdir()
     load = load_plan(scene).wheel_load
-    (tmp_path / "study" / "study.json").write_text(json.dumps({"kind": "slip", "wheel_load": load, "rows": rows}))
+    (tmp_path / "study" / "study.json").write_text(
+        json.dumps({"kind": "slip", "summary_rule": SUMMARY_RULE, "wheel_load": load, "rows": rows})
+    )
     seen = {}
 
     def fit(plan, targets, start, runs=None, max_runs=0):
@@ -901,7 +923,9 @@ def test_calibrate_scm_from_wheel_writes_the_fit_and_refuses_misplaced_options(t
     ):
         unchanged = Path(scene).read_text()
         assert all(w in unchanged for w in ('"phobos"', "radius = 0.03", "restitution = 0.3", "omega = 0.12"))
-        (tmp_path / "study" / "study.json").write_text(json.dumps({"kind": "slip", "rows": rows, **foreign}))
+        (tmp_path / "study" / "study.json").write_text(
+            json.dumps({"kind": "slip", "summary_rule": SUMMARY_RULE, "rows": rows, **foreign})
+        )
         assert main(["calibrate-scm", scene, "--out", str(tmp_path / "z.toml"), *args]) == 2
         err = capsys.readouterr().err
         assert "--wheel-runs" in err and "its runs are not this scene's wheel" in err and named in err, err
@@ -989,7 +1013,14 @@ def _study_over_beds(folder, plan, truths, sinking: tuple = ()) -> None:
             row[f"{key}_mean"] = float(np.mean(values))
             row[f"{key}_ci95"] = 1e-3 * abs(float(np.mean(values)))  # tight: the closed form has no noise
         rows.append(row)
-    study = {"kind": "slip", "vary": "bed", "wheel_load": plan.wheel_load, "rows": rows, "runs": runs}
+    study = {
+        "kind": "slip",
+        "summary_rule": SUMMARY_RULE,
+        "vary": "bed",
+        "wheel_load": plan.wheel_load,
+        "rows": rows,
+        "runs": runs,
+    }
     os.makedirs(str(folder), exist_ok=True)
     with open(os.path.join(str(folder), "study.json"), "w") as f:
         json.dump({**study, "averaged_states": ["steady"]}, f)
@@ -1143,7 +1174,13 @@ def test_a_slip_study_of_the_wrong_shape_is_named_for_the_wheel_fit(tmp_path, ca
     write_calibration(str(lab_path), ScmCalibration({k: 1.0 for k in SOIL_KEYS}, {}, 5.7e-3, {"scene": "x"}))
     rows = [{"slip_set": s, "steady": 2, "slip_mean": s, "sinkage_mean": 0.008} for s in (0.1, 0.4)]
     (tmp_path / "study").mkdir()
-    study = {"kind": "slip", "wheel_load": load_plan(scene).wheel_load, "rows": rows, **damage}
+    study = {
+        "kind": "slip",
+        "summary_rule": SUMMARY_RULE,
+        "wheel_load": load_plan(scene).wheel_load,
+        "rows": rows,
+        **damage,
+    }
     (tmp_path / "study" / "study.json").write_text(json.dumps(study))
     args = ["--from-wheel", "--lab", str(lab_path), "--wheel-runs", str(tmp_path / "study")]
     assert main(["calibrate-scm", scene, "--out", str(tmp_path / "wheel.toml"), *args]) == 2

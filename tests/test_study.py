@@ -16,6 +16,7 @@ import numpy as np
 import pytest
 
 from cosim.launch import final_state, resume, run_plan
+from cosim.metrics import SUMMARY_RULE
 from cosim.output import open_results
 from cosim.plan import load_plan
 from cosim.runner import RunDiverged, RunInterrupted
@@ -563,17 +564,23 @@ def test_a_slip_study_is_tabulated_from_the_runs_it_holds(tmp_path):
         run = tmp_path / part / "slip_+0.200" / f"replica_{k:03d}"
         run.mkdir(parents=True)
         (run / "scene.toml").write_text(seeded(k + (10 if part == "b" else 0)))
-        summary = {"steady_state": "steady", "drawbar_pull": pull, "slip": 0.2, "sinkage": 1e-3}
+        summary = {
+            "summary_rule": SUMMARY_RULE,
+            "steady_state": "steady",
+            "drawbar_pull": pull,
+            "slip": 0.2,
+            "sinkage": 1e-3,
+        }
         (run / "run.json").write_text(json.dumps({"status": "complete", "summary": summary}))
     unsteady = tmp_path / "b" / "slip_+0.200" / "replica_001"
     unsteady.mkdir()
     (unsteady / "scene.toml").write_text(seeded(11))
-    summary = {"steady_state": "still sinking", "drawbar_pull": 5.0, "slip": 0.2}
+    summary = {"summary_rule": SUMMARY_RULE, "steady_state": "still sinking", "drawbar_pull": 5.0, "slip": 0.2}
     (unsteady / "run.json").write_text(json.dumps({"status": "unsteady", "summary": summary}))
     rising = tmp_path / "b" / "slip_+0.200" / "replica_002"  # its sinkage drifts upwards: averaged the same way
     rising.mkdir()
     (rising / "scene.toml").write_text(seeded(12))
-    summary = {"steady_state": "still rising", "drawbar_pull": 7.0, "slip": 0.2}
+    summary = {"summary_rule": SUMMARY_RULE, "steady_state": "still rising", "drawbar_pull": 7.0, "slip": 0.2}
     (rising / "run.json").write_text(json.dumps({"status": "unsteady", "summary": summary}))
     running = tmp_path / "b" / "slip_+0.400" / "replica_000"
     running.mkdir(parents=True)
@@ -977,7 +984,13 @@ def test_a_rows_validity_counts_its_runs_and_the_self_propelled_slip_names_an_ou
         if failed is not None:
             checks = ["scm_slip", "scm_sinkage_grains", "scm_froude"]
             findings = [finding(c, c not in failed) for c in checks]
-            summary = {"steady_state": "steady", "dp_over_w": pull, "slip": slip, "findings": findings}
+            summary = {
+                "summary_rule": SUMMARY_RULE,
+                "steady_state": "steady",
+                "dp_over_w": pull,
+                "slip": slip,
+                "findings": findings,
+            }
             summary["validity"] = "out of range: " + ", ".join(failed) if failed else "valid"
             record = {"status": "complete", "summary": summary}
         (run / "run.json").write_text(json.dumps(record))
@@ -1022,7 +1035,13 @@ def test_a_check_a_run_could_not_judge_is_named_in_its_row_and_the_self_propelle
             {"check": c, "ok": c not in failed, "value": 1.0, "limit": 1.0, "message": c, "setting": "x"}
             for c in ("scm_slip", "scm_froude")
         ]
-        summary = {"steady_state": "steady", "dp_over_w": pull, "slip": slip, "findings": findings}
+        summary = {
+            "summary_rule": SUMMARY_RULE,
+            "steady_state": "steady",
+            "dp_over_w": pull,
+            "slip": slip,
+            "findings": findings,
+        }
         if unjudged:
             summary["not_judged"] = unjudged
         return {"status": "complete", "summary": summary}
@@ -1077,6 +1096,7 @@ def test_a_slip_studys_json_gives_every_numbers_unit_and_its_table_the_failed_ru
     with open(write_tiny(tmp_path)) as f:
         text = f.read()
     summary = {
+        "summary_rule": SUMMARY_RULE,
         "steady_state": "steady",
         "dp_over_w": -0.05,
         "slip": 0.2,
@@ -1216,7 +1236,12 @@ def test_a_table_from_runs_reads_every_run_first_and_counts_each_replica_once(tm
                 "[testbed]\n", '[testbed]\nmode = "slip"\nslip = 0.2\n', 1
             )
             (run / "scene.toml").write_text(ran + extra)
-            summary = {"steady_state": "steady", "dp_over_w": -0.05 + 0.01 * seed, "slip": 0.2}
+            summary = {
+                "summary_rule": SUMMARY_RULE,
+                "steady_state": "steady",
+                "dp_over_w": -0.05 + 0.01 * seed,
+                "slip": 0.2,
+            }
             record = {"status": status, "run_id": f"{name}{k}", "bed": {"path": str(bed)}, "summary": summary}
             (run / "run.json").write_text(json.dumps(record))
 
@@ -1283,7 +1308,7 @@ def test_a_table_from_runs_refuses_runs_that_drove_two_meshes_of_one_file(tmp_pa
         run = tmp_path / name / "slip_+0.200" / "replica_000"
         run.mkdir(parents=True)
         (run / "scene.toml").write_text(plan.scene.to_toml())
-        summary = {"steady_state": "steady", "dp_over_w": 0.1 + 0.01 * seed, "slip": 0.2}
+        summary = {"summary_rule": SUMMARY_RULE, "steady_state": "steady", "dp_over_w": 0.1 + 0.01 * seed, "slip": 0.2}
         (run / "run.json").write_text(json.dumps({"status": "complete", "summary": summary}))
         with h5py.File(run / "results.h5", "w") as f:  # what a run keeps of its wheel
             for key, array in zip(("vertices", "triangles", "wheel"), wheel_display_mesh(plan)):
@@ -1323,7 +1348,7 @@ def test_a_table_from_runs_tells_input_files_by_their_content_not_their_path(tmp
         run = tmp_path / name / "slip_+0.200" / "replica_000"
         run.mkdir(parents=True)
         (run / "scene.toml").write_text(plan.scene.to_toml())
-        summary = {"steady_state": "steady", "dp_over_w": 0.1 + 0.01 * seed, "slip": 0.2}
+        summary = {"summary_rule": SUMMARY_RULE, "steady_state": "steady", "dp_over_w": 0.1 + 0.01 * seed, "slip": 0.2}
         (run / "run.json").write_text(json.dumps({"status": "complete", "summary": summary}))
 
     part("a", beds, 0)
@@ -1341,9 +1366,54 @@ def test_a_wall_time_is_never_called_deterministic(tmp_path):
     from cosim.study import ensemble_table
 
     plan = load_plan(write_tiny(tmp_path))
-    summary = {"steady_state": "steady", "sinkage": 0.004, "wall_time": 3.0}
+    summary = {"summary_rule": SUMMARY_RULE, "steady_state": "steady", "sinkage": 0.004, "wall_time": 3.0}
     table = ensemble_table(
         [{"ok": True, "summary": summary}, {"ok": True, "summary": {**summary, "wall_time": 3.0}}], plan
     )
     assert table["metrics"]["wall_time"]["n"] == 2 and table["metrics"]["wall_time"]["deterministic"] is None
     assert table["metrics"]["sinkage"]["deterministic"] is True  # a metric of the physics still is judged
+
+
+def test_a_summary_of_an_older_window_rule_is_made_again_by_resume_and_refused_by_a_table(
+    tmp_path, tiny_run, tiny_bed, caplog
+):
+    """A run summarized before the window rule of 2026-12-07 (metrics.SUMMARY_RULE 2: the window starts once the
+    sinkage has settled too) holds means of another window. `cosim resume` of the finished run used to say
+    'already complete' and keep them; a slip table from its run.json averaged them with new runs' and a wheel
+    fit fitted to them. Now resume makes the summary again from its results and final checkpoint, a table
+    refuses a stale run naming the command, and a set's replica whose checkpoint is gone is failed, not kept."""
+    import logging
+    import shutil
+
+    from cosim import metrics
+    from cosim.folders import read_json
+    from cosim.output import read_series, stored_summary
+    from cosim.study import _finish_replica, slip_study_from_runs
+    from soil.errors import ArgumentError
+
+    run = tmp_path / "runs" / "slip_+0.200" / "replica_000"
+    shutil.copytree(tiny_run, run)
+    rows = len(read_series(str(run / "results.h5"))["time"])
+    fresh = read_json(str(run / "run.json"))
+    assert fresh["summary"]["summary_rule"] == metrics.SUMMARY_RULE
+    old = {**fresh, "summary": {k: v for k, v in fresh["summary"].items() if k != "summary_rule"}}
+    old["summary"]["sinkage"] = 1.0  # an older window's mean, as far as this test can tell
+    (run / "run.json").write_text(json.dumps(old))
+    with pytest.raises(ArgumentError, match=r"replica_000: its summary was made under an older steady-window rule"):
+        slip_study_from_runs([str(tmp_path / "runs")], str(tmp_path / "table"))
+    assert not (tmp_path / "table").exists()
+    with caplog.at_level(logging.WARNING, logger="cosim.launch"):
+        done = resume(str(run))
+    assert "older steady-window rule" in caplog.text and "summarizing its results again" in caplog.text
+    again = read_json(str(run / "run.json"))["summary"]
+    assert again["summary_rule"] == metrics.SUMMARY_RULE and done.summary["summary_rule"] == metrics.SUMMARY_RULE
+    assert again["sinkage"] != 1.0 and again["window"] == fresh["summary"]["window"]  # this code's window
+    written = read_series(str(run / "results.h5"))
+    assert len(written["time"]) == rows  # its results kept whole, not driven again
+    assert stored_summary(written["attrs"])["summary_rule"] == metrics.SUMMARY_RULE  # results.h5's copy too
+    # a replica of a set whose checkpoint is gone cannot be summarized again: failed, named, not averaged
+    (run / "run.json").write_text(json.dumps(old))
+    (run / "checkpoint.npz").unlink()
+    task = {"label": "replica 0", "out_dir": str(run), "overrides": {}, "scene_toml": (run / "scene.toml").read_text()}
+    result = _finish_replica(task)
+    assert not result["ok"] and "older steady-window rule" in result["error"] and "run it again" in result["error"]

@@ -46,6 +46,7 @@ import numpy as np
 
 from soil.errors import DamagedFileError
 
+from ..metrics import SUMMARY_RULE, summary_is_current
 from ..scm_calibration import SOIL_KEYS
 from .common import LabFailed
 
@@ -122,6 +123,13 @@ def _read_study(study_folder: str) -> tuple[str, dict]:
     problem = _study_shape_problem(study)
     if problem:
         raise DamagedFileError(f"{path}: not a slip study's table: {problem} (cosim study slip writes it)")
+    if not summary_is_current(study):  # its rows' means are of another window than the fit's own SCM runs
+        raise LabFailed(
+            f"{path}: a table of runs summarized under an older steady-window rule than this code's "
+            f"(summary_rule {study.get('summary_rule', 'none')}, this code's {SUMMARY_RULE}: the window starts once "
+            "the sinkage has settled too); `cosim resume` the study (or each of its runs, then tabulate them "
+            "again with --from-runs) to make its table again"
+        )
     return path, study
 
 
