@@ -33,6 +33,7 @@ sys.path.insert(0, ROOT)
 
 from cosim.folders import read_json_numbers, write_json  # noqa: E402 (after the path)
 from cosim.lab.scm_wheel import RELATIVE_TOLERANCE as TOLERANCE  # noqa: E402 (after the path)
+from cosim.metrics import SUMMARY_RULE, summary_is_current  # noqa: E402 (after the path)
 
 QUANTITIES = (
     ("dp_over_w", "DP/W", "1"),
@@ -44,6 +45,11 @@ QUANTITIES = (
 def dem_rows(study_folder: str) -> tuple[dict, list[dict]]:
     """The DEM slip study's report and, per slip, mean and 95 % half-interval of each QUANTITY."""
     study = read_json_numbers(os.path.join(study_folder, "study.json"))  # not measured: nan
+    if not summary_is_current(study):  # its means are of another window than the SCM runs compared with it
+        raise SystemExit(
+            f"{os.path.join(study_folder, 'study.json')}: a table of runs summarized under an older steady-window "
+            f"rule (cosim.metrics.SUMMARY_RULE {SUMMARY_RULE}); `cosim resume` its study to make it again"
+        )
     load = study["wheel_load"]
     from cosim.scene import scene_from_text
 

@@ -244,9 +244,11 @@ def steady_window(series: dict[str, np.ndarray], min_fraction: float = 0.25) -> 
 SUMMARY_RULE = 2
 """The version of the steady-window rule a summary was made under: run.json's summary['summary_rule'], and
 the same key in a table's study.json or ensemble.json. 2 since 2026-12-07 (`drive_window`: the traction's
-start moved on to the sinkage's); 1, or none recorded: the traction's window alone, whose means mixed a
-wheel's settling in (the main job's sinkage 8.16 mm against 8.79 mm). `cosim resume` of a run, or of a set of
-runs, makes a stale summary again from its results and checkpoint; a table, or a wheel fit, refuses one."""
+start moved on to the sinkage's over the rest); none recorded: made before, a wheel's window the traction's
+alone, whose means mixed its settling in (the main job's sinkage 8.16 mm against 8.79 mm), a rover's from
+the later of the two starts over the whole drive. `cosim resume` of a run, or of a set of runs, makes a
+stale summary again from its results and checkpoint; a slip table, a wheel fit and the SCM-DEM trade
+refuse one."""
 
 
 def summary_is_current(summary) -> bool:

@@ -1248,7 +1248,10 @@ def _finish_replica(task: dict) -> dict:
         if foreign:  # a run put in its folder by hand or by another command: not this set's replica
             result = {**base, "ok": False, "status": "failed", "error": foreign}
         elif status in FINISHED and not kept and not metrics.summary_is_current(record.get("summary")):
-            error = f"{stale_summary(folder.path)}, and its checkpoint is gone: run it again"
+            error = (
+                f"{stale_summary(folder.path)}, and its checkpoint is gone: move the folder away and resume the set "
+                "again (it runs the replica anew)"
+            )
             result = {**base, "ok": False, "status": "failed", "error": error}
         elif (status == "diverged" and diverged_here(folder.results)) or (status in FINISHED and not kept):
             result = {**base, "ok": status in FINISHED, "status": status, "summary": record.get("summary", {})}

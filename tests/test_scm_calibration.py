@@ -804,11 +804,11 @@ def test_wheel_targets_read_a_slip_study_and_refuse_other_files(tmp_path):
         wheel_targets(str(tmp_path / "nowhere"))
     # a table of runs summarized before the window rule of 2026-12-07 (no summary_rule): its means are of
     # another window than the fit's own SCM runs, and the fit would be fitted to them quietly
-    from cosim.lab.common import LabFailed
+    from soil.errors import ArgumentError
 
     for stale in ({k: v for k, v in study.items() if k != "summary_rule"}, {**study, "summary_rule": 1}):
         (tmp_path / "study.json").write_text(json.dumps(stale))
-        with pytest.raises(LabFailed, match=r"study.json: a table of runs summarized under an older steady-window"):
+        with pytest.raises(ArgumentError, match=r"study.json: a table of runs summarized under an older steady-window"):
             wheel_targets(str(tmp_path))
 
 

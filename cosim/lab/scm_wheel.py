@@ -124,7 +124,9 @@ def _read_study(study_folder: str) -> tuple[str, dict]:
     if problem:
         raise DamagedFileError(f"{path}: not a slip study's table: {problem} (cosim study slip writes it)")
     if not summary_is_current(study):  # its rows' means are of another window than the fit's own SCM runs
-        raise LabFailed(
+        from soil.errors import ArgumentError
+
+        raise ArgumentError(
             f"{path}: a table of runs summarized under an older steady-window rule than this code's "
             f"(summary_rule {study.get('summary_rule', 'none')}, this code's {SUMMARY_RULE}: the window starts once "
             "the sinkage has settled too); `cosim resume` the study (or each of its runs, then tabulate them "
