@@ -173,7 +173,7 @@ def resume(out_dir: str, progress: bool = False, hooks: dict | None = None) -> R
             status, message = info.get("status"), info.get("message") or "run.json has no message"
             summary = info.get("summary")
             summary = summary if isinstance(summary, dict) else {}
-            if status in FINISHED and not metrics.summary_is_current(summary):
+            if status in FINISHED and summary and not metrics.summary_is_current(summary):
                 raise ArgumentError(
                     f"{folder.path!r}: the run finished ({status}) under an older steady-window rule "
                     "(cosim.metrics.SUMMARY_RULE), and its checkpoint is gone: its summary cannot be made again; run "
