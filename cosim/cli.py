@@ -282,9 +282,11 @@ def _print_summary(result, scm_only: bool = False) -> None:
         value = math.nan if s[key] is None else s[key]  # run.json's null (a finished run resumed): not measured
         if isinstance(value, float):
             sem = s.get(f"{key}_sem")
-            bar = f" +- {within_run_interval(sem) * scale:.2g} (95 %, within run)" if sem and sem == sem else ""
+            # a value the drive holds (the carriage's speed) scatters by its rounding only: no error bar
+            resolved = bool(sem) and sem > 1e-9 * abs(value)  # False for a nan too
+            bar = f" +- {within_run_interval(sem) * scale:.2g} (95 %, within run)" if resolved else ""
             text = f"{value * scale:.4g}{bar}"
-            if sem and sem == sem and short_window(s, key) is not None:
+            if resolved and short_window(s, key) is not None:
                 short.append(f"{short_window(s, key):.0f}{' correlation times' if not short else ''} of {key}")
         elif isinstance(value, list):
             text = (" .. " if key == "window" else ", ").join(

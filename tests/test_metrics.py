@@ -309,6 +309,12 @@ def test_a_run_summary_prints_a_window_too_short_for_its_error_bar(capsys):
     half = 2.3646 * out["dp_over_w_sem"]
     assert f"dp_over_w                  {out['dp_over_w']:.4g} +- {half:.2g} (95 %, within run)" in printed, printed
     assert "their within-run intervals are too narrow" in printed and "of sinkage" not in printed, printed
+    # a value the drive holds (the carriage's speed at an imposed slip) scatters by its rounding only: the
+    # main job printed 'forward_speed 3.24 +- 2.4e-16 (95 %, within run) mm/s'
+    held = {**out, "forward_speed": 0.00324, "forward_speed_sem": 1e-19, "forward_speed_correlation_time": 0.1}
+    _print_summary(SimpleNamespace(summary=held, status="done", out_dir="run"))
+    printed = capsys.readouterr().out
+    assert "  forward_speed              3.24 mm/s\n" in printed and "of forward_speed" not in printed, printed
 
 
 def test_an_ensemble_of_one_replica_is_not_judged():
