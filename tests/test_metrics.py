@@ -309,6 +309,8 @@ def test_a_run_summary_prints_a_window_too_short_for_its_error_bar(capsys):
     half = 2.3646 * out["dp_over_w_sem"]
     assert f"dp_over_w                  {out['dp_over_w']:.4g} +- {half:.2g} (95 %, within run)" in printed, printed
     assert "their within-run intervals are too narrow" in printed and "of sinkage" not in printed, printed
+    # the error bar it points to first is over beds: the sinkage's scatter over orders understates it
+    assert out["steady_state"] == metrics.STEADY and "error bars: cosim run SCENE --replicas 5 --vary-bed" in printed
     # a value the drive holds (the carriage's speed at an imposed slip) scatters by its rounding only: the
     # main job printed 'forward_speed 3.24 +- 2.4e-16 (95 %, within run) mm/s'
     held = {**out, "forward_speed": 0.00324, "forward_speed_sem": 1e-19, "forward_speed_correlation_time": 0.1}
