@@ -227,20 +227,6 @@ def mser_truncation(values: np.ndarray, batch: int = 5) -> int | None:
     return best_d * batch
 
 
-def steady_window(series: dict[str, np.ndarray], min_fraction: float = 0.25) -> tuple[int, bool]:
-    """(first sample of the steady window, found) over several series of equal length:
-    the latest MSER-5 truncation of any of them; found is False when a series never
-    settles or the window would be shorter than min_fraction of the data."""
-    n = len(next(iter(series.values())))
-    start = 0
-    for values in series.values():
-        cut = mser_truncation(values)
-        if cut is None:
-            return n, False
-        start = max(start, cut)
-    return start, (n - start) >= max(min_fraction * n, 4)
-
-
 SUMMARY_RULE = 2
 """The version of the steady-window rule a summary was made under: run.json's summary['summary_rule'], and
 the same key in a table's study.json or ensemble.json. 2 since 2026-12-07 (`drive_window`: the traction's

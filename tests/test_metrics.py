@@ -232,7 +232,7 @@ def test_a_nan_or_an_inf_is_no_steady_state():
     """A non-finite sample made every MSER score nan, and the series counted as steady from its start."""
     x = _transient(600, tau=40.0, amplitude=5.0, sigma=0.5, seed=0)
     x[500] = math.nan
-    assert metrics.mser_truncation(x) is None and metrics.steady_window({"v": x}) == (600, False)
+    assert metrics.mser_truncation(x) is None and metrics.drive_window(x, np.zeros(600)) == (600, False)
     x[500] = math.inf
     assert metrics.mser_truncation(x) is None
     assert metrics.mser_truncation(np.full(100, math.nan)) is None
