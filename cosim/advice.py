@@ -12,6 +12,9 @@ depth, the deepest for the floor, the highest ground pressure for the overlaps.
                     wheel's speed, and further up the wheel hops (measured: docs/validity.md)
     contact_steps   Hertz contact time of two grains at the impact speed / the longest DEM step
                     (the fixed dt, or the PID's longest substep) >= CONTACT_STEPS
+    coupling_step   the macro step H as the phase of the wheel's bounce on one grain, omega H <=
+                    DEM_BOUNCE_LIMIT: the exchange moves the wheel as if it were infinitely heavy for
+                    a macro step, and a bounce it does not resolve gains energy
     grains_across   wheel width / grain diameter >= GRAINS_ACROSS
     bed_depth       settled bed depth / wheel outer radius >= DEPTH_RADII (the stress bulb under
                     a wheel reaches about one wheel radius into the soil)
@@ -46,6 +49,11 @@ FLOOR_GRAINS = 4
 """Fewest grain diameters between the grouser tips and the floor [-]."""
 OVERLAP_RATIO = 0.01
 """Largest static overlap / radius the stiffness should allow (eq. 10's u) [-]."""
+DEM_BOUNCE_LIMIT = 2.0
+"""Largest macro step for a wheel on the DEM as the phase of its bounce on one grain, omega H [rad]:
+an explicit exchange of a mass on a linear spring is stable up to 2 rad (tests/test_coupler.py); on the
+tiny scene's bed a wheel gained energy at each bounce from 3.4 rad and landed up to 2.7 rad (docs/
+validity.md, "The coupling step")."""
 
 
 @dataclass(frozen=True)
@@ -399,6 +407,9 @@ def check(
 
     if plan.step_control != "pid":  # the PID's error control shortens the substeps a stiff mode needs
         findings += _stiff_mode_findings(plan, smallest, speed, fall, plan.dt, plan.integrator, plan.dt_setting)
+    bounce = _dem_bounce_finding(plan, wheels, rim_speed)
+    if bounce is not None:
+        findings.append(bounce)
     if plan.precision == "single":
         findings.append(_single_precision_finding(plan))
 
@@ -772,6 +783,58 @@ def _wheel_fit_finding(plan: RunPlan, fit, indices: list[int], wheels: list) -> 
         f"{fit.load:.4g} N; {WHEEL_FIT_TOLERANCE:.0%} either way is taken for it): its fitted keys compensate SCM's "
         f"errors for that wheel; {remedy}",
         setting,
+    )
+
+
+def wheel_bounce(plan: RunPlan, wheel, rim_speed: float) -> tuple[float, float, float]:
+    """(omega [rad/s], mass [kg], impact speed [m/s]) of a wheel (a WheelPlan) bouncing on one grain of the
+    DEM: the largest grain (its Hertz contact the stiffest) held as a wall under the wheel's share of the load
+    as a mass (the testbed's mass, a rover's mass over its wheels), struck at a fall of one grain diameter (the
+    wheel starts on the grains' tops, which straddle the surface by about that) plus `rim_speed` [m/s] (the
+    grousers strike grains at it), omega = 2 / soil.advisor.hertz_impact(...).critical_step (the tangent
+    stiffness at the impact's deepest overlap); omega nan without gravity or a known mass."""
+    from soil.materials import pair_properties
+
+    mass = plan.testbed.mass if plan.rover is None and plan.testbed is not None else math.nan
+    if plan.rover is not None:
+        mass = plan.rover.mass / len(plan.wheels or (plan.wheel,))
+    spec, g = plan.bed.spec, plan.g
+    speed = math.sqrt(2.0 * g * 2.0 * spec.radius_mean) + rim_speed
+    if not (g > 0 and mass > 0 and math.isfinite(mass) and speed > 0):
+        return math.nan, mass, speed
+    e_star = pair_properties(plan.soil_material, wheel.material).effective_modulus
+    impact = advisor.hertz_impact(e_star, spec.radius_max, mass, speed)
+    return 2.0 / impact.critical_step, mass, speed
+
+
+def _dem_bounce_finding(plan: RunPlan, wheels, rim_speed: float) -> Finding | None:
+    """coupling_step: the macro step H against the DEM wheels' bounce on a grain (`wheel_bounce`; the
+    stiffest wheel), omega H <= DEM_BOUNCE_LIMIT; None without gravity or a known mass (an FMU rover that
+    does not say its mass)."""
+    omega, mass, speed = max((wheel_bounce(plan, w, rim_speed) for w in wheels), key=lambda b: b[0])
+    if not math.isfinite(omega):
+        return None
+    phase, step = omega * plan.macro_step, plan.macro_step
+    longest = _three_digits_down(DEM_BOUNCE_LIMIT / omega)
+    what = (
+        f"the macro step {step:.4g} s is omega H = {phase:.4g} rad of the wheel's bounce on a grain (omega "
+        f"{omega:.4g} rad/s: {mass:.3g} kg of load per wheel on one Hertz contact struck at {speed:.3g} m/s)"
+    )
+    if longest >= plan.dt:
+        remedy = f"set run.macro_step <= {longest:.3g} s"
+    else:  # not even one DEM step resolves it
+        remedy = f"not even one DEM step ({plan.dt:.3g} s) resolves it: load the wheel more, or soften the soil"
+    return _finding(
+        "coupling_step",
+        phase,
+        DEM_BOUNCE_LIMIT,
+        phase <= DEM_BOUNCE_LIMIT,
+        f"{what}: <= {DEM_BOUNCE_LIMIT:g} rad",
+        f"{what}, above {DEM_BOUNCE_LIMIT:g} rad: the soil moves the wheel as if it were infinitely heavy for a "
+        "macro step, so the exchange does not resolve its bounce and the wheel can gain energy at each (a light "
+        f"wheel bounces off the soil); {remedy}",
+        "run.macro_step, run.substeps",
+        "rad",
     )
 
 

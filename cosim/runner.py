@@ -428,11 +428,19 @@ class Runner:
             log.info("landed at t = %.4g s; driving for %.4g s", record.time, self.plan.scene.run.duration)
         elif self.system.coupler.step_count >= landing.max_steps:
             self.landing_failed = True
+            what = "wheel" if self.plan.rover is None else "rover"
+            if touching:
+                advice = "raise landing.max_time, or lighten it if it keeps sinking"
+            else:  # off the soil at the end: bouncing, which a longer landing does not cure
+                advice = (
+                    f"the {what} was off the soil at the end, bouncing: a macro step that does not resolve a "
+                    "wheel's bounce lets it gain energy at each; see the coupling_step finding (cosim advise)"
+                )
             log.warning(
-                "the %s was not at rest on the soil after landing.max_time = %g s (raise landing.max_time, "
-                "or lighten it if it keeps sinking)",
-                "wheel" if self.plan.rover is None else "rover",
+                "the %s was not at rest on the soil after landing.max_time = %g s (%s)",
+                what,
                 self.plan.scene.landing.max_time,
+                advice,
             )
 
     def _snapshot(self) -> None:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 import warnings
 
 import numpy as np
@@ -318,3 +319,43 @@ def test_constant_drives_name_a_speed_or_torque_that_is_not_one_per_wheel():
         with pytest.raises(ValueError, match=rf"{name} must be one finite number \[.*\] or one per wheel \(4\)"):
             make(values, 4)
     assert ConstantSpeed(0.5, 3).speed.tolist() == [0.5] * 3 and ConstantTorque([1, 2], 2).torque.tolist() == [1, 2]
+
+
+@pytest.mark.parametrize("phase", [1.9, 2.1])
+def test_an_explicit_exchange_of_a_mass_on_a_spring_is_stable_to_two_radians_a_step(phase):
+    """A wheel of mass m on a linear spring k (no damping, no friction), exchanged Gauss-Seidel: the soil
+    averages -k z over the wheel's constant-velocity path, the rig moves exactly under that held force. With
+    w = omega H (omega^2 = k / m), the step maps (dz, dv H) by A = [[1 - w^2/2, 1 - w^2/4], [-w^2, 1 - w^2/2]]
+    (derived in docs/coupling.md): det A = 1, trace 2 - w^2, so its eigenvalues stay on the unit circle up to
+    w = 2 and beyond it one grows as |lambda| = (w^2 - 2 + w sqrt(w^2 - 4)) / 2 a step. The coupled sides
+    follow A to rounding; the DEM's coupling_step check (cosim.advice.DEM_BOUNCE_LIMIT) holds 2 rad for it."""
+    from cosim.single_wheel import SingleWheelRig
+
+    mass, k, r, g = 1.0, 1.0e4, 0.1, 9.81
+    omega = math.sqrt(k / mass)
+    h = phase / omega
+    rest, nudge = mass * g / k, 1e-9  # the rest sinkage [m] and a nudge that grows to 1/3 of it at most
+    soil = SpringDamperTerrain(r, 1, stiffness=k, damping=0.0, friction=0.0, substeps=4)
+    rig = SingleWheelRig(mass, r, 0.0, (0.0, 0.0, r - rest - nudge), gravity=(0.0, 0.0, -g))
+    coupler = Coupler(soil, rig, h, gravity=(0.0, 0.0, -g))
+    steps = 20
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", CouplingEnergyWarning)  # the unstable case creates energy, as it should
+        records = coupler.run(steps * h)
+    rec = stack_records(records)
+    deviation = np.c_[rec["position"][:, 0, 2] - (r - rest), rec["linear_velocity"][:, 0, 2] * h]
+    w2 = phase**2
+    step_map = np.array([[1 - w2 / 2, 1 - w2 / 4], [-w2, 1 - w2 / 2]])
+    expected = [np.array([-nudge, 0.0])]
+    for _ in range(steps):
+        expected.append(step_map @ expected[-1])
+    expected = np.array(expected[1:])
+    scale = np.abs(expected).max()
+    np.testing.assert_allclose(deviation, expected, atol=1e-6 * scale)
+    assert (rec["contact_count"] == 1).all()
+    growth = (np.abs(expected[-1]).max() / np.abs(expected[-3]).max()) ** 0.5  # two steps: A's sign flips
+    if phase < 2.0:
+        assert np.abs(deviation[:, 0]).max() < 20 * nudge  # bounded: det 1, eigenvalues on the unit circle
+    else:
+        lam = (w2 - 2 + phase * math.sqrt(w2 - 4)) / 2
+        assert growth == pytest.approx(lam, rel=0.02) and np.abs(deviation[-1, 0]) > 1e4 * nudge

@@ -483,3 +483,51 @@ def test_a_milli_g_fill_is_not_called_settled_before_it_has_fallen(tmp_path):
         own.bed.spec, own.gravity, device="cpu", dt=own.bed.settle_dt, ke_ratio=own.bed.settle_ke_ratio
     )
     assert report["settled"], report
+
+
+@pytest.mark.parametrize("macro_step", [0.0017, 0.0272])
+def test_a_macro_step_that_does_not_resolve_the_wheel_s_bounce_on_a_grain_is_flagged_and_gains_energy(
+    tmp_path, tiny_bed, caplog, macro_step
+):
+    """coupling_step on the DEM: a 10 g wheel on the tiny scene's bed, whose bounce on one grain (omega^2 =
+    2 E* sqrt(R delta) / m at the deepest overlap of a Hertz impact, the largest grain held as a wall, struck
+    at a fall of one grain diameter: computed here from Hertz's closed form) takes 0.70 rad of a 1.7 ms macro
+    step and 11 rad of a 27.2 ms one. The first is valid, and the wheel lands: it never rises faster than it
+    fell (the contacts dissipate). The second is flagged, naming the macro step that passes, and the exchange
+    hands the wheel energy: it rises faster than it fell onto the soil and never comes to rest, and the run
+    says it was bouncing (it used to advise lightening the wheel)."""
+    import h5py
+
+    from cosim.launch import run_scene
+    from helpers import effective_modulus, hertz_impact_overlap
+
+    overrides = {"testbed.mass": 0.01, "run.macro_step": macro_step, "landing.max_time": 0.8, "run.duration": 0.03}
+    scene = write_tiny(tmp_path)
+    plan = load_plan(scene, overrides)
+    mass, spec = 0.01, plan.bed.spec
+    speed = math.sqrt(2 * plan.g * 2 * spec.radius_mean) + plan.testbed.omega * plan.wheel.outer_radius
+    e_star = effective_modulus(plan.soil_material, plan.wheel.material)
+    deepest = hertz_impact_overlap(mass, speed, e_star, spec.radius_max)
+    omega = math.sqrt(2 * e_star * math.sqrt(spec.radius_max * deepest) / mass)
+    finding = _found(validity(plan, 0.0))["coupling_step"]
+    assert finding.value == pytest.approx(omega * macro_step, rel=1e-9) and finding.unit == "rad"
+    assert finding.ok == (omega * macro_step <= 2.0)
+    if not finding.ok:
+        named = float(finding.message.split("set run.macro_step <= ")[1].split(" s")[0])
+        assert (
+            named <= 2.0 / omega < named * 1.01
+            and _found(validity(load_plan(scene, {**overrides, "run.macro_step": named}), 0.0))["coupling_step"].ok
+        )
+
+    out = tmp_path / "run"
+    result = run_scene(
+        scene, str(out), overrides=[f'bed.bed_file="{tiny_bed}"'] + [f"{k}={v}" for k, v in overrides.items()]
+    )
+    with h5py.File(out / "results.h5") as f:
+        vz = f["wheels/linear_velocity"][:, 0, 2]
+    fell, rose = -vz.min(), vz.max()
+    if finding.ok:
+        assert result.summary["landing_time"] is not None and rose < fell
+    else:
+        assert result.summary["steady_state"] == "no landing" and rose > 2 * fell
+        assert "off the soil at the end, bouncing" in caplog.text
