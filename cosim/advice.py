@@ -51,9 +51,9 @@ OVERLAP_RATIO = 0.01
 """Largest static overlap / radius the stiffness should allow (eq. 10's u) [-]."""
 DEM_BOUNCE_LIMIT = 2.0
 """Largest macro step for a wheel on the DEM as the phase of its bounce on one grain, omega H [rad]:
-an explicit exchange of a mass on a linear spring is stable up to 2 rad (tests/test_coupler.py); on the
-tiny scene's bed a wheel gained energy at each bounce from 3.4 rad and landed up to 2.7 rad (docs/
-validity.md, "The coupling step")."""
+Gauss-Seidel's exchange of a mass on a linear spring is stable up to 2 rad (tests/test_coupler.py); on
+the tiny scene's bed a wheel landed up to 3.5 rad by this measure and gained energy at each bounce from
+4.4 rad (docs/validity.md, "The coupling step")."""
 
 
 @dataclass(frozen=True)
@@ -789,10 +789,12 @@ def _wheel_fit_finding(plan: RunPlan, fit, indices: list[int], wheels: list) -> 
 def wheel_bounce(plan: RunPlan, wheel, rim_speed: float) -> tuple[float, float, float]:
     """(omega [rad/s], mass [kg], impact speed [m/s]) of a wheel (a WheelPlan) bouncing on one grain of the
     DEM: the largest grain (its Hertz contact the stiffest) held as a wall under the wheel's share of the load
-    as a mass (the testbed's mass, a rover's mass over its wheels), struck at a fall of one grain diameter (the
-    wheel starts on the grains' tops, which straddle the surface by about that) plus `rim_speed` [m/s] (the
-    grousers strike grains at it), omega = 2 / soil.advisor.hertz_impact(...).critical_step (the tangent
-    stiffness at the impact's deepest overlap); omega nan without gravity or a known mass."""
+    as a mass (the testbed's mass, a rover's mass over its wheels: a rigid rover's heave; a sprung wheel's
+    own mass is less), struck at a fall of one grain diameter (the wheel starts on the grains' tops, which
+    straddle the surface by about that) plus `rim_speed` [m/s] (the grousers strike grains at it), omega =
+    2 / soil.advisor.hertz_impact(...).critical_step (the tangent stiffness at the impact's deepest overlap).
+    A measure calibrated on the DEM (docs/validity.md, "The coupling step"), not a bound: a wheel resting
+    on several grains held as walls is stiffer, the grains' own give softer. omega nan without gravity."""
     from soil.materials import pair_properties
 
     mass = plan.testbed.mass if plan.rover is None and plan.testbed is not None else math.nan
@@ -809,8 +811,8 @@ def wheel_bounce(plan: RunPlan, wheel, rim_speed: float) -> tuple[float, float, 
 
 def _dem_bounce_finding(plan: RunPlan, wheels, rim_speed: float) -> Finding | None:
     """coupling_step: the macro step H against the DEM wheels' bounce on a grain (`wheel_bounce`; the
-    stiffest wheel), omega H <= DEM_BOUNCE_LIMIT; None without gravity or a known mass (an FMU rover that
-    does not say its mass)."""
+    stiffest wheel), omega H <= DEM_BOUNCE_LIMIT; None without gravity. The remedy names the key the scene
+    sets H by (run.substeps, or run.macro_step: a whole number of a given run.dt)."""
     omega, mass, speed = max((wheel_bounce(plan, w, rim_speed) for w in wheels), key=lambda b: b[0])
     if not math.isfinite(omega):
         return None
@@ -820,10 +822,16 @@ def _dem_bounce_finding(plan: RunPlan, wheels, rim_speed: float) -> Finding | No
         f"the macro step {step:.4g} s is omega H = {phase:.4g} rad of the wheel's bounce on a grain (omega "
         f"{omega:.4g} rad/s: {mass:.3g} kg of load per wheel on one Hertz contact struck at {speed:.3g} m/s)"
     )
-    if longest >= plan.dt:
-        remedy = f"set run.macro_step <= {longest:.3g} s"
-    else:  # not even one DEM step resolves it
+    run = plan.scene.run
+    substeps = math.floor(DEM_BOUNCE_LIMIT / (omega * plan.dt) * (1.0 + 1e-9))  # at the DEM step as it is
+    if substeps < 1:
         remedy = f"not even one DEM step ({plan.dt:.3g} s) resolves it: load the wheel more, or soften the soil"
+    elif run.macro_step is None:
+        remedy = f"set run.substeps <= {substeps}"
+    elif run.dt is not None:  # H a whole number of the given steps
+        remedy = f"set run.macro_step <= {substeps * plan.dt:.6g} s ({substeps} x run.dt)"
+    else:  # the DEM step shrinks to make H whole
+        remedy = f"set run.macro_step <= {longest:.3g} s"
     return _finding(
         "coupling_step",
         phase,

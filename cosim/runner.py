@@ -40,7 +40,7 @@ from .output import ResultsWriter
 from .plan import RunPlan
 from .single_wheel import PHASE_LANDING
 from .stop_signals import SIGNAL_WORDS
-from .system import CoupledSystem, needs_bed
+from .system import CoupledSystem, needs_bed, validity
 from .vtkhdf import write_vtkhdf
 
 log = logging.getLogger(__name__)
@@ -429,12 +429,18 @@ class Runner:
         elif self.system.coupler.step_count >= landing.max_steps:
             self.landing_failed = True
             what = "wheel" if self.plan.rover is None else "rover"
-            if touching:
-                advice = "raise landing.max_time, or lighten it if it keeps sinking"
-            else:  # off the soil at the end: bouncing, which a longer landing does not cure
+            advice = "raise landing.max_time, or lighten it if it keeps sinking"
+            if not touching:  # a wheel in the air: a bounce the macro step does not resolve gains energy
+                unresolved = [
+                    f
+                    for f in validity(self.plan, self.system.soil.surface_height)
+                    if f.check in ("coupling_step", "scm_coupling_step") and not f.ok
+                ]
+                off = "a wheel was off the soil at the end"
                 advice = (
-                    f"the {what} was off the soil at the end, bouncing: a macro step that does not resolve a "
-                    "wheel's bounce lets it gain energy at each; see the coupling_step finding (cosim advise)"
+                    f"{off}, bouncing: {unresolved[0].check}: {unresolved[0].message}"
+                    if unresolved
+                    else f"{off}; {advice}"
                 )
             log.warning(
                 "the %s was not at rest on the soil after landing.max_time = %g s (%s)",

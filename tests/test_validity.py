@@ -531,3 +531,31 @@ def test_a_macro_step_that_does_not_resolve_the_wheel_s_bounce_on_a_grain_is_fla
     else:
         assert result.summary["steady_state"] == "no landing" and rose > 2 * fell
         assert "off the soil at the end, bouncing" in caplog.text
+
+
+@pytest.mark.parametrize(
+    "timing, key",
+    [
+        ({"run.macro_step": None, "run.substeps": 400}, "run.substeps"),  # H = substeps x dt
+        ({"run.dt": 1e-4, "run.macro_step": 0.04}, "run.macro_step"),  # H a whole number of the given dt
+        ({"run.macro_step": 0.04}, "run.macro_step"),  # dt shrinks to make H whole
+    ],
+)
+def test_coupling_step_names_the_longest_step_the_scene_s_own_key_accepts(tmp_path, timing, key):
+    """A failed coupling_step names the value of the key the scene sets its macro step by: run.substeps
+    where it gives them, a whole number of run.dt where it gives that (another value is refused as a
+    scene), else run.macro_step. The named value is accepted, passes, and one DEM step more fails."""
+    scene = write_tiny(tmp_path)
+    base = {"testbed.mass": 0.01, "output.checkpoint_interval": 0.1, "output.snapshot_interval": 0.1, **timing}
+
+    def judged(**changes):
+        return _found(validity(load_plan(scene, {**base, **changes}), 0.0))["coupling_step"]
+
+    finding = judged()
+    assert not finding.ok
+    named = finding.message.split(f"set {key} <= ")[1].split(" ")[0]
+    if key == "run.substeps":
+        assert judged(**{key: int(named)}).ok and not judged(**{key: int(named) + 1}).ok
+    else:
+        plan = load_plan(scene, {**base, key: float(named)})
+        assert judged(**{key: float(named)}).ok and not judged(**{key: float(named) + plan.dt}).ok
