@@ -1230,3 +1230,21 @@ def test_the_error_bar_note_gives_each_replica_count_its_own_t_multiplier():
     assert "R = 1/3" in note and "+- 4.3 of these at R = 3" in note and "12.7" not in note, note
     assert "R < 2: the pooled fit's error alone, no interval between replicas" in note, note
     assert "R < 2" not in _error_bar_note({"n": [1.0, 1.1], "k_phi": [5.0, 5.5]})
+
+
+def test_the_shipped_calibrations_name_their_lab_and_start_files_beside_them():
+    """A shipped calibration records the files it came from relative to itself ([source] lab, [source.wheel]
+    start_file): each is a shipped file beside it, not the folder a fit happened to be written from (the
+    Phobos wheel fit of 2026-12-07 named '../code3/examples/terrain/...'); its DEM runs are a user's
+    runs/ folder (runs/ of the README's commands, from the repository's root)."""
+    folder = Path(__file__).resolve().parent.parent / "examples" / "terrain"
+    files = sorted(folder.glob("*.toml"))
+    assert len(files) >= 4
+    for path in files:
+        source = read_calibration(str(path)).source
+        wheel = source.get("wheel", {})
+        for key, named in (("lab", source.get("lab")), ("wheel.start_file", wheel.get("start_file"))):
+            if named is not None:
+                assert (folder / named).resolve().parent == folder and (folder / named).is_file(), (path.name, key)
+        if "runs" in wheel:
+            assert Path(wheel["runs"]).parts[:3] == ("..", "..", "runs"), (path.name, wheel["runs"])
