@@ -561,10 +561,11 @@ SCM_SINKAGE_GRAINS = 3.0
 the continuum's pressure-sinkage curve does not hold."""
 SCM_SLIP_LIMIT = 0.5
 """Highest slip for SCM [-]: beyond it the wheel digs in (soil flows round it, sinkage by slip) and the
-steady-state Bekker/Janosi model is outside the measured range: no SCM calibration, lab or wheel fit,
-has given the DEM's thrust at slip 0.6 (the wheel fits of 2026-12-07/08 -0.02..-0.03 W against the DEM's
-+0.22..+0.24; every fit before them +0.11..+0.16 against +0.24..+0.26), where the Phobos fit follows it
-at 0.4 (BENCHMARKS.md, "The steady window starts once the sinkage has settled"); 0.5 lies between."""
+steady-state Bekker/Janosi model is outside the measured range. At slip 0.6 the DEM's wheel digs in for
+the whole drive, and neither wheel fit to the DEM's 14 s tables gives its thrust (DP/W -0.02..-0.03
+against +0.22..+0.24; of the earlier fits, to 10 s tables, one agreed there and the rest gave
++0.003..+0.19 against +0.24..+0.26); at 0.4 the Phobos fit lies inside the DEM's interval (BENCHMARKS.md,
+"The steady window starts once the sinkage has settled"); 0.5 lies between."""
 SCM_BOUNCE_LIMIT = 2.0
 """Largest coupling step for SCM as the phase of a wheel's elastic bounce on the soil, omega_e H [rad]:
 the main job's forces are within 0.3 % of a fine step's up to 1 rad and 2-3 % off at 2 rad

@@ -288,6 +288,9 @@ def _print_summary(result, scm_only: bool = False) -> None:
             text = f"{value * scale:.4g}{bar}"
             if resolved and short_window(s, key) is not None:
                 short.append(f"{short_window(s, key):.0f}{' correlation times' if not short else ''} of {key}")
+        elif key == "window" and not all(isinstance(v, (int, float)) and math.isfinite(v) for v in value):
+            print(f"  {key:26s} none (no steady state: {s.get('steady_state', 'not measured')})")  # was 'nan .. nan s'
+            continue
         elif isinstance(value, list):
             text = (" .. " if key == "window" else ", ").join(
                 f"{(math.nan if v is None else v) * scale:.4g}" for v in value

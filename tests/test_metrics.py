@@ -317,6 +317,10 @@ def test_a_run_summary_prints_a_window_too_short_for_its_error_bar(capsys):
     _print_summary(SimpleNamespace(summary=held, status="done", out_dir="run"))
     printed = capsys.readouterr().out
     assert "  forward_speed              3.24 mm/s\n" in printed and "of forward_speed" not in printed, printed
+    # a run without a window (never landed) printed 'window nan .. nan s'; run.json's null reads the same
+    for window in ([math.nan, math.nan], [None, None]):
+        _print_summary(SimpleNamespace(summary={"steady_state": "no landing", "window": window}, status="", out_dir=""))
+        assert "  window                     none (no steady state: no landing)\n" in capsys.readouterr().out
 
 
 def test_an_ensemble_of_one_replica_is_not_judged():

@@ -423,3 +423,26 @@ def test_a_single_step_is_checked_as_advance_is():
     )
     with pytest.raises(SoilInputError, match=r"wheels must be a list of wheel shapes: \[GrouserWheel"):
         ScmTerrain(parameters(), GrouserWheel(0.1, 0.04), window=(0.5, 0.2))
+
+
+@pytest.mark.parametrize("damage", ["missing", "shape"])
+def test_a_damaged_state_is_refused_naming_its_keys_before_anything_is_restored(damage):
+    """A state without one of its arrays was a bare KeyError ({'version': 2} alone: 'shape'), one of
+    another shape a terrain restored halfway; both are refused naming the key, the terrain unchanged."""
+    state = grousered_run(5, 0, resume=False).state_dict()
+    wheel = GrouserWheel(radius=0.08, width=0.04, grouser_count=12, grouser_height=0.006, grouser_thickness=0.003)
+    other = ScmTerrain(parameters(bulldozing=True), [wheel], window=(0.3, 0.1))
+    before = other.state_dict()
+    if damage == "missing":
+        with pytest.raises(SoilInputError, match=r"SCM state lacks shape, precision, time.*a damaged checkpoint"):
+            other.load_state_dict({"version": state["version"]})
+        damaged = {k: v for k, v in state.items() if k != "plastic"}
+        named = r"lacks plastic:"
+    else:
+        damaged = {**state, "sums": state["sums"][:-1]}
+        named = r"other shapes: sums \(\d+,"
+    with pytest.raises(SoilInputError, match=named):
+        other.load_state_dict(damaged)
+    assert all(np.array_equal(other.state_dict()[k], v) for k, v in before.items())
+    other.load_state_dict(state)  # the whole state still loads
+    assert other.time == pytest.approx(state["time"])

@@ -1240,11 +1240,15 @@ def test_the_shipped_calibrations_name_their_lab_and_start_files_beside_them():
     folder = Path(__file__).resolve().parent.parent / "examples" / "terrain"
     files = sorted(folder.glob("*.toml"))
     assert len(files) >= 4
+    fits = 0
     for path in files:
         source = read_calibration(str(path)).source
         wheel = source.get("wheel", {})
         for key, named in (("lab", source.get("lab")), ("wheel.start_file", wheel.get("start_file"))):
             if named is not None:
                 assert (folder / named).resolve().parent == folder and (folder / named).is_file(), (path.name, key)
-        if "runs" in wheel:
+        if wheel:  # a wheel fit records all three
+            assert {"start_file", "runs"} <= set(wheel) and isinstance(source.get("lab"), str), path.name
             assert Path(wheel["runs"]).parts[:3] == ("..", "..", "runs"), (path.name, wheel["runs"])
+            fits += 1
+    assert fits == 2  # the Phobos and the Earth twin wheel fits

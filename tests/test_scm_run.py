@@ -587,8 +587,9 @@ def test_the_advisor_says_where_scm_cannot_represent_the_run(tmp_path):
     measured = next(f for f in validity(plan, 0.0, {"slip": 0.75}) if f.check == "scm_slip")
     assert not measured.ok and "(measured)" in measured.message
     assert next(f for f in validity(plan, 0.0) if f.check == "scm_slip").ok
-    # the slips of a DP-slip study: 0.4, where the Phobos wheel fit follows the DEM's thrust, is SCM's; 0.6,
-    # where no calibration has given it (BENCHMARKS.md, the steady window's section), is the DEM's
+    # the slips of a DP-slip study: 0.4, where the Phobos wheel fit lies inside the DEM's interval, is SCM's;
+    # 0.6, where neither current wheel fit gives the DEM's thrust (BENCHMARKS.md, the steady window's
+    # section), is the DEM's
     for slip, ok in ((0.4, True), (0.6, False)):
         plan = load_plan(write_tiny(tmp_path, SCM), ['testbed.mode="slip"', f"testbed.slip={slip}"])
         assert next(f for f in validity(plan, 0.0) if f.check == "scm_slip").ok is ok, slip

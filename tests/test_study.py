@@ -860,7 +860,7 @@ SCM_EXAMPLE = os.path.join(os.path.dirname(__file__), "..", "examples", "phobos_
 FINE_SCM = ["bed.radius_mean=1.0e-3"]
 """The SCM main job on grains half as large (its sinkage is then over SCM's 3 grain diameters), driven
 its 14 s (2.5 grouser passages over the window; 4 s were too short): at slip 0.3 a valid scene, at slip
-0.8 over SCM's slip limit 0.6 (scm_slip)."""
+0.8 over SCM's slip limit (scm_slip)."""
 
 
 def _run_checks(folder) -> list[str] | None:

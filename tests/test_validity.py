@@ -168,7 +168,7 @@ def test_the_pid_s_contact_resolution_is_judged_on_the_substeps_it_takes():
 
 def test_a_slip_outside_the_wheel_fit_s_slips_is_flagged():
     """The wheel fit (examples/terrain/phobos_regolith_scm_wheel.toml) was fitted on DEM runs at slips
-    0.05 .. 0.6 ([source.wheel] slips): a towed wheel (slip 0) or a braked one was "ok" under |slip| <= 0.6.
+    0.05 .. 0.6 ([source.wheel] slips): a towed wheel (slip 0) or a braked one was "ok" under SCM's slip limit.
     A lab calibration records no slips and is not judged."""
     scm = EXAMPLES / "phobos_single_wheel_scm.toml"
     fit = "terrain.calibration='terrain/phobos_regolith_scm_wheel.toml'"
@@ -178,7 +178,7 @@ def test_a_slip_outside_the_wheel_fit_s_slips_is_flagged():
         found = _found(advice.scm_check(load_plan(scm, [fit, f"testbed.slip={slip}"])))["scm_calibration_slips"]
         assert found.ok == ok and found.value == slip, found.message
     braked = _found(advice.scm_check(load_plan(scm, [fit, "testbed.slip=-0.7"])))["scm_slip"]
-    assert not braked.ok and "|slip| > 0.6" in braked.message  # it said "slip -0.7 > 0.6"
+    assert not braked.ok and f"|slip| > {advice.SCM_SLIP_LIMIT}" in braked.message  # it said "slip -0.7 > 0.6"
     assert "scm_calibration_slips" not in _found(advice.scm_check(load_plan(scm)))
 
 

@@ -853,6 +853,17 @@ class ScmTerrain:
         """Restore a state_dict of a terrain built alike (same parameters, wheels, window, precision)."""
         if int(data.get("version", -1)) != STATE_VERSION:
             raise SoilInputError(f"SCM state version {data.get('version')!r} is not {STATE_VERSION}")
+        # every array a restore writes, present and of this terrain's shape, before anything is written (a
+        # missing key was a bare KeyError, a wrong shape a half-restored terrain)
+        arrays = {name: getattr(self._nodes, name) for name in _NODE_STATE}
+        arrays.update(clock=self._clock, origin=self._origin, boxes=self._boxes, totals=self._totals)
+        arrays.update(sums=self._sums, width=self._width, path=self._path)
+        scalars = ("shape", "precision", "time", "steps", "summed_steps", "path_start")
+        missing = [name for name in (*scalars, *arrays) if name not in data]
+        if missing:
+            raise SoilInputError(
+                f"SCM state lacks {', '.join(missing)}: a damaged checkpoint (a terrain's state_dict holds them all)"
+            )
         # a state written before it was kept (None) is judged by its window's shape alone
         spacing = float(data["node_spacing"]) if "node_spacing" in data else None
         if spacing is not None and spacing != self.parameters.node_spacing:
@@ -869,6 +880,13 @@ class ScmTerrain:
             )
         if np.asarray(data["path"]).shape != (self.wheel_count, PATH_COLUMNS):
             raise SoilInputError(f"SCM state has {len(data['path'])} wheels, this terrain has {self.wheel_count}")
+        wrong = [
+            f"{name} {np.shape(data[name])} (this terrain's {tuple(array.shape)})"
+            for name, array in arrays.items()
+            if np.shape(data[name]) != tuple(array.shape)
+        ]
+        if wrong:
+            raise SoilInputError(f"SCM state's arrays are of other shapes: {', '.join(wrong)}: a damaged checkpoint")
         if "soil" in data:  # a state written before the soil was kept is not judged on it
             kept = np.asarray(data["soil"], dtype=np.float64)
             now = [float(getattr(self.parameters, name)) for name in _SOIL_STATE]
