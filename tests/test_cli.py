@@ -219,7 +219,8 @@ def test_resume_of_a_complete_run_does_nothing(cli_run, capsys):
 
 def test_resume_of_a_finished_run_prints_what_was_not_measured_as_nan(cli_run, capsys, tmp_path):
     """run.json holds null for what was not measured (strict JSON): a finished run resumed prints its summary
-    from there, and a run that never touched the soil (window [null, null]) was a TypeError, exit 1."""
+    from there, and a run that never touched the soil (window [null, null]) was a TypeError, exit 1; its
+    window prints as none, not 'nan .. nan s'."""
     import shutil
 
     _, out, code = cli_run
@@ -230,7 +231,7 @@ def test_resume_of_a_finished_run_prints_what_was_not_measured_as_nan(cli_run, c
     (folder / "run.json").write_text(json.dumps(info))
     assert main(["resume", str(folder), "--no-progress"]) == code
     printed = capsys.readouterr().out
-    assert re.search(r"window +nan \.\. nan s", printed) and re.search(r"slip +nan", printed), printed
+    assert re.search(r"window +none \(no steady state: ", printed) and re.search(r"slip +nan", printed), printed
 
 
 def test_no_library_chatter_on_the_output():
