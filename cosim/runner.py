@@ -45,6 +45,12 @@ from .vtkhdf import write_vtkhdf
 
 log = logging.getLogger(__name__)
 
+LANDING_FLICKER = 3.0
+"""How far the hub's heights over a landing's hold may spread, in multiples of the drift it allows [-]:
+grains rearranging under a wheel at rest move it (the tiny scene's coarse grains: 2.2 x where the main
+job's stay within 1 x); a wheel bouncing on the soil while it touches it spreads them more (6.4 x at a
+restitution of 0.999, which the drift between the hold's two ends alone took for a landing)."""
+
 CHECK_EVERY = 10
 """Macro steps between full health checks of the soil (SoilSide.check_health)."""
 
@@ -409,9 +415,10 @@ class Runner:
 
     def _landing(self, record: MacroStepRecord) -> None:
         """The wheel has landed when, over the last `hold_steps` macro steps, it touched the soil at
-        every step and its hubs sank by less than speed_limit x the hold time (grains rearranging
-        under it make the vertical speed flicker, so the drift over the window is the criterion).
-        Then the drive starts."""
+        every step, its hubs sank by less than speed_limit x the hold time (grains rearranging under it
+        make the vertical speed flicker, so the drift over the window is the criterion) and their
+        heights over the window spanned less than LANDING_FLICKER times that (a wheel bouncing on the
+        soil while touching it can meet the drift at the window's two ends). Then the drive starts."""
         landing = self.plan.landing
         touching = all(w.contact_count > 0 for w in record.wrenches)
         self.rest_heights = (self.rest_heights + [min(k.position[2] for k in record.kinematics)]) if touching else []
@@ -420,6 +427,7 @@ class Runner:
         if (
             len(self.rest_heights) > landing.hold_steps
             and abs(self.rest_heights[-1] - self.rest_heights[0]) < landing.speed_limit * hold_time
+            and max(self.rest_heights) - min(self.rest_heights) < LANDING_FLICKER * landing.speed_limit * hold_time
         ):
             rover = self.system.rover
             rover.start_drive()

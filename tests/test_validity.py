@@ -559,3 +559,24 @@ def test_coupling_step_names_the_longest_step_the_scene_s_own_key_accepts(tmp_pa
     else:
         plan = load_plan(scene, {**base, key: float(named)})
         assert judged(**{key: float(named)}).ok and not judged(**{key: float(named) + plan.dt}).ok
+
+
+def test_a_wheel_bouncing_on_the_soil_while_touching_it_has_not_landed(tmp_path):
+    """On a nearly elastic soil (restitution 0.999) the tiny scene's wheel bounced while it kept touching the
+    grains; its hub was back at the same height at the two ends of the landing's hold, which alone was taken
+    for a landing: the drive began with the wheel in the air ('airborne', landing sinkage -4.0 mm, the rim
+    above the surface). Its heights over the hold spread 6.4 times the drift allowed; at rest they spread
+    less than cosim.runner.LANDING_FLICKER times it. Now it lands in the soil and drives on it."""
+    import h5py
+
+    from cosim.launch import run_scene
+
+    out = tmp_path / "run"
+    result = run_scene(write_tiny(tmp_path), str(out), overrides=["soil.restitution=0.999"])
+    summary = result.summary
+    assert summary["landing_time"] is not None and summary["landing_sinkage"] > 0, summary
+    assert summary["steady_state"] != "airborne", summary
+    with h5py.File(out / "results.h5") as f:
+        driving = f["wheels/phase"][:] == 1
+        contacts = f["wheels/contact_count"][:, 0][driving]
+    assert (contacts[:10] > 0).all(), contacts[:10]  # on the soil from the drive's start
