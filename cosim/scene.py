@@ -842,7 +842,8 @@ class LandingSection(_Section):
     max_time: float = Field(30.0, gt=0)
     """Longest landing phase [s] (simulated); a wheel not at rest by then ends the run 'no landing'."""
     speed_ratio: float = Field(0.02, gt=0)
-    """At rest when the hub sinks at less than speed_ratio * sqrt(|g| r) on average [-] ..."""
+    """At rest when the hub sinks at less than speed_ratio * sqrt(|g| r) on average (its heights over the hold
+    spreading less than 3 x that drift: cosim.runner.LANDING_FLICKER) [-] ..."""
     hold_time: float | None = Field(None, gt=0)
     """... over this long [s], touching the soil all the while; default sqrt(r / |g|) (r: wheel outer radius)."""
 
